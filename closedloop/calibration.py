@@ -1,0 +1,416 @@
+"""Calibrate: from a robot model, a joint log and loops to calibrated parameters.
+
+Pipeline (thesis 3.2, 4.2, with the noise treated as errors in variables):
+
+1. Build the problem (robot parameters of the loops' joints + loop parameters)
+   and initialise unknown closures from the data.
+2. Select parameters (patterns, ``fix``), check the data (joints that never
+   move, loop mobility, enough equations).
+3. Remove structural redundancies on the data projected onto closure; fix a
+   length if the loops cannot see the overall size (3.3) and one scale factor
+   if all are free (4.2.2).
+4. Weight each configuration's closure error by the inverse of its covariance
+   propagated from the joint-reading noise, W_i = J_theta,i Sigma J_theta,i^T
+   (the implicit-loop method of Wampler, Hollerbach & Arai 1995), and solve
+   by Levenberg-Marquardt with noise-aware SVD truncation (eq. 3.17, 4.2.6).
+5. Report: values, standard errors from the whitened Jacobian, directions the
+   data do not determine, residuals before/after, a chi-square test.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .data import JointLog
+from .errors import LogError, LoopError, NotIdentifiableError, ParameterError
+from .identifiability import (Combination, Dropped, greedy_reduction, length_gauge, loop_mobility,
+                              weak_directions)
+from .loops.base import Loop
+from .parameters import match
+from .problem import BlockEval, CalibrationProblem, LoopBlock
+from .robot import RobotModel
+from .solver import SolverOptions, levenberg_marquardt, rms
+
+log = logging.getLogger(__name__)
+
+DEFAULT_IDENTIFY = {"urdf": ["placement", "offset", "loop"], "mjcf": ["placement", "offset", "loop"],
+                    "dh": ["theta_off", "s", "a", "alpha", "loop"]}
+MIN_RANGE = 1e-6  # a joint whose readings span less than this never moves
+
+
+@dataclass
+class CalibrationOptions:
+    """What to identify and how.
+
+    identify: parameter patterns (``placement``, ``offset``, ``scale``,
+      ``loop``, or globs such as ``panda_joint[2-7].*``); None for the defaults
+      (URDF: placement, offset, loop; D-H: theta_off, s, a, alpha, loop).
+    fix: name -> value (None keeps the current value) of parameters held fixed.
+    noise: joint-reading standard deviation (rad, or m for prismatic joints),
+      one number or per joint; None estimates one level from the residual.
+    weighting: 'noise' (errors in variables, default) or 'none' (the thesis's
+      plain loop-closure least squares).
+    """
+
+    identify: list[str] | None = None
+    fix: dict[str, float | None] = field(default_factory=dict)
+    noise: float | dict[str, float] | None = None
+    weighting: str = "noise"
+    snr: float = 1.0
+    max_iter: int = 100
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
+    priors: dict | None = None
+    initial: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class LoopResiduals:
+    loop: str
+    n: int
+    rms_m: float | None
+    max_m: float | None
+    rms_rad: float | None
+    max_rad: float | None
+
+
+@dataclass
+class CalibrationResult:
+    """Everything a report needs; `values` are absolute parameter values."""
+
+    problem: CalibrationProblem
+    names: list[str]
+    initial: np.ndarray
+    values: np.ndarray
+    std: np.ndarray  # NaN where not estimated or not identifiable
+    status: list[str]  # 'estimated' | 'fixed' | 'dropped' | 'unidentifiable' | 'not selected'
+    dropped: list[Dropped]
+    weak: list[Combination]
+    singular_values: np.ndarray
+    rank: int
+    residuals_before: list[LoopResiduals]
+    residuals_after: list[LoopResiduals]
+    iterations: int
+    solver_status: str
+    solver_message: str
+    sigma: float  # joint noise level (given, or estimated)
+    sigma_estimated: bool
+    chi2: float
+    dof: int
+    notes: list[str]
+    covariance: np.ndarray  # over estimated parameters (order: `estimated`)
+    estimated: list[int]
+
+    @property
+    def converged(self) -> bool:
+        return self.solver_status == "converged"
+
+    def value(self, name: str) -> float:
+        return float(self.values[self.names.index(name)])
+
+    def as_dict(self) -> dict[str, float]:
+        return dict(zip(self.names, map(float, self.values)))
+
+
+# --------------------------------------------------------------------------- setup
+def build_problem(robot: RobotModel, log_: JointLog, loops: list[Loop], priors: dict | None = None
+                  ) -> CalibrationProblem:
+    """The problem for `loops` over `log_`; checks frames, joints and row assignment."""
+    if not loops:
+        raise LoopError("no loop given: say how the chain is closed (e.g. --loop weld:frame=tool)")
+    names = [lp.name for lp in loops]
+    if len(set(names)) != len(names):
+        raise LoopError(f"duplicate loop names: {names}")
+    joints: list[str] = []
+    for lp in loops:
+        for f in (lp.frame_a, lp.frame_b):
+            try:
+                robot.frame_id(f)
+            except Exception as exc:
+                raise LoopError(f"loop '{lp.name}': {exc}") from None
+            for j in robot.supporting_joints(f):
+                if j not in joints:
+                    joints.append(j)
+    order = {n: i for i, n in enumerate(robot.joint_names)}
+    joints.sort(key=lambda n: order[n])
+    if not joints:
+        raise LoopError("no movable joint lies between the loops' frames and the base")
+    theta = log_.columns(joints)
+    blocks = []
+    for lp in loops:
+        if log_.loop is not None:
+            rows = np.flatnonzero(log_.loop == lp.name)
+            if rows.size == 0:
+                raise LogError(f"{log_.source}: no row has loop '{lp.name}' in its 'loop' column")
+        else:
+            rows = np.arange(len(log_))
+        blocks.append(LoopBlock(lp, theta[rows], rows + 1))
+    return CalibrationProblem(robot, joints, blocks, priors)
+
+
+def _noise_vector(problem: CalibrationProblem, noise) -> tuple[np.ndarray, bool]:
+    """Per-joint noise std and whether it is known."""
+    n = len(problem.joints)
+    if noise is None:
+        return np.ones(n), False
+    if isinstance(noise, dict):
+        unknown = set(noise) - set(problem.joints)
+        if unknown:
+            raise ParameterError(f"noise given for unknown joint(s) {sorted(unknown)}")
+        default = noise.get("*", None)
+        missing = [j for j in problem.joints if j not in noise and default is None]
+        if missing:
+            raise ParameterError(f"noise: no level for joint(s) {missing} (give '*' as a default)")
+        vec = np.array([noise.get(j, default) for j in problem.joints], dtype=float)
+    else:
+        vec = np.full(n, float(noise))
+    if np.any(~np.isfinite(vec)) or np.any(vec <= 0):
+        raise ParameterError("noise levels must be positive and finite")
+    return vec, True
+
+
+def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian: bool = True):
+    """Stack residuals (and Jacobians) whitened by W_i^-1/2, W_i = Jq Sigma Jq^T."""
+    rs, Js = [], []
+    for ev in evals:
+        r, J = ev.r, ev.J
+        if weighting == "noise" and ev.Jq is not None:
+            Jq = ev.Jq * sigma_q[None, None, :]
+            W = Jq @ np.swapaxes(Jq, 1, 2)
+            m = W.shape[1]
+            tr = np.trace(W, axis1=1, axis2=2)[:, None, None] / m
+            W = W + (1e-10 * tr + 1e-30) * np.eye(m)
+            lam, V = np.linalg.eigh(W)
+            Winv_half = (V / np.sqrt(lam)[:, None, :]) @ np.swapaxes(V, 1, 2)
+            r = np.einsum("nij,nj->ni", Winv_half, r)
+            if jacobian:
+                J = Winv_half @ J
+        rs.append(r.ravel())
+        if jacobian:
+            Js.append(J.reshape(-1, J.shape[-1]))
+    r = np.concatenate(rs) if rs else np.zeros(0)
+    J = np.vstack(Js) if jacobian and Js else None
+    return r, J
+
+
+def residual_stats(problem: CalibrationProblem, evals: list[BlockEval]) -> list[LoopResiduals]:
+    out = []
+    for b, ev in zip(problem.blocks, evals):
+        lp = b.loop
+        t = ev.r[:, list(lp.translation_rows)] if lp.translation_rows else None
+        w = ev.r[:, list(lp.rotation_rows)] if lp.rotation_rows else None
+        tn = np.linalg.norm(t, axis=1) if t is not None else None
+        wn = np.linalg.norm(w, axis=1) if w is not None else None
+        out.append(LoopResiduals(lp.name, ev.r.shape[0],
+                                 float(np.sqrt(np.mean(tn ** 2))) if tn is not None else None,
+                                 float(tn.max()) if tn is not None else None,
+                                 float(np.sqrt(np.mean(wn ** 2))) if wn is not None else None,
+                                 float(wn.max()) if wn is not None else None))
+    return out
+
+
+def project_to_closure(problem: CalibrationProblem, values: np.ndarray, iters: int = 8) -> list[np.ndarray]:
+    """Joint readings moved onto the closure manifold of the model at `values`.
+
+    Gauss-Newton on the readings, theta <- theta - pinv(J_theta) r, per
+    configuration.  Used only to make structural redundancies exact.
+    """
+    thetas = [b.theta.copy() for b in problem.blocks]
+    for _ in range(iters):
+        evals = problem.evaluate(values, True, thetas)
+        worst = 0.0
+        for k, ev in enumerate(evals):
+            step = np.einsum("nij,nj->ni", np.linalg.pinv(ev.Jq, rcond=1e-10), ev.r)
+            thetas[k] = thetas[k] - step
+            worst = max(worst, float(np.abs(ev.r).max()) if ev.r.size else 0.0)
+        if worst < 1e-13:
+            break
+    return thetas
+
+
+# --------------------------------------------------------------------------- main
+def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: CalibrationOptions | None = None,
+              progress: Callable[[str, int, float], None] | None = None) -> CalibrationResult:
+    """Identify the selected parameters; see the module docstring for the method."""
+    opt = options or CalibrationOptions()
+    if opt.weighting not in ("noise", "none"):
+        raise ParameterError(f"weighting must be 'noise' or 'none', not '{opt.weighting}'")
+    problem = build_problem(robot, log_, loops, opt.priors)
+    names = problem.names
+    P = len(names)
+    notes: list[str] = []
+    x0 = problem.nominal
+
+    # Unknown closures start from the nominal model's pose at the first configuration.
+    for bi, (b, sl) in enumerate(zip(problem.blocks, problem.loop_slices)):
+        if sl.stop > sl.start:
+            TA, TB = problem.loop_poses(x0, bi, b.theta[:1])
+            init = b.loop.initialize(TA, TB)
+            if init is not None:
+                x0[sl] = init
+    for n, v in opt.initial.items():
+        if n not in problem.index:
+            raise ParameterError(f"initial value for unknown parameter '{n}'")
+        x0[problem.index[n]] = v
+
+    # ---- selection
+    patterns = opt.identify if opt.identify is not None else DEFAULT_IDENTIFY[robot.kind]
+    loop_names = [p.name for p in problem.params if p.kind == "loop"]
+    pats = [q for q in patterns if q != "loop"]
+    selected = set(match(names, pats)) | (set(loop_names) if "loop" in patterns else set())
+    for q in pats:
+        if not match(names, [q]):
+            raise ParameterError(f"--identify {q}: matches no parameter of this problem")
+    status = ["not selected"] * P
+    for n in selected:
+        status[problem.index[n]] = "selected"
+    for n, v in opt.fix.items():
+        if n not in problem.index:
+            raise ParameterError(f"--fix {n}: no parameter of this problem has that name")
+        k = problem.index[n]
+        if v is not None:
+            x0[k] = v
+        status[k] = "fixed"
+    dropped: list[Dropped] = []
+
+    # ---- data checks: motion and mobility
+    theta_all = np.vstack([b.theta for b in problem.blocks])
+    ranges = theta_all.max(axis=0) - theta_all.min(axis=0)
+    for j, name in enumerate(problem.joints):
+        if ranges[j] < MIN_RANGE:
+            notes.append(f"joint {name} never moves in the data (range {ranges[j]:.2e}); its scale and "
+                         "the geometry it would reveal cannot be identified (Singularity 5)")
+            k = problem.rp.index[problem.rp._sensor_name(name, "scale")]
+            if status[k] == "selected":
+                status[k] = "dropped"
+                dropped.append(Dropped(names[k], "its joint never moves, so scale and offset are one"))
+    if np.all(ranges < MIN_RANGE):
+        raise NotIdentifiableError("no joint moves in the log: every configuration is the same pose, "
+                                   "so nothing can be identified")
+    evals0 = problem.evaluate(x0, True)
+    for b, ev in zip(problem.blocks, evals0):
+        mob, moves = loop_mobility(ev.Jq)
+        if mob == 0:
+            notes.append(f"loop {b.loop.name} is immobile (Lemma 4: J_theta has full column rank): "
+                         "the closed chain cannot move, so its configurations carry no new information")
+        for j, name in enumerate(problem.joints):
+            if not moves[j] and ranges[j] >= MIN_RANGE and np.any(np.abs(ev.Jq[:, :, j]) > 0):
+                notes.append(f"joint {name} is structurally immobile in loop {b.loop.name} "
+                             "(Lemma 6: no self-motion of the closed chain moves it)")
+
+    # ---- scale factors: k = 0 fits any data if all are free (4.2.2)
+    sc = [problem.rp.index[problem.rp._sensor_name(j, "scale")] for j in problem.joints]
+    if sc and all(status[k] == "selected" for k in sc):
+        k = sc[-1]
+        status[k] = "fixed"
+        notes.append(f"fixed {names[k]} = {x0[k]:g}: with every scale factor free, k = 0 fits any data "
+                     "(thesis 4.2.2)")
+
+    sigma_q, known = _noise_vector(problem, opt.noise)
+    free = [k for k in range(P) if status[k] == "selected"]
+    M = sum(b.theta.shape[0] * b.loop.dim for b in problem.blocks)
+    if not free:
+        raise NotIdentifiableError("no parameter is left to identify (all fixed or not selected)")
+    if M < len(free):
+        raise LogError(f"{log_.source}: {len(log_)} rows give {M} equations for {len(free)} selected "
+                       "parameters; log more configurations or identify fewer parameters")
+    scale = np.array([p.prior for p in problem.params])
+
+    # ---- structural reduction on closure-projected data
+    if progress:
+        progress("analysing", 0, 0.0)
+    thetas_c = project_to_closure(problem, x0)
+    evc = problem.evaluate(x0, True, thetas_c)
+    Jc = np.vstack([ev.J.reshape(-1, P) for ev in evc])
+    Cs = Jc[:, free] * scale[free]
+    length_mask = np.array([problem.params[k].scales_with_length != 0.0 and problem.params[k].kind != "loop"
+                            for k in free])
+    user_fixed_length = any(status[k] == "fixed" and problem.params[k].scales_with_length != 0.0 for k in range(P))
+    scale_free = all(b.loop.scale_free for b in problem.blocks)
+    if scale_free and not user_fixed_length and length_mask.any():
+        sdir = np.array([problem.params[k].scales_with_length for k in free]) / scale[free]
+        if length_gauge(Cs, sdir, length_mask):
+            cand = [i for i in range(len(free)) if length_mask[i]]
+            best = max(cand, key=lambda i: abs(sdir[i]))
+            k = free[best]
+            status[k] = "fixed"
+            notes.append(f"fixed {names[k]} = {x0[k]:g} to set the length scale: the loops close at any "
+                         "overall size (thesis 3.3)")
+            free = [f for f in free if f != k]
+            Cs = Jc[:, free] * scale[free]
+    order = sorted(range(len(free)), key=lambda i: (problem.params[free[i]].priority,
+                                                   -problem.params[free[i]].order
+                                                   if problem.params[free[i]].kind in ("placement", "dh")
+                                                   else problem.params[free[i]].order, free[i]))
+    kept_local, drop = greedy_reduction(Cs, [names[k] for k in free], order)
+    for d in drop:
+        status[problem.index[d.name]] = "dropped"
+    dropped.extend(drop)
+    est = sorted(free[i] for i in kept_local)
+    for k in est:
+        status[k] = "estimated"
+    if drop:
+        log.info("dropped %d redundant parameters", len(drop))
+
+    # ---- solve
+    def fun(xe: np.ndarray, jac: bool):
+        x = x0.copy()
+        x[est] = xe
+        evals = problem.evaluate(x, jac)
+        r, J = whiten(evals, sigma_q, opt.weighting, jac)
+        return r, (J[:, est] if jac else None)
+
+    lower = upper = None
+    if opt.bounds:
+        lower = np.full(len(est), -np.inf)
+        upper = np.full(len(est), np.inf)
+        for n, (lo, hi) in opt.bounds.items():
+            if n not in problem.index:
+                raise ParameterError(f"bound for unknown parameter '{n}'")
+            k = problem.index[n]
+            if k in est:
+                lower[est.index(k)], upper[est.index(k)] = lo, hi
+    sopt = SolverOptions(max_iter=opt.max_iter, noise=(1.0 if known and opt.weighting == "noise" else None),
+                         snr=opt.snr, lower=lower, upper=upper)
+    res = levenberg_marquardt(fun, x0[est], scale[est], sopt,
+                              (lambda it, c: progress("solving", it, c)) if progress else None)
+    x = x0.copy()
+    x[est] = res.x
+    for b, sl in zip(problem.blocks, problem.loop_slices):
+        x[sl] = b.loop.normalize(x[sl])
+
+    # ---- final analysis at the solution
+    r, J = fun(res.x, True)
+    Js = J * scale[est]
+    U, S, Vt = np.linalg.svd(Js, full_matrices=False)
+    rank_num = int(np.sum(S > 1e-10 * S[0])) if S.size else 0
+    dof = max(r.size - rank_num, 1)
+    if known and opt.weighting == "noise":
+        sigma_r, sigma = 1.0, float(np.mean(sigma_q))
+    else:
+        sigma_r = rms(r, dof)
+        sigma = sigma_r * (float(np.mean(sigma_q)) if opt.weighting == "noise" else 1.0)
+    threshold = max(1e-10 * (S[0] if S.size else 0.0), opt.snr * sigma_r)
+    weak = weak_directions(S, Vt, threshold, [names[k] for k in est])
+    keep = S > threshold
+    Vk = Vt[keep].T
+    cov_s = (Vk / S[keep] ** 2) @ Vk.T * sigma_r ** 2
+    cov = cov_s * np.outer(scale[est], scale[est])
+    std = np.full(P, np.nan)
+    std[est] = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    for c in weak:
+        for n, _ in c.terms:
+            k = problem.index[n]
+            status[k] = "unidentifiable"
+            std[k] = np.nan
+    chi2 = float(r @ r) / (sigma_r ** 2 if not known else 1.0)
+    evals1 = problem.evaluate(x, False)
+    if res.status != "converged":
+        notes.append(f"solver: {res.message}")
+    return CalibrationResult(problem, names, x0, x, std, status, dropped, weak, S,
+                             int(keep.sum()), residual_stats(problem, evals0), residual_stats(problem, evals1),
+                             res.iterations, res.status, res.message, sigma, not known, chi2, dof, notes,
+                             cov, est)

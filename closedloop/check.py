@@ -1,0 +1,69 @@
+"""Compare a calibration report with simulation ground truth (`closedloop check`).
+
+Only parameters the report marks as estimated (identifiable) are compared;
+the others are listed as not compared, with their status.  Truth omits the
+parameters it did not perturb: their true value is their nominal (placement
+errors and offsets 0, scales 1, D-H values as in the model, i.e. the report's
+initial value).  A loop's rotation vector (rx, ry, rz) is compared as one
+rotation: the geodesic angle between the calibrated and the true rotation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+
+from .errors import InputError
+
+NOMINAL = {"placement": 0.0, "offset": 0.0, "scale": 1.0}
+
+
+def check_report(truth: dict, report: dict, tol_m: float, tol_rad: float, tol_scale: float):
+    """Rows of (name, true, calibrated, error, tol, result) and whether all compared rows pass."""
+    if "parameters" not in truth or not isinstance(truth["parameters"], dict):
+        raise InputError("truth file: expected a 'parameters' object of name: true value")
+    if "parameters" not in report or not isinstance(report["parameters"], list):
+        raise InputError("report file: expected a 'parameters' list (a closedloop report)")
+    true = truth["parameters"]
+    rep = {p["name"]: p for p in report["parameters"]}
+    unknown = [n for n in true if n not in rep]
+    rows = []
+    tol_by_unit = {"m": tol_m, "rad": tol_rad, "1": tol_scale}
+    done: set[str] = set()
+    for name, p in rep.items():
+        if name in done:
+            continue
+        if name in true:
+            tv = float(true[name])
+        elif p["kind"] in NOMINAL:
+            tv = NOMINAL[p["kind"]]
+        elif p["kind"] == "dh":
+            tv = float(p["initial"])
+        else:
+            continue  # a loop parameter the truth does not know
+        if p["status"] != "estimated":
+            if name in true:
+                rows.append(_row(name, tv, None, None, None, f"not compared ({p['status']})"))
+            continue
+        tol = tol_by_unit.get(p["unit"], tol_m)
+        if p["kind"] == "loop" and name.endswith(".rx"):
+            base = name[:-3]
+            trip = [f"{base}.{a}" for a in ("rx", "ry", "rz")]
+            if all(t in rep and t in true for t in trip) and all(rep[t]["status"] == "estimated" for t in trip):
+                rc = np.array([rep[t]["calibrated"] for t in trip])
+                rt = np.array([float(true[t]) for t in trip])
+                err = float(np.linalg.norm(pin.log3(pin.exp3(rc).T @ pin.exp3(rt))))
+                rows.append(_row(f"{base}.rotation", float(np.linalg.norm(rt)), float(np.linalg.norm(rc)), err, tol,
+                                 "ok" if err <= tol else "FAIL"))
+                done.update(trip)
+                continue
+        err = float(p["calibrated"]) - tv
+        rows.append(_row(name, tv, float(p["calibrated"]), err, tol, "ok" if abs(err) <= tol else "FAIL"))
+    for n in unknown:
+        rows.append(_row(n, float(true[n]), None, None, None, "not in report"))
+    ok = all(r["result"] != "FAIL" for r in rows) and any(r["result"] == "ok" for r in rows)
+    return rows, ok
+
+
+def _row(name, true, cal, err, tol, result):
+    return {"name": name, "true": true, "calibrated": cal, "error": err, "tol": tol, "result": result}

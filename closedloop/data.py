@@ -1,0 +1,112 @@
+"""Joint logs: CSV with a header naming joints, one row per configuration.
+
+Values are radians (metres for prismatic joints) unless ``degrees=True``.
+Extra columns are kept aside (``extra``) and ignored by the calibration; an
+optional ``loop`` column assigns each row to a loop by name.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import LogError
+
+
+@dataclass
+class JointLog:
+    """Joint readings of N configurations."""
+
+    joints: list[str]
+    angles: np.ndarray  # (N, len(joints))
+    source: Path | None = None
+    loop: np.ndarray | None = None  # (N,) loop name per row, or None
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return self.angles.shape[0]
+
+    def columns(self, names: list[str]) -> np.ndarray:
+        """Readings of `names` (N, len(names)); a missing name is a LogError."""
+        missing = [n for n in names if n not in self.joints]
+        if missing:
+            where = f"{self.source}: " if self.source else ""
+            raise LogError(f"{where}missing column(s) for loop joint(s) {', '.join(missing)}")
+        idx = [self.joints.index(n) for n in names]
+        return self.angles[:, idx]
+
+    def write_csv(self, path: str | Path) -> None:
+        """Write atomically in the same format."""
+        from .export import atomic_write_text
+
+        head = list(self.joints) + (["loop"] if self.loop is not None else []) + list(self.extra)
+        lines = [",".join(head)]
+        for i in range(len(self)):
+            row = [repr(float(v)) for v in self.angles[i]]
+            if self.loop is not None:
+                row.append(str(self.loop[i]))
+            row += [repr(float(self.extra[k][i])) for k in self.extra]
+            lines.append(",".join(row))
+        atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def read_log(path: str | Path, joint_names: list[str], degrees: bool = False,
+             linear: list[str] | tuple = ()) -> JointLog:
+    """Read a CSV log, keeping the columns that name joints of the model.
+
+    Every error names the file and, for bad values, the data row (1-based,
+    header excluded) and the column.
+    """
+    path = Path(path)
+    try:
+        with path.open(newline="") as fh:
+            rows = list(csv.reader(fh))
+    except OSError as exc:
+        raise LogError(f"{path}: cannot read log ({exc.strerror})") from None
+    except UnicodeDecodeError:
+        raise LogError(f"{path}: not a text CSV file") from None
+    rows = [r for r in rows if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
+    if not rows:
+        raise LogError(f"{path}: empty log (expected a header row naming joints)")
+    header = [h.strip() for h in rows[0]]
+    if len(set(header)) != len(header):
+        dup = sorted({h for h in header if header.count(h) > 1})
+        raise LogError(f"{path}: duplicate column(s) {', '.join(dup)}")
+    known = set(joint_names)
+    cols = [i for i, h in enumerate(header) if h in known]
+    if not cols:
+        raise LogError(f"{path}: no column names a joint of the model (header: {', '.join(header[:6])}...)")
+    loop_col = header.index("loop") if "loop" in header else None
+    extra_cols = [i for i, h in enumerate(header) if h not in known and i != loop_col]
+    data = rows[1:]
+    if not data:
+        raise LogError(f"{path}: no data rows after the header")
+    A = np.empty((len(data), len(cols)))
+    extra = {header[i]: np.full(len(data), np.nan) for i in extra_cols}
+    loops = []
+    for r, row in enumerate(data, start=1):
+        if len(row) != len(header):
+            raise LogError(f"{path}: row {r} has {len(row)} fields, the header has {len(header)}")
+        for k, c in enumerate(cols):
+            try:
+                v = float(row[c])
+            except ValueError:
+                raise LogError(f"{path}: row {r}, column '{header[c]}': '{row[c]}' is not a number") from None
+            if not np.isfinite(v):
+                raise LogError(f"{path}: row {r}, column '{header[c]}': value is {row[c].strip()}")
+            A[r - 1, k] = v
+        for c in extra_cols:
+            try:
+                extra[header[c]][r - 1] = float(row[c])
+            except ValueError:
+                pass  # extra columns are informational
+        if loop_col is not None:
+            loops.append(row[loop_col].strip())
+    names = [header[c] for c in cols]
+    if degrees:  # prismatic joints (`linear`) stay in metres
+        ang = [k for k, n in enumerate(names) if n not in set(linear)]
+        A[:, ang] = np.deg2rad(A[:, ang])
+    return JointLog(names, A, path, np.array(loops) if loop_col is not None else None, extra)

@@ -1,0 +1,70 @@
+"""The loop interface: a residual and its Jacobians, nothing else.
+
+A loop joins frame A and frame B of the robot model.  Given their poses
+T_A, T_B (world, per configuration) it returns
+
+* r      (N, m): the closure error,
+* dA, dB (N, m, 6): derivatives w.r.t. right perturbations of T_A and T_B
+  (T <- T exp6(delta), delta in the frame's LOCAL coordinates),
+* dp     (N, m, P): derivatives w.r.t. the loop's own parameters.
+
+The problem chains dA, dB with Pinocchio's frame Jacobians and kinematic
+regressors, so a loop knows nothing about the robot and the solver knows
+nothing about loops.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..parameters import Parameter
+
+
+@dataclass
+class LoopEval:
+    r: np.ndarray
+    dA: np.ndarray
+    dB: np.ndarray
+    dp: np.ndarray
+
+
+class Loop(ABC):
+    """A kinematic loop closure between two frames of one model."""
+
+    #: residual rows that are lengths (m); the others are angles (rad)
+    translation_rows: tuple[int, ...] = ()
+    rotation_rows: tuple[int, ...] = ()
+    #: True when the loop cannot tell the overall size of the robot (thesis 3.3)
+    scale_free: bool = True
+
+    def __init__(self, name: str, frame_a: str, frame_b: str = "universe"):
+        self.name = name
+        self.frame_a = frame_a
+        self.frame_b = frame_b
+
+    @property
+    @abstractmethod
+    def dim(self) -> int:
+        """Residual rows per configuration."""
+
+    @abstractmethod
+    def parameters(self) -> list[Parameter]:
+        """The loop's own parameters, nominal values included."""
+
+    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
+        """Initial values of the loop's parameters from the data (None: keep nominal)."""
+        return None
+
+    @abstractmethod
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
+        """Residuals and Jacobians at poses TA, TB (N, 4, 4) and own parameters p."""
+
+    def normalize(self, p: np.ndarray) -> np.ndarray:
+        """A canonical form of the loop's parameters (e.g. rotation vectors within pi)."""
+        return p
+
+    def describe(self) -> dict:
+        return {"name": self.name, "type": type(self).__name__, "frame_a": self.frame_a, "frame_b": self.frame_b}

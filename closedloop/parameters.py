@@ -1,0 +1,250 @@
+"""Named kinematic parameters and how they act on a Pinocchio model.
+
+Every parameter has a stable name ``<owner>.<field>``:
+
+* URDF/MJCF joints: ``j.x j.y j.z j.rx j.ry j.rz`` -- the placement error of
+  the joint frame, a twist in the joint's OWN frame:  M_j = M0_j * exp6(p).
+  Using the joint frame (not the parent's) makes the structural redundancies
+  single components when the axis is a frame axis: ``j.rz`` duplicates
+  ``j.offset`` and ``j.z`` is absorbed by the next joint (thesis 3.2, 4 of 6).
+* ``j.offset`` and ``j.scale``: the sensor model of eq. 4.4,
+  theta' = k * theta + theta_off, with nominal 0 and 1.
+* D-H rows: ``j.theta_off j.s j.a j.alpha j.k`` (eqs. 4.1, 4.2, 4.4).
+* Loop parameters (closure transforms, contact points) belong to the loops.
+
+The derivative of a frame pose with respect to a geometric parameter is
+written as a *generator*: the right-perturbation twist delta of the joint
+placement that the parameter moves (M_j <- M_j exp6(delta dp)).  Pinocchio's
+frame kinematic regressor (LOCAL) maps such twists to the frame's own
+variation, so every geometric column of the calibration Jacobian is
+``regressor @ G`` (the columns of eqs. 4.11-4.14, without writing them by hand).
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+
+from .dh import DHRow, rot
+from .errors import ParameterError
+from .robot import RobotModel
+
+PLACEMENT_FIELDS = ("x", "y", "z", "rx", "ry", "rz")
+
+# Default expected error magnitudes: used to scale Jacobian columns and to
+# decide whether the data determine a direction better than this prior.
+DEFAULT_PRIORS = {"m": 0.01, "rad": 0.01, "offset": 0.05, "scale": 0.05, "loop_m": 1.0, "loop_rad": 1.0}
+
+
+@dataclass
+class Parameter:
+    """One scalar kinematic parameter."""
+
+    name: str
+    kind: str  # 'placement' | 'offset' | 'scale' | 'dh' | 'loop'
+    owner: str
+    field: str
+    nominal: float
+    unit: str  # 'm', 'rad' or '1'
+    prior: float
+    scales_with_length: float = 0.0  # d(value)/d(eps) under lengths -> (1+eps) lengths
+    priority: int = 3  # lower is kept first when parameters are redundant
+    order: int = 0
+
+
+@dataclass
+class RobotState:
+    """The robot at one parameter vector: a Pinocchio model and the sensor model."""
+
+    model: pin.Model
+    data: pin.Data
+    offset: np.ndarray  # per joint of `joints`
+    scale: np.ndarray
+    G: np.ndarray  # (6*(njoints-1), P) right-twist generators of joint placements
+    G_frames: dict[int, np.ndarray] = field(default_factory=dict)  # frame id -> (6, P)
+
+
+class RobotParameters:
+    """The robot-owned parameters of a set of joints.
+
+    `joints` lists the joints to parameterize (the joints of the loops);
+    values are the absolute parameter values (not errors).
+    """
+
+    def __init__(self, robot: RobotModel, joints: list[str], priors: dict | None = None):
+        self.robot = robot
+        self.joints = list(joints)
+        pri = {**DEFAULT_PRIORS, **(priors or {})}
+        self.params: list[Parameter] = []
+        nominal_model = robot.model
+        for order, name in enumerate(self.joints):
+            j = robot.joint(name)
+            ang = j.unit  # offset unit follows the joint type
+            if robot.kind == "dh":
+                row = robot.dh.rows[j.jid - 1]
+                for fld in ("s", "a", "alpha"):
+                    unit = "rad" if fld == "alpha" or (fld == "a" and row.convention == "hayati") else "m"
+                    val = getattr(row, fld)
+                    self.params.append(Parameter(f"{name}.{fld}", "dh", name, fld, val, unit, pri[unit],
+                                                 scales_with_length=val if unit == "m" else 0.0,
+                                                 priority=4, order=order))
+                self.params.append(Parameter(f"{name}.theta_off", "offset", name, "theta_off", row.theta_off,
+                                             "rad", pri["offset"], priority=2, order=order))
+                self.params.append(Parameter(f"{name}.k", "scale", name, "k", row.k, "1", pri["scale"],
+                                             priority=3, order=order))
+            else:
+                M0 = nominal_model.jointPlacements[j.jid]
+                t_local = M0.rotation.T @ M0.translation  # scale direction in the joint frame
+                for k, fld in enumerate(PLACEMENT_FIELDS):
+                    unit = "m" if k < 3 else "rad"
+                    self.params.append(Parameter(f"{name}.{fld}", "placement", name, fld, 0.0, unit, pri[unit],
+                                                 scales_with_length=float(t_local[k]) if k < 3 else 0.0,
+                                                 priority=4, order=order))
+                self.params.append(Parameter(f"{name}.offset", "offset", name, "offset", 0.0, ang,
+                                             pri["offset"] if ang == "rad" else pri["m"], priority=2, order=order))
+                self.params.append(Parameter(f"{name}.scale", "scale", name, "scale", 1.0, "1", pri["scale"],
+                                             priority=3, order=order))
+        self.index = {p.name: i for i, p in enumerate(self.params)}
+        self._joint_pos = {n: i for i, n in enumerate(self.joints)}
+        self._off_idx = np.array([self.index[self._sensor_name(n, "offset")] for n in self.joints], dtype=int)
+        self._scale_idx = np.array([self.index[self._sensor_name(n, "scale")] for n in self.joints], dtype=int)
+
+    def _sensor_name(self, joint: str, what: str) -> str:
+        if self.robot.kind == "dh":
+            return f"{joint}.{'theta_off' if what == 'offset' else 'k'}"
+        return f"{joint}.{what}"
+
+    @property
+    def names(self) -> list[str]:
+        return [p.name for p in self.params]
+
+    @property
+    def nominal(self) -> np.ndarray:
+        return np.array([p.nominal for p in self.params])
+
+    def offset_index(self) -> np.ndarray:
+        return self._off_idx
+
+    def scale_index(self) -> np.ndarray:
+        return self._scale_idx
+
+    # ------------------------------------------------------------------ apply
+    def apply(self, values: np.ndarray) -> RobotState:
+        """The model at `values` with its generator matrix.
+
+        URDF joints:  M_j = M0_j exp6(p_j);  exp6(p + dp) = exp6(p) exp6(Jexp6(p) dp),
+        so the generator block of joint j is Jexp6(p_j) (Pinocchio's right Jacobian).
+        D-H rows: each of s, a, alpha moves the constant part C of A_j along a
+        one-parameter subgroup, so its generator is exact at any value.
+        """
+        robot = self.robot
+        model = robot.model.copy()
+        P = len(self.params)
+        G = np.zeros((6 * (model.njoints - 1), P))
+        G_frames: dict[int, np.ndarray] = {}
+        if robot.kind == "dh":
+            rows = robot.dh.rows
+            for name in self.joints:
+                j = robot.joint(name)
+                row: DHRow = rows[j.jid - 1]
+                s, a, alpha = (values[self.index[f"{name}.{f}"]] for f in ("s", "a", "alpha"))
+                C = row.constant(s, a, alpha)
+                gens = _dh_generators(row.convention, a, alpha, C)
+                cols = [self.index[f"{name}.{f}"] for f in ("s", "a", "alpha")]
+                if j.jid + 1 < model.njoints and model.parents[j.jid + 1] == j.jid:
+                    model.jointPlacements[j.jid + 1] = C
+                    G[6 * j.jid:6 * j.jid + 6, cols] = gens
+                else:  # last row: the end frame
+                    fid = model.getFrameId(robot.dh.end_frame)
+                    frame = model.frames[fid]
+                    frame.placement = C
+                    model.frames[fid] = frame  # the Python binding hands out copies
+                    Gf = np.zeros((6, P))
+                    Gf[:, cols] = gens
+                    G_frames[fid] = Gf
+        else:
+            for name in self.joints:
+                j = robot.joint(name)
+                i0 = self.index[f"{name}.x"]
+                p = values[i0:i0 + 6]
+                model.jointPlacements[j.jid] = robot.model.jointPlacements[j.jid] * pin.exp6(p)
+                G[6 * (j.jid - 1):6 * j.jid, i0:i0 + 6] = pin.Jexp6(p)
+        return RobotState(model, model.createData(), values[self._off_idx].copy(),
+                          values[self._scale_idx].copy(), G, G_frames)
+
+    def placement_errors(self, values: np.ndarray) -> dict[str, pin.SE3]:
+        """Joint name -> calibrated joint placement (Pinocchio joint frame in its parent)."""
+        state = self.apply(values)
+        return {n: state.model.jointPlacements[self.robot.joint(n).jid] for n in self.joints}
+
+
+def _dh_generators(convention: str, a: float, alpha: float, C: pin.SE3) -> np.ndarray:
+    """Right-perturbation twists of C for d s, d a, d alpha (columns), exact.
+
+    D-H (eq. 4.1), C = Trans(z,s) Trans(x,a) Rot(x,alpha):
+      ds: left translation along z;  da: left translation along x;  dalpha: right rotation about x.
+    Hayati (eq. 4.2), C = Trans(x,s) Rot(x,a) Rot(y,alpha):
+      ds: left translation along x;  da: right rotation about Ry(alpha)^T x;  dalpha: right rotation about y.
+    A left twist xi becomes the right twist Ad(C^-1) xi.
+    """
+    Rt = C.rotation.T
+    g = np.zeros((6, 3))
+    ex, ey, ez = np.eye(3)
+    if convention == "dh":
+        g[:3, 0] = Rt @ ez
+        g[:3, 1] = Rt @ ex
+        g[3:, 2] = ex
+    else:
+        g[:3, 0] = Rt @ ex
+        g[3:, 1] = rot("y", alpha).T @ ex
+        g[3:, 2] = ey
+    return g
+
+
+def match(names: list[str], patterns: list[str]) -> list[str]:
+    """Names matching any of the glob patterns, e.g. ``*.offset`` or ``panda_joint[2-7].*``.
+
+    A pattern without a dot matches a whole kind: ``offset`` == ``*.offset``,
+    ``placement`` == every placement component.
+    """
+    out = []
+    for n in names:
+        for pat in patterns:
+            if pat == "placement":
+                pat_list = [f"*.{f}" for f in PLACEMENT_FIELDS]
+            elif "." not in pat and "*" not in pat:
+                pat_list = [f"*.{pat}"]
+            else:
+                pat_list = [pat]
+            if any(fnmatch.fnmatchcase(n, p) for p in pat_list):
+                out.append(n)
+                break
+    return out
+
+
+def parse_fix(spec: list[str], names: list[str]) -> dict[str, float | None]:
+    """Parse ``--fix j3.s`` / ``--fix j3.s=1.0`` (patterns allowed without a value)."""
+    fixed: dict[str, float | None] = {}
+    for item in spec:
+        for part in item.split(","):
+            part = part.strip()
+            if not part:
+                continue
+            key, _, val = part.partition("=")
+            matched = match(names, [key])
+            if not matched:
+                raise ParameterError(f"--fix {part}: no parameter named '{key}'")
+            value: float | None = None
+            if val:
+                try:
+                    value = float(val)
+                except ValueError:
+                    raise ParameterError(f"--fix {part}: '{val}' is not a number") from None
+                if not np.isfinite(value):
+                    raise ParameterError(f"--fix {part}: value must be finite")
+            for m in matched:
+                fixed[m] = value
+    return fixed

@@ -1,0 +1,65 @@
+"""The JSON calibration report (schema in the README)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from . import __version__
+from .calibration import CalibrationResult
+from .export import atomic_write_text
+
+
+def _f(v) -> float | None:
+    return None if v is None or not np.isfinite(v) else float(v)
+
+
+def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict:
+    """A plain-dict report of a calibration."""
+    prob = res.problem
+    params = []
+    for k, p in enumerate(prob.params):
+        params.append({
+            "name": p.name, "kind": p.kind, "unit": p.unit,
+            "initial": float(res.initial[k]), "calibrated": float(res.values[k]),
+            "std_error": _f(res.std[k]), "status": res.status[k],
+            "identifiable": res.status[k] == "estimated",
+        })
+    p_value = float(stats.chi2.sf(res.chi2, res.dof)) if not res.sigma_estimated else None
+    return {
+        "closedloop_version": __version__,
+        "model": str(model_path) if model_path else None,
+        "log": str(log_path) if log_path else None,
+        "loops": [b.loop.describe() | {"configurations": int(b.theta.shape[0])} for b in prob.blocks],
+        "joints": prob.joints,
+        "solver": {"status": res.solver_status, "message": res.solver_message, "iterations": res.iterations},
+        "noise": {
+            "joint_sigma": res.sigma, "estimated": res.sigma_estimated,
+            "chi2": res.chi2, "dof": res.dof, "chi2_per_dof": res.chi2 / max(res.dof, 1), "p_value": p_value,
+            "consistent": None if p_value is None else bool(p_value > 1e-3),
+        },
+        "residuals": {"before": [asdict(r) for r in res.residuals_before],
+                      "after": [asdict(r) for r in res.residuals_after]},
+        "identifiability": {
+            "estimated": len(res.estimated),
+            "rank": res.rank,
+            "singular_values": [float(s) for s in res.singular_values],
+            "dropped": [{"name": d.name, "reason": d.reason, "description": d.describe(),
+                         "absorbed_into": [{"name": n, "coefficient": c} for n, c in d.absorbed_into]}
+                        for d in res.dropped],
+            "not_identifiable": [{"singular_value": c.singular_value, "description": c.describe(),
+                                  "parameters": [{"name": n, "weight": w} for n, w in c.terms]}
+                                 for c in res.weak],
+            "notes": res.notes,
+        },
+        "scale_factors": {p.name: float(res.values[k]) for k, p in enumerate(prob.params) if p.kind == "scale"},
+        "parameters": params,
+    }
+
+
+def write_report(report: dict, path: str | Path) -> None:
+    atomic_write_text(Path(path), json.dumps(report, indent=2) + "\n")

@@ -1,0 +1,174 @@
+"""A robot model on Pinocchio, read from URDF, MJCF or a D-H table.
+
+`RobotModel` knows the movable one-degree-of-freedom joints (revolute,
+continuous, prismatic), maps joint readings to Pinocchio configurations and
+finds frames by name.  Every later feature works on it whatever the source.
+"""
+
+from __future__ import annotations
+
+import difflib
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from .dh import DHTable, load_dh
+from .errors import ModelError
+
+log = logging.getLogger(__name__)
+
+WORLD_FRAMES = ("universe", "world")
+
+
+@dataclass(frozen=True)
+class JointInfo:
+    """A movable one-DOF joint.
+
+    `axis` is the motion axis in the joint frame (angular for revolute joints,
+    linear for prismatic ones); `continuous` joints use (cos, sin) in q.
+    """
+
+    name: str
+    jid: int
+    idx_q: int
+    idx_v: int
+    kind: str  # 'revolute' | 'continuous' | 'prismatic'
+    axis: np.ndarray
+    lower: float
+    upper: float
+
+    @property
+    def unit(self) -> str:
+        return "m" if self.kind == "prismatic" else "rad"
+
+
+class RobotModel:
+    """The nominal kinematic model of a robot."""
+
+    def __init__(self, model: pin.Model, source: Path | None = None, kind: str = "urdf",
+                 dh: DHTable | None = None):
+        self.model = model
+        self.source = source
+        self.kind = kind
+        self.dh = dh
+        self.joints: dict[str, JointInfo] = {}
+        self._unsupported: dict[str, str] = {}
+        data = model.createData()
+        q0 = pin.neutral(model)
+        pin.computeJointJacobians(model, data, q0)
+        for jid in range(1, model.njoints):
+            jm = model.joints[jid]
+            name = model.names[jid]
+            short = jm.shortname()
+            if jm.nv != 1:
+                self._unsupported[name] = short
+                continue
+            S = pin.getJointJacobian(model, data, jid, pin.LOCAL)[:, jm.idx_v]
+            if "Prismatic" in short or short.startswith("JointModelP"):
+                kind_j, axis = "prismatic", S[:3]
+            else:
+                kind_j, axis = ("continuous" if jm.nq == 2 else "revolute"), S[3:]
+            lo, hi = (-np.pi, np.pi) if jm.nq == 2 else (model.lowerPositionLimit[jm.idx_q],
+                                                          model.upperPositionLimit[jm.idx_q])
+            self.joints[name] = JointInfo(name, jid, jm.idx_q, jm.idx_v, kind_j, axis.copy(),
+                                          float(lo), float(hi))
+
+    # ----------------------------------------------------------------- loading
+    @classmethod
+    def from_file(cls, path: str | Path) -> "RobotModel":
+        """Load a URDF (.urdf), MJCF (.xml/.mjcf) or D-H table (.yaml/.yml)."""
+        path = Path(path)
+        if not path.is_file():
+            raise ModelError(f"{path}: no such model file")
+        suffix = path.suffix.lower()
+        if suffix in (".yaml", ".yml"):
+            table = load_dh(path)
+            return cls(table.build_model(), path, "dh", table)
+        try:
+            if suffix == ".urdf":
+                model = pin.buildModelFromUrdf(str(path))
+                kind = "urdf"
+            elif suffix in (".xml", ".mjcf"):
+                model = pin.buildModelFromMJCF(str(path))
+                kind = "mjcf"
+            else:
+                raise ModelError(f"{path}: unknown model type '{suffix}' (use .urdf, .xml/.mjcf or .yaml)")
+        except ModelError:
+            raise
+        except Exception as exc:  # Pinocchio raises plain ValueError/RuntimeError
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise ModelError(f"{path}: Pinocchio cannot parse this model ({first})") from None
+        return cls(model, path, kind)
+
+    # ------------------------------------------------------------------ lookup
+    @property
+    def joint_names(self) -> list[str]:
+        return list(self.joints)
+
+    @property
+    def urdf_path(self) -> Path | None:
+        return self.source if self.kind == "urdf" else None
+
+    def joint(self, name: str) -> JointInfo:
+        try:
+            return self.joints[name]
+        except KeyError:
+            if name in self._unsupported:
+                raise ModelError(f"joint '{name}' is a {self._unsupported[name]} joint; only 1-DOF "
+                                 "revolute, continuous and prismatic joints can be calibrated") from None
+            raise ModelError(f"unknown joint '{name}'{_suggest(name, self.joint_names)}") from None
+
+    def frame_id(self, name: str) -> int:
+        """Pinocchio frame id of `name`; 'world' and 'universe' are the base frame."""
+        if name in WORLD_FRAMES:
+            return 0
+        if not self.model.existFrame(name):
+            names = [f.name for f in self.model.frames]
+            raise ModelError(f"unknown frame '{name}'{_suggest(name, names)}")
+        return self.model.getFrameId(name)
+
+    def supporting_joints(self, frame: str) -> list[str]:
+        """Movable joints between the base and `frame`, base first."""
+        fid = self.frame_id(frame)
+        if fid == 0:
+            return []
+        jid = self.model.frames[fid].parentJoint
+        support = list(self.model.supports[jid])
+        return [self.model.names[j] for j in support if self.model.names[j] in self.joints]
+
+    # ----------------------------------------------------------- configurations
+    def configurations(self, angles: np.ndarray, joint_names: list[str]) -> np.ndarray:
+        """Pinocchio configurations (N, nq) from joint angles (N, len(joint_names)).
+
+        Joints not listed stay at their neutral value.  Continuous joints get
+        (cos, sin) coordinates.
+        """
+        angles = np.atleast_2d(angles)
+        q = np.tile(pin.neutral(self.model), (angles.shape[0], 1))
+        for col, name in enumerate(joint_names):
+            j = self.joints[name]
+            if j.kind == "continuous":
+                q[:, j.idx_q] = np.cos(angles[:, col])
+                q[:, j.idx_q + 1] = np.sin(angles[:, col])
+            else:
+                q[:, j.idx_q] = angles[:, col]
+        return q
+
+    def describe(self) -> dict:
+        """Joints and frames, for `closedloop inspect`."""
+        return {
+            "source": str(self.source) if self.source else None,
+            "kind": self.kind,
+            "joints": [{"name": j.name, "type": j.kind, "axis": j.axis.round(6).tolist(),
+                        "lower": j.lower, "upper": j.upper} for j in self.joints.values()],
+            "unsupported_joints": self._unsupported,
+            "frames": [f.name for f in self.model.frames if f.name != "universe"],
+        }
+
+
+def _suggest(name: str, choices: list[str]) -> str:
+    close = difflib.get_close_matches(name, choices, n=3)
+    return f" (did you mean {', '.join(repr(c) for c in close)}?)" if close else ""

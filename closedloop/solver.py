@@ -1,0 +1,160 @@
+"""Levenberg-Marquardt with noise-aware SVD truncation (thesis 3.2.3, 4.2.6).
+
+The solver knows nothing of robots or loops: it minimises 1/2 |r(x)|^2 for a
+callable returning the (already whitened) residual r and Jacobian J.
+
+Each iteration solves the modified criterion of eq. 3.17 / 4.17,
+
+    min |r + J dx|^2 + lambda |dx|^2,
+
+in column-scaled coordinates dx = D dz (D: the parameters' expected error
+magnitudes), through the SVD J D = U S V^T:
+
+    dz = - sum_{i kept} s_i / (s_i^2 + lambda) (u_i^T r) v_i.
+
+Truncation (4.2.6) follows the noise rather than a fixed ratio: direction i is
+kept when the data determine it better than its prior, s_i > snr * sigma, with
+sigma the known noise level of r (1 when r is whitened by a known noise) or, if
+unknown, the current residual RMS (large while the model is far off, like the
+thesis's large p at the start; the noise level at convergence).  A step that
+does not lower the cost is halved (4.2.6), then lambda is raised.  With bounds
+the step is a bounded least-squares problem solved by qpsolvers/OSQP in the
+kept subspace.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+ResidualFn = Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]]
+
+
+@dataclass
+class SolverOptions:
+    max_iter: int = 100
+    ftol: float = 1e-12  # stop when the relative cost decrease is below this
+    xtol: float = 1e-12  # stop when |dz| (scaled step) is below this
+    max_halvings: int = 8
+    noise: float | None = None  # known noise level of r; None: estimate from the residual
+    snr: float = 1.0  # keep directions with s_i > snr * sigma
+    rcond: float = 1e-10  # numerical rank floor, relative to s_max
+    lower: np.ndarray | None = None
+    upper: np.ndarray | None = None
+
+
+@dataclass
+class SolverResult:
+    x: np.ndarray
+    cost: float
+    iterations: int
+    status: str  # 'converged' | 'max_iter' | 'stalled'
+    message: str
+    history: list[float] = field(default_factory=list)
+    truncated: int = 0  # directions truncated in the last iteration
+
+
+def rms(r: np.ndarray, dof: int | None = None) -> float:
+    n = r.size if dof is None else max(dof, 1)
+    return float(np.sqrt(np.dot(r, r) / n)) if r.size else 0.0
+
+
+def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
+                        options: SolverOptions | None = None,
+                        progress: Callable[[int, float], None] | None = None) -> SolverResult:
+    """Minimise 1/2 |fun(x)|^2 from x0; `scale` are the parameters' error magnitudes."""
+    opt = options or SolverOptions()
+    x = np.array(x0, dtype=float)
+    r, J = fun(x, True)
+    cost = 0.5 * float(r @ r)
+    history = [cost]
+    lam = 0.0
+    status, message, truncated = "max_iter", f"no convergence in {opt.max_iter} iterations", 0
+    it = 0
+    for it in range(1, opt.max_iter + 1):
+        Js = J * scale
+        U, S, Vt = np.linalg.svd(Js, full_matrices=False)
+        floor = opt.rcond * (S[0] if S.size else 0.0)
+        sigma = opt.noise if opt.noise is not None else rms(r, r.size - S.size)
+        keep = S > max(floor, opt.snr * sigma)
+        if not keep.any():  # everything below the noise: take the numerically safe part
+            keep = S > floor
+        truncated = int(S.size - keep.sum())
+        g = U.T @ r
+        accepted = False
+        for attempt in range(4):
+            dz = _step(S, Vt, g, keep, lam, x, scale, opt, Js, r)
+            t = 1.0
+            for _ in range(opt.max_halvings + 1):
+                x_new = x + t * dz * scale
+                r_new, _ = fun(x_new, False)
+                cost_new = 0.5 * float(r_new @ r_new)
+                if np.isfinite(cost_new) and cost_new <= cost:
+                    accepted = True
+                    break
+                t *= 0.5
+            if accepted:
+                break
+            lam = max(10.0 * lam, 1e-6 * float(S[0] ** 2) if S.size else 1.0)
+        if not accepted:
+            status, message = "converged", "no step lowers the cost: at a minimum"
+            break
+        step_norm = float(np.linalg.norm(t * dz))
+        decrease = cost - cost_new
+        x = x_new
+        r, J = fun(x, True)
+        cost = 0.5 * float(r @ r)
+        history.append(cost)
+        lam *= 0.1 if lam > 0 else 0.0
+        if progress:
+            progress(it, cost)
+        log.debug("LM it %d cost %.6e step %.3e truncated %d", it, cost, step_norm, truncated)
+        if cost < 1e-30:
+            status, message = "converged", "residual is zero"
+            break
+        if decrease <= opt.ftol * max(cost + decrease, 1e-300) or step_norm < opt.xtol:
+            status, message = "converged", "cost and step converged"
+            break
+    return SolverResult(x, cost, it, status, message, history, truncated)
+
+
+def _step(S, Vt, g, keep, lam, x, scale, opt: SolverOptions, Js, r) -> np.ndarray:
+    """The truncated, damped Gauss-Newton step in scaled coordinates."""
+    f = np.where(keep, S / (S ** 2 + lam), 0.0)
+    dz = -(Vt.T @ (f * g))
+    if opt.lower is None and opt.upper is None:
+        return dz
+    return _bounded_step(Js, r, Vt[keep].T, lam, x, scale, opt, dz)
+
+
+def _bounded_step(Js, r, Vk, lam, x, scale, opt: SolverOptions, dz_free) -> np.ndarray:
+    """min |Js Vk w + r|^2 + lam |w|^2  s.t.  lower <= x + scale * Vk w <= upper  (OSQP)."""
+    from qpsolvers import solve_ls
+
+    lower = np.full(x.size, -np.inf) if opt.lower is None else opt.lower
+    upper = np.full(x.size, np.inf) if opt.upper is None else opt.upper
+    x_free = x + scale * dz_free
+    if np.all(x_free >= lower) and np.all(x_free <= upper):
+        return dz_free
+    A = scale[:, None] * Vk
+    rows = np.isfinite(upper)
+    rows_l = np.isfinite(lower)
+    G = np.vstack([A[rows], -A[rows_l]])
+    h = np.concatenate([upper[rows] - x[rows], x[rows_l] - lower[rows_l]])
+    R = Js @ Vk
+    if lam > 0:
+        R = np.vstack([R, np.sqrt(lam) * np.eye(Vk.shape[1])])
+        s = np.concatenate([-r, np.zeros(Vk.shape[1])])
+    else:
+        s = -r
+    w = solve_ls(R, s, G=G, h=np.maximum(h, 0.0), solver="osqp", eps_abs=1e-10, eps_rel=1e-10,
+                 max_iter=20000, polish=True)
+    if w is None:
+        log.warning("bounded step: OSQP found no solution; clipping the free step")
+        return (np.clip(x_free, lower, upper) - x) / scale
+    return Vk @ w

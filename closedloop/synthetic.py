@@ -1,0 +1,72 @@
+"""Pure-kinematic closed-chain data: walk a loop's self-motion exactly.
+
+Given parameter values (the "truth"), configurations are generated on the
+closure manifold of one loop: from a start, step along the null space of
+J_theta (the self-motion, Lemma 4), then pull back onto closure by
+Gauss-Newton on the readings.  Directions persist between steps so the walk
+covers the manifold instead of diffusing; it turns back at joint limits.
+The output is joint READINGS, i.e. what the sensors of eq. 4.4 report.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import NotIdentifiableError
+from .problem import CalibrationProblem
+
+
+def close(problem: CalibrationProblem, values: np.ndarray, theta: np.ndarray, block: int = 0,
+          iters: int = 20, tol: float = 1e-13) -> tuple[np.ndarray, float]:
+    """Readings near `theta` (1, n) that close loop `block` at `values`."""
+    thetas = [b.theta[:1] for b in problem.blocks]
+    th = theta.copy()
+    err = np.inf
+    for _ in range(iters):
+        thetas[block] = th
+        ev = problem.evaluate(values, True, thetas)[block]
+        err = float(np.abs(ev.r).max())
+        if err < tol:
+            break
+        th = th - np.linalg.lstsq(ev.Jq[0], ev.r[0], rcond=None)[0][None, :]
+    return th, err
+
+
+def self_motion(problem: CalibrationProblem, values: np.ndarray, theta0: np.ndarray, n: int,
+                rng: np.random.Generator, step: float = 0.04, stride: int = 3, block: int = 0,
+                margin: float = 0.05) -> np.ndarray:
+    """`n` configurations (readings, (n, n_joints)) along loop `block`'s self-motion."""
+    lo = np.array([problem.robot.joint(j).lower for j in problem.joints]) + margin
+    hi = np.array([problem.robot.joint(j).upper for j in problem.joints]) - margin
+    rp = problem.rp
+    k = values[rp.scale_index()]
+    off = values[rp.offset_index()]
+    th, err = close(problem, values, np.atleast_2d(theta0), block)
+    if err > 1e-9:
+        raise NotIdentifiableError(f"cannot close loop {problem.blocks[block].loop.name} from the start pose")
+    thetas = [b.theta[:1] for b in problem.blocks]
+    direction = None
+    out = []
+    walked = 0
+    while len(out) < n:
+        thetas[block] = th
+        Jq = problem.evaluate(values, True, thetas)[block].Jq[0]
+        _, S, Vt = np.linalg.svd(Jq)
+        rank = int(np.sum(S > 1e-9 * S[0]))
+        Nul = Vt[rank:]
+        if Nul.shape[0] == 0:
+            raise NotIdentifiableError(f"loop {problem.blocks[block].loop.name} is immobile: no self-motion")
+        if direction is None:
+            direction = Nul.T @ rng.normal(size=Nul.shape[0])
+        d = Nul.T @ (Nul @ direction) + 0.3 * Nul.T @ rng.normal(size=Nul.shape[0]) / np.sqrt(Nul.shape[0])
+        d /= np.linalg.norm(d) + 1e-300
+        cand, err = close(problem, values, th + step * d[None, :], block)
+        model_angles = cand[0] * k + off
+        if err > 1e-10 or np.any(model_angles < lo) or np.any(model_angles > hi):
+            direction = -d + 0.5 * Nul.T @ rng.normal(size=Nul.shape[0])
+            continue
+        th, direction = cand, d
+        walked += 1
+        if walked % stride == 0:
+            out.append(th[0].copy())
+    return np.array(out)

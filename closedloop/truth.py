@@ -1,0 +1,77 @@
+"""Ground truth for simulation: which parameters to perturb, and by how much.
+
+Errors in structurally redundant parameters are indistinguishable from errors
+in the parameters that absorb them, so a truth meant to be compared
+parameter by parameter with a calibration is drawn in the identifiable
+parameterization: the set `calibrate` estimates for the same loops
+(`identifiable_names`).  Everything else keeps its nominal value.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+
+from .calibration import CalibrationOptions, build_problem, calibrate
+from .data import JointLog
+from .loops.base import Loop
+from .robot import RobotModel
+from .synthetic import self_motion
+
+DEFAULT_MAGNITUDES = {"translation": 2e-3, "rotation": 2e-3, "offset": 0.02, "scale": 0.0}
+
+
+def identifiable_names(robot: RobotModel, loops: list[Loop], theta0: np.ndarray,
+                       options: CalibrationOptions | None = None, n: int = 30, seed: int = 0) -> list[str]:
+    """Names `calibrate` would estimate for `loops`, found on nominal self-motion data from theta0."""
+    joints = _joints(robot, loops)
+    lg = JointLog(joints, np.atleast_2d(theta0))
+    problem = build_problem(robot, lg, loops)
+    x = problem.nominal
+    for bi, (b, sl) in enumerate(zip(problem.blocks, problem.loop_slices)):
+        if sl.stop > sl.start:
+            TA, TB = problem.loop_poses(x, bi)
+            x[sl] = b.loop.initialize(TA, TB)
+    rng = np.random.default_rng(seed)
+    blocks_th = [self_motion(problem, x, np.atleast_2d(theta0), n, rng, block=bi) for bi in range(len(loops))]
+    rows = np.vstack(blocks_th)
+    loop_col = np.repeat([lp.name for lp in loops], [t.shape[0] for t in blocks_th]) if len(loops) > 1 else None
+    res = calibrate(robot, JointLog(joints, rows, None, loop_col), loops, options)
+    return [n_ for n_, s in zip(res.names, res.status) if s == "estimated" and not n_.startswith(
+        tuple(f"{lp.name}." for lp in loops))]
+
+
+def draw_truth(robot: RobotModel, names: list[str], rng: np.random.Generator,
+               magnitudes: dict[str, float] | None = None) -> dict[str, float]:
+    """True values of `names`: nominal + U(-m, m) with m by kind (scale: 1 + U(-m, m))."""
+    mag = {**DEFAULT_MAGNITUDES, **(magnitudes or {})}
+    joints = sorted({n.rsplit(".", 1)[0] for n in names}, key=robot.joint_names.index)
+    from .parameters import RobotParameters
+    rp = RobotParameters(robot, joints)
+    out = {}
+    for n in names:
+        p = rp.params[rp.index[n]]
+        if p.kind == "scale":
+            m = mag["scale"]
+        elif p.kind == "offset":
+            m = mag["offset"]
+        else:
+            m = mag["translation"] if p.unit == "m" else mag["rotation"]
+        out[n] = float(p.nominal + rng.uniform(-m, m)) if m > 0 else float(p.nominal)
+    return out
+
+
+def closure_from_pose(loop_name: str, X: pin.SE3) -> dict[str, float]:
+    """Weld closure parameters of a pose (translation, rotation vector)."""
+    v = np.concatenate([X.translation, pin.log3(X.rotation)])
+    return {f"{loop_name}.{f}": float(v[k]) for k, f in enumerate(("x", "y", "z", "rx", "ry", "rz"))}
+
+
+def _joints(robot: RobotModel, loops: list[Loop]) -> list[str]:
+    js: list[str] = []
+    for lp in loops:
+        for f in (lp.frame_a, lp.frame_b):
+            for j in robot.supporting_joints(f):
+                if j not in js:
+                    js.append(j)
+    return sorted(js, key=robot.joint_names.index)
