@@ -147,6 +147,7 @@ def build_problem(robot: RobotModel, log_: JointLog, loops: list[Loop], priors: 
                 raise LogError(f"{log_.source}: no row has loop '{lp.name}' in its 'loop' column")
         else:
             rows = np.arange(len(log_))
+        lp.bind({k: v[rows] for k, v in log_.extra.items()})
         blocks.append(LoopBlock(lp, theta[rows], rows + 1))
     return CalibrationProblem(robot, joints, blocks, priors)
 
@@ -172,15 +173,18 @@ def _noise_vector(problem: CalibrationProblem, noise) -> tuple[np.ndarray, bool]
     return vec, True
 
 
-def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian: bool = True):
-    """Stack residuals (and Jacobians) whitened by W_i^-1/2, W_i = Jq Sigma Jq^T."""
+def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian: bool = True,
+           loops: list[Loop] | None = None):
+    """Stack residuals (and Jacobians) whitened by W_i^-1/2, W_i = Jq Sigma Jq^T (+ measurement covariance)."""
     rs, Js = [], []
-    for ev in evals:
+    for bi, ev in enumerate(evals):
         r, J = ev.r, ev.J
         if weighting == "noise" and ev.Jq is not None:
             Jq = ev.Jq * sigma_q[None, None, :]
             W = Jq @ np.swapaxes(Jq, 1, 2)
             m = W.shape[1]
+            if loops is not None and loops[bi].measurement_cov is not None:
+                W = W + loops[bi].measurement_cov
             tr = np.trace(W, axis1=1, axis2=2)[:, None, None] / m
             W = W + (1e-10 * tr + 1e-30) * np.eye(m)
             lam, V = np.linalg.eigh(W)
@@ -247,7 +251,7 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
     # Unknown closures start from the nominal model's pose at the first configuration.
     for bi, (b, sl) in enumerate(zip(problem.blocks, problem.loop_slices)):
         if sl.stop > sl.start:
-            TA, TB = problem.loop_poses(x0, bi, b.theta[:1])
+            TA, TB = problem.loop_poses(x0, bi)
             init = b.loop.initialize(TA, TB)
             if init is not None:
                 x0[sl] = init
@@ -292,6 +296,8 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
                                    "so nothing can be identified")
     evals0 = problem.evaluate(x0, True)
     for b, ev in zip(problem.blocks, evals0):
+        if not b.loop.scale_free:  # a measured (open) loop: mobility is not a question
+            continue
         mob, moves = loop_mobility(ev.Jq)
         if mob == 0:
             notes.append(f"loop {b.loop.name} is immobile (Lemma 4: J_theta has full column rank): "
@@ -360,7 +366,7 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
         x = x0.copy()
         x[est] = xe
         evals = problem.evaluate(x, jac)
-        r, J = whiten(evals, sigma_q, opt.weighting, jac)
+        r, J = whiten(evals, sigma_q, opt.weighting, jac, [b.loop for b in problem.blocks])
         return r, (J[:, est] if jac else None)
 
     lower = upper = None

@@ -64,6 +64,13 @@ class Combination:
         return f"{', '.join(names)} are not separately identifiable: the combination {dirn} is not determined"
 
 
+def compress(C: np.ndarray) -> np.ndarray:
+    """The R factor of C = QR: same column dependencies and singular values, P rows."""
+    if C.shape[0] > C.shape[1]:
+        return np.linalg.qr(C, mode="r")
+    return C
+
+
 def greedy_reduction(C: np.ndarray, names: list[str], order: list[int], tol: float = 1e-6,
                      max_terms: int = 6) -> tuple[list[int], list[Dropped]]:
     """Keep columns of C in `order` while they add rank; explain the others.
@@ -71,6 +78,7 @@ def greedy_reduction(C: np.ndarray, names: list[str], order: list[int], tol: flo
     C is the column-scaled Jacobian (M, P).  Returns kept column indices and
     the dropped ones with the kept parameters that absorb them.
     """
+    C = compress(C)
     M = C.shape[0]
     Q = np.zeros((M, 0))
     kept: list[int] = []
@@ -101,7 +109,10 @@ def null_space(C: np.ndarray, rtol: float = 1e-7) -> np.ndarray:
     """Orthonormal basis (P, k) of the numerical null space of C."""
     if C.size == 0:
         return np.zeros((C.shape[1], 0))
-    _, S, Vt = np.linalg.svd(C, full_matrices=True)
+    C = compress(C)
+    if C.shape[0] < C.shape[1]:
+        C = np.vstack([C, np.zeros((C.shape[1] - C.shape[0], C.shape[1]))])
+    _, S, Vt = np.linalg.svd(C)
     rank = int(np.sum(S > rtol * S[0])) if S.size else 0
     return Vt[rank:].T
 

@@ -25,7 +25,7 @@ kept subspace.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -67,8 +67,33 @@ def rms(r: np.ndarray, dof: int | None = None) -> float:
 def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
                         options: SolverOptions | None = None,
                         progress: Callable[[int, float], None] | None = None) -> SolverResult:
-    """Minimise 1/2 |fun(x)|^2 from x0; `scale` are the parameters' error magnitudes."""
+    """Minimise 1/2 |fun(x)|^2 from x0; `scale` are the parameters' error magnitudes.
+
+    With a known noise level, directions below snr * noise are truncated
+    throughout.  With an unknown one, a first solve truncates only at the
+    numerical floor; the noise is then estimated from its residual and, if some
+    direction lies below it, the problem is solved again from x0 with that
+    level fixed (a residual-based threshold while far from the solution would
+    freeze the very directions that must move).
+    """
     opt = options or SolverOptions()
+    if opt.noise is not None:
+        return _solve(fun, x0, scale, opt, progress)
+    first = _solve(fun, x0, scale, replace(opt, noise=0.0), progress)
+    r, J = fun(first.x, True)
+    S = np.linalg.svd(J * scale, compute_uv=False)
+    sigma = rms(r, r.size - int(np.sum(S > opt.rcond * S[0])))
+    if not np.any(S <= opt.snr * sigma):
+        return first
+    log.info("re-solving with SVD truncation at the estimated noise %.3e", sigma)
+    second = _solve(fun, x0, scale, replace(opt, noise=sigma), progress)
+    second.history = first.history + second.history
+    second.iterations += first.iterations
+    return second
+
+
+def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOptions,
+           progress: Callable[[int, float], None] | None) -> SolverResult:
     x = np.array(x0, dtype=float)
     r, J = fun(x, True)
     cost = 0.5 * float(r @ r)
@@ -78,14 +103,21 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
     it = 0
     for it in range(1, opt.max_iter + 1):
         Js = J * scale
-        U, S, Vt = np.linalg.svd(Js, full_matrices=False)
+        # SVD through the QR of the tall [Js | r]: Js = Q R, and only U^T r = U_R^T Q^T r is needed.
+        n = Js.shape[1]
+        if Js.shape[0] > 2 * n:
+            Ra = np.linalg.qr(np.column_stack([Js, r]), mode="r")
+            U_R, S, Vt = np.linalg.svd(Ra[:n, :n])
+            g = U_R.T @ Ra[:n, n]
+        else:
+            U, S, Vt = np.linalg.svd(Js, full_matrices=False)
+            g = U.T @ r
         floor = opt.rcond * (S[0] if S.size else 0.0)
-        sigma = opt.noise if opt.noise is not None else rms(r, r.size - S.size)
+        sigma = opt.noise
         keep = S > max(floor, opt.snr * sigma)
         if not keep.any():  # everything below the noise: take the numerically safe part
             keep = S > floor
         truncated = int(S.size - keep.sum())
-        g = U.T @ r
         accepted = False
         for attempt in range(4):
             dz = _step(S, Vt, g, keep, lam, x, scale, opt, Js, r)
@@ -114,8 +146,8 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
         if progress:
             progress(it, cost)
         log.debug("LM it %d cost %.6e step %.3e truncated %d", it, cost, step_norm, truncated)
-        if cost < 1e-30:
-            status, message = "converged", "residual is zero"
+        if cost <= 1e-28 * r.size:  # RMS residual at the level of round-off (1e-14)
+            status, message = "converged", "residual is zero to round-off"
             break
         if decrease <= opt.ftol * max(cost + decrease, 1e-300) or step_norm < opt.xtol:
             status, message = "converged", "cost and step converged"

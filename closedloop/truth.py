@@ -75,3 +75,56 @@ def _joints(robot: RobotModel, loops: list[Loop]) -> list[str]:
                 if j not in js:
                     js.append(j)
     return sorted(js, key=robot.joint_names.index)
+
+
+class SyntheticDataset:
+    """A pure-kinematic dataset with its ground truth (see `make_dataset`)."""
+
+    def __init__(self, problem, truth: np.ndarray, readings: np.ndarray, noisy: np.ndarray, perturbed: list[str]):
+        self.problem = problem
+        self.truth = truth  # full parameter vector of `problem`
+        self.readings = readings  # exact readings (on the true closure manifold)
+        self.noisy = noisy  # readings + noise
+        self.perturbed = perturbed
+
+    @property
+    def joints(self) -> list[str]:
+        return self.problem.joints
+
+    def log(self, noisy: bool = True) -> JointLog:
+        return JointLog(list(self.joints), self.noisy if noisy else self.readings)
+
+    def truth_dict(self) -> dict[str, float]:
+        return dict(zip(self.problem.names, map(float, self.truth)))
+
+
+def make_dataset(robot: RobotModel, loop: Loop, theta0: np.ndarray, n: int, rng: np.random.Generator,
+                 magnitudes: dict[str, float] | None = None, noise: float = 0.0,
+                 perturb: list[str] | None = None, **walk) -> SyntheticDataset:
+    """Truth = nominal + random errors in the identifiable set (or `perturb`), then n
+    configurations along the TRUE loop's self-motion through the model angles theta0.
+
+    The loop's own true parameters are those that close it at theta0 (its
+    `initialize` on the true model).  Readings follow the sensor model of
+    eq. 4.4 inverted: reading = (theta' - theta_off) / k, plus N(0, noise).
+    """
+    from .problem import CalibrationProblem, LoopBlock
+
+    theta0 = np.atleast_2d(np.asarray(theta0, dtype=float))
+    names = perturb if perturb is not None else identifiable_names(robot, [loop], theta0)
+    tv = draw_truth(robot, names, rng, magnitudes)
+    joints = _joints(robot, [loop])
+    problem = CalibrationProblem(robot, joints, [LoopBlock(loop, theta0, np.arange(1))])
+    truth = problem.nominal
+    for name, v in tv.items():
+        truth[problem.index[name]] = v
+    th0 = (theta0 - truth[problem.rp.offset_index()]) / truth[problem.rp.scale_index()]
+    sl = problem.loop_slices[0]
+    if sl.stop > sl.start:
+        TA, TB = problem.loop_poses(truth, 0, th0)
+        init = loop.initialize(TA, TB)
+        if init is not None:
+            truth[sl] = init
+    readings = self_motion(problem, truth, th0, n, rng, **walk)
+    noisy = readings + rng.normal(0.0, noise, readings.shape) if noise > 0 else readings.copy()
+    return SyntheticDataset(problem, truth, readings, noisy, names)

@@ -62,6 +62,13 @@ class Loop(ABC):
     def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
         """Residuals and Jacobians at poses TA, TB (N, 4, 4) and own parameters p."""
 
+    #: (m, m) covariance of an external measurement in the residual, added to the
+    #: covariance propagated from joint noise (None: the loop measures nothing)
+    measurement_cov: np.ndarray | None = None
+
+    def bind(self, extra: dict[str, np.ndarray]) -> None:
+        """Receive the log's extra columns for this loop's rows (e.g. measured poses)."""
+
     def normalize(self, p: np.ndarray) -> np.ndarray:
         """A canonical form of the loop's parameters (e.g. rotation vectors within pi)."""
         return p

@@ -82,26 +82,45 @@ class WeldLoop(Loop):
     def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
         N = TA.shape[0]
         X = self.closure(p)
-        Xinv = X.inverse()
+        Y = rigid_inverse(TB) @ TA  # T_B^-1 T_A
+        E = X.inverse().homogeneous @ Y
         r = np.empty((N, 6))
-        dA = np.empty((N, 6, 6))
-        dB = np.empty((N, 6, 6))
-        dX = np.empty((N, 6, 6))
-        for i in range(N):
-            TBi = pin.SE3(TB[i])
-            TAi = pin.SE3(TA[i])
-            E = Xinv * TBi.actInv(TAi)
-            r[i] = pin.log6(E).vector
-            Jl = pin.Jlog6(E)
-            dA[i] = Jl
-            dB[i] = -Jl @ TAi.actInv(TBi).action
-            dX[i] = -Jl @ E.inverse().action
+        Jl = np.empty((N, 6, 6))
+        for i in range(N):  # the nonlinear part, per configuration, in Pinocchio
+            Ei = pin.SE3(E[i])
+            r[i] = pin.log6(Ei).vector
+            Jl[i] = pin.Jlog6(Ei)
+        dB = -Jl @ adjoint(rigid_inverse(Y))
         if self.known is not None:
-            return LoopEval(r, dA, dB, np.zeros((N, 6, 0)))
+            return LoopEval(r, Jl, dB, np.zeros((N, 6, 0)))
         gen = np.zeros((6, 6))
         gen[:3, :3] = X.rotation.T
         gen[3:, 3:] = pin.Jexp3(p[3:6])
-        return LoopEval(r, dA, dB, dX @ gen)
+        dX = -Jl @ adjoint(rigid_inverse(E))
+        return LoopEval(r, Jl, dB, dX @ gen)
+
+
+def rigid_inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of a stack of homogeneous transforms (..., 4, 4)."""
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.zeros_like(T)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """Stacked SE(3) adjoints [[R, [p]x R], [0, R]] (Pinocchio's `SE3.action`, batched)."""
+    R, p = T[..., :3, :3], T[..., :3, 3]
+    px = np.zeros(p.shape[:-1] + (3, 3))
+    px[..., 0, 1], px[..., 0, 2], px[..., 1, 2] = -p[..., 2], p[..., 1], -p[..., 0]
+    px[..., 1, 0], px[..., 2, 0], px[..., 2, 1] = p[..., 2], -p[..., 1], p[..., 0]
+    Ad = np.zeros(T.shape[:-2] + (6, 6))
+    Ad[..., :3, :3] = R
+    Ad[..., :3, 3:] = px @ R
+    Ad[..., 3:, 3:] = R
+    return Ad
 
 
 def identity_closure() -> pin.SE3:

@@ -1,0 +1,367 @@
+"""The door loop: the tool grasps a handle that turns about an unknown hinge (thesis 3.4.2).
+
+Passive degrees of freedom are eliminated by VARIABLE PROJECTION, shared
+with `passive.PassiveChainLoop` (thesis 3.4.3):
+
+The closure pose of frame A in frame B depends on the loop parameters p and
+on k unmeasured task joint values phi,  X = X(phi, p).  Per configuration i
+
+    r_i(phi) = log6( X(phi, p)^-1  T_B^-1  T_A ),     E := X^-1 T_B^-1 T_A   (eq. 3.18, exact)
+
+and the passive values are eliminated exactly,  phi_i* = argmin |r_i(phi)|^2,
+by Gauss-Newton on phi (with step halving) from a closed-form or warm start,
+converged to |dphi| < 1e-13.  The residual handed to the core is r_i(phi_i*):
+still the 6-D exact SE(3) log, in which the k directions J_phi = dr/dphi are
+used up (the thesis drops one equation for the door; here the 6 rows stay and
+r* is orthogonal to J_phi).  Its Jacobian w.r.t. everything else x (frames A, B,
+loop parameters) is the reduced one
+
+    dr*/dx = (I - J_phi J_phi^+) dr/dx.
+
+Justification (envelope theorem): the cost f(x) = 1/2 |r(phi*(x), x)|^2 has,
+because J_phi^T r = 0 at phi*, the gradient df/dx = r^T dr/dx = r^T (I - J_phi J_phi^+) dr/dx,
+so the reduced Jacobian gives the EXACT gradient of the eliminated problem
+everywhere; it equals the exact derivative of r* where the loop closes
+(r* = 0; away from closure the neglected terms are O(|r*|), Kaufman's
+approximation), so Gauss-Newton keeps its quadratic convergence on consistent
+data.  It also keeps the rows along J_phi exactly zero, which the core's noise
+weighting W = J_theta Sigma J_theta^T (rank 6 - k) needs: an exact derivative
+would put O(|r*|) entries in the direction that the whitening's regulariser
+amplifies by 1e5.
+
+Derivatives, with right perturbations (as in `weld.WeldLoop`):
+
+    dr/d(delta_A) = Jlog6(E),  dr/d(delta_B) = -Jlog6(E) Ad(T_A^-1 T_B),
+    dr/d(delta_X) = -Jlog6(E) Ad(E^-1),   J_phi = dr/d(delta_X) dX/dphi.
+
+Hinge geometry (this module).  The door frame D is the hinge frame turned by
+the hinge angle,  X(phi) = H Rz(phi) G,  with
+
+* H, the hinge line (4 parameters), in a chart around a reference frame H0
+  (z = reference axis): H = H0 (exp3(rx, ry, 0), (x, y, 0)).  The line passes
+  through (x, y, 0) of H0 with direction H0.R exp3(rx, ry, 0) e_z.  Rotations
+  about and translations along the axis are not parameters: they are the
+  line's own symmetries (absorbed by phi and the grasp height).  The chart is
+  regular while the axis is tilted less than 90 deg from the reference (the
+  line meets H0's xy-plane once); near 90 deg it degenerates.  H0 is the data's
+  circle fit (or the user's `axis=`), so the tilt stays small.
+* G, the grasp (5 parameters): the handle frame (frame A at closure) in the
+  door frame, G = (exp3(rx, ry, rz), (radius, 0, height)).  The door frame's x
+  axis points at the handle origin, which removes the sixth, redundant
+  parameter (a rotation of G about the hinge axis is a shift of every phi_i).
+  The chart needs the handle off the axis (radius != 0): a handle on the axis
+  traces no circle and leaves phi's zero to the grasp rotation alone.
+
+Parameters: ``<loop>.hinge_x hinge_y`` (m), ``hinge_rx hinge_ry`` (rad),
+``<loop>.radius height`` (m), ``grasp_rx grasp_ry grasp_rz`` (rad).
+Thesis 3.4.2 extracts phi with atan2 and keeps 5 equations under a small-error
+assumption; the projection above needs no small errors (atan2 only gives the
+starting point of the Gauss-Newton iteration).
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import pinocchio as pin
+
+from ..errors import LoopError
+from ..parameters import DEFAULT_PRIORS, Parameter
+from .base import Loop, LoopEval
+from .spec import register
+
+HINGE_FIELDS = ("hinge_x", "hinge_y", "hinge_rx", "hinge_ry", "radius", "height",
+                "grasp_rx", "grasp_ry", "grasp_rz")
+_EZ = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])  # rotation about z (pin.Motion order: v, w)
+
+PoseFn = Callable[[np.ndarray], tuple[pin.SE3, np.ndarray]]
+
+
+# --------------------------------------------------------------- elimination
+def eliminate(M: pin.SE3, pose: PoseFn, starts: list[np.ndarray],
+              integrate: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+              tol: float = 1e-13, max_iter: int = 100,
+              snap: Callable[[np.ndarray], np.ndarray] | None = None):
+    """phi* = argmin |log6(X(phi)^-1 M)|^2 by Gauss-Newton from the best of `starts`.
+
+    `pose(phi)` returns X (pin.SE3) and its right-twist derivative (6, k).
+    Returns phi*, r, Jlog6(E), E, J_phi (6, k) and the number of iterations.
+
+    `snap` (for warm starts): the converged phi is rounded by `snap` and the
+    iteration rerun from there, so that the result is a function of M and the
+    model only, bit for bit, not of the start (the solver compares costs of
+    repeated evaluations at the same parameters; start-dependent rounding,
+    amplified by the noise weighting, would keep it from terminating).
+    """
+    if snap is not None:
+        phi, *_ = eliminate(M, pose, starts, integrate, tol, max_iter)
+        out = eliminate(M, pose, [snap(phi)], integrate, tol, max_iter)
+        return out
+    integ = integrate if integrate is not None else (lambda a, d: a + d)
+    best = None
+    for phi in starts:
+        X, Xd = pose(phi)
+        E = X.actInv(M)
+        r = pin.log6(E).vector
+        c = float(r @ r)
+        if best is None or c < best[0]:
+            best = (c, np.array(phi, dtype=float), Xd, E, r)
+    c, phi, Xd, E, r = best
+    Jl = pin.Jlog6(E)
+    Jphi = -Jl @ E.inverse().action @ Xd
+    it = 0
+    for it in range(1, max_iter + 1):
+        if Jphi.shape[1] == 0:
+            break
+        step = -np.linalg.lstsq(Jphi, r, rcond=1e-12)[0]
+        t = 1.0
+        small = np.max(np.abs(step)) < 1e-6  # near the solution: full steps (cost is at rounding)
+        while True:
+            phin = integ(phi, t * step)
+            Xn, Xdn = pose(phin)
+            En = Xn.actInv(M)
+            rn = pin.log6(En).vector
+            cn = float(rn @ rn)
+            if small or cn <= c or t < 1e-4:
+                break
+            t *= 0.5
+        if not small and cn > c:  # no descent along a large step: give up on this start
+            break
+        phi, Xd, E, r, c = phin, Xdn, En, rn, cn
+        Jl = pin.Jlog6(E)
+        Jphi = -Jl @ E.inverse().action @ Xd
+        if np.max(np.abs(t * step)) < tol:
+            break
+    return phi, r, Jl, E, Jphi, it
+
+
+def projector(Jphi: np.ndarray) -> np.ndarray:
+    """I - J_phi J_phi^+ : removes the directions the passive joints can close."""
+    if Jphi.shape[1] == 0:
+        return np.eye(6)
+    return np.eye(6) - Jphi @ np.linalg.pinv(Jphi, rcond=1e-10)
+
+
+def _rz(phi: float) -> pin.SE3:
+    return pin.SE3(pin.exp3(np.array([0.0, 0.0, phi])), np.zeros(3))
+
+
+def _frame_from_axis(point: np.ndarray, direction: np.ndarray, toward: np.ndarray | None = None) -> pin.SE3:
+    """A frame with origin `point`, z along `direction`, x toward `toward` (or B's x / y)."""
+    z = np.asarray(direction, dtype=float)
+    nz = np.linalg.norm(z)
+    if not np.isfinite(nz) or nz < 1e-12:
+        raise LoopError("hinge axis direction must be a non-zero vector")
+    z = z / nz
+    cands = ([np.asarray(toward, dtype=float)] if toward is not None else []) + [np.eye(3)[0], np.eye(3)[1]]
+    for e in cands:
+        x = e - (e @ z) * z
+        if np.linalg.norm(x) > 1e-6 * max(np.linalg.norm(e), 1e-300):
+            break
+    x = x / np.linalg.norm(x)
+    R = np.column_stack([x, np.cross(z, x), z])
+    return pin.SE3(R, np.asarray(point, dtype=float).copy())
+
+
+def fit_hinge_axis(M: list[pin.SE3]) -> pin.SE3:
+    """Hinge frame from tool poses in B: the circle traced by the tool origin.
+
+    Axis direction: normal of the best-fit plane of the positions (smallest
+    singular vector), oriented like the rotation the tool turns through
+    (log3 of R_i R_0^T, which is about the hinge axis); centre: algebraic
+    (Kasa) circle fit in that plane.  x points at the first position.
+    """
+    P = np.array([m.translation for m in M])
+    c = P.mean(axis=0)
+    _, S, Vt = np.linalg.svd(P - c)
+    if S.size < 2 or S[1] < 1e-4:
+        raise LoopError("hinge: the tool positions do not trace an arc (the door hardly moves); "
+                        "give the axis (axis=\"px py pz dx dy dz\")")
+    n = Vt[2]
+    w = np.array([pin.log3(m.rotation @ M[0].rotation.T) for m in M])
+    big = int(np.argmax(np.linalg.norm(w, axis=1)))
+    if np.linalg.norm(w[big]) > 1e-6 and n @ w[big] < 0:
+        n = -n
+    e1, e2 = Vt[0], np.cross(n, Vt[0])
+    uv = np.column_stack([(P - c) @ e1, (P - c) @ e2])
+    A = np.column_stack([2 * uv, np.ones(len(P))])
+    sol = np.linalg.lstsq(A, (uv ** 2).sum(axis=1), rcond=None)[0]
+    centre = c + sol[0] * e1 + sol[1] * e2
+    return _frame_from_axis(centre, n, P[0] - centre)
+
+
+# --------------------------------------------------------------------- loop
+class HingeLoop(Loop):
+    """Tool on a door handle turning about an unknown hinge: 6 rows, 1 DOF projected out.
+
+    `axis` (point, direction) in frame B, if given, is the reference line H0
+    of the chart and the initial hinge; otherwise `initialize` fits it to the
+    data (needs >= 3 configurations spread along the arc).
+    """
+
+    translation_rows = (0, 1, 2)
+    rotation_rows = (3, 4, 5)
+
+    def __init__(self, name: str, frame_a: str, frame_b: str = "universe",
+                 axis: tuple[np.ndarray, np.ndarray] | None = None):
+        super().__init__(name, frame_a, frame_b)
+        self.axis = axis
+        self.H0 = _frame_from_axis(axis[0], axis[1]) if axis is not None else pin.SE3.Identity()
+        self._fitted = False
+        self.iterations = 0  # largest Gauss-Newton count of the last evaluation
+
+    @property
+    def dim(self) -> int:
+        return 6
+
+    # ------------------------------------------------------------ parameters
+    def parameters(self) -> list[Parameter]:
+        out = []
+        for k, f in enumerate(HINGE_FIELDS):
+            unit = "rad" if f in ("hinge_rx", "hinge_ry", "grasp_rx", "grasp_ry", "grasp_rz") else "m"
+            val = 0.0
+            swl = 0.0
+            if f in ("hinge_x", "hinge_y"):
+                u = self.H0.rotation.T @ self.H0.translation  # H0's origin, in H0 axes
+                swl = float(u[k])  # exact at zero tilt: the point scales with the world
+            out.append(Parameter(f"{self.name}.{f}", "loop", self.name, f, val, unit,
+                                 DEFAULT_PRIORS["loop_m" if unit == "m" else "loop_rad"],
+                                 scales_with_length=swl, priority=1, order=k))
+        return out
+
+    def hinge(self, p: np.ndarray) -> pin.SE3:
+        """The hinge frame H (z = hinge axis) in B."""
+        return self.H0 * pin.SE3(pin.exp3(np.array([p[2], p[3], 0.0])), np.array([p[0], p[1], 0.0]))
+
+    @staticmethod
+    def grasp(p: np.ndarray) -> pin.SE3:
+        """The handle frame in the door frame."""
+        return pin.SE3(pin.exp3(p[6:9]), np.array([p[4], 0.0, p[5]]))
+
+    def line(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The hinge axis in B: (point nearest B's origin, unit direction)."""
+        H = self.hinge(p)
+        d = H.rotation[:, 2]
+        o = H.translation
+        return o - (o @ d) * d, d
+
+    def closing_parameters(self, line: np.ndarray, M: pin.SE3) -> np.ndarray:
+        """Parameters with hinge `line` (4) whose orbit passes through pose M = T_B^-1 T_A."""
+        p = np.zeros(9)
+        p[:4] = line
+        Gf = self.hinge(p).actInv(M)  # handle in the hinge frame at phi = 0
+        t = Gf.translation
+        G = _rz(-np.arctan2(t[1], t[0])) * Gf  # turn so that the handle lies on x
+        p[4], p[5] = G.translation[0], G.translation[2]
+        p[6:9] = pin.log3(G.rotation)
+        return p
+
+    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
+        """Hinge from the circle traced by the tool (all configurations), grasp from the first.
+
+        With `axis=` given, only the grasp is initialised.  Without it, at
+        least 3 configurations along the arc are needed, except that a later
+        call with fewer keeps the axis fitted before (the core currently
+        passes only the first configuration, see calibrate()).
+        """
+        M = [pin.SE3(np.linalg.solve(b, a)) for a, b in zip(TA, TB)]
+        if self.axis is None and (len(M) >= 3 or not self._fitted):
+            if len(M) < 3:
+                raise LoopError(f"hinge loop '{self.name}': cannot fit the hinge axis from {len(M)} "
+                                "configuration(s); give axis=\"px py pz dx dy dz\" or pass all "
+                                "configurations to initialize()")
+            self.H0 = fit_hinge_axis(M)
+            self._fitted = True
+        return self.closing_parameters(np.zeros(4), M[0])
+
+    def normalize(self, p: np.ndarray) -> np.ndarray:
+        """Grasp rotation within pi; a negative radius becomes positive (phi shifted by pi)."""
+        q = np.array(p, dtype=float)
+        G = self.grasp(q)
+        if q[4] < 0:
+            G = _rz(np.pi) * G
+        q[4], q[5] = G.translation[0], G.translation[2]
+        q[6:9] = pin.log3(G.rotation)
+        return q
+
+    def describe(self) -> dict:
+        return super().describe() | {"reference_axis": {"point": self.H0.translation.tolist(),
+                                                        "direction": self.H0.rotation[:, 2].tolist()}}
+
+    # ------------------------------------------------------------ evaluation
+    def solve_angles(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The eliminated hinge angles phi_i* (N,)."""
+        H, G = self.hinge(p), self.grasp(p)
+        out = np.empty(TA.shape[0])
+        for i in range(TA.shape[0]):
+            M = pin.SE3(TB[i]).actInv(pin.SE3(TA[i]))
+            out[i] = self._solve(H, G, M)[0][0]
+        return out
+
+    def _solve(self, H: pin.SE3, G: pin.SE3, M: pin.SE3):
+        XdG = (G.inverse().action @ _EZ)[:, None]  # right twist of X per dphi: Ad(G^-1) e_rz
+
+        def pose(phi):
+            return H * _rz(phi[0]) * G, XdG
+
+        C = H.actInv(M) * G.inverse()  # ~ Rz(phi): the thesis's atan2 extraction
+        R = C.rotation
+        starts = [np.array([np.arctan2(R[1, 0] - R[0, 1], R[0, 0] + R[1, 1])])]
+        q = H.actInv(M).translation  # ~ Rz(phi) g
+        g = G.translation
+        if np.hypot(g[0], g[1]) > 1e-9 and np.hypot(q[0], q[1]) > 1e-9:  # from the handle position
+            starts.append(np.array([np.arctan2(q[1], q[0]) - np.arctan2(g[1], g[0])]))
+        return eliminate(M, pose, starts)
+
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
+        N = TA.shape[0]
+        H, G = self.hinge(p), self.grasp(p)
+        # right twists of X = H Rz(phi) G per parameter
+        gen_h = np.zeros((6, 4))
+        Rh = pin.exp3(np.array([p[2], p[3], 0.0]))
+        gen_h[:3, :2] = Rh.T[:, :2]
+        gen_h[3:, 2:] = pin.Jexp3(np.array([p[2], p[3], 0.0]))[:, :2]
+        gen_g = np.zeros((6, 5))
+        gen_g[:3, 0] = G.rotation.T[:, 0]
+        gen_g[:3, 1] = G.rotation.T[:, 2]
+        gen_g[3:, 2:] = pin.Jexp3(p[6:9])
+        r = np.empty((N, 6))
+        dA = np.empty((N, 6, 6))
+        dB = np.empty((N, 6, 6))
+        dp = np.empty((N, 6, 9))
+        self.iterations = 0
+        for i in range(N):
+            TAi, TBi = pin.SE3(TA[i]), pin.SE3(TB[i])
+            M = TBi.actInv(TAi)
+            phi, ri, Jl, E, Jphi, it = self._solve(H, G, M)
+            self.iterations = max(self.iterations, it)
+            Pp = projector(Jphi)
+            dX = -Pp @ Jl @ E.inverse().action
+            r[i] = Pp @ ri  # exactly orthogonal to J_phi (a last linearised step, O(|dphi|) ~ 1e-16)
+            dA[i] = Pp @ Jl
+            dB[i] = -Pp @ Jl @ TAi.actInv(TBi).action
+            Ginv_rz = (_rz(phi[0]) * G).inverse().action  # Ad((Rz G)^-1): H's twist seen from X
+            dp[i, :, :4] = dX @ Ginv_rz @ gen_h
+            dp[i, :, 4:] = dX @ gen_g
+        return LoopEval(r, dA, dB, dp)
+
+
+def parse_axis(text: str) -> tuple[np.ndarray, np.ndarray]:
+    """'px py pz dx dy dz' -> (point, direction)."""
+    try:
+        v = np.array([float(t) for t in text.replace(",", " ").split()])
+    except ValueError:
+        raise LoopError(f"axis '{text}': expected six numbers 'px py pz dx dy dz'") from None
+    if v.size != 6 or not np.all(np.isfinite(v)) or np.linalg.norm(v[3:]) < 1e-12:
+        raise LoopError(f"axis '{text}': expected six finite numbers 'px py pz dx dy dz', direction non-zero")
+    return v[:3], v[3:]
+
+
+@register("hinge", {"frame", "to", "axis"})
+def _hinge(kw: dict[str, str], robot) -> Loop:
+    """hinge:frame=<tool>[,to=<frame>][,axis="px py pz dx dy dz"][,name=door]"""
+    if "frame" not in kw:
+        raise LoopError("hinge loop needs frame=<tool frame>")
+    axis = parse_axis(kw["axis"]) if "axis" in kw else None
+    return HingeLoop(kw.get("name", "hinge"), kw["frame"], kw.get("to", "universe"), axis=axis)

@@ -1,0 +1,277 @@
+"""A passive task chain closes the loop: door with handle, drawer, crank (thesis 3.4.3).
+
+The task is a small Pinocchio model (URDF or MJCF) whose joints are
+unsensed.  The robot's tool frame A holds the task's frame F:
+
+    X(q, p) = P  T_F(q)            (pose of F in frame B)
+    r       = log6( X^-1 T_B^-1 T_A )      (exact SE(3) log, eq. 3.18)
+
+* P, the task's pose in B: 6 parameters ``<loop>.x y z rx ry rz``, a right
+  twist on a reference pose P0, P = P0 exp6(p), generators Jexp6(p).  P0 is
+  the user's `pose` or, by `initialize`, the pose that puts the task frame on
+  the tool at the first configuration with the task at `q0` (so start the log
+  with the task at q0, e.g. door closed, handle at rest).  The twist chart
+  keeps the redundancy "turn the task about its first joint axis" a single
+  component (rz for a z axis) however the task is oriented; a rotation-vector
+  chart would make it a curve near |r| = pi, along which the reduced problem
+  has spurious distant solutions.
+* the task's joint placements, ``<loop>.<taskjoint>.x..rz``, with the right-
+  twist convention of `closedloop.parameters`: M_j = M0_j exp6(p_j),
+  generators Jexp6(p_j); the columns are Pinocchio's
+  ``computeFrameKinematicRegressor`` (LOCAL) of the task model times them.
+* the grasp, the placement of F on its parent joint, ``<loop>.grasp.x..rz``:
+  F = F0 exp6(p), right twist of T_F by Jexp6(p).
+
+Many of these are redundant (the rotation of a revolute joint's placement
+about its own axis is its eliminated angle; consecutive placements absorb
+each other along the axes); the core's structural reduction drops them,
+keeping the base pose first, then joints from the task's base to its tip.
+
+The task joint values q_i (up to 5 DOF: each uses up one of the 6 closure
+equations) are eliminated per configuration and anew at each evaluation
+with the current parameters (thesis 3.4.3, steps a-c), by Gauss-Newton on
+|r_i(q)|^2 (Pinocchio frame Jacobian, `pin.integrate`) from the best of: the
+previous evaluation's solution for the same row (warm start), the previous
+row's solution, and `q0`.  The residual and the reduced Jacobians
+(I - J_q J_q^+) d r / d x are those of `hinge.eliminate` (variable
+projection; see the module docstring of `hinge` for the envelope theorem).
+Task joint limits are not enforced.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from ..errors import LoopError
+from ..parameters import DEFAULT_PRIORS, PLACEMENT_FIELDS, Parameter
+from .base import Loop, LoopEval
+from .hinge import eliminate, projector
+from .spec import register
+from .weld import CLOSURE_FIELDS
+
+MAX_PASSIVE_DOF = 5
+
+
+def load_task_model(path: str | Path) -> pin.Model:
+    path = Path(path)
+    if not path.is_file():
+        raise LoopError(f"task model {path}: no such file")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".urdf":
+            return pin.buildModelFromUrdf(str(path))
+        if suffix in (".xml", ".mjcf"):
+            return pin.buildModelFromMJCF(str(path))
+    except Exception as exc:  # Pinocchio raises plain ValueError/RuntimeError
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise LoopError(f"task model {path}: Pinocchio cannot parse it ({first})") from None
+    raise LoopError(f"task model {path}: unknown type '{suffix}' (use .urdf or .xml/.mjcf)")
+
+
+class PassiveChainLoop(Loop):
+    """Tool frame A holds frame `task_frame` of a passive task chain placed in frame B."""
+
+    translation_rows = (0, 1, 2)
+    rotation_rows = (3, 4, 5)
+
+    def __init__(self, name: str, frame_a: str, task_model_path: str | Path, task_frame: str,
+                 base_frame: str = "universe", q0: np.ndarray | None = None,
+                 pose: pin.SE3 | None = None):
+        super().__init__(name, frame_a, base_frame)
+        self.path = Path(task_model_path)
+        self.model = load_task_model(self.path)
+        if self.model.nv > MAX_PASSIVE_DOF:
+            raise LoopError(f"passive loop '{name}': task model {self.path} has {self.model.nv} passive DOF; "
+                            f"at most {MAX_PASSIVE_DOF} can be eliminated from the 6 closure equations "
+                            "(thesis 3.4)")
+        if not self.model.existFrame(task_frame):
+            names = [f.name for f in self.model.frames if f.name != "universe"]
+            raise LoopError(f"passive loop '{name}': task model {self.path} has no frame '{task_frame}' "
+                            f"(frames: {', '.join(names)})")
+        self.task_frame = task_frame
+        self.fid = self.model.getFrameId(task_frame)
+        self.task_joints = [self.model.names[j] for j in range(1, self.model.njoints)]
+        if "grasp" in self.task_joints:
+            raise LoopError(f"passive loop '{name}': a task joint named 'grasp' clashes with the grasp parameters")
+        if q0 is None:
+            self.q0 = pin.neutral(self.model)
+        else:
+            q0 = np.asarray(q0, dtype=float).ravel()
+            if q0.size == self.model.nv and self.model.nq != self.model.nv:
+                q0 = pin.integrate(self.model, pin.neutral(self.model), q0)
+            if q0.size != self.model.nq:
+                raise LoopError(f"passive loop '{name}': q0 has {q0.size} values, the task model "
+                                f"{self.path} has {self.model.nv} DOF")
+            self.q0 = q0
+        self.known_pose = pose is not None
+        self.P0 = pose.copy() if pose is not None else pin.SE3.Identity()
+        self.nj = self.model.njoints - 1
+        self._cache: dict[int, np.ndarray] = {}
+        self.iterations = 0  # largest Gauss-Newton count of the last evaluation
+
+    @property
+    def dim(self) -> int:
+        return 6
+
+    @property
+    def dof(self) -> int:
+        return self.model.nv
+
+    # ------------------------------------------------------------ parameters
+    def parameters(self) -> list[Parameter]:
+        out = []
+        order = 0
+        t0 = self.P0.rotation.T @ self.P0.translation
+        for k, f in enumerate(CLOSURE_FIELDS):
+            m = k < 3
+            out.append(Parameter(f"{self.name}.{f}", "loop", self.name, f, 0.0, "m" if m else "rad",
+                                 DEFAULT_PRIORS["loop_m" if m else "loop_rad"],
+                                 scales_with_length=float(t0[k]) if m else 0.0, priority=1, order=order))
+            order += 1
+        places = [(jn, self.model.jointPlacements[j + 1]) for j, jn in enumerate(self.task_joints)]
+        places.append(("grasp", self.model.frames[self.fid].placement))
+        for owner, M0 in places:
+            t_local = M0.rotation.T @ M0.translation
+            for k, f in enumerate(PLACEMENT_FIELDS):
+                m = k < 3
+                out.append(Parameter(f"{self.name}.{owner}.{f}", "loop", self.name, f"{owner}.{f}", 0.0,
+                                     "m" if m else "rad", DEFAULT_PRIORS["loop_m" if m else "loop_rad"],
+                                     scales_with_length=float(t_local[k]) if m else 0.0, priority=1,
+                                     order=order))
+                order += 1
+        return out
+
+    def _split(self, p: np.ndarray):
+        base = self.P0 * pin.exp6(p[0:6])
+        joints = p[6:6 + 6 * self.nj].reshape(self.nj, 6)
+        grasp = p[6 + 6 * self.nj:12 + 6 * self.nj]
+        return base, joints, grasp
+
+    def task_model(self, p: np.ndarray) -> pin.Model:
+        """The task model with the placements of `p`."""
+        _, joints, grasp = self._split(p)
+        model = self.model.copy()
+        for j in range(self.nj):
+            model.jointPlacements[j + 1] = self.model.jointPlacements[j + 1] * pin.exp6(joints[j])
+        fr = model.frames[self.fid]
+        fr.placement = self.model.frames[self.fid].placement * pin.exp6(grasp)
+        model.frames[self.fid] = fr  # the Python binding hands out copies
+        return model
+
+    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
+        """Reference pose P0 from the first configuration with the task at q0 (nominal placements)."""
+        if self.known_pose:
+            return None
+        data = self.model.createData()
+        pin.forwardKinematics(self.model, data, self.q0)
+        TF = pin.updateFramePlacement(self.model, data, self.fid)
+        self.P0 = pin.SE3(np.linalg.solve(TB[0], TA[0])) * TF.inverse()
+        return np.zeros(12 + 6 * self.nj)
+
+    def pose(self, p: np.ndarray) -> pin.SE3:
+        """The task's pose in B."""
+        return self._split(p)[0]
+
+    def describe(self) -> dict:
+        return super().describe() | {"reference_pose": np.concatenate([self.P0.translation,
+                                                                       pin.log3(self.P0.rotation)]).tolist(),
+                                     "task_model": str(self.path), "task_frame": self.task_frame,
+                                     "task_joints": self.task_joints, "passive_dof": self.dof}
+
+    # ------------------------------------------------------------ evaluation
+    def _solver(self, p: np.ndarray):
+        base, _, _ = self._split(p)
+        model = self.task_model(p)
+        data = model.createData()
+        fid = self.fid
+
+        def pose(q):
+            pin.computeJointJacobians(model, data, q)
+            oMf = pin.updateFramePlacement(model, data, fid)
+            return base * oMf, pin.getFrameJacobian(model, data, fid, pin.LOCAL)
+
+        def integrate(q, dq):
+            return pin.integrate(model, q, dq)
+
+        return model, data, base, pose, integrate
+
+    def _snap(self, model):
+        def snap(q):  # warm starts give bit-identical results: restart from q rounded to 1e-8
+            return pin.normalize(model, np.round(q, 8))
+        return snap
+
+    def _starts(self, N: int, i: int, prev: np.ndarray | None) -> list[np.ndarray]:
+        starts = []
+        if N in self._cache:
+            starts.append(self._cache[N][i])
+        if prev is not None:
+            starts.append(prev)
+        starts.append(self.q0)
+        return starts
+
+    def solve_angles(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The eliminated task configurations q_i* (N, nq)."""
+        return self._evaluate(TA, TB, p, False)[1]
+
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
+        return self._evaluate(TA, TB, p, True)[0]
+
+    def _evaluate(self, TA, TB, p, jac):
+        N = TA.shape[0]
+        model, data, base, pose, integrate = self._solver(p)
+        snap = self._snap(model)
+        _, joints, grasp = self._split(p)
+        nP = p.size
+        G = np.zeros((6 * self.nj, 6 * self.nj))
+        for j in range(self.nj):
+            G[6 * j:6 * j + 6, 6 * j:6 * j + 6] = pin.Jexp6(joints[j])
+        gen_base = pin.Jexp6(p[0:6])
+        Jg = pin.Jexp6(grasp)
+        r = np.empty((N, 6))
+        dA = np.empty((N, 6, 6))
+        dB = np.empty((N, 6, 6))
+        dp = np.empty((N, 6, nP))
+        qs = np.empty((N, model.nq))
+        prev = None
+        self.iterations = 0
+        for i in range(N):
+            TAi, TBi = pin.SE3(TA[i]), pin.SE3(TB[i])
+            M = TBi.actInv(TAi)
+            q, ri, Jl, E, Jq, it = eliminate(M, pose, self._starts(N, i, prev), integrate, snap=snap)
+            self.iterations = max(self.iterations, it)
+            qs[i] = prev = q
+            Pp = projector(Jq)
+            r[i] = Pp @ ri  # exactly orthogonal to J_q (a last linearised step, O(|dq|) ~ 1e-16)
+            if not jac:
+                continue
+            pose(q)  # the data at the solution (a rejected trial step may be the last call)
+            oMf = data.oMf[self.fid]
+            Reg = pin.computeFrameKinematicRegressor(model, data, self.fid, pin.LOCAL)
+            dX = -Pp @ Jl @ E.inverse().action
+            dA[i] = Pp @ Jl
+            dB[i] = -Pp @ Jl @ TAi.actInv(TBi).action
+            dp[i, :, :6] = dX @ oMf.inverse().action @ gen_base
+            dp[i, :, 6:6 + 6 * self.nj] = dX @ Reg @ G
+            dp[i, :, 6 + 6 * self.nj:] = dX @ Jg
+        self._cache[N] = qs
+        return (LoopEval(r, dA, dB, dp) if jac else None), qs
+
+
+@register("passive", {"frame", "to", "task", "task_frame", "q0"})
+def _passive(kw: dict[str, str], robot) -> Loop:
+    """passive:frame=<tool>,task=<task.urdf>,task_frame=<frame>[,to=<frame>][,q0="..."][,name=task]"""
+    for key in ("frame", "task", "task_frame"):
+        if key not in kw:
+            raise LoopError(f"passive loop needs {key}=... (frame=<tool frame>, task=<task model file>, "
+                            "task_frame=<frame of the task model the tool holds>)")
+    q0 = None
+    if "q0" in kw:
+        try:
+            q0 = np.array([float(t) for t in kw["q0"].replace(",", " ").split()])
+        except ValueError:
+            raise LoopError(f"q0 '{kw['q0']}': expected numbers (task joint values)") from None
+    return PassiveChainLoop(kw.get("name", "task"), kw["frame"], kw["task"], kw["task_frame"],
+                            kw.get("to", "universe"), q0=q0)

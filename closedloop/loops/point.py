@@ -1,0 +1,180 @@
+"""The point loop: a tool tip held at a fixed point (ball joint / point contact, thesis 3.4.1)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import LoopError
+from ..parameters import DEFAULT_PRIORS, Parameter
+from ..robot import RobotModel
+from .base import Loop, LoopEval
+from .spec import register
+
+TIP_FIELDS = ("tip_x", "tip_y", "tip_z")
+POINT_FIELDS = ("px", "py", "pz")
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """[v]x for a batch (..., 3) -> (..., 3, 3)."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def relative_point(TA: np.ndarray, TB: np.ndarray, tip: np.ndarray):
+    """y = T_B^-1 T_A tip (N, 3) and R_BA = R_B^T R_A (N, 3, 3).
+
+    With right perturbations of T_A and T_B (T <- T exp6((v, w))):
+
+        dy/d(delta_A) = R_BA [ I  -[tip]x ]          (the tip moves with A)
+        dy/d(delta_B) =      [ -I   [y]x  ]          (B moving is y moving back)
+        dy/d(tip)     = R_BA
+    """
+    RB = np.swapaxes(TB[:, :3, :3], 1, 2)
+    RBA = RB @ TA[:, :3, :3]
+    y = np.einsum("nij,nj->ni", RB, TA[:, :3, 3] + TA[:, :3, :3] @ tip - TB[:, :3, 3])
+    N = TA.shape[0]
+    dA = np.empty((N, 3, 6))
+    dA[:, :, :3] = RBA
+    dA[:, :, 3:] = -RBA @ skew(tip)
+    dB = np.empty((N, 3, 6))
+    dB[:, :, :3] = -np.eye(3)
+    dB[:, :, 3:] = skew(y)
+    return y, RBA, dA, dB
+
+
+def point_parameters(loop: str, fields: tuple[str, ...], values: np.ndarray, order0: int = 0,
+                     prior: float | None = None) -> list[Parameter]:
+    """Three unknown coordinates of a point (metres, they scale with length)."""
+    prior = DEFAULT_PRIORS["loop_m"] if prior is None else prior
+    return [Parameter(f"{loop}.{f}", "loop", loop, f, float(values[k]), "m", prior,
+                      scales_with_length=float(values[k]), priority=1, order=order0 + k)
+            for k, f in enumerate(fields)]
+
+
+class PointLoop(Loop):
+    """Three closure equations per configuration: a point of A coincides with a point of B.
+
+    Residual (the position part of the closure, eq. 3.19 with x_c = p_c, eqs. 3.27):
+
+        r = T_B^-1 T_A t - p              (3 rows, metres, in frame B)
+
+    t is the tool tip in frame A (``<loop>.tip_x/y/z``), p the contact point
+    in frame B (``<loop>.px/py/pz``, world coordinates when B is the
+    universe).  Either may be known (``tip=``, ``point=``), e.g. a calibrated
+    probe ball, or a known fixture.  The orientation of A relative to B is
+    free (the three passive rotations of the ball joint), so the loop only
+    sees the partial velocity vectors of eq. 3.27.  Jacobians:
+
+        dr/d(delta_A) = R_BA [I  -[t]x],   dr/d(delta_B) = [-I  [y]x],
+        dr/dt = R_BA,                      dr/dp = -I,
+
+    with y = T_B^-1 T_A t and R_BA = R_B^T R_A.  Which robot parameters the
+    data cannot identify (Theorem 4, eq. 3.28: the orientation of the base
+    about the contact point, the tool orientation, one length when the point
+    is unknown) is decided by the core on the data; nothing is removed here.
+
+    B may be any frame of the model, including another branch (two fingers
+    touching, the two grippers of a two-armed robot joined at a point).
+
+    ``initial_tip`` / ``initial_point`` are starting values of unknown ones
+    (the point is otherwise initialised from the data); ``prior`` (m) is the
+    expected magnitude of their errors, used to scale the Jacobian columns
+    and to report unidentifiable combinations (default DEFAULT_PRIORS
+    ["loop_m"]; give the robot's length prior when the tip is a link length).
+    """
+
+    translation_rows = (0, 1, 2)
+    rotation_rows = ()
+
+    def __init__(self, name: str, frame_a: str, frame_b: str = "universe",
+                 tip: np.ndarray | None = None, point: np.ndarray | None = None,
+                 initial_tip: np.ndarray | None = None, initial_point: np.ndarray | None = None,
+                 prior: float | None = None):
+        super().__init__(name, frame_a, frame_b)
+        self.prior = prior
+        self.tip = None if tip is None else _vec3(tip, "tip")
+        self.point = None if point is None else _vec3(point, "point")
+        self.initial_tip = np.zeros(3) if initial_tip is None else _vec3(initial_tip, "initial_tip")
+        self.initial_point = None if initial_point is None else _vec3(initial_point, "initial_point")
+
+    @property
+    def dim(self) -> int:
+        return 3
+
+    @property
+    def n_tip(self) -> int:
+        return 0 if self.tip is not None else 3
+
+    def parameters(self) -> list[Parameter]:
+        out = []
+        if self.tip is None:
+            out += point_parameters(self.name, TIP_FIELDS, self.initial_tip, prior=self.prior)
+        if self.point is None:
+            p0 = self.initial_point if self.initial_point is not None else np.zeros(3)
+            out += point_parameters(self.name, POINT_FIELDS, p0, order0=3, prior=self.prior)
+        return out
+
+    def split(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(tip, point) from the loop's parameter vector."""
+        k = self.n_tip
+        tip = self.tip if self.tip is not None else p[:3]
+        point = self.point if self.point is not None else p[k:k + 3]
+        return np.asarray(tip, dtype=float), np.asarray(point, dtype=float)
+
+    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
+        """The contact point as the mean of T_B^-1 T_A t over the configurations given."""
+        if self.point is not None or self.initial_point is not None:
+            return None
+        tip = self.tip if self.tip is not None else self.initial_tip
+        y, *_ = relative_point(TA, TB, tip)
+        p = y.mean(axis=0)
+        return p if self.tip is not None else np.concatenate([self.initial_tip, p])
+
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
+        tip, point = self.split(p)
+        y, RBA, dA, dB = relative_point(TA, TB, tip)
+        N = TA.shape[0]
+        blocks = []
+        if self.tip is None:
+            blocks.append(RBA)
+        if self.point is None:
+            blocks.append(np.broadcast_to(-np.eye(3), (N, 3, 3)))
+        dp = np.concatenate(blocks, axis=2) if blocks else np.zeros((N, 3, 0))
+        return LoopEval(y - point, dA, dB, dp)
+
+    def describe(self) -> dict:
+        return super().describe() | {
+            "tip": "unknown" if self.tip is None else self.tip.tolist(),
+            "point": "unknown" if self.point is None else self.point.tolist()}
+
+
+def _vec3(v, what: str) -> np.ndarray:
+    a = np.asarray(v, dtype=float).reshape(-1)
+    if a.size != 3 or not np.all(np.isfinite(a)):
+        raise LoopError(f"{what}: expected three finite numbers, got {v!r}")
+    return a
+
+
+def parse_vec(text: str, n: int, what: str) -> np.ndarray:
+    """'x y z' (spaces or commas) -> array of n finite numbers."""
+    try:
+        v = np.array([float(t) for t in text.replace(",", " ").split()])
+    except ValueError:
+        raise LoopError(f"{what} '{text}': expected {n} numbers") from None
+    if v.size != n or not np.all(np.isfinite(v)):
+        raise LoopError(f"{what} '{text}': expected {n} finite numbers")
+    return v
+
+
+@register("point", {"frame", "to", "tip", "point"})
+def _point(kw: dict[str, str], robot: RobotModel) -> Loop:
+    """point:frame=tool[,to=frame_b][,tip="x y z"][,point="x y z"]  (tip/point: unknown if absent)."""
+    if "frame" not in kw:
+        raise LoopError("point loop needs frame=<tool frame>")
+    tip = parse_vec(kw["tip"], 3, "tip") if kw.get("tip", "unknown") != "unknown" else None
+    point = parse_vec(kw["point"], 3, "point") if kw.get("point", "unknown") != "unknown" else None
+    return PointLoop(kw.get("name", "point"), kw["frame"], kw.get("to", "universe"), tip=tip, point=point)

@@ -1,0 +1,279 @@
+"""Monte Carlo check of the estimator against the Cramer-Rao bound (issue 5, item 3).
+
+From a truth (parameter values and joint readings that close the loops
+exactly) simulate M datasets by adding Gaussian noise to the readings,
+calibrate each one with the noise-weighted (errors-in-variables) estimator and
+with the plain unweighted one, and compare the empirical covariance of the
+estimates with the Cramer-Rao bound at the truth,
+
+    CRB = (sum_i J_i^T W_i^-1 J_i)^-1,   W_i = J_theta,i Sigma_q J_theta,i^T,
+
+over the estimated parameters (J_i, J_theta,i evaluated at the true values and
+the exact readings).  This is the bound of the implicit-loop (errors-in-
+variables) model of Wampler, Hollerbach & Arai 1995 to first order in the
+noise.  For the unweighted estimator the first-order (sandwich) covariance
+(J^T J)^-1 J^T W J (J^T J)^-1 is reported too.
+
+Comparison statistics, per estimator:
+
+* ``trace_ratio``: tr(cov_emp) / tr(CRB), physical units (m, rad mixed, as
+  the parameters are); ``trace_ratio_scaled`` in prior-scaled units;
+* ``efficiency``: tr(CRB^-1 cov_emp) / L, coordinate-free (1 for an
+  efficient estimator, the mean eigenvalue of CRB^-1/2 cov_emp CRB^-1/2);
+* ``bias_over_se``: (mean - truth) / sqrt(diag CRB), the bias in units of
+  the parameter's standard error; ``bias_t``: (mean - truth) /
+  (std_emp / sqrt(M)), its t-statistic; ``bias_chi2`` = M b^T CRB^-1 b,
+  ~ chi2(L) when unbiased and efficient.
+
+Closure rotation vectors are unwrapped to the representative nearest the true
+one before any comparison (r and r/|r| (|r| - 2 pi k) are the same rotation).
+"""
+
+from __future__ import annotations
+
+import site
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+
+from .calibration import CalibrationOptions, build_problem, calibrate
+from .data import JointLog
+from .errors import ClosedLoopError
+from .loops.base import Loop
+from .observability import whitened_blocks
+from .problem import CalibrationProblem, LoopBlock
+from .robot import RobotModel
+
+
+# --------------------------------------------------------------------------- scenario
+@dataclass
+class Scenario:
+    """A truth: robot, loops, exact readings on the true closure manifold, true parameter values."""
+
+    robot: RobotModel
+    joints: list[str]
+    loops: list[Loop]
+    theta: np.ndarray  # (N, n_joints) exact readings (problem.joints order)
+    truth: dict[str, float]  # every parameter of the problem, by name
+    pool: np.ndarray | None = None  # optional extra exact readings (held-out / candidates)
+
+    def log(self, theta: np.ndarray | None = None) -> JointLog:
+        return JointLog(list(self.joints), np.array(self.theta if theta is None else theta, float))
+
+    def truth_vector(self, problem: CalibrationProblem) -> np.ndarray:
+        return np.array([self.truth[n] for n in problem.names])
+
+
+def panda_urdf() -> str:
+    return site.getsitepackages()[0] + "/cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf"
+
+
+def weld_scenario(n: int = 200, seed: int = 0, n_pool: int = 0,
+                  theta0=(0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8), stride: int = 3) -> Scenario:
+    """The 7-DOF Panda welded to a fixture at the hand: truth drawn in the identifiable set.
+
+    `n` exact configurations along the self-motion (one every `stride` steps
+    of 0.04 rad), and `n_pool` more (the walk continued) in `pool`.
+    """
+    from .loops import WeldLoop
+    from .synthetic import self_motion
+    from .truth import draw_truth, identifiable_names
+
+    rng = np.random.default_rng(seed)
+    robot = RobotModel.from_file(panda_urdf())
+    joints = robot.supporting_joints("panda_hand")
+    loop = WeldLoop("fixture", "panda_hand")
+    th_start = np.atleast_2d(np.asarray(theta0, float))
+    names = identifiable_names(robot, [loop], th_start)
+    tv = draw_truth(robot, names, rng)
+    prob = CalibrationProblem(robot, joints, [LoopBlock(loop, th_start, np.arange(1))])
+    truth = prob.nominal.copy()
+    for k, v in tv.items():
+        truth[prob.index[k]] = v
+    th0 = (th_start - truth[prob.rp.offset_index()]) / truth[prob.rp.scale_index()]
+    TA, TB = prob.loop_poses(truth, 0, th0)
+    X = pin.SE3(TA[0])
+    truth[prob.loop_slices[0]] = np.r_[X.translation, pin.log3(X.rotation)]
+    th = self_motion(prob, truth, th0, n + n_pool, rng, stride=stride)
+    return Scenario(robot, list(joints), [WeldLoop("fixture", "panda_hand")], th[:n],
+                    dict(zip(prob.names, map(float, truth))), th[n:] if n_pool else None)
+
+
+# --------------------------------------------------------------------------- unwrap
+def unwrap_rotation_vector(r: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """The rotation vector of the same rotation as `r` nearest to `ref`."""
+    r = np.asarray(r, float)
+    a = np.linalg.norm(r)
+    if a < 1e-12:
+        u = ref / np.linalg.norm(ref) if np.linalg.norm(ref) > 1e-12 else np.array([1.0, 0.0, 0.0])
+        cands = [np.zeros(3)] + [u * 2 * np.pi * k for k in (-1, 1)]
+    else:
+        u = r / a
+        cands = [u * (a + 2 * np.pi * k) for k in (-2, -1, 0, 1, 2)]
+    return min(cands, key=lambda c: float(np.linalg.norm(c - ref)))
+
+
+def rotation_triples(problem: CalibrationProblem) -> list[tuple[int, int, int]]:
+    """Index triples of rotation-vector parameters (weld closures: <loop>.rx, ry, rz)."""
+    out = []
+    for sl in problem.loop_slices:
+        names = problem.names[sl]
+        for k, n in enumerate(names):
+            if n.endswith(".rx") and k + 2 < len(names) and names[k + 1].endswith(".ry") \
+                    and names[k + 2].endswith(".rz"):
+                out.append((sl.start + k, sl.start + k + 1, sl.start + k + 2))
+    return out
+
+
+def unwrap(problem: CalibrationProblem, values: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """`values` with every closure rotation vector unwrapped towards `ref`."""
+    v = np.array(values, float)
+    for t in rotation_triples(problem):
+        v[list(t)] = unwrap_rotation_vector(v[list(t)], ref[list(t)])
+    return v
+
+
+# --------------------------------------------------------------------------- bound
+def cramer_rao(problem: CalibrationProblem, truth: np.ndarray, params: list[int], noise,
+               thetas: list[np.ndarray] | None = None) -> np.ndarray:
+    """(sum_i J_i^T W_i^-1 J_i)^-1 over `params` at `truth` (physical units)."""
+    from .calibration import _noise_vector
+
+    sigma_q, _ = _noise_vector(problem, noise)
+    blocks = whitened_blocks(problem, truth, params, sigma_q, "noise", thetas, scaled=False)
+    C = np.vstack([J.reshape(-1, len(params)) for _, J in blocks])
+    return np.linalg.inv(C.T @ C)
+
+
+def sandwich_unweighted(problem: CalibrationProblem, truth: np.ndarray, params: list[int], noise,
+                        thetas: list[np.ndarray] | None = None) -> np.ndarray:
+    """First-order covariance of the unweighted estimator, (J^T J)^-1 J^T W J (J^T J)^-1."""
+    from .calibration import _noise_vector
+
+    sigma_q, _ = _noise_vector(problem, noise)
+    evals = problem.evaluate(truth, True, thetas)
+    L = len(params)
+    JtJ = np.zeros((L, L))
+    meat = np.zeros((L, L))
+    for ev in evals:
+        J = ev.J[:, :, params]
+        Jq = ev.Jq * sigma_q[None, None, :]
+        W = Jq @ np.swapaxes(Jq, 1, 2)
+        JtJ += np.einsum("nki,nkj->ij", J, J)
+        meat += np.einsum("nki,nkl,nlj->ij", J, W, J)
+    A = np.linalg.inv(JtJ)
+    return A @ meat @ A
+
+
+# --------------------------------------------------------------------------- MC
+@dataclass
+class EstimatorStats:
+    weighting: str
+    estimates: np.ndarray  # (M, L) unwrapped, physical units
+    mean: np.ndarray
+    cov: np.ndarray
+    bias: np.ndarray
+    bias_over_se: np.ndarray  # bias / sqrt(diag CRB)
+    bias_t: np.ndarray  # bias / (std_emp / sqrt(M))
+    bias_chi2: float  # M b^T CRB^-1 b
+    trace_ratio: float
+    trace_ratio_scaled: float
+    efficiency: float
+    failures: int  # runs left out (error, or a different estimated set)
+    truncated: int  # runs where the solver truncated a direction below the noise (kept)
+    predicted_trace_ratio: float | None = None  # first-order prediction / CRB (1 for 'noise')
+
+
+@dataclass
+class MonteCarloResult:
+    names: list[str]  # estimated parameters
+    truth: np.ndarray  # (L,)
+    crb: np.ndarray  # (L, L)
+    n_runs: int
+    n_configs: int
+    noise: float
+    stats: dict[str, EstimatorStats] = field(default_factory=dict)
+    tolerance_trace: float = 0.0  # 1-sigma sampling spread of a trace ratio, sqrt(2 tr(CRB^2) / ((M-1) tr(CRB)^2))
+
+    def summary(self) -> str:
+        lines = [f"Monte Carlo: {self.n_runs} runs, {self.n_configs} configurations, noise {self.noise:g}, "
+                 f"{len(self.names)} estimated parameters; tr(CRB) = {np.trace(self.crb):.4g}",
+                 f"  sampling spread of a trace ratio (1 sigma): {self.tolerance_trace:.3f}"]
+        for w, s in self.stats.items():
+            pred = f", first-order prediction {s.predicted_trace_ratio:.3f}" if s.predicted_trace_ratio else ""
+            lines.append(f"  weighting={w:5s}: tr(cov)/tr(CRB) = {s.trace_ratio:.3f}{pred} "
+                         f"(prior-scaled {s.trace_ratio_scaled:.3f}); efficiency tr(CRB^-1 cov)/L = "
+                         f"{s.efficiency:.3f}; |bias|/se max {np.max(np.abs(s.bias_over_se)):.3f} "
+                         f"mean {np.mean(np.abs(s.bias_over_se)):.3f}; bias chi2 {s.bias_chi2:.1f} "
+                         f"(dof {len(self.names)}); max |t| {np.max(np.abs(s.bias_t)):.2f}; failures {s.failures}, truncated {s.truncated}")
+        return "\n".join(lines)
+
+
+def monte_carlo(scenario: Scenario, noise: float, n_runs: int, seed: int = 0,
+                weightings: tuple[str, ...] = ("noise", "none"), options: CalibrationOptions | None = None,
+                progress=None) -> MonteCarloResult:
+    """Calibrate `n_runs` noisy copies of the scenario's readings with each weighting.
+
+    Every run must estimate the same parameters (the reduction is structural);
+    a run that estimates a different set or fails counts as a failure and is
+    left out.  `options` (noise and weighting are overridden) apply to all runs.
+    """
+    rng = np.random.default_rng(seed)
+    base = options or CalibrationOptions()
+    problem = build_problem(scenario.robot, scenario.log(), scenario.loops, base.priors)
+    truth_full = scenario.truth_vector(problem)
+    noisy = [scenario.theta + rng.normal(0.0, noise, scenario.theta.shape) for _ in range(n_runs)]
+    est_set: list[int] | None = None
+    raw: dict[str, list[np.ndarray]] = {w: [] for w in weightings}
+    fails = dict.fromkeys(weightings, 0)
+    truncated = dict.fromkeys(weightings, 0)
+    for i, th in enumerate(noisy):
+        for w in weightings:
+            opt = CalibrationOptions(**{**base.__dict__, "noise": noise, "weighting": w})
+            try:
+                res = calibrate(scenario.robot, scenario.log(th), scenario.loops, opt)
+            except ClosedLoopError:
+                fails[w] += 1
+                continue
+            if est_set is None:
+                est_set = list(res.estimated)
+            if list(res.estimated) != est_set:
+                fails[w] += 1
+                continue
+            if res.weak:
+                truncated[w] += 1
+            raw[w].append(unwrap(problem, res.values, truth_full)[est_set])
+        if progress:
+            progress(i + 1, n_runs)
+    if est_set is None:
+        raise ClosedLoopError("every Monte Carlo run failed")
+    crb = cramer_rao(problem, truth_full, est_set, noise)
+    tru = truth_full[est_set]
+    prior = np.array([problem.params[k].prior for k in est_set])
+    crb_inv = np.linalg.inv(crb)
+    se = np.sqrt(np.diag(crb))
+    L = len(est_set)
+    out = MonteCarloResult([problem.names[k] for k in est_set], tru, crb, n_runs, scenario.theta.shape[0], noise,
+                           tolerance_trace=float(np.sqrt(2 * np.trace(crb @ crb) / (max(n_runs - 1, 1))) /
+                                                 np.trace(crb)))
+    for w in weightings:
+        E = np.array(raw[w])
+        if E.shape[0] < 2:
+            continue
+        M = E.shape[0]
+        mean = E.mean(axis=0)
+        cov = np.cov(E.T)
+        bias = mean - tru
+        pred = None
+        if w == "none":
+            sw = sandwich_unweighted(problem, truth_full, est_set, noise)
+            pred = float(np.trace(sw) / np.trace(crb))
+        elif w == "noise":
+            pred = 1.0
+        out.stats[w] = EstimatorStats(
+            w, E, mean, cov, bias, bias / se, bias / (np.sqrt(np.diag(cov)) / np.sqrt(M)),
+            float(M * bias @ crb_inv @ bias), float(np.trace(cov) / np.trace(crb)),
+            float(np.trace(cov / np.outer(prior, prior)) / np.trace(crb / np.outer(prior, prior))),
+            float(np.trace(crb_inv @ cov) / L), fails[w], truncated[w], pred)
+    return out

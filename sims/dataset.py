@@ -1,0 +1,378 @@
+"""Run a scenario: draw the true robot, simulate the closed loop, record and write a dataset.
+
+Pipeline of :func:`simulate`:
+
+1. nominal URDF (cleaned, :func:`closedloop.models.nominal_urdf`) and its
+   Pinocchio model; arm joints = movable joints in Pinocchio order;
+2. true parameters: :func:`~closedloop.sims.scenarios.perturbable_parameters`
+   drawn by :func:`~closedloop.sims.scenarios.draw_errors`; the true URDF
+   carries the placement errors (offsets/scales stay in the sensor model);
+3. MuJoCo scene of the true robot with the loop closed at the true grasp
+   configuration ``q0`` (:func:`~closedloop.sims.scene.build_scene`);
+4. the robot reads ``r0 = sensor(q0)``, builds its nominal loop and plans
+   waypoints along the nominal self-motion (:mod:`closedloop.sims.driver`);
+5. for every waypoint ``r`` the servos are commanded ``ctrl = scale * r + offset``
+   (the servo acts on the encoder reading), ramped over ``ramp_steps`` steps;
+   the simulation runs until ``max |qdot| < vel_tol`` (quasi-static point);
+6. recorded: readings ``sensor(q)``, actuator torques, the true closure
+   violation (tool site vs target site) and the loop constraint force.
+
+Sensor model: ``reading = Q((q_true - offset) / scale + N(0, noise))`` with
+``Q(x) = quantum * round(x / quantum)`` (identity if quantum is 0).
+
+Outputs in ``out_dir``: ``log.csv``, ``nominal.urdf``, ``truth.json``, ``scene.xml``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+import pinocchio as pin
+
+from closedloop.models import nominal_urdf
+
+from .driver import NominalLoop, NominalLoopPlanner
+from .scenarios import SCENARIOS, Scenario, SimSettings, draw_errors, identifiable_parameters
+from .scene import Scene, build_scene, site_pose, true_urdf
+
+__all__ = ["SimResult", "simulate", "sensor_readings"]
+
+log = logging.getLogger(__name__)
+
+_COMPS = ("x", "y", "z", "rx", "ry", "rz")
+
+
+@dataclass
+class SimResult:
+    """Result of :func:`simulate`.
+
+    Attributes:
+        scenario: scenario name.
+        seed: random seed.
+        out_dir: output directory; ``log_path``, ``truth_path``, ``nominal_path``, ``scene_path`` inside.
+        joint_names: arm joints (CSV header order = Pinocchio order).
+        readings: (n, nj) recorded joint readings [rad].
+        q_true: (n, nj) true joint angles (MuJoCo qpos) at the samples [rad].
+        tau: (n, nj) actuator torques (servo + gravity compensation, ``qfrc_actuator``) [N m].
+        violation_m, violation_rad: (n,) true closure violation (position, rotation).
+        constraint_force_n: (n,) norm of the loop constraint force [N].
+        door_angle: (n,) door angle (hinge loops) else empty.
+        truth: contents of ``truth.json``.
+        settings: settings used.
+        n_dropped: samples dropped (at a joint limit or not settled).
+        n_steps: total simulation steps.
+        elapsed_s: wall time of the simulation loop [s] (excluding scene building).
+    """
+
+    scenario: str
+    seed: int
+    out_dir: Path
+    joint_names: list[str]
+    readings: np.ndarray
+    q_true: np.ndarray
+    tau: np.ndarray
+    violation_m: np.ndarray
+    violation_rad: np.ndarray
+    constraint_force_n: np.ndarray
+    door_angle: np.ndarray
+    truth: dict[str, Any]
+    settings: SimSettings
+    n_dropped: int = 0
+    n_steps: int = 0
+    elapsed_s: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def log_path(self) -> Path:
+        return self.out_dir / "log.csv"
+
+    @property
+    def truth_path(self) -> Path:
+        return self.out_dir / "truth.json"
+
+    @property
+    def nominal_path(self) -> Path:
+        return self.out_dir / "nominal.urdf"
+
+    @property
+    def scene_path(self) -> Path:
+        return self.out_dir / "scene.xml"
+
+    @property
+    def configs_per_second(self) -> float:
+        """Settled configurations recorded per second of simulation-loop wall time."""
+        return len(self.readings) / self.elapsed_s if self.elapsed_s > 0 else float("nan")
+
+
+def sensor_readings(
+    q: np.ndarray,
+    offset: np.ndarray,
+    scale: np.ndarray,
+    noise: float,
+    quantum: float,
+    rng: np.random.Generator | None,
+) -> np.ndarray:
+    """Sensor model: ``Q((q - offset) / scale + N(0, noise))``, see module docstring."""
+    r = (np.asarray(q, dtype=float) - offset) / scale
+    if noise > 0.0:
+        if rng is None:
+            raise ValueError("noise > 0 needs a random generator")
+        r = r + rng.normal(0.0, noise, size=r.shape)
+    if quantum > 0.0:
+        r = quantum * np.round(r / quantum)
+    return r
+
+
+def _violation(scene: Scene, point: bool) -> tuple[float, float]:
+    t = site_pose(scene.model, scene.data, scene.tool_site)
+    g = site_pose(scene.model, scene.data, scene.target_site)
+    dp = float(np.linalg.norm(t.translation - g.translation))
+    if point:
+        return dp, 0.0
+    return dp, float(np.linalg.norm(pin.log3(g.rotation.T @ t.rotation)))
+
+
+def _constraint_force(scene: Scene) -> float:
+    """Norm of the translational part of the loop constraint force (``efc_force``)."""
+    d = scene.data
+    rows = np.flatnonzero(
+        (d.efc_type[: d.nefc] == mujoco.mjtConstraint.mjCNSTR_EQUALITY) & (d.efc_id[: d.nefc] == scene.eq_id)
+    )
+    return float(np.linalg.norm(d.efc_force[rows[:3]])) if rows.size else 0.0
+
+
+def _pose_params(prefix: str, pose: pin.SE3, rotation: bool = True) -> dict[str, float]:
+    vals = list(pose.translation) + (list(pin.log3(pose.rotation)) if rotation else [])
+    return {f"{prefix}.{c}": float(v) for c, v in zip(_COMPS, vals)}
+
+
+def _settle(scene: Scene, ctrl_from: np.ndarray, ctrl_to: np.ndarray, s: SimSettings) -> tuple[bool, int]:
+    """Ramp the servo commands, then step until quasi-static; returns (settled, steps)."""
+    m, d = scene.model, scene.data
+    steps = 0
+    ramp = max(1, s.ramp_steps)
+    for k in range(1, ramp + 1):
+        d.ctrl[scene.actuator_ids] = ctrl_from + (ctrl_to - ctrl_from) * (k / ramp)
+        mujoco.mj_step(m, d)
+    steps += ramp
+    chunk = 5
+    while steps < s.max_steps:
+        mujoco.mj_step(m, d, nstep=chunk)
+        steps += chunk
+        if steps >= s.min_steps and float(np.max(np.abs(d.qvel))) < s.vel_tol:
+            return True, steps
+    return False, steps
+
+
+def simulate(
+    scenario: str,
+    n: int,
+    seed: int,
+    out_dir: Path | str,
+    progress: Callable[[int, int], None] | None = None,
+    **overrides: Any,
+) -> SimResult:
+    """Generate a closed-loop calibration dataset by simulation.
+
+    Args:
+        scenario: key of :data:`~closedloop.sims.scenarios.SCENARIOS`.
+        n: number of recorded (settled, unflagged) configurations.
+        seed: random seed (truth, targets, noise); the same seed gives an identical log.
+        out_dir: output directory (created).
+        progress: optional callback ``progress(done, n)`` called after each recorded sample.
+        **overrides: :class:`~closedloop.sims.scenarios.SimSettings` fields, plus
+            ``stiff=True`` for the stiff-loop preset (``SimSettings.stiff``).
+
+    Returns:
+        the :class:`SimResult`; files ``log.csv``, ``nominal.urdf``, ``truth.json``,
+        ``scene.xml`` are written in ``out_dir``.
+    """
+    try:
+        sc: Scenario = SCENARIOS[scenario]
+    except KeyError:
+        raise KeyError(f"unknown scenario {scenario!r}; known: {sorted(SCENARIOS)}") from None
+    if n < 1:
+        raise ValueError("n must be >= 1")
+    settings = sc.settings
+    if overrides.pop("soft", False):
+        settings = settings.replace(solref=(0.02, 1.0), solimp=(0.9, 0.95, 0.001, 0.5, 2.0))
+    if overrides.pop("stiff", False):
+        settings = settings.replace(
+            solref=(2.0 * overrides.get("timestep", settings.timestep), 1.0),
+            solimp=(0.99, 0.999, 0.001, 0.5, 2.0),
+        )
+    settings = settings.replace(**overrides)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+
+    ss = np.random.SeedSequence(seed)
+    rng_truth, rng_plan, rng_noise = (np.random.default_rng(c) for c in ss.spawn(3))
+
+    # 1. nominal model
+    urdf_nom = nominal_urdf(sc.robot)
+    nominal_path = out / "nominal.urdf"
+    nominal_path.write_text(urdf_nom)
+    pmodel = pin.buildModelFromXML(urdf_nom)
+    joint_names = [pmodel.names[j] for j in range(1, pmodel.njoints) if pmodel.joints[j].nq == 1]
+    if len(joint_names) != pmodel.nq:
+        raise ValueError(f"{sc.robot}: only 1-DOF joints are supported")
+    nj = len(joint_names)
+
+    # 2. truth
+    names = identifiable_parameters(nominal_path, sc, joint_names, settings.scale > 0.0)
+    values = draw_errors(
+        names,
+        rng_truth,
+        {"translation": settings.translation, "rotation": settings.rotation,
+         "offset": settings.offset, "scale": settings.scale},
+    )
+    offset = np.array([values.get(f"{j}.offset", 0.0) for j in joint_names])
+    scale = np.array([values.get(f"{j}.scale", 1.0) for j in joint_names])
+    urdf_true = true_urdf(nominal_path, values)
+
+    # 3. scene, closed at the true grasp configuration
+    q0 = np.asarray(sc.q0, dtype=float)
+    scene = build_scene(urdf_true, sc, settings, joint_names, q0)
+    (out / "scene.xml").write_text(scene.to_xml())
+    m, d = scene.model, scene.data
+
+    # 4. the robot's nominal loop and planner
+    r0 = sensor_readings(q0, offset, scale, settings.noise, settings.quantization, rng_noise)
+    door_range = sc.door.angle_range if sc.door else (-0.6, 0.6)
+    loop = NominalLoop(pmodel, sc.tool_frame, sc.loop_type, r0, hinge=scene.hinge_pose, door_range=door_range)
+    planner = NominalLoopPlanner(
+        loop, loop.full_q(r0), rng_plan, step_rad=settings.step_rad, margin=settings.limit_margin,
+        target_span=settings.target_span, retarget_every=settings.retarget_every,
+    )
+
+    # 5-6. track and record
+    readings = np.zeros((n, nj))
+    q_true = np.zeros((n, nj))
+    tau = np.zeros((n, nj))
+    viol_m = np.zeros(n)
+    viol_rad = np.zeros(n)
+    force = np.zeros(n)
+    door = np.zeros(n) if sc.loop_type == "hinge" else np.zeros(0)
+    ctrl = d.ctrl[scene.actuator_ids].copy()
+    lo, hi = scene.jnt_range[:, 0], scene.jnt_range[:, 1]
+    limited = m.jnt_limited[[m.joint(j).id for j in joint_names]].astype(bool)
+    done = dropped = total_steps = 0
+    max_attempts = 3 * n + 20
+    t_start = time.perf_counter()
+    for _attempt in range(max_attempts):
+        if done >= n:
+            break
+        wp = planner.step()[:nj]
+        target = scale * wp + offset
+        settled, steps = _settle(scene, ctrl, target, settings)
+        total_steps += steps
+        ctrl = target
+        if settings.relax:  # release the preload: command where the joints are
+            relaxed = d.qpos[scene.qpos_adr].copy()
+            settled_r, steps = _settle(scene, ctrl, relaxed, settings)
+            settled &= settled_r
+            total_steps += steps
+            ctrl = relaxed
+        mujoco.mj_forward(m, d)
+        q = d.qpos[scene.qpos_adr].copy()
+        at_limit = bool(np.any(limited & ((q - lo < settings.limit_flag) | (hi - q < settings.limit_flag))))
+        if not settled:
+            log.debug("sample %d not settled after %d steps (max |qdot| = %.3g)", done, steps, np.max(np.abs(d.qvel)))
+        if settings.drop_flagged and (at_limit or not settled):
+            dropped += 1
+            continue
+        readings[done] = sensor_readings(q, offset, scale, settings.noise, settings.quantization, rng_noise)
+        q_true[done] = q
+        tau[done] = d.qfrc_actuator[scene.dof_adr]
+        viol_m[done], viol_rad[done] = _violation(scene, sc.loop_type == "point")
+        force[done] = _constraint_force(scene)
+        if door.size:
+            door[done] = d.qpos[scene.door_qpos_adr]
+        done += 1
+        if progress is not None:
+            progress(done, n)
+    elapsed = time.perf_counter() - t_start
+    if done < n:
+        log.warning("%s: only %d of %d samples recorded (%d dropped)", scenario, done, n, dropped)
+        readings, q_true, tau = readings[:done], q_true[:done], tau[:done]
+        viol_m, viol_rad, force = viol_m[:done], viol_rad[:done], force[:done]
+        door = door[:done]
+    log.info(
+        "%s: %d samples, %d dropped, %d steps, %d QP solves, %.2f s (%.0f configs/s)",
+        scenario, done, dropped, total_steps, planner.stats.qp_solves, elapsed, done / max(elapsed, 1e-12),
+    )
+
+    # outputs
+    _write_log(out / "log.csv", joint_names, readings, tau, viol_m, viol_rad, force, door)
+    params = dict(values)
+    if sc.loop_type == "point":
+        params.update(_pose_params(sc.loop_name, scene.target_pose, rotation=False))
+    elif sc.loop_type == "weld":
+        params.update(_pose_params(sc.loop_name, scene.target_pose))
+    else:  # hinge: tool pose at door angle 0 = handle site pose at the start
+        params.update(_pose_params(sc.loop_name, scene.target_pose))
+    loop_info: dict[str, Any] = {"type": sc.loop_type, "frame": sc.tool_frame, "name": sc.loop_name}
+    if scene.hinge_pose is not None:
+        loop_info["hinge_axis"] = {
+            "point": [float(v) for v in scene.hinge_pose.translation],
+            "direction": [float(v) for v in scene.hinge_pose.rotation[:, 2]],
+            "frame": _pose_params("hinge", scene.hinge_pose),
+        }
+    rms = lambda a: float(np.sqrt(np.mean(a**2))) if a.size else 0.0  # noqa: E731
+    truth = {
+        "scenario": sc.name,
+        "seed": int(seed),
+        "robot": sc.robot,
+        "joint_names": joint_names,
+        "settings": settings.as_dict(),
+        "loop": loop_info,
+        "q0": [float(v) for v in q0],
+        "parameters": params,
+        "violation": {
+            "rms_m": rms(viol_m), "max_m": float(viol_m.max(initial=0.0)),
+            "rms_rad": rms(viol_rad), "max_rad": float(viol_rad.max(initial=0.0)),
+        },
+        "samples": {"recorded": done, "dropped": dropped, "steps": total_steps,
+                    "qp_solves": planner.stats.qp_solves},
+    }
+    (out / "truth.json").write_text(json.dumps(truth, indent=2))
+    return SimResult(
+        scenario=sc.name, seed=int(seed), out_dir=out, joint_names=joint_names, readings=readings,
+        q_true=q_true, tau=tau, violation_m=viol_m, violation_rad=viol_rad, constraint_force_n=force,
+        door_angle=door, truth=truth, settings=settings, n_dropped=dropped, n_steps=total_steps,
+        elapsed_s=elapsed,
+    )
+
+
+def _write_log(
+    path: Path,
+    joint_names: list[str],
+    readings: np.ndarray,
+    tau: np.ndarray,
+    viol_m: np.ndarray,
+    viol_rad: np.ndarray,
+    force: np.ndarray,
+    door: np.ndarray,
+) -> None:
+    """Write the calibration log: joint readings first, then diagnostic columns."""
+    header = list(joint_names) + [f"tau:{j}" for j in joint_names] + ["violation_m", "violation_rad", "constraint_force_n"]
+    if door.size:
+        header.append("door_angle")
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        for i in range(len(readings)):
+            row = [repr(float(v)) for v in readings[i]] + [repr(float(v)) for v in tau[i]]
+            row += [repr(float(viol_m[i])), repr(float(viol_rad[i])), repr(float(force[i]))]
+            if door.size:
+                row.append(repr(float(door[i])))
+            w.writerow(row)

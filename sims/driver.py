@@ -1,0 +1,272 @@
+"""Driving the robot along its *nominal* loop self-motion (QP differential IK).
+
+The robot only knows its nominal model (Pinocchio, built from the nominal
+URDF) and its joint readings.  At the grasp it believes the loop closure is
+where its nominal model puts the tool:
+
+* ``weld``: fixture pose ``X = FK_nom(r0)`` (frame ``loop_target`` on the universe);
+* ``point``: socket centre ``p = FK_nom(r0).translation``;
+* ``hinge``: the door hinge ``H`` is known (the door's pose in the world) and a
+  revolute joint ``door_hinge`` about ``H``'s z axis is appended to the nominal
+  model; the handle frame sits at ``G = H^-1 FK_nom(r0)`` on the door (door
+  angle 0 at the grasp).  The door angle is an unmeasured planning variable.
+
+The nominal loop constraint is ``e(q) = 0`` with
+
+* weld/hinge: ``e = log6(oMh^-1 oMt)`` (6 rows), ``de/dq = Jlog6(hMt) (J_t - Ad(tMh) J_h)``
+  with ``J_t, J_h`` the LOCAL frame Jacobians of tool and handle;
+* point: ``e = p_t - p`` (3 rows), ``de/dq = R_t J_t[:3]``.
+
+One planning step (:meth:`NominalLoopPlanner.step`) solves the QP (qpsolvers, OSQP)
+
+    min_dq  1/2 |dq - d|^2 + w/2 |J dq + e|^2
+    s.t.    q_lo + margin <= q + dq <= q_hi - margin
+
+where ``d`` is the direction to a random target (or, for a 1-D self-motion,
+along the null vector, sweeping back and forth) projected onto the null space
+of ``J`` (the self-motion) and scaled so that no joint moves more than
+``step_rad``; ``w`` is large so the step stays on the nominal loop.  Two
+Gauss-Newton corrections ``dq = -J^+ e`` then put ``q`` back on the nominal
+loop exactly.  The result is a path of nominal waypoints; the simulation
+tracks them with position servos and the compliant loop absorbs the mismatch
+between nominal and true robot.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+import scipy.sparse as sp
+from qpsolvers import solve_qp
+
+from .scenarios import LoopType
+
+__all__ = ["NominalLoop", "NominalLoopPlanner"]
+
+log = logging.getLogger(__name__)
+
+_W_LOOP = 1e4  # weight of the loop-constraint task in the QP
+
+
+class NominalLoop:
+    """The nominal loop constraint ``e(q) = 0`` on a Pinocchio model.
+
+    Args:
+        model: nominal robot model (it is copied; a door joint may be appended).
+        tool_frame: frame closing the loop.
+        loop_type: ``weld``, ``point`` or ``hinge``.
+        r0: joint readings at the grasp (arm joints, model order).
+        hinge: world pose of the door hinge frame (hinge loops).
+        door_range: door joint limits (hinge loops).
+    """
+
+    def __init__(
+        self,
+        model: pin.Model,
+        tool_frame: str,
+        loop_type: LoopType,
+        r0: np.ndarray,
+        hinge: pin.SE3 | None = None,
+        door_range: tuple[float, float] = (-0.6, 0.6),
+    ) -> None:
+        self.model = pin.Model(model)
+        self.loop_type = loop_type
+        self.n_arm = model.nq
+        if not self.model.existFrame(tool_frame):
+            raise KeyError(f"frame {tool_frame!r} not in the nominal model")
+        self.tool = self.model.getFrameId(tool_frame)
+        data = self.model.createData()
+        pin.framesForwardKinematics(self.model, data, np.asarray(r0, dtype=float))
+        oMt0 = data.oMf[self.tool].copy()
+        if loop_type == "hinge":
+            if hinge is None:
+                raise ValueError("hinge loops need the hinge pose")
+            jid = self.model.addJoint(
+                0,
+                pin.JointModelRZ(),
+                hinge,
+                "door_hinge",
+                np.array([1e3]),
+                np.array([1e3]),
+                np.array([door_range[0]]),
+                np.array([door_range[1]]),
+            )
+            self.model.appendBodyToJoint(jid, pin.Inertia.FromBox(1.0, 0.8, 0.04, 1.0), pin.SE3.Identity())
+            grasp = hinge.actInv(oMt0)
+            self.target = self.model.addFrame(pin.Frame("handle", jid, grasp, pin.FrameType.OP_FRAME))
+        else:
+            self.target = self.model.addFrame(pin.Frame("loop_target", 0, oMt0, pin.FrameType.OP_FRAME))
+        self.point = oMt0.translation.copy()
+        self.data = self.model.createData()
+        self.nq = self.model.nq
+        self.lower = self.model.lowerPositionLimit.copy()
+        self.upper = self.model.upperPositionLimit.copy()
+
+    @property
+    def n_constraints(self) -> int:
+        """Number of rows of ``e``."""
+        return 3 if self.loop_type == "point" else 6
+
+    def full_q(self, r: np.ndarray, door: float = 0.0) -> np.ndarray:
+        """Planning vector from arm readings (and door angle for hinge loops)."""
+        return np.concatenate([r, [door]]) if self.loop_type == "hinge" else np.asarray(r, dtype=float).copy()
+
+    def residual(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Loop error ``e(q)`` and its Jacobian ``de/dq`` (see module docstring)."""
+        m, d = self.model, self.data
+        pin.computeJointJacobians(m, d, q)
+        pin.updateFramePlacements(m, d)
+        oMt = d.oMf[self.tool]
+        jt = pin.getFrameJacobian(m, d, self.tool, pin.ReferenceFrame.LOCAL)
+        if self.loop_type == "point":
+            return oMt.translation - self.point, oMt.rotation @ jt[:3]
+        oMh = d.oMf[self.target]
+        hMt = oMh.actInv(oMt)
+        jh = pin.getFrameJacobian(m, d, self.target, pin.ReferenceFrame.LOCAL)
+        e = pin.log6(hMt).vector
+        jac = pin.Jlog6(hMt) @ (jt - hMt.inverse().action @ jh)
+        return e, jac
+
+    def project(self, q: np.ndarray, iters: int = 3, tol: float = 1e-12) -> np.ndarray:
+        """Gauss-Newton projection of ``q`` onto the nominal loop (minimum-norm steps)."""
+        q = q.copy()
+        for _ in range(iters):
+            e, jac = self.residual(q)
+            if float(e @ e) < tol:
+                break
+            q -= np.linalg.lstsq(jac, e, rcond=None)[0]
+        return q
+
+
+@dataclass
+class PlannerStats:
+    """Counters of a planning run."""
+
+    qp_solves: int = 0
+    qp_failures: int = 0
+    retargets: int = 0
+
+
+class NominalLoopPlanner:
+    """Random-target self-motion planner on a :class:`NominalLoop`.
+
+    Args:
+        loop: the nominal loop.
+        q_start: start (planning vector, on the loop).
+        rng: random generator for targets.
+        step_rad: largest joint change per step.
+        margin: distance kept from joint limits.
+        target_span: targets are drawn within ``q_start +/- target_span``.
+        retarget_every: steps after which a new target is drawn.
+    """
+
+    def __init__(
+        self,
+        loop: NominalLoop,
+        q_start: np.ndarray,
+        rng: np.random.Generator,
+        step_rad: float = 0.15,
+        margin: float = 0.1,
+        target_span: float = 1.5,
+        retarget_every: int = 10,
+    ) -> None:
+        self.loop = loop
+        self.q = np.asarray(q_start, dtype=float).copy()
+        self.rng = rng
+        self.step_rad = step_rad
+        self.retarget_every = retarget_every
+        self.lo = np.maximum(loop.lower + margin, self.q - target_span)
+        self.hi = np.minimum(loop.upper - margin, self.q + target_span)
+        self.lo = np.minimum(self.lo, self.q)  # a start inside the margin must stay feasible
+        self.hi = np.maximum(self.hi, self.q)
+        self.q_lo = np.minimum(loop.lower + margin, self.q)
+        self.q_hi = np.maximum(loop.upper - margin, self.q)
+        self.stats = PlannerStats()
+        _e, jac = loop.residual(self.q)
+        self.one_dimensional = jac.shape[1] - np.linalg.matrix_rank(jac) == 1
+        self._sweep_ref = np.linalg.svd(jac)[2][-1]
+        self._sweep_sign = 1.0 if rng.uniform() < 0.5 else -1.0
+        self._since_target = 0
+        self._target = self._new_target()
+
+    def _new_target(self) -> np.ndarray:
+        self.stats.retargets += 1
+        self._since_target = 0
+        return self.rng.uniform(self.lo, self.hi)
+
+    def _qp_step(self, direction: np.ndarray, step: float | None = None) -> np.ndarray | None:
+        """Solve the QP of the module docstring; ``None`` if OSQP fails."""
+        step = self.step_rad if step is None else step
+        e, jac = self.loop.residual(self.q)
+        n = self.loop.nq
+        # null-space direction of the nominal loop, scaled to the step size
+        dn = direction - np.linalg.pinv(jac) @ (jac @ direction)
+        amax = float(np.max(np.abs(dn)))
+        if amax < 1e-9:
+            return np.zeros(n)
+        dn *= min(1.0, step / amax)
+        P = sp.csc_matrix(np.eye(n) + _W_LOOP * jac.T @ jac)
+        c = -dn + _W_LOOP * jac.T @ e
+        self.stats.qp_solves += 1
+        with warnings.catch_warnings():
+            # osqp >= 1.0 announces API changes on every call
+            warnings.simplefilter("ignore", (DeprecationWarning, PendingDeprecationWarning))
+            dq = solve_qp(
+                P, c, lb=self.q_lo - self.q, ub=self.q_hi - self.q, solver="osqp",
+                eps_abs=1e-8, eps_rel=1e-8, verbose=False,
+            )
+        if dq is None:
+            self.stats.qp_failures += 1
+            return None
+        return np.asarray(dq)
+
+    def _sweep_direction(self) -> np.ndarray:
+        """Direction along a 1-D self-motion: the null vector, oriented like the previous motion."""
+        _e, jac = self.loop.residual(self.q)
+        v = np.linalg.svd(jac)[2][-1]
+        if float(v @ self._sweep_ref) < 0.0:
+            v = -v
+        self._sweep_ref = v
+        # longer than any step: _qp_step scales it down to the step length
+        return v * self._sweep_sign * 10.0 * self.step_rad / max(float(np.max(np.abs(v))), 1e-12)
+
+    def step(self) -> np.ndarray:
+        """Advance one waypoint along the nominal self-motion and return it (planning vector).
+
+        With a 1-D self-motion the planner sweeps back and forth across the whole
+        range (the direction flips when a joint limit stops it); the step length is
+        drawn in ``[0.5, 1] * step_rad`` so that sweeps visit different points.
+        Otherwise it moves towards random targets.
+        """
+        if self.one_dimensional:
+            for _attempt in range(2):
+                step = self.step_rad * float(self.rng.uniform(0.5, 1.0))
+                dq = self._qp_step(self._sweep_direction(), step)
+                if dq is not None and float(np.max(np.abs(dq))) > 0.2 * step:
+                    self.q = np.clip(self.loop.project(self.q + dq), self.loop.lower, self.loop.upper)
+                    return self.q.copy()
+                self._sweep_sign = -self._sweep_sign
+                self.stats.retargets += 1
+            return self.q.copy()
+        for _attempt in range(5):
+            if self._since_target >= self.retarget_every:
+                self._target = self._new_target()
+            self._since_target += 1
+            dq = self._qp_step(self._target - self.q)
+            if dq is None or float(np.max(np.abs(dq))) < 0.2 * self.step_rad:
+                # stalled (joint limit or target reached): new target
+                self._target = self._new_target()
+                if dq is None:
+                    continue
+                if float(np.max(np.abs(dq))) < 1e-3:
+                    continue
+            q_new = self.loop.project(self.q + dq)
+            q_new = np.clip(q_new, self.loop.lower, self.loop.upper)
+            self.q = q_new
+            return self.q.copy()
+        log.debug("planner stalled; repeating waypoint")
+        return self.q.copy()

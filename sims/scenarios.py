@@ -1,0 +1,360 @@
+"""Scenario registry, simulation settings and the draw of the true robot.
+
+A *scenario* is a robot (a cleaned nominal URDF from :mod:`closedloop.models`),
+a loop type that closes its chain on the environment, an initial grasp
+configuration and default :class:`SimSettings`.
+
+Loop types (the MuJoCo equality constraint that closes the loop):
+
+``weld``
+    The tool frame is welded to a fixture fixed in the world (6 constraints).
+    Closure parameters ``<loop>.x .y .z .rx .ry .rz``: pose of the fixture
+    (= pose of the tool frame when closed) in the world frame, translation in
+    metres, rotation vector ``pin.log3(R)``.
+``point``
+    The tool point (stylus tip) sits in a ball socket (MuJoCo ``connect``, 3
+    constraints).  Closure parameters ``<loop>.x .y .z``: socket centre in the world.
+``hinge``
+    The tool is welded to the handle of a door that turns on a passive hinge:
+    the tool frame moves on a 1-DOF rotation about a fixed axis (5 constraints
+    on the arm).  Closure parameters ``<loop>.x ... .rz``: pose of the tool frame
+    in the world when the door angle is zero; the hinge axis is in ``truth.json``
+    under ``loop.hinge_axis``.
+
+Truth model (:func:`perturbable_parameters`, :func:`draw_errors`): the true
+robot equals the nominal one plus uniform random errors, per parameter kind
+
+* ``translation`` (``<joint>.x .y .z``) U(-m, m) metres, default m = 2 mm;
+* ``rotation`` (``<joint>.rx .ry .rz``) U(-m, m) rad, default m = 2 mrad;
+* ``offset`` (``<joint>.offset``) U(-m, m) rad, default m = 0.02 rad;
+* ``scale`` (``<joint>.scale``) 1 + U(-m, m), default m = 0 (not perturbed).
+
+A joint placement error is a right twist in the joint's own frame:
+``M = M0 * exp6([x, y, z, rx, ry, rz])``.  Sensor model (thesis eq. 4.4):
+``theta_true = scale * reading + offset``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import pinocchio as pin
+
+__all__ = [
+    "LoopType",
+    "SimSettings",
+    "Scenario",
+    "SCENARIOS",
+    "perturbable_parameters",
+    "draw_errors",
+]
+
+LoopType = Literal["weld", "point", "hinge"]
+
+_COMPONENTS = ("x", "y", "z", "rx", "ry", "rz")
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    """Settings of a simulated calibration experiment (all overridable in ``simulate``).
+
+    Physics:
+        timestep: MuJoCo time step [s].
+        integrator: MuJoCo integrator name (``implicitfast``, ``implicit``, ``Euler``, ``RK4``).
+        gravity: gravity on (``True``, -9.81 m/s^2 along world z) or off.
+        gravcomp: the servos compensate the robot's weight (as Panda and UR
+            controllers do; MuJoCo ``gravcomp`` computed on the true model and
+            added to the actuator torque).  Without it the arm's weight loads
+            the loop and the violation grows (see the README numbers).
+        solref: loop constraint ``(timeconst [s], dampratio)``; MuJoCo's soft
+            constraint behaves like a spring-damper of time constant ``timeconst``
+            (MuJoCo clamps it to at least 2 * timestep).  Default ``(0.008, 1.0)``
+            = 2 * timestep, the stiffest MuJoCo allows.  ``soft=True`` selects
+            MuJoCo's own defaults ``(0.02, 1)``, ``(0.9, 0.95, ...)``, a loop that
+            opens by tens of microradians to milliradians under the same load
+            (accuracy table: README, ``benchmarks/sim_accuracy.py``).
+        solimp: loop constraint impedance ``(dmin, dmax, width, midpoint, power)``;
+            the closer ``dmin``/``dmax`` are to 1 the stiffer.  Default
+            ``(0.99, 0.999, 0.001, 0.5, 2)``.
+        armature: reflected rotor inertia added to every arm joint [kg m^2]
+            (realistic for geared robots; also keeps the position servos
+            stable at large time steps).
+        kp: position servo stiffness [N m / rad]; ``tau = kp (ctrl - q) - kv qdot``.
+            Default 100: a compliant (impedance-mode) servo, as used when a robot
+            holds a fixture; a stiff servo commanded from the wrong nominal
+            model preloads the loop (kp=2000 gives ~1 mrad of loop opening).
+        kv: position servo damping [N m s / rad].
+    Settling and sampling:
+        vel_tol: a configuration is settled when max |qdot| < vel_tol [rad/s].
+        min_steps, max_steps: bounds on simulation steps per sample.
+        ramp_steps: steps over which the command is interpolated to the next waypoint.
+        step_rad: largest planned change of any joint between samples [rad].
+        target_span: random targets are drawn within +/- target_span of the
+            initial configuration (and inside the limits) [rad].
+        retarget_every: a new random target is drawn after this many samples
+            (or earlier when the self-motion stalls).
+        limit_margin: the planner keeps joints this far inside their limits [rad].
+        limit_flag: samples with a true joint closer than this to a limit are
+            flagged (``at_limit`` column) and dropped if ``drop_flagged`` [rad].
+        drop_flagged: drop flagged (at-limit or unsettled) samples.
+        relax: after settling, command the measured joint positions and settle
+            again before recording, so the servos stop fighting the loop (the
+            robot driven by its wrong nominal model preloads the closed chain
+            with hundreds of newtons; a real calibration holds the fixture in a
+            compliant, low-preload state).  Off: the preload stays and opens the
+            loop by ~1 mrad (see README table).
+    Truth:
+        translation, rotation, offset, scale: error magnitudes (see module doc).
+    Sensor model:
+        noise: standard deviation of Gaussian reading noise [rad] (default 0).
+        quantization: reading quantum [rad]; 0 disables quantization (default).
+            ``reading = round(((q - offset) / scale + N(0, noise)) / quantum) * quantum``.
+    """
+
+    timestep: float = 0.004
+    integrator: str = "implicitfast"
+    gravity: bool = True
+    gravcomp: bool = True
+    solref: tuple[float, float] = (0.008, 1.0)
+    solimp: tuple[float, float, float, float, float] = (0.99, 0.999, 0.001, 0.5, 2.0)
+    armature: float = 0.1
+    kp: float = 100.0
+    kv: float = 6.3
+    vel_tol: float = 3e-3
+    min_steps: int = 10
+    max_steps: int = 300
+    ramp_steps: int = 4
+    step_rad: float = 0.15
+    target_span: float = 1.5
+    retarget_every: int = 10
+    limit_margin: float = 0.1
+    limit_flag: float = 0.02
+    drop_flagged: bool = True
+    relax: bool = True
+    translation: float = 0.002
+    rotation: float = 0.002
+    offset: float = 0.02
+    scale: float = 0.0
+    noise: float = 0.0
+    quantization: float = 0.0
+
+    @classmethod
+    def stiff(cls, **kw: Any) -> "SimSettings":
+        """Settings with a nearly rigid loop (``solref=(2*timestep, 1)``, ``solimp`` close to 1)."""
+        base = cls(**kw)
+        return dataclasses.replace(
+            base,
+            solref=(2.0 * base.timestep, 1.0),
+            solimp=(0.99, 0.999, 0.001, 0.5, 2.0),
+        )
+
+    def replace(self, **overrides: Any) -> "SimSettings":
+        """Copy with some fields replaced; unknown names raise ``TypeError``."""
+        names = {f.name for f in dataclasses.fields(self)}
+        unknown = sorted(set(overrides) - names)
+        if unknown:
+            raise TypeError(f"unknown simulation setting(s) {unknown}; known: {sorted(names)}")
+        fixed = {}
+        for k, v in overrides.items():
+            fixed[k] = tuple(v) if isinstance(v, list) else v
+        return dataclasses.replace(self, **fixed)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-friendly dict of the settings."""
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items()}
+
+
+@dataclass(frozen=True)
+class DoorGeometry:
+    """Placement of the door relative to the grasp (hinge scenarios only).
+
+    The hinge axis is vertical (world z).  The hinge lies ``radius`` metres from
+    the handle along the horizontal direction perpendicular to the line from
+    the robot base to the handle, so opening the door (positive angle) pulls the
+    handle towards the robot.
+
+    Attributes:
+        radius: distance from the hinge axis to the grasped handle [m].
+        angle_range: door angles the planner may use [rad] (door closed = 0).
+    """
+
+    radius: float = 0.45
+    angle_range: tuple[float, float] = (-0.6, 0.6)
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A simulated closed-loop calibration experiment.
+
+    Attributes:
+        name: registry key.
+        description: one line.
+        robot: key of :data:`closedloop.models.ROBOTS`.
+        loop_type: ``weld``, ``point`` or ``hinge``.
+        loop_name: name of the loop (prefix of its closure parameters).
+        tool_frame: Pinocchio frame (URDF link) closing the loop.
+        q0: true joint angles when the loop is closed (grasp configuration), Pinocchio order.
+        settings: default settings.
+        door: door geometry (hinge loops).
+    """
+
+    name: str
+    description: str
+    robot: str
+    loop_type: LoopType
+    loop_name: str
+    tool_frame: str
+    q0: tuple[float, ...]
+    settings: SimSettings = field(default_factory=SimSettings)
+    door: DoorGeometry | None = None
+
+
+SCENARIOS: dict[str, Scenario] = {
+    s.name: s
+    for s in (
+        Scenario(
+            name="panda_weld",
+            description="7-DOF Franka Panda welded to a fixed fixture (1-DOF self-motion).",
+            robot="panda",
+            loop_type="weld",
+            loop_name="fixture",
+            tool_frame="panda_hand_tcp",
+            q0=(1.839, 0.417, -1.807, -1.581, 2.079, 3.081, -0.5),
+            settings=SimSettings(step_rad=0.15, target_span=3.0),
+        ),
+        Scenario(
+            name="ur5_socket",
+            description="6-DOF UR5 with its stylus tip in a fixed ball socket (3-DOF self-motion).",
+            robot="ur5",
+            loop_type="point",
+            loop_name="socket",
+            tool_frame="stylus_tip",
+            q0=(0.3, -1.3, 1.7, -1.9, -1.57, 0.2),
+            settings=SimSettings(step_rad=0.15, target_span=1.2),
+        ),
+        Scenario(
+            name="ur5_door",
+            description="6-DOF UR5 grasping the handle of a hinged door (door angle + arm, 1-DOF self-motion).",
+            robot="ur5",
+            loop_type="hinge",
+            loop_name="door",
+            tool_frame="tool0",
+            q0=(0.632, -1.724, 2.043, -2.631, -1.292, 0.671),
+            settings=SimSettings(step_rad=0.12, target_span=1.5),
+            door=DoorGeometry(),
+        ),
+    )
+}
+
+
+def _axis_component(axis: np.ndarray) -> int | None:
+    """Index 0/1/2 of the coordinate axis a unit joint axis is aligned with, else None."""
+    a = np.abs(np.asarray(axis, dtype=float))
+    i = int(np.argmax(a))
+    return i if a[i] > 1.0 - 1e-9 else None
+
+
+def perturbable_parameters(model: pin.Model, joint_names: list[str], scale: bool = False) -> list[str]:
+    """Names of the parameters that are perturbed in the true robot.
+
+    The fixed rule for a serial chain of revolute joints welded to an unknown
+    fixture (the core's automatic reduction may replace it):
+
+    * the first joint's placement is not perturbed (base gauge, absorbed by the
+      unknown closure) and neither is its offset;
+    * for every other joint, the placement components along the joint axis are
+      not perturbed: rotation about the axis (duplicates the offset) and
+      translation along it (absorbed by the next joint).  For axis z these are
+      ``.rz`` and ``.z``; for an axis along x or y, ``.rx``/``.x`` or ``.ry``/``.y``;
+    * fixed joints (tool, flanges) are never perturbed;
+    * offsets of all joints but the first are perturbed; scales of all joints
+      only when ``scale`` is true.
+
+    Args:
+        model: nominal Pinocchio model.
+        joint_names: the movable 1-DOF joints of the chain, in Pinocchio order.
+        scale: include ``<joint>.scale`` parameters.
+    """
+    names: list[str] = []
+    for k, jn in enumerate(joint_names):
+        jid = model.getJointId(jn)
+        jm = model.joints[jid]
+        short = jm.shortname()
+        if short in ("JointModelRX", "JointModelRY", "JointModelRZ"):
+            skip_axis: int | None = "XYZ".index(short[-1])
+        elif short == "JointModelRevoluteUnaligned":
+            skip_axis = _axis_component(jm.axis)
+        else:
+            skip_axis = None
+        if k > 0:
+            for c, comp in enumerate(_COMPONENTS):
+                if skip_axis is not None and c % 3 == skip_axis:
+                    continue
+                names.append(f"{jn}.{comp}")
+            names.append(f"{jn}.offset")
+        if scale:
+            names.append(f"{jn}.scale")
+    return names
+
+
+def identifiable_parameters(nominal_path, sc: "Scenario", joint_names: list[str], scale: bool = False) -> list[str]:
+    """The parameters to perturb: those the calibration core estimates for this loop.
+
+    Errors in structurally redundant parameters are indistinguishable from
+    errors in the parameters that absorb them, so a truth that `closedloop
+    check` can compare parameter by parameter is drawn in the identifiable set
+    (`closedloop.truth.identifiable_names`, the core's own reduction on nominal
+    self-motion data through the grasp configuration).  Loop types the core
+    has no loop class for yet fall back to :func:`perturbable_parameters`.
+    """
+    from closedloop.calibration import CalibrationOptions
+    from closedloop.robot import RobotModel
+    from closedloop.truth import identifiable_names
+
+    loop = core_loop(sc)
+    if loop is None:
+        model = pin.buildModelFromUrdf(str(nominal_path))
+        return perturbable_parameters(model, joint_names, scale=scale)
+    robot = RobotModel.from_file(nominal_path)
+    identify = ["placement", "offset", "loop"] + (["scale"] if scale else [])
+    names = identifiable_names(robot, [loop], np.asarray(sc.q0, dtype=float)[None, :],
+                               CalibrationOptions(identify=identify))
+    return [n for n in names if n.rsplit(".", 1)[0] in joint_names]
+
+
+def core_loop(sc: "Scenario"):
+    """The calibration core's loop for a scenario, or None if the core has none for it."""
+    from closedloop.loops import WeldLoop
+
+    if sc.loop_type == "weld":
+        return WeldLoop(sc.loop_name, sc.tool_frame)
+    return None
+
+
+def _kind(name: str) -> str:
+    comp = name.rsplit(".", 1)[1]
+    if comp in ("x", "y", "z"):
+        return "translation"
+    if comp in ("rx", "ry", "rz"):
+        return "rotation"
+    return comp  # offset / scale
+
+
+def draw_errors(names: list[str], rng: np.random.Generator, magnitudes: dict[str, float]) -> dict[str, float]:
+    """Draw true parameter values: uniform in +/- magnitude per kind; scale = 1 + U(-m, m).
+
+    Args:
+        names: parameter names (see :func:`perturbable_parameters`).
+        rng: random generator (one uniform draw per name, in order).
+        magnitudes: magnitude per kind (``translation``, ``rotation``, ``offset``, ``scale``).
+    """
+    out: dict[str, float] = {}
+    for name in names:
+        kind = _kind(name)
+        m = float(magnitudes.get(kind, 0.0))
+        u = float(rng.uniform(-1.0, 1.0))
+        out[name] = (1.0 + m * u) if kind == "scale" else m * u
+    return out

@@ -1,0 +1,373 @@
+"""Point, plane and measured loops: Jacobians, noise-free recovery, identifiability, noise."""
+
+from __future__ import annotations
+
+import site
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from closedloop.calibration import CalibrationOptions, build_problem, calibrate
+from closedloop.data import JointLog
+from closedloop.errors import LoopError
+from closedloop.loops.measured import MeasuredPointLoop, MeasuredPoseLoop, vec_of
+from closedloop.loops.plane import PlaneLoop
+from closedloop.loops.point import PointLoop
+from closedloop.loops.spec import parse_loop
+from closedloop.problem import CalibrationProblem, LoopBlock
+from closedloop.robot import RobotModel
+from closedloop.synthetic import self_motion
+from closedloop.truth import draw_truth, identifiable_names
+
+ERD = site.getsitepackages()[0] + "/cmeel.prefix/share/example-robot-data/robots/"
+UR5 = ERD + "ur_description/urdf/ur5_robot.urdf"
+PANDA = ERD + "panda_description/urdf/panda.urdf"
+BAXTER = ERD + "baxter_description/urdf/baxter.urdf"
+UR5_Q0 = [0.3, -1.2, 1.4, -1.0, 1.2, 0.4]
+PANDA_Q0 = [0.2, 0.3, -0.2, -2.0, 0.1, 2.0, 0.5]
+BAXTER_Q0 = [0.3, -0.5, -0.5, 1.5, 0.3, 0.8, 0.2, -0.3, -0.5, 0.5, 1.5, -0.3, 0.8, -0.2]
+COLS = ("x", "y", "z", "rx", "ry", "rz")
+
+_robots: dict[str, RobotModel] = {}
+
+
+def robot_of(path: str) -> RobotModel:
+    if path not in _robots:
+        _robots[path] = RobotModel.from_file(path)
+    return _robots[path]
+
+
+def loop_joints(robot: RobotModel, loop) -> list[str]:
+    js = {j for f in (loop.frame_a, loop.frame_b) for j in robot.supporting_joints(f)}
+    return sorted(js, key=robot.joint_names.index)
+
+
+def closed_experiment(path, make, theta0, own, n=40, seed=0, noise=None, options=None):
+    """Truth in the identifiable parameterisation, self-motion data, calibration from nominal."""
+    robot = robot_of(path)
+    joints = loop_joints(robot, make())
+    theta0 = np.atleast_2d(theta0)
+    names = identifiable_names(robot, [make()], theta0, n=n)
+    rng = np.random.default_rng(seed)
+    prob = CalibrationProblem(robot, joints, [LoopBlock(make(), theta0, np.arange(1))])
+    truth = prob.nominal.copy()
+    for k, v in draw_truth(robot, names, rng).items():
+        truth[prob.index[k]] = v
+    TA, TB = prob.loop_poses(truth, 0, theta0)
+    truth[prob.loop_slices[0]] = prob.blocks[0].loop.initialize(TA, TB)
+    for k, v in own.items():
+        truth[prob.index[k]] = v
+    th = self_motion(prob, truth, theta0, n, rng)
+    if noise:
+        th = th + rng.normal(scale=noise, size=th.shape)
+    res = calibrate(robot, JointLog(joints, th), [make()], options or CalibrationOptions(noise=noise))
+    truth_by_name = dict(zip(prob.names, truth))
+    return res, truth_by_name
+
+
+def estimated_errors(res, truth_by_name):
+    est = [i for i, s in enumerate(res.status) if s == "estimated"]
+    err = np.array([res.values[i] - truth_by_name[res.names[i]] for i in est])
+    return est, err
+
+
+def dropped_names(res) -> set[str]:
+    return {d.name for d in res.dropped}
+
+
+# ---------------------------------------------------------------- Jacobians
+def _fd_problem(loop, frame="tool0", seed=0, N=4):
+    robot = robot_of(UR5)
+    joints = robot.supporting_joints(frame)
+    rng = np.random.default_rng(seed)
+    th = rng.uniform(-1, 1, (N, len(joints)))
+    extra = {f"{loop.name}:{c}": rng.normal(size=N) for c in COLS}
+    prob = build_problem(robot, JointLog(joints, th, None, None, extra), [loop])
+    x = prob.nominal + rng.normal(scale=0.05, size=len(prob.names))
+    sc = prob.rp.scale_index()
+    x[sc] = 1 + rng.normal(scale=0.05, size=sc.size)
+    return prob, x
+
+
+JAC_CASES = {
+    "point": lambda: PointLoop("c", "tool0"),
+    "point_known_tip": lambda: PointLoop("c", "tool0", tip=[0.0, 0.01, 0.1]),
+    "point_known_point": lambda: PointLoop("c", "tool0", point=[0.3, 0.2, 0.1]),
+    "point_two_branches": lambda: PointLoop("c", "tool0", "upper_arm_link"),
+    "plane": lambda: PlaneLoop("c", "tool0", normal=[1.0, 1.0, 0.2]),
+    "plane_known_tip": lambda: PlaneLoop("c", "tool0", tip=[0.0, 0.0, 0.1]),
+    "measured_pose": lambda: MeasuredPoseLoop("c", "tool0", sigma_t=1e-4, sigma_r=1e-4),
+    "measured_pose_known_tool": lambda: MeasuredPoseLoop("c", "tool0", tool=pin.SE3.Identity()),
+    "measured_point": lambda: MeasuredPointLoop("c", "tool0", sigma_t=1e-4),
+    "measured_point_to_link": lambda: MeasuredPointLoop("c", "tool0", "shoulder_link"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(JAC_CASES))
+def test_jacobian_matches_central_differences(case):
+    prob, x = _fd_problem(JAC_CASES[case]())
+    ev = prob.evaluate(x)[0]
+    J = ev.J.reshape(-1, x.size)
+    Jn = np.zeros_like(J)
+    h = 1e-6
+    for k in range(x.size):
+        xp, xm = x.copy(), x.copy()
+        xp[k] += h
+        xm[k] -= h
+        Jn[:, k] = (prob.evaluate(xp, False)[0].r.ravel() - prob.evaluate(xm, False)[0].r.ravel()) / (2 * h)
+    assert np.abs(J - Jn).max() <= 1e-6 * np.abs(J).max()
+
+
+def test_point_jq_matches_central_differences():
+    """d r / d reading (used for whitening and self-motion) on a two-branch point loop."""
+    prob, x = _fd_problem(PointLoop("c", "tool0", "upper_arm_link"))
+    b = prob.blocks[0]
+    Jq = prob.evaluate(x)[0].Jq
+    h = 1e-6
+    for j in range(b.theta.shape[1]):
+        tp, tm = b.theta.copy(), b.theta.copy()
+        tp[:, j] += h
+        tm[:, j] -= h
+        d = (prob.evaluate(x, False, [tp])[0].r - prob.evaluate(x, False, [tm])[0].r) / (2 * h)
+        assert np.allclose(Jq[:, :, j], d, atol=1e-7)
+
+
+# ---------------------------------------------------------------- point contact (3.4.1)
+def test_point_contact_ur5_theorem4():
+    """6R arm under point contact: noise-free recovery and the Theorem 4 redundancies."""
+    res, truth = closed_experiment(UR5, lambda: PointLoop("ball", "tool0"), UR5_Q0,
+                                   {"ball.tip_x": 0.01, "ball.tip_y": -0.02, "ball.tip_z": 0.12})
+    est, err = estimated_errors(res, truth)
+    assert np.abs(err).max() < 1e-8
+    assert len(est) == 21  # 15 robot + tip (3) + contact point (3)
+    dropped = dropped_names(res)
+    # base orientation about the contact point and base position (theta_0^off, alpha_0 of 3.4.1):
+    assert {f"shoulder_pan_joint.{f}" for f in COLS} | {"shoulder_pan_joint.offset"} <= dropped
+    # tool orientation is free (alpha_n): the last joint's placement collapses onto the tip
+    assert {"wrist_3_joint.offset", "wrist_3_joint.x", "wrist_3_joint.y", "wrist_3_joint.rx",
+            "wrist_3_joint.ry", "wrist_3_joint.rz"} <= dropped
+    # one length fixed (a_0 = -1 in the theorem)
+    assert any("length scale" in n for n in res.notes)
+    assert all(res.status[res.names.index(f"ball.{f}")] == "estimated"
+               for f in ("tip_x", "tip_y", "tip_z", "px", "py", "pz"))
+
+
+def test_point_contact_panda():
+    res, truth = closed_experiment(PANDA, lambda: PointLoop("ball", "panda_hand"), PANDA_Q0,
+                                   {"ball.tip_x": 0.01, "ball.tip_y": -0.02, "ball.tip_z": 0.12})
+    est, err = estimated_errors(res, truth)
+    assert np.abs(err).max() < 1e-8
+    assert len(est) == 25  # 19 robot + 6 loop
+    dropped = dropped_names(res)
+    assert {f"panda_joint1.{f}" for f in COLS} | {"panda_joint1.offset"} <= dropped
+    assert {"panda_joint7.offset", "panda_joint7.x", "panda_joint7.z", "panda_joint7.rx",
+            "panda_joint7.ry", "panda_joint7.rz"} <= dropped
+
+
+def test_point_two_arms_baxter():
+    """Baxter's grippers joined point-wise: two branches of one model, 14 joints."""
+    res, truth = closed_experiment(BAXTER, lambda: PointLoop("touch", "left_gripper", "right_gripper"),
+                                   BAXTER_Q0, {"touch.tip_z": 0.02}, n=40)
+    est, err = estimated_errors(res, truth)
+    assert np.abs(err).max() < 1e-8
+    dropped = dropped_names(res)
+    # only the relative pose of the two arm bases matters: one base is the gauge
+    assert {f"left_s0.{f}" for f in COLS} <= dropped
+    assert res.status[res.names.index("right_s0.x")] == "estimated"
+    assert any("length scale" in n for n in res.notes)
+
+
+def test_point_contact_noise_within_four_sigma():
+    noise = 1e-4
+    res, truth = closed_experiment(UR5, lambda: PointLoop("ball", "tool0"), UR5_Q0,
+                                   {"ball.tip_x": 0.01, "ball.tip_y": -0.02, "ball.tip_z": 0.12},
+                                   n=80, seed=3, noise=noise)
+    assert res.converged
+    est, err = estimated_errors(res, truth)
+    std = res.std[est]
+    assert np.all(np.isfinite(std)) and np.all(std > 0)
+    assert np.abs(err / std).max() < 4.0
+    assert 0.5 < res.chi2 / res.dof < 1.5
+
+
+def test_point_initialize_is_mean_contact_point():
+    robot = robot_of(UR5)
+    loop = PointLoop("ball", "tool0", tip=[0.0, 0.0, 0.1])
+    prob = CalibrationProblem(robot, robot.supporting_joints("tool0"),
+                              [LoopBlock(loop, np.atleast_2d(UR5_Q0), np.arange(1))])
+    th = np.array(UR5_Q0) + np.random.default_rng(0).normal(scale=0.1, size=(5, 6))
+    TA, TB = prob.loop_poses(prob.nominal, 0, th)
+    p = loop.initialize(TA, TB)
+    ref = np.mean([TA[i, :3, :3] @ [0, 0, 0.1] + TA[i, :3, 3] for i in range(5)], axis=0)
+    assert np.allclose(p, ref)
+
+
+# ---------------------------------------------------------------- plane
+def test_plane_ur5_recovery():
+    own = {"floor.tip_x": 0.01, "floor.tip_y": -0.02, "floor.tip_z": 0.12, "floor.nrx": 0.2, "floor.nry": -0.15}
+    res, truth = closed_experiment(UR5, lambda: PlaneLoop("floor", "tool0"), UR5_Q0, own, n=120)
+    est, err = estimated_errors(res, truth)
+    assert np.abs(err).max() < 1e-8
+    dropped = dropped_names(res)
+    assert {f"shoulder_pan_joint.{f}" for f in COLS} <= dropped
+    for f in ("tip_x", "tip_y", "tip_z", "nrx", "nry", "d"):
+        assert res.status[res.names.index(f"floor.{f}")] == "estimated"
+
+
+def test_plane_parameterisation():
+    loop = PlaneLoop("p", "tool0", normal=[0.0, 1.0, 0.0])
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        assert np.allclose(loop.normal(loop.angles(n)), n)
+    # the far hemisphere is flipped back: same plane, |w| <= pi/2
+    w = loop.angles(np.array([0.3, -0.9, 0.2]) / np.linalg.norm([0.3, -0.9, 0.2]))
+    p = np.concatenate([[0.0, 0.0, 0.1], w, [0.4]])
+    q = loop.normalize(p)
+    assert np.linalg.norm(q[3:5]) <= np.pi / 2
+    assert np.allclose(loop.normal(q[3:5]), -loop.normal(p[3:5])) and q[5] == -0.4
+    # a data fit picks the normal towards the reference
+    pts = rng.normal(size=(10, 3)) * [1, 0, 1] + [0, -0.5, 0]
+    TA = np.tile(np.eye(4), (10, 1, 1))
+    TA[:, :3, 3] = pts
+    fit = loop.initialize(TA, np.tile(np.eye(4), (10, 1, 1)))
+    assert np.allclose(loop.normal(fit[3:5]), [0, 1, 0]) and np.isclose(fit[5], -0.5)
+
+
+# ---------------------------------------------------------------- measured (open loop, 3.2)
+X_TRUE = pin.SE3(pin.exp3(np.array([0.1, -0.2, 2.0])), np.array([1.5, 0.3, 0.2]))
+Y_TRUE = pin.SE3(pin.exp3(np.array([0.05, 0.02, -0.1])), np.array([0.01, -0.02, 0.1]))
+TIP_TRUE = np.array([0.01, -0.02, 0.1])
+GUESS = X_TRUE * pin.SE3(pin.exp3(np.array([0.2, -0.3, 0.25])), np.array([0.1, -0.2, 0.15]))
+
+
+def _measurements(prob, values, th, kind, name="m"):
+    TA, TB = prob.loop_poses(values, 0, th)
+    out = {f"{name}:{c}": np.empty(len(th)) for c in (COLS if kind == "pose" else COLS[:3])}
+    for i in range(len(th)):
+        W = pin.SE3(TB[i]).actInv(pin.SE3(TA[i]))
+        v = vec_of(X_TRUE.inverse() * W * Y_TRUE) if kind == "pose" else X_TRUE.actInv(W.act(TIP_TRUE))
+        for k, c in enumerate(COLS[:len(v)]):
+            out[f"{name}:{c}"][i] = v[k]
+    return out
+
+
+def measured_experiment(kind, noise_q=None, sigma_t=None, sigma_r=None, N=30, seed=1):
+    robot = robot_of(UR5)
+    joints = robot.supporting_joints("tool0")
+    rng = np.random.default_rng(seed)
+    th = rng.uniform(-1.5, 1.5, (N, 6))
+
+    def make():
+        if kind == "pose":
+            return MeasuredPoseLoop("m", "tool0", initial_base=GUESS, sigma_t=sigma_t, sigma_r=sigma_r)
+        return MeasuredPointLoop("m", "tool0", initial_base=GUESS, sigma_t=sigma_t)
+
+    zeros = {f"m:{c}": np.zeros(N) for c in COLS}
+    prob = build_problem(robot, JointLog(joints, th, None, None, zeros), [make()])
+    x = prob.nominal
+    # the identifiable parameterisation: what calibrate estimates on nominal data
+    res0 = calibrate(robot, JointLog(joints, th, None, None, _measurements(prob, x, th, kind)), [make()])
+    names = [n for n, s in zip(res0.names, res0.status) if s == "estimated" and not n.startswith("m.")]
+    truth = x.copy()
+    for k, v in draw_truth(robot, names, rng).items():
+        truth[prob.index[k]] = v
+    ex = _measurements(prob, truth, th, kind)
+    if sigma_t:
+        ex = {k: v + rng.normal(scale=sigma_t if k[-1] in "xyz" and ":r" not in k else sigma_r, size=N)
+              for k, v in ex.items()}
+    thr = th + rng.normal(scale=noise_q, size=th.shape) if noise_q else th
+    res = calibrate(robot, JointLog(joints, thr, None, None, ex), [make()], CalibrationOptions(noise=noise_q))
+    truth[prob.loop_slices[0]] = np.concatenate([vec_of(X_TRUE), vec_of(Y_TRUE) if kind == "pose" else TIP_TRUE])
+    return res, dict(zip(prob.names, truth))
+
+
+@pytest.mark.parametrize("kind", ["pose", "point"])
+def test_measured_recovery(kind):
+    res, truth = measured_experiment(kind)
+    est, err = estimated_errors(res, truth)
+    assert np.abs(err).max() < 1e-8
+    assert not any("length scale" in n for n in res.notes)  # the sensor fixes the length
+    dropped = dropped_names(res)
+    assert {f"shoulder_pan_joint.{f}" for f in COLS} <= dropped  # absorbed by the sensor base
+    assert len(est) == (30 if kind == "pose" else 25)
+
+
+def test_measured_point_noise_within_four_sigma():
+    res, truth = measured_experiment("point", noise_q=1e-5, sigma_t=1e-5, N=60, seed=2)
+    est, err = estimated_errors(res, truth)
+    assert np.abs(err / res.std[est]).max() < 4.0
+
+
+def test_measured_point_initialize_rigid_fit():
+    """With every configuration, the sensor base is fitted exactly (Kabsch) from the nominal model."""
+    robot = robot_of(UR5)
+    joints = robot.supporting_joints("tool0")
+    th = np.random.default_rng(0).uniform(-1.5, 1.5, (8, 6))
+    loop = MeasuredPointLoop("m", "tool0", tip=TIP_TRUE)
+    prob = build_problem(robot, JointLog(joints, th, None, None, {f"m:{c}": np.zeros(8) for c in COLS}), [loop])
+    loop.bind(_measurements(prob, prob.nominal, th, "point"))
+    TA, TB = prob.loop_poses(prob.nominal, 0)
+    assert np.allclose(loop.initialize(TA, TB), vec_of(X_TRUE), atol=1e-10)
+
+
+def test_measured_missing_column_is_an_error():
+    robot = robot_of(UR5)
+    joints = robot.supporting_joints("tool0")
+    lg = JointLog(joints, np.zeros((3, 6)), None, None, {"m:x": np.zeros(3), "m:y": np.zeros(3)})
+    with pytest.raises(LoopError, match="m:z"):
+        build_problem(robot, lg, [MeasuredPointLoop("m", "tool0")])
+
+
+# ---------------------------------------------------------------- CLI specs
+def test_specs():
+    robot = robot_of(UR5)
+    lp = parse_loop('point:frame=tool0,tip="0 0 0.1",name=ball', robot)
+    assert isinstance(lp, PointLoop) and np.allclose(lp.tip, [0, 0, 0.1]) and lp.point is None
+    assert [p.name for p in lp.parameters()] == ["ball.px", "ball.py", "ball.pz"]
+    lp = parse_loop("point:frame=tool0,to=upper_arm_link", robot)
+    assert lp.frame_b == "upper_arm_link" and len(lp.parameters()) == 6
+    lp = parse_loop('plane:frame=tool0,normal="1 0 0",name=wall', robot)
+    assert isinstance(lp, PlaneLoop) and np.allclose(lp.n_ref, [1, 0, 0])
+    assert [p.name for p in lp.parameters()][-3:] == ["wall.nrx", "wall.nry", "wall.d"]
+    lp = parse_loop("measured_pose:frame=tool0,sigma_t=1e-4,sigma_r=2e-4,name=trk", robot)
+    assert isinstance(lp, MeasuredPoseLoop) and lp.scale_free is False
+    assert np.allclose(np.diag(lp.measurement_cov), [1e-8] * 3 + [4e-8] * 3)
+    assert lp.columns() == [f"trk:{c}" for c in COLS]
+    lp = parse_loop('measured_point:frame=tool0,tip="0 0 0.1",base=identity', robot)
+    assert isinstance(lp, MeasuredPointLoop) and lp.parameters() == []
+    with pytest.raises(LoopError):
+        parse_loop("plane:frame=tool0,tip=1 2", robot)
+
+
+def test_two_planes_sessions_by_loop_column():
+    """Two planes (floor, wall) touched by one known tip; rows assigned by the log's `loop` column."""
+    robot = robot_of(UR5)
+    joints = robot.supporting_joints("tool0")
+    tip = [0.0, 0.0, 0.1]
+
+    def make():
+        return [PlaneLoop("floor", "tool0", tip=tip), PlaneLoop("wall", "tool0", tip=tip, normal=[1.0, 0.0, 0.0])]
+
+    q0 = np.atleast_2d(UR5_Q0)
+    names = identifiable_names(robot, make(), q0, n=60)
+    rng = np.random.default_rng(5)
+    prob = CalibrationProblem(robot, joints, [LoopBlock(lp, q0, np.arange(1)) for lp in make()])
+    truth = prob.nominal.copy()
+    for k, v in draw_truth(robot, names, rng).items():
+        truth[prob.index[k]] = v
+    for bi, (b, sl) in enumerate(zip(prob.blocks, prob.loop_slices)):
+        TA, TB = prob.loop_poses(truth, bi, q0)
+        truth[sl] = b.loop.initialize(TA, TB)
+    truth[prob.index["floor.nrx"]], truth[prob.index["floor.nry"]] = 0.05, -0.08
+    truth[prob.index["wall.nrx"]], truth[prob.index["wall.nry"]] = -0.1, 0.07
+    blocks = [self_motion(prob, truth, q0, 60, rng, block=bi) for bi in range(2)]
+    log_ = JointLog(joints, np.vstack(blocks), None, np.repeat(["floor", "wall"], [len(b) for b in blocks]))
+    res = calibrate(robot, log_, make())
+    est, err = estimated_errors(res, dict(zip(prob.names, truth)))
+    assert np.abs(err).max() < 1e-8
+    for f in ("floor", "wall"):
+        for g in ("nrx", "nry", "d"):
+            assert res.status[res.names.index(f"{f}.{g}")] == "estimated"

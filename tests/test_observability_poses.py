@@ -1,0 +1,90 @@
+"""Observability indices and pose selection on the 7-DOF Panda welded to a fixture."""
+
+import numpy as np
+import pytest
+
+from closedloop import CalibrationOptions, calibrate
+from closedloop.montecarlo import weld_scenario
+from closedloop.observability import indices_from_singular_values, observability
+from closedloop.poses import (detmax, greedy_d_optimal, information, pool_blocks, select_poses,
+                              trace_covariance)
+
+NOISE = 1e-4
+
+
+@pytest.fixture(scope="module")
+def weld():
+    sc = weld_scenario(n=100, seed=0, n_pool=300, stride=3)
+    rng = np.random.default_rng(1)
+    th = sc.theta + rng.normal(0, NOISE, sc.theta.shape)
+    res = calibrate(sc.robot, sc.log(th), sc.loops, CalibrationOptions(noise=NOISE))
+    assert res.converged
+    return sc, res
+
+
+def test_indices_definitions():
+    s = np.array([4.0, 2.0, 1.0])
+    o = indices_from_singular_values(s, n_configs=4)
+    assert o["O1"] == pytest.approx(2.0 / 2.0)  # (4*2*1)^(1/3) / sqrt(4)
+    assert o["O2"] == pytest.approx(0.25)
+    assert o["O3"] == pytest.approx(1.0)
+    assert o["O4"] == pytest.approx(0.25)
+    assert o["O5"] == pytest.approx(1.0 / (0.25 + 0.5 + 1.0))
+    assert indices_from_singular_values(np.array([1.0, 0.0]), 3)["O1"] == 0.0
+
+
+def test_observability_of_a_result(weld):
+    sc, res = weld
+    o = observability(res)
+    # The same whitened, prior-scaled Jacobian as the estimator's: same singular values.
+    assert np.allclose(o["singular_values"], res.singular_values, rtol=1e-8)
+    assert o["n_configs"] == 100 and len(o["params"]) == len(res.estimated)
+    assert o["O4"] == pytest.approx(o["O2"] * o["O3"])
+    assert o["O3"] > 1.0  # every estimated direction is determined better than its prior
+    # trace of the scaled covariance = sum s^-2 = trace of the estimator's covariance / prior^2
+    prior = np.array([res.problem.params[k].prior for k in res.estimated])
+    assert o["trace_cov_scaled"] == pytest.approx(np.trace(res.covariance / np.outer(prior, prior)), rel=1e-6)
+    # more configurations observe more: O3 and O5 grow with the data
+    half = observability(res, thetas=[res.problem.blocks[0].theta[:50]])
+    assert half["O3"] < o["O3"] and half["O5"] < o["O5"]
+
+
+def test_greedy_updates_match_determinants(weld):
+    sc, res = weld
+    B, idx = pool_blocks(res, None, sc.pool)
+    assert idx == res.estimated and B.shape == (300, 6, len(idx))
+    L = B.shape[2]
+    # from zero configurations: 2 configurations (12 rows) cannot determine 27 parameters alone
+    sel = greedy_d_optimal(B, 2, prior_weight=1.0)
+    assert len(set(sel.indices)) == 2
+    for k in (2, 15):
+        sel = greedy_d_optimal(B, k, prior_weight=1.0)
+        direct = np.linalg.slogdet(np.eye(L) + information(B, sel.indices))[1]
+        assert sel.logdet == pytest.approx(direct, rel=1e-7)
+        assert np.all(np.diff(sel.logdet_history) > 0)
+    dm = detmax(B, 15, prior_weight=1.0)
+    direct = np.linalg.slogdet(np.eye(L) + information(B, dm.indices))[1]
+    assert dm.logdet == pytest.approx(direct, rel=1e-7)
+    assert dm.logdet >= sel.logdet - 1e-9 and len(set(dm.indices)) == 15
+
+
+def test_selection_halves_the_configurations(weld):
+    """K selected configurations reach the accuracy of N = 2K random ones (trace of the covariance)."""
+    sc, res = weld
+    B, _ = pool_blocks(res, None, sc.pool)
+    rng = np.random.default_rng(0)
+    N, K = 40, 20
+    random_traces = [trace_covariance(B, rng.choice(len(B), N, replace=False)) for _ in range(30)]
+    for method in ("greedy", "detmax"):
+        idx = select_poses(res, None, sc.pool, K, method=method)
+        assert len(set(idx.tolist())) == K
+        assert trace_covariance(B, idx) <= np.median(random_traces)
+
+
+def test_select_poses_on_a_bare_problem(weld):
+    sc, res = weld
+    truth = np.array([sc.truth[n] for n in res.problem.names])
+    sel = select_poses(res.problem, truth, sc.pool, 10, noise=NOISE, return_selection=True)
+    assert len(sel.indices) == 10
+    with pytest.raises(ValueError):
+        select_poses(res, None, sc.pool, 10, method="nope")

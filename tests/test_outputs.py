@@ -1,0 +1,167 @@
+"""Calibrated models reload in Pinocchio and MuJoCo and reproduce the fit; CLI behaviour on bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import mujoco
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from closedloop.calibration import calibrate
+from closedloop.cli import main
+from closedloop.export import write_urdf
+from closedloop.loops import WeldLoop
+from closedloop.models import nominal_urdf
+from closedloop.robot import RobotModel
+from closedloop.truth import make_dataset
+
+Q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory):
+    """A mesh-free Panda, a noise-free weld dataset with offsets AND scale errors, its calibration."""
+    d = tmp_path_factory.mktemp("cal")
+    nominal = d / "panda.urdf"
+    nominal.write_text(nominal_urdf("panda"))
+    robot = RobotModel.from_file(nominal)
+    ds = make_dataset(robot, WeldLoop("fixture", "panda_hand"), Q0, 120, np.random.default_rng(5))
+    res = calibrate(robot, ds.log(), [WeldLoop("fixture", "panda_hand")])
+    out = d / "calibrated.urdf"
+    write_urdf(robot, res.as_dict(), out)
+    return robot, ds, res, nominal, out
+
+
+def test_calibrated_urdf_reproduces_fit_in_pinocchio(calibrated):
+    robot, ds, res, _, out = calibrated
+    model = pin.buildModelFromUrdf(str(out))
+    data = model.createData()
+    fid = model.getFrameId("panda_hand")
+    # the calibrated model's own prediction of the tool pose (offsets applied, k = 1)
+    prob = res.problem
+    TA, _ = prob.loop_poses(res.values, 0)
+    for i in range(0, 120, 7):
+        q = robot.configurations(ds.readings[i:i + 1], prob.joints)[0]
+        pin.framesForwardKinematics(model, data, q)
+        assert np.abs(data.oMf[fid].homogeneous - TA[i]).max() < 1e-9
+    # and the loop closes to the fitted residual
+    X = pin.SE3(pin.exp3(np.array([res.value(f"fixture.r{a}") for a in "xyz"])),
+                np.array([res.value(f"fixture.{a}") for a in "xyz"]))
+    worst = 0.0
+    for i in range(120):
+        q = robot.configurations(ds.readings[i:i + 1], prob.joints)[0]
+        pin.framesForwardKinematics(model, data, q)
+        worst = max(worst, np.linalg.norm(pin.log6(X.inverse() * data.oMf[fid]).vector))
+    assert worst < 1e-9
+
+
+def test_calibrated_urdf_loads_in_mujoco_with_same_kinematics(calibrated):
+    robot, ds, _, _, out = calibrated
+    m = mujoco.MjModel.from_xml_path(str(out))
+    d = mujoco.MjData(m)
+    model = pin.buildModelFromUrdf(str(out))
+    data = model.createData()
+    for i in (0, 40, 80):
+        q = robot.configurations(ds.readings[i:i + 1], robot.supporting_joints("panda_hand"))[0]
+        for j in range(1, model.njoints):
+            d.qpos[m.joint(model.names[j]).qposadr[0]] = q[model.joints[j].idx_q]
+        mujoco.mj_kinematics(m, d)
+        pin.framesForwardKinematics(model, data, q)
+        T = data.oMf[model.getFrameId("panda_link7")]
+        b = m.body("panda_link7").id
+        assert np.abs(d.xpos[b] - T.translation).max() < 1e-9
+        assert np.abs(d.xmat[b].reshape(3, 3) - T.rotation).max() < 1e-9
+
+
+def test_cli_calibrate_writes_urdf_report_and_check_passes(calibrated, tmp_path):
+    robot, ds, _, nominal, _ = calibrated
+    log = tmp_path / "log.csv"
+    ds.log().write_csv(log)
+    truth = tmp_path / "truth.json"
+    truth.write_text(json.dumps({"parameters": ds.truth_dict()}))
+    out, rep = tmp_path / "out.urdf", tmp_path / "report.json"
+    rc = main(["calibrate", str(nominal), str(log), "--loop", "weld:frame=panda_hand,name=fixture",
+               "--out", str(out), "--report", str(rep), "--quiet"])
+    assert rc == 0 and out.exists()
+    report = json.loads(rep.read_text())
+    assert report["solver"]["status"] == "converged"
+    assert report["residuals"]["after"][0]["rms_m"] < 1e-9
+    dropped = {d["name"] for d in report["identifiability"]["dropped"]}
+    assert "panda_joint1.x" in dropped
+    est = [p for p in report["parameters"] if p["status"] == "estimated"]
+    assert est and all(p["std_error"] is not None for p in est)
+    assert main(["check", str(truth), str(rep), "--tol-m", "1e-8", "--tol-rad", "1e-8"]) == 0
+    # a wrong truth fails the check
+    bad = ds.truth_dict()
+    bad["panda_joint3.offset"] += 0.01
+    truth.write_text(json.dumps({"parameters": bad}))
+    assert main(["check", str(truth), str(rep)]) == 1
+
+
+def _run(args):
+    p = subprocess.run([sys.executable, "-m", "closedloop.cli", *args], capture_output=True, text=True)
+    return p.returncode, p.stdout, p.stderr
+
+
+@pytest.fixture()
+def files(calibrated, tmp_path):
+    robot, ds, _, nominal, _ = calibrated
+    log = tmp_path / "log.csv"
+    ds.log().write_csv(log)
+    return nominal, log, tmp_path
+
+
+@pytest.mark.parametrize("mutate,expect", [
+    (lambda text: text.replace("panda_joint4,", "elbow,", 1), "missing column(s) for loop joint(s) panda_joint4"),
+    (lambda text: text.replace("\n", "\nnan,0,0,0,0,0,0\n", 1), "row 1, column 'panda_joint1': value is nan"),
+    (lambda text: text.split("\n")[0] + "\n", "no data rows"),
+    (lambda text: "\n".join(text.split("\n")[:3]) + "\n", "rows give 12 equations for 55 selected parameters"),
+    (lambda text: text.replace("\n", "\n1,2\n", 1), "row 1 has 2 fields"),
+])
+def test_bad_logs_one_line_exit_2(files, mutate, expect):
+    nominal, log, tmp = files
+    bad = tmp / "bad.csv"
+    bad.write_text(mutate(log.read_text()))
+    rc, _, err = _run(["calibrate", str(nominal), str(bad), "--loop", "weld:frame=panda_hand", "--quiet"])
+    assert rc == 2, err
+    assert expect in err and str(bad) in err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+
+
+@pytest.mark.parametrize("args,expect", [
+    (["--loop", "weld:frame=panda_hnd"], "unknown frame 'panda_hnd' (did you mean 'panda_hand'"),
+    (["--loop", "hinge2:frame=panda_hand"], "unknown loop type 'hinge2'"),
+    (["--loop", "weld:frame=panda_hand", "--fix", "panda_joint9.x"], "no parameter named 'panda_joint9.x'"),
+    (["--loop", "weld:frame=panda_hand", "--fix", "panda_joint2.x=abc"], "'abc' is not a number"),
+    ([], "no --loop given"),
+])
+def test_bad_options_one_line_exit_2(files, args, expect):
+    nominal, log, _ = files
+    rc, _, err = _run(["calibrate", str(nominal), str(log), *args, "--quiet"])
+    assert rc == 2 and expect in err and "Traceback" not in err, err
+
+
+def test_never_overwrites_input(files):
+    nominal, log, _ = files
+    before = nominal.read_text()
+    rc, _, err = _run(["calibrate", str(nominal), str(log), "--loop", "weld:frame=panda_hand",
+                       "--out", str(nominal), "--quiet"])
+    assert rc == 2 and "refusing to overwrite" in err
+    assert nominal.read_text() == before
+
+
+def test_missing_model_file(tmp_path):
+    rc, _, err = _run(["calibrate", str(tmp_path / "nope.urdf"), str(tmp_path / "x.csv"), "--loop", "weld:frame=a"])
+    assert rc == 2 and "no such model file" in err
+
+
+def test_inspect_lists_joints_and_parameters(files):
+    nominal, _, _ = files
+    rc, out, _ = _run(["inspect", str(nominal), "--json"])
+    info = json.loads(out)
+    assert rc == 0 and [j["name"] for j in info["joints"]][:2] == ["panda_joint1", "panda_joint2"]
+    assert "panda_joint3.offset" in info["parameters"] and "panda_hand" in info["frames"]
