@@ -98,6 +98,8 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
     r, J = fun(x, True)
     cost = 0.5 * float(r @ r)
     history = [cost]
+    if progress:
+        progress(0, cost)
     lam = 0.0
     status, message, truncated = "max_iter", f"no convergence in {opt.max_iter} iterations", 0
     it = 0

@@ -314,7 +314,7 @@ def identifiable_parameters(nominal_path, sc: "Scenario", joint_names: list[str]
     from closedloop.robot import RobotModel
     from closedloop.truth import identifiable_names
 
-    loop = core_loop(sc)
+    loop = core_loop(sc, nominal_path)
     if loop is None:
         model = pin.buildModelFromUrdf(str(nominal_path))
         return perturbable_parameters(model, joint_names, scale=scale)
@@ -325,12 +325,26 @@ def identifiable_parameters(nominal_path, sc: "Scenario", joint_names: list[str]
     return [n for n in names if n.rsplit(".", 1)[0] in joint_names]
 
 
-def core_loop(sc: "Scenario"):
-    """The calibration core's loop for a scenario, or None if the core has none for it."""
-    from closedloop.loops import WeldLoop
+def core_loop(sc: "Scenario", nominal_path=None):
+    """The calibration core's loop for a scenario, or None if the core has none for it.
+
+    The hinge loop gets the door axis of the NOMINAL robot at the grasp
+    configuration as its reference (only the structure matters here).
+    """
+    from closedloop.loops import HingeLoop, PointLoop, WeldLoop
 
     if sc.loop_type == "weld":
         return WeldLoop(sc.loop_name, sc.tool_frame)
+    if sc.loop_type == "point":
+        return PointLoop(sc.loop_name, sc.tool_frame)
+    if sc.loop_type == "hinge" and nominal_path is not None and sc.door is not None:
+        from .scene import _door_hinge_pose
+
+        model = pin.buildModelFromUrdf(str(nominal_path))
+        data = model.createData()
+        pin.framesForwardKinematics(model, data, np.asarray(sc.q0, dtype=float))
+        H = _door_hinge_pose(data.oMf[model.getFrameId(sc.tool_frame)], sc.door)
+        return HingeLoop(sc.loop_name, sc.tool_frame, axis=(H.translation.copy(), H.rotation[:, 2].copy()))
     return None
 
 

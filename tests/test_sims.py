@@ -89,7 +89,8 @@ def test_truth_names(stiff_run):
     assert truth["loop"] == {**truth["loop"], "type": sc.loop_type, "frame": sc.tool_frame, "name": sc.loop_name}
     params = truth["parameters"]
     expected = set(identifiable_parameters(res.nominal_path, sc, res.joint_names))
-    comps = ("x", "y", "z") if sc.loop_type == "point" else ("x", "y", "z", "rx", "ry", "rz")
+    comps = (("px", "py", "pz", "tip_x", "tip_y", "tip_z") if sc.loop_type == "point"
+             else ("x", "y", "z", "rx", "ry", "rz"))
     expected |= {f"{sc.loop_name}.{c}" for c in comps}
     assert set(params) == expected
     first = res.joint_names[0]
@@ -127,8 +128,12 @@ def test_true_closure_matches_true_kinematics(stiff_run):
     pin.framesForwardKinematics(model, data, np.array(truth["q0"]))
     tool = data.oMf[model.getFrameId(sc.tool_frame)]
     p = truth["parameters"]
-    np.testing.assert_allclose([p[f"{sc.loop_name}.{c}"] for c in "xyz"], tool.translation, atol=1e-9)
-    if sc.loop_type != "point":
+    point = sc.loop_type == "point"  # PointLoop names: contact point p*, tool tip (0 in the tool frame)
+    np.testing.assert_allclose([p[f"{sc.loop_name}.{'p' if point else ''}{c}"] for c in "xyz"],
+                               tool.translation, atol=1e-9)
+    if point:
+        assert all(p[f"{sc.loop_name}.tip_{c}"] == 0.0 for c in "xyz")
+    else:
         r = pin.exp3(np.array([p[f"{sc.loop_name}.r{c}"] for c in "xyz"]))
         np.testing.assert_allclose(r, tool.rotation, atol=1e-9)
 

@@ -4,9 +4,12 @@ Importing this package registers every loop type for the CLI (`spec.parse_loop`)
 """
 
 from .base import Loop, LoopEval
+from .hinge import HingeLoop
 from .measured import MeasuredPointLoop, MeasuredPoseLoop
+from .passive import PassiveChainLoop
 from .plane import PlaneLoop
 from .point import PointLoop
 from .weld import WeldLoop
 
-__all__ = ["Loop", "LoopEval", "MeasuredPointLoop", "MeasuredPoseLoop", "PlaneLoop", "PointLoop", "WeldLoop"]
+__all__ = ["Loop", "LoopEval", "HingeLoop", "MeasuredPointLoop", "MeasuredPoseLoop", "PassiveChainLoop",
+           "PlaneLoop", "PointLoop", "WeldLoop"]

@@ -102,6 +102,7 @@ def eliminate(M: pin.SE3, pose: PoseFn, starts: list[np.ndarray],
     best = None
     for phi in starts:
         X, Xd = pose(phi)
+        Xd = np.reshape(Xd, (6, -1))
         E = X.actInv(M)
         r = pin.log6(E).vector
         c = float(r @ r)
@@ -120,6 +121,7 @@ def eliminate(M: pin.SE3, pose: PoseFn, starts: list[np.ndarray],
         while True:
             phin = integ(phi, t * step)
             Xn, Xdn = pose(phin)
+            Xdn = np.reshape(Xdn, (6, -1))
             En = Xn.actInv(M)
             rn = pin.log6(En).vector
             cn = float(rn @ rn)

@@ -1,0 +1,124 @@
+"""Monte Carlo against the Cramer-Rao bound, cross-validation, robust weights and suspects."""
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from closedloop import CalibrationOptions, calibrate
+from closedloop.calibration import build_problem
+from closedloop.montecarlo import monte_carlo, unwrap_rotation_vector, weld_scenario
+from closedloop.robust import config_residuals, irls, mad_scale, suspects, weights
+from closedloop.validation import cross_validate, folds
+
+NOISE = 1e-4
+
+
+@pytest.fixture(scope="module")
+def scenario():
+    # 100 configurations spread along the self-motion (one every 6 steps of 0.04 rad)
+    return weld_scenario(n=100, seed=0, stride=6)
+
+
+def test_unwrap_rotation_vector():
+    r = np.array([0.0, 0.0, np.pi - 0.01])
+    other = np.array([0.0, 0.0, -(np.pi + 0.01)])  # the same rotation on the other branch
+    assert np.allclose(unwrap_rotation_vector(other, r), other + [0, 0, 2 * np.pi])
+    assert np.allclose(unwrap_rotation_vector(r, r), r)
+
+
+def test_monte_carlo_against_cramer_rao(scenario):
+    """M = 30 runs, 100 configurations, 1e-4 rad.
+
+    Tolerances from the sampling distribution under H0 (estimator unbiased and
+    efficient, estimates ~ N(truth, CRB)):
+    * (M-1) tr(CRB^-1 cov_emp) ~ chi2((M-1) L): the efficiency tr(CRB^-1 cov_emp)/L
+      has mean 1 and std sqrt(2 / ((M-1) L)) = 0.05 for L = 27; allow 4 std.
+    * each bias component over its standard error is N(0, 1/M): |b|/se < 1 fails only
+      beyond 5.5 sigma; M b^T CRB^-1 b ~ chi2(L): below its 0.999 quantile.
+    The unweighted estimator is consistent but not efficient: its first-order
+    (sandwich) covariance is ~2.2 x the bound here, and it carries a second-order
+    errors-in-variables bias; require efficiency > 1.3 (a > 6 std excess).
+    """
+    M = 30
+    mc = monte_carlo(scenario, NOISE, M, seed=1)
+    L = len(mc.names)
+    assert L == 27 and "fixture.rx" in mc.names
+    w, u = mc.stats["noise"], mc.stats["none"]
+    assert w.failures == 0 and u.failures == 0 and w.truncated == 0
+    sd_eff = np.sqrt(2.0 / ((M - 1) * L))
+    assert abs(w.efficiency - 1.0) < 4 * sd_eff, mc.summary()
+    assert abs(w.trace_ratio - 1.0) < 4 * mc.tolerance_trace, mc.summary()
+    assert np.max(np.abs(w.bias_over_se)) < 1.0, mc.summary()
+    assert w.bias_chi2 < stats.chi2.ppf(0.999, L), mc.summary()
+    assert u.efficiency > 1.3, mc.summary()
+    assert u.predicted_trace_ratio > 1.5
+
+
+def test_cross_validation(scenario):
+    rng = np.random.default_rng(3)
+    lg = scenario.log(scenario.theta + rng.normal(0, NOISE, scenario.theta.shape))
+    parts = folds(lg, 5, seed=0)
+    assert sorted(np.concatenate(parts).tolist()) == list(range(100))
+    cv = cross_validate(scenario.robot, lg, scenario.loops, CalibrationOptions(noise=NOISE), k=5, seed=0)
+    assert len(cv["folds"]) == 5 and all(f["converged"] for f in cv["folds"])
+    assert not cv["inconsistent"]
+    test, train = cv["test"][0], cv["train"][0]
+    assert test["n"] == 100 and train["n"] == 400
+    # Held-out whitened RMS per row ~ 1 (noise-level prediction error), slightly above the fit's.
+    assert 0.8 < cv["test_whitened_rms"] < 1.3
+    assert cv["test_whitened_rms"] > cv["train_whitened_rms"]
+    # Unweighted closure errors at the noise level (1e-4 rad through a ~0.5-1 m arm).
+    assert test["rms_m"] < 5e-4 and test["rms_rad"] < 1e-3
+
+
+def test_weights_and_scale_on_synthetic_blocks():
+    rng = np.random.default_rng(0)
+    r = rng.normal(0, 2.0, (400, 6))
+    r[:4] += 100.0
+    assert mad_scale([r]) == pytest.approx(2.0, rel=0.1)
+    wh = weights([r], "huber")[0]
+    wc = weights([r], "cauchy")[0]
+    assert np.all(wh[:4] < 0.1) and np.all(wc[:4] < 0.01)
+    assert np.mean(wh[4:] == 1.0) > 0.9  # Huber leaves ~95 % of clean configurations alone
+    assert np.all((wc > 0) & (wc <= 1))
+    s = suspects([r])
+    assert sorted(x.index for x in s) == [0, 1, 2, 3]
+    with pytest.raises(ValueError):
+        weights([r], "l1")
+
+
+def test_three_gross_outliers_are_flagged(scenario):
+    sc = scenario
+    problem = build_problem(sc.robot, sc.log(), sc.loops)
+    truth = sc.truth_vector(problem)
+    rng = np.random.default_rng(7)
+    th = sc.theta + rng.normal(0, NOISE, sc.theta.shape)
+    bad = [5, 42, 77]
+    for i in bad:  # shift joint 1 so that the closure (at the truth) is off by 5 cm
+        Jq = problem.evaluate(truth, True, [sc.theta[i:i + 1]])[0].Jq[0]
+        th[i, 0] += 0.05 / np.linalg.norm(Jq[:3, 0])
+        r = problem.evaluate(truth, False, [th[i:i + 1]])[0].r[0]
+        assert np.linalg.norm(r[:3]) == pytest.approx(0.05, rel=0.02)
+    # Least squares (unweighted: the noise-weighted LM does not converge with these outliers),
+    # then Cauchy IRLS from it; flags at the robust solution.
+    ls = calibrate(sc.robot, sc.log(th), sc.loops, CalibrationOptions(noise=NOISE, weighting="none"))
+    d_ls = np.linalg.norm(config_residuals(ls.problem, ls.values, NOISE)[0], axis=1)
+    assert set(np.argsort(-d_ls)[:3]) == set(bad)  # already the three largest at the LS fit
+    out = irls(ls, "cauchy", noise=NOISE, max_iter=100)
+    flagged = sorted(s.row for s in out.suspects)
+    assert flagged == [i + 1 for i in bad]  # log rows are 1-based
+    assert all(s.standardized > 100 for s in out.suspects)
+    w = out.weights[0]
+    assert np.all(w[bad] < 1e-4) and np.delete(w, bad).min() > 0.1
+    # Robust estimate is back at clean accuracy (in units of the clean standard errors)
+    clean_th = th.copy()
+    clean_th[bad] = sc.theta[bad]
+    clean = calibrate(sc.robot, sc.log(clean_th), sc.loops, CalibrationOptions(noise=NOISE))
+    est = clean.estimated
+    assert ls.estimated == est
+    z = (out.values - truth)[est] / clean.std[est]
+    assert np.max(np.abs(z)) < 4.0
+    # Huber: the outliers get tiny weights and are the three most suspect
+    hub = irls(ls, "huber", noise=NOISE, max_iter=100)
+    assert sorted(s.row for s in hub.suspects[:3]) == [i + 1 for i in bad]
+    assert np.all(hub.weights[0][bad] < 0.05)
