@@ -139,6 +139,7 @@ def build_problem(robot: RobotModel, log_: JointLog, loops: list[Loop], priors: 
     if not joints:
         raise LoopError("no movable joint lies between the loops' frames and the base")
     theta = log_.columns(joints)
+    tau = log_.torques(joints)
     blocks = []
     for lp in loops:
         if log_.loop is not None:
@@ -148,7 +149,7 @@ def build_problem(robot: RobotModel, log_: JointLog, loops: list[Loop], priors: 
         else:
             rows = np.arange(len(log_))
         lp.bind({k: v[rows] for k, v in log_.extra.items()})
-        blocks.append(LoopBlock(lp, theta[rows], rows + 1))
+        blocks.append(LoopBlock(lp, theta[rows], rows + 1, tau[rows] if tau is not None else None))
     return CalibrationProblem(robot, joints, blocks, priors)
 
 
@@ -271,6 +272,10 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
     status = ["not selected"] * P
     for n in selected:
         status[problem.index[n]] = "selected"
+    wants_tau = [n for n in selected if problem.params[problem.index[n]].kind == "compliance"]
+    if wants_tau and any(b.tau is None for b in problem.blocks):
+        raise LogError(f"{log_.source}: identifying joint compliance ({wants_tau[0]}, ...) needs the actuator "
+                       f"torques as columns 'tau:<joint>' for every loop joint")
     for n, v in opt.fix.items():
         if n not in problem.index:
             raise ParameterError(f"--fix {n}: no parameter of this problem has that name")

@@ -38,6 +38,17 @@ class JointLog:
         idx = [self.joints.index(n) for n in names]
         return self.angles[:, idx]
 
+    def torques(self, names: list[str]) -> np.ndarray | None:
+        """Actuator torques from columns ``tau:<joint>`` (N, len(names)), or None if any is missing."""
+        cols = [self.extra.get(f"tau:{n}") for n in names]
+        if any(c is None for c in cols):
+            return None
+        tau = np.column_stack(cols)
+        if not np.all(np.isfinite(tau)):
+            bad = int(np.argwhere(~np.isfinite(tau))[0, 0]) + 1
+            raise LogError(f"{self.source}: row {bad}: a tau:<joint> column is not a finite number")
+        return tau
+
     def write_csv(self, path: str | Path) -> None:
         """Write atomically in the same format."""
         from .export import atomic_write_text

@@ -9,6 +9,10 @@ Every parameter has a stable name ``<owner>.<field>``:
   ``j.offset`` and ``j.z`` is absorbed by the next joint (thesis 3.2, 4 of 6).
 * ``j.offset`` and ``j.scale``: the sensor model of eq. 4.4,
   theta' = k * theta + theta_off, with nominal 0 and 1.
+* ``j.compliance`` (opt-in): joint compliance c = 1/K (rad per N m).  Under
+  actuator torque tau the link lags the motor-side reading by c * tau, so the
+  full sensor model is  theta' = k * theta + theta_off - c * tau  (torques
+  from the log's ``tau:<joint>`` columns).
 * D-H rows: ``j.theta_off j.s j.a j.alpha j.k`` (eqs. 4.1, 4.2, 4.4).
 * Loop parameters (closure transforms, contact points) belong to the loops.
 
@@ -36,7 +40,8 @@ PLACEMENT_FIELDS = ("x", "y", "z", "rx", "ry", "rz")
 
 # Default expected error magnitudes: used to scale Jacobian columns and to
 # decide whether the data determine a direction better than this prior.
-DEFAULT_PRIORS = {"m": 0.01, "rad": 0.01, "offset": 0.05, "scale": 0.05, "loop_m": 1.0, "loop_rad": 1.0}
+DEFAULT_PRIORS = {"m": 0.01, "rad": 0.01, "offset": 0.05, "scale": 0.05, "loop_m": 1.0, "loop_rad": 1.0,
+                  "compliance": 1e-4}
 
 
 @dataclass
@@ -63,6 +68,7 @@ class RobotState:
     data: pin.Data
     offset: np.ndarray  # per joint of `joints`
     scale: np.ndarray
+    compliance: np.ndarray
     G: np.ndarray  # (6*(njoints-1), P) right-twist generators of joint placements
     G_frames: dict[int, np.ndarray] = field(default_factory=dict)  # frame id -> (6, P)
 
@@ -95,6 +101,8 @@ class RobotParameters:
                                              "rad", pri["offset"], priority=2, order=order))
                 self.params.append(Parameter(f"{name}.k", "scale", name, "k", row.k, "1", pri["scale"],
                                              priority=3, order=order))
+                self.params.append(Parameter(f"{name}.compliance", "compliance", name, "compliance", 0.0,
+                                             "rad/Nm", pri["compliance"], priority=3, order=order))
             else:
                 M0 = nominal_model.jointPlacements[j.jid]
                 t_local = M0.rotation.T @ M0.translation  # scale direction in the joint frame
@@ -107,10 +115,14 @@ class RobotParameters:
                                              pri["offset"] if ang == "rad" else pri["m"], priority=2, order=order))
                 self.params.append(Parameter(f"{name}.scale", "scale", name, "scale", 1.0, "1", pri["scale"],
                                              priority=3, order=order))
+                self.params.append(Parameter(f"{name}.compliance", "compliance", name, "compliance", 0.0,
+                                             "rad/Nm" if ang == "rad" else "m/N", pri["compliance"],
+                                             priority=3, order=order))
         self.index = {p.name: i for i, p in enumerate(self.params)}
         self._joint_pos = {n: i for i, n in enumerate(self.joints)}
         self._off_idx = np.array([self.index[self._sensor_name(n, "offset")] for n in self.joints], dtype=int)
         self._scale_idx = np.array([self.index[self._sensor_name(n, "scale")] for n in self.joints], dtype=int)
+        self._comp_idx = np.array([self.index[f"{n}.compliance"] for n in self.joints], dtype=int)
 
     def _sensor_name(self, joint: str, what: str) -> str:
         if self.robot.kind == "dh":
@@ -130,6 +142,9 @@ class RobotParameters:
 
     def scale_index(self) -> np.ndarray:
         return self._scale_idx
+
+    def compliance_index(self) -> np.ndarray:
+        return self._comp_idx
 
     # ------------------------------------------------------------------ apply
     def apply(self, values: np.ndarray) -> RobotState:
@@ -173,7 +188,7 @@ class RobotParameters:
                 model.jointPlacements[j.jid] = robot.model.jointPlacements[j.jid] * pin.exp6(p)
                 G[6 * (j.jid - 1):6 * j.jid, i0:i0 + 6] = pin.Jexp6(p)
         return RobotState(model, model.createData(), values[self._off_idx].copy(),
-                          values[self._scale_idx].copy(), G, G_frames)
+                          values[self._scale_idx].copy(), values[self._comp_idx].copy(), G, G_frames)
 
     def placement_errors(self, values: np.ndarray) -> dict[str, pin.SE3]:
         """Joint name -> calibrated joint placement (Pinocchio joint frame in its parent)."""

@@ -208,8 +208,9 @@ def select_poses(result_or_problem: CalibrationResult | CalibrationProblem, valu
 
     result_or_problem: a `CalibrationResult` (its estimated parameters, values
       and noise are the defaults) or a `CalibrationProblem` (pass `values`).
-    method: 'greedy' (D-optimal forward selection) or 'detmax' (greedy, then
-      Mitchell's exchange).
+    method: 'greedy' (D-optimal forward selection), 'detmax' (greedy, then
+      Mitchell's exchange), or 'greedy-a' (forward selection minimising the
+      trace of the covariance, A-optimality, with the same Woodbury updates).
     prior_weight: A_0 = prior_weight * I in prior-scaled units.
     include_existing: count the problem's own configurations as already taken
       (choose the k that best complement the data in hand).
@@ -223,10 +224,12 @@ def select_poses(result_or_problem: CalibrationResult | CalibrationProblem, valu
         base = C.T @ C
     if method == "greedy":
         sel = greedy_d_optimal(B, k, prior_weight, base)
+    elif method == "greedy-a":
+        sel = greedy_d_optimal(B, k, prior_weight, base, criterion="A")
     elif method == "detmax":
         sel = detmax(B, k, prior_weight, base)
     else:
-        raise ValueError(f"method must be 'greedy' or 'detmax', not '{method}'")
+        raise ValueError(f"method must be 'greedy', 'detmax' or 'greedy-a', not '{method}'")
     return sel if return_selection else sel.indices
 
 

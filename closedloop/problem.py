@@ -1,13 +1,15 @@
 """A stack of loops over logged configurations: residuals and analytic Jacobians.
 
 For loop l at configuration i with readings theta^i the model joint angles are
-theta' = k * theta^i + theta_off (eq. 4.4).  With Pinocchio LOCAL frame
+theta' = k * theta^i + theta_off - c * tau^i (eq. 4.4, plus joint compliance c
+under the logged actuator torques tau, when present).  With Pinocchio LOCAL frame
 Jacobians J_A, J_B and LOCAL frame kinematic regressors K_A, K_B, the chain
 rule gives the columns of C^i (eq. 4.9):
 
   placement / D-H geometry:  dA K_A G + dB K_B G          (G: right-twist generators)
   offset of joint j:         (dA J_A + dB J_B)[:, j]       (eq. 4.11, first column)
   scale of joint j:          theta_j^i * (dA J_A + dB J_B)[:, j]      (eq. 4.15)
+  compliance of joint j:     -tau_j^i * (dA J_A + dB J_B)[:, j]
   loop parameters:           the loop's own dp
   joint readings (for the noise model): k_j * (dA J_A + dB J_B)[:, j]
 
@@ -34,6 +36,7 @@ class LoopBlock:
     loop: Loop
     theta: np.ndarray  # (N, n_joints) readings, columns in problem.joints order
     rows: np.ndarray  # row numbers in the log (1-based data rows), for messages
+    tau: np.ndarray | None = None  # (N, n_joints) actuator torques, if logged
 
 
 @dataclass
@@ -67,10 +70,18 @@ class CalibrationProblem:
         return np.array([p.nominal for p in self.params])
 
     # ------------------------------------------------------------- kinematics
-    def frame_kinematics(self, state, theta: np.ndarray, frames: list[int], need_jac: bool):
+    def model_angles(self, state, theta: np.ndarray, tau: np.ndarray | None) -> np.ndarray:
+        """theta' = k theta + theta_off - c tau (the sensor model)."""
+        angles = theta * state.scale + state.offset
+        if tau is not None:
+            angles = angles - tau * state.compliance
+        return angles
+
+    def frame_kinematics(self, state, theta: np.ndarray, frames: list[int], need_jac: bool,
+                         tau: np.ndarray | None = None):
         """Poses (N,4,4), LOCAL Jacobians (N,6,nv) and regressors (N,6,6(nj-1)) of frames."""
         model, data = state.model, state.data
-        q = self.robot.configurations(theta * state.scale + state.offset, self.joints)
+        q = self.robot.configurations(self.model_angles(state, theta, tau), self.joints)
         N = q.shape[0]
         out = {}
         for f in frames:
@@ -99,7 +110,8 @@ class CalibrationProblem:
         b = self.blocks[block_index]
         state = self.rp.apply(values[:self.n_robot])
         fa, fb = self.robot.frame_id(b.loop.frame_a), self.robot.frame_id(b.loop.frame_b)
-        kin = self.frame_kinematics(state, b.theta if theta is None else theta, [fa, fb], False)
+        tau = b.tau if theta is None else None
+        kin = self.frame_kinematics(state, b.theta if theta is None else theta, [fa, fb], False, tau)
         return kin[fa][0], kin[fb][0]
 
     # ------------------------------------------------------------- evaluation
@@ -113,12 +125,12 @@ class CalibrationProblem:
             used |= np.any(Gf != 0, axis=0)
         geo = np.flatnonzero(used)
         Ggeo = state.G[:, geo]
-        off_idx, sc_idx = self.rp.offset_index(), self.rp.scale_index()
+        off_idx, sc_idx, c_idx = self.rp.offset_index(), self.rp.scale_index(), self.rp.compliance_index()
         out = []
         for bi, (b, sl) in enumerate(zip(self.blocks, self.loop_slices)):
             theta = b.theta if thetas is None else thetas[bi]
             fa, fb = self.robot.frame_id(b.loop.frame_a), self.robot.frame_id(b.loop.frame_b)
-            kin = self.frame_kinematics(state, theta, [fa, fb], jacobian)
+            kin = self.frame_kinematics(state, theta, [fa, fb], jacobian, b.tau)
             TA, JA, RA = kin[fa]
             TB, JB, RB = kin[fb]
             ev = b.loop.evaluate(TA, TB, values[sl])
@@ -140,6 +152,8 @@ class CalibrationProblem:
             Jj = Jv[:, :, self._idx_v]  # d r / d theta'_j
             J[:, :, off_idx] += Jj
             J[:, :, sc_idx] += Jj * theta[:, None, :]
+            if b.tau is not None:
+                J[:, :, c_idx] -= Jj * b.tau[:, None, :]
             J[:, :, sl] = ev.dp
             out.append(BlockEval(ev.r, J, Jj * state.scale[None, None, :]))
         return out

@@ -57,6 +57,8 @@ def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict
             "notes": res.notes,
         },
         "scale_factors": {p.name: float(res.values[k]) for k, p in enumerate(prob.params) if p.kind == "scale"},
+        "compliance": {p.name: float(res.values[k]) for k, p in enumerate(prob.params)
+                       if p.kind == "compliance" and res.status[k] == "estimated"},
         "parameters": params,
     }
 

@@ -39,7 +39,7 @@ ResidualFn = Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]]
 class SolverOptions:
     max_iter: int = 100
     ftol: float = 1e-12  # stop when the relative cost decrease is below this
-    xtol: float = 1e-12  # stop when |dz| (scaled step) is below this
+    xtol: float = 1e-9  # stop when |dz| (step in units of the parameters' priors) is below this
     max_halvings: int = 8
     noise: float | None = None  # known noise level of r; None: estimate from the residual
     snr: float = 1.0  # keep directions with s_i > snr * sigma

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from .calibration import (CalibrationOptions, CalibrationResult, LoopResiduals, _noise_vector, build_problem,
+from .calibration import (CalibrationOptions, CalibrationResult, _noise_vector, build_problem,
                           calibrate, residual_stats, whiten)
 from .data import JointLog
 from .loops.base import Loop

@@ -290,9 +290,11 @@ def simulate(
         if settings.drop_flagged and (at_limit or not settled):
             dropped += 1
             continue
-        readings[done] = sensor_readings(q, offset, scale, settings.noise, settings.quantization, rng_noise)
-        q_true[done] = q
         tau[done] = d.qfrc_actuator[scene.dof_adr]
+        # joint compliance: the motor-side encoder leads the link by c * tau (tau = K (theta_m - q))
+        readings[done] = sensor_readings(q + settings.compliance * tau[done], offset, scale, settings.noise,
+                                         settings.quantization, rng_noise)
+        q_true[done] = q
         viol_m[done], viol_rad[done] = _violation(scene, sc.loop_type == "point")
         force[done] = _constraint_force(scene)
         if door.size:
@@ -314,6 +316,8 @@ def simulate(
     # outputs
     _write_log(out / "log.csv", joint_names, readings, tau, viol_m, viol_rad, force, door)
     params = dict(values)
+    if settings.compliance > 0.0:
+        params.update({f"{j}.compliance": float(settings.compliance) for j in joint_names})
     if sc.loop_type == "point":  # names of closedloop.loops.PointLoop: contact point, tool tip in the tool frame
         c = scene.target_pose.translation
         params.update({f"{sc.loop_name}.p{a}": float(v) for a, v in zip("xyz", c)})

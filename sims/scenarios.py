@@ -109,6 +109,12 @@ class SimSettings:
     Truth:
         translation, rotation, offset, scale: error magnitudes (see module doc).
     Sensor model:
+        compliance: joint compliance c = 1/K of every arm joint [rad / N m]
+            (default 0: rigid joints).  The encoders are on the motor side, so
+            a reading sees the link angle plus the deflection c * tau under the
+            actuator torque tau (logged as ``tau:<joint>``); with gravity this
+            is what biases a purely geometric calibration (identify
+            ``compliance`` to remove it).
         noise: standard deviation of Gaussian reading noise [rad] (default 0).
         quantization: reading quantum [rad]; 0 disables quantization (default).
             ``reading = round(((q - offset) / scale + N(0, noise)) / quantum) * quantum``.
@@ -138,6 +144,7 @@ class SimSettings:
     rotation: float = 0.002
     offset: float = 0.02
     scale: float = 0.0
+    compliance: float = 0.0
     noise: float = 0.0
     quantization: float = 0.0
 

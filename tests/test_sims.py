@@ -89,8 +89,8 @@ def test_truth_names(stiff_run):
     assert truth["loop"] == {**truth["loop"], "type": sc.loop_type, "frame": sc.tool_frame, "name": sc.loop_name}
     params = truth["parameters"]
     expected = set(identifiable_parameters(res.nominal_path, sc, res.joint_names))
-    comps = (("px", "py", "pz", "tip_x", "tip_y", "tip_z") if sc.loop_type == "point"
-             else ("x", "y", "z", "rx", "ry", "rz"))
+    comps = {"point": ("px", "py", "pz", "tip_x", "tip_y", "tip_z"), "weld": ("x", "y", "z", "rx", "ry", "rz"),
+             "hinge": ()}[sc.loop_type]  # hinge: the true axis is in truth["loop"]["hinge_axis"]
     expected |= {f"{sc.loop_name}.{c}" for c in comps}
     assert set(params) == expected
     first = res.joint_names[0]
@@ -128,6 +128,13 @@ def test_true_closure_matches_true_kinematics(stiff_run):
     pin.framesForwardKinematics(model, data, np.array(truth["q0"]))
     tool = data.oMf[model.getFrameId(sc.tool_frame)]
     p = truth["parameters"]
+    if sc.loop_type == "hinge":
+        from closedloop.sims.scene import _door_hinge_pose
+
+        H = _door_hinge_pose(tool, sc.door)
+        np.testing.assert_allclose(truth["loop"]["hinge_axis"]["point"], H.translation, atol=1e-9)
+        np.testing.assert_allclose(truth["loop"]["hinge_axis"]["direction"], H.rotation[:, 2], atol=1e-9)
+        return
     point = sc.loop_type == "point"  # PointLoop names: contact point p*, tool tip (0 in the tool frame)
     np.testing.assert_allclose([p[f"{sc.loop_name}.{'p' if point else ''}{c}"] for c in "xyz"],
                                tool.translation, atol=1e-9)
