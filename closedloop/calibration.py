@@ -20,7 +20,7 @@ Pipeline (thesis 3.2, 4.2, with the noise treated as errors in variables):
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -65,6 +65,7 @@ class CalibrationOptions:
     bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
     priors: dict | None = None
     initial: dict[str, float] = field(default_factory=dict)
+    robust: str | None = None  # 'huber' | 'cauchy': IRLS with suspect configurations reported
 
 
 @dataclass
@@ -103,6 +104,7 @@ class CalibrationResult:
     notes: list[str]
     covariance: np.ndarray  # over estimated parameters (order: `estimated`)
     estimated: list[int]
+    suspects: list = field(default_factory=list)  # robust.Suspect, most suspect first
 
     @property
     def converged(self) -> bool:
@@ -175,30 +177,46 @@ def _noise_vector(problem: CalibrationProblem, noise) -> tuple[np.ndarray, bool]
 
 
 def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian: bool = True,
-           loops: list[Loop] | None = None):
-    """Stack residuals (and Jacobians) whitened by W_i^-1/2, W_i = Jq Sigma Jq^T (+ measurement covariance)."""
-    rs, Js = [], []
+           loops: list[Loop] | None = None, Winv: list[np.ndarray | None] | None = None):
+    """Stack residuals (and Jacobians) whitened by W_i^-1/2, W_i = Jq Sigma Jq^T (+ measurement covariance).
+
+    `Winv` reuses the W_i^-1/2 of an earlier evaluation (trial steps, which
+    have no Jq); the W_i^-1/2 used are returned so that the caller can.
+    A residual direction that no joint noise can produce (W_i singular, e.g. a
+    passive joint eliminated by projection) gets zero weight: W^-1/2 is the
+    pseudo-inverse square root (eigenvalues below 1e-9 of the largest dropped),
+    never an amplification by a tiny regulariser.
+    Returns (r, J or None, list of (W^-1/2, rank deficit) per block, or None entries).
+    """
+    rs, Js, used = [], [], []
     for bi, ev in enumerate(evals):
         r, J = ev.r, ev.J
-        if weighting == "noise" and ev.Jq is not None:
+        Wh = Winv[bi] if Winv is not None else None
+        deficit = 0
+        if isinstance(Wh, tuple):
+            Wh, deficit = Wh
+        if weighting == "noise" and Wh is None and ev.Jq is not None:
             Jq = ev.Jq * sigma_q[None, None, :]
             W = Jq @ np.swapaxes(Jq, 1, 2)
             m = W.shape[1]
             if loops is not None and loops[bi].measurement_cov is not None:
                 W = W + loops[bi].measurement_cov
-            tr = np.trace(W, axis1=1, axis2=2)[:, None, None] / m
-            W = W + (1e-10 * tr + 1e-30) * np.eye(m)
             lam, V = np.linalg.eigh(W)
-            Winv_half = (V / np.sqrt(lam)[:, None, :]) @ np.swapaxes(V, 1, 2)
-            r = np.einsum("nij,nj->ni", Winv_half, r)
+            keep = lam > 1e-9 * np.maximum(lam[:, -1:], 1e-300)
+            inv = np.where(keep, 1.0 / np.sqrt(np.where(keep, lam, 1.0)), 0.0)
+            Wh = (V * inv[:, None, :]) @ np.swapaxes(V, 1, 2)
+            deficit = int(np.sum(~keep))
+        if Wh is not None:
+            r = np.einsum("nij,nj->ni", Wh, r)
             if jacobian:
-                J = Winv_half @ J
+                J = Wh @ J
+        used.append((Wh, deficit) if Wh is not None else None)
         rs.append(r.ravel())
         if jacobian:
             Js.append(J.reshape(-1, J.shape[-1]))
     r = np.concatenate(rs) if rs else np.zeros(0)
     J = np.vstack(Js) if jacobian and Js else None
-    return r, J
+    return r, J, used
 
 
 def residual_stats(problem: CalibrationProblem, evals: list[BlockEval]) -> list[LoopResiduals]:
@@ -325,9 +343,6 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
     M = sum(b.theta.shape[0] * b.loop.dim for b in problem.blocks)
     if not free:
         raise NotIdentifiableError("no parameter is left to identify (all fixed or not selected)")
-    if M < len(free):
-        raise LogError(f"{log_.source}: {len(log_)} rows give {M} equations for {len(free)} selected "
-                       "parameters; log more configurations or identify fewer parameters")
     scale = np.array([p.prior for p in problem.params])
 
     # ---- structural reduction on closure-projected data
@@ -363,16 +378,40 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
     est = sorted(free[i] for i in kept_local)
     for k in est:
         status[k] = "estimated"
+    if M <= len(est):  # the rows, not the model, limit the rank: nothing left to estimate noise or check
+        raise LogError(f"{log_.source}: {len(log_)} rows give {M} equations, no more than the {len(est)} "
+                       "parameters they could determine; log more configurations or identify fewer parameters")
     if drop:
         log.info("dropped %d redundant parameters", len(drop))
 
     # ---- solve
-    def fun(xe: np.ndarray, jac: bool):
-        x = x0.copy()
-        x[est] = xe
-        evals = problem.evaluate(x, jac)
-        r, J = whiten(evals, sigma_q, opt.weighting, jac, [b.loop for b in problem.blocks])
-        return r, (J[:, est] if jac else None)
+    loops_ = [b.loop for b in problem.blocks]
+    rows_per_block = [b.theta.shape[0] * b.loop.dim for b in problem.blocks]
+
+    def make_fun(weighting: str, row_w: np.ndarray | None = None):
+        """Residual function over the estimated parameters; W_i from the last Jacobian call."""
+        cache: dict = {"W": None}
+
+        def fun(xe: np.ndarray, jac: bool):
+            x = x0.copy()
+            x[est] = xe
+            evals = problem.evaluate(x, jac or cache["W"] is None)
+            r, J, used = whiten(evals, sigma_q, weighting, jac, loops_, None if jac else cache["W"])
+            if jac or cache["W"] is None:
+                cache["W"] = used
+                cache["deficit"] = sum(u[1] for u in used if u is not None)
+            if row_w is not None:
+                r = r * row_w
+                if jac:
+                    J = J * row_w[:, None]
+            return r, (J[:, est] if jac else None)
+        fun.cache = cache  # type: ignore[attr-defined]
+        return fun
+
+    def block_residuals(xe: np.ndarray) -> list[np.ndarray]:
+        r, _ = make_fun(opt.weighting)(xe, False)
+        parts = np.split(r, np.cumsum(rows_per_block)[:-1])
+        return [p.reshape(b.theta.shape[0], b.loop.dim) for p, b in zip(parts, problem.blocks)]
 
     lower = upper = None
     if opt.bounds:
@@ -386,19 +425,51 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
                 lower[est.index(k)], upper[est.index(k)] = lo, hi
     sopt = SolverOptions(max_iter=opt.max_iter, noise=(1.0 if known and opt.weighting == "noise" else None),
                          snr=opt.snr, lower=lower, upper=upper)
-    res = levenberg_marquardt(fun, x0[est], scale[est], sopt,
-                              (lambda it, c: progress("solving", it, c)) if progress else None)
+    prog = (lambda it, c: progress("solving", it, c)) if progress else None
+    suspects: list = []
+    row_w = None
+    if opt.robust:
+        # Gross outliers wreck the noise-weighted fit (their W_i are meaningless), so start from the
+        # plain loop-closure fit, then iterate reweighted fits with the chosen weighting (IRLS).
+        from .robust import suspects as find_suspects
+        from .robust import weights as robust_weights
+
+        if opt.robust not in ("huber", "cauchy"):
+            raise ParameterError(f"robust loss must be 'huber' or 'cauchy', not '{opt.robust}'")
+        xe = levenberg_marquardt(make_fun("none"), x0[est], scale[est], replace(sopt, noise=None), prog).x
+        w_prev = None
+        for _ in range(10):
+            blocks_r = block_residuals(xe)
+            ws = robust_weights(blocks_r, opt.robust, scale=1.0 if known and opt.weighting == "noise" else None)
+            w = np.concatenate(ws)
+            row_w = np.repeat(np.sqrt(w), [b.loop.dim for b in problem.blocks for _ in range(b.theta.shape[0])])
+            res = levenberg_marquardt(make_fun(opt.weighting, row_w), xe, scale[est], sopt, prog)
+            xe = res.x
+            if w_prev is not None and np.max(np.abs(w - w_prev)) < 1e-3:
+                break
+            w_prev = w
+        blocks_r = block_residuals(xe)
+        suspects = find_suspects(blocks_r, rows=[b.rows for b in problem.blocks], loops=[b.loop.name for b in problem.blocks],
+                                 loss=opt.robust, scale=1.0 if known and opt.weighting == "noise" else None)
+        for sp in suspects[:10]:
+            notes.append(f"suspect configuration: log row {sp.row} (loop {sp.loop}): closure error "
+                         f"{sp.standardized:.3g} standard deviations, weight {sp.weight:.2g}")
+        if len(suspects) > 10:
+            notes.append(f"... and {len(suspects) - 10} more suspect configurations")
+    else:
+        res = levenberg_marquardt(make_fun(opt.weighting), x0[est], scale[est], sopt, prog)
+    fun = make_fun(opt.weighting, row_w)
     x = x0.copy()
     x[est] = res.x
     for b, sl in zip(problem.blocks, problem.loop_slices):
         x[sl] = b.loop.normalize(x[sl])
 
-    # ---- final analysis at the solution
-    r, J = fun(res.x, True)
+    # ---- final analysis at the solution (normalised loop parameters)
+    r, J = fun(x[est], True)
     Js = J * scale[est]
     U, S, Vt = np.linalg.svd(Js, full_matrices=False)
     rank_num = int(np.sum(S > 1e-10 * S[0])) if S.size else 0
-    dof = max(r.size - rank_num, 1)
+    dof = max(r.size - fun.cache.get("deficit", 0) - rank_num, 1)  # eliminated passive directions carry none
     if known and opt.weighting == "noise":
         sigma_r, sigma = 1.0, float(np.mean(sigma_q))
     else:
@@ -424,4 +495,4 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
     return CalibrationResult(problem, names, x0, x, std, status, dropped, weak, S,
                              int(keep.sum()), residual_stats(problem, evals0), residual_stats(problem, evals1),
                              res.iterations, res.status, res.message, sigma, not known, chi2, dof, notes,
-                             cov, est)
+                             cov, est, suspects)

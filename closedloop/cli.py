@@ -26,6 +26,7 @@ class _Progress:
         self.quiet = quiet
         self.tty = sys.stderr.isatty()
         self.t0 = time.perf_counter()
+        self.last = (None, -1.0)  # (stage, time) of the last line printed
 
     def __call__(self, stage: str, it: int, value: float) -> None:
         if self.quiet:
@@ -33,13 +34,17 @@ class _Progress:
         msg = f"  {stage}"
         if stage == "solving":
             msg += f": iteration {it}, cost {value:.3e}"
+        elif stage == "validating":
+            msg += ": k-fold held-out refits"
         elif stage == "simulating":
             msg += f": {it}/{int(value)} configurations"
         msg += f"  [{time.perf_counter() - self.t0:.1f} s]"
+        now = time.perf_counter()
         if self.tty:
             print("\r" + msg.ljust(70), end="", file=sys.stderr, flush=True)
-        else:
+        elif stage != self.last[0] or now - self.last[1] > 1.0:  # logs: stage changes, then once a second
             print(msg, file=sys.stderr, flush=True)
+            self.last = (stage, now)
 
     def done(self) -> None:
         if self.tty and not self.quiet:
@@ -101,7 +106,7 @@ def cmd_calibrate(args) -> int:
     opts = CalibrationOptions(identify=args.identify.split(",") if args.identify else None,
                               fix=parse_fix(args.fix, names), noise=_parse_noise(args.noise),
                               weighting=args.weighting, max_iter=args.max_iter, snr=args.snr,
-                              bounds=_parse_bounds(args.bound))
+                              bounds=_parse_bounds(args.bound), robust=args.robust)
     prog = _Progress(args.quiet)
     t0 = time.perf_counter()
     res = calibrate(robot, lg, loops, opts, progress=prog)
@@ -109,6 +114,16 @@ def cmd_calibrate(args) -> int:
     elapsed = time.perf_counter() - t0
     report = build_report(res, args.model, args.log)
     report["solver"]["seconds"] = elapsed
+    if args.cv and res.converged:
+        from .validation import cross_validate
+
+        prog("validating", 0, 0.0)
+        cv = cross_validate(robot, lg, loops, opts, k=args.cv)
+        report["validation"] = {"k": args.cv, "test": cv["test"], "train": cv["train"],
+                                "test_whitened_rms": cv.get("test_whitened_rms"),
+                                "parameter_spread": cv.get("parameter_spread"),
+                                "inconsistent": cv.get("inconsistent")}
+        prog.done()
     if not res.converged:
         if args.report:
             write_report(report, args.report)
@@ -120,11 +135,11 @@ def cmd_calibrate(args) -> int:
         write_report(report, args.report)
     if args.out:
         write_model(robot, res.as_dict(), args.out)
-    _print_summary(res, elapsed, args)
+    _print_summary(res, elapsed, args, report)
     return 0
 
 
-def _print_summary(res, elapsed: float, args) -> None:
+def _print_summary(res, elapsed: float, args, report: dict) -> None:
     b, a = res.residuals_before, res.residuals_after
     print(f"calibrated {len(res.estimated)} parameters from {sum(r.n for r in a)} configurations "
           f"in {res.iterations} iterations ({elapsed:.2f} s): {res.solver_status}")
@@ -143,6 +158,13 @@ def _print_summary(res, elapsed: float, args) -> None:
         print(f"  not identifiable: {c.describe()}")
     for n in res.notes:
         print(f"  note: {n}")
+    cv = report.get("validation")
+    if cv:
+        for t in cv["test"]:
+            parts = [f"{t['rms_m'] * 1e3:.4g} mm" if t.get("rms_m") is not None else "",
+                     f"{t['rms_rad'] * 1e3:.4g} mrad" if t.get("rms_rad") is not None else ""]
+            print(f"  {cv['k']}-fold validation, loop {t['loop']}: held-out closure RMS "
+                  + ", ".join(p for p in parts if p))
     if args.out:
         print(f"  wrote {args.out}")
     if args.report:
@@ -244,6 +266,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="noise: errors-in-variables weighting (default); none: plain loop residual (thesis)")
     c.add_argument("--bound", action="append", default=[], metavar="NAME=LOW:HIGH", help="bound a parameter")
     c.add_argument("--snr", type=float, default=1.0, help="SVD truncation: keep directions above snr * noise")
+    c.add_argument("--robust", choices=["huber", "cauchy"], help="robust loss; suspect configurations are reported")
+    c.add_argument("--cv", type=int, default=5, metavar="K",
+                   help="K-fold held-out validation in the report (default 5; 0 disables)")
     c.add_argument("--max-iter", type=int, default=100)
     c.add_argument("--degrees", action="store_true", help="the log is in degrees")
     c.add_argument("--quiet", action="store_true")

@@ -56,6 +56,8 @@ def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict
                                  for c in res.weak],
             "notes": res.notes,
         },
+        "robust": {"suspects": [{"row": sp.row, "loop": sp.loop, "standardized": sp.standardized,
+                                 "p_value": sp.p_value, "weight": sp.weight} for sp in res.suspects]},
         "scale_factors": {p.name: float(res.values[k]) for k, p in enumerate(prob.params) if p.kind == "scale"},
         "compliance": {p.name: float(res.values[k]) for k, p in enumerate(prob.params)
                        if p.kind == "compliance" and res.status[k] == "estimated"},

@@ -143,7 +143,7 @@ def config_residuals(problem: CalibrationProblem, values: np.ndarray, noise=None
     evals = problem.evaluate(values, weighting == "noise")
     out = []
     for bi, ev in enumerate(evals):
-        r, _ = whiten([ev], sigma_q, weighting, False, [problem.blocks[bi].loop])
+        r, _, _ = whiten([ev], sigma_q, weighting, False, [problem.blocks[bi].loop])
         out.append(r.reshape(ev.r.shape))
     return out
 
@@ -186,7 +186,7 @@ def irls(result: CalibrationResult, loss: str = "huber", c: float | None = None,
         evals = p.evaluate(x, True)
         rs, Js = [], []
         for bi, ev in enumerate(evals):
-            r, J = whiten([ev], sigma_q, "noise", True, [p.blocks[bi].loop])
+            r, J, _ = whiten([ev], sigma_q, "noise", True, [p.blocks[bi].loop])
             rs.append(r.reshape(ev.r.shape))
             Js.append(J.reshape(ev.r.shape + (-1,))[:, :, est])
         s = mad_scale(rs) if scale is None else float(scale)

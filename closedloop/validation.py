@@ -68,7 +68,7 @@ def closure_residuals(result: CalibrationResult, robot: RobotModel, log_: JointL
     wr = None
     if noise is not None:
         sigma_q, _ = _noise_vector(problem, noise)
-        r, _ = whiten(evals, sigma_q, "noise", False, [b.loop for b in problem.blocks])
+        r, _, _ = whiten(evals, sigma_q, "noise", False, [b.loop for b in problem.blocks])
         wr = float(np.sqrt(np.mean(r ** 2))) if r.size else None
     return {"loops": [asdict(s) for s in stats], "whitened_rms": wr}
 

@@ -1,0 +1,265 @@
+"""The hand procedure of thesis chapter 4 (Utah-MIT hand, thumb opposed to a finger).
+
+Two pieces, both independent of the particular hand:
+
+* `staged_calibration` -- 4.2.6: "The poorly known parameters (base and tip
+  transformations) are first estimated by assuming that the finger parameters
+  are correct.  Then all parameters are allowed to freely vary."  Each stage is
+  an ordinary `calibrate` call whose `CalibrationOptions.initial` is the
+  previous stage's values.  `thesis_stages` builds the two stages of the
+  thesis for the 8-row thumb-finger table (``models/dh/utah_mit_thumb_finger.yaml``):
+  stage 1 frees the parameters marked ~ in Table 4.1 (palm link j3, tip link
+  j7, the hard-to-measure offsets) with the rest held at the table's values,
+  stage 2 frees every theta_off, s, a, alpha and k; both hold s_0 = -1.3 in
+  (the length scale, 4.2.2) and k_7 = 1.0 (the k = 0 trivial solution).
+
+* `palm_frame_parameters` -- 4.5: the identified loop table (rows j0..j7,
+  base frame on the thumb's distal axis) re-expressed as two open chains
+  from the palm frame 2' (frame 2 after the rotation theta_3' of the thumb's
+  proximal joint), Tables 4.3 and 4.4.
+
+What can and cannot be converted (4.5):
+
+* The FINGER chain is rows p+1.. of the loop, preceded by the constant part
+  of row p (the palm link, "row -1" of Table 4.3: no joint, no k).  Exact.
+* The THUMB chain runs the loop backwards from the palm: each loop row j
+  (j = p .. 1) contributes Rz(-theta_j') followed by the inverse of the
+  constant part of row j-1.  The inverse of a D-H constant part,
+  (Tz(s) Tx(a) Rx(alpha))^-1 = Tx(-a) Rx(-alpha) Tz(-s), is a D-H row
+  (s = 0, a = -a, alpha = -alpha) plus a translation -s along the NEXT joint
+  axis; that translation is merged into the next row's s when the next row is
+  D-H, and otherwise becomes an extra pure translation row (``translation_z``),
+  the s'_1 = -0.1604 in of Table 4.4.  The inverse of a Hayati constant part is
+  a Hayati row with the order reversed (eq. 4.18, ``hayati_reversed``:
+  Rz(theta') Ry(alpha) Rx(a) Tx(s)) and negated values.
+* Thumb readings are negated ("the joint angles for the thumb are negated",
+  4.3): with reading' = -reading the reversed joint has theta_off -> -theta_off
+  and the same k.  (Table 4.4 prints every thumb k one row too low -- e.g. 0.9336,
+  the k of joint 2, on the row carrying theta_3 -- our rows carry the k of the
+  joint whose rotation they contain.)
+* NOT convertible: the fingertip transformations.  The loop only identifies
+  the composite "effective endpoint link" (finger distal axis -> plate ->
+  thumb distal axis, the constant part of the last row, 4.2.3); how it splits
+  into a finger tip, the plate and a thumb tip is invisible to a rigid grasp.
+  Both chains therefore end with their distal joint's rotation and a tip marked
+  unknown (the '?' rows); the composite link is returned as ``closing_link``.
+  The thesis takes theta_off = 0, s = 0, a = 0.735 in, alpha = 0 for practical
+  purposes (`NOMINAL_TIP`).
+* The palm frame is only defined up to a rotation about and a translation
+  along the thumb's proximal axis z_2 when the procedure is repeated with other
+  fingers; relating two such palm frames needs one extra fixed-thumb
+  measurement (4.5), which is outside these functions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .calibration import CalibrationOptions, CalibrationResult, calibrate
+from .data import JointLog
+from .dh import LENGTH_UNITS, rot
+from .loops.base import Loop
+from .robot import RobotModel
+
+INCH = LENGTH_UNITS["in"]
+
+# Table 4.1 "~": difficult to measure (guessed for link 7, roughly calculated otherwise).
+TABLE_4_1_POORLY_KNOWN = ["j0.theta_off", "j3.theta_off", "j3.s", "j3.a", "j3.alpha",
+                          "j4.theta_off", "j4.s", "j4.a", "j5.theta_off",
+                          "j7.theta_off", "j7.s", "j7.a", "j7.alpha"]
+# 4.2.2 / 4.3: the two fixed parameters of the thesis.
+TABLE_4_1_FIXED = {"j0.s": -1.3 * INCH, "j7.k": 1.0}
+# 4.5: tip D-H parameters taken "for practical purposes" [57] (metres, radians).
+NOMINAL_TIP = {"theta_off": 0.0, "s": 0.0, "a": 0.735 * INCH, "alpha": 0.0}
+
+
+# --------------------------------------------------------------------------- staged calibration
+def staged_calibration(robot: RobotModel, log: JointLog, loops: list[Loop],
+                       stages: list[CalibrationOptions]) -> list[CalibrationResult]:
+    """Run `calibrate` once per stage, each starting from the previous stage's values (4.2.6).
+
+    A stage's own ``initial`` entries win over the carried-over values; its
+    ``fix`` values win over both (as in `calibrate`).  Returns one result per
+    stage; the last is the calibration.
+    """
+    if not stages:
+        raise ValueError("staged_calibration needs at least one stage")
+    results: list[CalibrationResult] = []
+    carried: dict[str, float] = {}
+    for opt in stages:
+        stage = replace(opt, initial={**carried, **opt.initial}, fix=dict(opt.fix))
+        res = calibrate(robot, log, loops, stage)
+        results.append(res)
+        carried = res.as_dict()
+    return results
+
+
+def thesis_stages(robot: RobotModel, poorly_known: list[str] | None = None,
+                  fixed: dict[str, float | None] | None = None, noise=None,
+                  scale_factors: bool = True, **common) -> list[CalibrationOptions]:
+    """The two stages of 4.2.6 for a thumb-finger D-H table.
+
+    Stage 1: only `poorly_known` (default: the ~ entries of Table 4.1) are
+    free; everything else keeps its current value.  Stage 2: every D-H
+    parameter (and every k if `scale_factors`).  Both stages fix `fixed`
+    (default s_0 = -1.3 in, k_7 = 1.0).
+    """
+    poorly = list(TABLE_4_1_POORLY_KNOWN if poorly_known is None else poorly_known)
+    fix = dict(TABLE_4_1_FIXED if fixed is None else fixed)
+    fix = {n: v for n, v in fix.items() if n.rsplit(".", 1)[0] in robot.joint_names}
+    common.setdefault("weighting", "none")
+    stage1 = CalibrationOptions(identify=[p for p in poorly if p not in fix], fix=fix, noise=noise, **common)
+    kinds = ["theta_off", "s", "a", "alpha"] + (["k"] if scale_factors else [])
+    stage2 = CalibrationOptions(identify=kinds, fix=fix, noise=noise, **common)
+    return [stage1, stage2]
+
+
+# --------------------------------------------------------------------------- palm frame (4.5)
+@dataclass
+class PalmRow:
+    """One row of a palm-frame chain (Tables 4.3, 4.4), metres and radians.
+
+    convention: 'dh' (eq. 4.1), 'hayati' (eq. 4.2), 'hayati_reversed' (eq. 4.18:
+    Rz(th') Ry(alpha) Rx(a) Tx(s)), 'translation_z' (Tz(s) only, the s'_1 row),
+    'constant' (no joint: the constant part of a 'hayati'/'dh' row, Table 4.3 row -1).
+    joint: the loop joint whose reading drives the row (None: no joint);
+    sign: reading multiplier (+1 finger, -1 thumb: the thumb readings are negated).
+    unknown: the tip transformation is not identified (Tables 4.3/4.4 '?').
+    """
+
+    label: str
+    convention: str
+    theta_off: float = 0.0
+    s: float = 0.0
+    a: float = 0.0
+    alpha: float = 0.0
+    k: float | None = None
+    joint: str | None = None
+    sign: float = 1.0
+    base: str = "dh"  # for 'constant' rows: the convention of the constant part
+    unknown: bool = False
+
+    def transform(self, reading: float = 0.0) -> np.ndarray:
+        """4x4 transform of the row at a reading (the joint's own, un-negated reading)."""
+        th = 0.0
+        if self.joint is not None:
+            th = (self.k if self.k is not None else 1.0) * self.sign * reading + self.theta_off
+        T = _hom(rot("z", th), np.zeros(3))
+        if self.unknown:
+            return T
+        conv = self.base if self.convention == "constant" else self.convention
+        if conv == "dh":
+            C = _hom(np.eye(3), [self.a, 0, self.s]) @ _hom(rot("x", self.alpha), np.zeros(3))
+        elif conv == "hayati":
+            C = _hom(np.eye(3), [self.s, 0, 0]) @ _hom(rot("x", self.a) @ rot("y", self.alpha), np.zeros(3))
+        elif conv == "hayati_reversed":
+            C = _hom(rot("y", self.alpha) @ rot("x", self.a), np.zeros(3)) @ _hom(np.eye(3), [self.s, 0, 0])
+        elif conv == "translation_z":
+            C = _hom(np.eye(3), [0, 0, self.s])
+        else:
+            raise ValueError(f"unknown convention {conv}")
+        return T @ C
+
+    def in_units(self, length: float = INCH) -> dict:
+        """The row as printed in the thesis (lengths in `length` metres, e.g. inches)."""
+        ang_a = self.convention in ("hayati", "hayati_reversed") or self.base == "hayati" and \
+            self.convention == "constant"
+        return {"label": self.label, "convention": self.convention,
+                "theta_off": None if self.unknown else self.theta_off,
+                "s": None if self.unknown else self.s / length,
+                "a": None if self.unknown else (self.a if ang_a else self.a / length),
+                "alpha": None if self.unknown else self.alpha, "k": self.k}
+
+
+@dataclass
+class PalmFrameParameters:
+    finger: list[PalmRow]
+    thumb: list[PalmRow]
+    closing_link: PalmRow  # the identified composite tip link (finger distal axis -> thumb distal axis)
+    notes: list[str]
+
+    @staticmethod
+    def chain(rows: list[PalmRow], readings: dict[str, float]) -> np.ndarray:
+        T = np.eye(4)
+        for r in rows:
+            T = T @ r.transform(readings.get(r.joint, 0.0) if r.joint else 0.0)
+        return T
+
+
+def palm_frame_parameters(robot: RobotModel, values: dict[str, float] | None = None,
+                          palm_joint: str = "j3") -> PalmFrameParameters:
+    """Finger and thumb parameters relative to the palm frame 2' (thesis 4.5, Tables 4.3 and 4.4).
+
+    robot: the loop's D-H model (rows thumb-distal .. palm .. finger-distal);
+    values: identified values by name (``res.as_dict()``; missing names take
+    the table's values); palm_joint: the row whose rotated frame is the palm
+    frame (the thumb's proximal joint, j3 for the thumb-finger table).
+    See the module docstring for what is and is not convertible.
+    """
+    if robot.kind != "dh":
+        raise ValueError("palm_frame_parameters needs the loop's D-H table (a .yaml model)")
+    values = values or {}
+    rows = robot.dh.rows
+    names = [r.name for r in rows]
+    if palm_joint not in names:
+        raise ValueError(f"unknown palm joint '{palm_joint}' (rows: {names})")
+    p = names.index(palm_joint)
+    if p == 0 or p == len(rows) - 1:
+        raise ValueError("the palm joint must have thumb rows before it and finger rows after it")
+
+    def g(i: int, f: str) -> float:
+        return float(values.get(f"{names[i]}.{f}", getattr(rows[i], f)))
+
+    notes = []
+    # Finger: row -1 = constant part of row p, then rows p+1 .. n-1; the last row's constant part is the tip.
+    finger = [PalmRow("-1", "constant", 0.0, g(p, "s"), g(p, "a"), g(p, "alpha"), None, None, 1.0,
+                      base=rows[p].convention)]
+    for m, i in enumerate(range(p + 1, len(rows))):
+        last = i == len(rows) - 1
+        finger.append(PalmRow(str(m), rows[i].convention, g(i, "theta_off"), g(i, "s"), g(i, "a"),
+                              g(i, "alpha"), g(i, "k"), names[i], 1.0, unknown=last))
+    last = len(rows) - 1
+    closing = PalmRow("closing", "constant", 0.0, g(last, "s"), g(last, "a"), g(last, "alpha"), None, None,
+                      base=rows[last].convention)
+    notes.append("finger tip transformation not identified: the loop sees only the composite link "
+                 f"{names[last]} (finger distal axis -> thumb distal axis), returned as closing_link")
+
+    # Thumb: backwards from the palm.  Row m carries Rz(-theta_j') (j = p - m) and inv(C_{j-1}).
+    thumb: list[PalmRow] = []
+    carry_s = 0.0  # translation along the current z left over from an inverted D-H constant part
+    for m, j in enumerate(range(p, 0, -1)):
+        c = j - 1  # constant part inverted in this row
+        th = -g(j, "theta_off")
+        if rows[c].convention == "dh":
+            row = PalmRow(str(m), "dh", th, carry_s, -g(c, "a"), -g(c, "alpha"), g(j, "k"), names[j], -1.0)
+            carry_s = -g(c, "s")
+        else:
+            if abs(carry_s) > 0:
+                thumb.append(PalmRow(f"{m}'", "translation_z", 0.0, carry_s, 0.0, 0.0, None, None))
+                notes.append(f"thumb row {m}': extra translation s' = {carry_s / INCH:.4f} in along the "
+                             f"axis of {names[j]} (the s of the inverted D-H row {names[c]}; Table 4.4's s'_1)")
+                carry_s = 0.0
+            row = PalmRow(str(m), "hayati_reversed", th, -g(c, "s"), -g(c, "a"), -g(c, "alpha"), g(j, "k"),
+                          names[j], -1.0)
+        thumb.append(row)
+    tip = PalmRow(str(p), "dh", -g(0, "theta_off"), carry_s, 0.0, 0.0, g(0, "k"), names[0], -1.0, unknown=True)
+    if abs(carry_s) > 0:
+        notes.append(f"thumb tip row also carries s = {carry_s / INCH:.4f} in (not representable once the tip "
+                     "is unknown)")
+    thumb.append(tip)
+    notes.append("thumb tip transformation not identified: the base frame on the thumb's distal axis is a "
+                 "choice of the loop, not the physical tip (Table 4.4 '?')")
+    notes.append("thumb readings are negated (reading' = -reading): reversed rows have theta_off -> -theta_off "
+                 "and keep the joint's k")
+    notes.append("repeating with another finger gives a palm frame 2' displaced along / rotated about the "
+                 "thumb's proximal axis z_2; relate them with one fixed-thumb endpoint measurement (4.5)")
+    return PalmFrameParameters(finger, thumb, closing, notes)
+
+
+def _hom(R, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T

@@ -1,0 +1,215 @@
+"""Thesis chapter 4: the Utah-MIT thumb-finger loop, its URDF, the palm frame, and Baxter's dual-arm grasp."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+import yaml
+
+from closedloop.calibration import CalibrationOptions, calibrate
+from closedloop.data import JointLog
+from closedloop.hand import (INCH, TABLE_4_1_FIXED, palm_frame_parameters, staged_calibration,
+                             thesis_stages)
+from closedloop.loops import WeldLoop
+from closedloop.loops.spec import default_loops
+from closedloop.problem import CalibrationProblem, LoopBlock
+from closedloop.robot import RobotModel
+from closedloop.synthetic import self_motion
+from closedloop.truth import make_dataset
+
+ROOT = Path(__file__).resolve().parents[1]
+TABLE = ROOT / "models" / "dh" / "utah_mit_thumb_finger.yaml"
+URDF = ROOT / "models" / "utah_mit_hand.urdf"
+FIELDS = ("theta_off", "s", "a", "alpha", "k")
+# Table 4.2: the thesis's calibrated hand (theta_off rad, s in, a in or rad (Hayati), alpha rad, k).
+TABLE_4_2 = [(0.2380, -1.3000, 0.0069, 0.0668, 0.9508), (0.0850, -1.5085, -0.1515, -0.0480, 0.8596),
+             (-0.0943, 0.1604, -0.3097, 1.6207, 0.9336), (-1.7824, 1.8050, 0.5755, 0.2890, 0.9579),
+             (0.1389, 1.7151, 1.3356, -1.5836, 1.0125), (0.5464, 1.6307, 0.0292, 0.0737, 0.8577),
+             (-0.0425, 1.1474, 0.1745, 0.1260, 0.9350), (3.7552, -0.8322, -1.4377, -0.5631, 1.0000)]
+
+
+def _loop_problem(robot):
+    return CalibrationProblem(robot, robot.joint_names, [LoopBlock(default_loops(robot)[0], np.zeros((1, 8)),
+                                                                   np.arange(1))])
+
+
+def _close(prob, th, iters=200):
+    """Damped Gauss-Newton on the readings: a configuration where the model's loop closes."""
+    x = prob.nominal
+    for _ in range(iters):
+        ev = prob.evaluate(x, True, [th])[0]
+        if np.abs(ev.r).max() < 1e-13:
+            break
+        J = ev.Jq[0]
+        th = th - np.linalg.solve(J.T @ J + 1e-6 * np.eye(J.shape[1]), J.T @ ev.r[0])[None]
+    return th, float(np.abs(prob.evaluate(x, False, [th])[0].r).max())
+
+
+def nominal_closed_pose(robot, seed=100):
+    """A closed configuration of `robot`'s loop with the smallest readings (model angles wrapped)."""
+    prob = _loop_problem(robot)
+    off = prob.nominal[prob.rp.offset_index()]
+    rng = np.random.default_rng(seed)
+    best = None
+    for _ in range(40):
+        th, err = _close(prob, rng.uniform(-1.2, 1.2, (1, 8)))
+        if err > 1e-12:
+            continue
+        th = ((th + off + np.pi) % (2 * np.pi) - np.pi) - off
+        if best is None or np.abs(th).max() < np.abs(best).max():
+            best = th
+    return best
+
+
+@pytest.fixture(scope="module")
+def true_hand(tmp_path_factory):
+    """TRUE hand: Table 4.2 with offset errors clipped to 0.5 rad and k to [0.85, 1]; readings on its self-motion.
+
+    Returns (truth values by name, readings (100, 8)); the walk stays within 0.8 rad of its start.
+    """
+    doc = yaml.safe_load(TABLE.read_text())
+    nominal = RobotModel.from_file(TABLE)
+    rows = []
+    for raw, vals in zip(doc["joints"], TABLE_4_2):
+        row = dict(raw, **dict(zip(FIELDS, vals)))
+        row["theta_off"] = raw["theta_off"] + float(np.clip(row["theta_off"] - raw["theta_off"], -0.5, 0.5))
+        row["k"] = float(np.clip(row["k"], 0.85, 1.0))
+        rows.append(row)
+    path = tmp_path_factory.mktemp("hand") / "true_hand.yaml"
+    path.write_text(yaml.safe_dump({**doc, "joints": rows}))
+    prob = _loop_problem(RobotModel.from_file(path))
+    th0, err = _close(prob, nominal_closed_pose(nominal))
+    assert err < 1e-12  # the true hand closes near the nominal's closed pose
+    angles = th0[0] * prob.nominal[prob.rp.scale_index()] + prob.nominal[prob.rp.offset_index()]
+    for row, q in zip(rows, angles):
+        row["lower"], row["upper"] = float(q - 0.8), float(q + 0.8)
+    path.write_text(yaml.safe_dump({**doc, "joints": rows}))
+    truth_robot = RobotModel.from_file(path)
+    prob = _loop_problem(truth_robot)
+    readings = self_motion(prob, prob.nominal, th0, 100, np.random.default_rng(5), step=0.05)
+    return dict(zip(prob.names, prob.nominal)), readings
+
+
+def test_table_4_1_as_printed():
+    robot = RobotModel.from_file(TABLE)
+    rows = robot.dh.rows
+    assert [r.convention for r in rows] == ["hayati", "hayati", "dh", "hayati", "dh", "hayati", "hayati", "dh"]
+    assert rows[0].s == pytest.approx(-1.3 * INCH) and rows[7].theta_off == 3.1415
+    assert rows[3].a == pytest.approx(0.4094)  # a Hayati 'a' is an angle: not converted
+    assert rows[2].a == pytest.approx(-0.45 * INCH)
+    assert default_loops(robot)[0].known is not None  # closes: true -> identity weld
+
+
+def test_staged_hand_calibration_recovers_true_hand(true_hand):
+    """Staged (4.2.6) from the nominal Table 4.1, k identified, s_0 = -1.3 in and k_7 = 1 fixed.
+
+    Measured: closure RMS 1.21 in / 0.99 rad -> 0.26 in / 0.10 rad (stage 1: palm, tip and the
+    ~ offsets) -> 9e-15 in / 1e-15 rad (stage 2: all 38 parameters); max parameter error 7e-14.
+    Thesis on the real hand: 0.578 in / 0.46 rad -> 0.020 in / 0.029 rad.
+    """
+    truth, readings = true_hand
+    robot = RobotModel.from_file(TABLE)
+    log = JointLog(robot.joint_names, readings)
+    res1, res2 = staged_calibration(robot, log, default_loops(robot), thesis_stages(robot))
+    before, mid, after = res1.residuals_before[0], res1.residuals_after[0], res2.residuals_after[0]
+    assert before.rms_m > 0.5 * INCH and before.rms_rad > 0.4  # the nominal table is far off
+    assert mid.rms_m < 0.5 * before.rms_m  # stage 1 alone helps
+    assert after.rms_m < 0.1 * before.rms_m and after.rms_rad < 0.1 * before.rms_rad
+    assert after.rms_m < 1e-10 and after.rms_rad < 1e-10
+    # stage 1 moved only the poorly known parameters
+    moved = {n for n, v0, v in zip(res1.names, res1.initial, res1.values) if abs(v - v0) > 0}
+    assert moved and moved <= set(thesis_stages(robot)[0].identify)
+    # every identifiable parameter recovered: 8 x 5 - 2 fixed = 38 estimated, nothing dropped or weak
+    assert res2.converged and not res2.dropped and not res2.weak
+    assert len(res2.estimated) == 38
+    for n, v in TABLE_4_1_FIXED.items():
+        assert res2.status[res2.names.index(n)] == "fixed" and res2.value(n) == pytest.approx(v)
+    err = max(abs(res2.values[k] - truth[res2.names[k]]) for k in res2.estimated)
+    assert err < 1e-8, err
+
+
+def test_palm_frame_reproduces_tables_4_3_and_4_4():
+    """Table 4.2 converted to the palm frame 2' gives the printed Tables 4.3 and 4.4."""
+    robot = RobotModel.from_file(TABLE)
+    values = {}
+    for row, vals in zip(robot.dh.rows, TABLE_4_2):
+        for f, v in zip(FIELDS, vals):
+            values[f"{row.name}.{f}"] = v * INCH if f == "s" or (f == "a" and row.convention == "dh") else v
+    pf = palm_frame_parameters(robot, values)
+    finger = [r.in_units() for r in pf.finger]
+    assert [f["label"] for f in finger] == ["-1", "0", "1", "2", "3"]
+    assert [finger[0][f] for f in ("s", "a", "alpha")] == pytest.approx([1.8050, 0.5755, 0.2890])
+    assert [finger[1][f] for f in FIELDS] == pytest.approx([0.1389, 1.7151, 1.3356, -1.5836, 1.0125])
+    assert finger[4]["s"] is None and finger[4]["k"] == 1.0  # tip unknown
+    thumb = [r.in_units() for r in pf.thumb]
+    assert [t["label"] for t in thumb] == ["0", "1'", "1", "2", "3"]
+    assert [thumb[0][f] for f in ("theta_off", "s", "a", "alpha")] == pytest.approx([1.7824, 0, 0.3097, -1.6207])
+    assert thumb[1]["convention"] == "translation_z" and thumb[1]["s"] == pytest.approx(-0.1604)  # s'_1
+    assert [thumb[2][f] for f in ("theta_off", "s", "a", "alpha")] == pytest.approx([0.0943, 1.5085, 0.1515, 0.0480])
+    assert [thumb[3][f] for f in ("theta_off", "s", "a", "alpha")] == pytest.approx([-0.0850, 1.3, -0.0069, -0.0668])
+    # our k is the k of the joint the row turns (Table 4.4 prints them one row lower)
+    assert [t["k"] for t in thumb] == [0.9579, None, 0.9336, 0.8596, 0.9508]
+    assert any("s'" in n for n in pf.notes)
+
+
+def test_palm_frame_chains_meet_at_closed_configurations(true_hand):
+    """Finger chain (+ the identified closing link) and reversed thumb chain give the same base pose."""
+    truth, readings = true_hand
+    robot = RobotModel.from_file(TABLE)
+    pf = palm_frame_parameters(robot, truth)
+    for th in readings[::20]:
+        rd = dict(zip(robot.joint_names, th))
+        F = pf.chain(pf.finger, rd) @ pf.closing_link.transform()
+        T = pf.chain(pf.thumb, rd)
+        assert np.abs(F - T).max() < 1e-12
+
+
+def test_urdf_hand_is_the_dh_loop():
+    """The URDF tips welded = the D-H loop: on nominal closed readings finger_tip in thumb_tip is constant."""
+    robot = RobotModel.from_file(TABLE)
+    prob = _loop_problem(robot)
+    readings = self_motion(prob, prob.nominal, nominal_closed_pose(robot), 10, np.random.default_rng(1))
+    hand = RobotModel.from_file(URDF)
+    names = ["thumb_j0", "thumb_j1", "thumb_j2", "thumb_j3", "finger_j4", "finger_j5", "finger_j6", "finger_j7"]
+    m, d = hand.model, hand.model.createData()
+    X = []
+    for q in hand.configurations(readings, names):
+        pin.framesForwardKinematics(m, d, q)
+        X.append((d.oMf[m.getFrameId("thumb_tip")].inverse() * d.oMf[m.getFrameId("finger_tip")]).homogeneous)
+    assert np.abs(np.array(X) - X[0]).max() < 1e-9  # the URDF prints 10 significant digits
+    import mujoco
+    assert mujoco.MjModel.from_xml_path(str(URDF)).njnt == 8
+
+
+def test_urdf_hand_tip_to_tip_weld_calibrates():
+    """Pure-kinematic data on the URDF hand, tips welded with an unknown grasp: recovered to 1e-8."""
+    robot = RobotModel.from_file(URDF)
+    loop = WeldLoop("grasp", "finger_tip", "thumb_tip")
+    nom = RobotModel.from_file(TABLE)
+    th = nominal_closed_pose(nom)[0]
+    q0 = dict(zip(["thumb_j0", "thumb_j1", "thumb_j2", "thumb_j3", "finger_j4", "finger_j5", "finger_j6",
+                   "finger_j7"], th))
+    joints = [j for j in robot.joint_names if j in q0]
+    ds = make_dataset(robot, loop, np.array([q0[j] for j in joints]), 80, np.random.default_rng(2),
+                      magnitudes={"translation": 5e-4, "rotation": 5e-3, "offset": 0.05})
+    res = calibrate(robot, ds.log(noisy=False), [WeldLoop("grasp", "finger_tip", "thumb_tip")])
+    truth = ds.truth_dict()
+    assert res.converged and not res.weak
+    assert res.residuals_before[0].rms_m > 1e-4 and res.residuals_after[0].rms_m < 1e-10
+    err = max(abs(res.values[k] - truth[res.names[k]]) for k in res.estimated if not res.names[k].startswith("grasp.r"))
+    assert err < 1e-8, err
+
+
+def test_dual_arm_baxter_example():
+    spec = importlib.util.spec_from_file_location("dual_arm_baxter", ROOT / "examples" / "dual_arm_baxter.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = mod.run(n=40, seed=0, verbose=False)
+    assert out["converged"] and out["weak"] == 0
+    assert out["max_error"] < 1e-8
+    assert out["after"].rms_m < 1e-10 and out["before"].rms_m > 1e-3
+    assert out["estimated"] == 55 and out["dropped"] > 0
