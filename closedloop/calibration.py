@@ -302,6 +302,7 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
             x0[k] = v
         status[k] = "fixed"
     dropped: list[Dropped] = []
+    scale = np.array([p.prior for p in problem.params])
 
     # ---- data checks: motion and mobility
     theta_all = np.vstack([b.theta for b in problem.blocks])
@@ -343,11 +344,13 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
     M = sum(b.theta.shape[0] * b.loop.dim for b in problem.blocks)
     if not free:
         raise NotIdentifiableError("no parameter is left to identify (all fixed or not selected)")
-    scale = np.array([p.prior for p in problem.params])
 
     # ---- structural reduction on closure-projected data
     if progress:
         progress("analysing", 0, 0.0)
+    # Analysed at the starting point: a special start (an unknown tool point at a frame origin that
+    # lies on the last joint axis) makes the tilt of that axis look redundant, which is exactly right
+    # when the real tool point is there, and needs a rough off-axis initial guess when it is not.
     thetas_c = project_to_closure(problem, x0)
     evc = problem.evaluate(x0, True, thetas_c)
     Jc = np.vstack([ev.J.reshape(-1, P) for ev in evc])
