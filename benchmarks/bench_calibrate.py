@@ -12,8 +12,6 @@ tiled with fresh 1e-4 rad noise for larger sizes).
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import time
 
 import numpy as np
@@ -25,17 +23,7 @@ from closedloop.models import ROBOTS
 from closedloop.robot import RobotModel
 from closedloop.truth import make_dataset
 
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}; {os.cpu_count()} cpus; python {platform.python_version()}"
+from machine import machine  # benchmarks/machine.py
 
 
 def main() -> None:

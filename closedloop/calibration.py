@@ -331,6 +331,16 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
                 notes.append(f"joint {name} is structurally immobile in loop {b.loop.name} "
                              "(Lemma 6: no self-motion of the closed chain moves it)")
 
+    # ---- Singularity 1: consecutive parallel axes in plain D-H rows
+    if robot.kind == "dh":
+        rows = robot.dh.rows
+        for r1, r2 in zip(rows, rows[1:]):
+            if r1.convention == "dh" and abs(np.sin(r1.alpha)) < 1e-6 and r1.name in problem.joints:
+                notes.append(f"D-H rows {r1.name} and {r2.name}: consecutive parallel axes (alpha_{r1.name} = "
+                             f"{r1.alpha:.3g} rad); the common normal is not unique, so {r1.name}.s and "
+                             f"{r2.name}.s are not separately identifiable (thesis 3.3, Singularity 1; see "
+                             "what absorbs them). Write these rows with convention: hayati (eq. 4.2)")
+
     # ---- scale factors: k = 0 fits any data if all are free (4.2.2)
     sc = [problem.rp.index[problem.rp._sensor_name(j, "scale")] for j in problem.joints]
     if sc and all(status[k] == "selected" for k in sc):

@@ -15,6 +15,7 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import pinocchio as pin
@@ -23,19 +24,27 @@ from .errors import InputError, ModelError
 from .robot import RobotModel
 
 
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Write `text` to `path` through a temporary file and os.replace."""
+def atomic_write(path: str | Path, writer: Callable[[str], None]) -> None:
+    """Call `writer(tmp_path)` on a temporary file beside `path`, then os.replace it onto `path`.
+
+    Readers see either the old file or the complete new one, never a partial write.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
     try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
+        writer(tmp)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """Write `text` to `path` atomically."""
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text))
 
 
 def refuse_overwrite(out: str | Path, *inputs: str | Path | None) -> None:
@@ -85,17 +94,7 @@ def write_urdf(robot: RobotModel, values: dict[str, float], out_path: str | Path
                 if j.limit.upper is not None:
                     j.limit.upper = float(j.limit.upper - offset)
         j.origin = O
-    out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=out_path.parent, prefix=f".{out_path.name}.", suffix=".urdf")
-    os.close(fd)
-    try:
-        urdf.write_xml_file(tmp)
-        os.replace(tmp, out_path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write(out_path, urdf.write_xml_file)
 
 
 def write_dh(robot: RobotModel, values: dict[str, float], out_path: str | Path) -> None:

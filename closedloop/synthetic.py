@@ -44,11 +44,21 @@ def self_motion(problem: CalibrationProblem, values: np.ndarray, theta0: np.ndar
     th, err = close(problem, values, np.atleast_2d(theta0), block)
     if err > 1e-9:
         raise NotIdentifiableError(f"cannot close loop {problem.blocks[block].loop.name} from the start pose")
+    start = th[0] * k + off
+    outside = [j for j, a, l, h in zip(problem.joints, start, lo, hi) if not l <= a <= h]
+    if outside:
+        raise NotIdentifiableError(f"the start pose is within {margin} rad of (or beyond) the limits of "
+                                   f"joint(s) {', '.join(outside)}: the walk could not move")
     thetas = [b.theta[:1] for b in problem.blocks]
     direction = None
     out = []
     walked = 0
+    attempts = 0
     while len(out) < n:
+        attempts += 1
+        if attempts > 50 * n * stride + 100:
+            raise NotIdentifiableError(f"self-motion walk of loop {problem.blocks[block].loop.name} is stuck "
+                                       f"after {len(out)} of {n} configurations (joint limits)")
         thetas[block] = th
         Jq = problem.evaluate(values, True, thetas)[block].Jq[0]
         _, S, Vt = np.linalg.svd(Jq)

@@ -185,9 +185,6 @@ def test_urdf_hand_is_the_dh_loop():
     assert mujoco.MjModel.from_xml_path(str(URDF)).njnt == 8
 
 
-@pytest.mark.xfail(strict=False, reason="passed against the core at the start of this work; with the current "
-                   "uncommitted closedloop/calibration.py a direction finger_j7.z/finger_j7.offset is reported weak "
-                   "(singular value 1e-13) and frozen, and the rest compensates (errors ~7e-3); see the report")
 def test_urdf_hand_tip_to_tip_weld_calibrates():
     """Pure-kinematic data on the URDF hand, tips welded with an unknown grasp: recovered to 1e-8."""
     robot = RobotModel.from_file(URDF)
@@ -207,9 +204,7 @@ def test_urdf_hand_tip_to_tip_weld_calibrates():
     res = calibrate(robot, ds.log(noisy=False), [WeldLoop("grasp", "finger_tip", "thumb_tip")], opts)
     truth = ds.truth_dict()
     assert res.converged
-    # With the core of 5d69c6d+ (uncommitted calibration.py) one direction finger_j7.z / finger_j7.offset
-    # comes out weak at singular value 1e-13 (see the report); everything else is estimated.
-    assert {n for c in res.weak for n, _ in c.terms} <= {"finger_j7.z", "finger_j7.offset"}
+    assert not res.weak
     assert res.residuals_before[0].rms_m > 1e-4 and res.residuals_after[0].rms_m < 1e-10
     ok = [k for k in res.estimated if res.status[k] == "estimated" and not res.names[k].startswith("grasp.r")]
     assert len(ok) >= 28

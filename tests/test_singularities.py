@@ -50,6 +50,8 @@ def test_singularity_1_parallel_axes_in_plain_dh_rows(tmp_path):
     for n in ("j5.s", "j6.s"):
         assert res.status[res.names.index(n)] in ("dropped", "unidentifiable")
         assert dropped[n].absorbed_into  # and the report says what absorbs it
+    hint = [n for n in res.notes if "Singularity 1" in n]
+    assert hint and "j5" in hint[0] and "j6" in hint[0] and "convention: hayati" in hint[0]
     assert res.converged and res.residuals_after[0].rms_m < 1e-10
 
 

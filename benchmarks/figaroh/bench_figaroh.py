@@ -56,6 +56,10 @@ N_TRAIN = (50, 1000)
 N_HELD = 200
 
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from machine import machine  # noqa: E402
+
+
 def erd_robots() -> Path:
     import site
 
@@ -64,18 +68,6 @@ def erd_robots() -> Path:
         if p.is_dir():
             return p
     raise SystemExit("example-robot-data not found")
-
-
-def machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}; {os.cpu_count()} logical cpus; python {platform.python_version()}"
 
 
 # ---------------------------------------------------------------- dataset
