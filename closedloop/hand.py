@@ -263,3 +263,98 @@ def _hom(R, t) -> np.ndarray:
     T[:3, :3] = R
     T[:3, 3] = t
     return T
+
+
+# --------------------------------------------------------------------------- a simulated thesis hand
+#: Table 4.2: the thesis's calibrated hand, per row (theta_off rad, s in, a in or rad (Hayati), alpha rad, k).
+TABLE_4_2 = [(0.2380, -1.3000, 0.0069, 0.0668, 0.9508), (0.0850, -1.5085, -0.1515, -0.0480, 0.8596),
+             (-0.0943, 0.1604, -0.3097, 1.6207, 0.9336), (-1.7824, 1.8050, 0.5755, 0.2890, 0.9579),
+             (0.1389, 1.7151, 1.3356, -1.5836, 1.0125), (0.5464, 1.6307, 0.0292, 0.0737, 0.8577),
+             (-0.0425, 1.1474, 0.1745, 0.1260, 0.9350), (3.7552, -0.8322, -1.4377, -0.5631, 1.0000)]
+_FIELDS = ("theta_off", "s", "a", "alpha", "k")
+
+
+def table_4_1_path():
+    """The nominal thumb-finger D-H table shipped with the package (Table 4.1)."""
+    from .models import model_file
+
+    return model_file("dh/utah_mit_thumb_finger.yaml")
+
+
+def _loop_problem(robot: RobotModel):
+    from .loops.spec import default_loops
+    from .problem import CalibrationProblem, LoopBlock
+
+    n = len(robot.joint_names)
+    return CalibrationProblem(robot, robot.joint_names,
+                              [LoopBlock(default_loops(robot)[0], np.zeros((1, n)), np.arange(1))])
+
+
+def close_readings(problem, readings: np.ndarray, iters: int = 200) -> tuple[np.ndarray, float]:
+    """Damped Gauss-Newton on the readings until the problem's (nominal-valued) loop closes."""
+    x = problem.nominal
+    th = np.atleast_2d(readings)
+    for _ in range(iters):
+        ev = problem.evaluate(x, True, [th])[0]
+        if np.abs(ev.r).max() < 1e-13:
+            break
+        J = ev.Jq[0]
+        th = th - np.linalg.solve(J.T @ J + 1e-6 * np.eye(J.shape[1]), J.T @ ev.r[0])[None]
+    return th, float(np.abs(problem.evaluate(x, False, [th])[0].r).max())
+
+
+def nominal_closed_pose(robot: RobotModel, seed: int = 100) -> np.ndarray:
+    """A closed configuration of the D-H chain `robot` with the smallest readings (model angles wrapped)."""
+    prob = _loop_problem(robot)
+    off = prob.nominal[prob.rp.offset_index()]
+    rng = np.random.default_rng(seed)
+    best = None
+    for _ in range(40):
+        th, err = close_readings(prob, rng.uniform(-1.2, 1.2, (1, len(robot.joint_names))))
+        if err > 1e-12:
+            continue
+        th = ((th + off + np.pi) % (2 * np.pi) - np.pi) - off
+        if best is None or np.abs(th).max() < np.abs(best).max():
+            best = th
+    return best
+
+
+def thesis_hand_dataset(out_dir, n: int = 100, seed: int = 5, offset_clip: float = 0.5,
+                        k_range: tuple[float, float] = (0.85, 1.0)):
+    """A TRUE thumb-finger hand and exact readings along its self-motion (a 2-DOF loop).
+
+    The true hand is Table 4.2 (the thesis's calibrated hand) with offset errors
+    clipped to +/-`offset_clip` rad and scale factors to `k_range`: errors of the
+    size the thesis found on the real hand, relative to the nominal Table 4.1.
+    Writes ``true_hand.yaml`` to `out_dir`; returns (truth values by parameter
+    name, readings (n, 8), the true robot).
+    """
+    import yaml
+    from pathlib import Path
+
+    from .synthetic import self_motion
+
+    table = table_4_1_path()
+    doc = yaml.safe_load(Path(table).read_text())
+    nominal = RobotModel.from_file(table)
+    rows = []
+    for raw, vals in zip(doc["joints"], TABLE_4_2):
+        row = dict(raw, **dict(zip(_FIELDS, vals)))
+        row["theta_off"] = raw["theta_off"] + float(np.clip(row["theta_off"] - raw["theta_off"],
+                                                            -offset_clip, offset_clip))
+        row["k"] = float(np.clip(row["k"], *k_range))
+        rows.append(row)
+    path = Path(out_dir) / "true_hand.yaml"
+    path.write_text(yaml.safe_dump({**doc, "joints": rows}))
+    prob = _loop_problem(RobotModel.from_file(path))
+    th0, err = close_readings(prob, nominal_closed_pose(nominal))
+    if err > 1e-12:
+        raise RuntimeError("the true hand does not close near the nominal's closed pose")
+    angles = th0[0] * prob.nominal[prob.rp.scale_index()] + prob.nominal[prob.rp.offset_index()]
+    for row, q in zip(rows, angles):  # keep the walk within 0.8 rad of its start
+        row["lower"], row["upper"] = float(q - 0.8), float(q + 0.8)
+    path.write_text(yaml.safe_dump({**doc, "joints": rows}))
+    truth_robot = RobotModel.from_file(path)
+    prob = _loop_problem(truth_robot)
+    readings = self_motion(prob, prob.nominal, th0, n, np.random.default_rng(seed), step=0.05)
+    return dict(zip(prob.names, prob.nominal)), readings, truth_robot

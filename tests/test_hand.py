@@ -12,11 +12,10 @@ import yaml
 
 from closedloop.calibration import CalibrationOptions, calibrate
 from closedloop.data import JointLog
-from closedloop.hand import (INCH, TABLE_4_1_FIXED, palm_frame_parameters, staged_calibration,
-                             thesis_stages)
+from closedloop.hand import (INCH, TABLE_4_1_FIXED, TABLE_4_2, _loop_problem, nominal_closed_pose,
+                             palm_frame_parameters, staged_calibration, thesis_hand_dataset, thesis_stages)
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
-from closedloop.problem import CalibrationProblem, LoopBlock
 from closedloop.robot import RobotModel
 from closedloop.synthetic import self_motion
 from closedloop.truth import identifiable_names, make_dataset
@@ -25,73 +24,13 @@ ROOT = Path(__file__).resolve().parents[1]
 TABLE = ROOT / "models" / "dh" / "utah_mit_thumb_finger.yaml"
 URDF = ROOT / "models" / "utah_mit_hand.urdf"
 FIELDS = ("theta_off", "s", "a", "alpha", "k")
-# Table 4.2: the thesis's calibrated hand (theta_off rad, s in, a in or rad (Hayati), alpha rad, k).
-TABLE_4_2 = [(0.2380, -1.3000, 0.0069, 0.0668, 0.9508), (0.0850, -1.5085, -0.1515, -0.0480, 0.8596),
-             (-0.0943, 0.1604, -0.3097, 1.6207, 0.9336), (-1.7824, 1.8050, 0.5755, 0.2890, 0.9579),
-             (0.1389, 1.7151, 1.3356, -1.5836, 1.0125), (0.5464, 1.6307, 0.0292, 0.0737, 0.8577),
-             (-0.0425, 1.1474, 0.1745, 0.1260, 0.9350), (3.7552, -0.8322, -1.4377, -0.5631, 1.0000)]
-
-
-def _loop_problem(robot):
-    return CalibrationProblem(robot, robot.joint_names, [LoopBlock(default_loops(robot)[0], np.zeros((1, 8)),
-                                                                   np.arange(1))])
-
-
-def _close(prob, th, iters=200):
-    """Damped Gauss-Newton on the readings: a configuration where the model's loop closes."""
-    x = prob.nominal
-    for _ in range(iters):
-        ev = prob.evaluate(x, True, [th])[0]
-        if np.abs(ev.r).max() < 1e-13:
-            break
-        J = ev.Jq[0]
-        th = th - np.linalg.solve(J.T @ J + 1e-6 * np.eye(J.shape[1]), J.T @ ev.r[0])[None]
-    return th, float(np.abs(prob.evaluate(x, False, [th])[0].r).max())
-
-
-def nominal_closed_pose(robot, seed=100):
-    """A closed configuration of `robot`'s loop with the smallest readings (model angles wrapped)."""
-    prob = _loop_problem(robot)
-    off = prob.nominal[prob.rp.offset_index()]
-    rng = np.random.default_rng(seed)
-    best = None
-    for _ in range(40):
-        th, err = _close(prob, rng.uniform(-1.2, 1.2, (1, 8)))
-        if err > 1e-12:
-            continue
-        th = ((th + off + np.pi) % (2 * np.pi) - np.pi) - off
-        if best is None or np.abs(th).max() < np.abs(best).max():
-            best = th
-    return best
 
 
 @pytest.fixture(scope="module")
 def true_hand(tmp_path_factory):
-    """TRUE hand: Table 4.2 with offset errors clipped to 0.5 rad and k to [0.85, 1]; readings on its self-motion.
-
-    Returns (truth values by name, readings (100, 8)); the walk stays within 0.8 rad of its start.
-    """
-    doc = yaml.safe_load(TABLE.read_text())
-    nominal = RobotModel.from_file(TABLE)
-    rows = []
-    for raw, vals in zip(doc["joints"], TABLE_4_2):
-        row = dict(raw, **dict(zip(FIELDS, vals)))
-        row["theta_off"] = raw["theta_off"] + float(np.clip(row["theta_off"] - raw["theta_off"], -0.5, 0.5))
-        row["k"] = float(np.clip(row["k"], 0.85, 1.0))
-        rows.append(row)
-    path = tmp_path_factory.mktemp("hand") / "true_hand.yaml"
-    path.write_text(yaml.safe_dump({**doc, "joints": rows}))
-    prob = _loop_problem(RobotModel.from_file(path))
-    th0, err = _close(prob, nominal_closed_pose(nominal))
-    assert err < 1e-12  # the true hand closes near the nominal's closed pose
-    angles = th0[0] * prob.nominal[prob.rp.scale_index()] + prob.nominal[prob.rp.offset_index()]
-    for row, q in zip(rows, angles):
-        row["lower"], row["upper"] = float(q - 0.8), float(q + 0.8)
-    path.write_text(yaml.safe_dump({**doc, "joints": rows}))
-    truth_robot = RobotModel.from_file(path)
-    prob = _loop_problem(truth_robot)
-    readings = self_motion(prob, prob.nominal, th0, 100, np.random.default_rng(5), step=0.05)
-    return dict(zip(prob.names, prob.nominal)), readings
+    """TRUE hand: Table 4.2 with offset errors clipped to 0.5 rad and k to [0.85, 1]; readings on its self-motion."""
+    truth, readings, _ = thesis_hand_dataset(tmp_path_factory.mktemp("hand"), n=100, seed=5)
+    return truth, readings
 
 
 def test_table_4_1_as_printed():
