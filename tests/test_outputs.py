@@ -165,3 +165,44 @@ def test_inspect_lists_joints_and_parameters(files):
     info = json.loads(out)
     assert rc == 0 and [j["name"] for j in info["joints"]][:2] == ["panda_joint1", "panda_joint2"]
     assert "panda_joint3.offset" in info["parameters"] and "panda_hand" in info["frames"]
+
+
+def test_dh_input_gives_calibrated_dh_yaml(tmp_path):
+    """D-H input -> D-H YAML output in the input's units, carrying the calibrated values."""
+    import yaml
+
+    from closedloop.hand import table_4_1_path, thesis_hand_dataset
+
+    _, readings, _ = thesis_hand_dataset(tmp_path, n=60)
+    robot = RobotModel.from_file(table_4_1_path())
+    log = tmp_path / "hand.csv"
+    from closedloop.data import JointLog
+
+    JointLog(robot.joint_names, readings).write_csv(log)
+    out, rep = tmp_path / "calibrated.yaml", tmp_path / "report.json"
+    rc = main(["calibrate", str(table_4_1_path()), str(log), "--identify", "theta_off,s,a,alpha,k",
+               "--fix", "j0.s", "--fix", "j7.k", "--weighting", "none", "--out", str(out), "--report", str(rep),
+               "--cv", "0", "--quiet"])
+    assert rc == 0
+    doc = yaml.safe_load(out.read_text())
+    assert doc["units"]["length"] == "in" and doc["closes"] is True
+    cal = {p["name"]: p["calibrated"] for p in json.loads(rep.read_text())["parameters"]}
+    again = RobotModel.from_file(out)
+    for row in again.dh.rows:
+        assert row.s == pytest.approx(cal[f"{row.name}.s"], abs=1e-9)
+        assert row.theta_off == pytest.approx(cal[f"{row.name}.theta_off"], abs=1e-9)
+
+
+def test_mjcf_input(tmp_path):
+    """An MJCF arm loads through Pinocchio's parser and exposes the same parameter names."""
+    xml = tmp_path / "arm.xml"
+    xml.write_text("""<mujoco model="arm"><worldbody>
+      <body name="l1" pos="0 0 0.1"><joint name="j1" type="hinge" axis="0 0 1"/>
+        <geom type="capsule" size="0.02" fromto="0 0 0 0.3 0 0" mass="1"/>
+        <body name="l2" pos="0.3 0 0"><joint name="j2" type="hinge" axis="0 1 0"/>
+          <geom type="capsule" size="0.02" fromto="0 0 0 0.25 0 0" mass="1"/>
+          <site name="tip" pos="0.25 0 0"/></body></body></worldbody></mujoco>""")
+    robot = RobotModel.from_file(xml)
+    assert robot.kind == "mjcf" and robot.joint_names == ["j1", "j2"]
+    rc, out, _ = _run(["inspect", str(xml), "--json"])
+    assert rc == 0 and "j2.offset" in json.loads(out)["parameters"]
