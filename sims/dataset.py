@@ -248,7 +248,8 @@ def simulate(
     # 4. the robot's nominal loop and planner
     r0 = sensor_readings(q0, offset, scale, settings.noise, settings.quantization, rng_noise)
     door_range = sc.door.angle_range if sc.door else (-0.6, 0.6)
-    loop = NominalLoop(pmodel, sc.tool_frame, sc.loop_type, r0, hinge=scene.hinge_pose, door_range=door_range)
+    loop = NominalLoop(pmodel, sc.tool_frame, sc.loop_type, r0, hinge=scene.hinge_pose, door_range=door_range,
+                       target_frame=sc.target_frame)
     planner = NominalLoopPlanner(
         loop, loop.full_q(r0), rng_plan, step_rad=settings.step_rad, margin=settings.limit_margin,
         target_span=settings.target_span, retarget_every=settings.retarget_every,
@@ -322,12 +323,14 @@ def simulate(
         c = scene.target_pose.translation
         params.update({f"{sc.loop_name}.p{a}": float(v) for a, v in zip("xyz", c)})
         params.update({f"{sc.loop_name}.tip_{a}": 0.0 for a in "xyz"})
-    elif sc.loop_type == "weld":
-        params.update(_pose_params(sc.loop_name, scene.target_pose))
+    elif sc.loop_type == "weld":  # the tool in the fixture (world) or in the robot's target frame
+        params.update(_pose_params(sc.loop_name, scene.closure))
     # hinge: the HingeLoop's chart is relative to a reference axis fitted from data, so its
     # parameters are not comparable with a fixed truth; truth.json gives the true axis instead
     # (loop.hinge_axis) and `closedloop check` compares the robot parameters.
     loop_info: dict[str, Any] = {"type": sc.loop_type, "frame": sc.tool_frame, "name": sc.loop_name}
+    if sc.target_frame is not None:
+        loop_info["to"] = sc.target_frame
     if scene.hinge_pose is not None:
         loop_info["hinge_axis"] = {
             "point": [float(v) for v in scene.hinge_pose.translation],

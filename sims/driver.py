@@ -5,6 +5,8 @@ URDF) and its joint readings.  At the grasp it believes the loop closure is
 where its nominal model puts the tool:
 
 * ``weld``: fixture pose ``X = FK_nom(r0)`` (frame ``loop_target`` on the universe);
+  welded to another robot frame ``B`` (``target_frame``), ``loop_target`` is a
+  frame on B's parent joint at the nominal tool pose relative to B at ``r0``;
 * ``point``: socket centre ``p = FK_nom(r0).translation``;
 * ``hinge``: the door hinge ``H`` is known (the door's pose in the world) and a
   revolute joint ``door_hinge`` about ``H``'s z axis is appended to the nominal
@@ -62,6 +64,7 @@ class NominalLoop:
         r0: joint readings at the grasp (arm joints, model order).
         hinge: world pose of the door hinge frame (hinge loops).
         door_range: door joint limits (hinge loops).
+        target_frame: weld loops: robot frame the tool is welded to (``None``: the world).
     """
 
     def __init__(
@@ -72,6 +75,7 @@ class NominalLoop:
         r0: np.ndarray,
         hinge: pin.SE3 | None = None,
         door_range: tuple[float, float] = (-0.6, 0.6),
+        target_frame: str | None = None,
     ) -> None:
         self.model = pin.Model(model)
         self.loop_type = loop_type
@@ -98,6 +102,15 @@ class NominalLoop:
             self.model.appendBodyToJoint(jid, pin.Inertia.FromBox(1.0, 0.8, 0.04, 1.0), pin.SE3.Identity())
             grasp = hinge.actInv(oMt0)
             self.target = self.model.addFrame(pin.Frame("handle", jid, grasp, pin.FrameType.OP_FRAME))
+        elif target_frame is not None:
+            if loop_type != "weld":
+                raise ValueError("a robot target frame needs a weld loop")
+            if not self.model.existFrame(target_frame):
+                raise KeyError(f"frame {target_frame!r} not in the nominal model")
+            fb = self.model.frames[self.model.getFrameId(target_frame)]
+            placement = fb.placement * data.oMf[self.model.getFrameId(target_frame)].actInv(oMt0)
+            self.target = self.model.addFrame(pin.Frame("loop_target", fb.parentJoint, placement,
+                                                        pin.FrameType.OP_FRAME))
         else:
             self.target = self.model.addFrame(pin.Frame("loop_target", 0, oMt0, pin.FrameType.OP_FRAME))
         self.point = oMt0.translation.copy()

@@ -10,7 +10,10 @@ Loop types (the MuJoCo equality constraint that closes the loop):
     The tool frame is welded to a fixture fixed in the world (6 constraints).
     Closure parameters ``<loop>.x .y .z .rx .ry .rz``: pose of the fixture
     (= pose of the tool frame when closed) in the world frame, translation in
-    metres, rotation vector ``pin.log3(R)``.
+    metres, rotation vector ``pin.log3(R)``.  With a ``target_frame`` the tool
+    frame is welded to that other frame of the same robot (e.g. the two tips of
+    a hand holding an object); the closure parameters are then the pose of the
+    tool frame in the target frame when closed.
 ``point``
     The tool point (stylus tip) sits in a ball socket (MuJoCo ``connect``, 3
     constraints).  Closure parameters ``<loop>.x .y .z``: socket centre in the world.
@@ -203,6 +206,8 @@ class Scenario:
         loop_type: ``weld``, ``point`` or ``hinge``.
         loop_name: name of the loop (prefix of its closure parameters).
         tool_frame: Pinocchio frame (URDF link) closing the loop.
+        target_frame: weld loops only: the robot frame (URDF link) the tool is
+            welded to; ``None`` welds it to a fixture in the world.
         q0: true joint angles when the loop is closed (grasp configuration), Pinocchio order.
         settings: default settings.
         door: door geometry (hinge loops).
@@ -217,6 +222,7 @@ class Scenario:
     q0: tuple[float, ...]
     settings: SimSettings = field(default_factory=SimSettings)
     door: DoorGeometry | None = None
+    target_frame: str | None = None
 
 
 SCENARIOS: dict[str, Scenario] = {
@@ -252,6 +258,21 @@ SCENARIOS: dict[str, Scenario] = {
             q0=(0.632, -1.724, 2.043, -2.631, -1.292, 0.671),
             settings=SimSettings(step_rad=0.12, target_span=1.5),
             door=DoorGeometry(),
+        ),
+        Scenario(
+            name="utah_hand",
+            description="8-DOF Utah-MIT-like thumb-finger hand, the two tips welded by a grasp (2-DOF self-motion).",
+            robot="utah_hand",
+            loop_type="weld",
+            loop_name="grasp",
+            tool_frame="finger_tip",
+            target_frame="thumb_tip",
+            # closed pose of the nominal hand (closedloop.hand.nominal_closed_pose of Table 4.1),
+            # Pinocchio order finger_j4..j7, thumb_j3..j0 (= D-H readings j4..j7, j3..j0)
+            q0=(-0.49918252, 2.07549147, 2.15616792, -1.45575382, 2.07378498, 2.11288963, -1.76855115, -0.35655832),
+            # small light joints (30 g phalanges): soft servos, small rotor inertia; a hand a few
+            # inches long: 0.5 mm placement errors
+            settings=SimSettings(kp=2.0, kv=0.1, armature=1e-3, translation=5e-4, step_rad=0.1, target_span=0.8),
         ),
     )
 }
@@ -341,7 +362,7 @@ def core_loop(sc: "Scenario", nominal_path=None):
     from closedloop.loops import HingeLoop, PointLoop, WeldLoop
 
     if sc.loop_type == "weld":
-        return WeldLoop(sc.loop_name, sc.tool_frame)
+        return WeldLoop(sc.loop_name, sc.tool_frame, sc.target_frame or "universe")
     if sc.loop_type == "point":
         return PointLoop(sc.loop_name, sc.tool_frame)
     if sc.loop_type == "hinge" and nominal_path is not None and sc.door is not None:

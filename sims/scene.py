@@ -11,14 +11,16 @@ sensor properties applied by the sensor model.
 * a position servo per arm joint (``tau = kp (ctrl - q) - kv qdot``), armature,
   and (setting ``gravcomp``) gravity compensation of the robot's bodies routed
   through the servos (MuJoCo ``gravcomp`` + ``actuatorgravcomp``);
-* the loop: a ``weld`` between the tool site and a world fixture site, a
+* the loop: a ``weld`` between the tool site and a world fixture site (or a
+  site on another body of the robot, the scenario's ``target_frame``), a
   ``connect`` between the stylus-tip site and a world socket site, or a ``weld``
   between the tool site and the handle site of a hinged door (``models/door.xml``);
 * physics options (timestep, integrator, gravity; contacts disabled).
 
 The loop is built *closed* at the true grasp configuration ``q0``: the fixture,
-socket or handle site is placed at the true tool pose at ``q0`` (MuJoCo forward
-kinematics of the true robot).  Site-based equality constraints make the two
+socket, handle or robot target site is placed at the true tool pose at ``q0``
+(MuJoCo forward kinematics of the true robot; a robot target site gets the
+tool's pose relative to its body, ``relpose`` made explicit).  Site-based equality constraints make the two
 sites coincide, so no ``relpose`` ambiguity arises.
 """
 
@@ -127,6 +129,8 @@ class Scene:
         door_qpos_adr: qpos address of the door hinge (hinge loops) else -1.
         target_pose: world pose of the target site at the start (fixture, socket or handle).
         hinge_pose: world pose of the door hinge frame (hinge loops) else None.
+        closure: pose of the tool in the loop's target frame when closed (world for
+            fixtures and sockets, the robot's ``target_frame`` for robot-robot welds).
     """
 
     spec: mujoco.MjSpec
@@ -143,6 +147,7 @@ class Scene:
     door_qpos_adr: int
     target_pose: pin.SE3
     hinge_pose: pin.SE3 | None
+    closure: pin.SE3 | None = None
 
     def to_xml(self) -> str:
         """MJCF text of the simulated scene."""
@@ -215,7 +220,20 @@ def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_name
     tool = site_pose(model, data, TOOL_SITE)
 
     hinge_pose: pin.SE3 | None = None
-    if scenario.loop_type in ("weld", "point"):
+    closure: pin.SE3 | None = None  # robot-robot welds; else the target site's world pose (below)
+    if scenario.target_frame is not None:
+        if scenario.loop_type != "weld":
+            raise ValueError("a robot target frame needs a weld loop")
+        target_body = spec.body(scenario.target_frame)
+        if target_body is None:
+            raise KeyError(f"target link {scenario.target_frame!r} missing from the MuJoCo model")
+        bid = model.body(scenario.target_frame).id
+        body = pin.SE3(data.xmat[bid].reshape(3, 3).copy(), data.xpos[bid].copy())
+        closure = body.actInv(tool)  # relpose: the tool in the target body at q0
+        target_body.add_site(
+            name=TARGET_SITE, pos=closure.translation, quat=_quat_wxyz(closure.rotation), size=[0.01, 0.01, 0.01]
+        )
+    elif scenario.loop_type in ("weld", "point"):
         spec.worldbody.add_site(
             name=TARGET_SITE, pos=tool.translation, quat=_quat_wxyz(tool.rotation), size=[0.02, 0.02, 0.02]
         )
@@ -262,6 +280,9 @@ def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_name
     mujoco.mj_resetDataKeyframe(model, data, 0)
     mujoco.mj_forward(model, data)
     jnt_range = np.array([model.jnt_range[model.joint(jn).id] for jn in joint_names])
+    target_pose = site_pose(model, data, TARGET_SITE)
+    if closure is None and scenario.loop_type != "hinge":
+        closure = target_pose
     return Scene(
         spec=spec,
         model=model,
@@ -275,6 +296,7 @@ def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_name
         target_site=model.site(TARGET_SITE).id,
         eq_id=model.equality(LOOP_EQ).id,
         door_qpos_adr=door_adr,
-        target_pose=site_pose(model, data, TARGET_SITE),
+        target_pose=target_pose,
         hinge_pose=hinge_pose,
+        closure=closure,
     )
