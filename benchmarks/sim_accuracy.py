@@ -33,7 +33,7 @@ SETTINGS = {
     "gravity on, no gravity compensation": {"gravcomp": False},
 }
 LOOPS = {"panda_weld": "weld:frame=panda_hand_tcp,name=fixture", "ur5_socket": "point:frame=stylus_tip,name=socket",
-         "ur5_door": "hinge:frame=tool0,name=door"}
+         "ur5_door": "hinge:frame=tool0,name=door", "utah_hand": "weld:frame=finger_tip,to=thumb_tip,name=grasp"}
 
 
 def run(scenario: str, overrides: dict, n: int, seed: int) -> dict:

@@ -133,10 +133,10 @@ class CalibrationProblem:
             kin = self.frame_kinematics(state, theta, [fa, fb], jacobian, b.tau)
             TA, JA, RA = kin[fa]
             TB, JB, RB = kin[fb]
-            ev = b.loop.evaluate(TA, TB, values[sl])
             if not jacobian:
-                out.append(BlockEval(ev.r, None, None))
+                out.append(BlockEval(b.loop.residual(TA, TB, values[sl]), None, None))
                 continue
+            ev = b.loop.evaluate(TA, TB, values[sl])
             N, m = ev.r.shape
             Jv = np.zeros((N, m, state.model.nv))
             Jg = np.zeros((N, m, geo.size))

@@ -40,7 +40,7 @@ def _read_log(path: Path) -> tuple[list[str], np.ndarray]:
 
 
 def test_scenarios_registry():
-    assert {"panda_weld", "ur5_socket", "ur5_door"} <= set(SCENARIOS)
+    assert {"panda_weld", "ur5_socket", "ur5_door", "utah_hand"} <= set(SCENARIOS)
     for sc in SCENARIOS.values():
         assert sc.description and "\n" not in sc.description
 
@@ -87,6 +87,7 @@ def test_truth_names(stiff_run):
     truth = json.loads(res.truth_path.read_text())
     assert truth["scenario"] == name and truth["seed"] == 0
     assert truth["loop"] == {**truth["loop"], "type": sc.loop_type, "frame": sc.tool_frame, "name": sc.loop_name}
+    assert truth["loop"].get("to") == sc.target_frame
     params = truth["parameters"]
     expected = set(identifiable_parameters(res.nominal_path, sc, res.joint_names))
     comps = {"point": ("px", "py", "pz", "tip_x", "tip_y", "tip_z"), "weld": ("x", "y", "z", "rx", "ry", "rz"),
@@ -94,7 +95,10 @@ def test_truth_names(stiff_run):
     expected |= {f"{sc.loop_name}.{c}" for c in comps}
     assert set(params) == expected
     first = res.joint_names[0]
-    assert not any(k.startswith(first + ".") for k in params)
+    # the first joint's placement is the base gauge; welded to the world its offset is too, but in a
+    # loop between two branches of the robot (hand) it is not (the other branch's placement absorbs it)
+    assert not any(k.startswith(first + ".") and (sc.target_frame is None or k != first + ".offset")
+                   for k in params)
     for k, v in params.items():
         if k.endswith((".x", ".y", ".z")) and not k.startswith(sc.loop_name + "."):
             assert abs(v) <= 0.002
@@ -127,6 +131,8 @@ def test_true_closure_matches_true_kinematics(stiff_run):
     data = model.createData()
     pin.framesForwardKinematics(model, data, np.array(truth["q0"]))
     tool = data.oMf[model.getFrameId(sc.tool_frame)]
+    if sc.target_frame is not None:  # welded to another robot frame: the tool in that frame
+        tool = data.oMf[model.getFrameId(sc.target_frame)].actInv(tool)
     p = truth["parameters"]
     if sc.loop_type == "hinge":
         from closedloop.sims.scene import _door_hinge_pose

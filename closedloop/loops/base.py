@@ -73,5 +73,9 @@ class Loop(ABC):
         """A canonical form of the loop's parameters (e.g. rotation vectors within pi)."""
         return p
 
+    def residual(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The residual alone (N, m); loops override it when that is cheaper than `evaluate`."""
+        return self.evaluate(TA, TB, p).r
+
     def describe(self) -> dict:
         return {"name": self.name, "type": type(self).__name__, "frame_a": self.frame_a, "frame_b": self.frame_b}

@@ -79,6 +79,10 @@ class WeldLoop(Loop):
             return self.known
         return pin.SE3(pin.exp3(p[3:6]), p[0:3].copy())
 
+    def residual(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> np.ndarray:
+        E = self.closure(p).inverse().homogeneous @ (rigid_inverse(TB) @ TA)
+        return np.array([pin.log6(pin.SE3(Ei)).vector for Ei in E]).reshape(-1, 6)
+
     def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
         N = TA.shape[0]
         X = self.closure(p)
