@@ -187,7 +187,9 @@ def cmd_inspect(args) -> int:
     for n, t in info["unsupported_joints"].items():
         print(f"  {n:<24} {t} (not calibrated)")
     print(f"frames: {', '.join(info['frames'])}")
-    print(f"parameters per joint: {', '.join(p.split('.', 1)[1] for p in info['parameters'][:8])}")
+    first = info["joints"][0]["name"] if info["joints"] else ""
+    fields = [p.split(".", 1)[1] for p in info["parameters"] if p.split(".", 1)[0] == first]
+    print(f"parameters per joint (<joint>.<field>): {', '.join(fields)}")
     return 0
 
 
