@@ -76,7 +76,8 @@ def test_violation_small_with_stiff_loop(stiff_run):
 def test_every_loop_joint_moves(stiff_run):
     name, res, _ = stiff_run
     span = res.q_true.max(axis=0) - res.q_true.min(axis=0)
-    assert np.all(span > 0.1), dict(zip(res.joint_names, span.round(3)))
+    assert np.all(span > SCENARIOS[name].min_joint_range), dict(zip(res.joint_names, span.round(3)))
+    assert np.sum(span > 0.1) >= len(span) - 2  # at most two joints below 0.1 rad (the hand's, see scenarios.py)
     if SCENARIOS[name].loop_type == "hinge":
         assert np.ptp(res.door_angle) > 0.1
 
