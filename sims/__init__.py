@@ -2,10 +2,12 @@
 
 A scenario draws a *true* robot (nominal + random joint placement errors and
 sensor offsets), closes its kinematic loop in MuJoCo with an equality
-constraint (weld to a fixture, ball socket, or a hinged door's handle), drives
-the robot with its *nominal* model along the nominal loop's self-motion (QP
-differential IK), and records joint readings at quasi-static points, as in
-Bennett & Hollerbach (1991), thesis ch. 3.5.
+constraint (weld to a fixture, ball socket, a hinged door's handle, or a puck
+sliding on a plane), drives the robot with its *nominal* model along the
+nominal loop's self-motion (QP differential IK), and records joint readings at
+quasi-static points, as in Bennett & Hollerbach (1991), thesis ch. 3.5.  The
+open-loop scenario (``ur5_tracker``, thesis 3.2) has no constraint: the robot
+goes to random configurations and an external tracker measures its tool point.
 
 Public API::
 
@@ -16,11 +18,14 @@ See :func:`simulate` for the outputs and :class:`SimSettings` for the settings.
 """
 
 from .dataset import SimResult, sensor_readings, simulate
-from .scenarios import SCENARIOS, DoorGeometry, Scenario, SimSettings, draw_errors, perturbable_parameters
+from .scenarios import (SCENARIOS, DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry, draw_errors,
+                        perturbable_parameters)
 
 __all__ = [
     "SCENARIOS",
     "DoorGeometry",
+    "PlaneGeometry",
+    "TrackerGeometry",
     "Scenario",
     "SimResult",
     "SimSettings",

@@ -20,6 +20,14 @@ Pipeline of :func:`simulate`:
 Sensor model: ``reading = Q((q_true - offset) / scale + N(0, noise))`` with
 ``Q(x) = quantum * round(x / quantum)`` (identity if quantum is 0).
 
+Loops without a constraint (``measured_point``, thesis 3.2): step 4 draws random
+configurations of the nominal model instead of a self-motion, and step 6 also
+records the external tracker's measurement of the tool point in its own frame,
+``X^-1 p_tool + N(0, tracker_noise^2 I)`` (log columns ``<loop>:x .y .z``; the
+"violation" columns hold the measurement error).  The plane, the tracker pose and
+the tracker noise come from a fourth random stream, so the other scenarios' draws
+are unchanged.
+
 Outputs in ``out_dir``: ``log.csv``, ``nominal.urdf``, ``truth.json``, ``scene.xml``.
 """
 
@@ -40,7 +48,7 @@ import pinocchio as pin
 
 from closedloop.models import nominal_urdf
 
-from .driver import NominalLoop, NominalLoopPlanner
+from .driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
 from .scenarios import SCENARIOS, Scenario, SimSettings, draw_errors, identifiable_parameters
 from .scene import Scene, build_scene, site_pose, true_urdf
 
@@ -155,6 +163,16 @@ def _pose_params(prefix: str, pose: pin.SE3, rotation: bool = True) -> dict[str,
     return {f"{prefix}.{c}": float(v) for c, v in zip(_COMPS, vals)}
 
 
+def _plane_params(prefix: str, plane: pin.SE3) -> dict[str, float]:
+    """``PlaneLoop`` parameters of a plane frame (z = normal, n_z > 0) with the reference normal e_z."""
+    from closedloop.loops.plane import PlaneLoop
+
+    n = plane.rotation[:, 2]
+    w = PlaneLoop(prefix, "tool").angles(n)
+    return {f"{prefix}.nrx": float(w[0]), f"{prefix}.nry": float(w[1]),
+            f"{prefix}.d": float(n @ plane.translation)}
+
+
 def _settle(scene: Scene, ctrl_from: np.ndarray, ctrl_to: np.ndarray, s: SimSettings) -> tuple[bool, int]:
     """Ramp the servo commands, then step until quasi-static; returns (settled, steps)."""
     m, d = scene.model, scene.data
@@ -216,6 +234,9 @@ def simulate(
 
     ss = np.random.SeedSequence(seed)
     rng_truth, rng_plan, rng_noise = (np.random.default_rng(c) for c in ss.spawn(3))
+    # the environment of the new loop types (plane, tracker pose, tracker noise): a fourth stream, so
+    # the older scenarios' draws are unchanged
+    rng_env = np.random.default_rng(ss.spawn(1)[0]) if sc.loop_type in ("plane", "measured_point") else None
 
     # 1. nominal model
     urdf_nom = nominal_urdf(sc.robot)
@@ -241,19 +262,26 @@ def simulate(
 
     # 3. scene, closed at the true grasp configuration
     q0 = np.asarray(sc.q0, dtype=float)
-    scene = build_scene(urdf_true, sc, settings, joint_names, q0)
+    scene = build_scene(urdf_true, sc, settings, joint_names, q0, rng=rng_env)
     (out / "scene.xml").write_text(scene.to_xml())
     m, d = scene.model, scene.data
 
     # 4. the robot's nominal loop and planner
     r0 = sensor_readings(q0, offset, scale, settings.noise, settings.quantization, rng_noise)
     door_range = sc.door.angle_range if sc.door else (-0.6, 0.6)
-    loop = NominalLoop(pmodel, sc.tool_frame, sc.loop_type, r0, hinge=scene.hinge_pose, door_range=door_range,
-                       target_frame=sc.target_frame)
-    planner = NominalLoopPlanner(
-        loop, loop.full_q(r0), rng_plan, step_rad=settings.step_rad, margin=settings.limit_margin,
-        target_span=settings.target_span, retarget_every=settings.retarget_every,
-    )
+    planner: NominalLoopPlanner | RandomConfigurations
+    if sc.loop_type == "measured_point":  # open loop: random configurations of the nominal model
+        planner = RandomConfigurations(pmodel, r0, rng_plan, margin=settings.limit_margin,
+                                       target_span=settings.target_span)
+    else:
+        normal = scene.plane_pose.rotation[:, 2] if scene.plane_pose is not None else None
+        loop = NominalLoop(pmodel, sc.tool_frame, sc.loop_type, r0, hinge=scene.hinge_pose, door_range=door_range,
+                           target_frame=sc.target_frame, normal=normal)
+        planner = NominalLoopPlanner(
+            loop, loop.full_q(r0), rng_plan, step_rad=settings.step_rad, margin=settings.limit_margin,
+            target_span=settings.target_span, retarget_every=settings.retarget_every,
+        )
+    tracker = scene.target_pose if sc.loop_type == "measured_point" else None
 
     # 5-6. track and record
     readings = np.zeros((n, nj))
@@ -263,6 +291,7 @@ def simulate(
     viol_rad = np.zeros(n)
     force = np.zeros(n)
     door = np.zeros(n) if sc.loop_type == "hinge" else np.zeros(0)
+    meas = np.zeros((n, 3)) if tracker is not None else np.zeros((0, 3))
     ctrl = d.ctrl[scene.actuator_ids].copy()
     lo, hi = scene.jnt_range[:, 0], scene.jnt_range[:, 1]
     limited = m.jnt_limited[[m.joint(j).id for j in joint_names]].astype(bool)
@@ -296,7 +325,14 @@ def simulate(
         readings[done] = sensor_readings(q + settings.compliance * tau[done], offset, scale, settings.noise,
                                          settings.quantization, rng_noise)
         q_true[done] = q
-        viol_m[done], viol_rad[done] = _violation(scene, sc.loop_type == "point")
+        if tracker is not None:
+            # the tracker measures the true tool point in its frame; the "violation" of this
+            # loop is the measurement error
+            tip = site_pose(m, d, scene.tool_site).translation
+            meas[done] = tracker.actInv(tip) + rng_env.normal(0.0, settings.tracker_noise, 3)
+            viol_m[done] = float(np.linalg.norm(meas[done] - tracker.actInv(tip)))
+        else:
+            viol_m[done], viol_rad[done] = _violation(scene, sc.loop_type in ("point", "plane"))
         force[done] = _constraint_force(scene)
         if door.size:
             door[done] = d.qpos[scene.door_qpos_adr]
@@ -308,14 +344,15 @@ def simulate(
         log.warning("%s: only %d of %d samples recorded (%d dropped)", scenario, done, n, dropped)
         readings, q_true, tau = readings[:done], q_true[:done], tau[:done]
         viol_m, viol_rad, force = viol_m[:done], viol_rad[:done], force[:done]
-        door = door[:done]
+        door, meas = door[:done], meas[:done]
     log.info(
         "%s: %d samples, %d dropped, %d steps, %d QP solves, %.2f s (%.0f configs/s)",
         scenario, done, dropped, total_steps, planner.stats.qp_solves, elapsed, done / max(elapsed, 1e-12),
     )
 
     # outputs
-    _write_log(out / "log.csv", joint_names, readings, tau, viol_m, viol_rad, force, door)
+    measured = {f"{sc.loop_name}:{a}": meas[:, k] for k, a in enumerate("xyz")} if tracker is not None else {}
+    _write_log(out / "log.csv", joint_names, readings, tau, viol_m, viol_rad, force, door, measured)
     params = dict(values)
     if settings.compliance > 0.0:
         params.update({f"{j}.compliance": float(settings.compliance) for j in joint_names})
@@ -325,6 +362,12 @@ def simulate(
         params.update({f"{sc.loop_name}.tip_{a}": 0.0 for a in "xyz"})
     elif sc.loop_type == "weld":  # the tool in the fixture (world) or in the robot's target frame
         params.update(_pose_params(sc.loop_name, scene.closure))
+    elif sc.loop_type == "measured_point":  # MeasuredPointLoop: tracker frame in the base, tip in the tool
+        params.update(_pose_params(sc.loop_name, tracker))
+        params.update({f"{sc.loop_name}.tip_{a}": 0.0 for a in "xyz"})
+    elif sc.loop_type == "plane":  # PlaneLoop with its default (fixed) reference normal e_z
+        params.update(_plane_params(sc.loop_name, scene.plane_pose))
+        params.update({f"{sc.loop_name}.tip_{a}": 0.0 for a in "xyz"})
     # hinge: the HingeLoop's chart is relative to a reference axis fitted from data, so its
     # parameters are not comparable with a fixed truth; truth.json gives the true axis instead
     # (loop.hinge_axis) and `closedloop check` compares the robot parameters.
@@ -337,13 +380,22 @@ def simulate(
             "direction": [float(v) for v in scene.hinge_pose.rotation[:, 2]],
             "frame": _pose_params("hinge", scene.hinge_pose),
         }
+    if scene.plane_pose is not None:
+        loop_info["plane"] = {
+            "point": [float(v) for v in scene.plane_pose.translation],
+            "normal": [float(v) for v in scene.plane_pose.rotation[:, 2]],
+            "frame": _pose_params("plane", scene.plane_pose),
+        }
+    if tracker is not None:
+        loop_info["tracker"] = {"frame": _pose_params(sc.loop_name, tracker), "noise_m": float(settings.tracker_noise),
+                                "columns": list(measured)}
     rms = lambda a: float(np.sqrt(np.mean(a**2))) if a.size else 0.0  # noqa: E731
     truth = {
         "scenario": sc.name,
         "seed": int(seed),
         "robot": sc.robot,
         "joint_names": joint_names,
-        "settings": settings.as_dict(),
+        "settings": settings.as_dict(sc.loop_type),
         "loop": loop_info,
         "q0": [float(v) for v in q0],
         "parameters": params,
@@ -372,11 +424,14 @@ def _write_log(
     viol_rad: np.ndarray,
     force: np.ndarray,
     door: np.ndarray,
+    measured: dict[str, np.ndarray] | None = None,
 ) -> None:
-    """Write the calibration log: joint readings first, then diagnostic columns."""
+    """Write the calibration log: joint readings first, then diagnostic columns, then measurements."""
+    measured = measured or {}
     header = list(joint_names) + [f"tau:{j}" for j in joint_names] + ["violation_m", "violation_rad", "constraint_force_n"]
     if door.size:
         header.append("door_angle")
+    header += list(measured)
     with path.open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(header)
@@ -385,4 +440,5 @@ def _write_log(
             row += [repr(float(viol_m[i])), repr(float(viol_rad[i])), repr(float(force[i]))]
             if door.size:
                 row.append(repr(float(door[i])))
+            row += [repr(float(col[i])) for col in measured.values()]
             w.writerow(row)

@@ -17,7 +17,13 @@ The nominal loop constraint is ``e(q) = 0`` with
 
 * weld/hinge: ``e = log6(oMh^-1 oMt)`` (6 rows), ``de/dq = Jlog6(hMt) (J_t - Ad(tMh) J_h)``
   with ``J_t, J_h`` the LOCAL frame Jacobians of tool and handle;
-* point: ``e = p_t - p`` (3 rows), ``de/dq = R_t J_t[:3]``.
+* point: ``e = p_t - p`` (3 rows), ``de/dq = R_t J_t[:3]``;
+* plane: ``e = n . p_t - d`` (1 row), ``de/dq = n^T R_t J_t[:3]``: the tip on the
+  plane of unit normal ``n`` through the nominal tip at the grasp (``d = n . p_0``);
+  the robot is given the plane's normal (the planned motion is a 5-DOF self-motion).
+
+A measured (open) loop has no constraint: :class:`RandomConfigurations` draws
+random targets in the nominal joint space instead.
 
 One planning step (:meth:`NominalLoopPlanner.step`) solves the QP (qpsolvers, OSQP)
 
@@ -47,7 +53,7 @@ from qpsolvers import solve_qp
 
 from .scenarios import LoopType
 
-__all__ = ["NominalLoop", "NominalLoopPlanner"]
+__all__ = ["NominalLoop", "NominalLoopPlanner", "RandomConfigurations"]
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +71,7 @@ class NominalLoop:
         hinge: world pose of the door hinge frame (hinge loops).
         door_range: door joint limits (hinge loops).
         target_frame: weld loops: robot frame the tool is welded to (``None``: the world).
+        normal: plane loops: unit normal of the plane (world frame).
     """
 
     def __init__(
@@ -76,6 +83,7 @@ class NominalLoop:
         hinge: pin.SE3 | None = None,
         door_range: tuple[float, float] = (-0.6, 0.6),
         target_frame: str | None = None,
+        normal: np.ndarray | None = None,
     ) -> None:
         self.model = pin.Model(model)
         self.loop_type = loop_type
@@ -114,6 +122,11 @@ class NominalLoop:
         else:
             self.target = self.model.addFrame(pin.Frame("loop_target", 0, oMt0, pin.FrameType.OP_FRAME))
         self.point = oMt0.translation.copy()
+        if loop_type == "plane":
+            if normal is None:
+                raise ValueError("plane loops need the plane normal")
+            self.normal = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
+            self.d = float(self.normal @ self.point)
         self.data = self.model.createData()
         self.nq = self.model.nq
         self.lower = self.model.lowerPositionLimit.copy()
@@ -122,7 +135,7 @@ class NominalLoop:
     @property
     def n_constraints(self) -> int:
         """Number of rows of ``e``."""
-        return 3 if self.loop_type == "point" else 6
+        return {"point": 3, "plane": 1}.get(self.loop_type, 6)
 
     def full_q(self, r: np.ndarray, door: float = 0.0) -> np.ndarray:
         """Planning vector from arm readings (and door angle for hinge loops)."""
@@ -137,6 +150,9 @@ class NominalLoop:
         jt = pin.getFrameJacobian(m, d, self.tool, pin.ReferenceFrame.LOCAL)
         if self.loop_type == "point":
             return oMt.translation - self.point, oMt.rotation @ jt[:3]
+        if self.loop_type == "plane":
+            e = np.array([self.normal @ oMt.translation - self.d])
+            return e, (self.normal @ oMt.rotation @ jt[:3])[None, :]
         oMh = d.oMf[self.target]
         hMt = oMh.actInv(oMt)
         jh = pin.getFrameJacobian(m, d, self.target, pin.ReferenceFrame.LOCAL)
@@ -283,3 +299,31 @@ class NominalLoopPlanner:
             return self.q.copy()
         log.debug("planner stalled; repeating waypoint")
         return self.q.copy()
+
+
+class RandomConfigurations:
+    """Waypoints of a robot without a loop (measured loops): random configurations.
+
+    Each :meth:`step` returns a target drawn uniformly in the NOMINAL joint space:
+    within the nominal limits less ``margin`` and within ``q_start +/- target_span``.
+
+    Args:
+        model: nominal robot model.
+        q_start: start configuration (readings at the start).
+        rng: random generator.
+        margin: distance kept from joint limits.
+        target_span: targets are drawn within ``q_start +/- target_span``.
+    """
+
+    def __init__(self, model: pin.Model, q_start: np.ndarray, rng: np.random.Generator, margin: float = 0.1,
+                 target_span: float = 1.5) -> None:
+        q = np.asarray(q_start, dtype=float)
+        self.rng = rng
+        self.lo = np.minimum(np.maximum(model.lowerPositionLimit + margin, q - target_span), q)
+        self.hi = np.maximum(np.minimum(model.upperPositionLimit - margin, q + target_span), q)
+        self.stats = PlannerStats()
+
+    def step(self) -> np.ndarray:
+        """A new random configuration (arm joints)."""
+        self.stats.retargets += 1
+        return self.rng.uniform(self.lo, self.hi)

@@ -23,6 +23,25 @@ Loop types (the MuJoCo equality constraint that closes the loop):
     on the arm).  Closure parameters ``<loop>.x ... .rz``: pose of the tool frame
     in the world when the door angle is zero; the hinge axis is in ``truth.json``
     under ``loop.hinge_axis``.
+``plane``
+    The tool point (stylus tip) touches an unknown plane: it is connected
+    (MuJoCo ``connect``) to the centre of a passive *puck* that slides on the
+    plane (two slide joints spanning it) and turns freely (ball joint), so the
+    tip keeps 5 DOF and loses one (the distance to the plane).  The plane is
+    tilted and placed at a pose drawn per seed, through the true tip at ``q0``.
+    Closure parameters (names of ``closedloop.loops.PlaneLoop`` with its default
+    reference normal e_z): ``<loop>.tip_x .tip_y .tip_z`` (0: the stylus tip),
+    ``<loop>.nrx .nry`` (normal n = exp3([nrx, nry, 0]) e_z, n_z > 0) and
+    ``<loop>.d`` (= n . p for every point p of the plane, world frame); the
+    plane is also given as point + normal in ``truth.json`` under ``loop.plane``.
+``measured_point``
+    No loop constraint (open loop, thesis 3.2): the robot moves freely to random
+    configurations and an external tracker at an unknown pose (drawn per seed)
+    measures the tool point in its own frame with Gaussian noise (setting
+    ``tracker_noise``).  Log columns ``<loop>:x .y .z``; closure parameters
+    (names of ``closedloop.loops.MeasuredPointLoop``): ``<loop>.x .y .z .rx .ry
+    .rz`` pose of the tracker frame in the robot base (world), ``<loop>.tip_x
+    .tip_y .tip_z`` the measured point in the tool frame (0: the stylus tip).
 
 Truth model (:func:`perturbable_parameters`, :func:`draw_errors`): the true
 robot equals the nominal one plus uniform random errors, per parameter kind
@@ -50,12 +69,15 @@ __all__ = [
     "LoopType",
     "SimSettings",
     "Scenario",
+    "DoorGeometry",
+    "PlaneGeometry",
+    "TrackerGeometry",
     "SCENARIOS",
     "perturbable_parameters",
     "draw_errors",
 ]
 
-LoopType = Literal["weld", "point", "hinge"]
+LoopType = Literal["weld", "point", "hinge", "plane", "measured_point"]
 
 _COMPONENTS = ("x", "y", "z", "rx", "ry", "rz")
 
@@ -119,6 +141,8 @@ class SimSettings:
             is what biases a purely geometric calibration (identify
             ``compliance`` to remove it).
         noise: standard deviation of Gaussian reading noise [rad] (default 0).
+        tracker_noise: standard deviation of the Gaussian noise of each measured
+            coordinate of an external tracker (``measured_point`` loops) [m].
         quantization: reading quantum [rad]; 0 disables quantization (default).
             ``reading = round(((q - offset) / scale + N(0, noise)) / quantum) * quantum``.
     """
@@ -150,6 +174,11 @@ class SimSettings:
     compliance: float = 0.0
     noise: float = 0.0
     quantization: float = 0.0
+    tracker_noise: float = 1e-5
+
+    #: settings written to truth.json only for the loop types that use them (the
+    #: other scenarios' truth.json stays as it was)
+    LOOP_SPECIFIC = {"tracker_noise": ("measured_point",)}
 
     @classmethod
     def stiff(cls, **kw: Any) -> "SimSettings":
@@ -172,9 +201,14 @@ class SimSettings:
             fixed[k] = tuple(v) if isinstance(v, list) else v
         return dataclasses.replace(self, **fixed)
 
-    def as_dict(self) -> dict[str, Any]:
-        """JSON-friendly dict of the settings."""
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items()}
+    def as_dict(self, loop_type: str | None = None) -> dict[str, Any]:
+        """JSON-friendly dict of the settings (with ``loop_type``: only the settings that loop type uses)."""
+        out = {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items()}
+        if loop_type is not None:
+            for k, types in self.LOOP_SPECIFIC.items():
+                if loop_type not in types:
+                    out.pop(k, None)
+        return out
 
 
 @dataclass(frozen=True)
@@ -196,6 +230,37 @@ class DoorGeometry:
 
 
 @dataclass(frozen=True)
+class PlaneGeometry:
+    """Draw of the unknown plane (plane loops), per seed.
+
+    The plane passes through the true tool point at ``q0``; its normal is the
+    world z axis tilted by an angle drawn in ``tilt`` about a random horizontal
+    axis, and its in-plane axes are turned by a random angle about the normal.
+
+    Attributes:
+        tilt: range of the tilt of the normal from the world z axis [rad].
+        puck_mass: mass of the passive puck [kg] (gravity-compensated with the robot).
+        slide_range: travel of the puck along each in-plane axis [m].
+    """
+
+    tilt: tuple[float, float] = (0.2, 0.6)
+    puck_mass: float = 0.05
+    slide_range: float = 2.0
+
+
+@dataclass(frozen=True)
+class TrackerGeometry:
+    """Draw of the external tracker's frame (measured_point loops), per seed.
+
+    The tracker stands ``distance`` metres from the robot base at a random
+    azimuth and ``height`` metres up; its frame has a uniformly random orientation.
+    """
+
+    distance: tuple[float, float] = (1.5, 2.5)
+    height: tuple[float, float] = (0.0, 1.5)
+
+
+@dataclass(frozen=True)
 class Scenario:
     """A simulated closed-loop calibration experiment.
 
@@ -211,6 +276,8 @@ class Scenario:
         q0: true joint angles when the loop is closed (grasp configuration), Pinocchio order.
         settings: default settings.
         door: door geometry (hinge loops).
+        plane: plane draw (plane loops).
+        tracker: tracker draw (measured_point loops).
         min_joint_range: the smallest range every loop joint covers in a dataset
             (the coverage check of the tests) [rad].  0.1 by default; lower only
             where the closed mechanism itself hardly moves a joint (stated per
@@ -228,6 +295,8 @@ class Scenario:
     door: DoorGeometry | None = None
     target_frame: str | None = None
     min_joint_range: float = 0.1
+    plane: PlaneGeometry | None = None
+    tracker: TrackerGeometry | None = None
 
 
 SCENARIOS: dict[str, Scenario] = {
@@ -291,6 +360,34 @@ SCENARIOS: dict[str, Scenario] = {
                 min_steps=40, max_steps=2400, ramp_steps=16,
                 translation=5e-4, step_rad=0.1, target_span=1.0,
             ),
+        ),
+        Scenario(
+            name="ur5_plane",
+            description="6-DOF UR5 with its stylus tip on an unknown tilted plane (passive puck, 5-DOF self-motion).",
+            robot="ur5",
+            loop_type="plane",
+            loop_name="plane",
+            tool_frame="stylus_tip",
+            q0=(0.3, -1.3, 1.7, -1.9, -1.57, 0.2),
+            # The plane holds only one direction, so the compliant servos see a nearly free arm:
+            # kv 20 (about critical for the shoulder) settles it within the step bound (kv 6.3 left
+            # two thirds of the samples unsettled after 300 steps).
+            settings=SimSettings(step_rad=0.15, target_span=1.2, kv=20.0, max_steps=600),
+            plane=PlaneGeometry(),
+        ),
+        Scenario(
+            name="ur5_tracker",
+            description="6-DOF UR5 moving freely, its stylus tip measured by an external tracker (open loop).",
+            robot="ur5",
+            loop_type="measured_point",
+            loop_name="tracker",
+            tool_frame="stylus_tip",
+            q0=(0.3, -1.3, 1.7, -1.9, -1.57, 0.2),
+            # No loop to preload: stiffer, better damped servos settle the large free moves between
+            # random configurations quickly (the readings are of the settled true joints either way).
+            settings=SimSettings(kp=2000.0, kv=120.0, relax=False, ramp_steps=50, max_steps=2000,
+                                 target_span=2.5),
+            tracker=TrackerGeometry(),
         ),
     )
 }
@@ -366,9 +463,45 @@ def identifiable_parameters(nominal_path, sc: "Scenario", joint_names: list[str]
         return perturbable_parameters(model, joint_names, scale=scale)
     robot = RobotModel.from_file(nominal_path)
     identify = ["placement", "offset", "loop"] + (["scale"] if scale else [])
-    names = identifiable_names(robot, [loop], np.asarray(sc.q0, dtype=float)[None, :],
-                               CalibrationOptions(identify=identify))
+    if sc.loop_type == "measured_point":
+        names = _measured_identifiable_names(robot, loop, CalibrationOptions(identify=identify))
+    else:
+        names = identifiable_names(robot, [loop], np.asarray(sc.q0, dtype=float)[None, :],
+                                   CalibrationOptions(identify=identify))
     return [n for n in names if n.rsplit(".", 1)[0] in joint_names]
+
+
+def _measured_identifiable_names(robot, loop, options, n: int = 40, seed: int = 0) -> list[str]:
+    """Names `calibrate` estimates for a measured (open) loop, on nominal data.
+
+    `closedloop.truth.identifiable_names` walks the loop's self-motion from one
+    configuration, which an open loop does not have (every configuration is
+    allowed, and the measurements are log columns it cannot make up).  Instead:
+    ``n`` random configurations within the nominal joint limits (fixed seed),
+    the nominal tool point measured exactly by a tracker at the identity pose,
+    and the core's own reduction on that data.
+    """
+    from closedloop.calibration import calibrate
+    from closedloop.data import JointLog
+
+    model = robot.model
+    data = model.createData()
+    rng = np.random.default_rng(seed)
+    lo = np.maximum(model.lowerPositionLimit, -np.pi)
+    hi = np.minimum(model.upperPositionLimit, np.pi)
+    q = rng.uniform(lo, hi, size=(n, model.nq))
+    fid = model.getFrameId(loop.frame_a)
+    pts = np.empty((n, 3))
+    for i in range(n):
+        pin.framesForwardKinematics(model, data, q[i])
+        pts[i] = data.oMf[fid].translation
+    joints = list(robot.joint_names)
+    extra = {c: pts[:, k] for k, c in enumerate(loop.columns())}
+    res = calibrate(robot, JointLog(joints, q, None, None, extra), [loop], options)
+    return [n_ for n_, s in zip(res.names, res.status) if s == "estimated" and not n_.startswith(loop.name + ".")]
+
+
+_GENERIC_PLANE_NORMAL = np.array([0.3, -0.2, 0.93])
 
 
 def core_loop(sc: "Scenario", nominal_path=None):
@@ -379,6 +512,17 @@ def core_loop(sc: "Scenario", nominal_path=None):
     """
     from closedloop.loops import HingeLoop, PointLoop, WeldLoop
 
+    if sc.loop_type == "plane":
+        from closedloop.loops.plane import PlaneLoop
+
+        # A generic tilted normal: `identifiable_names` starts from one point, where the plane gets the
+        # reference normal; a horizontal plane (e_z, parallel to the UR5's first axis) hides more than
+        # the tilted planes the scenario draws (the names only depend on the plane being generic).
+        return PlaneLoop(sc.loop_name, sc.tool_frame, normal=_GENERIC_PLANE_NORMAL)
+    if sc.loop_type == "measured_point":
+        from closedloop.loops.measured import MeasuredPointLoop
+
+        return MeasuredPointLoop(sc.loop_name, sc.tool_frame)
     if sc.loop_type == "weld":
         return WeldLoop(sc.loop_name, sc.tool_frame, sc.target_frame or "universe")
     if sc.loop_type == "point":

@@ -14,7 +14,11 @@ sensor properties applied by the sensor model.
 * the loop: a ``weld`` between the tool site and a world fixture site (or a
   site on another body of the robot, the scenario's ``target_frame``), a
   ``connect`` between the stylus-tip site and a world socket site, or a ``weld``
-  between the tool site and the handle site of a hinged door (``models/door.xml``);
+  between the tool site and the handle site of a hinged door (``models/door.xml``),
+  a ``connect`` between the stylus-tip site and the centre of a passive puck
+  that slides on a tilted plane (two slide joints and a ball joint; plane
+  loops), or, for a measured (open) loop, no constraint but a world site at the
+  external tracker's frame;
 * physics options (timestep, integrator, gravity; contacts disabled).
 
 The loop is built *closed* at the true grasp configuration ``q0``: the fixture,
@@ -38,7 +42,7 @@ import pinocchio as pin
 
 from closedloop.models import model_file
 
-from .scenarios import DoorGeometry, Scenario, SimSettings
+from .scenarios import DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
 
 __all__ = ["Scene", "apply_placement_errors", "true_urdf", "build_scene", "site_pose"]
 
@@ -53,6 +57,7 @@ TARGET_SITE = "loop_target"
 LOOP_EQ = "loop"
 DOOR_PREFIX = "door_"
 DOOR_JOINT = DOOR_PREFIX + "hinge"
+PUCK_PREFIX = "puck_"
 
 
 def _vec(s: str | None) -> np.ndarray:
@@ -125,12 +130,14 @@ class Scene:
         actuator_ids: servo of each arm joint.
         jnt_range: (n, 2) true joint limits.
         tool_site, target_site: site ids of the loop's two sides.
-        eq_id: id of the loop equality constraint.
+        eq_id: id of the loop equality constraint (-1: none, measured_point loops).
         door_qpos_adr: qpos address of the door hinge (hinge loops) else -1.
         target_pose: world pose of the target site at the start (fixture, socket or handle).
         hinge_pose: world pose of the door hinge frame (hinge loops) else None.
         closure: pose of the tool in the loop's target frame when closed (world for
-            fixtures and sockets, the robot's ``target_frame`` for robot-robot welds).
+            fixtures and sockets, the robot's ``target_frame`` for robot-robot welds);
+            measured_point loops: the tracker frame in the world; plane loops: None.
+        plane_pose: world pose of the plane frame (z = normal; plane loops) else None.
     """
 
     spec: mujoco.MjSpec
@@ -148,6 +155,7 @@ class Scene:
     target_pose: pin.SE3
     hinge_pose: pin.SE3 | None
     closure: pin.SE3 | None = None
+    plane_pose: pin.SE3 | None = None
 
     def to_xml(self) -> str:
         """MJCF text of the simulated scene."""
@@ -165,7 +173,56 @@ def _door_hinge_pose(tool: pin.SE3, geom: DoorGeometry) -> pin.SE3:
     return pin.SE3(rot, p - geom.radius * t)
 
 
-def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_names: list[str], q0: np.ndarray) -> Scene:
+def draw_plane(tool_point: np.ndarray, geom: PlaneGeometry, rng: np.random.Generator) -> pin.SE3:
+    """Plane frame (z = unit normal, n_z > 0) through ``tool_point``, see :class:`PlaneGeometry`."""
+    tilt = float(rng.uniform(*geom.tilt))
+    az = float(rng.uniform(-np.pi, np.pi))
+    spin = float(rng.uniform(-np.pi, np.pi))
+    axis = np.array([np.cos(az), np.sin(az), 0.0])
+    rot = pin.exp3(tilt * axis) @ pin.exp3(np.array([0.0, 0.0, spin]))
+    return pin.SE3(rot, np.asarray(tool_point, dtype=float).copy())
+
+
+def draw_tracker(geom: TrackerGeometry, rng: np.random.Generator) -> pin.SE3:
+    """Tracker frame in the world, see :class:`TrackerGeometry` (uniformly random orientation)."""
+    dist = float(rng.uniform(*geom.distance))
+    az = float(rng.uniform(-np.pi, np.pi))
+    h = float(rng.uniform(*geom.height))
+    quat = rng.normal(size=4)
+    quat /= np.linalg.norm(quat)
+    rot = pin.Quaternion(quat[0], quat[1], quat[2], quat[3]).normalized().matrix()
+    return pin.SE3(rot, np.array([dist * np.cos(az), dist * np.sin(az), h]))
+
+
+def _add_puck(spec: mujoco.MjSpec, plane: pin.SE3, geom: PlaneGeometry, gravcomp: bool) -> None:
+    """The passive puck: two slide joints along the plane's x and y axes, then a ball joint."""
+    frame = spec.worldbody.add_body(name=PUCK_PREFIX + "plane", pos=plane.translation,
+                                    quat=_quat_wxyz(plane.rotation))
+    m = geom.puck_mass
+    slider = frame.add_body(name=PUCK_PREFIX + "slider_x")
+    jx = slider.add_joint(name=PUCK_PREFIX + "x", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[1.0, 0.0, 0.0])
+    carriage = slider.add_body(name=PUCK_PREFIX + "slider_y")
+    jy = carriage.add_joint(name=PUCK_PREFIX + "y", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0.0, 1.0, 0.0])
+    puck = carriage.add_body(name=PUCK_PREFIX + "puck")
+    jb = puck.add_joint(name=PUCK_PREFIX + "ball", type=mujoco.mjtJoint.mjJNT_BALL)
+    for j in (jx, jy):
+        j.range = [-geom.slide_range, geom.slide_range]
+        j.limited = mujoco.mjtLimited.mjLIMITED_TRUE
+    for j in (jx, jy, jb):
+        j.armature = 1e-3
+        j.damping = np.full_like(np.atleast_1d(j.damping), 0.05)
+    for b in (slider, carriage, puck):
+        # a small sphere carries the mass (the saved XML keeps geoms, not a spec-only inertial)
+        g = b.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.01, 0.0, 0.0])
+        g.mass = m
+        g.contype = 0
+        g.conaffinity = 0
+        b.gravcomp = 1.0 if gravcomp else 0.0
+    puck.add_site(name=TARGET_SITE, size=[0.02, 0.02, 0.02])
+
+
+def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_names: list[str], q0: np.ndarray,
+                rng: np.random.Generator | None = None) -> Scene:
     """Build the MuJoCo scene of the true robot ``urdf`` with its loop closed at ``q0``.
 
     Args:
@@ -174,6 +231,7 @@ def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_name
         settings: physics settings.
         joint_names: arm joints in Pinocchio order (MuJoCo joints are matched by name).
         q0: true joint angles at which the loop is closed.
+        rng: draws the plane (plane loops) or the tracker pose (measured_point loops).
     """
     text = urdf.replace("</robot>", _MUJOCO_TAG + "</robot>")
     spec = mujoco.MjSpec.from_string(text)
@@ -220,6 +278,7 @@ def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_name
     tool = site_pose(model, data, TOOL_SITE)
 
     hinge_pose: pin.SE3 | None = None
+    plane_pose: pin.SE3 | None = None
     closure: pin.SE3 | None = None  # robot-robot welds; else the target site's world pose (below)
     if scenario.target_frame is not None:
         if scenario.loop_type != "weld":
@@ -247,17 +306,31 @@ def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_name
         spec.body(DOOR_PREFIX + "door").add_site(
             name=TARGET_SITE, pos=grasp.translation, quat=_quat_wxyz(grasp.rotation), size=[0.02, 0.02, 0.02]
         )
+    elif scenario.loop_type == "plane":
+        if rng is None:
+            raise ValueError("plane loops need a random generator for the plane")
+        plane_pose = draw_plane(tool.translation, scenario.plane or PlaneGeometry(), rng)
+        _add_puck(spec, plane_pose, scenario.plane or PlaneGeometry(), settings.gravcomp)
+    elif scenario.loop_type == "measured_point":
+        if rng is None:
+            raise ValueError("measured_point loops need a random generator for the tracker")
+        tracker_pose = draw_tracker(scenario.tracker or TrackerGeometry(), rng)
+        # the tracker's frame as a world site (no constraint: the loop is closed by the measurement)
+        spec.worldbody.add_site(name=TARGET_SITE, pos=tracker_pose.translation,
+                                quat=_quat_wxyz(tracker_pose.rotation), size=[0.05, 0.05, 0.05])
     else:
         raise ValueError(f"unknown loop type {scenario.loop_type!r}")
 
-    eq = spec.add_equality()
-    eq.name = LOOP_EQ
-    eq.type = mujoco.mjtEq.mjEQ_CONNECT if scenario.loop_type == "point" else mujoco.mjtEq.mjEQ_WELD
-    eq.objtype = mujoco.mjtObj.mjOBJ_SITE
-    eq.name1 = TOOL_SITE
-    eq.name2 = TARGET_SITE
-    eq.solref = list(settings.solref)
-    eq.solimp = list(settings.solimp)
+    eq = None if scenario.loop_type == "measured_point" else spec.add_equality()
+    if eq is not None:
+        eq.name = LOOP_EQ
+        eq.type = (mujoco.mjtEq.mjEQ_CONNECT if scenario.loop_type in ("point", "plane")
+                   else mujoco.mjtEq.mjEQ_WELD)
+        eq.objtype = mujoco.mjtObj.mjOBJ_SITE
+        eq.name1 = TOOL_SITE
+        eq.name2 = TARGET_SITE
+        eq.solref = list(settings.solref)
+        eq.solimp = list(settings.solimp)
 
     # start keyframe: closed loop at q0, servos holding q0
     key = spec.add_key()
@@ -281,7 +354,7 @@ def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_name
     mujoco.mj_forward(model, data)
     jnt_range = np.array([model.jnt_range[model.joint(jn).id] for jn in joint_names])
     target_pose = site_pose(model, data, TARGET_SITE)
-    if closure is None and scenario.loop_type != "hinge":
+    if closure is None and scenario.loop_type not in ("hinge", "plane"):
         closure = target_pose
     return Scene(
         spec=spec,
@@ -294,9 +367,10 @@ def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_name
         jnt_range=jnt_range,
         tool_site=model.site(TOOL_SITE).id,
         target_site=model.site(TARGET_SITE).id,
-        eq_id=model.equality(LOOP_EQ).id,
+        eq_id=model.equality(LOOP_EQ).id if eq is not None else -1,
         door_qpos_adr=door_adr,
         target_pose=target_pose,
         hinge_pose=hinge_pose,
         closure=closure,
+        plane_pose=plane_pose,
     )

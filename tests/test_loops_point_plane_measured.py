@@ -13,7 +13,7 @@ from closedloop.data import JointLog
 from closedloop.errors import LoopError
 from closedloop.loops.measured import MeasuredPointLoop, MeasuredPoseLoop, vec_of
 from closedloop.loops.plane import PlaneLoop
-from closedloop.loops.point import PointLoop
+from closedloop.loops.point import PointLoop, relative_point
 from closedloop.loops.spec import parse_loop
 from closedloop.problem import CalibrationProblem, LoopBlock
 from closedloop.robot import RobotModel
@@ -292,7 +292,9 @@ def test_measured_recovery(kind):
     assert not any("length scale" in n for n in res.notes)  # the sensor fixes the length
     dropped = dropped_names(res)
     assert {f"shoulder_pan_joint.{f}" for f in COLS} <= dropped  # absorbed by the sensor base
-    assert len(est) == (30 if kind == "pose" else 25)
+    # point: the tip (off the wrist_3 axis) is fitted before the identifiability analysis, so
+    # the tilt of that axis is kept (27, as with the full pose minus the 3 orientation-only ones)
+    assert len(est) == (30 if kind == "pose" else 27)
 
 
 def test_measured_point_noise_within_four_sigma():
@@ -311,6 +313,87 @@ def test_measured_point_initialize_rigid_fit():
     loop.bind(_measurements(prob, prob.nominal, th, "point"))
     TA, TB = prob.loop_poses(prob.nominal, 0)
     assert np.allclose(loop.initialize(TA, TB), vec_of(X_TRUE), atol=1e-10)
+
+
+UR10 = ERD + "ur_description/urdf/ur10_robot.urdf"
+UR10_TIP = np.array([0.03, -0.02, 0.15])  # off the wrist_3 axis (tool0's origin is on it)
+
+
+def _ur10_point_data(values, prob, th, tip=UR10_TIP):
+    TA, TB = prob.loop_poses(values, 0, th)
+    y, *_ = relative_point(TA, TB, tip)
+    z = np.array([X_TRUE.actInv(v) for v in y])
+    return {f"m:{c}": z[:, k].copy() for k, c in enumerate("xyz")}
+
+
+def test_measured_point_default_tip_fit_ur10():
+    """Default options, unknown tip: the tip is fitted before the identifiability analysis.
+
+    With the tip left at tool0's origin (on the wrist_3 axis), the tilt of that
+    axis (wrist_3_joint.rx; .rz is redundant with wrist_2_joint.offset anyway)
+    would look redundant and be dropped.  The initializer fits the sensor base
+    and the tip to all configurations at the nominal robot, so every
+    identifiable robot parameter is estimated (the same set as with the true
+    tip given as initial_tip) and recovered.
+    """
+    robot = robot_of(UR10)
+    joints = robot.supporting_joints("tool0")
+    rng = np.random.default_rng(3)
+    N = 60
+    th = rng.uniform(-np.pi, np.pi, (N, 6))
+    zeros = {f"m:{c}": np.zeros(N) for c in COLS[:3]}
+    prob = build_problem(robot, JointLog(joints, th, None, None, zeros), [MeasuredPointLoop("m", "tool0")])
+    opts = CalibrationOptions(noise=1e-9)  # the (known) joint noise: none
+    # the identifiable set, from nominal data with the true tip given as the starting value
+    ref = calibrate(robot, JointLog(joints, th, None, None, _ur10_point_data(prob.nominal, prob, th)),
+                    [MeasuredPointLoop("m", "tool0", initial_tip=UR10_TIP, sigma_t=1e-5)], opts)
+    names = [n for n, s in zip(ref.names, ref.status) if s == "estimated" and not n.startswith("m.")]
+    assert "wrist_3_joint.rx" in names and len(names) == 18  # + 9 (base, tip) = 27
+    truth = prob.nominal.copy()
+    for k, v in draw_truth(robot, names, rng).items():
+        truth[prob.index[k]] = v
+    data = _ur10_point_data(truth, prob, th)
+    res = calibrate(robot, JointLog(joints, th, None, None, data), [MeasuredPointLoop("m", "tool0", sigma_t=1e-5)],
+                    opts)
+    truth[prob.loop_slices[0]] = np.concatenate([vec_of(X_TRUE), UR10_TIP])
+    est, err = estimated_errors(res, dict(zip(prob.names, truth)))
+    estimated = {res.names[i] for i in est}
+    assert set(names) <= estimated and "wrist_3_joint.rx" in estimated
+    assert "wrist_3_joint.rx" not in dropped_names(res)
+    assert {"m.tip_x", "m.tip_y", "m.tip_z"} <= estimated
+    assert np.abs(err).max() < 1e-8
+
+
+def test_measured_initialize_fits_base_and_tool():
+    """At the nominal robot, initialize() recovers the unknown base and tip / tool frame exactly
+    from all configurations; an explicit initial_tip / initial_tool is kept as given."""
+    robot = robot_of(UR5)
+    joints = robot.supporting_joints("tool0")
+    th = np.random.default_rng(4).uniform(-1.5, 1.5, (12, 6))
+    for kind in ("point", "pose"):
+        cols = COLS if kind == "pose" else COLS[:3]
+        zeros = {f"m:{c}": np.zeros(12) for c in cols}
+        cls = MeasuredPoseLoop if kind == "pose" else MeasuredPointLoop
+        prob = build_problem(robot, JointLog(joints, th, None, None, zeros), [cls("m", "tool0")])
+        TA, TB = prob.loop_poses(prob.nominal, 0)
+        meas = _measurements(prob, prob.nominal, th, kind)
+        own = vec_of(Y_TRUE) if kind == "pose" else TIP_TRUE
+        loop = cls("m", "tool0")
+        loop.bind(meas)
+        p = loop.initialize(TA, TB)
+        assert np.allclose(p, np.concatenate([vec_of(X_TRUE), own]), atol=1e-9)
+        assert np.array_equal(p, loop.initialize(TA, TB))  # deterministic
+        # known base: only the tip / tool
+        loop = cls("m", "tool0", base=X_TRUE)
+        loop.bind(meas)
+        assert np.allclose(loop.initialize(TA, TB), own, atol=1e-9)
+        # explicit initial value: kept, only the base is fitted
+        guess = pin.SE3.Identity() if kind == "pose" else np.zeros(3)
+        loop = (MeasuredPoseLoop("m", "tool0", initial_tool=guess) if kind == "pose"
+                else MeasuredPointLoop("m", "tool0", initial_tip=guess))
+        loop.bind(meas)
+        p = loop.initialize(TA, TB)
+        assert np.allclose(p[6:], 0.0) and not np.allclose(p[:6], vec_of(X_TRUE), atol=1e-4)
 
 
 def test_measured_missing_column_is_an_error():

@@ -78,6 +78,66 @@ def _as_se3(X, what: str) -> pin.SE3:
     return pose_of(a)
 
 
+def _kabsch(m: np.ndarray, y: np.ndarray, R0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rigid fit y_i ~ R m_i + t (Kabsch / Horn); R0 when the points are (nearly) collinear."""
+    R = R0
+    if m.shape[0] >= 3:
+        cy, cm = y.mean(axis=0), m.mean(axis=0)
+        H = (m - cm).T @ (y - cy)
+        U, S, Vt = np.linalg.svd(H)
+        if S[1] > 1e-9 * max(S[0], 1e-300):
+            D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+            R = Vt.T @ D @ U.T
+        return R, cy - R @ cm
+    return R, y[0] - R @ m[0]
+
+
+def _project_so3(A: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(A)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+
+def _gauss_newton(loop: Loop, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, free: np.ndarray,
+                  iters: int = 30) -> np.ndarray:
+    """Refine the loop's own parameters ``p[free]`` with the robot held (TA, TB fixed).
+
+    Plain Gauss-Newton with minimum-norm (truncated SVD) steps, so a direction
+    the data do not determine stays at its starting value; a step is kept only
+    if it lowers the cost (else halved, at most 10 times).  Deterministic.
+    """
+    if loop.meas is None or loop.meas.shape[0] != TA.shape[0]:
+        return p  # evaluate() needs one measurement per configuration given
+
+    def cost_of(q):
+        r = loop.evaluate(TA, TB, q).r
+        return float(np.sum(r * r)) if np.all(np.isfinite(r)) else np.inf
+
+    cost = cost_of(p)
+    for _ in range(iters):
+        ev = loop.evaluate(TA, TB, p)
+        r = ev.r.reshape(-1)
+        J = ev.dp.reshape(r.size, -1)[:, free]
+        U, S, Vt = np.linalg.svd(J, full_matrices=False)
+        keep = S > 1e-9 * max(S[0] if S.size else 0.0, 1e-300)
+        step = -(Vt[keep].T @ ((U[:, keep].T @ r) / S[keep]))
+        lam = 1.0
+        for _h in range(10):
+            q = p.copy()
+            q[free] += lam * step
+            q = loop.normalize(q)
+            c = cost_of(q)
+            if c <= cost:
+                break
+            lam *= 0.5
+        else:
+            break
+        small = np.abs(lam * step).max() < 1e-13 or cost - c <= 1e-15 * max(cost, 1e-300)
+        p, cost = q, c
+        if small:
+            break
+    return p
+
+
 class _Measured(Loop):
     """Shared parts: the sensor base X, the measurement columns, the noise."""
 
@@ -171,6 +231,7 @@ class MeasuredPoseLoop(_Measured):
             raise LoopError(f"loop '{name}': give both sigma_t and sigma_r for a pose measurement, or neither")
         self.tool = None if tool is None else _as_se3(tool, "tool")
         self.initial_tool = pin.SE3.Identity() if initial_tool is None else _as_se3(initial_tool, "initial_tool")
+        self._fit_tool = initial_tool is None  # initialize() estimates an unknown tool with no initial value
         self.measurement_cov = (None if sigma_t is None else
                                 np.diag([sigma_t ** 2] * 3 + [sigma_r ** 2] * 3))
 
@@ -192,14 +253,58 @@ class MeasuredPoseLoop(_Measured):
         return pose_of(v), v
 
     def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
-        """The sensor base from the first configuration, X = T_B^-1 T_A Y M_1^-1 (Y: the initial tool)."""
-        if self.base is not None:
+        """The unknown sensor base X and tool frame Y fitted to every configuration given.
+
+        With W_i = T_B^-1 T_A at the nominal robot, W_i Y = X M_i.  When the
+        tool is unknown and no ``initial_tool`` was given, both are estimated:
+        the rotations from the null vector of R_Wi R_Y = R_X R_Mi (linear in
+        vec(R_X), vec(R_Y), robot-world hand-eye), the translations by linear
+        least squares, then a few Gauss-Newton steps on the loop residual.
+        Otherwise the tool stays at its given value and X starts from the
+        first configuration, X = W_1 Y M_1^-1, refined on all of them.
+        """
+        fit_tool = self.tool is None and self._fit_tool
+        if self.base is not None and not fit_tool:
             return None
-        M = self._measured_poses(self.meas[:1] if self.meas is not None else self._measurements(1))
+        N = TA.shape[0]
+        M = self._measured_poses(self.meas[:N] if self.meas is not None else self._measurements(N))
+        W = [pin.SE3(TB[i]).actInv(pin.SE3(TA[i])) for i in range(N)]
+        X = self.base if self.base is not None else None
         Y = self.tool if self.tool is not None else self.initial_tool
-        X = pin.SE3(TB[0]).actInv(pin.SE3(TA[0])) * Y * M[0].inverse()
-        out = vec_of(X)
-        return out if self.tool is not None else np.concatenate([out, vec_of(self.initial_tool)])
+        if fit_tool and X is None and N >= 2:
+            XY = self._hand_eye(W, M)
+            if XY is not None:
+                X, Y = XY
+        if X is None:
+            X = W[0] * Y * M[0].inverse()
+        elif fit_tool and self.base is not None:
+            Y = W[0].inverse() * X * M[0]
+        p = np.concatenate(([] if self.base is not None else [vec_of(X)])
+                           + ([] if self.tool is not None else [vec_of(Y)]))
+        free = np.arange(p.size) if fit_tool else np.arange(6)  # a given tool stays as given
+        return _gauss_newton(self, TA, TB, p, free)
+
+    @staticmethod
+    def _hand_eye(W: list[pin.SE3], M: list[pin.SE3]) -> tuple[pin.SE3, pin.SE3] | None:
+        """Closed-form X, Y of W_i Y = X M_i (None when the rotations do not determine them)."""
+        I3 = np.eye(3)
+        A = np.concatenate([np.hstack([np.kron(I3, w.rotation), -np.kron(m.rotation.T, I3)])
+                            for w, m in zip(W, M)])
+        _, S, Vt = np.linalg.svd(A)
+        if not S[-2] > 1e-6 * S[0]:
+            return None
+        v = Vt[-1]
+        RY, RX = v[:9].reshape(3, 3, order="F"), v[9:].reshape(3, 3, order="F")
+        if np.linalg.det(RY) < 0:
+            RY, RX = -RY, -RX
+        RY, RX = _project_so3(RY), _project_so3(RX)
+        # translations: R_Wi t_Y - t_X = R_X t_Mi - t_Wi
+        B = np.concatenate([np.hstack([w.rotation, -I3]) for w in W])
+        b = np.concatenate([RX @ m.translation - w.translation for w, m in zip(W, M)])
+        t, *_ = np.linalg.lstsq(B, b, rcond=1e-9)
+        if not np.all(np.isfinite(t)):
+            return None
+        return pin.SE3(RX, t[3:]), pin.SE3(RY, t[:3])
 
     @staticmethod
     def _measured_poses(m: np.ndarray) -> list[pin.SE3]:
@@ -273,6 +378,7 @@ class MeasuredPointLoop(_Measured):
         super().__init__(name, frame_a, frame_b, base, initial_base, sigma_t, None)
         self.tip = None if tip is None else _vec3(tip, "tip")
         self.initial_tip = np.zeros(3) if initial_tip is None else _vec3(initial_tip, "initial_tip")
+        self._fit_tip = initial_tip is None  # initialize() estimates an unknown tip with no initial value
         self.measurement_cov = None if sigma_t is None else sigma_t ** 2 * np.eye(3)
 
     @property
@@ -292,31 +398,49 @@ class MeasuredPointLoop(_Measured):
         return self.tip if self.tip is not None else p[k:k + 3]
 
     def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
-        """The sensor base fitted to the configurations given (initial tip).
+        """The unknown sensor base and tool point fitted to every configuration given.
 
-        Three or more non-collinear points: the rigid fit y_i = R m_i + t_X
-        (Kabsch / Horn).  Fewer: the initial base rotation, translated so that
-        the first point matches.
+        With the robot held at the configurations given, m_i = X^-1 T_i t
+        (T_i = T_B^-1 T_A).  The base: the rigid fit T_i t = R_X m_i + t_X
+        (Kabsch / Horn) of the measured points to the current tip positions;
+        fewer than three non-collinear points: the initial base rotation,
+        translated so that the first point matches.  When the tip is unknown
+        and no ``initial_tip`` was given, it is estimated as well (so that
+        identifiability is not decided with the tip at the frame origin, which
+        may lie on a joint axis): alternately the linear least squares
+        R_i t - t_X = R_X m_i - p_i (for t and t_X) and the rigid fit, then a
+        few Gauss-Newton steps on (X, t).  Otherwise the tip stays at its
+        given value.
         """
-        if self.base is not None:
+        fit_tip = self.tip is None and self._fit_tip
+        if self.base is not None and not fit_tip:
             return None
         N = TA.shape[0]
         m = (self.meas[:N] if self.meas is not None else self._measurements(N))
         tip = self.tip if self.tip is not None else self.initial_tip
-        y, *_ = relative_point(TA, TB, tip)
-        R = self.initial_base.rotation
-        if N >= 3:
-            cy, cm = y.mean(axis=0), m.mean(axis=0)
-            H = (m - cm).T @ (y - cy)
-            U, S, Vt = np.linalg.svd(H)
-            if S[1] > 1e-9 * max(S[0], 1e-300):
-                D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-                R = Vt.T @ D @ U.T
-            t = cy - R @ cm
+        p0, RBA, *_ = relative_point(TA, TB, np.zeros(3))
+        if self.base is not None:
+            R, t = self.base.rotation, self.base.translation
         else:
-            t = y[0] - R @ m[0]
-        out = vec_of(pin.SE3(R, t))
-        return out if self.tip is not None else np.concatenate([out, self.initial_tip])
+            R, t = _kabsch(m, p0 + RBA @ tip, self.initial_base.rotation)
+        if fit_tip and N >= 3:
+            I3 = np.broadcast_to(np.eye(3), (N, 3, 3))
+            for _ in range(3):
+                # linear in (tip, t_X) given R_X: R_i tip - t_X = R_X m_i - p_i (min-norm change)
+                A = (np.concatenate([RBA, -I3], axis=2) if self.base is None else RBA).reshape(3 * N, -1)
+                x = np.concatenate([tip, t]) if self.base is None else tip
+                b = (m @ R.T - p0 + (0.0 if self.base is None else t)).reshape(-1)
+                dx, *_ = np.linalg.lstsq(A, b - A @ x, rcond=1e-9)
+                if not np.all(np.isfinite(dx)):
+                    break
+                tip = tip + dx[:3]
+                if self.base is None:
+                    R, t = _kabsch(m, p0 + RBA @ tip, R)
+        p = np.concatenate(([] if self.base is not None else [vec_of(pin.SE3(R, t))])
+                           + ([] if self.tip is not None else [tip]))
+        if fit_tip and N >= 3:
+            p = _gauss_newton(self, TA, TB, p, np.arange(p.size))
+        return p
 
     def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
         N = TA.shape[0]
