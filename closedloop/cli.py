@@ -220,13 +220,7 @@ def cmd_simulate(args) -> int:
         raise InputError(f"unknown scenario '{args.scenario}' (known: {', '.join(sorted(SCENARIOS))})")
     if args.n < 1:
         raise InputError("--n must be at least 1")
-    overrides = {}
-    for item in args.set:
-        k, _, v = item.partition("=")
-        try:
-            overrides[k.strip()] = json.loads(v)
-        except json.JSONDecodeError:
-            overrides[k.strip()] = v
+    overrides = _sim_overrides(args.set, SCENARIOS[args.scenario].settings)
     prog = _Progress(args.quiet)
     t0 = time.perf_counter()
     result = simulate(args.scenario, n=args.n, seed=args.seed, out_dir=Path(args.out),
@@ -237,6 +231,43 @@ def cmd_simulate(args) -> int:
     if callable(summary):
         print(summary())
     return 0
+
+
+def _sim_overrides(items: list[str], defaults) -> dict:
+    """``--set KEY=VALUE`` items checked against the scenario's settings (type of each default)."""
+    import dataclasses
+
+    kinds = {f.name: type(getattr(defaults, f.name)) for f in dataclasses.fields(defaults)}
+    kinds.update(soft=bool, stiff=bool)  # presets
+    out: dict = {}
+    for item in items:
+        key, eq, text = (t.strip() for t in item.partition("="))
+        if not eq or not key:
+            raise InputError(f"--set {item}: expected KEY=VALUE")
+        if key not in kinds:
+            raise InputError(f"--set {item}: unknown setting '{key}' (known: {', '.join(sorted(kinds))})")
+        kind, default = kinds[key], getattr(defaults, key, False)
+        if kind is bool:
+            if text.lower() not in ("true", "false", "1", "0"):
+                raise InputError(f"--set {item}: '{key}' takes true or false")
+            out[key] = text.lower() in ("true", "1")
+        elif kind in (str, type(None)):  # a name (None: off by default)
+            out[key] = None if kind is type(None) and text.lower() in ("", "none", "off") else text
+        else:
+            try:
+                value = json.loads(text)
+            except json.JSONDecodeError:
+                value = None
+            n = len(default) if kind is tuple else 1
+            nums = value if isinstance(value, list) else [value]
+            if len(nums) != n or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                          and np.isfinite(v) for v in nums):
+                want = f"a list of {n} numbers, e.g. {json.dumps(list(default))}" if kind is tuple else "a number"
+                raise InputError(f"--set {item}: '{key}' takes {want}")
+            if kind is int and not float(nums[0]).is_integer():
+                raise InputError(f"--set {item}: '{key}' takes a whole number")
+            out[key] = tuple(nums) if kind is tuple else kind(nums[0])
+    return out
 
 
 def _load_json(path: str) -> dict:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import subprocess
 import sys
 
@@ -206,3 +207,22 @@ def test_mjcf_input(tmp_path):
     assert robot.kind == "mjcf" and robot.joint_names == ["j1", "j2"]
     rc, out, _ = _run(["inspect", str(xml), "--json"])
     assert rc == 0 and "j2.offset" in json.loads(out)["parameters"]
+
+
+@pytest.mark.parametrize("setting, expect", [
+    ("foo=1", "unknown setting 'foo'"),
+    ("gravity=maybe", "'gravity' takes true or false"),
+    ("tracker_noise=abc", "'tracker_noise' takes a number"),
+    ("solref=[1]", "'solref' takes a list of 2 numbers"),
+    ("min_steps=2.5", "'min_steps' takes a whole number"),
+    ("noise", "expected KEY=VALUE"),
+])
+def test_bad_simulation_settings_one_line_exit_2(tmp_path, setting, expect):
+    # the installed console script: `python -m closedloop.cli` from the repository root would import the
+    # source tree, which has no closedloop/sims (it is installed from the top-level sims/)
+    script = Path(sys.executable).parent / "closedloop"
+    p = subprocess.run([str(script), "simulate", "panda_weld", "--n", "2", "--out", str(tmp_path / "o"), "--set", setting],
+                       capture_output=True, text=True)
+    rc, err = p.returncode, p.stderr
+    assert rc == 2 and expect in err and "Traceback" not in err, err
+    assert not (tmp_path / "o").exists()  # nothing simulated
