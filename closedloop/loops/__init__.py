@@ -4,6 +4,7 @@ Importing this package registers every loop type for the CLI (`spec.parse_loop`)
 """
 
 from .base import Loop, LoopEval
+from .camera import CameraLoop
 from .hinge import HingeLoop
 from .measured import MeasuredPointLoop, MeasuredPoseLoop
 from .passive import PassiveChainLoop
@@ -11,5 +12,5 @@ from .plane import PlaneLoop
 from .point import PointLoop
 from .weld import WeldLoop
 
-__all__ = ["Loop", "LoopEval", "HingeLoop", "MeasuredPointLoop", "MeasuredPoseLoop", "PassiveChainLoop",
-           "PlaneLoop", "PointLoop", "WeldLoop"]
+__all__ = ["Loop", "LoopEval", "CameraLoop", "HingeLoop", "MeasuredPointLoop", "MeasuredPoseLoop",
+           "PassiveChainLoop", "PlaneLoop", "PointLoop", "WeldLoop"]
