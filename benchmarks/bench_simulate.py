@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/bench_simulate.py [--n 500] [--jobs 2] [--scenario NAME ...]
+    python benchmarks/bench_simulate.py [--n 500] [--jobs 2] [--repeat 1] [--scenario NAME ...]
 
 For every scenario it reports
 
@@ -14,6 +14,9 @@ For every scenario it reports
 * with ``--jobs J > 1``: aggregate configurations per second of J independent
   datasets (different seeds) generated concurrently in J processes (all
   recorded configurations / the slowest simulation loop; process start-up excluded).
+
+With ``--repeat R`` every figure is the best of R runs (on a shared machine the
+other jobs only ever slow a run down).
 """
 
 from __future__ import annotations
@@ -53,6 +56,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--n", type=int, default=500, help="configurations per dataset")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel processes for the aggregate")
+    parser.add_argument("--repeat", type=int, default=1, help="runs per figure (best reported)")
     parser.add_argument("--scenario", nargs="*", default=sorted(SCENARIOS))
     args = parser.parse_args()
 
@@ -63,18 +67,25 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.scenario:
             simulate(name, 5, 0, Path(tmp) / "warmup")  # imports, caches
-            t0 = time.perf_counter()
-            res = simulate(name, args.n, 0, Path(tmp) / name)
-            total = time.perf_counter() - t0
-            n = len(res.readings)
-            line = (f"{name:<12} {n:>6} {res.configs_per_second:>9.0f} {n / total:>9.0f} "
+            loop_rate = total_rate = 0.0
+            for _ in range(max(1, args.repeat)):
+                t0 = time.perf_counter()
+                res = simulate(name, args.n, 0, Path(tmp) / name)
+                total = time.perf_counter() - t0
+                n = len(res.readings)
+                loop_rate = max(loop_rate, res.configs_per_second)
+                total_rate = max(total_rate, n / total)
+            line = (f"{name:<12} {n:>6} {loop_rate:>9.0f} {total_rate:>9.0f} "
                     f"{res.n_steps / max(n, 1):>10.1f} {res.violation_m.max():>13.2e}")
             if args.jobs > 1:
                 jobs = [(name, args.n, seed, str(Path(tmp) / f"{name}_{seed}")) for seed in range(1, args.jobs + 1)]
-                with ProcessPoolExecutor(args.jobs) as pool:
-                    runs = list(pool.map(_run, jobs))
-                # simulation loops run concurrently: aggregate = all configurations / slowest loop
-                line += f" {sum(c for c, _ in runs) / max(t for _, t in runs):>16.0f}"
+                agg = 0.0
+                for _ in range(max(1, args.repeat)):
+                    with ProcessPoolExecutor(args.jobs) as pool:
+                        runs = list(pool.map(_run, jobs))
+                    # simulation loops run concurrently: aggregate = all configurations / slowest loop
+                    agg = max(agg, sum(c for c, _ in runs) / max(t for _, t in runs))
+                line += f" {agg:>16.0f}"
             print(line, flush=True)
 
 

@@ -8,6 +8,8 @@ nominal loop's self-motion (QP differential IK), and records joint readings at
 quasi-static points, as in Bennett & Hollerbach (1991), thesis ch. 3.5.  The
 open-loop scenario (``ur5_tracker``, thesis 3.2) has no constraint: the robot
 goes to random configurations and an external tracker measures its tool point.
+With the setting ``select`` the samples are chosen by pose selection from a pool
+of nominal self-motion configurations (:mod:`closedloop.sims.selection`).
 
 Public API::
 

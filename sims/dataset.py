@@ -11,9 +11,17 @@ Pipeline of :func:`simulate`:
    configuration ``q0`` (:func:`~closedloop.sims.scene.build_scene`);
 4. the robot reads ``r0 = sensor(q0)``, builds its nominal loop and plans
    waypoints along the nominal self-motion (:mod:`closedloop.sims.driver`);
+   (with the setting ``select``: the waypoints are n configurations chosen from a
+   pool of nominal self-motion configurations by pose selection, visited in a
+   short path, :mod:`closedloop.sims.selection`);
 5. for every waypoint ``r`` the servos are commanded ``ctrl = scale * r + offset``
    (the servo acts on the encoder reading), ramped over ``ramp_steps`` steps;
-   the simulation runs until ``max |qdot| < vel_tol`` (quasi-static point);
+   the simulation runs until ``max |qdot| < move_vel_tol``; then, ``relax_passes``
+   times, the servos are commanded the measured joint positions (``relax``: the
+   preload of the servos, driven by the wrong nominal model against the closed
+   chain, is released) and the simulation runs until ``max |qdot|`` is below
+   ``move_vel_tol`` (``vel_tol`` for the last pass: quasi-static point);
+   without ``relax`` the move itself settles to ``vel_tol``;
 6. recorded: readings ``sensor(q)``, actuator torques, the true closure
    violation (tool site vs target site) and the loop constraint force.
 
@@ -78,7 +86,8 @@ class SimResult:
         settings: settings used.
         n_dropped: samples dropped (at a joint limit or not settled).
         n_steps: total simulation steps.
-        elapsed_s: wall time of the simulation loop [s] (excluding scene building).
+        elapsed_s: wall time of the simulation loop [s] (excluding scene building; including
+            the pose selection with ``select``, whose share is ``extra["select_s"]``).
     """
 
     scenario: str
@@ -173,22 +182,66 @@ def _plane_params(prefix: str, plane: pin.SE3) -> dict[str, float]:
             f"{prefix}.d": float(n @ plane.translation)}
 
 
-def _settle(scene: Scene, ctrl_from: np.ndarray, ctrl_to: np.ndarray, s: SimSettings) -> tuple[bool, int]:
-    """Ramp the servo commands, then step until quasi-static; returns (settled, steps)."""
+_CHUNK = 5  # simulation steps between two settle checks
+
+
+def _settle(scene: Scene, ctrl_from: np.ndarray, ctrl_to: np.ndarray, s: SimSettings,
+            vel_tol: float) -> tuple[bool, int]:
+    """Ramp the servo commands over ``ramp_steps``, then step until ``max |qdot| < vel_tol``.
+
+    Returns (settled, steps); at most ``max_steps`` steps, at least ``min_steps``
+    (counting the ramp); the velocity is checked every 5 steps.
+    """
     m, d = scene.model, scene.data
-    steps = 0
+    ids = scene.actuator_ids
     ramp = max(1, s.ramp_steps)
-    for k in range(1, ramp + 1):
-        d.ctrl[scene.actuator_ids] = ctrl_from + (ctrl_to - ctrl_from) * (k / ramp)
+    commands = ctrl_from + np.outer(np.arange(1, ramp + 1) / ramp, ctrl_to - ctrl_from)
+    for k in range(ramp):
+        d.ctrl[ids] = commands[k]
         mujoco.mj_step(m, d)
-    steps += ramp
-    chunk = 5
+    steps = ramp
+    qvel = d.qvel  # a view of the simulation state
     while steps < s.max_steps:
-        mujoco.mj_step(m, d, nstep=chunk)
-        steps += chunk
-        if steps >= s.min_steps and float(np.max(np.abs(d.qvel))) < s.vel_tol:
+        if steps >= s.min_steps and float(np.abs(qvel).max()) < vel_tol:
             return True, steps
+        mujoco.mj_step(m, d, nstep=_CHUNK)
+        steps += _CHUNK
     return False, steps
+
+
+def _sample(scene: Scene, ctrl: np.ndarray, target: np.ndarray, s: SimSettings) -> tuple[bool, int, np.ndarray]:
+    """Drive to one waypoint and come to rest there; returns (settled, steps, final servo command).
+
+    Without ``relax`` the servos are commanded ``target`` and the robot settles to
+    ``vel_tol``.  With it, the move only settles to ``move_vel_tol`` (the robot is
+    near the waypoint and slow), then ``relax_passes`` times the servos are
+    commanded the measured joint positions and the robot settles again, to
+    ``move_vel_tol`` and, the last time, to ``vel_tol``.  Each pass releases most
+    of the preload the previous one left (the servo, driven from the wrong nominal
+    model, pushes against the closed chain; the loop springs back when released and
+    the servo takes up a fraction of the deflection), so the recorded configuration
+    loads the loop far less than one long settle would.
+    """
+    d = scene.data
+    passes = max(0, int(s.relax_passes)) if s.relax else 0
+    settled, steps = _settle(scene, ctrl, target, s, s.move_vel_tol if passes else s.vel_tol)
+    ctrl = target
+    for k in range(passes):
+        relaxed = d.qpos[scene.qpos_adr].copy()
+        ok, st = _settle(scene, ctrl, relaxed, s, s.vel_tol if k == passes - 1 else s.move_vel_tol)
+        settled &= ok
+        steps += st
+        ctrl = relaxed
+    return settled, steps, ctrl
+
+
+def _targets(planner, plan, max_attempts: int):
+    """(planning vector, record?) pairs: the planner's waypoints, or a selected plan's path."""
+    if plan is None:
+        for _ in range(max_attempts):
+            yield planner.step(), True
+    else:
+        yield from zip(plan.waypoints, plan.record)
 
 
 def simulate(
@@ -270,6 +323,7 @@ def simulate(
     r0 = sensor_readings(q0, offset, scale, settings.noise, settings.quantization, rng_noise)
     door_range = sc.door.angle_range if sc.door else (-0.6, 0.6)
     planner: NominalLoopPlanner | RandomConfigurations
+    loop: NominalLoop | None = None
     if sc.loop_type == "measured_point":  # open loop: random configurations of the nominal model
         planner = RandomConfigurations(pmodel, r0, rng_plan, margin=settings.limit_margin,
                                        target_span=settings.target_span)
@@ -298,20 +352,26 @@ def simulate(
     done = dropped = total_steps = 0
     max_attempts = 3 * n + 20
     t_start = time.perf_counter()
-    for _attempt in range(max_attempts):
-        if done >= n:
+    plan = None
+    if settings.select:  # pose selection on the nominal model (closedloop.sims.selection)
+        from .selection import plan_selected
+
+        start = loop.full_q(r0) if loop is not None else r0
+        plan = plan_selected(sc, settings, nominal_path, joint_names, planner, loop, start, n, pmodel)
+    t_plan = time.perf_counter() - t_start
+    targets = _targets(planner, plan, max_attempts)
+    while done < n:
+        wp, record = next(targets, (None, False))
+        if wp is None:
             break
-        wp = planner.step()[:nj]
-        target = scale * wp + offset
-        settled, steps = _settle(scene, ctrl, target, settings)
-        total_steps += steps
-        ctrl = target
-        if settings.relax:  # release the preload: command where the joints are
-            relaxed = d.qpos[scene.qpos_adr].copy()
-            settled_r, steps = _settle(scene, ctrl, relaxed, settings)
-            settled &= settled_r
+        target = scale * wp[:nj] + offset
+        if not record:  # a waypoint on the way to the next selected configuration: move only
+            _ok, steps = _settle(scene, ctrl, target, settings, settings.move_vel_tol)
             total_steps += steps
-            ctrl = relaxed
+            ctrl = target
+            continue
+        settled, steps, ctrl = _sample(scene, ctrl, target, settings)
+        total_steps += steps
         mujoco.mj_forward(m, d)
         q = d.qpos[scene.qpos_adr].copy()
         at_limit = bool(np.any(limited & ((q - lo < settings.limit_flag) | (hi - q < settings.limit_flag))))
@@ -406,12 +466,14 @@ def simulate(
         "samples": {"recorded": done, "dropped": dropped, "steps": total_steps,
                     "qp_solves": planner.stats.qp_solves},
     }
+    if plan is not None:
+        truth["selection"] = plan.info
     (out / "truth.json").write_text(json.dumps(truth, indent=2))
     return SimResult(
         scenario=sc.name, seed=int(seed), out_dir=out, joint_names=joint_names, readings=readings,
         q_true=q_true, tau=tau, violation_m=viol_m, violation_rad=viol_rad, constraint_force_n=force,
         door_angle=door, truth=truth, settings=settings, n_dropped=dropped, n_steps=total_steps,
-        elapsed_s=elapsed,
+        elapsed_s=elapsed, extra={"select_s": t_plan} if plan is not None else {},
     )
 
 

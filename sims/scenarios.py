@@ -114,6 +114,9 @@ class SimSettings:
         kv: position servo damping [N m s / rad].
     Settling and sampling:
         vel_tol: a configuration is settled when max |qdot| < vel_tol [rad/s].
+        move_vel_tol: with ``relax``, the move to a waypoint and every relax pass
+            but the last stop at max |qdot| < move_vel_tol [rad/s] (the last
+            pass settles to ``vel_tol``).
         min_steps, max_steps: bounds on simulation steps per sample.
         ramp_steps: steps over which the command is interpolated to the next waypoint.
         step_rad: largest planned change of any joint between samples [rad].
@@ -121,6 +124,10 @@ class SimSettings:
             initial configuration (and inside the limits) [rad].
         retarget_every: a new random target is drawn after this many samples
             (or earlier when the self-motion stalls).
+        select: plan the samples with pose selection (``closedloop.sims.selection``):
+            a method of ``closedloop.poses.select_poses`` (``greedy``, ``detmax``,
+            ``greedy-a``); ``None`` (default): the planner's waypoints are the samples.
+        select_pool: candidate pool of pose selection, in multiples of n.
         limit_margin: the planner keeps joints this far inside their limits [rad].
         limit_flag: samples with a true joint closer than this to a limit are
             flagged (``at_limit`` column) and dropped if ``drop_flagged`` [rad].
@@ -131,6 +138,8 @@ class SimSettings:
             with hundreds of newtons; a real calibration holds the fixture in a
             compliant, low-preload state).  Off: the preload stays and opens the
             loop by ~1 mrad (see README table).
+        relax_passes: how many times the relax is done (each releases most of the
+            preload the previous one left: ~50x on the Panda weld).
     Truth:
         translation, rotation, offset, scale: error magnitudes (see module doc).
     Sensor model:
@@ -157,16 +166,20 @@ class SimSettings:
     kp: float = 100.0
     kv: float = 6.3
     vel_tol: float = 3e-3
+    move_vel_tol: float = 3e-2
     min_steps: int = 10
     max_steps: int = 300
     ramp_steps: int = 4
     step_rad: float = 0.15
     target_span: float = 1.5
     retarget_every: int = 10
+    select: str | None = None
+    select_pool: float = 10.0
     limit_margin: float = 0.1
     limit_flag: float = 0.02
     drop_flagged: bool = True
     relax: bool = True
+    relax_passes: int = 3
     translation: float = 0.002
     rotation: float = 0.002
     offset: float = 0.02

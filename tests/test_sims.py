@@ -314,3 +314,49 @@ def test_simulate_does_not_print(tmp_path, capsys):
     simulate("ur5_socket", 3, 0, tmp_path)
     captured = capsys.readouterr()
     assert captured.out == "" and captured.err == ""
+
+
+def test_box_qp_is_exact():
+    """The planner's active-set box QP solves min 1/2 x'Px + c'x, lb <= x <= ub exactly (KKT), as OSQP does."""
+    import warnings
+
+    import scipy.sparse as sp
+    from qpsolvers import solve_qp
+
+    from closedloop.sims.driver import solve_box_qp
+
+    rng = np.random.default_rng(0)
+    active = 0
+    for _ in range(300):
+        n = int(rng.integers(1, 10))
+        jac = rng.normal(size=(int(rng.integers(1, n + 1)), n))
+        P = np.eye(n) + 10 ** rng.uniform(0, 4) * jac.T @ jac
+        c = rng.normal(size=n) * rng.uniform(0.01, 3.0)
+        lb = -rng.uniform(0.0, 0.3, n) * (rng.uniform(size=n) < 0.7)
+        ub = rng.uniform(0.0, 0.3, n)
+        if rng.uniform() < 0.2:  # a start outside the box (0 infeasible)
+            lb[0], ub[0] = 0.05, max(ub[0], 0.1)
+        x = solve_box_qp(P, c, lb, ub)
+        assert x is not None and np.all(x >= lb) and np.all(x <= ub)
+        g = P @ x + c
+        free = (x > lb) & (x < ub)
+        active += int(np.sum(~free))
+        assert np.all(np.abs(g[free]) < 1e-9 * (1 + np.abs(P).max()))
+        assert np.all(g[x == lb] >= -1e-9) and np.all(g[x == ub] <= 1e-9)  # multipliers of active bounds
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            y = solve_qp(sp.csc_matrix(P), c, lb=lb, ub=ub, solver="osqp", eps_abs=1e-10, eps_rel=1e-10,
+                         verbose=False, max_iter=100000)
+        if y is not None:
+            np.testing.assert_allclose(x, y, atol=1e-6)
+    assert active > 300  # the bounds were active in many problems
+    assert solve_box_qp(np.eye(2), np.zeros(2), np.array([1.0, 0.0]), np.array([0.0, 1.0])) is None  # lb > ub
+
+
+def test_relax_passes_unload_the_loop(tmp_path):
+    """Each relax pass releases most of the preload left by the previous one (measured: 3 passes load the Panda's
+    weld 78x (position) and 108x (rotation) less than 1 pass, n = 20, seed 0)."""
+    one = simulate("panda_weld", 20, 0, tmp_path / "one", relax_passes=1).truth["violation"]
+    three = simulate("panda_weld", 20, 0, tmp_path / "three").truth["violation"]
+    assert three["rms_m"] * 20 < one["rms_m"] and three["rms_rad"] * 20 < one["rms_rad"]
+    assert three["rms_m"] < 2e-8 and three["rms_rad"] < 5e-7
