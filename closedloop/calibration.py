@@ -176,8 +176,44 @@ def _noise_vector(problem: CalibrationProblem, noise) -> tuple[np.ndarray, bool]
     return vec, True
 
 
+def _cholesky_inverse(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """L^-1 for a stack of symmetric positive semi-definite A = L L^T (n, m, m), and kappa (n,).
+
+    kappa = tr(A) tr(A^-1) = tr(A) |L^-1|_F^2 bounds the condition number:
+    lambda_max <= tr A and 1/lambda_min <= tr A^-1, so every eigenvalue of A
+    exceeds lambda_max / kappa.  Where A is not positive definite (or nearly
+    so) kappa is inf and L^-1 meaningless.  Cholesky and forward substitution
+    column by column over the whole stack (a LAPACK call per small matrix
+    costs more than the arithmetic).
+    """
+    m = A.shape[-1]
+    L = np.zeros_like(A)
+    X = np.zeros_like(A)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for j in range(m):
+            v = A[:, j:, j] - np.einsum("nik,nk->ni", L[:, j:, :j], L[:, j, :j])
+            L[:, j, j] = np.sqrt(v[:, 0])
+            L[:, j + 1:, j] = v[:, 1:] / L[:, j, j, None]
+        for i in range(m):  # L X = I, X lower triangular
+            X[:, i, i] = 1.0 / L[:, i, i]
+            X[:, i, :i] = -np.einsum("nk,nkj->nj", L[:, i, :i], X[:, :i, :i]) * X[:, i, i, None]
+        kappa = np.trace(A, axis1=1, axis2=2) * np.einsum("nij,nij->n", X, X)
+    return X, np.where(np.isfinite(kappa), kappa, np.inf)
+
+
+def _pinv_sqrt(W: np.ndarray) -> tuple[np.ndarray, int]:
+    """Symmetric pseudo-inverse square roots V diag(lambda^-1/2) V^T of a stack of covariances.
+
+    Eigenvalues below 1e-9 of the largest are dropped; returns the roots and the number dropped.
+    """
+    lam, V = np.linalg.eigh(W)
+    keep = lam > 1e-9 * np.maximum(lam[:, -1:], 1e-300)
+    inv = np.where(keep, 1.0 / np.sqrt(np.where(keep, lam, 1.0)), 0.0)
+    return (V * inv[:, None, :]) @ np.swapaxes(V, 1, 2), int(np.sum(~keep))
+
+
 def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian: bool = True,
-           loops: list[Loop] | None = None, Winv: list[np.ndarray | None] | None = None):
+           loops: list[Loop] | None = None, Winv: list[np.ndarray | None] | None = None, symmetric: bool = True):
     """Stack residuals (and Jacobians) whitened by W_i^-1/2, W_i = Jq Sigma Jq^T (+ measurement covariance).
 
     `Winv` reuses the W_i^-1/2 of an earlier evaluation (trial steps, which
@@ -186,6 +222,13 @@ def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian
     passive joint eliminated by projection) gets zero weight: W^-1/2 is the
     pseudo-inverse square root (eigenvalues below 1e-9 of the largest dropped),
     never an amplification by a tiny regulariser.
+    With `symmetric` False any square root F of the pseudo-inverse (F^T F = W^+)
+    may stand for W^-1/2: the inverse Cholesky factor L^-1 where W_i is well
+    conditioned (kappa of `_cholesky_inverse` below 1e9, so that nothing would
+    be dropped), the symmetric root elsewhere.  Each configuration's whitened
+    rows are then turned by an orthogonal matrix, which changes neither
+    |r|^2, nor J^T J, nor J^T r: the least-squares problem is the same, at a
+    fraction of the cost of the eigendecompositions.
     Returns (r, J or None, list of (W^-1/2, rank deficit) per block, or None entries).
     """
     rs, Js, used = [], [], []
@@ -198,14 +241,15 @@ def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian
         if weighting == "noise" and Wh is None and ev.Jq is not None:
             Jq = ev.Jq * sigma_q[None, None, :]
             W = Jq @ np.swapaxes(Jq, 1, 2)
-            m = W.shape[1]
             if loops is not None and loops[bi].measurement_cov is not None:
                 W = W + loops[bi].measurement_cov
-            lam, V = np.linalg.eigh(W)
-            keep = lam > 1e-9 * np.maximum(lam[:, -1:], 1e-300)
-            inv = np.where(keep, 1.0 / np.sqrt(np.where(keep, lam, 1.0)), 0.0)
-            Wh = (V * inv[:, None, :]) @ np.swapaxes(V, 1, 2)
-            deficit = int(np.sum(~keep))
+            if symmetric:
+                Wh, deficit = _pinv_sqrt(W)
+            else:
+                Wh, kappa = _cholesky_inverse(W)
+                ill = np.flatnonzero(kappa >= 1e9)
+                if ill.size:
+                    Wh[ill], deficit = _pinv_sqrt(W[ill])
         if Wh is not None:
             r = np.einsum("nij,nj->ni", Wh, r)
             if jacobian:
@@ -239,14 +283,22 @@ def project_to_closure(problem: CalibrationProblem, values: np.ndarray, iters: i
     """Joint readings moved onto the closure manifold of the model at `values`.
 
     Gauss-Newton on the readings, theta <- theta - pinv(J_theta) r, per
-    configuration.  Used only to make structural redundancies exact.
+    configuration.  Used only to make structural redundancies exact.  Where
+    J_theta J_theta^T is well conditioned (kappa of `_cholesky_inverse` below
+    1e6) the minimum-norm step is J_theta^T (J_theta J_theta^T)^-1 r through
+    its Cholesky factor; elsewhere the SVD pseudo-inverse (rcond 1e-10).
     """
     thetas = [b.theta.copy() for b in problem.blocks]
     for _ in range(iters):
-        evals = problem.evaluate(values, True, thetas)
+        evals = problem.evaluate(values, True, thetas, columns=[])
         worst = 0.0
         for k, ev in enumerate(evals):
-            step = np.einsum("nij,nj->ni", np.linalg.pinv(ev.Jq, rcond=1e-10), ev.r)
+            Linv, kappa = _cholesky_inverse(ev.Jq @ np.swapaxes(ev.Jq, 1, 2))
+            y = np.einsum("nji,nj->ni", Linv, np.einsum("nij,nj->ni", Linv, ev.r))  # (Jq Jq^T)^-1 r
+            step = np.einsum("nji,nj->ni", ev.Jq, y)
+            ill = np.flatnonzero(kappa >= 1e6)
+            if ill.size:
+                step[ill] = np.einsum("nij,nj->ni", np.linalg.pinv(ev.Jq[ill], rcond=1e-10), ev.r[ill])
             thetas[k] = thetas[k] - step
             worst = max(worst, float(np.abs(ev.r).max()) if ev.r.size else 0.0)
         if worst < 1e-13:
@@ -401,15 +453,34 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
     loops_ = [b.loop for b in problem.blocks]
     rows_per_block = [b.theta.shape[0] * b.loop.dim for b in problem.blocks]
 
-    def make_fun(weighting: str, row_w: np.ndarray | None = None):
-        """Residual function over the estimated parameters; W_i from the last Jacobian call."""
-        cache: dict = {"W": None}
+    def make_fun(weighting: str, row_w: np.ndarray | None = None, symmetric: bool = False):
+        """Residual function over the estimated parameters; W_i from the last Jacobian call.
+
+        Only the estimated columns of the Jacobian are formed.  The solver's
+        functions whiten with the cheap square root of W_i^-1 (`whiten`,
+        symmetric=False: the same least-squares problem); the robust weights
+        need the components of the symmetric W_i^-1/2 r (`symmetric`).
+        Evaluations are reused, never changed: the first trial point after a
+        Jacobian call is evaluated with its Jacobian (Levenberg-Marquardt
+        usually accepts it and asks for that next; its cost is still taken
+        with the old W_i), and the last Jacobian evaluation is returned again
+        for the same parameters (the final analysis asks for the solution's).
+        """
+        cache: dict = {"W": None, "x": None, "trial": None}
 
         def fun(xe: np.ndarray, jac: bool):
+            if jac and cache["x"] is not None and np.array_equal(xe, cache["x"]):
+                return cache["rJ"]
             x = x0.copy()
             x[est] = xe
-            evals = problem.evaluate(x, jac or cache["W"] is None)
-            r, J, used = whiten(evals, sigma_q, weighting, jac, loops_, None if jac else cache["W"])
+            trial = cache["trial"]
+            first_trial = not jac and cache["W"] is not None and trial is None
+            if jac and trial is not None and np.array_equal(xe, trial[0]):
+                evals = trial[1]
+            else:
+                full = jac or first_trial
+                evals = problem.evaluate(x, full or cache["W"] is None, columns=est if full else [])
+            r, J, used = whiten(evals, sigma_q, weighting, jac, loops_, None if jac else cache["W"], symmetric)
             if jac or cache["W"] is None:
                 cache["W"] = used
                 cache["deficit"] = sum(u[1] for u in used if u is not None)
@@ -417,12 +488,16 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
                 r = r * row_w
                 if jac:
                     J = J * row_w[:, None]
-            return r, (J[:, est] if jac else None)
+            if jac:
+                cache["x"], cache["rJ"], cache["trial"] = xe.copy(), (r, J), None
+            elif first_trial:
+                cache["trial"] = (xe.copy(), evals)
+            return r, J
         fun.cache = cache  # type: ignore[attr-defined]
         return fun
 
     def block_residuals(xe: np.ndarray) -> list[np.ndarray]:
-        r, _ = make_fun(opt.weighting)(xe, False)
+        r, _ = make_fun(opt.weighting, symmetric=True)(xe, False)
         parts = np.split(r, np.cumsum(rows_per_block)[:-1])
         return [p.reshape(b.theta.shape[0], b.loop.dim) for p, b in zip(parts, problem.blocks)]
 
@@ -456,7 +531,8 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
             ws = robust_weights(blocks_r, opt.robust, scale=1.0 if known and opt.weighting == "noise" else None)
             w = np.concatenate(ws)
             row_w = np.repeat(np.sqrt(w), [b.loop.dim for b in problem.blocks for _ in range(b.theta.shape[0])])
-            res = levenberg_marquardt(make_fun(opt.weighting, row_w), xe, scale[est], sopt, prog)
+            fun = make_fun(opt.weighting, row_w)
+            res = levenberg_marquardt(fun, xe, scale[est], sopt, prog)
             xe = res.x
             if w_prev is not None and np.max(np.abs(w - w_prev)) < 1e-3:
                 break
@@ -470,8 +546,8 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
         if len(suspects) > 10:
             notes.append(f"... and {len(suspects) - 10} more suspect configurations")
     else:
-        res = levenberg_marquardt(make_fun(opt.weighting), x0[est], scale[est], sopt, prog)
-    fun = make_fun(opt.weighting, row_w)
+        fun = make_fun(opt.weighting)
+        res = levenberg_marquardt(fun, x0[est], scale[est], sopt, prog)
     x = x0.copy()
     x[est] = res.x
     for b, sl in zip(problem.blocks, problem.loop_slices):

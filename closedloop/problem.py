@@ -2,9 +2,12 @@
 
 For loop l at configuration i with readings theta^i the model joint angles are
 theta' = k * theta^i + theta_off - c * tau^i (eq. 4.4, plus joint compliance c
-under the logged actuator torques tau, when present).  With Pinocchio LOCAL frame
-Jacobians J_A, J_B and LOCAL frame kinematic regressors K_A, K_B, the chain
-rule gives the columns of C^i (eq. 4.9):
+under the logged actuator torques tau, when present).  With Pinocchio's LOCAL
+frame kinematic regressors K_A, K_B (block j: Ad(T_frame^-1 T_parent(j) M_j),
+the frame's motion under a right twist of joint j's placement M_j), the
+LOCAL frame Jacobians are J_A = K_A S, J_B = K_B S (S: each joint's motion
+subspace in its own frame, placed in its block: joint j turning by dtheta is
+M_j exp6(S_j dtheta)), and the chain rule gives the columns of C^i (eq. 4.9):
 
   placement / D-H geometry:  dA K_A G + dB K_B G          (G: right-twist generators)
   offset of joint j:         (dA J_A + dB J_B)[:, j]       (eq. 4.11, first column)
@@ -13,20 +16,28 @@ rule gives the columns of C^i (eq. 4.9):
   loop parameters:           the loop's own dp
   joint readings (for the noise model): k_j * (dA J_A + dB J_B)[:, j]
 
-The per-configuration Pinocchio calls are in one loop; everything else is
-batched numpy.
+Only the requested columns are formed (the solver asks for the estimated
+parameters alone): with B holding each column's generator (a column of G, or
+S_j for a sensor parameter of joint j, then scaled by theta_j or -tau_j per
+configuration), one product d K B per frame gives them all.  The
+per-configuration Pinocchio calls (forward kinematics, frame placement,
+kinematic regressor) are in one loop; everything else is batched numpy.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import pinocchio as pin
 
 from .loops.base import Loop
-from .parameters import Parameter, RobotParameters
+from .parameters import Parameter, RobotParameters, RobotState
 from .robot import RobotModel
+
+# What a parameter's Jacobian column is made of (`CalibrationProblem._role`).
+_GEOMETRY, _OFFSET, _SCALE, _COMPLIANCE, _LOOP = range(5)
 
 
 @dataclass
@@ -42,7 +53,7 @@ class LoopBlock:
 @dataclass
 class BlockEval:
     r: np.ndarray  # (N, m)
-    J: np.ndarray | None  # (N, m, P)
+    J: np.ndarray | None  # (N, m, C) d r / d parameters, over the requested columns (default: all P)
     Jq: np.ndarray | None  # (N, m, n_joints) d r / d reading
 
 
@@ -63,46 +74,61 @@ class CalibrationProblem:
         self.names = [p.name for p in self.params]
         self.index = {n: i for i, n in enumerate(self.names)}
         self.n_robot = len(self.rp.params)
-        self._idx_v = np.array([robot.joint(n).idx_v for n in self.joints], dtype=int)
+        # Per parameter: its role, and its joint (sensor parameters) or loop block (loop parameters).
+        self._role = np.full(len(self.params), _GEOMETRY)
+        self._owner = np.zeros(len(self.params), dtype=int)
+        for role, idx in ((_OFFSET, self.rp.offset_index()), (_SCALE, self.rp.scale_index()),
+                          (_COMPLIANCE, self.rp.compliance_index())):
+            self._role[idx] = role
+            self._owner[idx] = np.arange(len(self.joints))
+        for bi, sl in enumerate(self.loop_slices):
+            self._role[sl] = _LOOP
+            self._owner[sl] = bi
+        # Motion subspaces S_j (LOCAL joint Jacobian column of joint j at the neutral configuration),
+        # rows in the regressor's block of joint j, one column per problem joint.
+        model = robot.model
+        data = model.createData()
+        pin.computeJointJacobians(model, data, pin.neutral(model))
+        self._S = np.zeros((6 * (model.njoints - 1), len(self.joints)))
+        for c, name in enumerate(self.joints):
+            j = robot.joint(name)
+            self._S[6 * (j.jid - 1):6 * j.jid, c] = pin.getJointJacobian(model, data, j.jid, pin.LOCAL)[:, j.idx_v]
 
     @property
     def nominal(self) -> np.ndarray:
         return np.array([p.nominal for p in self.params])
 
     # ------------------------------------------------------------- kinematics
-    def model_angles(self, state, theta: np.ndarray, tau: np.ndarray | None) -> np.ndarray:
+    def model_angles(self, state: RobotState, theta: np.ndarray, tau: np.ndarray | None) -> np.ndarray:
         """theta' = k theta + theta_off - c tau (the sensor model)."""
         angles = theta * state.scale + state.offset
         if tau is not None:
             angles = angles - tau * state.compliance
         return angles
 
-    def frame_kinematics(self, state, theta: np.ndarray, frames: list[int], need_jac: bool,
-                         tau: np.ndarray | None = None):
-        """Poses (N,4,4), LOCAL Jacobians (N,6,nv) and regressors (N,6,6(nj-1)) of frames."""
+    def frame_kinematics(self, state: RobotState, theta: np.ndarray, frames: list[int], need_jac: bool,
+                         tau: np.ndarray | None = None) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
+        """Poses (N, 4, 4) and, with `need_jac`, LOCAL kinematic regressors (N, 6, 6 (njoints - 1)) of frames.
+
+        The base frame (id 0) has the identity pose and no regressor.
+        """
         model, data = state.model, state.data
         q = self.robot.configurations(self.model_angles(state, theta, tau), self.joints)
         N = q.shape[0]
-        out = {}
-        for f in frames:
-            if f == 0:
-                out[f] = (np.broadcast_to(np.eye(4), (N, 4, 4)), None, None)
-            else:
-                out[f] = (np.empty((N, 4, 4)),
-                          np.empty((N, 6, model.nv)) if need_jac else None,
-                          np.empty((N, 6, 6 * (model.njoints - 1))) if need_jac else None)
         live = [f for f in frames if f != 0]
-        for i in range(N):
-            if need_jac:
-                pin.computeJointJacobians(model, data, q[i])
-            else:
-                pin.forwardKinematics(model, data, q[i])
+        T = {f: [None] * N for f in live}
+        K = {f: np.empty((N, 6, 6 * (model.njoints - 1))) for f in live} if need_jac else {}
+        fk, place, regressor, local = pin.forwardKinematics, pin.updateFramePlacement, \
+            pin.computeFrameKinematicRegressor, pin.LOCAL
+        for i, qi in enumerate(q):
+            fk(model, data, qi)
             for f in live:
-                T, J, R = out[f]
-                T[i] = pin.updateFramePlacement(model, data, f).homogeneous
+                T[f][i] = place(model, data, f).homogeneous
                 if need_jac:
-                    J[i] = pin.getFrameJacobian(model, data, f, pin.LOCAL)
-                    R[i] = pin.computeFrameKinematicRegressor(model, data, f, pin.LOCAL)
+                    K[f][i] = regressor(model, data, f, local)
+        out = {f: (np.array(T[f]).reshape(N, 4, 4), K.get(f)) for f in live}
+        if 0 in frames:
+            out[0] = (np.broadcast_to(np.eye(4), (N, 4, 4)), None)
         return out
 
     def loop_poses(self, values: np.ndarray, block_index: int, theta: np.ndarray | None = None):
@@ -115,45 +141,53 @@ class CalibrationProblem:
         return kin[fa][0], kin[fb][0]
 
     # ------------------------------------------------------------- evaluation
-    def evaluate(self, values: np.ndarray, jacobian: bool = True,
-                 thetas: list[np.ndarray] | None = None) -> list[BlockEval]:
-        """Residuals (and Jacobians) of every loop at parameter vector `values`."""
+    def evaluate(self, values: np.ndarray, jacobian: bool = True, thetas: list[np.ndarray] | None = None,
+                 columns: Sequence[int] | None = None) -> list[BlockEval]:
+        """Residuals (and Jacobians) of every loop at parameter vector `values`.
+
+        With `jacobian`, J holds the columns `columns` of d r / d parameters
+        in that order (default: all P; an empty list gives Jq alone), and Jq
+        the derivatives with respect to the readings.
+        """
         state = self.rp.apply(values[:self.n_robot])
-        P = len(self.params)
-        used = np.any(state.G != 0, axis=0)
-        for Gf in state.G_frames.values():
-            used |= np.any(Gf != 0, axis=0)
-        geo = np.flatnonzero(used)
-        Ggeo = state.G[:, geo]
-        off_idx, sc_idx, c_idx = self.rp.offset_index(), self.rp.scale_index(), self.rp.compliance_index()
+        cols = np.arange(len(self.params)) if columns is None else np.asarray(columns, dtype=int)
+        role, owner = self._role[cols], self._owner[cols]
+        C, nj = cols.size, len(self.joints)
+        # Each column's twist generator in the regressor's rows: G for geometry, S_j for the sensor
+        # parameters of joint j (they move theta'_j), none for loop parameters; then S for Jq.
+        B = np.zeros((self._S.shape[0], C + nj))
+        geo = np.flatnonzero(role == _GEOMETRY)
+        sensor = np.flatnonzero((role == _OFFSET) | (role == _SCALE) | (role == _COMPLIANCE))
+        B[:, geo] = state.G[:, cols[geo]]
+        B[:, sensor] = self._S[:, owner[sensor]]
+        B[:, C:] = self._S
+        rows = np.flatnonzero(np.any(B != 0, axis=1))  # the regressor blocks that matter
+        span = slice(rows[0], rows[-1] + 1) if rows.size else slice(0, 0)
+        B = B[span]
         out = []
         for bi, (b, sl) in enumerate(zip(self.blocks, self.loop_slices)):
             theta = b.theta if thetas is None else thetas[bi]
             fa, fb = self.robot.frame_id(b.loop.frame_a), self.robot.frame_id(b.loop.frame_b)
             kin = self.frame_kinematics(state, theta, [fa, fb], jacobian, b.tau)
-            TA, JA, RA = kin[fa]
-            TB, JB, RB = kin[fb]
+            (TA, KA), (TB, KB) = kin[fa], kin[fb]
             if not jacobian:
                 out.append(BlockEval(b.loop.residual(TA, TB, values[sl]), None, None))
                 continue
             ev = b.loop.evaluate(TA, TB, values[sl])
             N, m = ev.r.shape
-            Jv = np.zeros((N, m, state.model.nv))
-            Jg = np.zeros((N, m, geo.size))
-            for f, d, Jf, Rf in ((fa, ev.dA, JA, RA), (fb, ev.dB, JB, RB)):
+            D = np.zeros((N, m, C + nj))  # [J | d r / d theta']
+            for f, d, K in ((fa, ev.dA, KA), (fb, ev.dB, KB)):
                 if f == 0:
                     continue
-                Jv += d @ Jf
-                Jg += d @ (Rf @ Ggeo)
+                D += d @ (K[:, :, span] @ B)  # per-configuration products: no threaded BLAS on small matrices
                 if f in state.G_frames:
-                    Jg += d @ state.G_frames[f][:, geo]
-            J = np.zeros((N, m, P))
-            J[:, :, geo] = Jg
-            Jj = Jv[:, :, self._idx_v]  # d r / d theta'_j
-            J[:, :, off_idx] += Jj
-            J[:, :, sc_idx] += Jj * theta[:, None, :]
-            if b.tau is not None:
-                J[:, :, c_idx] -= Jj * b.tau[:, None, :]
-            J[:, :, sl] = ev.dp
-            out.append(BlockEval(ev.r, J, Jj * state.scale[None, None, :]))
+                    D[:, :, geo] += d @ state.G_frames[f][:, cols[geo]]
+            J = D[:, :, :C]
+            factors = ((_SCALE, theta), (_COMPLIANCE, np.zeros_like(theta) if b.tau is None else -b.tau))
+            for kind, factor in factors:  # d theta' / d parameter: 1 (offset), theta (scale), -tau (compliance)
+                k = np.flatnonzero(role == kind)
+                J[:, :, k] *= factor[:, None, owner[k]]
+            own = np.flatnonzero((role == _LOOP) & (owner == bi))
+            J[:, :, own] = ev.dp[:, :, cols[own] - sl.start]
+            out.append(BlockEval(ev.r, J, D[:, :, C:] * state.scale[None, None, :]))
         return out

@@ -17,7 +17,9 @@ kept when the data determine it better than its prior, s_i > snr * sigma, with
 sigma the known noise level of r (1 when r is whitened by a known noise) or, if
 unknown, the current residual RMS (large while the model is far off, like the
 thesis's large p at the start; the noise level at convergence).  A step that
-does not lower the cost is halved (4.2.6), then lambda is raised.  With bounds
+does not lower the cost is halved (4.2.6), then lambda is raised; when the
+linear model predicts a relative decrease below ftol the solver stops without
+trying (at the minimum the trial costs differ only by round-off).  With bounds
 the step is a bounded least-squares problem solved by qpsolvers/OSQP in the
 kept subspace.
 """
@@ -57,6 +59,8 @@ class SolverResult:
     message: str
     history: list[float] = field(default_factory=list)
     truncated: int = 0  # directions truncated in the last iteration
+    residual: np.ndarray | None = field(default=None, repr=False)  # fun at x
+    jacobian: np.ndarray | None = field(default=None, repr=False)  # its Jacobian at x
 
 
 def rms(r: np.ndarray, dof: int | None = None) -> float:
@@ -80,8 +84,8 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
     if opt.noise is not None:
         return _solve(fun, x0, scale, opt, progress)
     first = _solve(fun, x0, scale, replace(opt, noise=0.0), progress)
-    r, J = fun(first.x, True)
-    S = np.linalg.svd(J * scale, compute_uv=False)
+    r = first.residual
+    S, _, _ = _svd(first.jacobian * scale, r)
     sigma = rms(r, r.size - int(np.sum(S > opt.rcond * S[0])))
     if not np.any(S <= opt.snr * sigma):
         return first
@@ -114,15 +118,7 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
     it = 0
     for it in range(1, opt.max_iter + 1):
         Js = J * scale
-        # SVD through the QR of the tall [Js | r]: Js = Q R, and only U^T r = U_R^T Q^T r is needed.
-        n = Js.shape[1]
-        if Js.shape[0] > 2 * n:
-            Ra = np.linalg.qr(np.column_stack([Js, r]), mode="r")
-            U_R, S, Vt = np.linalg.svd(Ra[:n, :n])
-            g = U_R.T @ Ra[:n, n]
-        else:
-            U, S, Vt = np.linalg.svd(Js, full_matrices=False)
-            g = U.T @ r
+        S, Vt, g = _svd(Js, r)
         floor = opt.rcond * (S[0] if S.size else 0.0)
         sigma = opt.noise
         keep = S > max(floor, opt.snr * sigma)
@@ -132,6 +128,8 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
         accepted = False
         for attempt in range(4):
             dz = _step(S, Vt, g, keep, lam, x, scale, opt, Js, r)
+            if attempt == 0 and _model_decrease(S, Vt, g, dz) <= opt.ftol * cost:
+                break  # even if a trial succeeded, its decrease would stop the iteration: at the minimum
             t = 1.0
             for _ in range(opt.max_halvings + 1):
                 x_new = x + t * dz * scale
@@ -163,7 +161,52 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
         if decrease <= opt.ftol * max(cost + decrease, 1e-300) or step_norm < opt.xtol:
             status, message = "converged", "cost and step converged"
             break
-    return SolverResult(x, cost, it, status, message, history, truncated)
+    return SolverResult(x, cost, it, status, message, history, truncated, r, J)
+
+
+def _svd(Js: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Singular values S and right singular vectors Vt of Js = U S V^T, and g = U^T r.
+
+    For a tall Js through the triangular factor of [Js | r] = Q R: R's first
+    n columns are R_J = U_R S V^T, so U^T r = U_R^T (Q^T r), R's last column.
+    """
+    n = Js.shape[1]
+    if Js.shape[0] > 2 * n:
+        Ra = _r_factor(np.column_stack([Js, r]))
+        U_R, S, Vt = np.linalg.svd(Ra[:n, :n])
+        return S, Vt, U_R.T @ Ra[:n, n]
+    U, S, Vt = np.linalg.svd(Js, full_matrices=False)
+    return S, Vt, U.T @ r
+
+
+def _r_factor(A: np.ndarray) -> np.ndarray:
+    """The triangular factor R of a tall A = Q R, by tall-skinny QR (TSQR).
+
+    The rows are cut into blocks whose R factors are stacked (with the
+    leftover rows) and factored again, until one block remains: A = diag(Q_i)
+    [R_1; ...; R_k] gives the same R up to the signs of its rows.  Small
+    blocks stay in cache and in LAPACK's single-threaded level-2 path (one
+    QR of a long matrix is memory-bound, and its threaded BLAS calls stall
+    when other processes hold the cores).
+    """
+    n = A.shape[1]
+    block = max(256, 4 * n)
+    while A.shape[0] > block:
+        k = A.shape[0] // block
+        R = np.linalg.qr(A[:k * block].reshape(k, block, n), mode="r").reshape(-1, n)
+        A = np.vstack([R, A[k * block:]])
+    return np.linalg.qr(A, mode="r")
+
+
+def _model_decrease(S: np.ndarray, Vt: np.ndarray, g: np.ndarray, dz: np.ndarray) -> float:
+    """Decrease of the linear model's cost, 1/2 |r|^2 - 1/2 |r + Js dz|^2, for Js = U S V^T, g = U^T r.
+
+    With w = S V^T dz (Js dz = U w): -g.w - |w|^2 / 2.  Below the cost's
+    round-off the trial steps are coin flips; below ftol * cost a successful
+    one would end the iteration anyway.
+    """
+    w = S * (Vt @ dz)
+    return -float(g @ w) - 0.5 * float(w @ w)
 
 
 def _step(S, Vt, g, keep, lam, x, scale, opt: SolverOptions, Js, r) -> np.ndarray:

@@ -1,0 +1,101 @@
+"""The fast paths of the solve against the straightforward computations they replace."""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from closedloop.calibration import _cholesky_inverse, project_to_closure, whiten
+from closedloop.loops import WeldLoop
+from closedloop.problem import CalibrationProblem, LoopBlock
+from closedloop.solver import _r_factor
+
+
+def _problem(panda, frame_b="universe", n=30, tau=False, seed=0):
+    rng = np.random.default_rng(seed)
+    joints = panda.supporting_joints("panda_hand")
+    theta = rng.uniform(-1.0, 1.0, (n, len(joints)))
+    block = LoopBlock(WeldLoop("w", "panda_hand", frame_b), theta, np.arange(n),
+                      rng.normal(0.0, 10.0, theta.shape) if tau else None)
+    prob = CalibrationProblem(panda, joints, [block])
+    x = prob.nominal + rng.normal(0.0, 0.02, prob.nominal.size)
+    sl = prob.loop_slices[0]
+    x[sl] = block.loop.initialize(*prob.loop_poses(x, 0))
+    return prob, x
+
+
+@pytest.mark.parametrize("frame_b", ["universe", "panda_link3"])
+def test_reading_jacobian_equals_pinocchio_frame_jacobians(panda, frame_b):
+    """Jq from the kinematic regressors (J = K S) equals the one from Pinocchio's LOCAL frame Jacobians."""
+    prob, x = _problem(panda, frame_b)
+    b = prob.blocks[0]
+    ev = prob.evaluate(x, columns=[])[0]
+    state = prob.rp.apply(x[:prob.n_robot])
+    model, data = state.model, state.data
+    fa, fb = panda.frame_id("panda_hand"), panda.frame_id(frame_b)
+    idx_v = [panda.joint(j).idx_v for j in prob.joints]
+    q = panda.configurations(prob.model_angles(state, b.theta, None), prob.joints)
+    TA, TB = prob.loop_poses(x, 0)
+    lev = b.loop.evaluate(TA, TB, x[prob.loop_slices[0]])
+    for i, qi in enumerate(q):
+        pin.computeJointJacobians(model, data, qi)
+        pin.updateFramePlacements(model, data)
+        jac = lev.dA[i] @ pin.getFrameJacobian(model, data, fa, pin.LOCAL)[:, idx_v]
+        if fb:
+            jac += lev.dB[i] @ pin.getFrameJacobian(model, data, fb, pin.LOCAL)[:, idx_v]
+        assert np.abs(ev.Jq[i] - jac * state.scale).max() < 1e-12 * np.abs(jac).max()
+
+
+def test_requested_columns_equal_the_full_jacobian(panda):
+    """Any subset of columns, in any order, equals those columns of the full Jacobian (compliance included)."""
+    prob, x = _problem(panda, tau=True)
+    full = prob.evaluate(x)[0]
+    cols = np.random.default_rng(1).permutation(len(prob.names))[:25]
+    part = prob.evaluate(x, columns=cols)[0]
+    assert np.abs(part.J - full.J[:, :, cols]).max() <= 1e-14 * np.abs(full.J).max()
+    assert np.array_equal(part.Jq, full.Jq) and np.array_equal(part.r, full.r)
+    assert prob.evaluate(x, columns=[])[0].J.shape == (30, 6, 0)
+
+
+def test_cholesky_whitening_is_the_same_least_squares_problem(panda):
+    """L^-1 in place of the symmetric W^-1/2: same |r|^2, J^T J and J^T r; singular W_i still take the eigen route."""
+    prob, x = _problem(panda, n=40)
+    ev = prob.evaluate(x)[0]
+    ev.Jq[3] = 0.0  # a configuration whose closure error no joint noise can produce: W = 0
+    ev.Jq[5, :, 2:] = 0.0  # and one seen by two joints only: W of rank 2
+    sigma = np.full(len(prob.joints), 1e-4)
+    r1, J1, used1 = whiten([ev], sigma, "noise")
+    r2, J2, used2 = whiten([ev], sigma, "noise", symmetric=False)
+    assert used1[0][1] == used2[0][1] == 6 + 4
+    assert abs(r1 @ r1 - r2 @ r2) < 1e-10 * (r1 @ r1)  # round-off grows with the W_i's conditions (up to ~1e6 here)
+    assert np.abs(J1.T @ J1 - J2.T @ J2).max() < 1e-10 * np.abs(J1.T @ J1).max()
+    assert np.abs(J1.T @ r1 - J2.T @ r2).max() < 1e-10 * np.abs(J1.T @ r1).max()
+    W = ev.Jq[:3] @ np.swapaxes(ev.Jq[:3], 1, 2)
+    Linv, kappa = _cholesky_inverse(W)
+    assert np.abs(Linv @ W @ np.swapaxes(Linv, 1, 2) - np.eye(6)).max() < 1e-10
+    assert np.all(kappa >= np.linalg.cond(W))
+
+
+def test_projection_matches_pseudo_inverse_steps(panda, panda_weld):
+    """Closure projection through Cholesky steps lands where the SVD pseudo-inverse steps land."""
+    joints = panda_weld.joints
+    prob = CalibrationProblem(panda, joints, [LoopBlock(WeldLoop("fixture", "panda_hand"), panda_weld.readings,
+                                                        np.arange(len(panda_weld.readings)))])
+    x = prob.nominal  # the nominal model: the true robot's configurations miss its closure by millimetres
+    x[prob.loop_slices[0]] = prob.blocks[0].loop.initialize(*prob.loop_poses(x, 0))
+    ref = prob.blocks[0].theta.copy()
+    for _ in range(8):
+        ev = prob.evaluate(x, True, [ref], columns=[])[0]
+        ref = ref - np.einsum("nij,nj->ni", np.linalg.pinv(ev.Jq, rcond=1e-10), ev.r)
+    out = project_to_closure(prob, x)[0]
+    assert np.abs(out - ref).max() < 1e-12
+    assert np.abs(prob.evaluate(x, False, [out])[0].r).max() < 1e-13
+
+
+@pytest.mark.parametrize("rows", [60, 257, 5000, 70001])
+def test_tall_skinny_qr(rows):
+    A = np.random.default_rng(rows).normal(size=(rows, 28))
+    R = _r_factor(A)
+    R_ref = np.linalg.qr(A, mode="r")
+    assert np.abs(np.abs(R) - np.abs(R_ref)).max() < 1e-12 * np.abs(R_ref).max()
