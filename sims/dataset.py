@@ -150,20 +150,23 @@ def sensor_readings(
 
 
 def _violation(scene: Scene, point: bool) -> tuple[float, float]:
-    t = site_pose(scene.model, scene.data, scene.tool_site)
-    g = site_pose(scene.model, scene.data, scene.target_site)
-    dp = float(np.linalg.norm(t.translation - g.translation))
+    """Distance and rotation angle between the tool site and the target site (after ``mj_forward``)."""
+    d, t, g = scene.data, scene.tool_site, scene.target_site
+    dp = float(np.linalg.norm(d.site_xpos[t] - d.site_xpos[g]))
     if point:
         return dp, 0.0
-    return dp, float(np.linalg.norm(pin.log3(g.rotation.T @ t.rotation)))
+    rel = d.site_xmat[g].reshape(3, 3).T @ d.site_xmat[t].reshape(3, 3)
+    return dp, float(np.linalg.norm(pin.log3(rel)))
+
+
+_EQUALITY = int(mujoco.mjtConstraint.mjCNSTR_EQUALITY)
 
 
 def _constraint_force(scene: Scene) -> float:
     """Norm of the translational part of the loop constraint force (``efc_force``)."""
     d = scene.data
-    rows = np.flatnonzero(
-        (d.efc_type[: d.nefc] == mujoco.mjtConstraint.mjCNSTR_EQUALITY) & (d.efc_id[: d.nefc] == scene.eq_id)
-    )
+    nefc = d.nefc
+    rows = np.flatnonzero((d.efc_type[:nefc] == _EQUALITY) & (d.efc_id[:nefc] == scene.eq_id))
     return float(np.linalg.norm(d.efc_force[rows[:3]])) if rows.size else 0.0
 
 

@@ -206,7 +206,7 @@ class NominalLoop:
             self.normal = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
             self.d = float(self.normal @ self.point)
         self.data = self.model.createData()
-        self._last: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._last: tuple[bytes, np.ndarray, np.ndarray] | None = None  # (q bytes, e, de/dq)
         self.nq = self.model.nq
         self.lower = self.model.lowerPositionLimit.copy()
         self.upper = self.model.upperPositionLimit.copy()
@@ -226,12 +226,13 @@ class NominalLoop:
         The last evaluation is kept: the planner asks again at the point it has just
         projected onto the loop.
         """
-        if self._last is not None and np.array_equal(q, self._last[0]):
+        key = np.asarray(q, dtype=float).tobytes()
+        if self._last is not None and key == self._last[0]:
             return self._last[1], self._last[2]
         e, jac = self._residual(q)
         e.flags.writeable = False
         jac.flags.writeable = False
-        self._last = (np.array(q, dtype=float), e, jac)
+        self._last = (key, e, jac)
         return e, jac
 
     def _residual(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
