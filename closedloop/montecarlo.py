@@ -70,12 +70,19 @@ def panda_urdf() -> str:
 
 
 def weld_scenario(n: int = 200, seed: int = 0, n_pool: int = 0,
-                  theta0=(0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8), stride: int = 3) -> Scenario:
+                  theta0=(0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8), stride: int = 3, pool: str = "walk") -> Scenario:
     """The 7-DOF Panda welded to a fixture at the hand: truth drawn in the identifiable set.
 
     `n` exact configurations along the self-motion (one every `stride` steps
-    of 0.04 rad), and `n_pool` more (the walk continued) in `pool`.
+    of 0.04 rad), and `n_pool` more in `pool`: with pool='walk' the walk
+    continued (it bounces between the joint limits, so it revisits the same
+    arc), with pool='manifold' `n_pool` configurations evenly spaced along the
+    whole self-motion through the start pose, from joint limit to joint limit
+    (``self_motion_manifold``): every configuration the robot can reach
+    while holding the fixture on that branch.  `theta` is the same either way.
     """
+    if pool not in ("walk", "manifold"):
+        raise ValueError(f"pool must be 'walk' or 'manifold', not '{pool}'")
     from .loops import WeldLoop
     from .synthetic import self_motion
     from .truth import draw_truth, identifiable_names
@@ -95,9 +102,98 @@ def weld_scenario(n: int = 200, seed: int = 0, n_pool: int = 0,
     TA, TB = prob.loop_poses(truth, 0, th0)
     X = pin.SE3(TA[0])
     truth[prob.loop_slices[0]] = np.r_[X.translation, pin.log3(X.rotation)]
-    th = self_motion(prob, truth, th0, n + n_pool, rng, stride=stride)
+    if pool == "walk":
+        th = self_motion(prob, truth, th0, n + n_pool, rng, stride=stride)
+        extra = th[n:] if n_pool else None
+    else:  # the walk's first n configurations are the same as above (sequential draws)
+        th = self_motion(prob, truth, th0, n, rng, stride=stride)
+        extra = self_motion_manifold(prob, truth, th0, n_pool) if n_pool else None
     return Scenario(robot, list(joints), [WeldLoop("fixture", "panda_hand")], th[:n],
-                    dict(zip(prob.names, map(float, truth))), th[n:] if n_pool else None)
+                    dict(zip(prob.names, map(float, truth))), extra)
+
+
+def self_motion_manifold(problem: CalibrationProblem, values: np.ndarray, theta0: np.ndarray, n: int,
+                         block: int = 0, margin: float = 0.05, step: float = 0.02) -> np.ndarray:
+    """`n` readings evenly spaced (joint-space arc length) along the whole one-dimensional self-motion
+    of loop `block` through `theta0`, at `values`.
+
+    The curve {theta : loop closes} is traced both ways from theta0 (predictor: the null vector of
+    the closure Jacobian d r / d theta, corrector: Gauss-Newton back onto the loop,
+    ``synthetic.close``) in steps of `step` rad, until a joint comes within `margin` of its limit
+    (failed steps are halved, down to step/64, so the ends sit at the limits) or the curve closes
+    on itself.  The traced polyline is resampled at n equally spaced arc lengths and every sample
+    is corrected onto the loop again (batched Gauss-Newton, minimum-norm steps).  Raises
+    NotIdentifiableError when the self-motion is not one-dimensional.
+    """
+    from .errors import NotIdentifiableError
+    from .synthetic import close
+
+    robot = problem.robot
+    lo = np.array([robot.joint(j).lower for j in problem.joints]) + margin
+    hi = np.array([robot.joint(j).upper for j in problem.joints]) - margin
+    scale = values[problem.rp.scale_index()]
+    off = values[problem.rp.offset_index()]
+    thetas = [b.theta[:1] for b in problem.blocks]
+    name = problem.blocks[block].loop.name
+
+    def jq(th):
+        thetas[block] = np.atleast_2d(th)
+        return problem.evaluate(values, True, thetas)[block].Jq
+
+    def tangent(th, prev):
+        _, S, Vt = np.linalg.svd(jq(th)[0])
+        rank = int(np.sum(S > 1e-9 * S[0]))
+        if Vt.shape[0] - rank != 1:
+            raise NotIdentifiableError(f"the self-motion of loop {name} is {Vt.shape[0] - rank}-dimensional, not 1")
+        t = Vt[-1]
+        return -t if prev is not None and t @ prev < 0 else t
+
+    def inside(th):
+        a = th * scale + off
+        return bool(np.all(a >= lo) and np.all(a <= hi))
+
+    start, err = close(problem, values, np.atleast_2d(theta0), block)
+    start = start[0]
+    if err > 1e-9 or not inside(start):
+        raise NotIdentifiableError(f"cannot close loop {name} within the joint limits from the start pose")
+    t0 = tangent(start, None)
+    halves, closed = [], False
+    for sign in (1.0, -1.0):
+        th, t, out, h, walked = start, sign * t0, [], step, 0.0
+        while h >= step / 64 and len(out) < 100000:
+            cand, err = close(problem, values, (th + h * t)[None], block)
+            cand = cand[0]
+            if err > 1e-10 or not inside(cand) or np.linalg.norm(cand - th) > 2 * h:
+                h /= 2  # a limit (or a fold) ahead: approach it in shorter steps
+                continue
+            walked += np.linalg.norm(cand - th)
+            th, t, h = cand, tangent(cand, t), min(step, 2 * h)
+            if walked > 4 * step and np.linalg.norm(th - start) < step:
+                closed = True  # back at the start: a closed curve, traced once
+                break
+            out.append(th)
+        halves.append(out)
+        if closed:
+            break
+    if closed:
+        poly = np.array([start] + halves[0] + [start])
+    else:
+        poly = np.array(halves[1][::-1] + [start] + halves[0])
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))]
+    targets = np.linspace(0.0, s[-1], n, endpoint=not closed)
+    th = np.array([np.interp(targets, s, poly[:, c]) for c in range(poly.shape[1])]).T
+    for _ in range(20):  # batched Gauss-Newton onto the loop, minimum-norm steps
+        thetas[block] = th
+        ev = problem.evaluate(values, True, thetas)[block]
+        r, J = ev.r.reshape(len(th), -1), ev.Jq.reshape(len(th), -1, th.shape[1])
+        if np.abs(r).max() < 1e-13:
+            break
+        th = th - np.einsum("nki,nk->ni", J, np.linalg.solve(J @ np.swapaxes(J, 1, 2), r[..., None])[..., 0])
+    thetas[block] = th
+    r = problem.evaluate(values, False, thetas)[block].r
+    if np.abs(r).max() > 1e-10 or not all(inside(x) for x in th):
+        raise NotIdentifiableError(f"resampling the self-motion of loop {name} left the loop or the limits")
+    return th
 
 
 # --------------------------------------------------------------------------- unwrap
