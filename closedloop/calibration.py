@@ -30,6 +30,7 @@ from .errors import LogError, LoopError, NotIdentifiableError, ParameterError
 from .identifiability import (Combination, Dropped, greedy_reduction, length_gauge, loop_mobility,
                               weak_directions)
 from .loops.base import Loop
+from .noise import joint_variance_scale
 from .parameters import match
 from .problem import BlockEval, CalibrationProblem, LoopBlock
 from .robot import RobotModel
@@ -402,6 +403,10 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
                      "(thesis 4.2.2)")
 
     sigma_q, known = _noise_vector(problem, opt.noise)
+    noise_given = known
+    # unknown joint noise beside a loop's known measurement noise: their ratio must be estimated
+    joint_noise_beside_measurement = (not known and opt.weighting == "noise" and not opt.robust
+                                      and any(b.loop.measurement_cov is not None for b in problem.blocks))
     free = [k for k in range(P) if status[k] == "selected"]
     M = sum(b.theta.shape[0] * b.loop.dim for b in problem.blocks)
     if not free:
@@ -548,6 +553,23 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
     else:
         fun = make_fun(opt.weighting)
         res = levenberg_marquardt(fun, x0[est], scale[est], sopt, prog)
+        if joint_noise_beside_measurement:
+            # The ratio of joint to measurement noise sets the weights: estimate the joint level
+            # (closedloop.noise) at the fit, re-solve from x0 with it, until it settles.
+            pattern, s_prev = sigma_q.copy(), None
+            covs = [lp.measurement_cov for lp in loops_]
+            for _ in range(4):
+                x = x0.copy()
+                x[est] = res.x
+                evs = problem.evaluate(x, True, columns=[])
+                s = joint_variance_scale([e.r for e in evs], [e.Jq for e in evs], covs, pattern, len(est))
+                if s_prev is not None and abs(s - s_prev) <= 0.05 * max(s, s_prev):
+                    break
+                sigma_q, known, s_prev = np.sqrt(s) * pattern, True, s
+                fun = make_fun(opt.weighting)
+                res = levenberg_marquardt(fun, x0[est], scale[est], replace(sopt, noise=1.0), prog)
+            notes.append(f"joint noise estimated at {float(np.mean(sigma_q)):.3g} beside the given measurement "
+                         "noise (variance components); give --noise to fix it")
     x = x0.copy()
     x[est] = res.x
     for b, sl in zip(problem.blocks, problem.loop_slices):
@@ -583,5 +605,5 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
         notes.append(f"solver: {res.message}")
     return CalibrationResult(problem, names, x0, x, std, status, dropped, weak, S,
                              int(keep.sum()), residual_stats(problem, evals0), residual_stats(problem, evals1),
-                             res.iterations, res.status, res.message, sigma, not known, chi2, dof, notes,
+                             res.iterations, res.status, res.message, sigma, not noise_given, chi2, dof, notes,
                              cov, est, suspects)

@@ -79,6 +79,9 @@ def holdout(robot: RobotModel, train: JointLog, test: JointLog, loops: list[Loop
     opt = options or CalibrationOptions()
     res = calibrate(robot, train, loops, opt)
     noise = opt.noise if opt.noise is not None else (res.sigma if opt.weighting == "noise" else None)
+    if noise is not None and not isinstance(noise, dict) and noise <= 0.0:
+        # joint noise estimated at zero beside a measurement's (closedloop.noise): W_i is that covariance alone
+        noise = float(np.finfo(float).tiny)
     pred = closure_residuals(res, robot, test, loops, noise)
     fit = closure_residuals(res, robot, train, loops, noise)
     build_problem(robot, train, loops, opt.priors)  # leave the loops bound to the training rows
