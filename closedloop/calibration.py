@@ -77,6 +77,8 @@ class LoopResiduals:
     max_m: float | None
     rms_rad: float | None
     max_rad: float | None
+    rms_px: float | None = None  # image-point error (camera loops)
+    max_px: float | None = None
 
 
 @dataclass
@@ -272,11 +274,16 @@ def residual_stats(problem: CalibrationProblem, evals: list[BlockEval]) -> list[
         w = ev.r[:, list(lp.rotation_rows)] if lp.rotation_rows else None
         tn = np.linalg.norm(t, axis=1) if t is not None else None
         wn = np.linalg.norm(w, axis=1) if w is not None else None
+        # image points: the (u, v) pairs' Euclidean errors, pooled over configurations and cameras
+        pn = (np.linalg.norm(ev.r[:, list(lp.pixel_rows)].reshape(-1, 2), axis=1)
+              if lp.pixel_rows and ev.r.size else None)
         out.append(LoopResiduals(lp.name, ev.r.shape[0],
                                  float(np.sqrt(np.mean(tn ** 2))) if tn is not None else None,
                                  float(tn.max()) if tn is not None else None,
                                  float(np.sqrt(np.mean(wn ** 2))) if wn is not None else None,
-                                 float(wn.max()) if wn is not None else None))
+                                 float(wn.max()) if wn is not None else None,
+                                 float(np.sqrt(np.mean(pn ** 2))) if pn is not None else None,
+                                 float(pn.max()) if pn is not None else None))
     return out
 
 

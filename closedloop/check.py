@@ -18,7 +18,7 @@ from .errors import InputError
 NOMINAL = {"placement": 0.0, "offset": 0.0, "scale": 1.0}
 
 
-def check_report(truth: dict, report: dict, tol_m: float, tol_rad: float, tol_scale: float):
+def check_report(truth: dict, report: dict, tol_m: float, tol_rad: float, tol_scale: float, tol_px: float = 1.0):
     """Rows of (name, true, calibrated, error, tol, result) and whether all compared rows pass."""
     if "parameters" not in truth or not isinstance(truth["parameters"], dict):
         raise InputError("truth file: expected a 'parameters' object of name: true value")
@@ -28,7 +28,7 @@ def check_report(truth: dict, report: dict, tol_m: float, tol_rad: float, tol_sc
     rep = {p["name"]: p for p in report["parameters"]}
     unknown = [n for n in true if n not in rep]
     rows = []
-    tol_by_unit = {"m": tol_m, "rad": tol_rad, "1": tol_scale}
+    tol_by_unit = {"m": tol_m, "rad": tol_rad, "1": tol_scale, "px": tol_px}
     done: set[str] = set()
     for name, p in rep.items():
         if name in done:
@@ -45,7 +45,11 @@ def check_report(truth: dict, report: dict, tol_m: float, tol_rad: float, tol_sc
             if name in true:
                 rows.append(_row(name, tv, None, None, None, f"not compared ({p['status']})"))
             continue
-        tol = tol_by_unit.get(p["unit"], tol_m)
+        if p["unit"] not in tol_by_unit:  # a unit with no tolerance (compliance, rad/(N m)): say so
+            rows.append(_row(name, tv, float(p["calibrated"]), float(p["calibrated"]) - tv, None,
+                             f"not compared (no tolerance for unit {p['unit']})"))
+            continue
+        tol = tol_by_unit[p["unit"]]
         if p["kind"] == "loop" and name.endswith(".rx"):
             base = name[:-3]
             trip = [f"{base}.{a}" for a in ("rx", "ry", "rz")]

@@ -149,6 +149,8 @@ def _print_summary(res, elapsed: float, args, report: dict) -> None:
             parts.append(f"{rb.rms_m * 1e3:.4g} mm -> {ra.rms_m * 1e3:.4g} mm")
         if rb.rms_rad is not None:
             parts.append(f"{rb.rms_rad * 1e3:.4g} mrad -> {ra.rms_rad * 1e3:.4g} mrad")
+        if rb.rms_px is not None:
+            parts.append(f"{rb.rms_px:.4g} px -> {ra.rms_px:.4g} px")
         print(f"  loop {ra.loop}: closure RMS " + ", ".join(parts))
     est = "estimated" if res.sigma_estimated else "given"
     print(f"  joint noise {res.sigma:.3g} ({est}); chi2/dof {res.chi2 / max(res.dof, 1):.3g}")
@@ -162,7 +164,8 @@ def _print_summary(res, elapsed: float, args, report: dict) -> None:
     if cv:
         for t in cv["test"]:
             parts = [f"{t['rms_m'] * 1e3:.4g} mm" if t.get("rms_m") is not None else "",
-                     f"{t['rms_rad'] * 1e3:.4g} mrad" if t.get("rms_rad") is not None else ""]
+                     f"{t['rms_rad'] * 1e3:.4g} mrad" if t.get("rms_rad") is not None else "",
+                     f"{t['rms_px']:.4g} px" if t.get("rms_px") is not None else ""]
             print(f"  {cv['k']}-fold validation, loop {t['loop']}: held-out closure RMS "
                   + ", ".join(p for p in parts if p))
     if args.out:
@@ -198,7 +201,8 @@ def cmd_check(args) -> int:
 
     truth = _load_json(args.truth)
     report = _load_json(args.report)
-    rows, ok = check_report(truth, report, tol_m=args.tol_m, tol_rad=args.tol_rad, tol_scale=args.tol_scale)
+    rows, ok = check_report(truth, report, tol_m=args.tol_m, tol_rad=args.tol_rad, tol_scale=args.tol_scale,
+                              tol_px=args.tol_px)
     print(f"{'parameter':<28}{'true':>14}{'calibrated':>14}{'error':>12}{'tol':>10}  result")
     for r in rows:
         cal = "" if r["calibrated"] is None else f"{r['calibrated']:14.6g}"
@@ -327,6 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--tol-m", type=float, default=1e-3, help="tolerance for lengths (m)")
     k.add_argument("--tol-rad", type=float, default=5e-3, help="tolerance for angles (rad)")
     k.add_argument("--tol-scale", type=float, default=5e-3, help="tolerance for scale factors")
+    k.add_argument("--tol-px", type=float, default=1.0, help="tolerance for camera intrinsics (px)")
     k.set_defaults(func=cmd_check)
     return p
 

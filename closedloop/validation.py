@@ -95,12 +95,12 @@ def _mean_loops(per_fold: list[list[dict]]) -> list[dict]:
         rows = [f[li] for f in per_fold]
         n = np.array([r["n"] for r in rows], float)
         d = {"loop": rows[0]["loop"], "n": int(n.sum())}
-        for key in ("rms_m", "rms_rad"):
-            vals = [r[key] for r in rows]
+        for key in ("rms_m", "rms_rad", "rms_px"):
+            vals = [r.get(key) for r in rows]
             d[key] = None if any(v is None for v in vals) else \
                 float(np.sqrt(np.sum(n * np.array(vals) ** 2) / n.sum()))
-        for key in ("max_m", "max_rad"):
-            vals = [r[key] for r in rows]
+        for key in ("max_m", "max_rad", "max_px"):
+            vals = [r.get(key) for r in rows]
             d[key] = None if any(v is None for v in vals) else float(max(vals))
         out.append(d)
     return out

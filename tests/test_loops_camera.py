@@ -335,9 +335,16 @@ def test_missing_column_is_a_one_line_error():
         build_problem(robot, lg, [CameraLoop("cam", "tool0", cameras=2)])
 
 
-def test_reprojection_stats_in_pixels():
+def test_residual_stats_in_pixels():
+    """The report's closure statistics for a camera loop are image-point errors in pixels."""
+    from types import SimpleNamespace
+
+    from closedloop.calibration import residual_stats
+    from closedloop.problem import BlockEval
+
     loop = CameraLoop("cam", "tool0", cameras=2)
     r = np.array([[3.0, 4.0, 0.0, 0.0], [0.0, 0.0, 6.0, 8.0]])
-    s = loop.reprojection_stats(r)
-    assert np.isclose(s["max_px"], 10.0) and np.isclose(s["rms_px"], np.sqrt((25 + 100) / 4))
+    (s,) = residual_stats(SimpleNamespace(blocks=[SimpleNamespace(loop=loop)]), [BlockEval(r, None, None)])
+    assert np.isclose(s.max_px, 10.0) and np.isclose(s.rms_px, np.sqrt((25 + 100) / 4))
+    assert s.rms_m is None and s.rms_rad is None
     assert loop.describe()["residual_unit"] == "px"

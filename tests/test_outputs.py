@@ -226,3 +226,20 @@ def test_bad_simulation_settings_one_line_exit_2(tmp_path, setting, expect):
     rc, err = p.returncode, p.stderr
     assert rc == 2 and expect in err and "Traceback" not in err, err
     assert not (tmp_path / "o").exists()  # nothing simulated
+
+
+def test_check_uses_the_tolerance_of_each_unit():
+    from closedloop.check import check_report
+
+    def p(name, unit, cal, kind="loop"):
+        return {"name": name, "kind": kind, "unit": unit, "calibrated": cal, "initial": 0.0, "status": "estimated"}
+
+    truth = {"parameters": {"cam.cam1.fx": 800.0, "cam.tip_x": 0.1, "j1.compliance": 1e-5}}
+    report = {"parameters": [p("cam.cam1.fx", "px", 800.6), p("cam.tip_x", "m", 0.1004),
+                             p("j1.compliance", "rad/Nm", 3e-5, "compliance")]}
+    rows, ok = check_report(truth, report, tol_m=1e-3, tol_rad=5e-3, tol_scale=5e-3, tol_px=1.0)
+    res = {r["name"]: r["result"] for r in rows}
+    assert ok and res["cam.cam1.fx"] == "ok" and res["cam.tip_x"] == "ok"
+    assert res["j1.compliance"].startswith("not compared (no tolerance for unit rad/Nm")
+    _, ok = check_report(truth, report, tol_m=1e-3, tol_rad=5e-3, tol_scale=5e-3, tol_px=0.5)
+    assert not ok  # 0.6 px off

@@ -37,6 +37,8 @@ class Loop(ABC):
     #: residual rows that are lengths (m); the others are angles (rad)
     translation_rows: tuple[int, ...] = ()
     rotation_rows: tuple[int, ...] = ()
+    #: residual rows that are image coordinates (px), in (u, v) pairs, one pair per image point
+    pixel_rows: tuple[int, ...] = ()
     #: True when the loop cannot tell the overall size of the robot (thesis 3.3)
     scale_free: bool = True
 

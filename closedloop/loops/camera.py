@@ -171,8 +171,8 @@ class CameraLoop(Loop):
     measurement_cov = sigma_px^2 I.
 
     Residual rows are pixels, neither metres nor radians, so
-    translation_rows = rotation_rows = (); ``pixel_rows`` and
-    ``reprojection_stats`` give the per-image-point error in pixels.
+    translation_rows = rotation_rows = (); ``pixel_rows`` makes the report
+    give the per-image-point error in pixels (``residual_stats``: rms_px, max_px).
     """
 
     translation_rows: tuple[int, ...] = ()
@@ -408,13 +408,6 @@ class CameraLoop(Loop):
             if cost < best_cost:
                 best, best_cost = p, cost
         return best
-
-    # ------------------------------------------------------------- reporting
-    def reprojection_stats(self, r: np.ndarray) -> dict[str, float]:
-        """RMS and max over configurations and cameras of the image-point error |r_c| (pixels)."""
-        e = np.linalg.norm(np.asarray(r).reshape(-1, self.cameras, 2), axis=2)
-        return {"rms_px": float(np.sqrt(np.mean(e ** 2))) if e.size else 0.0,
-                "max_px": float(e.max()) if e.size else 0.0}
 
     def describe(self) -> dict:
         cams = []
