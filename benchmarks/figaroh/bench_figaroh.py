@@ -261,6 +261,12 @@ def make_venv(venv: Path) -> None:
     pip = [str(venv / "bin/python"), "-m", "pip", "install", "-q"]
     subprocess.run(pip + ["--no-deps", f"figaroh=={FIGAROH_VERSION}"], check=True)
     subprocess.run(pip + VENV_PACKAGES, check=True)
+    # --system-site-packages sees the *base* interpreter's packages: when the project itself runs in a
+    # venv, give FIGAROH the same Pinocchio and robot files explicitly
+    from importlib.metadata import version
+
+    same = [f"{name}=={version(name)}" for name in ("pin", "example-robot-data", "numpy", "scipy")]
+    subprocess.run(pip + same, check=True)
 
 
 # ---------------------------------------------------------------- weld loop (closedloop alone)
