@@ -1,18 +1,25 @@
-"""Benchmark: weld-loop calibration of the 7-DOF Panda (issue 2; issue 5 for the sizes).
+"""Benchmark: weld-loop calibration of the 7-DOF Panda (issues 2, 5, 17).
 
-Prints, per dataset size, the whole calibration time (analysis + solve), the
-solve time, the number of LM iterations and the time per iteration.  Data:
-exact self-motion configurations of a random true Panda (1,000 distinct ones,
-tiled with fresh 1e-4 rad noise for larger sizes).
+Per dataset size, BLAS thread mode and load condition: the whole calibration
+time (analysis + solve), the solve time, the LM iterations, the CPU time, and
+the ratios to the floor (`floor.pinocchio_floor`: forward kinematics + frame
+Jacobian of the same number of configurations, measured in the same
+conditions): `total / floor` and `solve / (floor x iterations)`.  Data: exact
+self-motion configurations of a random true Panda (1,000 distinct ones, tiled
+with fresh 1e-4 rad noise for larger sizes).
 
-    python benchmarks/bench_calibrate.py                    # 1,000 configurations
-    python benchmarks/bench_calibrate.py --sizes 1000 10000 100000
+Thread modes: `1` (single-threaded), `default` (the BLAS libraries' own
+setting), `auto` (`closedloop.threads.blas_threads(None, rows, cols)`, what the
+library chooses).  `--loaded` repeats everything while one busy process per
+CPU keeps the cores busy (bounded in time, killed afterwards).
+
+    python benchmarks/bench_calibrate.py                              # 1,000 configurations
+    python benchmarks/bench_calibrate.py --sizes 1000 10000 100000 --loaded
 """
 
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 
@@ -23,42 +30,82 @@ from closedloop.models import ROBOTS
 from closedloop.robot import RobotModel
 from closedloop.truth import make_dataset
 
-from machine import machine  # benchmarks/machine.py
+from floor import pinocchio_floor  # benchmarks/floor.py
+from machine import add_arguments, condition, conditions, header, threads_mode, timed  # benchmarks/machine.py
+
+
+def _log(ds, n: int, rng: np.random.Generator) -> JointLog:
+    reps = int(np.ceil(n / 1000))
+    th = np.tile(ds.readings, (reps, 1))[:n]
+    return JointLog(ds.joints, th + rng.normal(0.0, 1e-4, th.shape))
+
+
+def run_once(robot, log: JointLog, mode: str) -> tuple[float, float, float, float, int, int]:
+    """(total wall, solve wall, total CPU, solve CPU, iterations, estimated parameters) of one calibration."""
+    import time
+
+    stages: dict[str, tuple[float, float]] = {}
+
+    def progress(stage, it, cost):
+        stages.setdefault(stage, (time.perf_counter(), time.process_time()))
+
+    loops = [WeldLoop("fixture", "panda_hand")]
+    if mode == "auto":
+        from closedloop.threads import blas_threads
+
+        def call():
+            with blas_threads(None, 6 * len(log), 7 * len(log.joints) + 6):
+                return calibrate(robot, log, loops, progress=progress)
+    else:
+        def call():
+            with threads_mode(mode):
+                return calibrate(robot, log, loops, progress=progress)
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    res, total, cpu = timed(call)
+    s0, sc0 = stages.get("solving", (t0, c0))
+    return total, total - (s0 - t0), cpu, cpu - (sc0 - c0), res.iterations, len(res.estimated)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[1000])
-    ap.add_argument("--repeat", type=int, default=3, help="best of N runs")
+    ap.add_argument("--repeat", type=int, default=5, help="runs per figure (median and best reported)")
+    add_arguments(ap)
+    ap.set_defaults(threads=["1", "default", "auto"])
     args = ap.parse_args()
     robot = RobotModel.from_file(ROBOTS["panda"].path)
     rng = np.random.default_rng(0)
-    t = time.perf_counter()
-    ds = make_dataset(robot, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 1000, rng,
-                      stride=1)
-    print(f"machine: {machine()}")
-    print(f"data: 1,000 exact self-motion configurations in {time.perf_counter() - t:.1f} s; noise 1e-4 rad")
-    print(f"{'configs':>9} {'total [s]':>10} {'solve [s]':>10} {'iters':>6} {'s/iter':>8} {'params':>7}")
-    for n in args.sizes:
-        reps = int(np.ceil(n / 1000))
-        th = np.tile(ds.readings, (reps, 1))[:n]
-        th = th + rng.normal(0.0, 1e-4, th.shape)
-        log = JointLog(ds.joints, th)
-        best = None
-        for _ in range(args.repeat):
-            stages: dict[str, float] = {}
-
-            def progress(stage, it, cost, stages=stages):
-                stages.setdefault(stage, time.perf_counter())
-
-            t0 = time.perf_counter()
-            res = calibrate(robot, log, [WeldLoop("fixture", "panda_hand")], progress=progress)
-            total = time.perf_counter() - t0
-            solve = total - (stages.get("solving", t0) - t0)
-            if best is None or total < best[0]:
-                best = (total, solve, res.iterations, len(res.estimated))
-        total, solve, iters, npar = best
-        print(f"{n:>9,} {total:>10.3f} {solve:>10.3f} {iters:>6d} {solve / max(iters, 1):>8.4f} {npar:>7d}")
+    ds, t_data, _ = timed(make_dataset, robot, WeldLoop("fixture", "panda_hand"),
+                          [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 1000, rng, stride=1)
+    print(header())
+    print(f"data: 1,000 exact self-motion configurations in {t_data:.1f} s; noise 1e-4 rad")
+    logs = {n: _log(ds, n, rng) for n in args.sizes}
+    calibrate(robot, logs[args.sizes[0]], [WeldLoop("fixture", "panda_hand")])  # warm-up (imports, caches)
+    for cond in conditions(args.loaded):
+        with condition(cond) as cdesc:
+            print(f"\n[{cdesc}]")
+            print("wall: median and best of the runs; cpu: medians; floor: Pinocchio FK + frame Jacobian of the\n"
+                  "same configurations (benchmarks/floor.py), best of 3, wall and CPU; ratios on the CPU clock\n"
+                  "(on a shared machine the wall clock measures the scheduler)")
+            print(f"{'threads':>8} {'configs':>9} {'total med':>10} {'best':>7} {'solve med':>10} {'best':>7} "
+                  f"{'cpu tot':>8} {'cpu solve':>9} {'iters':>5} {'floor ms':>9} {'cpu':>6} "
+                  f"{'tot/fl':>7} {'solve/(fl*it)':>14}")
+            for mode in args.threads:
+                for n in args.sizes:
+                    reps = args.repeat if n <= 10000 else max(1, args.repeat // 3)
+                    runs = [run_once(robot, logs[n], mode) for _ in range(reps)]
+                    tot = np.array([r[0] for r in runs])
+                    sol = np.array([r[1] for r in runs])
+                    cpu = float(np.median([r[2] for r in runs]))
+                    cpu_s = float(np.median([r[3] for r in runs]))
+                    iters = runs[0][4]
+                    with threads_mode("1"):
+                        fl, fl_cpu = pinocchio_floor("panda", n=n, repeat=3)
+                    print(f"{mode:>8} {n:>9,} {np.median(tot):>10.3f} {tot.min():>7.3f} {np.median(sol):>10.3f} "
+                          f"{sol.min():>7.3f} {cpu:>8.3f} {cpu_s:>9.3f} {iters:>5d} {1e3 * fl:>9.2f} "
+                          f"{1e3 * fl_cpu:>6.2f} {cpu / fl_cpu:>7.0f} {cpu_s / (fl_cpu * max(iters, 1)):>14.1f}",
+                          flush=True)
 
 
 if __name__ == "__main__":

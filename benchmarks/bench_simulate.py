@@ -1,35 +1,42 @@
-"""Benchmark of the MuJoCo dataset generator: settled configurations per second.
+"""Benchmark of the MuJoCo dataset generator: settled configurations per second, and the floor.
 
 Usage::
 
-    python benchmarks/bench_simulate.py [--n 500] [--jobs 2] [--repeat 1] [--scenario NAME ...]
+    python benchmarks/bench_simulate.py [--n 300] [--repeat 3] [--scenario NAME ...] [--loaded] [--jobs 2]
 
-For every scenario it reports
+For every scenario, load condition and BLAS thread mode it reports
 
 * ``loop/s``: recorded (settled) configurations per second of the simulation
-  loop (planning QP + MuJoCo stepping + recording), one process;
-* ``total/s``: the same including model loading, truth draw, scene building and
-  writing the outputs;
+  loop (planning + MuJoCo stepping + recording), one process, wall time;
 * ``steps/cfg``: simulation steps per recorded configuration;
-* with ``--jobs J > 1``: aggregate configurations per second of J independent
-  datasets (different seeds) generated concurrently in J processes (all
-  recorded configurations / the slowest simulation loop; process start-up excluded).
+* ``bound/s``: MuJoCo's own stepping rate on the scenario's scene
+  (`floor.mujoco_rate`, measured in the same conditions) / steps per
+  configuration, and ``%bound`` = loop/s / bound/s;
+* ``mj ms/cfg``, ``other ms/cfg``: CPU time per configuration inside
+  ``mujoco.mj_step`` (the calls the loop makes, timed one by one) and outside
+  it (planner, servo ramp, settle checks, recording);
+* with ``--jobs J > 1``: aggregate configurations per second of J datasets
+  simulated concurrently in J processes.
 
-With ``--repeat R`` every figure is the best of R runs (on a shared machine the
-other jobs only ever slow a run down).
+Every figure is the best of ``--repeat`` runs (on a shared machine other jobs
+only ever slow a run down).  ``--loaded`` repeats everything while one busy
+process per CPU keeps the cores busy (bounded in time, killed afterwards).
 """
 
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 
+import closedloop.sims.dataset as dataset
 from closedloop.sims import SCENARIOS, simulate
+
+from floor import mujoco_rate, scenario_scene  # benchmarks/floor.py
+from machine import add_arguments, condition, conditions, header, threads_mode  # benchmarks/machine.py
 
 
 def _run(args: tuple[str, int, int, str]) -> tuple[int, float]:
@@ -38,55 +45,93 @@ def _run(args: tuple[str, int, int, str]) -> tuple[int, float]:
     return len(res.readings), res.elapsed_s
 
 
-def _cpu_name() -> str:
-    """CPU model (``platform.processor()``, else ``/proc/cpuinfo``)."""
-    name = platform.processor()
-    if name and name != platform.machine():
-        return name
+@contextmanager
+def mj_step_timer():
+    """Count the CPU time of every `mujoco.mj_step` call the dataset loop makes (yields [seconds, calls])."""
+    import mujoco
+
+    acc = [0.0, 0]
+    step, clock = mujoco.mj_step, time.process_time
+
+    def timed_step(m, d, nstep=1):
+        t = clock()
+        step(m, d, nstep)
+        acc[0] += clock() - t
+        acc[1] += 1
+
+    shim = type("mujoco", (), {name: getattr(mujoco, name) for name in dir(mujoco) if not name.startswith("__")})
+    shim.mj_step = staticmethod(timed_step)
+    saved = dataset.mujoco
+    dataset.mujoco = shim
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return name or "unknown CPU"
+        yield acc
+    finally:
+        dataset.mujoco = saved
+
+
+def measure(name: str, n: int, repeat: int, tmp: Path) -> tuple[int, float, float]:
+    """(configurations, best loop rate [cfg/s, wall], steps per configuration) of `repeat` runs."""
+    best = (0, 0.0, 0.0)
+    for _ in range(max(1, repeat)):
+        res = simulate(name, n, 0, tmp / name)
+        k = len(res.readings)
+        if res.configs_per_second > best[1]:
+            best = (k, res.configs_per_second, res.n_steps / max(k, 1))
+    return best
+
+
+def split_cpu(name: str, n: int, tmp: Path) -> tuple[float, float]:
+    """CPU seconds per configuration of the simulation loop inside `mj_step` and outside it.
+
+    The loop's own clock (``elapsed_s``) is read on the CPU clock for this run.
+    """
+    saved = dataset.time
+    dataset.time = type("time", (), {"perf_counter": staticmethod(time.process_time)})
+    try:
+        with mj_step_timer() as acc:
+            res = simulate(name, n, 0, tmp / f"{name}-cpu")
+    finally:
+        dataset.time = saved
+    k = max(len(res.readings), 1)
+    return acc[0] / k, (res.elapsed_s - acc[0]) / k
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--n", type=int, default=500, help="configurations per dataset")
-    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="parallel processes for the aggregate")
-    parser.add_argument("--repeat", type=int, default=1, help="runs per figure (best reported)")
+    parser.add_argument("--n", type=int, default=300, help="configurations per dataset")
+    parser.add_argument("--jobs", type=int, default=1, help="parallel processes for the aggregate")
+    parser.add_argument("--repeat", type=int, default=3, help="runs per figure (best reported)")
     parser.add_argument("--scenario", nargs="*", default=sorted(SCENARIOS))
+    add_arguments(parser)
     args = parser.parse_args()
 
-    print(f"machine: {platform.machine()} {_cpu_name()}; cpus: {os.cpu_count()}; "
-          f"python {platform.python_version()}")
-    print(f"{'scenario':<12} {'n':>6} {'loop/s':>9} {'total/s':>9} {'steps/cfg':>10} {'viol max [m]':>13}"
-          + (f" {'agg/s (' + str(args.jobs) + ' jobs)':>16}" if args.jobs > 1 else ""))
-    with tempfile.TemporaryDirectory() as tmp:
+    print(header())
+    with tempfile.TemporaryDirectory() as tmpdir:
+        tmp = Path(tmpdir)
+        scenes = {name: scenario_scene(name, tmp / "scenes") for name in args.scenario}
         for name in args.scenario:
-            simulate(name, 5, 0, Path(tmp) / "warmup")  # imports, caches
-            loop_rate = total_rate = 0.0
-            for _ in range(max(1, args.repeat)):
-                t0 = time.perf_counter()
-                res = simulate(name, args.n, 0, Path(tmp) / name)
-                total = time.perf_counter() - t0
-                n = len(res.readings)
-                loop_rate = max(loop_rate, res.configs_per_second)
-                total_rate = max(total_rate, n / total)
-            line = (f"{name:<12} {n:>6} {loop_rate:>9.0f} {total_rate:>9.0f} "
-                    f"{res.n_steps / max(n, 1):>10.1f} {res.violation_m.max():>13.2e}")
-            if args.jobs > 1:
-                jobs = [(name, args.n, seed, str(Path(tmp) / f"{name}_{seed}")) for seed in range(1, args.jobs + 1)]
-                agg = 0.0
-                for _ in range(max(1, args.repeat)):
-                    with ProcessPoolExecutor(args.jobs) as pool:
-                        runs = list(pool.map(_run, jobs))
-                    # simulation loops run concurrently: aggregate = all configurations / slowest loop
-                    agg = max(agg, sum(c for c, _ in runs) / max(t for _, t in runs))
-                line += f" {agg:>16.0f}"
-            print(line, flush=True)
+            simulate(name, 5, 0, tmp / "warmup")  # imports, caches
+        for cond in conditions(args.loaded):
+            for mode in args.threads:
+                with condition(cond) as cdesc, threads_mode(mode) as tdesc:
+                    print(f"\n[{cdesc}; BLAS threads {tdesc}]")
+                    print(f"{'scenario':<12} {'n':>5} {'loop/s':>7} {'steps/cfg':>9} {'bound/s':>8} {'%bound':>7} "
+                          f"{'mj ms/cfg':>9} {'other ms/cfg':>12} {'%mj':>5}"
+                          + (f" {'agg/s (' + str(args.jobs) + ' jobs)':>16}" if args.jobs > 1 else ""))
+                    for name in args.scenario:
+                        k, rate, steps = measure(name, args.n, args.repeat, tmp)
+                        bound = mujoco_rate(scenes[name])[0] / steps
+                        splits = [split_cpu(name, args.n, tmp) for _ in range(max(1, args.repeat))]
+                        mj, other = min(sp[0] for sp in splits), min(sp[1] for sp in splits)
+                        line = (f"{name:<12} {k:>5} {rate:>7.0f} {steps:>9.1f} {bound:>8.0f} "
+                                f"{100 * rate / bound:>6.0f}% {1e3 * mj:>9.3f} {1e3 * other:>12.3f} "
+                                f"{100 * mj / (mj + other):>4.0f}%")
+                        if args.jobs > 1:
+                            jobs = [(name, args.n, seed, str(tmp / f"{name}_{seed}")) for seed in range(1, args.jobs + 1)]
+                            with ProcessPoolExecutor(args.jobs) as pool:
+                                runs = list(pool.map(_run, jobs))
+                            line += f" {sum(c for c, _ in runs) / max(t for _, t in runs):>16.0f}"
+                        print(line, flush=True)
 
 
 if __name__ == "__main__":

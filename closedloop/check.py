@@ -18,14 +18,32 @@ from .errors import InputError
 NOMINAL = {"placement": 0.0, "offset": 0.0, "scale": 1.0}
 
 
-def check_report(truth: dict, report: dict, tol_m: float, tol_rad: float, tol_scale: float, tol_px: float = 1.0):
-    """Rows of (name, true, calibrated, error, tol, result) and whether all compared rows pass."""
-    if "parameters" not in truth or not isinstance(truth["parameters"], dict):
-        raise InputError("truth file: expected a 'parameters' object of name: true value")
-    if "parameters" not in report or not isinstance(report["parameters"], list):
-        raise InputError("report file: expected a 'parameters' list (a closedloop report)")
+def check_report(truth: dict, report: dict, tol_m: float, tol_rad: float, tol_scale: float, tol_px: float = 1.0,
+                 truth_source: str = "truth file", report_source: str = "report file"):
+    """Rows of (name, true, calibrated, error, tol, result) and whether all compared rows pass.
+
+    Both documents are validated first (:data:`~closedloop.schemas.TRUTH_SCHEMA`,
+    :data:`~closedloop.schemas.REPORT_SCHEMA`); every tolerance must be a finite number > 0.
+    """
+    from .schemas import REPORT_SCHEMA, TRUTH_SCHEMA, is_number, validate
+
+    for opt, tol in (("--tol-m", tol_m), ("--tol-rad", tol_rad), ("--tol-scale", tol_scale), ("--tol-px", tol_px)):
+        if not is_number(tol) or tol <= 0:
+            raise InputError(f"{opt} {tol}: a tolerance must be a finite number > 0")
+    if not isinstance(truth, dict) or "parameters" not in truth:
+        raise InputError(f"{truth_source}: expected a 'parameters' object of name: true value")
+    if not isinstance(report, dict) or "parameters" not in report:
+        raise InputError(f"{report_source}: expected a 'parameters' list (a closedloop report)")
+    validate(truth, TRUTH_SCHEMA, truth_source)
+    validate(report, REPORT_SCHEMA, report_source, rows="parameters")
     true = truth["parameters"]
-    rep = {p["name"]: p for p in report["parameters"]}
+    rep = {}
+    for i, p in enumerate(report["parameters"], start=1):
+        if p["name"] in rep:
+            raise InputError(f"{report_source}: parameters row {i}: duplicate parameter '{p['name']}'")
+        if p["kind"] == "dh" and p["name"] not in true and not is_number(p.get("initial")):
+            raise InputError(f"{report_source}: parameters row {i} ('{p['name']}'): missing field 'initial'")
+        rep[p["name"]] = p
     unknown = [n for n in true if n not in rep]
     rows = []
     tol_by_unit = {"m": tol_m, "rad": tol_rad, "1": tol_scale, "px": tol_px}

@@ -14,6 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from .errors import LogError
+from .schemas import parse_number
+
+#: largest |reading| accepted (rad, m or degrees): beyond it the kinematics overflow
+MAX_READING = 1e6
 
 
 @dataclass
@@ -73,12 +77,16 @@ def read_log(path: str | Path, joint_names: list[str], degrees: bool = False,
     """
     path = Path(path)
     try:
-        with path.open(newline="") as fh:
+        with path.open(newline="", encoding="utf-8-sig") as fh:  # a UTF-8 byte-order mark is dropped
             rows = list(csv.reader(fh))
+    except IsADirectoryError:
+        raise LogError(f"{path}: is a directory, not a CSV log") from None
     except OSError as exc:
         raise LogError(f"{path}: cannot read log ({exc.strerror})") from None
-    except UnicodeDecodeError:
-        raise LogError(f"{path}: not a text CSV file") from None
+    except UnicodeDecodeError as exc:
+        raise LogError(f"{path}: not a UTF-8 text CSV file (byte {exc.start})") from None
+    except csv.Error as exc:
+        raise LogError(f"{path}: not a CSV file ({exc})") from None
     rows = [r for r in rows if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
     if not rows:
         raise LogError(f"{path}: empty log (expected a header row naming joints)")
@@ -102,22 +110,37 @@ def read_log(path: str | Path, joint_names: list[str], degrees: bool = False,
         if len(row) != len(header):
             raise LogError(f"{path}: row {r} has {len(row)} fields, the header has {len(header)}")
         for k, c in enumerate(cols):
-            try:
-                v = float(row[c])
-            except ValueError:
-                raise LogError(f"{path}: row {r}, column '{header[c]}': '{row[c]}' is not a number") from None
-            if not np.isfinite(v):
-                raise LogError(f"{path}: row {r}, column '{header[c]}': value is {row[c].strip()}")
+            v = parse_number(row[c], f"{path}: row {r}, column '{header[c]}'", LogError)
+            if abs(v) > MAX_READING:
+                raise LogError(f"{path}: row {r}, column '{header[c]}': {row[c].strip()} is out of range "
+                               f"(|reading| <= {MAX_READING:g})")
             A[r - 1, k] = v
         for c in extra_cols:
-            try:
-                extra[header[c]][r - 1] = float(row[c])
-            except ValueError:
-                pass  # extra columns are informational
+            try:  # extra columns are informational: a cell that is not a number is NaN
+                extra[header[c]][r - 1] = parse_number(row[c], "", LogError)
+            except LogError:
+                pass
         if loop_col is not None:
-            loops.append(row[loop_col].strip())
+            name = row[loop_col].strip()
+            if not name:
+                raise LogError(f"{path}: row {r}, column 'loop': empty (name the loop of this row)")
+            loops.append(name)
     names = [header[c] for c in cols]
     if degrees:  # prismatic joints (`linear`) stay in metres
         ang = [k for k, n in enumerate(names) if n not in set(linear)]
         A[:, ang] = np.deg2rad(A[:, ang])
     return JointLog(names, A, path, np.array(loops) if loop_col is not None else None, extra)
+
+
+def check_loop_column(log: JointLog, loop_names: list[str]) -> None:
+    """Every name in the log's ``loop`` column must be a loop of the calibration (no silently dropped rows)."""
+    if log.loop is None:
+        return
+    known = set(loop_names)
+    for r, name in enumerate(log.loop, start=1):
+        if name not in known:
+            import difflib
+
+            close = difflib.get_close_matches(str(name), sorted(known), n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else f" (loops: {', '.join(sorted(known))})"
+            raise LogError(f"{log.source}: row {r}, column 'loop': no loop named '{name}'{hint}")

@@ -108,54 +108,66 @@ def rot(axis: str, angle: float) -> np.ndarray:
     return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
 
 
+#: largest |length| (m) and |angle| (rad) of a D-H field after unit conversion, and the range of |k|
+MAX_LENGTH_M = 100.0
+MAX_ANGLE_RAD = 1e3
+K_RANGE = (1e-6, 1e3)
+GEOMETRY = ("theta_off", "s", "a", "alpha")
+
+
 def load_dh(path: str | Path) -> DHTable:
-    """Read a D-H YAML file; every error names the file and the row."""
+    """Read a D-H YAML file, validated by :data:`closedloop.schemas.DH_SCHEMA`; errors name file, row, field.
+
+    Beyond the schema: unique row names, a row gives its geometry (not only a name), ``lower <= upper``,
+    lengths within +/- 100 m and angles within +/- 1000 rad after unit conversion, 1e-6 <= |k| <= 1e3.
+    """
+    from .schemas import DH_SCHEMA, load_yaml, validate
+
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise ModelError(f"{path}: cannot read D-H table ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        raise ModelError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
-    if not isinstance(doc, dict) or not isinstance(doc.get("joints"), list) or not doc["joints"]:
+    doc = load_yaml(path, "D-H table", ModelError)
+    if not isinstance(doc, dict) or "joints" not in doc:
         raise ModelError(f"{path}: a D-H table needs a non-empty 'joints' list")
+    validate(doc, DH_SCHEMA, path, ModelError, rows="joints")
     units = doc.get("units") or {}
     lu, au = units.get("length", "m"), units.get("angle", "rad")
-    if lu not in LENGTH_UNITS:
-        raise ModelError(f"{path}: unknown length unit '{lu}' (use one of {', '.join(LENGTH_UNITS)})")
-    if au not in ANGLE_UNITS:
-        raise ModelError(f"{path}: unknown angle unit '{au}' (use rad or deg)")
     L, A = LENGTH_UNITS[lu], ANGLE_UNITS[au]
     rows: list[DHRow] = []
     seen: set[str] = set()
     for i, raw in enumerate(doc["joints"], start=1):
-        if not isinstance(raw, dict) or "name" not in raw:
-            raise ModelError(f"{path}: joint row {i} needs a 'name'")
-        name = str(raw["name"])
+        name = raw["name"]
+        where = f"{path}: joints row {i} ('{name}')"
         if name in seen:
-            raise ModelError(f"{path}: joint row {i}: duplicate name '{name}'")
+            raise ModelError(f"{where}: duplicate name '{name}'")
         seen.add(name)
-        conv = str(raw.get("convention", doc.get("convention", "dh"))).lower()
-        if conv not in CONVENTIONS:
-            raise ModelError(f"{path}: joint '{name}': unknown convention '{conv}' (dh or hayati)")
-        unknown = set(raw) - {"name", "theta_off", "s", "a", "alpha", "k", "convention", "lower", "upper"}
-        if unknown:
-            raise ModelError(f"{path}: joint '{name}': unknown field(s) {sorted(unknown)}")
-        try:
-            vals = {key: float(raw.get(key, default)) for key, default in
-                    (("theta_off", 0.0), ("s", 0.0), ("a", 0.0), ("alpha", 0.0), ("k", 1.0),
-                     ("lower", -np.pi / A), ("upper", np.pi / A))}
-        except (TypeError, ValueError):
-            raise ModelError(f"{path}: joint '{name}': every field must be a number") from None
-        if not all(np.isfinite(v) for v in vals.values()):
-            raise ModelError(f"{path}: joint '{name}': values must be finite")
-        # Hayati 'a' is an angle; D-H 'a' a length.
-        a_scale = A if conv == "hayati" else L
-        rows.append(DHRow(name=name, theta_off=vals["theta_off"] * A, s=vals["s"] * L,
-                          a=vals["a"] * a_scale, alpha=vals["alpha"] * A, k=vals["k"],
-                          convention=conv, lower=vals["lower"] * A, upper=vals["upper"] * A))
-    return DHTable(name=str(doc.get("name", path.stem)), rows=rows, closes=bool(doc.get("closes", False)),
+        if not any(f in raw for f in GEOMETRY):
+            raise ModelError(f"{where}: gives only a name; give its geometry ({', '.join(GEOMETRY)}; 0 where zero)")
+        conv = raw.get("convention", doc.get("convention", "dh"))
+        vals = {key: float(raw.get(key, default)) for key, default in
+                (("theta_off", 0.0), ("s", 0.0), ("a", 0.0), ("alpha", 0.0), ("k", 1.0),
+                 ("lower", -np.pi / A), ("upper", np.pi / A))}
+        a_scale = A if conv == "hayati" else L  # Hayati 'a' is an angle; D-H 'a' a length
+        si = {"theta_off": vals["theta_off"] * A, "s": vals["s"] * L, "a": vals["a"] * a_scale,
+              "alpha": vals["alpha"] * A, "lower": vals["lower"] * A, "upper": vals["upper"] * A}
+        for key, v in si.items():
+            lim, unit = (MAX_LENGTH_M, "m") if key == "s" or (key == "a" and conv == "dh") else (MAX_ANGLE_RAD, "rad")
+            if abs(v) > lim:
+                raise ModelError(f"{where}, field '{key}': {raw.get(key)} is out of range (|{key}| <= {lim:g} {unit})")
+        if not K_RANGE[0] <= abs(vals["k"]) <= K_RANGE[1]:
+            raise ModelError(f"{where}, field 'k': {raw['k']} is out of range ({K_RANGE[0]:g} <= |k| <= {K_RANGE[1]:g})")
+        if si["lower"] > si["upper"]:
+            raise ModelError(f"{where}: lower {raw.get('lower')} exceeds upper {raw.get('upper')}")
+        rows.append(DHRow(name=name, theta_off=si["theta_off"], s=si["s"], a=si["a"], alpha=si["alpha"],
+                          k=vals["k"], convention=conv, lower=si["lower"], upper=si["upper"]))
+    return DHTable(name=doc.get("name", _stem_name(path)), rows=rows, closes=doc.get("closes", False),
                    source=path, length_unit=lu, angle_unit=au)
+
+
+def _stem_name(path: Path) -> str:
+    """The file's stem as a chain name (characters outside the name pattern become '_')."""
+    import re
+
+    name = re.sub(r"[^A-Za-z0-9_\-]", "_", path.stem) or "chain"
+    return name if not name[0].isdigit() and name[0] != "-" else f"_{name}"
 
 
 def dump_dh(table: DHTable, values: dict[str, float] | None = None) -> str:

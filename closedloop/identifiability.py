@@ -12,7 +12,12 @@ parameters' expected error magnitudes):
    lies in the span of those already kept (relative residual < tol); the
    least-squares coefficients of that fit say what absorbed it.
 2. The length gauge (3.3): when a uniform scaling of every length lies in the
-   null space, one length must be fixed; the longest free one is.
+   null space, one length must be fixed; it is chosen among the parameters
+   that survive the reduction and verified to remove the scaling
+   (`reduce_structure`).  Both are decided at a generic point near the start
+   (`analyse_structure` with a random perturbation: a special start, such as
+   a tool point on the last joint axis, must not decide what is redundant)
+   and checked again at the solution.
 3. Data identifiability at the solution: singular directions of the whitened,
    scaled Jacobian that the noise swamps (s_i < snr * sigma) are reported with
    the parameters they involve (Singularity 2, insufficient excitation).
@@ -25,8 +30,16 @@ space of J_theta has a non-zero j-th component.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+from .gauge import choose_gauge, sets_scale
+from .noise import cholesky_inverse
+from .solver import r_factor
+
+if TYPE_CHECKING:
+    from .problem import CalibrationProblem
 
 
 @dataclass
@@ -65,9 +78,9 @@ class Combination:
 
 
 def compress(C: np.ndarray) -> np.ndarray:
-    """The R factor of C = QR: same column dependencies and singular values, P rows."""
+    """The R factor of C = QR: same column dependencies and singular values, P rows (blocked QR)."""
     if C.shape[0] > C.shape[1]:
-        return np.linalg.qr(C, mode="r")
+        return r_factor(C)
     return C
 
 
@@ -170,3 +183,132 @@ def loop_mobility(Jq: np.ndarray, rtol: float = 1e-8) -> tuple[int, np.ndarray]:
         if Nul.shape[0]:
             moves |= np.linalg.norm(Nul, axis=0) > 1e-6
     return mobility, moves
+
+
+# --------------------------------------------------------------------------- structure and gauge
+@dataclass
+class Structure:
+    """The structural reduction of a problem: what is estimated, dropped, and what sets the scale.
+
+    kept: indices (into the analysed columns) of the parameters to estimate;
+    dropped: the structurally redundant ones, with what absorbs them;
+    gauge: index of the length fixed to set the overall size (thesis 3.3), or
+    None (the loops see the size, a user's fixed length sets it, or no length
+    is free); gauge_note: the sentence the report gives about the scale.
+    """
+
+    kept: list[int]
+    dropped: list[Dropped]
+    gauge: int | None = None
+    gauge_note: str | None = None
+    scale_free: bool = False  # the loops cannot see the overall size
+    gauge_warning: str | None = None  # the size also hangs on other held values
+    gauge_length: float = 0.0  # the length the gauge stands for (m)
+
+
+def project_to_closure(problem: CalibrationProblem, values: np.ndarray, iters: int = 12
+                       ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Joint readings moved onto the closure manifold of the model at `values`, and which converged.
+
+    Gauss-Newton on the readings, theta <- theta - pinv(J_theta) r, per
+    configuration.  Used only to make structural redundancies exact.  Where
+    J_theta J_theta^T is well conditioned (kappa of `cholesky_inverse` below
+    1e6) the minimum-norm step is J_theta^T (J_theta J_theta^T)^-1 r through
+    its Cholesky factor; elsewhere the SVD pseudo-inverse (rcond 1e-10).
+    Returns the readings per block and, per block, a mask of the
+    configurations whose closure error fell below 1e-10.
+    """
+    thetas = [b.theta.copy() for b in problem.blocks]
+    last = [np.full(b.theta.shape[0], np.inf) for b in problem.blocks]
+    for _ in range(iters):
+        evals = problem.evaluate(values, True, thetas, columns=[])
+        worst = 0.0
+        for k, ev in enumerate(evals):
+            last[k] = np.abs(ev.r).max(axis=1) if ev.r.size else np.zeros(0)
+            with np.errstate(all="ignore"):
+                Linv, kappa = cholesky_inverse(ev.Jq @ np.swapaxes(ev.Jq, 1, 2))
+                y = np.einsum("nji,nj->ni", Linv, np.einsum("nij,nj->ni", Linv, ev.r))  # (Jq Jq^T)^-1 r
+                step = np.einsum("nji,nj->ni", ev.Jq, y)
+            ill = np.flatnonzero(kappa >= 1e6)
+            if ill.size:
+                step[ill] = np.einsum("nij,nj->ni", np.linalg.pinv(ev.Jq[ill], rcond=1e-10), ev.r[ill])
+            step = np.where(np.isfinite(step), step, 0.0)
+            thetas[k] = thetas[k] - step
+            worst = max(worst, float(last[k].max()) if last[k].size else 0.0)
+        if worst < 1e-13:
+            break
+    return thetas, [np.isfinite(v) & (v < 1e-10) for v in last]
+
+
+def analyse_structure(problem: CalibrationProblem, x: np.ndarray, free: list[int],
+                      rng: np.random.Generator | None = None, size: float = 1e-3,
+                      prefer: int | None = None) -> Structure:
+    """Structural reduction and length gauge of the free parameters at `x` (or near it).
+
+    With `rng`, at a generic point: the free parameters moved by `size` times
+    their prior magnitudes, so that no special alignment of the start decides
+    what is redundant.  The Jacobian is taken on the readings projected onto
+    closure (configurations that do not converge, such as gross outliers, are
+    left out).  Returns indices into the problem's parameters.
+    """
+    names = problem.names
+    params = problem.params
+    scale = np.array([p.prior for p in params])
+    if rng is not None:
+        x = x.copy()
+        x[free] += size * scale[free] * rng.standard_normal(len(free))
+    thetas, ok = project_to_closure(problem, x)
+    evals = problem.evaluate(x, True, thetas, columns=free)
+    blocks = [ev.J[m].reshape(-1, len(free)) for ev, m in zip(evals, ok) if m.any()]
+    if not blocks:  # nothing converged: use the configurations as they are
+        blocks = [ev.J.reshape(-1, len(free)) for ev in evals]
+    Cs = np.vstack(blocks) * scale[free]
+    order = sorted(range(len(free)), key=lambda i: (params[free[i]].priority,
+                                                   -params[free[i]].order
+                                                   if params[free[i]].kind in ("placement", "dh")
+                                                   else params[free[i]].order, free[i]))
+    R = compress(Cs)
+    fnames = [names[k] for k in free]
+
+    def reduce(order_: list[int]) -> tuple[list[int], list[Dropped]]:
+        return greedy_reduction(R, fnames, order_)
+
+    if not all(b.loop.scale_free for b in problem.blocks):
+        kept, dropped = reduce(order)
+        return Structure([free[i] for i in kept], dropped)
+    g, kept, dropped, size_free, warning, length = choose_gauge(
+        problem, x, free, R, reduce, order, prefer=free.index(prefer) if prefer in free else None)
+    if g is not None:
+        note = (f"the loops close at any overall size (thesis 3.3); {names[free[g]]} is held at its value to set "
+                f"the length scale (it stands for a length of {length:.4g} m: holding it longer by d scales the "
+                f"robot by 1 + d / {length:.4g})")
+        return Structure([free[i] for i in kept], dropped, free[g], note, True, warning, length)
+    note = None if not size_free else ("the loops close at any overall size and no single length sets it: the "
+                                       "scale is not determined by the data")
+    return Structure([free[i] for i in kept], dropped, None, note, size_free)
+
+
+def structure_holds(problem: CalibrationProblem, x: np.ndarray, structure: Structure, free: list[int]
+                    ) -> str | None:
+    """Why the reduction chosen elsewhere fails at `x` (a solution), or None when it holds.
+
+    It holds when the kept parameters have full column rank on the readings
+    projected onto closure at `x` (rcond 1e-10: what the data cannot
+    separate is the SVD truncation's business, not the reduction's) and,
+    with a gauge g, when the kept parameters and g have one null direction
+    and it is g's own uniform scaling of the robot (`gauge.sets_scale`).
+    """
+    scale = np.array([p.prior for p in problem.params])
+    thetas, ok = project_to_closure(problem, x)
+    evals = problem.evaluate(x, True, thetas, columns=free)
+    blocks = [ev.J[m].reshape(-1, len(free)) for ev, m in zip(evals, ok) if m.any()]
+    if not blocks:
+        return "no configuration closes the loops at the solution"
+    R = compress(np.vstack(blocks) * scale[free])
+    kept = [free.index(k) for k in structure.kept]
+    S = np.linalg.svd(R[:, kept], compute_uv=False)
+    if S.size and S[-1] <= 1e-10 * S[0]:
+        return "the estimated parameters are structurally dependent at the solution"
+    if structure.gauge is not None and not sets_scale(problem, x, free, R, kept, free.index(structure.gauge)):
+        return f"{problem.names[structure.gauge]} no longer sets the length scale at the solution"
+    return None

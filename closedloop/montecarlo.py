@@ -234,9 +234,9 @@ def unwrap(problem: CalibrationProblem, values: np.ndarray, ref: np.ndarray) -> 
 def cramer_rao(problem: CalibrationProblem, truth: np.ndarray, params: list[int], noise,
                thetas: list[np.ndarray] | None = None) -> np.ndarray:
     """(sum_i J_i^T W_i^-1 J_i)^-1 over `params` at `truth` (physical units)."""
-    from .calibration import _noise_vector
+    from .noise import noise_vector
 
-    sigma_q, _ = _noise_vector(problem, noise)
+    sigma_q, _ = noise_vector(problem, noise)
     blocks = whitened_blocks(problem, truth, params, sigma_q, "noise", thetas, scaled=False)
     C = np.vstack([J.reshape(-1, len(params)) for _, J in blocks])
     return np.linalg.inv(C.T @ C)
@@ -245,9 +245,9 @@ def cramer_rao(problem: CalibrationProblem, truth: np.ndarray, params: list[int]
 def sandwich_unweighted(problem: CalibrationProblem, truth: np.ndarray, params: list[int], noise,
                         thetas: list[np.ndarray] | None = None) -> np.ndarray:
     """First-order covariance of the unweighted estimator, (J^T J)^-1 J^T W J (J^T J)^-1."""
-    from .calibration import _noise_vector
+    from .noise import noise_vector
 
-    sigma_q, _ = _noise_vector(problem, noise)
+    sigma_q, _ = noise_vector(problem, noise)
     evals = problem.evaluate(truth, True, thetas)
     L = len(params)
     JtJ = np.zeros((L, L))
@@ -306,10 +306,29 @@ class MonteCarloResult:
         return "\n".join(lines)
 
 
+def _mc_draw(robot: RobotModel, joints: list[str], loops: list[Loop], base: CalibrationOptions, noise: float,
+             weightings: tuple[str, ...], theta: np.ndarray) -> list[tuple]:
+    """One Monte Carlo draw (a job): per weighting (estimated indices, truncated?, values), or Nones if it failed."""
+    out = []
+    for w in weightings:
+        opt = CalibrationOptions(**{**base.__dict__, "noise": noise, "weighting": w})
+        try:
+            res = calibrate(robot, JointLog(list(joints), np.array(theta, float)), loops, opt)
+        except ClosedLoopError:
+            out.append((None, None, None))
+            continue
+        out.append((list(res.estimated), bool(res.weak), res.values))
+    return out
+
+
 def monte_carlo(scenario: Scenario, noise: float, n_runs: int, seed: int = 0,
                 weightings: tuple[str, ...] = ("noise", "none"), options: CalibrationOptions | None = None,
-                progress=None) -> MonteCarloResult:
+                progress=None, executor=None) -> MonteCarloResult:
     """Calibrate `n_runs` noisy copies of the scenario's readings with each weighting.
+
+    The noise is drawn here, in order, from `seed`; the calibrations run on
+    `executor` (an engine or its name, ``closedloop.executor``; None: this
+    process), so the result is the same on any engine.
 
     Every run must estimate the same parameters (the reduction is structural);
     a run that estimates a different set or fails counts as a failure and is
@@ -324,24 +343,29 @@ def monte_carlo(scenario: Scenario, noise: float, n_runs: int, seed: int = 0,
     raw: dict[str, list[np.ndarray]] = {w: [] for w in weightings}
     fails = dict.fromkeys(weightings, 0)
     truncated = dict.fromkeys(weightings, 0)
-    for i, th in enumerate(noisy):
-        for w in weightings:
-            opt = CalibrationOptions(**{**base.__dict__, "noise": noise, "weighting": w})
-            try:
-                res = calibrate(scenario.robot, scenario.log(th), scenario.loops, opt)
-            except ClosedLoopError:
+    from .executor import imap  # the draws run on any engine (closedloop.executor); results in draw order
+
+    shared = (scenario.robot, scenario.joints, scenario.loops, base, noise, weightings)
+    runs: list = [None] * n_runs
+    for count, out in enumerate(imap(_mc_draw, noisy, executor, shared=shared), start=1):
+        if not out.ok:  # only a ClosedLoopError is a failed run; anything else stops the study, as before
+            raise out.exception or ClosedLoopError(f"Monte Carlo draw {out.index}: {out.error}")
+        runs[out.index] = out.value
+        if progress:
+            progress(count, n_runs)
+    for per_w in runs:
+        for w, (est, weak, values) in zip(weightings, per_w):
+            if est is None:
                 fails[w] += 1
                 continue
             if est_set is None:
-                est_set = list(res.estimated)
-            if list(res.estimated) != est_set:
+                est_set = est
+            if est != est_set:
                 fails[w] += 1
                 continue
-            if res.weak:
+            if weak:
                 truncated[w] += 1
-            raw[w].append(unwrap(problem, res.values, truth_full)[est_set])
-        if progress:
-            progress(i + 1, n_runs)
+            raw[w].append(unwrap(problem, values, truth_full)[est_set])
     if est_set is None:
         raise ClosedLoopError("every Monte Carlo run failed")
     crb = cramer_rao(problem, truth_full, est_set, noise)

@@ -32,10 +32,17 @@ side below the right (the residual is all measurement noise), s = 0.
 
 from __future__ import annotations
 
-import numpy as np
-from scipy.optimize import brentq
+from typing import TYPE_CHECKING
 
-__all__ = ["joint_variance_scale"]
+import numpy as np
+
+from .errors import ParameterError
+
+if TYPE_CHECKING:
+    from .loops.base import Loop
+    from .problem import BlockEval, CalibrationProblem
+
+__all__ = ["joint_variance_scale", "noise_vector", "whiten", "cholesky_inverse", "pinv_sqrt"]
 
 
 def _eig_terms(A: np.ndarray, r: np.ndarray, C: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -100,4 +107,115 @@ def joint_variance_scale(residuals: list[np.ndarray], jq: list[np.ndarray], covs
         lo /= 4.0
         if lo < 1e-300:
             return 0.0
+    from scipy.optimize import brentq  # ~0.15 s to import: only for this estimate
+
     return float(brentq(score, lo, hi, xtol=1e-14 * hi, rtol=1e-10))
+
+
+# --------------------------------------------------------------------------- whitening
+def noise_vector(problem: CalibrationProblem, noise) -> tuple[np.ndarray, bool]:
+    """Per-joint noise std and whether it is known."""
+    n = len(problem.joints)
+    if noise is None:
+        return np.ones(n), False
+    if isinstance(noise, dict):
+        unknown = set(noise) - set(problem.joints)
+        if unknown:
+            raise ParameterError(f"noise given for unknown joint(s) {sorted(unknown)}")
+        default = noise.get("*", None)
+        missing = [j for j in problem.joints if j not in noise and default is None]
+        if missing:
+            raise ParameterError(f"noise: no level for joint(s) {missing} (give '*' as a default)")
+        vec = np.array([noise.get(j, default) for j in problem.joints], dtype=float)
+    else:
+        vec = np.full(n, float(noise))
+    if np.any(~np.isfinite(vec)) or np.any(vec <= 0):
+        raise ParameterError("noise levels must be positive and finite")
+    return vec, True
+
+
+def cholesky_inverse(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """L^-1 for a stack of symmetric positive semi-definite A = L L^T (n, m, m), and kappa (n,).
+
+    kappa = tr(A) tr(A^-1) = tr(A) |L^-1|_F^2 bounds the condition number:
+    lambda_max <= tr A and 1/lambda_min <= tr A^-1, so every eigenvalue of A
+    exceeds lambda_max / kappa.  Where A is not positive definite (or nearly
+    so) kappa is inf and L^-1 meaningless.  Cholesky and forward substitution
+    column by column over the whole stack (a LAPACK call per small matrix
+    costs more than the arithmetic).
+    """
+    m = A.shape[-1]
+    L = np.zeros_like(A)
+    X = np.zeros_like(A)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for j in range(m):
+            v = A[:, j:, j] - np.einsum("nik,nk->ni", L[:, j:, :j], L[:, j, :j])
+            L[:, j, j] = np.sqrt(v[:, 0])
+            L[:, j + 1:, j] = v[:, 1:] / L[:, j, j, None]
+        for i in range(m):  # L X = I, X lower triangular
+            X[:, i, i] = 1.0 / L[:, i, i]
+            X[:, i, :i] = -np.einsum("nk,nkj->nj", L[:, i, :i], X[:, :i, :i]) * X[:, i, i, None]
+        kappa = np.trace(A, axis1=1, axis2=2) * np.einsum("nij,nij->n", X, X)
+    return X, np.where(np.isfinite(kappa), kappa, np.inf)
+
+
+def pinv_sqrt(W: np.ndarray) -> tuple[np.ndarray, int]:
+    """Symmetric pseudo-inverse square roots V diag(lambda^-1/2) V^T of a stack of covariances.
+
+    Eigenvalues below 1e-9 of the largest are dropped; returns the roots and the number dropped.
+    """
+    lam, V = np.linalg.eigh(W)
+    keep = lam > 1e-9 * np.maximum(lam[:, -1:], 1e-300)
+    inv = np.where(keep, 1.0 / np.sqrt(np.where(keep, lam, 1.0)), 0.0)
+    return (V * inv[:, None, :]) @ np.swapaxes(V, 1, 2), int(np.sum(~keep))
+
+
+def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian: bool = True,
+           loops: list[Loop] | None = None, Winv: list[np.ndarray | None] | None = None, symmetric: bool = True):
+    """Stack residuals (and Jacobians) whitened by W_i^-1/2, W_i = Jq Sigma Jq^T (+ measurement covariance).
+
+    `Winv` reuses the W_i^-1/2 of an earlier evaluation (trial steps, which
+    have no Jq); the W_i^-1/2 used are returned so that the caller can.
+    A residual direction that no joint noise can produce (W_i singular, e.g. a
+    passive joint eliminated by projection) gets zero weight: W^-1/2 is the
+    pseudo-inverse square root (eigenvalues below 1e-9 of the largest dropped),
+    never an amplification by a tiny regulariser.
+    With `symmetric` False any square root F of the pseudo-inverse (F^T F = W^+)
+    may stand for W^-1/2: the inverse Cholesky factor L^-1 where W_i is well
+    conditioned (kappa of `cholesky_inverse` below 1e9, so that nothing would
+    be dropped), the symmetric root elsewhere.  Each configuration's whitened
+    rows are then turned by an orthogonal matrix, which changes neither
+    |r|^2, nor J^T J, nor J^T r: the least-squares problem is the same, at a
+    fraction of the cost of the eigendecompositions.
+    Returns (r, J or None, list of (W^-1/2, rank deficit) per block, or None entries).
+    """
+    rs, Js, used = [], [], []
+    for bi, ev in enumerate(evals):
+        r, J = ev.r, ev.J
+        Wh = Winv[bi] if Winv is not None else None
+        deficit = 0
+        if isinstance(Wh, tuple):
+            Wh, deficit = Wh
+        if weighting == "noise" and Wh is None and ev.Jq is not None:
+            Jq = ev.Jq * sigma_q[None, None, :]
+            W = Jq @ np.swapaxes(Jq, 1, 2)
+            if loops is not None and loops[bi].measurement_cov is not None:
+                W = W + loops[bi].measurement_cov
+            if symmetric:
+                Wh, deficit = pinv_sqrt(W)
+            else:
+                Wh, kappa = cholesky_inverse(W)
+                ill = np.flatnonzero(kappa >= 1e9)
+                if ill.size:
+                    Wh[ill], deficit = pinv_sqrt(W[ill])
+        if Wh is not None:
+            r = np.einsum("nij,nj->ni", Wh, r)
+            if jacobian:
+                J = Wh @ J
+        used.append((Wh, deficit) if Wh is not None else None)
+        rs.append(r.ravel())
+        if jacobian:
+            Js.append(J.reshape(-1, J.shape[-1]))
+    r = np.concatenate(rs) if rs else np.zeros(0)
+    J = np.vstack(Js) if jacobian and Js else None
+    return r, J, used

@@ -49,7 +49,8 @@ from typing import Any
 
 import numpy as np
 
-from .calibration import CalibrationResult, _noise_vector, whiten
+from .calibration import CalibrationResult
+from .noise import noise_vector, whiten
 from .problem import CalibrationProblem
 
 INDEX_NAMES = ("O1", "O2", "O3", "O4", "O5")
@@ -78,7 +79,7 @@ def resolve(result_or_problem: CalibrationResult | CalibrationProblem, values: n
         idx = list(range(len(problem.params))) if params is None else _indices(problem, params)
         if noise is None:
             noise = 1.0
-    sigma_q, _ = _noise_vector(problem, noise)
+    sigma_q, _ = noise_vector(problem, noise)
     return problem, vals, idx, sigma_q
 
 

@@ -120,11 +120,11 @@ class RobotParameters:
                                              priority=3, order=order))
         self.index = {p.name: i for i, p in enumerate(self.params)}
         self._joint_pos = {n: i for i, n in enumerate(self.joints)}
-        self._off_idx = np.array([self.index[self._sensor_name(n, "offset")] for n in self.joints], dtype=int)
-        self._scale_idx = np.array([self.index[self._sensor_name(n, "scale")] for n in self.joints], dtype=int)
+        self._off_idx = np.array([self.index[self.sensor_name(n, "offset")] for n in self.joints], dtype=int)
+        self._scale_idx = np.array([self.index[self.sensor_name(n, "scale")] for n in self.joints], dtype=int)
         self._comp_idx = np.array([self.index[f"{n}.compliance"] for n in self.joints], dtype=int)
 
-    def _sensor_name(self, joint: str, what: str) -> str:
+    def sensor_name(self, joint: str, what: str) -> str:
         if self.robot.kind == "dh":
             return f"{joint}.{'theta_off' if what == 'offset' else 'k'}"
         return f"{joint}.{what}"

@@ -55,6 +55,8 @@ class BlockEval:
     r: np.ndarray  # (N, m)
     J: np.ndarray | None  # (N, m, C) d r / d parameters, over the requested columns (default: all P)
     Jq: np.ndarray | None  # (N, m, n_joints) d r / d reading
+    valid: np.ndarray | None = None  # (N, m) False: a row with no observation (LoopEval.valid); None: all
+    cov: np.ndarray | None = None  # (N, m, m) per-configuration measurement covariance (LoopEval.cov)
 
 
 class CalibrationProblem:
@@ -133,12 +135,18 @@ class CalibrationProblem:
 
     def loop_poses(self, values: np.ndarray, block_index: int, theta: np.ndarray | None = None):
         """T_A, T_B of one loop at `values` (for initialisation and export checks)."""
+        Ts = self.loop_frame_poses(values, block_index, theta)
+        return Ts[0], Ts[1]
+
+    def loop_frame_poses(self, values: np.ndarray, block_index: int, theta: np.ndarray | None = None
+                         ) -> list[np.ndarray]:
+        """Poses (N, 4, 4) of every frame of one loop (`Loop.frames`) at `values`."""
         b = self.blocks[block_index]
         state = self.rp.apply(values[:self.n_robot])
-        fa, fb = self.robot.frame_id(b.loop.frame_a), self.robot.frame_id(b.loop.frame_b)
+        fids = [self.robot.frame_id(f) for f in b.loop.frames]
         tau = b.tau if theta is None else None
-        kin = self.frame_kinematics(state, b.theta if theta is None else theta, [fa, fb], False, tau)
-        return kin[fa][0], kin[fb][0]
+        kin = self.frame_kinematics(state, b.theta if theta is None else theta, fids, False, tau)
+        return [kin[f][0] for f in fids]
 
     # ------------------------------------------------------------- evaluation
     def evaluate(self, values: np.ndarray, jacobian: bool = True, thetas: list[np.ndarray] | None = None,
@@ -167,16 +175,18 @@ class CalibrationProblem:
         out = []
         for bi, (b, sl) in enumerate(zip(self.blocks, self.loop_slices)):
             theta = b.theta if thetas is None else thetas[bi]
-            fa, fb = self.robot.frame_id(b.loop.frame_a), self.robot.frame_id(b.loop.frame_b)
-            kin = self.frame_kinematics(state, theta, [fa, fb], jacobian, b.tau)
-            (TA, KA), (TB, KB) = kin[fa], kin[fb]
+            fids = [self.robot.frame_id(f) for f in b.loop.frames]
+            kin = self.frame_kinematics(state, theta, fids, jacobian, b.tau)
+            Ts = [kin[f][0] for f in fids]
             if not jacobian:
-                out.append(BlockEval(b.loop.residual(TA, TB, values[sl]), None, None))
+                out.append(BlockEval(b.loop.residual_frames(Ts, values[sl]), None, None,
+                                     b.loop.valid_frames(Ts, values[sl])))
                 continue
-            ev = b.loop.evaluate(TA, TB, values[sl])
+            ev = b.loop.evaluate_frames(Ts, values[sl])
             N, m = ev.r.shape
             D = np.zeros((N, m, C + nj))  # [J | d r / d theta']
-            for f, d, K in ((fa, ev.dA, KA), (fb, ev.dB, KB)):
+            for f, d in zip(fids, ev.frame_derivatives()):
+                K = kin[f][1]
                 if f == 0:
                     continue
                 D += d @ (K[:, :, span] @ B)  # per-configuration products: no threaded BLAS on small matrices
@@ -189,5 +199,5 @@ class CalibrationProblem:
                 J[:, :, k] *= factor[:, None, owner[k]]
             own = np.flatnonzero((role == _LOOP) & (owner == bi))
             J[:, :, own] = ev.dp[:, :, cols[own] - sl.start]
-            out.append(BlockEval(ev.r, J, D[:, :, C:] * state.scale[None, None, :]))
+            out.append(BlockEval(ev.r, J, D[:, :, C:] * state.scale[None, None, :], ev.valid, ev.cov))
         return out

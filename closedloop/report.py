@@ -7,15 +7,31 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
-from scipy import stats
 
 from . import __version__
 from .calibration import CalibrationResult
 from .export import atomic_write_text
 
 
+def _chi2_sf(x: float, dof: int) -> float:
+    """P(chi2_dof > x), the chi-square test's p-value (scipy.stats.chi2.sf(x, dof), through
+    scipy.special, imported here: scipy.stats costs ~0.4 s to import)."""
+    from scipy.special import chdtrc
+
+    return float(chdtrc(dof, x))
+
+
 def _f(v) -> float | None:
     return None if v is None or not np.isfinite(v) else float(v)
+
+
+def verdict_record(verdict) -> dict | None:
+    """The verdict as a plain dict (status, reasons, the numbers behind them)."""
+    if verdict is None:
+        return None
+    return {"status": verdict.status, "reasons": list(verdict.reasons),
+            "evidence": {k: (float(v) if isinstance(v, (int, float, np.floating)) else v)
+                         for k, v in verdict.evidence.items()}}
 
 
 def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict:
@@ -29,7 +45,7 @@ def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict
             "std_error": _f(res.std[k]), "status": res.status[k],
             "identifiable": res.status[k] == "estimated",
         })
-    p_value = float(stats.chi2.sf(res.chi2, res.dof)) if not res.sigma_estimated else None
+    p_value = _chi2_sf(res.chi2, res.dof) if not res.sigma_estimated else None
     return {
         "closedloop_version": __version__,
         "model": str(model_path) if model_path else None,
@@ -56,6 +72,11 @@ def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict
                                  for c in res.weak],
             "notes": res.notes,
         },
+        "verdict": verdict_record(res.verdict),
+        "gauge": {"length_scale_set_by": res.gauge, "stands_for_length_m": res.gauge_length or None,
+                  "note": res.gauge_note},
+        "rejected": [asdict(r) for r in res.rejected],
+        "weighting": res.weighting,
         "robust": {"suspects": [{"row": sp.row, "loop": sp.loop, "standardized": sp.standardized,
                                  "p_value": sp.p_value, "weight": sp.weight} for sp in res.suspects]},
         "scale_factors": {p.name: float(res.values[k]) for k, p in enumerate(prob.params) if p.kind == "scale"},

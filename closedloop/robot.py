@@ -56,6 +56,7 @@ class RobotModel:
         self.dh = dh
         self.joints: dict[str, JointInfo] = {}
         self._unsupported: dict[str, str] = {}
+        self.mimic: dict[str, str] = {}  # URDF <mimic>: joint -> the joint it follows (see supporting_joints)
         data = model.createData()
         q0 = pin.neutral(model)
         pin.computeJointJacobians(model, data, q0)
@@ -66,11 +67,16 @@ class RobotModel:
             if jm.nv != 1:
                 self._unsupported[name] = short
                 continue
-            S = pin.getJointJacobian(model, data, jid, pin.LOCAL)[:, jm.idx_v]
+            # (a one-column Jacobian comes back as a 1-D array: reshape)
+            J = np.asarray(pin.getJointJacobian(model, data, jid, pin.LOCAL)).reshape(6, model.nv)
+            S = J[:, jm.idx_v]
             if "Prismatic" in short or short.startswith("JointModelP"):
                 kind_j, axis = "prismatic", S[:3]
             else:
                 kind_j, axis = ("continuous" if jm.nq == 2 else "revolute"), S[3:]
+            if not np.all(np.isfinite(axis)) or np.linalg.norm(axis) < 1e-9:
+                raise ModelError(f"{source or model.name}: joint '{name}' has a zero or invalid axis "
+                                 f"{np.round(axis, 6).tolist()}; give a nonzero <axis xyz=...>")
             lo, hi = (-np.pi, np.pi) if jm.nq == 2 else (model.lowerPositionLimit[jm.idx_q],
                                                           model.upperPositionLimit[jm.idx_q])
             self.joints[name] = JointInfo(name, jid, jm.idx_q, jm.idx_v, kind_j, axis.copy(),
@@ -101,7 +107,10 @@ class RobotModel:
         except Exception as exc:  # Pinocchio raises plain ValueError/RuntimeError
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise ModelError(f"{path}: Pinocchio cannot parse this model ({first})") from None
-        return cls(model, path, kind)
+        robot = cls(model, path, kind)
+        if kind == "urdf":
+            robot.mimic = _urdf_mimics(path)
+        return robot
 
     # ------------------------------------------------------------------ lookup
     @property
@@ -136,8 +145,12 @@ class RobotModel:
         if fid == 0:
             return []
         jid = self.model.frames[fid].parentJoint
-        support = list(self.model.supports[jid])
-        return [self.model.names[j] for j in support if self.model.names[j] in self.joints]
+        support = [self.model.names[j] for j in self.model.supports[jid]]
+        for j in support:
+            if j in self.mimic:
+                raise ModelError(f"joint '{j}' mimics joint '{self.mimic[j]}' (URDF <mimic>) and lies between the "
+                                 f"base and frame '{frame}': loops through mimic joints are not supported")
+        return [j for j in support if j in self.joints]
 
     # ----------------------------------------------------------- configurations
     def configurations(self, angles: np.ndarray, joint_names: list[str]) -> np.ndarray:
@@ -165,8 +178,25 @@ class RobotModel:
             "joints": [{"name": j.name, "type": j.kind, "axis": j.axis.round(6).tolist(),
                         "lower": j.lower, "upper": j.upper} for j in self.joints.values()],
             "unsupported_joints": self._unsupported,
+            "mimic_joints": dict(self.mimic),
             "frames": [f.name for f in self.model.frames if f.name != "universe"],
         }
+
+
+def _urdf_mimics(path: Path) -> dict[str, str]:
+    """Joints with a ``<mimic joint=...>`` element in a URDF: {joint: followed joint}."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError):
+        return {}
+    out = {}
+    for j in root.iter("joint"):
+        m = j.find("mimic")
+        if m is not None and j.get("name"):
+            out[j.get("name")] = m.get("joint", "?")
+    return out
 
 
 def _suggest(name: str, choices: list[str]) -> str:

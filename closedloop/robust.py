@@ -27,6 +27,15 @@ Suspects: configurations with d_i beyond the chi(m) quantile at level
 1 - alpha / N_total (Bonferroni over all configurations), each reported with
 its row in the log and its standardized residual.
 
+Outlier screening before any identifiability decision (`screen`): the
+same standardized residuals, with a per-component robust scale where the
+residual is not whitened (metres and radians mixed), and a floor under the
+scale (exact data have a MAD at round-off, where every configuration would
+look "suspect").  `calibrate` screens the plain fit; if anything is flagged it
+refits robustly (IRLS with the Cauchy loss, which gross outliers cannot drag)
+and rejects the flagged configurations before the final, unweighted-by-loss
+fit on the inliers.
+
 For integration in ``calibrate``: `config_residuals` gives the whitened
 per-configuration residuals at given values; `irls` is a reference
 iteratively reweighted Gauss-Newton over a fixed set of parameters.
@@ -35,14 +44,44 @@ iteratively reweighted Gauss-Newton over a fixed set of parameters.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy import stats
 
-from .calibration import CalibrationResult, _noise_vector, whiten
+from .noise import noise_vector, whiten
 from .problem import CalibrationProblem
 
+if TYPE_CHECKING:
+    from .calibration import CalibrationResult
+
 MAD_TO_SIGMA = 1.482602218505602  # 1 / Phi^-1(3/4)
+
+
+class _Chi2:
+    """scipy.stats.chi2's sf, isf and ppf through the scipy.special functions they call (same
+    values), imported on first use: scipy.stats costs 0.4-1 s to import, on every calibration."""
+
+    @staticmethod
+    def sf(x, df):
+        from scipy.special import chdtrc
+
+        return chdtrc(df, x)
+
+    @staticmethod
+    def isf(p, df):
+        from scipy.special import chdtri
+
+        return chdtri(df, p)
+
+    @staticmethod
+    def ppf(p, df):
+        from scipy.special import gammaincinv
+
+        return 2.0 * gammaincinv(df / 2, p)
+
+
+class stats:  # noqa: N801  (read as scipy.stats at the call sites)
+    chi2 = _Chi2
 
 
 def default_c(loss: str, m: int) -> float:
@@ -66,6 +105,34 @@ def standardized(residual_blocks: list[np.ndarray], scale: float | None = None) 
     """d_i = |r_i| / s per configuration, per block ((N,) each)."""
     s = mad_scale(residual_blocks) if scale is None else float(scale)
     return [np.linalg.norm(np.asarray(r, float), axis=1) / s for r in residual_blocks]
+
+
+def component_standardized(residual_blocks: list[np.ndarray], floors: list[np.ndarray]) -> list[np.ndarray]:
+    """d_i = |r_i / s| with a robust scale s_k per residual component of each block.
+
+    For residuals that are not whitened (a weld's metres and radians):
+    s_k = max(1.4826 MAD_k, floor_k) over the block's configurations.
+    """
+    out = []
+    for r, fl in zip(residual_blocks, floors):
+        r = np.asarray(r, float)
+        if r.shape[0] == 0:
+            out.append(np.zeros(0))
+            continue
+        mad = MAD_TO_SIGMA * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
+        out.append(np.linalg.norm(r / np.maximum(mad, fl), axis=1))
+    return out
+
+
+def cauchy_weights(ds: list[np.ndarray], dims: list[int]) -> list[np.ndarray]:
+    """Cauchy IRLS weights 1 / (1 + (d / c)^2) with c = sqrt(chi2_m^-1(0.5)) per block."""
+    return [1.0 / (1.0 + (d / default_c("cauchy", m)) ** 2) for d, m in zip(ds, dims)]
+
+
+def flagged(ds: list[np.ndarray], dims: list[int], alpha: float = 0.01) -> list[np.ndarray]:
+    """Per block, the configurations with d_i^2 > chi2_m^-1(1 - alpha / N_total) (Bonferroni)."""
+    n_total = max(sum(d.size for d in ds), 1)
+    return [np.flatnonzero(d > np.sqrt(stats.chi2.isf(alpha / n_total, m))) for d, m in zip(ds, dims)]
 
 
 def weights(residual_blocks: list[np.ndarray], loss: str = "huber", c: float | None = None,
@@ -130,7 +197,7 @@ def suspects(residual_blocks: list[np.ndarray], rows: list[np.ndarray] | None = 
 def _sigma_q(problem: CalibrationProblem, noise) -> np.ndarray:
     if isinstance(noise, np.ndarray) and noise.shape == (len(problem.joints),):
         return noise
-    return _noise_vector(problem, noise)[0]
+    return noise_vector(problem, noise)[0]
 
 
 def config_residuals(problem: CalibrationProblem, values: np.ndarray, noise=None, weighting: str = "noise"

@@ -83,9 +83,13 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
     opt = options or SolverOptions()
     if opt.noise is not None:
         return _solve(fun, x0, scale, opt, progress)
-    first = _solve(fun, x0, scale, replace(opt, noise=0.0), progress)
+    memo: dict = {}
+    first = _solve(fun, x0, scale, replace(opt, noise=0.0), progress, memo)
     r = first.residual
-    S, _, _ = _svd(first.jacobian * scale, r)
+    # the last iteration's factorisation when it was of this Jacobian (a solve that ends on
+    # "no step lowers the cost"), else one more TSQR pass
+    at_x = "x" in memo and np.array_equal(memo["x"], first.x)
+    S = memo["S"] if at_x else scaled_svd(first.jacobian, r, scale)[0]
     sigma = rms(r, r.size - int(np.sum(S > opt.rcond * S[0])))
     if not np.any(S <= opt.snr * sigma):
         return first
@@ -106,7 +110,10 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
 
 
 def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOptions,
-           progress: Callable[[int, float], None] | None) -> SolverResult:
+           progress: Callable[[int, float], None] | None, memo: dict | None = None) -> SolverResult:
+    """One Levenberg-Marquardt run at a fixed truncation level; `memo` gets the last (J, S)."""
+    memo = {} if memo is None else memo
+    bounded = opt.lower is not None or opt.upper is not None
     x = np.array(x0, dtype=float)
     r, J = fun(x, True)
     cost = 0.5 * float(r @ r)
@@ -117,8 +124,9 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
     status, message, truncated = "max_iter", f"no convergence in {opt.max_iter} iterations", 0
     it = 0
     for it in range(1, opt.max_iter + 1):
-        Js = J * scale
-        S, Vt, g = _svd(Js, r)
+        S, Vt, g = scaled_svd(J, r, scale)
+        memo["x"], memo["S"] = x.copy(), S
+        Js = J * scale if bounded else None  # the bounded step works on the rows themselves
         floor = opt.rcond * (S[0] if S.size else 0.0)
         sigma = opt.noise
         keep = S > max(floor, opt.snr * sigma)
@@ -169,14 +177,66 @@ def _svd(Js: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
 
     For a tall Js through the triangular factor of [Js | r] = Q R: R's first
     n columns are R_J = U_R S V^T, so U^T r = U_R^T (Q^T r), R's last column.
+    Only an (n+1) x (n+1) SVD is ever taken; the rows cost one TSQR pass.
     """
     n = Js.shape[1]
     if Js.shape[0] > 2 * n:
-        Ra = _r_factor(np.column_stack([Js, r]))
+        A = np.empty((Js.shape[0], n + 1))
+        A[:, :n] = Js
+        A[:, n] = r
+        Ra = _r_factor(A)
         U_R, S, Vt = np.linalg.svd(Ra[:n, :n])
         return S, Vt, U_R.T @ Ra[:n, n]
     U, S, Vt = np.linalg.svd(Js, full_matrices=False)
     return S, Vt, U.T @ r
+
+
+def scaled_svd(J: np.ndarray, r: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """S, Vt and g = U^T r of the column-scaled J D = U S V^T (D = diag(scale)), without forming U.
+
+    The cost is one pass over the rows (TSQR of [J D | r], formed a chunk at a
+    time: no copy of J) and an SVD of the (n+1)-square triangle.  Also for the
+    analysis at a solution (standard errors V S^-2 V^T, weak directions), which
+    needs no U: `np.linalg.svd` of the tall J D would form U (rows x n) and run
+    threaded LAPACK on it.
+    """
+    n = J.shape[1]
+    if J.shape[0] > 2 * n:
+        Ra = _scaled_r_factor(J, r, scale)
+        U_R, S, Vt = np.linalg.svd(Ra[:n, :n])
+        return S, Vt, U_R.T @ Ra[:n, n]
+    return _svd(J * scale, r)
+
+
+_CHUNK_ROWS = 1 << 14  # rows of [J D | r] formed at a time by `_scaled_r_factor` (~4 MB at 30 columns)
+
+
+def _scaled_r_factor(J: np.ndarray, r: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """`_r_factor` of [J D | r], never formed whole: its first TSQR level is taken chunk by chunk.
+
+    The same blocks meet the same QR calls as in `_r_factor([J D | r])`, so R is
+    the same to the bit; the memory is one chunk plus the blocks' triangles
+    (rows / 256 x (n+1)^2), not a second copy of J.
+    """
+    m, n = J.shape
+    block = max(256, 4 * (n + 1))
+
+    def rows(a: int, b: int, out: np.ndarray | None = None) -> np.ndarray:
+        A = np.empty((b - a, n + 1)) if out is None else out[:b - a]
+        np.multiply(J[a:b], scale, out=A[:, :n])
+        A[:, n] = r[a:b]
+        return A
+
+    if m <= block:
+        return _r_factor(rows(0, m))
+    k = m // block
+    per = max(1, _CHUNK_ROWS // block) * block
+    buf = np.empty((min(per, k * block), n + 1))
+    Rs = [np.linalg.qr(rows(a, min(a + per, k * block), buf).reshape(-1, block, n + 1), mode="r").reshape(-1, n + 1)
+          for a in range(0, k * block, per)]
+    if m > k * block:
+        Rs.append(rows(k * block, m))
+    return _r_factor(np.concatenate(Rs))
 
 
 def _r_factor(A: np.ndarray) -> np.ndarray:
@@ -187,15 +247,30 @@ def _r_factor(A: np.ndarray) -> np.ndarray:
     [R_1; ...; R_k] gives the same R up to the signs of its rows.  Small
     blocks stay in cache and in LAPACK's single-threaded level-2 path (one
     QR of a long matrix is memory-bound, and its threaded BLAS calls stall
-    when other processes hold the cores).
+    when other processes hold the cores).  Memory: the first level's R
+    factors, k n^2 for k = rows / block, below one copy of A.
     """
     n = A.shape[1]
     block = max(256, 4 * n)
     while A.shape[0] > block:
         k = A.shape[0] // block
         R = np.linalg.qr(A[:k * block].reshape(k, block, n), mode="r").reshape(-1, n)
-        A = np.vstack([R, A[k * block:]])
+        A = np.concatenate([R, A[k * block:]]) if A.shape[0] > k * block else R
     return np.linalg.qr(A, mode="r")
+
+
+def r_factor(A: np.ndarray) -> np.ndarray:
+    """The n x n triangular factor R of a tall A = Q R (TSQR; rows signs arbitrary).
+
+    A^T A = R^T R, so every question about A's columns that least squares can
+    ask (singular values and right singular vectors, a column's residual on
+    others, null combinations, rank) has the same answer on R, at n rows
+    instead of A's thousands: reduce once, then analyse the triangle.
+    """
+    A = np.asarray(A, dtype=float)
+    if A.shape[0] <= A.shape[1]:
+        return A
+    return _r_factor(np.ascontiguousarray(A))
 
 
 def _model_decrease(S: np.ndarray, Vt: np.ndarray, g: np.ndarray, dz: np.ndarray) -> float:
@@ -244,3 +319,6 @@ def _bounded_step(Js, r, Vk, lam, x, scale, opt: SolverOptions, dz_free) -> np.n
         log.warning("bounded step: OSQP found no solution; clipping the free step")
         return (np.clip(x_free, lower, upper) - x) / scale
     return Vk @ w
+
+
+r_factor = _r_factor  # public name: the identifiability analysis compresses tall Jacobians with it

@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from .calibration import (CalibrationOptions, CalibrationResult, _noise_vector, build_problem,
-                          calibrate, residual_stats, whiten)
+from .calibration import CalibrationOptions, CalibrationResult, build_problem, calibrate, residual_stats
+from .noise import noise_vector, whiten
 from .data import JointLog
 from .loops.base import Loop
 from .montecarlo import unwrap
@@ -67,7 +67,7 @@ def closure_residuals(result: CalibrationResult, robot: RobotModel, log_: JointL
     stats = residual_stats(problem, evals)
     wr = None
     if noise is not None:
-        sigma_q, _ = _noise_vector(problem, noise)
+        sigma_q, _ = noise_vector(problem, noise)
         r, _, _ = whiten(evals, sigma_q, "noise", False, [b.loop for b in problem.blocks])
         wr = float(np.sqrt(np.mean(r ** 2))) if r.size else None
     return {"loops": [asdict(s) for s in stats], "whitened_rms": wr}
@@ -106,8 +106,13 @@ def _mean_loops(per_fold: list[list[dict]]) -> list[dict]:
     return out
 
 
+def _holdout_job(robot: RobotModel, loops: list[Loop], opt: CalibrationOptions, split: tuple) -> dict[str, Any]:
+    """One fold's refit (a job for closedloop.executor): `split` = (training log, held-out log)."""
+    return holdout(robot, split[0], split[1], loops, opt)
+
+
 def cross_validate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: CalibrationOptions | None = None,
-                   k: int = 5, seed: int = 0) -> dict[str, Any]:
+                   k: int = 5, seed: int = 0, executor=None) -> dict[str, Any]:
     """k-fold cross-validation with the same options on every fold.
 
     Returns
@@ -121,14 +126,17 @@ def cross_validate(robot: RobotModel, log_: JointLog, loops: list[Loop], options
                (the estimated set is the same in every fold when the
                reduction is structural; names estimated in some folds only
                are listed under 'inconsistent').
+    The refits run on `executor` (an engine or its name, closedloop.executor;
+    None: this process, in fold order); the result is the same on any engine.
     """
     opt = options or CalibrationOptions()
     parts = folds(log_, k, seed)
     per_fold = []
     ref = None
-    for f, test_rows in enumerate(parts):
-        train_rows = np.setdiff1d(np.arange(len(log_)), test_rows)
-        ho = holdout(robot, subset(log_, train_rows), subset(log_, test_rows), loops, opt)
+    from .executor import run  # the refits run on any engine (closedloop.executor); results in fold order
+
+    splits = [(subset(log_, np.setdiff1d(np.arange(len(log_)), rows)), subset(log_, rows)) for rows in parts]
+    for f, ho in enumerate(run(_holdout_job, splits, executor, shared=(robot, loops, opt))):
         res: CalibrationResult = ho["result"]
         ref = res.values if ref is None else ref
         vals = unwrap(res.problem, res.values, ref)  # closure rotation vectors on one branch

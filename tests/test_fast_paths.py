@@ -6,7 +6,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from closedloop.calibration import _cholesky_inverse, project_to_closure, whiten
+from closedloop.identifiability import project_to_closure
+from closedloop.noise import cholesky_inverse, whiten
 from closedloop.loops import WeldLoop
 from closedloop.problem import CalibrationProblem, LoopBlock
 from closedloop.solver import _r_factor
@@ -72,7 +73,7 @@ def test_cholesky_whitening_is_the_same_least_squares_problem(panda):
     assert np.abs(J1.T @ J1 - J2.T @ J2).max() < 1e-10 * np.abs(J1.T @ J1).max()
     assert np.abs(J1.T @ r1 - J2.T @ r2).max() < 1e-10 * np.abs(J1.T @ r1).max()
     W = ev.Jq[:3] @ np.swapaxes(ev.Jq[:3], 1, 2)
-    Linv, kappa = _cholesky_inverse(W)
+    Linv, kappa = cholesky_inverse(W)
     assert np.abs(Linv @ W @ np.swapaxes(Linv, 1, 2) - np.eye(6)).max() < 1e-10
     assert np.all(kappa >= np.linalg.cond(W))
 

@@ -21,8 +21,8 @@ from closedloop.synthetic import self_motion
 from closedloop.truth import identifiable_names, make_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
-TABLE = ROOT / "models" / "dh" / "utah_mit_thumb_finger.yaml"
-URDF = ROOT / "models" / "utah_mit_hand.urdf"
+TABLE = ROOT / "closedloop" / "models" / "dh" / "utah_mit_thumb_finger.yaml"
+URDF = ROOT / "closedloop" / "models" / "utah_mit_hand.urdf"
 FIELDS = ("theta_off", "s", "a", "alpha", "k")
 
 

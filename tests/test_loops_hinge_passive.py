@@ -22,7 +22,7 @@ from closedloop.truth import draw_truth
 
 ROBOTS = Path(site.getsitepackages()[0]) / "cmeel.prefix/share/example-robot-data/robots"
 PANDA = ROBOTS / "panda_description/urdf/panda.urdf"
-TASKS = Path(__file__).resolve().parents[1] / "models" / "tasks"
+TASKS = Path(__file__).resolve().parents[1] / "closedloop" / "models" / "tasks"
 TOOL = "panda_hand"
 TH0 = np.array([[0.0, -0.3, 0.0, -2.0, 0.0, 1.8, 0.8]])
 AXIS = (np.array([0.475, 0.45, 0.594]), np.array([0.0, 0.0, 1.0]))  # 0.45 m beside the hand at TH0

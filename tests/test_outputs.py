@@ -218,10 +218,7 @@ def test_mjcf_input(tmp_path):
     ("noise", "expected KEY=VALUE"),
 ])
 def test_bad_simulation_settings_one_line_exit_2(tmp_path, setting, expect):
-    # the installed console script: `python -m closedloop.cli` from the repository root would import the
-    # source tree, which has no closedloop/sims (it is installed from the top-level sims/)
-    script = Path(sys.executable).parent / "closedloop"
-    p = subprocess.run([str(script), "simulate", "panda_weld", "--n", "2", "--out", str(tmp_path / "o"), "--set", setting],
+    p = subprocess.run([sys.executable, "-m", "closedloop.cli", "simulate", "panda_weld", "--n", "2", "--out", str(tmp_path / "o"), "--set", setting],
                        capture_output=True, text=True)
     rc, err = p.returncode, p.stderr
     assert rc == 2 and expect in err and "Traceback" not in err, err

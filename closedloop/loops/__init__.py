@@ -1,10 +1,11 @@
 """Loop closures: each is a residual with its Jacobians (see `base.Loop`).
 
-Importing this package registers every loop type for the CLI (`spec.parse_loop`).
+Importing this package registers every loop type for the CLI (`spec.parse_loop`);
+the camera loop (`CameraLoop`, type ``camera``) loads on first use (`spec.LAZY_KINDS`),
+so that `import closedloop` pays for no camera code.
 """
 
 from .base import Loop, LoopEval
-from .camera import CameraLoop
 from .hinge import HingeLoop
 from .measured import MeasuredPointLoop, MeasuredPoseLoop
 from .passive import PassiveChainLoop
@@ -14,3 +15,11 @@ from .weld import WeldLoop
 
 __all__ = ["Loop", "LoopEval", "CameraLoop", "HingeLoop", "MeasuredPointLoop", "MeasuredPoseLoop",
            "PassiveChainLoop", "PlaneLoop", "PointLoop", "WeldLoop"]
+
+
+def __getattr__(name: str):
+    if name == "CameraLoop":  # loaded on first use (PEP 562)
+        from .camera import CameraLoop
+
+        return CameraLoop
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -26,9 +26,21 @@ from ..parameters import Parameter
 @dataclass
 class LoopEval:
     r: np.ndarray
-    dA: np.ndarray
-    dB: np.ndarray
+    dA: np.ndarray | None
+    dB: np.ndarray | None
     dp: np.ndarray
+    #: derivatives w.r.t. each frame of `Loop.frames` (N, m, 6), for loops on more than two frames
+    dF: list[np.ndarray] | None = None
+    #: (N, m) False for rows without an observation (a marker out of view): their r, dF, dp rows are 0 and
+    #: they carry no degree of freedom; None when every row is observed
+    valid: np.ndarray | None = None
+    #: (N, m, m) per-configuration measurement covariance, for loops whose measurement noise depends on the
+    #: configuration (stereo triangulation); it adds to `Loop.measurement_cov`
+    cov: np.ndarray | None = None
+
+    def frame_derivatives(self) -> list[np.ndarray]:
+        """d r / d (right perturbation) of each frame, in the order of `Loop.frames`."""
+        return self.dF if self.dF is not None else [self.dA, self.dB]
 
 
 class Loop(ABC):
@@ -60,6 +72,10 @@ class Loop(ABC):
         """Initial values of the loop's parameters from the data (None: keep nominal)."""
         return None
 
+    def initialize_frames(self, Ts: list[np.ndarray]) -> np.ndarray | None:
+        """`initialize` at the poses of every frame of `frames` (loops on more frames override it)."""
+        return self.initialize(Ts[0], Ts[1])
+
     @abstractmethod
     def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
         """Residuals and Jacobians at poses TA, TB (N, 4, 4) and own parameters p."""
@@ -70,6 +86,28 @@ class Loop(ABC):
 
     def bind(self, extra: dict[str, np.ndarray]) -> None:
         """Receive the log's extra columns for this loop's rows (e.g. measured poses)."""
+
+    @property
+    def frames(self) -> tuple[str, ...]:
+        """Every frame the closure involves (A, B; a loop on more frames overrides this)."""
+        return (self.frame_a, self.frame_b)
+
+    def evaluate_frames(self, Ts: list[np.ndarray], p: np.ndarray) -> LoopEval:
+        """Residuals and Jacobians at the poses of `frames` (a list of (N, 4, 4)).
+
+        Two-frame loops need not override it; a loop on more frames (a stereo
+        head whose cameras move on their own joints) overrides it and fills
+        `LoopEval.dF` with one derivative per frame.
+        """
+        return self.evaluate(Ts[0], Ts[1], p)
+
+    def residual_frames(self, Ts: list[np.ndarray], p: np.ndarray) -> np.ndarray:
+        """The residual alone at the poses of `frames`."""
+        return self.residual(Ts[0], Ts[1], p)
+
+    def valid_frames(self, Ts: list[np.ndarray], p: np.ndarray) -> np.ndarray | None:
+        """`LoopEval.valid` without the Jacobians (None: every row observed)."""
+        return None
 
     def normalize(self, p: np.ndarray) -> np.ndarray:
         """A canonical form of the loop's parameters (e.g. rotation vectors within pi)."""

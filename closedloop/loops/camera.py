@@ -1,27 +1,29 @@
-"""The camera loop: a marker on the tool seen by one or two pinhole cameras (thesis 3.2, 5.2-5.4).
+"""The camera loop: a marker on the tool seen by cameras, each on any robot frame (thesis 3.2, 5.2-5.4).
 
-A marker at an unknown point t of frame A (the tool) is imaged by one camera,
-or by a stereo pair, rigidly attached to frame B (the world by default, or a
-robot frame such as a head).  As with the measured loops (``measured.py``),
-the open-loop measurement equations of 3.2 (eq. 3.4: measured = model) become
-a loop whose "joint" is the measurement; here the measurement is the image
-point itself, so the residual is the image-plane error, the first of the two
-formulations discussed in 5.1 (5.2.2: pinhole model, eqs. 5.3-5.4, with the
-image offsets as the principal point).
+A marker at an unknown point t of frame A (the tool) is imaged by one or more
+pinhole cameras (``camera_model``: intrinsics and optional lens distortion).
+Camera c sits at an unknown (or known) pose X_c in its own robot frame F_c:
+the world, a fixed head, or a frame moved by the camera's own sensed joint
+(the thesis's verging head, 5.2.2: each camera on its own rotation).  The
+closure is either
 
-Measurements come from log columns, one row per configuration:
+* ``reprojection`` (default): the image-plane error in every camera, the
+  first formulation of 5.1.4, 2 rows (pixels) per camera; or
+* ``triangulation`` (two cameras): the thesis's own choice, the point given
+  by the stereo pair (eqs. 5.11-5.12) minus the arm's point (eq. 5.2), 3 rows
+  (metres, in camera 1's frame, eq. 5.13); see ``stereo.py``.
 
-    <loop>:u1, <loop>:v1     pixel coordinates in camera 1
-    <loop>:u2, <loop>:v2     pixel coordinates in camera 2 (stereo pair)
+Both are exact, with analytic Jacobians.  Measurements come from log
+columns ``<loop>:u<c>``, ``<loop>:v<c>`` (c = 1, 2, ...).  A pixel pair that is
+NaN in both coordinates is a missing observation (the marker out of view):
+its residual and Jacobian rows are zero and ``LoopEval.valid`` marks them.
 
-Identifiability (5.4, eq. 5.27): the pinhole projection is invariant under
-p -> s p, so scaling every length (robot, camera positions, marker) leaves
-every pixel unchanged.  This holds for one camera or a stereo pair, with known
-or unknown intrinsics, as long as the camera positions are unknown; only a
-known baseline (``rig``: the pose of camera 2 in camera 1) or a known camera
-position fixes the length scale.  The loop therefore says ``scale_free`` unless
-one of those is given, and the core's length-gauge test decides on the data
-(it fixes one robot length when the gauge is there).
+Identifiability (5.4, eq. 5.27): scaling every length leaves every pixel
+unchanged unless a camera position or the rig baseline is known, so the
+loop is ``scale_free`` otherwise and the core fixes one robot length.  A
+camera on its own pan joint absorbs that joint's offset and the placement
+components along its axis (the core's reduction drops and names them);
+parallel pan axes leave one more redundancy (5.4, eq. 5.26), found the same way.
 """
 
 from __future__ import annotations
@@ -30,191 +32,110 @@ from typing import Sequence
 
 import numpy as np
 import pinocchio as pin
-from scipy.linalg import rq
 
 from ..errors import LoopError
 from ..parameters import Parameter
-from ..robot import RobotModel
 from .base import Loop, LoopEval
-from .measured import (POSE_FIELDS, _as_se3, _gauss_newton, _opt_float, generators, pose_of, pose_parameters,
-                       vec_of)
-from .point import TIP_FIELDS, _vec3, parse_vec, point_parameters, relative_point, skew
-from .spec import register
+from .camera_model import DIST_FIELDS, INTRINSIC_FIELDS, camera_from_dlt, dlt, project, project_lens  # noqa: F401
+from .measured import POSE_FIELDS, _as_se3, generators, pose_of, pose_parameters, vec_of
+from .point import TIP_FIELDS, _vec3, point_parameters, relative_point, skew
 
-INTRINSIC_FIELDS = ("fx", "fy", "cx", "cy")
 PIXEL_COLS = ("u", "v")
+CLOSURES = ("reprojection", "triangulation")
 DEFAULT_PRIOR_PX = 100.0  # expected error of an intrinsics guess (px): column scaling, data identifiability
+DEFAULT_PRIOR_DIST = 0.1  # expected error of a distortion guess
 PLACEHOLDER_K = np.array([1000.0, 1000.0, 0.0, 0.0])  # unknown intrinsics with no guess: replaced by the DLT
 
 
-def project(pc: np.ndarray, k: np.ndarray, jacobian: bool = True):
-    """Pinhole projection of camera-frame points and its Jacobians.
-
-    uv = (fx px/pz + cx, fy py/pz + cy) for pc (N, 3), k = (fx, fy, cx, cy):
-
-        d uv / d pc = [[fx/pz, 0, -fx px/pz^2], [0, fy/pz, -fy py/pz^2]]     (N, 2, 3)
-        d uv / d k  = [[px/pz, 0, 1, 0], [0, py/pz, 0, 1]]                   (N, 2, 4)
-    """
-    iz = 1.0 / pc[:, 2]
-    xn, yn = pc[:, 0] * iz, pc[:, 1] * iz
-    uv = np.column_stack([k[0] * xn + k[2], k[1] * yn + k[3]])
-    if not jacobian:
-        return uv, None, None
-    N = pc.shape[0]
-    Jp = np.zeros((N, 2, 3))
-    Jp[:, 0, 0] = k[0] * iz
-    Jp[:, 0, 2] = -k[0] * xn * iz
-    Jp[:, 1, 1] = k[1] * iz
-    Jp[:, 1, 2] = -k[1] * yn * iz
-    Jk = np.zeros((N, 2, 4))
-    Jk[:, 0, 0], Jk[:, 1, 1] = xn, yn
-    Jk[:, 0, 2] = Jk[:, 1, 3] = 1.0
-    return uv, Jp, Jk
-
-
-# --------------------------------------------------------------------------- linear start (DLT / PnP)
-def dlt(Y: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
-    """The 3x4 projection matrix P (uv ~ P [Y; 1]) by the normalised DLT; None when degenerate.
-
-    Hartley normalisation of both point sets, the null vector of the 2N x 12
-    system [Y^T 1 0 -u (Y^T 1); 0 Y^T 1 -v (Y^T 1)] p = 0, denormalised.
-    Needs six or more points, not coplanar (a plane leaves a family of P).
-    """
-    N = Y.shape[0]
-    if N < 6:
-        return None
-    cY, cu = Y.mean(axis=0), uv.mean(axis=0)
-    dY = np.linalg.norm(Y - cY, axis=1).mean()
-    du = np.linalg.norm(uv - cu, axis=1).mean()
-    if not (dY > 0 and du > 0):
-        return None
-    sY, su = np.sqrt(3.0) / dY, np.sqrt(2.0) / du
-    Yh = np.column_stack([(Y - cY) * sY, np.ones(N)])
-    un = (uv - cu) * su
-    A = np.zeros((2 * N, 12))
-    A[0::2, 0:4] = Yh
-    A[0::2, 8:12] = -un[:, :1] * Yh
-    A[1::2, 4:8] = Yh
-    A[1::2, 8:12] = -un[:, 1:] * Yh
-    _, S, Vt = np.linalg.svd(A, full_matrices=False)
-    if not S[-2] > 1e-9 * S[0]:
-        return None
-    T2inv = np.array([[1 / su, 0, cu[0]], [0, 1 / su, cu[1]], [0, 0, 1]])
-    T3 = np.diag([sY, sY, sY, 1.0])
-    T3[:3, 3] = -sY * cY
-    return T2inv @ Vt[-1].reshape(3, 4) @ T3
-
-
-def camera_from_dlt(Y: np.ndarray, uv: np.ndarray, k: np.ndarray | None) -> tuple[pin.SE3, np.ndarray] | None:
-    """Camera pose in the points' frame (and intrinsics) from the DLT; None when it fails.
-
-    Unknown intrinsics (k None): P = K [R | t] by RQ decomposition of P's left
-    block (det > 0, positive diagonal, zero skew dropped).  Known intrinsics
-    (linear PnP): A = K^-1 P, R the nearest rotation to its left block, the
-    scale the mean of its singular values.  The camera pose in the points'
-    frame is X = (R^T, -R^T t); the fit must put the points in front (pz > 0).
-    """
-    P = dlt(Y, uv)
-    if P is None or not np.all(np.isfinite(P)):
-        return None
-    if k is None:
-        if np.linalg.det(P[:, :3]) < 0:
-            P = -P
-        Kr, R = rq(P[:, :3])
-        D = np.diag(np.sign(np.diag(Kr)))
-        Kr, R = Kr @ D, D @ R
-        t = np.linalg.solve(Kr, P[:, 3])
-        Kn = Kr / Kr[2, 2]
-        k = np.array([Kn[0, 0], Kn[1, 1], Kn[0, 2], Kn[1, 2]])
-    else:
-        K = np.array([[k[0], 0, k[2]], [0, k[1], k[3]], [0, 0, 1.0]])
-        A = np.linalg.solve(K, P)
-        if np.linalg.det(A[:, :3]) < 0:
-            A = -A
-        U, S, Vt = np.linalg.svd(A[:, :3])
-        R = U @ Vt
-        t = A[:, 3] / S.mean()
-    depth = Y @ R[2] + t[2]
-    if np.mean(depth > 0) < 0.5 or not (np.all(np.isfinite(k)) and k[0] > 0 and k[1] > 0):
-        return None
-    return pin.SE3(R.T, -R.T @ t), np.asarray(k, dtype=float)
-
-
-# --------------------------------------------------------------------------- the loop
 class CameraLoop(Loop):
-    """Image points of a tool marker in one or two pinhole cameras (2 or 4 rows, pixels).
+    """Image points of a tool marker in pinhole cameras, each on its own frame.
 
-    With t the marker in frame A (``<loop>.tip_x/y/z``), y = T_B^-1 T_A t its
-    position in B, X_c = (R_c, t_c) the pose of camera c in B
-    (``<loop>.cam<c>.x..rz``: translation, rotation vector) and
-    k_c = (fx, fy, cx, cy) its intrinsics (``<loop>.cam<c>.fx..cy``):
+    With t the marker in frame A (``<loop>.tip_x/y/z``), y_c = T_Fc^-1 T_A t
+    its position in camera c's frame F_c, X_c = (R_c, t_c) the camera's pose
+    in F_c (``<loop>.cam<c>.x..rz``), k_c its intrinsics
+    (``<loop>.cam<c>.fx..cy``) and d_c its distortion (``<loop>.cam<c>.k1..``
+    for the coefficients in ``dist``):
 
-        p_c = X_c^-1 y = R_c^T (y - t_c)
-        r_c = pi(k_c, p_c) - (u_c, v_c),   pi(k, p) = (fx px/pz + cx, fy py/pz + cy)
+        p_c = X_c^-1 y_c = R_c^T (y_c - t_c),   r_c = pi(k_c, d_c, p_c) - (u_c, v_c)
 
-    exact (no small-angle form).  With Jpi = d pi / d p (``project``) and
-    point.relative_point:
+    With Jpi = d pi / d p (``camera_model.project_lens``), point.relative_point:
 
-        dr_c/d(delta_A) = Jpi R_c^T R_BA [I  -[t]x]      dr_c/d(delta_B) = Jpi R_c^T [-I  [y]x]
-        dr_c/d t        = Jpi R_c^T R_BA                 dr_c/d(delta_Xc) = Jpi [-I  [p_c]x]
-        dr_c/d k_c      = [[px/pz, 0, 1, 0], [0, py/pz, 0, 1]]
+        dr_c/d(delta_A)  = Jpi R_c^T R_FA [I  -[t]x]      dr_c/d(delta_Fc) = Jpi R_c^T [-I  [y_c]x]
+        dr_c/d t         = Jpi R_c^T R_FA                 dr_c/d(delta_Xc) = Jpi [-I  [p_c]x]
+        dr_c/d k_c       = [[xd, 0, 1, 0], [0, yd, 0, 1]] dr_c/d d_c       = diag(fx, fy) Dd
 
-    and the pose parameters map to delta_Xc as in the measured loops
-    (translation R_c^T dt, rotation vector Jexp3(r) dr).  With a known rig
-    (camera 2 at the fixed pose G in camera 1, X_2 = X_1 G) camera 2's rows
-    depend on camera 1's pose: dr_2/d(delta_X1) = Jpi [-I [p_2]x] Ad(G^-1).
-
-    Known quantities are fixed: ``K`` (per camera, intrinsics or None),
-    ``poses`` (per camera, a known pose in B or None), ``tip``.  Unknown ones
-    start from ``initial_K`` / ``initial_poses`` / ``initial_tip`` and from
-    the data (``initialize``).  ``sigma_px`` (pixels) gives
-    measurement_cov = sigma_px^2 I.
-
-    Residual rows are pixels, neither metres nor radians, so
-    translation_rows = rotation_rows = (); ``pixel_rows`` makes the report
-    give the per-image-point error in pixels (``residual_stats``: rms_px, max_px).
+    the pose parameters mapping to delta_Xc as in the measured loops.  A known
+    ``rig`` (camera 2 at G in camera 1, both on one frame): X_2 = X_1 G and
+    dr_2/d(delta_X1) = Jpi [-I [p_2]x] Ad(G^-1).  ``frames`` is (A, F_1, F_2,
+    ...) without repeats; a frame's derivative sums over its cameras.
+    ``sigma_px`` gives measurement_cov = sigma_px^2 I (reprojection).
     """
 
     translation_rows: tuple[int, ...] = ()
     rotation_rows: tuple[int, ...] = ()
 
-    def __init__(self, name: str, frame_a: str, frame_b: str = "universe", cameras: int = 1,
+    def __init__(self, name: str, frame_a: str, frame_b: str = "universe", cameras: int | None = None,
                  K: Sequence | None = None, initial_K: Sequence | None = None,
                  poses: Sequence | None = None, initial_poses: Sequence | None = None, rig=None,
-                 tip=None, initial_tip=None, sigma_px: float | None = None, prior_px: float = DEFAULT_PRIOR_PX):
-        super().__init__(name, frame_a, frame_b)
-        if cameras not in (1, 2):
-            raise LoopError(f"camera loop '{name}': cameras={cameras!r}: expected 1 or 2")
-        self.cameras = cameras
-        # labels as in the spec: K1 (known intrinsics of camera 1), K1_0 (a guess), pose1 (a guess)
-        self.K = self._per_camera(K, "K{}", lambda v, w: _intrinsics(v, f"camera loop '{name}': {w}"))
-        self.initial_K = self._per_camera(initial_K, "K{}_0",
-                                          lambda v, w: _intrinsics(v, f"camera loop '{name}': {w}"))
+                 tip=None, initial_tip=None, sigma_px: float | None = None, prior_px: float = DEFAULT_PRIOR_PX,
+                 camera_frames: Sequence[str] | None = None, dist: Sequence[str] = (), D: Sequence | None = None,
+                 closure: str = "reprojection"):
+        frames = list(camera_frames) if camera_frames else None
+        n = len(frames) if frames else (cameras or 1)
+        if cameras is not None and frames and cameras != len(frames):
+            raise LoopError(f"camera loop '{name}': cameras={cameras} but {len(frames)} camera frames")
+        if n < 1 or (not frames and n > 2):
+            raise LoopError(f"camera loop '{name}': cameras={n!r}: expected 1 or 2 on one frame "
+                            "(more cameras: one frame each, to=F1+F2+F3)")
+        super().__init__(name, frame_a, frames[0] if frames else frame_b)
+        self.cameras = n
+        self.camera_frames = frames or [frame_b] * n
+        if frame_a in self.camera_frames:
+            raise LoopError(f"camera loop '{name}': the marker frame '{frame_a}' is also a camera frame")
+        self._frames = tuple(dict.fromkeys([frame_a] + self.camera_frames))
+        self._fidx = [self._frames.index(f) for f in self.camera_frames]
+        what = f"camera loop '{name}'"
+        self.K = self._per_camera(K, "K{}", lambda v, w: _intrinsics(v, f"{what}: {w}"))
+        self.initial_K = self._per_camera(initial_K, "K{}_0", lambda v, w: _intrinsics(v, f"{what}: {w}"))
         self.poses = self._per_camera(poses, "known pose{}", lambda v, w: _se3(v, name, w))
         self.initial_poses = self._per_camera(initial_poses, "pose{}", lambda v, w: _se3(v, name, w))
-        for c in range(cameras):
+        Dv = self._per_camera(D, "D{}", lambda v, w: _distortion(v, f"{what}: {w}"))
+        self.D = [np.zeros(5) if x is None else x for x in Dv]
+        bad = [f for f in dist if f not in DIST_FIELDS]
+        if bad:
+            raise LoopError(f"{what}: dist='{'+'.join(dist)}': unknown coefficient '{bad[0]}' "
+                            f"(known: {'+'.join(DIST_FIELDS)})")
+        self.dist = tuple(f for f in DIST_FIELDS if f in dist)
+        self._dist_idx = np.array([DIST_FIELDS.index(f) for f in self.dist], dtype=int)
+        for c in range(n):
             if self.K[c] is not None and self.initial_K[c] is not None:
-                raise LoopError(f"camera loop '{name}': camera {c + 1} has known intrinsics and a guess; give one")
+                raise LoopError(f"{what}: camera {c + 1} has known intrinsics and a guess; give one")
             if self.poses[c] is not None and self.initial_poses[c] is not None:
-                raise LoopError(f"camera loop '{name}': camera {c + 1} has a known pose and a guess; give one")
+                raise LoopError(f"{what}: camera {c + 1} has a known pose and a guess; give one")
         self.rig = None if rig is None else _se3(rig, name, "rig")
         if self.rig is not None:
-            if cameras != 2:
-                raise LoopError(f"camera loop '{name}': rig (camera 2 in camera 1) needs cameras=2")
+            if n != 2 or self.camera_frames[0] != self.camera_frames[1]:
+                raise LoopError(f"{what}: rig (camera 2 in camera 1) needs two cameras on one frame")
             if self.poses[1] is not None or self.initial_poses[1] is not None:
-                raise LoopError(f"camera loop '{name}': with a rig, camera 2's pose follows camera 1's; "
-                                "give no pose for camera 2")
-        self.tip = None if tip is None else _vec3(tip, f"camera loop '{name}': tip")
-        self.initial_tip = np.zeros(3) if initial_tip is None else _vec3(initial_tip,
-                                                                          f"camera loop '{name}': initial_tip")
+                raise LoopError(f"{what}: with a rig, camera 2's pose follows camera 1's; give no pose for camera 2")
+        if closure not in CLOSURES:
+            raise LoopError(f"{what}: closure='{closure}': expected one of {', '.join(CLOSURES)}")
+        if closure == "triangulation" and n != 2:
+            raise LoopError(f"{what}: closure=triangulation needs exactly two cameras, not {n}")
+        self.closure = closure
+        self.tip = None if tip is None else _vec3(tip, f"{what}: tip")
+        self.initial_tip = np.zeros(3) if initial_tip is None else _vec3(initial_tip, f"{what}: initial_tip")
         self._fit_tip = initial_tip is None  # initialize() estimates an unknown tip with no initial value
-        for s, what in ((sigma_px, "sigma_px"), (prior_px, "prior_px")):
+        for s, w in ((sigma_px, "sigma_px"), (prior_px, "prior_px")):
             if s is not None and not (np.isfinite(s) and s > 0):
-                raise LoopError(f"camera loop '{name}': {what}={s!r} must be positive and finite")
+                raise LoopError(f"{what}: {w}={s!r} must be positive and finite")
         self.sigma_px = sigma_px
         self.prior_px = prior_px
-        self.measurement_cov = None if sigma_px is None else sigma_px ** 2 * np.eye(2 * cameras)
-        self.pixel_rows = tuple(range(2 * cameras))
+        tri = closure == "triangulation"
+        self.translation_rows = (0, 1, 2) if tri else ()
+        self.pixel_rows = () if tri else tuple(range(2 * n))
+        # with triangulation the pixel noise enters through a per-configuration covariance (LoopEval.cov)
+        self.measurement_cov = None if sigma_px is None or tri else sigma_px ** 2 * np.eye(2 * n)
         # the length scale is fixed only by a known baseline or a known camera position
         known_t = [X.translation for X in self.poses if X is not None]
         if self.rig is not None:
@@ -233,7 +154,7 @@ class CameraLoop(Loop):
         return [None if x is None else conv(x, what.format(c + 1)) for c, x in enumerate(v)]
 
     def _layout(self) -> None:
-        """Slices of the own parameter vector: pose c, intrinsics c, tip (only the unknown ones)."""
+        """Slices of the own parameter vector: poses, intrinsics, distortion, tip (only the unknown ones)."""
         self.sl: dict[str, slice | None] = {}
         k = 0
         for c in range(self.cameras):
@@ -243,12 +164,20 @@ class CameraLoop(Loop):
         for c in range(self.cameras):
             self.sl[f"K{c}"] = slice(k, k + 4) if self.K[c] is None else None
             k += 4 if self.K[c] is None else 0
+        nd = len(self.dist)
+        for c in range(self.cameras):
+            self.sl[f"D{c}"] = slice(k, k + nd) if nd else None
+            k += nd
         self.sl["tip"] = slice(k, k + 3) if self.tip is None else None
         self.n_own = k + (3 if self.tip is None else 0)
 
     @property
     def dim(self) -> int:
-        return 2 * self.cameras
+        return 3 if self.closure == "triangulation" else 2 * self.cameras
+
+    @property
+    def frames(self) -> tuple[str, ...]:
+        return self._frames
 
     def columns(self) -> list[str]:
         return [f"{self.name}:{a}{c + 1}" for c in range(self.cameras) for a in PIXEL_COLS]
@@ -265,6 +194,10 @@ class CameraLoop(Loop):
                 out += [Parameter(f"{self.name}.cam{c + 1}.{f}", "loop", self.name, f"cam{c + 1}.{f}",
                                   float(k0[i]), "px", self.prior_px, priority=1, order=len(out) + i)
                         for i, f in enumerate(INTRINSIC_FIELDS)]
+        for c in range(self.cameras):
+            out += [Parameter(f"{self.name}.cam{c + 1}.{f}", "loop", self.name, f"cam{c + 1}.{f}",
+                              float(self.D[c][DIST_FIELDS.index(f)]), "1", DEFAULT_PRIOR_DIST, priority=1,
+                              order=len(out) + i) for i, f in enumerate(self.dist)]
         if self.tip is None:
             out += point_parameters(self.name, TIP_FIELDS, self.initial_tip, order0=len(out))
         return out
@@ -275,10 +208,12 @@ class CameraLoop(Loop):
         if missing:
             raise LoopError(f"camera loop '{self.name}': the log has no pixel column(s) {', '.join(missing)}")
         M = np.column_stack([np.asarray(extra[c], dtype=float) for c in self.columns()])
-        bad = np.flatnonzero(~np.all(np.isfinite(M), axis=1))
-        if bad.size:
+        fin = np.isfinite(M)
+        half = np.flatnonzero(np.any(fin[:, 0::2] != fin[:, 1::2], axis=1) | np.any(np.isinf(M), axis=1))
+        if half.size:
             raise LoopError(f"camera loop '{self.name}': pixel coordinates missing or not a number in row(s) "
-                            f"{', '.join(str(b + 1) for b in bad[:5])} of this loop")
+                            f"{', '.join(str(b + 1) for b in half[:5])} of this loop (a marker out of view "
+                            "is NaN in both u and v)")
         self.meas = M
 
     def _measurements(self, N: int) -> np.ndarray:
@@ -288,9 +223,24 @@ class CameraLoop(Loop):
             raise LoopError(f"camera loop '{self.name}': {N} configurations but {self.meas.shape[0]} pixel rows")
         return self.meas
 
+    def observed(self, N: int) -> np.ndarray:
+        """(N, cameras) True where camera c saw the marker (its pixel pair is not NaN)."""
+        return np.isfinite(self._measurements(N)[:, 0::2])
+
+    def valid_rows(self, N: int) -> np.ndarray:
+        """(N, dim) True for residual rows that carry an observation (``LoopEval.valid``)."""
+        seen = self.observed(N)
+        if self.closure == "triangulation":
+            return np.repeat(np.all(seen, axis=1, keepdims=True), 3, axis=1)
+        return np.repeat(seen, 2, axis=1)
+
+    def valid_frames(self, Ts: list[np.ndarray], p: np.ndarray) -> np.ndarray | None:
+        valid = self.valid_rows(Ts[0].shape[0])
+        return None if np.all(valid) else valid
+
     # ------------------------------------------------------------- parameters
     def camera_pose(self, p: np.ndarray, c: int) -> pin.SE3:
-        """X_c, the pose of camera c (0-based) in frame B."""
+        """X_c, the pose of camera c (0-based) in its frame F_c."""
         if c == 1 and self.rig is not None:
             return self.camera_pose(p, 0) * self.rig
         sl = self.sl[f"pose{c}"]
@@ -299,6 +249,15 @@ class CameraLoop(Loop):
     def intrinsics(self, p: np.ndarray, c: int) -> np.ndarray:
         sl = self.sl[f"K{c}"]
         return self.K[c] if sl is None else p[sl]
+
+    def distortion(self, p: np.ndarray, c: int) -> np.ndarray | None:
+        """(k1, k2, p1, p2, k3) of camera c; None for an ideal pinhole (nothing identified, all zero)."""
+        sl = self.sl[f"D{c}"]
+        if sl is None:
+            return self.D[c] if np.any(self.D[c]) else None
+        d = self.D[c].copy()
+        d[self._dist_idx] = p[sl]
+        return d
 
     def tip_point(self, p: np.ndarray) -> np.ndarray:
         return self.tip if self.tip is not None else p[self.sl["tip"]]
@@ -313,32 +272,55 @@ class CameraLoop(Loop):
 
     # ------------------------------------------------------------- residual
     def residual(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> np.ndarray:
-        m = self._measurements(TA.shape[0])
-        y, *_ = relative_point(TA, TB, self.tip_point(p))
-        r = np.empty((TA.shape[0], self.dim))
-        for c in range(self.cameras):
-            X = self.camera_pose(p, c)
-            uv, _, _ = project((y - X.translation) @ X.rotation, self.intrinsics(p, c), jacobian=False)
-            r[:, 2 * c:2 * c + 2] = uv - m[:, 2 * c:2 * c + 2]
-        return r
+        return self.residual_frames([TA, TB], p)
 
     def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
-        N = TA.shape[0]
+        return self.evaluate_frames([TA, TB], p)
+
+    def residual_frames(self, Ts: list[np.ndarray], p: np.ndarray) -> np.ndarray:
+        return self._eval(Ts, p, False).r
+
+    def evaluate_frames(self, Ts: list[np.ndarray], p: np.ndarray) -> LoopEval:
+        return self._eval(Ts, p, True)
+
+    def _eval(self, Ts: list[np.ndarray], p: np.ndarray, jac: bool) -> LoopEval:
+        if len(Ts) != len(self._frames):
+            raise LoopError(f"camera loop '{self.name}': {len(Ts)} frame poses for frames {self._frames}")
+        if self.closure == "triangulation":
+            from .stereo import triangulation_eval
+            ev = triangulation_eval(self, Ts, p, jac)
+        else:
+            ev = self._reprojection(Ts, p, jac)
+        valid = self.valid_rows(ev.r.shape[0])
+        if not np.all(valid):
+            ev.r = np.where(valid, ev.r, 0.0)
+            if jac:
+                ev.dF = [np.where(valid[:, :, None], d, 0.0) for d in ev.dF]
+                ev.dp = np.where(valid[:, :, None], ev.dp, 0.0)
+                if ev.cov is not None:
+                    ev.cov = np.where(valid[:, :, None] & valid[:, None, :], ev.cov, 0.0)
+            ev.valid = valid
+        return ev
+
+    def _reprojection(self, Ts: list[np.ndarray], p: np.ndarray, jac: bool) -> LoopEval:
+        N = Ts[0].shape[0]
         m = self._measurements(N)
-        y, RBA, dyA, dyB = relative_point(TA, TB, self.tip_point(p))
+        tip = self.tip_point(p)
         r = np.empty((N, self.dim))
-        dA = np.empty((N, self.dim, 6))
-        dB = np.empty((N, self.dim, 6))
-        dp = np.zeros((N, self.dim, self.n_own))
+        dF = [np.zeros((N, self.dim, 6)) for _ in self._frames] if jac else None
+        dp = np.zeros((N, self.dim, self.n_own)) if jac else None
         for c in range(self.cameras):
             rows = slice(2 * c, 2 * c + 2)
+            y, RFA, dyA, dyF = relative_point(Ts[0], Ts[self._fidx[c]], tip)
             X = self.camera_pose(p, c)
             pc = (y - X.translation) @ X.rotation  # rows: R_c^T (y - t_c)
-            uv, Jp, Jk = project(pc, self.intrinsics(p, c))
+            uv, Jp, Jk, Jd = project_lens(pc, self.intrinsics(p, c), self.distortion(p, c), jac)
             r[:, rows] = uv - m[:, rows]
+            if not jac:
+                continue
             JpR = Jp @ X.rotation.T  # d uv / d y
-            dA[:, rows] = JpR @ dyA
-            dB[:, rows] = JpR @ dyB
+            dF[0][:, rows] += JpR @ dyA
+            dF[self._fidx[c]][:, rows] += JpR @ dyF
             dX = np.empty((N, 2, 6))  # d uv / d(delta_Xc)
             dX[:, :, :3] = -Jp
             dX[:, :, 3:] = Jp @ skew(pc)
@@ -350,39 +332,49 @@ class CameraLoop(Loop):
                 dp[:, rows, owner] = dX @ generators(p[owner])
             if self.sl[f"K{c}"] is not None:
                 dp[:, rows, self.sl[f"K{c}"]] = Jk
+            if self.sl[f"D{c}"] is not None:
+                dp[:, rows, self.sl[f"D{c}"]] = Jd[:, :, self._dist_idx]
             if self.sl["tip"] is not None:
-                dp[:, rows, self.sl["tip"]] = JpR @ RBA
-        return LoopEval(r, dA, dB, dp)
+                dp[:, rows, self.sl["tip"]] = JpR @ RFA
+        if not jac:
+            return LoopEval(r, None, None, np.zeros((N, self.dim, 0)))
+        two = len(self._frames) == 2
+        return LoopEval(r, dF[0] if two else None, dF[1] if two else None, dp, dF=dF)
 
     # ------------------------------------------------------------- start
     def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
-        """Unknown camera poses, intrinsics and marker fitted with the robot held at TA, TB.
+        return self.initialize_frames([TA, TB])
+
+    def initialize_frames(self, Ts: list[np.ndarray]) -> np.ndarray | None:
+        """Unknown camera poses, intrinsics, distortion and marker fitted with the robot held.
 
         Per camera with an unknown pose, a linear start from the marker
-        positions y_i = T_B^-1 T_A t (t: the known tip, else its initial
-        value) and the pixels: the normalised DLT decomposed into K [R | t]
-        when the intrinsics are unknown and have no guess (also for a camera
-        whose pose is known or follows the rig), else linear PnP with the
-        known (or guessed) intrinsics (``camera_from_dlt``).  A camera whose
-        DLT fails (fewer than six configurations, coplanar marker positions)
-        keeps its ``initial_poses`` guess (and, with neither intrinsics nor a
-        guess, f = 1000 px with the principal point at the mean pixel).  Then
-        Gauss-Newton on the pixel residual over every unknown own parameter
-        (the tip too, unless an ``initial_tip`` was given: that is kept).
-        When guesses were given, the same refinement also starts from them
-        alone and the start with the lower pixel error wins.  Deterministic.
+        positions y_i = T_Fc^-1 T_A t in its frame (t: the known tip, else its
+        initial value) and the pixels it saw: the normalised DLT decomposed
+        into K [R | t] when the intrinsics are unknown and have no guess, else
+        linear PnP with the known (or guessed) intrinsics (``camera_from_dlt``);
+        the distortion starts at its given values (default 0).  A camera whose
+        DLT fails (fewer than six views, coplanar marker positions) keeps its
+        ``initial_poses`` guess (and, with neither intrinsics nor a guess,
+        f = 1000 px with the principal point at the mean pixel).  Then
+        Gauss-Newton on the residual over every unknown own parameter (the
+        tip too, unless an ``initial_tip`` was given).  When pose guesses were
+        given, the same refinement also starts from them alone and the start
+        with the lower residual wins.  Deterministic.
         """
         if self.n_own == 0:
             return None
-        N = TA.shape[0]
+        N = Ts[0].shape[0]
         if self.meas is None or self.meas.shape[0] != N:
             return None
         p_guess = np.array([q.nominal for q in self.parameters()])
         tip = self.tip if self.tip is not None else self.initial_tip
-        y, *_ = relative_point(TA, TB, tip)
+        seen = self.observed(N)
         p_lin = p_guess.copy()
         for c in range(self.cameras):
-            uv = self.meas[:, 2 * c:2 * c + 2]
+            y, *_ = relative_point(Ts[0], Ts[self._fidx[c]], tip)
+            uv = self.meas[seen[:, c], 2 * c:2 * c + 2]
+            y = y[seen[:, c]]
             sl, slk = self.sl[f"pose{c}"], self.sl[f"K{c}"]
             k_known = self.K[c] if slk is None else self.initial_K[c]
             if sl is None and k_known is not None:
@@ -394,7 +386,7 @@ class CameraLoop(Loop):
                 if k_known is None:
                     p_lin[slk] = fit[1]
             elif k_known is None:  # no DLT, no guess: centre the principal point
-                p_lin[slk] = np.concatenate([PLACEHOLDER_K[:2], uv.mean(axis=0)])
+                p_lin[slk] = np.concatenate([PLACEHOLDER_K[:2], uv.mean(axis=0) if len(uv) else [0.0, 0.0]])
         keep_tip = self.sl["tip"] is not None and not self._fit_tip
         free = np.arange(self.sl["tip"].start if keep_tip else self.n_own)  # the tip is last
         if free.size == 0:
@@ -402,23 +394,57 @@ class CameraLoop(Loop):
         starts = [p_lin] + ([p_guess] if any(x is not None for x in self.initial_poses) else [])
         best, best_cost = p_lin, np.inf
         for p0 in starts:
-            p = _gauss_newton(self, TA, TB, self.normalize(p0), free)
-            r = self.residual(TA, TB, p)
+            p = self._refine(Ts, self.normalize(p0), free)
+            r = self.residual_frames(Ts, p)
             cost = float(np.sum(r * r)) if np.all(np.isfinite(r)) else np.inf
             if cost < best_cost:
                 best, best_cost = p, cost
         return best
+
+    def _refine(self, Ts: list[np.ndarray], p: np.ndarray, free: np.ndarray, iters: int = 40) -> np.ndarray:
+        """Gauss-Newton on the own parameters p[free] with the robot held (truncated SVD steps, halving)."""
+        def cost_of(q):
+            r = self.residual_frames(Ts, q)
+            return float(np.sum(r * r)) if np.all(np.isfinite(r)) else np.inf
+
+        cost = cost_of(p)
+        for _ in range(iters):
+            ev = self.evaluate_frames(Ts, p)
+            r = ev.r.reshape(-1)
+            J = ev.dp.reshape(r.size, -1)[:, free]
+            U, S, Vt = np.linalg.svd(J, full_matrices=False)
+            keep = S > 1e-9 * max(S[0] if S.size else 0.0, 1e-300)
+            step = -(Vt[keep].T @ ((U[:, keep].T @ r) / S[keep]))
+            lam = 1.0
+            for _h in range(12):
+                q = p.copy()
+                q[free] += lam * step
+                q = self.normalize(q)
+                c = cost_of(q)
+                if c <= cost:
+                    break
+                lam *= 0.5
+            else:
+                break
+            small = np.abs(lam * step).max() < 1e-13 or cost - c <= 1e-15 * max(cost, 1e-300)
+            p, cost = q, c
+            if small:
+                break
+        return p
 
     def describe(self) -> dict:
         cams = []
         for c in range(self.cameras):
             pose = ("rig" if c == 1 and self.rig is not None else
                     "unknown" if self.poses[c] is None else vec_of(self.poses[c]).tolist())
-            cams.append({"pose": pose, "K": "unknown" if self.K[c] is None else self.K[c].tolist()})
+            cams.append({"frame": self.camera_frames[c], "pose": pose,
+                         "K": "unknown" if self.K[c] is None else self.K[c].tolist(),
+                         "distortion": dict(zip(DIST_FIELDS, self.D[c].tolist())),
+                         "identified_distortion": list(self.dist)})
         return super().describe() | {
-            "cameras": cams, "rig": None if self.rig is None else vec_of(self.rig).tolist(),
+            "cameras": cams, "closure": self.closure, "rig": None if self.rig is None else vec_of(self.rig).tolist(),
             "tip": "unknown" if self.tip is None else self.tip.tolist(), "sigma_px": self.sigma_px,
-            "columns": self.columns(), "residual_unit": "px"}
+            "columns": self.columns(), "residual_unit": "m" if self.closure == "triangulation" else "px"}
 
 
 def _intrinsics(v, what: str) -> np.ndarray:
@@ -429,6 +455,13 @@ def _intrinsics(v, what: str) -> np.ndarray:
     return a
 
 
+def _distortion(v, what: str) -> np.ndarray:
+    a = np.asarray(v, dtype=float).reshape(-1)
+    if a.size != 5 or not np.all(np.isfinite(a)):
+        raise LoopError(f"{what}: expected five finite numbers 'k1 k2 p1 p2 k3', got {v!r}")
+    return a
+
+
 def _se3(v, name: str, what: str) -> pin.SE3:
     try:
         return _as_se3(v, what)
@@ -436,53 +469,4 @@ def _se3(v, name: str, what: str) -> pin.SE3:
         raise LoopError(f"camera loop '{name}': {exc}") from None
 
 
-# --------------------------------------------------------------------------- spec
-def _spec_vec(kw: dict[str, str], key: str, n: int, name: str) -> np.ndarray | None:
-    if kw.get(key, "unknown") == "unknown":
-        return None
-    try:
-        return parse_vec(kw[key], n, key)
-    except LoopError as exc:
-        raise LoopError(f"camera loop '{name}': {exc}") from None
-
-
-@register("camera", {"frame", "to", "cameras", "K1", "K2", "K1_0", "K2_0", "pose1", "pose2", "rig", "tip", "tip0",
-                     "sigma_px"})
-def _camera(kw: dict[str, str], robot: RobotModel) -> Loop:
-    """camera:frame=A[,to=B][,cameras=1|2][,K1=|K1_0="fx fy cx cy"][,K2=..|K2_0=..][,pose1="x y z rx ry rz"]
-    [,pose2=..][,rig="x y z rx ry rz"][,tip=|tip0="x y z"][,sigma_px=px].
-
-    K<c>: known intrinsics (fixed); K<c>_0: a guess of unknown ones (default: from the DLT).
-    pose<c>: a starting guess of camera c's unknown pose in B (the data's DLT comes first).
-    rig: the known pose of camera 2 in camera 1 (a calibrated stereo head; fixes the length scale).
-    tip: the known marker point in A; tip0: a guess of an unknown one.
-    """
-    name = kw.get("name", "camera")
-    if "frame" not in kw:
-        raise LoopError(f"camera loop '{name}': needs frame=<tool frame>")
-    try:
-        cameras = int(kw.get("cameras", "1"))
-    except ValueError:
-        cameras = 0
-    if cameras not in (1, 2):
-        raise LoopError(f"camera loop '{name}': cameras='{kw['cameras']}': expected 1 or 2")
-    if cameras == 1:
-        extra = [k for k in ("K2", "K2_0", "pose2", "rig") if k in kw]
-        if extra:
-            raise LoopError(f"camera loop '{name}': {extra[0]} given but cameras=1 (add cameras=2)")
-    for c in range(1, cameras + 1):
-        if f"K{c}" in kw and f"K{c}_0" in kw:
-            raise LoopError(f"camera loop '{name}': give K{c} (known intrinsics) or K{c}_0 (a guess), not both")
-    if "tip" in kw and "tip0" in kw:
-        raise LoopError(f"camera loop '{name}': give tip (known) or tip0 (a guess), not both")
-    K = [_spec_vec(kw, f"K{c}", 4, name) for c in range(1, cameras + 1)]
-    K0 = [_spec_vec(kw, f"K{c}_0", 4, name) for c in range(1, cameras + 1)]
-    poses = [_spec_vec(kw, f"pose{c}", 6, name) for c in range(1, cameras + 1)]
-    rig = _spec_vec(kw, "rig", 6, name)
-    try:
-        sigma = _opt_float(kw, "sigma_px")
-    except LoopError as exc:
-        raise LoopError(f"camera loop '{name}': {exc}") from None
-    return CameraLoop(name, kw["frame"], kw.get("to", "universe"), cameras=cameras, K=K, initial_K=K0,
-                      initial_poses=poses, rig=rig, tip=_spec_vec(kw, "tip", 3, name),
-                      initial_tip=_spec_vec(kw, "tip0", 3, name), sigma_px=sigma)
+from . import camera_spec  # noqa: E402,F401  (registers the 'camera' loop type)

@@ -126,13 +126,28 @@ class PointLoop(Loop):
         return np.asarray(tip, dtype=float), np.asarray(point, dtype=float)
 
     def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
-        """The contact point as the mean of T_B^-1 T_A t over the configurations given."""
+        """Unknown tip and point from the data (a pivot calibration), else the point from the given tip.
+
+        With both unknown and no initial tip given: R_i t - p = -d_i for every
+        configuration (T_B^-1 T_A = (R_i, d_i)), linear least squares in
+        (t, p) when the rotations R_i span enough axes (a start on a joint
+        axis, t = 0, would make that axis's parameters look redundant);
+        otherwise the point is the mean of T_B^-1 T_A t.
+        """
         if self.point is not None or self.initial_point is not None:
             return None
         tip = self.tip if self.tip is not None else self.initial_tip
+        if self.tip is None and not np.any(self.initial_tip) and TA.shape[0] >= 3:
+            M = np.linalg.solve(TB, TA)
+            A = np.concatenate([M[:, :3, :3], np.broadcast_to(-np.eye(3), (M.shape[0], 3, 3))], axis=2)
+            A, b = A.reshape(-1, 6), -M[:, :3, 3].reshape(-1)
+            S = np.linalg.svd(A, compute_uv=False)
+            if S[-1] > 1e-3 * S[0]:
+                sol = np.linalg.lstsq(A, b, rcond=None)[0]
+                return sol
         y, *_ = relative_point(TA, TB, tip)
         p = y.mean(axis=0)
-        return p if self.tip is not None else np.concatenate([self.initial_tip, p])
+        return p if self.tip is not None else np.concatenate([tip, p])
 
     def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
         tip, point = self.split(p)

@@ -10,6 +10,7 @@ Every loop has a name (default: its type) used to name its parameters.
 
 from __future__ import annotations
 
+from importlib import import_module
 from typing import Callable
 
 from ..errors import LoopError
@@ -19,6 +20,8 @@ from .weld import WeldLoop, parse_pose
 
 LoopFactory = Callable[[dict[str, str], RobotModel], Loop]
 REGISTRY: dict[str, tuple[LoopFactory, set[str]]] = {}
+# loop types whose modules are imported on first use (kind -> module in this package)
+LAZY_KINDS = {"camera": ".camera"}
 
 
 def register(kind: str, keys: set[str]):
@@ -45,8 +48,11 @@ def parse_loop(spec: str, robot: RobotModel) -> Loop:
     """A loop from ``TYPE:key=value,...``; errors name the spec and the bad key."""
     kind, _, rest = spec.partition(":")
     kind = kind.strip()
+    if kind not in REGISTRY and kind in LAZY_KINDS:
+        import_module(LAZY_KINDS[kind], __package__)  # registers the type
     if kind not in REGISTRY:
-        raise LoopError(f"--loop {spec}: unknown loop type '{kind}' (known: {', '.join(sorted(REGISTRY))})")
+        known = ", ".join(sorted(set(REGISTRY) | set(LAZY_KINDS)))
+        raise LoopError(f"--loop {spec}: unknown loop type '{kind}' (known: {known})")
     factory, keys = REGISTRY[kind]
     kw: dict[str, str] = {}
     for item in _split(rest):
@@ -60,7 +66,7 @@ def parse_loop(spec: str, robot: RobotModel) -> Loop:
             raise LoopError(f"--loop {spec}: unknown key '{key}' for {kind} (keys: {', '.join(sorted(keys))})")
         kw[key] = val.strip().strip('"').strip("'")
     loop = factory(kw, robot)
-    for f in (loop.frame_a, loop.frame_b):
+    for f in loop.frames:
         try:
             robot.frame_id(f)
         except Exception as exc:

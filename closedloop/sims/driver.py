@@ -51,8 +51,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
-import scipy.sparse as sp
-from qpsolvers import solve_qp
 
 from .scenarios import LoopType
 
@@ -61,6 +59,23 @@ __all__ = ["NominalLoop", "NominalLoopPlanner", "RandomConfigurations", "solve_b
 log = logging.getLogger(__name__)
 
 _W_LOOP = 1e4  # weight of the loop-constraint task in the QP
+
+try:
+    # numpy.linalg's own gufuncs without their Python wrappers (the same LAPACK calls, so the same
+    # bits): the planner solves a few 6-9 variable systems per waypoint, where the wrappers
+    # (type checks, errstate) cost more than the arithmetic
+    from numpy.linalg import _umath_linalg as _ul
+
+    def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return _ul.solve1(a, b, signature="dd->d")
+
+    def _svd_full(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return _ul.svd_f(a, signature="d->ddd")
+except (ImportError, AttributeError):  # another numpy: the public functions
+    _solve = np.linalg.solve
+
+    def _svd_full(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return np.linalg.svd(a)
 
 
 def solve_box_qp(P: np.ndarray, c: np.ndarray, lb: np.ndarray, ub: np.ndarray, max_iter: int | None = None
@@ -80,15 +95,15 @@ def solve_box_qp(P: np.ndarray, c: np.ndarray, lb: np.ndarray, ub: np.ndarray, m
     n = c.shape[0]
     if np.any(lb > ub):
         return None
-    x = np.linalg.solve(P, -c)  # the unconstrained minimiser: the usual answer
-    if np.all(x >= lb) and np.all(x <= ub):
+    x = _solve(P, -c)  # the unconstrained minimiser (P positive definite): the usual answer
+    if (x >= lb).all() and (x <= ub).all():
         return x
     x = np.clip(np.zeros(n), lb, ub)
     # working set: -1 at the lower bound, +1 at the upper bound, 0 free
     w = np.where(lb > 0.0, -1, np.where(ub < 0.0, 1, 0)).astype(np.int8)
     fixed_eq = lb == ub
     w[fixed_eq] = -1
-    scale = 1.0 + float(np.max(np.abs(c))) + float(np.max(np.abs(P)))
+    scale = 1.0 + float(np.abs(c).max()) + float(np.abs(P).max())
     tol = 1e-13 * scale
     for _ in range(max_iter if max_iter is not None else 10 * n + 10):
         free = w == 0
@@ -97,7 +112,7 @@ def solve_box_qp(P: np.ndarray, c: np.ndarray, lb: np.ndarray, ub: np.ndarray, m
             rhs = -c[free]
             if act.any():
                 rhs = rhs - P[np.ix_(free, act)] @ x[act]
-            xf = np.linalg.solve(P[np.ix_(free, free)], rhs)
+            xf = _solve(P[np.ix_(free, free)], rhs)
             xo = x[free]
             p = xf - xo
             # ratio test: the first bound the step from xo to xf crosses
@@ -129,12 +144,10 @@ def _min_norm_step(jac: np.ndarray, e: np.ndarray) -> np.ndarray:
     """``J^+ e``: ``J^T (J J^T)^-1 e`` for a wide ``J`` of full row rank, else least squares (SVD)."""
     m, n = jac.shape
     if m <= n:
-        try:
-            dq = jac.T @ np.linalg.solve(jac @ jac.T, e)
-            if np.isfinite(dq).all():
-                return dq
-        except np.linalg.LinAlgError:
-            pass
+        with np.errstate(all="ignore"):  # a singular J J^T gives NaN here (LinAlgError in np.linalg.solve)
+            dq = jac.T @ _solve(jac @ jac.T, e)
+        if np.isfinite(dq).all():
+            return dq
     return np.linalg.lstsq(jac, e, rcond=None)[0]
 
 
@@ -308,12 +321,17 @@ class NominalLoopPlanner:
         self.q_lo = np.minimum(loop.lower + margin, self.q)
         self.q_hi = np.maximum(loop.upper - margin, self.q)
         self.stats = PlannerStats()
+        self._eye = np.eye(loop.nq)
         _e, jac = loop.residual(self.q)
         self.one_dimensional = jac.shape[1] - np.linalg.matrix_rank(jac) == 1
         self._sweep_ref = np.linalg.svd(jac)[2][-1]
         self._sweep_sign = 1.0 if rng.uniform() < 0.5 else -1.0
         self._since_target = 0
         self._target = self._new_target()
+
+    def _clip(self, q: np.ndarray) -> np.ndarray:
+        """``np.clip(q, lower, upper)`` (the same values, without its wrapper)."""
+        return np.minimum(np.maximum(q, self.loop.lower), self.loop.upper)
 
     def _new_target(self) -> np.ndarray:
         self.stats.retargets += 1
@@ -323,7 +341,7 @@ class NominalLoopPlanner:
     def _linearize(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
         """Loop error and Jacobian at ``self.q``, the Jacobian's right singular vectors and its rank."""
         e, jac = self.loop.residual(self.q)
-        _u, sv, vt = np.linalg.svd(jac)
+        _u, sv, vt = _svd_full(jac)
         tol = (sv[0] if sv.size else 0.0) * max(jac.shape) * np.finfo(float).eps
         return e, jac, vt, int(np.sum(sv > tol))
 
@@ -336,11 +354,11 @@ class NominalLoopPlanner:
         # null-space direction of the nominal loop (direction - J^+ J direction), scaled to the step size
         vr = vt[:rank]
         dn = direction - vr.T @ (vr @ direction)
-        amax = float(np.max(np.abs(dn)))
+        amax = float(np.abs(dn).max())
         if amax < 1e-9:
             return np.zeros(n)
         dn *= min(1.0, step / amax)
-        P = np.eye(n) + _W_LOOP * jac.T @ jac
+        P = self._eye + _W_LOOP * jac.T @ jac
         c = -dn + _W_LOOP * jac.T @ e
         lb, ub = self.q_lo - self.q, self.q_hi - self.q
         self.stats.qp_solves += 1
@@ -350,6 +368,9 @@ class NominalLoopPlanner:
             with warnings.catch_warnings():
                 # osqp >= 1.0 announces API changes on every call
                 warnings.simplefilter("ignore", (DeprecationWarning, PendingDeprecationWarning))
+                import scipy.sparse as sp  # only here: the fallback is not expected to run
+                from qpsolvers import solve_qp
+
                 dq = solve_qp(sp.csc_matrix(P), c, lb=lb, ub=ub, solver="osqp", eps_abs=1e-8, eps_rel=1e-8,
                               verbose=False)
         if dq is None:
@@ -364,7 +385,7 @@ class NominalLoopPlanner:
             v = -v
         self._sweep_ref = v
         # longer than any step: _qp_step scales it down to the step length
-        return v * self._sweep_sign * 10.0 * self.step_rad / max(float(np.max(np.abs(v))), 1e-12)
+        return v * self._sweep_sign * 10.0 * self.step_rad / max(float(np.abs(v).max()), 1e-12)
 
     def step(self) -> np.ndarray:
         """Advance one waypoint along the nominal self-motion and return it (planning vector).
@@ -379,8 +400,8 @@ class NominalLoopPlanner:
             for _attempt in range(2):
                 step = self.step_rad * float(self.rng.uniform(0.5, 1.0))
                 dq = self._qp_step(self._sweep_direction(lin[2]), step, lin)
-                if dq is not None and float(np.max(np.abs(dq))) > 0.2 * step:
-                    self.q = np.clip(self.loop.project(self.q + dq), self.loop.lower, self.loop.upper)
+                if dq is not None and float(np.abs(dq).max()) > 0.2 * step:
+                    self.q = self._clip(self.loop.project(self.q + dq))
                     return self.q.copy()
                 self._sweep_sign = -self._sweep_sign
                 self.stats.retargets += 1
@@ -390,15 +411,16 @@ class NominalLoopPlanner:
                 self._target = self._new_target()
             self._since_target += 1
             dq = self._qp_step(self._target - self.q)
-            if dq is None or float(np.max(np.abs(dq))) < 0.2 * self.step_rad:
+            size = float(np.abs(dq).max()) if dq is not None else 0.0
+            if dq is None or size < 0.2 * self.step_rad:
                 # stalled (joint limit or target reached): new target
                 self._target = self._new_target()
                 if dq is None:
                     continue
-                if float(np.max(np.abs(dq))) < 1e-3:
+                if size < 1e-3:
                     continue
             q_new = self.loop.project(self.q + dq)
-            q_new = np.clip(q_new, self.loop.lower, self.loop.upper)
+            q_new = self._clip(q_new)
             self.q = q_new
             return self.q.copy()
         log.debug("planner stalled; repeating waypoint")

@@ -42,8 +42,10 @@ Outputs in ``out_dir``: ``log.csv``, ``nominal.urdf``, ``truth.json``, ``scene.x
 from __future__ import annotations
 
 import csv
+import io
 import json
 import logging
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -54,6 +56,8 @@ import mujoco
 import numpy as np
 import pinocchio as pin
 
+from closedloop.errors import InputError
+from closedloop.export import OutputSet
 from closedloop.models import nominal_urdf
 
 from .driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
@@ -65,6 +69,21 @@ __all__ = ["SimResult", "simulate", "sensor_readings"]
 log = logging.getLogger(__name__)
 
 _COMPS = ("x", "y", "z", "rx", "ry", "rz")
+#: the files of a dataset, in the order they are published (truth.json, the manifest, last)
+DATASET_FILES = ("nominal.urdf", "scene.xml", "log.csv", "truth.json")
+
+
+def check_dataset_dir(out: Path, replace: bool = False) -> None:
+    """Refuse to write a dataset into a directory that holds another one, unless `replace`.
+
+    (A dataset is a set: a new ``log.csv`` beside an old ``truth.json`` would look complete.)
+    """
+    if replace or not out.is_dir():
+        return
+    present = [f for f in DATASET_FILES if (out / f).exists()]
+    if present:
+        raise InputError(f"--out {out}: holds another dataset ({', '.join(present)}); "
+                         "give a new directory or --replace to replace it")
 
 
 @dataclass
@@ -199,17 +218,45 @@ def _settle(scene: Scene, ctrl_from: np.ndarray, ctrl_to: np.ndarray, s: SimSett
     ids = scene.actuator_ids
     ramp = max(1, s.ramp_steps)
     commands = ctrl_from + np.outer(np.arange(1, ramp + 1) / ramp, ctrl_to - ctrl_from)
-    for k in range(ramp):
-        d.ctrl[ids] = commands[k]
-        mujoco.mj_step(m, d)
+    ctrl, step = _ctrl_view(d, ids), mujoco.mj_step  # per step: one copy into a view, one call
+    for row in commands:
+        ctrl[...] = row
+        step(m, d)
     steps = ramp
     qvel = d.qvel  # a view of the simulation state
+    lo, hi = -vel_tol, vel_tol
+    if steps < s.min_steps:  # no check before min_steps: one call
+        k = -(-(s.min_steps - steps) // _CHUNK)
+        k = min(k, -(-(s.max_steps - steps) // _CHUNK))
+        if k > 0:
+            step(m, d, k * _CHUNK)
+            steps += k * _CHUNK
     while steps < s.max_steps:
-        if steps >= s.min_steps and float(np.abs(qvel).max()) < vel_tol:
+        # max |qdot| < vel_tol, on a Python list (a few joints: cheaper than numpy's reductions;
+        # a NaN fails every comparison, as in numpy)
+        if all(lo < v < hi for v in qvel.tolist()):
             return True, steps
-        mujoco.mj_step(m, d, nstep=_CHUNK)
+        step(m, d, _CHUNK)
         steps += _CHUNK
     return False, steps
+
+
+def _ctrl_view(d, ids: np.ndarray) -> np.ndarray:
+    """``d.ctrl[ids]`` as a writable view when the ids are a contiguous range, else an index proxy."""
+    ids = np.asarray(ids)
+    if ids.size and np.array_equal(ids, np.arange(ids[0], ids[0] + ids.size)):
+        return d.ctrl[int(ids[0]):int(ids[0]) + ids.size]
+    return _Scatter(d.ctrl, ids)
+
+
+class _Scatter:
+    """``proxy[...] = row`` writes ``target[ids] = row`` (non-contiguous actuator ids)."""
+
+    def __init__(self, target: np.ndarray, ids: np.ndarray):
+        self.target, self.ids = target, ids
+
+    def __setitem__(self, key, value) -> None:
+        self.target[self.ids] = value
 
 
 def _sample(scene: Scene, ctrl: np.ndarray, target: np.ndarray, s: SimSettings) -> tuple[bool, int, np.ndarray]:
@@ -286,7 +333,18 @@ def simulate(
         )
     settings = settings.replace(**overrides)
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    # the dataset is computed beside a scratch nominal.urdf, then published whole into `out` (truth.json last)
+    files = OutputSet(order=[out / f for f in DATASET_FILES])
+    with tempfile.TemporaryDirectory(prefix="closedloop-sim-") as scratch:
+        result = _simulate(sc, settings, n, seed, out, Path(scratch), files, progress)
+    files.commit()
+    return result
+
+
+def _simulate(sc: Scenario, settings: SimSettings, n: int, seed: int, out: Path, scratch: Path, files: OutputSet,
+              progress: Callable[[int, int], None] | None) -> SimResult:
+    """The body of :func:`simulate`: outputs go into `files` (published when `simulate` returns)."""
+    scenario = sc.name
 
     ss = np.random.SeedSequence(seed)
     rng_truth, rng_plan, rng_noise = (np.random.default_rng(c) for c in ss.spawn(3))
@@ -296,8 +354,9 @@ def simulate(
 
     # 1. nominal model
     urdf_nom = nominal_urdf(sc.robot)
-    nominal_path = out / "nominal.urdf"
+    nominal_path = scratch / "nominal.urdf"
     nominal_path.write_text(urdf_nom)
+    files.add(out / "nominal.urdf", urdf_nom)
     pmodel = pin.buildModelFromXML(urdf_nom)
     joint_names = [pmodel.names[j] for j in range(1, pmodel.njoints) if pmodel.joints[j].nq == 1]
     if len(joint_names) != pmodel.nq:
@@ -319,7 +378,7 @@ def simulate(
     # 3. scene, closed at the true grasp configuration
     q0 = np.asarray(sc.q0, dtype=float)
     scene = build_scene(urdf_true, sc, settings, joint_names, q0, rng=rng_env)
-    (out / "scene.xml").write_text(scene.to_xml())
+    files.add(out / "scene.xml", scene.to_xml())
     m, d = scene.model, scene.data
 
     # 4. the robot's nominal loop and planner
@@ -415,7 +474,7 @@ def simulate(
 
     # outputs
     measured = {f"{sc.loop_name}:{a}": meas[:, k] for k, a in enumerate("xyz")} if tracker is not None else {}
-    _write_log(out / "log.csv", joint_names, readings, tau, viol_m, viol_rad, force, door, measured)
+    _write_log(files, out / "log.csv", joint_names, readings, tau, viol_m, viol_rad, force, door, measured)
     params = dict(values)
     if settings.compliance > 0.0:
         params.update({f"{j}.compliance": float(settings.compliance) for j in joint_names})
@@ -471,7 +530,7 @@ def simulate(
     }
     if plan is not None:
         truth["selection"] = plan.info
-    (out / "truth.json").write_text(json.dumps(truth, indent=2))
+    files.add(out / "truth.json", json.dumps(truth, indent=2))
     return SimResult(
         scenario=sc.name, seed=int(seed), out_dir=out, joint_names=joint_names, readings=readings,
         q_true=q_true, tau=tau, violation_m=viol_m, violation_rad=viol_rad, constraint_force_n=force,
@@ -481,6 +540,7 @@ def simulate(
 
 
 def _write_log(
+    files: OutputSet,
     path: Path,
     joint_names: list[str],
     readings: np.ndarray,
@@ -497,13 +557,14 @@ def _write_log(
     if door.size:
         header.append("door_angle")
     header += list(measured)
-    with path.open("w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(header)
-        for i in range(len(readings)):
-            row = [repr(float(v)) for v in readings[i]] + [repr(float(v)) for v in tau[i]]
-            row += [repr(float(viol_m[i])), repr(float(viol_rad[i])), repr(float(force[i]))]
-            if door.size:
-                row.append(repr(float(door[i])))
-            row += [repr(float(col[i])) for col in measured.values()]
-            w.writerow(row)
+    f = io.StringIO(newline="")
+    w = csv.writer(f)
+    w.writerow(header)
+    for i in range(len(readings)):
+        row = [repr(float(v)) for v in readings[i]] + [repr(float(v)) for v in tau[i]]
+        row += [repr(float(viol_m[i])), repr(float(viol_rad[i])), repr(float(force[i]))]
+        if door.size:
+            row.append(repr(float(door[i])))
+        row += [repr(float(col[i])) for col in measured.values()]
+        w.writerow(row)
+    files.add(path, f.getvalue())

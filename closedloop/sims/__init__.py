@@ -20,6 +20,7 @@ See :func:`simulate` for the outputs and :class:`SimSettings` for the settings.
 """
 
 from .dataset import SimResult, sensor_readings, simulate
+from .scenario_files import load_scenario  # registers the shipped scenario YAML files
 from .scenarios import (SCENARIOS, DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry, draw_errors,
                         perturbable_parameters)
 
@@ -32,6 +33,7 @@ __all__ = [
     "SimResult",
     "SimSettings",
     "draw_errors",
+    "load_scenario",
     "perturbable_parameters",
     "sensor_readings",
     "simulate",

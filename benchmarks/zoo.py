@@ -1,0 +1,119 @@
+"""The full robot zoo (issue 10): every arm x loop type x seed x start, judged against the truth.
+
+Data from `tests/zoo.py` (a generator independent of closedloop's parametrization); each case is
+calibrated with the defaults of `closedloop.calibrate` and its calibrated URDF judged by what the
+robot does (tool forward kinematics against the truth after the best base/tool transforms, the
+scale fitted only for loops blind to it).  A case is *right* (within `Case.tolerances()`),
+*refused* (verdict 'suspect' or 'failed', or a user-facing error), *confidently wrong* (neither),
+or a *crash* (an exception that is not a closedloop error).
+
+    python benchmarks/zoo.py                      # everything (slow: hinge loops take seconds each)
+    python benchmarks/zoo.py --seeds 1 --loops weld,point --variants exact
+    python benchmarks/zoo.py --robots ur5,panda --json out/zoo.json
+
+Variants: exact (2 mm / 2 mrad / 0.02 rad errors, noise-free), rough (10x the errors), noisy (joint
+noise 1e-5 rad; judged against 5x the tool error the noise alone leaves, zoo_judge.predicted_std),
+rows10 (10 % of the rows replaced by random readings), cell (one cell = 1e6).
+Loops: weld for the redundant (7-DOF) arms only; point, plane, hinge, measured_point for all.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.append(str(Path(__file__).resolve().parents[1] / "tests"))  # zoo_judge, after sys.modules['zoo']
+from machine import machine  # noqa: E402
+
+
+def _load_zoo():
+    """tests/zoo.py (this script has the same module name)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("zoo", Path(__file__).resolve().parents[1] / "tests" / "zoo.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["zoo"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+zoo = _load_zoo()
+
+VARIANTS = {
+    "exact": {},
+    "rough": {"err_m": 2e-2, "err_rad": 2e-2, "offset_rad": 0.2},
+    "noisy": {"sigma": 1e-5},
+    "rows10": {"corrupt_rows": 0.10},
+    "cell": {"corrupt_cells": 1, "cell_value": 1e6},
+}
+LOOPS = ["weld", "point", "plane", "hinge", "measured_point"]
+N = {"weld": 60, "point": 60, "plane": 100, "hinge": 40, "measured_point": 60}
+
+
+def dof(robot: str) -> int:
+    import pinocchio as pin
+    return zoo.joint_info(pin.buildModelFromXML(zoo.chain_urdf(zoo.ZOO[robot])))[0].__len__()
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--robots", default=",".join(zoo.ZOO))
+    ap.add_argument("--loops", default=",".join(LOOPS))
+    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--json", default=None, help="write every case's outcome here")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.ERROR)
+    rows, t0 = [], time.perf_counter()
+    print(f"# machine: {machine()}", flush=True)
+    for robot in args.robots.split(","):
+        d = dof(robot)
+        for loop in args.loops.split(","):
+            if loop == "weld" and d < 7:
+                continue
+            for variant in args.variants.split(","):
+                for seed in range(args.seeds):
+                    kw = dict(VARIANTS[variant])
+                    if loop == "measured_point" and kw.get("sigma"):
+                        kw["sigma_t"] = 1e-5
+                    try:
+                        case = zoo.make_case(robot, loop, n=N[loop], seed=seed, tag=variant, **kw)
+                    except RuntimeError as exc:
+                        print(f"{robot}/{loop}/s{seed}/{variant}: no data ({exc})", flush=True)
+                        continue
+                    o = zoo.run_case(case)
+                    print(o.line(), flush=True)
+                    rows.append({"robot": robot, "dof": d, "loop": loop, "variant": variant, "seed": seed,
+                                 "outcome": ("right" if o.right else "refused" if o.refused else
+                                             "crash" if o.status == "crash" else "confidently wrong"),
+                                 "verdict": o.status, "converged": o.converged, "seconds": o.seconds,
+                                 "error": o.error, "judgement": vars(o.judgement) if o.judgement else None,
+                                 "notes": list(getattr(o.result, "notes", []) or [])})
+    print(f"\n{len(rows)} cases in {time.perf_counter() - t0:.0f} s\n")
+    print(table(rows, "loop"))
+    print()
+    print(table(rows, "variant"))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
+    return 0
+
+
+def table(rows: list[dict], by: str) -> str:
+    """Markdown table: cases, right, refused, confidently wrong (and crashes) per `by` and in total."""
+    keys = sorted({r[by] for r in rows}, key=lambda k: (LOOPS + list(VARIANTS)).index(k))
+    out = [f"| {by} | cases | right | refused | confidently wrong | crash |", "|---|---|---|---|---|---|"]
+    for k in keys + ["total"]:
+        sel = [r for r in rows if k == "total" or r[by] == k]
+        c = Counter(r["outcome"] for r in sel)
+        out.append(f"| {k} | {len(sel)} | {c['right']} | {c['refused']} | {c['confidently wrong']} | {c['crash']} |")
+    return "\n".join(out)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

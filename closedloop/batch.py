@@ -1,0 +1,508 @@
+"""`closedloop batch MANIFEST`: many calibrations, each independent, resumable, on any executor.
+
+A manifest (YAML or CSV) lists jobs: model, log (CSV or ROS bag), loops,
+options, output folder, and optionally the robot's id and the date of the log.
+Every job is calibrated and k-fold validated on its own (``closedloop.calibrate``,
+``validation.cross_validate``) by one of the engines of ``closedloop.executor``.
+
+* A job that raises is recorded (summary row ``status=failed``, the error) and
+  the others go on; a failed job is tried again by the next run.
+* Outputs are written whole: into a temporary folder beside the output folder,
+  the completion marker ``done.json`` last, then one rename.  A killed batch
+  leaves finished folders and hidden ``.NAME.tmp-*`` folders (removed by the
+  next run), never a half job; a folder with its marker is not redone.
+* The summary CSV gets a row as each job finishes, and is rewritten in
+  manifest order at the end with the drift columns filled.
+
+Drift: for jobs of the same robot ordered by date, every robot parameter
+estimated in two consecutive calibrations gets z = (v2 - v1) / sqrt(se1^2 + se2^2)
+(standard errors from each calibration's covariance, eq. 3.17 whitened); the
+change is flagged when |z| > 3: larger than the two calibrations' noise can
+explain.  Loop parameters (the fixture) are left out: they are not the robot.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import os
+import shutil
+import uuid
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+
+log = logging.getLogger(__name__)
+
+MARKER = "done.json"
+JOB_KEYS = {"name", "robot", "date", "model", "log", "loops", "options", "out", "cv"}
+OPTION_KEYS = {"identify", "fix", "noise", "weighting", "snr", "max_iter", "bounds", "robust", "degrees"}
+COLUMNS = ["name", "robot", "date", "status", "verdict", "verdict_reasons", "configurations", "estimated",
+           "rms_before_mm", "rms_after_mm", "rms_before_mrad", "rms_after_mrad", "cv_test_mm", "cv_test_mrad",
+           "top_changes", "drift_from", "drift_max_z", "drift_flagged", "seconds", "resumed", "error", "out"]
+
+
+@dataclass
+class BatchJob:
+    """One calibration of a manifest (paths resolved against the manifest's folder)."""
+
+    name: str
+    model: Path
+    log: Path
+    out: Path
+    loops: list[str] = field(default_factory=list)
+    options: dict[str, Any] = field(default_factory=dict)
+    robot: str = ""
+    date: str = ""
+    cv: int = 5
+
+
+# --------------------------------------------------------------------------- manifest
+def _as_list(v) -> list[str]:
+    if v is None or v == "":
+        return []
+    if isinstance(v, str):
+        return [s.strip() for s in v.split(";") if s.strip()]
+    return [str(s) for s in v]
+
+
+def _job(d: dict, base: Path, where: str) -> BatchJob:
+    unknown = set(d) - JOB_KEYS - OPTION_KEYS
+    if unknown:
+        raise InputError(f"{where}: unknown key(s) {', '.join(sorted(unknown))} "
+                         f"(known: {', '.join(sorted(JOB_KEYS | OPTION_KEYS))})")
+    for key in ("model", "log", "out"):
+        if not d.get(key):
+            raise InputError(f"{where}: no '{key}'")
+    opts = d.get("options") or {}
+    if isinstance(opts, str):
+        try:
+            opts = json.loads(opts)
+        except json.JSONDecodeError:
+            raise InputError(f"{where}: options '{opts}' is not a JSON object") from None
+    if not isinstance(opts, dict):
+        raise InputError(f"{where}: options must be a mapping")
+    opts = {**opts, **{k: d[k] for k in OPTION_KEYS if d.get(k) not in (None, "")}}
+    bad = set(opts) - OPTION_KEYS
+    if bad:
+        raise InputError(f"{where}: unknown option(s) {', '.join(sorted(bad))} (known: {', '.join(sorted(OPTION_KEYS))})")
+    try:
+        cv = int(d.get("cv") if d.get("cv") not in (None, "") else 5)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: cv '{d.get('cv')}' is not a whole number") from None
+    out = base / str(d["out"])
+    return BatchJob(str(d.get("name") or out.name), base / str(d["model"]), base / str(d["log"]), out,
+                    _as_list(d.get("loops")), opts, str(d.get("robot") or ""), str(d.get("date") or ""), cv)
+
+
+def read_manifest(path: str | Path) -> list[BatchJob]:
+    """Jobs of a YAML manifest (``jobs:`` list, optional ``defaults:``) or a CSV one (a row per job;
+    ``loops`` separated by ';'; options as columns or a JSON ``options`` column)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read manifest ({exc.strerror})") from None
+    base = path.resolve().parent
+    if path.suffix.lower() in (".yaml", ".yml"):
+        import yaml
+
+        try:
+            doc = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise InputError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        defaults, rows = ({}, doc) if isinstance(doc, list) else ((doc or {}).get("defaults") or {},
+                                                                  (doc or {}).get("jobs"))
+        if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+            raise InputError(f"{path}: expected a list of jobs under 'jobs:'")
+        rows = [{**defaults, **r} for r in rows]
+        first = 1
+    elif path.suffix.lower() == ".csv":
+        rows = [r for r in csv.DictReader(text.splitlines()) if any((v or "").strip() for v in r.values())]
+        first = 2  # the header is line 1
+    else:
+        raise InputError(f"{path}: manifest must be .yaml, .yml or .csv")
+    jobs = [_job(r, base, f"{path}: job {i} ({'line ' + str(i + first - 1) if first == 2 else 'entry ' + str(i)})")
+            for i, r in enumerate(rows, start=1)]
+    seen: dict[Path, str] = {}
+    for j in jobs:
+        if j.out in seen:
+            raise InputError(f"{path}: jobs '{seen[j.out]}' and '{j.name}' write the same folder {j.out}")
+        seen[j.out] = j.name
+    if not jobs:
+        raise InputError(f"{path}: no jobs")
+    return jobs
+
+
+# --------------------------------------------------------------------------- one job (in a worker)
+def _options(opts: dict, names: list[str]):
+    from .calibration import CalibrationOptions
+    from .parameters import parse_fix
+
+    noise = opts.get("noise")
+    if isinstance(noise, str):
+        from .cli import _parse_noise
+        noise = _parse_noise(noise)
+    bounds = opts.get("bounds") or {}
+    if isinstance(bounds, (list, str)):
+        from .cli import _parse_bounds
+        bounds = _parse_bounds(_as_list(bounds))
+    ident = opts.get("identify")
+    return CalibrationOptions(
+        identify=ident.split(",") if isinstance(ident, str) else ident,
+        fix=parse_fix(_as_list(opts.get("fix")), names), noise=noise,
+        weighting=opts.get("weighting", "noise"), snr=float(opts.get("snr", 1.0)),
+        max_iter=int(opts.get("max_iter", 100)), bounds={k: tuple(v) for k, v in bounds.items()},
+        robust=opts.get("robust"))
+
+
+def _read(job: BatchJob, robot):
+    from .data import read_log
+
+    try:
+        from .bags import extract, is_bag
+        if is_bag(job.log):
+            return extract(job.log, robot.joint_names)[0]
+    except ImportError:  # pragma: no cover - bag support not installed
+        pass
+    degrees = job.options.get("degrees", False)
+    degrees = degrees.strip().lower() in ("1", "true", "yes") if isinstance(degrees, str) else bool(degrees)
+    return read_log(job.log, robot.joint_names, degrees=degrees,
+                    linear=[j for j, info in robot.joints.items() if info.kind == "prismatic"])
+
+
+def _pooled(res_list, key: str) -> float | None:
+    """RMS over loops (weighted by configurations) of one residual statistic, in mm or mrad."""
+    vals = [(r.n, getattr(r, key)) for r in res_list if getattr(r, key, None) is not None]
+    if not vals:
+        return None
+    n = np.array([v[0] for v in vals], float)
+    x = np.array([v[1] for v in vals], float)
+    return float(np.sqrt(np.sum(n * x ** 2) / n.sum()) * 1e3)
+
+
+def _top_changes(report: dict, k: int = 3) -> str:
+    """The k estimated parameters that moved most from their initial value (mm, mrad, 1e-3)."""
+    unit = {"m": "mm", "rad": "mrad"}
+    est = [(p["name"], (p["calibrated"] - p["initial"]) * 1e3, unit.get(p["unit"], "e-3"))
+           for p in report["parameters"] if p["status"] == "estimated" and p["kind"] != "loop"]
+    est.sort(key=lambda t: -abs(t[1]))
+    return "; ".join(f"{n}={d:+.3g}{u}" for n, d, u in est[:k])
+
+
+def run_job(job: BatchJob) -> dict:
+    """Calibrate and validate one job, write its folder whole; return its summary row (+ parameters)."""
+    import time
+
+    from .calibration import build_problem, calibrate
+    from .export import write_model
+    from .loops.spec import default_loops, parse_loop
+    from .report import build_report, write_report
+    from .robot import RobotModel
+
+    t0 = time.perf_counter()
+    robot = RobotModel.from_file(job.model)
+    loops = [parse_loop(s, robot) for s in job.loops] or default_loops(robot)
+    if not loops:
+        raise InputError(f"job {job.name}: no loops given")
+    lg = _read(job, robot)
+    opts = _options(job.options, build_problem(robot, lg, loops).names)
+    res = calibrate(robot, lg, loops, opts)
+    report = build_report(res, job.model, job.log)
+    cv_t, cv = (None, None), None
+    if job.cv and res.converged:
+        from .validation import cross_validate
+        try:
+            cv = cross_validate(robot, lg, loops, opts, k=job.cv)
+            report["validation"] = {"k": job.cv, "test": cv["test"], "train": cv["train"],
+                                    "test_whitened_rms": cv["test_whitened_rms"],
+                                    "parameter_spread": cv["parameter_spread"]}
+            t = cv["test"]
+            cv_t = (_pooled_dicts(t, "rms_m"), _pooled_dicts(t, "rms_rad"))
+        except Exception as exc:  # validation is a check, not the job
+            report["validation"] = {"error": f"{type(exc).__name__}: {exc}"}
+    verdict = _judge(res, cv, report)
+    row = {"name": job.name, "robot": job.robot, "date": job.date,
+           "status": "ok" if res.converged else "not converged",
+           "verdict": getattr(verdict, "status", "n/a"), "verdict_reasons": "; ".join(getattr(verdict, "reasons", [])),
+           "configurations": len(lg), "estimated": len(res.estimated),
+           "rms_before_mm": _pooled(res.residuals_before, "rms_m"), "rms_after_mm": _pooled(res.residuals_after, "rms_m"),
+           "rms_before_mrad": _pooled(res.residuals_before, "rms_rad"),
+           "rms_after_mrad": _pooled(res.residuals_after, "rms_rad"),
+           "cv_test_mm": cv_t[0], "cv_test_mrad": cv_t[1], "top_changes": _top_changes(report),
+           "seconds": round(time.perf_counter() - t0, 3), "out": str(job.out)}
+    params = {p["name"]: [p["calibrated"], p["std_error"], p["kind"]]
+              for p in report["parameters"] if p["status"] == "estimated"}
+    files = {"report.json": lambda p: write_report(report, p)}
+    if res.converged and getattr(verdict, "status", "") != "failed" and robot.kind in ("urdf", "dh"):
+        files["calibrated" + (".yaml" if robot.kind == "dh" else ".urdf")] = \
+            lambda p: write_model(robot, res.as_dict(), p)
+    _write_whole(job.out, files, {"row": row, "parameters": params})
+    return {"row": row, "parameters": params}
+
+
+def _judge(res, cv: dict | None, report: dict):
+    """The calibration's verdict, judged again with the held-out folds as `closedloop calibrate` does."""
+    try:
+        from .report import verdict_record
+        from .verdict import judge
+    except ImportError:  # a core without verdicts: 'n/a' in the summary
+        return getattr(res, "verdict", None)
+    res.verdict = judge(res, cv)
+    report["verdict"] = verdict_record(res.verdict)
+    return res.verdict
+
+
+def _pooled_dicts(loops: list[dict], key: str) -> float | None:
+    vals = [(d["n"], d[key]) for d in loops if d.get(key) is not None]
+    if not vals:
+        return None
+    n, x = np.array(vals, float).T
+    return float(np.sqrt(np.sum(n * x ** 2) / n.sum()) * 1e3)
+
+
+def _write_whole(out: Path, files: dict, marker: dict) -> None:
+    """Write `files` (name -> writer(path)) and the marker last into a temporary folder, then rename it to `out`."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir()
+    try:
+        for name, writer in files.items():
+            writer(tmp / name)
+        (tmp / MARKER).write_text(json.dumps(marker, indent=1) + "\n")
+        if out.exists():
+            if (out / MARKER).exists():  # finished meanwhile by another run: keep that one
+                shutil.rmtree(tmp)
+                return
+            if any(out.iterdir()):
+                raise InputError(f"{out}: exists and is not a finished batch job; remove it or choose another 'out'")
+            out.rmdir()
+        os.rename(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def finished(job: BatchJob) -> dict | None:
+    """The marker of a job finished by an earlier run, or None."""
+    try:
+        return json.loads((job.out / MARKER).read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+def _clean_temporaries(jobs: list[BatchJob]) -> int:
+    n = 0
+    for j in jobs:
+        if j.out.parent.is_dir():
+            for t in j.out.parent.glob(f".{j.out.name}.tmp-*"):
+                shutil.rmtree(t, ignore_errors=True)
+                n += 1
+    return n
+
+
+# --------------------------------------------------------------------------- drift
+@dataclass
+class Drift:
+    robot: str
+    before: str  # job names
+    after: str
+    parameter: str
+    change: float
+    se: float  # sqrt(se1^2 + se2^2)
+    z: float
+    flagged: bool
+    note: str = ""  # why a pair could not be compared
+
+
+def drift(jobs: list[BatchJob], results: dict[str, dict], z_max: float = 3.0) -> list[Drift]:
+    """Parameter changes between consecutive dates of each robot, with their uncertainty.
+
+    z = (v2 - v1) / sqrt(se1^2 + se2^2); flagged when |z| > z_max.  Only
+    calibrations that converged with a verdict other than 'failed', only robot
+    parameters (kind != 'loop').
+    Two calibrations are compared only when they estimated the same
+    parameters: with another set (another length fixed for the scale, another
+    parameter dropped as redundant) the values are in another gauge and their
+    differences mean nothing; the pair gets one row with a note instead.
+    """
+    out: list[Drift] = []
+    by_robot: dict[str, list[BatchJob]] = {}
+    for j in jobs:
+        r = results.get(j.name)
+        if j.robot and r and r["row"]["status"] == "ok" and r["row"].get("verdict") != "failed":
+            by_robot.setdefault(j.robot, []).append(j)
+    for robot, js in by_robot.items():
+        js.sort(key=lambda j: j.date)
+        for a, b in zip(js, js[1:]):
+            pa, pb = results[a.name]["parameters"], results[b.name]["parameters"]
+            if set(pa) != set(pb):
+                diff = sorted(set(pa) ^ set(pb))
+                out.append(Drift(robot, a.name, b.name, "*", np.nan, np.nan, np.nan, False,
+                                 f"not comparable: not the same parameters estimated ({', '.join(diff[:4])}); "
+                                 "fix the gauge with 'fix' options"))
+                continue
+            for name in pa:
+                if pa[name][2] == "loop":
+                    continue
+                (v1, s1, _), (v2, s2, _) = pa[name], pb[name]
+                if s1 is None or s2 is None:
+                    continue
+                se = float(np.hypot(s1, s2))
+                if not se > 0:
+                    continue
+                z = (v2 - v1) / se
+                out.append(Drift(robot, a.name, b.name, name, v2 - v1, se, z, bool(abs(z) > z_max)))
+    return out
+
+
+def _drift_columns(rows: dict[str, dict], drifts: list[Drift]) -> None:
+    for d in drifts:
+        row = rows[d.after]
+        row["drift_from"] = d.before
+        if d.note:
+            row["drift_flagged"] = d.note
+            continue
+        row["drift_max_z"] = max(abs(d.z), row.get("drift_max_z") or 0.0)
+        if d.flagged:
+            row["drift_flagged"] = "; ".join(filter(None, [row.get("drift_flagged"), f"{d.parameter} z={d.z:+.1f}"]))
+
+
+# --------------------------------------------------------------------------- the batch
+@dataclass
+class BatchResult:
+    rows: list[dict]  # summary rows, manifest order
+    drift: list[Drift]
+    ran: list[str]  # jobs run by this call
+    resumed: list[str]  # finished earlier, not redone
+    failed: list[str]
+
+
+class _Summary:
+    """The summary CSV: streamed row by row, rewritten whole in manifest order at the end."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.fh = path.open("w", newline="")
+        self.w = csv.DictWriter(self.fh, COLUMNS, extrasaction="ignore")
+        self.w.writeheader()
+        self.fh.flush()
+
+    def add(self, row: dict) -> None:
+        self.w.writerow(_fmt(row))
+        self.fh.flush()
+
+    def finish(self, rows: list[dict]) -> None:
+        from .export import atomic_write
+
+        self.fh.close()
+
+        def writer(tmp):
+            with open(tmp, "w", newline="") as fh:
+                w = csv.DictWriter(fh, COLUMNS, extrasaction="ignore")
+                w.writeheader()
+                w.writerows(_fmt(r) for r in rows)
+        atomic_write(self.path, writer)
+
+
+def _fmt(row: dict) -> dict:
+    return {k: (f"{v:.6g}" if isinstance(v, float) else "" if v is None else v) for k, v in row.items()}
+
+
+def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=None,
+              z_max: float = 3.0) -> BatchResult:
+    """Run every job not finished before on `engine` (see closedloop.executor); write the summary."""
+    from .executor import imap
+
+    n_tmp = _clean_temporaries(jobs)
+    if n_tmp:
+        log.info("removed %d unfinished temporary folder(s) of an interrupted run", n_tmp)
+    sink = _Summary(Path(summary))
+    results: dict[str, dict] = {}
+    rows: dict[str, dict] = {}
+    todo = []
+    for j in jobs:
+        done = finished(j)
+        if done is None:
+            todo.append(j)
+        else:
+            results[j.name] = done
+            rows[j.name] = {**done["row"], "resumed": "yes"}
+            sink.add(rows[j.name])
+    failed = []
+    for out in imap(run_job, todo, engine, progress=progress):
+        j = todo[out.index]
+        if out.ok:
+            results[j.name] = out.value
+            rows[j.name] = {**out.value["row"], "resumed": "no"}
+        else:
+            failed.append(j.name)
+            log.warning("job %s failed: %s", j.name, out.error)
+            rows[j.name] = {"name": j.name, "robot": j.robot, "date": j.date, "status": "failed",
+                            "verdict": "n/a", "error": out.error, "seconds": round(out.seconds, 3),
+                            "resumed": "no", "out": str(j.out)}
+        sink.add(rows[j.name])
+    drifts = drift(jobs, results, z_max)
+    _drift_columns(rows, drifts)
+    ordered = [rows[j.name] for j in jobs]
+    sink.finish(ordered)
+    if drifts:
+        _write_drift(Path(summary), drifts)
+    return BatchResult(ordered, drifts, [j.name for j in todo], [j.name for j in jobs if j not in todo], failed)
+
+
+def _write_drift(summary: Path, drifts: list[Drift]) -> None:
+    from .export import atomic_write
+
+    def writer(tmp):
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, list(asdict(drifts[0])))
+            w.writeheader()
+            w.writerows(_fmt(asdict(d)) for d in drifts)
+    atomic_write(summary.with_name(summary.stem + ".drift.csv"), writer)
+
+
+def cmd_batch(args) -> int:
+    """CLI: closedloop batch MANIFEST [--jobs N | --ray auto|ADDRESS] [--summary CSV]."""
+    import sys
+
+    from .executor import engine_from_args, progress_printer
+
+    jobs = read_manifest(args.manifest)
+    summary = Path(args.summary) if args.summary else \
+        Path(args.manifest).with_name(Path(args.manifest).stem + ".summary.csv")
+    with engine_from_args(args) as eng:
+        res = run_batch(jobs, summary, eng, progress_printer("batch: ", args.quiet), args.drift_z)
+    flagged = [d for d in res.drift if d.flagged]
+    print(f"{len(res.ran)} job(s) run on {eng.name} ({eng.workers} worker(s)), {len(res.resumed)} finished "
+          f"earlier (not redone), {len(res.failed)} failed -> {summary}")
+    for name in res.failed:
+        print(f"  failed: {name}: {next(r['error'] for r in res.rows if r['name'] == name)}", file=sys.stderr)
+    if res.drift:
+        print(f"  drift: {len(flagged)} of {sum(not d.note for d in res.drift)} parameter changes exceed "
+              f"{args.drift_z:g} standard errors -> {summary.with_name(summary.stem + '.drift.csv')}")
+    for d in res.drift:
+        if d.note:
+            print(f"    {d.robot} {d.before} -> {d.after}: {d.note}")
+    for d in flagged:
+        print(f"    {d.robot} {d.before} -> {d.after}: {d.parameter} {d.change:+.3g} (z = {d.z:+.1f})")
+    return 1 if res.failed else 0
+
+
+def add_parser(sub) -> None:
+    """The `batch` subcommand."""
+    from .executor import add_arguments
+
+    b = sub.add_parser("batch", help="calibrate many robots/logs from a manifest (YAML or CSV), resumable")
+    b.add_argument("manifest", help="YAML (jobs: [...]) or CSV: model, log, loops, options, out[, robot, date, cv]")
+    b.add_argument("--summary", help="summary CSV (default: MANIFEST.summary.csv beside the manifest)")
+    b.add_argument("--drift-z", type=float, default=3.0, help="flag a parameter change above this many std. errors")
+    add_arguments(b)
+    b.add_argument("--quiet", action="store_true")
+    b.set_defaults(func=cmd_batch)

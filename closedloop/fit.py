@@ -1,0 +1,171 @@
+"""Solving a reduced calibration problem: residual functions and the staged solve.
+
+The solver (`solver.levenberg_marquardt`) minimises 1/2 |r(x)|^2 for any
+residual function; this module builds those functions for a calibration
+problem over its estimated parameters and runs them in stages (thesis 3.2.3,
+4.2.6, with the noise treated as errors in variables):
+
+1. **Plain stage.**  The loop-closure residual itself (the thesis's criterion,
+   eq. 3.8), truncated only at the numerical floor.  Far from the solution
+   the errors-in-variables weights W_i^-1 (below) are those of a wrong model,
+   and where a task axis lines up with a joint axis they discard residual
+   directions altogether; the plain residual has neither problem.
+2. **Weighted stage.**  From the plain solution, each configuration's
+   closure error whitened by W_i = J_theta,i Sigma J_theta,i^T (+ the loop's
+   measurement covariance) (Wampler, Hollerbach & Arai 1995), with the
+   noise-aware SVD truncation of eq. 4.17.
+3. **Guard.**  The weighting must not hide a residual: if at the weighted
+   solution W_i has lost rank that it had at the plain solution (a fitted
+   hinge slid onto a joint axis) while the unweighted closure grew, the plain
+   solution is kept and the result says why.
+
+`Restarts` (random starts within the parameters' priors) are tried by the
+caller when a stage stalls far above any plausible noise.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import numpy as np
+
+from .noise import whiten
+from .problem import BlockEval, CalibrationProblem
+from .solver import SolverOptions, SolverResult, levenberg_marquardt
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ResidualFunction:
+    """r(x_est) and its Jacobian over the estimated parameters `est`, the others held at `x0`.
+
+    Only the estimated columns of the Jacobian are formed.  The solver's
+    functions whiten with the cheap square root of W_i^-1 (`whiten`,
+    symmetric=False: the same least-squares problem); robust weights need
+    the components of the symmetric W_i^-1/2 r (`symmetric`).  Evaluations
+    are reused, never changed: the first trial point after a Jacobian call is
+    evaluated with its Jacobian (Levenberg-Marquardt usually accepts it and
+    asks for that next; its cost is still taken with the old W_i), and the
+    last Jacobian evaluation is returned again for the same parameters.
+    `row_weights` multiplies the rows (IRLS, outlier screening).
+    """
+
+    problem: CalibrationProblem
+    x0: np.ndarray
+    est: list[int]
+    sigma_q: np.ndarray
+    weighting: str
+    row_weights: np.ndarray | None = None
+    symmetric: bool = False
+
+    def __post_init__(self) -> None:
+        self._W = None
+        self._x = None
+        self._rJ = None
+        self._trial = None
+        self.deficit = 0  # residual directions the weighting discards (pseudo-inverse), at the last Jacobian
+
+    def full(self, xe: np.ndarray) -> np.ndarray:
+        x = self.x0.copy()
+        x[self.est] = xe
+        return x
+
+    def __call__(self, xe: np.ndarray, jac: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        if jac and self._x is not None and np.array_equal(xe, self._x):
+            return self._rJ
+        loops = [b.loop for b in self.problem.blocks]
+        first_trial = not jac and self._W is not None and self._trial is None
+        if jac and self._trial is not None and np.array_equal(xe, self._trial[0]):
+            evals = self._trial[1]
+        else:
+            full = jac or first_trial
+            evals = self.problem.evaluate(self.full(xe), full or self._W is None,
+                                          columns=self.est if full else [])
+        r, J, used = whiten(evals, self.sigma_q, self.weighting, jac, loops, None if jac else self._W,
+                            self.symmetric)
+        if jac or self._W is None:
+            self._W = used
+            self.deficit = sum(u[1] for u in used if u is not None)
+        if self.row_weights is not None:
+            r = r * self.row_weights
+            if jac:
+                J = J * self.row_weights[:, None]
+        if jac:
+            self._x, self._rJ, self._trial = xe.copy(), (r, J), None
+        elif first_trial:
+            self._trial = (xe.copy(), evals)
+        return r, J
+
+    def blocks(self, xe: np.ndarray) -> list[np.ndarray]:
+        """The residual at `xe` per loop block, (N, m) each (symmetric whitening, no row weights)."""
+        f = replace(self, row_weights=None, symmetric=True)
+        r, _ = f(xe, False)
+        sizes = [b.theta.shape[0] * b.loop.dim for b in self.problem.blocks]
+        parts = np.split(r, np.cumsum(sizes)[:-1])
+        return [p.reshape(b.theta.shape[0], b.loop.dim) for p, b in zip(parts, self.problem.blocks)]
+
+
+def unweighted_closure(problem: CalibrationProblem, x: np.ndarray) -> float:
+    """RMS of the raw closure residual over all rows (metres and radians mixed: a convergence gauge)."""
+    evals: list[BlockEval] = problem.evaluate(x, False)
+    r = np.concatenate([e.r.ravel() for e in evals]) if evals else np.zeros(0)
+    return float(np.sqrt(np.mean(r ** 2))) if r.size else 0.0
+
+
+@dataclass
+class StageResult:
+    solution: SolverResult
+    fun: ResidualFunction
+    note: str | None = None
+
+
+def plain_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, est: list[int],
+                scale: np.ndarray, sopt: SolverOptions, progress: Callable[[int, float], None] | None,
+                row_weights: np.ndarray | None = None) -> StageResult:
+    """The loop-closure residual itself (eq. 3.8) from `start` (estimated values).
+
+    Directions below 1e-4 of the largest singular value are held in this
+    stage: on a single self-motion many robots close the same curve, and
+    Gauss-Newton steps along the weakly seen directions reach degenerate ones
+    (a forearm of zero length); the weighted stage that follows moves them.
+    """
+    fun = ResidualFunction(problem, x0, est, np.ones(len(problem.joints)), "none", row_weights)
+    res = levenberg_marquardt(fun, start, scale[est], replace(sopt, noise=0.0, rcond=1e-4), progress)
+    return StageResult(res, fun)
+
+
+def weighted_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, est: list[int],
+                   scale: np.ndarray, sigma_q: np.ndarray, weighting: str, sopt: SolverOptions,
+                   progress: Callable[[int, float], None] | None,
+                   row_weights: np.ndarray | None = None) -> StageResult:
+    """The errors-in-variables stage from `start` (a plain solution), guarded against hidden residuals."""
+    fun = ResidualFunction(problem, x0, est, sigma_q, weighting, row_weights)
+    res = levenberg_marquardt(fun, start, scale[est], sopt, progress)
+    if weighting != "noise":
+        return StageResult(res, fun)
+    probe = ResidualFunction(problem, x0, est, sigma_q, weighting)
+    probe(start, True)
+    deficit_start = probe.deficit
+    fun(res.x, True)
+    if fun.deficit > deficit_start:
+        before, after = unweighted_closure(problem, fun.full(start)), unweighted_closure(problem, fun.full(res.x))
+        if after > 2.0 * before + 1e-12:
+            note = (f"the noise weighting became singular at the weighted fit ({fun.deficit - deficit_start} more "
+                    f"residual directions discarded: a task axis on a joint axis) while the unweighted closure "
+                    f"grew from {before:.3g} to {after:.3g}; the plain loop-closure fit is kept")
+            log.warning(note)
+            plain = ResidualFunction(problem, x0, est, np.ones(len(problem.joints)), "none", row_weights)
+            kept = levenberg_marquardt(plain, start, scale[est], sopt, progress)
+            return StageResult(kept, plain, note)
+    return StageResult(res, fun)
+
+
+def random_start(x0: np.ndarray, est: list[int], scale: np.ndarray, rng: np.random.Generator,
+                 size: float) -> np.ndarray:
+    """x0 with the estimated parameters moved by `size` times their prior magnitudes (normal draws)."""
+    x = x0.copy()
+    x[est] = x[est] + size * scale[est] * rng.standard_normal(len(est))
+    return x

@@ -1,0 +1,218 @@
+"""The length gauge: which length sets the overall size when the loops cannot (thesis 3.3).
+
+Closed loops close at any overall size: scaling every length by (1 + eps)
+leaves every closure intact (the loop equations are homogeneous in the
+lengths), so one length must be held.  Which one matters.  A length that
+other parameters absorb (``joint5.z`` moved along its own axis is the same
+robot as ``joint6.y`` moved back) does not set the size when held: the size
+escapes through the redundancy.  The gauge is therefore chosen by what the
+robot *does*, not by the parameter vector:
+
+* `scale_content(v)`: the size change per unit step along a parameter
+  direction v.  The open-chain forward kinematics of the loops' frames at
+  random configurations is differentiated along v and fitted by
+  dp_i = c p_i + w x p_i + t + R_i d   (a scaling c, a rigid motion of the
+  base (w, t), a shift d of each frame in its own axes).  Re-parameterizations
+  leave the kinematics unchanged (c = 0); moving the base or a tool is rigid
+  (c = 0); a uniform scaling gives c = eps.
+* `choose_gauge`: the null directions of the loop Jacobian (one per
+  parameter the reduction drops) are tested for scale content.  None: the
+  data (or a length the user fixed) set the size.  Otherwise each free length
+  g, longest first, is put last in the reduction order; it is the gauge when
+  it is then dropped with a null direction whose scale content is exactly
+  its own (fixing g longer by eps * g scales the robot by 1 + eps) and no
+  other dropped parameter carries any.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+import pinocchio as pin
+
+if TYPE_CHECKING:
+    from .problem import CalibrationProblem
+
+N_CONFIGS = 96
+
+
+def _frame_positions(problem: CalibrationProblem, x: np.ndarray, q: np.ndarray, frames: list[int]
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (R, F, 3) and rotations (R, F, 3, 3) of `frames` at configurations q (R, nq)."""
+    state = problem.rp.apply(x[:problem.n_robot])
+    model, data = state.model, state.data
+    P = np.empty((q.shape[0], len(frames), 3))
+    Rm = np.empty((q.shape[0], len(frames), 3, 3))
+    for i, qi in enumerate(q):
+        pin.forwardKinematics(model, data, qi)
+        for k, f in enumerate(frames):
+            M = pin.updateFramePlacement(model, data, f)
+            P[i, k], Rm[i, k] = M.translation, M.rotation
+    return P, Rm
+
+
+def random_configurations(problem: CalibrationProblem, n: int = N_CONFIGS, seed: int = 0) -> np.ndarray:
+    """n configurations of the full model with the problem's joints drawn within their ranges."""
+    rng = np.random.default_rng(seed)
+    angles = np.empty((n, len(problem.joints)))
+    for j, name in enumerate(problem.joints):
+        info = problem.robot.joint(name)
+        lo, hi = max(info.lower, -np.pi), min(info.upper, np.pi)
+        if not hi > lo:
+            lo, hi = -np.pi, np.pi
+        angles[:, j] = rng.uniform(lo, hi, n)
+    return problem.robot.configurations(angles, problem.joints)
+
+
+def kinematic_changes(problem: CalibrationProblem, x: np.ndarray, V: np.ndarray, q: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Pose changes of the loops' robot frames per unit step along each column of V, and the regressor.
+
+    Returns dP (rows, k): central differences of the open-chain positions and
+    orientations (world rotation vectors) at configurations q, and A (rows,
+    7 + 6F): the motions every robot can make without changing shape,
+    scaling first: positions [p | w x p | t | R_f d_f | 0], orientations
+    [0 | w | 0 | 0 | R_f e_f] (module docstring; e_f turns frame f in place).
+    """
+    frames = sorted({problem.robot.frame_id(f) for b in problem.blocks for f in b.loop.frames} - {0})
+    if not frames:
+        return np.zeros((0, V.shape[1])), np.zeros((0, 7))
+    P0, R0 = _frame_positions(problem, x, q, frames)
+    n, F = P0.shape[:2]
+    A = np.zeros((n, F, 2, 3, 7 + 6 * F))
+    A[:, :, 0, :, 0] = P0
+    A[..., 0, 0, 2], A[..., 0, 0, 3] = P0[..., 2], -P0[..., 1]  # w x p
+    A[..., 0, 1, 1], A[..., 0, 1, 3] = -P0[..., 2], P0[..., 0]
+    A[..., 0, 2, 1], A[..., 0, 2, 2] = P0[..., 1], -P0[..., 0]
+    A[:, :, 0, :, 4:7] = np.eye(3)
+    A[:, :, 1, :, 1:4] = np.eye(3)
+    for k in range(F):
+        A[:, k, 0, :, 7 + 6 * k:10 + 6 * k] = R0[:, k]
+        A[:, k, 1, :, 10 + 6 * k:13 + 6 * k] = R0[:, k]
+    dP = np.zeros((n * F * 6, V.shape[1]))
+    for j in range(V.shape[1]):
+        v = V[:, j]
+        step = 1e-6 / max(float(np.abs(v).max()), 1e-300)
+        Pp, Rp = _frame_positions(problem, x + step * v, q, frames)
+        Pm, Rm = _frame_positions(problem, x - step * v, q, frames)
+        w = np.array([[pin.log3(a @ b.T) for a, b in zip(ra, rb)] for ra, rb in zip(Rp, Rm)])
+        dP[:, j] = (np.stack([Pp - Pm, w], axis=2) / (2 * step)).reshape(-1)
+    return dP, A.reshape(-1, 7 + 6 * F)
+
+
+def scale_content(dP: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Scaling c of each column of dP (fitted with the rigid motions), and how far it is from a pure scaling.
+
+    The second value is |dP - c p| / |c p|: 0 for a uniform scaling (up to
+    the rigid motions), large for a change that is mostly not one (a rigid
+    motion, a re-parameterization, a change of shape).
+    """
+    sol, *_ = np.linalg.lstsq(A, dP, rcond=None)
+    scaled = np.abs(sol[0]) * np.linalg.norm(A[:, 0])
+    return sol[0], np.linalg.norm(A @ sol - dP, axis=0) / np.maximum(scaled, 1e-300)
+
+
+def contains_scaling(dP: np.ndarray, A: np.ndarray, tol: float = 1e-6) -> bool:
+    """Whether some combination of the columns of dP is a uniform scaling (up to rigid motions)."""
+    if dP.shape[1] == 0 or A.shape[0] == 0:
+        return False
+    M = np.column_stack([dP, -A[:, 1:]])
+    z, *_ = np.linalg.lstsq(M, A[:, 0], rcond=None)
+    return bool(np.linalg.norm(M @ z - A[:, 0]) <= tol * np.linalg.norm(A[:, 0]))
+
+
+def null_directions(R: np.ndarray, kept: list[int], dropped: list[int]) -> np.ndarray:
+    """One null vector per dropped column: e_d - (least-squares fit of column d by the kept columns)."""
+    V = np.zeros((R.shape[1], len(dropped)))
+    for j, d in enumerate(dropped):
+        V[d, j] = 1.0
+        if kept:
+            coef, *_ = np.linalg.lstsq(R[:, kept], R[:, d], rcond=None)
+            V[kept, j] = -coef
+    return V
+
+
+def choose_gauge(problem: CalibrationProblem, x: np.ndarray, free: list[int], R: np.ndarray,
+                 reduce: Callable[[list[int]], tuple[list[int], list]], order: list[int],
+                 prefer: int | None = None) -> tuple[int | None, list[int], list, bool, str | None, float]:
+    """The gauge (a column of R, or None), the kept columns and drops with it, whether the size is free,
+    a warning when the size is set weakly, and the length L the gauge stands for.
+
+    R: the compressed, prior-scaled loop Jacobian over `free`; `reduce(order)`
+    the greedy reduction in that order, returning (kept columns, Dropped
+    list).  The reduction runs with the longest nominal robot length last
+    (`prefer` instead, if given): the thesis holds one link length (3.3).
+    Each dropped parameter's null direction is then mapped to a kinematic
+    change; one that is a pure uniform scaling (`scale_content`) holds the
+    size, with the length L = d value / (size change) it stands for.  The
+    gauge named is the longest such (no longer than the robot).  Every other
+    dropped parameter held at its nominal value that also scales the robot
+    makes the size depend on that nominal value: said in the warning.
+    """
+    params = problem.params
+    prior = np.array([params[k].prior for k in free])
+    names = [problem.names[k] for k in free]
+    lengths = [i for i in range(len(free)) if params[free[i]].kind != "loop" and params[free[i]].unit == "m"]
+    g0 = prefer if prefer in lengths else max(lengths, key=lambda i: abs(length_of(problem, x, free[i])),
+                                              default=None)
+    kept, dropped = reduce(order if g0 is None else [i for i in order if i != g0] + [g0])
+    if not dropped:
+        return None, kept, dropped, False, None, 0.0
+    cols = [names.index(d.name) for d in dropped]
+    V = np.zeros((len(params), len(cols)))
+    V[free] = null_directions(R, kept, cols) * prior[:, None]  # scaled -> parameter units
+    dP, A = kinematic_changes(problem, x, V, random_configurations(problem))
+    if not contains_scaling(dP, A):
+        return None, kept, dropped, False, None, 0.0
+    c, res = scale_content(dP, A)
+    length = prior[cols] / np.maximum(np.abs(c), 1e-300)
+    reach = robot_reach(problem, x)
+    scaling = [j for j in range(len(cols)) if res[j] < 1e-3 and cols[j] in lengths and length[j] <= reach]
+    if not scaling:
+        return None, kept, dropped, True, None, 0.0
+    best = max(scaling, key=lambda j: length[j])
+    g = cols[best]
+    # a prior-sized error (1 cm, 10 mrad) in another held parameter that changes the size by over 0.5 %,
+    # unless that parameter is the gauge's own link seen from another frame (the same kinematic change)
+    def same_link(j: int) -> bool:
+        d = dP[:, j] - c[j] / c[best] * dP[:, best]
+        return bool(np.linalg.norm(d) <= 1e-3 * np.linalg.norm(dP[:, j]))
+
+    others = [f"{names[cols[j]]} (L = {length[j]:.3g} m)" for j in range(len(cols))
+              if j != best and abs(c[j]) > 5e-3 and not same_link(j)]
+    warning = None
+    if others:
+        warning = (f"the overall size also depends on {', '.join(others[:4])}, held at nominal values the data "
+                   "cannot check: an error of d there scales the robot by d / L")
+    return g, kept, [d for d in dropped if d.name != names[g]], True, warning, float(length[best])
+
+
+def robot_reach(problem: CalibrationProblem, x: np.ndarray) -> float:
+    """The sum of the joint-origin distances along the loops' chains: no link is longer."""
+    model = problem.rp.apply(x[:problem.n_robot]).model
+    return float(sum(np.linalg.norm(model.jointPlacements[j].translation) for j in range(1, model.njoints)))
+
+
+def length_of(problem: CalibrationProblem, x: np.ndarray, k: int) -> float:
+    """The length a parameter stands for at x (its change per unit relative scaling), 0 for angles."""
+    p = problem.params[k]
+    if p.unit != "m" or p.kind == "loop":
+        return 0.0
+    if p.kind == "placement":  # t_local + p (the joint origin in its own frame, moved by p)
+        return p.scales_with_length + float(x[k])
+    return float(x[k])  # D-H s, a
+
+
+def sets_scale(problem: CalibrationProblem, x: np.ndarray, free: list[int], R: np.ndarray, kept: list[int],
+               g: int) -> bool:
+    """Whether the one null direction of R (over `free`) on columns kept + [g] is g's own uniform scaling."""
+    cols = kept + [g]
+    _, S, Vt = np.linalg.svd(R[:, cols])
+    if S.size < len(cols) or S[-1] > 1e-10 * S[0] or (len(S) > 1 and S[-2] <= 1e-10 * S[0]):
+        return False
+    prior = np.array([problem.params[k].prior for k in free])
+    v = np.zeros(len(problem.params))
+    v[[free[c] for c in cols]] = Vt[-1] * prior[cols]
+    c, res = scale_content(*kinematic_changes(problem, x, v[:, None], random_configurations(problem)))
+    return bool(res[0] < 1e-3)

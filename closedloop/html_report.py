@@ -1,0 +1,307 @@
+"""A calibration as one self-contained HTML page (figures embedded as base64 PNG), or PNG files.
+
+Sections: verdict; closure per configuration before and after the fit (and the
+held-out folds of the k-fold validation); parameter corrections with their
+standard errors; the singular-value spectrum of the whitened, column-scaled
+identification Jacobian with the truncation line (thesis 4.2.6: directions below
+it are not estimated); outliers; the parameters that are not identified, each
+with the combination that is (structural redundancy: the kept parameters that
+absorb it; data: the undetermined direction); which output file carries what.
+
+No JavaScript; matplotlib (Agg) draws the figures (``pip install
+"closedloop[report]"``).  Printing is left to the CLI.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .export import atomic_write, atomic_write_text
+
+_CSS = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;color:#222}
+h1{font-size:1.6em}h2{border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:1.6em}
+table{border-collapse:collapse;font-size:.9em;margin:.5em 0}
+td,th{border:1px solid #ddd;padding:3px 8px;text-align:right}
+th{background:#f3f3f3}td.l,th.l{text-align:left}.verdict{padding:.6em 1em;border-radius:6px;font-size:1.2em}
+.ok{background:#e3f5e1}.suspect{background:#fff3cd}.failed{background:#f8d7da}img{max-width:100%}
+.small{color:#666;font-size:.85em}"""
+
+
+def _plt():
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise InputError("--html/--plots need matplotlib: pip install \"closedloop[report]\" "
+                         "(or pip install matplotlib)") from None
+    return plt
+
+
+def closure_per_configuration(res) -> list[dict]:
+    """Per loop: row numbers and per-configuration closure (m, rad) before and after the fit."""
+    prob = res.problem
+    out = []
+    for values, key in ((res.initial, "before"), (res.values, "after")):
+        for k, (b, ev) in enumerate(zip(prob.blocks, prob.evaluate(np.asarray(values), False))):
+            lp = b.loop
+            if key == "before":
+                out.append({"loop": lp.name, "rows": np.asarray(b.rows)})
+            d = out[k]
+            d[f"{key}_m"] = np.linalg.norm(ev.r[:, list(lp.translation_rows)], axis=1) if lp.translation_rows else None
+            d[f"{key}_rad"] = np.linalg.norm(ev.r[:, list(lp.rotation_rows)], axis=1) if lp.rotation_rows else None
+            d[f"{key}_px"] = (np.linalg.norm(ev.r[:, list(lp.pixel_rows)], axis=1)
+                              if getattr(lp, "pixel_rows", None) else None)
+    return out
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    _plt().close(fig)
+    return buf.getvalue()
+
+
+def fig_closure(res, report: dict) -> bytes:
+    """Closure per configuration, before and after, log scale; held-out folds as lines."""
+    plt = _plt()
+    per = closure_per_configuration(res)
+    units = [("m", 1e3, "mm"), ("rad", 1e3, "mrad"), ("px", 1.0, "px")]
+    panels = [(d, u) for d in per for u in units if d.get(f"before_{u[0]}") is not None]
+    fig, axes = plt.subplots(len(panels), 1, figsize=(9, 2.6 * len(panels)), squeeze=False)
+    cv = {t["loop"]: t for t in (report.get("validation") or {}).get("test", [])}
+    for ax, (d, (key, f, unit)) in zip(axes[:, 0], panels):
+        x = np.arange(len(d["rows"]))
+        floor = 1e-12 * f
+        ax.semilogy(x, np.maximum(d[f"before_{key}"] * f, floor), ".", color="#c44", label="before (nominal model)")
+        ax.semilogy(x, np.maximum(d[f"after_{key}"] * f, floor), ".", color="#2a6", label="after (calibrated)")
+        held = cv.get(d["loop"], {}).get(f"rms_{key}")
+        if held is not None:
+            ax.axhline(max(held * f, floor), color="#36c", ls="--", label="held-out RMS (k-fold)")
+        ax.set_ylabel(f"closure [{unit}]")
+        ax.set_title(f"loop {d['loop']}: {'position' if key == 'm' else 'rotation' if key == 'rad' else 'image'} "
+                     "closure per configuration", fontsize=10)
+        ax.legend(fontsize=8, loc="best")
+    axes[-1, 0].set_xlabel("configuration (log order)")
+    fig.tight_layout()
+    return _png(fig)
+
+
+def fig_corrections(res) -> bytes:
+    """Estimated corrections (calibrated - initial) with +-1 standard error, lengths and angles apart."""
+    plt = _plt()
+    prob = res.problem
+    est = [k for k in range(len(res.names)) if res.status[k] == "estimated"
+           and not any(res.names[k].startswith(b.loop.name + ".") for b in prob.blocks)]
+    groups = [("m", 1e3, "mm"), ("rad", 1e3, "mrad")]
+    groups = [(u, f, lab, [k for k in est if prob.params[k].unit == u]) for u, f, lab in groups]
+    other = [k for k in est if prob.params[k].unit not in ("m", "rad")]  # scale factors, compliance
+    groups = [g for g in groups if g[3]] + ([("", 1.0, "scale, compliance, ...", other)] if other else [])
+    if not groups:
+        return _png(_plt().figure(figsize=(4, 1)))
+    fig, axes = plt.subplots(1, len(groups), figsize=(9, 0.22 * max(len(g[3]) for g in groups) + 1.5),
+                             squeeze=False)
+    for ax, (u, f, lab, idx) in zip(axes[0], groups):
+        dv = (res.values[idx] - res.initial[idx]) * f
+        sd = np.nan_to_num(res.std[idx]) * f
+        y = np.arange(len(idx))
+        ax.errorbar(dv, y, xerr=sd, fmt="o", ms=3, color="#36c", ecolor="#999", capsize=2)
+        ax.axvline(0, color="k", lw=0.5)
+        ax.set_yticks(y, [res.names[k] for k in idx], fontsize=7)
+        ax.invert_yaxis()
+        ax.set_xlabel(f"correction [{lab}]  (+-1 standard error)")
+    fig.tight_layout()
+    return _png(fig)
+
+
+def truncation_threshold(res, snr: float = 1.0) -> float | None:
+    """The SVD truncation threshold of the fit (thesis 4.2.6): ``max(1e-10 s_1, snr * sigma_r)``.
+
+    ``sigma_r`` is 1 with a given joint noise (the residual is whitened by it) and the estimated
+    level otherwise.  If that does not reproduce the number of kept directions (options unknown
+    here), the line is drawn between the last kept and the first truncated singular value.
+    """
+    S = np.asarray(res.singular_values)
+    if not S.size:
+        return None
+    thr = max(1e-10 * float(S[0]), snr * (float(res.sigma) if res.sigma_estimated else 1.0))
+    if int(np.sum(S > thr)) == res.rank:
+        return thr
+    if 0 < res.rank < S.size:
+        return float(math.sqrt(S[res.rank - 1] * max(S[res.rank], 1e-300)))
+    return None
+
+
+def fig_spectrum(res, snr: float = 1.0) -> bytes:
+    plt = _plt()
+    S = np.asarray(res.singular_values)
+    fig, ax = plt.subplots(figsize=(9, 3))
+    if S.size:
+        k = np.arange(1, S.size + 1)
+        kept = k <= res.rank
+        ax.semilogy(k[kept], S[kept], "o", color="#2a6", ms=4, label=f"kept ({res.rank})")
+        ax.semilogy(k[~kept], np.maximum(S[~kept], 1e-300), "x", color="#c44", label=f"truncated ({S.size - res.rank})")
+        thr = truncation_threshold(res, snr)
+        if thr is not None:
+            ax.axhline(thr, color="#c44", ls="--", lw=1, label=f"truncation ({thr:.2g})")
+        ax.legend(fontsize=8)
+    ax.set_xlabel("index")
+    ax.set_ylabel("singular value")
+    ax.set_title("whitened, column-scaled identification Jacobian (thesis 4.2.6)", fontsize=10)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def figures(res, report: dict, snr: float = 1.0) -> dict[str, bytes]:
+    """Figure name -> PNG bytes."""
+    return {"closure": fig_closure(res, report), "corrections": fig_corrections(res),
+            "singular_values": fig_spectrum(res, snr)}
+
+
+def write_plots(res, report: dict, out_dir: str | Path, snr: float = 1.0) -> list[Path]:
+    """The figures as ``DIR/<name>.png``; returns the paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, data in figures(res, report, snr).items():
+        p = out / f"{name}.png"
+        atomic_write(p, lambda tmp, d=data: Path(tmp).write_bytes(d))
+        paths.append(p)
+    return paths
+
+
+# --------------------------------------------------------------------------- page
+def _e(x) -> str:
+    return html.escape(str(x))
+
+
+def _table(head: list[str], rows: list[list], left: int = 1) -> str:
+    th = "".join(f"<th class='l'>{_e(h)}</th>" if i < left else f"<th>{_e(h)}</th>" for i, h in enumerate(head))
+    body = "".join("<tr>" + "".join(f"<td class='l'>{_e(c)}</td>" if i < left else f"<td>{_e(c)}</td>"
+                                     for i, c in enumerate(r)) + "</tr>" for r in rows)
+    return f"<table><tr>{th}</tr>{body}</table>"
+
+
+def _g(v, f: float = 1.0, fmt: str = ".4g") -> str:
+    return "" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v * f, fmt)
+
+
+def verdict_of(res, report: dict | None = None) -> tuple[str, list[str]]:
+    """The verdict (status, reasons): the report's (it may include the validation), else ``res.verdict``,
+    else converged / not converged."""
+    v = (report or {}).get("verdict")
+    if isinstance(v, dict) and "status" in v:
+        return str(v["status"]), [str(r) for r in v.get("reasons", []) or []]
+    v = getattr(res, "verdict", None)
+    if v is not None:
+        return str(getattr(v, "status", v)), list(getattr(v, "reasons", []) or [])
+    return ("ok", []) if res.converged else ("failed", [f"the solver did not converge ({res.solver_message})"])
+
+
+def _sections(res, report: dict, snr: float = 1.0) -> list[str]:
+    status, reasons = verdict_of(res, report)
+    out = [f"<div class='verdict {_e(status)}'>verdict: <b>{_e(status)}</b>"
+           + ("".join(f"<br>{_e(r)}" for r in reasons)) + "</div>"]
+    n = sum(r.n for r in res.residuals_after)
+    noise = report.get("noise", {})
+    out.append(_table(["", "value"], [
+        ["model", report.get("model")], ["log", report.get("log")], ["configurations", n],
+        ["parameters estimated", len(res.estimated)], ["solver", f"{res.solver_status}, {res.iterations} iterations"],
+        ["joint noise", f"{res.sigma:.3g} ({'estimated' if res.sigma_estimated else 'given'})"],
+        ["chi2 / dof", _g(noise.get("chi2_per_dof"))]]))
+    rows = []
+    for b, a in zip(res.residuals_before, res.residuals_after):
+        rows.append([b.loop, b.n, _g(b.rms_m, 1e3), _g(a.rms_m, 1e3), _g(b.rms_rad, 1e3), _g(a.rms_rad, 1e3)])
+    out.append("<h2>Closure</h2>" + _table(["loop", "n", "RMS before [mm]", "after [mm]", "RMS before [mrad]",
+                                            "after [mrad]"], rows))
+    cv = report.get("validation")
+    if cv:
+        conv = cv.get("folds_converged")
+        conv = f"; {sum(map(bool, conv))} of {len(conv)} fold fits converged" if conv else ""
+        out.append(f"<p>{cv['k']}-fold validation (fit on k-1 folds, closure of the held-out fold{conv}):</p>" + _table(
+            ["loop", "held-out [mm]", "training [mm]", "held-out [mrad]", "training [mrad]"],
+            [[t["loop"], _g(t.get("rms_m"), 1e3), _g(tr.get("rms_m"), 1e3), _g(t.get("rms_rad"), 1e3),
+              _g(tr.get("rms_rad"), 1e3)] for t, tr in zip(cv["test"], cv["train"])]))
+    out.append("<img alt='closure per configuration' src='data:image/png;base64,{closure}'>")
+    prob = res.problem
+    rows = [[res.names[k], prob.params[k].unit, _g(res.initial[k], 1, ".6g"), _g(res.values[k], 1, ".6g"),
+             _g(res.values[k] - res.initial[k], 1, ".3e"), _g(res.std[k], 1, ".2e")]
+            for k in range(len(res.names)) if res.status[k] == "estimated"]
+    out.append("<h2>Parameter corrections</h2>" + _table(
+        ["parameter", "unit", "initial", "calibrated", "correction", "std. error"], rows)
+        + "<img alt='corrections' src='data:image/png;base64,{corrections}'>")
+    thr = truncation_threshold(res, snr)
+    out.append("<h2>Singular values</h2><p>" + _e(f"{res.rank} of {len(res.singular_values)} directions kept")
+               + (_e(f"; truncation at {thr:.3g}") if thr else "") + "</p>"
+               + "<img alt='singular values' src='data:image/png;base64,{singular_values}'>")
+    out.append(_outliers(res))
+    out.append(_not_identified(res))
+    out.append("<h2>Which file carries what</h2><p>The calibrated URDF or MJCF carries the joint placements with "
+               "the offsets folded in (it takes the raw readings). Scale factors and joint compliance cannot be "
+               "expressed in URDF or MJCF: they are in the JSON report (<code>scale_factors</code>, "
+               "<code>compliance</code>) and in <code>&lt;model&gt;.sensors.yaml</code> beside the calibrated model; "
+               "a joint value for the model is scale * reading. "
+               "D-H input gets a calibrated D-H YAML that carries all of them.</p>")
+    if res.notes:
+        out.append("<h2>Notes</h2><ul>" + "".join(f"<li>{_e(n)}</li>" for n in res.notes) + "</ul>")
+    return out
+
+
+def _outliers(res) -> str:
+    s = "<h2>Outliers</h2>"
+    if res.suspects:
+        s += "<p>Configurations the noise model cannot explain (robust fit):</p>" + _table(
+            ["log row", "loop", "standardized", "p-value", "weight"],
+            [[sp.row, sp.loop, _g(sp.standardized), _g(sp.p_value, 1, ".2e"), _g(sp.weight)] for sp in res.suspects])
+    rows = []
+    for d in closure_per_configuration(res):
+        key = next((k for k in ("after_m", "after_rad", "after_px") if d.get(k) is not None), "after_px")
+        v = d[key]
+        if v is None or not v.size:
+            continue
+        med = float(np.median(v))
+        for i in np.argsort(v)[::-1][:5]:
+            rows.append([d["loop"], int(d["rows"][i]), _g(float(v[i]), 1e3 if key != "after_px" else 1.0),
+                         _g(float(v[i]) / med if med > 0 else float("nan"), 1, ".3g")])
+    s += "<p>Largest closures after the fit (x median: above ~5 deserves a look at that row):</p>" + _table(
+        ["loop", "log row", "closure [mm | mrad | px]", "x median"], rows)
+    return s
+
+
+def _not_identified(res) -> str:
+    s = "<h2>Not identified</h2>"
+    if res.dropped:
+        s += ("<p>Structurally redundant (removed before solving; its effect equals the combination of kept "
+              "parameters shown):</p>" + _table(["parameter", "reason / combination"],
+                                                [[d.name, d.describe()] for d in res.dropped], left=2))
+    if res.weak:
+        s += "<p>Not determined by this data:</p>" + _table(
+            ["singular value", "combination"],
+            [[_g(c.singular_value, 1, ".3g"), c.describe()] for c in res.weak], left=2)
+    if not res.dropped and not res.weak:
+        s += "<p>Every selected parameter was identified.</p>"
+    return s
+
+
+def render_html(res, report: dict, snr: float = 1.0) -> str:
+    """The page as a string (figures embedded); ``snr`` is the fit's ``--snr`` (the truncation line)."""
+    figs = {k: base64.b64encode(v).decode("ascii") for k, v in figures(res, report, snr).items()}
+    body = "\n".join(_sections(res, report, snr))
+    for k, v in figs.items():
+        body = body.replace("{" + k + "}", v)
+    title = f"closedloop calibration: {Path(str(report.get('model') or 'model')).name}"
+    return (f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'><title>{_e(title)}</title>"
+            f"<style>{_CSS}</style></head><body><h1>{_e(title)}</h1>\n{body}\n"
+            f"<p class='small'>closedloop {_e(report.get('closedloop_version', ''))}</p></body></html>\n")
+
+
+def write_html(res, report: dict, path: str | Path, snr: float = 1.0) -> None:
+    atomic_write_text(path, render_html(res, report, snr))

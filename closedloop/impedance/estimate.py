@@ -1,0 +1,316 @@
+"""Ensemble time-varying identification of I(t), B(t), K(t) (thesis 9.6), batched over all instants.
+
+At every instant c of the cycle the n cycles of the ensemble give n equations of a second-order
+discrete model with lag spacing D samples (T = D h):
+
+    dth(c+D) + a1 dth(c) + a2 dth(c-D) = b0 dtau(c+D) + b1 dtau(c) + b2 dtau(c-D)
+
+(eq. 9.3/9.6).  The continuous parameters follow from the poles and the static gain, exact for any
+hold: z_i = exp(s_i T), w0^2 = s1 s2, 2 zeta w0 = -(s1 + s2), K = (1 + a1 + a2) / (b0 + b1 + b2),
+I = K / w0^2, B = 2 zeta w0 I (the inverse of eq. 9.7, written through the poles).
+
+method="thesis": the literal thesis estimator - D = 1 sample, no b0, no pre-filter, TLS (eq. 9.10-9.13)
+with the noise-variance ratio 1, the estimate stamped at the newest sample.  At h = 1.67 ms both poles
+sit at z ~ 1 and the second difference of the noise is ~100x the acceleration: it fails at 5 % noise
+and works only below ~0.01 % (README, "Time-varying joint impedance").
+
+method="default" (TLS), "ols", "iv": the same zero-phase low-pass pre-filter on angle and torque (an
+identical filter leaves the input-output relation unchanged), lags spaced `lag_ms` (~20 ms) apart, the
+direct term b0 (first-order-hold-like input) and, when the pre-filter allows, torque taps at c +- D/2
+as well (the filtered torque is not piecewise linear between the lags: the extra taps remove a 2 % bias
+of I), estimates stamped at the window centre c and the equations pooled over +-15 ms.  TLS scales the
+columns by the noise std estimated from each signal (Koopman's equal-variance assumption, 9.6.2).
+"iv" uses the commanded perturbation at lags c+D, c, ..., c-(iv_lags-2)D as instruments (independent of
+voluntary torque and of measurement noise; two-stage least squares over the over-determined set) and
+needs temporal regularisation: equations pooled over +-`pool_ms` and the parameters smoothed over
+`smooth_ms`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.ndimage import gaussian_filter1d
+from scipy.signal import butter, sosfiltfilt
+
+from ..errors import InputError
+from .data import Ensemble
+
+log = logging.getLogger(__name__)
+
+
+def single_thread():
+    """Limit BLAS/LAPACK to one thread (threadpoolctl, if installed): the work here is many tiny batched
+    problems, for which threads only add contention (100x slower on a loaded 2-core machine)."""
+    try:
+        from threadpoolctl import threadpool_limits
+        return threadpool_limits(1)
+    except ImportError:   # pragma: no cover
+        from contextlib import nullcontext
+        return nullcontext()
+
+
+METHODS = ("default", "thesis", "ols", "iv")
+COND_WARN = 1e5
+
+
+@dataclass
+class EstimateOptions:
+    method: str = "default"
+    prefilter_hz: float | None = 20.0
+    lag_ms: float = 20.0
+    direct_term: bool = True
+    pool_ms: float = 15.0
+    smooth_ms: float = 0.0
+    noise_ratio: float | None = None     # std(angle noise)/std(torque noise); None = estimated
+    taps: int | None = None              # torque samples over [c-D, c+D]; None: 5 if their spacing D/2 is
+                                         # at least 1/(5 f_c) of the pre-filter, else 3 (the lags only)
+    iv_lags: int = 10                    # instruments: command at c+D, c, ..., c-(iv_lags-2) D (2SLS)
+    order: int = 4
+
+    @classmethod
+    def for_method(cls, method: str, **kw) -> "EstimateOptions":
+        if method not in METHODS:
+            raise InputError(f"method '{method}': expected one of {', '.join(METHODS)}")
+        base = {"thesis": dict(prefilter_hz=None, lag_ms=0.0, direct_term=False, noise_ratio=1.0, pool_ms=0.0),
+                "iv": dict(pool_ms=50.0, smooth_ms=30.0)}.get(method, {})
+        base.update({k: v for k, v in kw.items() if v is not None})
+        return cls(method=method, **base)
+
+
+@dataclass
+class ImpedanceEstimate:
+    """I(t), B(t), K(t) on the cycle's time grid, with per-instant diagnostics."""
+
+    t: np.ndarray
+    I: np.ndarray
+    B: np.ndarray
+    K: np.ndarray
+    cond: np.ndarray                     # condition number of the scaled regressor moment matrix
+    options: EstimateOptions
+    lag: int
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def wn(self) -> np.ndarray:
+        with np.errstate(invalid="ignore"):
+            return np.sqrt(self.K / self.I)
+
+    @property
+    def zeta(self) -> np.ndarray:
+        with np.errstate(invalid="ignore"):
+            return self.B / (2 * np.sqrt(self.K * self.I))
+
+
+def noise_std(x: np.ndarray) -> float:
+    """Robust white-noise std from second differences: 1.4826 MAD(d2 x) / sqrt(6)."""
+    d2 = np.diff(x, 2, axis=-1).ravel()
+    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
+
+
+@dataclass
+class Design:
+    """Scaled regressors X (L, n, 6) = [th(c+D), th(c), th(c-D), tau(c+D), tau(c), tau(c-D)] and
+    optional instruments Z (L, n, q); `scale` un-scales the null vector; T the lag in seconds."""
+
+    X: np.ndarray
+    Z: np.ndarray | None
+    scale: np.ndarray
+    T: float
+    lag: int
+    stamps: np.ndarray
+
+
+def lowpass(x: np.ndarray, fs: float, hz: float | None, order: int = 4) -> np.ndarray:
+    if x is None or not hz:
+        return x
+    if hz >= fs / 2:
+        raise InputError(f"pre-filter {hz} Hz must be below the Nyquist frequency {fs / 2:g} Hz")
+    return sosfiltfilt(butter(order, hz, fs=fs, output="sos"), x, axis=-1)
+
+
+def design(ens: Ensemble, opt: EstimateOptions, ref: Ensemble | None = None) -> Design:
+    """Pre-filter the perturbations and build the per-instant regressors (window-centre stamps)."""
+    dth, dtau, du = ens.deltas(ref)
+    fs, P, L = ens.fs, ens.pad, ens.length
+    D = max(1, int(round(opt.lag_ms * 1e-3 * fs)))
+    if opt.method == "thesis":
+        D = 1
+    need = (max(2, opt.iv_lags - 2) if opt.method == "iv" else 2) * D + int(round(opt.pool_ms * 1e-3 * fs))
+    if P < need:
+        raise InputError(f"cycle padding {P} samples is shorter than the lags and pooling need ({need})")
+    if opt.noise_ratio is not None:
+        s_th, s_tau = opt.noise_ratio, 1.0
+    else:
+        s_th, s_tau = max(noise_std(dth), 1e-12), max(noise_std(dtau), 1e-12)
+    dth, dtau = lowpass(dth, fs, opt.prefilter_hz, opt.order), lowpass(dtau, fs, opt.prefilter_hz, opt.order)
+    c = P + np.arange(L)
+    if opt.method == "thesis":   # newest sample k = c; lags k-1, k-2 (eq. 9.10), stamped at k
+        idx = [c, c - 1, c - 2]
+    else:
+        idx = [c + D, c, c - D]
+    tidx = idx
+    taps = opt.taps
+    if taps is None:
+        taps = 5 if opt.prefilter_hz and (D / 2) / fs >= 1 / (5 * opt.prefilter_hz) else 3
+    if opt.method != "thesis" and taps > 3:
+        tidx = [c + o for o in np.unique(np.round(np.linspace(D, -D, taps)).astype(int))[::-1]]
+    cols = [dth[:, i] / s_th for i in idx] + [dtau[:, i] / s_tau for i in tidx]
+    if opt.method == "thesis" or not opt.direct_term:
+        cols.pop(3)
+    X = np.stack(cols, axis=-1).transpose(1, 0, 2)                   # (L, n, m)
+    Z = None
+    if opt.method == "iv":
+        if du is None:
+            raise InputError("method 'iv' needs the commanded perturbation (a 'command' column)")
+        du = lowpass(du, fs, opt.prefilter_hz, opt.order)
+        nz = max(opt.iv_lags, X.shape[-1] - 1)
+        need = max(need, (nz - 2) * D)
+        Z = np.stack([du[:, c + D - j * D] for j in range(nz)], axis=-1).transpose(1, 0, 2)
+        Z = Z / du.std()
+    scale = np.array([1 / s_th] * 3 + [1 / s_tau] * (X.shape[-1] - 3))
+    return Design(X, Z, scale, D / fs, D, c - P)
+
+
+def moments(d: Design) -> tuple[np.ndarray, np.ndarray | None]:
+    """Ensemble moment matrices per instant, sum_i x_i x_i^T (and sum_i z_i [x_i; z_i]^T)."""
+    Mxx = np.einsum("lni,lnj->lij", d.X, d.X)
+    Mzx = None if d.Z is None else np.einsum("lni,lnj->lij", d.Z, np.concatenate([d.X, d.Z], -1))
+    return Mxx, Mzx
+
+
+def per_cycle_moments(d: Design) -> tuple[np.ndarray, np.ndarray | None]:
+    """Per-cycle outer products flattened to (n, L*m*m) (and (n, L*q*(m+q))), for weighted sums."""
+    L, n, m = d.X.shape
+    per = (d.X[..., :, None] * d.X[..., None, :]).transpose(1, 0, 2, 3).reshape(n, -1)
+    perz = None
+    if d.Z is not None:
+        XZ = np.concatenate([d.X, d.Z], -1)
+        perz = (d.Z[..., :, None] * XZ[..., None, :]).transpose(1, 0, 2, 3).reshape(n, -1)
+    return per, perz
+
+
+def pool(M: np.ndarray, half: int) -> np.ndarray:
+    """Moving sum over +-half instants along the time axis (-3)."""
+    if half <= 0 or M is None:
+        return M
+    L = M.shape[-3]
+    cs = np.cumsum(np.concatenate([np.zeros_like(M[..., :1, :, :]), M], axis=-3), axis=-3)
+    lo, hi = np.clip(np.arange(L) - half, 0, L), np.clip(np.arange(L) + half + 1, 0, L)
+    return np.take(cs, hi, axis=-3) - np.take(cs, lo, axis=-3)
+
+
+def solve(Mxx: np.ndarray, Mzx: np.ndarray | None, method: str,
+          start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Null vector p (normalised p[0] = 1, in scaled units) and the regressor condition number.
+
+    TLS (eq. 9.13): the eigenvector of the smallest eigenvalue of J^T J, one batched `eigh`; with a
+    `start` (the full-sample solution, in the bootstrap) four steps of inverse iteration instead."""
+    R = Mxx[..., 1:, 1:]
+    cond = None
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if start is None:   # condition of the regressors' correlation matrix (scale-free)
+            dg = 1.0 / np.sqrt(np.maximum(np.diagonal(R, axis1=-2, axis2=-1), 1e-300))
+            ev = np.linalg.eigvalsh(R * dg[..., :, None] * dg[..., None, :])
+            cond = ev[..., -1] / np.maximum(ev[..., 0], 1e-300)
+        if method in ("default", "thesis") and start is not None:
+            Minv = np.linalg.inv(Mxx)
+            p = np.broadcast_to(start, Mxx.shape[:-1]).copy()
+            for _ in range(4):
+                p = np.einsum("...ij,...j->...i", Minv, p)
+                p /= np.linalg.norm(p, axis=-1, keepdims=True)
+        elif method in ("default", "thesis"):
+            w, V = np.linalg.eigh(Mxx)
+            p = V[..., :, 0]
+        elif method == "ols":
+            beta = np.linalg.solve(R, Mxx[..., 1:, :1])[..., 0]
+            p = np.concatenate([np.ones_like(beta[..., :1]), -beta], axis=-1)
+        else:   # two-stage least squares: beta = (A^T W A)^-1 A^T W b, A = Z^T X, W = (Z^T Z)^-1
+            m = Mxx.shape[-1]
+            A, bz, Wz = Mzx[..., :, 1:m], Mzx[..., :, :1], np.linalg.inv(Mzx[..., :, m:])
+            AtW = np.swapaxes(A, -1, -2) @ Wz
+            beta = np.linalg.solve(AtW @ A, AtW @ bz)[..., 0]
+            p = np.concatenate([np.ones_like(beta[..., :1]), -beta], axis=-1)
+        p = p / p[..., :1]
+    return p, cond
+
+
+def to_ibk(p: np.ndarray, scale: np.ndarray, T: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Continuous I, B, K from the discrete coefficients: poles z = exp(sT), DC gain 1/K."""
+    q = p * scale
+    q = q / q[..., :1]
+    a1, a2 = q[..., 1], q[..., 2]
+    b = -q[..., 3:].sum(-1)
+    disc = np.sqrt((a1 ** 2 - 4 * a2).astype(complex))
+    z1, z2 = (-a1 + disc) / 2, (-a1 - disc) / 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s1, s2 = np.log(z1) / T, np.log(z2) / T
+        w02 = np.real(s1 * s2)
+        K = (1 + a1 + a2) / b
+        I = K / w02
+        B = -np.real(s1 + s2) * I
+    return I, B, K
+
+
+def estimate(ens: Ensemble, method: str = "default", options: EstimateOptions | None = None,
+             warn: bool = True, **kw) -> ImpedanceEstimate:
+    """Identify I(t), B(t), K(t) at every instant of the cycle (see the module docstring)."""
+    opt = options or EstimateOptions.for_method(method, **kw)
+    with single_thread():
+        d = design(ens, opt)
+        Mxx, Mzx = moments(d)
+        I, B, K, cond = finish(d, Mxx, Mzx, opt, ens.fs)
+    est = ImpedanceEstimate(d.stamps / ens.fs, I, B, K, cond, opt, d.lag)
+    est.warnings = diagnose(est, ens.n)
+    for w in est.warnings if warn else ():
+        log.warning(w)
+    return est
+
+
+def finish(d: Design, Mxx, Mzx, opt: EstimateOptions, fs: float, start: np.ndarray | None = None):
+    """Pool, solve, convert and smooth (shared by `estimate` and the bootstrap)."""
+    half = int(round(opt.pool_ms * 1e-3 * fs))
+    p, cond = solve(pool(Mxx, half), pool(Mzx, half), opt.method, start)
+    if opt.smooth_ms > 0:
+        p = gaussian_filter1d(p, opt.smooth_ms * 1e-3 * fs, axis=-2, mode="nearest")
+    I, B, K = to_ibk(p, d.scale, d.T)
+    return (I, B, K, cond) if start is None else (I, B, K, p)
+
+
+def diagnose(est: ImpedanceEstimate, n: int) -> list[str]:
+    """Per-instant conditioning warnings and the +-10 % inertia-constancy check."""
+    out = []
+    bad = ~np.isfinite(est.cond) | (est.cond > COND_WARN)
+    if np.mean(bad) > 0.02:
+        t = est.t[bad]
+        out.append(f"ill-conditioned regressors at {np.mean(bad):.0%} of the instants (first at {t[0]:.3f} s):"
+                   " the perturbation may be locked to the cycle clock or too weak")
+    nan = ~np.isfinite(est.I + est.B + est.K)
+    if np.mean(nan) > 0.01:
+        out.append(f"no valid (I, B, K) at {np.mean(nan):.0%} of the instants (complex or unstable poles)")
+    I = est.I[~nan]
+    if I.size and np.median(I) <= 0:
+        out.append("the estimated inertia is not positive: the model does not fit (check segmentation and "
+                   "alignment: misaligned cycles leave the mean movement in the perturbations)")
+    elif I.size > 10:   # on the 50 ms-smoothed curve: random error alone is not a warning
+        Is = gaussian_filter1d(I, 0.05 / max(est.t[1] - est.t[0], 1e-9), mode="nearest")
+        dev = np.max(np.abs(Is - np.median(I))) / np.median(I)
+        if dev > 0.10:
+            out.append(f"estimated inertia varies by +-{dev:.0%} over the cycle (more than +-10 %): noise, "
+                       "misalignment or unmodelled dynamics")
+    if n < 30:
+        out.append(f"only {n} cycles: estimates will be noisy")
+    return out
+
+
+def posture_fit(ens: Ensemble, method: str = "default", **kw) -> tuple[float, float, float]:
+    """Time-invariant (ergodic) fit, 9.6.4: the equations of all instants and cycles pooled."""
+    opt = EstimateOptions.for_method(method, **kw)
+    d = design(ens, opt)
+    Mxx, Mzx = moments(d)
+    Mzx = None if Mzx is None else Mzx.sum(0)[None]
+    p, _ = solve(Mxx.sum(0)[None], Mzx, opt.method)
+    I, B, K = to_ibk(p, d.scale, d.T)
+    return float(I[0]), float(B[0]), float(K[0])

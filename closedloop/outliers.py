@@ -1,0 +1,149 @@
+"""Configurations the noise cannot explain: found by a robust refit, left out of the final fit.
+
+A log may hold rows that are not closures of the loop at all (a reading taken
+while the tool slipped, a row of another robot, a corrupted cell).  Least
+squares on them is dragged anywhere.  `reject_outliers` screens the first
+fit: per configuration the standardized closure error d_i (`robust`), with
+d_i^2 against chi2_m at level 1 - alpha / N (Bonferroni).  If any is beyond,
+the fit is redone from the start with Cauchy weights 1 / (1 + (d/c)^2)
+(iteratively reweighted, the scale re-estimated by the MAD at each pass), which
+gross errors cannot drag; the configurations beyond the threshold at that
+robust fit are rejected and the problem rebuilt on the rest.  Rejection needs
+a clear majority of inliers: with half the rows or more flagged nothing is
+rejected and the verdict reports the misfit.
+
+`irls_fit` is the older option (``robust='huber'|'cauchy'``): the weights are
+kept in the final fit and the suspects reported, nothing is removed.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from .data import JointLog
+from .fit import ResidualFunction, weighted_stage
+from .problem import CalibrationProblem
+from .records import Rejected
+from .robust import cauchy_weights, component_standardized, flagged, mad_scale, standardized
+from .robust import suspects as find_suspects
+from .robust import weights as robust_weights
+from .solver import SolverOptions
+
+if TYPE_CHECKING:
+    from .calibration import Fit
+    from .records import CalibrationOptions
+
+log = logging.getLogger(__name__)
+# below these a closure error is never an outlier (a micrometre, a microradian, a thousandth of a pixel):
+# a fit at round-off or at a simulator's residual compliance is not screened
+SCALE_FLOOR = {"m": 1e-6, "rad": 1e-6, "px": 1e-3}
+
+
+def _floors(problem: CalibrationProblem) -> list[np.ndarray]:
+    out = []
+    for b in problem.blocks:
+        fl = np.full(b.loop.dim, SCALE_FLOOR["m"])
+        fl[list(b.loop.rotation_rows)] = SCALE_FLOOR["rad"]
+        fl[list(b.loop.pixel_rows)] = SCALE_FLOOR["px"]
+        out.append(fl)
+    return out
+
+
+def screen(problem: CalibrationProblem, x: np.ndarray, sigma_q: np.ndarray, weighting: str) -> list[np.ndarray]:
+    """Standardized closure error per configuration (per block), at `x`."""
+    if weighting == "noise":
+        blocks = ResidualFunction(problem, x, [], sigma_q, "noise", symmetric=True).blocks(np.zeros(0))
+        return standardized(blocks, max(mad_scale(blocks), SCALE_FLOOR["rad"]))
+    blocks = ResidualFunction(problem, x, [], sigma_q, "none").blocks(np.zeros(0))
+    return component_standardized(blocks, _floors(problem))
+
+
+def robust_refit(problem: CalibrationProblem, x0: np.ndarray, est: list[int], sigma_q: np.ndarray,
+                 weighting: str, max_iter: int = 30, passes: int = 8) -> tuple[np.ndarray, list[np.ndarray]]:
+    """IRLS with the Cauchy loss from x0 (the screening residual, `screen`); returns x and the last d_i."""
+    scale = np.array([p.prior for p in problem.params])
+    dims = [b.loop.dim for b in problem.blocks]
+    sopt = SolverOptions(max_iter=max_iter)
+    x, w_prev = x0.copy(), None
+    for _ in range(passes):
+        w = np.concatenate(cauchy_weights(screen(problem, x, sigma_q, weighting), dims))
+        row_w = np.repeat(np.sqrt(w), [b.loop.dim for b in problem.blocks for _ in range(b.theta.shape[0])])
+        st = weighted_stage(problem, x, x[est], est, scale, sigma_q, weighting, sopt, None, row_w)
+        x = st.fun.full(st.solution.x)
+        if w_prev is not None and np.max(np.abs(w - w_prev)) < 1e-3:
+            break
+        w_prev = w
+    return x, screen(problem, x, sigma_q, weighting)
+
+
+def gross_outliers(problem: CalibrationProblem, x0: np.ndarray, sigma_q: np.ndarray, opt: CalibrationOptions) -> bool:
+    """Configurations whose closure at the start is far beyond the others' (the model error's spread)."""
+    dims = [b.loop.dim for b in problem.blocks]
+    return any(f.size for f in flagged(screen(problem, x0, sigma_q, opt.weighting), dims, opt.outlier_alpha))
+
+
+def reject_outliers(problem: CalibrationProblem, x_fit: np.ndarray | None, x0: np.ndarray, est: list[int],
+                    opt: CalibrationOptions, sigma_q: np.ndarray, log_: JointLog, loops: list,
+                    build: Callable) -> tuple[CalibrationProblem, list[Rejected], np.ndarray] | None:
+    """The problem without its outliers, the rejected configurations and the robust fit; None if clean.
+
+    `x_fit`: a fit on every row to screen first (None: straight to the robust refit).
+    """
+    dims = [b.loop.dim for b in problem.blocks]
+    if x_fit is not None and not any(f.size for f in flagged(screen(problem, x_fit, sigma_q, opt.weighting), dims,
+                                                             opt.outlier_alpha)):
+        return None
+    x_r, ds = robust_refit(problem, x0, est, sigma_q, opt.weighting, min(opt.max_iter, 30))
+    flags = flagged(ds, dims, opt.outlier_alpha)
+    bad_rows = sorted({int(problem.blocks[bi].rows[i]) for bi, f in enumerate(flags) for i in f})
+    if not bad_rows:
+        return None
+    if len(bad_rows) >= 0.5 * len(log_):
+        log.warning("%d of %d configurations look like outliers: too many to reject", len(bad_rows), len(log_))
+        return None
+    evals = problem.evaluate(x_r, False)
+    rejected = []
+    for bi, f in enumerate(flags):
+        b = problem.blocks[bi]
+        for i in f:
+            r = evals[bi].r[i]
+            t = float(np.linalg.norm(r[list(b.loop.translation_rows)])) if b.loop.translation_rows else None
+            w = float(np.linalg.norm(r[list(b.loop.rotation_rows)])) if b.loop.rotation_rows else None
+            rejected.append(Rejected(int(b.rows[i]), b.loop.name, float(ds[bi][i]), t, w))
+    keep = np.setdiff1d(np.arange(len(log_)), np.array(bad_rows) - 1)
+    sub = JointLog(list(log_.joints), log_.angles[keep], log_.source,
+                   None if log_.loop is None else log_.loop[keep], {k: v[keep] for k, v in log_.extra.items()})
+    log.info("rejected %d outlier configurations", len(bad_rows))
+    return build(problem.robot, sub, loops, opt.priors, keep + 1), sorted(rejected, key=lambda r: -r.standardized), x_r
+
+
+def irls_fit(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, notes: list[str]):
+    """Reweighted fits with the chosen loss (``robust='huber'|'cauchy'``); suspects noted, none removed."""
+    scale = np.array([p.prior for p in problem.params])
+    known_scale = 1.0 if fit.known and opt.weighting == "noise" else None
+    sopt = SolverOptions(max_iter=opt.max_iter, noise=(1.0 if fit.known and opt.weighting == "noise" else None),
+                         snr=opt.snr)
+    est, xe, w_prev, st = fit.est, fit.x[fit.est], None, fit.stage
+    for _ in range(10):
+        blocks = replace(st.fun, row_weights=None).blocks(xe)
+        w = np.concatenate(robust_weights(blocks, opt.robust, scale=known_scale))
+        row_w = np.repeat(np.sqrt(w), [b.loop.dim for b in problem.blocks for _ in range(b.theta.shape[0])])
+        st = weighted_stage(problem, fit.x, xe, est, scale, fit.sigma_q, opt.weighting, sopt, None, row_w)
+        xe = st.solution.x
+        if w_prev is not None and np.max(np.abs(w - w_prev)) < 1e-3:
+            break
+        w_prev = w
+    blocks = replace(st.fun, row_weights=None).blocks(xe)
+    sus = find_suspects(blocks, rows=[b.rows for b in problem.blocks], loops=[b.loop.name for b in problem.blocks],
+                        loss=opt.robust, scale=known_scale)
+    for sp in sus[:10]:
+        notes.append(f"suspect configuration: log row {sp.row} (loop {sp.loop}): closure error "
+                     f"{sp.standardized:.3g} standard deviations, weight {sp.weight:.2g}")
+    if len(sus) > 10:
+        notes.append(f"... and {len(sus) - 10} more suspect configurations")
+    fit.stage, fit.x = st, st.fun.full(xe)
+    return fit, sus

@@ -1,0 +1,163 @@
+"""The records a calibration takes and gives: options, residual summaries, results."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Iterator
+
+import numpy as np
+
+from .identifiability import Combination, Dropped
+from .problem import BlockEval, CalibrationProblem
+
+if TYPE_CHECKING:
+    from .verdict import Verdict
+
+
+@dataclass
+class CalibrationOptions:
+    """What to identify and how.
+
+    identify: parameter patterns (``placement``, ``offset``, ``scale``,
+      ``loop``, or globs such as ``panda_joint[2-7].*``); None for the defaults
+      (URDF: placement, offset, loop; D-H: theta_off, s, a, alpha, loop).
+    fix: name -> value (None keeps the current value) of parameters held fixed.
+    noise: joint-reading standard deviation (rad, or m for prismatic joints),
+      one number or per joint; None estimates one level from the residual.
+    weighting: 'noise' (errors in variables, default) or 'none' (the thesis's
+      plain loop-closure least squares).
+    robust: 'auto' (default: configurations the noise cannot explain are
+      found by a robust fit and rejected before the final fit), 'huber' or
+      'cauchy' (IRLS kept in the final fit, suspects reported), or None
+      (no outlier handling).
+    restarts: further starts tried when the fit stalls far above any
+      plausible noise; seed: their random draws and the generic point of the
+      identifiability analysis.
+    """
+
+    identify: list[str] | None = None
+    fix: dict[str, float | None] = field(default_factory=dict)
+    noise: float | dict[str, float] | None = None
+    weighting: str = "noise"
+    snr: float = 1.0
+    max_iter: int = 100
+    bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
+    priors: dict | None = None
+    initial: dict[str, float] = field(default_factory=dict)
+    robust: str | None = "auto"
+    restarts: int = 4
+    seed: int = 0
+    outlier_alpha: float = 0.01
+    threads: int | None = None  # BLAS threads for the call (closedloop.threads); None: by problem size
+
+
+@dataclass
+class LoopResiduals:
+    loop: str
+    n: int
+    rms_m: float | None
+    max_m: float | None
+    rms_rad: float | None
+    max_rad: float | None
+    rms_px: float | None = None  # image-point error (camera loops)
+    max_px: float | None = None
+
+
+@dataclass
+class Rejected:
+    """A configuration left out of the final fit: its closure error is not noise."""
+
+    row: int  # data row in the log (1-based)
+    loop: str
+    standardized: float  # |r| in robust standard deviations, at the robust fit
+    closure_m: float | None  # |translation error| at the final parameters
+    closure_rad: float | None
+
+
+@dataclass
+class ParameterRecord:
+    """One parameter of a calibration, as a record."""
+
+    name: str
+    kind: str
+    unit: str
+    initial: float
+    value: float
+    std: float  # NaN where not estimated or not identifiable
+    status: str
+
+
+@dataclass
+class CalibrationResult:
+    """Everything a report needs; `values` are absolute parameter values."""
+
+    problem: CalibrationProblem
+    names: list[str]
+    initial: np.ndarray
+    values: np.ndarray
+    std: np.ndarray  # NaN where not estimated or not identifiable
+    status: list[str]  # 'estimated' | 'fixed' | 'dropped' | 'unidentifiable' | 'not selected'
+    dropped: list[Dropped]
+    weak: list[Combination]
+    singular_values: np.ndarray
+    rank: int
+    residuals_before: list[LoopResiduals]
+    residuals_after: list[LoopResiduals]
+    iterations: int
+    solver_status: str
+    solver_message: str
+    sigma: float  # joint noise level (given, or estimated)
+    sigma_estimated: bool
+    chi2: float
+    dof: int
+    notes: list[str]
+    covariance: np.ndarray  # over estimated parameters (order: `estimated`)
+    estimated: list[int]
+    suspects: list = field(default_factory=list)  # robust.Suspect, most suspect first
+    weighting: str = "noise"  # the weighting of the final fit
+    gauge: str | None = None  # the length held to set the overall size
+    gauge_note: str | None = None
+    gauge_length: float = 0.0  # the length the gauge stands for: holding it longer by d scales by 1 + d / L
+    rejected: list[Rejected] = field(default_factory=list)
+    rows_total: int = 0
+    warnings: list[str] = field(default_factory=list)  # findings that make the result suspect
+    verdict: Verdict | None = None
+
+    @property
+    def converged(self) -> bool:
+        return self.solver_status == "converged"
+
+    def value(self, name: str) -> float:
+        return float(self.values[self.names.index(name)])
+
+    def as_dict(self) -> dict[str, float]:
+        return dict(zip(self.names, map(float, self.values)))
+
+    @property
+    def parameters(self) -> Iterator[ParameterRecord]:
+        """Every parameter as a named record."""
+        for k, p in enumerate(self.problem.params):
+            yield ParameterRecord(p.name, p.kind, p.unit, float(self.initial[k]), float(self.values[k]),
+                                  float(self.std[k]), self.status[k])
+
+
+def residual_stats(problem: CalibrationProblem, evals: list[BlockEval]) -> list[LoopResiduals]:
+    """Per loop: RMS and max of the translation, rotation and image-point error norms."""
+    out = []
+    for b, ev in zip(problem.blocks, evals):
+        lp = b.loop
+        t = ev.r[:, list(lp.translation_rows)] if lp.translation_rows else None
+        w = ev.r[:, list(lp.rotation_rows)] if lp.rotation_rows else None
+        tn = np.linalg.norm(t, axis=1) if t is not None else None
+        wn = np.linalg.norm(w, axis=1) if w is not None else None
+        # image points: the (u, v) pairs' Euclidean errors, pooled over configurations and cameras
+        pn = (np.linalg.norm(ev.r[:, list(lp.pixel_rows)].reshape(-1, 2), axis=1)
+              if lp.pixel_rows and ev.r.size else None)
+
+        def rms(v):
+            return float(np.sqrt(np.mean(v ** 2))) if v is not None and v.size else None
+
+        def mx(v):
+            return float(v.max()) if v is not None and v.size else None
+        out.append(LoopResiduals(lp.name, ev.r.shape[0], rms(tn), mx(tn), rms(wn), mx(wn), rms(pn), mx(pn)))
+    return out

@@ -1,0 +1,208 @@
+"""The verdict on a calibration: ok, suspect or failed, from evidence.
+
+A calibration is worth as much as its verdict.  Every rule below compares the
+fit with something it cannot tune away; each rule that fires adds a reason.
+
+failed (exit 3; the report is written, no model unless forced):
+  * the solver did not converge;
+  * the closure after calibration is worse than before (any loop, 10 % margin);
+  * the residual is far above the noise: chi2/dof > 100 with a given noise, or
+    an estimated joint noise above `failed_joint_noise` (0.01 rad: no encoder
+    is that bad; the model does not fit the data, e.g. a log of another robot);
+  * the robot's overall size changed by more than 15 % (a lost scale gauge);
+  * corrections three times the suspect sizes below (a joint axis turned by
+    over 0.9 rad, an offset over 1.5 rad: a flipped axis, a wrong log);
+  * more than 20 % of the configurations were rejected as outliers;
+  * a validation fold's held-out closure is over 30x the training closure.
+suspect (exit 0 with a warning line):
+  * chi2/dof > 2 with a given noise (p < 1e-3), or an estimated joint noise
+    above `plausible_joint_noise` (2 mrad);
+  * the overall size changed by more than 3 %; a joint origin moved by more
+    than half its length and 5 cm, turned by more than 0.3 rad; an offset
+    changed by more than 0.5 rad;
+  * 5-20 % of the configurations rejected as outliers;
+  * the noise weighting had to be overruled (it hid a residual), or no length
+    could be found to set the scale;
+  * a validation fold did not converge, or held-out closure over 3x the
+    training closure (and above the noise floor).
+ok otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from .calibration import CalibrationResult
+
+OK, SUSPECT, FAILED = "ok", "suspect", "failed"
+_RANK = {OK: 0, SUSPECT: 1, FAILED: 2}
+FLOOR = {"rms_m": 1e-7, "rms_rad": 1e-7, "rms_px": 1e-4}  # closures below these are round-off or noise-free
+
+
+@dataclass
+class VerdictRules:
+    plausible_joint_noise: float = 2e-3  # rad (m for prismatic joints)
+    failed_joint_noise: float = 1e-2
+    chi2_suspect: float = 2.0
+    chi2_failed: float = 100.0
+    scale_suspect: float = 0.03
+    scale_failed: float = 0.15
+    outliers_suspect: float = 0.05
+    outliers_failed: float = 0.20
+    heldout_suspect: float = 3.0
+    heldout_failed: float = 30.0
+
+
+@dataclass
+class Verdict:
+    """ok | suspect | failed, with the reasons (empty when ok) and the numbers they rest on."""
+
+    status: str = OK
+    reasons: list[str] = field(default_factory=list)
+    evidence: dict = field(default_factory=dict)
+
+    def add(self, status: str, reason: str) -> None:
+        if _RANK[status] > _RANK[self.status]:
+            self.status = status
+        self.reasons.append(f"{status}: {reason}")
+
+    @property
+    def ok(self) -> bool:
+        return self.status == OK
+
+    def describe(self) -> str:
+        return self.status if not self.reasons else f"{self.status} ({'; '.join(self.reasons)})"
+
+
+def length_scale(result: CalibrationResult) -> float:
+    """Overall size of the calibrated robot relative to the initial one, over the loops' joint origins.
+
+    s = sum |t_cal| |t_0| / sum |t_0|^2 over the translations of the joint
+    placements (and their children's) that the problem parameterizes.
+    """
+    prob = result.problem
+    rp = prob.rp
+    nominal = rp.apply(result.initial[:prob.n_robot]).model
+    calibrated = rp.apply(result.values[:prob.n_robot]).model
+    jids = set()
+    for name in prob.joints:
+        jid = prob.robot.joint(name).jid
+        jids.add(jid)
+        jids.update(k for k in range(1, nominal.njoints) if nominal.parents[k] == jid)
+    t0 = np.array([np.linalg.norm(nominal.jointPlacements[j].translation) for j in sorted(jids)])
+    t1 = np.array([np.linalg.norm(calibrated.jointPlacements[j].translation) for j in sorted(jids)])
+    live = t0 > 1e-6
+    if not live.any():
+        return 1.0
+    return float(np.sum(t0[live] * t1[live]) / np.sum(t0[live] ** 2))
+
+
+def _closure(before, after, verdict: Verdict) -> None:
+    for b, a in zip(before, after):
+        for key in ("rms_m", "rms_rad", "rms_px"):
+            vb, va = getattr(b, key), getattr(a, key)
+            if vb is None or va is None:
+                continue
+            if va > 1.1 * vb and va > FLOOR[key]:
+                verdict.add(FAILED, f"loop {a.loop}: closure {key[4:]} RMS {va:.3g} after calibration is worse "
+                                    f"than before ({vb:.3g})")
+
+
+def _changes(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -> None:
+    s = length_scale(result)
+    verdict.evidence["length_scale"] = s
+    if abs(s - 1.0) > rules.scale_failed:
+        verdict.add(FAILED, f"the robot's overall size changed by a factor {s:.3g} (a length scale the data "
+                            "do not fix, or a wrong model)")
+    elif abs(s - 1.0) > rules.scale_suspect:
+        verdict.add(SUSPECT, f"the robot's overall size changed by a factor {s:.3g}")
+    prob = result.problem
+    delta = result.values - result.initial
+    for factor, status, what in ((3.0, FAILED, "corrections no calibration makes (a flipped axis, a link "
+                                               "gone)"), (1.0, SUSPECT, "implausibly large corrections")):
+        moved = []
+        for k in result.estimated:
+            p = prob.params[k]
+            if p.kind == "offset" and p.unit == "rad" and abs(delta[k]) > 0.5 * factor:
+                moved.append(f"{p.name} by {delta[k]:+.3g} rad")
+            elif p.kind == "placement" and p.unit == "rad" and abs(delta[k]) > 0.3 * factor:
+                moved.append(f"{p.name} by {delta[k]:+.3g} rad")
+            elif p.kind in ("placement", "dh") and p.unit == "m":
+                length = abs(p.scales_with_length) if p.kind == "placement" else abs(p.nominal)
+                if abs(delta[k]) > factor * max(0.5 * length, 0.05):
+                    moved.append(f"{p.name} by {delta[k] * 1e3:+.4g} mm")
+        if moved:
+            verdict.add(status, f"{what}: " + ", ".join(moved[:5])
+                        + (f" and {len(moved) - 5} more" if len(moved) > 5 else ""))
+            return
+
+
+def _noise(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -> None:
+    dof = max(result.dof, 1)
+    ratio = result.chi2 / dof
+    verdict.evidence["chi2_per_dof"] = ratio
+    if not result.sigma_estimated:
+        if ratio > rules.chi2_failed:
+            verdict.add(FAILED, f"the closure is {np.sqrt(ratio):.3g}x the given noise (chi2/dof {ratio:.3g})")
+        elif ratio > rules.chi2_suspect:
+            verdict.add(SUSPECT, f"the closure exceeds the given noise (chi2/dof {ratio:.3g})")
+        return
+    if result.weighting != "noise":
+        return
+    sigma = result.sigma
+    verdict.evidence["joint_noise"] = sigma
+    if sigma > rules.failed_joint_noise:
+        verdict.add(FAILED, f"the estimated joint noise {sigma:.3g} rad is implausible: the model does not fit "
+                            "the data (wrong robot or log, gross errors, a stalled fit)")
+    elif sigma > rules.plausible_joint_noise:
+        verdict.add(SUSPECT, f"the estimated joint noise {sigma:.3g} rad is larger than encoders give "
+                             f"(> {rules.plausible_joint_noise:g})")
+
+
+def judge(result: CalibrationResult, validation: dict | None = None,
+          rules: VerdictRules | None = None) -> Verdict:
+    """The verdict on `result`, and on its k-fold `validation` (`validation.cross_validate`) if given."""
+    rules = rules or VerdictRules()
+    v = Verdict()
+    if result.solver_status != "converged":
+        v.add(FAILED, f"the solver did not converge ({result.solver_message})")
+    _closure(result.residuals_before, result.residuals_after, v)
+    _noise(result, rules, v)
+    _changes(result, rules, v)
+    total = result.rows_total
+    rejected = len(result.rejected)
+    if total:
+        frac = rejected / total
+        v.evidence["rejected_fraction"] = frac
+        if frac > rules.outliers_failed:
+            v.add(FAILED, f"{rejected} of {total} configurations rejected as outliers")
+        elif frac > rules.outliers_suspect:
+            v.add(SUSPECT, f"{rejected} of {total} configurations rejected as outliers")
+    for note in result.warnings:
+        v.add(SUSPECT, note)
+    if validation is not None:
+        _validation(validation, rules, v)
+    return v
+
+
+def _validation(cv: dict, rules: VerdictRules, verdict: Verdict) -> None:
+    bad = [f["fold"] for f in cv.get("folds", []) if not f.get("converged", True)]
+    if bad:
+        verdict.add(SUSPECT, f"validation fold(s) {bad} did not converge")
+    for f in cv.get("folds", []):
+        for tr, te in zip(f["train"]["loops"], f["test"]["loops"]):
+            for key in ("rms_m", "rms_rad", "rms_px"):
+                a, b = tr.get(key), te.get(key)
+                if a is None or b is None or b <= 3.0 * FLOOR[key]:
+                    continue
+                ratio = b / max(a, FLOOR[key])
+                if ratio > rules.heldout_failed:
+                    verdict.add(FAILED, f"validation fold {f['fold']}, loop {te['loop']}: held-out closure "
+                                        f"{key[4:]} RMS {b:.3g} is {ratio:.3g}x the training fit")
+                elif ratio > rules.heldout_suspect:
+                    verdict.add(SUSPECT, f"validation fold {f['fold']}, loop {te['loop']}: held-out closure "
+                                         f"{key[4:]} RMS {b:.3g} is {ratio:.3g}x the training fit")

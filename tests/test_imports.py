@@ -1,0 +1,131 @@
+"""Imports paid only by what uses them (issue 17), and BLAS thread control (closedloop.threads).
+
+`import closedloop` and a calibration of a URDF load no scipy.stats / scipy.optimize /
+scipy.linalg, no trimesh or yourdfpy, no camera code; the lazy paths give the same values
+as the eager ones did.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+HEAVY = ["scipy.stats", "scipy.optimize", "scipy.linalg", "trimesh", "yourdfpy", "closedloop.loops.camera"]
+
+
+def _modules_after(code: str) -> list[str]:
+    """The HEAVY modules present in a fresh interpreter after running `code`."""
+    probe = code + f"\nimport json, sys\nprint(json.dumps([m for m in {HEAVY!r} if m in sys.modules]))"
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_import_closedloop_loads_no_heavy_module():
+    assert _modules_after("import closedloop") == []
+
+
+def test_calibrate_and_write_urdf_load_no_heavy_module(tmp_path):
+    code = f"""
+import numpy as np
+from closedloop import calibrate, JointLog, RobotModel
+from closedloop.export import write_urdf
+from closedloop.loops.spec import parse_loop
+from closedloop.models import ROBOTS
+from closedloop.report import build_report, write_report
+from closedloop.truth import make_dataset
+robot = RobotModel.from_file(ROBOTS["panda"].path)
+loop = parse_loop("weld:frame=panda_hand,name=fixture", robot)
+ds = make_dataset(robot, loop, [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 40, np.random.default_rng(0), stride=1)
+res = calibrate(robot, JointLog(ds.joints, ds.readings), [loop])
+write_urdf(robot, res.as_dict(), r"{tmp_path / 'cal.urdf'}")
+write_report(build_report(res), r"{tmp_path / 'report.json'}")
+"""
+    assert _modules_after(code) == []
+
+
+def test_camera_loop_registers_on_first_use():
+    code = """
+from closedloop.loops import spec
+assert "camera" not in spec.REGISTRY
+try:
+    spec.parse_loop("nope:frame=x", None)
+except Exception as exc:
+    assert "camera" in str(exc), exc
+from closedloop.loops import CameraLoop  # PEP 562: loads the module
+assert "camera" in spec.REGISTRY and CameraLoop.__name__ == "CameraLoop"
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+
+
+def test_written_urdf_origins_are_nominal_times_exp6_and_offset(tmp_path):
+    """The edited XML gives Pinocchio exactly O exp6(p) Rot(axis, offset) and limits shifted by -offset."""
+    from closedloop.export import write_urdf
+    from closedloop.models import ROBOTS
+    from closedloop.robot import RobotModel
+
+    robot = RobotModel.from_file(ROBOTS["panda"].path)
+    rng = np.random.default_rng(3)
+    values = {}
+    arm = [f"panda_joint{i}" for i in range(1, 8)]  # revolute about their z axes
+    for j in arm:
+        values.update({f"{j}.{f}": rng.normal(0.0, 0.01) for f in ("x", "y", "z", "rx", "ry", "rz")})
+        values[f"{j}.offset"] = rng.normal(0.0, 0.05)
+    write_urdf(robot, values, tmp_path / "cal.urdf")
+    nom = pin.buildModelFromUrdf(str(robot.source))
+    cal = pin.buildModelFromUrdf(str(tmp_path / "cal.urdf"))
+    assert cal.njoints == nom.njoints and cal.nframes == nom.nframes
+    for name in arm:
+        k = nom.getJointId(name)
+        twist = np.array([values[f"{name}.{f}"] for f in ("x", "y", "z", "rx", "ry", "rz")])
+        off = values[f"{name}.offset"]
+        want = nom.jointPlacements[k] * pin.exp6(twist) * pin.SE3(pin.exp3(np.array([0, 0, off])), np.zeros(3))
+        assert np.abs(cal.jointPlacements[k].homogeneous - want.homogeneous).max() < 1e-12, name
+        i = nom.joints[k].idx_q
+        assert cal.lowerPositionLimit[i] == pytest.approx(nom.lowerPositionLimit[i] - off, abs=1e-12)
+        assert cal.upperPositionLimit[i] == pytest.approx(nom.upperPositionLimit[i] - off, abs=1e-12)
+    text = (tmp_path / "cal.urdf").read_text()
+    assert text.startswith("<?xml") and text.count("<link") == robot.source.read_text().count("<link")
+
+
+def test_chi2_through_scipy_special_equals_scipy_stats():
+    from scipy import stats as sst
+
+    from closedloop.report import _chi2_sf
+    from closedloop.robust import stats as lazy
+
+    for m in (1, 2, 3, 6):
+        assert lazy.chi2.ppf(0.95, m) == sst.chi2.ppf(0.95, m)
+        assert lazy.chi2.isf(1e-4, m) == sst.chi2.isf(1e-4, m)
+        assert lazy.chi2.sf(4.2, m) == sst.chi2.sf(4.2, m)
+        assert _chi2_sf(4.2 * m, 5 * m) == sst.chi2.sf(4.2 * m, 5 * m)
+
+
+def test_blas_threads_choose_restore_and_never_raise_the_users_limit():
+    from threadpoolctl import threadpool_limits
+
+    from closedloop.threads import THREADED_WORK, blas_threads, choose_threads, current_threads
+
+    before = current_threads()
+    with blas_threads(None, 6000, 28) as k:
+        assert k == 1 and current_threads() == 1  # small problem: one thread
+    assert current_threads() == before  # restored
+    with blas_threads(1, 10**7, 28) as k:
+        assert k == 1 and current_threads() == 1  # explicit setting wins
+    assert current_threads() == before
+    with pytest.raises(RuntimeError):
+        with blas_threads(1, 6000, 28):
+            raise RuntimeError("inside")
+    assert current_threads() == before  # restored on an exception too
+    with threadpool_limits(1, user_api="blas"):  # the user's own limit
+        assert choose_threads(int(2 * THREADED_WORK / 28 ** 2), 28) == 1
+        with blas_threads(None, int(2 * THREADED_WORK / 28 ** 2), 28) as k:
+            assert k == 1
+        assert current_threads() == 1
+    assert choose_threads(int(2 * THREADED_WORK / 28 ** 2), 28, current=2) >= 1

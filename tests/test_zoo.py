@@ -1,0 +1,132 @@
+"""The robot zoo, quick subset: every calibration is either right or not reported as ok (issue 10).
+
+Data come from `zoo.py`, a generator independent of closedloop's parametrization (errors on
+every joint origin in the parent frame, fixed joints included; loops closed with Pinocchio on
+the true model), and are judged by what the calibrated URDF does: forward kinematics of the
+tool from raw readings against the truth after the best base/tool transforms (and length
+scale only for loops that cannot see it).  Right means: noise-free, tool positions within
+0.1 mm and orientations within 1 mrad over the whole joint range, relative motions within
+0.2 mm, fitted scale within 3.8 % (a calibrator that fixes a real link length of 10 cm or
+more at its nominal value is off by at most sqrt(3) (2 mm / 10 cm + 2 mrad)); with noise, 5x
+more than the largest tool error std the noise alone leaves (Cramer-Rao bound of the zoo's own
+parametrization, `zoo_judge.predicted_std`).  A case that is not right must carry a verdict
+other than 'ok'.  The full zoo is `benchmarks/zoo.py`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+import zoo
+from closedloop import RobotModel, read_log
+
+WELD_7DOF = ["panda", "xarm7", "baxter_left", "tiago", "g1_left"]
+POINT_6DOF = ["ur5", "kinova", "z1"]
+
+
+def _check(outcome: zoo.Outcome) -> None:
+    if outcome.status == "crash" or not (outcome.right or outcome.refused):
+        pytest.fail(outcome.line(), pytrace=False)
+
+
+# ----------------------------------------------------------------------------- the harness itself
+def test_generator_closes_loops_on_the_true_model_and_judge_sees_errors():
+    """Configurations satisfy the loop on the true model; the judge gives ~0 for the truth, mm for the nominal."""
+    case = zoo.make_case("panda", "weld", n=20, seed=3)
+    kin = zoo.Kin(case.true_model, case.joints)
+    T = kin.poses(case.q_true)
+    ref = pin.SE3(T[0])
+    err = [np.linalg.norm(pin.log6(ref.actInv(pin.SE3(t))).vector) for t in T]
+    assert max(err) < 1e-11
+    spread = np.ptp(case.q_true, axis=0)  # spread over the self-motion (the Panda's elbow hardly moves)
+    assert spread.max() > 0.3 and spread.min() > 0.01
+    np.testing.assert_allclose(case.readings, case.q_true - [case.true_offsets[j] for j in case.joints])
+    log = read_log(case.log_csv, RobotModel.from_file(case.nominal_urdf).joint_names)
+    np.testing.assert_array_equal(log.columns(case.joints), case.readings)
+    tol = case.tolerances()
+    truth = zoo.judge(case, zoo.folded_truth_urdf(case))
+    assert truth.pos_max < 1e-10 and truth.rot_max < 1e-10 and abs(truth.scale - 1) < 1e-10
+    nominal = zoo.judge(case, case.nominal_urdf)
+    assert nominal.pos_max > 20 * tol["pos"] and not nominal.right(tol)
+
+
+def test_judge_fits_scale_only_where_the_loop_cannot_see_it(tmp_path):
+    """A truth scaled by 1.3 is right up to scale for a weld (scale 1.3 reported, so 'wrong'), not for a tracker."""
+    case = zoo.make_case("ur5", "point", n=10, seed=1)
+    folded = zoo.folded_truth_urdf(case)
+    import xml.etree.ElementTree as ET
+    root = ET.parse(folded).getroot()
+    for o in root.iter("origin"):
+        o.set("xyz", " ".join(repr(1.3 * float(v)) for v in o.get("xyz").split()))
+    big = tmp_path / "big.urdf"
+    big.write_text(ET.tostring(root, encoding="unicode"))
+    j = zoo.judge(case, big)
+    assert j.pos_max < 1e-9 and abs(j.scale - 1.3) < 1e-9 and not j.right(case.tolerances())
+    assert case.tolerances()["scale"] < 0.04
+    case.loop = "measured_point"
+    j = zoo.judge(case, big)
+    assert j.scale == 1.0 and j.pos_max > 0.05
+
+
+def test_predicted_std_scales_with_noise_and_is_worse_for_one_weld_pose():
+    """The Cramer-Rao tolerance: linear in the joint noise; one weld pose determines the tool far less than a tracker."""
+    a = zoo.make_case("panda", "weld", n=30, sigma=1e-5, seed=4)
+    b = zoo.make_case("panda", "weld", n=30, sigma=2e-5, seed=4)
+    t = zoo.make_case("panda", "measured_point", n=30, sigma=1e-5, sigma_t=1e-9, seed=4)
+    sa, sb, st = zoo.predicted_std(a), zoo.predicted_std(b), zoo.predicted_std(t)
+    assert abs(sb["pos"] / sa["pos"] - 2.0) < 1e-3 and abs(sb["rot"] / sa["rot"] - 2.0) < 1e-3
+    assert 1e-6 < st["pos"] < 1e-4 < sa["pos"]
+    assert a.tolerances()["pos"] > 1e-4 + 4.9 * sa["pos"]
+
+
+@pytest.mark.parametrize("loop", ["point", "plane", "hinge", "measured_point"])
+def test_generator_loop_types(loop):
+    case = zoo.make_case("ur5", loop, n=12, seed=2, sigma_t=1e-5 if loop == "measured_point" else 0.0)
+    kin = zoo.Kin(case.true_model, case.joints)
+    p = kin.poses(case.q_true)[:, :3, 3]
+    if loop == "point":
+        assert np.abs(p - p[0]).max() < 1e-11
+    elif loop == "plane":  # coplanar: the centred points have rank 2
+        assert np.linalg.svd(p - p.mean(0), compute_uv=False)[2] < 1e-11
+    elif loop == "hinge":  # the tool frame turns about one fixed line: relative rotations share one axis
+        T = kin.poses(case.q_true)
+        axes = [pin.log3(T[0, :3, :3].T @ t[:3, :3]) for t in T[1:]]
+        axes = np.array([a / np.linalg.norm(a) * np.sign(a @ axes[0]) for a in axes])
+        assert np.abs(axes - axes[0] @ T[0, :3, :3].T @ T[0, :3, :3]).max() < 1e-9
+    else:
+        log = read_log(case.log_csv, case.joints)
+        assert set(log.extra) == {"meas:x", "meas:y", "meas:z"}
+
+
+# ----------------------------------------------------------------------------- the quick zoo
+@pytest.mark.parametrize("robot", WELD_7DOF)
+def test_zoo_weld_7dof(robot):
+    _check(zoo.run_case(zoo.make_case(robot, "weld", n=60, seed=0)))
+
+
+@pytest.mark.parametrize("robot", POINT_6DOF)
+def test_zoo_point_6dof(robot):
+    _check(zoo.run_case(zoo.make_case(robot, "point", n=60, seed=0)))
+
+
+def test_zoo_noisy_tracker():
+    """Joint noise 1e-4 rad, tracker noise 10 um: right within the noise's own bound, or not ok."""
+    _check(zoo.run_case(zoo.make_case("xarm7", "measured_point", n=60, sigma=1e-4, sigma_t=1e-5, seed=1)))
+
+
+def test_zoo_noisy_weld():
+    """Joint noise 1e-5 rad on one weld pose (weakly conditioned: a few mm over the workspace is all it allows)."""
+    _check(zoo.run_case(zoo.make_case("panda", "weld", n=60, sigma=1e-5, seed=1)))
+
+
+def test_zoo_corrupted_rows():
+    """10 % of the rows replaced by random readings: a correct (robust) fit or a verdict that is not ok."""
+    _check(zoo.run_case(zoo.make_case("ur5", "point", n=100, seed=0, corrupt_rows=0.10, tag="rows10")))
+
+
+def test_zoo_rough_start():
+    """A nominal model 10x further from the truth (2 cm, 20 mrad, 0.2 rad offsets)."""
+    _check(zoo.run_case(zoo.make_case("panda", "weld", n=60, seed=1, err_m=2e-2, err_rad=2e-2,
+                                      offset_rad=0.2, tag="rough")))
