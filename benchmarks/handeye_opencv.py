@@ -165,12 +165,13 @@ def main(argv=None) -> int:
     F_true_tr = flange_poses(robot, rp, truth, th[tr])
     extra, loops = {}, []
     for m, P in enumerate(pts):
-        px = np.vstack([project(F * X_TRUE, P[None])[0] for F in F_true_tr]) + rng.normal(scale=0.3, size=(args.n, 2))
+        px = np.vstack([project(F * X_TRUE, P[None])[0] for F in F_true_tr])
+        px = px + rng.normal(scale=0.3, size=(args.n, 2))
         extra[f"p{m}:u1"], extra[f"p{m}:v1"] = px[:, 0], px[:, 1]
         loops.append(CameraLoop(f"p{m}", "universe", "tool0", K=[K], sigma_px=0.3))
     log = JointLog(joints, readings[tr], None, None, extra)
-    for label, fix in (("closedloop (robot + camera)", {}),
-                       ("closedloop, upper arm length known", {"elbow_joint.z": float(truth[rp.index["elbow_joint.z"]])})):
+    known = {"elbow_joint.z": float(truth[rp.index["elbow_joint.z"]])}
+    for label, fix in (("closedloop (robot + camera)", {}), ("closedloop, upper arm length known", known)):
         t0 = time.perf_counter()
         res = calibrate(robot, log, loops, CalibrationOptions(noise=1e-5, fix=fix))
         t_cl = time.perf_counter() - t0

@@ -28,7 +28,7 @@ from test_kill import kill_calibrate, kill_simulate, whole  # noqa: E402
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--kills", type=int, default=40)
+    ap.add_argument("--kills", type=int, default=40, help="SIGKILLs in all (half calibrate, half simulate)")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     print(header())

@@ -3,9 +3,10 @@
 Data from `tests/zoo.py` (a generator independent of closedloop's parametrization); each case is
 calibrated with the defaults of `closedloop.calibrate` and its calibrated URDF judged by what the
 robot does (tool forward kinematics against the truth after the best base/tool transforms, the
-scale fitted only for loops blind to it).  A case is *right* (within `Case.tolerances()`),
-*refused* (verdict 'suspect' or 'failed', or a user-facing error), *confidently wrong* (neither),
-or a *crash* (an exception that is not a closedloop error).
+scale fitted only for loops blind to it).  A case is *right* (within `Case.tolerances()`; counted
+as *flagged* too when its verdict is 'suspect' or 'failed': a false alarm), *refused* (wrong, and
+the verdict is 'suspect' or 'failed', or a user-facing error), *confidently wrong* (wrong, verdict
+ok), or a *crash* (an exception that is not a closedloop error).
 
     python benchmarks/zoo.py                      # everything (slow: hinge loops take seconds each)
     python benchmarks/zoo.py --seeds 1 --loops weld,point --variants exact
@@ -89,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
                     o = zoo.run_case(case)
                     print(o.line(), flush=True)
                     rows.append({"robot": robot, "dof": d, "loop": loop, "variant": variant, "seed": seed,
+                                 "flagged": bool(o.right and o.refused),
                                  "outcome": ("right" if o.right else "refused" if o.refused else
                                              "crash" if o.status == "crash" else "confidently wrong"),
                                  "verdict": o.status, "converged": o.converged, "seconds": o.seconds,
@@ -105,13 +107,17 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def table(rows: list[dict], by: str) -> str:
-    """Markdown table: cases, right, refused, confidently wrong (and crashes) per `by` and in total."""
+    """Markdown table per `by` and in total: cases, right (and how many of those the verdict flags:
+    false alarms), refused (wrong, verdict not ok), confidently wrong (wrong, verdict ok), crashes."""
     keys = sorted({r[by] for r in rows}, key=lambda k: (LOOPS + list(VARIANTS)).index(k))
-    out = [f"| {by} | cases | right | refused | confidently wrong | crash |", "|---|---|---|---|---|---|"]
+    out = [f"| {by} | cases | right | of which flagged | refused | confidently wrong | crash |",
+           "|---|---|---|---|---|---|---|"]
     for k in keys + ["total"]:
         sel = [r for r in rows if k == "total" or r[by] == k]
         c = Counter(r["outcome"] for r in sel)
-        out.append(f"| {k} | {len(sel)} | {c['right']} | {c['refused']} | {c['confidently wrong']} | {c['crash']} |")
+        flagged = sum(bool(r.get("flagged")) for r in sel)
+        out.append(f"| {k} | {len(sel)} | {c['right']} | {flagged} | {c['refused']} | {c['confidently wrong']} | "
+                   f"{c['crash']} |")
     return "\n".join(out)
 
 

@@ -8,8 +8,7 @@ The pipeline (thesis 3.2, 4.2, with the noise treated as errors in variables):
    move, loop mobility (Lemmas 4, 6), one scale factor if all are free (4.2.2).
 3. `analyse_structure`: structural redundancies on data projected onto
    closure, and the length that sets the scale (3.3), named by what the robot
-   does (`gauge`); at a generic point near the start when the start is
-   special (a parameter without effect there, e.g. a tool point on an axis).
+   does (`gauge`).
 4. `solve_staged`: the plain loop residual first, then each configuration's
    closure weighted by W_i^-1 = (J_theta,i Sigma J_theta,i^T)^-1, by
    Levenberg-Marquardt with noise-aware SVD truncation (eq. 3.17, 4.2.6);
@@ -123,13 +122,6 @@ def _solver_options(opt: CalibrationOptions, problem: CalibrationProblem, est: l
                          snr=opt.snr, lower=lower, upper=upper)
 
 
-def implied_joint_noise(problem: CalibrationProblem, x: np.ndarray, n_est: int) -> float:
-    """The joint noise (rad) that would explain the closure at `x`: RMS of W_i^-1/2 r_i with Sigma = I."""
-    fun = ResidualFunction(problem, x, [], np.ones(len(problem.joints)), "noise", symmetric=True)
-    r, _ = fun(np.zeros(0), False)
-    return rms(r, r.size - fun.deficit - n_est)
-
-
 def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, est: list[int],
                  opt: CalibrationOptions, sigma_q: np.ndarray, known: bool,
                  progress: Progress | None = None, plain_start: bool = False) -> Fit:
@@ -138,7 +130,8 @@ def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray,
     The errors-in-variables fit is tried first (it is the estimator; on a
     single self-motion, where many robots close the same curve, the plain
     residual's long steps can reach a degenerate one).  When it stalls far
-    above any plausible noise, or its weighting turns singular on the way
+    above any plausible noise, leaves directions undetermined (a spurious
+    minimum reports many), or its weighting turns singular on the way
     (more residual directions discarded than at the start), the plain
     loop-closure fit is solved from `start` and the weighted fit restarted
     from it (`fit.weighted_stage` keeps the plain solution if the weighting
@@ -156,13 +149,12 @@ def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray,
     if not plain_start or opt.weighting != "noise":
         b = weighted_stage(problem, base, xs, est, scale, sigma_q, opt.weighting, sopt, prog)
         iters = b.solution.iterations
-    if b is None or (opt.weighting == "noise" and (b.note or _misled(problem, b, start, est, sigma_q))):
+    if b is None or (opt.weighting == "noise" and (b.note or b.solution.truncated
+                                                    or _misled(problem, b, start, est, sigma_q))):
         a = plain_stage(problem, base, xs, est, scale, sopt, prog)
         b2 = weighted_stage(problem, base, a.solution.x, est, scale, sigma_q, opt.weighting, sopt, prog)
         iters += a.solution.iterations + b2.solution.iterations
-        if b is None or unweighted_closure(problem, b2.fun.full(b2.solution.x)) < \
-                unweighted_closure(problem, b.fun.full(b.solution.x)):
-            b = b2
+        b = b2 if b is None else _better(problem, [b, b2], start, est, scale)
     if b.note:
         warnings.append(b.note)
     xs = b.solution.x
@@ -188,19 +180,41 @@ def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray,
 def _misled(problem: CalibrationProblem, stage: StageResult, start: np.ndarray, est: list[int],
             sigma_q: np.ndarray) -> bool:
     """The weighted fit stalled far above the noise, or its weighting discards more than at the start."""
-    if stage.solution.status != "converged" or implied_joint_noise(problem, stage.fun.full(stage.solution.x),
-                                                                  len(est)) > 2e-3:
+    if stage.solution.status != "converged" or _closure_level(problem, stage) > 1.0:
         return True
     probe = ResidualFunction(problem, start, est, sigma_q, "noise")
     probe(start[est], True)
     return stage.fun.deficit > probe.deficit
 
 
+PLAUSIBLE_JOINT_NOISE = 2e-3  # rad: no encoder reads worse; a closure it cannot explain is a stalled fit
+
+
+def _closure_level(problem: CalibrationProblem, stage: StageResult) -> float:
+    """The typical configuration's closure in units of what 2 mrad of joint noise (plus the loops' own
+    measurement noise, a camera's pixels) explains: the median, so that a few outliers do not count."""
+    if not np.isfinite(stage.solution.cost):
+        return np.inf
+    fun = ResidualFunction(problem, stage.fun.full(stage.solution.x), [],
+                           np.full(len(problem.joints), PLAUSIBLE_JOINT_NOISE), "noise")
+    per_config = np.concatenate([np.linalg.norm(b, axis=1) / np.sqrt(b.shape[1])
+                                 for b in fun.blocks(np.zeros(0)) if b.size])
+    return float(np.median(per_config)) if per_config.size else 0.0
+
+
 def _stalled(problem: CalibrationProblem, fit: Fit) -> bool:
-    """The fit stopped far above any plausible noise (2 mrad of joint noise)."""
-    if not np.isfinite(fit.stage.solution.cost):
-        return True
-    return implied_joint_noise(problem, fit.x, len(fit.est)) > 2e-3
+    """The fit stopped far above any plausible noise (`_closure_level` above 1)."""
+    return _closure_level(problem, fit.stage) > 1.0
+
+
+def _better(problem: CalibrationProblem, stages: list[StageResult], start: np.ndarray, est: list[int],
+            scale: np.ndarray) -> StageResult:
+    """Of the fits that close as well as the best, the nearest the start (in prior units): a degenerate
+    robot (a forearm of zero length) may close a single self-motion as well as the real one."""
+    levels = [_closure_level(problem, st) for st in stages]
+    # as good as the best: within 10x of its closure, or both below 1/1000 of a plausible noise
+    good = [st for st, lv in zip(stages, levels) if lv <= max(10.0 * min(levels), 1e-3)]
+    return min(good, key=lambda st: float(np.linalg.norm((st.solution.x - start[est]) / scale[est])))
 
 
 def solve_with_restarts(problem: CalibrationProblem, x0: np.ndarray, est: list[int], opt: CalibrationOptions,
@@ -242,14 +256,18 @@ def solve_with_restarts(problem: CalibrationProblem, x0: np.ndarray, est: list[i
 
 
 def recheck_at_solution(problem: CalibrationProblem, fit: Fit, structure: Structure, free: list[int],
-                        opt: CalibrationOptions, progress: Progress | None) -> tuple[Fit, Structure, list[str]]:
+                        x0: np.ndarray, opt: CalibrationOptions, progress: Progress | None
+                        ) -> tuple[Fit, Structure, list[str]]:
     """The reduction and gauge recomputed at the solution; re-solved from it where they differ."""
     notes = []
     for _ in range(2):
-        why = structure_holds(problem, fit.x, structure, free)
+        why, warning = structure_holds(problem, fit.x, structure, free)
+        if warning:
+            fit.warnings.append(warning)
         if why is None:
             break
         st = analyse_structure(problem, fit.x, free, prefer=structure.gauge)
+        st.rechecked = True
         gone = sorted(set(structure.kept) - set(st.kept))
         new = sorted(set(st.kept) - set(structure.kept))
         notes.append(f"re-checked at the solution: {why}"
@@ -273,7 +291,7 @@ def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOpti
     Js = J * scale[est]
     _, S, Vt = np.linalg.svd(Js, full_matrices=False)
     rank_num = int(np.sum(S > 1e-10 * S[0])) if S.size else 0
-    dof = max(r.size - fun.deficit - rank_num, 1)  # eliminated passive directions carry none
+    dof = max(r.size - fun.deficit - fun.missing - rank_num, 1)  # eliminated or unobserved rows carry none
     weighted = fun.weighting == "noise"
     if fit.known and weighted:
         sigma_r, sigma = 1.0, float(np.mean(fit.sigma_q))
@@ -323,7 +341,7 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
     problem = build_problem(robot, log_, loops, opt.priors)
     x0 = initial_values(problem, opt.initial)
     status = select_parameters(problem, opt.identify, opt.fix, x0)
-    notes, dropped = check_motion(problem, x0, status)
+    notes, dropped, motion_warnings = check_motion(problem, x0, status)
     free = [k for k, s in enumerate(status) if s == "selected"]
     if not free:
         raise NotIdentifiableError("no parameter is left to identify (all fixed or not selected)")
@@ -331,10 +349,7 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
     rng = np.random.default_rng(opt.seed)
     if progress:
         progress("analysing", 0, 0.0)
-    structure = analyse_structure(problem, x0, free)
-    if any(d.reason.startswith("has no effect") for d in structure.dropped):
-        # a special start (a tool point on a joint axis): decide at a generic point near it instead
-        structure = analyse_structure(problem, x0, free, rng)
+    structure = analyse_structure(problem, x0, free)  # re-checked at the solution (recheck_at_solution)
     _check_rows(problem, structure, log_)
     rejected: list[Rejected] = []
     suspects: list = []
@@ -355,12 +370,13 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
         from .outliers import irls_fit
 
         fit, suspects = irls_fit(problem, fit, opt, notes)
-    fit, structure, recheck_notes = recheck_at_solution(problem, fit, structure, free, opt, progress)
+    fit, structure, recheck_notes = recheck_at_solution(problem, fit, structure, free, x0, opt, progress)
     notes.extend(recheck_notes)
     x = fit.x.copy()
     for b, sl in zip(problem.blocks, problem.loop_slices):
         x[sl] = b.loop.normalize(x[sl])
     fit.x = x
+    fit.warnings.extend(motion_warnings)
     for k in free:
         status[k] = "estimated" if k in fit.est else "dropped"
     gauge = None

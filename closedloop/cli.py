@@ -310,7 +310,10 @@ def cmd_simulate(args) -> int:
     except ImportError as exc:  # pragma: no cover - packaging error
         raise ClosedLoopError(f"the simulator is not installed ({exc})") from None
     from .cli_tools import resolve_scenario
+    from .sims.camera_scene import SCENARIOS as CAMERA_SCENARIOS, simulate_cli as camera_simulate
 
+    if getattr(args, "scenario", None) in CAMERA_SCENARIOS:  # the head-camera scenarios (sims/camera_scene.py)
+        return camera_simulate(args)
     args.scenario = resolve_scenario(args)  # a built-in, a scenario YAML, or --robot + --loop
     if args.scenario not in SCENARIOS:
         raise InputError(f"unknown scenario '{args.scenario}' (known: {', '.join(sorted(SCENARIOS))})")

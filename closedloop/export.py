@@ -1,4 +1,4 @@
-"""Writing calibrated models: URDF (yourdfpy) and D-H YAML, always atomically.
+"""Writing calibrated models: URDF (the input's XML, edited) and D-H YAML, always atomically.
 
 URDF convention.  A Pinocchio joint placement is F * O, with O the URDF joint
 origin and F the fixed joints before it; the calibrated placement is
@@ -89,14 +89,14 @@ class OutputSet:
                 finally:
                     if staged[-1][1] is None:
                         os.close(fd)
-            named = []  # every name first, then the renames back to back: the moment of a mix is minimal
-            for t, fd, tmp in staged:
-                if fd is not None:
-                    tmp = t.parent / f"{_STAGE}{os.getpid()}-{t.name}.tmp"
-                    _link_unnamed(fd, tmp)
-                named.append((tmp, t))
-            held = _hold_open([t for _, t in named])  # freeing a replaced file's blocks waits for close()
+            held = _hold_open(targets)  # freeing a replaced file's blocks waits for close()
             try:
+                named = []  # every name first, then the renames back to back: the moment of a mix is minimal
+                for t, fd, tmp in staged:
+                    if fd is not None:
+                        tmp = t.parent / f"{_STAGE}{os.getpid()}-{t.name}.tmp"
+                        _link_unnamed(fd, tmp)
+                    named.append((tmp, t))
                 for tmp, t in named:
                     os.replace(tmp, t)
             finally:
@@ -122,7 +122,7 @@ def _hold_open(paths: list[Path]) -> list[int]:
     fds = []
     for p in paths:
         try:
-            fds.append(os.open(p, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0)))
+            fds.append(os.open(p, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0)))
         except OSError:
             pass
     return fds

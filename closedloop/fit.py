@@ -67,6 +67,7 @@ class ResidualFunction:
         self._rJ = None
         self._trial = None
         self.deficit = 0  # residual directions the weighting discards (pseudo-inverse), at the last Jacobian
+        self.missing = 0  # residual rows without an observation, at the last Jacobian
 
     def full(self, xe: np.ndarray) -> np.ndarray:
         x = self.x0.copy()
@@ -89,6 +90,10 @@ class ResidualFunction:
         if jac or self._W is None:
             self._W = used
             self.deficit = sum(u[1] for u in used if u is not None)
+            # rows with no observation (a marker out of view): zero, and no degree of freedom.  Without a
+            # measurement covariance the weighting already drops them (they are in the deficit).
+            self.missing = sum(int((~ev.valid).sum()) for ev, lp in zip(evals, loops)
+                               if ev.valid is not None and (self.weighting != "noise" or lp.measurement_cov is not None))
         if self.row_weights is not None:
             r = r * self.row_weights
             if jac:
@@ -125,15 +130,14 @@ class StageResult:
 def plain_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, est: list[int],
                 scale: np.ndarray, sopt: SolverOptions, progress: Callable[[int, float], None] | None,
                 row_weights: np.ndarray | None = None) -> StageResult:
-    """The loop-closure residual itself (eq. 3.8) from `start` (estimated values).
+    """The loop-closure residual itself (eq. 3.8) from `start` (estimated values), floor truncation only.
 
-    Directions below 1e-4 of the largest singular value are held in this
-    stage: on a single self-motion many robots close the same curve, and
-    Gauss-Newton steps along the weakly seen directions reach degenerate ones
-    (a forearm of zero length); the weighted stage that follows moves them.
+    On a single self-motion many robots close the same curve, and its long
+    Gauss-Newton steps may reach a degenerate one (a forearm of zero length):
+    the caller compares it with the weighted fit (`calibration._better`).
     """
     fun = ResidualFunction(problem, x0, est, np.ones(len(problem.joints)), "none", row_weights)
-    res = levenberg_marquardt(fun, start, scale[est], replace(sopt, noise=0.0, rcond=1e-4), progress)
+    res = levenberg_marquardt(fun, start, scale[est], replace(sopt, noise=0.0), progress)
     return StageResult(res, fun)
 
 

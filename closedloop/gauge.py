@@ -146,9 +146,7 @@ def choose_gauge(problem: CalibrationProblem, x: np.ndarray, free: list[int], R:
     Each dropped parameter's null direction is then mapped to a kinematic
     change; one that is a pure uniform scaling (`scale_content`) holds the
     size, with the length L = d value / (size change) it stands for.  The
-    gauge named is the longest such (no longer than the robot).  Every other
-    dropped parameter held at its nominal value that also scales the robot
-    makes the size depend on that nominal value: said in the warning.
+    gauge named is the longest such (no longer than the robot).
     """
     params = problem.params
     prior = np.array([params[k].prior for k in free])
@@ -156,36 +154,49 @@ def choose_gauge(problem: CalibrationProblem, x: np.ndarray, free: list[int], R:
     lengths = [i for i in range(len(free)) if params[free[i]].kind != "loop" and params[free[i]].unit == "m"]
     g0 = prefer if prefer in lengths else max(lengths, key=lambda i: abs(length_of(problem, x, free[i])),
                                               default=None)
-    kept, dropped = reduce(order if g0 is None else [i for i in order if i != g0] + [g0])
-    if not dropped:
-        return None, kept, dropped, False, None, 0.0
-    cols = [names.index(d.name) for d in dropped]
-    V = np.zeros((len(params), len(cols)))
-    V[free] = null_directions(R, kept, cols) * prior[:, None]  # scaled -> parameter units
-    dP, A = kinematic_changes(problem, x, V, random_configurations(problem))
-    if not contains_scaling(dP, A):
-        return None, kept, dropped, False, None, 0.0
-    c, res = scale_content(dP, A)
-    length = prior[cols] / np.maximum(np.abs(c), 1e-300)
+    q = random_configurations(problem)
     reach = robot_reach(problem, x)
-    scaling = [j for j in range(len(cols)) if res[j] < 1e-3 and cols[j] in lengths and length[j] <= reach]
-    if not scaling:
-        return None, kept, dropped, True, None, 0.0
-    best = max(scaling, key=lambda j: length[j])
-    g = cols[best]
-    # a prior-sized error (1 cm, 10 mrad) in another held parameter that changes the size by over 0.5 %,
-    # unless that parameter is the gauge's own link seen from another frame (the same kinematic change)
-    def same_link(j: int) -> bool:
-        d = dP[:, j] - c[j] / c[best] * dP[:, best]
-        return bool(np.linalg.norm(d) <= 1e-3 * np.linalg.norm(dP[:, j]))
-
-    others = [f"{names[cols[j]]} (L = {length[j]:.3g} m)" for j in range(len(cols))
-              if j != best and abs(c[j]) > 5e-3 and not same_link(j)]
+    first = None
+    orders = [order] if g0 is None else [[i for i in order if i != g0] + [g0], order]
+    for attempt in orders:  # the longest length last (the thesis's choice), else the plain priority order
+        kept, dropped = reduce(attempt)
+        if not dropped:
+            return None, kept, dropped, False, None, 0.0
+        cols = [names.index(d.name) for d in dropped]
+        V = np.zeros((len(params), len(cols)))
+        V[free] = null_directions(R, kept, cols) * prior[:, None]  # scaled -> parameter units
+        dP, A = kinematic_changes(problem, x, V, q)
+        if not contains_scaling(dP, A):
+            return None, kept, dropped, False, None, 0.0
+        first = first or (kept, dropped)
+        c, res = scale_content(dP, A)
+        length = prior[cols] / np.maximum(np.abs(c), 1e-300)
+        scaling = [j for j in range(len(cols)) if res[j] < 1e-3 and cols[j] in lengths and length[j] <= reach]
+        if scaling:
+            best = max(scaling, key=lambda j: length[j])
+            found = (cols[best], kept, dropped, float(length[best]))
+            break
+    else:
+        found = None
+    if found is None or found[3] < 0.1:  # a short or no held length: try each long one last in turn
+        for g in sorted(lengths, key=lambda i: -abs(length_of(problem, x, free[i])))[:8]:
+            kept_g, dropped_g = reduce([i for i in order if i != g] + [g])
+            if names[g] not in [d.name for d in dropped_g]:
+                continue
+            Vg = np.zeros((len(params), 1))
+            Vg[free] = null_directions(R, kept_g, [g]) * prior[:, None]
+            c, res = scale_content(*kinematic_changes(problem, x, Vg, q))
+            L = float(prior[g] / max(abs(c[0]), 1e-300))
+            if res[0] < 1e-3 and L <= reach and (found is None or L > found[3]):
+                found = (g, kept_g, dropped_g, L)
+    if found is None:
+        return None, first[0], first[1], True, None, 0.0
+    g, kept, dropped, L = found
     warning = None
-    if others:
-        warning = (f"the overall size also depends on {', '.join(others[:4])}, held at nominal values the data "
-                   "cannot check: an error of d there scales the robot by d / L")
-    return g, kept, [d for d in dropped if d.name != names[g]], True, warning, float(length[best])
+    if L < 0.1:
+        warning = (f"the overall size is held by {names[g]}, which stands for a length of only {L * 1e3:.3g} mm: an "
+                   f"error of 2 mm in its nominal value changes the identified size by {0.002 / L:.1%}")
+    return g, kept, [d for d in dropped if d.name != names[g]], True, warning, L
 
 
 def robot_reach(problem: CalibrationProblem, x: np.ndarray) -> float:

@@ -204,6 +204,7 @@ class Structure:
     scale_free: bool = False  # the loops cannot see the overall size
     gauge_warning: str | None = None  # the size also hangs on other held values
     gauge_length: float = 0.0  # the length the gauge stands for (m)
+    rechecked: bool = False  # decided at a solution
 
 
 def project_to_closure(problem: CalibrationProblem, values: np.ndarray, iters: int = 12
@@ -289,26 +290,39 @@ def analyse_structure(problem: CalibrationProblem, x: np.ndarray, free: list[int
 
 
 def structure_holds(problem: CalibrationProblem, x: np.ndarray, structure: Structure, free: list[int]
-                    ) -> str | None:
-    """Why the reduction chosen elsewhere fails at `x` (a solution), or None when it holds.
+                    ) -> tuple[str | None, str | None]:
+    """Why the reduction chosen at the start fails at `x` (a solution), or None; and a warning, or None.
 
-    It holds when the kept parameters have full column rank on the readings
-    projected onto closure at `x` (rcond 1e-10: what the data cannot
-    separate is the SVD truncation's business, not the reduction's) and,
-    with a gauge g, when the kept parameters and g have one null direction
-    and it is g's own uniform scaling of the robot (`gauge.sets_scale`).
+    It fails when the kept parameters are structurally dependent on the
+    readings projected onto closure at `x` (rcond 1e-10: what the data cannot
+    separate is the SVD truncation's business, not the reduction's), or when
+    a parameter dropped for having no effect at the start has one at `x` (a
+    tool point started on a joint axis, found off it).  With a gauge g, the
+    kept parameters and g must still have one null direction, g's own uniform
+    scaling of the robot (`gauge.sets_scale`); if not, the size is not held
+    by g alone, which is a warning (the data leave it to other held values).
     """
     scale = np.array([p.prior for p in problem.params])
     thetas, ok = project_to_closure(problem, x)
     evals = problem.evaluate(x, True, thetas, columns=free)
     blocks = [ev.J[m].reshape(-1, len(free)) for ev, m in zip(evals, ok) if m.any()]
     if not blocks:
-        return "no configuration closes the loops at the solution"
-    R = compress(np.vstack(blocks) * scale[free])
+        return "no configuration closes the loops at the solution", None
+    C = np.vstack(blocks) * scale[free]
+    norms = np.linalg.norm(C, axis=0)
+    for d in structure.dropped:
+        if d.reason.startswith("has no effect") and d.name in problem.index:
+            k = problem.index[d.name]
+            if k in free and norms[free.index(k)] > 1e-9 * norms.max():
+                return f"{d.name} has an effect at the solution", None
+    R = compress(C)
     kept = [free.index(k) for k in structure.kept]
     S = np.linalg.svd(R[:, kept], compute_uv=False)
     if S.size and S[-1] <= 1e-10 * S[0]:
-        return "the estimated parameters are structurally dependent at the solution"
+        return "the estimated parameters are structurally dependent at the solution", None
+    if structure.scale_free and structure.gauge is None and not getattr(structure, "rechecked", False):
+        return "no single length was found to set the scale at the start", None
     if structure.gauge is not None and not sets_scale(problem, x, free, R, kept, free.index(structure.gauge)):
-        return f"{problem.names[structure.gauge]} no longer sets the length scale at the solution"
-    return None
+        return None, (f"{problem.names[structure.gauge]} does not hold the length scale alone at the solution: "
+                      "the data leave part of the overall size to other held values")
+    return None, None

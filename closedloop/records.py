@@ -153,6 +153,11 @@ def residual_stats(problem: CalibrationProblem, evals: list[BlockEval]) -> list[
         # image points: the (u, v) pairs' Euclidean errors, pooled over configurations and cameras
         pn = (np.linalg.norm(ev.r[:, list(lp.pixel_rows)].reshape(-1, 2), axis=1)
               if lp.pixel_rows and ev.r.size else None)
+        ok = getattr(ev, "valid", None)  # rows with an observation (LoopEval.valid): missing ones do not count
+        if ok is not None:
+            tn = None if tn is None else tn[ok[:, list(lp.translation_rows)].all(axis=1)]
+            wn = None if wn is None else wn[ok[:, list(lp.rotation_rows)].all(axis=1)]
+            pn = None if pn is None else pn[ok[:, list(lp.pixel_rows)].reshape(-1, 2).all(axis=1)]
 
         def rms(v):
             return float(np.sqrt(np.mean(v ** 2))) if v is not None and v.size else None

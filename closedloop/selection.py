@@ -70,10 +70,13 @@ def select_parameters(problem: CalibrationProblem, identify: list[str] | None,
     return status
 
 
+SMALL_RANGE = 0.05  # rad: a joint that moves less than this barely excites the geometry around it
+
+
 def check_motion(problem: CalibrationProblem, x0: np.ndarray, status: list[str]
-                 ) -> tuple[list[str], list[Dropped]]:
-    """Notes on the data's motion; drops what a never-moving joint cannot reveal. Edits `status`."""
-    names, notes, dropped = problem.names, [], []
+                 ) -> tuple[list[str], list[Dropped], list[str]]:
+    """Notes and warnings on the data's motion; drops what a never-moving joint cannot reveal. Edits `status`."""
+    names, notes, dropped, warnings = problem.names, [], [], []
     theta_all = np.vstack([b.theta for b in problem.blocks])
     ranges = theta_all.max(axis=0) - theta_all.min(axis=0)
     if np.all(ranges < MIN_RANGE):
@@ -87,6 +90,12 @@ def check_motion(problem: CalibrationProblem, x0: np.ndarray, status: list[str]
             if status[k] == "selected":
                 status[k] = "dropped"
                 dropped.append(Dropped(names[k], "its joint never moves, so scale and offset are one"))
+    small = [f"{n} ({r:.3g})" for n, r in zip(problem.joints, ranges) if MIN_RANGE <= r < SMALL_RANGE
+             and problem.robot.joint(n).unit == "rad"]
+    if small:
+        warnings.append(f"joint(s) {', '.join(small)} move less than {SMALL_RANGE} rad in the log: the data barely "
+                        "excite the geometry around them, and the calibrated model is unchecked away from the "
+                        "logged configurations")
     for b, ev in zip(problem.blocks, problem.evaluate(x0, True, columns=[])):
         if not b.loop.scale_free:  # a measured (open) loop: mobility is not a question
             continue
@@ -113,4 +122,4 @@ def check_motion(problem: CalibrationProblem, x0: np.ndarray, status: list[str]
         status[k] = "fixed"
         notes.append(f"fixed {names[k]} = {x0[k]:g}: with every scale factor free, k = 0 fits any data "
                      "(thesis 4.2.2)")
-    return notes, dropped
+    return notes, dropped, warnings

@@ -4,14 +4,19 @@ The calibration's dense algebra is tall and thin: a few thousand to a few
 hundred thousand rows, a few dozen columns (the Jacobian of 6 residual rows
 per configuration in the estimated parameters), factored through small row
 blocks (`solver._r_factor`) and batched 6 x 6 products.  OpenBLAS's threads
-gain nothing there and lose a lot when other processes hold the cores: its
-worker threads spin-wait for a core that the scheduler has given to someone
-else (measured on a 2-core machine under load 2: the Panda weld at 1,000
-configurations 0.20 s with one thread, 0.3-0.8 s with two; see
-`benchmarks/threads_crossover.py`).  So a problem gets one thread unless its
-work, rows * cols^2 (the flops of a QR pass), exceeds `THREADED_WORK`, and then
-at most as many as there are idle cores (logical CPUs minus the one-minute
-load average), never more than the process's current setting.
+gain nothing there and cost a lot when other processes hold the cores: its
+worker threads spin-wait for a core the scheduler has given to someone else.
+Measured on a 2-core AMD EPYC (`benchmarks/bench_calibrate.py`, thread modes
+1 / default / auto), the Panda weld costs 0.13 s CPU at 1,000 configurations
+single-threaded and 0.38-0.40 s with OpenBLAS's two threads (wall, both cores
+kept busy: 1.2 s vs 3.3 s); at 10,000, 1.3 s vs 3.1 s CPU; on a nearly idle
+machine (load 1.6) two threads were never faster from 1,000 to 30,000
+configurations (180,000 rows x 28 columns); at 100,000 they cost 38.5 s CPU
+against 33.0 s for the same wall time.  So a problem gets one thread
+unless its work, rows * cols^2 (the flops of a QR pass), exceeds
+`THREADED_WORK`, and then at most as many as there are idle cores (logical
+CPUs minus the one-minute load average), never more than the process's
+current setting.
 
 `blas_threads(n, rows, cols)` is a context manager: the user's setting
 (environment variables, an outer `threadpool_limits`) is restored on exit,
@@ -29,9 +34,9 @@ from typing import Iterator
 
 log = logging.getLogger(__name__)
 
-# rows * cols^2 above which a second thread can pay on an idle machine (a 600,000 x 28 QR pass:
-# about 0.1 s single-threaded).  Measured crossover on a 2-core AMD EPYC: none below 180,000 rows
-# x 28 columns (benchmarks/threads_crossover.py); kept above that.
+# rows * cols^2 above which a second thread may pay on idle cores: above the largest problem measured,
+# 100,000 Panda configurations (600,000 x 28 = 4.7e8), where two threads still cost 17 % more CPU
+# (38.5 s vs 33.0 s) for no shorter wall time.
 THREADED_WORK = 6e8
 
 _controller = None

@@ -122,6 +122,12 @@ def _changes(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -
         verdict.add(SUSPECT, f"the robot's overall size changed by a factor {s:.3g}")
     prob = result.problem
     delta = result.values - result.initial
+    if prob.robot.kind == "dh":  # theta + pi with a and alpha negated is the same mechanism (a relabelling)
+        for k, p in enumerate(prob.params):
+            if p.kind == "offset" or (p.kind == "dh" and p.unit == "rad"):
+                delta[k] = (delta[k] + np.pi / 2) % np.pi - np.pi / 2
+            elif p.kind == "dh" and p.field == "a":
+                delta[k] = abs(result.values[k]) - abs(result.initial[k])
     for factor, status, what in ((3.0, FAILED, "corrections no calibration makes (a flipped axis, a link "
                                                "gone)"), (1.0, SUSPECT, "implausibly large corrections")):
         moved = []

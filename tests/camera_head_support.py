@@ -26,7 +26,8 @@ from closedloop.truth import draw_truth
 FRAMES = ["cam_left_optical", "cam_right_optical"]
 ARM = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]
 Q0 = np.array([0.0, -1.3, 1.6, -1.9, -1.57, 0.0])
-K_TRUE = [mujoco_intrinsics() + np.array([3.0, -2.0, 4.0, -3.0]), mujoco_intrinsics() + np.array([-2.0, 1.0, -5.0, 2.0])]
+K_TRUE = [mujoco_intrinsics() + np.array([3.0, -2.0, 4.0, -3.0]),
+          mujoco_intrinsics() + np.array([-2.0, 1.0, -5.0, 2.0])]
 MOUNT = [pin.SE3(pin.exp3(np.array([0.01, -0.02, 0.015])), np.array([0.004, -0.003, 0.005])),
          pin.SE3(pin.exp3(np.array([-0.012, 0.01, -0.02])), np.array([-0.003, 0.002, -0.004]))]
 _robots: dict[float, RobotModel] = {}

@@ -70,3 +70,52 @@ def geodesic(r1, r2) -> float:
     import pinocchio as pin
 
     return float(np.linalg.norm(pin.log3(pin.exp3(np.asarray(r1, float)).T @ pin.exp3(np.asarray(r2, float)))))
+
+
+def relative_fk_error(res, truth_values, frame_a: str, frame_b: str, n: int = 60, seed: int = 0,
+                      fit_scale: bool = True, tip: str | None = None) -> tuple[float, float, float]:
+    """Gauge-free comparison of a calibration with a truth: what the robot does, not its parameters.
+
+    The pose of frame A in frame B at `n` random readings (within the loop
+    joints' ranges), from the calibrated parameters and from `truth_values`
+    (a full parameter vector of the same problem).  Positions are compared
+    after the best scale s (only the loop's length scale is a free gauge of a
+    closed loop: base and tool are inside the relative pose), rotations as
+    they are.  With `tip` (the loop's name of a point loop) only the point
+    T_B^-1 T_A tip is compared, each model with its own tip (a ball joint
+    leaves the orientation free).  Returns (max position error [m], max
+    rotation error [rad], s).
+    """
+    import pinocchio as pin
+
+    prob = res.problem
+    rng = np.random.default_rng(seed)
+    lo = np.array([max(prob.robot.joint(j).lower, -np.pi) for j in prob.joints])
+    hi = np.array([min(prob.robot.joint(j).upper, np.pi) for j in prob.joints])
+    readings = rng.uniform(lo, hi, (n, len(prob.joints)))
+
+    def poses(values):
+        state = prob.rp.apply(np.asarray(values)[:prob.n_robot])
+        q = prob.robot.configurations(readings * state.scale + state.offset, prob.joints)
+        fa, fb = prob.robot.frame_id(frame_a), prob.robot.frame_id(frame_b)
+        out = []
+        for qi in q:
+            pin.forwardKinematics(state.model, state.data, qi)
+            out.append(pin.updateFramePlacement(state.model, state.data, fb).actInv(
+                pin.updateFramePlacement(state.model, state.data, fa)))
+        return out
+
+    cal, tru = poses(res.values), poses(truth_values)
+    if tip is not None:
+        idx = [prob.index[f"{tip}.tip_{a}"] for a in "xyz"]
+        tc, tt = np.asarray(res.values)[idx], np.asarray(truth_values)[idx]
+        P = np.array([m.act(tc) for m in cal])
+        Q = np.array([m.act(tt) for m in tru])
+        s = float(np.sum(P * Q) / np.sum(P * P)) if fit_scale else 1.0
+        return float(np.abs(s * P - Q).max()), 0.0, s
+    P = np.array([m.translation for m in cal])
+    Q = np.array([m.translation for m in tru])
+    s = float(np.sum(P * Q) / np.sum(P * P)) if fit_scale else 1.0
+    pos = float(np.abs(s * P - Q).max())
+    rot = max(float(np.linalg.norm(pin.log3(a.rotation.T @ b.rotation))) for a, b in zip(cal, tru))
+    return pos, rot, s

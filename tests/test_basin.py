@@ -2,9 +2,10 @@
 
 Exact data from `thesis_examples.py` (loops closed with Pinocchio on the true D-H table).  Each
 start must be recovered (the calibrated mechanism equals the truth to 1e-6, gauge-free) or carry a
-verdict other than 'ok'; and at least all but one of the starts must be recovered (the target is
-95 % over 100 starts, `benchmarks/basin.py`).  The door and Example 2 take the longest per
-start (hinge angles eliminated per configuration; 12 joints), so they have fewer starts here.
+verdict other than 'ok'; and at least all but one of the starts must be recovered without a
+'failed' verdict (the target is 95 % over 100 starts, `benchmarks/basin.py`).  The door and
+Example 2 take the longest per start (hinge angles eliminated per configuration; 12 joints), so
+they have fewer starts here.
 """
 
 from __future__ import annotations
@@ -54,6 +55,7 @@ def test_basin_quick(name):
     ex = te.EXAMPLES[name]()
     outs = [te.run_start(ex, seed) for seed in range(STARTS[name])]
     lines = "\n".join(o.line() for o in outs)
-    bad = [o for o in outs if not o.recovered and not o.refused]
-    assert not bad, f"not recovered and not refused:\n{lines}"
-    assert sum(o.recovered for o in outs) >= len(outs) - 1, f"too few recovered:\n{lines}"
+    if any(not o.recovered and not o.refused for o in outs):
+        pytest.fail(f"not recovered and not refused:\n{lines}", pytrace=False)
+    if sum(o.accepted for o in outs) < len(outs) - 1:
+        pytest.fail(f"too few recovered (or recovered but 'failed'):\n{lines}", pytrace=False)

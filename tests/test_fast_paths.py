@@ -89,7 +89,7 @@ def test_projection_matches_pseudo_inverse_steps(panda, panda_weld):
     for _ in range(8):
         ev = prob.evaluate(x, True, [ref], columns=[])[0]
         ref = ref - np.einsum("nij,nj->ni", np.linalg.pinv(ev.Jq, rcond=1e-10), ev.r)
-    out = project_to_closure(prob, x)[0]
+    out = project_to_closure(prob, x)[0][0]
     assert np.abs(out - ref).max() < 1e-12
     assert np.abs(prob.evaluate(x, False, [out])[0].r).max() < 1e-13
 

@@ -106,16 +106,19 @@ def _publish_states(out: Path, names: tuple[str, ...], refs: dict[str, dict[str,
 
 
 def _kill_runs(out: Path, names: tuple[str, ...], args, kills: int, rng: np.random.Generator) -> list[dict]:
-    """References for the two sets ('a', 'b'), then `kills` runs writing the set not in place, each killed at a
-    random moment (uniform over 0.5..1.15 of a full run: most fall in the computation, some at publishing)."""
+    """References for the two sets ('a', 'b'), then runs writing the set not in place, each killed at a random
+    moment (uniform over 0.5..1.1 of a full run: most fall in the computation, some at publishing), until
+    `kills` runs died by SIGKILL (at most 3 * kills runs; a run that finished first leaves the new set)."""
     refs, seconds = {}, 0.0
     for tag in ("b", "a"):  # set 'a' is in place after this
         _, seconds = _run(args(tag))
         refs[tag] = {n: (out / n).read_bytes() for n in names}
     in_place, states = "a", []
-    for _ in range(kills):
+    while sum(st["returncode"] == -signal.SIGKILL for st in states) < kills and len(states) < 3 * kills:
         target = "b" if in_place == "a" else "a"
-        rc, _ = _run(args(target), kill_after=float(rng.uniform(0.5, 1.15)) * seconds)
+        rc, elapsed = _run(args(target), kill_after=float(rng.uniform(0.5, 1.1)) * seconds)
+        if rc == 0:  # it finished first: follow the machine's speed
+            seconds = 0.5 * (seconds + elapsed)
         st = _publish_states(out, names, refs)
         tags = {st[n] for n in names}
         st.update(returncode=rc, old=in_place, new=target)

@@ -26,8 +26,8 @@ RIG = pin.SE3(pin.exp3(np.array([0.0, -0.1, 0.0])), np.array([0.18, 0.0, 0.0])) 
 JAC_CASES = {
     "reprojection": lambda: CameraLoop("c", "tool0", camera_frames=FRAMES, initial_poses=MOUNT, initial_K=K_TRUE),
     "reprojection_dist_tip": lambda: CameraLoop("c", "tool0", camera_frames=FRAMES, initial_poses=MOUNT,
-                                                K=[K_TRUE[0], None], initial_K=[None, K_TRUE[1]], dist=("k1", "p2", "k3"),
-                                                D=[D, D], initial_tip=MARKER),
+                                                K=[K_TRUE[0], None], initial_K=[None, K_TRUE[1]],
+                                                dist=("k1", "p2", "k3"), D=[D, D], initial_tip=MARKER),
     "triangulation": lambda: CameraLoop("c", "tool0", camera_frames=FRAMES, initial_poses=MOUNT, initial_K=K_TRUE,
                                         closure="triangulation", initial_tip=MARKER),
     "triangulation_dist": lambda: CameraLoop("c", "tool0", camera_frames=FRAMES, initial_poses=MOUNT, initial_K=K_TRUE,
@@ -180,3 +180,17 @@ def test_missing_views_are_not_errors():
     with pytest.raises(LoopError, match="row.s. 3"):
         build_problem(robot, JointLog(robot.joint_names, th, None, None, extra), [loop])
     assert calibrate is not None
+
+
+def test_residual_stats_ignore_missing_views():
+    """The report's pixel statistics pool only the image points that were seen."""
+    from types import SimpleNamespace
+
+    from closedloop.problem import BlockEval
+    from closedloop.records import residual_stats
+
+    loop = CameraLoop("cam", "tool0", camera_frames=FRAMES)
+    r = np.array([[3.0, 4.0, 0.0, 0.0], [0.0, 0.0, 6.0, 8.0]])
+    valid = np.array([[True, True, False, False], [True, True, True, True]])
+    (s,) = residual_stats(SimpleNamespace(blocks=[SimpleNamespace(loop=loop)]), [BlockEval(r, None, None, valid)])
+    assert np.isclose(s.max_px, 10.0) and np.isclose(s.rms_px, np.sqrt((25 + 0 + 100) / 3))

@@ -19,6 +19,7 @@ from closedloop.problem import CalibrationProblem, LoopBlock
 from closedloop.robot import RobotModel
 from closedloop.synthetic import self_motion
 from closedloop.truth import draw_truth, identifiable_names
+from support import relative_fk_error
 
 ERD = site.getsitepackages()[0] + "/cmeel.prefix/share/example-robot-data/robots/"
 UR5 = ERD + "ur_description/urdf/ur5_robot.urdf"
@@ -163,24 +164,28 @@ def test_point_contact_panda():
                                    {"ball.tip_x": 0.01, "ball.tip_y": -0.02, "ball.tip_z": 0.12})
     est, err = estimated_errors(res, truth)
     assert np.abs(err).max() < 1e-8
-    assert len(est) == 25  # 19 robot + 6 loop
+    # 21 robot + 6 loop: the tip (12 cm out) starts from the data, off the last axis, whose position and
+    # tilt are then identified (a start on the axis dropped them)
+    assert len(est) == 27
     dropped = dropped_names(res)
     assert {f"panda_joint1.{f}" for f in COLS} | {"panda_joint1.offset"} <= dropped
-    assert {"panda_joint7.offset", "panda_joint7.x", "panda_joint7.z", "panda_joint7.rx",
-            "panda_joint7.ry", "panda_joint7.rz"} <= dropped
+    assert {"panda_joint7.offset", "panda_joint7.rz"} <= dropped
+    assert res.residuals_after[0].rms_m < 1e-10 and res.verdict.status == "ok"
 
 
 def test_point_two_arms_baxter():
     """Baxter's grippers joined point-wise: two branches of one model, 14 joints."""
     res, truth = closed_experiment(BAXTER, lambda: PointLoop("touch", "left_gripper", "right_gripper"),
                                    BAXTER_Q0, {"touch.tip_z": 0.02}, n=40)
-    est, err = estimated_errors(res, truth)
-    assert np.abs(err).max() < 1e-8
+    # judged by what the arms do: the touching point in the right gripper, up to the length scale
+    pos, _, _ = relative_fk_error(res, [truth[n] for n in res.names], "left_gripper", "right_gripper", tip="touch")
+    assert pos < 1e-8
     dropped = dropped_names(res)
     # only the relative pose of the two arm bases matters: one base is the gauge
-    assert {f"left_s0.{f}" for f in COLS} <= dropped
-    assert res.status[res.names.index("right_s0.x")] == "estimated"
-    assert any("length scale" in n for n in res.notes)
+    assert {f"left_s0.{f}" for f in COLS} <= dropped | {res.gauge}
+    # the size is held by a named length, or the verdict says that none alone holds it (never silently)
+    assert any("length scale" in n for n in res.notes) or \
+        (res.verdict.status == "suspect" and any("scale is not determined" in r for r in res.verdict.reasons))
 
 
 def test_point_contact_noise_within_four_sigma():

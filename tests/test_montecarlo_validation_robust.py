@@ -101,7 +101,7 @@ def test_three_gross_outliers_are_flagged(scenario):
         assert np.linalg.norm(r[:3]) == pytest.approx(0.05, rel=0.02)
     # Least squares (unweighted: the noise-weighted LM does not converge with these outliers),
     # then Cauchy IRLS from it; flags at the robust solution.
-    ls = calibrate(sc.robot, sc.log(th), sc.loops, CalibrationOptions(noise=NOISE, weighting="none"))
+    ls = calibrate(sc.robot, sc.log(th), sc.loops, CalibrationOptions(noise=NOISE, weighting="none", robust=None))
     d_ls = np.linalg.norm(config_residuals(ls.problem, ls.values, NOISE)[0], axis=1)
     assert set(np.argsort(-d_ls)[:3]) == set(bad)  # already the three largest at the LS fit
     out = irls(ls, "cauchy", noise=NOISE, max_iter=100)

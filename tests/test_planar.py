@@ -6,6 +6,7 @@ import importlib.util
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 _spec = importlib.util.spec_from_file_location(
     "planar_ground_contact", Path(__file__).resolve().parents[1] / "examples" / "planar_ground_contact.py")
@@ -45,23 +46,22 @@ def test_other_elbow_branch_and_scale():
 def test_parallelogram_singularity_4():
     """a1 = a3, a2 = a4: opposite sides stay parallel; only a1 - a3 is determined.
 
-    The core's structural reduction works on the data projected onto the
-    NOMINAL model's closure manifold, which is not a parallelogram, so the
-    dependency is not structural there: it shows up at the solution as a weak
-    (data-unidentifiable) direction in ``res.weak``, not in ``res.dropped``.
+    The structural reduction is decided at the start, on the data projected
+    onto the NOMINAL model's closure manifold, which is not a parallelogram;
+    re-checked at the solution, which is one, the dependency is structural
+    there: a1 is dropped, absorbed by the tip (a1 + a3 free), and the problem
+    re-solved (Singularity 4 is a property of the mechanism, not of the start).
     """
     a_par, theta = planar.parallelogram_data(0.7, 1.0, np.linspace(0.3, 1.3, 25))
     C, y = planar.linear_system(theta)
     S = np.linalg.svd(C, compute_uv=False)
     assert S[-1] < 1e-12 * S[0]  # columns of C dependent: cos(phi3) = -cos(phi1)
     a_gen, res = planar.general_solution(theta)
-    assert not res.dropped
-    assert len(res.weak) == 1
-    terms = dict(res.weak[0].terms)
-    assert set(terms) == {"joint2.x", "ground.tip_x"}
-    assert terms["joint2.x"] * terms["ground.tip_x"] > 0  # a1 + a3 free, a1 - a3 determined
-    assert res.status[res.names.index("joint2.x")] == "unidentifiable"
-    assert res.status[res.names.index("ground.tip_x")] == "unidentifiable"
+    dropped = {d.name: d for d in res.dropped}
+    assert set(dropped) == {"joint2.x"}
+    assert dict(dropped["joint2.x"].absorbed_into) == pytest.approx({"ground.tip_x": -1.0})
+    assert any("re-checked at the solution" in n for n in res.notes)
+    assert res.status[res.names.index("joint2.x")] == "dropped"
     assert res.status[res.names.index("joint3.x")] == "estimated"
     assert abs(a_gen[1] - a_par[1]) < 1e-8  # a2 = a4
     assert abs((a_gen[0] - a_gen[2]) - (a_par[0] - a_par[2])) < 1e-8  # the determined difference

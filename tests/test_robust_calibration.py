@@ -47,5 +47,18 @@ def test_three_outliers(panda, data):
     assert any("suspect configuration: log row 18" in n for n in robust.notes)
     # plain least squares is pulled away by the same outliers
     plain = calibrate(panda, JointLog(ds.joints, corrupt), [WeldLoop("fixture", "panda_hand")],
-                      CalibrationOptions(weighting="none"))
+                      CalibrationOptions(weighting="none", robust=None))
     assert held_out_error(plain, held_out) > 3 * h0
+
+
+def test_default_rejects_the_three_outliers(panda, data):
+    """The default (robust='auto') finds the same three rows, leaves them out, and predicts as the clean fit."""
+    ds, train, held_out = data
+    clean = calibrate(panda, JointLog(ds.joints, train), [WeldLoop("fixture", "panda_hand")])
+    corrupt = train.copy()
+    corrupt[[17, 88, 150], 1] += 0.1
+    res = calibrate(panda, JointLog(ds.joints, corrupt), [WeldLoop("fixture", "panda_hand")])
+    assert sorted(r.row for r in res.rejected) == [18, 89, 151]
+    h0, h1 = held_out_error(clean, held_out), held_out_error(res, held_out)
+    assert abs(h1 / h0 - 1.0) < 0.10, (h0, h1)
+    assert res.verdict.status == "ok", res.verdict.describe()

@@ -187,7 +187,7 @@ def _open_rows(design, offsets=None) -> np.ndarray:
 
 def _sweep(fun_free, x0: np.ndarray, drivers: np.ndarray) -> np.ndarray:
     """Solve the free unknowns for each driver value by Newton from the nearest solved one."""
-    order = np.argsort(np.linalg.norm(drivers - drivers.min(axis=0) * 0, axis=1))
+    order = np.argsort(np.linalg.norm(drivers, axis=1))  # outward from the home configuration
     sols: dict[int, np.ndarray] = {}
     done = [(np.zeros(drivers.shape[1]), x0)]
     for i in order:
@@ -230,8 +230,7 @@ def example1() -> Example:
     home = np.array([0.0, 0.5, 0.3, 1.2, -0.4, 0.8, 0.5])
     F = open_frames(_open_rows(ARM7), home)
     p, u = axes_of(F[:7])
-    ex = _closed_chain("example1", p, u, home, [0], np.linspace(0.0, 0.5, 40)[:, None], ["j3.s"])
-    return ex
+    return _closed_chain("example1", p, u, home, [0], np.linspace(0.0, 0.5, 40)[:, None], ["j3.s"])
 
 
 @functools.lru_cache(maxsize=None)
@@ -388,9 +387,14 @@ class StartOutcome:
     def refused(self) -> bool:
         return self.status in ("suspect", "failed")
 
+    @property
+    def accepted(self) -> bool:
+        """Recovered and not refused outright (a 'failed' verdict on the right answer is a false alarm)."""
+        return self.recovered and self.status not in ("failed", "crash")
+
     def line(self) -> str:
-        tag = "recovered" if self.recovered else "REFUSED" if self.refused else "CRASH" if self.status == "crash" \
-            else "CONFIDENTLY WRONG"
+        tag = ("recovered" if self.accepted else "RIGHT BUT FAILED" if self.recovered else "REFUSED" if self.refused
+               else "CRASH" if self.status == "crash" else "CONFIDENTLY WRONG")
         return (f"{self.example:9s} start {self.seed:3d} {tag:18s} verdict={self.status:7s} conv={self.converged!s:5s} "
                 f"mechanism err {self.error:.2e} param err {self.param_error:.2e} {self.seconds:5.2f}s {self.message}")
 

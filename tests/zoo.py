@@ -22,6 +22,9 @@ Loops (``Case.loop_specs`` are ``--loop`` strings):
 * ``plane``: the tool point on a plane;
 * ``hinge``: the tool grasping a handle turning about a fixed axis (a door);
 * ``measured_point``: a tracker measures the tool point (own noise ``sigma_t``).
+
+``judge``, ``run_case`` and ``predicted_std`` live in ``zoo_judge.py`` and are re-exported here.
+Quick subset: ``tests/test_zoo.py``; the full zoo: ``benchmarks/zoo.py``.
 """
 
 from __future__ import annotations

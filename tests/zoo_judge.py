@@ -181,8 +181,8 @@ class Outcome:
 
     def line(self) -> str:
         j = self.judgement.summary() if self.judgement else self.error
-        tag = "right" if self.right else ("REFUSED" if self.refused else
-                                          "CRASH" if self.status == "crash" else "CONFIDENTLY WRONG")
+        tag = ("right" if self.right and not self.refused else "RIGHT BUT FLAGGED" if self.right else
+               "REFUSED" if self.refused else "CRASH" if self.status == "crash" else "CONFIDENTLY WRONG")
         return (f"{self.case.label:34s} {tag:18s} verdict={self.status:7s} conv={self.converged!s:5s} "
                 f"{self.seconds:5.2f}s  {j}")
 

@@ -346,91 +346,9 @@ class CameraLoop(Loop):
         return self.initialize_frames([TA, TB])
 
     def initialize_frames(self, Ts: list[np.ndarray]) -> np.ndarray | None:
-        """Unknown camera poses, intrinsics, distortion and marker fitted with the robot held.
-
-        Per camera with an unknown pose, a linear start from the marker
-        positions y_i = T_Fc^-1 T_A t in its frame (t: the known tip, else its
-        initial value) and the pixels it saw: the normalised DLT decomposed
-        into K [R | t] when the intrinsics are unknown and have no guess, else
-        linear PnP with the known (or guessed) intrinsics (``camera_from_dlt``);
-        the distortion starts at its given values (default 0).  A camera whose
-        DLT fails (fewer than six views, coplanar marker positions) keeps its
-        ``initial_poses`` guess (and, with neither intrinsics nor a guess,
-        f = 1000 px with the principal point at the mean pixel).  Then
-        Gauss-Newton on the residual over every unknown own parameter (the
-        tip too, unless an ``initial_tip`` was given).  When pose guesses were
-        given, the same refinement also starts from them alone and the start
-        with the lower residual wins.  Deterministic.
-        """
-        if self.n_own == 0:
-            return None
-        N = Ts[0].shape[0]
-        if self.meas is None or self.meas.shape[0] != N:
-            return None
-        p_guess = np.array([q.nominal for q in self.parameters()])
-        tip = self.tip if self.tip is not None else self.initial_tip
-        seen = self.observed(N)
-        p_lin = p_guess.copy()
-        for c in range(self.cameras):
-            y, *_ = relative_point(Ts[0], Ts[self._fidx[c]], tip)
-            uv = self.meas[seen[:, c], 2 * c:2 * c + 2]
-            y = y[seen[:, c]]
-            sl, slk = self.sl[f"pose{c}"], self.sl[f"K{c}"]
-            k_known = self.K[c] if slk is None else self.initial_K[c]
-            if sl is None and k_known is not None:
-                continue  # nothing linear to estimate (the pose is known or follows the rig)
-            fit = camera_from_dlt(y, uv, k_known)
-            if fit is not None:
-                if sl is not None:
-                    p_lin[sl] = vec_of(fit[0])
-                if k_known is None:
-                    p_lin[slk] = fit[1]
-            elif k_known is None:  # no DLT, no guess: centre the principal point
-                p_lin[slk] = np.concatenate([PLACEHOLDER_K[:2], uv.mean(axis=0) if len(uv) else [0.0, 0.0]])
-        keep_tip = self.sl["tip"] is not None and not self._fit_tip
-        free = np.arange(self.sl["tip"].start if keep_tip else self.n_own)  # the tip is last
-        if free.size == 0:
-            return p_lin
-        starts = [p_lin] + ([p_guess] if any(x is not None for x in self.initial_poses) else [])
-        best, best_cost = p_lin, np.inf
-        for p0 in starts:
-            p = self._refine(Ts, self.normalize(p0), free)
-            r = self.residual_frames(Ts, p)
-            cost = float(np.sum(r * r)) if np.all(np.isfinite(r)) else np.inf
-            if cost < best_cost:
-                best, best_cost = p, cost
-        return best
-
-    def _refine(self, Ts: list[np.ndarray], p: np.ndarray, free: np.ndarray, iters: int = 40) -> np.ndarray:
-        """Gauss-Newton on the own parameters p[free] with the robot held (truncated SVD steps, halving)."""
-        def cost_of(q):
-            r = self.residual_frames(Ts, q)
-            return float(np.sum(r * r)) if np.all(np.isfinite(r)) else np.inf
-
-        cost = cost_of(p)
-        for _ in range(iters):
-            ev = self.evaluate_frames(Ts, p)
-            r = ev.r.reshape(-1)
-            J = ev.dp.reshape(r.size, -1)[:, free]
-            U, S, Vt = np.linalg.svd(J, full_matrices=False)
-            keep = S > 1e-9 * max(S[0] if S.size else 0.0, 1e-300)
-            step = -(Vt[keep].T @ ((U[:, keep].T @ r) / S[keep]))
-            lam = 1.0
-            for _h in range(12):
-                q = p.copy()
-                q[free] += lam * step
-                q = self.normalize(q)
-                c = cost_of(q)
-                if c <= cost:
-                    break
-                lam *= 0.5
-            else:
-                break
-            small = np.abs(lam * step).max() < 1e-13 or cost - c <= 1e-15 * max(cost, 1e-300)
-            p, cost = q, c
-            if small:
-                break
-        return p
+        """Unknown camera poses, intrinsics, distortion and marker from the data (``camera_start``)."""
+        from .camera_start import initialize_camera_loop
+        return initialize_camera_loop(self, Ts)
 
     def describe(self) -> dict:
         cams = []

@@ -73,7 +73,8 @@ def camera_loop_from_spec(kw: dict[str, str], robot: RobotModel) -> Loop:
                         "(more: one frame each, to=F1+F2+F3)")
     if cameras > MAX_CAMERAS:
         raise LoopError(f"camera loop '{name}': {cameras} cameras; at most {MAX_CAMERAS}")
-    extra = sorted(k for k in kw for c in range(cameras + 1, MAX_CAMERAS + 1) if k in {p.format(c) for p in _PER_CAMERA})
+    extra = sorted(k for k in kw for c in range(cameras + 1, MAX_CAMERAS + 1)
+                   if k in {p.format(c) for p in _PER_CAMERA})
     if "rig" in kw and cameras != 2:
         extra.insert(0, "rig")
     if extra:

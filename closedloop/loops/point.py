@@ -130,9 +130,10 @@ class PointLoop(Loop):
 
         With both unknown and no initial tip given: R_i t - p = -d_i for every
         configuration (T_B^-1 T_A = (R_i, d_i)), linear least squares in
-        (t, p) when the rotations R_i span enough axes (a start on a joint
-        axis, t = 0, would make that axis's parameters look redundant);
-        otherwise the point is the mean of T_B^-1 T_A t.
+        (t, p) when the rotations R_i span enough axes, used when it puts the
+        tip over 2 cm from frame A's origin (a start there, on a joint axis,
+        would be far from the data; within 2 cm the frame is taken at its
+        word); otherwise the point is the mean of T_B^-1 T_A t.
         """
         if self.point is not None or self.initial_point is not None:
             return None
@@ -144,7 +145,8 @@ class PointLoop(Loop):
             S = np.linalg.svd(A, compute_uv=False)
             if S[-1] > 1e-3 * S[0]:
                 sol = np.linalg.lstsq(A, b, rcond=None)[0]
-                return sol
+                if np.linalg.norm(sol[:3]) > 0.02:  # the data put the tip away from the frame origin
+                    return sol
         y, *_ = relative_point(TA, TB, tip)
         p = y.mean(axis=0)
         return p if self.tip is not None else np.concatenate([tip, p])

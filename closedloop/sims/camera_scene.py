@@ -12,7 +12,10 @@ of sight, x right, y down).
 ``simulate_head`` draws the truth per seed: the UR5's and the pan joints'
 placement errors and offsets (only those a calibration on nominal data
 estimates, so that the truth is in the identifiable parameterisation; 1 mm /
-1 mrad / 10 mrad as in the other scenarios), each camera's mounting error in its optical frame
+1 mrad / 10 mrad as in the other scenarios; the pan joints' translations stay
+as built: the head is the length reference, as in the thesis's 5.5 where one
+camera length is fixed, so whichever head length the calibration holds to set
+the scale is exact), each camera's mounting error in its optical frame
 (5 mm, 20 mrad) and the marker on the tool.  The true robot is loaded in
 MuJoCo with a MuJoCo camera per eye (``fovy`` 50 deg, 640 x 480 px) and a
 marker site; the arm goes to random configurations, the nominal model turns
@@ -20,7 +23,7 @@ each camera towards where it believes the marker is, and the image points
 come from MuJoCo's own camera model: the marker in the camera frame
 (``cam_xpos``, ``cam_xmat``), f = (H/2) / tan(fovy/2), principal point
 ((W-1)/2, (H-1)/2) in pixel-index coordinates (``tests/test_camera_scene.py``
-checks this against a rendered frame), Gaussian pixel noise; a marker outside
+checks this against a rendered frame), Gaussian pixel noise (0.1 px); a marker outside
 an image is a missing view (NaN).  Joint readings get Gaussian noise.
 
 Files: ``log.csv`` (joint readings, ``cam:u1 v1 u2 v2``), ``nominal.urdf``,
@@ -28,12 +31,15 @@ Files: ``log.csv`` (joint readings, ``cam:u1 v1 u2 v2``), ``nominal.urdf``,
 ``left.yaml``/``right.yaml`` (the true intrinsics as ROS camera_info files),
 ``scene.xml``.  Calibrate with ``CALIBRATE_LOOP`` and compare with
 ``closedloop check`` at the documented tolerances (``CHECK_TOLERANCES``:
-1 mm, 5 mrad, 1 px).
+3 mm, 10 mrad, 1 px; 150 configurations).  Looser than the arm scenarios'
+1 mm / 5 mrad because of what the cameras see: the arm's base is 1.3 m from
+two cameras 18 cm apart, and at 0.1 px its position across the line of sight
+has a standard error of ~1.4 mm (the report's own), a camera's position in
+its optical frame ~0.6 mm.
 """
 
 from __future__ import annotations
 
-import copy
 import json
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
@@ -52,8 +58,8 @@ HEAD_PITCH = 0.35  # the head looks down at the workspace (rad)
 EYE_SEPARATION = 0.18
 MARKER = np.array([0.03, -0.02, 0.09])  # the true marker in tool0 (unknown to the calibration)
 LOOP_NAME = "cam"
-CALIBRATE_LOOP = f"camera:frame=tool0,name={LOOP_NAME},to=cam_left_optical+cam_right_optical,sigma_px=0.3"
-CHECK_TOLERANCES = {"tol_m": 1e-3, "tol_rad": 5e-3, "tol_px": 1.0}
+CALIBRATE_LOOP = f"camera:frame=tool0,name={LOOP_NAME},to=cam_left_optical+cam_right_optical,sigma_px=0.1"
+CHECK_TOLERANCES = {"tol_m": 3e-3, "tol_rad": 1e-2, "tol_px": 1.0}  # see the module docstring
 _OPTICAL_RPY = (-np.pi / 2, 0.0, -np.pi / 2)  # link (x forward, z up) -> optical (z forward, x right, y down)
 
 
@@ -121,7 +127,7 @@ class CameraScenario:
     name: str
     description: str
     verge: float = 0.0  # rad: each pan axis turned by +-verge (0: parallel pan axes)
-    sigma_px: float = 0.3  # pixel noise (px)
+    sigma_px: float = 0.1  # pixel noise (px): a round marker's centroid, found to a tenth of a pixel
     sigma_q: float = 2e-5  # joint-reading noise (rad)
     jitter: float = 0.3  # tracking error of the pans (rad): spreads the marker over the images
     arm_range: float = 0.6  # arm readings: Q0 +- this (rad)
@@ -254,6 +260,8 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
     truth: dict[str, float] = {}
     for name in _identifiable(robot, readings[:min(n, 60)], seed):
         kind = name.rsplit(".", 1)[1]
+        if name.startswith("cam_") and kind in ("x", "y", "z"):
+            continue  # the head's lengths as built: the length reference (thesis 5.5 fixes a camera length)
         mag = sc.offset if kind == "offset" else sc.translation if kind in ("x", "y", "z") else sc.rotation
         truth[name] = float(rng_truth.uniform(-mag, mag))
     mounts = [pin.SE3(pin.exp3(rng_truth.uniform(-sc.mount_r, sc.mount_r, 3)),
@@ -294,3 +302,22 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
     (out / "truth.json").write_text(json.dumps(doc, indent=1))
     (out / "scene.xml").write_text(spec.to_xml())
     return {"n": n, "missing_views": doc["missing_views"], "out": str(out)}
+
+
+def simulate_cli(args) -> int:
+    """``closedloop simulate ur5_head --n N --seed S --out DIR`` (called by the CLI; prints one summary line)."""
+    import time
+
+    from closedloop.errors import InputError
+
+    if not (isinstance(args.n, int) and args.n >= 1):
+        raise InputError(f"--n {args.n}: expected a positive integer")
+    if getattr(args, "set", None):
+        raise InputError(f"--set: the camera scenario {args.scenario} has no settings to override")
+    t0 = time.perf_counter()
+    summary = simulate_head(args.scenario, args.n, int(args.seed), args.out)
+    print(f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out} "
+          f"({summary['missing_views']} missing views); calibrate with --loop {CALIBRATE_LOOP}; check with "
+          f"--tol-m {CHECK_TOLERANCES['tol_m']} --tol-rad {CHECK_TOLERANCES['tol_rad']} "
+          f"--tol-px {CHECK_TOLERANCES['tol_px']}")
+    return 0
