@@ -2,8 +2,7 @@
 
 Exact data from `thesis_examples.py` (loops closed with Pinocchio on the true D-H table).  Each
 start must be recovered (the calibrated mechanism equals the truth to 1e-6, gauge-free) or carry a
-verdict other than 'ok'; and at least all but one of the starts must be recovered without a
-'failed' verdict (the target is 95 % over 100 starts, `benchmarks/basin.py`).  The door and
+verdict other than 'ok'; the recovery rate (target 95 % over 100 starts) is `benchmarks/basin.py`'s.  The door and
 Example 2 take the longest per start (hinge angles eliminated per configuration; 12 joints), so
 they have fewer starts here.
 """
