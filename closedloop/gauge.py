@@ -171,7 +171,7 @@ def choose_gauge(problem: CalibrationProblem, x: np.ndarray, free: list[int], R:
         first = first or (kept, dropped)
         c, res = scale_content(dP, A)
         length = prior[cols] / np.maximum(np.abs(c), 1e-300)
-        scaling = [j for j in range(len(cols)) if res[j] < 1e-3 and cols[j] in lengths and length[j] <= reach]
+        scaling = [j for j in range(len(cols)) if res[j] < 1e-3 and cols[j] in lengths and 0.01 <= length[j] <= reach]
         if scaling:
             best = max(scaling, key=lambda j: length[j])
             found = (cols[best], kept, dropped, float(length[best]))
@@ -187,7 +187,7 @@ def choose_gauge(problem: CalibrationProblem, x: np.ndarray, free: list[int], R:
             Vg[free] = null_directions(R, kept_g, [g]) * prior[:, None]
             c, res = scale_content(*kinematic_changes(problem, x, Vg, q))
             L = float(prior[g] / max(abs(c[0]), 1e-300))
-            if res[0] < 1e-3 and L <= reach and (found is None or L > found[3]):
+            if res[0] < 1e-3 and 0.01 <= L <= reach and (found is None or L > found[3]):
                 found = (g, kept_g, dropped_g, L)
     if found is None:
         return None, first[0], first[1], True, None, 0.0

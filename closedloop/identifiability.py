@@ -217,15 +217,21 @@ def project_to_closure(problem: CalibrationProblem, values: np.ndarray, iters: i
     1e6) the minimum-norm step is J_theta^T (J_theta J_theta^T)^-1 r through
     its Cholesky factor; elsewhere the SVD pseudo-inverse (rcond 1e-10).
     Returns the readings per block and, per block, a mask of the
-    configurations whose closure error fell below 1e-10.
+    configurations whose closure error fell below 1e-10 (or 1e-8 of where it
+    started) or stopped moving (the readings cannot close a stereo pair's
+    epipolar error: the closest point is taken).
     """
     thetas = [b.theta.copy() for b in problem.blocks]
     last = [np.full(b.theta.shape[0], np.inf) for b in problem.blocks]
-    for _ in range(iters):
+    first: list[np.ndarray] = []
+    moved = [np.full(b.theta.shape[0], np.inf) for b in problem.blocks]
+    for it in range(iters):
         evals = problem.evaluate(values, True, thetas, columns=[])
         worst = 0.0
         for k, ev in enumerate(evals):
             last[k] = np.abs(ev.r).max(axis=1) if ev.r.size else np.zeros(0)
+            if it == 0:
+                first.append(last[k].copy())
             with np.errstate(all="ignore"):
                 Linv, kappa = cholesky_inverse(ev.Jq @ np.swapaxes(ev.Jq, 1, 2))
                 y = np.einsum("nji,nj->ni", Linv, np.einsum("nij,nj->ni", Linv, ev.r))  # (Jq Jq^T)^-1 r
@@ -234,11 +240,14 @@ def project_to_closure(problem: CalibrationProblem, values: np.ndarray, iters: i
             if ill.size:
                 step[ill] = np.einsum("nij,nj->ni", np.linalg.pinv(ev.Jq[ill], rcond=1e-10), ev.r[ill])
             step = np.where(np.isfinite(step), step, 0.0)
+            moved[k] = np.abs(step).max(axis=1) if step.size else np.zeros(0)
             thetas[k] = thetas[k] - step
             worst = max(worst, float(last[k].max()) if last[k].size else 0.0)
         if worst < 1e-13:
             break
-    return thetas, [np.isfinite(v) & (v < 1e-10) for v in last]
+    # closed, or as close as the readings can bring it (a stereo pair's epipolar error is not theirs to fix)
+    return thetas, [np.isfinite(v) & ((v < np.maximum(1e-10, 1e-8 * f)) | (m < 1e-12))
+                    for v, f, m in zip(last, first, moved)]
 
 
 def analyse_structure(problem: CalibrationProblem, x: np.ndarray, free: list[int],
@@ -307,7 +316,7 @@ def structure_holds(problem: CalibrationProblem, x: np.ndarray, structure: Struc
     evals = problem.evaluate(x, True, thetas, columns=free)
     blocks = [ev.J[m].reshape(-1, len(free)) for ev, m in zip(evals, ok) if m.any()]
     if not blocks:
-        return "no configuration closes the loops at the solution", None
+        return None, "the reduction could not be re-checked at the solution (no configuration projects onto closure)"
     C = np.vstack(blocks) * scale[free]
     norms = np.linalg.norm(C, axis=0)
     for d in structure.dropped:

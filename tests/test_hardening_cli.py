@@ -433,7 +433,7 @@ def test_keyboard_interrupt_in_calibrate_and_simulate_exit_130(panda_files, tmp_
 def test_real_ctrl_c_in_simulate_one_line_exit_130(tmp_path):
     """SIGINT to a running `closedloop simulate`: one line, exit 130, nothing written."""
     out = tmp_path / "o"
-    p = subprocess.Popen([sys.executable, "-m", "closedloop.cli", "simulate", "panda_weld", "--n", "400",
+    p = subprocess.Popen([sys.executable, "-m", "closedloop.cli", "simulate", "panda_weld", "--n", "20000",
                           "--out", str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     time.sleep(4.0)
     p.send_signal(signal.SIGINT)
