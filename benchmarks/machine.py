@@ -77,14 +77,16 @@ def threads_mode(mode: str) -> Iterator[str]:
 
 @contextmanager
 def busy_cores(n: int | None = None, seconds: float = 600.0) -> Iterator[list[int]]:
-    """`n` processes running `while True: pass` (default: one per logical CPU) for the block.
+    """`n` processes spinning in a loop (default: one per logical CPU) for the block.
 
-    Each is bounded in time (`timeout`, at most `seconds`) and killed by its
-    own pid on exit, whatever happens inside.
+    Each stops by itself after `seconds` and is killed by its own pid on exit,
+    whatever happens inside.
     """
     n = (os.cpu_count() or 1) if n is None else n
-    procs = [subprocess.Popen(["timeout", str(int(seconds)), sys.executable, "-c", "while True: pass"])
-             for _ in range(n)]
+    # the busy loop bounds itself (no wrapper process: killing a `timeout` wrapper would orphan its child)
+    code = f"import time\nend = time.time() + {float(seconds)}\nwhile time.time() < end: pass"
+    procs = [subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL) for _ in range(n)]
     time.sleep(1.0)  # let them reach the scheduler
     try:
         yield [p.pid for p in procs]

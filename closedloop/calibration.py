@@ -41,7 +41,7 @@ from .records import (CalibrationOptions, CalibrationResult, LoopResiduals, Para
                       residual_stats)
 from .robot import RobotModel
 from .selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
-from .solver import SolverOptions, levenberg_marquardt, rms
+from .solver import SolverOptions, levenberg_marquardt, rms, scaled_svd
 from .verdict import judge
 
 __all__ = ["CalibrationOptions", "CalibrationResult", "LoopResiduals", "ParameterRecord", "Rejected",
@@ -288,8 +288,7 @@ def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOpti
     est, fun = fit.est, fit.stage.fun
     scale = np.array([p.prior for p in problem.params])
     r, J = fun(fit.x[est], True)
-    Js = J * scale[est]
-    _, S, Vt = np.linalg.svd(Js, full_matrices=False)
+    S, Vt, _ = scaled_svd(J, r, scale[est])  # no U, no threaded LAPACK on the tall Jacobian
     rank_num = int(np.sum(S > 1e-10 * S[0])) if S.size else 0
     dof = max(r.size - fun.deficit - fun.missing - rank_num, 1)  # eliminated or unobserved rows carry none
     weighted = fun.weighting == "noise"

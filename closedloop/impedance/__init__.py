@@ -9,10 +9,20 @@ segmentation, alignment), `estimate` (thesis, default, OLS, IV estimators and th
 `plots`, `cli`.  The estimator needs only numpy and scipy.
 """
 
-from .data import Ensemble, Record, read_record, segment, write_record
-from .estimate import EstimateOptions, ImpedanceEstimate, estimate, posture_fit
-from .model import ExperimentConfig, ForearmParams, Profile, simulate
+_WHERE = {"Ensemble": "data", "Record": "data", "read_record": "data", "segment": "data",
+          "write_record": "data", "EstimateOptions": "estimate", "ImpedanceEstimate": "estimate",
+          "estimate": "estimate", "posture_fit": "estimate", "ExperimentConfig": "model",
+          "ForearmParams": "model", "Profile": "model", "simulate": "model"}
 
-__all__ = ["Ensemble", "Record", "read_record", "segment", "write_record", "EstimateOptions",
-           "ImpedanceEstimate", "estimate", "posture_fit", "ExperimentConfig", "ForearmParams", "Profile",
-           "simulate"]
+__all__ = list(_WHERE)
+
+
+def __getattr__(name: str):
+    """The public names load on first use (PEP 562): `closedloop --help` need not import scipy.signal."""
+    if name in _WHERE:
+        from importlib import import_module
+
+        value = getattr(import_module(f".{_WHERE[name]}", __name__), name)
+        globals()[name] = value  # `estimate` is also a submodule: the function wins, as with an eager import
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
