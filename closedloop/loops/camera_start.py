@@ -11,6 +11,8 @@ import logging
 
 import numpy as np
 
+from . import common
+
 from .camera import PLACEHOLDER_K
 from .camera_model import camera_from_dlt
 from .measured import vec_of
@@ -94,33 +96,7 @@ def _warn_misfit(loop, Ts: list[np.ndarray], p: np.ndarray, seen: np.ndarray) ->
                         if same else "")
 
 def refine_own(loop, Ts: list[np.ndarray], p: np.ndarray, free: np.ndarray, iters: int = 40) -> np.ndarray:
-    """Gauss-Newton on the own parameters p[free] with the robot held (truncated SVD steps, halving)."""
-    def cost_of(q):
-        r = loop.residual_frames(Ts, q)
-        return float(np.sum(r * r)) if np.all(np.isfinite(r)) else np.inf
-
-    cost = cost_of(p)
-    for _ in range(iters):
-        ev = loop.evaluate_frames(Ts, p)
-        r = ev.r.reshape(-1)
-        J = ev.dp.reshape(r.size, -1)[:, free]
-        U, S, Vt = np.linalg.svd(J, full_matrices=False)
-        keep = S > 1e-9 * max(S[0] if S.size else 0.0, 1e-300)
-        step = -(Vt[keep].T @ ((U[:, keep].T @ r) / S[keep]))
-        lam = 1.0
-        for _h in range(12):
-            q = p.copy()
-            q[free] += lam * step
-            q = loop.normalize(q)
-            c = cost_of(q)
-            if c <= cost:
-                break
-            lam *= 0.5
-        else:
-            break
-        small = np.abs(lam * step).max() < 1e-13 or cost - c <= 1e-15 * max(cost, 1e-300)
-        p, cost = q, c
-        if small:
-            break
-    return p
+    """Gauss-Newton on the own parameters p[free] with the robot held (`common.refine_own`)."""
+    return common.refine_own(lambda q: loop.evaluate_frames(Ts, q), lambda q: loop.residual_frames(Ts, q),
+                             loop.normalize, p, free, iters, halvings=12)
 

@@ -28,6 +28,7 @@ import pinocchio as pin
 from ..errors import LoopError
 from ..parameters import DEFAULT_PRIORS, Parameter
 from ..robot import RobotModel
+from .common import refine_own
 from .base import Loop, LoopEval
 from .point import TIP_FIELDS, _vec3, parse_vec, point_parameters, relative_point, skew
 from .spec import register
@@ -99,43 +100,11 @@ def _project_so3(A: np.ndarray) -> np.ndarray:
 
 def _gauss_newton(loop: Loop, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, free: np.ndarray,
                   iters: int = 30) -> np.ndarray:
-    """Refine the loop's own parameters ``p[free]`` with the robot held (TA, TB fixed).
-
-    Plain Gauss-Newton with minimum-norm (truncated SVD) steps, so a direction
-    the data do not determine stays at its starting value; a step is kept only
-    if it lowers the cost (else halved, at most 10 times).  Deterministic.
-    """
+    """Refine the loop's own parameters ``p[free]`` with the robot held (TA, TB fixed); `common.refine_own`."""
     if loop.meas is None or loop.meas.shape[0] != TA.shape[0]:
         return p  # evaluate() needs one measurement per configuration given
-
-    def cost_of(q):
-        r = loop.evaluate(TA, TB, q).r
-        return float(np.sum(r * r)) if np.all(np.isfinite(r)) else np.inf
-
-    cost = cost_of(p)
-    for _ in range(iters):
-        ev = loop.evaluate(TA, TB, p)
-        r = ev.r.reshape(-1)
-        J = ev.dp.reshape(r.size, -1)[:, free]
-        U, S, Vt = np.linalg.svd(J, full_matrices=False)
-        keep = S > 1e-9 * max(S[0] if S.size else 0.0, 1e-300)
-        step = -(Vt[keep].T @ ((U[:, keep].T @ r) / S[keep]))
-        lam = 1.0
-        for _h in range(10):
-            q = p.copy()
-            q[free] += lam * step
-            q = loop.normalize(q)
-            c = cost_of(q)
-            if c <= cost:
-                break
-            lam *= 0.5
-        else:
-            break
-        small = np.abs(lam * step).max() < 1e-13 or cost - c <= 1e-15 * max(cost, 1e-300)
-        p, cost = q, c
-        if small:
-            break
-    return p
+    return refine_own(lambda q: loop.evaluate(TA, TB, q), lambda q: loop.evaluate(TA, TB, q).r, loop.normalize,
+                      p, free, iters)
 
 
 class _Measured(Loop):
