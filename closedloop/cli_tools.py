@@ -159,14 +159,9 @@ def _config_path(argv: list[str]) -> str | None:
 
 def load_config(path: str, sub: argparse.ArgumentParser, command: str) -> dict:
     """The YAML mapping of ``path`` checked against the options of ``sub`` (dest -> value)."""
-    import yaml
+    from .schemas import load_yaml  # strict YAML: only true/false are booleans, no 1_000
 
-    try:
-        data = yaml.safe_load(Path(path).read_text())
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read config ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        raise InputError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    data = load_yaml(path, "config")
     if data is None:
         return {}
     if not isinstance(data, dict):

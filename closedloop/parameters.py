@@ -254,12 +254,9 @@ def parse_fix(spec: list[str], names: list[str]) -> dict[str, float | None]:
                 raise ParameterError(f"--fix {part}: no parameter named '{key}'")
             value: float | None = None
             if val:
-                try:
-                    value = float(val)
-                except ValueError:
-                    raise ParameterError(f"--fix {part}: '{val}' is not a number") from None
-                if not np.isfinite(value):
-                    raise ParameterError(f"--fix {part}: value must be finite")
+                from .schemas import parse_number  # strict: no 1_000, no nan
+
+                value = parse_number(val, f"--fix {part}", ParameterError)
             for m in matched:
                 fixed[m] = value
     return fixed
