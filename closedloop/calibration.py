@@ -32,7 +32,7 @@ import numpy as np
 from .data import JointLog
 from .errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
 from .fit import ResidualFunction, StageResult, plain_stage, random_start, unweighted_closure, weighted_stage
-from .identifiability import Structure, analyse_structure, structure_holds, weak_directions
+from .identifiability import Structure, analyse_structure, closure_jacobian, structure_holds, weak_directions
 from .loops.base import Loop
 from .noise import joint_variance_scale, noise_vector
 from .outliers import gross_outliers, reject_outliers
@@ -41,7 +41,7 @@ from .records import (CalibrationOptions, CalibrationResult, LoopResiduals, Para
                       residual_stats)
 from .robot import RobotModel
 from .selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
-from .solver import SolverOptions, levenberg_marquardt, rms, scaled_svd
+from .solver import SolverOptions, rms, scaled_svd
 from .verdict import judge
 
 __all__ = ["CalibrationOptions", "CalibrationResult", "LoopResiduals", "ParameterRecord", "Rejected",
@@ -150,7 +150,7 @@ def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray,
         b = weighted_stage(problem, base, xs, est, scale, sigma_q, opt.weighting, sopt, prog)
         iters = b.solution.iterations
     if b is None or (opt.weighting == "noise" and (b.note or b.solution.truncated
-                                                    or _misled(problem, b, start, est, sigma_q))):
+                                                    or _misled(problem, b))):
         a = plain_stage(problem, base, xs, est, scale, sopt, prog)
         b2 = weighted_stage(problem, base, a.solution.x, est, scale, sigma_q, opt.weighting, sopt, prog)
         iters += a.solution.iterations + b2.solution.iterations
@@ -177,14 +177,11 @@ def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray,
     return Fit(b.fun.full(b.solution.x), b, est, sigma_q, known, iters, warnings)
 
 
-def _misled(problem: CalibrationProblem, stage: StageResult, start: np.ndarray, est: list[int],
-            sigma_q: np.ndarray) -> bool:
+def _misled(problem: CalibrationProblem, stage: StageResult) -> bool:
     """The weighted fit stalled far above the noise, or its weighting discards more than at the start."""
     if stage.solution.status != "converged" or _closure_level(problem, stage) > 1.0:
         return True
-    probe = ResidualFunction(problem, start, est, sigma_q, "noise")
-    probe(start[est], True)
-    return stage.fun.deficit > probe.deficit
+    return stage.fun.deficit > stage.deficit_start
 
 
 PLAUSIBLE_JOINT_NOISE = 2e-3  # rad: no encoder reads worse; a closure it cannot explain is a stalled fit
@@ -261,12 +258,13 @@ def recheck_at_solution(problem: CalibrationProblem, fit: Fit, structure: Struct
     """The reduction and gauge recomputed at the solution; re-solved from it where they differ."""
     notes = []
     for _ in range(2):
-        why, warning = structure_holds(problem, fit.x, structure, free)
+        R = closure_jacobian(problem, fit.x, free)
+        why, warning = structure_holds(problem, fit.x, structure, free, R)
         if warning:
             fit.warnings.append(warning)
         if why is None:
             break
-        st = analyse_structure(problem, fit.x, free, prefer=structure.gauge)
+        st = analyse_structure(problem, fit.x, free, prefer=structure.gauge, R=R)
         st.rechecked = True
         gone = sorted(set(structure.kept) - set(st.kept))
         new = sorted(set(st.kept) - set(structure.kept))
@@ -275,7 +273,7 @@ def recheck_at_solution(problem: CalibrationProblem, fit: Fit, structure: Struct
                      + (f" ({', '.join(problem.names[k] for k in new)} now identifiable)" if new else "")
                      + "; re-solved with the solution's reduction")
         structure = st
-        fit = solve_staged(problem, fit.x, fit.x, sorted(st.kept), opt, fit.sigma_q, fit.known, progress)
+        fit = solve_staged(problem, fit.x, fit.x, st.kept, opt, fit.sigma_q, fit.known, progress)
     return fit, structure, notes
 
 
@@ -354,17 +352,17 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
     suspects: list = []
     screened = fit = None
     if opt.robust == "auto" and gross_outliers(problem, x0, sigma_q, opt):  # rows no model error explains
-        screened = reject_outliers(problem, None, x0, sorted(structure.kept), opt, sigma_q, log_, loops,
+        screened = reject_outliers(problem, None, x0, structure.kept, opt, sigma_q, log_, loops,
                                    build_problem)
     if screened is None:
-        fit = solve_staged(problem, x0, x0, sorted(structure.kept), opt, sigma_q, known, progress)
+        fit = solve_staged(problem, x0, x0, structure.kept, opt, sigma_q, known, progress)
         if opt.robust == "auto":  # screened before any restart: restarts on rows that are not closures are wasted
             screened = reject_outliers(problem, fit.x, x0, fit.est, opt, sigma_q, log_, loops, build_problem)
     if screened is not None:
         problem, rejected, x_robust = screened
         structure = analyse_structure(problem, x0, free)
-        fit = solve_staged(problem, x0, x_robust, sorted(structure.kept), opt, sigma_q, known, progress)
-    fit = solve_with_restarts(problem, x0, sorted(structure.kept), opt, sigma_q, known, rng, progress, fit)
+        fit = solve_staged(problem, x0, x_robust, structure.kept, opt, sigma_q, known, progress)
+    fit = solve_with_restarts(problem, x0, structure.kept, opt, sigma_q, known, rng, progress, fit)
     if opt.robust in ("huber", "cauchy"):
         from .outliers import irls_fit
 

@@ -143,7 +143,6 @@ def _check_loop_numbers(spec: str) -> None:
 # --------------------------------------------------------------------------- commands
 def cmd_calibrate(args) -> int:
     from .calibration import CalibrationOptions, calibrate
-    from .data import read_log
     from .export import OutputSet, write_model
     from .loops.spec import default_loops, parse_loop
     from .parameters import parse_fix

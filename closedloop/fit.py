@@ -125,6 +125,7 @@ class StageResult:
     solution: SolverResult
     fun: ResidualFunction
     note: str | None = None
+    deficit_start: int = 0  # residual directions the weighting discarded at the stage's start
 
 
 def plain_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, est: list[int],
@@ -147,12 +148,11 @@ def weighted_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarra
                    row_weights: np.ndarray | None = None) -> StageResult:
     """The errors-in-variables stage from `start` (a plain solution), guarded against hidden residuals."""
     fun = ResidualFunction(problem, x0, est, sigma_q, weighting, row_weights)
+    fun(start, True)
+    deficit_start = fun.deficit  # the weighting at the start (the solver's first call reuses this evaluation)
     res = levenberg_marquardt(fun, start, scale[est], sopt, progress)
     if weighting != "noise":
         return StageResult(res, fun)
-    probe = ResidualFunction(problem, x0, est, sigma_q, weighting)
-    probe(start, True)
-    deficit_start = probe.deficit
     fun(res.x, True)
     if fun.deficit > deficit_start:
         before, after = unweighted_closure(problem, fun.full(start)), unweighted_closure(problem, fun.full(res.x))
@@ -163,8 +163,8 @@ def weighted_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarra
             log.warning(note)
             plain = ResidualFunction(problem, x0, est, np.ones(len(problem.joints)), "none", row_weights)
             kept = levenberg_marquardt(plain, start, scale[est], sopt, progress)
-            return StageResult(kept, plain, note)
-    return StageResult(res, fun)
+            return StageResult(kept, plain, note, deficit_start)
+    return StageResult(res, fun, None, deficit_start)
 
 
 def random_start(x0: np.ndarray, est: list[int], scale: np.ndarray, rng: np.random.Generator,

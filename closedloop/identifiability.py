@@ -12,12 +12,9 @@ parameters' expected error magnitudes):
    lies in the span of those already kept (relative residual < tol); the
    least-squares coefficients of that fit say what absorbed it.
 2. The length gauge (3.3): when a uniform scaling of every length lies in the
-   null space, one length must be fixed; it is chosen among the parameters
-   that survive the reduction and verified to remove the scaling
-   (`reduce_structure`).  Both are decided at a generic point near the start
-   (`analyse_structure` with a random perturbation: a special start, such as
-   a tool point on the last joint axis, must not decide what is redundant)
-   and checked again at the solution.
+   null space, one length must be held; it is named by what the robot does
+   (`gauge.choose_gauge`).  Both are decided at the start and checked again
+   at the solution (`structure_holds`).
 3. Data identifiability at the solution: singular directions of the whitened,
    scaled Jacobian that the noise swamps (s_i < snr * sigma) are reported with
    the parameters they involve (Singularity 2, insufficient excitation).
@@ -130,23 +127,6 @@ def null_space(C: np.ndarray, rtol: float = 1e-7) -> np.ndarray:
     return Vt[rank:].T
 
 
-def length_gauge(C: np.ndarray, scale_dir: np.ndarray, length_mask: np.ndarray,
-                 rtol: float = 1e-7, fit_tol: float = 1e-3) -> bool:
-    """True when scaling every length uniformly (with any compensation) leaves the loops closed.
-
-    `scale_dir` is d(value)/d(eps) under lengths -> (1+eps) lengths, in the
-    scaled coordinates of C; only its length components (`length_mask`) are
-    required to be reproduced by a null vector, the rest may compensate.
-    """
-    N = null_space(C, rtol)
-    s = scale_dir[length_mask]
-    if N.shape[1] == 0 or np.linalg.norm(s) == 0:
-        return False
-    NL = N[length_mask]
-    c, *_ = np.linalg.lstsq(NL, s, rcond=None)
-    return bool(np.linalg.norm(NL @ c - s) <= fit_tol * np.linalg.norm(s))
-
-
 def weak_directions(S: np.ndarray, Vt: np.ndarray, threshold: float, names: list[str],
                     max_terms: int = 6) -> list[Combination]:
     """Singular directions below `threshold`, each with its main parameters."""
@@ -190,7 +170,7 @@ def loop_mobility(Jq: np.ndarray, rtol: float = 1e-8) -> tuple[int, np.ndarray]:
 class Structure:
     """The structural reduction of a problem: what is estimated, dropped, and what sets the scale.
 
-    kept: indices (into the analysed columns) of the parameters to estimate;
+    kept: indices of the parameters to estimate (sorted);
     dropped: the structurally redundant ones, with what absorbs them;
     gauge: index of the length fixed to set the overall size (thesis 3.3), or
     None (the loops see the size, a user's fixed length sets it, or no length
@@ -250,34 +230,41 @@ def project_to_closure(problem: CalibrationProblem, values: np.ndarray, iters: i
                     for v, f, m in zip(last, first, moved)]
 
 
-def analyse_structure(problem: CalibrationProblem, x: np.ndarray, free: list[int],
-                      rng: np.random.Generator | None = None, size: float = 1e-3,
-                      prefer: int | None = None) -> Structure:
-    """Structural reduction and length gauge of the free parameters at `x` (or near it).
+def closure_jacobian(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> np.ndarray | None:
+    """The prior-scaled Jacobian over `free` on the readings projected onto closure at `x`, compressed (R of QR).
 
-    With `rng`, at a generic point: the free parameters moved by `size` times
-    their prior magnitudes, so that no special alignment of the start decides
-    what is redundant.  The Jacobian is taken on the readings projected onto
-    closure (configurations that do not converge, such as gross outliers, are
-    left out).  Returns indices into the problem's parameters.
+    Configurations that do not reach closure (gross outliers) are left out;
+    None when none does.  R has the columns' dependencies, norms and
+    singular values of the tall matrix.
     """
-    names = problem.names
-    params = problem.params
-    scale = np.array([p.prior for p in params])
-    if rng is not None:
-        x = x.copy()
-        x[free] += size * scale[free] * rng.standard_normal(len(free))
+    scale = np.array([p.prior for p in problem.params])
     thetas, ok = project_to_closure(problem, x)
     evals = problem.evaluate(x, True, thetas, columns=free)
     blocks = [ev.J[m].reshape(-1, len(free)) for ev, m in zip(evals, ok) if m.any()]
-    if not blocks:  # nothing converged: use the configurations as they are
-        blocks = [ev.J.reshape(-1, len(free)) for ev in evals]
-    Cs = np.vstack(blocks) * scale[free]
+    return compress(np.vstack(blocks) * scale[free]) if blocks else None
+
+
+def analyse_structure(problem: CalibrationProblem, x: np.ndarray, free: list[int], prefer: int | None = None,
+                      R: np.ndarray | None = None) -> Structure:
+    """Structural reduction and length gauge of the free parameters at `x`.
+
+    On `closure_jacobian` (given as `R` when the caller has it; the
+    configurations as they are if none reaches closure).  `prefer`: a
+    gauge to keep if it still qualifies.  Returns indices into the
+    problem's parameters.
+    """
+    names = problem.names
+    params = problem.params
+    if R is None:
+        R = closure_jacobian(problem, x, free)
+    if R is None:
+        scale = np.array([p.prior for p in params])
+        R = compress(np.vstack([ev.J.reshape(-1, len(free)) for ev in problem.evaluate(x, True, columns=free)])
+                     * scale[free])
     order = sorted(range(len(free)), key=lambda i: (params[free[i]].priority,
                                                    -params[free[i]].order
                                                    if params[free[i]].kind in ("placement", "dh")
                                                    else params[free[i]].order, free[i]))
-    R = compress(Cs)
     fnames = [names[k] for k in free]
 
     def reduce(order_: list[int]) -> tuple[list[int], list[Dropped]]:
@@ -285,51 +272,46 @@ def analyse_structure(problem: CalibrationProblem, x: np.ndarray, free: list[int
 
     if not all(b.loop.scale_free for b in problem.blocks):
         kept, dropped = reduce(order)
-        return Structure([free[i] for i in kept], dropped)
+        return Structure(sorted(free[i] for i in kept), dropped)
     g, kept, dropped, size_free, warning, length = choose_gauge(
         problem, x, free, R, reduce, order, prefer=free.index(prefer) if prefer in free else None)
     if g is not None:
         note = (f"the loops close at any overall size (thesis 3.3); {names[free[g]]} is held at its value to set "
                 f"the length scale (it stands for a length of {length:.4g} m: holding it longer by d scales the "
                 f"robot by 1 + d / {length:.4g})")
-        return Structure([free[i] for i in kept], dropped, free[g], note, True, warning, length)
+        return Structure(sorted(free[i] for i in kept), dropped, free[g], note, True, warning, length)
     note = None if not size_free else ("the loops close at any overall size and no single length sets it: the "
                                        "scale is not determined by the data")
-    return Structure([free[i] for i in kept], dropped, None, note, size_free)
+    return Structure(sorted(free[i] for i in kept), dropped, None, note, size_free)
 
 
-def structure_holds(problem: CalibrationProblem, x: np.ndarray, structure: Structure, free: list[int]
-                    ) -> tuple[str | None, str | None]:
+def structure_holds(problem: CalibrationProblem, x: np.ndarray, structure: Structure, free: list[int],
+                    R: np.ndarray | None) -> tuple[str | None, str | None]:
     """Why the reduction chosen at the start fails at `x` (a solution), or None; and a warning, or None.
 
-    It fails when the kept parameters are structurally dependent on the
-    readings projected onto closure at `x` (rcond 1e-10: what the data cannot
-    separate is the SVD truncation's business, not the reduction's), or when
-    a parameter dropped for having no effect at the start has one at `x` (a
-    tool point started on a joint axis, found off it).  With a gauge g, the
-    kept parameters and g must still have one null direction, g's own uniform
+    `R`: `closure_jacobian` at `x`.  The reduction fails when the kept
+    parameters are structurally dependent there (rcond 1e-10: what the data
+    cannot separate is the SVD truncation's business, not the reduction's),
+    or when a parameter dropped for having no effect at the start has one at
+    `x` (a tool point started on a joint axis, found off it), or when the
+    start found no length to hold the size.  With a gauge g, the kept
+    parameters and g must still have one null direction, g's own uniform
     scaling of the robot (`gauge.sets_scale`); if not, the size is not held
     by g alone, which is a warning (the data leave it to other held values).
     """
-    scale = np.array([p.prior for p in problem.params])
-    thetas, ok = project_to_closure(problem, x)
-    evals = problem.evaluate(x, True, thetas, columns=free)
-    blocks = [ev.J[m].reshape(-1, len(free)) for ev, m in zip(evals, ok) if m.any()]
-    if not blocks:
+    if R is None:
         return None, "the reduction could not be re-checked at the solution (no configuration projects onto closure)"
-    C = np.vstack(blocks) * scale[free]
-    norms = np.linalg.norm(C, axis=0)
+    norms = np.linalg.norm(R, axis=0)  # the tall matrix's column norms
     for d in structure.dropped:
         if d.reason.startswith("has no effect") and d.name in problem.index:
             k = problem.index[d.name]
             if k in free and norms[free.index(k)] > 1e-9 * norms.max():
                 return f"{d.name} has an effect at the solution", None
-    R = compress(C)
     kept = [free.index(k) for k in structure.kept]
     S = np.linalg.svd(R[:, kept], compute_uv=False)
     if S.size and S[-1] <= 1e-10 * S[0]:
         return "the estimated parameters are structurally dependent at the solution", None
-    if structure.scale_free and structure.gauge is None and not getattr(structure, "rechecked", False):
+    if structure.scale_free and structure.gauge is None and not structure.rechecked:
         return "no single length was found to set the scale at the start", None
     if structure.gauge is not None and not sets_scale(problem, x, free, R, kept, free.index(structure.gauge)):
         return None, (f"{problem.names[structure.gauge]} does not hold the length scale alone at the solution: "

@@ -31,8 +31,7 @@ class CalibrationOptions:
       'cauchy' (IRLS kept in the final fit, suspects reported), or None
       (no outlier handling).
     restarts: further starts tried when the fit stalls far above any
-      plausible noise; seed: their random draws and the generic point of the
-      identifiability analysis.
+      plausible noise; seed: their random draws.
     """
 
     identify: list[str] | None = None

@@ -320,5 +320,3 @@ def _bounded_step(Js, r, Vk, lam, x, scale, opt: SolverOptions, dz_free) -> np.n
         return (np.clip(x_free, lower, upper) - x) / scale
     return Vk @ w
 
-
-r_factor = _r_factor  # public name: the identifiability analysis compresses tall Jacobians with it
