@@ -11,7 +11,9 @@ with fresh 1e-4 rad noise for larger sizes).
 Thread modes: `1` (single-threaded), `default` (the BLAS libraries' own
 setting), `auto` (`closedloop.threads.blas_threads(None, rows, cols)`, what the
 library chooses).  `--loaded` repeats everything while one busy process per
-CPU keeps the cores busy (bounded in time, killed afterwards).
+CPU keeps the cores busy (bounded in time, killed afterwards).  `kernel`: the
+median kernel CPU of a run (page faults), part of `cpu tot`; `--reuse-memory`
+keeps glibc from unmapping freed arrays (what grows superlinearly at 100,000).
 
     python benchmarks/bench_calibrate.py                              # 1,000 configurations
     python benchmarks/bench_calibrate.py --sizes 1000 10000 100000 --loaded
@@ -40,8 +42,11 @@ def _log(ds, n: int, rng: np.random.Generator) -> JointLog:
     return JointLog(ds.joints, th + rng.normal(0.0, 1e-4, th.shape))
 
 
-def run_once(robot, log: JointLog, mode: str) -> tuple[float, float, float, float, int, int]:
-    """(total wall, solve wall, total CPU, solve CPU, iterations, estimated parameters) of one calibration."""
+def run_once(robot, log: JointLog, mode: str) -> tuple[float, float, float, float, int, int, float]:
+    """(total wall, solve wall, total CPU, solve CPU, iterations, estimated parameters, kernel CPU) of one
+    calibration.  The kernel's share (page faults: arrays above glibc's mmap threshold, 32 MB at most, are
+    mapped and zeroed afresh on every allocation) is what grows faster than the data."""
+    import resource
     import time
 
     stages: dict[str, tuple[float, float]] = {}
@@ -62,18 +67,41 @@ def run_once(robot, log: JointLog, mode: str) -> tuple[float, float, float, floa
                 return calibrate(robot, log, loops, progress=progress)
 
     t0, c0 = time.perf_counter(), time.process_time()
+    k0 = resource.getrusage(resource.RUSAGE_SELF).ru_stime
     res, total, cpu = timed(call)
+    kernel = resource.getrusage(resource.RUSAGE_SELF).ru_stime - k0
     s0, sc0 = stages.get("solving", (t0, c0))
-    return total, total - (s0 - t0), cpu, cpu - (sc0 - c0), res.iterations, len(res.estimated)
+    return total, total - (s0 - t0), cpu, cpu - (sc0 - c0), res.iterations, len(res.estimated), kernel
+
+
+def reuse_freed_memory() -> bool:
+    """glibc only: keep freed arrays in the heap for reuse (no mmap, no trimming), for this process.
+
+    The same as MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=2147483647 MALLOC_TOP_PAD_=1073741824 in the
+    environment.  Returns whether the C library took it.
+    """
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return False
+    m_trim_threshold, m_top_pad, m_mmap_max = -1, -2, -4
+    return all(libc.mallopt(k, v) == 1 for k, v in ((m_mmap_max, 0), (m_trim_threshold, 2**31 - 1),
+                                                       (m_top_pad, 2**30)))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[1000])
     ap.add_argument("--repeat", type=int, default=5, help="runs per figure (median and best reported)")
+    ap.add_argument("--reuse-memory", action="store_true",
+                    help="glibc: keep freed arrays for reuse (mallopt; see reuse_freed_memory)")
     add_arguments(ap)
     ap.set_defaults(threads=["1", "default", "auto"])
     args = ap.parse_args()
+    if args.reuse_memory:
+        print(f"malloc: freed memory kept for reuse: {reuse_freed_memory()}")
     robot = RobotModel.from_file(ROBOTS["panda"].path)
     rng = np.random.default_rng(0)
     ds, t_data, _ = timed(make_dataset, robot, WeldLoop("fixture", "panda_hand"),
@@ -90,7 +118,7 @@ def main() -> None:
                   "(on a shared machine the wall clock measures the scheduler)")
             print(f"{'threads':>8} {'configs':>9} {'total med':>10} {'best':>7} {'solve med':>10} {'best':>7} "
                   f"{'cpu tot':>8} {'cpu solve':>9} {'iters':>5} {'floor ms':>9} {'cpu':>6} "
-                  f"{'tot/fl':>7} {'solve/(fl*it)':>14}")
+                  f"{'tot/fl':>7} {'solve/(fl*it)':>14} {'kernel':>7}")
             for mode in args.threads:
                 for n in args.sizes:
                     reps = args.repeat if n <= 10000 else max(1, args.repeat // 3)
@@ -100,11 +128,12 @@ def main() -> None:
                     cpu = float(np.median([r[2] for r in runs]))
                     cpu_s = float(np.median([r[3] for r in runs]))
                     iters = runs[0][4]
+                    kernel = float(np.median([r[6] for r in runs]))
                     with threads_mode("1"):
                         fl, fl_cpu = pinocchio_floor("panda", n=n, repeat=3)
                     print(f"{mode:>8} {n:>9,} {np.median(tot):>10.3f} {tot.min():>7.3f} {np.median(sol):>10.3f} "
                           f"{sol.min():>7.3f} {cpu:>8.3f} {cpu_s:>9.3f} {iters:>5d} {1e3 * fl:>9.2f} "
-                          f"{1e3 * fl_cpu:>6.2f} {cpu / fl_cpu:>7.0f} {cpu_s / (fl_cpu * max(iters, 1)):>14.1f}",
+                          f"{1e3 * fl_cpu:>6.2f} {cpu / fl_cpu:>7.0f} {cpu_s / (fl_cpu * max(iters, 1)):>14.1f} {kernel:>7.2f}",
                           flush=True)
 
 

@@ -18,6 +18,11 @@ processes), ``ray`` (a local Ray cluster started here with 2 CPUs).  For each:
 
 Then a projection of a nightly fleet of 10,000 robots on 100 nodes from the
 measured job time and overheads: on paper, stated as such, never run.
+
+``--studies`` adds the other studies on the same warm engines (wall, speedup, identical to serial):
+``simulate`` over 20 seeds (panda_weld, 100 configurations each, ``cli_sweep.run_sweep``), the
+impedance bootstrap (200 resamples in chunks of 25) and pose selection on 20 candidate pools
+(``poses.select_pools``, exchange-A, K = 12 of 40).
 """
 
 from __future__ import annotations
@@ -58,7 +63,63 @@ def make_engine(name: str):
     return ex.get_engine(name, jobs=2)
 
 
-def measure(name: str, sc, opts, n_jobs: int, n_draws: int) -> dict:
+def study_inputs() -> dict:
+    """The inputs of the other studies (built once, outside the timings)."""
+    from closedloop.impedance.data import onsets_from_events, segment
+    from closedloop.impedance.model import ExperimentConfig, simulate as simulate_impedance
+    from closedloop.sims import SCENARIOS
+
+    sim = simulate_impedance(ExperimentConfig(n_cycles=100, noise=0.05, seed=21))
+    pc = weld_scenario(n=1, seed=2, pool="manifold", n_pool=800)
+    th = pc.pool[::20] + np.random.default_rng(5).normal(0, NOISE, pc.pool[::20].shape)
+    res = calibrate(pc.robot, JointLog(list(pc.joints), th), pc.loops,
+                    CalibrationOptions(noise=NOISE, fix={"panda_joint4.x": None}))
+    return {"scenarios": {"panda_weld": SCENARIOS["panda_weld"]},
+            "ensemble": segment(sim.record, onsets_from_events(sim.record)),
+            "result": res, "pools": [pc.pool[i::20] for i in range(20)]}
+
+
+def measure_studies(eng, inputs: dict) -> dict:
+    """Wall time (cold: the first run, workers import the simulator / impedance code; warm: the second)
+    and results of the other studies on `eng` (see the module docstring)."""
+    import tempfile
+    from pathlib import Path
+
+    from closedloop.cli_sweep import run_sweep
+    from closedloop.impedance.bootstrap import bootstrap
+    from closedloop.impedance.estimate import EstimateOptions
+    from closedloop.poses import select_pools
+
+    def sweep():
+        with tempfile.TemporaryDirectory() as tmp:
+            rows = run_sweep(inputs["scenarios"], list(range(20)), 100, Path(tmp), engine=eng)
+            return [(Path(r.out) / "log.csv").read_bytes() for r in rows if r.status == "ok"]
+
+    def boot():
+        b = bootstrap(inputs["ensemble"], EstimateOptions(), n_boot=200, seed=1, executor=eng)
+        return [b.lo[k] for k in "IBK"] + [b.hi[k] for k in "IBK"]
+
+    def pools():
+        return [s.indices for s in select_pools(inputs["result"], None, inputs["pools"], 12, "exchange-a",
+                                                executor=eng)]
+
+    out = {}
+    for key, fn in (("sweep", sweep), ("bootstrap", boot), ("pools", pools)):
+        walls = []
+        for _ in range(2):
+            t0 = time.perf_counter()
+            value = fn()
+            walls.append(time.perf_counter() - t0)
+        out[key] = (walls, value)
+    return out
+
+
+def _same(a, b) -> bool:
+    return len(a) == len(b) and all(np.array_equal(x, y, equal_nan=True) if isinstance(x, np.ndarray) else x == y
+                                    for x, y in zip(a, b))
+
+
+def measure(name: str, sc, opts, n_jobs: int, n_draws: int, studies: dict | None = None) -> dict:
     t0 = time.perf_counter()
     eng = make_engine(name)
     ex.run(noop, range(2), eng)
@@ -79,6 +140,8 @@ def measure(name: str, sc, opts, n_jobs: int, n_draws: int) -> dict:
     out["mc_wall"] = time.perf_counter() - t0
     out["mc_estimates"] = mc.stats["noise"].estimates
     out["mc_ratio"] = mc.stats["noise"].trace_ratio
+    if studies:
+        out["studies"] = measure_studies(eng, studies)
     eng.close()
     if name == "ray":
         import ray
@@ -118,6 +181,7 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=200, help="Monte Carlo draws")
     ap.add_argument("--configs", type=int, default=60, help="configurations per calibration")
     ap.add_argument("--engines", nargs="+", default=["serial", "local", "ray"], choices=sorted(ex.ENGINES))
+    ap.add_argument("--studies", action="store_true", help="also simulate over seeds, the bootstrap, pose pools")
     ap.add_argument("--fleet", type=float, nargs=4, default=[10_000, 100, 32, 1.2],
                     metavar=("ROBOTS", "NODES", "CPUS", "JOB_S"), help="the projection's fleet (on paper)")
     args = ap.parse_args()
@@ -125,7 +189,8 @@ def main() -> None:
     sc = weld_scenario(n=1, seed=2, pool="manifold", n_pool=args.configs)
     sc = dataclasses.replace(sc, theta=sc.pool, pool=None)
     opts = CalibrationOptions(noise=NOISE, fix={"panda_joint4.x": None})  # one length sets the scale
-    rows = [measure(e, sc, opts, args.jobs, args.draws) for e in args.engines]
+    studies = study_inputs() if args.studies else None
+    rows = [measure(e, sc, opts, args.jobs, args.draws, studies) for e in args.engines]
     ref = rows[0]
     print(f"\n{args.jobs} calibrations and a {args.draws}-draw Monte Carlo, Panda weld, {args.configs} configurations")
     print(f"{'engine':<8}{'workers':>8}{'startup s':>10}{'no-op ms/job':>13}{'cal wall s':>11}{'speedup':>8}"
@@ -136,6 +201,17 @@ def main() -> None:
               f"{ref['cal_wall'] / r['cal_wall']:>8.2f}{r['cal_job_s']:>7.3f}{r['cal_overhead_ms']:>16.1f}"
               f"{r['mc_wall']:>10.1f}{ref['mc_wall'] / r['mc_wall']:>8.2f}  {'yes' if same else 'NO'}")
     print(f"Monte Carlo tr(cov)/tr(CRB) = {ref['mc_ratio']:.3f}")
+    if studies:
+        print(f"\n{'study (wall s: cold / warm; speedup warm)':<48}"
+              + "".join(f"{r['engine']:>16}{'speedup':>8}" for r in rows) + "  identical")
+        for key, label in (("sweep", "simulate panda_weld, 20 seeds x 100 cfg"),
+                           ("bootstrap", "impedance bootstrap, 200 resamples"),
+                           ("pools", "pose selection, 20 pools (exchange-A, 12/40)")):
+            w0 = ref["studies"][key][0][1]
+            same = all(_same(r["studies"][key][1], ref["studies"][key][1]) for r in rows)
+            print(f"{label:<48}" + "".join(
+                f"{r['studies'][key][0][0]:>8.2f} /{r['studies'][key][0][1]:>6.2f}{w0 / r['studies'][key][0][1]:>8.2f}"
+                for r in rows) + f"  {'yes' if same else 'NO'}")
     robots, nodes, cpus, job_s = args.fleet
     print("\n".join(projection(rows, int(robots), int(nodes), int(cpus), float(job_s))))
 

@@ -32,7 +32,8 @@ from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
-import closedloop.sims.dataset as dataset
+import closedloop.sims.dataset
+import closedloop.sims.tracking  # noqa: F401  (the stepping loop; patched below with the dataset module)
 from closedloop.sims import SCENARIOS, simulate
 
 from floor import mujoco_rate, scenario_scene  # benchmarks/floor.py
@@ -61,12 +62,25 @@ def mj_step_timer():
 
     shim = type("mujoco", (), {name: getattr(mujoco, name) for name in dir(mujoco) if not name.startswith("__")})
     shim.mj_step = staticmethod(timed_step)
-    saved = dataset.mujoco
-    dataset.mujoco = shim
-    try:
+    with _patched("mujoco", shim):
         yield acc
+
+
+@contextmanager
+def _patched(attr: str, value):
+    """Replace module attribute `attr` (the `mujoco` or `time` module) in every closedloop.sims module holding it."""
+    import sys
+
+    mods = [m for name, m in list(sys.modules.items())
+            if name.startswith("closedloop.sims.") and m is not None and hasattr(m, attr)]
+    saved = [(m, getattr(m, attr)) for m in mods]
+    for m in mods:
+        setattr(m, attr, value)
+    try:
+        yield
     finally:
-        dataset.mujoco = saved
+        for m, v in saved:
+            setattr(m, attr, v)
 
 
 def measure(name: str, n: int, repeat: int, tmp: Path) -> tuple[int, float, float]:
@@ -85,13 +99,9 @@ def split_cpu(name: str, n: int, tmp: Path) -> tuple[float, float]:
 
     The loop's own clock (``elapsed_s``) is read on the CPU clock for this run.
     """
-    saved = dataset.time
-    dataset.time = type("time", (), {"perf_counter": staticmethod(time.process_time)})
-    try:
-        with mj_step_timer() as acc:
-            res = simulate(name, n, 0, tmp / f"{name}-cpu")
-    finally:
-        dataset.time = saved
+    cpu_clock = type("time", (), {"perf_counter": staticmethod(time.process_time)})
+    with _patched("time", cpu_clock), mj_step_timer() as acc:
+        res = simulate(name, n, 0, tmp / f"{name}-cpu")
     k = max(len(res.readings), 1)
     return acc[0] / k, (res.elapsed_s - acc[0]) / k
 

@@ -9,7 +9,7 @@ __version__ = "0.1.0"
 
 from .calibration import CalibrationOptions, CalibrationResult, calibrate  # noqa: E402
 from .data import JointLog, read_log  # noqa: E402
-from .errors import ClosedLoopError, InputError  # noqa: E402
+from .errors import CalibrationError, ClosedLoopError, InputError  # noqa: E402
 from .loops import HingeLoop, Loop, MeasuredPointLoop, MeasuredPoseLoop, PlaneLoop, PointLoop, WeldLoop  # noqa: E402
 from .loops.spec import parse_loop  # noqa: E402
 from .robot import RobotModel  # noqa: E402
@@ -18,7 +18,7 @@ from .verdict import Verdict, judge  # noqa: E402
 __all__ = ["CalibrationOptions", "CalibrationResult", "calibrate", "JointLog", "read_log", "ClosedLoopError",
            "InputError", "Loop", "WeldLoop", "PointLoop", "PlaneLoop", "HingeLoop", "MeasuredPointLoop",
            "MeasuredPoseLoop", "parse_loop", "RobotModel", "Verdict", "judge", "write_model", "build_report",
-           "write_report", "cross_validate", "__version__"]
+           "write_report", "cross_validate", "CalibrationError", "__version__"]
 
 
 def __getattr__(name: str):

@@ -14,11 +14,12 @@ Every job is calibrated and k-fold validated on its own (``closedloop.calibrate`
 * The summary CSV gets a row as each job finishes, and is rewritten in
   manifest order at the end with the drift columns filled.
 
-Drift: for jobs of the same robot ordered by date, every robot parameter
-estimated in two consecutive calibrations gets z = (v2 - v1) / sqrt(se1^2 + se2^2)
-(standard errors from each calibration's covariance, eq. 3.17 whitened); the
-change is flagged when |z| > 3: larger than the two calibrations' noise can
-explain.  Loop parameters (the fixture) are left out: they are not the robot.
+Drift (:mod:`closedloop.batch_drift`): for jobs of the same robot ordered by date, every robot
+parameter of two consecutive calibrations, expressed in one gauge (the earlier calibration's: the
+later one is moved along its gauge directions, so another fixed length or another reduction is not
+a change), gets z = change / its standard error (both covariances, eq. 3.17 whitened, propagated
+through the gauge map); the change is flagged when |z| > 3: larger than the two calibrations'
+noise can explain.  The manifest is read by :mod:`closedloop.batch_manifest`.
 """
 
 from __future__ import annotations
@@ -29,114 +30,24 @@ import logging
 import os
 import shutil
 import uuid
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from .batch_drift import Drift, drift, drift_columns, gauge_record
+from .batch_manifest import BatchJob, as_list, read_manifest
 from .errors import InputError
+
+__all__ = ["BatchJob", "BatchResult", "Drift", "drift", "read_manifest", "run_batch", "run_job", "finished",
+           "cmd_batch", "add_parser"]
 
 log = logging.getLogger(__name__)
 
 MARKER = "done.json"
-JOB_KEYS = {"name", "robot", "date", "model", "log", "loops", "options", "out", "cv"}
-OPTION_KEYS = {"identify", "fix", "noise", "weighting", "snr", "max_iter", "bounds", "robust", "degrees"}
 COLUMNS = ["name", "robot", "date", "status", "verdict", "verdict_reasons", "configurations", "estimated",
            "rms_before_mm", "rms_after_mm", "rms_before_mrad", "rms_after_mrad", "cv_test_mm", "cv_test_mrad",
            "top_changes", "drift_from", "drift_max_z", "drift_flagged", "seconds", "resumed", "error", "out"]
-
-
-@dataclass
-class BatchJob:
-    """One calibration of a manifest (paths resolved against the manifest's folder)."""
-
-    name: str
-    model: Path
-    log: Path
-    out: Path
-    loops: list[str] = field(default_factory=list)
-    options: dict[str, Any] = field(default_factory=dict)
-    robot: str = ""
-    date: str = ""
-    cv: int = 5
-
-
-# --------------------------------------------------------------------------- manifest
-def _as_list(v) -> list[str]:
-    if v is None or v == "":
-        return []
-    if isinstance(v, str):
-        return [s.strip() for s in v.split(";") if s.strip()]
-    return [str(s) for s in v]
-
-
-def _job(d: dict, base: Path, where: str) -> BatchJob:
-    unknown = set(d) - JOB_KEYS - OPTION_KEYS
-    if unknown:
-        raise InputError(f"{where}: unknown key(s) {', '.join(sorted(unknown))} "
-                         f"(known: {', '.join(sorted(JOB_KEYS | OPTION_KEYS))})")
-    for key in ("model", "log", "out"):
-        if not d.get(key):
-            raise InputError(f"{where}: no '{key}'")
-    opts = d.get("options") or {}
-    if isinstance(opts, str):
-        try:
-            opts = json.loads(opts)
-        except json.JSONDecodeError:
-            raise InputError(f"{where}: options '{opts}' is not a JSON object") from None
-    if not isinstance(opts, dict):
-        raise InputError(f"{where}: options must be a mapping")
-    opts = {**opts, **{k: d[k] for k in OPTION_KEYS if d.get(k) not in (None, "")}}
-    bad = set(opts) - OPTION_KEYS
-    if bad:
-        raise InputError(f"{where}: unknown option(s) {', '.join(sorted(bad))} (known: {', '.join(sorted(OPTION_KEYS))})")
-    try:
-        cv = int(d.get("cv") if d.get("cv") not in (None, "") else 5)
-    except (TypeError, ValueError):
-        raise InputError(f"{where}: cv '{d.get('cv')}' is not a whole number") from None
-    out = base / str(d["out"])
-    return BatchJob(str(d.get("name") or out.name), base / str(d["model"]), base / str(d["log"]), out,
-                    _as_list(d.get("loops")), opts, str(d.get("robot") or ""), str(d.get("date") or ""), cv)
-
-
-def read_manifest(path: str | Path) -> list[BatchJob]:
-    """Jobs of a YAML manifest (``jobs:`` list, optional ``defaults:``) or a CSV one (a row per job;
-    ``loops`` separated by ';'; options as columns or a JSON ``options`` column)."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read manifest ({exc.strerror})") from None
-    base = path.resolve().parent
-    if path.suffix.lower() in (".yaml", ".yml"):
-        import yaml
-
-        try:
-            doc = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            raise InputError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
-        defaults, rows = ({}, doc) if isinstance(doc, list) else ((doc or {}).get("defaults") or {},
-                                                                  (doc or {}).get("jobs"))
-        if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
-            raise InputError(f"{path}: expected a list of jobs under 'jobs:'")
-        rows = [{**defaults, **r} for r in rows]
-        first = 1
-    elif path.suffix.lower() == ".csv":
-        rows = [r for r in csv.DictReader(text.splitlines()) if any((v or "").strip() for v in r.values())]
-        first = 2  # the header is line 1
-    else:
-        raise InputError(f"{path}: manifest must be .yaml, .yml or .csv")
-    jobs = [_job(r, base, f"{path}: job {i} ({'line ' + str(i + first - 1) if first == 2 else 'entry ' + str(i)})")
-            for i, r in enumerate(rows, start=1)]
-    seen: dict[Path, str] = {}
-    for j in jobs:
-        if j.out in seen:
-            raise InputError(f"{path}: jobs '{seen[j.out]}' and '{j.name}' write the same folder {j.out}")
-        seen[j.out] = j.name
-    if not jobs:
-        raise InputError(f"{path}: no jobs")
-    return jobs
 
 
 # --------------------------------------------------------------------------- one job (in a worker)
@@ -146,16 +57,16 @@ def _options(opts: dict, names: list[str]):
 
     noise = opts.get("noise")
     if isinstance(noise, str):
-        from .cli import _parse_noise
+        from .cli_parse import parse_noise as _parse_noise
         noise = _parse_noise(noise)
     bounds = opts.get("bounds") or {}
     if isinstance(bounds, (list, str)):
-        from .cli import _parse_bounds
-        bounds = _parse_bounds(_as_list(bounds))
+        from .cli_parse import parse_bounds as _parse_bounds
+        bounds = _parse_bounds(as_list(bounds))
     ident = opts.get("identify")
     return CalibrationOptions(
         identify=ident.split(",") if isinstance(ident, str) else ident,
-        fix=parse_fix(_as_list(opts.get("fix")), names), noise=noise,
+        fix=parse_fix(as_list(opts.get("fix")), names), noise=noise,
         weighting=opts.get("weighting", "noise"), snr=float(opts.get("snr", 1.0)),
         max_iter=int(opts.get("max_iter", 100)), bounds={k: tuple(v) for k, v in bounds.items()},
         robust=opts.get("robust"))
@@ -242,8 +153,18 @@ def run_job(job: BatchJob) -> dict:
     if res.converged and getattr(verdict, "status", "") != "failed" and robot.kind in ("urdf", "dh"):
         files["calibrated" + (".yaml" if robot.kind == "dh" else ".urdf")] = \
             lambda p: write_model(robot, res.as_dict(), p)
-    _write_whole(job.out, files, {"row": row, "parameters": params})
-    return {"row": row, "parameters": params}
+    marker = {"row": row, "parameters": params, "gauge": _gauge(res)}
+    _write_whole(job.out, files, marker)
+    return marker
+
+
+def _gauge(res) -> dict | None:
+    """The calibration's gauge record for drift (batch_drift.gauge_record), None when it cannot be made."""
+    try:
+        return gauge_record(res)
+    except Exception as exc:  # drift then falls back to plain differences; the job itself is fine
+        log.warning("no gauge record (%s: %s): drift compares plain parameter differences", type(exc).__name__, exc)
+        return None
 
 
 def _judge(res, cv: dict | None, report: dict):
@@ -304,73 +225,6 @@ def _clean_temporaries(jobs: list[BatchJob]) -> int:
                 shutil.rmtree(t, ignore_errors=True)
                 n += 1
     return n
-
-
-# --------------------------------------------------------------------------- drift
-@dataclass
-class Drift:
-    robot: str
-    before: str  # job names
-    after: str
-    parameter: str
-    change: float
-    se: float  # sqrt(se1^2 + se2^2)
-    z: float
-    flagged: bool
-    note: str = ""  # why a pair could not be compared
-
-
-def drift(jobs: list[BatchJob], results: dict[str, dict], z_max: float = 3.0) -> list[Drift]:
-    """Parameter changes between consecutive dates of each robot, with their uncertainty.
-
-    z = (v2 - v1) / sqrt(se1^2 + se2^2); flagged when |z| > z_max.  Only
-    calibrations that converged with a verdict other than 'failed', only robot
-    parameters (kind != 'loop').
-    Two calibrations are compared only when they estimated the same
-    parameters: with another set (another length fixed for the scale, another
-    parameter dropped as redundant) the values are in another gauge and their
-    differences mean nothing; the pair gets one row with a note instead.
-    """
-    out: list[Drift] = []
-    by_robot: dict[str, list[BatchJob]] = {}
-    for j in jobs:
-        r = results.get(j.name)
-        if j.robot and r and r["row"]["status"] == "ok" and r["row"].get("verdict") != "failed":
-            by_robot.setdefault(j.robot, []).append(j)
-    for robot, js in by_robot.items():
-        js.sort(key=lambda j: j.date)
-        for a, b in zip(js, js[1:]):
-            pa, pb = results[a.name]["parameters"], results[b.name]["parameters"]
-            if set(pa) != set(pb):
-                diff = sorted(set(pa) ^ set(pb))
-                out.append(Drift(robot, a.name, b.name, "*", np.nan, np.nan, np.nan, False,
-                                 f"not comparable: not the same parameters estimated ({', '.join(diff[:4])}); "
-                                 "fix the gauge with 'fix' options"))
-                continue
-            for name in pa:
-                if pa[name][2] == "loop":
-                    continue
-                (v1, s1, _), (v2, s2, _) = pa[name], pb[name]
-                if s1 is None or s2 is None:
-                    continue
-                se = float(np.hypot(s1, s2))
-                if not se > 0:
-                    continue
-                z = (v2 - v1) / se
-                out.append(Drift(robot, a.name, b.name, name, v2 - v1, se, z, bool(abs(z) > z_max)))
-    return out
-
-
-def _drift_columns(rows: dict[str, dict], drifts: list[Drift]) -> None:
-    for d in drifts:
-        row = rows[d.after]
-        row["drift_from"] = d.before
-        if d.note:
-            row["drift_flagged"] = d.note
-            continue
-        row["drift_max_z"] = max(abs(d.z), row.get("drift_max_z") or 0.0)
-        if d.flagged:
-            row["drift_flagged"] = "; ".join(filter(None, [row.get("drift_flagged"), f"{d.parameter} z={d.z:+.1f}"]))
 
 
 # --------------------------------------------------------------------------- the batch
@@ -449,7 +303,7 @@ def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=N
                             "resumed": "no", "out": str(j.out)}
         sink.add(rows[j.name])
     drifts = drift(jobs, results, z_max)
-    _drift_columns(rows, drifts)
+    drift_columns(rows, drifts)
     ordered = [rows[j.name] for j in jobs]
     sink.finish(ordered)
     if drifts:

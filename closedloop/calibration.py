@@ -9,14 +9,17 @@ The pipeline (thesis 3.2, 4.2, with the noise treated as errors in variables):
 3. `analyse_structure`: structural redundancies on data projected onto
    closure, and the length that sets the scale (3.3), named by what the robot
    does (`gauge`).
-4. `solve_staged`: the plain loop residual first, then each configuration's
-   closure weighted by W_i^-1 = (J_theta,i Sigma J_theta,i^T)^-1, by
-   Levenberg-Marquardt with noise-aware SVD truncation (eq. 3.17, 4.2.6);
-   restarts when the fit stalls far above any plausible noise.
-5. `reject_outliers` (default): configurations the noise cannot explain are
-   found by a robust (Cauchy) refit and left out; steps 3-4 run on the rest.
-6. `recheck_at_solution`: the reduction and the gauge recomputed at the
-   solution; reduced and re-solved where they differ.
+4. `solve_screened`: the outlier screen (`reject_outliers`, default: rows the
+   noise cannot explain are found by a robust Cauchy refit and left out), the
+   staged solve (`staging.solve_staged`: each configuration's closure weighted
+   by W_i^-1 = (J_theta,i Sigma J_theta,i^T)^-1, the plain loop residual first
+   where the weighting misleads; Levenberg-Marquardt with noise-aware SVD
+   truncation, eq. 3.17, 4.2.6), restarts when the fit stalls far above any
+   plausible noise.
+5. `staging.recheck_at_solution`: the reduction and the gauge recomputed at
+   the solution, reduced and re-solved where they differ; rejected rows the
+   solution explains readmitted (`outliers.readmit`).
+6. `name_gauge`: the held length that sets the size, with what it stands for.
 7. `analyse_solution`: standard errors, directions the data do not determine,
    residuals before/after, a chi-square test; then `verdict.judge`.
 """
@@ -24,31 +27,29 @@ The pipeline (thesis 3.2, 4.2, with the noise treated as errors in variables):
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
-from typing import Callable
 
 import numpy as np
 
+from .constraints import annotate
 from .data import JointLog
 from .errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
-from .fit import ResidualFunction, StageResult, plain_stage, random_start, unweighted_closure, weighted_stage
-from .identifiability import Structure, analyse_structure, closure_jacobian, structure_holds, weak_directions
+from .identifiability import Structure, analyse_structure, weak_directions
 from .loops.base import Loop
-from .noise import joint_variance_scale, noise_vector
-from .outliers import gross_outliers, reject_outliers
+from .noise import noise_vector
+from .outliers import gross_outliers, readmit, reject_outliers
 from .problem import CalibrationProblem, LoopBlock
 from .records import (CalibrationOptions, CalibrationResult, LoopResiduals, ParameterRecord, Rejected,
                       residual_stats)
 from .robot import RobotModel
 from .selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
-from .solver import SolverOptions, rms, scaled_svd
+from .solver import rms, scaled_svd
+from .staging import Fit, Progress, recheck_at_solution, solve_staged, solve_with_restarts
 from .verdict import judge
 
 __all__ = ["CalibrationOptions", "CalibrationResult", "LoopResiduals", "ParameterRecord", "Rejected",
            "build_problem", "calibrate", "residual_stats", "DEFAULT_IDENTIFY", "MIN_RANGE"]
 
 log = logging.getLogger(__name__)
-Progress = Callable[[str, int, float], None]
 
 
 # --------------------------------------------------------------------------- setup
@@ -83,198 +84,17 @@ def build_problem(robot: RobotModel, log_: JointLog, loops: list[Loop], priors: 
     numbers = np.arange(1, len(log_) + 1) if row_numbers is None else np.asarray(row_numbers)
     blocks = []
     for lp in loops:
-        if log_.loop is not None:
+        if getattr(lp, "parameter_only", False):  # a known distance (closedloop.constraints): one row, no joint
+            rows = np.arange(min(1, len(log_)))
+        elif log_.loop is not None:
             rows = np.flatnonzero(log_.loop == lp.name)
             if rows.size == 0:
                 raise LogError(f"{log_.source}: no row has loop '{lp.name}' in its 'loop' column")
         else:
             rows = np.arange(len(log_))
-        lp.bind({k: v[rows] for k, v in log_.extra.items()})
-        blocks.append(LoopBlock(lp, theta[rows], numbers[rows], tau[rows] if tau is not None else None))
+        blocks.append(LoopBlock(lp, theta[rows], numbers[rows], tau[rows] if tau is not None else None,
+                                lp.measurements(log_.extra, rows)))
     return CalibrationProblem(robot, joints, blocks, priors)
-
-
-@dataclass
-class Fit:
-    """A solved reduced problem: the full parameter vector and how it was reached."""
-
-    x: np.ndarray
-    stage: StageResult
-    est: list[int]
-    sigma_q: np.ndarray
-    known: bool
-    iterations: int
-    warnings: list[str]
-
-
-def _solver_options(opt: CalibrationOptions, problem: CalibrationProblem, est: list[int], known: bool
-                    ) -> SolverOptions:
-    lower = upper = None
-    if opt.bounds:
-        lower, upper = np.full(len(est), -np.inf), np.full(len(est), np.inf)
-        for n, (lo, hi) in opt.bounds.items():
-            if n not in problem.index:
-                raise ParameterError(f"bound for unknown parameter '{n}'")
-            k = problem.index[n]
-            if k in est:
-                lower[est.index(k)], upper[est.index(k)] = lo, hi
-    return SolverOptions(max_iter=opt.max_iter, noise=(1.0 if known and opt.weighting == "noise" else None),
-                         snr=opt.snr, lower=lower, upper=upper)
-
-
-def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, est: list[int],
-                 opt: CalibrationOptions, sigma_q: np.ndarray, known: bool,
-                 progress: Progress | None = None, plain_start: bool = False) -> Fit:
-    """The weighted fit from `start`; staged through the plain residual where the weighting misleads.
-
-    The errors-in-variables fit is tried first (it is the estimator; on a
-    single self-motion, where many robots close the same curve, the plain
-    residual's long steps can reach a degenerate one).  When it stalls far
-    above any plausible noise, leaves directions undetermined (a spurious
-    minimum reports many), or its weighting turns singular on the way
-    (more residual directions discarded than at the start), the plain
-    loop-closure fit is solved from `start` and the weighted fit restarted
-    from it (`fit.weighted_stage` keeps the plain solution if the weighting
-    would hide a residual there).  `plain_start` goes through the plain stage
-    directly.
-    """
-    scale = np.array([p.prior for p in problem.params])
-    sopt = _solver_options(opt, problem, est, known)
-    prog = (lambda it, c: progress("solving", it, c)) if progress else None
-    warnings: list[str] = []
-    base = x0.copy()
-    base[est] = start[est]
-    xs, iters = start[est], 0
-    b = None
-    if not plain_start or opt.weighting != "noise":
-        b = weighted_stage(problem, base, xs, est, scale, sigma_q, opt.weighting, sopt, prog)
-        iters = b.solution.iterations
-    if b is None or (opt.weighting == "noise" and (b.note or b.solution.truncated
-                                                    or _misled(problem, b))):
-        a = plain_stage(problem, base, xs, est, scale, sopt, prog)
-        b2 = weighted_stage(problem, base, a.solution.x, est, scale, sigma_q, opt.weighting, sopt, prog)
-        iters += a.solution.iterations + b2.solution.iterations
-        b = b2 if b is None else _better(problem, [b, b2], start, est, scale)
-    if b.note:
-        warnings.append(b.note)
-    xs = b.solution.x
-    joint_beside_measurement = (not known and opt.weighting == "noise" and b.fun.weighting == "noise"
-                                and any(bl.loop.measurement_cov is not None for bl in problem.blocks))
-    if joint_beside_measurement:
-        # The ratio of joint to measurement noise sets the weights: estimate the joint level
-        # (closedloop.noise) at the fit, re-solve with it, until it settles.
-        pattern, s_prev = sigma_q.copy(), None
-        covs = [bl.loop.measurement_cov for bl in problem.blocks]
-        start_e = start[est]
-        for _ in range(4):
-            evs = problem.evaluate(b.fun.full(b.solution.x), True, columns=[])
-            s = joint_variance_scale([e.r for e in evs], [e.Jq for e in evs], covs, pattern, len(est))
-            if s_prev is not None and abs(s - s_prev) <= 0.05 * max(s, s_prev):
-                break
-            sigma_q, known, s_prev = np.sqrt(s) * pattern, True, s
-            b = weighted_stage(problem, base, start_e, est, scale, sigma_q, "noise", replace(sopt, noise=1.0), prog)
-            iters += b.solution.iterations
-    return Fit(b.fun.full(b.solution.x), b, est, sigma_q, known, iters, warnings)
-
-
-def _misled(problem: CalibrationProblem, stage: StageResult) -> bool:
-    """The weighted fit stalled far above the noise, or its weighting discards more than at the start."""
-    if stage.solution.status != "converged" or _closure_level(problem, stage) > 1.0:
-        return True
-    return stage.fun.deficit > stage.deficit_start
-
-
-PLAUSIBLE_JOINT_NOISE = 2e-3  # rad: no encoder reads worse; a closure it cannot explain is a stalled fit
-
-
-def _closure_level(problem: CalibrationProblem, stage: StageResult) -> float:
-    """The typical configuration's closure in units of what 2 mrad of joint noise (plus the loops' own
-    measurement noise, a camera's pixels) explains: the median, so that a few outliers do not count."""
-    if not np.isfinite(stage.solution.cost):
-        return np.inf
-    fun = ResidualFunction(problem, stage.fun.full(stage.solution.x), [],
-                           np.full(len(problem.joints), PLAUSIBLE_JOINT_NOISE), "noise")
-    per_config = np.concatenate([np.linalg.norm(b, axis=1) / np.sqrt(b.shape[1])
-                                 for b in fun.blocks(np.zeros(0)) if b.size])
-    return float(np.median(per_config)) if per_config.size else 0.0
-
-
-def _stalled(problem: CalibrationProblem, fit: Fit) -> bool:
-    """The fit stopped far above any plausible noise (`_closure_level` above 1)."""
-    return _closure_level(problem, fit.stage) > 1.0
-
-
-def _better(problem: CalibrationProblem, stages: list[StageResult], start: np.ndarray, est: list[int],
-            scale: np.ndarray) -> StageResult:
-    """Of the fits that close as well as the best, the nearest the start (in prior units): a degenerate
-    robot (a forearm of zero length) may close a single self-motion as well as the real one."""
-    levels = [_closure_level(problem, st) for st in stages]
-    # as good as the best: within 10x of its closure, or both below 1/1000 of a plausible noise
-    good = [st for st, lv in zip(stages, levels) if lv <= max(10.0 * min(levels), 1e-3)]
-    return min(good, key=lambda st: float(np.linalg.norm((st.solution.x - start[est]) / scale[est])))
-
-
-def solve_with_restarts(problem: CalibrationProblem, x0: np.ndarray, est: list[int], opt: CalibrationOptions,
-                        sigma_q: np.ndarray, known: bool, rng: np.random.Generator,
-                        progress: Progress | None = None, first: Fit | None = None) -> Fit:
-    """`solve_staged` from x0 (or `first`); if it stalls far above the noise, from other starts.
-
-    Starts: the loop parameters and offsets first with the geometry held, then
-    all; then x0 moved at random by 1x and 3x the parameters' priors.  Among
-    the fits that close within a plausible noise, the nearest to the start
-    (in prior units) is kept: on a single self-motion degenerate robots (a
-    forearm of zero length) close the loop as well as the real one.  If none
-    does, the one with the lowest unweighted closure.
-    """
-    fit = first if first is not None else solve_staged(problem, x0, x0, est, opt, sigma_q, known, progress)
-    if opt.restarts <= 0 or not _stalled(problem, fit):
-        return fit
-    scale = np.array([p.prior for p in problem.params])
-    fits = [fit]
-    starts = []
-    sub = [k for k in est if problem.params[k].kind in ("loop", "offset")]
-    if sub and len(sub) < len(est):
-        starts.append(solve_staged(problem, x0, x0, sub, opt, sigma_q, known, plain_start=True).x)
-    for size in (1.0, 3.0, 1.0, 3.0)[:max(opt.restarts - len(starts), 0)]:
-        starts.append(random_start(x0, est, scale, rng, size))
-    for k, st in enumerate(starts[:opt.restarts]):
-        log.info("restart %d: the fit stalled far above the noise", k + 1)
-        fits.append(solve_staged(problem, x0, st, est, opt, sigma_q, known, progress))
-        if not _stalled(problem, fits[-1]):
-            break
-    good = [f for f in fits if not _stalled(problem, f)]
-    if good:
-        best = min(good, key=lambda f: float(np.linalg.norm((f.x - x0)[est] / scale[est])))
-    else:
-        best = min(fits, key=lambda f: unweighted_closure(problem, f.x))
-    best.warnings.append("the fit stalled far above the noise from the given start; "
-                         f"{'a restart reached' if good else 'no restart reached'} a closure within a plausible noise")
-    return best
-
-
-def recheck_at_solution(problem: CalibrationProblem, fit: Fit, structure: Structure, free: list[int],
-                        x0: np.ndarray, opt: CalibrationOptions, progress: Progress | None
-                        ) -> tuple[Fit, Structure, list[str]]:
-    """The reduction and gauge recomputed at the solution; re-solved from it where they differ."""
-    notes = []
-    for _ in range(2):
-        R = closure_jacobian(problem, fit.x, free)
-        why, warning = structure_holds(problem, fit.x, structure, free, R)
-        if warning:
-            fit.warnings.append(warning)
-        if why is None:
-            break
-        st = analyse_structure(problem, fit.x, free, prefer=structure.gauge, R=R)
-        st.rechecked = True
-        gone = sorted(set(structure.kept) - set(st.kept))
-        new = sorted(set(st.kept) - set(structure.kept))
-        notes.append(f"re-checked at the solution: {why}"
-                     + (f" ({', '.join(problem.names[k] for k in gone)} now redundant)" if gone else "")
-                     + (f" ({', '.join(problem.names[k] for k in new)} now identifiable)" if new else "")
-                     + "; re-solved with the solution's reduction")
-        structure = st
-        fit = solve_staged(problem, fit.x, fit.x, st.kept, opt, fit.sigma_q, fit.known, progress)
-    return fit, structure, notes
 
 
 def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, status: list[str]
@@ -331,10 +151,7 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
 
 def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: CalibrationOptions,
                progress: Progress | None) -> CalibrationResult:
-    if opt.weighting not in ("noise", "none"):
-        raise ParameterError(f"weighting must be 'noise' or 'none', not '{opt.weighting}'")
-    if opt.robust not in (None, "auto", "huber", "cauchy"):
-        raise ParameterError(f"robust must be 'auto', 'huber', 'cauchy' or None, not '{opt.robust}'")
+    _check_options(opt)
     problem = build_problem(robot, log_, loops, opt.priors)
     x0 = initial_values(problem, opt.initial)
     status = select_parameters(problem, opt.identify, opt.fix, x0)
@@ -343,21 +160,63 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
     if not free:
         raise NotIdentifiableError("no parameter is left to identify (all fixed or not selected)")
     sigma_q, known = noise_vector(problem, opt.noise)
-    rng = np.random.default_rng(opt.seed)
     if progress:
         progress("analysing", 0, 0.0)
     structure = analyse_structure(problem, x0, free)  # re-checked at the solution (recheck_at_solution)
     _check_rows(problem, structure, log_)
+    problem, fit, structure, rejected, suspects = solve_screened(problem, x0, free, structure, opt, sigma_q, known,
+                                                                 len(log_), notes, progress)
+    x = fit.x.copy()
+    for b, sl in zip(problem.blocks, problem.loop_columns):
+        x[sl] = b.loop.normalize(x[sl])
+    fit.x = x
+    fit.warnings.extend(motion_warnings)
+    for k in free:
+        status[k] = "estimated" if k in fit.est else "dropped"
+    gauge = name_gauge(problem, structure, x, status, opt, notes, fit.warnings)
+    a = analyse_solution(problem, fit, opt, status)
+    sol = fit.stage.solution
+    if sol.status != "converged":
+        notes.append(f"solver: {sol.message}")
+    res = CalibrationResult(problem, problem.names, x0, x, a["std"], status, dropped + list(structure.dropped),
+                            a["weak"], a["S"], a["rank"], residual_stats(problem, problem.evaluate(x0, False)),
+                            residual_stats(problem, problem.evaluate(x, False)), fit.iterations,
+                            sol.status, sol.message, a["sigma"], opt.noise is None, a["chi2"],
+                            a["dof"], notes, a["cov"], fit.est, suspects, a["weighting"], gauge,
+                            structure.gauge_note, structure.gauge_length, rejected, len(log_), fit.warnings)
+    annotate(res, fit.sigma_q, structure.scale_free)  # what sets the scale, each loop's noise (closedloop.constraints)
+    res.verdict = judge(res)
+    return res
+
+
+def _check_options(opt: CalibrationOptions) -> None:
+    if opt.weighting not in ("noise", "none"):
+        raise ParameterError(f"weighting must be 'noise' or 'none', not '{opt.weighting}'")
+    if opt.robust not in (None, "auto", "huber", "cauchy"):
+        raise ParameterError(f"robust must be 'auto', 'huber', 'cauchy' or None, not '{opt.robust}'")
+
+
+def solve_screened(problem: CalibrationProblem, x0: np.ndarray, free: list[int], structure: Structure,
+                   opt: CalibrationOptions, sigma_q: np.ndarray, known: bool, n_rows: int, notes: list[str],
+                   progress: Progress | None
+                   ) -> tuple[CalibrationProblem, Fit, Structure, list[Rejected], list]:
+    """Outlier screen, staged solve, restarts and the re-checks at the solution (module docstring, 4-6).
+
+    Returns the problem on the kept rows, its fit, the structure that holds
+    at the solution, the rejected configurations and (``robust='huber'|
+    'cauchy'``) the suspects.  Edits `notes`.
+    """
+    rng = np.random.default_rng(opt.seed)
     rejected: list[Rejected] = []
     suspects: list = []
     screened = fit = None
     if opt.robust == "auto" and gross_outliers(problem, x0, sigma_q, opt):  # rows no model error explains
-        screened = reject_outliers(problem, None, x0, structure.kept, opt, sigma_q, log_, loops,
-                                   build_problem)
+        screened = reject_outliers(problem, None, x0, structure.kept, opt, sigma_q, n_rows)
     if screened is None:
         fit = solve_staged(problem, x0, x0, structure.kept, opt, sigma_q, known, progress)
         if opt.robust == "auto":  # screened before any restart: restarts on rows that are not closures are wasted
-            screened = reject_outliers(problem, fit.x, x0, fit.est, opt, sigma_q, log_, loops, build_problem)
+            screened = reject_outliers(problem, fit.x, x0, fit.est, opt, sigma_q, n_rows)
+    problem_all = problem
     if screened is not None:
         problem, rejected, x_robust = screened
         structure = analyse_structure(problem, x0, free)
@@ -369,40 +228,38 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
         fit, suspects = irls_fit(problem, fit, opt, notes)
     fit, structure, recheck_notes = recheck_at_solution(problem, fit, structure, free, x0, opt, progress)
     notes.extend(recheck_notes)
-    x = fit.x.copy()
-    for b, sl in zip(problem.blocks, problem.loop_slices):
-        x[sl] = b.loop.normalize(x[sl])
-    fit.x = x
-    fit.warnings.extend(motion_warnings)
-    for k in free:
-        status[k] = "estimated" if k in fit.est else "dropped"
-    gauge = None
-    if structure.gauge is not None:
-        status[structure.gauge] = "fixed"
-        gauge = problem.names[structure.gauge]
-        notes.append(f"fixed {gauge} = {x[structure.gauge]:g}: {structure.gauge_note}")
-        user_lengths = [problem.names[k] for k in opt_fixed(problem, opt) if problem.params[k].scales_with_length]
-        if user_lengths:
-            notes.append(f"the fixed length(s) {', '.join(user_lengths)} do not set the scale: they are absorbed "
-                         "by other parameters")
-        if structure.gauge_warning:
-            fit.warnings.append(structure.gauge_warning)
-    elif structure.scale_free and structure.gauge_note:
-        fit.warnings.append(structure.gauge_note)
-    dropped = dropped + [d for d in structure.dropped]
-    a = analyse_solution(problem, fit, opt, status)
-    evals0 = problem.evaluate(x0, False)
-    evals1 = problem.evaluate(x, False)
-    sol = fit.stage.solution
-    if sol.status != "converged":
-        notes.append(f"solver: {sol.message}")
-    res = CalibrationResult(problem, problem.names, x0, x, a["std"], status, dropped, a["weak"], a["S"], a["rank"],
-                            residual_stats(problem, evals0), residual_stats(problem, evals1), fit.iterations,
-                            sol.status, sol.message, a["sigma"], opt.noise is None, a["chi2"],
-                            a["dof"], notes, a["cov"], fit.est, suspects, a["weighting"], gauge,
-                            structure.gauge_note, structure.gauge_length, rejected, len(log_), fit.warnings)
-    res.verdict = judge(res)
-    return res
+    back = readmit(problem_all, fit.x, rejected, opt, sigma_q) if rejected else None
+    if back is not None:  # rejections made short of the solution that it does not confirm
+        notes.append(f"re-checked at the solution: {len(rejected) - len(back[1])} rejected configuration(s) "
+                     "fit within the noise there and were readmitted")
+        problem, rejected = back  # solved again from the start: the robust fit's point was not a solution
+        before = fit.iterations
+        fit = solve_staged(problem, x0, x0, fit.est, opt, fit.sigma_q, fit.known, progress)
+        fit = solve_with_restarts(problem, x0, fit.est, opt, fit.sigma_q, fit.known, rng, progress, fit)
+        fit.iterations += before
+    return problem, fit, structure, rejected, suspects
+
+
+def name_gauge(problem: CalibrationProblem, structure: Structure, x: np.ndarray, status: list[str],
+               opt: CalibrationOptions, notes: list[str], warnings: list[str]) -> str | None:
+    """The held length that sets the scale (thesis 3.3), with its notes; None if the data or the user set it.
+
+    Edits `status` (the gauge is 'fixed'), `notes` and `warnings`.
+    """
+    if structure.gauge is None:
+        if structure.scale_free and structure.gauge_note:
+            warnings.append(structure.gauge_note)
+        return None
+    status[structure.gauge] = "fixed"
+    gauge = problem.names[structure.gauge]
+    notes.append(f"fixed {gauge} = {x[structure.gauge]:g}: {structure.gauge_note}")
+    user_lengths = [problem.names[k] for k in opt_fixed(problem, opt) if problem.params[k].scales_with_length]
+    if user_lengths:
+        notes.append(f"the fixed length(s) {', '.join(user_lengths)} do not set the scale: they are absorbed "
+                     "by other parameters")
+    if structure.gauge_warning:
+        warnings.append(structure.gauge_warning)
+    return gauge
 
 
 def opt_fixed(problem: CalibrationProblem, opt: CalibrationOptions) -> set[int]:

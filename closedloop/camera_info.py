@@ -140,13 +140,16 @@ def write_camera_info(path: str | Path, info: CameraInfo) -> None:
 def camera_infos_from_result(result, loop) -> list[CameraInfo]:
     """The calibrated intrinsics and distortion of every camera of a camera loop in a CalibrationResult."""
     values = dict(zip(result.names, result.values))
+    shared = getattr(loop, "shared", None) or {}  # a field shared with a group (cam1=@head) has the group's name
     out = []
     for c in range(loop.cameras):
-        pre = f"{loop.name}.cam{c + 1}."
-        K = loop.K[c] if loop.K[c] is not None else np.array([values[pre + f] for f in ("fx", "fy", "cx", "cy")])
+        def name(f: str, c: int = c) -> str:
+            return shared.get(f"cam{c + 1}.{f}", f"{loop.name}.cam{c + 1}.{f}")
+
+        K = loop.K[c] if loop.K[c] is not None else np.array([values[name(f)] for f in ("fx", "fy", "cx", "cy")])
         D = loop.D[c].copy()
         for i, f in enumerate(("k1", "k2", "p1", "p2", "k3")):
-            if pre + f in values:
-                D[i] = values[pre + f]
+            if name(f) in values:
+                D[i] = values[name(f)]
         out.append(CameraInfo(np.asarray(K, float), D, name=f"{loop.name}_cam{c + 1}"))
     return out

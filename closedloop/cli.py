@@ -1,4 +1,5 @@
-"""The `closedloop` command line.  Printing happens here and only here.
+"""The `closedloop` command line: the parser, the dispatch and the exit codes.  Printing happens in the
+`cli*` modules and only there (`cli_calibrate`, `cli_simulate`, `cli_tools`; option values: `cli_parse`).
 
 User mistakes (`InputError`) print one line and exit with code 2.
 """
@@ -9,256 +10,17 @@ import argparse
 import json
 import logging
 import sys
-import time
-from pathlib import Path
 
-import numpy as np
+from .cli_calibrate import cmd_calibrate
+from .cli_parse import EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL, check_number, float_arg, int_arg, join_negative_numbers
+from .cli_simulate import cmd_simulate
+from .errors import CalibrationError, ClosedLoopError, InputError
 
-from .errors import ClosedLoopError, ConvergenceError, InputError, NotIdentifiableError
-
-EXIT_INPUT = 2
-EXIT_FAILED = 3  # a calibration whose verdict is 'failed' (the report says why)
-EXIT_INTERNAL = 70
-
-
-class _Progress:
-    """A short progress line on stderr (one line, rewritten in place on a terminal)."""
-
-    def __init__(self, quiet: bool):
-        self.quiet = quiet
-        self.tty = sys.stderr.isatty()
-        self.t0 = time.perf_counter()
-        self.last = (None, -1.0)  # (stage, time) of the last line printed
-
-    def __call__(self, stage: str, it: int, value: float) -> None:
-        if self.quiet:
-            return
-        msg = f"  {stage}"
-        if stage == "solving":
-            msg += f": iteration {it}, cost {value:.3e}"
-        elif stage == "validating":
-            msg += ": k-fold held-out refits"
-        elif stage == "simulating":
-            msg += f": {it}/{int(value)} configurations"
-        msg += f"  [{time.perf_counter() - self.t0:.1f} s]"
-        now = time.perf_counter()
-        if self.tty:
-            print("\r" + msg.ljust(70), end="", file=sys.stderr, flush=True)
-        elif stage != self.last[0] or now - self.last[1] > 1.0:  # logs: stage changes, then once a second
-            print(msg, file=sys.stderr, flush=True)
-            self.last = (stage, now)
-
-    def done(self) -> None:
-        if self.tty and not self.quiet:
-            print(file=sys.stderr)
-
-
-def _parse_noise(text: str | float | None):
-    """``--noise 1e-4`` or ``--noise j1=1e-4,j2=2e-4``: every value a finite number > 0 (rad or m)."""
-    from .schemas import parse_number
-
-    if text is None:
-        return None
-    if not isinstance(text, str):
-        text = repr(text)
-    if "=" not in text:
-        v = parse_number(text, f"--noise {text}")
-        if not 0 < v <= 10:
-            raise InputError(f"--noise {text}: the joint noise must be > 0 and <= 10 (a std in rad or m)")
-        return v
-    out = {}
-    for part in text.split(","):
-        k, _, v = (t.strip() for t in part.partition("="))
-        if not k:
-            raise InputError(f"--noise {part}: expected joint=value")
-        out[k] = parse_number(v, f"--noise {part}")
-        if not 0 < out[k] <= 10:
-            raise InputError(f"--noise {part}: the joint noise must be > 0 and <= 10 (a std in rad or m)")
-    return out
-
-
-def _parse_bounds(items: list[str]) -> dict[str, tuple[float, float]]:
-    """``--bound NAME=LOW:HIGH`` (an empty side is unbounded); LOW <= HIGH."""
-    from .schemas import parse_number
-
-    out = {}
-    for item in items:
-        name, eq, rng = item.partition("=")
-        lo, colon, hi = rng.partition(":")
-        if not eq or not colon or not name.strip():
-            raise InputError(f"--bound {item}: expected NAME=LOW:HIGH")
-        lo_v = parse_number(lo, f"--bound {item}", allow_inf=True) if lo.strip() else -np.inf
-        hi_v = parse_number(hi, f"--bound {item}", allow_inf=True) if hi.strip() else np.inf
-        if lo_v > hi_v:
-            raise InputError(f"--bound {item}: the lower bound {lo.strip()} exceeds the upper bound {hi.strip()}")
-        out[name.strip()] = (lo_v, hi_v)
-    return out
-
-
-def _check_number(opt: str, value, lo: float, hi: float, *, integer: bool = False, lo_open: bool = False):
-    """A numeric option in range (``lo < v`` when `lo_open`, else ``lo <= v``; ``v <= hi``), as float/int."""
-    from .schemas import is_number, parse_number
-
-    v = parse_number(value, f"{opt} {value}") if isinstance(value, str) else value
-    if not is_number(v) or (integer and float(v) != int(v)):
-        raise InputError(f"{opt} {value}: expected {'a whole number' if integer else 'a finite number'}")
-    if v < lo or (lo_open and v == lo) or v > hi:
-        raise InputError(f"{opt} {value}: must be {'>' if lo_open else '>='} {lo:g} and <= {hi:g}")
-    return int(v) if integer else float(v)
-
-
-def _check_calibrate_options(args) -> tuple:
-    """`calibrate`'s output paths and numeric options, checked before any work: (noise, bounds, cv given?)."""
-    from .export import check_outputs
-
-    check_outputs({"--out": args.out, "--report": args.report, "--html": getattr(args, "html", None)},
-                  [args.model, args.log])
-    if getattr(args, "plots", None):
-        check_outputs({"--plots": args.plots}, [args.model, args.log], directory=True)
-    args.snr = _check_number("--snr", args.snr, 0.0, 1e6, lo_open=True)
-    args.max_iter = _check_number("--max-iter", args.max_iter, 1, 10**6, integer=True)
-    cv_given = args.cv is not None  # (default None: 5 folds, fewer on a short log)
-    args.cv = _check_number("--cv", args.cv, 0, 10**6, integer=True) if cv_given else 5
-    if args.cv == 1:
-        raise InputError("--cv 1: K-fold validation needs K >= 2 (or 0 to disable)")
-    for spec in args.loop:
-        _check_loop_numbers(spec)
-    return _parse_noise(args.noise), _parse_bounds(args.bound), cv_given
-
-
-def _check_loop_numbers(spec: str) -> None:
-    """Numbers inside a ``--loop`` spec (closure, axis, point, ...) are decimal, finite and within 1e6."""
-    import re
-
-    from .schemas import MAX_ABS, parse_number
-
-    for token in re.split(r"[\s,=:\"']+", spec):
-        if re.fullmatch(r"[-+]?(\d[\d_]*\.?[\d_]*|\.\d[\d_]*)([eE][-+]?\d+)?|[-+]?(nan|inf|infinity)", token,
-                        re.IGNORECASE):
-            v = parse_number(token, f"--loop {spec}")
-            if abs(v) > MAX_ABS:
-                raise InputError(f"--loop {spec}: {token} is out of range (|value| <= {MAX_ABS:g})")
+__all__ = ["EXIT_FAILED", "EXIT_INPUT", "EXIT_INTERNAL", "build_parser", "cmd_calibrate", "cmd_check", "cmd_inspect",
+           "cmd_simulate", "main"]
 
 
 # --------------------------------------------------------------------------- commands
-def cmd_calibrate(args) -> int:
-    from .calibration import CalibrationOptions, calibrate
-    from .export import OutputSet, write_model
-    from .loops.spec import default_loops, parse_loop
-    from .parameters import parse_fix
-    from .report import build_report, write_report
-    from .robot import RobotModel
-
-    from .data import check_loop_column
-    from .export import check_model_output
-
-    noise, bounds, cv_given = _check_calibrate_options(args)  # outputs and numbers, before any work
-    if args.threads is not None:
-        args.threads = _check_number("--threads", args.threads, 0, 4096, integer=True)
-    robot = RobotModel.from_file(args.model)
-    check_model_output(robot.kind, args.out, args.model)
-    loops = [parse_loop(s, robot) for s in args.loop] or default_loops(robot)
-    if not loops:
-        raise InputError("no --loop given: say how the chain is closed, e.g. --loop weld:frame=<tool frame>")
-    from .cli_tools import read_log_or_bag
-
-    lg = read_log_or_bag(args.log, robot, args.degrees)  # a CSV log or a ROS bag
-    check_loop_column(lg, [lp.name for lp in loops])
-    if args.cv > len(lg):
-        if cv_given:
-            raise InputError(f"--cv {args.cv}: more folds than the {len(lg)} rows of {args.log}")
-        args.cv = len(lg) if len(lg) >= 2 else 0
-    from .calibration import build_problem
-
-    names = build_problem(robot, lg, loops).names
-    opts = CalibrationOptions(identify=args.identify.split(",") if args.identify else None,
-                              fix=parse_fix(args.fix, names), noise=noise,
-                              weighting=args.weighting, max_iter=args.max_iter, snr=args.snr,
-                              bounds=bounds, robust=None if args.robust == "off" else args.robust,
-                              threads=args.threads)
-    prog = _Progress(args.quiet)
-    t0 = time.perf_counter()
-    res = calibrate(robot, lg, loops, opts, progress=prog)
-    prog.done()
-    elapsed = time.perf_counter() - t0
-    report = build_report(res, args.model, args.log)
-    report["solver"]["seconds"] = elapsed
-    cv = None
-    if args.cv and res.converged:
-        from .validation import cross_validate
-
-        prog("validating", 0, 0.0)
-        cv = cross_validate(robot, lg, loops, opts, k=args.cv)
-        report["validation"] = {"k": args.cv, "test": cv["test"], "train": cv["train"],
-                                "test_whitened_rms": cv.get("test_whitened_rms"),
-                                "parameter_spread": cv.get("parameter_spread"),
-                                "inconsistent": cv.get("inconsistent"),
-                                "folds_converged": [f["converged"] for f in cv["folds"]]}
-        prog.done()
-    from .report import verdict_record
-    from .verdict import judge
-
-    res.verdict = judge(res, cv)  # the fit's evidence and the held-out folds'
-    report["verdict"] = verdict_record(res.verdict)
-    failed = res.verdict.status == "failed"
-    write_out = args.out and (not failed or args.force)
-    with OutputSet(order=[args.out if write_out else None, args.report]):  # published whole, model first
-        if args.report:
-            write_report(report, args.report)
-        if write_out:
-            write_model(robot, res.as_dict(), args.out)
-    _print_summary(res, elapsed, args, report, wrote_model=bool(write_out))
-    from .cli_tools import write_figures
-
-    write_figures(res, report, args)  # --html / --plots
-    if res.verdict.status == "suspect":
-        print(f"warning: {args.log}: calibration is suspect: {'; '.join(res.verdict.reasons)}", file=sys.stderr)
-    if failed:
-        print(f"error: {args.log}: calibration failed: {'; '.join(res.verdict.reasons)}"
-              + ("" if write_out or not args.out else f"; no model written to {args.out} (--force writes it)"),
-              file=sys.stderr)
-        return EXIT_FAILED
-    return 0
-
-
-def _print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = True) -> None:
-    b, a = res.residuals_before, res.residuals_after
-    print(f"verdict: {res.verdict.status}" + (f" ({'; '.join(res.verdict.reasons)})" if res.verdict.reasons else ""))
-    print(f"calibrated {len(res.estimated)} parameters from {sum(r.n for r in a)} configurations "
-          f"in {res.iterations} iterations ({elapsed:.2f} s): {res.solver_status}")
-    for rb, ra in zip(b, a):
-        parts = []
-        if rb.rms_m is not None:
-            parts.append(f"{rb.rms_m * 1e3:.4g} mm -> {ra.rms_m * 1e3:.4g} mm")
-        if rb.rms_rad is not None:
-            parts.append(f"{rb.rms_rad * 1e3:.4g} mrad -> {ra.rms_rad * 1e3:.4g} mrad")
-        if rb.rms_px is not None:
-            parts.append(f"{rb.rms_px:.4g} px -> {ra.rms_px:.4g} px")
-        print(f"  loop {ra.loop}: closure RMS " + ", ".join(parts))
-    est = "estimated" if res.sigma_estimated else "given"
-    print(f"  joint noise {res.sigma:.3g} ({est}); chi2/dof {res.chi2 / max(res.dof, 1):.3g}")
-    if res.dropped:
-        print(f"  {len(res.dropped)} redundant parameters dropped (see report: identifiability.dropped)")
-    for c in res.weak:
-        print(f"  not identifiable: {c.describe()}")
-    for n in res.notes:
-        print(f"  note: {n}")
-    cv = report.get("validation")
-    if cv:
-        for t in cv["test"]:
-            parts = [f"{t['rms_m'] * 1e3:.4g} mm" if t.get("rms_m") is not None else "",
-                     f"{t['rms_rad'] * 1e3:.4g} mrad" if t.get("rms_rad") is not None else "",
-                     f"{t['rms_px']:.4g} px" if t.get("rms_px") is not None else ""]
-            print(f"  {cv['k']}-fold validation, loop {t['loop']}: held-out closure RMS "
-                  + ", ".join(p for p in parts if p))
-    for rj in res.rejected[:10]:
-        print(f"  rejected: log row {rj.row} (loop {rj.loop}), {rj.standardized:.3g} robust standard deviations")
-    if args.out and wrote_model:
-        print(f"  wrote {args.out}")
-    if args.report:
-        print(f"  wrote {args.report}")
-
-
 def cmd_inspect(args) -> int:
     from .parameters import RobotParameters
     from .robot import RobotModel
@@ -286,7 +48,7 @@ def cmd_inspect(args) -> int:
 def cmd_check(args) -> int:
     from .check import check_report
 
-    tols = {o: _check_number(f"--{o.replace('_', '-')}", getattr(args, o), 0.0, 1e6, lo_open=True)
+    tols = {o: check_number(f"--{o.replace('_', '-')}", getattr(args, o), 0.0, 1e6, lo_open=True)
             for o in ("tol_m", "tol_rad", "tol_scale", "tol_px")}
     truth = _load_json(args.truth, "truth file")
     report = _load_json(args.report, "report file")
@@ -301,81 +63,6 @@ def cmd_check(args) -> int:
     print(f"{sum(r['result'] == 'ok' for r in rows)} within tolerance, {bad} outside, "
           f"{sum(r['result'] not in ('ok', 'FAIL') for r in rows)} not compared")
     return 0 if ok else 1
-
-
-def cmd_simulate(args) -> int:
-    try:
-        from .sims import SCENARIOS, simulate
-    except ImportError as exc:  # pragma: no cover - packaging error
-        raise ClosedLoopError(f"the simulator is not installed ({exc})") from None
-    from .cli_tools import resolve_scenario
-    from .sims.camera_scene import SCENARIOS as CAMERA_SCENARIOS, simulate_cli as camera_simulate
-
-    if getattr(args, "scenario", None) in CAMERA_SCENARIOS:  # the head-camera scenarios (sims/camera_scene.py)
-        return camera_simulate(args)
-    args.scenario = resolve_scenario(args)  # a built-in, a scenario YAML, or --robot + --loop
-    if args.scenario not in SCENARIOS:
-        raise InputError(f"unknown scenario '{args.scenario}' (known: {', '.join(sorted(SCENARIOS))})")
-    from .export import check_outputs
-    from .sims.dataset import check_dataset_dir
-
-    args.n = _check_number("--n", args.n, 1, 10**7, integer=True)
-    args.seed = _check_number("--seed", args.seed, 0, 2**63 - 1, integer=True)
-    check_outputs({"--out": args.out}, directory=True)
-    check_dataset_dir(Path(args.out), replace=getattr(args, "replace", False))
-    overrides = _sim_overrides(args.set, SCENARIOS[args.scenario].settings)
-    prog = _Progress(args.quiet)
-    t0 = time.perf_counter()
-    result = simulate(args.scenario, n=args.n, seed=args.seed, out_dir=Path(args.out),
-                      progress=lambda i, n: prog("simulating", i, n), **overrides)
-    prog.done()
-    print(f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out}")
-    summary = getattr(result, "summary", None)
-    if callable(summary):
-        print(summary())
-    return 0
-
-
-def _sim_overrides(items: list[str], defaults) -> dict:
-    """``--set KEY=VALUE`` items checked against the scenario's settings (type of each default)."""
-    import dataclasses
-
-    from .schemas import check_settings, is_number
-
-    kinds = {f.name: type(getattr(defaults, f.name)) for f in dataclasses.fields(defaults)}
-    kinds.update(soft=bool, stiff=bool)  # presets
-    out: dict = {}
-    for item in items:
-        key, eq, text = (t.strip() for t in item.partition("="))
-        if not eq or not key:
-            raise InputError(f"--set {item}: expected KEY=VALUE")
-        if key not in kinds:
-            raise InputError(f"--set {item}: unknown setting '{key}' (known: {', '.join(sorted(kinds))})")
-        kind, default = kinds[key], getattr(defaults, key, False)
-        if kind is bool:
-            if text.lower() not in ("true", "false", "1", "0"):
-                raise InputError(f"--set {item}: '{key}' takes true or false")
-            out[key] = text.lower() in ("true", "1")
-        elif kind in (str, type(None)):  # a name (None: off by default)
-            out[key] = None if kind is type(None) and text.lower() in ("", "none", "off") else text
-        else:
-            try:
-                value = json.loads(text)
-            except json.JSONDecodeError:
-                value = None
-            n = len(default) if kind is tuple else 1
-            nums = value if isinstance(value, list) else [value]
-            if len(nums) != n or not all(is_number(v) for v in nums):
-                want = f"a list of {n} numbers, e.g. {json.dumps(list(default))}" if kind is tuple else "a number"
-                raise InputError(f"--set {item}: '{key}' takes {want}")
-            if kind is int and not float(nums[0]).is_integer():
-                raise InputError(f"--set {item}: '{key}' takes a whole number")
-            out[key] = tuple(nums) if kind is tuple else kind(nums[0])
-        v = out[key]
-        check_settings({key: list(v) if isinstance(v, tuple) else v}, f"--set {item}")
-    merged = {k: list(v) if isinstance(v, tuple) else v for k, v in {**defaults.as_dict(), **out}.items()}
-    check_settings(merged, "--set")  # types and ranges (kp > 0, timestep > 0, noise >= 0, select a method...)
-    return out
 
 
 def _load_json(path: str, what: str = "JSON file"):
@@ -395,8 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("calibrate", help="calibrate a model from a joint log", epilog=loop_help(),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     c.add_argument("model", help="URDF, MJCF (.xml) or D-H table (.yaml)")
-    c.add_argument("log", help="CSV: header of joint names, one row per configuration; or a ROS bag "
-                               "(.bag, ROS 2 bag directory, .mcap, .db3) of sensor_msgs/JointState")
+    c.add_argument("log", nargs="?", help="CSV: header of joint names, one row per configuration; or a ROS bag "
+                                          "(.bag, ROS 2 bag directory, .mcap, .db3) of sensor_msgs/JointState; "
+                                          "omitted when each loop names its file (--loop ...,log=FILE)")
     c.add_argument("--loop", action="append", default=[], metavar="SPEC",
                    help="loop closure TYPE:key=value,..., e.g. weld:frame=panda_hand (repeatable; types below)")
     c.add_argument("--html", help="self-contained HTML report with figures")
@@ -410,20 +98,23 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--weighting", choices=["noise", "none"], default="noise",
                    help="noise: errors-in-variables weighting (default); none: plain loop residual (thesis)")
     c.add_argument("--bound", action="append", default=[], metavar="NAME=LOW:HIGH", help="bound a parameter")
-    c.add_argument("--snr", type=_float_arg, default=1.0, help="SVD truncation: keep directions above snr * noise")
+    c.add_argument("--snr", type=float_arg, default=1.0, help="SVD truncation: keep directions above snr * noise")
     c.add_argument("--robust", choices=["auto", "huber", "cauchy", "off"], default="auto",
                    help="outliers: auto (default) rejects configurations the noise cannot explain, after a robust "
                         "refit; huber/cauchy keep a robust loss in the final fit; off trusts every row")
     c.add_argument("--force", action="store_true",
                    help="write the calibrated model even when the verdict is 'failed'")
-    c.add_argument("--cv", type=_int_arg, default=None, metavar="K",
+    c.add_argument("--cv", type=int_arg, default=None, metavar="K",
                    help="K-fold held-out validation in the report (default 5; 0 disables)")
-    c.add_argument("--max-iter", type=_int_arg, default=100)
-    c.add_argument("--threads", type=_int_arg, default=None, metavar="N",
+    c.add_argument("--max-iter", type=int_arg, default=100)
+    c.add_argument("--threads", type=int_arg, default=None, metavar="N",
                    help="BLAS threads for the fit (default: 1 for small problems, more only for very large "
                         "ones on idle cores; 0: keep the environment's setting)")
     c.add_argument("--degrees", action="store_true", help="the log is in degrees")
     c.add_argument("--quiet", action="store_true")
+    from .cli_evaluate import add_rig_options  # --distance, --joints, --lofo (rigs, issue 18)
+
+    add_rig_options(c)
     c.set_defaults(func=cmd_calibrate)
 
     i = sub.add_parser("inspect", help="list a model's joints, frames and parameter names")
@@ -437,21 +128,24 @@ def build_parser() -> argparse.ArgumentParser:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("scenario", nargs="?", help="a scenario name (below) or a scenario YAML file")
     add_simulate_robot_options(s)
-    s.add_argument("--n", type=_int_arg, default=200)
-    s.add_argument("--seed", type=_int_arg, default=0)
+    s.add_argument("--n", type=int_arg, default=200)
+    s.add_argument("--seed", type=int_arg, default=0)
     s.add_argument("--out", required=True)
     s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a scenario setting")
     s.add_argument("--replace", action="store_true", help="replace the dataset already in --out (refused otherwise)")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=cmd_simulate)
+    from .cli_sweep import add_sweep_options  # --seeds / --jobs / --ray: many datasets on the executor
+
+    add_sweep_options(s)
 
     k = sub.add_parser("check", help="compare a calibration report with simulation truth")
     k.add_argument("truth")
     k.add_argument("report")
-    k.add_argument("--tol-m", type=_float_arg, default=1e-3, help="tolerance for lengths (m)")
-    k.add_argument("--tol-rad", type=_float_arg, default=5e-3, help="tolerance for angles (rad)")
-    k.add_argument("--tol-scale", type=_float_arg, default=5e-3, help="tolerance for scale factors")
-    k.add_argument("--tol-px", type=_float_arg, default=1.0, help="tolerance for camera intrinsics (px)")
+    k.add_argument("--tol-m", type=float_arg, default=1e-3, help="tolerance for lengths (m)")
+    k.add_argument("--tol-rad", type=float_arg, default=5e-3, help="tolerance for angles (rad)")
+    k.add_argument("--tol-scale", type=float_arg, default=5e-3, help="tolerance for scale factors")
+    k.add_argument("--tol-px", type=float_arg, default=1.0, help="tolerance for camera intrinsics (px)")
     k.set_defaults(func=cmd_check)
 
     from .cli_tools import add_extract_parser, cmd_loops
@@ -465,6 +159,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .impedance.cli import add_parser as add_impedance  # closedloop impedance simulate|identify
 
     add_impedance(sub)
+    from .cli_evaluate import add_parser as add_evaluate  # closedloop evaluate MODEL... LOG --loop ...
+
+    add_evaluate(sub)
     return p
 
 
@@ -473,40 +170,6 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str):
         raise InputError(f"{self.prog}: {message} (see {self.prog} --help)")
-
-
-class _ArgTypeError(argparse.ArgumentTypeError, ValueError):
-    """A bad option value: argparse reports it in one line; a --config loader catches the ValueError."""
-
-
-def _float_arg(text: str) -> float:
-    from .schemas import parse_number
-
-    try:
-        return parse_number(text, text)
-    except InputError as exc:
-        raise _ArgTypeError(str(exc)) from None
-
-
-def _int_arg(text: str) -> int:
-    v = _float_arg(text)
-    if v != int(v):
-        raise _ArgTypeError(f"{text}: expected a whole number")
-    return int(v)
-
-
-def _join_negative_numbers(argv: list[str]) -> list[str]:
-    """``--noise -1e-4`` -> ``--noise=-1e-4``: argparse takes '-1e-4' for an option (and prints usage)."""
-    import re
-
-    neg = re.compile(r"^-(\d|\.\d|inf|nan)", re.IGNORECASE)
-    out: list[str] = []
-    for a in argv:
-        if out and neg.match(a) and out[-1].startswith("--") and "=" not in out[-1]:
-            out[-1] = f"{out[-1]}={a}"
-        else:
-            out.append(a)
-    return out
 
 
 class _Signal(KeyboardInterrupt):
@@ -529,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from .cli_tools import parse_args
 
-    argv = _join_negative_numbers(list(sys.argv[1:] if argv is None else argv))
+    argv = join_negative_numbers(list(sys.argv[1:] if argv is None else argv))
     handlers = {}
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGHUP):
@@ -545,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
             return exc.code or 0
         print(f"error: {exc.code}", file=sys.stderr)
         return EXIT_INPUT
-    except (ConvergenceError, NotIdentifiableError) as exc:  # the data cannot give a calibration: failed
+    except CalibrationError as exc:  # the data cannot give a calibration (NotIdentifiable, Convergence): failed
         print(f"error: calibration failed: {_one_line(exc)}", file=sys.stderr)
         return EXIT_FAILED
     except ClosedLoopError as exc:  # InputError and its kin: the user's mistake, one line

@@ -1,6 +1,6 @@
 """Command-line helpers for a user's own robot and data (printing allowed: CLI code).
 
-* ``closedloop loops``: the loop types of :data:`closedloop.loops.spec.REGISTRY`
+* ``closedloop loops``: the loop types of :data:`closedloop.loops.spec.LOOP_TYPES`
   with their keys and an example each (also the epilog of ``calibrate --help``);
 * ``closedloop extract``: quasi-static samples of a ROS bag written as the CSV log
   (:mod:`closedloop.bags`); ``calibrate`` also takes a bag in place of the CSV;
@@ -36,11 +36,9 @@ LOOP_EXAMPLES = {
 
 
 def _registry() -> dict:
-    from . import loops  # noqa: F401  (importing the package registers every loop type)
-    from .loops.spec import REGISTRY
+    from .loops.spec import all_loop_types  # every type of the one table, spec.LOOP_TYPES
 
-
-    return REGISTRY
+    return all_loop_types()
 
 
 def loop_help(width: int = 100) -> str:

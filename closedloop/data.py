@@ -69,11 +69,12 @@ class JointLog:
 
 
 def read_log(path: str | Path, joint_names: list[str], degrees: bool = False,
-             linear: list[str] | tuple = ()) -> JointLog:
+             linear: list[str] | tuple = (), order: list[str] | None = None) -> JointLog:
     """Read a CSV log, keeping the columns that name joints of the model.
 
-    Every error names the file and, for bad values, the data row (1-based,
-    header excluded) and the column.
+    A file whose first row is numbers has no header: `order` (``--joints
+    j1,j2,...``) names its columns.  Every error names the file and, for bad
+    values, the data row (1-based, header excluded) and the column.
     """
     path = Path(path)
     try:
@@ -90,6 +91,16 @@ def read_log(path: str | Path, joint_names: list[str], degrees: bool = False,
     rows = [r for r in rows if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
     if not rows:
         raise LogError(f"{path}: empty log (expected a header row naming joints)")
+    if _numbers(rows[0]):  # header-less: the joint order is given
+        if not order:
+            raise LogError(f"{path}: the first row is numbers, not a header naming joints; give the column "
+                           "order (--joints j1,j2,...)")
+        unknown = [j for j in order if j not in set(joint_names) and j != "loop"]
+        if unknown:
+            raise LogError(f"{path}: --joints names {', '.join(unknown)}, not joint(s) of the model")
+        if len(rows[0]) != len(order):
+            raise LogError(f"{path}: row 1 has {len(rows[0])} fields, --joints names {len(order)} columns")
+        rows = [list(order)] + rows
     header = [h.strip() for h in rows[0]]
     if len(set(header)) != len(header):
         dup = sorted({h for h in header if header.count(h) > 1})
@@ -144,3 +155,38 @@ def check_loop_column(log: JointLog, loop_names: list[str]) -> None:
             close = difflib.get_close_matches(str(name), sorted(known), n=1)
             hint = f" (did you mean '{close[0]}'?)" if close else f" (loops: {', '.join(sorted(known))})"
             raise LogError(f"{log.source}: row {r}, column 'loop': no loop named '{name}'{hint}")
+
+
+def _numbers(row: list[str]) -> bool:
+    """Every cell of a row is a number (a data row, not a header)."""
+    try:
+        for c in row:
+            float(c)
+    except ValueError:
+        return False
+    return bool(row)
+
+
+def read_loop_logs(files: list[tuple[str, str | Path]], joint_names: list[str], degrees: bool = False,
+                   linear: list[str] | tuple = (), order: list[str] | None = None) -> JointLog:
+    """One log from several files, one per loop: (loop name, path) pairs (``--loop ...,log=FILE``).
+
+    Each file's rows get its loop's name in the ``loop`` column (a file's own
+    ``loop`` column must agree); the files must log the same joints.
+    """
+    parts = []
+    for name, path in files:
+        lg = read_log(path, joint_names, degrees, linear, order)
+        if lg.loop is not None and np.any(lg.loop != name):
+            raise LogError(f"{path}: its 'loop' column names other loops than '{name}'")
+        parts.append((name, lg))
+    first = parts[0][1]
+    for _, lg in parts[1:]:
+        if set(lg.joints) != set(first.joints):
+            raise LogError(f"{lg.source}: logs joints {', '.join(lg.joints)}, {first.source} logs "
+                           f"{', '.join(first.joints)}: the files must log the same joints")
+    angles = np.vstack([lg.columns(first.joints) for _, lg in parts])
+    loops = np.concatenate([np.full(len(lg), name, dtype=object) for name, lg in parts]).astype(str)
+    keys = list(dict.fromkeys(k for _, lg in parts for k in lg.extra))
+    extra = {k: np.concatenate([lg.extra.get(k, np.full(len(lg), np.nan)) for _, lg in parts]) for k in keys}
+    return JointLog(list(first.joints), angles, Path("+".join(str(p) for _, p in files)), loops, extra)

@@ -1,8 +1,24 @@
-"""Exceptions raised by closedloop.
+"""Exceptions raised by closedloop: one tree, rooted at `ClosedLoopError`.
 
-`InputError` marks a user's mistake (a bad file, an unknown joint, a NaN in a
-log row): the CLI prints its one-line message and exits with code 2.
-Everything else is a bug or a numerical failure and is reported as such.
+    ClosedLoopError
+    +-- InputError                 a user's mistake: the CLI prints its one line and exits with code 2
+    |   +-- ModelError             the robot model (file, joint, frame); UnknownRobotError (also a KeyError)
+    |   +-- LogError               a joint log
+    |   +-- ParameterError         a parameter name or value
+    |   +-- LoopError              a loop specification
+    |   +-- OptionError            a library option's value (a method, a loss, a count); also a ValueError
+    |   +-- ScenarioError          a simulation scenario, its settings or robot; also a ValueError
+    |       +-- UnknownScenarioError   (also a KeyError)
+    |       +-- SettingError           an unknown simulation setting (also a TypeError)
+    +-- CalibrationError           the data or the solver cannot give a calibration (the CLI: exit 3)
+    |   +-- NotIdentifiableError
+    |   +-- ConvergenceError
+    +-- SimulationError            the simulator cannot produce the data asked for (also a RuntimeError)
+
+The classes that also derive from a builtin do so because callers (and the
+tests) catch that builtin: ``simulate("nope")`` was a KeyError, an unknown
+setting a TypeError, a bad option a ValueError; they still are.  Everything
+else is a bug and is reported as such.
 """
 
 from __future__ import annotations
@@ -32,9 +48,44 @@ class LoopError(InputError):
     """A loop specification is wrong (unknown frame, bad closure)."""
 
 
-class NotIdentifiableError(ClosedLoopError):
+class _PlainMessage:
+    """str() is the message itself (a KeyError's str() would quote it)."""
+
+    def __str__(self) -> str:
+        return Exception.__str__(self)  # type: ignore[arg-type]
+
+
+class UnknownRobotError(_PlainMessage, ModelError, KeyError):
+    """A built-in robot name that is not registered (`closedloop.models.ROBOTS`)."""
+
+
+class OptionError(InputError, ValueError):
+    """A library function's option value is not one it knows (a method, a criterion, a loss, a count)."""
+
+
+class ScenarioError(InputError, ValueError):
+    """A simulation scenario is wrong: its loop, its robot's frames and joints, an argument to `simulate`."""
+
+
+class UnknownScenarioError(_PlainMessage, ScenarioError, KeyError):
+    """A scenario name that is not registered (`closedloop.sims.SCENARIOS`)."""
+
+
+class SettingError(ScenarioError, TypeError):
+    """A simulation setting that does not exist (`closedloop.sims.SimSettings`)."""
+
+
+class CalibrationError(ClosedLoopError):
+    """The data or the solver cannot give a calibration (a solver state, not a user's typo)."""
+
+
+class NotIdentifiableError(CalibrationError):
     """Nothing can be identified from the data (immobile loop, no free parameter)."""
 
 
-class ConvergenceError(ClosedLoopError):
+class ConvergenceError(CalibrationError):
     """The solver did not converge within its iteration budget."""
+
+
+class SimulationError(ClosedLoopError, RuntimeError):
+    """The simulator cannot produce the data asked for (a loop that does not close, a model MuJoCo lacks)."""

@@ -259,8 +259,12 @@ def check_model_output(kind: str, out: str | Path | None, model: str | Path | No
                          f"*{' or *'.join(suffixes)}")
 
 
-def write_urdf(robot: RobotModel, values: dict[str, float], out_path: str | Path, fold_offsets: bool = True) -> None:
+def write_urdf(robot: RobotModel, values: dict[str, float], out_path: str | Path, fold_offsets: bool = True,
+               frames: list[tuple[str, str, np.ndarray]] = ()) -> None:
     """Write the URDF of `robot` with joint origins moved by `values` (see module doc).
+
+    `frames` (name, parent link, xyz): estimated tool points added as links on fixed joints
+    (`tool_frames`), so the calibrated URDF carries the tool point it estimated.
 
     The input's XML is edited in place (ElementTree): only the ``<origin>`` (and,
     with folded offsets, the ``<limit>``) of the calibrated joints change; links,
@@ -309,6 +313,7 @@ def write_urdf(robot: RobotModel, values: dict[str, float], out_path: str | Path
             j.insert(0, origin)
         origin.set("xyz", " ".join(repr(float(v)) for v in O[:3, 3]))
         origin.set("rpy", " ".join(repr(float(v)) for v in _rpy(O[:3, :3])))
+    _add_frames(tree.getroot(), frames)
     atomic_write_text(out_path, ET.tostring(tree.getroot(), encoding="UTF-8", xml_declaration=True) + b"\n")
 
 
@@ -352,8 +357,9 @@ def write_dh(robot: RobotModel, values: dict[str, float], out_path: str | Path) 
     atomic_write_text(out_path, dump_dh(robot.dh, values))
 
 
-def write_model(robot: RobotModel, values: dict[str, float], out_path: str | Path) -> None:
-    """The calibrated model in the input's own format (URDF, MJCF or D-H YAML)."""
+def write_model(robot: RobotModel, values: dict[str, float], out_path: str | Path,
+                frames: list[tuple[str, str, np.ndarray]] = ()) -> None:
+    """The calibrated model in the input's own format (URDF, MJCF or D-H YAML); `frames`: tool points (URDF)."""
     if robot.kind == "dh":
         write_dh(robot, values, out_path)
     elif robot.kind == "mjcf":
@@ -361,4 +367,49 @@ def write_model(robot: RobotModel, values: dict[str, float], out_path: str | Pat
 
         write_mjcf(robot, values, out_path)
     else:
-        write_urdf(robot, values, out_path)
+        write_urdf(robot, values, out_path, frames=frames)
+
+
+def tool_frames(result) -> list[tuple[str, str, np.ndarray]]:
+    """The estimated tool points of a calibration as URDF frames: (name, parent link, xyz).
+
+    One per tool point (a shared group once): ``<group or loop>_tip`` on the
+    loop's frame A, at the calibrated ``tip_x, tip_y, tip_z``.
+    """
+    prob = result.problem
+    out, seen = [], set()
+    for b, cols in zip(prob.blocks, prob.loop_columns):
+        names = [prob.names[k] for k in cols]
+        idx = [next((k for k, n in zip(cols, names) if n.endswith(f".tip_{a}")), None) for a in "xyz"]
+        if any(i is None for i in idx):
+            continue
+        owner = prob.names[idx[0]].rsplit(".", 1)[0]
+        if owner in seen or any(result.status[i] not in ("estimated", "fixed") for i in idx):
+            continue
+        seen.add(owner)
+        out.append((f"{owner}_tip", b.loop.frame_a, np.array([result.values[i] for i in idx], dtype=float)))
+    return out
+
+
+def _add_frames(root, frames) -> None:
+    """Links on fixed joints under existing links (a name already taken gets a suffix)."""
+    import xml.etree.ElementTree as ET
+
+    links = {el.get("name") for el in root.findall("link")}
+    joints = {el.get("name") for el in root.findall("joint")}
+    for name, parent, xyz in frames:
+        if parent not in links:
+            continue  # a joint frame or a frame of another format: the report has the point
+        base, k = name, 1
+        while name in links or f"{name}_joint" in joints:
+            k += 1
+            name = f"{base}{k}"
+        link = ET.SubElement(root, "link", name=name)
+        link.tail = "\n"
+        j = ET.SubElement(root, "joint", name=f"{name}_joint", type="fixed")
+        ET.SubElement(j, "parent", link=parent)
+        ET.SubElement(j, "child", link=name)
+        ET.SubElement(j, "origin", xyz=" ".join(repr(float(v)) for v in xyz), rpy="0 0 0")
+        j.tail = "\n"
+        links.add(name)
+        joints.add(f"{name}_joint")

@@ -74,10 +74,16 @@ class ResidualFunction:
         x[self.est] = xe
         return x
 
-    def __call__(self, xe: np.ndarray, jac: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    def __call__(self, xe: np.ndarray, jac: bool | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """r (and J if `jac`) at xe; `jac=None`: a probe (no Jacobian, not a trial point)."""
+        if jac is None:
+            evals = self.problem.evaluate(self.full(xe), self._W is None, columns=[])
+            r, _, _ = whiten(evals, self.sigma_q, self.weighting, False, self.problem.noise,
+                             self._W, self.symmetric)
+            return (r * self.row_weights if self.row_weights is not None else r), None
         if jac and self._x is not None and np.array_equal(xe, self._x):
             return self._rJ
-        loops = [b.loop for b in self.problem.blocks]
+        loops = self.problem.noise  # each block's measurement covariance (problem.BlockNoise)
         first_trial = not jac and self._W is not None and self._trial is None
         if jac and self._trial is not None and np.array_equal(xe, self._trial[0]):
             evals = self._trial[1]
@@ -126,6 +132,7 @@ class StageResult:
     fun: ResidualFunction
     note: str | None = None
     deficit_start: int = 0  # residual directions the weighting discarded at the stage's start
+    closure_level: float | None = None  # `staging._closure_level`, once computed
 
 
 def plain_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, est: list[int],
@@ -135,7 +142,7 @@ def plain_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, 
 
     On a single self-motion many robots close the same curve, and its long
     Gauss-Newton steps may reach a degenerate one (a forearm of zero length):
-    the caller compares it with the weighted fit (`calibration._better`).
+    the caller compares it with the weighted fit (`staging._better`).
     """
     fun = ResidualFunction(problem, x0, est, np.ones(len(problem.joints)), "none", row_weights)
     res = levenberg_marquardt(fun, start, scale[est], replace(sopt, noise=0.0), progress)

@@ -34,7 +34,7 @@ import pinocchio as pin
 if TYPE_CHECKING:
     from .problem import CalibrationProblem
 
-N_CONFIGS = 96
+N_CONFIGS = 32  # x 6 rows per loop frame: far more rows than the 7 + 6F rigid unknowns
 
 
 def _frame_positions(problem: CalibrationProblem, x: np.ndarray, q: np.ndarray, frames: list[int]
@@ -96,7 +96,8 @@ def kinematic_changes(problem: CalibrationProblem, x: np.ndarray, V: np.ndarray,
         step = 1e-6 / max(float(np.abs(v).max()), 1e-300)
         Pp, Rp = _frame_positions(problem, x + step * v, q, frames)
         Pm, Rm = _frame_positions(problem, x - step * v, q, frames)
-        w = np.array([[pin.log3(a @ b.T) for a, b in zip(ra, rb)] for ra, rb in zip(Rp, Rm)])
+        D = Rp @ np.swapaxes(Rm, -1, -2)  # a rotation by ~1e-6 rad: its log is the skew part to O(1e-18)
+        w = 0.5 * np.stack([D[..., 2, 1] - D[..., 1, 2], D[..., 0, 2] - D[..., 2, 0], D[..., 1, 0] - D[..., 0, 1]], -1)
         dP[:, j] = (np.stack([Pp - Pm, w], axis=2) / (2 * step)).reshape(-1)
     return dP, A.reshape(-1, 7 + 6 * F)
 
@@ -173,7 +174,7 @@ def choose_gauge(problem: CalibrationProblem, x: np.ndarray, free: list[int], R:
         length = prior[cols] / np.maximum(np.abs(c), 1e-300)
         scaling = [j for j in range(len(cols)) if res[j] < 1e-3 and cols[j] in lengths and 0.01 <= length[j] <= reach]
         if scaling:
-            best = max(scaling, key=lambda j: length[j])
+            best = max(scaling, key=lambda j: (round(float(length[j]), 4), -cols[j]))  # equal lengths: the first
             found = (cols[best], kept, dropped, float(length[best]))
             break
     else:

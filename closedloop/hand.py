@@ -60,6 +60,7 @@ import numpy as np
 from .calibration import CalibrationOptions, CalibrationResult, calibrate
 from .data import JointLog
 from .dh import LENGTH_UNITS, rot
+from .errors import ModelError, OptionError, ParameterError, SimulationError
 from .loops.base import Loop
 from .robot import RobotModel
 
@@ -85,7 +86,7 @@ def staged_calibration(robot: RobotModel, log: JointLog, loops: list[Loop],
     stage; the last is the calibration.
     """
     if not stages:
-        raise ValueError("staged_calibration needs at least one stage")
+        raise OptionError("staged_calibration needs at least one stage (a list of CalibrationOptions)")
     results: list[CalibrationResult] = []
     carried: dict[str, float] = {}
     for opt in stages:
@@ -159,7 +160,8 @@ class PalmRow:
         elif conv == "translation_z":
             C = _hom(np.eye(3), [0, 0, self.s])
         else:
-            raise ValueError(f"unknown convention {conv}")
+            raise OptionError(f"row {self.label}: unknown convention '{conv}' "
+                              "(known: dh, hayati, hayati_reversed, translation_z)")
         return T @ C
 
     def in_units(self, length: float = INCH) -> dict:
@@ -199,15 +201,16 @@ def palm_frame_parameters(robot: RobotModel, values: dict[str, float] | None = N
     See the module docstring for what is and is not convertible.
     """
     if robot.kind != "dh":
-        raise ValueError("palm_frame_parameters needs the loop's D-H table (a .yaml model)")
+        raise ModelError(f"{robot.source}: palm_frame_parameters needs the loop's D-H table (a .yaml model), "
+                         f"not a {robot.kind} model")
     values = values or {}
     rows = robot.dh.rows
     names = [r.name for r in rows]
     if palm_joint not in names:
-        raise ValueError(f"unknown palm joint '{palm_joint}' (rows: {names})")
+        raise ParameterError(f"unknown palm joint '{palm_joint}' (rows: {names})")
     p = names.index(palm_joint)
     if p == 0 or p == len(rows) - 1:
-        raise ValueError("the palm joint must have thumb rows before it and finger rows after it")
+        raise ParameterError(f"palm joint '{palm_joint}': it must have thumb rows before it and finger rows after it")
 
     def g(i: int, f: str) -> float:
         return float(values.get(f"{names[i]}.{f}", getattr(rows[i], f)))
@@ -349,7 +352,8 @@ def thesis_hand_dataset(out_dir, n: int = 100, seed: int = 5, offset_clip: float
     prob = _loop_problem(RobotModel.from_file(path))
     th0, err = close_readings(prob, nominal_closed_pose(nominal))
     if err > 1e-12:
-        raise RuntimeError("the true hand does not close near the nominal's closed pose")
+        raise SimulationError(f"{path}: the true hand does not close near the nominal's closed pose "
+                              f"(closure error {err:.3g})")
     angles = th0[0] * prob.nominal[prob.rp.scale_index()] + prob.nominal[prob.rp.offset_index()]
     for row, q in zip(rows, angles):  # keep the walk within 0.8 rad of its start
         row["lower"], row["upper"] = float(q - 0.8), float(q + 0.8)

@@ -95,12 +95,17 @@ def fig_closure(res, report: dict) -> bytes:
     return _png(fig)
 
 
+def robot_corrections(res) -> list[int]:
+    """Indices of the estimated robot parameters: by kind, so that a loop's own parameters and shared
+    loop groups (``ball.tip_x``, named by the group, not by a loop) are left out."""
+    return [k for k in range(len(res.names)) if res.status[k] == "estimated" and res.problem.params[k].kind != "loop"]
+
+
 def fig_corrections(res) -> bytes:
     """Estimated corrections (calibrated - initial) with +-1 standard error, lengths and angles apart."""
     plt = _plt()
     prob = res.problem
-    est = [k for k in range(len(res.names)) if res.status[k] == "estimated"
-           and not any(res.names[k].startswith(b.loop.name + ".") for b in prob.blocks)]
+    est = robot_corrections(res)
     groups = [("m", 1e3, "mm"), ("rad", 1e3, "mrad")]
     groups = [(u, f, lab, [k for k in est if prob.params[k].unit == u]) for u, f, lab in groups]
     other = [k for k in est if prob.params[k].unit not in ("m", "rad")]  # scale factors, compliance

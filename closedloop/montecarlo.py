@@ -213,12 +213,12 @@ def unwrap_rotation_vector(r: np.ndarray, ref: np.ndarray) -> np.ndarray:
 def rotation_triples(problem: CalibrationProblem) -> list[tuple[int, int, int]]:
     """Index triples of rotation-vector parameters (weld closures: <loop>.rx, ry, rz)."""
     out = []
-    for sl in problem.loop_slices:
-        names = problem.names[sl]
+    for cols in problem.loop_columns:  # index maps (loops may share parameters)
+        names = [problem.names[i] for i in cols]
         for k, n in enumerate(names):
             if n.endswith(".rx") and k + 2 < len(names) and names[k + 1].endswith(".ry") \
                     and names[k + 2].endswith(".rz"):
-                out.append((sl.start + k, sl.start + k + 1, sl.start + k + 2))
+                out.append((int(cols[k]), int(cols[k + 1]), int(cols[k + 2])))
     return out
 
 

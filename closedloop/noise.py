@@ -187,8 +187,20 @@ def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian
     rows are then turned by an orthogonal matrix, which changes neither
     |r|^2, nor J^T J, nor J^T r: the least-squares problem is the same, at a
     fraction of the cost of the eigendecompositions.
-    Returns (r, J or None, list of (W^-1/2, rank deficit) per block, or None entries).
+    Configurations whose readings several blocks use (the same log row,
+    `BlockEval.rows`: two cameras seeing one marker, issue 14 item 2) are
+    whitened together: their stacked residual has the covariance
+    J_theta Sigma J_theta^T of the stacked J_theta (+ each block's measurement
+    covariance on the diagonal), so the joint noise they share counts once
+    (`_config_groups`; the symmetric root).
+    Returns (r, J or None, list of (W^-1/2, rank deficit) per block, or None
+    entries, then one (W^-1/2, deficit, blocks, indices) per group of blocks).
     """
+    groups = _config_groups(evals) if weighting == "noise" else []
+    shared = [np.zeros(ev.r.shape[0], dtype=bool) for ev in evals]
+    for pattern, idx in groups:
+        for k, bi in enumerate(pattern):
+            shared[bi][idx[:, k]] = True
     rs, Js, used = [], [], []
     for bi, ev in enumerate(evals):
         r, J = ev.r, ev.J
@@ -201,6 +213,8 @@ def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian
             W = Jq @ np.swapaxes(Jq, 1, 2)
             if loops is not None and loops[bi].measurement_cov is not None:
                 W = W + loops[bi].measurement_cov
+            if shared[bi].any():  # whitened with the other blocks below: a placeholder here
+                W[shared[bi]] = np.eye(W.shape[1])
             if symmetric:
                 Wh, deficit = pinv_sqrt(W)
             else:
@@ -208,14 +222,74 @@ def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian
                 ill = np.flatnonzero(kappa >= 1e9)
                 if ill.size:
                     Wh[ill], deficit = pinv_sqrt(W[ill])
+            if shared[bi].any():
+                Wh[shared[bi]] = 0.0
         if Wh is not None:
             r = np.einsum("nij,nj->ni", Wh, r)
             if jacobian:
                 J = Wh @ J
         used.append((Wh, deficit) if Wh is not None else None)
-        rs.append(r.ravel())
+        rs.append(r)
         if jacobian:
-            Js.append(J.reshape(-1, J.shape[-1]))
-    r = np.concatenate(rs) if rs else np.zeros(0)
-    J = np.vstack(Js) if jacobian and Js else None
+            Js.append(J)
+    for gi, (pattern, idx) in enumerate(groups):
+        cached = Winv[len(evals) + gi] if Winv is not None and len(Winv) > len(evals) + gi else None
+        if cached is None and any(evals[bi].Jq is None for bi in pattern):
+            continue  # no Jacobian to weight with: left as the blocks had them (unweighted rows)
+        Wh, deficit = cached[:2] if cached is not None else _group_root(evals, pattern, idx, sigma_q, loops)
+        _whiten_group(evals, pattern, idx, Wh, rs, Js if jacobian else None)
+        used.append((Wh, deficit, pattern, idx))
+    r = np.concatenate([x.ravel() for x in rs]) if rs else np.zeros(0)
+    J = None
+    if jacobian and Js:  # one block: its rows as they are (a copy of J costs as much as the whitening)
+        J = Js[0].reshape(-1, Js[0].shape[-1]) if len(Js) == 1 else np.vstack([x.reshape(-1, x.shape[-1]) for x in Js])
     return r, J, used
+
+
+def _whiten_group(evals: list[BlockEval], pattern: tuple[int, ...], idx: np.ndarray, Wh: np.ndarray,
+                  rs: list[np.ndarray], Js: list[np.ndarray] | None) -> None:
+    """Rows of one group of configurations whitened together, written back into each block's rows."""
+    R = np.concatenate([evals[bi].r[idx[:, k]] for k, bi in enumerate(pattern)], axis=1)
+    Z = np.einsum("nij,nj->ni", Wh, R)
+    JJ = Wh @ np.concatenate([evals[bi].J[idx[:, k]] for k, bi in enumerate(pattern)], axis=1) \
+        if Js is not None else None
+    off = 0
+    for k, bi in enumerate(pattern):
+        m = evals[bi].r.shape[1]
+        rs[bi][idx[:, k]] = Z[:, off:off + m]
+        if Js is not None:
+            Js[bi][idx[:, k]] = JJ[:, off:off + m]
+        off += m
+
+
+def _config_groups(evals: list[BlockEval]) -> list[tuple[tuple[int, ...], np.ndarray]]:
+    """Log rows read by several blocks: per pattern of blocks, the (K, len(pattern)) configuration indices."""
+    if sum(ev.rows is not None for ev in evals) < 2:
+        return []
+    where: dict[int, list[tuple[int, int]]] = {}
+    for bi, ev in enumerate(evals):
+        if ev.rows is None:
+            continue
+        for i, row in enumerate(np.asarray(ev.rows).tolist()):
+            where.setdefault(int(row), []).append((bi, i))
+    patterns: dict[tuple[int, ...], list[list[int]]] = {}
+    for members in where.values():
+        if len(members) > 1:
+            patterns.setdefault(tuple(b for b, _ in members), []).append([i for _, i in members])
+    return [(pat, np.array(ix, dtype=int)) for pat, ix in patterns.items()]
+
+
+def _group_root(evals: list[BlockEval], pattern: tuple[int, ...], idx: np.ndarray, sigma_q: np.ndarray,
+                loops: list[Loop] | None) -> tuple[np.ndarray, int]:
+    """W^-1/2 of the stacked residuals of one configuration in several blocks (their joint noise shared)."""
+    Jq = np.concatenate([evals[bi].Jq[idx[:, k]] for k, bi in enumerate(pattern)], axis=1) * sigma_q[None, None, :]
+    W = Jq @ np.swapaxes(Jq, 1, 2)
+    off = 0
+    for bi in pattern:
+        m = evals[bi].r.shape[1]
+        C = loops[bi].measurement_cov if loops is not None else None
+        if C is not None:
+            W[:, off:off + m, off:off + m] += C
+        off += m
+    return pinv_sqrt(W)
+

@@ -103,7 +103,7 @@ def whitened_blocks(problem: CalibrationProblem, values: np.ndarray, params: lis
         if blocks is not None and bi not in blocks:
             continue
         N, m = ev.r.shape
-        r, J, _ = whiten([ev], sigma_q, weighting, True, [problem.blocks[bi].loop])
+        r, J, _ = whiten([ev], sigma_q, weighting, True, [problem.noise[bi]])
         out.append((r.reshape(N, m), J.reshape(N, m, -1)[:, :, params] * scale))
     return out
 

@@ -20,11 +20,10 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .data import JointLog
 from .fit import ResidualFunction, weighted_stage
 from .problem import CalibrationProblem
 from .records import Rejected
@@ -34,7 +33,7 @@ from .robust import weights as robust_weights
 from .solver import SolverOptions
 
 if TYPE_CHECKING:
-    from .calibration import Fit
+    from .staging import Fit
     from .records import CalibrationOptions
 
 log = logging.getLogger(__name__)
@@ -53,21 +52,36 @@ def _floors(problem: CalibrationProblem) -> list[np.ndarray]:
     return out
 
 
-def screen(problem: CalibrationProblem, x: np.ndarray, sigma_q: np.ndarray, weighting: str) -> list[np.ndarray]:
-    """Standardized closure error per configuration (per block), at `x`."""
+def screen(problem: CalibrationProblem, x: np.ndarray, sigma_q: np.ndarray, weighting: str,
+           known: bool = False) -> list[np.ndarray]:
+    """Standardized closure error per configuration (per block), at `x`.
+
+    With the noise weighting, in robust standard deviations (the MAD of the
+    whitened closures); with a `known` joint noise, never in units smaller
+    than that noise: data better than the stated noise have no outliers (a
+    simulator's compliance at 1e-7 rad is not a gross error).
+
+    Loops with task-space noise (`variance.task_blocks`: contact play) are screened on the unweighted
+    closure: the joint-noise weighting would read their isotropic noise as outliers."""
+    weighting = _screen_weighting(problem, weighting)
     if weighting == "noise":
         blocks = ResidualFunction(problem, x, [], sigma_q, "noise", symmetric=True).blocks(np.zeros(0))
-        return standardized(blocks, max(mad_scale(blocks), SCALE_FLOOR["rad"]))
-    blocks = ResidualFunction(problem, x, [], sigma_q, "none").blocks(np.zeros(0))
-    return component_standardized(blocks, _floors(problem))
+        out = standardized(blocks, max(mad_scale(blocks), 1.0 if known else SCALE_FLOOR["rad"]))
+    else:
+        blocks = ResidualFunction(problem, x, [], sigma_q, "none").blocks(np.zeros(0))
+        out = component_standardized(blocks, _floors(problem))
+    # a known distance (closedloop.constraints) is no configuration: never an outlier
+    return [np.zeros_like(d) if getattr(b.loop, "parameter_only", False) else d for d, b in zip(out, problem.blocks)]
 
 
 def robust_refit(problem: CalibrationProblem, x0: np.ndarray, est: list[int], sigma_q: np.ndarray,
-                 weighting: str, max_iter: int = 30, passes: int = 8) -> tuple[np.ndarray, list[np.ndarray]]:
+                 weighting: str, max_iter: int = 30, passes: int = 8, known: bool = False
+                 ) -> tuple[np.ndarray, list[np.ndarray]]:
     """IRLS with the Cauchy loss from x0 (the screening residual, `screen`); returns x and the last d_i."""
     scale = np.array([p.prior for p in problem.params])
     dims = [b.loop.dim for b in problem.blocks]
     sopt = SolverOptions(max_iter=max_iter)
+    weighting = _screen_weighting(problem, weighting)
     x, w_prev = x0.copy(), None
     for _ in range(passes):
         w = np.concatenate(cauchy_weights(screen(problem, x, sigma_q, weighting), dims))
@@ -77,33 +91,43 @@ def robust_refit(problem: CalibrationProblem, x0: np.ndarray, est: list[int], si
         if w_prev is not None and np.max(np.abs(w - w_prev)) < 1e-3:
             break
         w_prev = w
-    return x, screen(problem, x, sigma_q, weighting)
+    return x, screen(problem, x, sigma_q, weighting, known)
+
+
+def _screen_weighting(problem: CalibrationProblem, weighting: str) -> str:
+    from .variance import task_blocks
+
+    return "none" if weighting == "noise" and task_blocks(problem) else weighting
 
 
 def gross_outliers(problem: CalibrationProblem, x0: np.ndarray, sigma_q: np.ndarray, opt: CalibrationOptions) -> bool:
     """Configurations whose closure at the start is far beyond the others' (the model error's spread)."""
     dims = [b.loop.dim for b in problem.blocks]
-    return any(f.size for f in flagged(screen(problem, x0, sigma_q, opt.weighting), dims, opt.outlier_alpha))
+    return any(f.size for f in flagged(screen(problem, x0, sigma_q, opt.weighting, opt.noise is not None), dims,
+                                        opt.outlier_alpha))
 
 
 def reject_outliers(problem: CalibrationProblem, x_fit: np.ndarray | None, x0: np.ndarray, est: list[int],
-                    opt: CalibrationOptions, sigma_q: np.ndarray, log_: JointLog, loops: list,
-                    build: Callable) -> tuple[CalibrationProblem, list[Rejected], np.ndarray] | None:
+                    opt: CalibrationOptions, sigma_q: np.ndarray, n_rows: int
+                    ) -> tuple[CalibrationProblem, list[Rejected], np.ndarray] | None:
     """The problem without its outliers, the rejected configurations and the robust fit; None if clean.
 
-    `x_fit`: a fit on every row to screen first (None: straight to the robust refit).
+    `x_fit`: a fit on every row to screen first (None: straight to the robust refit); `n_rows`: the
+    log's rows (no more than half of them are rejected).  The problem on the rest is `problem`'s
+    blocks without the rejected rows (`CalibrationProblem.without_rows`).
     """
     dims = [b.loop.dim for b in problem.blocks]
-    if x_fit is not None and not any(f.size for f in flagged(screen(problem, x_fit, sigma_q, opt.weighting), dims,
-                                                             opt.outlier_alpha)):
+    if x_fit is not None and not any(f.size for f in flagged(
+            screen(problem, x_fit, sigma_q, opt.weighting, opt.noise is not None), dims, opt.outlier_alpha)):
         return None
-    x_r, ds = robust_refit(problem, x0, est, sigma_q, opt.weighting, min(opt.max_iter, 30))
+    x_r, ds = robust_refit(problem, x0, est, sigma_q, opt.weighting, min(opt.max_iter, 30),
+                           known=opt.noise is not None)
     flags = flagged(ds, dims, opt.outlier_alpha)
     bad_rows = sorted({int(problem.blocks[bi].rows[i]) for bi, f in enumerate(flags) for i in f})
     if not bad_rows:
         return None
-    if len(bad_rows) >= 0.5 * len(log_):
-        log.warning("%d of %d configurations look like outliers: too many to reject", len(bad_rows), len(log_))
+    if len(bad_rows) >= 0.5 * n_rows:
+        log.warning("%d of %d configurations look like outliers: too many to reject", len(bad_rows), n_rows)
         return None
     evals = problem.evaluate(x_r, False)
     rejected = []
@@ -114,11 +138,8 @@ def reject_outliers(problem: CalibrationProblem, x_fit: np.ndarray | None, x0: n
             t = float(np.linalg.norm(r[list(b.loop.translation_rows)])) if b.loop.translation_rows else None
             w = float(np.linalg.norm(r[list(b.loop.rotation_rows)])) if b.loop.rotation_rows else None
             rejected.append(Rejected(int(b.rows[i]), b.loop.name, float(ds[bi][i]), t, w))
-    keep = np.setdiff1d(np.arange(len(log_)), np.array(bad_rows) - 1)
-    sub = JointLog(list(log_.joints), log_.angles[keep], log_.source,
-                   None if log_.loop is None else log_.loop[keep], {k: v[keep] for k, v in log_.extra.items()})
     log.info("rejected %d outlier configurations", len(bad_rows))
-    return build(problem.robot, sub, loops, opt.priors, keep + 1), sorted(rejected, key=lambda r: -r.standardized), x_r
+    return problem.without_rows(bad_rows), sorted(rejected, key=lambda r: -r.standardized), x_r
 
 
 def irls_fit(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, notes: list[str]):
@@ -147,3 +168,26 @@ def irls_fit(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, not
         notes.append(f"... and {len(sus) - 10} more suspect configurations")
     fit.stage, fit.x = st, st.fun.full(xe)
     return fit, sus
+
+
+def readmit(problem_all: CalibrationProblem, x: np.ndarray, rejected: list[Rejected], opt: CalibrationOptions,
+            sigma_q: np.ndarray) -> tuple[CalibrationProblem, list[Rejected]] | None:
+    """The rejection re-checked at the solution: rejected configurations the final fit explains come back.
+
+    A robust refit from a far start may stop short of the solution and
+    flag good configurations there.  At the final `x` every configuration
+    of the whole log is screened again (`screen`, the same Bonferroni
+    threshold); those of `rejected` that are no longer beyond it are
+    readmitted.  `problem_all`: the problem on the whole log.  Returns the
+    problem without the configurations still rejected and their records, or
+    None when every rejection holds.
+    """
+    dims = [b.loop.dim for b in problem_all.blocks]
+    flags = flagged(screen(problem_all, x, sigma_q, opt.weighting, opt.noise is not None), dims,
+                    opt.outlier_alpha)
+    still = {int(problem_all.blocks[bi].rows[i]) for bi, f in enumerate(flags) for i in f}
+    kept_out = [r for r in rejected if r.row in still]
+    if len(kept_out) == len(rejected):
+        return None
+    log.info("readmitted %d configurations the solution explains", len(rejected) - len(kept_out))
+    return problem_all.without_rows([r.row for r in kept_out]), kept_out

@@ -26,15 +26,17 @@ kinematic regressor) are in one loop; everything else is batched numpy.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 import pinocchio as pin
 
+from .errors import LogError
 from .loops.base import Loop
 from .parameters import Parameter, RobotParameters, RobotState
 from .robot import RobotModel
+from .shared import loop_columns
 
 # What a parameter's Jacobian column is made of (`CalibrationProblem._role`).
 _GEOMETRY, _OFFSET, _SCALE, _COMPLIANCE, _LOOP = range(5)
@@ -42,12 +44,58 @@ _GEOMETRY, _OFFSET, _SCALE, _COMPLIANCE, _LOOP = range(5)
 
 @dataclass
 class LoopBlock:
-    """The configurations a loop is evaluated on."""
+    """The configurations a loop is evaluated on, with its measurements there (the loop keeps none)."""
 
     loop: Loop
     theta: np.ndarray  # (N, n_joints) readings, columns in problem.joints order
     rows: np.ndarray  # row numbers in the log (1-based data rows), for messages
     tau: np.ndarray | None = None  # (N, n_joints) actuator torques, if logged
+    #: (N, len(loop.columns())) the loop's measurements (`Loop.measurements`); None: it measures nothing
+    meas: np.ndarray | None = None
+
+    def subset(self, idx: np.ndarray) -> "LoopBlock":
+        """The block on configurations `idx` (indices into its rows), measurements sliced alike."""
+        return LoopBlock(self.loop, self.theta[idx], self.rows[idx], None if self.tau is None else self.tau[idx],
+                         None if self.meas is None else self.meas[idx])
+
+
+@dataclass
+class BlockNoise:
+    """A block's measurement noise as the weighting sees it: kept by the problem, never by the loop.
+
+    measurement_cov = C + diag(task_var) on the loop's translation rows: C the loop's own covariance
+    (`Loop.measurement_cov` without a task-space term: a tracker's sigma_t, a camera's sigma_px), task_var
+    the loop's task-space variance, given (``sigma_task=0.2mm``) or estimated during a calibration
+    (`variance.variance_components`, eq. 3.17 with a task term).  Estimating it changes this record,
+    not the user's loop, so that two calibrations with the same loops are independent.
+    """
+
+    own: np.ndarray | None  # (m, m) the loop's own measurement covariance (None: it measures nothing)
+    translation_rows: tuple[int, ...]
+    dim: int
+    task_var: np.ndarray | float | None = None  # task-space variance (m^2) on the translation rows
+    estimated: bool = False  # task_var estimated (a variance component), not given
+    measurement_cov: np.ndarray | None = field(default=None, init=False)  # own + task term (`set_task`)
+
+    def __post_init__(self) -> None:
+        self.set_task(self.task_var, self.estimated)
+
+    @classmethod
+    def of(cls, loop: Loop) -> "BlockNoise":
+        """The noise a loop was configured with (`variance.set_task_noise` keeps its own part apart)."""
+        own = getattr(loop, "own_cov", loop.measurement_cov)
+        return cls(own, tuple(loop.translation_rows), loop.dim, getattr(loop, "task_var", None))
+
+    def set_task(self, var: np.ndarray | float | None, estimated: bool = False) -> None:
+        """Task-space variance `var` (per translation row, or one for all; None: none)."""
+        self.task_var, self.estimated = var, estimated
+        if var is None:
+            self.measurement_cov = self.own
+            return
+        T = np.zeros((self.dim, self.dim))
+        rows = list(self.translation_rows)
+        T[rows, rows] = np.broadcast_to(np.asarray(var, dtype=float), (len(rows),))
+        self.measurement_cov = T if self.own is None else self.own + T
 
 
 @dataclass
@@ -57,22 +105,37 @@ class BlockEval:
     Jq: np.ndarray | None  # (N, m, n_joints) d r / d reading
     valid: np.ndarray | None = None  # (N, m) False: a row with no observation (LoopEval.valid); None: all
     cov: np.ndarray | None = None  # (N, m, m) per-configuration measurement covariance (LoopEval.cov)
+    #: (N,) the log rows of the configurations (LoopBlock.rows): blocks that read the same row share its
+    #: joint noise and are whitened together (`noise.whiten`); None for a block without configurations
+    rows: np.ndarray | None = None
 
 
 class CalibrationProblem:
     """Parameters of a robot and its loops, evaluated over logged configurations."""
 
-    def __init__(self, robot: RobotModel, joints: list[str], blocks: list[LoopBlock], priors: dict | None = None):
+    def __init__(self, robot: RobotModel, joints: list[str], blocks: list[LoopBlock], priors: dict | None = None,
+                 noise: list[BlockNoise] | None = None):
         self.robot = robot
         self.joints = list(joints)
         self.blocks = blocks
+        self.priors = priors
+        #: per block, its measurement noise (`BlockNoise`); the weighting reads it, not the loop
+        self.noise = noise if noise is not None else [BlockNoise.of(b.loop) for b in blocks]
         self.rp = RobotParameters(robot, self.joints, priors)
         self.params: list[Parameter] = list(self.rp.params)
-        self.loop_slices: list[slice] = []
-        for b in blocks:
-            own = b.loop.parameters()
-            self.loop_slices.append(slice(len(self.params), len(self.params) + len(own)))
-            self.params.extend(own)
+        # Each loop's parameters as an index map into the one vector (closedloop.shared: a parameter
+        # shared by several loops is one column); `loop_slices` the same as slices where contiguous
+        # (always, unless loops share), else the index arrays.
+        self.loop_columns, new = loop_columns([b.loop for b in blocks], len(self.params),
+                                              [p.name for p in self.params])
+        self.params.extend(new)
+        self.loop_slices: list = [slice(int(c[0]), int(c[-1]) + 1) if c.size and np.array_equal(
+            c, np.arange(c[0], c[-1] + 1)) else (c if c.size else slice(len(self.params), len(self.params)))
+            for c in self.loop_columns]
+        # position of each parameter in each loop's own vector (-1: not that loop's)
+        self._local = np.full((len(blocks), len(self.params)), -1, dtype=int)
+        for bi, c in enumerate(self.loop_columns):
+            self._local[bi, c] = np.arange(c.size)
         self.names = [p.name for p in self.params]
         self.index = {n: i for i, n in enumerate(self.names)}
         self.n_robot = len(self.rp.params)
@@ -83,9 +146,9 @@ class CalibrationProblem:
                           (_COMPLIANCE, self.rp.compliance_index())):
             self._role[idx] = role
             self._owner[idx] = np.arange(len(self.joints))
-        for bi, sl in enumerate(self.loop_slices):
-            self._role[sl] = _LOOP
-            self._owner[sl] = bi
+        for bi, c in enumerate(self.loop_columns):
+            self._role[c] = _LOOP
+            self._owner[c] = bi
         # Motion subspaces S_j (LOCAL joint Jacobian column of joint j at the neutral configuration),
         # rows in the regressor's block of joint j, one column per problem joint.
         model = robot.model
@@ -95,6 +158,26 @@ class CalibrationProblem:
         for c, name in enumerate(self.joints):
             j = robot.joint(name)
             self._S[6 * (j.jid - 1):6 * j.jid, c] = pin.getJointJacobian(model, data, j.jid, pin.LOCAL)[:, j.idx_v]
+
+    def without_rows(self, rows) -> "CalibrationProblem":
+        """The same problem without the log rows `rows` (1-based, as in `LoopBlock.rows`) in any block.
+
+        Each block keeps its other configurations with their measurements (`LoopBlock.subset`); a
+        loop without configurations of its own (``parameter_only``, a known distance) is kept whole.
+        The noise records are the same objects: a task-space variance estimated on one is the other's.
+        """
+        drop = np.asarray(sorted(rows), dtype=int)
+        blocks = []
+        for b in self.blocks:
+            if getattr(b.loop, "parameter_only", False):
+                blocks.append(b)
+                continue
+            keep = np.flatnonzero(~np.isin(b.rows, drop))
+            if keep.size == 0:
+                raise LogError(f"no row is left for loop '{b.loop.name}' once rows "
+                               f"{', '.join(map(str, drop[:5]))} are left out")
+            blocks.append(b.subset(keep))
+        return CalibrationProblem(self.robot, self.joints, blocks, self.priors, self.noise)
 
     @property
     def nominal(self) -> np.ndarray:
@@ -138,6 +221,11 @@ class CalibrationProblem:
         Ts = self.loop_frame_poses(values, block_index, theta)
         return Ts[0], Ts[1]
 
+    def initialize_loop(self, values: np.ndarray, block_index: int) -> np.ndarray | None:
+        """The loop's own start values from its configurations and measurements at `values` (`Loop.initialize`)."""
+        b = self.blocks[block_index]
+        return b.loop.initialize_frames(self.loop_frame_poses(values, block_index), b.meas)
+
     def loop_frame_poses(self, values: np.ndarray, block_index: int, theta: np.ndarray | None = None
                          ) -> list[np.ndarray]:
         """Poses (N, 4, 4) of every frame of one loop (`Loop.frames`) at `values`."""
@@ -173,16 +261,17 @@ class CalibrationProblem:
         span = slice(rows[0], rows[-1] + 1) if rows.size else slice(0, 0)
         B = B[span]
         out = []
-        for bi, (b, sl) in enumerate(zip(self.blocks, self.loop_slices)):
+        for bi, (b, sl) in enumerate(zip(self.blocks, self.loop_columns)):
             theta = b.theta if thetas is None else thetas[bi]
             fids = [self.robot.frame_id(f) for f in b.loop.frames]
             kin = self.frame_kinematics(state, theta, fids, jacobian, b.tau)
             Ts = [kin[f][0] for f in fids]
             if not jacobian:
-                out.append(BlockEval(b.loop.residual_frames(Ts, values[sl]), None, None,
-                                     b.loop.valid_frames(Ts, values[sl])))
+                out.append(BlockEval(b.loop.residual_frames(Ts, values[sl], b.meas), None, None,
+                                     b.loop.valid_frames(Ts, values[sl], b.meas), None,
+                                     None if getattr(b.loop, "parameter_only", False) else b.rows))
                 continue
-            ev = b.loop.evaluate_frames(Ts, values[sl])
+            ev = b.loop.evaluate_frames(Ts, values[sl], b.meas)
             N, m = ev.r.shape
             D = np.zeros((N, m, C + nj))  # [J | d r / d theta']
             for f, d in zip(fids, ev.frame_derivatives()):
@@ -197,7 +286,9 @@ class CalibrationProblem:
             for kind, factor in factors:  # d theta' / d parameter: 1 (offset), theta (scale), -tau (compliance)
                 k = np.flatnonzero(role == kind)
                 J[:, :, k] *= factor[:, None, owner[k]]
-            own = np.flatnonzero((role == _LOOP) & (owner == bi))
-            J[:, :, own] = ev.dp[:, :, cols[own] - sl.start]
-            out.append(BlockEval(ev.r, J, D[:, :, C:] * state.scale[None, None, :], ev.valid, ev.cov))
+            loc = self._local[bi, cols]  # the loop's own parameters among the columns (shared ones included)
+            own = np.flatnonzero(loc >= 0)
+            J[:, :, own] = ev.dp[:, :, loc[own]]
+            out.append(BlockEval(ev.r, J, D[:, :, C:] * state.scale[None, None, :], ev.valid, ev.cov,
+                                 None if getattr(b.loop, "parameter_only", False) else b.rows))
         return out

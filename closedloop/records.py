@@ -121,6 +121,9 @@ class CalibrationResult:
     rows_total: int = 0
     warnings: list[str] = field(default_factory=list)  # findings that make the result suspect
     verdict: Verdict | None = None
+    scale_note: str | None = None  # what sets the overall size (closedloop.constraints.annotate)
+    scale_std: float = float("nan")  # relative standard error of the size, when a known distance sets it
+    noise_model: list = field(default_factory=list)  # per loop: task vs joint noise (noise.noise_summary)
 
     @property
     def converged(self) -> bool:

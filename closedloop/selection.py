@@ -27,12 +27,12 @@ MIN_RANGE = 1e-6  # a joint whose readings span less than this never moves
 
 def initial_values(problem: CalibrationProblem, initial: dict[str, float]) -> np.ndarray:
     """Nominal values; loop unknowns from the data at the nominal robot; then the user's guesses."""
+    from .shared import initial_shared  # shared loop parameters: the mean of the loops' estimates
+
     x0 = problem.nominal
-    for bi, (b, sl) in enumerate(zip(problem.blocks, problem.loop_slices)):
-        if sl.stop > sl.start:
-            init = b.loop.initialize_frames(problem.loop_frame_poses(x0, bi))
-            if init is not None:
-                x0[sl] = init
+    inits = [problem.initialize_loop(x0, bi) if cols.size else None
+             for bi, cols in enumerate(problem.loop_columns)]
+    x0 = initial_shared(problem, x0, inits)
     for n, v in initial.items():
         if n not in problem.index:
             raise ParameterError(f"initial value for unknown parameter '{n}'")

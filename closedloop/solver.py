@@ -16,10 +16,21 @@ Truncation (4.2.6) follows the noise rather than a fixed ratio: direction i is
 kept when the data determine it better than its prior, s_i > snr * sigma, with
 sigma the known noise level of r (1 when r is whitened by a known noise) or, if
 unknown, the current residual RMS (large while the model is far off, like the
-thesis's large p at the start; the noise level at convergence).  A step that
-does not lower the cost is halved (4.2.6), then lambda is raised; when the
-linear model predicts a relative decrease below ftol the solver stops without
-trying (at the minimum the trial costs differ only by round-off).  With bounds
+thesis's large p at the start; the noise level at convergence).
+
+Globalisation (issue 10: thesis-sized starting errors).  The first step is
+Gauss-Newton (lambda = 0, or `damping` x s_max^2); a trial is accepted when
+its gain ratio rho = (actual decrease) / (the linear model's decrease) exceeds
+1e-4, and lambda follows Nielsen's rule (x max(1/3, 1 - (2 rho - 1)^3) on
+success, x nu with nu doubling on failure; the thesis halves the step, 4.2.6).
+Every step carries Transtrum and Sethna's geodesic acceleration, v + a/2 with
+a = -(J^T J + lambda)^-1 J^T r''(v): in the narrow curved valleys of a single
+self-motion it cuts the iterations several-fold and finds the solution from
+starts where plain Gauss-Newton reaches a wrong minimum (one more residual
+evaluation per iteration; taking it only after a poorly predicted step halved
+Example 1's recovery rate).  When the linear
+model predicts a relative decrease below ftol the solver stops without trying
+(at the minimum the trial costs differ only by round-off).  With bounds
 the step is a bounded least-squares problem solved by qpsolvers/OSQP in the
 kept subspace.
 """
@@ -40,12 +51,13 @@ ResidualFn = Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]]
 @dataclass
 class SolverOptions:
     max_iter: int = 100
-    ftol: float = 1e-12  # stop when the relative cost decrease is below this
+    ftol: float = 1e-10  # stop when the relative cost decrease is below this (x sqrt(2 ftol chi2) sigma from the minimum)
     xtol: float = 1e-9  # stop when |dz| (step in units of the parameters' priors) is below this
-    max_halvings: int = 8
     noise: float | None = None  # known noise level of r; None: estimate from the residual
     snr: float = 1.0  # keep directions with s_i > snr * sigma
     rcond: float = 1e-10  # numerical rank floor, relative to s_max
+    geodesic: float = 0.75  # geodesic acceleration (Transtrum & Sethna 2012) if > 0: max 2|a|/|v|
+    damping: float = 0.0  # initial lambda relative to s_max^2 (Nielsen's tau); 0: Gauss-Newton first
     lower: np.ndarray | None = None
     upper: np.ndarray | None = None
 
@@ -78,13 +90,22 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
     numerical floor; the noise is then estimated from its residual and, if some
     direction lies below it, the problem is solved again from x0 with that
     level fixed (a residual-based threshold while far from the solution would
-    freeze the very directions that must move).
+    freeze the very directions that must move).  A first solve that stops
+    short of its minimum (a long valley, or wandering along directions the
+    noise hides) is continued once; if the truncated fit then closes well
+    below the level it was truncated at, that level was the first solve's
+    misfit, not noise: it is lowered to the new residual and the fit resumed.
     """
     opt = options or SolverOptions()
     if opt.noise is not None:
         return _solve(fun, x0, scale, opt, progress)
     memo: dict = {}
     first = _solve(fun, x0, scale, replace(opt, noise=0.0), progress, memo)
+    if first.status != "converged":  # a long valley: once more from where it stopped
+        more = _solve(fun, first.x, scale, replace(opt, noise=0.0), progress, memo)
+        more.iterations += first.iterations
+        more.history = first.history + more.history
+        first = more
     r = first.residual
     # the last iteration's factorisation when it was of this Jacobian (a solve that ends on
     # "no step lowers the cost"), else one more TSQR pass
@@ -95,6 +116,15 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
         return first
     log.info("re-solving with SVD truncation at the estimated noise %.3e", sigma)
     second = _solve(fun, x0, scale, replace(opt, noise=sigma), progress)
+    for _ in range(4):  # a first solve stopped short of its minimum over-estimates the noise: lower it
+        s2 = rms(second.residual, second.residual.size - x0.size)
+        if s2 >= 0.5 * sigma:
+            break
+        log.info("the truncated fit closes to %.3e, below the noise estimated before (%.3e): re-solving", s2, sigma)
+        sigma, before = s2, second
+        second = _solve(fun, before.x, scale, replace(opt, noise=sigma), progress)
+        second.iterations += before.iterations
+        second.history = before.history + second.history
     second.history = first.history + second.history
     second.iterations += first.iterations
     # Truncating directions that lie below the noise raises the cost by about their number times
@@ -120,7 +150,7 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
     history = [cost]
     if progress:
         progress(0, cost)
-    lam = 0.0
+    lam, nu = 0.0, 2.0
     status, message, truncated = "max_iter", f"no convergence in {opt.max_iter} iterations", 0
     it = 0
     for it in range(1, opt.max_iter + 1):
@@ -134,32 +164,37 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
             keep = S > floor
         truncated = int(S.size - keep.sum())
         accepted = False
-        for attempt in range(4):
+        if lam == 0.0 and opt.damping > 0.0 and S.size:
+            lam = opt.damping * float(S[0] ** 2)
+        while True:
             dz = _step(S, Vt, g, keep, lam, x, scale, opt, Js, r)
-            if attempt == 0 and _model_decrease(S, Vt, g, dz) <= opt.ftol * cost:
-                break  # even if a trial succeeded, its decrease would stop the iteration: at the minimum
-            t = 1.0
-            for _ in range(opt.max_halvings + 1):
-                x_new = x + t * dz * scale
-                r_new, _ = fun(x_new, False)
-                cost_new = 0.5 * float(r_new @ r_new)
-                if np.isfinite(cost_new) and cost_new <= cost:
-                    accepted = True
-                    break
-                t *= 0.5
-            if accepted:
+            predicted = _model_decrease(S, Vt, g, dz)
+            if predicted <= opt.ftol * cost:
+                break  # even if the trial succeeded, its decrease would stop the iteration: at the minimum
+            if opt.geodesic and not bounded:
+                dz = _geodesic(fun, x, r, J, scale, S, Vt, keep, lam, dz, opt.geodesic)
+            x_new = x + dz * scale
+            r_new, _ = fun(x_new, False)
+            cost_new = 0.5 * float(r_new @ r_new)
+            rho = (cost - cost_new) / predicted if np.isfinite(cost_new) else -np.inf
+            if rho > 1e-4:
+                accepted = True
+                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu = 2.0
                 break
-            lam = max(10.0 * lam, 1e-6 * float(S[0] ** 2) if S.size else 1.0)
+            lam = lam * nu if lam > 0 else 1e-6 * float(S[0] ** 2) if S.size else 1.0
+            nu *= 2.0
+            if nu > 2.0 ** 40:
+                break
         if not accepted:
             status, message = "converged", "no step lowers the cost: at a minimum"
             break
-        step_norm = float(np.linalg.norm(t * dz))
+        step_norm = float(np.linalg.norm(dz))
         decrease = cost - cost_new
         x = x_new
         r, J = fun(x, True)
         cost = 0.5 * float(r @ r)
         history.append(cost)
-        lam *= 0.1 if lam > 0 else 0.0
         if progress:
             progress(it, cost)
         log.debug("LM it %d cost %.6e step %.3e truncated %d", it, cost, step_norm, truncated)
@@ -170,6 +205,23 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
             status, message = "converged", "cost and step converged"
             break
     return SolverResult(x, cost, it, status, message, history, truncated, r, J)
+
+
+def _geodesic(fun, x, r, J, scale, S, Vt, keep, lam, v, alpha, h: float = 0.1):
+    """v + a/2 with the geodesic acceleration a = -(J^T J + lam)^-1 J^T r'' (Transtrum & Sethna 2012).
+
+    r'' is the second directional derivative of r along v, by a finite
+    difference: r'' ~ 2/h ((r(x + h v) - r(x))/h - J v).  The correction is
+    kept only while 2 |a| <= alpha |v| (the step's curvature is small).
+    """
+    r_h, _ = fun(x + h * v * scale, None)
+    Jv = J @ (scale * v)
+    rpp = (2.0 / h) * ((r_h - r) / h - Jv)
+    c = Vt @ (scale * (J.T @ rpp))  # V^T (J D)^T r'' = S U^T r''
+    a = -(Vt.T @ np.where(keep, c / (S ** 2 + lam), 0.0))
+    if not np.all(np.isfinite(a)) or 2.0 * np.linalg.norm(a) > alpha * np.linalg.norm(v):
+        return v
+    return v + 0.5 * a
 
 
 def _svd(Js: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -237,6 +289,25 @@ def _scaled_r_factor(J: np.ndarray, r: np.ndarray, scale: np.ndarray) -> np.ndar
     if m > k * block:
         Rs.append(rows(k * block, m))
     return _r_factor(np.concatenate(Rs))
+
+
+def scaled_r_factor_of_blocks(blocks: list[np.ndarray], scale: np.ndarray) -> np.ndarray:
+    """The R factor of the rows of every block (N_i, m_i, n) stacked and column-scaled, [B_1; ...] D = Q R.
+
+    Formed a chunk of ~`_CHUNK_ROWS` rows at a time (each chunk reduced to its n x n triangle by
+    `_r_factor`, the triangles stacked and reduced again): no stacked copy of the blocks, and the
+    same R as `r_factor(np.vstack(...) * scale)` up to the signs of its rows and round-off.
+    """
+    n = scale.size
+    Rs = []
+    for blk in blocks:
+        per = max(1, _CHUNK_ROWS // max(blk.shape[1], 1))  # configurations per chunk
+        for a in range(0, blk.shape[0], per):
+            A = blk[a:a + per].reshape(-1, n) * scale
+            Rs.append(_r_factor(A) if A.shape[0] > n else A)
+    if not Rs:
+        return np.zeros((0, n))
+    return r_factor(np.concatenate(Rs)) if len(Rs) > 1 else Rs[0]
 
 
 def _r_factor(A: np.ndarray) -> np.ndarray:

@@ -30,8 +30,7 @@ def identifiable_names(robot: RobotModel, loops: list[Loop], theta0: np.ndarray,
     x = problem.nominal
     for bi, (b, sl) in enumerate(zip(problem.blocks, problem.loop_slices)):
         if sl.stop > sl.start:
-            TA, TB = problem.loop_poses(x, bi)
-            x[sl] = b.loop.initialize(TA, TB)
+            x[sl] = problem.initialize_loop(x, bi)
     rng = np.random.default_rng(seed)
     blocks_th = [self_motion(problem, x, np.atleast_2d(theta0), n, rng, block=bi) for bi in range(len(loops))]
     rows = np.vstack(blocks_th)

@@ -57,18 +57,19 @@ def closure_residuals(result: CalibrationResult, robot: RobotModel, log_: JointL
 
     Returns {'loops': [LoopResiduals as dict], 'whitened_rms': per-row RMS of
     the noise-whitened residual (None when no noise level is known)}.
-    Note: builds a problem on `log_`, which re-binds the loops to its rows.
     """
     problem = build_problem(robot, log_, loops, None)
     if problem.names != result.names:
         raise ValueError("the validation rows give a different parameter set than the calibration")
     values = result.values
+    fitted = dict(zip([b.loop.name for b in result.problem.blocks], result.problem.noise))
+    problem.noise = [fitted.get(b.loop.name, nz) for b, nz in zip(problem.blocks, problem.noise)]  # the fit's
     evals = problem.evaluate(values, noise is not None)
     stats = residual_stats(problem, evals)
     wr = None
     if noise is not None:
         sigma_q, _ = noise_vector(problem, noise)
-        r, _, _ = whiten(evals, sigma_q, "noise", False, [b.loop for b in problem.blocks])
+        r, _, _ = whiten(evals, sigma_q, "noise", False, problem.noise)
         wr = float(np.sqrt(np.mean(r ** 2))) if r.size else None
     return {"loops": [asdict(s) for s in stats], "whitened_rms": wr}
 
@@ -84,7 +85,6 @@ def holdout(robot: RobotModel, train: JointLog, test: JointLog, loops: list[Loop
         noise = float(np.finfo(float).tiny)
     pred = closure_residuals(res, robot, test, loops, noise)
     fit = closure_residuals(res, robot, train, loops, noise)
-    build_problem(robot, train, loops, opt.priors)  # leave the loops bound to the training rows
     return {"result": res, "train": fit, "test": pred, "n_train": len(train), "n_test": len(test)}
 
 
@@ -143,7 +143,6 @@ def cross_validate(robot: RobotModel, log_: JointLog, loops: list[Loop], options
         per_fold.append({"fold": f, "n_train": ho["n_train"], "n_test": ho["n_test"], "train": ho["train"],
                          "test": ho["test"], "converged": res.converged,
                          "values": {res.names[i]: float(vals[i]) for i in res.estimated}})
-    build_problem(robot, log_, loops, opt.priors)  # re-bind the loops to the whole log
     names = sorted(set.union(*(set(p["values"]) for p in per_fold)))
     common = [n for n in names if all(n in p["values"] for p in per_fold)]
     spread = {n: float(np.std([p["values"][n] for p in per_fold], ddof=1)) for n in common}

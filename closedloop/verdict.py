@@ -170,13 +170,17 @@ def _noise(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -> 
 
 
 def judge(result: CalibrationResult, validation: dict | None = None,
-          rules: VerdictRules | None = None) -> Verdict:
-    """The verdict on `result`, and on its k-fold `validation` (`validation.cross_validate`) if given."""
+          rules: VerdictRules | None = None, fixtures: dict | None = None) -> Verdict:
+    """The verdict on `result`, and on its k-fold `validation` (`validation.cross_validate`) if given;
+    `fixtures` (`fixtures.leave_one_fixture_out`): a held-out fixture worse than the nominal model is suspect."""
     rules = rules or VerdictRules()
     v = Verdict()
     if result.solver_status != "converged":
         v.add(FAILED, f"the solver did not converge ({result.solver_message})")
-    _closure(result.residuals_before, result.residuals_after, v)
+    # a known distance (closedloop.constraints) is a measurement, not a closure that calibration must improve
+    own = [not getattr(b.loop, "parameter_only", False) for b in result.problem.blocks]
+    _closure([r for r, k in zip(result.residuals_before, own) if k],
+             [r for r, k in zip(result.residuals_after, own) if k], v)
     _noise(result, rules, v)
     _changes(result, rules, v)
     total = result.rows_total
@@ -192,6 +196,8 @@ def judge(result: CalibrationResult, validation: dict | None = None,
         v.add(SUSPECT, note)
     if validation is not None:
         _validation(validation, rules, v)
+    for reason in (fixtures or {}).get("suspect", []):
+        v.add(SUSPECT, reason)
     return v
 
 

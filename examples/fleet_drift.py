@@ -45,8 +45,10 @@ def write_logs(out: Path, seed: int = 7) -> Path:
             th += rng.normal(0.0, NOISE, th.shape)
             name = f"{robot}-{date}"
             JointLog(list(sc.joints), th).write_csv(out / "logs" / f"{name}.csv")
-            jobs.append({"name": name, "robot": robot, "date": date, "log": f"logs/{name}.csv",
-                         "out": f"calibrated/{name}"})
+            job = {"name": name, "robot": robot, "date": date, "log": f"logs/{name}.csv", "out": f"calibrated/{name}"}
+            if robot == "arm2" and date >= DATES[3]:  # another gauge: calibrate chooses the length held
+                job["options"] = {"noise": NOISE}
+            jobs.append(job)
     manifest = out / "fleet.yaml"
     manifest.write_text(yaml.safe_dump({
         "defaults": {"model": panda_urdf(), "loops": ["weld:frame=panda_hand,name=fixture"], "cv": 3,
@@ -73,7 +75,8 @@ def main() -> int:
               + (f"{float(r['drift_max_z']):>9.2f}" if r["drift_max_z"] else " " * 9) + f"  {r['drift_flagged']}")
     with open(out / "fleet.summary.drift.csv") as fh:
         offs = [d for d in csv.DictReader(fh) if d["parameter"] == f"{JOINT}.offset"]
-    print(f"\n{JOINT}.offset between consecutive dates (true change: arm1 +10, +10, +400, 0 urad):")
+    print(f"\n{JOINT}.offset between consecutive dates (true change: arm1 +10, +10, +400, 0 urad; arm2 none, "
+          "another gauge from the fourth date):")
     for d in offs:
         print(f"  {d['after']:<22} change {float(d['change']) * 1e6:+7.1f} urad, se {float(d['se']) * 1e6:5.1f} urad,"
               f" z {float(d['z']):+6.1f}  {'FLAGGED' if d['flagged'] == 'True' else ''}")

@@ -18,8 +18,8 @@ import pinocchio as pin
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate
 from closedloop.data import JointLog
 from closedloop.loops.camera import CameraLoop
-from closedloop.loops.measured import vec_of
 from closedloop.robot import RobotModel
+from closedloop.se3 import vec_of
 from closedloop.sims.camera_scene import MARKER, head_urdf, mujoco_intrinsics, pan_towards
 from closedloop.truth import draw_truth
 
@@ -72,9 +72,8 @@ def truth_pixels(problem, values: np.ndarray, theta: np.ndarray, loop_name: str 
     """Exact pixel columns of the true cameras (MOUNT, K_TRUE, distortion D) at robot `values`."""
     truth = CameraLoop(loop_name, "tool0", camera_frames=FRAMES, K=K_TRUE, poses=MOUNT, tip=MARKER, D=D)
     cols = truth.columns()
-    truth.bind({c: np.zeros(len(theta)) for c in cols})
     Ts = problem.loop_frame_poses(values, 0, theta)
-    uv = truth.residual_frames(Ts, np.zeros(0))
+    uv = truth.residual_frames(Ts, np.zeros(0), np.zeros((len(theta), len(cols))))  # the residual at zero pixels
     return {c: uv[:, k].copy() for k, c in enumerate(cols)}
 
 

@@ -1,10 +1,13 @@
 """Basin of convergence, quick: a few thesis-sized random starts per chapter 3 example (issue 10, item 3).
 
-Exact data from `thesis_examples.py` (loops closed with Pinocchio on the true D-H table).  Each
-start must be recovered (the calibrated mechanism equals the truth to 1e-6, gauge-free) or carry a
-verdict other than 'ok'; the recovery rate (target 95 % over 100 starts) is `benchmarks/basin.py`'s.  The door and
-Example 2 take the longest per start (hinge angles eliminated per configuration; 12 joints), so
-they have fewer starts here.
+Exact data from `thesis_examples.py` (loops closed with Pinocchio on the true D-H table).  On
+Examples 1 and 2 and point contact all starts here but at most one must be recovered (the calibrated
+mechanism equals the truth to 1e-6, gauge-free, and the verdict is not 'failed'; Example 2's start 2 is
+one of its two refusals in 40); Example 1's starts 11 and 16
+are ones where the start model closes only one of the 40 configurations, so the reduction must be
+decided at the solution (`identifiability.Structure.provisional`).  The door (hinge unknown) is
+recovered from some starts only (its data's weakest direction is 3e-8 of the strongest): each start
+there must be recovered or refused.  The rates over 40-100 starts are `benchmarks/basin.py`'s.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ import pytest
 
 import thesis_examples as te
 
-STARTS = {"example1": 5, "example2": 4, "door": 2, "point": 5}
+STARTS = {"example1": [0, 1, 2, 3, 11, 16], "example2": [0, 1, 2, 3], "door": [0, 1], "point": [0, 1, 2, 3, 4]}
 
 
 def test_examples_are_exact_closed_loops():
@@ -52,11 +55,10 @@ def test_mechanism_error_is_gauge_free():
 @pytest.mark.parametrize("name", list(STARTS))
 def test_basin_quick(name):
     ex = te.EXAMPLES[name]()
-    outs = [te.run_start(ex, seed) for seed in range(STARTS[name])]
+    outs = [te.run_start(ex, seed) for seed in STARTS[name]]
     lines = "\n".join(o.line() for o in outs)
     if any(not o.recovered and not o.refused for o in outs):
         pytest.fail(f"not recovered and not refused:\n{lines}", pytrace=False)
-    # The recovery rate itself (target 95 %, not reached: see the README's basin table) is measured by
-    # benchmarks/basin.py over 100 starts; here every start must be right or refused, and some right.
-    if not any(o.accepted for o in outs):
-        pytest.fail(f"nothing recovered:\n{lines}", pytrace=False)
+    # 95 % over 40 starts (benchmarks/basin.py): here at most one of these starts may be refused
+    if name != "door" and sum(o.accepted for o in outs) < len(outs) - 1:
+        pytest.fail(f"more than one start not recovered:\n{lines}", pytrace=False)

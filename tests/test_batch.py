@@ -158,7 +158,9 @@ def test_manifest_csv_and_errors(tmp_path, capsys):
 
 
 def test_drift_z_and_gauge_check(tmp_path):
-    """z = change / sqrt(se1^2 + se2^2), |z| > 3 flagged; a pair in another gauge is not compared."""
+    """Results without a gauge record (written by an older closedloop): z = change / sqrt(se1^2 + se2^2),
+    |z| > 3 flagged; a pair that estimated other parameters is not compared (no way to put it in one gauge).
+    The comparison in one gauge is tested in test_batch_drift.py."""
     from closedloop.batch import BatchJob, drift
 
     jobs = [BatchJob(f"d{i}", Path("m"), Path("l"), tmp_path / f"d{i}", robot="r", date=f"2026-0{i + 1}-01")

@@ -67,10 +67,10 @@ def test_distortion_recovered_noise_free():
     make = lambda: CameraLoop("cam", "tool0", dist=("k1", "k2", "p1", "p2", "k3"), sigma_px=0.3)  # noqa: E731
     opt = CalibrationOptions(weighting="none", robust=None)
     truth_loop = CameraLoop("cam", "tool0", K=[K1], poses=[X1], tip=TIP, D=[D_TRUE[0]])
-    truth_loop.bind({c: np.zeros(len(th)) for c in truth_loop.columns()})
+    zero_px = np.zeros((len(th), len(truth_loop.columns())))
 
     def pixels(prob, values):
-        uv = truth_loop.residual_frames(prob.loop_frame_poses(values, 0, th), np.zeros(0))
+        uv = truth_loop.residual_frames(prob.loop_frame_poses(values, 0, th), np.zeros(0), zero_px)
         return {c: uv[:, k].copy() for k, c in enumerate(truth_loop.columns())}
 
     prob = build_problem(robot, JointLog(joints, th, None, None, {c: np.zeros(len(th)) for c in make().columns()}),

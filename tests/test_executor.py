@@ -119,3 +119,139 @@ def test_unknown_engine_is_an_input_error():
 
     with pytest.raises(InputError, match="unknown engine 'dask'"):
         ex.get_engine("dask")
+
+
+# --------------------------------------------------------------------------- the other studies (issue 16, item 3)
+def test_pose_pools_identical_on_every_engine(cluster, local):
+    """One A-optimal selection per candidate pool, and the random-subset baseline seeded per chunk:
+    the same designs on serial, local pool and Ray; selection beats the best of 60 random draws."""
+    from closedloop import calibrate
+    from closedloop.poses import pool_blocks, random_designs, select_pools, trace_covariance
+
+    sc = weld_scenario(n=1, seed=2, pool="manifold", n_pool=120)
+    th = sc.pool[::3] + np.random.default_rng(5).normal(0, 1e-4, sc.pool[::3].shape)
+    res = calibrate(sc.robot, sc.log(th), sc.loops, CalibrationOptions(noise=1e-4, fix={"panda_joint4.x": None}))
+    pools = [sc.pool[i::3] for i in range(3)]  # three interleaved candidate pools of 40 configurations
+    sels = {e: select_pools(res, None, pools, 12, "exchange-a", executor=e) for e in ("serial", local, "ray")}
+    B, _ = pool_blocks(res, None, pools[1])
+    rnd = {e: random_designs(B, 12, draws=60, seed=3, chunk=20, executor=e) for e in ("serial", local, "ray")}
+    for e in (local, "ray"):
+        assert [s.indices.tolist() for s in sels[e]] == [s.indices.tolist() for s in sels["serial"]], e
+        assert [s.trace for s in sels[e]] == [s.trace for s in sels["serial"]], e
+        assert np.array_equal(rnd[e].indices, rnd["serial"].indices) and np.array_equal(rnd[e].traces,
+                                                                                        rnd["serial"].traces), e
+    assert rnd["serial"].indices.shape == (60, 12) and len(np.unique(rnd["serial"].indices[0])) == 12
+    assert not np.array_equal(random_designs(B, 12, draws=60, seed=4, chunk=20).indices, rnd["serial"].indices)
+    for p, s in zip(pools, sels["serial"]):
+        Bp, _ = pool_blocks(res, None, p)
+        r = random_designs(Bp, 12, draws=60, seed=3, chunk=20)
+        assert len(set(s.indices.tolist())) == 12
+        assert trace_covariance(Bp, s.indices) < 0.9 * r.traces.min() and r.median > 2.5 * trace_covariance(Bp, s.indices)
+
+
+def test_impedance_bootstrap_chunks_identical_on_every_engine(cluster, local):
+    """The bootstrap's resamples in chunks of 10 as jobs, seeded per chunk: the same bands everywhere."""
+    from closedloop.impedance.bootstrap import bootstrap
+    from closedloop.impedance.data import onsets_from_events, segment
+    from closedloop.impedance.estimate import EstimateOptions
+    from closedloop.impedance.metrics import coverage
+    from closedloop.impedance.model import ExperimentConfig, simulate
+
+    sim = simulate(ExperimentConfig(n_cycles=60, noise=0.05, seed=21))
+    ens = segment(sim.record, onsets_from_events(sim.record))
+    bands = {e: bootstrap(ens, EstimateOptions(), n_boot=40, seed=1, chunk=10, executor=e)
+             for e in ("serial", local, "ray")}
+    for e in (local, "ray"):
+        for k in ("I", "B", "K", "wn", "zeta"):
+            assert np.array_equal(bands[e].lo[k], bands["serial"].lo[k], equal_nan=True), (e, k)
+            assert np.array_equal(bands[e].hi[k], bands["serial"].hi[k], equal_nan=True), (e, k)
+    other = bootstrap(ens, EstimateOptions(), n_boot=40, seed=2, chunk=10)
+    assert not np.array_equal(other.hi["K"], bands["serial"].hi["K"])
+    assert coverage(bands["serial"].lo["K"], bands["serial"].hi["K"], sim.truth["K"]) > 0.7
+
+
+def test_simulate_sweep_on_every_engine_resumable_failure_isolated(cluster, local, tmp_path):
+    """`simulate --seeds`: one dataset per seed, identical whichever engine ran it, finished seeds not
+    redone, a failing scenario recorded without stopping the others."""
+    from closedloop.cli import main
+    from closedloop.cli_sweep import parse_seeds, run_sweep
+    from closedloop.errors import InputError
+    from closedloop.sims import SCENARIOS, simulate
+
+    sc = SCENARIOS["panda_weld"]
+    broken = dataclasses.replace(sc, name="broken_weld", tool_frame="no_such_frame")
+    scen = {"panda_weld": sc, "broken_weld": broken}
+    rows = {}
+    for e in ("serial", local, "ray"):
+        name = e if isinstance(e, str) else "local"
+        rows[name] = run_sweep(scen, [0, 1], 8, tmp_path / name, engine=e)
+        assert [(r.scenario, r.seed, r.status) for r in rows[name]] == [
+            ("panda_weld", 0, "ok"), ("panda_weld", 1, "ok"), ("broken_weld", 0, "failed"), ("broken_weld", 1, "failed")]
+        for seed in (0, 1):
+            log = (tmp_path / name / "panda_weld" / f"seed_{seed:03d}" / "log.csv").read_bytes()
+            assert log == (tmp_path / "serial" / "panda_weld" / f"seed_{seed:03d}" / "log.csv").read_bytes(), e
+    assert "no_such_frame" in rows["serial"][2].error
+    direct = simulate("panda_weld", 8, 1, tmp_path / "direct")
+    assert (tmp_path / "direct" / "log.csv").read_bytes() == \
+        (tmp_path / "serial" / "panda_weld" / "seed_001" / "log.csv").read_bytes() and len(direct.readings) == 8
+    # the CLI: one scenario -> OUT/seed_NNN; run again with more seeds: the finished ones are not redone
+    out = tmp_path / "cli"
+    assert main(["simulate", "panda_weld", "--seeds", "0-1", "--n", "8", "--jobs", "2", "--out", str(out), "--quiet"]) == 0
+    mtime = (out / "seed_000" / "truth.json").stat().st_mtime_ns
+    assert main(["simulate", "panda_weld", "--seeds", "0-2", "--n", "8", "--jobs", "1", "--out", str(out), "--quiet"]) == 0
+    assert (out / "seed_000" / "truth.json").stat().st_mtime_ns == mtime
+    with open(out / "sweep.csv") as fh:
+        assert [r.split(",")[2] for r in fh.read().splitlines()[1:]] == ["resumed", "resumed", "ok"]
+    assert (out / "seed_000" / "log.csv").read_bytes() == (tmp_path / "serial" / "panda_weld" / "seed_000" /
+                                                          "log.csv").read_bytes()
+    assert (out / "seed_002" / "log.csv").read_bytes() != (out / "seed_000" / "log.csv").read_bytes()
+    assert parse_seeds("0-3,7,2") == [0, 1, 2, 3, 7]
+    with pytest.raises(InputError, match="runs backwards"):
+        parse_seeds("5-2")
+
+
+def test_simulate_without_seeds_is_one_dataset(tmp_path, capsys):
+    """`--scenario X` (abbreviating --scenarios) without --seeds writes one dataset into --out as before;
+    --jobs without --seeds is a one-line input error."""
+    from closedloop.cli import main
+
+    assert main(["simulate", "--scenario", "panda_weld", "--n", "5", "--seed", "3", "--out", str(tmp_path / "one"),
+                 "--quiet"]) == 0
+    assert (tmp_path / "one" / "truth.json").exists() and not (tmp_path / "one" / "seed_003").exists()
+    capsys.readouterr()
+    assert main(["simulate", "panda_weld", "--jobs", "2", "--out", str(tmp_path / "two")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--seeds" in err[0]
+
+
+def big_sum(table: np.ndarray, payload: int) -> float:
+    return float(table[payload].sum())
+
+
+def test_large_shared_objects_travel_once_through_a_file(local):
+    """A study's shared objects above 256 KiB go to the workers through one temporary file (not with
+    every job); the values are right and the file is gone afterwards."""
+    import glob
+    import tempfile
+
+    table = np.arange(40 * 10_000, dtype=float).reshape(40, 10_000)  # 3.2 MB pickled
+    folders = ["/dev/shm", tempfile.gettempdir()]
+    before = {p for f in folders for p in glob.glob(f"{f}/closedloop-shared-*")}
+    assert ex.run(big_sum, range(40), local, shared=(table,)) == [float(r.sum()) for r in table]
+    assert {p for f in folders for p in glob.glob(f"{f}/closedloop-shared-*")} == before
+
+
+def test_sweep_refuses_to_overwrite_another_dataset(tmp_path):
+    """A seed folder holding a dataset of another size or settings is not taken as finished, nor
+    silently overwritten: an input error, unless --replace."""
+    from closedloop.cli import main
+
+    out = str(tmp_path / "s")
+    assert main(["simulate", "panda_weld", "--seeds", "0", "--n", "5", "--jobs", "1", "--out", out, "--quiet"]) == 0
+    assert main(["simulate", "panda_weld", "--seeds", "0", "--n", "6", "--jobs", "1", "--out", out, "--quiet"]) == 2
+    assert main(["simulate", "panda_weld", "--seeds", "0", "--n", "5", "--set", "kp=90", "--jobs", "1", "--out", out,
+                 "--quiet"]) == 2
+    assert main(["simulate", "panda_weld", "--seeds", "0", "--n", "6", "--jobs", "1", "--out", out, "--quiet",
+                 "--replace"]) == 0
+    import json
+    assert json.loads((tmp_path / "s" / "seed_000" / "truth.json").read_text())["samples"]["recorded"] == 6

@@ -87,6 +87,11 @@ yaml_texts = st.one_of(dh_documents().map(_yaml_text), st.text(max_size=200),
 def csv_texts(draw):
     """Logs: a header of joint names (some unknown, duplicated or 'loop'), rows of fuzzed cells."""
     names = ["j1", "j2", "j3", "loop", "tau:j1", "x"]
+    if draw(st.integers(0, 2)) == 0:  # a well-formed log, so that every run also exercises the loading path
+        header = draw(st.lists(st.sampled_from(["j1", "j2", "j3"]), min_size=1, max_size=3, unique=True))
+        rows = draw(st.lists(st.lists(st.floats(-10.0, 10.0).map(repr), min_size=len(header), max_size=len(header)),
+                             min_size=1, max_size=5))
+        return "\n".join([",".join(header)] + [",".join(r) for r in rows])
     header = draw(st.lists(st.sampled_from(names) | st.text(max_size=4), min_size=0, max_size=5))
     rows = draw(st.lists(st.lists(number_texts | st.sampled_from(["fixture", "weld", ""]), min_size=0,
                                   max_size=len(header) + 1), max_size=5))
@@ -104,6 +109,12 @@ def truth_and_report(draw):
     if draw(st.integers(0, 6)) == 0:
         return draw(json_values), draw(json_values)
     names = ["j1.x", "j1.rx", "j1.offset", "f.rx", "f.ry", "f.rz", "j2.s", "j1.scale"]
+    if draw(st.integers(0, 2)) == 0:  # well-formed documents, so that every run also exercises the checking path
+        chosen = draw(st.lists(st.sampled_from(names), min_size=1, max_size=4, unique=True))
+        value = st.floats(-1.0, 1.0)
+        truth = {"parameters": {n: draw(value) for n in chosen}}
+        return truth, {"parameters": [{"name": n, "kind": "offset", "unit": "rad", "initial": 0.0,
+                                       "calibrated": draw(value), "status": "estimated"} for n in chosen]}
     truth = {"parameters": draw(st.dictionaries(st.sampled_from(names) | st.text(max_size=4),
                                                 st.one_of(numbers, scalars), max_size=6))}
     params = []
@@ -174,7 +185,8 @@ def json_property(text: str) -> None:
 
 
 def options_property(args) -> None:
-    from closedloop.cli import _check_loop_numbers, _parse_bounds, _parse_noise, _sim_overrides
+    from closedloop.cli_parse import check_loop_numbers as _check_loop_numbers, parse_bounds as _parse_bounds
+    from closedloop.cli_parse import parse_noise as _parse_noise, sim_overrides as _sim_overrides
     from closedloop.sims.scenarios import SCENARIOS
 
     noise, bound, setting, loop = args

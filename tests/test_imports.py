@@ -1,8 +1,8 @@
 """Imports paid only by what uses them (issue 17), and BLAS thread control (closedloop.threads).
 
-`import closedloop` and a calibration of a URDF load no scipy.stats / scipy.optimize /
-scipy.linalg, no trimesh or yourdfpy, no camera code; the lazy paths give the same values
-as the eager ones did.
+`import closedloop` and a calibration of a URDF load no scipy at all (scipy.stats / special /
+optimize / linalg), no trimesh or yourdfpy, no matplotlib or mujoco, no camera code; the lazy
+paths give the same values as the eager ones did.
 """
 
 from __future__ import annotations
@@ -15,7 +15,8 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-HEAVY = ["scipy.stats", "scipy.optimize", "scipy.linalg", "trimesh", "yourdfpy", "closedloop.loops.camera"]
+HEAVY = ["scipy.stats", "scipy.special", "scipy.optimize", "scipy.linalg", "trimesh", "yourdfpy", "matplotlib",
+         "mujoco", "closedloop.loops.camera"]
 
 
 def _modules_after(code: str) -> list[str]:
@@ -94,17 +95,24 @@ def test_written_urdf_origins_are_nominal_times_exp6_and_offset(tmp_path):
     assert text.startswith("<?xml") and text.count("<link") == robot.source.read_text().count("<link")
 
 
-def test_chi2_through_scipy_special_equals_scipy_stats():
+def test_chi2_in_plain_python_equals_scipy_stats():
+    """robust.stats.chi2 (no scipy import) against scipy.stats.chi2, both tails, small and large dof."""
     from scipy import stats as sst
 
     from closedloop.report import _chi2_sf
-    from closedloop.robust import stats as lazy
+    from closedloop.robust import stats as plain
 
-    for m in (1, 2, 3, 6):
-        assert lazy.chi2.ppf(0.95, m) == sst.chi2.ppf(0.95, m)
-        assert lazy.chi2.isf(1e-4, m) == sst.chi2.isf(1e-4, m)
-        assert lazy.chi2.sf(4.2, m) == sst.chi2.sf(4.2, m)
-        assert _chi2_sf(4.2 * m, 5 * m) == sst.chi2.sf(4.2 * m, 5 * m)
+    for m in (1, 2, 3, 5, 6, 27, 1173, 594_000):
+        for p in (0.5, 0.05, 1e-4, 1e-9, 0.999):
+            assert plain.chi2.isf(p, m) == pytest.approx(sst.chi2.isf(p, m), rel=1e-11), (p, m)
+            assert plain.chi2.ppf(p, m) == pytest.approx(sst.chi2.ppf(p, m), rel=1e-11), (p, m)
+        for x in (0.01, 0.3, 1.0, 4.2, 30.0):
+            x *= max(m / 4, 1)
+            assert plain.chi2.sf(x, m) == pytest.approx(sst.chi2.sf(x, m), rel=1e-9, abs=1e-300), (x, m)
+        assert _chi2_sf(1.02 * m, m) == pytest.approx(sst.chi2.sf(1.02 * m, m), rel=1e-9)
+    assert plain.chi2.isf(1e-300, 6) == pytest.approx(sst.chi2.isf(1e-300, 6), rel=1e-11)  # far tail
+    assert plain.chi2.isf(0.0, 3) == np.inf and plain.chi2.ppf(0.0, 3) == 0.0
+    assert plain.chi2.sf(np.inf, 6) == 0.0 and plain.chi2.sf(0.0, 6) == 1.0 and plain.chi2.sf(1e6, 6) == 0.0
 
 
 def test_blas_threads_choose_restore_and_never_raise_the_users_limit():

@@ -12,10 +12,10 @@ from closedloop.calibration import CalibrationOptions, build_problem, calibrate
 from closedloop.data import JointLog
 from closedloop.errors import LoopError
 from closedloop.loops.camera import CameraLoop, camera_from_dlt, project
-from closedloop.loops.measured import vec_of
-from closedloop.loops.point import relative_point
+from closedloop.loops.common import relative_point
 from closedloop.loops.spec import parse_loop
 from closedloop.robot import RobotModel
+from closedloop.se3 import vec_of
 from closedloop.truth import draw_truth
 
 ERD = site.getsitepackages()[0] + "/cmeel.prefix/share/example-robot-data/robots/"
@@ -250,18 +250,18 @@ def test_initialize_recovers_cameras_at_the_nominal_robot():
         loop = CameraLoop("cam", "tool0", K=K, initial_K=init_K)
         prob = build_problem(robot, JointLog(joints, th, None, None, {c: np.zeros(12) for c in loop.columns()}),
                              [loop])
-        loop.bind(pixels(prob, prob.nominal, th, [X1], [K1]))
+        uv = loop.measurements(pixels(prob, prob.nominal, th, [X1], [K1]), np.arange(len(th)))
         TA, TB = prob.loop_poses(prob.nominal, 0)
-        p = loop.initialize(TA, TB)
+        p = loop.initialize(TA, TB, uv)
         ref = np.concatenate([vec_of(X1)] + ([K1] if K[0] is None else []) + [TIP])
         assert np.allclose(p, ref, atol=1e-7), (K, init_K)
-        assert np.array_equal(p, loop.initialize(TA, TB))  # deterministic
+        assert np.array_equal(p, loop.initialize(TA, TB, uv))  # deterministic
     # a stereo head with a known rig and unknown intrinsics of camera 2: its K from the DLT as well
     loop = CameraLoop("cam", "tool0", cameras=2, K=[K1, None], rig=X1.inverse() * X2)
     prob = build_problem(robot, JointLog(joints, th, None, None, {c: np.zeros(12) for c in loop.columns()}), [loop])
-    loop.bind(pixels(prob, prob.nominal, th, [X1, X2], [K1, K2]))
+    uv = loop.measurements(pixels(prob, prob.nominal, th, [X1, X2], [K1, K2]), np.arange(len(th)))
     TA, TB = prob.loop_poses(prob.nominal, 0)
-    assert np.allclose(loop.initialize(TA, TB), np.concatenate([vec_of(X1), K2, TIP]), atol=1e-7)
+    assert np.allclose(loop.initialize(TA, TB, uv), np.concatenate([vec_of(X1), K2, TIP]), atol=1e-7)
     # the DLT alone: exact on exact data
     TA, TB = prob.loop_poses(prob.nominal, 0)
     y, *_ = relative_point(TA, TB, TIP)
@@ -274,9 +274,9 @@ def test_initialize_recovers_cameras_at_the_nominal_robot():
     loop = CameraLoop("cam", "tool0", K=[K1], initial_poses=[guess], initial_tip=TIP)
     prob = build_problem(robot, JointLog(joints, th[:5], None, None, {c: np.zeros(5) for c in loop.columns()}),
                          [loop])
-    loop.bind(pixels(prob, prob.nominal, th[:5], [X1], [K1]))
+    uv = loop.measurements(pixels(prob, prob.nominal, th[:5], [X1], [K1]), np.arange(5))
     TA, TB = prob.loop_poses(prob.nominal, 0)
-    p = loop.initialize(TA, TB)
+    p = loop.initialize(TA, TB, uv)
     assert np.allclose(p[:6], vec_of(X1), atol=1e-8) and np.array_equal(p[6:], TIP)  # given tip kept
 
 

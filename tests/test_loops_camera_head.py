@@ -174,8 +174,8 @@ def test_missing_views_are_not_errors():
     loop = CameraLoop("cam", "tool0", camera_frames=FRAMES)
     extra = {c: np.ones(3) for c in loop.columns()}
     extra["cam:u1"][1] = extra["cam:v1"][1] = np.nan
-    build_problem(robot, JointLog(robot.joint_names, th, None, None, extra), [loop])
-    assert np.array_equal(loop.observed(3), [[True, True], [False, True], [True, True]])
+    prob = build_problem(robot, JointLog(robot.joint_names, th, None, None, extra), [loop])
+    assert np.array_equal(loop.observed(prob.blocks[0].meas), [[True, True], [False, True], [True, True]])
     extra["cam:v2"][2] = np.nan
     with pytest.raises(LoopError, match="row.s. 3"):
         build_problem(robot, JointLog(robot.joint_names, th, None, None, extra), [loop])

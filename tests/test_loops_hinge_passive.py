@@ -294,3 +294,202 @@ def test_specs(robot):
         parse_loop(f'passive:frame=panda_hand,task={TASKS / "door.urdf"}', robot)
     with pytest.raises(LoopError, match="axis"):
         parse_loop('hinge:frame=panda_hand,axis="1 2 3"', robot)
+
+
+# --------------------------------------- batched elimination vs the per-configuration reference
+# The loops eliminate the passive values of every configuration at once (loops/projection.py).  The
+# reference below is the former per-configuration loop (Gauss-Newton with pin.SE3 objects and numpy
+# lstsq / pinv on each 6 x k system), kept verbatim in substance: the batched results must equal it.
+def _ref_eliminate(M, pose, starts, integrate=None, tol=1e-13, max_iter=100, snap=None):
+    if snap is not None:
+        phi, *_ = _ref_eliminate(M, pose, starts, integrate, tol, max_iter)
+        return _ref_eliminate(M, pose, [snap(phi)], integrate, tol, max_iter)
+    integ = integrate if integrate is not None else (lambda a, d: a + d)
+    best = None
+    for phi in starts:
+        X, Xd = pose(phi)
+        E = X.actInv(M)
+        r = pin.log6(E).vector
+        if best is None or float(r @ r) < best[0]:
+            best = (float(r @ r), np.array(phi, dtype=float), np.reshape(Xd, (6, -1)), E, r)
+    c, phi, Xd, E, r = best
+    Jl = pin.Jlog6(E)
+    Jphi = -Jl @ E.inverse().action @ Xd
+    it = 0
+    for it in range(1, max_iter + 1):
+        step = -np.linalg.lstsq(Jphi, r, rcond=1e-12)[0]
+        t, small = 1.0, np.max(np.abs(step)) < 1e-6
+        while True:
+            phin = integ(phi, t * step)
+            Xn, Xdn = pose(phin)
+            En = Xn.actInv(M)
+            rn = pin.log6(En).vector
+            cn = float(rn @ rn)
+            if small or cn <= c or t < 1e-4:
+                break
+            t *= 0.5
+        if not small and cn > c:
+            break
+        phi, Xd, E, r, c = phin, np.reshape(Xdn, (6, -1)), En, rn, cn
+        Jl = pin.Jlog6(E)
+        Jphi = -Jl @ E.inverse().action @ Xd
+        if np.max(np.abs(t * step)) < tol:
+            break
+    return phi, r, Jl, E, Jphi, it
+
+
+def _ref_rows(M, phi, ri, Jl, E, Jphi, TAi, TBi):
+    Pp = np.eye(6) - Jphi @ np.linalg.pinv(Jphi, rcond=1e-10)
+    return Pp @ ri, Pp @ Jl, -Pp @ Jl @ TAi.actInv(TBi).action, -Pp @ Jl @ E.inverse().action
+
+
+def _ref_hinge(lp, TA, TB, p):
+    """(phi (N,), r, dA, dB, dp, largest iteration count), one configuration at a time."""
+    H, G = lp.hinge(p), lp.grasp(p)
+    rz = lambda a: pin.SE3(pin.exp3(np.array([0.0, 0.0, a])), np.zeros(3))  # noqa: E731
+    XdG = (G.inverse().action @ np.array([0, 0, 0, 0, 0, 1.0]))[:, None]
+    gen_h = np.zeros((6, 4))
+    gen_h[:3, :2] = pin.exp3(np.array([p[2], p[3], 0.0])).T[:, :2]
+    gen_h[3:, 2:] = pin.Jexp3(np.array([p[2], p[3], 0.0]))[:, :2]
+    gen_g = np.zeros((6, 5))
+    gen_g[:3, 0], gen_g[:3, 1], gen_g[3:, 2:] = G.rotation.T[:, 0], G.rotation.T[:, 2], pin.Jexp3(p[6:9])
+    out = [[] for _ in range(6)]
+    for TAi, TBi in zip(map(pin.SE3, TA), map(pin.SE3, TB)):
+        M = TBi.actInv(TAi)
+        R = (H.actInv(M) * G.inverse()).rotation
+        starts = [np.array([np.arctan2(R[1, 0] - R[0, 1], R[0, 0] + R[1, 1])])]
+        q, g = H.actInv(M).translation, G.translation
+        if np.hypot(g[0], g[1]) > 1e-9 and np.hypot(q[0], q[1]) > 1e-9:
+            starts.append(np.array([np.arctan2(q[1], q[0]) - np.arctan2(g[1], g[0])]))
+        phi, ri, Jl, E, Jphi, it = _ref_eliminate(M, lambda a: (H * rz(a[0]) * G, XdG), starts)
+        r, dA, dB, dX = _ref_rows(M, phi, ri, Jl, E, Jphi, TAi, TBi)
+        dp = np.hstack([dX @ (rz(phi[0]) * G).inverse().action @ gen_h, dX @ gen_g])
+        for lst, v in zip(out, (phi[0], r, dA, dB, dp, it)):
+            lst.append(v)
+    return [np.array(v) for v in out[:5]] + [max(out[5])]
+
+
+def _ref_passive(lp, TA, TB, p, cache):
+    """(q (N, nq), r, dA, dB, dp), rows in order, each from the best of cache[i], the previous row's q, q0."""
+    model = lp.task_model(p)
+    data = model.createData()
+    base = lp.pose(p)
+    nj = lp.nj
+
+    def pose(q):
+        pin.computeJointJacobians(model, data, q)
+        return base * pin.updateFramePlacement(model, data, lp.fid), pin.getFrameJacobian(model, data, lp.fid,
+                                                                                           pin.LOCAL)
+    G = np.zeros((6 * nj, 6 * nj))
+    for j in range(nj):
+        G[6 * j:6 * j + 6, 6 * j:6 * j + 6] = pin.Jexp6(p[6 + 6 * j:12 + 6 * j])
+    out, prev = [[] for _ in range(5)], None
+    for i, (TAi, TBi) in enumerate(zip(map(pin.SE3, TA), map(pin.SE3, TB))):
+        M = TBi.actInv(TAi)
+        starts = ([cache[i]] if cache is not None else []) + ([prev] if prev is not None else []) + [lp.q0]
+        q, ri, Jl, E, Jq, _ = _ref_eliminate(M, pose, starts, lambda a, d: pin.integrate(model, a, d),
+                                             snap=lambda a: pin.normalize(model, np.round(a, 8)))
+        prev = q
+        r, dA, dB, dX = _ref_rows(M, q, ri, Jl, E, Jq, TAi, TBi)
+        pose(q)
+        Reg = pin.computeFrameKinematicRegressor(model, data, lp.fid, pin.LOCAL)
+        dp = np.hstack([dX @ data.oMf[lp.fid].inverse().action @ pin.Jexp6(p[0:6]), dX @ Reg @ G,
+                        dX @ pin.Jexp6(p[6 + 6 * nj:])])
+        for lst, v in zip(out, (q, r, dA, dB, dp)):
+            lst.append(v)
+    return [np.array(v) for v in out]
+
+
+def _random_poses(rng, n):
+    return np.array([pin.SE3.Random().homogeneous for _ in range(n)])
+
+
+@pytest.mark.parametrize("off", [1e-3, 0.3])
+def test_hinge_batched_elimination_equals_per_configuration_reference(off):
+    """Random hinge, grasp, frames B and tool poses off the closure by `off` (rad / m twists)."""
+    rng = np.random.default_rng(11)
+    lp = HingeLoop("door", TOOL, axis=(rng.normal(size=3), rng.normal(size=3)))
+    truth = np.concatenate([rng.normal(0, 0.05, 4), [0.4, 0.1], rng.normal(0, 0.3, 3)])
+    H, G = lp.hinge(truth), lp.grasp(truth)
+    TB = _random_poses(rng, 60)
+    TA = np.array([tb @ (H * pin.SE3(pin.exp3(np.array([0, 0, a])), np.zeros(3)) * G
+                         * pin.exp6(rng.normal(0, off, 6))).homogeneous
+                   for tb, a in zip(TB, rng.uniform(-3.0, 3.0, 60))])
+    p = truth + rng.normal(0, 0.02, 9)
+    ev = lp.evaluate(TA, TB, p)
+    phi, r, dA, dB, dp, it = _ref_hinge(lp, TA, TB, p)
+    assert np.abs(lp.solve_angles(TA, TB, p) - phi).max() < 1e-10
+    for a, b in ((ev.r, r), (ev.dA, dA), (ev.dB, dB), (ev.dp, dp)):
+        assert np.abs(a - b).max() < 1e-10
+    assert lp.iterations == it and np.abs(r).max() > 0.1 * off  # really off the closure
+
+
+PLANAR_TASK = """<robot name="sled"><link name="floor"/><link name="sled"/><link name="grip"/>
+<joint name="glide" type="planar"><parent link="floor"/><child link="sled"/><axis xyz="0 0 1"/></joint>
+<joint name="grip_joint" type="fixed"><parent link="sled"/><child link="grip"/><origin xyz="0.3 0.1 0.05"/>
+</joint></robot>"""
+
+
+@pytest.mark.parametrize("task", ["door.urdf", "drawer.urdf", "crank.urdf", "planar"])
+def test_passive_batched_elimination_equals_per_configuration_reference(task, tmp_path):
+    """A passive task moved along a path far from q0 (previous-row starts needed), twice: the
+    second evaluation, at other parameters, starts from the first's solutions (warm starts).
+    Revolute, prismatic and continuous (crank) task joints have batched kinematics; a planar joint
+    (3 DOF, (x, y, cos, sin)) takes Pinocchio's, row by row."""
+    from closedloop.loops.passive import ChainKinematics
+
+    rng = np.random.default_rng(12)
+    P0 = pin.SE3(pin.exp3(np.array([0.1, -0.2, 0.3])), np.array([0.6, 0.2, 0.3]))
+    path = TASKS / task
+    if task == "planar":
+        path = tmp_path / "sled.urdf"
+        path.write_text(PLANAR_TASK)
+    lp = PassiveChainLoop("t", TOOL, path, "grip", pose=P0)
+    assert (ChainKinematics.of(lp.model, lp.fid) is None) == (task == "planar")
+    data = lp.model.createData()
+    N, nv = 40, lp.model.nv
+    # beyond pi from q0 at the end: the same poses are closer to q0 - 2 pi, which only the previous
+    # rows' solutions (not q0) lead to
+    path = np.linspace(0.0, 5.0, N)[:, None] * np.linspace(1.0, 0.5, nv)[None]
+    TA = []
+    for v in path:
+        pin.forwardKinematics(lp.model, data, pin.integrate(lp.model, lp.q0, v))
+        TF = pin.updateFramePlacement(lp.model, data, lp.fid)
+        TA.append((P0 * TF * pin.exp6(rng.normal(0, 1e-3, 6))).homogeneous)
+    TA, TB = np.array(TA), np.repeat(np.eye(4)[None], N, axis=0)
+    cache = None
+    for _ in range(2):
+        p = rng.normal(0, 0.01, 12 + 6 * lp.nj)
+        ev = lp.evaluate(TA, TB, p)
+        q, r, dA, dB, dp = _ref_passive(lp, TA, TB, p, cache)
+        cache = q
+        assert np.abs(lp.solve_angles(TA, TB, p) - q).max() < 1e-10
+        for a, b in ((ev.r, r), (ev.dA, dA), (ev.dB, dB), (ev.dp, dp)):
+            assert np.abs(a - b).max() < 1e-10
+
+
+def test_projector_and_step_equal_the_svd_pseudo_inverse_also_when_rank_deficient():
+    """k = 1..3 columns, well-conditioned and rank-deficient (parallel or zero columns) in one stack."""
+    from closedloop.loops.projection import gauss_newton, projector
+
+    rng = np.random.default_rng(13)
+    for k in (1, 2, 3):
+        J = rng.normal(size=(30, 6, k))
+        J[:5, :, -1] = 0.0
+        if k > 1:
+            J[5:10, :, 1] = 2.0 * J[5:10, :, 0]  # rank k - 1
+        ref = np.eye(6) - J @ np.linalg.pinv(J, rcond=1e-10)
+        assert np.abs(projector(J) - ref).max() < 1e-12
+    # one Gauss-Newton step on a pose that is linear in phi: X(phi) = exp6(B phi), M = X(phi_true)
+    B = rng.normal(size=(6, 2))
+    B[:, 1] = 3.0 * B[:, 0]  # the two passive joints move alike: the minimum-norm phi is the answer
+
+    def pose(phi):
+        X = np.array([pin.exp6(B @ f).homogeneous for f in phi])
+        return X, np.array([pin.Jexp6(B @ f) @ B for f in phi])
+    phi_true = np.array([[0.1, 0.2], [-0.3, 0.05]])
+    M = pose(phi_true)[0]
+    el = gauss_newton(M, pose, np.zeros((2, 2)))
+    assert np.abs(el.r).max() < 1e-12
+    assert np.abs(B @ el.phi.T - B @ phi_true.T).max() < 1e-12  # the same closure
+    assert np.abs(el.phi[:, 1] - 3.0 * el.phi[:, 0]).max() < 1e-12  # minimum-norm along the pair's null space

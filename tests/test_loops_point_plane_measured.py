@@ -11,12 +11,14 @@ import pytest
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate
 from closedloop.data import JointLog
 from closedloop.errors import LoopError
-from closedloop.loops.measured import MeasuredPointLoop, MeasuredPoseLoop, vec_of
+from closedloop.loops.common import relative_point
+from closedloop.loops.measured import MeasuredPointLoop, MeasuredPoseLoop
 from closedloop.loops.plane import PlaneLoop
-from closedloop.loops.point import PointLoop, relative_point
+from closedloop.loops.point import PointLoop
 from closedloop.loops.spec import parse_loop
 from closedloop.problem import CalibrationProblem, LoopBlock
 from closedloop.robot import RobotModel
+from closedloop.se3 import vec_of
 from closedloop.synthetic import self_motion
 from closedloop.truth import draw_truth, identifiable_names
 from support import relative_fk_error
@@ -320,9 +322,9 @@ def test_measured_point_initialize_rigid_fit():
     th = np.random.default_rng(0).uniform(-1.5, 1.5, (8, 6))
     loop = MeasuredPointLoop("m", "tool0", tip=TIP_TRUE)
     prob = build_problem(robot, JointLog(joints, th, None, None, {f"m:{c}": np.zeros(8) for c in COLS}), [loop])
-    loop.bind(_measurements(prob, prob.nominal, th, "point"))
+    meas = loop.measurements(_measurements(prob, prob.nominal, th, "point"), np.arange(len(th)))
     TA, TB = prob.loop_poses(prob.nominal, 0)
-    assert np.allclose(loop.initialize(TA, TB), vec_of(X_TRUE), atol=1e-10)
+    assert np.allclose(loop.initialize(TA, TB, meas), vec_of(X_TRUE), atol=1e-10)
 
 
 UR10 = ERD + "ur_description/urdf/ur10_robot.urdf"
@@ -386,23 +388,20 @@ def test_measured_initialize_fits_base_and_tool():
         cls = MeasuredPoseLoop if kind == "pose" else MeasuredPointLoop
         prob = build_problem(robot, JointLog(joints, th, None, None, zeros), [cls("m", "tool0")])
         TA, TB = prob.loop_poses(prob.nominal, 0)
-        meas = _measurements(prob, prob.nominal, th, kind)
         own = vec_of(Y_TRUE) if kind == "pose" else TIP_TRUE
         loop = cls("m", "tool0")
-        loop.bind(meas)
-        p = loop.initialize(TA, TB)
+        meas = loop.measurements(_measurements(prob, prob.nominal, th, kind), np.arange(len(th)))
+        p = loop.initialize(TA, TB, meas)
         assert np.allclose(p, np.concatenate([vec_of(X_TRUE), own]), atol=1e-9)
-        assert np.array_equal(p, loop.initialize(TA, TB))  # deterministic
+        assert np.array_equal(p, loop.initialize(TA, TB, meas))  # deterministic
         # known base: only the tip / tool
         loop = cls("m", "tool0", base=X_TRUE)
-        loop.bind(meas)
-        assert np.allclose(loop.initialize(TA, TB), own, atol=1e-9)
+        assert np.allclose(loop.initialize(TA, TB, meas), own, atol=1e-9)
         # explicit initial value: kept, only the base is fitted
         guess = pin.SE3.Identity() if kind == "pose" else np.zeros(3)
         loop = (MeasuredPoseLoop("m", "tool0", initial_tool=guess) if kind == "pose"
                 else MeasuredPointLoop("m", "tool0", initial_tip=guess))
-        loop.bind(meas)
-        p = loop.initialize(TA, TB)
+        p = loop.initialize(TA, TB, meas)
         assert np.allclose(p[6:], 0.0) and not np.allclose(p[:6], vec_of(X_TRUE), atol=1e-4)
 
 

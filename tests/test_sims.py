@@ -19,7 +19,7 @@ import pytest
 
 from closedloop.models import nominal_urdf
 from closedloop.sims import SCENARIOS, SimSettings, perturbable_parameters, sensor_readings, simulate
-from closedloop.sims.scenarios import identifiable_parameters
+from closedloop.sims.true_robot import identifiable_parameters
 from closedloop.sims.scene import apply_placement_errors, build_scene, site_pose
 
 N = 30
@@ -141,7 +141,7 @@ def test_true_closure_matches_true_kinematics(stiff_run):
         tool = data.oMf[model.getFrameId(sc.target_frame)].actInv(tool)
     p = truth["parameters"]
     if sc.loop_type == "hinge":
-        from closedloop.sims.scene import _door_hinge_pose
+        from closedloop.sims.environment import door_hinge_pose as _door_hinge_pose
 
         H = _door_hinge_pose(tool, sc.door)
         np.testing.assert_allclose(truth["loop"]["hinge_axis"]["point"], H.translation, atol=1e-9)

@@ -163,12 +163,12 @@ def run_closedloop(urdf: Path, q: np.ndarray, m: np.ndarray, q_held: np.ndarray,
     prob = res.problem
     loop = prob.blocks[0].loop
     cols = [JOINTS.index(j) for j in prob.joints]
-    saved = loop.meas
-    loop.meas = np.zeros((len(q_held), 3))  # residual = prediction - 0
-    try:
-        pred = prob.evaluate(res.values, jacobian=False, thetas=[q_held[:, cols]])[0].r
-    finally:
-        loop.meas = saved
+    # the held-out configurations with zero measurements: residual = prediction - 0 (loops hold no data)
+    from closedloop.problem import CalibrationProblem, LoopBlock
+
+    held = CalibrationProblem(prob.robot, prob.joints, [LoopBlock(loop, q_held[:, cols], np.arange(1, len(q_held) + 1),
+                                                                  None, np.zeros((len(q_held), 3)))], prob.priors)
+    pred = held.evaluate(res.values, jacobian=False)[0].r
     return {"total": t1 - t0, "solve": t1 - stages.get("solving", t0), "params": len(res.estimated),
             "pred": pred, "status": res.solver_status, "iters": res.iterations}
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -40,35 +41,32 @@ class Bands:
 
 
 def bootstrap(ens: Ensemble, options: EstimateOptions, n_boot: int = 200, level: float = 0.95,
-              seed: int = 0, chunk: int = 25) -> Bands:
-    """Bootstrap over cycles (see module docstring): bands for I, B, K, wn and zeta."""
+              seed: int = 0, chunk: int = 25, executor=None) -> Bands:
+    """Bootstrap over cycles (see module docstring): bands for I, B, K, wn and zeta.
+
+    The resamples go in chunks of `chunk` as jobs on `executor` (``closedloop.executor``: None or
+    'serial' in this process, 'local', 'ray', or an engine); chunk c draws its resamples from
+    ``default_rng(SeedSequence(seed).spawn(n_chunks)[c])``, so the bands are the same on every
+    engine and worker count (for a given `chunk`).  The shared moments travel once per worker.
+    """
+    from ..executor import run
+
     with single_thread():
-        return _bootstrap(ens, options, n_boot, level, seed, chunk)
-
-
-def _bootstrap(ens, options, n_boot, level, seed, chunk) -> Bands:
-    rng = np.random.default_rng(seed)
-    d = design(ens, options)
-    n, (L, _, m) = ens.n, d.X.shape
-    per, perz = per_cycle_moments(d)
-    Mxx, Mzx = moments(d)
-    half = int(round(options.pool_ms * 1e-3 * ens.fs))
-    p0 = solve(pool(Mxx, half), pool(Mzx, half), options.method)[0] if options.method in ("default", "thesis") else None
-    out = {k: [] for k in ("I", "B", "K", "wn", "zeta")}
-    for first in range(0, n_boot, chunk):
-        r = min(chunk, n_boot - first)
-        W = np.stack([np.bincount(rng.integers(0, n, n), minlength=n) for _ in range(r)]).astype(float)
-        Mxx = (W @ per).reshape(r, L, m, m)
-        Mzx = None if perz is None else (W @ perz).reshape(r, L, d.Z.shape[-1], -1)
-        I, B, K, _ = finish(d, Mxx, Mzx, options, ens.fs, start=p0)
-        with np.errstate(invalid="ignore"):
-            wn, zeta = np.sqrt(K / I), B / (2 * np.sqrt(K * I))
-        for k, v in zip(out, (I, B, K, wn, zeta)):
-            out[k].append(v)
+        d = design(ens, options)
+        per, perz = per_cycle_moments(d)
+        Mxx, Mzx = moments(d)
+        half = int(round(options.pool_ms * 1e-3 * ens.fs))
+        p0 = solve(pool(Mxx, half), pool(Mzx, half), options.method)[0] \
+            if options.method in ("default", "thesis") else None
+        sizes = [min(chunk, n_boot - c) for c in range(0, n_boot, max(1, chunk))]
+        dims = (d.X.shape[0], d.X.shape[2], None if d.Z is None else d.Z.shape[-1])
+        light = SimpleNamespace(scale=d.scale, T=d.T)  # what `finish` needs of the design (not X, Z)
+        parts = run(_resample_chunk, sizes, executor, shared=(light, dims, per, perz, p0, options, ens.fs, ens.n),
+                    seed=seed)
     q = (1 - level) / 2 * 100
     lo, hi, sd = {}, {}, {}
-    for k, v in out.items():
-        a = np.concatenate(v)
+    for j, k in enumerate(("I", "B", "K", "wn", "zeta")):
+        a = np.concatenate([p[j] for p in parts])
         ok = np.isfinite(a)
         if ok.all():
             lo[k], hi[k] = np.percentile(a, [q, 100 - q], axis=0)
@@ -78,6 +76,22 @@ def _bootstrap(ens, options, n_boot, level, seed, chunk) -> Bands:
             lo[k], hi[k] = np.nanpercentile(a, q, axis=0), np.nanpercentile(a, 100 - q, axis=0)
             sd[k] = np.nanstd(a, axis=0)
     return Bands(level, n_boot, lo, hi, sd)
+
+
+def _resample_chunk(d, dims: tuple, per: np.ndarray, perz: np.ndarray | None, p0, options: EstimateOptions,
+                    fs: float, n: int, r: int, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    """One job: r resamples of the n cycles (counts w), their moments sum_i w_i x_i x_i^T, (I, B, K, wn, zeta).
+
+    d: the design's scale and lag (for `finish`); dims: (instants L, regressors m, instruments q)."""
+    L, m, qz = dims
+    with single_thread():
+        W = np.stack([np.bincount(rng.integers(0, n, n), minlength=n) for _ in range(r)]).astype(float)
+        Mxx = (W @ per).reshape(r, L, m, m)
+        Mzx = None if perz is None else (W @ perz).reshape(r, L, qz, -1)
+        I, B, K, _ = finish(d, Mxx, Mzx, options, fs, start=p0)
+    with np.errstate(invalid="ignore"):
+        wn, zeta = np.sqrt(K / I), B / (2 * np.sqrt(K * I))
+    return I, B, K, wn, zeta
 
 
 def _fill(x: np.ndarray) -> np.ndarray:

@@ -1,8 +1,9 @@
 """Loop closures: each is a residual with its Jacobians (see `base.Loop`).
 
-Importing this package registers every loop type for the CLI (`spec.parse_loop`);
-the camera loop (`CameraLoop`, type ``camera``) loads on first use (`spec.LAZY_KINDS`),
-so that `import closedloop` pays for no camera code.
+Every loop type has one entry in `spec.LOOP_TYPES` (type name -> its module), the table
+the CLI parser (`spec.parse_loop`), ``closedloop loops`` and the simulator read; a type's
+module loads on first use, the camera loop (`CameraLoop`, type ``camera``) included, so
+that `import closedloop` pays for no camera code.
 """
 
 from .base import Loop, LoopEval

@@ -68,44 +68,58 @@ class Loop(ABC):
     def parameters(self) -> list[Parameter]:
         """The loop's own parameters, nominal values included."""
 
-    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
+    def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
         """Initial values of the loop's parameters from the data (None: keep nominal)."""
         return None
 
-    def initialize_frames(self, Ts: list[np.ndarray]) -> np.ndarray | None:
+    def initialize_frames(self, Ts: list[np.ndarray], meas: np.ndarray | None = None) -> np.ndarray | None:
         """`initialize` at the poses of every frame of `frames` (loops on more frames override it)."""
-        return self.initialize(Ts[0], Ts[1])
+        return self.initialize(Ts[0], Ts[1]) if meas is None else self.initialize(Ts[0], Ts[1], meas)
 
     @abstractmethod
-    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
-        """Residuals and Jacobians at poses TA, TB (N, 4, 4) and own parameters p."""
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
+        """Residuals and Jacobians at poses TA, TB (N, 4, 4), own parameters p and measurements meas.
+
+        `meas` (N, len(columns())) holds the loop's measurements per configuration (`measurements`);
+        a loop that measures nothing need not take the argument (it is passed only when not None).
+        """
 
     #: (m, m) covariance of an external measurement in the residual, added to the
     #: covariance propagated from joint noise (None: the loop measures nothing)
     measurement_cov: np.ndarray | None = None
 
-    def bind(self, extra: dict[str, np.ndarray]) -> None:
-        """Receive the log's extra columns for this loop's rows (e.g. measured poses)."""
+    def columns(self) -> list[str]:
+        """The log's extra columns the loop measures (none for a pure closure)."""
+        return []
+
+    def measurements(self, extra: dict[str, np.ndarray], rows: np.ndarray) -> np.ndarray | None:
+        """The loop's measurements (len(rows), len(columns())) from the log's extra columns at `rows`.
+
+        A pure function of its arguments (the loop keeps nothing): the problem stores the result in
+        `LoopBlock.meas` and passes it to `evaluate` and `initialize`.  None: the loop measures nothing.
+        """
+        return None
 
     @property
     def frames(self) -> tuple[str, ...]:
         """Every frame the closure involves (A, B; a loop on more frames overrides this)."""
         return (self.frame_a, self.frame_b)
 
-    def evaluate_frames(self, Ts: list[np.ndarray], p: np.ndarray) -> LoopEval:
+    def evaluate_frames(self, Ts: list[np.ndarray], p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
         """Residuals and Jacobians at the poses of `frames` (a list of (N, 4, 4)).
 
         Two-frame loops need not override it; a loop on more frames (a stereo
         head whose cameras move on their own joints) overrides it and fills
         `LoopEval.dF` with one derivative per frame.
         """
-        return self.evaluate(Ts[0], Ts[1], p)
+        return self.evaluate(Ts[0], Ts[1], p) if meas is None else self.evaluate(Ts[0], Ts[1], p, meas)
 
-    def residual_frames(self, Ts: list[np.ndarray], p: np.ndarray) -> np.ndarray:
+    def residual_frames(self, Ts: list[np.ndarray], p: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray:
         """The residual alone at the poses of `frames`."""
-        return self.residual(Ts[0], Ts[1], p)
+        return self.residual(Ts[0], Ts[1], p) if meas is None else self.residual(Ts[0], Ts[1], p, meas)
 
-    def valid_frames(self, Ts: list[np.ndarray], p: np.ndarray) -> np.ndarray | None:
+    def valid_frames(self, Ts: list[np.ndarray], p: np.ndarray, meas: np.ndarray | None = None
+                     ) -> np.ndarray | None:
         """`LoopEval.valid` without the Jacobians (None: every row observed)."""
         return None
 
@@ -113,9 +127,9 @@ class Loop(ABC):
         """A canonical form of the loop's parameters (e.g. rotation vectors within pi)."""
         return p
 
-    def residual(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> np.ndarray:
+    def residual(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray:
         """The residual alone (N, m); loops override it when that is cheaper than `evaluate`."""
-        return self.evaluate(TA, TB, p).r
+        return (self.evaluate(TA, TB, p) if meas is None else self.evaluate(TA, TB, p, meas)).r
 
     def describe(self) -> dict:
         return {"name": self.name, "type": type(self).__name__, "frame_a": self.frame_a, "frame_b": self.frame_b}

@@ -37,8 +37,8 @@ from ..errors import LoopError
 from ..parameters import Parameter
 from .base import Loop, LoopEval
 from .camera_model import DIST_FIELDS, INTRINSIC_FIELDS, camera_from_dlt, dlt, project, project_lens  # noqa: F401
-from .measured import POSE_FIELDS, _as_se3, generators, pose_of, pose_parameters, vec_of
-from .point import TIP_FIELDS, _vec3, point_parameters, relative_point, skew
+from ..se3 import as_se3, generators, pose_of, skew, vec3, vec_of
+from .common import POSE_FIELDS, TIP_FIELDS, point_parameters, pose_parameters, relative_point
 
 PIXEL_COLS = ("u", "v")
 CLOSURES = ("reprojection", "triangulation")
@@ -123,8 +123,8 @@ class CameraLoop(Loop):
         if closure == "triangulation" and n != 2:
             raise LoopError(f"{what}: closure=triangulation needs exactly two cameras, not {n}")
         self.closure = closure
-        self.tip = None if tip is None else _vec3(tip, f"{what}: tip")
-        self.initial_tip = np.zeros(3) if initial_tip is None else _vec3(initial_tip, f"{what}: initial_tip")
+        self.tip = None if tip is None else vec3(tip, f"{what}: tip")
+        self.initial_tip = np.zeros(3) if initial_tip is None else vec3(initial_tip, f"{what}: initial_tip")
         self._fit_tip = initial_tip is None  # initialize() estimates an unknown tip with no initial value
         for s, w in ((sigma_px, "sigma_px"), (prior_px, "prior_px")):
             if s is not None and not (np.isfinite(s) and s > 0):
@@ -141,7 +141,6 @@ class CameraLoop(Loop):
         if self.rig is not None:
             known_t.append(self.rig.translation)
         self.scale_free = not any(np.linalg.norm(t) > 0 for t in known_t)
-        self.meas: np.ndarray | None = None  # (N, 2 * cameras)
         self._layout()
 
     def _per_camera(self, v, what: str, conv) -> list:
@@ -203,39 +202,44 @@ class CameraLoop(Loop):
         return out
 
     # ------------------------------------------------------------- measurements
-    def bind(self, extra: dict[str, np.ndarray]) -> None:
+    def measurements(self, extra: dict[str, np.ndarray], rows: np.ndarray) -> np.ndarray:
+        """The pixels (len(rows), 2 cameras) at the log's `rows`: u1, v1, u2, v2, ... (NaN: out of view)."""
         missing = [c for c in self.columns() if c not in extra]
         if missing:
             raise LoopError(f"camera loop '{self.name}': the log has no pixel column(s) {', '.join(missing)}")
-        M = np.column_stack([np.asarray(extra[c], dtype=float) for c in self.columns()])
+        M = np.column_stack([np.asarray(extra[c], dtype=float)[rows] for c in self.columns()])
         fin = np.isfinite(M)
         half = np.flatnonzero(np.any(fin[:, 0::2] != fin[:, 1::2], axis=1) | np.any(np.isinf(M), axis=1))
         if half.size:
             raise LoopError(f"camera loop '{self.name}': pixel coordinates missing or not a number in row(s) "
                             f"{', '.join(str(b + 1) for b in half[:5])} of this loop (a marker out of view "
                             "is NaN in both u and v)")
-        self.meas = M
+        return M
 
-    def _measurements(self, N: int) -> np.ndarray:
-        if self.meas is None:
-            raise LoopError(f"camera loop '{self.name}': no pixels bound (log columns {', '.join(self.columns())})")
-        if self.meas.shape[0] != N:
-            raise LoopError(f"camera loop '{self.name}': {N} configurations but {self.meas.shape[0]} pixel rows")
-        return self.meas
+    def checked(self, meas: np.ndarray | None, N: int) -> np.ndarray:
+        """The pixels `meas` (N, 2 cameras), checked against the N configurations they are evaluated at."""
+        if meas is None:
+            raise LoopError(f"camera loop '{self.name}': no pixels given (log columns {', '.join(self.columns())})")
+        meas = np.asarray(meas, dtype=float)
+        if meas.shape != (N, 2 * self.cameras):
+            raise LoopError(f"camera loop '{self.name}': {N} configurations but pixels of shape {meas.shape} "
+                            f"(expected ({N}, {2 * self.cameras}))")
+        return meas
 
-    def observed(self, N: int) -> np.ndarray:
-        """(N, cameras) True where camera c saw the marker (its pixel pair is not NaN)."""
-        return np.isfinite(self._measurements(N)[:, 0::2])
+    def observed(self, meas: np.ndarray) -> np.ndarray:
+        """(N, cameras) True where camera c saw the marker (its pixel pair in `meas` is not NaN)."""
+        return np.isfinite(np.asarray(meas, dtype=float)[:, 0::2])
 
-    def valid_rows(self, N: int) -> np.ndarray:
+    def valid_rows(self, meas: np.ndarray) -> np.ndarray:
         """(N, dim) True for residual rows that carry an observation (``LoopEval.valid``)."""
-        seen = self.observed(N)
+        seen = self.observed(meas)
         if self.closure == "triangulation":
             return np.repeat(np.all(seen, axis=1, keepdims=True), 3, axis=1)
         return np.repeat(seen, 2, axis=1)
 
-    def valid_frames(self, Ts: list[np.ndarray], p: np.ndarray) -> np.ndarray | None:
-        valid = self.valid_rows(Ts[0].shape[0])
+    def valid_frames(self, Ts: list[np.ndarray], p: np.ndarray, meas: np.ndarray | None = None
+                     ) -> np.ndarray | None:
+        valid = self.valid_rows(self.checked(meas, Ts[0].shape[0]))
         return None if np.all(valid) else valid
 
     # ------------------------------------------------------------- parameters
@@ -271,27 +275,28 @@ class CameraLoop(Loop):
         return out
 
     # ------------------------------------------------------------- residual
-    def residual(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> np.ndarray:
-        return self.residual_frames([TA, TB], p)
+    def residual(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray:
+        return self.residual_frames([TA, TB], p, meas)
 
-    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
-        return self.evaluate_frames([TA, TB], p)
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
+        return self.evaluate_frames([TA, TB], p, meas)
 
-    def residual_frames(self, Ts: list[np.ndarray], p: np.ndarray) -> np.ndarray:
-        return self._eval(Ts, p, False).r
+    def residual_frames(self, Ts: list[np.ndarray], p: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray:
+        return self._eval(Ts, p, meas, False).r
 
-    def evaluate_frames(self, Ts: list[np.ndarray], p: np.ndarray) -> LoopEval:
-        return self._eval(Ts, p, True)
+    def evaluate_frames(self, Ts: list[np.ndarray], p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
+        return self._eval(Ts, p, meas, True)
 
-    def _eval(self, Ts: list[np.ndarray], p: np.ndarray, jac: bool) -> LoopEval:
+    def _eval(self, Ts: list[np.ndarray], p: np.ndarray, meas: np.ndarray | None, jac: bool) -> LoopEval:
         if len(Ts) != len(self._frames):
             raise LoopError(f"camera loop '{self.name}': {len(Ts)} frame poses for frames {self._frames}")
+        meas = self.checked(meas, Ts[0].shape[0])
         if self.closure == "triangulation":
             from .stereo import triangulation_eval
-            ev = triangulation_eval(self, Ts, p, jac)
+            ev = triangulation_eval(self, Ts, p, meas, jac)
         else:
-            ev = self._reprojection(Ts, p, jac)
-        valid = self.valid_rows(ev.r.shape[0])
+            ev = self._reprojection(Ts, p, meas, jac)
+        valid = self.valid_rows(meas)
         if not np.all(valid):
             ev.r = np.where(valid, ev.r, 0.0)
             if jac:
@@ -302,9 +307,8 @@ class CameraLoop(Loop):
             ev.valid = valid
         return ev
 
-    def _reprojection(self, Ts: list[np.ndarray], p: np.ndarray, jac: bool) -> LoopEval:
+    def _reprojection(self, Ts: list[np.ndarray], p: np.ndarray, m: np.ndarray, jac: bool) -> LoopEval:
         N = Ts[0].shape[0]
-        m = self._measurements(N)
         tip = self.tip_point(p)
         r = np.empty((N, self.dim))
         dF = [np.zeros((N, self.dim, 6)) for _ in self._frames] if jac else None
@@ -342,13 +346,13 @@ class CameraLoop(Loop):
         return LoopEval(r, dF[0] if two else None, dF[1] if two else None, dp, dF=dF)
 
     # ------------------------------------------------------------- start
-    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
-        return self.initialize_frames([TA, TB])
+    def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
+        return self.initialize_frames([TA, TB], meas)
 
-    def initialize_frames(self, Ts: list[np.ndarray]) -> np.ndarray | None:
-        """Unknown camera poses, intrinsics, distortion and marker from the data (``camera_start``)."""
+    def initialize_frames(self, Ts: list[np.ndarray], meas: np.ndarray | None = None) -> np.ndarray | None:
+        """Unknown camera poses, intrinsics, distortion and marker from the pixels `meas` (``camera_start``)."""
         from .camera_start import initialize_camera_loop
-        return initialize_camera_loop(self, Ts)
+        return initialize_camera_loop(self, Ts, meas)
 
     def describe(self) -> dict:
         cams = []
@@ -382,7 +386,7 @@ def _distortion(v, what: str) -> np.ndarray:
 
 def _se3(v, name: str, what: str) -> pin.SE3:
     try:
-        return _as_se3(v, what)
+        return as_se3(v, what)
     except LoopError as exc:
         raise LoopError(f"camera loop '{name}': {exc}") from None
 

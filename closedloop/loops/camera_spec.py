@@ -20,10 +20,9 @@ import numpy as np
 
 from ..errors import InputError, LoopError
 from ..robot import RobotModel
+from ..se3 import parse_vec
 from .base import Loop
-from .camera import CLOSURES, CameraLoop
 from .camera_model import DIST_FIELDS
-from .point import parse_vec
 from .spec import register
 
 MAX_CAMERAS = 4
@@ -55,6 +54,8 @@ def camera_loop_from_spec(kw: dict[str, str], robot: RobotModel) -> Loop:
     """camera:frame=A[,to=B|F1+F2+..][,cameras=1|2][,closure=reprojection|triangulation][,dist=k1+k2+p1+p2+k3]
     [,K<c>=|K<c>_0="fx fy cx cy"][,pose<c>="x y z rx ry rz"][,D<c>="k1 k2 p1 p2 k3"][,info<c>=FILE]
     [,rig="x y z rx ry rz"][,tip=|tip0="x y z"][,sigma_px=px] (module docstring)."""
+    from .camera import CLOSURES, CameraLoop  # camera.py imports this module to register the type
+
     name = kw.get("name", "camera")
     if "frame" not in kw:
         raise LoopError(f"camera loop '{name}': needs frame=<tool frame>")

@@ -1,12 +1,68 @@
-"""Helpers shared by loop types: refining a loop's own parameters with the robot held."""
+"""Helpers shared by loop types: their parameter records, the relative point, refining a loop's own parameters.
+
+The SE(3) algebra and the parsing of user poses are in `closedloop.se3`.
+"""
 
 from __future__ import annotations
 
 from typing import Callable
 
 import numpy as np
+import pinocchio as pin
 
+from ..parameters import DEFAULT_PRIORS, Parameter
+from ..errors import LoopError
+from ..se3 import parse_vec, pose_of, skew
 from .base import LoopEval
+
+TIP_FIELDS = ("tip_x", "tip_y", "tip_z")
+POINT_FIELDS = ("px", "py", "pz")
+POSE_FIELDS = ("x", "y", "z", "rx", "ry", "rz")
+
+
+def relative_point(TA: np.ndarray, TB: np.ndarray, tip: np.ndarray):
+    """y = T_B^-1 T_A tip (N, 3) and R_BA = R_B^T R_A (N, 3, 3).
+
+    With right perturbations of T_A and T_B (T <- T exp6((v, w))):
+
+        dy/d(delta_A) = R_BA [ I  -[tip]x ]          (the tip moves with A)
+        dy/d(delta_B) =      [ -I   [y]x  ]          (B moving is y moving back)
+        dy/d(tip)     = R_BA
+    """
+    RB = np.swapaxes(TB[:, :3, :3], 1, 2)
+    RBA = RB @ TA[:, :3, :3]
+    y = np.einsum("nij,nj->ni", RB, TA[:, :3, 3] + TA[:, :3, :3] @ tip - TB[:, :3, 3])
+    N = TA.shape[0]
+    dA = np.empty((N, 3, 6))
+    dA[:, :, :3] = RBA
+    dA[:, :, 3:] = -RBA @ skew(tip)
+    dB = np.empty((N, 3, 6))
+    dB[:, :, :3] = -np.eye(3)
+    dB[:, :, 3:] = skew(y)
+    return y, RBA, dA, dB
+
+
+def point_parameters(loop: str, fields: tuple[str, ...], values: np.ndarray, order0: int = 0,
+                     prior: float | None = None) -> list[Parameter]:
+    """Three unknown coordinates of a point (metres, they scale with length)."""
+    prior = DEFAULT_PRIORS["loop_m"] if prior is None else prior
+    return [Parameter(f"{loop}.{f}", "loop", loop, f, float(values[k]), "m", prior,
+                      scales_with_length=float(values[k]), priority=1, order=order0 + k)
+            for k, f in enumerate(fields)]
+
+
+def pose_parameters(loop: str, fields: tuple[str, ...], X: pin.SE3, order0: int = 0) -> list[Parameter]:
+    """Six unknown pose coordinates (x, y, z in m, scaling with length; rx, ry, rz rotation vector in rad)."""
+    vals = np.concatenate([X.translation, pin.log3(X.rotation)])
+    out = []
+    for k, f in enumerate(fields):
+        unit = "m" if k < 3 else "rad"
+        out.append(Parameter(f"{loop}.{f}", "loop", loop, f, float(vals[k]), unit,
+                             DEFAULT_PRIORS["loop_m" if k < 3 else "loop_rad"],
+                             scales_with_length=float(vals[k]) if k < 3 else 0.0, priority=1, order=order0 + k))
+    return out
+
+
 
 
 def refine_own(evaluate: Callable[[np.ndarray], LoopEval], residual: Callable[[np.ndarray], np.ndarray],
@@ -46,3 +102,22 @@ def refine_own(evaluate: Callable[[np.ndarray], LoopEval], residual: Callable[[n
         if small:
             break
     return p
+
+
+def opt_float(kw: dict[str, str], key: str) -> float | None:
+    """An optional number of a loop spec (``--loop TYPE:key=value``); None when absent."""
+    if key not in kw:
+        return None
+    try:
+        return float(kw[key])
+    except ValueError:
+        raise LoopError(f"{key}='{kw[key]}' is not a number") from None
+
+
+def opt_pose(kw: dict[str, str], key: str) -> pin.SE3 | None:
+    """An optional pose of a loop spec: 'x y z rx ry rz', ``identity``; None when absent or ``unknown``."""
+    if kw.get(key, "unknown") == "unknown":
+        return None
+    if kw[key] == "identity":
+        return pin.SE3.Identity()
+    return pose_of(parse_vec(kw[key], 6, key))

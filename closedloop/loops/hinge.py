@@ -10,7 +10,8 @@ on k unmeasured task joint values phi,  X = X(phi, p).  Per configuration i
 
 and the passive values are eliminated exactly,  phi_i* = argmin |r_i(phi)|^2,
 by Gauss-Newton on phi (with step halving) from a closed-form or warm start,
-converged to |dphi| < 1e-13.  The residual handed to the core is r_i(phi_i*):
+converged to |dphi| < 1e-13, for all configurations at once (`projection`:
+batched SE(3) algebra, per-configuration step halving by masks).  The residual handed to the core is r_i(phi_i*):
 still the 6-D exact SE(3) log, in which the k directions J_phi = dr/dphi are
 used up (the thesis drops one equation for the door; here the 6 rows stay and
 r* is orthogonal to J_phi).  Its Jacobian w.r.t. everything else x (frames A, B,
@@ -61,88 +62,55 @@ starting point of the Gauss-Newton iteration).
 
 from __future__ import annotations
 
-from typing import Callable
-
 import numpy as np
 import pinocchio as pin
 
 from ..errors import LoopError
 from ..parameters import DEFAULT_PRIORS, Parameter
+from ..se3 import adjoint, rigid_inverse
 from .base import Loop, LoopEval
+from .projection import BatchPoseFn, Elimination, eliminate, projector
 from .spec import register
 
 HINGE_FIELDS = ("hinge_x", "hinge_y", "hinge_rx", "hinge_ry", "radius", "height",
                 "grasp_rx", "grasp_ry", "grasp_rz")
 _EZ = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])  # rotation about z (pin.Motion order: v, w)
 
-PoseFn = Callable[[np.ndarray], tuple[pin.SE3, np.ndarray]]
-
 
 # --------------------------------------------------------------- elimination
-def eliminate(M: pin.SE3, pose: PoseFn, starts: list[np.ndarray],
-              integrate: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
-              tol: float = 1e-13, max_iter: int = 100,
-              snap: Callable[[np.ndarray], np.ndarray] | None = None):
-    """phi* = argmin |log6(X(phi)^-1 M)|^2 by Gauss-Newton from the best of `starts`.
-
-    `pose(phi)` returns X (pin.SE3) and its right-twist derivative (6, k).
-    Returns phi*, r, Jlog6(E), E, J_phi (6, k) and the number of iterations.
-
-    `snap` (for warm starts): the converged phi is rounded by `snap` and the
-    iteration rerun from there, so that the result is a function of M and the
-    model only, bit for bit, not of the start (the solver compares costs of
-    repeated evaluations at the same parameters; start-dependent rounding,
-    amplified by the noise weighting, would keep it from terminating).
-    """
-    if snap is not None:
-        phi, *_ = eliminate(M, pose, starts, integrate, tol, max_iter)
-        out = eliminate(M, pose, [snap(phi)], integrate, tol, max_iter)
-        return out
-    integ = integrate if integrate is not None else (lambda a, d: a + d)
-    best = None
-    for phi in starts:
-        X, Xd = pose(phi)
-        Xd = np.reshape(Xd, (6, -1))
-        E = X.actInv(M)
-        r = pin.log6(E).vector
-        c = float(r @ r)
-        if best is None or c < best[0]:
-            best = (c, np.array(phi, dtype=float), Xd, E, r)
-    c, phi, Xd, E, r = best
-    Jl = pin.Jlog6(E)
-    Jphi = -Jl @ E.inverse().action @ Xd
-    it = 0
-    for it in range(1, max_iter + 1):
-        if Jphi.shape[1] == 0:
-            break
-        step = -np.linalg.lstsq(Jphi, r, rcond=1e-12)[0]
-        t = 1.0
-        small = np.max(np.abs(step)) < 1e-6  # near the solution: full steps (cost is at rounding)
-        while True:
-            phin = integ(phi, t * step)
-            Xn, Xdn = pose(phin)
-            Xdn = np.reshape(Xdn, (6, -1))
-            En = Xn.actInv(M)
-            rn = pin.log6(En).vector
-            cn = float(rn @ rn)
-            if small or cn <= c or t < 1e-4:
-                break
-            t *= 0.5
-        if not small and cn > c:  # no descent along a large step: give up on this start
-            break
-        phi, Xd, E, r, c = phin, Xdn, En, rn, cn
-        Jl = pin.Jlog6(E)
-        Jphi = -Jl @ E.inverse().action @ Xd
-        if np.max(np.abs(t * step)) < tol:
-            break
-    return phi, r, Jl, E, Jphi, it
+def _rz_stack(phi: np.ndarray) -> np.ndarray:
+    """Rz(phi_i) as homogeneous transforms (n, 4, 4)."""
+    c, s = np.cos(phi), np.sin(phi)
+    T = np.zeros((phi.size, 4, 4))
+    T[:, 0, 0], T[:, 0, 1], T[:, 1, 0], T[:, 1, 1] = c, -s, s, c
+    T[:, 2, 2] = T[:, 3, 3] = 1.0
+    return T
 
 
-def projector(Jphi: np.ndarray) -> np.ndarray:
-    """I - J_phi J_phi^+ : removes the directions the passive joints can close."""
-    if Jphi.shape[1] == 0:
-        return np.eye(6)
-    return np.eye(6) - Jphi @ np.linalg.pinv(Jphi, rcond=1e-10)
+def hinge_pose_fn(H: pin.SE3, G: pin.SE3) -> BatchPoseFn:
+    """X(phi) = H Rz(phi) G for a batch of angles (n, 1), with its right twist Ad(G^-1) e_rz per dphi."""
+    Hh, Gh = H.homogeneous, G.homogeneous
+    XdG = G.inverse().action @ _EZ
+
+    def pose(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = phi.shape[0]
+        return Hh @ _rz_stack(phi[:, 0]) @ Gh, np.broadcast_to(XdG[None, :, None], (n, 6, 1))
+
+    return pose
+
+
+def hinge_starts(M: np.ndarray, H: pin.SE3, G: pin.SE3) -> list[np.ndarray]:
+    """Starting angles (N, 1): the thesis's atan2 extraction from C = H^-1 M G^-1 ~ Rz(phi), and the
+    angle of the handle position q = (H^-1 M).t ~ Rz(phi) g (NaN where q or g is on the axis)."""
+    HM = rigid_inverse(H.homogeneous[None]) @ M
+    R = HM[:, :3, :3] @ G.rotation.T
+    starts = [np.arctan2(R[:, 1, 0] - R[:, 0, 1], R[:, 0, 0] + R[:, 1, 1])[:, None]]
+    q, g = HM[:, :3, 3], G.translation
+    ok = np.hypot(q[:, 0], q[:, 1]) > 1e-9
+    if np.hypot(g[0], g[1]) > 1e-9 and ok.any():
+        a = np.where(ok, np.arctan2(q[:, 1], q[:, 0]) - np.arctan2(g[1], g[0]), np.nan)
+        starts.append(a[:, None])
+    return starts
 
 
 def _rz(phi: float) -> pin.SE3:
@@ -294,31 +262,15 @@ class HingeLoop(Loop):
     # ------------------------------------------------------------ evaluation
     def solve_angles(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> np.ndarray:
         """The eliminated hinge angles phi_i* (N,)."""
+        return self._eliminate(rigid_inverse(TB) @ TA, p).phi[:, 0]
+
+    def _eliminate(self, M: np.ndarray, p: np.ndarray) -> Elimination:
+        """phi_i* for M_i = T_B^-1 T_A (N, 4, 4), all configurations at once (`projection.eliminate`)."""
         H, G = self.hinge(p), self.grasp(p)
-        out = np.empty(TA.shape[0])
-        for i in range(TA.shape[0]):
-            M = pin.SE3(TB[i]).actInv(pin.SE3(TA[i]))
-            out[i] = self._solve(H, G, M)[0][0]
-        return out
-
-    def _solve(self, H: pin.SE3, G: pin.SE3, M: pin.SE3):
-        XdG = (G.inverse().action @ _EZ)[:, None]  # right twist of X per dphi: Ad(G^-1) e_rz
-
-        def pose(phi):
-            return H * _rz(phi[0]) * G, XdG
-
-        C = H.actInv(M) * G.inverse()  # ~ Rz(phi): the thesis's atan2 extraction
-        R = C.rotation
-        starts = [np.array([np.arctan2(R[1, 0] - R[0, 1], R[0, 0] + R[1, 1])])]
-        q = H.actInv(M).translation  # ~ Rz(phi) g
-        g = G.translation
-        if np.hypot(g[0], g[1]) > 1e-9 and np.hypot(q[0], q[1]) > 1e-9:  # from the handle position
-            starts.append(np.array([np.arctan2(q[1], q[0]) - np.arctan2(g[1], g[0])]))
-        return eliminate(M, pose, starts)
+        return eliminate(M, hinge_pose_fn(H, G), hinge_starts(M, H, G))
 
     def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
-        N = TA.shape[0]
-        H, G = self.hinge(p), self.grasp(p)
+        G = self.grasp(p)
         # right twists of X = H Rz(phi) G per parameter
         gen_h = np.zeros((6, 4))
         Rh = pin.exp3(np.array([p[2], p[3], 0.0]))
@@ -328,24 +280,15 @@ class HingeLoop(Loop):
         gen_g[:3, 0] = G.rotation.T[:, 0]
         gen_g[:3, 1] = G.rotation.T[:, 2]
         gen_g[3:, 2:] = pin.Jexp3(p[6:9])
-        r = np.empty((N, 6))
-        dA = np.empty((N, 6, 6))
-        dB = np.empty((N, 6, 6))
-        dp = np.empty((N, 6, 9))
-        self.iterations = 0
-        for i in range(N):
-            TAi, TBi = pin.SE3(TA[i]), pin.SE3(TB[i])
-            M = TBi.actInv(TAi)
-            phi, ri, Jl, E, Jphi, it = self._solve(H, G, M)
-            self.iterations = max(self.iterations, it)
-            Pp = projector(Jphi)
-            dX = -Pp @ Jl @ E.inverse().action
-            r[i] = Pp @ ri  # exactly orthogonal to J_phi (a last linearised step, O(|dphi|) ~ 1e-16)
-            dA[i] = Pp @ Jl
-            dB[i] = -Pp @ Jl @ TAi.actInv(TBi).action
-            Ginv_rz = (_rz(phi[0]) * G).inverse().action  # Ad((Rz G)^-1): H's twist seen from X
-            dp[i, :, :4] = dX @ Ginv_rz @ gen_h
-            dp[i, :, 4:] = dX @ gen_g
+        el = self._eliminate(rigid_inverse(TB) @ TA, p)
+        self.iterations = int(el.iterations.max(initial=0))
+        Pp = projector(el.Jphi)
+        dA = Pp @ el.Jl
+        dX = -dA @ adjoint(rigid_inverse(el.E))
+        r = np.einsum("nij,nj->ni", Pp, el.r)  # exactly orthogonal to J_phi (a last linearised step, O(|dphi|))
+        dB = -dA @ adjoint(rigid_inverse(TA) @ TB)
+        Ginv_rz = adjoint(rigid_inverse(_rz_stack(el.phi[:, 0]) @ G.homogeneous))  # H's twist seen from X
+        dp = np.concatenate([dX @ (Ginv_rz @ gen_h), dX @ gen_g], axis=2)
         return LoopEval(r, dA, dB, dp)
 
 

@@ -8,8 +8,9 @@ The chain base -> robot -> tool -> sensor -> base is then a loop whose one
 "joint" is the measurement, so the open-loop method of 3.2 (eqs. 3.4-3.12)
 is the special case of a loop that measures its own closure.
 
-Measurements come from extra log columns (``bind``), one row per
-configuration, named after the loop:
+Measurements come from extra log columns (``measurements``), one row per
+configuration, named after the loop, and are passed to ``evaluate`` and
+``initialize`` (the loop keeps none):
 
     <loop>:x, <loop>:y, <loop>:z          measured position (m), sensor frame
     <loop>:rx, <loop>:ry, <loop>:rz       measured rotation vector (rad), pose only
@@ -26,85 +27,24 @@ import numpy as np
 import pinocchio as pin
 
 from ..errors import LoopError
-from ..parameters import DEFAULT_PRIORS, Parameter
+from ..parameters import Parameter
 from ..robot import RobotModel
-from .common import refine_own
+from ..se3 import as_se3, generators, hand_eye, kabsch, parse_vec, pose_of, skew, vec3, vec_of
 from .base import Loop, LoopEval
-from .point import TIP_FIELDS, _vec3, parse_vec, point_parameters, relative_point, skew
+from .common import (POSE_FIELDS, TIP_FIELDS, opt_float, opt_pose, point_parameters, pose_parameters, refine_own,
+                     relative_point)
 from .spec import register
 
-POSE_FIELDS = ("x", "y", "z", "rx", "ry", "rz")
 TOOL_FIELDS = tuple(f"tool_{f}" for f in POSE_FIELDS)
 POSITION_COLS = ("x", "y", "z")
 ROTATION_COLS = ("rx", "ry", "rz")
 
 
-def pose_parameters(loop: str, fields: tuple[str, ...], X: pin.SE3, order0: int = 0) -> list[Parameter]:
-    vals = np.concatenate([X.translation, pin.log3(X.rotation)])
-    out = []
-    for k, f in enumerate(fields):
-        unit = "m" if k < 3 else "rad"
-        out.append(Parameter(f"{loop}.{f}", "loop", loop, f, float(vals[k]), unit,
-                             DEFAULT_PRIORS["loop_m" if k < 3 else "loop_rad"],
-                             scales_with_length=float(vals[k]) if k < 3 else 0.0, priority=1, order=order0 + k))
-    return out
-
-
-def pose_of(v: np.ndarray) -> pin.SE3:
-    """(x, y, z, rx, ry, rz) -> SE3 (translation, rotation vector)."""
-    return pin.SE3(pin.exp3(v[3:6]), np.asarray(v[0:3], dtype=float).copy())
-
-
-def vec_of(X: pin.SE3) -> np.ndarray:
-    return np.concatenate([X.translation, pin.log3(X.rotation)])
-
-
-def generators(v: np.ndarray) -> np.ndarray:
-    """d delta / d v for X = pose_of(v) under right perturbations (as in WeldLoop)."""
-    g = np.zeros((6, 6))
-    g[:3, :3] = pin.exp3(v[3:6]).T
-    g[3:, 3:] = pin.Jexp3(v[3:6])
-    return g
-
-
-def _as_se3(X, what: str) -> pin.SE3:
-    if isinstance(X, pin.SE3):
-        return X
-    a = np.asarray(X, dtype=float)
-    if a.shape == (4, 4):
-        return pin.SE3(a)
-    a = a.reshape(-1)
-    if a.size != 6 or not np.all(np.isfinite(a)):
-        raise LoopError(f"{what}: expected an SE3, a 4x4 matrix or six numbers 'x y z rx ry rz'")
-    return pose_of(a)
-
-
-def _kabsch(m: np.ndarray, y: np.ndarray, R0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The rigid fit y_i ~ R m_i + t (Kabsch / Horn); R0 when the points are (nearly) collinear."""
-    R = R0
-    if m.shape[0] >= 3:
-        cy, cm = y.mean(axis=0), m.mean(axis=0)
-        H = (m - cm).T @ (y - cy)
-        U, S, Vt = np.linalg.svd(H)
-        if S[1] > 1e-9 * max(S[0], 1e-300):
-            D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-            R = Vt.T @ D @ U.T
-        return R, cy - R @ cm
-    return R, y[0] - R @ m[0]
-
-
-def _project_so3(A: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(A)
-    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-
-
 def _gauss_newton(loop: Loop, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, free: np.ndarray,
-                  iters: int = 30) -> np.ndarray:
+                  meas: np.ndarray, iters: int = 30) -> np.ndarray:
     """Refine the loop's own parameters ``p[free]`` with the robot held (TA, TB fixed); `common.refine_own`."""
-    if loop.meas is None or loop.meas.shape[0] != TA.shape[0]:
-        return p  # evaluate() needs one measurement per configuration given
-    return refine_own(lambda q: loop.evaluate(TA, TB, q), lambda q: loop.evaluate(TA, TB, q).r, loop.normalize,
-                      p, free, iters)
+    return refine_own(lambda q: loop.evaluate(TA, TB, q, meas), lambda q: loop.evaluate(TA, TB, q, meas).r,
+                      loop.normalize, p, free, iters)
 
 
 class _Measured(Loop):
@@ -116,11 +56,10 @@ class _Measured(Loop):
     def __init__(self, name: str, frame_a: str, frame_b: str = "universe", base=None, initial_base=None,
                  sigma_t: float | None = None, sigma_r: float | None = None):
         super().__init__(name, frame_a, frame_b)
-        self.base = None if base is None else _as_se3(base, "base")
-        self.initial_base = pin.SE3.Identity() if initial_base is None else _as_se3(initial_base, "initial_base")
+        self.base = None if base is None else as_se3(base, "base")
+        self.initial_base = pin.SE3.Identity() if initial_base is None else as_se3(initial_base, "initial_base")
         self.sigma_t = sigma_t
         self.sigma_r = sigma_r
-        self.meas: np.ndarray | None = None  # (N, len(_cols))
         for s, what in ((sigma_t, "sigma_t"), (sigma_r, "sigma_r")):
             if s is not None and not (np.isfinite(s) and s > 0):
                 raise LoopError(f"loop '{name}': {what} must be positive and finite")
@@ -132,23 +71,26 @@ class _Measured(Loop):
     def columns(self) -> list[str]:
         return [f"{self.name}:{c}" for c in self._cols]
 
-    def bind(self, extra: dict[str, np.ndarray]) -> None:
+    def measurements(self, extra: dict[str, np.ndarray], rows: np.ndarray) -> np.ndarray:
         missing = [c for c in self.columns() if c not in extra]
         if missing:
             raise LoopError(f"loop '{self.name}': the log has no measurement column(s) {', '.join(missing)}")
-        M = np.column_stack([np.asarray(extra[c], dtype=float) for c in self.columns()])
+        M = np.column_stack([np.asarray(extra[c], dtype=float)[rows] for c in self.columns()])
         bad = np.flatnonzero(~np.all(np.isfinite(M), axis=1))
         if bad.size:
             raise LoopError(f"loop '{self.name}': measurement missing or not a number in row(s) "
                             f"{', '.join(str(b + 1) for b in bad[:5])} of this loop")
-        self.meas = M
+        return M
 
-    def _measurements(self, N: int) -> np.ndarray:
-        if self.meas is None:
-            raise LoopError(f"loop '{self.name}': no measurements bound (log columns {', '.join(self.columns())})")
-        if self.meas.shape[0] != N:
-            raise LoopError(f"loop '{self.name}': {N} configurations but {self.meas.shape[0]} measurements")
-        return self.meas
+    def _checked(self, meas: np.ndarray | None, N: int) -> np.ndarray:
+        """`meas` (N, columns), checked against the N configurations it is evaluated at."""
+        if meas is None:
+            raise LoopError(f"loop '{self.name}': no measurements given (log columns {', '.join(self.columns())})")
+        meas = np.asarray(meas, dtype=float)
+        if meas.shape != (N, len(self._cols)):
+            raise LoopError(f"loop '{self.name}': {N} configurations but measurements of shape {meas.shape} "
+                            f"(expected ({N}, {len(self._cols)}))")
+        return meas
 
     def base_pose(self, p: np.ndarray) -> tuple[pin.SE3, np.ndarray]:
         v = vec_of(self.base) if self.base is not None else p[:6]
@@ -198,8 +140,8 @@ class MeasuredPoseLoop(_Measured):
         super().__init__(name, frame_a, frame_b, base, initial_base, sigma_t, sigma_r)
         if (sigma_t is None) != (sigma_r is None):
             raise LoopError(f"loop '{name}': give both sigma_t and sigma_r for a pose measurement, or neither")
-        self.tool = None if tool is None else _as_se3(tool, "tool")
-        self.initial_tool = pin.SE3.Identity() if initial_tool is None else _as_se3(initial_tool, "initial_tool")
+        self.tool = None if tool is None else as_se3(tool, "tool")
+        self.initial_tool = pin.SE3.Identity() if initial_tool is None else as_se3(initial_tool, "initial_tool")
         self._fit_tool = initial_tool is None  # initialize() estimates an unknown tool with no initial value
         self.measurement_cov = (None if sigma_t is None else
                                 np.diag([sigma_t ** 2] * 3 + [sigma_r ** 2] * 3))
@@ -221,7 +163,7 @@ class MeasuredPoseLoop(_Measured):
         v = vec_of(self.tool) if self.tool is not None else p[k:k + 6]
         return pose_of(v), v
 
-    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
+    def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
         """The unknown sensor base X and tool frame Y fitted to every configuration given.
 
         With W_i = T_B^-1 T_A at the nominal robot, W_i Y = X M_i.  When the
@@ -236,12 +178,13 @@ class MeasuredPoseLoop(_Measured):
         if self.base is not None and not fit_tool:
             return None
         N = TA.shape[0]
-        M = self._measured_poses(self.meas[:N] if self.meas is not None else self._measurements(N))
+        meas = self._checked(meas, N)
+        M = self._measured_poses(meas)
         W = [pin.SE3(TB[i]).actInv(pin.SE3(TA[i])) for i in range(N)]
         X = self.base if self.base is not None else None
         Y = self.tool if self.tool is not None else self.initial_tool
         if fit_tool and X is None and N >= 2:
-            XY = self._hand_eye(W, M)
+            XY = hand_eye(W, M)
             if XY is not None:
                 X, Y = XY
         if X is None:
@@ -251,29 +194,7 @@ class MeasuredPoseLoop(_Measured):
         p = np.concatenate(([] if self.base is not None else [vec_of(X)])
                            + ([] if self.tool is not None else [vec_of(Y)]))
         free = np.arange(p.size) if fit_tool else np.arange(6)  # a given tool stays as given
-        return _gauss_newton(self, TA, TB, p, free)
-
-    @staticmethod
-    def _hand_eye(W: list[pin.SE3], M: list[pin.SE3]) -> tuple[pin.SE3, pin.SE3] | None:
-        """Closed-form X, Y of W_i Y = X M_i (None when the rotations do not determine them)."""
-        I3 = np.eye(3)
-        A = np.concatenate([np.hstack([np.kron(I3, w.rotation), -np.kron(m.rotation.T, I3)])
-                            for w, m in zip(W, M)])
-        _, S, Vt = np.linalg.svd(A)
-        if not S[-2] > 1e-6 * S[0]:
-            return None
-        v = Vt[-1]
-        RY, RX = v[:9].reshape(3, 3, order="F"), v[9:].reshape(3, 3, order="F")
-        if np.linalg.det(RY) < 0:
-            RY, RX = -RY, -RX
-        RY, RX = _project_so3(RY), _project_so3(RX)
-        # translations: R_Wi t_Y - t_X = R_X t_Mi - t_Wi
-        B = np.concatenate([np.hstack([w.rotation, -I3]) for w in W])
-        b = np.concatenate([RX @ m.translation - w.translation for w, m in zip(W, M)])
-        t, *_ = np.linalg.lstsq(B, b, rcond=1e-9)
-        if not np.all(np.isfinite(t)):
-            return None
-        return pin.SE3(RX, t[3:]), pin.SE3(RY, t[:3])
+        return _gauss_newton(self, TA, TB, p, free, meas)
 
     @staticmethod
     def _measured_poses(m: np.ndarray) -> list[pin.SE3]:
@@ -286,9 +207,9 @@ class MeasuredPoseLoop(_Measured):
             out[k + 3:k + 6] = pin.log3(pin.exp3(p[k + 3:k + 6]))
         return out
 
-    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
         N = TA.shape[0]
-        Ms = self._measured_poses(self._measurements(N))
+        Ms = self._measured_poses(self._checked(meas, N))
         X, xv = self.base_pose(p)
         Y, yv = self.tool_pose(p)
         Xinv = X.inverse()
@@ -345,8 +266,8 @@ class MeasuredPointLoop(_Measured):
     def __init__(self, name: str, frame_a: str, frame_b: str = "universe", base=None, tip=None,
                  initial_base=None, initial_tip=None, sigma_t: float | None = None):
         super().__init__(name, frame_a, frame_b, base, initial_base, sigma_t, None)
-        self.tip = None if tip is None else _vec3(tip, "tip")
-        self.initial_tip = np.zeros(3) if initial_tip is None else _vec3(initial_tip, "initial_tip")
+        self.tip = None if tip is None else vec3(tip, "tip")
+        self.initial_tip = np.zeros(3) if initial_tip is None else vec3(initial_tip, "initial_tip")
         self._fit_tip = initial_tip is None  # initialize() estimates an unknown tip with no initial value
         self.measurement_cov = None if sigma_t is None else sigma_t ** 2 * np.eye(3)
 
@@ -366,7 +287,7 @@ class MeasuredPointLoop(_Measured):
         k = self.n_base
         return self.tip if self.tip is not None else p[k:k + 3]
 
-    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
+    def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
         """The unknown sensor base and tool point fitted to every configuration given.
 
         With the robot held at the configurations given, m_i = X^-1 T_i t
@@ -385,13 +306,13 @@ class MeasuredPointLoop(_Measured):
         if self.base is not None and not fit_tip:
             return None
         N = TA.shape[0]
-        m = (self.meas[:N] if self.meas is not None else self._measurements(N))
+        m = self._checked(meas, N)
         tip = self.tip if self.tip is not None else self.initial_tip
         p0, RBA, *_ = relative_point(TA, TB, np.zeros(3))
         if self.base is not None:
             R, t = self.base.rotation, self.base.translation
         else:
-            R, t = _kabsch(m, p0 + RBA @ tip, self.initial_base.rotation)
+            R, t = kabsch(m, p0 + RBA @ tip, self.initial_base.rotation)
         if fit_tip and N >= 3:
             I3 = np.broadcast_to(np.eye(3), (N, 3, 3))
             for _ in range(3):
@@ -404,16 +325,16 @@ class MeasuredPointLoop(_Measured):
                     break
                 tip = tip + dx[:3]
                 if self.base is None:
-                    R, t = _kabsch(m, p0 + RBA @ tip, R)
+                    R, t = kabsch(m, p0 + RBA @ tip, R)
         p = np.concatenate(([] if self.base is not None else [vec_of(pin.SE3(R, t))])
                            + ([] if self.tip is not None else [tip]))
         if fit_tip and N >= 3:
-            p = _gauss_newton(self, TA, TB, p, np.arange(p.size))
+            p = _gauss_newton(self, TA, TB, p, np.arange(p.size), m)
         return p
 
-    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
         N = TA.shape[0]
-        m = self._measurements(N)
+        m = self._checked(meas, N)
         X, xv = self.base_pose(p)
         tip = self.tip_point(p)
         y, RBA, dyA, dyB = relative_point(TA, TB, tip)
@@ -437,23 +358,6 @@ class MeasuredPointLoop(_Measured):
         return super().describe() | {"tip": "unknown" if self.tip is None else self.tip.tolist()}
 
 
-def _opt_float(kw: dict[str, str], key: str) -> float | None:
-    if key not in kw:
-        return None
-    try:
-        return float(kw[key])
-    except ValueError:
-        raise LoopError(f"{key}='{kw[key]}' is not a number") from None
-
-
-def _opt_pose(kw: dict[str, str], key: str) -> pin.SE3 | None:
-    if kw.get(key, "unknown") == "unknown":
-        return None
-    if kw[key] == "identity":
-        return pin.SE3.Identity()
-    return pose_of(parse_vec(kw[key], 6, key))
-
-
 @register("measured_pose", {"frame", "to", "base", "base0", "tool", "sigma_t", "sigma_r"})
 def _measured_pose(kw: dict[str, str], robot: RobotModel) -> Loop:
     """measured_pose:frame=tool[,to=frame_b][,base=|base0="x y z rx ry rz"][,tool=...][,sigma_t=m,sigma_r=rad].
@@ -463,9 +367,9 @@ def _measured_pose(kw: dict[str, str], robot: RobotModel) -> Loop:
     if "frame" not in kw:
         raise LoopError("measured_pose loop needs frame=<tool frame>")
     return MeasuredPoseLoop(kw.get("name", "measured_pose"), kw["frame"], kw.get("to", "universe"),
-                            base=_opt_pose(kw, "base"), tool=_opt_pose(kw, "tool"),
-                            initial_base=_opt_pose(kw, "base0"),
-                            sigma_t=_opt_float(kw, "sigma_t"), sigma_r=_opt_float(kw, "sigma_r"))
+                            base=opt_pose(kw, "base"), tool=opt_pose(kw, "tool"),
+                            initial_base=opt_pose(kw, "base0"),
+                            sigma_t=opt_float(kw, "sigma_t"), sigma_r=opt_float(kw, "sigma_r"))
 
 
 @register("measured_point", {"frame", "to", "base", "base0", "tip", "sigma_t"})
@@ -475,5 +379,5 @@ def _measured_point(kw: dict[str, str], robot: RobotModel) -> Loop:
         raise LoopError("measured_point loop needs frame=<tool frame>")
     tip = parse_vec(kw["tip"], 3, "tip") if kw.get("tip", "unknown") != "unknown" else None
     return MeasuredPointLoop(kw.get("name", "measured_point"), kw["frame"], kw.get("to", "universe"),
-                             base=_opt_pose(kw, "base"), tip=tip, initial_base=_opt_pose(kw, "base0"),
-                             sigma_t=_opt_float(kw, "sigma_t"))
+                             base=opt_pose(kw, "base"), tip=tip, initial_base=opt_pose(kw, "base0"),
+                             sigma_t=opt_float(kw, "sigma_t"))

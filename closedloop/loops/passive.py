@@ -30,11 +30,14 @@ keeping the base pose first, then joints from the task's base to its tip.
 The task joint values q_i (up to 5 DOF: each uses up one of the 6 closure
 equations) are eliminated per configuration and anew at each evaluation
 with the current parameters (thesis 3.4.3, steps a-c), by Gauss-Newton on
-|r_i(q)|^2 (Pinocchio frame Jacobian, `pin.integrate`) from the best of: the
-previous evaluation's solution for the same row (warm start), the previous
-row's solution, and `q0`.  The residual and the reduced Jacobians
-(I - J_q J_q^+) d r / d x are those of `hinge.eliminate` (variable
-projection; see the module docstring of `hinge` for the envelope theorem).
+|r_i(q)|^2 from the best of: the previous evaluation's solution for the same
+row (warm start), the previous row's solution, and `q0`; all rows at once
+(`projection.eliminate_along`), with the task's kinematics batched
+(`ChainKinematics`) when every task joint is a 1-DOF revolute or prismatic
+one, else Pinocchio's (frame Jacobian, `pin.integrate`) row by row.  The
+residual and the reduced Jacobians (I - J_q J_q^+) d r / d x are those of
+`projection` (variable projection; see the module docstring of `hinge` for
+the envelope theorem).
 Task joint limits are not enforced.
 """
 
@@ -48,7 +51,8 @@ import pinocchio as pin
 from ..errors import LoopError
 from ..parameters import DEFAULT_PRIORS, PLACEMENT_FIELDS, Parameter
 from .base import Loop, LoopEval
-from .hinge import eliminate, projector
+from ..se3 import adjoint, rigid_inverse, skew
+from .projection import eliminate_along, projector
 from .spec import register
 from .weld import CLOSURE_FIELDS
 
@@ -69,6 +73,103 @@ def load_task_model(path: str | Path) -> pin.Model:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise LoopError(f"task model {path}: Pinocchio cannot parse it ({first})") from None
     raise LoopError(f"task model {path}: unknown type '{suffix}' (use .urdf or .xml/.mjcf)")
+
+
+class ChainKinematics:
+    """Batched forward kinematics of a task model whose joints are all 1-DOF: revolute, prismatic or
+    continuous (URDF "continuous": Pinocchio's unbounded revolute, q_j = (cos a, sin a)).
+
+    oMi_j(q) = oMi_parent(j) M_j exp(S_j q_j) (M_j the joint placement, S_j its constant motion
+    subspace in the joint frame: a rotation about, or translation along, a unit axis: Rodrigues'
+    formula R = I + sin(a) [w]x + (1 - cos(a)) [w]x^2), oMf = oMi_parent(f) F.  With right (LOCAL) twists, the frame Jacobian column of a joint
+    j supporting f is Ad(oMf^-1 oMi_j) S_j, and the kinematic regressor block of joint j's placement
+    (M_j -> M_j exp6(delta)) is Ad(oMf^-1 oMi_parent(j) M_j) (Pinocchio's
+    `computeFrameJacobian`, `computeFrameKinematicRegressor` (LOCAL), for a whole stack of q).
+    """
+
+    def __init__(self, model: pin.Model, fid: int):
+        data = model.createData()
+        pin.computeJointJacobians(model, data, pin.neutral(model))
+        self.nj, self.nv = model.njoints - 1, model.nv
+        self.parents = [int(model.parents[j]) for j in range(model.njoints)]
+        self.M = np.array([model.jointPlacements[j].homogeneous for j in range(model.njoints)])
+        self.S = np.zeros((model.njoints, 6))
+        self.iv, self.iq = [0] * model.njoints, [0] * model.njoints
+        for j in range(1, model.njoints):
+            self.iv[j], self.iq[j] = model.joints[j].idx_v, model.joints[j].idx_q
+            self.S[j] = pin.getJointJacobian(model, data, j, pin.LOCAL).reshape(6, -1)[:, self.iv[j]]
+        fr = model.frames[fid]
+        self.fj, self.F = int(fr.parentJoint), fr.placement.homogeneous
+        self.support = [j for j in model.supports[self.fj] if j > 0]
+        self.unbounded = [j for j in range(1, model.njoints) if model.joints[j].nq == 2]
+
+    @staticmethod
+    def of(model: pin.Model, fid: int) -> "ChainKinematics | None":
+        """The batched kinematics, or None when a joint is not 1-DOF revolute / prismatic / continuous."""
+        def simple(j) -> bool:
+            name = j.shortname()
+            if j.nv != 1:
+                return False
+            if j.nq == 2:
+                return name.startswith(("JointModelRUB", "JointModelRevoluteUnboundedUnaligned"))
+            return j.nq == 1 and name.startswith(("JointModelR", "JointModelP"))
+        return ChainKinematics(model, fid) if all(simple(j) for j in model.joints[1:]) else None
+
+    def integrate(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
+        """q (+) dq (Pinocchio's `integrate`): q_j + dq_j, or (cos, sin) turned by dq_j and renormalised
+        to first order, (c, s) * (3 - c^2 - s^2) / 2, for a continuous joint."""
+        out = np.array(q, dtype=float)
+        for j in range(1, self.nj + 1):
+            iq, d = self.iq[j], dq[:, self.iv[j]]
+            if j in self.unbounded:
+                c, s, cd, sd = q[:, iq], q[:, iq + 1], np.cos(d), np.sin(d)
+                c1, s1 = cd * c - sd * s, sd * c + cd * s
+                k = (3.0 - (c1 * c1 + s1 * s1)) / 2.0
+                out[:, iq], out[:, iq + 1] = c1 * k, s1 * k
+            else:
+                out[:, iq] += d
+        return out
+
+    def normalize(self, q: np.ndarray) -> np.ndarray:
+        """Each continuous joint's (cos, sin) scaled to unit length (Pinocchio's `normalize`)."""
+        out = np.array(q, dtype=float)
+        for j in self.unbounded:
+            iq = self.iq[j]
+            out[:, iq:iq + 2] /= np.linalg.norm(out[:, iq:iq + 2], axis=1)[:, None]
+        return out
+
+    def forward(self, q: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+        """Joint poses oMi (njoints entries, (n, 4, 4)) and the frame pose oMf (n, 4, 4)."""
+        n = q.shape[0]
+        oMi = [np.broadcast_to(np.eye(4), (n, 4, 4))]
+        for j in range(1, self.nj + 1):
+            v, w = self.S[j, :3], self.S[j, 3:]
+            qj = q[:, self.iq[j]]
+            J = np.broadcast_to(np.eye(4), (n, 4, 4)).copy()
+            if np.any(w):
+                c, s = (qj, q[:, self.iq[j] + 1]) if j in self.unbounded else (np.cos(qj), np.sin(qj))
+                K = skew(w)
+                J[:, :3, :3] += s[:, None, None] * K + (1.0 - c)[:, None, None] * (K @ K)
+            else:
+                J[:, :3, 3] = qj[:, None] * v
+            oMi.append(oMi[self.parents[j]] @ self.M[j] @ J)
+        return oMi, oMi[self.fj] @ self.F
+
+    def jacobian(self, oMi: list[np.ndarray], oMf: np.ndarray) -> np.ndarray:
+        """The LOCAL frame Jacobian (n, 6, nv)."""
+        fMo = rigid_inverse(oMf)
+        Jf = np.zeros((oMf.shape[0], 6, self.nv))
+        for j in self.support:
+            Jf[:, :, self.iv[j]] = adjoint(fMo @ oMi[j]) @ self.S[j]
+        return Jf
+
+    def regressor(self, oMi: list[np.ndarray], oMf: np.ndarray) -> np.ndarray:
+        """d(frame right twist) / d(right twists of the joint placements) (n, 6, 6 nj)."""
+        fMo = rigid_inverse(oMf)
+        R = np.zeros((oMf.shape[0], 6, 6 * self.nj))
+        for j in self.support:
+            R[:, :, 6 * (j - 1):6 * j] = adjoint(fMo @ oMi[self.parents[j]] @ self.M[j])
+        return R
 
 
 class PassiveChainLoop(Loop):
@@ -183,34 +284,34 @@ class PassiveChainLoop(Loop):
 
     # ------------------------------------------------------------ evaluation
     def _solver(self, p: np.ndarray):
+        """The task model at `p` and batched pose / integrate / snap functions over rows of q (n, nq)."""
         base, _, _ = self._split(p)
         model = self.task_model(p)
         data = model.createData()
-        fid = self.fid
+        fid, nv, Bh = self.fid, model.nv, base.homogeneous
+        chain = ChainKinematics.of(model, fid)
 
         def pose(q):
-            pin.computeJointJacobians(model, data, q)
-            oMf = pin.updateFramePlacement(model, data, fid)
-            return base * oMf, pin.getFrameJacobian(model, data, fid, pin.LOCAL)
+            if chain is not None:
+                oMi, oMf = chain.forward(q)
+                return Bh @ oMf, chain.jacobian(oMi, oMf)
+            X, Xd = np.empty((q.shape[0], 4, 4)), np.empty((q.shape[0], 6, nv))
+            for i in range(q.shape[0]):  # other joint types: Pinocchio's kinematics, one call per row
+                pin.computeJointJacobians(model, data, q[i])
+                X[i] = pin.updateFramePlacement(model, data, fid).homogeneous
+                Xd[i] = pin.getFrameJacobian(model, data, fid, pin.LOCAL).reshape(6, nv)
+            return Bh @ X, Xd
 
         def integrate(q, dq):
-            return pin.integrate(model, q, dq)
+            if chain is not None:
+                return chain.integrate(q, dq)
+            return np.array([pin.integrate(model, a, d) for a, d in zip(q, dq)])
 
-        return model, data, base, pose, integrate
-
-    def _snap(self, model):
         def snap(q):  # warm starts give bit-identical results: restart from q rounded to 1e-8
-            return pin.normalize(model, np.round(q, 8))
-        return snap
+            q = np.round(q, 8)
+            return chain.normalize(q) if chain is not None else np.array([pin.normalize(model, a) for a in q])
 
-    def _starts(self, N: int, i: int, prev: np.ndarray | None) -> list[np.ndarray]:
-        starts = []
-        if N in self._cache:
-            starts.append(self._cache[N][i])
-        if prev is not None:
-            starts.append(prev)
-        starts.append(self.q0)
-        return starts
+        return model, data, base, chain, pose, integrate, snap
 
     def solve_angles(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> np.ndarray:
         """The eliminated task configurations q_i* (N, nq)."""
@@ -221,43 +322,33 @@ class PassiveChainLoop(Loop):
 
     def _evaluate(self, TA, TB, p, jac):
         N = TA.shape[0]
-        model, data, base, pose, integrate = self._solver(p)
-        snap = self._snap(model)
+        model, data, base, chain, pose, integrate, snap = self._solver(p)
+        el = eliminate_along(rigid_inverse(TB) @ TA, pose, self._cache.get(N), self.q0, integrate, snap)
+        self.iterations = int(el.iterations.max(initial=0))
+        self._cache[N] = qs = el.phi
+        Pp = projector(el.Jphi)
+        r = np.einsum("nij,nj->ni", Pp, el.r)  # exactly orthogonal to J_q (a last linearised step, O(|dq|))
+        if not jac:
+            return None, qs
         _, joints, grasp = self._split(p)
-        nP = p.size
         G = np.zeros((6 * self.nj, 6 * self.nj))
         for j in range(self.nj):
             G[6 * j:6 * j + 6, 6 * j:6 * j + 6] = pin.Jexp6(joints[j])
-        gen_base = pin.Jexp6(p[0:6])
-        Jg = pin.Jexp6(grasp)
-        r = np.empty((N, 6))
-        dA = np.empty((N, 6, 6))
-        dB = np.empty((N, 6, 6))
-        dp = np.empty((N, 6, nP))
-        qs = np.empty((N, model.nq))
-        prev = None
-        self.iterations = 0
-        for i in range(N):
-            TAi, TBi = pin.SE3(TA[i]), pin.SE3(TB[i])
-            M = TBi.actInv(TAi)
-            q, ri, Jl, E, Jq, it = eliminate(M, pose, self._starts(N, i, prev), integrate, snap=snap)
-            self.iterations = max(self.iterations, it)
-            qs[i] = prev = q
-            Pp = projector(Jq)
-            r[i] = Pp @ ri  # exactly orthogonal to J_q (a last linearised step, O(|dq|) ~ 1e-16)
-            if not jac:
-                continue
-            pose(q)  # the data at the solution (a rejected trial step may be the last call)
-            oMf = data.oMf[self.fid]
-            Reg = pin.computeFrameKinematicRegressor(model, data, self.fid, pin.LOCAL)
-            dX = -Pp @ Jl @ E.inverse().action
-            dA[i] = Pp @ Jl
-            dB[i] = -Pp @ Jl @ TAi.actInv(TBi).action
-            dp[i, :, :6] = dX @ oMf.inverse().action @ gen_base
-            dp[i, :, 6:6 + 6 * self.nj] = dX @ Reg @ G
-            dp[i, :, 6 + 6 * self.nj:] = dX @ Jg
-        self._cache[N] = qs
-        return (LoopEval(r, dA, dB, dp) if jac else None), qs
+        if chain is not None:
+            oMi, oMf = chain.forward(qs)
+            Reg = chain.regressor(oMi, oMf)
+        else:
+            oMf, Reg = np.empty((N, 4, 4)), np.empty((N, 6, 6 * self.nj))
+            for i in range(N):  # the task's kinematics at the solutions
+                pin.forwardKinematics(model, data, qs[i])
+                oMf[i] = pin.updateFramePlacement(model, data, self.fid).homogeneous
+                Reg[i] = pin.computeFrameKinematicRegressor(model, data, self.fid, pin.LOCAL).reshape(6, -1)
+        dA = Pp @ el.Jl
+        dX = -dA @ adjoint(rigid_inverse(el.E))
+        dB = -dA @ adjoint(rigid_inverse(TA) @ TB)
+        dp = np.concatenate([dX @ (adjoint(rigid_inverse(oMf)) @ pin.Jexp6(p[0:6])), dX @ (Reg @ G),
+                             dX @ pin.Jexp6(grasp)], axis=2)
+        return LoopEval(r, dA, dB, dp), qs
 
 
 @register("passive", {"frame", "to", "task", "task_frame", "q0"})

@@ -8,8 +8,9 @@ import pinocchio as pin
 from ..errors import LoopError
 from ..parameters import DEFAULT_PRIORS, Parameter
 from ..robot import RobotModel
+from ..se3 import parse_vec, skew, vec3
 from .base import Loop, LoopEval
-from .point import TIP_FIELDS, parse_vec, point_parameters, relative_point, skew
+from .common import TIP_FIELDS, point_parameters, relative_point
 from .spec import register
 
 PLANE_FIELDS = ("nrx", "nry", "d")
@@ -71,9 +72,9 @@ class PlaneLoop(Loop):
                  prior: float | None = None):
         super().__init__(name, frame_a, frame_b)
         self.prior = prior
-        self.tip = None if tip is None else _vec3(tip, "tip")
-        self.initial_tip = np.zeros(3) if initial_tip is None else _vec3(initial_tip, "initial_tip")
-        n_ref = EZ if normal is None else _vec3(normal, "normal")
+        self.tip = None if tip is None else vec3(tip, "tip")
+        self.initial_tip = np.zeros(3) if initial_tip is None else vec3(initial_tip, "initial_tip")
+        n_ref = EZ if normal is None else vec3(normal, "normal")
         if np.linalg.norm(n_ref) < 1e-12:
             raise LoopError(f"plane loop '{name}': reference normal must be non-zero")
         self.n_ref = n_ref / np.linalg.norm(n_ref)
@@ -170,13 +171,6 @@ class PlaneLoop(Loop):
     def describe(self) -> dict:
         return super().describe() | {"tip": "unknown" if self.tip is None else self.tip.tolist(),
                                      "reference_normal": self.n_ref.tolist()}
-
-
-def _vec3(v, what: str) -> np.ndarray:
-    a = np.asarray(v, dtype=float).reshape(-1)
-    if a.size != 3 or not np.all(np.isfinite(a)):
-        raise LoopError(f"{what}: expected three finite numbers, got {v!r}")
-    return a
 
 
 @register("plane", {"frame", "to", "tip", "normal"})

@@ -5,54 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import LoopError
-from ..parameters import DEFAULT_PRIORS, Parameter
+from ..parameters import Parameter
 from ..robot import RobotModel
+from ..se3 import parse_vec, vec3
 from .base import Loop, LoopEval
+from .common import POINT_FIELDS, TIP_FIELDS, point_parameters, relative_point
 from .spec import register
-
-TIP_FIELDS = ("tip_x", "tip_y", "tip_z")
-POINT_FIELDS = ("px", "py", "pz")
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """[v]x for a batch (..., 3) -> (..., 3, 3)."""
-    v = np.asarray(v, dtype=float)
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
-    return S
-
-
-def relative_point(TA: np.ndarray, TB: np.ndarray, tip: np.ndarray):
-    """y = T_B^-1 T_A tip (N, 3) and R_BA = R_B^T R_A (N, 3, 3).
-
-    With right perturbations of T_A and T_B (T <- T exp6((v, w))):
-
-        dy/d(delta_A) = R_BA [ I  -[tip]x ]          (the tip moves with A)
-        dy/d(delta_B) =      [ -I   [y]x  ]          (B moving is y moving back)
-        dy/d(tip)     = R_BA
-    """
-    RB = np.swapaxes(TB[:, :3, :3], 1, 2)
-    RBA = RB @ TA[:, :3, :3]
-    y = np.einsum("nij,nj->ni", RB, TA[:, :3, 3] + TA[:, :3, :3] @ tip - TB[:, :3, 3])
-    N = TA.shape[0]
-    dA = np.empty((N, 3, 6))
-    dA[:, :, :3] = RBA
-    dA[:, :, 3:] = -RBA @ skew(tip)
-    dB = np.empty((N, 3, 6))
-    dB[:, :, :3] = -np.eye(3)
-    dB[:, :, 3:] = skew(y)
-    return y, RBA, dA, dB
-
-
-def point_parameters(loop: str, fields: tuple[str, ...], values: np.ndarray, order0: int = 0,
-                     prior: float | None = None) -> list[Parameter]:
-    """Three unknown coordinates of a point (metres, they scale with length)."""
-    prior = DEFAULT_PRIORS["loop_m"] if prior is None else prior
-    return [Parameter(f"{loop}.{f}", "loop", loop, f, float(values[k]), "m", prior,
-                      scales_with_length=float(values[k]), priority=1, order=order0 + k)
-            for k, f in enumerate(fields)]
 
 
 class PointLoop(Loop):
@@ -96,10 +54,10 @@ class PointLoop(Loop):
                  prior: float | None = None):
         super().__init__(name, frame_a, frame_b)
         self.prior = prior
-        self.tip = None if tip is None else _vec3(tip, "tip")
-        self.point = None if point is None else _vec3(point, "point")
-        self.initial_tip = np.zeros(3) if initial_tip is None else _vec3(initial_tip, "initial_tip")
-        self.initial_point = None if initial_point is None else _vec3(initial_point, "initial_point")
+        self.tip = None if tip is None else vec3(tip, "tip")
+        self.point = None if point is None else vec3(point, "point")
+        self.initial_tip = np.zeros(3) if initial_tip is None else vec3(initial_tip, "initial_tip")
+        self.initial_point = None if initial_point is None else vec3(initial_point, "initial_point")
 
     @property
     def dim(self) -> int:
@@ -167,24 +125,6 @@ class PointLoop(Loop):
         return super().describe() | {
             "tip": "unknown" if self.tip is None else self.tip.tolist(),
             "point": "unknown" if self.point is None else self.point.tolist()}
-
-
-def _vec3(v, what: str) -> np.ndarray:
-    a = np.asarray(v, dtype=float).reshape(-1)
-    if a.size != 3 or not np.all(np.isfinite(a)):
-        raise LoopError(f"{what}: expected three finite numbers, got {v!r}")
-    return a
-
-
-def parse_vec(text: str, n: int, what: str) -> np.ndarray:
-    """'x y z' (spaces or commas) -> array of n finite numbers."""
-    try:
-        v = np.array([float(t) for t in text.replace(",", " ").split()])
-    except ValueError:
-        raise LoopError(f"{what} '{text}': expected {n} numbers") from None
-    if v.size != n or not np.all(np.isfinite(v)):
-        raise LoopError(f"{what} '{text}': expected {n} finite numbers")
-    return v
 
 
 @register("point", {"frame", "to", "tip", "point"})

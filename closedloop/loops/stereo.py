@@ -30,10 +30,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..se3 import generators, skew
 from .base import LoopEval
 from .camera_model import image_ray
-from .measured import generators
-from .point import relative_point, skew
+from .common import relative_point
 
 
 def _perturb(S: np.ndarray, z: np.ndarray, sign: float, direction: bool) -> np.ndarray:
@@ -46,10 +46,12 @@ def _perturb(S: np.ndarray, z: np.ndarray, sign: float, direction: bool) -> np.n
     return S @ out
 
 
-def triangulation_eval(loop, Ts: list[np.ndarray], p: np.ndarray, jac: bool) -> LoopEval:
-    """Residual (N, 3) and Jacobians of the triangulation closure of a two-camera `loop` (CameraLoop)."""
+def triangulation_eval(loop, Ts: list[np.ndarray], p: np.ndarray, m: np.ndarray, jac: bool) -> LoopEval:
+    """Residual (N, 3) and Jacobians of the triangulation closure of a two-camera `loop` (CameraLoop).
+
+    `m` (N, 4): the pixels u1, v1, u2, v2 per configuration (NaN: out of view).
+    """
     N = Ts[0].shape[0]
-    m = loop._measurements(N)
     uv1, uv2 = np.nan_to_num(m[:, 0:2], nan=0.0), np.nan_to_num(m[:, 2:4], nan=0.0)
     f1, f2 = loop._fidx
     TF1, TF2, TA = Ts[f1], Ts[f2], Ts[0]

@@ -35,6 +35,8 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
+from closedloop.errors import UnknownRobotError
+
 __all__ = [
     "RobotSource",
     "ROBOTS",
@@ -199,7 +201,7 @@ def nominal_urdf(robot: str) -> str:
     try:
         src = ROBOTS[robot]
     except KeyError:
-        raise KeyError(f"unknown robot {robot!r}; known: {sorted(ROBOTS)}") from None
+        raise UnknownRobotError(f"unknown robot {robot!r}; known: {sorted(ROBOTS)}") from None
     root = ET.parse(src.path).getroot()
     root = clean_urdf_tree(copy.deepcopy(root), src.remove_links)
     for tool in src.tools:

@@ -17,15 +17,25 @@ Public API::
     result = simulate("panda_weld", n=200, seed=0, out_dir=Path("out"))
 
 See :func:`simulate` for the outputs and :class:`SimSettings` for the settings.
+
+Layout: ``scenarios`` (settings, geometries, the registry; scenarios are data: ``scenarios/*.yaml``,
+``scenario_files``), ``loop_types`` (one class per loop type in one table, `SIM_LOOPS`), ``true_robot``
+(the draw of the truth), ``environment`` and ``scene`` (the MuJoCo scene), ``driver`` and ``qp`` (the
+nominal planner), ``tracking`` (driving and recording), ``outputs`` (the dataset's files), ``dataset``
+(`simulate`, step by step), ``selection`` (pose selection), ``robot_scenario`` (a user's robot file),
+``camera_scene`` (the head-camera scenarios).
 """
 
 from .dataset import SimResult, sensor_readings, simulate
+from .loop_types import SIM_LOOPS, SimLoop
 from .scenario_files import load_scenario  # registers the shipped scenario YAML files
-from .scenarios import (SCENARIOS, DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry, draw_errors,
-                        perturbable_parameters)
+from .scenarios import SCENARIOS, DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
+from .true_robot import draw_errors, perturbable_parameters
 
 __all__ = [
     "SCENARIOS",
+    "SIM_LOOPS",
+    "SimLoop",
     "DoorGeometry",
     "PlaneGeometry",
     "TrackerGeometry",

@@ -1,11 +1,12 @@
 """Run a scenario: draw the true robot, simulate the closed loop, record and write a dataset.
 
-Pipeline of :func:`simulate`:
+Pipeline of :func:`simulate` (one function per step below; what depends on the loop type is a
+method of its class in :mod:`closedloop.sims.loop_types`):
 
 1. nominal URDF (cleaned, :func:`closedloop.models.nominal_urdf`) and its
    Pinocchio model; arm joints = movable joints in Pinocchio order;
-2. true parameters: :func:`~closedloop.sims.scenarios.perturbable_parameters`
-   drawn by :func:`~closedloop.sims.scenarios.draw_errors`; the true URDF
+2. true parameters: :func:`~closedloop.sims.true_robot.identifiable_parameters`
+   drawn by :func:`~closedloop.sims.true_robot.draw_errors`; the true URDF
    carries the placement errors (offsets/scales stay in the sensor model);
 3. MuJoCo scene of the true robot with the loop closed at the true grasp
    configuration ``q0`` (:func:`~closedloop.sims.scene.build_scene`);
@@ -41,8 +42,6 @@ Outputs in ``out_dir``: ``log.csv``, ``nominal.urdf``, ``truth.json``, ``scene.x
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import logging
 import tempfile
@@ -52,38 +51,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import mujoco
 import numpy as np
 import pinocchio as pin
 
-from closedloop.errors import InputError
+from closedloop.errors import ScenarioError, UnknownScenarioError
 from closedloop.export import OutputSet
 from closedloop.models import nominal_urdf
 
 from .driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
-from .scenarios import SCENARIOS, Scenario, SimSettings, draw_errors, identifiable_parameters
-from .scene import Scene, build_scene, site_pose, true_urdf
+from .loop_types import SimLoop, sim_loop
+from .outputs import DATASET_FILES, check_dataset_dir, truth_record, write_log
+from .scenarios import SCENARIOS, Scenario, SimSettings
+from .scene import Scene, build_scene, true_urdf
+from .tracking import sensor_readings, track_and_record
+from .true_robot import draw_errors, identifiable_parameters
 
-__all__ = ["SimResult", "simulate", "sensor_readings"]
+__all__ = ["SimResult", "simulate", "sensor_readings", "check_dataset_dir"]
 
 log = logging.getLogger(__name__)
-
-_COMPS = ("x", "y", "z", "rx", "ry", "rz")
-#: the files of a dataset, in the order they are published (truth.json, the manifest, last)
-DATASET_FILES = ("nominal.urdf", "scene.xml", "log.csv", "truth.json")
-
-
-def check_dataset_dir(out: Path, replace: bool = False) -> None:
-    """Refuse to write a dataset into a directory that holds another one, unless `replace`.
-
-    (A dataset is a set: a new ``log.csv`` beside an old ``truth.json`` would look complete.)
-    """
-    if replace or not out.is_dir():
-        return
-    present = [f for f in DATASET_FILES if (out / f).exists()]
-    if present:
-        raise InputError(f"--out {out}: holds another dataset ({', '.join(present)}); "
-                         "give a new directory or --replace to replace it")
 
 
 @dataclass
@@ -149,149 +134,24 @@ class SimResult:
         return len(self.readings) / self.elapsed_s if self.elapsed_s > 0 else float("nan")
 
 
-def sensor_readings(
-    q: np.ndarray,
-    offset: np.ndarray,
-    scale: np.ndarray,
-    noise: float,
-    quantum: float,
-    rng: np.random.Generator | None,
-) -> np.ndarray:
-    """Sensor model: ``Q((q - offset) / scale + N(0, noise))``, see module docstring."""
-    r = (np.asarray(q, dtype=float) - offset) / scale
-    if noise > 0.0:
-        if rng is None:
-            raise ValueError("noise > 0 needs a random generator")
-        r = r + rng.normal(0.0, noise, size=r.shape)
-    if quantum > 0.0:
-        r = quantum * np.round(r / quantum)
-    return r
+@dataclass
+class _Nominal:
+    """Step 1: the nominal URDF (text and scratch file), its Pinocchio model and arm joints."""
+
+    urdf: str
+    path: Path
+    model: pin.Model
+    joint_names: list[str]
 
 
-def _violation(scene: Scene, point: bool) -> tuple[float, float]:
-    """Distance and rotation angle between the tool site and the target site (after ``mj_forward``)."""
-    d, t, g = scene.data, scene.tool_site, scene.target_site
-    dp = float(np.linalg.norm(d.site_xpos[t] - d.site_xpos[g]))
-    if point:
-        return dp, 0.0
-    rel = d.site_xmat[g].reshape(3, 3).T @ d.site_xmat[t].reshape(3, 3)
-    return dp, float(np.linalg.norm(pin.log3(rel)))
+@dataclass
+class _Truth:
+    """Step 2: the true parameter values, the sensor offsets and scales, the true URDF."""
 
-
-_EQUALITY = int(mujoco.mjtConstraint.mjCNSTR_EQUALITY)
-
-
-def _constraint_force(scene: Scene) -> float:
-    """Norm of the translational part of the loop constraint force (``efc_force``)."""
-    d = scene.data
-    nefc = d.nefc
-    rows = np.flatnonzero((d.efc_type[:nefc] == _EQUALITY) & (d.efc_id[:nefc] == scene.eq_id))
-    return float(np.linalg.norm(d.efc_force[rows[:3]])) if rows.size else 0.0
-
-
-def _pose_params(prefix: str, pose: pin.SE3, rotation: bool = True) -> dict[str, float]:
-    vals = list(pose.translation) + (list(pin.log3(pose.rotation)) if rotation else [])
-    return {f"{prefix}.{c}": float(v) for c, v in zip(_COMPS, vals)}
-
-
-def _plane_params(prefix: str, plane: pin.SE3) -> dict[str, float]:
-    """``PlaneLoop`` parameters of a plane frame (z = normal, n_z > 0) with the reference normal e_z."""
-    from closedloop.loops.plane import PlaneLoop
-
-    n = plane.rotation[:, 2]
-    w = PlaneLoop(prefix, "tool").angles(n)
-    return {f"{prefix}.nrx": float(w[0]), f"{prefix}.nry": float(w[1]),
-            f"{prefix}.d": float(n @ plane.translation)}
-
-
-_CHUNK = 5  # simulation steps between two settle checks
-
-
-def _settle(scene: Scene, ctrl_from: np.ndarray, ctrl_to: np.ndarray, s: SimSettings,
-            vel_tol: float) -> tuple[bool, int]:
-    """Ramp the servo commands over ``ramp_steps``, then step until ``max |qdot| < vel_tol``.
-
-    Returns (settled, steps); at most ``max_steps`` steps, at least ``min_steps``
-    (counting the ramp); the velocity is checked every 5 steps.
-    """
-    m, d = scene.model, scene.data
-    ids = scene.actuator_ids
-    ramp = max(1, s.ramp_steps)
-    commands = ctrl_from + np.outer(np.arange(1, ramp + 1) / ramp, ctrl_to - ctrl_from)
-    ctrl, step = _ctrl_view(d, ids), mujoco.mj_step  # per step: one copy into a view, one call
-    for row in commands:
-        ctrl[...] = row
-        step(m, d)
-    steps = ramp
-    qvel = d.qvel  # a view of the simulation state
-    lo, hi = -vel_tol, vel_tol
-    if steps < s.min_steps:  # no check before min_steps: one call
-        k = -(-(s.min_steps - steps) // _CHUNK)
-        k = min(k, -(-(s.max_steps - steps) // _CHUNK))
-        if k > 0:
-            step(m, d, k * _CHUNK)
-            steps += k * _CHUNK
-    while steps < s.max_steps:
-        # max |qdot| < vel_tol, on a Python list (a few joints: cheaper than numpy's reductions;
-        # a NaN fails every comparison, as in numpy)
-        if all(lo < v < hi for v in qvel.tolist()):
-            return True, steps
-        step(m, d, _CHUNK)
-        steps += _CHUNK
-    return False, steps
-
-
-def _ctrl_view(d, ids: np.ndarray) -> np.ndarray:
-    """``d.ctrl[ids]`` as a writable view when the ids are a contiguous range, else an index proxy."""
-    ids = np.asarray(ids)
-    if ids.size and np.array_equal(ids, np.arange(ids[0], ids[0] + ids.size)):
-        return d.ctrl[int(ids[0]):int(ids[0]) + ids.size]
-    return _Scatter(d.ctrl, ids)
-
-
-class _Scatter:
-    """``proxy[...] = row`` writes ``target[ids] = row`` (non-contiguous actuator ids)."""
-
-    def __init__(self, target: np.ndarray, ids: np.ndarray):
-        self.target, self.ids = target, ids
-
-    def __setitem__(self, key, value) -> None:
-        self.target[self.ids] = value
-
-
-def _sample(scene: Scene, ctrl: np.ndarray, target: np.ndarray, s: SimSettings) -> tuple[bool, int, np.ndarray]:
-    """Drive to one waypoint and come to rest there; returns (settled, steps, final servo command).
-
-    Without ``relax`` the servos are commanded ``target`` and the robot settles to
-    ``vel_tol``.  With it, the move only settles to ``move_vel_tol`` (the robot is
-    near the waypoint and slow), then ``relax_passes`` times the servos are
-    commanded the measured joint positions and the robot settles again, to
-    ``move_vel_tol`` and, the last time, to ``vel_tol``.  Each pass releases most
-    of the preload the previous one left (the servo, driven from the wrong nominal
-    model, pushes against the closed chain; the loop springs back when released and
-    the servo takes up a fraction of the deflection), so the recorded configuration
-    loads the loop far less than one long settle would.
-    """
-    d = scene.data
-    passes = max(0, int(s.relax_passes)) if s.relax else 0
-    settled, steps = _settle(scene, ctrl, target, s, s.move_vel_tol if passes else s.vel_tol)
-    ctrl = target
-    for k in range(passes):
-        relaxed = d.qpos[scene.qpos_adr].copy()
-        ok, st = _settle(scene, ctrl, relaxed, s, s.vel_tol if k == passes - 1 else s.move_vel_tol)
-        settled &= ok
-        steps += st
-        ctrl = relaxed
-    return settled, steps, ctrl
-
-
-def _targets(planner, plan, max_attempts: int):
-    """(planning vector, record?) pairs: the planner's waypoints, or a selected plan's path."""
-    if plan is None:
-        for _ in range(max_attempts):
-            yield planner.step(), True
-    else:
-        yield from zip(plan.waypoints, plan.record)
+    values: dict[str, float]
+    offset: np.ndarray
+    scale: np.ndarray
+    urdf: str
 
 
 def simulate(
@@ -320,9 +180,9 @@ def simulate(
     try:
         sc: Scenario = SCENARIOS[scenario]
     except KeyError:
-        raise KeyError(f"unknown scenario {scenario!r}; known: {sorted(SCENARIOS)}") from None
+        raise UnknownScenarioError(f"unknown scenario {scenario!r}; known: {sorted(SCENARIOS)}") from None
     if n < 1:
-        raise ValueError("n must be >= 1")
+        raise ScenarioError(f"{scenario}: n must be >= 1, not {n}")
     settings = sc.settings
     if overrides.pop("soft", False):
         settings = settings.replace(solref=(0.02, 1.0), solimp=(0.9, 0.95, 0.001, 0.5, 2.0))
@@ -344,15 +204,55 @@ def simulate(
 def _simulate(sc: Scenario, settings: SimSettings, n: int, seed: int, out: Path, scratch: Path, files: OutputSet,
               progress: Callable[[int, int], None] | None) -> SimResult:
     """The body of :func:`simulate`: outputs go into `files` (published when `simulate` returns)."""
-    scenario = sc.name
-
+    kind = sim_loop(sc.loop_type)
     ss = np.random.SeedSequence(seed)
     rng_truth, rng_plan, rng_noise = (np.random.default_rng(c) for c in ss.spawn(3))
-    # the environment of the new loop types (plane, tracker pose, tracker noise): a fourth stream, so
+    # the environment of the newer loop types (plane, tracker pose, tracker noise): a fourth stream, so
     # the older scenarios' draws are unchanged
-    rng_env = np.random.default_rng(ss.spawn(1)[0]) if sc.loop_type in ("plane", "measured_point") else None
+    rng_env = np.random.default_rng(ss.spawn(1)[0]) if kind.draws_environment else None
 
-    # 1. nominal model
+    nominal = _nominal(sc, scratch, files, out)  # 1
+    truth = _draw_truth(sc, settings, nominal, rng_truth)  # 2
+    q0 = np.asarray(sc.q0, dtype=float)  # 3: the scene, closed at the true grasp configuration
+    scene = build_scene(truth.urdf, sc, settings, nominal.joint_names, q0, rng=rng_env)
+    files.add(out / "scene.xml", scene.to_xml())
+    r0 = sensor_readings(q0, truth.offset, truth.scale, settings.noise, settings.quantization, rng_noise)
+    planner, loop = _planner(sc, kind, settings, nominal.model, scene, r0, rng_plan)  # 4
+    t_start = time.perf_counter()
+    plan = None
+    if settings.select:  # pose selection on the nominal model (closedloop.sims.selection)
+        from .selection import plan_selected
+
+        start = loop.full_q(r0) if loop is not None else r0
+        plan = plan_selected(sc, settings, nominal.path, nominal.joint_names, planner, loop, start, n, nominal.model)
+    t_plan = time.perf_counter() - t_start
+    rec = track_and_record(sc, kind, settings, scene, truth.offset, truth.scale, planner, plan, n, rng_noise, rng_env,
+                           progress, t_start)  # 5-6
+    log.info(
+        "%s: %d samples, %d dropped, %d steps, %d QP solves, %.2f s (%.0f configs/s)", sc.name, rec.done,
+        rec.dropped, rec.steps, planner.stats.qp_solves, rec.elapsed, rec.done / max(rec.elapsed, 1e-12),
+    )
+
+    # outputs
+    measured = {f"{sc.loop_name}:{a}": rec.meas[:, k] for k, a in enumerate("xyz")} if not kind.closed else {}
+    write_log(files, out / "log.csv", nominal.joint_names, rec.readings, rec.tau, rec.viol_m, rec.viol_rad,
+              rec.force, rec.door, measured)
+    truth_json = truth_record(sc, kind, scene, settings, seed, nominal.joint_names, q0, truth.values, list(measured),
+                              rec, planner.stats.qp_solves)
+    if plan is not None:
+        truth_json["selection"] = plan.info
+    files.add(out / "truth.json", json.dumps(truth_json, indent=2))
+    return SimResult(
+        scenario=sc.name, seed=int(seed), out_dir=out, joint_names=nominal.joint_names, readings=rec.readings,
+        q_true=rec.q_true, tau=rec.tau, violation_m=rec.viol_m, violation_rad=rec.viol_rad,
+        constraint_force_n=rec.force, door_angle=rec.door, truth=truth_json, settings=settings,
+        n_dropped=rec.dropped, n_steps=rec.steps, elapsed_s=rec.elapsed,
+        extra={"select_s": t_plan} if plan is not None else {},
+    )
+
+
+def _nominal(sc: Scenario, scratch: Path, files: OutputSet, out: Path) -> _Nominal:
+    """Step 1: the cleaned nominal URDF (written to the scratch folder and the outputs) and its model."""
     urdf_nom = nominal_urdf(sc.robot)
     nominal_path = scratch / "nominal.urdf"
     nominal_path.write_text(urdf_nom)
@@ -360,211 +260,37 @@ def _simulate(sc: Scenario, settings: SimSettings, n: int, seed: int, out: Path,
     pmodel = pin.buildModelFromXML(urdf_nom)
     joint_names = [pmodel.names[j] for j in range(1, pmodel.njoints) if pmodel.joints[j].nq == 1]
     if len(joint_names) != pmodel.nq:
-        raise ValueError(f"{sc.robot}: only 1-DOF joints are supported")
-    nj = len(joint_names)
+        raise ScenarioError(f"{sc.robot}: only 1-DOF joints are supported")
+    return _Nominal(urdf_nom, nominal_path, pmodel, joint_names)
 
-    # 2. truth
-    names = identifiable_parameters(nominal_path, sc, joint_names, settings.scale > 0.0)
+
+def _draw_truth(sc: Scenario, settings: SimSettings, nominal: _Nominal, rng: np.random.Generator) -> _Truth:
+    """Step 2: errors drawn on the parameters the core identifies; offsets and scales stay in the sensor model."""
+    joint_names = nominal.joint_names
+    names = identifiable_parameters(nominal.path, sc, joint_names, settings.scale > 0.0)
     values = draw_errors(
         names,
-        rng_truth,
+        rng,
         {"translation": settings.translation, "rotation": settings.rotation,
          "offset": settings.offset, "scale": settings.scale},
     )
     offset = np.array([values.get(f"{j}.offset", 0.0) for j in joint_names])
     scale = np.array([values.get(f"{j}.scale", 1.0) for j in joint_names])
-    urdf_true = true_urdf(nominal_path, values)
+    return _Truth(values, offset, scale, true_urdf(nominal.path, values))
 
-    # 3. scene, closed at the true grasp configuration
-    q0 = np.asarray(sc.q0, dtype=float)
-    scene = build_scene(urdf_true, sc, settings, joint_names, q0, rng=rng_env)
-    files.add(out / "scene.xml", scene.to_xml())
-    m, d = scene.model, scene.data
 
-    # 4. the robot's nominal loop and planner
-    r0 = sensor_readings(q0, offset, scale, settings.noise, settings.quantization, rng_noise)
+def _planner(sc: Scenario, kind: SimLoop, settings: SimSettings, pmodel: pin.Model, scene: Scene, r0: np.ndarray,
+             rng: np.random.Generator) -> tuple[NominalLoopPlanner | RandomConfigurations, NominalLoop | None]:
+    """Step 4: the robot's nominal loop and its planner (an open loop: random configurations)."""
+    if not kind.closed:
+        return RandomConfigurations(pmodel, r0, rng, margin=settings.limit_margin,
+                                    target_span=settings.target_span), None
     door_range = sc.door.angle_range if sc.door else (-0.6, 0.6)
-    planner: NominalLoopPlanner | RandomConfigurations
-    loop: NominalLoop | None = None
-    if sc.loop_type == "measured_point":  # open loop: random configurations of the nominal model
-        planner = RandomConfigurations(pmodel, r0, rng_plan, margin=settings.limit_margin,
-                                       target_span=settings.target_span)
-    else:
-        normal = scene.plane_pose.rotation[:, 2] if scene.plane_pose is not None else None
-        loop = NominalLoop(pmodel, sc.tool_frame, sc.loop_type, r0, hinge=scene.hinge_pose, door_range=door_range,
-                           target_frame=sc.target_frame, normal=normal)
-        planner = NominalLoopPlanner(
-            loop, loop.full_q(r0), rng_plan, step_rad=settings.step_rad, margin=settings.limit_margin,
-            target_span=settings.target_span, retarget_every=settings.retarget_every,
-        )
-    tracker = scene.target_pose if sc.loop_type == "measured_point" else None
-
-    # 5-6. track and record
-    readings = np.zeros((n, nj))
-    q_true = np.zeros((n, nj))
-    tau = np.zeros((n, nj))
-    viol_m = np.zeros(n)
-    viol_rad = np.zeros(n)
-    force = np.zeros(n)
-    door = np.zeros(n) if sc.loop_type == "hinge" else np.zeros(0)
-    meas = np.zeros((n, 3)) if tracker is not None else np.zeros((0, 3))
-    ctrl = d.ctrl[scene.actuator_ids].copy()
-    lo, hi = scene.jnt_range[:, 0], scene.jnt_range[:, 1]
-    limited = m.jnt_limited[[m.joint(j).id for j in joint_names]].astype(bool)
-    done = dropped = total_steps = 0
-    max_attempts = 3 * n + 20
-    t_start = time.perf_counter()
-    plan = None
-    if settings.select:  # pose selection on the nominal model (closedloop.sims.selection)
-        from .selection import plan_selected
-
-        start = loop.full_q(r0) if loop is not None else r0
-        plan = plan_selected(sc, settings, nominal_path, joint_names, planner, loop, start, n, pmodel)
-    t_plan = time.perf_counter() - t_start
-    targets = _targets(planner, plan, max_attempts)
-    while done < n:
-        wp, record = next(targets, (None, False))
-        if wp is None:
-            break
-        target = scale * wp[:nj] + offset
-        if not record:  # a waypoint on the way to the next selected configuration: move only
-            _ok, steps = _settle(scene, ctrl, target, settings, settings.move_vel_tol)
-            total_steps += steps
-            ctrl = target
-            continue
-        settled, steps, ctrl = _sample(scene, ctrl, target, settings)
-        total_steps += steps
-        mujoco.mj_forward(m, d)
-        q = d.qpos[scene.qpos_adr].copy()
-        at_limit = bool(np.any(limited & ((q - lo < settings.limit_flag) | (hi - q < settings.limit_flag))))
-        if not settled:
-            log.debug("sample %d not settled after %d steps (max |qdot| = %.3g)", done, steps, np.max(np.abs(d.qvel)))
-        if settings.drop_flagged and (at_limit or not settled):
-            dropped += 1
-            continue
-        tau[done] = d.qfrc_actuator[scene.dof_adr]
-        # joint compliance: the motor-side encoder leads the link by c * tau (tau = K (theta_m - q))
-        readings[done] = sensor_readings(q + settings.compliance * tau[done], offset, scale, settings.noise,
-                                         settings.quantization, rng_noise)
-        q_true[done] = q
-        if tracker is not None:
-            # the tracker measures the true tool point in its frame; the "violation" of this
-            # loop is the measurement error
-            tip = site_pose(m, d, scene.tool_site).translation
-            meas[done] = tracker.actInv(tip) + rng_env.normal(0.0, settings.tracker_noise, 3)
-            viol_m[done] = float(np.linalg.norm(meas[done] - tracker.actInv(tip)))
-        else:
-            viol_m[done], viol_rad[done] = _violation(scene, sc.loop_type in ("point", "plane"))
-        force[done] = _constraint_force(scene)
-        if door.size:
-            door[done] = d.qpos[scene.door_qpos_adr]
-        done += 1
-        if progress is not None:
-            progress(done, n)
-    elapsed = time.perf_counter() - t_start
-    if done < n:
-        log.warning("%s: only %d of %d samples recorded (%d dropped)", scenario, done, n, dropped)
-        readings, q_true, tau = readings[:done], q_true[:done], tau[:done]
-        viol_m, viol_rad, force = viol_m[:done], viol_rad[:done], force[:done]
-        door, meas = door[:done], meas[:done]
-    log.info(
-        "%s: %d samples, %d dropped, %d steps, %d QP solves, %.2f s (%.0f configs/s)",
-        scenario, done, dropped, total_steps, planner.stats.qp_solves, elapsed, done / max(elapsed, 1e-12),
+    normal = scene.plane_pose.rotation[:, 2] if scene.plane_pose is not None else None
+    loop = NominalLoop(pmodel, sc.tool_frame, sc.loop_type, r0, hinge=scene.hinge_pose, door_range=door_range,
+                       target_frame=sc.target_frame, normal=normal)
+    planner = NominalLoopPlanner(
+        loop, loop.full_q(r0), rng, step_rad=settings.step_rad, margin=settings.limit_margin,
+        target_span=settings.target_span, retarget_every=settings.retarget_every,
     )
-
-    # outputs
-    measured = {f"{sc.loop_name}:{a}": meas[:, k] for k, a in enumerate("xyz")} if tracker is not None else {}
-    _write_log(files, out / "log.csv", joint_names, readings, tau, viol_m, viol_rad, force, door, measured)
-    params = dict(values)
-    if settings.compliance > 0.0:
-        params.update({f"{j}.compliance": float(settings.compliance) for j in joint_names})
-    if sc.loop_type == "point":  # names of closedloop.loops.PointLoop: contact point, tool tip in the tool frame
-        c = scene.target_pose.translation
-        params.update({f"{sc.loop_name}.p{a}": float(v) for a, v in zip("xyz", c)})
-        params.update({f"{sc.loop_name}.tip_{a}": 0.0 for a in "xyz"})
-    elif sc.loop_type == "weld":  # the tool in the fixture (world) or in the robot's target frame
-        params.update(_pose_params(sc.loop_name, scene.closure))
-    elif sc.loop_type == "measured_point":  # MeasuredPointLoop: tracker frame in the base, tip in the tool
-        params.update(_pose_params(sc.loop_name, tracker))
-        params.update({f"{sc.loop_name}.tip_{a}": 0.0 for a in "xyz"})
-    elif sc.loop_type == "plane":  # PlaneLoop with its default (fixed) reference normal e_z
-        params.update(_plane_params(sc.loop_name, scene.plane_pose))
-        params.update({f"{sc.loop_name}.tip_{a}": 0.0 for a in "xyz"})
-    # hinge: the HingeLoop's chart is relative to a reference axis fitted from data, so its
-    # parameters are not comparable with a fixed truth; truth.json gives the true axis instead
-    # (loop.hinge_axis) and `closedloop check` compares the robot parameters.
-    loop_info: dict[str, Any] = {"type": sc.loop_type, "frame": sc.tool_frame, "name": sc.loop_name}
-    if sc.target_frame is not None:
-        loop_info["to"] = sc.target_frame
-    if scene.hinge_pose is not None:
-        loop_info["hinge_axis"] = {
-            "point": [float(v) for v in scene.hinge_pose.translation],
-            "direction": [float(v) for v in scene.hinge_pose.rotation[:, 2]],
-            "frame": _pose_params("hinge", scene.hinge_pose),
-        }
-    if scene.plane_pose is not None:
-        loop_info["plane"] = {
-            "point": [float(v) for v in scene.plane_pose.translation],
-            "normal": [float(v) for v in scene.plane_pose.rotation[:, 2]],
-            "frame": _pose_params("plane", scene.plane_pose),
-        }
-    if tracker is not None:
-        loop_info["tracker"] = {"frame": _pose_params(sc.loop_name, tracker), "noise_m": float(settings.tracker_noise),
-                                "columns": list(measured)}
-    rms = lambda a: float(np.sqrt(np.mean(a**2))) if a.size else 0.0  # noqa: E731
-    truth = {
-        "scenario": sc.name,
-        "seed": int(seed),
-        "robot": sc.robot,
-        "joint_names": joint_names,
-        "settings": settings.as_dict(sc.loop_type),
-        "loop": loop_info,
-        "q0": [float(v) for v in q0],
-        "parameters": params,
-        "violation": {
-            "rms_m": rms(viol_m), "max_m": float(viol_m.max(initial=0.0)),
-            "rms_rad": rms(viol_rad), "max_rad": float(viol_rad.max(initial=0.0)),
-        },
-        "samples": {"recorded": done, "dropped": dropped, "steps": total_steps,
-                    "qp_solves": planner.stats.qp_solves},
-    }
-    if plan is not None:
-        truth["selection"] = plan.info
-    files.add(out / "truth.json", json.dumps(truth, indent=2))
-    return SimResult(
-        scenario=sc.name, seed=int(seed), out_dir=out, joint_names=joint_names, readings=readings,
-        q_true=q_true, tau=tau, violation_m=viol_m, violation_rad=viol_rad, constraint_force_n=force,
-        door_angle=door, truth=truth, settings=settings, n_dropped=dropped, n_steps=total_steps,
-        elapsed_s=elapsed, extra={"select_s": t_plan} if plan is not None else {},
-    )
-
-
-def _write_log(
-    files: OutputSet,
-    path: Path,
-    joint_names: list[str],
-    readings: np.ndarray,
-    tau: np.ndarray,
-    viol_m: np.ndarray,
-    viol_rad: np.ndarray,
-    force: np.ndarray,
-    door: np.ndarray,
-    measured: dict[str, np.ndarray] | None = None,
-) -> None:
-    """Write the calibration log: joint readings first, then diagnostic columns, then measurements."""
-    measured = measured or {}
-    header = list(joint_names) + [f"tau:{j}" for j in joint_names] + ["violation_m", "violation_rad", "constraint_force_n"]
-    if door.size:
-        header.append("door_angle")
-    header += list(measured)
-    f = io.StringIO(newline="")
-    w = csv.writer(f)
-    w.writerow(header)
-    for i in range(len(readings)):
-        row = [repr(float(v)) for v in readings[i]] + [repr(float(v)) for v in tau[i]]
-        row += [repr(float(viol_m[i])), repr(float(viol_rad[i])), repr(float(force[i]))]
-        if door.size:
-            row.append(repr(float(door[i])))
-        row += [repr(float(col[i])) for col in measured.values()]
-        w.writerow(row)
-    files.add(path, f.getvalue())
+    return planner, loop

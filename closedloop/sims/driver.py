@@ -22,8 +22,9 @@ The nominal loop constraint is ``e(q) = 0`` with
   plane of unit normal ``n`` through the nominal tip at the grasp (``d = n . p_0``);
   the robot is given the plane's normal (the planned motion is a 5-DOF self-motion).
 
-A measured (open) loop has no constraint: :class:`RandomConfigurations` draws
-random targets in the nominal joint space instead.
+(each is its loop type's :meth:`~closedloop.sims.loop_types.SimLoop.nominal_target` and
+:meth:`~closedloop.sims.loop_types.SimLoop.nominal_residual`).  A measured (open) loop has no
+constraint: :class:`RandomConfigurations` draws random targets in the nominal joint space instead.
 
 One planning step (:meth:`NominalLoopPlanner.step`) solves the QP
 
@@ -52,6 +53,10 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from closedloop.errors import ScenarioError
+
+from .loop_types import sim_loop
+from .qp import min_norm_step, solve_box_qp, svd_full
 from .scenarios import LoopType
 
 __all__ = ["NominalLoop", "NominalLoopPlanner", "RandomConfigurations", "solve_box_qp"]
@@ -60,96 +65,6 @@ log = logging.getLogger(__name__)
 
 _W_LOOP = 1e4  # weight of the loop-constraint task in the QP
 
-try:
-    # numpy.linalg's own gufuncs without their Python wrappers (the same LAPACK calls, so the same
-    # bits): the planner solves a few 6-9 variable systems per waypoint, where the wrappers
-    # (type checks, errstate) cost more than the arithmetic
-    from numpy.linalg import _umath_linalg as _ul
-
-    def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return _ul.solve1(a, b, signature="dd->d")
-
-    def _svd_full(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return _ul.svd_f(a, signature="d->ddd")
-except (ImportError, AttributeError):  # another numpy: the public functions
-    _solve = np.linalg.solve
-
-    def _svd_full(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return np.linalg.svd(a)
-
-
-def solve_box_qp(P: np.ndarray, c: np.ndarray, lb: np.ndarray, ub: np.ndarray, max_iter: int | None = None
-                 ) -> np.ndarray | None:
-    """Exact solution of ``min 1/2 x^T P x + c^T x  s.t.  lb <= x <= ub`` (``P`` symmetric positive definite).
-
-    Primal active-set method (Nocedal & Wright, *Numerical Optimization*, alg. 16.3)
-    specialised to bounds: from the feasible point ``clip(0, lb, ub)``, solve the
-    equality-constrained problem on the free variables, step to the first blocking
-    bound (added to the working set) or, at the working set's minimiser, release
-    the bound with the most negative multiplier; stop when every multiplier is
-    non-negative (KKT conditions hold to rounding).  Finite for a strictly convex
-    QP; a few microseconds per iteration for the planner's 6-9 variables, and
-    usually one iteration (no bound active).  Returns ``None`` if it has not
-    converged after ``max_iter`` iterations (default ``10 n + 10``) or if ``lb > ub``.
-    """
-    n = c.shape[0]
-    if np.any(lb > ub):
-        return None
-    x = _solve(P, -c)  # the unconstrained minimiser (P positive definite): the usual answer
-    if (x >= lb).all() and (x <= ub).all():
-        return x
-    x = np.clip(np.zeros(n), lb, ub)
-    # working set: -1 at the lower bound, +1 at the upper bound, 0 free
-    w = np.where(lb > 0.0, -1, np.where(ub < 0.0, 1, 0)).astype(np.int8)
-    fixed_eq = lb == ub
-    w[fixed_eq] = -1
-    scale = 1.0 + float(np.abs(c).max()) + float(np.abs(P).max())
-    tol = 1e-13 * scale
-    for _ in range(max_iter if max_iter is not None else 10 * n + 10):
-        free = w == 0
-        if free.any():
-            act = ~free
-            rhs = -c[free]
-            if act.any():
-                rhs = rhs - P[np.ix_(free, act)] @ x[act]
-            xf = _solve(P[np.ix_(free, free)], rhs)
-            xo = x[free]
-            p = xf - xo
-            # ratio test: the first bound the step from xo to xf crosses
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t = np.where(p < 0.0, (lb[free] - xo) / p, np.where(p > 0.0, (ub[free] - xo) / p, np.inf))
-            k = int(np.argmin(t))
-            if t[k] < 1.0:
-                alpha = max(float(t[k]), 0.0)
-                x[free] = xo + alpha * p
-                j = int(np.flatnonzero(free)[k])
-                if p[k] < 0.0:
-                    w[j], x[j] = -1, lb[j]
-                else:
-                    w[j], x[j] = 1, ub[j]
-                continue
-            x[free] = xf
-        # minimiser on the working set: multipliers of the active bounds
-        g = P @ x + c
-        lam = np.where(w < 0, g, -g)
-        lam[(w == 0) | fixed_eq] = np.inf
-        j = int(np.argmin(lam))
-        if lam[j] >= -tol:
-            return x
-        w[j] = 0
-    return None
-
-
-def _min_norm_step(jac: np.ndarray, e: np.ndarray) -> np.ndarray:
-    """``J^+ e``: ``J^T (J J^T)^-1 e`` for a wide ``J`` of full row rank, else least squares (SVD)."""
-    m, n = jac.shape
-    if m <= n:
-        with np.errstate(all="ignore"):  # a singular J J^T gives NaN here (LinAlgError in np.linalg.solve)
-            dq = jac.T @ _solve(jac @ jac.T, e)
-        if np.isfinite(dq).all():
-            return dq
-    return np.linalg.lstsq(jac, e, rcond=None)[0]
-
 
 class NominalLoop:
     """The nominal loop constraint ``e(q) = 0`` on a Pinocchio model.
@@ -157,7 +72,7 @@ class NominalLoop:
     Args:
         model: nominal robot model (it is copied; a door joint may be appended).
         tool_frame: frame closing the loop.
-        loop_type: ``weld``, ``point`` or ``hinge``.
+        loop_type: a key of :data:`closedloop.sims.loop_types.SIM_LOOPS` (not ``measured_point``).
         r0: joint readings at the grasp (arm joints, model order).
         hinge: world pose of the door hinge frame (hinge loops).
         door_range: door joint limits (hinge loops).
@@ -178,46 +93,18 @@ class NominalLoop:
     ) -> None:
         self.model = pin.Model(model)
         self.loop_type = loop_type
+        self.kind = sim_loop(loop_type)  # its target frame and residual (closedloop.sims.loop_types)
         self.n_arm = model.nq
         if not self.model.existFrame(tool_frame):
-            raise KeyError(f"frame {tool_frame!r} not in the nominal model")
+            raise ScenarioError(f"frame {tool_frame!r} not in the nominal model")
         self.tool = self.model.getFrameId(tool_frame)
         data = self.model.createData()
         pin.framesForwardKinematics(self.model, data, np.asarray(r0, dtype=float))
         oMt0 = data.oMf[self.tool].copy()
-        if loop_type == "hinge":
-            if hinge is None:
-                raise ValueError("hinge loops need the hinge pose")
-            jid = self.model.addJoint(
-                0,
-                pin.JointModelRZ(),
-                hinge,
-                "door_hinge",
-                np.array([1e3]),
-                np.array([1e3]),
-                np.array([door_range[0]]),
-                np.array([door_range[1]]),
-            )
-            self.model.appendBodyToJoint(jid, pin.Inertia.FromBox(1.0, 0.8, 0.04, 1.0), pin.SE3.Identity())
-            grasp = hinge.actInv(oMt0)
-            self.target = self.model.addFrame(pin.Frame("handle", jid, grasp, pin.FrameType.OP_FRAME))
-        elif target_frame is not None:
-            if loop_type != "weld":
-                raise ValueError("a robot target frame needs a weld loop")
-            if not self.model.existFrame(target_frame):
-                raise KeyError(f"frame {target_frame!r} not in the nominal model")
-            fb = self.model.frames[self.model.getFrameId(target_frame)]
-            placement = fb.placement * data.oMf[self.model.getFrameId(target_frame)].actInv(oMt0)
-            self.target = self.model.addFrame(pin.Frame("loop_target", fb.parentJoint, placement,
-                                                        pin.FrameType.OP_FRAME))
-        else:
-            self.target = self.model.addFrame(pin.Frame("loop_target", 0, oMt0, pin.FrameType.OP_FRAME))
+        self.normal = None if normal is None else np.asarray(normal, dtype=float) / np.linalg.norm(normal)
+        self.d = 0.0
+        self.target = self.kind.nominal_target(self, data, oMt0, hinge, door_range, target_frame)
         self.point = oMt0.translation.copy()
-        if loop_type == "plane":
-            if normal is None:
-                raise ValueError("plane loops need the plane normal")
-            self.normal = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
-            self.d = float(self.normal @ self.point)
         self.data = self.model.createData()
         self._last: tuple[bytes, np.ndarray, np.ndarray] | None = None  # (q bytes, e, de/dq)
         self.nq = self.model.nq
@@ -227,11 +114,11 @@ class NominalLoop:
     @property
     def n_constraints(self) -> int:
         """Number of rows of ``e``."""
-        return {"point": 3, "plane": 1}.get(self.loop_type, 6)
+        return self.kind.residual_rows
 
     def full_q(self, r: np.ndarray, door: float = 0.0) -> np.ndarray:
         """Planning vector from arm readings (and door angle for hinge loops)."""
-        return np.concatenate([r, [door]]) if self.loop_type == "hinge" else np.asarray(r, dtype=float).copy()
+        return np.concatenate([r, [door]]) if self.kind.env_joint else np.asarray(r, dtype=float).copy()
 
     def residual(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Loop error ``e(q)`` and its Jacobian ``de/dq`` (see module docstring; read-only arrays).
@@ -254,17 +141,7 @@ class NominalLoop:
         pin.updateFramePlacements(m, d)
         oMt = d.oMf[self.tool]
         jt = pin.getFrameJacobian(m, d, self.tool, pin.ReferenceFrame.LOCAL)
-        if self.loop_type == "point":
-            return oMt.translation - self.point, oMt.rotation @ jt[:3]
-        if self.loop_type == "plane":
-            e = np.array([self.normal @ oMt.translation - self.d])
-            return e, (self.normal @ oMt.rotation @ jt[:3])[None, :]
-        oMh = d.oMf[self.target]
-        hMt = oMh.actInv(oMt)
-        jh = pin.getFrameJacobian(m, d, self.target, pin.ReferenceFrame.LOCAL)
-        e = pin.log6(hMt).vector
-        jac = pin.Jlog6(hMt) @ (jt - hMt.inverse().action @ jh)
-        return e, jac
+        return self.kind.nominal_residual(self, d, oMt, jt)
 
     def project(self, q: np.ndarray, iters: int = 3, tol: float = 1e-12) -> np.ndarray:
         """Gauss-Newton projection of ``q`` onto the nominal loop (minimum-norm steps)."""
@@ -273,7 +150,7 @@ class NominalLoop:
             e, jac = self.residual(q)
             if float(e @ e) < tol:
                 break
-            q -= _min_norm_step(jac, e)
+            q -= min_norm_step(jac, e)
         return q
 
 
@@ -341,7 +218,7 @@ class NominalLoopPlanner:
     def _linearize(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
         """Loop error and Jacobian at ``self.q``, the Jacobian's right singular vectors and its rank."""
         e, jac = self.loop.residual(self.q)
-        _u, sv, vt = _svd_full(jac)
+        _u, sv, vt = svd_full(jac)
         tol = (sv[0] if sv.size else 0.0) * max(jac.shape) * np.finfo(float).eps
         return e, jac, vt, int(np.sum(sv > tol))
 

@@ -40,11 +40,13 @@ import pinocchio as pin
 
 from closedloop.errors import InputError
 
+from .loop_types import SIM_LOOPS
+
 log = logging.getLogger(__name__)
 
 MOVABLE = ("revolute", "continuous", "prismatic")
 #: independent constraints each loop type puts on the driven joints (hinge: 6 minus the door's joint)
-CONSTRAINTS = {"weld": 6, "hinge": 5, "point": 3, "plane": 1, "measured_point": 0}
+CONSTRAINTS = {k: v.constraints for k, v in SIM_LOOPS.items()}
 _TMP: list[str] = []
 
 
@@ -234,7 +236,7 @@ def _jacobian(model, data, q, loop_type: str, fa: int, fb: int | None, reach: fl
         Jb_at_a = Jb.copy()
         Jb_at_a[:3] += -pin.skew(d) @ Jb[3:]  # motion of the point of B that coincides with A
         Ja = Ja - Jb_at_a
-    if loop_type in ("weld", "hinge"):
+    if SIM_LOOPS[loop_type].pose_rows:
         return np.vstack([Ja[:3], reach * Ja[3:]])
     return Ja[:3]
 
@@ -277,14 +279,14 @@ def prepare_robot(path: str | Path, loop_type: str, frame: str, to: str | None =
         model = pin.buildModelFromXML(nominal_urdf(key))
     except Exception as exc:
         raise InputError(f"{path}: Pinocchio cannot read the prepared robot ({str(exc).splitlines()[0]})") from None
-    n, m = model.nq, CONSTRAINTS[loop_type]
+    n = model.nq
     what = f"a {loop_type} loop on {frame}" + (f" and {to}" if to else "")
     if n == 0:
         raise InputError(f"{path}: no movable joint between the base and {frame}")
     q_best, rank, _ = choose_q0(model, loop_type, frame, to)
     # independent constraints: the Jacobian's rank, at most the loop type's count (hinge: the door's own
     # angle takes one of the weld's six; plane: the unknown normal leaves one; a tracker none)
-    rank = min(rank, 6) - 1 if loop_type == "hinge" else min(rank, m)
+    rank = SIM_LOOPS[loop_type].independent(rank)
     if n - rank < 1:
         raise InputError(f"{path}: {what} leaves the closed chain no motion: its {n} driven joint(s) "
                          f"({', '.join(driven)}) are all taken by the loop's {rank} independent constraints "

@@ -16,14 +16,14 @@ from pathlib import Path
 
 from closedloop.errors import InputError
 
+from .loop_types import SIM_LOOP_NAMES, SIM_LOOPS
 from .scenarios import SCENARIOS, DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
 
 __all__ = ["SIM_LOOP_TYPES", "SCENARIO_DIR", "parse_sim_loop", "scenario_from_dict", "load_scenario"]
 
 #: the simulator's loop types by the name ``--loop`` uses (``door`` is the hinge loop; a weld with ``to=``
-#: closes two chains of one robot)
-SIM_LOOP_TYPES = {"weld": "weld", "point": "point", "hinge": "hinge", "door": "hinge", "plane": "plane",
-                  "measured_point": "measured_point"}
+#: closes two chains of one robot): the names of `closedloop.sims.loop_types.SIM_LOOPS`
+SIM_LOOP_TYPES = SIM_LOOP_NAMES
 SCENARIO_DIR = Path(__file__).with_name("scenarios")
 _SCENARIO_KEYS = {"description", "robot", "loop", "q0", "settings", "door", "plane", "tracker", "min_joint_range",
                   "tool", "joints", "name"}
@@ -46,21 +46,15 @@ def parse_sim_loop(spec: str) -> tuple[str, str, str | None, str]:
     if "frame" not in kw:
         raise InputError(f"--loop {spec}: say which frame closes the loop, e.g. {kind}:frame=tool0")
     loop_type = SIM_LOOP_TYPES[kind]
-    if "to" in kw and loop_type != "weld":
+    sim = SIM_LOOPS[loop_type]
+    if "to" in kw and not sim.two_chains:
         raise InputError(f"--loop {spec}: only a weld closes two chains of one robot (to=); "
                          f"a {kind} loop closes on the world")
-    return loop_type, kw["frame"], kw.get("to"), kw.get("name", {"hinge": "door", "weld": "fixture"}.get(
-        loop_type, loop_type if loop_type != "point" else "socket"))
+    return loop_type, kw["frame"], kw.get("to"), kw.get("name", sim.default_name)
 
 
-#: settings a loop type needs whatever the robot (a scenario's own settings win): a plane holds one
-#: direction only, so the compliant servos need more damping to settle; a tracker's open loop has no
-#: preload to relax, and stiff, well damped servos settle its large free moves
-LOOP_SETTINGS = {
-    "plane": {"kv": 20.0, "max_steps": 600},
-    "measured_point": {"kp": 2000.0, "kv": 120.0, "relax": False, "ramp_steps": 50, "max_steps": 2000,
-                       "target_span": 2.5},
-}
+#: settings a loop type needs whatever the robot (a scenario's own settings win; `SimLoop.settings`)
+LOOP_SETTINGS = {k: v.settings for k, v in SIM_LOOPS.items() if v.settings}
 
 
 def _settings(data: dict | None, where: str, loop_type: str) -> SimSettings:
@@ -105,9 +99,9 @@ def scenario_from_dict(data: dict, name: str, where: str, base_dir: Path | None 
     geom = {"door": DoorGeometry, "plane": PlaneGeometry, "tracker": TrackerGeometry}
     parts = {k: cls(**{a: tuple(v) if isinstance(v, list) else v for a, v in (data.get(k) or {}).items()})
              for k, cls in geom.items() if k in data}
-    defaults = {"hinge": "door", "plane": "plane", "measured_point": "tracker"}
-    if loop_type in defaults and defaults[loop_type] not in parts:
-        parts[defaults[loop_type]] = geom[defaults[loop_type]]()
+    own = SIM_LOOPS[loop_type].geometry  # the loop type's geometry, its defaults when not given
+    if own is not None and own[0] not in parts:
+        parts[own[0]] = own[1]()
     return Scenario(name=str(data.get("name", name)), description=str(data.get("description", "")), robot=robot,
                     loop_type=loop_type, loop_name=loop_name, tool_frame=frame, target_frame=to,
                     q0=tuple(float(v) for v in q0), settings=settings,

@@ -40,9 +40,11 @@ import mujoco
 import numpy as np
 import pinocchio as pin
 
-from closedloop.models import model_file
+from closedloop.errors import ScenarioError
 
-from .scenarios import DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
+from .environment import LOOP_EQ, TARGET_SITE, TOOL_SITE
+from .loop_types import Placement, SimLoop, sim_loop
+from .scenarios import Scenario, SimSettings
 
 __all__ = ["Scene", "apply_placement_errors", "true_urdf", "build_scene", "site_pose"]
 
@@ -52,12 +54,6 @@ _MUJOCO_TAG = (
     '<mujoco><compiler fusestatic="false" discardvisual="true" balanceinertia="true" '
     'angle="radian"/></mujoco>'
 )
-TOOL_SITE = "tool_site"
-TARGET_SITE = "loop_target"
-LOOP_EQ = "loop"
-DOOR_PREFIX = "door_"
-DOOR_JOINT = DOOR_PREFIX + "hinge"
-PUCK_PREFIX = "puck_"
 
 
 def _vec(s: str | None) -> np.ndarray:
@@ -112,12 +108,6 @@ def site_pose(model: mujoco.MjModel, data: mujoco.MjData, site: int | str) -> pi
     return pin.SE3(data.site_xmat[sid].reshape(3, 3).copy(), data.site_xpos[sid].copy())
 
 
-def _quat_wxyz(rot: np.ndarray) -> np.ndarray:
-    q = np.zeros(4)
-    mujoco.mju_mat2Quat(q, np.ascontiguousarray(rot, dtype=float).reshape(9))
-    return q
-
-
 @dataclass
 class Scene:
     """A compiled MuJoCo scene of the true robot with its loop closed.
@@ -162,77 +152,48 @@ class Scene:
         return self.spec.to_xml()
 
 
-def _door_hinge_pose(tool: pin.SE3, geom: DoorGeometry) -> pin.SE3:
-    """Hinge frame (z vertical) placed ``geom.radius`` from the handle, see :class:`DoorGeometry`."""
-    p = tool.translation
-    u = np.array([p[0], p[1], 0.0])
-    nu = np.linalg.norm(u)
-    u = u / nu if nu > 1e-6 else np.array([1.0, 0.0, 0.0])
-    t = np.array([-u[1], u[0], 0.0])  # door x axis (from hinge to handle)
-    rot = np.column_stack([t, np.cross([0.0, 0.0, 1.0], t), [0.0, 0.0, 1.0]])
-    return pin.SE3(rot, p - geom.radius * t)
-
-
-def draw_plane(tool_point: np.ndarray, geom: PlaneGeometry, rng: np.random.Generator) -> pin.SE3:
-    """Plane frame (z = unit normal, n_z > 0) through ``tool_point``, see :class:`PlaneGeometry`."""
-    tilt = float(rng.uniform(*geom.tilt))
-    az = float(rng.uniform(-np.pi, np.pi))
-    spin = float(rng.uniform(-np.pi, np.pi))
-    axis = np.array([np.cos(az), np.sin(az), 0.0])
-    rot = pin.exp3(tilt * axis) @ pin.exp3(np.array([0.0, 0.0, spin]))
-    return pin.SE3(rot, np.asarray(tool_point, dtype=float).copy())
-
-
-def draw_tracker(geom: TrackerGeometry, rng: np.random.Generator) -> pin.SE3:
-    """Tracker frame in the world, see :class:`TrackerGeometry` (uniformly random orientation)."""
-    dist = float(rng.uniform(*geom.distance))
-    az = float(rng.uniform(-np.pi, np.pi))
-    h = float(rng.uniform(*geom.height))
-    quat = rng.normal(size=4)
-    quat /= np.linalg.norm(quat)
-    rot = pin.Quaternion(quat[0], quat[1], quat[2], quat[3]).normalized().matrix()
-    return pin.SE3(rot, np.array([dist * np.cos(az), dist * np.sin(az), h]))
-
-
-def _add_puck(spec: mujoco.MjSpec, plane: pin.SE3, geom: PlaneGeometry, gravcomp: bool) -> None:
-    """The passive puck: two slide joints along the plane's x and y axes, then a ball joint."""
-    frame = spec.worldbody.add_body(name=PUCK_PREFIX + "plane", pos=plane.translation,
-                                    quat=_quat_wxyz(plane.rotation))
-    m = geom.puck_mass
-    slider = frame.add_body(name=PUCK_PREFIX + "slider_x")
-    jx = slider.add_joint(name=PUCK_PREFIX + "x", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[1.0, 0.0, 0.0])
-    carriage = slider.add_body(name=PUCK_PREFIX + "slider_y")
-    jy = carriage.add_joint(name=PUCK_PREFIX + "y", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0.0, 1.0, 0.0])
-    puck = carriage.add_body(name=PUCK_PREFIX + "puck")
-    jb = puck.add_joint(name=PUCK_PREFIX + "ball", type=mujoco.mjtJoint.mjJNT_BALL)
-    for j in (jx, jy):
-        j.range = [-geom.slide_range, geom.slide_range]
-        j.limited = mujoco.mjtLimited.mjLIMITED_TRUE
-    for j in (jx, jy, jb):
-        j.armature = 1e-3
-        j.damping = np.full_like(np.atleast_1d(j.damping), 0.05)
-    for b in (slider, carriage, puck):
-        # a small sphere carries the mass (the saved XML keeps geoms, not a spec-only inertial)
-        g = b.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.01, 0.0, 0.0])
-        g.mass = m
-        g.contype = 0
-        g.conaffinity = 0
-        b.gravcomp = 1.0 if gravcomp else 0.0
-    puck.add_site(name=TARGET_SITE, size=[0.02, 0.02, 0.02])
-
-
 def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_names: list[str], q0: np.ndarray,
                 rng: np.random.Generator | None = None) -> Scene:
     """Build the MuJoCo scene of the true robot ``urdf`` with its loop closed at ``q0``.
 
     Args:
         urdf: true robot URDF text.
-        scenario: the scenario (loop type, tool frame, door geometry).
+        scenario: the scenario (loop type, tool frame, its geometry); the loop type
+            (:mod:`closedloop.sims.loop_types`) places its target and names its equality.
         settings: physics settings.
         joint_names: arm joints in Pinocchio order (MuJoCo joints are matched by name).
         q0: true joint angles at which the loop is closed.
         rng: draws the plane (plane loops) or the tracker pose (measured_point loops).
     """
+    spec = _robot_spec(urdf, scenario, settings, joint_names)
+    # true tool pose at q0
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    qadr = np.array([model.jnt_qposadr[model.joint(jn).id] for jn in joint_names])
+    data.qpos[qadr] = q0
+    mujoco.mj_kinematics(model, data)
+    tool = site_pose(model, data, TOOL_SITE)
+
+    kind = sim_loop(scenario.loop_type)
+    if scenario.target_frame is not None and not kind.two_chains:
+        raise ScenarioError(f"{scenario.name}: a robot target frame needs a weld loop")
+    placed = kind.place(spec, model, data, scenario, tool, settings, rng)  # the target site (and what carries it)
+    eq = None if kind.equality is None else spec.add_equality()
+    if eq is not None:
+        eq.name = LOOP_EQ
+        eq.type = kind.equality
+        eq.objtype = mujoco.mjtObj.mjOBJ_SITE
+        eq.name1 = TOOL_SITE
+        eq.name2 = TARGET_SITE
+        eq.solref = list(settings.solref)
+        eq.solimp = list(settings.solimp)
+
+    return _closed_scene(spec, joint_names, q0, kind, placed, eq is not None)
+
+
+def _robot_spec(urdf: str, scenario: Scenario, settings: SimSettings, joint_names: list[str]) -> mujoco.MjSpec:
+    """The true robot as an ``MjSpec``: physics options, a position servo per arm joint, gravity
+    compensation through the servos (setting ``gravcomp``), and the tool site on the loop's frame."""
     text = urdf.replace("</robot>", _MUJOCO_TAG + "</robot>")
     spec = mujoco.MjSpec.from_string(text)
     spec.modelname = f"closedloop_{scenario.name}"
@@ -248,7 +209,7 @@ def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_name
     for jn in joint_names:
         j = spec.joint(jn)
         if j is None:
-            raise KeyError(f"joint {jn!r} missing from the MuJoCo model")
+            raise ScenarioError(f"{scenario.name}: joint {jn!r} missing from the MuJoCo model")
         j.armature = settings.armature
         j.damping = np.zeros_like(np.atleast_1d(j.damping))
         j.frictionloss = 0.0
@@ -269,72 +230,15 @@ def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_name
 
     tool_body = spec.body(scenario.tool_frame)
     if tool_body is None:
-        raise KeyError(f"tool link {scenario.tool_frame!r} missing from the MuJoCo model")
+        raise ScenarioError(f"{scenario.name}: tool link {scenario.tool_frame!r} missing from the MuJoCo model")
     tool_body.add_site(name=TOOL_SITE, size=[0.01, 0.01, 0.01])
 
-    # true tool pose at q0
-    model = spec.compile()
-    data = mujoco.MjData(model)
-    qadr = np.array([model.jnt_qposadr[model.joint(jn).id] for jn in joint_names])
-    data.qpos[qadr] = q0
-    mujoco.mj_kinematics(model, data)
-    tool = site_pose(model, data, TOOL_SITE)
+    return spec
 
-    hinge_pose: pin.SE3 | None = None
-    plane_pose: pin.SE3 | None = None
-    closure: pin.SE3 | None = None  # robot-robot welds; else the target site's world pose (below)
-    if scenario.target_frame is not None:
-        if scenario.loop_type != "weld":
-            raise ValueError("a robot target frame needs a weld loop")
-        target_body = spec.body(scenario.target_frame)
-        if target_body is None:
-            raise KeyError(f"target link {scenario.target_frame!r} missing from the MuJoCo model")
-        bid = model.body(scenario.target_frame).id
-        body = pin.SE3(data.xmat[bid].reshape(3, 3).copy(), data.xpos[bid].copy())
-        closure = body.actInv(tool)  # relpose: the tool in the target body at q0
-        target_body.add_site(
-            name=TARGET_SITE, pos=closure.translation, quat=_quat_wxyz(closure.rotation), size=[0.01, 0.01, 0.01]
-        )
-    elif scenario.loop_type in ("weld", "point"):
-        spec.worldbody.add_site(
-            name=TARGET_SITE, pos=tool.translation, quat=_quat_wxyz(tool.rotation), size=[0.02, 0.02, 0.02]
-        )
-    elif scenario.loop_type == "hinge":
-        geom = scenario.door or DoorGeometry()
-        hinge_pose = _door_hinge_pose(tool, geom)
-        door_spec = mujoco.MjSpec.from_file(str(model_file("door.xml")))
-        frame = spec.worldbody.add_frame(pos=hinge_pose.translation, quat=_quat_wxyz(hinge_pose.rotation))
-        spec.attach(door_spec, prefix=DOOR_PREFIX, frame=frame)
-        grasp = hinge_pose.actInv(tool)
-        spec.body(DOOR_PREFIX + "door").add_site(
-            name=TARGET_SITE, pos=grasp.translation, quat=_quat_wxyz(grasp.rotation), size=[0.02, 0.02, 0.02]
-        )
-    elif scenario.loop_type == "plane":
-        if rng is None:
-            raise ValueError("plane loops need a random generator for the plane")
-        plane_pose = draw_plane(tool.translation, scenario.plane or PlaneGeometry(), rng)
-        _add_puck(spec, plane_pose, scenario.plane or PlaneGeometry(), settings.gravcomp)
-    elif scenario.loop_type == "measured_point":
-        if rng is None:
-            raise ValueError("measured_point loops need a random generator for the tracker")
-        tracker_pose = draw_tracker(scenario.tracker or TrackerGeometry(), rng)
-        # the tracker's frame as a world site (no constraint: the loop is closed by the measurement)
-        spec.worldbody.add_site(name=TARGET_SITE, pos=tracker_pose.translation,
-                                quat=_quat_wxyz(tracker_pose.rotation), size=[0.05, 0.05, 0.05])
-    else:
-        raise ValueError(f"unknown loop type {scenario.loop_type!r}")
 
-    eq = None if scenario.loop_type == "measured_point" else spec.add_equality()
-    if eq is not None:
-        eq.name = LOOP_EQ
-        eq.type = (mujoco.mjtEq.mjEQ_CONNECT if scenario.loop_type in ("point", "plane")
-                   else mujoco.mjtEq.mjEQ_WELD)
-        eq.objtype = mujoco.mjtObj.mjOBJ_SITE
-        eq.name1 = TOOL_SITE
-        eq.name2 = TARGET_SITE
-        eq.solref = list(settings.solref)
-        eq.solimp = list(settings.solimp)
-
+def _closed_scene(spec: mujoco.MjSpec, joint_names: list[str], q0: np.ndarray, kind: SimLoop, placed: Placement,
+                  has_eq: bool) -> Scene:
+    """Compile the closed loop with a start keyframe at ``q0`` (servos holding ``q0``) and index the scene."""
     # start keyframe: closed loop at q0, servos holding q0
     key = spec.add_key()
     key.name = "grasp"
@@ -346,9 +250,7 @@ def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_name
     act_ids = np.array([model.actuator(f"servo_{jn}").id for jn in joint_names])
     data.qpos[qadr] = q0
     data.ctrl[act_ids] = q0
-    door_adr = -1
-    if scenario.loop_type == "hinge":
-        door_adr = int(model.jnt_qposadr[model.joint(DOOR_JOINT).id])
+    door_adr = -1 if kind.env_joint is None else int(model.jnt_qposadr[model.joint(kind.env_joint).id])
     key.qpos = data.qpos.copy()
     key.ctrl = data.ctrl.copy()
     model = spec.compile()  # recompile so that the keyframe is part of the model and the XML
@@ -357,7 +259,8 @@ def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_name
     mujoco.mj_forward(model, data)
     jnt_range = np.array([model.jnt_range[model.joint(jn).id] for jn in joint_names])
     target_pose = site_pose(model, data, TARGET_SITE)
-    if closure is None and scenario.loop_type not in ("hinge", "plane"):
+    closure = placed.closure
+    if closure is None and kind.target_is_closure:
         closure = target_pose
     return Scene(
         spec=spec,
@@ -370,10 +273,10 @@ def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_name
         jnt_range=jnt_range,
         tool_site=model.site(TOOL_SITE).id,
         target_site=model.site(TARGET_SITE).id,
-        eq_id=model.equality(LOOP_EQ).id if eq is not None else -1,
+        eq_id=model.equality(LOOP_EQ).id if has_eq else -1,
         door_qpos_adr=door_adr,
         target_pose=target_pose,
-        hinge_pose=hinge_pose,
+        hinge_pose=placed.hinge_pose,
         closure=closure,
-        plane_pose=plane_pose,
+        plane_pose=placed.plane_pose,
     )

@@ -13,7 +13,7 @@ samples in four steps, all on the robot's NOMINAL model (no MuJoCo, no truth):
 2. **Information** (:func:`information_result`): the calibration core
    (``closedloop.calibration.calibrate``) is run on the pool's exact nominal
    readings with the loop the scenario is calibrated with
-   (:func:`closedloop.sims.scenarios.core_loop`) and the default parameter
+   (:meth:`closedloop.sims.loop_types.SimLoop.core_loop`) and the default parameter
    selection (placement, offset, loop; plus scale when the truth has scale
    errors).  The fit is trivial (the nominal model closes the nominal loop);
    what matters is the result's set of estimated parameters (structural
@@ -45,8 +45,11 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from closedloop.errors import ScenarioError
+
 from .driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
-from .scenarios import Scenario, SimSettings, core_loop
+from .loop_types import sim_loop
+from .scenarios import Scenario, SimSettings
 
 __all__ = ["Plan", "candidate_pool", "information_result", "order_path", "bridge", "plan_selected"]
 
@@ -93,17 +96,15 @@ def information_result(sc: Scenario, settings: SimSettings, nominal_path: Path, 
     from closedloop.data import JointLog
     from closedloop.robot import RobotModel
 
-    loop = core_loop(sc, nominal_path)
+    kind = sim_loop(sc.loop_type)
+    loop = kind.core_loop(sc, nominal_path, sigma_t=None if kind.closed else settings.tracker_noise)
     if loop is None:
-        raise ValueError(f"{sc.name}: the calibration core has no loop for '{sc.loop_type}' (needed by select)")
+        raise ScenarioError(f"{sc.name}: the calibration core has no loop for '{sc.loop_type}' (needed by select)")
     noise = settings.noise if settings.noise > 0.0 else DEFAULT_NOISE
     extra: dict[str, np.ndarray] = {}
-    if sc.loop_type == "measured_point":
-        from closedloop.loops.measured import MeasuredPointLoop
-
-        loop = MeasuredPointLoop(sc.loop_name, sc.tool_frame, sigma_t=settings.tracker_noise)
+    if not kind.closed:  # an open loop: the nominal tool points are its measurements
         if tool_frame_points is None:
-            raise ValueError("measured loops need the nominal tool points")
+            raise ScenarioError(f"{sc.name}: measured loops need the nominal tool points")
         extra = {c: tool_frame_points[:, k] for k, c in enumerate(loop.columns())}
     robot = RobotModel.from_file(nominal_path)
     identify = ["placement", "offset", "loop"] + (["scale"] if settings.scale > 0.0 else [])
@@ -168,9 +169,9 @@ def plan_selected(sc: Scenario, settings: SimSettings, nominal_path: Path, joint
     size = max(int(settings.select_pool * n), n)
     pool = candidate_pool(planner, size)
     points = None
-    if sc.loop_type == "measured_point":
+    if not sim_loop(sc.loop_type).closed:
         if model is None:
-            raise ValueError("measured loops need the nominal model")
+            raise ScenarioError(f"{sc.name}: measured loops need the nominal model")
         data = model.createData()
         fid = model.getFrameId(sc.tool_frame)
         points = np.empty((size, 3))

@@ -1,0 +1,196 @@
+"""`closedloop calibrate`: a model and a log to a calibrated model, its report and its verdict.
+
+Printing happens here (and in the other `cli_*` modules) and only here.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from .cli_parse import EXIT_FAILED, check_loop_numbers, check_number, parse_bounds, parse_noise
+from .errors import InputError
+
+
+class Progress:
+    """A short progress line on stderr (one line, rewritten in place on a terminal)."""
+
+    def __init__(self, quiet: bool):
+        self.quiet = quiet
+        self.tty = sys.stderr.isatty()
+        self.t0 = time.perf_counter()
+        self.last = (None, -1.0)  # (stage, time) of the last line printed
+
+    def __call__(self, stage: str, it: int, value: float) -> None:
+        if self.quiet:
+            return
+        msg = f"  {stage}"
+        if stage == "solving":
+            msg += f": iteration {it}, cost {value:.3e}"
+        elif stage == "validating":
+            msg += ": k-fold held-out refits"
+        elif stage == "simulating":
+            msg += f": {it}/{int(value)} configurations"
+        msg += f"  [{time.perf_counter() - self.t0:.1f} s]"
+        now = time.perf_counter()
+        if self.tty:
+            print("\r" + msg.ljust(70), end="", file=sys.stderr, flush=True)
+        elif stage != self.last[0] or now - self.last[1] > 1.0:  # logs: stage changes, then once a second
+            print(msg, file=sys.stderr, flush=True)
+            self.last = (stage, now)
+
+    def done(self) -> None:
+        if self.tty and not self.quiet:
+            print(file=sys.stderr)
+
+
+def check_calibrate_options(args) -> tuple:
+    """`calibrate`'s output paths and numeric options, checked before any work: (noise, bounds, cv given?)."""
+    from .export import check_outputs
+
+    check_outputs({"--out": args.out, "--report": args.report, "--html": getattr(args, "html", None)},
+                  [args.model, args.log])
+    if getattr(args, "plots", None):
+        check_outputs({"--plots": args.plots}, [args.model, args.log], directory=True)
+    args.snr = check_number("--snr", args.snr, 0.0, 1e6, lo_open=True)
+    args.max_iter = check_number("--max-iter", args.max_iter, 1, 10**6, integer=True)
+    cv_given = args.cv is not None  # (default None: 5 folds, fewer on a short log)
+    args.cv = check_number("--cv", args.cv, 0, 10**6, integer=True) if cv_given else 5
+    if args.cv == 1:
+        raise InputError("--cv 1: K-fold validation needs K >= 2 (or 0 to disable)")
+    for spec in args.loop:
+        check_loop_numbers(spec)
+    return parse_noise(args.noise), parse_bounds(args.bound), cv_given
+
+
+def cmd_calibrate(args) -> int:
+    from .calibration import CalibrationOptions, calibrate
+    from .export import OutputSet, write_model
+    from .loops.spec import default_loops, parse_loop
+    from .parameters import parse_fix
+    from .report import build_report, write_report
+    from .robot import RobotModel
+
+    from .data import check_loop_column
+    from .export import check_model_output
+
+    from .cli_evaluate import require_log
+
+    require_log(args)  # the positional log, unless each loop names its file
+    noise, bounds, cv_given = check_calibrate_options(args)  # outputs and numbers, before any work
+    if args.threads is not None:
+        args.threads = check_number("--threads", args.threads, 0, 4096, integer=True)
+    robot = RobotModel.from_file(args.model)
+    check_model_output(robot.kind, args.out, args.model)
+    loops = [parse_loop(s, robot) for s in args.loop] or default_loops(robot)
+    if not loops:
+        raise InputError("no --loop given: say how the chain is closed, e.g. --loop weld:frame=<tool frame>")
+    from .cli_evaluate import rig_inputs
+
+    lg, loops = rig_inputs(args, robot, loops)  # a CSV log or a ROS bag, or each loop's file; known distances
+    check_loop_column(lg, [lp.name for lp in loops])
+    if args.cv > len(lg):
+        if cv_given:
+            raise InputError(f"--cv {args.cv}: more folds than the {len(lg)} rows of {args.log}")
+        args.cv = len(lg) if len(lg) >= 2 else 0
+    from .calibration import build_problem
+
+    names = build_problem(robot, lg, loops).names
+    opts = CalibrationOptions(identify=args.identify.split(",") if args.identify else None,
+                              fix=parse_fix(args.fix, names), noise=noise,
+                              weighting=args.weighting, max_iter=args.max_iter, snr=args.snr,
+                              bounds=bounds, robust=None if args.robust == "off" else args.robust,
+                              threads=args.threads)
+    prog = Progress(args.quiet)
+    t0 = time.perf_counter()
+    res = calibrate(robot, lg, loops, opts, progress=prog)
+    prog.done()
+    elapsed = time.perf_counter() - t0
+    report = build_report(res, args.model, args.log)
+    report["solver"]["seconds"] = elapsed
+    cv = None
+    if args.cv and res.converged:
+        from .validation import cross_validate
+
+        prog("validating", 0, 0.0)
+        cv = cross_validate(robot, lg, loops, opts, k=args.cv)
+        report["validation"] = {"k": args.cv, "test": cv["test"], "train": cv["train"],
+                                "test_whitened_rms": cv.get("test_whitened_rms"),
+                                "parameter_spread": cv.get("parameter_spread"),
+                                "inconsistent": cv.get("inconsistent"),
+                                "folds_converged": [f["converged"] for f in cv["folds"]]}
+        prog.done()
+    from .report import verdict_record
+    from .verdict import judge
+
+    from .cli_evaluate import fixture_validation
+
+    lofo = fixture_validation(robot, lg, loops, opts, report, args, prog) if res.converged else None
+    res.verdict = judge(res, cv, fixtures=lofo)  # the fit's evidence, the held-out folds' and fixtures'
+    report["verdict"] = verdict_record(res.verdict)
+    failed = res.verdict.status == "failed"
+    write_out = args.out and (not failed or args.force)
+    with OutputSet(order=[args.out if write_out else None, args.report]):  # published whole, model first
+        if args.report:
+            write_report(report, args.report)
+        if write_out:
+            from .export import tool_frames
+
+            write_model(robot, res.as_dict(), args.out, frames=tool_frames(res))  # with the tool point
+    print_summary(res, elapsed, args, report, wrote_model=bool(write_out))
+    from .cli_tools import write_figures
+
+    write_figures(res, report, args)  # --html / --plots
+    if res.verdict.status == "suspect":
+        print(f"warning: {args.log}: calibration is suspect: {'; '.join(res.verdict.reasons)}", file=sys.stderr)
+    if failed:
+        print(f"error: {args.log}: calibration failed: {'; '.join(res.verdict.reasons)}"
+              + ("" if write_out or not args.out else f"; no model written to {args.out} (--force writes it)"),
+              file=sys.stderr)
+        return EXIT_FAILED
+    return 0
+
+
+def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = True) -> None:
+    b, a = res.residuals_before, res.residuals_after
+    import numpy as np
+
+    # a known distance (closedloop.constraints) is one residual row, no configuration, nothing held out
+    blocks = res.problem.blocks
+    distances = {bl.loop.name for bl in blocks if getattr(bl.loop, "parameter_only", False)}
+    rows = [bl.rows for bl in blocks if bl.loop.name not in distances]
+    n_conf = int(np.unique(np.concatenate(rows)).size) if rows else 0
+    print(f"verdict: {res.verdict.status}" + (f" ({'; '.join(res.verdict.reasons)})" if res.verdict.reasons else ""))
+    print(f"calibrated {len(res.estimated)} parameters from {n_conf} configurations "
+          f"in {res.iterations} iterations ({elapsed:.2f} s): {res.solver_status}")
+    for rb, ra in zip(b, a):
+        parts = []
+        if rb.rms_m is not None:
+            parts.append(f"{rb.rms_m * 1e3:.4g} mm -> {ra.rms_m * 1e3:.4g} mm")
+        if rb.rms_rad is not None:
+            parts.append(f"{rb.rms_rad * 1e3:.4g} mrad -> {ra.rms_rad * 1e3:.4g} mrad")
+        if rb.rms_px is not None:
+            parts.append(f"{rb.rms_px:.4g} px -> {ra.rms_px:.4g} px")
+        print(f"  loop {ra.loop}: closure RMS " + ", ".join(parts))
+    est = "estimated" if res.sigma_estimated else "given"
+    print(f"  joint noise {res.sigma:.3g} ({est}); chi2/dof {res.chi2 / max(res.dof, 1):.3g}")
+    if res.dropped:
+        print(f"  {len(res.dropped)} redundant parameters dropped (see report: identifiability.dropped)")
+    for c in res.weak:
+        print(f"  not identifiable: {c.describe()}")
+    for n in res.notes:
+        print(f"  note: {n}")
+    cv = report.get("validation")
+    if cv:
+        for t in (t for t in cv["test"] if t["loop"] not in distances):
+            parts = [f"{t['rms_m'] * 1e3:.4g} mm" if t.get("rms_m") is not None else "",
+                     f"{t['rms_rad'] * 1e3:.4g} mrad" if t.get("rms_rad") is not None else "",
+                     f"{t['rms_px']:.4g} px" if t.get("rms_px") is not None else ""]
+            print(f"  {cv['k']}-fold validation, loop {t['loop']}: held-out closure RMS "
+                  + ", ".join(p for p in parts if p))
+    for rj in res.rejected[:10]:
+        print(f"  rejected: log row {rj.row} (loop {rj.loop}), {rj.standardized:.3g} robust standard deviations")
+    if args.out and wrote_model:
+        print(f"  wrote {args.out}")
+    if args.report:
+        print(f"  wrote {args.report}")

@@ -1,0 +1,154 @@
+"""Command-line pieces for rigs: ``closedloop evaluate`` and calibrate's rig options (issue 18).
+
+    closedloop evaluate nominal.urdf calibrated.urdf other.urdf log.csv --loop point:frame=ball,name=a ...
+    closedloop evaluate nominal.urdf calibrated.urdf --joints j1,...,j7 \\
+        --loop point:frame=ball,name=p3a,tip=@ball,log=place3_a.csv --loop ...,log=place3_b.csv
+
+Each model's closure on the data with the robot untouched and the loops' own
+unknowns fitted unweighted (`closedloop.evaluate`), printed as a table (mean /
+RMS closure per loop, mm) and written with ``--report`` as JSON.
+
+Calibrate's rig options (`add_rig_options`, `rig_inputs`): ``--distance A B D
+[SIGMA]`` (a known length, `closedloop.constraints`), ``--joints j1,j2,...``
+(the column order of header-less logs), a loop's own log file
+(``--loop ...,log=FILE``; then no positional log), and leave-one-fixture-out
+validation (``--lofo auto|off``, `closedloop.fixtures`).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from .errors import InputError
+
+
+def add_rig_options(c) -> None:
+    """calibrate's options for rigs (module docstring)."""
+    c.add_argument("--distance", action="append", nargs="+", default=[], metavar="ARG",
+                   help="a known distance between two loop points: A.point B.point METRES [SIGMA] "
+                        "(e.g. front_a.point front_b.point 0.050); it sets the scale")
+    c.add_argument("--joints", metavar="J1,J2,...",
+                   help="the column order of header-less CSV logs (the first row is then data)")
+    c.add_argument("--lofo", choices=["auto", "off"], default="auto",
+                   help="leave-one-fixture-out validation when the loops form several fixtures (default: auto)")
+
+
+def _order(args) -> list[str] | None:
+    text = getattr(args, "joints", None)
+    return [j.strip() for j in text.split(",") if j.strip()] if text else None
+
+
+def read_inputs(log_path: str | None, robot, loops: list, degrees: bool = False, order: list[str] | None = None):
+    """The joint log: the positional file (CSV or bag), or each loop's own ``log=`` file (one per fixture)."""
+    from .data import read_log, read_loop_logs
+
+    linear = [j for j, info in robot.joints.items() if info.kind == "prismatic"]
+    real = [lp for lp in loops if not getattr(lp, "parameter_only", False)]
+    own = [lp for lp in real if getattr(lp, "log_path", None)]
+    if own:
+        if len(own) != len(real):
+            missing = [lp.name for lp in real if not getattr(lp, "log_path", None)]
+            raise InputError(f"loop(s) {', '.join(missing)} have no log=FILE while others have: give every loop "
+                             "its file, or one log with a 'loop' column")
+        if log_path:
+            raise InputError(f"{log_path}: the loops name their own log files (log=...); give no log besides")
+        return read_loop_logs([(lp.name, lp.log_path) for lp in own], robot.joint_names, degrees, linear, order)
+    if not log_path:
+        raise InputError("no log given: name the CSV log (or each loop's file with --loop ...,log=FILE)")
+    if order:
+        return read_log(log_path, robot.joint_names, degrees, linear, order)
+    from .cli_tools import read_log_or_bag
+
+    return read_log_or_bag(log_path, robot, degrees)
+
+
+def rig_inputs(args, robot, loops: list):
+    """(log, loops + known distances) for calibrate."""
+    from .constraints import parse_distances
+
+    lg = read_inputs(args.log, robot, loops, args.degrees, _order(args))
+    loops = list(loops) + parse_distances(getattr(args, "distance", []) or [], loops)
+    if not args.log:
+        args.log = str(lg.source)
+    return lg, loops
+
+
+def fixture_validation(robot, lg, loops: list, opts, report: dict, args, prog=None) -> dict | None:
+    """Leave-one-fixture-out validation (default when the loops form several fixtures); into the report."""
+    from .fixtures import fixture_groups, leave_one_fixture_out
+
+    if getattr(args, "lofo", "auto") == "off" or lg.loop is None or len(fixture_groups(loops)) < 2:
+        return None
+    if prog:
+        prog("validating fixtures", 0, 0.0)
+    out = leave_one_fixture_out(robot, lg, loops, opts)
+    if prog:
+        prog.done()
+    if out is not None:
+        report["fixture_validation"] = out
+        for r in out["fixtures"]:
+            if r.get("error"):
+                print(f"  held-out fixture {r['fixture']}: not validated ({r['error']})")
+            elif r["calibrated_rms_m"] is not None:
+                print(f"  held-out fixture {r['fixture']}: closure RMS {r['calibrated_rms_m'] * 1e3:.4g} mm "
+                      f"(nominal model {r['nominal_rms_m'] * 1e3:.4g} mm)" + (" WORSE" if r["worse"] else ""))
+    return out
+
+
+# --------------------------------------------------------------------------- closedloop evaluate
+def add_parser(sub) -> None:
+    e = sub.add_parser("evaluate", help="closure of one or more models on a log (robot untouched)",
+                       description=__doc__.split("\n\n")[1])
+    e.add_argument("files", nargs="+", metavar="FILE",
+                   help="MODEL [MODEL ...] LOG: models (URDF, MJCF, D-H), then the log (none when every loop "
+                        "names its own file, log=FILE)")
+    e.add_argument("--loop", action="append", default=[], metavar="SPEC", help="a loop, as for calibrate")
+    e.add_argument("--joints", metavar="J1,J2,...", help="the column order of header-less CSV logs")
+    e.add_argument("--label", action="append", default=[], help="a name per model for the table (default: file)")
+    e.add_argument("--report", help="JSON report of the evaluation")
+    e.add_argument("--degrees", action="store_true", help="the log is in degrees")
+    e.set_defaults(func=cmd_evaluate)
+
+
+def cmd_evaluate(args) -> int:
+    from .evaluate import evaluate_model, table
+    from .export import atomic_write_text, check_outputs
+    from .loops.spec import parse_loop
+    from .robot import RobotModel
+
+    if not args.loop:
+        raise InputError("evaluate: give the loops (--loop ...), as for calibrate")
+    if args.report:
+        check_outputs({"--report": args.report}, args.files)
+    own_logs = all("log=" in s for s in args.loop)
+    models, log_path = (args.files, None) if own_logs else (args.files[:-1], args.files[-1])
+    if not models:
+        raise InputError("evaluate: give at least one model before the log")
+    if args.label and len(args.label) != len(models):
+        raise InputError(f"evaluate: {len(args.label)} --label for {len(models)} models")
+    robots = [RobotModel.from_file(m) for m in models]
+    loops0 = [parse_loop(s, robots[0]) for s in args.loop]
+    lg = read_inputs(log_path, robots[0], loops0, args.degrees, _order(args))
+    from .data import check_loop_column
+
+    check_loop_column(lg, [lp.name for lp in loops0])
+    evals = []
+    for k, (path, robot) in enumerate(zip(models, robots)):
+        loops = loops0 if k == 0 else [parse_loop(s, robot) for s in args.loop]
+        label = args.label[k] if args.label else Path(path).name
+        evals.append(evaluate_model(robot, lg, loops, None, label))
+    print(table(evals))
+    if args.report:
+        rep = {"log": str(lg.source), "configurations": len(lg), "models": [e.as_dict() for e in evals]}
+        atomic_write_text(args.report, json.dumps(rep, indent=2) + "\n")
+        print(f"wrote {args.report}", file=sys.stderr)
+    return 0
+
+
+def require_log(args) -> None:
+    """calibrate without a log: only when every loop names its own file (--loop ...,log=FILE)."""
+    if not args.log and not (args.loop and all("log=" in s for s in args.loop)):
+        raise InputError("calibrate: the following arguments are required: log (or give every loop its own "
+                         "file: --loop ...,log=FILE)")

@@ -1,0 +1,43 @@
+"""`closedloop simulate`: a scenario (built-in, a YAML file or --robot + --loop) to a dataset in MuJoCo."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+from .cli_calibrate import Progress
+from .cli_parse import check_number, sim_overrides
+from .errors import ClosedLoopError, InputError
+
+
+def cmd_simulate(args) -> int:
+    try:
+        from .sims import SCENARIOS, simulate
+    except ImportError as exc:  # pragma: no cover - packaging error
+        raise ClosedLoopError(f"the simulator is not installed ({exc})") from None
+    from .cli_tools import resolve_scenario
+    from .sims.camera_scene import SCENARIOS as CAMERA_SCENARIOS, simulate_cli as camera_simulate
+
+    if getattr(args, "scenario", None) in CAMERA_SCENARIOS:  # the head-camera scenarios (sims/camera_scene.py)
+        return camera_simulate(args)
+    args.scenario = resolve_scenario(args)  # a built-in, a scenario YAML, or --robot + --loop
+    if args.scenario not in SCENARIOS:
+        raise InputError(f"unknown scenario '{args.scenario}' (known: {', '.join(sorted(SCENARIOS))})")
+    from .export import check_outputs
+    from .sims.outputs import check_dataset_dir
+
+    args.n = check_number("--n", args.n, 1, 10**7, integer=True)
+    args.seed = check_number("--seed", args.seed, 0, 2**63 - 1, integer=True)
+    check_outputs({"--out": args.out}, directory=True)
+    check_dataset_dir(Path(args.out), replace=getattr(args, "replace", False))
+    overrides = sim_overrides(args.set, SCENARIOS[args.scenario].settings)
+    prog = Progress(args.quiet)
+    t0 = time.perf_counter()
+    result = simulate(args.scenario, n=args.n, seed=args.seed, out_dir=Path(args.out),
+                      progress=lambda i, n: prog("simulating", i, n), **overrides)
+    prog.done()
+    print(f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out}")
+    summary = getattr(result, "summary", None)
+    if callable(summary):
+        print(summary())
+    return 0

@@ -1,0 +1,197 @@
+"""Known geometry as measurements: distances between loop points (issue 18 item 2).
+
+A closed loop closes at any overall size (thesis 3.3): without a length the
+robot's scale is held by an arbitrary one (`gauge`).  A rig usually has one
+true length, e.g. two sockets of a block 50 mm apart.  `DistanceLoop` adds it
+as a measurement,
+
+    r = |p_a - p_b| - d,        W = sigma^2,
+
+one row whose parameters are the two loops' points (shared columns,
+`closedloop.shared`): ``front_a.point`` is the contact point of loop front_a
+(px, py, pz), ``front_a.tip`` its tool point.  Both points must be in the same
+frame (the world for two sockets).  Jacobian: dr/dp_a = u^T, dr/dp_b = -u^T,
+u = (p_a - p_b) / |p_a - p_b|.  The row is weighted by 1/sigma like a tracker's
+reading (`noise.whiten`), so the joint noise level is estimated beside it.
+
+The loop is not scale-free, so the structural analysis holds no length
+(`identifiability.analyse_structure`): the distance sets the scale, and
+`scale_note` says so ("the distance front_a-front_b (50 mm)"); without one
+the note says the scale is not set by the data.
+
+Command line: ``--distance front_a.point front_b.point 0.050 [sigma]``
+(metres; sigma default 10 micrometres); in a ``--config`` file a list of
+``front_a.point front_b.point 0.050`` lines.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .errors import LoopError
+from .loops.base import Loop, LoopEval
+from .shared import key_fields, parameter_name
+
+if TYPE_CHECKING:
+    from .parameters import Parameter
+    from .problem import CalibrationProblem
+
+DEFAULT_SIGMA = 1e-5  # m: a machined or printed block's distance
+FIELDS = ("a_x", "a_y", "a_z", "b_x", "b_y", "b_z")
+
+
+def _point_of(loops: list[Loop], ref: str) -> tuple[Loop, list[Parameter], str]:
+    """The loop, its three point parameters and their frame for 'LOOP.point' or 'LOOP.tip'."""
+    name, _, key = ref.rpartition(".")
+    by_name = {lp.name: lp for lp in loops}
+    if name not in by_name or key not in ("point", "tip"):
+        raise LoopError(f"--distance {ref}: expected LOOP.point or LOOP.tip of a loop "
+                        f"(loops: {', '.join(by_name) or 'none'})")
+    lp = by_name[name]
+    try:
+        fields = key_fields(lp, key)
+    except LoopError:
+        fields = []
+    params = [p for p in lp.parameters() if p.field in fields]
+    if len(params) != 3:
+        raise LoopError(f"--distance {ref}: loop '{name}' has no unknown 3-D {key}")
+    return lp, params, lp.frame_b if key == "point" else lp.frame_a
+
+
+class DistanceLoop(Loop):
+    """One residual row: the distance between two loop points minus its known value (module docstring)."""
+
+    translation_rows = (0,)
+    scale_free = False
+    parameter_only = True  # no configuration of its own: `calibration.build_problem` gives it one row
+
+    def __init__(self, loops: list[Loop], a: str, b: str, distance: float, sigma: float | None = None):
+        d = float(distance)
+        sig = DEFAULT_SIGMA if sigma is None else float(sigma)
+        if not np.isfinite(d) or d <= 0.0:
+            raise LoopError(f"--distance {a} {b} {distance}: the distance must be a positive length (m)")
+        if not np.isfinite(sig) or sig <= 0.0:
+            raise LoopError(f"--distance {a} {b}: sigma {sigma} must be a positive length (m)")
+        la, pa, fa = _point_of(loops, a)
+        lb, pb, fb = _point_of(loops, b)
+        if fa != fb:
+            raise LoopError(f"--distance {a} {b}: the points are in different frames ({fa}, {fb})")
+        if la is lb and a == b:
+            raise LoopError(f"--distance {a} {b}: a point's distance to itself")
+        super().__init__(f"{a}-{b}", "universe", "universe")
+        self.a, self.b, self.distance, self.sigma = a, b, d, sig
+        self.refers_to = (la.name, lb.name)  # the loops whose points it joins (one rigid fixture)
+        self.measurement_cov = np.array([[sig * sig]])
+        self._params = [replace(p, name=parameter_name(lp, p), field=f)
+                        for (lp, p), f in zip([(la, p) for p in pa] + [(lb, p) for p in pb], FIELDS)]
+        self.shared = {p.field: p.name for p in self._params}
+
+    @property
+    def dim(self) -> int:
+        return 1
+
+    def parameters(self) -> list[Parameter]:
+        return list(self._params)
+
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
+        N = TA.shape[0]
+        diff = p[:3] - p[3:6]
+        n = float(np.linalg.norm(diff))
+        u = diff / n if n > 0 else np.zeros(3)
+        dp = np.broadcast_to(np.concatenate([u, -u]), (N, 1, 6)).copy()
+        z = np.zeros((N, 1, 6))
+        return LoopEval(np.full((N, 1), n - self.distance), z, z.copy(), dp)
+
+    def describe(self) -> dict:
+        return {"name": self.name, "type": "distance", "a": self.a, "b": self.b, "distance_m": self.distance,
+                "sigma_m": self.sigma}
+
+    def label(self) -> str:
+        """'the distance front_a-front_b (50 mm)'."""
+        return (f"the distance {self.a.rsplit('.', 1)[0]}-{self.b.rsplit('.', 1)[0]} "
+                f"({self.distance * 1e3:.4g} mm)")
+
+
+def parse_distances(items: list[list[str]], loops: list[Loop]) -> list[DistanceLoop]:
+    """``--distance A B D [SIGMA]`` occurrences (lists of strings) -> DistanceLoops over `loops`."""
+    import re
+
+    from .schemas import parse_number
+
+    out = []
+    for it in items:
+        if isinstance(it, str):  # from a --config file: "A B 0.05" or "[A, B, 0.05]"
+            it = [t for t in re.split(r"[\s,\[\]'\"]+", it) if t]
+        it = [str(t) for t in it]
+        if len(it) not in (3, 4):
+            raise LoopError(f"--distance {' '.join(it)}: expected A B DISTANCE [SIGMA] (e.g. front_a.point "
+                            "front_b.point 0.050)")
+        nums = [parse_number(t, f"--distance {' '.join(it)}", LoopError) for t in it[2:]]
+        out.append(DistanceLoop(loops, it[0], it[1], nums[0], nums[1] if len(nums) > 1 else None))
+    return out
+
+
+def distance_blocks(problem: CalibrationProblem) -> list[DistanceLoop]:
+    return [b.loop for b in problem.blocks if isinstance(b.loop, DistanceLoop)]
+
+
+def scale_note(problem: CalibrationProblem, gauge: str | None, scale_free: bool) -> str | None:
+    """What sets the overall size: the known distances, else a held length ('not set by the data')."""
+    dists = distance_blocks(problem)
+    if dists:
+        return "the scale is set by " + " and ".join(d.label() for d in dists)
+    if gauge is not None:
+        return (f"the scale is not set by the data: {gauge} is held at its value (give a known length, "
+                "e.g. --distance A.point B.point 0.050)")
+    if scale_free:
+        return "the scale is not set by the data, and no held length sets it"
+    return None
+
+
+def scale_std(problem: CalibrationProblem, x: np.ndarray, est: list[int], cov: np.ndarray) -> float:
+    """Standard error of the robot's overall size (relative), c^T Cov c with c the size change per parameter.
+
+    c_k: the uniform scaling content (`gauge.scale_content`) of a unit step of
+    estimated parameter k in the open-chain kinematics of the loops' frames.
+    """
+    from .gauge import kinematic_changes, random_configurations, scale_content
+
+    robot = [i for i, k in enumerate(est) if k < problem.n_robot]
+    if not robot or cov.size == 0:
+        return float("nan")
+    V = np.zeros((len(problem.params), len(robot)))
+    for j, i in enumerate(robot):
+        V[est[i], j] = problem.params[est[i]].prior
+    dP, A = kinematic_changes(problem, x, V, random_configurations(problem, 48))
+    c_scaled, _ = scale_content(dP, A)
+    c = np.zeros(len(est))
+    c[robot] = c_scaled / np.array([problem.params[est[i]].prior for i in robot])
+    return float(np.sqrt(max(c @ cov @ c, 0.0)))
+
+
+def annotate(res, sigma_q: np.ndarray, scale_free: bool) -> None:
+    """Add what sets the scale (with the size's standard error) and each loop's noise model to a result.
+
+    Sets `res.scale_note`, `res.scale_std` (relative) and `res.noise_model`
+    (`variance.noise_summary`), and appends their sentences to `res.notes`.
+    """
+    from .variance import noise_notes, noise_summary
+
+    problem = res.problem
+    note = scale_note(problem, res.gauge, scale_free)
+    if distance_blocks(problem) and res.estimated:
+        try:
+            res.scale_std = scale_std(problem, res.values, res.estimated, res.covariance)
+        except (np.linalg.LinAlgError, ValueError):
+            res.scale_std = float("nan")
+        if note and np.isfinite(res.scale_std):
+            note += f" (the robot's size to +-{res.scale_std:.2%}, one standard error)"
+    res.scale_note = note
+    if note:
+        res.notes.append(note)
+    if res.weighting == "noise":
+        res.noise_model = noise_summary(problem, res.values, np.asarray(sigma_q, dtype=float))
+        res.notes.extend(noise_notes(res.noise_model))

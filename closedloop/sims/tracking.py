@@ -1,0 +1,266 @@
+"""Steps 5-6 of `simulate`: the true robot driven through the waypoints in MuJoCo, its samples recorded.
+
+:func:`track_and_record` commands every waypoint (``ctrl = scale * reading + offset``: the servo acts
+on the encoder reading) and records the settled ones: the readings through the sensor model
+(:func:`sensor_readings`), torques, the closure violation, the loop force (and a tracker's
+measurement, open loops).  :func:`sample` ramps the servo commands to the waypoint, steps until the
+robot is at rest and, with ``relax``, commands the measured joint positions ``relax_passes`` times so
+that the servos stop pushing against the closed chain (:class:`~closedloop.sims.scenarios.SimSettings`).
+:func:`violation` and :func:`constraint_force` read the true closure error and the loop's force.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+import pinocchio as pin
+
+from closedloop.errors import ScenarioError
+
+from .loop_types import SimLoop
+from .scenarios import Scenario, SimSettings
+from .scene import Scene, site_pose
+
+__all__ = ["Recording", "track_and_record", "sensor_readings", "settle", "sample", "violation", "constraint_force"]
+
+log = logging.getLogger(__name__)
+
+
+def violation(scene: Scene, point: bool) -> tuple[float, float]:
+    """Distance and rotation angle between the tool site and the target site (after ``mj_forward``)."""
+    d, t, g = scene.data, scene.tool_site, scene.target_site
+    dp = float(np.linalg.norm(d.site_xpos[t] - d.site_xpos[g]))
+    if point:
+        return dp, 0.0
+    rel = d.site_xmat[g].reshape(3, 3).T @ d.site_xmat[t].reshape(3, 3)
+    return dp, float(np.linalg.norm(pin.log3(rel)))
+
+
+_EQUALITY = int(mujoco.mjtConstraint.mjCNSTR_EQUALITY)
+
+
+def constraint_force(scene: Scene) -> float:
+    """Norm of the translational part of the loop constraint force (``efc_force``)."""
+    d = scene.data
+    nefc = d.nefc
+    rows = np.flatnonzero((d.efc_type[:nefc] == _EQUALITY) & (d.efc_id[:nefc] == scene.eq_id))
+    return float(np.linalg.norm(d.efc_force[rows[:3]])) if rows.size else 0.0
+
+
+_CHUNK = 5  # simulation steps between two settle checks
+
+
+def settle(scene: Scene, ctrl_from: np.ndarray, ctrl_to: np.ndarray, s: SimSettings,
+            vel_tol: float) -> tuple[bool, int]:
+    """Ramp the servo commands over ``ramp_steps``, then step until ``max |qdot| < vel_tol``.
+
+    Returns (settled, steps); at most ``max_steps`` steps, at least ``min_steps``
+    (counting the ramp); the velocity is checked every 5 steps.
+    """
+    m, d = scene.model, scene.data
+    ramp = max(1, s.ramp_steps)
+    ctrl, frac = _ramp_state(scene, ramp)  # cached per scene: the servo-command view, (ramp, 1) fractions
+    step = mujoco.mj_step
+    for row in ctrl_from + frac * (ctrl_to - ctrl_from):  # = np.outer(frac, delta) + from, bit for bit
+        ctrl[...] = row  # per step: one copy into a view, one call
+        step(m, d)
+    steps = ramp
+    qvel = d.qvel  # a view of the simulation state
+    lo, hi = -vel_tol, vel_tol
+    if steps < s.min_steps:  # no check before min_steps: one call
+        k = -(-(s.min_steps - steps) // _CHUNK)
+        k = min(k, -(-(s.max_steps - steps) // _CHUNK))
+        if k > 0:
+            step(m, d, k * _CHUNK)
+            steps += k * _CHUNK
+    while steps < s.max_steps:
+        # max |qdot| < vel_tol on a Python list (a few joints: cheaper than numpy's reductions): min and
+        # max first (two C calls; they can step over a NaN), then, only when they pass, every value
+        # (a NaN fails every comparison, as in numpy)
+        v = qvel.tolist()
+        if lo < min(v) and max(v) < hi and all(lo < x < hi for x in v):
+            return True, steps
+        step(m, d, _CHUNK)
+        steps += _CHUNK
+    return False, steps
+
+
+_RAMP: dict[int, tuple] = {}  # id(MjData) -> (MjData, ramp, ctrl view, fractions): one scene at a time
+
+
+def _ramp_state(scene: Scene, ramp: int) -> tuple:
+    """The servo-command view of ``scene`` and the ramp fractions (1..ramp)/ramp as a column, cached."""
+    d = scene.data
+    hit = _RAMP.get(id(d))
+    if hit is None or hit[0] is not d or hit[1] != ramp:
+        _RAMP.clear()
+        hit = _RAMP[id(d)] = (d, ramp, _ctrl_view(d, scene.actuator_ids), (np.arange(1, ramp + 1) / ramp)[:, None])
+    return hit[2], hit[3]
+
+
+def _ctrl_view(d, ids: np.ndarray) -> np.ndarray:
+    """``d.ctrl[ids]`` as a writable view when the ids are a contiguous range, else an index proxy."""
+    ids = np.asarray(ids)
+    if ids.size and np.array_equal(ids, np.arange(ids[0], ids[0] + ids.size)):
+        return d.ctrl[int(ids[0]):int(ids[0]) + ids.size]
+    return _Scatter(d.ctrl, ids)
+
+
+class _Scatter:
+    """``proxy[...] = row`` writes ``target[ids] = row`` (non-contiguous actuator ids)."""
+
+    def __init__(self, target: np.ndarray, ids: np.ndarray):
+        self.target, self.ids = target, ids
+
+    def __setitem__(self, key, value) -> None:
+        self.target[self.ids] = value
+
+
+def sample(scene: Scene, ctrl: np.ndarray, target: np.ndarray, s: SimSettings) -> tuple[bool, int, np.ndarray]:
+    """Drive to one waypoint and come to rest there; returns (settled, steps, final servo command).
+
+    Without ``relax`` the servos are commanded ``target`` and the robot settles to
+    ``vel_tol``.  With it, the move only settles to ``move_vel_tol`` (the robot is
+    near the waypoint and slow), then ``relax_passes`` times the servos are
+    commanded the measured joint positions and the robot settles again, to
+    ``move_vel_tol`` and, the last time, to ``vel_tol``.  Each pass releases most
+    of the preload the previous one left (the servo, driven from the wrong nominal
+    model, pushes against the closed chain; the loop springs back when released and
+    the servo takes up a fraction of the deflection), so the recorded configuration
+    loads the loop far less than one long settle would.
+    """
+    d = scene.data
+    passes = max(0, int(s.relax_passes)) if s.relax else 0
+    settled, steps = settle(scene, ctrl, target, s, s.move_vel_tol if passes else s.vel_tol)
+    ctrl = target
+    for k in range(passes):
+        relaxed = d.qpos[scene.qpos_adr].copy()
+        ok, st = settle(scene, ctrl, relaxed, s, s.vel_tol if k == passes - 1 else s.move_vel_tol)
+        settled &= ok
+        steps += st
+        ctrl = relaxed
+    return settled, steps, ctrl
+
+
+def sensor_readings(
+    q: np.ndarray,
+    offset: np.ndarray,
+    scale: np.ndarray,
+    noise: float,
+    quantum: float,
+    rng: np.random.Generator | None,
+) -> np.ndarray:
+    """Sensor model: ``Q((q - offset) / scale + N(0, noise))``, see module docstring."""
+    r = (np.asarray(q, dtype=float) - offset) / scale
+    if noise > 0.0:
+        if rng is None:
+            raise ScenarioError("sensor_readings: noise > 0 needs a random generator")
+        r = r + rng.normal(0.0, noise, size=r.shape)
+    if quantum > 0.0:
+        r = quantum * np.round(r / quantum)
+    return r
+
+
+@dataclass
+class Recording:
+    """Steps 5-6: what was recorded at the ``done`` settled samples."""
+
+    readings: np.ndarray
+    q_true: np.ndarray
+    tau: np.ndarray
+    viol_m: np.ndarray
+    viol_rad: np.ndarray
+    force: np.ndarray
+    door: np.ndarray
+    meas: np.ndarray
+    done: int = 0
+    dropped: int = 0
+    steps: int = 0
+    elapsed: float = 0.0
+
+    @classmethod
+    def empty(cls, n: int, nj: int, env_joint: bool, measures: bool) -> "Recording":
+        return cls(np.zeros((n, nj)), np.zeros((n, nj)), np.zeros((n, nj)), np.zeros(n), np.zeros(n), np.zeros(n),
+                   np.zeros(n) if env_joint else np.zeros(0), np.zeros((n, 3)) if measures else np.zeros((0, 3)))
+
+    def truncate(self) -> None:
+        k = self.done
+        self.readings, self.q_true, self.tau = self.readings[:k], self.q_true[:k], self.tau[:k]
+        self.viol_m, self.viol_rad, self.force = self.viol_m[:k], self.viol_rad[:k], self.force[:k]
+        self.door, self.meas = self.door[:k], self.meas[:k]
+
+
+def _targets(planner, plan, max_attempts: int):
+    """(planning vector, record?) pairs: the planner's waypoints, or a selected plan's path."""
+    if plan is None:
+        for _ in range(max_attempts):
+            yield planner.step(), True
+    else:
+        yield from zip(plan.waypoints, plan.record)
+
+
+def track_and_record(sc: Scenario, kind: SimLoop, settings: SimSettings, scene: Scene, offset: np.ndarray,
+                     scale: np.ndarray, planner, plan, n: int, rng_noise: np.random.Generator,
+                     rng_env: np.random.Generator | None, progress: Callable[[int, int], None] | None,
+                     t_start: float) -> Recording:
+    """Steps 5-6: drive the true robot through the waypoints in MuJoCo and record the settled samples."""
+    m, d = scene.model, scene.data
+    joint_names = scene.joint_names
+    nj = len(joint_names)
+    tracker = scene.target_pose if not kind.closed else None
+    rec = Recording.empty(n, nj, kind.env_joint is not None, tracker is not None)
+    ctrl = d.ctrl[scene.actuator_ids].copy()
+    lo, hi = scene.jnt_range[:, 0], scene.jnt_range[:, 1]
+    limited = m.jnt_limited[[m.joint(j).id for j in joint_names]].astype(bool)
+    targets = _targets(planner, plan, 3 * n + 20)
+    while rec.done < n:
+        wp, record = next(targets, (None, False))
+        if wp is None:
+            break
+        target = scale * wp[:nj] + offset
+        if not record:  # a waypoint on the way to the next selected configuration: move only
+            _ok, steps = settle(scene, ctrl, target, settings, settings.move_vel_tol)
+            rec.steps += steps
+            ctrl = target
+            continue
+        settled, steps, ctrl = sample(scene, ctrl, target, settings)
+        rec.steps += steps
+        mujoco.mj_forward(m, d)
+        q = d.qpos[scene.qpos_adr].copy()
+        at_limit = bool(np.any(limited & ((q - lo < settings.limit_flag) | (hi - q < settings.limit_flag))))
+        if not settled:
+            log.debug("sample %d not settled after %d steps (max |qdot| = %.3g)", rec.done, steps,
+                      np.max(np.abs(d.qvel)))
+        if settings.drop_flagged and (at_limit or not settled):
+            rec.dropped += 1
+            continue
+        i = rec.done
+        rec.tau[i] = d.qfrc_actuator[scene.dof_adr]
+        # joint compliance: the motor-side encoder leads the link by c * tau (tau = K (theta_m - q))
+        rec.readings[i] = sensor_readings(q + settings.compliance * rec.tau[i], offset, scale, settings.noise,
+                                          settings.quantization, rng_noise)
+        rec.q_true[i] = q
+        if tracker is not None:
+            # the tracker measures the true tool point in its frame; the "violation" of this
+            # loop is the measurement error
+            tip = site_pose(m, d, scene.tool_site).translation
+            rec.meas[i] = tracker.actInv(tip) + rng_env.normal(0.0, settings.tracker_noise, 3)
+            rec.viol_m[i] = float(np.linalg.norm(rec.meas[i] - tracker.actInv(tip)))
+        else:
+            rec.viol_m[i], rec.viol_rad[i] = violation(scene, kind.point_contact)
+        rec.force[i] = constraint_force(scene)
+        if rec.door.size:
+            rec.door[i] = d.qpos[scene.door_qpos_adr]
+        rec.done += 1
+        if progress is not None:
+            progress(rec.done, n)
+    rec.elapsed = time.perf_counter() - t_start
+    if rec.done < n:
+        log.warning("%s: only %d of %d samples recorded (%d dropped)", sc.name, rec.done, n, rec.dropped)
+        rec.truncate()
+    return rec

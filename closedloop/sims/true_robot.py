@@ -1,0 +1,161 @@
+"""The draw of the true robot: which parameters are perturbed, and by how much.
+
+Truth model (:func:`perturbable_parameters`, :func:`draw_errors`): the true
+robot equals the nominal one plus uniform random errors, per parameter kind
+
+* ``translation`` (``<joint>.x .y .z``) U(-m, m) metres, default m = 2 mm;
+* ``rotation`` (``<joint>.rx .ry .rz``) U(-m, m) rad, default m = 2 mrad;
+* ``offset`` (``<joint>.offset``) U(-m, m) rad, default m = 0.02 rad;
+* ``scale`` (``<joint>.scale``) 1 + U(-m, m), default m = 0 (not perturbed).
+
+A joint placement error is a right twist in the joint's own frame:
+``M = M0 * exp6([x, y, z, rx, ry, rz])``.  Sensor model (thesis eq. 4.4):
+``theta_true = scale * reading + offset``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+
+from .loop_types import sim_loop
+from .scenarios import Scenario
+
+__all__ = ["perturbable_parameters", "identifiable_parameters", "draw_errors"]
+
+_COMPONENTS = ("x", "y", "z", "rx", "ry", "rz")
+
+
+def _axis_component(axis: np.ndarray) -> int | None:
+    """Index 0/1/2 of the coordinate axis a unit joint axis is aligned with, else None."""
+    a = np.abs(np.asarray(axis, dtype=float))
+    i = int(np.argmax(a))
+    return i if a[i] > 1.0 - 1e-9 else None
+
+
+def perturbable_parameters(model: pin.Model, joint_names: list[str], scale: bool = False) -> list[str]:
+    """Names of the parameters that are perturbed in the true robot.
+
+    The fixed rule for a serial chain of revolute joints welded to an unknown
+    fixture (the core's automatic reduction may replace it):
+
+    * the first joint's placement is not perturbed (base gauge, absorbed by the
+      unknown closure) and neither is its offset;
+    * for every other joint, the placement components along the joint axis are
+      not perturbed: rotation about the axis (duplicates the offset) and
+      translation along it (absorbed by the next joint).  For axis z these are
+      ``.rz`` and ``.z``; for an axis along x or y, ``.rx``/``.x`` or ``.ry``/``.y``;
+    * fixed joints (tool, flanges) are never perturbed;
+    * offsets of all joints but the first are perturbed; scales of all joints
+      only when ``scale`` is true.
+
+    Args:
+        model: nominal Pinocchio model.
+        joint_names: the movable 1-DOF joints of the chain, in Pinocchio order.
+        scale: include ``<joint>.scale`` parameters.
+    """
+    names: list[str] = []
+    for k, jn in enumerate(joint_names):
+        jid = model.getJointId(jn)
+        jm = model.joints[jid]
+        short = jm.shortname()
+        if short in ("JointModelRX", "JointModelRY", "JointModelRZ"):
+            skip_axis: int | None = "XYZ".index(short[-1])
+        elif short == "JointModelRevoluteUnaligned":
+            skip_axis = _axis_component(jm.axis)
+        else:
+            skip_axis = None
+        if k > 0:
+            for c, comp in enumerate(_COMPONENTS):
+                if skip_axis is not None and c % 3 == skip_axis:
+                    continue
+                names.append(f"{jn}.{comp}")
+            names.append(f"{jn}.offset")
+        if scale:
+            names.append(f"{jn}.scale")
+    return names
+
+
+def identifiable_parameters(nominal_path, sc: Scenario, joint_names: list[str], scale: bool = False) -> list[str]:
+    """The parameters to perturb: those the calibration core estimates for this loop.
+
+    Errors in structurally redundant parameters are indistinguishable from
+    errors in the parameters that absorb them, so a truth that `closedloop
+    check` can compare parameter by parameter is drawn in the identifiable set
+    (`closedloop.truth.identifiable_names`, the core's own reduction on nominal
+    self-motion data through the grasp configuration).  Loop types the core
+    has no loop class for yet fall back to :func:`perturbable_parameters`.
+    """
+    from closedloop.calibration import CalibrationOptions
+    from closedloop.robot import RobotModel
+    from closedloop.truth import identifiable_names
+
+    kind = sim_loop(sc.loop_type)
+    loop = kind.core_loop(sc, nominal_path)
+    if loop is None:
+        model = pin.buildModelFromUrdf(str(nominal_path))
+        return perturbable_parameters(model, joint_names, scale=scale)
+    robot = RobotModel.from_file(nominal_path)
+    identify = ["placement", "offset", "loop"] + (["scale"] if scale else [])
+    if not kind.closed:
+        names = _measured_identifiable_names(robot, loop, CalibrationOptions(identify=identify))
+    else:
+        names = identifiable_names(robot, [loop], np.asarray(sc.q0, dtype=float)[None, :],
+                                   CalibrationOptions(identify=identify))
+    return [n for n in names if n.rsplit(".", 1)[0] in joint_names]
+
+
+def _measured_identifiable_names(robot, loop, options, n: int = 40, seed: int = 0) -> list[str]:
+    """Names `calibrate` estimates for a measured (open) loop, on nominal data.
+
+    `closedloop.truth.identifiable_names` walks the loop's self-motion from one
+    configuration, which an open loop does not have (every configuration is
+    allowed, and the measurements are log columns it cannot make up).  Instead:
+    ``n`` random configurations within the nominal joint limits (fixed seed),
+    the nominal tool point measured exactly by a tracker at the identity pose,
+    and the core's own reduction on that data.
+    """
+    from closedloop.calibration import calibrate
+    from closedloop.data import JointLog
+
+    model = robot.model
+    data = model.createData()
+    rng = np.random.default_rng(seed)
+    lo = np.maximum(model.lowerPositionLimit, -np.pi)
+    hi = np.minimum(model.upperPositionLimit, np.pi)
+    q = rng.uniform(lo, hi, size=(n, model.nq))
+    fid = model.getFrameId(loop.frame_a)
+    pts = np.empty((n, 3))
+    for i in range(n):
+        pin.framesForwardKinematics(model, data, q[i])
+        pts[i] = data.oMf[fid].translation
+    joints = list(robot.joint_names)
+    extra = {c: pts[:, k] for k, c in enumerate(loop.columns())}
+    res = calibrate(robot, JointLog(joints, q, None, None, extra), [loop], options)
+    return [n_ for n_, s in zip(res.names, res.status) if s == "estimated" and not n_.startswith(loop.name + ".")]
+
+
+def _kind(name: str) -> str:
+    comp = name.rsplit(".", 1)[1]
+    if comp in ("x", "y", "z"):
+        return "translation"
+    if comp in ("rx", "ry", "rz"):
+        return "rotation"
+    return comp  # offset / scale
+
+
+def draw_errors(names: list[str], rng: np.random.Generator, magnitudes: dict[str, float]) -> dict[str, float]:
+    """Draw true parameter values: uniform in +/- magnitude per kind; scale = 1 + U(-m, m).
+
+    Args:
+        names: parameter names (see :func:`perturbable_parameters`).
+        rng: random generator (one uniform draw per name, in order).
+        magnitudes: magnitude per kind (``translation``, ``rotation``, ``offset``, ``scale``).
+    """
+    out: dict[str, float] = {}
+    for name in names:
+        kind = _kind(name)
+        m = float(magnitudes.get(kind, 0.0))
+        u = float(rng.uniform(-1.0, 1.0))
+        out[name] = (1.0 + m * u) if kind == "scale" else m * u
+    return out

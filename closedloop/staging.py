@@ -1,0 +1,217 @@
+"""The staged solve of a reduced calibration problem: stages, restarts, and the re-check at the solution.
+
+`solve_staged` runs the errors-in-variables fit (`fit.weighted_stage`) and,
+where the weighting misleads (a stall far above any plausible noise, a
+weighting that turns singular on the way), the plain loop-closure fit
+(`fit.plain_stage`, eq. 3.8) first; `solve_with_restarts` tries other starts
+when the fit stalls; `recheck_at_solution` recomputes the structural reduction
+and the gauge at the solution and re-solves where they differ (issue 10: no
+decision is kept that does not hold at the solution).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import numpy as np
+
+from .errors import ParameterError
+from .fit import ResidualFunction, StageResult, plain_stage, random_start, unweighted_closure, weighted_stage
+from .identifiability import Structure, analyse_structure, closure_jacobian, structure_holds
+from .problem import CalibrationProblem
+from .records import CalibrationOptions
+from .solver import SolverOptions
+from .variance import task_blocks, variance_components
+
+log = logging.getLogger(__name__)
+Progress = Callable[[str, int, float], None]
+
+
+@dataclass
+class Fit:
+    """A solved reduced problem: the full parameter vector and how it was reached."""
+
+    x: np.ndarray
+    stage: StageResult
+    est: list[int]
+    sigma_q: np.ndarray
+    known: bool
+    iterations: int
+    warnings: list[str]
+
+
+def _solver_options(opt: CalibrationOptions, problem: CalibrationProblem, est: list[int], known: bool
+                    ) -> SolverOptions:
+    lower = upper = None
+    if opt.bounds:
+        lower, upper = np.full(len(est), -np.inf), np.full(len(est), np.inf)
+        for n, (lo, hi) in opt.bounds.items():
+            if n not in problem.index:
+                raise ParameterError(f"bound for unknown parameter '{n}'")
+            k = problem.index[n]
+            if k in est:
+                lower[est.index(k)], upper[est.index(k)] = lo, hi
+    return SolverOptions(max_iter=opt.max_iter, noise=(1.0 if known and opt.weighting == "noise" else None),
+                         snr=opt.snr, lower=lower, upper=upper)
+
+
+def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, est: list[int],
+                 opt: CalibrationOptions, sigma_q: np.ndarray, known: bool,
+                 progress: Progress | None = None, plain_start: bool = False) -> Fit:
+    """The weighted fit from `start`; staged through the plain residual where the weighting misleads.
+
+    The errors-in-variables fit is tried first (it is the estimator; on a
+    single self-motion, where many robots close the same curve, the plain
+    residual's long steps can reach a degenerate one).  When it stalls far
+    above any plausible noise, leaves directions undetermined (a spurious
+    minimum reports many), or its weighting turns singular on the way
+    (more residual directions discarded than at the start), the plain
+    loop-closure fit is solved from `start` and the weighted fit restarted
+    from it (`fit.weighted_stage` keeps the plain solution if the weighting
+    would hide a residual there).  `plain_start` goes through the plain stage
+    directly.
+    """
+    scale = np.array([p.prior for p in problem.params])
+    sopt = _solver_options(opt, problem, est, known)
+    prog = (lambda it, c: progress("solving", it, c)) if progress else None
+    warnings: list[str] = []
+    base = x0.copy()
+    base[est] = start[est]
+    xs, iters = start[est], 0
+    b = None
+    if not plain_start or opt.weighting != "noise":
+        b = weighted_stage(problem, base, xs, est, scale, sigma_q, opt.weighting, sopt, prog)
+        iters = b.solution.iterations
+    if b is None or (opt.weighting == "noise" and (b.note or b.solution.truncated
+                                                    or _misled(problem, b))):
+        a = plain_stage(problem, base, xs, est, scale, sopt, prog)
+        b2 = weighted_stage(problem, base, a.solution.x, est, scale, sigma_q, opt.weighting, sopt, prog)
+        iters += a.solution.iterations + b2.solution.iterations
+        b = b2 if b is None else _better(problem, [b, b2], start, est, scale)
+    if b.note:
+        warnings.append(b.note)
+    xs = b.solution.x
+    tasks = task_blocks(problem) if opt.weighting == "noise" and b.fun.weighting == "noise" else []
+    joint_beside_measurement = (not known and opt.weighting == "noise" and b.fun.weighting == "noise"
+                                and any(nz.measurement_cov is not None for nz in problem.noise)) or bool(tasks)
+    if joint_beside_measurement:
+        # The ratio of joint to measurement noise sets the weights: estimate the joint level and the
+        # loops' task-space noise (closedloop.variance) at the fit, re-solve with them, until they settle.
+        pattern, s_prev, joint_given = sigma_q.copy(), None, known
+        start_e = start[est]
+        for _ in range(4):
+            evs = problem.evaluate(b.fun.full(b.solution.x), True, columns=[])
+            s, moved = variance_components(problem, evs, pattern, len(est), tasks, joint_given)
+            if s_prev is not None and abs(s - s_prev) <= 0.05 * max(s, s_prev) and not moved:
+                break
+            sigma_q, known, s_prev = np.sqrt(s) * pattern, True, s
+            b = weighted_stage(problem, base, start_e, est, scale, sigma_q, "noise", replace(sopt, noise=1.0), prog)
+            iters += b.solution.iterations
+    return Fit(b.fun.full(b.solution.x), b, est, sigma_q, known, iters, warnings)
+
+
+def _misled(problem: CalibrationProblem, stage: StageResult) -> bool:
+    """The weighted fit stalled far above the noise, or its weighting discards more than at the start."""
+    if stage.solution.status != "converged" or _closure_level(problem, stage) > 1.0:
+        return True
+    return stage.fun.deficit > stage.deficit_start
+
+
+PLAUSIBLE_JOINT_NOISE = 2e-3  # rad: no encoder reads worse; a closure it cannot explain is a stalled fit
+
+
+def _closure_level(problem: CalibrationProblem, stage: StageResult) -> float:
+    """The typical configuration's closure in units of what 2 mrad of joint noise (plus the loops' own
+    measurement noise, a camera's pixels) explains: the median, so that a few outliers do not count."""
+    if stage.closure_level is not None:
+        return stage.closure_level
+    if not np.isfinite(stage.solution.cost):
+        return np.inf
+    fun = ResidualFunction(problem, stage.fun.full(stage.solution.x), [],
+                           np.full(len(problem.joints), PLAUSIBLE_JOINT_NOISE), "noise")
+    per_config = np.concatenate([np.linalg.norm(b, axis=1) / np.sqrt(b.shape[1])
+                                 for b in fun.blocks(np.zeros(0)) if b.size])
+    stage.closure_level = float(np.median(per_config)) if per_config.size else 0.0
+    return stage.closure_level
+
+
+def _stalled(problem: CalibrationProblem, fit: Fit) -> bool:
+    """The fit stopped far above any plausible noise (`_closure_level` above 1)."""
+    return _closure_level(problem, fit.stage) > 1.0
+
+
+def _better(problem: CalibrationProblem, stages: list[StageResult], start: np.ndarray, est: list[int],
+            scale: np.ndarray) -> StageResult:
+    """Of the fits that close as well as the best, the nearest the start (in prior units): a degenerate
+    robot (a forearm of zero length) may close a single self-motion as well as the real one."""
+    levels = [_closure_level(problem, st) for st in stages]
+    # as good as the best: within 10x of its closure, or both below 1/1000 of a plausible noise
+    good = [st for st, lv in zip(stages, levels) if lv <= max(10.0 * min(levels), 1e-3)]
+    return min(good, key=lambda st: float(np.linalg.norm((st.solution.x - start[est]) / scale[est])))
+
+
+def solve_with_restarts(problem: CalibrationProblem, x0: np.ndarray, est: list[int], opt: CalibrationOptions,
+                        sigma_q: np.ndarray, known: bool, rng: np.random.Generator,
+                        progress: Progress | None = None, first: Fit | None = None) -> Fit:
+    """`solve_staged` from x0 (or `first`); if it stalls far above the noise, from other starts.
+
+    Starts: the loop parameters and offsets first with the geometry held, then
+    all; then x0 moved at random by 1x and 3x the parameters' priors.  Among
+    the fits that close within a plausible noise, the nearest to the start
+    (in prior units) is kept: on a single self-motion degenerate robots (a
+    forearm of zero length) close the loop as well as the real one.  If none
+    does, the one with the lowest unweighted closure.
+    """
+    fit = first if first is not None else solve_staged(problem, x0, x0, est, opt, sigma_q, known, progress)
+    if opt.restarts <= 0 or not _stalled(problem, fit):
+        return fit
+    scale = np.array([p.prior for p in problem.params])
+    fits = [fit]
+    starts = []
+    sub = [k for k in est if problem.params[k].kind in ("loop", "offset")]
+    if sub and len(sub) < len(est):
+        starts.append(solve_staged(problem, x0, x0, sub, opt, sigma_q, known, plain_start=True).x)
+    for size in (1.0, 3.0, 1.0, 3.0)[:max(opt.restarts - len(starts), 0)]:
+        starts.append(random_start(x0, est, scale, rng, size))
+    for k, st in enumerate(starts[:opt.restarts]):
+        log.info("restart %d: the fit stalled far above the noise", k + 1)
+        fits.append(solve_staged(problem, x0, st, est, opt, sigma_q, known, progress))
+        if not _stalled(problem, fits[-1]):
+            break
+    good = [f for f in fits if not _stalled(problem, f)]
+    if good:
+        best = min(good, key=lambda f: float(np.linalg.norm((f.x - x0)[est] / scale[est])))
+    else:
+        best = min(fits, key=lambda f: unweighted_closure(problem, f.x))
+    best.warnings.append("the fit stalled far above the noise from the given start; "
+                         f"{'a restart reached' if good else 'no restart reached'} a closure within a plausible noise")
+    return best
+
+
+def recheck_at_solution(problem: CalibrationProblem, fit: Fit, structure: Structure, free: list[int],
+                        x0: np.ndarray, opt: CalibrationOptions, progress: Progress | None
+                        ) -> tuple[Fit, Structure, list[str]]:
+    """The reduction and gauge recomputed at the solution; re-solved from it where they differ."""
+    notes = []
+    for _ in range(2):
+        R = closure_jacobian(problem, fit.x, free)
+        why, warning = structure_holds(problem, fit.x, structure, free, R)
+        if warning:
+            fit.warnings.append(warning)
+        if why is None:
+            break
+        st = analyse_structure(problem, fit.x, free, prefer=structure.gauge, R=R)
+        st.rechecked = True
+        gone = sorted(set(structure.kept) - set(st.kept))
+        new = sorted(set(st.kept) - set(structure.kept))
+        notes.append(f"re-checked at the solution: {why}"
+                     + (f" ({', '.join(problem.names[k] for k in gone)} now redundant)" if gone else "")
+                     + (f" ({', '.join(problem.names[k] for k in new)} now identifiable)" if new else "")
+                     + "; re-solved with the solution's reduction")
+        structure = st
+        before = fit.iterations
+        fit = solve_staged(problem, fit.x, fit.x, st.kept, opt, fit.sigma_q, fit.known, progress)
+        fit.iterations += before
+    return fit, structure, notes

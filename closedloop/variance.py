@@ -1,0 +1,248 @@
+"""A task-space noise per loop beside the joint noise: variance components (issue 18 item 3).
+
+A ball pressed by hand into a socket has play: its error is in the contact,
+not in the joints.  A loop's closure then has the covariance
+
+    W_i = s J_theta,i D^2 J_theta,i^T + C_i + v_l T,
+
+the errors-in-variables term of the joint noise (thesis eq. 3.17 weighted;
+`closedloop.noise`), a known measurement covariance C_i (a tracker's) and the
+loop's own task-space variance v_l on its translation rows (T).  A loop's
+``sigma_task`` fixes v_l; ``sigma_task=auto`` (the default for point and plane
+loops when several share the robot) estimates it with s from the fitted
+residuals (`variance_components`), and `staging.solve_staged` re-solves
+with the new weights until they settle.  `noise_summary` says per loop which
+noise dominates.
+
+A loop's configured noise (its ``sigma_t``, ``sigma_px``, ``sigma_task``) is
+set on the loop when it is made (`set_task_noise`); what a calibration
+estimates is kept in the problem's noise records (`problem.BlockNoise`), so the
+user's loops come out of `calibrate` unchanged.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .errors import ParameterError
+from .noise import joint_variance_scale
+
+if TYPE_CHECKING:
+    from .loops.base import Loop
+    from .problem import BlockEval, CalibrationProblem
+
+__all__ = ["parse_sigma", "set_task_noise", "task_blocks", "variance_components", "noise_summary", "noise_notes"]
+
+
+def parse_sigma(text: str) -> float | np.ndarray | str:
+    """'0.2mm' / '200um' / '2e-4' (m) / '0.1/0.1/0.3mm' (per axis) / 'auto' -> metres or 'estimate'."""
+    t = str(text).strip().lower().replace(" ", "")
+    if t in ("auto", "estimate", "estimated"):
+        return "estimate"
+    if "/" in t:  # per axis, one unit at the end: 0.1/0.1/0.3mm
+        unit = t.lstrip("0123456789.e+-/")
+        parts = t[: len(t) - len(unit)].split("/")
+        return np.array([parse_sigma(p + unit) for p in parts])
+    for unit, f in (("mm", 1e-3), ("um", 1e-6), ("µm", 1e-6), ("cm", 1e-2), ("m", 1.0)):
+        if t.endswith(unit):
+            t, factor = t[: -len(unit)], f
+            break
+    else:
+        factor = 1.0
+    try:
+        v = float(t) * factor
+    except ValueError:
+        raise ParameterError(f"sigma_task={text}: expected a length (0.2mm, 2e-4) or 'auto'") from None
+    if not np.isfinite(v) or v < 0 or v > 1.0:
+        raise ParameterError(f"sigma_task={text}: expected a length between 0 and 1 m")
+    return v
+
+
+def set_task_noise(loop: Loop, value) -> Loop:
+    """Give `loop` a task-space noise: a length (m; per-axis: three), 'estimate'/'auto', or 0 (none).
+
+    The loop's measurement covariance becomes its own (a tracker's, if any)
+    plus sigma_task^2 on its translation rows; 'estimate' makes sigma_task a
+    variance component estimated with the joint noise (`variance_components`).
+    Configuration, set once on the loop: ``loop.own_cov`` keeps the covariance
+    without the task term, ``loop.task_var`` the given variance (what a
+    calibration estimates goes to the problem's `BlockNoise`, not here).
+    """
+    if isinstance(value, str):
+        value = parse_sigma(value)
+    if not hasattr(loop, "own_cov"):
+        loop.own_cov = loop.measurement_cov
+    rows = list(loop.translation_rows)
+    if not rows:
+        raise ParameterError(f"loop '{loop.name}': sigma_task needs a loop with translation rows")
+    if isinstance(value, str):
+        loop.task_noise = "estimate"
+        return loop
+    sig = np.asarray(value, dtype=float).reshape(-1)
+    if sig.size not in (1, len(rows)):
+        raise ParameterError(f"loop '{loop.name}': sigma_task has {sig.size} values for {len(rows)} translation rows")
+    sig = np.broadcast_to(sig, (len(rows),)).copy()
+    if np.any(~np.isfinite(sig)) or np.any(sig < 0):
+        raise ParameterError(f"loop '{loop.name}': sigma_task must be finite and >= 0")
+    loop.task_noise = sig
+    if not np.any(sig):  # sigma_task=0: no task-space noise (the joint noise alone)
+        loop.measurement_cov, loop.task_var = loop.own_cov, None
+        return loop
+    _apply_task(loop, sig ** 2)
+    return loop
+
+
+def _task_matrix(loop: Loop) -> np.ndarray:
+    T = np.zeros((loop.dim, loop.dim))
+    rows = list(loop.translation_rows)
+    T[rows, rows] = 1.0
+    return T
+
+
+def _apply_task(loop: Loop, var: np.ndarray | float) -> None:
+    """measurement_cov = the loop's own covariance + diag(var) on its translation rows."""
+    base = getattr(loop, "own_cov", None)
+    T = _task_matrix(loop)
+    T[T > 0] = np.broadcast_to(np.asarray(var, dtype=float), (int(T.sum()),))
+    loop.measurement_cov = T if base is None else base + T
+    loop.task_var = var
+
+
+CONTACT_LOOPS = ("PointLoop", "PlaneLoop")
+
+
+def task_blocks(problem: CalibrationProblem) -> list[int]:
+    """Blocks whose task-space noise is estimated.
+
+    Loops with sigma_task=auto, and by default (no sigma_task given) the
+    contact loops (point, plane) when at least two of them share the robot:
+    a ball with play in its socket is noise in the contact, not in the joints,
+    and several loops separate the two (issue 18 item 3).
+    """
+    out = []
+    contact = [bi for bi, b in enumerate(problem.blocks)
+               if type(b.loop).__name__ in CONTACT_LOOPS and getattr(b.loop, "task_noise", None) is None]
+    for bi, b in enumerate(problem.blocks):
+        mode = getattr(b.loop, "task_noise", None)
+        if isinstance(mode, str) or (mode is None and bi in contact and len(contact) >= 2):
+            out.append(bi)
+    return out
+
+
+def _wpinv(W: np.ndarray) -> np.ndarray:
+    lam, V = np.linalg.eigh(W)
+    keep = lam > 1e-12 * np.maximum(lam[:, -1:], 1e-300)
+    inv = np.where(keep, 1.0 / np.where(keep, lam, 1.0), 0.0)
+    return (V * inv[:, None, :]) @ np.swapaxes(V, 1, 2)
+
+
+def variance_components(problem: CalibrationProblem, evals: list[BlockEval], pattern: np.ndarray, n_params: int,
+                        tasks: list[int], joint_fixed: bool = False, iters: int = 300,
+                        tol: float = 1e-6) -> tuple[float, bool]:
+    """Joint variance scale s and each loop's task variance v_l from fitted residuals (Helmert / Foerstner).
+
+    Each configuration's closure has the covariance (eq. 3.17 weighted, with
+    a task-space term per loop)
+
+        W_i = s A_i + C_i + v_l T,     A_i = J_theta,i D^2 J_theta,i^T,
+
+    T the identity on the loop's translation rows, C_i a known measurement
+    covariance.  The components theta_k (s and the v_l) solve the likelihood's
+    score equations  r^T W^-1 B_k W^-1 r = c tr(W^-1 B_k)  (B_k = A_i or T,
+    c = (M - p) / M the REML-like degrees-of-freedom correction of
+    `joint_variance_scale`); the iteration theta_k <- theta_k r^T W^-1 B_k W^-1 r
+    / (c tr(W^-1 B_k)) (Foerstner 1979; Koch, Parameter Estimation 3.6) keeps
+    them positive and converges to that root.  `joint_fixed`: s = 1 (the
+    joint noise is given).  The iteration stops when no component moves by
+    more than `tol` of its loop's whole variance (the caller re-solves and
+    estimates again).  Sets each estimated block's task variance in
+    `problem.noise` (`BlockNoise.set_task`; the loops are not touched) and
+    returns (s, whether a v_l moved by more than 5 %).
+    """
+    if not tasks:  # the joint level beside known measurement covariances: the closed score equation
+        if joint_fixed:
+            return 1.0, False
+        covs = [nz.measurement_cov if np.any(e.Jq) else None  # no joint in it (a known distance): no say
+                for nz, e in zip(problem.noise, evals)]
+        return joint_variance_scale([e.r for e in evals], [e.Jq for e in evals], covs, pattern, n_params), False
+    rows = sum(e.r.size for e in evals)
+    c = max(rows - n_params, 1) / max(rows, 1)
+    blocks = []
+    for bi, (b, ev) in enumerate(zip(problem.blocks, evals)):
+        Jd = ev.Jq * pattern[None, None, :]
+        A = Jd @ np.swapaxes(Jd, 1, 2)
+        base = problem.noise[bi].own if bi in tasks else problem.noise[bi].measurement_cov
+        C = np.zeros_like(A) if base is None else np.broadcast_to(base, A.shape)
+        if ev.cov is not None:
+            C = C + ev.cov
+        blocks.append((ev.r, A, C, _task_matrix(b.loop) if bi in tasks else None))
+    if joint_fixed:
+        s = 1.0
+    else:
+        s = 0.5 * joint_variance_scale([r for r, *_ in blocks], [e.Jq for e in evals], [None] * len(blocks),
+                                       pattern, n_params)  # a start: every residual read as joint noise
+        s = max(s, 1e-300)
+    v = {bi: max(0.5 * float(np.mean(blocks[bi][0][:, list(problem.blocks[bi].loop.translation_rows)] ** 2)), 1e-300)
+         for bi in tasks}
+    # the joint noise's variance per translation row of each task loop, per unit s
+    joint_var = {bi: float(np.mean(np.einsum("nij,ij->n", blocks[bi][1], blocks[bi][3]))) / max(
+        float(np.trace(blocks[bi][3])), 1.0) for bi in tasks}
+    for _ in range(iters):
+        num_s = den_s = 0.0
+        new_v = {}
+        for bi, (r, A, C, T) in enumerate(blocks):
+            W = s * A + C + (v[bi] * T if T is not None else 0.0)
+            Wi = _wpinv(W)
+            e = np.einsum("nij,nj->ni", Wi, r)
+            num_s += float(np.einsum("ni,nij,nj->", e, A, e))
+            den_s += c * float(np.einsum("nij,nji->", Wi, A))
+            if T is not None:
+                new_v[bi] = v[bi] * float(np.einsum("ni,ij,nj->", e, T, e)) / max(
+                    c * float(np.einsum("nij,ji->", Wi, T)), 1e-300)
+        s_new = s if joint_fixed else s * num_s / max(den_s, 1e-300)
+        change = abs(s_new - s) / max(s, 1e-300)
+        for bi in tasks:  # relative to the loop's whole variance: a vanishing component need not settle
+            change = max(change, abs(new_v[bi] - v[bi]) / max(v[bi] + s_new * joint_var[bi], 1e-300))
+        s, v = s_new, new_v
+        if change < tol:
+            break
+    moved = False
+    for bi in tasks:
+        nz = problem.noise[bi]
+        old = nz.task_var
+        if old is None or abs(float(np.mean(old)) - v[bi]) > 0.05 * max(float(np.mean(old)), v[bi],
+                                                                          s * joint_var[bi]):
+            moved = True
+        nz.set_task(v[bi], estimated=True)
+    return float(s), moved
+
+
+def noise_summary(problem: CalibrationProblem, values: np.ndarray, sigma_q: np.ndarray) -> list[dict]:
+    """Per loop with translation rows: the task-space noise and what the joint noise makes there (m, RMS per axis).
+
+    joint_m = sqrt(mean_i tr(T J_theta,i Sigma J_theta,i^T) / n_t) at `values`; the larger names what dominates.
+    """
+    out = []
+    evals = problem.evaluate(values, True, columns=[])
+    for b, ev, nz in zip(problem.blocks, evals, problem.noise):
+        lp = b.loop
+        rows = list(lp.translation_rows)
+        if not rows or ev.Jq is None or not hasattr(lp, "task_noise") and nz.task_var is None:
+            continue
+        Jt = ev.Jq[:, rows, :] * sigma_q[None, None, :]
+        joint = float(np.sqrt(np.mean(np.einsum("nij,nij->n", Jt, Jt)) / len(rows)))
+        var = nz.task_var
+        task = float(np.sqrt(np.mean(var))) if var is not None else 0.0
+        out.append({"loop": lp.name, "task_sigma_m": task, "joint_sigma_m": joint,
+                    "task_estimated": nz.estimated,
+                    "dominant": "task" if task > joint else "joint"})
+    return out
+
+
+def noise_notes(summary: list[dict]) -> list[str]:
+    """One sentence per loop on its noise model."""
+    return [f"loop {d['loop']}: task-space noise {d['task_sigma_m'] * 1e3:.3g} mm "
+            f"({'estimated' if d['task_estimated'] else 'given'}) against {d['joint_sigma_m'] * 1e3:.3g} mm "
+            f"from the joint noise: the {d['dominant']} noise dominates" for d in summary]
