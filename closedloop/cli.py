@@ -76,7 +76,31 @@ def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="closedloop", description="Closed-loop kinematic calibration of robots.")
     p.add_argument("-v", "--verbose", action="store_true", help="log details")
     sub = p.add_subparsers(dest="command", required=True)
+    _add_calibrate(sub)
+    i = sub.add_parser("inspect", help="list a model's joints, frames and parameter names")
+    i.add_argument("model")
+    i.add_argument("--json", action="store_true")
+    i.set_defaults(func=cmd_inspect)
+    _add_simulate(sub)
+    _add_check(sub)
+    from .cli_tools import add_extract_parser, cmd_loops
 
+    add_extract_parser(sub)
+    from .batch import add_parser as add_batch  # closedloop batch MANIFEST (many jobs, any executor)
+
+    add_batch(sub)
+    lp = sub.add_parser("loops", help="list the loop types, their keys and an example each")
+    lp.set_defaults(func=cmd_loops)
+    from .impedance.cli import add_parser as add_impedance  # closedloop impedance simulate|identify
+
+    add_impedance(sub)
+    from .cli_evaluate import add_parser as add_evaluate  # closedloop evaluate MODEL... LOG --loop ...
+
+    add_evaluate(sub)
+    return p
+
+
+def _add_calibrate(sub) -> None:
     from .cli_tools import loop_help
 
     c = sub.add_parser("calibrate", help="calibrate a model from a joint log", epilog=loop_help(),
@@ -117,11 +141,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_rig_options(c)
     c.set_defaults(func=cmd_calibrate)
 
-    i = sub.add_parser("inspect", help="list a model's joints, frames and parameter names")
-    i.add_argument("model")
-    i.add_argument("--json", action="store_true")
-    i.set_defaults(func=cmd_inspect)
 
+def _add_simulate(sub) -> None:
     from .cli_tools import add_simulate_robot_options, scenario_help
 
     s = sub.add_parser("simulate", help="generate a closed-chain dataset in MuJoCo", epilog=scenario_help(),
@@ -139,6 +160,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_sweep_options(s)
 
+
+def _add_check(sub) -> None:
     k = sub.add_parser("check", help="compare a calibration report with simulation truth")
     k.add_argument("truth")
     k.add_argument("report")
@@ -147,22 +170,6 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--tol-scale", type=float_arg, default=5e-3, help="tolerance for scale factors")
     k.add_argument("--tol-px", type=float_arg, default=1.0, help="tolerance for camera intrinsics (px)")
     k.set_defaults(func=cmd_check)
-
-    from .cli_tools import add_extract_parser, cmd_loops
-
-    add_extract_parser(sub)
-    from .batch import add_parser as add_batch  # closedloop batch MANIFEST (many jobs, any executor)
-
-    add_batch(sub)
-    lp = sub.add_parser("loops", help="list the loop types, their keys and an example each")
-    lp.set_defaults(func=cmd_loops)
-    from .impedance.cli import add_parser as add_impedance  # closedloop impedance simulate|identify
-
-    add_impedance(sub)
-    from .cli_evaluate import add_parser as add_evaluate  # closedloop evaluate MODEL... LOG --loop ...
-
-    add_evaluate(sub)
-    return p
 
 
 class _Parser(argparse.ArgumentParser):

@@ -70,10 +70,8 @@ def cmd_calibrate(args) -> int:
     from .parameters import parse_fix
     from .report import build_report, write_report
     from .robot import RobotModel
-
     from .data import check_loop_column
     from .export import check_model_output
-
     from .cli_evaluate import require_log
 
     require_log(args)  # the positional log, unless each loop names its file
@@ -108,18 +106,7 @@ def cmd_calibrate(args) -> int:
     elapsed = time.perf_counter() - t0
     report = build_report(res, args.model, args.log)
     report["solver"]["seconds"] = elapsed
-    cv = None
-    if args.cv and res.converged:
-        from .validation import cross_validate
-
-        prog("validating", 0, 0.0)
-        cv = cross_validate(robot, lg, loops, opts, k=args.cv)
-        report["validation"] = {"k": args.cv, "test": cv["test"], "train": cv["train"],
-                                "test_whitened_rms": cv.get("test_whitened_rms"),
-                                "parameter_spread": cv.get("parameter_spread"),
-                                "inconsistent": cv.get("inconsistent"),
-                                "folds_converged": [f["converged"] for f in cv["folds"]]}
-        prog.done()
+    cv = fold_validation(robot, lg, loops, opts, args, report, prog) if args.cv and res.converged else None
     from .report import verdict_record
     from .verdict import judge
 
@@ -149,6 +136,21 @@ def cmd_calibrate(args) -> int:
               file=sys.stderr)
         return EXIT_FAILED
     return 0
+
+
+def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog) -> dict:
+    """K-fold held-out validation (`validation.cross_validate`), into the report."""
+    from .validation import cross_validate
+
+    prog("validating", 0, 0.0)
+    cv = cross_validate(robot, lg, loops, opts, k=args.cv)
+    report["validation"] = {"k": args.cv, "test": cv["test"], "train": cv["train"],
+                            "test_whitened_rms": cv.get("test_whitened_rms"),
+                            "parameter_spread": cv.get("parameter_spread"),
+                            "inconsistent": cv.get("inconsistent"),
+                            "folds_converged": [f["converged"] for f in cv["folds"]]}
+    prog.done()
+    return cv
 
 
 def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = True) -> None:
