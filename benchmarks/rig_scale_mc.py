@@ -7,6 +7,7 @@ calibrated robot's size with the truth (ball positions at random readings after 
 against the reported standard error (`CalibrationResult.scale_std`).  Also the per-loop play estimate.
 
     python benchmarks/rig_scale_mc.py --draws 20
+    python benchmarks/rig_scale_mc.py --draws 20 --block     # a three-socket block (--block) instead
 """
 
 from __future__ import annotations
@@ -27,19 +28,26 @@ from machine import header  # noqa: E402  benchmarks/machine.py
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--draws", type=int, default=20)
+    ap.add_argument("--block", action="store_true", help="a three-socket block (tests/test_rigs.py BLOCK)")
     a = ap.parse_args()
     print(header())
     import test_rigs as tr  # the rig helpers and the truth comparison of tests/test_rigs.py
 
     from closedloop import CalibrationOptions, calibrate
+    from closedloop.constraints import parse_blocks
 
     z, task, t0 = [], [], time.perf_counter()
     for seed in range(a.draws):
         with tempfile.TemporaryDirectory() as tmp:
-            rig, robot, log = tr._setup(Path(tmp), seed=seed, n=30, places=3, sigma_task=tr.SIGMA_TASK,
-                                        sigma_q=2e-5)
+            rig, robot, log = tr._setup(Path(tmp), seed=seed, n=20 if a.block else 30, places=3,
+                                        sigma_task=tr.SIGMA_TASK, sigma_q=2e-5, block=tr.BLOCK if a.block else None)
             loops = tr._loops(robot, rig.loop_names())
-            res = calibrate(robot, log, loops + tr._distances(loops, (1, 2, 3)), CalibrationOptions())
+            if a.block:
+                known = parse_blocks([[f"b{p}"] + [f"place{p}_{s}.point={x},{y},{z}" for s, (x, y, z)
+                                                   in zip("abc", tr.BLOCK)] for p in (1, 2, 3)], loops)
+            else:
+                known = tr._distances(loops, (1, 2, 3))
+            res = calibrate(robot, log, loops + known, CalibrationOptions())
             err = tr.scale_error(res, rig)
         z.append(err / res.scale_std)
         task += [d["task_sigma_m"] / tr.SIGMA_TASK for d in res.noise_model]

@@ -22,6 +22,16 @@ the note says the scale is not set by the data.
 Command line: ``--distance front_a.point front_b.point 0.050 [sigma]``
 (metres; sigma default 10 micrometres); in a ``--config`` file a list of
 ``front_a.point front_b.point 0.050`` lines.
+
+A block of n sockets at known positions s_i in the block's own frame, moved as
+one rigid body (`parse_blocks`, ``--block NAME A.point=X,Y,Z B.point=X,Y,Z
+... [sigma=S]``): the loops' points p_i are one rigid body of known shape,
+given as the n(n-1)/2 pairwise distances |p_i - p_j| = |s_i - s_j|.  A point
+set is fixed up to a rigid motion and a reflection by its pairwise distances
+(n >= 3, not collinear); the reflection does not matter for the closure, since
+the block's pose at each place is free anyway.  Each distance is weighted by
+sigma (for n > 3 the distances are not independent, so sigma is that of one
+distance, slightly optimistic for the block).
 """
 
 from __future__ import annotations
@@ -84,6 +94,7 @@ class DistanceLoop(Loop):
         super().__init__(f"{a}-{b}", "universe", "universe")
         self.a, self.b, self.distance, self.sigma = a, b, d, sig
         self.refers_to = (la.name, lb.name)  # the loops whose points it joins (one rigid fixture)
+        self.block: str | None = None  # the block (`parse_blocks`) this distance belongs to
         self.measurement_cov = np.array([[sig * sig]])
         self._params = [replace(p, name=parameter_name(lp, p), field=f)
                         for (lp, p), f in zip([(la, p) for p in pa] + [(lb, p) for p in pb], FIELDS)]
@@ -107,7 +118,7 @@ class DistanceLoop(Loop):
 
     def describe(self) -> dict:
         return {"name": self.name, "type": "distance", "a": self.a, "b": self.b, "distance_m": self.distance,
-                "sigma_m": self.sigma}
+                "sigma_m": self.sigma} | ({"block": self.block} if self.block else {})
 
     def label(self) -> str:
         """'the distance front_a-front_b (50 mm)'."""
@@ -134,6 +145,66 @@ def parse_distances(items: list[list[str]], loops: list[Loop]) -> list[DistanceL
     return out
 
 
+def parse_blocks(items: list[list[str]], loops: list[Loop]) -> list[DistanceLoop]:
+    """``--block NAME A.point=X,Y,Z B.point=X,Y,Z ... [sigma=S]`` -> the block's pairwise DistanceLoops.
+
+    The positions are in the block's own frame (metres); module docstring for the model.
+    """
+    import re
+    from itertools import combinations
+
+    from .schemas import parse_number
+
+    out = []
+    for it in items:
+        if isinstance(it, str):  # from a --config file: "NAME A.point=0,0,0 B.point=0.05,0,0"
+            it = it.split()
+        it = [str(t) for t in it]
+        where = f"--block {' '.join(it)}"
+        if len(it) < 3 or "=" in it[0]:
+            raise LoopError(f"{where}: expected NAME A.point=X,Y,Z B.point=X,Y,Z ... [sigma=S] (two points or more)")
+        sigma, pts = None, []
+        for t in it[1:]:
+            ref, eq, val = t.partition("=")
+            if not eq:
+                raise LoopError(f"{where}: '{t}' is not REF=X,Y,Z")
+            if ref == "sigma":
+                sigma = parse_number(val, where, LoopError)
+                continue
+            xyz = [parse_number(v, where, LoopError) for v in re.split(r"[,\s\[\]]+", val) if v]
+            if len(xyz) != 3:
+                raise LoopError(f"{where}: {ref} needs 3 coordinates X,Y,Z (m), got '{val}'")
+            pts.append((ref, np.array(xyz, dtype=float)))
+        if len(pts) < 2:
+            raise LoopError(f"{where}: a block needs two points or more")
+        for (ra, sa), (rb, sb) in combinations(pts, 2):
+            d = float(np.linalg.norm(sa - sb))
+            if d <= 0.0:
+                raise LoopError(f"{where}: {ra} and {rb} are at the same position")
+            dl = DistanceLoop(loops, ra, rb, d, sigma)
+            dl.block = it[0]
+            out.append(dl)
+    return out
+
+
+def _scale_labels(dists: list[DistanceLoop]) -> list[str]:
+    """One label per free distance, one per block: 'the block front (3 points: a, b, c)'."""
+    labels, blocks = [], {}
+    for d in dists:
+        if d.block is None:
+            labels.append(d.label())
+        elif d.block not in blocks:
+            blocks[d.block] = [d]
+            labels.append(d.block)
+        else:
+            blocks[d.block].append(d)
+    for name, ds in blocks.items():
+        pts = list(dict.fromkeys(r.rsplit(".", 1)[0] for d in ds for r in (d.a, d.b)))
+        labels[labels.index(name)] = (f"the block {name} ({len(pts)} points: {', '.join(pts)}; "
+                                      f"{len(ds)} distances up to {max(d.distance for d in ds) * 1e3:.4g} mm)")
+    return labels
+
+
 def distance_blocks(problem: CalibrationProblem) -> list[DistanceLoop]:
     return [b.loop for b in problem.blocks if isinstance(b.loop, DistanceLoop)]
 
@@ -142,7 +213,7 @@ def scale_note(problem: CalibrationProblem, gauge: str | None, scale_free: bool)
     """What sets the overall size: the known distances, else a held length ('not set by the data')."""
     dists = distance_blocks(problem)
     if dists:
-        return "the scale is set by " + " and ".join(d.label() for d in dists)
+        return "the scale is set by " + " and ".join(_scale_labels(dists))
     if gauge is not None:
         return (f"the scale is not set by the data: {gauge} is held at its value (give a known length, "
                 "e.g. --distance A.point B.point 0.050)")

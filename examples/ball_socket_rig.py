@@ -140,9 +140,12 @@ def _dls(fun, th, lo, hi, iters=60, tol=1e-12):
 def make_rig(seed: int = 0, n: int = 30, places: int = 3, sigma_task: float = 2e-4, sigma_q: float = 2e-5,
              distance: float = 0.05, err_m: float = 1e-3, err_rad: float = 1e-3, offset_rad: float = 5e-3,
              spread: float = 0.35, place_configs: list[np.ndarray] | None = None,
-             encoder_error: tuple[int, float] | None = None) -> Rig:
+             encoder_error: tuple[int, float] | None = None, block: list | None = None) -> Rig:
     """A simulated rig (module docstring); `encoder_error` = (joint index, amplitude): an unmodelled
-    reading error amplitude * sin(2 reading) of that joint (a cyclic encoder error)."""
+    reading error amplitude * sin(2 reading) of that joint (a cyclic encoder error); `block`: the
+    sockets' positions in the block's frame (sockets a, b, c, ...; default [0,0,0] and [distance,0,0]),
+    the block turned about the vertical by a random angle at each place."""
+    block = np.array([[0.0, 0.0, 0.0], [distance, 0.0, 0.0]] if block is None else block, dtype=float)
     rng = np.random.default_rng(seed)
     nominal = nominal_urdf()
     true_urdf = perturb(nominal, rng, err_m, err_rad)
@@ -170,8 +173,8 @@ def make_rig(seed: int = 0, n: int = 30, places: int = 3, sigma_task: float = 2e
         th0 = (place_configs[p] if place_configs is not None else defaults[p % len(defaults)]).copy()
         P = fk(th0)
         ang = rng.uniform(0, 2 * np.pi)
-        u = np.array([np.cos(ang), np.sin(ang), 0.0])
-        sockets = {"a": P, "b": P + distance * u}
+        Rz = np.array([[np.cos(ang), -np.sin(ang), 0.0], [np.sin(ang), np.cos(ang), 0.0], [0.0, 0.0, 1.0]])
+        sockets = {"abcdefgh"[k]: P + Rz @ v for k, v in enumerate(block)}
         place_list.append(sockets)
         for s, S in sockets.items():
             rows, q_rows, start, fails = [], [], th0, 0
@@ -196,7 +199,7 @@ def make_rig(seed: int = 0, n: int = 30, places: int = 3, sigma_task: float = 2e
             readings[name], qs[name] = read, q
     M = model.frames[fid].placement
     return Rig(nominal, fold_offsets(true_urdf, dict(zip(joints, offsets))), joints, offsets, place_list, readings, qs, M.translation.copy(), sigma_task,
-               sigma_q, distance, {"seed": seed, "encoder_error": encoder_error})
+               sigma_q, distance, {"seed": seed, "encoder_error": encoder_error, "block": block.tolist()})
 
 
 def commands(out: Path, rig: Rig) -> str:

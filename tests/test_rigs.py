@@ -71,6 +71,20 @@ def _similarity_scale(P: np.ndarray, Q: np.ndarray) -> float:
 def scale_error(res, rig, n: int = 60, seed: int = 5) -> float:
     """The calibrated robot's size relative to the truth, minus 1: ball positions at random readings over
     the joint ranges, compared after the best rigid motion (the base is a gauge of a point loop)."""
+    return 1.0 / _similarity_scale(*ball_positions(res, rig, n, seed)) - 1.0
+
+
+def rigid_rms(P: np.ndarray, Q: np.ndarray) -> float:
+    """RMS of |Q - (R P + t)| after the best rigid motion (Kabsch): the calibrated robot's position error."""
+    Pc, Qc = P - P.mean(0), Q - Q.mean(0)
+    U, S, Vt = np.linalg.svd(Qc.T @ Pc)
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    return float(np.sqrt(np.mean(np.sum((Qc - Pc @ (U @ D @ Vt).T) ** 2, axis=1))))
+
+
+def ball_positions(res, rig, n: int = 60, seed: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """(calibrated, true) ball positions at n random readings over the joint ranges."""
     prob = res.problem
     rng = np.random.default_rng(seed)
     lo = np.array([prob.robot.joint(j).lower for j in prob.joints])
@@ -90,7 +104,7 @@ def scale_error(res, rig, n: int = 60, seed: int = 5) -> float:
     for r in R:
         pin.framesForwardKinematics(tm, td, r)
         Q.append(td.oMf[tf].translation.copy())
-    return 1.0 / _similarity_scale(np.array(P), np.array(Q)) - 1.0
+    return np.array(P), np.array(Q)
 
 
 @pytest.fixture(scope="module")
@@ -150,7 +164,8 @@ def test_without_distance_scale_not_set(rig3):
 
 def test_contact_default_no_worse_than_unweighted_heldout(rig3):
     """Leave each place out: the default (task noise estimated beside the joint noise) predicts the
-    held-out places as well as the unweighted fit, and better than the joint-noise-only weighting."""
+    held-out places as well as the unweighted fit (to 2 %, see below), and better than the joint-noise-only
+    weighting; against the truth its size and positions are better than the unweighted fit's."""
     tmp, rig, robot, log = rig3
     names = rig.loop_names()
     held = {}
@@ -165,6 +180,18 @@ def test_contact_default_no_worse_than_unweighted_heldout(rig3):
         assert not out["suspect"]
     assert held["default"].mean() <= 1.02 * held["unweighted"].mean(), held
     assert held["default"].mean() < 0.95 * held["joint only"].mean(), held
+    # The 0.9 % held-out gap to the unweighted fit is the unweighted fit's shrinking: least squares in
+    # metres rewards a smaller robot (its closure spread, play included, scales with the size), the known
+    # distances are one row of weight 1 there, and the held-out spread is measured in the same shrunk
+    # metres (benchmarks/rig_contact_weighting.py, 20 seeds: held-out +0.57 +- 0.11 %, size -0.29 % against
+    # -0.03 %, position error against the truth 2.15 mm against 0.95 mm).  Against the truth:
+    err = {}
+    for label, opt in (("default", CalibrationOptions()), ("unweighted", CalibrationOptions(weighting="none"))):
+        loops = _loops(robot, names)
+        res = calibrate(robot, log, loops + _distances(loops, (1, 2, 3)), opt)
+        err[label] = (scale_error(res, rig), rigid_rms(*ball_positions(res, rig)))
+    assert abs(err["default"][0]) < 0.001 and err["unweighted"][0] < -0.0015, err  # seed 0: +0.07 %, -0.20 %
+    assert err["default"][1] < 0.85 * err["unweighted"][1], err  # seed 0: 1.44 mm against 1.87 mm
 
 
 def test_lofo_names_extrapolating_place_suspect(tmp_path):
@@ -238,3 +265,56 @@ def test_cli_rig_files(rig3, tmp_path):
     assert "ball_tip" in (tmp_path / "cal.urdf").read_text()
     # without --joints the header-less file is refused in one line
     assert main(argv[:2] + argv[4:]) == 2
+
+
+BLOCK = [[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.01, 0.04, 0.0]]  # three sockets in the block's frame (m)
+
+
+def test_block_of_three_sockets_sets_scale(tmp_path):
+    """Issue 18 item 2: a block with three sockets at known positions, moved as one rigid body to three
+    places (--block NAME A.point=X,Y,Z ...): the robot's size within its standard error of the truth
+    (seed 0: -0.02 % against +-0.10 %), the report naming the blocks; the estimated sockets keep the
+    block's shape.  Through the command line the same."""
+    from closedloop.cli import main
+    from closedloop.constraints import parse_blocks
+    from closedloop.errors import LoopError
+
+    rig, robot, log = _setup(tmp_path, seed=0, n=20, places=3, sigma_task=SIGMA_TASK, sigma_q=2e-5, block=BLOCK)
+    names = rig.loop_names()
+    assert names[:3] == ["place1_a", "place1_b", "place1_c"]
+    spec = [[f"blk{p}"] + [f"place{p}_{s}.point={x},{y},{z}" for s, (x, y, z) in zip("abc", BLOCK)]
+            for p in (1, 2, 3)]
+    loops = _loops(robot, names)
+    blocks = parse_blocks(spec, loops)
+    assert len(blocks) == 9 and {b.block for b in blocks} == {"blk1", "blk2", "blk3"}
+    res = calibrate(robot, log, loops + blocks, CalibrationOptions())
+    assert res.converged and res.verdict.status == "ok", res.verdict.describe()
+    assert res.gauge is None
+    assert res.scale_note.startswith("the scale is set by the block blk1 (3 points: place1_a, place1_b, place1_c;"
+                                     " 3 distances up to 56.57 mm) and the block blk2"), res.scale_note
+    err = scale_error(res, rig)
+    assert 0.0 < res.scale_std < 0.003 and abs(err) <= res.scale_std, (err, res.scale_std)
+    for p in (1, 2, 3):  # the estimated sockets: the block's shape to a few micrometres
+        P = np.array([[res.value(f"place{p}_{s}.p{a}") for a in "xyz"] for s in "abc"])
+        S = np.array(BLOCK)
+        for i, j in ((0, 1), (0, 2), (1, 2)):
+            assert abs(np.linalg.norm(P[i] - P[j]) - np.linalg.norm(S[i] - S[j])) < 3e-5
+    for bad, msg in ((["blk", "place1_a.point=0,0", "place1_b.point=0,0,0"], "needs 3 coordinates"),
+                     (["blk", "place1_a.point=0,0,0"], "two points or more"),
+                     (["blk", "place1_a.point=0,0,0", "place1_b.point=0,0,0"], "at the same position"),
+                     (["blk", "place1_a.point", "place1_b.point=0,0,0"], "is not REF=X,Y,Z"),
+                     (["blk", "place9_a.point=0,0,0", "place1_b.point=1,0,0"], "expected LOOP.point")):
+        with pytest.raises(LoopError, match=msg):
+            parse_blocks([bad], loops)
+    # the command line: one --block per place, no quoting needed
+    files = rig.write(tmp_path / "logs")
+    argv = ["calibrate", str(tmp_path / "nominal.urdf"), "--joints", ",".join(rig.joints), "--cv", "0",
+            "--lofo", "off", "--report", str(tmp_path / "rep.json")]
+    for s in spec:
+        argv += ["--block", *s]
+    for f in files:
+        argv += ["--loop", f"point:frame=ball,name={f.stem},tip=@ball,log={f}"]
+    assert main(argv) == 0
+    rep = json.loads((tmp_path / "rep.json").read_text())
+    assert rep["gauge"]["scale"].startswith("the scale is set by the block blk1 (3 points")
+    assert main(argv + ["--block", "bad", "place1_a.point=1,2"]) == 2
