@@ -43,7 +43,7 @@ from .records import (CalibrationOptions, CalibrationResult, LoopResiduals, Para
 from .robot import RobotModel
 from .selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
 from .solver import rms, scaled_svd
-from .staging import Fit, Progress, recheck_at_solution, solve_staged, solve_with_restarts
+from .staging import Fit, Progress, recheck_at_solution, solve_from_starts, solve_staged, solve_with_restarts
 from .verdict import judge
 
 __all__ = ["CalibrationOptions", "CalibrationResult", "LoopResiduals", "ParameterRecord", "Rejected",
@@ -220,7 +220,7 @@ def solve_screened(problem: CalibrationProblem, x0: np.ndarray, free: list[int],
     if screened is not None:
         problem, rejected, x_robust = screened
         structure = analyse_structure(problem, x0, free)
-        fit = solve_staged(problem, x0, x_robust, structure.kept, opt, sigma_q, known, progress)
+        fit = solve_from_starts(problem, x0, [x0, x_robust], structure.kept, opt, sigma_q, known, progress)
     fit = solve_with_restarts(problem, x0, structure.kept, opt, sigma_q, known, rng, progress, fit)
     if opt.robust in ("huber", "cauchy"):
         from .outliers import irls_fit

@@ -215,3 +215,18 @@ def recheck_at_solution(problem: CalibrationProblem, fit: Fit, structure: Struct
         fit = solve_staged(problem, fit.x, fit.x, st.kept, opt, fit.sigma_q, fit.known, progress)
         fit.iterations += before
     return fit, structure, notes
+
+
+def solve_from_starts(problem: CalibrationProblem, x0: np.ndarray, starts: list[np.ndarray], est: list[int],
+                      opt: CalibrationOptions, sigma_q: np.ndarray, known: bool,
+                      progress: Progress | None = None) -> Fit:
+    """`solve_staged` from each start; of the fits that close as well as the best, the nearest to x0 (`_better`).
+
+    After outliers are rejected the robust refit's point is one start and x0 the
+    other: a robust fit dragged by the rejected rows may lead the inliers' fit
+    to another minimum than the plain start would.
+    """
+    scale = np.array([p.prior for p in problem.params])
+    fits = [solve_staged(problem, x0, st, est, opt, sigma_q, known, progress) for st in starts]
+    stage = _better(problem, [f.stage for f in fits], x0, est, scale)
+    return next(f for f in fits if f.stage is stage)
