@@ -102,10 +102,7 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
     memo: dict = {}
     first = _solve(fun, x0, scale, replace(opt, noise=0.0), progress, memo)
     if first.status != "converged":  # a long valley: once more from where it stopped
-        more = _solve(fun, first.x, scale, replace(opt, noise=0.0), progress, memo)
-        more.iterations += first.iterations
-        more.history = first.history + more.history
-        first = more
+        first = _after(first, _solve(fun, first.x, scale, replace(opt, noise=0.0), progress, memo))
     r = first.residual
     # the last iteration's factorisation when it was of this Jacobian (a solve that ends on
     # "no step lowers the cost"), else one more TSQR pass
@@ -121,12 +118,9 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
         if s2 >= 0.5 * sigma:
             break
         log.info("the truncated fit closes to %.3e, below the noise estimated before (%.3e): re-solving", s2, sigma)
-        sigma, before = s2, second
-        second = _solve(fun, before.x, scale, replace(opt, noise=sigma), progress)
-        second.iterations += before.iterations
-        second.history = before.history + second.history
-    second.history = first.history + second.history
-    second.iterations += first.iterations
+        sigma = s2
+        second = _after(second, _solve(fun, second.x, scale, replace(opt, noise=sigma), progress))
+    second = _after(first, second)
     # Truncating directions that lie below the noise raises the cost by about their number times
     # sigma^2, a small fraction of it.  Far more means the "noise" was model misfit (a stage that
     # holds most parameters fixed): keep the untruncated solution then.
@@ -137,6 +131,13 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
         first.history = second.history
         return first
     return second
+
+
+def _after(before: SolverResult, after: SolverResult) -> SolverResult:
+    """`after` (a solve that followed `before`) counting `before`'s iterations and history too."""
+    after.iterations += before.iterations
+    after.history = before.history + after.history
+    return after
 
 
 def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOptions,
