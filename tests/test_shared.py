@@ -204,12 +204,11 @@ def test_shared_readings_whitened_together(monkeypatch):
     assert apart > 1.25, apart
 
 
-def test_two_cameras_share_the_marker():
-    """Issue 14: one marker seen by two single-camera loops is one parameter; noise-free, both images
-    close to round-off with the marker estimated once."""
+def _two_camera_data(sigma_px: float | None = None):
+    """A UR5 with errors drawn on its joint origins and offsets, and a marker on tool0 seen by two cameras
+    that share it (`share(..., "tip", "marker")`): robot, joints, readings, a loop factory, exact pixels."""
     from test_loops_camera import K1, K2, UR5, X1, X2, pixels, robot_of, ur5_readings
 
-    from closedloop import CalibrationOptions, calibrate
     from closedloop.loops.camera import CameraLoop
     from closedloop.shared import share
     from closedloop.truth import draw_truth
@@ -217,10 +216,11 @@ def test_two_cameras_share_the_marker():
     robot = robot_of(UR5)
     joints = robot.supporting_joints("tool0")
     th = ur5_readings(40)
+    kw = {} if sigma_px is None else {"sigma_px": sigma_px}
 
     def loops():
-        return [share(CameraLoop("L", "tool0", K=[K1]), "tip", "marker"),
-                share(CameraLoop("R", "tool0", K=[K2]), "tip", "marker")]
+        return [share(CameraLoop("L", "tool0", K=[K1], **kw), "tip", "marker"),
+                share(CameraLoop("R", "tool0", K=[K2], **kw), "tip", "marker")]
 
     zeros = {c: np.zeros(len(th)) for lp in loops() for c in lp.columns()}
     prob = build_problem(robot, JointLog(joints, th, None, None, zeros), loops())
@@ -230,6 +230,15 @@ def test_two_cameras_share_the_marker():
                                                                         "offset": 5e-3}).items():
         truth[prob.index[k]] = v
     data = pixels(prob, truth, th, [X1], [K1], name="L") | pixels(prob, truth, th, [X2], [K2], name="R")
+    return robot, joints, th, loops, data
+
+
+def test_two_cameras_share_the_marker():
+    """Issue 14: one marker seen by two single-camera loops is one parameter; noise-free, both images
+    close to round-off with the marker estimated once."""
+    from closedloop import CalibrationOptions, calibrate
+
+    robot, joints, th, loops, data = _two_camera_data()
     res = calibrate(robot, JointLog(joints, th, None, None, data), loops(), CalibrationOptions())
     assert [n for n in res.names if ".tip_" in n] == ["marker.tip_x", "marker.tip_y", "marker.tip_z"]
     assert res.converged and max(r.rms_px for r in res.residuals_after) < 1e-6
@@ -239,29 +248,9 @@ def _two_camera_mc(draws: int, sigma_q: float = 1e-4, sigma_px: float = 0.01) ->
     """Issue 14: two single-camera loops share the marker, joint noise dominant (1e-4 rad, ~0.05 px in
     the images, against 0.01 px): over `draws` noisy copies of one data set, the Monte Carlo spread of the shared marker and
     the mean z^2 of all estimated parameters against the reported standard errors."""
-    from test_loops_camera import K1, K2, UR5, X1, X2, pixels, robot_of, ur5_readings
-
     from closedloop import CalibrationOptions, calibrate
-    from closedloop.loops.camera import CameraLoop
-    from closedloop.shared import share
-    from closedloop.truth import draw_truth
 
-    robot = robot_of(UR5)
-    joints = robot.supporting_joints("tool0")
-    th = ur5_readings(40)
-
-    def loops():
-        return [share(CameraLoop("L", "tool0", K=[K1], sigma_px=sigma_px), "tip", "marker"),
-                share(CameraLoop("R", "tool0", K=[K2], sigma_px=sigma_px), "tip", "marker")]
-
-    zeros = {c: np.zeros(len(th)) for lp in loops() for c in lp.columns()}
-    prob = build_problem(robot, JointLog(joints, th, None, None, zeros), loops())
-    truth = prob.nominal.copy()
-    names = [n for n in prob.names if n.split(".")[0] in joints and n.split(".")[1] in ("x", "y", "rx", "offset")]
-    for k, v in draw_truth(robot, names, np.random.default_rng(2), {"translation": 1e-3, "rotation": 1e-3,
-                                                                        "offset": 5e-3}).items():
-        truth[prob.index[k]] = v
-    data = pixels(prob, truth, th, [X1], [K1], name="L") | pixels(prob, truth, th, [X2], [K2], name="R")
+    robot, joints, th, loops, data = _two_camera_data(sigma_px)
     est, std = [], []
     for d in range(draws):
         r = np.random.default_rng(500 + d)
