@@ -104,6 +104,8 @@ class NominalLoop:
         self.normal = None if normal is None else np.asarray(normal, dtype=float) / np.linalg.norm(normal)
         self.d = 0.0
         self.target = self.kind.nominal_target(self, data, oMt0, hinge, door_range, target_frame)
+        #: the target frame is fixed in the world (its Jacobian is zero)
+        self.target_fixed = self.model.frames[self.target].parentJoint == 0
         self.point = oMt0.translation.copy()
         self.data = self.model.createData()
         self._last: tuple[bytes, np.ndarray, np.ndarray] | None = None  # (q bytes, e, de/dq)
@@ -144,8 +146,11 @@ class NominalLoop:
         return self.kind.nominal_residual(self, d, oMt, jt)
 
     def project(self, q: np.ndarray, iters: int = 3, tol: float = 1e-12) -> np.ndarray:
-        """Gauss-Newton projection of ``q`` onto the nominal loop (minimum-norm steps)."""
-        q = q.copy()
+        """Gauss-Newton projection of ``q`` onto the nominal loop (minimum-norm steps ``dq = -J^+ e``)."""
+        return self._project(np.array(q, dtype=float), iters, tol)
+
+    def _project(self, q: np.ndarray, iters: int = 3, tol: float = 1e-12) -> np.ndarray:
+        """:meth:`project` of a new array ``q`` (changed in place)."""
         for _ in range(iters):
             e, jac = self.residual(q)
             if float(e @ e) < tol:
@@ -199,6 +204,7 @@ class NominalLoopPlanner:
         self.q_hi = np.maximum(loop.upper - margin, self.q)
         self.stats = PlannerStats()
         self._eye = np.eye(loop.nq)
+        self._rank_tol = max(loop.n_constraints, loop.nq) * np.finfo(float).eps  # numpy's matrix_rank tolerance
         _e, jac = loop.residual(self.q)
         self.one_dimensional = jac.shape[1] - np.linalg.matrix_rank(jac) == 1
         self._sweep_ref = np.linalg.svd(jac)[2][-1]
@@ -219,8 +225,9 @@ class NominalLoopPlanner:
         """Loop error and Jacobian at ``self.q``, the Jacobian's right singular vectors and its rank."""
         e, jac = self.loop.residual(self.q)
         _u, sv, vt = svd_full(jac)
-        tol = (sv[0] if sv.size else 0.0) * max(jac.shape) * np.finfo(float).eps
-        return e, jac, vt, int(np.sum(sv > tol))
+        # sv_max * max(m, n) * eps: the product by eps (a power of two) is exact, so the factor is precomputed
+        tol = (float(sv[0]) if sv.size else 0.0) * self._rank_tol
+        return e, jac, vt, int(np.count_nonzero(sv > tol))
 
     def _qp_step(self, direction: np.ndarray, step: float | None = None,
                  lin: tuple[np.ndarray, np.ndarray, np.ndarray, int] | None = None) -> np.ndarray | None:
@@ -231,12 +238,13 @@ class NominalLoopPlanner:
         # null-space direction of the nominal loop (direction - J^+ J direction), scaled to the step size
         vr = vt[:rank]
         dn = direction - vr.T @ (vr @ direction)
-        amax = float(np.abs(dn).max())
+        amax = _abs_max(dn)
         if amax < 1e-9:
             return np.zeros(n)
         dn *= min(1.0, step / amax)
-        P = self._eye + _W_LOOP * jac.T @ jac
-        c = -dn + _W_LOOP * jac.T @ e
+        wjt = _W_LOOP * jac.T  # P = I + w J^T J, c = -d + w J^T e (the products as written, (w J^T) first)
+        P = self._eye + wjt @ jac
+        c = -dn + wjt @ e
         lb, ub = self.q_lo - self.q, self.q_hi - self.q
         self.stats.qp_solves += 1
         dq = solve_box_qp(P, c, lb, ub)
@@ -277,8 +285,8 @@ class NominalLoopPlanner:
             for _attempt in range(2):
                 step = self.step_rad * float(self.rng.uniform(0.5, 1.0))
                 dq = self._qp_step(self._sweep_direction(lin[2]), step, lin)
-                if dq is not None and float(np.abs(dq).max()) > 0.2 * step:
-                    self.q = self._clip(self.loop.project(self.q + dq))
+                if dq is not None and _abs_max(dq) > 0.2 * step:
+                    self.q = self._clip(self.loop._project(self.q + dq))
                     return self.q.copy()
                 self._sweep_sign = -self._sweep_sign
                 self.stats.retargets += 1
@@ -288,7 +296,7 @@ class NominalLoopPlanner:
                 self._target = self._new_target()
             self._since_target += 1
             dq = self._qp_step(self._target - self.q)
-            size = float(np.abs(dq).max()) if dq is not None else 0.0
+            size = _abs_max(dq) if dq is not None else 0.0
             if dq is None or size < 0.2 * self.step_rad:
                 # stalled (joint limit or target reached): new target
                 self._target = self._new_target()
@@ -296,12 +304,16 @@ class NominalLoopPlanner:
                     continue
                 if size < 1e-3:
                     continue
-            q_new = self.loop.project(self.q + dq)
-            q_new = self._clip(q_new)
-            self.q = q_new
+            self.q = self._clip(self.loop._project(self.q + dq))
             return self.q.copy()
         log.debug("planner stalled; repeating waypoint")
         return self.q.copy()
+
+
+def _abs_max(x: np.ndarray) -> float:
+    """``max |x_i|`` (``float(np.abs(x).max())`` for finite ``x``) of a short vector, without numpy's reductions."""
+    v = x.tolist()
+    return max(max(v), -min(v))
 
 
 class RandomConfigurations:

@@ -140,10 +140,11 @@ class SimLoop:
         """``e = log6(oMh^-1 oMt)``, ``de/dq = Jlog6(hMt) (J_t - Ad(tMh) J_h)`` (LOCAL Jacobians)."""
         oMh = d.oMf[loop.target]
         hMt = oMh.actInv(oMt)
-        jh = pin.getFrameJacobian(loop.model, d, loop.target, pin.ReferenceFrame.LOCAL)
         e = pin.log6(hMt).vector
-        jac = pin.Jlog6(hMt) @ (jt - hMt.inverse().action @ jh)
-        return e, jac
+        if loop.target_fixed:  # a fixture in the world: J_h = 0
+            return e, pin.Jlog6(hMt) @ jt
+        jh = pin.getFrameJacobian(loop.model, d, loop.target, pin.ReferenceFrame.LOCAL)
+        return e, pin.Jlog6(hMt) @ (jt - hMt.inverse().action @ jh)
 
     # ------------------------------------------------------------------ truth
     def truth_parameters(self, name: str, scene) -> dict[str, float]:

@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["solve_box_qp", "min_norm_step", "svd_full"]
+__all__ = ["solve_box_qp", "min_norm_step", "svd_full", "solve_vec"]
 
-# The planner's small systems (6-9 variables) go through numpy's public solve / svd: numpy's private
-# gufuncs (numpy.linalg._umath_linalg, the same LAPACK calls) saved ~2 us a call, ~3 ms of a 0.9 s
-# simulation (panda_weld, ur5_socket, ur5_door at n=200: 0.911 s private, 0.919 s public), not worth a private API.
-_solve = np.linalg.solve
+# The planner's small systems (6-9 variables) go through numpy's public solve / svd.  numpy's private
+# LAPACK gufuncs (numpy.linalg._umath_linalg: the same calls, the same numbers to the bit) would save
+# ~2 us a call without the wrappers' checks and `errstate`, ~8 us a waypoint (~1.5 % of the Panda's
+# loop), but the layout rules keep other packages' private names out (tests/test_layout.py).
+solve_vec = np.linalg.solve
 svd_full = np.linalg.svd
 
 
@@ -32,10 +33,12 @@ def solve_box_qp(P: np.ndarray, c: np.ndarray, lb: np.ndarray, ub: np.ndarray, m
     converged after ``max_iter`` iterations (default ``10 n + 10``) or if ``lb > ub``.
     """
     n = c.shape[0]
-    if np.any(lb > ub):
+    # lb <= ub, and x within them: on Python floats (6-9 values; numpy's comparisons cost more)
+    lo, hi = lb.tolist(), ub.tolist()
+    if any(a > b for a, b in zip(lo, hi)):
         return None
-    x = _solve(P, -c)  # the unconstrained minimiser (P positive definite): the usual answer
-    if (x >= lb).all() and (x <= ub).all():
+    x = solve_vec(P, -c)  # the unconstrained minimiser (P positive definite): the usual answer
+    if all(a <= v <= b for a, v, b in zip(lo, x.tolist(), hi)):
         return x
     x = np.clip(np.zeros(n), lb, ub)
     # working set: -1 at the lower bound, +1 at the upper bound, 0 free
@@ -51,7 +54,7 @@ def solve_box_qp(P: np.ndarray, c: np.ndarray, lb: np.ndarray, ub: np.ndarray, m
             rhs = -c[free]
             if act.any():
                 rhs = rhs - P[np.ix_(free, act)] @ x[act]
-            xf = _solve(P[np.ix_(free, free)], rhs)
+            xf = solve_vec(P[np.ix_(free, free)], rhs)
             xo = x[free]
             p = xf - xo
             # ratio test: the first bound the step from xo to xf crosses
@@ -84,7 +87,7 @@ def min_norm_step(jac: np.ndarray, e: np.ndarray) -> np.ndarray:
     m, n = jac.shape
     if m <= n:
         try:
-            dq = jac.T @ _solve(jac @ jac.T, e)
+            dq = jac.T @ solve_vec(jac @ jac.T, e)
         except np.linalg.LinAlgError:  # J J^T singular (np.linalg.solve raises): least squares below
             dq = None
         if dq is not None and np.isfinite(dq).all():
