@@ -25,6 +25,7 @@ caller when a stage stalls far above any plausible noise.
 
 from __future__ import annotations
 
+import copy
 import logging
 from dataclasses import dataclass, replace
 from typing import Callable
@@ -68,16 +69,66 @@ class ResidualFunction:
         self._trial = None
         self.deficit = 0  # residual directions the weighting discards (pseudo-inverse), at the last Jacobian
         self.missing = 0  # residual rows without an observation, at the last Jacobian
+        self._charts: dict[int, object] = {}  # block -> its loop with a re-centred chart (`retract`)
+        self._charted = self.problem  # the problem evaluated: with those loops
+        self._x0c = self.x0  # x0 in those charts
 
     def full(self, xe: np.ndarray) -> np.ndarray:
-        x = self.x0.copy()
+        """The whole parameter vector, in the problem's own charts."""
+        x = self._x0c.copy()
+        x[self.est] = xe
+        for bi, lp in self._charts.items():
+            c = self.problem.loop_columns[bi]
+            x[c] = lp.express(x[c], self.problem.blocks[bi].loop)
+        return x
+
+    def retract(self, xe: np.ndarray) -> np.ndarray:
+        """`xe` after the loops' charts moved to it (`Loop.recentred`), in the new charts.
+
+        Called by the solver after each accepted step: a loop whose parameters
+        are coordinates on a manifold (the hinge's line) keeps its chart centred
+        where the solver is, so that the steps are taken where it is nearly
+        flat.  Loops whose parameters are not all estimated or are shared stay.
+        """
+        x = self._x0c.copy()
+        x[self.est] = xe
+        est, moved = set(self.est), False
+        cols = self.problem.loop_columns
+        for bi, b in enumerate(self.problem.blocks):
+            c = cols[bi]
+            if not c.size or not est.issuperset(c.tolist()) or any(
+                    np.intersect1d(c, o).size for bj, o in enumerate(cols) if bj != bi):
+                continue
+            lp = self._charts.get(bi, b.loop)
+            moved_to = lp.recentred(x[c])
+            if moved_to is not None:
+                self._charts[bi], x[c] = moved_to
+                moved = True
+        if moved:
+            blocks = [replace(b, loop=self._charts.get(bi, b.loop)) for bi, b in enumerate(self.problem.blocks)]
+            self._charted = copy.copy(self.problem)
+            self._charted.blocks = blocks
+            self._x0c, self._x, self._rJ, self._trial = x, None, None, None
+        return x[self.est]
+
+    def settle(self, xe: np.ndarray) -> np.ndarray | None:
+        """`xe` in the problem's own charts, the charts reset; None if none moved."""
+        if not self._charts:
+            return None
+        x = self.full(xe)
+        self._charts, self._charted, self._x0c = {}, self.problem, self.x0
+        self._x, self._rJ, self._trial = None, None, None
+        return x[self.est]
+
+    def _local(self, xe: np.ndarray) -> np.ndarray:
+        x = self._x0c.copy()
         x[self.est] = xe
         return x
 
     def __call__(self, xe: np.ndarray, jac: bool | None) -> tuple[np.ndarray, np.ndarray | None]:
         """r (and J if `jac`) at xe; `jac=None`: a probe (no Jacobian, not a trial point)."""
         if jac is None:
-            evals = self.problem.evaluate(self.full(xe), self._W is None, columns=[])
+            evals = self._charted.evaluate(self._local(xe), self._W is None, columns=[])
             r, _, _ = whiten(evals, self.sigma_q, self.weighting, False, self.problem.noise,
                              self._W, self.symmetric)
             return (r * self.row_weights if self.row_weights is not None else r), None
@@ -89,8 +140,8 @@ class ResidualFunction:
             evals = self._trial[1]
         else:
             full = jac or first_trial
-            evals = self.problem.evaluate(self.full(xe), full or self._W is None,
-                                          columns=self.est if full else [])
+            evals = self._charted.evaluate(self._local(xe), full or self._W is None,
+                                           columns=self.est if full else [])
         r, J, used = whiten(evals, self.sigma_q, self.weighting, jac, loops, None if jac else self._W,
                             self.symmetric)
         if jac or self._W is None:

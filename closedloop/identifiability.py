@@ -334,6 +334,17 @@ def structure_holds(problem: CalibrationProblem, x: np.ndarray, structure: Struc
     S = np.linalg.svd(R[:, kept], compute_uv=False)
     if S.size and S[-1] <= 1e-10 * S[0]:
         return "the estimated parameters are structurally dependent at the solution", None
+    # Every free parameter's column against the kept ones' (and the held length's): more rank means a
+    # parameter dropped as redundant at the start carries information at the solution, if the direction
+    # it adds moves the closure by more than the closure's own RMS (a fit's noise breaks the exact
+    # symmetries of a nominal geometry by far less).
+    held = kept + ([free.index(structure.gauge)] if structure.gauge in free else [])
+    S_free = np.linalg.svd(R, compute_uv=False)
+    S_held = np.linalg.svd(R[:, held], compute_uv=False)
+    r = np.concatenate([ev.r.ravel() for ev in problem.evaluate(x, False)])
+    floor = max(1e-10 * S_free[0], float(np.sqrt(np.mean(r ** 2)))) if S_free.size and r.size else np.inf
+    if np.sum(S_free > floor) > np.sum(S_held > floor):
+        return "a parameter dropped as redundant at the start is not redundant at the solution", None
     if structure.scale_free and structure.gauge is None and not structure.rechecked:
         return "no single length was found to set the scale at the start", None
     if structure.gauge is not None and not sets_scale(problem, x, free, R, kept, free.index(structure.gauge)):

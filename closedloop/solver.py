@@ -152,6 +152,7 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
     if progress:
         progress(0, cost)
     lam, nu = 0.0, 2.0
+    retract = getattr(fun, "retract", None) if not bounded else None
     status, message, truncated = "max_iter", f"no convergence in {opt.max_iter} iterations", 0
     it = 0
     for it in range(1, opt.max_iter + 1):
@@ -193,6 +194,8 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
         step_norm = float(np.linalg.norm(dz))
         decrease = cost - cost_new
         x = x_new
+        if retract is not None:
+            x = retract(x)  # the parameters' charts follow the solution (`fit.ResidualFunction.retract`)
         r, J = fun(x, True)
         cost = 0.5 * float(r @ r)
         history.append(cost)
@@ -205,6 +208,10 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
         if decrease <= opt.ftol * max(cost + decrease, 1e-300) or step_norm < opt.xtol:
             status, message = "converged", "cost and step converged"
             break
+    settled = fun.settle(x) if retract is not None else None
+    if settled is not None:  # back in the problem's own charts
+        x = settled
+        r, J = fun(x, True)
     return SolverResult(x, cost, it, status, message, history, truncated, r, J)
 
 

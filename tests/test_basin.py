@@ -5,9 +5,11 @@ Examples 1 and 2 and point contact all starts here but at most one must be recov
 mechanism equals the truth to 1e-6, gauge-free, and the verdict is not 'failed'; Example 2's start 2 is
 one of its two refusals in 40); Example 1's starts 11 and 16
 are ones where the start model closes only one of the 40 configurations, so the reduction must be
-decided at the solution (`identifiability.Structure.provisional`).  The door (hinge unknown) is
-recovered from some starts only (its data's weakest direction is 3e-8 of the strongest): each start
-there must be recovered or refused.  The rates over 40-100 starts are `benchmarks/basin.py`'s.
+decided at the solution (`identifiability.Structure.provisional`).  The door (hinge unknown; its
+data's weakest direction is 3e-8 of the strongest): start 8 stops at a local minimum 1e-6 m above
+zero whose residual is smooth along the swing, which sends it to restarts (`staging._systematic`);
+start 12's start drops j5.s as redundant, which it is not at the solution (`structure_holds`).  The
+rates over 40-100 starts are `benchmarks/basin.py`'s.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import pytest
 
 import thesis_examples as te
 
-STARTS = {"example1": [0, 1, 2, 3, 11, 16], "example2": [0, 1, 2, 3], "door": [0, 1], "point": [0, 1, 2, 3, 4]}
+STARTS = {"example1": [0, 1, 2, 3, 11, 16], "example2": [0, 1, 2, 3], "door": [0, 8, 12], "point": [0, 1, 2, 3, 4]}
 
 
 def test_examples_are_exact_closed_loops():
@@ -60,5 +62,5 @@ def test_basin_quick(name):
     if any(not o.recovered and not o.refused for o in outs):
         pytest.fail(f"not recovered and not refused:\n{lines}", pytrace=False)
     # 95 % over 40 starts (benchmarks/basin.py): here at most one of these starts may be refused
-    if name != "door" and sum(o.accepted for o in outs) < len(outs) - 1:
+    if sum(o.accepted for o in outs) < len(outs) - (name != "door"):  # the door's three: all
         pytest.fail(f"more than one start not recovered:\n{lines}", pytrace=False)

@@ -349,7 +349,8 @@ def _ref_hinge(lp, TA, TB, p):
     rz = lambda a: pin.SE3(pin.exp3(np.array([0.0, 0.0, a])), np.zeros(3))  # noqa: E731
     XdG = (G.inverse().action @ np.array([0, 0, 0, 0, 0, 1.0]))[:, None]
     gen_h = np.zeros((6, 4))
-    gen_h[:3, :2] = pin.exp3(np.array([p[2], p[3], 0.0])).T[:, :2]
+    gen_h[:2, :2] = np.eye(2)  # H = H0 Rot(exp3(rx, ry, 0)) Trans(x, y, 0): right twists
+    gen_h[:3, 2:] = np.cross(pin.Jexp3(np.array([p[2], p[3], 0.0]))[:, :2].T, [p[0], p[1], 0.0]).T
     gen_h[3:, 2:] = pin.Jexp3(np.array([p[2], p[3], 0.0]))[:, :2]
     gen_g = np.zeros((6, 5))
     gen_g[:3, 0], gen_g[:3, 1], gen_g[3:, 2:] = G.rotation.T[:, 0], G.rotation.T[:, 2], pin.Jexp3(p[6:9])

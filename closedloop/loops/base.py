@@ -127,6 +127,20 @@ class Loop(ABC):
         """A canonical form of the loop's parameters (e.g. rotation vectors within pi)."""
         return p
 
+    def recentred(self, p: np.ndarray) -> tuple["Loop", np.ndarray] | None:
+        """A copy of the loop whose parameter chart is centred at `p`, and `p` in it; None: nothing to move.
+
+        For loops whose parameters are coordinates in a chart around a reference
+        (the hinge's line): the solver re-centres the chart as it goes, so that its
+        steps are taken where the chart is nearly flat (a retraction, as on a Lie
+        group).  The model is unchanged: `express(p', self)` gives `p` back.
+        """
+        return None
+
+    def express(self, p: np.ndarray, other: "Loop") -> np.ndarray:
+        """`p` (this loop's chart) in the chart of `other`, a re-centred copy of this loop."""
+        return p
+
     def residual(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray:
         """The residual alone (N, m); loops override it when that is cheaper than `evaluate`."""
         return (self.evaluate(TA, TB, p) if meas is None else self.evaluate(TA, TB, p, meas)).r

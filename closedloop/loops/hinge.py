@@ -62,6 +62,8 @@ starting point of the Gauss-Newton iteration).
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pinocchio as pin
 
@@ -74,6 +76,7 @@ from .spec import register
 
 HINGE_FIELDS = ("hinge_x", "hinge_y", "hinge_rx", "hinge_ry", "radius", "height",
                 "grasp_rx", "grasp_ry", "grasp_rz")
+RECENTRE = 0.1  # m or rad: how far the hinge may move in its chart before the chart follows it
 _EZ = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])  # rotation about z (pin.Motion order: v, w)
 
 
@@ -202,7 +205,8 @@ class HingeLoop(Loop):
 
     def hinge(self, p: np.ndarray) -> pin.SE3:
         """The hinge frame H (z = hinge axis) in B."""
-        return self.H0 * pin.SE3(pin.exp3(np.array([p[2], p[3], 0.0])), np.array([p[0], p[1], 0.0]))
+        R = pin.exp3(np.array([p[2], p[3], 0.0]))
+        return self.H0 * pin.SE3(R, R @ np.array([p[0], p[1], 0.0]))
 
     @staticmethod
     def grasp(p: np.ndarray) -> pin.SE3:
@@ -255,6 +259,35 @@ class HingeLoop(Loop):
         q[6:9] = pin.log3(G.rotation)
         return q
 
+    def recentred(self, p: np.ndarray) -> tuple["HingeLoop", np.ndarray] | None:
+        """The chart re-centred on the current hinge frame once it is RECENTRE m or rad off H0 (`Loop.recentred`)."""
+        if np.abs(p[:4]).max() <= RECENTRE:
+            return None
+        other = copy.copy(self)
+        other.H0 = self.hinge(p)
+        q = np.array(p, dtype=float)
+        q[:4] = 0.0
+        return other, q
+
+    def express(self, p: np.ndarray, other: "HingeLoop") -> np.ndarray:
+        """The same line and grasp in the chart of `other` (`Loop.express`).
+
+        With L = H0'^-1 H, the chart's rotation is the one about an axis normal
+        to z taking z to L's axis d; the line's point nearest H0' gives (x, y);
+        what is left of L is Rz(a) Tz(h): a shifts the eliminated angle, h
+        the handle's height.
+        """
+        L = other.H0.actInv(self.hinge(p))
+        d = L.rotation[:, 2]
+        w = np.array([-d[1], d[0], 0.0])  # z x d
+        s = float(np.linalg.norm(w))
+        rv = w * (np.arctan2(s, d[2]) / s) if s > 1e-12 else np.zeros(3)
+        u = pin.exp3(rv).T @ L.translation
+        q = np.array(p, dtype=float)
+        q[:4] = u[0], u[1], rv[0], rv[1]
+        q[5] += u[2]
+        return q
+
     def describe(self) -> dict:
         return super().describe() | {"reference_axis": {"point": self.H0.translation.tolist(),
                                                         "direction": self.H0.rotation[:, 2].tolist()}}
@@ -273,9 +306,10 @@ class HingeLoop(Loop):
         G = self.grasp(p)
         # right twists of X = H Rz(phi) G per parameter
         gen_h = np.zeros((6, 4))
-        Rh = pin.exp3(np.array([p[2], p[3], 0.0]))
-        gen_h[:3, :2] = Rh.T[:, :2]
-        gen_h[3:, 2:] = pin.Jexp3(np.array([p[2], p[3], 0.0]))[:, :2]
+        Jr = pin.Jexp3(np.array([p[2], p[3], 0.0]))[:, :2]
+        gen_h[0, 0] = gen_h[1, 1] = 1.0
+        gen_h[:3, 2:] = -pin.skew(np.array([p[0], p[1], 0.0])) @ Jr
+        gen_h[3:, 2:] = Jr
         gen_g = np.zeros((6, 5))
         gen_g[:3, 0] = G.rotation.T[:, 0]
         gen_g[:3, 1] = G.rotation.T[:, 2]
