@@ -27,6 +27,7 @@ The pipeline (thesis 3.2, 4.2, with the noise treated as errors in variables):
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 
@@ -94,7 +95,13 @@ def build_problem(robot: RobotModel, log_: JointLog, loops: list[Loop], priors: 
             rows = np.arange(len(log_))
         blocks.append(LoopBlock(lp, theta[rows], numbers[rows], tau[rows] if tau is not None else None,
                                 lp.measurements(log_.extra, rows)))
-    return CalibrationProblem(robot, joints, blocks, priors)
+    problem = CalibrationProblem(robot, joints, blocks, priors)
+    # what each loop reads off the data once (`Loop.prepare`: the hinge's chart), at the nominal robot
+    prepared = [b.loop.prepare(*problem.loop_poses(problem.nominal, bi), b.meas)
+                if type(b.loop).prepare is not Loop.prepare else b.loop for bi, b in enumerate(blocks)]
+    if all(p is b.loop for p, b in zip(prepared, blocks)):
+        return problem
+    return CalibrationProblem(robot, joints, [replace(b, loop=p) for b, p in zip(blocks, prepared)], priors)
 
 
 def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, status: list[str]

@@ -179,10 +179,22 @@ def self_motion_manifold(problem: CalibrationProblem, values: np.ndarray, theta0
         poly = np.array([start] + halves[0] + [start])
     else:
         poly = np.array(halves[1][::-1] + [start] + halves[0])
+    th = _resample_onto_loop(problem, values, thetas, block, poly, n, closed)
+    if not all(inside(x) for x in th):
+        raise NotIdentifiableError(f"resampling the self-motion of loop {name} left the loop or the limits")
+    return th
+
+
+def _resample_onto_loop(problem: CalibrationProblem, values: np.ndarray, thetas: list[np.ndarray], block: int,
+                        poly: np.ndarray, n: int, closed: bool) -> np.ndarray:
+    """`n` readings at equal arc lengths along the polyline `poly`, each corrected onto loop `block`
+    (batched Gauss-Newton, minimum-norm steps); NotIdentifiableError if one does not close."""
+    from .errors import NotIdentifiableError
+
     s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))]
     targets = np.linspace(0.0, s[-1], n, endpoint=not closed)
     th = np.array([np.interp(targets, s, poly[:, c]) for c in range(poly.shape[1])]).T
-    for _ in range(20):  # batched Gauss-Newton onto the loop, minimum-norm steps
+    for _ in range(20):
         thetas[block] = th
         ev = problem.evaluate(values, True, thetas)[block]
         r, J = ev.r.reshape(len(th), -1), ev.Jq.reshape(len(th), -1, th.shape[1])
@@ -190,9 +202,9 @@ def self_motion_manifold(problem: CalibrationProblem, values: np.ndarray, theta0
             break
         th = th - np.einsum("nki,nk->ni", J, np.linalg.solve(J @ np.swapaxes(J, 1, 2), r[..., None])[..., 0])
     thetas[block] = th
-    r = problem.evaluate(values, False, thetas)[block].r
-    if np.abs(r).max() > 1e-10 or not all(inside(x) for x in th):
-        raise NotIdentifiableError(f"resampling the self-motion of loop {name} left the loop or the limits")
+    if np.abs(problem.evaluate(values, False, thetas)[block].r).max() > 1e-10:
+        raise NotIdentifiableError(f"resampling the self-motion of loop {problem.blocks[block].loop.name} "
+                                   "left the loop or the limits")
     return th
 
 

@@ -57,6 +57,30 @@ def exchange_a(B: np.ndarray, k: int, prior_weight: float = 1.0, base: np.ndarra
     return Selection(np.array(sorted(design), dtype=int), logdet, hist, exchanges, trace, thist, "A")
 
 
+def _best_entrant(P: np.ndarray, C: np.ndarray, V: np.ndarray, Bt: np.ndarray, ub: np.ndarray, lb: np.ndarray,
+                  need: float, top: np.ndarray) -> tuple[float, int, np.ndarray | None, np.ndarray | None]:
+    """The candidate of largest exact trace gain g_i = tr(S_i^-1 T_i T_i^T) (T_i = B_i M_j, S_i = I + T_i B_i^T):
+    first among `top` (the largest upper bounds `ub`), then among the rest whose bound still beats the best
+    gain so far, `need` and every lower bound `lb`.  Returns (g, i, T_i, S_i); g = -inf if none."""
+    Im = np.eye(P.shape[1])
+    best_g, best_i, best_T, best_S = -np.inf, -1, None, None
+    for cand in (top, None):
+        if cand is None:  # the rest: only where the bound beats the best exact gain so far
+            bar = max(need, best_g, float(np.nanmax(lb)))
+            rest = ub * (1.0 + 1e-9) > bar
+            rest[top] = False
+            cand = np.flatnonzero(rest)
+        if cand.size == 0:
+            continue
+        Tc = P[cand] + C[cand] @ V
+        S = Im + Tc @ Bt[cand]
+        g = np.einsum("nkl,nkl->n", np.linalg.solve(S, Tc), Tc)
+        c = int(np.argmax(g))
+        if g[c] > best_g:
+            best_g, best_i, best_T, best_S = float(g[c]), int(cand[c]), Tc[c], S[c]
+    return best_g, best_i, best_T, best_S
+
+
 def _exchange_a(B: np.ndarray, design: list[int], prior_weight: float, base: np.ndarray | None,
                 max_passes: int, tol: float, hist: list[float], thist: list[float]):
     """Exchange passes at one prior weight (see `exchange_a`); appends to hist / thist."""
@@ -109,21 +133,7 @@ def _exchange_a(B: np.ndarray, design: list[int], prior_weight: float, base: np.
             lb = ub / (1.0 + pb + np.einsum("nkl,nkl->n", C, R))
             top = np.argpartition(-ub, min(n_top, N - 1))[:n_top]
             top = top[ub[top] * (1.0 + 1e-9) > need]
-            best_g, best_i, best_T, best_S = -np.inf, -1, None, None
-            for cand in (top, None):
-                if cand is None:  # the rest: only where the bound beats the best exact gain so far
-                    bar = max(need, best_g, float(np.nanmax(lb)))
-                    rest = ub * (1.0 + 1e-9) > bar
-                    rest[top] = False
-                    cand = np.flatnonzero(rest)
-                if cand.size == 0:
-                    continue
-                Tc = P[cand] + C[cand] @ V
-                S = Im + Tc @ Bt[cand]
-                g = np.einsum("nkl,nkl->n", np.linalg.solve(S, Tc), Tc)
-                c = int(np.argmax(g))
-                if g[c] > best_g:
-                    best_g, best_i, best_T, best_S = float(g[c]), int(cand[c]), Tc[c], S[c]
+            best_g, best_i, best_T, best_S = _best_entrant(P, C, V, Bt, ub, lb, need, top)
             if best_g <= need:
                 continue
             i, Ti, Si = best_i, best_T, best_S

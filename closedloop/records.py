@@ -132,6 +132,12 @@ class CalibrationResult:
     def value(self, name: str) -> float:
         return float(self.values[self.names.index(name)])
 
+    @property
+    def loops(self) -> list:
+        """The loops as calibrated (`Loop.prepare`d): the values of their parameters are coordinates in
+        these objects' charts (the hinge's H0 fitted to the data), not in the caller's loop objects'."""
+        return [b.loop for b in self.problem.blocks]
+
     def as_dict(self) -> dict[str, float]:
         return dict(zip(self.names, map(float, self.values)))
 

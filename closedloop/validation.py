@@ -58,7 +58,8 @@ def closure_residuals(result: CalibrationResult, robot: RobotModel, log_: JointL
     Returns {'loops': [LoopResiduals as dict], 'whitened_rms': per-row RMS of
     the noise-whitened residual (None when no noise level is known)}.
     """
-    problem = build_problem(robot, log_, loops, None)
+    calibrated = {lp.name: lp for lp in result.loops}  # their charts are those of the result's values
+    problem = build_problem(robot, log_, [calibrated.get(lp.name, lp) for lp in loops], None)
     if problem.names != result.names:
         raise ValueError("the validation rows give a different parameter set than the calibration")
     values = result.values

@@ -190,3 +190,15 @@ def test_modules_are_small():
     long = {m: len(p.read_text().splitlines()) for m, p in MODULES.items()}
     over = {m: n for m, n in long.items() if n > MAX_LINES and m not in LONG_MODULES}
     assert not over, f"modules over {MAX_LINES} lines: {over}"
+
+
+def test_functions_are_short():
+    """No function over 80 lines (decorators and docstring included) anywhere in the package."""
+    import ast
+
+    over = {}
+    for m, p in MODULES.items():
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno >= 80:
+                over[f"{m}.{node.name}"] = node.end_lineno - node.lineno + 1
+    assert not over, f"functions over 80 lines: {over}"

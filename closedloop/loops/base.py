@@ -37,6 +37,8 @@ class LoopEval:
     #: (N, m, m) per-configuration measurement covariance, for loops whose measurement noise depends on the
     #: configuration (stereo triangulation); it adds to `Loop.measurement_cov`
     cov: np.ndarray | None = None
+    #: largest inner Gauss-Newton count (loops that eliminate passive joints), for diagnostics
+    iterations: int = 0
 
     def frame_derivatives(self) -> list[np.ndarray]:
         """d r / d (right perturbation) of each frame, in the order of `Loop.frames`."""
@@ -67,6 +69,12 @@ class Loop(ABC):
     @abstractmethod
     def parameters(self) -> list[Parameter]:
         """The loop's own parameters, nominal values included."""
+
+    def prepare(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> "Loop":
+        """The loop with what it reads off the data once fixed (the hinge's chart reference): a new
+        object, or `self` when there is nothing to fix.  Called once per problem, at the nominal robot
+        (`calibration.build_problem`); loops keep no per-dataset state beyond what this returns."""
+        return self
 
     def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
         """Initial values of the loop's parameters from the data (None: keep nominal)."""

@@ -169,8 +169,9 @@ class HingeLoop(Loop):
     """Tool on a door handle turning about an unknown hinge: 6 rows, 1 DOF projected out.
 
     `axis` (point, direction) in frame B, if given, is the reference line H0
-    of the chart and the initial hinge; otherwise `initialize` fits it to the
-    data (needs >= 3 configurations spread along the arc).
+    of the chart and the initial hinge; otherwise `prepare` returns a copy
+    whose H0 is fitted to the data (needs >= 3 configurations spread along the
+    arc).  The loop object is never changed.
     """
 
     translation_rows = (0, 1, 2)
@@ -181,8 +182,7 @@ class HingeLoop(Loop):
         super().__init__(name, frame_a, frame_b)
         self.axis = axis
         self.H0 = _frame_from_axis(axis[0], axis[1]) if axis is not None else pin.SE3.Identity()
-        self._fitted = False
-        self.iterations = 0  # largest Gauss-Newton count of the last evaluation
+        self.fitted = False  # H0 read off the data by `prepare` (a prepared copy)
 
     @property
     def dim(self) -> int:
@@ -231,23 +231,31 @@ class HingeLoop(Loop):
         p[6:9] = pin.log3(G.rotation)
         return p
 
-    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
-        """Hinge from the circle traced by the tool (all configurations), grasp from the first.
+    def prepare(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> "HingeLoop":
+        """A copy whose chart reference H0 is the hinge fitted to the tool's circle (`fit_hinge_axis`).
 
-        With `axis=` given, only the grasp is initialised.  Without it, at
-        least 3 configurations along the arc are needed, except that a later
-        call with fewer keeps the axis fitted before (the core currently
-        passes only the first configuration, see calibrate()).
+        With `axis=` given, or already prepared: `self`.  The parameters'
+        length content (`parameters`, scales_with_length) is H0's, so a problem
+        is built on the prepared loop.
         """
+        if self.axis is not None or self.fitted:
+            return self
         M = [pin.SE3(np.linalg.solve(b, a)) for a, b in zip(TA, TB)]
-        if self.axis is None and (len(M) >= 3 or not self._fitted):
-            if len(M) < 3:
-                raise LoopError(f"hinge loop '{self.name}': cannot fit the hinge axis from {len(M)} "
-                                "configuration(s); give axis=\"px py pz dx dy dz\" or pass all "
-                                "configurations to initialize()")
-            self.H0 = fit_hinge_axis(M)
-            self._fitted = True
-        return self.closing_parameters(np.zeros(4), M[0])
+        if len(M) < 3:
+            raise LoopError(f"hinge loop '{self.name}': cannot fit the hinge axis from {len(M)} "
+                            "configuration(s); give axis=\"px py pz dx dy dz\" or log at least 3 along the arc")
+        other = copy.copy(self)
+        other.H0, other.fitted = fit_hinge_axis(M), True
+        return other
+
+    def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
+        """Hinge and grasp closing the first configuration: the hinge is H0 once prepared (or given);
+        an unprepared loop fits it here and gives its coordinates in its own chart."""
+        M0 = pin.SE3(np.linalg.solve(TB[0], TA[0]))
+        if self.axis is not None or self.fitted:
+            return self.closing_parameters(np.zeros(4), M0)
+        prepared = self.prepare(TA, TB)
+        return prepared.express(prepared.closing_parameters(np.zeros(4), M0), self)
 
     def normalize(self, p: np.ndarray) -> np.ndarray:
         """Grasp rotation within pi; a negative radius becomes positive (phi shifted by pi)."""
@@ -264,7 +272,7 @@ class HingeLoop(Loop):
         if np.abs(p[:4]).max() <= RECENTRE:
             return None
         other = copy.copy(self)
-        other.H0 = self.hinge(p)
+        other.H0, other.fitted = self.hinge(p), True
         q = np.array(p, dtype=float)
         q[:4] = 0.0
         return other, q
@@ -315,7 +323,6 @@ class HingeLoop(Loop):
         gen_g[:3, 1] = G.rotation.T[:, 2]
         gen_g[3:, 2:] = pin.Jexp3(p[6:9])
         el = self._eliminate(rigid_inverse(TB) @ TA, p)
-        self.iterations = int(el.iterations.max(initial=0))
         Pp = projector(el.Jphi)
         dA = Pp @ el.Jl
         dX = -dA @ adjoint(rigid_inverse(el.E))
@@ -323,7 +330,7 @@ class HingeLoop(Loop):
         dB = -dA @ adjoint(rigid_inverse(TA) @ TB)
         Ginv_rz = adjoint(rigid_inverse(_rz_stack(el.phi[:, 0]) @ G.homogeneous))  # H's twist seen from X
         dp = np.concatenate([dX @ (Ginv_rz @ gen_h), dX @ gen_g], axis=2)
-        return LoopEval(r, dA, dB, dp)
+        return LoopEval(r, dA, dB, dp, iterations=int(el.iterations.max(initial=0)))
 
 
 def parse_axis(text: str) -> tuple[np.ndarray, np.ndarray]:

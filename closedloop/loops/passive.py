@@ -8,7 +8,7 @@ unsensed.  The robot's tool frame A holds the task's frame F:
 
 * P, the task's pose in B: 6 parameters ``<loop>.x y z rx ry rz``, a right
   twist on a reference pose P0, P = P0 exp6(p), generators Jexp6(p).  P0 is
-  the user's `pose` or, by `initialize`, the pose that puts the task frame on
+  the user's `pose` or, by `prepare`, the pose that puts the task frame on
   the tool at the first configuration with the task at `q0` (so start the log
   with the task at q0, e.g. door closed, handle at rest).  The twist chart
   keeps the redundancy "turn the task about its first joint axis" a single
@@ -43,6 +43,7 @@ Task joint limits are not enforced.
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
@@ -209,9 +210,8 @@ class PassiveChainLoop(Loop):
             self.q0 = q0
         self.known_pose = pose is not None
         self.P0 = pose.copy() if pose is not None else pin.SE3.Identity()
+        self.fitted = False  # P0 read off the data by `prepare` (a prepared copy)
         self.nj = self.model.njoints - 1
-        self._cache: dict[int, np.ndarray] = {}
-        self.iterations = 0  # largest Gauss-Newton count of the last evaluation
 
     @property
     def dim(self) -> int:
@@ -262,15 +262,31 @@ class PassiveChainLoop(Loop):
         model.frames[self.fid] = fr  # the Python binding hands out copies
         return model
 
-    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
-        """Reference pose P0 from the first configuration with the task at q0 (nominal placements)."""
-        if self.known_pose:
-            return None
+    def _reference(self, TA: np.ndarray, TB: np.ndarray) -> pin.SE3:
+        """The pose that puts the task frame on the tool at the first configuration with the task at q0."""
         data = self.model.createData()
         pin.forwardKinematics(self.model, data, self.q0)
         TF = pin.updateFramePlacement(self.model, data, self.fid)
-        self.P0 = pin.SE3(np.linalg.solve(TB[0], TA[0])) * TF.inverse()
-        return np.zeros(12 + 6 * self.nj)
+        return pin.SE3(np.linalg.solve(TB[0], TA[0])) * TF.inverse()
+
+    def prepare(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> "PassiveChainLoop":
+        """A copy whose reference pose P0 is read off the first configuration (`Loop.prepare`); `self`
+        when the pose was given or already read."""
+        if self.known_pose or self.fitted:
+            return self
+        other = copy.copy(self)
+        other.P0, other.fitted = self._reference(TA, TB), True
+        return other
+
+    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
+        """Zero twists on P0 once prepared (None with a given pose); unprepared, the reference pose's
+        twist on this object's P0."""
+        if self.known_pose:
+            return None
+        p = np.zeros(12 + 6 * self.nj)
+        if not self.fitted:
+            p[:6] = pin.log6(self.P0.actInv(self._reference(TA, TB))).vector
+        return p
 
     def pose(self, p: np.ndarray) -> pin.SE3:
         """The task's pose in B."""
@@ -323,9 +339,8 @@ class PassiveChainLoop(Loop):
     def _evaluate(self, TA, TB, p, jac):
         N = TA.shape[0]
         model, data, base, chain, pose, integrate, snap = self._solver(p)
-        el = eliminate_along(rigid_inverse(TB) @ TA, pose, self._cache.get(N), self.q0, integrate, snap)
-        self.iterations = int(el.iterations.max(initial=0))
-        self._cache[N] = qs = el.phi
+        el = eliminate_along(rigid_inverse(TB) @ TA, pose, None, self.q0, integrate, snap)
+        qs = el.phi
         Pp = projector(el.Jphi)
         r = np.einsum("nij,nj->ni", Pp, el.r)  # exactly orthogonal to J_q (a last linearised step, O(|dq|))
         if not jac:
@@ -348,7 +363,7 @@ class PassiveChainLoop(Loop):
         dB = -dA @ adjoint(rigid_inverse(TA) @ TB)
         dp = np.concatenate([dX @ (adjoint(rigid_inverse(oMf)) @ pin.Jexp6(p[0:6])), dX @ (Reg @ G),
                              dX @ pin.Jexp6(grasp)], axis=2)
-        return LoopEval(r, dA, dB, dp), qs
+        return LoopEval(r, dA, dB, dp, iterations=int(el.iterations.max(initial=0))), qs
 
 
 @register("passive", {"frame", "to", "task", "task_frame", "q0"})
