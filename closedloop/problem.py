@@ -110,6 +110,20 @@ class BlockEval:
     rows: np.ndarray | None = None
 
 
+MEMO_ROWS = 20_000  # configurations up to which `CalibrationProblem.evaluate` keeps its last results
+
+
+def _copy_eval(e: BlockEval, jacobian: bool, no_columns: bool) -> BlockEval:
+    """A copy of a kept evaluation: r only, or with the Jacobians (none of J's columns with `no_columns`)."""
+    def cp(a):
+        return None if a is None else a.copy()
+
+    if not jacobian:
+        return BlockEval(e.r.copy(), None, None, cp(e.valid), cp(e.cov), e.rows)
+    J = e.J[:, :, :0].copy() if no_columns and e.J is not None else cp(e.J)
+    return BlockEval(e.r.copy(), J, cp(e.Jq), cp(e.valid), cp(e.cov), e.rows)
+
+
 class CalibrationProblem:
     """Parameters of a robot and its loops, evaluated over logged configurations."""
 
@@ -243,8 +257,29 @@ class CalibrationProblem:
 
         With `jacobian`, J holds the columns `columns` of d r / d parameters
         in that order (default: all P; an empty list gives Jq alone), and Jq
-        the derivatives with respect to the readings.
+        the derivatives with respect to the readings.  The last two
+        evaluations at the problem's own readings are kept (up to MEMO_ROWS
+        configurations) and given again, as copies, for the same parameter
+        vector to the bit: the stages after a solve each ask for the
+        solution's residual (outlier screen, closure level, standard errors,
+        noise summary, residual statistics).
         """
+        if thetas is not None or sum(b.theta.shape[0] for b in self.blocks) > MEMO_ROWS:
+            return self._evaluate(values, jacobian, thetas, columns)
+        key = np.asarray(values, dtype=float).tobytes()
+        cols = None if columns is None else tuple(int(c) for c in columns)
+        memo = self.__dict__.setdefault("_memo", [])
+        for k, blocks, kind, evals in memo:
+            if k == key and blocks is self.blocks and (not jacobian or kind == cols or (kind != "r" and cols == ())):
+                return [_copy_eval(e, jacobian, cols == ()) for e in evals]
+        out = self._evaluate(values, jacobian, None, columns)
+        memo.insert(0, (key, self.blocks, cols if jacobian else "r", out))
+        del memo[2:]
+        return [_copy_eval(e, jacobian, False) for e in out]
+
+    def _evaluate(self, values: np.ndarray, jacobian: bool, thetas: list[np.ndarray] | None,
+                  columns: Sequence[int] | None) -> list[BlockEval]:
+        """`evaluate` without the memo."""
         state = self.rp.apply(values[:self.n_robot])
         cols = np.arange(len(self.params)) if columns is None else np.asarray(columns, dtype=int)
         role, owner = self._role[cols], self._owner[cols]
