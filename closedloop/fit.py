@@ -32,6 +32,7 @@ from typing import Callable
 
 import numpy as np
 
+from .loops.base import Loop
 from .noise import whiten
 from .problem import BlockEval, CalibrationProblem
 from .solver import SolverOptions, SolverResult, levenberg_marquardt
@@ -72,6 +73,7 @@ class ResidualFunction:
         self._charts: dict[int, object] = {}  # block -> its loop with a re-centred chart (`retract`)
         self._charted = self.problem  # the problem evaluated: with those loops
         self._x0c = self.x0  # x0 in those charts
+        self._chartable: list[int] | None = None  # blocks `retract` may re-chart, found at its first call
 
     def full(self, xe: np.ndarray) -> np.ndarray:
         """The whole parameter vector, in the problem's own charts."""
@@ -90,16 +92,20 @@ class ResidualFunction:
         where the solver is, so that the steps are taken where it is nearly
         flat.  Loops whose parameters are not all estimated or are shared stay.
         """
+        if self._chartable is None:  # the blocks whose loop has a chart to move, all of it estimated, unshared
+            est, cols = set(self.est), self.problem.loop_columns
+            self._chartable = [bi for bi, b in enumerate(self.problem.blocks)
+                               if type(b.loop).recentred is not Loop.recentred and cols[bi].size
+                               and est.issuperset(cols[bi].tolist())
+                               and not any(np.intersect1d(cols[bi], o).size for bj, o in enumerate(cols) if bj != bi)]
+        if not self._chartable:
+            return xe
         x = self._x0c.copy()
         x[self.est] = xe
-        est, moved = set(self.est), False
-        cols = self.problem.loop_columns
-        for bi, b in enumerate(self.problem.blocks):
-            c = cols[bi]
-            if not c.size or not est.issuperset(c.tolist()) or any(
-                    np.intersect1d(c, o).size for bj, o in enumerate(cols) if bj != bi):
-                continue
-            lp = self._charts.get(bi, b.loop)
+        moved = False
+        for bi in self._chartable:
+            c = self.problem.loop_columns[bi]
+            lp = self._charts.get(bi, self.problem.blocks[bi].loop)
             moved_to = lp.recentred(x[c])
             if moved_to is not None:
                 self._charts[bi], x[c] = moved_to
