@@ -81,9 +81,16 @@ def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray,
     base[est] = start[est]
     xs, iters = start[est], 0
     b = None
+    if opt.weighting == "noise" and task_blocks(problem):
+        # the loops' task-space noise (closedloop.variance) is first read off the plain fit's residual: a
+        # weighted fit with the joint noise alone (given far too small) can run off before it is estimated
+        a = plain_stage(problem, base, xs, est, scale, sopt, prog)
+        iters += a.solution.iterations
+        evs = problem.evaluate(a.fun.full(a.solution.x), True, columns=[])
+        variance_components(problem, evs, sigma_q.copy(), len(est), task_blocks(problem), known)
     if not plain_start or opt.weighting != "noise":
         b = weighted_stage(problem, base, xs, est, scale, sigma_q, opt.weighting, sopt, prog)
-        iters = b.solution.iterations
+        iters += b.solution.iterations
     if b is None or (opt.weighting == "noise" and (b.note or b.solution.truncated
                                                     or _misled(problem, b))):
         a = plain_stage(problem, base, xs, est, scale, sopt, prog)

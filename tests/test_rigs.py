@@ -318,3 +318,17 @@ def test_block_of_three_sockets_sets_scale(tmp_path):
     rep = json.loads((tmp_path / "rep.json").read_text())
     assert rep["gauge"]["scale"].startswith("the scale is set by the block blk1 (3 points")
     assert main(argv + ["--block", "bad", "place1_a.point=1,2"]) == 2
+
+
+def test_joint_noise_given_far_too_small(rig3):
+    """A joint noise given as 1e-9 rad (the play in the sockets is 0.2 mm): the loops' task-space noise is
+    read off the plain fit before any weighted one, so the fit does not run off (it used to end 'failed'
+    with the robot shrunk to nothing) and each loop's play is still estimated to 20 %."""
+    tmp, rig, robot, log = rig3
+    loops = _loops(robot, rig.loop_names())
+    loops += _distances(loops, (1, 2, 3))
+    res = calibrate(robot, log, loops, CalibrationOptions(noise=1e-9))
+    assert res.verdict.status != "failed", res.verdict.describe()
+    assert abs(scale_error(res, rig)) < 3 * res.scale_std
+    for d in res.noise_model:
+        assert d["task_estimated"] and abs(d["task_sigma_m"] / SIGMA_TASK - 1.0) < 0.2, d
