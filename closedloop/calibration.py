@@ -93,7 +93,9 @@ def build_problem(robot: RobotModel, log_: JointLog, loops: list[Loop], priors: 
                 raise LogError(f"{log_.source}: no row has loop '{lp.name}' in its 'loop' column")
         else:
             rows = np.arange(len(log_))
-        blocks.append(LoopBlock(lp, theta[rows], numbers[rows], tau[rows] if tau is not None else None,
+        at = getattr(lp, "measured_at", None)  # a known length: read at the readings it was measured at
+        blocks.append(LoopBlock(lp, theta[rows] if at is None else at(joints), numbers[rows],
+                                tau[rows] if tau is not None and at is None else None,
                                 lp.measurements(log_.extra, rows)))
     problem = CalibrationProblem(robot, joints, blocks, priors)
     # what each loop reads off the data once (`Loop.prepare`: the hinge's chart), at the nominal robot
@@ -191,7 +193,7 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
                             sol.status, sol.message, a["sigma"], opt.noise is None, a["chi2"],
                             a["dof"], notes, a["cov"], fit.est, suspects, a["weighting"], gauge,
                             structure.gauge_note, structure.gauge_length, rejected, len(log_), fit.warnings)
-    annotate(res, fit.sigma_q, structure.scale_free)  # what sets the scale, each loop's noise (closedloop.constraints)
+    annotate(res, fit.sigma_q, structure.scale_free, opt.snr)  # what sets the scale, each loop's noise (closedloop.constraints)
     res.verdict = judge(res)
     return res
 

@@ -9,7 +9,8 @@ unknowns fitted unweighted (`closedloop.evaluate`), printed as a table (mean /
 RMS closure per loop, mm) and written with ``--report`` as JSON.
 
 Calibrate's rig options (`add_rig_options`, `rig_inputs`): ``--distance A B D
-[SIGMA]`` (a known length, `closedloop.constraints`), ``--block NAME
+[SIGMA]`` (a known distance between loop points, `closedloop.constraints`), ``--length FRAME_A
+FRAME_B L [SIGMA]`` (between two robot frames, `closedloop.lengths`), ``--block NAME
 A.point=X,Y,Z ...`` (a rigid block of known shape), ``--joints j1,j2,...``
 (the column order of header-less logs), a loop's own log file
 (``--loop ...,log=FILE``; then no positional log), and leave-one-fixture-out
@@ -30,6 +31,10 @@ def add_rig_options(c) -> None:
     c.add_argument("--distance", action="append", nargs="+", default=[], metavar="ARG",
                    help="a known distance between two loop points: A.point B.point METRES [SIGMA] "
                         "(e.g. front_a.point front_b.point 0.050); it sets the scale")
+    c.add_argument("--length", action="append", nargs="+", default=[], metavar="ARG",
+                   help="a known length between two frames of the robot a fixed distance apart: FRAME_A FRAME_B "
+                        "METRES [SIGMA] (e.g. a link measured with calipers); the report says how far it sets "
+                        "the scale")
     c.add_argument("--block", action="append", nargs="+", default=[], metavar="ARG",
                    help="points of one rigid block at known positions in its own frame: NAME A.point=X,Y,Z "
                         "B.point=X,Y,Z ... [sigma=S] (metres); its pairwise distances set the scale")
@@ -69,12 +74,14 @@ def read_inputs(log_path: str | None, robot, loops: list, degrees: bool = False,
 
 
 def rig_inputs(args, robot, loops: list):
-    """(log, loops + known distances) for calibrate."""
+    """(log, loops + known distances and lengths) for calibrate."""
     from .constraints import parse_blocks, parse_distances
+    from .lengths import parse_lengths
 
     lg = read_inputs(args.log, robot, loops, args.degrees, _order(args))
     loops = (list(loops) + parse_distances(getattr(args, "distance", []) or [], loops)
-             + parse_blocks(getattr(args, "block", []) or [], loops))
+             + parse_blocks(getattr(args, "block", []) or [], loops)
+             + parse_lengths(getattr(args, "length", []) or [], robot))
     if not args.log:
         args.log = str(lg.source)
     return lg, loops

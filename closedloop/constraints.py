@@ -243,19 +243,28 @@ def scale_std(problem: CalibrationProblem, x: np.ndarray, est: list[int], cov: n
     return float(np.sqrt(max(c @ cov @ c, 0.0)))
 
 
-def annotate(res, sigma_q: np.ndarray, scale_free: bool) -> None:
+def annotate(res, sigma_q: np.ndarray, scale_free: bool, snr: float = 1.0) -> None:
     """Add what sets the scale (with the size's standard error) and each loop's noise model to a result.
 
-    Sets `res.scale_note`, `res.scale_std` (relative) and `res.noise_model`
+    Sets `res.scale_note`, `res.scale_std` (relative), `res.length_response` (known lengths between
+    frames, `closedloop.lengths`) and `res.noise_model`
     (`variance.noise_summary`), and appends their sentences to `res.notes`.
     """
     from .variance import noise_notes, noise_summary
 
+    from .lengths import length_blocks, length_findings
+
     problem = res.problem
     note = scale_note(problem, res.gauge, scale_free)
-    if distance_blocks(problem) and res.estimated:
+    if length_blocks(problem) and res.estimated:  # a known length between frames: does it set the size?
+        sentence, warnings = length_findings(res, np.asarray(sigma_q, dtype=float), snr)
+        res.warnings.extend(warnings)
+        note = sentence if not distance_blocks(problem) else f"{note}; {sentence}"
+    if (distance_blocks(problem) or length_blocks(problem)) and res.estimated:
         try:
             res.scale_std = scale_std(problem, res.values, res.estimated, res.covariance)
+            if res.length_leak is not None and np.isfinite(res.length_leak):  # what the held values add
+                res.scale_std = float(np.hypot(res.scale_std, res.length_leak))
         except (np.linalg.LinAlgError, ValueError):
             res.scale_std = float("nan")
         if note and np.isfinite(res.scale_std):

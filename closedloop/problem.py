@@ -324,6 +324,7 @@ class CalibrationProblem:
             loc = self._local[bi, cols]  # the loop's own parameters among the columns (shared ones included)
             own = np.flatnonzero(loc >= 0)
             J[:, :, own] = ev.dp[:, :, loc[own]]
-            out.append(BlockEval(ev.r, J, D[:, :, C:] * state.scale[None, None, :], ev.valid, ev.cov,
-                                 None if getattr(b.loop, "parameter_only", False) else b.rows))
+            only = getattr(b.loop, "parameter_only", False)  # a known length: no reading moves it (round-off aside)
+            Jq = np.zeros_like(D[:, :, C:]) if only else D[:, :, C:] * state.scale[None, None, :]
+            out.append(BlockEval(ev.r, J, Jq, ev.valid, ev.cov, None if only else b.rows))
         return out

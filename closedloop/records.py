@@ -123,6 +123,8 @@ class CalibrationResult:
     verdict: Verdict | None = None
     scale_note: str | None = None  # what sets the overall size (closedloop.constraints.annotate)
     scale_std: float = float("nan")  # relative standard error of the size, when a known distance sets it
+    length_response: float | None = None  # size change per change of the known frame lengths (closedloop.lengths)
+    length_leak: float | None = None  # size error per prior-sized error of what the loops cannot see, through them
     noise_model: list = field(default_factory=list)  # per loop: task vs joint noise (noise.noise_summary)
 
     @property

@@ -75,7 +75,11 @@ def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict
         "verdict": verdict_record(res.verdict),
         "gauge": {"length_scale_set_by": res.gauge, "stands_for_length_m": res.gauge_length or None,
                   "note": res.gauge_note, "scale": getattr(res, "scale_note", None),
-                  "scale_std_relative": _f(getattr(res, "scale_std", None))},
+                  "scale_std_relative": _f(getattr(res, "scale_std", None)),
+                  # known lengths between frames (closedloop.lengths): size change per change of them, and
+                  # the size error a 1 mm / 1 mrad error of what the loops cannot see makes through them
+                  "length_response": _f(getattr(res, "length_response", None)),
+                  "length_held_leak": _f(getattr(res, "length_leak", None))},
         "noise_model": list(getattr(res, "noise_model", [])),  # per loop: task-space vs joint noise
         "shared_parameters": _shared(prob),
         "rejected": [asdict(r) for r in res.rejected],
