@@ -1,8 +1,8 @@
 """Default weighting against the unweighted fit on held-out places, over seeds (issue 18, contact noise).
 
-tests/test_rigs.py `test_contact_default_no_worse_than_unweighted_heldout` (seed 0) finds the default
-(per-loop task noise estimated beside the joint noise, `closedloop.variance`) 0.9 % worse than
-``--weighting none`` on held-out places.  Is that noise or a bias?  Each seed draws a rig as the test's
+tests/test_rigs.py `test_contact_default_no_worse_than_unweighted_heldout` (seed 0) compares the default
+(task noise estimated beside the joint noise, pooled when the loops agree, `closedloop.variance`) with
+``--weighting none`` on held-out places.  Over seeds: noise or a bias?  Each seed draws a rig as the test's
 (three places, two sockets 50 mm apart, 0.2 mm play, 2e-5 rad joint noise, the three distances known),
 runs leave-one-place-out with both weightings (and with the true noise model given, sigma_task=0.2mm)
 and reports the mean held-out RMS difference with its standard error over seeds.

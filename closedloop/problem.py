@@ -75,6 +75,7 @@ class BlockNoise:
     dim: int
     task_var: np.ndarray | float | None = None  # task-space variance (m^2) on the translation rows
     estimated: bool = False  # task_var estimated (a variance component), not given
+    pooled: bool = False  # estimated as one component with the other task loops (`variance.homogeneous`)
     measurement_cov: np.ndarray | None = field(default=None, init=False)  # own + task term (`set_task`)
 
     def __post_init__(self) -> None:

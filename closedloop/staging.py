@@ -23,7 +23,7 @@ from .identifiability import Structure, analyse_structure, closure_jacobian, str
 from .problem import CalibrationProblem
 from .records import CalibrationOptions
 from .solver import SolverOptions
-from .variance import task_blocks, variance_components
+from .variance import measurement_row_weights, task_blocks, variance_components
 
 log = logging.getLogger(__name__)
 Progress = Callable[[str, int, float], None]
@@ -97,6 +97,9 @@ def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray,
         b2 = weighted_stage(problem, base, a.solution.x, est, scale, sigma_q, opt.weighting, sopt, prog)
         iters += a.solution.iterations + b2.solution.iterations
         b = b2 if b is None else _better(problem, [b, b2], start, est, scale)
+    if opt.weighting == "none":  # known measurements at their sigma against the closures' own level
+        b, n = _unweighted_with_measurements(problem, base, est, scale, sigma_q, sopt, prog, b)
+        iters += n
     if b.note:
         warnings.append(b.note)
     xs = b.solution.x
@@ -266,3 +269,21 @@ def solve_from_starts(problem: CalibrationProblem, x0: np.ndarray, starts: list[
     fits = [solve_staged(problem, x0, st, est, opt, sigma_q, known, progress) for st in starts]
     stage = _better(problem, [f.stage for f in fits], x0, est, scale)
     return next(f for f in fits if f.stage is stage)
+
+
+def _unweighted_with_measurements(problem: CalibrationProblem, base: np.ndarray, est: list[int], scale: np.ndarray,
+                                  sigma_q: np.ndarray, sopt, prog, b: StageResult) -> tuple[StageResult, int]:
+    """The unweighted fit re-solved with known measurements weighted against the closures' level
+    (`variance.measurement_row_weights`) until that level settles (5 %); unchanged without measurements."""
+    iters, level = 0, None
+    for _ in range(4):
+        w = measurement_row_weights(problem, b.fun.full(b.solution.x))
+        if w is None:
+            break
+        now = float(w.max())
+        if level is not None and abs(now - level) <= 0.05 * level:
+            break
+        level = now
+        b = weighted_stage(problem, base, b.solution.x, est, scale, sigma_q, "none", sopt, prog, w)
+        iters += b.solution.iterations
+    return b, iters

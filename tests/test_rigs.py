@@ -163,9 +163,11 @@ def test_without_distance_scale_not_set(rig3):
 
 
 def test_contact_default_no_worse_than_unweighted_heldout(rig3):
-    """Leave each place out: the default (task noise estimated beside the joint noise) predicts the
-    held-out places as well as the unweighted fit (to 2 %, see below), and better than the joint-noise-only
-    weighting; against the truth its size and positions are better than the unweighted fit's."""
+    """Leave each place out: the default (task noise estimated beside the joint noise, one component for the
+    sockets when their estimates agree) predicts the held-out places as well as the unweighted fit (to 0.5 %;
+    benchmarks/rig_contact_weighting.py, 20 seeds: +0.18 +- 0.09 %), and better than the joint-noise-only
+    weighting.  The unweighted fit keeps the known distances at their sigma against the closures' own level
+    (`variance.measurement_row_weights`): weighted 1 in metres it shrank the robot by 0.2 % on this seed."""
     tmp, rig, robot, log = rig3
     names = rig.loop_names()
     held = {}
@@ -178,20 +180,15 @@ def test_contact_default_no_worse_than_unweighted_heldout(rig3):
         assert [r["fixture"] for r in out["fixtures"]] == ["place1", "place2", "place3"]
         held[label] = np.array([r["calibrated_rms_m"] for r in out["fixtures"]])
         assert not out["suspect"]
-    assert held["default"].mean() <= 1.02 * held["unweighted"].mean(), held
+    assert held["default"].mean() <= 1.005 * held["unweighted"].mean(), held  # seed 0: +0.03 %
     assert held["default"].mean() < 0.95 * held["joint only"].mean(), held
-    # The 0.9 % held-out gap to the unweighted fit is the unweighted fit's shrinking: least squares in
-    # metres rewards a smaller robot (its closure spread, play included, scales with the size), the known
-    # distances are one row of weight 1 there, and the held-out spread is measured in the same shrunk
-    # metres (benchmarks/rig_contact_weighting.py, 20 seeds: held-out +0.57 +- 0.11 %, size -0.29 % against
-    # -0.03 %, position error against the truth 2.15 mm against 0.95 mm).  Against the truth:
     err = {}
     for label, opt in (("default", CalibrationOptions()), ("unweighted", CalibrationOptions(weighting="none"))):
         loops = _loops(robot, names)
         res = calibrate(robot, log, loops + _distances(loops, (1, 2, 3)), opt)
         err[label] = (scale_error(res, rig), rigid_rms(*ball_positions(res, rig)))
-    assert abs(err["default"][0]) < 0.001 and err["unweighted"][0] < -0.0015, err  # seed 0: +0.07 %, -0.20 %
-    assert err["default"][1] < 0.85 * err["unweighted"][1], err  # seed 0: 1.44 mm against 1.87 mm
+        assert abs(err[label][0]) <= res.scale_std, (label, err, res.scale_std)  # seed 0: +0.06 % (0.11 %)
+    assert err["default"][1] <= 1.02 * err["unweighted"][1], err  # seed 0: 1.37 mm both
 
 
 def test_lofo_names_extrapolating_place_suspect(tmp_path):

@@ -1,0 +1,49 @@
+"""Per-loop task-space noise (issue 18 item 3): one component when the loops' estimates agree, their own when not.
+
+Two rigs with the same true robot (examples/ball_socket_rig.py, seed 0): two places with 0.2 mm of play in
+the sockets and two with 0.8 mm.  Each loop's variance component is estimated (`variance.variance_components`);
+Bartlett's test (`variance.homogeneous`) pools those that agree.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from closedloop import CalibrationOptions, RobotModel, calibrate
+from closedloop.data import JointLog
+from test_rigs import _loops, rigmod
+
+
+def _log(rigs: dict[str, object], n: int) -> tuple[JointLog, list[str]]:
+    rows, labels = [], []
+    for prefix, rig in rigs.items():
+        for k in rig.loop_names():
+            rows.append(rig.readings[k])
+            labels += [prefix + k[5:]] * n
+    first = next(iter(rigs.values()))
+    return JointLog(first.joints, np.vstack(rows), None, np.array(labels)), list(dict.fromkeys(labels))
+
+
+def test_equal_play_pooled_unequal_not(tmp_path: Path):
+    tight = rigmod.make_rig(seed=0, n=30, places=2, sigma_task=2e-4)
+    wide = rigmod.make_rig(seed=0, n=30, places=2, sigma_task=8e-4)
+    assert tight.true_urdf == wide.true_urdf
+    (tmp_path / "nominal.urdf").write_text(tight.nominal)
+    robot = RobotModel.from_file(tmp_path / "nominal.urdf")
+    # the same play everywhere: one component, right to 10 % (seed 0: 0.202 mm)
+    log, names = _log({"place": tight}, 30)
+    res = calibrate(robot, log, _loops(robot, names), CalibrationOptions())
+    model = {d["loop"]: d for d in res.noise_model}
+    assert all(model[n]["task_pooled"] for n in names)
+    assert len({round(model[n]["task_sigma_m"], 12) for n in names}) == 1
+    assert abs(model[names[0]]["task_sigma_m"] / 2e-4 - 1.0) < 0.1, model
+    # 0.2 mm at two places, 0.8 mm at two others: each loop its own, each within 20 % of its truth
+    log, names = _log({"place": tight, "wide": wide}, 30)
+    res = calibrate(robot, log, _loops(robot, names), CalibrationOptions())
+    model = {d["loop"]: d for d in res.noise_model}
+    assert not any(d["task_pooled"] for d in model.values())
+    for n in names:
+        truth = 2e-4 if n.startswith("place") else 8e-4
+        assert abs(model[n]["task_sigma_m"] / truth - 1.0) < 0.2, (n, model[n])
