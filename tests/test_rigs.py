@@ -165,7 +165,7 @@ def test_without_distance_scale_not_set(rig3):
 def test_contact_default_no_worse_than_unweighted_heldout(rig3):
     """Leave each place out: the default (task noise estimated beside the joint noise, one component for the
     sockets when their estimates agree) predicts the held-out places as well as the unweighted fit (to 0.5 %;
-    benchmarks/rig_contact_weighting.py, 20 seeds: +0.18 +- 0.09 %), and better than the joint-noise-only
+    benchmarks/rig_contact_weighting.py, 40 seeds: +0.06 +- 0.06 %), and better than the joint-noise-only
     weighting.  The unweighted fit keeps the known distances at their sigma against the closures' own level
     (`variance.measurement_row_weights`): weighted 1 in metres it shrank the robot by 0.2 % on this seed."""
     tmp, rig, robot, log = rig3
