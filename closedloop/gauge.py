@@ -188,7 +188,8 @@ def choose_gauge(problem: CalibrationProblem, x: np.ndarray, free: list[int], R:
             Vg[free] = null_directions(R, kept_g, [g]) * prior[:, None]
             c, res = scale_content(*kinematic_changes(problem, x, Vg, q))
             L = float(prior[g] / max(abs(c[0]), 1e-300))
-            if res[0] < 1e-3 and 0.01 <= L <= reach and (found is None or L > found[3]):
+            # longer by more than round-off (equal lengths: the first, whatever the last digits say)
+            if res[0] < 1e-3 and 0.01 <= L <= reach and (found is None or L > found[3] * (1.0 + 1e-9)):
                 found = (g, kept_g, dropped_g, L)
     if found is None:
         return None, first[0], first[1], True, None, 0.0

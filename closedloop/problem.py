@@ -111,7 +111,23 @@ class BlockEval:
     rows: np.ndarray | None = None
 
 
-MEMO_ROWS = 20_000  # configurations up to which `CalibrationProblem.evaluate` keeps its last results
+MEMO_ROWS = 20_000  # configurations up to which `CalibrationProblem.evaluate` keeps parameter Jacobians
+CHUNK = 8192  # configurations evaluated at a time: temporaries stay in the heap (below glibc's mmap limit)
+
+
+def _concatenate(parts: list[BlockEval]) -> BlockEval:
+    """One block's evaluation from its chunks' (`CalibrationProblem._evaluate`)."""
+    def cat(name: str):
+        arrs = [getattr(p, name) for p in parts]
+        if all(a is None for a in arrs):
+            return None
+        if name == "valid":
+            arrs = [np.ones(p.r.shape, dtype=bool) if a is None else a for a, p in zip(arrs, parts)]
+        if name == "cov":
+            arrs = [np.zeros(p.r.shape + p.r.shape[1:]) if a is None else a for a, p in zip(arrs, parts)]
+        return np.concatenate(arrs)
+
+    return BlockEval(cat("r"), cat("J"), cat("Jq"), cat("valid"), cat("cov"), cat("rows"))
 
 
 def _copy_eval(e: BlockEval, jacobian: bool, no_columns: bool) -> BlockEval:
@@ -194,6 +210,18 @@ class CalibrationProblem:
             blocks.append(b.subset(keep))
         return CalibrationProblem(self.robot, self.joints, blocks, self.priors, self.noise)
 
+    def sampled(self, per_block: int, first: bool = False) -> "CalibrationProblem":
+        """The problem on at most `per_block` configurations of each block, evenly spaced along the log (the
+        first ones with `first`; self when no block has more): structural questions (redundancy, mobility)
+        need generic configurations, not 100,000 of them.  The noise records are shared, as in `without_rows`."""
+        if all(b.theta.shape[0] <= per_block for b in self.blocks):
+            return self
+        n = per_block
+        blocks = [b if b.theta.shape[0] <= n else b.subset(
+            np.arange(n) if first else np.unique(np.linspace(0, b.theta.shape[0] - 1, n).round().astype(int)))
+            for b in self.blocks]
+        return CalibrationProblem(self.robot, self.joints, blocks, self.priors, self.noise)
+
     @property
     def nominal(self) -> np.ndarray:
         return np.array([p.nominal for p in self.params])
@@ -259,14 +287,15 @@ class CalibrationProblem:
         With `jacobian`, J holds the columns `columns` of d r / d parameters
         in that order (default: all P; an empty list gives Jq alone), and Jq
         the derivatives with respect to the readings.  The last two
-        evaluations at the problem's own readings are kept (up to MEMO_ROWS
-        configurations) and given again, as copies, for the same parameter
+        evaluations at the problem's own readings are kept (with the parameter
+        Jacobian up to MEMO_ROWS configurations; residuals and Jq at any size) and given again, as copies, for the same parameter
         vector to the bit: the stages after a solve each ask for the
         solution's residual (outlier screen, closure level, standard errors,
         noise summary, residual statistics).
         """
-        if thetas is not None or sum(b.theta.shape[0] for b in self.blocks) > MEMO_ROWS:
-            return self._evaluate(values, jacobian, thetas, columns)
+        large = sum(b.theta.shape[0] for b in self.blocks) > MEMO_ROWS
+        if thetas is not None or (large and jacobian and (columns is None or len(columns) > 0)):
+            return self._evaluate(values, jacobian, thetas, columns)  # kept: residuals and Jq only, when large
         key = np.asarray(values, dtype=float).tobytes()
         cols = None if columns is None else tuple(int(c) for c in columns)
         memo = self.__dict__.setdefault("_memo", [])
@@ -296,36 +325,56 @@ class CalibrationProblem:
         rows = np.flatnonzero(np.any(B != 0, axis=1))  # the regressor blocks that matter
         span = slice(rows[0], rows[-1] + 1) if rows.size else slice(0, 0)
         B = B[span]
+        ctx = (cols, role, owner, B, span, geo, state)
         out = []
-        for bi, (b, sl) in enumerate(zip(self.blocks, self.loop_columns)):
+        for bi, b in enumerate(self.blocks):
             theta = b.theta if thetas is None else thetas[bi]
-            fids = [self.robot.frame_id(f) for f in b.loop.frames]
-            kin = self.frame_kinematics(state, theta, fids, jacobian, b.tau)
-            Ts = [kin[f][0] for f in fids]
-            if not jacobian:
-                out.append(BlockEval(b.loop.residual_frames(Ts, values[sl], b.meas), None, None,
-                                     b.loop.valid_frames(Ts, values[sl], b.meas), None,
-                                     None if getattr(b.loop, "parameter_only", False) else b.rows))
+            N = theta.shape[0]
+            if N <= CHUNK:
+                out.append(self._block(bi, theta, b.tau, b.meas, b.rows, values, jacobian, ctx))
                 continue
-            ev = b.loop.evaluate_frames(Ts, values[sl], b.meas)
-            N, m = ev.r.shape
-            D = np.zeros((N, m, C + nj))  # [J | d r / d theta']
-            for f, d in zip(fids, ev.frame_derivatives()):
-                K = kin[f][1]
-                if f == 0:
-                    continue
-                D += d @ (K[:, :, span] @ B)  # per-configuration products: no threaded BLAS on small matrices
-                if f in state.G_frames:
-                    D[:, :, geo] += d @ state.G_frames[f][:, cols[geo]]
-            J = D[:, :, :C]
-            factors = ((_SCALE, theta), (_COMPLIANCE, np.zeros_like(theta) if b.tau is None else -b.tau))
-            for kind, factor in factors:  # d theta' / d parameter: 1 (offset), theta (scale), -tau (compliance)
-                k = np.flatnonzero(role == kind)
-                J[:, :, k] *= factor[:, None, owner[k]]
-            loc = self._local[bi, cols]  # the loop's own parameters among the columns (shared ones included)
-            own = np.flatnonzero(loc >= 0)
-            J[:, :, own] = ev.dp[:, :, loc[own]]
-            only = getattr(b.loop, "parameter_only", False)  # a known length: no reading moves it (round-off aside)
-            Jq = np.zeros_like(D[:, :, C:]) if only else D[:, :, C:] * state.scale[None, None, :]
-            out.append(BlockEval(ev.r, J, Jq, ev.valid, ev.cov, None if only else b.rows))
+            parts = [self._block(bi, theta[i:i + CHUNK], None if b.tau is None else b.tau[i:i + CHUNK],
+                                 None if b.meas is None else b.meas[i:i + CHUNK], b.rows[i:i + CHUNK], values,
+                                 jacobian, ctx) for i in range(0, N, CHUNK)]
+            out.append(_concatenate(parts))
         return out
+
+    def _block(self, bi: int, theta: np.ndarray, tau: np.ndarray | None, meas: np.ndarray | None, rows: np.ndarray,
+               values: np.ndarray, jacobian: bool, ctx: tuple) -> BlockEval:
+        """Block `bi` on configurations `theta` (its readings, or a chunk of them), `_evaluate`'s context `ctx`.
+
+        J = sum over the loop's frames f of d_f K_f B (eq. 3.8 chained: the loop's derivative w.r.t. the
+        frame's right perturbation, Pinocchio's LOCAL kinematic regressor, each column's twist generator),
+        plus the frames' own generators; Jq the same through the joints' motion subspaces.
+        """
+        cols, role, owner, B, span, geo, state = ctx
+        b, sl = self.blocks[bi], self.loop_columns[bi]
+        C, nj = cols.size, len(self.joints)
+        only = getattr(b.loop, "parameter_only", False)  # a known length or distance: no reading moves it
+        fids = [self.robot.frame_id(f) for f in b.loop.frames]
+        kin = self.frame_kinematics(state, theta, fids, jacobian, tau)
+        Ts = [kin[f][0] for f in fids]
+        if not jacobian:
+            return BlockEval(b.loop.residual_frames(Ts, values[sl], meas), None, None,
+                             b.loop.valid_frames(Ts, values[sl], meas), None, None if only else rows)
+        ev = b.loop.evaluate_frames(Ts, values[sl], meas)
+        N, m = ev.r.shape
+        D = np.zeros((N, m, C + nj))  # [J | d r / d theta']
+        for f, d in zip(fids, ev.frame_derivatives()):
+            K = kin[f][1]
+            if f == 0:
+                continue
+            dK = d @ K[:, :, span]  # (N, m, 6 nj): small per-configuration products, then one GEMM with B
+            D += (dK.reshape(N * m, -1) @ B).reshape(N, m, -1)
+            if f in state.G_frames:
+                D[:, :, geo] += d @ state.G_frames[f][:, cols[geo]]
+        J = D[:, :, :C]
+        factors = ((_SCALE, theta), (_COMPLIANCE, np.zeros_like(theta) if tau is None else -tau))
+        for kind, factor in factors:  # d theta' / d parameter: 1 (offset), theta (scale), -tau (compliance)
+            k = np.flatnonzero(role == kind)
+            J[:, :, k] *= factor[:, None, owner[k]]
+        loc = self._local[bi, cols]  # the loop's own parameters among the columns (shared ones included)
+        own = np.flatnonzero(loc >= 0)
+        J[:, :, own] = ev.dp[:, :, loc[own]]
+        Jq = np.zeros_like(D[:, :, C:]) if only else D[:, :, C:] * state.scale[None, None, :]
+        return BlockEval(ev.r, J, Jq, ev.valid, ev.cov, None if only else rows)

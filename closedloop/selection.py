@@ -70,6 +70,7 @@ def select_parameters(problem: CalibrationProblem, identify: list[str] | None,
     return status
 
 
+MOBILITY_ROWS = 25  # configurations per loop `identifiability.loop_mobility` reads
 SMALL_RANGE = 0.05  # rad: a joint that moves less than this barely excites the geometry around it
 
 
@@ -96,7 +97,8 @@ def check_motion(problem: CalibrationProblem, x0: np.ndarray, status: list[str]
         warnings.append(f"joint(s) {', '.join(small)} move less than {SMALL_RANGE} rad in the log: the data barely "
                         "excite the geometry around them, and the calibrated model is unchecked away from the "
                         "logged configurations")
-    for b, ev in zip(problem.blocks, problem.evaluate(x0, True, columns=[])):
+    sample = problem.sampled(MOBILITY_ROWS, first=True)  # `loop_mobility` reads the first configurations
+    for b, ev in zip(sample.blocks, sample.evaluate(x0, True, columns=[])):
         if not b.loop.scale_free:  # a measured (open) loop: mobility is not a question
             continue
         mob, moves = loop_mobility(ev.Jq)

@@ -216,6 +216,9 @@ def noise_summary(problem: CalibrationProblem, values: np.ndarray, sigma_q: np.n
     joint_m = sqrt(mean_i tr(T J_theta,i Sigma J_theta,i^T) / n_t) at `values`; the larger names what dominates.
     """
     out = []
+    if not any(b.loop.translation_rows and (hasattr(b.loop, "task_noise") or nz.task_var is not None)
+               for b, nz in zip(problem.blocks, problem.noise)):
+        return out  # no loop with a task-space noise model: nothing to evaluate
     evals = problem.evaluate(values, True, columns=[])
     for b, ev, nz in zip(problem.blocks, evals, problem.noise):
         lp = b.loop
