@@ -6,11 +6,13 @@ home), is a measurement of the robot itself:
 
     r = |p_B - p_A| - L,        W = sigma^2,
 
-one row at that configuration (`LengthLoop.measured_at`).  With right perturbations T <- T exp6((v, w))
-of the frames' world poses, dr/d(delta_A) = (-u^T R_A, 0) and
-dr/d(delta_B) = (u^T R_B, 0), u = (p_B - p_A) / |p_B - p_A|; the problem
-chains them with Pinocchio's frame Jacobians, so every joint origin on the
-way between A and B enters.
+one row at that configuration (`LengthLoop.measured_at`).  With right
+perturbations T <- T exp6((v, w)) of the frames' world poses,
+dr/d(delta_A) = (-u^T R_A, 0) and dr/d(delta_B) = (u^T R_B, 0),
+u = (p_B - p_A) / |p_B - p_A|; the problem chains them with Pinocchio's
+frame Jacobians, so every joint origin on the way between A and B enters.
+Being a length, it is what sets the scale, never an arbitrarily held one
+(`scale_free` is False: no gauge is chosen).
 
 Whether such a length sets the robot's size is a question of the data, not
 of the length: the loops fix the ratios of the robot's lengths only as well
