@@ -230,7 +230,8 @@ def solve_screened(problem: CalibrationProblem, x0: np.ndarray, free: list[int],
         problem, rejected, x_robust = screened
         structure = analyse_structure(problem, x0, free)
         fit = solve_from_starts(problem, x0, [x0, x_robust], structure.kept, opt, sigma_q, known, progress)
-    fit = solve_with_restarts(problem, x0, structure.kept, opt, sigma_q, known, rng, progress, fit)
+    fit = solve_with_restarts(problem, x0, structure.kept, opt, sigma_q, known, rng, progress, fit,
+                              structure.nearly_redundant(problem.index))
     if opt.robust in ("huber", "cauchy"):
         from .outliers import irls_fit
 
@@ -244,7 +245,8 @@ def solve_screened(problem: CalibrationProblem, x0: np.ndarray, free: list[int],
         problem, rejected = back  # solved again from the start: the robust fit's point was not a solution
         before = fit.iterations
         fit = solve_staged(problem, x0, x0, fit.est, opt, fit.sigma_q, fit.known, progress)
-        fit = solve_with_restarts(problem, x0, fit.est, opt, fit.sigma_q, fit.known, rng, progress, fit)
+        fit = solve_with_restarts(problem, x0, fit.est, opt, fit.sigma_q, fit.known, rng, progress, fit,
+                                  structure.nearly_redundant(problem.index))
         fit.iterations += before
     return problem, fit, structure, rejected, suspects
 

@@ -48,6 +48,7 @@ class Dropped:
     name: str
     reason: str
     absorbed_into: list[tuple[str, float]] = field(default_factory=list)
+    residual: float = 0.0  # its column's relative residual on the kept ones' span (round-off: exactly redundant)
 
     def describe(self) -> str:
         if not self.absorbed_into:
@@ -113,7 +114,7 @@ def greedy_reduction(C: np.ndarray, names: list[str], order: list[int], tol: flo
         big = np.argsort(-np.abs(coef))
         terms = [(names[kept[i]], float(coef[i])) for i in big[:max_terms]
                  if abs(coef[i]) > 1e-3 * np.abs(coef).max()]
-        dropped.append(Dropped(names[k], "structurally redundant with this loop", terms))
+        dropped.append(Dropped(names[k], "structurally redundant with this loop", terms, float(res)))
     return kept, dropped
 
 
@@ -188,6 +189,17 @@ class Structure:
     gauge_length: float = 0.0  # the length the gauge stands for (m)
     rechecked: bool = False  # decided at a solution
     provisional: bool = False  # the start closed too few configurations to decide: everything kept until the solution
+
+    def nearly_redundant(self, index: dict[str, int]) -> list[int]:
+        """The dropped parameters whose columns lie in the kept ones' span only to 1e-11..1e-6, not to round-off.
+
+        On closure an exact redundancy leaves ~1e-16 (the door's base and tool
+        transforms), a weak but real column of a single self-motion 1e-8 to 1e-6
+        (the door's j1.a, j5.s); an ill-conditioned arm's exact ones can show
+        1e-8 too (a UR5's parallel axes), so the tolerance cannot tell them
+        apart.  These are freed when a fit stalls (`staging.solve_with_restarts`).
+        """
+        return sorted(index[d.name] for d in self.dropped if d.residual > 1e-11 and d.name in index)
 
 
 def _min_norm_inverse(Jq: np.ndarray) -> np.ndarray:

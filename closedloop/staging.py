@@ -22,7 +22,7 @@ from .fit import ResidualFunction, StageResult, plain_stage, random_start, unwei
 from .identifiability import Structure, analyse_structure, closure_jacobian, structure_holds
 from .problem import CalibrationProblem
 from .records import CalibrationOptions
-from .solver import SolverOptions
+from .solver import SolverOptions, scaled_svd
 from .variance import measurement_row_weights, task_blocks, variance_components
 
 log = logging.getLogger(__name__)
@@ -100,6 +100,9 @@ def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray,
     if opt.weighting == "none":  # known measurements at their sigma against the closures' own level
         b, n = _unweighted_with_measurements(problem, base, est, scale, sigma_q, sopt, prog, b)
         iters += n
+    if opt.weighting == "noise" and b.fun.weighting == "noise":
+        b, more = _polished(problem, base, b, est, scale, sigma_q, sopt, prog)
+        iters += more
     if b.note:
         warnings.append(b.note)
     xs = b.solution.x
@@ -120,6 +123,34 @@ def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray,
             b = weighted_stage(problem, base, start_e, est, scale, sigma_q, "noise", replace(sopt, noise=1.0), prog)
             iters += b.solution.iterations
     return Fit(b.fun.full(b.solution.x), b, est, sigma_q, known, iters, warnings)
+
+
+EXACT_LEVEL = 1e-3  # a closure level (`_closure_level`) below this is no noise: exact data, or a stall
+
+
+def _polished(problem: CalibrationProblem, base: np.ndarray, b: StageResult, est: list[int], scale: np.ndarray,
+              sigma_q: np.ndarray, sopt: SolverOptions, prog) -> tuple[StageResult, int]:
+    """The weighted fit `b`, or, where it stalled a hair above zero, the plain fit from it and the weighted from that.
+
+    A weighted fit that stops with nothing truncated at a closure a thousandth
+    of any plausible noise (`EXACT_LEVEL`) whose residual is smooth along the
+    log (`_smooth`) has stalled in a valley: its step neglects the weighting's
+    own derivative, W_i^-1 = (J_theta,i Sigma J_theta,i^T)^-1 moving with the
+    parameters, which there is as large as the closure's.  The plain
+    residual (eq. 3.8) has no such term; from the weighted point its
+    Gauss-Newton steps finish the descent (the door's start 27: closure 2.7e-9
+    to 2e-16 in two iterations).  The better closing of the two is kept.
+    Returns the stage and the iterations spent.
+    """
+    if b.solution.truncated or b.note or _closure_level(problem, b) >= EXACT_LEVEL or not _smooth(problem, b):
+        return b, 0
+    a = plain_stage(problem, base, b.solution.x, est, scale, sopt, prog)
+    b2 = weighted_stage(problem, base, a.solution.x, est, scale, sigma_q, "noise", sopt, prog)
+    spent = a.solution.iterations + b2.solution.iterations
+    if unweighted_closure(problem, b2.fun.full(b2.solution.x)) < unweighted_closure(problem, b.fun.full(b.solution.x)):
+        log.info("the weighted fit stalled a hair above zero; the plain fit from it closed further")
+        return b2, spent
+    return b, spent
 
 
 def _misled(problem: CalibrationProblem, stage: StageResult) -> bool:
@@ -163,11 +194,16 @@ def _systematic(problem: CalibrationProblem, fit: Fit) -> bool:
     directions truncated 'below the noise'.  Round-off (closure level below
     1e-9) does not count.  A log in random order shows no misfit this way.
     """
-    if _closure_level(problem, fit.stage) < 1e-9:
+    return _smooth(problem, fit.stage)
+
+
+def _smooth(problem: CalibrationProblem, stage: StageResult) -> bool:
+    """`_systematic` for a stage: its whitened residual's pooled lag-1 autocorrelation is far above noise's."""
+    if _closure_level(problem, stage) < 1e-9:
         return False
     num = den = 0.0
     n = 0
-    for r in fit.stage.fun.blocks(fit.x[fit.est]):
+    for r in stage.fun.blocks(stage.solution.x):
         num += float(np.sum(r[1:] * r[:-1]))
         den += float(np.sum(r * r))
         n += r.shape[0]
@@ -186,7 +222,8 @@ def _better(problem: CalibrationProblem, stages: list[StageResult], start: np.nd
 
 def solve_with_restarts(problem: CalibrationProblem, x0: np.ndarray, est: list[int], opt: CalibrationOptions,
                         sigma_q: np.ndarray, known: bool, rng: np.random.Generator,
-                        progress: Progress | None = None, first: Fit | None = None) -> Fit:
+                        progress: Progress | None = None, first: Fit | None = None,
+                        weak: list[int] | None = None) -> Fit:
     """`solve_staged` from x0 (or `first`); if it stalls far above the noise, from other starts.
 
     Starts: the loop parameters and offsets first with the geometry held, then
@@ -194,7 +231,10 @@ def solve_with_restarts(problem: CalibrationProblem, x0: np.ndarray, est: list[i
     the fits that close within a plausible noise, the nearest to the start
     (in prior units) is kept: on a single self-motion degenerate robots (a
     forearm of zero length) close the loop as well as the real one.  If none
-    does, the one with the lowest unweighted closure.
+    does, the one with the lowest unweighted closure.  When no restart leaves
+    the minimum, it is left along its valley (`_along_valley`), with the
+    `weak` parameters (`Structure.nearly_redundant`) freed: a reduction read
+    off the start may hold back a parameter the solution needs.
     """
     fit = first if first is not None else solve_staged(problem, x0, x0, est, opt, sigma_q, known, progress)
     if opt.restarts <= 0 or not _stalled(problem, fit):
@@ -212,7 +252,9 @@ def solve_with_restarts(problem: CalibrationProblem, x0: np.ndarray, est: list[i
         fits.append(solve_staged(problem, x0, st, est, opt, sigma_q, known, progress))
         if not _stalled(problem, fits[-1]):
             break
-    good = [f for f in fits if _closure_level(problem, f.stage) <= 1.0 and not _systematic(problem, f)]
+    good = [f for f in fits if _good(problem, f)]
+    if not good:  # no restart left the valley: along it (`valley_starts`), the nearly redundant freed
+        good = _along_valley(problem, x0, fit, est, opt, sigma_q, known, progress, fits, weak or [])
     far = _closure_level(problem, fit.stage) > 1.0
     if good:
         best = min(good, key=lambda f: float(np.linalg.norm((f.x - x0)[est] / scale[est])))
@@ -225,6 +267,77 @@ def solve_with_restarts(problem: CalibrationProblem, x0: np.ndarray, est: list[i
     best.warnings.append(f"the fit stalled {why} from the given start; "
                          f"{'a restart reached' if good else 'no restart reached'} a closure within a plausible noise")
     return best
+
+
+VALLEY_DIRECTIONS = 4  # weakest directions probed from a stalled fit (`valley_starts`), both ways
+
+
+def valley_starts(problem: CalibrationProblem, fit: Fit, x0: np.ndarray, scale: np.ndarray,
+                  k: int = VALLEY_DIRECTIONS) -> list[np.ndarray]:
+    """Starts along the valley a stalled fit lies in: x_f -+ d D v_i for its k weakest directions v_i.
+
+    On the data of a single self-motion (the door) the closure has long, nearly
+    flat valleys: a fit can stop at a spurious minimum 1e-7 m above zero, a
+    robot far from the true one, while the solution lies further along the
+    same valley.  Its directions are the weakest right singular vectors of the
+    prior-scaled plain closure Jacobian J D = U S V^T at the fit x_f (the
+    smallest s_i above the numerical floor 1e-10 s_1); d = |D^-1 (x_f - x_0)|
+    is the distance the fit travelled from the start in prior units: the start's
+    own error, so the scale on which its basin can be missed.  The hinge's
+    chart is centred on x_f first (`ResidualFunction.retract`) and the starts
+    are returned in the problem's charts.  Weakest first, -d before +d.
+    """
+    est = fit.est
+    d = float(np.linalg.norm((fit.x - x0)[est] / scale[est]))
+    if not np.isfinite(d) or d == 0.0:
+        return []
+    fun = ResidualFunction(problem, fit.x, est, np.ones(len(problem.joints)), "none")
+    xe = fun.retract(fit.x[est].copy())
+    r, J = fun(xe, True)
+    S, Vt, _ = scaled_svd(J, r, scale[est])
+    live = np.flatnonzero(S > 1e-10 * S[0]) if S.size else np.zeros(0, int)
+    return [fun.full(xe + sign * d * Vt[i] * scale[est]) for i in live[::-1][:k] for sign in (-1.0, 1.0)]
+
+
+def _along_valley(problem: CalibrationProblem, x0: np.ndarray, fit: Fit, est: list[int], opt: CalibrationOptions,
+                  sigma_q: np.ndarray, known: bool, progress: Progress | None, fits: list[Fit],
+                  weak: list[int]) -> list[Fit]:
+    """The fits from `valley_starts` that close within a plausible noise with a residual that is noise.
+
+    With `weak` parameters (held back as redundant, but not to round-off),
+    the start is first solved again with them freed (the solver's floor
+    truncation takes any exact null direction among them), and the valley
+    searched from that fit.  Each start is first taken by the plain fit
+    alone (cheap, and the one that follows the valley); only one that closes
+    10x better than the given stalled fit is solved in full (`solve_staged`), and
+    the search stops at the first good fit (`_good`).  Appends what it
+    solves to `fits`.
+    """
+    scale = np.array([p.prior for p in problem.params])
+    level = unweighted_closure(problem, fit.x)
+    if weak:
+        est = sorted(set(est) | set(weak))
+        fits.append(solve_staged(problem, x0, x0, est, opt, sigma_q, known, progress))
+        if _good(problem, fits[-1]):
+            return [f for f in fits if _good(problem, f)]
+        fit = fits[-1]
+    sopt = _solver_options(opt, problem, est, known)
+    for k, st in enumerate(valley_starts(problem, fit, x0, scale)):
+        a = plain_stage(problem, st, st[est], est, scale, sopt, None)
+        xa = a.fun.full(a.solution.x)
+        if not unweighted_closure(problem, xa) < 0.1 * level:
+            continue
+        log.info("valley start %d: the plain fit closes %.3g, the stalled one %.3g", k + 1,
+                 unweighted_closure(problem, xa), level)
+        fits.append(solve_staged(problem, x0, xa, est, opt, sigma_q, known, progress))
+        if _good(problem, fits[-1]):
+            break
+    return [f for f in fits if _good(problem, f)]
+
+
+def _good(problem: CalibrationProblem, fit: Fit) -> bool:
+    """The fit closes within a plausible noise (`_closure_level`) and its residual is noise (not `_systematic`)."""
+    return _closure_level(problem, fit.stage) <= 1.0 and not _systematic(problem, fit)
 
 
 def recheck_at_solution(problem: CalibrationProblem, fit: Fit, structure: Structure, free: list[int],
