@@ -95,9 +95,15 @@ def robust_refit(problem: CalibrationProblem, x0: np.ndarray, est: list[int], si
 
 
 def _screen_weighting(problem: CalibrationProblem, weighting: str) -> str:
+    """The screen's metric: the joint-noise whitening (eq. 3.17) whatever the fit's own weighting, unless
+    loops carry contact play (`variance.task_blocks`), whose isotropic noise it would read as outliers.
+
+    An unweighted fit screened on its raw closures flags clean configurations where the Jacobian
+    amplifies the joint noise: on the Monte Carlo weld (200 configurations, 1e-4 rad), every unweighted
+    calibration went through the robust refit and 7 of 20 rejected one or two clean rows."""
     from .variance import task_blocks
 
-    return "none" if weighting == "noise" and task_blocks(problem) else weighting
+    return "none" if task_blocks(problem) else "noise"
 
 
 def gross_outliers(problem: CalibrationProblem, x0: np.ndarray, sigma_q: np.ndarray, opt: CalibrationOptions) -> bool:
