@@ -190,6 +190,10 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
                      f"{t['rms_px']:.4g} px" if t.get("rms_px") is not None else ""]
             print(f"  {cv['k']}-fold validation, loop {t['loop']}: held-out closure RMS "
                   + ", ".join(p for p in parts if p))
+    from .cli_evaluate import fixture_lines
+
+    for line in fixture_lines(report.get("fixture_validation")):
+        print(line)
     for rj in res.rejected[:10]:
         print(f"  rejected: log row {rj.row} (loop {rj.loop}), {rj.standardized:.3g} robust standard deviations")
     if args.out and wrote_model:

@@ -100,13 +100,19 @@ def fixture_validation(robot, lg, loops: list, opts, report: dict, args, prog=No
         prog.done()
     if out is not None:
         report["fixture_validation"] = out
-        for r in out["fixtures"]:
-            if r.get("error"):
-                print(f"  held-out fixture {r['fixture']}: not validated ({r['error']})")
-            elif r["calibrated_rms_m"] is not None:
-                print(f"  held-out fixture {r['fixture']}: closure RMS {r['calibrated_rms_m'] * 1e3:.4g} mm "
-                      f"(nominal model {r['nominal_rms_m'] * 1e3:.4g} mm)" + (" WORSE" if r["worse"] else ""))
     return out
+
+
+def fixture_lines(out: dict | None) -> list[str]:
+    """The summary's lines for a leave-one-fixture-out record (`fixture_validation`), printed after the verdict."""
+    lines = []
+    for r in (out or {}).get("fixtures", []):
+        if r.get("error"):
+            lines.append(f"  held-out fixture {r['fixture']}: not validated ({r['error']})")
+        elif r["calibrated_rms_m"] is not None:
+            lines.append(f"  held-out fixture {r['fixture']}: closure RMS {r['calibrated_rms_m'] * 1e3:.4g} mm "
+                         f"(nominal model {r['nominal_rms_m'] * 1e3:.4g} mm)" + (" WORSE" if r["worse"] else ""))
+    return lines
 
 
 # --------------------------------------------------------------------------- closedloop evaluate

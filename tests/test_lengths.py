@@ -105,7 +105,7 @@ def test_parse_lengths_errors(rig):
     assert lp.length == 0.3267 and lp.sigma == 3e-5
 
 
-def test_cli_length(rig, tmp_path):
+def test_cli_length(rig, tmp_path, capsys):
     from closedloop.cli import main
 
     rig_, robot, log, tmp = rig
@@ -122,4 +122,14 @@ def test_cli_length(rig, tmp_path):
     assert abs(rep["gauge"]["length_response"] - 1.0) < 0.01
     bad = list(argv)
     bad[bad.index("panda_link4")] = "panda_linkX"
+    capsys.readouterr()
     assert main(bad) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "panda_linkX" in err[0], err
+    # with leave-one-fixture-out validation (the default) the verdict is still the summary's first line
+    argv.remove("--lofo")
+    argv.remove("off")
+    assert main(argv) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("verdict: "), out[:3]
+    assert sum(line.startswith("  held-out fixture place") for line in out) == len(files)  # one per loop here
