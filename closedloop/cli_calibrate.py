@@ -162,7 +162,9 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
     distances = {bl.loop.name for bl in blocks if getattr(bl.loop, "parameter_only", False)}
     rows = [bl.rows for bl in blocks if bl.loop.name not in distances]
     n_conf = int(np.unique(np.concatenate(rows)).size) if rows else 0
-    print(f"verdict: {res.verdict.status}" + (f" ({'; '.join(res.verdict.reasons)})" if res.verdict.reasons else ""))
+    own = f"{res.verdict.status}: "  # a reason of the verdict's own status needs no label; the others keep theirs
+    reasons = [r[len(own):] if r.startswith(own) else r for r in res.verdict.reasons]
+    print(f"verdict: {res.verdict.status}" + (f" ({'; '.join(reasons)})" if reasons else ""))
     print(f"calibrated {len(res.estimated)} parameters from {n_conf} configurations "
           f"in {res.iterations} iterations ({elapsed:.2f} s): {res.solver_status}")
     for rb, ra in zip(b, a):
