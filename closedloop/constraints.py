@@ -225,21 +225,13 @@ def scale_note(problem: CalibrationProblem, gauge: str | None, scale_free: bool)
 def scale_std(problem: CalibrationProblem, x: np.ndarray, est: list[int], cov: np.ndarray) -> float:
     """Standard error of the robot's overall size (relative), c^T Cov c with c the size change per parameter.
 
-    c_k: the uniform scaling content (`gauge.scale_content`) of a unit step of
-    estimated parameter k in the open-chain kinematics of the loops' frames.
+    c_k: the size change per unit of estimated parameter k (`gauge.size_per_parameter`).
     """
-    from .gauge import kinematic_changes, random_configurations, scale_content
+    from .gauge import size_per_parameter
 
-    robot = [i for i, k in enumerate(est) if k < problem.n_robot]
-    if not robot or cov.size == 0:
+    if not any(k < problem.n_robot for k in est) or cov.size == 0:
         return float("nan")
-    V = np.zeros((len(problem.params), len(robot)))
-    for j, i in enumerate(robot):
-        V[est[i], j] = problem.params[est[i]].prior
-    dP, A = kinematic_changes(problem, x, V, random_configurations(problem, 48))
-    c_scaled, _ = scale_content(dP, A)
-    c = np.zeros(len(est))
-    c[robot] = c_scaled / np.array([problem.params[est[i]].prior for i in robot])
+    c = size_per_parameter(problem, x, est)
     return float(np.sqrt(max(c @ cov @ c, 0.0)))
 
 
@@ -250,9 +242,8 @@ def annotate(res, sigma_q: np.ndarray, scale_free: bool, snr: float = 1.0) -> No
     frames, `closedloop.lengths`) and `res.noise_model`
     (`variance.noise_summary`), and appends their sentences to `res.notes`.
     """
-    from .variance import noise_notes, noise_summary
-
     from .lengths import length_blocks, length_findings
+    from .variance import noise_notes, noise_summary
 
     problem = res.problem
     note = scale_note(problem, res.gauge, scale_free)

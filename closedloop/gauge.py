@@ -114,6 +114,22 @@ def scale_content(dP: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return sol[0], np.linalg.norm(A @ sol - dP, axis=0) / np.maximum(scaled, 1e-300)
 
 
+def size_per_parameter(problem: CalibrationProblem, x: np.ndarray, est: list[int]) -> np.ndarray:
+    """c (len(est)): the robot's relative size change per unit of each estimated parameter at x, 0 for loop
+    parameters: the uniform scaling content (`scale_content`) of a prior-sized step of each robot parameter in
+    the open-chain kinematics of the loops' frames at random configurations, divided by the step."""
+    robot = [i for i, k in enumerate(est) if k < problem.n_robot]
+    c = np.zeros(len(est))
+    if not robot:
+        return c
+    prior = np.array([problem.params[est[i]].prior for i in robot])
+    V = np.zeros((len(problem.params), len(robot)))
+    V[[est[i] for i in robot], np.arange(len(robot))] = prior
+    c_scaled, _ = scale_content(*kinematic_changes(problem, x, V, random_configurations(problem, 48)))
+    c[robot] = c_scaled / prior
+    return c
+
+
 def contains_scaling(dP: np.ndarray, A: np.ndarray, tol: float = 1e-6) -> bool:
     """Whether some combination of the columns of dP is a uniform scaling (up to rigid motions)."""
     if dP.shape[1] == 0 or A.shape[0] == 0:

@@ -149,15 +149,14 @@ def size_response(problem: CalibrationProblem, x: np.ndarray, est: list[int], si
     Jacobian J over `est`, prior-scaled, truncated below `snr` times the
     residual RMS as at the solution, eq. 4.17) to the residual change that
     scaling every known length by 1 + STEP makes; its size change is
-    c^T dx with c the scale content of each parameter (`gauge.scale_content`).
+    c^T dx with c the size change per parameter (`gauge.size_per_parameter`).
     """
     from .fit import ResidualFunction
-    from .gauge import kinematic_changes, random_configurations, scale_content
+    from .gauge import size_per_parameter
     from .problem import CalibrationProblem as Problem
 
     idx = length_blocks(problem)
-    robot = [i for i, k in enumerate(est) if k < problem.n_robot]
-    if not idx or not robot:
+    if not idx or not any(k < problem.n_robot for k in est):
         return 0.0
     blocks = [replace(b, loop=replace_length(b.loop, 1.0 + STEP)) if bi in idx else b
               for bi, b in enumerate(problem.blocks)]
@@ -169,12 +168,7 @@ def size_response(problem: CalibrationProblem, x: np.ndarray, est: list[int], si
     dof = max(r.size - len(est), 1)
     keep = S > max(1e-10 * (S[0] if S.size else 0.0), snr * float(np.sqrt(r @ r / dof)))
     dx = -(Vt[keep].T @ ((U[:, keep].T @ (r1 - r)) / S[keep])) * scale
-    V = np.zeros((len(problem.params), len(robot)))
-    for j, i in enumerate(robot):
-        V[est[i], j] = problem.params[est[i]].prior
-    c_scaled, _ = scale_content(*kinematic_changes(problem, x, V, random_configurations(problem, 48)))
-    c = c_scaled / np.array([problem.params[est[i]].prior for i in robot])
-    return float(c @ dx[robot]) / STEP
+    return float(size_per_parameter(problem, x, est) @ dx) / STEP
 
 
 def replace_length(loop: LengthLoop, factor: float) -> LengthLoop:

@@ -52,8 +52,8 @@ def _floors(problem: CalibrationProblem) -> list[np.ndarray]:
     return out
 
 
-def screen(problem: CalibrationProblem, x: np.ndarray, sigma_q: np.ndarray, weighting: str,
-           known: bool = False) -> list[np.ndarray]:
+def screen(problem: CalibrationProblem, x: np.ndarray, sigma_q: np.ndarray, known: bool = False
+           ) -> list[np.ndarray]:
     """Standardized closure error per configuration (per block), at `x`.
 
     With the noise weighting, in robust standard deviations (the MAD of the
@@ -61,10 +61,10 @@ def screen(problem: CalibrationProblem, x: np.ndarray, sigma_q: np.ndarray, weig
     than that noise: data better than the stated noise have no outliers (a
     simulator's compliance at 1e-7 rad is not a gross error).
 
-    Loops with task-space noise (`variance.task_blocks`: contact play) are screened on the unweighted
-    closure: the joint-noise weighting would read their isotropic noise as outliers."""
-    weighting = _screen_weighting(problem, weighting)
-    if weighting == "noise":
+    The metric does not depend on the fit's own weighting (`_screen_weighting`).  Loops with task-space
+    noise (`variance.task_blocks`: contact play) are screened on the unweighted closure: the joint-noise
+    weighting would read their isotropic noise as outliers."""
+    if _screen_weighting(problem) == "noise":
         blocks = ResidualFunction(problem, x, [], sigma_q, "noise", symmetric=True).blocks(np.zeros(0))
         out = standardized(blocks, max(mad_scale(blocks), 1.0 if known else SCALE_FLOOR["rad"]))
     else:
@@ -75,26 +75,26 @@ def screen(problem: CalibrationProblem, x: np.ndarray, sigma_q: np.ndarray, weig
 
 
 def robust_refit(problem: CalibrationProblem, x0: np.ndarray, est: list[int], sigma_q: np.ndarray,
-                 weighting: str, max_iter: int = 30, passes: int = 8, known: bool = False
+                 max_iter: int = 30, passes: int = 8, known: bool = False
                  ) -> tuple[np.ndarray, list[np.ndarray]]:
     """IRLS with the Cauchy loss from x0 (the screening residual, `screen`); returns x and the last d_i."""
     scale = np.array([p.prior for p in problem.params])
     dims = [b.loop.dim for b in problem.blocks]
     sopt = SolverOptions(max_iter=max_iter)
-    weighting = _screen_weighting(problem, weighting)
+    weighting = _screen_weighting(problem)
     x, w_prev = x0.copy(), None
     for _ in range(passes):
-        w = np.concatenate(cauchy_weights(screen(problem, x, sigma_q, weighting), dims))
+        w = np.concatenate(cauchy_weights(screen(problem, x, sigma_q), dims))
         row_w = np.repeat(np.sqrt(w), [b.loop.dim for b in problem.blocks for _ in range(b.theta.shape[0])])
         st = weighted_stage(problem, x, x[est], est, scale, sigma_q, weighting, sopt, None, row_w)
         x = st.fun.full(st.solution.x)
         if w_prev is not None and np.max(np.abs(w - w_prev)) < 1e-3:
             break
         w_prev = w
-    return x, screen(problem, x, sigma_q, weighting, known)
+    return x, screen(problem, x, sigma_q, known)
 
 
-def _screen_weighting(problem: CalibrationProblem, weighting: str) -> str:
+def _screen_weighting(problem: CalibrationProblem) -> str:
     """The screen's metric: the joint-noise whitening (eq. 3.17) whatever the fit's own weighting, unless
     loops carry contact play (`variance.task_blocks`), whose isotropic noise it would read as outliers.
 
@@ -109,7 +109,7 @@ def _screen_weighting(problem: CalibrationProblem, weighting: str) -> str:
 def gross_outliers(problem: CalibrationProblem, x0: np.ndarray, sigma_q: np.ndarray, opt: CalibrationOptions) -> bool:
     """Configurations whose closure at the start is far beyond the others' (the model error's spread)."""
     dims = [b.loop.dim for b in problem.blocks]
-    return any(f.size for f in flagged(screen(problem, x0, sigma_q, opt.weighting, opt.noise is not None), dims,
+    return any(f.size for f in flagged(screen(problem, x0, sigma_q, opt.noise is not None), dims,
                                         opt.outlier_alpha))
 
 
@@ -124,9 +124,9 @@ def reject_outliers(problem: CalibrationProblem, x_fit: np.ndarray | None, x0: n
     """
     dims = [b.loop.dim for b in problem.blocks]
     if x_fit is not None and not any(f.size for f in flagged(
-            screen(problem, x_fit, sigma_q, opt.weighting, opt.noise is not None), dims, opt.outlier_alpha)):
+            screen(problem, x_fit, sigma_q, opt.noise is not None), dims, opt.outlier_alpha)):
         return None
-    x_r, ds = robust_refit(problem, x0, est, sigma_q, opt.weighting, min(opt.max_iter, 30),
+    x_r, ds = robust_refit(problem, x0, est, sigma_q, min(opt.max_iter, 30),
                            known=opt.noise is not None)
     flags = flagged(ds, dims, opt.outlier_alpha)
     bad_rows = sorted({int(problem.blocks[bi].rows[i]) for bi, f in enumerate(flags) for i in f})
@@ -189,7 +189,7 @@ def readmit(problem_all: CalibrationProblem, x: np.ndarray, rejected: list[Rejec
     None when every rejection holds.
     """
     dims = [b.loop.dim for b in problem_all.blocks]
-    flags = flagged(screen(problem_all, x, sigma_q, opt.weighting, opt.noise is not None), dims,
+    flags = flagged(screen(problem_all, x, sigma_q, opt.noise is not None), dims,
                     opt.outlier_alpha)
     still = {int(problem_all.blocks[bi].rows[i]) for bi, f in enumerate(flags) for i in f}
     kept_out = [r for r in rejected if r.row in still]

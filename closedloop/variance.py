@@ -237,9 +237,14 @@ def noise_summary(problem: CalibrationProblem, values: np.ndarray, sigma_q: np.n
 
 def noise_notes(summary: list[dict]) -> list[str]:
     """One sentence per loop on its noise model."""
-    return [f"loop {d['loop']}: task-space noise {d['task_sigma_m'] * 1e3:.3g} mm "
-            f"({'given' if not d['task_estimated'] else 'estimated, one for the loops whose estimates agree' if d.get('task_pooled') else 'estimated'}) against {d['joint_sigma_m'] * 1e3:.3g} mm "
-            f"from the joint noise: the {d['dominant']} noise dominates" for d in summary]
+    def how(d: dict) -> str:
+        if not d["task_estimated"]:
+            return "given"
+        return "estimated, one for the loops whose estimates agree" if d.get("task_pooled") else "estimated"
+
+    return [f"loop {d['loop']}: task-space noise {d['task_sigma_m'] * 1e3:.3g} mm ({how(d)}) against "
+            f"{d['joint_sigma_m'] * 1e3:.3g} mm from the joint noise: the {d['dominant']} noise dominates"
+            for d in summary]
 
 
 def measurement_row_weights(problem: CalibrationProblem, values: np.ndarray) -> np.ndarray | None:

@@ -21,7 +21,7 @@ def test_unweighted_fit_of_clean_data_rejects_nothing(monkeypatch):
         return res
 
     def recording_refit(*args, **kwargs):
-        refits.append(args[4])
+        refits.append(args)
         return refit(*args, **kwargs)
 
     monkeypatch.setattr(mc_module, "calibrate", recording_calibrate)
