@@ -149,7 +149,7 @@ class ResidualFunction:
             evals = self._charted.evaluate(self._local(xe), full or self._W is None,
                                            columns=self.est if full else [])
         r, J, used = whiten(evals, self.sigma_q, self.weighting, jac, loops, None if jac else self._W,
-                            self.symmetric)
+                            self.symmetric, overwrite=True)  # evaluations are copies (a trial's is whitened once)
         if jac or self._W is None:
             self._W = used
             self.deficit = sum(u[1] for u in used if u is not None)
@@ -160,16 +160,21 @@ class ResidualFunction:
         if self.row_weights is not None:
             r = r * self.row_weights
             if jac:
-                J = J * self.row_weights[:, None]
+                J *= self.row_weights[:, None]  # J is whitening's own (or the evaluation's copy)
         if jac:
             self._x, self._rJ, self._trial = xe.copy(), (r, J), None
         elif first_trial:
             self._trial = (xe.copy(), evals)
         return r, J
 
-    def blocks(self, xe: np.ndarray) -> list[np.ndarray]:
-        """The residual at `xe` per loop block, (N, m) each (symmetric whitening, no row weights)."""
-        f = replace(self, row_weights=None, symmetric=True)
+    def blocks(self, xe: np.ndarray, symmetric: bool = True) -> list[np.ndarray]:
+        """The residual at `xe` per loop block, (N, m) each (no row weights).
+
+        The symmetric whitening gives each component of a configuration's residual its meaning (robust
+        scales over components, correlations along the log); `symmetric` False is for norms per
+        configuration, which any root of W_i^-1 gives alike, at a fraction of the cost.
+        """
+        f = replace(self, row_weights=None, symmetric=symmetric)
         r, _ = f(xe, False)
         sizes = [b.theta.shape[0] * b.loop.dim for b in self.problem.blocks]
         parts = np.split(r, np.cumsum(sizes)[:-1])

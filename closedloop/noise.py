@@ -171,7 +171,8 @@ def pinv_sqrt(W: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian: bool = True,
-           loops: list[Loop] | None = None, Winv: list[np.ndarray | None] | None = None, symmetric: bool = True):
+           loops: list[Loop] | None = None, Winv: list[np.ndarray | None] | None = None, symmetric: bool = True,
+           overwrite: bool = False):
     """Stack residuals (and Jacobians) whitened by W_i^-1/2, W_i = Jq Sigma Jq^T (+ measurement covariance).
 
     `Winv` reuses the W_i^-1/2 of an earlier evaluation (trial steps, which
@@ -193,10 +194,14 @@ def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian
     J_theta Sigma J_theta^T of the stacked J_theta (+ each block's measurement
     covariance on the diagonal), so the joint noise they share counts once
     (`_config_groups`; the symmetric root).
+    With `overwrite` the blocks' J are whitened in place (the caller's
+    evaluations are its own, used once): a large log then costs no second
+    copy of J.
     Returns (r, J or None, list of (W^-1/2, rank deficit) per block, or None
     entries, then one (W^-1/2, deficit, blocks, indices) per group of blocks).
     """
     groups = _config_groups(evals) if weighting == "noise" else []
+    overwrite = overwrite and not groups  # a group is whitened from its blocks' own J, after them
     shared = [np.zeros(ev.r.shape[0], dtype=bool) for ev in evals]
     for pattern, idx in groups:
         for k, bi in enumerate(pattern):
@@ -209,25 +214,12 @@ def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian
         if isinstance(Wh, tuple):
             Wh, deficit = Wh
         if weighting == "noise" and Wh is None and ev.Jq is not None:
-            Jq = ev.Jq * sigma_q[None, None, :]
-            W = Jq @ np.swapaxes(Jq, 1, 2)
-            if loops is not None and loops[bi].measurement_cov is not None:
-                W = W + loops[bi].measurement_cov
-            if shared[bi].any():  # whitened with the other blocks below: a placeholder here
-                W[shared[bi]] = np.eye(W.shape[1])
-            if symmetric:
-                Wh, deficit = pinv_sqrt(W)
-            else:
-                Wh, kappa = cholesky_inverse(W)
-                ill = np.flatnonzero(kappa >= 1e9)
-                if ill.size:
-                    Wh[ill], deficit = pinv_sqrt(W[ill])
-            if shared[bi].any():
-                Wh[shared[bi]] = 0.0
+            C = loops[bi].measurement_cov if loops is not None else None
+            Wh, deficit = _roots(ev.Jq, sigma_q, C, shared[bi], symmetric)
         if Wh is not None:
             r = np.einsum("nij,nj->ni", Wh, r)
             if jacobian:
-                J = Wh @ J
+                J = _times(Wh, J, overwrite)
         used.append((Wh, deficit) if Wh is not None else None)
         rs.append(r)
         if jacobian:
@@ -244,6 +236,51 @@ def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian
     if jacobian and Js:  # one block: its rows as they are (a copy of J costs as much as the whitening)
         J = Js[0].reshape(-1, Js[0].shape[-1]) if len(Js) == 1 else np.vstack([x.reshape(-1, x.shape[-1]) for x in Js])
     return r, J, used
+
+
+_CHUNK = 8192  # configurations whitened at a time (`_roots`, `_times`): their temporaries stay in cache
+
+
+def _roots(Jq: np.ndarray, sigma_q: np.ndarray, C: np.ndarray | None, shared: np.ndarray, symmetric: bool
+           ) -> tuple[np.ndarray, int]:
+    """W_i^-1/2 of W_i = Jq_i Sigma Jq_i^T + C (eq. 3.17) for a block's configurations, and the rank deficit.
+
+    A chunk of configurations at a time.  With `symmetric` the pseudo-inverse square root (`pinv_sqrt`),
+    else the inverse Cholesky factor where W_i is well conditioned and the symmetric root elsewhere
+    (`whiten`).  Configurations `shared` with other blocks get a zero placeholder (whitened as a group).
+    """
+    N, m = Jq.shape[:2]
+    Wh = np.empty((N, m, m))
+    deficit = 0
+    for a in range(0, N, _CHUNK):
+        Js = Jq[a:a + _CHUNK] * sigma_q
+        W = Js @ np.swapaxes(Js, 1, 2)
+        if C is not None:
+            W += C
+        sh = shared[a:a + _CHUNK]
+        if sh.any():
+            W[sh] = np.eye(m)
+        if symmetric:
+            Wh[a:a + _CHUNK], d = pinv_sqrt(W)
+        else:
+            Wh[a:a + _CHUNK], kappa = cholesky_inverse(W)
+            ill = np.flatnonzero(kappa >= 1e9)
+            d = 0
+            if ill.size:
+                Wh[a + ill], d = pinv_sqrt(W[ill])
+        deficit += d
+        if sh.any():
+            Wh[a:a + _CHUNK][sh] = 0.0
+    return Wh, deficit
+
+
+def _times(Wh: np.ndarray, J: np.ndarray, overwrite: bool) -> np.ndarray:
+    """Wh @ J for stacks (N, m, m) and (N, m, C); with `overwrite`, into J, a chunk of configurations at a time."""
+    if not overwrite:
+        return Wh @ J
+    for a in range(0, J.shape[0], _CHUNK):
+        J[a:a + _CHUNK] = Wh[a:a + _CHUNK] @ J[a:a + _CHUNK]
+    return J
 
 
 def _whiten_group(evals: list[BlockEval], pattern: tuple[int, ...], idx: np.ndarray, Wh: np.ndarray,

@@ -27,7 +27,7 @@ kinematic regressor) are in one loop; everything else is batched numpy.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 import pinocchio as pin
@@ -115,19 +115,30 @@ MEMO_ROWS = 20_000  # configurations up to which `CalibrationProblem.evaluate` k
 CHUNK = 8192  # configurations evaluated at a time: temporaries stay in the heap (below glibc's mmap limit)
 
 
-def _concatenate(parts: list[BlockEval]) -> BlockEval:
-    """One block's evaluation from its chunks' (`CalibrationProblem._evaluate`)."""
-    def cat(name: str):
-        arrs = [getattr(p, name) for p in parts]
-        if all(a is None for a in arrs):
-            return None
-        if name == "valid":
-            arrs = [np.ones(p.r.shape, dtype=bool) if a is None else a for a, p in zip(arrs, parts)]
-        if name == "cov":
-            arrs = [np.zeros(p.r.shape + p.r.shape[1:]) if a is None else a for a, p in zip(arrs, parts)]
-        return np.concatenate(arrs)
+def _chunked(parts: Iterator[BlockEval], N: int) -> BlockEval:
+    """One block's evaluation of N configurations from its chunks' (`CalibrationProblem._evaluate`), in order.
 
-    return BlockEval(cat("r"), cat("J"), cat("Jq"), cat("valid"), cat("cov"), cat("rows"))
+    Each chunk is written into arrays allocated at the first chunk that has the field: no list of chunks
+    is kept and no concatenation copies them again (at 100,000 configurations J alone is ~130 MB, and a
+    fresh array of that size costs its page faults on every pass).  A chunk without `valid` (all valid)
+    or `cov` (none) beside one with it is written as all True / zeros.
+    """
+    fill = {"valid": True, "cov": 0.0}  # what a chunk without the field stands for
+    out: dict[str, np.ndarray | None] = dict.fromkeys(("r", "J", "Jq", "valid", "cov", "rows"))
+    a = 0
+    for part in parts:
+        n = part.r.shape[0]
+        for name in out:
+            v = getattr(part, name)
+            if v is None and (name not in fill or out[name] is None):
+                continue
+            if out[name] is None:
+                out[name] = np.empty((N,) + v.shape[1:], dtype=v.dtype)
+                if name in fill:
+                    out[name][:a] = fill[name]  # the chunks before had none
+            out[name][a:a + n] = fill[name] if v is None else v
+        a += n
+    return BlockEval(**out)
 
 
 def _copy_eval(e: BlockEval, jacobian: bool, no_columns: bool) -> BlockEval:
@@ -293,12 +304,17 @@ class CalibrationProblem:
         solution's residual (outlier screen, closure level, standard errors,
         noise summary, residual statistics).
         """
+        if thetas is not None:
+            return self._evaluate(values, jacobian, thetas, columns)
         large = sum(b.theta.shape[0] for b in self.blocks) > MEMO_ROWS
-        if thetas is not None or (large and jacobian and (columns is None or len(columns) > 0)):
-            return self._evaluate(values, jacobian, thetas, columns)  # kept: residuals and Jq only, when large
         key = np.asarray(values, dtype=float).tobytes()
         cols = None if columns is None else tuple(int(c) for c in columns)
         memo = self.__dict__.setdefault("_memo", [])
+        if large and jacobian and (columns is None or len(columns) > 0):  # kept: residuals and Jq only
+            out = self._evaluate(values, jacobian, None, columns)
+            memo.insert(0, (key, self.blocks, (), [_copy_eval(e, True, True) for e in out]))
+            del memo[2:]
+            return out
         for k, blocks, kind, evals in memo:
             if k == key and blocks is self.blocks and (not jacobian or kind == cols or (kind != "r" and cols == ())):
                 return [_copy_eval(e, jacobian, cols == ()) for e in evals]
@@ -333,10 +349,10 @@ class CalibrationProblem:
             if N <= CHUNK:
                 out.append(self._block(bi, theta, b.tau, b.meas, b.rows, values, jacobian, ctx))
                 continue
-            parts = [self._block(bi, theta[i:i + CHUNK], None if b.tau is None else b.tau[i:i + CHUNK],
+            parts = (self._block(bi, theta[i:i + CHUNK], None if b.tau is None else b.tau[i:i + CHUNK],
                                  None if b.meas is None else b.meas[i:i + CHUNK], b.rows[i:i + CHUNK], values,
-                                 jacobian, ctx) for i in range(0, N, CHUNK)]
-            out.append(_concatenate(parts))
+                                 jacobian, ctx) for i in range(0, N, CHUNK))
+            out.append(_chunked(parts, N))
         return out
 
     def _block(self, bi: int, theta: np.ndarray, tau: np.ndarray | None, meas: np.ndarray | None, rows: np.ndarray,

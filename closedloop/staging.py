@@ -173,7 +173,7 @@ def _closure_level(problem: CalibrationProblem, stage: StageResult) -> float:
     fun = ResidualFunction(problem, stage.fun.full(stage.solution.x), [],
                            np.full(len(problem.joints), PLAUSIBLE_JOINT_NOISE), "noise")
     per_config = np.concatenate([np.linalg.norm(b, axis=1) / np.sqrt(b.shape[1])
-                                 for b in fun.blocks(np.zeros(0)) if b.size])
+                                 for b in fun.blocks(np.zeros(0), symmetric=False) if b.size])
     stage.closure_level = float(np.median(per_config)) if per_config.size else 0.0
     return stage.closure_level
 
