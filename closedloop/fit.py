@@ -19,8 +19,10 @@ problem over its estimated parameters and runs them in stages (thesis 3.2.3,
    hinge slid onto a joint axis) while the unweighted closure grew, the plain
    solution is kept and the result says why.
 
-`Restarts` (random starts within the parameters' priors) are tried by the
-caller when a stage stalls far above any plausible noise.
+On a long log (a block above `PRESOLVE_ABOVE` configurations) each stage is
+first solved on an evenly spaced sample and finished on the whole log
+(`presolved`).  `Restarts` (random starts within the parameters' priors) are
+tried by the caller when a stage stalls far above any plausible noise.
 """
 
 from __future__ import annotations
@@ -197,6 +199,38 @@ class StageResult:
     closure_level: float | None = None  # `staging._closure_level`, once computed
 
 
+PRESOLVE_ROWS = 8192  # configurations per block of the sample a stage on a long log is first solved on
+PRESOLVE_ABOVE = 32768  # configurations in a block from which a stage is presolved (`presolved`)
+
+
+def presolved(fun: ResidualFunction, start: np.ndarray, scale: np.ndarray, sopt: SolverOptions,
+              progress: Callable[[int, float], None] | None) -> tuple[np.ndarray, int]:
+    """A start for `fun` (estimated values) from the same fit on an evenly spaced sample of a long log.
+
+    Far from the solution, a log of 100,000 configurations says nothing 8,192 of them do not, at 12 times
+    the cost per iteration: the fit is solved on at most `PRESOLVE_ROWS` configurations per block
+    (`CalibrationProblem.sampled`), and the whole log then only finishes it (its least-squares minimum
+    is a few sample standard errors away, one or two iterations).  The sample's solution is used only if
+    its fit converged, finite, without its weighting discarding more residual directions than at `start`
+    (the guard of `weighted_stage`); else `start` is returned.  Row weights (IRLS) are per row of the
+    whole log: no presolve then.  Returns the start and the sample's iterations.
+    """
+    problem = fun.problem
+    if fun.row_weights is not None or all(b.theta.shape[0] < PRESOLVE_ABOVE for b in problem.blocks):
+        return start, 0
+    sub = replace(fun, problem=problem.sampled(PRESOLVE_ROWS))
+    sub(start, True)
+    deficit = sub.deficit
+    res = levenberg_marquardt(sub, start, scale, sopt, progress)
+    sub(res.x, True)
+    if res.status != "converged" or not np.isfinite(res.cost) or sub.deficit > deficit:
+        log.info("the fit on a sample of the log did not converge cleanly (%s): solved on the whole log", res.message)
+        return start, res.iterations
+    log.info("solved on %d configurations per loop in %d iterations; finishing on the whole log",
+             PRESOLVE_ROWS, res.iterations)
+    return res.x, res.iterations
+
+
 def plain_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, est: list[int],
                 scale: np.ndarray, sopt: SolverOptions, progress: Callable[[int, float], None] | None,
                 row_weights: np.ndarray | None = None) -> StageResult:
@@ -207,7 +241,10 @@ def plain_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, 
     the caller compares it with the weighted fit (`staging._better`).
     """
     fun = ResidualFunction(problem, x0, est, np.ones(len(problem.joints)), "none", row_weights)
-    res = levenberg_marquardt(fun, start, scale[est], replace(sopt, noise=0.0), progress)
+    sopt = replace(sopt, noise=0.0)
+    near, pre = presolved(fun, start, scale[est], sopt, progress)
+    res = levenberg_marquardt(fun, near, scale[est], sopt, progress)
+    res.iterations += pre
     return StageResult(res, fun)
 
 
@@ -217,9 +254,11 @@ def weighted_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarra
                    row_weights: np.ndarray | None = None) -> StageResult:
     """The errors-in-variables stage from `start` (a plain solution), guarded against hidden residuals."""
     fun = ResidualFunction(problem, x0, est, sigma_q, weighting, row_weights)
-    fun(start, True)
+    near, pre = presolved(fun, start, scale[est], sopt, progress)
+    fun(near, True)
     deficit_start = fun.deficit  # the weighting at the start (the solver's first call reuses this evaluation)
-    res = levenberg_marquardt(fun, start, scale[est], sopt, progress)
+    res = levenberg_marquardt(fun, near, scale[est], sopt, progress)
+    res.iterations += pre
     if weighting != "noise":
         return StageResult(res, fun)
     fun(res.x, True)

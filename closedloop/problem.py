@@ -27,12 +27,13 @@ kinematic regressor) are in one loop; everything else is batched numpy.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Iterator, Sequence
+from typing import Sequence
 
 import numpy as np
 import pinocchio as pin
 
 from .errors import LogError
+from .evaluation import BlockEval, Workspace, copy_eval, stack_chunks
 from .loops.base import Loop
 from .parameters import Parameter, RobotParameters, RobotState
 from .robot import RobotModel
@@ -99,57 +100,8 @@ class BlockNoise:
         self.measurement_cov = T if self.own is None else self.own + T
 
 
-@dataclass
-class BlockEval:
-    r: np.ndarray  # (N, m)
-    J: np.ndarray | None  # (N, m, C) d r / d parameters, over the requested columns (default: all P)
-    Jq: np.ndarray | None  # (N, m, n_joints) d r / d reading
-    valid: np.ndarray | None = None  # (N, m) False: a row with no observation (LoopEval.valid); None: all
-    cov: np.ndarray | None = None  # (N, m, m) per-configuration measurement covariance (LoopEval.cov)
-    #: (N,) the log rows of the configurations (LoopBlock.rows): blocks that read the same row share its
-    #: joint noise and are whitened together (`noise.whiten`); None for a block without configurations
-    rows: np.ndarray | None = None
-
-
 MEMO_ROWS = 20_000  # configurations up to which `CalibrationProblem.evaluate` keeps parameter Jacobians
 CHUNK = 8192  # configurations evaluated at a time: temporaries stay in the heap (below glibc's mmap limit)
-
-
-def _chunked(parts: Iterator[BlockEval], N: int) -> BlockEval:
-    """One block's evaluation of N configurations from its chunks' (`CalibrationProblem._evaluate`), in order.
-
-    Each chunk is written into arrays allocated at the first chunk that has the field: no list of chunks
-    is kept and no concatenation copies them again (at 100,000 configurations J alone is ~130 MB, and a
-    fresh array of that size costs its page faults on every pass).  A chunk without `valid` (all valid)
-    or `cov` (none) beside one with it is written as all True / zeros.
-    """
-    fill = {"valid": True, "cov": 0.0}  # what a chunk without the field stands for
-    out: dict[str, np.ndarray | None] = dict.fromkeys(("r", "J", "Jq", "valid", "cov", "rows"))
-    a = 0
-    for part in parts:
-        n = part.r.shape[0]
-        for name in out:
-            v = getattr(part, name)
-            if v is None and (name not in fill or out[name] is None):
-                continue
-            if out[name] is None:
-                out[name] = np.empty((N,) + v.shape[1:], dtype=v.dtype)
-                if name in fill:
-                    out[name][:a] = fill[name]  # the chunks before had none
-            out[name][a:a + n] = fill[name] if v is None else v
-        a += n
-    return BlockEval(**out)
-
-
-def _copy_eval(e: BlockEval, jacobian: bool, no_columns: bool) -> BlockEval:
-    """A copy of a kept evaluation: r only, or with the Jacobians (none of J's columns with `no_columns`)."""
-    def cp(a):
-        return None if a is None else a.copy()
-
-    if not jacobian:
-        return BlockEval(e.r.copy(), None, None, cp(e.valid), cp(e.cov), e.rows)
-    J = e.J[:, :, :0].copy() if no_columns and e.J is not None else cp(e.J)
-    return BlockEval(e.r.copy(), J, cp(e.Jq), cp(e.valid), cp(e.cov), e.rows)
 
 
 class CalibrationProblem:
@@ -246,17 +198,20 @@ class CalibrationProblem:
         return angles
 
     def frame_kinematics(self, state: RobotState, theta: np.ndarray, frames: list[int], need_jac: bool,
-                         tau: np.ndarray | None = None) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
+                         tau: np.ndarray | None = None, work: Workspace | None = None
+                         ) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
         """Poses (N, 4, 4) and, with `need_jac`, LOCAL kinematic regressors (N, 6, 6 (njoints - 1)) of frames.
 
-        The base frame (id 0) has the identity pose and no regressor.
+        The base frame (id 0) has the identity pose and no regressor.  With `work` the regressors are
+        formed in its buffers (valid until its next use).
         """
         model, data = state.model, state.data
         q = self.robot.configurations(self.model_angles(state, theta, tau), self.joints)
         N = q.shape[0]
         live = [f for f in frames if f != 0]
         T = {f: [None] * N for f in live}
-        K = {f: np.empty((N, 6, 6 * (model.njoints - 1))) for f in live} if need_jac else {}
+        shape = (N, 6, 6 * (model.njoints - 1))
+        K = {f: work.get(f"K{f}", shape) if work else np.empty(shape) for f in live} if need_jac else {}
         fk, place, regressor, local = pin.forwardKinematics, pin.updateFramePlacement, \
             pin.computeFrameKinematicRegressor, pin.LOCAL
         for i, qi in enumerate(q):
@@ -312,16 +267,16 @@ class CalibrationProblem:
         memo = self.__dict__.setdefault("_memo", [])
         if large and jacobian and (columns is None or len(columns) > 0):  # kept: residuals and Jq only
             out = self._evaluate(values, jacobian, None, columns)
-            memo.insert(0, (key, self.blocks, (), [_copy_eval(e, True, True) for e in out]))
+            memo.insert(0, (key, self.blocks, (), [copy_eval(e, True, True) for e in out]))
             del memo[2:]
             return out
         for k, blocks, kind, evals in memo:
             if k == key and blocks is self.blocks and (not jacobian or kind == cols or (kind != "r" and cols == ())):
-                return [_copy_eval(e, jacobian, cols == ()) for e in evals]
+                return [copy_eval(e, jacobian, cols == ()) for e in evals]
         out = self._evaluate(values, jacobian, None, columns)
         memo.insert(0, (key, self.blocks, cols if jacobian else "r", out))
         del memo[2:]
-        return [_copy_eval(e, jacobian, False) for e in out]
+        return [copy_eval(e, jacobian, False) for e in out]
 
     def _evaluate(self, values: np.ndarray, jacobian: bool, thetas: list[np.ndarray] | None,
                   columns: Sequence[int] | None) -> list[BlockEval]:
@@ -342,6 +297,7 @@ class CalibrationProblem:
         span = slice(rows[0], rows[-1] + 1) if rows.size else slice(0, 0)
         B = B[span]
         ctx = (cols, role, owner, B, span, geo, state)
+        work = self.__dict__.setdefault("_work", Workspace())  # the chunks' large temporaries, kept
         out = []
         for bi, b in enumerate(self.blocks):
             theta = b.theta if thetas is None else thetas[bi]
@@ -351,13 +307,15 @@ class CalibrationProblem:
                 continue
             parts = (self._block(bi, theta[i:i + CHUNK], None if b.tau is None else b.tau[i:i + CHUNK],
                                  None if b.meas is None else b.meas[i:i + CHUNK], b.rows[i:i + CHUNK], values,
-                                 jacobian, ctx) for i in range(0, N, CHUNK))
-            out.append(_chunked(parts, N))
+                                 jacobian, ctx, work) for i in range(0, N, CHUNK))
+            out.append(stack_chunks(parts, N))
         return out
 
     def _block(self, bi: int, theta: np.ndarray, tau: np.ndarray | None, meas: np.ndarray | None, rows: np.ndarray,
-               values: np.ndarray, jacobian: bool, ctx: tuple) -> BlockEval:
+               values: np.ndarray, jacobian: bool, ctx: tuple, work: Workspace | None = None) -> BlockEval:
         """Block `bi` on configurations `theta` (its readings, or a chunk of them), `_evaluate`'s context `ctx`.
+
+        With `work` (a chunk) its J is a view of the workspace, to be copied out before the next chunk.
 
         J = sum over the loop's frames f of d_f K_f B (eq. 3.8 chained: the loop's derivative w.r.t. the
         frame's right perturbation, Pinocchio's LOCAL kinematic regressor, each column's twist generator),
@@ -368,22 +326,31 @@ class CalibrationProblem:
         C, nj = cols.size, len(self.joints)
         only = getattr(b.loop, "parameter_only", False)  # a known length or distance: no reading moves it
         fids = [self.robot.frame_id(f) for f in b.loop.frames]
-        kin = self.frame_kinematics(state, theta, fids, jacobian, tau)
+        kin = self.frame_kinematics(state, theta, fids, jacobian, tau, work)
         Ts = [kin[f][0] for f in fids]
         if not jacobian:
             return BlockEval(b.loop.residual_frames(Ts, values[sl], meas), None, None,
                              b.loop.valid_frames(Ts, values[sl], meas), None, None if only else rows)
         ev = b.loop.evaluate_frames(Ts, values[sl], meas)
         N, m = ev.r.shape
-        D = np.zeros((N, m, C + nj))  # [J | d r / d theta']
+        shape = (N, m, C + nj)
+        D = work.get("D", shape) if work else np.empty(shape)  # [J | d r / d theta']
+        first = True
         for f, d in zip(fids, ev.frame_derivatives()):
             K = kin[f][1]
             if f == 0:
                 continue
-            dK = d @ K[:, :, span]  # (N, m, 6 nj): small per-configuration products, then one GEMM with B
-            D += (dK.reshape(N * m, -1) @ B).reshape(N, m, -1)
+            # (N, m, 6 nj): small per-configuration products, then one GEMM with B, into D for the first frame
+            dK = np.matmul(d, K[:, :, span], out=work.get("dK", (N, m, B.shape[0])) if work else None)
+            into = D if first else work.get("dKB", shape) if work else np.empty(shape)
+            np.matmul(dK.reshape(N * m, -1), B, out=into.reshape(N * m, -1))
+            if not first:
+                D += into
+            first = False
             if f in state.G_frames:
                 D[:, :, geo] += d @ state.G_frames[f][:, cols[geo]]
+        if first:  # no frame but the base
+            D[...] = 0.0
         J = D[:, :, :C]
         factors = ((_SCALE, theta), (_COMPLIANCE, np.zeros_like(theta) if tau is None else -tau))
         for kind, factor in factors:  # d theta' / d parameter: 1 (offset), theta (scale), -tau (compliance)

@@ -63,3 +63,51 @@ def test_structure_on_a_sample_is_the_whole(monkeypatch):
     assert a.status == b.status and a.gauge == b.gauge
     assert np.allclose(a.values, b.values, rtol=0, atol=1e-12)
     assert a.verdict.status == "ok"
+
+
+def test_large_jacobian_evaluation_keeps_its_residual_and_jq(monkeypatch):
+    """Above `MEMO_ROWS` the parameter Jacobian is not kept, but the residual and Jq of that evaluation are:
+    the stages after a solve (closure level, outlier screen) ask for them at the solution, and must get the
+    same values without a pass over all rows."""
+    panda = RobotModel.from_file(ROBOTS["panda"].path)
+    rng = np.random.default_rng(2)
+    lp = parse_loop(SPECS["weld"], panda)
+    th = Q0 + rng.normal(0.0, 0.05, (40, 7))
+    problem = build_problem(panda, JointLog([f"panda_joint{i}" for i in range(1, 8)], th), [lp])
+    x = initial_values(problem, {}) + rng.normal(0.0, 1e-3, len(problem.params))
+    monkeypatch.setattr(problem_module, "MEMO_ROWS", 10)
+    calls = []
+    real = problem._evaluate
+    monkeypatch.setattr(problem, "_evaluate", lambda *a: calls.append(a[1:]) or real(*a))
+    full = problem.evaluate(x, True, columns=[0, 3, 5])
+    full[0].r[:] = 0.0  # the caller owns what it got: the kept copy is not touched
+    kept = problem.evaluate(x, True, columns=[])
+    assert len(calls) == 1
+    again = real(x, True, None, [])
+    assert np.array_equal(kept[0].r, again[0].r) and np.array_equal(kept[0].Jq, again[0].Jq)
+    assert kept[0].J.shape[-1] == 0
+    problem.evaluate(x, True, columns=[0])  # a parameter Jacobian is evaluated again
+    assert len(calls) == 2
+
+
+def test_whitening_by_chunks_and_in_place_is_the_whole(monkeypatch):
+    """`noise.whiten` forms W_i^-1/2 and the whitened rows `_CHUNK` configurations at a time, the Jacobian in
+    place with `overwrite`: the same numbers as all at once, for both square roots."""
+    import closedloop.noise as noise_module
+
+    panda = RobotModel.from_file(ROBOTS["panda"].path)
+    rng = np.random.default_rng(4)
+    lp = parse_loop(SPECS["weld"], panda)
+    th = Q0 + rng.normal(0.0, 0.05, (23, 7))
+    problem = build_problem(panda, JointLog([f"panda_joint{i}" for i in range(1, 8)], th), [lp])
+    x = initial_values(problem, {}) + rng.normal(0.0, 1e-3, len(problem.params))
+    sigma = np.full(7, 1e-4)
+    for symmetric in (True, False):
+        r1, J1, used1 = noise_module.whiten(problem.evaluate(x), sigma, "noise", symmetric=symmetric)
+        monkeypatch.setattr(noise_module, "_CHUNK", 5)
+        evals = problem.evaluate(x)
+        r2, J2, used2 = noise_module.whiten(evals, sigma, "noise", symmetric=symmetric, overwrite=True)
+        monkeypatch.undo()
+        assert J2.base is evals[0].J or J2 is evals[0].J  # in place: no second copy of the rows
+        assert np.array_equal(r1, r2) and np.array_equal(J1, J2)  # the same arithmetic per configuration
+        assert np.array_equal(used1[0][0], used2[0][0]) and used1[0][1] == used2[0][1]

@@ -1,0 +1,71 @@
+"""A stage on a long log is first solved on an evenly spaced sample (`fit.presolved`, issue 17: 100,000
+configurations in at most 5 s); the whole log then finishes it.  The answer must be the whole log's own fit,
+to a small fraction of its standard errors, and a sample whose fit fails must not be used."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+import closedloop.fit as fit_module
+from closedloop import CalibrationOptions, RobotModel, calibrate
+from closedloop.data import JointLog
+from closedloop.loops import WeldLoop
+from closedloop.models import ROBOTS
+from closedloop.truth import make_dataset
+
+
+@pytest.fixture(scope="module")
+def long_log():
+    """1,200 rows: 300 exact self-motion configurations of a random true Panda, four times, 1e-4 rad noise."""
+    panda = RobotModel.from_file(ROBOTS["panda"].path)
+    rng = np.random.default_rng(11)
+    ds = make_dataset(panda, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 300, rng,
+                      stride=1)
+    th = np.tile(ds.readings, (4, 1))
+    return panda, ds, JointLog(ds.joints, th + rng.normal(0.0, 1e-4, th.shape))
+
+
+def test_presolved_fit_is_the_whole_logs_fit(long_log, monkeypatch, caplog):
+    panda, ds, log = long_log
+    loops = [WeldLoop("fixture", "panda_hand")]
+    whole = calibrate(panda, log, loops, CalibrationOptions())
+    monkeypatch.setattr(fit_module, "PRESOLVE_ABOVE", 1000)
+    monkeypatch.setattr(fit_module, "PRESOLVE_ROWS", 150)
+    with caplog.at_level(logging.INFO, logger="closedloop.fit"):
+        pre = calibrate(panda, log, loops, CalibrationOptions())
+    assert any("solved on 150 configurations" in m for m in caplog.messages)  # the presolve ran
+    assert whole.verdict.status == pre.verdict.status == "ok"
+    assert whole.status == pre.status and whole.gauge == pre.gauge
+    est = np.array(whole.estimated)
+    z = np.abs(pre.values[est] - whole.values[est]) / whole.std[est]
+    assert np.nanmax(z) < 0.05, np.nanmax(z)  # the same minimum, to 5 % of a standard error
+    assert np.allclose(pre.std[est], whole.std[est], rtol=1e-3, equal_nan=True)
+    # the same robot by what it does: the hand's place over the log, both calibrations against each other
+    hand = [np.asarray(r.problem.loop_poses(r.values, 0, ds.readings)[0])[:, :3, 3] for r in (whole, pre)]  # panda_hand
+    assert np.linalg.norm(hand[0] - hand[1], axis=1).max() < 1e-7  # nominal: 14 mm
+
+
+def test_a_sample_that_does_not_converge_is_not_used(long_log, monkeypatch, caplog):
+    panda, _, log = long_log
+    loops = [WeldLoop("fixture", "panda_hand")]
+    whole = calibrate(panda, log, loops, CalibrationOptions())
+    monkeypatch.setattr(fit_module, "PRESOLVE_ABOVE", 1000)
+    monkeypatch.setattr(fit_module, "PRESOLVE_ROWS", 150)
+    real = fit_module.levenberg_marquardt
+
+    def failing_on_samples(fun, x0, *args, **kwargs):
+        res = real(fun, x0, *args, **kwargs)
+        if fun.problem.blocks[0].theta.shape[0] == 150:  # the sample's fit: report it unconverged, far away
+            res.status, res.message, res.x = "max_iter", "no convergence (test)", res.x + 0.3
+        return res
+
+    monkeypatch.setattr(fit_module, "levenberg_marquardt", failing_on_samples)
+    with caplog.at_level(logging.INFO, logger="closedloop.fit"):
+        pre = calibrate(panda, log, loops, CalibrationOptions())
+    assert any("did not converge cleanly" in m for m in caplog.messages)
+    est = np.array(whole.estimated)
+    assert np.allclose(pre.values[est], whole.values[est], rtol=0, atol=1e-9)
+    assert pre.verdict.status == "ok"
