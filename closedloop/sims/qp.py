@@ -6,6 +6,9 @@ microseconds for the 6-9 variables of one planning step (:mod:`closedloop.sims.d
 
 from __future__ import annotations
 
+import math
+from operator import gt, le
+
 import numpy as np
 from scipy.linalg import lapack
 
@@ -61,10 +64,11 @@ def solve_box_qp(P: np.ndarray, c: np.ndarray, lb: np.ndarray, ub: np.ndarray, m
     n = c.shape[0]
     # lb <= ub, and x within them: on Python floats (6-9 values; numpy's comparisons cost more)
     lo, hi = lb.tolist(), ub.tolist()
-    if any(a > b for a, b in zip(lo, hi)):
+    if any(map(gt, lo, hi)):
         return None
     x = solve_vec(P, -c)  # the unconstrained minimiser (P positive definite): the usual answer
-    if all(a <= v <= b for a, v, b in zip(lo, x.tolist(), hi)):
+    xl = x.tolist()
+    if all(map(le, lo, xl)) and all(map(le, xl, hi)):  # lo <= x <= hi (a NaN fails, as in numpy)
         return x
     x = np.clip(np.zeros(n), lb, ub)
     # working set: -1 at the lower bound, +1 at the upper bound, 0 free
@@ -116,6 +120,6 @@ def min_norm_step(jac: np.ndarray, e: np.ndarray) -> np.ndarray:
             dq = jac.T @ solve_vec(jac @ jac.T, e)
         except np.linalg.LinAlgError:  # J J^T singular (np.linalg.solve raises): least squares below
             dq = None
-        if dq is not None and np.isfinite(dq).all():
+        if dq is not None and all(map(math.isfinite, dq.tolist())):  # np.isfinite(dq).all(), on floats
             return dq
     return np.linalg.lstsq(jac, e, rcond=None)[0]
