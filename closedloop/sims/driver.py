@@ -249,7 +249,7 @@ class NominalLoopPlanner:
         dn *= min(1.0, step / amax)
         wjt = _W_LOOP * jac.T  # P = I + w J^T J, c = -d + w J^T e (the products as written, (w J^T) first)
         P = self._eye + wjt @ jac
-        c = -dn + wjt @ e
+        c = wjt @ e - dn  # = -dn + w J^T e exactly (x - y is x + (-y))
         lb, ub = self.q_lo - self.q, self.q_hi - self.q
         self.stats.qp_solves += 1
         dq = solve_box_qp(P, c, lb, ub)
@@ -275,7 +275,8 @@ class NominalLoopPlanner:
             v = -v
         self._sweep_ref = v
         # longer than any step: _qp_step scales it down to the step length
-        return v * self._sweep_sign * 10.0 * self.step_rad / max(_abs_max(v), 1e-12)
+        # v * (sign * 10) = (v * sign) * 10 exactly (sign = +-1: rounding is symmetric)
+        return v * (self._sweep_sign * 10.0) * self.step_rad / max(_abs_max(v), 1e-12)
 
     def step(self) -> np.ndarray:
         """Advance one waypoint along the nominal self-motion and return it (planning vector).
