@@ -27,7 +27,7 @@ from .loop_types import SimLoop
 from .scenarios import Scenario, SimSettings
 from .scene import Scene, site_pose
 
-__all__ = ["Recording", "Settler", "track_and_record", "sensor_readings", "settle", "sample", "violation",
+__all__ = ["Recording", "Settler", "SiteViews", "track_and_record", "sensor_readings", "settle", "sample", "violation",
            "constraint_force"]
 
 log = logging.getLogger(__name__)
@@ -40,14 +40,27 @@ def _norm(x: np.ndarray) -> float:
 
 def violation(scene: Scene, point: bool) -> tuple[float, float]:
     """Distance and rotation angle between the tool site and the target site (after ``mj_forward``)."""
-    d, t, g = scene.data, scene.tool_site, scene.target_site
-    xpos = d.site_xpos
-    dp = _norm(xpos[t] - xpos[g])
-    if point:
-        return dp, 0.0
-    xmat = d.site_xmat
-    rel = xmat[g].reshape(3, 3).T @ xmat[t].reshape(3, 3)
-    return dp, _norm(pin.log3(rel))
+    return SiteViews(scene).violation(point)
+
+
+class SiteViews:
+    """Views of the tool and target sites' positions and orientations in ``scene.data`` (made once).
+
+    :meth:`violation` reads them after ``mj_forward``: the same arithmetic as indexing the site
+    arrays at every configuration, without its lookups.
+    """
+
+    def __init__(self, scene: Scene) -> None:
+        d, t, g = scene.data, scene.tool_site, scene.target_site
+        self.p_tool, self.p_target = d.site_xpos[t], d.site_xpos[g]
+        self.r_tool, self.r_target_t = d.site_xmat[t].reshape(3, 3), d.site_xmat[g].reshape(3, 3).T
+
+    def violation(self, point: bool) -> tuple[float, float]:
+        """:func:`violation` (see there)."""
+        dp = _norm(self.p_tool - self.p_target)
+        if point:
+            return dp, 0.0
+        return dp, _norm(pin.log3(self.r_target_t @ self.r_tool))
 
 
 def constraint_force(scene: Scene) -> float:
@@ -287,6 +300,7 @@ def track_and_record(sc: Scenario, kind: SimLoop, settings: SimSettings, scene: 
     flag = settings.limit_flag
     settler = Settler(scene, settings)
     qpos = settler.qpos
+    sites, point = SiteViews(scene), kind.point_contact
     tau = _view(d.qfrc_actuator, scene.dof_adr)  # the arm's actuator torques (read after mj_forward)
     targets = _targets(planner, plan, 3 * n + 20, lambda: n - rec.done)
     while rec.done < n:
@@ -327,7 +341,7 @@ def track_and_record(sc: Scenario, kind: SimLoop, settings: SimSettings, scene: 
             rec.meas[i] = tracker.actInv(tip) + rng_env.normal(0.0, settings.tracker_noise, 3)
             rec.viol_m[i] = float(np.linalg.norm(rec.meas[i] - tracker.actInv(tip)))
         else:
-            rec.viol_m[i], rec.viol_rad[i] = violation(scene, kind.point_contact)
+            rec.viol_m[i], rec.viol_rad[i] = sites.violation(point)
         rec.force[i] = constraint_force(scene)
         if rec.door.size:
             rec.door[i] = d.qpos[scene.door_qpos_adr]
