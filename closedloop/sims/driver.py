@@ -108,6 +108,10 @@ class NominalLoop:
         self.target_fixed = self.model.frames[self.target].parentJoint == 0
         self.point = oMt0.translation.copy()
         self.data = self.model.createData()
+        #: the tool's and the loop target's placements in ``data``: references, updated by every evaluation
+        #: (looked up once: an ``oMf[i]`` lookup through the bindings costs as much as a frame update)
+        self.tool_placement = self.data.oMf[self.tool]
+        self.target_placement = self.data.oMf[self.target]
         self._last: tuple[bytes, np.ndarray, np.ndarray] | None = None  # (q bytes, e, de/dq)
         self.nq = self.model.nq
         self.lower = self.model.lowerPositionLimit.copy()
@@ -132,8 +136,8 @@ class NominalLoop:
         if self._last is not None and key == self._last[0]:
             return self._last[1], self._last[2]
         e, jac = self._residual(q)
-        e.flags.writeable = False
-        jac.flags.writeable = False
+        e.setflags(write=False)  # (half the cost of `flags.writeable = False`)
+        jac.setflags(write=False)
         self._last = (key, e, jac)
         return e, jac
 
@@ -141,9 +145,8 @@ class NominalLoop:
         m, d = self.model, self.data
         pin.computeJointJacobians(m, d, q)
         pin.updateFramePlacements(m, d)
-        oMt = d.oMf[self.tool]
         jt = pin.getFrameJacobian(m, d, self.tool, pin.ReferenceFrame.LOCAL)
-        return self.kind.nominal_residual(self, d, oMt, jt)
+        return self.kind.nominal_residual(self, d, self.tool_placement, jt)
 
     def project(self, q: np.ndarray, iters: int = 3, tol: float = 1e-12) -> np.ndarray:
         """Gauss-Newton projection of ``q`` onto the nominal loop (minimum-norm steps ``dq = -J^+ e``)."""
@@ -204,7 +207,7 @@ class NominalLoopPlanner:
         self.q_hi = np.maximum(loop.upper - margin, self.q)
         self.stats = PlannerStats()
         self._eye = np.eye(loop.nq)
-        self._rank_tol = max(loop.n_constraints, loop.nq) * np.finfo(float).eps  # numpy's matrix_rank tolerance
+        self._rank_tol = float(max(loop.n_constraints, loop.nq) * np.finfo(float).eps)  # numpy's matrix_rank tolerance
         _e, jac = loop.residual(self.q)
         self.one_dimensional = jac.shape[1] - np.linalg.matrix_rank(jac) == 1
         self._sweep_ref = np.linalg.svd(jac)[2][-1]
@@ -225,9 +228,11 @@ class NominalLoopPlanner:
         """Loop error and Jacobian at ``self.q``, the Jacobian's right singular vectors and its rank."""
         e, jac = self.loop.residual(self.q)
         _u, sv, vt = svd_full(jac)
-        # sv_max * max(m, n) * eps: the product by eps (a power of two) is exact, so the factor is precomputed
-        tol = (float(sv[0]) if sv.size else 0.0) * self._rank_tol
-        return e, jac, vt, int(np.count_nonzero(sv > tol))
+        # sv_max * max(m, n) * eps: the product by eps (a power of two) is exact, so the factor is precomputed;
+        # the rank counted on Python floats (a NaN is not counted, as in numpy)
+        sv = sv.tolist()
+        tol = (sv[0] if sv else 0.0) * self._rank_tol
+        return e, jac, vt, sum(map(tol.__lt__, sv))
 
     def _qp_step(self, direction: np.ndarray, step: float | None = None,
                  lin: tuple[np.ndarray, np.ndarray, np.ndarray, int] | None = None) -> np.ndarray | None:
@@ -244,7 +249,7 @@ class NominalLoopPlanner:
         dn *= min(1.0, step / amax)
         wjt = _W_LOOP * jac.T  # P = I + w J^T J, c = -d + w J^T e (the products as written, (w J^T) first)
         P = self._eye + wjt @ jac
-        c = -dn + wjt @ e
+        c = wjt @ e - dn  # = -dn + w J^T e exactly (x - y is x + (-y))
         lb, ub = self.q_lo - self.q, self.q_hi - self.q
         self.stats.qp_solves += 1
         dq = solve_box_qp(P, c, lb, ub)
@@ -270,7 +275,8 @@ class NominalLoopPlanner:
             v = -v
         self._sweep_ref = v
         # longer than any step: _qp_step scales it down to the step length
-        return v * self._sweep_sign * 10.0 * self.step_rad / max(float(np.abs(v).max()), 1e-12)
+        # v * (sign * 10) = (v * sign) * 10 exactly (sign = +-1: rounding is symmetric)
+        return v * (self._sweep_sign * 10.0) * self.step_rad / max(_abs_max(v), 1e-12)
 
     def step(self) -> np.ndarray:
         """Advance one waypoint along the nominal self-motion and return it (planning vector).

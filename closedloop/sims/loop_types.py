@@ -138,7 +138,7 @@ class SimLoop:
 
     def nominal_residual(self, loop, d, oMt: pin.SE3, jt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``e = log6(oMh^-1 oMt)``, ``de/dq = Jlog6(hMt) (J_t - Ad(tMh) J_h)`` (LOCAL Jacobians)."""
-        oMh = d.oMf[loop.target]
+        oMh = loop.target_placement  # d.oMf[loop.target]
         hMt = oMh.actInv(oMt)
         e = pin.log6(hMt).vector
         if loop.target_fixed:  # a fixture in the world: J_h = 0

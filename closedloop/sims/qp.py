@@ -6,16 +6,45 @@ microseconds for the 6-9 variables of one planning step (:mod:`closedloop.sims.d
 
 from __future__ import annotations
 
+import math
+from operator import gt, le
+
 import numpy as np
+from scipy.linalg import lapack
 
 __all__ = ["solve_box_qp", "min_norm_step", "svd_full", "solve_vec"]
 
-# The planner's small systems (6-9 variables) go through numpy's public solve / svd.  numpy's private
-# LAPACK gufuncs (numpy.linalg._umath_linalg: the same calls, the same numbers to the bit) would save
-# ~2 us a call without the wrappers' checks and `errstate`, ~8 us a waypoint (~1.5 % of the Panda's
-# loop), but the layout rules keep other packages' private names out (tests/test_layout.py).
-solve_vec = np.linalg.solve
-svd_full = np.linalg.svd
+# The planner's small systems (6-9 variables) call LAPACK's dgesv / dgesdd through scipy's public
+# wrappers (scipy.linalg.lapack): the routines numpy.linalg.solve / svd call, with the same results to
+# the bit on the planner's matrices (the datasets are unchanged), in ~1 / ~5 us where numpy's wrappers
+# (their checks, type dispatch and `errstate`) take ~3.3 / ~8.3 us: ~10 us per waypoint.
+_GESV = lapack.dgesv
+_GESDD = lapack.dgesdd
+
+
+def solve_vec(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.linalg.solve(a, b)`` of a square float matrix and a vector (LAPACK ``dgesv``, LU with pivoting).
+
+    Raises :class:`numpy.linalg.LinAlgError` if ``a`` is singular, as numpy does.
+    """
+    _lu, _piv, x, info = _GESV(a, b)
+    if info:
+        raise np.linalg.LinAlgError("Singular matrix" if info > 0 else f"dgesv: argument {-info} invalid")
+    return x
+
+
+def svd_full(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``np.linalg.svd(a)`` (full ``u`` and ``vt``) of a float matrix: LAPACK ``dgesdd``, ``(u, s, vt)``.
+
+    ``vt`` is returned in row-major order, like numpy's: products with LAPACK's column-major
+    result would go through other BLAS kernels and round differently (the datasets would change).
+    ``u`` (the planner does not use it) stays column-major.  Raises
+    :class:`numpy.linalg.LinAlgError` if it does not converge, as numpy does.
+    """
+    u, s, vt, info = _GESDD(a)
+    if info:
+        raise np.linalg.LinAlgError("SVD did not converge" if info > 0 else f"dgesdd: argument {-info} invalid")
+    return u, s, np.ascontiguousarray(vt)
 
 
 def solve_box_qp(P: np.ndarray, c: np.ndarray, lb: np.ndarray, ub: np.ndarray, max_iter: int | None = None
@@ -35,10 +64,11 @@ def solve_box_qp(P: np.ndarray, c: np.ndarray, lb: np.ndarray, ub: np.ndarray, m
     n = c.shape[0]
     # lb <= ub, and x within them: on Python floats (6-9 values; numpy's comparisons cost more)
     lo, hi = lb.tolist(), ub.tolist()
-    if any(a > b for a, b in zip(lo, hi)):
+    if any(map(gt, lo, hi)):
         return None
     x = solve_vec(P, -c)  # the unconstrained minimiser (P positive definite): the usual answer
-    if all(a <= v <= b for a, v, b in zip(lo, x.tolist(), hi)):
+    xl = x.tolist()
+    if all(map(le, lo, xl)) and all(map(le, xl, hi)):  # lo <= x <= hi (a NaN fails, as in numpy)
         return x
     x = np.clip(np.zeros(n), lb, ub)
     # working set: -1 at the lower bound, +1 at the upper bound, 0 free
@@ -90,6 +120,6 @@ def min_norm_step(jac: np.ndarray, e: np.ndarray) -> np.ndarray:
             dq = jac.T @ solve_vec(jac @ jac.T, e)
         except np.linalg.LinAlgError:  # J J^T singular (np.linalg.solve raises): least squares below
             dq = None
-        if dq is not None and np.isfinite(dq).all():
+        if dq is not None and all(map(math.isfinite, dq.tolist())):  # np.isfinite(dq).all(), on floats
             return dq
     return np.linalg.lstsq(jac, e, rcond=None)[0]

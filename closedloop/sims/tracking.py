@@ -27,7 +27,8 @@ from .loop_types import SimLoop
 from .scenarios import Scenario, SimSettings
 from .scene import Scene, site_pose
 
-__all__ = ["Recording", "track_and_record", "sensor_readings", "settle", "sample", "violation", "constraint_force"]
+__all__ = ["Recording", "Settler", "SiteViews", "track_and_record", "sensor_readings", "settle", "sample", "violation",
+           "constraint_force"]
 
 log = logging.getLogger(__name__)
 
@@ -39,62 +40,121 @@ def _norm(x: np.ndarray) -> float:
 
 def violation(scene: Scene, point: bool) -> tuple[float, float]:
     """Distance and rotation angle between the tool site and the target site (after ``mj_forward``)."""
-    d, t, g = scene.data, scene.tool_site, scene.target_site
-    xpos = d.site_xpos
-    dp = _norm(xpos[t] - xpos[g])
-    if point:
-        return dp, 0.0
-    xmat = d.site_xmat
-    rel = xmat[g].reshape(3, 3).T @ xmat[t].reshape(3, 3)
-    return dp, _norm(pin.log3(rel))
+    return SiteViews(scene).violation(point)
+
+
+class SiteViews:
+    """Views of the tool and target sites' positions and orientations in ``scene.data`` (made once).
+
+    :meth:`violation` reads them after ``mj_forward``: the same arithmetic as indexing the site
+    arrays at every configuration, without its lookups.
+    """
+
+    def __init__(self, scene: Scene) -> None:
+        d, t, g = scene.data, scene.tool_site, scene.target_site
+        self.p_tool, self.p_target = d.site_xpos[t], d.site_xpos[g]
+        self.r_tool, self.r_target_t = d.site_xmat[t].reshape(3, 3), d.site_xmat[g].reshape(3, 3).T
+
+    def violation(self, point: bool) -> tuple[float, float]:
+        """:func:`violation` (see there)."""
+        dp = _norm(self.p_tool - self.p_target)
+        if point:
+            return dp, 0.0
+        return dp, _norm(pin.log3(self.r_target_t @ self.r_tool))
 
 
 def constraint_force(scene: Scene) -> float:
     """Norm of the translational part of the loop constraint force (``efc_force``)."""
     d = scene.data
     # MuJoCo puts the equality rows first (d.ne of them), then friction, limits and contacts
-    ne = d.ne
-    rows = np.flatnonzero(d.efc_id[:ne] == scene.eq_id)
-    return _norm(d.efc_force[rows[:3]]) if rows.size else 0.0
+    # (its first three rows, found on a Python list: a few rows, cheaper than numpy's flatnonzero)
+    eq = scene.eq_id
+    rows = [i for i, k in enumerate(d.efc_id[:d.ne].tolist()) if k == eq][:3]
+    return _norm(d.efc_force[rows]) if rows else 0.0
 
 
 _CHUNK = 5  # simulation steps between two settle checks
 
 
 def settle(scene: Scene, ctrl_from: np.ndarray, ctrl_to: np.ndarray, s: SimSettings,
-            vel_tol: float) -> tuple[bool, int]:
+           vel_tol: float) -> tuple[bool, int]:
     """Ramp the servo commands over ``ramp_steps``, then step until ``max |qdot| < vel_tol``.
 
     Returns (settled, steps); at most ``max_steps`` steps, at least ``min_steps``
     (counting the ramp); the velocity is checked every 5 steps.
     """
-    m, d = scene.model, scene.data
-    ramp = max(1, s.ramp_steps)
-    ctrl, frac, _q = _ramp_state(scene, ramp)  # cached per scene: servo-command view, (ramp, 1) fractions
-    step = mujoco.mj_step
-    for row in ctrl_from + frac * (ctrl_to - ctrl_from):  # = np.outer(frac, delta) + from, bit for bit
-        ctrl[...] = row  # per step: one copy into a view, one call
-        step(m, d)
-    steps = ramp
-    qvel = d.qvel  # a view of the simulation state
-    lo, hi = -vel_tol, vel_tol
-    if steps < s.min_steps:  # no check before min_steps: one call
-        k = -(-(s.min_steps - steps) // _CHUNK)
-        k = min(k, -(-(s.max_steps - steps) // _CHUNK))
-        if k > 0:
-            step(m, d, k * _CHUNK)
-            steps += k * _CHUNK
-    max_steps = s.max_steps
-    while steps < max_steps:
-        # max |qdot| < vel_tol on a Python list (a few joints: cheaper than numpy's reductions): min and
-        # max first (two C calls; they can step over a NaN), then, only when they pass, every value
-        # (a NaN fails every comparison, as in numpy)
-        v = qvel.tolist()
-        if lo < min(v) and max(v) < hi and all(lo < x < hi for x in v):
-            return True, steps
-        step(m, d, _CHUNK)
-        steps += _CHUNK
-    return False, steps
+    return Settler(scene, s).settle(ctrl_from, ctrl_to, vel_tol)
+
+
+class Settler:
+    """:func:`settle` and :func:`sample` on one scene with one set of settings, their set-up done once.
+
+    The servo-command and joint views, the ramp's fractions and buffers, the steps before the first
+    velocity check are kept, so that a sample costs its MuJoCo calls and little else (the same steps
+    and the same arithmetic as before: the ramp's rows are ``from + frac * (to - from)`` as before,
+    computed into buffers).  ``mujoco.mj_step`` is looked up at every settle (benchmarks time it).
+    """
+
+    def __init__(self, scene: Scene, s: SimSettings) -> None:
+        self.scene, self.s = scene, s
+        self.m, self.d = scene.model, scene.data
+        ramp = max(1, s.ramp_steps)
+        self.ctrl, frac, self.qpos = _ramp_state(scene, ramp)  # servo-command view, (ramp, 1) fractions, qpos
+        self.frac, self.ramp, self.max_steps = frac, ramp, s.max_steps
+        # steps after the ramp before the first check (no check before min_steps): one call
+        k = -(-(s.min_steps - ramp) // _CHUNK) if ramp < s.min_steps else 0
+        self.first = max(0, min(k, -(-(s.max_steps - ramp) // _CHUNK))) * _CHUNK
+        nu = len(scene.actuator_ids)
+        self.delta = np.empty(nu)
+        self.rows = np.empty((ramp, nu))
+        self.row_views = list(self.rows)  # one view per ramp step, made once
+        self.qvel = self.d.qvel  # a view of the simulation state
+        passes = max(0, int(s.relax_passes)) if s.relax else 0
+        # the tolerance of each settle of a sample: the move, then the relax passes (the last to vel_tol)
+        self.tols = [s.move_vel_tol] * passes + [s.vel_tol] if passes else [s.vel_tol]
+
+    def settle(self, ctrl_from: np.ndarray, ctrl_to: np.ndarray, vel_tol: float) -> tuple[bool, int]:
+        """:func:`settle` (see there)."""
+        m, d, ctrl, rows = self.m, self.d, self.ctrl, self.rows
+        step = mujoco.mj_step
+        np.subtract(ctrl_to, ctrl_from, out=self.delta)
+        np.multiply(self.frac, self.delta, out=rows)
+        np.add(ctrl_from, rows, out=rows)  # = np.outer(frac, delta) + from, bit for bit
+        for row in self.row_views:
+            ctrl[...] = row  # per step: one copy into a view, one call
+            step(m, d)
+        steps = self.ramp
+        if self.first:
+            step(m, d, self.first)
+            steps += self.first
+        qvel, max_steps = self.qvel, self.max_steps
+        lo, hi = -vel_tol, vel_tol
+        while steps < max_steps:
+            # max |qdot| < vel_tol on a Python list (a few joints: cheaper than numpy's reductions): min and
+            # max (two C calls; a NaN in first place fails them), then no NaN elsewhere (their sum is a
+            # number: the other values are within the tolerance), as numpy's test would find
+            v = qvel.tolist()
+            if lo < min(v) and max(v) < hi:
+                t = sum(v)
+                if t == t:
+                    return True, steps
+            step(m, d, _CHUNK)
+            steps += _CHUNK
+        return False, steps
+
+    def sample(self, ctrl: np.ndarray, target: np.ndarray) -> tuple[bool, int, np.ndarray]:
+        """:func:`sample` (see there)."""
+        tols = self.tols
+        settled, steps = self.settle(ctrl, target, tols[0])
+        ctrl = target
+        qpos = self.qpos
+        for tol in tols[1:]:
+            relaxed = qpos.copy()
+            ok, st = self.settle(ctrl, relaxed, tol)
+            settled &= ok
+            steps += st
+            ctrl = relaxed
+        return settled, steps, ctrl
 
 
 _RAMP: dict[int, tuple] = {}  # id(MjData) -> (MjData, ramp, ctrl view, fractions, qpos view): one scene at a time
@@ -146,17 +206,7 @@ def sample(scene: Scene, ctrl: np.ndarray, target: np.ndarray, s: SimSettings) -
     the servo takes up a fraction of the deflection), so the recorded configuration
     loads the loop far less than one long settle would.
     """
-    passes = max(0, int(s.relax_passes)) if s.relax else 0
-    settled, steps = settle(scene, ctrl, target, s, s.move_vel_tol if passes else s.vel_tol)
-    ctrl = target
-    qpos = _ramp_state(scene, max(1, s.ramp_steps))[2]
-    for k in range(passes):
-        relaxed = qpos.copy()
-        ok, st = settle(scene, ctrl, relaxed, s, s.vel_tol if k == passes - 1 else s.move_vel_tol)
-        settled &= ok
-        steps += st
-        ctrl = relaxed
-    return settled, steps, ctrl
+    return Settler(scene, s).sample(ctrl, target)
 
 
 def sensor_readings(
@@ -248,7 +298,9 @@ def track_and_record(sc: Scenario, kind: SimLoop, settings: SimSettings, scene: 
     ranges = zip(scene.jnt_range[:, 0].tolist(), scene.jnt_range[:, 1].tolist(), limited.tolist())
     limits = [(i, lo, hi) for i, (lo, hi, lim) in enumerate(ranges) if lim]
     flag = settings.limit_flag
-    qpos = _ramp_state(scene, max(1, settings.ramp_steps))[2]
+    settler = Settler(scene, settings)
+    qpos = settler.qpos
+    sites, point = SiteViews(scene), kind.point_contact
     tau = _view(d.qfrc_actuator, scene.dof_adr)  # the arm's actuator torques (read after mj_forward)
     targets = _targets(planner, plan, 3 * n + 20, lambda: n - rec.done)
     while rec.done < n:
@@ -257,11 +309,11 @@ def track_and_record(sc: Scenario, kind: SimLoop, settings: SimSettings, scene: 
             break
         target = scale * wp[:nj] + offset
         if not record:  # a waypoint on the way to the next selected configuration: move only
-            _ok, steps = settle(scene, ctrl, target, settings, settings.move_vel_tol)
+            _ok, steps = settler.settle(ctrl, target, settings.move_vel_tol)
             rec.steps += steps
             ctrl = target
             continue
-        settled, steps, ctrl = sample(scene, ctrl, target, settings)
+        settled, steps, ctrl = settler.sample(ctrl, target)
         rec.steps += steps
         mujoco.mj_forward(m, d)
         q = qpos.copy()
@@ -289,7 +341,7 @@ def track_and_record(sc: Scenario, kind: SimLoop, settings: SimSettings, scene: 
             rec.meas[i] = tracker.actInv(tip) + rng_env.normal(0.0, settings.tracker_noise, 3)
             rec.viol_m[i] = float(np.linalg.norm(rec.meas[i] - tracker.actInv(tip)))
         else:
-            rec.viol_m[i], rec.viol_rad[i] = violation(scene, kind.point_contact)
+            rec.viol_m[i], rec.viol_rad[i] = sites.violation(point)
         rec.force[i] = constraint_force(scene)
         if rec.door.size:
             rec.door[i] = d.qpos[scene.door_qpos_adr]
