@@ -204,7 +204,7 @@ PRESOLVE_ABOVE = 32768  # configurations in a block from which a stage is presol
 
 
 def presolved(fun: ResidualFunction, start: np.ndarray, scale: np.ndarray, sopt: SolverOptions,
-              progress: Callable[[int, float], None] | None) -> tuple[np.ndarray, int, bool]:
+              progress: Callable[[int, float], None] | None) -> tuple[np.ndarray, int]:
     """A start for `fun` (estimated values) from the same fit on an evenly spaced sample of a long log.
 
     Far from the solution, a log of 100,000 configurations says nothing 8,192 of them do not, at 12 times
@@ -213,12 +213,11 @@ def presolved(fun: ResidualFunction, start: np.ndarray, scale: np.ndarray, sopt:
     is a few sample standard errors away, one or two iterations).  The sample's solution is used only if
     its fit converged, finite, without its weighting discarding more residual directions than at `start`
     (the guard of `weighted_stage`); else `start` is returned.  Row weights (IRLS) are per row of the
-    whole log: no presolve then.  Returns the start, the sample's iterations and whether the sample's
-    solution is the start.
+    whole log: no presolve then.  Returns the start and the sample's iterations.
     """
     problem = fun.problem
     if fun.row_weights is not None or all(b.theta.shape[0] < PRESOLVE_ABOVE for b in problem.blocks):
-        return start, 0, False
+        return start, 0
     sub = replace(fun, problem=problem.sampled(PRESOLVE_ROWS))
     sub(start, True)
     deficit = sub.deficit
@@ -226,16 +225,10 @@ def presolved(fun: ResidualFunction, start: np.ndarray, scale: np.ndarray, sopt:
     sub(res.x, True)
     if res.status != "converged" or not np.isfinite(res.cost) or sub.deficit > deficit:
         log.info("the fit on a sample of the log did not converge cleanly (%s): solved on the whole log", res.message)
-        return start, res.iterations, False
+        return start, res.iterations
     log.info("solved on %d configurations per loop in %d iterations; finishing on the whole log",
              PRESOLVE_ROWS, res.iterations)
-    return _normalized(fun, res.x), res.iterations, True
-
-
-def _finishing(sopt: SolverOptions, presolved: bool) -> SolverOptions:
-    """The options of the whole log's fit: after a presolve its start is a few standard errors from the
-    minimum, where the geodesic acceleration's correction (a residual pass over all rows per step) is nil."""
-    return replace(sopt, geodesic=0.0) if presolved else sopt
+    return _normalized(fun, res.x), res.iterations
 
 
 def _normalized(fun: ResidualFunction, xe: np.ndarray) -> np.ndarray:
@@ -261,8 +254,8 @@ def plain_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, 
     """
     fun = ResidualFunction(problem, x0, est, np.ones(len(problem.joints)), "none", row_weights)
     sopt = replace(sopt, noise=0.0)
-    near, pre, used = presolved(fun, start, scale[est], sopt, progress)
-    res = levenberg_marquardt(fun, near, scale[est], _finishing(sopt, used), progress)
+    near, pre = presolved(fun, start, scale[est], sopt, progress)
+    res = levenberg_marquardt(fun, near, scale[est], sopt, progress)
     res.iterations += pre
     return StageResult(res, fun)
 
@@ -273,10 +266,10 @@ def weighted_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarra
                    row_weights: np.ndarray | None = None) -> StageResult:
     """The errors-in-variables stage from `start` (a plain solution), guarded against hidden residuals."""
     fun = ResidualFunction(problem, x0, est, sigma_q, weighting, row_weights)
-    near, pre, used = presolved(fun, start, scale[est], sopt, progress)
+    near, pre = presolved(fun, start, scale[est], sopt, progress)
     fun(near, True)
     deficit_start = fun.deficit  # the weighting at the start (the solver's first call reuses this evaluation)
-    res = levenberg_marquardt(fun, near, scale[est], _finishing(sopt, used), progress)
+    res = levenberg_marquardt(fun, near, scale[est], sopt, progress)
     res.iterations += pre
     if weighting != "noise":
         return StageResult(res, fun)

@@ -69,3 +69,29 @@ def test_a_sample_that_does_not_converge_is_not_used(long_log, monkeypatch, capl
     est = np.array(whole.estimated)
     assert np.allclose(pre.values[est], whole.values[est], rtol=0, atol=1e-9)
     assert pre.verdict.status == "ok"
+
+
+def test_presolved_passive_door_is_the_truth(tmp_path, monkeypatch):
+    """A case the presolve was not designed around: the UR5 door through its passive chain (a weakly
+    determined valley, 100 iterations).  Presolved on 40 of its 150 configurations, the calibration must
+    still meet the simulated truth (a whole-log finish without the geodesic probes did not: three
+    parameters 0.5-1.4 mrad off with a closure as small, which is why the finish keeps them)."""
+    import json
+
+    from closedloop.check import check_report
+    from closedloop.data import read_log
+    from closedloop.loops import PassiveChainLoop
+    from closedloop.models import model_file
+    from closedloop.report import build_report
+    from closedloop.sims import simulate
+
+    simulate("ur5_door", 150, 1, tmp_path)
+    robot = RobotModel.from_file(tmp_path / "nominal.urdf")
+    log = read_log(tmp_path / "log.csv", robot.joint_names)
+    monkeypatch.setattr(fit_module, "PRESOLVE_ABOVE", 100)
+    monkeypatch.setattr(fit_module, "PRESOLVE_ROWS", 40)
+    res = calibrate(robot, log, [PassiveChainLoop("door", "tool0", model_file("tasks/hinged_door.urdf"), "grip")])
+    assert res.converged and res.verdict.status == "ok"
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    rows, ok = check_report(truth, build_report(res), tol_m=1e-4, tol_rad=1e-3, tol_scale=1e-3)
+    assert ok, [r for r in rows if r["result"] == "FAIL"]
