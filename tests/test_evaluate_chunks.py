@@ -65,16 +65,21 @@ def test_structure_on_a_sample_is_the_whole(monkeypatch):
     assert a.verdict.status == "ok"
 
 
+def _weld_problem(seed: int, n: int):
+    """A Panda weld problem on n configurations near Q0, and a parameter vector 1e-3 off its start."""
+    panda = RobotModel.from_file(ROBOTS["panda"].path)
+    rng = np.random.default_rng(seed)
+    th = Q0 + rng.normal(0.0, 0.05, (n, 7))
+    problem = build_problem(panda, JointLog([f"panda_joint{i}" for i in range(1, 8)], th),
+                            [parse_loop(SPECS["weld"], panda)])
+    return problem, initial_values(problem, {}) + rng.normal(0.0, 1e-3, len(problem.params))
+
+
 def test_large_jacobian_evaluation_keeps_its_residual_and_jq(monkeypatch):
     """Above `MEMO_ROWS` the parameter Jacobian is not kept, but the residual and Jq of that evaluation are:
     the stages after a solve (closure level, outlier screen) ask for them at the solution, and must get the
     same values without a pass over all rows."""
-    panda = RobotModel.from_file(ROBOTS["panda"].path)
-    rng = np.random.default_rng(2)
-    lp = parse_loop(SPECS["weld"], panda)
-    th = Q0 + rng.normal(0.0, 0.05, (40, 7))
-    problem = build_problem(panda, JointLog([f"panda_joint{i}" for i in range(1, 8)], th), [lp])
-    x = initial_values(problem, {}) + rng.normal(0.0, 1e-3, len(problem.params))
+    problem, x = _weld_problem(2, 40)
     monkeypatch.setattr(problem_module, "MEMO_ROWS", 10)
     calls = []
     real = problem._evaluate
@@ -95,12 +100,7 @@ def test_whitening_by_chunks_and_in_place_is_the_whole(monkeypatch):
     place with `overwrite`: the same numbers as all at once, for both square roots."""
     import closedloop.noise as noise_module
 
-    panda = RobotModel.from_file(ROBOTS["panda"].path)
-    rng = np.random.default_rng(4)
-    lp = parse_loop(SPECS["weld"], panda)
-    th = Q0 + rng.normal(0.0, 0.05, (23, 7))
-    problem = build_problem(panda, JointLog([f"panda_joint{i}" for i in range(1, 8)], th), [lp])
-    x = initial_values(problem, {}) + rng.normal(0.0, 1e-3, len(problem.params))
+    problem, x = _weld_problem(4, 23)
     sigma = np.full(7, 1e-4)
     for symmetric in (True, False):
         r1, J1, used1 = noise_module.whiten(problem.evaluate(x), sigma, "noise", symmetric=symmetric)

@@ -28,12 +28,23 @@ def long_log():
     return panda, ds, JointLog(ds.joints, th + rng.normal(0.0, 1e-4, th.shape))
 
 
-def test_presolved_fit_is_the_whole_logs_fit(long_log, monkeypatch, caplog):
+@pytest.fixture(scope="module")
+def whole(long_log):
+    """The long log calibrated as it is (1,200 configurations: below the presolve's threshold)."""
+    panda, _, log = long_log
+    return calibrate(panda, log, [WeldLoop("fixture", "panda_hand")], CalibrationOptions())
+
+
+def _presolve_above(monkeypatch, above: int, rows: int) -> None:
+    """The presolve on loops above `above` configurations, on `rows` of them."""
+    monkeypatch.setattr(fit_module, "PRESOLVE_ABOVE", above)
+    monkeypatch.setattr(fit_module, "PRESOLVE_ROWS", rows)
+
+
+def test_presolved_fit_is_the_whole_logs_fit(long_log, whole, monkeypatch, caplog):
     panda, ds, log = long_log
     loops = [WeldLoop("fixture", "panda_hand")]
-    whole = calibrate(panda, log, loops, CalibrationOptions())
-    monkeypatch.setattr(fit_module, "PRESOLVE_ABOVE", 1000)
-    monkeypatch.setattr(fit_module, "PRESOLVE_ROWS", 150)
+    _presolve_above(monkeypatch, 1000, 150)
     with caplog.at_level(logging.INFO, logger="closedloop.fit"):
         pre = calibrate(panda, log, loops, CalibrationOptions())
     assert any("solved on 150 configurations" in m for m in caplog.messages)  # the presolve ran
@@ -48,12 +59,10 @@ def test_presolved_fit_is_the_whole_logs_fit(long_log, monkeypatch, caplog):
     assert np.linalg.norm(hand[0] - hand[1], axis=1).max() < 1e-7  # nominal: 14 mm
 
 
-def test_a_sample_that_does_not_converge_is_not_used(long_log, monkeypatch, caplog):
+def test_a_sample_that_does_not_converge_is_not_used(long_log, whole, monkeypatch, caplog):
     panda, _, log = long_log
     loops = [WeldLoop("fixture", "panda_hand")]
-    whole = calibrate(panda, log, loops, CalibrationOptions())
-    monkeypatch.setattr(fit_module, "PRESOLVE_ABOVE", 1000)
-    monkeypatch.setattr(fit_module, "PRESOLVE_ROWS", 150)
+    _presolve_above(monkeypatch, 1000, 150)
     real = fit_module.levenberg_marquardt
 
     def failing_on_samples(fun, x0, *args, **kwargs):
@@ -88,8 +97,7 @@ def test_presolved_passive_door_is_the_truth(tmp_path, monkeypatch):
     simulate("ur5_door", 150, 1, tmp_path)
     robot = RobotModel.from_file(tmp_path / "nominal.urdf")
     log = read_log(tmp_path / "log.csv", robot.joint_names)
-    monkeypatch.setattr(fit_module, "PRESOLVE_ABOVE", 100)
-    monkeypatch.setattr(fit_module, "PRESOLVE_ROWS", 40)
+    _presolve_above(monkeypatch, 100, 40)
     res = calibrate(robot, log, [PassiveChainLoop("door", "tool0", model_file("tasks/hinged_door.urdf"), "grip")])
     assert res.converged and res.verdict.status == "ok"
     truth = json.loads((tmp_path / "truth.json").read_text())
