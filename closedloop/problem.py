@@ -173,6 +173,11 @@ class CalibrationProblem:
             blocks.append(b.subset(keep))
         return CalibrationProblem(self.robot, self.joints, blocks, self.priors, self.noise)
 
+    def __getstate__(self) -> dict:
+        """Pickled (a result sent by a process pool or Ray) without the evaluation memo and the chunks'
+        workspace: caches of up to ~100 MB on a long log, made again when needed."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("_memo", "_work")}
+
     def sampled(self, per_block: int, first: bool = False) -> "CalibrationProblem":
         """The problem on at most `per_block` configurations of each block, evenly spaced along the log (the
         first ones with `first`; self when no block has more): structural questions (redundancy, mobility)

@@ -111,3 +111,22 @@ def test_whitening_by_chunks_and_in_place_is_the_whole(monkeypatch):
         assert J2.base is evals[0].J or J2 is evals[0].J  # in place: no second copy of the rows
         assert np.array_equal(r1, r2) and np.array_equal(J1, J2)  # the same arithmetic per configuration
         assert np.array_equal(used1[0][0], used2[0][0]) and used1[0][1] == used2[0][1]
+
+
+def test_a_pickled_problem_leaves_its_caches_behind(monkeypatch):
+    """A result crosses processes (pool, Ray) with its problem: the memo of evaluations and the chunks'
+    workspace stay behind, and the copy evaluates to the same numbers."""
+    import pickle
+
+    problem, x = _weld_problem(5, 60)
+    monkeypatch.setattr(problem_module, "CHUNK", 16)  # the workspace is used
+    before = problem.evaluate(x)
+    bare = len(pickle.dumps(problem))
+    assert problem.__dict__.get("_memo") and problem.__dict__.get("_work")
+    copy = pickle.loads(pickle.dumps(problem))
+    assert "_memo" not in copy.__dict__ and "_work" not in copy.__dict__
+    after = copy.evaluate(x)
+    assert np.array_equal(before[0].r, after[0].r) and np.array_equal(before[0].J, after[0].J)
+    problem.__dict__.pop("_memo")
+    problem.__dict__.pop("_work")
+    assert len(pickle.dumps(problem)) == bare
