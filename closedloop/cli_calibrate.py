@@ -28,7 +28,7 @@ class Progress:
         if stage == "solving":
             msg += f": iteration {it}, cost {value:.3e}"
         elif stage == "validating":
-            msg += ": k-fold held-out refits"
+            msg += ": k-fold held-out refits" + (f", {it} of {int(value)} done" if value else "")
         elif stage == "simulating":
             msg += f": {it}/{int(value)} configurations"
         msg += f"  [{time.perf_counter() - self.t0:.1f} s]"
@@ -143,7 +143,7 @@ def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog) -> d
     from .validation import cross_validate
 
     prog("validating", 0, 0.0)
-    cv = cross_validate(robot, lg, loops, opts, k=args.cv)
+    cv = cross_validate(robot, lg, loops, opts, k=args.cv, progress=lambda done, k: prog("validating", done, k))
     report["validation"] = {"k": args.cv, "test": cv["test"], "train": cv["train"],
                             "test_whitened_rms": cv.get("test_whitened_rms"),
                             "parameter_spread": cv.get("parameter_spread"),

@@ -16,7 +16,7 @@ folds), reproducibly from `seed`.
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -113,7 +113,8 @@ def _holdout_job(robot: RobotModel, loops: list[Loop], opt: CalibrationOptions, 
 
 
 def cross_validate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: CalibrationOptions | None = None,
-                   k: int = 5, seed: int = 0, executor=None) -> dict[str, Any]:
+                   k: int = 5, seed: int = 0, executor=None,
+                   progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
     """k-fold cross-validation with the same options on every fold.
 
     Returns
@@ -129,6 +130,7 @@ def cross_validate(robot: RobotModel, log_: JointLog, loops: list[Loop], options
                are listed under 'inconsistent').
     The refits run on `executor` (an engine or its name, closedloop.executor;
     None: this process, in fold order); the result is the same on any engine.
+    `progress(done, k)` is called as each refit finishes (on a long log each is a calibration of its own).
     """
     opt = options or CalibrationOptions()
     parts = folds(log_, k, seed)
@@ -137,7 +139,8 @@ def cross_validate(robot: RobotModel, log_: JointLog, loops: list[Loop], options
     from .executor import run  # the refits run on any engine (closedloop.executor); results in fold order
 
     splits = [(subset(log_, np.setdiff1d(np.arange(len(log_)), rows)), subset(log_, rows)) for rows in parts]
-    for f, ho in enumerate(run(_holdout_job, splits, executor, shared=(robot, loops, opt))):
+    told = (lambda state: progress(state.done, state.total)) if progress else None
+    for f, ho in enumerate(run(_holdout_job, splits, executor, shared=(robot, loops, opt), progress=told)):
         res: CalibrationResult = ho["result"]
         ref = res.values if ref is None else ref
         vals = unwrap(res.problem, res.values, ref)  # closure rotation vectors on one branch

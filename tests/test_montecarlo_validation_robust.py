@@ -59,7 +59,10 @@ def test_cross_validation(scenario):
     lg = scenario.log(scenario.theta + rng.normal(0, NOISE, scenario.theta.shape))
     parts = folds(lg, 5, seed=0)
     assert sorted(np.concatenate(parts).tolist()) == list(range(100))
-    cv = cross_validate(scenario.robot, lg, scenario.loops, CalibrationOptions(noise=NOISE), k=5, seed=0)
+    told = []  # each refit reported as it finishes (a long log's refit is a calibration of its own)
+    cv = cross_validate(scenario.robot, lg, scenario.loops, CalibrationOptions(noise=NOISE), k=5, seed=0,
+                        progress=lambda done, k: told.append((done, k)))
+    assert told == [(1, 5), (2, 5), (3, 5), (4, 5), (5, 5)]
     assert len(cv["folds"]) == 5 and all(f["converged"] for f in cv["folds"])
     assert not cv["inconsistent"]
     test, train = cv["test"][0], cv["train"][0]
