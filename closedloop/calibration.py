@@ -21,7 +21,8 @@ The pipeline (thesis 3.2, 4.2, with the noise treated as errors in variables):
    solution explains readmitted (`outliers.readmit`).
 6. `name_gauge`: the held length that sets the size, with what it stands for.
 7. `analyse_solution`: standard errors, directions the data do not determine,
-   residuals before/after, a chi-square test; then `verdict.judge`.
+   residuals before/after, a chi-square test; `linearity.check_error_bars`:
+   a long fit's error bars along the cost's profile; then `verdict.judge`.
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from .constraints import annotate
 from .data import JointLog
 from .errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
 from .identifiability import Structure, analyse_structure, weak_directions
+from .linearity import check_error_bars
 from .loops.base import Loop
 from .noise import noise_vector
 from .outliers import gross_outliers, readmit, reject_outliers
@@ -194,6 +196,7 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
                             a["dof"], notes, a["cov"], fit.est, suspects, a["weighting"], gauge,
                             structure.gauge_note, structure.gauge_length, rejected, len(log_), fit.warnings)
     annotate(res, fit.sigma_q, structure.scale_free, opt.snr)  # what sets the scale, each loop's noise (closedloop.constraints)
+    res.profiles = check_error_bars(res, fit.sigma_q, fit.known)  # a long fit: do its error bars hold? (linearity)
     res.verdict = judge(res)
     return res
 

@@ -120,6 +120,7 @@ class CalibrationResult:
     rejected: list[Rejected] = field(default_factory=list)
     rows_total: int = 0
     warnings: list[str] = field(default_factory=list)  # findings that make the result suspect
+    profiles: list = field(default_factory=list)  # linearity.Profile: the error bars checked along the cost's profile
     verdict: Verdict | None = None
     scale_note: str | None = None  # what sets the overall size (closedloop.constraints.annotate)
     scale_std: float = float("nan")  # relative standard error of the size, when a known distance sets it
