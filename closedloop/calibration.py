@@ -196,7 +196,7 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
                             a["dof"], notes, a["cov"], fit.est, suspects, a["weighting"], gauge,
                             structure.gauge_note, structure.gauge_length, rejected, len(log_), fit.warnings)
     annotate(res, fit.sigma_q, structure.scale_free, opt.snr)  # what sets the scale, each loop's noise (closedloop.constraints)
-    res.profiles = check_error_bars(res, fit.sigma_q, fit.known)  # a long fit: do its error bars hold? (linearity)
+    res.profiles = check_error_bars(res, fit)  # a long fit: do its error bars hold? (closedloop.linearity)
     res.verdict = judge(res)
     return res
 

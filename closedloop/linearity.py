@@ -28,7 +28,7 @@ is a solve of its own.  Not on exact data (an estimated joint noise below
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -68,16 +68,23 @@ class Profile:
 
 
 class _Pinned:
-    """`fun` with one more row, PIN (u^T x - target) / s_u: the combination held at `target`."""
+    """`fun` on x = x0 + B z (B: the directions the fit estimates), with one more row PIN (u^T x - target) / s_u:
+    the combination held at `target`, the rest free within what the fit itself moves."""
 
-    def __init__(self, fun: ResidualFunction, u: np.ndarray, target: float, s_u: float, noise: float):
-        self.fun, self.u, self.target, self.w = fun, u, target, PIN * noise / s_u
+    def __init__(self, fun: ResidualFunction, x0: np.ndarray, B: np.ndarray, u: np.ndarray, target: float,
+                 s_u: float, noise: float):
+        self.fun, self.x0, self.B, self.u, self.target = fun, x0, B, u, target
+        self.w = PIN * noise / s_u
 
-    def __call__(self, xe: np.ndarray, jac: bool | None):
-        r, J = self.fun(xe, jac)
-        r = np.append(r, self.w * (float(self.u @ xe) - self.target))
+    def x(self, z: np.ndarray) -> np.ndarray:
+        return self.x0 + self.B @ z
+
+    def __call__(self, z: np.ndarray, jac: bool | None):
+        x = self.x(z)
+        r, J = self.fun(x, jac)
+        r = np.append(r, self.w * (float(self.u @ x) - self.target))
         if jac:
-            J = np.vstack([J, self.w * self.u[None, :]])
+            J = np.vstack([J @ self.B, self.w * (self.u @ self.B)[None, :]])
         return r, J
 
 
@@ -85,17 +92,24 @@ def profile(make: Callable[[], ResidualFunction], x: np.ndarray, cov: np.ndarray
             prior: np.ndarray, name: str) -> Profile:
     """The profile of 1/2 |r|^2 / noise^2 along u from the solution x (estimated values), covariance `cov`.
 
-    `make` gives a fresh residual function: each cost is taken with the weights W_i at its own point.
+    `make` gives a fresh residual function: each cost is taken with the weights W_i at its own point.  The
+    rest is re-minimised within the range of `cov`: the directions the fit estimates (those it truncates
+    below the noise it holds at their start, and so does the profile; their share of the uncertainty is
+    not the error bars' to show).
     """
     s_u = float(np.sqrt(max(u @ cov @ u, 0.0)))
     base = _cost(make(), x, noise)
+    scaled = cov / np.outer(prior, prior)
+    lam, V = np.linalg.eigh(scaled)
+    B = V[:, lam > 1e-12 * lam[-1]] * prior[:, None]  # the estimated directions, in parameter units
     rises = []
     for k in (-K, K):
         target = float(u @ x) + k * s_u
-        start = x + k * (cov @ u) / s_u  # the linear model's profile point
-        sol = levenberg_marquardt(_Pinned(make(), u, target, s_u, noise), start, prior,
+        start = x + k * (cov @ u) / s_u  # the linear model's profile point, in the range of cov
+        pinned = _Pinned(make(), start, B, u, target, s_u, noise)
+        sol = levenberg_marquardt(pinned, np.zeros(B.shape[1]), np.ones(B.shape[1]),
                                   SolverOptions(noise=noise, max_iter=50))
-        rises.append(_cost(make(), sol.x, noise) - base)
+        rises.append(_cost(make(), pinned.x(sol.x), noise) - base)
     return Profile(name, s_u, (rises[0], rises[1]))
 
 
@@ -104,11 +118,12 @@ def _cost(fun: ResidualFunction, xe: np.ndarray, noise: float) -> float:
     return 0.5 * float(r @ r) / noise ** 2
 
 
-def check_profiles(problem, values: np.ndarray, est: list[int], cov: np.ndarray, sigma_q: np.ndarray,
-                   weighting: str, noise: float, size: np.ndarray | None) -> list[Profile]:
+def check_profiles(make: Callable[[], ResidualFunction], problem, values: np.ndarray, est: list[int],
+                   cov: np.ndarray, noise: float, size: np.ndarray | None) -> list[Profile]:
     """Profiles along the weakest axis of `cov` (prior-scaled) and along `size` (d size / d parameter, if given).
 
-    `noise` is the whitened residual's noise level (1 with a known joint noise, else the fit's RMS).
+    `make` gives a fresh copy of the fit's residual function (its weighting and row weights);
+    `noise` is its residual's noise level (1 with a known joint noise, else the fit's RMS).
     """
     if not est or not np.all(np.isfinite(cov)):
         return []
@@ -118,18 +133,21 @@ def check_profiles(problem, values: np.ndarray, est: list[int], cov: np.ndarray,
     directions = {"the weakest direction of the parameters": V[:, -1] / prior}
     if size is not None and np.any(size != 0):
         directions["the robot's size"] = size
-    x = values[est]
     out = []
     for name, u in directions.items():
-        p = profile(lambda: ResidualFunction(problem, values, est, sigma_q, weighting), x, cov, u, noise, prior, name)
+        p = profile(make, values[est], cov, u, noise, prior, name)
         log.info("profile %s", p.describe())
         out.append(p)
     return out
 
 
-def check_error_bars(res, sigma_q: np.ndarray, known: bool) -> list[Profile]:
+def check_error_bars(res, fit) -> list[Profile]:
     """The profiles of a calibration result that took more than `PROFILE_AFTER` iterations, with a warning
-    (`res.warnings`: the verdict is `suspect`) for each direction whose error bar does not hold."""
+    (`res.warnings`: the verdict is `suspect`) for each direction whose error bar does not hold.
+
+    On the fit's own residual function (`fit.stage.fun`: its weighting, its row weights, such as a known
+    length's in an unweighted fit), at the reported values.
+    """
     if res.iterations <= PROFILE_AFTER or not res.estimated or res.covariance.size == 0:
         return []
     if res.sigma_estimated and not res.sigma > EXACT:  # exact data: error bars of round-off, nothing to check
@@ -137,12 +155,13 @@ def check_error_bars(res, sigma_q: np.ndarray, known: bool) -> list[Profile]:
     from .gauge import size_per_parameter
 
     problem, est = res.problem, list(res.estimated)
-    fun = ResidualFunction(problem, res.values, est, sigma_q, res.weighting)
-    r, _ = fun(res.values[est], False)
-    noise = 1.0 if known and res.weighting == "noise" else float(np.sqrt(r @ r / max(res.dof, 1)))
+    make = lambda: replace(fit.stage.fun, x0=res.values.copy())  # noqa: E731  (fresh: no cached weights)
+    r, _ = make()(res.values[est], False)
+    known = fit.known and res.weighting == "noise"
+    noise = 1.0 if known else float(np.sqrt(r @ r / max(res.dof, 1)))
     scale_std = getattr(res, "scale_std", float("nan"))
     size = size_per_parameter(problem, res.values, est) if scale_std is not None and np.isfinite(scale_std) else None
-    profiles = check_profiles(problem, res.values, est, res.covariance, sigma_q, res.weighting, noise, size)
+    profiles = check_profiles(make, problem, res.values, est, res.covariance, noise, size)
     for p in profiles:
         if not p.holds:
             res.warnings.append(f"the error bars do not hold: {p.describe()}; the fit lies in a curved valley its "

@@ -306,6 +306,18 @@ class Case:
     def scale_visible(self) -> bool:
         return self.loop not in SCALE_BLIND
 
+    def true_distance(self, frame_a: str, frame_b: str) -> float:
+        """The true distance between two frames at zero readings (the true model at the true offsets): what a
+        caliper between them measures (`closedloop.lengths.LengthLoop`)."""
+        tm = self.true_model
+        td = tm.createData()
+        q = pin.neutral(tm)
+        for j, off in self.true_offsets.items():
+            q[tm.joints[tm.getJointId(j)].idx_q] = off
+        pin.framesForwardKinematics(tm, td, q)
+        return float(np.linalg.norm(td.oMf[tm.getFrameId(frame_b)].translation
+                                    - td.oMf[tm.getFrameId(frame_a)].translation))
+
     @property
     def label(self) -> str:
         tags = [t for t in (self.meta.get("tag"),) if t]
