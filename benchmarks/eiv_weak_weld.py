@@ -45,6 +45,9 @@ def main() -> None:
     case = zoo.make_case("panda", "weld", n=args.n, seed=args.seed)  # exact: q_true and the offsets
     robot = RobotModel.from_file(case.nominal_urdf)
     fa, fb = args.frames
+    unknown = [f for f in (fa, fb) if not case.true_model.existFrame(f)]
+    if unknown:
+        ap.error(f"--frames: no frame {', '.join(unknown)} in the Panda (e.g. panda_link2 panda_link4)")
     L = case.true_distance(fa, fb)
     off = np.array([case.true_offsets[j] for j in case.joints])
     rng = np.random.default_rng(1000 + args.seed)

@@ -177,10 +177,7 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
     _check_rows(problem, structure, log_)
     problem, fit, structure, rejected, suspects = solve_screened(problem, x0, free, structure, opt, sigma_q, known,
                                                                  len(log_), notes, progress)
-    x = fit.x.copy()
-    for b, sl in zip(problem.blocks, problem.loop_columns):
-        x[sl] = b.loop.normalize(x[sl])
-    fit.x = x
+    fit.x = x = problem.normalized(fit.x)
     fit.warnings.extend(motion_warnings)
     for k in free:
         status[k] = "estimated" if k in fit.est else "dropped"

@@ -30,7 +30,6 @@ class BlockEval:
     rows: np.ndarray | None = None
 
 
-
 class Workspace:
     """Named scratch arrays reused from one chunk (and one evaluation) to the next.
 

@@ -228,19 +228,9 @@ def presolved(fun: ResidualFunction, start: np.ndarray, scale: np.ndarray, sopt:
         return start, res.iterations
     log.info("solved on %d configurations per loop in %d iterations; finishing on the whole log",
              PRESOLVE_ROWS, res.iterations)
-    return _normalized(fun, res.x), res.iterations
-
-
-def _normalized(fun: ResidualFunction, xe: np.ndarray) -> np.ndarray:
-    """`xe` with the loops' parameters in their canonical form (`Loop.normalize`: a rotation vector within pi),
-    where all of a loop's parameters are estimated: the same model, in the form the result is reported in,
-    so that the whole log's fit ends where the analysis at the solution evaluates it."""
-    x = fun.full(xe)
-    est = set(fun.est)
-    for b, cols in zip(fun.problem.blocks, fun.problem.loop_columns):
-        if cols.size and est.issuperset(cols.tolist()):
-            x[cols] = b.loop.normalize(x[cols])
-    return x[fun.est]
+    # the loops' parameters in their canonical form (the same model): the whole log's fit then ends where the
+    # analysis at the solution evaluates it
+    return fun.problem.normalized(fun.full(res.x), fun.est)[fun.est], res.iterations
 
 
 def plain_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, est: list[int],

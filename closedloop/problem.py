@@ -190,6 +190,16 @@ class CalibrationProblem:
             for b in self.blocks]
         return CalibrationProblem(self.robot, self.joints, blocks, self.priors, self.noise)
 
+    def normalized(self, x: np.ndarray, est: list[int] | None = None) -> np.ndarray:
+        """A copy of x with the loops' parameters in their canonical form (`Loop.normalize`: a rotation vector
+        within pi): the same model.  With `est`, only the loops whose parameters are all among `est`."""
+        x = np.array(x, dtype=float)
+        keep = None if est is None else set(est)
+        for b, cols in zip(self.blocks, self.loop_columns):
+            if keep is None or (cols.size and keep.issuperset(cols.tolist())):
+                x[cols] = b.loop.normalize(x[cols])
+        return x
+
     @property
     def nominal(self) -> np.ndarray:
         return np.array([p.nominal for p in self.params])
