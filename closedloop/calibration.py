@@ -175,9 +175,15 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
         progress("analysing", 0, 0.0)
     structure = analyse_structure(problem, x0, free)  # re-checked at the solution (recheck_at_solution)
     _check_rows(problem, structure, log_)
+    if problem.keeps_jacobians:  # the solve's first J, taken first: the screen and `before` read it (the memo)
+        problem.evaluate(x0, True, columns=structure.kept)
+    before, start = residual_stats(problem, problem.evaluate(x0, False)), problem
     problem, fit, structure, rejected, suspects = solve_screened(problem, x0, free, structure, opt, sigma_q, known,
                                                                  len(log_), notes, progress)
-    fit.x = x = problem.normalized(fit.x)
+    if problem is not start:  # rows rejected: the start's closure on the rows kept
+        before = residual_stats(problem, problem.evaluate(x0, False))
+    after = residual_stats(problem, problem.evaluate(fit.x, False))  # the fit's own last evaluation (the memo)
+    fit.x = x = fit.stage.fun.normalized(fit.x)  # loops in canonical form, the fit's Jacobian carried along
     fit.warnings.extend(motion_warnings)
     for k in free:
         status[k] = "estimated" if k in fit.est else "dropped"
@@ -187,8 +193,7 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
     if sol.status != "converged":
         notes.append(f"solver: {sol.message}")
     res = CalibrationResult(problem, problem.names, x0, x, a["std"], status, dropped + list(structure.dropped),
-                            a["weak"], a["S"], a["rank"], residual_stats(problem, problem.evaluate(x0, False)),
-                            residual_stats(problem, problem.evaluate(x, False)), fit.iterations,
+                            a["weak"], a["S"], a["rank"], before, after, fit.iterations,
                             sol.status, sol.message, a["sigma"], opt.noise is None, a["chi2"],
                             a["dof"], notes, a["cov"], fit.est, suspects, a["weighting"], gauge,
                             structure.gauge_note, structure.gauge_length, rejected, len(log_), fit.warnings)

@@ -169,12 +169,35 @@ class ResidualFunction:
             self._trial = (xe.copy(), evals)
         return r, J
 
+    def normalized(self, x: np.ndarray) -> np.ndarray:
+        """`x`, a full vector at this function's last Jacobian, with the loops in canonical form
+        (`CalibrationProblem.normalized`: the same model), and that Jacobian carried there by the chain rule,
+        J dp/dp' (`Loop.normalize_jacobian`), so that the analysis at the solution does not evaluate again.
+        Where a loop knows no such Jacobian, or moves a value not estimated, the next call evaluates."""
+        xn = self.problem.normalized(x)
+        if (np.array_equal(xn, x) or self._charts or self._x is None or not np.array_equal(self._x, x[self.est])):
+            return xn
+        col = {k: i for i, k in enumerate(self.est)}
+        r, J = self._rJ
+        J = J.copy()
+        for b, cols in zip(self.problem.blocks, self.problem.loop_columns):
+            if np.array_equal(xn[cols], x[cols]):
+                continue
+            T = b.loop.normalize_jacobian(x[cols])
+            if T is None or not all(int(c) in col for c in cols):
+                return xn
+            idx = [col[int(c)] for c in cols]
+            J[:, idx] = J[:, idx] @ T
+        self._x, self._rJ, self._trial = xn[self.est].copy(), (r, J), None
+        return xn
+
     def blocks(self, xe: np.ndarray, symmetric: bool = True) -> list[np.ndarray]:
         """The residual at `xe` per loop block, (N, m) each (no row weights).
 
-        The symmetric whitening gives each component of a configuration's residual its meaning (robust
-        scales over components, correlations along the log); `symmetric` False is for norms per
-        configuration, which any root of W_i^-1 gives alike, at a fraction of the cost.
+        The symmetric whitening gives each component of a configuration's residual its meaning (a
+        component's correlation along the log); `symmetric` False is for what any root F of W_i^-1 gives
+        alike, at a fraction of the cost: norms per configuration, and components that are independent
+        N(0, 1) under the noise model (the outlier screen's scale).
         """
         f = replace(self, row_weights=None, symmetric=symmetric)
         r, _ = f(xe, False)

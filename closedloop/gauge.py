@@ -37,21 +37,6 @@ if TYPE_CHECKING:
 N_CONFIGS = 32  # x 6 rows per loop frame: far more rows than the 7 + 6F rigid unknowns
 
 
-def _frame_positions(problem: CalibrationProblem, x: np.ndarray, q: np.ndarray, frames: list[int]
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Positions (R, F, 3) and rotations (R, F, 3, 3) of `frames` at configurations q (R, nq)."""
-    state = problem.rp.apply(x[:problem.n_robot])
-    model, data = state.model, state.data
-    P = np.empty((q.shape[0], len(frames), 3))
-    Rm = np.empty((q.shape[0], len(frames), 3, 3))
-    for i, qi in enumerate(q):
-        pin.forwardKinematics(model, data, qi)
-        for k, f in enumerate(frames):
-            M = pin.updateFramePlacement(model, data, f)
-            P[i, k], Rm[i, k] = M.translation, M.rotation
-    return P, Rm
-
-
 def random_configurations(problem: CalibrationProblem, n: int = N_CONFIGS, seed: int = 0) -> np.ndarray:
     """n configurations of the full model with the problem's joints drawn within their ranges."""
     rng = np.random.default_rng(seed)
@@ -69,17 +54,38 @@ def kinematic_changes(problem: CalibrationProblem, x: np.ndarray, V: np.ndarray,
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Pose changes of the loops' robot frames per unit step along each column of V, and the regressor.
 
-    Returns dP (rows, k): central differences of the open-chain positions and
-    orientations (world rotation vectors) at configurations q, and A (rows,
-    7 + 6F): the motions every robot can make without changing shape,
+    Returns dP (rows, k): the first-order changes of the open-chain positions
+    and orientations (world rotation vectors) at configurations q, and A
+    (rows, 7 + 6F): the motions every robot can make without changing shape,
     scaling first: positions [p | w x p | t | R_f d_f | 0], orientations
     [0 | w | 0 | 0 | R_f e_f] (module docstring; e_f turns frame f in place).
+    Analytic: a step dx of the geometric parameters moves frame f by the LOCAL
+    twist (K_f G + G_f) dx (`parameters` module docstring: Pinocchio's frame
+    kinematic regressor K_f and the placements' generators G), which is
+    (R_f v, R_f w) in the world.  The sensor parameters do not move a frame at
+    given joint positions q.
     """
     frames = sorted({problem.robot.frame_id(f) for b in problem.blocks for f in b.loop.frames} - {0})
     if not frames:
         return np.zeros((0, V.shape[1])), np.zeros((0, 7))
-    P0, R0 = _frame_positions(problem, x, q, frames)
-    n, F = P0.shape[:2]
+    state = problem.rp.apply(x[:problem.n_robot])
+    model, data = state.model, state.data
+    n, F = q.shape[0], len(frames)
+    P0 = np.empty((n, F, 3))
+    R0 = np.empty((n, F, 3, 3))
+    K = np.empty((n, F, 6, state.G.shape[0]))
+    for i, qi in enumerate(q):
+        pin.forwardKinematics(model, data, qi)
+        for k, f in enumerate(frames):
+            M = pin.updateFramePlacement(model, data, f)
+            P0[i, k], R0[i, k] = M.translation, M.rotation
+            K[i, k] = pin.computeFrameKinematicRegressor(model, data, f, pin.LOCAL)
+    Vr = V[:problem.n_robot]
+    twist = K @ (state.G @ Vr)  # (n, F, 6, k): each frame's LOCAL twist per column of V
+    for k, f in enumerate(frames):
+        if f in state.G_frames:
+            twist[:, k] += state.G_frames[f] @ Vr
+    dP = np.stack([R0 @ twist[:, :, :3], R0 @ twist[:, :, 3:]], axis=2)  # (n, F, 2, 3, k) in the world
     A = np.zeros((n, F, 2, 3, 7 + 6 * F))
     A[:, :, 0, :, 0] = P0
     A[..., 0, 0, 2], A[..., 0, 0, 3] = P0[..., 2], -P0[..., 1]  # w x p
@@ -90,16 +96,7 @@ def kinematic_changes(problem: CalibrationProblem, x: np.ndarray, V: np.ndarray,
     for k in range(F):
         A[:, k, 0, :, 7 + 6 * k:10 + 6 * k] = R0[:, k]
         A[:, k, 1, :, 10 + 6 * k:13 + 6 * k] = R0[:, k]
-    dP = np.zeros((n * F * 6, V.shape[1]))
-    for j in range(V.shape[1]):
-        v = V[:, j]
-        step = 1e-6 / max(float(np.abs(v).max()), 1e-300)
-        Pp, Rp = _frame_positions(problem, x + step * v, q, frames)
-        Pm, Rm = _frame_positions(problem, x - step * v, q, frames)
-        D = Rp @ np.swapaxes(Rm, -1, -2)  # a rotation by ~1e-6 rad: its log is the skew part to O(1e-18)
-        w = 0.5 * np.stack([D[..., 2, 1] - D[..., 1, 2], D[..., 0, 2] - D[..., 2, 0], D[..., 1, 0] - D[..., 0, 1]], -1)
-        dP[:, j] = (np.stack([Pp - Pm, w], axis=2) / (2 * step)).reshape(-1)
-    return dP, A.reshape(-1, 7 + 6 * F)
+    return dP.reshape(-1, V.shape[1]), A.reshape(-1, 7 + 6 * F)
 
 
 def scale_content(dP: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -142,11 +139,10 @@ def contains_scaling(dP: np.ndarray, A: np.ndarray, tol: float = 1e-6) -> bool:
 def null_directions(R: np.ndarray, kept: list[int], dropped: list[int]) -> np.ndarray:
     """One null vector per dropped column: e_d - (least-squares fit of column d by the kept columns)."""
     V = np.zeros((R.shape[1], len(dropped)))
-    for j, d in enumerate(dropped):
-        V[d, j] = 1.0
-        if kept:
-            coef, *_ = np.linalg.lstsq(R[:, kept], R[:, d], rcond=None)
-            V[kept, j] = -coef
+    V[dropped, np.arange(len(dropped))] = 1.0
+    if kept and dropped:
+        coef, *_ = np.linalg.lstsq(R[:, kept], R[:, dropped], rcond=None)  # every dropped column at once
+        V[np.ix_(kept, np.arange(len(dropped)))] = -coef
     return V
 
 

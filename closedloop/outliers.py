@@ -57,15 +57,20 @@ def screen(problem: CalibrationProblem, x: np.ndarray, sigma_q: np.ndarray, know
     """Standardized closure error per configuration (per block), at `x`.
 
     With the noise weighting, in robust standard deviations (the MAD of the
-    whitened closures); with a `known` joint noise, never in units smaller
-    than that noise: data better than the stated noise have no outliers (a
-    simulator's compliance at 1e-7 rad is not a gross error).
+    whitened closures' components, pooled); with a `known` joint noise, never
+    in units smaller than that noise: data better than the stated noise have
+    no outliers (a simulator's compliance at 1e-7 rad is not a gross error).
+    The closures are whitened by the inverse Cholesky factor of W_i (`noise.whiten`,
+    `symmetric` False): under the noise model the components of F r_i are
+    independent N(0, 1) for any F with F^T F = W_i^-1, so their MAD estimates
+    the same scale as the symmetric root's, without an eigendecomposition per
+    configuration (the norms |F r_i| are the same for any root).
 
     The metric does not depend on the fit's own weighting (`_screen_weighting`).  Loops with task-space
     noise (`variance.task_blocks`: contact play) are screened on the unweighted closure: the joint-noise
     weighting would read their isotropic noise as outliers."""
     if _screen_weighting(problem) == "noise":
-        blocks = ResidualFunction(problem, x, [], sigma_q, "noise", symmetric=True).blocks(np.zeros(0))
+        blocks = ResidualFunction(problem, x, [], sigma_q, "noise").blocks(np.zeros(0), symmetric=False)
         out = standardized(blocks, max(mad_scale(blocks), 1.0 if known else SCALE_FLOOR["rad"]))
     else:
         blocks = ResidualFunction(problem, x, [], sigma_q, "none").blocks(np.zeros(0))

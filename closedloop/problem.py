@@ -37,6 +37,7 @@ from .evaluation import BlockEval, Workspace, copy_eval, stack_chunks
 from .loops.base import Loop
 from .parameters import Parameter, RobotParameters, RobotState
 from .robot import RobotModel
+from .se3 import poses_from_adjoints
 from .shared import loop_columns
 
 # What a parameter's Jacobian column is made of (`CalibrationProblem._role`).
@@ -178,16 +179,17 @@ class CalibrationProblem:
         workspace: caches of up to ~100 MB on a long log, made again when needed."""
         return {k: v for k, v in self.__dict__.items() if k not in ("_memo", "_work")}
 
-    def sampled(self, per_block: int, first: bool = False) -> "CalibrationProblem":
-        """The problem on at most `per_block` configurations of each block, evenly spaced along the log (the
-        first ones with `first`; self when no block has more): structural questions (redundancy, mobility)
-        need generic configurations, not 100,000 of them.  The noise records are shared, as in `without_rows`."""
-        if all(b.theta.shape[0] <= per_block for b in self.blocks):
+    def sampled(self, per_block: int | Sequence[int], first: bool = False) -> "CalibrationProblem":
+        """The problem on at most `per_block` configurations of each block (one count, or one per block),
+        evenly spaced along the log (the first ones with `first`; self when no block has more): structural
+        questions (redundancy, mobility) need generic configurations, not 100,000 of them.  The noise
+        records are shared, as in `without_rows`."""
+        counts = [per_block] * len(self.blocks) if isinstance(per_block, (int, np.integer)) else list(per_block)
+        if all(b.theta.shape[0] <= n for b, n in zip(self.blocks, counts)):
             return self
-        n = per_block
         blocks = [b if b.theta.shape[0] <= n else b.subset(
             np.arange(n) if first else np.unique(np.linspace(0, b.theta.shape[0] - 1, n).round().astype(int)))
-            for b in self.blocks]
+            for b, n in zip(self.blocks, counts)]
         return CalibrationProblem(self.robot, self.joints, blocks, self.priors, self.noise)
 
     def normalized(self, x: np.ndarray, est: list[int] | None = None) -> np.ndarray:
@@ -218,24 +220,33 @@ class CalibrationProblem:
         """Poses (N, 4, 4) and, with `need_jac`, LOCAL kinematic regressors (N, 6, 6 (njoints - 1)) of frames.
 
         The base frame (id 0) has the identity pose and no regressor.  With `work` the regressors are
-        formed in its buffers (valid until its next use).
+        formed in its buffers (valid until its next use).  With the regressors, the poses are read off
+        them: the block of the chain's first joint r is Ad(T^-1 P_r), P_r its placement on the base
+        (`se3.poses_from_adjoints`): one Pinocchio call per configuration fewer.
         """
         model, data = state.model, state.data
         q = self.robot.configurations(self.model_angles(state, theta, tau), self.joints)
         N = q.shape[0]
         live = [f for f in frames if f != 0]
-        T = {f: [None] * N for f in live}
+        roots = {f: model.supports[model.frames[f].parentJoint][1:2] for f in live}  # [] on the base
+        from_K = [f for f in live if need_jac and roots[f]]
+        placed = [f for f in live if f not in from_K]
+        T = {f: [None] * N for f in placed}
         shape = (N, 6, 6 * (model.njoints - 1))
         K = {f: work.get(f"K{f}", shape) if work else np.empty(shape) for f in live} if need_jac else {}
         fk, place, regressor, local = pin.forwardKinematics, pin.updateFramePlacement, \
             pin.computeFrameKinematicRegressor, pin.LOCAL
         for i, qi in enumerate(q):
             fk(model, data, qi)
-            for f in live:
+            for f in placed:
                 T[f][i] = place(model, data, f).homogeneous
-                if need_jac:
+            if need_jac:
+                for f in live:
                     K[f][i] = regressor(model, data, f, local)
-        out = {f: (np.array(T[f]).reshape(N, 4, 4), K.get(f)) for f in live}
+        out = {f: (np.array(T[f]).reshape(N, 4, 4), K.get(f)) for f in placed}
+        for f in from_K:
+            r = roots[f][0]
+            out[f] = (poses_from_adjoints(K[f][:, :, 6 * (r - 1):6 * r], model.jointPlacements[r].homogeneous), K[f])
         if 0 in frames:
             out[0] = (np.broadcast_to(np.eye(4), (N, 4, 4)), None)
         return out
@@ -261,6 +272,11 @@ class CalibrationProblem:
         return [kin[f][0] for f in fids]
 
     # ------------------------------------------------------------- evaluation
+    @property
+    def keeps_jacobians(self) -> bool:
+        """Whether `evaluate` keeps parameter Jacobians for reuse (up to MEMO_ROWS configurations)."""
+        return sum(b.theta.shape[0] for b in self.blocks) <= MEMO_ROWS
+
     def evaluate(self, values: np.ndarray, jacobian: bool = True, thetas: list[np.ndarray] | None = None,
                  columns: Sequence[int] | None = None) -> list[BlockEval]:
         """Residuals (and Jacobians) of every loop at parameter vector `values`.
@@ -276,7 +292,7 @@ class CalibrationProblem:
         """
         if thetas is not None:
             return self._evaluate(values, jacobian, thetas, columns)
-        large = sum(b.theta.shape[0] for b in self.blocks) > MEMO_ROWS
+        large = not self.keeps_jacobians
         key = np.asarray(values, dtype=float).tobytes()
         cols = None if columns is None else tuple(int(c) for c in columns)
         memo = self.__dict__.setdefault("_memo", [])

@@ -183,6 +183,22 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     return Ad
 
 
+def poses_from_adjoints(Ad: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """T = P X^-1 (N, 4, 4) for stacked adjoints Ad(X) (N, 6, 6) and a pose P (4, 4).
+
+    X is read off its adjoint [[R, [p]x R], [0, R]]: R, then [p]x = (upper right) R^T.  With
+    X = T^-1 P: T = (R_P R^T, p_P - R_P R^T p).
+    """
+    R = Ad[:, 3:, 3:]
+    px = Ad[:, :3, 3:] @ np.swapaxes(R, 1, 2)
+    p = np.stack([px[:, 2, 1], px[:, 0, 2], px[:, 1, 0]], axis=1)
+    T = np.zeros((Ad.shape[0], 4, 4))
+    T[:, :3, :3] = P[:3, :3] @ np.swapaxes(R, 1, 2)
+    T[:, :3, 3] = P[:3, 3] - np.einsum("nij,nj->ni", T[:, :3, :3], p)
+    T[:, 3, 3] = 1.0
+    return T
+
+
 def pose_of(v: np.ndarray) -> pin.SE3:
     """(x, y, z, rx, ry, rz) -> SE3 (translation, rotation vector): X = (exp3(r), t)."""
     return pin.SE3(pin.exp3(v[3:6]), np.asarray(v[0:3], dtype=float).copy())

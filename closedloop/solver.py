@@ -43,6 +43,8 @@ from typing import Callable
 
 import numpy as np
 
+from .qr import r_factor, scaled_r_factor
+
 log = logging.getLogger(__name__)
 
 ResidualFn = Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]]
@@ -105,7 +107,7 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
         first = _after(first, _solve(fun, first.x, scale, replace(opt, noise=0.0), progress, memo))
     r = first.residual
     # the last iteration's factorisation when it was of this Jacobian (a solve that ends on
-    # "no step lowers the cost"), else one more TSQR pass
+    # "no step lowers the cost"), else one more QR pass
     at_x = "x" in memo and np.array_equal(memo["x"], first.x)
     S = memo["S"] if at_x else scaled_svd(first.jacobian, r, scale)[0]
     sigma = rms(r, r.size - int(np.sum(S > opt.rcond * S[0])))
@@ -237,14 +239,14 @@ def _svd(Js: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
 
     For a tall Js through the triangular factor of [Js | r] = Q R: R's first
     n columns are R_J = U_R S V^T, so U^T r = U_R^T (Q^T r), R's last column.
-    Only an (n+1) x (n+1) SVD is ever taken; the rows cost one TSQR pass.
+    Only an (n+1) x (n+1) SVD is ever taken; the rows cost one QR pass (`qr.r_factor`).
     """
     n = Js.shape[1]
     if Js.shape[0] > 2 * n:
         A = np.empty((Js.shape[0], n + 1))
         A[:, :n] = Js
         A[:, n] = r
-        Ra = _r_factor(A)
+        Ra = r_factor(A)
         U_R, S, Vt = np.linalg.svd(Ra[:n, :n])
         return S, Vt, U_R.T @ Ra[:n, n]
     U, S, Vt = np.linalg.svd(Js, full_matrices=False)
@@ -254,7 +256,7 @@ def _svd(Js: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
 def scaled_svd(J: np.ndarray, r: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """S, Vt and g = U^T r of the column-scaled J D = U S V^T (D = diag(scale)), without forming U.
 
-    The cost is one pass over the rows (TSQR of [J D | r], formed a chunk at a
+    The cost is one pass over the rows (QR of [J D | r], formed a chunk at a
     time: no copy of J) and an SVD of the (n+1)-square triangle.  Also for the
     analysis at a solution (standard errors V S^-2 V^T, weak directions), which
     needs no U: `np.linalg.svd` of the tall J D would form U (rows x n) and run
@@ -262,94 +264,10 @@ def scaled_svd(J: np.ndarray, r: np.ndarray, scale: np.ndarray) -> tuple[np.ndar
     """
     n = J.shape[1]
     if J.shape[0] > 2 * n:
-        Ra = _scaled_r_factor(J, r, scale)
+        Ra = scaled_r_factor(J, r, scale)
         U_R, S, Vt = np.linalg.svd(Ra[:n, :n])
         return S, Vt, U_R.T @ Ra[:n, n]
     return _svd(J * scale, r)
-
-
-_CHUNK_ROWS = 1 << 14  # rows of [J D | r] formed at a time by `_scaled_r_factor` (~4 MB at 30 columns)
-
-
-def _scaled_r_factor(J: np.ndarray, r: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """`_r_factor` of [J D | r], never formed whole: its first TSQR level is taken chunk by chunk.
-
-    The same blocks meet the same QR calls as in `_r_factor([J D | r])`, so R is
-    the same to the bit; the memory is one chunk plus the blocks' triangles
-    (rows / 256 x (n+1)^2), not a second copy of J.
-    """
-    m, n = J.shape
-    block = max(256, 4 * (n + 1))
-
-    def rows(a: int, b: int, out: np.ndarray | None = None) -> np.ndarray:
-        A = np.empty((b - a, n + 1)) if out is None else out[:b - a]
-        np.multiply(J[a:b], scale, out=A[:, :n])
-        A[:, n] = r[a:b]
-        return A
-
-    if m <= block:
-        return _r_factor(rows(0, m))
-    k = m // block
-    per = max(1, _CHUNK_ROWS // block) * block
-    buf = np.empty((min(per, k * block), n + 1))
-    Rs = [np.linalg.qr(rows(a, min(a + per, k * block), buf).reshape(-1, block, n + 1), mode="r").reshape(-1, n + 1)
-          for a in range(0, k * block, per)]
-    if m > k * block:
-        Rs.append(rows(k * block, m))
-    return _r_factor(np.concatenate(Rs))
-
-
-def scaled_r_factor_of_blocks(blocks: list[np.ndarray], scale: np.ndarray) -> np.ndarray:
-    """The R factor of the rows of every block (N_i, m_i, n) stacked and column-scaled, [B_1; ...] D = Q R.
-
-    Formed a chunk of ~`_CHUNK_ROWS` rows at a time (each chunk reduced to its n x n triangle by
-    `_r_factor`, the triangles stacked and reduced again): no stacked copy of the blocks, and the
-    same R as `r_factor(np.vstack(...) * scale)` up to the signs of its rows and round-off.
-    """
-    n = scale.size
-    Rs = []
-    for blk in blocks:
-        per = max(1, _CHUNK_ROWS // max(blk.shape[1], 1))  # configurations per chunk
-        for a in range(0, blk.shape[0], per):
-            A = blk[a:a + per].reshape(-1, n) * scale
-            Rs.append(_r_factor(A) if A.shape[0] > n else A)
-    if not Rs:
-        return np.zeros((0, n))
-    return r_factor(np.concatenate(Rs)) if len(Rs) > 1 else Rs[0]
-
-
-def _r_factor(A: np.ndarray) -> np.ndarray:
-    """The triangular factor R of a tall A = Q R, by tall-skinny QR (TSQR).
-
-    The rows are cut into blocks whose R factors are stacked (with the
-    leftover rows) and factored again, until one block remains: A = diag(Q_i)
-    [R_1; ...; R_k] gives the same R up to the signs of its rows.  Small
-    blocks stay in cache and in LAPACK's single-threaded level-2 path (one
-    QR of a long matrix is memory-bound, and its threaded BLAS calls stall
-    when other processes hold the cores).  Memory: the first level's R
-    factors, k n^2 for k = rows / block, below one copy of A.
-    """
-    n = A.shape[1]
-    block = max(256, 4 * n)
-    while A.shape[0] > block:
-        k = A.shape[0] // block
-        R = np.linalg.qr(A[:k * block].reshape(k, block, n), mode="r").reshape(-1, n)
-        A = np.concatenate([R, A[k * block:]]) if A.shape[0] > k * block else R
-    return np.linalg.qr(A, mode="r")
-
-
-def r_factor(A: np.ndarray) -> np.ndarray:
-    """The n x n triangular factor R of a tall A = Q R (TSQR; rows signs arbitrary).
-
-    A^T A = R^T R, so every question about A's columns that least squares can
-    ask (singular values and right singular vectors, a column's residual on
-    others, null combinations, rank) has the same answer on R, at n rows
-    instead of A's thousands: reduce once, then analyse the triangle.
-    """
-    A = np.asarray(A, dtype=float)
-    if A.shape[0] <= A.shape[1]:
-        return A
-    return _r_factor(np.ascontiguousarray(A))
 
 
 def _model_decrease(S: np.ndarray, Vt: np.ndarray, g: np.ndarray, dz: np.ndarray) -> float:

@@ -2,8 +2,8 @@
 
 The calibration's dense algebra is tall and thin: a few thousand to a few
 hundred thousand rows, a few dozen columns (the Jacobian of 6 residual rows
-per configuration in the estimated parameters), factored through small row
-blocks (`solver._r_factor`) and batched 6 x 6 products.  OpenBLAS's threads
+per configuration in the estimated parameters), factored a chunk of rows at
+a time (`qr.r_factor`) and batched 6 x 6 products.  OpenBLAS's threads
 gain nothing there and cost a lot when other processes hold the cores: its
 worker threads spin-wait for a core the scheduler has given to someone else.
 Measured on a 2-core AMD EPYC (`benchmarks/bench_calibrate.py`, thread modes

@@ -10,7 +10,7 @@ from closedloop.identifiability import project_to_closure
 from closedloop.noise import cholesky_inverse, whiten
 from closedloop.loops import WeldLoop
 from closedloop.problem import CalibrationProblem, LoopBlock
-from closedloop.solver import _r_factor
+from closedloop.qr import r_factor
 
 
 def _problem(panda, frame_b="universe", n=30, tau=False, seed=0):
@@ -97,6 +97,39 @@ def test_projection_matches_pseudo_inverse_steps(panda, panda_weld):
 @pytest.mark.parametrize("rows", [60, 257, 5000, 70001])
 def test_tall_skinny_qr(rows):
     A = np.random.default_rng(rows).normal(size=(rows, 28))
-    R = _r_factor(A)
+    R = r_factor(A)
     R_ref = np.linalg.qr(A, mode="r")
     assert np.abs(np.abs(R) - np.abs(R_ref)).max() < 1e-12 * np.abs(R_ref).max()
+
+
+@pytest.mark.parametrize("model", ["panda", "dh_hand", "utah_hand"])
+def test_poses_read_off_the_regressors_are_pinocchio_placements(panda, model):
+    """`frame_kinematics` with regressors reads the poses off them (`se3.poses_from_adjoints`): the same poses
+    as Pinocchio's frame placements, on a serial arm, a finger branch, a D-H end frame and a frame on the base."""
+    from pathlib import Path
+
+    from closedloop.models import ROBOTS
+    from closedloop.robot import RobotModel
+
+    root = Path(__file__).resolve().parents[1] / "closedloop" / "models"
+    robot = {"panda": panda, "dh_hand": RobotModel.from_file(root / "dh" / "utah_mit_thumb_finger.yaml"),
+             "utah_hand": RobotModel.from_file(ROBOTS["utah_hand"].path)}[model]
+    m = robot.model
+    frames = [f for f in range(1, len(m.frames)) if m.frames[f].parentJoint > 0][-3:] + \
+        [f for f in range(1, len(m.frames)) if m.frames[f].parentJoint == 0][:1]
+    joints = [n for n in robot.joint_names]
+    rng = np.random.default_rng(4)
+    theta = rng.uniform(-1.0, 1.0, (25, len(joints)))
+    prob = CalibrationProblem(robot, joints, [LoopBlock(WeldLoop("w", m.frames[frames[0]].name), theta,
+                                                         np.arange(25))])
+    state = prob.rp.apply(prob.nominal[:prob.n_robot] + rng.normal(0.0, 0.01, prob.n_robot))
+    fast = prob.frame_kinematics(state, theta, frames, True)
+    plain = prob.frame_kinematics(state, theta, frames, False)
+    q = robot.configurations(prob.model_angles(state, theta, None), joints)
+    for f in frames:
+        ref = []
+        for qi in q:
+            pin.forwardKinematics(state.model, state.data, qi)
+            ref.append(pin.updateFramePlacement(state.model, state.data, f).homogeneous)
+        assert np.abs(plain[f][0] - np.array(ref)).max() == 0.0
+        assert np.abs(fast[f][0] - np.array(ref)).max() < 1e-14, m.frames[f].name

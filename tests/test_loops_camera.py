@@ -227,7 +227,10 @@ def test_stereo_head_on_baxter():
     make = lambda: CameraLoop("cam", "left_gripper", "head", cameras=2, K=[K1, K2])  # noqa: E731
     res, truth = camera_experiment(make, Xs, [K1, K2], th, path=BAXTER)
     est, err = estimated_errors(res, truth)
-    assert np.abs(err).max() < 1e-8
+    # exact data: what is left is round-off amplified by this rig's conditioning: 2e-10 with the frame poses
+    # of the very Pinocchio calls that made the data, 2.3e-8 with 1e-15 rad added to the readings or with
+    # the poses read off the kinematic regressors (1e-15 m from Pinocchio's)
+    assert np.abs(err).max() < 1e-7
     assert res.problem.joints == ["head_pan", "left_s0", "left_s1", "left_e0", "left_e1", "left_w0", "left_w1",
                                   "left_w2"]
     # only the arm base relative to the head pan axis is seen: the head_pan placement and offset are absorbed

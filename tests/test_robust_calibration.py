@@ -62,3 +62,25 @@ def test_default_rejects_the_three_outliers(panda, data):
     h0, h1 = held_out_error(clean, held_out), held_out_error(res, held_out)
     assert abs(h1 / h0 - 1.0) < 0.10, (h0, h1)
     assert res.verdict.status == "ok", res.verdict.describe()
+
+
+def test_screen_scale_is_the_same_for_either_whitening_root():
+    """The outlier screen's scale (MAD of the whitened closures' components) on Gaussian closures with
+    correlated, unequal covariances W_i: the inverse Cholesky factor (what the screen uses) and the symmetric
+    root W_i^-1/2 both give the noise's scale, within the MAD's own sampling error."""
+    from closedloop.noise import cholesky_inverse, pinv_sqrt
+    from closedloop.robust import mad_scale
+
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(3000, 6, 7)) * rng.uniform(0.1, 3.0, (3000, 1, 7))
+    W = A @ np.swapaxes(A, 1, 2)
+    r = np.einsum("nij,nj->ni", A, rng.normal(0.0, 0.7, (3000, 7)))  # r_i ~ N(0, 0.49 W_i)
+    F, kappa = cholesky_inverse(W)
+    S, dropped = pinv_sqrt(W)
+    assert np.all(kappa < 1e9) and dropped == 0
+    chol = mad_scale([np.einsum("nij,nj->ni", F, r)])
+    sym = mad_scale([np.einsum("nij,nj->ni", S, r)])
+    assert chol == pytest.approx(0.7, rel=0.03) and sym == pytest.approx(0.7, rel=0.03)
+    # the norms, which decide each configuration, are the same for either root
+    np.testing.assert_allclose(np.linalg.norm(np.einsum("nij,nj->ni", F, r), axis=1),
+                               np.linalg.norm(np.einsum("nij,nj->ni", S, r), axis=1), rtol=1e-9)

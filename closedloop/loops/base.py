@@ -135,6 +135,11 @@ class Loop(ABC):
         """A canonical form of the loop's parameters (e.g. rotation vectors within pi)."""
         return p
 
+    def normalize_jacobian(self, p: np.ndarray) -> np.ndarray | None:
+        """d p / d p' at p' = normalize(p) (the same model in the canonical coordinates): a Jacobian J in p is
+        J (d p / d p') in p'.  None: not known (the caller evaluates again at p')."""
+        return None
+
     def recentred(self, p: np.ndarray) -> tuple["Loop", np.ndarray] | None:
         """A copy of the loop whose parameter chart is centred at `p`, and `p` in it; None: nothing to move.
 

@@ -69,6 +69,14 @@ class WeldLoop(Loop):
             return p
         return np.concatenate([p[:3], pin.log3(pin.exp3(p[3:6]))])
 
+    def normalize_jacobian(self, p: np.ndarray) -> np.ndarray:
+        """d p / d p' (`Loop.normalize_jacobian`): the rotation vectors r and r' = log3(exp3(r)) name one
+        rotation, so under right perturbations Jr(r) dr = Jr(r') dr' (Jr: `pin.Jexp3`)."""
+        T = np.eye(6)
+        if self.known is None and np.linalg.norm(p[3:6]) >= np.pi:
+            T[3:, 3:] = np.linalg.solve(pin.Jexp3(p[3:6]), pin.Jexp3(pin.log3(pin.exp3(p[3:6]))))
+        return T
+
     def describe(self) -> dict:
         return super().describe() | {"closure": "unknown" if self.known is None else
                                      np.concatenate([self.known.translation, pin.log3(self.known.rotation)]).tolist()}
