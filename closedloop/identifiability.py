@@ -35,8 +35,8 @@ from .gauge import choose_gauge, sets_scale
 from .noise import cholesky_inverse
 from .qr import r_factor, scaled_r_factor_of_blocks
 
-STRUCTURE_ROWS = 768  # residual rows per loop the structural analysis reads (`closure_jacobian`): configurations
-STRUCTURE_CONFIGS = (64, 512)  # at least and at most, per loop
+STRUCTURE_ROWS = 768  # residual rows per loop the structural analysis reads (`closure_jacobian`), whole configurations
+STRUCTURE_CONFIGS = (64, 512)  # the configurations that makes per loop: at least, at most
 
 if TYPE_CHECKING:
     from .problem import CalibrationProblem
