@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -145,11 +145,10 @@ class CalibrationResult:
         return dict(zip(self.names, map(float, self.values)))
 
     @property
-    def parameters(self) -> Iterator[ParameterRecord]:
-        """Every parameter as a named record."""
-        for k, p in enumerate(self.problem.params):
-            yield ParameterRecord(p.name, p.kind, p.unit, float(self.initial[k]), float(self.values[k]),
-                                  float(self.std[k]), self.status[k])
+    def parameters(self) -> list[ParameterRecord]:
+        """Every parameter as a named record, in the problem's order."""
+        return [ParameterRecord(p.name, p.kind, p.unit, float(self.initial[k]), float(self.values[k]),
+                                float(self.std[k]), self.status[k]) for k, p in enumerate(self.problem.params)]
 
 
 def residual_stats(problem: CalibrationProblem, evals: list[BlockEval]) -> list[LoopResiduals]:

@@ -38,6 +38,9 @@ def test_panda_weld_noise_free(panda, panda_weld):
     before = res.residuals_before[0]
     assert before.rms_m > 1e-3  # the nominal model was really wrong
     assert not res.weak
+    records = res.parameters  # a list of named records, in the parameters' order
+    assert len(records) == len(res.names) and [p.name for p in records] == res.names
+    assert [p.value for p in records] == [float(v) for v in res.values]
 
 
 def test_panda_weld_noisy(panda, panda_weld):
