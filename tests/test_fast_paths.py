@@ -133,3 +133,27 @@ def test_poses_read_off_the_regressors_are_pinocchio_placements(panda, model):
             ref.append(pin.updateFramePlacement(state.model, state.data, f).homogeneous)
         assert np.abs(plain[f][0] - np.array(ref)).max() == 0.0
         assert np.abs(fast[f][0] - np.array(ref)).max() < 1e-14, m.frames[f].name
+
+
+@pytest.mark.parametrize("name", ["ur10", "kinova", "baxter_left", "talos_left", "g1_left"])
+def test_poses_off_the_regressors_on_the_zoo(name, tmp_path):
+    """The same check on zoo arms (`tests/zoo.py`: every joint origin perturbed, fixed joints too) at random
+    configurations within their limits and a perturbed parameter vector: the tool's pose read off its
+    kinematic regressor is Pinocchio's placement to 1e-14."""
+    import zoo
+    from closedloop.robot import RobotModel
+
+    path = tmp_path / "robot.urdf"
+    path.write_text(zoo.perturb_urdf(zoo.chain_urdf(zoo.ZOO[name]), np.random.default_rng(1), 2e-3, 2e-3))
+    robot = RobotModel.from_file(path)
+    joints = robot.supporting_joints(zoo.TOOL)
+    rng = np.random.default_rng(2)
+    lo = np.array([max(robot.joint(j).lower, -np.pi) for j in joints])
+    hi = np.array([min(robot.joint(j).upper, np.pi) for j in joints])
+    theta = rng.uniform(lo, hi, (30, len(joints)))
+    prob = CalibrationProblem(robot, joints, [LoopBlock(WeldLoop("w", zoo.TOOL), theta, np.arange(30))])
+    state = prob.rp.apply(prob.nominal[:prob.n_robot] + rng.normal(0.0, 0.01, prob.n_robot))
+    f = robot.frame_id(zoo.TOOL)
+    fast = prob.frame_kinematics(state, theta, [f], True)[f][0]
+    plain = prob.frame_kinematics(state, theta, [f], False)[f][0]
+    assert np.abs(fast - plain).max() < 1e-14 * max(1.0, np.abs(plain).max())
