@@ -20,9 +20,10 @@ from __future__ import annotations
 import numpy as np
 
 try:  # numpy's own LAPACK binding: no scipy.linalg import (0.27 s) on the command line's path
+    from numpy.linalg.lapack_lite import LapackError as _LapackError
     from numpy.linalg.lapack_lite import dgeqrf as _dgeqrf
 except ImportError:  # pragma: no cover - numpy builds without it
-    _dgeqrf = None
+    _dgeqrf, _LapackError = None, TypeError
 
 CHUNK_ROWS = 1 << 14  # rows reduced at a time (~4 MB at 30 columns)
 
@@ -37,7 +38,10 @@ def _triangle(At: np.ndarray) -> np.ndarray:
     if _dgeqrf is None:
         return np.linalg.qr(At.T, mode="r")
     lwork = 64 * n  # dgeqrf's block size (32) times n, with room: the blocked path
-    out = _dgeqrf(m, n, At, m, np.empty(n), np.empty(lwork), lwork, 0)
+    try:
+        out = _dgeqrf(m, n, At, m, np.empty(n), np.empty(lwork), lwork, 0)
+    except (TypeError, _LapackError):  # pragma: no cover - a numpy whose binding takes other arguments
+        return np.linalg.qr(At.T, mode="r")
     if out["info"] != 0:  # pragma: no cover - argument errors only
         raise np.linalg.LinAlgError(f"dgeqrf failed (info {out['info']})")
     return np.triu(At[:, :n].T)
