@@ -17,6 +17,8 @@ links (`numpy.linalg.lapack_lite`; `np.linalg.qr` where a numpy lacks it).
 
 from __future__ import annotations
 
+from typing import Iterator
+
 import numpy as np
 
 try:  # numpy's own LAPACK binding: no scipy.linalg import (0.27 s) on the command line's path
@@ -47,10 +49,26 @@ def _triangle(At: np.ndarray) -> np.ndarray:
     return np.triu(At[:, :n].T)
 
 
+def _triangles(J: np.ndarray, scale: np.ndarray, r: np.ndarray | None = None) -> Iterator[np.ndarray]:
+    """The triangles of the rows of [J D | r] (D = diag(scale); without r: J D), a chunk of CHUNK_ROWS rows at a
+    time; a chunk not taller than wide is given as it is."""
+    m, n = J.shape
+    w = n + (r is not None)
+    for a in range(0, m, CHUNK_ROWS):
+        b = min(a + CHUNK_ROWS, m)
+        At = np.empty((w, b - a))
+        np.multiply(J[a:b].T, scale[:, None], out=At[:n])
+        if r is not None:
+            At[n] = r[a:b]
+        yield _triangle(At) if b - a >= w else At.T.copy()
+
+
 def _reduce(parts: list[np.ndarray], n: int) -> np.ndarray:
     """R of the rows of `parts` stacked (each (k_i, n)), square (n, n) when the rows allow."""
+    if not parts:
+        return np.zeros((0, n))
     A = np.concatenate(parts) if len(parts) > 1 else parts[0]
-    if A.shape[0] <= n:
+    if len(parts) == 1 or A.shape[0] <= n:
         return A
     return _triangle(np.ascontiguousarray(A.T))
 
@@ -59,40 +77,19 @@ def r_factor(A: np.ndarray) -> np.ndarray:
     """The n x n triangular factor R of a tall A = Q R (row signs arbitrary); A itself if not taller than wide."""
     A = np.asarray(A, dtype=float)
     m, n = A.shape
-    if m <= n:
-        return A
-    parts = [_triangle(np.ascontiguousarray(A[a:a + CHUNK_ROWS].T)) if min(CHUNK_ROWS, m - a) > n
-             else A[a:a + CHUNK_ROWS] for a in range(0, m, CHUNK_ROWS)]
-    return _reduce(parts, n)
+    return A if m <= n else _reduce(list(_triangles(A, np.ones(n))), n)
 
 
 def scaled_r_factor(J: np.ndarray, r: np.ndarray, scale: np.ndarray) -> np.ndarray:
     """R of [J D | r] (D = diag(scale)), formed a chunk of rows at a time: never a whole copy of J."""
-    m, n = J.shape
-    parts = []
-    for a in range(0, m, CHUNK_ROWS):
-        b = min(a + CHUNK_ROWS, m)
-        At = np.empty((n + 1, b - a))
-        np.multiply(J[a:b].T, scale[:, None], out=At[:n])
-        At[n] = r[a:b]
-        parts.append(_triangle(At) if b - a >= n + 1 else At.T.copy())
-    return _reduce(parts, n + 1)
+    return _reduce(list(_triangles(J, scale, r)), J.shape[1] + 1)
 
 
 def scaled_r_factor_of_blocks(blocks: list[np.ndarray], scale: np.ndarray) -> np.ndarray:
     """The R factor of the rows of every block (N_i, m_i, n) stacked and column-scaled, [B_1; ...] D = Q R.
 
-    A chunk of about CHUNK_ROWS rows at a time: no stacked copy of the blocks; the same R as
+    A chunk of CHUNK_ROWS rows at a time: no stacked copy of the blocks; the same R as
     `r_factor(np.vstack(...) * scale)` up to the signs of its rows and round-off.
     """
     n = scale.size
-    parts = []
-    for blk in blocks:
-        per = max(1, CHUNK_ROWS // max(blk.shape[1], 1))  # configurations per chunk
-        for a in range(0, blk.shape[0], per):
-            rows = blk[a:a + per].reshape(-1, n)
-            At = np.multiply(rows.T, scale[:, None], out=np.empty((n, rows.shape[0])))
-            parts.append(_triangle(At) if At.shape[1] > n else At.T.copy())
-    if not parts:
-        return np.zeros((0, n))
-    return _reduce(parts, n) if len(parts) > 1 else parts[0]
+    return _reduce([t for blk in blocks for t in _triangles(blk.reshape(-1, n), scale)], n)

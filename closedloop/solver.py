@@ -43,7 +43,7 @@ from typing import Callable
 
 import numpy as np
 
-from .qr import r_factor, scaled_r_factor
+from .qr import scaled_r_factor
 
 log = logging.getLogger(__name__)
 
@@ -234,25 +234,6 @@ def _geodesic(fun, x, r, J, scale, S, Vt, keep, lam, v, alpha, h: float = 0.1):
     return v + 0.5 * a
 
 
-def _svd(Js: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Singular values S and right singular vectors Vt of Js = U S V^T, and g = U^T r.
-
-    For a tall Js through the triangular factor of [Js | r] = Q R: R's first
-    n columns are R_J = U_R S V^T, so U^T r = U_R^T (Q^T r), R's last column.
-    Only an (n+1) x (n+1) SVD is ever taken; the rows cost one QR pass (`qr.r_factor`).
-    """
-    n = Js.shape[1]
-    if Js.shape[0] > 2 * n:
-        A = np.empty((Js.shape[0], n + 1))
-        A[:, :n] = Js
-        A[:, n] = r
-        Ra = r_factor(A)
-        U_R, S, Vt = np.linalg.svd(Ra[:n, :n])
-        return S, Vt, U_R.T @ Ra[:n, n]
-    U, S, Vt = np.linalg.svd(Js, full_matrices=False)
-    return S, Vt, U.T @ r
-
-
 def scaled_svd(J: np.ndarray, r: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """S, Vt and g = U^T r of the column-scaled J D = U S V^T (D = diag(scale)), without forming U.
 
@@ -263,11 +244,12 @@ def scaled_svd(J: np.ndarray, r: np.ndarray, scale: np.ndarray) -> tuple[np.ndar
     threaded LAPACK on it.
     """
     n = J.shape[1]
-    if J.shape[0] > 2 * n:
+    if J.shape[0] > 2 * n:  # R = [R_J | Q^T r] with R_J = U_R S V^T: U^T r = U_R^T (Q^T r)
         Ra = scaled_r_factor(J, r, scale)
         U_R, S, Vt = np.linalg.svd(Ra[:n, :n])
         return S, Vt, U_R.T @ Ra[:n, n]
-    return _svd(J * scale, r)
+    U, S, Vt = np.linalg.svd(J * scale, full_matrices=False)
+    return S, Vt, U.T @ r
 
 
 def _model_decrease(S: np.ndarray, Vt: np.ndarray, g: np.ndarray, dz: np.ndarray) -> float:
