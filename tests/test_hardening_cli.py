@@ -431,10 +431,15 @@ def test_keyboard_interrupt_in_calibrate_and_simulate_exit_130(panda_files, tmp_
 
 
 def test_real_ctrl_c_in_simulate_one_line_exit_130(tmp_path):
-    """SIGINT to a running `closedloop simulate`: one line, exit 130, nothing written."""
+    """SIGINT to a running `closedloop simulate`: one line, exit 130, nothing written.
+
+    The child is given SIGINT's default disposition: started from a process that ignores SIGINT (a script's
+    background job, nohup), it would inherit that, and Python then installs no KeyboardInterrupt handler
+    (the command rightly runs on there, as any program would)."""
     out = tmp_path / "o"
     p = subprocess.Popen([sys.executable, "-m", "closedloop.cli", "simulate", "panda_weld", "--n", "20000",
-                          "--out", str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                          "--out", str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     time.sleep(4.0)
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=60)
