@@ -236,13 +236,20 @@ class CalibrationProblem:
         K = {f: work.get(f"K{f}", shape) if work else np.empty(shape) for f in live} if need_jac else {}
         fk, place, regressor, local = pin.forwardKinematics, pin.updateFramePlacement, \
             pin.computeFrameKinematicRegressor, pin.LOCAL
-        for i, qi in enumerate(q):
-            fk(model, data, qi)
-            for f in placed:
-                T[f][i] = place(model, data, f).homogeneous
+        if len(live) == 1 and N:  # one frame (most loops): no inner loops; a list comprehension gathers fastest
+            f = live[0]
             if need_jac:
-                for f in live:
-                    K[f][i] = regressor(model, data, f, local)
+                K[f][...] = [regressor(model, data, f, local) for qi in q if fk(model, data, qi) is None]
+            if placed:
+                T[f] = [place(model, data, f).homogeneous for qi in q if fk(model, data, qi) is None]
+        else:
+            for i, qi in enumerate(q):
+                fk(model, data, qi)
+                for f in placed:
+                    T[f][i] = place(model, data, f).homogeneous
+                if need_jac:
+                    for f in live:
+                        K[f][i] = regressor(model, data, f, local)
         out = {f: (np.array(T[f]).reshape(N, 4, 4), K.get(f)) for f in placed}
         for f in from_K:
             r = roots[f][0]
