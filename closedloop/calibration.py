@@ -21,7 +21,8 @@ The pipeline (thesis 3.2, 4.2, with the noise treated as errors in variables):
    solution explains readmitted (`outliers.readmit`).
 6. `name_gauge`: the held length that sets the size, with what it stands for.
 7. `analyse_solution`: standard errors, directions the data do not determine,
-   residuals before/after, a chi-square test; `linearity.check_error_bars`:
+   residuals before/after, a chi-square test, the share of the cost a
+   Gauss-Newton step would still remove (0 at a minimum); `linearity.check_error_bars`:
    a long fit's error bars along the cost's profile; then `verdict.judge`.
 """
 
@@ -117,7 +118,7 @@ def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOpti
     est, fun = fit.est, fit.stage.fun
     scale = np.array([p.prior for p in problem.params])
     r, J = fun(fit.x[est], True)
-    S, Vt, _ = scaled_svd(J, r, scale[est])  # no U, no threaded LAPACK on the tall Jacobian
+    S, Vt, g = scaled_svd(J, r, scale[est])  # no U, no threaded LAPACK on the tall Jacobian
     rank_num = int(np.sum(S > 1e-10 * S[0])) if S.size else 0
     dof = max(r.size - fun.deficit - fun.missing - rank_num, 1)  # eliminated or unobserved rows carry none
     weighted = fun.weighting == "noise"
@@ -139,8 +140,14 @@ def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOpti
             status[k] = "unidentifiable"
             std[k] = np.nan
     chi2 = float(r @ r) / (sigma_r ** 2 if not (fit.known and weighted) else 1.0)
+    # At a minimum r is orthogonal to the columns of J: |U_k^T r|^2 / |r|^2, the share of the cost a
+    # Gauss-Newton step would remove, is ~0 (~rank / rows at round-off).  Near 1 the solver stopped where
+    # its linear model still sees the cost vanish (a damped step along a direction the closure barely sees).
+    # With bounds an active bound leaves a gradient: not checked.
+    rr = float(r @ r)
+    reducible = float(g[keep] @ g[keep]) / rr if rr > 0 and not opt.bounds else (np.nan if opt.bounds else 0.0)
     return {"S": S, "rank": int(keep.sum()), "dof": dof, "sigma": sigma, "weak": weak, "cov": cov, "std": std,
-            "chi2": chi2, "weighting": fun.weighting}
+            "chi2": chi2, "weighting": fun.weighting, "reducible": reducible}
 
 
 def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: CalibrationOptions | None = None,
@@ -197,6 +204,7 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
                             sol.status, sol.message, a["sigma"], opt.noise is None, a["chi2"],
                             a["dof"], notes, a["cov"], fit.est, suspects, a["weighting"], gauge,
                             structure.gauge_note, structure.gauge_length, rejected, len(log_), fit.warnings)
+    res.reducible = a["reducible"]
     annotate(res, fit.sigma_q, structure.scale_free, opt.snr)  # what sets the scale, each loop's noise (closedloop.constraints)
     res.profiles = check_error_bars(res, fit)  # a long fit: do its error bars hold? (closedloop.linearity)
     res.verdict = judge(res)

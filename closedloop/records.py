@@ -127,6 +127,7 @@ class CalibrationResult:
     length_response: float | None = None  # size change per change of the known frame lengths (closedloop.lengths)
     length_leak: float | None = None  # size error per prior-sized error of what the loops cannot see, through them
     noise_model: list = field(default_factory=list)  # per loop: task vs joint noise (noise.noise_summary)
+    reducible: float = 0.0  # share of the final cost one Gauss-Newton step would remove: ~0 at a minimum (NaN: bounds)
 
     @property
     def converged(self) -> bool:

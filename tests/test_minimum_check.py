@@ -1,0 +1,69 @@
+"""The verdict checks that the solver's stop is a minimum (`CalibrationResult.reducible`, `verdict._minimum`).
+
+At a least-squares minimum the whitened residual is orthogonal to the Jacobian's columns: one
+Gauss-Newton step removes nothing.  A fit displaced from its minimum by a known number of standard
+errors must show the share of the cost that step removes, d^2 / (dof + d^2), and a result whose stop
+is not a minimum is never `ok`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from closedloop import CalibrationOptions, JointLog, WeldLoop, calibrate
+from closedloop.calibration import analyse_solution
+from closedloop.fit import ResidualFunction, StageResult
+from closedloop.staging import Fit
+from closedloop.verdict import judge
+
+
+@pytest.fixture(scope="module")
+def noisy(panda, panda_weld):
+    rng = np.random.default_rng(5)
+    log = JointLog(panda_weld.joints, panda_weld.readings + rng.normal(0.0, 1e-4, panda_weld.readings.shape))
+    return calibrate(panda, log, [WeldLoop("fixture", "panda_hand")])
+
+
+def _analysed_at(res, x: np.ndarray) -> dict:
+    """`analyse_solution` of the result's problem at `x` (the unweighted-noise weighted fit, as calibrate runs)."""
+    fun = ResidualFunction(res.problem, x, list(res.estimated), np.ones(len(res.problem.joints)), "noise")
+    fit = Fit(x, StageResult(None, fun), list(res.estimated), fun.sigma_q, False, 0, [])
+    return analyse_solution(res.problem, fit, CalibrationOptions(), list(res.status))
+
+
+def test_nothing_is_reducible_at_the_solution(noisy):
+    assert noisy.verdict.status == "ok"
+    assert noisy.reducible < 1e-6  # seen: ~1e-11
+    assert noisy.verdict.evidence["reducible"] == noisy.reducible
+    assert _analysed_at(noisy, noisy.values)["reducible"] < 1e-6
+
+
+def test_a_point_off_the_minimum_shows_the_cost_a_step_removes(noisy):
+    """Moved by d = 200 standard errors along one well-determined parameter: a Gauss-Newton step removes
+    d^2 / (dof + d^2) of the cost (at least: the Mahalanobis distance of the move is at least d), and the
+    verdict on such a stop is failed."""
+    k = int(np.nanargmin(noisy.std[noisy.estimated] / np.array([noisy.problem.params[i].prior
+                                                               for i in noisy.estimated])))
+    idx = noisy.estimated[k]
+    x = noisy.values.copy()
+    x[idx] += 200.0 * noisy.std[idx]
+    a = _analysed_at(noisy, x)
+    expected = 200.0 ** 2 / (a["dof"] + 200.0 ** 2)
+    assert expected > 0.8
+    assert a["reducible"] >= 0.9 * expected and a["reducible"] < 1.0
+    v = judge(replace(noisy, reducible=a["reducible"]))
+    assert v.status == "failed" and any("Gauss-Newton step" in r for r in v.reasons)
+
+
+def test_the_thresholds_and_the_round_off_exception(noisy):
+    assert judge(replace(noisy, reducible=0.2)).status == "suspect"
+    assert judge(replace(noisy, reducible=0.05)).status == "ok"
+    # a closure at round-off: the residual is no least-squares residual there, nothing is judged
+    at_round_off = [replace(r, rms_m=1e-14, rms_rad=1e-14) for r in noisy.residuals_after]
+    v = judge(replace(noisy, reducible=0.99, residuals_after=at_round_off))
+    assert not any("Gauss-Newton step" in r for r in v.reasons)
+    v = judge(replace(noisy, reducible=float("nan")))  # bounds: not checked
+    assert "reducible" not in v.evidence and v.status == "ok"
