@@ -196,13 +196,9 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
             nu *= 2.0
             if nu > 2.0 ** 40:
                 break
-        if not accepted and not bounded:  # no damped step lowers the cost: is this a minimum?
-            found = _line_search(fun, x, cost, S, Vt, g, keep, scale)
-            if found is not None:
-                dz, x_new, cost_new = found
-                accepted, lam, nu = True, 0.0, 2.0
-                log.info("no damped step lowered the cost %.3e; the undamped step, shortened, did (%.3e)",
-                         cost, cost_new)
+        found = None if accepted or bounded else _line_search(fun, x, cost, S, Vt, g, keep, scale)  # a minimum?
+        if found is not None:
+            (dz, x_new, cost_new), accepted, lam, nu = found, True, 0.0, 2.0
         if not accepted:
             status, message = "converged", "no step lowers the cost: at a minimum"
             break
@@ -220,8 +216,7 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
         if cost <= 1e-28 * r.size:  # RMS residual at the level of round-off (1e-14)
             status, message = "converged", "residual is zero to round-off"
             break
-        # a step made small by the damping (after rejected trials) is no sign of convergence while the
-        # undamped one is long (along a direction the closure barely sees): both must be below xtol
+        # a step made short by the damping is no convergence while the undamped one is long: both below xtol
         if decrease <= opt.ftol * max(cost + decrease, 1e-300) or max(step_norm, gn_norm) < opt.xtol:
             status, message = "converged", "cost and step converged"
             break
@@ -273,6 +268,7 @@ def _line_search(fun, x, cost, S, Vt, g, keep, scale, halvings: int = 12):
         r_new, _ = fun(x_new, False)
         cost_new = 0.5 * float(r_new @ r_new)
         if np.isfinite(cost_new) and cost - cost_new >= 1e-4 * 0.5 * (2.0 * alpha - alpha ** 2) * model:
+            log.info("no damped step lowered the cost %.3e; the undamped step x %g did (%.3e)", cost, alpha, cost_new)
             return alpha * dz, x_new, cost_new
         alpha *= 0.5
     return None
