@@ -141,11 +141,11 @@ def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOpti
             std[k] = np.nan
     chi2 = float(r @ r) / (sigma_r ** 2 if not (fit.known and weighted) else 1.0)
     # At a minimum r is orthogonal to the columns of J: |U_k^T r|^2 / |r|^2, the share of the cost a
-    # Gauss-Newton step would remove, is ~0 (~rank / rows at round-off).  Near 1 the solver stopped where
-    # its linear model still sees the cost vanish (a damped step along a direction the closure barely sees).
-    # With bounds an active bound leaves a gradient: not checked.
+    # Gauss-Newton step would remove, is ~0 (at round-off closures anything: judged by `verdict._minimum`).
+    # Near 1 the solver stopped where its linear model still sees the cost vanish.  With bounds an active
+    # bound leaves a gradient: not computed.
     rr = float(r @ r)
-    reducible = float(g[keep] @ g[keep]) / rr if rr > 0 and not opt.bounds else (np.nan if opt.bounds else 0.0)
+    reducible = np.nan if opt.bounds else float(g[keep] @ g[keep]) / rr if rr > 0 else 0.0
     return {"S": S, "rank": int(keep.sum()), "dof": dof, "sigma": sigma, "weak": weak, "cov": cov, "std": std,
             "chi2": chi2, "weighting": fun.weighting, "reducible": reducible}
 
