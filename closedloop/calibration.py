@@ -46,7 +46,7 @@ from .records import (CalibrationOptions, CalibrationResult, LoopResiduals, Para
                       residual_stats)
 from .robot import RobotModel
 from .selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
-from .solver import rms, scaled_svd
+from .solver import reducible_share, rms, scaled_svd
 from .staging import Fit, Progress, recheck_at_solution, solve_from_starts, solve_staged, solve_with_restarts
 from .verdict import judge
 
@@ -144,8 +144,7 @@ def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOpti
     # Gauss-Newton step would remove, is ~0 (at round-off closures anything: judged by `verdict._minimum`).
     # Near 1 the solver stopped where its linear model still sees the cost vanish.  With bounds an active
     # bound leaves a gradient: not computed.
-    rr = float(r @ r)
-    reducible = np.nan if opt.bounds else float(g[keep] @ g[keep]) / rr if rr > 0 else 0.0
+    reducible = np.nan if opt.bounds else reducible_share(r, g, keep)
     return {"S": S, "rank": int(keep.sum()), "dof": dof, "sigma": sigma, "weak": weak, "cov": cov, "std": std,
             "chi2": chi2, "weighting": fun.weighting, "reducible": reducible}
 

@@ -175,7 +175,7 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
         accepted = False
         if lam == 0.0 and opt.damping > 0.0 and S.size:
             lam = opt.damping * float(S[0] ** 2)
-        gn_norm = float(np.linalg.norm(np.where(keep, g, 0.0) / np.where(keep, S, 1.0)))  # |undamped step|
+        gn = np.where(keep, g, 0.0) / np.where(keep, S, 1.0)  # minus the undamped step, along the rows of Vt
         while True:
             dz = _step(S, Vt, g, keep, lam, x, scale, opt, Js, r)
             predicted = _model_decrease(S, Vt, g, dz)
@@ -196,7 +196,7 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
             nu *= 2.0
             if nu > 2.0 ** 40:
                 break
-        found = None if accepted or bounded else _line_search(fun, x, cost, S, Vt, g, keep, scale)  # a minimum?
+        found = None if accepted or bounded else _line_search(fun, x, r, g, keep, -(Vt.T @ gn), scale)  # a minimum?
         if found is not None:
             (dz, x_new, cost_new), accepted, lam, nu = found, True, 0.0, 2.0
         if not accepted:
@@ -217,7 +217,7 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
             status, message = "converged", "residual is zero to round-off"
             break
         # a step made short by the damping is no convergence while the undamped one is long: both below xtol
-        if decrease <= opt.ftol * max(cost + decrease, 1e-300) or max(step_norm, gn_norm) < opt.xtol:
+        if decrease <= opt.ftol * max(cost + decrease, 1e-300) or max(step_norm, float(np.linalg.norm(gn))) < opt.xtol:
             status, message = "converged", "cost and step converged"
             break
     settled = fun.settle(x) if retract is not None else None
@@ -247,29 +247,36 @@ def _geodesic(fun, x, r, J, scale, S, Vt, keep, lam, v, alpha, h: float = 0.1):
 STOPPED_SHORT = 0.5  # share of the cost the linear model removes above which a stop is no minimum (`_line_search`)
 
 
-def _line_search(fun, x, cost, S, Vt, g, keep, scale, halvings: int = 12):
-    """The undamped Gauss-Newton step, halved until the cost falls (Armijo), where no damped step did.
+def reducible_share(r: np.ndarray, g: np.ndarray, keep: np.ndarray) -> float:
+    """|U_k^T r|^2 / |r|^2 (g = U^T r, `scaled_svd`; k the kept directions): the share of the cost the
+    undamped Gauss-Newton step removes in the linear model.  ~0 at a minimum, where r is orthogonal to the
+    columns of J (at a round-off residual anything: it is no least-squares residual)."""
+    rr = float(r @ r)
+    gk = g[keep]
+    return float(gk @ gk) / rr if rr > 0 else 0.0
 
-    At a minimum r is orthogonal to the columns of J: the full step's linear model removes
-    |U_k^T r|^2 of |r|^2, ~0.  When it would remove more than `STOPPED_SHORT` of the cost and yet
-    Levenberg-Marquardt found no step, the trials were rejected along a direction the closure barely
-    sees (the long, curved valleys of a weak direction) and the damped steps were too short to move
-    along it: a step along the undamped direction, shortened, is tried (the verdict checks the same
-    share, `verdict._minimum`).  Returns (dz, x_new, cost_new) or None.
+
+def _line_search(fun, x, r, g, keep, step, scale, halvings: int = 12):
+    """The undamped Gauss-Newton `step`, halved until the cost falls (Armijo), where no damped step did.
+
+    Only when it would remove more than `STOPPED_SHORT` of the cost (`reducible_share`): then the stop is
+    no minimum.  The trials were rejected along a direction the closure barely sees (the long, curved
+    valleys of a weak direction) and the damped steps were too short to move along it; the verdict
+    checks the same share at the solution (`verdict._minimum`).  Returns (dz, x_new, cost_new) or None.
     """
-    gk = np.where(keep, g, 0.0)
-    model = float(gk @ gk)
-    if not cost > 0.0 or model <= STOPPED_SHORT * 2.0 * cost:
+    share = reducible_share(r, g, keep)
+    if share <= STOPPED_SHORT:
         return None
-    dz = -(Vt.T @ (gk / np.where(keep, S, 1.0)))
+    cost = 0.5 * float(r @ r)
+    model = 2.0 * share * cost  # |U_k^T r|^2
     alpha = 1.0
     for _ in range(halvings):
-        x_new = x + alpha * dz * scale
+        x_new = x + alpha * step * scale
         r_new, _ = fun(x_new, False)
         cost_new = 0.5 * float(r_new @ r_new)
         if np.isfinite(cost_new) and cost - cost_new >= 1e-4 * 0.5 * (2.0 * alpha - alpha ** 2) * model:
             log.info("no damped step lowered the cost %.3e; the undamped step x %g did (%.3e)", cost, alpha, cost_new)
-            return alpha * dz, x_new, cost_new
+            return alpha * step, x_new, cost_new
         alpha *= 0.5
     return None
 
