@@ -129,8 +129,9 @@ def run_job(job: BatchJob) -> dict:
     if job.cv and res.converged:
         from .validation import cross_validate
         try:
-            cv = cross_validate(robot, lg, loops, opts, k=job.cv)
-            report["validation"] = {"k": job.cv, "test": cv["test"], "train": cv["train"],
+            cv = cross_validate(robot, lg, loops, opts, k=job.cv, exclude=[rj.row - 1 for rj in res.rejected])
+            report["validation"] = {"k": job.cv, "excluded_rows": [i + 1 for i in cv["excluded"]],
+                                    "test": cv["test"], "train": cv["train"],
                                     "test_whitened_rms": cv["test_whitened_rms"],
                                     "parameter_spread": cv["parameter_spread"]}
             t = cv["test"]

@@ -106,7 +106,7 @@ def cmd_calibrate(args) -> int:
     elapsed = time.perf_counter() - t0
     report = build_report(res, args.model, args.log)
     report["solver"]["seconds"] = elapsed
-    cv = fold_validation(robot, lg, loops, opts, args, report, prog) if args.cv and res.converged else None
+    cv = fold_validation(robot, lg, loops, opts, args, report, prog, res) if args.cv and res.converged else None
     from .report import verdict_record
     from .verdict import judge
 
@@ -138,13 +138,16 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
-def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog) -> dict:
-    """K-fold held-out validation (`validation.cross_validate`), into the report."""
+def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res) -> dict:
+    """K-fold held-out validation (`validation.cross_validate`), into the report; the rows `res` rejected
+    as outliers are not judged (they stay in the refits' data)."""
     from .validation import cross_validate
 
     prog("validating", 0, 0.0)
-    cv = cross_validate(robot, lg, loops, opts, k=args.cv, progress=lambda done, k: prog("validating", done, k))
-    report["validation"] = {"k": args.cv, "test": cv["test"], "train": cv["train"],
+    cv = cross_validate(robot, lg, loops, opts, k=args.cv, progress=lambda done, k: prog("validating", done, k),
+                        exclude=[rj.row - 1 for rj in res.rejected])
+    report["validation"] = {"k": args.cv, "excluded_rows": [i + 1 for i in cv["excluded"]],
+                            "test": cv["test"], "train": cv["train"],
                             "test_whitened_rms": cv.get("test_whitened_rms"),
                             "parameter_spread": cv.get("parameter_spread"),
                             "inconsistent": cv.get("inconsistent"),
@@ -190,8 +193,9 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
             parts = [f"{t['rms_m'] * 1e3:.4g} mm" if t.get("rms_m") is not None else "",
                      f"{t['rms_rad'] * 1e3:.4g} mrad" if t.get("rms_rad") is not None else "",
                      f"{t['rms_px']:.4g} px" if t.get("rms_px") is not None else ""]
+            left = len(cv.get("excluded_rows", []))
             print(f"  {cv['k']}-fold validation, loop {t['loop']}: held-out closure RMS "
-                  + ", ".join(p for p in parts if p))
+                  + ", ".join(p for p in parts if p) + (f" (the {left} rejected rows not judged)" if left else ""))
     from .cli_evaluate import fixture_lines
 
     for line in fixture_lines(report.get("fixture_validation")):

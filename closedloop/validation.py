@@ -11,6 +11,15 @@ unmodelled error, or an outlier in the held-out fold).
 
 Rows are split at random, per loop (each loop's rows are spread over the
 folds), reproducibly from `seed`.
+
+Rows that are not data are not judged: the closure statistics of a fold
+leave out the rows its refit rejected as outliers (training) and the rows
+the full calibration rejected (`exclude`: training and held-out).  A few
+corrupted readings would otherwise set both figures alike (a 0.1 rad
+reading error is a closure of centimetres against microns), and the
+held-out/training ratio, the test of generalisation, would see nothing.
+Held-out rows are never screened against the fold's own fit: a model that
+does not generalise would screen away the evidence.
 """
 
 from __future__ import annotations
@@ -23,6 +32,7 @@ import numpy as np
 from .calibration import CalibrationOptions, CalibrationResult, build_problem, calibrate, residual_stats
 from .noise import noise_vector, whiten
 from .data import JointLog
+from .evaluation import BlockEval
 from .loops.base import Loop
 from .montecarlo import unwrap
 from .robot import RobotModel
@@ -52,11 +62,12 @@ def folds(log_: JointLog, k: int, seed: int = 0) -> list[np.ndarray]:
 
 
 def closure_residuals(result: CalibrationResult, robot: RobotModel, log_: JointLog, loops: list[Loop],
-                      noise=None) -> dict[str, Any]:
-    """Closure residuals of `log_` at the calibrated values of `result`.
+                      noise=None, skip=None) -> dict[str, Any]:
+    """Closure residuals of `log_` at the calibrated values of `result`, without its rows `skip` (0-based).
 
     Returns {'loops': [LoopResiduals as dict], 'whitened_rms': per-row RMS of
-    the noise-whitened residual (None when no noise level is known)}.
+    the noise-whitened residual (None when no noise level is known),
+    'skipped': the number of rows left out}.
     """
     calibrated = {lp.name: lp for lp in result.loops}  # their charts are those of the result's values
     problem = build_problem(robot, log_, [calibrated.get(lp.name, lp) for lp in loops], None)
@@ -66,26 +77,46 @@ def closure_residuals(result: CalibrationResult, robot: RobotModel, log_: JointL
     fitted = dict(zip([b.loop.name for b in result.problem.blocks], result.problem.noise))
     problem.noise = [fitted.get(b.loop.name, nz) for b, nz in zip(problem.blocks, problem.noise)]  # the fit's
     evals = problem.evaluate(values, noise is not None)
+    skipped = np.zeros(0, dtype=int) if skip is None else np.unique(np.asarray(skip, dtype=int))
+    if skipped.size:
+        evals = [_without_rows(ev, skipped + 1) for ev in evals]
     stats = residual_stats(problem, evals)
     wr = None
     if noise is not None:
         sigma_q, _ = noise_vector(problem, noise)
         r, _, _ = whiten(evals, sigma_q, "noise", False, problem.noise)
         wr = float(np.sqrt(np.mean(r ** 2))) if r.size else None
-    return {"loops": [asdict(s) for s in stats], "whitened_rms": wr}
+    return {"loops": [asdict(s) for s in stats], "whitened_rms": wr, "skipped": int(skipped.size)}
+
+
+def _without_rows(ev: BlockEval, numbers: np.ndarray) -> BlockEval:
+    """A block's evaluation without the configurations of log rows `numbers` (1-based, `BlockEval.rows`)."""
+    if ev.rows is None:  # a known distance: no configuration
+        return ev
+    keep = ~np.isin(ev.rows, numbers)
+
+    def cut(a):
+        return None if a is None else a[keep]
+
+    return BlockEval(ev.r[keep], cut(ev.J), cut(ev.Jq), cut(ev.valid), cut(ev.cov), ev.rows[keep])
 
 
 def holdout(robot: RobotModel, train: JointLog, test: JointLog, loops: list[Loop],
-            options: CalibrationOptions | None = None) -> dict[str, Any]:
-    """Fit on `train`, report the closure residuals on `train` (fit) and on `test` (prediction)."""
+            options: CalibrationOptions | None = None, skip_train=None, skip_test=None) -> dict[str, Any]:
+    """Fit on `train`, report the closure residuals on `train` (fit) and on `test` (prediction).
+
+    Not judged: the training rows the fit rejected as outliers and `skip_train`, and the held-out rows
+    `skip_test` (0-based rows of each log; the rows the full calibration rejected, `cross_validate`).
+    """
     opt = options or CalibrationOptions()
     res = calibrate(robot, train, loops, opt)
     noise = opt.noise if opt.noise is not None else (res.sigma if opt.weighting == "noise" else None)
     if noise is not None and not isinstance(noise, dict) and noise <= 0.0:
         # joint noise estimated at zero beside a measurement's (closedloop.noise): W_i is that covariance alone
         noise = float(np.finfo(float).tiny)
-    pred = closure_residuals(res, robot, test, loops, noise)
-    fit = closure_residuals(res, robot, train, loops, noise)
+    own = [rj.row - 1 for rj in res.rejected]  # `Rejected.row`: 1-based rows of `train`
+    pred = closure_residuals(res, robot, test, loops, noise, skip_test)
+    fit = closure_residuals(res, robot, train, loops, noise, np.union1d(own, [] if skip_train is None else skip_train))
     return {"result": res, "train": fit, "test": pred, "n_train": len(train), "n_test": len(test)}
 
 
@@ -108,18 +139,25 @@ def _mean_loops(per_fold: list[list[dict]]) -> list[dict]:
 
 
 def _holdout_job(robot: RobotModel, loops: list[Loop], opt: CalibrationOptions, split: tuple) -> dict[str, Any]:
-    """One fold's refit (a job for closedloop.executor): `split` = (training log, held-out log)."""
-    return holdout(robot, split[0], split[1], loops, opt)
+    """One fold's refit (a job for closedloop.executor): `split` = (training log, held-out log, rows of
+    each not judged)."""
+    return holdout(robot, split[0], split[1], loops, opt, split[2], split[3])
 
 
 def cross_validate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: CalibrationOptions | None = None,
                    k: int = 5, seed: int = 0, executor=None,
-                   progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+                   progress: Callable[[int, int], None] | None = None, exclude=None) -> dict[str, Any]:
     """k-fold cross-validation with the same options on every fold.
+
+    `exclude`: rows of `log_` (0-based) whose closure no fold judges, the full calibration's rejected
+    outliers (``[rj.row - 1 for rj in result.rejected]``); they stay in the refits' data, whose outlier
+    screen meets them as the full calibration's did.
 
     Returns
       'folds': per fold {'fold', 'n_train', 'n_test', 'train': residuals,
                'test': residuals, 'converged', 'values' (name -> value)},
+      'excluded': the rows of `exclude`, and per fold 'skipped' (rows not judged:
+               under 'train' and 'test', `closure_residuals`),
       'test' / 'train': per loop, residuals pooled over folds (RMS weighted by
                rows; max over folds),
       'test_whitened_rms' / 'train_whitened_rms': mean over folds (None
@@ -138,7 +176,12 @@ def cross_validate(robot: RobotModel, log_: JointLog, loops: list[Loop], options
     ref = None
     from .executor import run  # the refits run on any engine (closedloop.executor); results in fold order
 
-    splits = [(subset(log_, np.setdiff1d(np.arange(len(log_)), rows)), subset(log_, rows)) for rows in parts]
+    bad = np.zeros(0, dtype=int) if exclude is None else np.unique(np.asarray(exclude, dtype=int))
+    splits = []
+    for rows in parts:
+        rest = np.setdiff1d(np.arange(len(log_)), rows)
+        splits.append((subset(log_, rest), subset(log_, rows), np.flatnonzero(np.isin(rest, bad)),
+                       np.flatnonzero(np.isin(rows, bad))))
     told = (lambda state: progress(state.done, state.total)) if progress else None
     for f, ho in enumerate(run(_holdout_job, splits, executor, shared=(robot, loops, opt), progress=told)):
         res: CalibrationResult = ho["result"]
@@ -155,7 +198,7 @@ def cross_validate(robot: RobotModel, log_: JointLog, loops: list[Loop], options
         vals = [p[part][key] for p in per_fold]
         return None if any(v is None for v in vals) else float(np.mean(vals))
 
-    return {"k": k, "seed": seed, "folds": per_fold,
+    return {"k": k, "seed": seed, "folds": per_fold, "excluded": bad.tolist(),
             "test": _mean_loops([p["test"]["loops"] for p in per_fold]),
             "train": _mean_loops([p["train"]["loops"] for p in per_fold]),
             "test_whitened_rms": _mean("whitened_rms", "test"),
