@@ -14,9 +14,13 @@ library chooses).  `--loaded` repeats everything while one busy process per
 CPU keeps the cores busy (bounded in time, killed afterwards).  `kernel`: the
 median kernel CPU of a run (page faults), part of `cpu tot`; `--reuse-memory`
 keeps glibc from unmapping freed arrays (what grows superlinearly at 100,000).
+`--corrupt F` corrupts a fraction F of the rows (one reading off by 0.05-0.2
+rad): the outlier screen's robust refit and the final fit on the rows kept
+(`rejected`: rows rejected, and how many of them were corrupted).
 
     python benchmarks/bench_calibrate.py                              # 1,000 configurations
     python benchmarks/bench_calibrate.py --sizes 1000 10000 100000 --loaded
+    python benchmarks/bench_calibrate.py --sizes 1000 10000 100000 --corrupt 0.05 --threads 1
 """
 
 from __future__ import annotations
@@ -36,15 +40,22 @@ from floor import pinocchio_floor  # benchmarks/floor.py
 from machine import add_arguments, condition, conditions, header, threads_mode, timed  # benchmarks/machine.py
 
 
-def _log(ds, n: int, rng: np.random.Generator) -> JointLog:
+def _log(ds, n: int, rng: np.random.Generator, corrupt: float = 0.0) -> tuple[JointLog, np.ndarray]:
+    """n configurations (the 1,000 tiled, fresh noise) and the rows corrupted: a fraction `corrupt` of them
+    with one reading off by 0.05-0.2 rad (a glitch: closures of centimetres)."""
     reps = int(np.ceil(n / 1000))
-    th = np.tile(ds.readings, (reps, 1))[:n]
-    return JointLog(ds.joints, th + rng.normal(0.0, 1e-4, th.shape))
+    th = np.tile(ds.readings, (reps, 1))[:n] + rng.normal(0.0, 1e-4, (n, ds.readings.shape[1]))
+    bad = np.zeros(0, dtype=int)
+    if corrupt > 0:
+        bad = rng.choice(n, int(round(corrupt * n)), replace=False)
+        th[bad, rng.integers(0, th.shape[1], bad.size)] += \
+            rng.choice([-1.0, 1.0], bad.size) * rng.uniform(0.05, 0.2, bad.size)
+    return JointLog(ds.joints, th), bad
 
 
-def run_once(robot, log: JointLog, mode: str) -> tuple[float, float, float, float, int, int, float]:
-    """(total wall, solve wall, total CPU, solve CPU, iterations, estimated parameters, kernel CPU) of one
-    calibration.  The kernel's share (page faults: arrays above glibc's mmap threshold, 32 MB at most, are
+def run_once(robot, log: JointLog, mode: str) -> tuple[float, float, float, float, int, int, float, list[int]]:
+    """(total wall, solve wall, total CPU, solve CPU, iterations, estimated parameters, kernel CPU, rejected
+    rows) of one calibration.  The kernel's share (page faults: arrays above glibc's mmap threshold, 32 MB at most, are
     mapped and zeroed afresh on every allocation) is what grows faster than the data."""
     import resource
     import time
@@ -71,7 +82,8 @@ def run_once(robot, log: JointLog, mode: str) -> tuple[float, float, float, floa
     res, total, cpu = timed(call)
     kernel = resource.getrusage(resource.RUSAGE_SELF).ru_stime - k0
     s0, sc0 = stages.get("solving", (t0, c0))
-    return total, total - (s0 - t0), cpu, cpu - (sc0 - c0), res.iterations, len(res.estimated), kernel
+    return total, total - (s0 - t0), cpu, cpu - (sc0 - c0), res.iterations, len(res.estimated), kernel, \
+        [rj.row - 1 for rj in res.rejected]
 
 
 def reuse_freed_memory() -> bool:
@@ -97,6 +109,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5, help="runs per figure (median and best reported)")
     ap.add_argument("--reuse-memory", action="store_true",
                     help="glibc: keep freed arrays for reuse (mallopt; see reuse_freed_memory)")
+    ap.add_argument("--corrupt", type=float, default=0.0, metavar="F",
+                    help="fraction of rows with one reading off by 0.05-0.2 rad (outlier screen)")
     add_arguments(ap)
     ap.set_defaults(threads=["1", "default", "auto"])
     args = ap.parse_args()
@@ -107,9 +121,10 @@ def main() -> None:
     ds, t_data, _ = timed(make_dataset, robot, WeldLoop("fixture", "panda_hand"),
                           [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 1000, rng, stride=1)
     print(header())
-    print(f"data: 1,000 exact self-motion configurations in {t_data:.1f} s; noise 1e-4 rad")
-    logs = {n: _log(ds, n, rng) for n in args.sizes}
-    calibrate(robot, logs[args.sizes[0]], [WeldLoop("fixture", "panda_hand")])  # warm-up (imports, caches)
+    print(f"data: 1,000 exact self-motion configurations in {t_data:.1f} s; noise 1e-4 rad"
+          + (f"; {100 * args.corrupt:g} % of the rows corrupted" if args.corrupt else ""))
+    logs = {n: _log(ds, n, rng, args.corrupt) for n in args.sizes}
+    calibrate(robot, logs[args.sizes[0]][0], [WeldLoop("fixture", "panda_hand")])  # warm-up (imports, caches)
     for cond in conditions(args.loaded):
         with condition(cond) as cdesc:
             print(f"\n[{cdesc}]")
@@ -122,7 +137,7 @@ def main() -> None:
             for mode in args.threads:
                 for n in args.sizes:
                     reps = args.repeat if n <= 10000 else max(1, args.repeat // 3)
-                    runs = [run_once(robot, logs[n], mode) for _ in range(reps)]
+                    runs = [run_once(robot, logs[n][0], mode) for _ in range(reps)]
                     tot = np.array([r[0] for r in runs])
                     sol = np.array([r[1] for r in runs])
                     cpu = float(np.median([r[2] for r in runs]))
@@ -133,8 +148,9 @@ def main() -> None:
                         fl, fl_cpu = pinocchio_floor("panda", n=n, repeat=3)
                     print(f"{mode:>8} {n:>9,} {np.median(tot):>10.3f} {tot.min():>7.3f} {np.median(sol):>10.3f} "
                           f"{sol.min():>7.3f} {cpu:>8.3f} {cpu_s:>9.3f} {iters:>5d} {1e3 * fl:>9.2f} "
-                          f"{1e3 * fl_cpu:>6.2f} {cpu / fl_cpu:>7.0f} {cpu_s / (fl_cpu * max(iters, 1)):>14.1f} {kernel:>7.2f}",
-                          flush=True)
+                          f"{1e3 * fl_cpu:>6.2f} {cpu / fl_cpu:>7.0f} {cpu_s / (fl_cpu * max(iters, 1)):>14.1f} {kernel:>7.2f}"
+                          + (f"  rejected {len(runs[0][7])} ({np.isin(runs[0][7], logs[n][1]).sum()} corrupted of "
+                             f"{logs[n][1].size})" if args.corrupt else ""), flush=True)
 
 
 if __name__ == "__main__":

@@ -84,3 +84,32 @@ def test_screen_scale_is_the_same_for_either_whitening_root():
     # the norms, which decide each configuration, are the same for either root
     np.testing.assert_allclose(np.linalg.norm(np.einsum("nij,nj->ni", F, r), axis=1),
                                np.linalg.norm(np.einsum("nij,nj->ni", S, r), axis=1), rtol=1e-9)
+
+
+def test_long_log_refit_on_a_sample(panda, data, monkeypatch):
+    """A log longer than ROBUST_ROWS: the robust refit runs on an evenly spaced sample, every row is screened
+    at its solution; the corrupted rows are rejected and the fit predicts as the clean fit on the rows kept
+    (16 % corrupted rows of 200, the refit on 100)."""
+    from closedloop import outliers
+
+    ds, train, held_out = data
+    rng = np.random.default_rng(5)
+    bad = np.sort(rng.choice(train.shape[0], 32, replace=False))
+    corrupt = train.copy()
+    corrupt[bad, rng.integers(0, 7, bad.size)] += rng.choice([-1.0, 1.0], bad.size) * rng.uniform(0.05, 0.2, bad.size)
+    sizes = []
+    real = outliers.weighted_stage
+
+    def spy(problem, *args, **kw):
+        sizes.append(sum(b.theta.shape[0] for b in problem.blocks))
+        return real(problem, *args, **kw)
+
+    monkeypatch.setattr(outliers, "ROBUST_ROWS", 100)
+    monkeypatch.setattr(outliers, "weighted_stage", spy)
+    res = calibrate(panda, JointLog(ds.joints, corrupt), [WeldLoop("fixture", "panda_hand")])
+    assert sizes and set(sizes) == {100}  # every pass of the refit on the sample
+    assert sorted(r.row - 1 for r in res.rejected) == bad.tolist()
+    kept = np.delete(train, bad, axis=0)
+    clean = calibrate(panda, JointLog(ds.joints, kept), [WeldLoop("fixture", "panda_hand")])
+    h0, h1 = held_out_error(clean, held_out), held_out_error(res, held_out)
+    assert abs(h1 / h0 - 1.0) < 0.02, (h0, h1)
