@@ -106,7 +106,8 @@ def cmd_calibrate(args) -> int:
     elapsed = time.perf_counter() - t0
     report = build_report(res, args.model, args.log)
     report["solver"]["seconds"] = elapsed
-    cv = fold_validation(robot, lg, loops, opts, args, report, prog, res) if args.cv and res.converged else None
+    cv = fold_validation(robot, lg, loops, opts, args, report, prog, res, cv_given) \
+        if args.cv and res.converged else None
     from .report import verdict_record
     from .verdict import judge
 
@@ -138,14 +139,29 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
-def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res) -> dict:
+def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res, cv_given: bool = True) -> dict | None:
     """K-fold held-out validation (`validation.cross_validate`), into the report; the rows `res` rejected
-    as outliers are not judged (they stay in the refits' data)."""
+    as outliers are not judged (they stay in the refits' data).
+
+    A training fold the refit cannot use (too few rows for the parameters) ends the validation: with the
+    default K it is skipped with a note (None), with ``--cv K`` given it is an input error naming the folds.
+    """
+    from .errors import ClosedLoopError
     from .validation import cross_validate
 
     prog("validating", 0, 0.0)
-    cv = cross_validate(robot, lg, loops, opts, k=args.cv, progress=lambda done, k: prog("validating", done, k),
-                        exclude=[rj.row - 1 for rj in res.rejected])
+    try:
+        cv = cross_validate(robot, lg, loops, opts, k=args.cv, progress=lambda done, k: prog("validating", done, k),
+                            exclude=[rj.row - 1 for rj in res.rejected])
+    except ClosedLoopError as exc:
+        prog.done()
+        n_train = len(lg) - -(-len(lg) // args.cv)
+        why = f"{args.cv}-fold validation refits on {n_train} of the {len(lg)} rows, and one failed: {exc}"
+        if cv_given:
+            raise InputError(f"--cv {args.cv}: {why} (fewer folds, or --cv 0)") from None
+        res.notes.append(f"k-fold validation skipped: {why}")
+        report["validation"] = {"k": args.cv, "skipped": why}
+        return None
     report["validation"] = {"k": args.cv, "excluded_rows": [i + 1 for i in cv["excluded"]],
                             "test": cv["test"], "train": cv["train"],
                             "test_whitened_rms": cv.get("test_whitened_rms"),
@@ -188,7 +204,7 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
     for n in res.notes:
         print(f"  note: {n}")
     cv = report.get("validation")
-    if cv:
+    if cv and "test" in cv:  # (a skipped validation is among the notes)
         for t in (t for t in cv["test"] if t["loop"] not in distances):
             parts = [f"{t['rms_m'] * 1e3:.4g} mm" if t.get("rms_m") is not None else "",
                      f"{t['rms_rad'] * 1e3:.4g} mrad" if t.get("rms_rad") is not None else "",

@@ -228,7 +228,9 @@ def _sections(res, report: dict, snr: float = 1.0) -> list[str]:
     out.append("<h2>Closure</h2>" + _table(["loop", "n", "RMS before [mm]", "after [mm]", "RMS before [mrad]",
                                             "after [mrad]"], rows))
     cv = report.get("validation")
-    if cv:
+    if cv and "skipped" in cv:
+        out.append(f"<p>k-fold validation skipped: {html.escape(cv['skipped'])}</p>")
+    elif cv:
         conv = cv.get("folds_converged")
         conv = f"; {sum(map(bool, conv))} of {len(conv)} fold fits converged" if conv else ""
         out.append(f"<p>{cv['k']}-fold validation (fit on k-1 folds, closure of the held-out fold{conv}):</p>" + _table(

@@ -172,6 +172,14 @@ CASES = [
     Case("cv-negative", calib("--cv", "-3"), 2, ["--cv -3", ">= 0"]),
     Case("cv-more-than-rows", calib("--cv", "100"), 2, ["--cv 100", "more folds than the 30 rows"]),
     Case("cv-not-int", calib("--cv", "2.5"), 2, ["--cv", "whole number"]),
+    # 5 rows determine the 27 parameters; a training fold's 4 do not: the default validation is skipped with
+    # a note, a K given is an input error naming the folds (was: a training fold's message as the log's)
+    Case("cv-folds-too-short-default", calib(log="{l.csv}"), 0, ["k-fold validation skipped",
+                                                                 "refits on 4 of the 5 rows"],
+         {"l.csv": log_edit(lambda t: "\n".join(t.splitlines()[:6]) + "\n")}),
+    Case("cv-folds-too-short-given", calib("--cv", "5", log="{l.csv}"), 2, ["--cv 5", "refits on 4 of the 5 rows",
+                                                                           "--cv 0"],
+         {"l.csv": log_edit(lambda t: "\n".join(t.splitlines()[:6]) + "\n")}),
     Case("snr-negative", calib("--snr", "-1"), 2, ["--snr -1", "must be > 0"]),
     Case("snr-nan", calib("--snr", "nan"), 2, ["--snr", "nan", "finite number"]),
     Case("snr-underscore", calib("--snr", "1_000"), 2, ["--snr", "'1_000' is not a number"]),
