@@ -44,6 +44,7 @@ def check_report(truth: dict, report: dict, tol_m: float, tol_rad: float, tol_sc
         if p["kind"] == "dh" and p["name"] not in true and not is_number(p.get("initial")):
             raise InputError(f"{report_source}: parameters row {i} ('{p['name']}'): missing field 'initial'")
         rep[p["name"]] = p
+    _same_robot(truth, report, truth_source, report_source)
     unknown = [n for n in true if n not in rep]
     rows = []
     tol_by_unit = {"m": tol_m, "rad": tol_rad, "1": tol_scale, "px": tol_px}
@@ -85,6 +86,18 @@ def check_report(truth: dict, report: dict, tol_m: float, tol_rad: float, tol_sc
         rows.append(_row(n, float(true[n]), None, None, None, "not in report"))
     ok = all(r["result"] != "FAIL" for r in rows) and any(r["result"] == "ok" for r in rows)
     return rows, ok
+
+
+def _same_robot(truth: dict, report: dict, truth_source: str, report_source: str) -> None:
+    """Refuse a truth and a report of different robots: no joint in common, or no parameter in common."""
+    tj, rj = truth.get("joint_names"), report.get("joints")
+    if isinstance(tj, list) and isinstance(rj, list) and tj and rj and not set(map(str, tj)) & set(map(str, rj)):
+        raise InputError(f"{report_source}: calibrates joints {', '.join(map(str, rj[:3]))}, ... and {truth_source} "
+                         f"is the truth of joints {', '.join(map(str, tj[:3]))}, ...: not the same robot")
+    names = {p.get("name") for p in report["parameters"] if isinstance(p, dict)}
+    if truth["parameters"] and not names & set(truth["parameters"]):
+        raise InputError(f"{report_source}: none of the {len(truth['parameters'])} parameters of {truth_source} "
+                         "is in the report: not the same robot or loops")
 
 
 def _row(name, true, cal, err, tol, result):

@@ -62,6 +62,9 @@ def cmd_check(args) -> int:
     bad = sum(r["result"] == "FAIL" for r in rows)
     print(f"{sum(r['result'] == 'ok' for r in rows)} within tolerance, {bad} outside, "
           f"{sum(r['result'] not in ('ok', 'FAIL') for r in rows)} not compared")
+    verdict = report.get("verdict") if isinstance(report.get("verdict"), dict) else {}
+    if verdict.get("status") in ("suspect", "failed"):  # what the calibration said of itself
+        print(f"note: the report's verdict is {verdict['status']}: " + "; ".join(map(str, verdict.get("reasons", []))))
     return 0 if ok else 1
 
 

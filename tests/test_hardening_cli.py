@@ -229,6 +229,17 @@ CASES = [
          {"t.json": "\ufeff" + json.dumps(TRUTH), "r.json": json.dumps(REPORT)}),
     Case("check-outside", ["check", "{t.json}", "{r.json}", "--tol-m", "1e-6"], 1, ["1 outside"],
          {"t.json": json.dumps(TRUTH), "r.json": json.dumps(REPORT)}),
+    # another robot's truth: refused (was a table of the report's parameters against 0)
+    Case("check-other-robots-joints", ["check", "{t.json}", "{r.json}"], 2, ["r.json", "calibrates joints j1",
+                                                                            "truth of joints joint1", "not the same"],
+         {"t.json": json.dumps(TRUTH | {"joint_names": ["joint1", "joint2"]}),
+          "r.json": json.dumps(REPORT | {"joints": ["j1", "j2", "j3"]})}),
+    Case("check-no-parameter-in-common", ["check", "{t.json}", "{r.json}"], 2, ["none of the 2 parameters"],
+         {"t.json": '{"parameters": {"joint1.x": 0.001, "socket.px": 0.5}}', "r.json": json.dumps(REPORT)}),
+    Case("check-notes-a-failed-verdict", ["check", "{t.json}", "{r.json}"], 0, ["2 within tolerance",
+                                                                               "verdict is failed: the fit stalled"],
+         {"t.json": json.dumps(TRUTH), "r.json": json.dumps(REPORT | {"verdict": {
+             "status": "failed", "reasons": ["the fit stalled"]}})}),
     Case("check-tol-negative", ["check", "{t.json}", "{r.json}", "--tol-m", "-1"], 2, ["--tol-m -1", "> 0"],
          {"t.json": json.dumps(TRUTH), "r.json": json.dumps(REPORT)}),
     Case("check-tol-nan", ["check", "{t.json}", "{r.json}", "--tol-rad", "nan"], 2, ["--tol-rad", "finite"],
