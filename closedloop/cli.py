@@ -12,7 +12,7 @@ import logging
 import sys
 
 from .cli_calibrate import cmd_calibrate
-from .cli_parse import EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL, check_number, float_arg, int_arg, join_negative_numbers
+from .cli_parse import EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL, EXIT_PIPE, check_number, float_arg, int_arg, join_negative_numbers
 from .cli_simulate import cmd_simulate
 from .errors import CalibrationError, ClosedLoopError, InputError
 
@@ -208,6 +208,8 @@ def main(argv: list[str] | None = None) -> int:
         for sig in (signal.SIGTERM, signal.SIGHUP):
             handlers[sig] = signal.signal(sig, _raise_signal)
     verbose = "-v" in argv or "--verbose" in argv
+    if verbose:  # accepted before or after the subcommand: the top-level flag
+        argv = ["-v"] + [a for a in argv if a not in ("-v", "--verbose")]
     try:
         args = parse_args(build_parser(), argv)  # applies a subcommand's --config FILE
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
@@ -229,6 +231,14 @@ def main(argv: list[str] | None = None) -> int:
         print(("\n" if sys.stderr.isatty() else "") + "interrupted" + (f" (signal {signum})" if signum else "")
               + "; outputs not yet published were discarded", file=sys.stderr)
         return 128 + signum if signum else 130
+    except BrokenPipeError:  # the reader went away (`| head`): quiet, as a tool killed by SIGPIPE
+        import os
+
+        try:
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        except (OSError, ValueError):
+            pass
+        return EXIT_PIPE
     except OSError as exc:  # a file system refusal the checks could not foresee (disk full, ...)
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         print(f"error: {where}{exc.strerror or exc}", file=sys.stderr)

@@ -130,9 +130,9 @@ def cmd_calibrate(args) -> int:
 
     write_figures(res, report, args)  # --html / --plots
     if res.verdict.status == "suspect":
-        print(f"warning: {args.log}: calibration is suspect: {'; '.join(res.verdict.reasons)}", file=sys.stderr)
+        print(f"warning: {args.log}: calibration is suspect: {'; '.join(own_reasons(res.verdict))}", file=sys.stderr)
     if failed:
-        print(f"error: {args.log}: calibration failed: {'; '.join(res.verdict.reasons)}"
+        print(f"error: {args.log}: calibration failed: {'; '.join(own_reasons(res.verdict))}"
               + ("" if write_out or not args.out else f"; no model written to {args.out} (--force writes it)"),
               file=sys.stderr)
         return EXIT_FAILED
@@ -172,6 +172,15 @@ def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res,
     return cv
 
 
+def own_reasons(verdict) -> list[str]:
+    """The verdict's reasons, those of its own status without their label (the others keep theirs)."""
+    own = f"{verdict.status}: "
+    return [r[len(own):] if r.startswith(own) else r for r in verdict.reasons]
+
+
+SHOWN_WEAK = 5  # combinations not identified printed in the summary (all of them are in the report)
+
+
 def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = True) -> None:
     b, a = res.residuals_before, res.residuals_after
     import numpy as np
@@ -181,11 +190,12 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
     distances = {bl.loop.name for bl in blocks if getattr(bl.loop, "parameter_only", False)}
     rows = [bl.rows for bl in blocks if bl.loop.name not in distances]
     n_conf = int(np.unique(np.concatenate(rows)).size) if rows else 0
-    own = f"{res.verdict.status}: "  # a reason of the verdict's own status needs no label; the others keep theirs
-    reasons = [r[len(own):] if r.startswith(own) else r for r in res.verdict.reasons]
+    reasons = own_reasons(res.verdict)
     print(f"verdict: {res.verdict.status}" + (f" ({'; '.join(reasons)})" if reasons else ""))
     print(f"calibrated {len(res.estimated)} parameters from {n_conf} configurations "
-          f"in {res.iterations} iterations ({elapsed:.2f} s): {res.solver_status}")
+          f"in {res.iterations} iterations ({elapsed:.2f} s): "
+          # the solver's own word only where the verdict does not overrule it
+          + (res.solver_status if res.verdict.status != "failed" else f"the solver stopped ({res.solver_message})"))
     for rb, ra in zip(b, a):
         parts = []
         if rb.rms_m is not None:
@@ -199,8 +209,11 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
     print(f"  joint noise {res.sigma:.3g} ({est}); chi2/dof {res.chi2 / max(res.dof, 1):.3g}")
     if res.dropped:
         print(f"  {len(res.dropped)} redundant parameters dropped (see report: identifiability.dropped)")
-    for c in res.weak:
+    for c in res.weak[:SHOWN_WEAK]:
         print(f"  not identifiable: {c.describe()}")
+    if len(res.weak) > SHOWN_WEAK:
+        print(f"  ... and {len(res.weak) - SHOWN_WEAK} more combinations not identifiable "
+              "(report: identifiability.not_identifiable)")
     for n in res.notes:
         print(f"  note: {n}")
     cv = report.get("validation")

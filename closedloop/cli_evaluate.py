@@ -50,7 +50,17 @@ def _order(args) -> list[str] | None:
 
 
 def read_inputs(log_path: str | None, robot, loops: list, degrees: bool = False, order: list[str] | None = None):
-    """The joint log: the positional file (CSV or bag), or each loop's own ``log=`` file (one per fixture)."""
+    """The joint log: the positional file (CSV or bag), or each loop's own ``log=`` file (one per fixture);
+    refused where most readings of a joint lie far beyond its limits (`data.check_angle_units`)."""
+    from .data import check_angle_units
+
+    lg = _read_inputs(log_path, robot, loops, degrees, order)
+    limits = {n: (j.lower, j.upper) for n, j in robot.joints.items() if j.kind == "revolute"}
+    check_angle_units(lg, limits, degrees)
+    return lg
+
+
+def _read_inputs(log_path: str | None, robot, loops: list, degrees: bool, order: list[str] | None):
     from .data import read_log, read_loop_logs
 
     linear = [j for j, info in robot.joints.items() if info.kind == "prismatic"]

@@ -17,6 +17,7 @@ from .errors import InputError
 EXIT_INPUT = 2
 EXIT_FAILED = 3  # a calibration whose verdict is 'failed' (the report says why)
 EXIT_INTERNAL = 70
+EXIT_PIPE = 141  # 128 + SIGPIPE: the output's reader closed it (`closedloop ... | head`)
 
 
 def parse_noise(text: str | float | None):

@@ -157,6 +157,31 @@ def check_loop_column(log: JointLog, loop_names: list[str]) -> None:
             raise LogError(f"{log.source}: row {r}, column 'loop': no loop named '{name}'{hint}")
 
 
+BEYOND_LIMIT = 0.5  # rad past a joint limit from which a reading is no reading of that joint (`check_angle_units`)
+
+
+def check_angle_units(log: JointLog, limits: dict[str, tuple[float, float]], degrees: bool = False) -> None:
+    """Refuse a log in which most readings of a revolute joint lie far beyond its limits (lower, upper, rad).
+
+    A log in degrees read as radians (55.5 against a limit of 2.09) is no calibration problem: the fit
+    would run for its whole budget and fail.  More than half of one joint's readings BEYOND_LIMIT past its
+    limits make it an input error naming the joint, a row and the value.  A few such rows are left to the
+    outlier screen (a corrupted cell); joints without limits (continuous, or a range over 4 pi) are not
+    checked.
+    """
+    for j, (lo, hi) in limits.items():
+        if j not in log.joints or not (np.isfinite(lo) and np.isfinite(hi)) or hi - lo > 4.0 * np.pi:
+            continue
+        col = log.angles[:, log.joints.index(j)]
+        out = (col < lo - BEYOND_LIMIT) | (col > hi + BEYOND_LIMIT)
+        if col.size and out.sum() > 0.5 * col.size:
+            i = int(np.flatnonzero(out)[0])
+            hint = "" if degrees else ": a log in degrees? (give --degrees)"
+            raise LogError(f"{log.source}: {int(out.sum())} of {col.size} readings of joint '{j}' lie over "
+                           f"{BEYOND_LIMIT} rad beyond its limits [{lo:.4g}, {hi:.4g}] rad (row {i + 1}: "
+                           f"{col[i]:.6g}{' rad' if degrees else ''}){hint}")
+
+
 def _numbers(row: list[str]) -> bool:
     """Every cell of a row is a number (a data row, not a header)."""
     try:

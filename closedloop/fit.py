@@ -293,7 +293,7 @@ def weighted_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarra
             note = (f"the noise weighting became singular at the weighted fit ({fun.deficit - deficit_start} more "
                     f"residual directions discarded: a task axis on a joint axis) while the unweighted closure "
                     f"grew from {before:.3g} to {after:.3g}; the plain loop-closure fit is kept")
-            log.warning(note)
+            log.info(note)  # the stage's note: the verdict's reason where this stage is the calibration's
             plain = ResidualFunction(problem, x0, est, np.ones(len(problem.joints)), "none", row_weights)
             kept = levenberg_marquardt(plain, start, scale[est], sopt, progress)
             return StageResult(kept, plain, note, deficit_start)

@@ -131,8 +131,8 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
     # Truncating directions that lie below the noise raises the cost by about their number times
     # sigma^2, a small fraction of it.  Far more means the "noise" was model misfit (a stage that
     # holds most parameters fixed): keep the untruncated solution then.
-    if second.cost > 4.0 * first.cost:
-        log.warning("noise-level truncation raised the cost %.3g-fold (model misfit, not noise): "
+    if second.cost > 4.0 * first.cost:  # (info: a stage's or restart's inner decision; the verdict judges the end)
+        log.info("noise-level truncation raised the cost %.3g-fold (model misfit, not noise): "
                     "keeping the untruncated solution", second.cost / max(first.cost, 1e-300))
         first.iterations = second.iterations
         first.history = second.history

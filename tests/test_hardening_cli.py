@@ -167,6 +167,14 @@ CASES = [
     Case("log-no-joint-column", calib(log="{l.csv}"), 2, ["no column names a joint"], {"l.csv": "a,b\n1,2\n"}),
     Case("log-duplicate-column", calib(log="{l.csv}"), 2, ["duplicate column(s) panda_joint1"],
          {"l.csv": log_edit(lambda t: t.replace("panda_joint2", "panda_joint1", 1))}),
+    Case("log-in-degrees", calib(log="{l.csv}"), 2, ["l.csv", "readings of joint 'panda_joint", "beyond its limits",
+                                                      "a log in degrees? (give --degrees)"],
+         {"l.csv": log_edit(lambda t: "\n".join(t.splitlines()[:1] + [",".join(repr(float(v) * 57.29577951308232)
+                                                                               for v in line.split(","))
+                                                                      for line in t.splitlines()[1:] if line]))}),
+    # one cell far beyond its joint's limits is a corrupted row for the outlier screen, not a unit error
+    Case("log-one-cell-beyond-limits", calib("--cv", "0", log="{l.csv}"), 0, ["rejected: log row 4"],
+         {"l.csv": log_edit(lambda t: _cell(t, 4, 3, "100.0"))}),
     # ---------------------------------------------------------------- calibrate options
     Case("cv-1", calib("--cv", "1"), 2, ["--cv 1", "K >= 2"]),
     Case("cv-negative", calib("--cv", "-3"), 2, ["--cv -3", ">= 0"]),
