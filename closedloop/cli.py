@@ -58,7 +58,8 @@ def cmd_check(args) -> int:
         cal = "" if r["calibrated"] is None else f"{r['calibrated']:14.6g}"
         err = "" if r["error"] is None else f"{r['error']:12.3g}"
         tol = "" if r["tol"] is None else f"{r['tol']:10.3g}"
-        print(f"{r['name']:<28}{r['true']:14.6g}{cal:>14}{err:>12}{tol:>10}  {r['result']}")
+        true = "" if r["true"] is None else f"{r['true']:14.6g}"
+        print(f"{r['name']:<28}{true:>14}{cal:>14}{err:>12}{tol:>10}  {r['result']}")
     bad = sum(r["result"] == "FAIL" for r in rows)
     print(f"{sum(r['result'] == 'ok' for r in rows)} within tolerance, {bad} outside, "
           f"{sum(r['result'] not in ('ok', 'FAIL') for r in rows)} not compared")

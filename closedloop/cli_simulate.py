@@ -37,7 +37,21 @@ def cmd_simulate(args) -> int:
                       progress=lambda i, n: prog("simulating", i, n), **overrides)
     prog.done()
     print(f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out}")
+    loop_hint(Path(args.out) / "truth.json")
     summary = getattr(result, "summary", None)
     if callable(summary):
         print(summary())
     return 0
+
+
+def loop_hint(truth_path: Path) -> None:
+    """Print the loop the dataset closes, as calibrate takes it (a --tool adds a link: its frame is new)."""
+    import json
+
+    try:
+        lp = json.loads(truth_path.read_text()).get("loop")
+    except (OSError, ValueError):
+        return
+    if isinstance(lp, dict) and lp.get("type") and lp.get("frame"):
+        keys = [f"frame={lp['frame']}"] + [f"{k}={lp[k]}" for k in ("to", "name") if lp.get(k)]
+        print(f"  the loop: --loop {lp['type']}:{','.join(keys)}")

@@ -59,6 +59,10 @@ def cmd_loops(args) -> int:
         if doc:
             print(f"  syntax:  {doc[0].strip()}")
         print(f"  example: --loop {LOOP_EXAMPLES.get(kind, kind + ':frame=<tool frame>')}")
+    from .loops.spec import GENERIC_KEYS
+
+    print(f"Every loop type also takes: {', '.join(sorted(GENERIC_KEYS))}, and KEY=@GROUP (an unknown shared "
+          "by several loops).")
     print("Frames are the model's frame names (closedloop inspect MODEL lists them); 'to' defaults to the world.")
     return 0
 

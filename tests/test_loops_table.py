@@ -27,8 +27,10 @@ def test_a_type_missing_from_the_table_cannot_register():
 def test_loops_command_lists_the_whole_table(capsys):
     assert main(["loops"]) == 0
     out = capsys.readouterr().out
-    listed = [ln for ln in out.splitlines() if ln and not ln.startswith(" ") and not ln.startswith("Frames")]
+    listed = [ln for ln in out.splitlines() if ln and not ln.startswith((" ", "Frames", "Every loop"))]
     assert listed == sorted(spec.LOOP_TYPES)  # camera too (its module loads on first use)
+    assert "Every loop type also takes: fixture, log, sigma_task" in out  # once, not per type
+    assert all(ln.startswith("  syntax:  ") for ln in out.splitlines()[2::4])  # every type has its syntax line
 
 
 def test_simulator_loop_types_are_table_entries():

@@ -83,6 +83,7 @@ def all_loop_types() -> dict[str, tuple[LoopFactory, set[str]]]:
 
 @register("weld", {"frame", "to", "closure"})
 def _weld(kw: dict[str, str], robot: RobotModel) -> Loop:
+    """weld:frame=tool[,to=frame_b][,closure=identity|"x y z rx ry rz"]  (closure: unknown if absent)."""
     if "frame" not in kw:
         raise LoopError("weld loop needs frame=<tool frame>")
     closure = kw.get("closure", "unknown")
