@@ -8,7 +8,6 @@ tests/test_loops_camera_head.py and benchmarks/camera_head_mc.py.
 
 from __future__ import annotations
 
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +21,7 @@ from closedloop.robot import RobotModel
 from closedloop.se3 import vec_of
 from closedloop.sims.camera_scene import MARKER, head_urdf, mujoco_intrinsics, pan_towards
 from closedloop.truth import draw_truth
+from scratch import scratch_dir
 
 FRAMES = ["cam_left_optical", "cam_right_optical"]
 ARM = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]
@@ -35,7 +35,7 @@ _robots: dict[float, RobotModel] = {}
 
 def head_robot(verge: float = 0.0) -> RobotModel:
     if verge not in _robots:
-        path = Path(tempfile.mkdtemp(prefix="head_")) / "head.urdf"
+        path = scratch_dir("head_") / "head.urdf"
         path.write_text(head_urdf(verge))
         _robots[verge] = RobotModel.from_file(path)
     return _robots[verge]

@@ -17,7 +17,6 @@ restart leaves, and is left along its weakest directions (`staging.valley_starts
 
 from __future__ import annotations
 
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +24,7 @@ import pinocchio as pin
 import pytest
 
 import thesis_examples as te
+from scratch import scratch_dir
 
 STARTS = {"example1": [0, 1, 2, 3, 11, 16], "example2": [0, 1, 2, 3], "door": [0, 8, 12, 20, 27],
           "point": [0, 1, 2, 3, 4]}
@@ -84,7 +84,7 @@ def test_door_nearly_redundant_parameters_are_named():
     from closedloop.selection import check_motion, initial_values, select_parameters
 
     ex = te.door()
-    wd = Path(tempfile.mkdtemp())
+    wd = scratch_dir("door_")
     table = te.write_table(ex, te.thesis_start(ex, np.random.default_rng([3, len(ex.joints)])), wd / "t.yaml")
     log = wd / "door.csv"
     log.write_text(",".join(ex.joints) + "\n" + "\n".join(",".join(repr(float(v)) for v in r) for r in ex.readings))

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -19,11 +18,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from closedloop.errors import InputError
+from scratch import scratch_dir
 
 FUZZ_EXAMPLES = int(os.environ.get("CLOSEDLOOP_FUZZ_EXAMPLES", "200"))
 FUZZ = settings(max_examples=FUZZ_EXAMPLES, derandomize=True, deadline=None, database=None,
                 suppress_health_check=list(HealthCheck))
-_DIR = Path(tempfile.mkdtemp(prefix="closedloop-fuzz-"))
+_DIR = scratch_dir("fuzz-")
 
 # ----------------------------------------------------------------------------- value strategies
 special_floats = st.sampled_from([0.0, -0.0, 1e308, -1e308, 1e-308, float("nan"), float("inf"), -float("inf"),

@@ -30,13 +30,13 @@ over random configurations within 1e-6 after the best rigid base (and tool) tran
 from __future__ import annotations
 
 import functools
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 import yaml
+from scratch import scratch_dir
 
 FIELDS = ("theta_off", "s", "a", "alpha")
 TOL = 1e-6
@@ -406,7 +406,7 @@ def run_start(ex: Example, seed: int, options=None, workdir: Path | None = None)
     from closedloop import CalibrationOptions, ClosedLoopError, RobotModel, calibrate, read_log
     from closedloop.loops.spec import default_loops, parse_loop
 
-    wd = Path(workdir or tempfile.mkdtemp(prefix=f"basin_{ex.name}_"))
+    wd = Path(workdir) if workdir else scratch_dir(f"basin_{ex.name}_")
     start = thesis_start(ex, np.random.default_rng([seed, len(ex.joints)]))
     table = write_table(ex, start, wd / f"{ex.name}_start_{seed}.yaml")
     log = wd / f"{ex.name}.csv"

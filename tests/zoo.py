@@ -30,7 +30,6 @@ Quick subset: ``tests/test_zoo.py``; the full zoo: ``benchmarks/zoo.py``.
 from __future__ import annotations
 
 import copy
-import tempfile
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +38,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.models import example_robot_data_dir
+from scratch import scratch_dir
 
 TOOL = "zoo_tool"
 SCALE_BLIND = {"weld", "point", "plane", "hinge"}  # loops that close at any overall size
@@ -386,7 +386,7 @@ def make_case(robot: str, loop: str, n: int = 60, sigma: float = 0.0, seed: int 
         rows = rng.choice(n, corrupt_cells, replace=False)
         readings[rows, rng.integers(0, len(joints), corrupt_cells)] = cell_value
         bad = np.union1d(bad, rows)
-    wd = Path(workdir) if workdir else Path(tempfile.mkdtemp(prefix=f"zoo_{robot}_{loop}_"))
+    wd = Path(workdir) if workdir else scratch_dir(f"zoo_{robot}_{loop}_")
     wd.mkdir(parents=True, exist_ok=True)
     (wd / "nominal.urdf").write_text(nominal)
     (wd / "truth.urdf").write_text(truth)
