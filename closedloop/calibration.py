@@ -231,11 +231,13 @@ def solve_screened(problem: CalibrationProblem, x0: np.ndarray, free: list[int],
     rejected: list[Rejected] = []
     suspects: list = []
     screened = fit = None
+    refit = False  # the robust refit from x0 has run on these rows (it is deterministic: once is enough)
     if opt.robust == "auto" and gross_outliers(problem, x0, sigma_q, opt):  # rows no model error explains
-        screened = reject_outliers(problem, None, x0, structure.kept, opt, sigma_q, n_rows)
+        screened, refit = reject_outliers(problem, None, x0, structure.kept, opt, sigma_q, n_rows), True
     if screened is None:
         fit = solve_staged(problem, x0, x0, structure.kept, opt, sigma_q, known, progress)
-        if opt.robust == "auto":  # screened before any restart: restarts on rows that are not closures are wasted
+        # screened before any restart: restarts on rows that are not closures are wasted
+        if opt.robust == "auto" and not (refit and list(fit.est) == list(structure.kept)):
             screened = reject_outliers(problem, fit.x, x0, fit.est, opt, sigma_q, n_rows)
     problem_all = problem
     if screened is not None:
