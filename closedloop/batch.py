@@ -30,6 +30,7 @@ import logging
 import os
 import shutil
 import uuid
+from collections import Counter
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -37,6 +38,7 @@ import numpy as np
 
 from .batch_drift import Drift, drift, drift_columns, gauge_record
 from .batch_manifest import BatchJob, as_list, read_manifest
+from .cli_parse import EXIT_FAILED
 from .errors import InputError
 
 __all__ = ["BatchJob", "BatchResult", "Drift", "drift", "read_manifest", "run_batch", "run_job", "finished",
@@ -335,10 +337,15 @@ def cmd_batch(args) -> int:
     with engine_from_args(args) as eng:
         res = run_batch(jobs, summary, eng, progress_printer("batch: ", args.quiet), args.drift_z)
     flagged = [d for d in res.drift if d.flagged]
+    verdicts = Counter(str(r.get("verdict", "")) for r in res.rows if r["name"] not in res.failed)
     print(f"{len(res.ran)} job(s) run on {eng.name} ({eng.workers} worker(s)), {len(res.resumed)} finished "
           f"earlier (not redone), {len(res.failed)} failed -> {summary}")
+    print("  verdicts: " + ", ".join(f"{verdicts[v]} {v}" for v in ("ok", "suspect", "failed") if verdicts[v]))
     for name in res.failed:
         print(f"  failed: {name}: {next(r['error'] for r in res.rows if r['name'] == name)}", file=sys.stderr)
+    for r in res.rows:
+        if r.get("verdict") == "failed" and r["name"] not in res.failed:
+            print(f"  verdict failed: {r['name']}: {r.get('verdict_reasons', '')}", file=sys.stderr)
     if res.drift:
         print(f"  drift: {len(flagged)} of {sum(not d.note for d in res.drift)} parameter changes exceed "
               f"{args.drift_z:g} standard errors -> {summary.with_name(summary.stem + '.drift.csv')}")
@@ -347,7 +354,8 @@ def cmd_batch(args) -> int:
             print(f"    {d.robot} {d.before} -> {d.after}: {d.note}")
     for d in flagged:
         print(f"    {d.robot} {d.before} -> {d.after}: {d.parameter} {d.change:+.3g} (z = {d.z:+.1f})")
-    return 1 if res.failed else 0
+    # a job that could not run: 1; every job ran but a calibration's verdict is failed: 3, as calibrate's
+    return 1 if res.failed else EXIT_FAILED if verdicts["failed"] else 0
 
 
 def add_parser(sub) -> None:

@@ -69,9 +69,10 @@ def main() -> int:
     code = closedloop(argv)
     with open(out / "fleet.summary.csv") as fh:
         rows = list(csv.DictReader(fh))
-    print(f"\n{'job':<22}{'status':>7}{'after mm':>10}{'cv mm':>9}{'max |z|':>9}  drift flagged")
+    print(f"\n{'job':<22}{'status':>7}{'verdict':>9}{'after mm':>10}{'cv mm':>9}{'max |z|':>9}  drift flagged")
     for r in rows:
-        print(f"{r['name']:<22}{r['status']:>7}{float(r['rms_after_mm']):>10.3g}{float(r['cv_test_mm']):>9.3g}"
+        print(f"{r['name']:<22}{r['status']:>7}{r['verdict']:>9}{float(r['rms_after_mm']):>10.3g}"
+              f"{float(r['cv_test_mm']):>9.3g}"
               + (f"{float(r['drift_max_z']):>9.2f}" if r["drift_max_z"] else " " * 9) + f"  {r['drift_flagged']}")
     with open(out / "fleet.summary.drift.csv") as fh:
         offs = [d for d in csv.DictReader(fh) if d["parameter"] == f"{JOINT}.offset"]
