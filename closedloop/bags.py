@@ -121,6 +121,9 @@ def _reader(path: Path):
                        "pip install \"closedloop[ros]\" (or pip install rosbags)") from None
     if not path.exists():
         raise BagError(f"{path}: no such bag")
+    if not is_bag(path):
+        raise BagError(f"{path}: not a ROS bag (a ROS 1 .bag, a ROS 2 bag folder with its metadata.yaml, or a "
+                       f".mcap/.db3 file){'; a CSV log goes straight to calibrate' if path.suffix.lower() == '.csv' else ''}")
     if path.is_file() and path.suffix.lower() in (".mcap", ".db3") and (path.parent / "metadata.yaml").is_file():
         path = path.parent  # a ROS 2 bag is its directory
     return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))

@@ -90,7 +90,15 @@ def read_manifest(path: str | Path) -> list[BatchJob]:
         rows = [{**defaults, **r} for r in rows]
         first = 1
     elif path.suffix.lower() == ".csv":
-        rows = [r for r in csv.DictReader(text.splitlines()) if any((v or "").strip() for v in r.values())]
+        reader = csv.DictReader(text.splitlines())
+        rows = []
+        for r in reader:
+            if None in r:  # more cells than the header names: an unquoted comma
+                raise InputError(f"{path}: line {reader.line_num}: {len(reader.fieldnames) + len(r[None])} cells, the "
+                                 f"header has {len(reader.fieldnames)} (quote a cell that holds commas, \"...\"; "
+                                 "separate loops with ';')")
+            if any((v or "").strip() for v in r.values() if isinstance(v, str)):
+                rows.append(r)
         first = 2  # the header is line 1
     else:
         raise InputError(f"{path}: manifest must be .yaml, .yml or .csv")

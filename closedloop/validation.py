@@ -32,6 +32,7 @@ import numpy as np
 from .calibration import CalibrationOptions, CalibrationResult, build_problem, calibrate, residual_stats
 from .noise import noise_vector, whiten
 from .data import JointLog
+from .errors import ParameterError
 from .evaluation import BlockEval
 from .loops.base import Loop
 from .montecarlo import unwrap
@@ -49,10 +50,15 @@ def subset(log_: JointLog, rows: np.ndarray) -> JointLog:
 def folds(log_: JointLog, k: int, seed: int = 0) -> list[np.ndarray]:
     """k disjoint sets of row indices covering the log, each loop's rows spread evenly."""
     if k < 2:
-        raise ValueError("k-fold validation needs k >= 2")
+        raise ParameterError("k-fold validation needs k >= 2")
     rng = np.random.default_rng(seed)
     groups = [np.arange(len(log_))] if log_.loop is None else \
         [np.flatnonzero(log_.loop == name) for name in dict.fromkeys(log_.loop.tolist())]
+    for g in groups:
+        if g.size < k:
+            which = "" if log_.loop is None else f" of loop '{log_.loop[g[0]]}'" if g.size else ""
+            raise ParameterError(f"{k}-fold validation needs at least {k} rows{which}; "
+                                 f"{log_.source or 'the log'} has {g.size}")
     out: list[list[int]] = [[] for _ in range(k)]
     for g in groups:
         perm = rng.permutation(g)

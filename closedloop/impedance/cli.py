@@ -59,6 +59,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from .data import write_record
     from .model import ExperimentConfig, ForearmParams, simulate
     from .results import write_truth
+    from ..cli_parse import check_number
+
+    args.noise = check_number("--noise", args.noise, 0.0, 1e6)
+    args.voluntary = check_number("--voluntary", args.voluntary, 0.0, 1e6)
+    args.cycles = check_number("--cycles", args.cycles, 1, 10**6, integer=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     arm = ForearmParams(gravity=not args.no_gravity)
@@ -118,6 +123,14 @@ def cmd_identify(args: argparse.Namespace) -> int:
     from .estimate import EstimateOptions, estimate, posture_fit
     from .metrics import coverage, rel_errors
     from .results import read_truth, resample_truth, write_results
+    from ..cli_parse import check_number
+
+    args.max_shift_ms = check_number("--max-shift-ms", args.max_shift_ms, 0.0, 1e6)
+    args.bootstrap = check_number("--bootstrap", args.bootstrap, 0, 10**6, integer=True)
+    args.folds = check_number("--folds", args.folds, 0, 10**6, integer=True)
+    for opt_name, path, kinds in (("--plot", args.plot, (".png", ".svg", ".pdf")), ("--out", args.out, (".csv", ".json"))):
+        if path and Path(path).suffix.lower() not in kinds:
+            raise InputError(f"{opt_name} {path}: give a {', '.join(kinds)} file")
     t0 = time.perf_counter()
     rec = read_record(args.data)
     pre = None if args.prefilter is None else (0.0 if args.prefilter.lower() == "none" else _float(args.prefilter))
