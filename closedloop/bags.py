@@ -317,4 +317,7 @@ def parse_windows(items: list[str]) -> dict[str, tuple[float, float]]:
             out[name.strip()] = (float(a), float(b))
         except ValueError:
             raise InputError(f"--window {item}: expected NAME=T0:T1 (seconds from the bag start)") from None
+        t0, t1 = out[name.strip()]
+        if not (np.isfinite(t0) and np.isfinite(t1) and 0.0 <= t0 < t1):
+            raise InputError(f"--window {item}: T0 must be >= 0 and below T1 (seconds from the bag start)")
     return out

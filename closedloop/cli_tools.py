@@ -96,7 +96,14 @@ def cmd_extract(args) -> int:
     else:
         raise InputError("extract: say which joints to keep: --model ROBOT.urdf|.xml or --joints j1,j2,...")
     refuse_overwrite(args.out, args.bag)
+    from .cli_parse import check_number
+
+    for opt, name in (("--threshold", "threshold"), ("--settle", "settle"), ("--window-s", "window_s"),
+                      ("--spread", "spread")):
+        setattr(args, name, check_number(opt, getattr(args, name), 0.0, 1e6, lo_open=True))
     split = args.split
+    if args.window and split != "window":
+        raise InputError("--window is for --split window (a loop per time window): give both, or neither")
     names = None
     if args.names:
         items = [n.strip() for n in args.names.split(",")]
