@@ -122,10 +122,10 @@ def robust_refit(problem: CalibrationProblem, x0: np.ndarray, est: list[int], si
     dims = [b.loop.dim for b in sample.blocks]
     sopt = SolverOptions(max_iter=max_iter)
     weighting = _screen_weighting(sample)
-    x, w_prev, best = x0.copy(), None, (np.inf, x0)
+    x, w_prev, best = x0.copy(), None, (np.inf, x0, [])
     for _ in range(passes):
         blocks = _closures(sample, x, sigma_q)
-        best = min(best, (_spread(sample, blocks), x), key=lambda b: b[0])
+        best = min(best, (_spread(sample, blocks), x, blocks), key=lambda b: b[0])
         w = np.concatenate(cauchy_weights(_standardized(sample, blocks, False), dims))
         row_w = np.repeat(np.sqrt(w), [b.loop.dim for b in sample.blocks for _ in range(b.theta.shape[0])])
         st = weighted_stage(sample, x, x[est], est, scale, sigma_q, weighting, sopt, None, row_w)
@@ -133,12 +133,14 @@ def robust_refit(problem: CalibrationProblem, x0: np.ndarray, est: list[int], si
         if w_prev is not None and np.max(np.abs(w - w_prev)) < 1e-3:
             break
         w_prev = w
-    spread = _spread(sample, _closures(sample, x, sigma_q))
+    blocks = _closures(sample, x, sigma_q)
+    spread = _spread(sample, blocks)
     if spread > best[0]:
         log.info("the robust refit's passes wandered off (median closure %.3g, %.3g before): the best pass kept",
                  spread, best[0])
-        x = best[1]
-    return x, screen(problem, x, sigma_q, known)
+        x, blocks = best[1], best[2]
+    # the closures at x are the screen's own where the sample is the whole problem
+    return x, _standardized(problem, blocks, known) if sample is problem else screen(problem, x, sigma_q, known)
 
 
 def _screen_weighting(problem: CalibrationProblem) -> str:
