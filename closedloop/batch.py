@@ -75,18 +75,23 @@ def _options(opts: dict, names: list[str]):
 
 
 def _read(job: BatchJob, robot):
-    from .data import read_log
+    """The job's log (a CSV or a bag), refused as `calibrate` refuses it (`data.check_angle_units`)."""
+    from .data import check_angle_units, read_log
 
+    degrees = job.options.get("degrees", False)
+    degrees = degrees.strip().lower() in ("1", "true", "yes") if isinstance(degrees, str) else bool(degrees)
+    lg = None
     try:
         from .bags import extract, is_bag
         if is_bag(job.log):
-            return extract(job.log, robot.joint_names)[0]
+            lg = extract(job.log, robot.joint_names)[0]
     except ImportError:  # pragma: no cover - bag support not installed
         pass
-    degrees = job.options.get("degrees", False)
-    degrees = degrees.strip().lower() in ("1", "true", "yes") if isinstance(degrees, str) else bool(degrees)
-    return read_log(job.log, robot.joint_names, degrees=degrees,
-                    linear=[j for j, info in robot.joints.items() if info.kind == "prismatic"])
+    if lg is None:
+        lg = read_log(job.log, robot.joint_names, degrees=degrees,
+                      linear=[j for j, info in robot.joints.items() if info.kind == "prismatic"])
+    check_angle_units(lg, robot, degrees)
+    return lg
 
 
 def _pooled(res_list, key: str) -> float | None:
@@ -340,7 +345,8 @@ def cmd_batch(args) -> int:
     verdicts = Counter(str(r.get("verdict", "")) for r in res.rows if r["name"] not in res.failed)
     print(f"{len(res.ran)} job(s) run on {eng.name} ({eng.workers} worker(s)), {len(res.resumed)} finished "
           f"earlier (not redone), {len(res.failed)} failed -> {summary}")
-    print("  verdicts: " + ", ".join(f"{verdicts[v]} {v}" for v in ("ok", "suspect", "failed") if verdicts[v]))
+    if +verdicts:
+        print("  verdicts: " + ", ".join(f"{verdicts[v]} {v}" for v in ("ok", "suspect", "failed") if verdicts[v]))
     for name in res.failed:
         print(f"  failed: {name}: {next(r['error'] for r in res.rows if r['name'] == name)}", file=sys.stderr)
     for r in res.rows:

@@ -55,8 +55,7 @@ def read_inputs(log_path: str | None, robot, loops: list, degrees: bool = False,
     from .data import check_angle_units
 
     lg = _read_inputs(log_path, robot, loops, degrees, order)
-    limits = {n: (j.lower, j.upper) for n, j in robot.joints.items() if j.kind == "revolute"}
-    check_angle_units(lg, limits, degrees)
+    check_angle_units(lg, robot, degrees)
     return lg
 
 

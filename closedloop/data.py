@@ -160,8 +160,8 @@ def check_loop_column(log: JointLog, loop_names: list[str]) -> None:
 BEYOND_LIMIT = 0.5  # rad past a joint limit from which a reading is no reading of that joint (`check_angle_units`)
 
 
-def check_angle_units(log: JointLog, limits: dict[str, tuple[float, float]], degrees: bool = False) -> None:
-    """Refuse a log in which most readings of a revolute joint lie far beyond its limits (lower, upper, rad).
+def check_angle_units(log: JointLog, robot, degrees: bool = False) -> None:
+    """Refuse a log in which most readings of one of `robot`'s revolute joints lie far beyond its limits.
 
     A log in degrees read as radians (55.5 against a limit of 2.09) is no calibration problem: the fit
     would run for its whole budget and fail.  More than half of one joint's readings BEYOND_LIMIT past its
@@ -169,6 +169,7 @@ def check_angle_units(log: JointLog, limits: dict[str, tuple[float, float]], deg
     outlier screen (a corrupted cell); joints without limits (continuous, or a range over 4 pi) are not
     checked.
     """
+    limits = {n: (j.lower, j.upper) for n, j in robot.joints.items() if j.kind == "revolute"}
     for j, (lo, hi) in limits.items():
         if j not in log.joints or not (np.isfinite(lo) and np.isfinite(hi)) or hi - lo > 4.0 * np.pi:
             continue

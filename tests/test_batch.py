@@ -157,6 +157,20 @@ def test_manifest_csv_and_errors(tmp_path, capsys):
     assert len(err) == 1 and "unknown key(s) colour" in err[0] and "line 2" in err[0]
 
 
+def test_a_log_in_degrees_is_refused_as_calibrate_refuses_it(tmp_path, truth, capsys):
+    """The job's log read as calibrate reads it (`data.check_angle_units`): refused in one line, not fitted
+    for seconds to a `failed` verdict; the other jobs go on."""
+    man = write_fleet(tmp_path, truth, [0.0], cv=0)
+    JointLog(list(truth.joints), np.degrees(truth.pool)).write_csv(tmp_path / "deg.csv")
+    text = yaml.safe_load(man.read_text())
+    text["jobs"].append({"name": "deg", "robot": "arm3", "date": "2026-03-01", "log": "deg.csv", "out": "out/deg"})
+    man.write_text(yaml.safe_dump(text))
+    assert main(["batch", str(man), "--jobs", "1", "--quiet"]) == 1  # a job that could not run
+    out, err = capsys.readouterr()
+    assert "1 failed" in out and "verdicts: 1 ok" in out
+    assert "failed: deg: LogError" in err and "a log in degrees? (give --degrees)" in err
+
+
 def test_drift_z_and_gauge_check(tmp_path):
     """Results without a gauge record (written by an older closedloop): z = change / sqrt(se1^2 + se2^2),
     |z| > 3 flagged; a pair that estimated other parameters is not compared (no way to put it in one gauge).
