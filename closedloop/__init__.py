@@ -7,13 +7,13 @@ parameters from its own joint readings.  See the README for the workflow.
 
 __version__ = "0.1.0"
 
-from .calibration import CalibrationOptions, CalibrationResult, calibrate  # noqa: E402
-from .data import JointLog, read_log  # noqa: E402
-from .errors import CalibrationError, ClosedLoopError, InputError  # noqa: E402
-from .loops import HingeLoop, Loop, MeasuredPointLoop, MeasuredPoseLoop, PlaneLoop, PointLoop, WeldLoop  # noqa: E402
-from .loops.spec import parse_loop  # noqa: E402
-from .robot import RobotModel  # noqa: E402
-from .verdict import Verdict, judge  # noqa: E402
+from closedloop.calibration import CalibrationOptions, CalibrationResult, calibrate  # noqa: E402
+from closedloop.data import JointLog, read_log  # noqa: E402
+from closedloop.errors import CalibrationError, ClosedLoopError, InputError  # noqa: E402
+from closedloop.loops import HingeLoop, Loop, MeasuredPointLoop, MeasuredPoseLoop, PlaneLoop, PointLoop, WeldLoop  # noqa: E402
+from closedloop.loops.spec import parse_loop  # noqa: E402
+from closedloop.robot import RobotModel  # noqa: E402
+from closedloop.verdict import Verdict, judge  # noqa: E402
 
 __all__ = ["CalibrationOptions", "CalibrationResult", "calibrate", "JointLog", "read_log", "ClosedLoopError",
            "InputError", "Loop", "WeldLoop", "PointLoop", "PlaneLoop", "HingeLoop", "MeasuredPointLoop",
@@ -24,15 +24,15 @@ __all__ = ["CalibrationOptions", "CalibrationResult", "calibrate", "JointLog", "
 def __getattr__(name: str):
     """Output writers and validation load on first use (they import what `import closedloop` need not)."""
     if name == "write_model":
-        from .export import write_model
+        from closedloop.export import write_model
 
         return write_model
     if name in ("build_report", "write_report"):
-        from . import report
+        from closedloop import report
 
         return getattr(report, name)
     if name == "cross_validate":
-        from .validation import cross_validate
+        from closedloop.validation import cross_validate
 
         return cross_validate
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

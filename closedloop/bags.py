@@ -42,8 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import JointLog
-from .errors import InputError
+from closedloop.data import JointLog
+from closedloop.errors import InputError
 
 log = logging.getLogger(__name__)
 

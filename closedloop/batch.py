@@ -36,10 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .batch_drift import Drift, drift, drift_columns, gauge_record
-from .batch_manifest import BatchJob, as_list, read_manifest
-from .cli_parse import EXIT_FAILED
-from .errors import InputError
+from closedloop.batch_drift import Drift, drift, drift_columns, gauge_record
+from closedloop.batch_manifest import BatchJob, as_list, read_manifest
+from closedloop.cli_parse import EXIT_FAILED
+from closedloop.errors import InputError
 
 __all__ = ["BatchJob", "BatchResult", "Drift", "drift", "read_manifest", "run_batch", "run_job", "finished",
            "cmd_batch", "add_parser"]
@@ -54,16 +54,16 @@ COLUMNS = ["name", "robot", "date", "status", "verdict", "verdict_reasons", "con
 
 # --------------------------------------------------------------------------- one job (in a worker)
 def _options(opts: dict, names: list[str]):
-    from .calibration import CalibrationOptions
-    from .parameters import parse_fix
+    from closedloop.calibration import CalibrationOptions
+    from closedloop.parameters import parse_fix
 
     noise = opts.get("noise")
     if isinstance(noise, str):
-        from .cli_parse import parse_noise as _parse_noise
+        from closedloop.cli_parse import parse_noise as _parse_noise
         noise = _parse_noise(noise)
     bounds = opts.get("bounds") or {}
     if isinstance(bounds, (list, str)):
-        from .cli_parse import parse_bounds as _parse_bounds
+        from closedloop.cli_parse import parse_bounds as _parse_bounds
         bounds = _parse_bounds(as_list(bounds))
     ident = opts.get("identify")
     return CalibrationOptions(
@@ -76,13 +76,13 @@ def _options(opts: dict, names: list[str]):
 
 def _read(job: BatchJob, robot):
     """The job's log (a CSV or a bag), refused as `calibrate` refuses it (`data.check_angle_units`)."""
-    from .data import check_angle_units, read_log
+    from closedloop.data import check_angle_units, read_log
 
     degrees = job.options.get("degrees", False)
     degrees = degrees.strip().lower() in ("1", "true", "yes") if isinstance(degrees, str) else bool(degrees)
     lg = None
     try:
-        from .bags import extract, is_bag
+        from closedloop.bags import extract, is_bag
         if is_bag(job.log):
             lg = extract(job.log, robot.joint_names)[0]
     except ImportError:  # pragma: no cover - bag support not installed
@@ -117,11 +117,11 @@ def run_job(job: BatchJob) -> dict:
     """Calibrate and validate one job, write its folder whole; return its summary row (+ parameters)."""
     import time
 
-    from .calibration import build_problem, calibrate
-    from .export import write_model
-    from .loops.spec import default_loops, parse_loop
-    from .report import build_report, write_report
-    from .robot import RobotModel
+    from closedloop.calibration import build_problem, calibrate
+    from closedloop.export import write_model
+    from closedloop.loops.spec import default_loops, parse_loop
+    from closedloop.report import build_report, write_report
+    from closedloop.robot import RobotModel
 
     t0 = time.perf_counter()
     robot = RobotModel.from_file(job.model)
@@ -134,7 +134,7 @@ def run_job(job: BatchJob) -> dict:
     report = build_report(res, job.model, job.log)
     cv_t, cv = (None, None), None
     if job.cv and res.converged:
-        from .validation import cross_validate
+        from closedloop.validation import cross_validate
         try:
             cv = cross_validate(robot, lg, loops, opts, k=job.cv, exclude=[rj.row - 1 for rj in res.rejected])
             report["validation"] = {"k": job.cv, "excluded_rows": [i + 1 for i in cv["excluded"]],
@@ -178,8 +178,8 @@ def _gauge(res) -> dict | None:
 def _judge(res, cv: dict | None, report: dict):
     """The calibration's verdict, judged again with the held-out folds as `closedloop calibrate` does."""
     try:
-        from .report import verdict_record
-        from .verdict import judge
+        from closedloop.report import verdict_record
+        from closedloop.verdict import judge
     except ImportError:  # a core without verdicts: 'n/a' in the summary
         return getattr(res, "verdict", None)
     res.verdict = judge(res, cv)
@@ -261,7 +261,7 @@ class _Summary:
         self.fh.flush()
 
     def finish(self, rows: list[dict]) -> None:
-        from .export import atomic_write
+        from closedloop.export import atomic_write
 
         self.fh.close()
 
@@ -280,7 +280,7 @@ def _fmt(row: dict) -> dict:
 def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=None,
               z_max: float = 3.0) -> BatchResult:
     """Run every job not finished before on `engine` (see closedloop.executor); write the summary."""
-    from .executor import imap
+    from closedloop.executor import imap
 
     n_tmp = _clean_temporaries(jobs)
     if n_tmp:
@@ -320,7 +320,7 @@ def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=N
 
 
 def _write_drift(summary: Path, drifts: list[Drift]) -> None:
-    from .export import atomic_write
+    from closedloop.export import atomic_write
 
     def writer(tmp):
         with open(tmp, "w", newline="") as fh:
@@ -334,7 +334,7 @@ def cmd_batch(args) -> int:
     """CLI: closedloop batch MANIFEST [--jobs N | --ray auto|ADDRESS] [--summary CSV]."""
     import sys
 
-    from .executor import engine_from_args, progress_printer
+    from closedloop.executor import engine_from_args, progress_printer
 
     jobs = read_manifest(args.manifest)
     summary = Path(args.summary) if args.summary else \
@@ -366,7 +366,7 @@ def cmd_batch(args) -> int:
 
 def add_parser(sub) -> None:
     """The `batch` subcommand."""
-    from .executor import add_arguments
+    from closedloop.executor import add_arguments
 
     b = sub.add_parser("batch", help="calibrate many robots/logs from a manifest (YAML or CSV), resumable")
     b.add_argument("manifest", help="YAML (jobs: [...]) or CSV: model, log, loops, options, out[, robot, date, cv]")

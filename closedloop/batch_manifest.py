@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .errors import InputError
+from closedloop.errors import InputError
 
 JOB_KEYS = {"name", "robot", "date", "model", "log", "loops", "options", "out", "cv"}
 OPTION_KEYS = {"identify", "fix", "noise", "weighting", "snr", "max_iter", "bounds", "robust", "degrees"}

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .errors import InputError
+from closedloop.errors import InputError
 
 __all__ = ["CameraInfo", "read_camera_info", "write_camera_info", "camera_infos_from_result"]
 

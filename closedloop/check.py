@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from .errors import InputError
+from closedloop.errors import InputError
 
 NOMINAL = {"placement": 0.0, "offset": 0.0, "scale": 1.0}
 
@@ -25,7 +25,7 @@ def check_report(truth: dict, report: dict, tol_m: float, tol_rad: float, tol_sc
     Both documents are validated first (:data:`~closedloop.schemas.TRUTH_SCHEMA`,
     :data:`~closedloop.schemas.REPORT_SCHEMA`); every tolerance must be a finite number > 0.
     """
-    from .schemas import REPORT_SCHEMA, TRUTH_SCHEMA, is_number, validate
+    from closedloop.schemas import REPORT_SCHEMA, TRUTH_SCHEMA, is_number, validate
 
     for opt, tol in (("--tol-m", tol_m), ("--tol-rad", tol_rad), ("--tol-scale", tol_scale), ("--tol-px", tol_px)):
         if not is_number(tol) or tol <= 0:

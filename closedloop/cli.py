@@ -11,10 +11,10 @@ import json
 import logging
 import sys
 
-from .cli_calibrate import cmd_calibrate
-from .cli_parse import EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL, EXIT_PIPE, check_number, float_arg, int_arg, join_negative_numbers
-from .cli_simulate import cmd_simulate
-from .errors import CalibrationError, ClosedLoopError, InputError
+from closedloop.cli_calibrate import cmd_calibrate
+from closedloop.cli_parse import EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL, EXIT_PIPE, check_number, float_arg, int_arg, join_negative_numbers
+from closedloop.cli_simulate import cmd_simulate
+from closedloop.errors import CalibrationError, ClosedLoopError, InputError
 
 __all__ = ["EXIT_FAILED", "EXIT_INPUT", "EXIT_INTERNAL", "build_parser", "cmd_calibrate", "cmd_check", "cmd_inspect",
            "cmd_simulate", "main"]
@@ -22,8 +22,8 @@ __all__ = ["EXIT_FAILED", "EXIT_INPUT", "EXIT_INTERNAL", "build_parser", "cmd_ca
 
 # --------------------------------------------------------------------------- commands
 def cmd_inspect(args) -> int:
-    from .parameters import RobotParameters
-    from .robot import RobotModel
+    from closedloop.parameters import RobotParameters
+    from closedloop.robot import RobotModel
 
     robot = RobotModel.from_file(args.model)
     info = robot.describe()
@@ -46,7 +46,7 @@ def cmd_inspect(args) -> int:
 
 
 def cmd_check(args) -> int:
-    from .check import check_report
+    from closedloop.check import check_report
 
     tols = {o: check_number(f"--{o.replace('_', '-')}", getattr(args, o), 0.0, 1e6, lo_open=True)
             for o in ("tol_m", "tol_rad", "tol_scale", "tol_px")}
@@ -70,7 +70,7 @@ def cmd_check(args) -> int:
 
 
 def _load_json(path: str, what: str = "JSON file"):
-    from .schemas import load_json
+    from closedloop.schemas import load_json
 
     return load_json(path, what)
 
@@ -87,25 +87,25 @@ def build_parser() -> argparse.ArgumentParser:
     i.set_defaults(func=cmd_inspect)
     _add_simulate(sub)
     _add_check(sub)
-    from .cli_tools import add_extract_parser, cmd_loops
+    from closedloop.cli_tools import add_extract_parser, cmd_loops
 
     add_extract_parser(sub)
-    from .batch import add_parser as add_batch  # closedloop batch MANIFEST (many jobs, any executor)
+    from closedloop.batch import add_parser as add_batch  # closedloop batch MANIFEST (many jobs, any executor)
 
     add_batch(sub)
     lp = sub.add_parser("loops", help="list the loop types, their keys and an example each")
     lp.set_defaults(func=cmd_loops)
-    from .impedance.cli import add_parser as add_impedance  # closedloop impedance simulate|identify
+    from closedloop.impedance.cli import add_parser as add_impedance  # closedloop impedance simulate|identify
 
     add_impedance(sub)
-    from .cli_evaluate import add_parser as add_evaluate  # closedloop evaluate MODEL... LOG --loop ...
+    from closedloop.cli_evaluate import add_parser as add_evaluate  # closedloop evaluate MODEL... LOG --loop ...
 
     add_evaluate(sub)
     return p
 
 
 def _add_calibrate(sub) -> None:
-    from .cli_tools import loop_help
+    from closedloop.cli_tools import loop_help
 
     c = sub.add_parser("calibrate", help="calibrate a model from a joint log", epilog=loop_help(),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -140,14 +140,14 @@ def _add_calibrate(sub) -> None:
                         "ones on idle cores; 0: keep the environment's setting)")
     c.add_argument("--degrees", action="store_true", help="the log is in degrees")
     c.add_argument("--quiet", action="store_true")
-    from .cli_evaluate import add_rig_options  # --distance, --joints, --lofo (rigs, issue 18)
+    from closedloop.cli_evaluate import add_rig_options  # --distance, --joints, --lofo (rigs, issue 18)
 
     add_rig_options(c)
     c.set_defaults(func=cmd_calibrate)
 
 
 def _add_simulate(sub) -> None:
-    from .cli_tools import add_simulate_robot_options, scenario_help
+    from closedloop.cli_tools import add_simulate_robot_options, scenario_help
 
     s = sub.add_parser("simulate", help="generate a closed-chain dataset in MuJoCo", epilog=scenario_help(),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -160,7 +160,7 @@ def _add_simulate(sub) -> None:
     s.add_argument("--replace", action="store_true", help="replace the dataset already in --out (refused otherwise)")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=cmd_simulate)
-    from .cli_sweep import add_sweep_options  # --seeds / --jobs / --ray: many datasets on the executor
+    from closedloop.cli_sweep import add_sweep_options  # --seeds / --jobs / --ray: many datasets on the executor
 
     add_sweep_options(s)
 
@@ -201,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     import signal
     import threading
 
-    from .cli_tools import parse_args
+    from closedloop.cli_tools import parse_args
 
     argv = join_negative_numbers(list(sys.argv[1:] if argv is None else argv))
     handlers = {}

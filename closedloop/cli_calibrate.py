@@ -8,8 +8,8 @@ from __future__ import annotations
 import sys
 import time
 
-from .cli_parse import EXIT_FAILED, check_loop_numbers, check_number, parse_bounds, parse_noise
-from .errors import InputError
+from closedloop.cli_parse import EXIT_FAILED, check_loop_numbers, check_number, parse_bounds, parse_noise
+from closedloop.errors import InputError
 
 
 class Progress:
@@ -46,7 +46,7 @@ class Progress:
 
 def check_calibrate_options(args) -> tuple:
     """`calibrate`'s output paths and numeric options, checked before any work: (noise, bounds, cv given?)."""
-    from .export import check_outputs
+    from closedloop.export import check_outputs
 
     check_outputs({"--out": args.out, "--report": args.report, "--html": getattr(args, "html", None)},
                   [args.model, args.log])
@@ -64,15 +64,15 @@ def check_calibrate_options(args) -> tuple:
 
 
 def cmd_calibrate(args) -> int:
-    from .calibration import CalibrationOptions, calibrate
-    from .export import OutputSet, write_model
-    from .loops.spec import default_loops, parse_loop
-    from .parameters import parse_fix
-    from .report import build_report, write_report
-    from .robot import RobotModel
-    from .data import check_loop_column
-    from .export import check_model_output
-    from .cli_evaluate import require_log
+    from closedloop.calibration import CalibrationOptions, calibrate
+    from closedloop.export import OutputSet, write_model
+    from closedloop.loops.spec import default_loops, parse_loop
+    from closedloop.parameters import parse_fix
+    from closedloop.report import build_report, write_report
+    from closedloop.robot import RobotModel
+    from closedloop.data import check_loop_column
+    from closedloop.export import check_model_output
+    from closedloop.cli_evaluate import require_log
 
     require_log(args)  # the positional log, unless each loop names its file
     noise, bounds, cv_given = check_calibrate_options(args)  # outputs and numbers, before any work
@@ -83,7 +83,7 @@ def cmd_calibrate(args) -> int:
     loops = [parse_loop(s, robot) for s in args.loop] or default_loops(robot)
     if not loops:
         raise InputError("no --loop given: say how the chain is closed, e.g. --loop weld:frame=<tool frame>")
-    from .cli_evaluate import rig_inputs
+    from closedloop.cli_evaluate import rig_inputs
 
     lg, loops = rig_inputs(args, robot, loops)  # a CSV log or a ROS bag, or each loop's file; known distances
     check_loop_column(lg, [lp.name for lp in loops])
@@ -91,7 +91,7 @@ def cmd_calibrate(args) -> int:
         if cv_given:
             raise InputError(f"--cv {args.cv}: more folds than the {len(lg)} rows of {args.log}")
         args.cv = len(lg) if len(lg) >= 2 else 0
-    from .calibration import build_problem
+    from closedloop.calibration import build_problem
 
     names = build_problem(robot, lg, loops).names
     opts = CalibrationOptions(identify=args.identify.split(",") if args.identify else None,
@@ -108,10 +108,10 @@ def cmd_calibrate(args) -> int:
     report["solver"]["seconds"] = elapsed
     cv = fold_validation(robot, lg, loops, opts, args, report, prog, res, cv_given) \
         if args.cv and res.converged else None
-    from .report import verdict_record
-    from .verdict import judge
+    from closedloop.report import verdict_record
+    from closedloop.verdict import judge
 
-    from .cli_evaluate import fixture_validation
+    from closedloop.cli_evaluate import fixture_validation
 
     lofo = fixture_validation(robot, lg, loops, opts, report, args, prog) if res.converged else None
     res.verdict = judge(res, cv, fixtures=lofo)  # the fit's evidence, the held-out folds' and fixtures'
@@ -122,11 +122,11 @@ def cmd_calibrate(args) -> int:
         if args.report:
             write_report(report, args.report)
         if write_out:
-            from .export import tool_frames
+            from closedloop.export import tool_frames
 
             write_model(robot, res.as_dict(), args.out, frames=tool_frames(res))  # with the tool point
     print_summary(res, elapsed, args, report, wrote_model=bool(write_out))
-    from .cli_tools import write_figures
+    from closedloop.cli_tools import write_figures
 
     write_figures(res, report, args)  # --html / --plots
     if res.verdict.status == "suspect":
@@ -146,8 +146,8 @@ def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res,
     A training fold the refit cannot use (too few rows for the parameters) ends the validation: with the
     default K it is skipped with a note (None), with ``--cv K`` given it is an input error naming the folds.
     """
-    from .errors import ClosedLoopError
-    from .validation import cross_validate
+    from closedloop.errors import ClosedLoopError
+    from closedloop.validation import cross_validate
 
     prog("validating", 0, 0.0)
     try:
@@ -225,7 +225,7 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
             left = len(cv.get("excluded_rows", []))
             print(f"  {cv['k']}-fold validation, loop {t['loop']}: held-out closure RMS "
                   + ", ".join(p for p in parts if p) + (f" (the {left} rejected rows not judged)" if left else ""))
-    from .cli_evaluate import fixture_lines
+    from closedloop.cli_evaluate import fixture_lines
 
     for line in fixture_lines(report.get("fixture_validation")):
         print(line)

@@ -23,7 +23,7 @@ import json
 import sys
 from pathlib import Path
 
-from .errors import InputError
+from closedloop.errors import InputError
 
 
 def add_rig_options(c) -> None:
@@ -52,7 +52,7 @@ def _order(args) -> list[str] | None:
 def read_inputs(log_path: str | None, robot, loops: list, degrees: bool = False, order: list[str] | None = None):
     """The joint log: the positional file (CSV or bag), or each loop's own ``log=`` file (one per fixture);
     refused where most readings of a joint lie far beyond its limits (`data.check_angle_units`)."""
-    from .data import check_angle_units
+    from closedloop.data import check_angle_units
 
     lg = _read_inputs(log_path, robot, loops, degrees, order)
     check_angle_units(lg, robot, degrees)
@@ -60,7 +60,7 @@ def read_inputs(log_path: str | None, robot, loops: list, degrees: bool = False,
 
 
 def _read_inputs(log_path: str | None, robot, loops: list, degrees: bool, order: list[str] | None):
-    from .data import read_log, read_loop_logs
+    from closedloop.data import read_log, read_loop_logs
 
     linear = [j for j, info in robot.joints.items() if info.kind == "prismatic"]
     real = [lp for lp in loops if not getattr(lp, "parameter_only", False)]
@@ -77,15 +77,15 @@ def _read_inputs(log_path: str | None, robot, loops: list, degrees: bool, order:
         raise InputError("no log given: name the CSV log (or each loop's file with --loop ...,log=FILE)")
     if order:
         return read_log(log_path, robot.joint_names, degrees, linear, order)
-    from .cli_tools import read_log_or_bag
+    from closedloop.cli_tools import read_log_or_bag
 
     return read_log_or_bag(log_path, robot, degrees)
 
 
 def rig_inputs(args, robot, loops: list):
     """(log, loops + known distances and lengths) for calibrate."""
-    from .constraints import parse_blocks, parse_distances
-    from .lengths import parse_lengths
+    from closedloop.constraints import parse_blocks, parse_distances
+    from closedloop.lengths import parse_lengths
 
     lg = read_inputs(args.log, robot, loops, args.degrees, _order(args))
     loops = (list(loops) + parse_distances(getattr(args, "distance", []) or [], loops)
@@ -98,7 +98,7 @@ def rig_inputs(args, robot, loops: list):
 
 def fixture_validation(robot, lg, loops: list, opts, report: dict, args, prog=None) -> dict | None:
     """Leave-one-fixture-out validation (default when the loops form several fixtures); into the report."""
-    from .fixtures import fixture_groups, leave_one_fixture_out
+    from closedloop.fixtures import fixture_groups, leave_one_fixture_out
 
     if getattr(args, "lofo", "auto") == "off" or lg.loop is None or len(fixture_groups(loops)) < 2:
         return None
@@ -140,10 +140,10 @@ def add_parser(sub) -> None:
 
 
 def cmd_evaluate(args) -> int:
-    from .evaluate import evaluate_model, table
-    from .export import atomic_write_text, check_outputs
-    from .loops.spec import parse_loop
-    from .robot import RobotModel
+    from closedloop.evaluate import evaluate_model, table
+    from closedloop.export import atomic_write_text, check_outputs
+    from closedloop.loops.spec import parse_loop
+    from closedloop.robot import RobotModel
 
     if not args.loop:
         raise InputError("evaluate: give the loops (--loop ...), as for calibrate")
@@ -158,7 +158,7 @@ def cmd_evaluate(args) -> int:
     robots = [RobotModel.from_file(m) for m in models]
     loops0 = [parse_loop(s, robots[0]) for s in args.loop]
     lg = read_inputs(log_path, robots[0], loops0, args.degrees, _order(args))
-    from .data import check_loop_column
+    from closedloop.data import check_loop_column
 
     check_loop_column(lg, [lp.name for lp in loops0])
     evals = []

@@ -5,26 +5,26 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from .cli_calibrate import Progress
-from .cli_parse import check_number, sim_overrides
-from .errors import ClosedLoopError, InputError
+from closedloop.cli_calibrate import Progress
+from closedloop.cli_parse import check_number, sim_overrides
+from closedloop.errors import ClosedLoopError, InputError
 
 
 def cmd_simulate(args) -> int:
     try:
-        from .sims import SCENARIOS, simulate
+        from closedloop.sims import SCENARIOS, simulate
     except ImportError as exc:  # pragma: no cover - packaging error
         raise ClosedLoopError(f"the simulator is not installed ({exc})") from None
-    from .cli_tools import resolve_scenario
-    from .sims.camera_scene import SCENARIOS as CAMERA_SCENARIOS, simulate_cli as camera_simulate
+    from closedloop.cli_tools import resolve_scenario
+    from closedloop.sims.camera_scene import SCENARIOS as CAMERA_SCENARIOS, simulate_cli as camera_simulate
 
     if getattr(args, "scenario", None) in CAMERA_SCENARIOS:  # the head-camera scenarios (sims/camera_scene.py)
         return camera_simulate(args)
     args.scenario = resolve_scenario(args)  # a built-in, a scenario YAML, or --robot + --loop
     if args.scenario not in SCENARIOS:
         raise InputError(f"unknown scenario '{args.scenario}' (known: {', '.join(sorted(SCENARIOS))})")
-    from .export import check_outputs
-    from .sims.outputs import check_dataset_dir
+    from closedloop.export import check_outputs
+    from closedloop.sims.outputs import check_dataset_dir
 
     args.n = check_number("--n", args.n, 1, 10**7, integer=True)
     args.seed = check_number("--seed", args.seed, 0, 2**63 - 1, integer=True)

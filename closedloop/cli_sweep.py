@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from .errors import InputError
+from closedloop.errors import InputError
 
 COLUMNS = ["scenario", "seed", "status", "configurations", "steps", "seconds", "configs_per_second", "error", "out"]
 
@@ -82,7 +82,7 @@ def finished(folder: Path, scenario: str, seed: int, n: int | None = None, overr
 
 def _sim_job(scenarios: dict, n: int, overrides: dict, payload: tuple[str, int, str]) -> dict:
     """One dataset (runs in a worker): register the scenario there (a YAML or --robot one), simulate."""
-    from .sims import SCENARIOS, simulate
+    from closedloop.sims import SCENARIOS, simulate
 
     name, seed, folder = payload
     SCENARIOS[name] = scenarios[name]
@@ -99,7 +99,7 @@ def run_sweep(scenarios: dict[str, Any], seeds: list[int], n: int, out: Path, ov
     there too); overrides: name -> ``SimSettings`` overrides.  With `replace`, finished datasets
     are simulated again.
     """
-    from .executor import imap
+    from closedloop.executor import imap
 
     several = len(scenarios) > 1
     rows: dict[tuple[str, int], SweepRow] = {}
@@ -137,7 +137,7 @@ def _csv_row(r: SweepRow) -> dict:
 
 
 def _write_summary(path: Path, rows: list[SweepRow]) -> None:
-    from .export import atomic_write
+    from closedloop.export import atomic_write
 
     def writer(tmp: str) -> None:
         with open(tmp, "w", newline="") as fh:
@@ -149,7 +149,7 @@ def _write_summary(path: Path, rows: list[SweepRow]) -> None:
 
 def add_sweep_options(s) -> None:
     """--seeds / --scenarios / --jobs / --ray on the `simulate` parser; a plain simulate without them."""
-    from .executor import add_arguments
+    from closedloop.executor import add_arguments
 
     s.add_argument("--seeds", metavar="A-B[,C,...]", help="simulate one dataset per seed into OUT/seed_NNN/ "
                    "(resumable; with --jobs / --ray in parallel)")
@@ -162,7 +162,7 @@ def cmd_simulate_sweep(args) -> int:
     """`simulate`, or a sweep when --seeds / --scenarios is given."""
     import sys
 
-    from .cli_simulate import cmd_simulate
+    from closedloop.cli_simulate import cmd_simulate
 
     several = [x for x in (getattr(args, "scenarios", None) or "").split(",") if x.strip()]
     if getattr(args, "seeds", None) is None and len(several) == 1 and not args.scenario:
@@ -171,8 +171,8 @@ def cmd_simulate_sweep(args) -> int:
         if getattr(args, "jobs", None) is not None or getattr(args, "ray", None):
             raise InputError("simulate: --jobs / --ray run a sweep: give --seeds (e.g. --seeds 0-19)")
         return cmd_simulate(args)
-    from .cli_parse import check_number
-    from .executor import engine_from_args, progress_printer
+    from closedloop.cli_parse import check_number
+    from closedloop.executor import engine_from_args, progress_printer
 
     scenarios = _scenarios(args)
     seeds = parse_seeds(args.seeds if args.seeds is not None else str(args.seed))
@@ -197,8 +197,8 @@ def cmd_simulate_sweep(args) -> int:
 
 def _scenarios(args) -> dict[str, Any]:
     """The scenarios of the sweep, by name: --scenarios A,B (names or YAML files) or the one of `simulate`."""
-    from .cli_tools import resolve_scenario
-    from .sims import SCENARIOS
+    from closedloop.cli_tools import resolve_scenario
+    from closedloop.sims import SCENARIOS
 
     names = [s.strip() for s in args.scenarios.split(",") if s.strip()] if args.scenarios else [None]
     out: dict[str, Any] = {}
@@ -213,6 +213,6 @@ def _scenarios(args) -> dict[str, Any]:
 
 
 def _overrides(args, sc) -> dict:
-    from .cli_parse import sim_overrides
+    from closedloop.cli_parse import sim_overrides
 
     return sim_overrides(args.set, sc.settings)

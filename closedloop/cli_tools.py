@@ -17,7 +17,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-from .errors import InputError
+from closedloop.errors import InputError
 
 #: An example per loop type (the registry gives the keys; a loop module's factory docstring the syntax).
 LOOP_EXAMPLES = {
@@ -36,7 +36,7 @@ LOOP_EXAMPLES = {
 
 
 def _registry() -> dict:
-    from .loops.spec import all_loop_types  # every type of the one table, spec.LOOP_TYPES
+    from closedloop.loops.spec import all_loop_types  # every type of the one table, spec.LOOP_TYPES
 
     return all_loop_types()
 
@@ -59,7 +59,7 @@ def cmd_loops(args) -> int:
         if doc:
             print(f"  syntax:  {doc[0].strip()}")
         print(f"  example: --loop {LOOP_EXAMPLES.get(kind, kind + ':frame=<tool frame>')}")
-    from .loops.spec import GENERIC_KEYS
+    from closedloop.loops.spec import GENERIC_KEYS
 
     print(f"Every loop type also takes: {', '.join(sorted(GENERIC_KEYS))}, and KEY=@GROUP (an unknown shared "
           "by several loops).")
@@ -70,24 +70,24 @@ def cmd_loops(args) -> int:
 # --------------------------------------------------------------------------- ROS bags
 def read_log_or_bag(path: str, robot, degrees: bool = False, bag_options=None):
     """A CSV log, or the quasi-static samples of a ROS bag (:func:`closedloop.bags.extract`)."""
-    from .bags import is_bag
+    from closedloop.bags import is_bag
 
     if is_bag(path):
-        from .bags import extract
+        from closedloop.bags import extract
 
         lg, samples = extract(path, robot.joint_names, bag_options)
         print(f"  {path}: {len(samples)} standstills extracted", file=sys.stderr)
         return lg
-    from .data import read_log
+    from closedloop.data import read_log
 
     return read_log(path, robot.joint_names, degrees=degrees,
                     linear=[j for j, info in robot.joints.items() if info.kind == "prismatic"])
 
 
 def cmd_extract(args) -> int:
-    from .bags import ExtractOptions, extract, parse_windows
-    from .export import refuse_overwrite
-    from .robot import RobotModel
+    from closedloop.bags import ExtractOptions, extract, parse_windows
+    from closedloop.export import refuse_overwrite
+    from closedloop.robot import RobotModel
 
     if args.model:
         joints = RobotModel.from_file(args.model).joint_names
@@ -96,7 +96,7 @@ def cmd_extract(args) -> int:
     else:
         raise InputError("extract: say which joints to keep: --model ROBOT.urdf|.xml or --joints j1,j2,...")
     refuse_overwrite(args.out, args.bag)
-    from .cli_parse import check_number
+    from closedloop.cli_parse import check_number
 
     for opt, name in (("--threshold", "threshold"), ("--settle", "settle"), ("--window-s", "window_s"),
                       ("--spread", "spread")):
@@ -168,7 +168,7 @@ def _config_path(argv: list[str]) -> str | None:
 
 def load_config(path: str, sub: argparse.ArgumentParser, command: str) -> dict:
     """The YAML mapping of ``path`` checked against the options of ``sub`` (dest -> value)."""
-    from .schemas import load_yaml  # strict YAML: only true/false are booleans, no 1_000
+    from closedloop.schemas import load_yaml  # strict YAML: only true/false are booleans, no 1_000
 
     data = load_yaml(path, "config")
     if data is None:
@@ -251,7 +251,7 @@ def write_figures(res, report: dict, args) -> None:
     if corr is not None:
         import yaml
 
-        from .export import atomic_write_text
+        from closedloop.export import atomic_write_text
 
         path = str(Path(out).with_suffix("")) + ".sensors.yaml"
         atomic_write_text(path, "# closedloop: joint sensor corrections the model file cannot carry\n"
@@ -261,7 +261,7 @@ def write_figures(res, report: dict, args) -> None:
     plots = getattr(args, "plots", None)
     if not html and not plots:
         return
-    from .html_report import write_html, write_plots
+    from closedloop.html_report import write_html, write_plots
 
     snr = float(getattr(args, "snr", 1.0) or 1.0)
     if html:
@@ -299,7 +299,7 @@ def _numbers(text: str, what: str) -> list[float]:
 
 def resolve_scenario(args) -> str:
     """The scenario name ``simulate`` runs: a built-in, a YAML file, or ``--robot`` + ``--loop``."""
-    from .sims.scenario_files import SCENARIOS, load_scenario, parse_sim_loop, scenario_from_dict
+    from closedloop.sims.scenario_files import SCENARIOS, load_scenario, parse_sim_loop, scenario_from_dict
 
     if getattr(args, "robot", None):
         if args.scenario:

@@ -41,13 +41,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import LoopError
-from .loops.base import Loop, LoopEval
-from .shared import key_fields, parameter_name
+from closedloop.errors import LoopError
+from closedloop.loops.base import Loop, LoopEval
+from closedloop.shared import key_fields, parameter_name
 
 if TYPE_CHECKING:
-    from .parameters import Parameter
-    from .problem import CalibrationProblem
+    from closedloop.parameters import Parameter
+    from closedloop.problem import CalibrationProblem
 
 DEFAULT_SIGMA = 1e-5  # m: a machined or printed block's distance
 FIELDS = ("a_x", "a_y", "a_z", "b_x", "b_y", "b_z")
@@ -130,7 +130,7 @@ def parse_distances(items: list[list[str]], loops: list[Loop]) -> list[DistanceL
     """``--distance A B D [SIGMA]`` occurrences (lists of strings) -> DistanceLoops over `loops`."""
     import re
 
-    from .schemas import parse_number
+    from closedloop.schemas import parse_number
 
     out = []
     for it in items:
@@ -153,7 +153,7 @@ def parse_blocks(items: list[list[str]], loops: list[Loop]) -> list[DistanceLoop
     import re
     from itertools import combinations
 
-    from .schemas import parse_number
+    from closedloop.schemas import parse_number
 
     out = []
     for it in items:
@@ -227,7 +227,7 @@ def scale_std(problem: CalibrationProblem, x: np.ndarray, est: list[int], cov: n
 
     c_k: the size change per unit of estimated parameter k (`gauge.size_per_parameter`).
     """
-    from .gauge import size_per_parameter
+    from closedloop.gauge import size_per_parameter
 
     if not any(k < problem.n_robot for k in est) or cov.size == 0:
         return float("nan")
@@ -242,8 +242,8 @@ def annotate(res, sigma_q: np.ndarray, scale_free: bool, snr: float = 1.0) -> No
     frames, `closedloop.lengths`) and `res.noise_model`
     (`variance.noise_summary`), and appends their sentences to `res.notes`.
     """
-    from .lengths import length_blocks, length_findings
-    from .variance import noise_notes, noise_summary
+    from closedloop.lengths import length_blocks, length_findings
+    from closedloop.variance import noise_notes, noise_summary
 
     problem = res.problem
     note = scale_note(problem, res.gauge, scale_free)

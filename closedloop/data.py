@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import LogError
-from .schemas import parse_number
+from closedloop.errors import LogError
+from closedloop.schemas import parse_number
 
 #: largest |reading| accepted (rad, m or degrees): beyond it the kinematics overflow
 MAX_READING = 1e6
@@ -55,7 +55,7 @@ class JointLog:
 
     def write_csv(self, path: str | Path) -> None:
         """Write atomically in the same format."""
-        from .export import atomic_write_text
+        from closedloop.export import atomic_write_text
 
         head = list(self.joints) + (["loop"] if self.loop is not None else []) + list(self.extra)
         lines = [",".join(head)]

@@ -33,7 +33,7 @@ import numpy as np
 import pinocchio as pin
 import yaml
 
-from .errors import ModelError
+from closedloop.errors import ModelError
 
 LENGTH_UNITS = {"m": 1.0, "mm": 1e-3, "cm": 1e-2, "in": 0.0254}
 ANGLE_UNITS = {"rad": 1.0, "deg": np.pi / 180.0}
@@ -121,7 +121,7 @@ def load_dh(path: str | Path) -> DHTable:
     Beyond the schema: unique row names, a row gives its geometry (not only a name), ``lower <= upper``,
     lengths within +/- 100 m and angles within +/- 1000 rad after unit conversion, 1e-6 <= |k| <= 1e3.
     """
-    from .schemas import DH_SCHEMA, load_yaml, validate
+    from closedloop.schemas import DH_SCHEMA, load_yaml, validate
 
     path = Path(path)
     doc = load_yaml(path, "D-H table", ModelError)

@@ -22,9 +22,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .data import JointLog
-from .loops.base import Loop
-from .robot import RobotModel
+from closedloop.data import JointLog
+from closedloop.loops.base import Loop
+from closedloop.robot import RobotModel
 
 
 @dataclass
@@ -49,10 +49,10 @@ def evaluate_model(robot: RobotModel, log_: JointLog, loops: list[Loop], values:
 
     Only the loops' own unknowns are fitted (unweighted), the robot is held.
     """
-    from .calibration import build_problem
-    from .fit import plain_stage
-    from .shared import initial_shared
-    from .solver import SolverOptions
+    from closedloop.calibration import build_problem
+    from closedloop.fit import plain_stage
+    from closedloop.shared import initial_shared
+    from closedloop.solver import SolverOptions
 
     loops = [lp for lp in loops if not getattr(lp, "parameter_only", False)]
     problem = build_problem(robot, log_, loops)

@@ -36,8 +36,8 @@ from typing import Any
 
 import numpy as np
 
-from .executor_core import ENGINES, Engine, Outcome, Progress, SerialEngine, call, limit_threads, register
-from .executor_engines import LocalEngine, RayEngine
+from closedloop.executor_core import ENGINES, Engine, Outcome, Progress, SerialEngine, call, limit_threads, register
+from closedloop.executor_engines import LocalEngine, RayEngine
 
 __all__ = ["ENGINES", "Engine", "Outcome", "Progress", "SerialEngine", "LocalEngine", "RayEngine", "call",
            "limit_threads", "register", "get_engine", "job_seeds", "imap", "run", "add_arguments",
@@ -55,7 +55,7 @@ def get_engine(engine: "str | Engine | None" = None, jobs: int | None = None, ad
         return engine
     name = engine or "serial"
     if name not in ENGINES:
-        from .errors import InputError
+        from closedloop.errors import InputError
         raise InputError(f"unknown engine '{name}' (known: {', '.join(sorted(ENGINES))})")
     return ENGINES[name](jobs=jobs, address=address)
 
@@ -107,7 +107,7 @@ def run(fn: Callable, payloads: Iterable, engine: "str | Engine | None" = None, 
             if not o.ok:
                 if o.exception is not None:
                     raise o.exception
-                from .errors import ClosedLoopError
+                from closedloop.errors import ClosedLoopError
                 raise ClosedLoopError(f"job {o.index} failed: {o.error}")
         return [o.value for o in outs]
     return [o.value if o.ok else o for o in outs]
@@ -126,7 +126,7 @@ def engine_from_args(args) -> Engine:
     if getattr(args, "ray", None):
         return get_engine("ray", args.jobs, None if args.ray == "local" else args.ray)
     if args.jobs is not None and args.jobs < 1:
-        from .errors import InputError
+        from closedloop.errors import InputError
         raise InputError("--jobs must be at least 1")
     if args.jobs == 1:
         return SerialEngine(threads=1)

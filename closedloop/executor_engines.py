@@ -16,7 +16,7 @@ from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wai
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
-from .executor_core import Engine, Outcome, Progress, call, limit_threads, register
+from closedloop.executor_core import Engine, Outcome, Progress, call, limit_threads, register
 
 log = logging.getLogger(__name__)
 
@@ -169,7 +169,7 @@ class RayEngine(Engine):
         try:
             import ray
         except ImportError:
-            from .errors import InputError
+            from closedloop.errors import InputError
             raise InputError('--ray needs Ray: pip install "closedloop[ray]"') from None
         self.ray = ray
         self._started = not ray.is_initialized()  # connected here: disconnected by close()

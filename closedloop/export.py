@@ -23,8 +23,8 @@ from typing import Callable
 import numpy as np
 import pinocchio as pin
 
-from .errors import InputError, ModelError
-from .robot import RobotModel
+from closedloop.errors import InputError, ModelError
+from closedloop.robot import RobotModel
 
 
 #: the model file suffixes `write_model` writes for each input kind
@@ -351,7 +351,7 @@ def _rpy(R: np.ndarray) -> np.ndarray:
 
 def write_dh(robot: RobotModel, values: dict[str, float], out_path: str | Path) -> None:
     """Write the calibrated D-H table (same units as the input)."""
-    from .dh import dump_dh
+    from closedloop.dh import dump_dh
 
     refuse_overwrite(out_path, robot.source)
     atomic_write_text(out_path, dump_dh(robot.dh, values))
@@ -363,7 +363,7 @@ def write_model(robot: RobotModel, values: dict[str, float], out_path: str | Pat
     if robot.kind == "dh":
         write_dh(robot, values, out_path)
     elif robot.kind == "mjcf":
-        from .export_mjcf import write_mjcf
+        from closedloop.export_mjcf import write_mjcf
 
         write_mjcf(robot, values, out_path)
     else:

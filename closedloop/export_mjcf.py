@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from .errors import ModelError
-from .robot import RobotModel
+from closedloop.errors import ModelError
+from closedloop.robot import RobotModel
 
 log = logging.getLogger(__name__)
 
@@ -150,7 +150,7 @@ def _check_compiles(root, src: Path) -> None:
 
 def write_mjcf(robot: RobotModel, values: dict[str, float], out_path: str | Path) -> None:
     """Write the calibrated MJCF atomically (assets found from wherever it is written)."""
-    from .export import atomic_write_text, refuse_overwrite
+    from closedloop.export import atomic_write_text, refuse_overwrite
 
     refuse_overwrite(out_path, robot.source)
     atomic_write_text(out_path, calibrated_mjcf(robot, values, Path(out_path).parent))

@@ -34,10 +34,10 @@ from typing import Callable
 
 import numpy as np
 
-from .loops.base import Loop
-from .noise import whiten
-from .problem import BlockEval, CalibrationProblem
-from .solver import SolverOptions, SolverResult, levenberg_marquardt
+from closedloop.loops.base import Loop
+from closedloop.noise import whiten
+from closedloop.problem import BlockEval, CalibrationProblem
+from closedloop.solver import SolverOptions, SolverResult, levenberg_marquardt
 
 log = logging.getLogger(__name__)
 

@@ -21,10 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from .data import JointLog
-from .errors import ClosedLoopError
-from .loops.base import Loop
-from .robot import RobotModel
+from closedloop.data import JointLog
+from closedloop.errors import ClosedLoopError
+from closedloop.loops.base import Loop
+from closedloop.robot import RobotModel
 
 WORSE = 1.0  # held-out closure with the calibration above WORSE x the nominal model's (+ margin): suspect
 MARGIN = 0.10  # at least 10 % worse, and beyond two standard deviations of an RMS over the fixture's rows:
@@ -62,7 +62,7 @@ def fixture_groups(loops: list[Loop]) -> dict[str, list[str]]:
 
 
 def _subset(log_: JointLog, names: list[str]) -> JointLog:
-    from .validation import subset
+    from closedloop.validation import subset
 
     return subset(log_, np.flatnonzero(np.isin(log_.loop, names)))
 
@@ -75,8 +75,8 @@ def leave_one_fixture_out(robot: RobotModel, log_: JointLog, loops: list[Loop], 
     'nominal_rms_m', 'nominal_mean_m', 'converged', 'worse'}], 'suspect': [reasons]}; a fixture whose
     refit fails (the others alone do not determine the robot) has 'error' instead of the closures.
     """
-    from .calibration import CalibrationOptions, calibrate
-    from .evaluate import evaluate_model, evaluate_result
+    from closedloop.calibration import CalibrationOptions, calibrate
+    from closedloop.evaluate import evaluate_model, evaluate_result
 
     groups = fixture_groups(loops)
     if len(groups) < 2 or log_.loop is None:

@@ -57,12 +57,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .calibration import CalibrationOptions, CalibrationResult, calibrate
-from .data import JointLog
-from .dh import LENGTH_UNITS, rot
-from .errors import ModelError, OptionError, ParameterError, SimulationError
-from .loops.base import Loop
-from .robot import RobotModel
+from closedloop.calibration import CalibrationOptions, CalibrationResult, calibrate
+from closedloop.data import JointLog
+from closedloop.dh import LENGTH_UNITS, rot
+from closedloop.errors import ModelError, OptionError, ParameterError, SimulationError
+from closedloop.loops.base import Loop
+from closedloop.robot import RobotModel
 
 INCH = LENGTH_UNITS["in"]
 
@@ -279,14 +279,14 @@ _FIELDS = ("theta_off", "s", "a", "alpha", "k")
 
 def table_4_1_path():
     """The nominal thumb-finger D-H table shipped with the package (Table 4.1)."""
-    from .models import model_file
+    from closedloop.models import model_file
 
     return model_file("dh/utah_mit_thumb_finger.yaml")
 
 
 def _loop_problem(robot: RobotModel):
-    from .loops.spec import default_loops
-    from .problem import CalibrationProblem, LoopBlock
+    from closedloop.loops.spec import default_loops
+    from closedloop.problem import CalibrationProblem, LoopBlock
 
     n = len(robot.joint_names)
     return CalibrationProblem(robot, robot.joint_names,
@@ -335,7 +335,7 @@ def thesis_hand_dataset(out_dir, n: int = 100, seed: int = 5, offset_clip: float
     import yaml
     from pathlib import Path
 
-    from .synthetic import self_motion
+    from closedloop.synthetic import self_motion
 
     table = table_4_1_path()
     doc = yaml.safe_load(Path(table).read_text())

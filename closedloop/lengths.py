@@ -45,13 +45,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import LoopError
-from .loops.base import Loop, LoopEval
-from .parameters import DEFAULT_PRIORS
+from closedloop.errors import LoopError
+from closedloop.loops.base import Loop, LoopEval
+from closedloop.parameters import DEFAULT_PRIORS
 
 if TYPE_CHECKING:
-    from .problem import CalibrationProblem
-    from .robot import RobotModel
+    from closedloop.problem import CalibrationProblem
+    from closedloop.robot import RobotModel
 
 DEFAULT_SIGMA = 2e-5  # m: a caliper's reading
 LEAK_TOL = 1e-3  # relative size error from a 1 mm (1 mrad) error of what the loops cannot see
@@ -116,7 +116,7 @@ def parse_lengths(items: list, robot: RobotModel) -> list[LengthLoop]:
     """``--length A B L [SIGMA]`` occurrences (lists of strings, or 'A B L' lines of a --config) -> loops."""
     import re
 
-    from .schemas import parse_number
+    from closedloop.schemas import parse_number
 
     out = []
     for it in items:
@@ -151,9 +151,9 @@ def size_response(problem: CalibrationProblem, x: np.ndarray, est: list[int], si
     scaling every known length by 1 + STEP makes; its size change is
     c^T dx with c the size change per parameter (`gauge.size_per_parameter`).
     """
-    from .fit import ResidualFunction
-    from .gauge import size_per_parameter
-    from .problem import CalibrationProblem as Problem
+    from closedloop.fit import ResidualFunction
+    from closedloop.gauge import size_per_parameter
+    from closedloop.problem import CalibrationProblem as Problem
 
     idx = length_blocks(problem)
     if not idx or not any(k < problem.n_robot for k in est):
@@ -205,9 +205,9 @@ def length_findings(res, sigma_q: np.ndarray, snr: float) -> tuple[str, list[str
 def held_leak(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> tuple[float, str | None]:
     """The relative size error a HELD_ERROR (1 mm, 1 mrad) error of what the loops cannot see makes through
     the known lengths, and the parameter that carries most of it (module docstring); (0, None) without."""
-    from .gauge import kinematic_changes, random_configurations, scale_content
-    from .identifiability import closure_jacobian
-    from .problem import CalibrationProblem as Problem
+    from closedloop.gauge import kinematic_changes, random_configurations, scale_content
+    from closedloop.identifiability import closure_jacobian
+    from closedloop.problem import CalibrationProblem as Problem
 
     idx = length_blocks(problem)
     if not idx or not free:

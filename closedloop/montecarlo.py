@@ -37,13 +37,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 
-from .calibration import CalibrationOptions, build_problem, calibrate
-from .data import JointLog
-from .errors import ClosedLoopError
-from .loops.base import Loop
-from .observability import whitened_blocks
-from .problem import CalibrationProblem, LoopBlock
-from .robot import RobotModel
+from closedloop.calibration import CalibrationOptions, build_problem, calibrate
+from closedloop.data import JointLog
+from closedloop.errors import ClosedLoopError
+from closedloop.loops.base import Loop
+from closedloop.observability import whitened_blocks
+from closedloop.problem import CalibrationProblem, LoopBlock
+from closedloop.robot import RobotModel
 
 
 # --------------------------------------------------------------------------- scenario
@@ -83,9 +83,9 @@ def weld_scenario(n: int = 200, seed: int = 0, n_pool: int = 0,
     """
     if pool not in ("walk", "manifold"):
         raise ValueError(f"pool must be 'walk' or 'manifold', not '{pool}'")
-    from .loops import WeldLoop
-    from .synthetic import self_motion
-    from .truth import draw_truth, identifiable_names
+    from closedloop.loops import WeldLoop
+    from closedloop.synthetic import self_motion
+    from closedloop.truth import draw_truth, identifiable_names
 
     rng = np.random.default_rng(seed)
     robot = RobotModel.from_file(panda_urdf())
@@ -125,8 +125,8 @@ def self_motion_manifold(problem: CalibrationProblem, values: np.ndarray, theta0
     is corrected onto the loop again (batched Gauss-Newton, minimum-norm steps).  Raises
     NotIdentifiableError when the self-motion is not one-dimensional.
     """
-    from .errors import NotIdentifiableError
-    from .synthetic import close
+    from closedloop.errors import NotIdentifiableError
+    from closedloop.synthetic import close
 
     robot = problem.robot
     lo = np.array([robot.joint(j).lower for j in problem.joints]) + margin
@@ -189,7 +189,7 @@ def _resample_onto_loop(problem: CalibrationProblem, values: np.ndarray, thetas:
                         poly: np.ndarray, n: int, closed: bool) -> np.ndarray:
     """`n` readings at equal arc lengths along the polyline `poly`, each corrected onto loop `block`
     (batched Gauss-Newton, minimum-norm steps); NotIdentifiableError if one does not close."""
-    from .errors import NotIdentifiableError
+    from closedloop.errors import NotIdentifiableError
 
     s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))]
     targets = np.linspace(0.0, s[-1], n, endpoint=not closed)
@@ -246,7 +246,7 @@ def unwrap(problem: CalibrationProblem, values: np.ndarray, ref: np.ndarray) -> 
 def cramer_rao(problem: CalibrationProblem, truth: np.ndarray, params: list[int], noise,
                thetas: list[np.ndarray] | None = None) -> np.ndarray:
     """(sum_i J_i^T W_i^-1 J_i)^-1 over `params` at `truth` (physical units)."""
-    from .noise import noise_vector
+    from closedloop.noise import noise_vector
 
     sigma_q, _ = noise_vector(problem, noise)
     blocks = whitened_blocks(problem, truth, params, sigma_q, "noise", thetas, scaled=False)
@@ -257,7 +257,7 @@ def cramer_rao(problem: CalibrationProblem, truth: np.ndarray, params: list[int]
 def sandwich_unweighted(problem: CalibrationProblem, truth: np.ndarray, params: list[int], noise,
                         thetas: list[np.ndarray] | None = None) -> np.ndarray:
     """First-order covariance of the unweighted estimator, (J^T J)^-1 J^T W J (J^T J)^-1."""
-    from .noise import noise_vector
+    from closedloop.noise import noise_vector
 
     sigma_q, _ = noise_vector(problem, noise)
     evals = problem.evaluate(truth, True, thetas)
@@ -355,7 +355,7 @@ def monte_carlo(scenario: Scenario, noise: float, n_runs: int, seed: int = 0,
     raw: dict[str, list[np.ndarray]] = {w: [] for w in weightings}
     fails = dict.fromkeys(weightings, 0)
     truncated = dict.fromkeys(weightings, 0)
-    from .executor import imap  # the draws run on any engine (closedloop.executor); results in draw order
+    from closedloop.executor import imap  # the draws run on any engine (closedloop.executor); results in draw order
 
     shared = (scenario.robot, scenario.joints, scenario.loops, base, noise, weightings)
     runs: list = [None] * n_runs

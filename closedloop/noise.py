@@ -36,11 +36,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import ParameterError
+from closedloop.errors import ParameterError
 
 if TYPE_CHECKING:
-    from .loops.base import Loop
-    from .problem import BlockEval, CalibrationProblem
+    from closedloop.loops.base import Loop
+    from closedloop.problem import BlockEval, CalibrationProblem
 
 __all__ = ["joint_variance_scale", "noise_vector", "whiten", "cholesky_inverse", "pinv_sqrt"]
 

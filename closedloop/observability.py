@@ -49,9 +49,9 @@ from typing import Any
 
 import numpy as np
 
-from .calibration import CalibrationResult
-from .noise import noise_vector, whiten
-from .problem import CalibrationProblem
+from closedloop.calibration import CalibrationResult
+from closedloop.noise import noise_vector, whiten
+from closedloop.problem import CalibrationProblem
 
 INDEX_NAMES = ("O1", "O2", "O3", "O4", "O5")
 

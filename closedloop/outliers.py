@@ -24,17 +24,17 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .fit import ResidualFunction, weighted_stage
-from .problem import CalibrationProblem
-from .records import Rejected
-from .robust import cauchy_weights, component_standardized, flagged, mad_scale, standardized
-from .robust import suspects as find_suspects
-from .robust import weights as robust_weights
-from .solver import SolverOptions
+from closedloop.fit import ResidualFunction, weighted_stage
+from closedloop.problem import CalibrationProblem
+from closedloop.records import Rejected
+from closedloop.robust import cauchy_weights, component_standardized, flagged, mad_scale, standardized
+from closedloop.robust import suspects as find_suspects
+from closedloop.robust import weights as robust_weights
+from closedloop.solver import SolverOptions
 
 if TYPE_CHECKING:
-    from .staging import Fit
-    from .records import CalibrationOptions
+    from closedloop.staging import Fit
+    from closedloop.records import CalibrationOptions
 
 log = logging.getLogger(__name__)
 # below these a closure error is never an outlier (a micrometre, a microradian, a thousandth of a pixel):
@@ -150,7 +150,7 @@ def _screen_weighting(problem: CalibrationProblem) -> str:
     An unweighted fit screened on its raw closures flags clean configurations where the Jacobian
     amplifies the joint noise: on the Monte Carlo weld (200 configurations, 1e-4 rad), every unweighted
     calibration went through the robust refit and 7 of 20 rejected one or two clean rows."""
-    from .variance import task_blocks
+    from closedloop.variance import task_blocks
 
     return "none" if task_blocks(problem) else "noise"
 

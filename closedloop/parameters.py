@@ -32,9 +32,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 
-from .dh import DHRow, rot
-from .errors import ParameterError
-from .robot import RobotModel
+from closedloop.dh import DHRow, rot
+from closedloop.errors import ParameterError
+from closedloop.robot import RobotModel
 
 PLACEMENT_FIELDS = ("x", "y", "z", "rx", "ry", "rz")
 
@@ -254,7 +254,7 @@ def parse_fix(spec: list[str], names: list[str]) -> dict[str, float | None]:
                 raise ParameterError(f"--fix {part}: no parameter named '{key}'")
             value: float | None = None
             if val:
-                from .schemas import parse_number  # strict: no 1_000, no nan
+                from closedloop.schemas import parse_number  # strict: no 1_000, no nan
 
                 value = parse_number(val, f"--fix {part}", ParameterError)
             for m in matched:

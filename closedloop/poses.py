@@ -80,13 +80,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibration import CalibrationResult
-from .errors import OptionError
-from .identifiability import greedy_reduction
-from .observability import resolve, whitened_blocks
-from .poses_design import Selection, detmax, greedy_d_optimal, information, trace_covariance
-from .poses_exchange import exchange_a
-from .problem import CalibrationProblem
+from closedloop.calibration import CalibrationResult
+from closedloop.errors import OptionError
+from closedloop.identifiability import greedy_reduction
+from closedloop.observability import resolve, whitened_blocks
+from closedloop.poses_design import Selection, detmax, greedy_d_optimal, information, trace_covariance
+from closedloop.poses_exchange import exchange_a
+from closedloop.problem import CalibrationProblem
 
 __all__ = ["Selection", "greedy_d_optimal", "detmax", "exchange_a", "information", "trace_covariance",
            "pool_blocks", "select_poses", "METHODS", "select_pools", "random_designs", "RandomDesigns"]
@@ -190,7 +190,7 @@ def select_pools(result_or_problem: CalibrationResult | CalibrationProblem, valu
     the other arguments of `select_poses` (block, params, noise, weighting, prior_weight,
     include_existing).
     """
-    from .executor import run
+    from closedloop.executor import run
 
     if method not in METHODS:
         raise OptionError(f"method must be one of {', '.join(map(repr, METHODS))}, not '{method}'")
@@ -211,7 +211,7 @@ def random_designs(B: np.ndarray, n: int, draws: int = 200, seed: int = 0, execu
     ``default_rng(SeedSequence(seed).spawn(n_chunks)[c])``, so the designs (and their traces
     tr (sum B_i^T B_i)^-1) are the same on every engine and worker count (for a given chunk).
     """
-    from .executor import run
+    from closedloop.executor import run
 
     if not 1 <= n <= len(B):
         raise OptionError(f"cannot draw {n} configurations from a pool of {len(B)}")

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import OptionError
+from closedloop.errors import OptionError
 
 
 @dataclass

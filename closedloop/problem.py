@@ -32,13 +32,13 @@ from typing import Sequence
 import numpy as np
 import pinocchio as pin
 
-from .errors import LogError
-from .evaluation import BlockEval, Workspace, copy_eval, stack_chunks
-from .loops.base import Loop
-from .parameters import Parameter, RobotParameters, RobotState
-from .robot import RobotModel
-from .se3 import poses_from_adjoints
-from .shared import loop_columns
+from closedloop.errors import LogError
+from closedloop.evaluation import BlockEval, Workspace, copy_eval, stack_chunks
+from closedloop.loops.base import Loop
+from closedloop.parameters import Parameter, RobotParameters, RobotState
+from closedloop.robot import RobotModel
+from closedloop.se3 import poses_from_adjoints
+from closedloop.shared import loop_columns
 
 # What a parameter's Jacobian column is made of (`CalibrationProblem._role`).
 _GEOMETRY, _OFFSET, _SCALE, _COMPLIANCE, _LOOP = range(5)

@@ -7,11 +7,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .identifiability import Combination, Dropped
-from .problem import BlockEval, CalibrationProblem
+from closedloop.identifiability import Combination, Dropped
+from closedloop.problem import BlockEval, CalibrationProblem
 
 if TYPE_CHECKING:
-    from .verdict import Verdict
+    from closedloop.verdict import Verdict
 
 
 @dataclass

@@ -8,15 +8,15 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
-from .calibration import CalibrationResult
-from .export import atomic_write_text
+from closedloop import __version__
+from closedloop.calibration import CalibrationResult
+from closedloop.export import atomic_write_text
 
 
 def _chi2_sf(x: float, dof: int) -> float:
     """P(chi2_dof > x), the chi-square test's p-value (scipy.stats.chi2.sf(x, dof) in plain Python,
     `robust.stats`: importing scipy.special costs ~0.25 s, scipy.stats ~0.4 s)."""
-    from .robust import stats
+    from closedloop.robust import stats
 
     return stats.chi2.sf(x, dof)
 

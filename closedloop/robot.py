@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from .dh import DHTable, load_dh
-from .errors import ModelError
+from closedloop.dh import DHTable, load_dh
+from closedloop.errors import ModelError
 
 log = logging.getLogger(__name__)
 

@@ -49,12 +49,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import OptionError
-from .noise import noise_vector, whiten
-from .problem import CalibrationProblem
+from closedloop.errors import OptionError
+from closedloop.noise import noise_vector, whiten
+from closedloop.problem import CalibrationProblem
 
 if TYPE_CHECKING:
-    from .calibration import CalibrationResult
+    from closedloop.calibration import CalibrationResult
 
 MAD_TO_SIGMA = 1.482602218505602  # 1 / Phi^-1(3/4)
 

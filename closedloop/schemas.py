@@ -25,7 +25,7 @@ from typing import Any
 
 import yaml
 
-from .errors import InputError
+from closedloop.errors import InputError
 
 #: a name usable in parameter names ``<owner>.<field>`` and comma-separated option lists
 NAME_PATTERN = r"^[A-Za-z_][A-Za-z0-9_\-]*$"
@@ -233,7 +233,7 @@ REPORT_SCHEMA = {
 
 def _settings_schema() -> dict:
     """`SimSettings` fields with their ranges (a bad value would hang, explode or be ignored)."""
-    from .poses import METHODS
+    from closedloop.poses import METHODS
 
     p = {
         "timestep": num(1e-5, 0.05), "integrator": {"enum": ["implicitfast", "implicit", "Euler", "RK4"]},

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from .errors import LoopError
+from closedloop.errors import LoopError
 
 
 def skew(v: np.ndarray) -> np.ndarray:

@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import LogError, NotIdentifiableError, ParameterError
-from .identifiability import Dropped, loop_mobility
-from .parameters import match
-from .problem import CalibrationProblem
+from closedloop.errors import LogError, NotIdentifiableError, ParameterError
+from closedloop.identifiability import Dropped, loop_mobility
+from closedloop.parameters import match
+from closedloop.problem import CalibrationProblem
 
 DEFAULT_IDENTIFY = {"urdf": ["placement", "offset", "loop"], "mjcf": ["placement", "offset", "loop"],
                     "dh": ["theta_off", "s", "a", "alpha", "loop"]}
@@ -27,7 +27,7 @@ MIN_RANGE = 1e-6  # a joint whose readings span less than this never moves
 
 def initial_values(problem: CalibrationProblem, initial: dict[str, float]) -> np.ndarray:
     """Nominal values; loop unknowns from the data at the nominal robot; then the user's guesses."""
-    from .shared import initial_shared  # shared loop parameters: the mean of the loops' estimates
+    from closedloop.shared import initial_shared  # shared loop parameters: the mean of the loops' estimates
 
     x0 = problem.nominal
     inits = [problem.initialize_loop(x0, bi) if cols.size else None

@@ -34,12 +34,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import LoopError
+from closedloop.errors import LoopError
 
 if TYPE_CHECKING:
-    from .loops.base import Loop
-    from .parameters import Parameter
-    from .problem import CalibrationProblem
+    from closedloop.loops.base import Loop
+    from closedloop.parameters import Parameter
+    from closedloop.problem import CalibrationProblem
 
 #: share key -> the parameter fields it names (a key 'camK' names every field 'camK.*')
 SHARE_KEYS: dict[str, tuple[str, ...]] = {
@@ -135,7 +135,7 @@ def initial_shared(problem: CalibrationProblem, x0: np.ndarray, inits: list[np.n
 
     `inits`: each loop's own initial vector (its `initialize_frames`, or None: nominal).
     """
-    from .loops.common import refine_own
+    from closedloop.loops.common import refine_own
 
     x = x0.copy()
     total = np.zeros(len(x))

@@ -17,13 +17,13 @@ from typing import Callable
 
 import numpy as np
 
-from .errors import ParameterError
-from .fit import ResidualFunction, StageResult, plain_stage, random_start, unweighted_closure, weighted_stage
-from .identifiability import Structure, analyse_structure, closure_jacobian, structure_holds
-from .problem import CalibrationProblem
-from .records import CalibrationOptions
-from .solver import SolverOptions, scaled_svd
-from .variance import measurement_row_weights, task_blocks, variance_components
+from closedloop.errors import ParameterError
+from closedloop.fit import ResidualFunction, StageResult, plain_stage, random_start, unweighted_closure, weighted_stage
+from closedloop.identifiability import Structure, analyse_structure, closure_jacobian, structure_holds
+from closedloop.problem import CalibrationProblem
+from closedloop.records import CalibrationOptions
+from closedloop.solver import SolverOptions, scaled_svd
+from closedloop.variance import measurement_row_weights, task_blocks, variance_components
 
 log = logging.getLogger(__name__)
 Progress = Callable[[str, int, float], None]

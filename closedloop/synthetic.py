@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import NotIdentifiableError
-from .problem import CalibrationProblem
+from closedloop.errors import NotIdentifiableError
+from closedloop.problem import CalibrationProblem
 
 
 def close(problem: CalibrationProblem, values: np.ndarray, theta: np.ndarray, block: int = 0,

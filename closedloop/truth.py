@@ -12,11 +12,11 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from .calibration import CalibrationOptions, build_problem, calibrate
-from .data import JointLog
-from .loops.base import Loop
-from .robot import RobotModel
-from .synthetic import self_motion
+from closedloop.calibration import CalibrationOptions, build_problem, calibrate
+from closedloop.data import JointLog
+from closedloop.loops.base import Loop
+from closedloop.robot import RobotModel
+from closedloop.synthetic import self_motion
 
 DEFAULT_MAGNITUDES = {"translation": 2e-3, "rotation": 2e-3, "offset": 0.02, "scale": 0.0}
 
@@ -45,7 +45,7 @@ def draw_truth(robot: RobotModel, names: list[str], rng: np.random.Generator,
     """True values of `names`: nominal + U(-m, m) with m by kind (scale: 1 + U(-m, m))."""
     mag = {**DEFAULT_MAGNITUDES, **(magnitudes or {})}
     joints = sorted({n.rsplit(".", 1)[0] for n in names}, key=robot.joint_names.index)
-    from .parameters import RobotParameters
+    from closedloop.parameters import RobotParameters
     rp = RobotParameters(robot, joints)
     out = {}
     for n in names:
@@ -107,7 +107,7 @@ def make_dataset(robot: RobotModel, loop: Loop, theta0: np.ndarray, n: int, rng:
     `initialize` on the true model).  Readings follow the sensor model of
     eq. 4.4 inverted: reading = (theta' - theta_off) / k, plus N(0, noise).
     """
-    from .problem import CalibrationProblem, LoopBlock
+    from closedloop.problem import CalibrationProblem, LoopBlock
 
     theta0 = np.atleast_2d(np.asarray(theta0, dtype=float))
     names = perturb if perturb is not None else identifiable_names(robot, [loop], theta0)

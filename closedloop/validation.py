@@ -29,14 +29,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .calibration import CalibrationOptions, CalibrationResult, build_problem, calibrate, residual_stats
-from .noise import noise_vector, whiten
-from .data import JointLog
-from .errors import ParameterError
-from .evaluation import BlockEval
-from .loops.base import Loop
-from .montecarlo import unwrap
-from .robot import RobotModel
+from closedloop.calibration import CalibrationOptions, CalibrationResult, build_problem, calibrate, residual_stats
+from closedloop.noise import noise_vector, whiten
+from closedloop.data import JointLog
+from closedloop.errors import ParameterError
+from closedloop.evaluation import BlockEval
+from closedloop.loops.base import Loop
+from closedloop.montecarlo import unwrap
+from closedloop.robot import RobotModel
 
 
 def subset(log_: JointLog, rows: np.ndarray) -> JointLog:
@@ -180,7 +180,7 @@ def cross_validate(robot: RobotModel, log_: JointLog, loops: list[Loop], options
     parts = folds(log_, k, seed)
     per_fold = []
     ref = None
-    from .executor import run  # the refits run on any engine (closedloop.executor); results in fold order
+    from closedloop.executor import run  # the refits run on any engine (closedloop.executor); results in fold order
 
     bad = np.zeros(0, dtype=int) if exclude is None else np.unique(np.asarray(exclude, dtype=int))
     splits = []

@@ -26,12 +26,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import ParameterError
-from .noise import joint_variance_scale
+from closedloop.errors import ParameterError
+from closedloop.noise import joint_variance_scale
 
 if TYPE_CHECKING:
-    from .loops.base import Loop
-    from .problem import BlockEval, CalibrationProblem
+    from closedloop.loops.base import Loop
+    from closedloop.problem import BlockEval, CalibrationProblem
 
 __all__ = ["parse_sigma", "set_task_noise", "task_blocks", "variance_components", "noise_summary", "noise_notes"]
 

@@ -22,8 +22,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from .data import Ensemble
-from .estimate import (EstimateOptions, design, estimate, finish, lowpass, moments, per_cycle_moments, pool,
+from closedloop.impedance.data import Ensemble
+from closedloop.impedance.estimate import (EstimateOptions, design, estimate, finish, lowpass, moments, per_cycle_moments, pool,
                        single_thread, solve)
 
 log = logging.getLogger(__name__)
@@ -49,7 +49,7 @@ def bootstrap(ens: Ensemble, options: EstimateOptions, n_boot: int = 200, level:
     ``default_rng(SeedSequence(seed).spawn(n_chunks)[c])``, so the bands are the same on every
     engine and worker count (for a given `chunk`).  The shared moments travel once per worker.
     """
-    from ..executor import run
+    from closedloop.executor import run
 
     with single_thread():
         d = design(ens, options)

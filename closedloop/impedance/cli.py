@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from closedloop.errors import InputError
 
 
 def add_parser(subparsers) -> None:
@@ -56,10 +56,10 @@ def add_parser(subparsers) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from .data import write_record
-    from .model import ExperimentConfig, ForearmParams, simulate
-    from .results import write_truth
-    from ..cli_parse import check_number
+    from closedloop.impedance.data import write_record
+    from closedloop.impedance.model import ExperimentConfig, ForearmParams, simulate
+    from closedloop.impedance.results import write_truth
+    from closedloop.cli_parse import check_number
 
     args.noise = check_number("--noise", args.noise, 0.0, 1e6)
     args.voluntary = check_number("--voluntary", args.voluntary, 0.0, 1e6)
@@ -70,11 +70,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     cfg = ExperimentConfig(n_cycles=args.cycles, stiffness=args.stiffness, damping=args.damping, noise=args.noise,
                            voluntary_rms=args.voluntary, prbs_phase=args.prbs_phase, seed=args.seed, arm=arm)
     if args.case == "robot":
-        from .mujoco_sim import simulate_robot
+        from closedloop.impedance.mujoco_sim import simulate_robot
         sim = simulate_robot(cfg)
     else:
         if args.engine == "mujoco":
-            from .mujoco_sim import forearm_truth
+            from closedloop.impedance.mujoco_sim import forearm_truth
         sim = simulate(cfg, args.engine)
         if args.engine == "mujoco":
             sim.truth = forearm_truth(cfg)
@@ -98,7 +98,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _onsets(rec, args):
-    from .data import ImpedanceDataError, onsets_from_events, onsets_from_peak_velocity, onsets_from_times
+    from closedloop.impedance.data import ImpedanceDataError, onsets_from_events, onsets_from_peak_velocity, onsets_from_times
     if args.segment == "events":
         return onsets_from_events(rec)
     if args.segment == "peak-velocity":
@@ -118,12 +118,12 @@ def _onsets(rec, args):
 
 
 def cmd_identify(args: argparse.Namespace) -> int:
-    from .bootstrap import bootstrap, free_run_vaf
-    from .data import read_record, segment
-    from .estimate import EstimateOptions, estimate, posture_fit
-    from .metrics import coverage, rel_errors
-    from .results import read_truth, resample_truth, write_results
-    from ..cli_parse import check_number
+    from closedloop.impedance.bootstrap import bootstrap, free_run_vaf
+    from closedloop.impedance.data import read_record, segment
+    from closedloop.impedance.estimate import EstimateOptions, estimate, posture_fit
+    from closedloop.impedance.metrics import coverage, rel_errors
+    from closedloop.impedance.results import read_truth, resample_truth, write_results
+    from closedloop.cli_parse import check_number
 
     args.max_shift_ms = check_number("--max-shift-ms", args.max_shift_ms, 0.0, 1e6)
     args.bootstrap = check_number("--bootstrap", args.bootstrap, 0, 10**6, integer=True)
@@ -188,7 +188,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
     if args.out:
         print(f"  wrote {write_results(args.out, est, bands, fit, summary)}")
     if args.plot:
-        from .plots import plot_impedance
+        from closedloop.impedance.plots import plot_impedance
         print(f"  wrote {plot_impedance(args.plot, est, ens, bands, truth, posture)}")
     return 0
 
@@ -202,7 +202,7 @@ def _float(text: str) -> float:
 
 def _posture_onsets(rec, period: float | None):
     """Posture records: event onsets if present, else consecutive chunks of `period` (default 2 s)."""
-    from .data import onsets_from_events, onsets_from_times
+    from closedloop.impedance.data import onsets_from_events, onsets_from_times
     if rec.event is not None and np.any(rec.event):
         return onsets_from_events(rec)
     return onsets_from_times(rec, np.arange(rec.time[0], rec.time[-1], period or 2.0))

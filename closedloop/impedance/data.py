@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
-from ..errors import InputError
+from closedloop.errors import InputError
 
 log = logging.getLogger(__name__)
 UNITS = {"time": "s", "angle": "rad", "torque": "N m", "command": "N m", "event": "1", "block": "1"}

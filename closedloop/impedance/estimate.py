@@ -35,8 +35,8 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.signal import butter, sosfiltfilt
 
-from ..errors import InputError
-from .data import Ensemble
+from closedloop.errors import InputError
+from closedloop.impedance.data import Ensemble
 
 log = logging.getLogger(__name__)
 

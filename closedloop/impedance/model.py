@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
-from ..errors import InputError
+from closedloop.errors import InputError
 
 log = logging.getLogger(__name__)
 G = 9.8
@@ -282,7 +282,7 @@ def simulate(cfg: ExperimentConfig, engine: str = "rk4") -> Simulation:
     if engine == "rk4":
         st = rk4_blocks(cfg, nom, u, tv)
     elif engine == "mujoco":
-        from .mujoco_sim import forearm_rollout
+        from closedloop.impedance.mujoco_sim import forearm_rollout
         st = forearm_rollout(cfg, nom, u, tv)
     else:
         raise InputError(f"engine '{engine}': expected rk4 or mujoco")
@@ -301,7 +301,7 @@ def simulate(cfg: ExperimentConfig, engine: str = "rk4") -> Simulation:
 def block_record(cfg: ExperimentConfig, th: np.ndarray, tau: np.ndarray, u: np.ndarray) -> "Record":
     """Blocks (n_blocks, N) -> one Record with a `block` column and events at the usable cycles' onsets
     (the lead-in cycle and the tail only pad them); a partial last block is trimmed."""
-    from .data import Record
+    from closedloop.impedance.data import Record
     L, (nb, N) = cfg.samples_per_cycle, th.shape
     usable = np.full(nb, cfg.cycles_per_block)
     usable[-1] -= nb * cfg.cycles_per_block - cfg.n_cycles

@@ -27,7 +27,7 @@ import os
 
 import numpy as np
 
-from .model import ExperimentConfig, ForearmParams, Trajectory
+from closedloop.impedance.model import ExperimentConfig, ForearmParams, Trajectory
 
 FOREARM_XML = """
 <mujoco model="forearm_airjet">
@@ -123,7 +123,7 @@ def fd_truth(xml: str, qpos: np.ndarray, qvel: np.ndarray, qacc: np.ndarray, ctr
 
 def forearm_truth(cfg: ExperimentConfig) -> dict[str, np.ndarray]:
     """Finite-difference truth of the forearm (airjet removed: only the arm's inertia is identified)."""
-    from .model import nominal
+    from closedloop.impedance.model import nominal
     L = cfg.samples_per_cycle
     nom = nominal(cfg, L)
     w = 2 * np.pi / cfg.period
@@ -170,7 +170,7 @@ def robot_nominal(cfg: ExperimentConfig, N: int):
     """Nominal joint trajectories and controls (perturbation 0) of the robot case: the elbow follows the
     0.5 Hz sinusoid under K(t), B(t) with computed-torque feed-forward; the shoulder is held stiffly."""
     import mujoco
-    from .model import nominal
+    from closedloop.impedance.model import nominal
     nom = nominal(cfg, N)
     w = 2 * np.pi / cfg.period
     qd = np.stack([np.full(N, SHOULDER[0]), nom.theta_d], 1)
@@ -196,7 +196,7 @@ def simulate_robot(cfg: ExperimentConfig):
     import time as _time
     import mujoco
     from mujoco import rollout
-    from .model import Simulation, block_record, prbs
+    from closedloop.impedance.model import Simulation, block_record, prbs
     t0 = _time.perf_counter()
     rng = np.random.default_rng(cfg.seed)
     L, nb = cfg.samples_per_cycle, cfg.n_blocks

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .data import Ensemble
-from .estimate import lowpass, single_thread
+from closedloop.impedance.data import Ensemble
+from closedloop.impedance.estimate import lowpass, single_thread
 
 
 @dataclass

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import Ensemble
+from closedloop.impedance.data import Ensemble
 
 
 def plot_impedance(path: str | Path, est, ens: Ensemble, bands=None, truth: dict | None = None,
@@ -47,7 +47,7 @@ def plot_impedance(path: str | Path, est, ens: Ensemble, bands=None, truth: dict
     th0, tau0 = ens.mean()
     core = slice(ens.pad, ens.pad + ens.length)
     t = ens.t
-    from .estimate import lowpass
+    from closedloop.impedance.estimate import lowpass
     vel = np.gradient(lowpass(th0, ens.fs, 20.0), 1.0 / ens.fs)[core]
     for ax, y, lab in zip(axes[3:], (th0[core], vel, lowpass(tau0, ens.fs, 20.0)[core]),
                           ("mean angle (rad)", "mean velocity (rad/s)", "mean torque (N m)")):

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import ImpedanceDataError
+from closedloop.impedance.data import ImpedanceDataError
 
 
 def table(est, bands=None, fit=None) -> dict[str, np.ndarray]:

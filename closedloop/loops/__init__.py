@@ -6,13 +6,13 @@ module loads on first use, the camera loop (`CameraLoop`, type ``camera``) inclu
 that `import closedloop` pays for no camera code.
 """
 
-from .base import Loop, LoopEval
-from .hinge import HingeLoop
-from .measured import MeasuredPointLoop, MeasuredPoseLoop
-from .passive import PassiveChainLoop
-from .plane import PlaneLoop
-from .point import PointLoop
-from .weld import WeldLoop
+from closedloop.loops.base import Loop, LoopEval
+from closedloop.loops.hinge import HingeLoop
+from closedloop.loops.measured import MeasuredPointLoop, MeasuredPoseLoop
+from closedloop.loops.passive import PassiveChainLoop
+from closedloop.loops.plane import PlaneLoop
+from closedloop.loops.point import PointLoop
+from closedloop.loops.weld import WeldLoop
 
 __all__ = ["Loop", "LoopEval", "CameraLoop", "HingeLoop", "MeasuredPointLoop", "MeasuredPoseLoop",
            "PassiveChainLoop", "PlaneLoop", "PointLoop", "WeldLoop"]
@@ -20,7 +20,7 @@ __all__ = ["Loop", "LoopEval", "CameraLoop", "HingeLoop", "MeasuredPointLoop", "
 
 def __getattr__(name: str):
     if name == "CameraLoop":  # loaded on first use (PEP 562)
-        from .camera import CameraLoop
+        from closedloop.loops.camera import CameraLoop
 
         return CameraLoop
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..parameters import Parameter
+from closedloop.parameters import Parameter
 
 
 @dataclass

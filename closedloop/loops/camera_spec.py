@@ -18,12 +18,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import InputError, LoopError
-from ..robot import RobotModel
-from ..se3 import parse_vec
-from .base import Loop
-from .camera_model import DIST_FIELDS
-from .spec import register
+from closedloop.errors import InputError, LoopError
+from closedloop.robot import RobotModel
+from closedloop.se3 import parse_vec
+from closedloop.loops.base import Loop
+from closedloop.loops.camera_model import DIST_FIELDS
+from closedloop.loops.spec import register
 
 MAX_CAMERAS = 4
 _PER_CAMERA = ("K{}", "K{}_0", "pose{}", "D{}", "info{}")
@@ -54,7 +54,7 @@ def camera_loop_from_spec(kw: dict[str, str], robot: RobotModel) -> Loop:
     """camera:frame=A[,to=B|F1+F2+..][,cameras=1|2][,closure=reprojection|triangulation][,dist=k1+k2+p1+p2+k3]
     [,K<c>=|K<c>_0="fx fy cx cy"][,pose<c>="x y z rx ry rz"][,D<c>="k1 k2 p1 p2 k3"][,info<c>=FILE]
     [,rig="x y z rx ry rz"][,tip=|tip0="x y z"][,sigma_px=px] (module docstring)."""
-    from .camera import CLOSURES, CameraLoop  # camera.py imports this module to register the type
+    from closedloop.loops.camera import CLOSURES, CameraLoop  # camera.py imports this module to register the type
 
     name = kw.get("name", "camera")
     if "frame" not in kw:
@@ -92,7 +92,7 @@ def camera_loop_from_spec(kw: dict[str, str], robot: RobotModel) -> Loop:
                 raise LoopError(f"camera loop '{name}': give {a} or {b}, not both")
         k, d = _vec(kw, f"K{c}", 4, name), _vec(kw, f"D{c}", 5, name)
         if f"info{c}" in kw:
-            from ..camera_info import read_camera_info
+            from closedloop.camera_info import read_camera_info
             try:
                 info = read_camera_info(kw[f"info{c}"])
             except InputError as exc:

@@ -19,12 +19,12 @@ from functools import lru_cache
 import numpy as np
 import pinocchio as pin
 
-from ..se3 import vec_of
-from . import common
+from closedloop.se3 import vec_of
+from closedloop.loops import common
 
-from .camera import PLACEHOLDER_K
-from .camera_model import camera_from_dlt
-from .common import relative_point
+from closedloop.loops.camera import PLACEHOLDER_K
+from closedloop.loops.camera_model import camera_from_dlt
+from closedloop.loops.common import relative_point
 
 log = logging.getLogger(__name__)
 MISFIT_PX = 20.0  # a camera's start RMS (px) above which its model is suspect

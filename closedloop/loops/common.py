@@ -10,10 +10,10 @@ from typing import Callable
 import numpy as np
 import pinocchio as pin
 
-from ..parameters import DEFAULT_PRIORS, Parameter
-from ..errors import LoopError
-from ..se3 import parse_vec, pose_of, skew
-from .base import LoopEval
+from closedloop.parameters import DEFAULT_PRIORS, Parameter
+from closedloop.errors import LoopError
+from closedloop.se3 import parse_vec, pose_of, skew
+from closedloop.loops.base import LoopEval
 
 TIP_FIELDS = ("tip_x", "tip_y", "tip_z")
 POINT_FIELDS = ("px", "py", "pz")

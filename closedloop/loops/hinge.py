@@ -67,12 +67,12 @@ import copy
 import numpy as np
 import pinocchio as pin
 
-from ..errors import LoopError
-from ..parameters import DEFAULT_PRIORS, Parameter
-from ..se3 import adjoint, rigid_inverse
-from .base import Loop, LoopEval
-from .projection import BatchPoseFn, Elimination, eliminate, projector
-from .spec import register
+from closedloop.errors import LoopError
+from closedloop.parameters import DEFAULT_PRIORS, Parameter
+from closedloop.se3 import adjoint, rigid_inverse
+from closedloop.loops.base import Loop, LoopEval
+from closedloop.loops.projection import BatchPoseFn, Elimination, eliminate, projector
+from closedloop.loops.spec import register
 
 HINGE_FIELDS = ("hinge_x", "hinge_y", "hinge_rx", "hinge_ry", "radius", "height",
                 "grasp_rx", "grasp_ry", "grasp_rz")

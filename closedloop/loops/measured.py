@@ -26,14 +26,14 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from ..errors import LoopError
-from ..parameters import Parameter
-from ..robot import RobotModel
-from ..se3 import as_se3, generators, hand_eye, kabsch, parse_vec, pose_of, skew, vec3, vec_of
-from .base import Loop, LoopEval
-from .common import (POSE_FIELDS, TIP_FIELDS, opt_float, opt_pose, point_parameters, pose_parameters, refine_own,
+from closedloop.errors import LoopError
+from closedloop.parameters import Parameter
+from closedloop.robot import RobotModel
+from closedloop.se3 import as_se3, generators, hand_eye, kabsch, parse_vec, pose_of, skew, vec3, vec_of
+from closedloop.loops.base import Loop, LoopEval
+from closedloop.loops.common import (POSE_FIELDS, TIP_FIELDS, opt_float, opt_pose, point_parameters, pose_parameters, refine_own,
                      relative_point)
-from .spec import register
+from closedloop.loops.spec import register
 
 TOOL_FIELDS = tuple(f"tool_{f}" for f in POSE_FIELDS)
 POSITION_COLS = ("x", "y", "z")

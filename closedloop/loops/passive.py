@@ -49,13 +49,13 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from ..errors import LoopError
-from ..parameters import DEFAULT_PRIORS, PLACEMENT_FIELDS, Parameter
-from .base import Loop, LoopEval
-from ..se3 import adjoint, rigid_inverse, skew
-from .projection import eliminate_along, projector
-from .spec import register
-from .weld import CLOSURE_FIELDS
+from closedloop.errors import LoopError
+from closedloop.parameters import DEFAULT_PRIORS, PLACEMENT_FIELDS, Parameter
+from closedloop.loops.base import Loop, LoopEval
+from closedloop.se3 import adjoint, rigid_inverse, skew
+from closedloop.loops.projection import eliminate_along, projector
+from closedloop.loops.spec import register
+from closedloop.loops.weld import CLOSURE_FIELDS
 
 MAX_PASSIVE_DOF = 5
 

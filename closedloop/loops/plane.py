@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from ..errors import LoopError
-from ..parameters import DEFAULT_PRIORS, Parameter
-from ..robot import RobotModel
-from ..se3 import parse_vec, skew, vec3
-from .base import Loop, LoopEval
-from .common import TIP_FIELDS, point_parameters, relative_point
-from .spec import register
+from closedloop.errors import LoopError
+from closedloop.parameters import DEFAULT_PRIORS, Parameter
+from closedloop.robot import RobotModel
+from closedloop.se3 import parse_vec, skew, vec3
+from closedloop.loops.base import Loop, LoopEval
+from closedloop.loops.common import TIP_FIELDS, point_parameters, relative_point
+from closedloop.loops.spec import register
 
 PLANE_FIELDS = ("nrx", "nry", "d")
 EZ = np.array([0.0, 0.0, 1.0])

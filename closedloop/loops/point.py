@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import LoopError
-from ..parameters import Parameter
-from ..robot import RobotModel
-from ..se3 import parse_vec, vec3
-from .base import Loop, LoopEval
-from .common import POINT_FIELDS, TIP_FIELDS, point_parameters, relative_point
-from .spec import register
+from closedloop.errors import LoopError
+from closedloop.parameters import Parameter
+from closedloop.robot import RobotModel
+from closedloop.se3 import parse_vec, vec3
+from closedloop.loops.base import Loop, LoopEval
+from closedloop.loops.common import POINT_FIELDS, TIP_FIELDS, point_parameters, relative_point
+from closedloop.loops.spec import register
 
 
 class PointLoop(Loop):

@@ -35,7 +35,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..se3 import adjoint, log6, rigid_inverse
+from closedloop.se3 import adjoint, log6, rigid_inverse
 
 #: pose(phi (n, nq)) -> X (n, 4, 4), dX/dphi as right twists (n, 6, k)
 BatchPoseFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]

@@ -28,10 +28,10 @@ from __future__ import annotations
 from importlib import import_module
 from typing import Callable
 
-from ..errors import InputError, LoopError
-from ..robot import RobotModel
-from .base import Loop
-from .weld import WeldLoop, parse_pose
+from closedloop.errors import InputError, LoopError
+from closedloop.robot import RobotModel
+from closedloop.loops.base import Loop
+from closedloop.loops.weld import WeldLoop, parse_pose
 
 LoopFactory = Callable[[dict[str, str], RobotModel], Loop]
 
@@ -136,8 +136,8 @@ def parse_loop(spec: str, robot: RobotModel) -> Loop:
     if "log" in generic:
         loop.log_path = generic["log"]
     if shares or task is not None:
-        from ..variance import set_task_noise
-        from ..shared import share
+        from closedloop.variance import set_task_noise
+        from closedloop.shared import share
 
         try:
             for key, group in shares.items():

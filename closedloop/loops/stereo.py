@@ -30,10 +30,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..se3 import generators, skew
-from .base import LoopEval
-from .camera_model import image_ray
-from .common import relative_point
+from closedloop.se3 import generators, skew
+from closedloop.loops.base import LoopEval
+from closedloop.loops.camera_model import image_ray
+from closedloop.loops.common import relative_point
 
 
 def _perturb(S: np.ndarray, z: np.ndarray, sign: float, direction: bool) -> np.ndarray:

@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from ..parameters import Parameter
-from ..se3 import adjoint, log6, parse_pose, rigid_inverse  # noqa: F401  (parse_pose: spec.py's)
-from .base import Loop, LoopEval
-from .common import POSE_FIELDS, pose_parameters
+from closedloop.parameters import Parameter
+from closedloop.se3 import adjoint, log6, parse_pose, rigid_inverse  # noqa: F401  (parse_pose: spec.py's)
+from closedloop.loops.base import Loop, LoopEval
+from closedloop.loops.common import POSE_FIELDS, pose_parameters
 
 CLOSURE_FIELDS = POSE_FIELDS
 

@@ -26,11 +26,11 @@ nominal planner), ``tracking`` (driving and recording), ``outputs`` (the dataset
 ``camera_scene`` (the head-camera scenarios).
 """
 
-from .dataset import SimResult, sensor_readings, simulate
-from .loop_types import SIM_LOOPS, SimLoop
-from .scenario_files import load_scenario  # registers the shipped scenario YAML files
-from .scenarios import SCENARIOS, DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
-from .true_robot import draw_errors, perturbable_parameters
+from closedloop.sims.dataset import SimResult, sensor_readings, simulate
+from closedloop.sims.loop_types import SIM_LOOPS, SimLoop
+from closedloop.sims.scenario_files import load_scenario  # registers the shipped scenario YAML files
+from closedloop.sims.scenarios import SCENARIOS, DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
+from closedloop.sims.true_robot import draw_errors, perturbable_parameters
 
 __all__ = [
     "SCENARIOS",

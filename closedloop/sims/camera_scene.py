@@ -246,7 +246,7 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
     from closedloop.camera_info import CameraInfo, write_camera_info
     from closedloop.robot import RobotModel
 
-    from .scene import true_urdf
+    from closedloop.sims.scene import true_urdf
 
     sc = SCENARIOS[scenario]
     out = Path(out_dir)

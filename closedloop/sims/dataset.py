@@ -58,13 +58,13 @@ from closedloop.errors import ScenarioError, UnknownScenarioError
 from closedloop.export import OutputSet
 from closedloop.models import nominal_urdf
 
-from .driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
-from .loop_types import SimLoop, sim_loop
-from .outputs import DATASET_FILES, check_dataset_dir, truth_record, write_log
-from .scenarios import SCENARIOS, Scenario, SimSettings
-from .scene import Scene, build_scene, true_urdf
-from .tracking import sensor_readings, track_and_record
-from .true_robot import draw_errors, identifiable_parameters
+from closedloop.sims.driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
+from closedloop.sims.loop_types import SimLoop, sim_loop
+from closedloop.sims.outputs import DATASET_FILES, check_dataset_dir, truth_record, write_log
+from closedloop.sims.scenarios import SCENARIOS, Scenario, SimSettings
+from closedloop.sims.scene import Scene, build_scene, true_urdf
+from closedloop.sims.tracking import sensor_readings, track_and_record
+from closedloop.sims.true_robot import draw_errors, identifiable_parameters
 
 __all__ = ["SimResult", "simulate", "sensor_readings", "check_dataset_dir"]
 
@@ -221,7 +221,7 @@ def _simulate(sc: Scenario, settings: SimSettings, n: int, seed: int, out: Path,
     t_start = time.perf_counter()
     plan = None
     if settings.select:  # pose selection on the nominal model (closedloop.sims.selection)
-        from .selection import plan_selected
+        from closedloop.sims.selection import plan_selected
 
         start = loop.full_q(r0) if loop is not None else r0
         plan = plan_selected(sc, settings, nominal.path, nominal.joint_names, planner, loop, start, n, nominal.model)

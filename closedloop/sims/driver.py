@@ -55,9 +55,9 @@ import pinocchio as pin
 
 from closedloop.errors import ScenarioError
 
-from .loop_types import sim_loop
-from .qp import min_norm_step, solve_box_qp, svd_full
-from .scenarios import LoopType
+from closedloop.sims.loop_types import sim_loop
+from closedloop.sims.qp import min_norm_step, solve_box_qp, svd_full
+from closedloop.sims.scenarios import LoopType
 
 __all__ = ["NominalLoop", "NominalLoopPlanner", "RandomConfigurations", "solve_box_qp"]
 

@@ -16,7 +16,7 @@ import mujoco
 import numpy as np
 import pinocchio as pin
 
-from .scenarios import DoorGeometry, PlaneGeometry, TrackerGeometry
+from closedloop.sims.scenarios import DoorGeometry, PlaneGeometry, TrackerGeometry
 
 __all__ = ["TOOL_SITE", "TARGET_SITE", "LOOP_EQ", "DOOR_PREFIX", "DOOR_JOINT", "PUCK_PREFIX", "quat_wxyz",
            "door_hinge_pose", "draw_plane", "draw_tracker", "add_puck"]

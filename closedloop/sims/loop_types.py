@@ -52,9 +52,9 @@ import pinocchio as pin
 
 from closedloop.errors import ScenarioError
 
-from .environment import (DOOR_JOINT, DOOR_PREFIX, TARGET_SITE, add_puck, door_hinge_pose, draw_plane, draw_tracker,
+from closedloop.sims.environment import (DOOR_JOINT, DOOR_PREFIX, TARGET_SITE, add_puck, door_hinge_pose, draw_plane, draw_tracker,
                           quat_wxyz)
-from .scenarios import DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
+from closedloop.sims.scenarios import DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
 
 __all__ = ["SimLoop", "Placement", "SIM_LOOPS", "SIM_LOOP_NAMES", "sim_loop", "pose_params"]
 

@@ -18,8 +18,8 @@ import numpy as np
 from closedloop.errors import InputError
 from closedloop.export import OutputSet
 
-from .loop_types import SIM_LOOPS, SimLoop
-from .scenarios import Scenario, SimSettings
+from closedloop.sims.loop_types import SIM_LOOPS, SimLoop
+from closedloop.sims.scenarios import Scenario, SimSettings
 
 __all__ = ["DATASET_FILES", "check_dataset_dir", "write_log", "truth_record"]
 

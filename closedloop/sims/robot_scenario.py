@@ -40,7 +40,7 @@ import pinocchio as pin
 
 from closedloop.errors import InputError
 
-from .loop_types import SIM_LOOPS
+from closedloop.sims.loop_types import SIM_LOOPS
 
 log = logging.getLogger(__name__)
 

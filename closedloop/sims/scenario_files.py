@@ -16,8 +16,8 @@ from pathlib import Path
 
 from closedloop.errors import InputError
 
-from .loop_types import SIM_LOOP_NAMES, SIM_LOOPS
-from .scenarios import SCENARIOS, DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
+from closedloop.sims.loop_types import SIM_LOOP_NAMES, SIM_LOOPS
+from closedloop.sims.scenarios import SCENARIOS, DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
 
 __all__ = ["SIM_LOOP_TYPES", "SCENARIO_DIR", "parse_sim_loop", "scenario_from_dict", "load_scenario"]
 
@@ -86,7 +86,7 @@ def scenario_from_dict(data: dict, name: str, where: str, base_dir: Path | None 
     settings = _settings(data.get("settings"), where, loop_type)
     robot, q0 = str(data["robot"]), data.get("q0")
     if robot not in ROBOTS or "tool" in data or "joints" in data:
-        from .robot_scenario import prepare_robot
+        from closedloop.sims.robot_scenario import prepare_robot
 
         path = Path(robot) if robot not in ROBOTS else ROBOTS[robot].path
         if not path.is_absolute() and base_dir is not None:

@@ -42,9 +42,9 @@ import pinocchio as pin
 
 from closedloop.errors import ScenarioError
 
-from .environment import LOOP_EQ, TARGET_SITE, TOOL_SITE
-from .loop_types import Placement, SimLoop, sim_loop
-from .scenarios import Scenario, SimSettings
+from closedloop.sims.environment import LOOP_EQ, TARGET_SITE, TOOL_SITE
+from closedloop.sims.loop_types import Placement, SimLoop, sim_loop
+from closedloop.sims.scenarios import Scenario, SimSettings
 
 __all__ = ["Scene", "apply_placement_errors", "true_urdf", "build_scene", "site_pose"]
 

@@ -47,9 +47,9 @@ import pinocchio as pin
 
 from closedloop.errors import ScenarioError
 
-from .driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
-from .loop_types import sim_loop
-from .scenarios import Scenario, SimSettings
+from closedloop.sims.driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
+from closedloop.sims.loop_types import sim_loop
+from closedloop.sims.scenarios import Scenario, SimSettings
 
 __all__ = ["Plan", "candidate_pool", "information_result", "order_path", "bridge", "plan_selected"]
 

@@ -23,9 +23,9 @@ import pinocchio as pin
 
 from closedloop.errors import ScenarioError
 
-from .loop_types import SimLoop
-from .scenarios import Scenario, SimSettings
-from .scene import Scene, site_pose
+from closedloop.sims.loop_types import SimLoop
+from closedloop.sims.scenarios import Scenario, SimSettings
+from closedloop.sims.scene import Scene, site_pose
 
 __all__ = ["Recording", "Settler", "SiteViews", "track_and_record", "sensor_readings", "settle", "sample", "violation",
            "constraint_force"]

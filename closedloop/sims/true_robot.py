@@ -18,8 +18,8 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from .loop_types import sim_loop
-from .scenarios import Scenario
+from closedloop.sims.loop_types import sim_loop
+from closedloop.sims.scenarios import Scenario
 
 __all__ = ["perturbable_parameters", "identifiable_parameters", "draw_errors"]
 
