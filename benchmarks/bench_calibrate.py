@@ -30,7 +30,7 @@ import argparse
 import numpy as np
 
 from closedloop.calibration import calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.models import ROBOTS
 from closedloop.robot import RobotModel

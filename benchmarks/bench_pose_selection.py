@@ -227,7 +227,7 @@ print(f"weld: K <= N/2 with exchange-a for N = {', '.join(str(n) for n, k in row
 
 # --------------------------------------------------------------------------- point contact
 if not args.no_point:
-    from closedloop.data import JointLog
+    from closedloop.io.logs import JointLog
     from closedloop.loops import PointLoop
     from closedloop.models import ROBOTS
     from closedloop.robot import RobotModel

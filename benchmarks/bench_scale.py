@@ -35,7 +35,7 @@ import numpy as np
 
 from closedloop import CalibrationOptions, calibrate
 from closedloop import executor as ex
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.montecarlo import monte_carlo, weld_scenario
 
 from machine import header  # benchmarks/machine.py

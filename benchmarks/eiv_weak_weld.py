@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import machine  # noqa: E402
 
 from closedloop import CalibrationOptions, RobotModel, calibrate  # noqa: E402
-from closedloop.data import JointLog  # noqa: E402
+from closedloop.io.logs import JointLog  # noqa: E402
 from closedloop.lengths import LengthLoop  # noqa: E402
 from closedloop.loops.spec import parse_loop  # noqa: E402
 

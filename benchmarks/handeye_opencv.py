@@ -56,7 +56,7 @@ from machine import load, machine  # noqa: E402
 
 from closedloop.calibration import CalibrationOptions, calibrate  # noqa: E402
 from closedloop.constraints import DistanceLoop  # noqa: E402
-from closedloop.data import JointLog  # noqa: E402
+from closedloop.io.logs import JointLog  # noqa: E402
 from closedloop.loops.camera import CameraLoop  # noqa: E402
 from closedloop.models import example_robot_data_dir  # noqa: E402
 from closedloop.parameters import RobotParameters  # noqa: E402

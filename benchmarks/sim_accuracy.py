@@ -18,7 +18,7 @@ from pathlib import Path
 
 from closedloop.calibration import CalibrationOptions, calibrate
 from closedloop.check import check_report
-from closedloop.data import read_log
+from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
 from closedloop.report import build_report
 from closedloop.robot import RobotModel

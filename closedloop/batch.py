@@ -76,13 +76,13 @@ def _options(opts: dict, names: list[str]):
 
 def _read(job: BatchJob, robot):
     """The job's log (a CSV or a bag), refused as `calibrate` refuses it (`data.check_angle_units`)."""
-    from closedloop.data import check_angle_units, read_log
+    from closedloop.io.logs import check_angle_units, read_log
 
     degrees = job.options.get("degrees", False)
     degrees = degrees.strip().lower() in ("1", "true", "yes") if isinstance(degrees, str) else bool(degrees)
     lg = None
     try:
-        from closedloop.bags import extract, is_bag
+        from closedloop.io.bags import extract, is_bag
         if is_bag(job.log):
             lg = extract(job.log, robot.joint_names)[0]
     except ImportError:  # pragma: no cover - bag support not installed

@@ -34,7 +34,7 @@ from dataclasses import replace
 import numpy as np
 
 from closedloop.constraints import annotate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
 from closedloop.identifiability import Structure, analyse_structure, weak_directions
 from closedloop.linearity import check_error_bars

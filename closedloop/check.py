@@ -22,10 +22,10 @@ def check_report(truth: dict, report: dict, tol_m: float, tol_rad: float, tol_sc
                  truth_source: str = "truth file", report_source: str = "report file"):
     """Rows of (name, true, calibrated, error, tol, result) and whether all compared rows pass.
 
-    Both documents are validated first (:data:`~closedloop.schemas.TRUTH_SCHEMA`,
-    :data:`~closedloop.schemas.REPORT_SCHEMA`); every tolerance must be a finite number > 0.
+    Both documents are validated first (:data:`~closedloop.io.schemas.TRUTH_SCHEMA`,
+    :data:`~closedloop.io.schemas.REPORT_SCHEMA`); every tolerance must be a finite number > 0.
     """
-    from closedloop.schemas import REPORT_SCHEMA, TRUTH_SCHEMA, is_number, validate
+    from closedloop.io.schemas import REPORT_SCHEMA, TRUTH_SCHEMA, is_number, validate
 
     for opt, tol in (("--tol-m", tol_m), ("--tol-rad", tol_rad), ("--tol-scale", tol_scale), ("--tol-px", tol_px)):
         if not is_number(tol) or tol <= 0:

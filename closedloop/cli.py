@@ -70,7 +70,7 @@ def cmd_check(args) -> int:
 
 
 def _load_json(path: str, what: str = "JSON file"):
-    from closedloop.schemas import load_json
+    from closedloop.io.schemas import load_json
 
     return load_json(path, what)
 

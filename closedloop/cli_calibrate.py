@@ -70,7 +70,7 @@ def cmd_calibrate(args) -> int:
     from closedloop.parameters import parse_fix
     from closedloop.report import build_report, write_report
     from closedloop.robot import RobotModel
-    from closedloop.data import check_loop_column
+    from closedloop.io.logs import check_loop_column
     from closedloop.export import check_model_output
     from closedloop.cli_evaluate import require_log
 

@@ -52,7 +52,7 @@ def _order(args) -> list[str] | None:
 def read_inputs(log_path: str | None, robot, loops: list, degrees: bool = False, order: list[str] | None = None):
     """The joint log: the positional file (CSV or bag), or each loop's own ``log=`` file (one per fixture);
     refused where most readings of a joint lie far beyond its limits (`data.check_angle_units`)."""
-    from closedloop.data import check_angle_units
+    from closedloop.io.logs import check_angle_units
 
     lg = _read_inputs(log_path, robot, loops, degrees, order)
     check_angle_units(lg, robot, degrees)
@@ -60,7 +60,7 @@ def read_inputs(log_path: str | None, robot, loops: list, degrees: bool = False,
 
 
 def _read_inputs(log_path: str | None, robot, loops: list, degrees: bool, order: list[str] | None):
-    from closedloop.data import read_log, read_loop_logs
+    from closedloop.io.logs import read_log, read_loop_logs
 
     linear = [j for j, info in robot.joints.items() if info.kind == "prismatic"]
     real = [lp for lp in loops if not getattr(lp, "parameter_only", False)]
@@ -158,7 +158,7 @@ def cmd_evaluate(args) -> int:
     robots = [RobotModel.from_file(m) for m in models]
     loops0 = [parse_loop(s, robots[0]) for s in args.loop]
     lg = read_inputs(log_path, robots[0], loops0, args.degrees, _order(args))
-    from closedloop.data import check_loop_column
+    from closedloop.io.logs import check_loop_column
 
     check_loop_column(lg, [lp.name for lp in loops0])
     evals = []

@@ -22,7 +22,7 @@ EXIT_PIPE = 141  # 128 + SIGPIPE: the output's reader closed it (`closedloop ...
 
 def parse_noise(text: str | float | None):
     """``--noise 1e-4`` or ``--noise j1=1e-4,j2=2e-4``: every value a finite number > 0 (rad or m)."""
-    from closedloop.schemas import parse_number
+    from closedloop.io.schemas import parse_number
 
     if text is None:
         return None
@@ -46,7 +46,7 @@ def parse_noise(text: str | float | None):
 
 def parse_bounds(items: list[str]) -> dict[str, tuple[float, float]]:
     """``--bound NAME=LOW:HIGH`` (an empty side is unbounded); LOW <= HIGH."""
-    from closedloop.schemas import parse_number
+    from closedloop.io.schemas import parse_number
 
     out = {}
     for item in items:
@@ -64,7 +64,7 @@ def parse_bounds(items: list[str]) -> dict[str, tuple[float, float]]:
 
 def check_number(opt: str, value, lo: float, hi: float, *, integer: bool = False, lo_open: bool = False):
     """A numeric option in range (``lo < v`` when `lo_open`, else ``lo <= v``; ``v <= hi``), as float/int."""
-    from closedloop.schemas import is_number, parse_number
+    from closedloop.io.schemas import is_number, parse_number
 
     v = parse_number(value, f"{opt} {value}") if isinstance(value, str) else value
     if not is_number(v) or (integer and float(v) != int(v)):
@@ -78,7 +78,7 @@ def check_loop_numbers(spec: str) -> None:
     """Numbers inside a ``--loop`` spec (closure, axis, point, ...) are decimal, finite and within 1e6."""
     import re
 
-    from closedloop.schemas import MAX_ABS, parse_number
+    from closedloop.io.schemas import MAX_ABS, parse_number
 
     for token in re.split(r"[\s,=:\"']+", spec):
         if re.fullmatch(r"[-+]?(\d[\d_]*\.?[\d_]*|\.\d[\d_]*)([eE][-+]?\d+)?|[-+]?(nan|inf|infinity)", token,
@@ -92,7 +92,7 @@ def sim_overrides(items: list[str], defaults) -> dict:
     """``--set KEY=VALUE`` items checked against the scenario's settings (type of each default)."""
     import dataclasses
 
-    from closedloop.schemas import check_settings, is_number
+    from closedloop.io.schemas import check_settings, is_number
 
     kinds = {f.name: type(getattr(defaults, f.name)) for f in dataclasses.fields(defaults)}
     kinds.update(soft=bool, stiff=bool)  # presets
@@ -135,7 +135,7 @@ class ArgTypeError(argparse.ArgumentTypeError, ValueError):
 
 
 def float_arg(text: str) -> float:
-    from closedloop.schemas import parse_number
+    from closedloop.io.schemas import parse_number
 
     try:
         return parse_number(text, text)

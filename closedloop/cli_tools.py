@@ -3,7 +3,7 @@
 * ``closedloop loops``: the loop types of :data:`closedloop.loops.spec.LOOP_TYPES`
   with their keys and an example each (also the epilog of ``calibrate --help``);
 * ``closedloop extract``: quasi-static samples of a ROS bag written as the CSV log
-  (:mod:`closedloop.bags`); ``calibrate`` also takes a bag in place of the CSV;
+  (:mod:`closedloop.io.bags`); ``calibrate`` also takes a bag in place of the CSV;
 * ``--config FILE.yaml``: every option of a subcommand in one YAML mapping
   (keys are the long option names, ``-`` or ``_``; positionals by name);
   options given on the command line win;
@@ -69,23 +69,23 @@ def cmd_loops(args) -> int:
 
 # --------------------------------------------------------------------------- ROS bags
 def read_log_or_bag(path: str, robot, degrees: bool = False, bag_options=None):
-    """A CSV log, or the quasi-static samples of a ROS bag (:func:`closedloop.bags.extract`)."""
-    from closedloop.bags import is_bag
+    """A CSV log, or the quasi-static samples of a ROS bag (:func:`closedloop.io.bags.extract`)."""
+    from closedloop.io.bags import is_bag
 
     if is_bag(path):
-        from closedloop.bags import extract
+        from closedloop.io.bags import extract
 
         lg, samples = extract(path, robot.joint_names, bag_options)
         print(f"  {path}: {len(samples)} standstills extracted", file=sys.stderr)
         return lg
-    from closedloop.data import read_log
+    from closedloop.io.logs import read_log
 
     return read_log(path, robot.joint_names, degrees=degrees,
                     linear=[j for j, info in robot.joints.items() if info.kind == "prismatic"])
 
 
 def cmd_extract(args) -> int:
-    from closedloop.bags import ExtractOptions, extract, parse_windows
+    from closedloop.io.bags import ExtractOptions, extract, parse_windows
     from closedloop.export import refuse_overwrite
     from closedloop.robot import RobotModel
 
@@ -168,7 +168,7 @@ def _config_path(argv: list[str]) -> str | None:
 
 def load_config(path: str, sub: argparse.ArgumentParser, command: str) -> dict:
     """The YAML mapping of ``path`` checked against the options of ``sub`` (dest -> value)."""
-    from closedloop.schemas import load_yaml  # strict YAML: only true/false are booleans, no 1_000
+    from closedloop.io.schemas import load_yaml  # strict YAML: only true/false are booleans, no 1_000
 
     data = load_yaml(path, "config")
     if data is None:

@@ -130,7 +130,7 @@ def parse_distances(items: list[list[str]], loops: list[Loop]) -> list[DistanceL
     """``--distance A B D [SIGMA]`` occurrences (lists of strings) -> DistanceLoops over `loops`."""
     import re
 
-    from closedloop.schemas import parse_number
+    from closedloop.io.schemas import parse_number
 
     out = []
     for it in items:
@@ -153,7 +153,7 @@ def parse_blocks(items: list[list[str]], loops: list[Loop]) -> list[DistanceLoop
     import re
     from itertools import combinations
 
-    from closedloop.schemas import parse_number
+    from closedloop.io.schemas import parse_number
 
     out = []
     for it in items:

@@ -116,12 +116,12 @@ GEOMETRY = ("theta_off", "s", "a", "alpha")
 
 
 def load_dh(path: str | Path) -> DHTable:
-    """Read a D-H YAML file, validated by :data:`closedloop.schemas.DH_SCHEMA`; errors name file, row, field.
+    """Read a D-H YAML file, validated by :data:`closedloop.io.schemas.DH_SCHEMA`; errors name file, row, field.
 
     Beyond the schema: unique row names, a row gives its geometry (not only a name), ``lower <= upper``,
     lengths within +/- 100 m and angles within +/- 1000 rad after unit conversion, 1e-6 <= |k| <= 1e3.
     """
-    from closedloop.schemas import DH_SCHEMA, load_yaml, validate
+    from closedloop.io.schemas import DH_SCHEMA, load_yaml, validate
 
     path = Path(path)
     doc = load_yaml(path, "D-H table", ModelError)

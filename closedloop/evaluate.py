@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.robot import RobotModel
 

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.errors import ClosedLoopError
 from closedloop.loops.base import Loop
 from closedloop.robot import RobotModel

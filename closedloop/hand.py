@@ -58,7 +58,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from closedloop.calibration import CalibrationOptions, CalibrationResult, calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.dh import LENGTH_UNITS, rot
 from closedloop.errors import ModelError, OptionError, ParameterError, SimulationError
 from closedloop.loops.base import Loop

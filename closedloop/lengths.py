@@ -116,7 +116,7 @@ def parse_lengths(items: list, robot: RobotModel) -> list[LengthLoop]:
     """``--length A B L [SIGMA]`` occurrences (lists of strings, or 'A B L' lines of a --config) -> loops."""
     import re
 
-    from closedloop.schemas import parse_number
+    from closedloop.io.schemas import parse_number
 
     out = []
     for it in items:

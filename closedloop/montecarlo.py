@@ -38,7 +38,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.errors import ClosedLoopError
 from closedloop.loops.base import Loop
 from closedloop.observability import whitened_blocks

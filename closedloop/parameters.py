@@ -254,7 +254,7 @@ def parse_fix(spec: list[str], names: list[str]) -> dict[str, float | None]:
                 raise ParameterError(f"--fix {part}: no parameter named '{key}'")
             value: float | None = None
             if val:
-                from closedloop.schemas import parse_number  # strict: no 1_000, no nan
+                from closedloop.io.schemas import parse_number  # strict: no 1_000, no nan
 
                 value = parse_number(val, f"--fix {part}", ParameterError)
             for m in matched:

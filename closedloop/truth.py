@@ -13,7 +13,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.robot import RobotModel
 from closedloop.synthetic import self_motion

@@ -31,7 +31,7 @@ import numpy as np
 
 from closedloop.calibration import CalibrationOptions, CalibrationResult, build_problem, calibrate, residual_stats
 from closedloop.noise import noise_vector, whiten
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.errors import ParameterError
 from closedloop.evaluation import BlockEval
 from closedloop.loops.base import Loop

@@ -23,7 +23,7 @@ import numpy as np
 import yaml
 
 from closedloop.cli import main as closedloop
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.montecarlo import panda_urdf, weld_scenario
 
 NOISE = 1e-4

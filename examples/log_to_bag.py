@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.data import read_log
+from closedloop.io.logs import read_log
 from closedloop.robot import RobotModel
 
 

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from closedloop.calibration import CalibrationOptions, calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.loops.point import PointLoop
 from closedloop.robot import RobotModel
 

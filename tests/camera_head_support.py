@@ -15,7 +15,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.loops.camera import CameraLoop
 from closedloop.robot import RobotModel
 from closedloop.se3 import vec_of

@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from closedloop.bags import ExtractOptions, extract
+from closedloop.io.bags import ExtractOptions, extract
 from closedloop.calibration import build_problem, residual_stats
 from closedloop.cli import main
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.models import ROBOTS
 from closedloop.robot import RobotModel

@@ -20,7 +20,7 @@ import yaml
 
 from closedloop.batch import read_manifest, run_batch
 from closedloop.cli import main
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.errors import InputError
 from closedloop.executor import get_engine
 from closedloop.montecarlo import panda_urdf, weld_scenario

@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from closedloop.calibration import CalibrationOptions, calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.errors import NotIdentifiableError
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops

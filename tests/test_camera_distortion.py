@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from closedloop.camera_info import CameraInfo, read_camera_info, write_camera_info
+from closedloop.io.camera_info import CameraInfo, read_camera_info, write_camera_info
 from closedloop.errors import InputError, LoopError
 from closedloop.loops.camera import CameraLoop
 from closedloop.loops.camera_model import distort, image_ray, project_lens, undistort
@@ -58,7 +58,7 @@ def test_distortion_recovered_noise_free():
     from test_loops_camera import TIP, UR5, X1, K1, estimated_errors, robot_of, ur5_readings, vec_of
 
     from closedloop.calibration import CalibrationOptions, build_problem, calibrate
-    from closedloop.data import JointLog
+    from closedloop.io.logs import JointLog
     from closedloop.truth import draw_truth
 
     robot = robot_of(UR5)

@@ -12,9 +12,9 @@ import pinocchio as pin
 import pytest
 
 from closedloop.calibration import CalibrationOptions, calibrate
-from closedloop.camera_info import read_camera_info
+from closedloop.io.camera_info import read_camera_info
 from closedloop.check import check_report
-from closedloop.data import read_log
+from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
 from closedloop.report import build_report
 from closedloop.robot import RobotModel

@@ -9,7 +9,7 @@ import pinocchio as pin
 import pytest
 
 from closedloop.calibration import build_problem
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.loops import camera_start
 from closedloop.loops.camera import CameraLoop
 from closedloop.robot import RobotModel

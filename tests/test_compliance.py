@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from closedloop.calibration import CalibrationOptions, calibrate
-from closedloop.data import read_log
+from closedloop.io.logs import read_log
 from closedloop.loops import WeldLoop
 from closedloop.robot import RobotModel
 from closedloop.sims import simulate
@@ -73,7 +73,7 @@ def test_compliance_model_removes_gravity_bias(datasets):
 
 
 def test_compliance_needs_torques(datasets):
-    from closedloop.data import JointLog
+    from closedloop.io.logs import JointLog
     from closedloop.errors import LogError
 
     robot, log, _ = datasets[True]

@@ -9,7 +9,7 @@ import pytest
 import closedloop.problem as problem_module
 from closedloop import RobotModel
 from closedloop.calibration import build_problem
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.loops.spec import parse_loop
 from closedloop.models import ROBOTS
 from closedloop.selection import initial_values

@@ -154,7 +154,7 @@ def dh_property(text: str) -> None:
 
 
 def log_property(text: str) -> None:
-    from closedloop.data import read_log
+    from closedloop.io.logs import read_log
 
     path = _DIR / "fuzz.csv"
     path.write_bytes(text.encode("utf-8", errors="surrogatepass"))
@@ -177,7 +177,7 @@ def check_property(docs) -> None:
 
 
 def json_property(text: str) -> None:
-    from closedloop.schemas import load_json
+    from closedloop.io.schemas import load_json
 
     path = _DIR / "fuzz.json"
     path.write_bytes(text.encode("utf-8", errors="surrogatepass"))

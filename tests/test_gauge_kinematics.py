@@ -10,7 +10,7 @@ import pinocchio as pin
 import pytest
 
 from closedloop.calibration import build_problem
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.gauge import kinematic_changes, random_configurations
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from closedloop.calibration import CalibrationOptions, calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.hand import (INCH, TABLE_4_1_FIXED, TABLE_4_2, _loop_problem, nominal_closed_pose,
                              palm_frame_parameters, staged_calibration, thesis_hand_dataset, thesis_stages)
 from closedloop.loops import WeldLoop

@@ -18,7 +18,7 @@ import pytest
 from matplotlib import image as mpimg
 
 from closedloop.cli import main
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.models import ROBOTS
 from closedloop.robot import RobotModel

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.lengths import LengthLoop
 from closedloop.linearity import HOLDS, K, profile
 from closedloop.loops.spec import parse_loop

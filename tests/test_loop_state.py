@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.loops.spec import LOOP_TYPES, parse_loop
 from closedloop.models import ROBOTS
 

@@ -10,7 +10,7 @@ import pinocchio as pin
 import pytest
 
 from closedloop.calibration import CalibrationOptions, calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.errors import LoopError
 from closedloop.loops.hinge import HingeLoop
 from closedloop.loops.passive import PassiveChainLoop

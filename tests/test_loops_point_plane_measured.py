@@ -9,7 +9,7 @@ import pinocchio as pin
 import pytest
 
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.errors import LoopError
 from closedloop.loops.common import relative_point
 from closedloop.loops.measured import MeasuredPointLoop, MeasuredPoseLoop

@@ -13,7 +13,7 @@ import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.calibration import build_problem
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.errors import LoopError
 from closedloop.loops.measured import MeasuredPointLoop
 from closedloop.loops.spec import parse_loop

@@ -15,7 +15,7 @@ import pinocchio as pin
 import pytest
 
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate, residual_stats
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.export import write_urdf
 from closedloop.export_mjcf import write_mjcf
 from closedloop.loops import WeldLoop

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from closedloop.calibration import build_problem, initial_values
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.fit import ResidualFunction
 from closedloop.loops import WeldLoop
 

@@ -177,7 +177,7 @@ def test_selection_halves_the_configurations_point_contact():
     ds = make_dataset(robot, PointLoop("socket", "tool0", tip=np.array([0.0, 0.05, 0.1])),
                       [0.3, -1.3, 1.7, -1.9, -1.57, 0.2], 500, rng, stride=1, noise=1e-4)
     from closedloop.calibration import calibrate
-    from closedloop.data import JointLog
+    from closedloop.io.logs import JointLog
 
     res = calibrate(robot, JointLog(ds.joints, ds.noisy[:150]),
                     [PointLoop("socket", "tool0", tip=np.array([0.0, 0.05, 0.1]))])

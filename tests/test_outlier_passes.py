@@ -15,7 +15,7 @@ import pytest
 from closedloop import CalibrationOptions, calibrate
 from closedloop.check import check_report
 from closedloop.cli import main
-from closedloop.data import JointLog, read_log
+from closedloop.io.logs import JointLog, read_log
 from closedloop.loops.spec import parse_loop
 from closedloop.models import example_robot_data_dir
 from closedloop.report import build_report

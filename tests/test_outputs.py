@@ -177,7 +177,7 @@ def test_dh_input_gives_calibrated_dh_yaml(tmp_path):
     _, readings, _ = thesis_hand_dataset(tmp_path, n=60)
     robot = RobotModel.from_file(table_4_1_path())
     log = tmp_path / "hand.csv"
-    from closedloop.data import JointLog
+    from closedloop.io.logs import JointLog
 
     JointLog(robot.joint_names, readings).write_csv(log)
     out, rep = tmp_path / "calibrated.yaml", tmp_path / "report.json"

@@ -7,7 +7,7 @@ import json
 
 from closedloop.calibration import calibrate
 from closedloop.check import check_report
-from closedloop.data import read_log
+from closedloop.io.logs import read_log
 from closedloop.loops import PassiveChainLoop
 from closedloop.models import model_file
 from closedloop.report import build_report

@@ -11,7 +11,7 @@ import pytest
 
 import closedloop.fit as fit_module
 from closedloop import CalibrationOptions, RobotModel, calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.models import ROBOTS
 from closedloop.truth import make_dataset
@@ -88,7 +88,7 @@ def test_presolved_passive_door_is_the_truth(tmp_path, monkeypatch):
     import json
 
     from closedloop.check import check_report
-    from closedloop.data import read_log
+    from closedloop.io.logs import read_log
     from closedloop.loops import PassiveChainLoop
     from closedloop.models import model_file
     from closedloop.report import build_report

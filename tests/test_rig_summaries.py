@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
-from closedloop.camera_info import camera_infos_from_result
+from closedloop.io.camera_info import camera_infos_from_result
 from closedloop.cli_calibrate import print_summary
 from closedloop.constraints import DistanceLoop
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.html_report import robot_corrections
 from closedloop.loops.spec import parse_loop
 from closedloop.models import example_robot_data_dir

@@ -15,7 +15,7 @@ import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.constraints import DistanceLoop
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.evaluate import evaluate_result
 from closedloop.export import tool_frames, write_model
 from closedloop.fixtures import fixture_groups, leave_one_fixture_out

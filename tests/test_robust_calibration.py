@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from closedloop.calibration import CalibrationOptions, calibrate, residual_stats
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.truth import make_dataset
 

@@ -12,7 +12,7 @@ import pytest
 from closedloop import RobotModel
 from closedloop.calibration import build_problem
 from closedloop.constraints import DistanceLoop
-from closedloop.data import JointLog, read_log, read_loop_logs
+from closedloop.io.logs import JointLog, read_log, read_loop_logs
 from closedloop.errors import InputError, LogError, LoopError
 from closedloop.loops.spec import parse_loop
 from closedloop.selection import initial_values

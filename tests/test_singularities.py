@@ -12,7 +12,7 @@ import numpy as np
 import yaml
 
 from closedloop.calibration import CalibrationOptions, calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
 from closedloop.robot import RobotModel

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from test_rigs import _loops, rigmod
 
 

@@ -92,7 +92,7 @@ def camera_loop_from_spec(kw: dict[str, str], robot: RobotModel) -> Loop:
                 raise LoopError(f"camera loop '{name}': give {a} or {b}, not both")
         k, d = _vec(kw, f"K{c}", 4, name), _vec(kw, f"D{c}", 5, name)
         if f"info{c}" in kw:
-            from closedloop.camera_info import read_camera_info
+            from closedloop.io.camera_info import read_camera_info
             try:
                 info = read_camera_info(kw[f"info{c}"])
             except InputError as exc:

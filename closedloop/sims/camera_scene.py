@@ -203,7 +203,7 @@ def mujoco_pixels(model, data) -> np.ndarray:
 def _identifiable(robot, theta: np.ndarray, seed: int) -> list[str]:
     """Robot parameters a calibration estimates on exact pixels of the nominal robot (the truth's support)."""
     from closedloop.calibration import build_problem, calibrate
-    from closedloop.data import JointLog
+    from closedloop.io.logs import JointLog
     from closedloop.loops.spec import parse_loop
 
     names = robot.joint_names
@@ -243,7 +243,7 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
     """Write a head-camera dataset (module docstring) to `out_dir`; returns a summary dict."""
     import mujoco
 
-    from closedloop.camera_info import CameraInfo, write_camera_info
+    from closedloop.io.camera_info import CameraInfo, write_camera_info
     from closedloop.robot import RobotModel
 
     from closedloop.sims.scene import true_urdf

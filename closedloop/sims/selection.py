@@ -93,7 +93,7 @@ def information_result(sc: Scenario, settings: SimSettings, nominal_path: Path, 
             tracker at the world origin (the information does not depend on the tracker pose).
     """
     from closedloop.calibration import CalibrationOptions, calibrate
-    from closedloop.data import JointLog
+    from closedloop.io.logs import JointLog
     from closedloop.robot import RobotModel
 
     kind = sim_loop(sc.loop_type)

@@ -116,7 +116,7 @@ def _measured_identifiable_names(robot, loop, options, n: int = 40, seed: int = 
     and the core's own reduction on that data.
     """
     from closedloop.calibration import calibrate
-    from closedloop.data import JointLog
+    from closedloop.io.logs import JointLog
 
     model = robot.model
     data = model.createData()

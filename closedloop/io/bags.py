@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.data import JointLog
+from closedloop.io.logs import JointLog
 from closedloop.errors import InputError
 
 log = logging.getLogger(__name__)

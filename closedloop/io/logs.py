@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from closedloop.errors import LogError
-from closedloop.schemas import parse_number
+from closedloop.io.schemas import parse_number
 
 #: largest |reading| accepted (rad, m or degrees): beyond it the kinematics overflow
 MAX_READING = 1e6
