@@ -33,7 +33,7 @@ from closedloop.calibration import calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.models import ROBOTS
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.truth import make_dataset
 
 from floor import pinocchio_floor  # benchmarks/floor.py

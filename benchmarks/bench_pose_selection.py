@@ -230,7 +230,7 @@ if not args.no_point:
     from closedloop.io.logs import JointLog
     from closedloop.loops import PointLoop
     from closedloop.models import ROBOTS
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
     from closedloop.truth import make_dataset
 
     t1 = time.time()

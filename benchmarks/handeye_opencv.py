@@ -59,8 +59,8 @@ from closedloop.constraints import DistanceLoop  # noqa: E402
 from closedloop.io.logs import JointLog  # noqa: E402
 from closedloop.loops.camera import CameraLoop  # noqa: E402
 from closedloop.models import example_robot_data_dir  # noqa: E402
-from closedloop.parameters import RobotParameters  # noqa: E402
-from closedloop.robot import RobotModel  # noqa: E402
+from closedloop.model.parameters import RobotParameters  # noqa: E402
+from closedloop.model.robot import RobotModel  # noqa: E402
 from closedloop.shared import share  # noqa: E402
 
 K = np.array([600.0, 600.0, 319.5, 239.5])

@@ -12,7 +12,7 @@ from closedloop.io.logs import JointLog, read_log  # noqa: E402
 from closedloop.errors import CalibrationError, ClosedLoopError, InputError  # noqa: E402
 from closedloop.loops import HingeLoop, Loop, MeasuredPointLoop, MeasuredPoseLoop, PlaneLoop, PointLoop, WeldLoop  # noqa: E402
 from closedloop.loops.spec import parse_loop  # noqa: E402
-from closedloop.robot import RobotModel  # noqa: E402
+from closedloop.model.robot import RobotModel  # noqa: E402
 from closedloop.verdict import Verdict, judge  # noqa: E402
 
 __all__ = ["CalibrationOptions", "CalibrationResult", "calibrate", "JointLog", "read_log", "ClosedLoopError",

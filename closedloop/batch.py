@@ -55,7 +55,7 @@ COLUMNS = ["name", "robot", "date", "status", "verdict", "verdict_reasons", "con
 # --------------------------------------------------------------------------- one job (in a worker)
 def _options(opts: dict, names: list[str]):
     from closedloop.calibration import CalibrationOptions
-    from closedloop.parameters import parse_fix
+    from closedloop.model.parameters import parse_fix
 
     noise = opts.get("noise")
     if isinstance(noise, str):
@@ -121,7 +121,7 @@ def run_job(job: BatchJob) -> dict:
     from closedloop.export import write_model
     from closedloop.loops.spec import default_loops, parse_loop
     from closedloop.report import build_report, write_report
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
 
     t0 = time.perf_counter()
     robot = RobotModel.from_file(job.model)

@@ -44,7 +44,7 @@ from closedloop.outliers import gross_outliers, readmit, reject_outliers
 from closedloop.problem import CalibrationProblem, LoopBlock
 from closedloop.records import (CalibrationOptions, CalibrationResult, LoopResiduals, ParameterRecord, Rejected,
                       residual_stats)
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
 from closedloop.solver import reducible_share, rms, scaled_svd
 from closedloop.staging import Fit, Progress, recheck_at_solution, solve_from_starts, solve_staged, solve_with_restarts

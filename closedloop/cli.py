@@ -22,8 +22,8 @@ __all__ = ["EXIT_FAILED", "EXIT_INPUT", "EXIT_INTERNAL", "build_parser", "cmd_ca
 
 # --------------------------------------------------------------------------- commands
 def cmd_inspect(args) -> int:
-    from closedloop.parameters import RobotParameters
-    from closedloop.robot import RobotModel
+    from closedloop.model.parameters import RobotParameters
+    from closedloop.model.robot import RobotModel
 
     robot = RobotModel.from_file(args.model)
     info = robot.describe()

@@ -67,9 +67,9 @@ def cmd_calibrate(args) -> int:
     from closedloop.calibration import CalibrationOptions, calibrate
     from closedloop.export import OutputSet, write_model
     from closedloop.loops.spec import default_loops, parse_loop
-    from closedloop.parameters import parse_fix
+    from closedloop.model.parameters import parse_fix
     from closedloop.report import build_report, write_report
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
     from closedloop.io.logs import check_loop_column
     from closedloop.export import check_model_output
     from closedloop.cli_evaluate import require_log

@@ -143,7 +143,7 @@ def cmd_evaluate(args) -> int:
     from closedloop.evaluate import evaluate_model, table
     from closedloop.export import atomic_write_text, check_outputs
     from closedloop.loops.spec import parse_loop
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
 
     if not args.loop:
         raise InputError("evaluate: give the loops (--loop ...), as for calibrate")

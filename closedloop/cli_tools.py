@@ -87,7 +87,7 @@ def read_log_or_bag(path: str, robot, degrees: bool = False, bag_options=None):
 def cmd_extract(args) -> int:
     from closedloop.io.bags import ExtractOptions, extract, parse_windows
     from closedloop.export import refuse_overwrite
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
 
     if args.model:
         joints = RobotModel.from_file(args.model).joint_names

@@ -46,7 +46,7 @@ from closedloop.loops.base import Loop, LoopEval
 from closedloop.shared import key_fields, parameter_name
 
 if TYPE_CHECKING:
-    from closedloop.parameters import Parameter
+    from closedloop.model.parameters import Parameter
     from closedloop.problem import CalibrationProblem
 
 DEFAULT_SIGMA = 1e-5  # m: a machined or printed block's distance

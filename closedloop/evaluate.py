@@ -24,7 +24,7 @@ import numpy as np
 
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 
 
 @dataclass

@@ -24,7 +24,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import InputError, ModelError
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 
 
 #: the model file suffixes `write_model` writes for each input kind
@@ -351,7 +351,7 @@ def _rpy(R: np.ndarray) -> np.ndarray:
 
 def write_dh(robot: RobotModel, values: dict[str, float], out_path: str | Path) -> None:
     """Write the calibrated D-H table (same units as the input)."""
-    from closedloop.dh import dump_dh
+    from closedloop.model.dh import dump_dh
 
     refuse_overwrite(out_path, robot.source)
     atomic_write_text(out_path, dump_dh(robot.dh, values))

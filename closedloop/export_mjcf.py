@@ -29,7 +29,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ModelError
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 
 log = logging.getLogger(__name__)
 

@@ -24,7 +24,7 @@ import numpy as np
 from closedloop.io.logs import JointLog
 from closedloop.errors import ClosedLoopError
 from closedloop.loops.base import Loop
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 
 WORSE = 1.0  # held-out closure with the calibration above WORSE x the nominal model's (+ margin): suspect
 MARGIN = 0.10  # at least 10 % worse, and beyond two standard deviations of an RMS over the fixture's rows:

@@ -59,10 +59,10 @@ import numpy as np
 
 from closedloop.calibration import CalibrationOptions, CalibrationResult, calibrate
 from closedloop.io.logs import JointLog
-from closedloop.dh import LENGTH_UNITS, rot
+from closedloop.model.dh import LENGTH_UNITS, rot
 from closedloop.errors import ModelError, OptionError, ParameterError, SimulationError
 from closedloop.loops.base import Loop
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 
 INCH = LENGTH_UNITS["in"]
 

@@ -47,11 +47,11 @@ import numpy as np
 
 from closedloop.errors import LoopError
 from closedloop.loops.base import Loop, LoopEval
-from closedloop.parameters import DEFAULT_PRIORS
+from closedloop.model.parameters import DEFAULT_PRIORS
 
 if TYPE_CHECKING:
     from closedloop.problem import CalibrationProblem
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
 
 DEFAULT_SIGMA = 2e-5  # m: a caliper's reading
 LEAK_TOL = 1e-3  # relative size error from a 1 mm (1 mrad) error of what the loops cannot see

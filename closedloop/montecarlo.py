@@ -43,7 +43,7 @@ from closedloop.errors import ClosedLoopError
 from closedloop.loops.base import Loop
 from closedloop.observability import whitened_blocks
 from closedloop.problem import CalibrationProblem, LoopBlock
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 
 
 # --------------------------------------------------------------------------- scenario

@@ -35,9 +35,9 @@ import pinocchio as pin
 from closedloop.errors import LogError
 from closedloop.evaluation import BlockEval, Workspace, copy_eval, stack_chunks
 from closedloop.loops.base import Loop
-from closedloop.parameters import Parameter, RobotParameters, RobotState
-from closedloop.robot import RobotModel
-from closedloop.se3 import poses_from_adjoints
+from closedloop.model.parameters import Parameter, RobotParameters, RobotState
+from closedloop.model.robot import RobotModel
+from closedloop.model.se3 import poses_from_adjoints
 from closedloop.shared import loop_columns
 
 # What a parameter's Jacobian column is made of (`CalibrationProblem._role`).

@@ -17,7 +17,7 @@ import numpy as np
 
 from closedloop.errors import LogError, NotIdentifiableError, ParameterError
 from closedloop.identifiability import Dropped, loop_mobility
-from closedloop.parameters import match
+from closedloop.model.parameters import match
 from closedloop.problem import CalibrationProblem
 
 DEFAULT_IDENTIFY = {"urdf": ["placement", "offset", "loop"], "mjcf": ["placement", "offset", "loop"],

@@ -38,7 +38,7 @@ from closedloop.errors import LoopError
 
 if TYPE_CHECKING:
     from closedloop.loops.base import Loop
-    from closedloop.parameters import Parameter
+    from closedloop.model.parameters import Parameter
     from closedloop.problem import CalibrationProblem
 
 #: share key -> the parameter fields it names (a key 'camK' names every field 'camK.*')

@@ -15,7 +15,7 @@ import pinocchio as pin
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.synthetic import self_motion
 
 DEFAULT_MAGNITUDES = {"translation": 2e-3, "rotation": 2e-3, "offset": 0.02, "scale": 0.0}
@@ -45,7 +45,7 @@ def draw_truth(robot: RobotModel, names: list[str], rng: np.random.Generator,
     """True values of `names`: nominal + U(-m, m) with m by kind (scale: 1 + U(-m, m))."""
     mag = {**DEFAULT_MAGNITUDES, **(magnitudes or {})}
     joints = sorted({n.rsplit(".", 1)[0] for n in names}, key=robot.joint_names.index)
-    from closedloop.parameters import RobotParameters
+    from closedloop.model.parameters import RobotParameters
     rp = RobotParameters(robot, joints)
     out = {}
     for n in names:

@@ -36,7 +36,7 @@ from closedloop.errors import ParameterError
 from closedloop.evaluation import BlockEval
 from closedloop.loops.base import Loop
 from closedloop.montecarlo import unwrap
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 
 
 def subset(log_: JointLog, rows: np.ndarray) -> JointLog:

@@ -23,7 +23,7 @@ import numpy as np
 
 from closedloop.calibration import CalibrationOptions, calibrate
 from closedloop.loops import WeldLoop
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.truth import make_dataset
 
 URDF = Path(site.getsitepackages()[0]) / "cmeel.prefix/share/example-robot-data/robots/baxter_description/urdf/baxter.urdf"

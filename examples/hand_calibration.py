@@ -17,7 +17,7 @@ from closedloop.io.logs import JointLog
 from closedloop.hand import INCH, palm_frame_parameters, staged_calibration, table_4_1_path, thesis_hand_dataset, \
     thesis_stages
 from closedloop.loops.spec import default_loops
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 
 
 def main() -> None:

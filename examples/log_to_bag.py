@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from closedloop.io.logs import read_log
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 
 
 def trajectory(Q: np.ndarray, rate: float, hold: float, move: float):

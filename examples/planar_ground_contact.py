@@ -40,7 +40,7 @@ import numpy as np
 from closedloop.calibration import CalibrationOptions, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops.point import PointLoop
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 
 URDF = Path(__file__).resolve().parents[1] / "closedloop" / "models" / "planar3.urdf"
 NOMINAL = np.array([1.0, 0.8, 0.6])  # a1, a2, a3 of the URDF

@@ -17,8 +17,8 @@ import pinocchio as pin
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops.camera import CameraLoop
-from closedloop.robot import RobotModel
-from closedloop.se3 import vec_of
+from closedloop.model.robot import RobotModel
+from closedloop.model.se3 import vec_of
 from closedloop.sims.camera_scene import MARKER, head_urdf, mujoco_intrinsics, pan_towards
 from closedloop.truth import draw_truth
 from scratch import scratch_dir

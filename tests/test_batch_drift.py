@@ -11,7 +11,7 @@ from closedloop import CalibrationOptions, calibrate
 from closedloop.batch_drift import compare, gauge_record, in_gauge_of
 from closedloop.calibration import build_problem
 from closedloop.montecarlo import weld_scenario
-from closedloop.parameters import parse_fix
+from closedloop.model.parameters import parse_fix
 
 NOISE = 1e-5  # a good encoder: the standard errors are small beside a gauge change
 JOINT = "panda_joint4"

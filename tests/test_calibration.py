@@ -12,7 +12,7 @@ from closedloop.errors import NotIdentifiableError
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
 from closedloop.problem import CalibrationProblem, LoopBlock
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.synthetic import self_motion
 
 from support import closed_chain, dh_transform, geodesic

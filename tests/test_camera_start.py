@@ -12,7 +12,7 @@ from closedloop.calibration import build_problem
 from closedloop.io.logs import JointLog
 from closedloop.loops import camera_start
 from closedloop.loops.camera import CameraLoop
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 
 UR5 = site.getsitepackages()[0] + "/cmeel.prefix/share/example-robot-data/robots/ur_description/urdf/ur5_robot.urdf"
 K = np.array([600.0, 600.0, 319.5, 239.5])

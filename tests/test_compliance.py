@@ -16,7 +16,7 @@ import pytest
 from closedloop.calibration import CalibrationOptions, calibrate
 from closedloop.io.logs import read_log
 from closedloop.loops import WeldLoop
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.sims import simulate
 
 C = 2e-5

@@ -109,7 +109,7 @@ def test_poses_read_off_the_regressors_are_pinocchio_placements(panda, model):
     from pathlib import Path
 
     from closedloop.models import ROBOTS
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
 
     root = Path(__file__).resolve().parents[1] / "closedloop" / "models"
     robot = {"panda": panda, "dh_hand": RobotModel.from_file(root / "dh" / "utah_mit_thumb_finger.yaml"),
@@ -141,7 +141,7 @@ def test_poses_off_the_regressors_on_the_zoo(name, tmp_path):
     configurations within their limits and a perturbed parameter vector: the tool's pose read off its
     kinematic regressor is Pinocchio's placement to 1e-14."""
     import zoo
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
 
     path = tmp_path / "robot.urdf"
     path.write_text(zoo.perturb_urdf(zoo.chain_urdf(zoo.ZOO[name]), np.random.default_rng(1), 2e-3, 2e-3))

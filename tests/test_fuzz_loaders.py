@@ -142,7 +142,7 @@ def _only_input_errors(fn, *args):
 
 
 def dh_property(text: str) -> None:
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
 
     path = _DIR / "fuzz.yaml"
     path.write_text(text, encoding="utf-8", errors="surrogatepass")

@@ -15,7 +15,7 @@ from closedloop.gauge import kinematic_changes, random_configurations
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
 from closedloop.models import ROBOTS
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 
 TABLE = Path(__file__).resolve().parents[1] / "closedloop" / "models" / "dh" / "utah_mit_thumb_finger.yaml"
 

@@ -16,7 +16,7 @@ from closedloop.hand import (INCH, TABLE_4_1_FIXED, TABLE_4_2, _loop_problem, no
                              palm_frame_parameters, staged_calibration, thesis_hand_dataset, thesis_stages)
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.synthetic import self_motion
 from closedloop.truth import identifiable_names, make_dataset
 

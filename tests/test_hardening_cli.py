@@ -362,7 +362,7 @@ def panda_files(tmp_path_factory):
     """A mesh-free Panda and 30 exact weld configurations (two perturbed parameters)."""
     from closedloop.loops import WeldLoop
     from closedloop.models import nominal_urdf
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
     from closedloop.truth import make_dataset
 
     d = tmp_path_factory.mktemp("panda")

@@ -21,7 +21,7 @@ from closedloop.cli import main
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.models import ROBOTS
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.truth import make_dataset
 
 

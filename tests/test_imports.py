@@ -69,7 +69,7 @@ def test_written_urdf_origins_are_nominal_times_exp6_and_offset(tmp_path):
     """The edited XML gives Pinocchio exactly O exp6(p) Rot(axis, offset) and limits shifted by -offset."""
     from closedloop.export import write_urdf
     from closedloop.models import ROBOTS
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
 
     robot = RobotModel.from_file(ROBOTS["panda"].path)
     rng = np.random.default_rng(3)

@@ -9,7 +9,7 @@ import yaml
 
 from closedloop.loops import WeldLoop
 from closedloop.problem import CalibrationProblem, LoopBlock
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 
 
 def fd_check(robot, loop, joints, rng, h=1e-5):

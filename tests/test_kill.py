@@ -47,7 +47,7 @@ def make_calibration_inputs(d: Path) -> tuple[Path, Path, Path]:
     """A mesh-free Panda and two 30-row weld logs (different truths: different calibrated models)."""
     from closedloop.loops import WeldLoop
     from closedloop.models import nominal_urdf
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
     from closedloop.truth import make_dataset
 
     d.mkdir(parents=True, exist_ok=True)

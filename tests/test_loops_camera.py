@@ -14,8 +14,8 @@ from closedloop.errors import LoopError
 from closedloop.loops.camera import CameraLoop, camera_from_dlt, project
 from closedloop.loops.common import relative_point
 from closedloop.loops.spec import parse_loop
-from closedloop.robot import RobotModel
-from closedloop.se3 import vec_of
+from closedloop.model.robot import RobotModel
+from closedloop.model.se3 import vec_of
 from closedloop.truth import draw_truth
 
 ERD = site.getsitepackages()[0] + "/cmeel.prefix/share/example-robot-data/robots/"

@@ -16,7 +16,7 @@ from closedloop.loops.hinge import HingeLoop
 from closedloop.loops.passive import PassiveChainLoop
 from closedloop.loops.spec import parse_loop
 from closedloop.problem import CalibrationProblem, LoopBlock
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.synthetic import close, self_motion
 from closedloop.truth import draw_truth
 

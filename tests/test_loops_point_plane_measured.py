@@ -17,8 +17,8 @@ from closedloop.loops.plane import PlaneLoop
 from closedloop.loops.point import PointLoop
 from closedloop.loops.spec import parse_loop
 from closedloop.problem import CalibrationProblem, LoopBlock
-from closedloop.robot import RobotModel
-from closedloop.se3 import vec_of
+from closedloop.model.robot import RobotModel
+from closedloop.model.se3 import vec_of
 from closedloop.synthetic import self_motion
 from closedloop.truth import draw_truth, identifiable_names
 from support import relative_fk_error

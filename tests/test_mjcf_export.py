@@ -20,7 +20,7 @@ from closedloop.export import write_urdf
 from closedloop.export_mjcf import write_mjcf
 from closedloop.loops import WeldLoop
 from closedloop.models import nominal_urdf
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.truth import make_dataset
 
 Q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]
@@ -165,7 +165,7 @@ ARM = """<mujoco model="arm3">
 
 def test_degrees_euler_anchor_and_slide(tmp_path):
     """Any correction of a hand-written MJCF (degrees, euler/axis-angle bodies, an anchor, a slide joint)."""
-    from closedloop.parameters import RobotParameters
+    from closedloop.model.parameters import RobotParameters
 
     src = tmp_path / "arm3.xml"
     src.write_text(ARM)

@@ -169,7 +169,7 @@ def test_selection_halves_the_configurations_point_contact():
     criterion, which it does not optimise)."""
     from closedloop.loops import PointLoop
     from closedloop.models import ROBOTS
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
     from closedloop.truth import make_dataset
 
     robot = RobotModel.from_file(ROBOTS["ur5"].path)

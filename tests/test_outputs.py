@@ -17,7 +17,7 @@ from closedloop.cli import main
 from closedloop.export import write_urdf
 from closedloop.loops import WeldLoop
 from closedloop.models import nominal_urdf
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.truth import make_dataset
 
 Q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]

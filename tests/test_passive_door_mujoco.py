@@ -11,7 +11,7 @@ from closedloop.io.logs import read_log
 from closedloop.loops import PassiveChainLoop
 from closedloop.models import model_file
 from closedloop.report import build_report
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.sims import simulate
 
 

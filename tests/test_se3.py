@@ -1,4 +1,4 @@
-"""`closedloop.se3` by itself: the batched log3 / log6 / Jlog6 against Pinocchio's, pose by pose (moved
+"""`closedloop.model.se3` by itself: the batched log3 / log6 / Jlog6 against Pinocchio's, pose by pose (moved
 from test_se3_batched.py, assertions unchanged), the adjoints, inverses and charts against Pinocchio,
 the rigid and hand-eye fits, and the parsing of user poses and vectors."""
 
@@ -9,7 +9,7 @@ import pinocchio as pin
 import pytest
 
 from closedloop.errors import InputError, LoopError
-from closedloop.se3 import (adjoint, as_se3, generators, hand_eye, kabsch, log3, log6, parse_pose, parse_vec, pose_of,
+from closedloop.model.se3 import (adjoint, as_se3, generators, hand_eye, kabsch, log3, log6, parse_pose, parse_vec, pose_of,
                             project_so3, rigid_inverse, skew, vec3, vec_of)
 
 

@@ -40,7 +40,7 @@ from closedloop.check import check_report
 from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
 from closedloop.report import build_report
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.sims import SCENARIOS, simulate
 
 CASES = {  # scenario: (loop spec, max length error [m], max angle error [rad][, CalibrationOptions kwargs])

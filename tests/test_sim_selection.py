@@ -29,7 +29,7 @@ from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
 from closedloop.models import nominal_urdf
 from closedloop.report import build_report
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.sims import SCENARIOS, simulate
 from closedloop.sims.driver import NominalLoop
 from closedloop.sims.selection import bridge, order_path

@@ -15,7 +15,7 @@ from closedloop.calibration import CalibrationOptions, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.synthetic import self_motion
 from closedloop.truth import make_dataset
 

@@ -76,7 +76,7 @@ def make_dataset(workdir: Path, seed: int = 0) -> dict:
     import pinocchio as pin
 
     from closedloop.export import write_urdf
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
 
     rng = np.random.default_rng(seed)
     urdf = erd_robots() / "ur_description/urdf/ur10_robot.urdf"
@@ -146,7 +146,7 @@ def run_closedloop(urdf: Path, q: np.ndarray, m: np.ndarray, q_held: np.ndarray,
     from closedloop.calibration import CalibrationOptions, calibrate
     from closedloop.io.logs import JointLog
     from closedloop.loops import MeasuredPointLoop
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
 
     stages: dict[str, float] = {}
 

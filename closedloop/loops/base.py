@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from closedloop.parameters import Parameter
+from closedloop.model.parameters import Parameter
 
 
 @dataclass

@@ -34,10 +34,10 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import LoopError
-from closedloop.parameters import Parameter
+from closedloop.model.parameters import Parameter
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.camera_model import DIST_FIELDS, INTRINSIC_FIELDS, camera_from_dlt, dlt, project, project_lens  # noqa: F401
-from closedloop.se3 import as_se3, generators, pose_of, skew, vec3, vec_of
+from closedloop.model.se3 import as_se3, generators, pose_of, skew, vec3, vec_of
 from closedloop.loops.common import POSE_FIELDS, TIP_FIELDS, point_parameters, pose_parameters, relative_point
 
 PIXEL_COLS = ("u", "v")

@@ -19,8 +19,8 @@ from __future__ import annotations
 import numpy as np
 
 from closedloop.errors import InputError, LoopError
-from closedloop.robot import RobotModel
-from closedloop.se3 import parse_vec
+from closedloop.model.robot import RobotModel
+from closedloop.model.se3 import parse_vec
 from closedloop.loops.base import Loop
 from closedloop.loops.camera_model import DIST_FIELDS
 from closedloop.loops.spec import register

@@ -19,7 +19,7 @@ from functools import lru_cache
 import numpy as np
 import pinocchio as pin
 
-from closedloop.se3 import vec_of
+from closedloop.model.se3 import vec_of
 from closedloop.loops import common
 
 from closedloop.loops.camera import PLACEHOLDER_K

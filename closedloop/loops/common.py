@@ -1,6 +1,6 @@
 """Helpers shared by loop types: their parameter records, the relative point, refining a loop's own parameters.
 
-The SE(3) algebra and the parsing of user poses are in `closedloop.se3`.
+The SE(3) algebra and the parsing of user poses are in `closedloop.model.se3`.
 """
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ from typing import Callable
 import numpy as np
 import pinocchio as pin
 
-from closedloop.parameters import DEFAULT_PRIORS, Parameter
+from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
 from closedloop.errors import LoopError
-from closedloop.se3 import parse_vec, pose_of, skew
+from closedloop.model.se3 import parse_vec, pose_of, skew
 from closedloop.loops.base import LoopEval
 
 TIP_FIELDS = ("tip_x", "tip_y", "tip_z")

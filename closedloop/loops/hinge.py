@@ -68,8 +68,8 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import LoopError
-from closedloop.parameters import DEFAULT_PRIORS, Parameter
-from closedloop.se3 import adjoint, rigid_inverse
+from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
+from closedloop.model.se3 import adjoint, rigid_inverse
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.projection import BatchPoseFn, Elimination, eliminate, projector
 from closedloop.loops.spec import register

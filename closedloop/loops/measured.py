@@ -27,9 +27,9 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import LoopError
-from closedloop.parameters import Parameter
-from closedloop.robot import RobotModel
-from closedloop.se3 import as_se3, generators, hand_eye, kabsch, parse_vec, pose_of, skew, vec3, vec_of
+from closedloop.model.parameters import Parameter
+from closedloop.model.robot import RobotModel
+from closedloop.model.se3 import as_se3, generators, hand_eye, kabsch, parse_vec, pose_of, skew, vec3, vec_of
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.common import (POSE_FIELDS, TIP_FIELDS, opt_float, opt_pose, point_parameters, pose_parameters, refine_own,
                      relative_point)

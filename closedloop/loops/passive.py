@@ -16,7 +16,7 @@ unsensed.  The robot's tool frame A holds the task's frame F:
   chart would make it a curve near |r| = pi, along which the reduced problem
   has spurious distant solutions.
 * the task's joint placements, ``<loop>.<taskjoint>.x..rz``, with the right-
-  twist convention of `closedloop.parameters`: M_j = M0_j exp6(p_j),
+  twist convention of `closedloop.model.parameters`: M_j = M0_j exp6(p_j),
   generators Jexp6(p_j); the columns are Pinocchio's
   ``computeFrameKinematicRegressor`` (LOCAL) of the task model times them.
 * the grasp, the placement of F on its parent joint, ``<loop>.grasp.x..rz``:
@@ -50,9 +50,9 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import LoopError
-from closedloop.parameters import DEFAULT_PRIORS, PLACEMENT_FIELDS, Parameter
+from closedloop.model.parameters import DEFAULT_PRIORS, PLACEMENT_FIELDS, Parameter
 from closedloop.loops.base import Loop, LoopEval
-from closedloop.se3 import adjoint, rigid_inverse, skew
+from closedloop.model.se3 import adjoint, rigid_inverse, skew
 from closedloop.loops.projection import eliminate_along, projector
 from closedloop.loops.spec import register
 from closedloop.loops.weld import CLOSURE_FIELDS

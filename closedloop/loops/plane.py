@@ -6,9 +6,9 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import LoopError
-from closedloop.parameters import DEFAULT_PRIORS, Parameter
-from closedloop.robot import RobotModel
-from closedloop.se3 import parse_vec, skew, vec3
+from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
+from closedloop.model.robot import RobotModel
+from closedloop.model.se3 import parse_vec, skew, vec3
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.common import TIP_FIELDS, point_parameters, relative_point
 from closedloop.loops.spec import register

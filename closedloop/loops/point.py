@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from closedloop.errors import LoopError
-from closedloop.parameters import Parameter
-from closedloop.robot import RobotModel
-from closedloop.se3 import parse_vec, vec3
+from closedloop.model.parameters import Parameter
+from closedloop.model.robot import RobotModel
+from closedloop.model.se3 import parse_vec, vec3
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.common import POINT_FIELDS, TIP_FIELDS, point_parameters, relative_point
 from closedloop.loops.spec import register

@@ -24,7 +24,7 @@ The residual handed to the core is P r_i(phi_i*) with the projector
 which removes the directions the passive joints close; the reduced Jacobians are
 P dr/dx (see `hinge`'s docstring for the envelope-theorem argument).
 
-The SE(3) algebra is `closedloop.se3`'s batched log6 / Jlog6 / adjoint, which follow
+The SE(3) algebra is `closedloop.model.se3`'s batched log6 / Jlog6 / adjoint, which follow
 Pinocchio's formulas branch for branch.
 """
 
@@ -35,7 +35,7 @@ from typing import Callable
 
 import numpy as np
 
-from closedloop.se3 import adjoint, log6, rigid_inverse
+from closedloop.model.se3 import adjoint, log6, rigid_inverse
 
 #: pose(phi (n, nq)) -> X (n, 4, 4), dX/dphi as right twists (n, 6, k)
 BatchPoseFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]

@@ -29,7 +29,7 @@ from importlib import import_module
 from typing import Callable
 
 from closedloop.errors import InputError, LoopError
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 from closedloop.loops.base import Loop
 from closedloop.loops.weld import WeldLoop, parse_pose
 

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from closedloop.se3 import generators, skew
+from closedloop.model.se3 import generators, skew
 from closedloop.loops.base import LoopEval
 from closedloop.loops.camera_model import image_ray
 from closedloop.loops.common import relative_point

@@ -1,6 +1,6 @@
 """The weld loop: frame A is rigidly attached to frame B (thesis 3.3, 4.2.3).
 
-It runs on the batched SE(3) algebra of `closedloop.se3` (log6 with Jlog6 over
+It runs on the batched SE(3) algebra of `closedloop.model.se3` (log6 with Jlog6 over
 a stack of configurations, `rigid_inverse`, `adjoint`).
 """
 
@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from closedloop.parameters import Parameter
-from closedloop.se3 import adjoint, log6, parse_pose, rigid_inverse  # noqa: F401  (parse_pose: spec.py's)
+from closedloop.model.parameters import Parameter
+from closedloop.model.se3 import adjoint, log6, parse_pose, rigid_inverse  # noqa: F401  (parse_pose: spec.py's)
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.common import POSE_FIELDS, pose_parameters
 

@@ -244,7 +244,7 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
     import mujoco
 
     from closedloop.io.camera_info import CameraInfo, write_camera_info
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
 
     from closedloop.sims.scene import true_urdf
 

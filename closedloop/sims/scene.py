@@ -87,7 +87,7 @@ def true_urdf(nominal_urdf_path: Path, values: dict[str, float]) -> str:
     """The true robot's URDF text (placement errors applied, offsets not folded)."""
     try:
         from closedloop.export import write_urdf
-        from closedloop.robot import RobotModel
+        from closedloop.model.robot import RobotModel
     except ImportError:
         log.debug("closedloop.export not available; using sims.scene.apply_placement_errors")
         return apply_placement_errors(Path(nominal_urdf_path).read_text(), values)

@@ -94,7 +94,7 @@ def information_result(sc: Scenario, settings: SimSettings, nominal_path: Path, 
     """
     from closedloop.calibration import CalibrationOptions, calibrate
     from closedloop.io.logs import JointLog
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
 
     kind = sim_loop(sc.loop_type)
     loop = kind.core_loop(sc, nominal_path, sigma_t=None if kind.closed else settings.tracker_noise)

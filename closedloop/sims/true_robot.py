@@ -87,7 +87,7 @@ def identifiable_parameters(nominal_path, sc: Scenario, joint_names: list[str], 
     has no loop class for yet fall back to :func:`perturbable_parameters`.
     """
     from closedloop.calibration import CalibrationOptions
-    from closedloop.robot import RobotModel
+    from closedloop.model.robot import RobotModel
     from closedloop.truth import identifiable_names
 
     kind = sim_loop(sc.loop_type)

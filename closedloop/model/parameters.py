@@ -32,9 +32,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 
-from closedloop.dh import DHRow, rot
+from closedloop.model.dh import DHRow, rot
 from closedloop.errors import ParameterError
-from closedloop.robot import RobotModel
+from closedloop.model.robot import RobotModel
 
 PLACEMENT_FIELDS = ("x", "y", "z", "rx", "ry", "rz")
 

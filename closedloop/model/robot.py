@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from closedloop.dh import DHTable, load_dh
+from closedloop.model.dh import DHTable, load_dh
 from closedloop.errors import ModelError
 
 log = logging.getLogger(__name__)
