@@ -29,7 +29,7 @@ from machine import machine  # noqa: E402
 
 from closedloop import CalibrationOptions, RobotModel, calibrate  # noqa: E402
 from closedloop.io.logs import JointLog  # noqa: E402
-from closedloop.lengths import LengthLoop  # noqa: E402
+from closedloop.problem.lengths import LengthLoop  # noqa: E402
 from closedloop.loops.spec import parse_loop  # noqa: E402
 
 

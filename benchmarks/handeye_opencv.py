@@ -15,7 +15,7 @@ joint readings, the same noisy pixels of the same 20 points, and the board's geo
   board in the base together.
 * closedloop: one camera loop per board point (the point fixed in the world, the camera on tool0,
   ``camera:frame=universe,to=tool0,K1=..,sigma_px=0.3,cam1=@cam``), all sharing one camera pose
-  (`closedloop.shared`), the robot's placements and offsets identified with it.  Two variants:
+  (`closedloop.problem.shared`), the robot's placements and offsets identified with it.  Two variants:
   "scale held" (pixels alone: they do not see the overall size, thesis 5.4, so closedloop holds one
   robot length, elbow_joint.z, at its nominal value, 1-2 mm off) and "+ board geometry" (the board's 190
   point-to-point distances as `--distance` measurements, 10 um each: what OpenCV's solvePnP knows).
@@ -55,13 +55,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import load, machine  # noqa: E402
 
 from closedloop.calibration import CalibrationOptions, calibrate  # noqa: E402
-from closedloop.constraints import DistanceLoop  # noqa: E402
+from closedloop.problem.distances import DistanceLoop  # noqa: E402
 from closedloop.io.logs import JointLog  # noqa: E402
 from closedloop.loops.camera import CameraLoop  # noqa: E402
 from closedloop.models import example_robot_data_dir  # noqa: E402
 from closedloop.model.parameters import RobotParameters  # noqa: E402
 from closedloop.model.robot import RobotModel  # noqa: E402
-from closedloop.shared import share  # noqa: E402
+from closedloop.problem.shared import share  # noqa: E402
 
 K = np.array([600.0, 600.0, 319.5, 239.5])
 KM = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])

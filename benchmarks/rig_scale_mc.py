@@ -34,7 +34,7 @@ def main() -> None:
     import test_rigs as tr  # the rig helpers and the truth comparison of tests/test_rigs.py
 
     from closedloop import CalibrationOptions, calibrate
-    from closedloop.constraints import parse_blocks
+    from closedloop.problem.distances import parse_blocks
 
     z, task, t0 = [], [], time.perf_counter()
     for seed in range(a.draws):

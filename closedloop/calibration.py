@@ -33,7 +33,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from closedloop.constraints import annotate
+from closedloop.problem.distances import annotate
 from closedloop.io.logs import JointLog
 from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
 from closedloop.identifiability import Structure, analyse_structure, weak_directions
@@ -41,7 +41,7 @@ from closedloop.linearity import check_error_bars
 from closedloop.loops.base import Loop
 from closedloop.noise import noise_vector
 from closedloop.outliers import gross_outliers, readmit, reject_outliers
-from closedloop.problem import CalibrationProblem, LoopBlock
+from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.records import (CalibrationOptions, CalibrationResult, LoopResiduals, ParameterRecord, Rejected,
                       residual_stats)
 from closedloop.model.robot import RobotModel
@@ -88,7 +88,7 @@ def build_problem(robot: RobotModel, log_: JointLog, loops: list[Loop], priors: 
     numbers = np.arange(1, len(log_) + 1) if row_numbers is None else np.asarray(row_numbers)
     blocks = []
     for lp in loops:
-        if getattr(lp, "parameter_only", False):  # a known distance (closedloop.constraints): one row, no joint
+        if getattr(lp, "parameter_only", False):  # a known distance (closedloop.problem.distances): one row, no joint
             rows = np.arange(min(1, len(log_)))
         elif log_.loop is not None:
             rows = np.flatnonzero(log_.loop == lp.name)
@@ -204,7 +204,7 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
                             a["dof"], notes, a["cov"], fit.est, suspects, a["weighting"], gauge,
                             structure.gauge_note, structure.gauge_length, rejected, len(log_), fit.warnings)
     res.reducible = a["reducible"]
-    annotate(res, fit.sigma_q, structure.scale_free, opt.snr)  # what sets the scale, each loop's noise (closedloop.constraints)
+    annotate(res, fit.sigma_q, structure.scale_free, opt.snr)  # what sets the scale, each loop's noise (closedloop.problem.distances)
     res.profiles = check_error_bars(res, fit)  # a long fit: do its error bars hold? (closedloop.linearity)
     res.verdict = judge(res)
     return res

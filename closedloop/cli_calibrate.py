@@ -185,7 +185,7 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
     b, a = res.residuals_before, res.residuals_after
     import numpy as np
 
-    # a known distance (closedloop.constraints) is one residual row, no configuration, nothing held out
+    # a known distance (closedloop.problem.distances) is one residual row, no configuration, nothing held out
     blocks = res.problem.blocks
     distances = {bl.loop.name for bl in blocks if getattr(bl.loop, "parameter_only", False)}
     rows = [bl.rows for bl in blocks if bl.loop.name not in distances]

@@ -9,8 +9,8 @@ unknowns fitted unweighted (`closedloop.evaluate`), printed as a table (mean /
 RMS closure per loop, mm) and written with ``--report`` as JSON.
 
 Calibrate's rig options (`add_rig_options`, `rig_inputs`): ``--distance A B D
-[SIGMA]`` (a known distance between loop points, `closedloop.constraints`), ``--length FRAME_A
-FRAME_B L [SIGMA]`` (between two robot frames, `closedloop.lengths`), ``--block NAME
+[SIGMA]`` (a known distance between loop points, `closedloop.problem.distances`), ``--length FRAME_A
+FRAME_B L [SIGMA]`` (between two robot frames, `closedloop.problem.lengths`), ``--block NAME
 A.point=X,Y,Z ...`` (a rigid block of known shape), ``--joints j1,j2,...``
 (the column order of header-less logs), a loop's own log file
 (``--loop ...,log=FILE``; then no positional log), and leave-one-fixture-out
@@ -84,8 +84,8 @@ def _read_inputs(log_path: str | None, robot, loops: list, degrees: bool, order:
 
 def rig_inputs(args, robot, loops: list):
     """(log, loops + known distances and lengths) for calibrate."""
-    from closedloop.constraints import parse_blocks, parse_distances
-    from closedloop.lengths import parse_lengths
+    from closedloop.problem.distances import parse_blocks, parse_distances
+    from closedloop.problem.lengths import parse_lengths
 
     lg = read_inputs(args.log, robot, loops, args.degrees, _order(args))
     loops = (list(loops) + parse_distances(getattr(args, "distance", []) or [], loops)

@@ -51,7 +51,7 @@ def evaluate_model(robot: RobotModel, log_: JointLog, loops: list[Loop], values:
     """
     from closedloop.calibration import build_problem
     from closedloop.fit import plain_stage
-    from closedloop.shared import initial_shared
+    from closedloop.problem.shared import initial_shared
     from closedloop.solver import SolverOptions
 
     loops = [lp for lp in loops if not getattr(lp, "parameter_only", False)]

@@ -36,7 +36,7 @@ import numpy as np
 
 from closedloop.loops.base import Loop
 from closedloop.noise import whiten
-from closedloop.problem import BlockEval, CalibrationProblem
+from closedloop.problem.problem import BlockEval, CalibrationProblem
 from closedloop.solver import SolverOptions, SolverResult, levenberg_marquardt
 
 log = logging.getLogger(__name__)

@@ -32,7 +32,7 @@ import numpy as np
 import pinocchio as pin
 
 if TYPE_CHECKING:
-    from closedloop.problem import CalibrationProblem
+    from closedloop.problem.problem import CalibrationProblem
 
 N_CONFIGS = 32  # x 6 rows per loop frame: far more rows than the 7 + 6F rigid unknowns
 

@@ -286,7 +286,7 @@ def table_4_1_path():
 
 def _loop_problem(robot: RobotModel):
     from closedloop.loops.spec import default_loops
-    from closedloop.problem import CalibrationProblem, LoopBlock
+    from closedloop.problem.problem import CalibrationProblem, LoopBlock
 
     n = len(robot.joint_names)
     return CalibrationProblem(robot, robot.joint_names,

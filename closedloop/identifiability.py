@@ -39,7 +39,7 @@ STRUCTURE_ROWS = 768  # residual rows per loop the structural analysis reads (`c
 STRUCTURE_CONFIGS = (64, 512)  # the configurations that makes per loop: at least, at most
 
 if TYPE_CHECKING:
-    from closedloop.problem import CalibrationProblem
+    from closedloop.problem.problem import CalibrationProblem
 
 
 @dataclass

@@ -42,7 +42,7 @@ from closedloop.io.logs import JointLog
 from closedloop.errors import ClosedLoopError
 from closedloop.loops.base import Loop
 from closedloop.observability import whitened_blocks
-from closedloop.problem import CalibrationProblem, LoopBlock
+from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.model.robot import RobotModel
 
 

@@ -40,7 +40,7 @@ from closedloop.errors import ParameterError
 
 if TYPE_CHECKING:
     from closedloop.loops.base import Loop
-    from closedloop.problem import BlockEval, CalibrationProblem
+    from closedloop.problem.problem import BlockEval, CalibrationProblem
 
 __all__ = ["joint_variance_scale", "noise_vector", "whiten", "cholesky_inverse", "pinv_sqrt"]
 

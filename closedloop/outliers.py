@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from closedloop.fit import ResidualFunction, weighted_stage
-from closedloop.problem import CalibrationProblem
+from closedloop.problem.problem import CalibrationProblem
 from closedloop.records import Rejected
 from closedloop.robust import cauchy_weights, component_standardized, flagged, mad_scale, standardized
 from closedloop.robust import suspects as find_suspects
@@ -85,7 +85,7 @@ def _standardized(problem: CalibrationProblem, blocks: list[np.ndarray], known: 
         out = standardized(blocks, max(mad_scale(blocks), 1.0 if known else SCALE_FLOOR["rad"]))
     else:
         out = component_standardized(blocks, _floors(problem))
-    # a known distance (closedloop.constraints) is no configuration: never an outlier
+    # a known distance (closedloop.problem.distances) is no configuration: never an outlier
     return [np.zeros_like(d) if getattr(b.loop, "parameter_only", False) else d for d, b in zip(out, problem.blocks)]
 
 

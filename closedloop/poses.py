@@ -86,7 +86,7 @@ from closedloop.identifiability import greedy_reduction
 from closedloop.observability import resolve, whitened_blocks
 from closedloop.poses_design import Selection, detmax, greedy_d_optimal, information, trace_covariance
 from closedloop.poses_exchange import exchange_a
-from closedloop.problem import CalibrationProblem
+from closedloop.problem.problem import CalibrationProblem
 
 __all__ = ["Selection", "greedy_d_optimal", "detmax", "exchange_a", "information", "trace_covariance",
            "pool_blocks", "select_poses", "METHODS", "select_pools", "random_designs", "RandomDesigns"]

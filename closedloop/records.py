@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from closedloop.identifiability import Combination, Dropped
-from closedloop.problem import BlockEval, CalibrationProblem
+from closedloop.problem.problem import BlockEval, CalibrationProblem
 
 if TYPE_CHECKING:
     from closedloop.verdict import Verdict
@@ -122,9 +122,9 @@ class CalibrationResult:
     warnings: list[str] = field(default_factory=list)  # findings that make the result suspect
     profiles: list = field(default_factory=list)  # linearity.Profile: the error bars checked along the cost's profile
     verdict: Verdict | None = None
-    scale_note: str | None = None  # what sets the overall size (closedloop.constraints.annotate)
+    scale_note: str | None = None  # what sets the overall size (closedloop.problem.distances.annotate)
     scale_std: float = float("nan")  # relative standard error of the size, when a known distance sets it
-    length_response: float | None = None  # size change per change of the known frame lengths (closedloop.lengths)
+    length_response: float | None = None  # size change per change of the known frame lengths (closedloop.problem.lengths)
     length_leak: float | None = None  # size error per prior-sized error of what the loops cannot see, through them
     noise_model: list = field(default_factory=list)  # per loop: task vs joint noise (noise.noise_summary)
     reducible: float = 0.0  # share of the final cost one Gauss-Newton step would remove: ~0 at a minimum (NaN: bounds)

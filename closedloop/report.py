@@ -76,7 +76,7 @@ def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict
         "gauge": {"length_scale_set_by": res.gauge, "stands_for_length_m": res.gauge_length or None,
                   "note": res.gauge_note, "scale": getattr(res, "scale_note", None),
                   "scale_std_relative": _f(getattr(res, "scale_std", None)),
-                  # known lengths between frames (closedloop.lengths): size change per change of them, and
+                  # known lengths between frames (closedloop.problem.lengths): size change per change of them, and
                   # the size error a 1 mm / 1 mrad error of what the loops cannot see makes through them
                   "length_response": _f(getattr(res, "length_response", None)),
                   "length_held_leak": _f(getattr(res, "length_leak", None))},
@@ -97,7 +97,7 @@ def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict
 
 
 def _shared(prob) -> dict[str, list[str]]:
-    """Parameters read by several loops (closedloop.shared) -> the loops that read them."""
+    """Parameters read by several loops (closedloop.problem.shared) -> the loops that read them."""
     out: dict[str, list[str]] = {}
     for b, cols in zip(prob.blocks, prob.loop_columns):
         for k in cols:

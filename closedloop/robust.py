@@ -51,7 +51,7 @@ import numpy as np
 
 from closedloop.errors import OptionError
 from closedloop.noise import noise_vector, whiten
-from closedloop.problem import CalibrationProblem
+from closedloop.problem.problem import CalibrationProblem
 
 if TYPE_CHECKING:
     from closedloop.calibration import CalibrationResult

@@ -18,7 +18,7 @@ import numpy as np
 from closedloop.errors import LogError, NotIdentifiableError, ParameterError
 from closedloop.identifiability import Dropped, loop_mobility
 from closedloop.model.parameters import match
-from closedloop.problem import CalibrationProblem
+from closedloop.problem.problem import CalibrationProblem
 
 DEFAULT_IDENTIFY = {"urdf": ["placement", "offset", "loop"], "mjcf": ["placement", "offset", "loop"],
                     "dh": ["theta_off", "s", "a", "alpha", "loop"]}
@@ -27,7 +27,7 @@ MIN_RANGE = 1e-6  # a joint whose readings span less than this never moves
 
 def initial_values(problem: CalibrationProblem, initial: dict[str, float]) -> np.ndarray:
     """Nominal values; loop unknowns from the data at the nominal robot; then the user's guesses."""
-    from closedloop.shared import initial_shared  # shared loop parameters: the mean of the loops' estimates
+    from closedloop.problem.shared import initial_shared  # shared loop parameters: the mean of the loops' estimates
 
     x0 = problem.nominal
     inits = [problem.initialize_loop(x0, bi) if cols.size else None

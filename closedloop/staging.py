@@ -20,7 +20,7 @@ import numpy as np
 from closedloop.errors import ParameterError
 from closedloop.fit import ResidualFunction, StageResult, plain_stage, random_start, unweighted_closure, weighted_stage
 from closedloop.identifiability import Structure, analyse_structure, closure_jacobian, structure_holds
-from closedloop.problem import CalibrationProblem
+from closedloop.problem.problem import CalibrationProblem
 from closedloop.records import CalibrationOptions
 from closedloop.solver import SolverOptions, scaled_svd
 from closedloop.variance import measurement_row_weights, task_blocks, variance_components

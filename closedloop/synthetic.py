@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from closedloop.errors import NotIdentifiableError
-from closedloop.problem import CalibrationProblem
+from closedloop.problem.problem import CalibrationProblem
 
 
 def close(problem: CalibrationProblem, values: np.ndarray, theta: np.ndarray, block: int = 0,

@@ -107,7 +107,7 @@ def make_dataset(robot: RobotModel, loop: Loop, theta0: np.ndarray, n: int, rng:
     `initialize` on the true model).  Readings follow the sensor model of
     eq. 4.4 inverted: reading = (theta' - theta_off) / k, plus N(0, noise).
     """
-    from closedloop.problem import CalibrationProblem, LoopBlock
+    from closedloop.problem.problem import CalibrationProblem, LoopBlock
 
     theta0 = np.atleast_2d(np.asarray(theta0, dtype=float))
     names = perturb if perturb is not None else identifiable_names(robot, [loop], theta0)

@@ -33,7 +33,7 @@ from closedloop.calibration import CalibrationOptions, CalibrationResult, build_
 from closedloop.noise import noise_vector, whiten
 from closedloop.io.logs import JointLog
 from closedloop.errors import ParameterError
-from closedloop.evaluation import BlockEval
+from closedloop.problem.blocks import BlockEval
 from closedloop.loops.base import Loop
 from closedloop.montecarlo import unwrap
 from closedloop.model.robot import RobotModel

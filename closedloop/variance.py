@@ -31,7 +31,7 @@ from closedloop.noise import joint_variance_scale
 
 if TYPE_CHECKING:
     from closedloop.loops.base import Loop
-    from closedloop.problem import BlockEval, CalibrationProblem
+    from closedloop.problem.problem import BlockEval, CalibrationProblem
 
 __all__ = ["parse_sigma", "set_task_noise", "task_blocks", "variance_components", "noise_summary", "noise_notes"]
 

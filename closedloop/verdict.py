@@ -209,7 +209,7 @@ def judge(result: CalibrationResult, validation: dict | None = None,
         v.add(FAILED, f"the solver did not converge ({result.solver_message})")
     else:
         _minimum(result, rules, v)
-    # a known distance (closedloop.constraints) is a measurement, not a closure that calibration must improve
+    # a known distance (closedloop.problem.distances) is a measurement, not a closure that calibration must improve
     own = [not getattr(b.loop, "parameter_only", False) for b in result.problem.blocks]
     _closure([r for r, k in zip(result.residuals_before, own) if k],
              [r for r, k in zip(result.residuals_after, own) if k], v)

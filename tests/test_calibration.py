@@ -11,7 +11,7 @@ from closedloop.io.logs import JointLog
 from closedloop.errors import NotIdentifiableError
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
-from closedloop.problem import CalibrationProblem, LoopBlock
+from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.model.robot import RobotModel
 from closedloop.synthetic import self_motion
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import closedloop.problem as problem_module
+import closedloop.problem.problem as problem_module
 from closedloop import RobotModel
 from closedloop.calibration import build_problem
 from closedloop.io.logs import JointLog

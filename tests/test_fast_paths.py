@@ -9,7 +9,7 @@ import pytest
 from closedloop.identifiability import project_to_closure
 from closedloop.noise import cholesky_inverse, whiten
 from closedloop.loops import WeldLoop
-from closedloop.problem import CalibrationProblem, LoopBlock
+from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.qr import r_factor
 
 

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from closedloop.loops import WeldLoop
-from closedloop.problem import CalibrationProblem, LoopBlock
+from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.model.robot import RobotModel
 
 

@@ -1,4 +1,4 @@
-"""A known length between two robot frames (issue 18 item 2, `closedloop.lengths`) on the ball-and-socket rig.
+"""A known length between two robot frames (issue 18 item 2, `closedloop.problem.lengths`) on the ball-and-socket rig.
 
 The truth (examples/ball_socket_rig.py) perturbs every joint origin in its parent frame, so the frames' positions
 along their joint axes, which no loop can see, are off too: a length that depends on them cannot set the size
@@ -15,7 +15,7 @@ import pytest
 
 from closedloop import CalibrationOptions, calibrate
 from closedloop.errors import LoopError
-from closedloop.lengths import LengthLoop, parse_lengths
+from closedloop.problem.lengths import LengthLoop, parse_lengths
 from test_rigs import SIGMA_TASK, _loops, _setup, scale_error
 
 

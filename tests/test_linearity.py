@@ -7,7 +7,7 @@ import numpy as np
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.io.logs import JointLog
-from closedloop.lengths import LengthLoop
+from closedloop.problem.lengths import LengthLoop
 from closedloop.linearity import HOLDS, K, profile
 from closedloop.loops.spec import parse_loop
 

@@ -343,7 +343,7 @@ def test_residual_stats_in_pixels():
     from types import SimpleNamespace
 
     from closedloop.calibration import residual_stats
-    from closedloop.problem import BlockEval
+    from closedloop.problem.problem import BlockEval
 
     loop = CameraLoop("cam", "tool0", cameras=2)
     r = np.array([[3.0, 4.0, 0.0, 0.0], [0.0, 0.0, 6.0, 8.0]])

@@ -186,7 +186,7 @@ def test_residual_stats_ignore_missing_views():
     """The report's pixel statistics pool only the image points that were seen."""
     from types import SimpleNamespace
 
-    from closedloop.problem import BlockEval
+    from closedloop.problem.problem import BlockEval
     from closedloop.records import residual_stats
 
     loop = CameraLoop("cam", "tool0", camera_frames=FRAMES)

@@ -15,7 +15,7 @@ from closedloop.errors import LoopError
 from closedloop.loops.hinge import HingeLoop
 from closedloop.loops.passive import PassiveChainLoop
 from closedloop.loops.spec import parse_loop
-from closedloop.problem import CalibrationProblem, LoopBlock
+from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.model.robot import RobotModel
 from closedloop.synthetic import close, self_motion
 from closedloop.truth import draw_truth

@@ -16,7 +16,7 @@ from closedloop.loops.measured import MeasuredPointLoop, MeasuredPoseLoop
 from closedloop.loops.plane import PlaneLoop
 from closedloop.loops.point import PointLoop
 from closedloop.loops.spec import parse_loop
-from closedloop.problem import CalibrationProblem, LoopBlock
+from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import vec_of
 from closedloop.synthetic import self_motion

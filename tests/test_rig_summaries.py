@@ -14,7 +14,7 @@ import pytest
 from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.io.camera_info import camera_infos_from_result
 from closedloop.cli_calibrate import print_summary
-from closedloop.constraints import DistanceLoop
+from closedloop.problem.distances import DistanceLoop
 from closedloop.io.logs import JointLog
 from closedloop.html_report import robot_corrections
 from closedloop.loops.spec import parse_loop

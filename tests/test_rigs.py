@@ -14,7 +14,7 @@ import pinocchio as pin
 import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
-from closedloop.constraints import DistanceLoop
+from closedloop.problem.distances import DistanceLoop
 from closedloop.io.logs import JointLog
 from closedloop.evaluate import evaluate_result
 from closedloop.export import tool_frames, write_model
@@ -273,7 +273,7 @@ def test_block_of_three_sockets_sets_scale(tmp_path):
     (seed 0: -0.02 % against +-0.10 %), the report naming the blocks; the estimated sockets keep the
     block's shape.  Through the command line the same."""
     from closedloop.cli import main
-    from closedloop.constraints import parse_blocks
+    from closedloop.problem.distances import parse_blocks
     from closedloop.errors import LoopError
 
     rig, robot, log = _setup(tmp_path, seed=0, n=20, places=3, sigma_task=SIGMA_TASK, sigma_q=2e-5, block=BLOCK)

@@ -11,7 +11,7 @@ import pytest
 
 from closedloop import RobotModel
 from closedloop.calibration import build_problem
-from closedloop.constraints import DistanceLoop
+from closedloop.problem.distances import DistanceLoop
 from closedloop.io.logs import JointLog, read_log, read_loop_logs
 from closedloop.errors import InputError, LogError, LoopError
 from closedloop.loops.spec import parse_loop
@@ -150,7 +150,7 @@ def _two_tracker_mc(draws: int, monkeypatch=None) -> float:
     from closedloop.loops.measured import MeasuredPointLoop
     from closedloop.loops.point import relative_point
     from closedloop.models import example_robot_data_dir
-    from closedloop.shared import share
+    from closedloop.problem.shared import share
     from closedloop.truth import draw_truth
 
     robot = RobotModel.from_file(example_robot_data_dir() / "ur_description/urdf/ur10_robot.urdf")
@@ -210,7 +210,7 @@ def _two_camera_data(sigma_px: float | None = None):
     from test_loops_camera import K1, K2, UR5, X1, X2, pixels, robot_of, ur5_readings
 
     from closedloop.loops.camera import CameraLoop
-    from closedloop.shared import share
+    from closedloop.problem.shared import share
     from closedloop.truth import draw_truth
 
     robot = robot_of(UR5)

@@ -308,7 +308,7 @@ class Case:
 
     def true_distance(self, frame_a: str, frame_b: str) -> float:
         """The true distance between two frames at zero readings (the true model at the true offsets): what a
-        caliper between them measures (`closedloop.lengths.LengthLoop`)."""
+        caliper between them measures (`closedloop.problem.lengths.LengthLoop`)."""
         tm = self.true_model
         td = tm.createData()
         q = pin.neutral(tm)

@@ -164,7 +164,7 @@ def run_closedloop(urdf: Path, q: np.ndarray, m: np.ndarray, q_held: np.ndarray,
     loop = prob.blocks[0].loop
     cols = [JOINTS.index(j) for j in prob.joints]
     # the held-out configurations with zero measurements: residual = prediction - 0 (loops hold no data)
-    from closedloop.problem import CalibrationProblem, LoopBlock
+    from closedloop.problem.problem import CalibrationProblem, LoopBlock
 
     held = CalibrationProblem(prob.robot, prob.joints, [LoopBlock(loop, q_held[:, cols], np.arange(1, len(q_held) + 1),
                                                                   None, np.zeros((len(q_held), 3)))], prob.priors)

@@ -10,7 +10,7 @@ Every loop has a name (default: its type) used to name its parameters.
 Keys every loop type takes:
 
     tip=@ball              ``KEY=@GROUP``: the loop's unknowns of KEY are the shared group GROUP's
-                           (one tool at many fixtures; ``closedloop.shared``; keys tip, point, normal,
+                           (one tool at many fixtures; ``closedloop.problem.shared``; keys tip, point, normal,
                            closure, base, tool, hinge, camK)
     fixture=place1         the fixture the loop belongs to (leave-one-fixture-out validation groups by it)
     log=place1_a.csv       this loop's own log file (header-less with --joints): one file per fixture
@@ -115,7 +115,7 @@ def parse_loop(spec: str, robot: RobotModel) -> Loop:
             raise LoopError(f"--loop {spec}: expected key=value, got '{item}'")
         key = key.strip()
         val = val.strip().strip('"').strip("'")
-        if val.startswith("@"):  # a shared group (closedloop.shared); checked on the loop below
+        if val.startswith("@"):  # a shared group (closedloop.problem.shared); checked on the loop below
             shares[key] = val[1:]
             continue
         if key == "sigma_task":
@@ -137,7 +137,7 @@ def parse_loop(spec: str, robot: RobotModel) -> Loop:
         loop.log_path = generic["log"]
     if shares or task is not None:
         from closedloop.variance import set_task_noise
-        from closedloop.shared import share
+        from closedloop.problem.shared import share
 
         try:
             for key, group in shares.items():

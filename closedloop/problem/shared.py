@@ -39,7 +39,7 @@ from closedloop.errors import LoopError
 if TYPE_CHECKING:
     from closedloop.loops.base import Loop
     from closedloop.model.parameters import Parameter
-    from closedloop.problem import CalibrationProblem
+    from closedloop.problem.problem import CalibrationProblem
 
 #: share key -> the parameter fields it names (a key 'camK' names every field 'camK.*')
 SHARE_KEYS: dict[str, tuple[str, ...]] = {

@@ -8,7 +8,7 @@ as a measurement,
     r = |p_a - p_b| - d,        W = sigma^2,
 
 one row whose parameters are the two loops' points (shared columns,
-`closedloop.shared`): ``front_a.point`` is the contact point of loop front_a
+`closedloop.problem.shared`): ``front_a.point`` is the contact point of loop front_a
 (px, py, pz), ``front_a.tip`` its tool point.  Both points must be in the same
 frame (the world for two sockets).  Jacobian: dr/dp_a = u^T, dr/dp_b = -u^T,
 u = (p_a - p_b) / |p_a - p_b|.  The row is weighted by 1/sigma like a tracker's
@@ -43,11 +43,11 @@ import numpy as np
 
 from closedloop.errors import LoopError
 from closedloop.loops.base import Loop, LoopEval
-from closedloop.shared import key_fields, parameter_name
+from closedloop.problem.shared import key_fields, parameter_name
 
 if TYPE_CHECKING:
     from closedloop.model.parameters import Parameter
-    from closedloop.problem import CalibrationProblem
+    from closedloop.problem.problem import CalibrationProblem
 
 DEFAULT_SIGMA = 1e-5  # m: a machined or printed block's distance
 FIELDS = ("a_x", "a_y", "a_z", "b_x", "b_y", "b_z")
@@ -239,10 +239,10 @@ def annotate(res, sigma_q: np.ndarray, scale_free: bool, snr: float = 1.0) -> No
     """Add what sets the scale (with the size's standard error) and each loop's noise model to a result.
 
     Sets `res.scale_note`, `res.scale_std` (relative), `res.length_response` (known lengths between
-    frames, `closedloop.lengths`) and `res.noise_model`
+    frames, `closedloop.problem.lengths`) and `res.noise_model`
     (`variance.noise_summary`), and appends their sentences to `res.notes`.
     """
-    from closedloop.lengths import length_blocks, length_findings
+    from closedloop.problem.lengths import length_blocks, length_findings
     from closedloop.variance import noise_notes, noise_summary
 
     problem = res.problem

@@ -33,12 +33,12 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import LogError
-from closedloop.evaluation import BlockEval, Workspace, copy_eval, stack_chunks
+from closedloop.problem.blocks import BlockEval, Workspace, copy_eval, stack_chunks
 from closedloop.loops.base import Loop
 from closedloop.model.parameters import Parameter, RobotParameters, RobotState
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import poses_from_adjoints
-from closedloop.shared import loop_columns
+from closedloop.problem.shared import loop_columns
 
 # What a parameter's Jacobian column is made of (`CalibrationProblem._role`).
 _GEOMETRY, _OFFSET, _SCALE, _COMPLIANCE, _LOOP = range(5)
@@ -118,7 +118,7 @@ class CalibrationProblem:
         self.noise = noise if noise is not None else [BlockNoise.of(b.loop) for b in blocks]
         self.rp = RobotParameters(robot, self.joints, priors)
         self.params: list[Parameter] = list(self.rp.params)
-        # Each loop's parameters as an index map into the one vector (closedloop.shared: a parameter
+        # Each loop's parameters as an index map into the one vector (closedloop.problem.shared: a parameter
         # shared by several loops is one column); `loop_slices` the same as slices where contiguous
         # (always, unless loops share), else the index arrays.
         self.loop_columns, new = loop_columns([b.loop for b in blocks], len(self.params),

@@ -50,7 +50,7 @@ from closedloop.loops.base import Loop, LoopEval
 from closedloop.model.parameters import DEFAULT_PRIORS
 
 if TYPE_CHECKING:
-    from closedloop.problem import CalibrationProblem
+    from closedloop.problem.problem import CalibrationProblem
     from closedloop.model.robot import RobotModel
 
 DEFAULT_SIGMA = 2e-5  # m: a caliper's reading
@@ -153,7 +153,7 @@ def size_response(problem: CalibrationProblem, x: np.ndarray, est: list[int], si
     """
     from closedloop.fit import ResidualFunction
     from closedloop.gauge import size_per_parameter
-    from closedloop.problem import CalibrationProblem as Problem
+    from closedloop.problem.problem import CalibrationProblem as Problem
 
     idx = length_blocks(problem)
     if not idx or not any(k < problem.n_robot for k in est):
@@ -207,7 +207,7 @@ def held_leak(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> tu
     the known lengths, and the parameter that carries most of it (module docstring); (0, None) without."""
     from closedloop.gauge import kinematic_changes, random_configurations, scale_content
     from closedloop.identifiability import closure_jacobian
-    from closedloop.problem import CalibrationProblem as Problem
+    from closedloop.problem.problem import CalibrationProblem as Problem
 
     idx = length_blocks(problem)
     if not idx or not free:
