@@ -9,7 +9,7 @@ self-motion configurations of a random true Panda (1,000 distinct ones, tiled
 with fresh 1e-4 rad noise for larger sizes).
 
 Thread modes: `1` (single-threaded), `default` (the BLAS libraries' own
-setting), `auto` (`closedloop.threads.blas_threads(None, rows, cols)`, what the
+setting), `auto` (`closedloop.estimate.threads.blas_threads(None, rows, cols)`, what the
 library chooses).  `--loaded` repeats everything while one busy process per
 CPU keeps the cores busy (bounded in time, killed afterwards).  `kernel`: the
 median kernel CPU of a run (page faults), part of `cpu tot`; `--reuse-memory`
@@ -67,7 +67,7 @@ def run_once(robot, log: JointLog, mode: str) -> tuple[float, float, float, floa
 
     loops = [WeldLoop("fixture", "panda_hand")]
     if mode == "auto":
-        from closedloop.threads import blas_threads
+        from closedloop.estimate.threads import blas_threads
 
         def call():
             with blas_threads(None, 6 * len(log), 7 * len(log.joints) + 6):

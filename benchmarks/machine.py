@@ -107,7 +107,7 @@ def timed(fn, *args, **kwargs):
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """--threads (modes) and --loaded, for every benchmark script."""
     ap.add_argument("--threads", nargs="+", default=list(THREAD_MODES), choices=["1", "2", "4", "default", "auto"],
-                    help="BLAS thread modes to run (default: 1 and default; auto: closedloop.threads chooses)")
+                    help="BLAS thread modes to run (default: 1 and default; auto: closedloop.estimate.threads chooses)")
     ap.add_argument("--loaded", action="store_true",
                     help="also run while one busy process per CPU keeps the cores busy (bounded, killed after)")
 

@@ -1,7 +1,7 @@
 """Default weighting against the unweighted fit on held-out places, over seeds (issue 18, contact noise).
 
 tests/test_rigs.py `test_contact_default_no_worse_than_unweighted_heldout` (seed 0) compares the default
-(task noise estimated beside the joint noise, pooled when the loops agree, `closedloop.variance`) with
+(task noise estimated beside the joint noise, pooled when the loops agree, `closedloop.estimate.variance`) with
 ``--weighting none`` on held-out places.  Over seeds: noise or a bias?  Each seed draws a rig as the test's
 (three places, two sockets 50 mm apart, 0.2 mm play, 2e-5 rad joint noise, the three distances known),
 runs leave-one-place-out with both weightings (and with the true noise model given, sigma_task=0.2mm)

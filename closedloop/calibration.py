@@ -39,15 +39,15 @@ from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifi
 from closedloop.identifiability import Structure, analyse_structure, weak_directions
 from closedloop.linearity import check_error_bars
 from closedloop.loops.base import Loop
-from closedloop.noise import noise_vector
-from closedloop.outliers import gross_outliers, readmit, reject_outliers
+from closedloop.estimate.noise import noise_vector
+from closedloop.estimate.outliers import gross_outliers, readmit, reject_outliers
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.records import (CalibrationOptions, CalibrationResult, LoopResiduals, ParameterRecord, Rejected,
                       residual_stats)
 from closedloop.model.robot import RobotModel
 from closedloop.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
-from closedloop.solver import reducible_share, rms, scaled_svd
-from closedloop.staging import Fit, Progress, recheck_at_solution, solve_from_starts, solve_staged, solve_with_restarts
+from closedloop.estimate.lm import reducible_share, rms, scaled_svd
+from closedloop.estimate.staged import Fit, Progress, recheck_at_solution, solve_from_starts, solve_staged, solve_with_restarts
 from closedloop.verdict import judge
 
 __all__ = ["CalibrationOptions", "CalibrationResult", "LoopResiduals", "ParameterRecord", "Rejected",
@@ -155,7 +155,7 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
 
     BLAS threads are limited for the call by problem size (`threads.blas_threads`).
     """
-    from closedloop.threads import blas_threads
+    from closedloop.estimate.threads import blas_threads
 
     opt = options or CalibrationOptions()
     with blas_threads(opt.threads, 6 * len(log_), 6 * len(robot.joint_names) + 6):
@@ -247,7 +247,7 @@ def solve_screened(problem: CalibrationProblem, x0: np.ndarray, free: list[int],
     fit = solve_with_restarts(problem, x0, structure.kept, opt, sigma_q, known, rng, progress, fit,
                               structure.nearly_redundant(problem.index))
     if opt.robust in ("huber", "cauchy"):
-        from closedloop.outliers import irls_fit
+        from closedloop.estimate.outliers import irls_fit
 
         fit, suspects = irls_fit(problem, fit, opt, notes)
     fit, structure, recheck_notes = recheck_at_solution(problem, fit, structure, free, x0, opt, progress)

@@ -50,9 +50,9 @@ def evaluate_model(robot: RobotModel, log_: JointLog, loops: list[Loop], values:
     Only the loops' own unknowns are fitted (unweighted), the robot is held.
     """
     from closedloop.calibration import build_problem
-    from closedloop.fit import plain_stage
+    from closedloop.estimate.stages import plain_stage
     from closedloop.problem.shared import initial_shared
-    from closedloop.solver import SolverOptions
+    from closedloop.estimate.lm import SolverOptions
 
     loops = [lp for lp in loops if not getattr(lp, "parameter_only", False)]
     problem = build_problem(robot, log_, loops)

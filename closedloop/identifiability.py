@@ -32,8 +32,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from closedloop.gauge import choose_gauge, sets_scale
-from closedloop.noise import cholesky_inverse
-from closedloop.qr import r_factor, scaled_r_factor_of_blocks
+from closedloop.estimate.noise import cholesky_inverse
+from closedloop.estimate.qr import r_factor, scaled_r_factor_of_blocks
 
 STRUCTURE_ROWS = 768  # residual rows per loop the structural analysis reads (`closure_jacobian`), whole configurations
 STRUCTURE_CONFIGS = (64, 512)  # the configurations that makes per loop: at least, at most

@@ -33,8 +33,8 @@ from typing import Callable
 
 import numpy as np
 
-from closedloop.fit import ResidualFunction
-from closedloop.solver import SolverOptions, levenberg_marquardt
+from closedloop.estimate.stages import ResidualFunction
+from closedloop.estimate.lm import SolverOptions, levenberg_marquardt
 
 log = logging.getLogger(__name__)
 

@@ -246,7 +246,7 @@ def unwrap(problem: CalibrationProblem, values: np.ndarray, ref: np.ndarray) -> 
 def cramer_rao(problem: CalibrationProblem, truth: np.ndarray, params: list[int], noise,
                thetas: list[np.ndarray] | None = None) -> np.ndarray:
     """(sum_i J_i^T W_i^-1 J_i)^-1 over `params` at `truth` (physical units)."""
-    from closedloop.noise import noise_vector
+    from closedloop.estimate.noise import noise_vector
 
     sigma_q, _ = noise_vector(problem, noise)
     blocks = whitened_blocks(problem, truth, params, sigma_q, "noise", thetas, scaled=False)
@@ -257,7 +257,7 @@ def cramer_rao(problem: CalibrationProblem, truth: np.ndarray, params: list[int]
 def sandwich_unweighted(problem: CalibrationProblem, truth: np.ndarray, params: list[int], noise,
                         thetas: list[np.ndarray] | None = None) -> np.ndarray:
     """First-order covariance of the unweighted estimator, (J^T J)^-1 J^T W J (J^T J)^-1."""
-    from closedloop.noise import noise_vector
+    from closedloop.estimate.noise import noise_vector
 
     sigma_q, _ = noise_vector(problem, noise)
     evals = problem.evaluate(truth, True, thetas)

@@ -47,7 +47,7 @@ class CalibrationOptions:
     restarts: int = 4
     seed: int = 0
     outlier_alpha: float = 0.01
-    threads: int | None = None  # BLAS threads for the call (closedloop.threads); None: by problem size
+    threads: int | None = None  # BLAS threads for the call (closedloop.estimate.threads); None: by problem size
 
 
 @dataclass

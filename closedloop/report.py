@@ -16,7 +16,7 @@ from closedloop.export import atomic_write_text
 def _chi2_sf(x: float, dof: int) -> float:
     """P(chi2_dof > x), the chi-square test's p-value (scipy.stats.chi2.sf(x, dof) in plain Python,
     `robust.stats`: importing scipy.special costs ~0.25 s, scipy.stats ~0.4 s)."""
-    from closedloop.robust import stats
+    from closedloop.estimate.robust import stats
 
     return stats.chi2.sf(x, dof)
 

@@ -30,7 +30,7 @@ from typing import Any, Callable
 import numpy as np
 
 from closedloop.calibration import CalibrationOptions, CalibrationResult, build_problem, calibrate, residual_stats
-from closedloop.noise import noise_vector, whiten
+from closedloop.estimate.noise import noise_vector, whiten
 from closedloop.io.logs import JointLog
 from closedloop.errors import ParameterError
 from closedloop.problem.blocks import BlockEval
@@ -118,7 +118,7 @@ def holdout(robot: RobotModel, train: JointLog, test: JointLog, loops: list[Loop
     res = calibrate(robot, train, loops, opt)
     noise = opt.noise if opt.noise is not None else (res.sigma if opt.weighting == "noise" else None)
     if noise is not None and not isinstance(noise, dict) and noise <= 0.0:
-        # joint noise estimated at zero beside a measurement's (closedloop.noise): W_i is that covariance alone
+        # joint noise estimated at zero beside a measurement's (closedloop.estimate.noise): W_i is that covariance alone
         noise = float(np.finfo(float).tiny)
     own = [rj.row - 1 for rj in res.rejected]  # `Rejected.row`: 1-based rows of `train`
     pred = closure_residuals(res, robot, test, loops, noise, skip_test)

@@ -66,9 +66,9 @@ def test_solver_returns_the_problem_chart(tmp_path):
     from closedloop import RobotModel, read_log
     from closedloop.calibration import build_problem
     from closedloop.selection import initial_values
-    from closedloop.fit import ResidualFunction, unweighted_closure
+    from closedloop.estimate.stages import ResidualFunction, unweighted_closure
     from closedloop.loops.spec import parse_loop
-    from closedloop.solver import SolverOptions, levenberg_marquardt
+    from closedloop.estimate.lm import SolverOptions, levenberg_marquardt
 
     ex = te.door()
     robot = RobotModel.from_file(te.write_table(ex, ex.rows, tmp_path / "door.yaml"))

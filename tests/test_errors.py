@@ -11,7 +11,7 @@ from closedloop.cli import main
 
 def test_tree_and_builtin_compatibility(tmp_path):
     from closedloop.models import nominal_urdf
-    from closedloop.robust import default_c
+    from closedloop.estimate.robust import default_c
     from closedloop.sims import simulate
 
     with pytest.raises(errors.UnknownScenarioError) as info:

@@ -100,7 +100,7 @@ def test_large_jacobian_evaluation_keeps_its_residual_and_jq(monkeypatch):
 def test_whitening_by_chunks_and_in_place_is_the_whole(monkeypatch):
     """`noise.whiten` forms W_i^-1/2 and the whitened rows `_CHUNK` configurations at a time, the Jacobian in
     place with `overwrite`: the same numbers as all at once, for both square roots."""
-    import closedloop.noise as noise_module
+    import closedloop.estimate.noise as noise_module
 
     problem, x = _weld_problem(4, 23)
     sigma = np.full(7, 1e-4)

@@ -7,10 +7,10 @@ import pinocchio as pin
 import pytest
 
 from closedloop.identifiability import project_to_closure
-from closedloop.noise import cholesky_inverse, whiten
+from closedloop.estimate.noise import cholesky_inverse, whiten
 from closedloop.loops import WeldLoop
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
-from closedloop.qr import r_factor
+from closedloop.estimate.qr import r_factor
 
 
 def _problem(panda, frame_b="universe", n=30, tau=False, seed=0):

@@ -1,4 +1,4 @@
-"""Imports paid only by what uses them (issue 17), and BLAS thread control (closedloop.threads).
+"""Imports paid only by what uses them (issue 17), and BLAS thread control (closedloop.estimate.threads).
 
 `import closedloop` and a calibration of a URDF load no scipy at all (scipy.stats / special /
 optimize / linalg), no trimesh or yourdfpy, no matplotlib or mujoco, no camera code; the lazy
@@ -100,7 +100,7 @@ def test_chi2_in_plain_python_equals_scipy_stats():
     from scipy import stats as sst
 
     from closedloop.report import _chi2_sf
-    from closedloop.robust import stats as plain
+    from closedloop.estimate.robust import stats as plain
 
     for m in (1, 2, 3, 5, 6, 27, 1173, 594_000):
         for p in (0.5, 0.05, 1e-4, 1e-9, 0.999):
@@ -118,7 +118,7 @@ def test_chi2_in_plain_python_equals_scipy_stats():
 def test_blas_threads_choose_restore_and_never_raise_the_users_limit():
     from threadpoolctl import threadpool_limits
 
-    from closedloop.threads import THREADED_WORK, blas_threads, choose_threads, current_threads
+    from closedloop.estimate.threads import THREADED_WORK, blas_threads, choose_threads, current_threads
 
     before = current_threads()
     with blas_threads(None, 6000, 28) as k:

@@ -496,7 +496,7 @@ def _ur10_tracker_experiment(noise_q: float, sigma_t: float, seed: int, N: int =
 
 def test_tracker_noise_given_joint_noise_estimated_noise_free_joints():
     """Joints noise free, tracker noise given: the joint level is estimated near zero (variance
-    components, closedloop.noise), so the weighting is the tracker's own and the default fit predicts
+    components, closedloop.estimate.noise), so the weighting is the tracker's own and the default fit predicts
     held-out configurations as well as plain least squares (it used to read the tracker noise as joint
     noise and predict 4x worse)."""
     out = _ur10_tracker_experiment(0.0, 1e-5, seed=5)

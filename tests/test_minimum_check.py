@@ -15,8 +15,8 @@ import pytest
 
 from closedloop import CalibrationOptions, JointLog, WeldLoop, calibrate
 from closedloop.calibration import analyse_solution
-from closedloop.fit import ResidualFunction, StageResult
-from closedloop.staging import Fit
+from closedloop.estimate.stages import ResidualFunction, StageResult
+from closedloop.estimate.staged import Fit
 from closedloop.verdict import judge
 
 

@@ -1,11 +1,11 @@
-"""Joint-noise level beside a known measurement noise (closedloop.noise): synthetic residuals."""
+"""Joint-noise level beside a known measurement noise (closedloop.estimate.noise): synthetic residuals."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from closedloop.noise import joint_variance_scale
+from closedloop.estimate.noise import joint_variance_scale
 
 
 def draw(rng, s, c, N=3000, m=3, nj=6):

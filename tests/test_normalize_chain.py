@@ -7,7 +7,7 @@ import numpy as np
 
 from closedloop.calibration import build_problem, initial_values
 from closedloop.io.logs import JointLog
-from closedloop.fit import ResidualFunction
+from closedloop.estimate.stages import ResidualFunction
 from closedloop.loops import WeldLoop
 
 

@@ -1,4 +1,4 @@
-"""The robust refit's passes may wander; it keeps the pass whose median closure is least (closedloop.outliers).
+"""The robust refit's passes may wander; it keeps the pass whose median closure is least (closedloop.estimate.outliers).
 
 A case a new user met: the xArm7 from example-robot-data clamped to a fixture (MuJoCo, 1e-4 rad of reading
 noise), 14 of its 100 rows with joint4 read 0.1 rad off.  The reweighted passes had all 14 among 18 flagged

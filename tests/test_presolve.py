@@ -9,7 +9,7 @@ import logging
 import numpy as np
 import pytest
 
-import closedloop.fit as fit_module
+import closedloop.estimate.stages as fit_module
 from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
@@ -45,7 +45,7 @@ def test_presolved_fit_is_the_whole_logs_fit(long_log, whole, monkeypatch, caplo
     panda, ds, log = long_log
     loops = [WeldLoop("fixture", "panda_hand")]
     _presolve_above(monkeypatch, 1000, 150)
-    with caplog.at_level(logging.INFO, logger="closedloop.fit"):
+    with caplog.at_level(logging.INFO, logger="closedloop.estimate.stages"):
         pre = calibrate(panda, log, loops, CalibrationOptions())
     assert any("solved on 150 configurations" in m for m in caplog.messages)  # the presolve ran
     assert whole.verdict.status == pre.verdict.status == "ok"
@@ -72,7 +72,7 @@ def test_a_sample_that_does_not_converge_is_not_used(long_log, whole, monkeypatc
         return res
 
     monkeypatch.setattr(fit_module, "levenberg_marquardt", failing_on_samples)
-    with caplog.at_level(logging.INFO, logger="closedloop.fit"):
+    with caplog.at_level(logging.INFO, logger="closedloop.estimate.stages"):
         pre = calibrate(panda, log, loops, CalibrationOptions())
     assert any("did not converge cleanly" in m for m in caplog.messages)
     est = np.array(whole.estimated)

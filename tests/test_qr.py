@@ -1,11 +1,11 @@
-"""`closedloop.qr`: the triangular factors against numpy's QR, chunked and not, with and without LAPACK's dgeqrf."""
+"""`closedloop.estimate.qr`: the triangular factors against numpy's QR, chunked and not, with and without LAPACK's dgeqrf."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-import closedloop.qr as qr
+import closedloop.estimate.qr as qr
 
 
 def _same_triangle(R, R_ref):

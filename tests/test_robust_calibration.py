@@ -68,8 +68,8 @@ def test_screen_scale_is_the_same_for_either_whitening_root():
     """The outlier screen's scale (MAD of the whitened closures' components) on Gaussian closures with
     correlated, unequal covariances W_i: the inverse Cholesky factor (what the screen uses) and the symmetric
     root W_i^-1/2 both give the noise's scale, within the MAD's own sampling error."""
-    from closedloop.noise import cholesky_inverse, pinv_sqrt
-    from closedloop.robust import mad_scale
+    from closedloop.estimate.noise import cholesky_inverse, pinv_sqrt
+    from closedloop.estimate.robust import mad_scale
 
     rng = np.random.default_rng(5)
     A = rng.normal(size=(3000, 6, 7)) * rng.uniform(0.1, 3.0, (3000, 1, 7))
@@ -90,7 +90,7 @@ def test_long_log_refit_on_a_sample(panda, data, monkeypatch):
     """A log longer than ROBUST_ROWS: the robust refit runs on an evenly spaced sample, every row is screened
     at its solution; the corrupted rows are rejected and the fit predicts as the clean fit on the rows kept
     (16 % corrupted rows of 200, the refit on 100)."""
-    from closedloop import outliers
+    from closedloop.estimate import outliers
 
     ds, train, held_out = data
     rng = np.random.default_rng(5)

@@ -7,7 +7,7 @@ every one of them went through the robust refit."""
 from __future__ import annotations
 
 import closedloop.montecarlo as mc_module
-import closedloop.outliers as outliers
+import closedloop.estimate.outliers as outliers
 from closedloop.montecarlo import monte_carlo, weld_scenario
 
 

@@ -196,7 +196,7 @@ def test_shared_readings_whitened_together(monkeypatch):
     together the standard errors match the Monte Carlo spread (40 draws: 1.01), whitened apart they
     understate it (1.43)."""
     together = _two_tracker_mc(40)
-    import closedloop.noise as noise_mod
+    import closedloop.estimate.noise as noise_mod
 
     monkeypatch.setattr(noise_mod, "_config_groups", lambda evals: [])
     apart = _two_tracker_mc(40)
@@ -275,7 +275,7 @@ def test_two_cameras_shared_marker_monte_carlo(monkeypatch):
     ratio, z2 = _two_camera_mc(40)
     assert 0.8 < ratio < 1.25, ratio
     assert 0.8 < z2 < 1.25, z2
-    import closedloop.noise as noise_mod
+    import closedloop.estimate.noise as noise_mod
 
     monkeypatch.setattr(noise_mod, "_config_groups", lambda evals: [])
     assert _two_camera_mc(40)[1] > 1.15

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from closedloop.qr import r_factor
-from closedloop.solver import SolverOptions, levenberg_marquardt, scaled_svd
+from closedloop.estimate.qr import r_factor
+from closedloop.estimate.lm import SolverOptions, levenberg_marquardt, scaled_svd
 
 
 def _tall(rng: np.random.Generator, m: int = 5000, n: int = 27, cond: float = 1e6) -> np.ndarray:

@@ -17,7 +17,7 @@ Keys every loop type takes:
     sigma_task=0.2mm       the loop's own task-space noise (contact play, tracker noise) on its
                            translation rows, isotropic or per axis (0.1/0.1/0.3mm), added to the joint
                            noise; ``sigma_task=auto`` estimates it (a variance component),
-                           ``sigma_task=0`` turns it off (``closedloop.variance``)
+                           ``sigma_task=0`` turns it off (``closedloop.estimate.variance``)
 
 Vectors may be written without spaces or quotes: ``tip=[0.01,0,0.1]`` (commas inside brackets do not
 split the spec) as well as ``tip="0.01 0 0.1"``.
@@ -136,7 +136,7 @@ def parse_loop(spec: str, robot: RobotModel) -> Loop:
     if "log" in generic:
         loop.log_path = generic["log"]
     if shares or task is not None:
-        from closedloop.variance import set_task_noise
+        from closedloop.estimate.variance import set_task_noise
         from closedloop.problem.shared import share
 
         try:

@@ -243,7 +243,7 @@ def annotate(res, sigma_q: np.ndarray, scale_free: bool, snr: float = 1.0) -> No
     (`variance.noise_summary`), and appends their sentences to `res.notes`.
     """
     from closedloop.problem.lengths import length_blocks, length_findings
-    from closedloop.variance import noise_notes, noise_summary
+    from closedloop.estimate.variance import noise_notes, noise_summary
 
     problem = res.problem
     note = scale_note(problem, res.gauge, scale_free)

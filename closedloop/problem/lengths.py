@@ -151,7 +151,7 @@ def size_response(problem: CalibrationProblem, x: np.ndarray, est: list[int], si
     scaling every known length by 1 + STEP makes; its size change is
     c^T dx with c the size change per parameter (`gauge.size_per_parameter`).
     """
-    from closedloop.fit import ResidualFunction
+    from closedloop.estimate.stages import ResidualFunction
     from closedloop.gauge import size_per_parameter
     from closedloop.problem.problem import CalibrationProblem as Problem
 

@@ -48,7 +48,7 @@ from typing import Callable
 
 import numpy as np
 
-from closedloop.qr import scaled_r_factor
+from closedloop.estimate.qr import scaled_r_factor
 
 log = logging.getLogger(__name__)
 

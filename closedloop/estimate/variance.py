@@ -6,7 +6,7 @@ not in the joints.  A loop's closure then has the covariance
     W_i = s J_theta,i D^2 J_theta,i^T + C_i + v_l T,
 
 the errors-in-variables term of the joint noise (thesis eq. 3.17 weighted;
-`closedloop.noise`), a known measurement covariance C_i (a tracker's) and the
+`closedloop.estimate.noise`), a known measurement covariance C_i (a tracker's) and the
 loop's own task-space variance v_l on its translation rows (T).  A loop's
 ``sigma_task`` fixes v_l; ``sigma_task=auto`` (the default for point and plane
 loops when several share the robot) estimates it with s from the fitted
@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from closedloop.errors import ParameterError
-from closedloop.noise import joint_variance_scale
+from closedloop.estimate.noise import joint_variance_scale
 
 if TYPE_CHECKING:
     from closedloop.loops.base import Loop

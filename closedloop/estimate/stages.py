@@ -35,9 +35,9 @@ from typing import Callable
 import numpy as np
 
 from closedloop.loops.base import Loop
-from closedloop.noise import whiten
+from closedloop.estimate.noise import whiten
 from closedloop.problem.problem import BlockEval, CalibrationProblem
-from closedloop.solver import SolverOptions, SolverResult, levenberg_marquardt
+from closedloop.estimate.lm import SolverOptions, SolverResult, levenberg_marquardt
 
 log = logging.getLogger(__name__)
 

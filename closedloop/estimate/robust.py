@@ -50,7 +50,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from closedloop.errors import OptionError
-from closedloop.noise import noise_vector, whiten
+from closedloop.estimate.noise import noise_vector, whiten
 from closedloop.problem.problem import CalibrationProblem
 
 if TYPE_CHECKING:

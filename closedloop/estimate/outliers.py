@@ -24,16 +24,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from closedloop.fit import ResidualFunction, weighted_stage
+from closedloop.estimate.stages import ResidualFunction, weighted_stage
 from closedloop.problem.problem import CalibrationProblem
 from closedloop.records import Rejected
-from closedloop.robust import cauchy_weights, component_standardized, flagged, mad_scale, standardized
-from closedloop.robust import suspects as find_suspects
-from closedloop.robust import weights as robust_weights
-from closedloop.solver import SolverOptions
+from closedloop.estimate.robust import cauchy_weights, component_standardized, flagged, mad_scale, standardized
+from closedloop.estimate.robust import suspects as find_suspects
+from closedloop.estimate.robust import weights as robust_weights
+from closedloop.estimate.lm import SolverOptions
 
 if TYPE_CHECKING:
-    from closedloop.staging import Fit
+    from closedloop.estimate.staged import Fit
     from closedloop.records import CalibrationOptions
 
 log = logging.getLogger(__name__)
@@ -150,7 +150,7 @@ def _screen_weighting(problem: CalibrationProblem) -> str:
     An unweighted fit screened on its raw closures flags clean configurations where the Jacobian
     amplifies the joint noise: on the Monte Carlo weld (200 configurations, 1e-4 rad), every unweighted
     calibration went through the robust refit and 7 of 20 rejected one or two clean rows."""
-    from closedloop.variance import task_blocks
+    from closedloop.estimate.variance import task_blocks
 
     return "none" if task_blocks(problem) else "noise"
 

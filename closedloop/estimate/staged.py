@@ -18,12 +18,12 @@ from typing import Callable
 import numpy as np
 
 from closedloop.errors import ParameterError
-from closedloop.fit import ResidualFunction, StageResult, plain_stage, random_start, unweighted_closure, weighted_stage
+from closedloop.estimate.stages import ResidualFunction, StageResult, plain_stage, random_start, unweighted_closure, weighted_stage
 from closedloop.identifiability import Structure, analyse_structure, closure_jacobian, structure_holds
 from closedloop.problem.problem import CalibrationProblem
 from closedloop.records import CalibrationOptions
-from closedloop.solver import SolverOptions, scaled_svd
-from closedloop.variance import measurement_row_weights, task_blocks, variance_components
+from closedloop.estimate.lm import SolverOptions, scaled_svd
+from closedloop.estimate.variance import measurement_row_weights, task_blocks, variance_components
 
 log = logging.getLogger(__name__)
 Progress = Callable[[str, int, float], None]
@@ -82,7 +82,7 @@ def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray,
     xs, iters = start[est], 0
     b = None
     if opt.weighting == "noise" and task_blocks(problem):
-        # the loops' task-space noise (closedloop.variance) is first read off the plain fit's residual: a
+        # the loops' task-space noise (closedloop.estimate.variance) is first read off the plain fit's residual: a
         # weighted fit with the joint noise alone (given far too small) can run off before it is estimated
         a = plain_stage(problem, base, xs, est, scale, sopt, prog)
         iters += a.solution.iterations
@@ -111,7 +111,7 @@ def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray,
                                 and any(nz.measurement_cov is not None for nz in problem.noise)) or bool(tasks)
     if joint_beside_measurement:
         # The ratio of joint to measurement noise sets the weights: estimate the joint level and the
-        # loops' task-space noise (closedloop.variance) at the fit, re-solve with them, until they settle.
+        # loops' task-space noise (closedloop.estimate.variance) at the fit, re-solve with them, until they settle.
         pattern, s_prev, joint_given = sigma_q.copy(), None, known
         start_e = start[est]
         for _ in range(4):
