@@ -59,7 +59,7 @@ def gauge_record(res) -> dict[str, Any]:
     """What drift needs of a calibration: every parameter (name, kind, value, estimated or not), the
     covariance of the estimated ones, and the information matrix G = J^T W J of the whitened closure
     Jacobian over all parameters at the solution (prior-scaled columns; P x P, whatever the log's size)."""
-    from closedloop.observability import resolve, whitened_blocks
+    from closedloop.analysis.observability import resolve, whitened_blocks
 
     P = len(res.problem.params)
     problem, vals, idx, sigma_q = resolve(res, None, list(range(P)))

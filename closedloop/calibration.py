@@ -36,8 +36,8 @@ import numpy as np
 from closedloop.problem.distances import annotate
 from closedloop.io.logs import JointLog
 from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
-from closedloop.identifiability import Structure, analyse_structure, weak_directions
-from closedloop.linearity import check_error_bars
+from closedloop.analysis.identifiability import Structure, analyse_structure, weak_directions
+from closedloop.analysis.linearity import check_error_bars
 from closedloop.loops.base import Loop
 from closedloop.estimate.noise import noise_vector
 from closedloop.estimate.outliers import gross_outliers, readmit, reject_outliers
@@ -45,7 +45,7 @@ from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.records import (CalibrationOptions, CalibrationResult, LoopResiduals, ParameterRecord, Rejected,
                       residual_stats)
 from closedloop.model.robot import RobotModel
-from closedloop.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
+from closedloop.analysis.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
 from closedloop.estimate.lm import reducible_share, rms, scaled_svd
 from closedloop.estimate.staged import Fit, Progress, recheck_at_solution, solve_from_starts, solve_staged, solve_with_restarts
 from closedloop.verdict import judge
@@ -205,7 +205,7 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
                             structure.gauge_note, structure.gauge_length, rejected, len(log_), fit.warnings)
     res.reducible = a["reducible"]
     annotate(res, fit.sigma_q, structure.scale_free, opt.snr)  # what sets the scale, each loop's noise (closedloop.problem.distances)
-    res.profiles = check_error_bars(res, fit)  # a long fit: do its error bars hold? (closedloop.linearity)
+    res.profiles = check_error_bars(res, fit)  # a long fit: do its error bars hold? (closedloop.analysis.linearity)
     res.verdict = judge(res)
     return res
 

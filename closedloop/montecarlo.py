@@ -41,7 +41,7 @@ from closedloop.calibration import CalibrationOptions, build_problem, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.errors import ClosedLoopError
 from closedloop.loops.base import Loop
-from closedloop.observability import whitened_blocks
+from closedloop.analysis.observability import whitened_blocks
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.model.robot import RobotModel
 

@@ -82,8 +82,8 @@ import numpy as np
 
 from closedloop.calibration import CalibrationResult
 from closedloop.errors import OptionError
-from closedloop.identifiability import greedy_reduction
-from closedloop.observability import resolve, whitened_blocks
+from closedloop.analysis.identifiability import greedy_reduction
+from closedloop.analysis.observability import resolve, whitened_blocks
 from closedloop.poses_design import Selection, detmax, greedy_d_optimal, information, trace_covariance
 from closedloop.poses_exchange import exchange_a
 from closedloop.problem.problem import CalibrationProblem

@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from closedloop.identifiability import Combination, Dropped
+from closedloop.analysis.identifiability import Combination, Dropped
 from closedloop.problem.problem import BlockEval, CalibrationProblem
 
 if TYPE_CHECKING:

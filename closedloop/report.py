@@ -80,7 +80,7 @@ def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict
                   # the size error a 1 mm / 1 mrad error of what the loops cannot see makes through them
                   "length_response": _f(getattr(res, "length_response", None)),
                   "length_held_leak": _f(getattr(res, "length_leak", None))},
-        # a long fit's error bars checked along the cost's profile (closedloop.linearity); [] when not checked
+        # a long fit's error bars checked along the cost's profile (closedloop.analysis.linearity); [] when not checked
         "error_bars": [{"direction": p.name, "std": p.std, "rise": list(p.rise), "expected_rise": p.expected,
                         "holds": p.holds} for p in getattr(res, "profiles", [])],
         "noise_model": list(getattr(res, "noise_model", [])),  # per loop: task-space vs joint noise

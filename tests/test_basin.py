@@ -79,9 +79,9 @@ def test_door_nearly_redundant_parameters_are_named():
     exact redundancies (~1e-16) are not among `Structure.nearly_redundant`."""
     from closedloop import CalibrationOptions, RobotModel, read_log
     from closedloop.calibration import build_problem
-    from closedloop.identifiability import analyse_structure
+    from closedloop.analysis.identifiability import analyse_structure
     from closedloop.loops.spec import default_loops, parse_loop
-    from closedloop.selection import check_motion, initial_values, select_parameters
+    from closedloop.analysis.selection import check_motion, initial_values, select_parameters
 
     ex = te.door()
     wd = scratch_dir("door_")

@@ -12,7 +12,7 @@ from closedloop.calibration import build_problem
 from closedloop.io.logs import JointLog
 from closedloop.loops.spec import parse_loop
 from closedloop.models import ROBOTS
-from closedloop.selection import initial_values
+from closedloop.analysis.selection import initial_values
 from test_loop_state import Q0, SPECS
 
 
@@ -45,7 +45,7 @@ def test_structure_on_a_sample_is_the_whole(monkeypatch):
     """The structural analysis reads a sample of each loop's configurations (`identifiability.STRUCTURE_ROWS`):
     on 700 noisy self-motion configurations of a Panda weld, the default sample (128 of them, evenly spaced) and
     the fewest allowed (64) give the same reduction, gauge and calibrated values as all 700."""
-    import closedloop.identifiability as ident
+    import closedloop.analysis.identifiability as ident
     from closedloop import CalibrationOptions, calibrate
     from closedloop.loops import WeldLoop
     from closedloop.truth import make_dataset

@@ -6,7 +6,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from closedloop.identifiability import project_to_closure
+from closedloop.analysis.identifiability import project_to_closure
 from closedloop.estimate.noise import cholesky_inverse, whiten
 from closedloop.loops import WeldLoop
 from closedloop.problem.problem import CalibrationProblem, LoopBlock

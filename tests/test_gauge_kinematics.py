@@ -11,7 +11,7 @@ import pytest
 
 from closedloop.calibration import build_problem
 from closedloop.io.logs import JointLog
-from closedloop.gauge import kinematic_changes, random_configurations
+from closedloop.analysis.gauge import kinematic_changes, random_configurations
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
 from closedloop.models import ROBOTS

@@ -1,4 +1,4 @@
-"""The error bars checked along the cost's profile (`closedloop.linearity`): exact on a linear problem, failing on
+"""The error bars checked along the cost's profile (`closedloop.analysis.linearity`): exact on a linear problem, failing on
 a curved valley, and on the weakly determined weld where the linearised standard errors were 3-10x too small."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import numpy as np
 from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.problem.lengths import LengthLoop
-from closedloop.linearity import HOLDS, K, profile
+from closedloop.analysis.linearity import HOLDS, K, profile
 from closedloop.loops.spec import parse_loop
 
 

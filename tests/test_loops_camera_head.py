@@ -17,7 +17,7 @@ from camera_head_support import FRAMES, K_TRUE, MARKER, MOUNT, head_case, head_r
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.errors import LoopError
-from closedloop.gauge import length_of
+from closedloop.analysis.gauge import length_of
 from closedloop.loops.camera import CameraLoop
 from closedloop.loops.spec import parse_loop
 

@@ -5,7 +5,7 @@ import pytest
 
 from closedloop import CalibrationOptions, calibrate
 from closedloop.montecarlo import self_motion_manifold, weld_scenario
-from closedloop.observability import indices_from_singular_values, observability
+from closedloop.analysis.observability import indices_from_singular_values, observability
 from closedloop.poses import (detmax, exchange_a, greedy_d_optimal, information, pool_blocks, select_poses,
                               trace_covariance)
 

@@ -15,7 +15,7 @@ from closedloop.problem.distances import DistanceLoop
 from closedloop.io.logs import JointLog, read_log, read_loop_logs
 from closedloop.errors import InputError, LogError, LoopError
 from closedloop.loops.spec import parse_loop
-from closedloop.selection import initial_values
+from closedloop.analysis.selection import initial_values
 
 ROOT = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("ball_socket_rig", ROOT / "examples" / "ball_socket_rig.py")

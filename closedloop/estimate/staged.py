@@ -19,7 +19,7 @@ import numpy as np
 
 from closedloop.errors import ParameterError
 from closedloop.estimate.stages import ResidualFunction, StageResult, plain_stage, random_start, unweighted_closure, weighted_stage
-from closedloop.identifiability import Structure, analyse_structure, closure_jacobian, structure_holds
+from closedloop.analysis.identifiability import Structure, analyse_structure, closure_jacobian, structure_holds
 from closedloop.problem.problem import CalibrationProblem
 from closedloop.records import CalibrationOptions
 from closedloop.estimate.lm import SolverOptions, scaled_svd

@@ -227,7 +227,7 @@ def scale_std(problem: CalibrationProblem, x: np.ndarray, est: list[int], cov: n
 
     c_k: the size change per unit of estimated parameter k (`gauge.size_per_parameter`).
     """
-    from closedloop.gauge import size_per_parameter
+    from closedloop.analysis.gauge import size_per_parameter
 
     if not any(k < problem.n_robot for k in est) or cov.size == 0:
         return float("nan")

@@ -152,7 +152,7 @@ def size_response(problem: CalibrationProblem, x: np.ndarray, est: list[int], si
     c^T dx with c the size change per parameter (`gauge.size_per_parameter`).
     """
     from closedloop.estimate.stages import ResidualFunction
-    from closedloop.gauge import size_per_parameter
+    from closedloop.analysis.gauge import size_per_parameter
     from closedloop.problem.problem import CalibrationProblem as Problem
 
     idx = length_blocks(problem)
@@ -205,8 +205,8 @@ def length_findings(res, sigma_q: np.ndarray, snr: float) -> tuple[str, list[str
 def held_leak(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> tuple[float, str | None]:
     """The relative size error a HELD_ERROR (1 mm, 1 mrad) error of what the loops cannot see makes through
     the known lengths, and the parameter that carries most of it (module docstring); (0, None) without."""
-    from closedloop.gauge import kinematic_changes, random_configurations, scale_content
-    from closedloop.identifiability import closure_jacobian
+    from closedloop.analysis.gauge import kinematic_changes, random_configurations, scale_content
+    from closedloop.analysis.identifiability import closure_jacobian
     from closedloop.problem.problem import CalibrationProblem as Problem
 
     idx = length_blocks(problem)

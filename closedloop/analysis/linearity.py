@@ -152,7 +152,7 @@ def check_error_bars(res, fit) -> list[Profile]:
         return []
     if res.sigma_estimated and not res.sigma > EXACT:  # exact data: error bars of round-off, nothing to check
         return []
-    from closedloop.gauge import size_per_parameter
+    from closedloop.analysis.gauge import size_per_parameter
 
     problem, est = res.problem, list(res.estimated)
     make = lambda: replace(fit.stage.fun, x0=res.values.copy())  # noqa: E731  (fresh: no cached weights)

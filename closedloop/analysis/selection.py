@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from closedloop.errors import LogError, NotIdentifiableError, ParameterError
-from closedloop.identifiability import Dropped, loop_mobility
+from closedloop.analysis.identifiability import Dropped, loop_mobility
 from closedloop.model.parameters import match
 from closedloop.problem.problem import CalibrationProblem
 

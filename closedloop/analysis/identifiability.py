@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from closedloop.gauge import choose_gauge, sets_scale
+from closedloop.analysis.gauge import choose_gauge, sets_scale
 from closedloop.estimate.noise import cholesky_inverse
 from closedloop.estimate.qr import r_factor, scaled_r_factor_of_blocks
 
