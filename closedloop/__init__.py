@@ -24,11 +24,11 @@ __all__ = ["CalibrationOptions", "CalibrationResult", "calibrate", "JointLog", "
 def __getattr__(name: str):
     """Output writers and validation load on first use (they import what `import closedloop` need not)."""
     if name == "write_model":
-        from closedloop.export import write_model
+        from closedloop.output.urdf import write_model
 
         return write_model
     if name in ("build_report", "write_report"):
-        from closedloop import report
+        from closedloop.output import report
 
         return getattr(report, name)
     if name == "cross_validate":

@@ -118,9 +118,9 @@ def run_job(job: BatchJob) -> dict:
     import time
 
     from closedloop.calibration import build_problem, calibrate
-    from closedloop.export import write_model
+    from closedloop.output.urdf import write_model
     from closedloop.loops.spec import default_loops, parse_loop
-    from closedloop.report import build_report, write_report
+    from closedloop.output.report import build_report, write_report
     from closedloop.model.robot import RobotModel
 
     t0 = time.perf_counter()
@@ -178,7 +178,7 @@ def _gauge(res) -> dict | None:
 def _judge(res, cv: dict | None, report: dict):
     """The calibration's verdict, judged again with the held-out folds as `closedloop calibrate` does."""
     try:
-        from closedloop.report import verdict_record
+        from closedloop.output.report import verdict_record
         from closedloop.verdict import judge
     except ImportError:  # a core without verdicts: 'n/a' in the summary
         return getattr(res, "verdict", None)
@@ -261,7 +261,7 @@ class _Summary:
         self.fh.flush()
 
     def finish(self, rows: list[dict]) -> None:
-        from closedloop.export import atomic_write
+        from closedloop.output.urdf import atomic_write
 
         self.fh.close()
 
@@ -320,7 +320,7 @@ def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=N
 
 
 def _write_drift(summary: Path, drifts: list[Drift]) -> None:
-    from closedloop.export import atomic_write
+    from closedloop.output.urdf import atomic_write
 
     def writer(tmp):
         with open(tmp, "w", newline="") as fh:

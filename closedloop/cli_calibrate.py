@@ -46,7 +46,7 @@ class Progress:
 
 def check_calibrate_options(args) -> tuple:
     """`calibrate`'s output paths and numeric options, checked before any work: (noise, bounds, cv given?)."""
-    from closedloop.export import check_outputs
+    from closedloop.output.urdf import check_outputs
 
     check_outputs({"--out": args.out, "--report": args.report, "--html": getattr(args, "html", None)},
                   [args.model, args.log])
@@ -65,13 +65,13 @@ def check_calibrate_options(args) -> tuple:
 
 def cmd_calibrate(args) -> int:
     from closedloop.calibration import CalibrationOptions, calibrate
-    from closedloop.export import OutputSet, write_model
+    from closedloop.output.urdf import OutputSet, write_model
     from closedloop.loops.spec import default_loops, parse_loop
     from closedloop.model.parameters import parse_fix
-    from closedloop.report import build_report, write_report
+    from closedloop.output.report import build_report, write_report
     from closedloop.model.robot import RobotModel
     from closedloop.io.logs import check_loop_column
-    from closedloop.export import check_model_output
+    from closedloop.output.urdf import check_model_output
     from closedloop.cli_evaluate import require_log
 
     require_log(args)  # the positional log, unless each loop names its file
@@ -108,7 +108,7 @@ def cmd_calibrate(args) -> int:
     report["solver"]["seconds"] = elapsed
     cv = fold_validation(robot, lg, loops, opts, args, report, prog, res, cv_given) \
         if args.cv and res.converged else None
-    from closedloop.report import verdict_record
+    from closedloop.output.report import verdict_record
     from closedloop.verdict import judge
 
     from closedloop.cli_evaluate import fixture_validation
@@ -122,7 +122,7 @@ def cmd_calibrate(args) -> int:
         if args.report:
             write_report(report, args.report)
         if write_out:
-            from closedloop.export import tool_frames
+            from closedloop.output.urdf import tool_frames
 
             write_model(robot, res.as_dict(), args.out, frames=tool_frames(res))  # with the tool point
     print_summary(res, elapsed, args, report, wrote_model=bool(write_out))

@@ -7,7 +7,7 @@
 * ``--config FILE.yaml``: every option of a subcommand in one YAML mapping
   (keys are the long option names, ``-`` or ``_``; positionals by name);
   options given on the command line win;
-* ``--html`` / ``--plots``: :mod:`closedloop.html_report` after a calibration.
+* ``--html`` / ``--plots``: :mod:`closedloop.output.html` after a calibration.
 """
 
 from __future__ import annotations
@@ -86,7 +86,7 @@ def read_log_or_bag(path: str, robot, degrees: bool = False, bag_options=None):
 
 def cmd_extract(args) -> int:
     from closedloop.io.bags import ExtractOptions, extract, parse_windows
-    from closedloop.export import refuse_overwrite
+    from closedloop.output.urdf import refuse_overwrite
     from closedloop.model.robot import RobotModel
 
     if args.model:
@@ -251,7 +251,7 @@ def write_figures(res, report: dict, args) -> None:
     if corr is not None:
         import yaml
 
-        from closedloop.export import atomic_write_text
+        from closedloop.output.urdf import atomic_write_text
 
         path = str(Path(out).with_suffix("")) + ".sensors.yaml"
         atomic_write_text(path, "# closedloop: joint sensor corrections the model file cannot carry\n"
@@ -261,7 +261,7 @@ def write_figures(res, report: dict, args) -> None:
     plots = getattr(args, "plots", None)
     if not html and not plots:
         return
-    from closedloop.html_report import write_html, write_plots
+    from closedloop.output.html import write_html, write_plots
 
     snr = float(getattr(args, "snr", 1.0) or 1.0)
     if html:

@@ -16,7 +16,7 @@ from closedloop.io.camera_info import read_camera_info
 from closedloop.check import check_report
 from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
-from closedloop.report import build_report
+from closedloop.output.report import build_report
 from closedloop.model.robot import RobotModel
 from closedloop.sims import camera_scene as cs
 

@@ -35,10 +35,10 @@ def test_calibrate_and_write_urdf_load_no_heavy_module(tmp_path):
     code = f"""
 import numpy as np
 from closedloop import calibrate, JointLog, RobotModel
-from closedloop.export import write_urdf
+from closedloop.output.urdf import write_urdf
 from closedloop.loops.spec import parse_loop
 from closedloop.models import ROBOTS
-from closedloop.report import build_report, write_report
+from closedloop.output.report import build_report, write_report
 from closedloop.truth import make_dataset
 robot = RobotModel.from_file(ROBOTS["panda"].path)
 loop = parse_loop("weld:frame=panda_hand,name=fixture", robot)
@@ -67,7 +67,7 @@ assert "camera" in spec.REGISTRY and CameraLoop.__name__ == "CameraLoop"
 
 def test_written_urdf_origins_are_nominal_times_exp6_and_offset(tmp_path):
     """The edited XML gives Pinocchio exactly O exp6(p) Rot(axis, offset) and limits shifted by -offset."""
-    from closedloop.export import write_urdf
+    from closedloop.output.urdf import write_urdf
     from closedloop.models import ROBOTS
     from closedloop.model.robot import RobotModel
 
@@ -99,7 +99,7 @@ def test_chi2_in_plain_python_equals_scipy_stats():
     """robust.stats.chi2 (no scipy import) against scipy.stats.chi2, both tails, small and large dof."""
     from scipy import stats as sst
 
-    from closedloop.report import _chi2_sf
+    from closedloop.output.report import _chi2_sf
     from closedloop.estimate.robust import stats as plain
 
     for m in (1, 2, 3, 5, 6, 27, 1173, 594_000):

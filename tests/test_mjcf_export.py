@@ -1,4 +1,4 @@
-"""The calibrated MJCF (`closedloop.export_mjcf`): reloads in MuJoCo and reproduces the fit.
+"""The calibrated MJCF (`closedloop.output.mjcf`): reloads in MuJoCo and reproduces the fit.
 
 The Panda as an MJCF (MuJoCo's own conversion of the nominal URDF) is calibrated on exact weld data;
 the written MJCF must (1) load in MuJoCo, (2) put the tool where the calibrated Pinocchio model puts it
@@ -16,8 +16,8 @@ import pytest
 
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate, residual_stats
 from closedloop.io.logs import JointLog
-from closedloop.export import write_urdf
-from closedloop.export_mjcf import write_mjcf
+from closedloop.output.urdf import write_urdf
+from closedloop.output.mjcf import write_mjcf
 from closedloop.loops import WeldLoop
 from closedloop.models import nominal_urdf
 from closedloop.model.robot import RobotModel
@@ -132,7 +132,7 @@ def test_mjcf_and_urdf_calibrations_close_alike(tmp_path):
 
 def test_mjcf_export_refuses_other_inputs(tmp_path):
     from closedloop.errors import ModelError
-    from closedloop.export_mjcf import calibrated_mjcf
+    from closedloop.output.mjcf import calibrated_mjcf
 
     urdf = tmp_path / "panda.urdf"
     urdf.write_text(nominal_urdf("panda"))

@@ -18,7 +18,7 @@ from closedloop.cli import main
 from closedloop.io.logs import JointLog, read_log
 from closedloop.loops.spec import parse_loop
 from closedloop.models import example_robot_data_dir
-from closedloop.report import build_report
+from closedloop.output.report import build_report
 from closedloop.model.robot import RobotModel
 
 BAD = np.arange(3, 100, 7)  # 14 rows

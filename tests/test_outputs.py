@@ -14,7 +14,7 @@ import pytest
 
 from closedloop.calibration import calibrate
 from closedloop.cli import main
-from closedloop.export import write_urdf
+from closedloop.output.urdf import write_urdf
 from closedloop.loops import WeldLoop
 from closedloop.models import nominal_urdf
 from closedloop.model.robot import RobotModel

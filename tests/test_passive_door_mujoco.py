@@ -10,7 +10,7 @@ from closedloop.check import check_report
 from closedloop.io.logs import read_log
 from closedloop.loops import PassiveChainLoop
 from closedloop.models import model_file
-from closedloop.report import build_report
+from closedloop.output.report import build_report
 from closedloop.model.robot import RobotModel
 from closedloop.sims import simulate
 

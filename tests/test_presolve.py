@@ -91,7 +91,7 @@ def test_presolved_passive_door_is_the_truth(tmp_path, monkeypatch):
     from closedloop.io.logs import read_log
     from closedloop.loops import PassiveChainLoop
     from closedloop.models import model_file
-    from closedloop.report import build_report
+    from closedloop.output.report import build_report
     from closedloop.sims import simulate
 
     simulate("ur5_door", 150, 1, tmp_path)

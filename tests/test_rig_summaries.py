@@ -16,7 +16,7 @@ from closedloop.io.camera_info import camera_infos_from_result
 from closedloop.cli_calibrate import print_summary
 from closedloop.problem.distances import DistanceLoop
 from closedloop.io.logs import JointLog
-from closedloop.html_report import robot_corrections
+from closedloop.output.html import robot_corrections
 from closedloop.loops.spec import parse_loop
 from closedloop.models import example_robot_data_dir
 

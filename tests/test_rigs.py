@@ -17,7 +17,7 @@ from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.problem.distances import DistanceLoop
 from closedloop.io.logs import JointLog
 from closedloop.evaluate import evaluate_result
-from closedloop.export import tool_frames, write_model
+from closedloop.output.urdf import tool_frames, write_model
 from closedloop.fixtures import fixture_groups, leave_one_fixture_out
 from closedloop.loops.spec import parse_loop
 from closedloop.verdict import judge
@@ -125,7 +125,7 @@ def calibrated(rig3):
 def test_shared_ball_once_distance_sets_scale(rig3, calibrated):
     tmp, rig, robot, log = rig3
     res, loops = calibrated
-    from closedloop.report import build_report
+    from closedloop.output.report import build_report
 
     rep = build_report(res)
     tips = [n for n in res.names if ".tip_" in n]

@@ -39,7 +39,7 @@ from closedloop.calibration import CalibrationOptions, calibrate
 from closedloop.check import check_report
 from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
-from closedloop.report import build_report
+from closedloop.output.report import build_report
 from closedloop.model.robot import RobotModel
 from closedloop.sims import SCENARIOS, simulate
 

@@ -28,7 +28,7 @@ from closedloop.check import check_report
 from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
 from closedloop.models import nominal_urdf
-from closedloop.report import build_report
+from closedloop.output.report import build_report
 from closedloop.model.robot import RobotModel
 from closedloop.sims import SCENARIOS, simulate
 from closedloop.sims.driver import NominalLoop

@@ -222,7 +222,7 @@ def test_mujoco_matches_pinocchio_true_model():
 
 
 def test_placement_errors_match_core_export(tmp_path):
-    export = pytest.importorskip("closedloop.export")
+    export = pytest.importorskip("closedloop.output.urdf")
     robot_mod = pytest.importorskip("closedloop.model.robot")
     path = tmp_path / "nominal.urdf"
     path.write_text(nominal_urdf("ur5"))

@@ -97,7 +97,7 @@ def calibrated_model_path(case: Case, calibrated) -> Path:
     if isinstance(calibrated, (str, Path)):
         return Path(calibrated)
     from closedloop import RobotModel
-    from closedloop.export import write_urdf
+    from closedloop.output.urdf import write_urdf
 
     out = case.nominal_urdf.parent / "judged.urdf"
     write_urdf(RobotModel.from_file(case.nominal_urdf), dict(calibrated), out)
@@ -197,7 +197,7 @@ def verdict_status(res) -> str:
 def run_case(case: Case, options=None) -> Outcome:
     """`closedloop calibrate` through its Python API, then the calibrated URDF judged against the truth."""
     from closedloop import CalibrationOptions, ClosedLoopError, RobotModel, calibrate, read_log
-    from closedloop.export import write_model
+    from closedloop.output.urdf import write_model
     from closedloop.loops.spec import parse_loop
 
     t0 = time.perf_counter()

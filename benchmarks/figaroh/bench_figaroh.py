@@ -75,7 +75,7 @@ def make_dataset(workdir: Path, seed: int = 0) -> dict:
     """True UR10 (nominal + random errors), readings, tracker measurements, held-out truth -> files."""
     import pinocchio as pin
 
-    from closedloop.export import write_urdf
+    from closedloop.output.urdf import write_urdf
     from closedloop.model.robot import RobotModel
 
     rng = np.random.default_rng(seed)

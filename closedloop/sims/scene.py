@@ -1,7 +1,7 @@
 """True robot URDF and the MuJoCo scene that closes its loop.
 
 :func:`true_urdf` writes the true robot (nominal URDF with joint placement
-errors ``M = M0 * exp6(v)``) through the core's ``closedloop.export.write_urdf``
+errors ``M = M0 * exp6(v)``) through the core's ``closedloop.output.urdf.write_urdf``
 when it is available, otherwise through :func:`apply_placement_errors` (same
 convention).  Offsets and scales are *not* folded into the true URDF: they are
 sensor properties applied by the sensor model.
@@ -86,10 +86,10 @@ def apply_placement_errors(urdf: str, values: dict[str, float]) -> str:
 def true_urdf(nominal_urdf_path: Path, values: dict[str, float]) -> str:
     """The true robot's URDF text (placement errors applied, offsets not folded)."""
     try:
-        from closedloop.export import write_urdf
+        from closedloop.output.urdf import write_urdf
         from closedloop.model.robot import RobotModel
     except ImportError:
-        log.debug("closedloop.export not available; using sims.scene.apply_placement_errors")
+        log.debug("closedloop.output.urdf not available; using sims.scene.apply_placement_errors")
         return apply_placement_errors(Path(nominal_urdf_path).read_text(), values)
     robot = RobotModel.from_file(nominal_urdf_path)
     known = set(robot.joint_names)

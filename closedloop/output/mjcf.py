@@ -1,6 +1,6 @@
 """The calibrated MJCF of an MJCF robot, written with ``mujoco.MjSpec``.
 
-Convention (the same as the calibrated URDF, :mod:`closedloop.export`).  Pinocchio reads an MJCF
+Convention (the same as the calibrated URDF, :mod:`closedloop.output.urdf`).  Pinocchio reads an MJCF
 joint of body b as the frame ``F_b = B_b Trans(p_b)``: the body frame moved to the joint anchor
 ``p_b`` (``jnt_pos``, body coordinates), the body's orientation.  Calibration moves it to
 ``F_b' = F_b exp6(v_b) Rot(a_b, theta_off_b)`` (placement twist ``v_b`` in the joint's own frame,
@@ -150,7 +150,7 @@ def _check_compiles(root, src: Path) -> None:
 
 def write_mjcf(robot: RobotModel, values: dict[str, float], out_path: str | Path) -> None:
     """Write the calibrated MJCF atomically (assets found from wherever it is written)."""
-    from closedloop.export import atomic_write_text, refuse_overwrite
+    from closedloop.output.urdf import atomic_write_text, refuse_overwrite
 
     refuse_overwrite(out_path, robot.source)
     atomic_write_text(out_path, calibrated_mjcf(robot, values, Path(out_path).parent))

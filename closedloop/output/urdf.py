@@ -363,7 +363,7 @@ def write_model(robot: RobotModel, values: dict[str, float], out_path: str | Pat
     if robot.kind == "dh":
         write_dh(robot, values, out_path)
     elif robot.kind == "mjcf":
-        from closedloop.export_mjcf import write_mjcf
+        from closedloop.output.mjcf import write_mjcf
 
         write_mjcf(robot, values, out_path)
     else:
