@@ -34,7 +34,7 @@ def main() -> None:
     import test_rigs as tr
 
     from closedloop import CalibrationOptions, calibrate
-    from closedloop.fixtures import leave_one_fixture_out
+    from closedloop.validation.fixtures import leave_one_fixture_out
 
     cases = (("default", "", CalibrationOptions()), ("unweighted", "", CalibrationOptions(weighting="none")),
              ("true noise", ",sigma_task=0.2mm", CalibrationOptions()))

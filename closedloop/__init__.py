@@ -32,7 +32,7 @@ def __getattr__(name: str):
 
         return getattr(report, name)
     if name == "cross_validate":
-        from closedloop.validation import cross_validate
+        from closedloop.validation.kfold import cross_validate
 
         return cross_validate
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -134,7 +134,7 @@ def run_job(job: BatchJob) -> dict:
     report = build_report(res, job.model, job.log)
     cv_t, cv = (None, None), None
     if job.cv and res.converged:
-        from closedloop.validation import cross_validate
+        from closedloop.validation.kfold import cross_validate
         try:
             cv = cross_validate(robot, lg, loops, opts, k=job.cv, exclude=[rj.row - 1 for rj in res.rejected])
             report["validation"] = {"k": job.cv, "excluded_rows": [i + 1 for i in cv["excluded"]],

@@ -46,7 +46,7 @@ def cmd_inspect(args) -> int:
 
 
 def cmd_check(args) -> int:
-    from closedloop.check import check_report
+    from closedloop.validation.check import check_report
 
     tols = {o: check_number(f"--{o.replace('_', '-')}", getattr(args, o), 0.0, 1e6, lo_open=True)
             for o in ("tol_m", "tol_rad", "tol_scale", "tol_px")}

@@ -147,7 +147,7 @@ def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res,
     default K it is skipped with a note (None), with ``--cv K`` given it is an input error naming the folds.
     """
     from closedloop.errors import ClosedLoopError
-    from closedloop.validation import cross_validate
+    from closedloop.validation.kfold import cross_validate
 
     prog("validating", 0, 0.0)
     try:

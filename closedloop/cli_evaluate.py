@@ -5,7 +5,7 @@
         --loop point:frame=ball,name=p3a,tip=@ball,log=place3_a.csv --loop ...,log=place3_b.csv
 
 Each model's closure on the data with the robot untouched and the loops' own
-unknowns fitted unweighted (`closedloop.evaluate`), printed as a table (mean /
+unknowns fitted unweighted (`closedloop.validation.evaluate`), printed as a table (mean /
 RMS closure per loop, mm) and written with ``--report`` as JSON.
 
 Calibrate's rig options (`add_rig_options`, `rig_inputs`): ``--distance A B D
@@ -14,7 +14,7 @@ FRAME_B L [SIGMA]`` (between two robot frames, `closedloop.problem.lengths`), ``
 A.point=X,Y,Z ...`` (a rigid block of known shape), ``--joints j1,j2,...``
 (the column order of header-less logs), a loop's own log file
 (``--loop ...,log=FILE``; then no positional log), and leave-one-fixture-out
-validation (``--lofo auto|off``, `closedloop.fixtures`).
+validation (``--lofo auto|off``, `closedloop.validation.fixtures`).
 """
 
 from __future__ import annotations
@@ -98,7 +98,7 @@ def rig_inputs(args, robot, loops: list):
 
 def fixture_validation(robot, lg, loops: list, opts, report: dict, args, prog=None) -> dict | None:
     """Leave-one-fixture-out validation (default when the loops form several fixtures); into the report."""
-    from closedloop.fixtures import fixture_groups, leave_one_fixture_out
+    from closedloop.validation.fixtures import fixture_groups, leave_one_fixture_out
 
     if getattr(args, "lofo", "auto") == "off" or lg.loop is None or len(fixture_groups(loops)) < 2:
         return None
@@ -140,7 +140,7 @@ def add_parser(sub) -> None:
 
 
 def cmd_evaluate(args) -> int:
-    from closedloop.evaluate import evaluate_model, table
+    from closedloop.validation.evaluate import evaluate_model, table
     from closedloop.output.urdf import atomic_write_text, check_outputs
     from closedloop.loops.spec import parse_loop
     from closedloop.model.robot import RobotModel

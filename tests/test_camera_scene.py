@@ -13,7 +13,7 @@ import pytest
 
 from closedloop.calibration import CalibrationOptions, calibrate
 from closedloop.io.camera_info import read_camera_info
-from closedloop.check import check_report
+from closedloop.validation.check import check_report
 from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
 from closedloop.output.report import build_report

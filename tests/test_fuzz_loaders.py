@@ -166,7 +166,7 @@ def log_property(text: str) -> None:
 
 
 def check_property(docs) -> None:
-    from closedloop.check import check_report
+    from closedloop.validation.check import check_report
 
     truth, report = docs
     out = _only_input_errors(check_report, truth, report, 1e-3, 5e-3, 5e-3, 1.0)

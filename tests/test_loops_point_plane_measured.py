@@ -469,7 +469,7 @@ def _ur10_tracker_experiment(noise_q: float, sigma_t: float, seed: int, N: int =
     """UR10 + true errors, tracker at X_TRUE measuring UR10_TIP; calibrations with default options
     (joint noise unknown, tracker noise given) and with plain least squares; held-out prediction
     error against the noise-free truth."""
-    from closedloop.validation import closure_residuals
+    from closedloop.validation.kfold import closure_residuals
 
     robot = robot_of(UR10)
     joints = robot.supporting_joints("tool0")

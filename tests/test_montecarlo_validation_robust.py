@@ -8,7 +8,7 @@ from closedloop import CalibrationOptions, calibrate
 from closedloop.calibration import build_problem
 from closedloop.montecarlo import monte_carlo, unwrap_rotation_vector, weld_scenario
 from closedloop.estimate.robust import config_residuals, irls, mad_scale, suspects, weights
-from closedloop.validation import cross_validate, folds
+from closedloop.validation.kfold import cross_validate, folds
 
 NOISE = 1e-4
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, calibrate
-from closedloop.check import check_report
+from closedloop.validation.check import check_report
 from closedloop.cli import main
 from closedloop.io.logs import JointLog, read_log
 from closedloop.loops.spec import parse_loop

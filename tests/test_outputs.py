@@ -226,7 +226,7 @@ def test_bad_simulation_settings_one_line_exit_2(tmp_path, setting, expect):
 
 
 def test_check_uses_the_tolerance_of_each_unit():
-    from closedloop.check import check_report
+    from closedloop.validation.check import check_report
 
     def p(name, unit, cal, kind="loop"):
         return {"name": name, "kind": kind, "unit": unit, "calibrated": cal, "initial": 0.0, "status": "estimated"}

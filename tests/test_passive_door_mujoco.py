@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 
 from closedloop.calibration import calibrate
-from closedloop.check import check_report
+from closedloop.validation.check import check_report
 from closedloop.io.logs import read_log
 from closedloop.loops import PassiveChainLoop
 from closedloop.models import model_file

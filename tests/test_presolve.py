@@ -87,7 +87,7 @@ def test_presolved_passive_door_is_the_truth(tmp_path, monkeypatch):
     parameters 0.5-1.4 mrad off with a closure as small, which is why the finish keeps them)."""
     import json
 
-    from closedloop.check import check_report
+    from closedloop.validation.check import check_report
     from closedloop.io.logs import read_log
     from closedloop.loops import PassiveChainLoop
     from closedloop.models import model_file

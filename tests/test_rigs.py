@@ -16,9 +16,9 @@ import pytest
 from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.problem.distances import DistanceLoop
 from closedloop.io.logs import JointLog
-from closedloop.evaluate import evaluate_result
+from closedloop.validation.evaluate import evaluate_result
 from closedloop.output.urdf import tool_frames, write_model
-from closedloop.fixtures import fixture_groups, leave_one_fixture_out
+from closedloop.validation.fixtures import fixture_groups, leave_one_fixture_out
 from closedloop.loops.spec import parse_loop
 from closedloop.verdict import judge
 
@@ -54,7 +54,7 @@ def _distances(loops, places):
 
 
 def _log_of(log: JointLog, names) -> JointLog:
-    from closedloop.validation import subset
+    from closedloop.validation.kfold import subset
 
     return subset(log, np.flatnonzero(np.isin(log.loop, names)))
 

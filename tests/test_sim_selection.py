@@ -24,7 +24,7 @@ import pinocchio as pin
 import pytest
 
 from closedloop.calibration import CalibrationOptions, calibrate
-from closedloop.check import check_report
+from closedloop.validation.check import check_report
 from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
 from closedloop.models import nominal_urdf

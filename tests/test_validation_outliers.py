@@ -1,4 +1,4 @@
-"""K-fold validation on a log with corrupted rows: the rejected rows are not judged (closedloop.validation)."""
+"""K-fold validation on a log with corrupted rows: the rejected rows are not judged (closedloop.validation.kfold)."""
 
 import numpy as np
 import pytest
@@ -6,7 +6,7 @@ import pytest
 from closedloop import CalibrationOptions, calibrate
 from closedloop.calibration import build_problem
 from closedloop.montecarlo import weld_scenario
-from closedloop.validation import cross_validate, folds
+from closedloop.validation.kfold import cross_validate, folds
 
 NOISE = 1e-4
 BAD = [5, 23, 42, 61, 77]  # 0-based rows whose joint 1 reading is off by what closes the loop 5 cm away

@@ -121,7 +121,7 @@ def parse_loop(spec: str, robot: RobotModel) -> Loop:
         if key == "sigma_task":
             task = val
             continue
-        if key in ("fixture", "log"):  # generic: kept on the loop (closedloop.fixtures, data.read_loop_logs)
+        if key in ("fixture", "log"):  # generic: kept on the loop (closedloop.validation.fixtures, data.read_loop_logs)
             generic[key] = val
             continue
         if key not in keys:

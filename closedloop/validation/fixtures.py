@@ -62,7 +62,7 @@ def fixture_groups(loops: list[Loop]) -> dict[str, list[str]]:
 
 
 def _subset(log_: JointLog, names: list[str]) -> JointLog:
-    from closedloop.validation import subset
+    from closedloop.validation.kfold import subset
 
     return subset(log_, np.flatnonzero(np.isin(log_.loop, names)))
 
@@ -76,7 +76,7 @@ def leave_one_fixture_out(robot: RobotModel, log_: JointLog, loops: list[Loop], 
     refit fails (the others alone do not determine the robot) has 'error' instead of the closures.
     """
     from closedloop.calibration import CalibrationOptions, calibrate
-    from closedloop.evaluate import evaluate_model, evaluate_result
+    from closedloop.validation.evaluate import evaluate_model, evaluate_result
 
     groups = fixture_groups(loops)
     if len(groups) < 2 or log_.loop is None:
