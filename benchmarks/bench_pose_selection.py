@@ -59,7 +59,7 @@ import numpy as np  # noqa: E402
 from closedloop import CalibrationOptions, calibrate  # noqa: E402
 from closedloop.calibration import residual_stats  # noqa: E402
 from closedloop.montecarlo import weld_scenario  # noqa: E402
-from closedloop.poses import (detmax, exchange_a, greedy_d_optimal, information, pool_blocks,  # noqa: E402
+from closedloop.design.poses import (detmax, exchange_a, greedy_d_optimal, information, pool_blocks,  # noqa: E402
                               trace_covariance)
 
 ap = argparse.ArgumentParser()

@@ -88,7 +88,7 @@ def measure_studies(eng, inputs: dict) -> dict:
     from closedloop.cli_sweep import run_sweep
     from closedloop.impedance.bootstrap import bootstrap
     from closedloop.impedance.estimate import EstimateOptions
-    from closedloop.poses import select_pools
+    from closedloop.design.poses import select_pools
 
     def sweep():
         with tempfile.TemporaryDirectory() as tmp:

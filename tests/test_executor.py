@@ -126,7 +126,7 @@ def test_pose_pools_identical_on_every_engine(cluster, local):
     """One A-optimal selection per candidate pool, and the random-subset baseline seeded per chunk:
     the same designs on serial, local pool and Ray; selection beats the best of 60 random draws."""
     from closedloop import calibrate
-    from closedloop.poses import pool_blocks, random_designs, select_pools, trace_covariance
+    from closedloop.design.poses import pool_blocks, random_designs, select_pools, trace_covariance
 
     sc = weld_scenario(n=1, seed=2, pool="manifold", n_pool=120)
     th = sc.pool[::3] + np.random.default_rng(5).normal(0, 1e-4, sc.pool[::3].shape)

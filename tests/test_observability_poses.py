@@ -6,7 +6,7 @@ import pytest
 from closedloop import CalibrationOptions, calibrate
 from closedloop.montecarlo import self_motion_manifold, weld_scenario
 from closedloop.analysis.observability import indices_from_singular_values, observability
-from closedloop.poses import (detmax, exchange_a, greedy_d_optimal, information, pool_blocks, select_poses,
+from closedloop.design.poses import (detmax, exchange_a, greedy_d_optimal, information, pool_blocks, select_poses,
                               trace_covariance)
 
 NOISE = 1e-4

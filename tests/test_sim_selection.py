@@ -1,7 +1,7 @@
 """Pose selection in the simulator (setting ``select``, closedloop.sims.selection).
 
 The simulator walks the nominal self-motion for a pool of 10 n candidates,
-chooses n with closedloop.poses.select_poses on the nominal model, and drives
+chooses n with closedloop.design.poses.select_poses on the nominal model, and drives
 the robot through them.  Compared here with the default (the planner's
 waypoints), same scenario, seed and n = 150, noise-free simulation; the
 calibration is given a 1e-5 rad joint noise so that its covariance measures the

@@ -233,7 +233,7 @@ REPORT_SCHEMA = {
 
 def _settings_schema() -> dict:
     """`SimSettings` fields with their ranges (a bad value would hang, explode or be ignored)."""
-    from closedloop.poses import METHODS
+    from closedloop.design.poses import METHODS
 
     p = {
         "timestep": num(1e-5, 0.05), "integrator": {"enum": ["implicitfast", "implicit", "Euler", "RK4"]},

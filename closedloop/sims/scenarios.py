@@ -64,7 +64,7 @@ class SimSettings:
         retarget_every: a new random target is drawn after this many samples
             (or earlier when the self-motion stalls).
         select: plan the samples with pose selection (``closedloop.sims.selection``):
-            a method of ``closedloop.poses.select_poses`` (``greedy``, ``detmax``,
+            a method of ``closedloop.design.poses.select_poses`` (``greedy``, ``detmax``,
             ``greedy-a``); ``None`` (default): the planner's waypoints are the samples.
         select_pool: candidate pool of pose selection, in multiples of n.
         limit_margin: the planner keeps joints this far inside their limits [rad].

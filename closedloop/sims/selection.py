@@ -1,6 +1,6 @@
 """Planning the simulator's samples with pose selection (setting ``select``).
 
-With ``select`` set to a method of :func:`closedloop.poses.select_poses`
+With ``select`` set to a method of :func:`closedloop.design.poses.select_poses`
 (``greedy``: D-optimal forward selection, ``detmax``: greedy then Mitchell's
 exchange, ``greedy-a``: forward selection minimising the covariance trace, or any
 method that function accepts), :func:`closedloop.sims.simulate` plans its n
@@ -21,7 +21,7 @@ samples in four steps, all on the robot's NOMINAL model (no MuJoCo, no truth):
    joint noise is the setting ``noise`` or, if 0, 1e-6 rad (one level on every
    joint only scales the information and leaves the choice unchanged; it
    matters only against a tracker's own noise, measured loops).
-3. **Choice**: ``closedloop.poses.select_poses(result, None, pool, n, method)``.
+3. **Choice**: ``closedloop.design.poses.select_poses(result, None, pool, n, method)``.
 4. **Path** (:func:`order_path`, :func:`bridge`): the chosen configurations are
    visited in nearest-neighbour order (joint space, from the grasp); where two
    consecutive ones are more than ``step_rad`` apart (largest joint change), the
@@ -163,7 +163,7 @@ def plan_selected(sc: Scenario, settings: SimSettings, nominal_path: Path, joint
         n: configurations to choose.
         model: nominal Pinocchio model (measured loops: the nominal tool points).
     """
-    from closedloop.poses import select_poses
+    from closedloop.design.poses import select_poses
 
     nj = len(joint_names)
     size = max(int(settings.select_pool * n), n)

@@ -3,8 +3,8 @@
 The information of a design S is A(S) = A_0 + sum_{i in S} B_i^T B_i (B_i the whitened,
 prior-scaled Jacobian block of configuration i); every update is rank m (Woodbury, the matrix
 determinant lemma).  The full derivation, the criteria (D: log det A; A: tr A^-1) and the
-references are in the docstring of :mod:`closedloop.poses`; the A-optimal exchange is in
-:mod:`closedloop.poses_exchange`.
+references are in the docstring of :mod:`closedloop.design.poses`; the A-optimal exchange is in
+:mod:`closedloop.design.exchange`.
 """
 
 from __future__ import annotations

@@ -67,8 +67,8 @@ N ~ 200 only.  The trace weights each parameter by its prior; the expected
 closure error along the same motion (I-criterion) is not what it lowers
 (README, "Pose selection"; benchmarks/bench_pose_selection.py).
 
-Layout: the algorithms on blocks are in :mod:`closedloop.poses_design` (information, greedy,
-DETMAX) and :mod:`closedloop.poses_exchange` (the A-optimal exchange), re-exported here; this
+Layout: the algorithms on blocks are in :mod:`closedloop.design.optimal` (information, greedy,
+DETMAX) and :mod:`closedloop.design.exchange` (the A-optimal exchange), re-exported here; this
 module builds the blocks from a problem (`pool_blocks`, `select_poses`) and runs studies over many
 candidate pools on the executor (`select_pools`: one selection per pool; `random_designs`: the
 random-subset baseline, seeded per chunk of draws), with the same results on every engine.
@@ -84,8 +84,8 @@ from closedloop.calibration import CalibrationResult
 from closedloop.errors import OptionError
 from closedloop.analysis.identifiability import greedy_reduction
 from closedloop.analysis.observability import resolve, whitened_blocks
-from closedloop.poses_design import Selection, detmax, greedy_d_optimal, information, trace_covariance
-from closedloop.poses_exchange import exchange_a
+from closedloop.design.optimal import Selection, detmax, greedy_d_optimal, information, trace_covariance
+from closedloop.design.exchange import exchange_a
 from closedloop.problem.problem import CalibrationProblem
 
 __all__ = ["Selection", "greedy_d_optimal", "detmax", "exchange_a", "information", "trace_covariance",

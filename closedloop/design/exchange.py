@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from closedloop.errors import OptionError
-from closedloop.poses_design import Selection, greedy_d_optimal, information
+from closedloop.design.optimal import Selection, greedy_d_optimal, information
 
 
 def exchange_a(B: np.ndarray, k: int, prior_weight: float = 1.0, base: np.ndarray | None = None,
