@@ -34,7 +34,7 @@ from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.models import ROBOTS
 from closedloop.model.robot import RobotModel
-from closedloop.truth import make_dataset
+from closedloop.studies.truth import make_dataset
 
 from floor import pinocchio_floor  # benchmarks/floor.py
 from machine import add_arguments, condition, conditions, header, threads_mode, timed  # benchmarks/machine.py

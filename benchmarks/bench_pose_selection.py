@@ -58,7 +58,7 @@ import numpy as np  # noqa: E402
 
 from closedloop import CalibrationOptions, calibrate  # noqa: E402
 from closedloop.calibration import residual_stats  # noqa: E402
-from closedloop.montecarlo import weld_scenario  # noqa: E402
+from closedloop.studies.montecarlo import weld_scenario  # noqa: E402
 from closedloop.design.poses import (detmax, exchange_a, greedy_d_optimal, information, pool_blocks,  # noqa: E402
                               trace_covariance)
 
@@ -231,7 +231,7 @@ if not args.no_point:
     from closedloop.loops import PointLoop
     from closedloop.models import ROBOTS
     from closedloop.model.robot import RobotModel
-    from closedloop.truth import make_dataset
+    from closedloop.studies.truth import make_dataset
 
     t1 = time.time()
     robot = RobotModel.from_file(ROBOTS["ur5"].path)

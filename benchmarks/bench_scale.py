@@ -36,7 +36,7 @@ import numpy as np
 from closedloop import CalibrationOptions, calibrate
 from closedloop import executor as ex
 from closedloop.io.logs import JointLog
-from closedloop.montecarlo import monte_carlo, weld_scenario
+from closedloop.studies.montecarlo import monte_carlo, weld_scenario
 
 from machine import header  # benchmarks/machine.py
 

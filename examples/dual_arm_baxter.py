@@ -4,7 +4,7 @@ The left gripper holds the right one with an unknown grasp transform (a weld
 loop between two branches of one model, six unknown closure parameters).  The
 closed chain has 14 - 6 = 8 degrees of self-motion.  Pure-kinematic data are
 generated on the TRUE loop (nominal URDF + random errors in the identifiable
-parameters, `closedloop.truth.make_dataset`), the nominal model is calibrated
+parameters, `closedloop.studies.truth.make_dataset`), the nominal model is calibrated
 from the joint readings alone, and truth is printed against calibration with the
 summary of what was dropped (structural redundancies, and what absorbed them).
 
@@ -24,7 +24,7 @@ import numpy as np
 from closedloop.calibration import CalibrationOptions, calibrate
 from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel
-from closedloop.truth import make_dataset
+from closedloop.studies.truth import make_dataset
 
 URDF = Path(site.getsitepackages()[0]) / "cmeel.prefix/share/example-robot-data/robots/baxter_description/urdf/baxter.urdf"
 # A configuration with the grippers in front of the torso (left arm, then right arm).

@@ -24,7 +24,7 @@ import yaml
 
 from closedloop.cli import main as closedloop
 from closedloop.io.logs import JointLog
-from closedloop.montecarlo import panda_urdf, weld_scenario
+from closedloop.studies.montecarlo import panda_urdf, weld_scenario
 
 NOISE = 1e-4
 JOINT = "panda_joint4"

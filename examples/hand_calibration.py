@@ -14,7 +14,7 @@ from __future__ import annotations
 import tempfile
 
 from closedloop.io.logs import JointLog
-from closedloop.hand import INCH, palm_frame_parameters, staged_calibration, table_4_1_path, thesis_hand_dataset, \
+from closedloop.studies.hand import INCH, palm_frame_parameters, staged_calibration, table_4_1_path, thesis_hand_dataset, \
     thesis_stages
 from closedloop.loops.spec import default_loops
 from closedloop.model.robot import RobotModel

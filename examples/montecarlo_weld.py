@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from closedloop.montecarlo import monte_carlo, weld_scenario
+from closedloop.studies.montecarlo import monte_carlo, weld_scenario
 
 NOISE = 1e-4
 

@@ -20,7 +20,7 @@ from closedloop.loops.camera import CameraLoop
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import vec_of
 from closedloop.sims.camera_scene import MARKER, head_urdf, mujoco_intrinsics, pan_towards
-from closedloop.truth import draw_truth
+from closedloop.studies.truth import draw_truth
 from scratch import scratch_dir
 
 FRAMES = ["cam_left_optical", "cam_right_optical"]

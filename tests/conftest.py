@@ -8,7 +8,7 @@ import pytest
 from closedloop.loops import WeldLoop
 from closedloop.models import ROBOTS
 from closedloop.model.robot import RobotModel
-from closedloop.truth import make_dataset
+from closedloop.studies.truth import make_dataset
 
 PANDA_Q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]
 

@@ -1,6 +1,6 @@
 """ROS bags in: quasi-static samples of sensor_msgs/JointState bags written here with rosbags itself.
 
-A true standstill sequence (exact Panda weld data, `closedloop.truth.make_dataset`) is played as a
+A true standstill sequence (exact Panda weld data, `closedloop.studies.truth.make_dataset`) is played as a
 joint-state stream: each configuration held 1 s, smooth moves of 0.6 s between them, 100 Hz, Gaussian
 reading noise on every message, the arm's joints shuffled among the gripper's.  Written as a ROS 2
 sqlite3 bag, a ROS 2 MCAP bag and a ROS 1 bag; the extracted samples must match the standstills one
@@ -23,7 +23,7 @@ from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.models import ROBOTS
 from closedloop.model.robot import RobotModel
-from closedloop.truth import make_dataset
+from closedloop.studies.truth import make_dataset
 
 RATE = 100.0  # Hz
 HOLD, MOVE = 1.0, 0.6  # s

@@ -23,7 +23,7 @@ from closedloop.cli import main
 from closedloop.io.logs import JointLog
 from closedloop.errors import InputError
 from closedloop.executor import get_engine
-from closedloop.montecarlo import panda_urdf, weld_scenario
+from closedloop.studies.montecarlo import panda_urdf, weld_scenario
 
 NOISE = 1e-4
 JOINT = "panda_joint4"

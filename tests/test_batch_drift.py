@@ -10,7 +10,7 @@ import pytest
 from closedloop import CalibrationOptions, calibrate
 from closedloop.batch_drift import compare, gauge_record, in_gauge_of
 from closedloop.calibration import build_problem
-from closedloop.montecarlo import weld_scenario
+from closedloop.studies.montecarlo import weld_scenario
 from closedloop.model.parameters import parse_fix
 
 NOISE = 1e-5  # a good encoder: the standard errors are small beside a gauge change

@@ -13,7 +13,7 @@ from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.model.robot import RobotModel
-from closedloop.synthetic import self_motion
+from closedloop.studies.synthetic import self_motion
 
 from support import closed_chain, dh_transform, geodesic
 

@@ -59,7 +59,7 @@ def test_distortion_recovered_noise_free():
 
     from closedloop.calibration import CalibrationOptions, build_problem, calibrate
     from closedloop.io.logs import JointLog
-    from closedloop.truth import draw_truth
+    from closedloop.studies.truth import draw_truth
 
     robot = robot_of(UR5)
     joints = robot.supporting_joints("tool0")

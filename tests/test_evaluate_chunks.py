@@ -48,7 +48,7 @@ def test_structure_on_a_sample_is_the_whole(monkeypatch):
     import closedloop.analysis.identifiability as ident
     from closedloop import CalibrationOptions, calibrate
     from closedloop.loops import WeldLoop
-    from closedloop.truth import make_dataset
+    from closedloop.studies.truth import make_dataset
 
     panda = RobotModel.from_file(ROBOTS["panda"].path)
     rng = np.random.default_rng(3)

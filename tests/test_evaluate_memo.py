@@ -13,7 +13,7 @@ import pytest
 from closedloop import RobotModel
 from closedloop.loops import WeldLoop
 from closedloop.models import ROBOTS
-from closedloop.truth import make_dataset
+from closedloop.studies.truth import make_dataset
 
 
 @pytest.fixture(scope="module")

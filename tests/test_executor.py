@@ -12,7 +12,7 @@ import ray  # in the test extra: these tests run a real local Ray cluster
 
 from closedloop import CalibrationOptions
 from closedloop import executor as ex
-from closedloop.montecarlo import monte_carlo, weld_scenario
+from closedloop.studies.montecarlo import monte_carlo, weld_scenario
 from closedloop.validation.kfold import cross_validate
 
 

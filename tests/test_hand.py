@@ -12,13 +12,13 @@ import yaml
 
 from closedloop.calibration import CalibrationOptions, calibrate
 from closedloop.io.logs import JointLog
-from closedloop.hand import (INCH, TABLE_4_1_FIXED, TABLE_4_2, _loop_problem, nominal_closed_pose,
+from closedloop.studies.hand import (INCH, TABLE_4_1_FIXED, TABLE_4_2, _loop_problem, nominal_closed_pose,
                              palm_frame_parameters, staged_calibration, thesis_hand_dataset, thesis_stages)
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
 from closedloop.model.robot import RobotModel
-from closedloop.synthetic import self_motion
-from closedloop.truth import identifiable_names, make_dataset
+from closedloop.studies.synthetic import self_motion
+from closedloop.studies.truth import identifiable_names, make_dataset
 
 from support import relative_fk_error  # noqa: E402
 

@@ -363,7 +363,7 @@ def panda_files(tmp_path_factory):
     from closedloop.loops import WeldLoop
     from closedloop.models import nominal_urdf
     from closedloop.model.robot import RobotModel
-    from closedloop.truth import make_dataset
+    from closedloop.studies.truth import make_dataset
 
     d = tmp_path_factory.mktemp("panda")
     (d / "panda.urdf").write_text(nominal_urdf("panda"))

@@ -22,7 +22,7 @@ from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.models import ROBOTS
 from closedloop.model.robot import RobotModel
-from closedloop.truth import make_dataset
+from closedloop.studies.truth import make_dataset
 
 
 class Page(HTMLParser):

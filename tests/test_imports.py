@@ -39,7 +39,7 @@ from closedloop.output.urdf import write_urdf
 from closedloop.loops.spec import parse_loop
 from closedloop.models import ROBOTS
 from closedloop.output.report import build_report, write_report
-from closedloop.truth import make_dataset
+from closedloop.studies.truth import make_dataset
 robot = RobotModel.from_file(ROBOTS["panda"].path)
 loop = parse_loop("weld:frame=panda_hand,name=fixture", robot)
 ds = make_dataset(robot, loop, [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 40, np.random.default_rng(0), stride=1)

@@ -48,7 +48,7 @@ def make_calibration_inputs(d: Path) -> tuple[Path, Path, Path]:
     from closedloop.loops import WeldLoop
     from closedloop.models import nominal_urdf
     from closedloop.model.robot import RobotModel
-    from closedloop.truth import make_dataset
+    from closedloop.studies.truth import make_dataset
 
     d.mkdir(parents=True, exist_ok=True)
     (d / "panda.urdf").write_text(nominal_urdf("panda"))

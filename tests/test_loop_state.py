@@ -91,7 +91,7 @@ def test_results_carry_the_prepared_hinge(panda):
     for k, axis in enumerate([(np.array([0.5, 0.4, 0.6]), np.array([0.0, 0.0, 1.0])),
                               (np.array([0.2, -0.5, 0.4]), np.array([0.3, 0.1, 1.0]))]):
         from closedloop.problem.problem import CalibrationProblem, LoopBlock
-        from closedloop.synthetic import self_motion
+        from closedloop.studies.synthetic import self_motion
 
         truth_loop = HingeLoop("door", "panda_hand", axis=axis)
         joints = [f"panda_joint{i}" for i in range(1, 8)]

@@ -16,7 +16,7 @@ from closedloop.loops.common import relative_point
 from closedloop.loops.spec import parse_loop
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import vec_of
-from closedloop.truth import draw_truth
+from closedloop.studies.truth import draw_truth
 
 ERD = site.getsitepackages()[0] + "/cmeel.prefix/share/example-robot-data/robots/"
 UR5 = ERD + "ur_description/urdf/ur5_robot.urdf"

@@ -17,8 +17,8 @@ from closedloop.loops.passive import PassiveChainLoop
 from closedloop.loops.spec import parse_loop
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.model.robot import RobotModel
-from closedloop.synthetic import close, self_motion
-from closedloop.truth import draw_truth
+from closedloop.studies.synthetic import close, self_motion
+from closedloop.studies.truth import draw_truth
 
 ROBOTS = Path(site.getsitepackages()[0]) / "cmeel.prefix/share/example-robot-data/robots"
 PANDA = ROBOTS / "panda_description/urdf/panda.urdf"

@@ -19,8 +19,8 @@ from closedloop.loops.spec import parse_loop
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import vec_of
-from closedloop.synthetic import self_motion
-from closedloop.truth import draw_truth, identifiable_names
+from closedloop.studies.synthetic import self_motion
+from closedloop.studies.truth import draw_truth, identifiable_names
 from support import relative_fk_error
 
 ERD = site.getsitepackages()[0] + "/cmeel.prefix/share/example-robot-data/robots/"

@@ -18,7 +18,7 @@ from closedloop.errors import LoopError
 from closedloop.loops.measured import MeasuredPointLoop
 from closedloop.loops.spec import parse_loop
 from closedloop.models import example_robot_data_dir
-from closedloop.truth import draw_truth
+from closedloop.studies.truth import draw_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 X_TRUE = pin.SE3(pin.exp3(np.array([0.1, -0.2, 0.3])), np.array([0.8, -0.3, 0.2]))

@@ -21,7 +21,7 @@ from closedloop.output.mjcf import write_mjcf
 from closedloop.loops import WeldLoop
 from closedloop.models import nominal_urdf
 from closedloop.model.robot import RobotModel
-from closedloop.truth import make_dataset
+from closedloop.studies.truth import make_dataset
 
 Q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]
 

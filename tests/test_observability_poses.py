@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, calibrate
-from closedloop.montecarlo import self_motion_manifold, weld_scenario
+from closedloop.studies.montecarlo import self_motion_manifold, weld_scenario
 from closedloop.analysis.observability import indices_from_singular_values, observability
 from closedloop.design.poses import (detmax, exchange_a, greedy_d_optimal, information, pool_blocks, select_poses,
                               trace_covariance)
@@ -170,7 +170,7 @@ def test_selection_halves_the_configurations_point_contact():
     from closedloop.loops import PointLoop
     from closedloop.models import ROBOTS
     from closedloop.model.robot import RobotModel
-    from closedloop.truth import make_dataset
+    from closedloop.studies.truth import make_dataset
 
     robot = RobotModel.from_file(ROBOTS["ur5"].path)
     rng = np.random.default_rng(4)

@@ -18,7 +18,7 @@ from closedloop.output.urdf import write_urdf
 from closedloop.loops import WeldLoop
 from closedloop.models import nominal_urdf
 from closedloop.model.robot import RobotModel
-from closedloop.truth import make_dataset
+from closedloop.studies.truth import make_dataset
 
 Q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]
 
@@ -172,7 +172,7 @@ def test_dh_input_gives_calibrated_dh_yaml(tmp_path):
     """D-H input -> D-H YAML output in the input's units, carrying the calibrated values."""
     import yaml
 
-    from closedloop.hand import table_4_1_path, thesis_hand_dataset
+    from closedloop.studies.hand import table_4_1_path, thesis_hand_dataset
 
     _, readings, _ = thesis_hand_dataset(tmp_path, n=60)
     robot = RobotModel.from_file(table_4_1_path())

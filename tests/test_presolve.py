@@ -14,7 +14,7 @@ from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.models import ROBOTS
-from closedloop.truth import make_dataset
+from closedloop.studies.truth import make_dataset
 
 
 @pytest.fixture(scope="module")

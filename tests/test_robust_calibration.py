@@ -9,7 +9,7 @@ import pytest
 from closedloop.calibration import CalibrationOptions, calibrate, residual_stats
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
-from closedloop.truth import make_dataset
+from closedloop.studies.truth import make_dataset
 
 from conftest import PANDA_Q0
 

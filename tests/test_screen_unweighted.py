@@ -6,9 +6,9 @@ every one of them went through the robust refit."""
 
 from __future__ import annotations
 
-import closedloop.montecarlo as mc_module
+import closedloop.studies.montecarlo as mc_module
 import closedloop.estimate.outliers as outliers
-from closedloop.montecarlo import monte_carlo, weld_scenario
+from closedloop.studies.montecarlo import monte_carlo, weld_scenario
 
 
 def test_unweighted_fit_of_clean_data_rejects_nothing(monkeypatch):

@@ -151,7 +151,7 @@ def _two_tracker_mc(draws: int, monkeypatch=None) -> float:
     from closedloop.loops.point import relative_point
     from closedloop.models import example_robot_data_dir
     from closedloop.problem.shared import share
-    from closedloop.truth import draw_truth
+    from closedloop.studies.truth import draw_truth
 
     robot = RobotModel.from_file(example_robot_data_dir() / "ur_description/urdf/ur10_robot.urdf")
     joints = robot.supporting_joints("tool0")
@@ -211,7 +211,7 @@ def _two_camera_data(sigma_px: float | None = None):
 
     from closedloop.loops.camera import CameraLoop
     from closedloop.problem.shared import share
-    from closedloop.truth import draw_truth
+    from closedloop.studies.truth import draw_truth
 
     robot = robot_of(UR5)
     joints = robot.supporting_joints("tool0")

@@ -16,8 +16,8 @@ from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
 from closedloop.model.robot import RobotModel
-from closedloop.synthetic import self_motion
-from closedloop.truth import make_dataset
+from closedloop.studies.synthetic import self_motion
+from closedloop.studies.truth import make_dataset
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_hand import TABLE, _loop_problem, nominal_closed_pose  # noqa: E402

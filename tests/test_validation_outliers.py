@@ -5,7 +5,7 @@ import pytest
 
 from closedloop import CalibrationOptions, calibrate
 from closedloop.calibration import build_problem
-from closedloop.montecarlo import weld_scenario
+from closedloop.studies.montecarlo import weld_scenario
 from closedloop.validation.kfold import cross_validate, folds
 
 NOISE = 1e-4

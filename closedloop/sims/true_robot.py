@@ -82,13 +82,13 @@ def identifiable_parameters(nominal_path, sc: Scenario, joint_names: list[str], 
     Errors in structurally redundant parameters are indistinguishable from
     errors in the parameters that absorb them, so a truth that `closedloop
     check` can compare parameter by parameter is drawn in the identifiable set
-    (`closedloop.truth.identifiable_names`, the core's own reduction on nominal
+    (`closedloop.studies.truth.identifiable_names`, the core's own reduction on nominal
     self-motion data through the grasp configuration).  Loop types the core
     has no loop class for yet fall back to :func:`perturbable_parameters`.
     """
     from closedloop.calibration import CalibrationOptions
     from closedloop.model.robot import RobotModel
-    from closedloop.truth import identifiable_names
+    from closedloop.studies.truth import identifiable_names
 
     kind = sim_loop(sc.loop_type)
     loop = kind.core_loop(sc, nominal_path)
@@ -108,7 +108,7 @@ def identifiable_parameters(nominal_path, sc: Scenario, joint_names: list[str], 
 def _measured_identifiable_names(robot, loop, options, n: int = 40, seed: int = 0) -> list[str]:
     """Names `calibrate` estimates for a measured (open) loop, on nominal data.
 
-    `closedloop.truth.identifiable_names` walks the loop's self-motion from one
+    `closedloop.studies.truth.identifiable_names` walks the loop's self-motion from one
     configuration, which an open loop does not have (every configuration is
     allowed, and the measurements are log columns it cannot make up).  Instead:
     ``n`` random configurations within the nominal joint limits (fixed seed),

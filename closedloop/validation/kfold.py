@@ -35,7 +35,7 @@ from closedloop.io.logs import JointLog
 from closedloop.errors import ParameterError
 from closedloop.problem.blocks import BlockEval
 from closedloop.loops.base import Loop
-from closedloop.montecarlo import unwrap
+from closedloop.studies.montecarlo import unwrap
 from closedloop.model.robot import RobotModel
 
 

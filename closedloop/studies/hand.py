@@ -335,7 +335,7 @@ def thesis_hand_dataset(out_dir, n: int = 100, seed: int = 5, offset_clip: float
     import yaml
     from pathlib import Path
 
-    from closedloop.synthetic import self_motion
+    from closedloop.studies.synthetic import self_motion
 
     table = table_4_1_path()
     doc = yaml.safe_load(Path(table).read_text())

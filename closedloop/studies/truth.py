@@ -16,7 +16,7 @@ from closedloop.calibration import CalibrationOptions, build_problem, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
-from closedloop.synthetic import self_motion
+from closedloop.studies.synthetic import self_motion
 
 DEFAULT_MAGNITUDES = {"translation": 2e-3, "rotation": 2e-3, "offset": 0.02, "scale": 0.0}
 

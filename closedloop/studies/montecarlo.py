@@ -84,8 +84,8 @@ def weld_scenario(n: int = 200, seed: int = 0, n_pool: int = 0,
     if pool not in ("walk", "manifold"):
         raise ValueError(f"pool must be 'walk' or 'manifold', not '{pool}'")
     from closedloop.loops import WeldLoop
-    from closedloop.synthetic import self_motion
-    from closedloop.truth import draw_truth, identifiable_names
+    from closedloop.studies.synthetic import self_motion
+    from closedloop.studies.truth import draw_truth, identifiable_names
 
     rng = np.random.default_rng(seed)
     robot = RobotModel.from_file(panda_urdf())
@@ -126,7 +126,7 @@ def self_motion_manifold(problem: CalibrationProblem, values: np.ndarray, theta0
     NotIdentifiableError when the self-motion is not one-dimensional.
     """
     from closedloop.errors import NotIdentifiableError
-    from closedloop.synthetic import close
+    from closedloop.studies.synthetic import close
 
     robot = problem.robot
     lo = np.array([robot.joint(j).lower for j in problem.joints]) + margin
