@@ -1,4 +1,4 @@
-"""Scaling out: 200 calibrations and a 200-draw Monte Carlo on each engine of closedloop.executor.
+"""Scaling out: 200 calibrations and a 200-draw Monte Carlo on each engine of closedloop.fleet.executor.
 
 Usage::
 
@@ -34,7 +34,7 @@ import time
 import numpy as np
 
 from closedloop import CalibrationOptions, calibrate
-from closedloop import executor as ex
+from closedloop.fleet import executor as ex
 from closedloop.io.logs import JointLog
 from closedloop.studies.montecarlo import monte_carlo, weld_scenario
 

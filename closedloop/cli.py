@@ -90,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     from closedloop.cli_tools import add_extract_parser, cmd_loops
 
     add_extract_parser(sub)
-    from closedloop.batch import add_parser as add_batch  # closedloop batch MANIFEST (many jobs, any executor)
+    from closedloop.fleet.batch import add_parser as add_batch  # closedloop batch MANIFEST (many jobs, any executor)
 
     add_batch(sub)
     lp = sub.add_parser("loops", help="list the loop types, their keys and an example each")

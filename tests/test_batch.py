@@ -18,11 +18,11 @@ import pytest
 import ray  # in the test extra: a real local Ray cluster
 import yaml
 
-from closedloop.batch import read_manifest, run_batch
+from closedloop.fleet.batch import read_manifest, run_batch
 from closedloop.cli import main
 from closedloop.io.logs import JointLog
 from closedloop.errors import InputError
-from closedloop.executor import get_engine
+from closedloop.fleet.executor import get_engine
 from closedloop.studies.montecarlo import panda_urdf, weld_scenario
 
 NOISE = 1e-4
@@ -175,7 +175,7 @@ def test_drift_z_and_gauge_check(tmp_path):
     """Results without a gauge record (written by an older closedloop): z = change / sqrt(se1^2 + se2^2),
     |z| > 3 flagged; a pair that estimated other parameters is not compared (no way to put it in one gauge).
     The comparison in one gauge is tested in test_batch_drift.py."""
-    from closedloop.batch import BatchJob, drift
+    from closedloop.fleet.batch import BatchJob, drift
 
     jobs = [BatchJob(f"d{i}", Path("m"), Path("l"), tmp_path / f"d{i}", robot="r", date=f"2026-0{i + 1}-01")
             for i in range(3)]

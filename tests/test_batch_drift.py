@@ -1,4 +1,4 @@
-"""Drift between calibrations in one gauge (closedloop.batch_drift): a gauge change alone (another
+"""Drift between calibrations in one gauge (closedloop.fleet.drift): a gauge change alone (another
 length fixed for the scale, hence another reduction) is not flagged; a drifting joint offset is
 flagged only when larger than its uncertainty, whichever gauge each calibration used."""
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, calibrate
-from closedloop.batch_drift import compare, gauge_record, in_gauge_of
+from closedloop.fleet.drift import compare, gauge_record, in_gauge_of
 from closedloop.calibration import build_problem
 from closedloop.studies.montecarlo import weld_scenario
 from closedloop.model.parameters import parse_fix

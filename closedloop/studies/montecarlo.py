@@ -339,7 +339,7 @@ def monte_carlo(scenario: Scenario, noise: float, n_runs: int, seed: int = 0,
     """Calibrate `n_runs` noisy copies of the scenario's readings with each weighting.
 
     The noise is drawn here, in order, from `seed`; the calibrations run on
-    `executor` (an engine or its name, ``closedloop.executor``; None: this
+    `executor` (an engine or its name, ``closedloop.fleet.executor``; None: this
     process), so the result is the same on any engine.
 
     Every run must estimate the same parameters (the reduction is structural);
@@ -355,7 +355,7 @@ def monte_carlo(scenario: Scenario, noise: float, n_runs: int, seed: int = 0,
     raw: dict[str, list[np.ndarray]] = {w: [] for w in weightings}
     fails = dict.fromkeys(weightings, 0)
     truncated = dict.fromkeys(weightings, 0)
-    from closedloop.executor import imap  # the draws run on any engine (closedloop.executor); results in draw order
+    from closedloop.fleet.executor import imap  # the draws run on any engine (closedloop.fleet.executor); results in draw order
 
     shared = (scenario.robot, scenario.joints, scenario.loops, base, noise, weightings)
     runs: list = [None] * n_runs

@@ -3,7 +3,7 @@
 A manifest (YAML or CSV) lists jobs: model, log (CSV or ROS bag), loops,
 options, output folder, and optionally the robot's id and the date of the log.
 Every job is calibrated and k-fold validated on its own (``closedloop.calibrate``,
-``validation.cross_validate``) by one of the engines of ``closedloop.executor``.
+``validation.cross_validate``) by one of the engines of ``closedloop.fleet.executor``.
 
 * A job that raises is recorded (summary row ``status=failed``, the error) and
   the others go on; a failed job is tried again by the next run.
@@ -14,12 +14,12 @@ Every job is calibrated and k-fold validated on its own (``closedloop.calibrate`
 * The summary CSV gets a row as each job finishes, and is rewritten in
   manifest order at the end with the drift columns filled.
 
-Drift (:mod:`closedloop.batch_drift`): for jobs of the same robot ordered by date, every robot
+Drift (:mod:`closedloop.fleet.drift`): for jobs of the same robot ordered by date, every robot
 parameter of two consecutive calibrations, expressed in one gauge (the earlier calibration's: the
 later one is moved along its gauge directions, so another fixed length or another reduction is not
 a change), gets z = change / its standard error (both covariances, eq. 3.17 whitened, propagated
 through the gauge map); the change is flagged when |z| > 3: larger than the two calibrations'
-noise can explain.  The manifest is read by :mod:`closedloop.batch_manifest`.
+noise can explain.  The manifest is read by :mod:`closedloop.fleet.manifest`.
 """
 
 from __future__ import annotations
@@ -36,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.batch_drift import Drift, drift, drift_columns, gauge_record
-from closedloop.batch_manifest import BatchJob, as_list, read_manifest
+from closedloop.fleet.drift import Drift, drift, drift_columns, gauge_record
+from closedloop.fleet.manifest import BatchJob, as_list, read_manifest
 from closedloop.cli_parse import EXIT_FAILED
 from closedloop.errors import InputError
 
@@ -279,8 +279,8 @@ def _fmt(row: dict) -> dict:
 
 def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=None,
               z_max: float = 3.0) -> BatchResult:
-    """Run every job not finished before on `engine` (see closedloop.executor); write the summary."""
-    from closedloop.executor import imap
+    """Run every job not finished before on `engine` (see closedloop.fleet.executor); write the summary."""
+    from closedloop.fleet.executor import imap
 
     n_tmp = _clean_temporaries(jobs)
     if n_tmp:
@@ -334,7 +334,7 @@ def cmd_batch(args) -> int:
     """CLI: closedloop batch MANIFEST [--jobs N | --ray auto|ADDRESS] [--summary CSV]."""
     import sys
 
-    from closedloop.executor import engine_from_args, progress_printer
+    from closedloop.fleet.executor import engine_from_args, progress_printer
 
     jobs = read_manifest(args.manifest)
     summary = Path(args.summary) if args.summary else \
@@ -366,7 +366,7 @@ def cmd_batch(args) -> int:
 
 def add_parser(sub) -> None:
     """The `batch` subcommand."""
-    from closedloop.executor import add_arguments
+    from closedloop.fleet.executor import add_arguments
 
     b = sub.add_parser("batch", help="calibrate many robots/logs from a manifest (YAML or CSV), resumable")
     b.add_argument("manifest", help="YAML (jobs: [...]) or CSV: model, log, loops, options, out[, robot, date, cv]")

@@ -1,4 +1,4 @@
-"""The manifest of `closedloop batch`: a YAML or CSV list of calibration jobs (see :mod:`closedloop.batch`)."""
+"""The manifest of `closedloop batch`: a YAML or CSV list of calibration jobs (see :mod:`closedloop.fleet.batch`)."""
 
 from __future__ import annotations
 
