@@ -36,7 +36,7 @@ import numpy as np
 
 from machine import add_arguments, condition, conditions, header  # benchmarks/machine.py
 
-CLI = [sys.executable, "-m", "closedloop.cli"]
+CLI = [sys.executable, "-m", "closedloop.cli.main"]
 LOOP = "weld:frame=panda_hand_tcp,name=fixture"
 
 

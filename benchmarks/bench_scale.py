@@ -85,7 +85,7 @@ def measure_studies(eng, inputs: dict) -> dict:
     import tempfile
     from pathlib import Path
 
-    from closedloop.cli_sweep import run_sweep
+    from closedloop.cli.sweep import run_sweep
     from closedloop.impedance.bootstrap import bootstrap
     from closedloop.impedance.estimate import EstimateOptions
     from closedloop.design.poses import select_pools

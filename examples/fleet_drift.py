@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from closedloop.cli import main as closedloop
+from closedloop.cli.main import main as closedloop
 from closedloop.io.logs import JointLog
 from closedloop.studies.montecarlo import panda_urdf, weld_scenario
 

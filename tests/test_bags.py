@@ -18,7 +18,7 @@ import pytest
 
 from closedloop.io.bags import ExtractOptions, extract
 from closedloop.calibration import build_problem, residual_stats
-from closedloop.cli import main
+from closedloop.cli.main import main
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.models import ROBOTS

@@ -19,7 +19,7 @@ import ray  # in the test extra: a real local Ray cluster
 import yaml
 
 from closedloop.fleet.batch import read_manifest, run_batch
-from closedloop.cli import main
+from closedloop.cli.main import main
 from closedloop.io.logs import JointLog
 from closedloop.errors import InputError
 from closedloop.fleet.executor import get_engine
@@ -115,7 +115,7 @@ def test_killed_batch_resumes_without_redoing_finished_jobs(tmp_path, truth):
     man = write_fleet(tmp_path, truth, [0.0] * 6, cv=2)
     jobs = read_manifest(man)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "closedloop.cli", "batch", str(man), "--jobs", "2", "--quiet"],
+    proc = subprocess.Popen([sys.executable, "-m", "closedloop.cli.main", "batch", str(man), "--jobs", "2", "--quiet"],
                             cwd=tmp_path, env=env, start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     t0 = time.monotonic()

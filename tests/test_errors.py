@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from closedloop import errors
-from closedloop.cli import main
+from closedloop.cli.main import main
 
 
 def test_tree_and_builtin_compatibility(tmp_path):
@@ -39,7 +39,7 @@ def test_tree_and_builtin_compatibility(tmp_path):
                                        (errors.ScenarioError("bad scenario"), 2),
                                        (errors.SimulationError("the hand does not close"), 2)])
 def test_cli_exit_codes(monkeypatch, capsys, exc, code):
-    import closedloop.cli as cli
+    import closedloop.cli.main as cli
 
     def boom(args):
         raise exc

@@ -173,8 +173,8 @@ def test_impedance_bootstrap_chunks_identical_on_every_engine(cluster, local):
 def test_simulate_sweep_on_every_engine_resumable_failure_isolated(cluster, local, tmp_path):
     """`simulate --seeds`: one dataset per seed, identical whichever engine ran it, finished seeds not
     redone, a failing scenario recorded without stopping the others."""
-    from closedloop.cli import main
-    from closedloop.cli_sweep import parse_seeds, run_sweep
+    from closedloop.cli.main import main
+    from closedloop.cli.sweep import parse_seeds, run_sweep
     from closedloop.errors import InputError
     from closedloop.sims import SCENARIOS, simulate
 
@@ -213,7 +213,7 @@ def test_simulate_sweep_on_every_engine_resumable_failure_isolated(cluster, loca
 def test_simulate_without_seeds_is_one_dataset(tmp_path, capsys):
     """`--scenario X` (abbreviating --scenarios) without --seeds writes one dataset into --out as before;
     --jobs without --seeds is a one-line input error."""
-    from closedloop.cli import main
+    from closedloop.cli.main import main
 
     assert main(["simulate", "--scenario", "panda_weld", "--n", "5", "--seed", "3", "--out", str(tmp_path / "one"),
                  "--quiet"]) == 0
@@ -244,7 +244,7 @@ def test_large_shared_objects_travel_once_through_a_file(local):
 def test_sweep_refuses_to_overwrite_another_dataset(tmp_path):
     """A seed folder holding a dataset of another size or settings is not taken as finished, nor
     silently overwritten: an input error, unless --replace."""
-    from closedloop.cli import main
+    from closedloop.cli.main import main
 
     out = str(tmp_path / "s")
     assert main(["simulate", "panda_weld", "--seeds", "0", "--n", "5", "--jobs", "1", "--out", out, "--quiet"]) == 0

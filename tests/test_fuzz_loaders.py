@@ -185,8 +185,8 @@ def json_property(text: str) -> None:
 
 
 def options_property(args) -> None:
-    from closedloop.cli_parse import check_loop_numbers as _check_loop_numbers, parse_bounds as _parse_bounds
-    from closedloop.cli_parse import parse_noise as _parse_noise, sim_overrides as _sim_overrides
+    from closedloop.cli.parse import check_loop_numbers as _check_loop_numbers, parse_bounds as _parse_bounds
+    from closedloop.cli.parse import parse_noise as _parse_noise, sim_overrides as _sim_overrides
     from closedloop.sims.scenarios import SCENARIOS
 
     noise, bound, setting, loop = args

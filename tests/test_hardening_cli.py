@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from closedloop.cli import main
+from closedloop.cli.main import main
 
 WELD = "weld:frame=panda_hand,name=fixture"
 DH = """name: chain
@@ -483,7 +483,7 @@ def test_real_ctrl_c_in_simulate_one_line_exit_130(tmp_path):
     background job, nohup), it would inherit that, and Python then installs no KeyboardInterrupt handler
     (the command rightly runs on there, as any program would)."""
     out = tmp_path / "o"
-    p = subprocess.Popen([sys.executable, "-m", "closedloop.cli", "simulate", "panda_weld", "--n", "20000",
+    p = subprocess.Popen([sys.executable, "-m", "closedloop.cli.main", "simulate", "panda_weld", "--n", "20000",
                           "--out", str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     time.sleep(4.0)

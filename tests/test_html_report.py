@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from matplotlib import image as mpimg
 
-from closedloop.cli import main
+from closedloop.cli.main import main
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.models import ROBOTS

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from closedloop.cli import main
+from closedloop.cli.main import main
 
 
 def test_simulate_identify_round_trip(tmp_path, capsys):

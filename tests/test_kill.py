@@ -30,7 +30,7 @@ def _run(args: list[str], kill_after: float | None = None, cwd: Path | None = No
     """Run the CLI; with `kill_after`, SIGKILL it then (if still running).  Returns (returncode, seconds)."""
     t0 = time.perf_counter()
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
-    p = subprocess.Popen([sys.executable, "-m", "closedloop.cli", *args], stdout=subprocess.DEVNULL,
+    p = subprocess.Popen([sys.executable, "-m", "closedloop.cli.main", *args], stdout=subprocess.DEVNULL,
                          stderr=subprocess.PIPE, cwd=cwd, env=env)
     if kill_after is not None:
         try:

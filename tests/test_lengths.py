@@ -106,7 +106,7 @@ def test_parse_lengths_errors(rig):
 
 
 def test_cli_length(rig, tmp_path, capsys):
-    from closedloop.cli import main
+    from closedloop.cli.main import main
 
     rig_, robot, log, tmp = rig
     files = rig_.write(tmp_path)

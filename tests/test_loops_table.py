@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from closedloop.cli import main
+from closedloop.cli.main import main
 from closedloop.errors import LoopError
 from closedloop.loops import spec
 

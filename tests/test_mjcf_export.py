@@ -198,7 +198,7 @@ def test_degrees_euler_anchor_and_slide(tmp_path):
 def test_cli_writes_the_calibrated_mjcf(fitted, capsys):
     import json
 
-    from closedloop.cli import main
+    from closedloop.cli.main import main
 
     d, robot, loop, log, res, ds = fitted
     csv, out, rep = d / "log.csv", d / "cli_calibrated.xml", d / "cli_report.json"

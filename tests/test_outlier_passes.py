@@ -14,7 +14,7 @@ import pytest
 
 from closedloop import CalibrationOptions, calibrate
 from closedloop.validation.check import check_report
-from closedloop.cli import main
+from closedloop.cli.main import main
 from closedloop.io.logs import JointLog, read_log
 from closedloop.loops.spec import parse_loop
 from closedloop.models import example_robot_data_dir

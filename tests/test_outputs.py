@@ -13,7 +13,7 @@ import pinocchio as pin
 import pytest
 
 from closedloop.calibration import calibrate
-from closedloop.cli import main
+from closedloop.cli.main import main
 from closedloop.output.urdf import write_urdf
 from closedloop.loops import WeldLoop
 from closedloop.models import nominal_urdf
@@ -104,7 +104,7 @@ def test_cli_calibrate_writes_urdf_report_and_check_passes(calibrated, tmp_path)
 
 
 def _run(args):
-    p = subprocess.run([sys.executable, "-m", "closedloop.cli", *args], capture_output=True, text=True)
+    p = subprocess.run([sys.executable, "-m", "closedloop.cli.main", *args], capture_output=True, text=True)
     return p.returncode, p.stdout, p.stderr
 
 
@@ -218,7 +218,7 @@ def test_mjcf_input(tmp_path):
     ("noise", "expected KEY=VALUE"),
 ])
 def test_bad_simulation_settings_one_line_exit_2(tmp_path, setting, expect):
-    p = subprocess.run([sys.executable, "-m", "closedloop.cli", "simulate", "panda_weld", "--n", "2", "--out", str(tmp_path / "o"), "--set", setting],
+    p = subprocess.run([sys.executable, "-m", "closedloop.cli.main", "simulate", "panda_weld", "--n", "2", "--out", str(tmp_path / "o"), "--set", setting],
                        capture_output=True, text=True)
     rc, err = p.returncode, p.stderr
     assert rc == 2 and expect in err and "Traceback" not in err, err

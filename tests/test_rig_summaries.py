@@ -13,7 +13,7 @@ import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.io.camera_info import camera_infos_from_result
-from closedloop.cli_calibrate import print_summary
+from closedloop.cli.calibrate import print_summary
 from closedloop.problem.distances import DistanceLoop
 from closedloop.io.logs import JointLog
 from closedloop.output.html import robot_corrections

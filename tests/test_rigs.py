@@ -209,7 +209,7 @@ def test_lofo_names_extrapolating_place_suspect(tmp_path):
 
 
 def test_evaluate_reproduces_closure_and_compares_models(rig3, calibrated, tmp_path):
-    from closedloop.cli import main
+    from closedloop.cli.main import main
 
     tmp, rig, robot, log = rig3
     res, loops = calibrated
@@ -243,7 +243,7 @@ def test_evaluate_reproduces_closure_and_compares_models(rig3, calibrated, tmp_p
 
 def test_cli_rig_files(rig3, tmp_path):
     """Header-less files, one per socket and place, each named on its loop; distances; the tool frame."""
-    from closedloop.cli import main
+    from closedloop.cli.main import main
 
     tmp, rig, robot, log = rig3
     files = rig.write(tmp_path)
@@ -272,7 +272,7 @@ def test_block_of_three_sockets_sets_scale(tmp_path):
     places (--block NAME A.point=X,Y,Z ...): the robot's size within its standard error of the truth
     (seed 0: -0.02 % against +-0.10 %), the report naming the blocks; the estimated sockets keep the
     block's shape.  Through the command line the same."""
-    from closedloop.cli import main
+    from closedloop.cli.main import main
     from closedloop.problem.distances import parse_blocks
     from closedloop.errors import LoopError
 

@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from closedloop.cli import main
+from closedloop.cli.main import main
 from closedloop.models import example_robot_data_dir
 from closedloop.sims.scenario_files import load_scenario
 from closedloop.sims.scenarios import SCENARIOS

@@ -38,7 +38,7 @@ import numpy as np
 
 from closedloop.fleet.drift import Drift, drift, drift_columns, gauge_record
 from closedloop.fleet.manifest import BatchJob, as_list, read_manifest
-from closedloop.cli_parse import EXIT_FAILED
+from closedloop.cli.parse import EXIT_FAILED
 from closedloop.errors import InputError
 
 __all__ = ["BatchJob", "BatchResult", "Drift", "drift", "read_manifest", "run_batch", "run_job", "finished",
@@ -59,11 +59,11 @@ def _options(opts: dict, names: list[str]):
 
     noise = opts.get("noise")
     if isinstance(noise, str):
-        from closedloop.cli_parse import parse_noise as _parse_noise
+        from closedloop.cli.parse import parse_noise as _parse_noise
         noise = _parse_noise(noise)
     bounds = opts.get("bounds") or {}
     if isinstance(bounds, (list, str)):
-        from closedloop.cli_parse import parse_bounds as _parse_bounds
+        from closedloop.cli.parse import parse_bounds as _parse_bounds
         bounds = _parse_bounds(as_list(bounds))
     ident = opts.get("identify")
     return CalibrationOptions(

@@ -59,7 +59,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from closedloop.impedance.data import write_record
     from closedloop.impedance.model import ExperimentConfig, ForearmParams, simulate
     from closedloop.impedance.results import write_truth
-    from closedloop.cli_parse import check_number
+    from closedloop.cli.parse import check_number
 
     args.noise = check_number("--noise", args.noise, 0.0, 1e6)
     args.voluntary = check_number("--voluntary", args.voluntary, 0.0, 1e6)
@@ -123,7 +123,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
     from closedloop.impedance.estimate import EstimateOptions, estimate, posture_fit
     from closedloop.impedance.metrics import coverage, rel_errors
     from closedloop.impedance.results import read_truth, resample_truth, write_results
-    from closedloop.cli_parse import check_number
+    from closedloop.cli.parse import check_number
 
     args.max_shift_ms = check_number("--max-shift-ms", args.max_shift_ms, 0.0, 1e6)
     args.bootstrap = check_number("--bootstrap", args.bootstrap, 0, 10**6, integer=True)

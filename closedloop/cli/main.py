@@ -11,9 +11,9 @@ import json
 import logging
 import sys
 
-from closedloop.cli_calibrate import cmd_calibrate
-from closedloop.cli_parse import EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL, EXIT_PIPE, check_number, float_arg, int_arg, join_negative_numbers
-from closedloop.cli_simulate import cmd_simulate
+from closedloop.cli.calibrate import cmd_calibrate
+from closedloop.cli.parse import EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL, EXIT_PIPE, check_number, float_arg, int_arg, join_negative_numbers
+from closedloop.cli.simulate import cmd_simulate
 from closedloop.errors import CalibrationError, ClosedLoopError, InputError
 
 __all__ = ["EXIT_FAILED", "EXIT_INPUT", "EXIT_INTERNAL", "build_parser", "cmd_calibrate", "cmd_check", "cmd_inspect",
@@ -87,7 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     i.set_defaults(func=cmd_inspect)
     _add_simulate(sub)
     _add_check(sub)
-    from closedloop.cli_tools import add_extract_parser, cmd_loops
+    from closedloop.cli.tools import add_extract_parser, cmd_loops
 
     add_extract_parser(sub)
     from closedloop.fleet.batch import add_parser as add_batch  # closedloop batch MANIFEST (many jobs, any executor)
@@ -98,14 +98,14 @@ def build_parser() -> argparse.ArgumentParser:
     from closedloop.impedance.cli import add_parser as add_impedance  # closedloop impedance simulate|identify
 
     add_impedance(sub)
-    from closedloop.cli_evaluate import add_parser as add_evaluate  # closedloop evaluate MODEL... LOG --loop ...
+    from closedloop.cli.evaluate import add_parser as add_evaluate  # closedloop evaluate MODEL... LOG --loop ...
 
     add_evaluate(sub)
     return p
 
 
 def _add_calibrate(sub) -> None:
-    from closedloop.cli_tools import loop_help
+    from closedloop.cli.tools import loop_help
 
     c = sub.add_parser("calibrate", help="calibrate a model from a joint log", epilog=loop_help(),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -140,14 +140,14 @@ def _add_calibrate(sub) -> None:
                         "ones on idle cores; 0: keep the environment's setting)")
     c.add_argument("--degrees", action="store_true", help="the log is in degrees")
     c.add_argument("--quiet", action="store_true")
-    from closedloop.cli_evaluate import add_rig_options  # --distance, --joints, --lofo (rigs, issue 18)
+    from closedloop.cli.evaluate import add_rig_options  # --distance, --joints, --lofo (rigs, issue 18)
 
     add_rig_options(c)
     c.set_defaults(func=cmd_calibrate)
 
 
 def _add_simulate(sub) -> None:
-    from closedloop.cli_tools import add_simulate_robot_options, scenario_help
+    from closedloop.cli.tools import add_simulate_robot_options, scenario_help
 
     s = sub.add_parser("simulate", help="generate a closed-chain dataset in MuJoCo", epilog=scenario_help(),
                        formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -160,7 +160,7 @@ def _add_simulate(sub) -> None:
     s.add_argument("--replace", action="store_true", help="replace the dataset already in --out (refused otherwise)")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=cmd_simulate)
-    from closedloop.cli_sweep import add_sweep_options  # --seeds / --jobs / --ray: many datasets on the executor
+    from closedloop.cli.sweep import add_sweep_options  # --seeds / --jobs / --ray: many datasets on the executor
 
     add_sweep_options(s)
 
@@ -201,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     import signal
     import threading
 
-    from closedloop.cli_tools import parse_args
+    from closedloop.cli.tools import parse_args
 
     argv = join_negative_numbers(list(sys.argv[1:] if argv is None else argv))
     handlers = {}

@@ -77,7 +77,7 @@ def _read_inputs(log_path: str | None, robot, loops: list, degrees: bool, order:
         raise InputError("no log given: name the CSV log (or each loop's file with --loop ...,log=FILE)")
     if order:
         return read_log(log_path, robot.joint_names, degrees, linear, order)
-    from closedloop.cli_tools import read_log_or_bag
+    from closedloop.cli.tools import read_log_or_bag
 
     return read_log_or_bag(log_path, robot, degrees)
 

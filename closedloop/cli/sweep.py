@@ -162,7 +162,7 @@ def cmd_simulate_sweep(args) -> int:
     """`simulate`, or a sweep when --seeds / --scenarios is given."""
     import sys
 
-    from closedloop.cli_simulate import cmd_simulate
+    from closedloop.cli.simulate import cmd_simulate
 
     several = [x for x in (getattr(args, "scenarios", None) or "").split(",") if x.strip()]
     if getattr(args, "seeds", None) is None and len(several) == 1 and not args.scenario:
@@ -171,7 +171,7 @@ def cmd_simulate_sweep(args) -> int:
         if getattr(args, "jobs", None) is not None or getattr(args, "ray", None):
             raise InputError("simulate: --jobs / --ray run a sweep: give --seeds (e.g. --seeds 0-19)")
         return cmd_simulate(args)
-    from closedloop.cli_parse import check_number
+    from closedloop.cli.parse import check_number
     from closedloop.fleet.executor import engine_from_args, progress_printer
 
     scenarios = _scenarios(args)
@@ -197,7 +197,7 @@ def cmd_simulate_sweep(args) -> int:
 
 def _scenarios(args) -> dict[str, Any]:
     """The scenarios of the sweep, by name: --scenarios A,B (names or YAML files) or the one of `simulate`."""
-    from closedloop.cli_tools import resolve_scenario
+    from closedloop.cli.tools import resolve_scenario
     from closedloop.sims import SCENARIOS
 
     names = [s.strip() for s in args.scenarios.split(",") if s.strip()] if args.scenarios else [None]
@@ -213,6 +213,6 @@ def _scenarios(args) -> dict[str, Any]:
 
 
 def _overrides(args, sc) -> dict:
-    from closedloop.cli_parse import sim_overrides
+    from closedloop.cli.parse import sim_overrides
 
     return sim_overrides(args.set, sc.settings)

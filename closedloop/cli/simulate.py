@@ -5,8 +5,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from closedloop.cli_calibrate import Progress
-from closedloop.cli_parse import check_number, sim_overrides
+from closedloop.cli.calibrate import Progress
+from closedloop.cli.parse import check_number, sim_overrides
 from closedloop.errors import ClosedLoopError, InputError
 
 
@@ -15,7 +15,7 @@ def cmd_simulate(args) -> int:
         from closedloop.sims import SCENARIOS, simulate
     except ImportError as exc:  # pragma: no cover - packaging error
         raise ClosedLoopError(f"the simulator is not installed ({exc})") from None
-    from closedloop.cli_tools import resolve_scenario
+    from closedloop.cli.tools import resolve_scenario
     from closedloop.sims.camera_scene import SCENARIOS as CAMERA_SCENARIOS, simulate_cli as camera_simulate
 
     if getattr(args, "scenario", None) in CAMERA_SCENARIOS:  # the head-camera scenarios (sims/camera_scene.py)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import sys
 import time
 
-from closedloop.cli_parse import EXIT_FAILED, check_loop_numbers, check_number, parse_bounds, parse_noise
+from closedloop.cli.parse import EXIT_FAILED, check_loop_numbers, check_number, parse_bounds, parse_noise
 from closedloop.errors import InputError
 
 
@@ -72,7 +72,7 @@ def cmd_calibrate(args) -> int:
     from closedloop.model.robot import RobotModel
     from closedloop.io.logs import check_loop_column
     from closedloop.output.urdf import check_model_output
-    from closedloop.cli_evaluate import require_log
+    from closedloop.cli.evaluate import require_log
 
     require_log(args)  # the positional log, unless each loop names its file
     noise, bounds, cv_given = check_calibrate_options(args)  # outputs and numbers, before any work
@@ -83,7 +83,7 @@ def cmd_calibrate(args) -> int:
     loops = [parse_loop(s, robot) for s in args.loop] or default_loops(robot)
     if not loops:
         raise InputError("no --loop given: say how the chain is closed, e.g. --loop weld:frame=<tool frame>")
-    from closedloop.cli_evaluate import rig_inputs
+    from closedloop.cli.evaluate import rig_inputs
 
     lg, loops = rig_inputs(args, robot, loops)  # a CSV log or a ROS bag, or each loop's file; known distances
     check_loop_column(lg, [lp.name for lp in loops])
@@ -111,7 +111,7 @@ def cmd_calibrate(args) -> int:
     from closedloop.output.report import verdict_record
     from closedloop.verdict import judge
 
-    from closedloop.cli_evaluate import fixture_validation
+    from closedloop.cli.evaluate import fixture_validation
 
     lofo = fixture_validation(robot, lg, loops, opts, report, args, prog) if res.converged else None
     res.verdict = judge(res, cv, fixtures=lofo)  # the fit's evidence, the held-out folds' and fixtures'
@@ -126,7 +126,7 @@ def cmd_calibrate(args) -> int:
 
             write_model(robot, res.as_dict(), args.out, frames=tool_frames(res))  # with the tool point
     print_summary(res, elapsed, args, report, wrote_model=bool(write_out))
-    from closedloop.cli_tools import write_figures
+    from closedloop.cli.tools import write_figures
 
     write_figures(res, report, args)  # --html / --plots
     if res.verdict.status == "suspect":
@@ -225,7 +225,7 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
             left = len(cv.get("excluded_rows", []))
             print(f"  {cv['k']}-fold validation, loop {t['loop']}: held-out closure RMS "
                   + ", ".join(p for p in parts if p) + (f" (the {left} rejected rows not judged)" if left else ""))
-    from closedloop.cli_evaluate import fixture_lines
+    from closedloop.cli.evaluate import fixture_lines
 
     for line in fixture_lines(report.get("fixture_validation")):
         print(line)
