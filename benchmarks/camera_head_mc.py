@@ -26,7 +26,7 @@ from camera_head_support import FRAMES, head_case, run_head  # noqa: E402
 from machine import load, machine  # noqa: E402
 
 from closedloop.calibration import CalibrationOptions  # noqa: E402
-from closedloop.loops.camera import CameraLoop  # noqa: E402
+from closedloop.loops.camera.loop import CameraLoop  # noqa: E402
 
 
 def main(argv=None) -> int:

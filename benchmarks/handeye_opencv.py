@@ -57,7 +57,7 @@ from machine import load, machine  # noqa: E402
 from closedloop.calibration import CalibrationOptions, calibrate  # noqa: E402
 from closedloop.problem.distances import DistanceLoop  # noqa: E402
 from closedloop.io.logs import JointLog  # noqa: E402
-from closedloop.loops.camera import CameraLoop  # noqa: E402
+from closedloop.loops.camera.loop import CameraLoop  # noqa: E402
 from closedloop.models import example_robot_data_dir  # noqa: E402
 from closedloop.model.parameters import RobotParameters  # noqa: E402
 from closedloop.model.robot import RobotModel  # noqa: E402

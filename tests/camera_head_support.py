@@ -16,7 +16,7 @@ import pinocchio as pin
 
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate
 from closedloop.io.logs import JointLog
-from closedloop.loops.camera import CameraLoop
+from closedloop.loops.camera.loop import CameraLoop
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import vec_of
 from closedloop.sims.camera_scene import MARKER, head_urdf, mujoco_intrinsics, pan_towards

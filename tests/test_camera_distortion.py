@@ -7,8 +7,8 @@ import pytest
 
 from closedloop.io.camera_info import CameraInfo, read_camera_info, write_camera_info
 from closedloop.errors import InputError, LoopError
-from closedloop.loops.camera import CameraLoop
-from closedloop.loops.camera_model import distort, image_ray, project_lens, undistort
+from closedloop.loops.camera.loop import CameraLoop
+from closedloop.loops.camera.model import distort, image_ray, project_lens, undistort
 from closedloop.loops.spec import parse_loop
 from camera_head_support import FRAMES, MARKER, head_robot
 

@@ -10,8 +10,8 @@ import pytest
 
 from closedloop.calibration import build_problem
 from closedloop.io.logs import JointLog
-from closedloop.loops import camera_start
-from closedloop.loops.camera import CameraLoop
+from closedloop.loops.camera import start as camera_start
+from closedloop.loops.camera.loop import CameraLoop
 from closedloop.model.robot import RobotModel
 
 UR5 = site.getsitepackages()[0] + "/cmeel.prefix/share/example-robot-data/robots/ur_description/urdf/ur5_robot.urdf"

@@ -16,7 +16,7 @@ import pinocchio as pin
 import pytest
 
 HEAVY = ["scipy.stats", "scipy.special", "scipy.optimize", "scipy.linalg", "trimesh", "yourdfpy", "matplotlib",
-         "mujoco", "closedloop.loops.camera"]
+         "mujoco", "closedloop.loops.camera.loop"]
 
 
 def _modules_after(code: str) -> list[str]:

@@ -11,7 +11,7 @@ import pytest
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.errors import LoopError
-from closedloop.loops.camera import CameraLoop, camera_from_dlt, project
+from closedloop.loops.camera.loop import CameraLoop, camera_from_dlt, project
 from closedloop.loops.common import relative_point
 from closedloop.loops.spec import parse_loop
 from closedloop.model.robot import RobotModel

@@ -18,7 +18,7 @@ from closedloop.calibration import CalibrationOptions, build_problem, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.errors import LoopError
 from closedloop.analysis.gauge import length_of
-from closedloop.loops.camera import CameraLoop
+from closedloop.loops.camera.loop import CameraLoop
 from closedloop.loops.spec import parse_loop
 
 D = np.array([-0.2, 0.07, 0.001, -0.0007, -0.01])

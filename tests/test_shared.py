@@ -209,7 +209,7 @@ def _two_camera_data(sigma_px: float | None = None):
     that share it (`share(..., "tip", "marker")`): robot, joints, readings, a loop factory, exact pixels."""
     from test_loops_camera import K1, K2, UR5, X1, X2, pixels, robot_of, ur5_readings
 
-    from closedloop.loops.camera import CameraLoop
+    from closedloop.loops.camera.loop import CameraLoop
     from closedloop.problem.shared import share
     from closedloop.studies.truth import draw_truth
 

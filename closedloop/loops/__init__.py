@@ -20,7 +20,7 @@ __all__ = ["Loop", "LoopEval", "CameraLoop", "HingeLoop", "MeasuredPointLoop", "
 
 def __getattr__(name: str):
     if name == "CameraLoop":  # loaded on first use (PEP 562)
-        from closedloop.loops.camera import CameraLoop
+        from closedloop.loops.camera.loop import CameraLoop
 
         return CameraLoop
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

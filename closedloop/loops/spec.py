@@ -49,7 +49,7 @@ LOOP_TYPES: dict[str, str] = {
     "passive": ".passive",
     "measured_pose": ".measured",
     "measured_point": ".measured",
-    "camera": ".camera_spec",
+    "camera": ".camera.spec",
 }
 #: the factories and keys of the types whose modules are loaded (filled by `register`)
 REGISTRY: dict[str, tuple[LoopFactory, set[str]]] = {}

@@ -22,8 +22,8 @@ import pinocchio as pin
 from closedloop.model.se3 import vec_of
 from closedloop.loops import common
 
-from closedloop.loops.camera import PLACEHOLDER_K
-from closedloop.loops.camera_model import camera_from_dlt
+from closedloop.loops.camera.loop import PLACEHOLDER_K
+from closedloop.loops.camera.model import camera_from_dlt
 from closedloop.loops.common import relative_point
 
 log = logging.getLogger(__name__)

@@ -36,7 +36,7 @@ import pinocchio as pin
 from closedloop.errors import LoopError
 from closedloop.model.parameters import Parameter
 from closedloop.loops.base import Loop, LoopEval
-from closedloop.loops.camera_model import DIST_FIELDS, INTRINSIC_FIELDS, camera_from_dlt, dlt, project, project_lens  # noqa: F401
+from closedloop.loops.camera.model import DIST_FIELDS, INTRINSIC_FIELDS, camera_from_dlt, dlt, project, project_lens  # noqa: F401
 from closedloop.model.se3 import as_se3, generators, pose_of, skew, vec3, vec_of
 from closedloop.loops.common import POSE_FIELDS, TIP_FIELDS, point_parameters, pose_parameters, relative_point
 
@@ -292,7 +292,7 @@ class CameraLoop(Loop):
             raise LoopError(f"camera loop '{self.name}': {len(Ts)} frame poses for frames {self._frames}")
         meas = self.checked(meas, Ts[0].shape[0])
         if self.closure == "triangulation":
-            from closedloop.loops.stereo import triangulation_eval
+            from closedloop.loops.camera.stereo import triangulation_eval
             ev = triangulation_eval(self, Ts, p, meas, jac)
         else:
             ev = self._reprojection(Ts, p, meas, jac)
@@ -351,7 +351,7 @@ class CameraLoop(Loop):
 
     def initialize_frames(self, Ts: list[np.ndarray], meas: np.ndarray | None = None) -> np.ndarray | None:
         """Unknown camera poses, intrinsics, distortion and marker from the pixels `meas` (``camera_start``)."""
-        from closedloop.loops.camera_start import initialize_camera_loop
+        from closedloop.loops.camera.start import initialize_camera_loop
         return initialize_camera_loop(self, Ts, meas)
 
     def describe(self) -> dict:
@@ -391,4 +391,4 @@ def _se3(v, name: str, what: str) -> pin.SE3:
         raise LoopError(f"camera loop '{name}': {exc}") from None
 
 
-from closedloop.loops import camera_spec  # noqa: E402,F401  (registers the 'camera' loop type)
+from closedloop.loops.camera import spec as camera_spec

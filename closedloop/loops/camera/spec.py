@@ -22,7 +22,7 @@ from closedloop.errors import InputError, LoopError
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import parse_vec
 from closedloop.loops.base import Loop
-from closedloop.loops.camera_model import DIST_FIELDS
+from closedloop.loops.camera.model import DIST_FIELDS
 from closedloop.loops.spec import register
 
 MAX_CAMERAS = 4
@@ -54,7 +54,7 @@ def camera_loop_from_spec(kw: dict[str, str], robot: RobotModel) -> Loop:
     """camera:frame=A[,to=B|F1+F2+..][,cameras=1|2][,closure=reprojection|triangulation][,dist=k1+k2+p1+p2+k3]
     [,K<c>=|K<c>_0="fx fy cx cy"][,pose<c>="x y z rx ry rz"][,D<c>="k1 k2 p1 p2 k3"][,info<c>=FILE]
     [,rig="x y z rx ry rz"][,tip=|tip0="x y z"][,sigma_px=px] (module docstring)."""
-    from closedloop.loops.camera import CLOSURES, CameraLoop  # camera.py imports this module to register the type
+    from closedloop.loops.camera.loop import CLOSURES, CameraLoop  # camera.py imports this module to register the type
 
     name = kw.get("name", "camera")
     if "frame" not in kw:

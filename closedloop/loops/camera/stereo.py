@@ -32,7 +32,7 @@ import numpy as np
 
 from closedloop.model.se3 import generators, skew
 from closedloop.loops.base import LoopEval
-from closedloop.loops.camera_model import image_ray
+from closedloop.loops.camera.model import image_ray
 from closedloop.loops.common import relative_point
 
 
