@@ -46,7 +46,7 @@ class Progress:
 
 def check_calibrate_options(args) -> tuple:
     """`calibrate`'s output paths and numeric options, checked before any work: (noise, bounds, cv given?)."""
-    from closedloop.output.urdf import check_outputs
+    from closedloop.io.files import check_outputs
 
     check_outputs({"--out": args.out, "--report": args.report, "--html": getattr(args, "html", None)},
                   [args.model, args.log])
@@ -65,7 +65,8 @@ def check_calibrate_options(args) -> tuple:
 
 def cmd_calibrate(args) -> int:
     from closedloop.calibration import CalibrationOptions, calibrate
-    from closedloop.output.urdf import OutputSet, write_model
+    from closedloop.output.urdf import write_model
+    from closedloop.io.files import OutputSet
     from closedloop.loops.spec import default_loops, parse_loop
     from closedloop.model.parameters import parse_fix
     from closedloop.output.report import build_report, write_report

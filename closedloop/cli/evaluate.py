@@ -141,7 +141,7 @@ def add_parser(sub) -> None:
 
 def cmd_evaluate(args) -> int:
     from closedloop.validation.evaluate import evaluate_model, table
-    from closedloop.output.urdf import atomic_write_text, check_outputs
+    from closedloop.io.files import atomic_write_text, check_outputs
     from closedloop.loops.spec import parse_loop
     from closedloop.model.robot import RobotModel
 

@@ -23,7 +23,7 @@ def cmd_simulate(args) -> int:
     args.scenario = resolve_scenario(args)  # a built-in, a scenario YAML, or --robot + --loop
     if args.scenario not in SCENARIOS:
         raise InputError(f"unknown scenario '{args.scenario}' (known: {', '.join(sorted(SCENARIOS))})")
-    from closedloop.output.urdf import check_outputs
+    from closedloop.io.files import check_outputs
     from closedloop.sims.outputs import check_dataset_dir
 
     args.n = check_number("--n", args.n, 1, 10**7, integer=True)

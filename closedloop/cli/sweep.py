@@ -137,7 +137,7 @@ def _csv_row(r: SweepRow) -> dict:
 
 
 def _write_summary(path: Path, rows: list[SweepRow]) -> None:
-    from closedloop.output.urdf import atomic_write
+    from closedloop.io.files import atomic_write
 
     def writer(tmp: str) -> None:
         with open(tmp, "w", newline="") as fh:

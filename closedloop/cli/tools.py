@@ -86,7 +86,7 @@ def read_log_or_bag(path: str, robot, degrees: bool = False, bag_options=None):
 
 def cmd_extract(args) -> int:
     from closedloop.io.bags import ExtractOptions, extract, parse_windows
-    from closedloop.output.urdf import refuse_overwrite
+    from closedloop.io.files import refuse_overwrite
     from closedloop.model.robot import RobotModel
 
     if args.model:
@@ -251,7 +251,7 @@ def write_figures(res, report: dict, args) -> None:
     if corr is not None:
         import yaml
 
-        from closedloop.output.urdf import atomic_write_text
+        from closedloop.io.files import atomic_write_text
 
         path = str(Path(out).with_suffix("")) + ".sensors.yaml"
         atomic_write_text(path, "# closedloop: joint sensor corrections the model file cannot carry\n"

@@ -261,7 +261,7 @@ class _Summary:
         self.fh.flush()
 
     def finish(self, rows: list[dict]) -> None:
-        from closedloop.output.urdf import atomic_write
+        from closedloop.io.files import atomic_write
 
         self.fh.close()
 
@@ -320,7 +320,7 @@ def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=N
 
 
 def _write_drift(summary: Path, drifts: list[Drift]) -> None:
-    from closedloop.output.urdf import atomic_write
+    from closedloop.io.files import atomic_write
 
     def writer(tmp):
         with open(tmp, "w", newline="") as fh:

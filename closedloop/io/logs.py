@@ -55,7 +55,7 @@ class JointLog:
 
     def write_csv(self, path: str | Path) -> None:
         """Write atomically in the same format."""
-        from closedloop.output.urdf import atomic_write_text
+        from closedloop.io.files import atomic_write_text
 
         head = list(self.joints) + (["loop"] if self.loop is not None else []) + list(self.extra)
         lines = [",".join(head)]

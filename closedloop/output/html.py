@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from closedloop.errors import InputError
-from closedloop.output.urdf import atomic_write, atomic_write_text
+from closedloop.io.files import atomic_write, atomic_write_text
 
 _CSS = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;color:#222}
 h1{font-size:1.6em}h2{border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:1.6em}

@@ -150,7 +150,7 @@ def _check_compiles(root, src: Path) -> None:
 
 def write_mjcf(robot: RobotModel, values: dict[str, float], out_path: str | Path) -> None:
     """Write the calibrated MJCF atomically (assets found from wherever it is written)."""
-    from closedloop.output.urdf import atomic_write_text, refuse_overwrite
+    from closedloop.io.files import atomic_write_text, refuse_overwrite
 
     refuse_overwrite(out_path, robot.source)
     atomic_write_text(out_path, calibrated_mjcf(robot, values, Path(out_path).parent))

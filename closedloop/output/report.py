@@ -10,7 +10,7 @@ import numpy as np
 
 from closedloop import __version__
 from closedloop.calibration import CalibrationResult
-from closedloop.output.urdf import atomic_write_text
+from closedloop.io.files import atomic_write_text
 
 
 def _chi2_sf(x: float, dof: int) -> float:

@@ -55,7 +55,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ScenarioError, UnknownScenarioError
-from closedloop.output.urdf import OutputSet
+from closedloop.io.files import OutputSet
 from closedloop.models import nominal_urdf
 
 from closedloop.sims.driver import NominalLoop, NominalLoopPlanner, RandomConfigurations

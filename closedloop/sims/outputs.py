@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from closedloop.errors import InputError
-from closedloop.output.urdf import OutputSet
+from closedloop.io.files import OutputSet
 
 from closedloop.sims.loop_types import SIM_LOOPS, SimLoop
 from closedloop.sims.scenarios import Scenario, SimSettings
