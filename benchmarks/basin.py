@@ -55,16 +55,30 @@ def main(argv: list[str] | None = None) -> int:
             print(o.line(), flush=True)
             outs.append(o)
         summary[name] = (outs, time.perf_counter() - t0)
-    print("\n| example | starts | recovered | of which flagged | right but failed | refused | confidently wrong "
-          "| crash | median time |")
+    print(
+        "\n| example | starts | recovered | of which flagged | right but failed | refused | confidently wrong "
+        "| crash | median time |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for name, (outs, dt) in summary.items():
-        c = Counter("recovered" if o.accepted else "right_failed" if o.recovered else "refused" if o.refused
-                    else "crash" if o.status == "crash" else "wrong" for o in outs)
+        c = Counter(
+            "recovered"
+            if o.accepted
+            else "right_failed"
+            if o.recovered
+            else "refused"
+            if o.refused
+            else "crash"
+            if o.status == "crash"
+            else "wrong"
+            for o in outs
+        )
         flagged = sum(o.accepted and o.status == "suspect" for o in outs)
         med = sorted(o.seconds for o in outs)[len(outs) // 2]
-        print(f"| {name} | {len(outs)} | {c['recovered']} ({100 * c['recovered'] / len(outs):.0f} %) | {flagged} | "
-              f"{c['right_failed']} | {c['refused']} | {c['wrong']} | {c['crash']} | {med:.2f} s |")
+        print(
+            f"| {name} | {len(outs)} | {c['recovered']} ({100 * c['recovered'] / len(outs):.0f} %) | {flagged} | "
+            f"{c['right_failed']} | {c['refused']} | {c['wrong']} | {c['crash']} | {med:.2f} s |"
+        )
     return 0
 
 

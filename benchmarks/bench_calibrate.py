@@ -28,16 +28,15 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
+from floor import pinocchio_floor  # benchmarks/floor.py
+from machine import add_arguments, condition, conditions, header, threads_mode, timed  # benchmarks/machine.py
 
 from closedloop.calibration import calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
-from closedloop.models import ROBOTS
 from closedloop.model.robot import RobotModel
+from closedloop.models import ROBOTS
 from closedloop.studies.truth import make_dataset
-
-from floor import pinocchio_floor  # benchmarks/floor.py
-from machine import add_arguments, condition, conditions, header, threads_mode, timed  # benchmarks/machine.py
 
 
 def _log(ds, n: int, rng: np.random.Generator, corrupt: float = 0.0) -> tuple[JointLog, np.ndarray]:
@@ -48,8 +47,9 @@ def _log(ds, n: int, rng: np.random.Generator, corrupt: float = 0.0) -> tuple[Jo
     bad = np.zeros(0, dtype=int)
     if corrupt > 0:
         bad = rng.choice(n, int(round(corrupt * n)), replace=False)
-        th[bad, rng.integers(0, th.shape[1], bad.size)] += \
-            rng.choice([-1.0, 1.0], bad.size) * rng.uniform(0.05, 0.2, bad.size)
+        th[bad, rng.integers(0, th.shape[1], bad.size)] += rng.choice([-1.0, 1.0], bad.size) * rng.uniform(
+            0.05, 0.2, bad.size
+        )
     return JointLog(ds.joints, th), bad
 
 
@@ -73,6 +73,7 @@ def run_once(robot, log: JointLog, mode: str) -> tuple[float, float, float, floa
             with blas_threads(None, 6 * len(log), 7 * len(log.joints) + 6):
                 return calibrate(robot, log, loops, progress=progress)
     else:
+
         def call():
             with threads_mode(mode):
                 return calibrate(robot, log, loops, progress=progress)
@@ -82,8 +83,16 @@ def run_once(robot, log: JointLog, mode: str) -> tuple[float, float, float, floa
     res, total, cpu = timed(call)
     kernel = resource.getrusage(resource.RUSAGE_SELF).ru_stime - k0
     s0, sc0 = stages.get("solving", (t0, c0))
-    return total, total - (s0 - t0), cpu, cpu - (sc0 - c0), res.iterations, len(res.estimated), kernel, \
-        [rj.row - 1 for rj in res.rejected]
+    return (
+        total,
+        total - (s0 - t0),
+        cpu,
+        cpu - (sc0 - c0),
+        res.iterations,
+        len(res.estimated),
+        kernel,
+        [rj.row - 1 for rj in res.rejected],
+    )
 
 
 def reuse_freed_memory() -> bool:
@@ -99,18 +108,25 @@ def reuse_freed_memory() -> bool:
     except OSError:
         return False
     m_trim_threshold, m_top_pad, m_mmap_max = -1, -2, -4
-    return all(libc.mallopt(k, v) == 1 for k, v in ((m_mmap_max, 0), (m_trim_threshold, 2**31 - 1),
-                                                       (m_top_pad, 2**30)))
+    return all(libc.mallopt(k, v) == 1 for k, v in ((m_mmap_max, 0), (m_trim_threshold, 2**31 - 1), (m_top_pad, 2**30)))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[1000])
     ap.add_argument("--repeat", type=int, default=5, help="runs per figure (median and best reported)")
-    ap.add_argument("--reuse-memory", action="store_true",
-                    help="glibc: keep freed arrays for reuse (mallopt; see reuse_freed_memory)")
-    ap.add_argument("--corrupt", type=float, default=0.0, metavar="F",
-                    help="fraction of rows with one reading off by 0.05-0.2 rad (outlier screen)")
+    ap.add_argument(
+        "--reuse-memory",
+        action="store_true",
+        help="glibc: keep freed arrays for reuse (mallopt; see reuse_freed_memory)",
+    )
+    ap.add_argument(
+        "--corrupt",
+        type=float,
+        default=0.0,
+        metavar="F",
+        help="fraction of rows with one reading off by 0.05-0.2 rad (outlier screen)",
+    )
     add_arguments(ap)
     ap.set_defaults(threads=["1", "default", "auto"])
     args = ap.parse_args()
@@ -118,22 +134,35 @@ def main() -> None:
         print(f"malloc: freed memory kept for reuse: {reuse_freed_memory()}")
     robot = RobotModel.from_file(ROBOTS["panda"].path)
     rng = np.random.default_rng(0)
-    ds, t_data, _ = timed(make_dataset, robot, WeldLoop("fixture", "panda_hand"),
-                          [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 1000, rng, stride=1)
+    ds, t_data, _ = timed(
+        make_dataset,
+        robot,
+        WeldLoop("fixture", "panda_hand"),
+        [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8],
+        1000,
+        rng,
+        stride=1,
+    )
     print(header())
-    print(f"data: 1,000 exact self-motion configurations in {t_data:.1f} s; noise 1e-4 rad"
-          + (f"; {100 * args.corrupt:g} % of the rows corrupted" if args.corrupt else ""))
+    print(
+        f"data: 1,000 exact self-motion configurations in {t_data:.1f} s; noise 1e-4 rad"
+        + (f"; {100 * args.corrupt:g} % of the rows corrupted" if args.corrupt else "")
+    )
     logs = {n: _log(ds, n, rng, args.corrupt) for n in args.sizes}
     calibrate(robot, logs[args.sizes[0]][0], [WeldLoop("fixture", "panda_hand")])  # warm-up (imports, caches)
     for cond in conditions(args.loaded):
         with condition(cond) as cdesc:
             print(f"\n[{cdesc}]")
-            print("wall: median and best of the runs; cpu: medians; floor: Pinocchio FK + frame Jacobian of the\n"
-                  "same configurations (benchmarks/floor.py), best of 3, wall and CPU; ratios on the CPU clock\n"
-                  "(on a shared machine the wall clock measures the scheduler)")
-            print(f"{'threads':>8} {'configs':>9} {'total med':>10} {'best':>7} {'solve med':>10} {'best':>7} "
-                  f"{'cpu tot':>8} {'cpu solve':>9} {'iters':>5} {'floor ms':>9} {'cpu':>6} "
-                  f"{'tot/fl':>7} {'solve/(fl*it)':>14} {'kernel':>7}")
+            print(
+                "wall: median and best of the runs; cpu: medians; floor: Pinocchio FK + frame Jacobian of the\n"
+                "same configurations (benchmarks/floor.py), best of 3, wall and CPU; ratios on the CPU clock\n"
+                "(on a shared machine the wall clock measures the scheduler)"
+            )
+            print(
+                f"{'threads':>8} {'configs':>9} {'total med':>10} {'best':>7} {'solve med':>10} {'best':>7} "
+                f"{'cpu tot':>8} {'cpu solve':>9} {'iters':>5} {'floor ms':>9} {'cpu':>6} "
+                f"{'tot/fl':>7} {'solve/(fl*it)':>14} {'kernel':>7}"
+            )
             for mode in args.threads:
                 for n in args.sizes:
                     reps = args.repeat if n <= 10000 else max(1, args.repeat // 3)
@@ -146,11 +175,18 @@ def main() -> None:
                     kernel = float(np.median([r[6] for r in runs]))
                     with threads_mode("1"):
                         fl, fl_cpu = pinocchio_floor("panda", n=n, repeat=3)
-                    print(f"{mode:>8} {n:>9,} {np.median(tot):>10.3f} {tot.min():>7.3f} {np.median(sol):>10.3f} "
-                          f"{sol.min():>7.3f} {cpu:>8.3f} {cpu_s:>9.3f} {iters:>5d} {1e3 * fl:>9.2f} "
-                          f"{1e3 * fl_cpu:>6.2f} {cpu / fl_cpu:>7.0f} {cpu_s / (fl_cpu * max(iters, 1)):>14.1f} {kernel:>7.2f}"
-                          + (f"  rejected {len(runs[0][7])} ({np.isin(runs[0][7], logs[n][1]).sum()} corrupted of "
-                             f"{logs[n][1].size})" if args.corrupt else ""), flush=True)
+                    print(
+                        f"{mode:>8} {n:>9,} {np.median(tot):>10.3f} {tot.min():>7.3f} {np.median(sol):>10.3f} "
+                        f"{sol.min():>7.3f} {cpu:>8.3f} {cpu_s:>9.3f} {iters:>5d} {1e3 * fl:>9.2f} "
+                        f"{1e3 * fl_cpu:>6.2f} {cpu / fl_cpu:>7.0f} {cpu_s / (fl_cpu * max(iters, 1)):>14.1f} {kernel:>7.2f}"
+                        + (
+                            f"  rejected {len(runs[0][7])} ({np.isin(runs[0][7], logs[n][1]).sum()} corrupted of "
+                            f"{logs[n][1].size})"
+                            if args.corrupt
+                            else ""
+                        ),
+                        flush=True,
+                    )
 
 
 if __name__ == "__main__":

@@ -33,7 +33,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from machine import add_arguments, condition, conditions, header  # benchmarks/machine.py
 
 CLI = [sys.executable, "-m", "closedloop.cli.main"]
@@ -68,8 +67,18 @@ def simulate(out: Path) -> Path:
 
 def calibrate_once(data: Path, work: Path, mode: str, cv: bool) -> tuple[float, float, float]:
     """(wall, fit seconds, child CPU) of one `closedloop calibrate` of the main job."""
-    cmd = CLI + ["calibrate", str(data / "nominal.urdf"), str(data / "log.csv"), "--loop", LOOP,
-                 "--out", str(work / "calibrated.urdf"), "--report", str(work / "report.json"), "--quiet"]
+    cmd = CLI + [
+        "calibrate",
+        str(data / "nominal.urdf"),
+        str(data / "log.csv"),
+        "--loop",
+        LOOP,
+        "--out",
+        str(work / "calibrated.urdf"),
+        "--report",
+        str(work / "report.json"),
+        "--quiet",
+    ]
     _, wall, cpu = _run(cmd + ([] if cv else ["--cv", "0"]), _env(mode))
     fit = json.loads((work / "report.json").read_text())["solver"]["seconds"]
     return wall, float(fit), cpu
@@ -103,18 +112,23 @@ def main() -> None:
                         runs = np.array([calibrate_once(data, work, mode, cv) for _ in range(args.repeat)])
                         w, f, c = runs[:, 0], runs[:, 1], runs[:, 2]
                         label = "calibrate" + ("" if cv else " --cv 0")
-                        print(f"{mode:>8} {label:>22} {np.median(w):>6.2f} ({w.min():.2f}) {np.median(f):>6.2f} "
-                              f"({f.min():.2f}) {np.median(w - f):>6.2f} ({(w - f).min():.2f}) {np.median(c):>6.2f}",
-                              flush=True)
+                        print(
+                            f"{mode:>8} {label:>22} {np.median(w):>6.2f} ({w.min():.2f}) {np.median(f):>6.2f} "
+                            f"({f.min():.2f}) {np.median(w - f):>6.2f} ({(w - f).min():.2f}) {np.median(c):>6.2f}",
+                            flush=True,
+                        )
                     imp = np.array([import_time(mode) for _ in range(args.repeat)])
-                    plain = np.array([_run([sys.executable, "-c", "import closedloop"], _env(mode))[1:]
-                                      for _ in range(args.repeat)])
-                    bare = np.array([_run([sys.executable, "-c", "pass"], _env(mode))[1]
-                                     for _ in range(args.repeat)])
-                    print(f"{mode:>8} {'-X importtime':>22} closedloop cumulative {np.median(imp):.3f} "
-                          f"({imp.min():.3f}); python -c 'import closedloop' wall {np.median(plain[:, 0]):.3f} "
-                          f"({plain[:, 0].min():.3f}) cpu {np.median(plain[:, 1]):.3f}; python -c pass "
-                          f"{np.median(bare):.3f}", flush=True)
+                    plain = np.array(
+                        [_run([sys.executable, "-c", "import closedloop"], _env(mode))[1:] for _ in range(args.repeat)]
+                    )
+                    bare = np.array([_run([sys.executable, "-c", "pass"], _env(mode))[1] for _ in range(args.repeat)])
+                    print(
+                        f"{mode:>8} {'-X importtime':>22} closedloop cumulative {np.median(imp):.3f} "
+                        f"({imp.min():.3f}); python -c 'import closedloop' wall {np.median(plain[:, 0]):.3f} "
+                        f"({plain[:, 0].min():.3f}) cpu {np.median(plain[:, 1]):.3f}; python -c pass "
+                        f"{np.median(bare):.3f}",
+                        flush=True,
+                    )
 
 
 if __name__ == "__main__":

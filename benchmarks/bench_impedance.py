@@ -31,8 +31,13 @@ from closedloop.impedance.model import ExperimentConfig, simulate  # noqa: E402
 from closedloop.impedance.mujoco_sim import forearm_truth, simulate_robot  # noqa: E402
 from closedloop.impedance.plots import plot_impedance  # noqa: E402
 
-METHODS = {"default (20 Hz)": ("default", {}), "default, 10 Hz": ("default", {"prefilter_hz": 10.0}),
-           "OLS": ("ols", {}), "IV (2SLS)": ("iv", {}), "thesis": ("thesis", {})}
+METHODS = {
+    "default (20 Hz)": ("default", {}),
+    "default, 10 Hz": ("default", {"prefilter_hz": 10.0}),
+    "OLS": ("ols", {}),
+    "IV (2SLS)": ("iv", {}),
+    "thesis": ("thesis", {}),
+}
 
 
 def ens_of(sim, **kw):
@@ -45,8 +50,10 @@ def sims(reps, **kw):
 
 def method_table(runs, title, rise=False):
     print(f"\n{title}")
-    print("| method | mean abs error I / B / K (%) | bias I / B / K (%) | random I / B / K (%) |"
-          + (" K rise 10-90 % (ms) |" if rise else ""))
+    print(
+        "| method | mean abs error I / B / K (%) | bias I / B / K (%) | random I / B / K (%) |"
+        + (" K rise 10-90 % (ms) |" if rise else "")
+    )
     print("|---|---|---|---|" + ("---|" if rise else ""))
     out = {}
     for name, (m, kw) in METHODS.items():
@@ -55,8 +62,10 @@ def method_table(runs, title, rise=False):
         err = np.mean([list(rel_errors(est, t).values()) for est, (_, t) in zip(ests, runs)], axis=0)
         br = bias_random(ests, truth)
         row = {"error": err.tolist(), "bias": [br[k][0] for k in "IBK"], "random": [br[k][1] for k in "IBK"]}
-        line = (f"| {name} | {' / '.join(f'{x:.2f}' for x in err)} | {' / '.join(f'{x:.2f}' for x in row['bias'])}"
-                f" | {' / '.join(f'{x:.2f}' for x in row['random'])} |")
+        line = (
+            f"| {name} | {' / '.join(f'{x:.2f}' for x in err)} | {' / '.join(f'{x:.2f}' for x in row['bias'])}"
+            f" | {' / '.join(f'{x:.2f}' for x in row['random'])} |"
+        )
         if rise:
             rt = mean_rise_time(truth["t"], np.stack([e.K for e in ests]), truth["K"])
             row["rise_ms"] = 1e3 * rt
@@ -69,17 +78,35 @@ def method_table(runs, title, rise=False):
 def speed_and_main_figure(res: dict, out: Path) -> None:
     """Speed; the MuJoCo forearm with finite-difference truth, bands and postures (main figure)."""
     cfg = ExperimentConfig(n_cycles=100, noise=0.05, seed=1)
-    t = time.perf_counter(); sm = simulate(cfg, "mujoco"); t_mj = time.perf_counter() - t
-    t = time.perf_counter(); sr = simulate(cfg, "rk4"); t_rk = time.perf_counter() - t
-    t = time.perf_counter(); tr_fd = forearm_truth(cfg); t_tr = time.perf_counter() - t
+    t = time.perf_counter()
+    sm = simulate(cfg, "mujoco")
+    t_mj = time.perf_counter() - t
+    t = time.perf_counter()
+    sr = simulate(cfg, "rk4")
+    t_rk = time.perf_counter() - t
+    t = time.perf_counter()
+    tr_fd = forearm_truth(cfg)
+    t_tr = time.perf_counter() - t
     ens = ens_of(sm)
     estimate(ens, warn=False)
-    t = time.perf_counter(); est = estimate(ens, warn=False); t_est = time.perf_counter() - t
+    t = time.perf_counter()
+    est = estimate(ens, warn=False)
+    t_est = time.perf_counter() - t
     opt = EstimateOptions()
-    t = time.perf_counter(); bands = bootstrap(ens, opt, 200); t_boot = time.perf_counter() - t
-    t = time.perf_counter(); fit = free_run_vaf(ens, opt); t_vaf = time.perf_counter() - t
-    res["speed_s"] = {"simulate_mujoco_100": t_mj, "simulate_rk4_100": t_rk, "truth_fd": t_tr,
-                      "estimate": t_est, "bootstrap_200": t_boot, "free_run_vaf_5fold": t_vaf}
+    t = time.perf_counter()
+    bands = bootstrap(ens, opt, 200)
+    t_boot = time.perf_counter() - t
+    t = time.perf_counter()
+    fit = free_run_vaf(ens, opt)
+    t_vaf = time.perf_counter() - t
+    res["speed_s"] = {
+        "simulate_mujoco_100": t_mj,
+        "simulate_rk4_100": t_rk,
+        "truth_fd": t_tr,
+        "estimate": t_est,
+        "bootstrap_200": t_boot,
+        "free_run_vaf_5fold": t_vaf,
+    }
     print("\nspeed (s): " + ", ".join(f"{k} {v:.2f}" for k, v in res["speed_s"].items()))
     print(f"MuJoCo vs RK4 twin: max |angle diff| {np.max(np.abs(sm.record.angle - sr.record.angle)):.1e} rad")
 
@@ -93,12 +120,27 @@ def speed_and_main_figure(res: dict, out: Path) -> None:
     dip_est = np.mean(est.K[np.abs(t - 1) < 0.15]) - np.mean(est.K[(t < 0.15) | (t > 1.85)])
     dip_true = np.mean(tr_fd["K"][np.abs(t - 1) < 0.15]) - np.mean(tr_fd["K"][(t < 0.15) | (t > 1.85)])
     cov = {k: coverage(bands.lo[k], bands.hi[k], tr_fd[k]) for k in "IBK"}
-    res["mujoco_default"] = {"error": err, "vaf": fit.vaf, "K_dip_est": dip_est, "K_dip_true": dip_true,
-                             "coverage": cov, "posture": post}
-    print(f"MuJoCo data, default: errors {err}, free-run VAF {fit.vaf:.3f} %, gravity K dip {dip_est:.2f} "
-          f"(true {dip_true:.2f}) N m/rad, coverage {cov}")
-    plot_impedance(out / "impedance_default.png", est, ens, bands, tr_fd, post,
-                   "default estimator, MuJoCo forearm, N = 100, 5 % noise")
+    res["mujoco_default"] = {
+        "error": err,
+        "vaf": fit.vaf,
+        "K_dip_est": dip_est,
+        "K_dip_true": dip_true,
+        "coverage": cov,
+        "posture": post,
+    }
+    print(
+        f"MuJoCo data, default: errors {err}, free-run VAF {fit.vaf:.3f} %, gravity K dip {dip_est:.2f} "
+        f"(true {dip_true:.2f}) N m/rad, coverage {cov}"
+    )
+    plot_impedance(
+        out / "impedance_default.png",
+        est,
+        ens,
+        bands,
+        tr_fd,
+        post,
+        "default estimator, MuJoCo forearm, N = 100, 5 % noise",
+    )
 
 
 def tables_and_coverage(res: dict, out: Path, reps: int) -> None:
@@ -112,16 +154,24 @@ def tables_and_coverage(res: dict, out: Path, reps: int) -> None:
     sq = [(ens_of(s), s.truth) for s in sims(reps, n_cycles=100, noise=0.05, stiffness="square:20,8,0.5")]
     res["square"] = method_table(sq, "square-wave K 20 <-> 8 N m/rad (0.5 s period), N = 100, 5 % noise", rise=True)
     e_sq = estimate(sq[0][0])
-    plot_impedance(out / "impedance_square.png", e_sq, sq[0][0], bootstrap(sq[0][0], opt, 200), sq[0][1],
-                   title="square-wave stiffness, default estimator")
+    plot_impedance(
+        out / "impedance_square.png",
+        e_sq,
+        sq[0][0],
+        bootstrap(sq[0][0], opt, 200),
+        sq[0][1],
+        title="square-wave stiffness, default estimator",
+    )
     covs = []
     for e, tr in runs:
         b = bootstrap(e, opt, 200)
         covs.append([coverage(b.lo[k], b.hi[k], tr[k]) for k in "IBK"])
     covs = np.array(covs)
     res["coverage"] = {"mean": covs.mean(0).tolist(), "min": covs.min(0).tolist()}
-    print(f"\nbootstrap 95 % band coverage over {reps} realisations, I / B / K: mean "
-          f"{np.round(100 * covs.mean(0), 1).tolist()} %, min {np.round(100 * covs.min(0), 1).tolist()} %")
+    print(
+        f"\nbootstrap 95 % band coverage over {reps} realisations, I / B / K: mean "
+        f"{np.round(100 * covs.mean(0), 1).tolist()} %, min {np.round(100 * covs.min(0), 1).tolist()} %"
+    )
 
 
 def voluntary_and_thesis(res: dict, out: Path, reps: int) -> None:
@@ -132,18 +182,33 @@ def voluntary_and_thesis(res: dict, out: Path, reps: int) -> None:
         vr = [(ens_of(s), s.truth) for s in sims(max(2, reps // 2), n_cycles=n, noise=0.05, voluntary_rms=0.5)]
         for m in ("default", "iv"):
             med = np.mean([list(median_errors(estimate(e, m, warn=False), tr).values()) for e, tr in vr], axis=0)
-            sgn = np.mean([[np.nanmedian(getattr(estimate(e, m, warn=False), k) / tr[k]) - 1 for k in "IB"]
-                           for e, tr in vr], axis=0)
+            sgn = np.mean(
+                [[np.nanmedian(getattr(estimate(e, m, warn=False), k) / tr[k]) - 1 for k in "IB"] for e, tr in vr],
+                axis=0,
+            )
             vol[f"{m} N={n}"] = {"median_error": med.tolist(), "median_bias_IB": sgn.tolist()}
-            print(f"  {'TLS (default)' if m == 'default' else 'IV (2SLS)'} N = {n}: {np.round(med, 1).tolist()}"
-                  f"  (median bias I {100 * sgn[0]:+.0f} %, B {100 * sgn[1]:+.0f} %)")
+            print(
+                f"  {'TLS (default)' if m == 'default' else 'IV (2SLS)'} N = {n}: {np.round(med, 1).tolist()}"
+                f"  (median bias I {100 * sgn[0]:+.0f} %, B {100 * sgn[1]:+.0f} %)"
+            )
         if n == 100:
             e0, tr0 = vr[0]
-            plot_impedance(out / "impedance_voluntary_tls.png", estimate(e0, warn=False), e0, None, tr0,
-                           title="voluntary variability 0.5 N m: TLS (biased)")
-            plot_impedance(out / "impedance_voluntary_iv.png", estimate(e0, "iv", warn=False), e0,
-                           bootstrap(e0, EstimateOptions.for_method("iv"), 100), tr0,
-                           title="voluntary variability 0.5 N m: IV with the commanded PRBS")
+            plot_impedance(
+                out / "impedance_voluntary_tls.png",
+                estimate(e0, warn=False),
+                e0,
+                None,
+                tr0,
+                title="voluntary variability 0.5 N m: TLS (biased)",
+            )
+            plot_impedance(
+                out / "impedance_voluntary_iv.png",
+                estimate(e0, "iv", warn=False),
+                e0,
+                bootstrap(e0, EstimateOptions.for_method("iv"), 100),
+                tr0,
+                title="voluntary variability 0.5 N m: IV with the commanded PRBS",
+            )
     res["voluntary"] = vol
     print("\nthesis estimator (h = 1 sample, TLS, no pre-filter), N = 100: median |error| I / B / K (%)")
     th = {}
@@ -153,11 +218,19 @@ def voluntary_and_thesis(res: dict, out: Path, reps: int) -> None:
         med = median_errors(estimate(e, "thesis", warn=False), s.truth)
         medd = median_errors(estimate(e, warn=False), s.truth)
         th[str(noise)] = {"thesis": med, "default": medd}
-        print(f"  noise {100 * noise:g} %: thesis {[round(v, 1) for v in med.values()]}, "
-              f"default {[round(v, 2) for v in medd.values()]}")
+        print(
+            f"  noise {100 * noise:g} %: thesis {[round(v, 1) for v in med.values()]}, "
+            f"default {[round(v, 2) for v in medd.values()]}"
+        )
         if noise == 0.05:
-            plot_impedance(out / "impedance_thesis_5pct.png", estimate(e, "thesis", warn=False), e, None, s.truth,
-                           title="literal thesis estimator at 5 % noise (fails)")
+            plot_impedance(
+                out / "impedance_thesis_5pct.png",
+                estimate(e, "thesis", warn=False),
+                e,
+                None,
+                s.truth,
+                title="literal thesis estimator at 5 % noise (fails)",
+            )
     res["thesis"] = th
 
 
@@ -169,10 +242,15 @@ def traps_and_robot(res: dict, out: Path) -> None:
     for al in ("none", "peak-velocity", "peak-velocity+rms"):
         e = segment(s.record, onsets_from_events(s.record), align=al, max_shift_s=0.05)
         r = e.alignment.summary()
-        trap[al] = {"error": rel_errors(estimate(e, warn=False), s.truth), "shift_std_ms": r["std_ms"],
-                    "max_shift_ms": r["max_abs_ms"]}
-        print(f"alignment {al}: shifts std {r['std_ms']:.1f} ms, max {r['max_abs_ms']:.1f} ms; errors "
-              f"{ {k: round(v, 2) for k, v in trap[al]['error'].items()} }")
+        trap[al] = {
+            "error": rel_errors(estimate(e, warn=False), s.truth),
+            "shift_std_ms": r["std_ms"],
+            "max_shift_ms": r["max_abs_ms"],
+        }
+        print(
+            f"alignment {al}: shifts std {r['std_ms']:.1f} ms, max {r['max_abs_ms']:.1f} ms; errors "
+            f"{ {k: round(v, 2) for k, v in trap[al]['error'].items()} }"
+        )
     res["alignment"] = trap
     s = simulate(ExperimentConfig(n_cycles=100, noise=0.0, seed=9, prbs_phase="locked"))
     e = ens_of(s)
@@ -180,18 +258,27 @@ def traps_and_robot(res: dict, out: Path) -> None:
     for m in ("thesis", "default"):
         est_l = estimate(e, m, warn=False)
         lk[m] = {"warnings": est_l.warnings, "vaf": free_run_vaf(e, EstimateOptions.for_method(m)).vaf}
-        print(f"PRBS locked to the cycle clock, noise-free, {m}: free-run VAF {lk[m]['vaf']:.1f} %; "
-              f"warnings: {est_l.warnings[:1]}")
+        print(
+            f"PRBS locked to the cycle clock, noise-free, {m}: free-run VAF {lk[m]['vaf']:.1f} %; "
+            f"warnings: {est_l.warnings[:1]}"
+        )
     res["locked_prbs"] = lk
 
     # --- robot case ---
-    rs = simulate_robot(ExperimentConfig(n_cycles=100, noise=0.05, seed=1, stiffness="dip:20,0.5,0.15",
-                                         damping="dip:1,0.3,0.15"))
+    rs = simulate_robot(
+        ExperimentConfig(n_cycles=100, noise=0.05, seed=1, stiffness="dip:20,0.5,0.15", damping="dip:1,0.3,0.15")
+    )
     er = estimate(ens_of(rs))
     res["robot"] = rel_errors(er, rs.truth)
     print(f"robot elbow (two-link arm, impedance controller with K, B dips): errors {res['robot']}")
-    plot_impedance(out / "impedance_robot.png", er, ens_of(rs), bootstrap(ens_of(rs), opt, 200), rs.truth,
-                   title="robot case: elbow of a two-link arm under a time-varying impedance controller")
+    plot_impedance(
+        out / "impedance_robot.png",
+        er,
+        ens_of(rs),
+        bootstrap(ens_of(rs), opt, 200),
+        rs.truth,
+        title="robot case: elbow of a two-link arm under a time-varying impedance controller",
+    )
 
 
 def main() -> int:

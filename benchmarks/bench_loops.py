@@ -41,8 +41,7 @@ def hinge_case(n: int, off: float, rng: np.random.Generator):
     lp = HingeLoop("door", "tool", axis=(np.array([0.5, 0.4, 0.6]), np.array([0.0, 0.0, 1.0])))
     p = np.array([0.01, -0.02, 0.07, -0.07, 0.45, 0.1, 0.05, -0.1, 0.2])
     H, G = lp.hinge(p), lp.grasp(p)
-    TA = np.array([(H * _rz(a) * G * pin.exp6(rng.normal(0.0, off, 6))).homogeneous
-                   for a in rng.uniform(-1.2, 1.2, n)])
+    TA = np.array([(H * _rz(a) * G * pin.exp6(rng.normal(0.0, off, 6))).homogeneous for a in rng.uniform(-1.2, 1.2, n)])
     TB = np.repeat(np.eye(4)[None], n, axis=0)
     return lp, TA, TB, lambda: p + rng.normal(0.0, 0.01, p.size)
 
@@ -100,8 +99,9 @@ def main(argv: list[str] | None = None) -> int:
                     for mode in args.threads:
                         with threads_mode(mode) as tm:
                             t, c = time_eval(case, n, args.off, max(1, args.repeat if n <= 100 else args.repeat // 2))
-                        print(f"| {name} | {n} | {tm} | {1e3 * t:.2f} | {1e3 * c:.2f} | {1e6 * c / n:.1f} |",
-                              flush=True)
+                        print(
+                            f"| {name} | {n} | {tm} | {1e3 * t:.2f} | {1e3 * c:.2f} | {1e6 * c / n:.1f} |", flush=True
+                        )
     return 0
 
 

@@ -58,9 +58,8 @@ import numpy as np  # noqa: E402
 
 from closedloop import CalibrationOptions, calibrate  # noqa: E402
 from closedloop.calibration import residual_stats  # noqa: E402
+from closedloop.design.poses import detmax, exchange_a, greedy_d_optimal, information, pool_blocks, trace_covariance  # noqa: E402
 from closedloop.studies.montecarlo import weld_scenario  # noqa: E402
-from closedloop.design.poses import (detmax, exchange_a, greedy_d_optimal, information, pool_blocks,  # noqa: E402
-                              trace_covariance)
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--pool", choices=("manifold", "walk"), default="manifold")
@@ -106,9 +105,9 @@ def prefix_k(B, order, target, kmin):
 def drop_cheapest(B, design):
     """`design` without the point whose removal raises the trace least (a warm start for K - 1)."""
     design = list(design)
-    costs = [trace_covariance(B, np.array(design[:t] + design[t + 1:])) for t in range(len(design))]
+    costs = [trace_covariance(B, np.array(design[:t] + design[t + 1 :])) for t in range(len(design))]
     t = int(np.argmin(costs))
-    return design[:t] + design[t + 1:]
+    return design[:t] + design[t + 1 :]
 
 
 def add_best(B, design):
@@ -173,8 +172,9 @@ sc = weld_scenario(n=200, seed=0, n_pool=n_pool, pool=args.pool)  # theta: held-
 rng = np.random.default_rng(1)
 pool, held = sc.pool, sc.theta
 first = rng.choice(len(pool), 60, replace=False)  # the current estimate
-res0 = calibrate(sc.robot, sc.log(pool[first] + rng.normal(0, NOISE, (60, 7))), sc.loops,
-                 CalibrationOptions(noise=NOISE))
+res0 = calibrate(
+    sc.robot, sc.log(pool[first] + rng.normal(0, NOISE, (60, 7))), sc.loops, CalibrationOptions(noise=NOISE)
+)
 B, est = pool_blocks(res0, None, pool)
 prior = np.array([res0.problem.params[k].prior for k in est])
 L = len(est)
@@ -182,8 +182,10 @@ kmin = int(np.ceil(L / B.shape[1]))
 greedy = greedy_d_optimal(B, 200).indices
 greedy_a = greedy_d_optimal(B, 200, criterion="A").indices
 ratio, ratio_hi = efficiency_ratio(B)
-print(f"7-DOF weld, pool '{args.pool}': {len(pool)} configurations, {L} estimated parameters "
-      f"(K >= {kmin}), setup {time.time() - t0:.0f} s")
+print(
+    f"7-DOF weld, pool '{args.pool}': {len(pool)} configurations, {L} estimated parameters "
+    f"(K >= {kmin}), setup {time.time() - t0:.0f} s"
+)
 print(f"uniform / optimal continuous A-design: {ratio:.3f} (<= {ratio_hi:.3f})")
 
 
@@ -194,9 +196,11 @@ def evaluate(rows):
     return st.rms_m, st.rms_rad
 
 
-print(f"\n{'N':>4} {'tr rand':>9} {'tr rand SI':>10} | {'K greedy':>8} {'K detmax':>8} {'K greedy-a':>10}"
-      f" {'K exch-a':>8} {'tr sel':>9} {'K/N':>5} {'poses':>5} {'I ratio':>7} | {'held-out rand m / rad':>21}"
-      f"  {'held-out sel m / rad':>21}")
+print(
+    f"\n{'N':>4} {'tr rand':>9} {'tr rand SI':>10} | {'K greedy':>8} {'K detmax':>8} {'K greedy-a':>10}"
+    f" {'K exch-a':>8} {'tr sel':>9} {'K/N':>5} {'poses':>5} {'I ratio':>7} | {'held-out rand m / rad':>21}"
+    f"  {'held-out sel m / rad':>21}"
+)
 rows = []
 for N in (10, 15, 20, 30, 40, 60, 80, 120, 160, 200):
     tr_med, draw, cv_med = median_random(B, N, rng)
@@ -217,20 +221,24 @@ for N in (10, 15, 20, 30, 40, 60, 80, 120, 160, 200):
             cal += f"{sm:.2e} / {sr:.2e}"
         else:
             cal += "- (K < 10)"
-    print(f"{N:4d} {tr_med:9.4g} {tr_si:10.3e} | {fmt(Kg):>8} {fmt(Kd):>8} {fmt(Kga):>10} {fmt(Ke):>8} "
-          f"{trace_covariance(B, sel.indices):9.4g} {(Ke or np.nan) / N:5.2f} {clusters(pool, sel.indices):5d} "
-          f"{closure_variance(B, sel.indices) / cv_med:7.2f} | {cal}",
-          flush=True)
+    print(
+        f"{N:4d} {tr_med:9.4g} {tr_si:10.3e} | {fmt(Kg):>8} {fmt(Kd):>8} {fmt(Kga):>10} {fmt(Ke):>8} "
+        f"{trace_covariance(B, sel.indices):9.4g} {(Ke or np.nan) / N:5.2f} {clusters(pool, sel.indices):5d} "
+        f"{closure_variance(B, sel.indices) / cv_med:7.2f} | {cal}",
+        flush=True,
+    )
     rows.append((N, Ke))
-print(f"weld: K <= N/2 with exchange-a for N = {', '.join(str(n) for n, k in rows if k is not None and k <= n // 2)}"
-      f" ({time.time() - t0:.0f} s)")
+print(
+    f"weld: K <= N/2 with exchange-a for N = {', '.join(str(n) for n, k in rows if k is not None and k <= n // 2)}"
+    f" ({time.time() - t0:.0f} s)"
+)
 
 # --------------------------------------------------------------------------- point contact
 if not args.no_point:
     from closedloop.io.logs import JointLog
     from closedloop.loops import PointLoop
-    from closedloop.models import ROBOTS
     from closedloop.model.robot import RobotModel
+    from closedloop.models import ROBOTS
     from closedloop.studies.truth import make_dataset
 
     t1 = time.time()
@@ -238,21 +246,27 @@ if not args.no_point:
     rng = np.random.default_rng(4)
     loop = PointLoop("socket", "tool0", tip=np.array([0.0, 0.05, 0.1]))
     ds = make_dataset(robot, loop, [0.3, -1.3, 1.7, -1.9, -1.57, 0.2], 500, rng, stride=1, noise=NOISE)
-    res = calibrate(robot, JointLog(ds.joints, ds.noisy[:150]),
-                    [PointLoop("socket", "tool0", tip=np.array([0.0, 0.05, 0.1]))])
+    res = calibrate(
+        robot, JointLog(ds.joints, ds.noisy[:150]), [PointLoop("socket", "tool0", tip=np.array([0.0, 0.05, 0.1]))]
+    )
     Bp, estp = pool_blocks(res, None, ds.noisy)
     kminp = int(np.ceil(len(estp) / Bp.shape[1]))
     gp = greedy_d_optimal(Bp, 250).indices
     gpa = greedy_d_optimal(Bp, 250, criterion="A").indices
     ratio, ratio_hi = efficiency_ratio(Bp)
-    print(f"\nUR5 point contact: pool {len(Bp)} readings (3-DOF self-motion walk), {len(estp)} estimated parameters "
-          f"(K >= {kminp}); uniform / optimal continuous A-design {ratio:.3f} (<= {ratio_hi:.3f})")
+    print(
+        f"\nUR5 point contact: pool {len(Bp)} readings (3-DOF self-motion walk), {len(estp)} estimated parameters "
+        f"(K >= {kminp}); uniform / optimal continuous A-design {ratio:.3f} (<= {ratio_hi:.3f})"
+    )
     print(f"{'N':>4} {'tr rand':>9} | {'K greedy':>8} {'K greedy-a':>10} {'K exch-a':>8} {'K/N':>5} {'I ratio':>7}")
     for N in (20, 30, 40, 60, 80, 120, 160, 200):
         tr_med, _, cv_med = median_random(Bp, N, rng)
         Ke, selp = search_exchange(Bp, tr_med, max(N // 2, kminp), kminp)
         Kg, Kga = prefix_k(Bp, gp, tr_med, kminp), prefix_k(Bp, gpa, tr_med, kminp)
-        print(f"{N:4d} {tr_med:9.4g} | {fmt(Kg):>8} {fmt(Kga):>10} {fmt(Ke):>8} {(Ke or np.nan) / N:5.2f} "
-              f"{closure_variance(Bp, selp.indices) / cv_med:7.2f}", flush=True)
+        print(
+            f"{N:4d} {tr_med:9.4g} | {fmt(Kg):>8} {fmt(Kga):>10} {fmt(Ke):>8} {(Ke or np.nan) / N:5.2f} "
+            f"{closure_variance(Bp, selp.indices) / cv_med:7.2f}",
+            flush=True,
+        )
     print(f"({time.time() - t1:.0f} s)")
 print(f"\n({time.time() - t0:.0f} s)")

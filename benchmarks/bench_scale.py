@@ -32,13 +32,12 @@ import dataclasses
 import time
 
 import numpy as np
+from machine import header  # benchmarks/machine.py
 
 from closedloop import CalibrationOptions, calibrate
 from closedloop.fleet import executor as ex
 from closedloop.io.logs import JointLog
 from closedloop.studies.montecarlo import monte_carlo, weld_scenario
-
-from machine import header  # benchmarks/machine.py
 
 NOISE = 1e-4
 
@@ -66,17 +65,22 @@ def make_engine(name: str):
 def study_inputs() -> dict:
     """The inputs of the other studies (built once, outside the timings)."""
     from closedloop.impedance.data import onsets_from_events, segment
-    from closedloop.impedance.model import ExperimentConfig, simulate as simulate_impedance
+    from closedloop.impedance.model import ExperimentConfig
+    from closedloop.impedance.model import simulate as simulate_impedance
     from closedloop.sims import SCENARIOS
 
     sim = simulate_impedance(ExperimentConfig(n_cycles=100, noise=0.05, seed=21))
     pc = weld_scenario(n=1, seed=2, pool="manifold", n_pool=800)
     th = pc.pool[::20] + np.random.default_rng(5).normal(0, NOISE, pc.pool[::20].shape)
-    res = calibrate(pc.robot, JointLog(list(pc.joints), th), pc.loops,
-                    CalibrationOptions(noise=NOISE, fix={"panda_joint4.x": None}))
-    return {"scenarios": {"panda_weld": SCENARIOS["panda_weld"]},
-            "ensemble": segment(sim.record, onsets_from_events(sim.record)),
-            "result": res, "pools": [pc.pool[i::20] for i in range(20)]}
+    res = calibrate(
+        pc.robot, JointLog(list(pc.joints), th), pc.loops, CalibrationOptions(noise=NOISE, fix={"panda_joint4.x": None})
+    )
+    return {
+        "scenarios": {"panda_weld": SCENARIOS["panda_weld"]},
+        "ensemble": segment(sim.record, onsets_from_events(sim.record)),
+        "result": res,
+        "pools": [pc.pool[i::20] for i in range(20)],
+    }
 
 
 def measure_studies(eng, inputs: dict) -> dict:
@@ -86,9 +90,9 @@ def measure_studies(eng, inputs: dict) -> dict:
     from pathlib import Path
 
     from closedloop.cli.sweep import run_sweep
+    from closedloop.design.poses import select_pools
     from closedloop.impedance.bootstrap import bootstrap
     from closedloop.impedance.estimate import EstimateOptions
-    from closedloop.design.poses import select_pools
 
     def sweep():
         with tempfile.TemporaryDirectory() as tmp:
@@ -100,8 +104,9 @@ def measure_studies(eng, inputs: dict) -> dict:
         return [b.lo[k] for k in "IBK"] + [b.hi[k] for k in "IBK"]
 
     def pools():
-        return [s.indices for s in select_pools(inputs["result"], None, inputs["pools"], 12, "exchange-a",
-                                                executor=eng)]
+        return [
+            s.indices for s in select_pools(inputs["result"], None, inputs["pools"], 12, "exchange-a", executor=eng)
+        ]
 
     out = {}
     for key, fn in (("sweep", sweep), ("bootstrap", boot), ("pools", pools)):
@@ -115,8 +120,9 @@ def measure_studies(eng, inputs: dict) -> dict:
 
 
 def _same(a, b) -> bool:
-    return len(a) == len(b) and all(np.array_equal(x, y, equal_nan=True) if isinstance(x, np.ndarray) else x == y
-                                    for x, y in zip(a, b))
+    return len(a) == len(b) and all(
+        np.array_equal(x, y, equal_nan=True) if isinstance(x, np.ndarray) else x == y for x, y in zip(a, b)
+    )
 
 
 def measure(name: str, sc, opts, n_jobs: int, n_draws: int, studies: dict | None = None) -> dict:
@@ -153,25 +159,31 @@ def measure(name: str, sc, opts, n_jobs: int, n_draws: int, studies: dict | None
 def projection(rows: list[dict], robots: int, nodes: int, cpus: int, job_s: float) -> list[str]:
     """Wall time of a nightly fleet, on paper: each CPU runs ceil(robots / CPUs) jobs of job_s plus the
     measured per-job overhead; one driver submits every job at the measured no-op dispatch cost."""
-    lines = [f"projection (on paper, not run): {robots} robots, {job_s:g} s per robot (assumed: a "
-             f"1,000-configuration log with 5-fold validation, bench_calibrate figures)"]
+    lines = [
+        f"projection (on paper, not run): {robots} robots, {job_s:g} s per robot (assumed: a "
+        f"1,000-configuration log with 5-fold validation, bench_calibrate figures)"
+    ]
     for r in rows:
         o = max(r["cal_overhead_ms"], 0.0) / 1e3
         if r["engine"] == "serial":
             lines.append(f"  serial, one process: {robots * (job_s + o) / 3600:.1f} h")
         elif r["engine"] == "local":  # a process pool does not span machines
             per_cpu = int(np.ceil(robots / cpus))
-            lines.append(f"  local pool, one node of {cpus} CPUs: {per_cpu} jobs per CPU x ({job_s:g} s + "
-                         f"{o * 1e3:.0f} ms) = {per_cpu * (job_s + o) / 60:.0f} min")
+            lines.append(
+                f"  local pool, one node of {cpus} CPUs: {per_cpu} jobs per CPU x ({job_s:g} s + "
+                f"{o * 1e3:.0f} ms) = {per_cpu * (job_s + o) / 60:.0f} min"
+            )
         else:
             per_cpu = int(np.ceil(robots / (nodes * cpus)))
             driver = robots * r["noop_ms"] / 1e3
             compute = per_cpu * (job_s + o)
-            lines.append(f"  {r['engine']}, {nodes} nodes x {cpus} CPUs: {per_cpu} jobs per CPU x ({job_s:g} s + "
-                         f"{o * 1e3:.0f} ms) = {compute:.0f} s of compute; the driver submits {robots} jobs in "
-                         f">= {driver:.0f} s (no-op rate); about {max(compute, driver) / 60:.1f} min in all, the "
-                         f"driver's dispatch the bound when it exceeds the compute (cluster start, "
-                         f"{r['startup']:.0f} s here, not counted: a running cluster is joined with --ray auto)")
+            lines.append(
+                f"  {r['engine']}, {nodes} nodes x {cpus} CPUs: {per_cpu} jobs per CPU x ({job_s:g} s + "
+                f"{o * 1e3:.0f} ms) = {compute:.0f} s of compute; the driver submits {robots} jobs in "
+                f">= {driver:.0f} s (no-op rate); about {max(compute, driver) / 60:.1f} min in all, the "
+                f"driver's dispatch the bound when it exceeds the compute (cluster start, "
+                f"{r['startup']:.0f} s here, not counted: a running cluster is joined with --ray auto)"
+            )
     return lines
 
 
@@ -182,8 +194,14 @@ def main() -> None:
     ap.add_argument("--configs", type=int, default=60, help="configurations per calibration")
     ap.add_argument("--engines", nargs="+", default=["serial", "local", "ray"], choices=sorted(ex.ENGINES))
     ap.add_argument("--studies", action="store_true", help="also simulate over seeds, the bootstrap, pose pools")
-    ap.add_argument("--fleet", type=float, nargs=4, default=[10_000, 100, 32, 1.2],
-                    metavar=("ROBOTS", "NODES", "CPUS", "JOB_S"), help="the projection's fleet (on paper)")
+    ap.add_argument(
+        "--fleet",
+        type=float,
+        nargs=4,
+        default=[10_000, 100, 32, 1.2],
+        metavar=("ROBOTS", "NODES", "CPUS", "JOB_S"),
+        help="the projection's fleet (on paper)",
+    )
     args = ap.parse_args()
     print(header())
     sc = weld_scenario(n=1, seed=2, pool="manifold", n_pool=args.configs)
@@ -193,25 +211,41 @@ def main() -> None:
     rows = [measure(e, sc, opts, args.jobs, args.draws, studies) for e in args.engines]
     ref = rows[0]
     print(f"\n{args.jobs} calibrations and a {args.draws}-draw Monte Carlo, Panda weld, {args.configs} configurations")
-    print(f"{'engine':<8}{'workers':>8}{'startup s':>10}{'no-op ms/job':>13}{'cal wall s':>11}{'speedup':>8}"
-          f"{'job s':>7}{'overhead ms/job':>16}{'MC wall s':>10}{'speedup':>8}  identical")
+    print(
+        f"{'engine':<8}{'workers':>8}{'startup s':>10}{'no-op ms/job':>13}{'cal wall s':>11}{'speedup':>8}"
+        f"{'job s':>7}{'overhead ms/job':>16}{'MC wall s':>10}{'speedup':>8}  identical"
+    )
     for r in rows:
-        same = np.array_equal(r["cal_values"], ref["cal_values"]) and np.array_equal(r["mc_estimates"], ref["mc_estimates"])
-        print(f"{r['engine']:<8}{r['workers']:>8}{r['startup']:>10.2f}{r['noop_ms']:>13.2f}{r['cal_wall']:>11.1f}"
-              f"{ref['cal_wall'] / r['cal_wall']:>8.2f}{r['cal_job_s']:>7.3f}{r['cal_overhead_ms']:>16.1f}"
-              f"{r['mc_wall']:>10.1f}{ref['mc_wall'] / r['mc_wall']:>8.2f}  {'yes' if same else 'NO'}")
+        same = np.array_equal(r["cal_values"], ref["cal_values"]) and np.array_equal(
+            r["mc_estimates"], ref["mc_estimates"]
+        )
+        print(
+            f"{r['engine']:<8}{r['workers']:>8}{r['startup']:>10.2f}{r['noop_ms']:>13.2f}{r['cal_wall']:>11.1f}"
+            f"{ref['cal_wall'] / r['cal_wall']:>8.2f}{r['cal_job_s']:>7.3f}{r['cal_overhead_ms']:>16.1f}"
+            f"{r['mc_wall']:>10.1f}{ref['mc_wall'] / r['mc_wall']:>8.2f}  {'yes' if same else 'NO'}"
+        )
     print(f"Monte Carlo tr(cov)/tr(CRB) = {ref['mc_ratio']:.3f}")
     if studies:
-        print(f"\n{'study (wall s: cold / warm; speedup warm)':<48}"
-              + "".join(f"{r['engine']:>16}{'speedup':>8}" for r in rows) + "  identical")
-        for key, label in (("sweep", "simulate panda_weld, 20 seeds x 100 cfg"),
-                           ("bootstrap", "impedance bootstrap, 200 resamples"),
-                           ("pools", "pose selection, 20 pools (exchange-A, 12/40)")):
+        print(
+            f"\n{'study (wall s: cold / warm; speedup warm)':<48}"
+            + "".join(f"{r['engine']:>16}{'speedup':>8}" for r in rows)
+            + "  identical"
+        )
+        for key, label in (
+            ("sweep", "simulate panda_weld, 20 seeds x 100 cfg"),
+            ("bootstrap", "impedance bootstrap, 200 resamples"),
+            ("pools", "pose selection, 20 pools (exchange-A, 12/40)"),
+        ):
             w0 = ref["studies"][key][0][1]
             same = all(_same(r["studies"][key][1], ref["studies"][key][1]) for r in rows)
-            print(f"{label:<48}" + "".join(
-                f"{r['studies'][key][0][0]:>8.2f} /{r['studies'][key][0][1]:>6.2f}{w0 / r['studies'][key][0][1]:>8.2f}"
-                for r in rows) + f"  {'yes' if same else 'NO'}")
+            print(
+                f"{label:<48}"
+                + "".join(
+                    f"{r['studies'][key][0][0]:>8.2f} /{r['studies'][key][0][1]:>6.2f}{w0 / r['studies'][key][0][1]:>8.2f}"
+                    for r in rows
+                )
+                + f"  {'yes' if same else 'NO'}"
+            )
     robots, nodes, cpus, job_s = args.fleet
     print("\n".join(projection(rows, int(robots), int(nodes), int(cpus), float(job_s))))
 

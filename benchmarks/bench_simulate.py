@@ -36,12 +36,12 @@ from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
+from floor import mujoco_rate, scenario_scene  # benchmarks/floor.py
+from machine import add_arguments, condition, conditions, header, threads_mode  # benchmarks/machine.py
+
 import closedloop.sims.dataset
 import closedloop.sims.tracking  # noqa: F401  (the stepping loop; patched below with the dataset module)
 from closedloop.sims import SCENARIOS, simulate
-
-from floor import mujoco_rate, scenario_scene  # benchmarks/floor.py
-from machine import add_arguments, condition, conditions, header, threads_mode  # benchmarks/machine.py
 
 
 def _run(args: tuple[str, int, int, str]) -> tuple[int, float]:
@@ -103,8 +103,11 @@ def _patched(attr: str, value):
     """Replace module attribute `attr` (the `mujoco` or `time` module) in every closedloop.sims module holding it."""
     import sys
 
-    mods = [m for name, m in list(sys.modules.items())
-            if name.startswith("closedloop.sims.") and m is not None and hasattr(m, attr)]
+    mods = [
+        m
+        for name, m in list(sys.modules.items())
+        if name.startswith("closedloop.sims.") and m is not None and hasattr(m, attr)
+    ]
     saved = [(m, getattr(m, attr)) for m in mods]
     for m in mods:
         setattr(m, attr, value)
@@ -141,6 +144,7 @@ def planner_timer():
                 return step(self)
             finally:
                 acc[0] += clock() - t
+
         return wrapper
 
     for cls, step in saved:
@@ -185,19 +189,25 @@ def main() -> None:
             for mode in args.threads:
                 with condition(cond) as cdesc, threads_mode(mode) as tdesc:
                     print(f"\n[{cdesc}; BLAS threads {tdesc}]")
-                    print(f"{'scenario':<12} {'n':>5} {'loop/s':>7} {'steps/cfg':>9} {'bound/s':>8} {'%bound':>7} "
-                          f"{'mj ms/cfg':>9} {'other ms/cfg':>12} {'plan ms/cfg':>11} {'%mj':>5}"
-                          + (f" {'agg/s (' + str(args.jobs) + ' jobs)':>16}" if args.jobs > 1 else ""))
+                    print(
+                        f"{'scenario':<12} {'n':>5} {'loop/s':>7} {'steps/cfg':>9} {'bound/s':>8} {'%bound':>7} "
+                        f"{'mj ms/cfg':>9} {'other ms/cfg':>12} {'plan ms/cfg':>11} {'%mj':>5}"
+                        + (f" {'agg/s (' + str(args.jobs) + ' jobs)':>16}" if args.jobs > 1 else "")
+                    )
                     for name in args.scenario:
                         k, rate, steps = measure(name, args.n, args.repeat, tmp)
                         bound = mujoco_rate(scenes[name])[0] / steps
                         splits = [split_cpu(name, args.n, tmp) for _ in range(max(1, args.repeat))]
                         mj, other, plan = (min(sp[i] for sp in splits) for i in range(3))
-                        line = (f"{name:<12} {k:>5} {rate:>7.0f} {steps:>9.1f} {bound:>8.0f} "
-                                f"{100 * rate / bound:>6.0f}% {1e3 * mj:>9.3f} {1e3 * other:>12.3f} "
-                                f"{1e3 * plan:>11.3f} {100 * mj / (mj + other):>4.0f}%")
+                        line = (
+                            f"{name:<12} {k:>5} {rate:>7.0f} {steps:>9.1f} {bound:>8.0f} "
+                            f"{100 * rate / bound:>6.0f}% {1e3 * mj:>9.3f} {1e3 * other:>12.3f} "
+                            f"{1e3 * plan:>11.3f} {100 * mj / (mj + other):>4.0f}%"
+                        )
                         if args.jobs > 1:
-                            jobs = [(name, args.n, seed, str(tmp / f"{name}_{seed}")) for seed in range(1, args.jobs + 1)]
+                            jobs = [
+                                (name, args.n, seed, str(tmp / f"{name}_{seed}")) for seed in range(1, args.jobs + 1)
+                            ]
                             with ProcessPoolExecutor(args.jobs) as pool:
                                 runs = list(pool.map(_run, jobs))
                             line += f" {sum(c for c, _ in runs) / max(t for _, t in runs):>16.0f}"

@@ -36,22 +36,28 @@ def main(argv=None) -> int:
     ap.add_argument("--verge", type=float, default=0.0, help="pan axes turned by +-verge rad (0: parallel)")
     args = ap.parse_args(argv)
     make = lambda: CameraLoop("cam", "tool0", camera_frames=FRAMES, sigma_px=0.3)  # noqa: E731
-    case = head_case(make, N=args.n, seed=5, verge=args.verge,
-                     options=CalibrationOptions(weighting="none", robust=None))
+    case = head_case(
+        make, N=args.n, seed=5, verge=args.verge, options=CalibrationOptions(weighting="none", robust=None)
+    )
     z2_free, z2_all, chi, t0 = [], [], [], time.perf_counter()
     for draw in range(args.draws):
-        res, est, err = run_head(case, make, sigma_px=0.3, noise_q=5e-5, seed=100 + draw,
-                                 options=CalibrationOptions(noise=5e-5, robust=None))
+        res, est, err = run_head(
+            case, make, sigma_px=0.3, noise_q=5e-5, seed=100 + draw, options=CalibrationOptions(noise=5e-5, robust=None)
+        )
         z = err / res.std[est]
         free = np.array([res.problem.params[i].unit != "m" for i in est])
         z2_free.append(np.mean(z[free] ** 2))
-        z2_all.append(np.mean(z ** 2))
+        z2_all.append(np.mean(z**2))
         chi.append(res.chi2 / res.dof)
     print(f"machine: {machine()}; {load()}")
-    print(f"head as one loop, verge {args.verge} rad, {args.n} configurations, {args.draws} draws, "
-          f"{len(est)} estimated parameters, {time.perf_counter() - t0:.0f} s")
-    print(f"mean z^2 (angles, offsets, intrinsics): {np.mean(z2_free):.3f}  "
-          f"(all, lengths included: {np.mean(z2_all):.3f}); mean chi2/dof {np.mean(chi):.3f}")
+    print(
+        f"head as one loop, verge {args.verge} rad, {args.n} configurations, {args.draws} draws, "
+        f"{len(est)} estimated parameters, {time.perf_counter() - t0:.0f} s"
+    )
+    print(
+        f"mean z^2 (angles, offsets, intrinsics): {np.mean(z2_free):.3f}  "
+        f"(all, lengths included: {np.mean(z2_all):.3f}); mean chi2/dof {np.mean(chi):.3f}"
+    )
     return 0
 
 

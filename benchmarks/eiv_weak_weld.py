@@ -29,8 +29,8 @@ from machine import machine  # noqa: E402
 
 from closedloop import CalibrationOptions, RobotModel, calibrate  # noqa: E402
 from closedloop.io.logs import JointLog  # noqa: E402
-from closedloop.problem.lengths import LengthLoop  # noqa: E402
 from closedloop.loops.spec import parse_loop  # noqa: E402
+from closedloop.problem.lengths import LengthLoop  # noqa: E402
 
 
 def main() -> None:
@@ -60,15 +60,22 @@ def main() -> None:
             res = calibrate(robot, log, loops, CalibrationOptions(weighting=weighting))
             err = judge(case, dict(zip(res.names, res.values))).scale - 1.0
             out[weighting].append((err, res.scale_std, res.verdict.status))
-        print(f"draw {k}: " + "  ".join(f"{w}: size {100 * v[-1][0]:+.3f}% (se {100 * v[-1][1]:.3f}%) {v[-1][2]}"
-                                        for w, v in out.items()), flush=True)
+        print(
+            f"draw {k}: "
+            + "  ".join(
+                f"{w}: size {100 * v[-1][0]:+.3f}% (se {100 * v[-1][1]:.3f}%) {v[-1][2]}" for w, v in out.items()
+            ),
+            flush=True,
+        )
     for weighting, rows in out.items():
         e = np.array([r[0] for r in rows])
         s = np.array([r[1] for r in rows])
         ok = [r[2] == "ok" for r in rows]
-        print(f"weighting {weighting}: size error mean {100 * e.mean():+.3f}%, spread {100 * e.std(ddof=1):.3f}%, "
-              f"reported se (rms) {100 * np.sqrt(np.mean(s ** 2)):.3f}%, mean z^2 {np.mean((e / s) ** 2):.2f}, "
-              f"ok {sum(ok)}/{len(ok)}")
+        print(
+            f"weighting {weighting}: size error mean {100 * e.mean():+.3f}%, spread {100 * e.std(ddof=1):.3f}%, "
+            f"reported se (rms) {100 * np.sqrt(np.mean(s**2)):.3f}%, mean z^2 {np.mean((e / s) ** 2):.2f}, "
+            f"ok {sum(ok)}/{len(ok)}"
+        )
 
 
 if __name__ == "__main__":

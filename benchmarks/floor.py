@@ -22,12 +22,10 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
-
 from machine import add_arguments, condition, conditions, header, threads_mode, timed  # benchmarks/machine.py
 
 TOOL_FRAMES = {"panda": "panda_hand", "ur5": "tool0", "utah_hand": "finger_tip"}
@@ -112,7 +110,9 @@ def main() -> None:
             for mode in args.threads:
                 with condition(cond) as cdesc, threads_mode(mode) as tdesc:
                     print(f"\n[{cdesc}; BLAS threads {tdesc}]")
-                    print(f"{'robot':<10} {'FK+Jac 1000 cfg [ms] wall':>26} {'cpu':>7} {'Jac only wall':>14} {'cpu':>7}")
+                    print(
+                        f"{'robot':<10} {'FK+Jac 1000 cfg [ms] wall':>26} {'cpu':>7} {'Jac only wall':>14} {'cpu':>7}"
+                    )
                     for r in args.robots:
                         (bw, bc), (ow, oc) = pinocchio_floor(r), pinocchio_floor(r, fk=False)
                         print(f"{r:<10} {1e3 * bw:>26.3f} {1e3 * bc:>7.3f} {1e3 * ow:>14.3f} {1e3 * oc:>7.3f}")

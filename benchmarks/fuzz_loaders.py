@@ -40,8 +40,11 @@ def main() -> None:
             print(f"{name}: CRASH {type(exc).__name__}: {exc}")
         total_crashes += crashes
         n = sum(counts.values())
-        print(f"{name:<10}{n:>10}{counts.get('loaded', 0):>9}{counts.get('refused', 0):>9}{crashes:>9}"
-              f"{time.perf_counter() - t0:>9.1f}", flush=True)
+        print(
+            f"{name:<10}{n:>10}{counts.get('loaded', 0):>9}{counts.get('refused', 0):>9}{crashes:>9}"
+            f"{time.perf_counter() - t0:>9.1f}",
+            flush=True,
+        )
     sys.exit(1 if total_crashes else 0)
 
 

@@ -55,12 +55,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import load, machine  # noqa: E402
 
 from closedloop.calibration import CalibrationOptions, calibrate  # noqa: E402
-from closedloop.problem.distances import DistanceLoop  # noqa: E402
 from closedloop.io.logs import JointLog  # noqa: E402
 from closedloop.loops.camera.loop import CameraLoop  # noqa: E402
-from closedloop.models import example_robot_data_dir  # noqa: E402
 from closedloop.model.parameters import RobotParameters  # noqa: E402
 from closedloop.model.robot import RobotModel  # noqa: E402
+from closedloop.models import example_robot_data_dir  # noqa: E402
+from closedloop.problem.distances import DistanceLoop  # noqa: E402
 from closedloop.problem.shared import share  # noqa: E402
 
 K = np.array([600.0, 600.0, 319.5, 239.5])
@@ -71,8 +71,13 @@ GRID = np.array([[0.04 * i - 0.08, 0.04 * j - 0.06, 0.0] for i in range(5) for j
 Q_DOWN = np.array([0.0, -1.9, 1.9, -1.57, -1.57, 0.0])
 ERR_M, ERR_RAD, ERR_OFFSET = 2e-3, 2e-3, 5e-3  # kinematic errors of an uncalibrated arm
 SIGMA_PX, SIGMA_Q = 0.3, 1e-5
-METHODS = {"Tsai": "CALIB_HAND_EYE_TSAI", "Park": "CALIB_HAND_EYE_PARK", "Horaud": "CALIB_HAND_EYE_HORAUD",
-           "Andreff": "CALIB_HAND_EYE_ANDREFF", "Daniilidis": "CALIB_HAND_EYE_DANIILIDIS"}
+METHODS = {
+    "Tsai": "CALIB_HAND_EYE_TSAI",
+    "Park": "CALIB_HAND_EYE_PARK",
+    "Horaud": "CALIB_HAND_EYE_HORAUD",
+    "Andreff": "CALIB_HAND_EYE_ANDREFF",
+    "Daniilidis": "CALIB_HAND_EYE_DANIILIDIS",
+}
 RWHE = {"RWHE Shah": "CALIB_ROBOT_WORLD_HAND_EYE_SHAH", "RWHE Li": "CALIB_ROBOT_WORLD_HAND_EYE_LI"}
 
 
@@ -178,8 +183,10 @@ def closedloop_fit(scene: Scene, board: bool) -> tuple[pin.SE3, np.ndarray, np.n
         extra[f"b{m:02d}:u1"], extra[f"b{m:02d}:v1"] = scene.uv[tr, m, 0], scene.uv[tr, m, 1]
         loops.append(share(CameraLoop(f"b{m:02d}", "universe", "tool0", K=[K], sigma_px=SIGMA_PX), "cam1", "cam"))
     if board:
-        loops += [DistanceLoop(loops, f"b{a:02d}.tip", f"b{b:02d}.tip", float(np.linalg.norm(GRID[a] - GRID[b])))
-                  for a, b in itertools.combinations(range(len(GRID)), 2)]
+        loops += [
+            DistanceLoop(loops, f"b{a:02d}.tip", f"b{b:02d}.tip", float(np.linalg.norm(GRID[a] - GRID[b])))
+            for a, b in itertools.combinations(range(len(GRID)), 2)
+        ]
     log = JointLog(scene.rp.joints, scene.readings[tr], None, None, extra)
     t0 = time.perf_counter()
     res = calibrate(scene.robot, log, loops, CalibrationOptions(noise=SIGMA_Q))
@@ -188,8 +195,10 @@ def closedloop_fit(scene: Scene, board: bool) -> tuple[pin.SE3, np.ndarray, np.n
         logging.getLogger(__name__).error("closedloop did not converge: %s", res.solver_message)
     vals = res.as_dict()
     robot_vals = np.array([vals.get(p.name, p.nominal) for p in scene.rp.params])
-    X = pin.SE3(pin.exp3(np.array([vals[f"cam.cam1.{a}"] for a in ("rx", "ry", "rz")])),
-                np.array([vals[f"cam.cam1.{a}"] for a in "xyz"]))
+    X = pin.SE3(
+        pin.exp3(np.array([vals[f"cam.cam1.{a}"] for a in ("rx", "ry", "rz")])),
+        np.array([vals[f"cam.cam1.{a}"] for a in "xyz"]),
+    )
     centre = np.mean([[vals[f"b{m:02d}.tip_{a}"] for a in "xyz"] for m in range(len(GRID))], axis=0)
     return X, centre, robot_vals, seconds
 
@@ -198,8 +207,9 @@ def held_out(scene: Scene, robot_vals: np.ndarray, X: pin.SE3, centre: np.ndarra
     """Image px RMS, camera-frame mm RMS and its along-sight mm RMS of the predicted board centre (docstring)."""
     te = slice(scene.n, None)
     p_hat = np.vstack([project(F * X, centre[None])[1] for F in scene.flange(robot_vals, scene.readings[te])])
-    p_true = np.vstack([project(F * X_TRUE, BOARD.translation[None])[1]
-                        for F in scene.flange(scene.truth, scene.theta[te])])
+    p_true = np.vstack(
+        [project(F * X_TRUE, BOARD.translation[None])[1] for F in scene.flange(scene.truth, scene.theta[te])]
+    )
     uv_hat, uv_true = (K[:2] * p[:, :2] / p[:, 2:] + K[2:] for p in (p_hat, p_true))
     d = p_hat - p_true
     along = np.sum(d * p_true, axis=1) / np.linalg.norm(p_true, axis=1)
@@ -242,29 +252,38 @@ def main(argv=None) -> int:
     seeds = parse_seeds(args.seeds)
     t0 = time.perf_counter()
     print(f"machine: {machine()}; {load()}")
-    print(f"UR5 eye-in-hand, {args.n} training / {args.test} held-out configurations; robot errors 2 mm, 2 mrad, "
-          f"offsets 5 mrad; {SIGMA_PX} px, {SIGMA_Q:g} rad noise")
+    print(
+        f"UR5 eye-in-hand, {args.n} training / {args.test} held-out configurations; robot errors 2 mm, 2 mrad, "
+        f"offsets 5 mrad; {SIGMA_PX} px, {SIGMA_Q:g} rad noise"
+    )
     summary = []
     for k, seed in enumerate(seeds):
         rows = run_seed(seed, args.n, args.test)
         if k == 0:
-            print(f"\nseed {seed}\n{'method':<30}{'image px RMS':>14}{'space mm RMS':>14}{'along sight':>13}"
-                  f"{'time s':>9}")
+            print(
+                f"\nseed {seed}\n{'method':<30}{'image px RMS':>14}{'space mm RMS':>14}{'along sight':>13}{'time s':>9}"
+            )
             for name, e_px, e_mm, e_los, t in rows:
                 print(f"{name:<30}{e_px:14.3f}{e_mm:14.3f}{e_los:13.3f}{t:9.3f}")
-            print(f"\n{'seed':>4}  {'best OpenCV (space)':<22}{'px':>7}{'mm':>7}   {'closedloop+board px':>19}"
-                  f"{'mm':>7}   {'ratio image':>11}{'space':>7}")
+            print(
+                f"\n{'seed':>4}  {'best OpenCV (space)':<22}{'px':>7}{'mm':>7}   {'closedloop+board px':>19}"
+                f"{'mm':>7}   {'ratio image':>11}{'space':>7}"
+            )
         cv = rows[:-2]
         best = min(cv, key=lambda r: r[2])
         best_px = min(r[1] for r in cv)
         cl = rows[-1]
         summary.append((best_px / cl[1], best[2] / cl[2]))
-        print(f"{seed:>4}  {best[0]:<22}{best[1]:7.3f}{best[2]:7.3f}   {cl[1]:19.3f}{cl[2]:7.3f}   "
-              f"{summary[-1][0]:10.1f}x{summary[-1][1]:6.1f}x")
+        print(
+            f"{seed:>4}  {best[0]:<22}{best[1]:7.3f}{best[2]:7.3f}   {cl[1]:19.3f}{cl[2]:7.3f}   "
+            f"{summary[-1][0]:10.1f}x{summary[-1][1]:6.1f}x"
+        )
     r = np.array(summary)
-    print(f"best OpenCV / closedloop + board geometry over {len(seeds)} seeds: image median {np.median(r[:, 0]):.1f}x "
-          f"(min {r[:, 0].min():.1f}x), space median {np.median(r[:, 1]):.1f}x (min {r[:, 1].min():.1f}x); "
-          f"{time.perf_counter() - t0:.0f} s")
+    print(
+        f"best OpenCV / closedloop + board geometry over {len(seeds)} seeds: image median {np.median(r[:, 0]):.1f}x "
+        f"(min {r[:, 0].min():.1f}x), space median {np.median(r[:, 1]):.1f}x (min {r[:, 1].min():.1f}x); "
+        f"{time.perf_counter() - t0:.0f} s"
+    )
     return 0
 
 

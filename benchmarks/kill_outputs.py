@@ -45,8 +45,11 @@ def main() -> None:
         mixed = sum(not whole(s) and not s["stray"] for s in states)
         stray = sum(bool(s["stray"]) for s in states)
         bad += mixed + stray
-        print(f"{name}: {len(states)} runs, {len(killed)} killed by SIGKILL: old set {n_old}, new set {n_new}, "
-              f"mixed {mixed}, temporary left {stray}  ({time.perf_counter() - t0:.0f} s)", flush=True)
+        print(
+            f"{name}: {len(states)} runs, {len(killed)} killed by SIGKILL: old set {n_old}, new set {n_new}, "
+            f"mixed {mixed}, temporary left {stray}  ({time.perf_counter() - t0:.0f} s)",
+            flush=True,
+        )
         for s in states:
             if not whole(s):
                 print("   ", s)

@@ -57,10 +57,12 @@ def blas() -> str:
 
 def header() -> str:
     """Machine, load average and BLAS threads, one line each."""
-    env = [f"{k}={os.environ[k]}" for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
-           if k in os.environ]
-    return (f"machine: {machine()}\n{load()}\n{blas()}"
-            + (f" ({' '.join(env)})" if env else ""))
+    env = [
+        f"{k}={os.environ[k]}"
+        for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+        if k in os.environ
+    ]
+    return f"machine: {machine()}\n{load()}\n{blas()}" + (f" ({' '.join(env)})" if env else "")
 
 
 @contextmanager
@@ -85,8 +87,12 @@ def busy_cores(n: int | None = None, seconds: float = 600.0) -> Iterator[list[in
     n = (os.cpu_count() or 1) if n is None else n
     # the busy loop bounds itself (no wrapper process: killing a `timeout` wrapper would orphan its child)
     code = f"import time\nend = time.time() + {float(seconds)}\nwhile time.time() < end: pass"
-    procs = [subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                              stderr=subprocess.DEVNULL) for _ in range(n)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", code], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+        for _ in range(n)
+    ]
     time.sleep(1.0)  # let them reach the scheduler
     try:
         yield [p.pid for p in procs]
@@ -106,10 +112,18 @@ def timed(fn, *args, **kwargs):
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """--threads (modes) and --loaded, for every benchmark script."""
-    ap.add_argument("--threads", nargs="+", default=list(THREAD_MODES), choices=["1", "2", "4", "default", "auto"],
-                    help="BLAS thread modes to run (default: 1 and default; auto: closedloop.estimate.threads chooses)")
-    ap.add_argument("--loaded", action="store_true",
-                    help="also run while one busy process per CPU keeps the cores busy (bounded, killed after)")
+    ap.add_argument(
+        "--threads",
+        nargs="+",
+        default=list(THREAD_MODES),
+        choices=["1", "2", "4", "default", "auto"],
+        help="BLAS thread modes to run (default: 1 and default; auto: closedloop.estimate.threads chooses)",
+    )
+    ap.add_argument(
+        "--loaded",
+        action="store_true",
+        help="also run while one busy process per CPU keeps the cores busy (bounded, killed after)",
+    )
 
 
 def conditions(loaded: bool) -> list[str]:

@@ -36,15 +36,17 @@ def main() -> None:
     from closedloop import CalibrationOptions, calibrate
     from closedloop.validation.fixtures import leave_one_fixture_out
 
-    cases = (("default", "", CalibrationOptions()), ("unweighted", "", CalibrationOptions(weighting="none")),
-             ("true noise", ",sigma_task=0.2mm", CalibrationOptions()))
+    cases = (
+        ("default", "", CalibrationOptions()),
+        ("unweighted", "", CalibrationOptions(weighting="none")),
+        ("true noise", ",sigma_task=0.2mm", CalibrationOptions()),
+    )
     rel, t0 = {k: [] for k, _, _ in cases[1:]}, time.perf_counter()
     sizes, poss = {k: [] for k, _, _ in cases}, {k: [] for k, _, _ in cases}
     for seed in range(a.seeds):
         held, size, pos = {}, {}, {}
         with tempfile.TemporaryDirectory() as tmp:
-            rig, robot, log = tr._setup(Path(tmp), seed=seed, n=a.n, places=3, sigma_task=tr.SIGMA_TASK,
-                                        sigma_q=2e-5)
+            rig, robot, log = tr._setup(Path(tmp), seed=seed, n=a.n, places=3, sigma_task=tr.SIGMA_TASK, sigma_q=2e-5)
             for label, extra, opt in cases:
                 loops = tr._loops(robot, rig.loop_names(), extra)
                 out = leave_one_fixture_out(robot, log, loops + tr._distances(loops, (1, 2, 3)), opt)
@@ -57,19 +59,28 @@ def main() -> None:
         for k in sizes:
             sizes[k].append(size[k])
             poss[k].append(pos[k])
-        print(f"seed {seed:3d}: held-out RMS (mm) " + ", ".join(f"{k} {v * 1e3:.4f}" for k, v in held.items())
-              + f"; default vs unweighted {rel['unweighted'][-1]:+.2%}; size error "
-              + ", ".join(f"{k} {v:+.3%}" for k, v in size.items()) + "; position error vs truth (mm) "
-              + ", ".join(f"{k} {v * 1e3:.4f}" for k, v in pos.items()), flush=True)
+        print(
+            f"seed {seed:3d}: held-out RMS (mm) "
+            + ", ".join(f"{k} {v * 1e3:.4f}" for k, v in held.items())
+            + f"; default vs unweighted {rel['unweighted'][-1]:+.2%}; size error "
+            + ", ".join(f"{k} {v:+.3%}" for k, v in size.items())
+            + "; position error vs truth (mm) "
+            + ", ".join(f"{k} {v * 1e3:.4f}" for k, v in pos.items()),
+            flush=True,
+        )
     print(f"{a.seeds} seeds in {time.perf_counter() - t0:.0f} s")
     for k, v in rel.items():
         v = np.array(v)
-        print(f"held-out RMS, default / {k} - 1: mean {v.mean():+.3%} +- {v.std(ddof=1) / np.sqrt(v.size):.3%} "
-              f"(standard error), range {v.min():+.2%} .. {v.max():+.2%}, default better in {np.mean(v < 0):.0%}")
+        print(
+            f"held-out RMS, default / {k} - 1: mean {v.mean():+.3%} +- {v.std(ddof=1) / np.sqrt(v.size):.3%} "
+            f"(standard error), range {v.min():+.2%} .. {v.max():+.2%}, default better in {np.mean(v < 0):.0%}"
+        )
     for k in sizes:
         sz, ps = np.array(sizes[k]), np.array(poss[k]) * 1e3
-        print(f"{k}: size error mean {sz.mean():+.3%} +- {sz.std(ddof=1) / np.sqrt(sz.size):.3%}; position error "
-              f"vs truth {ps.mean():.4f} +- {ps.std(ddof=1) / np.sqrt(ps.size):.4f} mm")
+        print(
+            f"{k}: size error mean {sz.mean():+.3%} +- {sz.std(ddof=1) / np.sqrt(sz.size):.3%}; position error "
+            f"vs truth {ps.mean():.4f} +- {ps.std(ddof=1) / np.sqrt(ps.size):.4f} mm"
+        )
 
 
 if __name__ == "__main__":

@@ -39,24 +39,40 @@ def main() -> None:
     z, task, t0 = [], [], time.perf_counter()
     for seed in range(a.draws):
         with tempfile.TemporaryDirectory() as tmp:
-            rig, robot, log = tr._setup(Path(tmp), seed=seed, n=20 if a.block else 30, places=3,
-                                        sigma_task=tr.SIGMA_TASK, sigma_q=2e-5, block=tr.BLOCK if a.block else None)
+            rig, robot, log = tr._setup(
+                Path(tmp),
+                seed=seed,
+                n=20 if a.block else 30,
+                places=3,
+                sigma_task=tr.SIGMA_TASK,
+                sigma_q=2e-5,
+                block=tr.BLOCK if a.block else None,
+            )
             loops = tr._loops(robot, rig.loop_names())
             if a.block:
-                known = parse_blocks([[f"b{p}"] + [f"place{p}_{s}.point={x},{y},{z}" for s, (x, y, z)
-                                                   in zip("abc", tr.BLOCK)] for p in (1, 2, 3)], loops)
+                known = parse_blocks(
+                    [
+                        [f"b{p}"] + [f"place{p}_{s}.point={x},{y},{z}" for s, (x, y, z) in zip("abc", tr.BLOCK)]
+                        for p in (1, 2, 3)
+                    ],
+                    loops,
+                )
             else:
                 known = tr._distances(loops, (1, 2, 3))
             res = calibrate(robot, log, loops + known, CalibrationOptions())
             err = tr.scale_error(res, rig)
         z.append(err / res.scale_std)
         task += [d["task_sigma_m"] / tr.SIGMA_TASK for d in res.noise_model]
-        print(f"seed {seed:3d}: size error {err:+.4%}, standard error {res.scale_std:.4%}, z {z[-1]:+.2f}, "
-              f"verdict {res.verdict.status}")
+        print(
+            f"seed {seed:3d}: size error {err:+.4%}, standard error {res.scale_std:.4%}, z {z[-1]:+.2f}, "
+            f"verdict {res.verdict.status}"
+        )
     z = np.array(z)
-    print(f"{a.draws} draws in {time.perf_counter() - t0:.0f} s: mean z^2 {np.mean(z ** 2):.2f}, "
-          f"|z| < 1 in {np.mean(np.abs(z) < 1):.0%}, < 2 in {np.mean(np.abs(z) < 2):.0%}; "
-          f"play estimate / truth {np.mean(task):.3f} +- {np.std(task):.3f} (range {min(task):.2f}-{max(task):.2f})")
+    print(
+        f"{a.draws} draws in {time.perf_counter() - t0:.0f} s: mean z^2 {np.mean(z**2):.2f}, "
+        f"|z| < 1 in {np.mean(np.abs(z) < 1):.0%}, < 2 in {np.mean(np.abs(z) < 2):.0%}; "
+        f"play estimate / truth {np.mean(task):.3f} +- {np.std(task):.3f} (range {min(task):.2f}-{max(task):.2f})"
+    )
 
 
 if __name__ == "__main__":

@@ -17,12 +17,12 @@ import tempfile
 from pathlib import Path
 
 from closedloop.calibration import CalibrationOptions, calibrate
-from closedloop.validation.check import check_report
 from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
-from closedloop.output.report import build_report
 from closedloop.model.robot import RobotModel
+from closedloop.output.report import build_report
 from closedloop.sims import SCENARIOS, simulate
+from closedloop.validation.check import check_report
 
 SETTINGS = {
     "default (stiff loop, compliant servo, relaxed)": {},
@@ -32,11 +32,15 @@ SETTINGS = {
     "gravity off": {"gravity": False},
     "gravity on, no gravity compensation": {"gravcomp": False},
 }
-LOOPS = {"panda_weld": "weld:frame=panda_hand_tcp,name=fixture", "ur5_socket": "point:frame=stylus_tip,name=socket",
-         "ur5_door": "hinge:frame=tool0,name=door", "utah_hand": "weld:frame=finger_tip,to=thumb_tip,name=grasp",
-         "ur5_plane": "plane:frame=stylus_tip,name=plane",
-         # open loop: the tracker noise (default 1e-5 m) is given, the joints are noise free (see OPTIONS)
-         "ur5_tracker": "measured_point:frame=stylus_tip,name=tracker,sigma_t=1e-5"}
+LOOPS = {
+    "panda_weld": "weld:frame=panda_hand_tcp,name=fixture",
+    "ur5_socket": "point:frame=stylus_tip,name=socket",
+    "ur5_door": "hinge:frame=tool0,name=door",
+    "utah_hand": "weld:frame=finger_tip,to=thumb_tip,name=grasp",
+    "ur5_plane": "plane:frame=stylus_tip,name=plane",
+    # open loop: the tracker noise (default 1e-5 m) is given, the joints are noise free (see OPTIONS)
+    "ur5_tracker": "measured_point:frame=stylus_tip,name=tracker,sigma_t=1e-5",
+}
 # calibration options per scenario (default: CalibrationOptions()); with noise-free joints the default
 # estimates the joint noise from the residual and reads the tracker noise as joint noise
 OPTIONS = {"ur5_tracker": {"noise": 1e-9}}
@@ -48,8 +52,9 @@ def run(scenario: str, overrides: dict, n: int, seed: int) -> dict:
         truth = json.loads((Path(d) / "truth.json").read_text())
         robot = RobotModel.from_file(Path(d) / "nominal.urdf")
         log = read_log(Path(d) / "log.csv", robot.joint_names)
-        res = calibrate(robot, log, [parse_loop(LOOPS[scenario], robot)],
-                        CalibrationOptions(**OPTIONS.get(scenario, {})))
+        res = calibrate(
+            robot, log, [parse_loop(LOOPS[scenario], robot)], CalibrationOptions(**OPTIONS.get(scenario, {}))
+        )
         report = build_report(res)
         _, ok = check_report(truth, report, tol_m=1e-3, tol_rad=5e-3, tol_scale=5e-3)
         err_m = err_rad = 0.0
@@ -62,8 +67,14 @@ def run(scenario: str, overrides: dict, n: int, seed: int) -> dict:
             else:
                 err_rad = max(err_rad, e)
         v = truth["violation"]
-        return {"viol_m": v["rms_m"], "viol_rad": v["rms_rad"], "err_m": err_m, "err_rad": err_rad, "check": ok,
-                "cps": res_sim.configs_per_second}
+        return {
+            "viol_m": v["rms_m"],
+            "viol_rad": v["rms_rad"],
+            "err_m": err_m,
+            "err_rad": err_rad,
+            "check": ok,
+            "cps": res_sim.configs_per_second,
+        }
 
 
 def main() -> None:
@@ -72,16 +83,22 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--scenario", nargs="*", default=list(LOOPS))
     args = ap.parse_args()
-    print(f"| scenario | setting | violation RMS | max param error | check (1 mm, 5 mrad) |")
+    print("| scenario | setting | violation RMS | max param error | check (1 mm, 5 mrad) |")
     print("|---|---|---|---|---|")
     for sc in args.scenario:
         for label, ov in SETTINGS.items():
             r = run(sc, ov, args.n, args.seed)
             # point-like loops (socket, plane puck) and the tracker (measurement error) have no rotation
-            rot = (f", {r['viol_rad'] * 1e3:.3g} mrad"
-                   if SCENARIOS[sc].loop_type not in ("point", "plane", "measured_point") else "")
-            print(f"| {sc} | {label} | {r['viol_m'] * 1e6:.3g} um{rot} | {r['err_m'] * 1e3:.3g} mm, "
-                  f"{r['err_rad'] * 1e3:.3g} mrad | {'pass' if r['check'] else 'FAIL'} |", flush=True)
+            rot = (
+                f", {r['viol_rad'] * 1e3:.3g} mrad"
+                if SCENARIOS[sc].loop_type not in ("point", "plane", "measured_point")
+                else ""
+            )
+            print(
+                f"| {sc} | {label} | {r['viol_m'] * 1e6:.3g} um{rot} | {r['err_m'] * 1e3:.3g} mm, "
+                f"{r['err_rad'] * 1e3:.3g} mrad | {'pass' if r['check'] else 'FAIL'} |",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

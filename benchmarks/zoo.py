@@ -36,6 +36,7 @@ from machine import machine  # noqa: E402
 def _load_zoo():
     """tests/zoo.py (this script has the same module name)."""
     import importlib.util
+
     spec = importlib.util.spec_from_file_location("zoo", Path(__file__).resolve().parents[1] / "tests" / "zoo.py")
     mod = importlib.util.module_from_spec(spec)
     sys.modules["zoo"] = mod
@@ -58,6 +59,7 @@ N = {"weld": 60, "point": 60, "plane": 100, "hinge": 40, "measured_point": 60}
 
 def dof(robot: str) -> int:
     import pinocchio as pin
+
     return zoo.joint_info(pin.buildModelFromXML(zoo.chain_urdf(zoo.ZOO[robot])))[0].__len__()
 
 
@@ -89,13 +91,31 @@ def main(argv: list[str] | None = None) -> int:
                         continue
                     o = zoo.run_case(case)
                     print(o.line(), flush=True)
-                    rows.append({"robot": robot, "dof": d, "loop": loop, "variant": variant, "seed": seed,
-                                 "flagged": bool(o.right and o.refused),
-                                 "outcome": ("right" if o.right else "refused" if o.refused else
-                                             "crash" if o.status == "crash" else "confidently wrong"),
-                                 "verdict": o.status, "converged": o.converged, "seconds": o.seconds,
-                                 "error": o.error, "judgement": vars(o.judgement) if o.judgement else None,
-                                 "notes": list(getattr(o.result, "notes", []) or [])})
+                    rows.append(
+                        {
+                            "robot": robot,
+                            "dof": d,
+                            "loop": loop,
+                            "variant": variant,
+                            "seed": seed,
+                            "flagged": bool(o.right and o.refused),
+                            "outcome": (
+                                "right"
+                                if o.right
+                                else "refused"
+                                if o.refused
+                                else "crash"
+                                if o.status == "crash"
+                                else "confidently wrong"
+                            ),
+                            "verdict": o.status,
+                            "converged": o.converged,
+                            "seconds": o.seconds,
+                            "error": o.error,
+                            "judgement": vars(o.judgement) if o.judgement else None,
+                            "notes": list(getattr(o.result, "notes", []) or []),
+                        }
+                    )
     print(f"\n{len(rows)} cases in {time.perf_counter() - t0:.0f} s\n")
     print(table(rows, "loop"))
     print()
@@ -110,14 +130,18 @@ def table(rows: list[dict], by: str) -> str:
     """Markdown table per `by` and in total: cases, right (and how many of those the verdict flags:
     false alarms), refused (wrong, verdict not ok), confidently wrong (wrong, verdict ok), crashes."""
     keys = sorted({r[by] for r in rows}, key=lambda k: (LOOPS + list(VARIANTS)).index(k))
-    out = [f"| {by} | cases | right | of which flagged | refused | confidently wrong | crash |",
-           "|---|---|---|---|---|---|---|"]
+    out = [
+        f"| {by} | cases | right | of which flagged | refused | confidently wrong | crash |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for k in keys + ["total"]:
         sel = [r for r in rows if k == "total" or r[by] == k]
         c = Counter(r["outcome"] for r in sel)
         flagged = sum(bool(r.get("flagged")) for r in sel)
-        out.append(f"| {k} | {len(sel)} | {c['right']} | {flagged} | {c['refused']} | {c['confidently wrong']} | "
-                   f"{c['crash']} |")
+        out.append(
+            f"| {k} | {len(sel)} | {c['right']} | {flagged} | {c['refused']} | {c['confidently wrong']} | "
+            f"{c['crash']} |"
+        )
     return "\n".join(out)
 
 

@@ -8,17 +8,39 @@ parameters from its own joint readings.  See the README for the workflow.
 __version__ = "0.1.0"
 
 from closedloop.calibration import CalibrationOptions, CalibrationResult, calibrate  # noqa: E402
-from closedloop.io.logs import JointLog, read_log  # noqa: E402
 from closedloop.errors import CalibrationError, ClosedLoopError, InputError  # noqa: E402
+from closedloop.io.logs import JointLog, read_log  # noqa: E402
 from closedloop.loops import HingeLoop, Loop, MeasuredPointLoop, MeasuredPoseLoop, PlaneLoop, PointLoop, WeldLoop  # noqa: E402
 from closedloop.loops.spec import parse_loop  # noqa: E402
 from closedloop.model.robot import RobotModel  # noqa: E402
 from closedloop.verdict import Verdict, judge  # noqa: E402
 
-__all__ = ["CalibrationOptions", "CalibrationResult", "calibrate", "JointLog", "read_log", "ClosedLoopError",
-           "InputError", "Loop", "WeldLoop", "PointLoop", "PlaneLoop", "HingeLoop", "MeasuredPointLoop",
-           "MeasuredPoseLoop", "parse_loop", "RobotModel", "Verdict", "judge", "write_model", "build_report",
-           "write_report", "cross_validate", "CalibrationError", "__version__"]
+__all__ = [
+    "CalibrationOptions",
+    "CalibrationResult",
+    "calibrate",
+    "JointLog",
+    "read_log",
+    "ClosedLoopError",
+    "InputError",
+    "Loop",
+    "WeldLoop",
+    "PointLoop",
+    "PlaneLoop",
+    "HingeLoop",
+    "MeasuredPointLoop",
+    "MeasuredPoseLoop",
+    "parse_loop",
+    "RobotModel",
+    "Verdict",
+    "judge",
+    "write_model",
+    "build_report",
+    "write_report",
+    "cross_validate",
+    "CalibrationError",
+    "__version__",
+]
 
 
 def __getattr__(name: str):

@@ -33,32 +33,60 @@ from dataclasses import replace
 
 import numpy as np
 
-from closedloop.problem.distances import annotate
-from closedloop.io.logs import JointLog
-from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
 from closedloop.analysis.identifiability import Structure, analyse_structure, weak_directions
 from closedloop.analysis.linearity import check_error_bars
-from closedloop.loops.base import Loop
+from closedloop.analysis.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
+from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
+from closedloop.estimate.lm import reducible_share, rms, scaled_svd
 from closedloop.estimate.noise import noise_vector
 from closedloop.estimate.outliers import gross_outliers, readmit, reject_outliers
-from closedloop.problem.problem import CalibrationProblem, LoopBlock
-from closedloop.records import (CalibrationOptions, CalibrationResult, LoopResiduals, ParameterRecord, Rejected,
-                      residual_stats)
+from closedloop.estimate.staged import (
+    Fit,
+    Progress,
+    recheck_at_solution,
+    solve_from_starts,
+    solve_staged,
+    solve_with_restarts,
+)
+from closedloop.io.logs import JointLog
+from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
-from closedloop.analysis.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
-from closedloop.estimate.lm import reducible_share, rms, scaled_svd
-from closedloop.estimate.staged import Fit, Progress, recheck_at_solution, solve_from_starts, solve_staged, solve_with_restarts
+from closedloop.problem.distances import annotate
+from closedloop.problem.problem import CalibrationProblem, LoopBlock
+from closedloop.records import (
+    CalibrationOptions,
+    CalibrationResult,
+    LoopResiduals,
+    ParameterRecord,
+    Rejected,
+    residual_stats,
+)
 from closedloop.verdict import judge
 
-__all__ = ["CalibrationOptions", "CalibrationResult", "LoopResiduals", "ParameterRecord", "Rejected",
-           "build_problem", "calibrate", "residual_stats", "DEFAULT_IDENTIFY", "MIN_RANGE"]
+__all__ = [
+    "CalibrationOptions",
+    "CalibrationResult",
+    "LoopResiduals",
+    "ParameterRecord",
+    "Rejected",
+    "build_problem",
+    "calibrate",
+    "residual_stats",
+    "DEFAULT_IDENTIFY",
+    "MIN_RANGE",
+]
 
 log = logging.getLogger(__name__)
 
 
 # --------------------------------------------------------------------------- setup
-def build_problem(robot: RobotModel, log_: JointLog, loops: list[Loop], priors: dict | None = None,
-                  row_numbers: np.ndarray | None = None) -> CalibrationProblem:
+def build_problem(
+    robot: RobotModel,
+    log_: JointLog,
+    loops: list[Loop],
+    priors: dict | None = None,
+    row_numbers: np.ndarray | None = None,
+) -> CalibrationProblem:
     """The problem for `loops` over `log_`; checks frames, joints and row assignment.
 
     `row_numbers` (1-based, one per log row) name the rows in messages when
@@ -97,20 +125,29 @@ def build_problem(robot: RobotModel, log_: JointLog, loops: list[Loop], priors: 
         else:
             rows = np.arange(len(log_))
         at = getattr(lp, "measured_at", None)  # a known length: read at the readings it was measured at
-        blocks.append(LoopBlock(lp, theta[rows] if at is None else at(joints), numbers[rows],
-                                tau[rows] if tau is not None and at is None else None,
-                                lp.measurements(log_.extra, rows)))
+        blocks.append(
+            LoopBlock(
+                lp,
+                theta[rows] if at is None else at(joints),
+                numbers[rows],
+                tau[rows] if tau is not None and at is None else None,
+                lp.measurements(log_.extra, rows),
+            )
+        )
     problem = CalibrationProblem(robot, joints, blocks, priors)
     # what each loop reads off the data once (`Loop.prepare`: the hinge's chart), at the nominal robot
-    prepared = [b.loop.prepare(*problem.loop_poses(problem.nominal, bi), b.meas)
-                if type(b.loop).prepare is not Loop.prepare else b.loop for bi, b in enumerate(blocks)]
+    prepared = [
+        b.loop.prepare(*problem.loop_poses(problem.nominal, bi), b.meas)
+        if type(b.loop).prepare is not Loop.prepare
+        else b.loop
+        for bi, b in enumerate(blocks)
+    ]
     if all(p is b.loop for p, b in zip(prepared, blocks)):
         return problem
     return CalibrationProblem(robot, joints, [replace(b, loop=p) for b, p in zip(blocks, prepared)], priors)
 
 
-def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, status: list[str]
-                     ) -> dict:
+def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, status: list[str]) -> dict:
     """Standard errors, weak directions and the chi-square test at the solution (eq. 4.17 truncation).
 
     Edits `status` ('unidentifiable' for the parameters of weak directions).
@@ -131,7 +168,7 @@ def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOpti
     weak = weak_directions(S, Vt, threshold, [problem.names[k] for k in est])
     keep = S > threshold
     Vk = Vt[keep].T
-    cov = (Vk / S[keep] ** 2) @ Vk.T * sigma_r ** 2 * np.outer(scale[est], scale[est])
+    cov = (Vk / S[keep] ** 2) @ Vk.T * sigma_r**2 * np.outer(scale[est], scale[est])
     std = np.full(len(problem.params), np.nan)
     std[est] = np.sqrt(np.maximum(np.diag(cov), 0.0))
     for c in weak:
@@ -139,18 +176,33 @@ def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOpti
             k = problem.index[n]
             status[k] = "unidentifiable"
             std[k] = np.nan
-    chi2 = float(r @ r) / (sigma_r ** 2 if not (fit.known and weighted) else 1.0)
+    chi2 = float(r @ r) / (sigma_r**2 if not (fit.known and weighted) else 1.0)
     # At a minimum r is orthogonal to the columns of J: |U_k^T r|^2 / |r|^2, the share of the cost a
     # Gauss-Newton step would remove, is ~0 (at round-off closures anything: judged by `verdict._minimum`).
     # Near 1 the solver stopped where its linear model still sees the cost vanish.  With bounds an active
     # bound leaves a gradient: not computed.
     reducible = np.nan if opt.bounds else reducible_share(r, g, keep)
-    return {"S": S, "rank": int(keep.sum()), "dof": dof, "sigma": sigma, "weak": weak, "cov": cov, "std": std,
-            "chi2": chi2, "weighting": fun.weighting, "reducible": reducible}
+    return {
+        "S": S,
+        "rank": int(keep.sum()),
+        "dof": dof,
+        "sigma": sigma,
+        "weak": weak,
+        "cov": cov,
+        "std": std,
+        "chi2": chi2,
+        "weighting": fun.weighting,
+        "reducible": reducible,
+    }
 
 
-def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: CalibrationOptions | None = None,
-              progress: Progress | None = None) -> CalibrationResult:
+def calibrate(
+    robot: RobotModel,
+    log_: JointLog,
+    loops: list[Loop],
+    options: CalibrationOptions | None = None,
+    progress: Progress | None = None,
+) -> CalibrationResult:
     """Identify the selected parameters and judge the result; see the module docstring.
 
     BLAS threads are limited for the call by problem size (`threads.blas_threads`).
@@ -162,12 +214,15 @@ def calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: Cal
         try:
             return _calibrate(robot, log_, loops, opt, progress)
         except np.linalg.LinAlgError as exc:  # non-finite kinematics: values far outside any model
-            raise ConvergenceError(f"{log_.source or 'the log'}: the solve broke down ({exc}): the data or the "
-                                   "fixed values put the model where its kinematics are not finite") from None
+            raise ConvergenceError(
+                f"{log_.source or 'the log'}: the solve broke down ({exc}): the data or the "
+                "fixed values put the model where its kinematics are not finite"
+            ) from None
 
 
-def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: CalibrationOptions,
-               progress: Progress | None) -> CalibrationResult:
+def _calibrate(
+    robot: RobotModel, log_: JointLog, loops: list[Loop], opt: CalibrationOptions, progress: Progress | None
+) -> CalibrationResult:
     _check_options(opt)
     problem = build_problem(robot, log_, loops, opt.priors)
     x0 = initial_values(problem, opt.initial)
@@ -184,8 +239,9 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
     if problem.keeps_jacobians:  # the solve's first J, taken first: the screen and `before` read it (the memo)
         problem.evaluate(x0, True, columns=structure.kept)
     before, start = residual_stats(problem, problem.evaluate(x0, False)), problem
-    problem, fit, structure, rejected, suspects = solve_screened(problem, x0, free, structure, opt, sigma_q, known,
-                                                                 len(log_), notes, progress)
+    problem, fit, structure, rejected, suspects = solve_screened(
+        problem, x0, free, structure, opt, sigma_q, known, len(log_), notes, progress
+    )
     if problem is not start:  # rows rejected: the start's closure on the rows kept
         before = residual_stats(problem, problem.evaluate(x0, False))
     after = residual_stats(problem, problem.evaluate(fit.x, False))  # the fit's own last evaluation (the memo)
@@ -198,13 +254,42 @@ def _calibrate(robot: RobotModel, log_: JointLog, loops: list[Loop], opt: Calibr
     sol = fit.stage.solution
     if sol.status != "converged":
         notes.append(f"solver: {sol.message}")
-    res = CalibrationResult(problem, problem.names, x0, x, a["std"], status, dropped + list(structure.dropped),
-                            a["weak"], a["S"], a["rank"], before, after, fit.iterations,
-                            sol.status, sol.message, a["sigma"], opt.noise is None, a["chi2"],
-                            a["dof"], notes, a["cov"], fit.est, suspects, a["weighting"], gauge,
-                            structure.gauge_note, structure.gauge_length, rejected, len(log_), fit.warnings)
+    res = CalibrationResult(
+        problem,
+        problem.names,
+        x0,
+        x,
+        a["std"],
+        status,
+        dropped + list(structure.dropped),
+        a["weak"],
+        a["S"],
+        a["rank"],
+        before,
+        after,
+        fit.iterations,
+        sol.status,
+        sol.message,
+        a["sigma"],
+        opt.noise is None,
+        a["chi2"],
+        a["dof"],
+        notes,
+        a["cov"],
+        fit.est,
+        suspects,
+        a["weighting"],
+        gauge,
+        structure.gauge_note,
+        structure.gauge_length,
+        rejected,
+        len(log_),
+        fit.warnings,
+    )
     res.reducible = a["reducible"]
-    annotate(res, fit.sigma_q, structure.scale_free, opt.snr)  # what sets the scale, each loop's noise (closedloop.problem.distances)
+    annotate(
+        res, fit.sigma_q, structure.scale_free, opt.snr
+    )  # what sets the scale, each loop's noise (closedloop.problem.distances)
     res.profiles = check_error_bars(res, fit)  # a long fit: do its error bars hold? (closedloop.analysis.linearity)
     res.verdict = judge(res)
     return res
@@ -217,10 +302,18 @@ def _check_options(opt: CalibrationOptions) -> None:
         raise ParameterError(f"robust must be 'auto', 'huber', 'cauchy' or None, not '{opt.robust}'")
 
 
-def solve_screened(problem: CalibrationProblem, x0: np.ndarray, free: list[int], structure: Structure,
-                   opt: CalibrationOptions, sigma_q: np.ndarray, known: bool, n_rows: int, notes: list[str],
-                   progress: Progress | None
-                   ) -> tuple[CalibrationProblem, Fit, Structure, list[Rejected], list]:
+def solve_screened(
+    problem: CalibrationProblem,
+    x0: np.ndarray,
+    free: list[int],
+    structure: Structure,
+    opt: CalibrationOptions,
+    sigma_q: np.ndarray,
+    known: bool,
+    n_rows: int,
+    notes: list[str],
+    progress: Progress | None,
+) -> tuple[CalibrationProblem, Fit, Structure, list[Rejected], list]:
     """Outlier screen, staged solve, restarts and the re-checks at the solution (module docstring, 4-6).
 
     Returns the problem on the kept rows, its fit, the structure that holds
@@ -244,8 +337,9 @@ def solve_screened(problem: CalibrationProblem, x0: np.ndarray, free: list[int],
         problem, rejected, x_robust = screened
         structure = analyse_structure(problem, x0, free)
         fit = solve_from_starts(problem, x0, [x0, x_robust], structure.kept, opt, sigma_q, known, progress)
-    fit = solve_with_restarts(problem, x0, structure.kept, opt, sigma_q, known, rng, progress, fit,
-                              structure.nearly_redundant(problem.index))
+    fit = solve_with_restarts(
+        problem, x0, structure.kept, opt, sigma_q, known, rng, progress, fit, structure.nearly_redundant(problem.index)
+    )
     if opt.robust in ("huber", "cauchy"):
         from closedloop.estimate.outliers import irls_fit
 
@@ -254,19 +348,38 @@ def solve_screened(problem: CalibrationProblem, x0: np.ndarray, free: list[int],
     notes.extend(recheck_notes)
     back = readmit(problem_all, fit.x, rejected, opt, sigma_q) if rejected else None
     if back is not None:  # rejections made short of the solution that it does not confirm
-        notes.append(f"re-checked at the solution: {len(rejected) - len(back[1])} rejected configuration(s) "
-                     "fit within the noise there and were readmitted")
+        notes.append(
+            f"re-checked at the solution: {len(rejected) - len(back[1])} rejected configuration(s) "
+            "fit within the noise there and were readmitted"
+        )
         problem, rejected = back  # solved again from the start: the robust fit's point was not a solution
         before = fit.iterations
         fit = solve_staged(problem, x0, x0, fit.est, opt, fit.sigma_q, fit.known, progress)
-        fit = solve_with_restarts(problem, x0, fit.est, opt, fit.sigma_q, fit.known, rng, progress, fit,
-                                  structure.nearly_redundant(problem.index))
+        fit = solve_with_restarts(
+            problem,
+            x0,
+            fit.est,
+            opt,
+            fit.sigma_q,
+            fit.known,
+            rng,
+            progress,
+            fit,
+            structure.nearly_redundant(problem.index),
+        )
         fit.iterations += before
     return problem, fit, structure, rejected, suspects
 
 
-def name_gauge(problem: CalibrationProblem, structure: Structure, x: np.ndarray, status: list[str],
-               opt: CalibrationOptions, notes: list[str], warnings: list[str]) -> str | None:
+def name_gauge(
+    problem: CalibrationProblem,
+    structure: Structure,
+    x: np.ndarray,
+    status: list[str],
+    opt: CalibrationOptions,
+    notes: list[str],
+    warnings: list[str],
+) -> str | None:
     """The held length that sets the scale (thesis 3.3), with its notes; None if the data or the user set it.
 
     Edits `status` (the gauge is 'fixed'), `notes` and `warnings`.
@@ -280,8 +393,9 @@ def name_gauge(problem: CalibrationProblem, structure: Structure, x: np.ndarray,
     notes.append(f"fixed {gauge} = {x[structure.gauge]:g}: {structure.gauge_note}")
     user_lengths = [problem.names[k] for k in opt_fixed(problem, opt) if problem.params[k].scales_with_length]
     if user_lengths:
-        notes.append(f"the fixed length(s) {', '.join(user_lengths)} do not set the scale: they are absorbed "
-                     "by other parameters")
+        notes.append(
+            f"the fixed length(s) {', '.join(user_lengths)} do not set the scale: they are absorbed by other parameters"
+        )
     if structure.gauge_warning:
         warnings.append(structure.gauge_warning)
     return gauge
@@ -295,6 +409,8 @@ def opt_fixed(problem: CalibrationProblem, opt: CalibrationOptions) -> set[int]:
 def _check_rows(problem: CalibrationProblem, structure: Structure, log_: JointLog) -> None:
     M = sum(b.theta.shape[0] * b.loop.dim for b in problem.blocks)
     if M <= len(structure.kept):  # the rows, not the model, limit the rank: nothing left to check
-        raise LogError(f"{log_.source}: {len(log_)} rows give {M} equations, no more than the "
-                       f"{len(structure.kept)} parameters they could determine; log more configurations or "
-                       "identify fewer parameters")
+        raise LogError(
+            f"{log_.source}: {len(log_)} rows give {M} equations, no more than the "
+            f"{len(structure.kept)} parameters they could determine; log more configurations or "
+            "identify fewer parameters"
+        )

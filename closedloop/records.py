@@ -124,7 +124,9 @@ class CalibrationResult:
     verdict: Verdict | None = None
     scale_note: str | None = None  # what sets the overall size (closedloop.problem.distances.annotate)
     scale_std: float = float("nan")  # relative standard error of the size, when a known distance sets it
-    length_response: float | None = None  # size change per change of the known frame lengths (closedloop.problem.lengths)
+    length_response: float | None = (
+        None  # size change per change of the known frame lengths (closedloop.problem.lengths)
+    )
     length_leak: float | None = None  # size error per prior-sized error of what the loops cannot see, through them
     noise_model: list = field(default_factory=list)  # per loop: task vs joint noise (noise.noise_summary)
     reducible: float = 0.0  # share of the final cost one Gauss-Newton step would remove: ~0 at a minimum (NaN: bounds)
@@ -148,8 +150,18 @@ class CalibrationResult:
     @property
     def parameters(self) -> list[ParameterRecord]:
         """Every parameter as a named record, in the problem's order."""
-        return [ParameterRecord(p.name, p.kind, p.unit, float(self.initial[k]), float(self.values[k]),
-                                float(self.std[k]), self.status[k]) for k, p in enumerate(self.problem.params)]
+        return [
+            ParameterRecord(
+                p.name,
+                p.kind,
+                p.unit,
+                float(self.initial[k]),
+                float(self.values[k]),
+                float(self.std[k]),
+                self.status[k],
+            )
+            for k, p in enumerate(self.problem.params)
+        ]
 
 
 def residual_stats(problem: CalibrationProblem, evals: list[BlockEval]) -> list[LoopResiduals]:
@@ -162,8 +174,9 @@ def residual_stats(problem: CalibrationProblem, evals: list[BlockEval]) -> list[
         tn = np.linalg.norm(t, axis=1) if t is not None else None
         wn = np.linalg.norm(w, axis=1) if w is not None else None
         # image points: the (u, v) pairs' Euclidean errors, pooled over configurations and cameras
-        pn = (np.linalg.norm(ev.r[:, list(lp.pixel_rows)].reshape(-1, 2), axis=1)
-              if lp.pixel_rows and ev.r.size else None)
+        pn = (
+            np.linalg.norm(ev.r[:, list(lp.pixel_rows)].reshape(-1, 2), axis=1) if lp.pixel_rows and ev.r.size else None
+        )
         ok = getattr(ev, "valid", None)  # rows with an observation (LoopEval.valid): missing ones do not count
         if ok is not None:
             tn = None if tn is None else tn[ok[:, list(lp.translation_rows)].all(axis=1)]
@@ -171,9 +184,10 @@ def residual_stats(problem: CalibrationProblem, evals: list[BlockEval]) -> list[
             pn = None if pn is None else pn[ok[:, list(lp.pixel_rows)].reshape(-1, 2).all(axis=1)]
 
         def rms(v):
-            return float(np.sqrt(np.mean(v ** 2))) if v is not None and v.size else None
+            return float(np.sqrt(np.mean(v**2))) if v is not None and v.size else None
 
         def mx(v):
             return float(v.max()) if v is not None and v.size else None
+
         out.append(LoopResiduals(lp.name, ev.r.shape[0], rms(tn), mx(tn), rms(wn), mx(wn), rms(pn), mx(pn)))
     return out

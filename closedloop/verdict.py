@@ -95,8 +95,8 @@ def length_scale(result: CalibrationResult) -> float:
     """
     prob = result.problem
     rp = prob.rp
-    nominal = rp.apply(result.initial[:prob.n_robot]).model
-    calibrated = rp.apply(result.values[:prob.n_robot]).model
+    nominal = rp.apply(result.initial[: prob.n_robot]).model
+    calibrated = rp.apply(result.values[: prob.n_robot]).model
     jids = set()
     for name in prob.joints:
         jid = prob.robot.joint(name).jid
@@ -117,16 +117,21 @@ def _closure(before, after, verdict: Verdict) -> None:
             if vb is None or va is None:
                 continue
             if va > 1.1 * vb and va > FLOOR[key]:
-                verdict.add(FAILED, f"loop {a.loop}: closure {key[4:]} RMS {va:.3g} after calibration is worse "
-                                    f"than before ({vb:.3g})")
+                verdict.add(
+                    FAILED,
+                    f"loop {a.loop}: closure {key[4:]} RMS {va:.3g} after calibration is worse than before ({vb:.3g})",
+                )
 
 
 def _changes(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -> None:
     s = length_scale(result)
     verdict.evidence["length_scale"] = s
     if abs(s - 1.0) > rules.scale_failed:
-        verdict.add(FAILED, f"the robot's overall size changed by a factor {s:.3g} (a length scale the data "
-                            "do not fix, or a wrong model)")
+        verdict.add(
+            FAILED,
+            f"the robot's overall size changed by a factor {s:.3g} (a length scale the data "
+            "do not fix, or a wrong model)",
+        )
     elif abs(s - 1.0) > rules.scale_suspect:
         verdict.add(SUSPECT, f"the robot's overall size changed by a factor {s:.3g}")
     prob = result.problem
@@ -137,8 +142,10 @@ def _changes(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -
                 delta[k] = (delta[k] + np.pi / 2) % np.pi - np.pi / 2
             elif p.kind == "dh" and p.field == "a":
                 delta[k] = abs(result.values[k]) - abs(result.initial[k])
-    for factor, status, what in ((3.0, FAILED, "corrections no calibration makes (a flipped axis, a link "
-                                               "gone)"), (1.0, SUSPECT, "implausibly large corrections")):
+    for factor, status, what in (
+        (3.0, FAILED, "corrections no calibration makes (a flipped axis, a link gone)"),
+        (1.0, SUSPECT, "implausibly large corrections"),
+    ):
         moved = []
         for k in result.estimated:
             p = prob.params[k]
@@ -151,8 +158,9 @@ def _changes(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -
                 if abs(delta[k]) > factor * max(0.5 * length, 0.05):
                     moved.append(f"{p.name} by {delta[k] * 1e3:+.4g} mm")
         if moved:
-            verdict.add(status, f"{what}: " + ", ".join(moved[:5])
-                        + (f" and {len(moved) - 5} more" if len(moved) > 5 else ""))
+            verdict.add(
+                status, f"{what}: " + ", ".join(moved[:5]) + (f" and {len(moved) - 5} more" if len(moved) > 5 else "")
+            )
             return
 
 
@@ -169,8 +177,10 @@ def _minimum(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -
     verdict.evidence["reducible"] = f
     if not any((getattr(a, k) or 0.0) > floor for a in result.residuals_after for k, floor in ROUNDOFF.items()):
         return
-    what = (f"one Gauss-Newton step from the solution would still remove {100 * f:.0f} % of the remaining cost "
-            "(the fit stopped short of its minimum, along a direction the data barely determine)")
+    what = (
+        f"one Gauss-Newton step from the solution would still remove {100 * f:.0f} % of the remaining cost "
+        "(the fit stopped short of its minimum, along a direction the data barely determine)"
+    )
     if f > rules.reducible_failed:
         verdict.add(FAILED, what)
     elif f > rules.reducible_suspect:
@@ -192,15 +202,25 @@ def _noise(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -> 
     sigma = result.sigma
     verdict.evidence["joint_noise"] = sigma
     if sigma > rules.failed_joint_noise:
-        verdict.add(FAILED, f"the estimated joint noise {sigma:.3g} rad is implausible: the model does not fit "
-                            "the data (wrong robot or log, gross errors, a stalled fit)")
+        verdict.add(
+            FAILED,
+            f"the estimated joint noise {sigma:.3g} rad is implausible: the model does not fit "
+            "the data (wrong robot or log, gross errors, a stalled fit)",
+        )
     elif sigma > rules.plausible_joint_noise:
-        verdict.add(SUSPECT, f"the estimated joint noise {sigma:.3g} rad is larger than encoders give "
-                             f"(> {rules.plausible_joint_noise:g})")
+        verdict.add(
+            SUSPECT,
+            f"the estimated joint noise {sigma:.3g} rad is larger than encoders give "
+            f"(> {rules.plausible_joint_noise:g})",
+        )
 
 
-def judge(result: CalibrationResult, validation: dict | None = None,
-          rules: VerdictRules | None = None, fixtures: dict | None = None) -> Verdict:
+def judge(
+    result: CalibrationResult,
+    validation: dict | None = None,
+    rules: VerdictRules | None = None,
+    fixtures: dict | None = None,
+) -> Verdict:
     """The verdict on `result`, and on its k-fold `validation` (`validation.cross_validate`) if given;
     `fixtures` (`fixtures.leave_one_fixture_out`): a held-out fixture worse than the nominal model is suspect."""
     rules = rules or VerdictRules()
@@ -211,8 +231,9 @@ def judge(result: CalibrationResult, validation: dict | None = None,
         _minimum(result, rules, v)
     # a known distance (closedloop.problem.distances) is a measurement, not a closure that calibration must improve
     own = [not getattr(b.loop, "parameter_only", False) for b in result.problem.blocks]
-    _closure([r for r, k in zip(result.residuals_before, own) if k],
-             [r for r, k in zip(result.residuals_after, own) if k], v)
+    _closure(
+        [r for r, k in zip(result.residuals_before, own) if k], [r for r, k in zip(result.residuals_after, own) if k], v
+    )
     _noise(result, rules, v)
     _changes(result, rules, v)
     total = result.rows_total
@@ -245,8 +266,14 @@ def _validation(cv: dict, rules: VerdictRules, verdict: Verdict) -> None:
                     continue
                 ratio = b / max(a, FLOOR[key])
                 if ratio > rules.heldout_failed:
-                    verdict.add(FAILED, f"validation fold {f['fold']}, loop {te['loop']}: held-out closure "
-                                        f"{key[4:]} RMS {b:.3g} is {ratio:.3g}x the training fit")
+                    verdict.add(
+                        FAILED,
+                        f"validation fold {f['fold']}, loop {te['loop']}: held-out closure "
+                        f"{key[4:]} RMS {b:.3g} is {ratio:.3g}x the training fit",
+                    )
                 elif ratio > rules.heldout_suspect:
-                    verdict.add(SUSPECT, f"validation fold {f['fold']}, loop {te['loop']}: held-out closure "
-                                         f"{key[4:]} RMS {b:.3g} is {ratio:.3g}x the training fit")
+                    verdict.add(
+                        SUSPECT,
+                        f"validation fold {f['fold']}, loop {te['loop']}: held-out closure "
+                        f"{key[4:]} RMS {b:.3g} is {ratio:.3g}x the training fit",
+                    )

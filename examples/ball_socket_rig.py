@@ -66,7 +66,8 @@ def perturb(urdf: str, rng: np.random.Generator, err_m: float, err_rad: float) -
         o = j.find("origin")
         xyz = np.array([float(t) for t in o.get("xyz").split()]) + rng.uniform(-err_m, err_m, 3)
         R = pin.rpy.rpyToMatrix(*rng.uniform(-err_rad, err_rad, 3)) @ pin.rpy.rpyToMatrix(
-            *[float(t) for t in o.get("rpy", "0 0 0").split()])
+            *[float(t) for t in o.get("rpy", "0 0 0").split()]
+        )
         o.set("xyz", " ".join(repr(float(v)) for v in xyz))
         o.set("rpy", " ".join(repr(float(v)) for v in pin.rpy.matrixToRpy(R)))
     return ET.tostring(root, encoding="unicode")
@@ -79,10 +80,12 @@ def fold_offsets(urdf: str, offsets: dict[str, float]) -> str:
         if j.get("name") not in offsets:
             continue
         o = j.find("origin")
-        axis = np.array([float(t) for t in (j.find("axis").get("xyz") if j.find("axis") is not None
-                                            else "1 0 0").split()])
+        axis = np.array(
+            [float(t) for t in (j.find("axis").get("xyz") if j.find("axis") is not None else "1 0 0").split()]
+        )
         R = pin.rpy.rpyToMatrix(*[float(t) for t in o.get("rpy", "0 0 0").split()]) @ pin.exp3(
-            axis / np.linalg.norm(axis) * offsets[j.get("name")])
+            axis / np.linalg.norm(axis) * offsets[j.get("name")]
+        )
         o.set("rpy", " ".join(repr(float(v)) for v in pin.rpy.matrixToRpy(R)))
     return ET.tostring(root, encoding="unicode")
 
@@ -118,9 +121,15 @@ class Rig:
             f = out / f"{name}.csv"
             f.write_text("\n".join(",".join(repr(float(v)) for v in row) for row in th) + "\n")
             files.append(f)
-        truth = {"joints": self.joints, "offsets": self.offsets.tolist(), "ball_in_flange": self.ball_true.tolist(),
-                 "places": [{k: np.asarray(v).tolist() for k, v in p.items()} for p in self.places],
-                 "sigma_task": self.sigma_task, "sigma_q": self.sigma_q, "distance": self.distance}
+        truth = {
+            "joints": self.joints,
+            "offsets": self.offsets.tolist(),
+            "ball_in_flange": self.ball_true.tolist(),
+            "places": [{k: np.asarray(v).tolist() for k, v in p.items()} for p in self.places],
+            "sigma_task": self.sigma_task,
+            "sigma_q": self.sigma_q,
+            "distance": self.distance,
+        }
         (out / "truth.json").write_text(json.dumps(truth, indent=1) + "\n")
         return files
 
@@ -137,10 +146,21 @@ def _dls(fun, th, lo, hi, iters=60, tol=1e-12):
     return None
 
 
-def make_rig(seed: int = 0, n: int = 30, places: int = 3, sigma_task: float = 2e-4, sigma_q: float = 2e-5,
-             distance: float = 0.05, err_m: float = 1e-3, err_rad: float = 1e-3, offset_rad: float = 5e-3,
-             spread: float = 0.35, place_configs: list[np.ndarray] | None = None,
-             encoder_error: tuple[int, float] | None = None, block: list | None = None) -> Rig:
+def make_rig(
+    seed: int = 0,
+    n: int = 30,
+    places: int = 3,
+    sigma_task: float = 2e-4,
+    sigma_q: float = 2e-5,
+    distance: float = 0.05,
+    err_m: float = 1e-3,
+    err_rad: float = 1e-3,
+    offset_rad: float = 5e-3,
+    spread: float = 0.35,
+    place_configs: list[np.ndarray] | None = None,
+    encoder_error: tuple[int, float] | None = None,
+    block: list | None = None,
+) -> Rig:
     """A simulated rig (module docstring); `encoder_error` = (joint index, amplitude): an unmodelled
     reading error amplitude * sin(2 reading) of that joint (a cyclic encoder error); `block`: the
     sockets' positions in the block's frame (sockets a, b, c, ...; default [0,0,0] and [distance,0,0]),
@@ -167,8 +187,12 @@ def make_rig(seed: int = 0, n: int = 30, places: int = 3, sigma_task: float = 2e
         return np.linalg.svd(pin.computeFrameJacobian(model, data, q, fid, pin.LOCAL), compute_uv=False)[5] > 0.05
 
     readings, qs, place_list = {}, {}, []
-    defaults = [np.array([0.0, 0.3, 0.0, -1.8, 0.0, 2.1, 0.8]), np.array([0.6, 0.5, 0.2, -1.5, -0.2, 2.0, 0.5]),
-                np.array([-0.7, 0.6, -0.1, -1.3, 0.3, 2.2, 1.1]), np.array([0.3, -0.2, 0.4, -2.2, 0.1, 1.9, 0.2])]
+    defaults = [
+        np.array([0.0, 0.3, 0.0, -1.8, 0.0, 2.1, 0.8]),
+        np.array([0.6, 0.5, 0.2, -1.5, -0.2, 2.0, 0.5]),
+        np.array([-0.7, 0.6, -0.1, -1.3, 0.3, 2.2, 1.1]),
+        np.array([0.3, -0.2, 0.4, -2.2, 0.1, 1.9, 0.2]),
+    ]
     for p in range(places):
         th0 = (place_configs[p] if place_configs is not None else defaults[p % len(defaults)]).copy()
         P = fk(th0)
@@ -198,18 +222,35 @@ def make_rig(seed: int = 0, n: int = 30, places: int = 3, sigma_task: float = 2e
             name = f"place{p + 1}_{s}"
             readings[name], qs[name] = read, q
     M = model.frames[fid].placement
-    return Rig(nominal, fold_offsets(true_urdf, dict(zip(joints, offsets))), joints, offsets, place_list, readings, qs, M.translation.copy(), sigma_task,
-               sigma_q, distance, {"seed": seed, "encoder_error": encoder_error, "block": block.tolist()})
+    return Rig(
+        nominal,
+        fold_offsets(true_urdf, dict(zip(joints, offsets))),
+        joints,
+        offsets,
+        place_list,
+        readings,
+        qs,
+        M.translation.copy(),
+        sigma_task,
+        sigma_q,
+        distance,
+        {"seed": seed, "encoder_error": encoder_error, "block": block.tolist()},
+    )
 
 
 def commands(out: Path, rig: Rig) -> str:
     """The calibrate command for the files written to `out`."""
-    loops = " ".join(f"--loop point:frame={BALL},name={nm},tip=@ball,fixture={nm.split('_')[0]},log={out / nm}.csv"
-                     for nm in rig.readings)
-    dist = " ".join(f"--distance place{p + 1}_a.point place{p + 1}_b.point {rig.distance}"
-                    for p in range(len(rig.places)))
-    return (f"closedloop calibrate {out}/nominal.urdf {loops} --joints {','.join(rig.joints)} {dist} "
-            f"--out {out}/calibrated.urdf --report {out}/report.json")
+    loops = " ".join(
+        f"--loop point:frame={BALL},name={nm},tip=@ball,fixture={nm.split('_')[0]},log={out / nm}.csv"
+        for nm in rig.readings
+    )
+    dist = " ".join(
+        f"--distance place{p + 1}_a.point place{p + 1}_b.point {rig.distance}" for p in range(len(rig.places))
+    )
+    return (
+        f"closedloop calibrate {out}/nominal.urdf {loops} --joints {','.join(rig.joints)} {dist} "
+        f"--out {out}/calibrated.urdf --report {out}/report.json"
+    )
 
 
 def main() -> None:

@@ -26,11 +26,26 @@ from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel
 from closedloop.studies.truth import make_dataset
 
-URDF = Path(site.getsitepackages()[0]) / "cmeel.prefix/share/example-robot-data/robots/baxter_description/urdf/baxter.urdf"
+URDF = (
+    Path(site.getsitepackages()[0]) / "cmeel.prefix/share/example-robot-data/robots/baxter_description/urdf/baxter.urdf"
+)
 # A configuration with the grippers in front of the torso (left arm, then right arm).
-Q0 = {"left_s0": 0.3, "left_s1": -0.4, "left_e0": -0.3, "left_e1": 1.3, "left_w0": 0.2, "left_w1": 0.6, "left_w2": 0.1,
-      "right_s0": -0.3, "right_s1": -0.4, "right_e0": 0.3, "right_e1": 1.3, "right_w0": -0.2, "right_w1": 0.6,
-      "right_w2": -0.1}
+Q0 = {
+    "left_s0": 0.3,
+    "left_s1": -0.4,
+    "left_e0": -0.3,
+    "left_e1": 1.3,
+    "left_w0": 0.2,
+    "left_w1": 0.6,
+    "left_w2": 0.1,
+    "right_s0": -0.3,
+    "right_s1": -0.4,
+    "right_e0": 0.3,
+    "right_e1": 1.3,
+    "right_w0": -0.2,
+    "right_w1": 0.6,
+    "right_w2": -0.1,
+}
 
 
 def run(n: int = 60, seed: int = 0, verbose: bool = True) -> dict:
@@ -42,28 +57,46 @@ def run(n: int = 60, seed: int = 0, verbose: bool = True) -> dict:
     ds = make_dataset(robot, loop, np.array([Q0[j] for j in joints]), n, rng, step=0.05)
     t_data = time.time() - t0
     t0 = time.time()
-    res = calibrate(robot, ds.log(noisy=False), [WeldLoop("grasp", "left_gripper", "right_gripper")],
-                    CalibrationOptions())
+    res = calibrate(
+        robot, ds.log(noisy=False), [WeldLoop("grasp", "left_gripper", "right_gripper")], CalibrationOptions()
+    )
     t_cal = time.time() - t0
     truth = ds.truth_dict()
     est = [k for k, s in enumerate(res.status) if s == "estimated"]
     errs = {res.names[k]: abs(res.values[k] - truth[res.names[k]]) for k in est}
-    out = {"n": n, "estimated": len(est), "dropped": len(res.dropped), "weak": len(res.weak),
-           "max_error": max(errs.values()), "before": res.residuals_before[0], "after": res.residuals_after[0],
-           "converged": res.converged, "notes": res.notes, "seconds_data": t_data, "seconds_cal": t_cal,
-           "result": res, "dataset": ds}
+    out = {
+        "n": n,
+        "estimated": len(est),
+        "dropped": len(res.dropped),
+        "weak": len(res.weak),
+        "max_error": max(errs.values()),
+        "before": res.residuals_before[0],
+        "after": res.residuals_after[0],
+        "converged": res.converged,
+        "notes": res.notes,
+        "seconds_data": t_data,
+        "seconds_cal": t_cal,
+        "result": res,
+        "dataset": ds,
+    }
     if verbose:
         b, a = res.residuals_before[0], res.residuals_after[0]
-        print(f"Baxter dual-arm grasp: {len(ds.joints)} joints, {n} configurations "
-              f"(data {t_data:.1f} s, calibration {t_cal:.1f} s, {res.iterations} iterations, {res.solver_status})")
-        print(f"  closure RMS {b.rms_m * 1e3:.3f} mm -> {a.rms_m * 1e3:.2e} mm, "
-              f"{b.rms_rad * 1e3:.3f} mrad -> {a.rms_rad * 1e3:.2e} mrad")
+        print(
+            f"Baxter dual-arm grasp: {len(ds.joints)} joints, {n} configurations "
+            f"(data {t_data:.1f} s, calibration {t_cal:.1f} s, {res.iterations} iterations, {res.solver_status})"
+        )
+        print(
+            f"  closure RMS {b.rms_m * 1e3:.3f} mm -> {a.rms_m * 1e3:.2e} mm, "
+            f"{b.rms_rad * 1e3:.3f} mrad -> {a.rms_rad * 1e3:.2e} mrad"
+        )
         print(f"\n  {'parameter':24s} {'nominal':>12s} {'truth':>12s} {'calibrated':>12s} {'error':>9s}")
         for k in est:
             nme = res.names[k]
             print(f"  {nme:24s} {res.initial[k]:+12.6f} {truth[nme]:+12.6f} {res.values[k]:+12.6f} {errs[nme]:9.1e}")
-        print(f"\n  {len(est)} estimated, max |error| {out['max_error']:.2e}; {len(res.dropped)} dropped, "
-              f"{len(res.weak)} weak directions")
+        print(
+            f"\n  {len(est)} estimated, max |error| {out['max_error']:.2e}; {len(res.dropped)} dropped, "
+            f"{len(res.weak)} weak directions"
+        )
         kinds = Counter(d.name.rsplit(".", 1)[1] for d in res.dropped)
         print("  dropped by field:", dict(sorted(kinds.items())))
         for d in res.dropped:

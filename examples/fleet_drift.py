@@ -50,10 +50,20 @@ def write_logs(out: Path, seed: int = 7) -> Path:
                 job["options"] = {"noise": NOISE}
             jobs.append(job)
     manifest = out / "fleet.yaml"
-    manifest.write_text(yaml.safe_dump({
-        "defaults": {"model": panda_urdf(), "loops": ["weld:frame=panda_hand,name=fixture"], "cv": 3,
-                     "options": {"noise": NOISE, "fix": ["panda_joint4.x"]}},  # one length sets the scale
-        "jobs": jobs}, sort_keys=False))
+    manifest.write_text(
+        yaml.safe_dump(
+            {
+                "defaults": {
+                    "model": panda_urdf(),
+                    "loops": ["weld:frame=panda_hand,name=fixture"],
+                    "cv": 3,
+                    "options": {"noise": NOISE, "fix": ["panda_joint4.x"]},
+                },  # one length sets the scale
+                "jobs": jobs,
+            },
+            sort_keys=False,
+        )
+    )
     return manifest
 
 
@@ -71,16 +81,23 @@ def main() -> int:
         rows = list(csv.DictReader(fh))
     print(f"\n{'job':<22}{'status':>7}{'verdict':>9}{'after mm':>10}{'cv mm':>9}{'max |z|':>9}  drift flagged")
     for r in rows:
-        print(f"{r['name']:<22}{r['status']:>7}{r['verdict']:>9}{float(r['rms_after_mm']):>10.3g}"
-              f"{float(r['cv_test_mm']):>9.3g}"
-              + (f"{float(r['drift_max_z']):>9.2f}" if r["drift_max_z"] else " " * 9) + f"  {r['drift_flagged']}")
+        print(
+            f"{r['name']:<22}{r['status']:>7}{r['verdict']:>9}{float(r['rms_after_mm']):>10.3g}"
+            f"{float(r['cv_test_mm']):>9.3g}"
+            + (f"{float(r['drift_max_z']):>9.2f}" if r["drift_max_z"] else " " * 9)
+            + f"  {r['drift_flagged']}"
+        )
     with open(out / "fleet.summary.drift.csv") as fh:
         offs = [d for d in csv.DictReader(fh) if d["parameter"] == f"{JOINT}.offset"]
-    print(f"\n{JOINT}.offset between consecutive dates (true change: arm1 +10, +10, +400, 0 urad; arm2 none, "
-          "another gauge from the fourth date):")
+    print(
+        f"\n{JOINT}.offset between consecutive dates (true change: arm1 +10, +10, +400, 0 urad; arm2 none, "
+        "another gauge from the fourth date):"
+    )
     for d in offs:
-        print(f"  {d['after']:<22} change {float(d['change']) * 1e6:+7.1f} urad, se {float(d['se']) * 1e6:5.1f} urad,"
-              f" z {float(d['z']):+6.1f}  {'FLAGGED' if d['flagged'] == 'True' else ''}")
+        print(
+            f"  {d['after']:<22} change {float(d['change']) * 1e6:+7.1f} urad, se {float(d['se']) * 1e6:5.1f} urad,"
+            f" z {float(d['z']):+6.1f}  {'FLAGGED' if d['flagged'] == 'True' else ''}"
+        )
     return code
 
 

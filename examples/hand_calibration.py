@@ -14,18 +14,25 @@ from __future__ import annotations
 import tempfile
 
 from closedloop.io.logs import JointLog
-from closedloop.studies.hand import INCH, palm_frame_parameters, staged_calibration, table_4_1_path, thesis_hand_dataset, \
-    thesis_stages
 from closedloop.loops.spec import default_loops
 from closedloop.model.robot import RobotModel
+from closedloop.studies.hand import (
+    INCH,
+    palm_frame_parameters,
+    staged_calibration,
+    table_4_1_path,
+    thesis_hand_dataset,
+    thesis_stages,
+)
 
 
 def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         truth, readings, _ = thesis_hand_dataset(d, n=100)
     robot = RobotModel.from_file(table_4_1_path())
-    results = staged_calibration(robot, JointLog(robot.joint_names, readings), default_loops(robot),
-                                 thesis_stages(robot))
+    results = staged_calibration(
+        robot, JointLog(robot.joint_names, readings), default_loops(robot), thesis_stages(robot)
+    )
     first = results[0].residuals_before[0]
     print(f"nominal Table 4.1: closure RMS {first.rms_m / INCH:.3f} in, {first.rms_rad:.3f} rad")
     for i, res in enumerate(results, start=1):

@@ -39,8 +39,16 @@ def trajectory(Q: np.ndarray, rate: float, hold: float, move: float):
     return np.array(ts), np.array(qs), np.array(vs)
 
 
-def write_bag(out: Path, fmt: str, joints: list[str], t: np.ndarray, q: np.ndarray, v: np.ndarray | None,
-              topic: str = "/joint_states", t0_ns: int = 1_700_000_000_000_000_000) -> None:
+def write_bag(
+    out: Path,
+    fmt: str,
+    joints: list[str],
+    t: np.ndarray,
+    q: np.ndarray,
+    v: np.ndarray | None,
+    topic: str = "/joint_states",
+    t0_ns: int = 1_700_000_000_000_000_000,
+) -> None:
     from rosbags.typesys import Stores, get_typestore
 
     store = get_typestore(Stores.ROS1_NOETIC if fmt == "ros1" else Stores.ROS2_HUMBLE)
@@ -61,8 +69,13 @@ def write_bag(out: Path, fmt: str, joints: list[str], t: np.ndarray, q: np.ndarr
             ns = t0_ns + int(round(t[k] * 1e9))
             stamp = Time(sec=ns // 10**9, nanosec=ns % 10**9)
             hdr = Header(seq=k, stamp=stamp, frame_id="") if fmt == "ros1" else Header(stamp=stamp, frame_id="")
-            msg = JointState(header=hdr, name=list(joints), position=q[k],
-                             velocity=v[k] if v is not None else np.zeros(0), effort=np.zeros(0))
+            msg = JointState(
+                header=hdr,
+                name=list(joints),
+                position=q[k],
+                velocity=v[k] if v is not None else np.zeros(0),
+                effort=np.zeros(0),
+            )
             raw = store.serialize_ros1(msg, js) if fmt == "ros1" else store.serialize_cdr(msg, js)
             writer.write(conn, ns, raw)
 

@@ -27,8 +27,14 @@ def main() -> None:
     engine = sys.argv[3] if len(sys.argv) > 3 else "local"
     t0 = time.time()
     sc = weld_scenario(n=N, seed=0)
-    mc = monte_carlo(sc, NOISE, M, seed=1, executor=engine,
-                     progress=lambda i, n: print(f"\r  run {i}/{n}", end="", flush=True) if i % 10 == 0 else None)
+    mc = monte_carlo(
+        sc,
+        NOISE,
+        M,
+        seed=1,
+        executor=engine,
+        progress=lambda i, n: print(f"\r  run {i}/{n}", end="", flush=True) if i % 10 == 0 else None,
+    )
     print(f"\n{mc.summary()}\n  ({time.time() - t0:.0f} s)")
     w = mc.stats["noise"]
     print("\nper parameter (weighted): truth, CRB std, empirical std, bias/se")
@@ -36,8 +42,10 @@ def main() -> None:
         print(f"  {n:22s} {t:+.6f} {c:.2e} {e:.2e} {b:+.2f}")
     ok_trace = abs(w.trace_ratio - 1) <= 0.10
     ok_bias = np.max(np.abs(w.bias_over_se)) < 1.0
-    print(f"\ntarget: trace within 10% of the bound: {'OK' if ok_trace else 'MISSED'} ({w.trace_ratio:.3f}); "
-          f"bias below one standard error: {'OK' if ok_bias else 'MISSED'} (max {np.max(np.abs(w.bias_over_se)):.2f})")
+    print(
+        f"\ntarget: trace within 10% of the bound: {'OK' if ok_trace else 'MISSED'} ({w.trace_ratio:.3f}); "
+        f"bias below one standard error: {'OK' if ok_bias else 'MISSED'} (max {np.max(np.abs(w.bias_over_se)):.2f})"
+    )
 
 
 if __name__ == "__main__":  # the local engine's worker processes import this file

@@ -60,7 +60,7 @@ def closure_data(a: np.ndarray, a4: float, theta1: np.ndarray, elbow: float = 1.
         P1 = a1 * np.array([np.cos(t1), np.sin(t1)])
         d = np.array([-a4, 0.0]) - P1
         D = np.linalg.norm(d)
-        c = (a2 ** 2 + D ** 2 - a3 ** 2) / (2 * a2 * D)
+        c = (a2**2 + D**2 - a3**2) / (2 * a2 * D)
         if abs(c) > 1:
             raise ValueError(f"theta1 = {t1}: the ground point is out of reach")
         phi2 = np.arctan2(d[1], d[0]) - elbow * np.arccos(c)
@@ -98,14 +98,17 @@ def linear_solution(theta: np.ndarray, a4: float = 1.0) -> np.ndarray:
 def general_solution(theta: np.ndarray, a4: float = 1.0, **options):
     """The library's calibration of the same problem; returns ((a1, a2, a3), result)."""
     robot = RobotModel.from_file(URDF)
-    loop = PointLoop("ground", "link3", point=[-a4, 0.0, 0.0], initial_tip=[NOMINAL[2], 0.0, 0.0],
-                     prior=0.01)  # a3 is a link length like a1, a2: same prior
-    opt = CalibrationOptions(identify=["joint2.x", "joint3.x", "loop"],
-                             fix={"ground.tip_y": 0.0, "ground.tip_z": 0.0}, weighting="none",
-                             **options)
+    loop = PointLoop(
+        "ground", "link3", point=[-a4, 0.0, 0.0], initial_tip=[NOMINAL[2], 0.0, 0.0], prior=0.01
+    )  # a3 is a link length like a1, a2: same prior
+    opt = CalibrationOptions(
+        identify=["joint2.x", "joint3.x", "loop"],
+        fix={"ground.tip_y": 0.0, "ground.tip_z": 0.0},
+        weighting="none",
+        **options,
+    )
     res = calibrate(robot, JointLog(JOINTS, theta), [loop], opt)
-    a = np.array([NOMINAL[0] + res.value("joint2.x"), NOMINAL[1] + res.value("joint3.x"),
-                  res.value("ground.tip_x")])
+    a = np.array([NOMINAL[0] + res.value("joint2.x"), NOMINAL[1] + res.value("joint3.x"), res.value("ground.tip_x")])
     return a, res
 
 

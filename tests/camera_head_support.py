@@ -9,10 +9,10 @@ tests/test_loops_camera_head.py and benchmarks/camera_head_mc.py.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
+from scratch import scratch_dir
 
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate
 from closedloop.io.logs import JointLog
@@ -21,15 +21,18 @@ from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import vec_of
 from closedloop.sims.camera_scene import MARKER, head_urdf, mujoco_intrinsics, pan_towards
 from closedloop.studies.truth import draw_truth
-from scratch import scratch_dir
 
 FRAMES = ["cam_left_optical", "cam_right_optical"]
 ARM = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]
 Q0 = np.array([0.0, -1.3, 1.6, -1.9, -1.57, 0.0])
-K_TRUE = [mujoco_intrinsics() + np.array([3.0, -2.0, 4.0, -3.0]),
-          mujoco_intrinsics() + np.array([-2.0, 1.0, -5.0, 2.0])]
-MOUNT = [pin.SE3(pin.exp3(np.array([0.01, -0.02, 0.015])), np.array([0.004, -0.003, 0.005])),
-         pin.SE3(pin.exp3(np.array([-0.012, 0.01, -0.02])), np.array([-0.003, 0.002, -0.004]))]
+K_TRUE = [
+    mujoco_intrinsics() + np.array([3.0, -2.0, 4.0, -3.0]),
+    mujoco_intrinsics() + np.array([-2.0, 1.0, -5.0, 2.0]),
+]
+MOUNT = [
+    pin.SE3(pin.exp3(np.array([0.01, -0.02, 0.015])), np.array([0.004, -0.003, 0.005])),
+    pin.SE3(pin.exp3(np.array([-0.012, 0.01, -0.02])), np.array([-0.003, 0.002, -0.004])),
+]
 _robots: dict[float, RobotModel] = {}
 
 
@@ -80,8 +83,9 @@ def truth_pixels(problem, values: np.ndarray, theta: np.ndarray, loop_name: str 
 def true_own(loop_name: str = "cam", D=None, dist=()) -> dict[str, float]:
     out = {f"{loop_name}.{f}": float(v) for f, v in zip(("tip_x", "tip_y", "tip_z"), MARKER)}
     for c in range(2):
-        out |= {f"{loop_name}.cam{c + 1}.{f}": float(v) for f, v in zip(("x", "y", "z", "rx", "ry", "rz"),
-                                                                         vec_of(MOUNT[c]))}
+        out |= {
+            f"{loop_name}.cam{c + 1}.{f}": float(v) for f, v in zip(("x", "y", "z", "rx", "ry", "rz"), vec_of(MOUNT[c]))
+        }
         out |= {f"{loop_name}.cam{c + 1}.{f}": float(v) for f, v in zip(("fx", "fy", "cx", "cy"), K_TRUE[c])}
         for i, f in enumerate(("k1", "k2", "p1", "p2", "k3")):
             if f in dist:
@@ -98,8 +102,16 @@ class HeadCase:
     gauge: str | None = None  # the length the nominal-data calibration held (unperturbed in the truth)
 
 
-def head_case(make, N: int = 60, seed: int = 1, verge: float = 0.0, D=None, dist=(), jitter: float = 0.12,
-              options: CalibrationOptions | None = None) -> HeadCase:
+def head_case(
+    make,
+    N: int = 60,
+    seed: int = 1,
+    verge: float = 0.0,
+    D=None,
+    dist=(),
+    jitter: float = 0.12,
+    options: CalibrationOptions | None = None,
+) -> HeadCase:
     """Readings and the truth: robot parameters that a nominal-data calibration estimates are perturbed."""
     robot = head_robot(verge)
     th = head_readings(robot, N, seed, jitter)
@@ -107,8 +119,12 @@ def head_case(make, N: int = 60, seed: int = 1, verge: float = 0.0, D=None, dist
     zeros = {c: np.zeros(N) for c in make().columns()}
     prob = build_problem(robot, JointLog(names, th, None, None, zeros), [make()])
     x = prob.nominal
-    res0 = calibrate(robot, JointLog(names, th, None, None, truth_pixels(prob, x, th, D=D)), [make()],
-                     options or CalibrationOptions(robust=None))
+    res0 = calibrate(
+        robot,
+        JointLog(names, th, None, None, truth_pixels(prob, x, th, D=D)),
+        [make()],
+        options or CalibrationOptions(robust=None),
+    )
     robot_names = [n for n, s in zip(res0.names, res0.status) if s == "estimated" and not n.startswith("cam.")]
     truth = x.copy()
     for k, v in draw_truth(robot, robot_names, np.random.default_rng(seed + 1000)).items():
@@ -117,8 +133,15 @@ def head_case(make, N: int = 60, seed: int = 1, verge: float = 0.0, D=None, dist
     return HeadCase(robot, th, by_name, truth, res0.gauge)
 
 
-def run_head(case: HeadCase, make, sigma_px: float | None = None, noise_q: float | None = None, seed: int = 0,
-             D=None, options: CalibrationOptions | None = None):
+def run_head(
+    case: HeadCase,
+    make,
+    sigma_px: float | None = None,
+    noise_q: float | None = None,
+    seed: int = 0,
+    D=None,
+    options: CalibrationOptions | None = None,
+):
     """Calibrate from noisy readings/pixels of `case`; returns the result and (estimated index, errors)."""
     rng = np.random.default_rng(seed)
     names = case.robot.joint_names
@@ -128,8 +151,12 @@ def run_head(case: HeadCase, make, sigma_px: float | None = None, noise_q: float
     if sigma_px:
         data = {k: v + rng.normal(scale=sigma_px, size=v.size) for k, v in data.items()}
     th = case.theta + rng.normal(scale=noise_q, size=case.theta.shape) if noise_q else case.theta
-    res = calibrate(case.robot, JointLog(names, th, None, None, data), [make()],
-                    options or CalibrationOptions(noise=noise_q, robust=None))
+    res = calibrate(
+        case.robot,
+        JointLog(names, th, None, None, data),
+        [make()],
+        options or CalibrationOptions(noise=noise_q, robust=None),
+    )
     est = [i for i, s in enumerate(res.status) if s == "estimated"]
     err = np.array([res.values[i] - case.truth[res.names[i]] for i in est])
     return res, est, err

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from closedloop.loops import WeldLoop
-from closedloop.models import ROBOTS
 from closedloop.model.robot import RobotModel
+from closedloop.models import ROBOTS
 from closedloop.studies.truth import make_dataset
 
 PANDA_Q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]
@@ -22,4 +22,3 @@ def panda() -> RobotModel:
 def panda_weld(panda):
     """200 exact configurations of the Panda hand welded to an unknown world pose."""
     return make_dataset(panda, WeldLoop("fixture", "panda_hand"), PANDA_Q0, 200, np.random.default_rng(7))
-

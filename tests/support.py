@@ -72,8 +72,16 @@ def geodesic(r1, r2) -> float:
     return float(np.linalg.norm(pin.log3(pin.exp3(np.asarray(r1, float)).T @ pin.exp3(np.asarray(r2, float)))))
 
 
-def relative_fk_error(res, truth_values, frame_a: str, frame_b: str, n: int = 60, seed: int = 0,
-                      fit_scale: bool = True, tip: str | None = None) -> tuple[float, float, float]:
+def relative_fk_error(
+    res,
+    truth_values,
+    frame_a: str,
+    frame_b: str,
+    n: int = 60,
+    seed: int = 0,
+    fit_scale: bool = True,
+    tip: str | None = None,
+) -> tuple[float, float, float]:
     """Gauge-free comparison of a calibration with a truth: what the robot does, not its parameters.
 
     The pose of frame A in frame B at `n` random readings (within the loop
@@ -95,14 +103,17 @@ def relative_fk_error(res, truth_values, frame_a: str, frame_b: str, n: int = 60
     readings = rng.uniform(lo, hi, (n, len(prob.joints)))
 
     def poses(values):
-        state = prob.rp.apply(np.asarray(values)[:prob.n_robot])
+        state = prob.rp.apply(np.asarray(values)[: prob.n_robot])
         q = prob.robot.configurations(readings * state.scale + state.offset, prob.joints)
         fa, fb = prob.robot.frame_id(frame_a), prob.robot.frame_id(frame_b)
         out = []
         for qi in q:
             pin.forwardKinematics(state.model, state.data, qi)
-            out.append(pin.updateFramePlacement(state.model, state.data, fb).actInv(
-                pin.updateFramePlacement(state.model, state.data, fa)))
+            out.append(
+                pin.updateFramePlacement(state.model, state.data, fb).actInv(
+                    pin.updateFramePlacement(state.model, state.data, fa)
+                )
+            )
         return out
 
     cal, tru = poses(res.values), poses(truth_values)

@@ -16,13 +16,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from closedloop.io.bags import ExtractOptions, extract
 from closedloop.calibration import build_problem, residual_stats
 from closedloop.cli.main import main
+from closedloop.io.bags import ExtractOptions, extract
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
-from closedloop.models import ROBOTS
 from closedloop.model.robot import RobotModel
+from closedloop.models import ROBOTS
 from closedloop.studies.truth import make_dataset
 
 RATE = 100.0  # Hz
@@ -32,8 +32,14 @@ T0_NS = 1_700_000_000_000_000_000
 EXTRA = ["panda_finger_joint1", "panda_finger_joint2"]
 
 
-def stream(Q: np.ndarray, rng: np.random.Generator, velocities: bool, t_start: float = 0.0,
-           pause_after: int | None = None, pause: float = 0.0):
+def stream(
+    Q: np.ndarray,
+    rng: np.random.Generator,
+    velocities: bool,
+    t_start: float = 0.0,
+    pause_after: int | None = None,
+    pause: float = 0.0,
+):
     """(t [s], q, qdot) of a hold-move-hold... trajectory through the rows of Q (plus a pause)."""
     ts, qs, vs = [], [], []
     t = t_start
@@ -102,8 +108,15 @@ def panda():
 @pytest.fixture(scope="module")
 def standstills(panda):
     """20 exact configurations of the Panda hand welded to a fixture (the true standstills)."""
-    ds = make_dataset(panda, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 20,
-                      np.random.default_rng(3), stride=6, step=0.06)
+    ds = make_dataset(
+        panda,
+        WeldLoop("fixture", "panda_hand"),
+        [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8],
+        20,
+        np.random.default_rng(3),
+        stride=6,
+        step=0.06,
+    )
     return ds
 
 
@@ -146,8 +159,10 @@ def test_calibration_from_bag_equals_csv(tmp_path, panda, standstills, capsys):
     assert main(["calibrate", urdf, str(csv), *loop, "--report", str(reports["csv"])]) == 0
     # the bag straight into calibrate, every option from a config file (as robot_calibration users keep them)
     cfg = tmp_path / "calib.yaml"
-    cfg.write_text(f"model: {urdf}\nlog: {bag}\nloop:\n  - weld:frame=panda_hand,name=fixture\ncv: 0\nquiet: true\n"
-                   f"report: {reports['bag']}\n")
+    cfg.write_text(
+        f"model: {urdf}\nlog: {bag}\nloop:\n  - weld:frame=panda_hand,name=fixture\ncv: 0\nquiet: true\n"
+        f"report: {reports['bag']}\n"
+    )
     assert main(["calibrate", "--config", str(cfg)]) == 0
     params = {k: {p["name"]: p for p in json.loads(v.read_text())["parameters"]} for k, v in reports.items()}
     assert sum(p["status"] == "estimated" for p in params["bag"].values()) >= 10
@@ -178,8 +193,9 @@ def test_fixtures_split_by_topic_gap_and_window(tmp_path, standstills):
     left = lg.angles[lg.loop == "a"]
     assert np.abs(left - Q[:12]).max() < 1e-5
     # one topic, the recording paused 20 s after the 7th standstill
-    bag = write_bag(tmp_path / "gap", "ros1", {"/joint_states": stream(Q, rng, False, pause_after=6, pause=20.0)},
-                    joints, rng)
+    bag = write_bag(
+        tmp_path / "gap", "ros1", {"/joint_states": stream(Q, rng, False, pause_after=6, pause=20.0)}, joints, rng
+    )
     lg, found = extract(bag, joints, ExtractOptions(split="gap", gap=5.0))
     assert list(lg.loop) == ["fixture1"] * 7 + ["fixture2"] * 13
     # windows: only the standstills inside a window are kept

@@ -17,17 +17,18 @@ restart leaves, and is left along its weakest directions (`staging.valley_starts
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pinocchio as pin
 import pytest
-
 import thesis_examples as te
 from scratch import scratch_dir
 
-STARTS = {"example1": [0, 1, 2, 3, 11, 16], "example2": [0, 1, 2, 3], "door": [0, 8, 12, 20, 27],
-          "point": [0, 1, 2, 3, 4]}
+STARTS = {
+    "example1": [0, 1, 2, 3, 11, 16],
+    "example2": [0, 1, 2, 3],
+    "door": [0, 8, 12, 20, 27],
+    "point": [0, 1, 2, 3, 4],
+}
 
 
 def test_examples_are_exact_closed_loops():
@@ -77,11 +78,11 @@ def test_door_nearly_redundant_parameters_are_named():
     """Door start 3: the reduction at the start drops j1.a and j5.s, whose columns lie in the kept ones' span
     only to ~1e-7 (weak, not redundant: with them held the truth cannot close); the base and tool transforms'
     exact redundancies (~1e-16) are not among `Structure.nearly_redundant`."""
-    from closedloop import CalibrationOptions, RobotModel, read_log
-    from closedloop.calibration import build_problem
+    from closedloop import RobotModel, read_log
     from closedloop.analysis.identifiability import analyse_structure
-    from closedloop.loops.spec import default_loops, parse_loop
     from closedloop.analysis.selection import check_motion, initial_values, select_parameters
+    from closedloop.calibration import build_problem
+    from closedloop.loops.spec import default_loops, parse_loop
 
     ex = te.door()
     wd = scratch_dir("door_")

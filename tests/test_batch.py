@@ -18,11 +18,11 @@ import pytest
 import ray  # in the test extra: a real local Ray cluster
 import yaml
 
-from closedloop.fleet.batch import read_manifest, run_batch
 from closedloop.cli.main import main
-from closedloop.io.logs import JointLog
 from closedloop.errors import InputError
+from closedloop.fleet.batch import read_manifest, run_batch
 from closedloop.fleet.executor import get_engine
+from closedloop.io.logs import JointLog
 from closedloop.studies.montecarlo import panda_urdf, weld_scenario
 
 NOISE = 1e-4
@@ -48,16 +48,29 @@ def write_fleet(folder: Path, sc, drifts: list[float], seed: int = 0, broken: bo
         th[:, k] -= d / scale
         th += rng.normal(0.0, NOISE, th.shape)
         JointLog(list(sc.joints), th).write_csv(folder / f"arm1-day{i}.csv")
-        jobs.append({"name": f"arm1-day{i}", "robot": "arm1", "date": f"2026-03-{i + 1:02d}",
-                     "log": f"arm1-day{i}.csv", "out": f"out/arm1-day{i}"})
+        jobs.append(
+            {
+                "name": f"arm1-day{i}",
+                "robot": "arm1",
+                "date": f"2026-03-{i + 1:02d}",
+                "log": f"arm1-day{i}.csv",
+                "out": f"out/arm1-day{i}",
+            }
+        )
     if broken:  # a log with a bad value: this job fails, the others do not
         (folder / "broken.csv").write_text(",".join(sc.joints) + "\n" + ",".join(["0.1"] * 6 + ["oops"]) + "\n")
-        jobs.insert(1, {"name": "arm2-day0", "robot": "arm2", "date": "2026-03-01", "log": "broken.csv",
-                        "out": "out/arm2-day0"})
+        jobs.insert(
+            1, {"name": "arm2-day0", "robot": "arm2", "date": "2026-03-01", "log": "broken.csv", "out": "out/arm2-day0"}
+        )
     manifest = folder / "fleet.yaml"
-    manifest.write_text(yaml.safe_dump({"defaults": {"model": panda_urdf(), "loops": [LOOP],
-                                                     "options": {"noise": NOISE, "fix": FIX}, "cv": cv},
-                                        "jobs": jobs}))
+    manifest.write_text(
+        yaml.safe_dump(
+            {
+                "defaults": {"model": panda_urdf(), "loops": [LOOP], "options": {"noise": NOISE, "fix": FIX}, "cv": cv},
+                "jobs": jobs,
+            }
+        )
+    )
     return manifest
 
 
@@ -88,8 +101,10 @@ def test_batch_same_on_every_engine_failure_isolated_drift_flagged(tmp_path, tru
     for engine in ("local", "ray"):
         assert runs[engine].failed == ["arm2-day0"]
         for i in range(3):  # bit-identical calibrations, whichever engine ran them
-            assert params(tmp_path / engine / f"out/arm1-day{i}") == params(tmp_path / "serial" / f"out/arm1-day{i}"), \
-                (engine, i)
+            assert params(tmp_path / engine / f"out/arm1-day{i}") == params(tmp_path / "serial" / f"out/arm1-day{i}"), (
+                engine,
+                i,
+            )
     # the calibrations see the true drift of the offset, within 3 standard errors of the change
     p = [params(tmp_path / "serial" / f"out/arm1-day{i}")[f"{JOINT}.offset"] for i in range(3)]
     for i in (1, 2):
@@ -115,9 +130,14 @@ def test_killed_batch_resumes_without_redoing_finished_jobs(tmp_path, truth):
     man = write_fleet(tmp_path, truth, [0.0] * 6, cv=2)
     jobs = read_manifest(man)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "closedloop.cli.main", "batch", str(man), "--jobs", "2", "--quiet"],
-                            cwd=tmp_path, env=env, start_new_session=True,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "closedloop.cli.main", "batch", str(man), "--jobs", "2", "--quiet"],
+        cwd=tmp_path,
+        env=env,
+        start_new_session=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
     t0 = time.monotonic()
     while sum((j.out / "done.json").exists() for j in jobs) < 2:
         assert proc.poll() is None, proc.stderr.read().decode()
@@ -128,7 +148,9 @@ def test_killed_batch_resumes_without_redoing_finished_jobs(tmp_path, truth):
     done = {j.name: (j.out / "done.json").stat().st_mtime_ns for j in jobs if (j.out / "done.json").exists()}
     assert 2 <= len(done) < len(jobs)
     for j in jobs:  # no half job: an output folder exists only whole
-        assert not j.out.exists() or {"done.json", "report.json", "calibrated.urdf"} <= {p.name for p in j.out.iterdir()}
+        assert not j.out.exists() or {"done.json", "report.json", "calibrated.urdf"} <= {
+            p.name for p in j.out.iterdir()
+        }
     assert main(["batch", str(man), "--jobs", "2", "--quiet"]) == 0
     for name, mtime in done.items():  # not redone
         assert (tmp_path / "out" / name / "done.json").stat().st_mtime_ns == mtime
@@ -142,11 +164,14 @@ def test_killed_batch_resumes_without_redoing_finished_jobs(tmp_path, truth):
 
 def test_manifest_csv_and_errors(tmp_path, capsys):
     (tmp_path / "m.csv").write_text(
-        'name,robot,date,model,log,loops,noise,identify,out\n'
-        f'a,r1,2026-01-02,{panda_urdf()},a.csv,"{LOOP};point:frame=panda_link8,name=tip",1e-4,"placement,offset",o/a\n')
+        "name,robot,date,model,log,loops,noise,identify,out\n"
+        f'a,r1,2026-01-02,{panda_urdf()},a.csv,"{LOOP};point:frame=panda_link8,name=tip",1e-4,"placement,offset",o/a\n'
+    )
     (job,) = read_manifest(tmp_path / "m.csv")
-    assert job.loops == [LOOP, "point:frame=panda_link8,name=tip"] and job.options == {"noise": "1e-4",
-                                                                                          "identify": "placement,offset"}
+    assert job.loops == [LOOP, "point:frame=panda_link8,name=tip"] and job.options == {
+        "noise": "1e-4",
+        "identify": "placement,offset",
+    }
     assert job.out == tmp_path / "o" / "a" and job.robot == "r1" and job.cv == 5
     (tmp_path / "bad.yaml").write_text("jobs:\n  - {model: m.urdf, out: o}\n")
     with pytest.raises(InputError, match=r"bad.yaml: job 1 .*no 'log'"):
@@ -177,15 +202,37 @@ def test_drift_z_and_gauge_check(tmp_path):
     The comparison in one gauge is tested in test_batch_drift.py."""
     from closedloop.fleet.batch import BatchJob, drift
 
-    jobs = [BatchJob(f"d{i}", Path("m"), Path("l"), tmp_path / f"d{i}", robot="r", date=f"2026-0{i + 1}-01")
-            for i in range(3)]
+    jobs = [
+        BatchJob(f"d{i}", Path("m"), Path("l"), tmp_path / f"d{i}", robot="r", date=f"2026-0{i + 1}-01")
+        for i in range(3)
+    ]
     ok = {"status": "ok"}
-    res = {"d0": {"row": ok, "parameters": {"j.x": [1.0, 0.3, "placement"], "j.offset": [0.0, 0.1, "offset"],
-                                            "fix.x": [5.0, 0.1, "loop"]}},
-           "d1": {"row": ok, "parameters": {"j.x": [1.4, 0.4, "placement"], "j.offset": [0.45, 0.1, "offset"],
-                                            "fix.x": [9.0, 0.1, "loop"]}},
-           "d2": {"row": ok, "parameters": {"j.y": [0.0, 0.1, "placement"], "j.offset": [0.35, 0.1, "offset"],
-                                            "fix.x": [9.0, 0.1, "loop"]}}}
+    res = {
+        "d0": {
+            "row": ok,
+            "parameters": {
+                "j.x": [1.0, 0.3, "placement"],
+                "j.offset": [0.0, 0.1, "offset"],
+                "fix.x": [5.0, 0.1, "loop"],
+            },
+        },
+        "d1": {
+            "row": ok,
+            "parameters": {
+                "j.x": [1.4, 0.4, "placement"],
+                "j.offset": [0.45, 0.1, "offset"],
+                "fix.x": [9.0, 0.1, "loop"],
+            },
+        },
+        "d2": {
+            "row": ok,
+            "parameters": {
+                "j.y": [0.0, 0.1, "placement"],
+                "j.offset": [0.35, 0.1, "offset"],
+                "fix.x": [9.0, 0.1, "loop"],
+            },
+        },
+    }
     d = drift(list(reversed(jobs)), res)  # ordered by date, not by manifest
     by = {(x.after, x.parameter): x for x in d}
     assert set(by) == {("d1", "j.x"), ("d1", "j.offset"), ("d2", "*")}  # loop parameters left out

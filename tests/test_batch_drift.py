@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, calibrate
-from closedloop.fleet.drift import compare, gauge_record, in_gauge_of
 from closedloop.calibration import build_problem
-from closedloop.studies.montecarlo import weld_scenario
+from closedloop.fleet.drift import compare, gauge_record, in_gauge_of
 from closedloop.model.parameters import parse_fix
+from closedloop.studies.montecarlo import weld_scenario
 
 NOISE = 1e-5  # a good encoder: the standard errors are small beside a gauge change
 JOINT = "panda_joint4"
@@ -42,7 +42,12 @@ def calibrated(sc, offset_drift: float, seed: int, fix: str | list[str] | None) 
     th += rng.normal(0.0, NOISE, th.shape)
     lg = sc.log(th)
     names = build_problem(sc.robot, lg, sc.loops).names
-    res = calibrate(sc.robot, lg, sc.loops, CalibrationOptions(noise=NOISE, fix=parse_fix([fix] if isinstance(fix, str) else fix or [], names)))
+    res = calibrate(
+        sc.robot,
+        lg,
+        sc.loops,
+        CalibrationOptions(noise=NOISE, fix=parse_fix([fix] if isinstance(fix, str) else fix or [], names)),
+    )
     assert res.converged
     return gauge_record(res)
 
@@ -55,8 +60,11 @@ def naive_max_z(a: dict, b: dict) -> float:
     """Plain differences of the parameters both estimated, ignoring the gauge (what not to do)."""
     ia, ib = {g: i for i, g in enumerate(a["estimated"])}, {g: i for i, g in enumerate(b["estimated"])}
     ca, cb = np.asarray(a["covariance"]), np.asarray(b["covariance"])
-    z = [(b["values"][k] - a["values"][k]) / np.sqrt(ca[ia[k], ia[k]] + cb[ib[k], ib[k]])
-         for k in ia if k in ib and a["kinds"][k] != "loop"]
+    z = [
+        (b["values"][k] - a["values"][k]) / np.sqrt(ca[ia[k], ia[k]] + cb[ib[k], ib[k]])
+        for k in ia
+        if k in ib and a["kinds"][k] != "loop"
+    ]
     return float(np.max(np.abs(z)))
 
 

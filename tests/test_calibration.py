@@ -5,24 +5,26 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import yaml
+from support import closed_chain, dh_transform, geodesic
 
 from closedloop.calibration import CalibrationOptions, calibrate
-from closedloop.io.logs import JointLog
 from closedloop.errors import NotIdentifiableError
+from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
-from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.model.robot import RobotModel
+from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.studies.synthetic import self_motion
-
-from support import closed_chain, dh_transform, geodesic
 
 
 def compare(res, ds):
     """Max error over estimated robot parameters, closure translation and rotation (geodesic)."""
     truth = ds.truth_dict()
-    robot_err = max(abs(res.value(n) - truth[n]) for n, s in zip(res.names, res.status)
-                    if s == "estimated" and not n.startswith("fixture."))
+    robot_err = max(
+        abs(res.value(n) - truth[n])
+        for n, s in zip(res.names, res.status)
+        if s == "estimated" and not n.startswith("fixture.")
+    )
     t_err = max(abs(res.value(f"fixture.{a}") - truth[f"fixture.{a}"]) for a in "xyz")
     r_err = geodesic([res.value(f"fixture.r{a}") for a in "xyz"], [truth[f"fixture.r{a}"] for a in "xyz"])
     return robot_err, t_err, r_err
@@ -51,20 +53,28 @@ def test_panda_weld_noisy(panda, panda_weld):
     assert res.converged
     assert res.sigma_estimated and abs(res.sigma / 1e-4 - 1.0) < 0.15
     truth = panda_weld.truth_dict()
-    z = [abs(res.value(n) - truth[n]) / res.std[k] for k, (n, s) in enumerate(zip(res.names, res.status))
-         if s == "estimated" and not n.startswith("fixture.r")]
+    z = [
+        abs(res.value(n) - truth[n]) / res.std[k]
+        for k, (n, s) in enumerate(zip(res.names, res.status))
+        if s == "estimated" and not n.startswith("fixture.r")
+    ]
     assert len(z) == len(res.estimated) - 3
     assert max(z) < 3.0, max(z)
     # The same with the noise given: chi-square consistent with the model.
-    res2 = calibrate(panda, JointLog(panda_weld.joints, noisy), [WeldLoop("fixture", "panda_hand")],
-                     CalibrationOptions(noise=1e-4))
+    res2 = calibrate(
+        panda, JointLog(panda_weld.joints, noisy), [WeldLoop("fixture", "panda_hand")], CalibrationOptions(noise=1e-4)
+    )
     assert abs(res2.chi2 / res2.dof - 1.0) < 0.1
 
 
 def test_reduction_names_what_absorbed_what(panda, panda_weld):
     """Over-parameterised requests are reduced and the report says what absorbed each dropped parameter."""
-    res = calibrate(panda, panda_weld.log(), [WeldLoop("fixture", "panda_hand")],
-                    CalibrationOptions(identify=["placement", "offset", "scale", "loop"]))
+    res = calibrate(
+        panda,
+        panda_weld.log(),
+        [WeldLoop("fixture", "panda_hand")],
+        CalibrationOptions(identify=["placement", "offset", "scale", "loop"]),
+    )
     dropped = {d.name: d for d in res.dropped}
     # rz of a z-axis joint is its offset (thesis: 4 of 6 placement components per joint)
     assert "panda_joint3.rz" in dropped
@@ -81,8 +91,9 @@ def test_reduction_names_what_absorbed_what(panda, panda_weld):
 
 
 def test_user_fixed_length_replaces_default(panda, panda_weld):
-    res = calibrate(panda, panda_weld.log(), [WeldLoop("fixture", "panda_hand")],
-                    CalibrationOptions(fix={"panda_joint4.x": None}))
+    res = calibrate(
+        panda, panda_weld.log(), [WeldLoop("fixture", "panda_hand")], CalibrationOptions(fix={"panda_joint4.x": None})
+    )
     assert not any("length scale" in n for n in res.notes)
     assert res.status[res.names.index("panda_joint4.x")] == "fixed"
 
@@ -90,8 +101,12 @@ def test_user_fixed_length_replaces_default(panda, panda_weld):
 def test_joint_that_never_moves_is_reported(panda, panda_weld):
     th = panda_weld.readings.copy()
     th[:, 3] = th[0, 3]
-    res = calibrate(panda, JointLog(panda_weld.joints, th), [WeldLoop("fixture", "panda_hand")],
-                    CalibrationOptions(identify=["placement", "offset", "scale", "loop"]))
+    res = calibrate(
+        panda,
+        JointLog(panda_weld.joints, th),
+        [WeldLoop("fixture", "panda_hand")],
+        CalibrationOptions(identify=["placement", "offset", "scale", "loop"]),
+    )
     assert any("panda_joint4 never moves" in n for n in res.notes)
     assert res.status[res.names.index("panda_joint4.scale")] in ("dropped", "fixed")
     with pytest.raises(NotIdentifiableError):
@@ -107,23 +122,34 @@ def test_dh_closed_chain_from_rough_guess(tmp_path):
         T = T @ dh_transform(t, s, a, al)
     assert np.abs(T - np.eye(4)).max() < 1e-12  # the independent model closes
     offs = rng.uniform(-0.2, 0.2, 7)
-    joints = [{"name": f"j{i + 1}", "s": s, "a": a, "alpha": al, "theta_off": float(o), "lower": -10, "upper": 10}
-              for i, ((s, a, al), o) in enumerate(zip(rows, offs))]
+    joints = [
+        {"name": f"j{i + 1}", "s": s, "a": a, "alpha": al, "theta_off": float(o), "lower": -10, "upper": 10}
+        for i, ((s, a, al), o) in enumerate(zip(rows, offs))
+    ]
     true_path = tmp_path / "true.yaml"
     true_path.write_text(yaml.safe_dump({"name": "c7", "closes": True, "joints": joints}))
     truth_robot = RobotModel.from_file(true_path)
-    prob = CalibrationProblem(truth_robot, truth_robot.joint_names,
-                              [LoopBlock(default_loops(truth_robot)[0], theta[None], np.arange(1))])
+    prob = CalibrationProblem(
+        truth_robot, truth_robot.joint_names, [LoopBlock(default_loops(truth_robot)[0], theta[None], np.arange(1))]
+    )
     readings = self_motion(prob, prob.nominal, (theta - offs)[None], 100, rng, step=0.05)
-    guess = [{**j, "s": j["s"] + float(rng.uniform(-.1, .1)), "a": j["a"] + float(rng.uniform(-.1, .1)),
-              "alpha": j["alpha"] + float(rng.uniform(-.3, .3)),
-              "theta_off": j["theta_off"] + float(rng.uniform(-.3, .3))} for j in joints]
+    guess = [
+        {
+            **j,
+            "s": j["s"] + float(rng.uniform(-0.1, 0.1)),
+            "a": j["a"] + float(rng.uniform(-0.1, 0.1)),
+            "alpha": j["alpha"] + float(rng.uniform(-0.3, 0.3)),
+            "theta_off": j["theta_off"] + float(rng.uniform(-0.3, 0.3)),
+        }
+        for j in joints
+    ]
     guess[0]["s"] = joints[0]["s"]  # the one known length
     guess_path = tmp_path / "guess.yaml"
     guess_path.write_text(yaml.safe_dump({"name": "c7", "closes": True, "joints": guess}))
     robot = RobotModel.from_file(guess_path)
-    res = calibrate(robot, JointLog(robot.joint_names, readings), default_loops(robot),
-                    CalibrationOptions(fix={"j1.s": None}))
+    res = calibrate(
+        robot, JointLog(robot.joint_names, readings), default_loops(robot), CalibrationOptions(fix={"j1.s": None})
+    )
     assert res.converged and not res.weak
     assert len(res.estimated) == 27  # 4 per joint, one length fixed
     err = max(abs(res.values[k] - prob.nominal[k]) for k in res.estimated)

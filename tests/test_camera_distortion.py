@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from camera_head_support import FRAMES, MARKER, head_robot
 
-from closedloop.io.camera_info import CameraInfo, read_camera_info, write_camera_info
 from closedloop.errors import InputError, LoopError
+from closedloop.io.camera_info import CameraInfo, read_camera_info, write_camera_info
 from closedloop.loops.camera.loop import CameraLoop
 from closedloop.loops.camera.model import distort, image_ray, project_lens, undistort
 from closedloop.loops.spec import parse_loop
-from camera_head_support import FRAMES, MARKER, head_robot
 
 D_TRUE = [np.array([-0.21, 0.08, 0.0012, -0.0008, -0.015]), np.array([0.12, -0.05, -0.0006, 0.0010, 0.01])]
 
@@ -33,9 +33,11 @@ def test_projection_and_undistortion_jacobians():
     d = D_TRUE[0]
     uv, Jp, Jk, Jd = project_lens(pc, k, d)
     for i in range(5):
-        for J, f, x in ((Jp[i], lambda v: project_lens(v[None], k, d, False)[0][0], pc[i]),
-                        (Jk[i], lambda v: project_lens(pc[i:i + 1], v, d, False)[0][0], k),
-                        (Jd[i], lambda v: project_lens(pc[i:i + 1], k, v, False)[0][0], d)):
+        for J, f, x in (
+            (Jp[i], lambda v: project_lens(v[None], k, d, False)[0][0], pc[i]),
+            (Jk[i], lambda v: project_lens(pc[i : i + 1], v, d, False)[0][0], k),
+            (Jd[i], lambda v: project_lens(pc[i : i + 1], k, v, False)[0][0], d),
+        ):
             Jn = _fd(f, x.copy())
             assert np.abs(J - Jn).max() <= 1e-6 * max(np.abs(J).max(), 1.0)
     xn, yn = pc[:, 0] / pc[:, 2], pc[:, 1] / pc[:, 2]
@@ -45,9 +47,11 @@ def test_projection_and_undistortion_jacobians():
     ray, Ru, Rk, Rd = image_ray(uv, k, d)
     assert np.allclose(ray[:, :2], np.column_stack([xn, yn]), atol=1e-13)
     for i in range(5):
-        for J, f, x in ((Ru[i], lambda v: image_ray(v[None], k, d)[0][0], uv[i]),
-                        (Rk[i], lambda v: image_ray(uv[i:i + 1], v, d)[0][0], k),
-                        (Rd[i], lambda v: image_ray(uv[i:i + 1], k, v)[0][0], d)):
+        for J, f, x in (
+            (Ru[i], lambda v: image_ray(v[None], k, d)[0][0], uv[i]),
+            (Rk[i], lambda v: image_ray(uv[i : i + 1], v, d)[0][0], k),
+            (Rd[i], lambda v: image_ray(uv[i : i + 1], k, v)[0][0], d),
+        ):
             Jn = _fd(f, x.copy(), h=1e-6)
             assert np.abs(J - Jn).max() <= 1e-6 * max(np.abs(J).max(), 1.0)
 
@@ -55,7 +59,7 @@ def test_projection_and_undistortion_jacobians():
 def test_distortion_recovered_noise_free():
     """A world camera with a distorted lens (k1 k2 p1 p2 k3, intrinsics, pose unknown) watching the UR5's
     marker: every estimated parameter, the five coefficients included, recovered to 1e-8 from exact pixels."""
-    from test_loops_camera import TIP, UR5, X1, K1, estimated_errors, robot_of, ur5_readings, vec_of
+    from test_loops_camera import K1, TIP, UR5, X1, estimated_errors, robot_of, ur5_readings, vec_of
 
     from closedloop.calibration import CalibrationOptions, build_problem, calibrate
     from closedloop.io.logs import JointLog
@@ -73,8 +77,9 @@ def test_distortion_recovered_noise_free():
         uv = truth_loop.residual_frames(prob.loop_frame_poses(values, 0, th), np.zeros(0), zero_px)
         return {c: uv[:, k].copy() for k, c in enumerate(truth_loop.columns())}
 
-    prob = build_problem(robot, JointLog(joints, th, None, None, {c: np.zeros(len(th)) for c in make().columns()}),
-                         [make()])
+    prob = build_problem(
+        robot, JointLog(joints, th, None, None, {c: np.zeros(len(th)) for c in make().columns()}), [make()]
+    )
     res0 = calibrate(robot, JointLog(joints, th, None, None, pixels(prob, prob.nominal)), [make()], opt)
     names = [n for n, s in zip(res0.names, res0.status) if s == "estimated" and not n.startswith("cam.")]
     truth = prob.nominal.copy()
@@ -103,17 +108,24 @@ def test_camera_info_round_trip_and_spec(tmp_path):
     (tmp_path / "cv.yaml").write_text(
         "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n   rows: 3\n"
         "   cols: 3\n   dt: d\n   data: [ 500., 0., 320., 0., 505., 240., 0., 0., 1. ]\n"
-        "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 4\n   dt: d\n   data: [ -0.1, 0.01, 0., 0. ]\n")
+        "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 4\n   dt: d\n   data: [ -0.1, 0.01, 0., 0. ]\n"
+    )
     cv = read_camera_info(tmp_path / "cv.yaml")
     assert np.array_equal(cv.K, [500, 505, 320, 240]) and np.array_equal(cv.D, [-0.1, 0.01, 0, 0, 0])
-    (tmp_path / "ros2.yaml").write_text("width: 640\nheight: 480\nk: [400, 0, 300, 0, 401, 200, 0, 0, 1]\n"
-                                        "d: [0.1, 0, 0, 0, 0]\ndistortion_model: plumb_bob\n")
+    (tmp_path / "ros2.yaml").write_text(
+        "width: 640\nheight: 480\nk: [400, 0, 300, 0, 401, 200, 0, 0, 1]\n"
+        "d: [0.1, 0, 0, 0, 0]\ndistortion_model: plumb_bob\n"
+    )
     assert np.array_equal(read_camera_info(tmp_path / "ros2.yaml").K, [400, 401, 300, 200])
     robot = head_robot()
     lp = parse_loop(f"camera:frame=tool0,to={'+'.join(FRAMES)},info1={tmp_path / 'left.yaml'},dist=k1+k2", robot)
     assert np.array_equal(lp.K[0], info.K) and lp.K[1] is None and np.array_equal(lp.D[0], info.D)
     assert [p.name for p in lp.parameters() if p.field.endswith(("k1", "k2"))] == [
-        "camera.cam1.k1", "camera.cam1.k2", "camera.cam2.k1", "camera.cam2.k2"]
+        "camera.cam1.k1",
+        "camera.cam1.k2",
+        "camera.cam2.k1",
+        "camera.cam2.k2",
+    ]
     (tmp_path / "bad.yaml").write_text("camera_matrix: {rows: 3, cols: 3, data: [1, 2, 3]}\n")
     with pytest.raises(InputError, match="bad.yaml.*9"):
         read_camera_info(tmp_path / "bad.yaml")

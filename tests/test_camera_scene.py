@@ -13,12 +13,12 @@ import pytest
 
 from closedloop.calibration import CalibrationOptions, calibrate
 from closedloop.io.camera_info import read_camera_info
-from closedloop.validation.check import check_report
 from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
-from closedloop.output.report import build_report
 from closedloop.model.robot import RobotModel
+from closedloop.output.report import build_report
 from closedloop.sims import camera_scene as cs
+from closedloop.validation.check import check_report
 
 
 @pytest.fixture(scope="module")
@@ -93,8 +93,12 @@ def test_scenario_passes_check(dataset):
     robot = RobotModel.from_file(out / "nominal.urdf")
     log = read_log(out / "log.csv", robot.joint_names)
     truth = json.loads((out / "truth.json").read_text())
-    res = calibrate(robot, log, [parse_loop(cs.CALIBRATE_LOOP, robot)],
-                    CalibrationOptions(noise=truth["noise"]["sigma_q"], robust=None))
+    res = calibrate(
+        robot,
+        log,
+        [parse_loop(cs.CALIBRATE_LOOP, robot)],
+        CalibrationOptions(noise=truth["noise"]["sigma_q"], robust=None),
+    )
     rows, ok = check_report(truth, build_report(res), tol_scale=5e-3, **cs.CHECK_TOLERANCES)
     bad = [r for r in rows if r["result"] == "FAIL"]
     assert ok, bad

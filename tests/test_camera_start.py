@@ -32,15 +32,21 @@ def board_point_loop(robot: RobotModel, seed: int, n: int = 30):
     th = Q_DOWN + rng.uniform(-0.35, 0.35, (8 * n, 6))
     joints = robot.supporting_joints("tool0")
     zeros = np.zeros(len(th))
-    probe = build_problem(robot, JointLog(joints, th, None, None, {"b:u1": zeros, "b:v1": zeros}),
-                          [CameraLoop("b", "universe", "tool0", K=[K])])
+    probe = build_problem(
+        robot,
+        JointLog(joints, th, None, None, {"b:u1": zeros, "b:v1": zeros}),
+        [CameraLoop("b", "universe", "tool0", K=[K])],
+    )
     Tc = probe.loop_frame_poses(probe.nominal, 0)[1] @ X.homogeneous
     pc = np.einsum("nji,nj->ni", Tc[:, :3, :3], P - Tc[:, :3, 3])
     uv = K[:2] * pc[:, :2] / pc[:, 2:] + K[2:]
     keep = np.flatnonzero((pc[:, 2] > 0.15) & np.all((uv > 0) & (uv < [640, 480]), axis=1))[:n]
     assert keep.size == n
-    prob = build_problem(robot, JointLog(joints, th[keep], None, None, {"b:u1": uv[keep, 0], "b:v1": uv[keep, 1]}),
-                         [CameraLoop("b", "universe", "tool0", K=[K])])
+    prob = build_problem(
+        robot,
+        JointLog(joints, th[keep], None, None, {"b:u1": uv[keep, 0], "b:v1": uv[keep, 1]}),
+        [CameraLoop("b", "universe", "tool0", K=[K])],
+    )
     return prob.blocks[0].loop, prob.loop_frame_poses(prob.nominal, 0), P, prob.blocks[0].meas
 
 

@@ -28,9 +28,15 @@ def _rig(seed: int = 1, n: int = 20):
     truth = np.concatenate([rng.normal(0, 0.5, 4), [0.4, 0.1], rng.normal(0, 0.3, 3)])
     H, G = lp.hinge(truth), lp.grasp(truth)
     TB = np.array([pin.SE3.Random().homogeneous for _ in range(n)])
-    TA = np.array([tb @ (H * pin.SE3(pin.exp3(np.array([0.0, 0.0, a])), np.zeros(3)) * G
-                         * pin.exp6(rng.normal(0, 0.01, 6))).homogeneous
-                   for tb, a in zip(TB, rng.uniform(-3.0, 3.0, n))])
+    TA = np.array(
+        [
+            tb
+            @ (
+                H * pin.SE3(pin.exp3(np.array([0.0, 0.0, a])), np.zeros(3)) * G * pin.exp6(rng.normal(0, 0.01, 6))
+            ).homogeneous
+            for tb, a in zip(TB, rng.uniform(-3.0, 3.0, n))
+        ]
+    )
     return lp, truth, TA, TB, rng
 
 
@@ -64,17 +70,18 @@ def test_solver_returns_the_problem_chart(tmp_path):
     import thesis_examples as te
 
     from closedloop import RobotModel, read_log
-    from closedloop.calibration import build_problem
     from closedloop.analysis.selection import initial_values
+    from closedloop.calibration import build_problem
+    from closedloop.estimate.lm import SolverOptions, levenberg_marquardt
     from closedloop.estimate.stages import ResidualFunction, unweighted_closure
     from closedloop.loops.spec import parse_loop
-    from closedloop.estimate.lm import SolverOptions, levenberg_marquardt
 
     ex = te.door()
     robot = RobotModel.from_file(te.write_table(ex, ex.rows, tmp_path / "door.yaml"))
     log = tmp_path / "door.csv"
-    log.write_text(",".join(ex.joints) + "\n" + "\n".join(",".join(repr(float(v)) for v in r)
-                                                          for r in ex.readings) + "\n")
+    log.write_text(
+        ",".join(ex.joints) + "\n" + "\n".join(",".join(repr(float(v)) for v in r) for r in ex.readings) + "\n"
+    )
     problem = build_problem(robot, read_log(log, robot.joint_names), [parse_loop(ex.loop_specs[0], robot)], None)
     x0 = initial_values(problem, {})
     est = [int(k) for k in problem.loop_columns[0]]

@@ -43,8 +43,11 @@ def datasets(tmp_path_factory):
         d = tmp_path_factory.mktemp(f"g{int(gravity)}")
         simulate("panda_weld", 200, 1, d, gravity=gravity, compliance=C)
         robot = RobotModel.from_file(d / "nominal.urdf")
-        out[gravity] = (robot, read_log(d / "log.csv", robot.joint_names),
-                        json.loads((d / "truth.json").read_text())["parameters"])
+        out[gravity] = (
+            robot,
+            read_log(d / "log.csv", robot.joint_names),
+            json.loads((d / "truth.json").read_text())["parameters"],
+        )
     return out
 
 
@@ -73,10 +76,14 @@ def test_compliance_model_removes_gravity_bias(datasets):
 
 
 def test_compliance_needs_torques(datasets):
-    from closedloop.io.logs import JointLog
     from closedloop.errors import LogError
+    from closedloop.io.logs import JointLog
 
     robot, log, _ = datasets[True]
     with pytest.raises(LogError, match="tau:<joint>"):
-        calibrate(robot, JointLog(log.joints, log.angles), [WeldLoop("fixture", "panda_hand_tcp")],
-                  CalibrationOptions(identify=["placement", "offset", "compliance", "loop"]))
+        calibrate(
+            robot,
+            JointLog(log.joints, log.angles),
+            [WeldLoop("fixture", "panda_hand_tcp")],
+            CalibrationOptions(identify=["placement", "offset", "compliance", "loop"]),
+        )

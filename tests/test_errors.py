@@ -10,8 +10,8 @@ from closedloop.cli.main import main
 
 
 def test_tree_and_builtin_compatibility(tmp_path):
-    from closedloop.models import nominal_urdf
     from closedloop.estimate.robust import default_c
+    from closedloop.models import nominal_urdf
     from closedloop.sims import simulate
 
     with pytest.raises(errors.UnknownScenarioError) as info:
@@ -30,14 +30,20 @@ def test_tree_and_builtin_compatibility(tmp_path):
     assert isinstance(info.value, ValueError)
     for cls in (errors.NotIdentifiableError, errors.ConvergenceError):
         assert issubclass(cls, errors.CalibrationError) and not issubclass(cls, errors.InputError)
-    assert issubclass(errors.SimulationError, RuntimeError) and issubclass(errors.SimulationError,
-                                                                           errors.ClosedLoopError)
+    assert issubclass(errors.SimulationError, RuntimeError) and issubclass(
+        errors.SimulationError, errors.ClosedLoopError
+    )
 
 
-@pytest.mark.parametrize("exc, code", [(errors.NotIdentifiableError("nothing moves"), 3),
-                                       (errors.ConvergenceError("no convergence in 3 iterations"), 3),
-                                       (errors.ScenarioError("bad scenario"), 2),
-                                       (errors.SimulationError("the hand does not close"), 2)])
+@pytest.mark.parametrize(
+    "exc, code",
+    [
+        (errors.NotIdentifiableError("nothing moves"), 3),
+        (errors.ConvergenceError("no convergence in 3 iterations"), 3),
+        (errors.ScenarioError("bad scenario"), 2),
+        (errors.SimulationError("the hand does not close"), 2),
+    ],
+)
 def test_cli_exit_codes(monkeypatch, capsys, exc, code):
     import closedloop.cli.main as cli
 

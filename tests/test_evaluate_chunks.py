@@ -5,15 +5,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_loop_state import Q0, SPECS
 
 import closedloop.problem.problem as problem_module
 from closedloop import RobotModel
+from closedloop.analysis.selection import initial_values
 from closedloop.calibration import build_problem
 from closedloop.io.logs import JointLog
 from closedloop.loops.spec import parse_loop
 from closedloop.models import ROBOTS
-from closedloop.analysis.selection import initial_values
-from test_loop_state import Q0, SPECS
 
 
 @pytest.mark.parametrize("kind", sorted(SPECS))
@@ -27,11 +27,17 @@ def test_chunked_evaluation_is_the_whole(kind, monkeypatch):
     log = JointLog(joints, th, None, None, extra) if extra else JointLog(joints, th)
     problem = build_problem(panda, log, [lp])
     x = initial_values(problem, {}) + rng.normal(0.0, 1e-3, len(problem.params))
-    whole = [problem._evaluate(x, True, None, None), problem._evaluate(x, False, None, None),
-             problem._evaluate(x, True, None, [])]
+    whole = [
+        problem._evaluate(x, True, None, None),
+        problem._evaluate(x, False, None, None),
+        problem._evaluate(x, True, None, []),
+    ]
     monkeypatch.setattr(problem_module, "CHUNK", 5)  # 23 configurations: chunks of 5, 5, 5, 5, 3
-    chunked = [problem._evaluate(x, True, None, None), problem._evaluate(x, False, None, None),
-               problem._evaluate(x, True, None, [])]
+    chunked = [
+        problem._evaluate(x, True, None, None),
+        problem._evaluate(x, False, None, None),
+        problem._evaluate(x, True, None, []),
+    ]
     for a_list, b_list in zip(whole, chunked):
         for a, b in zip(a_list, b_list):
             for name in ("r", "J", "Jq", "valid", "cov", "rows"):
@@ -52,8 +58,9 @@ def test_structure_on_a_sample_is_the_whole(monkeypatch):
 
     panda = RobotModel.from_file(ROBOTS["panda"].path)
     rng = np.random.default_rng(3)
-    ds = make_dataset(panda, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 700, rng,
-                      stride=1)
+    ds = make_dataset(
+        panda, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 700, rng, stride=1
+    )
     log = JointLog(ds.joints, ds.readings + rng.normal(0.0, 1e-5, ds.readings.shape))
     out = {}
     for rows, bounds in ((10_000, (10_000, 10_000)), (ident.STRUCTURE_ROWS, ident.STRUCTURE_CONFIGS), (1, (64, 64))):
@@ -72,8 +79,9 @@ def _weld_problem(seed: int, n: int):
     panda = RobotModel.from_file(ROBOTS["panda"].path)
     rng = np.random.default_rng(seed)
     th = Q0 + rng.normal(0.0, 0.05, (n, 7))
-    problem = build_problem(panda, JointLog([f"panda_joint{i}" for i in range(1, 8)], th),
-                            [parse_loop(SPECS["weld"], panda)])
+    problem = build_problem(
+        panda, JointLog([f"panda_joint{i}" for i in range(1, 8)], th), [parse_loop(SPECS["weld"], panda)]
+    )
     return problem, initial_values(problem, {}) + rng.normal(0.0, 1e-3, len(problem.params))
 
 

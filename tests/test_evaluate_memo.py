@@ -19,8 +19,9 @@ from closedloop.studies.truth import make_dataset
 @pytest.fixture(scope="module")
 def problem():
     robot = RobotModel.from_file(ROBOTS["panda"].path)
-    ds = make_dataset(robot, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 20,
-                      np.random.default_rng(0))
+    ds = make_dataset(
+        robot, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 20, np.random.default_rng(0)
+    )
     return ds.problem, ds.truth
 
 
@@ -58,4 +59,3 @@ def test_memo_misses_what_differs(problem):
     moved = copy.copy(prob)  # a copy with other loops (a re-charted problem) shares no result
     moved.blocks = [replace(b, loop=WeldLoop("fixture", "panda_link7")) for b in prob.blocks]
     assert not np.array_equal(moved.evaluate(x, False)[0].r, prob.evaluate(x, False)[0].r)
-

@@ -64,8 +64,10 @@ def scenario():
 def test_seeds_per_job_not_per_worker(cluster, local):
     """SeedSequence(seed).spawn(n)[i] drives job i: identical on 1 process, 2 workers, 2 Ray CPUs."""
     serial = ex.run(noisy_sum, range(12), "serial", shared=(10.0,), seed=7)
-    expect = [10.0 * i + np.random.default_rng(s).normal(size=1000).sum()
-              for i, s in enumerate(np.random.SeedSequence(7).spawn(12))]
+    expect = [
+        10.0 * i + np.random.default_rng(s).normal(size=1000).sum()
+        for i, s in enumerate(np.random.SeedSequence(7).spawn(12))
+    ]
     assert serial == expect
     assert ex.run(noisy_sum, range(12), local, shared=(10.0,), seed=7) == serial
     assert ex.run(noisy_sum, range(12), "ray", shared=(10.0,), seed=7) == serial
@@ -98,8 +100,10 @@ def test_studies_identical_on_every_engine(cluster, local, scenario):
     """Monte Carlo draws and k-fold refits: bit-identical on serial, local pool and Ray."""
     sc = scenario
     opts = CalibrationOptions(noise=1e-4, fix={"panda_joint4.x": None})  # one length sets the scale (thesis 3.3)
-    mc = {e: monte_carlo(sc, 1e-4, 4, seed=1, weightings=("noise",), options=opts, executor=e)
-          for e in ("serial", local, "ray")}
+    mc = {
+        e: monte_carlo(sc, 1e-4, 4, seed=1, weightings=("noise",), options=opts, executor=e)
+        for e in ("serial", local, "ray")
+    }
     ref = mc["serial"]
     assert ref.stats["noise"].estimates.shape == (4, len(ref.names))
     for e, m in mc.items():
@@ -138,15 +142,18 @@ def test_pose_pools_identical_on_every_engine(cluster, local):
     for e in (local, "ray"):
         assert [s.indices.tolist() for s in sels[e]] == [s.indices.tolist() for s in sels["serial"]], e
         assert [s.trace for s in sels[e]] == [s.trace for s in sels["serial"]], e
-        assert np.array_equal(rnd[e].indices, rnd["serial"].indices) and np.array_equal(rnd[e].traces,
-                                                                                        rnd["serial"].traces), e
+        assert np.array_equal(rnd[e].indices, rnd["serial"].indices) and np.array_equal(
+            rnd[e].traces, rnd["serial"].traces
+        ), e
     assert rnd["serial"].indices.shape == (60, 12) and len(np.unique(rnd["serial"].indices[0])) == 12
     assert not np.array_equal(random_designs(B, 12, draws=60, seed=4, chunk=20).indices, rnd["serial"].indices)
     for p, s in zip(pools, sels["serial"]):
         Bp, _ = pool_blocks(res, None, p)
         r = random_designs(Bp, 12, draws=60, seed=3, chunk=20)
         assert len(set(s.indices.tolist())) == 12
-        assert trace_covariance(Bp, s.indices) < 0.9 * r.traces.min() and r.median > 2.5 * trace_covariance(Bp, s.indices)
+        assert trace_covariance(Bp, s.indices) < 0.9 * r.traces.min() and r.median > 2.5 * trace_covariance(
+            Bp, s.indices
+        )
 
 
 def test_impedance_bootstrap_chunks_identical_on_every_engine(cluster, local):
@@ -159,8 +166,9 @@ def test_impedance_bootstrap_chunks_identical_on_every_engine(cluster, local):
 
     sim = simulate(ExperimentConfig(n_cycles=60, noise=0.05, seed=21))
     ens = segment(sim.record, onsets_from_events(sim.record))
-    bands = {e: bootstrap(ens, EstimateOptions(), n_boot=40, seed=1, chunk=10, executor=e)
-             for e in ("serial", local, "ray")}
+    bands = {
+        e: bootstrap(ens, EstimateOptions(), n_boot=40, seed=1, chunk=10, executor=e) for e in ("serial", local, "ray")
+    }
     for e in (local, "ray"):
         for k in ("I", "B", "K", "wn", "zeta"):
             assert np.array_equal(bands[e].lo[k], bands["serial"].lo[k], equal_nan=True), (e, k)
@@ -186,24 +194,34 @@ def test_simulate_sweep_on_every_engine_resumable_failure_isolated(cluster, loca
         name = e if isinstance(e, str) else "local"
         rows[name] = run_sweep(scen, [0, 1], 8, tmp_path / name, engine=e)
         assert [(r.scenario, r.seed, r.status) for r in rows[name]] == [
-            ("panda_weld", 0, "ok"), ("panda_weld", 1, "ok"), ("broken_weld", 0, "failed"), ("broken_weld", 1, "failed")]
+            ("panda_weld", 0, "ok"),
+            ("panda_weld", 1, "ok"),
+            ("broken_weld", 0, "failed"),
+            ("broken_weld", 1, "failed"),
+        ]
         for seed in (0, 1):
             log = (tmp_path / name / "panda_weld" / f"seed_{seed:03d}" / "log.csv").read_bytes()
             assert log == (tmp_path / "serial" / "panda_weld" / f"seed_{seed:03d}" / "log.csv").read_bytes(), e
     assert "no_such_frame" in rows["serial"][2].error
     direct = simulate("panda_weld", 8, 1, tmp_path / "direct")
-    assert (tmp_path / "direct" / "log.csv").read_bytes() == \
-        (tmp_path / "serial" / "panda_weld" / "seed_001" / "log.csv").read_bytes() and len(direct.readings) == 8
+    assert (tmp_path / "direct" / "log.csv").read_bytes() == (
+        tmp_path / "serial" / "panda_weld" / "seed_001" / "log.csv"
+    ).read_bytes() and len(direct.readings) == 8
     # the CLI: one scenario -> OUT/seed_NNN; run again with more seeds: the finished ones are not redone
     out = tmp_path / "cli"
-    assert main(["simulate", "panda_weld", "--seeds", "0-1", "--n", "8", "--jobs", "2", "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(["simulate", "panda_weld", "--seeds", "0-1", "--n", "8", "--jobs", "2", "--out", str(out), "--quiet"]) == 0
+    )
     mtime = (out / "seed_000" / "truth.json").stat().st_mtime_ns
-    assert main(["simulate", "panda_weld", "--seeds", "0-2", "--n", "8", "--jobs", "1", "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(["simulate", "panda_weld", "--seeds", "0-2", "--n", "8", "--jobs", "1", "--out", str(out), "--quiet"]) == 0
+    )
     assert (out / "seed_000" / "truth.json").stat().st_mtime_ns == mtime
     with open(out / "sweep.csv") as fh:
         assert [r.split(",")[2] for r in fh.read().splitlines()[1:]] == ["resumed", "resumed", "ok"]
-    assert (out / "seed_000" / "log.csv").read_bytes() == (tmp_path / "serial" / "panda_weld" / "seed_000" /
-                                                          "log.csv").read_bytes()
+    assert (out / "seed_000" / "log.csv").read_bytes() == (
+        tmp_path / "serial" / "panda_weld" / "seed_000" / "log.csv"
+    ).read_bytes()
     assert (out / "seed_002" / "log.csv").read_bytes() != (out / "seed_000" / "log.csv").read_bytes()
     assert parse_seeds("0-3,7,2") == [0, 1, 2, 3, 7]
     with pytest.raises(InputError, match="runs backwards"):
@@ -215,8 +233,23 @@ def test_simulate_without_seeds_is_one_dataset(tmp_path, capsys):
     --jobs without --seeds is a one-line input error."""
     from closedloop.cli.main import main
 
-    assert main(["simulate", "--scenario", "panda_weld", "--n", "5", "--seed", "3", "--out", str(tmp_path / "one"),
-                 "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--scenario",
+                "panda_weld",
+                "--n",
+                "5",
+                "--seed",
+                "3",
+                "--out",
+                str(tmp_path / "one"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert (tmp_path / "one" / "truth.json").exists() and not (tmp_path / "one" / "seed_003").exists()
     capsys.readouterr()
     assert main(["simulate", "panda_weld", "--jobs", "2", "--out", str(tmp_path / "two")]) == 2
@@ -249,9 +282,32 @@ def test_sweep_refuses_to_overwrite_another_dataset(tmp_path):
     out = str(tmp_path / "s")
     assert main(["simulate", "panda_weld", "--seeds", "0", "--n", "5", "--jobs", "1", "--out", out, "--quiet"]) == 0
     assert main(["simulate", "panda_weld", "--seeds", "0", "--n", "6", "--jobs", "1", "--out", out, "--quiet"]) == 2
-    assert main(["simulate", "panda_weld", "--seeds", "0", "--n", "5", "--set", "kp=90", "--jobs", "1", "--out", out,
-                 "--quiet"]) == 2
-    assert main(["simulate", "panda_weld", "--seeds", "0", "--n", "6", "--jobs", "1", "--out", out, "--quiet",
-                 "--replace"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "panda_weld",
+                "--seeds",
+                "0",
+                "--n",
+                "5",
+                "--set",
+                "kp=90",
+                "--jobs",
+                "1",
+                "--out",
+                out,
+                "--quiet",
+            ]
+        )
+        == 2
+    )
+    assert (
+        main(
+            ["simulate", "panda_weld", "--seeds", "0", "--n", "6", "--jobs", "1", "--out", out, "--quiet", "--replace"]
+        )
+        == 0
+    )
     import json
+
     assert json.loads((tmp_path / "s" / "seed_000" / "truth.json").read_text())["samples"]["recorded"] == 6

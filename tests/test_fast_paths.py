@@ -8,17 +8,18 @@ import pytest
 
 from closedloop.analysis.identifiability import project_to_closure
 from closedloop.estimate.noise import cholesky_inverse, whiten
+from closedloop.estimate.qr import r_factor
 from closedloop.loops import WeldLoop
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
-from closedloop.estimate.qr import r_factor
 
 
 def _problem(panda, frame_b="universe", n=30, tau=False, seed=0):
     rng = np.random.default_rng(seed)
     joints = panda.supporting_joints("panda_hand")
     theta = rng.uniform(-1.0, 1.0, (n, len(joints)))
-    block = LoopBlock(WeldLoop("w", "panda_hand", frame_b), theta, np.arange(n),
-                      rng.normal(0.0, 10.0, theta.shape) if tau else None)
+    block = LoopBlock(
+        WeldLoop("w", "panda_hand", frame_b), theta, np.arange(n), rng.normal(0.0, 10.0, theta.shape) if tau else None
+    )
     prob = CalibrationProblem(panda, joints, [block])
     x = prob.nominal + rng.normal(0.0, 0.02, prob.nominal.size)
     sl = prob.loop_slices[0]
@@ -32,7 +33,7 @@ def test_reading_jacobian_equals_pinocchio_frame_jacobians(panda, frame_b):
     prob, x = _problem(panda, frame_b)
     b = prob.blocks[0]
     ev = prob.evaluate(x, columns=[])[0]
-    state = prob.rp.apply(x[:prob.n_robot])
+    state = prob.rp.apply(x[: prob.n_robot])
     model, data = state.model, state.data
     fa, fb = panda.frame_id("panda_hand"), panda.frame_id(frame_b)
     idx_v = [panda.joint(j).idx_v for j in prob.joints]
@@ -81,8 +82,11 @@ def test_cholesky_whitening_is_the_same_least_squares_problem(panda):
 def test_projection_matches_pseudo_inverse_steps(panda, panda_weld):
     """Closure projection through Cholesky steps lands where the SVD pseudo-inverse steps land."""
     joints = panda_weld.joints
-    prob = CalibrationProblem(panda, joints, [LoopBlock(WeldLoop("fixture", "panda_hand"), panda_weld.readings,
-                                                        np.arange(len(panda_weld.readings)))])
+    prob = CalibrationProblem(
+        panda,
+        joints,
+        [LoopBlock(WeldLoop("fixture", "panda_hand"), panda_weld.readings, np.arange(len(panda_weld.readings)))],
+    )
     x = prob.nominal  # the nominal model: the true robot's configurations miss its closure by millimetres
     x[prob.loop_slices[0]] = prob.blocks[0].loop.initialize(*prob.loop_poses(x, 0))
     ref = prob.blocks[0].theta.copy()
@@ -108,21 +112,24 @@ def test_poses_read_off_the_regressors_are_pinocchio_placements(panda, model):
     as Pinocchio's frame placements, on a serial arm, a finger branch, a D-H end frame and a frame on the base."""
     from pathlib import Path
 
-    from closedloop.models import ROBOTS
     from closedloop.model.robot import RobotModel
+    from closedloop.models import ROBOTS
 
     root = Path(__file__).resolve().parents[1] / "closedloop" / "models"
-    robot = {"panda": panda, "dh_hand": RobotModel.from_file(root / "dh" / "utah_mit_thumb_finger.yaml"),
-             "utah_hand": RobotModel.from_file(ROBOTS["utah_hand"].path)}[model]
+    robot = {
+        "panda": panda,
+        "dh_hand": RobotModel.from_file(root / "dh" / "utah_mit_thumb_finger.yaml"),
+        "utah_hand": RobotModel.from_file(ROBOTS["utah_hand"].path),
+    }[model]
     m = robot.model
-    frames = [f for f in range(1, len(m.frames)) if m.frames[f].parentJoint > 0][-3:] + \
-        [f for f in range(1, len(m.frames)) if m.frames[f].parentJoint == 0][:1]
+    frames = [f for f in range(1, len(m.frames)) if m.frames[f].parentJoint > 0][-3:] + [
+        f for f in range(1, len(m.frames)) if m.frames[f].parentJoint == 0
+    ][:1]
     joints = [n for n in robot.joint_names]
     rng = np.random.default_rng(4)
     theta = rng.uniform(-1.0, 1.0, (25, len(joints)))
-    prob = CalibrationProblem(robot, joints, [LoopBlock(WeldLoop("w", m.frames[frames[0]].name), theta,
-                                                         np.arange(25))])
-    state = prob.rp.apply(prob.nominal[:prob.n_robot] + rng.normal(0.0, 0.01, prob.n_robot))
+    prob = CalibrationProblem(robot, joints, [LoopBlock(WeldLoop("w", m.frames[frames[0]].name), theta, np.arange(25))])
+    state = prob.rp.apply(prob.nominal[: prob.n_robot] + rng.normal(0.0, 0.01, prob.n_robot))
     fast = prob.frame_kinematics(state, theta, frames, True)
     plain = prob.frame_kinematics(state, theta, frames, False)
     q = robot.configurations(prob.model_angles(state, theta, None), joints)
@@ -141,6 +148,7 @@ def test_poses_off_the_regressors_on_the_zoo(name, tmp_path):
     configurations within their limits and a perturbed parameter vector: the tool's pose read off its
     kinematic regressor is Pinocchio's placement to 1e-14."""
     import zoo
+
     from closedloop.model.robot import RobotModel
 
     path = tmp_path / "robot.urdf"
@@ -152,7 +160,7 @@ def test_poses_off_the_regressors_on_the_zoo(name, tmp_path):
     hi = np.array([min(robot.joint(j).upper, np.pi) for j in joints])
     theta = rng.uniform(lo, hi, (30, len(joints)))
     prob = CalibrationProblem(robot, joints, [LoopBlock(WeldLoop("w", zoo.TOOL), theta, np.arange(30))])
-    state = prob.rp.apply(prob.nominal[:prob.n_robot] + rng.normal(0.0, 0.01, prob.n_robot))
+    state = prob.rp.apply(prob.nominal[: prob.n_robot] + rng.normal(0.0, 0.01, prob.n_robot))
     f = robot.frame_id(zoo.TOOL)
     fast = prob.frame_kinematics(state, theta, [f], True)[f][0]
     plain = prob.frame_kinematics(state, theta, [f], False)[f][0]

@@ -50,5 +50,6 @@ def test_the_jump_is_flagged_and_nothing_else(fleet):
     jump = offs["arm1-2026-03-23"]
     assert jump["flagged"] == "True" and 5.0 < float(jump["z"]) < 12.0
     assert 300e-6 < float(jump["change"]) < 500e-6  # true +400 urad, standard error ~50 urad
-    assert [(d["after"], d["parameter"]) for d in drift if d["flagged"] == "True"] == \
-        [("arm1-2026-03-23", "panda_joint4.offset")]
+    assert [(d["after"], d["parameter"]) for d in drift if d["flagged"] == "True"] == [
+        ("arm1-2026-03-23", "panda_joint4.offset")
+    ]

@@ -9,44 +9,97 @@ from __future__ import annotations
 
 import json
 import os
-from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-from closedloop.errors import InputError
 from scratch import scratch_dir
 
+from closedloop.errors import InputError
+
 FUZZ_EXAMPLES = int(os.environ.get("CLOSEDLOOP_FUZZ_EXAMPLES", "200"))
-FUZZ = settings(max_examples=FUZZ_EXAMPLES, derandomize=True, deadline=None, database=None,
-                suppress_health_check=list(HealthCheck))
+FUZZ = settings(
+    max_examples=FUZZ_EXAMPLES, derandomize=True, deadline=None, database=None, suppress_health_check=list(HealthCheck)
+)
 _DIR = scratch_dir("fuzz-")
 
 # ----------------------------------------------------------------------------- value strategies
-special_floats = st.sampled_from([0.0, -0.0, 1e308, -1e308, 1e-308, float("nan"), float("inf"), -float("inf"),
-                                  1e6, 1e7, 3.14159, -1.5708, 2**63, 10**400])
-numbers = st.one_of(st.integers(-10**6, 10**6), st.floats(allow_nan=True, allow_infinity=True), special_floats)
+special_floats = st.sampled_from(
+    [
+        0.0,
+        -0.0,
+        1e308,
+        -1e308,
+        1e-308,
+        float("nan"),
+        float("inf"),
+        -float("inf"),
+        1e6,
+        1e7,
+        3.14159,
+        -1.5708,
+        2**63,
+        10**400,
+    ]
+)
+numbers = st.one_of(st.integers(-(10**6), 10**6), st.floats(allow_nan=True, allow_infinity=True), special_floats)
 number_texts = st.one_of(
     numbers.map(lambda v: repr(v) if not isinstance(v, int) or abs(v) < 10**30 else str(v)),
-    st.sampled_from(["1_000", "0x10", "1e", "--1", "+.5", ".", "nan", "-inf", "Infinity", "1,5", " 2 ", "", "1e400",
-                     "0b1", "1:20", "１２", "\u00a01", "1e-400", "true", "no", "NaN"]),
-    st.text(max_size=8))
-scalars = st.one_of(st.none(), st.booleans(), numbers, st.text(max_size=12),
-                    st.sampled_from(["no", "yes", "on", "off", "m", "in", "deg", "rad", "dh", "hayati", "j1"]))
-json_values = st.recursive(scalars, lambda ch: st.one_of(st.lists(ch, max_size=4),
-                                                         st.dictionaries(st.text(max_size=8), ch, max_size=4)),
-                           max_leaves=12)
+    st.sampled_from(
+        [
+            "1_000",
+            "0x10",
+            "1e",
+            "--1",
+            "+.5",
+            ".",
+            "nan",
+            "-inf",
+            "Infinity",
+            "1,5",
+            " 2 ",
+            "",
+            "1e400",
+            "0b1",
+            "1:20",
+            "１２",
+            "\u00a01",
+            "1e-400",
+            "true",
+            "no",
+            "NaN",
+        ]
+    ),
+    st.text(max_size=8),
+)
+scalars = st.one_of(
+    st.none(),
+    st.booleans(),
+    numbers,
+    st.text(max_size=12),
+    st.sampled_from(["no", "yes", "on", "off", "m", "in", "deg", "rad", "dh", "hayati", "j1"]),
+)
+json_values = st.recursive(
+    scalars,
+    lambda ch: st.one_of(st.lists(ch, max_size=4), st.dictionaries(st.text(max_size=8), ch, max_size=4)),
+    max_leaves=12,
+)
 
 DH_FIELDS = ["name", "theta_off", "s", "a", "alpha", "k", "lower", "upper", "convention"]
 
 
-VALID_DH = {"name": "chain", "closes": False, "units": {"length": "m", "angle": "rad"}, "joints": [
-    {"name": "j1", "theta_off": 0.0, "s": 0.3, "a": 0.0, "alpha": 1.5708},
-    {"name": "j2", "theta_off": 0.1, "s": 0.0, "a": 0.4, "alpha": 0.0, "convention": "hayati"},
-    {"name": "j3", "s": 0.0, "a": 0.2, "alpha": 0.0, "k": 0.95, "lower": -3.0, "upper": 3.0}]}
+VALID_DH = {
+    "name": "chain",
+    "closes": False,
+    "units": {"length": "m", "angle": "rad"},
+    "joints": [
+        {"name": "j1", "theta_off": 0.0, "s": 0.3, "a": 0.0, "alpha": 1.5708},
+        {"name": "j2", "theta_off": 0.1, "s": 0.0, "a": 0.4, "alpha": 0.0, "convention": "hayati"},
+        {"name": "j3", "s": 0.0, "a": 0.2, "alpha": 0.0, "k": 0.95, "lower": -3.0, "upper": 3.0},
+    ],
+}
 
 
 @st.composite
@@ -56,8 +109,11 @@ def dh_documents(draw):
         return draw(json_values)
     doc = json.loads(json.dumps(VALID_DH))
     for _ in range(draw(st.integers(0, 3))):
-        target = doc if draw(st.integers(0, 2)) == 0 or not isinstance(doc.get("joints"), list) or not doc[
-            "joints"] else draw(st.sampled_from(doc["joints"]))
+        target = (
+            doc
+            if draw(st.integers(0, 2)) == 0 or not isinstance(doc.get("joints"), list) or not doc["joints"]
+            else draw(st.sampled_from(doc["joints"]))
+        )
         if not isinstance(target, dict):
             continue
         what = draw(st.integers(0, 3))
@@ -66,7 +122,8 @@ def dh_documents(draw):
             target.pop(draw(st.sampled_from(keys)))
         elif what == 1:
             target[draw(st.sampled_from(DH_FIELDS + ["units", "closes", "joints"]) | st.text(max_size=4))] = draw(
-                json_values)
+                json_values
+            )
         else:
             target[draw(st.sampled_from(keys))] = draw(st.one_of(numbers, scalars) if what == 2 else json_values)
     return doc
@@ -79,8 +136,11 @@ def _yaml_text(doc) -> str:
         return repr(doc)
 
 
-yaml_texts = st.one_of(dh_documents().map(_yaml_text), st.text(max_size=200),
-                       dh_documents().map(_yaml_text).map(lambda t: t.replace("'", "")))
+yaml_texts = st.one_of(
+    dh_documents().map(_yaml_text),
+    st.text(max_size=200),
+    dh_documents().map(_yaml_text).map(lambda t: t.replace("'", "")),
+)
 
 
 @st.composite
@@ -89,12 +149,21 @@ def csv_texts(draw):
     names = ["j1", "j2", "j3", "loop", "tau:j1", "x"]
     if draw(st.integers(0, 2)) == 0:  # a well-formed log, so that every run also exercises the loading path
         header = draw(st.lists(st.sampled_from(["j1", "j2", "j3"]), min_size=1, max_size=3, unique=True))
-        rows = draw(st.lists(st.lists(st.floats(-10.0, 10.0).map(repr), min_size=len(header), max_size=len(header)),
-                             min_size=1, max_size=5))
+        rows = draw(
+            st.lists(
+                st.lists(st.floats(-10.0, 10.0).map(repr), min_size=len(header), max_size=len(header)),
+                min_size=1,
+                max_size=5,
+            )
+        )
         return "\n".join([",".join(header)] + [",".join(r) for r in rows])
     header = draw(st.lists(st.sampled_from(names) | st.text(max_size=4), min_size=0, max_size=5))
-    rows = draw(st.lists(st.lists(number_texts | st.sampled_from(["fixture", "weld", ""]), min_size=0,
-                                  max_size=len(header) + 1), max_size=5))
+    rows = draw(
+        st.lists(
+            st.lists(number_texts | st.sampled_from(["fixture", "weld", ""]), min_size=0, max_size=len(header) + 1),
+            max_size=5,
+        )
+    )
     text = "\n".join([",".join(header)] + [",".join(r) for r in rows])
     if draw(st.booleans()):
         text = "\ufeff" + text
@@ -113,17 +182,34 @@ def truth_and_report(draw):
         chosen = draw(st.lists(st.sampled_from(names), min_size=1, max_size=4, unique=True))
         value = st.floats(-1.0, 1.0)
         truth = {"parameters": {n: draw(value) for n in chosen}}
-        return truth, {"parameters": [{"name": n, "kind": "offset", "unit": "rad", "initial": 0.0,
-                                       "calibrated": draw(value), "status": "estimated"} for n in chosen]}
-    truth = {"parameters": draw(st.dictionaries(st.sampled_from(names) | st.text(max_size=4),
-                                                st.one_of(numbers, scalars), max_size=6))}
+        return truth, {
+            "parameters": [
+                {
+                    "name": n,
+                    "kind": "offset",
+                    "unit": "rad",
+                    "initial": 0.0,
+                    "calibrated": draw(value),
+                    "status": "estimated",
+                }
+                for n in chosen
+            ]
+        }
+    truth = {
+        "parameters": draw(
+            st.dictionaries(st.sampled_from(names) | st.text(max_size=4), st.one_of(numbers, scalars), max_size=6)
+        )
+    }
     params = []
     for _ in range(draw(st.integers(0, 6))):
-        p = {"name": draw(st.sampled_from(names) | scalars),
-             "kind": draw(st.sampled_from(["placement", "offset", "scale", "dh", "loop", "compliance"]) | scalars),
-             "unit": draw(st.sampled_from(["m", "rad", "1", "px", "rad/Nm"]) | scalars),
-             "initial": draw(st.one_of(numbers, scalars)), "calibrated": draw(st.one_of(numbers, json_values)),
-             "status": draw(st.sampled_from(["estimated", "dropped", "fixed"]) | scalars)}
+        p = {
+            "name": draw(st.sampled_from(names) | scalars),
+            "kind": draw(st.sampled_from(["placement", "offset", "scale", "dh", "loop", "compliance"]) | scalars),
+            "unit": draw(st.sampled_from(["m", "rad", "1", "px", "rad/Nm"]) | scalars),
+            "initial": draw(st.one_of(numbers, scalars)),
+            "calibrated": draw(st.one_of(numbers, json_values)),
+            "status": draw(st.sampled_from(["estimated", "dropped", "fixed"]) | scalars),
+        }
         for k in list(p):
             if draw(st.integers(0, 7)) == 0:
                 del p[k]
@@ -185,8 +271,10 @@ def json_property(text: str) -> None:
 
 
 def options_property(args) -> None:
-    from closedloop.cli.parse import check_loop_numbers as _check_loop_numbers, parse_bounds as _parse_bounds
-    from closedloop.cli.parse import parse_noise as _parse_noise, sim_overrides as _sim_overrides
+    from closedloop.cli.parse import check_loop_numbers as _check_loop_numbers
+    from closedloop.cli.parse import parse_bounds as _parse_bounds
+    from closedloop.cli.parse import parse_noise as _parse_noise
+    from closedloop.cli.parse import sim_overrides as _sim_overrides
     from closedloop.sims.scenarios import SCENARIOS
 
     noise, bound, setting, loop = args
@@ -203,25 +291,71 @@ def options_property(args) -> None:
 
 
 settings_items = st.one_of(
-    st.tuples(st.sampled_from(["kp", "kv", "timestep", "noise", "select", "solref", "solimp", "gravity", "min_steps",
-                               "max_steps", "integrator", "stiff", "relax_passes", "bogus", ""]),
-              st.sampled_from(["=", ":", "=="]), number_texts | st.sampled_from(
-                  ["[1,2]", "[0.9,0.95,0.001,0.5,2]", "[1]", "true", "greedy", "bogus", "null", "[nan,1]",
-                   "[1e308, 1]", "{}", "[true,1]"])).map("".join),
-    st.text(max_size=20))
+    st.tuples(
+        st.sampled_from(
+            [
+                "kp",
+                "kv",
+                "timestep",
+                "noise",
+                "select",
+                "solref",
+                "solimp",
+                "gravity",
+                "min_steps",
+                "max_steps",
+                "integrator",
+                "stiff",
+                "relax_passes",
+                "bogus",
+                "",
+            ]
+        ),
+        st.sampled_from(["=", ":", "=="]),
+        number_texts
+        | st.sampled_from(
+            [
+                "[1,2]",
+                "[0.9,0.95,0.001,0.5,2]",
+                "[1]",
+                "true",
+                "greedy",
+                "bogus",
+                "null",
+                "[nan,1]",
+                "[1e308, 1]",
+                "{}",
+                "[true,1]",
+            ]
+        ),
+    ).map("".join),
+    st.text(max_size=20),
+)
 option_args = st.tuples(
-    st.one_of(number_texts, st.lists(st.tuples(st.sampled_from(["j1", "", "*"]), number_texts).map("=".join),
-                                     max_size=3).map(",".join)),
-    st.tuples(st.sampled_from(["x", "", "j1.x"]), st.sampled_from(["=", ""]), number_texts, st.sampled_from([":", ""]),
-              number_texts).map("".join),
+    st.one_of(
+        number_texts,
+        st.lists(st.tuples(st.sampled_from(["j1", "", "*"]), number_texts).map("=".join), max_size=3).map(",".join),
+    ),
+    st.tuples(
+        st.sampled_from(["x", "", "j1.x"]),
+        st.sampled_from(["=", ""]),
+        number_texts,
+        st.sampled_from([":", ""]),
+        number_texts,
+    ).map("".join),
     settings_items,
-    st.tuples(st.sampled_from(["weld:frame=a,closure=", "point:point="]),
-              st.lists(number_texts, max_size=6).map(" ".join)).map(lambda t: f'{t[0]}"{t[1]}"'))
+    st.tuples(
+        st.sampled_from(["weld:frame=a,closure=", "point:point="]), st.lists(number_texts, max_size=6).map(" ".join)
+    ).map(lambda t: f'{t[0]}"{t[1]}"'),
+)
 
-PROPERTIES = {"dh": (dh_property, yaml_texts), "log": (log_property, csv_texts()),
-              "check": (check_property, truth_and_report()), "json": (json_property, st.one_of(
-                  st.text(max_size=60), json_values.map(lambda v: json.dumps(v, allow_nan=True)))),
-              "options": (options_property, option_args)}
+PROPERTIES = {
+    "dh": (dh_property, yaml_texts),
+    "log": (log_property, csv_texts()),
+    "check": (check_property, truth_and_report()),
+    "json": (json_property, st.one_of(st.text(max_size=60), json_values.map(lambda v: json.dumps(v, allow_nan=True)))),
+    "options": (options_property, option_args),
+}
 
 
 def run_property(name: str, max_examples: int = FUZZ_EXAMPLES) -> dict[str, int]:

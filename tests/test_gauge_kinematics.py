@@ -9,13 +9,13 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from closedloop.analysis.gauge import kinematic_changes, random_configurations
 from closedloop.calibration import build_problem
 from closedloop.io.logs import JointLog
-from closedloop.analysis.gauge import kinematic_changes, random_configurations
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
-from closedloop.models import ROBOTS
 from closedloop.model.robot import RobotModel
+from closedloop.models import ROBOTS
 
 TABLE = Path(__file__).resolve().parents[1] / "closedloop" / "models" / "dh" / "utah_mit_thumb_finger.yaml"
 
@@ -25,7 +25,7 @@ def _finite_differences(problem, x, V, q, h=1e-6):
     frames = sorted({problem.robot.frame_id(f) for b in problem.blocks for f in b.loop.frames} - {0})
 
     def poses(xv):
-        state = problem.rp.apply(xv[:problem.n_robot])
+        state = problem.rp.apply(xv[: problem.n_robot])
         out = []
         for qi in q:
             pin.forwardKinematics(state.model, state.data, qi)
@@ -38,8 +38,11 @@ def _finite_differences(problem, x, V, q, h=1e-6):
         rows = []
         for Mp, Mm in zip(plus, minus):
             for a, b in zip(Mp, Mm):
-                rows.append(np.concatenate([(a.translation - b.translation) / (2 * h),
-                                            pin.log3(a.rotation @ b.rotation.T) / (2 * h)]))
+                rows.append(
+                    np.concatenate(
+                        [(a.translation - b.translation) / (2 * h), pin.log3(a.rotation @ b.rotation.T) / (2 * h)]
+                    )
+                )
         cols.append(np.concatenate(rows))
     return np.column_stack(cols)
 
@@ -55,8 +58,9 @@ def test_kinematic_changes_match_finite_differences(case):
         loops = default_loops(robot)
     log = JointLog(robot.joint_names, rng.uniform(-0.5, 0.5, (20, len(robot.joint_names))))
     problem = build_problem(robot, log, loops)
-    x = problem.nominal + 0.02 * rng.standard_normal(len(problem.params)) * (np.arange(len(problem.params))
-                                                                            < problem.n_robot)
+    x = problem.nominal + 0.02 * rng.standard_normal(len(problem.params)) * (
+        np.arange(len(problem.params)) < problem.n_robot
+    )
     V = rng.standard_normal((len(problem.params), 5))
     q = random_configurations(problem, 6, seed=1)
     dP, A = kinematic_changes(problem, x, V, q)

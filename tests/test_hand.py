@@ -8,19 +8,26 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
-import yaml
+from support import relative_fk_error  # noqa: E402
 
 from closedloop.calibration import CalibrationOptions, calibrate
 from closedloop.io.logs import JointLog
-from closedloop.studies.hand import (INCH, TABLE_4_1_FIXED, TABLE_4_2, _loop_problem, nominal_closed_pose,
-                             palm_frame_parameters, staged_calibration, thesis_hand_dataset, thesis_stages)
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
 from closedloop.model.robot import RobotModel
+from closedloop.studies.hand import (
+    INCH,
+    TABLE_4_1_FIXED,
+    TABLE_4_2,
+    _loop_problem,
+    nominal_closed_pose,
+    palm_frame_parameters,
+    staged_calibration,
+    thesis_hand_dataset,
+    thesis_stages,
+)
 from closedloop.studies.synthetic import self_motion
 from closedloop.studies.truth import identifiable_names, make_dataset
-
-from support import relative_fk_error  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE = ROOT / "closedloop" / "models" / "dh" / "utah_mit_thumb_finger.yaml"
@@ -123,6 +130,7 @@ def test_urdf_hand_is_the_dh_loop():
         X.append((d.oMf[m.getFrameId("thumb_tip")].inverse() * d.oMf[m.getFrameId("finger_tip")]).homogeneous)
     assert np.abs(np.array(X) - X[0]).max() < 1e-9  # the URDF prints 10 significant digits
     import mujoco
+
     assert mujoco.MjModel.from_xml_path(str(URDF)).njnt == 8
 
 
@@ -132,16 +140,24 @@ def test_urdf_hand_tip_to_tip_weld_calibrates():
     loop = WeldLoop("grasp", "finger_tip", "thumb_tip")
     nom = RobotModel.from_file(TABLE)
     th = nominal_closed_pose(nom)[0]
-    q0 = dict(zip(["thumb_j0", "thumb_j1", "thumb_j2", "thumb_j3", "finger_j4", "finger_j5", "finger_j6",
-                   "finger_j7"], th))
+    q0 = dict(
+        zip(["thumb_j0", "thumb_j1", "thumb_j2", "thumb_j3", "finger_j4", "finger_j5", "finger_j6", "finger_j7"], th)
+    )
     joints = [j for j in robot.joint_names if j in q0]
     # One length fixed in truth and calibration alike (the length gauge, 3.3: the core would otherwise
     # pick the longest free length, which may differ between the nominal and the true data).
     opts = CalibrationOptions(fix={"finger_j6.x": None})
     theta0 = np.array([q0[j] for j in joints])
     names = identifiable_names(robot, [loop], theta0, opts)
-    ds = make_dataset(robot, loop, theta0, 80, np.random.default_rng(2), perturb=names,
-                      magnitudes={"translation": 5e-4, "rotation": 5e-3, "offset": 0.05})
+    ds = make_dataset(
+        robot,
+        loop,
+        theta0,
+        80,
+        np.random.default_rng(2),
+        perturb=names,
+        magnitudes={"translation": 5e-4, "rotation": 5e-3, "offset": 0.05},
+    )
     res = calibrate(robot, ds.log(noisy=False), [WeldLoop("grasp", "finger_tip", "thumb_tip")], opts)
     truth = ds.truth_dict()
     assert res.converged
@@ -161,8 +177,9 @@ def test_dual_arm_baxter_example():
     assert out["converged"] and out["weak"] == 0
     res, truth = out["result"], out["dataset"].truth_dict()
     # judged by what the two arms do (the grasp frame in the other gripper), up to the length scale
-    pos, rot, _ = relative_fk_error(res, [truth.get(n, v) for n, v in zip(res.names, res.initial)],
-                                    "left_gripper", "right_gripper")
+    pos, rot, _ = relative_fk_error(
+        res, [truth.get(n, v) for n, v in zip(res.names, res.initial)], "left_gripper", "right_gripper"
+    )
     assert pos < 1e-8 and rot < 1e-8
     assert out["after"].rms_m < 1e-10 and out["before"].rms_m > 1e-3
     assert out["estimated"] == 55 and out["dropped"] > 0

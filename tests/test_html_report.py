@@ -20,8 +20,8 @@ from matplotlib import image as mpimg
 from closedloop.cli.main import main
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
-from closedloop.models import ROBOTS
 from closedloop.model.robot import RobotModel
+from closedloop.models import ROBOTS
 from closedloop.studies.truth import make_dataset
 
 
@@ -58,15 +58,36 @@ def decode(png: bytes) -> np.ndarray:
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory):
     robot = RobotModel.from_file(ROBOTS["panda"].path)
-    ds = make_dataset(robot, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 30,
-                      np.random.default_rng(2), noise=1e-5)
+    ds = make_dataset(
+        robot,
+        WeldLoop("fixture", "panda_hand"),
+        [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8],
+        30,
+        np.random.default_rng(2),
+        noise=1e-5,
+    )
     d = tmp_path_factory.mktemp("html")
     log = d / "log.csv"
     JointLog(list(ds.joints), ds.noisy).write_csv(log)
-    args = [str(ROBOTS["panda"].path), str(log), "--loop", "weld:frame=panda_hand,name=fixture", "--cv", "2",
-            "--identify", "placement,offset,scale,loop", "--out", str(d / "calibrated.urdf"),
-            "--report", str(d / "report.json"), "--html", str(d / "report.html"), "--plots", str(d / "plots"),
-            "--quiet"]
+    args = [
+        str(ROBOTS["panda"].path),
+        str(log),
+        "--loop",
+        "weld:frame=panda_hand,name=fixture",
+        "--cv",
+        "2",
+        "--identify",
+        "placement,offset,scale,loop",
+        "--out",
+        str(d / "calibrated.urdf"),
+        "--report",
+        str(d / "report.json"),
+        "--html",
+        str(d / "report.html"),
+        "--plots",
+        str(d / "plots"),
+        "--quiet",
+    ]
     assert main(["calibrate", *args]) == 0
     return d
 
@@ -78,8 +99,14 @@ def test_page_is_self_contained_with_every_section(calibrated):
     page.feed(html)
     assert page.tags[0] == "html" and "body" in page.tags
     assert page.links == []  # nothing to load, no script
-    assert page.h2[:6] == ["Closure", "Parameter corrections", "Singular values", "Outliers", "Not identified",
-                           "Which file carries what"]
+    assert page.h2[:6] == [
+        "Closure",
+        "Parameter corrections",
+        "Singular values",
+        "Outliers",
+        "Not identified",
+        "Which file carries what",
+    ]
     assert re.search(r"verdict: <b>(ok|suspect|failed)</b>", html)
     text = " ".join(page.text)
     assert "2-fold validation" in text
@@ -99,7 +126,7 @@ def test_page_is_self_contained_with_every_section(calibrated):
     assert m and int(m.group(2)) == len(sv)
     assert sum(s > float(m.group(3)) for s in sv) == int(m.group(1))
     # the five largest closures after the fit, by log row, largest first
-    outl = html[html.index("<h2>Outliers</h2>"):html.index("<h2>Not identified</h2>")]
+    outl = html[html.index("<h2>Outliers</h2>") : html.index("<h2>Not identified</h2>")]
     rows = re.findall(r"<tr><td class='l'>fixture</td><td>(\d+)</td><td>([0-9.e+-]+)</td>", outl)
     assert len(rows) == 5 and all(1 <= int(r) <= 30 for r, _ in rows)
     sizes = [float(v) for _, v in rows]
@@ -112,8 +139,11 @@ def test_sensor_corrections_beside_the_model(calibrated):
 
     report = json.loads((calibrated / "report.json").read_text())
     corr = yaml.safe_load((calibrated / "calibrated.sensors.yaml").read_text())
-    scales = {n.rsplit(".", 1)[0]: v for n, v in report["scale_factors"].items()
-              if next(p for p in report["parameters"] if p["name"] == n)["status"] == "estimated"}
+    scales = {
+        n.rsplit(".", 1)[0]: v
+        for n, v in report["scale_factors"].items()
+        if next(p for p in report["parameters"] if p["name"] == n)["status"] == "estimated"
+    }
     assert scales and {j: c["scale"] for j, c in corr["joints"].items()} == pytest.approx(scales, abs=1e-15)
     assert all(abs(v - 1.0) < 0.01 for v in scales.values())  # the truth has no scale error
     assert corr["model"].endswith("calibrated.urdf") and "scale * reading" in corr["note"]

@@ -35,13 +35,14 @@ def test_free_run_vaf_on_held_out_cycles(data):
     assert fit.vaf > 99.0 and np.nanmin(fit.vaf_t) > 95.0
     # a wrong model (stiffness halved) must fit worse
     from closedloop.impedance.bootstrap import free_run
+
     est = estimate(ens)
     dth, dtau, _ = ens.deltas()
     P, L = ens.pad, ens.length
-    y = dth[:10, P:P + L]
+    y = dth[:10, P : P + L]
     v0 = (dth[:10, P + 1] - dth[:10, P - 1]) * ens.fs / 2
-    good = free_run(est.I, est.B, est.K, dtau[:10, P:P + L], y[:, 0], v0, ens.fs)
-    bad = free_run(est.I, est.B, est.K / 2, dtau[:10, P:P + L], y[:, 0], v0, ens.fs)
+    good = free_run(est.I, est.B, est.K, dtau[:10, P : P + L], y[:, 0], v0, ens.fs)
+    bad = free_run(est.I, est.B, est.K / 2, dtau[:10, P : P + L], y[:, 0], v0, ens.fs)
     assert np.sum((y - good) ** 2) < 0.5 * np.sum((y - bad) ** 2)
 
 

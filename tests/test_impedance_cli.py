@@ -9,12 +9,49 @@ from closedloop.cli.main import main
 
 def test_simulate_identify_round_trip(tmp_path, capsys):
     out = tmp_path / "sim"
-    assert main(["impedance", "simulate", "--out", str(out), "--cycles", "40", "--engine", "rk4",
-                 "--stiffness", "dip:20,0.4,0.15", "--seed", "3", "--postures"]) == 0
+    assert (
+        main(
+            [
+                "impedance",
+                "simulate",
+                "--out",
+                str(out),
+                "--cycles",
+                "40",
+                "--engine",
+                "rk4",
+                "--stiffness",
+                "dip:20,0.4,0.15",
+                "--seed",
+                "3",
+                "--postures",
+            ]
+        )
+        == 0
+    )
     res, fig = tmp_path / "res.json", tmp_path / "fig.svg"
-    assert main(["impedance", "identify", str(out / "data.csv"), "--truth", str(out / "truth.csv"),
-                 "--bootstrap", "50", "--folds", "3", "--posture", str(out / "posture_0.csv"),
-                 "--out", str(res), "--plot", str(fig)]) == 0
+    assert (
+        main(
+            [
+                "impedance",
+                "identify",
+                str(out / "data.csv"),
+                "--truth",
+                str(out / "truth.csv"),
+                "--bootstrap",
+                "50",
+                "--folds",
+                "3",
+                "--posture",
+                str(out / "posture_0.csv"),
+                "--out",
+                str(res),
+                "--plot",
+                str(fig),
+            ]
+        )
+        == 0
+    )
     doc = json.loads(res.read_text())
     s = doc["summary"]
     assert s["cycles"] == 40 and s["vaf_free_run"] > 99.0

@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 
 from closedloop.errors import InputError
-from closedloop.impedance.data import (Record, onsets_from_events, onsets_from_peak_velocity, onsets_from_times,
-                                       read_record, segment, write_record)
+from closedloop.impedance.data import (
+    Record,
+    onsets_from_events,
+    onsets_from_peak_velocity,
+    onsets_from_times,
+    read_record,
+    segment,
+    write_record,
+)
 from closedloop.impedance.model import ExperimentConfig, simulate
 
 
@@ -52,16 +59,16 @@ def test_segmentation_methods_agree(quiet):
     assert ens.n == 20 and ens.length == 1200 and ens.excluded["incomplete padding"] == 0
     t_on = np.array([rec.time[rec.block == b][i] for b, i in ev])
     assert len(onsets_from_times(rec, t_on)) == 20
-    pv = onsets_from_peak_velocity(rec, period=2.0, lead=0.5)   # peak velocity of 0.5 - 0.5 cos(pi t) at 0.5 s
+    pv = onsets_from_peak_velocity(rec, period=2.0, lead=0.5)  # peak velocity of 0.5 - 0.5 cos(pi t) at 0.5 s
     ens_pv = segment(rec, pv, period=2.0)
     assert ens_pv.n >= 18
-    assert np.max(np.abs(ens_pv.mean()[0][ens.pad:-ens.pad] - ens.mean()[0][ens.pad:-ens.pad])) < 0.01
+    assert np.max(np.abs(ens_pv.mean()[0][ens.pad : -ens.pad] - ens.mean()[0][ens.pad : -ens.pad])) < 0.01
 
 
 def test_exclusion_of_irregular_cycles(sim):
     rec = sim.record
     ev = onsets_from_events(rec)
-    ev[5] = (ev[5][0], ev[5][1] + 300)            # a cycle that starts 0.5 s late
+    ev[5] = (ev[5][0], ev[5][1] + 300)  # a cycle that starts 0.5 s late
     ens = segment(rec, ev, period=2.0)
     assert ens.excluded["irregular length"] >= 1 and ens.n < 20
 
@@ -74,7 +81,7 @@ def test_peak_velocity_alignment_recovers_jitter(quiet):
     bad = [(b, i + j) for (b, i), j in zip(ev, jit)]
     ens = segment(rec, bad, period=2.0, align="peak-velocity", max_shift_s=0.05)
     err = ens.onsets[:, 1] - np.array([i for _, i in ev])
-    assert np.max(np.abs(err - np.median(err))) <= 3            # 5 ms; the common offset is arbitrary
+    assert np.max(np.abs(err - np.median(err))) <= 3  # 5 ms; the common offset is arbitrary
     rep = ens.alignment.summary()
     assert sum(rep["histogram"]["counts"]) == ens.n and rep["max_abs_ms"] <= 50.0 + 1e-9
 

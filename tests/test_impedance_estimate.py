@@ -45,7 +45,7 @@ def test_ten_hz_prefilter_below_1p5_percent(forearm):
 def test_ols_and_window_centre(forearm):
     ens, truth = forearm
     assert max(rel_errors(estimate(ens, "ols"), truth).values()) < 6.0
-    assert np.allclose(estimate(ens).t, truth["t"])   # stamped at the window centre, on the cycle grid
+    assert np.allclose(estimate(ens).t, truth["t"])  # stamped at the window centre, on the cycle grid
 
 
 def test_thesis_method_fails_with_noise_and_works_without(forearm):
@@ -81,6 +81,6 @@ def test_iv_removes_voluntary_torque_bias():
     tls = estimate(ens)
     bias_I = np.nanmedian(tls.I / truth["I"]) - 1
     bias_B = np.nanmedian(tls.B / truth["B"]) - 1
-    assert bias_I > 0.2 and bias_B < -0.2, (bias_I, bias_B)     # TLS biased by tens of percent
+    assert bias_I > 0.2 and bias_B < -0.2, (bias_I, bias_B)  # TLS biased by tens of percent
     iv = median_errors(estimate(ens, "iv"), truth)
     assert max(iv.values()) < 10.0, iv

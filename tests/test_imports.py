@@ -15,8 +15,17 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-HEAVY = ["scipy.stats", "scipy.special", "scipy.optimize", "scipy.linalg", "trimesh", "yourdfpy", "matplotlib",
-         "mujoco", "closedloop.loops.camera.loop"]
+HEAVY = [
+    "scipy.stats",
+    "scipy.special",
+    "scipy.optimize",
+    "scipy.linalg",
+    "trimesh",
+    "yourdfpy",
+    "matplotlib",
+    "mujoco",
+    "closedloop.loops.camera.loop",
+]
 
 
 def _modules_after(code: str) -> list[str]:
@@ -44,8 +53,8 @@ robot = RobotModel.from_file(ROBOTS["panda"].path)
 loop = parse_loop("weld:frame=panda_hand,name=fixture", robot)
 ds = make_dataset(robot, loop, [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 40, np.random.default_rng(0), stride=1)
 res = calibrate(robot, JointLog(ds.joints, ds.readings), [loop])
-write_urdf(robot, res.as_dict(), r"{tmp_path / 'cal.urdf'}")
-write_report(build_report(res), r"{tmp_path / 'report.json'}")
+write_urdf(robot, res.as_dict(), r"{tmp_path / "cal.urdf"}")
+write_report(build_report(res), r"{tmp_path / "report.json"}")
 """
     assert _modules_after(code) == []
 
@@ -67,9 +76,9 @@ assert "camera" in spec.REGISTRY and CameraLoop.__name__ == "CameraLoop"
 
 def test_written_urdf_origins_are_nominal_times_exp6_and_offset(tmp_path):
     """The edited XML gives Pinocchio exactly O exp6(p) Rot(axis, offset) and limits shifted by -offset."""
-    from closedloop.output.urdf import write_urdf
-    from closedloop.models import ROBOTS
     from closedloop.model.robot import RobotModel
+    from closedloop.models import ROBOTS
+    from closedloop.output.urdf import write_urdf
 
     robot = RobotModel.from_file(ROBOTS["panda"].path)
     rng = np.random.default_rng(3)
@@ -99,8 +108,8 @@ def test_chi2_in_plain_python_equals_scipy_stats():
     """robust.stats.chi2 (no scipy import) against scipy.stats.chi2, both tails, small and large dof."""
     from scipy import stats as sst
 
-    from closedloop.output.report import _chi2_sf
     from closedloop.estimate.robust import stats as plain
+    from closedloop.output.report import _chi2_sf
 
     for m in (1, 2, 3, 5, 6, 27, 1173, 594_000):
         for p in (0.5, 0.05, 1e-4, 1e-9, 0.999):
@@ -132,8 +141,8 @@ def test_blas_threads_choose_restore_and_never_raise_the_users_limit():
             raise RuntimeError("inside")
     assert current_threads() == before  # restored on an exception too
     with threadpool_limits(1, user_api="blas"):  # the user's own limit
-        assert choose_threads(int(2 * THREADED_WORK / 28 ** 2), 28) == 1
-        with blas_threads(None, int(2 * THREADED_WORK / 28 ** 2), 28) as k:
+        assert choose_threads(int(2 * THREADED_WORK / 28**2), 28) == 1
+        with blas_threads(None, int(2 * THREADED_WORK / 28**2), 28) as k:
             assert k == 1
         assert current_threads() == 1
-    assert choose_threads(int(2 * THREADED_WORK / 28 ** 2), 28, current=2) >= 1
+    assert choose_threads(int(2 * THREADED_WORK / 28**2), 28, current=2) >= 1

@@ -8,8 +8,8 @@ import pytest
 import yaml
 
 from closedloop.loops import WeldLoop
-from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.model.robot import RobotModel
+from closedloop.problem.problem import CalibrationProblem, LoopBlock
 
 
 def fd_check(robot, loop, joints, rng, h=1e-5):
@@ -34,16 +34,18 @@ def fd_check(robot, loop, joints, rng, h=1e-5):
     for j in range(len(joints)):
         e = np.zeros_like(theta)
         e[:, j] = h
-        numq[:, j] = ((prob.evaluate(x, False, [theta + e])[0].r
-                       - prob.evaluate(x, False, [theta - e])[0].r) / (2 * h)).ravel()
+        numq[:, j] = (
+            (prob.evaluate(x, False, [theta + e])[0].r - prob.evaluate(x, False, [theta - e])[0].r) / (2 * h)
+        ).ravel()
     return prob.names, err, np.abs(Jq - numq).max() / np.abs(numq).max()
 
 
 @pytest.mark.parametrize("frame_b", ["universe", "panda_link3"])
 def test_urdf_weld_columns(panda, frame_b):
     """Placement (x..rz), offset, scale and closure columns; world and branch-to-branch welds."""
-    names, err, errq = fd_check(panda, WeldLoop("w", "panda_hand", frame_b), panda.supporting_joints("panda_hand"),
-                                np.random.default_rng(0))
+    names, err, errq = fd_check(
+        panda, WeldLoop("w", "panda_hand", frame_b), panda.supporting_joints("panda_hand"), np.random.default_rng(0)
+    )
     kinds = {n.split(".")[-1] for n in names}
     assert {"x", "y", "z", "rx", "ry", "rz", "offset", "scale"} <= kinds
     bad = {n: e for n, e in zip(names, err) if e > 1e-6}
@@ -54,9 +56,17 @@ def test_urdf_weld_columns(panda, frame_b):
 def test_dh_and_hayati_columns(tmp_path):
     """D-H (eq. 4.1) and Hayati (eq. 4.2) rows, theta_off and k, including the last row's end frame."""
     rng = np.random.default_rng(1)
-    rows = [{"name": f"j{i}", "s": float(rng.uniform(-.3, .3)), "a": float(rng.uniform(-.3, .3)),
-             "alpha": float(rng.uniform(-2, 2)), "theta_off": float(rng.uniform(-1, 1)),
-             "convention": "hayati" if i % 2 else "dh"} for i in range(1, 8)]
+    rows = [
+        {
+            "name": f"j{i}",
+            "s": float(rng.uniform(-0.3, 0.3)),
+            "a": float(rng.uniform(-0.3, 0.3)),
+            "alpha": float(rng.uniform(-2, 2)),
+            "theta_off": float(rng.uniform(-1, 1)),
+            "convention": "hayati" if i % 2 else "dh",
+        }
+        for i in range(1, 8)
+    ]
     path = tmp_path / "chain.yaml"
     path.write_text(yaml.safe_dump({"name": "c", "closes": True, "joints": rows}))
     robot = RobotModel.from_file(path)

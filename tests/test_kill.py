@@ -30,8 +30,13 @@ def _run(args: list[str], kill_after: float | None = None, cwd: Path | None = No
     """Run the CLI; with `kill_after`, SIGKILL it then (if still running).  Returns (returncode, seconds)."""
     t0 = time.perf_counter()
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
-    p = subprocess.Popen([sys.executable, "-m", "closedloop.cli.main", *args], stdout=subprocess.DEVNULL,
-                         stderr=subprocess.PIPE, cwd=cwd, env=env)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "closedloop.cli.main", *args],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        cwd=cwd,
+        env=env,
+    )
     if kill_after is not None:
         try:
             p.wait(timeout=kill_after)
@@ -46,8 +51,8 @@ def _run(args: list[str], kill_after: float | None = None, cwd: Path | None = No
 def make_calibration_inputs(d: Path) -> tuple[Path, Path, Path]:
     """A mesh-free Panda and two 30-row weld logs (different truths: different calibrated models)."""
     from closedloop.loops import WeldLoop
-    from closedloop.models import nominal_urdf
     from closedloop.model.robot import RobotModel
+    from closedloop.models import nominal_urdf
     from closedloop.studies.truth import make_dataset
 
     d.mkdir(parents=True, exist_ok=True)
@@ -55,8 +60,14 @@ def make_calibration_inputs(d: Path) -> tuple[Path, Path, Path]:
     robot = RobotModel.from_file(d / "panda.urdf")
     q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]
     for name, seed in (("old.csv", 5), ("new.csv", 6)):
-        ds = make_dataset(robot, WeldLoop("fixture", "panda_hand"), q0, 30, np.random.default_rng(seed),
-                          perturb=["panda_joint2.x", "panda_joint3.offset", "panda_joint4.y"])
+        ds = make_dataset(
+            robot,
+            WeldLoop("fixture", "panda_hand"),
+            q0,
+            30,
+            np.random.default_rng(seed),
+            perturb=["panda_joint2.x", "panda_joint3.offset", "panda_joint4.y"],
+        )
         ds.log().write_csv(d / name)
     return d / "panda.urdf", d / "old.csv", d / "new.csv"
 
@@ -72,8 +83,9 @@ def classify(data: bytes, refs: dict[str, bytes]) -> str:
     need not repeat across machines.)
     """
     x = _numbers(data)
-    dist = {k: float(np.max(np.abs(x - _numbers(r)), initial=0.0)) for k, r in refs.items()
-            if _numbers(r).shape == x.shape}
+    dist = {
+        k: float(np.max(np.abs(x - _numbers(r)), initial=0.0)) for k, r in refs.items() if _numbers(r).shape == x.shape
+    }
     if not dist:
         return "other"
     best = min(dist, key=dist.get)
@@ -134,8 +146,20 @@ def kill_calibrate(work: Path, kills: int, rng: np.random.Generator) -> list[dic
     out = work / "out"
 
     def args(tag: str) -> list[str]:
-        return ["calibrate", str(model), str(log_a if tag == "a" else log_b), "--loop", WELD, "--quiet", "--cv", "0",
-                "--out", str(out / "cal.urdf"), "--report", str(out / "report.json")]
+        return [
+            "calibrate",
+            str(model),
+            str(log_a if tag == "a" else log_b),
+            "--loop",
+            WELD,
+            "--quiet",
+            "--cv",
+            "0",
+            "--out",
+            str(out / "cal.urdf"),
+            "--report",
+            str(out / "report.json"),
+        ]
 
     return _kill_runs(out, ("cal.urdf", "report.json"), args, kills, rng)
 
@@ -145,8 +169,18 @@ def kill_simulate(work: Path, kills: int, rng: np.random.Generator) -> list[dict
     out = work / "sim"
 
     def args(tag: str) -> list[str]:
-        return ["simulate", "panda_weld", "--n", "3", "--seed", "1" if tag == "a" else "2", "--out", str(out),
-                "--quiet", "--replace"]
+        return [
+            "simulate",
+            "panda_weld",
+            "--n",
+            "3",
+            "--seed",
+            "1" if tag == "a" else "2",
+            "--out",
+            str(out),
+            "--quiet",
+            "--replace",
+        ]
 
     return _kill_runs(out, ("scene.xml", "log.csv", "truth.json"), args, kills, rng)
 
@@ -167,7 +201,10 @@ def test_classify_tells_sets_and_torn_files_apart():
 @pytest.mark.parametrize("which", ["calibrate", "simulate"])
 def test_sigkill_leaves_old_or_new_set(which, tmp_path):
     rng = np.random.default_rng(13)
-    states = (kill_calibrate(tmp_path, KILLS_CALIBRATE, rng) if which == "calibrate"
-              else kill_simulate(tmp_path, KILLS_SIMULATE, rng))
+    states = (
+        kill_calibrate(tmp_path, KILLS_CALIBRATE, rng)
+        if which == "calibrate"
+        else kill_simulate(tmp_path, KILLS_SIMULATE, rng)
+    )
     assert all(whole(s) for s in states), states
     assert any(s["returncode"] == -signal.SIGKILL for s in states), states  # the kills are real

@@ -49,7 +49,7 @@ def _resolve(module: str, path: Path, node: ast.ImportFrom) -> str:
     if not node.level:
         return node.module or ""
     base = _package_of(module, path).split(".")
-    base = base[:len(base) - (node.level - 1)]
+    base = base[: len(base) - (node.level - 1)]
     return ".".join(base + ([node.module] if node.module else []))
 
 
@@ -100,12 +100,16 @@ def test_no_private_name_imported_across_modules():
                             continue  # a private submodule of a package (none today, allowed by name)
                         bad.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno}: {alias.name} from {source}")
                     elif (source, alias.name) not in FOREIGN_PRIVATE_ALLOWED:
-                        bad.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno}: {alias.name} from {source} "
-                                   "(another package's private name)")
+                        bad.append(
+                            f"{path.relative_to(PACKAGE.parent)}:{node.lineno}: {alias.name} from {source} "
+                            "(another package's private name)"
+                        )
             elif isinstance(node, ast.Import):
                 for alias in node.names:
-                    if any(_is_private(part) for part in alias.name.split(".")) and \
-                            (alias.name, "") not in FOREIGN_PRIVATE_ALLOWED:
+                    if (
+                        any(_is_private(part) for part in alias.name.split("."))
+                        and (alias.name, "") not in FOREIGN_PRIVATE_ALLOWED
+                    ):
                         bad.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno}: import {alias.name}")
     assert not bad, "private names imported across modules:\n" + "\n".join(bad)
 

@@ -12,11 +12,11 @@ import json
 import numpy as np
 import pinocchio as pin
 import pytest
+from test_rigs import SIGMA_TASK, _loops, _setup, scale_error
 
 from closedloop import CalibrationOptions, calibrate
 from closedloop.errors import LoopError
 from closedloop.problem.lengths import LengthLoop, parse_lengths
-from test_rigs import SIGMA_TASK, _loops, _setup, scale_error
 
 
 @pytest.fixture(scope="module")
@@ -63,8 +63,9 @@ def test_length_through_held_values_is_suspect(rig):
     res = _calibrate(rig, "panda_link1", "panda_link3")
     assert res.verdict.status == "suspect"
     assert res.length_leak > 1e-3
-    assert any("also changes with" in w and "which the loops cannot see" in w for w in res.verdict.reasons), \
+    assert any("also changes with" in w and "which the loops cannot see" in w for w in res.verdict.reasons), (
         res.verdict.describe()
+    )
     assert abs(scale_error(res, rig[0])) > 0.003  # it was right to distrust it
 
 
@@ -111,9 +112,24 @@ def test_cli_length(rig, tmp_path, capsys):
     rig_, robot, log, tmp = rig
     files = rig_.write(tmp_path)
     L = true_length(rig_, "panda_link2", "panda_link4")
-    argv = ["calibrate", str(tmp / "nominal.urdf"), "--joints", ",".join(rig_.joints), "--cv", "0", "--lofo", "off",
-            "--length", "panda_link2", "panda_link4", f"{L!r}", "--out", str(tmp_path / "cal.urdf"),
-            "--report", str(tmp_path / "rep.json")]
+    argv = [
+        "calibrate",
+        str(tmp / "nominal.urdf"),
+        "--joints",
+        ",".join(rig_.joints),
+        "--cv",
+        "0",
+        "--lofo",
+        "off",
+        "--length",
+        "panda_link2",
+        "panda_link4",
+        f"{L!r}",
+        "--out",
+        str(tmp_path / "cal.urdf"),
+        "--report",
+        str(tmp_path / "rep.json"),
+    ]
     for f in files:
         argv += ["--loop", f"point:frame=ball,name={f.stem},tip=@ball,log={f}"]
     assert main(argv) == 0

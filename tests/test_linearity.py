@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
+from closedloop.analysis.linearity import K, profile
 from closedloop.io.logs import JointLog
-from closedloop.problem.lengths import LengthLoop
-from closedloop.analysis.linearity import HOLDS, K, profile
 from closedloop.loops.spec import parse_loop
+from closedloop.problem.lengths import LengthLoop
 
 
 class _Residual:
@@ -23,7 +23,7 @@ class _Residual:
 
 
 def _covariance(J, noise):
-    return np.linalg.inv(J.T @ J) * noise ** 2
+    return np.linalg.inv(J.T @ J) * noise**2
 
 
 def test_a_linear_problem_rises_by_k_squared_over_two():

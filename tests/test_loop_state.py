@@ -30,8 +30,12 @@ SPECS = {
 
 def _same(a, b) -> bool:
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-        return isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.shape == b.shape and bool(
-            np.array_equal(a, b, equal_nan=True))
+        return (
+            isinstance(a, np.ndarray)
+            and isinstance(b, np.ndarray)
+            and a.shape == b.shape
+            and bool(np.array_equal(a, b, equal_nan=True))
+        )
     if isinstance(a, dict):
         return isinstance(b, dict) and a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
     if isinstance(a, (list, tuple)):
@@ -59,8 +63,8 @@ def test_every_loop_type_is_covered():
 
 @pytest.mark.parametrize("kind", sorted(SPECS))
 def test_loop_is_unchanged_by_prepare_initialize_evaluate(panda, kind):
-    from closedloop.calibration import build_problem
     from closedloop.analysis.selection import initial_values
+    from closedloop.calibration import build_problem
 
     rng = np.random.default_rng(0)
     lp = parse_loop(SPECS[kind], panda)
@@ -68,8 +72,11 @@ def test_loop_is_unchanged_by_prepare_initialize_evaluate(panda, kind):
     before = {k: copy.deepcopy(v) if isinstance(v, (np.ndarray, list, dict, tuple)) else v for k, v in before.items()}
     th = Q0 + rng.normal(0.0, 0.05, (12, 7))
     extra = {c: rng.normal(0.0, 0.1, len(th)) for c in lp.columns()}
-    log = JointLog([f"panda_joint{i}" for i in range(1, 8)], th, None, None, extra) if extra else \
-        JointLog([f"panda_joint{i}" for i in range(1, 8)], th)
+    log = (
+        JointLog([f"panda_joint{i}" for i in range(1, 8)], th, None, None, extra)
+        if extra
+        else JointLog([f"panda_joint{i}" for i in range(1, 8)], th)
+    )
     problem = build_problem(panda, log, [lp])
     x = initial_values(problem, {})
     problem.evaluate(x, True)
@@ -88,8 +95,12 @@ def test_results_carry_the_prepared_hinge(panda):
     lp = parse_loop("hinge:frame=panda_hand,name=door", panda)
     assert isinstance(lp, HingeLoop) and not lp.fitted
     logs = []
-    for k, axis in enumerate([(np.array([0.5, 0.4, 0.6]), np.array([0.0, 0.0, 1.0])),
-                              (np.array([0.2, -0.5, 0.4]), np.array([0.3, 0.1, 1.0]))]):
+    for k, axis in enumerate(
+        [
+            (np.array([0.5, 0.4, 0.6]), np.array([0.0, 0.0, 1.0])),
+            (np.array([0.2, -0.5, 0.4]), np.array([0.3, 0.1, 1.0])),
+        ]
+    ):
         from closedloop.problem.problem import CalibrationProblem, LoopBlock
         from closedloop.studies.synthetic import self_motion
 

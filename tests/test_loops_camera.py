@@ -9,8 +9,8 @@ import pinocchio as pin
 import pytest
 
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate
-from closedloop.io.logs import JointLog
 from closedloop.errors import LoopError
+from closedloop.io.logs import JointLog
 from closedloop.loops.camera.loop import CameraLoop, camera_from_dlt, project
 from closedloop.loops.common import relative_point
 from closedloop.loops.spec import parse_loop
@@ -76,8 +76,9 @@ def camera_experiment(make, Xs, Ks, th, path=UR5, sigma_px=None, noise_q=None, s
     pixels from the true robot and cameras, calibration from nominal with default starts."""
     robot = robot_of(path)
     loop = make()
-    joints = sorted({j for f in (loop.frame_a, loop.frame_b) for j in robot.supporting_joints(f)},
-                    key=robot.joint_names.index)
+    joints = sorted(
+        {j for f in (loop.frame_a, loop.frame_b) for j in robot.supporting_joints(f)}, key=robot.joint_names.index
+    )
     rng = np.random.default_rng(seed)
     zeros = {c: np.zeros(len(th)) for c in loop.columns()}
     prob = build_problem(robot, JointLog(joints, th, None, None, zeros), [make()])
@@ -116,11 +117,13 @@ JAC_CASES = {
     "mono_known_K": lambda: CameraLoop("c", "tool0", K=[K1], initial_poses=[X1], sigma_px=0.3),
     "mono_known_tip": lambda: CameraLoop("c", "tool0", initial_poses=[X1], tip=TIP),
     "stereo": lambda: CameraLoop("c", "tool0", cameras=2, initial_poses=[X1, X2], initial_K=[K1, K2]),
-    "stereo_rig": lambda: CameraLoop("c", "tool0", cameras=2, K=[K1, None], initial_poses=[X1, None],
-                                     rig=X1.inverse() * X2),
+    "stereo_rig": lambda: CameraLoop(
+        "c", "tool0", cameras=2, K=[K1, None], initial_poses=[X1, None], rig=X1.inverse() * X2
+    ),
     "stereo_known_pose": lambda: CameraLoop("c", "tool0", cameras=2, poses=[X1, None], initial_poses=[None, X2]),
-    "stereo_on_link": lambda: CameraLoop("c", "tool0", "upper_arm_link", cameras=2, initial_poses=[X1, X2],
-                                         K=[K1, None]),
+    "stereo_on_link": lambda: CameraLoop(
+        "c", "tool0", "upper_arm_link", cameras=2, initial_poses=[X1, X2], K=[K1, None]
+    ),
 }
 
 
@@ -160,8 +163,11 @@ def test_stereo_known_intrinsics_recovery():
     The pinhole projection is invariant under scaling, so the length scale is
     not fixed by the cameras (thesis 5.4, eq. 5.27): one robot length is fixed.
     """
-    make = lambda: parse_loop(f'camera:frame=tool0,name=cam,cameras=2,K1="{" ".join(map(str, K1))}",'  # noqa: E731
-                              f'K2="{" ".join(map(str, K2))}",sigma_px=0.3', robot_of(UR5))
+    make = lambda: parse_loop(
+        f'camera:frame=tool0,name=cam,cameras=2,K1="{" ".join(map(str, K1))}",'  # noqa: E731
+        f'K2="{" ".join(map(str, K2))}",sigma_px=0.3',
+        robot_of(UR5),
+    )
     res, truth = camera_experiment(make, [X1, X2], [K1, K2], ur5_readings(40))
     est, err = estimated_errors(res, truth)
     assert np.abs(err).max() < 1e-8
@@ -187,8 +193,13 @@ def test_stereo_rig_fixes_length_scale():
     loop = CameraLoop("cam", "tool0", cameras=2, K=[K1, K2], rig=X1.inverse() * X2)
     assert loop.scale_free is False
     assert CameraLoop("cam", "tool0", cameras=2, K=[K1, K2]).scale_free is True
-    res, truth = camera_experiment(lambda: CameraLoop("cam", "tool0", cameras=2, K=[K1, K2], rig=X1.inverse() * X2),
-                                   [X1, X2], [K1, K2], ur5_readings(40), rig=True)
+    res, truth = camera_experiment(
+        lambda: CameraLoop("cam", "tool0", cameras=2, K=[K1, K2], rig=X1.inverse() * X2),
+        [X1, X2],
+        [K1, K2],
+        ur5_readings(40),
+        rig=True,
+    )
     est, err = estimated_errors(res, truth)
     assert np.abs(err).max() < 1e-8
     assert not any("length scale" in n for n in res.notes)
@@ -217,11 +228,14 @@ def test_pixel_noise_within_four_sigma(cameras):
 # ---------------------------------------------------------------- a camera on a robot frame
 def test_stereo_head_on_baxter():
     """A stereo pair on Baxter's head (frame B = head, moved by head_pan) tracking the left gripper."""
-    robot = robot_of(BAXTER)
     rng = np.random.default_rng(4)
     N = 60
-    th = np.column_stack([rng.uniform(-0.3, 0.3, N),  # head_pan
-                          np.array([0.3, -0.5, -0.5, 1.5, 0.3, 0.8, 0.2]) + rng.uniform(-0.4, 0.4, (N, 7))])
+    th = np.column_stack(
+        [
+            rng.uniform(-0.3, 0.3, N),  # head_pan
+            np.array([0.3, -0.5, -0.5, 1.5, 0.3, 0.8, 0.2]) + rng.uniform(-0.4, 0.4, (N, 7)),
+        ]
+    )
     # cameras in the head frame, 6 cm either side of its x axis, looking ahead and down at the workspace
     Xs = [look_at([0.12, 0.06, 0.08], [0.8, 0.35, -0.5]), look_at([0.12, -0.06, 0.08], [0.8, 0.35, -0.5])]
     make = lambda: CameraLoop("cam", "left_gripper", "head", cameras=2, K=[K1, K2])  # noqa: E731
@@ -231,8 +245,16 @@ def test_stereo_head_on_baxter():
     # of the very Pinocchio calls that made the data, 2.3e-8 with 1e-15 rad added to the readings or with
     # the poses read off the kinematic regressors (1e-15 m from Pinocchio's)
     assert np.abs(err).max() < 1e-7
-    assert res.problem.joints == ["head_pan", "left_s0", "left_s1", "left_e0", "left_e1", "left_w0", "left_w1",
-                                  "left_w2"]
+    assert res.problem.joints == [
+        "head_pan",
+        "left_s0",
+        "left_s1",
+        "left_e0",
+        "left_e1",
+        "left_w0",
+        "left_w1",
+        "left_w2",
+    ]
     # only the arm base relative to the head pan axis is seen: the head_pan placement and offset are absorbed
     # (by left_s0's placement and the cameras), one length sets the scale
     assert {f"head_pan.{f}" for f in ("x", "y", "rx", "ry", "rz", "offset")} <= dropped_names(res) | {res.gauge}
@@ -251,8 +273,7 @@ def test_initialize_recovers_cameras_at_the_nominal_robot():
     th = ur5_readings(12, seed=5)
     for K, init_K in (([None], None), ([K1], None), ([None], [K1 * 1.1])):
         loop = CameraLoop("cam", "tool0", K=K, initial_K=init_K)
-        prob = build_problem(robot, JointLog(joints, th, None, None, {c: np.zeros(12) for c in loop.columns()}),
-                             [loop])
+        prob = build_problem(robot, JointLog(joints, th, None, None, {c: np.zeros(12) for c in loop.columns()}), [loop])
         uv = loop.measurements(pixels(prob, prob.nominal, th, [X1], [K1]), np.arange(len(th)))
         TA, TB = prob.loop_poses(prob.nominal, 0)
         p = loop.initialize(TA, TB, uv)
@@ -275,8 +296,7 @@ def test_initialize_recovers_cameras_at_the_nominal_robot():
     # five configurations: no DLT, the given guess is the start
     guess = X1 * pin.SE3(pin.exp3(np.array([0.02, -0.01, 0.03])), np.array([0.03, 0.02, -0.05]))
     loop = CameraLoop("cam", "tool0", K=[K1], initial_poses=[guess], initial_tip=TIP)
-    prob = build_problem(robot, JointLog(joints, th[:5], None, None, {c: np.zeros(5) for c in loop.columns()}),
-                         [loop])
+    prob = build_problem(robot, JointLog(joints, th[:5], None, None, {c: np.zeros(5) for c in loop.columns()}), [loop])
     uv = loop.measurements(pixels(prob, prob.nominal, th[:5], [X1], [K1]), np.arange(5))
     TA, TB = prob.loop_poses(prob.nominal, 0)
     p = loop.initialize(TA, TB, uv)
@@ -286,39 +306,51 @@ def test_initialize_recovers_cameras_at_the_nominal_robot():
 # ---------------------------------------------------------------- specs, errors, reporting
 def test_spec():
     robot = robot_of(UR5)
-    lp = parse_loop('camera:frame=tool0,name=eye,cameras=2,K1="800 780 320 240",K2_0="900 900 330 250",'
-                    'pose1="2 0.3 0.8 0 0 0",sigma_px=0.5', robot)
+    lp = parse_loop(
+        'camera:frame=tool0,name=eye,cameras=2,K1="800 780 320 240",K2_0="900 900 330 250",'
+        'pose1="2 0.3 0.8 0 0 0",sigma_px=0.5',
+        robot,
+    )
     assert isinstance(lp, CameraLoop) and lp.cameras == 2 and lp.dim == 4
     assert lp.columns() == ["eye:u1", "eye:v1", "eye:u2", "eye:v2"]
     names = [p.name for p in lp.parameters()]
     assert names[:6] == [f"eye.cam1.{f}" for f in COLS] and names[6:12] == [f"eye.cam2.{f}" for f in COLS]
-    assert names[12:] == ["eye.cam2.fx", "eye.cam2.fy", "eye.cam2.cx", "eye.cam2.cy", "eye.tip_x", "eye.tip_y",
-                          "eye.tip_z"]
+    assert names[12:] == [
+        "eye.cam2.fx",
+        "eye.cam2.fy",
+        "eye.cam2.cx",
+        "eye.cam2.cy",
+        "eye.tip_x",
+        "eye.tip_y",
+        "eye.tip_z",
+    ]
     assert [p.unit for p in lp.parameters()][12:16] == ["px"] * 4
     assert np.allclose(lp.measurement_cov, 0.25 * np.eye(4))
     assert lp.translation_rows == () and lp.rotation_rows == () and lp.pixel_rows == (0, 1, 2, 3)
     assert lp.scale_free
     lp = parse_loop('camera:frame=tool0,to=upper_arm_link,tip="0 0 0.1",K1="800 800 320 240"', robot)
     assert lp.frame_b == "upper_arm_link" and [p.name for p in lp.parameters()] == [f"camera.cam1.{f}" for f in COLS]
-    lp = parse_loop('camera:frame=tool0,cameras=2,rig="0.1 0 0 0 0 0",K1="800 800 320 240",K2="800 800 320 240"',
-                    robot)
+    lp = parse_loop('camera:frame=tool0,cameras=2,rig="0.1 0 0 0 0 0",K1="800 800 320 240",K2="800 800 320 240"', robot)
     assert not lp.scale_free and len(lp.parameters()) == 9
 
 
-@pytest.mark.parametrize("spec, key", [
-    ("camera:to=tool0", "frame"),
-    ("camera:frame=tool0,cameras=3", "cameras"),
-    ('camera:frame=tool0,K1="800 800 320"', "K1"),
-    ('camera:frame=tool0,K1="-800 800 320 240"', "K1"),
-    ('camera:frame=tool0,K2="800 800 320 240"', "K2"),
-    ('camera:frame=tool0,K1="800 800 320 240",K1_0="800 800 320 240"', "K1_0"),
-    ('camera:frame=tool0,pose1="1 2 3"', "pose1"),
-    ('camera:frame=tool0,rig="0 0 0 0 0 0"', "rig"),
-    ('camera:frame=tool0,cameras=2,rig="0.1 0 0 0 0 0",pose2="1 0 0 0 0 0"', "pose"),
-    ("camera:frame=tool0,sigma_px=-1", "sigma_px"),
-    ("camera:frame=tool0,sigma_px=abc", "sigma_px"),
-    ("camera:frame=tool0,focal=800", "focal"),
-])
+@pytest.mark.parametrize(
+    "spec, key",
+    [
+        ("camera:to=tool0", "frame"),
+        ("camera:frame=tool0,cameras=3", "cameras"),
+        ('camera:frame=tool0,K1="800 800 320"', "K1"),
+        ('camera:frame=tool0,K1="-800 800 320 240"', "K1"),
+        ('camera:frame=tool0,K2="800 800 320 240"', "K2"),
+        ('camera:frame=tool0,K1="800 800 320 240",K1_0="800 800 320 240"', "K1_0"),
+        ('camera:frame=tool0,pose1="1 2 3"', "pose1"),
+        ('camera:frame=tool0,rig="0 0 0 0 0 0"', "rig"),
+        ('camera:frame=tool0,cameras=2,rig="0.1 0 0 0 0 0",pose2="1 0 0 0 0 0"', "pose"),
+        ("camera:frame=tool0,sigma_px=-1", "sigma_px"),
+        ("camera:frame=tool0,sigma_px=abc", "sigma_px"),
+        ("camera:frame=tool0,focal=800", "focal"),
+    ],
+)
 def test_bad_spec_one_line_error(spec, key):
     with pytest.raises(LoopError) as exc:
         parse_loop(spec, robot_of(UR5))

@@ -12,12 +12,12 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
-
 from camera_head_support import FRAMES, K_TRUE, MARKER, MOUNT, head_case, head_readings, head_robot, run_head
-from closedloop.calibration import CalibrationOptions, build_problem, calibrate
-from closedloop.io.logs import JointLog
-from closedloop.errors import LoopError
+
 from closedloop.analysis.gauge import length_of
+from closedloop.calibration import CalibrationOptions, build_problem, calibrate
+from closedloop.errors import LoopError
+from closedloop.io.logs import JointLog
 from closedloop.loops.camera.loop import CameraLoop
 from closedloop.loops.spec import parse_loop
 
@@ -25,17 +25,48 @@ D = np.array([-0.2, 0.07, 0.001, -0.0007, -0.01])
 RIG = pin.SE3(pin.exp3(np.array([0.0, -0.1, 0.0])), np.array([0.18, 0.0, 0.0]))  # camera 2 in camera 1
 JAC_CASES = {
     "reprojection": lambda: CameraLoop("c", "tool0", camera_frames=FRAMES, initial_poses=MOUNT, initial_K=K_TRUE),
-    "reprojection_dist_tip": lambda: CameraLoop("c", "tool0", camera_frames=FRAMES, initial_poses=MOUNT,
-                                                K=[K_TRUE[0], None], initial_K=[None, K_TRUE[1]],
-                                                dist=("k1", "p2", "k3"), D=[D, D], initial_tip=MARKER),
-    "triangulation": lambda: CameraLoop("c", "tool0", camera_frames=FRAMES, initial_poses=MOUNT, initial_K=K_TRUE,
-                                        closure="triangulation", initial_tip=MARKER),
-    "triangulation_dist": lambda: CameraLoop("c", "tool0", camera_frames=FRAMES, initial_poses=MOUNT, initial_K=K_TRUE,
-                                             closure="triangulation", dist=("k1", "k2", "p1"), D=[D, -D],
-                                             initial_tip=MARKER),
-    "triangulation_rig": lambda: CameraLoop("c", "tool0", "cam_left_optical", cameras=2, K=K_TRUE,
-                                            initial_poses=[MOUNT[0], None], rig=RIG, closure="triangulation",
-                                            initial_tip=MARKER),
+    "reprojection_dist_tip": lambda: CameraLoop(
+        "c",
+        "tool0",
+        camera_frames=FRAMES,
+        initial_poses=MOUNT,
+        K=[K_TRUE[0], None],
+        initial_K=[None, K_TRUE[1]],
+        dist=("k1", "p2", "k3"),
+        D=[D, D],
+        initial_tip=MARKER,
+    ),
+    "triangulation": lambda: CameraLoop(
+        "c",
+        "tool0",
+        camera_frames=FRAMES,
+        initial_poses=MOUNT,
+        initial_K=K_TRUE,
+        closure="triangulation",
+        initial_tip=MARKER,
+    ),
+    "triangulation_dist": lambda: CameraLoop(
+        "c",
+        "tool0",
+        camera_frames=FRAMES,
+        initial_poses=MOUNT,
+        initial_K=K_TRUE,
+        closure="triangulation",
+        dist=("k1", "k2", "p1"),
+        D=[D, -D],
+        initial_tip=MARKER,
+    ),
+    "triangulation_rig": lambda: CameraLoop(
+        "c",
+        "tool0",
+        "cam_left_optical",
+        cameras=2,
+        K=K_TRUE,
+        initial_poses=[MOUNT[0], None],
+        rig=RIG,
+        closure="triangulation",
+        initial_tip=MARKER,
+    ),
 }
 
 
@@ -113,8 +144,9 @@ def test_named_length_sets_the_scale():
     L = length_of(res.problem, res.values, g)
     assert abs(L) > 0.01
     longer = 1.05 * L - res.problem.params[g].scales_with_length
-    res2, _, _ = run_head(case, make, options=CalibrationOptions(weighting="none", robust=None,
-                                                                  fix={res.gauge: longer}))
+    res2, _, _ = run_head(
+        case, make, options=CalibrationOptions(weighting="none", robust=None, fix={res.gauge: longer})
+    )
     assert res2.residuals_after[0].max_px < 1e-6
     tip = [np.linalg.norm([r.value(f"cam.tip_{a}") for a in "xyz"]) for r in (res, res2)]
     assert tip[1] > 1.02 * tip[0]
@@ -139,8 +171,9 @@ def test_standard_errors_match_monte_carlo_spread():
     case = head_case(make, N=50, seed=5, options=NOISE_FREE)
     z2 = []
     for draw in range(6):
-        res, est, err = run_head(case, make, sigma_px=0.3, noise_q=5e-5, seed=100 + draw,
-                                 options=CalibrationOptions(noise=5e-5, robust=None))
+        res, est, err = run_head(
+            case, make, sigma_px=0.3, noise_q=5e-5, seed=100 + draw, options=CalibrationOptions(noise=5e-5, robust=None)
+        )
         assert res.converged
         scale_free = np.array([res.problem.params[i].unit != "m" for i in est])
         z2.append(np.mean((err / res.std[est])[scale_free] ** 2))
@@ -149,19 +182,23 @@ def test_standard_errors_match_monte_carlo_spread():
 
 def test_head_spec_and_errors():
     robot = head_robot()
-    lp = parse_loop("camera:frame=tool0,to=cam_left_optical+cam_right_optical,closure=triangulation,sigma_px=0.5",
-                    robot)
+    lp = parse_loop(
+        "camera:frame=tool0,to=cam_left_optical+cam_right_optical,closure=triangulation,sigma_px=0.5", robot
+    )
     assert lp.frames == ("tool0", "cam_left_optical", "cam_right_optical") and lp.cameras == 2 and lp.dim == 3
     assert lp.translation_rows == (0, 1, 2) and lp.pixel_rows == () and lp.measurement_cov is None
-    lp = parse_loop("camera:frame=tool0,to=cam_left_optical+cam_right_optical+cam_left_link,K3=\"500 500 320 240\"",
-                    robot)
+    lp = parse_loop(
+        'camera:frame=tool0,to=cam_left_optical+cam_right_optical+cam_left_link,K3="500 500 320 240"', robot
+    )
     assert lp.cameras == 3 and lp.dim == 6 and lp.columns()[-2:] == ["camera:u3", "camera:v3"]
-    for spec, key in (("camera:frame=tool0,to=cam_left_optical+,", "to="),
-                      ("camera:frame=tool0,to=cam_left_optical+cam_right_optical,cameras=3", "cameras"),
-                      ("camera:frame=tool0,to=cam_left_optical,closure=triangulation", "triangulation"),
-                      ("camera:frame=tool0,to=cam_left_optical,closure=stereo", "closure"),
-                      ("camera:frame=tool0,to=cam_left_optical+cam_right_optical,rig=\"0 0 0 0 0 0\"", "rig"),
-                      ("camera:frame=tool0,to=cam_left_optical+nowhere", "nowhere")):
+    for spec, key in (
+        ("camera:frame=tool0,to=cam_left_optical+,", "to="),
+        ("camera:frame=tool0,to=cam_left_optical+cam_right_optical,cameras=3", "cameras"),
+        ("camera:frame=tool0,to=cam_left_optical,closure=triangulation", "triangulation"),
+        ("camera:frame=tool0,to=cam_left_optical,closure=stereo", "closure"),
+        ('camera:frame=tool0,to=cam_left_optical+cam_right_optical,rig="0 0 0 0 0 0"', "rig"),
+        ("camera:frame=tool0,to=cam_left_optical+nowhere", "nowhere"),
+    ):
         with pytest.raises(LoopError, match=key) as exc:
             parse_loop(spec, robot)
         assert "\n" not in str(exc.value)

@@ -10,13 +10,13 @@ import pinocchio as pin
 import pytest
 
 from closedloop.calibration import CalibrationOptions, calibrate
-from closedloop.io.logs import JointLog
 from closedloop.errors import LoopError
+from closedloop.io.logs import JointLog
 from closedloop.loops.hinge import HingeLoop
 from closedloop.loops.passive import PassiveChainLoop
 from closedloop.loops.spec import parse_loop
-from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.model.robot import RobotModel
+from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.studies.synthetic import close, self_motion
 from closedloop.studies.truth import draw_truth
 
@@ -79,13 +79,18 @@ def _fd_gradient_error(prob, x, h=1e-6):
         xp, xm = x.copy(), x.copy()
         xp[k] += h
         xm[k] -= h
-        gfd[k] = 0.5 * (np.sum(prob.evaluate(xp, False)[0].r ** 2) - np.sum(prob.evaluate(xm, False)[0].r ** 2)) / (2 * h)
+        gfd[k] = (
+            0.5 * (np.sum(prob.evaluate(xp, False)[0].r ** 2) - np.sum(prob.evaluate(xm, False)[0].r ** 2)) / (2 * h)
+        )
     return float(np.abs(g - gfd).max() / np.abs(g).max()), float(np.abs(ev.r).max())
 
 
 def _estimated_errors(res, truth, prob):
-    return {n: float(res.values[i] - truth[prob.index[n]])
-            for i, (n, s) in enumerate(zip(res.names, res.status)) if s == "estimated"}
+    return {
+        n: float(res.values[i] - truth[prob.index[n]])
+        for i, (n, s) in enumerate(zip(res.names, res.status))
+        if s == "estimated"
+    }
 
 
 # ------------------------------------------------------------------ hinge
@@ -138,8 +143,9 @@ def test_hinge_angle_elimination_is_exact_far_from_closure(robot, joints, hinge_
     H, G = lp.hinge(p), lp.grasp(p)
     for i, phi in enumerate(phis):
         M = pin.SE3(TB[i]).actInv(pin.SE3(TA[i]))
-        cost = lambda a: float(np.sum(pin.log6((H * pin.SE3(pin.exp3(np.array([0, 0, a])), np.zeros(3)) * G)
-                                               .actInv(M)).vector ** 2))
+        cost = lambda a: float(
+            np.sum(pin.log6((H * pin.SE3(pin.exp3(np.array([0, 0, a])), np.zeros(3)) * G).actInv(M)).vector ** 2)
+        )
         grid = np.linspace(phi - 0.3, phi + 0.3, 601)
         assert cost(phi) <= min(cost(a) for a in grid) + 1e-15
 
@@ -152,8 +158,7 @@ def test_hinge_recovery_from_far_initial_guess(robot, joints, hinge_truth):
     init = {n: 0.0 for n in names[:4]}  # the reference axis, ~0.1 rad and 2 cm from the true one
     for k, n in enumerate(names[4:]):
         init[n] = float(truth[sl][4 + k] + (0.02 if k < 2 else 0.05 * (-1) ** k))
-    res = calibrate(robot, JointLog(joints, th), [HingeLoop("door", TOOL, axis=AXIS)],
-                    CalibrationOptions(initial=init))
+    res = calibrate(robot, JointLog(joints, th), [HingeLoop("door", TOOL, axis=AXIS)], CalibrationOptions(initial=init))
     assert res.converged
     err = _estimated_errors(res, truth, prob)
     assert all(n in err for n in names)  # every hinge parameter is estimated
@@ -218,8 +223,9 @@ def test_passive_jacobians_match_finite_differences(robot, joints, door_truth):
     assert _fd_jacobian_error(prob, truth) < 1e-6
     assert _fd_readings_error(prob, truth) < 1e-6
     x = truth.copy()
-    x[prob.loop_slices[0]] += np.random.default_rng(3).uniform(-0.01, 0.01, prob.loop_slices[0].stop
-                                                                - prob.loop_slices[0].start)
+    x[prob.loop_slices[0]] += np.random.default_rng(3).uniform(
+        -0.01, 0.01, prob.loop_slices[0].stop - prob.loop_slices[0].start
+    )
     err, rmax = _fd_gradient_error(prob, x)
     assert rmax > 1e-3 and err < 1e-6
 
@@ -253,9 +259,12 @@ def test_passive_solves_task_angles(robot, joints, door_truth):
 
 def test_passive_refuses_more_than_five_dof(tmp_path):
     links = "".join(f'<link name="l{i}"/>' for i in range(7))
-    jts = "".join(f'<joint name="j{i}" type="revolute"><parent link="l{i}"/><child link="l{i + 1}"/>'
-                  f'<axis xyz="0 0 1"/><origin xyz="0.1 0 0"/><limit lower="-1" upper="1" effort="0" velocity="1"/>'
-                  f'</joint>' for i in range(6))
+    jts = "".join(
+        f'<joint name="j{i}" type="revolute"><parent link="l{i}"/><child link="l{i + 1}"/>'
+        f'<axis xyz="0 0 1"/><origin xyz="0.1 0 0"/><limit lower="-1" upper="1" effort="0" velocity="1"/>'
+        f"</joint>"
+        for i in range(6)
+    )
     path = tmp_path / "arm6.urdf"
     path.write_text(f'<robot name="arm6">{links}{jts}</robot>')
     with pytest.raises(LoopError, match=r"arm6\.urdf has 6 passive DOF"):
@@ -292,7 +301,7 @@ def test_specs(robot):
     lp = parse_loop(f'passive:frame=panda_hand,task={TASKS / "door.urdf"},task_frame=grip,q0="0.3 0.1"', robot)
     assert isinstance(lp, PassiveChainLoop) and lp.dof == 2 and np.allclose(lp.q0, Q0)
     with pytest.raises(LoopError, match="task_frame"):
-        parse_loop(f'passive:frame=panda_hand,task={TASKS / "door.urdf"}', robot)
+        parse_loop(f"passive:frame=panda_hand,task={TASKS / 'door.urdf'}", robot)
     with pytest.raises(LoopError, match="axis"):
         parse_loop('hinge:frame=panda_hand,axis="1 2 3"', robot)
 
@@ -380,23 +389,31 @@ def _ref_passive(lp, TA, TB, p, cache):
 
     def pose(q):
         pin.computeJointJacobians(model, data, q)
-        return base * pin.updateFramePlacement(model, data, lp.fid), pin.getFrameJacobian(model, data, lp.fid,
-                                                                                           pin.LOCAL)
+        return base * pin.updateFramePlacement(model, data, lp.fid), pin.getFrameJacobian(
+            model, data, lp.fid, pin.LOCAL
+        )
+
     G = np.zeros((6 * nj, 6 * nj))
     for j in range(nj):
-        G[6 * j:6 * j + 6, 6 * j:6 * j + 6] = pin.Jexp6(p[6 + 6 * j:12 + 6 * j])
+        G[6 * j : 6 * j + 6, 6 * j : 6 * j + 6] = pin.Jexp6(p[6 + 6 * j : 12 + 6 * j])
     out, prev = [[] for _ in range(5)], None
     for i, (TAi, TBi) in enumerate(zip(map(pin.SE3, TA), map(pin.SE3, TB))):
         M = TBi.actInv(TAi)
         starts = ([cache[i]] if cache is not None else []) + ([prev] if prev is not None else []) + [lp.q0]
-        q, ri, Jl, E, Jq, _ = _ref_eliminate(M, pose, starts, lambda a, d: pin.integrate(model, a, d),
-                                             snap=lambda a: pin.normalize(model, np.round(a, 8)))
+        q, ri, Jl, E, Jq, _ = _ref_eliminate(
+            M,
+            pose,
+            starts,
+            lambda a, d: pin.integrate(model, a, d),
+            snap=lambda a: pin.normalize(model, np.round(a, 8)),
+        )
         prev = q
         r, dA, dB, dX = _ref_rows(M, q, ri, Jl, E, Jq, TAi, TBi)
         pose(q)
         Reg = pin.computeFrameKinematicRegressor(model, data, lp.fid, pin.LOCAL)
-        dp = np.hstack([dX @ data.oMf[lp.fid].inverse().action @ pin.Jexp6(p[0:6]), dX @ Reg @ G,
-                        dX @ pin.Jexp6(p[6 + 6 * nj:])])
+        dp = np.hstack(
+            [dX @ data.oMf[lp.fid].inverse().action @ pin.Jexp6(p[0:6]), dX @ Reg @ G, dX @ pin.Jexp6(p[6 + 6 * nj :])]
+        )
         for lst, v in zip(out, (q, r, dA, dB, dp)):
             lst.append(v)
     return [np.array(v) for v in out]
@@ -414,9 +431,15 @@ def test_hinge_batched_elimination_equals_per_configuration_reference(off):
     truth = np.concatenate([rng.normal(0, 0.05, 4), [0.4, 0.1], rng.normal(0, 0.3, 3)])
     H, G = lp.hinge(truth), lp.grasp(truth)
     TB = _random_poses(rng, 60)
-    TA = np.array([tb @ (H * pin.SE3(pin.exp3(np.array([0, 0, a])), np.zeros(3)) * G
-                         * pin.exp6(rng.normal(0, off, 6))).homogeneous
-                   for tb, a in zip(TB, rng.uniform(-3.0, 3.0, 60))])
+    TA = np.array(
+        [
+            tb
+            @ (
+                H * pin.SE3(pin.exp3(np.array([0, 0, a])), np.zeros(3)) * G * pin.exp6(rng.normal(0, off, 6))
+            ).homogeneous
+            for tb, a in zip(TB, rng.uniform(-3.0, 3.0, 60))
+        ]
+    )
     p = truth + rng.normal(0, 0.02, 9)
     ev = lp.evaluate(TA, TB, p)
     phi, r, dA, dB, dp, it = _ref_hinge(lp, TA, TB, p)
@@ -488,6 +511,7 @@ def test_projector_and_step_equal_the_svd_pseudo_inverse_also_when_rank_deficien
     def pose(phi):
         X = np.array([pin.exp6(B @ f).homogeneous for f in phi])
         return X, np.array([pin.Jexp6(B @ f) @ B for f in phi])
+
     phi_true = np.array([[0.1, 0.2], [-0.3, 0.05]])
     M = pose(phi_true)[0]
     el = gauss_newton(M, pose, np.zeros((2, 2)))

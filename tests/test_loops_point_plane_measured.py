@@ -7,21 +7,21 @@ import site
 import numpy as np
 import pinocchio as pin
 import pytest
+from support import relative_fk_error
 
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate
-from closedloop.io.logs import JointLog
 from closedloop.errors import LoopError
+from closedloop.io.logs import JointLog
 from closedloop.loops.common import relative_point
 from closedloop.loops.measured import MeasuredPointLoop, MeasuredPoseLoop
 from closedloop.loops.plane import PlaneLoop
 from closedloop.loops.point import PointLoop
 from closedloop.loops.spec import parse_loop
-from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import vec_of
+from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.studies.synthetic import self_motion
 from closedloop.studies.truth import draw_truth, identifiable_names
-from support import relative_fk_error
 
 ERD = site.getsitepackages()[0] + "/cmeel.prefix/share/example-robot-data/robots/"
 UR5 = ERD + "ur_description/urdf/ur5_robot.urdf"
@@ -139,8 +139,9 @@ def test_point_jq_matches_central_differences():
 # ---------------------------------------------------------------- point contact (3.4.1)
 def test_point_contact_ur5_theorem4():
     """6R arm under point contact: noise-free recovery and the Theorem 4 redundancies."""
-    res, truth = closed_experiment(UR5, lambda: PointLoop("ball", "tool0"), UR5_Q0,
-                                   {"ball.tip_x": 0.01, "ball.tip_y": -0.02, "ball.tip_z": 0.12})
+    res, truth = closed_experiment(
+        UR5, lambda: PointLoop("ball", "tool0"), UR5_Q0, {"ball.tip_x": 0.01, "ball.tip_y": -0.02, "ball.tip_z": 0.12}
+    )
     est, err = estimated_errors(res, truth)
     assert np.abs(err).max() < 1e-8
     # 17 robot + tip (3) + contact point (3).  The tip starts from the data (a pivot fit), off the last
@@ -157,13 +158,18 @@ def test_point_contact_ur5_theorem4():
     assert res.verdict.status == "ok"
     # one length fixed (a_0 = -1 in the theorem)
     assert any("length scale" in n for n in res.notes)
-    assert all(res.status[res.names.index(f"ball.{f}")] == "estimated"
-               for f in ("tip_x", "tip_y", "tip_z", "px", "py", "pz"))
+    assert all(
+        res.status[res.names.index(f"ball.{f}")] == "estimated" for f in ("tip_x", "tip_y", "tip_z", "px", "py", "pz")
+    )
 
 
 def test_point_contact_panda():
-    res, truth = closed_experiment(PANDA, lambda: PointLoop("ball", "panda_hand"), PANDA_Q0,
-                                   {"ball.tip_x": 0.01, "ball.tip_y": -0.02, "ball.tip_z": 0.12})
+    res, truth = closed_experiment(
+        PANDA,
+        lambda: PointLoop("ball", "panda_hand"),
+        PANDA_Q0,
+        {"ball.tip_x": 0.01, "ball.tip_y": -0.02, "ball.tip_z": 0.12},
+    )
     est, err = estimated_errors(res, truth)
     assert np.abs(err).max() < 1e-8
     # 21 robot + 6 loop: the tip (12 cm out) starts from the data, off the last axis, whose position and
@@ -177,8 +183,9 @@ def test_point_contact_panda():
 
 def test_point_two_arms_baxter():
     """Baxter's grippers joined point-wise: two branches of one model, 14 joints."""
-    res, truth = closed_experiment(BAXTER, lambda: PointLoop("touch", "left_gripper", "right_gripper"),
-                                   BAXTER_Q0, {"touch.tip_z": 0.02}, n=40)
+    res, truth = closed_experiment(
+        BAXTER, lambda: PointLoop("touch", "left_gripper", "right_gripper"), BAXTER_Q0, {"touch.tip_z": 0.02}, n=40
+    )
     # judged by what the arms do: the touching point in the right gripper, up to the length scale
     pos, _, _ = relative_fk_error(res, [truth[n] for n in res.names], "left_gripper", "right_gripper", tip="touch")
     assert pos < 1e-8
@@ -186,15 +193,22 @@ def test_point_two_arms_baxter():
     # only the relative pose of the two arm bases matters: one base is the gauge
     assert {f"left_s0.{f}" for f in COLS} <= dropped | {res.gauge}
     # the size is held by a named length, or the verdict says that none alone holds it (never silently)
-    assert any("length scale" in n for n in res.notes) or \
-        (res.verdict.status == "suspect" and any("scale is not determined" in r for r in res.verdict.reasons))
+    assert any("length scale" in n for n in res.notes) or (
+        res.verdict.status == "suspect" and any("scale is not determined" in r for r in res.verdict.reasons)
+    )
 
 
 def test_point_contact_noise_within_four_sigma():
     noise = 1e-4
-    res, truth = closed_experiment(UR5, lambda: PointLoop("ball", "tool0"), UR5_Q0,
-                                   {"ball.tip_x": 0.01, "ball.tip_y": -0.02, "ball.tip_z": 0.12},
-                                   n=80, seed=3, noise=noise)
+    res, truth = closed_experiment(
+        UR5,
+        lambda: PointLoop("ball", "tool0"),
+        UR5_Q0,
+        {"ball.tip_x": 0.01, "ball.tip_y": -0.02, "ball.tip_z": 0.12},
+        n=80,
+        seed=3,
+        noise=noise,
+    )
     assert res.converged
     est, err = estimated_errors(res, truth)
     std = res.std[est]
@@ -206,8 +220,9 @@ def test_point_contact_noise_within_four_sigma():
 def test_point_initialize_is_mean_contact_point():
     robot = robot_of(UR5)
     loop = PointLoop("ball", "tool0", tip=[0.0, 0.0, 0.1])
-    prob = CalibrationProblem(robot, robot.supporting_joints("tool0"),
-                              [LoopBlock(loop, np.atleast_2d(UR5_Q0), np.arange(1))])
+    prob = CalibrationProblem(
+        robot, robot.supporting_joints("tool0"), [LoopBlock(loop, np.atleast_2d(UR5_Q0), np.arange(1))]
+    )
     th = np.array(UR5_Q0) + np.random.default_rng(0).normal(scale=0.1, size=(5, 6))
     TA, TB = prob.loop_poses(prob.nominal, 0, th)
     p = loop.initialize(TA, TB)
@@ -261,7 +276,7 @@ def _measurements(prob, values, th, kind, name="m"):
     for i in range(len(th)):
         W = pin.SE3(TB[i]).actInv(pin.SE3(TA[i]))
         v = vec_of(X_TRUE.inverse() * W * Y_TRUE) if kind == "pose" else X_TRUE.actInv(W.act(TIP_TRUE))
-        for k, c in enumerate(COLS[:len(v)]):
+        for k, c in enumerate(COLS[: len(v)]):
             out[f"{name}:{c}"][i] = v[k]
     return out
 
@@ -288,8 +303,10 @@ def measured_experiment(kind, noise_q=None, sigma_t=None, sigma_r=None, N=30, se
         truth[prob.index[k]] = v
     ex = _measurements(prob, truth, th, kind)
     if sigma_t:
-        ex = {k: v + rng.normal(scale=sigma_t if k[-1] in "xyz" and ":r" not in k else sigma_r, size=N)
-              for k, v in ex.items()}
+        ex = {
+            k: v + rng.normal(scale=sigma_t if k[-1] in "xyz" and ":r" not in k else sigma_r, size=N)
+            for k, v in ex.items()
+        }
     thr = th + rng.normal(scale=noise_q, size=th.shape) if noise_q else th
     res = calibrate(robot, JointLog(joints, thr, None, None, ex), [make()], CalibrationOptions(noise=noise_q))
     truth[prob.loop_slices[0]] = np.concatenate([vec_of(X_TRUE), vec_of(Y_TRUE) if kind == "pose" else TIP_TRUE])
@@ -357,16 +374,21 @@ def test_measured_point_default_tip_fit_ur10():
     prob = build_problem(robot, JointLog(joints, th, None, None, zeros), [MeasuredPointLoop("m", "tool0")])
     opts = CalibrationOptions(noise=1e-9)  # the (known) joint noise: none
     # the identifiable set, from nominal data with the true tip given as the starting value
-    ref = calibrate(robot, JointLog(joints, th, None, None, _ur10_point_data(prob.nominal, prob, th)),
-                    [MeasuredPointLoop("m", "tool0", initial_tip=UR10_TIP, sigma_t=1e-5)], opts)
+    ref = calibrate(
+        robot,
+        JointLog(joints, th, None, None, _ur10_point_data(prob.nominal, prob, th)),
+        [MeasuredPointLoop("m", "tool0", initial_tip=UR10_TIP, sigma_t=1e-5)],
+        opts,
+    )
     names = [n for n, s in zip(ref.names, ref.status) if s == "estimated" and not n.startswith("m.")]
     assert "wrist_3_joint.rx" in names and len(names) == 18  # + 9 (base, tip) = 27
     truth = prob.nominal.copy()
     for k, v in draw_truth(robot, names, rng).items():
         truth[prob.index[k]] = v
     data = _ur10_point_data(truth, prob, th)
-    res = calibrate(robot, JointLog(joints, th, None, None, data), [MeasuredPointLoop("m", "tool0", sigma_t=1e-5)],
-                    opts)
+    res = calibrate(
+        robot, JointLog(joints, th, None, None, data), [MeasuredPointLoop("m", "tool0", sigma_t=1e-5)], opts
+    )
     truth[prob.loop_slices[0]] = np.concatenate([vec_of(X_TRUE), UR10_TIP])
     est, err = estimated_errors(res, dict(zip(prob.names, truth)))
     estimated = {res.names[i] for i in est}
@@ -399,8 +421,11 @@ def test_measured_initialize_fits_base_and_tool():
         assert np.allclose(loop.initialize(TA, TB, meas), own, atol=1e-9)
         # explicit initial value: kept, only the base is fitted
         guess = pin.SE3.Identity() if kind == "pose" else np.zeros(3)
-        loop = (MeasuredPoseLoop("m", "tool0", initial_tool=guess) if kind == "pose"
-                else MeasuredPointLoop("m", "tool0", initial_tip=guess))
+        loop = (
+            MeasuredPoseLoop("m", "tool0", initial_tool=guess)
+            if kind == "pose"
+            else MeasuredPointLoop("m", "tool0", initial_tip=guess)
+        )
         p = loop.initialize(TA, TB, meas)
         assert np.allclose(p[6:], 0.0) and not np.allclose(p[:6], vec_of(X_TRUE), atol=1e-4)
 

@@ -13,8 +13,8 @@ import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.calibration import build_problem
-from closedloop.io.logs import JointLog
 from closedloop.errors import LoopError
+from closedloop.io.logs import JointLog
 from closedloop.loops.measured import MeasuredPointLoop
 from closedloop.loops.spec import parse_loop
 from closedloop.models import example_robot_data_dir
@@ -77,8 +77,17 @@ def _measured_log(seed: int = 3, n: int = 40, sigma_t: float = 2e-5):
     zeros = {c: np.zeros(n) for c in cols}
     prob = build_problem(robot, JointLog(joints, th, None, None, zeros), [MeasuredPointLoop("m", "tool0")])
     truth = prob.nominal
-    for k, v in draw_truth(robot, ["shoulder_lift_joint.offset", "elbow_joint.offset", "wrist_1_joint.offset",
-                                   "elbow_joint.x", "wrist_1_joint.y"], rng).items():
+    for k, v in draw_truth(
+        robot,
+        [
+            "shoulder_lift_joint.offset",
+            "elbow_joint.offset",
+            "wrist_1_joint.offset",
+            "elbow_joint.x",
+            "wrist_1_joint.y",
+        ],
+        rng,
+    ).items():
         truth[prob.index[k]] = v
     TA, TB = prob.loop_poses(truth, 0)
     pts = np.array([X_TRUE.actInv(pin.SE3(b).actInv(pin.SE3(a)).act(TIP_TRUE)) for a, b in zip(TA, TB)])

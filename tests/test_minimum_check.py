@@ -15,8 +15,8 @@ import pytest
 
 from closedloop import CalibrationOptions, JointLog, WeldLoop, calibrate
 from closedloop.calibration import analyse_solution
-from closedloop.estimate.stages import ResidualFunction, StageResult
 from closedloop.estimate.staged import Fit
+from closedloop.estimate.stages import ResidualFunction, StageResult
 from closedloop.verdict import judge
 
 
@@ -45,13 +45,14 @@ def test_a_point_off_the_minimum_shows_the_cost_a_step_removes(noisy):
     """Moved by d = 200 standard errors along one well-determined parameter: a Gauss-Newton step removes
     d^2 / (dof + d^2) of the cost (at least: the Mahalanobis distance of the move is at least d), and the
     verdict on such a stop is failed."""
-    k = int(np.nanargmin(noisy.std[noisy.estimated] / np.array([noisy.problem.params[i].prior
-                                                               for i in noisy.estimated])))
+    k = int(
+        np.nanargmin(noisy.std[noisy.estimated] / np.array([noisy.problem.params[i].prior for i in noisy.estimated]))
+    )
     idx = noisy.estimated[k]
     x = noisy.values.copy()
     x[idx] += 200.0 * noisy.std[idx]
     a = _analysed_at(noisy, x)
-    expected = 200.0 ** 2 / (a["dof"] + 200.0 ** 2)
+    expected = 200.0**2 / (a["dof"] + 200.0**2)
     assert expected > 0.8
     assert a["reducible"] >= 0.9 * expected and a["reducible"] < 1.0
     v = judge(replace(noisy, reducible=a["reducible"]))

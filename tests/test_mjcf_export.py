@@ -16,19 +16,22 @@ import pytest
 
 from closedloop.calibration import CalibrationOptions, build_problem, calibrate, residual_stats
 from closedloop.io.logs import JointLog
-from closedloop.output.urdf import write_urdf
-from closedloop.output.mjcf import write_mjcf
 from closedloop.loops import WeldLoop
-from closedloop.models import nominal_urdf
 from closedloop.model.robot import RobotModel
+from closedloop.models import nominal_urdf
+from closedloop.output.mjcf import write_mjcf
+from closedloop.output.urdf import write_urdf
 from closedloop.studies.truth import make_dataset
 
 Q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]
 
 
 def panda_mjcf(path, anchor=None) -> RobotModel:
-    spec = mujoco.MjSpec.from_string(nominal_urdf("panda").replace(
-        "</robot>", '<mujoco><compiler fusestatic="false" discardvisual="true"/></mujoco></robot>'))
+    spec = mujoco.MjSpec.from_string(
+        nominal_urdf("panda").replace(
+            "</robot>", '<mujoco><compiler fusestatic="false" discardvisual="true"/></mujoco></robot>'
+        )
+    )
     if anchor is not None:
         spec.joint("panda_joint4").pos = anchor  # an anchor off the body origin (MJCF allows it, URDF does not)
     path.write_text(spec.to_xml())
@@ -79,14 +82,16 @@ def test_calibrated_mjcf_reloads_and_moves_like_the_fit(fitted):
         mujoco.mj_kinematics(m, data)
         pin.framesForwardKinematics(cal, cd, robot.configurations(theta * k + off, prob.joints)[0])
         T = cd.oMf[fid]
-        worst = max(worst, np.abs(T.translation - data.xpos[bid]).max(),
-                    np.abs(T.rotation - data.xmat[bid].reshape(3, 3)).max())
+        worst = max(
+            worst, np.abs(T.translation - data.xpos[bid]).max(), np.abs(T.rotation - data.xmat[bid].reshape(3, 3)).max()
+        )
     assert worst < 1e-9
     # joint ranges shifted by -offset
     m0 = mujoco.MjModel.from_xml_path(str(robot.source))
     j = "panda_joint4"
-    np.testing.assert_allclose(m.jnt_range[m.joint(j).id], m0.jnt_range[m0.joint(j).id] - res.value(f"{j}.offset"),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        m.jnt_range[m.joint(j).id], m0.jnt_range[m0.joint(j).id] - res.value(f"{j}.offset"), atol=1e-12
+    )
     # (3) reloaded as a model, it closes the loop as the fit did
     rms = closure_rms(RobotModel.from_file(out), log, WeldLoop("fixture", "panda_hand"), res.as_dict())
     after = res.residuals_after[0]
@@ -109,10 +114,12 @@ def test_mjcf_and_urdf_calibrations_close_alike(tmp_path):
     res_m = calibrate(rm, log, [WeldLoop("fixture", "panda_hand")], opts)
     write_urdf(ru, res_u.as_dict(), tmp_path / "cal.urdf")
     write_mjcf(rm, res_m.as_dict(), tmp_path / "cal.xml")
-    cu = closure_rms(RobotModel.from_file(tmp_path / "cal.urdf"), log, WeldLoop("fixture", "panda_hand"),
-                     res_u.as_dict())
-    cm = closure_rms(RobotModel.from_file(tmp_path / "cal.xml"), log, WeldLoop("fixture", "panda_hand"),
-                     res_m.as_dict())
+    cu = closure_rms(
+        RobotModel.from_file(tmp_path / "cal.urdf"), log, WeldLoop("fixture", "panda_hand"), res_u.as_dict()
+    )
+    cm = closure_rms(
+        RobotModel.from_file(tmp_path / "cal.xml"), log, WeldLoop("fixture", "panda_hand"), res_m.as_dict()
+    )
     assert max(cu) < 1e-8 and max(cm) < 1e-8
     assert abs(cu[0] - cm[0]) < 1e-9 and abs(cu[1] - cm[1]) < 1e-9
     # the same motion of the tool between configurations (the base placement is a gauge of the weld)
@@ -172,8 +179,7 @@ def test_degrees_euler_anchor_and_slide(tmp_path):
     robot = RobotModel.from_file(src)
     rp = RobotParameters(robot, robot.joint_names)
     rng = np.random.default_rng(1)
-    values = {p.name: (p.nominal + rng.uniform(-0.05, 0.05)) for p in rp.params
-              if p.kind in ("placement", "offset")}
+    values = {p.name: (p.nominal + rng.uniform(-0.05, 0.05)) for p in rp.params if p.kind in ("placement", "offset")}
     (tmp_path / "out").mkdir()
     out = tmp_path / "out" / "arm3_calibrated.xml"
     write_mjcf(robot, values, out)
@@ -203,8 +209,25 @@ def test_cli_writes_the_calibrated_mjcf(fitted, capsys):
     d, robot, loop, log, res, ds = fitted
     csv, out, rep = d / "log.csv", d / "cli_calibrated.xml", d / "cli_report.json"
     log.write_csv(csv)
-    assert main(["calibrate", str(robot.source), str(csv), "--loop", "weld:frame=panda_hand,name=fixture",
-                 "--out", str(out), "--report", str(rep), "--cv", "0", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(robot.source),
+                str(csv),
+                "--loop",
+                "weld:frame=panda_hand,name=fixture",
+                "--out",
+                str(out),
+                "--report",
+                str(rep),
+                "--cv",
+                "0",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert f"wrote {out}" in capsys.readouterr().out
     m = mujoco.MjModel.from_xml_path(str(out))
     assert m.nbody == mujoco.MjModel.from_xml_path(str(robot.source)).nbody

@@ -6,8 +6,8 @@ from scipy import stats
 
 from closedloop import CalibrationOptions, calibrate
 from closedloop.calibration import build_problem
-from closedloop.studies.montecarlo import monte_carlo, unwrap_rotation_vector, weld_scenario
 from closedloop.estimate.robust import config_residuals, irls, mad_scale, suspects, weights
+from closedloop.studies.montecarlo import monte_carlo, unwrap_rotation_vector, weld_scenario
 from closedloop.validation.kfold import cross_validate, folds
 
 NOISE = 1e-4
@@ -60,8 +60,15 @@ def test_cross_validation(scenario):
     parts = folds(lg, 5, seed=0)
     assert sorted(np.concatenate(parts).tolist()) == list(range(100))
     told = []  # each refit reported as it finishes (a long log's refit is a calibration of its own)
-    cv = cross_validate(scenario.robot, lg, scenario.loops, CalibrationOptions(noise=NOISE), k=5, seed=0,
-                        progress=lambda done, k: told.append((done, k)))
+    cv = cross_validate(
+        scenario.robot,
+        lg,
+        scenario.loops,
+        CalibrationOptions(noise=NOISE),
+        k=5,
+        seed=0,
+        progress=lambda done, k: told.append((done, k)),
+    )
     assert told == [(1, 5), (2, 5), (3, 5), (4, 5), (5, 5)]
     assert len(cv["folds"]) == 5 and all(f["converged"] for f in cv["folds"])
     assert not cv["inconsistent"]
@@ -98,9 +105,9 @@ def test_three_gross_outliers_are_flagged(scenario):
     th = sc.theta + rng.normal(0, NOISE, sc.theta.shape)
     bad = [5, 42, 77]
     for i in bad:  # shift joint 1 so that the closure (at the truth) is off by 5 cm
-        Jq = problem.evaluate(truth, True, [sc.theta[i:i + 1]])[0].Jq[0]
+        Jq = problem.evaluate(truth, True, [sc.theta[i : i + 1]])[0].Jq[0]
         th[i, 0] += 0.05 / np.linalg.norm(Jq[:3, 0])
-        r = problem.evaluate(truth, False, [th[i:i + 1]])[0].r[0]
+        r = problem.evaluate(truth, False, [th[i : i + 1]])[0].r[0]
         assert np.linalg.norm(r[:3]) == pytest.approx(0.05, rel=0.02)
     # Least squares (unweighted: the noise-weighted LM does not converge with these outliers),
     # then Cauchy IRLS from it; flags at the robust solution.

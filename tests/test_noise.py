@@ -47,5 +47,6 @@ def test_closed_and_measured_blocks_together_and_dof_correction():
     assert both == pytest.approx(1e-8, rel=0.05)
     # p fitted parameters: the fitted residual is smaller, so the estimate is scaled up by M / (M - p)
     fewer = joint_variance_scale([r2], [J2], [None], np.ones(6), 100)
-    assert fewer == pytest.approx(joint_variance_scale([r2], [J2], [None], np.ones(6), 0) * r2.size
-                                  / (r2.size - 100), rel=1e-9)
+    assert fewer == pytest.approx(
+        joint_variance_scale([r2], [J2], [None], np.ones(6), 0) * r2.size / (r2.size - 100), rel=1e-9
+    )

@@ -6,16 +6,17 @@ from __future__ import annotations
 import numpy as np
 
 from closedloop.calibration import build_problem, initial_values
-from closedloop.io.logs import JointLog
 from closedloop.estimate.stages import ResidualFunction
+from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 
 
 def test_chain_rule_jacobian_equals_a_fresh_evaluation(panda):
     rng = np.random.default_rng(8)
     theta = np.array([0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]) + rng.normal(0.0, 0.1, (40, 7))
-    problem = build_problem(panda, JointLog([f"panda_joint{i}" for i in range(1, 8)], theta),
-                            [WeldLoop("fixture", "panda_hand")])
+    problem = build_problem(
+        panda, JointLog([f"panda_joint{i}" for i in range(1, 8)], theta), [WeldLoop("fixture", "panda_hand")]
+    )
     x = initial_values(problem, {}) + rng.normal(0.0, 1e-3, len(problem.params))
     cols = problem.loop_columns[0]
     axis = np.array([0.6, -0.64, 0.48])

@@ -4,10 +4,17 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, calibrate
-from closedloop.studies.montecarlo import self_motion_manifold, weld_scenario
 from closedloop.analysis.observability import indices_from_singular_values, observability
-from closedloop.design.poses import (detmax, exchange_a, greedy_d_optimal, information, pool_blocks, select_poses,
-                              trace_covariance)
+from closedloop.design.poses import (
+    detmax,
+    exchange_a,
+    greedy_d_optimal,
+    information,
+    pool_blocks,
+    select_poses,
+    trace_covariance,
+)
+from closedloop.studies.montecarlo import self_motion_manifold, weld_scenario
 
 NOISE = 1e-4
 
@@ -168,19 +175,27 @@ def test_selection_halves_the_configurations_point_contact():
     exchange-a 20 -> 9, 40 -> 16, 80 -> 35, 120 -> 56, 160 -> 78; the D-optimal greedy needs ~0.6 N on this
     criterion, which it does not optimise)."""
     from closedloop.loops import PointLoop
-    from closedloop.models import ROBOTS
     from closedloop.model.robot import RobotModel
+    from closedloop.models import ROBOTS
     from closedloop.studies.truth import make_dataset
 
     robot = RobotModel.from_file(ROBOTS["ur5"].path)
     rng = np.random.default_rng(4)
-    ds = make_dataset(robot, PointLoop("socket", "tool0", tip=np.array([0.0, 0.05, 0.1])),
-                      [0.3, -1.3, 1.7, -1.9, -1.57, 0.2], 500, rng, stride=1, noise=1e-4)
+    ds = make_dataset(
+        robot,
+        PointLoop("socket", "tool0", tip=np.array([0.0, 0.05, 0.1])),
+        [0.3, -1.3, 1.7, -1.9, -1.57, 0.2],
+        500,
+        rng,
+        stride=1,
+        noise=1e-4,
+    )
     from closedloop.calibration import calibrate
     from closedloop.io.logs import JointLog
 
-    res = calibrate(robot, JointLog(ds.joints, ds.noisy[:150]),
-                    [PointLoop("socket", "tool0", tip=np.array([0.0, 0.05, 0.1]))])
+    res = calibrate(
+        robot, JointLog(ds.joints, ds.noisy[:150]), [PointLoop("socket", "tool0", tip=np.array([0.0, 0.05, 0.1]))]
+    )
     pool = ds.noisy
     B, _ = pool_blocks(res, None, pool)
     for N in (20, 40, 80, 120, 160):

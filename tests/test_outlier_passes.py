@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, calibrate
-from closedloop.validation.check import check_report
 from closedloop.cli.main import main
 from closedloop.io.logs import JointLog, read_log
 from closedloop.loops.spec import parse_loop
+from closedloop.model.robot import RobotModel
 from closedloop.models import example_robot_data_dir
 from closedloop.output.report import build_report
-from closedloop.model.robot import RobotModel
+from closedloop.validation.check import check_report
 
 BAD = np.arange(3, 100, 7)  # 14 rows
 
@@ -31,8 +31,27 @@ def xarm(tmp_path_factory):
         pytest.fail("example-robot-data is a test dependency: its robots are missing")
     out = tmp_path_factory.mktemp("xarm")
     urdf = root / "xarm_description" / "urdf" / "xarm7.urdf"
-    assert main(["simulate", "--robot", str(urdf), "--loop", "weld:frame=link7,name=fixture", "--n", "100",
-                 "--seed", "5", "--set", "noise=1e-4", "--out", str(out / "sim"), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--robot",
+                str(urdf),
+                "--loop",
+                "weld:frame=link7,name=fixture",
+                "--n",
+                "100",
+                "--seed",
+                "5",
+                "--set",
+                "noise=1e-4",
+                "--out",
+                str(out / "sim"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     return out / "sim"
 
 
@@ -41,8 +60,12 @@ def test_a_wandering_refit_keeps_its_best_pass(xarm):
     log = read_log(xarm / "log.csv", robot.joint_names)
     th = log.angles.copy()
     th[BAD, log.joints.index("joint4")] += np.where(np.arange(BAD.size) % 2 == 0, 0.1, -0.1)
-    res = calibrate(robot, JointLog(log.joints, th, "corrupted"), [parse_loop("weld:frame=link7,name=fixture", robot)],
-                    CalibrationOptions())
+    res = calibrate(
+        robot,
+        JointLog(log.joints, th, "corrupted"),
+        [parse_loop("weld:frame=link7,name=fixture", robot)],
+        CalibrationOptions(),
+    )
     assert sorted(r.row - 1 for r in res.rejected) == BAD.tolist()
     assert res.verdict.status == "suspect"  # 14 % of the rows rejected: evidence enough to say so
     truth = json.loads((xarm / "truth.json").read_text())

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 import subprocess
 import sys
 
@@ -14,10 +13,10 @@ import pytest
 
 from closedloop.calibration import calibrate
 from closedloop.cli.main import main
-from closedloop.output.urdf import write_urdf
 from closedloop.loops import WeldLoop
-from closedloop.models import nominal_urdf
 from closedloop.model.robot import RobotModel
+from closedloop.models import nominal_urdf
+from closedloop.output.urdf import write_urdf
 from closedloop.studies.truth import make_dataset
 
 Q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]
@@ -46,15 +45,17 @@ def test_calibrated_urdf_reproduces_fit_in_pinocchio(calibrated):
     prob = res.problem
     TA, _ = prob.loop_poses(res.values, 0)
     for i in range(0, 120, 7):
-        q = robot.configurations(ds.readings[i:i + 1], prob.joints)[0]
+        q = robot.configurations(ds.readings[i : i + 1], prob.joints)[0]
         pin.framesForwardKinematics(model, data, q)
         assert np.abs(data.oMf[fid].homogeneous - TA[i]).max() < 1e-9
     # and the loop closes to the fitted residual
-    X = pin.SE3(pin.exp3(np.array([res.value(f"fixture.r{a}") for a in "xyz"])),
-                np.array([res.value(f"fixture.{a}") for a in "xyz"]))
+    X = pin.SE3(
+        pin.exp3(np.array([res.value(f"fixture.r{a}") for a in "xyz"])),
+        np.array([res.value(f"fixture.{a}") for a in "xyz"]),
+    )
     worst = 0.0
     for i in range(120):
-        q = robot.configurations(ds.readings[i:i + 1], prob.joints)[0]
+        q = robot.configurations(ds.readings[i : i + 1], prob.joints)[0]
         pin.framesForwardKinematics(model, data, q)
         worst = max(worst, np.linalg.norm(pin.log6(X.inverse() * data.oMf[fid]).vector))
     assert worst < 1e-9
@@ -67,7 +68,7 @@ def test_calibrated_urdf_loads_in_mujoco_with_same_kinematics(calibrated):
     model = pin.buildModelFromUrdf(str(out))
     data = model.createData()
     for i in (0, 40, 80):
-        q = robot.configurations(ds.readings[i:i + 1], robot.supporting_joints("panda_hand"))[0]
+        q = robot.configurations(ds.readings[i : i + 1], robot.supporting_joints("panda_hand"))[0]
         for j in range(1, model.njoints):
             d.qpos[m.joint(model.names[j]).qposadr[0]] = q[model.joints[j].idx_q]
         mujoco.mj_kinematics(m, d)
@@ -85,8 +86,20 @@ def test_cli_calibrate_writes_urdf_report_and_check_passes(calibrated, tmp_path)
     truth = tmp_path / "truth.json"
     truth.write_text(json.dumps({"parameters": ds.truth_dict()}))
     out, rep = tmp_path / "out.urdf", tmp_path / "report.json"
-    rc = main(["calibrate", str(nominal), str(log), "--loop", "weld:frame=panda_hand,name=fixture",
-               "--out", str(out), "--report", str(rep), "--quiet"])
+    rc = main(
+        [
+            "calibrate",
+            str(nominal),
+            str(log),
+            "--loop",
+            "weld:frame=panda_hand,name=fixture",
+            "--out",
+            str(out),
+            "--report",
+            str(rep),
+            "--quiet",
+        ]
+    )
     assert rc == 0 and out.exists()
     report = json.loads(rep.read_text())
     assert report["solver"]["status"] == "converged"
@@ -116,13 +129,16 @@ def files(calibrated, tmp_path):
     return nominal, log, tmp_path
 
 
-@pytest.mark.parametrize("mutate,expect", [
-    (lambda text: text.replace("panda_joint4,", "elbow,", 1), "missing column(s) for loop joint(s) panda_joint4"),
-    (lambda text: text.replace("\n", "\nnan,0,0,0,0,0,0\n", 1), "row 1, column 'panda_joint1': value is nan"),
-    (lambda text: text.split("\n")[0] + "\n", "no data rows"),
-    (lambda text: "\n".join(text.split("\n")[:3]) + "\n", "rows give 12 equations, no more than the 12 parameters"),
-    (lambda text: text.replace("\n", "\n1,2\n", 1), "row 1 has 2 fields"),
-])
+@pytest.mark.parametrize(
+    "mutate,expect",
+    [
+        (lambda text: text.replace("panda_joint4,", "elbow,", 1), "missing column(s) for loop joint(s) panda_joint4"),
+        (lambda text: text.replace("\n", "\nnan,0,0,0,0,0,0\n", 1), "row 1, column 'panda_joint1': value is nan"),
+        (lambda text: text.split("\n")[0] + "\n", "no data rows"),
+        (lambda text: "\n".join(text.split("\n")[:3]) + "\n", "rows give 12 equations, no more than the 12 parameters"),
+        (lambda text: text.replace("\n", "\n1,2\n", 1), "row 1 has 2 fields"),
+    ],
+)
 def test_bad_logs_one_line_exit_2(files, mutate, expect):
     nominal, log, tmp = files
     bad = tmp / "bad.csv"
@@ -133,13 +149,16 @@ def test_bad_logs_one_line_exit_2(files, mutate, expect):
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
 
 
-@pytest.mark.parametrize("args,expect", [
-    (["--loop", "weld:frame=panda_hnd"], "unknown frame 'panda_hnd' (did you mean 'panda_hand'"),
-    (["--loop", "hinge2:frame=panda_hand"], "unknown loop type 'hinge2'"),
-    (["--loop", "weld:frame=panda_hand", "--fix", "panda_joint9.x"], "no parameter named 'panda_joint9.x'"),
-    (["--loop", "weld:frame=panda_hand", "--fix", "panda_joint2.x=abc"], "'abc' is not a number"),
-    ([], "no --loop given"),
-])
+@pytest.mark.parametrize(
+    "args,expect",
+    [
+        (["--loop", "weld:frame=panda_hnd"], "unknown frame 'panda_hnd' (did you mean 'panda_hand'"),
+        (["--loop", "hinge2:frame=panda_hand"], "unknown loop type 'hinge2'"),
+        (["--loop", "weld:frame=panda_hand", "--fix", "panda_joint9.x"], "no parameter named 'panda_joint9.x'"),
+        (["--loop", "weld:frame=panda_hand", "--fix", "panda_joint2.x=abc"], "'abc' is not a number"),
+        ([], "no --loop given"),
+    ],
+)
 def test_bad_options_one_line_exit_2(files, args, expect):
     nominal, log, _ = files
     rc, _, err = _run(["calibrate", str(nominal), str(log), *args, "--quiet"])
@@ -149,8 +168,9 @@ def test_bad_options_one_line_exit_2(files, args, expect):
 def test_never_overwrites_input(files):
     nominal, log, _ = files
     before = nominal.read_text()
-    rc, _, err = _run(["calibrate", str(nominal), str(log), "--loop", "weld:frame=panda_hand",
-                       "--out", str(nominal), "--quiet"])
+    rc, _, err = _run(
+        ["calibrate", str(nominal), str(log), "--loop", "weld:frame=panda_hand", "--out", str(nominal), "--quiet"]
+    )
     assert rc == 2 and "refusing to overwrite" in err
     assert nominal.read_text() == before
 
@@ -181,9 +201,28 @@ def test_dh_input_gives_calibrated_dh_yaml(tmp_path):
 
     JointLog(robot.joint_names, readings).write_csv(log)
     out, rep = tmp_path / "calibrated.yaml", tmp_path / "report.json"
-    rc = main(["calibrate", str(table_4_1_path()), str(log), "--identify", "theta_off,s,a,alpha,k",
-               "--fix", "j0.s", "--fix", "j7.k", "--weighting", "none", "--out", str(out), "--report", str(rep),
-               "--cv", "0", "--quiet"])
+    rc = main(
+        [
+            "calibrate",
+            str(table_4_1_path()),
+            str(log),
+            "--identify",
+            "theta_off,s,a,alpha,k",
+            "--fix",
+            "j0.s",
+            "--fix",
+            "j7.k",
+            "--weighting",
+            "none",
+            "--out",
+            str(out),
+            "--report",
+            str(rep),
+            "--cv",
+            "0",
+            "--quiet",
+        ]
+    )
     assert rc == 0
     doc = yaml.safe_load(out.read_text())
     assert doc["units"]["length"] == "in" and doc["closes"] is True
@@ -209,17 +248,35 @@ def test_mjcf_input(tmp_path):
     assert rc == 0 and "j2.offset" in json.loads(out)["parameters"]
 
 
-@pytest.mark.parametrize("setting, expect", [
-    ("foo=1", "unknown setting 'foo'"),
-    ("gravity=maybe", "'gravity' takes true or false"),
-    ("tracker_noise=abc", "'tracker_noise' takes a number"),
-    ("solref=[1]", "'solref' takes a list of 2 numbers"),
-    ("min_steps=2.5", "'min_steps' takes a whole number"),
-    ("noise", "expected KEY=VALUE"),
-])
+@pytest.mark.parametrize(
+    "setting, expect",
+    [
+        ("foo=1", "unknown setting 'foo'"),
+        ("gravity=maybe", "'gravity' takes true or false"),
+        ("tracker_noise=abc", "'tracker_noise' takes a number"),
+        ("solref=[1]", "'solref' takes a list of 2 numbers"),
+        ("min_steps=2.5", "'min_steps' takes a whole number"),
+        ("noise", "expected KEY=VALUE"),
+    ],
+)
 def test_bad_simulation_settings_one_line_exit_2(tmp_path, setting, expect):
-    p = subprocess.run([sys.executable, "-m", "closedloop.cli.main", "simulate", "panda_weld", "--n", "2", "--out", str(tmp_path / "o"), "--set", setting],
-                       capture_output=True, text=True)
+    p = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "closedloop.cli.main",
+            "simulate",
+            "panda_weld",
+            "--n",
+            "2",
+            "--out",
+            str(tmp_path / "o"),
+            "--set",
+            setting,
+        ],
+        capture_output=True,
+        text=True,
+    )
     rc, err = p.returncode, p.stderr
     assert rc == 2 and expect in err and "Traceback" not in err, err
     assert not (tmp_path / "o").exists()  # nothing simulated
@@ -232,8 +289,13 @@ def test_check_uses_the_tolerance_of_each_unit():
         return {"name": name, "kind": kind, "unit": unit, "calibrated": cal, "initial": 0.0, "status": "estimated"}
 
     truth = {"parameters": {"cam.cam1.fx": 800.0, "cam.tip_x": 0.1, "j1.compliance": 1e-5}}
-    report = {"parameters": [p("cam.cam1.fx", "px", 800.6), p("cam.tip_x", "m", 0.1004),
-                             p("j1.compliance", "rad/Nm", 3e-5, "compliance")]}
+    report = {
+        "parameters": [
+            p("cam.cam1.fx", "px", 800.6),
+            p("cam.tip_x", "m", 0.1004),
+            p("j1.compliance", "rad/Nm", 3e-5, "compliance"),
+        ]
+    }
     rows, ok = check_report(truth, report, tol_m=1e-3, tol_rad=5e-3, tol_scale=5e-3, tol_px=1.0)
     res = {r["name"]: r["result"] for r in rows}
     assert ok and res["cam.cam1.fx"] == "ok" and res["cam.tip_x"] == "ok"

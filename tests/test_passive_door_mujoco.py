@@ -6,13 +6,13 @@ from __future__ import annotations
 import json
 
 from closedloop.calibration import calibrate
-from closedloop.validation.check import check_report
 from closedloop.io.logs import read_log
 from closedloop.loops import PassiveChainLoop
+from closedloop.model.robot import RobotModel
 from closedloop.models import model_file
 from closedloop.output.report import build_report
-from closedloop.model.robot import RobotModel
 from closedloop.sims import simulate
+from closedloop.validation.check import check_report
 
 
 def test_ur5_door_through_the_passive_chain_loop(tmp_path):

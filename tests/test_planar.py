@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 _spec = importlib.util.spec_from_file_location(
-    "planar_ground_contact", Path(__file__).resolve().parents[1] / "examples" / "planar_ground_contact.py")
+    "planar_ground_contact", Path(__file__).resolve().parents[1] / "examples" / "planar_ground_contact.py"
+)
 planar = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(planar)
 

@@ -22,8 +22,9 @@ def long_log():
     """1,200 rows: 300 exact self-motion configurations of a random true Panda, four times, 1e-4 rad noise."""
     panda = RobotModel.from_file(ROBOTS["panda"].path)
     rng = np.random.default_rng(11)
-    ds = make_dataset(panda, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 300, rng,
-                      stride=1)
+    ds = make_dataset(
+        panda, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 300, rng, stride=1
+    )
     th = np.tile(ds.readings, (4, 1))
     return panda, ds, JointLog(ds.joints, th + rng.normal(0.0, 1e-4, th.shape))
 
@@ -87,12 +88,12 @@ def test_presolved_passive_door_is_the_truth(tmp_path, monkeypatch):
     parameters 0.5-1.4 mrad off with a closure as small, which is why the finish keeps them)."""
     import json
 
-    from closedloop.validation.check import check_report
     from closedloop.io.logs import read_log
     from closedloop.loops import PassiveChainLoop
     from closedloop.models import model_file
     from closedloop.output.report import build_report
     from closedloop.sims import simulate
+    from closedloop.validation.check import check_report
 
     simulate("ur5_door", 150, 1, tmp_path)
     robot = RobotModel.from_file(tmp_path / "nominal.urdf")

@@ -30,7 +30,7 @@ def test_scaled_factors_match_numpy(monkeypatch, lapack, rows):
     ref = np.linalg.qr(A, mode="r")
     _same_triangle(qr.scaled_r_factor(J, r, scale), ref)
     _same_triangle(qr.r_factor(A), ref)
-    blocks = [J[: rows // 2 // 6 * 6].reshape(-1, 6, 28), J[rows // 2 // 6 * 6:].reshape(-1, 1, 28)]
+    blocks = [J[: rows // 2 // 6 * 6].reshape(-1, 6, 28), J[rows // 2 // 6 * 6 :].reshape(-1, 1, 28)]
     _same_triangle(qr.scaled_r_factor_of_blocks(blocks, scale), np.linalg.qr(J * scale, mode="r"))
 
 

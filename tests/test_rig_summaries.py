@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
-from closedloop.io.camera_info import camera_infos_from_result
 from closedloop.cli.calibrate import print_summary
-from closedloop.problem.distances import DistanceLoop
+from closedloop.io.camera_info import camera_infos_from_result
 from closedloop.io.logs import JointLog
-from closedloop.output.html import robot_corrections
 from closedloop.loops.spec import parse_loop
 from closedloop.models import example_robot_data_dir
+from closedloop.output.html import robot_corrections
+from closedloop.problem.distances import DistanceLoop
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -14,12 +14,12 @@ import pinocchio as pin
 import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
-from closedloop.problem.distances import DistanceLoop
 from closedloop.io.logs import JointLog
-from closedloop.validation.evaluate import evaluate_result
-from closedloop.output.urdf import tool_frames, write_model
-from closedloop.validation.fixtures import fixture_groups, leave_one_fixture_out
 from closedloop.loops.spec import parse_loop
+from closedloop.output.urdf import tool_frames, write_model
+from closedloop.problem.distances import DistanceLoop
+from closedloop.validation.evaluate import evaluate_result
+from closedloop.validation.fixtures import fixture_groups, leave_one_fixture_out
 from closedloop.verdict import judge
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,7 +65,7 @@ def _similarity_scale(P: np.ndarray, Q: np.ndarray) -> float:
     U, S, Vt = np.linalg.svd(Qc.T @ Pc)
     D = np.eye(3)
     D[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    return float(np.trace(np.diag(S) @ D) / np.sum(Pc ** 2))
+    return float(np.trace(np.diag(S) @ D) / np.sum(Pc**2))
 
 
 def scale_error(res, rig, n: int = 60, seed: int = 5) -> float:
@@ -90,7 +90,7 @@ def ball_positions(res, rig, n: int = 60, seed: int = 5) -> tuple[np.ndarray, np
     lo = np.array([prob.robot.joint(j).lower for j in prob.joints])
     hi = np.array([prob.robot.joint(j).upper for j in prob.joints])
     R = rng.uniform(lo, hi, (n, len(prob.joints)))
-    st = prob.rp.apply(res.values[:prob.n_robot])
+    st = prob.rp.apply(res.values[: prob.n_robot])
     fid = prob.robot.frame_id("ball")
     tip = np.array([res.value(f"ball.tip_{a}") for a in "xyz"])
     P = []
@@ -171,9 +171,11 @@ def test_contact_default_no_worse_than_unweighted_heldout(rig3):
     tmp, rig, robot, log = rig3
     names = rig.loop_names()
     held = {}
-    for label, extra, opt in (("default", "", CalibrationOptions()),
-                              ("unweighted", "", CalibrationOptions(weighting="none")),
-                              ("joint only", ",sigma_task=0", CalibrationOptions())):
+    for label, extra, opt in (
+        ("default", "", CalibrationOptions()),
+        ("unweighted", "", CalibrationOptions(weighting="none")),
+        ("joint only", ",sigma_task=0", CalibrationOptions()),
+    ):
         loops = _loops(robot, names, extra)
         loops += _distances(loops, (1, 2, 3))
         out = leave_one_fixture_out(robot, log, loops, opt)
@@ -194,8 +196,17 @@ def test_contact_default_no_worse_than_unweighted_heldout(rig3):
 def test_lofo_names_extrapolating_place_suspect(tmp_path):
     """Small model errors, little motion per socket, a cyclic encoder error no model has: trained on one
     place, the other place is predicted worse than by the nominal model; the verdict names it."""
-    rig, robot, log = _setup(tmp_path, seed=0, n=30, places=2, err_m=2e-4, err_rad=2e-4, offset_rad=5e-4,
-                             encoder_error=(1, 0.002), spread=0.15)
+    rig, robot, log = _setup(
+        tmp_path,
+        seed=0,
+        n=30,
+        places=2,
+        err_m=2e-4,
+        err_rad=2e-4,
+        offset_rad=5e-4,
+        encoder_error=(1, 0.002),
+        spread=0.15,
+    )
     loops = _loops(robot, rig.loop_names())
     loops += _distances(loops, (1, 2))
     assert fixture_groups(loops) == {"place1": ["place1_a", "place1_b"], "place2": ["place2_a", "place2_b"]}
@@ -224,8 +235,16 @@ def test_evaluate_reproduces_closure_and_compares_models(rig3, calibrated, tmp_p
     (tmp_path / "true.urdf").write_text(rig.true_urdf)
     for s in ("a", "b"):
         np.savetxt(tmp_path / f"p3{s}.csv", rig.readings[f"place3_{s}"], delimiter=",")
-    argv = ["evaluate", str(tmp / "nominal.urdf"), str(tmp_path / "cal.urdf"), str(tmp_path / "true.urdf"),
-            "--joints", ",".join(rig.joints), "--report", str(tmp_path / "ev.json")]
+    argv = [
+        "evaluate",
+        str(tmp / "nominal.urdf"),
+        str(tmp_path / "cal.urdf"),
+        str(tmp_path / "true.urdf"),
+        "--joints",
+        ",".join(rig.joints),
+        "--report",
+        str(tmp_path / "ev.json"),
+    ]
     for s in ("a", "b"):
         argv += ["--loop", f"point:frame=ball,name=p3{s},tip=@ball,log={tmp_path / f'p3{s}.csv'}"]
     assert main(argv) == 0
@@ -236,8 +255,7 @@ def test_evaluate_reproduces_closure_and_compares_models(rig3, calibrated, tmp_p
     assert abs(truth / (np.sqrt(3) * SIGMA_TASK) - 1.0) < 0.15, truth
     assert cal < 1.15 * truth, (cal, truth)
     # the in-memory calibration and its written URDF (offsets folded, ball frame) agree
-    direct = evaluate_result(res2, _log_of(log, ["place3_a", "place3_b"]),
-                             _loops(robot, ["place3_a", "place3_b"]))
+    direct = evaluate_result(res2, _log_of(log, ["place3_a", "place3_b"]), _loops(robot, ["place3_a", "place3_b"]))
     assert abs(direct.rms_m / cal - 1.0) < 1e-6
 
 
@@ -248,9 +266,24 @@ def test_cli_rig_files(rig3, tmp_path):
     tmp, rig, robot, log = rig3
     files = rig.write(tmp_path)
     assert files[0].read_text().split("\n")[0][0] in "-0123456789"  # no header
-    argv = ["calibrate", str(tmp_path / "nominal.urdf"), "--joints", ",".join(rig.joints), "--cv", "0",
-            "--lofo", "off", "--distance", "place1_a.point", "place1_b.point", "0.05",
-            "--out", str(tmp_path / "cal.urdf"), "--report", str(tmp_path / "rep.json")]
+    argv = [
+        "calibrate",
+        str(tmp_path / "nominal.urdf"),
+        "--joints",
+        ",".join(rig.joints),
+        "--cv",
+        "0",
+        "--lofo",
+        "off",
+        "--distance",
+        "place1_a.point",
+        "place1_b.point",
+        "0.05",
+        "--out",
+        str(tmp_path / "cal.urdf"),
+        "--report",
+        str(tmp_path / "rep.json"),
+    ]
     for f in files:
         argv += ["--loop", f"point:frame=ball,name={f.stem},tip=@ball,log={f}"]
     assert main(argv) == 0
@@ -273,22 +306,23 @@ def test_block_of_three_sockets_sets_scale(tmp_path):
     (seed 0: -0.02 % against +-0.10 %), the report naming the blocks; the estimated sockets keep the
     block's shape.  Through the command line the same."""
     from closedloop.cli.main import main
-    from closedloop.problem.distances import parse_blocks
     from closedloop.errors import LoopError
+    from closedloop.problem.distances import parse_blocks
 
     rig, robot, log = _setup(tmp_path, seed=0, n=20, places=3, sigma_task=SIGMA_TASK, sigma_q=2e-5, block=BLOCK)
     names = rig.loop_names()
     assert names[:3] == ["place1_a", "place1_b", "place1_c"]
-    spec = [[f"blk{p}"] + [f"place{p}_{s}.point={x},{y},{z}" for s, (x, y, z) in zip("abc", BLOCK)]
-            for p in (1, 2, 3)]
+    spec = [[f"blk{p}"] + [f"place{p}_{s}.point={x},{y},{z}" for s, (x, y, z) in zip("abc", BLOCK)] for p in (1, 2, 3)]
     loops = _loops(robot, names)
     blocks = parse_blocks(spec, loops)
     assert len(blocks) == 9 and {b.block for b in blocks} == {"blk1", "blk2", "blk3"}
     res = calibrate(robot, log, loops + blocks, CalibrationOptions())
     assert res.converged and res.verdict.status == "ok", res.verdict.describe()
     assert res.gauge is None
-    assert res.scale_note.startswith("the scale is set by the block blk1 (3 points: place1_a, place1_b, place1_c;"
-                                     " 3 distances up to 56.57 mm) and the block blk2"), res.scale_note
+    assert res.scale_note.startswith(
+        "the scale is set by the block blk1 (3 points: place1_a, place1_b, place1_c;"
+        " 3 distances up to 56.57 mm) and the block blk2"
+    ), res.scale_note
     err = scale_error(res, rig)
     assert 0.0 < res.scale_std < 0.003 and abs(err) <= res.scale_std, (err, res.scale_std)
     for p in (1, 2, 3):  # the estimated sockets: the block's shape to a few micrometres
@@ -296,17 +330,29 @@ def test_block_of_three_sockets_sets_scale(tmp_path):
         S = np.array(BLOCK)
         for i, j in ((0, 1), (0, 2), (1, 2)):
             assert abs(np.linalg.norm(P[i] - P[j]) - np.linalg.norm(S[i] - S[j])) < 3e-5
-    for bad, msg in ((["blk", "place1_a.point=0,0", "place1_b.point=0,0,0"], "needs 3 coordinates"),
-                     (["blk", "place1_a.point=0,0,0"], "two points or more"),
-                     (["blk", "place1_a.point=0,0,0", "place1_b.point=0,0,0"], "at the same position"),
-                     (["blk", "place1_a.point", "place1_b.point=0,0,0"], "is not REF=X,Y,Z"),
-                     (["blk", "place9_a.point=0,0,0", "place1_b.point=1,0,0"], "expected LOOP.point")):
+    for bad, msg in (
+        (["blk", "place1_a.point=0,0", "place1_b.point=0,0,0"], "needs 3 coordinates"),
+        (["blk", "place1_a.point=0,0,0"], "two points or more"),
+        (["blk", "place1_a.point=0,0,0", "place1_b.point=0,0,0"], "at the same position"),
+        (["blk", "place1_a.point", "place1_b.point=0,0,0"], "is not REF=X,Y,Z"),
+        (["blk", "place9_a.point=0,0,0", "place1_b.point=1,0,0"], "expected LOOP.point"),
+    ):
         with pytest.raises(LoopError, match=msg):
             parse_blocks([bad], loops)
     # the command line: one --block per place, no quoting needed
     files = rig.write(tmp_path / "logs")
-    argv = ["calibrate", str(tmp_path / "nominal.urdf"), "--joints", ",".join(rig.joints), "--cv", "0",
-            "--lofo", "off", "--report", str(tmp_path / "rep.json")]
+    argv = [
+        "calibrate",
+        str(tmp_path / "nominal.urdf"),
+        "--joints",
+        ",".join(rig.joints),
+        "--cv",
+        "0",
+        "--lofo",
+        "off",
+        "--report",
+        str(tmp_path / "rep.json"),
+    ]
     for s in spec:
         argv += ["--block", *s]
     for f in files:

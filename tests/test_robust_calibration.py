@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import PANDA_Q0
 
 from closedloop.calibration import CalibrationOptions, calibrate, residual_stats
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.studies.truth import make_dataset
-
-from conftest import PANDA_Q0
 
 
 @pytest.fixture(scope="module")
@@ -36,18 +35,24 @@ def test_three_outliers(panda, data):
     corrupt[bad_rows, 1] += 0.1  # shoulder: ~0.1 rad x ~0.5 m reach = ~5 cm closure error
     ev = clean.problem.evaluate(clean.values, False, [corrupt])[0]
     assert np.linalg.norm(ev.r[bad_rows, :3], axis=1).min() > 0.03
-    robust = calibrate(panda, JointLog(ds.joints, corrupt), [WeldLoop("fixture", "panda_hand")],
-                       CalibrationOptions(robust="cauchy"))
+    robust = calibrate(
+        panda, JointLog(ds.joints, corrupt), [WeldLoop("fixture", "panda_hand")], CalibrationOptions(robust="cauchy")
+    )
     assert robust.converged
-    assert [n for n, s in zip(robust.names, robust.status) if s == "estimated"] == \
-        [n for n, s in zip(clean.names, clean.status) if s == "estimated"]
+    assert [n for n, s in zip(robust.names, robust.status) if s == "estimated"] == [
+        n for n, s in zip(clean.names, clean.status) if s == "estimated"
+    ]
     h0, h1 = held_out_error(clean, held_out), held_out_error(robust, held_out)
     assert abs(h1 / h0 - 1.0) < 0.10, (h0, h1)
     assert sorted(s.row for s in robust.suspects) == [r + 1 for r in bad_rows]  # 1-based log rows
     assert any("suspect configuration: log row 18" in n for n in robust.notes)
     # plain least squares is pulled away by the same outliers
-    plain = calibrate(panda, JointLog(ds.joints, corrupt), [WeldLoop("fixture", "panda_hand")],
-                      CalibrationOptions(weighting="none", robust=None))
+    plain = calibrate(
+        panda,
+        JointLog(ds.joints, corrupt),
+        [WeldLoop("fixture", "panda_hand")],
+        CalibrationOptions(weighting="none", robust=None),
+    )
     assert held_out_error(plain, held_out) > 3 * h0
 
 
@@ -82,8 +87,11 @@ def test_screen_scale_is_the_same_for_either_whitening_root():
     sym = mad_scale([np.einsum("nij,nj->ni", S, r)])
     assert chol == pytest.approx(0.7, rel=0.03) and sym == pytest.approx(0.7, rel=0.03)
     # the norms, which decide each configuration, are the same for either root
-    np.testing.assert_allclose(np.linalg.norm(np.einsum("nij,nj->ni", F, r), axis=1),
-                               np.linalg.norm(np.einsum("nij,nj->ni", S, r), axis=1), rtol=1e-9)
+    np.testing.assert_allclose(
+        np.linalg.norm(np.einsum("nij,nj->ni", F, r), axis=1),
+        np.linalg.norm(np.einsum("nij,nj->ni", S, r), axis=1),
+        rtol=1e-9,
+    )
 
 
 def test_long_log_refit_on_a_sample(panda, data, monkeypatch):

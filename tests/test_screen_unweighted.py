@@ -6,8 +6,8 @@ every one of them went through the robust refit."""
 
 from __future__ import annotations
 
-import closedloop.studies.montecarlo as mc_module
 import closedloop.estimate.outliers as outliers
+import closedloop.studies.montecarlo as mc_module
 from closedloop.studies.montecarlo import monte_carlo, weld_scenario
 
 

@@ -9,8 +9,23 @@ import pinocchio as pin
 import pytest
 
 from closedloop.errors import InputError, LoopError
-from closedloop.model.se3 import (adjoint, as_se3, generators, hand_eye, kabsch, log3, log6, parse_pose, parse_vec, pose_of,
-                            project_so3, rigid_inverse, skew, vec3, vec_of)
+from closedloop.model.se3 import (
+    adjoint,
+    as_se3,
+    generators,
+    hand_eye,
+    kabsch,
+    log3,
+    log6,
+    parse_pose,
+    parse_vec,
+    pose_of,
+    project_so3,
+    rigid_inverse,
+    skew,
+    vec3,
+    vec_of,
+)
 
 
 def _pose(R: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -111,11 +126,13 @@ def test_user_poses_and_vectors_parse_or_are_refused_by_name():
     assert np.abs(parse_pose("0.1, 0.2 0.3 0 0 1.5707963267948966").homogeneous - pose_of(v).homogeneous).max() < 1e-15
     assert np.array_equal(parse_vec("1,2 3", 3, "tip"), [1.0, 2.0, 3.0])
     assert np.array_equal(vec3([1, 2, 3], "tip"), [1.0, 2.0, 3.0])
-    for call, words in ((lambda: as_se3([1, 2, 3], "initial_base"), "initial_base"),
-                        (lambda: vec3([1, 2, np.nan], "tip"), "tip"),
-                        (lambda: parse_vec("1 2 x", 3, "point"), "point '1 2 x'"),
-                        (lambda: parse_vec("1 2", 3, "point"), "expected 3 finite numbers"),
-                        (lambda: parse_pose("0 0 0 0 0"), "closure '0 0 0 0 0'")):
+    for call, words in (
+        (lambda: as_se3([1, 2, 3], "initial_base"), "initial_base"),
+        (lambda: vec3([1, 2, np.nan], "tip"), "tip"),
+        (lambda: parse_vec("1 2 x", 3, "point"), "point '1 2 x'"),
+        (lambda: parse_vec("1 2", 3, "point"), "expected 3 finite numbers"),
+        (lambda: parse_pose("0 0 0 0 0"), "closure '0 0 0 0 0'"),
+    ):
         with pytest.raises(LoopError, match=words) as info:
             call()
         assert isinstance(info.value, InputError)

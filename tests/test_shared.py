@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from closedloop import RobotModel
-from closedloop.calibration import build_problem
-from closedloop.problem.distances import DistanceLoop
-from closedloop.io.logs import JointLog, read_log, read_loop_logs
-from closedloop.errors import InputError, LogError, LoopError
-from closedloop.loops.spec import parse_loop
 from closedloop.analysis.selection import initial_values
+from closedloop.calibration import build_problem
+from closedloop.errors import InputError, LogError, LoopError
+from closedloop.io.logs import JointLog, read_log, read_loop_logs
+from closedloop.loops.spec import parse_loop
+from closedloop.problem.distances import DistanceLoop
 
 ROOT = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("ball_socket_rig", ROOT / "examples" / "ball_socket_rig.py")
@@ -51,7 +51,9 @@ def test_shared_columns_and_jacobian(small):
     assert all(np.array_equal(c[:3], tip) for c in prob.loop_columns[:4])  # every loop reads the same columns
     assert not any(n.startswith("place1_a.tip") for n in prob.names)
     dist_cols = prob.loop_columns[4]
-    assert [prob.names[k] for k in dist_cols] == [f"{names[0]}.p{a}" for a in "xyz"] + [f"{names[1]}.p{a}" for a in "xyz"]
+    assert [prob.names[k] for k in dist_cols] == [f"{names[0]}.p{a}" for a in "xyz"] + [
+        f"{names[1]}.p{a}" for a in "xyz"
+    ]
     x = initial_values(prob, {})
     rng = np.random.default_rng(0)
     x = x + 1e-4 * rng.standard_normal(x.size) * (np.arange(x.size) >= prob.n_robot)
@@ -106,10 +108,12 @@ def test_spec_syntax(small):
     assert plane.shared["nrx"] == "table.nrx" and plane.shared["tip_x"] == "ball.tip_x"
     weld = parse_loop("weld:frame=ball,name=w,closure=@fixture", robot)
     assert weld.shared["rz"] == "fixture.rz"
-    for bad, msg in (("point:frame=ball,name=a,foo=@x", "cannot be shared"),
-                     ("point:frame=ball,name=a,tip=0 0 0.1,point=@p", None),
-                     ("point:frame=ball,name=a,sigma_task=lots", "sigma_task=lots"),
-                     ("point:frame=ball,name=a,tip=@b@d", "must be letters")):
+    for bad, msg in (
+        ("point:frame=ball,name=a,foo=@x", "cannot be shared"),
+        ("point:frame=ball,name=a,tip=0 0 0.1,point=@p", None),
+        ("point:frame=ball,name=a,sigma_task=lots", "sigma_task=lots"),
+        ("point:frame=ball,name=a,tip=@b@d", "must be letters"),
+    ):
         if msg is None:
             parse_loop(bad, robot)
             continue
@@ -155,8 +159,10 @@ def _two_tracker_mc(draws: int, monkeypatch=None) -> float:
 
     robot = RobotModel.from_file(example_robot_data_dir() / "ur_description/urdf/ur10_robot.urdf")
     joints = robot.supporting_joints("tool0")
-    X = [pin.SE3(pin.exp3(np.array([0.1, -0.2, 2.0])), np.array([1.5, 0.3, 0.2])),
-         pin.SE3(pin.exp3(np.array([-0.3, 0.2, -1.0])), np.array([-0.4, 1.6, 0.5]))]
+    X = [
+        pin.SE3(pin.exp3(np.array([0.1, -0.2, 2.0])), np.array([1.5, 0.3, 0.2])),
+        pin.SE3(pin.exp3(np.array([-0.3, 0.2, -1.0])), np.array([-0.4, 1.6, 0.5])),
+    ]
     N, sigma_q, sigma_t = 60, 2e-4, 2e-6
     rng = np.random.default_rng(0)
     th = rng.uniform(-np.pi, np.pi, (N, 6))
@@ -166,8 +172,11 @@ def _two_tracker_mc(draws: int, monkeypatch=None) -> float:
 
     zeros = {f"m{k}:{c}": np.zeros(N) for k in (1, 2) for c in "xyz"}
     prob = build_problem(robot, JointLog(joints, th, None, None, zeros), loops())
-    names = [n for n in prob.names if n.split(".")[0] in joints and n.split(".")[1] in
-             ("x", "y", "z", "rx", "ry", "rz", "offset")]
+    names = [
+        n
+        for n in prob.names
+        if n.split(".")[0] in joints and n.split(".")[1] in ("x", "y", "z", "rx", "ry", "rz", "offset")
+    ]
     truth = prob.nominal.copy()
     for k, v in draw_truth(robot, names, rng).items():
         truth[prob.index[k]] = v
@@ -181,8 +190,12 @@ def _two_tracker_mc(draws: int, monkeypatch=None) -> float:
     for d in range(draws):
         r = np.random.default_rng(100 + d)
         meas = {kk: v + r.normal(0, sigma_t, N) for kk, v in data.items()}
-        res = calibrate(robot, JointLog(joints, th + r.normal(0, sigma_q, th.shape), None, None, meas), loops(),
-                        CalibrationOptions(noise=sigma_q, robust=None))
+        res = calibrate(
+            robot,
+            JointLog(joints, th + r.normal(0, sigma_q, th.shape), None, None, meas),
+            loops(),
+            CalibrationOptions(noise=sigma_q, robust=None),
+        )
         assert [n for n in res.names if ".tip_" in n] == ["tool.tip_x", "tool.tip_y", "tool.tip_z"]
         est.append(res.values.copy())
         std.append(res.std.copy())
@@ -219,15 +232,18 @@ def _two_camera_data(sigma_px: float | None = None):
     kw = {} if sigma_px is None else {"sigma_px": sigma_px}
 
     def loops():
-        return [share(CameraLoop("L", "tool0", K=[K1], **kw), "tip", "marker"),
-                share(CameraLoop("R", "tool0", K=[K2], **kw), "tip", "marker")]
+        return [
+            share(CameraLoop("L", "tool0", K=[K1], **kw), "tip", "marker"),
+            share(CameraLoop("R", "tool0", K=[K2], **kw), "tip", "marker"),
+        ]
 
     zeros = {c: np.zeros(len(th)) for lp in loops() for c in lp.columns()}
     prob = build_problem(robot, JointLog(joints, th, None, None, zeros), loops())
     truth = prob.nominal.copy()
     names = [n for n in prob.names if n.split(".")[0] in joints and n.split(".")[1] in ("x", "y", "rx", "offset")]
-    for k, v in draw_truth(robot, names, np.random.default_rng(2), {"translation": 1e-3, "rotation": 1e-3,
-                                                                        "offset": 5e-3}).items():
+    for k, v in draw_truth(
+        robot, names, np.random.default_rng(2), {"translation": 1e-3, "rotation": 1e-3, "offset": 5e-3}
+    ).items():
         truth[prob.index[k]] = v
     data = pixels(prob, truth, th, [X1], [K1], name="L") | pixels(prob, truth, th, [X2], [K2], name="R")
     return robot, joints, th, loops, data
@@ -255,8 +271,12 @@ def _two_camera_mc(draws: int, sigma_q: float = 1e-4, sigma_px: float = 0.01) ->
     for d in range(draws):
         r = np.random.default_rng(500 + d)
         meas = {k: v + r.normal(0, sigma_px, v.shape) for k, v in data.items()}
-        res = calibrate(robot, JointLog(joints, th + r.normal(0, sigma_q, th.shape), None, None, meas), loops(),
-                        CalibrationOptions(noise=sigma_q, robust=None))
+        res = calibrate(
+            robot,
+            JointLog(joints, th + r.normal(0, sigma_q, th.shape), None, None, meas),
+            loops(),
+            CalibrationOptions(noise=sigma_q, robust=None),
+        )
         assert res.converged
         est.append(res.values.copy())
         std.append(res.std.copy())

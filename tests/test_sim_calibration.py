@@ -36,12 +36,12 @@ import json
 import pytest
 
 from closedloop.calibration import CalibrationOptions, calibrate
-from closedloop.validation.check import check_report
 from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
-from closedloop.output.report import build_report
 from closedloop.model.robot import RobotModel
+from closedloop.output.report import build_report
 from closedloop.sims import SCENARIOS, simulate
+from closedloop.validation.check import check_report
 
 CASES = {  # scenario: (loop spec, max length error [m], max angle error [rad][, CalibrationOptions kwargs])
     "panda_weld": ("weld:frame=panda_hand_tcp,name=fixture", 2e-5, 1e-4),

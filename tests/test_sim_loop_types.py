@@ -25,11 +25,13 @@ def test_table_is_keyed_by_the_core_loop_types():
     with pytest.raises(ScenarioError, match="no 'cam' loop") as info:
         sim_loop("cam")
     assert isinstance(info.value, InputError)
-    for spec, expected in (("weld:frame=t", ("weld", "t", None, "fixture")),
-                           ("door:frame=t", ("hinge", "t", None, "door")),
-                           ("point:frame=t", ("point", "t", None, "socket")),
-                           ("plane:frame=t,name=p", ("plane", "t", None, "p")),
-                           ("weld:frame=t,to=u", ("weld", "t", "u", "fixture"))):
+    for spec, expected in (
+        ("weld:frame=t", ("weld", "t", None, "fixture")),
+        ("door:frame=t", ("hinge", "t", None, "door")),
+        ("point:frame=t", ("point", "t", None, "socket")),
+        ("plane:frame=t,name=p", ("plane", "t", None, "p")),
+        ("weld:frame=t,to=u", ("weld", "t", "u", "fixture")),
+    ):
         assert parse_sim_loop(spec) == expected
     with pytest.raises(InputError, match="only a weld closes two chains"):
         parse_sim_loop("point:frame=t,to=u")
@@ -41,8 +43,13 @@ def test_core_loop_is_the_scenarios_loop_type(name, tmp_path):
     path = tmp_path / "nominal.urdf"
     path.write_text(nominal_urdf(sc.robot))
     loop = SIM_LOOPS[sc.loop_type].core_loop(sc, path)
-    core = {"weld": "WeldLoop", "point": "PointLoop", "hinge": "HingeLoop", "plane": "PlaneLoop",
-            "measured_point": "MeasuredPointLoop"}[sc.loop_type]
+    core = {
+        "weld": "WeldLoop",
+        "point": "PointLoop",
+        "hinge": "HingeLoop",
+        "plane": "PlaneLoop",
+        "measured_point": "MeasuredPointLoop",
+    }[sc.loop_type]
     assert type(loop).__name__ == core and loop.name == sc.loop_name and loop.frame_a == sc.tool_frame
 
 
@@ -51,7 +58,7 @@ def test_nominal_residual_jacobian_matches_finite_differences(kind):
     """e(q) is zero at the grasp and de/dq (`SimLoop.nominal_residual`) is its derivative (central differences)."""
     model = pin.buildModelFromXML(nominal_urdf("ur5"))
     tool = [f.name for f in model.frames][-1]
-    r0 = np.array([0.1, -1.2, 1.4, -1.6, -1.5, 0.3])[:model.nq]
+    r0 = np.array([0.1, -1.2, 1.4, -1.6, -1.5, 0.3])[: model.nq]
     data = model.createData()
     pin.framesForwardKinematics(model, data, r0)
     oMt = data.oMf[model.getFrameId(tool)]
@@ -65,8 +72,9 @@ def test_nominal_residual_jacobian_matches_finite_differences(kind):
     q = q0 + np.random.default_rng(0).uniform(-0.2, 0.2, q0.size)
     _, J = loop.residual(q)
     h = 1e-6
-    fd = np.column_stack([(loop.residual(q + h * d)[0] - loop.residual(q - h * d)[0]) / (2 * h)
-                          for d in np.eye(q.size)])
+    fd = np.column_stack(
+        [(loop.residual(q + h * d)[0] - loop.residual(q - h * d)[0]) / (2 * h) for d in np.eye(q.size)]
+    )
     assert np.abs(fd - J).max() < 1e-6
 
 

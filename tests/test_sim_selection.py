@@ -22,18 +22,18 @@ import json
 import numpy as np
 import pinocchio as pin
 import pytest
+from test_sim_calibration import CASES
 
 from closedloop.calibration import CalibrationOptions, calibrate
-from closedloop.validation.check import check_report
 from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
+from closedloop.model.robot import RobotModel
 from closedloop.models import nominal_urdf
 from closedloop.output.report import build_report
-from closedloop.model.robot import RobotModel
 from closedloop.sims import SCENARIOS, simulate
 from closedloop.sims.driver import NominalLoop
 from closedloop.sims.selection import bridge, order_path
-from test_sim_calibration import CASES
+from closedloop.validation.check import check_report
 
 N = 150
 NOISE = 1e-5
@@ -42,8 +42,9 @@ NOISE = 1e-5
 def _calibrate(scenario, out):
     spec, tol_m, tol_rad, *_ = CASES[scenario]
     robot = RobotModel.from_file(out / "nominal.urdf")
-    res = calibrate(robot, read_log(out / "log.csv", robot.joint_names), [parse_loop(spec, robot)],
-                    CalibrationOptions(noise=NOISE))
+    res = calibrate(
+        robot, read_log(out / "log.csv", robot.joint_names), [parse_loop(spec, robot)], CalibrationOptions(noise=NOISE)
+    )
     assert res.converged
     truth = json.loads((out / "truth.json").read_text())
     report = build_report(res)

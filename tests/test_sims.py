@@ -19,8 +19,8 @@ import pytest
 
 from closedloop.models import nominal_urdf
 from closedloop.sims import SCENARIOS, SimSettings, perturbable_parameters, sensor_readings, simulate
-from closedloop.sims.true_robot import identifiable_parameters
 from closedloop.sims.scene import apply_placement_errors, build_scene, site_pose
+from closedloop.sims.true_robot import identifiable_parameters
 
 N = 30
 STIFF_TOL_M = 1e-4
@@ -93,18 +93,19 @@ def test_truth_names(stiff_run):
     assert truth["loop"].get("to") == sc.target_frame
     params = truth["parameters"]
     expected = set(identifiable_parameters(res.nominal_path, sc, res.joint_names))
-    comps = {"point": ("px", "py", "pz", "tip_x", "tip_y", "tip_z"), "weld": ("x", "y", "z", "rx", "ry", "rz"),
-             "hinge": (),  # hinge: the true axis is in truth["loop"]["hinge_axis"]
-             "plane": ("tip_x", "tip_y", "tip_z", "nrx", "nry", "d"),  # PlaneLoop, reference normal e_z
-             "measured_point": ("x", "y", "z", "rx", "ry", "rz", "tip_x", "tip_y", "tip_z"),  # MeasuredPointLoop
-             }[sc.loop_type]
+    comps = {
+        "point": ("px", "py", "pz", "tip_x", "tip_y", "tip_z"),
+        "weld": ("x", "y", "z", "rx", "ry", "rz"),
+        "hinge": (),  # hinge: the true axis is in truth["loop"]["hinge_axis"]
+        "plane": ("tip_x", "tip_y", "tip_z", "nrx", "nry", "d"),  # PlaneLoop, reference normal e_z
+        "measured_point": ("x", "y", "z", "rx", "ry", "rz", "tip_x", "tip_y", "tip_z"),  # MeasuredPointLoop
+    }[sc.loop_type]
     expected |= {f"{sc.loop_name}.{c}" for c in comps}
     assert set(params) == expected
     first = res.joint_names[0]
     # the first joint's placement is the base gauge; welded to the world its offset is too, but in a
     # loop between two branches of the robot (hand) it is not (the other branch's placement absorbs it)
-    assert not any(k.startswith(first + ".") and (sc.target_frame is None or k != first + ".offset")
-                   for k in params)
+    assert not any(k.startswith(first + ".") and (sc.target_frame is None or k != first + ".offset") for k in params)
     for k, v in params.items():
         if k.endswith((".x", ".y", ".z")) and not k.startswith(sc.loop_name + "."):
             assert abs(v) <= 0.002
@@ -154,8 +155,9 @@ def test_true_closure_matches_true_kinematics(stiff_run):
         n = np.array(plane["normal"])
         np.testing.assert_allclose(plane["point"], tool.translation, atol=1e-9)
         assert n[2] > 0 and np.linalg.norm(n) == pytest.approx(1.0)
-        np.testing.assert_allclose(PlaneLoop("x", "t").normal([p[f"{sc.loop_name}.nrx"], p[f"{sc.loop_name}.nry"]]),
-                                   n, atol=1e-12)
+        np.testing.assert_allclose(
+            PlaneLoop("x", "t").normal([p[f"{sc.loop_name}.nrx"], p[f"{sc.loop_name}.nry"]]), n, atol=1e-12
+        )
         assert p[f"{sc.loop_name}.d"] == pytest.approx(float(n @ tool.translation), abs=1e-12)
         # every recorded tip (true model, true joints) stays on the plane (stiff loop: ~1e-6 m)
         fid = model.getFrameId(sc.tool_frame)
@@ -166,8 +168,10 @@ def test_true_closure_matches_true_kinematics(stiff_run):
         assert np.max(np.abs(dist)) < STIFF_TOL_M
         return
     if sc.loop_type == "measured_point":  # measurements = true tip in the true tracker frame + N(0, noise)
-        X = pin.SE3(pin.exp3(np.array([p[f"{sc.loop_name}.r{c}"] for c in "xyz"])),
-                    np.array([p[f"{sc.loop_name}.{c}"] for c in "xyz"]))
+        X = pin.SE3(
+            pin.exp3(np.array([p[f"{sc.loop_name}.r{c}"] for c in "xyz"])),
+            np.array([p[f"{sc.loop_name}.{c}"] for c in "xyz"]),
+        )
         header, logd = _read_log(res.log_path)
         cols = [header.index(f"{sc.loop_name}:{c}") for c in "xyz"]
         assert truth["loop"]["tracker"]["columns"] == [header[c] for c in cols]
@@ -182,8 +186,9 @@ def test_true_closure_matches_true_kinematics(stiff_run):
         assert all(p[f"{sc.loop_name}.tip_{c}"] == 0.0 for c in "xyz")
         return
     point = sc.loop_type == "point"  # PointLoop names: contact point p*, tool tip (0 in the tool frame)
-    np.testing.assert_allclose([p[f"{sc.loop_name}.{'p' if point else ''}{c}"] for c in "xyz"],
-                               tool.translation, atol=1e-9)
+    np.testing.assert_allclose(
+        [p[f"{sc.loop_name}.{'p' if point else ''}{c}"] for c in "xyz"], tool.translation, atol=1e-9
+    )
     if point:
         assert all(p[f"{sc.loop_name}.tip_{c}"] == 0.0 for c in "xyz")
     else:
@@ -363,8 +368,17 @@ def test_box_qp_is_exact():
         assert np.all(g[x == lb] >= -1e-9) and np.all(g[x == ub] <= 1e-9)  # multipliers of active bounds
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            y = solve_qp(sp.csc_matrix(P), c, lb=lb, ub=ub, solver="osqp", eps_abs=1e-10, eps_rel=1e-10,
-                         verbose=False, max_iter=100000)
+            y = solve_qp(
+                sp.csc_matrix(P),
+                c,
+                lb=lb,
+                ub=ub,
+                solver="osqp",
+                eps_abs=1e-10,
+                eps_rel=1e-10,
+                verbose=False,
+                max_iter=100000,
+            )
         if y is not None:
             np.testing.assert_allclose(x, y, atol=1e-6)
     assert active > 300  # the bounds were active in many problems

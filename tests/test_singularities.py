@@ -42,8 +42,9 @@ def test_singularity_1_parallel_axes_in_plain_dh_rows(tmp_path):
     robot = RobotModel.from_file(path)
     prob = _loop_problem(robot)
     readings = self_motion(prob, prob.nominal, nominal_closed_pose(robot), 60, np.random.default_rng(0), step=0.05)
-    res = calibrate(robot, JointLog(robot.joint_names, readings), default_loops(robot),
-                    CalibrationOptions(fix={"j0.s": None}))
+    res = calibrate(
+        robot, JointLog(robot.joint_names, readings), default_loops(robot), CalibrationOptions(fix={"j0.s": None})
+    )
     dropped = {d.name: d for d in res.dropped}
     reported = set(dropped) | {n for c in res.weak for n, _ in c.terms}
     assert {"j5.s", "j6.s"} <= reported, [d.describe() for d in res.dropped]
@@ -65,20 +66,31 @@ ARM = """<?xml version="1.0"?>
 
 def _arm_urdf() -> str:
     """7R arm: spherical shoulder (z, y, z), elbow (y), spherical wrist (z, y, z), links 0.3 m."""
-    spec = [("s0", "0 0 1", "0 0 0.1"), ("s1", "0 1 0", "0 0 0"), ("s2", "0 0 1", "0 0 0"),
-            ("elbow", "0 1 0", "0 0 0.3"), ("w0", "0 0 1", "0 0 0"), ("w1", "0 1 0", "0 0 0.3"),
-            ("w2", "0 0 1", "0 0 0")]
+    spec = [
+        ("s0", "0 0 1", "0 0 0.1"),
+        ("s1", "0 1 0", "0 0 0"),
+        ("s2", "0 0 1", "0 0 0"),
+        ("elbow", "0 1 0", "0 0 0.3"),
+        ("w0", "0 0 1", "0 0 0"),
+        ("w1", "0 1 0", "0 0 0.3"),
+        ("w2", "0 0 1", "0 0 0"),
+    ]
     out, parent = [], "base"
-    inertial = ('<inertial><mass value="1"/><inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" '
-                'izz="0.01"/></inertial>')
+    inertial = (
+        '<inertial><mass value="1"/><inertia ixx="0.01" ixy="0" ixz="0" iyy="0.01" iyz="0" izz="0.01"/></inertial>'
+    )
     for name, axis, xyz in spec:
         out.append(f'<link name="{name}_link">{inertial}</link>')
-        out.append(f'<joint name="{name}" type="revolute"><parent link="{parent}"/><child link="{name}_link"/>'
-                   f'<origin xyz="{xyz}" rpy="0 0 0"/><axis xyz="{axis}"/>'
-                   '<limit lower="-3" upper="3" effort="1" velocity="1"/></joint>')
+        out.append(
+            f'<joint name="{name}" type="revolute"><parent link="{parent}"/><child link="{name}_link"/>'
+            f'<origin xyz="{xyz}" rpy="0 0 0"/><axis xyz="{axis}"/>'
+            '<limit lower="-3" upper="3" effort="1" velocity="1"/></joint>'
+        )
         parent = f"{name}_link"
-    out.append(f'<link name="hand">{inertial}</link><joint name="hand_joint" type="fixed"><parent link="{parent}"/>'
-               '<child link="hand"/><origin xyz="0 0 0.1" rpy="0 0 0"/></joint>')
+    out.append(
+        f'<link name="hand">{inertial}</link><joint name="hand_joint" type="fixed"><parent link="{parent}"/>'
+        '<child link="hand"/><origin xyz="0 0 0.1" rpy="0 0 0"/></joint>'
+    )
     return ARM.format(links="\n  ".join(out))
 
 
@@ -89,8 +101,9 @@ def test_singularity_5_elbow_of_an_arm_with_its_hand_fixed(tmp_path):
     path.write_text(_arm_urdf())
     robot = RobotModel.from_file(path)
     loop = WeldLoop("fixture", "hand")
-    ds = make_dataset(robot, loop, np.array([0.2, 0.5, 0.3, 1.2, -0.4, 0.7, 0.1]), 40,
-                      np.random.default_rng(1), perturb=[], step=0.05)
+    ds = make_dataset(
+        robot, loop, np.array([0.2, 0.5, 0.3, 1.2, -0.4, 0.7, 0.1]), 40, np.random.default_rng(1), perturb=[], step=0.05
+    )
     elbow = ds.joints.index("elbow")
     assert np.ptp(ds.readings[:, elbow]) < 1e-9  # exactly: the elbow never moves
     # Readings with a little sensor noise: the elbow reading changes, but no self-motion moves it.
@@ -99,8 +112,12 @@ def test_singularity_5_elbow_of_an_arm_with_its_hand_fixed(tmp_path):
     immobile = [n for n in res.notes if "structurally immobile" in n]
     assert len(immobile) == 1 and "joint elbow " in immobile[0] and "Lemma 6" in immobile[0]
     # Exact readings: the elbow is reported as never moving (Singularity 5), not crashed into.
-    res0 = calibrate(robot, ds.log(noisy=False), [WeldLoop("fixture", "hand")],
-                     CalibrationOptions(identify=["placement", "offset", "scale", "loop"]))
+    res0 = calibrate(
+        robot,
+        ds.log(noisy=False),
+        [WeldLoop("fixture", "hand")],
+        CalibrationOptions(identify=["placement", "offset", "scale", "loop"]),
+    )
     assert any("elbow never moves" in n and "Singularity 5" in n for n in res0.notes)
     assert res0.status[res0.names.index("elbow.scale")] in ("dropped", "fixed")
 
@@ -109,8 +126,9 @@ def test_singularity_2_insufficient_excitation(panda):
     """A tiny motion range (0.02 rad of self-motion) with 1e-5 rad reading noise: the data cannot
     separate some parameters; they are named in `weak` and marked unidentifiable, not solved into noise."""
     rng = np.random.default_rng(3)
-    ds = make_dataset(panda, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 30, rng,
-                      step=1e-3, stride=1)
+    ds = make_dataset(
+        panda, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 30, rng, step=1e-3, stride=1
+    )
     assert np.ptp(ds.readings, axis=0).max() < 0.05
     noisy = ds.readings + rng.normal(0, 1e-5, ds.readings.shape)
     res = calibrate(panda, JointLog(ds.joints, noisy), [WeldLoop("fixture", "panda_hand")])

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from closedloop.estimate.qr import r_factor
 from closedloop.estimate.lm import SolverOptions, levenberg_marquardt, scaled_svd
+from closedloop.estimate.qr import r_factor
 
 
 def _tall(rng: np.random.Generator, m: int = 5000, n: int = 27, cond: float = 1e6) -> np.ndarray:
@@ -50,8 +50,9 @@ def test_levenberg_marquardt_on_linear_least_squares_is_exact():
     A = _tall(rng, 3000, 10, 1e3)
     b = rng.normal(size=3000)
     x_star = np.linalg.lstsq(A, b, rcond=None)[0]
-    res = levenberg_marquardt(lambda x, jac: (A @ x - b, A if jac else None), np.zeros(10), np.ones(10),
-                              SolverOptions(noise=1e-12))
+    res = levenberg_marquardt(
+        lambda x, jac: (A @ x - b, A if jac else None), np.zeros(10), np.ones(10), SolverOptions(noise=1e-12)
+    )
     assert res.status == "converged"
     assert np.allclose(res.x, x_star, rtol=1e-10, atol=1e-10 * np.abs(x_star).max())
 

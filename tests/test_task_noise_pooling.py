@@ -10,10 +10,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from test_rigs import _loops, rigmod
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.io.logs import JointLog
-from test_rigs import _loops, rigmod
 
 
 def _log(rigs: dict[str, object], n: int) -> tuple[JointLog, list[str]]:

@@ -19,7 +19,7 @@ def _tool_poses(res, readings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     import pinocchio as pin
 
     prob = res.problem
-    state = prob.rp.apply(res.values[:prob.n_robot])
+    state = prob.rp.apply(res.values[: prob.n_robot])
     q = prob.robot.configurations(readings * state.scale + state.offset, prob.joints)
     fid = prob.robot.frame_id("panda_hand")
     P, R = [], []
@@ -94,8 +94,10 @@ def test_twenty_percent_random_rows_leave_the_estimate_or_fail(panda, panda_weld
     rng = np.random.default_rng(4)
     rows = np.sort(rng.choice(200, 40, replace=False))
     res = calibrate(panda, JointLog(panda_weld.joints, _corrupt_rows(panda_weld.readings, rows, rng)), LOOP)
-    right = res.residuals_after[0].rms_m < 1e-8 and \
-        np.abs(res.values[res.estimated] - clean.values[res.estimated]).max() < 1e-6
+    right = (
+        res.residuals_after[0].rms_m < 1e-8
+        and np.abs(res.values[res.estimated] - clean.values[res.estimated]).max() < 1e-6
+    )
     assert right or res.verdict.status == "failed", res.verdict.describe()
 
 

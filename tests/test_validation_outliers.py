@@ -19,7 +19,7 @@ def dirty():
     truth = sc.truth_vector(problem)
     th = sc.theta + np.random.default_rng(11).normal(0, NOISE, sc.theta.shape)
     for i in BAD:
-        Jq = problem.evaluate(truth, True, [sc.theta[i:i + 1]])[0].Jq[0]
+        Jq = problem.evaluate(truth, True, [sc.theta[i : i + 1]])[0].Jq[0]
         th[i, 0] += 0.05 / np.linalg.norm(Jq[:3, 0])
     lg = sc.log(th)
     res = calibrate(sc.robot, lg, sc.loops, CalibrationOptions(noise=NOISE))

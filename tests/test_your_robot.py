@@ -28,20 +28,61 @@ SO101 = example_robot_data_dir() / "so_arm_description" / "urdf" / "so101.urdf"
 
 def test_romeo_arm_simulated_calibrated_and_checked(tmp_path, capsys):
     sim = tmp_path / "sim"
-    assert main(["simulate", "--robot", str(ROMEO), "--loop", "weld:frame=l_wrist,name=fixture",
-                 "--n", "60", "--seed", "1", "--out", str(sim), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--robot",
+                str(ROMEO),
+                "--loop",
+                "weld:frame=l_wrist,name=fixture",
+                "--n",
+                "60",
+                "--seed",
+                "1",
+                "--out",
+                str(sim),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert "simulated 60 configurations of romeo_small_weld" in capsys.readouterr().out
     truth = json.loads((sim / "truth.json").read_text())
-    assert truth["joint_names"] == ["TrunkYaw", "LShoulderPitch", "LShoulderYaw", "LElbowRoll", "LElbowYaw",
-                                    "LWristRoll", "LWristYaw", "LWristPitch"]
+    assert truth["joint_names"] == [
+        "TrunkYaw",
+        "LShoulderPitch",
+        "LShoulderYaw",
+        "LElbowRoll",
+        "LElbowYaw",
+        "LWristRoll",
+        "LWristYaw",
+        "LWristPitch",
+    ]
     assert truth["violation"]["max_m"] < 1e-7 and truth["violation"]["max_rad"] < 1e-6  # the loop stays closed
     assert truth["samples"]["recorded"] == 60
     q = np.loadtxt(sim / "log.csv", delimiter=",", skiprows=1, usecols=range(8))
     assert np.ptp(q, axis=0).min() > 0.05  # every driven joint moves in the 2-DOF self-motion
     out, report = tmp_path / "calibrated.urdf", tmp_path / "report.json"
-    assert main(["calibrate", str(sim / "nominal.urdf"), str(sim / "log.csv"), "--loop",
-                 "weld:frame=l_wrist,name=fixture", "--out", str(out), "--report", str(report), "--cv", "2",
-                 "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(sim / "nominal.urdf"),
+                str(sim / "log.csv"),
+                "--loop",
+                "weld:frame=l_wrist,name=fixture",
+                "--out",
+                str(out),
+                "--report",
+                str(report),
+                "--cv",
+                "2",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert main(["check", str(sim / "truth.json"), str(report)]) == 0
     text = capsys.readouterr().out
     assert " 0 outside" in text
@@ -62,8 +103,10 @@ def test_plain_words_when_a_loop_cannot_close(tmp_path, capsys):
     assert "no link 'gripper_frame'" in (err := capsys.readouterr().err) and "gripper_frame_link" in err
     assert main(["simulate", "--robot", str(SO101), "--loop", "camera:frame=gripper_frame_link", "--out", out]) == 2
     assert "the simulator has no 'camera' loop" in capsys.readouterr().err
-    assert main(["simulate", "--robot", str(ROMEO), "--loop", "point:frame=l_wrist", "--joints", "LHipYaw",
-                 "--out", out]) == 2
+    assert (
+        main(["simulate", "--robot", str(ROMEO), "--loop", "point:frame=l_wrist", "--joints", "LHipYaw", "--out", out])
+        == 2
+    )
     assert "LHipYaw do not move l_wrist" in capsys.readouterr().err
     assert main(["simulate", "--robot", str(ROMEO), "--loop", "weld:frame=l_wrist", "--q0", "0 0", "--out", out]) == 2
     assert "q0 has 2 values; l_wrist is driven by 8 joints" in capsys.readouterr().err
@@ -72,16 +115,19 @@ def test_plain_words_when_a_loop_cannot_close(tmp_path, capsys):
 def test_builtin_scenarios_are_yaml_files_and_a_user_yaml_runs(tmp_path, capsys):
     shipped = Path(__file__).resolve().parents[1] / "closedloop" / "sims" / "scenarios"
     assert sorted(p.stem for p in shipped.glob("*.yaml")) == sorted(
-        ["panda_weld", "ur5_socket", "ur5_door", "utah_hand", "ur5_plane", "ur5_tracker"])
+        ["panda_weld", "ur5_socket", "ur5_door", "utah_hand", "ur5_plane", "ur5_tracker"]
+    )
     assert SCENARIOS["utah_hand"].target_frame == "thumb_tip" and SCENARIOS["utah_hand"].settings.timestep == 0.001
     assert SCENARIOS["ur5_door"].loop_type == "hinge" and SCENARIOS["ur5_door"].door.radius == 0.45
     # a user's scenario: the SO-101 with a stylus 5 cm off its gripper frame in a socket (3 of 5 joints taken)
     (tmp_path / "robots").mkdir()
     (tmp_path / "robots" / "so101.urdf").write_text(SO101.read_text())
     yml = tmp_path / "so101_socket.yaml"
-    yml.write_text("description: SO-101 stylus in a socket\nrobot: robots/so101.urdf\n"
-                   "loop: point:frame=gripper_frame_link,name=socket\ntool: {xyz: [0.05, 0.0, 0.0]}\n"
-                   "settings: {step_rad: 0.1, target_span: 1.0}\n")
+    yml.write_text(
+        "description: SO-101 stylus in a socket\nrobot: robots/so101.urdf\n"
+        "loop: point:frame=gripper_frame_link,name=socket\ntool: {xyz: [0.05, 0.0, 0.0]}\n"
+        "settings: {step_rad: 0.1, target_span: 1.0}\n"
+    )
     sc = load_scenario(yml)
     assert sc.tool_frame == "gripper_frame_link_tip" and len(sc.q0) == 5
     assert main(["simulate", str(yml), "--n", "15", "--out", str(tmp_path / "s"), "--quiet"]) == 0
@@ -100,14 +146,23 @@ def test_mjcf_robot(tmp_path):
     from closedloop.sims import simulate
     from closedloop.sims.robot_scenario import prepare_robot
 
-    spec = mujoco.MjSpec.from_string(nominal_urdf("ur5").replace(
-        "</robot>", '<mujoco><compiler fusestatic="false" discardvisual="true"/></mujoco></robot>'))
+    spec = mujoco.MjSpec.from_string(
+        nominal_urdf("ur5").replace(
+            "</robot>", '<mujoco><compiler fusestatic="false" discardvisual="true"/></mujoco></robot>'
+        )
+    )
     spec.joint("wrist_1_joint").pos = [0.0, 0.0, 0.03]  # an anchor off the body origin (MJCF allows it)
     xml = tmp_path / "ur5.xml"
     xml.write_text(spec.to_xml())
     prepared = prepare_robot(xml, "point", "tool0", tool={"xyz": [0, 0, 0.1]})
-    assert prepared.joints == ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint",
-                               "wrist_2_joint", "wrist_3_joint")
+    assert prepared.joints == (
+        "shoulder_pan_joint",
+        "shoulder_lift_joint",
+        "elbow_joint",
+        "wrist_1_joint",
+        "wrist_2_joint",
+        "wrist_3_joint",
+    )
     # the converted robot has the MJCF's kinematics: the tool pose at random configurations agrees
     import pinocchio as pin
 
@@ -124,7 +179,8 @@ def test_mjcf_robot(tmp_path):
         assert np.allclose(pd.oMf[pm.getFrameId("tool0")].translation, d.xpos[b], atol=1e-9)
         assert np.allclose(pd.oMf[pm.getFrameId("tool0")].rotation, d.xmat[b].reshape(3, 3), atol=1e-9)
     SCENARIOS["ur5_mjcf"] = __import__("dataclasses").replace(
-        SCENARIOS["ur5_socket"], name="ur5_mjcf", robot=prepared.key, tool_frame=prepared.frame, q0=prepared.q0)
+        SCENARIOS["ur5_socket"], name="ur5_mjcf", robot=prepared.key, tool_frame=prepared.frame, q0=prepared.q0
+    )
     res = simulate("ur5_mjcf", n=10, seed=0, out_dir=tmp_path / "m")
     assert res.violation_m.max() < 1e-6 and len(res.readings) == 10
 
@@ -145,7 +201,7 @@ def test_calibrate_help_and_loops_list_the_registry(capsys):
     out = capsys.readouterr().out
     for kind, (_, keys) in REGISTRY.items():
         line = next(ln for ln in out.splitlines() if ln.strip().startswith(kind + " "))
-        assert all(k in out[out.index(line):] for k in keys)
+        assert all(k in out[out.index(line) :] for k in keys)
     assert "--html" in out and "--plots" in out and "--config" in out and "ROS bag" in out
     assert main(["loops"]) == 0
     out = capsys.readouterr().out
@@ -163,8 +219,13 @@ def test_mesh_warnings_silenced(tmp_path, caplog):
     urdf.write_text(ROMEO.read_text())  # away from its package: the mesh paths do not resolve
 
     def load():  # loading and writing it back, as a URDF editor built on yourdfpy does
-        yourdfpy.URDF.load(str(urdf), build_scene_graph=False, build_collision_scene_graph=False,
-                           load_meshes=False, load_collision_meshes=False).write_xml()
+        yourdfpy.URDF.load(
+            str(urdf),
+            build_scene_graph=False,
+            build_collision_scene_graph=False,
+            load_meshes=False,
+            load_collision_meshes=False,
+        ).write_xml()
 
     logging.getLogger("yourdfpy").setLevel(logging.NOTSET)  # as in a fresh process
     with caplog.at_level(logging.WARNING):
@@ -178,17 +239,38 @@ def test_mesh_warnings_silenced(tmp_path, caplog):
     logging.getLogger("yourdfpy").setLevel(logging.NOTSET)
 
 
-@pytest.mark.parametrize("spec,urdf,extra", [
-    ("hinge:frame=tool0,name=door", "ur_description/urdf/ur5_robot.urdf", []),
-    ("plane:frame=tool0,name=table", "ur_description/urdf/ur5_robot.urdf", ["--tool", "0 0.05 0.1"]),
-    ("measured_point:frame=tool0,name=tracker", "ur_description/urdf/ur5_robot.urdf", ["--tool", "0 0.05 0.1"]),
-    ("weld:frame=left_gripper,to=right_gripper,name=grasp", "baxter_description/urdf/baxter.urdf", []),
-])
+@pytest.mark.parametrize(
+    "spec,urdf,extra",
+    [
+        ("hinge:frame=tool0,name=door", "ur_description/urdf/ur5_robot.urdf", []),
+        ("plane:frame=tool0,name=table", "ur_description/urdf/ur5_robot.urdf", ["--tool", "0 0.05 0.1"]),
+        ("measured_point:frame=tool0,name=tracker", "ur_description/urdf/ur5_robot.urdf", ["--tool", "0 0.05 0.1"]),
+        ("weld:frame=left_gripper,to=right_gripper,name=grasp", "baxter_description/urdf/baxter.urdf", []),
+    ],
+)
 def test_every_simulated_loop_type_on_a_robot_file(tmp_path, spec, urdf, extra):
     """Door, plane, tracker and two chains of one robot, from a robot file with the automatic choices."""
     out = tmp_path / "s"
-    assert main(["simulate", "--robot", str(example_robot_data_dir() / urdf), "--loop", spec, *extra,
-                 "--n", "6", "--seed", "2", "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--robot",
+                str(example_robot_data_dir() / urdf),
+                "--loop",
+                spec,
+                *extra,
+                "--n",
+                "6",
+                "--seed",
+                "2",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     truth = json.loads((out / "truth.json").read_text())
     assert truth["samples"]["recorded"] == 6 and truth["samples"]["dropped"] <= 2
     kind = spec.split(":")[0]

@@ -20,8 +20,8 @@ import functools
 import numpy as np
 import pinocchio as pin
 import pytest
-
 import zoo
+
 from closedloop import RobotModel, read_log
 
 WELD_7DOF = ["panda", "xarm7", "baxter_left", "tiago", "g1_left"]
@@ -59,6 +59,7 @@ def test_judge_fits_scale_only_where_the_loop_cannot_see_it(tmp_path):
     case = zoo.make_case("ur5", "point", n=10, seed=1)
     folded = zoo.folded_truth_urdf(case)
     import xml.etree.ElementTree as ET
+
     root = ET.parse(folded).getroot()
     for o in root.iter("origin"):
         o.set("xyz", " ".join(repr(1.3 * float(v)) for v in o.get("xyz").split()))
@@ -123,8 +124,10 @@ def test_zoo_exact_cases_mostly_accepted():
     outs = [_exact(r, "weld") for r in WELD_7DOF] + [_exact(r, "point") for r in POINT_6DOF]
     accepted = [o for o in outs if o.right and not o.refused and o.status != "crash"]
     if len(accepted) < 0.75 * len(outs):
-        pytest.fail(f"only {len(accepted)} of {len(outs)} right with verdict ok:\n" + "\n".join(o.line() for o in outs),
-                    pytrace=False)
+        pytest.fail(
+            f"only {len(accepted)} of {len(outs)} right with verdict ok:\n" + "\n".join(o.line() for o in outs),
+            pytrace=False,
+        )
 
 
 def test_zoo_noisy_tracker():
@@ -144,5 +147,8 @@ def test_zoo_corrupted_rows():
 
 def test_zoo_rough_start():
     """A nominal model 10x further from the truth (2 cm, 20 mrad, 0.2 rad offsets)."""
-    _check(zoo.run_case(zoo.make_case("panda", "weld", n=60, seed=1, err_m=2e-2, err_rad=2e-2,
-                                      offset_rad=0.2, tag="rough")))
+    _check(
+        zoo.run_case(
+            zoo.make_case("panda", "weld", n=60, seed=1, err_m=2e-2, err_rad=2e-2, offset_rad=0.2, tag="rough")
+        )
+    )

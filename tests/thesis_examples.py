@@ -172,12 +172,31 @@ class Example:
 
 
 # Open-chain designs (s, a, alpha): consecutive axes never parallel; the upper arm is the unit length.
-ARM7 = [(0.0, 0.2, -np.pi / 2), (0.15, 0.1, np.pi / 2), (1.0, 0.2, -np.pi / 2), (0.15, 0.2, np.pi / 2),
-        (0.9, 0.1, -np.pi / 2), (0.1, 0.15, np.pi / 2), (0.2, 0.02, 0.0)]
-ARM6 = [(0.0, 0.1, -np.pi / 2), (0.1, 0.05, np.pi / 2), (1.0, 0.1, -np.pi / 2), (0.1, 0.1, np.pi / 2),
-        (0.8, 0.05, -np.pi / 2), (0.15, 0.05, 0.4)]
-ARM6_POINT = [(0.2, 0.1, -np.pi / 2), (1.0, 0.1, np.pi / 2), (0.1, 0.1, -np.pi / 2), (0.8, 0.05, np.pi / 2),
-              (0.1, 0.05, -np.pi / 2), (0.2, 0.05, 0.3)]
+ARM7 = [
+    (0.0, 0.2, -np.pi / 2),
+    (0.15, 0.1, np.pi / 2),
+    (1.0, 0.2, -np.pi / 2),
+    (0.15, 0.2, np.pi / 2),
+    (0.9, 0.1, -np.pi / 2),
+    (0.1, 0.15, np.pi / 2),
+    (0.2, 0.02, 0.0),
+]
+ARM6 = [
+    (0.0, 0.1, -np.pi / 2),
+    (0.1, 0.05, np.pi / 2),
+    (1.0, 0.1, -np.pi / 2),
+    (0.1, 0.1, np.pi / 2),
+    (0.8, 0.05, -np.pi / 2),
+    (0.15, 0.05, 0.4),
+]
+ARM6_POINT = [
+    (0.2, 0.1, -np.pi / 2),
+    (1.0, 0.1, np.pi / 2),
+    (0.1, 0.1, -np.pi / 2),
+    (0.8, 0.05, np.pi / 2),
+    (0.1, 0.05, -np.pi / 2),
+    (0.2, 0.05, 0.3),
+]
 
 
 def _open_rows(design, offsets=None) -> np.ndarray:
@@ -277,8 +296,15 @@ def door() -> Example:
 
     Z = _sweep(fun, np.concatenate([home[1:], [0.0]]), np.linspace(0.0, 0.5, 40)[:, None])
     TH = np.column_stack([home[0] + np.linspace(0.0, 0.5, 40), Z[:, :5]])
-    return Example("door", rows, False, ["hinge:frame=door_end,name=door"], ["j3.s"], TH,
-                   meta={"axis_point": c, "axis_dir": u, "phi": Z[:, 5]})
+    return Example(
+        "door",
+        rows,
+        False,
+        ["hinge:frame=door_end,name=door"],
+        ["j3.s"],
+        TH,
+        meta={"axis_point": c, "axis_dir": u, "phi": Z[:, 5]},
+    )
 
 
 @functools.lru_cache(maxsize=None)
@@ -309,10 +335,15 @@ EXAMPLES = {"example1": example1, "example2": example2, "door": door, "point": p
 # ----------------------------------------------------------------------------- calibration starts
 def write_table(ex: Example, rows: np.ndarray, path: Path) -> Path:
     """The table in closedloop's D-H YAML format (metres, radians)."""
-    joints = [{"name": n, "convention": "dh", **{f: float(v) for f, v in zip(FIELDS, r)}}
-              for n, r in zip(ex.joints, rows)]
-    path.write_text(yaml.safe_dump({"name": ex.name, "closes": ex.closes, "units": {"length": "m", "angle": "rad"},
-                                    "joints": joints}, sort_keys=False))
+    joints = [
+        {"name": n, "convention": "dh", **{f: float(v) for f, v in zip(FIELDS, r)}} for n, r in zip(ex.joints, rows)
+    ]
+    path.write_text(
+        yaml.safe_dump(
+            {"name": ex.name, "closes": ex.closes, "units": {"length": "m", "angle": "rad"}, "joints": joints},
+            sort_keys=False,
+        )
+    )
     return path
 
 
@@ -349,8 +380,11 @@ def mechanism_error(ex: Example, rows: np.ndarray, values: dict[str, float], n: 
         err = 0.0
         for th in TH:
             for Ft, Fc in zip(open_frames(ex.rows, th), open_frames(rows, th)):
-                err = max(err, np.abs(Ft.translation - Fc.translation).max(),
-                          np.abs(Ft.rotation[:, 2] - Fc.rotation[:, 2]).max())
+                err = max(
+                    err,
+                    np.abs(Ft.translation - Fc.translation).max(),
+                    np.abs(Ft.rotation[:, 2] - Fc.rotation[:, 2]).max(),
+                )
         return float(err)
     ct, cc = Chain(ex.rows), Chain(rows)
     if ex.tip is None:  # door
@@ -393,10 +427,21 @@ class StartOutcome:
         return self.recovered and self.status not in ("failed", "crash")
 
     def line(self) -> str:
-        tag = ("recovered" if self.accepted else "RIGHT BUT FAILED" if self.recovered else "REFUSED" if self.refused
-               else "CRASH" if self.status == "crash" else "CONFIDENTLY WRONG")
-        return (f"{self.example:9s} start {self.seed:3d} {tag:18s} verdict={self.status:7s} conv={self.converged!s:5s} "
-                f"mechanism err {self.error:.2e} param err {self.param_error:.2e} {self.seconds:5.2f}s {self.message}")
+        tag = (
+            "recovered"
+            if self.accepted
+            else "RIGHT BUT FAILED"
+            if self.recovered
+            else "REFUSED"
+            if self.refused
+            else "CRASH"
+            if self.status == "crash"
+            else "CONFIDENTLY WRONG"
+        )
+        return (
+            f"{self.example:9s} start {self.seed:3d} {tag:18s} verdict={self.status:7s} conv={self.converged!s:5s} "
+            f"mechanism err {self.error:.2e} param err {self.param_error:.2e} {self.seconds:5.2f}s {self.message}"
+        )
 
 
 def run_start(ex: Example, seed: int, options=None, workdir: Path | None = None) -> StartOutcome:
@@ -411,8 +456,9 @@ def run_start(ex: Example, seed: int, options=None, workdir: Path | None = None)
     table = write_table(ex, start, wd / f"{ex.name}_start_{seed}.yaml")
     log = wd / f"{ex.name}.csv"
     if not log.exists():
-        log.write_text(",".join(ex.joints) + "\n" + "\n".join(",".join(repr(float(v)) for v in r)
-                                                              for r in ex.readings) + "\n")
+        log.write_text(
+            ",".join(ex.joints) + "\n" + "\n".join(",".join(repr(float(v)) for v in r) for r in ex.readings) + "\n"
+        )
     opt = options or CalibrationOptions()
     opt.fix = {**{f: None for f in ex.fixed}, **opt.fix}
     t0 = time.perf_counter()
@@ -423,8 +469,17 @@ def run_start(ex: Example, seed: int, options=None, workdir: Path | None = None)
     except ClosedLoopError as exc:
         return StartOutcome(ex.name, seed, False, "failed", False, np.inf, np.inf, time.perf_counter() - t0, str(exc))
     except Exception as exc:  # noqa: BLE001 - a crash is reported, not hidden
-        return StartOutcome(ex.name, seed, False, "crash", False, np.inf, np.inf, time.perf_counter() - t0,
-                            f"{type(exc).__name__}: {exc}")
+        return StartOutcome(
+            ex.name,
+            seed,
+            False,
+            "crash",
+            False,
+            np.inf,
+            np.inf,
+            time.perf_counter() - t0,
+            f"{type(exc).__name__}: {exc}",
+        )
     dt = time.perf_counter() - t0
     values = res.as_dict()
     rows = rows_of(values, ex)
@@ -433,9 +488,15 @@ def run_start(ex: Example, seed: int, options=None, workdir: Path | None = None)
     err = mechanism_error(ex, rows, values)
     v = getattr(res, "verdict", None)
     status = "ok?" if v is None else str(getattr(v, "status", v))
-    after = "; ".join(f"closure {r.rms_m if r.rms_m is not None else float('nan'):.2e} m "
-                      f"{r.rms_rad if r.rms_rad is not None else float('nan'):.2e} rad" for r in res.residuals_after)
-    msg = f"{after}; {res.iterations} it; {sum(s == 'dropped' for s in res.status)} dropped, " \
-          f"{sum(s == 'unidentifiable' for s in res.status)} unidentifiable"
-    return StartOutcome(ex.name, seed, bool(err < TOL), status, bool(res.converged), err, float(np.abs(d).max()), dt,
-                        msg)
+    after = "; ".join(
+        f"closure {r.rms_m if r.rms_m is not None else float('nan'):.2e} m "
+        f"{r.rms_rad if r.rms_rad is not None else float('nan'):.2e} rad"
+        for r in res.residuals_after
+    )
+    msg = (
+        f"{after}; {res.iterations} it; {sum(s == 'dropped' for s in res.status)} dropped, "
+        f"{sum(s == 'unidentifiable' for s in res.status)} unidentifiable"
+    )
+    return StartOutcome(
+        ex.name, seed, bool(err < TOL), status, bool(res.converged), err, float(np.abs(d).max()), dt, msg
+    )

@@ -36,9 +36,9 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
+from scratch import scratch_dir
 
 from closedloop.models import example_robot_data_dir
-from scratch import scratch_dir
 
 TOOL = "zoo_tool"
 SCALE_BLIND = {"weld", "point", "plane", "hinge"}  # loops that close at any overall size
@@ -56,22 +56,26 @@ class ZooRobot:
     tool_rpy: tuple[float, float, float] = (0.2, -0.1, 0.3)
 
 
-ZOO: dict[str, ZooRobot] = {r.name: r for r in [
-    ZooRobot("panda", "panda_description/urdf/panda.urdf", "panda_link0", "panda_hand_tcp"),
-    ZooRobot("ur3", "ur_description/urdf/ur3_robot.urdf", "base_link", "tool0"),
-    ZooRobot("ur5", "ur_description/urdf/ur5_robot.urdf", "base_link", "tool0"),
-    ZooRobot("ur10", "ur_description/urdf/ur10_robot.urdf", "base_link", "tool0"),
-    ZooRobot("kinova", "kinova_description/robots/kinova.urdf", "base", "j2s6s200_end_effector"),
-    ZooRobot("xarm7", "xarm_description/urdf/xarm7.urdf", "link_base", "link_eef"),
-    ZooRobot("z1", "z1_description/urdf/z1.urdf", "link00", "link06"),
-    ZooRobot("baxter_left", "baxter_description/urdf/baxter.urdf", "base", "left_gripper"),
-    ZooRobot("tiago", "tiago_description/robots/tiago.urdf", "torso_lift_link", "arm_tool_link"),
-    ZooRobot("pr2_left", "pr2_description/urdf/pr2.urdf", "torso_lift_link", "l_gripper_tool_frame"),
-    ZooRobot("talos_left", "talos_data/robots/talos_reduced.urdf", "torso_2_link", "arm_left_7_link"),
-    ZooRobot("tiago_pro_left", "tiago_pro_description/robots/tiago_pro.urdf", "torso_lift_link",
-             "arm_left_tool_link"),
-    ZooRobot("g1_left", "g1_description/urdf/g1_29dof_rev_1_0.urdf", "torso_link", "left_wrist_yaw_link"),
-]}
+ZOO: dict[str, ZooRobot] = {
+    r.name: r
+    for r in [
+        ZooRobot("panda", "panda_description/urdf/panda.urdf", "panda_link0", "panda_hand_tcp"),
+        ZooRobot("ur3", "ur_description/urdf/ur3_robot.urdf", "base_link", "tool0"),
+        ZooRobot("ur5", "ur_description/urdf/ur5_robot.urdf", "base_link", "tool0"),
+        ZooRobot("ur10", "ur_description/urdf/ur10_robot.urdf", "base_link", "tool0"),
+        ZooRobot("kinova", "kinova_description/robots/kinova.urdf", "base", "j2s6s200_end_effector"),
+        ZooRobot("xarm7", "xarm_description/urdf/xarm7.urdf", "link_base", "link_eef"),
+        ZooRobot("z1", "z1_description/urdf/z1.urdf", "link00", "link06"),
+        ZooRobot("baxter_left", "baxter_description/urdf/baxter.urdf", "base", "left_gripper"),
+        ZooRobot("tiago", "tiago_description/robots/tiago.urdf", "torso_lift_link", "arm_tool_link"),
+        ZooRobot("pr2_left", "pr2_description/urdf/pr2.urdf", "torso_lift_link", "l_gripper_tool_frame"),
+        ZooRobot("talos_left", "talos_data/robots/talos_reduced.urdf", "torso_2_link", "arm_left_7_link"),
+        ZooRobot(
+            "tiago_pro_left", "tiago_pro_description/robots/tiago_pro.urdf", "torso_lift_link", "arm_left_tool_link"
+        ),
+        ZooRobot("g1_left", "g1_description/urdf/g1_29dof_rev_1_0.urdf", "torso_link", "left_wrist_yaw_link"),
+    ]
+}
 
 MOVABLE = ("revolute", "continuous", "prismatic")
 
@@ -216,9 +220,11 @@ def _constraint(kind: str, kin: Kin, th0: np.ndarray, rng: np.random.Generator):
     P = T0.translation.copy()
     geo: dict = {"T0": T0}
     if kind in ("weld", "hinge"):
+
         def fun(th, target=T0):
             E = target.actInv(kin.pose(th))
             return pin.log6(E).vector, pin.Jlog6(E) @ kin.jacobian(th)
+
         if kind == "hinge":
             u = rng.normal(size=3)
             u /= np.linalg.norm(u)
@@ -226,8 +232,10 @@ def _constraint(kind: str, kin: Kin, th0: np.ndarray, rng: np.random.Generator):
             geo.update(axis_u=u, axis_c=P + 0.3 * w / np.linalg.norm(w))
         return fun, geo
     if kind == "point":
+
         def fun(th, target=None):
             return kin.pose(th).translation - P, kin.jacobian(th, pin.LOCAL_WORLD_ALIGNED)[:3]
+
         return fun, geo
     if kind == "plane":
         n = rng.normal(size=3)
@@ -237,12 +245,22 @@ def _constraint(kind: str, kin: Kin, th0: np.ndarray, rng: np.random.Generator):
         def fun(th, target=None):
             J = kin.jacobian(th, pin.LOCAL_WORLD_ALIGNED)[:3]
             return np.array([n @ (kin.pose(th).translation - P)]), (n @ J)[None]
+
         return fun, geo
     raise ValueError(f"unknown loop kind {kind!r}")
 
 
-def sample_loop(kind: str, kin: Kin, lo, hi, n: int, rng: np.random.Generator, step: float = 0.4,
-                phi_max: float = 0.5, max_tries: int = 40) -> tuple[np.ndarray, dict]:
+def sample_loop(
+    kind: str,
+    kin: Kin,
+    lo,
+    hi,
+    n: int,
+    rng: np.random.Generator,
+    step: float = 0.4,
+    phi_max: float = 0.5,
+    max_tries: int = 40,
+) -> tuple[np.ndarray, dict]:
     """n true joint configurations on the loop: random moves + DLS projection (|r| < 1e-12)."""
     margin = 0.05
     lo_m, hi_m = lo + margin, hi - margin
@@ -315,8 +333,9 @@ class Case:
         for j, off in self.true_offsets.items():
             q[tm.joints[tm.getJointId(j)].idx_q] = off
         pin.framesForwardKinematics(tm, td, q)
-        return float(np.linalg.norm(td.oMf[tm.getFrameId(frame_b)].translation
-                                    - td.oMf[tm.getFrameId(frame_a)].translation))
+        return float(
+            np.linalg.norm(td.oMf[tm.getFrameId(frame_b)].translation - td.oMf[tm.getFrameId(frame_a)].translation)
+        )
 
     @property
     def label(self) -> str:
@@ -346,10 +365,23 @@ class Case:
         return tol
 
 
-def make_case(robot: str, loop: str, n: int = 60, sigma: float = 0.0, seed: int = 0, *,
-              err_m: float = 2e-3, err_rad: float = 2e-3, offset_rad: float = 0.02,
-              corrupt_rows: float = 0.0, corrupt_cells: int = 0, cell_value: float = 1e6,
-              sigma_t: float = 0.0, workdir: str | Path | None = None, tag: str = "") -> Case:
+def make_case(
+    robot: str,
+    loop: str,
+    n: int = 60,
+    sigma: float = 0.0,
+    seed: int = 0,
+    *,
+    err_m: float = 2e-3,
+    err_rad: float = 2e-3,
+    offset_rad: float = 0.02,
+    corrupt_rows: float = 0.0,
+    corrupt_cells: int = 0,
+    cell_value: float = 1e6,
+    sigma_t: float = 0.0,
+    workdir: str | Path | None = None,
+    tag: str = "",
+) -> Case:
     """Generate a zoo case (files under `workdir`, a fresh temporary directory by default).
 
     corrupt_rows: fraction of rows replaced by uniform random readings within the limits;
@@ -394,11 +426,37 @@ def make_case(robot: str, loop: str, n: int = 60, sigma: float = 0.0, seed: int 
     lines = [",".join(cols)] + [",".join(repr(float(c[i])) for c in cols.values()) for i in range(n)]
     (wd / "log.csv").write_text("\n".join(lines) + "\n")
     reach = float(np.max(np.linalg.norm(kin.poses(rng.uniform(lo, hi, (200, len(joints))))[:, :3, 3], axis=1)))
-    return Case(robot, loop, seed, wd / "nominal.urdf", wd / "log.csv", [spec], model,
-                dict(zip(joints, offsets)), joints, readings, TH, sigma, sigma_t, bad, lo, hi, reach,
-                {"tag": tag, "n": n, "err_m": err_m, "err_rad": err_rad, "offset_rad": offset_rad, "geo": geo})
+    return Case(
+        robot,
+        loop,
+        seed,
+        wd / "nominal.urdf",
+        wd / "log.csv",
+        [spec],
+        model,
+        dict(zip(joints, offsets)),
+        joints,
+        readings,
+        TH,
+        sigma,
+        sigma_t,
+        bad,
+        lo,
+        hi,
+        reach,
+        {"tag": tag, "n": n, "err_m": err_m, "err_rad": err_rad, "offset_rad": offset_rad, "geo": geo},
+    )
 
 
 # The judge and the runner live in zoo_judge.py (module size); re-exported here.
-from zoo_judge import (Judgement, Outcome, _fit_rigid, calibrated_model_path,  # noqa: E402,F401
-                       folded_truth_urdf, judge, predicted_std, run_case, verdict_status)
+from zoo_judge import (  # noqa: E402,F401
+    Judgement,
+    Outcome,
+    _fit_rigid,
+    calibrated_model_path,
+    folded_truth_urdf,
+    judge,
+    predicted_std,
+    run_case,
+    verdict_status,
+)

@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
-
 from zoo import TOOL, Case, Kin, _hinge_pose, _vec
 
 
@@ -45,12 +44,19 @@ class Judgement:
 
     def right(self, tol: dict[str, float]) -> bool:
         """Within `tol` (Case.tolerances())."""
-        return bool(self.pos_max < tol["pos"] and self.rot_max < tol["rot"] and self.rel_pos_max < tol["rel_pos"]
-                    and self.rel_rot_max < 2 * tol["rot"] and abs(self.scale - 1.0) < tol["scale"])
+        return bool(
+            self.pos_max < tol["pos"]
+            and self.rot_max < tol["rot"]
+            and self.rel_pos_max < tol["rel_pos"]
+            and self.rel_rot_max < 2 * tol["rot"]
+            and abs(self.scale - 1.0) < tol["scale"]
+        )
 
     def summary(self) -> str:
-        return (f"pos rms {self.pos_rms * 1e3:.3g} max {self.pos_max * 1e3:.3g} mm, rot max "
-                f"{self.rot_max * 1e3:.3g} mrad, rel pos max {self.rel_pos_max * 1e3:.3g} mm, scale {self.scale:.6g}")
+        return (
+            f"pos rms {self.pos_rms * 1e3:.3g} max {self.pos_max * 1e3:.3g} mm, rot max "
+            f"{self.rot_max * 1e3:.3g} mrad, rel pos max {self.rel_pos_max * 1e3:.3g} mm, scale {self.scale:.6g}"
+        )
 
 
 def _fit_rigid(Tc: np.ndarray, Tt: np.ndarray, fit_scale: bool, arm: float = 0.1):
@@ -78,8 +84,9 @@ def _fit_rigid(Tc: np.ndarray, Tt: np.ndarray, fit_scale: bool, arm: float = 0.1
         RB, RE = pin.exp3(x[:3]) @ RB0, RE0 @ pin.exp3(x[6:9])
         s = s0 * np.exp(x[12]) if fit_scale else 1.0
         tE = x[9:12]
-        local = s * (pc[:, None, :] + np.einsum("kij,j->ki", Tc[:, :3, :3], tE)[:, None, :]) + \
-            np.einsum("kij,jl,ml->kmi", Tc[:, :3, :3], RE, E)
+        local = s * (pc[:, None, :] + np.einsum("kij,j->ki", Tc[:, :3, :3], tE)[:, None, :]) + np.einsum(
+            "kij,jl,ml->kmi", Tc[:, :3, :3], RE, E
+        )
         return np.einsum("ij,kmj->kmi", RB, local) + (tB0 + x[3:6]), RB, RE, s
 
     target = pt[:, None, :] + np.einsum("kij,mj->kmi", Tt[:, :3, :3], E)
@@ -136,9 +143,19 @@ def judge(case: Case, calibrated, n: int = 200, seed: int = 12345) -> Judgement:
     rel_t = np.linalg.inv(Tt[:-1]) @ Tt[1:]
     drel = np.linalg.norm(rel_p[:, :3, 3] - rel_t[:, :3, 3], axis=1)
     arel = np.array([np.linalg.norm(pin.log3(a[:3, :3].T @ b[:3, :3])) for a, b in zip(rel_p, rel_t)])
-    rms = lambda v: float(np.sqrt(np.mean(v ** 2)))  # noqa: E731
-    return Judgement(rms(dp), float(dp.max()), rms(ang), float(ang.max()), rms(drel), float(drel.max()),
-                     rms(arel), float(arel.max()), float(1.0 / s), n)
+    rms = lambda v: float(np.sqrt(np.mean(v**2)))  # noqa: E731
+    return Judgement(
+        rms(dp),
+        float(dp.max()),
+        rms(ang),
+        float(ang.max()),
+        rms(drel),
+        float(drel.max()),
+        rms(arel),
+        float(arel.max()),
+        float(1.0 / s),
+        n,
+    )
 
 
 def folded_truth_urdf(case: Case) -> Path:
@@ -181,10 +198,21 @@ class Outcome:
 
     def line(self) -> str:
         j = self.judgement.summary() if self.judgement else self.error
-        tag = ("right" if self.right and not self.refused else "RIGHT BUT FLAGGED" if self.right else
-               "REFUSED" if self.refused else "CRASH" if self.status == "crash" else "CONFIDENTLY WRONG")
-        return (f"{self.case.label:34s} {tag:18s} verdict={self.status:7s} conv={self.converged!s:5s} "
-                f"{self.seconds:5.2f}s  {j}")
+        tag = (
+            "right"
+            if self.right and not self.refused
+            else "RIGHT BUT FLAGGED"
+            if self.right
+            else "REFUSED"
+            if self.refused
+            else "CRASH"
+            if self.status == "crash"
+            else "CONFIDENTLY WRONG"
+        )
+        return (
+            f"{self.case.label:34s} {tag:18s} verdict={self.status:7s} conv={self.converged!s:5s} "
+            f"{self.seconds:5.2f}s  {j}"
+        )
 
 
 def verdict_status(res) -> str:
@@ -197,8 +225,8 @@ def verdict_status(res) -> str:
 def run_case(case: Case, options=None) -> Outcome:
     """`closedloop calibrate` through its Python API, then the calibrated URDF judged against the truth."""
     from closedloop import CalibrationOptions, ClosedLoopError, RobotModel, calibrate, read_log
-    from closedloop.output.urdf import write_model
     from closedloop.loops.spec import parse_loop
+    from closedloop.output.urdf import write_model
 
     t0 = time.perf_counter()
     try:
@@ -209,11 +237,25 @@ def run_case(case: Case, options=None) -> Outcome:
         out = case.nominal_urdf.parent / "calibrated.urdf"
         write_model(robot, res.as_dict(), out)
     except ClosedLoopError as exc:  # a user-facing refusal (InputError, NotIdentifiableError, ...)
-        return Outcome(case, None, "failed", False, False, time.perf_counter() - t0,
-                       f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
+        return Outcome(
+            case,
+            None,
+            "failed",
+            False,
+            False,
+            time.perf_counter() - t0,
+            f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}",
+        )
     except Exception as exc:  # a crash is neither right nor a refusal
-        return Outcome(case, None, "crash", False, False, time.perf_counter() - t0,
-                       f"CRASH {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
+        return Outcome(
+            case,
+            None,
+            "crash",
+            False,
+            False,
+            time.perf_counter() - t0,
+            f"CRASH {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}",
+        )
     dt = time.perf_counter() - t0
     j = judge(case, out)
     status = verdict_status(res)
@@ -225,9 +267,9 @@ def _model_with(model: pin.Model, jids: list[int], fid: int, d: np.ndarray) -> p
     """Copy of `model` with joint placements M exp6(d_j) and tool frame placement F exp6(d_tool)."""
     m = pin.Model(model)
     for k, jid in enumerate(jids):
-        m.jointPlacements[jid] = m.jointPlacements[jid] * pin.exp6(d[6 * k:6 * k + 6])
+        m.jointPlacements[jid] = m.jointPlacements[jid] * pin.exp6(d[6 * k : 6 * k + 6])
     f = m.frames[fid]
-    f.placement = f.placement * pin.exp6(d[6 * len(jids):6 * len(jids) + 6])
+    f.placement = f.placement * pin.exp6(d[6 * len(jids) : 6 * len(jids) + 6])
     m.frames[fid] = f
     return m
 
@@ -291,9 +333,9 @@ def predicted_std(case: Case, n: int = 60, seed: int = 12345, h: float = 1e-6) -
         d[:, j] = h
         z = np.zeros(L)
         Jt[:, :, j] = (_loop_residuals(case, kin, TH + d, z) - _loop_residuals(case, kin, TH - d, z)) / (2 * h)
-    S = case.sigma ** 2 * np.einsum("nij,nkj->nik", Jt, Jt)
+    S = case.sigma**2 * np.einsum("nij,nkj->nik", Jt, Jt)
     if case.loop == "measured_point":
-        S = S + case.sigma_t ** 2 * np.eye(3)
+        S = S + case.sigma_t**2 * np.eye(3)
     w, V = np.linalg.eigh(S)
     inv_sqrt = np.where(w > 1e-12 * w.max(axis=1, keepdims=True), 1.0 / np.sqrt(np.maximum(w, 1e-300)), 0.0)
     A = np.einsum("nij,nj,nkj,nkp->nip", V, inv_sqrt, V, Jp).reshape(N * m, P + L)

@@ -28,7 +28,6 @@ import argparse
 import csv
 import json
 import os
-import platform
 import subprocess
 import sys
 import time
@@ -44,8 +43,7 @@ FIGAROH_VERSION = "1.0.2"
 # numpy, scipy and PyYAML come from the project environment (--system-site-packages)
 VENV_PACKAGES = ["pandas", "matplotlib", "meshcat", "numdifftools", "ndcurves", "picos", "rospkg"]
 
-JOINTS = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
-          "wrist_3_joint"]
+JOINTS = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]
 TOOL = "tool0"
 LOOP = "trk"
 SIGMA_M = 1e-5  # tracker noise (m)
@@ -75,8 +73,8 @@ def make_dataset(workdir: Path, seed: int = 0) -> dict:
     """True UR10 (nominal + random errors), readings, tracker measurements, held-out truth -> files."""
     import pinocchio as pin
 
-    from closedloop.output.urdf import write_urdf
     from closedloop.model.robot import RobotModel
+    from closedloop.output.urdf import write_urdf
 
     rng = np.random.default_rng(seed)
     urdf = erd_robots() / "ur_description/urdf/ur10_robot.urdf"
@@ -119,10 +117,19 @@ def make_dataset(workdir: Path, seed: int = 0) -> dict:
 
     write_csv(workdir / "train.csv", r_train, m_train)
     write_csv(workdir / "heldout.csv", q_held, m_held)
-    json.dump({"placement": truth, "offsets": dict(zip(JOINTS, offsets.tolist())),
-               "tracker_in_base": {"translation": X.translation.tolist(), "rotvec": pin.log3(X.rotation).tolist()},
-               "tip_in_tool0": tip.tolist(), "sigma_m": SIGMA_M, "sigma_q": SIGMA_Q, "seed": seed},
-              open(workdir / "truth.json", "w"), indent=1)
+    json.dump(
+        {
+            "placement": truth,
+            "offsets": dict(zip(JOINTS, offsets.tolist())),
+            "tracker_in_base": {"translation": X.translation.tolist(), "rotvec": pin.log3(X.rotation).tolist()},
+            "tip_in_tool0": tip.tolist(),
+            "sigma_m": SIGMA_M,
+            "sigma_q": SIGMA_Q,
+            "seed": seed,
+        },
+        open(workdir / "truth.json", "w"),
+        indent=1,
+    )
     return {"urdf": urdf, "q_train": r_train, "m_train": m_train, "q_held": q_held, "m_held": m_held}
 
 
@@ -141,8 +148,9 @@ def read_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ---------------------------------------------------------------- closedloop
-def run_closedloop(urdf: Path, q: np.ndarray, m: np.ndarray, q_held: np.ndarray, initial_tip=None,
-                   options: dict | None = None) -> dict:
+def run_closedloop(
+    urdf: Path, q: np.ndarray, m: np.ndarray, q_held: np.ndarray, initial_tip=None, options: dict | None = None
+) -> dict:
     from closedloop.calibration import CalibrationOptions, calibrate
     from closedloop.io.logs import JointLog
     from closedloop.loops import MeasuredPointLoop
@@ -157,8 +165,13 @@ def run_closedloop(urdf: Path, q: np.ndarray, m: np.ndarray, q_held: np.ndarray,
     robot = RobotModel.from_file(urdf)
     extra = {f"{LOOP}:{c}": m[:, k].copy() for k, c in enumerate("xyz")}
     log = JointLog(list(JOINTS), q, None, None, extra)
-    res = calibrate(robot, log, [MeasuredPointLoop(LOOP, TOOL, sigma_t=SIGMA_M, initial_tip=initial_tip)],
-                    CalibrationOptions(**(options or {})), progress=progress)
+    res = calibrate(
+        robot,
+        log,
+        [MeasuredPointLoop(LOOP, TOOL, sigma_t=SIGMA_M, initial_tip=initial_tip)],
+        CalibrationOptions(**(options or {})),
+        progress=progress,
+    )
     t1 = time.perf_counter()
     prob = res.problem
     loop = prob.blocks[0].loop
@@ -166,11 +179,21 @@ def run_closedloop(urdf: Path, q: np.ndarray, m: np.ndarray, q_held: np.ndarray,
     # the held-out configurations with zero measurements: residual = prediction - 0 (loops hold no data)
     from closedloop.problem.problem import CalibrationProblem, LoopBlock
 
-    held = CalibrationProblem(prob.robot, prob.joints, [LoopBlock(loop, q_held[:, cols], np.arange(1, len(q_held) + 1),
-                                                                  None, np.zeros((len(q_held), 3)))], prob.priors)
+    held = CalibrationProblem(
+        prob.robot,
+        prob.joints,
+        [LoopBlock(loop, q_held[:, cols], np.arange(1, len(q_held) + 1), None, np.zeros((len(q_held), 3)))],
+        prob.priors,
+    )
     pred = held.evaluate(res.values, jacobian=False)[0].r
-    return {"total": t1 - t0, "solve": t1 - stages.get("solving", t0), "params": len(res.estimated),
-            "pred": pred, "status": res.solver_status, "iters": res.iterations}
+    return {
+        "total": t1 - t0,
+        "solve": t1 - stages.get("solving", t0),
+        "params": len(res.estimated),
+        "pred": pred,
+        "status": res.solver_status,
+        "iters": res.iterations,
+    }
 
 
 # ---------------------------------------------------------------- FIGAROH (worker, in its venv)
@@ -213,7 +236,9 @@ def worker(workdir: Path, n: int, out: Path) -> None:
     log = io.StringIO()
     t0 = time.perf_counter()
     with contextlib.redirect_stdout(log):
-        robot = Robot(str(erd_robots() / "ur_description/urdf/ur10_robot.urdf"), package_dirs=str(erd_robots().parent.parent))
+        robot = Robot(
+            str(erd_robots() / "ur_description/urdf/ur10_robot.urdf"), package_dirs=str(erd_robots().parent.parent)
+        )
         calib = TrackerCalibration(robot, str(run / "config.yaml"))
         calib.calib_config["known_baseframe"] = False  # tracker frame unknown
         calib.calib_config["known_tipframe"] = False  # tool point unknown
@@ -230,11 +255,23 @@ def worker(workdir: Path, n: int, out: Path) -> None:
         qh[:, model.joints[model.getJointId(j)].idx_q] = q_held[:, k]
     pcfg = dict(calib.calib_config, NbSample=len(q_held))
     pred = calc_updated_fkm(model, calib.data, result.x, qh, pcfg).reshape(3, len(q_held)).T
-    json.dump({"version": figaroh.__version__, "import": t_import, "setup": t1 - t0, "solve": t2 - t1,
-               "total": t2 - t0, "params": len(result.x), "names": list(calib.calib_config["param_name"]),
-               "success": bool(result.success), "nfev": int(result.nfev), "status": calib.STATUS,
-               "outliers": list(map(int, getattr(calib, "outlier_indices", []))), "pred": pred.tolist()},
-              open(out, "w"))
+    json.dump(
+        {
+            "version": figaroh.__version__,
+            "import": t_import,
+            "setup": t1 - t0,
+            "solve": t2 - t1,
+            "total": t2 - t0,
+            "params": len(result.x),
+            "names": list(calib.calib_config["param_name"]),
+            "success": bool(result.success),
+            "nfev": int(result.nfev),
+            "status": calib.STATUS,
+            "outliers": list(map(int, getattr(calib, "outlier_indices", []))),
+            "pred": pred.tolist(),
+        },
+        open(out, "w"),
+    )
 
 
 def run_figaroh(python: str, workdir: Path, n: int, method: str = "structural") -> dict:
@@ -242,8 +279,12 @@ def run_figaroh(python: str, workdir: Path, n: int, method: str = "structural") 
     if out.exists():
         out.unlink()
     t0 = time.perf_counter()
-    p = subprocess.run([python, str(Path(__file__).resolve()), "--worker", str(workdir), str(n), str(out)],
-                       capture_output=True, text=True, env=dict(os.environ, FIGAROH_METHOD=method))
+    p = subprocess.run(
+        [python, str(Path(__file__).resolve()), "--worker", str(workdir), str(n), str(out)],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, FIGAROH_METHOD=method),
+    )
     wall = time.perf_counter() - t0
     if p.returncode != 0 or not out.exists():
         tail = (p.stderr or p.stdout).strip().splitlines()[-8:]
@@ -271,8 +312,12 @@ def make_venv(venv: Path) -> None:
 
 # ---------------------------------------------------------------- weld loop (closedloop alone)
 def weld_table(sizes: list[int]) -> str:
-    p = subprocess.run([sys.executable, str(REPO / "benchmarks/bench_calibrate.py"), "--sizes",
-                        *map(str, sizes), "--repeat", "1"], capture_output=True, text=True, cwd=REPO)
+    p = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks/bench_calibrate.py"), "--sizes", *map(str, sizes), "--repeat", "1"],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+    )
     if p.returncode != 0:
         return f"bench_calibrate.py failed: {(p.stderr or p.stdout).strip().splitlines()[-1:]}"
     return p.stdout.strip()
@@ -291,8 +336,12 @@ def main() -> None:
     ap.add_argument("--no-weld", action="store_true", help="skip the 7-DOF weld-loop sizes")
     ap.add_argument("--weld-sizes", type=int, nargs="+", default=[1000, 10000, 100000])
     ap.add_argument("--repeat", type=int, default=3, help="best of N runs per tool and size")
-    ap.add_argument("--figaroh-methods", nargs="+", default=["structural", "excitation"],
-                    help="FIGAROH estimation.method values (structural is its default; also map, map_cv, cv_subset)")
+    ap.add_argument(
+        "--figaroh-methods",
+        nargs="+",
+        default=["structural", "excitation"],
+        help="FIGAROH estimation.method values (structural is its default; also map, map_cv, cv_subset)",
+    )
     ap.add_argument("--output", default=str(HERE / "results.md"))
     args = ap.parse_args()
     if args.worker:
@@ -311,10 +360,14 @@ def main() -> None:
     notes = []
     for n in N_TRAIN:
         q, m = ds["q_train"][:n], ds["m_train"][:n]
-        for label, tip, opts in (("closedloop (defaults)", None, {}),
-                                 ("closedloop (initial_tip, weighting='none')", ROUGH_TIP, {"weighting": "none"})):
-            cl = min((run_closedloop(ds["urdf"], q, m, ds["q_held"], tip, opts) for _ in range(args.repeat)),
-                     key=lambda r: r["total"])
+        for label, tip, opts in (
+            ("closedloop (defaults)", None, {}),
+            ("closedloop (initial_tip, weighting='none')", ROUGH_TIP, {"weighting": "none"}),
+        ):
+            cl = min(
+                (run_closedloop(ds["urdf"], q, m, ds["q_held"], tip, opts) for _ in range(args.repeat)),
+                key=lambda r: r["total"],
+            )
             note = f"{cl['status']}, {cl['iters']} iterations"
             if tip is not None:
                 note += f"; initial_tip={ROUGH_TIP} (true tip {TIP}); joint noise is 0, so no EIV weighting"
@@ -329,9 +382,17 @@ def main() -> None:
                 rows.append((f"FIGAROH ({method})", n, None, None, None, None, "failed: " + bad[0]["error"][:300]))
                 continue
             fg = min(runs, key=lambda r: r["total"])
-            rows.append((f"FIGAROH {fg['version']} ({method})", n, fg["solve"], fg["total"], fg["params"],
-                         rms(fg["pred"], ds["m_held"]),
-                         f"{fg['status']}, scipy nfev {fg['nfev']}; import {fg['import']:.1f} s not counted"))
+            rows.append(
+                (
+                    f"FIGAROH {fg['version']} ({method})",
+                    n,
+                    fg["solve"],
+                    fg["total"],
+                    fg["params"],
+                    rms(fg["pred"], ds["m_held"]),
+                    f"{fg['status']}, scipy nfev {fg['nfev']}; import {fg['import']:.1f} s not counted",
+                )
+            )
 
     lines = [
         "# closedloop vs FIGAROH: UR10, tool point measured by a tracker in an unknown frame",
@@ -350,19 +411,29 @@ def main() -> None:
         "|---|---:|---:|---:|---:|---:|---|",
     ]
     for tool, n, s, tt, npar, err, note in rows:
-        f = (lambda v, fmt: "—" if v is None else format(v, fmt))
-        lines.append(f"| {tool} | {n:,} | {f(s, '.3f')} | {f(tt, '.3f')} | {f(npar, 'd')} | "
-                     f"{'—' if err is None else f'{err * 1e3:.4f}'} | {note} |")
+        f = lambda v, fmt: "—" if v is None else format(v, fmt)
+        lines.append(
+            f"| {tool} | {n:,} | {f(s, '.3f')} | {f(tt, '.3f')} | {f(npar, 'd')} | "
+            f"{'—' if err is None else f'{err * 1e3:.4f}'} | {note} |"
+        )
     for n in N_TRAIN:
         for g in [r for r in rows if r[1] == n and r[0].startswith("FIGAROH") and r[2] is not None]:
             for c in [r for r in rows if r[1] == n and r[0].startswith("closedloop")]:
-                notes.append(f"- {n:,} poses, {c[0]} vs {g[0]}: {g[3] / c[3]:.1f}x faster in total, "
-                             f"{g[2] / c[2]:.1f}x in the solve; held-out RMS {c[5] * 1e3:.4f} mm vs "
-                             f"{g[5] * 1e3:.4f} mm.")
+                notes.append(
+                    f"- {n:,} poses, {c[0]} vs {g[0]}: {g[3] / c[3]:.1f}x faster in total, "
+                    f"{g[2] / c[2]:.1f}x in the solve; held-out RMS {c[5] * 1e3:.4f} mm vs "
+                    f"{g[5] * 1e3:.4f} mm."
+                )
     lines += [""] + notes
     if not args.no_weld:
-        lines += ["", "## closedloop alone: 7-DOF Panda weld loop (`benchmarks/bench_calibrate.py --repeat 1`)", "",
-                  "```", weld_table(args.weld_sizes), "```"]
+        lines += [
+            "",
+            "## closedloop alone: 7-DOF Panda weld loop (`benchmarks/bench_calibrate.py --repeat 1`)",
+            "",
+            "```",
+            weld_table(args.weld_sizes),
+            "```",
+        ]
     text = "\n".join(lines) + "\n"
     print(text)
     Path(args.output).write_text(text)

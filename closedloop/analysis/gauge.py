@@ -50,8 +50,9 @@ def random_configurations(problem: CalibrationProblem, n: int = N_CONFIGS, seed:
     return problem.robot.configurations(angles, problem.joints)
 
 
-def kinematic_changes(problem: CalibrationProblem, x: np.ndarray, V: np.ndarray, q: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray]:
+def kinematic_changes(
+    problem: CalibrationProblem, x: np.ndarray, V: np.ndarray, q: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Pose changes of the loops' robot frames per unit step along each column of V, and the regressor.
 
     Returns dP (rows, k): the first-order changes of the open-chain positions
@@ -68,7 +69,7 @@ def kinematic_changes(problem: CalibrationProblem, x: np.ndarray, V: np.ndarray,
     frames = sorted({problem.robot.frame_id(f) for b in problem.blocks for f in b.loop.frames} - {0})
     if not frames:
         return np.zeros((0, V.shape[1])), np.zeros((0, 7))
-    state = problem.rp.apply(x[:problem.n_robot])
+    state = problem.rp.apply(x[: problem.n_robot])
     model, data = state.model, state.data
     n, F = q.shape[0], len(frames)
     P0 = np.empty((n, F, 3))
@@ -80,7 +81,7 @@ def kinematic_changes(problem: CalibrationProblem, x: np.ndarray, V: np.ndarray,
             M = pin.updateFramePlacement(model, data, f)
             P0[i, k], R0[i, k] = M.translation, M.rotation
             K[i, k] = pin.computeFrameKinematicRegressor(model, data, f, pin.LOCAL)
-    Vr = V[:problem.n_robot]
+    Vr = V[: problem.n_robot]
     twist = K @ (state.G @ Vr)  # (n, F, 6, k): each frame's LOCAL twist per column of V
     for k, f in enumerate(frames):
         if f in state.G_frames:
@@ -94,8 +95,8 @@ def kinematic_changes(problem: CalibrationProblem, x: np.ndarray, V: np.ndarray,
     A[:, :, 0, :, 4:7] = np.eye(3)
     A[:, :, 1, :, 1:4] = np.eye(3)
     for k in range(F):
-        A[:, k, 0, :, 7 + 6 * k:10 + 6 * k] = R0[:, k]
-        A[:, k, 1, :, 10 + 6 * k:13 + 6 * k] = R0[:, k]
+        A[:, k, 0, :, 7 + 6 * k : 10 + 6 * k] = R0[:, k]
+        A[:, k, 1, :, 10 + 6 * k : 13 + 6 * k] = R0[:, k]
     return dP.reshape(-1, V.shape[1]), A.reshape(-1, 7 + 6 * F)
 
 
@@ -146,9 +147,15 @@ def null_directions(R: np.ndarray, kept: list[int], dropped: list[int]) -> np.nd
     return V
 
 
-def choose_gauge(problem: CalibrationProblem, x: np.ndarray, free: list[int], R: np.ndarray,
-                 reduce: Callable[[list[int]], tuple[list[int], list]], order: list[int],
-                 prefer: int | None = None) -> tuple[int | None, list[int], list, bool, str | None, float]:
+def choose_gauge(
+    problem: CalibrationProblem,
+    x: np.ndarray,
+    free: list[int],
+    R: np.ndarray,
+    reduce: Callable[[list[int]], tuple[list[int], list]],
+    order: list[int],
+    prefer: int | None = None,
+) -> tuple[int | None, list[int], list, bool, str | None, float]:
     """The gauge (a column of R, or None), the kept columns and drops with it, whether the size is free,
     a warning when the size is set weakly, and the length L the gauge stands for.
 
@@ -165,8 +172,7 @@ def choose_gauge(problem: CalibrationProblem, x: np.ndarray, free: list[int], R:
     prior = np.array([params[k].prior for k in free])
     names = [problem.names[k] for k in free]
     lengths = [i for i in range(len(free)) if params[free[i]].kind != "loop" and params[free[i]].unit == "m"]
-    g0 = prefer if prefer in lengths else max(lengths, key=lambda i: abs(length_of(problem, x, free[i])),
-                                              default=None)
+    g0 = prefer if prefer in lengths else max(lengths, key=lambda i: abs(length_of(problem, x, free[i])), default=None)
     q = random_configurations(problem)
     reach = robot_reach(problem, x)
     first = None
@@ -208,14 +214,16 @@ def choose_gauge(problem: CalibrationProblem, x: np.ndarray, free: list[int], R:
     g, kept, dropped, L = found
     warning = None
     if L < 0.1:
-        warning = (f"the overall size is held by {names[g]}, which stands for a length of only {L * 1e3:.3g} mm: an "
-                   f"error of 2 mm in its nominal value changes the identified size by {0.002 / L:.1%}")
+        warning = (
+            f"the overall size is held by {names[g]}, which stands for a length of only {L * 1e3:.3g} mm: an "
+            f"error of 2 mm in its nominal value changes the identified size by {0.002 / L:.1%}"
+        )
     return g, kept, [d for d in dropped if d.name != names[g]], True, warning, L
 
 
 def robot_reach(problem: CalibrationProblem, x: np.ndarray) -> float:
     """The sum of the joint-origin distances along the loops' chains: no link is longer."""
-    model = problem.rp.apply(x[:problem.n_robot]).model
+    model = problem.rp.apply(x[: problem.n_robot]).model
     return float(sum(np.linalg.norm(model.jointPlacements[j].translation) for j in range(1, model.njoints)))
 
 
@@ -229,8 +237,9 @@ def length_of(problem: CalibrationProblem, x: np.ndarray, k: int) -> float:
     return float(x[k])  # D-H s, a
 
 
-def sets_scale(problem: CalibrationProblem, x: np.ndarray, free: list[int], R: np.ndarray, kept: list[int],
-               g: int) -> bool:
+def sets_scale(
+    problem: CalibrationProblem, x: np.ndarray, free: list[int], R: np.ndarray, kept: list[int], g: int
+) -> bool:
     """Whether the one null direction of R (over `free`) on columns kept + [g] is g's own uniform scaling."""
     cols = kept + [g]
     _, S, Vt = np.linalg.svd(R[:, cols])

@@ -72,8 +72,10 @@ class Combination:
         if len(self.terms) == 2:
             (n1, c1), (n2, c2) = self.terms
             sign = "-" if c1 * c2 > 0 else "+"
-            return (f"{n1} and {n2} are identifiable only together, as {n1} {sign} {n2} "
-                    f"(in prior-scaled units); the direction {c1:+.2f}*{n1} {c2:+.2f}*{n2} is not")
+            return (
+                f"{n1} and {n2} are identifiable only together, as {n1} {sign} {n2} "
+                f"(in prior-scaled units); the direction {c1:+.2f}*{n1} {c2:+.2f}*{n2} is not"
+            )
         dirn = " ".join(f"{c:+.2f}*{n}" for n, c in self.terms)
         return f"{', '.join(names)} are not separately identifiable: the combination {dirn} is not determined"
 
@@ -85,8 +87,9 @@ def compress(C: np.ndarray) -> np.ndarray:
     return C
 
 
-def greedy_reduction(C: np.ndarray, names: list[str], order: list[int], tol: float = 1e-6,
-                     max_terms: int = 6) -> tuple[list[int], list[Dropped]]:
+def greedy_reduction(
+    C: np.ndarray, names: list[str], order: list[int], tol: float = 1e-6, max_terms: int = 6
+) -> tuple[list[int], list[Dropped]]:
     """Keep columns of C in `order` while they add rank; explain the others.
 
     C is the column-scaled Jacobian (M, P).  Returns kept column indices and
@@ -113,8 +116,7 @@ def greedy_reduction(C: np.ndarray, names: list[str], order: list[int], tol: flo
             continue
         coef, *_ = np.linalg.lstsq(C[:, kept], c, rcond=None)
         big = np.argsort(-np.abs(coef))
-        terms = [(names[kept[i]], float(coef[i])) for i in big[:max_terms]
-                 if abs(coef[i]) > 1e-3 * np.abs(coef).max()]
+        terms = [(names[kept[i]], float(coef[i])) for i in big[:max_terms] if abs(coef[i]) > 1e-3 * np.abs(coef).max()]
         dropped.append(Dropped(names[k], "structurally redundant with this loop", terms, float(res)))
     return kept, dropped
 
@@ -131,8 +133,9 @@ def null_space(C: np.ndarray, rtol: float = 1e-7) -> np.ndarray:
     return Vt[rank:].T
 
 
-def weak_directions(S: np.ndarray, Vt: np.ndarray, threshold: float, names: list[str],
-                    max_terms: int = 6) -> list[Combination]:
+def weak_directions(
+    S: np.ndarray, Vt: np.ndarray, threshold: float, names: list[str], max_terms: int = 6
+) -> list[Combination]:
     """Singular directions below `threshold`, each with its main parameters."""
     out = []
     for s, v in zip(S, Vt):
@@ -142,7 +145,7 @@ def weak_directions(S: np.ndarray, Vt: np.ndarray, threshold: float, names: list
         terms = [(names[i], float(v[i])) for i in order[:max_terms] if abs(v[i]) > 0.1 * np.abs(v).max()]
         out.append(Combination(float(s), terms))
     # Null directions beyond the number of rows (more parameters than equations).
-    for v in Vt[S.size:]:
+    for v in Vt[S.size :]:
         order = np.argsort(-np.abs(v))
         terms = [(names[i], float(v[i])) for i in order[:max_terms] if abs(v[i]) > 0.1 * np.abs(v).max()]
         out.append(Combination(0.0, terms))
@@ -218,8 +221,9 @@ def _min_norm_inverse(Jq: np.ndarray) -> np.ndarray:
     return P
 
 
-def project_to_closure(problem: CalibrationProblem, values: np.ndarray, iters: int = 12
-                       ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+def project_to_closure(
+    problem: CalibrationProblem, values: np.ndarray, iters: int = 12
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Joint readings moved onto the closure manifold of the model at `values`, and which converged.
 
     Gauss-Newton on the readings, theta <- theta - J_theta^+ r per configuration, with the
@@ -258,8 +262,9 @@ def project_to_closure(problem: CalibrationProblem, values: np.ndarray, iters: i
         fresh = not (worst < 1e-6 and (fresh or worst < 1e-2 * before))  # chord steps while they contract
         before = worst
     # closed, or as close as the readings can bring it (a stereo pair's epipolar error is not theirs to fix)
-    return thetas, [np.isfinite(v) & ((v < np.maximum(1e-10, 1e-8 * f)) | (m < 1e-12))
-                    for v, f, m in zip(last, first, moved)]
+    return thetas, [
+        np.isfinite(v) & ((v < np.maximum(1e-10, 1e-8 * f)) | (m < 1e-12)) for v, f, m in zip(last, first, moved)
+    ]
 
 
 def closure_jacobian(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> np.ndarray | None:
@@ -290,8 +295,9 @@ def closure_jacobian(problem: CalibrationProblem, x: np.ndarray, free: list[int]
     return scaled_r_factor_of_blocks(blocks, scale[free]) if blocks else None  # compress(stacked * scale)
 
 
-def analyse_structure(problem: CalibrationProblem, x: np.ndarray, free: list[int], prefer: int | None = None,
-                      R: np.ndarray | None = None) -> Structure:
+def analyse_structure(
+    problem: CalibrationProblem, x: np.ndarray, free: list[int], prefer: int | None = None, R: np.ndarray | None = None
+) -> Structure:
     """Structural reduction and length gauge of the free parameters at `x`.
 
     On `closure_jacobian` (given as `R` when the caller has it).  A start
@@ -308,10 +314,14 @@ def analyse_structure(problem: CalibrationProblem, x: np.ndarray, free: list[int
         R = closure_jacobian(problem, x, free)
     if R is None:  # too far from closure to read exact dependencies: decided at the solution instead
         return Structure(list(free), [], provisional=True)
-    order = sorted(range(len(free)), key=lambda i: (params[free[i]].priority,
-                                                   -params[free[i]].order
-                                                   if params[free[i]].kind in ("placement", "dh")
-                                                   else params[free[i]].order, free[i]))
+    order = sorted(
+        range(len(free)),
+        key=lambda i: (
+            params[free[i]].priority,
+            -params[free[i]].order if params[free[i]].kind in ("placement", "dh") else params[free[i]].order,
+            free[i],
+        ),
+    )
     fnames = [names[k] for k in free]
 
     def reduce(order_: list[int]) -> tuple[list[int], list[Dropped]]:
@@ -321,19 +331,28 @@ def analyse_structure(problem: CalibrationProblem, x: np.ndarray, free: list[int
         kept, dropped = reduce(order)
         return Structure(sorted(free[i] for i in kept), dropped)
     g, kept, dropped, size_free, warning, length = choose_gauge(
-        problem, x, free, R, reduce, order, prefer=free.index(prefer) if prefer in free else None)
+        problem, x, free, R, reduce, order, prefer=free.index(prefer) if prefer in free else None
+    )
     if g is not None:
-        note = (f"the loops close at any overall size (thesis 3.3); {names[free[g]]} is held at its value to set "
-                f"the length scale (it stands for a length of {length:.4g} m: holding it longer by d scales the "
-                f"robot by 1 + d / {length:.4g})")
+        note = (
+            f"the loops close at any overall size (thesis 3.3); {names[free[g]]} is held at its value to set "
+            f"the length scale (it stands for a length of {length:.4g} m: holding it longer by d scales the "
+            f"robot by 1 + d / {length:.4g})"
+        )
         return Structure(sorted(free[i] for i in kept), dropped, free[g], note, True, warning, length)
-    note = None if not size_free else ("the loops close at any overall size and no single length sets it: the "
-                                       "scale is not determined by the data")
+    note = (
+        None
+        if not size_free
+        else (
+            "the loops close at any overall size and no single length sets it: the scale is not determined by the data"
+        )
+    )
     return Structure(sorted(free[i] for i in kept), dropped, None, note, size_free)
 
 
-def structure_holds(problem: CalibrationProblem, x: np.ndarray, structure: Structure, free: list[int],
-                    R: np.ndarray | None) -> tuple[str | None, str | None]:
+def structure_holds(
+    problem: CalibrationProblem, x: np.ndarray, structure: Structure, free: list[int], R: np.ndarray | None
+) -> tuple[str | None, str | None]:
     """Why the reduction chosen at the start fails at `x` (a solution), or None; and a warning, or None.
 
     `R`: `closure_jacobian` at `x`.  The reduction fails when the kept
@@ -371,7 +390,7 @@ def structure_holds(problem: CalibrationProblem, x: np.ndarray, structure: Struc
     others = [i for i in range(R.shape[1]) if i not in set(held)]
     r = np.concatenate([ev.r.ravel() for ev in problem.evaluate(x, False)])
     scale_R = float(np.linalg.norm(R, 2)) if R.size else 0.0
-    floor = max(1e-10 * scale_R, float(np.sqrt(np.mean(r ** 2)))) if r.size else np.inf
+    floor = max(1e-10 * scale_R, float(np.sqrt(np.mean(r**2)))) if r.size else np.inf
     if others:
         Q = np.linalg.qr(R[:, held])[0] if held else np.zeros((R.shape[0], 0))
         beyond = R[:, others] - Q @ (Q.T @ R[:, others])
@@ -380,6 +399,8 @@ def structure_holds(problem: CalibrationProblem, x: np.ndarray, structure: Struc
     if structure.scale_free and structure.gauge is None and not structure.rechecked:
         return "no single length was found to set the scale at the start", None
     if structure.gauge is not None and not sets_scale(problem, x, free, R, kept, free.index(structure.gauge)):
-        return None, (f"{problem.names[structure.gauge]} does not hold the length scale alone at the solution: "
-                      "the data leave part of the overall size to other held values")
+        return None, (
+            f"{problem.names[structure.gauge]} does not hold the length scale alone at the solution: "
+            "the data leave part of the overall size to other held values"
+        )
     return None, None

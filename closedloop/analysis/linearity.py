@@ -33,8 +33,8 @@ from typing import Callable
 
 import numpy as np
 
-from closedloop.estimate.stages import ResidualFunction
 from closedloop.estimate.lm import SolverOptions, levenberg_marquardt
+from closedloop.estimate.stages import ResidualFunction
 
 log = logging.getLogger(__name__)
 
@@ -63,16 +63,26 @@ class Profile:
         return min(self.rise) >= HOLDS * self.expected
 
     def describe(self) -> str:
-        return (f"along {self.name}, the cost rises by {self.rise[0]:.2g} and {self.rise[1]:.2g} at -{K:g} and "
-                f"+{K:g} standard errors ({self.expected:g} if the error bars held)")
+        return (
+            f"along {self.name}, the cost rises by {self.rise[0]:.2g} and {self.rise[1]:.2g} at -{K:g} and "
+            f"+{K:g} standard errors ({self.expected:g} if the error bars held)"
+        )
 
 
 class _Pinned:
     """`fun` on x = x0 + B z (B: the directions the fit estimates), with one more row PIN (u^T x - target) / s_u:
     the combination held at `target`, the rest free within what the fit itself moves."""
 
-    def __init__(self, fun: ResidualFunction, x0: np.ndarray, B: np.ndarray, u: np.ndarray, target: float,
-                 s_u: float, noise: float):
+    def __init__(
+        self,
+        fun: ResidualFunction,
+        x0: np.ndarray,
+        B: np.ndarray,
+        u: np.ndarray,
+        target: float,
+        s_u: float,
+        noise: float,
+    ):
         self.fun, self.x0, self.B, self.u, self.target = fun, x0, B, u, target
         self.w = PIN * noise / s_u
 
@@ -88,8 +98,15 @@ class _Pinned:
         return r, J
 
 
-def profile(make: Callable[[], ResidualFunction], x: np.ndarray, cov: np.ndarray, u: np.ndarray, noise: float,
-            prior: np.ndarray, name: str) -> Profile:
+def profile(
+    make: Callable[[], ResidualFunction],
+    x: np.ndarray,
+    cov: np.ndarray,
+    u: np.ndarray,
+    noise: float,
+    prior: np.ndarray,
+    name: str,
+) -> Profile:
     """The profile of 1/2 |r|^2 / noise^2 along u from the solution x (estimated values), covariance `cov`.
 
     `make` gives a fresh residual function: each cost is taken with the weights W_i at its own point.  The
@@ -107,19 +124,27 @@ def profile(make: Callable[[], ResidualFunction], x: np.ndarray, cov: np.ndarray
         target = float(u @ x) + k * s_u
         start = x + k * (cov @ u) / s_u  # the linear model's profile point, in the range of cov
         pinned = _Pinned(make(), start, B, u, target, s_u, noise)
-        sol = levenberg_marquardt(pinned, np.zeros(B.shape[1]), np.ones(B.shape[1]),
-                                  SolverOptions(noise=noise, max_iter=50))
+        sol = levenberg_marquardt(
+            pinned, np.zeros(B.shape[1]), np.ones(B.shape[1]), SolverOptions(noise=noise, max_iter=50)
+        )
         rises.append(_cost(make(), pinned.x(sol.x), noise) - base)
     return Profile(name, s_u, (rises[0], rises[1]))
 
 
 def _cost(fun: ResidualFunction, xe: np.ndarray, noise: float) -> float:
     r, _ = fun(xe, False)  # a fresh function: W_i at xe
-    return 0.5 * float(r @ r) / noise ** 2
+    return 0.5 * float(r @ r) / noise**2
 
 
-def check_profiles(make: Callable[[], ResidualFunction], problem, values: np.ndarray, est: list[int],
-                   cov: np.ndarray, noise: float, size: np.ndarray | None) -> list[Profile]:
+def check_profiles(
+    make: Callable[[], ResidualFunction],
+    problem,
+    values: np.ndarray,
+    est: list[int],
+    cov: np.ndarray,
+    noise: float,
+    size: np.ndarray | None,
+) -> list[Profile]:
     """Profiles along the weakest axis of `cov` (prior-scaled) and along `size` (d size / d parameter, if given).
 
     `make` gives a fresh copy of the fit's residual function (its weighting and row weights);
@@ -164,6 +189,8 @@ def check_error_bars(res, fit) -> list[Profile]:
     profiles = check_profiles(make, problem, res.values, est, res.covariance, noise, size)
     for p in profiles:
         if not p.holds:
-            res.warnings.append(f"the error bars do not hold: {p.describe()}; the fit lies in a curved valley its "
-                                "linearisation does not see, and the standard errors understate the uncertainty")
+            res.warnings.append(
+                f"the error bars do not hold: {p.describe()}; the fit lies in a curved valley its "
+                "linearisation does not see, and the standard errors understate the uncertainty"
+            )
     return profiles

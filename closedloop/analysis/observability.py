@@ -57,9 +57,12 @@ INDEX_NAMES = ("O1", "O2", "O3", "O4", "O5")
 
 
 # --------------------------------------------------------------------------- helpers
-def resolve(result_or_problem: CalibrationResult | CalibrationProblem, values: np.ndarray | None = None,
-            params: list[int] | list[str] | None = None, noise=None
-            ) -> tuple[CalibrationProblem, np.ndarray, list[int], np.ndarray]:
+def resolve(
+    result_or_problem: CalibrationResult | CalibrationProblem,
+    values: np.ndarray | None = None,
+    params: list[int] | list[str] | None = None,
+    noise=None,
+) -> tuple[CalibrationProblem, np.ndarray, list[int], np.ndarray]:
     """(problem, values, parameter indices, per-joint noise) from a result or a problem.
 
     For a result the defaults are its values, its estimated parameters and
@@ -87,9 +90,16 @@ def _indices(problem: CalibrationProblem, params) -> list[int]:
     return [problem.index[p] if isinstance(p, str) else int(p) for p in params]
 
 
-def whitened_blocks(problem: CalibrationProblem, values: np.ndarray, params: list[int], sigma_q: np.ndarray,
-                    weighting: str = "noise", thetas: list[np.ndarray] | None = None, scaled: bool = True,
-                    blocks: list[int] | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+def whitened_blocks(
+    problem: CalibrationProblem,
+    values: np.ndarray,
+    params: list[int],
+    sigma_q: np.ndarray,
+    weighting: str = "noise",
+    thetas: list[np.ndarray] | None = None,
+    scaled: bool = True,
+    blocks: list[int] | None = None,
+) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per-configuration whitened residuals and Jacobians, one (r (N,m), J (N,m,L)) per loop block.
 
     Same whitening as `calibration.whiten` (so stacking these gives exactly the
@@ -121,14 +131,24 @@ def indices_from_singular_values(s: np.ndarray, n_configs: int) -> dict[str, flo
     else:
         o1 = float(np.exp(np.mean(np.log(s)))) / np.sqrt(max(n_configs, 1))
         o5 = float(1.0 / np.sum(1.0 / s))
-    return {"O1": o1, "O2": smin / smax if smax > 0 else 0.0, "O3": smin,
-            "O4": smin ** 2 / smax if smax > 0 else 0.0, "O5": o5}
+    return {
+        "O1": o1,
+        "O2": smin / smax if smax > 0 else 0.0,
+        "O3": smin,
+        "O4": smin**2 / smax if smax > 0 else 0.0,
+        "O5": o5,
+    }
 
 
 # --------------------------------------------------------------------------- API
-def observability(result_or_problem: CalibrationResult | CalibrationProblem, values: np.ndarray | None = None,
-                  params: list[int] | list[str] | None = None, noise=None, weighting: str = "noise",
-                  thetas: list[np.ndarray] | None = None) -> dict[str, Any]:
+def observability(
+    result_or_problem: CalibrationResult | CalibrationProblem,
+    values: np.ndarray | None = None,
+    params: list[int] | list[str] | None = None,
+    noise=None,
+    weighting: str = "noise",
+    thetas: list[np.ndarray] | None = None,
+) -> dict[str, Any]:
     """Observability indices O1-O5 of an experiment.
 
     result_or_problem: a `CalibrationResult` (defaults: its values, its
@@ -146,7 +166,12 @@ def observability(result_or_problem: CalibrationResult | CalibrationProblem, val
     s = np.linalg.svd(C, compute_uv=False)
     n_cfg = sum(J.shape[0] for _, J in blocks)
     out: dict[str, Any] = indices_from_singular_values(s, n_cfg)
-    out.update(singular_values=s, n_configs=n_cfg, n_rows=C.shape[0], params=[problem.names[k] for k in idx],
-               trace_cov_scaled=float(np.sum(1.0 / s ** 2)) if s.size and s[-1] > 0 else float("inf"),
-               cond=float(s[0] / s[-1]) if s.size and s[-1] > 0 else float("inf"))
+    out.update(
+        singular_values=s,
+        n_configs=n_cfg,
+        n_rows=C.shape[0],
+        params=[problem.names[k] for k in idx],
+        trace_cov_scaled=float(np.sum(1.0 / s**2)) if s.size and s[-1] > 0 else float("inf"),
+        cond=float(s[0] / s[-1]) if s.size and s[-1] > 0 else float("inf"),
+    )
     return out

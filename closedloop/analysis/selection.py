@@ -15,13 +15,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from closedloop.errors import LogError, NotIdentifiableError, ParameterError
 from closedloop.analysis.identifiability import Dropped, loop_mobility
+from closedloop.errors import LogError, NotIdentifiableError, ParameterError
 from closedloop.model.parameters import match
 from closedloop.problem.problem import CalibrationProblem
 
-DEFAULT_IDENTIFY = {"urdf": ["placement", "offset", "loop"], "mjcf": ["placement", "offset", "loop"],
-                    "dh": ["theta_off", "s", "a", "alpha", "loop"]}
+DEFAULT_IDENTIFY = {
+    "urdf": ["placement", "offset", "loop"],
+    "mjcf": ["placement", "offset", "loop"],
+    "dh": ["theta_off", "s", "a", "alpha", "loop"],
+}
 MIN_RANGE = 1e-6  # a joint whose readings span less than this never moves
 
 
@@ -30,8 +33,7 @@ def initial_values(problem: CalibrationProblem, initial: dict[str, float]) -> np
     from closedloop.problem.shared import initial_shared  # shared loop parameters: the mean of the loops' estimates
 
     x0 = problem.nominal
-    inits = [problem.initialize_loop(x0, bi) if cols.size else None
-             for bi, cols in enumerate(problem.loop_columns)]
+    inits = [problem.initialize_loop(x0, bi) if cols.size else None for bi, cols in enumerate(problem.loop_columns)]
     x0 = initial_shared(problem, x0, inits)
     for n, v in initial.items():
         if n not in problem.index:
@@ -40,8 +42,9 @@ def initial_values(problem: CalibrationProblem, initial: dict[str, float]) -> np
     return x0
 
 
-def select_parameters(problem: CalibrationProblem, identify: list[str] | None,
-                      fix: dict[str, float | None], x0: np.ndarray) -> list[str]:
+def select_parameters(
+    problem: CalibrationProblem, identify: list[str] | None, fix: dict[str, float | None], x0: np.ndarray
+) -> list[str]:
     """Status per parameter from `identify` patterns and `fix` (x0 takes the fixed values)."""
     names = problem.names
     patterns = identify if identify is not None else DEFAULT_IDENTIFY[problem.robot.kind]
@@ -54,8 +57,10 @@ def select_parameters(problem: CalibrationProblem, identify: list[str] | None,
     status = ["selected" if n in selected else "not selected" for n in names]
     wants_tau = [n for n in selected if problem.params[problem.index[n]].kind == "compliance"]
     if wants_tau and any(b.tau is None for b in problem.blocks):
-        raise LogError(f"identifying joint compliance ({wants_tau[0]}, ...) needs the actuator "
-                       f"torques as columns 'tau:<joint>' for every loop joint")
+        raise LogError(
+            f"identifying joint compliance ({wants_tau[0]}, ...) needs the actuator "
+            f"torques as columns 'tau:<joint>' for every loop joint"
+        )
     for n, v in fix.items():
         if n not in problem.index:
             raise ParameterError(f"--fix {n}: no parameter of this problem has that name")
@@ -63,8 +68,10 @@ def select_parameters(problem: CalibrationProblem, identify: list[str] | None,
         if v is not None:
             prm = problem.params[k]
             if not np.isfinite(v) or abs(v - prm.nominal) > 1e3 * prm.prior:
-                raise ParameterError(f"--fix {n}={v:g}: not a plausible value (nominal {prm.nominal:g} {prm.unit}, "
-                                     f"expected corrections of about {prm.prior:g} {prm.unit})")
+                raise ParameterError(
+                    f"--fix {n}={v:g}: not a plausible value (nominal {prm.nominal:g} {prm.unit}, "
+                    f"expected corrections of about {prm.prior:g} {prm.unit})"
+                )
             x0[k] = v
         status[k] = "fixed"
     return status
@@ -74,54 +81,68 @@ MOBILITY_ROWS = 25  # configurations per loop `identifiability.loop_mobility` re
 SMALL_RANGE = 0.05  # rad: a joint that moves less than this barely excites the geometry around it
 
 
-def check_motion(problem: CalibrationProblem, x0: np.ndarray, status: list[str]
-                 ) -> tuple[list[str], list[Dropped], list[str]]:
+def check_motion(
+    problem: CalibrationProblem, x0: np.ndarray, status: list[str]
+) -> tuple[list[str], list[Dropped], list[str]]:
     """Notes and warnings on the data's motion; drops what a never-moving joint cannot reveal. Edits `status`."""
     names, notes, dropped, warnings = problem.names, [], [], []
     theta_all = np.vstack([b.theta for b in problem.blocks])
     ranges = theta_all.max(axis=0) - theta_all.min(axis=0)
     if np.all(ranges < MIN_RANGE):
-        raise NotIdentifiableError("no joint moves in the log: every configuration is the same pose, "
-                                   "so nothing can be identified")
+        raise NotIdentifiableError(
+            "no joint moves in the log: every configuration is the same pose, so nothing can be identified"
+        )
     for j, name in enumerate(problem.joints):
         if ranges[j] < MIN_RANGE:
-            notes.append(f"joint {name} never moves in the data (range {ranges[j]:.2e}); its scale and "
-                         "the geometry it would reveal cannot be identified (Singularity 5)")
+            notes.append(
+                f"joint {name} never moves in the data (range {ranges[j]:.2e}); its scale and "
+                "the geometry it would reveal cannot be identified (Singularity 5)"
+            )
             k = problem.rp.index[problem.rp.sensor_name(name, "scale")]
             if status[k] == "selected":
                 status[k] = "dropped"
                 dropped.append(Dropped(names[k], "its joint never moves, so scale and offset are one"))
-    small = [f"{n} ({r:.3g})" for n, r in zip(problem.joints, ranges) if MIN_RANGE <= r < SMALL_RANGE
-             and problem.robot.joint(n).unit == "rad"]
+    small = [
+        f"{n} ({r:.3g})"
+        for n, r in zip(problem.joints, ranges)
+        if MIN_RANGE <= r < SMALL_RANGE and problem.robot.joint(n).unit == "rad"
+    ]
     if small:
-        warnings.append(f"joint(s) {', '.join(small)} move less than {SMALL_RANGE} rad in the log: the data barely "
-                        "excite the geometry around them, and the calibrated model is unchecked away from the "
-                        "logged configurations")
+        warnings.append(
+            f"joint(s) {', '.join(small)} move less than {SMALL_RANGE} rad in the log: the data barely "
+            "excite the geometry around them, and the calibrated model is unchecked away from the "
+            "logged configurations"
+        )
     sample = problem.sampled(MOBILITY_ROWS, first=True)  # `loop_mobility` reads the first configurations
     for b, ev in zip(sample.blocks, sample.evaluate(x0, True, columns=[])):
         if not b.loop.scale_free:  # a measured (open) loop: mobility is not a question
             continue
         mob, moves = loop_mobility(ev.Jq)
         if mob == 0:
-            notes.append(f"loop {b.loop.name} is immobile (Lemma 4: J_theta has full column rank): "
-                         "the closed chain cannot move, so its configurations carry no new information")
+            notes.append(
+                f"loop {b.loop.name} is immobile (Lemma 4: J_theta has full column rank): "
+                "the closed chain cannot move, so its configurations carry no new information"
+            )
         for j, name in enumerate(problem.joints):
             if not moves[j] and ranges[j] >= MIN_RANGE and np.any(np.abs(ev.Jq[:, :, j]) > 0):
-                notes.append(f"joint {name} is structurally immobile in loop {b.loop.name} "
-                             "(Lemma 6: no self-motion of the closed chain moves it)")
+                notes.append(
+                    f"joint {name} is structurally immobile in loop {b.loop.name} "
+                    "(Lemma 6: no self-motion of the closed chain moves it)"
+                )
     robot = problem.robot
     if robot.kind == "dh":
         rows = robot.dh.rows
         for r1, r2 in zip(rows, rows[1:]):
             if r1.convention == "dh" and abs(np.sin(r1.alpha)) < 1e-6 and r1.name in problem.joints:
-                notes.append(f"D-H rows {r1.name} and {r2.name}: consecutive parallel axes (alpha_{r1.name} = "
-                             f"{r1.alpha:.3g} rad); the common normal is not unique, so {r1.name}.s and "
-                             f"{r2.name}.s are not separately identifiable (thesis 3.3, Singularity 1; see "
-                             "what absorbs them). Write these rows with convention: hayati (eq. 4.2)")
+                notes.append(
+                    f"D-H rows {r1.name} and {r2.name}: consecutive parallel axes (alpha_{r1.name} = "
+                    f"{r1.alpha:.3g} rad); the common normal is not unique, so {r1.name}.s and "
+                    f"{r2.name}.s are not separately identifiable (thesis 3.3, Singularity 1; see "
+                    "what absorbs them). Write these rows with convention: hayati (eq. 4.2)"
+                )
     sc = [problem.rp.index[problem.rp.sensor_name(j, "scale")] for j in problem.joints]
     if sc and all(status[k] == "selected" for k in sc):
         k = sc[-1]
         status[k] = "fixed"
-        notes.append(f"fixed {names[k]} = {x0[k]:g}: with every scale factor free, k = 0 fits any data "
-                     "(thesis 4.2.2)")
+        notes.append(f"fixed {names[k]} = {x0[k]:g}: with every scale factor free, k = 0 fits any data (thesis 4.2.2)")
     return notes, dropped, warnings

@@ -48,8 +48,9 @@ def check_calibrate_options(args) -> tuple:
     """`calibrate`'s output paths and numeric options, checked before any work: (noise, bounds, cv given?)."""
     from closedloop.io.files import check_outputs
 
-    check_outputs({"--out": args.out, "--report": args.report, "--html": getattr(args, "html", None)},
-                  [args.model, args.log])
+    check_outputs(
+        {"--out": args.out, "--report": args.report, "--html": getattr(args, "html", None)}, [args.model, args.log]
+    )
     if getattr(args, "plots", None):
         check_outputs({"--plots": args.plots}, [args.model, args.log], directory=True)
     args.snr = check_number("--snr", args.snr, 0.0, 1e6, lo_open=True)
@@ -65,15 +66,14 @@ def check_calibrate_options(args) -> tuple:
 
 def cmd_calibrate(args) -> int:
     from closedloop.calibration import CalibrationOptions, calibrate
-    from closedloop.output.urdf import write_model
+    from closedloop.cli.evaluate import require_log
     from closedloop.io.files import OutputSet
+    from closedloop.io.logs import check_loop_column
     from closedloop.loops.spec import default_loops, parse_loop
     from closedloop.model.parameters import parse_fix
-    from closedloop.output.report import build_report, write_report
     from closedloop.model.robot import RobotModel
-    from closedloop.io.logs import check_loop_column
-    from closedloop.output.urdf import check_model_output
-    from closedloop.cli.evaluate import require_log
+    from closedloop.output.report import build_report, write_report
+    from closedloop.output.urdf import check_model_output, write_model
 
     require_log(args)  # the positional log, unless each loop names its file
     noise, bounds, cv_given = check_calibrate_options(args)  # outputs and numbers, before any work
@@ -95,11 +95,17 @@ def cmd_calibrate(args) -> int:
     from closedloop.calibration import build_problem
 
     names = build_problem(robot, lg, loops).names
-    opts = CalibrationOptions(identify=args.identify.split(",") if args.identify else None,
-                              fix=parse_fix(args.fix, names), noise=noise,
-                              weighting=args.weighting, max_iter=args.max_iter, snr=args.snr,
-                              bounds=bounds, robust=None if args.robust == "off" else args.robust,
-                              threads=args.threads)
+    opts = CalibrationOptions(
+        identify=args.identify.split(",") if args.identify else None,
+        fix=parse_fix(args.fix, names),
+        noise=noise,
+        weighting=args.weighting,
+        max_iter=args.max_iter,
+        snr=args.snr,
+        bounds=bounds,
+        robust=None if args.robust == "off" else args.robust,
+        threads=args.threads,
+    )
     prog = Progress(args.quiet)
     t0 = time.perf_counter()
     res = calibrate(robot, lg, loops, opts, progress=prog)
@@ -107,12 +113,14 @@ def cmd_calibrate(args) -> int:
     elapsed = time.perf_counter() - t0
     report = build_report(res, args.model, args.log)
     report["solver"]["seconds"] = elapsed
-    cv = fold_validation(robot, lg, loops, opts, args, report, prog, res, cv_given) \
-        if args.cv and res.converged else None
+    cv = (
+        fold_validation(robot, lg, loops, opts, args, report, prog, res, cv_given)
+        if args.cv and res.converged
+        else None
+    )
+    from closedloop.cli.evaluate import fixture_validation
     from closedloop.output.report import verdict_record
     from closedloop.verdict import judge
-
-    from closedloop.cli.evaluate import fixture_validation
 
     lofo = fixture_validation(robot, lg, loops, opts, report, args, prog) if res.converged else None
     res.verdict = judge(res, cv, fixtures=lofo)  # the fit's evidence, the held-out folds' and fixtures'
@@ -133,9 +141,11 @@ def cmd_calibrate(args) -> int:
     if res.verdict.status == "suspect":
         print(f"warning: {args.log}: calibration is suspect: {'; '.join(own_reasons(res.verdict))}", file=sys.stderr)
     if failed:
-        print(f"error: {args.log}: calibration failed: {'; '.join(own_reasons(res.verdict))}"
-              + ("" if write_out or not args.out else f"; no model written to {args.out} (--force writes it)"),
-              file=sys.stderr)
+        print(
+            f"error: {args.log}: calibration failed: {'; '.join(own_reasons(res.verdict))}"
+            + ("" if write_out or not args.out else f"; no model written to {args.out} (--force writes it)"),
+            file=sys.stderr,
+        )
         return EXIT_FAILED
     return 0
 
@@ -152,8 +162,15 @@ def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res,
 
     prog("validating", 0, 0.0)
     try:
-        cv = cross_validate(robot, lg, loops, opts, k=args.cv, progress=lambda done, k: prog("validating", done, k),
-                            exclude=[rj.row - 1 for rj in res.rejected])
+        cv = cross_validate(
+            robot,
+            lg,
+            loops,
+            opts,
+            k=args.cv,
+            progress=lambda done, k: prog("validating", done, k),
+            exclude=[rj.row - 1 for rj in res.rejected],
+        )
     except ClosedLoopError as exc:
         prog.done()
         n_train = len(lg) - -(-len(lg) // args.cv)
@@ -163,12 +180,16 @@ def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res,
         res.notes.append(f"k-fold validation skipped: {why}")
         report["validation"] = {"k": args.cv, "skipped": why}
         return None
-    report["validation"] = {"k": args.cv, "excluded_rows": [i + 1 for i in cv["excluded"]],
-                            "test": cv["test"], "train": cv["train"],
-                            "test_whitened_rms": cv.get("test_whitened_rms"),
-                            "parameter_spread": cv.get("parameter_spread"),
-                            "inconsistent": cv.get("inconsistent"),
-                            "folds_converged": [f["converged"] for f in cv["folds"]]}
+    report["validation"] = {
+        "k": args.cv,
+        "excluded_rows": [i + 1 for i in cv["excluded"]],
+        "test": cv["test"],
+        "train": cv["train"],
+        "test_whitened_rms": cv.get("test_whitened_rms"),
+        "parameter_spread": cv.get("parameter_spread"),
+        "inconsistent": cv.get("inconsistent"),
+        "folds_converged": [f["converged"] for f in cv["folds"]],
+    }
     prog.done()
     return cv
 
@@ -176,7 +197,7 @@ def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res,
 def own_reasons(verdict) -> list[str]:
     """The verdict's reasons, those of its own status without their label (the others keep theirs)."""
     own = f"{verdict.status}: "
-    return [r[len(own):] if r.startswith(own) else r for r in verdict.reasons]
+    return [r[len(own) :] if r.startswith(own) else r for r in verdict.reasons]
 
 
 SHOWN_WEAK = 5  # combinations not identified printed in the summary (all of them are in the report)
@@ -193,10 +214,12 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
     n_conf = int(np.unique(np.concatenate(rows)).size) if rows else 0
     reasons = own_reasons(res.verdict)
     print(f"verdict: {res.verdict.status}" + (f" ({'; '.join(reasons)})" if reasons else ""))
-    print(f"calibrated {len(res.estimated)} parameters from {n_conf} configurations "
-          f"in {res.iterations} iterations ({elapsed:.2f} s): "
-          # the solver's own word only where the verdict does not overrule it
-          + (res.solver_status if res.verdict.status != "failed" else f"the solver stopped ({res.solver_message})"))
+    print(
+        f"calibrated {len(res.estimated)} parameters from {n_conf} configurations "
+        f"in {res.iterations} iterations ({elapsed:.2f} s): "
+        # the solver's own word only where the verdict does not overrule it
+        + (res.solver_status if res.verdict.status != "failed" else f"the solver stopped ({res.solver_message})")
+    )
     for rb, ra in zip(b, a):
         parts = []
         if rb.rms_m is not None:
@@ -213,19 +236,26 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
     for c in res.weak[:SHOWN_WEAK]:
         print(f"  not identifiable: {c.describe()}")
     if len(res.weak) > SHOWN_WEAK:
-        print(f"  ... and {len(res.weak) - SHOWN_WEAK} more combinations not identifiable "
-              "(report: identifiability.not_identifiable)")
+        print(
+            f"  ... and {len(res.weak) - SHOWN_WEAK} more combinations not identifiable "
+            "(report: identifiability.not_identifiable)"
+        )
     for n in res.notes:
         print(f"  note: {n}")
     cv = report.get("validation")
     if cv and "test" in cv:  # (a skipped validation is among the notes)
         for t in (t for t in cv["test"] if t["loop"] not in distances):
-            parts = [f"{t['rms_m'] * 1e3:.4g} mm" if t.get("rms_m") is not None else "",
-                     f"{t['rms_rad'] * 1e3:.4g} mrad" if t.get("rms_rad") is not None else "",
-                     f"{t['rms_px']:.4g} px" if t.get("rms_px") is not None else ""]
+            parts = [
+                f"{t['rms_m'] * 1e3:.4g} mm" if t.get("rms_m") is not None else "",
+                f"{t['rms_rad'] * 1e3:.4g} mrad" if t.get("rms_rad") is not None else "",
+                f"{t['rms_px']:.4g} px" if t.get("rms_px") is not None else "",
+            ]
             left = len(cv.get("excluded_rows", []))
-            print(f"  {cv['k']}-fold validation, loop {t['loop']}: held-out closure RMS "
-                  + ", ".join(p for p in parts if p) + (f" (the {left} rejected rows not judged)" if left else ""))
+            print(
+                f"  {cv['k']}-fold validation, loop {t['loop']}: held-out closure RMS "
+                + ", ".join(p for p in parts if p)
+                + (f" (the {left} rejected rows not judged)" if left else "")
+            )
     from closedloop.cli.evaluate import fixture_lines
 
     for line in fixture_lines(report.get("fixture_validation")):

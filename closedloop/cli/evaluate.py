@@ -28,20 +28,43 @@ from closedloop.errors import InputError
 
 def add_rig_options(c) -> None:
     """calibrate's options for rigs (module docstring)."""
-    c.add_argument("--distance", action="append", nargs="+", default=[], metavar="ARG",
-                   help="a known distance between two loop points: A.point B.point METRES [SIGMA] "
-                        "(e.g. front_a.point front_b.point 0.050); it sets the scale")
-    c.add_argument("--length", action="append", nargs="+", default=[], metavar="ARG",
-                   help="a known length between two frames of the robot a fixed distance apart: FRAME_A FRAME_B "
-                        "METRES [SIGMA] (e.g. a link measured with calipers); the report says how far it sets "
-                        "the scale")
-    c.add_argument("--block", action="append", nargs="+", default=[], metavar="ARG",
-                   help="points of one rigid block at known positions in its own frame: NAME A.point=X,Y,Z "
-                        "B.point=X,Y,Z ... [sigma=S] (metres); its pairwise distances set the scale")
-    c.add_argument("--joints", metavar="J1,J2,...",
-                   help="the column order of header-less CSV logs (the first row is then data)")
-    c.add_argument("--lofo", choices=["auto", "off"], default="auto",
-                   help="leave-one-fixture-out validation when the loops form several fixtures (default: auto)")
+    c.add_argument(
+        "--distance",
+        action="append",
+        nargs="+",
+        default=[],
+        metavar="ARG",
+        help="a known distance between two loop points: A.point B.point METRES [SIGMA] "
+        "(e.g. front_a.point front_b.point 0.050); it sets the scale",
+    )
+    c.add_argument(
+        "--length",
+        action="append",
+        nargs="+",
+        default=[],
+        metavar="ARG",
+        help="a known length between two frames of the robot a fixed distance apart: FRAME_A FRAME_B "
+        "METRES [SIGMA] (e.g. a link measured with calipers); the report says how far it sets "
+        "the scale",
+    )
+    c.add_argument(
+        "--block",
+        action="append",
+        nargs="+",
+        default=[],
+        metavar="ARG",
+        help="points of one rigid block at known positions in its own frame: NAME A.point=X,Y,Z "
+        "B.point=X,Y,Z ... [sigma=S] (metres); its pairwise distances set the scale",
+    )
+    c.add_argument(
+        "--joints", metavar="J1,J2,...", help="the column order of header-less CSV logs (the first row is then data)"
+    )
+    c.add_argument(
+        "--lofo",
+        choices=["auto", "off"],
+        default="auto",
+        help="leave-one-fixture-out validation when the loops form several fixtures (default: auto)",
+    )
 
 
 def _order(args) -> list[str] | None:
@@ -68,8 +91,10 @@ def _read_inputs(log_path: str | None, robot, loops: list, degrees: bool, order:
     if own:
         if len(own) != len(real):
             missing = [lp.name for lp in real if not getattr(lp, "log_path", None)]
-            raise InputError(f"loop(s) {', '.join(missing)} have no log=FILE while others have: give every loop "
-                             "its file, or one log with a 'loop' column")
+            raise InputError(
+                f"loop(s) {', '.join(missing)} have no log=FILE while others have: give every loop "
+                "its file, or one log with a 'loop' column"
+            )
         if log_path:
             raise InputError(f"{log_path}: the loops name their own log files (log=...); give no log besides")
         return read_loop_logs([(lp.name, lp.log_path) for lp in own], robot.joint_names, degrees, linear, order)
@@ -88,9 +113,12 @@ def rig_inputs(args, robot, loops: list):
     from closedloop.problem.lengths import parse_lengths
 
     lg = read_inputs(args.log, robot, loops, args.degrees, _order(args))
-    loops = (list(loops) + parse_distances(getattr(args, "distance", []) or [], loops)
-             + parse_blocks(getattr(args, "block", []) or [], loops)
-             + parse_lengths(getattr(args, "length", []) or [], robot))
+    loops = (
+        list(loops)
+        + parse_distances(getattr(args, "distance", []) or [], loops)
+        + parse_blocks(getattr(args, "block", []) or [], loops)
+        + parse_lengths(getattr(args, "length", []) or [], robot)
+    )
     if not args.log:
         args.log = str(lg.source)
     return lg, loops
@@ -119,18 +147,27 @@ def fixture_lines(out: dict | None) -> list[str]:
         if r.get("error"):
             lines.append(f"  held-out fixture {r['fixture']}: not validated ({r['error']})")
         elif r["calibrated_rms_m"] is not None:
-            lines.append(f"  held-out fixture {r['fixture']}: closure RMS {r['calibrated_rms_m'] * 1e3:.4g} mm "
-                         f"(nominal model {r['nominal_rms_m'] * 1e3:.4g} mm)" + (" WORSE" if r["worse"] else ""))
+            lines.append(
+                f"  held-out fixture {r['fixture']}: closure RMS {r['calibrated_rms_m'] * 1e3:.4g} mm "
+                f"(nominal model {r['nominal_rms_m'] * 1e3:.4g} mm)" + (" WORSE" if r["worse"] else "")
+            )
     return lines
 
 
 # --------------------------------------------------------------------------- closedloop evaluate
 def add_parser(sub) -> None:
-    e = sub.add_parser("evaluate", help="closure of one or more models on a log (robot untouched)",
-                       description=__doc__.split("\n\n")[1])
-    e.add_argument("files", nargs="+", metavar="FILE",
-                   help="MODEL [MODEL ...] LOG: models (URDF, MJCF, D-H), then the log (none when every loop "
-                        "names its own file, log=FILE)")
+    e = sub.add_parser(
+        "evaluate",
+        help="closure of one or more models on a log (robot untouched)",
+        description=__doc__.split("\n\n")[1],
+    )
+    e.add_argument(
+        "files",
+        nargs="+",
+        metavar="FILE",
+        help="MODEL [MODEL ...] LOG: models (URDF, MJCF, D-H), then the log (none when every loop "
+        "names its own file, log=FILE)",
+    )
     e.add_argument("--loop", action="append", default=[], metavar="SPEC", help="a loop, as for calibrate")
     e.add_argument("--joints", metavar="J1,J2,...", help="the column order of header-less CSV logs")
     e.add_argument("--label", action="append", default=[], help="a name per model for the table (default: file)")
@@ -140,10 +177,10 @@ def add_parser(sub) -> None:
 
 
 def cmd_evaluate(args) -> int:
-    from closedloop.validation.evaluate import evaluate_model, table
     from closedloop.io.files import atomic_write_text, check_outputs
     from closedloop.loops.spec import parse_loop
     from closedloop.model.robot import RobotModel
+    from closedloop.validation.evaluate import evaluate_model, table
 
     if not args.loop:
         raise InputError("evaluate: give the loops (--loop ...), as for calibrate")
@@ -177,5 +214,7 @@ def cmd_evaluate(args) -> int:
 def require_log(args) -> None:
     """calibrate without a log: only when every loop names its own file (--loop ...,log=FILE)."""
     if not args.log and not (args.loop and all("log=" in s for s in args.loop)):
-        raise InputError("calibrate: the following arguments are required: log (or give every loop its own "
-                         "file: --loop ...,log=FILE)")
+        raise InputError(
+            "calibrate: the following arguments are required: log (or give every loop its own "
+            "file: --loop ...,log=FILE)"
+        )

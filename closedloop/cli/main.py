@@ -12,12 +12,30 @@ import logging
 import sys
 
 from closedloop.cli.calibrate import cmd_calibrate
-from closedloop.cli.parse import EXIT_FAILED, EXIT_INPUT, EXIT_INTERNAL, EXIT_PIPE, check_number, float_arg, int_arg, join_negative_numbers
+from closedloop.cli.parse import (
+    EXIT_FAILED,
+    EXIT_INPUT,
+    EXIT_INTERNAL,
+    EXIT_PIPE,
+    check_number,
+    float_arg,
+    int_arg,
+    join_negative_numbers,
+)
 from closedloop.cli.simulate import cmd_simulate
 from closedloop.errors import CalibrationError, ClosedLoopError, InputError
 
-__all__ = ["EXIT_FAILED", "EXIT_INPUT", "EXIT_INTERNAL", "build_parser", "cmd_calibrate", "cmd_check", "cmd_inspect",
-           "cmd_simulate", "main"]
+__all__ = [
+    "EXIT_FAILED",
+    "EXIT_INPUT",
+    "EXIT_INTERNAL",
+    "build_parser",
+    "cmd_calibrate",
+    "cmd_check",
+    "cmd_inspect",
+    "cmd_simulate",
+    "main",
+]
 
 
 # --------------------------------------------------------------------------- commands
@@ -48,8 +66,10 @@ def cmd_inspect(args) -> int:
 def cmd_check(args) -> int:
     from closedloop.validation.check import check_report
 
-    tols = {o: check_number(f"--{o.replace('_', '-')}", getattr(args, o), 0.0, 1e6, lo_open=True)
-            for o in ("tol_m", "tol_rad", "tol_scale", "tol_px")}
+    tols = {
+        o: check_number(f"--{o.replace('_', '-')}", getattr(args, o), 0.0, 1e6, lo_open=True)
+        for o in ("tol_m", "tol_rad", "tol_scale", "tol_px")
+    }
     truth = _load_json(args.truth, "truth file")
     report = _load_json(args.report, "report file")
     rows, ok = check_report(truth, report, **tols, truth_source=args.truth, report_source=args.report)
@@ -61,8 +81,10 @@ def cmd_check(args) -> int:
         true = "" if r["true"] is None else f"{r['true']:14.6g}"
         print(f"{r['name']:<28}{true:>14}{cal:>14}{err:>12}{tol:>10}  {r['result']}")
     bad = sum(r["result"] == "FAIL" for r in rows)
-    print(f"{sum(r['result'] == 'ok' for r in rows)} within tolerance, {bad} outside, "
-          f"{sum(r['result'] not in ('ok', 'FAIL') for r in rows)} not compared")
+    print(
+        f"{sum(r['result'] == 'ok' for r in rows)} within tolerance, {bad} outside, "
+        f"{sum(r['result'] not in ('ok', 'FAIL') for r in rows)} not compared"
+    )
     verdict = report.get("verdict") if isinstance(report.get("verdict"), dict) else {}
     if verdict.get("status") in ("suspect", "failed"):  # what the calibration said of itself
         print(f"note: the report's verdict is {verdict['status']}: " + "; ".join(map(str, verdict.get("reasons", []))))
@@ -107,14 +129,27 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_calibrate(sub) -> None:
     from closedloop.cli.tools import loop_help
 
-    c = sub.add_parser("calibrate", help="calibrate a model from a joint log", epilog=loop_help(),
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    c = sub.add_parser(
+        "calibrate",
+        help="calibrate a model from a joint log",
+        epilog=loop_help(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     c.add_argument("model", help="URDF, MJCF (.xml) or D-H table (.yaml)")
-    c.add_argument("log", nargs="?", help="CSV: header of joint names, one row per configuration; or a ROS bag "
-                                          "(.bag, ROS 2 bag directory, .mcap, .db3) of sensor_msgs/JointState; "
-                                          "omitted when each loop names its file (--loop ...,log=FILE)")
-    c.add_argument("--loop", action="append", default=[], metavar="SPEC",
-                   help="loop closure TYPE:key=value,..., e.g. weld:frame=panda_hand (repeatable; types below)")
+    c.add_argument(
+        "log",
+        nargs="?",
+        help="CSV: header of joint names, one row per configuration; or a ROS bag "
+        "(.bag, ROS 2 bag directory, .mcap, .db3) of sensor_msgs/JointState; "
+        "omitted when each loop names its file (--loop ...,log=FILE)",
+    )
+    c.add_argument(
+        "--loop",
+        action="append",
+        default=[],
+        metavar="SPEC",
+        help="loop closure TYPE:key=value,..., e.g. weld:frame=panda_hand (repeatable; types below)",
+    )
     c.add_argument("--html", help="self-contained HTML report with figures")
     c.add_argument("--plots", metavar="DIR", help="write the report's figures as PNG files in DIR")
     c.add_argument("--config", help="YAML file holding any of these options (the command line wins)")
@@ -123,21 +158,38 @@ def _add_calibrate(sub) -> None:
     c.add_argument("--identify", help="comma-separated parameter patterns (placement, offset, scale, loop, globs)")
     c.add_argument("--fix", action="append", default=[], metavar="NAME[=VALUE]", help="hold a parameter fixed")
     c.add_argument("--noise", help="joint reading std (rad), one number or joint=value,...; default: estimated")
-    c.add_argument("--weighting", choices=["noise", "none"], default="noise",
-                   help="noise: errors-in-variables weighting (default); none: plain loop residual (thesis)")
+    c.add_argument(
+        "--weighting",
+        choices=["noise", "none"],
+        default="noise",
+        help="noise: errors-in-variables weighting (default); none: plain loop residual (thesis)",
+    )
     c.add_argument("--bound", action="append", default=[], metavar="NAME=LOW:HIGH", help="bound a parameter")
     c.add_argument("--snr", type=float_arg, default=1.0, help="SVD truncation: keep directions above snr * noise")
-    c.add_argument("--robust", choices=["auto", "huber", "cauchy", "off"], default="auto",
-                   help="outliers: auto (default) rejects configurations the noise cannot explain, after a robust "
-                        "refit; huber/cauchy keep a robust loss in the final fit; off trusts every row")
-    c.add_argument("--force", action="store_true",
-                   help="write the calibrated model even when the verdict is 'failed'")
-    c.add_argument("--cv", type=int_arg, default=None, metavar="K",
-                   help="K-fold held-out validation in the report (default 5; 0 disables)")
+    c.add_argument(
+        "--robust",
+        choices=["auto", "huber", "cauchy", "off"],
+        default="auto",
+        help="outliers: auto (default) rejects configurations the noise cannot explain, after a robust "
+        "refit; huber/cauchy keep a robust loss in the final fit; off trusts every row",
+    )
+    c.add_argument("--force", action="store_true", help="write the calibrated model even when the verdict is 'failed'")
+    c.add_argument(
+        "--cv",
+        type=int_arg,
+        default=None,
+        metavar="K",
+        help="K-fold held-out validation in the report (default 5; 0 disables)",
+    )
     c.add_argument("--max-iter", type=int_arg, default=100)
-    c.add_argument("--threads", type=int_arg, default=None, metavar="N",
-                   help="BLAS threads for the fit (default: 1 for small problems, more only for very large "
-                        "ones on idle cores; 0: keep the environment's setting)")
+    c.add_argument(
+        "--threads",
+        type=int_arg,
+        default=None,
+        metavar="N",
+        help="BLAS threads for the fit (default: 1 for small problems, more only for very large "
+        "ones on idle cores; 0: keep the environment's setting)",
+    )
     c.add_argument("--degrees", action="store_true", help="the log is in degrees")
     c.add_argument("--quiet", action="store_true")
     from closedloop.cli.evaluate import add_rig_options  # --distance, --joints, --lofo (rigs, issue 18)
@@ -149,8 +201,12 @@ def _add_calibrate(sub) -> None:
 def _add_simulate(sub) -> None:
     from closedloop.cli.tools import add_simulate_robot_options, scenario_help
 
-    s = sub.add_parser("simulate", help="generate a closed-chain dataset in MuJoCo", epilog=scenario_help(),
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    s = sub.add_parser(
+        "simulate",
+        help="generate a closed-chain dataset in MuJoCo",
+        epilog=scenario_help(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     s.add_argument("scenario", nargs="?", help="a scenario name (below) or a scenario YAML file")
     add_simulate_robot_options(s)
     s.add_argument("--n", type=int_arg, default=200)
@@ -213,8 +269,9 @@ def main(argv: list[str] | None = None) -> int:
         argv = ["-v"] + [a for a in argv if a not in ("-v", "--verbose")]
     try:
         args = parse_args(build_parser(), argv)  # applies a subcommand's --config FILE
-        logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                            format="%(levelname)s %(name)s: %(message)s")
+        logging.basicConfig(
+            level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
+        )
         return args.func(args)
     except SystemExit as exc:  # --help, --version, a --config loader that already printed its line
         if exc.code is None or isinstance(exc.code, int):
@@ -229,8 +286,13 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_INPUT
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", None)
-        print(("\n" if sys.stderr.isatty() else "") + "interrupted" + (f" (signal {signum})" if signum else "")
-              + "; outputs not yet published were discarded", file=sys.stderr)
+        print(
+            ("\n" if sys.stderr.isatty() else "")
+            + "interrupted"
+            + (f" (signal {signum})" if signum else "")
+            + "; outputs not yet published were discarded",
+            file=sys.stderr,
+        )
         return 128 + signum if signum else 130
     except BrokenPipeError:  # the reader went away (`| head`): quiet, as a tool killed by SIGPIPE
         import os
@@ -252,8 +314,11 @@ def main(argv: list[str] | None = None) -> int:
             import traceback
 
             traceback.print_exc()
-        print(f"error: internal error ({type(exc).__name__}: {_one_line(exc)}); this is a bug in closedloop, "
-              "please report it (rerun with -v for the traceback)", file=sys.stderr)
+        print(
+            f"error: internal error ({type(exc).__name__}: {_one_line(exc)}); this is a bug in closedloop, "
+            "please report it (rerun with -v for the traceback)",
+            file=sys.stderr,
+        )
         return EXIT_INTERNAL
     finally:
         for sig, h in handlers.items():

@@ -81,8 +81,9 @@ def check_loop_numbers(spec: str) -> None:
     from closedloop.io.schemas import MAX_ABS, parse_number
 
     for token in re.split(r"[\s,=:\"']+", spec):
-        if re.fullmatch(r"[-+]?(\d[\d_]*\.?[\d_]*|\.\d[\d_]*)([eE][-+]?\d+)?|[-+]?(nan|inf|infinity)", token,
-                        re.IGNORECASE):
+        if re.fullmatch(
+            r"[-+]?(\d[\d_]*\.?[\d_]*|\.\d[\d_]*)([eE][-+]?\d+)?|[-+]?(nan|inf|infinity)", token, re.IGNORECASE
+        ):
             v = parse_number(token, f"--loop {spec}")
             if abs(v) > MAX_ABS:
                 raise InputError(f"--loop {spec}: {token} is out of range (|value| <= {MAX_ABS:g})")

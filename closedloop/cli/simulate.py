@@ -16,7 +16,8 @@ def cmd_simulate(args) -> int:
     except ImportError as exc:  # pragma: no cover - packaging error
         raise ClosedLoopError(f"the simulator is not installed ({exc})") from None
     from closedloop.cli.tools import resolve_scenario
-    from closedloop.sims.camera_scene import SCENARIOS as CAMERA_SCENARIOS, simulate_cli as camera_simulate
+    from closedloop.sims.camera_scene import SCENARIOS as CAMERA_SCENARIOS
+    from closedloop.sims.camera_scene import simulate_cli as camera_simulate
 
     if getattr(args, "scenario", None) in CAMERA_SCENARIOS:  # the head-camera scenarios (sims/camera_scene.py)
         return camera_simulate(args)
@@ -33,8 +34,14 @@ def cmd_simulate(args) -> int:
     overrides = sim_overrides(args.set, SCENARIOS[args.scenario].settings)
     prog = Progress(args.quiet)
     t0 = time.perf_counter()
-    result = simulate(args.scenario, n=args.n, seed=args.seed, out_dir=Path(args.out),
-                      progress=lambda i, n: prog("simulating", i, n), **overrides)
+    result = simulate(
+        args.scenario,
+        n=args.n,
+        seed=args.seed,
+        out_dir=Path(args.out),
+        progress=lambda i, n: prog("simulating", i, n),
+        **overrides,
+    )
     prog.done()
     print(f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out}")
     loop_hint(Path(args.out) / "truth.json")

@@ -64,8 +64,9 @@ def dataset_dir(out: Path, scenario: str, seed: int, several: bool) -> Path:
     return (out / scenario if several else out) / f"seed_{seed:03d}"
 
 
-def finished(folder: Path, scenario: str, seed: int, n: int | None = None, overrides: dict | None = None
-             ) -> bool | None:
+def finished(
+    folder: Path, scenario: str, seed: int, n: int | None = None, overrides: dict | None = None
+) -> bool | None:
     """True when `folder` holds a whole dataset of this scenario, seed, size and settings (its truth.json,
     written last); None when it holds none; False when it holds another."""
     try:
@@ -87,12 +88,24 @@ def _sim_job(scenarios: dict, n: int, overrides: dict, payload: tuple[str, int, 
     name, seed, folder = payload
     SCENARIOS[name] = scenarios[name]
     res = simulate(name, n, seed, Path(folder), **overrides.get(name, {}))
-    return {"configurations": len(res.readings), "steps": int(res.n_steps), "seconds": round(res.elapsed_s, 4),
-            "configs_per_second": round(res.configs_per_second, 2)}
+    return {
+        "configurations": len(res.readings),
+        "steps": int(res.n_steps),
+        "seconds": round(res.elapsed_s, 4),
+        "configs_per_second": round(res.configs_per_second, 2),
+    }
 
 
-def run_sweep(scenarios: dict[str, Any], seeds: list[int], n: int, out: Path, overrides: dict | None = None,
-              engine=None, progress=None, replace: bool = False) -> list[SweepRow]:
+def run_sweep(
+    scenarios: dict[str, Any],
+    seeds: list[int],
+    n: int,
+    out: Path,
+    overrides: dict | None = None,
+    engine=None,
+    progress=None,
+    replace: bool = False,
+) -> list[SweepRow]:
     """Simulate every (scenario, seed) not finished before, on `engine`; rows in (scenario, seed) order.
 
     scenarios: name -> ``sims.Scenario`` (sent to the workers, so YAML and --robot scenarios work
@@ -109,8 +122,10 @@ def run_sweep(scenarios: dict[str, Any], seeds: list[int], n: int, out: Path, ov
             folder = dataset_dir(out, name, seed, several)
             done = None if replace else finished(folder, name, seed, n, (overrides or {}).get(name))
             if done is False:
-                raise InputError(f"{folder}: holds another dataset (another scenario, seed, --n or --set); "
-                                 "give another --out or --replace to simulate it again")
+                raise InputError(
+                    f"{folder}: holds another dataset (another scenario, seed, --n or --set); "
+                    "give another --out or --replace to simulate it again"
+                )
             if done:
                 rows[name, seed] = SweepRow(name, seed, "resumed", out=str(folder))
             else:
@@ -123,8 +138,11 @@ def run_sweep(scenarios: dict[str, Any], seeds: list[int], n: int, out: Path, ov
         fh.flush()
         for o in imap(_sim_job, todo, engine, shared=(scenarios, int(n), overrides or {}), progress=progress):
             name, seed, folder = todo[o.index]
-            rows[name, seed] = SweepRow(name, seed, "ok", out=folder, **o.value) if o.ok else \
-                SweepRow(name, seed, "failed", error=o.error or "", seconds=round(o.seconds, 4), out=folder)
+            rows[name, seed] = (
+                SweepRow(name, seed, "ok", out=folder, **o.value)
+                if o.ok
+                else SweepRow(name, seed, "failed", error=o.error or "", seconds=round(o.seconds, 4), out=folder)
+            )
             w.writerow(_csv_row(rows[name, seed]))
             fh.flush()
     ordered = [rows[name, seed] for name in scenarios for seed in seeds]
@@ -144,6 +162,7 @@ def _write_summary(path: Path, rows: list[SweepRow]) -> None:
             w = csv.DictWriter(fh, COLUMNS)
             w.writeheader()
             w.writerows(_csv_row(r) for r in rows)
+
     atomic_write(path, writer)
 
 
@@ -151,9 +170,14 @@ def add_sweep_options(s) -> None:
     """--seeds / --scenarios / --jobs / --ray on the `simulate` parser; a plain simulate without them."""
     from closedloop.fleet.executor import add_arguments
 
-    s.add_argument("--seeds", metavar="A-B[,C,...]", help="simulate one dataset per seed into OUT/seed_NNN/ "
-                   "(resumable; with --jobs / --ray in parallel)")
-    s.add_argument("--scenarios", metavar="A,B,...", help="with --seeds: several scenarios, into OUT/SCENARIO/seed_NNN/")
+    s.add_argument(
+        "--seeds",
+        metavar="A-B[,C,...]",
+        help="simulate one dataset per seed into OUT/seed_NNN/ (resumable; with --jobs / --ray in parallel)",
+    )
+    s.add_argument(
+        "--scenarios", metavar="A,B,...", help="with --seeds: several scenarios, into OUT/SCENARIO/seed_NNN/"
+    )
     add_arguments(s)
     s.set_defaults(func=cmd_simulate_sweep)
 
@@ -182,14 +206,24 @@ def cmd_simulate_sweep(args) -> int:
         raise InputError(f"--out {out}: exists and is not a folder")
     overrides = {name: _overrides(args, sc) for name, sc in scenarios.items()}
     with engine_from_args(args) as eng:
-        rows = run_sweep(scenarios, seeds, n, out, overrides, eng, progress_printer("simulate: ", args.quiet),
-                         replace=getattr(args, "replace", False))
+        rows = run_sweep(
+            scenarios,
+            seeds,
+            n,
+            out,
+            overrides,
+            eng,
+            progress_printer("simulate: ", args.quiet),
+            replace=getattr(args, "replace", False),
+        )
     ran = [r for r in rows if r.status == "ok"]
     failed = [r for r in rows if r.status == "failed"]
     rate = sum(r.configurations or 0 for r in ran) / max(sum(r.seconds or 0.0 for r in ran), 1e-9)
-    print(f"{len(ran)} dataset(s) simulated on {eng.name} ({eng.workers} worker(s)), "
-          f"{sum(r.status == 'resumed' for r in rows)} finished earlier (not redone), {len(failed)} failed; "
-          f"{rate:.0f} configurations/s per job -> {out / 'sweep.csv'}")
+    print(
+        f"{len(ran)} dataset(s) simulated on {eng.name} ({eng.workers} worker(s)), "
+        f"{sum(r.status == 'resumed' for r in rows)} finished earlier (not redone), {len(failed)} failed; "
+        f"{rate:.0f} configurations/s per job -> {out / 'sweep.csv'}"
+    )
     for r in failed:
         print(f"  failed: {r.scenario} seed {r.seed}: {r.error}", file=sys.stderr)
     return 1 if failed else 0

@@ -27,11 +27,9 @@ LOOP_EXAMPLES = {
     "hinge": "hinge:frame=tool0,name=door               (tool on a door handle, hinge unknown)",
     "passive": "passive:frame=tool0,task=door.urdf,task_frame=handle,name=door",
     "measured_pose": "measured_pose:frame=tool0,name=tracker,sigma_t=1e-4,sigma_r=1e-3   "
-                     "(log columns tracker:x .. tracker:rz)",
-    "measured_point": "measured_point:frame=stylus_tip,name=tracker   (log columns tracker:x tracker:y "
-                      "tracker:z)",
-    "camera": "camera:frame=marker,cameras=2,K1=\"600 600 320 240\",K2=\"600 600 320 240\"   "
-              "(log columns <name>:u1 ..)",
+    "(log columns tracker:x .. tracker:rz)",
+    "measured_point": "measured_point:frame=stylus_tip,name=tracker   (log columns tracker:x tracker:y tracker:z)",
+    "camera": 'camera:frame=marker,cameras=2,K1="600 600 320 240",K2="600 600 320 240"   (log columns <name>:u1 ..)',
 }
 
 
@@ -46,8 +44,7 @@ def loop_help(width: int = 100) -> str:
     lines = ["loop types (--loop TYPE:key=value,...; repeatable; 'closedloop loops' for details):"]
     for kind, (factory, keys) in sorted(_registry().items()):
         lines.append(f"  {kind:<15} keys: {', '.join(sorted(keys))}")
-    return "\n".join(textwrap.fill(ln, width, subsequent_indent=" " * 18) if len(ln) > width else ln
-                     for ln in lines)
+    return "\n".join(textwrap.fill(ln, width, subsequent_indent=" " * 18) if len(ln) > width else ln for ln in lines)
 
 
 def cmd_loops(args) -> int:
@@ -61,8 +58,10 @@ def cmd_loops(args) -> int:
         print(f"  example: --loop {LOOP_EXAMPLES.get(kind, kind + ':frame=<tool frame>')}")
     from closedloop.loops.spec import GENERIC_KEYS
 
-    print(f"Every loop type also takes: {', '.join(sorted(GENERIC_KEYS))}, and KEY=@GROUP (an unknown shared "
-          "by several loops).")
+    print(
+        f"Every loop type also takes: {', '.join(sorted(GENERIC_KEYS))}, and KEY=@GROUP (an unknown shared "
+        "by several loops)."
+    )
     print("Frames are the model's frame names (closedloop inspect MODEL lists them); 'to' defaults to the world.")
     return 0
 
@@ -80,8 +79,12 @@ def read_log_or_bag(path: str, robot, degrees: bool = False, bag_options=None):
         return lg
     from closedloop.io.logs import read_log
 
-    return read_log(path, robot.joint_names, degrees=degrees,
-                    linear=[j for j, info in robot.joints.items() if info.kind == "prismatic"])
+    return read_log(
+        path,
+        robot.joint_names,
+        degrees=degrees,
+        linear=[j for j, info in robot.joints.items() if info.kind == "prismatic"],
+    )
 
 
 def cmd_extract(args) -> int:
@@ -98,8 +101,12 @@ def cmd_extract(args) -> int:
     refuse_overwrite(args.out, args.bag)
     from closedloop.cli.parse import check_number
 
-    for opt, name in (("--threshold", "threshold"), ("--settle", "settle"), ("--window-s", "window_s"),
-                      ("--spread", "spread")):
+    for opt, name in (
+        ("--threshold", "threshold"),
+        ("--settle", "settle"),
+        ("--window-s", "window_s"),
+        ("--spread", "spread"),
+    ):
         setattr(args, name, check_number(opt, getattr(args, name), 0.0, 1e6, lo_open=True))
     split = args.split
     if args.window and split != "window":
@@ -108,9 +115,17 @@ def cmd_extract(args) -> int:
     if args.names:
         items = [n.strip() for n in args.names.split(",")]
         names = dict(n.split("=", 1) for n in items) if split == "topic" and all("=" in n for n in items) else items
-    opts = ExtractOptions(threshold=args.threshold, settle=args.settle, window=args.window_s, spread=args.spread,
-                          topics=args.topic or None, split=split, gap=args.gap,
-                          windows=parse_windows(args.window), names=names)
+    opts = ExtractOptions(
+        threshold=args.threshold,
+        settle=args.settle,
+        window=args.window_s,
+        spread=args.spread,
+        topics=args.topic or None,
+        split=split,
+        gap=args.gap,
+        windows=parse_windows(args.window),
+        names=names,
+    )
     lg, samples = extract(args.bag, joints, opts)
     lg.write_csv(args.out)
     groups = ""
@@ -124,9 +139,12 @@ def cmd_extract(args) -> int:
 
 
 def add_extract_parser(sub) -> None:
-    e = sub.add_parser("extract", help="quasi-static joint samples of a ROS bag -> CSV log",
-                       description="Find the standstills in a ROS 1 (.bag) or ROS 2 (sqlite3, MCAP) bag of "
-                                   "sensor_msgs/JointState and write one CSV row per standstill.")
+    e = sub.add_parser(
+        "extract",
+        help="quasi-static joint samples of a ROS bag -> CSV log",
+        description="Find the standstills in a ROS 1 (.bag) or ROS 2 (sqlite3, MCAP) bag of "
+        "sensor_msgs/JointState and write one CSV row per standstill.",
+    )
     e.add_argument("bag", help="ROS 1 .bag file, or ROS 2 bag directory (metadata.yaml) / .mcap / .db3")
     e.add_argument("--model", help="robot model: its joints are matched by name in the messages")
     e.add_argument("--joints", help="joint names (comma-separated), instead of --model")
@@ -134,15 +152,31 @@ def add_extract_parser(sub) -> None:
     e.add_argument("--topic", action="append", default=[], help="JointState topic (repeatable; default: all)")
     e.add_argument("--threshold", type=float, default=0.01, help="standstill: speed below this (rad/s, default 0.01)")
     e.add_argument("--settle", type=float, default=0.5, help="standstill: for at least this long (s, default 0.5)")
-    e.add_argument("--spread", type=float, default=1e-3,
-                   help="a standstill splits where the position jumps by more than this (rad, default 1e-3)")
-    e.add_argument("--window-s", type=float, default=0.2,
-                   help="finite-difference window when messages carry no velocities (s, default 0.2)")
-    e.add_argument("--split", choices=["topic", "gap", "window"],
-                   help="several fixtures: one loop per topic, per gap between standstills, or per time window")
+    e.add_argument(
+        "--spread",
+        type=float,
+        default=1e-3,
+        help="a standstill splits where the position jumps by more than this (rad, default 1e-3)",
+    )
+    e.add_argument(
+        "--window-s",
+        type=float,
+        default=0.2,
+        help="finite-difference window when messages carry no velocities (s, default 0.2)",
+    )
+    e.add_argument(
+        "--split",
+        choices=["topic", "gap", "window"],
+        help="several fixtures: one loop per topic, per gap between standstills, or per time window",
+    )
     e.add_argument("--gap", type=float, default=5.0, help="--split gap: seconds between fixtures (default 5)")
-    e.add_argument("--window", action="append", default=[], metavar="NAME=T0:T1",
-                   help="--split window: loop NAME from T0 to T1 s after the bag start (repeatable)")
+    e.add_argument(
+        "--window",
+        action="append",
+        default=[],
+        metavar="NAME=T0:T1",
+        help="--split window: loop NAME from T0 to T1 s after the bag start (repeatable)",
+    )
     e.add_argument("--names", help="loop names: in order (gap) or TOPIC=NAME,... (topic)")
     e.add_argument("--config", help="YAML file holding these options")
     e.set_defaults(func=cmd_extract)
@@ -181,11 +215,15 @@ def load_config(path: str, sub: argparse.ArgumentParser, command: str) -> dict:
         dest = str(key).lstrip("-").replace("-", "_")
         act = actions.get(dest)
         if act is None:
-            raise InputError(f"{path}: unknown option '{key}' for {command} "
-                             f"(known: {', '.join(sorted(a.replace('_', '-') for a in actions))})")
+            raise InputError(
+                f"{path}: unknown option '{key}' for {command} "
+                f"(known: {', '.join(sorted(a.replace('_', '-') for a in actions))})"
+            )
         if isinstance(act, argparse._AppendAction):
-            value = [str(v) if act.type is None else act.type(str(v))
-                     for v in (value if isinstance(value, list) else [value])]
+            value = [
+                str(v) if act.type is None else act.type(str(v))
+                for v in (value if isinstance(value, list) else [value])
+            ]
         elif isinstance(act, (argparse._StoreTrueAction, argparse._StoreFalseAction)):
             if not isinstance(value, bool):
                 raise InputError(f"{path}: option '{key}' takes true or false")
@@ -236,9 +274,12 @@ def sensor_corrections(res, model_out: str | None = None) -> dict | None:
             joints.setdefault(p.name.rsplit(".", 1)[0], {})[p.kind] = float(res.values[k])
     if not joints:
         return None
-    return {"model": model_out, "joints": joints,
-            "note": "joint value for the calibrated model = scale * reading - compliance * tau "
-                    "(offsets are folded into the model); scale 1 and compliance 0 where a joint is not listed"}
+    return {
+        "model": model_out,
+        "joints": joints,
+        "note": "joint value for the calibrated model = scale * reading - compliance * tau "
+        "(offsets are folded into the model); scale 1 and compliance 0 where a joint is not listed",
+    }
 
 
 def write_figures(res, report: dict, args) -> None:
@@ -246,16 +287,20 @@ def write_figures(res, report: dict, args) -> None:
     MJCF cannot express; not for D-H output, which carries them), the HTML page and the PNG figures."""
     out = getattr(args, "out", None)
     failed = getattr(getattr(res, "verdict", None), "status", None) == "failed" and not getattr(args, "force", False)
-    corr = (sensor_corrections(res, out) if out and not failed and not str(out).endswith((".yaml", ".yml"))
-            else None)  # beside a model that was written
+    corr = (
+        sensor_corrections(res, out) if out and not failed and not str(out).endswith((".yaml", ".yml")) else None
+    )  # beside a model that was written
     if corr is not None:
         import yaml
 
         from closedloop.io.files import atomic_write_text
 
         path = str(Path(out).with_suffix("")) + ".sensors.yaml"
-        atomic_write_text(path, "# closedloop: joint sensor corrections the model file cannot carry\n"
-                          + yaml.safe_dump(corr, sort_keys=False))
+        atomic_write_text(
+            path,
+            "# closedloop: joint sensor corrections the model file cannot carry\n"
+            + yaml.safe_dump(corr, sort_keys=False),
+        )
         print(f"  wrote {path}")
     html = getattr(args, "html", None)
     plots = getattr(args, "plots", None)
@@ -305,12 +350,17 @@ def resolve_scenario(args) -> str:
         if args.scenario:
             raise InputError(f"simulate: give a scenario ({args.scenario}) or --robot, not both")
         if not args.loop:
-            raise InputError("simulate --robot: say how the loop closes, e.g. --loop weld:frame=tool0 "
-                             "(closedloop inspect ROBOT lists the frames)")
+            raise InputError(
+                "simulate --robot: say how the loop closes, e.g. --loop weld:frame=tool0 "
+                "(closedloop inspect ROBOT lists the frames)"
+            )
         loop_type = parse_sim_loop(args.loop)[0]
-        data: dict = {"robot": str(Path(args.robot).resolve()), "loop": args.loop,
-                      "name": args.name or f"{Path(args.robot).stem}_{loop_type}",
-                      "description": f"{Path(args.robot).name} with a {args.loop} loop"}
+        data: dict = {
+            "robot": str(Path(args.robot).resolve()),
+            "loop": args.loop,
+            "name": args.name or f"{Path(args.robot).stem}_{loop_type}",
+            "description": f"{Path(args.robot).name} with a {args.loop} loop",
+        }
         if args.q0:
             data["q0"] = _numbers(args.q0, "--q0")
         if args.tool:
@@ -329,11 +379,17 @@ def resolve_scenario(args) -> str:
 
 def add_simulate_robot_options(s) -> None:
     s.add_argument("--robot", help="simulate your robot: a URDF or MJCF (.xml) file (with --loop)")
-    s.add_argument("--loop", help="with --robot: the loop, as for calibrate: weld|point|hinge|plane|measured_point:"
-                                  "frame=LINK[,to=LINK][,name=NAME]")
+    s.add_argument(
+        "--loop",
+        help="with --robot: the loop, as for calibrate: weld|point|hinge|plane|measured_point:"
+        "frame=LINK[,to=LINK][,name=NAME]",
+    )
     s.add_argument("--q0", help="with --robot: grasp configuration (radians; default: chosen automatically)")
-    s.add_argument("--tool", metavar="\"X Y Z\"", help="with --robot: add a stylus link at this offset in the "
-                                                       "loop frame (the loop then closes on it)")
+    s.add_argument(
+        "--tool",
+        metavar='"X Y Z"',
+        help="with --robot: add a stylus link at this offset in the loop frame (the loop then closes on it)",
+    )
     s.add_argument("--joints", help="with --robot: driven joints (default: every joint moving the loop frame)")
     s.add_argument("--name", help="with --robot: scenario name (default ROBOT_LOOPTYPE)")
     s.add_argument("--config", help="YAML file holding these options")

@@ -4,13 +4,20 @@ from __future__ import annotations
 
 import numpy as np
 
-from closedloop.errors import OptionError
 from closedloop.design.optimal import Selection, greedy_d_optimal, information
+from closedloop.errors import OptionError
 
 
-def exchange_a(B: np.ndarray, k: int, prior_weight: float = 1.0, base: np.ndarray | None = None,
-               start: list[int] | None = None, max_passes: int = 200, tol: float = 1e-9,
-               continuation: tuple[float, ...] = (0.1, 0.01)) -> Selection:
+def exchange_a(
+    B: np.ndarray,
+    k: int,
+    prior_weight: float = 1.0,
+    base: np.ndarray | None = None,
+    start: list[int] | None = None,
+    max_passes: int = 200,
+    tol: float = 1e-9,
+    continuation: tuple[float, ...] = (0.1, 0.01),
+) -> Selection:
     """A-optimal exchange (Fedorov 1972; modified, one point at a time: Cook & Nachtsheim 1980).
 
     Minimises tr A(S)^-1, A(S) = w I + base + sum_{i in S} B_i^T B_i, over designs of k distinct
@@ -57,8 +64,16 @@ def exchange_a(B: np.ndarray, k: int, prior_weight: float = 1.0, base: np.ndarra
     return Selection(np.array(sorted(design), dtype=int), logdet, hist, exchanges, trace, thist, "A")
 
 
-def _best_entrant(P: np.ndarray, C: np.ndarray, V: np.ndarray, Bt: np.ndarray, ub: np.ndarray, lb: np.ndarray,
-                  need: float, top: np.ndarray) -> tuple[float, int, np.ndarray | None, np.ndarray | None]:
+def _best_entrant(
+    P: np.ndarray,
+    C: np.ndarray,
+    V: np.ndarray,
+    Bt: np.ndarray,
+    ub: np.ndarray,
+    lb: np.ndarray,
+    need: float,
+    top: np.ndarray,
+) -> tuple[float, int, np.ndarray | None, np.ndarray | None]:
     """The candidate of largest exact trace gain g_i = tr(S_i^-1 T_i T_i^T) (T_i = B_i M_j, S_i = I + T_i B_i^T):
     first among `top` (the largest upper bounds `ub`), then among the rest whose bound still beats the best
     gain so far, `need` and every lower bound `lb`.  Returns (g, i, T_i, S_i); g = -inf if none."""
@@ -81,8 +96,16 @@ def _best_entrant(P: np.ndarray, C: np.ndarray, V: np.ndarray, Bt: np.ndarray, u
     return best_g, best_i, best_T, best_S
 
 
-def _exchange_a(B: np.ndarray, design: list[int], prior_weight: float, base: np.ndarray | None,
-                max_passes: int, tol: float, hist: list[float], thist: list[float]):
+def _exchange_a(
+    B: np.ndarray,
+    design: list[int],
+    prior_weight: float,
+    base: np.ndarray | None,
+    max_passes: int,
+    tol: float,
+    hist: list[float],
+    thist: list[float],
+):
     """Exchange passes at one prior weight (see `exchange_a`); appends to hist / thist."""
     N, m, L = B.shape
     k = len(design)
@@ -124,7 +147,7 @@ def _exchange_a(B: np.ndarray, design: list[int], prior_weight: float, base: np.
             need = tr_j - (1.0 - tol) * tr  # a swap must gain more than this
             # B_i M_j = P_i + C_i V, C_i = B_i M B_j^T; its squared norm and tr(B_i M_j B_i^T) in m x m terms
             Z = (Bf @ np.hstack([W.T, M @ V.T, V.T])).reshape(N, m, 3 * m)  # one BLAS call
-            C, Q, R = Z[:, :, :m], Z[:, :, m:2 * m], Z[:, :, 2 * m:]  # B_i M B_j^T, B_i M V^T, B_i V^T
+            C, Q, R = Z[:, :, :m], Z[:, :, m : 2 * m], Z[:, :, 2 * m :]  # B_i M B_j^T, B_i M V^T, B_i V^T
             ub = p2 + np.einsum("nkl,nkl->n", 2.0 * Q + C @ (V @ V.T), C)
             ub[in_design] = -np.inf
             if ub.max() * (1.0 + 1e-9) <= need:
@@ -154,4 +177,3 @@ def _exchange_a(B: np.ndarray, design: list[int], prior_weight: float, base: np.
         if not swapped:
             break
     return design, logdet, float(np.trace(M)), exchanges
-

@@ -29,7 +29,6 @@ class Selection:
     criterion: str = "D"
 
 
-
 # --------------------------------------------------------------------------- information
 class _Design:
     """A^-1 and log det A under rank-m updates (Woodbury; determinant lemma)."""
@@ -87,8 +86,14 @@ class _Design:
         return g
 
 
-def greedy_d_optimal(B: np.ndarray, k: int, prior_weight: float = 1.0, base: np.ndarray | None = None,
-                     start: list[int] | None = None, criterion: str = "D") -> Selection:
+def greedy_d_optimal(
+    B: np.ndarray,
+    k: int,
+    prior_weight: float = 1.0,
+    base: np.ndarray | None = None,
+    start: list[int] | None = None,
+    criterion: str = "D",
+) -> Selection:
     """Greedy D-optimal (or, criterion='A', trace-minimising) choice of k blocks of B (Npool, m, L).
 
     Each step adds the free candidate with the largest gain, log det(I + B_i A^-1 B_i^T) (D) or
@@ -117,13 +122,21 @@ def greedy_d_optimal(B: np.ndarray, k: int, prior_weight: float = 1.0, base: np.
         free[i] = False
         hist.append(d.logdet)
         thist.append(d.trace)
-    return Selection(np.array(chosen, dtype=int), d.logdet, hist, trace=d.trace, trace_history=thist,
-                     criterion=criterion)
+    return Selection(
+        np.array(chosen, dtype=int), d.logdet, hist, trace=d.trace, trace_history=thist, criterion=criterion
+    )
 
 
-def detmax(B: np.ndarray, k: int, prior_weight: float = 1.0, base: np.ndarray | None = None,
-           start: list[int] | None = None, max_excursion: int = 4, max_rounds: int = 500,
-           tol: float = 1e-9) -> Selection:
+def detmax(
+    B: np.ndarray,
+    k: int,
+    prior_weight: float = 1.0,
+    base: np.ndarray | None = None,
+    start: list[int] | None = None,
+    max_excursion: int = 4,
+    max_rounds: int = 500,
+    tol: float = 1e-9,
+) -> Selection:
     """Mitchell's DETMAX exchange from a greedy (or given) design of k blocks."""
     sel = greedy_d_optimal(B, k, prior_weight, base) if start is None else None
     design = list(sel.indices) if sel is not None else list(start)
@@ -165,7 +178,6 @@ def detmax(B: np.ndarray, k: int, prior_weight: float = 1.0, base: np.ndarray | 
         if not improved:
             break
     return Selection(np.array(sorted(design), dtype=int), d.logdet, hist, exchanges)
-
 
 
 def information(B: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:

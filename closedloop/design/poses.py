@@ -80,22 +80,40 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from closedloop.calibration import CalibrationResult
-from closedloop.errors import OptionError
 from closedloop.analysis.identifiability import greedy_reduction
 from closedloop.analysis.observability import resolve, whitened_blocks
-from closedloop.design.optimal import Selection, detmax, greedy_d_optimal, information, trace_covariance
+from closedloop.calibration import CalibrationResult
 from closedloop.design.exchange import exchange_a
+from closedloop.design.optimal import Selection, detmax, greedy_d_optimal, information, trace_covariance
+from closedloop.errors import OptionError
 from closedloop.problem.problem import CalibrationProblem
 
-__all__ = ["Selection", "greedy_d_optimal", "detmax", "exchange_a", "information", "trace_covariance",
-           "pool_blocks", "select_poses", "METHODS", "select_pools", "random_designs", "RandomDesigns"]
+__all__ = [
+    "Selection",
+    "greedy_d_optimal",
+    "detmax",
+    "exchange_a",
+    "information",
+    "trace_covariance",
+    "pool_blocks",
+    "select_poses",
+    "METHODS",
+    "select_pools",
+    "random_designs",
+    "RandomDesigns",
+]
 
 
 # --------------------------------------------------------------------------- on a problem
-def pool_blocks(result_or_problem: CalibrationResult | CalibrationProblem, values: np.ndarray | None,
-                pool_thetas: np.ndarray, block: int = 0, params=None, noise=None,
-                weighting: str = "noise") -> tuple[np.ndarray, list[int]]:
+def pool_blocks(
+    result_or_problem: CalibrationResult | CalibrationProblem,
+    values: np.ndarray | None,
+    pool_thetas: np.ndarray,
+    block: int = 0,
+    params=None,
+    noise=None,
+    weighting: str = "noise",
+) -> tuple[np.ndarray, list[int]]:
     """Whitened, prior-scaled Jacobian blocks (Npool, m, L) of the pool and the parameter indices used.
 
     With a bare problem and no `params`, the parameters are a structural
@@ -111,9 +129,14 @@ def pool_blocks(result_or_problem: CalibrationResult | CalibrationProblem, value
         _, J = whitened_blocks(problem, vals, idx, sigma_q, weighting, thetas, blocks=[block])[0]
         C = J.reshape(-1, J.shape[2])
         prm = problem.params
-        order = sorted(range(len(idx)), key=lambda i: (prm[idx[i]].priority,
-                                                       -prm[idx[i]].order if prm[idx[i]].kind in ("placement", "dh")
-                                                       else prm[idx[i]].order, idx[i]))
+        order = sorted(
+            range(len(idx)),
+            key=lambda i: (
+                prm[idx[i]].priority,
+                -prm[idx[i]].order if prm[idx[i]].kind in ("placement", "dh") else prm[idx[i]].order,
+                idx[i],
+            ),
+        )
         kept, _ = greedy_reduction(C, [problem.names[k] for k in idx], order)
         idx = sorted(idx[i] for i in kept)
     _, J = whitened_blocks(problem, vals, idx, sigma_q, weighting, thetas, blocks=[block])[0]
@@ -123,10 +146,20 @@ def pool_blocks(result_or_problem: CalibrationResult | CalibrationProblem, value
 METHODS = ("greedy", "detmax", "greedy-a", "exchange-a")
 
 
-def select_poses(result_or_problem: CalibrationResult | CalibrationProblem, values: np.ndarray | None,
-                 pool_thetas: np.ndarray, k: int, method: str = "greedy", block: int = 0, params=None,
-                 noise=None, weighting: str = "noise", prior_weight: float = 1.0,
-                 include_existing: bool = False, return_selection: bool = False):
+def select_poses(
+    result_or_problem: CalibrationResult | CalibrationProblem,
+    values: np.ndarray | None,
+    pool_thetas: np.ndarray,
+    k: int,
+    method: str = "greedy",
+    block: int = 0,
+    params=None,
+    noise=None,
+    weighting: str = "noise",
+    prior_weight: float = 1.0,
+    include_existing: bool = False,
+    return_selection: bool = False,
+):
     """Indices of the k most informative rows of `pool_thetas` (readings of loop `block`).
 
     result_or_problem: a `CalibrationResult` (its estimated parameters, values
@@ -161,7 +194,6 @@ def select_poses(result_or_problem: CalibrationResult | CalibrationProblem, valu
     return sel if return_selection else sel.indices
 
 
-
 # --------------------------------------------------------------------------- many pools, on the executor
 @dataclass
 class RandomDesigns:
@@ -180,9 +212,16 @@ def _select_job(result_or_problem, values, k: int, method: str, kw: dict, pool: 
     return select_poses(result_or_problem, values, pool, k, method, return_selection=True, **kw)
 
 
-def select_pools(result_or_problem: CalibrationResult | CalibrationProblem, values: np.ndarray | None,
-                 pools: list[np.ndarray], k: int, method: str = "exchange-a", executor=None, progress=None,
-                 **kw) -> list[Selection]:
+def select_pools(
+    result_or_problem: CalibrationResult | CalibrationProblem,
+    values: np.ndarray | None,
+    pools: list[np.ndarray],
+    k: int,
+    method: str = "exchange-a",
+    executor=None,
+    progress=None,
+    **kw,
+) -> list[Selection]:
     """`select_poses` on each candidate pool, one job per pool on `executor` (``closedloop.fleet.executor``).
 
     The problem (or result), `values` and the options travel once per worker; a pool is a job.  The
@@ -194,8 +233,13 @@ def select_pools(result_or_problem: CalibrationResult | CalibrationProblem, valu
 
     if method not in METHODS:
         raise OptionError(f"method must be one of {', '.join(map(repr, METHODS))}, not '{method}'")
-    return run(_select_job, [np.asarray(p, float) for p in pools], executor,
-               shared=(result_or_problem, values, int(k), method, kw), progress=progress)
+    return run(
+        _select_job,
+        [np.asarray(p, float) for p in pools],
+        executor,
+        shared=(result_or_problem, values, int(k), method, kw),
+        progress=progress,
+    )
 
 
 def _random_job(B: np.ndarray, n: int, draws: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -203,8 +247,9 @@ def _random_job(B: np.ndarray, n: int, draws: int, rng: np.random.Generator) -> 
     return idx, np.array([trace_covariance(B, d) for d in idx])
 
 
-def random_designs(B: np.ndarray, n: int, draws: int = 200, seed: int = 0, executor=None, chunk: int = 25,
-                   progress=None) -> RandomDesigns:
+def random_designs(
+    B: np.ndarray, n: int, draws: int = 200, seed: int = 0, executor=None, chunk: int = 25, progress=None
+) -> RandomDesigns:
     """The baseline a selection is compared with: `draws` random n-subsets of the pool's blocks B.
 
     Draws go in chunks of `chunk` as jobs on `executor`; chunk c draws from

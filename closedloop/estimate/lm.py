@@ -58,7 +58,9 @@ ResidualFn = Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]]
 @dataclass
 class SolverOptions:
     max_iter: int = 100
-    ftol: float = 1e-10  # stop when the relative cost decrease is below this (x sqrt(2 ftol chi2) sigma from the minimum)
+    ftol: float = (
+        1e-10  # stop when the relative cost decrease is below this (x sqrt(2 ftol chi2) sigma from the minimum)
+    )
     xtol: float = 1e-9  # stop when |dz| (step in units of the parameters' priors) is below this
     noise: float | None = None  # known noise level of r; None: estimate from the residual
     snr: float = 1.0  # keep directions with s_i > snr * sigma
@@ -87,9 +89,13 @@ def rms(r: np.ndarray, dof: int | None = None) -> float:
     return float(np.sqrt(np.dot(r, r) / n)) if r.size else 0.0
 
 
-def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
-                        options: SolverOptions | None = None,
-                        progress: Callable[[int, float], None] | None = None) -> SolverResult:
+def levenberg_marquardt(
+    fun: ResidualFn,
+    x0: np.ndarray,
+    scale: np.ndarray,
+    options: SolverOptions | None = None,
+    progress: Callable[[int, float], None] | None = None,
+) -> SolverResult:
     """Minimise 1/2 |fun(x)|^2 from x0; `scale` are the parameters' error magnitudes.
 
     With a known noise level, directions below snr * noise are truncated
@@ -132,8 +138,11 @@ def levenberg_marquardt(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray,
     # sigma^2, a small fraction of it.  Far more means the "noise" was model misfit (a stage that
     # holds most parameters fixed): keep the untruncated solution then.
     if second.cost > 4.0 * first.cost:  # (info: a stage's or restart's inner decision; the verdict judges the end)
-        log.info("noise-level truncation raised the cost %.3g-fold (model misfit, not noise): "
-                    "keeping the untruncated solution", second.cost / max(first.cost, 1e-300))
+        log.info(
+            "noise-level truncation raised the cost %.3g-fold (model misfit, not noise): "
+            "keeping the untruncated solution",
+            second.cost / max(first.cost, 1e-300),
+        )
         first.iterations = second.iterations
         first.history = second.history
         return first
@@ -147,8 +156,14 @@ def _after(before: SolverResult, after: SolverResult) -> SolverResult:
     return after
 
 
-def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOptions,
-           progress: Callable[[int, float], None] | None, memo: dict | None = None) -> SolverResult:
+def _solve(
+    fun: ResidualFn,
+    x0: np.ndarray,
+    scale: np.ndarray,
+    opt: SolverOptions,
+    progress: Callable[[int, float], None] | None,
+    memo: dict | None = None,
+) -> SolverResult:
     """One Levenberg-Marquardt run at a fixed truncation level; `memo` gets the last (J, S)."""
     memo = {} if memo is None else memo
     bounded = opt.lower is not None or opt.upper is not None
@@ -194,7 +209,7 @@ def _solve(fun: ResidualFn, x0: np.ndarray, scale: np.ndarray, opt: SolverOption
                 break
             lam = lam * nu if lam > 0 else 1e-6 * float(S[0] ** 2) if S.size else 1.0
             nu *= 2.0
-            if nu > 2.0 ** 40:
+            if nu > 2.0**40:
                 break
         found = None if accepted or bounded else _line_search(fun, x, r, g, keep, -(Vt.T @ gn), scale)  # a minimum?
         if found is not None:
@@ -238,7 +253,7 @@ def _geodesic(fun, x, r, J, scale, S, Vt, keep, lam, v, alpha, h: float = 0.1):
     Jv = J @ (scale * v)
     rpp = (2.0 / h) * ((r_h - r) / h - Jv)
     c = Vt @ (scale * (J.T @ rpp))  # V^T (J D)^T r'' = S U^T r''
-    a = -(Vt.T @ np.where(keep, c / (S ** 2 + lam), 0.0))
+    a = -(Vt.T @ np.where(keep, c / (S**2 + lam), 0.0))
     if not np.all(np.isfinite(a)) or 2.0 * np.linalg.norm(a) > alpha * np.linalg.norm(v):
         return v
     return v + 0.5 * a
@@ -274,7 +289,7 @@ def _line_search(fun, x, r, g, keep, step, scale, halvings: int = 12):
         x_new = x + alpha * step * scale
         r_new, _ = fun(x_new, False)
         cost_new = 0.5 * float(r_new @ r_new)
-        if np.isfinite(cost_new) and cost - cost_new >= 1e-4 * 0.5 * (2.0 * alpha - alpha ** 2) * model:
+        if np.isfinite(cost_new) and cost - cost_new >= 1e-4 * 0.5 * (2.0 * alpha - alpha**2) * model:
             log.info("no damped step lowered the cost %.3e; the undamped step x %g did (%.3e)", cost, alpha, cost_new)
             return alpha * step, x_new, cost_new
         alpha *= 0.5
@@ -312,7 +327,7 @@ def _model_decrease(S: np.ndarray, Vt: np.ndarray, g: np.ndarray, dz: np.ndarray
 
 def _step(S, Vt, g, keep, lam, x, scale, opt: SolverOptions, Js, r) -> np.ndarray:
     """The truncated, damped Gauss-Newton step in scaled coordinates."""
-    f = np.where(keep, S / (S ** 2 + lam), 0.0)
+    f = np.where(keep, S / (S**2 + lam), 0.0)
     dz = -(Vt.T @ (f * g))
     if opt.lower is None and opt.upper is None:
         return dz
@@ -339,10 +354,10 @@ def _bounded_step(Js, r, Vk, lam, x, scale, opt: SolverOptions, dz_free) -> np.n
         s = np.concatenate([-r, np.zeros(Vk.shape[1])])
     else:
         s = -r
-    w = solve_ls(R, s, G=G, h=np.maximum(h, 0.0), solver="osqp", eps_abs=1e-10, eps_rel=1e-10,
-                 max_iter=20000, polish=True)
+    w = solve_ls(
+        R, s, G=G, h=np.maximum(h, 0.0), solver="osqp", eps_abs=1e-10, eps_rel=1e-10, max_iter=20000, polish=True
+    )
     if w is None:
         log.warning("bounded step: OSQP found no solution; clipping the free step")
         return (np.clip(x_free, lower, upper) - x) / scale
     return Vk @ w
-

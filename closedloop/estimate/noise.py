@@ -57,8 +57,9 @@ def _eig_terms(A: np.ndarray, r: np.ndarray, C: np.ndarray | None) -> tuple[np.n
     return np.where(tiny, 0.0, mu), np.where(tiny, 0.0, z * z)
 
 
-def joint_variance_scale(residuals: list[np.ndarray], jq: list[np.ndarray], covs: list[np.ndarray | None],
-                         pattern: np.ndarray, n_params: int) -> float:
+def joint_variance_scale(
+    residuals: list[np.ndarray], jq: list[np.ndarray], covs: list[np.ndarray | None], pattern: np.ndarray, n_params: int
+) -> float:
     """The joint variance scale s (joint sigma = sqrt(s) * pattern) from fitted residuals.
 
     Args:
@@ -88,9 +89,9 @@ def joint_variance_scale(residuals: list[np.ndarray], jq: list[np.ndarray], covs
 
     def score(s: float) -> float:
         d = s * mu + 1.0
-        out = float(np.sum(mu * z2 / d ** 2) - c * np.sum(mu / d))
+        out = float(np.sum(mu * z2 / d**2) - c * np.sum(mu / d))
         if bare_rank:
-            out += bare_quad / s ** 2 - c * bare_rank / s
+            out += bare_quad / s**2 - c * bare_rank / s
         return out
 
     if not bare_rank and score(0.0) <= 0.0:
@@ -151,7 +152,7 @@ def cholesky_inverse(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         for j in range(m):
             v = A[:, j:, j] - np.einsum("nik,nk->ni", L[:, j:, :j], L[:, j, :j])
             L[:, j, j] = np.sqrt(v[:, 0])
-            L[:, j + 1:, j] = v[:, 1:] / L[:, j, j, None]
+            L[:, j + 1 :, j] = v[:, 1:] / L[:, j, j, None]
         for i in range(m):  # L X = I, X lower triangular
             X[:, i, i] = 1.0 / L[:, i, i]
             X[:, i, :i] = -np.einsum("nk,nkj->nj", L[:, i, :i], X[:, :i, :i]) * X[:, i, i, None]
@@ -170,9 +171,16 @@ def pinv_sqrt(W: np.ndarray) -> tuple[np.ndarray, int]:
     return (V * inv[:, None, :]) @ np.swapaxes(V, 1, 2), int(np.sum(~keep))
 
 
-def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian: bool = True,
-           loops: list[Loop] | None = None, Winv: list[np.ndarray | None] | None = None, symmetric: bool = True,
-           overwrite: bool = False):
+def whiten(
+    evals: list[BlockEval],
+    sigma_q: np.ndarray,
+    weighting: str,
+    jacobian: bool = True,
+    loops: list[Loop] | None = None,
+    Winv: list[np.ndarray | None] | None = None,
+    symmetric: bool = True,
+    overwrite: bool = False,
+):
     """Stack residuals (and Jacobians) whitened by W_i^-1/2, W_i = Jq Sigma Jq^T (+ measurement covariance).
 
     `Winv` reuses the W_i^-1/2 of an earlier evaluation (trial steps, which
@@ -241,8 +249,9 @@ def whiten(evals: list[BlockEval], sigma_q: np.ndarray, weighting: str, jacobian
 _CHUNK = 8192  # configurations whitened at a time (`_roots`, `_times`): their temporaries stay in cache
 
 
-def _roots(Jq: np.ndarray, sigma_q: np.ndarray, C: np.ndarray | None, shared: np.ndarray, symmetric: bool
-           ) -> tuple[np.ndarray, int]:
+def _roots(
+    Jq: np.ndarray, sigma_q: np.ndarray, C: np.ndarray | None, shared: np.ndarray, symmetric: bool
+) -> tuple[np.ndarray, int]:
     """W_i^-1/2 of W_i = Jq_i Sigma Jq_i^T + C (eq. 3.17) for a block's configurations, and the rank deficit.
 
     A chunk of configurations at a time.  With `symmetric` the pseudo-inverse square root (`pinv_sqrt`),
@@ -253,24 +262,24 @@ def _roots(Jq: np.ndarray, sigma_q: np.ndarray, C: np.ndarray | None, shared: np
     Wh = np.empty((N, m, m))
     deficit = 0
     for a in range(0, N, _CHUNK):
-        Js = Jq[a:a + _CHUNK] * sigma_q
+        Js = Jq[a : a + _CHUNK] * sigma_q
         W = Js @ np.swapaxes(Js, 1, 2)
         if C is not None:
             W += C
-        sh = shared[a:a + _CHUNK]
+        sh = shared[a : a + _CHUNK]
         if sh.any():
             W[sh] = np.eye(m)
         if symmetric:
-            Wh[a:a + _CHUNK], d = pinv_sqrt(W)
+            Wh[a : a + _CHUNK], d = pinv_sqrt(W)
         else:
-            Wh[a:a + _CHUNK], kappa = cholesky_inverse(W)
+            Wh[a : a + _CHUNK], kappa = cholesky_inverse(W)
             ill = np.flatnonzero(kappa >= 1e9)
             d = 0
             if ill.size:
                 Wh[a + ill], d = pinv_sqrt(W[ill])
         deficit += d
         if sh.any():
-            Wh[a:a + _CHUNK][sh] = 0.0
+            Wh[a : a + _CHUNK][sh] = 0.0
     return Wh, deficit
 
 
@@ -279,23 +288,32 @@ def _times(Wh: np.ndarray, J: np.ndarray, overwrite: bool) -> np.ndarray:
     if not overwrite:
         return Wh @ J
     for a in range(0, J.shape[0], _CHUNK):
-        J[a:a + _CHUNK] = Wh[a:a + _CHUNK] @ J[a:a + _CHUNK]
+        J[a : a + _CHUNK] = Wh[a : a + _CHUNK] @ J[a : a + _CHUNK]
     return J
 
 
-def _whiten_group(evals: list[BlockEval], pattern: tuple[int, ...], idx: np.ndarray, Wh: np.ndarray,
-                  rs: list[np.ndarray], Js: list[np.ndarray] | None) -> None:
+def _whiten_group(
+    evals: list[BlockEval],
+    pattern: tuple[int, ...],
+    idx: np.ndarray,
+    Wh: np.ndarray,
+    rs: list[np.ndarray],
+    Js: list[np.ndarray] | None,
+) -> None:
     """Rows of one group of configurations whitened together, written back into each block's rows."""
     R = np.concatenate([evals[bi].r[idx[:, k]] for k, bi in enumerate(pattern)], axis=1)
     Z = np.einsum("nij,nj->ni", Wh, R)
-    JJ = Wh @ np.concatenate([evals[bi].J[idx[:, k]] for k, bi in enumerate(pattern)], axis=1) \
-        if Js is not None else None
+    JJ = (
+        Wh @ np.concatenate([evals[bi].J[idx[:, k]] for k, bi in enumerate(pattern)], axis=1)
+        if Js is not None
+        else None
+    )
     off = 0
     for k, bi in enumerate(pattern):
         m = evals[bi].r.shape[1]
-        rs[bi][idx[:, k]] = Z[:, off:off + m]
+        rs[bi][idx[:, k]] = Z[:, off : off + m]
         if Js is not None:
-            Js[bi][idx[:, k]] = JJ[:, off:off + m]
+            Js[bi][idx[:, k]] = JJ[:, off : off + m]
         off += m
 
 
@@ -316,8 +334,9 @@ def _config_groups(evals: list[BlockEval]) -> list[tuple[tuple[int, ...], np.nda
     return [(pat, np.array(ix, dtype=int)) for pat, ix in patterns.items()]
 
 
-def _group_root(evals: list[BlockEval], pattern: tuple[int, ...], idx: np.ndarray, sigma_q: np.ndarray,
-                loops: list[Loop] | None) -> tuple[np.ndarray, int]:
+def _group_root(
+    evals: list[BlockEval], pattern: tuple[int, ...], idx: np.ndarray, sigma_q: np.ndarray, loops: list[Loop] | None
+) -> tuple[np.ndarray, int]:
     """W^-1/2 of the stacked residuals of one configuration in several blocks (their joint noise shared)."""
     Jq = np.concatenate([evals[bi].Jq[idx[:, k]] for k, bi in enumerate(pattern)], axis=1) * sigma_q[None, None, :]
     W = Jq @ np.swapaxes(Jq, 1, 2)
@@ -326,7 +345,6 @@ def _group_root(evals: list[BlockEval], pattern: tuple[int, ...], idx: np.ndarra
         m = evals[bi].r.shape[1]
         C = loops[bi].measurement_cov if loops is not None else None
         if C is not None:
-            W[:, off:off + m, off:off + m] += C
+            W[:, off : off + m, off : off + m] += C
         off += m
     return pinv_sqrt(W)
-

@@ -24,13 +24,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from closedloop.estimate.stages import ResidualFunction, weighted_stage
-from closedloop.problem.problem import CalibrationProblem
-from closedloop.records import Rejected
+from closedloop.estimate.lm import SolverOptions
 from closedloop.estimate.robust import cauchy_weights, component_standardized, flagged, mad_scale, standardized
 from closedloop.estimate.robust import suspects as find_suspects
 from closedloop.estimate.robust import weights as robust_weights
-from closedloop.estimate.lm import SolverOptions
+from closedloop.estimate.stages import ResidualFunction, weighted_stage
+from closedloop.problem.problem import CalibrationProblem
+from closedloop.records import Rejected
 
 if TYPE_CHECKING:
     from closedloop.estimate.staged import Fit
@@ -52,8 +52,7 @@ def _floors(problem: CalibrationProblem) -> list[np.ndarray]:
     return out
 
 
-def screen(problem: CalibrationProblem, x: np.ndarray, sigma_q: np.ndarray, known: bool = False
-           ) -> list[np.ndarray]:
+def screen(problem: CalibrationProblem, x: np.ndarray, sigma_q: np.ndarray, known: bool = False) -> list[np.ndarray]:
     """Standardized closure error per configuration (per block), at `x`.
 
     With the noise weighting, in robust standard deviations (the MAD of the
@@ -92,18 +91,26 @@ def _standardized(problem: CalibrationProblem, blocks: list[np.ndarray], known: 
 def _spread(problem: CalibrationProblem, blocks: list[np.ndarray]) -> float:
     """The median configuration's closure (`_closures`; metres and radians in units of SCALE_FLOOR where
     unweighted): what the robust refit's passes are ranked by (least median of squares)."""
-    norms = [np.linalg.norm(b if _screen_weighting(problem) == "noise" else b / fl, axis=1)
-             for b, fl, bl in zip(blocks, _floors(problem), problem.blocks)
-             if b.size and not getattr(bl.loop, "parameter_only", False)]
+    norms = [
+        np.linalg.norm(b if _screen_weighting(problem) == "noise" else b / fl, axis=1)
+        for b, fl, bl in zip(blocks, _floors(problem), problem.blocks)
+        if b.size and not getattr(bl.loop, "parameter_only", False)
+    ]
     return float(np.median(np.concatenate(norms))) if norms else 0.0
 
 
 ROBUST_ROWS = 2048  # configurations per block the robust refit is solved on (`robust_refit`)
 
 
-def robust_refit(problem: CalibrationProblem, x0: np.ndarray, est: list[int], sigma_q: np.ndarray,
-                 max_iter: int = 30, passes: int = 8, known: bool = False
-                 ) -> tuple[np.ndarray, list[np.ndarray]]:
+def robust_refit(
+    problem: CalibrationProblem,
+    x0: np.ndarray,
+    est: list[int],
+    sigma_q: np.ndarray,
+    max_iter: int = 30,
+    passes: int = 8,
+    known: bool = False,
+) -> tuple[np.ndarray, list[np.ndarray]]:
     """IRLS with the Cauchy loss from x0 (the screening residual, `screen`); returns x and the d_i there.
 
     Each pass's weights come from the closures where the pass before ended; the passes may wander (a
@@ -136,8 +143,11 @@ def robust_refit(problem: CalibrationProblem, x0: np.ndarray, est: list[int], si
     blocks = _closures(sample, x, sigma_q)
     spread = _spread(sample, blocks)
     if spread > best[0]:
-        log.info("the robust refit's passes wandered off (median closure %.3g, %.3g before): the best pass kept",
-                 spread, best[0])
+        log.info(
+            "the robust refit's passes wandered off (median closure %.3g, %.3g before): the best pass kept",
+            spread,
+            best[0],
+        )
         x, blocks = best[1], best[2]
     # the closures at x are the screen's own where the sample is the whole problem
     return x, _standardized(problem, blocks, known) if sample is problem else screen(problem, x, sigma_q, known)
@@ -158,13 +168,18 @@ def _screen_weighting(problem: CalibrationProblem) -> str:
 def gross_outliers(problem: CalibrationProblem, x0: np.ndarray, sigma_q: np.ndarray, opt: CalibrationOptions) -> bool:
     """Configurations whose closure at the start is far beyond the others' (the model error's spread)."""
     dims = [b.loop.dim for b in problem.blocks]
-    return any(f.size for f in flagged(screen(problem, x0, sigma_q, opt.noise is not None), dims,
-                                        opt.outlier_alpha))
+    return any(f.size for f in flagged(screen(problem, x0, sigma_q, opt.noise is not None), dims, opt.outlier_alpha))
 
 
-def reject_outliers(problem: CalibrationProblem, x_fit: np.ndarray | None, x0: np.ndarray, est: list[int],
-                    opt: CalibrationOptions, sigma_q: np.ndarray, n_rows: int
-                    ) -> tuple[CalibrationProblem, list[Rejected], np.ndarray] | None:
+def reject_outliers(
+    problem: CalibrationProblem,
+    x_fit: np.ndarray | None,
+    x0: np.ndarray,
+    est: list[int],
+    opt: CalibrationOptions,
+    sigma_q: np.ndarray,
+    n_rows: int,
+) -> tuple[CalibrationProblem, list[Rejected], np.ndarray] | None:
     """The problem without its outliers, the rejected configurations and the robust fit; None if clean.
 
     `x_fit`: a fit on every row to screen first (None: straight to the robust refit); `n_rows`: the
@@ -172,11 +187,11 @@ def reject_outliers(problem: CalibrationProblem, x_fit: np.ndarray | None, x0: n
     blocks without the rejected rows (`CalibrationProblem.without_rows`).
     """
     dims = [b.loop.dim for b in problem.blocks]
-    if x_fit is not None and not any(f.size for f in flagged(
-            screen(problem, x_fit, sigma_q, opt.noise is not None), dims, opt.outlier_alpha)):
+    if x_fit is not None and not any(
+        f.size for f in flagged(screen(problem, x_fit, sigma_q, opt.noise is not None), dims, opt.outlier_alpha)
+    ):
         return None
-    x_r, ds = robust_refit(problem, x0, est, sigma_q, min(opt.max_iter, 30),
-                           known=opt.noise is not None)
+    x_r, ds = robust_refit(problem, x0, est, sigma_q, min(opt.max_iter, 30), known=opt.noise is not None)
     flags = flagged(ds, dims, opt.outlier_alpha)
     bad_rows = sorted({int(problem.blocks[bi].rows[i]) for bi, f in enumerate(flags) for i in f})
     if not bad_rows:
@@ -201,8 +216,9 @@ def irls_fit(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, not
     """Reweighted fits with the chosen loss (``robust='huber'|'cauchy'``); suspects noted, none removed."""
     scale = np.array([p.prior for p in problem.params])
     known_scale = 1.0 if fit.known and opt.weighting == "noise" else None
-    sopt = SolverOptions(max_iter=opt.max_iter, noise=(1.0 if fit.known and opt.weighting == "noise" else None),
-                         snr=opt.snr)
+    sopt = SolverOptions(
+        max_iter=opt.max_iter, noise=(1.0 if fit.known and opt.weighting == "noise" else None), snr=opt.snr
+    )
     est, xe, w_prev, st = fit.est, fit.x[fit.est], None, fit.stage
     for _ in range(10):
         blocks = replace(st.fun, row_weights=None).blocks(xe)
@@ -214,19 +230,31 @@ def irls_fit(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, not
             break
         w_prev = w
     blocks = replace(st.fun, row_weights=None).blocks(xe)
-    sus = find_suspects(blocks, rows=[b.rows for b in problem.blocks], loops=[b.loop.name for b in problem.blocks],
-                        loss=opt.robust, scale=known_scale)
+    sus = find_suspects(
+        blocks,
+        rows=[b.rows for b in problem.blocks],
+        loops=[b.loop.name for b in problem.blocks],
+        loss=opt.robust,
+        scale=known_scale,
+    )
     for sp in sus[:10]:
-        notes.append(f"suspect configuration: log row {sp.row} (loop {sp.loop}): closure error "
-                     f"{sp.standardized:.3g} standard deviations, weight {sp.weight:.2g}")
+        notes.append(
+            f"suspect configuration: log row {sp.row} (loop {sp.loop}): closure error "
+            f"{sp.standardized:.3g} standard deviations, weight {sp.weight:.2g}"
+        )
     if len(sus) > 10:
         notes.append(f"... and {len(sus) - 10} more suspect configurations")
     fit.stage, fit.x = st, st.fun.full(xe)
     return fit, sus
 
 
-def readmit(problem_all: CalibrationProblem, x: np.ndarray, rejected: list[Rejected], opt: CalibrationOptions,
-            sigma_q: np.ndarray) -> tuple[CalibrationProblem, list[Rejected]] | None:
+def readmit(
+    problem_all: CalibrationProblem,
+    x: np.ndarray,
+    rejected: list[Rejected],
+    opt: CalibrationOptions,
+    sigma_q: np.ndarray,
+) -> tuple[CalibrationProblem, list[Rejected]] | None:
     """The rejection re-checked at the solution: rejected configurations the final fit explains come back.
 
     A robust refit from a far start may stop short of the solution and
@@ -238,8 +266,7 @@ def readmit(problem_all: CalibrationProblem, x: np.ndarray, rejected: list[Rejec
     None when every rejection holds.
     """
     dims = [b.loop.dim for b in problem_all.blocks]
-    flags = flagged(screen(problem_all, x, sigma_q, opt.noise is not None), dims,
-                    opt.outlier_alpha)
+    flags = flagged(screen(problem_all, x, sigma_q, opt.noise is not None), dims, opt.outlier_alpha)
     still = {int(problem_all.blocks[bi].rows[i]) for bi, f in enumerate(flags) for i in f}
     kept_out = [r for r in rejected if r.row in still]
     if len(kept_out) == len(rejected):

@@ -159,7 +159,7 @@ def mad_scale(residual_blocks: list[np.ndarray]) -> float:
     if e.size == 0:
         return 1.0
     s = MAD_TO_SIGMA * float(np.median(np.abs(e - np.median(e))))
-    return s if s > 0 else float(np.sqrt(np.mean(e ** 2))) or 1.0
+    return s if s > 0 else float(np.sqrt(np.mean(e**2))) or 1.0
 
 
 def standardized(residual_blocks: list[np.ndarray], scale: float | None = None) -> list[np.ndarray]:
@@ -196,8 +196,9 @@ def flagged(ds: list[np.ndarray], dims: list[int], alpha: float = 0.01) -> list[
     return [np.flatnonzero(d > np.sqrt(stats.chi2.isf(alpha / n_total, m))) for d, m in zip(ds, dims)]
 
 
-def weights(residual_blocks: list[np.ndarray], loss: str = "huber", c: float | None = None,
-            scale: float | None = None) -> list[np.ndarray]:
+def weights(
+    residual_blocks: list[np.ndarray], loss: str = "huber", c: float | None = None, scale: float | None = None
+) -> list[np.ndarray]:
     """IRLS weights, one per configuration ((N,) per block), from whitened residual blocks (N, m).
 
     scale: the residual scale s (None: the MAD estimate; give 1.0 to trust a
@@ -232,9 +233,15 @@ class Suspect:
     weight: float  # its IRLS weight under `loss`
 
 
-def suspects(residual_blocks: list[np.ndarray], rows: list[np.ndarray] | None = None,
-             loops: list[str] | None = None, alpha: float = 0.01, scale: float | None = None,
-             loss: str = "huber", c: float | None = None) -> list[Suspect]:
+def suspects(
+    residual_blocks: list[np.ndarray],
+    rows: list[np.ndarray] | None = None,
+    loops: list[str] | None = None,
+    alpha: float = 0.01,
+    scale: float | None = None,
+    loss: str = "huber",
+    c: float | None = None,
+) -> list[Suspect]:
     """Configurations with d_i^2 > chi2_m^-1(1 - alpha / N_total), most suspect first.
 
     rows: per block, the log row numbers of its configurations (e.g.
@@ -248,9 +255,17 @@ def suspects(residual_blocks: list[np.ndarray], rows: list[np.ndarray] | None = 
         m = np.asarray(r).shape[1]
         thr = np.sqrt(stats.chi2.isf(alpha / max(n_total, 1), m))
         for i in np.flatnonzero(d > thr):
-            out.append(Suspect(b, int(i), int(rows[b][i]) if rows is not None else None,
-                               loops[b] if loops is not None else None, float(d[i]),
-                               float(stats.chi2.sf(d[i] ** 2, m)), float(w[i])))
+            out.append(
+                Suspect(
+                    b,
+                    int(i),
+                    int(rows[b][i]) if rows is not None else None,
+                    loops[b] if loops is not None else None,
+                    float(d[i]),
+                    float(stats.chi2.sf(d[i] ** 2, m)),
+                    float(w[i]),
+                )
+            )
     return sorted(out, key=lambda s: -s.standardized)
 
 
@@ -261,8 +276,9 @@ def _sigma_q(problem: CalibrationProblem, noise) -> np.ndarray:
     return noise_vector(problem, noise)[0]
 
 
-def config_residuals(problem: CalibrationProblem, values: np.ndarray, noise=None, weighting: str = "noise"
-                     ) -> list[np.ndarray]:
+def config_residuals(
+    problem: CalibrationProblem, values: np.ndarray, noise=None, weighting: str = "noise"
+) -> list[np.ndarray]:
     """Whitened closure residuals per configuration, (N, m) per block, at `values`.
 
     noise: one level, a dict per joint (as in CalibrationOptions) or a per-joint vector.
@@ -276,8 +292,14 @@ def config_residuals(problem: CalibrationProblem, values: np.ndarray, noise=None
     return out
 
 
-def result_suspects(result: CalibrationResult, noise=None, alpha: float = 0.01, loss: str = "huber",
-                    c: float | None = None, scale: float | None = None) -> list[Suspect]:
+def result_suspects(
+    result: CalibrationResult,
+    noise=None,
+    alpha: float = 0.01,
+    loss: str = "huber",
+    c: float | None = None,
+    scale: float | None = None,
+) -> list[Suspect]:
     """`suspects` of a calibration at its solution (noise default: result.sigma on every joint)."""
     p = result.problem
     res = config_residuals(p, result.values, result.sigma if noise is None else noise)
@@ -293,8 +315,16 @@ class IRLSResult:
     suspects: list[Suspect]
 
 
-def irls(result: CalibrationResult, loss: str = "huber", c: float | None = None, noise=None,
-         max_iter: int = 30, tol: float = 1e-8, scale: float | None = None, alpha: float = 0.01) -> IRLSResult:
+def irls(
+    result: CalibrationResult,
+    loss: str = "huber",
+    c: float | None = None,
+    noise=None,
+    max_iter: int = 30,
+    tol: float = 1e-8,
+    scale: float | None = None,
+    alpha: float = 0.01,
+) -> IRLSResult:
     """Iteratively reweighted Gauss-Newton over `result.estimated`, from `result.values`.
 
     A reference for the integration in `calibrate`: each iteration computes

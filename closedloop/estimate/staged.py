@@ -17,13 +17,20 @@ from typing import Callable
 
 import numpy as np
 
-from closedloop.errors import ParameterError
-from closedloop.estimate.stages import ResidualFunction, StageResult, plain_stage, random_start, unweighted_closure, weighted_stage
 from closedloop.analysis.identifiability import Structure, analyse_structure, closure_jacobian, structure_holds
+from closedloop.errors import ParameterError
+from closedloop.estimate.lm import SolverOptions, scaled_svd
+from closedloop.estimate.stages import (
+    ResidualFunction,
+    StageResult,
+    plain_stage,
+    random_start,
+    unweighted_closure,
+    weighted_stage,
+)
+from closedloop.estimate.variance import measurement_row_weights, task_blocks, variance_components
 from closedloop.problem.problem import CalibrationProblem
 from closedloop.records import CalibrationOptions
-from closedloop.estimate.lm import SolverOptions, scaled_svd
-from closedloop.estimate.variance import measurement_row_weights, task_blocks, variance_components
 
 log = logging.getLogger(__name__)
 Progress = Callable[[str, int, float], None]
@@ -42,8 +49,7 @@ class Fit:
     warnings: list[str]
 
 
-def _solver_options(opt: CalibrationOptions, problem: CalibrationProblem, est: list[int], known: bool
-                    ) -> SolverOptions:
+def _solver_options(opt: CalibrationOptions, problem: CalibrationProblem, est: list[int], known: bool) -> SolverOptions:
     lower = upper = None
     if opt.bounds:
         lower, upper = np.full(len(est), -np.inf), np.full(len(est), np.inf)
@@ -53,13 +59,26 @@ def _solver_options(opt: CalibrationOptions, problem: CalibrationProblem, est: l
             k = problem.index[n]
             if k in est:
                 lower[est.index(k)], upper[est.index(k)] = lo, hi
-    return SolverOptions(max_iter=opt.max_iter, noise=(1.0 if known and opt.weighting == "noise" else None),
-                         snr=opt.snr, lower=lower, upper=upper)
+    return SolverOptions(
+        max_iter=opt.max_iter,
+        noise=(1.0 if known and opt.weighting == "noise" else None),
+        snr=opt.snr,
+        lower=lower,
+        upper=upper,
+    )
 
 
-def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, est: list[int],
-                 opt: CalibrationOptions, sigma_q: np.ndarray, known: bool,
-                 progress: Progress | None = None, plain_start: bool = False) -> Fit:
+def solve_staged(
+    problem: CalibrationProblem,
+    x0: np.ndarray,
+    start: np.ndarray,
+    est: list[int],
+    opt: CalibrationOptions,
+    sigma_q: np.ndarray,
+    known: bool,
+    progress: Progress | None = None,
+    plain_start: bool = False,
+) -> Fit:
     """The weighted fit from `start`; staged through the plain residual where the weighting misleads.
 
     The errors-in-variables fit is tried first (it is the estimator; on a
@@ -91,8 +110,7 @@ def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray,
     if not plain_start or opt.weighting != "noise":
         b = weighted_stage(problem, base, xs, est, scale, sigma_q, opt.weighting, sopt, prog)
         iters += b.solution.iterations
-    if b is None or (opt.weighting == "noise" and (b.note or b.solution.truncated
-                                                    or _misled(problem, b))):
+    if b is None or (opt.weighting == "noise" and (b.note or b.solution.truncated or _misled(problem, b))):
         a = plain_stage(problem, base, xs, est, scale, sopt, prog)
         b2 = weighted_stage(problem, base, a.solution.x, est, scale, sigma_q, opt.weighting, sopt, prog)
         iters += a.solution.iterations + b2.solution.iterations
@@ -107,8 +125,12 @@ def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray,
         warnings.append(b.note)
     xs = b.solution.x
     tasks = task_blocks(problem) if opt.weighting == "noise" and b.fun.weighting == "noise" else []
-    joint_beside_measurement = (not known and opt.weighting == "noise" and b.fun.weighting == "noise"
-                                and any(nz.measurement_cov is not None for nz in problem.noise)) or bool(tasks)
+    joint_beside_measurement = (
+        not known
+        and opt.weighting == "noise"
+        and b.fun.weighting == "noise"
+        and any(nz.measurement_cov is not None for nz in problem.noise)
+    ) or bool(tasks)
     if joint_beside_measurement:
         # The ratio of joint to measurement noise sets the weights: estimate the joint level and the
         # loops' task-space noise (closedloop.estimate.variance) at the fit, re-solve with them, until they settle.
@@ -128,8 +150,16 @@ def solve_staged(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray,
 EXACT_LEVEL = 1e-3  # a closure level (`_closure_level`) below this is no noise: exact data, or a stall
 
 
-def _polished(problem: CalibrationProblem, base: np.ndarray, b: StageResult, est: list[int], scale: np.ndarray,
-              sigma_q: np.ndarray, sopt: SolverOptions, prog) -> tuple[StageResult, int]:
+def _polished(
+    problem: CalibrationProblem,
+    base: np.ndarray,
+    b: StageResult,
+    est: list[int],
+    scale: np.ndarray,
+    sigma_q: np.ndarray,
+    sopt: SolverOptions,
+    prog,
+) -> tuple[StageResult, int]:
     """The weighted fit `b`, or, where it stalled a hair above zero, the plain fit from it and the weighted from that.
 
     A weighted fit that stops with nothing truncated at a closure a thousandth
@@ -170,10 +200,12 @@ def _closure_level(problem: CalibrationProblem, stage: StageResult) -> float:
         return stage.closure_level
     if not np.isfinite(stage.solution.cost):
         return np.inf
-    fun = ResidualFunction(problem, stage.fun.full(stage.solution.x), [],
-                           np.full(len(problem.joints), PLAUSIBLE_JOINT_NOISE), "noise")
-    per_config = np.concatenate([np.linalg.norm(b, axis=1) / np.sqrt(b.shape[1])
-                                 for b in fun.blocks(np.zeros(0), symmetric=False) if b.size])
+    fun = ResidualFunction(
+        problem, stage.fun.full(stage.solution.x), [], np.full(len(problem.joints), PLAUSIBLE_JOINT_NOISE), "noise"
+    )
+    per_config = np.concatenate(
+        [np.linalg.norm(b, axis=1) / np.sqrt(b.shape[1]) for b in fun.blocks(np.zeros(0), symmetric=False) if b.size]
+    )
     stage.closure_level = float(np.median(per_config)) if per_config.size else 0.0
     return stage.closure_level
 
@@ -210,8 +242,9 @@ def _smooth(problem: CalibrationProblem, stage: StageResult) -> bool:
     return den > 0.0 and n >= 8 and num / den > max(0.5, 4.0 / np.sqrt(n))
 
 
-def _better(problem: CalibrationProblem, stages: list[StageResult], start: np.ndarray, est: list[int],
-            scale: np.ndarray) -> StageResult:
+def _better(
+    problem: CalibrationProblem, stages: list[StageResult], start: np.ndarray, est: list[int], scale: np.ndarray
+) -> StageResult:
     """Of the fits that close as well as the best, the nearest the start (in prior units): a degenerate
     robot (a forearm of zero length) may close a single self-motion as well as the real one."""
     levels = [_closure_level(problem, st) for st in stages]
@@ -220,10 +253,18 @@ def _better(problem: CalibrationProblem, stages: list[StageResult], start: np.nd
     return min(good, key=lambda st: float(np.linalg.norm((st.solution.x - start[est]) / scale[est])))
 
 
-def solve_with_restarts(problem: CalibrationProblem, x0: np.ndarray, est: list[int], opt: CalibrationOptions,
-                        sigma_q: np.ndarray, known: bool, rng: np.random.Generator,
-                        progress: Progress | None = None, first: Fit | None = None,
-                        weak: list[int] | None = None) -> Fit:
+def solve_with_restarts(
+    problem: CalibrationProblem,
+    x0: np.ndarray,
+    est: list[int],
+    opt: CalibrationOptions,
+    sigma_q: np.ndarray,
+    known: bool,
+    rng: np.random.Generator,
+    progress: Progress | None = None,
+    first: Fit | None = None,
+    weak: list[int] | None = None,
+) -> Fit:
     """`solve_staged` from x0 (or `first`); if it stalls far above the noise, from other starts.
 
     Starts: the loop parameters and offsets first with the geometry held, then
@@ -245,9 +286,9 @@ def solve_with_restarts(problem: CalibrationProblem, x0: np.ndarray, est: list[i
     sub = [k for k in est if problem.params[k].kind in ("loop", "offset")]
     if sub and len(sub) < len(est):
         starts.append(solve_staged(problem, x0, x0, sub, opt, sigma_q, known, plain_start=True).x)
-    for size in (1.0, 3.0, 1.0, 3.0)[:max(opt.restarts - len(starts), 0)]:
+    for size in (1.0, 3.0, 1.0, 3.0)[: max(opt.restarts - len(starts), 0)]:
         starts.append(random_start(x0, est, scale, rng, size))
-    for k, st in enumerate(starts[:opt.restarts]):
+    for k, st in enumerate(starts[: opt.restarts]):
         log.info("restart %d: the fit stalled far above the noise or where its residual is not noise", k + 1)
         fits.append(solve_staged(problem, x0, st, est, opt, sigma_q, known, progress))
         if not _stalled(problem, fits[-1]):
@@ -264,16 +305,19 @@ def solve_with_restarts(problem: CalibrationProblem, x0: np.ndarray, est: list[i
         log.info("no restart removed the systematic residual: keeping the fit from the given start")
         return fit
     why = "far above the noise" if far else "at a residual that is no noise (a local minimum)"
-    best.warnings.append(f"the fit stalled {why} from the given start; "
-                         f"{'a restart reached' if good else 'no restart reached'} a closure within a plausible noise")
+    best.warnings.append(
+        f"the fit stalled {why} from the given start; "
+        f"{'a restart reached' if good else 'no restart reached'} a closure within a plausible noise"
+    )
     return best
 
 
 VALLEY_DIRECTIONS = 4  # weakest directions probed from a stalled fit (`valley_starts`), both ways
 
 
-def valley_starts(problem: CalibrationProblem, fit: Fit, x0: np.ndarray, scale: np.ndarray,
-                  k: int = VALLEY_DIRECTIONS) -> list[np.ndarray]:
+def valley_starts(
+    problem: CalibrationProblem, fit: Fit, x0: np.ndarray, scale: np.ndarray, k: int = VALLEY_DIRECTIONS
+) -> list[np.ndarray]:
     """Starts along the valley a stalled fit lies in: x_f -+ d D v_i for its k weakest directions v_i.
 
     On the data of a single self-motion (the door) the closure has long, nearly
@@ -299,9 +343,18 @@ def valley_starts(problem: CalibrationProblem, fit: Fit, x0: np.ndarray, scale: 
     return [fun.full(xe + sign * d * Vt[i] * scale[est]) for i in live[::-1][:k] for sign in (-1.0, 1.0)]
 
 
-def _along_valley(problem: CalibrationProblem, x0: np.ndarray, fit: Fit, est: list[int], opt: CalibrationOptions,
-                  sigma_q: np.ndarray, known: bool, progress: Progress | None, fits: list[Fit],
-                  weak: list[int]) -> list[Fit]:
+def _along_valley(
+    problem: CalibrationProblem,
+    x0: np.ndarray,
+    fit: Fit,
+    est: list[int],
+    opt: CalibrationOptions,
+    sigma_q: np.ndarray,
+    known: bool,
+    progress: Progress | None,
+    fits: list[Fit],
+    weak: list[int],
+) -> list[Fit]:
     """The fits from `valley_starts` that close within a plausible noise with a residual that is noise.
 
     With `weak` parameters (held back as redundant, but not to round-off),
@@ -327,8 +380,12 @@ def _along_valley(problem: CalibrationProblem, x0: np.ndarray, fit: Fit, est: li
         xa = a.fun.full(a.solution.x)
         if not unweighted_closure(problem, xa) < 0.1 * level:
             continue
-        log.info("valley start %d: the plain fit closes %.3g, the stalled one %.3g", k + 1,
-                 unweighted_closure(problem, xa), level)
+        log.info(
+            "valley start %d: the plain fit closes %.3g, the stalled one %.3g",
+            k + 1,
+            unweighted_closure(problem, xa),
+            level,
+        )
         fits.append(solve_staged(problem, x0, xa, est, opt, sigma_q, known, progress))
         if _good(problem, fits[-1]):
             break
@@ -340,9 +397,15 @@ def _good(problem: CalibrationProblem, fit: Fit) -> bool:
     return _closure_level(problem, fit.stage) <= 1.0 and not _systematic(problem, fit)
 
 
-def recheck_at_solution(problem: CalibrationProblem, fit: Fit, structure: Structure, free: list[int],
-                        x0: np.ndarray, opt: CalibrationOptions, progress: Progress | None
-                        ) -> tuple[Fit, Structure, list[str]]:
+def recheck_at_solution(
+    problem: CalibrationProblem,
+    fit: Fit,
+    structure: Structure,
+    free: list[int],
+    x0: np.ndarray,
+    opt: CalibrationOptions,
+    progress: Progress | None,
+) -> tuple[Fit, Structure, list[str]]:
     """The reduction and gauge recomputed at the solution; re-solved from it where they differ."""
     notes = []
     for _ in range(2):
@@ -356,10 +419,12 @@ def recheck_at_solution(problem: CalibrationProblem, fit: Fit, structure: Struct
         st.rechecked = True
         gone = sorted(set(structure.kept) - set(st.kept))
         new = sorted(set(st.kept) - set(structure.kept))
-        notes.append(f"re-checked at the solution: {why}"
-                     + (f" ({', '.join(problem.names[k] for k in gone)} now redundant)" if gone else "")
-                     + (f" ({', '.join(problem.names[k] for k in new)} now identifiable)" if new else "")
-                     + "; re-solved with the solution's reduction")
+        notes.append(
+            f"re-checked at the solution: {why}"
+            + (f" ({', '.join(problem.names[k] for k in gone)} now redundant)" if gone else "")
+            + (f" ({', '.join(problem.names[k] for k in new)} now identifiable)" if new else "")
+            + "; re-solved with the solution's reduction"
+        )
         structure = st
         before = fit.iterations
         # through the plain residual first: the weighted fit's linear model can stall on the newly free
@@ -369,9 +434,16 @@ def recheck_at_solution(problem: CalibrationProblem, fit: Fit, structure: Struct
     return fit, structure, notes
 
 
-def solve_from_starts(problem: CalibrationProblem, x0: np.ndarray, starts: list[np.ndarray], est: list[int],
-                      opt: CalibrationOptions, sigma_q: np.ndarray, known: bool,
-                      progress: Progress | None = None) -> Fit:
+def solve_from_starts(
+    problem: CalibrationProblem,
+    x0: np.ndarray,
+    starts: list[np.ndarray],
+    est: list[int],
+    opt: CalibrationOptions,
+    sigma_q: np.ndarray,
+    known: bool,
+    progress: Progress | None = None,
+) -> Fit:
     """`solve_staged` from each start; of the fits that close as well as the best, the nearest to x0 (`_better`).
 
     After outliers are rejected the robust refit's point is one start and x0 the
@@ -384,8 +456,16 @@ def solve_from_starts(problem: CalibrationProblem, x0: np.ndarray, starts: list[
     return next(f for f in fits if f.stage is stage)
 
 
-def _unweighted_with_measurements(problem: CalibrationProblem, base: np.ndarray, est: list[int], scale: np.ndarray,
-                                  sigma_q: np.ndarray, sopt, prog, b: StageResult) -> tuple[StageResult, int]:
+def _unweighted_with_measurements(
+    problem: CalibrationProblem,
+    base: np.ndarray,
+    est: list[int],
+    scale: np.ndarray,
+    sigma_q: np.ndarray,
+    sopt,
+    prog,
+    b: StageResult,
+) -> tuple[StageResult, int]:
     """The unweighted fit re-solved with known measurements weighted against the closures' level
     (`variance.measurement_row_weights`) until that level settles (5 %); unchanged without measurements."""
     iters, level = 0, None

@@ -34,10 +34,10 @@ from typing import Callable
 
 import numpy as np
 
-from closedloop.loops.base import Loop
-from closedloop.estimate.noise import whiten
-from closedloop.problem.problem import BlockEval, CalibrationProblem
 from closedloop.estimate.lm import SolverOptions, SolverResult, levenberg_marquardt
+from closedloop.estimate.noise import whiten
+from closedloop.loops.base import Loop
+from closedloop.problem.problem import BlockEval, CalibrationProblem
 
 log = logging.getLogger(__name__)
 
@@ -96,10 +96,14 @@ class ResidualFunction:
         """
         if self._chartable is None:  # the blocks whose loop has a chart to move, all of it estimated, unshared
             est, cols = set(self.est), self.problem.loop_columns
-            self._chartable = [bi for bi, b in enumerate(self.problem.blocks)
-                               if type(b.loop).recentred is not Loop.recentred and cols[bi].size
-                               and est.issuperset(cols[bi].tolist())
-                               and not any(np.intersect1d(cols[bi], o).size for bj, o in enumerate(cols) if bj != bi)]
+            self._chartable = [
+                bi
+                for bi, b in enumerate(self.problem.blocks)
+                if type(b.loop).recentred is not Loop.recentred
+                and cols[bi].size
+                and est.issuperset(cols[bi].tolist())
+                and not any(np.intersect1d(cols[bi], o).size for bj, o in enumerate(cols) if bj != bi)
+            ]
         if not self._chartable:
             return xe
         x = self._x0c.copy()
@@ -137,8 +141,7 @@ class ResidualFunction:
         """r (and J if `jac`) at xe; `jac=None`: a probe (no Jacobian, not a trial point)."""
         if jac is None:
             evals = self._charted.evaluate(self._local(xe), self._W is None, columns=[])
-            r, _, _ = whiten(evals, self.sigma_q, self.weighting, False, self.problem.noise,
-                             self._W, self.symmetric)
+            r, _, _ = whiten(evals, self.sigma_q, self.weighting, False, self.problem.noise, self._W, self.symmetric)
             return (r * self.row_weights if self.row_weights is not None else r), None
         if jac and self._x is not None and np.array_equal(xe, self._x):
             return self._rJ
@@ -148,17 +151,20 @@ class ResidualFunction:
             evals = self._trial[1]
         else:
             full = jac or first_trial
-            evals = self._charted.evaluate(self._local(xe), full or self._W is None,
-                                           columns=self.est if full else [])
-        r, J, used = whiten(evals, self.sigma_q, self.weighting, jac, loops, None if jac else self._W,
-                            self.symmetric, overwrite=True)  # evaluations are copies (a trial's is whitened once)
+            evals = self._charted.evaluate(self._local(xe), full or self._W is None, columns=self.est if full else [])
+        r, J, used = whiten(
+            evals, self.sigma_q, self.weighting, jac, loops, None if jac else self._W, self.symmetric, overwrite=True
+        )  # evaluations are copies (a trial's is whitened once)
         if jac or self._W is None:
             self._W = used
             self.deficit = sum(u[1] for u in used if u is not None)
             # rows with no observation (a marker out of view): zero, and no degree of freedom.  Without a
             # measurement covariance the weighting already drops them (they are in the deficit).
-            self.missing = sum(int((~ev.valid).sum()) for ev, lp in zip(evals, loops)
-                               if ev.valid is not None and (self.weighting != "noise" or lp.measurement_cov is not None))
+            self.missing = sum(
+                int((~ev.valid).sum())
+                for ev, lp in zip(evals, loops)
+                if ev.valid is not None and (self.weighting != "noise" or lp.measurement_cov is not None)
+            )
         if self.row_weights is not None:
             r = r * self.row_weights
             if jac:
@@ -175,7 +181,7 @@ class ResidualFunction:
         J dp/dp' (`Loop.normalize_jacobian`), so that the analysis at the solution does not evaluate again.
         Where a loop knows no such Jacobian, or moves a value not estimated, the next call evaluates."""
         xn = self.problem.normalized(x)
-        if (np.array_equal(xn, x) or self._charts or self._x is None or not np.array_equal(self._x, x[self.est])):
+        if np.array_equal(xn, x) or self._charts or self._x is None or not np.array_equal(self._x, x[self.est]):
             return xn
         col = {k: i for i, k in enumerate(self.est)}
         r, J = self._rJ
@@ -210,7 +216,7 @@ def unweighted_closure(problem: CalibrationProblem, x: np.ndarray) -> float:
     """RMS of the raw closure residual over all rows (metres and radians mixed: a convergence gauge)."""
     evals: list[BlockEval] = problem.evaluate(x, False)
     r = np.concatenate([e.r.ravel() for e in evals]) if evals else np.zeros(0)
-    return float(np.sqrt(np.mean(r ** 2))) if r.size else 0.0
+    return float(np.sqrt(np.mean(r**2))) if r.size else 0.0
 
 
 @dataclass
@@ -226,8 +232,13 @@ PRESOLVE_ROWS = 8192  # configurations per block of the sample a stage on a long
 PRESOLVE_ABOVE = 32768  # configurations in a block from which a stage is presolved (`presolved`)
 
 
-def presolved(fun: ResidualFunction, start: np.ndarray, scale: np.ndarray, sopt: SolverOptions,
-              progress: Callable[[int, float], None] | None) -> tuple[np.ndarray, int]:
+def presolved(
+    fun: ResidualFunction,
+    start: np.ndarray,
+    scale: np.ndarray,
+    sopt: SolverOptions,
+    progress: Callable[[int, float], None] | None,
+) -> tuple[np.ndarray, int]:
     """A start for `fun` (estimated values) from the same fit on an evenly spaced sample of a long log.
 
     Far from the solution, a log of 100,000 configurations says nothing 8,192 of them do not, at 12 times
@@ -249,16 +260,26 @@ def presolved(fun: ResidualFunction, start: np.ndarray, scale: np.ndarray, sopt:
     if res.status != "converged" or not np.isfinite(res.cost) or sub.deficit > deficit:
         log.info("the fit on a sample of the log did not converge cleanly (%s): solved on the whole log", res.message)
         return start, res.iterations
-    log.info("solved on %d configurations per loop in %d iterations; finishing on the whole log",
-             PRESOLVE_ROWS, res.iterations)
+    log.info(
+        "solved on %d configurations per loop in %d iterations; finishing on the whole log",
+        PRESOLVE_ROWS,
+        res.iterations,
+    )
     # the loops' parameters in their canonical form (the same model): the whole log's fit then ends where the
     # analysis at the solution evaluates it
     return fun.problem.normalized(fun.full(res.x), fun.est)[fun.est], res.iterations
 
 
-def plain_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, est: list[int],
-                scale: np.ndarray, sopt: SolverOptions, progress: Callable[[int, float], None] | None,
-                row_weights: np.ndarray | None = None) -> StageResult:
+def plain_stage(
+    problem: CalibrationProblem,
+    x0: np.ndarray,
+    start: np.ndarray,
+    est: list[int],
+    scale: np.ndarray,
+    sopt: SolverOptions,
+    progress: Callable[[int, float], None] | None,
+    row_weights: np.ndarray | None = None,
+) -> StageResult:
     """The loop-closure residual itself (eq. 3.8) from `start` (estimated values), floor truncation only.
 
     On a single self-motion many robots close the same curve, and its long
@@ -273,10 +294,18 @@ def plain_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, 
     return StageResult(res, fun)
 
 
-def weighted_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarray, est: list[int],
-                   scale: np.ndarray, sigma_q: np.ndarray, weighting: str, sopt: SolverOptions,
-                   progress: Callable[[int, float], None] | None,
-                   row_weights: np.ndarray | None = None) -> StageResult:
+def weighted_stage(
+    problem: CalibrationProblem,
+    x0: np.ndarray,
+    start: np.ndarray,
+    est: list[int],
+    scale: np.ndarray,
+    sigma_q: np.ndarray,
+    weighting: str,
+    sopt: SolverOptions,
+    progress: Callable[[int, float], None] | None,
+    row_weights: np.ndarray | None = None,
+) -> StageResult:
     """The errors-in-variables stage from `start` (a plain solution), guarded against hidden residuals."""
     fun = ResidualFunction(problem, x0, est, sigma_q, weighting, row_weights)
     near, pre = presolved(fun, start, scale[est], sopt, progress)
@@ -290,9 +319,11 @@ def weighted_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarra
     if fun.deficit > deficit_start:
         before, after = unweighted_closure(problem, fun.full(start)), unweighted_closure(problem, fun.full(res.x))
         if after > 2.0 * before + 1e-12:
-            note = (f"the noise weighting became singular at the weighted fit ({fun.deficit - deficit_start} more "
-                    f"residual directions discarded: a task axis on a joint axis) while the unweighted closure "
-                    f"grew from {before:.3g} to {after:.3g}; the plain loop-closure fit is kept")
+            note = (
+                f"the noise weighting became singular at the weighted fit ({fun.deficit - deficit_start} more "
+                f"residual directions discarded: a task axis on a joint axis) while the unweighted closure "
+                f"grew from {before:.3g} to {after:.3g}; the plain loop-closure fit is kept"
+            )
             log.info(note)  # the stage's note: the verdict's reason where this stage is the calibration's
             plain = ResidualFunction(problem, x0, est, np.ones(len(problem.joints)), "none", row_weights)
             kept = levenberg_marquardt(plain, start, scale[est], sopt, progress)
@@ -300,8 +331,9 @@ def weighted_stage(problem: CalibrationProblem, x0: np.ndarray, start: np.ndarra
     return StageResult(res, fun, None, deficit_start)
 
 
-def random_start(x0: np.ndarray, est: list[int], scale: np.ndarray, rng: np.random.Generator,
-                 size: float) -> np.ndarray:
+def random_start(
+    x0: np.ndarray, est: list[int], scale: np.ndarray, rng: np.random.Generator, size: float
+) -> np.ndarray:
     """x0 with the estimated parameters moved by `size` times their prior magnitudes (normal draws)."""
     x = x0.copy()
     x[est] = x[est] + size * scale[est] * rng.standard_normal(len(est))

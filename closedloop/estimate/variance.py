@@ -90,7 +90,7 @@ def set_task_noise(loop: Loop, value) -> Loop:
     if not np.any(sig):  # sigma_task=0: no task-space noise (the joint noise alone)
         loop.measurement_cov, loop.task_var = loop.own_cov, None
         return loop
-    _apply_task(loop, sig ** 2)
+    _apply_task(loop, sig**2)
     return loop
 
 
@@ -122,8 +122,11 @@ def task_blocks(problem: CalibrationProblem) -> list[int]:
     and several loops separate the two (issue 18 item 3).
     """
     out = []
-    contact = [bi for bi, b in enumerate(problem.blocks)
-               if type(b.loop).__name__ in CONTACT_LOOPS and getattr(b.loop, "task_noise", None) is None]
+    contact = [
+        bi
+        for bi, b in enumerate(problem.blocks)
+        if type(b.loop).__name__ in CONTACT_LOOPS and getattr(b.loop, "task_noise", None) is None
+    ]
     for bi, b in enumerate(problem.blocks):
         mode = getattr(b.loop, "task_noise", None)
         if isinstance(mode, str) or (mode is None and bi in contact and len(contact) >= 2):
@@ -138,9 +141,16 @@ def _wpinv(W: np.ndarray) -> np.ndarray:
     return (V * inv[:, None, :]) @ np.swapaxes(V, 1, 2)
 
 
-def variance_components(problem: CalibrationProblem, evals: list[BlockEval], pattern: np.ndarray, n_params: int,
-                        tasks: list[int], joint_fixed: bool = False, iters: int = 300,
-                        tol: float = 1e-6) -> tuple[float, bool]:
+def variance_components(
+    problem: CalibrationProblem,
+    evals: list[BlockEval],
+    pattern: np.ndarray,
+    n_params: int,
+    tasks: list[int],
+    joint_fixed: bool = False,
+    iters: int = 300,
+    tol: float = 1e-6,
+) -> tuple[float, bool]:
     """Joint variance scale s and each loop's task variance v_l from fitted residuals (Helmert / Foerstner).
 
     Each configuration's closure has the covariance (eq. 3.17 weighted, with
@@ -164,8 +174,10 @@ def variance_components(problem: CalibrationProblem, evals: list[BlockEval], pat
     if not tasks:  # the joint level beside known measurement covariances: the closed score equation
         if joint_fixed:
             return 1.0, False
-        covs = [nz.measurement_cov if np.any(e.Jq) else None  # no joint in it (a known distance): no say
-                for nz, e in zip(problem.noise, evals)]
+        covs = [
+            nz.measurement_cov if np.any(e.Jq) else None  # no joint in it (a known distance): no say
+            for nz, e in zip(problem.noise, evals)
+        ]
         return joint_variance_scale([e.r for e in evals], [e.Jq for e in evals], covs, pattern, n_params), False
     rows = sum(e.r.size for e in evals)
     c = max(rows - n_params, 1) / max(rows, 1)
@@ -181,30 +193,46 @@ def variance_components(problem: CalibrationProblem, evals: list[BlockEval], pat
     if joint_fixed:
         s = 1.0
     else:
-        s = 0.5 * joint_variance_scale([r for r, *_ in blocks], [e.Jq for e in evals], [None] * len(blocks),
-                                       pattern, n_params)  # a start: every residual read as joint noise
+        s = 0.5 * joint_variance_scale(
+            [r for r, *_ in blocks], [e.Jq for e in evals], [None] * len(blocks), pattern, n_params
+        )  # a start: every residual read as joint noise
         s = max(s, 1e-300)
-    v = {bi: max(0.5 * float(np.mean(blocks[bi][0][:, list(problem.blocks[bi].loop.translation_rows)] ** 2)), 1e-300)
-         for bi in tasks}
+    v = {
+        bi: max(0.5 * float(np.mean(blocks[bi][0][:, list(problem.blocks[bi].loop.translation_rows)] ** 2)), 1e-300)
+        for bi in tasks
+    }
     # the joint noise's variance per translation row of each task loop, per unit s
-    joint_var = {bi: float(np.mean(np.einsum("nij,ij->n", blocks[bi][1], blocks[bi][3]))) / max(
-        float(np.trace(blocks[bi][3])), 1.0) for bi in tasks}
+    joint_var = {
+        bi: float(np.mean(np.einsum("nij,ij->n", blocks[bi][1], blocks[bi][3])))
+        / max(float(np.trace(blocks[bi][3])), 1.0)
+        for bi in tasks
+    }
     s, v = _foerstner(blocks, tasks, {bi: bi for bi in tasks}, s, v, c, joint_fixed, joint_var, iters, tol)
     for bi in tasks:
         problem.noise[bi].pooled = False
     if len(tasks) > 1 and homogeneous(problem, blocks, tasks, v, c):  # one play, read off every loop at once
         pooled = sum(v[bi] * _task_dof(problem, blocks, bi, c) for bi in tasks) / sum(
-            _task_dof(problem, blocks, bi, c) for bi in tasks)
-        s, v = _foerstner(blocks, tasks, {bi: 0 for bi in tasks}, s, {bi: pooled for bi in tasks}, c, joint_fixed,
-                          joint_var, iters, tol)
+            _task_dof(problem, blocks, bi, c) for bi in tasks
+        )
+        s, v = _foerstner(
+            blocks,
+            tasks,
+            {bi: 0 for bi in tasks},
+            s,
+            {bi: pooled for bi in tasks},
+            c,
+            joint_fixed,
+            joint_var,
+            iters,
+            tol,
+        )
         for bi in tasks:
             problem.noise[bi].pooled = True
     moved = False
     for bi in tasks:
         nz = problem.noise[bi]
         old = nz.task_var
-        if old is None or abs(float(np.mean(old)) - v[bi]) > 0.05 * max(float(np.mean(old)), v[bi],
-                                                                          s * joint_var[bi]):
+        if old is None or abs(float(np.mean(old)) - v[bi]) > 0.05 * max(float(np.mean(old)), v[bi], s * joint_var[bi]):
             moved = True
         nz.set_task(v[bi], estimated=True)
     return float(s), moved
@@ -216,8 +244,10 @@ def noise_summary(problem: CalibrationProblem, values: np.ndarray, sigma_q: np.n
     joint_m = sqrt(mean_i tr(T J_theta,i Sigma J_theta,i^T) / n_t) at `values`; the larger names what dominates.
     """
     out = []
-    if not any(b.loop.translation_rows and (hasattr(b.loop, "task_noise") or nz.task_var is not None)
-               for b, nz in zip(problem.blocks, problem.noise)):
+    if not any(
+        b.loop.translation_rows and (hasattr(b.loop, "task_noise") or nz.task_var is not None)
+        for b, nz in zip(problem.blocks, problem.noise)
+    ):
         return out  # no loop with a task-space noise model: nothing to evaluate
     evals = problem.evaluate(values, True, columns=[])
     for b, ev, nz in zip(problem.blocks, evals, problem.noise):
@@ -229,22 +259,32 @@ def noise_summary(problem: CalibrationProblem, values: np.ndarray, sigma_q: np.n
         joint = float(np.sqrt(np.mean(np.einsum("nij,nij->n", Jt, Jt)) / len(rows)))
         var = nz.task_var
         task = float(np.sqrt(np.mean(var))) if var is not None else 0.0
-        out.append({"loop": lp.name, "task_sigma_m": task, "joint_sigma_m": joint,
-                    "task_estimated": nz.estimated, "task_pooled": nz.pooled,
-                    "dominant": "task" if task > joint else "joint"})
+        out.append(
+            {
+                "loop": lp.name,
+                "task_sigma_m": task,
+                "joint_sigma_m": joint,
+                "task_estimated": nz.estimated,
+                "task_pooled": nz.pooled,
+                "dominant": "task" if task > joint else "joint",
+            }
+        )
     return out
 
 
 def noise_notes(summary: list[dict]) -> list[str]:
     """One sentence per loop on its noise model."""
+
     def how(d: dict) -> str:
         if not d["task_estimated"]:
             return "given"
         return "estimated, one for the loops whose estimates agree" if d.get("task_pooled") else "estimated"
 
-    return [f"loop {d['loop']}: task-space noise {d['task_sigma_m'] * 1e3:.3g} mm ({how(d)}) against "
-            f"{d['joint_sigma_m'] * 1e3:.3g} mm from the joint noise: the {d['dominant']} noise dominates"
-            for d in summary]
+    return [
+        f"loop {d['loop']}: task-space noise {d['task_sigma_m'] * 1e3:.3g} mm ({how(d)}) against "
+        f"{d['joint_sigma_m'] * 1e3:.3g} mm from the joint noise: the {d['dominant']} noise dominates"
+        for d in summary
+    ]
 
 
 def measurement_row_weights(problem: CalibrationProblem, values: np.ndarray) -> np.ndarray | None:
@@ -259,15 +299,21 @@ def measurement_row_weights(problem: CalibrationProblem, values: np.ndarray) -> 
     0.2-millimetre closures, and least squares would shrink the robot, whose
     closure spread scales with its size.
     """
-    only = [bi for bi, b in enumerate(problem.blocks) if getattr(b.loop, "parameter_only", False)
-            and b.loop.measurement_cov is not None]
+    only = [
+        bi
+        for bi, b in enumerate(problem.blocks)
+        if getattr(b.loop, "parameter_only", False) and b.loop.measurement_cov is not None
+    ]
     if not only:
         return None
     evals = problem.evaluate(values, False)
-    t = [ev.r[:, list(b.loop.translation_rows)].ravel() for bi, (b, ev) in enumerate(zip(problem.blocks, evals))
-         if bi not in only and b.loop.translation_rows]
+    t = [
+        ev.r[:, list(b.loop.translation_rows)].ravel()
+        for bi, (b, ev) in enumerate(zip(problem.blocks, evals))
+        if bi not in only and b.loop.translation_rows
+    ]
     t = np.concatenate(t) if t else np.zeros(0)
-    level = float(np.sqrt(np.mean(t ** 2))) if t.size else 0.0
+    level = float(np.sqrt(np.mean(t**2))) if t.size else 0.0
     weights = []
     for bi, (b, ev) in enumerate(zip(problem.blocks, evals)):
         w = 1.0
@@ -277,9 +323,18 @@ def measurement_row_weights(problem: CalibrationProblem, values: np.ndarray) -> 
     return np.concatenate(weights)
 
 
-def _foerstner(blocks: list, tasks: list[int], group: dict[int, int], s: float, v: dict[int, float], c: float,
-               joint_fixed: bool, joint_var: dict[int, float], iters: int, tol: float
-               ) -> tuple[float, dict[int, float]]:
+def _foerstner(
+    blocks: list,
+    tasks: list[int],
+    group: dict[int, int],
+    s: float,
+    v: dict[int, float],
+    c: float,
+    joint_fixed: bool,
+    joint_var: dict[int, float],
+    iters: int,
+    tol: float,
+) -> tuple[float, dict[int, float]]:
     """Foerstner's iteration of `variance_components`; the task loops of one `group` key share one component:
     v_g <- v_g sum_l e_l^T T e_l / (c sum_l tr(W_l^-1 T))."""
     for _ in range(iters):
@@ -312,8 +367,9 @@ def _task_dof(problem: CalibrationProblem, blocks: list, bi: int, c: float) -> f
     return c * blocks[bi][0].shape[0] * len(problem.blocks[bi].loop.translation_rows)
 
 
-def homogeneous(problem: CalibrationProblem, blocks: list, tasks: list[int], v: dict[int, float], c: float,
-                z: float = 1.645) -> bool:
+def homogeneous(
+    problem: CalibrationProblem, blocks: list, tasks: list[int], v: dict[int, float], c: float, z: float = 1.645
+) -> bool:
     """Whether the loops' task variances agree within their scatter: Bartlett's test at 5 %.
 
     M = nu ln s_p^2 - sum nu_l ln s_l^2, s_p^2 the dof-weighted mean, divided

@@ -36,20 +36,51 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.fleet.drift import Drift, drift, drift_columns, gauge_record
-from closedloop.fleet.manifest import BatchJob, as_list, read_manifest
 from closedloop.cli.parse import EXIT_FAILED
 from closedloop.errors import InputError
+from closedloop.fleet.drift import Drift, drift, drift_columns, gauge_record
+from closedloop.fleet.manifest import BatchJob, as_list, read_manifest
 
-__all__ = ["BatchJob", "BatchResult", "Drift", "drift", "read_manifest", "run_batch", "run_job", "finished",
-           "cmd_batch", "add_parser"]
+__all__ = [
+    "BatchJob",
+    "BatchResult",
+    "Drift",
+    "drift",
+    "read_manifest",
+    "run_batch",
+    "run_job",
+    "finished",
+    "cmd_batch",
+    "add_parser",
+]
 
 log = logging.getLogger(__name__)
 
 MARKER = "done.json"
-COLUMNS = ["name", "robot", "date", "status", "verdict", "verdict_reasons", "configurations", "estimated",
-           "rms_before_mm", "rms_after_mm", "rms_before_mrad", "rms_after_mrad", "cv_test_mm", "cv_test_mrad",
-           "top_changes", "drift_from", "drift_max_z", "drift_flagged", "seconds", "resumed", "error", "out"]
+COLUMNS = [
+    "name",
+    "robot",
+    "date",
+    "status",
+    "verdict",
+    "verdict_reasons",
+    "configurations",
+    "estimated",
+    "rms_before_mm",
+    "rms_after_mm",
+    "rms_before_mrad",
+    "rms_after_mrad",
+    "cv_test_mm",
+    "cv_test_mrad",
+    "top_changes",
+    "drift_from",
+    "drift_max_z",
+    "drift_flagged",
+    "seconds",
+    "resumed",
+    "error",
+    "out",
+]
 
 
 # --------------------------------------------------------------------------- one job (in a worker)
@@ -60,18 +91,24 @@ def _options(opts: dict, names: list[str]):
     noise = opts.get("noise")
     if isinstance(noise, str):
         from closedloop.cli.parse import parse_noise as _parse_noise
+
         noise = _parse_noise(noise)
     bounds = opts.get("bounds") or {}
     if isinstance(bounds, (list, str)):
         from closedloop.cli.parse import parse_bounds as _parse_bounds
+
         bounds = _parse_bounds(as_list(bounds))
     ident = opts.get("identify")
     return CalibrationOptions(
         identify=ident.split(",") if isinstance(ident, str) else ident,
-        fix=parse_fix(as_list(opts.get("fix")), names), noise=noise,
-        weighting=opts.get("weighting", "noise"), snr=float(opts.get("snr", 1.0)),
-        max_iter=int(opts.get("max_iter", 100)), bounds={k: tuple(v) for k, v in bounds.items()},
-        robust=opts.get("robust"))
+        fix=parse_fix(as_list(opts.get("fix")), names),
+        noise=noise,
+        weighting=opts.get("weighting", "noise"),
+        snr=float(opts.get("snr", 1.0)),
+        max_iter=int(opts.get("max_iter", 100)),
+        bounds={k: tuple(v) for k, v in bounds.items()},
+        robust=opts.get("robust"),
+    )
 
 
 def _read(job: BatchJob, robot):
@@ -83,13 +120,18 @@ def _read(job: BatchJob, robot):
     lg = None
     try:
         from closedloop.io.bags import extract, is_bag
+
         if is_bag(job.log):
             lg = extract(job.log, robot.joint_names)[0]
     except ImportError:  # pragma: no cover - bag support not installed
         pass
     if lg is None:
-        lg = read_log(job.log, robot.joint_names, degrees=degrees,
-                      linear=[j for j, info in robot.joints.items() if info.kind == "prismatic"])
+        lg = read_log(
+            job.log,
+            robot.joint_names,
+            degrees=degrees,
+            linear=[j for j, info in robot.joints.items() if info.kind == "prismatic"],
+        )
     check_angle_units(lg, robot, degrees)
     return lg
 
@@ -101,14 +143,17 @@ def _pooled(res_list, key: str) -> float | None:
         return None
     n = np.array([v[0] for v in vals], float)
     x = np.array([v[1] for v in vals], float)
-    return float(np.sqrt(np.sum(n * x ** 2) / n.sum()) * 1e3)
+    return float(np.sqrt(np.sum(n * x**2) / n.sum()) * 1e3)
 
 
 def _top_changes(report: dict, k: int = 3) -> str:
     """The k estimated parameters that moved most from their initial value (mm, mrad, 1e-3)."""
     unit = {"m": "mm", "rad": "mrad"}
-    est = [(p["name"], (p["calibrated"] - p["initial"]) * 1e3, unit.get(p["unit"], "e-3"))
-           for p in report["parameters"] if p["status"] == "estimated" and p["kind"] != "loop"]
+    est = [
+        (p["name"], (p["calibrated"] - p["initial"]) * 1e3, unit.get(p["unit"], "e-3"))
+        for p in report["parameters"]
+        if p["status"] == "estimated" and p["kind"] != "loop"
+    ]
     est.sort(key=lambda t: -abs(t[1]))
     return "; ".join(f"{n}={d:+.3g}{u}" for n, d, u in est[:k])
 
@@ -118,10 +163,10 @@ def run_job(job: BatchJob) -> dict:
     import time
 
     from closedloop.calibration import build_problem, calibrate
-    from closedloop.output.urdf import write_model
     from closedloop.loops.spec import default_loops, parse_loop
-    from closedloop.output.report import build_report, write_report
     from closedloop.model.robot import RobotModel
+    from closedloop.output.report import build_report, write_report
+    from closedloop.output.urdf import write_model
 
     t0 = time.perf_counter()
     robot = RobotModel.from_file(job.model)
@@ -135,32 +180,51 @@ def run_job(job: BatchJob) -> dict:
     cv_t, cv = (None, None), None
     if job.cv and res.converged:
         from closedloop.validation.kfold import cross_validate
+
         try:
             cv = cross_validate(robot, lg, loops, opts, k=job.cv, exclude=[rj.row - 1 for rj in res.rejected])
-            report["validation"] = {"k": job.cv, "excluded_rows": [i + 1 for i in cv["excluded"]],
-                                    "test": cv["test"], "train": cv["train"],
-                                    "test_whitened_rms": cv["test_whitened_rms"],
-                                    "parameter_spread": cv["parameter_spread"]}
+            report["validation"] = {
+                "k": job.cv,
+                "excluded_rows": [i + 1 for i in cv["excluded"]],
+                "test": cv["test"],
+                "train": cv["train"],
+                "test_whitened_rms": cv["test_whitened_rms"],
+                "parameter_spread": cv["parameter_spread"],
+            }
             t = cv["test"]
             cv_t = (_pooled_dicts(t, "rms_m"), _pooled_dicts(t, "rms_rad"))
         except Exception as exc:  # validation is a check, not the job
             report["validation"] = {"error": f"{type(exc).__name__}: {exc}"}
     verdict = _judge(res, cv, report)
-    row = {"name": job.name, "robot": job.robot, "date": job.date,
-           "status": "ok" if res.converged else "not converged",
-           "verdict": getattr(verdict, "status", "n/a"), "verdict_reasons": "; ".join(getattr(verdict, "reasons", [])),
-           "configurations": len(lg), "estimated": len(res.estimated),
-           "rms_before_mm": _pooled(res.residuals_before, "rms_m"), "rms_after_mm": _pooled(res.residuals_after, "rms_m"),
-           "rms_before_mrad": _pooled(res.residuals_before, "rms_rad"),
-           "rms_after_mrad": _pooled(res.residuals_after, "rms_rad"),
-           "cv_test_mm": cv_t[0], "cv_test_mrad": cv_t[1], "top_changes": _top_changes(report),
-           "seconds": round(time.perf_counter() - t0, 3), "out": str(job.out)}
-    params = {p["name"]: [p["calibrated"], p["std_error"], p["kind"]]
-              for p in report["parameters"] if p["status"] == "estimated"}
+    row = {
+        "name": job.name,
+        "robot": job.robot,
+        "date": job.date,
+        "status": "ok" if res.converged else "not converged",
+        "verdict": getattr(verdict, "status", "n/a"),
+        "verdict_reasons": "; ".join(getattr(verdict, "reasons", [])),
+        "configurations": len(lg),
+        "estimated": len(res.estimated),
+        "rms_before_mm": _pooled(res.residuals_before, "rms_m"),
+        "rms_after_mm": _pooled(res.residuals_after, "rms_m"),
+        "rms_before_mrad": _pooled(res.residuals_before, "rms_rad"),
+        "rms_after_mrad": _pooled(res.residuals_after, "rms_rad"),
+        "cv_test_mm": cv_t[0],
+        "cv_test_mrad": cv_t[1],
+        "top_changes": _top_changes(report),
+        "seconds": round(time.perf_counter() - t0, 3),
+        "out": str(job.out),
+    }
+    params = {
+        p["name"]: [p["calibrated"], p["std_error"], p["kind"]]
+        for p in report["parameters"]
+        if p["status"] == "estimated"
+    }
     files = {"report.json": lambda p: write_report(report, p)}
     if res.converged and getattr(verdict, "status", "") != "failed" and robot.kind in ("urdf", "dh"):
-        files["calibrated" + (".yaml" if robot.kind == "dh" else ".urdf")] = \
-            lambda p: write_model(robot, res.as_dict(), p)
+        files["calibrated" + (".yaml" if robot.kind == "dh" else ".urdf")] = lambda p: write_model(
+            robot, res.as_dict(), p
+        )
     marker = {"row": row, "parameters": params, "gauge": _gauge(res)}
     _write_whole(job.out, files, marker)
     return marker
@@ -192,7 +256,7 @@ def _pooled_dicts(loops: list[dict], key: str) -> float | None:
     if not vals:
         return None
     n, x = np.array(vals, float).T
-    return float(np.sqrt(np.sum(n * x ** 2) / n.sum()) * 1e3)
+    return float(np.sqrt(np.sum(n * x**2) / n.sum()) * 1e3)
 
 
 def _write_whole(out: Path, files: dict, marker: dict) -> None:
@@ -270,6 +334,7 @@ class _Summary:
                 w = csv.DictWriter(fh, COLUMNS, extrasaction="ignore")
                 w.writeheader()
                 w.writerows(_fmt(r) for r in rows)
+
         atomic_write(self.path, writer)
 
 
@@ -277,8 +342,7 @@ def _fmt(row: dict) -> dict:
     return {k: (f"{v:.6g}" if isinstance(v, float) else "" if v is None else v) for k, v in row.items()}
 
 
-def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=None,
-              z_max: float = 3.0) -> BatchResult:
+def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=None, z_max: float = 3.0) -> BatchResult:
     """Run every job not finished before on `engine` (see closedloop.fleet.executor); write the summary."""
     from closedloop.fleet.executor import imap
 
@@ -306,9 +370,17 @@ def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=N
         else:
             failed.append(j.name)
             log.warning("job %s failed: %s", j.name, out.error)
-            rows[j.name] = {"name": j.name, "robot": j.robot, "date": j.date, "status": "failed",
-                            "verdict": "n/a", "error": out.error, "seconds": round(out.seconds, 3),
-                            "resumed": "no", "out": str(j.out)}
+            rows[j.name] = {
+                "name": j.name,
+                "robot": j.robot,
+                "date": j.date,
+                "status": "failed",
+                "verdict": "n/a",
+                "error": out.error,
+                "seconds": round(out.seconds, 3),
+                "resumed": "no",
+                "out": str(j.out),
+            }
         sink.add(rows[j.name])
     drifts = drift(jobs, results, z_max)
     drift_columns(rows, drifts)
@@ -327,6 +399,7 @@ def _write_drift(summary: Path, drifts: list[Drift]) -> None:
             w = csv.DictWriter(fh, list(asdict(drifts[0])))
             w.writeheader()
             w.writerows(_fmt(asdict(d)) for d in drifts)
+
     atomic_write(summary.with_name(summary.stem + ".drift.csv"), writer)
 
 
@@ -337,14 +410,17 @@ def cmd_batch(args) -> int:
     from closedloop.fleet.executor import engine_from_args, progress_printer
 
     jobs = read_manifest(args.manifest)
-    summary = Path(args.summary) if args.summary else \
-        Path(args.manifest).with_name(Path(args.manifest).stem + ".summary.csv")
+    summary = (
+        Path(args.summary) if args.summary else Path(args.manifest).with_name(Path(args.manifest).stem + ".summary.csv")
+    )
     with engine_from_args(args) as eng:
         res = run_batch(jobs, summary, eng, progress_printer("batch: ", args.quiet), args.drift_z)
     flagged = [d for d in res.drift if d.flagged]
     verdicts = Counter(str(r.get("verdict", "")) for r in res.rows if r["name"] not in res.failed)
-    print(f"{len(res.ran)} job(s) run on {eng.name} ({eng.workers} worker(s)), {len(res.resumed)} finished "
-          f"earlier (not redone), {len(res.failed)} failed -> {summary}")
+    print(
+        f"{len(res.ran)} job(s) run on {eng.name} ({eng.workers} worker(s)), {len(res.resumed)} finished "
+        f"earlier (not redone), {len(res.failed)} failed -> {summary}"
+    )
     if +verdicts:
         print("  verdicts: " + ", ".join(f"{verdicts[v]} {v}" for v in ("ok", "suspect", "failed") if verdicts[v]))
     for name in res.failed:
@@ -353,8 +429,10 @@ def cmd_batch(args) -> int:
         if r.get("verdict") == "failed" and r["name"] not in res.failed:
             print(f"  verdict failed: {r['name']}: {r.get('verdict_reasons', '')}", file=sys.stderr)
     if res.drift:
-        print(f"  drift: {len(flagged)} of {sum(not d.note for d in res.drift)} parameter changes exceed "
-              f"{args.drift_z:g} standard errors -> {summary.with_name(summary.stem + '.drift.csv')}")
+        print(
+            f"  drift: {len(flagged)} of {sum(not d.note for d in res.drift)} parameter changes exceed "
+            f"{args.drift_z:g} standard errors -> {summary.with_name(summary.stem + '.drift.csv')}"
+        )
     for d in res.drift:
         if d.note:
             print(f"    {d.robot} {d.before} -> {d.after}: {d.note}")

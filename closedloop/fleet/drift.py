@@ -63,12 +63,18 @@ def gauge_record(res) -> dict[str, Any]:
 
     P = len(res.problem.params)
     problem, vals, idx, sigma_q = resolve(res, None, list(range(P)))
-    C = np.vstack([J.reshape(-1, P) for _, J in whitened_blocks(problem, vals, idx, sigma_q,
-                                                                getattr(res, "weighting", "noise"))])
-    return {"names": list(problem.names), "kinds": [p.kind for p in problem.params],
-            "values": [float(v) for v in res.values], "estimated": [int(k) for k in res.estimated],
-            "prior": [float(p.prior) for p in problem.params],
-            "covariance": np.asarray(res.covariance, float).tolist(), "information": (C.T @ C).tolist()}
+    C = np.vstack(
+        [J.reshape(-1, P) for _, J in whitened_blocks(problem, vals, idx, sigma_q, getattr(res, "weighting", "noise"))]
+    )
+    return {
+        "names": list(problem.names),
+        "kinds": [p.kind for p in problem.params],
+        "values": [float(v) for v in res.values],
+        "estimated": [int(k) for k in res.estimated],
+        "prior": [float(p.prior) for p in problem.params],
+        "covariance": np.asarray(res.covariance, float).tolist(),
+        "information": (C.T @ C).tolist(),
+    }
 
 
 def in_gauge_of(a: dict, b: dict) -> tuple[np.ndarray, np.ndarray, float]:
@@ -99,8 +105,19 @@ def in_gauge_of(a: dict, b: dict) -> tuple[np.ndarray, np.ndarray, float]:
 def compare(robot: str, name_a: str, name_b: str, a: dict, b: dict, z_max: float) -> list[Drift]:
     """The drift rows of one pair (A earlier, B later): robot parameters A estimated, in A's gauge."""
     if a["names"] != b["names"]:
-        return [Drift(robot, name_a, name_b, "*", np.nan, np.nan, np.nan, False,
-                      "not comparable: not the same model and loops (different parameter lists)")]
+        return [
+            Drift(
+                robot,
+                name_a,
+                name_b,
+                "*",
+                np.nan,
+                np.nan,
+                np.nan,
+                False,
+                "not comparable: not the same model and loops (different parameter lists)",
+            )
+        ]
     pb, cov_b, cost = in_gauge_of(a, b)
     log.debug("%s %s -> %s: closure cost of the gauge move %.3g", robot, name_a, name_b, cost)
     Ea = np.asarray(a["estimated"], int)
@@ -108,9 +125,20 @@ def compare(robot: str, name_a: str, name_b: str, a: dict, b: dict, z_max: float
     out = []
     if moved and cost > len(moved) + z_max * np.sqrt(2.0 * len(moved)):  # chi^2_k: mean + z_max sd
         names = ", ".join(a["names"][k] for k in moved[:4])
-        out.append(Drift(robot, name_a, name_b, "*", np.nan, np.nan, float(np.sqrt(cost)), True,
-                         f"changed where the earlier calibration holds values ({names}): the later log's "
-                         f"closures worsen by chi^2 {cost:.3g} in that gauge"))
+        out.append(
+            Drift(
+                robot,
+                name_a,
+                name_b,
+                "*",
+                np.nan,
+                np.nan,
+                float(np.sqrt(cost)),
+                True,
+                f"changed where the earlier calibration holds values ({names}): the later log's "
+                f"closures worsen by chi^2 {cost:.3g} in that gauge",
+            )
+        )
     cov_a = np.asarray(a["covariance"], float).reshape(len(Ea), len(Ea))
     pa = np.asarray(a["values"], float)
     for i, k in enumerate(Ea):
@@ -131,9 +159,20 @@ def compare_parameters(robot: str, name_a: str, name_b: str, pa: dict, pb: dict,
     only when both calibrations estimated the same parameters."""
     if set(pa) != set(pb):
         diff = sorted(set(pa) ^ set(pb))
-        return [Drift(robot, name_a, name_b, "*", np.nan, np.nan, np.nan, False,
-                      f"not comparable: not the same parameters estimated ({', '.join(diff[:4])}) and no gauge "
-                      "record (calibrated by an older closedloop: run these jobs again)")]
+        return [
+            Drift(
+                robot,
+                name_a,
+                name_b,
+                "*",
+                np.nan,
+                np.nan,
+                np.nan,
+                False,
+                f"not comparable: not the same parameters estimated ({', '.join(diff[:4])}) and no gauge "
+                "record (calibrated by an older closedloop: run these jobs again)",
+            )
+        ]
     out = []
     for name in pa:
         (v1, s1, kind), (v2, s2, _) = pa[name], pb[name]

@@ -19,10 +19,12 @@ ENGINES: dict[str, type["Engine"]] = {}
 
 def register(name: str):
     """Class decorator: make an engine available under `name`."""
+
     def deco(cls):
         cls.name = name
         ENGINES[name] = cls
         return cls
+
     return deco
 
 
@@ -68,9 +70,10 @@ class Progress:
 
     def line(self) -> str:
         eta = "?" if self.eta is None else f"{self.eta:.0f} s"
-        return (f"{self.done + self.failed}/{self.total} finished ({self.done} ok, {self.failed} failed), "
-                f"{self.running} running, {self.rate:.2g} jobs/s, {eta} left")
-
+        return (
+            f"{self.done + self.failed}/{self.total} finished ({self.done} ok, {self.failed} failed), "
+            f"{self.running} running, {self.rate:.2g} jobs/s, {eta} left"
+        )
 
 
 # --------------------------------------------------------------------------- worker side
@@ -86,14 +89,13 @@ def limit_threads() -> None:
         os.environ[var] = "1"
     try:
         from threadpoolctl import threadpool_limits
+
         threadpool_limits(1)
     except ImportError:  # pragma: no cover - threadpoolctl is a dependency
         pass
 
 
-
-def call(fn: Callable, index: int, payload: Any, seed: np.random.SeedSequence | None,
-         shared: tuple = ()) -> Outcome:
+def call(fn: Callable, index: int, payload: Any, seed: np.random.SeedSequence | None, shared: tuple = ()) -> Outcome:
     """Run one job and wrap its value or its error (never raises)."""
     import socket
 
@@ -114,7 +116,6 @@ def call(fn: Callable, index: int, payload: Any, seed: np.random.SeedSequence | 
     return out
 
 
-
 # --------------------------------------------------------------------------- engines
 class Engine:
     """Base class: `imap` yields one Outcome per job as jobs finish (any order)."""
@@ -131,8 +132,9 @@ class Engine:
     def close(self) -> None:
         """Release workers (no-op by default)."""
 
-    def imap(self, fn: Callable, payloads: list, seeds: list | None, shared: tuple | None,
-             progress: Progress | None = None) -> Iterator[Outcome]:
+    def imap(
+        self, fn: Callable, payloads: list, seeds: list | None, shared: tuple | None, progress: Progress | None = None
+    ) -> Iterator[Outcome]:
         raise NotImplementedError
 
 
@@ -155,10 +157,10 @@ class SerialEngine(Engine):
             limits = nullcontext()
         else:
             from threadpoolctl import threadpool_limits
+
             limits = threadpool_limits(self.threads)
         with limits:
             for i, p in enumerate(payloads):
                 if progress:
                     progress.running = 1
                 yield call(fn, i, p, None if seeds is None else seeds[i], shared or ())
-

@@ -170,6 +170,7 @@ class RayEngine(Engine):
             import ray
         except ImportError:
             from closedloop.errors import InputError
+
             raise InputError('--ray needs Ray: pip install "closedloop[ray]"') from None
         self.ray = ray
         self._started = not ray.is_initialized()  # connected here: disconnected by close()
@@ -220,7 +221,7 @@ def _ray_call(fn, index, payload, seed, token, ref) -> Outcome:
     limit_threads()
     if token is not None and token not in _CACHE:
         import ray
+
         _CACHE.clear()
         _CACHE[token] = ray.get(ref[0])
     return call(fn, index, payload, seed, _CACHE[token] if token is not None else ())
-

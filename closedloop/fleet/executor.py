@@ -39,9 +39,25 @@ import numpy as np
 from closedloop.fleet.engine import ENGINES, Engine, Outcome, Progress, SerialEngine, call, limit_threads, register
 from closedloop.fleet.engines import LocalEngine, RayEngine
 
-__all__ = ["ENGINES", "Engine", "Outcome", "Progress", "SerialEngine", "LocalEngine", "RayEngine", "call",
-           "limit_threads", "register", "get_engine", "job_seeds", "imap", "run", "add_arguments",
-           "engine_from_args", "progress_printer"]
+__all__ = [
+    "ENGINES",
+    "Engine",
+    "Outcome",
+    "Progress",
+    "SerialEngine",
+    "LocalEngine",
+    "RayEngine",
+    "call",
+    "limit_threads",
+    "register",
+    "get_engine",
+    "job_seeds",
+    "imap",
+    "run",
+    "add_arguments",
+    "engine_from_args",
+    "progress_printer",
+]
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +72,7 @@ def get_engine(engine: "str | Engine | None" = None, jobs: int | None = None, ad
     name = engine or "serial"
     if name not in ENGINES:
         from closedloop.errors import InputError
+
         raise InputError(f"unknown engine '{name}' (known: {', '.join(sorted(ENGINES))})")
     return ENGINES[name](jobs=jobs, address=address)
 
@@ -68,9 +85,17 @@ def job_seeds(seed: int | np.random.SeedSequence | None, n: int) -> list[np.rand
     return ss.spawn(n)
 
 
-def imap(fn: Callable, payloads: Iterable, engine: "str | Engine | None" = None, *, shared: Any = _NO_SHARED,
-         seed: int | np.random.SeedSequence | None = None, jobs: int | None = None, address: str | None = None,
-         progress: Callable[[Progress], None] | None = None) -> Iterator[Outcome]:
+def imap(
+    fn: Callable,
+    payloads: Iterable,
+    engine: "str | Engine | None" = None,
+    *,
+    shared: Any = _NO_SHARED,
+    seed: int | np.random.SeedSequence | None = None,
+    jobs: int | None = None,
+    address: str | None = None,
+    progress: Callable[[Progress], None] | None = None,
+) -> Iterator[Outcome]:
     """Run ``fn(*shared, payload[, rng=...])`` for every payload; yield Outcomes as jobs finish.
 
     `shared` is a tuple of objects every job needs (a robot model, loops,
@@ -97,8 +122,7 @@ def imap(fn: Callable, payloads: Iterable, engine: "str | Engine | None" = None,
             eng.close()
 
 
-def run(fn: Callable, payloads: Iterable, engine: "str | Engine | None" = None, *, errors: str = "raise",
-        **kw) -> list:
+def run(fn: Callable, payloads: Iterable, engine: "str | Engine | None" = None, *, errors: str = "raise", **kw) -> list:
     """The values of all jobs in job order.  errors='raise' re-raises the first failure (in job
     order) after all jobs ran; errors='record' returns the Outcome of a failed job in its place."""
     outs = sorted(imap(fn, payloads, engine, **kw), key=lambda o: o.index)
@@ -108,6 +132,7 @@ def run(fn: Callable, payloads: Iterable, engine: "str | Engine | None" = None, 
                 if o.exception is not None:
                     raise o.exception
                 from closedloop.errors import ClosedLoopError
+
                 raise ClosedLoopError(f"job {o.index} failed: {o.error}")
         return [o.value for o in outs]
     return [o.value if o.ok else o for o in outs]
@@ -115,11 +140,20 @@ def run(fn: Callable, payloads: Iterable, engine: "str | Engine | None" = None, 
 
 def add_arguments(parser) -> None:
     """--jobs / --ray for a many-job command."""
-    parser.add_argument("--jobs", type=int, default=None, metavar="N",
-                        help="local worker processes (default: all cores; 1 runs in this process)")
-    parser.add_argument("--ray", metavar="auto|ADDRESS", default=None,
-                        help="run on a Ray cluster: 'auto' joins the running one, an address another, 'local' "
-                             "starts one here with --jobs CPUs (needs closedloop[ray])")
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="local worker processes (default: all cores; 1 runs in this process)",
+    )
+    parser.add_argument(
+        "--ray",
+        metavar="auto|ADDRESS",
+        default=None,
+        help="run on a Ray cluster: 'auto' joins the running one, an address another, 'local' "
+        "starts one here with --jobs CPUs (needs closedloop[ray])",
+    )
 
 
 def engine_from_args(args) -> Engine:
@@ -127,6 +161,7 @@ def engine_from_args(args) -> Engine:
         return get_engine("ray", args.jobs, None if args.ray == "local" else args.ray)
     if args.jobs is not None and args.jobs < 1:
         from closedloop.errors import InputError
+
         raise InputError("--jobs must be at least 1")
     if args.jobs == 1:
         return SerialEngine(threads=1)
@@ -148,4 +183,5 @@ def progress_printer(prefix: str = "", quiet: bool = False) -> Callable[[Progres
         elif finished or now - last[0] > 1.0:
             print(prefix + p.line(), file=sys.stderr, flush=True)
             last[0] = now
+
     return show

@@ -41,8 +41,9 @@ def as_list(v) -> list[str]:
 def _job(d: dict, base: Path, where: str) -> BatchJob:
     unknown = set(d) - JOB_KEYS - OPTION_KEYS
     if unknown:
-        raise InputError(f"{where}: unknown key(s) {', '.join(sorted(unknown))} "
-                         f"(known: {', '.join(sorted(JOB_KEYS | OPTION_KEYS))})")
+        raise InputError(
+            f"{where}: unknown key(s) {', '.join(sorted(unknown))} (known: {', '.join(sorted(JOB_KEYS | OPTION_KEYS))})"
+        )
     for key in ("model", "log", "out"):
         if not d.get(key):
             raise InputError(f"{where}: no '{key}'")
@@ -57,14 +58,25 @@ def _job(d: dict, base: Path, where: str) -> BatchJob:
     opts = {**opts, **{k: d[k] for k in OPTION_KEYS if d.get(k) not in (None, "")}}
     bad = set(opts) - OPTION_KEYS
     if bad:
-        raise InputError(f"{where}: unknown option(s) {', '.join(sorted(bad))} (known: {', '.join(sorted(OPTION_KEYS))})")
+        raise InputError(
+            f"{where}: unknown option(s) {', '.join(sorted(bad))} (known: {', '.join(sorted(OPTION_KEYS))})"
+        )
     try:
         cv = int(d.get("cv") if d.get("cv") not in (None, "") else 5)
     except (TypeError, ValueError):
         raise InputError(f"{where}: cv '{d.get('cv')}' is not a whole number") from None
     out = base / str(d["out"])
-    return BatchJob(str(d.get("name") or out.name), base / str(d["model"]), base / str(d["log"]), out,
-                    as_list(d.get("loops")), opts, str(d.get("robot") or ""), str(d.get("date") or ""), cv)
+    return BatchJob(
+        str(d.get("name") or out.name),
+        base / str(d["model"]),
+        base / str(d["log"]),
+        out,
+        as_list(d.get("loops")),
+        opts,
+        str(d.get("robot") or ""),
+        str(d.get("date") or ""),
+        cv,
+    )
 
 
 def read_manifest(path: str | Path) -> list[BatchJob]:
@@ -83,8 +95,9 @@ def read_manifest(path: str | Path) -> list[BatchJob]:
             doc = yaml.safe_load(text)
         except yaml.YAMLError as exc:
             raise InputError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
-        defaults, rows = ({}, doc) if isinstance(doc, list) else ((doc or {}).get("defaults") or {},
-                                                                  (doc or {}).get("jobs"))
+        defaults, rows = (
+            ({}, doc) if isinstance(doc, list) else ((doc or {}).get("defaults") or {}, (doc or {}).get("jobs"))
+        )
         if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
             raise InputError(f"{path}: expected a list of jobs under 'jobs:'")
         rows = [{**defaults, **r} for r in rows]
@@ -94,16 +107,20 @@ def read_manifest(path: str | Path) -> list[BatchJob]:
         rows = []
         for r in reader:
             if None in r:  # more cells than the header names: an unquoted comma
-                raise InputError(f"{path}: line {reader.line_num}: {len(reader.fieldnames) + len(r[None])} cells, the "
-                                 f"header has {len(reader.fieldnames)} (quote a cell that holds commas, \"...\"; "
-                                 "separate loops with ';')")
+                raise InputError(
+                    f"{path}: line {reader.line_num}: {len(reader.fieldnames) + len(r[None])} cells, the "
+                    f'header has {len(reader.fieldnames)} (quote a cell that holds commas, "..."; '
+                    "separate loops with ';')"
+                )
             if any((v or "").strip() for v in r.values() if isinstance(v, str)):
                 rows.append(r)
         first = 2  # the header is line 1
     else:
         raise InputError(f"{path}: manifest must be .yaml, .yml or .csv")
-    jobs = [_job(r, base, f"{path}: job {i} ({'line ' + str(i + first - 1) if first == 2 else 'entry ' + str(i)})")
-            for i, r in enumerate(rows, start=1)]
+    jobs = [
+        _job(r, base, f"{path}: job {i} ({'line ' + str(i + first - 1) if first == 2 else 'entry ' + str(i)})")
+        for i, r in enumerate(rows, start=1)
+    ]
     seen: dict[Path, str] = {}
     for j in jobs:
         if j.out in seen:

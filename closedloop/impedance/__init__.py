@@ -9,10 +9,21 @@ segmentation, alignment), `estimate` (thesis, default, OLS, IV estimators and th
 `plots`, `cli`.  The estimator needs only numpy and scipy.
 """
 
-_WHERE = {"Ensemble": "data", "Record": "data", "read_record": "data", "segment": "data",
-          "write_record": "data", "EstimateOptions": "estimate", "ImpedanceEstimate": "estimate",
-          "estimate": "estimate", "posture_fit": "estimate", "ExperimentConfig": "model",
-          "ForearmParams": "model", "Profile": "model", "simulate": "model"}
+_WHERE = {
+    "Ensemble": "data",
+    "Record": "data",
+    "read_record": "data",
+    "segment": "data",
+    "write_record": "data",
+    "EstimateOptions": "estimate",
+    "ImpedanceEstimate": "estimate",
+    "estimate": "estimate",
+    "posture_fit": "estimate",
+    "ExperimentConfig": "model",
+    "ForearmParams": "model",
+    "Profile": "model",
+    "simulate": "model",
+}
 
 __all__ = list(_WHERE)
 

@@ -23,8 +23,18 @@ from types import SimpleNamespace
 import numpy as np
 
 from closedloop.impedance.data import Ensemble
-from closedloop.impedance.estimate import (EstimateOptions, design, estimate, finish, lowpass, moments, per_cycle_moments, pool,
-                       single_thread, solve)
+from closedloop.impedance.estimate import (
+    EstimateOptions,
+    design,
+    estimate,
+    finish,
+    lowpass,
+    moments,
+    per_cycle_moments,
+    pool,
+    single_thread,
+    solve,
+)
 
 log = logging.getLogger(__name__)
 
@@ -40,8 +50,15 @@ class Bands:
     std: dict[str, np.ndarray]
 
 
-def bootstrap(ens: Ensemble, options: EstimateOptions, n_boot: int = 200, level: float = 0.95,
-              seed: int = 0, chunk: int = 25, executor=None) -> Bands:
+def bootstrap(
+    ens: Ensemble,
+    options: EstimateOptions,
+    n_boot: int = 200,
+    level: float = 0.95,
+    seed: int = 0,
+    chunk: int = 25,
+    executor=None,
+) -> Bands:
     """Bootstrap over cycles (see module docstring): bands for I, B, K, wn and zeta.
 
     The resamples go in chunks of `chunk` as jobs on `executor` (``closedloop.fleet.executor``: None or
@@ -56,13 +73,17 @@ def bootstrap(ens: Ensemble, options: EstimateOptions, n_boot: int = 200, level:
         per, perz = per_cycle_moments(d)
         Mxx, Mzx = moments(d)
         half = int(round(options.pool_ms * 1e-3 * ens.fs))
-        p0 = solve(pool(Mxx, half), pool(Mzx, half), options.method)[0] \
-            if options.method in ("default", "thesis") else None
+        p0 = (
+            solve(pool(Mxx, half), pool(Mzx, half), options.method)[0]
+            if options.method in ("default", "thesis")
+            else None
+        )
         sizes = [min(chunk, n_boot - c) for c in range(0, n_boot, max(1, chunk))]
         dims = (d.X.shape[0], d.X.shape[2], None if d.Z is None else d.Z.shape[-1])
         light = SimpleNamespace(scale=d.scale, T=d.T)  # what `finish` needs of the design (not X, Z)
-        parts = run(_resample_chunk, sizes, executor, shared=(light, dims, per, perz, p0, options, ens.fs, ens.n),
-                    seed=seed)
+        parts = run(
+            _resample_chunk, sizes, executor, shared=(light, dims, per, perz, p0, options, ens.fs, ens.n), seed=seed
+        )
     q = (1 - level) / 2 * 100
     lo, hi, sd = {}, {}, {}
     for j, k in enumerate(("I", "B", "K", "wn", "zeta")):
@@ -78,8 +99,18 @@ def bootstrap(ens: Ensemble, options: EstimateOptions, n_boot: int = 200, level:
     return Bands(level, n_boot, lo, hi, sd)
 
 
-def _resample_chunk(d, dims: tuple, per: np.ndarray, perz: np.ndarray | None, p0, options: EstimateOptions,
-                    fs: float, n: int, r: int, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+def _resample_chunk(
+    d,
+    dims: tuple,
+    per: np.ndarray,
+    perz: np.ndarray | None,
+    p0,
+    options: EstimateOptions,
+    fs: float,
+    n: int,
+    r: int,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, ...]:
     """One job: r resamples of the n cycles (counts w), their moments sum_i w_i x_i x_i^T, (I, B, K, wn, zeta).
 
     d: the design's scale and lag (for `finish`); dims: (instants L, regressors m, instruments q)."""
@@ -108,14 +139,14 @@ def free_run(I, B, K, u: np.ndarray, x0: np.ndarray, v0: np.ndarray, fs: float) 
     I, B, K = _fill(np.asarray(I, float)), _fill(np.asarray(B, float)), _fill(np.asarray(K, float))
     h = 1.0 / fs
     n, L = u.shape
-    mid = lambda a: np.r_[0.5 * (a[1:] + a[:-1]), a[-1]]                       # noqa: E731
+    mid = lambda a: np.r_[0.5 * (a[1:] + a[:-1]), a[-1]]  # noqa: E731
     Im, Bm, Km, um = mid(I), mid(B), mid(K), np.c_[0.5 * (u[:, 1:] + u[:, :-1]), u[:, -1]]
     x, v = x0.astype(float).copy(), v0.astype(float).copy()
     out = np.empty((n, L))
     for k in range(L):
         out[:, k] = x
         k1 = (x, v, (u[:, k] - B[k] * v - K[k] * x) / I[k])
-        f = lambda xx, vv, uu, i, b, kk: (uu - b * vv - kk * xx) / i           # noqa: E731
+        f = lambda xx, vv, uu, i, b, kk: (uu - b * vv - kk * xx) / i  # noqa: E731
         x2, v2 = x + 0.5 * h * k1[1], v + 0.5 * h * k1[2]
         a2 = f(x2, v2, um[:, k], Im[k], Bm[k], Km[k])
         x3, v3 = x + 0.5 * h * v2, v + 0.5 * h * a2
@@ -126,15 +157,15 @@ def free_run(I, B, K, u: np.ndarray, x0: np.ndarray, v0: np.ndarray, fs: float) 
         x = x + h / 6 * (v + 2 * v2 + 2 * v3 + v4)
         v = v + h / 6 * (k1[2] + 2 * a2 + 2 * a3 + a4)
         if not np.all(np.isfinite(x)):
-            out[:, k + 1:] = np.nan
+            out[:, k + 1 :] = np.nan
             break
     return out
 
 
 @dataclass
 class FitReport:
-    vaf: float                   # overall free-run VAF (%) on held-out cycles
-    vaf_t: np.ndarray            # per instant (%)
+    vaf: float  # overall free-run VAF (%) on held-out cycles
+    vaf_t: np.ndarray  # per instant (%)
     folds: int
 
 
@@ -152,11 +183,11 @@ def free_run_vaf(ens: Ensemble, options: EstimateOptions, folds: int = 5, seed: 
         est = estimate(tr, options=options, warn=False)
         dth, dtau, _ = te.deltas(tr)
         dth, dtau = lowpass(dth, fs, options.prefilter_hz), lowpass(dtau, fs, options.prefilter_hz)
-        y = dth[:, P:P + L]
+        y = dth[:, P : P + L]
         v0 = (dth[:, P + 1] - dth[:, P - 1]) * fs / 2
-        x = free_run(est.I, est.B, est.K, dtau[:, P:P + L], y[:, 0], v0, fs)
+        x = free_run(est.I, est.B, est.K, dtau[:, P : P + L], y[:, 0], v0, fs)
         err[test], ref[test] = y - x, y
     with np.errstate(invalid="ignore", divide="ignore"):
-        vaf_t = 100 * (1 - np.sum(err ** 2, 0) / np.sum(ref ** 2, 0))
-        vaf = 100 * (1 - np.nansum(err ** 2) / np.sum(ref ** 2)) if np.all(np.isfinite(err)) else -np.inf
+        vaf_t = 100 * (1 - np.sum(err**2, 0) / np.sum(ref**2, 0))
+        vaf = 100 * (1 - np.nansum(err**2) / np.sum(ref**2)) if np.all(np.isfinite(err)) else -np.inf
     return FitReport(float(vaf), vaf_t, folds)

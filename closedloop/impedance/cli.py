@@ -22,8 +22,11 @@ def add_parser(subparsers) -> None:
     s.add_argument("--case", choices=["forearm", "robot"], default="forearm")
     s.add_argument("--engine", choices=["mujoco", "rk4"], default="mujoco", help="forearm integrator")
     s.add_argument("--cycles", type=int, default=100)
-    s.add_argument("--stiffness", default="constant:20",
-                   help="K(t): constant:V | step:V0,V1,T | square:V0,V1,P | dip:V,DEPTH,WIDTH")
+    s.add_argument(
+        "--stiffness",
+        default="constant:20",
+        help="K(t): constant:V | step:V0,V1,T | square:V0,V1,P | dip:V,DEPTH,WIDTH",
+    )
     s.add_argument("--damping", default="constant:1", help="B(t), same forms")
     s.add_argument("--noise", type=float, default=0.05, help="noise std / perturbation std (default 0.05)")
     s.add_argument("--voluntary", type=float, default=0.0, help="voluntary torque RMS, N m (3 Hz band)")
@@ -56,10 +59,10 @@ def add_parser(subparsers) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    from closedloop.cli.parse import check_number
     from closedloop.impedance.data import write_record
     from closedloop.impedance.model import ExperimentConfig, ForearmParams, simulate
     from closedloop.impedance.results import write_truth
-    from closedloop.cli.parse import check_number
 
     args.noise = check_number("--noise", args.noise, 0.0, 1e6)
     args.voluntary = check_number("--voluntary", args.voluntary, 0.0, 1e6)
@@ -67,10 +70,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     arm = ForearmParams(gravity=not args.no_gravity)
-    cfg = ExperimentConfig(n_cycles=args.cycles, stiffness=args.stiffness, damping=args.damping, noise=args.noise,
-                           voluntary_rms=args.voluntary, prbs_phase=args.prbs_phase, seed=args.seed, arm=arm)
+    cfg = ExperimentConfig(
+        n_cycles=args.cycles,
+        stiffness=args.stiffness,
+        damping=args.damping,
+        noise=args.noise,
+        voluntary_rms=args.voluntary,
+        prbs_phase=args.prbs_phase,
+        seed=args.seed,
+        arm=arm,
+    )
     if args.case == "robot":
         from closedloop.impedance.mujoco_sim import simulate_robot
+
         sim = simulate_robot(cfg)
     else:
         if args.engine == "mujoco":
@@ -81,15 +93,27 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     data = out / f"data.{args.format}"
     write_record(data, sim.record)
     write_truth(out / "truth.csv", sim.truth)
-    print(f"simulated {cfg.n_cycles} cycles ({args.case}, {args.engine if args.case == 'forearm' else 'mujoco'}) "
-          f"in {sim.seconds:.2f} s -> {data}")
-    print(f"  noise std: angle {sim.noise_std[0]:.3g} rad, torque {sim.noise_std[1]:.3g} N m; "
-          f"truth -> {out / 'truth.csv'}")
+    print(
+        f"simulated {cfg.n_cycles} cycles ({args.case}, {args.engine if args.case == 'forearm' else 'mujoco'}) "
+        f"in {sim.seconds:.2f} s -> {data}"
+    )
+    print(
+        f"  noise std: angle {sim.noise_std[0]:.3g} rad, torque {sim.noise_std[1]:.3g} N m; "
+        f"truth -> {out / 'truth.csv'}"
+    )
     if args.postures and args.case == "forearm":
-        k0, b0 = cfg.stiffness.values[0], cfg.damping.values[0]      # postures: the profiles' base values
+        k0, b0 = cfg.stiffness.values[0], cfg.damping.values[0]  # postures: the profiles' base values
         for q in (0.0, 0.5, 1.0):
-            pc = ExperimentConfig(n_cycles=5, cycles_per_block=5, stiffness=k0, damping=b0,
-                                  noise=args.noise, posture=q, seed=args.seed + 1, arm=arm)
+            pc = ExperimentConfig(
+                n_cycles=5,
+                cycles_per_block=5,
+                stiffness=k0,
+                damping=b0,
+                noise=args.noise,
+                posture=q,
+                seed=args.seed + 1,
+                arm=arm,
+            )
             ps = simulate(pc, "rk4")
             write_record(out / f"posture_{q:g}.{args.format}", ps.record)
             kq = ps.truth["K"][0]
@@ -98,7 +122,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _onsets(rec, args):
-    from closedloop.impedance.data import ImpedanceDataError, onsets_from_events, onsets_from_peak_velocity, onsets_from_times
+    from closedloop.impedance.data import (
+        ImpedanceDataError,
+        onsets_from_events,
+        onsets_from_peak_velocity,
+        onsets_from_times,
+    )
+
     if args.segment == "events":
         return onsets_from_events(rec)
     if args.segment == "peak-velocity":
@@ -118,59 +148,75 @@ def _onsets(rec, args):
 
 
 def cmd_identify(args: argparse.Namespace) -> int:
+    from closedloop.cli.parse import check_number
     from closedloop.impedance.bootstrap import bootstrap, free_run_vaf
     from closedloop.impedance.data import read_record, segment
     from closedloop.impedance.estimate import EstimateOptions, estimate, posture_fit
     from closedloop.impedance.metrics import coverage, rel_errors
     from closedloop.impedance.results import read_truth, resample_truth, write_results
-    from closedloop.cli.parse import check_number
 
     args.max_shift_ms = check_number("--max-shift-ms", args.max_shift_ms, 0.0, 1e6)
     args.bootstrap = check_number("--bootstrap", args.bootstrap, 0, 10**6, integer=True)
     args.folds = check_number("--folds", args.folds, 0, 10**6, integer=True)
-    for opt_name, path, kinds in (("--plot", args.plot, (".png", ".svg", ".pdf")), ("--out", args.out, (".csv", ".json"))):
+    for opt_name, path, kinds in (
+        ("--plot", args.plot, (".png", ".svg", ".pdf")),
+        ("--out", args.out, (".csv", ".json")),
+    ):
         if path and Path(path).suffix.lower() not in kinds:
             raise InputError(f"{opt_name} {path}: give a {', '.join(kinds)} file")
     t0 = time.perf_counter()
     rec = read_record(args.data)
     pre = None if args.prefilter is None else (0.0 if args.prefilter.lower() == "none" else _float(args.prefilter))
-    opt = EstimateOptions.for_method(args.method, prefilter_hz=pre, lag_ms=args.lag_ms, pool_ms=args.pool_ms,
-                                     smooth_ms=args.smooth_ms)
+    opt = EstimateOptions.for_method(
+        args.method, prefilter_hz=pre, lag_ms=args.lag_ms, pool_ms=args.pool_ms, smooth_ms=args.smooth_ms
+    )
     ens = segment(rec, _onsets(rec, args), period=args.period, align=args.align, max_shift_s=args.max_shift_ms / 1e3)
     est = estimate(ens, options=opt, warn=False)
     t_est = time.perf_counter() - t0
-    print(f"identified I(t), B(t), K(t) from {ens.n} cycles of {ens.length / ens.fs:.3g} s ({args.method}) "
-          f"in {t_est:.2f} s")
+    print(
+        f"identified I(t), B(t), K(t) from {ens.n} cycles of {ens.length / ens.fs:.3g} s ({args.method}) "
+        f"in {t_est:.2f} s"
+    )
     if any(ens.excluded.values()):
         print("  excluded cycles: " + ", ".join(f"{k} {v}" for k, v in ens.excluded.items() if v))
     summary = {"method": args.method, "cycles": ens.n, "excluded": ens.excluded, "warnings": list(est.warnings)}
     if ens.alignment is not None and args.align != "none":
         a = ens.alignment.summary()
         summary["alignment"] = a
-        print(f"  alignment {a['method']}: shifts mean {a['mean_ms']:.1f} ms, std {a['std_ms']:.1f} ms, "
-              f"max |{a['max_abs_ms']:.1f}| ms, {a['at_limit']} at the limit")
+        print(
+            f"  alignment {a['method']}: shifts mean {a['mean_ms']:.1f} ms, std {a['std_ms']:.1f} ms, "
+            f"max |{a['max_abs_ms']:.1f}| ms, {a['at_limit']} at the limit"
+        )
         summary["warnings"] += a["warnings"]
     bands = bootstrap(ens, opt, args.bootstrap, seed=args.seed) if args.bootstrap > 0 else None
     fit = free_run_vaf(ens, opt, args.folds, seed=args.seed) if args.folds > 1 else None
     for k, unit in (("I", "kg m^2"), ("B", "N m s/rad"), ("K", "N m/rad")):
         v = getattr(est, k)
-        print(f"  {k}: median {np.nanmedian(v):.4g} {unit}, range {np.nanmin(v):.4g} .. {np.nanmax(v):.4g}"
-              + (f", mean 95 % band half-width {np.nanmean(bands.hi[k] - bands.lo[k]) / 2:.3g}" if bands else ""))
-    print(f"  natural frequency median {np.nanmedian(est.wn) / 2 / np.pi:.3g} Hz, "
-          f"damping ratio {np.nanmedian(est.zeta):.3g}")
+        print(
+            f"  {k}: median {np.nanmedian(v):.4g} {unit}, range {np.nanmin(v):.4g} .. {np.nanmax(v):.4g}"
+            + (f", mean 95 % band half-width {np.nanmean(bands.hi[k] - bands.lo[k]) / 2:.3g}" if bands else "")
+        )
+    print(
+        f"  natural frequency median {np.nanmedian(est.wn) / 2 / np.pi:.3g} Hz, "
+        f"damping ratio {np.nanmedian(est.zeta):.3g}"
+    )
     if fit is not None:
         summary["vaf_free_run"] = fit.vaf
         print(f"  free-run VAF on held-out cycles ({fit.folds}-fold): {fit.vaf:.2f} %")
         if not fit.vaf > 90.0:
-            summary["warnings"].append(f"free-run VAF {fit.vaf:.3g} % on held-out cycles: the identified model "
-                                       "does not predict the perturbations")
+            summary["warnings"].append(
+                f"free-run VAF {fit.vaf:.3g} % on held-out cycles: the identified model "
+                "does not predict the perturbations"
+            )
     posture = {}
     for f in args.posture:
         prec = read_record(f)
         pens = segment(prec, _posture_onsets(prec, args.period), period=args.period)
         posture[Path(f).stem] = posture_fit(pens, args.method if args.method != "thesis" else "default")
-        print(f"  posture {Path(f).stem}: I {posture[Path(f).stem][0]:.4g}, B {posture[Path(f).stem][1]:.4g}, "
-              f"K {posture[Path(f).stem][2]:.4g}")
+        print(
+            f"  posture {Path(f).stem}: I {posture[Path(f).stem][0]:.4g}, B {posture[Path(f).stem][1]:.4g}, "
+            f"K {posture[Path(f).stem][2]:.4g}"
+        )
     summary["posture"] = posture
     truth = None
     if args.truth:
@@ -189,6 +235,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
         print(f"  wrote {write_results(args.out, est, bands, fit, summary)}")
     if args.plot:
         from closedloop.impedance.plots import plot_impedance
+
         print(f"  wrote {plot_impedance(args.plot, est, ens, bands, truth, posture)}")
     return 0
 
@@ -203,6 +250,7 @@ def _float(text: str) -> float:
 def _posture_onsets(rec, period: float | None):
     """Posture records: event onsets if present, else consecutive chunks of `period` (default 2 s)."""
     from closedloop.impedance.data import onsets_from_events, onsets_from_times
+
     if rec.event is not None and np.any(rec.event):
         return onsets_from_events(rec)
     return onsets_from_times(rec, np.arange(rec.time[0], rec.time[-1], period or 2.0))

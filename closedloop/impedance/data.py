@@ -49,9 +49,18 @@ class Record:
         return float(1.0 / np.median(d))
 
     def columns(self) -> dict[str, np.ndarray]:
-        return {k: v for k, v in (("time", self.time), ("angle", self.angle), ("torque", self.torque),
-                                  ("command", self.command), ("event", self.event), ("block", self.block))
-                if v is not None}
+        return {
+            k: v
+            for k, v in (
+                ("time", self.time),
+                ("angle", self.angle),
+                ("torque", self.torque),
+                ("command", self.command),
+                ("event", self.event),
+                ("block", self.block),
+            )
+            if v is not None
+        }
 
 
 def write_record(path: str | Path, rec: Record) -> None:
@@ -60,14 +69,14 @@ def write_record(path: str | Path, rec: Record) -> None:
     cols = rec.columns()
     if path.suffix in (".h5", ".hdf5"):
         import h5py
+
         with h5py.File(path, "w") as f:
             for k, v in cols.items():
                 f.create_dataset(k, data=v).attrs["units"] = UNITS[k]
         return
     fmt = {"time": "%.6f", "event": "%d", "block": "%d"}
     arr = np.column_stack([cols[k] for k in cols])
-    np.savetxt(path, arr, delimiter=",", header=",".join(cols), comments="",
-               fmt=[fmt.get(k, "%.9g") for k in cols])
+    np.savetxt(path, arr, delimiter=",", header=",".join(cols), comments="", fmt=[fmt.get(k, "%.9g") for k in cols])
 
 
 def read_record(path: str | Path) -> Record:
@@ -77,6 +86,7 @@ def read_record(path: str | Path) -> Record:
         raise ImpedanceDataError(f"{path}: no such file")
     if path.suffix in (".h5", ".hdf5"):
         import h5py
+
         with h5py.File(path, "r") as f:
             cols = {k: np.asarray(f[k][()], float) for k in UNITS if k in f}
     else:
@@ -98,8 +108,14 @@ def read_record(path: str | Path) -> Record:
             raise ImpedanceDataError(f"{path}: column '{k}' row {bad[0] + 1} is not finite")
     if len(cols["time"]) < 10 or np.any(np.diff(cols["time"]) <= 0) and "block" not in cols:
         raise ImpedanceDataError(f"{path}: time must increase and have at least 10 rows")
-    return Record(cols["time"], cols["angle"], cols["torque"], cols.get("command"),
-                  cols.get("event"), cols["block"].astype(int) if "block" in cols else None)
+    return Record(
+        cols["time"],
+        cols["angle"],
+        cols["torque"],
+        cols.get("command"),
+        cols.get("event"),
+        cols["block"].astype(int) if "block" in cols else None,
+    )
 
 
 @dataclass
@@ -120,9 +136,15 @@ class AlignmentReport:
 
     def summary(self) -> dict:
         ms = self.shifts / self.fs * 1e3
-        return {"method": self.method, "mean_ms": float(ms.mean()), "std_ms": float(ms.std()),
-                "max_abs_ms": float(np.abs(ms).max()), "at_limit": int(np.sum(np.abs(self.shifts) >= self.max_shift))
-                if self.max_shift else 0, "histogram": self.histogram(), "warnings": self.warnings}
+        return {
+            "method": self.method,
+            "mean_ms": float(ms.mean()),
+            "std_ms": float(ms.std()),
+            "max_abs_ms": float(np.abs(ms).max()),
+            "at_limit": int(np.sum(np.abs(self.shifts) >= self.max_shift)) if self.max_shift else 0,
+            "histogram": self.histogram(),
+            "warnings": self.warnings,
+        }
 
 
 @dataclass
@@ -135,7 +157,7 @@ class Ensemble:
     angle: np.ndarray
     torque: np.ndarray
     command: np.ndarray | None
-    onsets: np.ndarray                 # (n, 2): block, sample index of the (aligned) onset
+    onsets: np.ndarray  # (n, 2): block, sample index of the (aligned) onset
     alignment: AlignmentReport | None = None
     excluded: dict[str, int] = field(default_factory=dict)
 
@@ -159,8 +181,17 @@ class Ensemble:
 
     def subset(self, idx: np.ndarray) -> "Ensemble":
         c = None if self.command is None else self.command[idx]
-        return Ensemble(self.fs, self.pad, self.length, self.angle[idx], self.torque[idx], c,
-                        self.onsets[idx], self.alignment, dict(self.excluded))
+        return Ensemble(
+            self.fs,
+            self.pad,
+            self.length,
+            self.angle[idx],
+            self.torque[idx],
+            c,
+            self.onsets[idx],
+            self.alignment,
+            dict(self.excluded),
+        )
 
 
 def _blocks(rec: Record) -> list[tuple[int, np.ndarray]]:
@@ -203,6 +234,7 @@ def onsets_from_peak_velocity(rec: Record, period: float, lead: float | None = N
     alignment by ~8 ms in the thesis's simulation), which spoils the mean removal: prefer an event
     channel (the pacing clicks, thesis 9.1) when there is one."""
     from scipy.signal import find_peaks
+
     fs, lead = rec.fs, period / 4 if lead is None else lead
     out = []
     for b, idx in _blocks(rec):
@@ -210,16 +242,23 @@ def onsets_from_peak_velocity(rec: Record, period: float, lead: float | None = N
         pk, _ = find_peaks(v, distance=max(1, int(0.6 * period * fs)), height=0.3 * np.max(v))
         h = int(0.25 * period * fs)
         for p in pk:
-            seg = v[max(p - h, 0):p + h]
+            seg = v[max(p - h, 0) : p + h]
             w = np.clip(seg - 0.9 * v[p], 0, None)
             c = max(p - h, 0) + (w * np.arange(len(seg))).sum() / w.sum()
             out.append((b, int(round(c - lead * fs))))
     return out
 
 
-def segment(rec: Record, onsets: list[tuple[int, int]], period: float | None = None, pad_s: float = 0.35,
-            max_shift_s: float = 0.05, length_tol: float = 0.2, align: str = "none",
-            rms_iterations: int = 1) -> Ensemble:
+def segment(
+    rec: Record,
+    onsets: list[tuple[int, int]],
+    period: float | None = None,
+    pad_s: float = 0.35,
+    max_shift_s: float = 0.05,
+    length_tol: float = 0.2,
+    align: str = "none",
+    rms_iterations: int = 1,
+) -> Ensemble:
     """Cut cycles of fixed length (median onset spacing, or `period`) with padding; exclusion rules:
     irregular spacing (outside +-length_tol of the length), incomplete padding, RMS outliers (> 5x the
     median RMS deviation from the mean).  Then align (`none`, `peak-velocity`, `rms`, `peak-velocity+rms`).
@@ -255,8 +294,7 @@ def segment(rec: Record, onsets: list[tuple[int, int]], period: float | None = N
     width = L + 2 * (P + S)
 
     def cut(sig, shifts):
-        return np.stack([sig[blocks[b]][s - P - S + d: s - P - S + d + width]
-                         for (b, s), d in zip(cand, shifts)])
+        return np.stack([sig[blocks[b]][s - P - S + d : s - P - S + d + width] for (b, s), d in zip(cand, shifts)])
 
     shifts = np.zeros(len(cand), int)
     rep = AlignmentReport(align, shifts, fs, S)
@@ -276,22 +314,23 @@ def segment(rec: Record, onsets: list[tuple[int, int]], period: float | None = N
     return Ensemble(fs, P, L, ang[keep], torq, cmd, onset_arr, rep, excluded)
 
 
-def _align(ang: np.ndarray, fs: float, off: int, L: int, S: int, method: str, iters: int,
-           rep: AlignmentReport) -> np.ndarray:
+def _align(
+    ang: np.ndarray, fs: float, off: int, L: int, S: int, method: str, iters: int, rep: AlignmentReport
+) -> np.ndarray:
     """Shifts (samples, |shift| <= S) by peak velocity and/or RMS re-alignment to the mean (9.5.1)."""
     n = ang.shape[0]
     shifts = np.zeros(n, int)
-    if "peak" in method:   # centroid of the 3 Hz-smoothed velocity above 90 % of its peak (sub-sample)
-        v = _smooth_velocity(ang, fs, 3.0)[:, off:off + L]
+    if "peak" in method:  # centroid of the 3 Hz-smoothed velocity above 90 % of its peak (sub-sample)
+        v = _smooth_velocity(ang, fs, 3.0)[:, off : off + L]
         w = np.clip(v - 0.9 * v.max(axis=1, keepdims=True), 0, None)
         pk = (w * np.arange(L)).sum(1) / w.sum(1)
         shifts = np.clip(np.round(pk - np.median(pk)).astype(int), -S, S)
     if "rms" in method:
         cand = np.arange(-S, S + 1)
         for _ in range(max(1, iters)):
-            seg = np.stack([ang[i, off + shifts[i] - S: off + shifts[i] + L + S] for i in range(n)])
-            mean = np.mean(seg[:, S:S + L], axis=0)
-            win = np.lib.stride_tricks.sliding_window_view(seg, L, axis=1)      # (n, 2S+1, L)
+            seg = np.stack([ang[i, off + shifts[i] - S : off + shifts[i] + L + S] for i in range(n)])
+            mean = np.mean(seg[:, S : S + L], axis=0)
+            win = np.lib.stride_tricks.sliding_window_view(seg, L, axis=1)  # (n, 2S+1, L)
             rms = np.mean((win - mean) ** 2, axis=2)
             shifts = np.clip(shifts + cand[np.argmin(rms, axis=1)], -S, S)
     if method not in ("peak-velocity", "rms", "peak-velocity+rms"):
@@ -299,12 +338,16 @@ def _align(ang: np.ndarray, fs: float, off: int, L: int, S: int, method: str, it
     ms = shifts / fs * 1e3
     rep.shifts = shifts
     if np.mean(np.abs(shifts) >= S) > 0.05:
-        rep.warnings.append(f"{np.mean(np.abs(shifts) >= S):.0%} of the cycles hit the maximum shift "
-                            f"({S / fs * 1e3:.0f} ms): alignment is pulled by the perturbations")
+        rep.warnings.append(
+            f"{np.mean(np.abs(shifts) >= S):.0%} of the cycles hit the maximum shift "
+            f"({S / fs * 1e3:.0f} ms): alignment is pulled by the perturbations"
+        )
     if np.std(ms) > 5:
-        rep.warnings.append(f"alignment shifts spread {np.std(ms):.1f} ms (std): perturbation responses pull "
-                            "peak-velocity and RMS alignment and invent shifts on periodic data; compare with "
-                            "--align none")
+        rep.warnings.append(
+            f"alignment shifts spread {np.std(ms):.1f} ms (std): perturbation responses pull "
+            "peak-velocity and RMS alignment and invent shifts on periodic data; compare with "
+            "--align none"
+        )
     for w in rep.warnings:
         log.warning(w)
     return shifts

@@ -46,9 +46,11 @@ def single_thread():
     problems, for which threads only add contention (100x slower on a loaded 2-core machine)."""
     try:
         from threadpoolctl import threadpool_limits
+
         return threadpool_limits(1)
-    except ImportError:   # pragma: no cover
+    except ImportError:  # pragma: no cover
         from contextlib import nullcontext
+
         return nullcontext()
 
 
@@ -64,18 +66,20 @@ class EstimateOptions:
     direct_term: bool = True
     pool_ms: float = 15.0
     smooth_ms: float = 0.0
-    noise_ratio: float | None = None     # std(angle noise)/std(torque noise); None = estimated
-    taps: int | None = None              # torque samples over [c-D, c+D]; None: 5 if their spacing D/2 is
-                                         # at least 1/(5 f_c) of the pre-filter, else 3 (the lags only)
-    iv_lags: int = 10                    # instruments: command at c+D, c, ..., c-(iv_lags-2) D (2SLS)
+    noise_ratio: float | None = None  # std(angle noise)/std(torque noise); None = estimated
+    taps: int | None = None  # torque samples over [c-D, c+D]; None: 5 if their spacing D/2 is
+    # at least 1/(5 f_c) of the pre-filter, else 3 (the lags only)
+    iv_lags: int = 10  # instruments: command at c+D, c, ..., c-(iv_lags-2) D (2SLS)
     order: int = 4
 
     @classmethod
     def for_method(cls, method: str, **kw) -> "EstimateOptions":
         if method not in METHODS:
             raise InputError(f"method '{method}': expected one of {', '.join(METHODS)}")
-        base = {"thesis": dict(prefilter_hz=None, lag_ms=0.0, direct_term=False, noise_ratio=1.0, pool_ms=0.0),
-                "iv": dict(pool_ms=50.0, smooth_ms=30.0)}.get(method, {})
+        base = {
+            "thesis": dict(prefilter_hz=None, lag_ms=0.0, direct_term=False, noise_ratio=1.0, pool_ms=0.0),
+            "iv": dict(pool_ms=50.0, smooth_ms=30.0),
+        }.get(method, {})
         base.update({k: v for k, v in kw.items() if v is not None})
         return cls(method=method, **base)
 
@@ -88,7 +92,7 @@ class ImpedanceEstimate:
     I: np.ndarray
     B: np.ndarray
     K: np.ndarray
-    cond: np.ndarray                     # condition number of the scaled regressor moment matrix
+    cond: np.ndarray  # condition number of the scaled regressor moment matrix
     options: EstimateOptions
     lag: int
     warnings: list[str] = field(default_factory=list)
@@ -147,7 +151,7 @@ def design(ens: Ensemble, opt: EstimateOptions, ref: Ensemble | None = None) -> 
         s_th, s_tau = max(noise_std(dth), 1e-12), max(noise_std(dtau), 1e-12)
     dth, dtau = lowpass(dth, fs, opt.prefilter_hz, opt.order), lowpass(dtau, fs, opt.prefilter_hz, opt.order)
     c = P + np.arange(L)
-    if opt.method == "thesis":   # newest sample k = c; lags k-1, k-2 (eq. 9.10), stamped at k
+    if opt.method == "thesis":  # newest sample k = c; lags k-1, k-2 (eq. 9.10), stamped at k
         idx = [c, c - 1, c - 2]
     else:
         idx = [c + D, c, c - D]
@@ -160,7 +164,7 @@ def design(ens: Ensemble, opt: EstimateOptions, ref: Ensemble | None = None) -> 
     cols = [dth[:, i] / s_th for i in idx] + [dtau[:, i] / s_tau for i in tidx]
     if opt.method == "thesis" or not opt.direct_term:
         cols.pop(3)
-    X = np.stack(cols, axis=-1).transpose(1, 0, 2)                   # (L, n, m)
+    X = np.stack(cols, axis=-1).transpose(1, 0, 2)  # (L, n, m)
     Z = None
     if opt.method == "iv":
         if du is None:
@@ -202,8 +206,9 @@ def pool(M: np.ndarray, half: int) -> np.ndarray:
     return np.take(cs, hi, axis=-3) - np.take(cs, lo, axis=-3)
 
 
-def solve(Mxx: np.ndarray, Mzx: np.ndarray | None, method: str,
-          start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+def solve(
+    Mxx: np.ndarray, Mzx: np.ndarray | None, method: str, start: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
     """Null vector p (normalised p[0] = 1, in scaled units) and the regressor condition number.
 
     TLS (eq. 9.13): the eigenvector of the smallest eigenvalue of J^T J, one batched `eigh`; with a
@@ -211,7 +216,7 @@ def solve(Mxx: np.ndarray, Mzx: np.ndarray | None, method: str,
     R = Mxx[..., 1:, 1:]
     cond = None
     with np.errstate(invalid="ignore", divide="ignore"):
-        if start is None:   # condition of the regressors' correlation matrix (scale-free)
+        if start is None:  # condition of the regressors' correlation matrix (scale-free)
             dg = 1.0 / np.sqrt(np.maximum(np.diagonal(R, axis1=-2, axis2=-1), 1e-300))
             ev = np.linalg.eigvalsh(R * dg[..., :, None] * dg[..., None, :])
             cond = ev[..., -1] / np.maximum(ev[..., 0], 1e-300)
@@ -227,7 +232,7 @@ def solve(Mxx: np.ndarray, Mzx: np.ndarray | None, method: str,
         elif method == "ols":
             beta = np.linalg.solve(R, Mxx[..., 1:, :1])[..., 0]
             p = np.concatenate([np.ones_like(beta[..., :1]), -beta], axis=-1)
-        else:   # two-stage least squares: beta = (A^T W A)^-1 A^T W b, A = Z^T X, W = (Z^T Z)^-1
+        else:  # two-stage least squares: beta = (A^T W A)^-1 A^T W b, A = Z^T X, W = (Z^T Z)^-1
             m = Mxx.shape[-1]
             A, bz, Wz = Mzx[..., :, 1:m], Mzx[..., :, :1], np.linalg.inv(Mzx[..., :, m:])
             AtW = np.swapaxes(A, -1, -2) @ Wz
@@ -243,7 +248,7 @@ def to_ibk(p: np.ndarray, scale: np.ndarray, T: float) -> tuple[np.ndarray, np.n
     q = q / q[..., :1]
     a1, a2 = q[..., 1], q[..., 2]
     b = -q[..., 3:].sum(-1)
-    disc = np.sqrt((a1 ** 2 - 4 * a2).astype(complex))
+    disc = np.sqrt((a1**2 - 4 * a2).astype(complex))
     z1, z2 = (-a1 + disc) / 2, (-a1 - disc) / 2
     with np.errstate(invalid="ignore", divide="ignore"):
         s1, s2 = np.log(z1) / T, np.log(z2) / T
@@ -254,8 +259,9 @@ def to_ibk(p: np.ndarray, scale: np.ndarray, T: float) -> tuple[np.ndarray, np.n
     return I, B, K
 
 
-def estimate(ens: Ensemble, method: str = "default", options: EstimateOptions | None = None,
-             warn: bool = True, **kw) -> ImpedanceEstimate:
+def estimate(
+    ens: Ensemble, method: str = "default", options: EstimateOptions | None = None, warn: bool = True, **kw
+) -> ImpedanceEstimate:
     """Identify I(t), B(t), K(t) at every instant of the cycle (see the module docstring)."""
     opt = options or EstimateOptions.for_method(method, **kw)
     with single_thread():
@@ -285,21 +291,27 @@ def diagnose(est: ImpedanceEstimate, n: int) -> list[str]:
     bad = ~np.isfinite(est.cond) | (est.cond > COND_WARN)
     if np.mean(bad) > 0.02:
         t = est.t[bad]
-        out.append(f"ill-conditioned regressors at {np.mean(bad):.0%} of the instants (first at {t[0]:.3f} s):"
-                   " the perturbation may be locked to the cycle clock or too weak")
+        out.append(
+            f"ill-conditioned regressors at {np.mean(bad):.0%} of the instants (first at {t[0]:.3f} s):"
+            " the perturbation may be locked to the cycle clock or too weak"
+        )
     nan = ~np.isfinite(est.I + est.B + est.K)
     if np.mean(nan) > 0.01:
         out.append(f"no valid (I, B, K) at {np.mean(nan):.0%} of the instants (complex or unstable poles)")
     I = est.I[~nan]
     if I.size and np.median(I) <= 0:
-        out.append("the estimated inertia is not positive: the model does not fit (check segmentation and "
-                   "alignment: misaligned cycles leave the mean movement in the perturbations)")
-    elif I.size > 10:   # on the 50 ms-smoothed curve: random error alone is not a warning
+        out.append(
+            "the estimated inertia is not positive: the model does not fit (check segmentation and "
+            "alignment: misaligned cycles leave the mean movement in the perturbations)"
+        )
+    elif I.size > 10:  # on the 50 ms-smoothed curve: random error alone is not a warning
         Is = gaussian_filter1d(I, 0.05 / max(est.t[1] - est.t[0], 1e-9), mode="nearest")
         dev = np.max(np.abs(Is - np.median(I))) / np.median(I)
         if dev > 0.10:
-            out.append(f"estimated inertia varies by +-{dev:.0%} over the cycle (more than +-10 %): noise, "
-                       "misalignment or unmodelled dynamics")
+            out.append(
+                f"estimated inertia varies by +-{dev:.0%} over the cycle (more than +-10 %): noise, "
+                "misalignment or unmodelled dynamics"
+            )
     if n < 30:
         out.append(f"only {n} cycles: estimates will be noisy")
     return out

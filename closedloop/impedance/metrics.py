@@ -39,8 +39,8 @@ def rise_times(t: np.ndarray, est: np.ndarray, truth: np.ndarray, half_window: f
         if j - w < 0 or j + w >= len(t):
             continue
         lo, hi = truth[j - 1], truth[j]
-        y = (est[j - w:j + w] - lo) / (hi - lo)                       # 0 before, 1 after
-        tt = t[j - w:j + w]
+        y = (est[j - w : j + w] - lo) / (hi - lo)  # 0 before, 1 after
+        tt = t[j - w : j + w]
         try:
             t10 = _cross(tt, y, 0.1)
             t90 = _cross(tt, y, 0.9)
@@ -59,12 +59,13 @@ def mean_rise_time(t: np.ndarray, est: np.ndarray, truth: np.ndarray, half_windo
     jumps = np.flatnonzero(np.abs(np.diff(truth)) > 0.2 * np.ptp(truth)) + 1
     fs = 1.0 / (t[1] - t[0])
     w = int(half_window * fs)
-    segs = [(e[j - w:j + w] - truth[j - 1]) / (truth[j] - truth[j - 1])
-            for j in jumps if w <= j < len(t) - w for e in est]
+    segs = [
+        (e[j - w : j + w] - truth[j - 1]) / (truth[j] - truth[j - 1]) for j in jumps if w <= j < len(t) - w for e in est
+    ]
     if not segs:
         return float("nan")
     y = np.nanmean(segs, axis=0)
-    tt = t[:2 * w] - t[0]
+    tt = t[: 2 * w] - t[0]
     try:
         return float(_cross(tt, y, 0.9) - _cross(tt, y, 0.1))
     except ValueError:

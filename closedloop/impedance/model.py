@@ -31,6 +31,7 @@ import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
 from closedloop.errors import InputError
+from closedloop.impedance.data import Record
 
 log = logging.getLogger(__name__)
 G = 9.8
@@ -108,7 +109,7 @@ class ForearmParams:
 
     @property
     def I_a(self) -> float:
-        return self.m_a * self.r_a ** 2
+        return self.m_a * self.r_a**2
 
     @property
     def mgr(self) -> float:
@@ -124,19 +125,19 @@ class ExperimentConfig:
     """The simulated experiment: cycles, sampling, perturbation, noise and variability."""
 
     n_cycles: int = 100
-    period: float = 2.0                 # s, one movement target 1 -> target 2 -> target 1
-    amplitude: float = 1.0              # rad peak to peak
-    fs: float = 600.0                   # Hz
+    period: float = 2.0  # s, one movement target 1 -> target 2 -> target 1
+    amplitude: float = 1.0  # rad peak to peak
+    fs: float = 600.0  # Hz
     stiffness: Profile = field(default_factory=lambda: Profile("constant", (20.0,)))
     damping: Profile = field(default_factory=lambda: Profile("constant", (1.0,)))
-    prbs_amplitude: float = 1.6         # N m
-    prbs_element: float = 0.020         # s
-    prbs_phase: str = "random"          # "random" per cycle or "locked" to the cycle clock
-    noise: float = 0.05                 # measurement noise std as a fraction of the perturbation std
-    voluntary_rms: float = 0.0          # N m, band-limited voluntary torque variability
-    voluntary_band: float = 3.0         # Hz
+    prbs_amplitude: float = 1.6  # N m
+    prbs_element: float = 0.020  # s
+    prbs_phase: str = "random"  # "random" per cycle or "locked" to the cycle clock
+    noise: float = 0.05  # measurement noise std as a fraction of the perturbation std
+    voluntary_rms: float = 0.0  # N m, band-limited voluntary torque variability
+    voluntary_band: float = 3.0  # Hz
     cycles_per_block: int = 10
-    posture: float | None = None        # hold this angle (rad) instead of moving
+    posture: float | None = None  # hold this angle (rad) instead of moving
     seed: int = 0
     arm: ForearmParams = field(default_factory=ForearmParams)
 
@@ -161,12 +162,12 @@ class ExperimentConfig:
 class Trajectory:
     """Nominal trajectory and gains on the sample grid of one block (held over each interval)."""
 
-    t: np.ndarray          # (N,) time from block start
+    t: np.ndarray  # (N,) time from block start
     theta_d: np.ndarray
     theta_ref: np.ndarray
     K: np.ndarray
     B: np.ndarray
-    tau_nom: np.ndarray    # measured torque of the unperturbed movement
+    tau_nom: np.ndarray  # measured torque of the unperturbed movement
 
 
 def nominal(cfg: ExperimentConfig, n_samples: int) -> Trajectory:
@@ -178,7 +179,7 @@ def nominal(cfg: ExperimentConfig, n_samples: int) -> Trajectory:
     if cfg.posture is None:
         th = cfg.amplitude / 2 * (1 - np.cos(w * t))
         thd = cfg.amplitude / 2 * w * np.sin(w * t)
-        thdd = cfg.amplitude / 2 * w ** 2 * np.cos(w * t)
+        thdd = cfg.amplitude / 2 * w**2 * np.cos(w * t)
     else:
         th, thd, thdd = np.full_like(t, cfg.posture), np.zeros_like(t), np.zeros_like(t)
     K, B = cfg.stiffness(tc, cfg.period), cfg.damping(tc, cfg.period)
@@ -198,7 +199,7 @@ def prbs(cfg: ExperimentConfig, n_samples: int, rng: np.random.Generator) -> np.
     out = np.empty((cfg.n_blocks, n_cyc * L))
     for b in range(cfg.n_blocks):
         ph = rng.integers(0, e, n_cyc) if cfg.prbs_phase == "random" else np.zeros(n_cyc, int)
-        elem = (k[None, :] + ph[:, None]) // e                              # element index within cycle
+        elem = (k[None, :] + ph[:, None]) // e  # element index within cycle
         signs = rng.choice([-1.0, 1.0], size=(n_cyc, elem.max() + 1))
         out[b] = np.take_along_axis(signs, elem, axis=1).ravel()
     return cfg.prbs_amplitude * out[:, :n_samples]
@@ -210,7 +211,7 @@ def voluntary(cfg: ExperimentConfig, n_samples: int, rng: np.random.Generator) -
         return np.zeros((cfg.n_blocks, n_samples))
     sos = butter(4, cfg.voluntary_band, fs=cfg.fs, output="sos")
     x = sosfiltfilt(sos, rng.standard_normal((cfg.n_blocks, n_samples)), axis=1)
-    return cfg.voluntary_rms * x / np.sqrt(np.mean(x ** 2))
+    return cfg.voluntary_rms * x / np.sqrt(np.mean(x**2))
 
 
 def rk4_blocks(cfg: ExperimentConfig, nom: Trajectory, u: np.ndarray, tv: np.ndarray) -> np.ndarray:
@@ -244,9 +245,14 @@ def truth_curves(cfg: ExperimentConfig) -> dict[str, np.ndarray]:
     """I(t), B(t), K_eff(t) = K(t) - m g r cos th_0(t) over one cycle (analytic truth of eq. 7.9)."""
     nom = nominal(cfg, cfg.samples_per_cycle)
     a = cfg.arm
-    return {"t": nom.t, "I": np.full_like(nom.t, a.I), "B": nom.B.copy(),
-            "K": nom.K - a.mgr * np.cos(nom.theta_d), "K_muscle": nom.K.copy(),
-            "theta0": nom.theta_d.copy()}
+    return {
+        "t": nom.t,
+        "I": np.full_like(nom.t, a.I),
+        "B": nom.B.copy(),
+        "K": nom.K - a.mgr * np.cos(nom.theta_d),
+        "K_muscle": nom.K.copy(),
+        "theta0": nom.theta_d.copy(),
+    }
 
 
 def natural(I: np.ndarray, B: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -259,10 +265,10 @@ def natural(I: np.ndarray, B: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np
 class Simulation:
     """A simulated record with its ground truth and the noise actually added."""
 
-    record: "Record"
+    record: Record
     truth: dict[str, np.ndarray]
     config: ExperimentConfig
-    noise_std: tuple[float, float]     # angle (rad), torque (N m)
+    noise_std: tuple[float, float]  # angle (rad), torque (N m)
     seconds: float = 0.0
 
 
@@ -272,9 +278,10 @@ def simulate(cfg: ExperimentConfig, engine: str = "rk4") -> Simulation:
     `engine` is "rk4" (this module) or "mujoco" (`mujoco_sim`).  Noise: Gaussian on angle and torque with
     std `noise` times the std of the perturbation (signal minus nominal)."""
     import time as _time
+
     t0 = _time.perf_counter()
     rng = np.random.default_rng(cfg.seed)
-    L, nb = cfg.samples_per_cycle, cfg.n_blocks
+    L = cfg.samples_per_cycle
     N = (cfg.cycles_per_block + 2) * L
     nom = nominal(cfg, N)
     u = prbs(cfg, N, rng)
@@ -283,6 +290,7 @@ def simulate(cfg: ExperimentConfig, engine: str = "rk4") -> Simulation:
         st = rk4_blocks(cfg, nom, u, tv)
     elif engine == "mujoco":
         from closedloop.impedance.mujoco_sim import forearm_rollout
+
         st = forearm_rollout(cfg, nom, u, tv)
     else:
         raise InputError(f"engine '{engine}': expected rk4 or mujoco")
@@ -298,17 +306,22 @@ def simulate(cfg: ExperimentConfig, engine: str = "rk4") -> Simulation:
     return Simulation(rec, truth_curves(cfg), cfg, (s_th, s_tau), _time.perf_counter() - t0)
 
 
-def block_record(cfg: ExperimentConfig, th: np.ndarray, tau: np.ndarray, u: np.ndarray) -> "Record":
+def block_record(cfg: ExperimentConfig, th: np.ndarray, tau: np.ndarray, u: np.ndarray) -> Record:
     """Blocks (n_blocks, N) -> one Record with a `block` column and events at the usable cycles' onsets
     (the lead-in cycle and the tail only pad them); a partial last block is trimmed."""
-    from closedloop.impedance.data import Record
     L, (nb, N) = cfg.samples_per_cycle, th.shape
     usable = np.full(nb, cfg.cycles_per_block)
     usable[-1] -= nb * cfg.cycles_per_block - cfg.n_cycles
     ev = np.zeros((nb, N), int)
     for b in range(nb):
-        ev[b, L:(usable[b] + 1) * L:L] = 1
+        ev[b, L : (usable[b] + 1) * L : L] = 1
     keep = (np.arange(N)[None, :] < ((usable + 2) * L)[:, None]).ravel()
     time = np.arange(nb * N) / cfg.fs
-    return Record(time[keep], th.ravel()[keep], tau.ravel()[keep], u.ravel()[keep], ev.ravel()[keep],
-                  np.repeat(np.arange(nb), N)[keep])
+    return Record(
+        time[keep],
+        th.ravel()[keep],
+        tau.ravel()[keep],
+        u.ravel()[keep],
+        ev.ravel()[keep],
+        np.repeat(np.arange(nb), N)[keep],
+    )

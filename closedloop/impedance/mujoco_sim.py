@@ -60,9 +60,17 @@ FOREARM_XML = """
 
 
 def forearm_xml(arm: ForearmParams, fs: float, airjet: bool = True) -> str:
-    ic = arm.I - arm.m * arm.r ** 2             # about the c.o.m., so that I about the elbow = arm.I
-    return FOREARM_XML.format(dt=1.0 / fs, g=-9.8 if arm.gravity else 0.0, r=arm.r, m=arm.m, ic=ic,
-                              ra=arm.r_a, ma=arm.m_a if airjet else 1e-9, gj=1.0 / arm.r_a)
+    ic = arm.I - arm.m * arm.r**2  # about the c.o.m., so that I about the elbow = arm.I
+    return FOREARM_XML.format(
+        dt=1.0 / fs,
+        g=-9.8 if arm.gravity else 0.0,
+        r=arm.r,
+        m=arm.m,
+        ic=ic,
+        ra=arm.r_a,
+        ma=arm.m_a if airjet else 1e-9,
+        gj=1.0 / arm.r_a,
+    )
 
 
 def forearm_rollout(cfg: ExperimentConfig, nom: Trajectory, u: np.ndarray, tv: np.ndarray) -> np.ndarray:
@@ -70,6 +78,7 @@ def forearm_rollout(cfg: ExperimentConfig, nom: Trajectory, u: np.ndarray, tv: n
     (th'' recovered from the cuff torque sensor), aligned with `model.rk4_blocks`."""
     import mujoco
     from mujoco import rollout
+
     m = mujoco.MjModel.from_xml_string(forearm_xml(cfg.arm, cfg.fs))
     d = mujoco.MjData(m)
     nb, N = u.shape
@@ -90,15 +99,17 @@ def forearm_rollout(cfg: ExperimentConfig, nom: Trajectory, u: np.ndarray, tv: n
     qvel = np.concatenate([np.zeros((nb, 1)), state[:, :-1, 2]], axis=1)
     a = cfg.arm
     tau_m = u - sens[..., 1]
-    acc = (u + a.magra * np.sin(qpos) - tau_m) / a.I_a       # from tau_m = u - I_a th'' + m_a g r_a sin th
+    acc = (u + a.magra * np.sin(qpos) - tau_m) / a.I_a  # from tau_m = u - I_a th'' + m_a g r_a sin th
     return np.stack([qpos, qvel, acc], axis=-1)
 
 
-def fd_truth(xml: str, qpos: np.ndarray, qvel: np.ndarray, qacc: np.ndarray, ctrl: np.ndarray,
-             joint: int = 0, eps: float = 1e-5) -> dict[str, np.ndarray]:
+def fd_truth(
+    xml: str, qpos: np.ndarray, qvel: np.ndarray, qacc: np.ndarray, ctrl: np.ndarray, joint: int = 0, eps: float = 1e-5
+) -> dict[str, np.ndarray]:
     """I, B, K_eff of joint `joint` by central differences of the torque an external agent applies,
     tau = qfrc_inverse - qfrc_actuator, about the nominal (qpos, qvel, qacc, ctrl) at every instant."""
     import mujoco
+
     m = mujoco.MjModel.from_xml_string(xml)
     d = mujoco.MjData(m)
     T = len(qpos)
@@ -124,16 +135,16 @@ def fd_truth(xml: str, qpos: np.ndarray, qvel: np.ndarray, qacc: np.ndarray, ctr
 def forearm_truth(cfg: ExperimentConfig) -> dict[str, np.ndarray]:
     """Finite-difference truth of the forearm (airjet removed: only the arm's inertia is identified)."""
     from closedloop.impedance.model import nominal
+
     L = cfg.samples_per_cycle
     nom = nominal(cfg, L)
     w = 2 * np.pi / cfg.period
-    qacc = cfg.amplitude / 2 * w ** 2 * np.cos(w * nom.t) if cfg.posture is None else np.zeros(L)
+    qacc = cfg.amplitude / 2 * w**2 * np.cos(w * nom.t) if cfg.posture is None else np.zeros(L)
     qvel = np.gradient(nom.theta_d, 1.0 / cfg.fs) if cfg.posture is None else np.zeros(L)
     if cfg.posture is None:
         qvel = cfg.amplitude / 2 * w * np.sin(w * nom.t)
     ctrl = np.stack([np.zeros(L), nom.K, nom.K * nom.theta_ref, nom.B, np.zeros(L)], axis=1)
-    tr = fd_truth(forearm_xml(cfg.arm, cfg.fs, airjet=False), nom.theta_d[:, None], qvel[:, None],
-                  qacc[:, None], ctrl)
+    tr = fd_truth(forearm_xml(cfg.arm, cfg.fs, airjet=False), nom.theta_d[:, None], qvel[:, None], qacc[:, None], ctrl)
     tr["t"] = nom.t
     tr["theta0"] = nom.theta_d
     return tr
@@ -163,19 +174,21 @@ ROBOT_XML = """
   </actuator>
 </mujoco>
 """
-SHOULDER = (0.5, 20000.0, 150.0)   # held angle (rad), stiffness, damping of the shoulder's impedance loop
+SHOULDER = (0.5, 20000.0, 150.0)  # held angle (rad), stiffness, damping of the shoulder's impedance loop
 
 
 def robot_nominal(cfg: ExperimentConfig, N: int):
     """Nominal joint trajectories and controls (perturbation 0) of the robot case: the elbow follows the
     0.5 Hz sinusoid under K(t), B(t) with computed-torque feed-forward; the shoulder is held stiffly."""
     import mujoco
+
     from closedloop.impedance.model import nominal
+
     nom = nominal(cfg, N)
     w = 2 * np.pi / cfg.period
     qd = np.stack([np.full(N, SHOULDER[0]), nom.theta_d], 1)
     vd = np.stack([np.zeros(N), cfg.amplitude / 2 * w * np.sin(w * nom.t)], 1)
-    ad = np.stack([np.zeros(N), cfg.amplitude / 2 * w ** 2 * np.cos(w * nom.t)], 1)
+    ad = np.stack([np.zeros(N), cfg.amplitude / 2 * w**2 * np.cos(w * nom.t)], 1)
     m = mujoco.MjModel.from_xml_string(ROBOT_XML.format(dt=1.0 / cfg.fs))
     d = mujoco.MjData(m)
     ff = np.empty((N, 2))
@@ -184,8 +197,18 @@ def robot_nominal(cfg: ExperimentConfig, N: int):
         mujoco.mj_inverse(m, d)
         ff[k] = d.qfrc_inverse
     K0, B0 = SHOULDER[1], SHOULDER[2]
-    ctrl = np.stack([np.zeros(N), np.full(N, K0), np.full(N, B0), K0 * qd[:, 0] + B0 * vd[:, 0] + ff[:, 0],
-                     nom.K, nom.B, nom.K * qd[:, 1] + nom.B * vd[:, 1] + ff[:, 1]], 1)
+    ctrl = np.stack(
+        [
+            np.zeros(N),
+            np.full(N, K0),
+            np.full(N, B0),
+            K0 * qd[:, 0] + B0 * vd[:, 0] + ff[:, 0],
+            nom.K,
+            nom.B,
+            nom.K * qd[:, 1] + nom.B * vd[:, 1] + ff[:, 1],
+        ],
+        1,
+    )
     return m, qd, vd, ad, ctrl
 
 
@@ -194,9 +217,12 @@ def simulate_robot(cfg: ExperimentConfig):
     impedance controller K(t), B(t), perturbed by a PRBS joint torque measured by a torque sensor.
     Truth: finite differences of the elbow's external torque with the shoulder at its nominal."""
     import time as _time
+
     import mujoco
     from mujoco import rollout
+
     from closedloop.impedance.model import Simulation, block_record, prbs
+
     t0 = _time.perf_counter()
     rng = np.random.default_rng(cfg.seed)
     L, nb = cfg.samples_per_cycle, cfg.n_blocks
@@ -211,7 +237,7 @@ def simulate_robot(cfg: ExperimentConfig):
     s0 = np.empty(mujoco.mj_stateSize(m, spec))
     mujoco.mj_getState(m, d, s0, spec)
     state, _ = rollout.rollout(m, d, np.tile(s0, (nb, 1)), ctrl)
-    q1 = np.concatenate([np.full((nb, 1), qd[0, 1]), state[:, :-1, 2]], axis=1)   # [time, qpos0, qpos1, ...]
+    q1 = np.concatenate([np.full((nb, 1), qd[0, 1]), state[:, :-1, 2]], axis=1)  # [time, qpos0, qpos1, ...]
     s_th, s_tau = cfg.noise * (q1 - qd[:, 1])[:, L:].std(), cfg.noise * u.std()
     th = q1 + s_th * rng.standard_normal(q1.shape)
     tau = u + s_tau * rng.standard_normal(u.shape)

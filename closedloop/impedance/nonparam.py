@@ -24,15 +24,22 @@ from closedloop.impedance.estimate import lowpass, single_thread
 
 @dataclass
 class ImpulseCheck:
-    t: float                 # instant in the cycle (s)
-    lags: np.ndarray         # s
-    h_np: np.ndarray         # non-parametric (rad / (N m s))
-    h_par: np.ndarray        # parametric, from I, B, K at t
-    vaf: float               # % of the non-parametric response explained by the parametric one
+    t: float  # instant in the cycle (s)
+    lags: np.ndarray  # s
+    h_np: np.ndarray  # non-parametric (rad / (N m s))
+    h_par: np.ndarray  # parametric, from I, B, K at t
+    vaf: float  # % of the non-parametric response explained by the parametric one
 
 
-def impulse_response(ens: Ensemble, t: float, length: float = 0.3, window: float = 0.06, step: int = 2,
-                     rcond: float = 0.1, prefilter_hz: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def impulse_response(
+    ens: Ensemble,
+    t: float,
+    length: float = 0.3,
+    window: float = 0.06,
+    step: int = 2,
+    rcond: float = 0.1,
+    prefilter_hz: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Non-parametric impulse response (per second of lag) at instant `t` of the cycle."""
     dth, dtau, _ = ens.deltas()
     dth, dtau = lowpass(dth, ens.fs, prefilter_hz), lowpass(dtau, ens.fs, prefilter_hz)
@@ -48,7 +55,7 @@ def impulse_response(ens: Ensemble, t: float, length: float = 0.3, window: float
         U, s, Vt = np.linalg.svd(X, full_matrices=False)
     keep = s > rcond * s[0]
     h = Vt[keep].T @ ((U[:, keep].T @ y) / s[keep])
-    return lag / fs, h * fs / step                       # per unit time: h_l ~ h(t_l) dt
+    return lag / fs, h * fs / step  # per unit time: h_l ~ h(t_l) dt
 
 
 def parametric_ir(I: float, B: float, K: float, lags: np.ndarray) -> np.ndarray:
@@ -69,6 +76,6 @@ def model_check(ens: Ensemble, est, times: list[float] | None = None, **kw) -> l
         lags, h = impulse_response(ens, t, **kw)
         i = int(np.argmin(np.abs(est.t - t)))
         hp = parametric_ir(est.I[i], est.B[i], est.K[i], lags)
-        vaf = 100 * (1 - np.sum((h - hp) ** 2) / np.sum(h ** 2))
+        vaf = 100 * (1 - np.sum((h - hp) ** 2) / np.sum(h**2))
         out.append(ImpulseCheck(float(t), lags, h, hp, float(vaf)))
     return out

@@ -14,23 +14,38 @@ import numpy as np
 from closedloop.impedance.data import Ensemble
 
 
-def plot_impedance(path: str | Path, est, ens: Ensemble, bands=None, truth: dict | None = None,
-                   posture: dict[str, tuple[float, float, float]] | None = None, title: str = "") -> Path:
+def plot_impedance(
+    path: str | Path,
+    est,
+    ens: Ensemble,
+    bands=None,
+    truth: dict | None = None,
+    posture: dict[str, tuple[float, float, float]] | None = None,
+    title: str = "",
+) -> Path:
     """Write the figure to `path` (format from the suffix: .png, .svg, .pdf)."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     path = Path(path)
-    fig, axes = plt.subplots(6, 1, figsize=(7.5, 11), sharex=True,
-                             gridspec_kw={"height_ratios": [1, 1, 1, 0.7, 0.7, 0.7]})
+    fig, axes = plt.subplots(
+        6, 1, figsize=(7.5, 11), sharex=True, gridspec_kw={"height_ratios": [1, 1, 1, 0.7, 0.7, 0.7]}
+    )
     units = {"I": "I (kg m$^2$)", "B": "B (N m s/rad)", "K": "K (N m/rad)"}
     for ax, k in zip(axes[:3], "IBK"):
         y = getattr(est, k)
         ax.plot(est.t, y, color="C0", lw=1.2, label=f"estimate ({est.options.method})")
         if bands is not None:
-            ax.fill_between(est.t, bands.lo[k], bands.hi[k], color="C0", alpha=0.25,
-                            label=f"{100 * bands.level:.0f} % bootstrap band")
+            ax.fill_between(
+                est.t,
+                bands.lo[k],
+                bands.hi[k],
+                color="C0",
+                alpha=0.25,
+                label=f"{100 * bands.level:.0f} % bootstrap band",
+            )
         if truth is not None:
             ax.plot(truth["t"], truth[k], "k--", lw=1.0, label="truth")
         for j, (name, vals) in enumerate((posture or {}).items()):
@@ -48,9 +63,13 @@ def plot_impedance(path: str | Path, est, ens: Ensemble, bands=None, truth: dict
     core = slice(ens.pad, ens.pad + ens.length)
     t = ens.t
     from closedloop.impedance.estimate import lowpass
+
     vel = np.gradient(lowpass(th0, ens.fs, 20.0), 1.0 / ens.fs)[core]
-    for ax, y, lab in zip(axes[3:], (th0[core], vel, lowpass(tau0, ens.fs, 20.0)[core]),
-                          ("mean angle (rad)", "mean velocity (rad/s)", "mean torque (N m)")):
+    for ax, y, lab in zip(
+        axes[3:],
+        (th0[core], vel, lowpass(tau0, ens.fs, 20.0)[core]),
+        ("mean angle (rad)", "mean velocity (rad/s)", "mean torque (N m)"),
+    ):
         ax.plot(t, y, color="0.3", lw=1.0)
         ax.set_ylabel(lab, fontsize=8)
     axes[-1].set_xlabel("time in cycle (s)")

@@ -34,16 +34,29 @@ def write_results(path: str | Path, est, bands=None, fit=None, summary: dict | N
     path = Path(path)
     cols = table(est, bands, fit)
     if path.suffix == ".json":
+
         def clean(a):
             return [None if not np.isfinite(x) else float(x) for x in np.asarray(a, float)]
-        doc = {"summary": summary or {}, "options": asdict(est.options),
-               "units": {"time": "s", "I": "kg m^2", "B": "N m s/rad", "K": "N m/rad", "wn": "rad/s",
-                         "zeta": "1", "vaf": "%"},
-               "table": {k: clean(v) for k, v in cols.items()}}
+
+        doc = {
+            "summary": summary or {},
+            "options": asdict(est.options),
+            "units": {
+                "time": "s",
+                "I": "kg m^2",
+                "B": "N m s/rad",
+                "K": "N m/rad",
+                "wn": "rad/s",
+                "zeta": "1",
+                "vaf": "%",
+            },
+            "table": {k: clean(v) for k, v in cols.items()},
+        }
         path.write_text(json.dumps(doc, indent=1, default=_default))
     else:
-        np.savetxt(path, np.column_stack(list(cols.values())), delimiter=",", header=",".join(cols),
-                   comments="", fmt="%.6g")
+        np.savetxt(
+            path, np.column_stack(list(cols.values())), delimiter=",", header=",".join(cols), comments="", fmt="%.6g"
+        )
     return path
 
 
@@ -57,8 +70,9 @@ def _default(o):
 
 def write_truth(path: str | Path, truth: dict[str, np.ndarray]) -> None:
     keys = [k for k in ("t", "I", "B", "K", "K_muscle", "theta0") if k in truth]
-    np.savetxt(path, np.column_stack([truth[k] for k in keys]), delimiter=",", header=",".join(keys),
-               comments="", fmt="%.9g")
+    np.savetxt(
+        path, np.column_stack([truth[k] for k in keys]), delimiter=",", header=",".join(keys), comments="", fmt="%.9g"
+    )
 
 
 def read_truth(path: str | Path) -> dict[str, np.ndarray]:

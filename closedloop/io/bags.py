@@ -42,8 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.io.logs import JointLog
 from closedloop.errors import InputError
+from closedloop.io.logs import JointLog
 
 log = logging.getLogger(__name__)
 
@@ -117,13 +117,17 @@ def _reader(path: Path):
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
     except ImportError:
-        raise BagError(f"{path}: reading ROS bags needs the rosbags library: "
-                       "pip install \"closedloop[ros]\" (or pip install rosbags)") from None
+        raise BagError(
+            f"{path}: reading ROS bags needs the rosbags library: "
+            'pip install "closedloop[ros]" (or pip install rosbags)'
+        ) from None
     if not path.exists():
         raise BagError(f"{path}: no such bag")
     if not is_bag(path):
-        raise BagError(f"{path}: not a ROS bag (a ROS 1 .bag, a ROS 2 bag folder with its metadata.yaml, or a "
-                       f".mcap/.db3 file){'; a CSV log goes straight to calibrate' if path.suffix.lower() == '.csv' else ''}")
+        raise BagError(
+            f"{path}: not a ROS bag (a ROS 1 .bag, a ROS 2 bag folder with its metadata.yaml, or a "
+            f".mcap/.db3 file){'; a CSV log goes straight to calibrate' if path.suffix.lower() == '.csv' else ''}"
+        )
     if path.is_file() and path.suffix.lower() in (".mcap", ".db3") and (path.parent / "metadata.yaml").is_file():
         path = path.parent  # a ROS 2 bag is its directory
     return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
@@ -138,8 +142,9 @@ def read_streams(path: str | Path, joints: list[str], topics: list[str] | None =
     except Exception as exc:  # rosbags raises its own errors for unreadable bags
         raise BagError(f"{path}: not a readable ROS bag ({str(exc).splitlines()[0] if str(exc) else exc})") from None
     try:
-        conns = [c for c in reader.connections if c.msgtype in JOINT_STATE_TYPES
-                 and (topics is None or c.topic in topics)]
+        conns = [
+            c for c in reader.connections if c.msgtype in JOINT_STATE_TYPES and (topics is None or c.topic in topics)
+        ]
         if not conns:
             found = sorted({f"{c.topic} ({c.msgtype})" for c in reader.connections})
             want = f" on topic(s) {', '.join(topics)}" if topics else ""
@@ -150,8 +155,9 @@ def read_streams(path: str | Path, joints: list[str], topics: list[str] | None =
             msg = reader.deserialize(raw, conn.msgtype)
             hs = msg.header.stamp
             t_ns = int(hs.sec) * 1_000_000_000 + int(hs.nanosec) if (hs.sec or hs.nanosec) else int(stamp)
-            by_topic.setdefault(conn.topic, []).append((t_ns, list(msg.name), np.asarray(msg.position, float),
-                                                        np.asarray(msg.velocity, float)))
+            by_topic.setdefault(conn.topic, []).append(
+                (t_ns, list(msg.name), np.asarray(msg.position, float), np.asarray(msg.velocity, float))
+            )
         t_ref = min(min(m[0] for m in v) for v in by_topic.values()) if by_topic else start
     finally:
         reader.close()
@@ -169,15 +175,18 @@ def _merge(path: Path, topic: str, msgs: list, joints: list[str], t_ref: int) ->
         return None
     missing = [j for j in joints if j not in seen]
     if missing:
-        raise BagError(f"{path}: topic {topic} never reports joint(s) {', '.join(missing)} "
-                       f"(it has: {', '.join(sorted(seen)[:8])})")
+        raise BagError(
+            f"{path}: topic {topic} never reports joint(s) {', '.join(missing)} (it has: {', '.join(sorted(seen)[:8])})"
+        )
     cur_q = np.full(len(joints), np.nan)
     cur_v = np.full(len(joints), np.nan)
     T, Q, V = [], [], []
     for t_ns, names, pos, vel in msgs:
         if len(pos) != len(names):
-            raise BagError(f"{path}: topic {topic}: a message at t={(t_ns - t_ref) / 1e9:.3f} s has "
-                           f"{len(names)} names and {len(pos)} positions")
+            raise BagError(
+                f"{path}: topic {topic}: a message at t={(t_ns - t_ref) / 1e9:.3f} s has "
+                f"{len(names)} names and {len(pos)} positions"
+            )
         cols = [(k, idx[n]) for k, n in enumerate(names) if n in idx]
         for k, j in cols:
             cur_q[j] = pos[k]
@@ -217,7 +226,7 @@ def _plateaus(q: np.ndarray, spread: float) -> list[tuple[int, int]]:
             n_out += 1
             if n_out >= 3:
                 out.append((start, k - 2))
-                start, total, n_out = k - 2, q[k - 2:k + 1].sum(axis=0), 0
+                start, total, n_out = k - 2, q[k - 2 : k + 1].sum(axis=0), 0
                 continue
         else:
             n_out = 0
@@ -243,7 +252,7 @@ def standstills(stream: Stream, opts: ExtractOptions) -> list[Standstill]:
             if t1 - t0 < opts.settle:
                 continue
             cut = int(opts.trim * (b - a))
-            q = stream.q[a + cut:b - cut] if b - a - 2 * cut > 0 else stream.q[a:b]
+            q = stream.q[a + cut : b - cut] if b - a - 2 * cut > 0 else stream.q[a:b]
             dev = np.abs(q - np.median(q, axis=0))
             sig = 1.4826 * np.median(dev, axis=0)  # robust noise level per joint (MAD)
             keep = np.all(dev <= np.minimum(5.0 * sig + 1e-12, opts.spread / 4), axis=1)
@@ -278,8 +287,9 @@ def _label(samples: list[Standstill], opts: ExtractOptions, path: Path) -> None:
         raise BagError(f"{path}: unknown split '{opts.split}' (use topic, window or gap)")
 
 
-def extract(path: str | Path, joints: list[str],
-            opts: ExtractOptions | None = None) -> tuple[JointLog, list[Standstill]]:
+def extract(
+    path: str | Path, joints: list[str], opts: ExtractOptions | None = None
+) -> tuple[JointLog, list[Standstill]]:
     """The quasi-static samples of a bag as a :class:`JointLog` (plus the standstills found).
 
     Extra columns: ``t_start``, ``t_end`` (seconds from the bag start) and
@@ -296,11 +306,16 @@ def extract(path: str | Path, joints: list[str],
     if opts.split == "window":
         samples = [s for s in samples if s.loop is not None]
     if not samples:
-        raise BagError(f"{path}: no standstill of at least {opts.settle} s below {opts.threshold} rad/s "
-                       f"(try a larger --threshold or a shorter --settle)")
+        raise BagError(
+            f"{path}: no standstill of at least {opts.settle} s below {opts.threshold} rad/s "
+            f"(try a larger --threshold or a shorter --settle)"
+        )
     log.info("%s: %d standstills from %d topic(s)", path, len(samples), len(streams))
-    extra = {"t_start": np.array([s.t0 for s in samples]), "t_end": np.array([s.t1 for s in samples]),
-             "messages": np.array([float(s.n) for s in samples])}
+    extra = {
+        "t_start": np.array([s.t0 for s in samples]),
+        "t_end": np.array([s.t1 for s in samples]),
+        "messages": np.array([float(s.n) for s in samples]),
+    }
     loop = np.array([s.loop for s in samples]) if opts.split else None
     return JointLog(list(joints), np.array([s.q for s in samples]), path, loop, extra), samples
 

@@ -107,11 +107,16 @@ def read_camera_info(path: str | Path) -> CameraInfo:
         d = _matrix(dnode, dkey, path)
         if d.size > 5 and np.any(d[5:] != 0):
             raise CameraInfoError(f"{path}: '{dkey}' has {d.size} coefficients; only k1 k2 p1 p2 k3 are supported")
-        D[:min(d.size, 5)] = d[:5]
+        D[: min(d.size, 5)] = d[:5]
     w = doc.get("image_width", doc.get("width"))
     h = doc.get("image_height", doc.get("height"))
-    return CameraInfo(np.array([M[0, 0], M[1, 1], M[0, 2], M[1, 2]]), D, None if w is None else int(w),
-                      None if h is None else int(h), str(doc.get("camera_name", path.stem)))
+    return CameraInfo(
+        np.array([M[0, 0], M[1, 1], M[0, 2], M[1, 2]]),
+        D,
+        None if w is None else int(w),
+        None if h is None else int(h),
+        str(doc.get("camera_name", path.stem)),
+    )
 
 
 def _row(a) -> str:
@@ -122,14 +127,28 @@ def write_camera_info(path: str | Path, info: CameraInfo) -> None:
     """Write `info` as a ROS 1 camera_info YAML (atomically: temporary file + rename)."""
     fx, fy, cx, cy = map(float, info.K)
     P = np.array([[fx, 0, cx, 0], [0, fy, cy, 0], [0, 0, 1, 0]])
-    lines = [f"image_width: {info.width if info.width is not None else 0}",
-             f"image_height: {info.height if info.height is not None else 0}",
-             f"camera_name: {info.name}",
-             "camera_matrix:", "  rows: 3", "  cols: 3", f"  data: {_row(info.matrix())}",
-             "distortion_model: plumb_bob",
-             "distortion_coefficients:", "  rows: 1", "  cols: 5", f"  data: {_row(info.D)}",
-             "rectification_matrix:", "  rows: 3", "  cols: 3", f"  data: {_row(np.eye(3))}",
-             "projection_matrix:", "  rows: 3", "  cols: 4", f"  data: {_row(P)}"]
+    lines = [
+        f"image_width: {info.width if info.width is not None else 0}",
+        f"image_height: {info.height if info.height is not None else 0}",
+        f"camera_name: {info.name}",
+        "camera_matrix:",
+        "  rows: 3",
+        "  cols: 3",
+        f"  data: {_row(info.matrix())}",
+        "distortion_model: plumb_bob",
+        "distortion_coefficients:",
+        "  rows: 1",
+        "  cols: 5",
+        f"  data: {_row(info.D)}",
+        "rectification_matrix:",
+        "  rows: 3",
+        "  cols: 3",
+        f"  data: {_row(np.eye(3))}",
+        "projection_matrix:",
+        "  rows: 3",
+        "  cols: 4",
+        f"  data: {_row(P)}",
+    ]
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=".tmp_", suffix=".yaml")
     with os.fdopen(fd, "w") as fh:
@@ -143,6 +162,7 @@ def camera_infos_from_result(result, loop) -> list[CameraInfo]:
     shared = getattr(loop, "shared", None) or {}  # a field shared with a group (cam1=@head) has the group's name
     out = []
     for c in range(loop.cameras):
+
         def name(f: str, c: int = c) -> str:
             return shared.get(f"cam{c + 1}.{f}", f"{loop.name}.cam{c + 1}.{f}")
 

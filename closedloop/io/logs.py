@@ -68,8 +68,13 @@ class JointLog:
         atomic_write_text(path, "\n".join(lines) + "\n")
 
 
-def read_log(path: str | Path, joint_names: list[str], degrees: bool = False,
-             linear: list[str] | tuple = (), order: list[str] | None = None) -> JointLog:
+def read_log(
+    path: str | Path,
+    joint_names: list[str],
+    degrees: bool = False,
+    linear: list[str] | tuple = (),
+    order: list[str] | None = None,
+) -> JointLog:
     """Read a CSV log, keeping the columns that name joints of the model.
 
     A file whose first row is numbers has no header: `order` (``--joints
@@ -93,8 +98,10 @@ def read_log(path: str | Path, joint_names: list[str], degrees: bool = False,
         raise LogError(f"{path}: empty log (expected a header row naming joints)")
     if _numbers(rows[0]):  # header-less: the joint order is given
         if not order:
-            raise LogError(f"{path}: the first row is numbers, not a header naming joints; give the column "
-                           "order (--joints j1,j2,...)")
+            raise LogError(
+                f"{path}: the first row is numbers, not a header naming joints; give the column "
+                "order (--joints j1,j2,...)"
+            )
         unknown = [j for j in order if j not in set(joint_names) and j != "loop"]
         if unknown:
             raise LogError(f"{path}: --joints names {', '.join(unknown)}, not joint(s) of the model")
@@ -123,8 +130,10 @@ def read_log(path: str | Path, joint_names: list[str], degrees: bool = False,
         for k, c in enumerate(cols):
             v = parse_number(row[c], f"{path}: row {r}, column '{header[c]}'", LogError)
             if abs(v) > MAX_READING:
-                raise LogError(f"{path}: row {r}, column '{header[c]}': {row[c].strip()} is out of range "
-                               f"(|reading| <= {MAX_READING:g})")
+                raise LogError(
+                    f"{path}: row {r}, column '{header[c]}': {row[c].strip()} is out of range "
+                    f"(|reading| <= {MAX_READING:g})"
+                )
             A[r - 1, k] = v
         for c in extra_cols:
             try:  # extra columns are informational: a cell that is not a number is NaN
@@ -178,9 +187,11 @@ def check_angle_units(log: JointLog, robot, degrees: bool = False) -> None:
         if col.size and out.sum() > 0.5 * col.size:
             i = int(np.flatnonzero(out)[0])
             hint = "" if degrees else ": a log in degrees? (give --degrees)"
-            raise LogError(f"{log.source}: {int(out.sum())} of {col.size} readings of joint '{j}' lie over "
-                           f"{BEYOND_LIMIT} rad beyond its limits [{lo:.4g}, {hi:.4g}] rad (row {i + 1}: "
-                           f"{col[i]:.6g}{' rad' if degrees else ''}){hint}")
+            raise LogError(
+                f"{log.source}: {int(out.sum())} of {col.size} readings of joint '{j}' lie over "
+                f"{BEYOND_LIMIT} rad beyond its limits [{lo:.4g}, {hi:.4g}] rad (row {i + 1}: "
+                f"{col[i]:.6g}{' rad' if degrees else ''}){hint}"
+            )
 
 
 def _numbers(row: list[str]) -> bool:
@@ -193,8 +204,13 @@ def _numbers(row: list[str]) -> bool:
     return bool(row)
 
 
-def read_loop_logs(files: list[tuple[str, str | Path]], joint_names: list[str], degrees: bool = False,
-                   linear: list[str] | tuple = (), order: list[str] | None = None) -> JointLog:
+def read_loop_logs(
+    files: list[tuple[str, str | Path]],
+    joint_names: list[str],
+    degrees: bool = False,
+    linear: list[str] | tuple = (),
+    order: list[str] | None = None,
+) -> JointLog:
     """One log from several files, one per loop: (loop name, path) pairs (``--loop ...,log=FILE``).
 
     Each file's rows get its loop's name in the ``loop`` column (a file's own
@@ -209,8 +225,10 @@ def read_loop_logs(files: list[tuple[str, str | Path]], joint_names: list[str], 
     first = parts[0][1]
     for _, lg in parts[1:]:
         if set(lg.joints) != set(first.joints):
-            raise LogError(f"{lg.source}: logs joints {', '.join(lg.joints)}, {first.source} logs "
-                           f"{', '.join(first.joints)}: the files must log the same joints")
+            raise LogError(
+                f"{lg.source}: logs joints {', '.join(lg.joints)}, {first.source} logs "
+                f"{', '.join(first.joints)}: the files must log the same joints"
+            )
     angles = np.vstack([lg.columns(first.joints) for _, lg in parts])
     loops = np.concatenate([np.full(len(lg), name, dtype=object) for name, lg in parts]).astype(str)
     keys = list(dict.fromkeys(k for _, lg in parts for k in lg.extra))

@@ -73,16 +73,24 @@ class StrictLoader(yaml.SafeLoader):
 
 
 StrictLoader.yaml_implicit_resolvers = {
-    ch: [(tag, rx) for tag, rx in lst if tag not in ("tag:yaml.org,2002:bool", "tag:yaml.org,2002:int",
-                                                     "tag:yaml.org,2002:float")]
-    for ch, lst in yaml.SafeLoader.yaml_implicit_resolvers.items()}
-StrictLoader.add_implicit_resolver("tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"),
-                                   list("tTfF"))
+    ch: [
+        (tag, rx)
+        for tag, rx in lst
+        if tag not in ("tag:yaml.org,2002:bool", "tag:yaml.org,2002:int", "tag:yaml.org,2002:float")
+    ]
+    for ch, lst in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF")
+)
 StrictLoader.add_implicit_resolver("tag:yaml.org,2002:int", re.compile(r"^[-+]?[0-9]+$"), list("-+0123456789"))
 StrictLoader.add_implicit_resolver(
     "tag:yaml.org,2002:float",
-    re.compile(r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"),
-    list("-+0123456789."))
+    re.compile(
+        r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"
+    ),
+    list("-+0123456789."),
+)
 
 
 def _int(loader: StrictLoader, node: yaml.ScalarNode) -> int:
@@ -101,8 +109,9 @@ def _mapping(loader: StrictLoader, node: yaml.MappingNode, deep: bool = False) -
         try:
             dup = key in seen
         except TypeError:  # an unhashable key (a list)
-            raise yaml.constructor.ConstructorError(None, None, "a key must be a plain value",
-                                                    key_node.start_mark) from None
+            raise yaml.constructor.ConstructorError(
+                None, None, "a key must be a plain value", key_node.start_mark
+            ) from None
         if dup:
             raise yaml.constructor.ConstructorError(None, None, f"duplicate key '{key}'", key_node.start_mark)
         seen.add(key)
@@ -167,7 +176,8 @@ def _validator_class():
 
         base = jsonschema.Draft202012Validator
         _cache["validator"] = jsonschema.validators.extend(
-            base, type_checker=base.TYPE_CHECKER.redefine("number", _finite_number))
+            base, type_checker=base.TYPE_CHECKER.redefine("number", _finite_number)
+        )
     return _cache["validator"]
 
 
@@ -194,12 +204,25 @@ DH_SCHEMA = {
         "name": NAME,
         "closes": {"type": "boolean"},
         "convention": {"enum": ["dh", "hayati"]},
-        "units": {"type": "object", "additionalProperties": False,
-                  "properties": {"length": {"enum": ["m", "mm", "cm", "in"]}, "angle": {"enum": ["rad", "deg"]}}},
-        "joints": {"type": "array", "minItems": 1, "items": {
-            "type": "object", "required": ["name"], "additionalProperties": False,
-            "properties": {"name": NAME, "convention": {"enum": ["dh", "hayati"]},
-                           **{f: num() for f in DH_ROW_FIELDS}}}},
+        "units": {
+            "type": "object",
+            "additionalProperties": False,
+            "properties": {"length": {"enum": ["m", "mm", "cm", "in"]}, "angle": {"enum": ["rad", "deg"]}},
+        },
+        "joints": {
+            "type": "array",
+            "minItems": 1,
+            "items": {
+                "type": "object",
+                "required": ["name"],
+                "additionalProperties": False,
+                "properties": {
+                    "name": NAME,
+                    "convention": {"enum": ["dh", "hayati"]},
+                    **{f: num() for f in DH_ROW_FIELDS},
+                },
+            },
+        },
     },
     "required": ["joints"],
     "additionalProperties": False,
@@ -209,9 +232,15 @@ TRUTH_SCHEMA = {
     "type": "object",
     "required": ["parameters"],
     "properties": {
-        "parameters": {"type": "object", "minProperties": 1, "additionalProperties": num(),
-                       "propertyNames": {"minLength": 1, "maxLength": 300}},
-        "scenario": {"type": "string"}, "robot": {"type": "string"}, "seed": integer(),
+        "parameters": {
+            "type": "object",
+            "minProperties": 1,
+            "additionalProperties": num(),
+            "propertyNames": {"minLength": 1, "maxLength": 300},
+        },
+        "scenario": {"type": "string"},
+        "robot": {"type": "string"},
+        "seed": integer(),
         "joint_names": {"type": "array", "items": {"type": "string"}},
     },
 }
@@ -219,10 +248,15 @@ TRUTH_SCHEMA = {
 REPORT_PARAMETER = {
     "type": "object",
     "required": ["name", "kind", "unit", "calibrated", "status"],
-    "properties": {"name": {"type": "string", "minLength": 1, "maxLength": 300}, "kind": {"type": "string"},
-                   "unit": {"type": "string"}, "status": {"type": "string"},
-                   "calibrated": num(), "initial": num(),
-                   "std_error": {"anyOf": [{"type": "null"}, {"type": "number", "minimum": 0}]}},
+    "properties": {
+        "name": {"type": "string", "minLength": 1, "maxLength": 300},
+        "kind": {"type": "string"},
+        "unit": {"type": "string"},
+        "status": {"type": "string"},
+        "calibrated": num(),
+        "initial": num(),
+        "std_error": {"anyOf": [{"type": "null"}, {"type": "number", "minimum": 0}]},
+    },
 }
 REPORT_SCHEMA = {
     "type": "object",
@@ -236,24 +270,56 @@ def _settings_schema() -> dict:
     from closedloop.design.poses import METHODS
 
     p = {
-        "timestep": num(1e-5, 0.05), "integrator": {"enum": ["implicitfast", "implicit", "Euler", "RK4"]},
-        "gravity": {"type": "boolean"}, "gravcomp": {"type": "boolean"},
-        "solref": {"type": "array", "minItems": 2, "maxItems": 2, "prefixItems": [num(0, 10, exclusive_lo=True),
-                                                                                  num(0, 100, exclusive_lo=True)]},
-        "solimp": {"type": "array", "minItems": 5, "maxItems": 5,
-                   "prefixItems": [num(0, 1, exclusive_lo=True), num(0, 1, exclusive_lo=True),
-                                   num(0, 10, exclusive_lo=True), num(0, 1, exclusive_lo=True), num(1, 100)]},
-        "armature": num(0, 1e3), "kp": num(0, 1e6, exclusive_lo=True), "kv": num(0, 1e5),
-        "vel_tol": num(0, 10, exclusive_lo=True), "move_vel_tol": num(0, 100, exclusive_lo=True),
-        "min_steps": integer(0, 10**6), "max_steps": integer(1, 10**6), "ramp_steps": integer(1, 10**4),
-        "step_rad": num(0, 3.2, exclusive_lo=True), "target_span": num(0, 10, exclusive_lo=True),
+        "timestep": num(1e-5, 0.05),
+        "integrator": {"enum": ["implicitfast", "implicit", "Euler", "RK4"]},
+        "gravity": {"type": "boolean"},
+        "gravcomp": {"type": "boolean"},
+        "solref": {
+            "type": "array",
+            "minItems": 2,
+            "maxItems": 2,
+            "prefixItems": [num(0, 10, exclusive_lo=True), num(0, 100, exclusive_lo=True)],
+        },
+        "solimp": {
+            "type": "array",
+            "minItems": 5,
+            "maxItems": 5,
+            "prefixItems": [
+                num(0, 1, exclusive_lo=True),
+                num(0, 1, exclusive_lo=True),
+                num(0, 10, exclusive_lo=True),
+                num(0, 1, exclusive_lo=True),
+                num(1, 100),
+            ],
+        },
+        "armature": num(0, 1e3),
+        "kp": num(0, 1e6, exclusive_lo=True),
+        "kv": num(0, 1e5),
+        "vel_tol": num(0, 10, exclusive_lo=True),
+        "move_vel_tol": num(0, 100, exclusive_lo=True),
+        "min_steps": integer(0, 10**6),
+        "max_steps": integer(1, 10**6),
+        "ramp_steps": integer(1, 10**4),
+        "step_rad": num(0, 3.2, exclusive_lo=True),
+        "target_span": num(0, 10, exclusive_lo=True),
         "retarget_every": integer(1, 10**6),
         "select": {"anyOf": [{"type": "null"}, {"enum": list(METHODS)}]},
-        "select_pool": num(1, 1000), "limit_margin": num(0, 1), "limit_flag": num(0, 1),
-        "drop_flagged": {"type": "boolean"}, "relax": {"type": "boolean"}, "relax_passes": integer(0, 50),
-        "translation": num(0, 0.1), "rotation": num(0, 0.5), "offset": num(0, 0.5), "scale": num(0, 0.5),
-        "compliance": num(0, 0.1), "noise": num(0, 0.1), "quantization": num(0, 0.1),
-        "tracker_noise": num(0, 0.1), "soft": {"type": "boolean"}, "stiff": {"type": "boolean"},
+        "select_pool": num(1, 1000),
+        "limit_margin": num(0, 1),
+        "limit_flag": num(0, 1),
+        "drop_flagged": {"type": "boolean"},
+        "relax": {"type": "boolean"},
+        "relax_passes": integer(0, 50),
+        "translation": num(0, 0.1),
+        "rotation": num(0, 0.5),
+        "offset": num(0, 0.5),
+        "scale": num(0, 0.5),
+        "compliance": num(0, 0.1),
+        "noise": num(0, 0.1),
+        "quantization": num(0, 0.1),
+        "tracker_noise": num(0, 0.1),
+        "soft": {"type": "boolean"},
+        "stiff": {"type": "boolean"},
     }
     return {"type": "object", "properties": p, "additionalProperties": False}
 
@@ -266,33 +332,71 @@ def settings_schema() -> dict:
 
 def scenario_schema() -> dict:
     """A scenario YAML: robot, loop (a ``--loop`` spec), fixture pose, q0, settings, n, seed."""
-    return {"type": "object", "required": ["robot", "loop"], "additionalProperties": False, "properties": {
-        "name": NAME, "robot": {"type": "string", "minLength": 1}, "loop": {"type": "string", "minLength": 1},
-        "fixture": {"type": "array", "minItems": 6, "maxItems": 6, "items": num()},
-        "q0": {"type": "array", "minItems": 1, "items": num(-1e3, 1e3)},
-        "n": integer(1, 10**7), "seed": integer(0), "settings": settings_schema(),
-        "description": {"type": "string"}}}
+    return {
+        "type": "object",
+        "required": ["robot", "loop"],
+        "additionalProperties": False,
+        "properties": {
+            "name": NAME,
+            "robot": {"type": "string", "minLength": 1},
+            "loop": {"type": "string", "minLength": 1},
+            "fixture": {"type": "array", "minItems": 6, "maxItems": 6, "items": num()},
+            "q0": {"type": "array", "minItems": 1, "items": num(-1e3, 1e3)},
+            "n": integer(1, 10**7),
+            "seed": integer(0),
+            "settings": settings_schema(),
+            "description": {"type": "string"},
+        },
+    }
 
 
 CONFIG_SCHEMA = {
-    "type": "object", "additionalProperties": False, "properties": {
-        "model": {"type": "string"}, "log": {"type": "string"}, "out": {"type": "string"},
+    "type": "object",
+    "additionalProperties": False,
+    "properties": {
+        "model": {"type": "string"},
+        "log": {"type": "string"},
+        "out": {"type": "string"},
         "report": {"type": "string"},
         "loop": {"type": "array", "items": {"type": "string", "minLength": 1}},
         "identify": {"type": "array", "items": {"type": "string", "minLength": 1}},
         "fix": {"type": "object", "additionalProperties": {"anyOf": [{"type": "null"}, num()]}},
-        "noise": {"anyOf": [num(0, 10, exclusive_lo=True),
-                            {"type": "object", "additionalProperties": num(0, 10, exclusive_lo=True)}]},
-        "weighting": {"enum": ["noise", "none"]}, "robust": {"enum": ["huber", "cauchy", None]},
-        "bound": {"type": "object", "additionalProperties": {
-            "type": "array", "minItems": 2, "maxItems": 2, "items": {"anyOf": [{"type": "null"}, num()]}}},
-        "snr": num(0, 1e6, exclusive_lo=True), "cv": integer(0, 10**6), "max_iter": integer(1, 10**6),
-        "degrees": {"type": "boolean"}, "quiet": {"type": "boolean"}}}
+        "noise": {
+            "anyOf": [
+                num(0, 10, exclusive_lo=True),
+                {"type": "object", "additionalProperties": num(0, 10, exclusive_lo=True)},
+            ]
+        },
+        "weighting": {"enum": ["noise", "none"]},
+        "robust": {"enum": ["huber", "cauchy", None]},
+        "bound": {
+            "type": "object",
+            "additionalProperties": {
+                "type": "array",
+                "minItems": 2,
+                "maxItems": 2,
+                "items": {"anyOf": [{"type": "null"}, num()]},
+            },
+        },
+        "snr": num(0, 1e6, exclusive_lo=True),
+        "cv": integer(0, 10**6),
+        "max_iter": integer(1, 10**6),
+        "degrees": {"type": "boolean"},
+        "quiet": {"type": "boolean"},
+    },
+}
 
 
 # --------------------------------------------------------------------------- messages
-_TYPE_WORDS = {"number": "a finite number", "integer": "a whole number", "string": "a string",
-               "boolean": "true or false", "object": "a mapping", "array": "a list", "null": "null"}
+_TYPE_WORDS = {
+    "number": "a finite number",
+    "integer": "a whole number",
+    "string": "a string",
+    "boolean": "true or false",
+    "object": "a mapping",
+    "array": "a list",
+    "null": "null",
+}
 
 
 def _show(x: Any) -> str:
@@ -353,13 +457,15 @@ def _describe(err) -> str:
         return "must not be empty"
     if v == "anyOf":
         opts = [str(x) for sub in val for x in sub.get("enum", [])] + [
-            _TYPE_WORDS.get(sub["type"], sub["type"]) for sub in val if isinstance(sub.get("type"), str)]
+            _TYPE_WORDS.get(sub["type"], sub["type"]) for sub in val if isinstance(sub.get("type"), str)
+        ]
         return f"expected {' or '.join(opts) if opts else 'another value'}, got {_show(inst)}"
     return err.message.splitlines()[0][:200]
 
 
-def validate(doc: Any, schema: dict, source: str | Path, error: type[InputError] = InputError,
-             rows: str | None = None) -> None:
+def validate(
+    doc: Any, schema: dict, source: str | Path, error: type[InputError] = InputError, rows: str | None = None
+) -> None:
     """Raise `error` with one line ``source: <where>: <what>`` for the first schema violation.
 
     `rows` names an array field whose items are rows (``joints``): its indices read "row N ('name')".

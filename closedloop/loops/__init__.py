@@ -14,8 +14,18 @@ from closedloop.loops.plane import PlaneLoop
 from closedloop.loops.point import PointLoop
 from closedloop.loops.weld import WeldLoop
 
-__all__ = ["Loop", "LoopEval", "CameraLoop", "HingeLoop", "MeasuredPointLoop", "MeasuredPoseLoop",
-           "PassiveChainLoop", "PlaneLoop", "PointLoop", "WeldLoop"]
+__all__ = [
+    "Loop",
+    "LoopEval",
+    "CameraLoop",
+    "HingeLoop",
+    "MeasuredPointLoop",
+    "MeasuredPoseLoop",
+    "PassiveChainLoop",
+    "PlaneLoop",
+    "PointLoop",
+    "WeldLoop",
+]
 
 
 def __getattr__(name: str):

@@ -126,8 +126,7 @@ class Loop(ABC):
         """The residual alone at the poses of `frames`."""
         return self.residual(Ts[0], Ts[1], p) if meas is None else self.residual(Ts[0], Ts[1], p, meas)
 
-    def valid_frames(self, Ts: list[np.ndarray], p: np.ndarray, meas: np.ndarray | None = None
-                     ) -> np.ndarray | None:
+    def valid_frames(self, Ts: list[np.ndarray], p: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
         """`LoopEval.valid` without the Jacobians (None: every row observed)."""
         return None
 

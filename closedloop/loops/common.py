@@ -10,10 +10,10 @@ from typing import Callable
 import numpy as np
 import pinocchio as pin
 
-from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
 from closedloop.errors import LoopError
-from closedloop.model.se3 import parse_vec, pose_of, skew
 from closedloop.loops.base import LoopEval
+from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
+from closedloop.model.se3 import parse_vec, pose_of, skew
 
 TIP_FIELDS = ("tip_x", "tip_y", "tip_z")
 POINT_FIELDS = ("px", "py", "pz")
@@ -42,13 +42,26 @@ def relative_point(TA: np.ndarray, TB: np.ndarray, tip: np.ndarray):
     return y, RBA, dA, dB
 
 
-def point_parameters(loop: str, fields: tuple[str, ...], values: np.ndarray, order0: int = 0,
-                     prior: float | None = None) -> list[Parameter]:
+def point_parameters(
+    loop: str, fields: tuple[str, ...], values: np.ndarray, order0: int = 0, prior: float | None = None
+) -> list[Parameter]:
     """Three unknown coordinates of a point (metres, they scale with length)."""
     prior = DEFAULT_PRIORS["loop_m"] if prior is None else prior
-    return [Parameter(f"{loop}.{f}", "loop", loop, f, float(values[k]), "m", prior,
-                      scales_with_length=float(values[k]), priority=1, order=order0 + k)
-            for k, f in enumerate(fields)]
+    return [
+        Parameter(
+            f"{loop}.{f}",
+            "loop",
+            loop,
+            f,
+            float(values[k]),
+            "m",
+            prior,
+            scales_with_length=float(values[k]),
+            priority=1,
+            order=order0 + k,
+        )
+        for k, f in enumerate(fields)
+    ]
 
 
 def pose_parameters(loop: str, fields: tuple[str, ...], X: pin.SE3, order0: int = 0) -> list[Parameter]:
@@ -57,23 +70,39 @@ def pose_parameters(loop: str, fields: tuple[str, ...], X: pin.SE3, order0: int 
     out = []
     for k, f in enumerate(fields):
         unit = "m" if k < 3 else "rad"
-        out.append(Parameter(f"{loop}.{f}", "loop", loop, f, float(vals[k]), unit,
-                             DEFAULT_PRIORS["loop_m" if k < 3 else "loop_rad"],
-                             scales_with_length=float(vals[k]) if k < 3 else 0.0, priority=1, order=order0 + k))
+        out.append(
+            Parameter(
+                f"{loop}.{f}",
+                "loop",
+                loop,
+                f,
+                float(vals[k]),
+                unit,
+                DEFAULT_PRIORS["loop_m" if k < 3 else "loop_rad"],
+                scales_with_length=float(vals[k]) if k < 3 else 0.0,
+                priority=1,
+                order=order0 + k,
+            )
+        )
     return out
 
 
-
-
-def refine_own(evaluate: Callable[[np.ndarray], LoopEval], residual: Callable[[np.ndarray], np.ndarray],
-               normalize: Callable[[np.ndarray], np.ndarray], p: np.ndarray, free: np.ndarray,
-               iters: int = 30, halvings: int = 10) -> np.ndarray:
+def refine_own(
+    evaluate: Callable[[np.ndarray], LoopEval],
+    residual: Callable[[np.ndarray], np.ndarray],
+    normalize: Callable[[np.ndarray], np.ndarray],
+    p: np.ndarray,
+    free: np.ndarray,
+    iters: int = 30,
+    halvings: int = 10,
+) -> np.ndarray:
     """Gauss-Newton on the loop's own parameters ``p[free]`` (the robot's poses held inside the callables).
 
     Minimum-norm (truncated SVD, rcond 1e-9) steps, so a direction the data
     do not determine stays at its starting value; a step is kept only if it
     lowers |r|^2 (else halved, at most `halvings` times).  Deterministic.
     """
+
     def cost_of(q):
         r = residual(q)
         return float(np.sum(r * r)) if np.all(np.isfinite(r)) else np.inf

@@ -68,14 +68,13 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import LoopError
-from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
-from closedloop.model.se3 import adjoint, rigid_inverse
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.projection import BatchPoseFn, Elimination, eliminate, projector
 from closedloop.loops.spec import register
+from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
+from closedloop.model.se3 import adjoint, rigid_inverse
 
-HINGE_FIELDS = ("hinge_x", "hinge_y", "hinge_rx", "hinge_ry", "radius", "height",
-                "grasp_rx", "grasp_ry", "grasp_rz")
+HINGE_FIELDS = ("hinge_x", "hinge_y", "hinge_rx", "hinge_ry", "radius", "height", "grasp_rx", "grasp_ry", "grasp_rz")
 RECENTRE = 0.1  # m or rad: how far the hinge may move in its chart before the chart follows it
 _EZ = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])  # rotation about z (pin.Motion order: v, w)
 
@@ -149,8 +148,10 @@ def fit_hinge_axis(M: list[pin.SE3]) -> pin.SE3:
     c = P.mean(axis=0)
     _, S, Vt = np.linalg.svd(P - c)
     if S.size < 2 or S[1] < 1e-4:
-        raise LoopError("hinge: the tool positions do not trace an arc (the door hardly moves); "
-                        "give the axis (axis=\"px py pz dx dy dz\")")
+        raise LoopError(
+            "hinge: the tool positions do not trace an arc (the door hardly moves); "
+            'give the axis (axis="px py pz dx dy dz")'
+        )
     n = Vt[2]
     w = np.array([pin.log3(m.rotation @ M[0].rotation.T) for m in M])
     big = int(np.argmax(np.linalg.norm(w, axis=1)))
@@ -159,7 +160,7 @@ def fit_hinge_axis(M: list[pin.SE3]) -> pin.SE3:
     e1, e2 = Vt[0], np.cross(n, Vt[0])
     uv = np.column_stack([(P - c) @ e1, (P - c) @ e2])
     A = np.column_stack([2 * uv, np.ones(len(P))])
-    sol = np.linalg.lstsq(A, (uv ** 2).sum(axis=1), rcond=None)[0]
+    sol = np.linalg.lstsq(A, (uv**2).sum(axis=1), rcond=None)[0]
     centre = c + sol[0] * e1 + sol[1] * e2
     return _frame_from_axis(centre, n, P[0] - centre)
 
@@ -177,8 +178,9 @@ class HingeLoop(Loop):
     translation_rows = (0, 1, 2)
     rotation_rows = (3, 4, 5)
 
-    def __init__(self, name: str, frame_a: str, frame_b: str = "universe",
-                 axis: tuple[np.ndarray, np.ndarray] | None = None):
+    def __init__(
+        self, name: str, frame_a: str, frame_b: str = "universe", axis: tuple[np.ndarray, np.ndarray] | None = None
+    ):
         super().__init__(name, frame_a, frame_b)
         self.axis = axis
         self.H0 = _frame_from_axis(axis[0], axis[1]) if axis is not None else pin.SE3.Identity()
@@ -198,9 +200,20 @@ class HingeLoop(Loop):
             if f in ("hinge_x", "hinge_y"):
                 u = self.H0.rotation.T @ self.H0.translation  # H0's origin, in H0 axes
                 swl = float(u[k])  # exact at zero tilt: the point scales with the world
-            out.append(Parameter(f"{self.name}.{f}", "loop", self.name, f, val, unit,
-                                 DEFAULT_PRIORS["loop_m" if unit == "m" else "loop_rad"],
-                                 scales_with_length=swl, priority=1, order=k))
+            out.append(
+                Parameter(
+                    f"{self.name}.{f}",
+                    "loop",
+                    self.name,
+                    f,
+                    val,
+                    unit,
+                    DEFAULT_PRIORS["loop_m" if unit == "m" else "loop_rad"],
+                    scales_with_length=swl,
+                    priority=1,
+                    order=k,
+                )
+            )
         return out
 
     def hinge(self, p: np.ndarray) -> pin.SE3:
@@ -242,8 +255,10 @@ class HingeLoop(Loop):
             return self
         M = [pin.SE3(np.linalg.solve(b, a)) for a, b in zip(TA, TB)]
         if len(M) < 3:
-            raise LoopError(f"hinge loop '{self.name}': cannot fit the hinge axis from {len(M)} "
-                            "configuration(s); give axis=\"px py pz dx dy dz\" or log at least 3 along the arc")
+            raise LoopError(
+                f"hinge loop '{self.name}': cannot fit the hinge axis from {len(M)} "
+                'configuration(s); give axis="px py pz dx dy dz" or log at least 3 along the arc'
+            )
         other = copy.copy(self)
         other.H0, other.fitted = fit_hinge_axis(M), True
         return other
@@ -297,8 +312,9 @@ class HingeLoop(Loop):
         return q
 
     def describe(self) -> dict:
-        return super().describe() | {"reference_axis": {"point": self.H0.translation.tolist(),
-                                                        "direction": self.H0.rotation[:, 2].tolist()}}
+        return super().describe() | {
+            "reference_axis": {"point": self.H0.translation.tolist(), "direction": self.H0.rotation[:, 2].tolist()}
+        }
 
     # ------------------------------------------------------------ evaluation
     def solve_angles(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> np.ndarray:

@@ -27,24 +27,39 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import LoopError
+from closedloop.loops.base import Loop, LoopEval
+from closedloop.loops.common import (
+    POSE_FIELDS,
+    TIP_FIELDS,
+    opt_float,
+    opt_pose,
+    point_parameters,
+    pose_parameters,
+    refine_own,
+    relative_point,
+)
+from closedloop.loops.spec import register
 from closedloop.model.parameters import Parameter
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import as_se3, generators, hand_eye, kabsch, parse_vec, pose_of, skew, vec3, vec_of
-from closedloop.loops.base import Loop, LoopEval
-from closedloop.loops.common import (POSE_FIELDS, TIP_FIELDS, opt_float, opt_pose, point_parameters, pose_parameters, refine_own,
-                     relative_point)
-from closedloop.loops.spec import register
 
 TOOL_FIELDS = tuple(f"tool_{f}" for f in POSE_FIELDS)
 POSITION_COLS = ("x", "y", "z")
 ROTATION_COLS = ("rx", "ry", "rz")
 
 
-def _gauss_newton(loop: Loop, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, free: np.ndarray,
-                  meas: np.ndarray, iters: int = 30) -> np.ndarray:
+def _gauss_newton(
+    loop: Loop, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, free: np.ndarray, meas: np.ndarray, iters: int = 30
+) -> np.ndarray:
     """Refine the loop's own parameters ``p[free]`` with the robot held (TA, TB fixed); `common.refine_own`."""
-    return refine_own(lambda q: loop.evaluate(TA, TB, q, meas), lambda q: loop.evaluate(TA, TB, q, meas).r,
-                      loop.normalize, p, free, iters)
+    return refine_own(
+        lambda q: loop.evaluate(TA, TB, q, meas),
+        lambda q: loop.evaluate(TA, TB, q, meas).r,
+        loop.normalize,
+        p,
+        free,
+        iters,
+    )
 
 
 class _Measured(Loop):
@@ -53,8 +68,16 @@ class _Measured(Loop):
     scale_free = False
     _cols: tuple[str, ...] = POSITION_COLS
 
-    def __init__(self, name: str, frame_a: str, frame_b: str = "universe", base=None, initial_base=None,
-                 sigma_t: float | None = None, sigma_r: float | None = None):
+    def __init__(
+        self,
+        name: str,
+        frame_a: str,
+        frame_b: str = "universe",
+        base=None,
+        initial_base=None,
+        sigma_t: float | None = None,
+        sigma_r: float | None = None,
+    ):
         super().__init__(name, frame_a, frame_b)
         self.base = None if base is None else as_se3(base, "base")
         self.initial_base = pin.SE3.Identity() if initial_base is None else as_se3(initial_base, "initial_base")
@@ -78,8 +101,10 @@ class _Measured(Loop):
         M = np.column_stack([np.asarray(extra[c], dtype=float)[rows] for c in self.columns()])
         bad = np.flatnonzero(~np.all(np.isfinite(M), axis=1))
         if bad.size:
-            raise LoopError(f"loop '{self.name}': measurement missing or not a number in row(s) "
-                            f"{', '.join(str(b + 1) for b in bad[:5])} of this loop")
+            raise LoopError(
+                f"loop '{self.name}': measurement missing or not a number in row(s) "
+                f"{', '.join(str(b + 1) for b in bad[:5])} of this loop"
+            )
         return M
 
     def _checked(self, meas: np.ndarray | None, N: int) -> np.ndarray:
@@ -88,8 +113,10 @@ class _Measured(Loop):
             raise LoopError(f"loop '{self.name}': no measurements given (log columns {', '.join(self.columns())})")
         meas = np.asarray(meas, dtype=float)
         if meas.shape != (N, len(self._cols)):
-            raise LoopError(f"loop '{self.name}': {N} configurations but measurements of shape {meas.shape} "
-                            f"(expected ({N}, {len(self._cols)}))")
+            raise LoopError(
+                f"loop '{self.name}': {N} configurations but measurements of shape {meas.shape} "
+                f"(expected ({N}, {len(self._cols)}))"
+            )
         return meas
 
     def base_pose(self, p: np.ndarray) -> tuple[pin.SE3, np.ndarray]:
@@ -103,8 +130,10 @@ class _Measured(Loop):
         return out
 
     def describe(self) -> dict:
-        return super().describe() | {"base": "unknown" if self.base is None else vec_of(self.base).tolist(),
-                                     "columns": self.columns()}
+        return super().describe() | {
+            "base": "unknown" if self.base is None else vec_of(self.base).tolist(),
+            "columns": self.columns(),
+        }
 
 
 class MeasuredPoseLoop(_Measured):
@@ -135,16 +164,25 @@ class MeasuredPoseLoop(_Measured):
     rotation_rows = (3, 4, 5)
     _cols = POSITION_COLS + ROTATION_COLS
 
-    def __init__(self, name: str, frame_a: str, frame_b: str = "universe", base=None, tool=None,
-                 initial_base=None, initial_tool=None, sigma_t: float | None = None, sigma_r: float | None = None):
+    def __init__(
+        self,
+        name: str,
+        frame_a: str,
+        frame_b: str = "universe",
+        base=None,
+        tool=None,
+        initial_base=None,
+        initial_tool=None,
+        sigma_t: float | None = None,
+        sigma_r: float | None = None,
+    ):
         super().__init__(name, frame_a, frame_b, base, initial_base, sigma_t, sigma_r)
         if (sigma_t is None) != (sigma_r is None):
             raise LoopError(f"loop '{name}': give both sigma_t and sigma_r for a pose measurement, or neither")
         self.tool = None if tool is None else as_se3(tool, "tool")
         self.initial_tool = pin.SE3.Identity() if initial_tool is None else as_se3(initial_tool, "initial_tool")
         self._fit_tool = initial_tool is None  # initialize() estimates an unknown tool with no initial value
-        self.measurement_cov = (None if sigma_t is None else
-                                np.diag([sigma_t ** 2] * 3 + [sigma_r ** 2] * 3))
+        self.measurement_cov = None if sigma_t is None else np.diag([sigma_t**2] * 3 + [sigma_r**2] * 3)
 
     @property
     def dim(self) -> int:
@@ -160,7 +198,7 @@ class MeasuredPoseLoop(_Measured):
 
     def tool_pose(self, p: np.ndarray) -> tuple[pin.SE3, np.ndarray]:
         k = self.n_base
-        v = vec_of(self.tool) if self.tool is not None else p[k:k + 6]
+        v = vec_of(self.tool) if self.tool is not None else p[k : k + 6]
         return pose_of(v), v
 
     def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
@@ -191,8 +229,9 @@ class MeasuredPoseLoop(_Measured):
             X = W[0] * Y * M[0].inverse()
         elif fit_tool and self.base is not None:
             Y = W[0].inverse() * X * M[0]
-        p = np.concatenate(([] if self.base is not None else [vec_of(X)])
-                           + ([] if self.tool is not None else [vec_of(Y)]))
+        p = np.concatenate(
+            ([] if self.base is not None else [vec_of(X)]) + ([] if self.tool is not None else [vec_of(Y)])
+        )
         free = np.arange(p.size) if fit_tool else np.arange(6)  # a given tool stays as given
         return _gauss_newton(self, TA, TB, p, free, meas)
 
@@ -204,7 +243,7 @@ class MeasuredPoseLoop(_Measured):
         out = super().normalize(p)
         if self.tool is None:
             k = self.n_base
-            out[k + 3:k + 6] = pin.log3(pin.exp3(p[k + 3:k + 6]))
+            out[k + 3 : k + 6] = pin.log3(pin.exp3(p[k + 3 : k + 6]))
         return out
 
     def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
@@ -263,13 +302,22 @@ class MeasuredPointLoop(_Measured):
     rotation_rows = ()
     _cols = POSITION_COLS
 
-    def __init__(self, name: str, frame_a: str, frame_b: str = "universe", base=None, tip=None,
-                 initial_base=None, initial_tip=None, sigma_t: float | None = None):
+    def __init__(
+        self,
+        name: str,
+        frame_a: str,
+        frame_b: str = "universe",
+        base=None,
+        tip=None,
+        initial_base=None,
+        initial_tip=None,
+        sigma_t: float | None = None,
+    ):
         super().__init__(name, frame_a, frame_b, base, initial_base, sigma_t, None)
         self.tip = None if tip is None else vec3(tip, "tip")
         self.initial_tip = np.zeros(3) if initial_tip is None else vec3(initial_tip, "initial_tip")
         self._fit_tip = initial_tip is None  # initialize() estimates an unknown tip with no initial value
-        self.measurement_cov = None if sigma_t is None else sigma_t ** 2 * np.eye(3)
+        self.measurement_cov = None if sigma_t is None else sigma_t**2 * np.eye(3)
 
     @property
     def dim(self) -> int:
@@ -285,7 +333,7 @@ class MeasuredPointLoop(_Measured):
 
     def tip_point(self, p: np.ndarray) -> np.ndarray:
         k = self.n_base
-        return self.tip if self.tip is not None else p[k:k + 3]
+        return self.tip if self.tip is not None else p[k : k + 3]
 
     def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
         """The unknown sensor base and tool point fitted to every configuration given.
@@ -326,8 +374,9 @@ class MeasuredPointLoop(_Measured):
                 tip = tip + dx[:3]
                 if self.base is None:
                     R, t = kabsch(m, p0 + RBA @ tip, R)
-        p = np.concatenate(([] if self.base is not None else [vec_of(pin.SE3(R, t))])
-                           + ([] if self.tip is not None else [tip]))
+        p = np.concatenate(
+            ([] if self.base is not None else [vec_of(pin.SE3(R, t))]) + ([] if self.tip is not None else [tip])
+        )
         if fit_tip and N >= 3:
             p = _gauss_newton(self, TA, TB, p, np.arange(p.size), m)
         return p
@@ -366,10 +415,16 @@ def _measured_pose(kw: dict[str, str], robot: RobotModel) -> Loop:
     """
     if "frame" not in kw:
         raise LoopError("measured_pose loop needs frame=<tool frame>")
-    return MeasuredPoseLoop(kw.get("name", "measured_pose"), kw["frame"], kw.get("to", "universe"),
-                            base=opt_pose(kw, "base"), tool=opt_pose(kw, "tool"),
-                            initial_base=opt_pose(kw, "base0"),
-                            sigma_t=opt_float(kw, "sigma_t"), sigma_r=opt_float(kw, "sigma_r"))
+    return MeasuredPoseLoop(
+        kw.get("name", "measured_pose"),
+        kw["frame"],
+        kw.get("to", "universe"),
+        base=opt_pose(kw, "base"),
+        tool=opt_pose(kw, "tool"),
+        initial_base=opt_pose(kw, "base0"),
+        sigma_t=opt_float(kw, "sigma_t"),
+        sigma_r=opt_float(kw, "sigma_r"),
+    )
 
 
 @register("measured_point", {"frame", "to", "base", "base0", "tip", "sigma_t"})
@@ -378,6 +433,12 @@ def _measured_point(kw: dict[str, str], robot: RobotModel) -> Loop:
     if "frame" not in kw:
         raise LoopError("measured_point loop needs frame=<tool frame>")
     tip = parse_vec(kw["tip"], 3, "tip") if kw.get("tip", "unknown") != "unknown" else None
-    return MeasuredPointLoop(kw.get("name", "measured_point"), kw["frame"], kw.get("to", "universe"),
-                             base=opt_pose(kw, "base"), tip=tip, initial_base=opt_pose(kw, "base0"),
-                             sigma_t=opt_float(kw, "sigma_t"))
+    return MeasuredPointLoop(
+        kw.get("name", "measured_point"),
+        kw["frame"],
+        kw.get("to", "universe"),
+        base=opt_pose(kw, "base"),
+        tip=tip,
+        initial_base=opt_pose(kw, "base0"),
+        sigma_t=opt_float(kw, "sigma_t"),
+    )

@@ -50,12 +50,12 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import LoopError
-from closedloop.model.parameters import DEFAULT_PRIORS, PLACEMENT_FIELDS, Parameter
 from closedloop.loops.base import Loop, LoopEval
-from closedloop.model.se3 import adjoint, rigid_inverse, skew
 from closedloop.loops.projection import eliminate_along, projector
 from closedloop.loops.spec import register
 from closedloop.loops.weld import CLOSURE_FIELDS
+from closedloop.model.parameters import DEFAULT_PRIORS, PLACEMENT_FIELDS, Parameter
+from closedloop.model.se3 import adjoint, rigid_inverse, skew
 
 MAX_PASSIVE_DOF = 5
 
@@ -107,6 +107,7 @@ class ChainKinematics:
     @staticmethod
     def of(model: pin.Model, fid: int) -> "ChainKinematics | None":
         """The batched kinematics, or None when a joint is not 1-DOF revolute / prismatic / continuous."""
+
         def simple(j) -> bool:
             name = j.shortname()
             if j.nv != 1:
@@ -114,6 +115,7 @@ class ChainKinematics:
             if j.nq == 2:
                 return name.startswith(("JointModelRUB", "JointModelRevoluteUnboundedUnaligned"))
             return j.nq == 1 and name.startswith(("JointModelR", "JointModelP"))
+
         return ChainKinematics(model, fid) if all(simple(j) for j in model.joints[1:]) else None
 
     def integrate(self, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
@@ -136,7 +138,7 @@ class ChainKinematics:
         out = np.array(q, dtype=float)
         for j in self.unbounded:
             iq = self.iq[j]
-            out[:, iq:iq + 2] /= np.linalg.norm(out[:, iq:iq + 2], axis=1)[:, None]
+            out[:, iq : iq + 2] /= np.linalg.norm(out[:, iq : iq + 2], axis=1)[:, None]
         return out
 
     def forward(self, q: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
@@ -169,7 +171,7 @@ class ChainKinematics:
         fMo = rigid_inverse(oMf)
         R = np.zeros((oMf.shape[0], 6, 6 * self.nj))
         for j in self.support:
-            R[:, :, 6 * (j - 1):6 * j] = adjoint(fMo @ oMi[self.parents[j]] @ self.M[j])
+            R[:, :, 6 * (j - 1) : 6 * j] = adjoint(fMo @ oMi[self.parents[j]] @ self.M[j])
         return R
 
 
@@ -179,20 +181,31 @@ class PassiveChainLoop(Loop):
     translation_rows = (0, 1, 2)
     rotation_rows = (3, 4, 5)
 
-    def __init__(self, name: str, frame_a: str, task_model_path: str | Path, task_frame: str,
-                 base_frame: str = "universe", q0: np.ndarray | None = None,
-                 pose: pin.SE3 | None = None):
+    def __init__(
+        self,
+        name: str,
+        frame_a: str,
+        task_model_path: str | Path,
+        task_frame: str,
+        base_frame: str = "universe",
+        q0: np.ndarray | None = None,
+        pose: pin.SE3 | None = None,
+    ):
         super().__init__(name, frame_a, base_frame)
         self.path = Path(task_model_path)
         self.model = load_task_model(self.path)
         if self.model.nv > MAX_PASSIVE_DOF:
-            raise LoopError(f"passive loop '{name}': task model {self.path} has {self.model.nv} passive DOF; "
-                            f"at most {MAX_PASSIVE_DOF} can be eliminated from the 6 closure equations "
-                            "(thesis 3.4)")
+            raise LoopError(
+                f"passive loop '{name}': task model {self.path} has {self.model.nv} passive DOF; "
+                f"at most {MAX_PASSIVE_DOF} can be eliminated from the 6 closure equations "
+                "(thesis 3.4)"
+            )
         if not self.model.existFrame(task_frame):
             names = [f.name for f in self.model.frames if f.name != "universe"]
-            raise LoopError(f"passive loop '{name}': task model {self.path} has no frame '{task_frame}' "
-                            f"(frames: {', '.join(names)})")
+            raise LoopError(
+                f"passive loop '{name}': task model {self.path} has no frame '{task_frame}' "
+                f"(frames: {', '.join(names)})"
+            )
         self.task_frame = task_frame
         self.fid = self.model.getFrameId(task_frame)
         self.task_joints = [self.model.names[j] for j in range(1, self.model.njoints)]
@@ -205,8 +218,10 @@ class PassiveChainLoop(Loop):
             if q0.size == self.model.nv and self.model.nq != self.model.nv:
                 q0 = pin.integrate(self.model, pin.neutral(self.model), q0)
             if q0.size != self.model.nq:
-                raise LoopError(f"passive loop '{name}': q0 has {q0.size} values, the task model "
-                                f"{self.path} has {self.model.nv} DOF")
+                raise LoopError(
+                    f"passive loop '{name}': q0 has {q0.size} values, the task model "
+                    f"{self.path} has {self.model.nv} DOF"
+                )
             self.q0 = q0
         self.known_pose = pose is not None
         self.P0 = pose.copy() if pose is not None else pin.SE3.Identity()
@@ -228,9 +243,20 @@ class PassiveChainLoop(Loop):
         t0 = self.P0.rotation.T @ self.P0.translation
         for k, f in enumerate(CLOSURE_FIELDS):
             m = k < 3
-            out.append(Parameter(f"{self.name}.{f}", "loop", self.name, f, 0.0, "m" if m else "rad",
-                                 DEFAULT_PRIORS["loop_m" if m else "loop_rad"],
-                                 scales_with_length=float(t0[k]) if m else 0.0, priority=1, order=order))
+            out.append(
+                Parameter(
+                    f"{self.name}.{f}",
+                    "loop",
+                    self.name,
+                    f,
+                    0.0,
+                    "m" if m else "rad",
+                    DEFAULT_PRIORS["loop_m" if m else "loop_rad"],
+                    scales_with_length=float(t0[k]) if m else 0.0,
+                    priority=1,
+                    order=order,
+                )
+            )
             order += 1
         places = [(jn, self.model.jointPlacements[j + 1]) for j, jn in enumerate(self.task_joints)]
         places.append(("grasp", self.model.frames[self.fid].placement))
@@ -238,17 +264,27 @@ class PassiveChainLoop(Loop):
             t_local = M0.rotation.T @ M0.translation
             for k, f in enumerate(PLACEMENT_FIELDS):
                 m = k < 3
-                out.append(Parameter(f"{self.name}.{owner}.{f}", "loop", self.name, f"{owner}.{f}", 0.0,
-                                     "m" if m else "rad", DEFAULT_PRIORS["loop_m" if m else "loop_rad"],
-                                     scales_with_length=float(t_local[k]) if m else 0.0, priority=1,
-                                     order=order))
+                out.append(
+                    Parameter(
+                        f"{self.name}.{owner}.{f}",
+                        "loop",
+                        self.name,
+                        f"{owner}.{f}",
+                        0.0,
+                        "m" if m else "rad",
+                        DEFAULT_PRIORS["loop_m" if m else "loop_rad"],
+                        scales_with_length=float(t_local[k]) if m else 0.0,
+                        priority=1,
+                        order=order,
+                    )
+                )
                 order += 1
         return out
 
     def _split(self, p: np.ndarray):
         base = self.P0 * pin.exp6(p[0:6])
-        joints = p[6:6 + 6 * self.nj].reshape(self.nj, 6)
-        grasp = p[6 + 6 * self.nj:12 + 6 * self.nj]
+        joints = p[6 : 6 + 6 * self.nj].reshape(self.nj, 6)
+        grasp = p[6 + 6 * self.nj : 12 + 6 * self.nj]
         return base, joints, grasp
 
     def task_model(self, p: np.ndarray) -> pin.Model:
@@ -293,10 +329,13 @@ class PassiveChainLoop(Loop):
         return self._split(p)[0]
 
     def describe(self) -> dict:
-        return super().describe() | {"reference_pose": np.concatenate([self.P0.translation,
-                                                                       pin.log3(self.P0.rotation)]).tolist(),
-                                     "task_model": str(self.path), "task_frame": self.task_frame,
-                                     "task_joints": self.task_joints, "passive_dof": self.dof}
+        return super().describe() | {
+            "reference_pose": np.concatenate([self.P0.translation, pin.log3(self.P0.rotation)]).tolist(),
+            "task_model": str(self.path),
+            "task_frame": self.task_frame,
+            "task_joints": self.task_joints,
+            "passive_dof": self.dof,
+        }
 
     # ------------------------------------------------------------ evaluation
     def _solver(self, p: np.ndarray):
@@ -348,7 +387,7 @@ class PassiveChainLoop(Loop):
         _, joints, grasp = self._split(p)
         G = np.zeros((6 * self.nj, 6 * self.nj))
         for j in range(self.nj):
-            G[6 * j:6 * j + 6, 6 * j:6 * j + 6] = pin.Jexp6(joints[j])
+            G[6 * j : 6 * j + 6, 6 * j : 6 * j + 6] = pin.Jexp6(joints[j])
         if chain is not None:
             oMi, oMf = chain.forward(qs)
             Reg = chain.regressor(oMi, oMf)
@@ -361,8 +400,9 @@ class PassiveChainLoop(Loop):
         dA = Pp @ el.Jl
         dX = -dA @ adjoint(rigid_inverse(el.E))
         dB = -dA @ adjoint(rigid_inverse(TA) @ TB)
-        dp = np.concatenate([dX @ (adjoint(rigid_inverse(oMf)) @ pin.Jexp6(p[0:6])), dX @ (Reg @ G),
-                             dX @ pin.Jexp6(grasp)], axis=2)
+        dp = np.concatenate(
+            [dX @ (adjoint(rigid_inverse(oMf)) @ pin.Jexp6(p[0:6])), dX @ (Reg @ G), dX @ pin.Jexp6(grasp)], axis=2
+        )
         return LoopEval(r, dA, dB, dp, iterations=int(el.iterations.max(initial=0))), qs
 
 
@@ -371,13 +411,16 @@ def _passive(kw: dict[str, str], robot) -> Loop:
     """passive:frame=<tool>,task=<task.urdf>,task_frame=<frame>[,to=<frame>][,q0="..."][,name=task]"""
     for key in ("frame", "task", "task_frame"):
         if key not in kw:
-            raise LoopError(f"passive loop needs {key}=... (frame=<tool frame>, task=<task model file>, "
-                            "task_frame=<frame of the task model the tool holds>)")
+            raise LoopError(
+                f"passive loop needs {key}=... (frame=<tool frame>, task=<task model file>, "
+                "task_frame=<frame of the task model the tool holds>)"
+            )
     q0 = None
     if "q0" in kw:
         try:
             q0 = np.array([float(t) for t in kw["q0"].replace(",", " ").split()])
         except ValueError:
             raise LoopError(f"q0 '{kw['q0']}': expected numbers (task joint values)") from None
-    return PassiveChainLoop(kw.get("name", "task"), kw["frame"], kw["task"], kw["task_frame"],
-                            kw.get("to", "universe"), q0=q0)
+    return PassiveChainLoop(
+        kw.get("name", "task"), kw["frame"], kw["task"], kw["task_frame"], kw.get("to", "universe"), q0=q0
+    )

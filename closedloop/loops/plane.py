@@ -6,12 +6,12 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import LoopError
-from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
-from closedloop.model.robot import RobotModel
-from closedloop.model.se3 import parse_vec, skew, vec3
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.common import TIP_FIELDS, point_parameters, relative_point
 from closedloop.loops.spec import register
+from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
+from closedloop.model.robot import RobotModel
+from closedloop.model.se3 import parse_vec, skew, vec3
 
 PLANE_FIELDS = ("nrx", "nry", "d")
 EZ = np.array([0.0, 0.0, 1.0])
@@ -67,9 +67,16 @@ class PlaneLoop(Loop):
     translation_rows = (0,)
     rotation_rows = ()
 
-    def __init__(self, name: str, frame_a: str, frame_b: str = "universe", tip: np.ndarray | None = None,
-                 normal: np.ndarray | None = None, initial_tip: np.ndarray | None = None,
-                 prior: float | None = None):
+    def __init__(
+        self,
+        name: str,
+        frame_a: str,
+        frame_b: str = "universe",
+        tip: np.ndarray | None = None,
+        normal: np.ndarray | None = None,
+        initial_tip: np.ndarray | None = None,
+        prior: float | None = None,
+    ):
         super().__init__(name, frame_a, frame_b)
         self.prior = prior
         self.tip = None if tip is None else vec3(tip, "tip")
@@ -106,7 +113,7 @@ class PlaneLoop(Loop):
         """(tip, w, d) from the loop's parameter vector."""
         k = self.n_tip
         tip = self.tip if self.tip is not None else p[:3]
-        return np.asarray(tip, dtype=float), p[k:k + 2], float(p[k + 2])
+        return np.asarray(tip, dtype=float), p[k : k + 2], float(p[k + 2])
 
     def parameters(self) -> list[Parameter]:
         out = []
@@ -117,8 +124,20 @@ class PlaneLoop(Loop):
             prior = DEFAULT_PRIORS["loop_m" if unit == "m" else "loop_rad"]
             if unit == "m" and self.prior is not None:
                 prior = self.prior
-            out.append(Parameter(f"{self.name}.{f}", "loop", self.name, f, 0.0, unit, prior,
-                                 scales_with_length=0.0, priority=1, order=3 + k))
+            out.append(
+                Parameter(
+                    f"{self.name}.{f}",
+                    "loop",
+                    self.name,
+                    f,
+                    0.0,
+                    unit,
+                    prior,
+                    scales_with_length=0.0,
+                    priority=1,
+                    order=3 + k,
+                )
+            )
         return out
 
     def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
@@ -146,7 +165,7 @@ class PlaneLoop(Loop):
         n = self.normal(w)
         out = p.copy()
         k = self.n_tip
-        out[k:k + 2] = self.angles(-n)
+        out[k : k + 2] = self.angles(-n)
         out[k + 2] = -d
         return out
 
@@ -169,8 +188,10 @@ class PlaneLoop(Loop):
         return LoopEval(r, dA, dB, np.concatenate(blocks, axis=2))
 
     def describe(self) -> dict:
-        return super().describe() | {"tip": "unknown" if self.tip is None else self.tip.tolist(),
-                                     "reference_normal": self.n_ref.tolist()}
+        return super().describe() | {
+            "tip": "unknown" if self.tip is None else self.tip.tolist(),
+            "reference_normal": self.n_ref.tolist(),
+        }
 
 
 @register("plane", {"frame", "to", "tip", "normal"})

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 from closedloop.errors import LoopError
-from closedloop.model.parameters import Parameter
-from closedloop.model.robot import RobotModel
-from closedloop.model.se3 import parse_vec, vec3
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.common import POINT_FIELDS, TIP_FIELDS, point_parameters, relative_point
 from closedloop.loops.spec import register
+from closedloop.model.parameters import Parameter
+from closedloop.model.robot import RobotModel
+from closedloop.model.se3 import parse_vec, vec3
 
 
 class PointLoop(Loop):
@@ -48,10 +48,17 @@ class PointLoop(Loop):
     translation_rows = (0, 1, 2)
     rotation_rows = ()
 
-    def __init__(self, name: str, frame_a: str, frame_b: str = "universe",
-                 tip: np.ndarray | None = None, point: np.ndarray | None = None,
-                 initial_tip: np.ndarray | None = None, initial_point: np.ndarray | None = None,
-                 prior: float | None = None):
+    def __init__(
+        self,
+        name: str,
+        frame_a: str,
+        frame_b: str = "universe",
+        tip: np.ndarray | None = None,
+        point: np.ndarray | None = None,
+        initial_tip: np.ndarray | None = None,
+        initial_point: np.ndarray | None = None,
+        prior: float | None = None,
+    ):
         super().__init__(name, frame_a, frame_b)
         self.prior = prior
         self.tip = None if tip is None else vec3(tip, "tip")
@@ -80,7 +87,7 @@ class PointLoop(Loop):
         """(tip, point) from the loop's parameter vector."""
         k = self.n_tip
         tip = self.tip if self.tip is not None else p[:3]
-        point = self.point if self.point is not None else p[k:k + 3]
+        point = self.point if self.point is not None else p[k : k + 3]
         return np.asarray(tip, dtype=float), np.asarray(point, dtype=float)
 
     def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
@@ -124,7 +131,8 @@ class PointLoop(Loop):
     def describe(self) -> dict:
         return super().describe() | {
             "tip": "unknown" if self.tip is None else self.tip.tolist(),
-            "point": "unknown" if self.point is None else self.point.tolist()}
+            "point": "unknown" if self.point is None else self.point.tolist(),
+        }
 
 
 @register("point", {"frame", "to", "tip", "point"})

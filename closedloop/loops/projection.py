@@ -113,7 +113,7 @@ def _lstsq_step(J: np.ndarray, r: np.ndarray, rcond: float = 1e-12) -> np.ndarra
     x = np.empty((n, k))
     for i in range(k - 1, -1, -1):
         with np.errstate(divide="ignore", invalid="ignore"):
-            x[:, i] = (y[:, i] - np.einsum("nm,nm->n", R[:, i, i + 1:], x[:, i + 1:])) / R[:, i, i]
+            x[:, i] = (y[:, i] - np.einsum("nm,nm->n", R[:, i, i + 1 :], x[:, i + 1 :])) / R[:, i, i]
     bad = np.flatnonzero(~good)
     if bad.size:
         x[bad] = -np.einsum("nkj,nj->nk", np.linalg.pinv(J[bad], rcond=rcond), r[bad])
@@ -168,8 +168,14 @@ def _start_state(M: np.ndarray, pose: BatchPoseFn, starts: list[np.ndarray]) -> 
     return best
 
 
-def gauss_newton(M: np.ndarray, pose: BatchPoseFn, phi0: np.ndarray | list[np.ndarray],
-                 integrate: IntegrateFn | None = None, tol: float = 1e-13, max_iter: int = 100) -> Elimination:
+def gauss_newton(
+    M: np.ndarray,
+    pose: BatchPoseFn,
+    phi0: np.ndarray | list[np.ndarray],
+    integrate: IntegrateFn | None = None,
+    tol: float = 1e-13,
+    max_iter: int = 100,
+) -> Elimination:
     """phi* = argmin |log6(X(phi)^-1 M_i)|^2 from phi0 (N, nq), or the best of a list of starts, every
     configuration at once."""
     integ = integrate if integrate is not None else (lambda a, d: a + d)
@@ -208,9 +214,15 @@ def gauss_newton(M: np.ndarray, pose: BatchPoseFn, phi0: np.ndarray | list[np.nd
     return Elimination(phi, r, Jl, E, Jphi, its)
 
 
-def eliminate(M: np.ndarray, pose: BatchPoseFn, starts: list[np.ndarray], integrate: IntegrateFn | None = None,
-              tol: float = 1e-13, max_iter: int = 100,
-              snap: Callable[[np.ndarray], np.ndarray] | None = None) -> Elimination:
+def eliminate(
+    M: np.ndarray,
+    pose: BatchPoseFn,
+    starts: list[np.ndarray],
+    integrate: IntegrateFn | None = None,
+    tol: float = 1e-13,
+    max_iter: int = 100,
+    snap: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> Elimination:
     """phi* by Gauss-Newton from the best of `starts` (each (N, nq); NaN rows: not a start there).
 
     `snap` (for warm starts): the converged phi is rounded by `snap` and the
@@ -237,9 +249,15 @@ def _spread(changed: np.ndarray, width: int, N: int) -> tuple[np.ndarray, np.nda
     return idx[last], src[last]
 
 
-def eliminate_along(M: np.ndarray, pose: BatchPoseFn, warm: np.ndarray | None, q0: np.ndarray,
-                    integrate: IntegrateFn | None = None, snap: Callable[[np.ndarray], np.ndarray] | None = None,
-                    max_speculative_sweeps: int = 24) -> Elimination:
+def eliminate_along(
+    M: np.ndarray,
+    pose: BatchPoseFn,
+    warm: np.ndarray | None,
+    q0: np.ndarray,
+    integrate: IntegrateFn | None = None,
+    snap: Callable[[np.ndarray], np.ndarray] | None = None,
+    max_speculative_sweeps: int = 24,
+) -> Elimination:
     """phi* for rows that follow a path, as a row-by-row sweep would find them: row i from the best of
     `warm[i]` (the previous evaluation's solution), phi*_{i-1} (the previous row's) and `q0` (first on ties).
 

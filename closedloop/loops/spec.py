@@ -29,9 +29,9 @@ from importlib import import_module
 from typing import Callable
 
 from closedloop.errors import InputError, LoopError
-from closedloop.model.robot import RobotModel
 from closedloop.loops.base import Loop
 from closedloop.loops.weld import WeldLoop, parse_pose
+from closedloop.model.robot import RobotModel
 
 LoopFactory = Callable[[dict[str, str], RobotModel], Loop]
 
@@ -64,6 +64,7 @@ def register(kind: str, keys: set[str]):
     def deco(fn: LoopFactory) -> LoopFactory:
         REGISTRY[kind] = (fn, keys | {"name"})
         return fn
+
     return deco
 
 
@@ -125,8 +126,9 @@ def parse_loop(spec: str, robot: RobotModel) -> Loop:
             generic[key] = val
             continue
         if key not in keys:
-            raise LoopError(f"--loop {spec}: unknown key '{key}' for {kind} (keys: "
-                            f"{', '.join(sorted(keys | GENERIC_KEYS))})")
+            raise LoopError(
+                f"--loop {spec}: unknown key '{key}' for {kind} (keys: {', '.join(sorted(keys | GENERIC_KEYS))})"
+            )
         if val.startswith("[") and val.endswith("]"):
             val = val[1:-1]
         kw[key] = val

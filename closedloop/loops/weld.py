@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from closedloop.model.parameters import Parameter
-from closedloop.model.se3 import adjoint, log6, parse_pose, rigid_inverse  # noqa: F401  (parse_pose: spec.py's)
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.common import POSE_FIELDS, pose_parameters
+from closedloop.model.parameters import Parameter
+from closedloop.model.se3 import adjoint, log6, parse_pose, rigid_inverse  # noqa: F401  (parse_pose: spec.py's)
 
 CLOSURE_FIELDS = POSE_FIELDS
 
@@ -40,8 +40,14 @@ class WeldLoop(Loop):
     translation_rows = (0, 1, 2)
     rotation_rows = (3, 4, 5)
 
-    def __init__(self, name: str, frame_a: str, frame_b: str = "universe",
-                 closure: pin.SE3 | None = None, initial: pin.SE3 | None = None):
+    def __init__(
+        self,
+        name: str,
+        frame_a: str,
+        frame_b: str = "universe",
+        closure: pin.SE3 | None = None,
+        initial: pin.SE3 | None = None,
+    ):
         super().__init__(name, frame_a, frame_b)
         self.known = closure
         self.initial = initial
@@ -78,8 +84,11 @@ class WeldLoop(Loop):
         return T
 
     def describe(self) -> dict:
-        return super().describe() | {"closure": "unknown" if self.known is None else
-                                     np.concatenate([self.known.translation, pin.log3(self.known.rotation)]).tolist()}
+        return super().describe() | {
+            "closure": "unknown"
+            if self.known is None
+            else np.concatenate([self.known.translation, pin.log3(self.known.rotation)]).tolist()
+        }
 
     def closure(self, p: np.ndarray) -> pin.SE3:
         if self.known is not None:

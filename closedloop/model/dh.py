@@ -87,9 +87,16 @@ class DHTable:
         parent = 0
         placement = pin.SE3.Identity()
         for row in self.rows:
-            jid = model.addJoint(parent, pin.JointModelRZ(), placement, row.name,
-                                 np.array([1e3]), np.array([1e3]),
-                                 np.array([row.lower]), np.array([row.upper]))
+            jid = model.addJoint(
+                parent,
+                pin.JointModelRZ(),
+                placement,
+                row.name,
+                np.array([1e3]),
+                np.array([1e3]),
+                np.array([row.lower]),
+                np.array([row.upper]),
+            )
             model.appendBodyToJoint(jid, pin.Inertia.FromSphere(0.1, 0.01), pin.SE3.Identity())
             model.addFrame(pin.Frame(f"{row.name}_link", jid, 0, pin.SE3.Identity(), pin.FrameType.BODY))
             parent = jid
@@ -142,24 +149,58 @@ def load_dh(path: str | Path) -> DHTable:
         if not any(f in raw for f in GEOMETRY):
             raise ModelError(f"{where}: gives only a name; give its geometry ({', '.join(GEOMETRY)}; 0 where zero)")
         conv = raw.get("convention", doc.get("convention", "dh"))
-        vals = {key: float(raw.get(key, default)) for key, default in
-                (("theta_off", 0.0), ("s", 0.0), ("a", 0.0), ("alpha", 0.0), ("k", 1.0),
-                 ("lower", -np.pi / A), ("upper", np.pi / A))}
+        vals = {
+            key: float(raw.get(key, default))
+            for key, default in (
+                ("theta_off", 0.0),
+                ("s", 0.0),
+                ("a", 0.0),
+                ("alpha", 0.0),
+                ("k", 1.0),
+                ("lower", -np.pi / A),
+                ("upper", np.pi / A),
+            )
+        }
         a_scale = A if conv == "hayati" else L  # Hayati 'a' is an angle; D-H 'a' a length
-        si = {"theta_off": vals["theta_off"] * A, "s": vals["s"] * L, "a": vals["a"] * a_scale,
-              "alpha": vals["alpha"] * A, "lower": vals["lower"] * A, "upper": vals["upper"] * A}
+        si = {
+            "theta_off": vals["theta_off"] * A,
+            "s": vals["s"] * L,
+            "a": vals["a"] * a_scale,
+            "alpha": vals["alpha"] * A,
+            "lower": vals["lower"] * A,
+            "upper": vals["upper"] * A,
+        }
         for key, v in si.items():
             lim, unit = (MAX_LENGTH_M, "m") if key == "s" or (key == "a" and conv == "dh") else (MAX_ANGLE_RAD, "rad")
             if abs(v) > lim:
                 raise ModelError(f"{where}, field '{key}': {raw.get(key)} is out of range (|{key}| <= {lim:g} {unit})")
         if not K_RANGE[0] <= abs(vals["k"]) <= K_RANGE[1]:
-            raise ModelError(f"{where}, field 'k': {raw['k']} is out of range ({K_RANGE[0]:g} <= |k| <= {K_RANGE[1]:g})")
+            raise ModelError(
+                f"{where}, field 'k': {raw['k']} is out of range ({K_RANGE[0]:g} <= |k| <= {K_RANGE[1]:g})"
+            )
         if si["lower"] > si["upper"]:
             raise ModelError(f"{where}: lower {raw.get('lower')} exceeds upper {raw.get('upper')}")
-        rows.append(DHRow(name=name, theta_off=si["theta_off"], s=si["s"], a=si["a"], alpha=si["alpha"],
-                          k=vals["k"], convention=conv, lower=si["lower"], upper=si["upper"]))
-    return DHTable(name=doc.get("name", _stem_name(path)), rows=rows, closes=doc.get("closes", False),
-                   source=path, length_unit=lu, angle_unit=au)
+        rows.append(
+            DHRow(
+                name=name,
+                theta_off=si["theta_off"],
+                s=si["s"],
+                a=si["a"],
+                alpha=si["alpha"],
+                k=vals["k"],
+                convention=conv,
+                lower=si["lower"],
+                upper=si["upper"],
+            )
+        )
+    return DHTable(
+        name=doc.get("name", _stem_name(path)),
+        rows=rows,
+        closes=doc.get("closes", False),
+        source=path,
+        length_unit=lu,
+        angle_unit=au,
+    )
 
 
 def _stem_name(path: Path) -> str:
@@ -178,10 +219,21 @@ def dump_dh(table: DHTable, values: dict[str, float] | None = None) -> str:
     for row in table.rows:
         get = lambda f: values.get(f"{row.name}.{f}", getattr(row, f))  # noqa: E731
         a_scale = A if row.convention == "hayati" else L
-        rows.append({"name": row.name, "convention": row.convention,
-                     "theta_off": round(get("theta_off") / A, 12), "s": round(get("s") / L, 12),
-                     "a": round(get("a") / a_scale, 12), "alpha": round(get("alpha") / A, 12),
-                     "k": round(get("k"), 12)})
-    doc = {"name": table.name, "closes": table.closes,
-           "units": {"length": table.length_unit, "angle": table.angle_unit}, "joints": rows}
+        rows.append(
+            {
+                "name": row.name,
+                "convention": row.convention,
+                "theta_off": round(get("theta_off") / A, 12),
+                "s": round(get("s") / L, 12),
+                "a": round(get("a") / a_scale, 12),
+                "alpha": round(get("alpha") / A, 12),
+                "k": round(get("k"), 12),
+            }
+        )
+    doc = {
+        "name": table.name,
+        "closes": table.closes,
+        "units": {"length": table.length_unit, "angle": table.angle_unit},
+        "joints": rows,
+    }
     return yaml.safe_dump(doc, sort_keys=False)

@@ -32,16 +32,23 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 
-from closedloop.model.dh import DHRow, rot
 from closedloop.errors import ParameterError
+from closedloop.model.dh import DHRow, rot
 from closedloop.model.robot import RobotModel
 
 PLACEMENT_FIELDS = ("x", "y", "z", "rx", "ry", "rz")
 
 # Default expected error magnitudes: used to scale Jacobian columns and to
 # decide whether the data determine a direction better than this prior.
-DEFAULT_PRIORS = {"m": 0.01, "rad": 0.01, "offset": 0.05, "scale": 0.05, "loop_m": 1.0, "loop_rad": 1.0,
-                  "compliance": 1e-4}
+DEFAULT_PRIORS = {
+    "m": 0.01,
+    "rad": 0.01,
+    "offset": 0.05,
+    "scale": 0.05,
+    "loop_m": 1.0,
+    "loop_rad": 1.0,
+    "compliance": 1e-4,
+}
 
 
 @dataclass
@@ -94,30 +101,97 @@ class RobotParameters:
                 for fld in ("s", "a", "alpha"):
                     unit = "rad" if fld == "alpha" or (fld == "a" and row.convention == "hayati") else "m"
                     val = getattr(row, fld)
-                    self.params.append(Parameter(f"{name}.{fld}", "dh", name, fld, val, unit, pri[unit],
-                                                 scales_with_length=val if unit == "m" else 0.0,
-                                                 priority=4, order=order))
-                self.params.append(Parameter(f"{name}.theta_off", "offset", name, "theta_off", row.theta_off,
-                                             "rad", pri["offset"], priority=2, order=order))
-                self.params.append(Parameter(f"{name}.k", "scale", name, "k", row.k, "1", pri["scale"],
-                                             priority=3, order=order))
-                self.params.append(Parameter(f"{name}.compliance", "compliance", name, "compliance", 0.0,
-                                             "rad/Nm", pri["compliance"], priority=3, order=order))
+                    self.params.append(
+                        Parameter(
+                            f"{name}.{fld}",
+                            "dh",
+                            name,
+                            fld,
+                            val,
+                            unit,
+                            pri[unit],
+                            scales_with_length=val if unit == "m" else 0.0,
+                            priority=4,
+                            order=order,
+                        )
+                    )
+                self.params.append(
+                    Parameter(
+                        f"{name}.theta_off",
+                        "offset",
+                        name,
+                        "theta_off",
+                        row.theta_off,
+                        "rad",
+                        pri["offset"],
+                        priority=2,
+                        order=order,
+                    )
+                )
+                self.params.append(
+                    Parameter(f"{name}.k", "scale", name, "k", row.k, "1", pri["scale"], priority=3, order=order)
+                )
+                self.params.append(
+                    Parameter(
+                        f"{name}.compliance",
+                        "compliance",
+                        name,
+                        "compliance",
+                        0.0,
+                        "rad/Nm",
+                        pri["compliance"],
+                        priority=3,
+                        order=order,
+                    )
+                )
             else:
                 M0 = nominal_model.jointPlacements[j.jid]
                 t_local = M0.rotation.T @ M0.translation  # scale direction in the joint frame
                 for k, fld in enumerate(PLACEMENT_FIELDS):
                     unit = "m" if k < 3 else "rad"
-                    self.params.append(Parameter(f"{name}.{fld}", "placement", name, fld, 0.0, unit, pri[unit],
-                                                 scales_with_length=float(t_local[k]) if k < 3 else 0.0,
-                                                 priority=4, order=order))
-                self.params.append(Parameter(f"{name}.offset", "offset", name, "offset", 0.0, ang,
-                                             pri["offset"] if ang == "rad" else pri["m"], priority=2, order=order))
-                self.params.append(Parameter(f"{name}.scale", "scale", name, "scale", 1.0, "1", pri["scale"],
-                                             priority=3, order=order))
-                self.params.append(Parameter(f"{name}.compliance", "compliance", name, "compliance", 0.0,
-                                             "rad/Nm" if ang == "rad" else "m/N", pri["compliance"],
-                                             priority=3, order=order))
+                    self.params.append(
+                        Parameter(
+                            f"{name}.{fld}",
+                            "placement",
+                            name,
+                            fld,
+                            0.0,
+                            unit,
+                            pri[unit],
+                            scales_with_length=float(t_local[k]) if k < 3 else 0.0,
+                            priority=4,
+                            order=order,
+                        )
+                    )
+                self.params.append(
+                    Parameter(
+                        f"{name}.offset",
+                        "offset",
+                        name,
+                        "offset",
+                        0.0,
+                        ang,
+                        pri["offset"] if ang == "rad" else pri["m"],
+                        priority=2,
+                        order=order,
+                    )
+                )
+                self.params.append(
+                    Parameter(f"{name}.scale", "scale", name, "scale", 1.0, "1", pri["scale"], priority=3, order=order)
+                )
+                self.params.append(
+                    Parameter(
+                        f"{name}.compliance",
+                        "compliance",
+                        name,
+                        "compliance",
+                        0.0,
+                        "rad/Nm" if ang == "rad" else "m/N",
+                        pri["compliance"],
+                        priority=3,
+                        order=order,
+                    )
+                )
         self.index = {p.name: i for i, p in enumerate(self.params)}
         self._joint_pos = {n: i for i, n in enumerate(self.joints)}
         self._off_idx = np.array([self.index[self.sensor_name(n, "offset")] for n in self.joints], dtype=int)
@@ -171,7 +245,7 @@ class RobotParameters:
                 cols = [self.index[f"{name}.{f}"] for f in ("s", "a", "alpha")]
                 if j.jid + 1 < model.njoints and model.parents[j.jid + 1] == j.jid:
                     model.jointPlacements[j.jid + 1] = C
-                    G[6 * j.jid:6 * j.jid + 6, cols] = gens
+                    G[6 * j.jid : 6 * j.jid + 6, cols] = gens
                 else:  # last row: the end frame
                     fid = model.getFrameId(robot.dh.end_frame)
                     frame = model.frames[fid]
@@ -184,11 +258,18 @@ class RobotParameters:
             for name in self.joints:
                 j = robot.joint(name)
                 i0 = self.index[f"{name}.x"]
-                p = values[i0:i0 + 6]
+                p = values[i0 : i0 + 6]
                 model.jointPlacements[j.jid] = robot.model.jointPlacements[j.jid] * pin.exp6(p)
-                G[6 * (j.jid - 1):6 * j.jid, i0:i0 + 6] = pin.Jexp6(p)
-        return RobotState(model, model.createData(), values[self._off_idx].copy(),
-                          values[self._scale_idx].copy(), values[self._comp_idx].copy(), G, G_frames)
+                G[6 * (j.jid - 1) : 6 * j.jid, i0 : i0 + 6] = pin.Jexp6(p)
+        return RobotState(
+            model,
+            model.createData(),
+            values[self._off_idx].copy(),
+            values[self._scale_idx].copy(),
+            values[self._comp_idx].copy(),
+            G,
+            G_frames,
+        )
 
     def placement_errors(self, values: np.ndarray) -> dict[str, pin.SE3]:
         """Joint name -> calibrated joint placement (Pinocchio joint frame in its parent)."""

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from closedloop.model.dh import DHTable, load_dh
 from closedloop.errors import ModelError
+from closedloop.model.dh import DHTable, load_dh
 
 log = logging.getLogger(__name__)
 
@@ -48,8 +48,7 @@ class JointInfo:
 class RobotModel:
     """The nominal kinematic model of a robot."""
 
-    def __init__(self, model: pin.Model, source: Path | None = None, kind: str = "urdf",
-                 dh: DHTable | None = None):
+    def __init__(self, model: pin.Model, source: Path | None = None, kind: str = "urdf", dh: DHTable | None = None):
         self.model = model
         self.source = source
         self.kind = kind
@@ -75,12 +74,16 @@ class RobotModel:
             else:
                 kind_j, axis = ("continuous" if jm.nq == 2 else "revolute"), S[3:]
             if not np.all(np.isfinite(axis)) or np.linalg.norm(axis) < 1e-9:
-                raise ModelError(f"{source or model.name}: joint '{name}' has a zero or invalid axis "
-                                 f"{np.round(axis, 6).tolist()}; give a nonzero <axis xyz=...>")
-            lo, hi = (-np.pi, np.pi) if jm.nq == 2 else (model.lowerPositionLimit[jm.idx_q],
-                                                          model.upperPositionLimit[jm.idx_q])
-            self.joints[name] = JointInfo(name, jid, jm.idx_q, jm.idx_v, kind_j, axis.copy(),
-                                          float(lo), float(hi))
+                raise ModelError(
+                    f"{source or model.name}: joint '{name}' has a zero or invalid axis "
+                    f"{np.round(axis, 6).tolist()}; give a nonzero <axis xyz=...>"
+                )
+            lo, hi = (
+                (-np.pi, np.pi)
+                if jm.nq == 2
+                else (model.lowerPositionLimit[jm.idx_q], model.upperPositionLimit[jm.idx_q])
+            )
+            self.joints[name] = JointInfo(name, jid, jm.idx_q, jm.idx_v, kind_j, axis.copy(), float(lo), float(hi))
 
     # ----------------------------------------------------------------- loading
     @classmethod
@@ -126,8 +129,10 @@ class RobotModel:
             return self.joints[name]
         except KeyError:
             if name in self._unsupported:
-                raise ModelError(f"joint '{name}' is a {self._unsupported[name]} joint; only 1-DOF "
-                                 "revolute, continuous and prismatic joints can be calibrated") from None
+                raise ModelError(
+                    f"joint '{name}' is a {self._unsupported[name]} joint; only 1-DOF "
+                    "revolute, continuous and prismatic joints can be calibrated"
+                ) from None
             raise ModelError(f"unknown joint '{name}'{_suggest(name, self.joint_names)}") from None
 
     def frame_id(self, name: str) -> int:
@@ -148,8 +153,10 @@ class RobotModel:
         support = [self.model.names[j] for j in self.model.supports[jid]]
         for j in support:
             if j in self.mimic:
-                raise ModelError(f"joint '{j}' mimics joint '{self.mimic[j]}' (URDF <mimic>) and lies between the "
-                                 f"base and frame '{frame}': loops through mimic joints are not supported")
+                raise ModelError(
+                    f"joint '{j}' mimics joint '{self.mimic[j]}' (URDF <mimic>) and lies between the "
+                    f"base and frame '{frame}': loops through mimic joints are not supported"
+                )
         return [j for j in support if j in self.joints]
 
     # ----------------------------------------------------------- configurations
@@ -175,8 +182,10 @@ class RobotModel:
         return {
             "source": str(self.source) if self.source else None,
             "kind": self.kind,
-            "joints": [{"name": j.name, "type": j.kind, "axis": j.axis.round(6).tolist(),
-                        "lower": j.lower, "upper": j.upper} for j in self.joints.values()],
+            "joints": [
+                {"name": j.name, "type": j.kind, "axis": j.axis.round(6).tolist(), "lower": j.lower, "upper": j.upper}
+                for j in self.joints.values()
+            ],
             "unsupported_joints": self._unsupported,
             "mimic_joints": dict(self.mimic),
             "frames": [f.name for f in self.model.frames if f.name != "universe"],

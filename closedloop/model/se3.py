@@ -54,8 +54,14 @@ def _trace3(M: np.ndarray) -> np.ndarray:
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a x b for stacks (n, 3) (np.cross's arithmetic without its axis handling)."""
-    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+    return np.stack(
+        [
+            a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
+        ],
+        axis=1,
+    )
 
 
 def _unskew(M: np.ndarray) -> np.ndarray:
@@ -80,8 +86,11 @@ def log3(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     tr = _trace3(Rn)
     cos = (tr - 1.0) / 2.0
     acos_exp = np.sqrt(2.0 * (1.0 - cos) + _EPS * _EPS)
-    theta = np.where(tr <= 3.0 - _PREC2,
-                     np.where(tr >= -1.0 + _PREC2, np.arccos(np.clip(cos, -1.0, 1.0)), np.pi - acos_exp), acos_exp)
+    theta = np.where(
+        tr <= 3.0 - _PREC2,
+        np.where(tr >= -1.0 + _PREC2, np.arccos(np.clip(cos, -1.0, 1.0)), np.pi - acos_exp),
+        acos_exp,
+    )
     a = _unskew(Rn)
     t2 = _dot3(a, a)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -248,8 +257,7 @@ def hand_eye(W: list[pin.SE3], M: list[pin.SE3]) -> tuple[pin.SE3, pin.SE3] | No
     R_Wi t_Y - t_X = R_X t_Mi - t_Wi.
     """
     I3 = np.eye(3)
-    A = np.concatenate([np.hstack([np.kron(I3, w.rotation), -np.kron(m.rotation.T, I3)])
-                        for w, m in zip(W, M)])
+    A = np.concatenate([np.hstack([np.kron(I3, w.rotation), -np.kron(m.rotation.T, I3)]) for w, m in zip(W, M)])
     _, S, Vt = np.linalg.svd(A)
     if not S[-2] > 1e-6 * S[0]:
         return None

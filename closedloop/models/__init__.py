@@ -72,9 +72,7 @@ def example_robot_data_dir() -> Path:
         d = Path(base) / _ERD_SUBDIR
         if d.is_dir():
             return d
-    raise FileNotFoundError(
-        "example-robot-data robots not found; install it with `pip install example-robot-data`"
-    )
+    raise FileNotFoundError("example-robot-data robots not found; install it with `pip install example-robot-data`")
 
 
 def model_file(name: str) -> Path:
@@ -183,8 +181,12 @@ def clean_urdf_tree(root: ET.Element, remove_links: tuple[str, ...] = ()) -> ET.
             ET.SubElement(
                 inertial,
                 "inertia",
-                ixx=_fmt(_TINY_INERTIA), ixy="0", ixz="0",
-                iyy=_fmt(_TINY_INERTIA), iyz="0", izz=_fmt(_TINY_INERTIA),
+                ixx=_fmt(_TINY_INERTIA),
+                ixy="0",
+                ixz="0",
+                iyy=_fmt(_TINY_INERTIA),
+                iyz="0",
+                izz=_fmt(_TINY_INERTIA),
             )
     for joint in root.findall("joint"):
         for el in list(joint.findall("dynamics")):
@@ -210,16 +212,23 @@ def nominal_urdf(robot: str) -> str:
         ET.SubElement(inertial, "origin", xyz="0 0 0", rpy="0 0 0")
         ET.SubElement(inertial, "mass", value=_fmt(_TINY_MASS))
         ET.SubElement(
-            inertial, "inertia",
-            ixx=_fmt(_TINY_INERTIA), ixy="0", ixz="0",
-            iyy=_fmt(_TINY_INERTIA), iyz="0", izz=_fmt(_TINY_INERTIA),
+            inertial,
+            "inertia",
+            ixx=_fmt(_TINY_INERTIA),
+            ixy="0",
+            ixz="0",
+            iyy=_fmt(_TINY_INERTIA),
+            iyz="0",
+            izz=_fmt(_TINY_INERTIA),
         )
         joint = ET.SubElement(root, "joint", name=f"{tool.name}_joint", type="fixed")
         ET.SubElement(joint, "parent", link=tool.parent)
         ET.SubElement(joint, "child", link=tool.name)
         ET.SubElement(
-            joint, "origin",
-            xyz=" ".join(_fmt(v) for v in tool.xyz), rpy=" ".join(_fmt(v) for v in tool.rpy),
+            joint,
+            "origin",
+            xyz=" ".join(_fmt(v) for v in tool.xyz),
+            rpy=" ".join(_fmt(v) for v in tool.rpy),
         )
     ET.indent(root)
     return ET.tostring(root, encoding="unicode")

@@ -41,8 +41,9 @@ def _plt():
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise InputError("--html/--plots need matplotlib: pip install \"closedloop[report]\" "
-                         "(or pip install matplotlib)") from None
+        raise InputError(
+            '--html/--plots need matplotlib: pip install "closedloop[report]" (or pip install matplotlib)'
+        ) from None
     return plt
 
 
@@ -58,8 +59,9 @@ def closure_per_configuration(res) -> list[dict]:
             d = out[k]
             d[f"{key}_m"] = np.linalg.norm(ev.r[:, list(lp.translation_rows)], axis=1) if lp.translation_rows else None
             d[f"{key}_rad"] = np.linalg.norm(ev.r[:, list(lp.rotation_rows)], axis=1) if lp.rotation_rows else None
-            d[f"{key}_px"] = (np.linalg.norm(ev.r[:, list(lp.pixel_rows)], axis=1)
-                              if getattr(lp, "pixel_rows", None) else None)
+            d[f"{key}_px"] = (
+                np.linalg.norm(ev.r[:, list(lp.pixel_rows)], axis=1) if getattr(lp, "pixel_rows", None) else None
+            )
     return out
 
 
@@ -87,8 +89,11 @@ def fig_closure(res, report: dict) -> bytes:
         if held is not None:
             ax.axhline(max(held * f, floor), color="#36c", ls="--", label="held-out RMS (k-fold)")
         ax.set_ylabel(f"closure [{unit}]")
-        ax.set_title(f"loop {d['loop']}: {'position' if key == 'm' else 'rotation' if key == 'rad' else 'image'} "
-                     "closure per configuration", fontsize=10)
+        ax.set_title(
+            f"loop {d['loop']}: {'position' if key == 'm' else 'rotation' if key == 'rad' else 'image'} "
+            "closure per configuration",
+            fontsize=10,
+        )
         ax.legend(fontsize=8, loc="best")
     axes[-1, 0].set_xlabel("configuration (log order)")
     fig.tight_layout()
@@ -112,8 +117,7 @@ def fig_corrections(res) -> bytes:
     groups = [g for g in groups if g[3]] + ([("", 1.0, "scale, compliance, ...", other)] if other else [])
     if not groups:
         return _png(_plt().figure(figsize=(4, 1)))
-    fig, axes = plt.subplots(1, len(groups), figsize=(9, 0.22 * max(len(g[3]) for g in groups) + 1.5),
-                             squeeze=False)
+    fig, axes = plt.subplots(1, len(groups), figsize=(9, 0.22 * max(len(g[3]) for g in groups) + 1.5), squeeze=False)
     for ax, (u, f, lab, idx) in zip(axes[0], groups):
         dv = (res.values[idx] - res.initial[idx]) * f
         sd = np.nan_to_num(res.std[idx]) * f
@@ -167,8 +171,11 @@ def fig_spectrum(res, snr: float = 1.0) -> bytes:
 
 def figures(res, report: dict, snr: float = 1.0) -> dict[str, bytes]:
     """Figure name -> PNG bytes."""
-    return {"closure": fig_closure(res, report), "corrections": fig_corrections(res),
-            "singular_values": fig_spectrum(res, snr)}
+    return {
+        "closure": fig_closure(res, report),
+        "corrections": fig_corrections(res),
+        "singular_values": fig_spectrum(res, snr),
+    }
 
 
 def write_plots(res, report: dict, out_dir: str | Path, snr: float = 1.0) -> list[Path]:
@@ -190,8 +197,12 @@ def _e(x) -> str:
 
 def _table(head: list[str], rows: list[list], left: int = 1) -> str:
     th = "".join(f"<th class='l'>{_e(h)}</th>" if i < left else f"<th>{_e(h)}</th>" for i, h in enumerate(head))
-    body = "".join("<tr>" + "".join(f"<td class='l'>{_e(c)}</td>" if i < left else f"<td>{_e(c)}</td>"
-                                     for i, c in enumerate(r)) + "</tr>" for r in rows)
+    body = "".join(
+        "<tr>"
+        + "".join(f"<td class='l'>{_e(c)}</td>" if i < left else f"<td>{_e(c)}</td>" for i, c in enumerate(r))
+        + "</tr>"
+        for r in rows
+    )
     return f"<table><tr>{th}</tr>{body}</table>"
 
 
@@ -213,50 +224,93 @@ def verdict_of(res, report: dict | None = None) -> tuple[str, list[str]]:
 
 def _sections(res, report: dict, snr: float = 1.0) -> list[str]:
     status, reasons = verdict_of(res, report)
-    out = [f"<div class='verdict {_e(status)}'>verdict: <b>{_e(status)}</b>"
-           + ("".join(f"<br>{_e(r)}" for r in reasons)) + "</div>"]
+    out = [
+        f"<div class='verdict {_e(status)}'>verdict: <b>{_e(status)}</b>"
+        + ("".join(f"<br>{_e(r)}" for r in reasons))
+        + "</div>"
+    ]
     n = sum(r.n for r in res.residuals_after)
     noise = report.get("noise", {})
-    out.append(_table(["", "value"], [
-        ["model", report.get("model")], ["log", report.get("log")], ["configurations", n],
-        ["parameters estimated", len(res.estimated)], ["solver", f"{res.solver_status}, {res.iterations} iterations"],
-        ["joint noise", f"{res.sigma:.3g} ({'estimated' if res.sigma_estimated else 'given'})"],
-        ["chi2 / dof", _g(noise.get("chi2_per_dof"))]]))
+    out.append(
+        _table(
+            ["", "value"],
+            [
+                ["model", report.get("model")],
+                ["log", report.get("log")],
+                ["configurations", n],
+                ["parameters estimated", len(res.estimated)],
+                ["solver", f"{res.solver_status}, {res.iterations} iterations"],
+                ["joint noise", f"{res.sigma:.3g} ({'estimated' if res.sigma_estimated else 'given'})"],
+                ["chi2 / dof", _g(noise.get("chi2_per_dof"))],
+            ],
+        )
+    )
     rows = []
     for b, a in zip(res.residuals_before, res.residuals_after):
         rows.append([b.loop, b.n, _g(b.rms_m, 1e3), _g(a.rms_m, 1e3), _g(b.rms_rad, 1e3), _g(a.rms_rad, 1e3)])
-    out.append("<h2>Closure</h2>" + _table(["loop", "n", "RMS before [mm]", "after [mm]", "RMS before [mrad]",
-                                            "after [mrad]"], rows))
+    out.append(
+        "<h2>Closure</h2>"
+        + _table(["loop", "n", "RMS before [mm]", "after [mm]", "RMS before [mrad]", "after [mrad]"], rows)
+    )
     cv = report.get("validation")
     if cv and "skipped" in cv:
         out.append(f"<p>k-fold validation skipped: {html.escape(cv['skipped'])}</p>")
     elif cv:
         conv = cv.get("folds_converged")
         conv = f"; {sum(map(bool, conv))} of {len(conv)} fold fits converged" if conv else ""
-        out.append(f"<p>{cv['k']}-fold validation (fit on k-1 folds, closure of the held-out fold{conv}):</p>" + _table(
-            ["loop", "held-out [mm]", "training [mm]", "held-out [mrad]", "training [mrad]"],
-            [[t["loop"], _g(t.get("rms_m"), 1e3), _g(tr.get("rms_m"), 1e3), _g(t.get("rms_rad"), 1e3),
-              _g(tr.get("rms_rad"), 1e3)] for t, tr in zip(cv["test"], cv["train"])]))
+        out.append(
+            f"<p>{cv['k']}-fold validation (fit on k-1 folds, closure of the held-out fold{conv}):</p>"
+            + _table(
+                ["loop", "held-out [mm]", "training [mm]", "held-out [mrad]", "training [mrad]"],
+                [
+                    [
+                        t["loop"],
+                        _g(t.get("rms_m"), 1e3),
+                        _g(tr.get("rms_m"), 1e3),
+                        _g(t.get("rms_rad"), 1e3),
+                        _g(tr.get("rms_rad"), 1e3),
+                    ]
+                    for t, tr in zip(cv["test"], cv["train"])
+                ],
+            )
+        )
     out.append("<img alt='closure per configuration' src='data:image/png;base64,{closure}'>")
     prob = res.problem
-    rows = [[res.names[k], prob.params[k].unit, _g(res.initial[k], 1, ".6g"), _g(res.values[k], 1, ".6g"),
-             _g(res.values[k] - res.initial[k], 1, ".3e"), _g(res.std[k], 1, ".2e")]
-            for k in range(len(res.names)) if res.status[k] == "estimated"]
-    out.append("<h2>Parameter corrections</h2>" + _table(
-        ["parameter", "unit", "initial", "calibrated", "correction", "std. error"], rows)
-        + "<img alt='corrections' src='data:image/png;base64,{corrections}'>")
+    rows = [
+        [
+            res.names[k],
+            prob.params[k].unit,
+            _g(res.initial[k], 1, ".6g"),
+            _g(res.values[k], 1, ".6g"),
+            _g(res.values[k] - res.initial[k], 1, ".3e"),
+            _g(res.std[k], 1, ".2e"),
+        ]
+        for k in range(len(res.names))
+        if res.status[k] == "estimated"
+    ]
+    out.append(
+        "<h2>Parameter corrections</h2>"
+        + _table(["parameter", "unit", "initial", "calibrated", "correction", "std. error"], rows)
+        + "<img alt='corrections' src='data:image/png;base64,{corrections}'>"
+    )
     thr = truncation_threshold(res, snr)
-    out.append("<h2>Singular values</h2><p>" + _e(f"{res.rank} of {len(res.singular_values)} directions kept")
-               + (_e(f"; truncation at {thr:.3g}") if thr else "") + "</p>"
-               + "<img alt='singular values' src='data:image/png;base64,{singular_values}'>")
+    out.append(
+        "<h2>Singular values</h2><p>"
+        + _e(f"{res.rank} of {len(res.singular_values)} directions kept")
+        + (_e(f"; truncation at {thr:.3g}") if thr else "")
+        + "</p>"
+        + "<img alt='singular values' src='data:image/png;base64,{singular_values}'>"
+    )
     out.append(_outliers(res))
     out.append(_not_identified(res))
-    out.append("<h2>Which file carries what</h2><p>The calibrated URDF or MJCF carries the joint placements with "
-               "the offsets folded in (it takes the raw readings). Scale factors and joint compliance cannot be "
-               "expressed in URDF or MJCF: they are in the JSON report (<code>scale_factors</code>, "
-               "<code>compliance</code>) and in <code>&lt;model&gt;.sensors.yaml</code> beside the calibrated model; "
-               "a joint value for the model is scale * reading. "
-               "D-H input gets a calibrated D-H YAML that carries all of them.</p>")
+    out.append(
+        "<h2>Which file carries what</h2><p>The calibrated URDF or MJCF carries the joint placements with "
+        "the offsets folded in (it takes the raw readings). Scale factors and joint compliance cannot be "
+        "expressed in URDF or MJCF: they are in the JSON report (<code>scale_factors</code>, "
+        "<code>compliance</code>) and in <code>&lt;model&gt;.sensors.yaml</code> beside the calibrated model; "
+        "a joint value for the model is scale * reading. "
+        "D-H input gets a calibrated D-H YAML that carries all of them.</p>"
+    )
     if res.notes:
         out.append("<h2>Notes</h2><ul>" + "".join(f"<li>{_e(n)}</li>" for n in res.notes) + "</ul>")
     return out
@@ -267,7 +321,8 @@ def _outliers(res) -> str:
     if res.suspects:
         s += "<p>Configurations the noise model cannot explain (robust fit):</p>" + _table(
             ["log row", "loop", "standardized", "p-value", "weight"],
-            [[sp.row, sp.loop, _g(sp.standardized), _g(sp.p_value, 1, ".2e"), _g(sp.weight)] for sp in res.suspects])
+            [[sp.row, sp.loop, _g(sp.standardized), _g(sp.p_value, 1, ".2e"), _g(sp.weight)] for sp in res.suspects],
+        )
     rows = []
     for d in closure_per_configuration(res):
         key = next((k for k in ("after_m", "after_rad", "after_px") if d.get(k) is not None), "after_px")
@@ -276,23 +331,34 @@ def _outliers(res) -> str:
             continue
         med = float(np.median(v))
         for i in np.argsort(v)[::-1][:5]:
-            rows.append([d["loop"], int(d["rows"][i]), _g(float(v[i]), 1e3 if key != "after_px" else 1.0),
-                         _g(float(v[i]) / med if med > 0 else float("nan"), 1, ".3g")])
+            rows.append(
+                [
+                    d["loop"],
+                    int(d["rows"][i]),
+                    _g(float(v[i]), 1e3 if key != "after_px" else 1.0),
+                    _g(float(v[i]) / med if med > 0 else float("nan"), 1, ".3g"),
+                ]
+            )
     s += "<p>Largest closures after the fit (x median: above ~5 deserves a look at that row):</p>" + _table(
-        ["loop", "log row", "closure [mm | mrad | px]", "x median"], rows)
+        ["loop", "log row", "closure [mm | mrad | px]", "x median"], rows
+    )
     return s
 
 
 def _not_identified(res) -> str:
     s = "<h2>Not identified</h2>"
     if res.dropped:
-        s += ("<p>Structurally redundant (removed before solving; its effect equals the combination of kept "
-              "parameters shown):</p>" + _table(["parameter", "reason / combination"],
-                                                [[d.name, d.describe()] for d in res.dropped], left=2))
+        s += (
+            "<p>Structurally redundant (removed before solving; its effect equals the combination of kept "
+            "parameters shown):</p>"
+            + _table(["parameter", "reason / combination"], [[d.name, d.describe()] for d in res.dropped], left=2)
+        )
     if res.weak:
         s += "<p>Not determined by this data:</p>" + _table(
             ["singular value", "combination"],
-            [[_g(c.singular_value, 1, ".3g"), c.describe()] for c in res.weak], left=2)
+            [[_g(c.singular_value, 1, ".3g"), c.describe()] for c in res.weak],
+            left=2,
+        )
     if not res.dropped and not res.weak:
         s += "<p>Every selected parameter was identified.</p>"
     return s
@@ -305,9 +371,11 @@ def render_html(res, report: dict, snr: float = 1.0) -> str:
     for k, v in figs.items():
         body = body.replace("{" + k + "}", v)
     title = f"closedloop calibration: {Path(str(report.get('model') or 'model')).name}"
-    return (f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'><title>{_e(title)}</title>"
-            f"<style>{_CSS}</style></head><body><h1>{_e(title)}</h1>\n{body}\n"
-            f"<p class='small'>closedloop {_e(report.get('closedloop_version', ''))}</p></body></html>\n")
+    return (
+        f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'><title>{_e(title)}</title>"
+        f"<style>{_CSS}</style></head><body><h1>{_e(title)}</h1>\n{body}\n"
+        f"<p class='small'>closedloop {_e(report.get('closedloop_version', ''))}</p></body></html>\n"
+    )
 
 
 def write_html(res, report: dict, path: str | Path, snr: float = 1.0) -> None:

@@ -36,8 +36,7 @@ log = logging.getLogger(__name__)
 _FIELDS = ("x", "y", "z", "rx", "ry", "rz")
 
 
-def body_correction(anchor: np.ndarray, axis: np.ndarray, twist: np.ndarray, offset: float,
-                    prismatic: bool) -> pin.SE3:
+def body_correction(anchor: np.ndarray, axis: np.ndarray, twist: np.ndarray, offset: float, prismatic: bool) -> pin.SE3:
     """``Trans(p) exp6(v) Rot(a, theta_off) Trans(-p)`` (module doc)."""
     a = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
     off = pin.SE3(np.eye(3), a * offset) if prismatic else pin.SE3(pin.exp3(a * offset), np.zeros(3))
@@ -63,8 +62,9 @@ def calibrated_mjcf(robot: RobotModel, values: dict[str, float], out_dir: str | 
     import mujoco
 
     if robot.kind != "mjcf" or robot.source is None:
-        raise ModelError(f"{robot.source}: a calibrated MJCF can only be written for MJCF input (this model is "
-                         f"{robot.kind})")
+        raise ModelError(
+            f"{robot.source}: a calibrated MJCF can only be written for MJCF input (this model is {robot.kind})"
+        )
     src = Path(robot.source)
     try:
         spec = mujoco.MjSpec.from_file(str(src))
@@ -82,13 +82,17 @@ def calibrated_mjcf(robot: RobotModel, values: dict[str, float], out_dir: str | 
         bid = int(model.jnt_bodyid[jid])
         bname = model.body(bid).name
         if int(model.body_jntnum[bid]) != 1:
-            raise ModelError(f"{src}: body '{bname}' has {model.body_jntnum[bid]} joints; a calibrated MJCF needs "
-                             "one joint per calibrated body")
+            raise ModelError(
+                f"{src}: body '{bname}' has {model.body_jntnum[bid]} joints; a calibrated MJCF needs "
+                "one joint per calibrated body"
+            )
         el = bodies.get(bname)
         sb = spec.body(bname)
         if el is None or sb is None or sb.frame is not None:
-            raise ModelError(f"{src}: joint '{name}': its body '{bname}' is not a named <body> of this file outside "
-                             "any <frame> (an included file?); a calibrated MJCF cannot be written")
+            raise ModelError(
+                f"{src}: joint '{name}': its body '{bname}' is not a named <body> of this file outside "
+                "any <frame> (an included file?); a calibrated MJCF cannot be written"
+            )
         prismatic = int(model.jnt_type[jid]) == int(mujoco.mjtJoint.mjJNT_SLIDE)
         R = np.zeros(9)
         mujoco.mju_quat2Mat(R, model.body_quat[bid])
@@ -108,8 +112,12 @@ def calibrated_mjcf(robot: RobotModel, values: dict[str, float], out_dir: str | 
             deg = spec.compiler.degree and not prismatic
             jel.set("range", _fmt(np.degrees([lo, hi]) if deg else [lo, hi]))
         if model.qpos0[model.jnt_qposadr[jid]] != 0.0:
-            log.warning("%s: joint %s has ref=%g; its reading is taken relative to it", src, name,
-                        float(model.qpos0[model.jnt_qposadr[jid]]))
+            log.warning(
+                "%s: joint %s has ref=%g; its reading is taken relative to it",
+                src,
+                name,
+                float(model.qpos0[model.jnt_qposadr[jid]]),
+            )
     moved = out_dir is not None and Path(out_dir).resolve() != src.resolve().parent
     if moved:
         _absolute_assets(root, src)

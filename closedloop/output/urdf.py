@@ -21,9 +21,9 @@ from closedloop.errors import InputError, ModelError
 from closedloop.io.files import atomic_write_text, refuse_overwrite
 from closedloop.model.robot import RobotModel
 
-
 #: the model file suffixes `write_model` writes for each input kind
 MODEL_SUFFIXES = {"urdf": (".urdf",), "dh": (".yaml", ".yml"), "mjcf": (".xml", ".mjcf")}
+
 
 def check_model_output(kind: str, out: str | Path | None, model: str | Path | None = None) -> None:
     """The calibrated model is written in the input's own format: its suffix must say so."""
@@ -31,15 +31,23 @@ def check_model_output(kind: str, out: str | Path | None, model: str | Path | No
         return
     suffixes = MODEL_SUFFIXES.get(kind)
     if not suffixes:
-        raise InputError(f"--out {out}: no calibrated model can be written for {kind} input {model or ''} "
-                         "(the report holds the parameters); drop --out")
+        raise InputError(
+            f"--out {out}: no calibrated model can be written for {kind} input {model or ''} "
+            "(the report holds the parameters); drop --out"
+        )
     if Path(out).suffix.lower() not in suffixes:
-        raise InputError(f"--out {out}: a {kind} input gives a calibrated {kind} model; name it "
-                         f"*{' or *'.join(suffixes)}")
+        raise InputError(
+            f"--out {out}: a {kind} input gives a calibrated {kind} model; name it *{' or *'.join(suffixes)}"
+        )
 
 
-def write_urdf(robot: RobotModel, values: dict[str, float], out_path: str | Path, fold_offsets: bool = True,
-               frames: list[tuple[str, str, np.ndarray]] = ()) -> None:
+def write_urdf(
+    robot: RobotModel,
+    values: dict[str, float],
+    out_path: str | Path,
+    fold_offsets: bool = True,
+    frames: list[tuple[str, str, np.ndarray]] = (),
+) -> None:
     """Write the URDF of `robot` with joint origins moved by `values` (see module doc).
 
     `frames` (name, parent link, xyz): estimated tool points added as links on fixed joints
@@ -54,8 +62,10 @@ def write_urdf(robot: RobotModel, values: dict[str, float], out_path: str | Path
     import xml.etree.ElementTree as ET
 
     if robot.kind != "urdf" or robot.source is None:
-        raise ModelError(f"{robot.source}: a calibrated URDF can only be written for URDF input "
-                         f"(this model is {robot.kind}); the report holds the parameters")
+        raise ModelError(
+            f"{robot.source}: a calibrated URDF can only be written for URDF input "
+            f"(this model is {robot.kind}); the report holds the parameters"
+        )
     refuse_overwrite(out_path, robot.source)
     try:
         tree = ET.parse(str(robot.source), parser=ET.XMLParser(target=ET.TreeBuilder(insert_comments=True)))
@@ -114,9 +124,11 @@ def _urdf_origin(origin, source, joint: str) -> np.ndarray:
     r, p, y = _floats(origin.get("rpy", "0 0 0"), 3, source, joint)
     T[:3, 3] = _floats(origin.get("xyz", "0 0 0"), 3, source, joint)
     cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    T[:3, :3] = [[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                 [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                 [-sp, cp * sr, cp * cr]]
+    T[:3, :3] = [
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ]
     return T
 
 
@@ -136,8 +148,9 @@ def write_dh(robot: RobotModel, values: dict[str, float], out_path: str | Path) 
     atomic_write_text(out_path, dump_dh(robot.dh, values))
 
 
-def write_model(robot: RobotModel, values: dict[str, float], out_path: str | Path,
-                frames: list[tuple[str, str, np.ndarray]] = ()) -> None:
+def write_model(
+    robot: RobotModel, values: dict[str, float], out_path: str | Path, frames: list[tuple[str, str, np.ndarray]] = ()
+) -> None:
     """The calibrated model in the input's own format (URDF, MJCF or D-H YAML); `frames`: tool points (URDF)."""
     if robot.kind == "dh":
         write_dh(robot, values, out_path)

@@ -71,13 +71,14 @@ def stack_chunks(parts: Iterator[BlockEval], N: int) -> BlockEval:
                 out[name] = np.empty((N,) + v.shape[1:], dtype=v.dtype)
                 if name in fill:
                     out[name][:a] = fill[name]  # the chunks before had none
-            out[name][a:a + n] = fill[name] if v is None else v
+            out[name][a : a + n] = fill[name] if v is None else v
         a += n
     return BlockEval(**out)
 
 
 def copy_eval(e: BlockEval, jacobian: bool, no_columns: bool) -> BlockEval:
     """A copy of a kept evaluation: r only, or with the Jacobians (none of J's columns with `no_columns`)."""
+
     def cp(a):
         return None if a is None else a.copy()
 

@@ -58,8 +58,9 @@ def _point_of(loops: list[Loop], ref: str) -> tuple[Loop, list[Parameter], str]:
     name, _, key = ref.rpartition(".")
     by_name = {lp.name: lp for lp in loops}
     if name not in by_name or key not in ("point", "tip"):
-        raise LoopError(f"--distance {ref}: expected LOOP.point or LOOP.tip of a loop "
-                        f"(loops: {', '.join(by_name) or 'none'})")
+        raise LoopError(
+            f"--distance {ref}: expected LOOP.point or LOOP.tip of a loop (loops: {', '.join(by_name) or 'none'})"
+        )
     lp = by_name[name]
     try:
         fields = key_fields(lp, key)
@@ -96,8 +97,10 @@ class DistanceLoop(Loop):
         self.refers_to = (la.name, lb.name)  # the loops whose points it joins (one rigid fixture)
         self.block: str | None = None  # the block (`parse_blocks`) this distance belongs to
         self.measurement_cov = np.array([[sig * sig]])
-        self._params = [replace(p, name=parameter_name(lp, p), field=f)
-                        for (lp, p), f in zip([(la, p) for p in pa] + [(lb, p) for p in pb], FIELDS)]
+        self._params = [
+            replace(p, name=parameter_name(lp, p), field=f)
+            for (lp, p), f in zip([(la, p) for p in pa] + [(lb, p) for p in pb], FIELDS)
+        ]
         self.shared = {p.field: p.name for p in self._params}
 
     @property
@@ -117,13 +120,18 @@ class DistanceLoop(Loop):
         return LoopEval(np.full((N, 1), n - self.distance), z, z.copy(), dp)
 
     def describe(self) -> dict:
-        return {"name": self.name, "type": "distance", "a": self.a, "b": self.b, "distance_m": self.distance,
-                "sigma_m": self.sigma} | ({"block": self.block} if self.block else {})
+        return {
+            "name": self.name,
+            "type": "distance",
+            "a": self.a,
+            "b": self.b,
+            "distance_m": self.distance,
+            "sigma_m": self.sigma,
+        } | ({"block": self.block} if self.block else {})
 
     def label(self) -> str:
         """'the distance front_a-front_b (50 mm)'."""
-        return (f"the distance {self.a.rsplit('.', 1)[0]}-{self.b.rsplit('.', 1)[0]} "
-                f"({self.distance * 1e3:.4g} mm)")
+        return f"the distance {self.a.rsplit('.', 1)[0]}-{self.b.rsplit('.', 1)[0]} ({self.distance * 1e3:.4g} mm)"
 
 
 def parse_distances(items: list[list[str]], loops: list[Loop]) -> list[DistanceLoop]:
@@ -138,8 +146,9 @@ def parse_distances(items: list[list[str]], loops: list[Loop]) -> list[DistanceL
             it = [t for t in re.split(r"[\s,\[\]'\"]+", it) if t]
         it = [str(t) for t in it]
         if len(it) not in (3, 4):
-            raise LoopError(f"--distance {' '.join(it)}: expected A B DISTANCE [SIGMA] (e.g. front_a.point "
-                            "front_b.point 0.050)")
+            raise LoopError(
+                f"--distance {' '.join(it)}: expected A B DISTANCE [SIGMA] (e.g. front_a.point front_b.point 0.050)"
+            )
         nums = [parse_number(t, f"--distance {' '.join(it)}", LoopError) for t in it[2:]]
         out.append(DistanceLoop(loops, it[0], it[1], nums[0], nums[1] if len(nums) > 1 else None))
     return out
@@ -200,8 +209,10 @@ def _scale_labels(dists: list[DistanceLoop]) -> list[str]:
             blocks[d.block].append(d)
     for name, ds in blocks.items():
         pts = list(dict.fromkeys(r.rsplit(".", 1)[0] for d in ds for r in (d.a, d.b)))
-        labels[labels.index(name)] = (f"the block {name} ({len(pts)} points: {', '.join(pts)}; "
-                                      f"{len(ds)} distances up to {max(d.distance for d in ds) * 1e3:.4g} mm)")
+        labels[labels.index(name)] = (
+            f"the block {name} ({len(pts)} points: {', '.join(pts)}; "
+            f"{len(ds)} distances up to {max(d.distance for d in ds) * 1e3:.4g} mm)"
+        )
     return labels
 
 
@@ -215,8 +226,10 @@ def scale_note(problem: CalibrationProblem, gauge: str | None, scale_free: bool)
     if dists:
         return "the scale is set by " + " and ".join(_scale_labels(dists))
     if gauge is not None:
-        return (f"the scale is not set by the data: {gauge} is held at its value (give a known length, "
-                "e.g. --distance A.point B.point 0.050)")
+        return (
+            f"the scale is not set by the data: {gauge} is held at its value (give a known length, "
+            "e.g. --distance A.point B.point 0.050)"
+        )
     if scale_free:
         return "the scale is not set by the data, and no held length sets it"
     return None
@@ -242,8 +255,8 @@ def annotate(res, sigma_q: np.ndarray, scale_free: bool, snr: float = 1.0) -> No
     frames, `closedloop.problem.lengths`) and `res.noise_model`
     (`variance.noise_summary`), and appends their sentences to `res.notes`.
     """
-    from closedloop.problem.lengths import length_blocks, length_findings
     from closedloop.estimate.variance import noise_notes, noise_summary
+    from closedloop.problem.lengths import length_blocks, length_findings
 
     problem = res.problem
     note = scale_note(problem, res.gauge, scale_free)

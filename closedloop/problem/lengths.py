@@ -50,8 +50,8 @@ from closedloop.loops.base import Loop, LoopEval
 from closedloop.model.parameters import DEFAULT_PRIORS
 
 if TYPE_CHECKING:
-    from closedloop.problem.problem import CalibrationProblem
     from closedloop.model.robot import RobotModel
+    from closedloop.problem.problem import CalibrationProblem
 
 DEFAULT_SIGMA = 2e-5  # m: a caliper's reading
 LEAK_TOL = 1e-3  # relative size error from a 1 mm (1 mrad) error of what the loops cannot see
@@ -104,8 +104,14 @@ class LengthLoop(Loop):
         return LoopEval((n - self.length)[:, None], dA, dB, np.zeros((N, 1, 0)))
 
     def describe(self) -> dict:
-        return {"name": self.name, "type": "length", "frame_a": self.frame_a, "frame_b": self.frame_b,
-                "length_m": self.length, "sigma_m": self.sigma}
+        return {
+            "name": self.name,
+            "type": "length",
+            "frame_a": self.frame_a,
+            "frame_b": self.frame_b,
+            "length_m": self.length,
+            "sigma_m": self.sigma,
+        }
 
     def label(self) -> str:
         """'the length panda_link3-panda_link4 (82.5 mm)'."""
@@ -141,8 +147,9 @@ def length_blocks(problem: CalibrationProblem) -> list[int]:
     return [bi for bi, b in enumerate(problem.blocks) if isinstance(b.loop, LengthLoop)]
 
 
-def size_response(problem: CalibrationProblem, x: np.ndarray, est: list[int], sigma_q: np.ndarray, weighting: str,
-                  snr: float) -> float:
+def size_response(
+    problem: CalibrationProblem, x: np.ndarray, est: list[int], sigma_q: np.ndarray, weighting: str, snr: float
+) -> float:
     """The robot's relative size change per relative change of the known lengths, at the solution x.
 
     The step is the least-squares answer of the fit's own system (whitened
@@ -151,15 +158,16 @@ def size_response(problem: CalibrationProblem, x: np.ndarray, est: list[int], si
     scaling every known length by 1 + STEP makes; its size change is
     c^T dx with c the size change per parameter (`gauge.size_per_parameter`).
     """
-    from closedloop.estimate.stages import ResidualFunction
     from closedloop.analysis.gauge import size_per_parameter
+    from closedloop.estimate.stages import ResidualFunction
     from closedloop.problem.problem import CalibrationProblem as Problem
 
     idx = length_blocks(problem)
     if not idx or not any(k < problem.n_robot for k in est):
         return 0.0
-    blocks = [replace(b, loop=replace_length(b.loop, 1.0 + STEP)) if bi in idx else b
-              for bi, b in enumerate(problem.blocks)]
+    blocks = [
+        replace(b, loop=replace_length(b.loop, 1.0 + STEP)) if bi in idx else b for bi, b in enumerate(problem.blocks)
+    ]
     moved = Problem(problem.robot, problem.joints, blocks, problem.priors, problem.noise)
     r, J = ResidualFunction(problem, x, est, sigma_q, weighting)(x[est], True)
     r1, _ = ResidualFunction(moved, x, est, sigma_q, weighting)(x[est], False)
@@ -188,18 +196,21 @@ def length_findings(res, sigma_q: np.ndarray, snr: float) -> tuple[str, list[str
     res.length_leak, held = held_leak(problem, res.values, free)
     warnings = []
     if not SETS_SIZE[0] <= res.length_response <= SETS_SIZE[1]:
-        warnings.append(f"{labels} sets the robot's size only in part (a change of it by 1 % scales the robot by "
-                        f"{res.length_response:.3g} %): the loops tie it to the rest of the robot too loosely; the "
-                        "scale is not set by the data")
+        warnings.append(
+            f"{labels} sets the robot's size only in part (a change of it by 1 % scales the robot by "
+            f"{res.length_response:.3g} %): the loops tie it to the rest of the robot too loosely; the "
+            "scale is not set by the data"
+        )
     if not res.length_leak <= LEAK_TOL:
-        warnings.append(f"{labels} also changes with {held}, which the loops cannot see (held at its value): an "
-                        f"error of 1 mm or 1 mrad there changes the identified size by {res.length_leak:.2%}"
-                        if held else
-                        f"{labels}: whether it sets the size could not be checked at the solution")
+        warnings.append(
+            f"{labels} also changes with {held}, which the loops cannot see (held at its value): an "
+            f"error of 1 mm or 1 mrad there changes the identified size by {res.length_leak:.2%}"
+            if held
+            else f"{labels}: whether it sets the size could not be checked at the solution"
+        )
     if warnings:
         return warnings[0], warnings
-    return (f"the scale is set by {labels} (a change of it by 1 % scales the robot by "
-            f"{res.length_response:.3g} %)", [])
+    return (f"the scale is set by {labels} (a change of it by 1 % scales the robot by {res.length_response:.3g} %)", [])
 
 
 def held_leak(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> tuple[float, str | None]:
@@ -212,13 +223,18 @@ def held_leak(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> tu
     idx = length_blocks(problem)
     if not idx or not free:
         return 0.0, None
-    loops = Problem(problem.robot, problem.joints, [b for bi, b in enumerate(problem.blocks) if bi not in idx],
-                    problem.priors, problem.noise)
+    loops = Problem(
+        problem.robot,
+        problem.joints,
+        [b for bi, b in enumerate(problem.blocks) if bi not in idx],
+        problem.priors,
+        problem.noise,
+    )
     R = closure_jacobian(loops, x, free)
     if R is None:
         return float("nan"), None
     _, S, Vt = np.linalg.svd(R)
-    null = np.concatenate([Vt[S.size:], Vt[:S.size][S <= 1e-8 * S[0]]]) if S.size else Vt
+    null = np.concatenate([Vt[S.size :], Vt[: S.size][S <= 1e-8 * S[0]]]) if S.size else Vt
     if null.shape[0] == 0:
         return 0.0, None
     prior = np.array([problem.params[k].prior for k in free])

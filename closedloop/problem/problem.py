@@ -33,11 +33,11 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import LogError
-from closedloop.problem.blocks import BlockEval, Workspace, copy_eval, stack_chunks
 from closedloop.loops.base import Loop
 from closedloop.model.parameters import Parameter, RobotParameters, RobotState
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import poses_from_adjoints
+from closedloop.problem.blocks import BlockEval, Workspace, copy_eval, stack_chunks
 from closedloop.problem.shared import loop_columns
 
 # What a parameter's Jacobian column is made of (`CalibrationProblem._role`).
@@ -57,8 +57,13 @@ class LoopBlock:
 
     def subset(self, idx: np.ndarray) -> "LoopBlock":
         """The block on configurations `idx` (indices into its rows), measurements sliced alike."""
-        return LoopBlock(self.loop, self.theta[idx], self.rows[idx], None if self.tau is None else self.tau[idx],
-                         None if self.meas is None else self.meas[idx])
+        return LoopBlock(
+            self.loop,
+            self.theta[idx],
+            self.rows[idx],
+            None if self.tau is None else self.tau[idx],
+            None if self.meas is None else self.meas[idx],
+        )
 
 
 @dataclass
@@ -108,8 +113,14 @@ CHUNK = 8192  # configurations evaluated at a time: temporaries stay in the heap
 class CalibrationProblem:
     """Parameters of a robot and its loops, evaluated over logged configurations."""
 
-    def __init__(self, robot: RobotModel, joints: list[str], blocks: list[LoopBlock], priors: dict | None = None,
-                 noise: list[BlockNoise] | None = None):
+    def __init__(
+        self,
+        robot: RobotModel,
+        joints: list[str],
+        blocks: list[LoopBlock],
+        priors: dict | None = None,
+        noise: list[BlockNoise] | None = None,
+    ):
         self.robot = robot
         self.joints = list(joints)
         self.blocks = blocks
@@ -121,12 +132,14 @@ class CalibrationProblem:
         # Each loop's parameters as an index map into the one vector (closedloop.problem.shared: a parameter
         # shared by several loops is one column); `loop_slices` the same as slices where contiguous
         # (always, unless loops share), else the index arrays.
-        self.loop_columns, new = loop_columns([b.loop for b in blocks], len(self.params),
-                                              [p.name for p in self.params])
+        self.loop_columns, new = loop_columns([b.loop for b in blocks], len(self.params), [p.name for p in self.params])
         self.params.extend(new)
-        self.loop_slices: list = [slice(int(c[0]), int(c[-1]) + 1) if c.size and np.array_equal(
-            c, np.arange(c[0], c[-1] + 1)) else (c if c.size else slice(len(self.params), len(self.params)))
-            for c in self.loop_columns]
+        self.loop_slices: list = [
+            slice(int(c[0]), int(c[-1]) + 1)
+            if c.size and np.array_equal(c, np.arange(c[0], c[-1] + 1))
+            else (c if c.size else slice(len(self.params), len(self.params)))
+            for c in self.loop_columns
+        ]
         # position of each parameter in each loop's own vector (-1: not that loop's)
         self._local = np.full((len(blocks), len(self.params)), -1, dtype=int)
         for bi, c in enumerate(self.loop_columns):
@@ -137,8 +150,11 @@ class CalibrationProblem:
         # Per parameter: its role, and its joint (sensor parameters) or loop block (loop parameters).
         self._role = np.full(len(self.params), _GEOMETRY)
         self._owner = np.zeros(len(self.params), dtype=int)
-        for role, idx in ((_OFFSET, self.rp.offset_index()), (_SCALE, self.rp.scale_index()),
-                          (_COMPLIANCE, self.rp.compliance_index())):
+        for role, idx in (
+            (_OFFSET, self.rp.offset_index()),
+            (_SCALE, self.rp.scale_index()),
+            (_COMPLIANCE, self.rp.compliance_index()),
+        ):
             self._role[idx] = role
             self._owner[idx] = np.arange(len(self.joints))
         for bi, c in enumerate(self.loop_columns):
@@ -152,7 +168,7 @@ class CalibrationProblem:
         self._S = np.zeros((6 * (model.njoints - 1), len(self.joints)))
         for c, name in enumerate(self.joints):
             j = robot.joint(name)
-            self._S[6 * (j.jid - 1):6 * j.jid, c] = pin.getJointJacobian(model, data, j.jid, pin.LOCAL)[:, j.idx_v]
+            self._S[6 * (j.jid - 1) : 6 * j.jid, c] = pin.getJointJacobian(model, data, j.jid, pin.LOCAL)[:, j.idx_v]
 
     def without_rows(self, rows) -> "CalibrationProblem":
         """The same problem without the log rows `rows` (1-based, as in `LoopBlock.rows`) in any block.
@@ -169,8 +185,9 @@ class CalibrationProblem:
                 continue
             keep = np.flatnonzero(~np.isin(b.rows, drop))
             if keep.size == 0:
-                raise LogError(f"no row is left for loop '{b.loop.name}' once rows "
-                               f"{', '.join(map(str, drop[:5]))} are left out")
+                raise LogError(
+                    f"no row is left for loop '{b.loop.name}' once rows {', '.join(map(str, drop[:5]))} are left out"
+                )
             blocks.append(b.subset(keep))
         return CalibrationProblem(self.robot, self.joints, blocks, self.priors, self.noise)
 
@@ -187,9 +204,14 @@ class CalibrationProblem:
         counts = [per_block] * len(self.blocks) if isinstance(per_block, (int, np.integer)) else list(per_block)
         if all(b.theta.shape[0] <= n for b, n in zip(self.blocks, counts)):
             return self
-        blocks = [b if b.theta.shape[0] <= n else b.subset(
-            np.arange(n) if first else np.unique(np.linspace(0, b.theta.shape[0] - 1, n).round().astype(int)))
-            for b, n in zip(self.blocks, counts)]
+        blocks = [
+            b
+            if b.theta.shape[0] <= n
+            else b.subset(
+                np.arange(n) if first else np.unique(np.linspace(0, b.theta.shape[0] - 1, n).round().astype(int))
+            )
+            for b, n in zip(self.blocks, counts)
+        ]
         return CalibrationProblem(self.robot, self.joints, blocks, self.priors, self.noise)
 
     def normalized(self, x: np.ndarray, est: list[int] | None = None) -> np.ndarray:
@@ -214,9 +236,15 @@ class CalibrationProblem:
             angles = angles - tau * state.compliance
         return angles
 
-    def frame_kinematics(self, state: RobotState, theta: np.ndarray, frames: list[int], need_jac: bool,
-                         tau: np.ndarray | None = None, work: Workspace | None = None
-                         ) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
+    def frame_kinematics(
+        self,
+        state: RobotState,
+        theta: np.ndarray,
+        frames: list[int],
+        need_jac: bool,
+        tau: np.ndarray | None = None,
+        work: Workspace | None = None,
+    ) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
         """Poses (N, 4, 4) and, with `need_jac`, LOCAL kinematic regressors (N, 6, 6 (njoints - 1)) of frames.
 
         The base frame (id 0) has the identity pose and no regressor.  With `work` the regressors are
@@ -234,8 +262,12 @@ class CalibrationProblem:
         T = {f: [None] * N for f in placed}
         shape = (N, 6, 6 * (model.njoints - 1))
         K = {f: work.get(f"K{f}", shape) if work else np.empty(shape) for f in live} if need_jac else {}
-        fk, place, regressor, local = pin.forwardKinematics, pin.updateFramePlacement, \
-            pin.computeFrameKinematicRegressor, pin.LOCAL
+        fk, place, regressor, local = (
+            pin.forwardKinematics,
+            pin.updateFramePlacement,
+            pin.computeFrameKinematicRegressor,
+            pin.LOCAL,
+        )
         if len(live) == 1 and N:  # one frame (most loops): no inner loops; a list comprehension gathers fastest
             f = live[0]
             if need_jac:
@@ -253,7 +285,7 @@ class CalibrationProblem:
         out = {f: (np.array(T[f]).reshape(N, 4, 4), K.get(f)) for f in placed}
         for f in from_K:
             r = roots[f][0]
-            out[f] = (poses_from_adjoints(K[f][:, :, 6 * (r - 1):6 * r], model.jointPlacements[r].homogeneous), K[f])
+            out[f] = (poses_from_adjoints(K[f][:, :, 6 * (r - 1) : 6 * r], model.jointPlacements[r].homogeneous), K[f])
         if 0 in frames:
             out[0] = (np.broadcast_to(np.eye(4), (N, 4, 4)), None)
         return out
@@ -268,11 +300,12 @@ class CalibrationProblem:
         b = self.blocks[block_index]
         return b.loop.initialize_frames(self.loop_frame_poses(values, block_index), b.meas)
 
-    def loop_frame_poses(self, values: np.ndarray, block_index: int, theta: np.ndarray | None = None
-                         ) -> list[np.ndarray]:
+    def loop_frame_poses(
+        self, values: np.ndarray, block_index: int, theta: np.ndarray | None = None
+    ) -> list[np.ndarray]:
         """Poses (N, 4, 4) of every frame of one loop (`Loop.frames`) at `values`."""
         b = self.blocks[block_index]
-        state = self.rp.apply(values[:self.n_robot])
+        state = self.rp.apply(values[: self.n_robot])
         fids = [self.robot.frame_id(f) for f in b.loop.frames]
         tau = b.tau if theta is None else None
         kin = self.frame_kinematics(state, b.theta if theta is None else theta, fids, False, tau)
@@ -284,8 +317,13 @@ class CalibrationProblem:
         """Whether `evaluate` keeps parameter Jacobians for reuse (up to MEMO_ROWS configurations)."""
         return sum(b.theta.shape[0] for b in self.blocks) <= MEMO_ROWS
 
-    def evaluate(self, values: np.ndarray, jacobian: bool = True, thetas: list[np.ndarray] | None = None,
-                 columns: Sequence[int] | None = None) -> list[BlockEval]:
+    def evaluate(
+        self,
+        values: np.ndarray,
+        jacobian: bool = True,
+        thetas: list[np.ndarray] | None = None,
+        columns: Sequence[int] | None = None,
+    ) -> list[BlockEval]:
         """Residuals (and Jacobians) of every loop at parameter vector `values`.
 
         With `jacobian`, J holds the columns `columns` of d r / d parameters
@@ -316,10 +354,11 @@ class CalibrationProblem:
         del memo[2:]
         return [copy_eval(e, jacobian, False) for e in out]
 
-    def _evaluate(self, values: np.ndarray, jacobian: bool, thetas: list[np.ndarray] | None,
-                  columns: Sequence[int] | None) -> list[BlockEval]:
+    def _evaluate(
+        self, values: np.ndarray, jacobian: bool, thetas: list[np.ndarray] | None, columns: Sequence[int] | None
+    ) -> list[BlockEval]:
         """`evaluate` without the memo."""
-        state = self.rp.apply(values[:self.n_robot])
+        state = self.rp.apply(values[: self.n_robot])
         cols = np.arange(len(self.params)) if columns is None else np.asarray(columns, dtype=int)
         role, owner = self._role[cols], self._owner[cols]
         C, nj = cols.size, len(self.joints)
@@ -343,14 +382,35 @@ class CalibrationProblem:
             if N <= CHUNK:
                 out.append(self._block(bi, theta, b.tau, b.meas, b.rows, values, jacobian, ctx))
                 continue
-            parts = (self._block(bi, theta[i:i + CHUNK], None if b.tau is None else b.tau[i:i + CHUNK],
-                                 None if b.meas is None else b.meas[i:i + CHUNK], b.rows[i:i + CHUNK], values,
-                                 jacobian, ctx, work) for i in range(0, N, CHUNK))
+            parts = (
+                self._block(
+                    bi,
+                    theta[i : i + CHUNK],
+                    None if b.tau is None else b.tau[i : i + CHUNK],
+                    None if b.meas is None else b.meas[i : i + CHUNK],
+                    b.rows[i : i + CHUNK],
+                    values,
+                    jacobian,
+                    ctx,
+                    work,
+                )
+                for i in range(0, N, CHUNK)
+            )
             out.append(stack_chunks(parts, N))
         return out
 
-    def _block(self, bi: int, theta: np.ndarray, tau: np.ndarray | None, meas: np.ndarray | None, rows: np.ndarray,
-               values: np.ndarray, jacobian: bool, ctx: tuple, work: Workspace | None = None) -> BlockEval:
+    def _block(
+        self,
+        bi: int,
+        theta: np.ndarray,
+        tau: np.ndarray | None,
+        meas: np.ndarray | None,
+        rows: np.ndarray,
+        values: np.ndarray,
+        jacobian: bool,
+        ctx: tuple,
+        work: Workspace | None = None,
+    ) -> BlockEval:
         """Block `bi` on configurations `theta` (its readings, or a chunk of them), `_evaluate`'s context `ctx`.
 
         With `work` (a chunk) its J is a view of the workspace, to be copied out before the next chunk.
@@ -367,8 +427,14 @@ class CalibrationProblem:
         kin = self.frame_kinematics(state, theta, fids, jacobian, tau, work)
         Ts = [kin[f][0] for f in fids]
         if not jacobian:
-            return BlockEval(b.loop.residual_frames(Ts, values[sl], meas), None, None,
-                             b.loop.valid_frames(Ts, values[sl], meas), None, None if only else rows)
+            return BlockEval(
+                b.loop.residual_frames(Ts, values[sl], meas),
+                None,
+                None,
+                b.loop.valid_frames(Ts, values[sl], meas),
+                None,
+                None if only else rows,
+            )
         ev = b.loop.evaluate_frames(Ts, values[sl], meas)
         N, m = ev.r.shape
         shape = (N, m, C + nj)

@@ -61,8 +61,9 @@ def key_fields(loop: Loop, key: str) -> list[str]:
     elif key in SHARE_KEYS:
         out = [f for f in fields if f in SHARE_KEYS[key]]
     else:
-        raise LoopError(f"loop '{loop.name}': '{key}' cannot be shared (share keys: "
-                        f"{', '.join(sorted(SHARE_KEYS))}, camK)")
+        raise LoopError(
+            f"loop '{loop.name}': '{key}' cannot be shared (share keys: {', '.join(sorted(SHARE_KEYS))}, camK)"
+        )
     if not out:
         raise LoopError(f"loop '{loop.name}': no unknown parameter for '{key}' to share (is it given?)")
     return out
@@ -153,7 +154,12 @@ def initial_shared(problem: CalibrationProblem, x0: np.ndarray, inits: list[np.n
             continue
         Ts = problem.loop_frame_poses(x, bi)
         lp = b.loop
-        p = refine_own(lambda q: lp.evaluate_frames(Ts, q, b.meas), lambda q: lp.residual_frames(Ts, q, b.meas),
-                       lp.normalize, x[cols].copy(), np.flatnonzero(~mine))
+        p = refine_own(
+            lambda q: lp.evaluate_frames(Ts, q, b.meas),
+            lambda q: lp.residual_frames(Ts, q, b.meas),
+            lp.normalize,
+            x[cols].copy(),
+            np.flatnonzero(~mine),
+        )
         x[cols[~mine]] = p[~mine]
     return x

@@ -88,8 +88,9 @@ def head_urdf(verge: float = 0.0, robot: str = "ur5") -> str:
         el = ET.SubElement(root, "joint", name=name, type=kind)
         ET.SubElement(el, "parent", link=parent)
         ET.SubElement(el, "child", link=child)
-        ET.SubElement(el, "origin", xyz=" ".join(repr(float(v)) for v in xyz),
-                      rpy=" ".join(repr(float(v)) for v in rpy))
+        ET.SubElement(
+            el, "origin", xyz=" ".join(repr(float(v)) for v in xyz), rpy=" ".join(repr(float(v)) for v in rpy)
+        )
         if axis is not None:
             ET.SubElement(el, "axis", xyz=" ".join(str(v) for v in axis))
             ET.SubElement(el, "limit", effort="10", lower="-1.5", upper="1.5", velocity="2")
@@ -99,10 +100,23 @@ def head_urdf(verge: float = 0.0, robot: str = "ur5") -> str:
     for side, sgn in (("left", 1.0), ("right", -1.0)):
         link(f"cam_{side}_link")
         link(f"cam_{side}_optical")
-        joint(f"cam_{side}_pan", "revolute", "head_base", f"cam_{side}_link", (0.0, sgn * EYE_SEPARATION / 2, 0.0),
-              (sgn * verge, 0.0, 0.0), axis=(0, 0, 1))
-        joint(f"cam_{side}_optical_joint", "fixed", f"cam_{side}_link", f"cam_{side}_optical", (0.0, 0.0, 0.0),
-              _OPTICAL_RPY)
+        joint(
+            f"cam_{side}_pan",
+            "revolute",
+            "head_base",
+            f"cam_{side}_link",
+            (0.0, sgn * EYE_SEPARATION / 2, 0.0),
+            (sgn * verge, 0.0, 0.0),
+            axis=(0, 0, 1),
+        )
+        joint(
+            f"cam_{side}_optical_joint",
+            "fixed",
+            f"cam_{side}_link",
+            f"cam_{side}_optical",
+            (0.0, 0.0, 0.0),
+            _OPTICAL_RPY,
+        )
     ET.indent(root)
     return ET.tostring(root, encoding="unicode")
 
@@ -140,19 +154,27 @@ class CameraScenario:
     extra: dict = field(default_factory=dict)
 
 
-SCENARIOS: dict[str, CameraScenario] = {s.name: s for s in (
-    CameraScenario("ur5_head", "UR5 with a marker on its tool, tracked by a head of two cameras on parallel pan "
-                   "joints (thesis ch. 5)"),
-    CameraScenario("ur5_head_verging", "the same with verging pan axes (each tilted 0.2 rad about the head's "
-                   "forward axis)", verge=0.2),
-)}
+SCENARIOS: dict[str, CameraScenario] = {
+    s.name: s
+    for s in (
+        CameraScenario(
+            "ur5_head",
+            "UR5 with a marker on its tool, tracked by a head of two cameras on parallel pan joints (thesis ch. 5)",
+        ),
+        CameraScenario(
+            "ur5_head_verging",
+            "the same with verging pan axes (each tilted 0.2 rad about the head's forward axis)",
+            verge=0.2,
+        ),
+    )
+}
 
 
 def _mujoco_scene(true_urdf_text: str, mounts: list[pin.SE3], fovy: float):
     """The true robot in MuJoCo with a camera per eye (at its true mounting) and a marker site on tool0."""
     import mujoco
 
-    tag = ('<mujoco><compiler fusestatic="false" discardvisual="true" angle="radian"/></mujoco>')
+    tag = '<mujoco><compiler fusestatic="false" discardvisual="true" angle="radian"/></mujoco>'
     root = ET.fromstring(true_urdf_text)
     root.insert(0, ET.fromstring(tag))
     spec = mujoco.MjSpec.from_string(ET.tostring(root, encoding="unicode"))
@@ -230,12 +252,13 @@ def _readings(robot, sc: CameraScenario, n: int, rng: np.random.Generator) -> np
     arm = [i for i, j in enumerate(names) if not j.startswith("cam_")]
     for i in range(n):
         th[i, arm] = np.asarray(sc.q0) + rng.uniform(-sc.arm_range, sc.arm_range, len(arm))
-        q = robot.configurations(th[i:i + 1], names)[0]
+        q = robot.configurations(th[i : i + 1], names)[0]
         pin.framesForwardKinematics(m, d, q)
         x = d.oMf[m.getFrameId("tool0")].act(MARKER)
         for side in CAMERAS:
             th[i, names.index(f"cam_{side}_pan")] = pan_towards(robot, q, names, x, side) + rng.uniform(
-                -sc.jitter, sc.jitter)
+                -sc.jitter, sc.jitter
+            )
     return th
 
 
@@ -245,7 +268,6 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
 
     from closedloop.io.camera_info import CameraInfo, write_camera_info
     from closedloop.model.robot import RobotModel
-
     from closedloop.sims.scene import true_urdf
 
     sc = SCENARIOS[scenario]
@@ -258,14 +280,16 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
     names = robot.joint_names
     readings = _readings(robot, sc, n, rng_plan)
     truth: dict[str, float] = {}
-    for name in _identifiable(robot, readings[:min(n, 60)], seed):
+    for name in _identifiable(robot, readings[: min(n, 60)], seed):
         kind = name.rsplit(".", 1)[1]
         if name.startswith("cam_") and kind in ("x", "y", "z"):
             continue  # the head's lengths as built: the length reference (thesis 5.5 fixes a camera length)
         mag = sc.offset if kind == "offset" else sc.translation if kind in ("x", "y", "z") else sc.rotation
         truth[name] = float(rng_truth.uniform(-mag, mag))
-    mounts = [pin.SE3(pin.exp3(rng_truth.uniform(-sc.mount_r, sc.mount_r, 3)),
-                      rng_truth.uniform(-sc.mount_t, sc.mount_t, 3)) for _ in CAMERAS]
+    mounts = [
+        pin.SE3(pin.exp3(rng_truth.uniform(-sc.mount_r, sc.mount_r, 3)), rng_truth.uniform(-sc.mount_t, sc.mount_t, 3))
+        for _ in CAMERAS
+    ]
     spec, model = _mujoco_scene(true_urdf(nominal_path, truth), mounts, FOVY_DEG)
     data = mujoco.MjData(model)
     offsets = np.array([truth.get(f"{j}.offset", 0.0) for j in names])
@@ -282,8 +306,9 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
     cols = [f"{LOOP_NAME}:{a}{c + 1}" for c in range(len(CAMERAS)) for a in ("u", "v")]
     lines = [",".join(names + cols)]
     for th, row in zip(logged, uv):
-        lines.append(",".join([repr(float(v)) for v in th] + ["" if not np.isfinite(v) else repr(float(v))
-                                                              for v in row]))
+        lines.append(
+            ",".join([repr(float(v)) for v in th] + ["" if not np.isfinite(v) else repr(float(v)) for v in row])
+        )
     (out / "log.csv").write_text("\n".join(lines) + "\n")
     K = mujoco_intrinsics()
     params = dict(truth)
@@ -294,11 +319,17 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
         params |= {pre + f: float(x) for f, x in zip(("fx", "fy", "cx", "cy"), K)}
         write_camera_info(out / f"{CAMERAS[c]}.yaml", CameraInfo(K, np.zeros(5), WIDTH, HEIGHT, CAMERAS[c]))
     params |= {f"{LOOP_NAME}.tip_{a}": float(x) for a, x in zip("xyz", MARKER)}
-    doc = {"scenario": scenario, "seed": seed, "n": n, "parameters": params,
-           "cameras": {"fovy_deg": FOVY_DEG, "width": WIDTH, "height": HEIGHT, "intrinsics": K.tolist()},
-           "noise": {"sigma_px": sc.sigma_px, "sigma_q": sc.sigma_q},
-           "missing_views": int(np.sum(~seen[:, 0::2])), "calibrate_loop": CALIBRATE_LOOP,
-           "check_tolerances": CHECK_TOLERANCES}
+    doc = {
+        "scenario": scenario,
+        "seed": seed,
+        "n": n,
+        "parameters": params,
+        "cameras": {"fovy_deg": FOVY_DEG, "width": WIDTH, "height": HEIGHT, "intrinsics": K.tolist()},
+        "noise": {"sigma_px": sc.sigma_px, "sigma_q": sc.sigma_q},
+        "missing_views": int(np.sum(~seen[:, 0::2])),
+        "calibrate_loop": CALIBRATE_LOOP,
+        "check_tolerances": CHECK_TOLERANCES,
+    }
     (out / "truth.json").write_text(json.dumps(doc, indent=1))
     (out / "scene.xml").write_text(spec.to_xml())
     return {"n": n, "missing_views": doc["missing_views"], "out": str(out)}
@@ -316,8 +347,10 @@ def simulate_cli(args) -> int:
         raise InputError(f"--set: the camera scenario {args.scenario} has no settings to override")
     t0 = time.perf_counter()
     summary = simulate_head(args.scenario, args.n, int(args.seed), args.out)
-    print(f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out} "
-          f"({summary['missing_views']} missing views); calibrate with --loop {CALIBRATE_LOOP}; check with "
-          f"--tol-m {CHECK_TOLERANCES['tol_m']} --tol-rad {CHECK_TOLERANCES['tol_rad']} "
-          f"--tol-px {CHECK_TOLERANCES['tol_px']}")
+    print(
+        f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out} "
+        f"({summary['missing_views']} missing views); calibrate with --loop {CALIBRATE_LOOP}; check with "
+        f"--tol-m {CHECK_TOLERANCES['tol_m']} --tol-rad {CHECK_TOLERANCES['tol_rad']} "
+        f"--tol-px {CHECK_TOLERANCES['tol_px']}"
+    )
     return 0

@@ -57,7 +57,6 @@ import pinocchio as pin
 from closedloop.errors import ScenarioError, UnknownScenarioError
 from closedloop.io.files import OutputSet
 from closedloop.models import nominal_urdf
-
 from closedloop.sims.driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
 from closedloop.sims.loop_types import SimLoop, sim_loop
 from closedloop.sims.outputs import DATASET_FILES, check_dataset_dir, truth_record, write_log
@@ -201,8 +200,16 @@ def simulate(
     return result
 
 
-def _simulate(sc: Scenario, settings: SimSettings, n: int, seed: int, out: Path, scratch: Path, files: OutputSet,
-              progress: Callable[[int, int], None] | None) -> SimResult:
+def _simulate(
+    sc: Scenario,
+    settings: SimSettings,
+    n: int,
+    seed: int,
+    out: Path,
+    scratch: Path,
+    files: OutputSet,
+    progress: Callable[[int, int], None] | None,
+) -> SimResult:
     """The body of :func:`simulate`: outputs go into `files` (published when `simulate` returns)."""
     kind = sim_loop(sc.loop_type)
     ss = np.random.SeedSequence(seed)
@@ -226,27 +233,67 @@ def _simulate(sc: Scenario, settings: SimSettings, n: int, seed: int, out: Path,
         start = loop.full_q(r0) if loop is not None else r0
         plan = plan_selected(sc, settings, nominal.path, nominal.joint_names, planner, loop, start, n, nominal.model)
     t_plan = time.perf_counter() - t_start
-    rec = track_and_record(sc, kind, settings, scene, truth.offset, truth.scale, planner, plan, n, rng_noise, rng_env,
-                           progress, t_start)  # 5-6
+    rec = track_and_record(
+        sc, kind, settings, scene, truth.offset, truth.scale, planner, plan, n, rng_noise, rng_env, progress, t_start
+    )  # 5-6
     log.info(
-        "%s: %d samples, %d dropped, %d steps, %d QP solves, %.2f s (%.0f configs/s)", sc.name, rec.done,
-        rec.dropped, rec.steps, planner.stats.qp_solves, rec.elapsed, rec.done / max(rec.elapsed, 1e-12),
+        "%s: %d samples, %d dropped, %d steps, %d QP solves, %.2f s (%.0f configs/s)",
+        sc.name,
+        rec.done,
+        rec.dropped,
+        rec.steps,
+        planner.stats.qp_solves,
+        rec.elapsed,
+        rec.done / max(rec.elapsed, 1e-12),
     )
 
     # outputs
     measured = {f"{sc.loop_name}:{a}": rec.meas[:, k] for k, a in enumerate("xyz")} if not kind.closed else {}
-    write_log(files, out / "log.csv", nominal.joint_names, rec.readings, rec.tau, rec.viol_m, rec.viol_rad,
-              rec.force, rec.door, measured)
-    truth_json = truth_record(sc, kind, scene, settings, seed, nominal.joint_names, q0, truth.values, list(measured),
-                              rec, planner.stats.qp_solves)
+    write_log(
+        files,
+        out / "log.csv",
+        nominal.joint_names,
+        rec.readings,
+        rec.tau,
+        rec.viol_m,
+        rec.viol_rad,
+        rec.force,
+        rec.door,
+        measured,
+    )
+    truth_json = truth_record(
+        sc,
+        kind,
+        scene,
+        settings,
+        seed,
+        nominal.joint_names,
+        q0,
+        truth.values,
+        list(measured),
+        rec,
+        planner.stats.qp_solves,
+    )
     if plan is not None:
         truth_json["selection"] = plan.info
     files.add(out / "truth.json", json.dumps(truth_json, indent=2))
     return SimResult(
-        scenario=sc.name, seed=int(seed), out_dir=out, joint_names=nominal.joint_names, readings=rec.readings,
-        q_true=rec.q_true, tau=rec.tau, violation_m=rec.viol_m, violation_rad=rec.viol_rad,
-        constraint_force_n=rec.force, door_angle=rec.door, truth=truth_json, settings=settings,
-        n_dropped=rec.dropped, n_steps=rec.steps, elapsed_s=rec.elapsed,
+        scenario=sc.name,
+        seed=int(seed),
+        out_dir=out,
+        joint_names=nominal.joint_names,
+        readings=rec.readings,
+        q_true=rec.q_true,
+        tau=rec.tau,
+        violation_m=rec.viol_m,
+        violation_rad=rec.viol_rad,
+        constraint_force_n=rec.force,
+        door_angle=rec.door,
+        truth=truth_json,
+        settings=settings,
+        n_dropped=rec.dropped,
+        n_steps=rec.steps,
+        elapsed_s=rec.elapsed,
         extra={"select_s": t_plan} if plan is not None else {},
     )
 
@@ -271,26 +318,51 @@ def _draw_truth(sc: Scenario, settings: SimSettings, nominal: _Nominal, rng: np.
     values = draw_errors(
         names,
         rng,
-        {"translation": settings.translation, "rotation": settings.rotation,
-         "offset": settings.offset, "scale": settings.scale},
+        {
+            "translation": settings.translation,
+            "rotation": settings.rotation,
+            "offset": settings.offset,
+            "scale": settings.scale,
+        },
     )
     offset = np.array([values.get(f"{j}.offset", 0.0) for j in joint_names])
     scale = np.array([values.get(f"{j}.scale", 1.0) for j in joint_names])
     return _Truth(values, offset, scale, true_urdf(nominal.path, values))
 
 
-def _planner(sc: Scenario, kind: SimLoop, settings: SimSettings, pmodel: pin.Model, scene: Scene, r0: np.ndarray,
-             rng: np.random.Generator) -> tuple[NominalLoopPlanner | RandomConfigurations, NominalLoop | None]:
+def _planner(
+    sc: Scenario,
+    kind: SimLoop,
+    settings: SimSettings,
+    pmodel: pin.Model,
+    scene: Scene,
+    r0: np.ndarray,
+    rng: np.random.Generator,
+) -> tuple[NominalLoopPlanner | RandomConfigurations, NominalLoop | None]:
     """Step 4: the robot's nominal loop and its planner (an open loop: random configurations)."""
     if not kind.closed:
-        return RandomConfigurations(pmodel, r0, rng, margin=settings.limit_margin,
-                                    target_span=settings.target_span), None
+        return RandomConfigurations(
+            pmodel, r0, rng, margin=settings.limit_margin, target_span=settings.target_span
+        ), None
     door_range = sc.door.angle_range if sc.door else (-0.6, 0.6)
     normal = scene.plane_pose.rotation[:, 2] if scene.plane_pose is not None else None
-    loop = NominalLoop(pmodel, sc.tool_frame, sc.loop_type, r0, hinge=scene.hinge_pose, door_range=door_range,
-                       target_frame=sc.target_frame, normal=normal)
+    loop = NominalLoop(
+        pmodel,
+        sc.tool_frame,
+        sc.loop_type,
+        r0,
+        hinge=scene.hinge_pose,
+        door_range=door_range,
+        target_frame=sc.target_frame,
+        normal=normal,
+    )
     planner = NominalLoopPlanner(
-        loop, loop.full_q(r0), rng, step_rad=settings.step_rad, margin=settings.limit_margin,
-        target_span=settings.target_span, retarget_every=settings.retarget_every,
+        loop,
+        loop.full_q(r0),
+        rng,
+        step_rad=settings.step_rad,
+        margin=settings.limit_margin,
+        target_span=settings.target_span,
+        retarget_every=settings.retarget_every,
     )
     return planner, loop

@@ -54,7 +54,6 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ScenarioError
-
 from closedloop.sims.loop_types import sim_loop
 from closedloop.sims.qp import min_norm_step, solve_box_qp, svd_full
 from closedloop.sims.scenarios import LoopType
@@ -234,8 +233,12 @@ class NominalLoopPlanner:
         tol = (sv[0] if sv else 0.0) * self._rank_tol
         return e, jac, vt, sum(map(tol.__lt__, sv))
 
-    def _qp_step(self, direction: np.ndarray, step: float | None = None,
-                 lin: tuple[np.ndarray, np.ndarray, np.ndarray, int] | None = None) -> np.ndarray | None:
+    def _qp_step(
+        self,
+        direction: np.ndarray,
+        step: float | None = None,
+        lin: tuple[np.ndarray, np.ndarray, np.ndarray, int] | None = None,
+    ) -> np.ndarray | None:
         """Solve the QP of the module docstring (``lin``: :meth:`_linearize` at ``self.q``); ``None`` if it fails."""
         step = self.step_rad if step is None else step
         e, jac, vt, rank = self._linearize() if lin is None else lin
@@ -261,8 +264,9 @@ class NominalLoopPlanner:
                 import scipy.sparse as sp  # only here: the fallback is not expected to run
                 from qpsolvers import solve_qp
 
-                dq = solve_qp(sp.csc_matrix(P), c, lb=lb, ub=ub, solver="osqp", eps_abs=1e-8, eps_rel=1e-8,
-                              verbose=False)
+                dq = solve_qp(
+                    sp.csc_matrix(P), c, lb=lb, ub=ub, solver="osqp", eps_abs=1e-8, eps_rel=1e-8, verbose=False
+                )
         if dq is None:
             self.stats.qp_failures += 1
             return None
@@ -336,8 +340,14 @@ class RandomConfigurations:
         target_span: targets are drawn within ``q_start +/- target_span``.
     """
 
-    def __init__(self, model: pin.Model, q_start: np.ndarray, rng: np.random.Generator, margin: float = 0.1,
-                 target_span: float = 1.5) -> None:
+    def __init__(
+        self,
+        model: pin.Model,
+        q_start: np.ndarray,
+        rng: np.random.Generator,
+        margin: float = 0.1,
+        target_span: float = 1.5,
+    ) -> None:
         q = np.asarray(q_start, dtype=float)
         self.rng = rng
         self.lo = np.minimum(np.maximum(model.lowerPositionLimit + margin, q - target_span), q)

@@ -18,8 +18,19 @@ import pinocchio as pin
 
 from closedloop.sims.scenarios import DoorGeometry, PlaneGeometry, TrackerGeometry
 
-__all__ = ["TOOL_SITE", "TARGET_SITE", "LOOP_EQ", "DOOR_PREFIX", "DOOR_JOINT", "PUCK_PREFIX", "quat_wxyz",
-           "door_hinge_pose", "draw_plane", "draw_tracker", "add_puck"]
+__all__ = [
+    "TOOL_SITE",
+    "TARGET_SITE",
+    "LOOP_EQ",
+    "DOOR_PREFIX",
+    "DOOR_JOINT",
+    "PUCK_PREFIX",
+    "quat_wxyz",
+    "door_hinge_pose",
+    "draw_plane",
+    "draw_tracker",
+    "add_puck",
+]
 
 TOOL_SITE = "tool_site"
 TARGET_SITE = "loop_target"
@@ -69,8 +80,7 @@ def draw_tracker(geom: TrackerGeometry, rng: np.random.Generator) -> pin.SE3:
 
 def add_puck(spec: mujoco.MjSpec, plane: pin.SE3, geom: PlaneGeometry, gravcomp: bool) -> None:
     """The passive puck: two slide joints along the plane's x and y axes, then a ball joint."""
-    frame = spec.worldbody.add_body(name=PUCK_PREFIX + "plane", pos=plane.translation,
-                                    quat=quat_wxyz(plane.rotation))
+    frame = spec.worldbody.add_body(name=PUCK_PREFIX + "plane", pos=plane.translation, quat=quat_wxyz(plane.rotation))
     m = geom.puck_mass
     slider = frame.add_body(name=PUCK_PREFIX + "slider_x")
     jx = slider.add_joint(name=PUCK_PREFIX + "x", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[1.0, 0.0, 0.0])

@@ -51,9 +51,16 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ScenarioError
-
-from closedloop.sims.environment import (DOOR_JOINT, DOOR_PREFIX, TARGET_SITE, add_puck, door_hinge_pose, draw_plane, draw_tracker,
-                          quat_wxyz)
+from closedloop.sims.environment import (
+    DOOR_JOINT,
+    DOOR_PREFIX,
+    TARGET_SITE,
+    add_puck,
+    door_hinge_pose,
+    draw_plane,
+    draw_tracker,
+    quat_wxyz,
+)
 from closedloop.sims.scenarios import DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
 
 __all__ = ["SimLoop", "Placement", "SIM_LOOPS", "SIM_LOOP_NAMES", "sim_loop", "pose_params"]
@@ -120,8 +127,16 @@ class SimLoop:
         return min(rank, self.constraints)
 
     # ------------------------------------------------------------------ MuJoCo
-    def place(self, spec: mujoco.MjSpec, model: mujoco.MjModel, data: mujoco.MjData, scenario: Scenario,
-              tool: pin.SE3, settings: SimSettings, rng: np.random.Generator | None) -> Placement:
+    def place(
+        self,
+        spec: mujoco.MjSpec,
+        model: mujoco.MjModel,
+        data: mujoco.MjData,
+        scenario: Scenario,
+        tool: pin.SE3,
+        settings: SimSettings,
+        rng: np.random.Generator | None,
+    ) -> Placement:
         """Add the loop's target site (and what carries it) with the loop closed at the true tool pose."""
         spec.worldbody.add_site(
             name=TARGET_SITE, pos=tool.translation, quat=quat_wxyz(tool.rotation), size=[0.02, 0.02, 0.02]
@@ -129,8 +144,15 @@ class SimLoop:
         return Placement()
 
     # ------------------------------------------------------------------ nominal loop
-    def nominal_target(self, loop, data, oMt0: pin.SE3, hinge: pin.SE3 | None, door_range: tuple[float, float],
-                       target_frame: str | None) -> int:
+    def nominal_target(
+        self,
+        loop,
+        data,
+        oMt0: pin.SE3,
+        hinge: pin.SE3 | None,
+        door_range: tuple[float, float],
+        target_frame: str | None,
+    ) -> int:
         """The frame the nominal loop closes on (added to ``loop.model``): the nominal tool at the grasp."""
         if target_frame is not None:
             raise ScenarioError("a robot target frame needs a weld loop")
@@ -251,8 +273,16 @@ class HingeSim(SimLoop):
         if hinge is None:
             raise ScenarioError("hinge loops need the hinge pose")
         model = loop.model
-        jid = model.addJoint(0, pin.JointModelRZ(), hinge, "door_hinge", np.array([1e3]), np.array([1e3]),
-                             np.array([door_range[0]]), np.array([door_range[1]]))
+        jid = model.addJoint(
+            0,
+            pin.JointModelRZ(),
+            hinge,
+            "door_hinge",
+            np.array([1e3]),
+            np.array([1e3]),
+            np.array([door_range[0]]),
+            np.array([door_range[1]]),
+        )
         model.appendBodyToJoint(jid, pin.Inertia.FromBox(1.0, 0.8, 0.04, 1.0), pin.SE3.Identity())
         grasp = hinge.actInv(oMt0)
         return model.addFrame(pin.Frame("handle", jid, grasp, pin.FrameType.OP_FRAME))
@@ -261,11 +291,13 @@ class HingeSim(SimLoop):
         return {}
 
     def truth_record(self, name, scene, settings, measured):
-        return {"hinge_axis": {
-            "point": [float(v) for v in scene.hinge_pose.translation],
-            "direction": [float(v) for v in scene.hinge_pose.rotation[:, 2]],
-            "frame": pose_params("hinge", scene.hinge_pose),
-        }}
+        return {
+            "hinge_axis": {
+                "point": [float(v) for v in scene.hinge_pose.translation],
+                "direction": [float(v) for v in scene.hinge_pose.rotation[:, 2]],
+                "frame": pose_params("hinge", scene.hinge_pose),
+            }
+        }
 
     def core_loop(self, sc, nominal_path=None, sigma_t=None):
         """The HingeLoop with the door axis of the NOMINAL robot at the grasp as its reference."""
@@ -321,16 +353,21 @@ class PlaneSim(SimLoop):
 
         n = scene.plane_pose.rotation[:, 2]
         w = PlaneLoop(name, "tool").angles(n)
-        return {f"{name}.nrx": float(w[0]), f"{name}.nry": float(w[1]),
-                f"{name}.d": float(n @ scene.plane_pose.translation),
-                **_zero_tip(name)}
+        return {
+            f"{name}.nrx": float(w[0]),
+            f"{name}.nry": float(w[1]),
+            f"{name}.d": float(n @ scene.plane_pose.translation),
+            **_zero_tip(name),
+        }
 
     def truth_record(self, name, scene, settings, measured):
-        return {"plane": {
-            "point": [float(v) for v in scene.plane_pose.translation],
-            "normal": [float(v) for v in scene.plane_pose.rotation[:, 2]],
-            "frame": pose_params("plane", scene.plane_pose),
-        }}
+        return {
+            "plane": {
+                "point": [float(v) for v in scene.plane_pose.translation],
+                "normal": [float(v) for v in scene.plane_pose.rotation[:, 2]],
+                "frame": pose_params("plane", scene.plane_pose),
+            }
+        }
 
     def core_loop(self, sc, nominal_path=None, sigma_t=None):
         # A generic tilted normal: `identifiable_names` starts from one point, where the plane gets the
@@ -363,8 +400,12 @@ class MeasuredPointSim(SimLoop):
             raise ScenarioError(f"{scenario.name}: measured_point loops need a random generator for the tracker")
         tracker_pose = draw_tracker(scenario.tracker or TrackerGeometry(), rng)
         # the tracker's frame as a world site (no constraint: the loop is closed by the measurement)
-        spec.worldbody.add_site(name=TARGET_SITE, pos=tracker_pose.translation,
-                                quat=quat_wxyz(tracker_pose.rotation), size=[0.05, 0.05, 0.05])
+        spec.worldbody.add_site(
+            name=TARGET_SITE,
+            pos=tracker_pose.translation,
+            quat=quat_wxyz(tracker_pose.rotation),
+            size=[0.05, 0.05, 0.05],
+        )
         return Placement()
 
     def nominal_target(self, loop, data, oMt0, hinge, door_range, target_frame) -> int:
@@ -375,8 +416,13 @@ class MeasuredPointSim(SimLoop):
         return {**pose_params(name, scene.target_pose), **_zero_tip(name)}
 
     def truth_record(self, name, scene, settings, measured):
-        return {"tracker": {"frame": pose_params(name, scene.target_pose),
-                            "noise_m": float(settings.tracker_noise), "columns": list(measured)}}
+        return {
+            "tracker": {
+                "frame": pose_params(name, scene.target_pose),
+                "noise_m": float(settings.tracker_noise),
+                "columns": list(measured),
+            }
+        }
 
     def core_loop(self, sc, nominal_path=None, sigma_t=None):
         from closedloop.loops.measured import MeasuredPointLoop
@@ -387,8 +433,10 @@ class MeasuredPointSim(SimLoop):
 #: the simulator's loop types by the core's loop type name
 SIM_LOOPS: dict[str, SimLoop] = {c.kind: c() for c in (WeldSim, PointSim, HingeSim, PlaneSim, MeasuredPointSim)}
 #: every name ``--loop`` may use for a simulated loop (aliases included) -> the loop type
-SIM_LOOP_NAMES: dict[str, str] = {**{k: k for k in SIM_LOOPS},
-                                  **{a: k for k, v in SIM_LOOPS.items() for a in v.aliases}}
+SIM_LOOP_NAMES: dict[str, str] = {
+    **{k: k for k in SIM_LOOPS},
+    **{a: k for k, v in SIM_LOOPS.items() for a in v.aliases},
+}
 
 
 def sim_loop(kind: str) -> SimLoop:

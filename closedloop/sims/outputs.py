@@ -17,7 +17,6 @@ import numpy as np
 
 from closedloop.errors import InputError
 from closedloop.io.files import OutputSet
-
 from closedloop.sims.loop_types import SIM_LOOPS, SimLoop
 from closedloop.sims.scenarios import Scenario, SimSettings
 
@@ -36,12 +35,25 @@ def check_dataset_dir(out: Path, replace: bool = False) -> None:
         return
     present = [f for f in DATASET_FILES if (out / f).exists()]
     if present:
-        raise InputError(f"--out {out}: holds another dataset ({', '.join(present)}); "
-                         "give a new directory or --replace to replace it")
+        raise InputError(
+            f"--out {out}: holds another dataset ({', '.join(present)}); "
+            "give a new directory or --replace to replace it"
+        )
 
 
-def truth_record(sc: Scenario, kind: SimLoop, scene, settings: SimSettings, seed: int, joint_names: list[str],
-                 q0: np.ndarray, values: dict[str, float], measured: list[str], rec, qp_solves: int) -> dict[str, Any]:
+def truth_record(
+    sc: Scenario,
+    kind: SimLoop,
+    scene,
+    settings: SimSettings,
+    seed: int,
+    joint_names: list[str],
+    q0: np.ndarray,
+    values: dict[str, float],
+    measured: list[str],
+    rec,
+    qp_solves: int,
+) -> dict[str, Any]:
     """The contents of ``truth.json`` (module docstring); ``rec``: the `Recording` of the run."""
     params = dict(values)
     if settings.compliance > 0.0:
@@ -63,8 +75,10 @@ def truth_record(sc: Scenario, kind: SimLoop, scene, settings: SimSettings, seed
         "q0": [float(v) for v in q0],
         "parameters": params,
         "violation": {
-            "rms_m": rms(rec.viol_m), "max_m": float(rec.viol_m.max(initial=0.0)),
-            "rms_rad": rms(rec.viol_rad), "max_rad": float(rec.viol_rad.max(initial=0.0)),
+            "rms_m": rms(rec.viol_m),
+            "max_m": float(rec.viol_m.max(initial=0.0)),
+            "rms_rad": rms(rec.viol_rad),
+            "max_rad": float(rec.viol_rad.max(initial=0.0)),
         },
         "samples": {"recorded": rec.done, "dropped": rec.dropped, "steps": rec.steps, "qp_solves": qp_solves},
     }
@@ -84,7 +98,9 @@ def write_log(
 ) -> None:
     """Write the calibration log: joint readings first, then diagnostic columns, then measurements."""
     measured = measured or {}
-    header = list(joint_names) + [f"tau:{j}" for j in joint_names] + ["violation_m", "violation_rad", "constraint_force_n"]
+    header = (
+        list(joint_names) + [f"tau:{j}" for j in joint_names] + ["violation_m", "violation_rad", "constraint_force_n"]
+    )
     if door.size:
         header.append("door_angle")
     header += list(measured)

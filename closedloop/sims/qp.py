@@ -47,8 +47,9 @@ def svd_full(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return u, s, np.ascontiguousarray(vt)
 
 
-def solve_box_qp(P: np.ndarray, c: np.ndarray, lb: np.ndarray, ub: np.ndarray, max_iter: int | None = None
-                 ) -> np.ndarray | None:
+def solve_box_qp(
+    P: np.ndarray, c: np.ndarray, lb: np.ndarray, ub: np.ndarray, max_iter: int | None = None
+) -> np.ndarray | None:
     """Exact solution of ``min 1/2 x^T P x + c^T x  s.t.  lb <= x <= ub`` (``P`` symmetric positive definite).
 
     Primal active-set method (Nocedal & Wright, *Numerical Optimization*, alg. 16.3)

@@ -39,7 +39,6 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import InputError
-
 from closedloop.sims.loop_types import SIM_LOOPS
 
 log = logging.getLogger(__name__)
@@ -97,8 +96,10 @@ def mjcf_to_urdf(path: Path) -> str:
         joints = [j for j in range(m.njnt) if m.jnt_bodyid[j] == b]
         kinds = [int(m.jnt_type[j]) for j in joints]
         if len(joints) > 1 or any(k in (int(mujoco.mjtJoint.mjJNT_BALL),) for k in kinds):
-            raise InputError(f"{path}: body '{bn}' has {len(joints)} joints or a ball joint; the simulator "
-                             "handles one hinge or slide joint per body")
+            raise InputError(
+                f"{path}: body '{bn}' has {len(joints)} joints or a ball joint; the simulator "
+                "handles one hinge or slide joint per body"
+            )
         free = bool(kinds) and kinds[0] == int(mujoco.mjtJoint.mjJNT_FREE)
         if joints and not free:
             anchor[b] = m.jnt_pos[joints[0]]
@@ -106,16 +107,20 @@ def mjcf_to_urdf(path: Path) -> str:
         inert = ET.SubElement(link, "inertial")
         R = np.zeros(9)
         mujoco.mju_quat2Mat(R, m.body_iquat[b])
-        ET.SubElement(inert, "origin", xyz=_fmt(m.body_ipos[b] - anchor[b]),
-                      rpy=_fmt(pin.rpy.matrixToRpy(R.reshape(3, 3))))
+        ET.SubElement(
+            inert, "origin", xyz=_fmt(m.body_ipos[b] - anchor[b]), rpy=_fmt(pin.rpy.matrixToRpy(R.reshape(3, 3)))
+        )
         ET.SubElement(inert, "mass", value=repr(float(m.body_mass[b])))
         ixx, iyy, izz = (float(v) for v in m.body_inertia[b])
         ET.SubElement(inert, "inertia", ixx=repr(ixx), iyy=repr(iyy), izz=repr(izz), ixy="0", ixz="0", iyz="0")
         p = int(m.body_parentid[b])
         mujoco.mju_quat2Mat(R, m.body_quat[b])
         xyz = m.body_pos[b] - anchor[p] + R.reshape(3, 3) @ anchor[b]
-        kind = "fixed" if not joints or free else ("prismatic" if kinds[0] == int(mujoco.mjtJoint.mjJNT_SLIDE)
-                                                   else "revolute")
+        kind = (
+            "fixed"
+            if not joints or free
+            else ("prismatic" if kinds[0] == int(mujoco.mjtJoint.mjJNT_SLIDE) else "revolute")
+        )
         jn = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, joints[0]) if joints and not free else f"{bn}_fixed"
         j = ET.SubElement(root, "joint", name=jn, type=kind)
         ET.SubElement(j, "parent", link=name(mujoco.mjtObj.mjOBJ_BODY, p))
@@ -123,7 +128,7 @@ def mjcf_to_urdf(path: Path) -> str:
         ET.SubElement(j, "origin", xyz=_fmt(xyz), rpy=_fmt(pin.rpy.matrixToRpy(R.reshape(3, 3))))
         if kind != "fixed":
             ET.SubElement(j, "axis", xyz=_fmt(m.jnt_axis[joints[0]]))
-            lo, hi = (m.jnt_range[joints[0]] if m.jnt_limited[joints[0]] else (-np.pi, np.pi))
+            lo, hi = m.jnt_range[joints[0]] if m.jnt_limited[joints[0]] else (-np.pi, np.pi)
             ET.SubElement(j, "limit", lower=repr(float(lo)), upper=repr(float(hi)), effort="100", velocity="10")
     for s in range(m.nsite):
         sn, b = name(mujoco.mjtObj.mjOBJ_SITE, s), int(m.site_bodyid[s])
@@ -190,13 +195,17 @@ def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: 
     movable = [j.get("name") for j in chain if j.get("type") in MOVABLE]
     bad = [f"{j.get('name')} ({j.get('type')})" for j in chain if j.get("type") not in MOVABLE + ("fixed",)]
     if bad:
-        raise InputError(f"{path}: joint(s) {', '.join(bad)} on the way to {frame}: the simulator drives revolute, "
-                         "continuous and prismatic joints only")
+        raise InputError(
+            f"{path}: joint(s) {', '.join(bad)} on the way to {frame}: the simulator drives revolute, "
+            "continuous and prismatic joints only"
+        )
     if joints:
         unknown = [j for j in joints if j not in movable]
         if unknown:
-            raise InputError(f"{path}: joint(s) {', '.join(unknown)} do not move {frame} "
-                             f"(the movable joints on its chain: {', '.join(movable)})")
+            raise InputError(
+                f"{path}: joint(s) {', '.join(unknown)} do not move {frame} "
+                f"(the movable joints on its chain: {', '.join(movable)})"
+            )
         movable = [j for j in movable if j in joints]
     for j in root.findall("joint"):
         if j.get("name") not in movable:
@@ -261,8 +270,16 @@ def choose_q0(model, loop_type: str, frame: str, to: str | None, n_samples: int 
     return best_q, rank, best
 
 
-def prepare_robot(path: str | Path, loop_type: str, frame: str, to: str | None = None, tool=None,
-                  joints=None, q0=None, where: str = "--robot") -> PreparedRobot:
+def prepare_robot(
+    path: str | Path,
+    loop_type: str,
+    frame: str,
+    to: str | None = None,
+    tool=None,
+    joints=None,
+    q0=None,
+    where: str = "--robot",
+) -> PreparedRobot:
     """Prepare a user's robot for the simulator and register it (module doc)."""
     from closedloop.models import ROBOTS, RobotSource, nominal_urdf
 
@@ -288,10 +305,12 @@ def prepare_robot(path: str | Path, loop_type: str, frame: str, to: str | None =
     # angle takes one of the weld's six; plane: the unknown normal leaves one; a tracker none)
     rank = SIM_LOOPS[loop_type].independent(rank)
     if n - rank < 1:
-        raise InputError(f"{path}: {what} leaves the closed chain no motion: its {n} driven joint(s) "
-                         f"({', '.join(driven)}) are all taken by the loop's {rank} independent constraints "
-                         f"(thesis Lemma 4: no self-motion, nothing to calibrate from); use a loop with fewer "
-                         "constraints (point: 3, plane: 1, measured_point: 0), or a robot with more joints")
+        raise InputError(
+            f"{path}: {what} leaves the closed chain no motion: its {n} driven joint(s) "
+            f"({', '.join(driven)}) are all taken by the loop's {rank} independent constraints "
+            f"(thesis Lemma 4: no self-motion, nothing to calibrate from); use a loop with fewer "
+            "constraints (point: 3, plane: 1, measured_point: 0), or a robot with more joints"
+        )
     if q0 is None:
         q0 = q_best
         log.info("%s: grasp pose chosen automatically: %s", path, np.round(q0, 3))

@@ -15,7 +15,6 @@ import dataclasses
 from pathlib import Path
 
 from closedloop.errors import InputError
-
 from closedloop.sims.loop_types import SIM_LOOP_NAMES, SIM_LOOPS
 from closedloop.sims.scenarios import SCENARIOS, DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
 
@@ -25,8 +24,20 @@ __all__ = ["SIM_LOOP_TYPES", "SCENARIO_DIR", "parse_sim_loop", "scenario_from_di
 #: closes two chains of one robot): the names of `closedloop.sims.loop_types.SIM_LOOPS`
 SIM_LOOP_TYPES = SIM_LOOP_NAMES
 SCENARIO_DIR = Path(__file__).with_name("scenarios")
-_SCENARIO_KEYS = {"description", "robot", "loop", "q0", "settings", "door", "plane", "tracker", "min_joint_range",
-                  "tool", "joints", "name"}
+_SCENARIO_KEYS = {
+    "description",
+    "robot",
+    "loop",
+    "q0",
+    "settings",
+    "door",
+    "plane",
+    "tracker",
+    "min_joint_range",
+    "tool",
+    "joints",
+    "name",
+}
 
 
 def parse_sim_loop(spec: str) -> tuple[str, str, str | None, str]:
@@ -34,22 +45,26 @@ def parse_sim_loop(spec: str) -> tuple[str, str, str | None, str]:
     kind, _, rest = spec.partition(":")
     kind = kind.strip()
     if kind not in SIM_LOOP_TYPES:
-        raise InputError(f"--loop {spec}: the simulator has no '{kind}' loop (it simulates: "
-                         f"{', '.join(SIM_LOOP_TYPES)})")
+        raise InputError(
+            f"--loop {spec}: the simulator has no '{kind}' loop (it simulates: {', '.join(SIM_LOOP_TYPES)})"
+        )
     kw: dict[str, str] = {}
     for item in (t for t in rest.split(",") if t.strip()):
         key, eq, val = (x.strip() for x in item.partition("="))
         if not eq or key not in ("frame", "to", "name"):
-            raise InputError(f"--loop {spec}: the simulator takes frame=, to= (weld only) and name= "
-                             f"(got '{item}'); the loop's unknowns are what calibrate estimates")
+            raise InputError(
+                f"--loop {spec}: the simulator takes frame=, to= (weld only) and name= "
+                f"(got '{item}'); the loop's unknowns are what calibrate estimates"
+            )
         kw[key] = val
     if "frame" not in kw:
         raise InputError(f"--loop {spec}: say which frame closes the loop, e.g. {kind}:frame=tool0")
     loop_type = SIM_LOOP_TYPES[kind]
     sim = SIM_LOOPS[loop_type]
     if "to" in kw and not sim.two_chains:
-        raise InputError(f"--loop {spec}: only a weld closes two chains of one robot (to=); "
-                         f"a {kind} loop closes on the world")
+        raise InputError(
+            f"--loop {spec}: only a weld closes two chains of one robot (to=); a {kind} loop closes on the world"
+        )
     return loop_type, kw["frame"], kw.get("to"), kw.get("name", sim.default_name)
 
 
@@ -91,21 +106,34 @@ def scenario_from_dict(data: dict, name: str, where: str, base_dir: Path | None 
         path = Path(robot) if robot not in ROBOTS else ROBOTS[robot].path
         if not path.is_absolute() and base_dir is not None:
             path = base_dir / path
-        prepared = prepare_robot(path, loop_type, frame, to, tool=data.get("tool"), joints=data.get("joints"),
-                                 q0=q0, where=where)
+        prepared = prepare_robot(
+            path, loop_type, frame, to, tool=data.get("tool"), joints=data.get("joints"), q0=q0, where=where
+        )
         robot, frame, q0 = prepared.key, prepared.frame, prepared.q0
     elif q0 is None:
         raise InputError(f"{where}: give q0 for the built-in robot '{robot}' (or its URDF path for an automatic one)")
     geom = {"door": DoorGeometry, "plane": PlaneGeometry, "tracker": TrackerGeometry}
-    parts = {k: cls(**{a: tuple(v) if isinstance(v, list) else v for a, v in (data.get(k) or {}).items()})
-             for k, cls in geom.items() if k in data}
+    parts = {
+        k: cls(**{a: tuple(v) if isinstance(v, list) else v for a, v in (data.get(k) or {}).items()})
+        for k, cls in geom.items()
+        if k in data
+    }
     own = SIM_LOOPS[loop_type].geometry  # the loop type's geometry, its defaults when not given
     if own is not None and own[0] not in parts:
         parts[own[0]] = own[1]()
-    return Scenario(name=str(data.get("name", name)), description=str(data.get("description", "")), robot=robot,
-                    loop_type=loop_type, loop_name=loop_name, tool_frame=frame, target_frame=to,
-                    q0=tuple(float(v) for v in q0), settings=settings,
-                    min_joint_range=float(data.get("min_joint_range", 0.1)), **parts)
+    return Scenario(
+        name=str(data.get("name", name)),
+        description=str(data.get("description", "")),
+        robot=robot,
+        loop_type=loop_type,
+        loop_name=loop_name,
+        tool_frame=frame,
+        target_frame=to,
+        q0=tuple(float(v) for v in q0),
+        settings=settings,
+        min_joint_range=float(data.get("min_joint_range", 0.1)),
+        **parts,
+    )
 
 
 def load_scenario(path: str | Path) -> Scenario:
@@ -124,8 +152,6 @@ def load_scenario(path: str | Path) -> Scenario:
     sc = scenario_from_dict(data, path.stem, str(path), path.parent)
     SCENARIOS[sc.name] = sc
     return sc
-
-
 
 
 def load_builtin() -> None:

@@ -151,8 +151,9 @@ class SimSettings:
 
     def as_dict(self, drop: tuple[str, ...] | set[str] = ()) -> dict[str, Any]:
         """JSON-friendly dict of the settings, without those named in `drop`."""
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items()
-                if k not in drop}
+        return {
+            k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(self).items() if k not in drop
+        }
 
 
 @dataclass(frozen=True)

@@ -41,7 +41,6 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ScenarioError
-
 from closedloop.sims.environment import LOOP_EQ, TARGET_SITE, TOOL_SITE
 from closedloop.sims.loop_types import Placement, SimLoop, sim_loop
 from closedloop.sims.scenarios import Scenario, SimSettings
@@ -51,8 +50,7 @@ __all__ = ["Scene", "apply_placement_errors", "true_urdf", "build_scene", "site_
 log = logging.getLogger(__name__)
 
 _MUJOCO_TAG = (
-    '<mujoco><compiler fusestatic="false" discardvisual="true" balanceinertia="true" '
-    'angle="radian"/></mujoco>'
+    '<mujoco><compiler fusestatic="false" discardvisual="true" balanceinertia="true" angle="radian"/></mujoco>'
 )
 
 
@@ -86,8 +84,8 @@ def apply_placement_errors(urdf: str, values: dict[str, float]) -> str:
 def true_urdf(nominal_urdf_path: Path, values: dict[str, float]) -> str:
     """The true robot's URDF text (placement errors applied, offsets not folded)."""
     try:
-        from closedloop.output.urdf import write_urdf
         from closedloop.model.robot import RobotModel
+        from closedloop.output.urdf import write_urdf
     except ImportError:
         log.debug("closedloop.output.urdf not available; using sims.scene.apply_placement_errors")
         return apply_placement_errors(Path(nominal_urdf_path).read_text(), values)
@@ -152,8 +150,14 @@ class Scene:
         return self.spec.to_xml()
 
 
-def build_scene(urdf: str, scenario: Scenario, settings: SimSettings, joint_names: list[str], q0: np.ndarray,
-                rng: np.random.Generator | None = None) -> Scene:
+def build_scene(
+    urdf: str,
+    scenario: Scenario,
+    settings: SimSettings,
+    joint_names: list[str],
+    q0: np.ndarray,
+    rng: np.random.Generator | None = None,
+) -> Scene:
     """Build the MuJoCo scene of the true robot ``urdf`` with its loop closed at ``q0``.
 
     Args:
@@ -236,8 +240,9 @@ def _robot_spec(urdf: str, scenario: Scenario, settings: SimSettings, joint_name
     return spec
 
 
-def _closed_scene(spec: mujoco.MjSpec, joint_names: list[str], q0: np.ndarray, kind: SimLoop, placed: Placement,
-                  has_eq: bool) -> Scene:
+def _closed_scene(
+    spec: mujoco.MjSpec, joint_names: list[str], q0: np.ndarray, kind: SimLoop, placed: Placement, has_eq: bool
+) -> Scene:
     """Compile the closed loop with a start keyframe at ``q0`` (servos holding ``q0``) and index the scene."""
     # start keyframe: closed loop at q0, servos holding q0
     key = spec.add_key()

@@ -46,7 +46,6 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ScenarioError
-
 from closedloop.sims.driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
 from closedloop.sims.loop_types import sim_loop
 from closedloop.sims.scenarios import Scenario, SimSettings
@@ -79,8 +78,14 @@ def candidate_pool(planner: NominalLoopPlanner | RandomConfigurations, size: int
     return np.array([planner.step() for _ in range(size)])
 
 
-def information_result(sc: Scenario, settings: SimSettings, nominal_path: Path, joint_names: list[str],
-                       pool: np.ndarray, tool_frame_points: np.ndarray | None = None):
+def information_result(
+    sc: Scenario,
+    settings: SimSettings,
+    nominal_path: Path,
+    joint_names: list[str],
+    pool: np.ndarray,
+    tool_frame_points: np.ndarray | None = None,
+):
     """The core's calibration result on the pool's nominal readings (see the module docstring, step 2).
 
     Args:
@@ -108,8 +113,12 @@ def information_result(sc: Scenario, settings: SimSettings, nominal_path: Path, 
         extra = {c: tool_frame_points[:, k] for k, c in enumerate(loop.columns())}
     robot = RobotModel.from_file(nominal_path)
     identify = ["placement", "offset", "loop"] + (["scale"] if settings.scale > 0.0 else [])
-    return calibrate(robot, JointLog(list(joint_names), np.asarray(pool, dtype=float), None, None, extra), [loop],
-                     CalibrationOptions(identify=identify, noise=noise))
+    return calibrate(
+        robot,
+        JointLog(list(joint_names), np.asarray(pool, dtype=float), None, None, extra),
+        [loop],
+        CalibrationOptions(identify=identify, noise=noise),
+    )
 
 
 def order_path(points: np.ndarray, start: np.ndarray) -> np.ndarray:
@@ -149,9 +158,17 @@ def bridge(loop: NominalLoop | None, a: np.ndarray, b: np.ndarray, step_rad: flo
     return out
 
 
-def plan_selected(sc: Scenario, settings: SimSettings, nominal_path: Path, joint_names: list[str],
-                  planner: NominalLoopPlanner | RandomConfigurations, loop: NominalLoop | None,
-                  start: np.ndarray, n: int, model: pin.Model | None = None) -> Plan:
+def plan_selected(
+    sc: Scenario,
+    settings: SimSettings,
+    nominal_path: Path,
+    joint_names: list[str],
+    planner: NominalLoopPlanner | RandomConfigurations,
+    loop: NominalLoop | None,
+    start: np.ndarray,
+    n: int,
+    model: pin.Model | None = None,
+) -> Plan:
     """Steps 1-4 of the module docstring: the path through the n chosen configurations.
 
     Args:
@@ -198,6 +215,12 @@ def plan_selected(sc: Scenario, settings: SimSettings, nominal_path: Path, joint
         "bridge_waypoints": int(len(record) - int(np.sum(record))),
         "parameters": [res.names[i] for i in res.estimated],
     }
-    log.info("%s: chose %d of %d candidates (%s), %d bridge waypoints", sc.name, len(chosen), size,
-             settings.select, info["bridge_waypoints"])
+    log.info(
+        "%s: chose %d of %d candidates (%s), %d bridge waypoints",
+        sc.name,
+        len(chosen),
+        size,
+        settings.select,
+        info["bridge_waypoints"],
+    )
     return Plan(np.array(waypoints), np.array(record, dtype=bool), info)

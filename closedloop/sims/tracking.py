@@ -22,13 +22,21 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ScenarioError
-
 from closedloop.sims.loop_types import SimLoop
 from closedloop.sims.scenarios import Scenario, SimSettings
 from closedloop.sims.scene import Scene, site_pose
 
-__all__ = ["Recording", "Settler", "SiteViews", "track_and_record", "sensor_readings", "settle", "sample", "violation",
-           "constraint_force"]
+__all__ = [
+    "Recording",
+    "Settler",
+    "SiteViews",
+    "track_and_record",
+    "sensor_readings",
+    "settle",
+    "sample",
+    "violation",
+    "constraint_force",
+]
 
 log = logging.getLogger(__name__)
 
@@ -69,15 +77,16 @@ def constraint_force(scene: Scene) -> float:
     # MuJoCo puts the equality rows first (d.ne of them), then friction, limits and contacts
     # (its first three rows, found on a Python list: a few rows, cheaper than numpy's flatnonzero)
     eq = scene.eq_id
-    rows = [i for i, k in enumerate(d.efc_id[:d.ne].tolist()) if k == eq][:3]
+    rows = [i for i, k in enumerate(d.efc_id[: d.ne].tolist()) if k == eq][:3]
     return _norm(d.efc_force[rows]) if rows else 0.0
 
 
 _CHUNK = 5  # simulation steps between two settle checks
 
 
-def settle(scene: Scene, ctrl_from: np.ndarray, ctrl_to: np.ndarray, s: SimSettings,
-           vel_tol: float) -> tuple[bool, int]:
+def settle(
+    scene: Scene, ctrl_from: np.ndarray, ctrl_to: np.ndarray, s: SimSettings, vel_tol: float
+) -> tuple[bool, int]:
     """Ramp the servo commands over ``ramp_steps``, then step until ``max |qdot| < vel_tol``.
 
     Returns (settled, steps); at most ``max_steps`` steps, at least ``min_steps``
@@ -167,8 +176,13 @@ def _ramp_state(scene: Scene, ramp: int) -> tuple:
     hit = _RAMP.get(id(d))
     if hit is None or hit[0] is not d or hit[1] != ramp:
         _RAMP.clear()
-        hit = _RAMP[id(d)] = (d, ramp, _view(d.ctrl, scene.actuator_ids), (np.arange(1, ramp + 1) / ramp)[:, None],
-                              _view(d.qpos, scene.qpos_adr))
+        hit = _RAMP[id(d)] = (
+            d,
+            ramp,
+            _view(d.ctrl, scene.actuator_ids),
+            (np.arange(1, ramp + 1) / ramp)[:, None],
+            _view(d.qpos, scene.qpos_adr),
+        )
     return hit[2], hit[3], hit[4]
 
 
@@ -176,7 +190,7 @@ def _view(x: np.ndarray, ids: np.ndarray):
     """``x[ids]`` as a writable view when the ids are a contiguous range, else an index proxy."""
     ids = np.asarray(ids)
     if ids.size and np.array_equal(ids, np.arange(ids[0], ids[0] + ids.size)):
-        return x[int(ids[0]):int(ids[0]) + ids.size]
+        return x[int(ids[0]) : int(ids[0]) + ids.size]
     return _Scatter(x, ids)
 
 
@@ -247,8 +261,16 @@ class Recording:
 
     @classmethod
     def empty(cls, n: int, nj: int, env_joint: bool, measures: bool) -> "Recording":
-        return cls(np.zeros((n, nj)), np.zeros((n, nj)), np.zeros((n, nj)), np.zeros(n), np.zeros(n), np.zeros(n),
-                   np.zeros(n) if env_joint else np.zeros(0), np.zeros((n, 3)) if measures else np.zeros((0, 3)))
+        return cls(
+            np.zeros((n, nj)),
+            np.zeros((n, nj)),
+            np.zeros((n, nj)),
+            np.zeros(n),
+            np.zeros(n),
+            np.zeros(n),
+            np.zeros(n) if env_joint else np.zeros(0),
+            np.zeros((n, 3)) if measures else np.zeros((0, 3)),
+        )
 
     def truncate(self) -> None:
         k = self.done
@@ -282,10 +304,21 @@ def _targets(planner, plan, max_attempts: int, missing: Callable[[], int]):
             yield wp, True
 
 
-def track_and_record(sc: Scenario, kind: SimLoop, settings: SimSettings, scene: Scene, offset: np.ndarray,
-                     scale: np.ndarray, planner, plan, n: int, rng_noise: np.random.Generator,
-                     rng_env: np.random.Generator | None, progress: Callable[[int, int], None] | None,
-                     t_start: float) -> Recording:
+def track_and_record(
+    sc: Scenario,
+    kind: SimLoop,
+    settings: SimSettings,
+    scene: Scene,
+    offset: np.ndarray,
+    scale: np.ndarray,
+    planner,
+    plan,
+    n: int,
+    rng_noise: np.random.Generator,
+    rng_env: np.random.Generator | None,
+    progress: Callable[[int, int], None] | None,
+    t_start: float,
+) -> Recording:
     """Steps 5-6: drive the true robot through the waypoints in MuJoCo and record the settled samples."""
     m, d = scene.model, scene.data
     joint_names = scene.joint_names
@@ -320,8 +353,9 @@ def track_and_record(sc: Scenario, kind: SimLoop, settings: SimSettings, scene: 
         ql = q.tolist()
         at_limit = any(ql[i] - lo < flag or hi - ql[i] < flag for i, lo, hi in limits)
         if not settled:
-            log.debug("sample %d not settled after %d steps (max |qdot| = %.3g)", rec.done, steps,
-                      np.max(np.abs(d.qvel)))
+            log.debug(
+                "sample %d not settled after %d steps (max |qdot| = %.3g)", rec.done, steps, np.max(np.abs(d.qvel))
+            )
         if settings.drop_flagged and (at_limit or not settled):
             rec.dropped += 1
             continue

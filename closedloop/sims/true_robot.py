@@ -100,8 +100,9 @@ def identifiable_parameters(nominal_path, sc: Scenario, joint_names: list[str], 
     if not kind.closed:
         names = _measured_identifiable_names(robot, loop, CalibrationOptions(identify=identify))
     else:
-        names = identifiable_names(robot, [loop], np.asarray(sc.q0, dtype=float)[None, :],
-                                   CalibrationOptions(identify=identify))
+        names = identifiable_names(
+            robot, [loop], np.asarray(sc.q0, dtype=float)[None, :], CalibrationOptions(identify=identify)
+        )
     return [n for n in names if n.rsplit(".", 1)[0] in joint_names]
 
 

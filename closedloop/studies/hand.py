@@ -58,18 +58,30 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from closedloop.calibration import CalibrationOptions, CalibrationResult, calibrate
-from closedloop.io.logs import JointLog
-from closedloop.model.dh import LENGTH_UNITS, rot
 from closedloop.errors import ModelError, OptionError, ParameterError, SimulationError
+from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
+from closedloop.model.dh import LENGTH_UNITS, rot
 from closedloop.model.robot import RobotModel
 
 INCH = LENGTH_UNITS["in"]
 
 # Table 4.1 "~": difficult to measure (guessed for link 7, roughly calculated otherwise).
-TABLE_4_1_POORLY_KNOWN = ["j0.theta_off", "j3.theta_off", "j3.s", "j3.a", "j3.alpha",
-                          "j4.theta_off", "j4.s", "j4.a", "j5.theta_off",
-                          "j7.theta_off", "j7.s", "j7.a", "j7.alpha"]
+TABLE_4_1_POORLY_KNOWN = [
+    "j0.theta_off",
+    "j3.theta_off",
+    "j3.s",
+    "j3.a",
+    "j3.alpha",
+    "j4.theta_off",
+    "j4.s",
+    "j4.a",
+    "j5.theta_off",
+    "j7.theta_off",
+    "j7.s",
+    "j7.a",
+    "j7.alpha",
+]
 # 4.2.2 / 4.3: the two fixed parameters of the thesis.
 TABLE_4_1_FIXED = {"j0.s": -1.3 * INCH, "j7.k": 1.0}
 # 4.5: tip D-H parameters taken "for practical purposes" [57] (metres, radians).
@@ -77,8 +89,9 @@ NOMINAL_TIP = {"theta_off": 0.0, "s": 0.0, "a": 0.735 * INCH, "alpha": 0.0}
 
 
 # --------------------------------------------------------------------------- staged calibration
-def staged_calibration(robot: RobotModel, log: JointLog, loops: list[Loop],
-                       stages: list[CalibrationOptions]) -> list[CalibrationResult]:
+def staged_calibration(
+    robot: RobotModel, log: JointLog, loops: list[Loop], stages: list[CalibrationOptions]
+) -> list[CalibrationResult]:
     """Run `calibrate` once per stage, each starting from the previous stage's values (4.2.6).
 
     A stage's own ``initial`` entries win over the carried-over values; its
@@ -97,9 +110,14 @@ def staged_calibration(robot: RobotModel, log: JointLog, loops: list[Loop],
     return results
 
 
-def thesis_stages(robot: RobotModel, poorly_known: list[str] | None = None,
-                  fixed: dict[str, float | None] | None = None, noise=None,
-                  scale_factors: bool = True, **common) -> list[CalibrationOptions]:
+def thesis_stages(
+    robot: RobotModel,
+    poorly_known: list[str] | None = None,
+    fixed: dict[str, float | None] | None = None,
+    noise=None,
+    scale_factors: bool = True,
+    **common,
+) -> list[CalibrationOptions]:
     """The two stages of 4.2.6 for a thumb-finger D-H table.
 
     Stage 1: only `poorly_known` (default: the ~ entries of Table 4.1) are
@@ -160,19 +178,25 @@ class PalmRow:
         elif conv == "translation_z":
             C = _hom(np.eye(3), [0, 0, self.s])
         else:
-            raise OptionError(f"row {self.label}: unknown convention '{conv}' "
-                              "(known: dh, hayati, hayati_reversed, translation_z)")
+            raise OptionError(
+                f"row {self.label}: unknown convention '{conv}' (known: dh, hayati, hayati_reversed, translation_z)"
+            )
         return T @ C
 
     def in_units(self, length: float = INCH) -> dict:
         """The row as printed in the thesis (lengths in `length` metres, e.g. inches)."""
-        ang_a = self.convention in ("hayati", "hayati_reversed") or self.base == "hayati" and \
-            self.convention == "constant"
-        return {"label": self.label, "convention": self.convention,
-                "theta_off": None if self.unknown else self.theta_off,
-                "s": None if self.unknown else self.s / length,
-                "a": None if self.unknown else (self.a if ang_a else self.a / length),
-                "alpha": None if self.unknown else self.alpha, "k": self.k}
+        ang_a = (
+            self.convention in ("hayati", "hayati_reversed") or self.base == "hayati" and self.convention == "constant"
+        )
+        return {
+            "label": self.label,
+            "convention": self.convention,
+            "theta_off": None if self.unknown else self.theta_off,
+            "s": None if self.unknown else self.s / length,
+            "a": None if self.unknown else (self.a if ang_a else self.a / length),
+            "alpha": None if self.unknown else self.alpha,
+            "k": self.k,
+        }
 
 
 @dataclass
@@ -190,8 +214,9 @@ class PalmFrameParameters:
         return T
 
 
-def palm_frame_parameters(robot: RobotModel, values: dict[str, float] | None = None,
-                          palm_joint: str = "j3") -> PalmFrameParameters:
+def palm_frame_parameters(
+    robot: RobotModel, values: dict[str, float] | None = None, palm_joint: str = "j3"
+) -> PalmFrameParameters:
     """Finger and thumb parameters relative to the palm frame 2' (thesis 4.5, Tables 4.3 and 4.4).
 
     robot: the loop's D-H model (rows thumb-distal .. palm .. finger-distal);
@@ -201,8 +226,10 @@ def palm_frame_parameters(robot: RobotModel, values: dict[str, float] | None = N
     See the module docstring for what is and is not convertible.
     """
     if robot.kind != "dh":
-        raise ModelError(f"{robot.source}: palm_frame_parameters needs the loop's D-H table (a .yaml model), "
-                         f"not a {robot.kind} model")
+        raise ModelError(
+            f"{robot.source}: palm_frame_parameters needs the loop's D-H table (a .yaml model), "
+            f"not a {robot.kind} model"
+        )
     values = values or {}
     rows = robot.dh.rows
     names = [r.name for r in rows]
@@ -217,17 +244,33 @@ def palm_frame_parameters(robot: RobotModel, values: dict[str, float] | None = N
 
     notes = []
     # Finger: row -1 = constant part of row p, then rows p+1 .. n-1; the last row's constant part is the tip.
-    finger = [PalmRow("-1", "constant", 0.0, g(p, "s"), g(p, "a"), g(p, "alpha"), None, None, 1.0,
-                      base=rows[p].convention)]
+    finger = [
+        PalmRow("-1", "constant", 0.0, g(p, "s"), g(p, "a"), g(p, "alpha"), None, None, 1.0, base=rows[p].convention)
+    ]
     for m, i in enumerate(range(p + 1, len(rows))):
         last = i == len(rows) - 1
-        finger.append(PalmRow(str(m), rows[i].convention, g(i, "theta_off"), g(i, "s"), g(i, "a"),
-                              g(i, "alpha"), g(i, "k"), names[i], 1.0, unknown=last))
+        finger.append(
+            PalmRow(
+                str(m),
+                rows[i].convention,
+                g(i, "theta_off"),
+                g(i, "s"),
+                g(i, "a"),
+                g(i, "alpha"),
+                g(i, "k"),
+                names[i],
+                1.0,
+                unknown=last,
+            )
+        )
     last = len(rows) - 1
-    closing = PalmRow("closing", "constant", 0.0, g(last, "s"), g(last, "a"), g(last, "alpha"), None, None,
-                      base=rows[last].convention)
-    notes.append("finger tip transformation not identified: the loop sees only the composite link "
-                 f"{names[last]} (finger distal axis -> thumb distal axis), returned as closing_link")
+    closing = PalmRow(
+        "closing", "constant", 0.0, g(last, "s"), g(last, "a"), g(last, "alpha"), None, None, base=rows[last].convention
+    )
+    notes.append(
+        "finger tip transformation not identified: the loop sees only the composite link "
+        f"{names[last]} (finger distal axis -> thumb distal axis), returned as closing_link"
+    )
 
     # Thumb: backwards from the palm.  Row m carries Rz(-theta_j') (j = p - m) and inv(C_{j-1}).
     thumb: list[PalmRow] = []
@@ -241,23 +284,33 @@ def palm_frame_parameters(robot: RobotModel, values: dict[str, float] | None = N
         else:
             if abs(carry_s) > 0:
                 thumb.append(PalmRow(f"{m}'", "translation_z", 0.0, carry_s, 0.0, 0.0, None, None))
-                notes.append(f"thumb row {m}': extra translation s' = {carry_s / INCH:.4f} in along the "
-                             f"axis of {names[j]} (the s of the inverted D-H row {names[c]}; Table 4.4's s'_1)")
+                notes.append(
+                    f"thumb row {m}': extra translation s' = {carry_s / INCH:.4f} in along the "
+                    f"axis of {names[j]} (the s of the inverted D-H row {names[c]}; Table 4.4's s'_1)"
+                )
                 carry_s = 0.0
-            row = PalmRow(str(m), "hayati_reversed", th, -g(c, "s"), -g(c, "a"), -g(c, "alpha"), g(j, "k"),
-                          names[j], -1.0)
+            row = PalmRow(
+                str(m), "hayati_reversed", th, -g(c, "s"), -g(c, "a"), -g(c, "alpha"), g(j, "k"), names[j], -1.0
+            )
         thumb.append(row)
     tip = PalmRow(str(p), "dh", -g(0, "theta_off"), carry_s, 0.0, 0.0, g(0, "k"), names[0], -1.0, unknown=True)
     if abs(carry_s) > 0:
-        notes.append(f"thumb tip row also carries s = {carry_s / INCH:.4f} in (not representable once the tip "
-                     "is unknown)")
+        notes.append(
+            f"thumb tip row also carries s = {carry_s / INCH:.4f} in (not representable once the tip is unknown)"
+        )
     thumb.append(tip)
-    notes.append("thumb tip transformation not identified: the base frame on the thumb's distal axis is a "
-                 "choice of the loop, not the physical tip (Table 4.4 '?')")
-    notes.append("thumb readings are negated (reading' = -reading): reversed rows have theta_off -> -theta_off "
-                 "and keep the joint's k")
-    notes.append("repeating with another finger gives a palm frame 2' displaced along / rotated about the "
-                 "thumb's proximal axis z_2; relate them with one fixed-thumb endpoint measurement (4.5)")
+    notes.append(
+        "thumb tip transformation not identified: the base frame on the thumb's distal axis is a "
+        "choice of the loop, not the physical tip (Table 4.4 '?')"
+    )
+    notes.append(
+        "thumb readings are negated (reading' = -reading): reversed rows have theta_off -> -theta_off "
+        "and keep the joint's k"
+    )
+    notes.append(
+        "repeating with another finger gives a palm frame 2' displaced along / rotated about the "
+        "thumb's proximal axis z_2; relate them with one fixed-thumb endpoint measurement (4.5)"
+    )
     return PalmFrameParameters(finger, thumb, closing, notes)
 
 
@@ -270,10 +323,16 @@ def _hom(R, t) -> np.ndarray:
 
 # --------------------------------------------------------------------------- a simulated thesis hand
 #: Table 4.2: the thesis's calibrated hand, per row (theta_off rad, s in, a in or rad (Hayati), alpha rad, k).
-TABLE_4_2 = [(0.2380, -1.3000, 0.0069, 0.0668, 0.9508), (0.0850, -1.5085, -0.1515, -0.0480, 0.8596),
-             (-0.0943, 0.1604, -0.3097, 1.6207, 0.9336), (-1.7824, 1.8050, 0.5755, 0.2890, 0.9579),
-             (0.1389, 1.7151, 1.3356, -1.5836, 1.0125), (0.5464, 1.6307, 0.0292, 0.0737, 0.8577),
-             (-0.0425, 1.1474, 0.1745, 0.1260, 0.9350), (3.7552, -0.8322, -1.4377, -0.5631, 1.0000)]
+TABLE_4_2 = [
+    (0.2380, -1.3000, 0.0069, 0.0668, 0.9508),
+    (0.0850, -1.5085, -0.1515, -0.0480, 0.8596),
+    (-0.0943, 0.1604, -0.3097, 1.6207, 0.9336),
+    (-1.7824, 1.8050, 0.5755, 0.2890, 0.9579),
+    (0.1389, 1.7151, 1.3356, -1.5836, 1.0125),
+    (0.5464, 1.6307, 0.0292, 0.0737, 0.8577),
+    (-0.0425, 1.1474, 0.1745, 0.1260, 0.9350),
+    (3.7552, -0.8322, -1.4377, -0.5631, 1.0000),
+]
 _FIELDS = ("theta_off", "s", "a", "alpha", "k")
 
 
@@ -289,8 +348,9 @@ def _loop_problem(robot: RobotModel):
     from closedloop.problem.problem import CalibrationProblem, LoopBlock
 
     n = len(robot.joint_names)
-    return CalibrationProblem(robot, robot.joint_names,
-                              [LoopBlock(default_loops(robot)[0], np.zeros((1, n)), np.arange(1))])
+    return CalibrationProblem(
+        robot, robot.joint_names, [LoopBlock(default_loops(robot)[0], np.zeros((1, n)), np.arange(1))]
+    )
 
 
 def close_readings(problem, readings: np.ndarray, iters: int = 200) -> tuple[np.ndarray, float]:
@@ -322,8 +382,9 @@ def nominal_closed_pose(robot: RobotModel, seed: int = 100) -> np.ndarray:
     return best
 
 
-def thesis_hand_dataset(out_dir, n: int = 100, seed: int = 5, offset_clip: float = 0.5,
-                        k_range: tuple[float, float] = (0.85, 1.0)):
+def thesis_hand_dataset(
+    out_dir, n: int = 100, seed: int = 5, offset_clip: float = 0.5, k_range: tuple[float, float] = (0.85, 1.0)
+):
     """A TRUE thumb-finger hand and exact readings along its self-motion (a 2-DOF loop).
 
     The true hand is Table 4.2 (the thesis's calibrated hand) with offset errors
@@ -332,8 +393,9 @@ def thesis_hand_dataset(out_dir, n: int = 100, seed: int = 5, offset_clip: float
     Writes ``true_hand.yaml`` to `out_dir`; returns (truth values by parameter
     name, readings (n, 8), the true robot).
     """
-    import yaml
     from pathlib import Path
+
+    import yaml
 
     from closedloop.studies.synthetic import self_motion
 
@@ -343,8 +405,9 @@ def thesis_hand_dataset(out_dir, n: int = 100, seed: int = 5, offset_clip: float
     rows = []
     for raw, vals in zip(doc["joints"], TABLE_4_2):
         row = dict(raw, **dict(zip(_FIELDS, vals)))
-        row["theta_off"] = raw["theta_off"] + float(np.clip(row["theta_off"] - raw["theta_off"],
-                                                            -offset_clip, offset_clip))
+        row["theta_off"] = raw["theta_off"] + float(
+            np.clip(row["theta_off"] - raw["theta_off"], -offset_clip, offset_clip)
+        )
         row["k"] = float(np.clip(row["k"], *k_range))
         rows.append(row)
     path = Path(out_dir) / "true_hand.yaml"
@@ -352,8 +415,9 @@ def thesis_hand_dataset(out_dir, n: int = 100, seed: int = 5, offset_clip: float
     prob = _loop_problem(RobotModel.from_file(path))
     th0, err = close_readings(prob, nominal_closed_pose(nominal))
     if err > 1e-12:
-        raise SimulationError(f"{path}: the true hand does not close near the nominal's closed pose "
-                              f"(closure error {err:.3g})")
+        raise SimulationError(
+            f"{path}: the true hand does not close near the nominal's closed pose (closure error {err:.3g})"
+        )
     angles = th0[0] * prob.nominal[prob.rp.scale_index()] + prob.nominal[prob.rp.offset_index()]
     for row, q in zip(rows, angles):  # keep the walk within 0.8 rad of its start
         row["lower"], row["upper"] = float(q - 0.8), float(q + 0.8)

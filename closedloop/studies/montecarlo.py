@@ -37,13 +37,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 
-from closedloop.calibration import CalibrationOptions, build_problem, calibrate
-from closedloop.io.logs import JointLog
-from closedloop.errors import ClosedLoopError
-from closedloop.loops.base import Loop
 from closedloop.analysis.observability import whitened_blocks
-from closedloop.problem.problem import CalibrationProblem, LoopBlock
+from closedloop.calibration import CalibrationOptions, build_problem, calibrate
+from closedloop.errors import ClosedLoopError
+from closedloop.io.logs import JointLog
+from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
+from closedloop.problem.problem import CalibrationProblem, LoopBlock
 
 
 # --------------------------------------------------------------------------- scenario
@@ -69,8 +69,14 @@ def panda_urdf() -> str:
     return site.getsitepackages()[0] + "/cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf"
 
 
-def weld_scenario(n: int = 200, seed: int = 0, n_pool: int = 0,
-                  theta0=(0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8), stride: int = 3, pool: str = "walk") -> Scenario:
+def weld_scenario(
+    n: int = 200,
+    seed: int = 0,
+    n_pool: int = 0,
+    theta0=(0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8),
+    stride: int = 3,
+    pool: str = "walk",
+) -> Scenario:
     """The 7-DOF Panda welded to a fixture at the hand: truth drawn in the identifiable set.
 
     `n` exact configurations along the self-motion (one every `stride` steps
@@ -108,12 +114,25 @@ def weld_scenario(n: int = 200, seed: int = 0, n_pool: int = 0,
     else:  # the walk's first n configurations are the same as above (sequential draws)
         th = self_motion(prob, truth, th0, n, rng, stride=stride)
         extra = self_motion_manifold(prob, truth, th0, n_pool) if n_pool else None
-    return Scenario(robot, list(joints), [WeldLoop("fixture", "panda_hand")], th[:n],
-                    dict(zip(prob.names, map(float, truth))), extra)
+    return Scenario(
+        robot,
+        list(joints),
+        [WeldLoop("fixture", "panda_hand")],
+        th[:n],
+        dict(zip(prob.names, map(float, truth))),
+        extra,
+    )
 
 
-def self_motion_manifold(problem: CalibrationProblem, values: np.ndarray, theta0: np.ndarray, n: int,
-                         block: int = 0, margin: float = 0.05, step: float = 0.02) -> np.ndarray:
+def self_motion_manifold(
+    problem: CalibrationProblem,
+    values: np.ndarray,
+    theta0: np.ndarray,
+    n: int,
+    block: int = 0,
+    margin: float = 0.05,
+    step: float = 0.02,
+) -> np.ndarray:
     """`n` readings evenly spaced (joint-space arc length) along the whole one-dimensional self-motion
     of loop `block` through `theta0`, at `values`.
 
@@ -185,8 +204,15 @@ def self_motion_manifold(problem: CalibrationProblem, values: np.ndarray, theta0
     return th
 
 
-def _resample_onto_loop(problem: CalibrationProblem, values: np.ndarray, thetas: list[np.ndarray], block: int,
-                        poly: np.ndarray, n: int, closed: bool) -> np.ndarray:
+def _resample_onto_loop(
+    problem: CalibrationProblem,
+    values: np.ndarray,
+    thetas: list[np.ndarray],
+    block: int,
+    poly: np.ndarray,
+    n: int,
+    closed: bool,
+) -> np.ndarray:
     """`n` readings at equal arc lengths along the polyline `poly`, each corrected onto loop `block`
     (batched Gauss-Newton, minimum-norm steps); NotIdentifiableError if one does not close."""
     from closedloop.errors import NotIdentifiableError
@@ -203,8 +229,9 @@ def _resample_onto_loop(problem: CalibrationProblem, values: np.ndarray, thetas:
         th = th - np.einsum("nki,nk->ni", J, np.linalg.solve(J @ np.swapaxes(J, 1, 2), r[..., None])[..., 0])
     thetas[block] = th
     if np.abs(problem.evaluate(values, False, thetas)[block].r).max() > 1e-10:
-        raise NotIdentifiableError(f"resampling the self-motion of loop {problem.blocks[block].loop.name} "
-                                   "left the loop or the limits")
+        raise NotIdentifiableError(
+            f"resampling the self-motion of loop {problem.blocks[block].loop.name} left the loop or the limits"
+        )
     return th
 
 
@@ -228,8 +255,12 @@ def rotation_triples(problem: CalibrationProblem) -> list[tuple[int, int, int]]:
     for cols in problem.loop_columns:  # index maps (loops may share parameters)
         names = [problem.names[i] for i in cols]
         for k, n in enumerate(names):
-            if n.endswith(".rx") and k + 2 < len(names) and names[k + 1].endswith(".ry") \
-                    and names[k + 2].endswith(".rz"):
+            if (
+                n.endswith(".rx")
+                and k + 2 < len(names)
+                and names[k + 1].endswith(".ry")
+                and names[k + 2].endswith(".rz")
+            ):
                 out.append((int(cols[k]), int(cols[k + 1]), int(cols[k + 2])))
     return out
 
@@ -243,8 +274,9 @@ def unwrap(problem: CalibrationProblem, values: np.ndarray, ref: np.ndarray) -> 
 
 
 # --------------------------------------------------------------------------- bound
-def cramer_rao(problem: CalibrationProblem, truth: np.ndarray, params: list[int], noise,
-               thetas: list[np.ndarray] | None = None) -> np.ndarray:
+def cramer_rao(
+    problem: CalibrationProblem, truth: np.ndarray, params: list[int], noise, thetas: list[np.ndarray] | None = None
+) -> np.ndarray:
     """(sum_i J_i^T W_i^-1 J_i)^-1 over `params` at `truth` (physical units)."""
     from closedloop.estimate.noise import noise_vector
 
@@ -254,8 +286,9 @@ def cramer_rao(problem: CalibrationProblem, truth: np.ndarray, params: list[int]
     return np.linalg.inv(C.T @ C)
 
 
-def sandwich_unweighted(problem: CalibrationProblem, truth: np.ndarray, params: list[int], noise,
-                        thetas: list[np.ndarray] | None = None) -> np.ndarray:
+def sandwich_unweighted(
+    problem: CalibrationProblem, truth: np.ndarray, params: list[int], noise, thetas: list[np.ndarray] | None = None
+) -> np.ndarray:
     """First-order covariance of the unweighted estimator, (J^T J)^-1 J^T W J (J^T J)^-1."""
     from closedloop.estimate.noise import noise_vector
 
@@ -305,21 +338,32 @@ class MonteCarloResult:
     tolerance_trace: float = 0.0  # 1-sigma sampling spread of a trace ratio, sqrt(2 tr(CRB^2) / ((M-1) tr(CRB)^2))
 
     def summary(self) -> str:
-        lines = [f"Monte Carlo: {self.n_runs} runs, {self.n_configs} configurations, noise {self.noise:g}, "
-                 f"{len(self.names)} estimated parameters; tr(CRB) = {np.trace(self.crb):.4g}",
-                 f"  sampling spread of a trace ratio (1 sigma): {self.tolerance_trace:.3f}"]
+        lines = [
+            f"Monte Carlo: {self.n_runs} runs, {self.n_configs} configurations, noise {self.noise:g}, "
+            f"{len(self.names)} estimated parameters; tr(CRB) = {np.trace(self.crb):.4g}",
+            f"  sampling spread of a trace ratio (1 sigma): {self.tolerance_trace:.3f}",
+        ]
         for w, s in self.stats.items():
             pred = f", first-order prediction {s.predicted_trace_ratio:.3f}" if s.predicted_trace_ratio else ""
-            lines.append(f"  weighting={w:5s}: tr(cov)/tr(CRB) = {s.trace_ratio:.3f}{pred} "
-                         f"(prior-scaled {s.trace_ratio_scaled:.3f}); efficiency tr(CRB^-1 cov)/L = "
-                         f"{s.efficiency:.3f}; |bias|/se max {np.max(np.abs(s.bias_over_se)):.3f} "
-                         f"mean {np.mean(np.abs(s.bias_over_se)):.3f}; bias chi2 {s.bias_chi2:.1f} "
-                         f"(dof {len(self.names)}); max |t| {np.max(np.abs(s.bias_t)):.2f}; failures {s.failures}, truncated {s.truncated}")
+            lines.append(
+                f"  weighting={w:5s}: tr(cov)/tr(CRB) = {s.trace_ratio:.3f}{pred} "
+                f"(prior-scaled {s.trace_ratio_scaled:.3f}); efficiency tr(CRB^-1 cov)/L = "
+                f"{s.efficiency:.3f}; |bias|/se max {np.max(np.abs(s.bias_over_se)):.3f} "
+                f"mean {np.mean(np.abs(s.bias_over_se)):.3f}; bias chi2 {s.bias_chi2:.1f} "
+                f"(dof {len(self.names)}); max |t| {np.max(np.abs(s.bias_t)):.2f}; failures {s.failures}, truncated {s.truncated}"
+            )
         return "\n".join(lines)
 
 
-def _mc_draw(robot: RobotModel, joints: list[str], loops: list[Loop], base: CalibrationOptions, noise: float,
-             weightings: tuple[str, ...], theta: np.ndarray) -> list[tuple]:
+def _mc_draw(
+    robot: RobotModel,
+    joints: list[str],
+    loops: list[Loop],
+    base: CalibrationOptions,
+    noise: float,
+    weightings: tuple[str, ...],
+    theta: np.ndarray,
+) -> list[tuple]:
     """One Monte Carlo draw (a job): per weighting (estimated indices, truncated?, values), or Nones if it failed."""
     out = []
     for w in weightings:
@@ -333,9 +377,16 @@ def _mc_draw(robot: RobotModel, joints: list[str], loops: list[Loop], base: Cali
     return out
 
 
-def monte_carlo(scenario: Scenario, noise: float, n_runs: int, seed: int = 0,
-                weightings: tuple[str, ...] = ("noise", "none"), options: CalibrationOptions | None = None,
-                progress=None, executor=None) -> MonteCarloResult:
+def monte_carlo(
+    scenario: Scenario,
+    noise: float,
+    n_runs: int,
+    seed: int = 0,
+    weightings: tuple[str, ...] = ("noise", "none"),
+    options: CalibrationOptions | None = None,
+    progress=None,
+    executor=None,
+) -> MonteCarloResult:
     """Calibrate `n_runs` noisy copies of the scenario's readings with each weighting.
 
     The noise is drawn here, in order, from `seed`; the calibrations run on
@@ -355,7 +406,9 @@ def monte_carlo(scenario: Scenario, noise: float, n_runs: int, seed: int = 0,
     raw: dict[str, list[np.ndarray]] = {w: [] for w in weightings}
     fails = dict.fromkeys(weightings, 0)
     truncated = dict.fromkeys(weightings, 0)
-    from closedloop.fleet.executor import imap  # the draws run on any engine (closedloop.fleet.executor); results in draw order
+    from closedloop.fleet.executor import (
+        imap,  # the draws run on any engine (closedloop.fleet.executor); results in draw order
+    )
 
     shared = (scenario.robot, scenario.joints, scenario.loops, base, noise, weightings)
     runs: list = [None] * n_runs
@@ -386,9 +439,15 @@ def monte_carlo(scenario: Scenario, noise: float, n_runs: int, seed: int = 0,
     crb_inv = np.linalg.inv(crb)
     se = np.sqrt(np.diag(crb))
     L = len(est_set)
-    out = MonteCarloResult([problem.names[k] for k in est_set], tru, crb, n_runs, scenario.theta.shape[0], noise,
-                           tolerance_trace=float(np.sqrt(2 * np.trace(crb @ crb) / (max(n_runs - 1, 1))) /
-                                                 np.trace(crb)))
+    out = MonteCarloResult(
+        [problem.names[k] for k in est_set],
+        tru,
+        crb,
+        n_runs,
+        scenario.theta.shape[0],
+        noise,
+        tolerance_trace=float(np.sqrt(2 * np.trace(crb @ crb) / (max(n_runs - 1, 1))) / np.trace(crb)),
+    )
     for w in weightings:
         E = np.array(raw[w])
         if E.shape[0] < 2:
@@ -404,8 +463,19 @@ def monte_carlo(scenario: Scenario, noise: float, n_runs: int, seed: int = 0,
         elif w == "noise":
             pred = 1.0
         out.stats[w] = EstimatorStats(
-            w, E, mean, cov, bias, bias / se, bias / (np.sqrt(np.diag(cov)) / np.sqrt(M)),
-            float(M * bias @ crb_inv @ bias), float(np.trace(cov) / np.trace(crb)),
+            w,
+            E,
+            mean,
+            cov,
+            bias,
+            bias / se,
+            bias / (np.sqrt(np.diag(cov)) / np.sqrt(M)),
+            float(M * bias @ crb_inv @ bias),
+            float(np.trace(cov) / np.trace(crb)),
             float(np.trace(cov / np.outer(prior, prior)) / np.trace(crb / np.outer(prior, prior))),
-            float(np.trace(crb_inv @ cov) / L), fails[w], truncated[w], pred)
+            float(np.trace(crb_inv @ cov) / L),
+            fails[w],
+            truncated[w],
+            pred,
+        )
     return out

@@ -16,8 +16,14 @@ from closedloop.errors import NotIdentifiableError
 from closedloop.problem.problem import CalibrationProblem
 
 
-def close(problem: CalibrationProblem, values: np.ndarray, theta: np.ndarray, block: int = 0,
-          iters: int = 20, tol: float = 1e-13) -> tuple[np.ndarray, float]:
+def close(
+    problem: CalibrationProblem,
+    values: np.ndarray,
+    theta: np.ndarray,
+    block: int = 0,
+    iters: int = 20,
+    tol: float = 1e-13,
+) -> tuple[np.ndarray, float]:
     """Readings near `theta` (1, n) that close loop `block` at `values`."""
     thetas = [b.theta[:1] for b in problem.blocks]
     th = theta.copy()
@@ -32,9 +38,17 @@ def close(problem: CalibrationProblem, values: np.ndarray, theta: np.ndarray, bl
     return th, err
 
 
-def self_motion(problem: CalibrationProblem, values: np.ndarray, theta0: np.ndarray, n: int,
-                rng: np.random.Generator, step: float = 0.04, stride: int = 3, block: int = 0,
-                margin: float = 0.05) -> np.ndarray:
+def self_motion(
+    problem: CalibrationProblem,
+    values: np.ndarray,
+    theta0: np.ndarray,
+    n: int,
+    rng: np.random.Generator,
+    step: float = 0.04,
+    stride: int = 3,
+    block: int = 0,
+    margin: float = 0.05,
+) -> np.ndarray:
     """`n` configurations (readings, (n, n_joints)) along loop `block`'s self-motion."""
     lo = np.array([problem.robot.joint(j).lower for j in problem.joints]) + margin
     hi = np.array([problem.robot.joint(j).upper for j in problem.joints]) - margin
@@ -47,8 +61,10 @@ def self_motion(problem: CalibrationProblem, values: np.ndarray, theta0: np.ndar
     start = th[0] * k + off
     outside = [j for j, a, l, h in zip(problem.joints, start, lo, hi) if not l <= a <= h]
     if outside:
-        raise NotIdentifiableError(f"the start pose is within {margin} rad of (or beyond) the limits of "
-                                   f"joint(s) {', '.join(outside)}: the walk could not move")
+        raise NotIdentifiableError(
+            f"the start pose is within {margin} rad of (or beyond) the limits of "
+            f"joint(s) {', '.join(outside)}: the walk could not move"
+        )
     thetas = [b.theta[:1] for b in problem.blocks]
     direction = None
     out = []
@@ -57,8 +73,10 @@ def self_motion(problem: CalibrationProblem, values: np.ndarray, theta0: np.ndar
     while len(out) < n:
         attempts += 1
         if attempts > 50 * n * stride + 100:
-            raise NotIdentifiableError(f"self-motion walk of loop {problem.blocks[block].loop.name} is stuck "
-                                       f"after {len(out)} of {n} configurations (joint limits)")
+            raise NotIdentifiableError(
+                f"self-motion walk of loop {problem.blocks[block].loop.name} is stuck "
+                f"after {len(out)} of {n} configurations (joint limits)"
+            )
         thetas[block] = th
         Jq = problem.evaluate(values, True, thetas)[block].Jq[0]
         _, S, Vt = np.linalg.svd(Jq)

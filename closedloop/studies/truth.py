@@ -21,8 +21,14 @@ from closedloop.studies.synthetic import self_motion
 DEFAULT_MAGNITUDES = {"translation": 2e-3, "rotation": 2e-3, "offset": 0.02, "scale": 0.0}
 
 
-def identifiable_names(robot: RobotModel, loops: list[Loop], theta0: np.ndarray,
-                       options: CalibrationOptions | None = None, n: int = 30, seed: int = 0) -> list[str]:
+def identifiable_names(
+    robot: RobotModel,
+    loops: list[Loop],
+    theta0: np.ndarray,
+    options: CalibrationOptions | None = None,
+    n: int = 30,
+    seed: int = 0,
+) -> list[str]:
     """Names `calibrate` would estimate for `loops`, found on nominal self-motion data from theta0."""
     joints = _joints(robot, loops)
     lg = JointLog(joints, np.atleast_2d(theta0))
@@ -36,16 +42,21 @@ def identifiable_names(robot: RobotModel, loops: list[Loop], theta0: np.ndarray,
     rows = np.vstack(blocks_th)
     loop_col = np.repeat([lp.name for lp in loops], [t.shape[0] for t in blocks_th]) if len(loops) > 1 else None
     res = calibrate(robot, JointLog(joints, rows, None, loop_col), loops, options)
-    return [n_ for n_, s in zip(res.names, res.status) if s == "estimated" and not n_.startswith(
-        tuple(f"{lp.name}." for lp in loops))]
+    return [
+        n_
+        for n_, s in zip(res.names, res.status)
+        if s == "estimated" and not n_.startswith(tuple(f"{lp.name}." for lp in loops))
+    ]
 
 
-def draw_truth(robot: RobotModel, names: list[str], rng: np.random.Generator,
-               magnitudes: dict[str, float] | None = None) -> dict[str, float]:
+def draw_truth(
+    robot: RobotModel, names: list[str], rng: np.random.Generator, magnitudes: dict[str, float] | None = None
+) -> dict[str, float]:
     """True values of `names`: nominal + U(-m, m) with m by kind (scale: 1 + U(-m, m))."""
     mag = {**DEFAULT_MAGNITUDES, **(magnitudes or {})}
     joints = sorted({n.rsplit(".", 1)[0] for n in names}, key=robot.joint_names.index)
     from closedloop.model.parameters import RobotParameters
+
     rp = RobotParameters(robot, joints)
     out = {}
     for n in names:
@@ -97,9 +108,17 @@ class SyntheticDataset:
         return dict(zip(self.problem.names, map(float, self.truth)))
 
 
-def make_dataset(robot: RobotModel, loop: Loop, theta0: np.ndarray, n: int, rng: np.random.Generator,
-                 magnitudes: dict[str, float] | None = None, noise: float = 0.0,
-                 perturb: list[str] | None = None, **walk) -> SyntheticDataset:
+def make_dataset(
+    robot: RobotModel,
+    loop: Loop,
+    theta0: np.ndarray,
+    n: int,
+    rng: np.random.Generator,
+    magnitudes: dict[str, float] | None = None,
+    noise: float = 0.0,
+    perturb: list[str] | None = None,
+    **walk,
+) -> SyntheticDataset:
     """Truth = nominal + random errors in the identifiable set (or `perturb`), then n
     configurations along the TRUE loop's self-motion through the model angles theta0.
 

@@ -18,8 +18,16 @@ from closedloop.errors import InputError
 NOMINAL = {"placement": 0.0, "offset": 0.0, "scale": 1.0}
 
 
-def check_report(truth: dict, report: dict, tol_m: float, tol_rad: float, tol_scale: float, tol_px: float = 1.0,
-                 truth_source: str = "truth file", report_source: str = "report file"):
+def check_report(
+    truth: dict,
+    report: dict,
+    tol_m: float,
+    tol_rad: float,
+    tol_scale: float,
+    tol_px: float = 1.0,
+    truth_source: str = "truth file",
+    report_source: str = "report file",
+):
     """Rows of (name, true, calibrated, error, tol, result) and whether all compared rows pass.
 
     Both documents are validated first (:data:`~closedloop.io.schemas.TRUTH_SCHEMA`,
@@ -67,8 +75,16 @@ def check_report(truth: dict, report: dict, tol_m: float, tol_rad: float, tol_sc
                 rows.append(_row(name, tv, None, None, None, f"not compared ({p['status']})"))
             continue
         if p["unit"] not in tol_by_unit:  # a unit with no tolerance (compliance, rad/(N m)): say so
-            rows.append(_row(name, tv, float(p["calibrated"]), float(p["calibrated"]) - tv, None,
-                             f"not compared (no tolerance for unit {p['unit']})"))
+            rows.append(
+                _row(
+                    name,
+                    tv,
+                    float(p["calibrated"]),
+                    float(p["calibrated"]) - tv,
+                    None,
+                    f"not compared (no tolerance for unit {p['unit']})",
+                )
+            )
             continue
         tol = tol_by_unit[p["unit"]]
         if p["kind"] == "loop" and name.endswith(".rx"):
@@ -78,8 +94,16 @@ def check_report(truth: dict, report: dict, tol_m: float, tol_rad: float, tol_sc
                 rc = np.array([rep[t]["calibrated"] for t in trip])
                 rt = np.array([float(true[t]) for t in trip])
                 err = float(np.linalg.norm(pin.log3(pin.exp3(rc).T @ pin.exp3(rt))))
-                rows.append(_row(f"{base}.rotation", float(np.linalg.norm(rt)), float(np.linalg.norm(rc)), err, tol,
-                                 "ok" if err <= tol else "FAIL"))
+                rows.append(
+                    _row(
+                        f"{base}.rotation",
+                        float(np.linalg.norm(rt)),
+                        float(np.linalg.norm(rc)),
+                        err,
+                        tol,
+                        "ok" if err <= tol else "FAIL",
+                    )
+                )
                 done.update(trip)
                 continue
         err = float(p["calibrated"]) - tv
@@ -94,12 +118,16 @@ def _same_robot(truth: dict, report: dict, truth_source: str, report_source: str
     """Refuse a truth and a report of different robots: no joint in common, or no parameter in common."""
     tj, rj = truth.get("joint_names"), report.get("joints")
     if isinstance(tj, list) and isinstance(rj, list) and tj and rj and not set(map(str, tj)) & set(map(str, rj)):
-        raise InputError(f"{report_source}: calibrates joints {', '.join(map(str, rj[:3]))}, ... and {truth_source} "
-                         f"is the truth of joints {', '.join(map(str, tj[:3]))}, ...: not the same robot")
+        raise InputError(
+            f"{report_source}: calibrates joints {', '.join(map(str, rj[:3]))}, ... and {truth_source} "
+            f"is the truth of joints {', '.join(map(str, tj[:3]))}, ...: not the same robot"
+        )
     names = {p.get("name") for p in report["parameters"] if isinstance(p, dict)}
     if truth["parameters"] and not names & set(truth["parameters"]):
-        raise InputError(f"{report_source}: none of the {len(truth['parameters'])} parameters of {truth_source} "
-                         "is in the report: not the same robot or loops")
+        raise InputError(
+            f"{report_source}: none of the {len(truth['parameters'])} parameters of {truth_source} "
+            "is in the report: not the same robot or loops"
+        )
 
 
 def _row(name, true, cal, err, tol, result):

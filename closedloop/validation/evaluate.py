@@ -39,29 +39,40 @@ class Evaluation:
     values: dict = field(default_factory=dict)  # the fitted loop unknowns
 
     def as_dict(self) -> dict:
-        return {"model": self.model, "rms_m": self.rms_m, "mean_m": self.mean_m, "rms_rad": self.rms_rad,
-                "loops": self.loops, "loop_parameters": self.values}
+        return {
+            "model": self.model,
+            "rms_m": self.rms_m,
+            "mean_m": self.mean_m,
+            "rms_rad": self.rms_rad,
+            "loops": self.loops,
+            "loop_parameters": self.values,
+        }
 
 
-def evaluate_model(robot: RobotModel, log_: JointLog, loops: list[Loop], values: dict[str, float] | None = None,
-                   label: str = "model", max_iter: int = 100) -> Evaluation:
+def evaluate_model(
+    robot: RobotModel,
+    log_: JointLog,
+    loops: list[Loop],
+    values: dict[str, float] | None = None,
+    label: str = "model",
+    max_iter: int = 100,
+) -> Evaluation:
     """Closure of `robot` (its parameters set from `values` by name, e.g. a calibration's) on `log_`.
 
     Only the loops' own unknowns are fitted (unweighted), the robot is held.
     """
     from closedloop.calibration import build_problem
+    from closedloop.estimate.lm import SolverOptions
     from closedloop.estimate.stages import plain_stage
     from closedloop.problem.shared import initial_shared
-    from closedloop.estimate.lm import SolverOptions
 
     loops = [lp for lp in loops if not getattr(lp, "parameter_only", False)]
     problem = build_problem(robot, log_, loops)
     x = problem.nominal
-    for k, name in enumerate(problem.names[:problem.n_robot]):
+    for k, name in enumerate(problem.names[: problem.n_robot]):
         if values and name in values:
             x[k] = values[name]
-    inits = [problem.initialize_loop(x, bi) if cols.size else None
-             for bi, cols in enumerate(problem.loop_columns)]
+    inits = [problem.initialize_loop(x, bi) if cols.size else None for bi, cols in enumerate(problem.loop_columns)]
     x = initial_shared(problem, x, inits)
     est = sorted({int(k) for c in problem.loop_columns for k in c})
     if est:
@@ -74,15 +85,20 @@ def evaluate_model(robot: RobotModel, log_: JointLog, loops: list[Loop], values:
         lp = b.loop
         t = np.linalg.norm(ev.r[:, list(lp.translation_rows)], axis=1) if lp.translation_rows else None
         w = np.linalg.norm(ev.r[:, list(lp.rotation_rows)], axis=1) if lp.rotation_rows else None
-        px = (np.linalg.norm(ev.r[:, list(lp.pixel_rows)].reshape(-1, 2), axis=1) if lp.pixel_rows else None)
+        px = np.linalg.norm(ev.r[:, list(lp.pixel_rows)].reshape(-1, 2), axis=1) if lp.pixel_rows else None
         if px is not None and ev.valid is not None:
             px = px[ev.valid[:, list(lp.pixel_rows)].reshape(-1, 2).all(axis=1)]
-        rows.append({"loop": lp.name, "n": int(ev.r.shape[0]),
-                     "rms_m": None if t is None else float(np.sqrt(np.mean(t ** 2))),
-                     "mean_m": None if t is None else float(np.mean(t)),
-                     "max_m": None if t is None else float(np.max(t)),
-                     "rms_rad": None if w is None else float(np.sqrt(np.mean(w ** 2))),
-                     "rms_px": None if px is None or not px.size else float(np.sqrt(np.mean(px ** 2)))})
+        rows.append(
+            {
+                "loop": lp.name,
+                "n": int(ev.r.shape[0]),
+                "rms_m": None if t is None else float(np.sqrt(np.mean(t**2))),
+                "mean_m": None if t is None else float(np.mean(t)),
+                "max_m": None if t is None else float(np.max(t)),
+                "rms_rad": None if w is None else float(np.sqrt(np.mean(w**2))),
+                "rms_px": None if px is None or not px.size else float(np.sqrt(np.mean(px**2))),
+            }
+        )
         if t is not None:
             t_all.append(t)
         if w is not None:
@@ -90,15 +106,20 @@ def evaluate_model(robot: RobotModel, log_: JointLog, loops: list[Loop], values:
     t = np.concatenate(t_all) if t_all else None
     w = np.concatenate(w_all) if w_all else None
     fitted = {problem.names[k]: float(x[k]) for k in est}
-    return Evaluation(label, rows, None if t is None else float(np.sqrt(np.mean(t ** 2))),
-                      None if t is None else float(np.mean(t)),
-                      None if w is None else float(np.sqrt(np.mean(w ** 2))), fitted)
+    return Evaluation(
+        label,
+        rows,
+        None if t is None else float(np.sqrt(np.mean(t**2))),
+        None if t is None else float(np.mean(t)),
+        None if w is None else float(np.sqrt(np.mean(w**2))),
+        fitted,
+    )
 
 
 def evaluate_result(result, log_: JointLog, loops: list[Loop], label: str = "calibrated") -> Evaluation:
     """`evaluate_model` with a calibration's robot parameters."""
     prob = result.problem
-    values = {n: float(v) for n, v in zip(prob.names[:prob.n_robot], result.values[:prob.n_robot])}
+    values = {n: float(v) for n, v in zip(prob.names[: prob.n_robot], result.values[: prob.n_robot])}
     return evaluate_model(prob.robot, log_, loops, values, label)
 
 

@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from closedloop.io.logs import JointLog
 from closedloop.errors import ClosedLoopError
+from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
 
@@ -67,8 +67,9 @@ def _subset(log_: JointLog, names: list[str]) -> JointLog:
     return subset(log_, np.flatnonzero(np.isin(log_.loop, names)))
 
 
-def leave_one_fixture_out(robot: RobotModel, log_: JointLog, loops: list[Loop], options=None,
-                          worse: float = WORSE) -> dict[str, Any] | None:
+def leave_one_fixture_out(
+    robot: RobotModel, log_: JointLog, loops: list[Loop], options=None, worse: float = WORSE
+) -> dict[str, Any] | None:
     """Refit without each fixture, evaluate it with the refit and with the nominal model; None if < 2 fixtures.
 
     Returns {'fixtures': [{'fixture', 'loops', 'n_test', 'calibrated_rms_m', 'calibrated_mean_m',
@@ -84,16 +85,28 @@ def leave_one_fixture_out(robot: RobotModel, log_: JointLog, loops: list[Loop], 
     opt = options or CalibrationOptions()
     rows, reasons = [], []
     for fx, members in groups.items():
-        train = [lp for lp in loops if (lp.name not in members and not getattr(lp, "parameter_only", False))
-                 or (getattr(lp, "parameter_only", False) and not set(getattr(lp, "refers_to", ())) & set(members))]
+        train = [
+            lp
+            for lp in loops
+            if (lp.name not in members and not getattr(lp, "parameter_only", False))
+            or (getattr(lp, "parameter_only", False) and not set(getattr(lp, "refers_to", ())) & set(members))
+        ]
         test = [lp for lp in loops if lp.name in members]
         train_names = [lp.name for lp in train if not getattr(lp, "parameter_only", False)]
         test_log = _subset(log_, members)
         try:
             res = calibrate(robot, _subset(log_, train_names), train, opt)
         except ClosedLoopError as exc:  # the other fixtures alone cannot calibrate: nothing to judge
-            rows.append({"fixture": fx, "loops": members, "n_test": len(test_log), "converged": False,
-                         "error": str(exc), "worse": False})
+            rows.append(
+                {
+                    "fixture": fx,
+                    "loops": members,
+                    "n_test": len(test_log),
+                    "converged": False,
+                    "error": str(exc),
+                    "worse": False,
+                }
+            )
             continue
         cal = evaluate_result(res, test_log, test)
         nom = evaluate_model(robot, test_log, test, None, "nominal")
@@ -101,13 +114,26 @@ def leave_one_fixture_out(robot: RobotModel, log_: JointLog, loops: list[Loop], 
         c, n = getattr(cal, key), getattr(nom, key)
         rows_m = len(test_log) * max(lp.dim for lp in test)  # the RMS's own sampling spread: ~1/sqrt(2 M)
         bad = bool(c is not None and n is not None and c > worse * n * (1.0 + max(MARGIN, 2.0 / np.sqrt(2.0 * rows_m))))
-        rows.append({"fixture": fx, "loops": members, "n_test": len(test_log), "converged": res.converged,
-                     "calibrated_rms_m": cal.rms_m, "calibrated_mean_m": cal.mean_m, "nominal_rms_m": nom.rms_m,
-                     "nominal_mean_m": nom.mean_m, "calibrated_rms_rad": cal.rms_rad, "nominal_rms_rad": nom.rms_rad,
-                     "worse": bad})
+        rows.append(
+            {
+                "fixture": fx,
+                "loops": members,
+                "n_test": len(test_log),
+                "converged": res.converged,
+                "calibrated_rms_m": cal.rms_m,
+                "calibrated_mean_m": cal.mean_m,
+                "nominal_rms_m": nom.rms_m,
+                "nominal_mean_m": nom.mean_m,
+                "calibrated_rms_rad": cal.rms_rad,
+                "nominal_rms_rad": nom.rms_rad,
+                "worse": bad,
+            }
+        )
         if bad:
             unit, f = ("mm", 1e3) if key == "rms_m" else ("mrad", 1e3)
-            reasons.append(f"held-out fixture {fx} (loops {', '.join(members)}): closure RMS {c * f:.3g} {unit} "
-                           f"with the calibration refitted without it, worse than the nominal model's "
-                           f"{n * f:.3g} {unit}: the calibration does not extrapolate to it")
+            reasons.append(
+                f"held-out fixture {fx} (loops {', '.join(members)}): closure RMS {c * f:.3g} {unit} "
+                f"with the calibration refitted without it, worse than the nominal model's "
+                f"{n * f:.3g} {unit}: the calibration does not extrapolate to it"
+            )
     return {"fixtures": rows, "suspect": reasons}

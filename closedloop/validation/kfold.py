@@ -30,21 +30,25 @@ from typing import Any, Callable
 import numpy as np
 
 from closedloop.calibration import CalibrationOptions, CalibrationResult, build_problem, calibrate, residual_stats
+from closedloop.errors import ParameterError
 from closedloop.estimate.noise import noise_vector, whiten
 from closedloop.io.logs import JointLog
-from closedloop.errors import ParameterError
-from closedloop.problem.blocks import BlockEval
 from closedloop.loops.base import Loop
-from closedloop.studies.montecarlo import unwrap
 from closedloop.model.robot import RobotModel
+from closedloop.problem.blocks import BlockEval
+from closedloop.studies.montecarlo import unwrap
 
 
 def subset(log_: JointLog, rows: np.ndarray) -> JointLog:
     """The rows `rows` (0-based) of a log, extra columns and loop labels included."""
     rows = np.asarray(rows, dtype=int)
-    return JointLog(list(log_.joints), log_.angles[rows], log_.source,
-                    None if log_.loop is None else log_.loop[rows],
-                    {k: v[rows] for k, v in log_.extra.items()})
+    return JointLog(
+        list(log_.joints),
+        log_.angles[rows],
+        log_.source,
+        None if log_.loop is None else log_.loop[rows],
+        {k: v[rows] for k, v in log_.extra.items()},
+    )
 
 
 def folds(log_: JointLog, k: int, seed: int = 0) -> list[np.ndarray]:
@@ -52,13 +56,17 @@ def folds(log_: JointLog, k: int, seed: int = 0) -> list[np.ndarray]:
     if k < 2:
         raise ParameterError("k-fold validation needs k >= 2")
     rng = np.random.default_rng(seed)
-    groups = [np.arange(len(log_))] if log_.loop is None else \
-        [np.flatnonzero(log_.loop == name) for name in dict.fromkeys(log_.loop.tolist())]
+    groups = (
+        [np.arange(len(log_))]
+        if log_.loop is None
+        else [np.flatnonzero(log_.loop == name) for name in dict.fromkeys(log_.loop.tolist())]
+    )
     for g in groups:
         if g.size < k:
             which = "" if log_.loop is None else f" of loop '{log_.loop[g[0]]}'" if g.size else ""
-            raise ParameterError(f"{k}-fold validation needs at least {k} rows{which}; "
-                                 f"{log_.source or 'the log'} has {g.size}")
+            raise ParameterError(
+                f"{k}-fold validation needs at least {k} rows{which}; {log_.source or 'the log'} has {g.size}"
+            )
     out: list[list[int]] = [[] for _ in range(k)]
     for g in groups:
         perm = rng.permutation(g)
@@ -67,8 +75,9 @@ def folds(log_: JointLog, k: int, seed: int = 0) -> list[np.ndarray]:
     return [np.sort(np.array(f, dtype=int)) for f in out]
 
 
-def closure_residuals(result: CalibrationResult, robot: RobotModel, log_: JointLog, loops: list[Loop],
-                      noise=None, skip=None) -> dict[str, Any]:
+def closure_residuals(
+    result: CalibrationResult, robot: RobotModel, log_: JointLog, loops: list[Loop], noise=None, skip=None
+) -> dict[str, Any]:
     """Closure residuals of `log_` at the calibrated values of `result`, without its rows `skip` (0-based).
 
     Returns {'loops': [LoopResiduals as dict], 'whitened_rms': per-row RMS of
@@ -91,7 +100,7 @@ def closure_residuals(result: CalibrationResult, robot: RobotModel, log_: JointL
     if noise is not None:
         sigma_q, _ = noise_vector(problem, noise)
         r, _, _ = whiten(evals, sigma_q, "noise", False, problem.noise)
-        wr = float(np.sqrt(np.mean(r ** 2))) if r.size else None
+        wr = float(np.sqrt(np.mean(r**2))) if r.size else None
     return {"loops": [asdict(s) for s in stats], "whitened_rms": wr, "skipped": int(skipped.size)}
 
 
@@ -107,8 +116,15 @@ def _without_rows(ev: BlockEval, numbers: np.ndarray) -> BlockEval:
     return BlockEval(ev.r[keep], cut(ev.J), cut(ev.Jq), cut(ev.valid), cut(ev.cov), ev.rows[keep])
 
 
-def holdout(robot: RobotModel, train: JointLog, test: JointLog, loops: list[Loop],
-            options: CalibrationOptions | None = None, skip_train=None, skip_test=None) -> dict[str, Any]:
+def holdout(
+    robot: RobotModel,
+    train: JointLog,
+    test: JointLog,
+    loops: list[Loop],
+    options: CalibrationOptions | None = None,
+    skip_train=None,
+    skip_test=None,
+) -> dict[str, Any]:
     """Fit on `train`, report the closure residuals on `train` (fit) and on `test` (prediction).
 
     Not judged: the training rows the fit rejected as outliers and `skip_train`, and the held-out rows
@@ -135,8 +151,7 @@ def _mean_loops(per_fold: list[list[dict]]) -> list[dict]:
         d = {"loop": rows[0]["loop"], "n": int(n.sum())}
         for key in ("rms_m", "rms_rad", "rms_px"):
             vals = [r.get(key) for r in rows]
-            d[key] = None if any(v is None for v in vals) else \
-                float(np.sqrt(np.sum(n * np.array(vals) ** 2) / n.sum()))
+            d[key] = None if any(v is None for v in vals) else float(np.sqrt(np.sum(n * np.array(vals) ** 2) / n.sum()))
         for key in ("max_m", "max_rad", "max_px"):
             vals = [r.get(key) for r in rows]
             d[key] = None if any(v is None for v in vals) else float(max(vals))
@@ -150,9 +165,17 @@ def _holdout_job(robot: RobotModel, loops: list[Loop], opt: CalibrationOptions, 
     return holdout(robot, split[0], split[1], loops, opt, split[2], split[3])
 
 
-def cross_validate(robot: RobotModel, log_: JointLog, loops: list[Loop], options: CalibrationOptions | None = None,
-                   k: int = 5, seed: int = 0, executor=None,
-                   progress: Callable[[int, int], None] | None = None, exclude=None) -> dict[str, Any]:
+def cross_validate(
+    robot: RobotModel,
+    log_: JointLog,
+    loops: list[Loop],
+    options: CalibrationOptions | None = None,
+    k: int = 5,
+    seed: int = 0,
+    executor=None,
+    progress: Callable[[int, int], None] | None = None,
+    exclude=None,
+) -> dict[str, Any]:
     """k-fold cross-validation with the same options on every fold.
 
     `exclude`: rows of `log_` (0-based) whose closure no fold judges, the full calibration's rejected
@@ -180,22 +203,38 @@ def cross_validate(robot: RobotModel, log_: JointLog, loops: list[Loop], options
     parts = folds(log_, k, seed)
     per_fold = []
     ref = None
-    from closedloop.fleet.executor import run  # the refits run on any engine (closedloop.fleet.executor); results in fold order
+    from closedloop.fleet.executor import (
+        run,  # the refits run on any engine (closedloop.fleet.executor); results in fold order
+    )
 
     bad = np.zeros(0, dtype=int) if exclude is None else np.unique(np.asarray(exclude, dtype=int))
     splits = []
     for rows in parts:
         rest = np.setdiff1d(np.arange(len(log_)), rows)
-        splits.append((subset(log_, rest), subset(log_, rows), np.flatnonzero(np.isin(rest, bad)),
-                       np.flatnonzero(np.isin(rows, bad))))
+        splits.append(
+            (
+                subset(log_, rest),
+                subset(log_, rows),
+                np.flatnonzero(np.isin(rest, bad)),
+                np.flatnonzero(np.isin(rows, bad)),
+            )
+        )
     told = (lambda state: progress(state.done, state.total)) if progress else None
     for f, ho in enumerate(run(_holdout_job, splits, executor, shared=(robot, loops, opt), progress=told)):
         res: CalibrationResult = ho["result"]
         ref = res.values if ref is None else ref
         vals = unwrap(res.problem, res.values, ref)  # closure rotation vectors on one branch
-        per_fold.append({"fold": f, "n_train": ho["n_train"], "n_test": ho["n_test"], "train": ho["train"],
-                         "test": ho["test"], "converged": res.converged,
-                         "values": {res.names[i]: float(vals[i]) for i in res.estimated}})
+        per_fold.append(
+            {
+                "fold": f,
+                "n_train": ho["n_train"],
+                "n_test": ho["n_test"],
+                "train": ho["train"],
+                "test": ho["test"],
+                "converged": res.converged,
+                "values": {res.names[i]: float(vals[i]) for i in res.estimated},
+            }
+        )
     names = sorted(set.union(*(set(p["values"]) for p in per_fold)))
     common = [n for n in names if all(n in p["values"] for p in per_fold)]
     spread = {n: float(np.std([p["values"][n] for p in per_fold], ddof=1)) for n in common}
@@ -204,9 +243,15 @@ def cross_validate(robot: RobotModel, log_: JointLog, loops: list[Loop], options
         vals = [p[part][key] for p in per_fold]
         return None if any(v is None for v in vals) else float(np.mean(vals))
 
-    return {"k": k, "seed": seed, "folds": per_fold, "excluded": bad.tolist(),
-            "test": _mean_loops([p["test"]["loops"] for p in per_fold]),
-            "train": _mean_loops([p["train"]["loops"] for p in per_fold]),
-            "test_whitened_rms": _mean("whitened_rms", "test"),
-            "train_whitened_rms": _mean("whitened_rms", "train"),
-            "parameter_spread": spread, "inconsistent": [n for n in names if n not in common]}
+    return {
+        "k": k,
+        "seed": seed,
+        "folds": per_fold,
+        "excluded": bad.tolist(),
+        "test": _mean_loops([p["test"]["loops"] for p in per_fold]),
+        "train": _mean_loops([p["train"]["loops"] for p in per_fold]),
+        "test_whitened_rms": _mean("whitened_rms", "test"),
+        "train_whitened_rms": _mean("whitened_rms", "train"),
+        "parameter_spread": spread,
+        "inconsistent": [n for n in names if n not in common],
+    }

@@ -34,11 +34,11 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import LoopError
-from closedloop.model.parameters import Parameter
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.camera.model import DIST_FIELDS, INTRINSIC_FIELDS, camera_from_dlt, dlt, project, project_lens  # noqa: F401
-from closedloop.model.se3 import as_se3, generators, pose_of, skew, vec3, vec_of
 from closedloop.loops.common import POSE_FIELDS, TIP_FIELDS, point_parameters, pose_parameters, relative_point
+from closedloop.model.parameters import Parameter
+from closedloop.model.se3 import as_se3, generators, pose_of, skew, vec3, vec_of
 
 PIXEL_COLS = ("u", "v")
 CLOSURES = ("reprojection", "triangulation")
@@ -74,19 +74,35 @@ class CameraLoop(Loop):
     translation_rows: tuple[int, ...] = ()
     rotation_rows: tuple[int, ...] = ()
 
-    def __init__(self, name: str, frame_a: str, frame_b: str = "universe", cameras: int | None = None,
-                 K: Sequence | None = None, initial_K: Sequence | None = None,
-                 poses: Sequence | None = None, initial_poses: Sequence | None = None, rig=None,
-                 tip=None, initial_tip=None, sigma_px: float | None = None, prior_px: float = DEFAULT_PRIOR_PX,
-                 camera_frames: Sequence[str] | None = None, dist: Sequence[str] = (), D: Sequence | None = None,
-                 closure: str = "reprojection"):
+    def __init__(
+        self,
+        name: str,
+        frame_a: str,
+        frame_b: str = "universe",
+        cameras: int | None = None,
+        K: Sequence | None = None,
+        initial_K: Sequence | None = None,
+        poses: Sequence | None = None,
+        initial_poses: Sequence | None = None,
+        rig=None,
+        tip=None,
+        initial_tip=None,
+        sigma_px: float | None = None,
+        prior_px: float = DEFAULT_PRIOR_PX,
+        camera_frames: Sequence[str] | None = None,
+        dist: Sequence[str] = (),
+        D: Sequence | None = None,
+        closure: str = "reprojection",
+    ):
         frames = list(camera_frames) if camera_frames else None
         n = len(frames) if frames else (cameras or 1)
         if cameras is not None and frames and cameras != len(frames):
             raise LoopError(f"camera loop '{name}': cameras={cameras} but {len(frames)} camera frames")
         if n < 1 or (not frames and n > 2):
-            raise LoopError(f"camera loop '{name}': cameras={n!r}: expected 1 or 2 on one frame "
-                            "(more cameras: one frame each, to=F1+F2+F3)")
+            raise LoopError(
+                f"camera loop '{name}': cameras={n!r}: expected 1 or 2 on one frame "
+                "(more cameras: one frame each, to=F1+F2+F3)"
+            )
         super().__init__(name, frame_a, frames[0] if frames else frame_b)
         self.cameras = n
         self.camera_frames = frames or [frame_b] * n
@@ -103,8 +119,9 @@ class CameraLoop(Loop):
         self.D = [np.zeros(5) if x is None else x for x in Dv]
         bad = [f for f in dist if f not in DIST_FIELDS]
         if bad:
-            raise LoopError(f"{what}: dist='{'+'.join(dist)}': unknown coefficient '{bad[0]}' "
-                            f"(known: {'+'.join(DIST_FIELDS)})")
+            raise LoopError(
+                f"{what}: dist='{'+'.join(dist)}': unknown coefficient '{bad[0]}' (known: {'+'.join(DIST_FIELDS)})"
+            )
         self.dist = tuple(f for f in DIST_FIELDS if f in dist)
         self._dist_idx = np.array([DIST_FIELDS.index(f) for f in self.dist], dtype=int)
         for c in range(n):
@@ -135,7 +152,7 @@ class CameraLoop(Loop):
         self.translation_rows = (0, 1, 2) if tri else ()
         self.pixel_rows = () if tri else tuple(range(2 * n))
         # with triangulation the pixel noise enters through a per-configuration covariance (LoopEval.cov)
-        self.measurement_cov = None if sigma_px is None or tri else sigma_px ** 2 * np.eye(2 * n)
+        self.measurement_cov = None if sigma_px is None or tri else sigma_px**2 * np.eye(2 * n)
         # the length scale is fixed only by a known baseline or a known camera position
         known_t = [X.translation for X in self.poses if X is not None]
         if self.rig is not None:
@@ -148,8 +165,9 @@ class CameraLoop(Loop):
             return [None] * self.cameras
         v = list(v)
         if len(v) != self.cameras:
-            raise LoopError(f"camera loop '{self.name}': {what.format('')} has {len(v)} entries for "
-                            f"{self.cameras} camera(s)")
+            raise LoopError(
+                f"camera loop '{self.name}': {what.format('')} has {len(v)} entries for {self.cameras} camera(s)"
+            )
         return [None if x is None else conv(x, what.format(c + 1)) for c, x in enumerate(v)]
 
     def _layout(self) -> None:
@@ -190,13 +208,35 @@ class CameraLoop(Loop):
         for c in range(self.cameras):
             if self.sl[f"K{c}"] is not None:
                 k0 = self.initial_K[c] if self.initial_K[c] is not None else PLACEHOLDER_K
-                out += [Parameter(f"{self.name}.cam{c + 1}.{f}", "loop", self.name, f"cam{c + 1}.{f}",
-                                  float(k0[i]), "px", self.prior_px, priority=1, order=len(out) + i)
-                        for i, f in enumerate(INTRINSIC_FIELDS)]
+                out += [
+                    Parameter(
+                        f"{self.name}.cam{c + 1}.{f}",
+                        "loop",
+                        self.name,
+                        f"cam{c + 1}.{f}",
+                        float(k0[i]),
+                        "px",
+                        self.prior_px,
+                        priority=1,
+                        order=len(out) + i,
+                    )
+                    for i, f in enumerate(INTRINSIC_FIELDS)
+                ]
         for c in range(self.cameras):
-            out += [Parameter(f"{self.name}.cam{c + 1}.{f}", "loop", self.name, f"cam{c + 1}.{f}",
-                              float(self.D[c][DIST_FIELDS.index(f)]), "1", DEFAULT_PRIOR_DIST, priority=1,
-                              order=len(out) + i) for i, f in enumerate(self.dist)]
+            out += [
+                Parameter(
+                    f"{self.name}.cam{c + 1}.{f}",
+                    "loop",
+                    self.name,
+                    f"cam{c + 1}.{f}",
+                    float(self.D[c][DIST_FIELDS.index(f)]),
+                    "1",
+                    DEFAULT_PRIOR_DIST,
+                    priority=1,
+                    order=len(out) + i,
+                )
+                for i, f in enumerate(self.dist)
+            ]
         if self.tip is None:
             out += point_parameters(self.name, TIP_FIELDS, self.initial_tip, order0=len(out))
         return out
@@ -211,9 +251,11 @@ class CameraLoop(Loop):
         fin = np.isfinite(M)
         half = np.flatnonzero(np.any(fin[:, 0::2] != fin[:, 1::2], axis=1) | np.any(np.isinf(M), axis=1))
         if half.size:
-            raise LoopError(f"camera loop '{self.name}': pixel coordinates missing or not a number in row(s) "
-                            f"{', '.join(str(b + 1) for b in half[:5])} of this loop (a marker out of view "
-                            "is NaN in both u and v)")
+            raise LoopError(
+                f"camera loop '{self.name}': pixel coordinates missing or not a number in row(s) "
+                f"{', '.join(str(b + 1) for b in half[:5])} of this loop (a marker out of view "
+                "is NaN in both u and v)"
+            )
         return M
 
     def checked(self, meas: np.ndarray | None, N: int) -> np.ndarray:
@@ -222,8 +264,10 @@ class CameraLoop(Loop):
             raise LoopError(f"camera loop '{self.name}': no pixels given (log columns {', '.join(self.columns())})")
         meas = np.asarray(meas, dtype=float)
         if meas.shape != (N, 2 * self.cameras):
-            raise LoopError(f"camera loop '{self.name}': {N} configurations but pixels of shape {meas.shape} "
-                            f"(expected ({N}, {2 * self.cameras}))")
+            raise LoopError(
+                f"camera loop '{self.name}': {N} configurations but pixels of shape {meas.shape} "
+                f"(expected ({N}, {2 * self.cameras}))"
+            )
         return meas
 
     def observed(self, meas: np.ndarray) -> np.ndarray:
@@ -237,8 +281,7 @@ class CameraLoop(Loop):
             return np.repeat(np.all(seen, axis=1, keepdims=True), 3, axis=1)
         return np.repeat(seen, 2, axis=1)
 
-    def valid_frames(self, Ts: list[np.ndarray], p: np.ndarray, meas: np.ndarray | None = None
-                     ) -> np.ndarray | None:
+    def valid_frames(self, Ts: list[np.ndarray], p: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
         valid = self.valid_rows(self.checked(meas, Ts[0].shape[0]))
         return None if np.all(valid) else valid
 
@@ -271,7 +314,7 @@ class CameraLoop(Loop):
         for c in range(self.cameras):
             sl = self.sl[f"pose{c}"]
             if sl is not None:
-                out[sl.start + 3:sl.stop] = pin.log3(pin.exp3(p[sl.start + 3:sl.stop]))
+                out[sl.start + 3 : sl.stop] = pin.log3(pin.exp3(p[sl.start + 3 : sl.stop]))
         return out
 
     # ------------------------------------------------------------- residual
@@ -293,6 +336,7 @@ class CameraLoop(Loop):
         meas = self.checked(meas, Ts[0].shape[0])
         if self.closure == "triangulation":
             from closedloop.loops.camera.stereo import triangulation_eval
+
             ev = triangulation_eval(self, Ts, p, meas, jac)
         else:
             ev = self._reprojection(Ts, p, meas, jac)
@@ -352,21 +396,37 @@ class CameraLoop(Loop):
     def initialize_frames(self, Ts: list[np.ndarray], meas: np.ndarray | None = None) -> np.ndarray | None:
         """Unknown camera poses, intrinsics, distortion and marker from the pixels `meas` (``camera_start``)."""
         from closedloop.loops.camera.start import initialize_camera_loop
+
         return initialize_camera_loop(self, Ts, meas)
 
     def describe(self) -> dict:
         cams = []
         for c in range(self.cameras):
-            pose = ("rig" if c == 1 and self.rig is not None else
-                    "unknown" if self.poses[c] is None else vec_of(self.poses[c]).tolist())
-            cams.append({"frame": self.camera_frames[c], "pose": pose,
-                         "K": "unknown" if self.K[c] is None else self.K[c].tolist(),
-                         "distortion": dict(zip(DIST_FIELDS, self.D[c].tolist())),
-                         "identified_distortion": list(self.dist)})
+            pose = (
+                "rig"
+                if c == 1 and self.rig is not None
+                else "unknown"
+                if self.poses[c] is None
+                else vec_of(self.poses[c]).tolist()
+            )
+            cams.append(
+                {
+                    "frame": self.camera_frames[c],
+                    "pose": pose,
+                    "K": "unknown" if self.K[c] is None else self.K[c].tolist(),
+                    "distortion": dict(zip(DIST_FIELDS, self.D[c].tolist())),
+                    "identified_distortion": list(self.dist),
+                }
+            )
         return super().describe() | {
-            "cameras": cams, "closure": self.closure, "rig": None if self.rig is None else vec_of(self.rig).tolist(),
-            "tip": "unknown" if self.tip is None else self.tip.tolist(), "sigma_px": self.sigma_px,
-            "columns": self.columns(), "residual_unit": "m" if self.closure == "triangulation" else "px"}
+            "cameras": cams,
+            "closure": self.closure,
+            "rig": None if self.rig is None else vec_of(self.rig).tolist(),
+            "tip": "unknown" if self.tip is None else self.tip.tolist(),
+            "sigma_px": self.sigma_px,
+            "columns": self.columns(),
+            "residual_unit": "m" if self.closure == "triangulation" else "px",
+        }
 
 
 def _intrinsics(v, what: str) -> np.ndarray:
@@ -389,6 +449,3 @@ def _se3(v, name: str, what: str) -> pin.SE3:
         return as_se3(v, what)
     except LoopError as exc:
         raise LoopError(f"camera loop '{name}': {exc}") from None
-
-
-from closedloop.loops.camera import spec as camera_spec

@@ -52,8 +52,8 @@ def distort(xn: np.ndarray, yn: np.ndarray, d: np.ndarray):
     Dd[:, 0, 1], Dd[:, 1, 1] = xn * r2 * r2, yn * r2 * r2
     Dd[:, 0, 2], Dd[:, 1, 2] = 2 * xy, r2 + 2 * yn * yn
     Dd[:, 0, 3], Dd[:, 1, 3] = r2 + 2 * xn * xn, 2 * xy
-    Dd[:, 0, 4] = xn * r2 ** 3
-    Dd[:, 1, 4] = yn * r2 ** 3
+    Dd[:, 0, 4] = xn * r2**3
+    Dd[:, 1, 4] = yn * r2**3
     return xd, yd, Dn, Dd
 
 

@@ -19,16 +19,17 @@ from __future__ import annotations
 import numpy as np
 
 from closedloop.errors import InputError, LoopError
-from closedloop.model.robot import RobotModel
-from closedloop.model.se3 import parse_vec
 from closedloop.loops.base import Loop
 from closedloop.loops.camera.model import DIST_FIELDS
 from closedloop.loops.spec import register
+from closedloop.model.robot import RobotModel
+from closedloop.model.se3 import parse_vec
 
 MAX_CAMERAS = 4
 _PER_CAMERA = ("K{}", "K{}_0", "pose{}", "D{}", "info{}")
-KEYS = ({"frame", "to", "cameras", "rig", "tip", "tip0", "sigma_px", "dist", "closure"}
-        | {k.format(c) for k in _PER_CAMERA for c in range(1, MAX_CAMERAS + 1)})
+KEYS = {"frame", "to", "cameras", "rig", "tip", "tip0", "sigma_px", "dist", "closure"} | {
+    k.format(c) for k in _PER_CAMERA for c in range(1, MAX_CAMERAS + 1)
+}
 
 
 def _vec(kw: dict[str, str], key: str, n: int, name: str) -> np.ndarray | None:
@@ -70,12 +71,15 @@ def camera_loop_from_spec(kw: dict[str, str], robot: RobotModel) -> Loop:
     if multi and cameras != len(to):
         raise LoopError(f"camera loop '{name}': cameras={kw.get('cameras')} but to= names {len(to)} camera frames")
     if not multi and cameras not in (1, 2):
-        raise LoopError(f"camera loop '{name}': cameras='{kw.get('cameras')}': expected 1 or 2 on one frame "
-                        "(more: one frame each, to=F1+F2+F3)")
+        raise LoopError(
+            f"camera loop '{name}': cameras='{kw.get('cameras')}': expected 1 or 2 on one frame "
+            "(more: one frame each, to=F1+F2+F3)"
+        )
     if cameras > MAX_CAMERAS:
         raise LoopError(f"camera loop '{name}': {cameras} cameras; at most {MAX_CAMERAS}")
-    extra = sorted(k for k in kw for c in range(cameras + 1, MAX_CAMERAS + 1)
-                   if k in {p.format(c) for p in _PER_CAMERA})
+    extra = sorted(
+        k for k in kw for c in range(cameras + 1, MAX_CAMERAS + 1) if k in {p.format(c) for p in _PER_CAMERA}
+    )
     if "rig" in kw and cameras != 2:
         extra.insert(0, "rig")
     if extra:
@@ -83,8 +87,11 @@ def camera_loop_from_spec(kw: dict[str, str], robot: RobotModel) -> Loop:
     closure = kw.get("closure", "reprojection")
     if closure not in CLOSURES:
         raise LoopError(f"camera loop '{name}': closure='{closure}': expected {' or '.join(CLOSURES)}")
-    dist = [] if kw.get("dist", "none") in ("none", "") else (
-        list(DIST_FIELDS) if kw["dist"] == "all" else [f.strip() for f in kw["dist"].split("+")])
+    dist = (
+        []
+        if kw.get("dist", "none") in ("none", "")
+        else (list(DIST_FIELDS) if kw["dist"] == "all" else [f.strip() for f in kw["dist"].split("+")])
+    )
     K, K0, poses, D = [], [], [], []
     for c in range(1, cameras + 1):
         for a, b in ((f"K{c}", f"K{c}_0"), (f"info{c}", f"K{c}"), (f"info{c}", f"K{c}_0"), (f"info{c}", f"D{c}")):
@@ -93,6 +100,7 @@ def camera_loop_from_spec(kw: dict[str, str], robot: RobotModel) -> Loop:
         k, d = _vec(kw, f"K{c}", 4, name), _vec(kw, f"D{c}", 5, name)
         if f"info{c}" in kw:
             from closedloop.io.camera_info import read_camera_info
+
             try:
                 info = read_camera_info(kw[f"info{c}"])
             except InputError as exc:
@@ -104,7 +112,20 @@ def camera_loop_from_spec(kw: dict[str, str], robot: RobotModel) -> Loop:
         D.append(d)
     if "tip" in kw and "tip0" in kw:
         raise LoopError(f"camera loop '{name}': give tip (known) or tip0 (a guess), not both")
-    return CameraLoop(name, kw["frame"], to[0], cameras=cameras, K=K, initial_K=K0, initial_poses=poses,
-                      rig=_vec(kw, "rig", 6, name), tip=_vec(kw, "tip", 3, name),
-                      initial_tip=_vec(kw, "tip0", 3, name), sigma_px=_float(kw, "sigma_px", name),
-                      camera_frames=to if multi else None, dist=dist, D=D, closure=closure)
+    return CameraLoop(
+        name,
+        kw["frame"],
+        to[0],
+        cameras=cameras,
+        K=K,
+        initial_K=K0,
+        initial_poses=poses,
+        rig=_vec(kw, "rig", 6, name),
+        tip=_vec(kw, "tip", 3, name),
+        initial_tip=_vec(kw, "tip0", 3, name),
+        sigma_px=_float(kw, "sigma_px", name),
+        camera_frames=to if multi else None,
+        dist=dist,
+        D=D,
+        closure=closure,
+    )

@@ -19,12 +19,11 @@ from functools import lru_cache
 import numpy as np
 import pinocchio as pin
 
-from closedloop.model.se3 import vec_of
 from closedloop.loops import common
-
 from closedloop.loops.camera.loop import PLACEHOLDER_K
 from closedloop.loops.camera.model import camera_from_dlt
 from closedloop.loops.common import relative_point
+from closedloop.model.se3 import vec_of
 
 log = logging.getLogger(__name__)
 MISFIT_PX = 20.0  # a camera's start RMS (px) above which its model is suspect
@@ -60,7 +59,7 @@ def initialize_camera_loop(loop, Ts: list[np.ndarray], meas: np.ndarray | None) 
     p_lin = p_guess.copy()
     for c in range(loop.cameras):
         y, *_ = relative_point(Ts[0], Ts[loop._fidx[c]], tip)
-        uv = meas[seen[:, c], 2 * c:2 * c + 2]
+        uv = meas[seen[:, c], 2 * c : 2 * c + 2]
         y = y[seen[:, c]]
         sl, slk = loop.sl[f"pose{c}"], loop.sl[f"K{c}"]
         k_known = loop.K[c] if slk is None else loop.initial_K[c]
@@ -105,8 +104,12 @@ def _rotations(n_axes: int = 48, n_roll: int = 8) -> np.ndarray:
     e1 = np.cross(ref, e3)
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
     e2 = np.cross(e3, e1)
-    return np.concatenate([np.stack([np.cos(a) * e1 + np.sin(a) * e2, np.cos(a) * e2 - np.sin(a) * e1, e3], axis=2)
-                           for a in np.arange(n_roll) * 2.0 * np.pi / n_roll])
+    return np.concatenate(
+        [
+            np.stack([np.cos(a) * e1 + np.sin(a) * e2, np.cos(a) * e2 - np.sin(a) * e1, e3], axis=2)
+            for a in np.arange(n_roll) * 2.0 * np.pi / n_roll
+        ]
+    )
 
 
 def ray_fit(Rc: np.ndarray, RFA: np.ndarray, y0: np.ndarray, m: np.ndarray):
@@ -137,8 +140,7 @@ def ray_fit(Rc: np.ndarray, RFA: np.ndarray, y0: np.ndarray, m: np.ndarray):
     return cost, w[:, :3], w[:, 3:], (np.einsum("cni,cni->cn", a, v) > 0).mean(axis=1)
 
 
-def ray_start(loop, Ts: list[np.ndarray], meas: np.ndarray, p_lin: np.ndarray, seen: np.ndarray
-              ) -> np.ndarray | None:
+def ray_start(loop, Ts: list[np.ndarray], meas: np.ndarray, p_lin: np.ndarray, seen: np.ndarray) -> np.ndarray | None:
     """A start for an unknown marker and unknown camera poses from the rays alone (no marker guess).
 
     Given a camera's rotation, its position and the marker follow linearly
@@ -159,7 +161,7 @@ def ray_start(loop, Ts: list[np.ndarray], meas: np.ndarray, p_lin: np.ndarray, s
             continue
         k = loop.K[c] if slk is None else p_lin[slk]
         y0, RFA, *_ = relative_point(Ts[0][rows], Ts[loop._fidx[c]][rows], np.zeros(3))
-        uv = meas[rows, 2 * c:2 * c + 2]
+        uv = meas[rows, 2 * c : 2 * c + 2]
         m = np.column_stack([(uv[:, 0] - k[2]) / k[0], (uv[:, 1] - k[3]) / k[1], np.ones(len(uv))])
         cost, t, tX, front = ray_fit(rotations, RFA, y0, m)
         cost = np.where(front > 0.5, cost, np.inf)
@@ -181,18 +183,31 @@ def _warn_misfit(loop, Ts: list[np.ndarray], meas: np.ndarray, p: np.ndarray, se
         return
     r = loop.residual_frames(Ts, p, meas)
     for c in range(loop.cameras):
-        e = np.linalg.norm(r[seen[:, c], 2 * c:2 * c + 2], axis=1)
-        rms = float(np.sqrt(np.mean(e ** 2))) if e.size else 0.0
+        e = np.linalg.norm(r[seen[:, c], 2 * c : 2 * c + 2], axis=1)
+        rms = float(np.sqrt(np.mean(e**2))) if e.size else 0.0
         if rms > max(MISFIT_PX, 30 * (loop.sigma_px or 0.0)):
             same = loop.camera_frames.count(loop.camera_frames[c]) > 1
-            log.warning("camera loop '%s': camera %d is missed by %.3g px RMS at the start (robot at nominal)%s",
-                        loop.name, c + 1, rms,
-                        f": if it turns on its own joint, give each camera its frame (to={'+'.join(['F1', 'F2'])})"
-                        if same else "")
+            log.warning(
+                "camera loop '%s': camera %d is missed by %.3g px RMS at the start (robot at nominal)%s",
+                loop.name,
+                c + 1,
+                rms,
+                f": if it turns on its own joint, give each camera its frame (to={'+'.join(['F1', 'F2'])})"
+                if same
+                else "",
+            )
 
-def refine_own(loop, Ts: list[np.ndarray], meas: np.ndarray, p: np.ndarray, free: np.ndarray,
-               iters: int = 40) -> np.ndarray:
+
+def refine_own(
+    loop, Ts: list[np.ndarray], meas: np.ndarray, p: np.ndarray, free: np.ndarray, iters: int = 40
+) -> np.ndarray:
     """Gauss-Newton on the own parameters p[free] with the robot held (`common.refine_own`)."""
-    return common.refine_own(lambda q: loop.evaluate_frames(Ts, q, meas), lambda q: loop.residual_frames(Ts, q, meas),
-                             loop.normalize, p, free, iters, halvings=12)
-
+    return common.refine_own(
+        lambda q: loop.evaluate_frames(Ts, q, meas),
+        lambda q: loop.residual_frames(Ts, q, meas),
+        loop.normalize,
+        p,
+        free,
+        iters,
+        halvings=12,
+    )

@@ -30,10 +30,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from closedloop.model.se3 import generators, skew
 from closedloop.loops.base import LoopEval
 from closedloop.loops.camera.model import image_ray
 from closedloop.loops.common import relative_point
+from closedloop.model.se3 import generators, skew
 
 
 def _perturb(S: np.ndarray, z: np.ndarray, sign: float, direction: bool) -> np.ndarray:
@@ -89,8 +89,9 @@ def triangulation_eval(loop, Ts: list[np.ndarray], p: np.ndarray, m: np.ndarray,
     dF[0] += -S @ dyA
     dF[f1] += -S @ dyF + Rp @ _perturb(S, o2F1, -1.0, False) + Ru @ _perturb(S, w2F1, -1.0, True)
     SR12 = S @ R12
-    dF[f2] += Rp @ _perturb(SR12, np.broadcast_to(X2.translation, (N, 3)), 1.0, False) \
-        + Ru @ _perturb(SR12, w2F2, 1.0, True)
+    dF[f2] += Rp @ _perturb(SR12, np.broadcast_to(X2.translation, (N, 3)), 1.0, False) + Ru @ _perturb(
+        SR12, w2F2, 1.0, True
+    )
     I3 = np.broadcast_to(np.eye(3), (N, 3, 3))
     dX1 = -_perturb(I3, xh, -1.0, False) + Rp @ _perturb(I3, pp, -1.0, False) + Ru @ _perturb(I3, u2, -1.0, True)
     RQ = SR12 @ X2.rotation
@@ -113,6 +114,6 @@ def triangulation_eval(loop, Ts: list[np.ndarray], p: np.ndarray, m: np.ndarray,
     cov = None
     if loop.sigma_px is not None:
         G1, G2 = Rd @ D1u, Gu2 @ D2u
-        cov = loop.sigma_px ** 2 * (G1 @ np.swapaxes(G1, 1, 2) + G2 @ np.swapaxes(G2, 1, 2))
+        cov = loop.sigma_px**2 * (G1 @ np.swapaxes(G1, 1, 2) + G2 @ np.swapaxes(G2, 1, 2))
     two = len(loop.frames) == 2
     return LoopEval(r, dF[0] if two else None, dF[1] if two else None, dp, dF=dF, cov=cov)
