@@ -1,4 +1,4 @@
-"""Scaling out: 200 calibrations and a 200-draw Monte Carlo on each engine of closedloop.fleet.executor.
+"""Scaling out: 200 calibrations and a 200-draw Monte Carlo on each engine of closedloop.parallel.executor.
 
 Usage::
 
@@ -35,7 +35,7 @@ import numpy as np
 from machine import header  # benchmarks/machine.py
 
 from closedloop import CalibrationOptions, calibrate
-from closedloop.fleet import executor as ex
+from closedloop.parallel import executor as ex
 from closedloop.io.logs import JointLog
 from closedloop.studies.montecarlo import monte_carlo, weld_scenario
 

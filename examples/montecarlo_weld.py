@@ -4,7 +4,7 @@
 configurations each) are calibrated with the noise-weighted (errors-in-
 variables) estimator and with plain unweighted least squares.  Targets for the
 weighted one: covariance trace within 10 % of the bound, bias below one
-standard error.  The calibrations run on every core (`closedloop.fleet.executor`, 'local'; the results are
+standard error.  The calibrations run on every core (`closedloop.parallel.executor`, 'local'; the results are
 the same on any engine): 12 s on the 2-core machine of the README's speed section, 24 s with two busy
 processes beside it.
 

@@ -1,4 +1,4 @@
-"""closedloop.fleet.executor: the same results on every engine (serial, local pool, a real Ray cluster),
+"""closedloop.parallel.executor: the same results on every engine (serial, local pool, a real Ray cluster),
 seeds per job, failures isolated, worker crashes recorded; the studies moved onto it unchanged."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 import ray  # in the test extra: these tests run a real local Ray cluster
 
 from closedloop import CalibrationOptions
-from closedloop.fleet import executor as ex
+from closedloop.parallel import executor as ex
 from closedloop.studies.montecarlo import monte_carlo, weld_scenario
 from closedloop.validation.kfold import cross_validate
 

@@ -1,6 +1,6 @@
 """`closedloop simulate --seeds 0-19 [--scenarios A,B] --jobs N | --ray ADDR --out DIR`: many datasets.
 
-One dataset per (scenario, seed), each an independent job on ``closedloop.fleet.executor``: in
+One dataset per (scenario, seed), each an independent job on ``closedloop.parallel.executor``: in
 ``DIR/seed_000/`` (one scenario) or ``DIR/SCENARIO/seed_000/`` (several).  Every dataset is
 published whole by ``simulate`` (``sims.outputs.DATASET_FILES``, ``truth.json`` last), so a killed
 sweep leaves whole datasets and no half one; run again, it skips the seeds whose ``truth.json``
@@ -112,7 +112,7 @@ def run_sweep(
     there too); overrides: name -> ``SimSettings`` overrides.  With `replace`, finished datasets
     are simulated again.
     """
-    from closedloop.fleet.executor import imap
+    from closedloop.parallel.executor import imap
 
     several = len(scenarios) > 1
     rows: dict[tuple[str, int], SweepRow] = {}
@@ -168,7 +168,7 @@ def _write_summary(path: Path, rows: list[SweepRow]) -> None:
 
 def add_sweep_options(s) -> None:
     """--seeds / --scenarios / --jobs / --ray on the `simulate` parser; a plain simulate without them."""
-    from closedloop.fleet.executor import add_arguments
+    from closedloop.parallel.executor import add_arguments
 
     s.add_argument(
         "--seeds",
@@ -196,7 +196,7 @@ def cmd_simulate_sweep(args) -> int:
             raise InputError("simulate: --jobs / --ray run a sweep: give --seeds (e.g. --seeds 0-19)")
         return cmd_simulate(args)
     from closedloop.cli.parse import check_number
-    from closedloop.fleet.executor import engine_from_args, progress_printer
+    from closedloop.parallel.executor import engine_from_args, progress_printer
 
     scenarios = _scenarios(args)
     seeds = parse_seeds(args.seeds if args.seeds is not None else str(args.seed))

@@ -222,14 +222,14 @@ def select_pools(
     progress=None,
     **kw,
 ) -> list[Selection]:
-    """`select_poses` on each candidate pool, one job per pool on `executor` (``closedloop.fleet.executor``).
+    """`select_poses` on each candidate pool, one job per pool on `executor` (``closedloop.parallel.executor``).
 
     The problem (or result), `values` and the options travel once per worker; a pool is a job.  The
     selection is deterministic, so every engine returns the same designs, in pool order.  `kw`:
     the other arguments of `select_poses` (block, params, noise, weighting, prior_weight,
     include_existing).
     """
-    from closedloop.fleet.executor import run
+    from closedloop.parallel.executor import run
 
     if method not in METHODS:
         raise OptionError(f"method must be one of {', '.join(map(repr, METHODS))}, not '{method}'")
@@ -256,7 +256,7 @@ def random_designs(
     ``default_rng(SeedSequence(seed).spawn(n_chunks)[c])``, so the designs (and their traces
     tr (sum B_i^T B_i)^-1) are the same on every engine and worker count (for a given chunk).
     """
-    from closedloop.fleet.executor import run
+    from closedloop.parallel.executor import run
 
     if not 1 <= n <= len(B):
         raise OptionError(f"cannot draw {n} configurations from a pool of {len(B)}")

@@ -3,7 +3,7 @@
 A manifest (YAML or CSV) lists jobs: model, log (CSV or ROS bag), loops,
 options, output folder, and optionally the robot's id and the date of the log.
 Every job is calibrated and k-fold validated on its own (``closedloop.calibrate``,
-``validation.cross_validate``) by one of the engines of ``closedloop.fleet.executor``.
+``validation.cross_validate``) by one of the engines of ``closedloop.parallel.executor``.
 
 * A job that raises is recorded (summary row ``status=failed``, the error) and
   the others go on; a failed job is tried again by the next run.
@@ -343,8 +343,8 @@ def _fmt(row: dict) -> dict:
 
 
 def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=None, z_max: float = 3.0) -> BatchResult:
-    """Run every job not finished before on `engine` (see closedloop.fleet.executor); write the summary."""
-    from closedloop.fleet.executor import imap
+    """Run every job not finished before on `engine` (see closedloop.parallel.executor); write the summary."""
+    from closedloop.parallel.executor import imap
 
     n_tmp = _clean_temporaries(jobs)
     if n_tmp:
@@ -407,7 +407,7 @@ def cmd_batch(args) -> int:
     """CLI: closedloop batch MANIFEST [--jobs N | --ray auto|ADDRESS] [--summary CSV]."""
     import sys
 
-    from closedloop.fleet.executor import engine_from_args, progress_printer
+    from closedloop.parallel.executor import engine_from_args, progress_printer
 
     jobs = read_manifest(args.manifest)
     summary = (
@@ -444,7 +444,7 @@ def cmd_batch(args) -> int:
 
 def add_parser(sub) -> None:
     """The `batch` subcommand."""
-    from closedloop.fleet.executor import add_arguments
+    from closedloop.parallel.executor import add_arguments
 
     b = sub.add_parser("batch", help="calibrate many robots/logs from a manifest (YAML or CSV), resumable")
     b.add_argument("manifest", help="YAML (jobs: [...]) or CSV: model, log, loops, options, out[, robot, date, cv]")

@@ -61,12 +61,12 @@ def bootstrap(
 ) -> Bands:
     """Bootstrap over cycles (see module docstring): bands for I, B, K, wn and zeta.
 
-    The resamples go in chunks of `chunk` as jobs on `executor` (``closedloop.fleet.executor``: None or
+    The resamples go in chunks of `chunk` as jobs on `executor` (``closedloop.parallel.executor``: None or
     'serial' in this process, 'local', 'ray', or an engine); chunk c draws its resamples from
     ``default_rng(SeedSequence(seed).spawn(n_chunks)[c])``, so the bands are the same on every
     engine and worker count (for a given `chunk`).  The shared moments travel once per worker.
     """
-    from closedloop.fleet.executor import run
+    from closedloop.parallel.executor import run
 
     with single_thread():
         d = design(ens, options)

@@ -390,7 +390,7 @@ def monte_carlo(
     """Calibrate `n_runs` noisy copies of the scenario's readings with each weighting.
 
     The noise is drawn here, in order, from `seed`; the calibrations run on
-    `executor` (an engine or its name, ``closedloop.fleet.executor``; None: this
+    `executor` (an engine or its name, ``closedloop.parallel.executor``; None: this
     process), so the result is the same on any engine.
 
     Every run must estimate the same parameters (the reduction is structural);
@@ -406,8 +406,8 @@ def monte_carlo(
     raw: dict[str, list[np.ndarray]] = {w: [] for w in weightings}
     fails = dict.fromkeys(weightings, 0)
     truncated = dict.fromkeys(weightings, 0)
-    from closedloop.fleet.executor import (
-        imap,  # the draws run on any engine (closedloop.fleet.executor); results in draw order
+    from closedloop.parallel.executor import (
+        imap,  # the draws run on any engine (closedloop.parallel.executor); results in draw order
     )
 
     shared = (scenario.robot, scenario.joints, scenario.loops, base, noise, weightings)

@@ -160,7 +160,7 @@ def _mean_loops(per_fold: list[list[dict]]) -> list[dict]:
 
 
 def _holdout_job(robot: RobotModel, loops: list[Loop], opt: CalibrationOptions, split: tuple) -> dict[str, Any]:
-    """One fold's refit (a job for closedloop.fleet.executor): `split` = (training log, held-out log, rows of
+    """One fold's refit (a job for closedloop.parallel.executor): `split` = (training log, held-out log, rows of
     each not judged)."""
     return holdout(robot, split[0], split[1], loops, opt, split[2], split[3])
 
@@ -195,7 +195,7 @@ def cross_validate(
                (the estimated set is the same in every fold when the
                reduction is structural; names estimated in some folds only
                are listed under 'inconsistent').
-    The refits run on `executor` (an engine or its name, closedloop.fleet.executor;
+    The refits run on `executor` (an engine or its name, closedloop.parallel.executor;
     None: this process, in fold order); the result is the same on any engine.
     `progress(done, k)` is called as each refit finishes (on a long log each is a calibration of its own).
     """
@@ -203,8 +203,8 @@ def cross_validate(
     parts = folds(log_, k, seed)
     per_fold = []
     ref = None
-    from closedloop.fleet.executor import (
-        run,  # the refits run on any engine (closedloop.fleet.executor); results in fold order
+    from closedloop.parallel.executor import (
+        run,  # the refits run on any engine (closedloop.parallel.executor); results in fold order
     )
 
     bad = np.zeros(0, dtype=int) if exclude is None else np.unique(np.asarray(exclude, dtype=int))

@@ -1,6 +1,6 @@
 """The executor's core: job outcomes, the progress line, the worker-side call, the engine base class
-and the serial engine (see :mod:`closedloop.fleet.executor` for the whole design; the process-pool and
-Ray engines are in :mod:`closedloop.fleet.engines`)."""
+and the serial engine (see :mod:`closedloop.parallel.executor` for the whole design; the process-pool and
+Ray engines are in :mod:`closedloop.parallel.engines`)."""
 
 from __future__ import annotations
 

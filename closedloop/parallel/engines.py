@@ -1,4 +1,4 @@
-"""The engines that run jobs outside this process: a local process pool and Ray (see :mod:`closedloop.fleet.executor`).
+"""The engines that run jobs outside this process: a local process pool and Ray (see :mod:`closedloop.parallel.executor`).
 
 Objects every job needs (`shared`) are pickled once by the driver and unpickled once per worker
 process (a per-process cache keyed by a token of the study); above 256 KiB the pool's jobs carry
@@ -16,7 +16,7 @@ from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wai
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
-from closedloop.fleet.engine import Engine, Outcome, Progress, call, limit_threads, register
+from closedloop.parallel.engine import Engine, Outcome, Progress, call, limit_threads, register
 
 log = logging.getLogger(__name__)
 

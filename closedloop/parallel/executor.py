@@ -20,8 +20,8 @@ in job order.  A job that raises is recorded in its outcome and never stops the
 others; a job that kills its worker process (a crash in native code) is
 retried once, then alone, and recorded as failed.
 
-Layout: :mod:`closedloop.fleet.engine` (outcomes, progress, the worker-side
-call, the engine base class, the serial engine), :mod:`closedloop.fleet.engines`
+Layout: :mod:`closedloop.parallel.engine` (outcomes, progress, the worker-side
+call, the engine base class, the serial engine), :mod:`closedloop.parallel.engines`
 (the process pool and Ray); this module is the front end (`imap`, `run`,
 `get_engine`, the ``--jobs`` / ``--ray`` options) and re-exports them.
 """
@@ -36,8 +36,8 @@ from typing import Any
 
 import numpy as np
 
-from closedloop.fleet.engine import ENGINES, Engine, Outcome, Progress, SerialEngine, call, limit_threads, register
-from closedloop.fleet.engines import LocalEngine, RayEngine
+from closedloop.parallel.engine import ENGINES, Engine, Outcome, Progress, SerialEngine, call, limit_threads, register
+from closedloop.parallel.engines import LocalEngine, RayEngine
 
 __all__ = [
     "ENGINES",
