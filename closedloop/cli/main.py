@@ -117,7 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_batch(sub)
     lp = sub.add_parser("loops", help="list the loop types, their keys and an example each")
     lp.set_defaults(func=cmd_loops)
-    from closedloop.impedance.cli import add_parser as add_impedance  # closedloop impedance simulate|identify
+    from closedloop.cli.impedance import add_parser as add_impedance  # closedloop impedance simulate|identify
 
     add_impedance(sub)
     from closedloop.cli.evaluate import add_parser as add_evaluate  # closedloop evaluate MODEL... LOG --loop ...
