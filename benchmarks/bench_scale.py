@@ -35,8 +35,8 @@ import numpy as np
 from machine import header  # benchmarks/machine.py
 
 from closedloop import CalibrationOptions, calibrate
-from closedloop.parallel import executor as ex
 from closedloop.io.logs import JointLog
+from closedloop.parallel import executor as ex
 from closedloop.studies.montecarlo import monte_carlo, weld_scenario
 
 NOISE = 1e-4

@@ -89,3 +89,11 @@ class ConvergenceError(CalibrationError):
 
 class SimulationError(ClosedLoopError, RuntimeError):
     """The simulator cannot produce the data asked for (a loop that does not close, a model MuJoCo lacks)."""
+
+
+#: The command line's exit codes: 0 done, 2 a user's input (`InputError`), 3 a failed calibration
+#: (`CalibrationError` or a verdict 'failed'), 70 a bug, 130 interrupted, 141 the output's reader closed it.
+EXIT_INPUT = 2
+EXIT_FAILED = 3
+EXIT_INTERNAL = 70
+EXIT_PIPE = 141  # 128 + SIGPIPE (`closedloop ... | head`)

@@ -21,8 +21,8 @@ import yaml
 from closedloop.cli.main import main
 from closedloop.errors import InputError
 from closedloop.fleet.batch import read_manifest, run_batch
-from closedloop.parallel.executor import get_engine
 from closedloop.io.logs import JointLog
+from closedloop.parallel.executor import get_engine
 from closedloop.studies.montecarlo import panda_urdf, weld_scenario
 
 NOISE = 1e-4

@@ -8,8 +8,9 @@ from __future__ import annotations
 import sys
 import time
 
-from closedloop.cli.parse import EXIT_FAILED, check_loop_numbers, check_number, parse_bounds, parse_noise
-from closedloop.errors import InputError
+from closedloop.cli.parse import check_loop_numbers
+from closedloop.errors import EXIT_FAILED, InputError
+from closedloop.io.schemas import check_number, parse_bounds, parse_noise
 
 
 class Progress:

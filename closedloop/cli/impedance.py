@@ -59,10 +59,10 @@ def add_parser(subparsers) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from closedloop.cli.parse import check_number
     from closedloop.impedance.data import write_record
     from closedloop.impedance.model import ExperimentConfig, ForearmParams, simulate
     from closedloop.impedance.results import write_truth
+    from closedloop.io.schemas import check_number
 
     args.noise = check_number("--noise", args.noise, 0.0, 1e6)
     args.voluntary = check_number("--voluntary", args.voluntary, 0.0, 1e6)
@@ -148,12 +148,12 @@ def _onsets(rec, args):
 
 
 def cmd_identify(args: argparse.Namespace) -> int:
-    from closedloop.cli.parse import check_number
     from closedloop.impedance.bootstrap import bootstrap, free_run_vaf
     from closedloop.impedance.data import read_record, segment
     from closedloop.impedance.estimate import EstimateOptions, estimate, posture_fit
     from closedloop.impedance.metrics import coverage, rel_errors
     from closedloop.impedance.results import read_truth, resample_truth, write_results
+    from closedloop.io.schemas import check_number
 
     args.max_shift_ms = check_number("--max-shift-ms", args.max_shift_ms, 0.0, 1e6)
     args.bootstrap = check_number("--bootstrap", args.bootstrap, 0, 10**6, integer=True)

@@ -12,18 +12,18 @@ import logging
 import sys
 
 from closedloop.cli.calibrate import cmd_calibrate
-from closedloop.cli.parse import (
+from closedloop.cli.parse import float_arg, int_arg, join_negative_numbers
+from closedloop.cli.simulate import cmd_simulate
+from closedloop.errors import (
     EXIT_FAILED,
     EXIT_INPUT,
     EXIT_INTERNAL,
     EXIT_PIPE,
-    check_number,
-    float_arg,
-    int_arg,
-    join_negative_numbers,
+    CalibrationError,
+    ClosedLoopError,
+    InputError,
 )
-from closedloop.cli.simulate import cmd_simulate
-from closedloop.errors import CalibrationError, ClosedLoopError, InputError
+from closedloop.io.schemas import check_number
 
 __all__ = [
     "EXIT_FAILED",

@@ -10,68 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 
-import numpy as np
-
 from closedloop.errors import InputError
-
-EXIT_INPUT = 2
-EXIT_FAILED = 3  # a calibration whose verdict is 'failed' (the report says why)
-EXIT_INTERNAL = 70
-EXIT_PIPE = 141  # 128 + SIGPIPE: the output's reader closed it (`closedloop ... | head`)
-
-
-def parse_noise(text: str | float | None):
-    """``--noise 1e-4`` or ``--noise j1=1e-4,j2=2e-4``: every value a finite number > 0 (rad or m)."""
-    from closedloop.io.schemas import parse_number
-
-    if text is None:
-        return None
-    if not isinstance(text, str):
-        text = repr(text)
-    if "=" not in text:
-        v = parse_number(text, f"--noise {text}")
-        if not 0 < v <= 10:
-            raise InputError(f"--noise {text}: the joint noise must be > 0 and <= 10 (a std in rad or m)")
-        return v
-    out = {}
-    for part in text.split(","):
-        k, _, v = (t.strip() for t in part.partition("="))
-        if not k:
-            raise InputError(f"--noise {part}: expected joint=value")
-        out[k] = parse_number(v, f"--noise {part}")
-        if not 0 < out[k] <= 10:
-            raise InputError(f"--noise {part}: the joint noise must be > 0 and <= 10 (a std in rad or m)")
-    return out
-
-
-def parse_bounds(items: list[str]) -> dict[str, tuple[float, float]]:
-    """``--bound NAME=LOW:HIGH`` (an empty side is unbounded); LOW <= HIGH."""
-    from closedloop.io.schemas import parse_number
-
-    out = {}
-    for item in items:
-        name, eq, rng = item.partition("=")
-        lo, colon, hi = rng.partition(":")
-        if not eq or not colon or not name.strip():
-            raise InputError(f"--bound {item}: expected NAME=LOW:HIGH")
-        lo_v = parse_number(lo, f"--bound {item}", allow_inf=True) if lo.strip() else -np.inf
-        hi_v = parse_number(hi, f"--bound {item}", allow_inf=True) if hi.strip() else np.inf
-        if lo_v > hi_v:
-            raise InputError(f"--bound {item}: the lower bound {lo.strip()} exceeds the upper bound {hi.strip()}")
-        out[name.strip()] = (lo_v, hi_v)
-    return out
-
-
-def check_number(opt: str, value, lo: float, hi: float, *, integer: bool = False, lo_open: bool = False):
-    """A numeric option in range (``lo < v`` when `lo_open`, else ``lo <= v``; ``v <= hi``), as float/int."""
-    from closedloop.io.schemas import is_number, parse_number
-
-    v = parse_number(value, f"{opt} {value}") if isinstance(value, str) else value
-    if not is_number(v) or (integer and float(v) != int(v)):
-        raise InputError(f"{opt} {value}: expected {'a whole number' if integer else 'a finite number'}")
-    if v < lo or (lo_open and v == lo) or v > hi:
-        raise InputError(f"{opt} {value}: must be {'>' if lo_open else '>='} {lo:g} and <= {hi:g}")
-    return int(v) if integer else float(v)
 
 
 def check_loop_numbers(spec: str) -> None:

@@ -6,8 +6,9 @@ import time
 from pathlib import Path
 
 from closedloop.cli.calibrate import Progress
-from closedloop.cli.parse import check_number, sim_overrides
+from closedloop.cli.parse import sim_overrides
 from closedloop.errors import ClosedLoopError, InputError
+from closedloop.io.schemas import check_number
 
 
 def cmd_simulate(args) -> int:

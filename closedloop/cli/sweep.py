@@ -195,7 +195,7 @@ def cmd_simulate_sweep(args) -> int:
         if getattr(args, "jobs", None) is not None or getattr(args, "ray", None):
             raise InputError("simulate: --jobs / --ray run a sweep: give --seeds (e.g. --seeds 0-19)")
         return cmd_simulate(args)
-    from closedloop.cli.parse import check_number
+    from closedloop.io.schemas import check_number
     from closedloop.parallel.executor import engine_from_args, progress_printer
 
     scenarios = _scenarios(args)

@@ -99,7 +99,7 @@ def cmd_extract(args) -> int:
     else:
         raise InputError("extract: say which joints to keep: --model ROBOT.urdf|.xml or --joints j1,j2,...")
     refuse_overwrite(args.out, args.bag)
-    from closedloop.cli.parse import check_number
+    from closedloop.io.schemas import check_number
 
     for opt, name in (
         ("--threshold", "threshold"),

@@ -36,8 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.cli.parse import EXIT_FAILED
-from closedloop.errors import InputError
+from closedloop.errors import EXIT_FAILED, InputError
 from closedloop.fleet.drift import Drift, drift, drift_columns, gauge_record
 from closedloop.fleet.manifest import BatchJob, as_list, read_manifest
 
@@ -90,12 +89,12 @@ def _options(opts: dict, names: list[str]):
 
     noise = opts.get("noise")
     if isinstance(noise, str):
-        from closedloop.cli.parse import parse_noise as _parse_noise
+        from closedloop.io.schemas import parse_noise as _parse_noise
 
         noise = _parse_noise(noise)
     bounds = opts.get("bounds") or {}
     if isinstance(bounds, (list, str)):
-        from closedloop.cli.parse import parse_bounds as _parse_bounds
+        from closedloop.io.schemas import parse_bounds as _parse_bounds
 
         bounds = _parse_bounds(as_list(bounds))
     ident = opts.get("identify")
