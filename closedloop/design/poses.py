@@ -86,6 +86,7 @@ from closedloop.calibration import CalibrationResult
 from closedloop.design.exchange import exchange_a
 from closedloop.design.optimal import Selection, detmax, greedy_d_optimal, information, trace_covariance
 from closedloop.errors import OptionError
+from closedloop.io.schemas import POSE_METHODS as METHODS
 from closedloop.problem.problem import CalibrationProblem
 
 __all__ = [
@@ -141,9 +142,6 @@ def pool_blocks(
         idx = sorted(idx[i] for i in kept)
     _, J = whitened_blocks(problem, vals, idx, sigma_q, weighting, thetas, blocks=[block])[0]
     return J, idx
-
-
-METHODS = ("greedy", "detmax", "greedy-a", "exchange-a")
 
 
 def select_poses(

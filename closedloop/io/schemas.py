@@ -54,6 +54,10 @@ def parse_number(text: str, what: str, error: type[InputError] = InputError, *, 
     raise error(f"{what}: '{text.strip()}' is not a number")
 
 
+#: the pose-selection methods of `closedloop.design.poses` (D- and A-optimal, greedy and exchange)
+POSE_METHODS = ("greedy", "detmax", "greedy-a", "exchange-a")
+
+
 def is_number(x: Any) -> bool:
     """A finite int or float, not a bool."""
     if isinstance(x, bool) or not isinstance(x, (int, float)):
@@ -268,8 +272,6 @@ REPORT_SCHEMA = {
 
 def _settings_schema() -> dict:
     """`SimSettings` fields with their ranges (a bad value would hang, explode or be ignored)."""
-    from closedloop.design.poses import METHODS
-
     p = {
         "timestep": num(1e-5, 0.05),
         "integrator": {"enum": ["implicitfast", "implicit", "Euler", "RK4"]},
@@ -304,7 +306,7 @@ def _settings_schema() -> dict:
         "step_rad": num(0, 3.2, exclusive_lo=True),
         "target_span": num(0, 10, exclusive_lo=True),
         "retarget_every": integer(1, 10**6),
-        "select": {"anyOf": [{"type": "null"}, {"enum": list(METHODS)}]},
+        "select": {"anyOf": [{"type": "null"}, {"enum": list(POSE_METHODS)}]},
         "select_pool": num(1, 1000),
         "limit_margin": num(0, 1),
         "limit_flag": num(0, 1),
