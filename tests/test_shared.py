@@ -153,8 +153,8 @@ def _two_tracker_mc(draws: int, monkeypatch=None) -> float:
     from closedloop import CalibrationOptions, calibrate
     from closedloop.loops.measured import MeasuredPointLoop
     from closedloop.loops.point import relative_point
+    from closedloop.loops.settings import share
     from closedloop.models import example_robot_data_dir
-    from closedloop.problem.shared import share
     from closedloop.studies.truth import draw_truth
 
     robot = RobotModel.from_file(example_robot_data_dir() / "ur_description/urdf/ur10_robot.urdf")
@@ -223,7 +223,7 @@ def _two_camera_data(sigma_px: float | None = None):
     from test_loops_camera import K1, K2, UR5, X1, X2, pixels, robot_of, ur5_readings
 
     from closedloop.loops.camera.loop import CameraLoop
-    from closedloop.problem.shared import share
+    from closedloop.loops.settings import share
     from closedloop.studies.truth import draw_truth
 
     robot = robot_of(UR5)

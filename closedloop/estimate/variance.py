@@ -26,88 +26,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from closedloop.errors import ParameterError
 from closedloop.estimate.noise import joint_variance_scale
+from closedloop.loops.settings import task_matrix
 
 if TYPE_CHECKING:
-    from closedloop.loops.base import Loop
     from closedloop.problem.problem import BlockEval, CalibrationProblem
 
-__all__ = ["parse_sigma", "set_task_noise", "task_blocks", "variance_components", "noise_summary", "noise_notes"]
-
-
-def parse_sigma(text: str) -> float | np.ndarray | str:
-    """'0.2mm' / '200um' / '2e-4' (m) / '0.1/0.1/0.3mm' (per axis) / 'auto' -> metres or 'estimate'."""
-    t = str(text).strip().lower().replace(" ", "")
-    if t in ("auto", "estimate", "estimated"):
-        return "estimate"
-    if "/" in t:  # per axis, one unit at the end: 0.1/0.1/0.3mm
-        unit = t.lstrip("0123456789.e+-/")
-        parts = t[: len(t) - len(unit)].split("/")
-        return np.array([parse_sigma(p + unit) for p in parts])
-    for unit, f in (("mm", 1e-3), ("um", 1e-6), ("µm", 1e-6), ("cm", 1e-2), ("m", 1.0)):
-        if t.endswith(unit):
-            t, factor = t[: -len(unit)], f
-            break
-    else:
-        factor = 1.0
-    try:
-        v = float(t) * factor
-    except ValueError:
-        raise ParameterError(f"sigma_task={text}: expected a length (0.2mm, 2e-4) or 'auto'") from None
-    if not np.isfinite(v) or v < 0 or v > 1.0:
-        raise ParameterError(f"sigma_task={text}: expected a length between 0 and 1 m")
-    return v
-
-
-def set_task_noise(loop: Loop, value) -> Loop:
-    """Give `loop` a task-space noise: a length (m; per-axis: three), 'estimate'/'auto', or 0 (none).
-
-    The loop's measurement covariance becomes its own (a tracker's, if any)
-    plus sigma_task^2 on its translation rows; 'estimate' makes sigma_task a
-    variance component estimated with the joint noise (`variance_components`).
-    Configuration, set once on the loop: ``loop.own_cov`` keeps the covariance
-    without the task term, ``loop.task_var`` the given variance (what a
-    calibration estimates goes to the problem's `BlockNoise`, not here).
-    """
-    if isinstance(value, str):
-        value = parse_sigma(value)
-    if not hasattr(loop, "own_cov"):
-        loop.own_cov = loop.measurement_cov
-    rows = list(loop.translation_rows)
-    if not rows:
-        raise ParameterError(f"loop '{loop.name}': sigma_task needs a loop with translation rows")
-    if isinstance(value, str):
-        loop.task_noise = "estimate"
-        return loop
-    sig = np.asarray(value, dtype=float).reshape(-1)
-    if sig.size not in (1, len(rows)):
-        raise ParameterError(f"loop '{loop.name}': sigma_task has {sig.size} values for {len(rows)} translation rows")
-    sig = np.broadcast_to(sig, (len(rows),)).copy()
-    if np.any(~np.isfinite(sig)) or np.any(sig < 0):
-        raise ParameterError(f"loop '{loop.name}': sigma_task must be finite and >= 0")
-    loop.task_noise = sig
-    if not np.any(sig):  # sigma_task=0: no task-space noise (the joint noise alone)
-        loop.measurement_cov, loop.task_var = loop.own_cov, None
-        return loop
-    _apply_task(loop, sig**2)
-    return loop
-
-
-def _task_matrix(loop: Loop) -> np.ndarray:
-    T = np.zeros((loop.dim, loop.dim))
-    rows = list(loop.translation_rows)
-    T[rows, rows] = 1.0
-    return T
-
-
-def _apply_task(loop: Loop, var: np.ndarray | float) -> None:
-    """measurement_cov = the loop's own covariance + diag(var) on its translation rows."""
-    base = getattr(loop, "own_cov", None)
-    T = _task_matrix(loop)
-    T[T > 0] = np.broadcast_to(np.asarray(var, dtype=float), (int(T.sum()),))
-    loop.measurement_cov = T if base is None else base + T
-    loop.task_var = var
+__all__ = ["task_blocks", "variance_components", "noise_summary", "noise_notes"]
 
 
 CONTACT_LOOPS = ("PointLoop", "PlaneLoop")
@@ -189,7 +114,7 @@ def variance_components(
         C = np.zeros_like(A) if base is None else np.broadcast_to(base, A.shape)
         if ev.cov is not None:
             C = C + ev.cov
-        blocks.append((ev.r, A, C, _task_matrix(b.loop) if bi in tasks else None))
+        blocks.append((ev.r, A, C, task_matrix(b.loop) if bi in tasks else None))
     if joint_fixed:
         s = 1.0
     else:

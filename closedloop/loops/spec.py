@@ -138,8 +138,7 @@ def parse_loop(spec: str, robot: RobotModel) -> Loop:
     if "log" in generic:
         loop.log_path = generic["log"]
     if shares or task is not None:
-        from closedloop.estimate.variance import set_task_noise
-        from closedloop.problem.shared import share
+        from closedloop.loops.settings import set_task_noise, share
 
         try:
             for key, group in shares.items():

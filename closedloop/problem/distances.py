@@ -43,7 +43,8 @@ import numpy as np
 
 from closedloop.errors import LoopError
 from closedloop.loops.base import Loop, LoopEval
-from closedloop.problem.shared import key_fields, parameter_name
+from closedloop.loops.settings import key_fields
+from closedloop.problem.shared import parameter_name
 
 if TYPE_CHECKING:
     from closedloop.model.parameters import Parameter

@@ -90,7 +90,7 @@ class BlockNoise:
 
     @classmethod
     def of(cls, loop: Loop) -> "BlockNoise":
-        """The noise a loop was configured with (`variance.set_task_noise` keeps its own part apart)."""
+        """The noise a loop was configured with (`loops.settings.set_task_noise` keeps its own part apart)."""
         own = getattr(loop, "own_cov", loop.measurement_cov)
         return cls(own, tuple(loop.translation_rows), loop.dim, getattr(loop, "task_var", None))
 

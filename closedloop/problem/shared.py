@@ -41,45 +41,6 @@ if TYPE_CHECKING:
     from closedloop.model.parameters import Parameter
     from closedloop.problem.problem import CalibrationProblem
 
-#: share key -> the parameter fields it names (a key 'camK' names every field 'camK.*')
-SHARE_KEYS: dict[str, tuple[str, ...]] = {
-    "tip": ("tip_x", "tip_y", "tip_z"),
-    "point": ("px", "py", "pz"),
-    "normal": ("nrx", "nry", "d"),
-    "closure": ("x", "y", "z", "rx", "ry", "rz"),
-    "base": ("x", "y", "z", "rx", "ry", "rz"),
-    "tool": ("tool_x", "tool_y", "tool_z", "tool_rx", "tool_ry", "tool_rz"),
-    "hinge": ("hinge_x", "hinge_y", "hinge_rx", "hinge_ry", "radius", "height"),
-}
-
-
-def key_fields(loop: Loop, key: str) -> list[str]:
-    """The fields of `loop`'s own parameters that share key `key` names (LoopError if none)."""
-    fields = [p.field for p in loop.parameters()]
-    if key.startswith("cam") and key[3:].isdigit():
-        out = [f for f in fields if f.startswith(key + ".")]
-    elif key in SHARE_KEYS:
-        out = [f for f in fields if f in SHARE_KEYS[key]]
-    else:
-        raise LoopError(
-            f"loop '{loop.name}': '{key}' cannot be shared (share keys: {', '.join(sorted(SHARE_KEYS))}, camK)"
-        )
-    if not out:
-        raise LoopError(f"loop '{loop.name}': no unknown parameter for '{key}' to share (is it given?)")
-    return out
-
-
-def share(loop: Loop, key: str, group: str) -> Loop:
-    """Make the parameters of `key` of `loop` the shared group `group` (returns the loop)."""
-    group = group.strip().lstrip("@")
-    if not group or not all(c.isalnum() or c in "_-" for c in group):
-        raise LoopError(f"loop '{loop.name}': shared group name '{group}' must be letters, digits, '_' or '-'")
-    shared = dict(getattr(loop, "shared", None) or {})
-    for f in key_fields(loop, key):
-        shared[f] = f"{group}.{f}"
-    loop.shared = shared
-    return loop
-
 
 def parameter_name(loop: Loop, p: Parameter) -> str:
     """The name of a loop parameter in the problem: its group's when shared, else its own."""
