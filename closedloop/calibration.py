@@ -35,6 +35,7 @@ import numpy as np
 
 from closedloop.analysis.identifiability import Structure, analyse_structure, weak_directions
 from closedloop.analysis.linearity import check_error_bars
+from closedloop.analysis.scale import annotate
 from closedloop.analysis.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
 from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
 from closedloop.estimate.lm import reducible_share, rms, scaled_svd
@@ -51,7 +52,6 @@ from closedloop.estimate.staged import (
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
-from closedloop.problem.distances import annotate
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.records import (
     CalibrationOptions,

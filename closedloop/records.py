@@ -122,7 +122,7 @@ class CalibrationResult:
     warnings: list[str] = field(default_factory=list)  # findings that make the result suspect
     profiles: list = field(default_factory=list)  # linearity.Profile: the error bars checked along the cost's profile
     verdict: Verdict | None = None
-    scale_note: str | None = None  # what sets the overall size (closedloop.problem.distances.annotate)
+    scale_note: str | None = None  # what sets the overall size (closedloop.analysis.scale.annotate)
     scale_std: float = float("nan")  # relative standard error of the size, when a known distance sets it
     length_response: float | None = (
         None  # size change per change of the known frame lengths (closedloop.problem.lengths)
