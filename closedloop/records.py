@@ -7,7 +7,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from closedloop.analysis.identifiability import Combination, Dropped
 from closedloop.problem.problem import BlockEval, CalibrationProblem
 
 if TYPE_CHECKING:
@@ -191,3 +190,41 @@ def residual_stats(problem: CalibrationProblem, evals: list[BlockEval]) -> list[
 
         out.append(LoopResiduals(lp.name, ev.r.shape[0], rms(tn), mx(tn), rms(wn), mx(wn), rms(pn), mx(pn)))
     return out
+
+
+@dataclass
+class Dropped:
+    """A parameter removed before solving, and why."""
+
+    name: str
+    reason: str
+    absorbed_into: list[tuple[str, float]] = field(default_factory=list)
+    residual: float = 0.0  # its column's relative residual on the kept ones' span (round-off: exactly redundant)
+
+    def describe(self) -> str:
+        if not self.absorbed_into:
+            return f"{self.name}: {self.reason}"
+        parts = " ".join(f"{c:+.3g}*{n}" for n, c in self.absorbed_into)
+        return f"{self.name}: {self.reason}; its effect equals {parts}"
+
+
+@dataclass
+class Combination:
+    """A direction of parameter space that the data do not determine."""
+
+    singular_value: float
+    terms: list[tuple[str, float]]  # (name, coefficient) of the unit null direction (scaled units)
+
+    def describe(self) -> str:
+        names = [n for n, _ in self.terms]
+        if len(self.terms) == 1:
+            return f"{names[0]} is not identifiable with this data"
+        if len(self.terms) == 2:
+            (n1, c1), (n2, c2) = self.terms
+            sign = "-" if c1 * c2 > 0 else "+"
+            return (
+                f"{n1} and {n2} are identifiable only together, as {n1} {sign} {n2} "
+                f"(in prior-scaled units); the direction {c1:+.2f}*{n1} {c2:+.2f}*{n2} is not"
+            )
+        dirn = " ".join(f"{c:+.2f}*{n}" for n, c in self.terms)
+        return f"{', '.join(names)} are not separately identifiable: the combination {dirn} is not determined"

@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from closedloop.calibration import CalibrationResult
+    from closedloop.records import CalibrationResult
 
 OK, SUSPECT, FAILED = "ok", "suspect", "failed"
 _RANK = {OK: 0, SUSPECT: 1, FAILED: 2}

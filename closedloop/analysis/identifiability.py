@@ -26,7 +26,7 @@ space of J_theta has a non-zero j-th component.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -34,50 +34,13 @@ import numpy as np
 from closedloop.analysis.gauge import choose_gauge, sets_scale
 from closedloop.estimate.noise import cholesky_inverse
 from closedloop.estimate.qr import r_factor, scaled_r_factor_of_blocks
+from closedloop.records import Combination, Dropped
 
 STRUCTURE_ROWS = 768  # residual rows per loop the structural analysis reads (`closure_jacobian`), whole configurations
 STRUCTURE_CONFIGS = (64, 512)  # the configurations that makes per loop: at least, at most
 
 if TYPE_CHECKING:
     from closedloop.problem.problem import CalibrationProblem
-
-
-@dataclass
-class Dropped:
-    """A parameter removed before solving, and why."""
-
-    name: str
-    reason: str
-    absorbed_into: list[tuple[str, float]] = field(default_factory=list)
-    residual: float = 0.0  # its column's relative residual on the kept ones' span (round-off: exactly redundant)
-
-    def describe(self) -> str:
-        if not self.absorbed_into:
-            return f"{self.name}: {self.reason}"
-        parts = " ".join(f"{c:+.3g}*{n}" for n, c in self.absorbed_into)
-        return f"{self.name}: {self.reason}; its effect equals {parts}"
-
-
-@dataclass
-class Combination:
-    """A direction of parameter space that the data do not determine."""
-
-    singular_value: float
-    terms: list[tuple[str, float]]  # (name, coefficient) of the unit null direction (scaled units)
-
-    def describe(self) -> str:
-        names = [n for n, _ in self.terms]
-        if len(self.terms) == 1:
-            return f"{names[0]} is not identifiable with this data"
-        if len(self.terms) == 2:
-            (n1, c1), (n2, c2) = self.terms
-            sign = "-" if c1 * c2 > 0 else "+"
-            return (
-                f"{n1} and {n2} are identifiable only together, as {n1} {sign} {n2} "
-                f"(in prior-scaled units); the direction {c1:+.2f}*{n1} {c2:+.2f}*{n2} is not"
-            )
-        dirn = " ".join(f"{c:+.2f}*{n}" for n, c in self.terms)
-        return f"{', '.join(names)} are not separately identifiable: the combination {dirn} is not determined"
 
 
 def compress(C: np.ndarray) -> np.ndarray:

@@ -49,9 +49,9 @@ from typing import Any
 
 import numpy as np
 
-from closedloop.calibration import CalibrationResult
 from closedloop.estimate.noise import noise_vector, whiten
 from closedloop.problem.problem import CalibrationProblem
+from closedloop.records import CalibrationResult
 
 INDEX_NAMES = ("O1", "O2", "O3", "O4", "O5")
 

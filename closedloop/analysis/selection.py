@@ -15,10 +15,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from closedloop.analysis.identifiability import Dropped, loop_mobility
+from closedloop.analysis.identifiability import loop_mobility
 from closedloop.errors import LogError, NotIdentifiableError, ParameterError
 from closedloop.model.parameters import match
 from closedloop.problem.problem import CalibrationProblem
+from closedloop.records import Dropped
 
 DEFAULT_IDENTIFY = {
     "urdf": ["placement", "offset", "loop"],

@@ -54,7 +54,7 @@ from closedloop.estimate.noise import noise_vector, whiten
 from closedloop.problem.problem import CalibrationProblem
 
 if TYPE_CHECKING:
-    from closedloop.calibration import CalibrationResult
+    from closedloop.records import CalibrationResult
 
 MAD_TO_SIGMA = 1.482602218505602  # 1 / Phi^-1(3/4)
 
