@@ -13,7 +13,8 @@ from closedloop.io.logs import JointLog, read_log  # noqa: E402
 from closedloop.loops import HingeLoop, Loop, MeasuredPointLoop, MeasuredPoseLoop, PlaneLoop, PointLoop, WeldLoop  # noqa: E402
 from closedloop.loops.spec import parse_loop  # noqa: E402
 from closedloop.model.robot import RobotModel  # noqa: E402
-from closedloop.verdict import Verdict, judge  # noqa: E402
+from closedloop.records import Verdict
+from closedloop.verdict import judge
 
 __all__ = [
     "CalibrationOptions",

@@ -34,16 +34,16 @@ ok otherwise.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from closedloop.records import FAILED, SUSPECT, Verdict
+
 if TYPE_CHECKING:
     from closedloop.records import CalibrationResult
 
-OK, SUSPECT, FAILED = "ok", "suspect", "failed"
-_RANK = {OK: 0, SUSPECT: 1, FAILED: 2}
 FLOOR = {"rms_m": 1e-7, "rms_rad": 1e-7, "rms_px": 1e-4}  # closures below these are round-off or noise-free
 # closures below these are round-off itself (seen: 5e-16..9e-14 m on exact data); there the residual is not
 # the least-squares one and need not be orthogonal to the Jacobian
@@ -64,27 +64,6 @@ class VerdictRules:
     heldout_failed: float = 30.0
     reducible_suspect: float = 0.1  # share of the final cost a Gauss-Newton step would still remove
     reducible_failed: float = 0.5
-
-
-@dataclass
-class Verdict:
-    """ok | suspect | failed, with the reasons (empty when ok) and the numbers they rest on."""
-
-    status: str = OK
-    reasons: list[str] = field(default_factory=list)
-    evidence: dict = field(default_factory=dict)
-
-    def add(self, status: str, reason: str) -> None:
-        if _RANK[status] > _RANK[self.status]:
-            self.status = status
-        self.reasons.append(f"{status}: {reason}")
-
-    @property
-    def ok(self) -> bool:
-        return self.status == OK
-
-    def describe(self) -> str:
-        return self.status if not self.reasons else f"{self.status} ({'; '.join(self.reasons)})"
 
 
 def length_scale(result: CalibrationResult) -> float:
