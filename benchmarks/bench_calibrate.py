@@ -31,7 +31,7 @@ import numpy as np
 from floor import pinocchio_floor  # benchmarks/floor.py
 from machine import add_arguments, condition, conditions, header, threads_mode, timed  # benchmarks/machine.py
 
-from closedloop.calibration import calibrate
+from closedloop.calibration.pipeline import calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel

@@ -57,7 +57,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from closedloop import CalibrationOptions, calibrate  # noqa: E402
-from closedloop.calibration import residual_stats  # noqa: E402
+from closedloop.calibration.pipeline import residual_stats  # noqa: E402
 from closedloop.design.poses import detmax, exchange_a, greedy_d_optimal, information, pool_blocks, trace_covariance  # noqa: E402
 from closedloop.studies.montecarlo import weld_scenario  # noqa: E402
 

@@ -25,7 +25,7 @@ sys.path.insert(0, str(ROOT.parent / "tests"))
 from camera_head_support import FRAMES, head_case, run_head  # noqa: E402
 from machine import load, machine  # noqa: E402
 
-from closedloop.calibration import CalibrationOptions  # noqa: E402
+from closedloop.calibration.pipeline import CalibrationOptions  # noqa: E402
 from closedloop.loops.camera.loop import CameraLoop  # noqa: E402
 
 

@@ -54,7 +54,7 @@ import pinocchio as pin
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import load, machine  # noqa: E402
 
-from closedloop.calibration import CalibrationOptions, calibrate  # noqa: E402
+from closedloop.calibration.pipeline import CalibrationOptions, calibrate  # noqa: E402
 from closedloop.io.logs import JointLog  # noqa: E402
 from closedloop.loops.camera.loop import CameraLoop  # noqa: E402
 from closedloop.model.parameters import RobotParameters  # noqa: E402

@@ -16,7 +16,7 @@ import json
 import tempfile
 from pathlib import Path
 
-from closedloop.calibration import CalibrationOptions, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, calibrate
 from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
 from closedloop.model.robot import RobotModel

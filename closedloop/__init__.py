@@ -7,14 +7,14 @@ parameters from its own joint readings.  See the README for the workflow.
 
 __version__ = "0.1.0"
 
-from closedloop.calibration import CalibrationOptions, CalibrationResult, calibrate  # noqa: E402
+from closedloop.calibration.pipeline import CalibrationOptions, CalibrationResult, calibrate  # noqa: E402
 from closedloop.errors import CalibrationError, ClosedLoopError, InputError  # noqa: E402
 from closedloop.io.logs import JointLog, read_log  # noqa: E402
 from closedloop.loops import HingeLoop, Loop, MeasuredPointLoop, MeasuredPoseLoop, PlaneLoop, PointLoop, WeldLoop  # noqa: E402
 from closedloop.loops.spec import parse_loop  # noqa: E402
 from closedloop.model.robot import RobotModel  # noqa: E402
 from closedloop.records import Verdict
-from closedloop.verdict import judge
+from closedloop.calibration.verdict import judge
 
 __all__ = [
     "CalibrationOptions",

@@ -8,7 +8,7 @@ import numpy as np
 
 from closedloop.problem.problem import BlockEval, CalibrationProblem
 
-#: the verdict's three values, in rank order (`closedloop.verdict`)
+#: the verdict's three values, in rank order (`closedloop.calibration.verdict`)
 OK, SUSPECT, FAILED = "ok", "suspect", "failed"
 _RANK = {OK: 0, SUSPECT: 1, FAILED: 2}
 

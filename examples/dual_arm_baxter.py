@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.calibration import CalibrationOptions, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, calibrate
 from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel
 from closedloop.studies.truth import make_dataset

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.calibration import CalibrationOptions, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops.point import PointLoop
 from closedloop.model.robot import RobotModel

@@ -14,7 +14,7 @@ import numpy as np
 import pinocchio as pin
 from scratch import scratch_dir
 
-from closedloop.calibration import CalibrationOptions, build_problem, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, build_problem, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops.camera.loop import CameraLoop
 from closedloop.model.robot import RobotModel

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from closedloop.calibration import build_problem, residual_stats
+from closedloop.calibration.pipeline import build_problem, residual_stats
 from closedloop.cli.main import main
 from closedloop.io.bags import ExtractOptions, extract
 from closedloop.io.logs import JointLog

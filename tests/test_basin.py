@@ -81,7 +81,7 @@ def test_door_nearly_redundant_parameters_are_named():
     from closedloop import RobotModel, read_log
     from closedloop.analysis.identifiability import analyse_structure
     from closedloop.analysis.selection import check_motion, initial_values, select_parameters
-    from closedloop.calibration import build_problem
+    from closedloop.calibration.pipeline import build_problem
     from closedloop.loops.spec import default_loops, parse_loop
 
     ex = te.door()

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, calibrate
-from closedloop.calibration import build_problem
+from closedloop.calibration.pipeline import build_problem
 from closedloop.fleet.drift import compare, gauge_record, in_gauge_of
 from closedloop.model.parameters import parse_fix
 from closedloop.studies.montecarlo import weld_scenario

@@ -7,7 +7,7 @@ import pytest
 import yaml
 from support import closed_chain, dh_transform, geodesic
 
-from closedloop.calibration import CalibrationOptions, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, calibrate
 from closedloop.errors import NotIdentifiableError
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop

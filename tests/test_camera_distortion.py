@@ -61,7 +61,7 @@ def test_distortion_recovered_noise_free():
     marker: every estimated parameter, the five coefficients included, recovered to 1e-8 from exact pixels."""
     from test_loops_camera import K1, TIP, UR5, X1, estimated_errors, robot_of, ur5_readings, vec_of
 
-    from closedloop.calibration import CalibrationOptions, build_problem, calibrate
+    from closedloop.calibration.pipeline import CalibrationOptions, build_problem, calibrate
     from closedloop.io.logs import JointLog
     from closedloop.studies.truth import draw_truth
 

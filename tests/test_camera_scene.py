@@ -11,7 +11,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from closedloop.calibration import CalibrationOptions, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, calibrate
 from closedloop.io.camera_info import read_camera_info
 from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop

@@ -8,7 +8,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from closedloop.calibration import build_problem
+from closedloop.calibration.pipeline import build_problem
 from closedloop.io.logs import JointLog
 from closedloop.loops.camera import start as camera_start
 from closedloop.loops.camera.loop import CameraLoop

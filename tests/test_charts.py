@@ -71,7 +71,7 @@ def test_solver_returns_the_problem_chart(tmp_path):
 
     from closedloop import RobotModel, read_log
     from closedloop.analysis.selection import initial_values
-    from closedloop.calibration import build_problem
+    from closedloop.calibration.pipeline import build_problem
     from closedloop.estimate.lm import SolverOptions, levenberg_marquardt
     from closedloop.estimate.stages import ResidualFunction, unweighted_closure
     from closedloop.loops.spec import parse_loop

@@ -13,7 +13,7 @@ import json
 import numpy as np
 import pytest
 
-from closedloop.calibration import CalibrationOptions, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, calibrate
 from closedloop.io.logs import read_log
 from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel

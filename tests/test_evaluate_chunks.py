@@ -10,7 +10,7 @@ from test_loop_state import Q0, SPECS
 import closedloop.problem.problem as problem_module
 from closedloop import RobotModel
 from closedloop.analysis.selection import initial_values
-from closedloop.calibration import build_problem
+from closedloop.calibration.pipeline import build_problem
 from closedloop.io.logs import JointLog
 from closedloop.loops.spec import parse_loop
 from closedloop.models import ROBOTS

@@ -10,7 +10,7 @@ import pinocchio as pin
 import pytest
 
 from closedloop.analysis.gauge import kinematic_changes, random_configurations
-from closedloop.calibration import build_problem
+from closedloop.calibration.pipeline import build_problem
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops

@@ -10,7 +10,7 @@ import pinocchio as pin
 import pytest
 from support import relative_fk_error  # noqa: E402
 
-from closedloop.calibration import CalibrationOptions, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops

@@ -993,14 +993,14 @@ def test_outputs_written_as_a_set_model_before_report(panda_files, tmp_path, mon
 
 
 def test_keyboard_interrupt_in_calibrate_and_simulate_exit_130(panda_files, tmp_path, monkeypatch, capsys):
-    import closedloop.calibration
+    import closedloop.calibration.pipeline
     import closedloop.sims
 
     def interrupt(*a, **k):
         raise KeyboardInterrupt
 
     urdf, log = panda_files
-    monkeypatch.setattr(closedloop.calibration, "calibrate", interrupt)
+    monkeypatch.setattr(closedloop.calibration.pipeline, "calibrate", interrupt)
     rc = main(["calibrate", str(urdf), str(log), "--loop", WELD, "--quiet", "--report", str(tmp_path / "r.json")])
     err = capsys.readouterr().err
     assert rc == 130 and err.strip() == "interrupted; outputs not yet published were discarded"
@@ -1047,13 +1047,13 @@ def test_real_ctrl_c_in_simulate_one_line_exit_130(tmp_path):
 
 def test_internal_error_is_one_line_exit_70(panda_files, monkeypatch, capsys):
     """A bug (an unexpected exception) is still one line, with its type, and exit 70."""
-    import closedloop.calibration
+    import closedloop.calibration.pipeline
 
     def boom(*a, **k):
         raise ZeroDivisionError("float division by zero")
 
     urdf, log = panda_files
-    monkeypatch.setattr(closedloop.calibration, "calibrate", boom)
+    monkeypatch.setattr(closedloop.calibration.pipeline, "calibrate", boom)
     rc = main(["calibrate", str(urdf), str(log), "--loop", WELD, "--quiet"])
     err = capsys.readouterr().err
     assert rc == 70 and len(err.strip().splitlines()) == 1

@@ -64,7 +64,7 @@ def test_every_loop_type_is_covered():
 @pytest.mark.parametrize("kind", sorted(SPECS))
 def test_loop_is_unchanged_by_prepare_initialize_evaluate(panda, kind):
     from closedloop.analysis.selection import initial_values
-    from closedloop.calibration import build_problem
+    from closedloop.calibration.pipeline import build_problem
 
     rng = np.random.default_rng(0)
     lp = parse_loop(SPECS[kind], panda)

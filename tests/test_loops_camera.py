@@ -8,7 +8,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from closedloop.calibration import CalibrationOptions, build_problem, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, build_problem, calibrate
 from closedloop.errors import LoopError
 from closedloop.io.logs import JointLog
 from closedloop.loops.camera.loop import CameraLoop, camera_from_dlt, project
@@ -374,7 +374,7 @@ def test_residual_stats_in_pixels():
     """The report's closure statistics for a camera loop are image-point errors in pixels."""
     from types import SimpleNamespace
 
-    from closedloop.calibration import residual_stats
+    from closedloop.calibration.pipeline import residual_stats
     from closedloop.problem.problem import BlockEval
 
     loop = CameraLoop("cam", "tool0", cameras=2)

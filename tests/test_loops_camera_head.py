@@ -15,7 +15,7 @@ import pytest
 from camera_head_support import FRAMES, K_TRUE, MARKER, MOUNT, head_case, head_readings, head_robot, run_head
 
 from closedloop.analysis.gauge import length_of
-from closedloop.calibration import CalibrationOptions, build_problem, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, build_problem, calibrate
 from closedloop.errors import LoopError
 from closedloop.io.logs import JointLog
 from closedloop.loops.camera.loop import CameraLoop

@@ -9,7 +9,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from closedloop.calibration import CalibrationOptions, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, calibrate
 from closedloop.errors import LoopError
 from closedloop.io.logs import JointLog
 from closedloop.loops.hinge import HingeLoop

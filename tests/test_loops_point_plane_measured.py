@@ -9,7 +9,7 @@ import pinocchio as pin
 import pytest
 from support import relative_fk_error
 
-from closedloop.calibration import CalibrationOptions, build_problem, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, build_problem, calibrate
 from closedloop.errors import LoopError
 from closedloop.io.logs import JointLog
 from closedloop.loops.common import relative_point

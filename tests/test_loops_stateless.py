@@ -12,7 +12,7 @@ import pinocchio as pin
 import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
-from closedloop.calibration import build_problem
+from closedloop.calibration.pipeline import build_problem
 from closedloop.errors import LoopError
 from closedloop.io.logs import JointLog
 from closedloop.loops.measured import MeasuredPointLoop

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, JointLog, WeldLoop, calibrate
-from closedloop.calibration import analyse_solution
-from closedloop.estimate.staged import Fit
+from closedloop.calibration.pipeline import analyse_solution
+from closedloop.calibration.staged import Fit
 from closedloop.estimate.stages import ResidualFunction, StageResult
-from closedloop.verdict import judge
+from closedloop.calibration.verdict import judge
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from closedloop.calibration import CalibrationOptions, build_problem, calibrate, residual_stats
+from closedloop.calibration.pipeline import CalibrationOptions, build_problem, calibrate, residual_stats
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel

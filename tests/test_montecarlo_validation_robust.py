@@ -5,7 +5,7 @@ import pytest
 from scipy import stats
 
 from closedloop import CalibrationOptions, calibrate
-from closedloop.calibration import build_problem
+from closedloop.calibration.pipeline import build_problem
 from closedloop.estimate.robust import config_residuals, irls, mad_scale, suspects, weights
 from closedloop.studies.montecarlo import monte_carlo, unwrap_rotation_vector, weld_scenario
 from closedloop.validation.kfold import cross_validate, folds

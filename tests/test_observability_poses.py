@@ -190,7 +190,7 @@ def test_selection_halves_the_configurations_point_contact():
         stride=1,
         noise=1e-4,
     )
-    from closedloop.calibration import calibrate
+    from closedloop.calibration.pipeline import calibrate
     from closedloop.io.logs import JointLog
 
     res = calibrate(

@@ -11,7 +11,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from closedloop.calibration import calibrate
+from closedloop.calibration.pipeline import calibrate
 from closedloop.cli.main import main
 from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel

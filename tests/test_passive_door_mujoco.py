@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 
-from closedloop.calibration import calibrate
+from closedloop.calibration.pipeline import calibrate
 from closedloop.io.logs import read_log
 from closedloop.loops import PassiveChainLoop
 from closedloop.model.robot import RobotModel

@@ -20,7 +20,7 @@ from closedloop.output.urdf import tool_frames, write_model
 from closedloop.problem.distances import DistanceLoop
 from closedloop.validation.evaluate import evaluate_result
 from closedloop.validation.fixtures import fixture_groups, leave_one_fixture_out
-from closedloop.verdict import judge
+from closedloop.calibration.verdict import judge
 
 ROOT = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("ball_socket_rig", ROOT / "examples" / "ball_socket_rig.py")

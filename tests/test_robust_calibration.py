@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from conftest import PANDA_Q0
 
-from closedloop.calibration import CalibrationOptions, calibrate, residual_stats
+from closedloop.calibration.pipeline import CalibrationOptions, calibrate, residual_stats
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.studies.truth import make_dataset

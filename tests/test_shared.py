@@ -11,7 +11,7 @@ import pytest
 
 from closedloop import RobotModel
 from closedloop.analysis.selection import initial_values
-from closedloop.calibration import build_problem
+from closedloop.calibration.pipeline import build_problem
 from closedloop.errors import InputError, LogError, LoopError
 from closedloop.io.logs import JointLog, read_log, read_loop_logs
 from closedloop.loops.spec import parse_loop

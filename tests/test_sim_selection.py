@@ -24,7 +24,7 @@ import pinocchio as pin
 import pytest
 from test_sim_calibration import CASES
 
-from closedloop.calibration import CalibrationOptions, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, calibrate
 from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
 from closedloop.model.robot import RobotModel

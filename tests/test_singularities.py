@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from closedloop.calibration import CalibrationOptions, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, calibrate
-from closedloop.calibration import build_problem
+from closedloop.calibration.pipeline import build_problem
 from closedloop.studies.montecarlo import weld_scenario
 from closedloop.validation.kfold import cross_validate, folds
 

@@ -151,7 +151,7 @@ def read_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def run_closedloop(
     urdf: Path, q: np.ndarray, m: np.ndarray, q_held: np.ndarray, initial_tip=None, options: dict | None = None
 ) -> dict:
-    from closedloop.calibration import CalibrationOptions, calibrate
+    from closedloop.calibration.pipeline import CalibrationOptions, calibrate
     from closedloop.io.logs import JointLog
     from closedloop.loops import MeasuredPointLoop
     from closedloop.model.robot import RobotModel

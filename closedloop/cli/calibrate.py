@@ -66,7 +66,7 @@ def check_calibrate_options(args) -> tuple:
 
 
 def cmd_calibrate(args) -> int:
-    from closedloop.calibration import CalibrationOptions, calibrate
+    from closedloop.calibration.pipeline import CalibrationOptions, calibrate
     from closedloop.cli.evaluate import require_log
     from closedloop.io.files import OutputSet
     from closedloop.io.logs import check_loop_column
@@ -93,7 +93,7 @@ def cmd_calibrate(args) -> int:
         if cv_given:
             raise InputError(f"--cv {args.cv}: more folds than the {len(lg)} rows of {args.log}")
         args.cv = len(lg) if len(lg) >= 2 else 0
-    from closedloop.calibration import build_problem
+    from closedloop.calibration.pipeline import build_problem
 
     names = build_problem(robot, lg, loops).names
     opts = CalibrationOptions(
@@ -121,7 +121,7 @@ def cmd_calibrate(args) -> int:
     )
     from closedloop.cli.evaluate import fixture_validation
     from closedloop.output.report import verdict_record
-    from closedloop.verdict import judge
+    from closedloop.calibration.verdict import judge
 
     lofo = fixture_validation(robot, lg, loops, opts, report, args, prog) if res.converged else None
     res.verdict = judge(res, cv, fixtures=lofo)  # the fit's evidence, the held-out folds' and fixtures'

@@ -84,7 +84,7 @@ COLUMNS = [
 
 # --------------------------------------------------------------------------- one job (in a worker)
 def _options(opts: dict, names: list[str]):
-    from closedloop.calibration import CalibrationOptions
+    from closedloop.calibration.pipeline import CalibrationOptions
     from closedloop.model.parameters import parse_fix
 
     noise = opts.get("noise")
@@ -161,7 +161,7 @@ def run_job(job: BatchJob) -> dict:
     """Calibrate and validate one job, write its folder whole; return its summary row (+ parameters)."""
     import time
 
-    from closedloop.calibration import build_problem, calibrate
+    from closedloop.calibration.pipeline import build_problem, calibrate
     from closedloop.loops.spec import default_loops, parse_loop
     from closedloop.model.robot import RobotModel
     from closedloop.output.report import build_report, write_report
@@ -242,7 +242,7 @@ def _judge(res, cv: dict | None, report: dict):
     """The calibration's verdict, judged again with the held-out folds as `closedloop calibrate` does."""
     try:
         from closedloop.output.report import verdict_record
-        from closedloop.verdict import judge
+        from closedloop.calibration.verdict import judge
     except ImportError:  # a core without verdicts: 'n/a' in the summary
         return getattr(res, "verdict", None)
     res.verdict = judge(res, cv)

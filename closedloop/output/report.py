@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from closedloop import __version__
-from closedloop.calibration import CalibrationResult
+from closedloop.calibration.pipeline import CalibrationResult
 from closedloop.io.files import atomic_write_text
 
 

@@ -224,7 +224,7 @@ def mujoco_pixels(model, data) -> np.ndarray:
 
 def _identifiable(robot, theta: np.ndarray, seed: int) -> list[str]:
     """Robot parameters a calibration estimates on exact pixels of the nominal robot (the truth's support)."""
-    from closedloop.calibration import build_problem, calibrate
+    from closedloop.calibration.pipeline import build_problem, calibrate
     from closedloop.io.logs import JointLog
     from closedloop.loops.spec import parse_loop
 

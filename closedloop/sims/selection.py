@@ -11,7 +11,7 @@ samples in four steps, all on the robot's NOMINAL model (no MuJoCo, no truth):
    for ``select_pool * n`` waypoints (pure kinematics; open loops: random
    configurations), the candidate configurations.
 2. **Information** (:func:`information_result`): the calibration core
-   (``closedloop.calibration.calibrate``) is run on the pool's exact nominal
+   (``closedloop.calibration.pipeline.calibrate``) is run on the pool's exact nominal
    readings with the loop the scenario is calibrated with
    (:meth:`closedloop.sims.loop_types.SimLoop.core_loop`) and the default parameter
    selection (placement, offset, loop; plus scale when the truth has scale
@@ -97,7 +97,7 @@ def information_result(
         tool_frame_points: measured loops: (N, 3) nominal tool points, the measurements of a
             tracker at the world origin (the information does not depend on the tracker pose).
     """
-    from closedloop.calibration import CalibrationOptions, calibrate
+    from closedloop.calibration.pipeline import CalibrationOptions, calibrate
     from closedloop.io.logs import JointLog
     from closedloop.model.robot import RobotModel
 

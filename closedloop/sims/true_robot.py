@@ -86,7 +86,7 @@ def identifiable_parameters(nominal_path, sc: Scenario, joint_names: list[str], 
     self-motion data through the grasp configuration).  Loop types the core
     has no loop class for yet fall back to :func:`perturbable_parameters`.
     """
-    from closedloop.calibration import CalibrationOptions
+    from closedloop.calibration.pipeline import CalibrationOptions
     from closedloop.model.robot import RobotModel
     from closedloop.studies.truth import identifiable_names
 
@@ -116,7 +116,7 @@ def _measured_identifiable_names(robot, loop, options, n: int = 40, seed: int = 
     the nominal tool point measured exactly by a tracker at the identity pose,
     and the core's own reduction on that data.
     """
-    from closedloop.calibration import calibrate
+    from closedloop.calibration.pipeline import calibrate
     from closedloop.io.logs import JointLog
 
     model = robot.model

@@ -57,7 +57,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from closedloop.calibration import CalibrationOptions, CalibrationResult, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, CalibrationResult, calibrate
 from closedloop.errors import ModelError, OptionError, ParameterError, SimulationError
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop

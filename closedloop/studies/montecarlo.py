@@ -38,7 +38,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.analysis.observability import whitened_blocks
-from closedloop.calibration import CalibrationOptions, build_problem, calibrate
+from closedloop.calibration.pipeline import CalibrationOptions, build_problem, calibrate
 from closedloop.errors import ClosedLoopError
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop

@@ -61,7 +61,7 @@ def evaluate_model(
 
     Only the loops' own unknowns are fitted (unweighted), the robot is held.
     """
-    from closedloop.calibration import build_problem
+    from closedloop.calibration.pipeline import build_problem
     from closedloop.estimate.lm import SolverOptions
     from closedloop.estimate.stages import plain_stage
     from closedloop.problem.shared import initial_shared

@@ -76,7 +76,7 @@ def leave_one_fixture_out(
     'nominal_rms_m', 'nominal_mean_m', 'converged', 'worse'}], 'suspect': [reasons]}; a fixture whose
     refit fails (the others alone do not determine the robot) has 'error' instead of the closures.
     """
-    from closedloop.calibration import CalibrationOptions, calibrate
+    from closedloop.calibration.pipeline import CalibrationOptions, calibrate
     from closedloop.validation.evaluate import evaluate_model, evaluate_result
 
     groups = fixture_groups(loops)

@@ -29,7 +29,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from closedloop.calibration import CalibrationOptions, CalibrationResult, build_problem, calibrate, residual_stats
+from closedloop.calibration.pipeline import CalibrationOptions, CalibrationResult, build_problem, calibrate, residual_stats
 from closedloop.errors import ParameterError
 from closedloop.estimate.noise import noise_vector, whiten
 from closedloop.io.logs import JointLog

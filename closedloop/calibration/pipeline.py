@@ -41,7 +41,7 @@ from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifi
 from closedloop.estimate.lm import reducible_share, rms, scaled_svd
 from closedloop.estimate.noise import noise_vector
 from closedloop.estimate.outliers import gross_outliers, readmit, reject_outliers
-from closedloop.estimate.staged import (
+from closedloop.calibration.staged import (
     Fit,
     Progress,
     recheck_at_solution,
@@ -61,7 +61,7 @@ from closedloop.records import (
     Rejected,
     residual_stats,
 )
-from closedloop.verdict import judge
+from closedloop.calibration.verdict import judge
 
 __all__ = [
     "CalibrationOptions",
