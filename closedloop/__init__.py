@@ -5,16 +5,15 @@ loop with its task, the loop-closure equations identify its kinematic
 parameters from its own joint readings.  See the README for the workflow.
 """
 
-__version__ = "0.1.0"
-
 from closedloop.calibration.pipeline import CalibrationOptions, CalibrationResult, calibrate  # noqa: E402
+from closedloop.calibration.verdict import judge
 from closedloop.errors import CalibrationError, ClosedLoopError, InputError  # noqa: E402
 from closedloop.io.logs import JointLog, read_log  # noqa: E402
 from closedloop.loops import HingeLoop, Loop, MeasuredPointLoop, MeasuredPoseLoop, PlaneLoop, PointLoop, WeldLoop  # noqa: E402
 from closedloop.loops.spec import parse_loop  # noqa: E402
 from closedloop.model.robot import RobotModel  # noqa: E402
 from closedloop.records import Verdict
-from closedloop.calibration.verdict import judge
+from closedloop.version import __version__  # noqa: E402
 
 __all__ = [
     "CalibrationOptions",

@@ -16,8 +16,8 @@ import pytest
 from closedloop import CalibrationOptions, JointLog, WeldLoop, calibrate
 from closedloop.calibration.pipeline import analyse_solution
 from closedloop.calibration.staged import Fit
-from closedloop.estimate.stages import ResidualFunction, StageResult
 from closedloop.calibration.verdict import judge
+from closedloop.estimate.stages import ResidualFunction, StageResult
 
 
 @pytest.fixture(scope="module")

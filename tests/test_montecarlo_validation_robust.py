@@ -7,7 +7,8 @@ from scipy import stats
 from closedloop import CalibrationOptions, calibrate
 from closedloop.calibration.pipeline import build_problem
 from closedloop.estimate.robust import config_residuals, irls, mad_scale, suspects, weights
-from closedloop.studies.montecarlo import monte_carlo, unwrap_rotation_vector, weld_scenario
+from closedloop.problem.unwrap import unwrap_rotation_vector
+from closedloop.studies.montecarlo import monte_carlo, weld_scenario
 from closedloop.validation.kfold import cross_validate, folds
 
 NOISE = 1e-4

@@ -14,13 +14,13 @@ import pinocchio as pin
 import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
+from closedloop.calibration.verdict import judge
 from closedloop.io.logs import JointLog
 from closedloop.loops.spec import parse_loop
 from closedloop.output.urdf import tool_frames, write_model
 from closedloop.problem.distances import DistanceLoop
 from closedloop.validation.evaluate import evaluate_result
 from closedloop.validation.fixtures import fixture_groups, leave_one_fixture_out
-from closedloop.calibration.verdict import judge
 
 ROOT = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("ball_socket_rig", ROOT / "examples" / "ball_socket_rig.py")

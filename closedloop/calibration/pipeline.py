@@ -37,10 +37,6 @@ from closedloop.analysis.identifiability import Structure, analyse_structure, we
 from closedloop.analysis.linearity import check_error_bars
 from closedloop.analysis.scale import annotate
 from closedloop.analysis.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
-from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
-from closedloop.estimate.lm import reducible_share, rms, scaled_svd
-from closedloop.estimate.noise import noise_vector
-from closedloop.estimate.outliers import gross_outliers, readmit, reject_outliers
 from closedloop.calibration.staged import (
     Fit,
     Progress,
@@ -49,6 +45,11 @@ from closedloop.calibration.staged import (
     solve_staged,
     solve_with_restarts,
 )
+from closedloop.calibration.verdict import judge
+from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
+from closedloop.estimate.lm import reducible_share, rms, scaled_svd
+from closedloop.estimate.noise import noise_vector
+from closedloop.estimate.outliers import gross_outliers, readmit, reject_outliers
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
@@ -61,7 +62,6 @@ from closedloop.records import (
     Rejected,
     residual_stats,
 )
-from closedloop.calibration.verdict import judge
 
 __all__ = [
     "CalibrationOptions",

@@ -119,9 +119,9 @@ def cmd_calibrate(args) -> int:
         if args.cv and res.converged
         else None
     )
+    from closedloop.calibration.verdict import judge
     from closedloop.cli.evaluate import fixture_validation
     from closedloop.output.report import verdict_record
-    from closedloop.calibration.verdict import judge
 
     lofo = fixture_validation(robot, lg, loops, opts, report, args, prog) if res.converged else None
     res.verdict = judge(res, cv, fixtures=lofo)  # the fit's evidence, the held-out folds' and fixtures'

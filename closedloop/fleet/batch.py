@@ -241,8 +241,8 @@ def _gauge(res) -> dict | None:
 def _judge(res, cv: dict | None, report: dict):
     """The calibration's verdict, judged again with the held-out folds as `closedloop calibrate` does."""
     try:
-        from closedloop.output.report import verdict_record
         from closedloop.calibration.verdict import judge
+        from closedloop.output.report import verdict_record
     except ImportError:  # a core without verdicts: 'n/a' in the summary
         return getattr(res, "verdict", None)
     res.verdict = judge(res, cv)

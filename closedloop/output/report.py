@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop import __version__
 from closedloop.calibration.pipeline import CalibrationResult
 from closedloop.io.files import atomic_write_text
+from closedloop.version import __version__
 
 
 def _chi2_sf(x: float, dof: int) -> float:

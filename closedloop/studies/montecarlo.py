@@ -44,6 +44,7 @@ from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
+from closedloop.problem.unwrap import unwrap
 
 
 # --------------------------------------------------------------------------- scenario
@@ -233,44 +234,6 @@ def _resample_onto_loop(
             f"resampling the self-motion of loop {problem.blocks[block].loop.name} left the loop or the limits"
         )
     return th
-
-
-# --------------------------------------------------------------------------- unwrap
-def unwrap_rotation_vector(r: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """The rotation vector of the same rotation as `r` nearest to `ref`."""
-    r = np.asarray(r, float)
-    a = np.linalg.norm(r)
-    if a < 1e-12:
-        u = ref / np.linalg.norm(ref) if np.linalg.norm(ref) > 1e-12 else np.array([1.0, 0.0, 0.0])
-        cands = [np.zeros(3)] + [u * 2 * np.pi * k for k in (-1, 1)]
-    else:
-        u = r / a
-        cands = [u * (a + 2 * np.pi * k) for k in (-2, -1, 0, 1, 2)]
-    return min(cands, key=lambda c: float(np.linalg.norm(c - ref)))
-
-
-def rotation_triples(problem: CalibrationProblem) -> list[tuple[int, int, int]]:
-    """Index triples of rotation-vector parameters (weld closures: <loop>.rx, ry, rz)."""
-    out = []
-    for cols in problem.loop_columns:  # index maps (loops may share parameters)
-        names = [problem.names[i] for i in cols]
-        for k, n in enumerate(names):
-            if (
-                n.endswith(".rx")
-                and k + 2 < len(names)
-                and names[k + 1].endswith(".ry")
-                and names[k + 2].endswith(".rz")
-            ):
-                out.append((int(cols[k]), int(cols[k + 1]), int(cols[k + 2])))
-    return out
-
-
-def unwrap(problem: CalibrationProblem, values: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """`values` with every closure rotation vector unwrapped towards `ref`."""
-    v = np.array(values, float)
-    for t in rotation_triples(problem):
-        v[list(t)] = unwrap_rotation_vector(v[list(t)], ref[list(t)])
-    return v
 
 
 # --------------------------------------------------------------------------- bound

@@ -29,14 +29,20 @@ from typing import Any, Callable
 
 import numpy as np
 
-from closedloop.calibration.pipeline import CalibrationOptions, CalibrationResult, build_problem, calibrate, residual_stats
+from closedloop.calibration.pipeline import (
+    CalibrationOptions,
+    CalibrationResult,
+    build_problem,
+    calibrate,
+    residual_stats,
+)
 from closedloop.errors import ParameterError
 from closedloop.estimate.noise import noise_vector, whiten
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
 from closedloop.problem.blocks import BlockEval
-from closedloop.studies.montecarlo import unwrap
+from closedloop.problem.unwrap import unwrap
 
 
 def subset(log_: JointLog, rows: np.ndarray) -> JointLog:
