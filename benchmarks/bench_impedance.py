@@ -27,9 +27,10 @@ from closedloop.impedance.bootstrap import bootstrap, free_run_vaf  # noqa: E402
 from closedloop.impedance.data import onsets_from_events, segment  # noqa: E402
 from closedloop.impedance.estimate import EstimateOptions, estimate, posture_fit  # noqa: E402
 from closedloop.impedance.metrics import bias_random, coverage, mean_rise_time, median_errors, rel_errors  # noqa: E402
-from closedloop.impedance.model import ExperimentConfig, simulate  # noqa: E402
+from closedloop.impedance.model import ExperimentConfig
 from closedloop.impedance.mujoco_sim import forearm_truth, simulate_robot  # noqa: E402
 from closedloop.impedance.plots import plot_impedance  # noqa: E402
+from closedloop.impedance.simulation import simulate
 
 METHODS = {
     "default (20 Hz)": ("default", {}),

@@ -66,7 +66,7 @@ def study_inputs() -> dict:
     """The inputs of the other studies (built once, outside the timings)."""
     from closedloop.impedance.data import onsets_from_events, segment
     from closedloop.impedance.model import ExperimentConfig
-    from closedloop.impedance.model import simulate as simulate_impedance
+    from closedloop.impedance.simulation import simulate as simulate_impedance
     from closedloop.sims import SCENARIOS
 
     sim = simulate_impedance(ExperimentConfig(n_cycles=100, noise=0.05, seed=21))

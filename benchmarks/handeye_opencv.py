@@ -57,11 +57,11 @@ from machine import load, machine  # noqa: E402
 from closedloop.calibration.pipeline import CalibrationOptions, calibrate  # noqa: E402
 from closedloop.io.logs import JointLog  # noqa: E402
 from closedloop.loops.camera.loop import CameraLoop  # noqa: E402
+from closedloop.loops.settings import share
 from closedloop.model.parameters import RobotParameters  # noqa: E402
 from closedloop.model.robot import RobotModel  # noqa: E402
 from closedloop.models import example_robot_data_dir  # noqa: E402
 from closedloop.problem.distances import DistanceLoop  # noqa: E402
-from closedloop.loops.settings import share
 
 K = np.array([600.0, 600.0, 319.5, 239.5])
 KM = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])

@@ -162,7 +162,8 @@ def test_impedance_bootstrap_chunks_identical_on_every_engine(cluster, local):
     from closedloop.impedance.data import onsets_from_events, segment
     from closedloop.impedance.estimate import EstimateOptions
     from closedloop.impedance.metrics import coverage
-    from closedloop.impedance.model import ExperimentConfig, simulate
+    from closedloop.impedance.model import ExperimentConfig
+    from closedloop.impedance.simulation import simulate
 
     sim = simulate(ExperimentConfig(n_cycles=60, noise=0.05, seed=21))
     ens = segment(sim.record, onsets_from_events(sim.record))

@@ -9,8 +9,9 @@ from closedloop.impedance.bootstrap import bootstrap, free_run_vaf
 from closedloop.impedance.data import onsets_from_events, segment
 from closedloop.impedance.estimate import EstimateOptions, estimate
 from closedloop.impedance.metrics import coverage
-from closedloop.impedance.model import ExperimentConfig, natural, simulate
+from closedloop.impedance.model import ExperimentConfig, natural
 from closedloop.impedance.nonparam import model_check
+from closedloop.impedance.simulation import simulate
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,8 @@ from closedloop.impedance.data import (
     segment,
     write_record,
 )
-from closedloop.impedance.model import ExperimentConfig, simulate
+from closedloop.impedance.model import ExperimentConfig
+from closedloop.impedance.simulation import simulate
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,8 @@ import pytest
 from closedloop.impedance.data import onsets_from_events, segment
 from closedloop.impedance.estimate import estimate, posture_fit
 from closedloop.impedance.metrics import mean_rise_time, median_errors, rel_errors
-from closedloop.impedance.model import ExperimentConfig, simulate
+from closedloop.impedance.model import ExperimentConfig
+from closedloop.impedance.simulation import simulate
 
 
 def _ens(**kw):

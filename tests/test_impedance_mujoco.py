@@ -7,8 +7,9 @@ import numpy as np
 from closedloop.impedance.data import onsets_from_events, segment
 from closedloop.impedance.estimate import estimate
 from closedloop.impedance.metrics import rel_errors
-from closedloop.impedance.model import ExperimentConfig, simulate, truth_curves
+from closedloop.impedance.model import ExperimentConfig, truth_curves
 from closedloop.impedance.mujoco_sim import forearm_truth, simulate_robot
+from closedloop.impedance.simulation import simulate
 
 
 def test_mujoco_matches_rk4_twin():

@@ -15,9 +15,8 @@ import pytest
 
 from closedloop import CalibrationOptions, JointLog, WeldLoop, calibrate
 from closedloop.calibration.pipeline import analyse_solution
-from closedloop.calibration.staged import Fit
 from closedloop.calibration.verdict import judge
-from closedloop.estimate.stages import ResidualFunction, StageResult
+from closedloop.estimate.stages import Fit, ResidualFunction, StageResult
 
 
 @pytest.fixture(scope="module")

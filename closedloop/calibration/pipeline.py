@@ -38,7 +38,6 @@ from closedloop.analysis.linearity import check_error_bars
 from closedloop.analysis.scale import annotate
 from closedloop.analysis.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
 from closedloop.calibration.staged import (
-    Fit,
     Progress,
     recheck_at_solution,
     solve_from_starts,
@@ -50,6 +49,7 @@ from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifi
 from closedloop.estimate.lm import reducible_share, rms, scaled_svd
 from closedloop.estimate.noise import noise_vector
 from closedloop.estimate.outliers import gross_outliers, readmit, reject_outliers
+from closedloop.estimate.stages import Fit
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel

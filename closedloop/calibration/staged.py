@@ -12,7 +12,7 @@ decision is kept that does not hold at the solution).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -21,6 +21,7 @@ from closedloop.analysis.identifiability import Structure, analyse_structure, cl
 from closedloop.errors import ParameterError
 from closedloop.estimate.lm import SolverOptions, scaled_svd
 from closedloop.estimate.stages import (
+    Fit,
     ResidualFunction,
     StageResult,
     plain_stage,
@@ -34,19 +35,6 @@ from closedloop.records import CalibrationOptions
 
 log = logging.getLogger(__name__)
 Progress = Callable[[str, int, float], None]
-
-
-@dataclass
-class Fit:
-    """A solved reduced problem: the full parameter vector and how it was reached."""
-
-    x: np.ndarray
-    stage: StageResult
-    est: list[int]
-    sigma_q: np.ndarray
-    known: bool
-    iterations: int
-    warnings: list[str]
 
 
 def _solver_options(opt: CalibrationOptions, problem: CalibrationProblem, est: list[int], known: bool) -> SolverOptions:

@@ -60,8 +60,9 @@ def add_parser(subparsers) -> None:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from closedloop.impedance.data import write_record
-    from closedloop.impedance.model import ExperimentConfig, ForearmParams, simulate
+    from closedloop.impedance.model import ExperimentConfig, ForearmParams
     from closedloop.impedance.results import write_truth
+    from closedloop.impedance.simulation import simulate
     from closedloop.io.schemas import check_number
 
     args.noise = check_number("--noise", args.noise, 0.0, 1e6)

@@ -33,7 +33,7 @@ from closedloop.problem.problem import CalibrationProblem
 from closedloop.records import Rejected
 
 if TYPE_CHECKING:
-    from closedloop.calibration.staged import Fit
+    from closedloop.estimate.stages import Fit
     from closedloop.records import CalibrationOptions
 
 log = logging.getLogger(__name__)

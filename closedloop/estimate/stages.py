@@ -338,3 +338,16 @@ def random_start(
     x = x0.copy()
     x[est] = x[est] + size * scale[est] * rng.standard_normal(len(est))
     return x
+
+
+@dataclass
+class Fit:
+    """A solved reduced problem: the full parameter vector and how it was reached."""
+
+    x: np.ndarray
+    stage: StageResult
+    est: list[int]
+    sigma_q: np.ndarray
+    known: bool
+    iterations: int
+    warnings: list[str]

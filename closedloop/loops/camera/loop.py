@@ -35,7 +35,15 @@ import pinocchio as pin
 
 from closedloop.errors import LoopError
 from closedloop.loops.base import Loop, LoopEval
-from closedloop.loops.camera.model import DIST_FIELDS, INTRINSIC_FIELDS, camera_from_dlt, dlt, project, project_lens  # noqa: F401
+from closedloop.loops.camera.model import (  # noqa: F401
+    DIST_FIELDS,
+    INTRINSIC_FIELDS,
+    PLACEHOLDER_K,
+    camera_from_dlt,
+    dlt,
+    project,
+    project_lens,
+)
 from closedloop.loops.common import POSE_FIELDS, TIP_FIELDS, point_parameters, pose_parameters, relative_point
 from closedloop.model.parameters import Parameter
 from closedloop.model.se3 import as_se3, generators, pose_of, skew, vec3, vec_of
@@ -44,7 +52,6 @@ PIXEL_COLS = ("u", "v")
 CLOSURES = ("reprojection", "triangulation")
 DEFAULT_PRIOR_PX = 100.0  # expected error of an intrinsics guess (px): column scaling, data identifiability
 DEFAULT_PRIOR_DIST = 0.1  # expected error of a distortion guess
-PLACEHOLDER_K = np.array([1000.0, 1000.0, 0.0, 0.0])  # unknown intrinsics with no guess: replaced by the DLT
 
 
 class CameraLoop(Loop):

@@ -211,3 +211,6 @@ def camera_from_dlt(Y: np.ndarray, uv: np.ndarray, k: np.ndarray | None) -> tupl
     if np.mean(depth > 0) < 0.5 or not (np.all(np.isfinite(k)) and k[0] > 0 and k[1] > 0):
         return None
     return pin.SE3(R.T, -R.T @ t), np.asarray(k, dtype=float)
+
+
+PLACEHOLDER_K = np.array([1000.0, 1000.0, 0.0, 0.0])  # unknown intrinsics with no guess: replaced by the DLT

@@ -20,8 +20,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.loops import common
-from closedloop.loops.camera.loop import PLACEHOLDER_K
-from closedloop.loops.camera.model import camera_from_dlt
+from closedloop.loops.camera.model import PLACEHOLDER_K, camera_from_dlt
 from closedloop.loops.common import relative_point
 from closedloop.model.se3 import vec_of
 
