@@ -1,4 +1,4 @@
-"""Basin of convergence on the thesis's chapter 3 examples (issue 10, item 3).
+"""Basin of convergence on the thesis's chapter 3 examples.
 
 For each example of `tests/thesis_examples.py` (Example 1: 7-DOF arm welded to the ground;
 Example 2: two 6-DOF arms grasping, 12 joints; the door of 3.4.2 with the hinge unknown; point

@@ -1,4 +1,4 @@
-"""Benchmark: weld-loop calibration of the 7-DOF Panda (issues 2, 5, 17).
+"""Benchmark: weld-loop calibration of the 7-DOF Panda.
 
 Per dataset size, BLAS thread mode and load condition: the whole calibration
 time (analysis + solve), the solve time, the LM iterations, the CPU time, and

@@ -1,4 +1,4 @@
-"""Benchmark: the command line is not all imports (issue 17).
+"""Benchmark: the command line is not all imports.
 
 Two figures, with the machine, the load and the BLAS threads beside them:
 

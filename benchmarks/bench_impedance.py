@@ -1,4 +1,4 @@
-"""Benchmark of the time-varying impedance identification (issue 11): every "What must show" item.
+"""Benchmark of the time-varying impedance identification: every "What must show" item.
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/bench_impedance.py [--reps 10] [--out out/bench_impedance]
 

@@ -1,4 +1,4 @@
-"""Time per evaluation of the loops that eliminate passive joints (issue 17, item 2).
+"""Time per evaluation of the loops that eliminate passive joints.
 
 `HingeLoop` (the door of thesis 3.4.2, one eliminated angle) and `PassiveChainLoop` (3.4.3, the
 two-joint door task model `models/tasks/door.urdf`) evaluated with their Jacobians on N synthetic

@@ -1,4 +1,4 @@
-"""Fuzz every loader and option parser with >= 10,000 examples each (issue 13).
+"""Fuzz every loader and option parser with >= 10,000 examples each.
 
     python benchmarks/fuzz_loaders.py [--examples 10000] [--only dh,log,...]
 

@@ -1,4 +1,4 @@
-"""40 SIGKILLs at random moments of `closedloop calibrate` and `closedloop simulate` (issue 13).
+"""40 SIGKILLs at random moments of `closedloop calibrate` and `closedloop simulate`.
 
     python benchmarks/kill_outputs.py [--kills 40] [--seed 0]
 

@@ -1,4 +1,4 @@
-"""Default weighting against the unweighted fit on held-out places, over seeds (issue 18, contact noise).
+"""Default weighting against the unweighted fit on held-out places, over seeds (contact noise).
 
 tests/test_rigs.py `test_contact_default_no_worse_than_unweighted_heldout` (seed 0) compares the default
 (task noise estimated beside the joint noise, pooled when the loops agree, `closedloop.estimate.variance`) with

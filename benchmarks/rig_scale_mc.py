@@ -1,4 +1,4 @@
-"""Is the size's standard error right?  Simulated ball-and-socket rigs, one seed per draw (issue 18).
+"""Is the size's standard error right?  Simulated ball-and-socket rigs, one seed per draw.
 
 Each seed draws a true Panda (every joint origin 1 mm / 1 mrad, offsets 5 mrad), 30 configurations per
 socket of a two-socket block (50 mm) at three places, 0.2 mm play in the sockets and 2e-5 rad joint

@@ -1,4 +1,4 @@
-"""The full robot zoo (issue 10): every arm x loop type x seed x start, judged against the truth.
+"""The full robot zoo: every arm x loop type x seed x start, judged against the truth.
 
 Data from `tests/zoo.py` (a generator independent of closedloop's parametrization); each case is
 calibrated with the defaults of `closedloop.calibrate` and its calibrated URDF judged by what the

@@ -1,6 +1,6 @@
 """Simulate a ball-and-socket rig: a 7-DOF arm with a ball on its flange, a two-socket block at several places.
 
-The data a real rig gives (issue 18): the ball pressed by hand into each socket of a printed block (two
+The data a real rig gives: the ball pressed by hand into each socket of a printed block (two
 sockets a known distance apart), the block then moved to other places; joint readings only, one
 header-less CSV per socket and place.  The truth is independent of closedloop's parametrization: every
 joint origin of the nominal URDF (fixed joints included) moved in its parent frame, joint offsets added,

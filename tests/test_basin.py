@@ -1,4 +1,4 @@
-"""Basin of convergence, quick: a few thesis-sized random starts per chapter 3 example (issue 10, item 3).
+"""Basin of convergence, quick: a few thesis-sized random starts per chapter 3 example.
 
 Exact data from `thesis_examples.py` (loops closed with Pinocchio on the true D-H table).  On
 Examples 1 and 2 and point contact all starts here but at most one must be recovered (the calibrated

@@ -1,4 +1,4 @@
-"""Ground-truth recovery with the weld loop (issue 2 acceptance numbers)."""
+"""Ground-truth recovery with the weld loop (acceptance numbers)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Joint compliance removes the gravity bias of a compliant, loaded loop (issue 5, item 5).
+"""Joint compliance removes the gravity bias of a compliant, loaded loop.
 
 MuJoCo Panda weld with joint compliance c = 2e-5 rad/Nm on every joint (the
 encoders see the link angle plus c * tau).  Acceptance: with the compliance

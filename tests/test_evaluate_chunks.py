@@ -1,4 +1,4 @@
-"""Large blocks are evaluated a chunk of configurations at a time (`problem.CHUNK`, issue 17: temporaries stay
+"""Large blocks are evaluated a chunk of configurations at a time (`problem.CHUNK`: temporaries stay
 below glibc's mmap limit); the result must be the unchunked one, for every loop type and every field."""
 
 from __future__ import annotations

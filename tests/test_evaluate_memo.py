@@ -1,4 +1,4 @@
-"""`CalibrationProblem.evaluate` keeps its last two results for the same parameter vector (issue 17): what it
+"""`CalibrationProblem.evaluate` keeps its last two results for the same parameter vector: what it
 gives again equals a fresh evaluation to the bit, is a copy the caller may change, and is never given to a
 problem whose loops differ (a re-charted copy) or for other parameters, readings or columns."""
 

@@ -125,7 +125,7 @@ def test_unknown_engine_is_an_input_error():
         ex.get_engine("dask")
 
 
-# --------------------------------------------------------------------------- the other studies (issue 16, item 3)
+# --------------------------------------------------------------------------- the other studies
 def test_pose_pools_identical_on_every_engine(cluster, local):
     """One A-optimal selection per candidate pool, and the random-subset baseline seeded per chunk:
     the same designs on serial, local pool and Ray; selection beats the best of 60 random draws."""

@@ -1,4 +1,4 @@
-"""Issue 13's malformed-input matrix as a table: one row per case, the input, the exit code, the words.
+"""The malformed-input matrix as a table: one row per case, the input, the exit code, the words.
 
 Every bad input gives exit 2 and ONE line on stderr naming the file / option / field (never a
 traceback); inputs that are fine give exit 0.  Cases run in-process (`main([...])`), except the

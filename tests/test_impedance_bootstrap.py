@@ -1,4 +1,4 @@
-"""Bootstrap bands, free-run VAF and the impulse-response model check (issue 11)."""
+"""Bootstrap bands, free-run VAF and the impulse-response model check."""
 
 from __future__ import annotations
 

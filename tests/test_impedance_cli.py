@@ -1,4 +1,4 @@
-"""`closedloop impedance simulate|identify` end to end and its one-line errors (issue 11)."""
+"""`closedloop impedance simulate|identify` end to end and its one-line errors."""
 
 from __future__ import annotations
 

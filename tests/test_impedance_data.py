@@ -1,4 +1,4 @@
-"""Impedance data I/O, segmentation, exclusion and alignment (thesis 9.5.1, issue 11)."""
+"""Impedance data I/O, segmentation, exclusion and alignment (thesis 9.5.1)."""
 
 from __future__ import annotations
 

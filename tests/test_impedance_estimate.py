@@ -1,4 +1,4 @@
-"""Time-varying impedance estimators against the RK4 twin's analytic truth (thesis 9.6, issue 11)."""
+"""Time-varying impedance estimators against the RK4 twin's analytic truth (thesis 9.6)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""MuJoCo forearm agrees with the numpy RK4 twin; finite-difference truth; the robot case (issue 11)."""
+"""MuJoCo forearm agrees with the numpy RK4 twin; finite-difference truth; the robot case."""
 
 from __future__ import annotations
 

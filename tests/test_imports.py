@@ -1,4 +1,4 @@
-"""Imports paid only by what uses them (issue 17), and BLAS thread control (closedloop.estimate.threads).
+"""Imports paid only by what uses them, and BLAS thread control (closedloop.estimate.threads).
 
 `import closedloop` and a calibration of a URDF load no scipy at all (scipy.stats / special /
 optimize / linalg), no trimesh or yourdfpy, no matplotlib or mujoco, no camera code; the lazy

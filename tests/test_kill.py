@@ -1,5 +1,5 @@
 """SIGKILL at random moments of `closedloop calibrate` and `closedloop simulate`: the output set is the old
-one or the new one, never a mix, never a temporary file (issue 13).
+one or the new one, never a mix, never a temporary file.
 
 The old set is written first by a complete run; then runs that would write a different new set are
 killed after a random delay drawn over the whole run (biased towards its end, where the files are

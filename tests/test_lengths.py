@@ -1,4 +1,4 @@
-"""A known length between two robot frames (issue 18 item 2, `closedloop.problem.lengths`) on the ball-and-socket rig.
+"""A known length between two robot frames (`closedloop.problem.lengths`) on the ball-and-socket rig.
 
 The truth (examples/ball_socket_rig.py) perturbs every joint origin in its parent frame, so the frames' positions
 along their joint axes, which no loop can see, are off too: a length that depends on them cannot set the size

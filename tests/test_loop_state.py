@@ -1,4 +1,4 @@
-"""Loops keep no per-dataset state (issue 15): preparing, initialising and evaluating a loop leave the
+"""Loops keep no per-dataset state: preparing, initialising and evaluating a loop leave the
 object as it was; what a loop reads off the data (the hinge's chart) lives in the copy `prepare` returns,
 which the problem and the result hold (`CalibrationResult.loops`)."""
 

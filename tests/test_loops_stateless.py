@@ -1,4 +1,4 @@
-"""Loops keep no per-dataset state (issue 15): measurements are arguments, noise estimates stay in the problem."""
+"""Loops keep no per-dataset state: measurements are arguments, noise estimates stay in the problem."""
 
 from __future__ import annotations
 

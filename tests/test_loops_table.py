@@ -1,4 +1,4 @@
-"""One explicit table of loop types (issue 15): the parser, ``closedloop loops`` and the simulator read it."""
+"""One explicit table of loop types: the parser, ``closedloop loops`` and the simulator read it."""
 
 from __future__ import annotations
 

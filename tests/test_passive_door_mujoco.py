@@ -1,4 +1,4 @@
-"""The passive task-chain loop on a MuJoCo dataset (issue 4, item 4): the UR5 door scenario
+"""The passive task-chain loop on a MuJoCo dataset: the UR5 door scenario
 calibrated with the door given as a one-joint task URDF, its geometry identified with the robot."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""A stage on a long log is first solved on an evenly spaced sample (`fit.presolved`, issue 17: 100,000
+"""A stage on a long log is first solved on an evenly spaced sample (`fit.presolved`: 100,000
 configurations in at most 5 s); the whole log then finishes it.  The answer must be the whole log's own fit,
 to a small fraction of its standard errors, and a sample whose fit fails must not be used."""
 

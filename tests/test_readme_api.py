@@ -1,4 +1,4 @@
-"""The README's Python example runs as written, importing from `closedloop` alone (issue 15)."""
+"""The README's Python example runs as written, importing from `closedloop` alone."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""What a rig calibration prints and reports (issue 18 leftovers): configurations without distance rows, no
+"""What a rig calibration prints and reports (leftovers): configurations without distance rows, no
 held-out line for a distance, shared loop groups not among the robot's corrections, a shared camera's K."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""A ball-and-socket rig (issue 18): one ball shared by every loop, a two-socket block 50 mm apart at three
+"""A ball-and-socket rig: one ball shared by every loop, a two-socket block 50 mm apart at three
 places, play in the sockets (task-space noise) and joint noise; the truth from examples/ball_socket_rig.py
 (independent of closedloop's parametrization: every joint origin perturbed, closures solved by Pinocchio)."""
 
@@ -301,7 +301,7 @@ BLOCK = [[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.01, 0.04, 0.0]]  # three sockets 
 
 
 def test_block_of_three_sockets_sets_scale(tmp_path):
-    """Issue 18 item 2: a block with three sockets at known positions, moved as one rigid body to three
+    """A block with three sockets at known positions, moved as one rigid body to three
     places (--block NAME A.point=X,Y,Z ...): the robot's size within its standard error of the truth
     (seed 0: -0.02 % against +-0.10 %), the report naming the blocks; the estimated sockets keep the
     block's shape.  Through the command line the same."""

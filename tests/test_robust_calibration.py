@@ -1,4 +1,4 @@
-"""Robust fitting (issue 5, item 3): three 5 cm outliers in 200 configurations change neither the
+"""Robust fitting: three 5 cm outliers in 200 configurations change neither the
 estimated parameter set nor the held-out error by more than 10%, and are reported as suspects."""
 
 from __future__ import annotations

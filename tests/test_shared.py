@@ -205,7 +205,7 @@ def _two_tracker_mc(draws: int, monkeypatch=None) -> float:
 
 
 def test_shared_readings_whitened_together(monkeypatch):
-    """Issue 14 item 2: residuals of several loops at one configuration share its joint noise; whitened
+    """Residuals of several loops at one configuration share its joint noise; whitened
     together the standard errors match the Monte Carlo spread (40 draws: 1.01), whitened apart they
     understate it (1.43)."""
     together = _two_tracker_mc(40)
@@ -250,7 +250,7 @@ def _two_camera_data(sigma_px: float | None = None):
 
 
 def test_two_cameras_share_the_marker():
-    """Issue 14: one marker seen by two single-camera loops is one parameter; noise-free, both images
+    """One marker seen by two single-camera loops is one parameter; noise-free, both images
     close to round-off with the marker estimated once."""
     from closedloop import CalibrationOptions, calibrate
 
@@ -261,7 +261,7 @@ def test_two_cameras_share_the_marker():
 
 
 def _two_camera_mc(draws: int, sigma_q: float = 1e-4, sigma_px: float = 0.01) -> tuple[float, float]:
-    """Issue 14: two single-camera loops share the marker, joint noise dominant (1e-4 rad, ~0.05 px in
+    """Two single-camera loops share the marker, joint noise dominant (1e-4 rad, ~0.05 px in
     the images, against 0.01 px): over `draws` noisy copies of one data set, the Monte Carlo spread of the shared marker and
     the mean z^2 of all estimated parameters against the reported standard errors."""
     from closedloop import CalibrationOptions, calibrate
@@ -289,7 +289,7 @@ def _two_camera_mc(draws: int, sigma_q: float = 1e-4, sigma_px: float = 0.01) ->
 
 
 def test_two_cameras_shared_marker_monte_carlo(monkeypatch):
-    """Issue 14: the shared marker's standard errors match the Monte Carlo spread with arm noise
+    """The shared marker's standard errors match the Monte Carlo spread with arm noise
     dominant: 40 draws (~3 s), the marker's spread over its standard error 1.04 and the mean z^2 of all
     parameters 0.92; whitened apart (joint noise counted twice) they are 1.30 and 1.35."""
     ratio, z2 = _two_camera_mc(40)

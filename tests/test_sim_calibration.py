@@ -1,4 +1,4 @@
-"""Calibrating each MuJoCo scenario's dataset recovers the truth (issue 3, default settings).
+"""Calibrating each MuJoCo scenario's dataset recovers the truth (default settings).
 
 Tolerances: the `closedloop check` defaults (1 mm, 5 mrad) must pass, and the
 measured accuracy of the defaults is asserted with a margin (README table).

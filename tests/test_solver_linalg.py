@@ -1,4 +1,4 @@
-"""The solver's reduced linear algebra (issue 17): TSQR triangle, SVD of the triangle, no U ever formed.
+"""The solver's reduced linear algebra: TSQR triangle, SVD of the triangle, no U ever formed.
 
 Checked against numpy's full SVD / lstsq on the same matrices, and the LM solution
 against the closed-form least-squares one.

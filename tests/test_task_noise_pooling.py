@@ -1,4 +1,4 @@
-"""Per-loop task-space noise (issue 18 item 3): one component when the loops' estimates agree, their own when not.
+"""Per-loop task-space noise: one component when the loops' estimates agree, their own when not.
 
 Two rigs with the same true robot (examples/ball_socket_rig.py, seed 0): two places with 0.2 mm of play in
 the sockets and two with 0.8 mm.  Each loop's variance component is estimated (`variance.variance_components`);

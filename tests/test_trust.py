@@ -1,4 +1,4 @@
-"""Trust: a wrong calibration is never reported as a good one (issue 10, cases 1, 2, 4, 5).
+"""Trust: a wrong calibration is never reported as a good one.
 
 Each case is judged by what the calibrated robot does (closure, the fixture's distance from the
 base, relative parameter changes), not by which parameter the calibrator happened to keep.

@@ -1,4 +1,4 @@
-"""The robot zoo, quick subset: every calibration is either right or not reported as ok (issue 10).
+"""The robot zoo, quick subset: every calibration is either right or not reported as ok.
 
 Data come from `zoo.py`, a generator independent of closedloop's parametrization (errors on
 every joint origin in the parent frame, fixed joints included; loops closed with Pinocchio on

@@ -1,4 +1,4 @@
-"""Benchmark: closedloop vs FIGAROH on open-loop (tracker) calibration of a UR10 (issue 5 item 7).
+"""Benchmark: closedloop vs FIGAROH on open-loop (tracker) calibration of a UR10.
 
 One simulated dataset, built once with Pinocchio on a true UR10, is given to
 both tools: a tool point on ``tool0`` measured in position by a tracker whose

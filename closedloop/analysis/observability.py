@@ -1,4 +1,4 @@
-"""Observability indices of a calibration experiment (issue 5, item 1).
+"""Observability indices of a calibration experiment.
 
 All indices are functions of the singular values s_1 >= ... >= s_L of the
 calibration Jacobian of the L *estimated* parameters, taken in the form the

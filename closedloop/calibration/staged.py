@@ -5,7 +5,7 @@ where the weighting misleads (a stall far above any plausible noise, a
 weighting that turns singular on the way), the plain loop-closure fit
 (`fit.plain_stage`, eq. 3.8) first; `solve_with_restarts` tries other starts
 when the fit stalls; `recheck_at_solution` recomputes the structural reduction
-and the gauge at the solution and re-solves where they differ (issue 10: no
+and the gauge at the solution and re-solves where they differ (no
 decision is kept that does not hold at the solution).
 """
 

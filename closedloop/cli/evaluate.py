@@ -1,4 +1,4 @@
-"""Command-line pieces for rigs: ``closedloop evaluate`` and calibrate's rig options (issue 18).
+"""Command-line pieces for rigs: ``closedloop evaluate`` and calibrate's rig options.
 
     closedloop evaluate nominal.urdf calibrated.urdf other.urdf log.csv --loop point:frame=ball,name=a ...
     closedloop evaluate nominal.urdf calibrated.urdf --joints j1,...,j7 \\

@@ -192,7 +192,7 @@ def _add_calibrate(sub) -> None:
     )
     c.add_argument("--degrees", action="store_true", help="the log is in degrees")
     c.add_argument("--quiet", action="store_true")
-    from closedloop.cli.evaluate import add_rig_options  # --distance, --joints, --lofo (rigs, issue 18)
+    from closedloop.cli.evaluate import add_rig_options  # --distance, --joints, --lofo (rigs)
 
     add_rig_options(c)
     c.set_defaults(func=cmd_calibrate)

@@ -1,4 +1,4 @@
-"""Choosing the most informative configurations (issue 5, item 2).
+"""Choosing the most informative configurations.
 
 From a pool of candidate configurations of one loop (readings, e.g. a dense
 self-motion walk) choose K that make the information matrix of the estimated

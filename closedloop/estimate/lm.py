@@ -18,7 +18,7 @@ sigma the known noise level of r (1 when r is whitened by a known noise) or, if
 unknown, the current residual RMS (large while the model is far off, like the
 thesis's large p at the start; the noise level at convergence).
 
-Globalisation (issue 10: thesis-sized starting errors).  The first step is
+Globalisation (thesis-sized starting errors).  The first step is
 Gauss-Newton (lambda = 0, or `damping` x s_max^2); a trial is accepted when
 its gain ratio rho = (actual decrease) / (the linear model's decrease) exceeds
 1e-4, and lambda follows Nielsen's rule (x max(1/3, 1 - (2 rho - 1)^3) on

@@ -197,7 +197,7 @@ def whiten(
     |r|^2, nor J^T J, nor J^T r: the least-squares problem is the same, at a
     fraction of the cost of the eigendecompositions.
     Configurations whose readings several blocks use (the same log row,
-    `BlockEval.rows`: two cameras seeing one marker, issue 14 item 2) are
+    `BlockEval.rows`: two cameras seeing one marker) are
     whitened together: their stacked residual has the covariance
     J_theta Sigma J_theta^T of the stacked J_theta (+ each block's measurement
     covariance on the diagonal), so the joint noise they share counts once

@@ -1,4 +1,4 @@
-"""Robust losses and outlier flags per configuration (issue 5, item 5).
+"""Robust losses and outlier flags per configuration.
 
 The unit is a configuration: its m whitened closure rows share one weight.
 With r_i (m,) the whitened residual of configuration i (``whiten``: W_i^-1/2

@@ -1,4 +1,4 @@
-"""A task-space noise per loop beside the joint noise: variance components (issue 18 item 3).
+"""A task-space noise per loop beside the joint noise: variance components.
 
 A ball pressed by hand into a socket has play: its error is in the contact,
 not in the joints.  A loop's closure then has the covariance
@@ -44,7 +44,7 @@ def task_blocks(problem: CalibrationProblem) -> list[int]:
     Loops with sigma_task=auto, and by default (no sigma_task given) the
     contact loops (point, plane) when at least two of them share the robot:
     a ball with play in its socket is noise in the contact, not in the joints,
-    and several loops separate the two (issue 18 item 3).
+    and several loops separate the two.
     """
     out = []
     contact = [

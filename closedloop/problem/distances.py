@@ -1,4 +1,4 @@
-"""Known geometry as measurements: distances between loop points (issue 18 item 2).
+"""Known geometry as measurements: distances between loop points.
 
 A closed loop closes at any overall size (thesis 3.3): without a length the
 robot's scale is held by an arbitrary one (`gauge`).  A rig usually has one

@@ -1,4 +1,4 @@
-"""A known length between two frames of the robot (issue 18 item 2): a link measured with calipers.
+"""A known length between two frames of the robot: a link measured with calipers.
 
 Closed loops close at any overall size (thesis 3.3).  A length between two
 frames A and B, measured with every joint at a reading of 0 (the robot's

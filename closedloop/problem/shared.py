@@ -1,4 +1,4 @@
-"""Loop parameters shared by name across loops (issue 18 item 1, issue 14 item 1).
+"""Loop parameters shared by name across loops.
 
 One ball on the flange pressed into six sockets is one tool point, not six; a
 marker seen by two cameras is one marker.  A loop parameter is shared by

@@ -54,7 +54,7 @@ class SimSettings:
     Settling and sampling:
         vel_tol: a configuration is settled when max |qdot| < vel_tol [rad/s].
         move_vel_tol: with ``relax``, the move to a waypoint and every relax pass
-            but the last stop at max |qdot| < move_vel_tol [rad/s] (the last
+            but the final standstill at max |qdot| < move_vel_tol [rad/s] (the last
             pass settles to ``vel_tol``).
         min_steps, max_steps: bounds on simulation steps per sample.
         ramp_steps: steps over which the command is interpolated to the next waypoint.

@@ -1,4 +1,4 @@
-"""Monte Carlo check of the estimator against the Cramer-Rao bound (issue 5, item 3).
+"""Monte Carlo check of the estimator against the Cramer-Rao bound.
 
 From a truth (parameter values and joint readings that close the loops
 exactly) simulate M datasets by adding Gaussian noise to the readings,

@@ -1,4 +1,4 @@
-"""A model on data: closure and loop-point spread with the robot untouched (issue 18 item 5).
+"""A model on data: closure and loop-point spread with the robot untouched.
 
 Any model (the nominal URDF, a calibrated one, another tool's) is judged on
 any data the same way: the robot's parameters are held, the loops' own

@@ -1,4 +1,4 @@
-"""Validation across fixtures: leave one fixture out (issue 18 item 4).
+"""Validation across fixtures: leave one fixture out.
 
 k-fold validation splits each loop's configurations; it cannot see a
 calibration that fits the places it was recorded at and extrapolates badly

@@ -1,4 +1,4 @@
-"""Held-out and k-fold validation of a calibration (issue 5, item 4).
+"""Held-out and k-fold validation of a calibration.
 
 A calibration is judged on configurations it did not see: refit on the
 training rows with the same options, then evaluate the closure residual of
