@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 
 import numpy as np
 
@@ -72,7 +73,21 @@ class Rejected:
     closure_rad: float | None
 
 
-@dataclass
+class ParamStatus(str, Enum):
+    """What a calibration did with a parameter (a `str`: compares equal to, and prints as, its value)."""
+
+    SELECTED = "selected"  # chosen for estimation, before the structural reduction
+    NOT_SELECTED = "not selected"  # not among the parameters to identify (held at its initial value)
+    ESTIMATED = "estimated"
+    FIXED = "fixed"  # held at a value: by the user, or as the gauge that sets the overall size
+    DROPPED = "dropped"  # removed before solving: redundant with the kept ones (`Dropped`)
+    UNIDENTIFIABLE = "unidentifiable"  # the data do not determine it (`Combination`)
+
+    __str__ = str.__str__
+    __format__ = str.__format__
+
+
+@dataclass(frozen=True)
 class ParameterRecord:
     """One parameter of a calibration, as a record."""
 
@@ -82,19 +97,23 @@ class ParameterRecord:
     initial: float
     value: float
     std: float  # NaN where not estimated or not identifiable
-    status: str
+    status: ParamStatus
 
 
-@dataclass
+@dataclass(frozen=True)
 class CalibrationResult:
-    """Everything a report needs; `values` are absolute parameter values."""
+    """Everything a report needs; `values` are absolute parameter values.
+
+    Built once, by keyword, when the fit is done; what is added after (the scale's findings, the error-bar
+    profiles, the verdict) makes a new record with ``dataclasses.replace``.
+    """
 
     problem: CalibrationProblem
     names: list[str]
     initial: np.ndarray
     values: np.ndarray
     std: np.ndarray  # NaN where not estimated or not identifiable
-    status: list[str]  # 'estimated' | 'fixed' | 'dropped' | 'unidentifiable' | 'not selected'
+    status: list[ParamStatus]
     dropped: list[Dropped]
     weak: list[Combination]
     singular_values: np.ndarray
@@ -151,13 +170,13 @@ class CalibrationResult:
         """Every parameter as a named record, in the problem's order."""
         return [
             ParameterRecord(
-                p.name,
-                p.kind,
-                p.unit,
-                float(self.initial[k]),
-                float(self.values[k]),
-                float(self.std[k]),
-                self.status[k],
+                name=p.name,
+                kind=p.kind,
+                unit=p.unit,
+                initial=float(self.initial[k]),
+                value=float(self.values[k]),
+                std=float(self.std[k]),
+                status=ParamStatus(self.status[k]),
             )
             for k, p in enumerate(self.problem.params)
         ]

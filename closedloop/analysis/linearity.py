@@ -166,17 +166,17 @@ def check_profiles(
     return out
 
 
-def check_error_bars(res, fit) -> list[Profile]:
-    """The profiles of a calibration result that took more than `PROFILE_AFTER` iterations, with a warning
-    (`res.warnings`: the verdict is `suspect`) for each direction whose error bar does not hold.
+def check_error_bars(res, fit) -> tuple[list[Profile], list[str]]:
+    """The profiles of a calibration result that took more than `PROFILE_AFTER` iterations, and a warning
+    (for `res.warnings`: the verdict is `suspect`) for each direction whose error bar does not hold.
 
     On the fit's own residual function (`fit.stage.fun`: its weighting, its row weights, such as a known
     length's in an unweighted fit), at the reported values.
     """
     if res.iterations <= PROFILE_AFTER or not res.estimated or res.covariance.size == 0:
-        return []
+        return [], []
     if res.sigma_estimated and not res.sigma > EXACT:  # exact data: error bars of round-off, nothing to check
-        return []
+        return [], []
     from closedloop.analysis.gauge import size_per_parameter
 
     problem, est = res.problem, list(res.estimated)
@@ -187,10 +187,10 @@ def check_error_bars(res, fit) -> list[Profile]:
     scale_std = getattr(res, "scale_std", float("nan"))
     size = size_per_parameter(problem, res.values, est) if scale_std is not None and np.isfinite(scale_std) else None
     profiles = check_profiles(make, problem, res.values, est, res.covariance, noise, size)
-    for p in profiles:
-        if not p.holds:
-            res.warnings.append(
-                f"the error bars do not hold: {p.describe()}; the fit lies in a curved valley its "
-                "linearisation does not see, and the standard errors understate the uncertainty"
-            )
-    return profiles
+    warnings = [
+        f"the error bars do not hold: {p.describe()}; the fit lies in a curved valley its "
+        "linearisation does not see, and the standard errors understate the uncertainty"
+        for p in profiles
+        if not p.holds
+    ]
+    return profiles, warnings

@@ -17,6 +17,7 @@ import numpy as np
 from closedloop.model.parameters import DEFAULT_PRIORS
 from closedloop.problem.distances import DistanceLoop, distance_blocks
 from closedloop.problem.lengths import LengthLoop, length_blocks
+from closedloop.records import ParamStatus
 
 if TYPE_CHECKING:
     from closedloop.problem.problem import CalibrationProblem
@@ -70,36 +71,44 @@ def scale_std(problem: CalibrationProblem, x: np.ndarray, est: list[int], cov: n
     return float(np.sqrt(max(c @ cov @ c, 0.0)))
 
 
-def annotate(res, sigma_q: np.ndarray, scale_free: bool, snr: float = 1.0) -> None:
-    """Add what sets the scale (with the size's standard error) and each loop's noise model to a result.
+def scale_findings(res, sigma_q: np.ndarray, scale_free: bool, snr: float = 1.0) -> dict:
+    """What sets the scale (with the size's standard error) and each loop's noise model, for a result.
 
-    Sets `res.scale_note`, `res.scale_std` (relative), `res.length_response` (known lengths between
-    frames, `closedloop.problem.lengths`) and `res.noise_model`
-    (`variance.noise_summary`), and appends their sentences to `res.notes`.
+    Returns the result's fields to replace (``dataclasses.replace(res, **findings)``): `scale_note`,
+    `scale_std` (relative), `length_response` and `length_leak` (known lengths between frames,
+    `closedloop.problem.lengths`), `noise_model` (`variance.noise_summary`), and `notes` and `warnings`
+    with their sentences added.
     """
     from closedloop.estimate.variance import noise_notes, noise_summary
 
     problem = res.problem
+    notes, warnings = list(res.notes), list(res.warnings)
+    out: dict = {}
     note = scale_note(problem, res.gauge, scale_free)
+    leak = None
     if length_blocks(problem) and res.estimated:  # a known length between frames: does it set the size?
-        sentence, warnings = length_findings(res, np.asarray(sigma_q, dtype=float), snr)
-        res.warnings.extend(warnings)
+        sentence, found, out["length_response"], leak = length_findings(res, np.asarray(sigma_q, dtype=float), snr)
+        out["length_leak"] = leak
+        warnings.extend(found)
         note = sentence if not distance_blocks(problem) else f"{note}; {sentence}"
     if (distance_blocks(problem) or length_blocks(problem)) and res.estimated:
         try:
-            res.scale_std = scale_std(problem, res.values, res.estimated, res.covariance)
-            if res.length_leak is not None and np.isfinite(res.length_leak):  # what the held values add
-                res.scale_std = float(np.hypot(res.scale_std, res.length_leak))
+            std = scale_std(problem, res.values, res.estimated, res.covariance)
+            if leak is not None and np.isfinite(leak):  # what the held values add
+                std = float(np.hypot(std, leak))
         except (np.linalg.LinAlgError, ValueError):
-            res.scale_std = float("nan")
-        if note and np.isfinite(res.scale_std):
-            note += f" (the robot's size to +-{res.scale_std:.2%}, one standard error)"
-    res.scale_note = note
+            std = float("nan")
+        out["scale_std"] = std
+        if note and np.isfinite(std):
+            note += f" (the robot's size to +-{std:.2%}, one standard error)"
+    out["scale_note"] = note
     if note:
-        res.notes.append(note)
+        notes.append(note)
     if res.weighting == "noise":
-        res.noise_model = noise_summary(problem, res.values, np.asarray(sigma_q, dtype=float))
-        res.notes.extend(noise_notes(res.noise_model))
+        out["noise_model"] = noise_summary(problem, res.values, np.asarray(sigma_q, dtype=float))
+        notes.extend(noise_notes(out["noise_model"]))
+    out["notes"], out["warnings"] = notes, warnings
+    return out
 
 
 LEAK_TOL = 1e-3  # relative size error from a 1 mm (1 mrad) error of what the loops cannot see
@@ -153,31 +162,40 @@ def replace_length(loop: LengthLoop, factor: float) -> LengthLoop:
     return out
 
 
-def length_findings(res, sigma_q: np.ndarray, snr: float) -> tuple[str, list[str]]:
-    """(the sentence on what sets the scale, the warnings that make the result suspect) for a result whose
-    problem has known lengths; sets `res.length_response` and `res.length_leak` (module docstring)."""
+def length_findings(res, sigma_q: np.ndarray, snr: float) -> tuple[str, list[str], float, float]:
+    """(the sentence on what sets the scale, the warnings that make the result suspect, the size response,
+    the held-length leak) for a result whose problem has known lengths (module docstring)."""
     problem = res.problem
     labels = " and ".join(problem.blocks[bi].loop.label() for bi in length_blocks(problem))
-    res.length_response = size_response(problem, res.values, res.estimated, sigma_q, res.weighting, snr)
-    free = [k for k, s in enumerate(res.status) if s in ("estimated", "dropped", "unidentifiable")]
-    res.length_leak, held = held_leak(problem, res.values, free)
+    response = size_response(problem, res.values, res.estimated, sigma_q, res.weighting, snr)
+    free = [
+        k
+        for k, s in enumerate(res.status)
+        if s in (ParamStatus.ESTIMATED, ParamStatus.DROPPED, ParamStatus.UNIDENTIFIABLE)
+    ]
+    leak, held = held_leak(problem, res.values, free)
     warnings = []
-    if not SETS_SIZE[0] <= res.length_response <= SETS_SIZE[1]:
+    if not SETS_SIZE[0] <= response <= SETS_SIZE[1]:
         warnings.append(
             f"{labels} sets the robot's size only in part (a change of it by 1 % scales the robot by "
-            f"{res.length_response:.3g} %): the loops tie it to the rest of the robot too loosely; the "
+            f"{response:.3g} %): the loops tie it to the rest of the robot too loosely; the "
             "scale is not set by the data"
         )
-    if not res.length_leak <= LEAK_TOL:
+    if not leak <= LEAK_TOL:
         warnings.append(
             f"{labels} also changes with {held}, which the loops cannot see (held at its value): an "
-            f"error of 1 mm or 1 mrad there changes the identified size by {res.length_leak:.2%}"
+            f"error of 1 mm or 1 mrad there changes the identified size by {leak:.2%}"
             if held
             else f"{labels}: whether it sets the size could not be checked at the solution"
         )
     if warnings:
-        return warnings[0], warnings
-    return (f"the scale is set by {labels} (a change of it by 1 % scales the robot by {res.length_response:.3g} %)", [])
+        return warnings[0], warnings, response, leak
+    return (
+        f"the scale is set by {labels} (a change of it by 1 % scales the robot by {response:.3g} %)",
+        [],
+        response,
+        leak,
+    )
 
 
 def held_leak(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> tuple[float, str | None]:

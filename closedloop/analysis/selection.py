@@ -19,7 +19,7 @@ from closedloop.analysis.identifiability import loop_mobility
 from closedloop.errors import LogError, NotIdentifiableError, ParameterError
 from closedloop.model.parameters import match
 from closedloop.problem.problem import CalibrationProblem
-from closedloop.records import Dropped
+from closedloop.records import Dropped, ParamStatus
 
 DEFAULT_IDENTIFY = {
     "urdf": ["placement", "offset", "loop"],
@@ -55,7 +55,7 @@ def select_parameters(
         if not match(names, [q]):
             raise ParameterError(f"--identify {q}: matches no parameter of this problem")
     selected = set(match(names, pats)) | (set(loop_names) if "loop" in patterns else set())
-    status = ["selected" if n in selected else "not selected" for n in names]
+    status = [ParamStatus.SELECTED if n in selected else ParamStatus.NOT_SELECTED for n in names]
     wants_tau = [n for n in selected if problem.params[problem.index[n]].kind == "compliance"]
     if wants_tau and any(b.tau is None for b in problem.blocks):
         raise LogError(
@@ -74,7 +74,7 @@ def select_parameters(
                     f"expected corrections of about {prm.prior:g} {prm.unit})"
                 )
             x0[k] = v
-        status[k] = "fixed"
+        status[k] = ParamStatus.FIXED
     return status
 
 
@@ -100,8 +100,8 @@ def check_motion(
                 "the geometry it would reveal cannot be identified (Singularity 5)"
             )
             k = problem.rp.index[problem.rp.sensor_name(name, "scale")]
-            if status[k] == "selected":
-                status[k] = "dropped"
+            if status[k] == ParamStatus.SELECTED:
+                status[k] = ParamStatus.DROPPED
                 dropped.append(Dropped(names[k], "its joint never moves, so scale and offset are one"))
     small = [
         f"{n} ({r:.3g})"
@@ -142,8 +142,8 @@ def check_motion(
                     "what absorbs them). Write these rows with convention: hayati (eq. 4.2)"
                 )
     sc = [problem.rp.index[problem.rp.sensor_name(j, "scale")] for j in problem.joints]
-    if sc and all(status[k] == "selected" for k in sc):
+    if sc and all(status[k] == ParamStatus.SELECTED for k in sc):
         k = sc[-1]
-        status[k] = "fixed"
+        status[k] = ParamStatus.FIXED
         notes.append(f"fixed {names[k]} = {x0[k]:g}: with every scale factor free, k = 0 fits any data (thesis 4.2.2)")
     return notes, dropped, warnings

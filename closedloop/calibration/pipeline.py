@@ -35,7 +35,7 @@ import numpy as np
 
 from closedloop.analysis.identifiability import Structure, analyse_structure, weak_directions
 from closedloop.analysis.linearity import check_error_bars
-from closedloop.analysis.scale import annotate
+from closedloop.analysis.scale import scale_findings
 from closedloop.analysis.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
 from closedloop.calibration.staged import (
     Progress,
@@ -59,6 +59,7 @@ from closedloop.records import (
     CalibrationResult,
     LoopResiduals,
     ParameterRecord,
+    ParamStatus,
     Rejected,
     residual_stats,
 )
@@ -174,7 +175,7 @@ def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOpti
     for c in weak:
         for n, _ in c.terms:
             k = problem.index[n]
-            status[k] = "unidentifiable"
+            status[k] = ParamStatus.UNIDENTIFIABLE
             std[k] = np.nan
     chi2 = float(r @ r) / (sigma_r**2 if not (fit.known and weighted) else 1.0)
     # At a minimum r is orthogonal to the columns of J: |U_k^T r|^2 / |r|^2, the share of the cost a
@@ -228,7 +229,7 @@ def _calibrate(
     x0 = initial_values(problem, opt.initial)
     status = select_parameters(problem, opt.identify, opt.fix, x0)
     notes, dropped, motion_warnings = check_motion(problem, x0, status)
-    free = [k for k, s in enumerate(status) if s == "selected"]
+    free = [k for k, s in enumerate(status) if s == ParamStatus.SELECTED]
     if not free:
         raise NotIdentifiableError("no parameter is left to identify (all fixed or not selected)")
     sigma_q, known = noise_vector(problem, opt.noise)
@@ -248,51 +249,51 @@ def _calibrate(
     fit.x = x = fit.stage.fun.normalized(fit.x)  # loops in canonical form, the fit's Jacobian carried along
     fit.warnings.extend(motion_warnings)
     for k in free:
-        status[k] = "estimated" if k in fit.est else "dropped"
+        status[k] = ParamStatus.ESTIMATED if k in fit.est else ParamStatus.DROPPED
     gauge = name_gauge(problem, structure, x, status, opt, notes, fit.warnings)
     a = analyse_solution(problem, fit, opt, status)
     sol = fit.stage.solution
     if sol.status != "converged":
         notes.append(f"solver: {sol.message}")
     res = CalibrationResult(
-        problem,
-        problem.names,
-        x0,
-        x,
-        a["std"],
-        status,
-        dropped + list(structure.dropped),
-        a["weak"],
-        a["S"],
-        a["rank"],
-        before,
-        after,
-        fit.iterations,
-        sol.status,
-        sol.message,
-        a["sigma"],
-        opt.noise is None,
-        a["chi2"],
-        a["dof"],
-        notes,
-        a["cov"],
-        fit.est,
-        suspects,
-        a["weighting"],
-        gauge,
-        structure.gauge_note,
-        structure.gauge_length,
-        rejected,
-        len(log_),
-        fit.warnings,
+        problem=problem,
+        names=problem.names,
+        initial=x0,
+        values=x,
+        std=a["std"],
+        status=status,
+        dropped=dropped + list(structure.dropped),
+        weak=a["weak"],
+        singular_values=a["S"],
+        rank=a["rank"],
+        residuals_before=before,
+        residuals_after=after,
+        iterations=fit.iterations,
+        solver_status=sol.status,
+        solver_message=sol.message,
+        sigma=a["sigma"],
+        sigma_estimated=opt.noise is None,
+        chi2=a["chi2"],
+        dof=a["dof"],
+        notes=notes,
+        covariance=a["cov"],
+        estimated=fit.est,
+        suspects=suspects,
+        weighting=a["weighting"],
+        gauge=gauge,
+        gauge_note=structure.gauge_note,
+        gauge_length=structure.gauge_length,
+        rejected=rejected,
+        rows_total=len(log_),
+        warnings=fit.warnings,
+        reducible=a["reducible"],
     )
-    res.reducible = a["reducible"]
-    annotate(
-        res, fit.sigma_q, structure.scale_free, opt.snr
-    )  # what sets the scale, each loop's noise (closedloop.problem.distances)
-    res.profiles = check_error_bars(res, fit)  # a long fit: do its error bars hold? (closedloop.analysis.linearity)
-    res.verdict = judge(res)
-    return res
+    # what sets the scale, each loop's noise model (closedloop.analysis.scale)
+    res = replace(res, **scale_findings(res, fit.sigma_q, structure.scale_free, opt.snr))
+    # a long fit: do its error bars hold? (closedloop.analysis.linearity)
+    profiles, bar_warnings = check_error_bars(res, fit)
+    res = replace(res, profiles=profiles, warnings=res.warnings + bar_warnings)
+    return replace(res, verdict=judge(res))
 
 
 def _check_options(opt: CalibrationOptions) -> None:
@@ -388,7 +389,7 @@ def name_gauge(
         if structure.scale_free and structure.gauge_note:
             warnings.append(structure.gauge_note)
         return None
-    status[structure.gauge] = "fixed"
+    status[structure.gauge] = ParamStatus.FIXED
     gauge = problem.names[structure.gauge]
     notes.append(f"fixed {gauge} = {x[structure.gauge]:g}: {structure.gauge_note}")
     user_lengths = [problem.names[k] for k in opt_fixed(problem, opt) if problem.params[k].scales_with_length]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import replace
 
 from closedloop.cli.parse import check_loop_numbers
 from closedloop.errors import EXIT_FAILED, InputError
@@ -124,7 +125,7 @@ def cmd_calibrate(args) -> int:
     from closedloop.output.report import verdict_record
 
     lofo = fixture_validation(robot, lg, loops, opts, report, args, prog) if res.converged else None
-    res.verdict = judge(res, cv, fixtures=lofo)  # the fit's evidence, the held-out folds' and fixtures'
+    res = replace(res, verdict=judge(res, cv, fixtures=lofo))  # the fit's evidence, the held-out folds' and fixtures'
     report["verdict"] = verdict_record(res.verdict)
     failed = res.verdict.status == "failed"
     write_out = args.out and (not failed or args.force)

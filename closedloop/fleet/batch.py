@@ -245,9 +245,9 @@ def _judge(res, cv: dict | None, report: dict):
         from closedloop.output.report import verdict_record
     except ImportError:  # a core without verdicts: 'n/a' in the summary
         return getattr(res, "verdict", None)
-    res.verdict = judge(res, cv)
-    report["verdict"] = verdict_record(res.verdict)
-    return res.verdict
+    verdict = judge(res, cv)
+    report["verdict"] = verdict_record(verdict)
+    return verdict
 
 
 def _pooled_dicts(loops: list[dict], key: str) -> float | None:

@@ -24,6 +24,7 @@ import numpy as np
 
 from closedloop.errors import InputError
 from closedloop.io.files import atomic_write, atomic_write_text
+from closedloop.records import ParamStatus
 
 _CSS = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;color:#222}
 h1{font-size:1.6em}h2{border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:1.6em}
@@ -103,7 +104,11 @@ def fig_closure(res, report: dict) -> bytes:
 def robot_corrections(res) -> list[int]:
     """Indices of the estimated robot parameters: by kind, so that a loop's own parameters and shared
     loop groups (``ball.tip_x``, named by the group, not by a loop) are left out."""
-    return [k for k in range(len(res.names)) if res.status[k] == "estimated" and res.problem.params[k].kind != "loop"]
+    return [
+        k
+        for k in range(len(res.names))
+        if res.status[k] == ParamStatus.ESTIMATED and res.problem.params[k].kind != "loop"
+    ]
 
 
 def fig_corrections(res) -> bytes:
@@ -286,7 +291,7 @@ def _sections(res, report: dict, snr: float = 1.0) -> list[str]:
             _g(res.std[k], 1, ".2e"),
         ]
         for k in range(len(res.names))
-        if res.status[k] == "estimated"
+        if res.status[k] == ParamStatus.ESTIMATED
     ]
     out.append(
         "<h2>Parameter corrections</h2>"

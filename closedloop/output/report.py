@@ -10,6 +10,7 @@ import numpy as np
 
 from closedloop.calibration.pipeline import CalibrationResult
 from closedloop.io.files import atomic_write_text
+from closedloop.records import ParamStatus
 from closedloop.version import __version__
 
 
@@ -52,7 +53,7 @@ def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict
                 "calibrated": float(res.values[k]),
                 "std_error": _f(res.std[k]),
                 "status": res.status[k],
-                "identifiable": res.status[k] == "estimated",
+                "identifiable": res.status[k] == ParamStatus.ESTIMATED,
             }
         )
     p_value = _chi2_sf(res.chi2, res.dof) if not res.sigma_estimated else None
@@ -136,7 +137,7 @@ def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict
         "compliance": {
             p.name: float(res.values[k])
             for k, p in enumerate(prob.params)
-            if p.kind == "compliance" and res.status[k] == "estimated"
+            if p.kind == "compliance" and res.status[k] == ParamStatus.ESTIMATED
         },
         "parameters": params,
     }

@@ -20,6 +20,7 @@ import pinocchio as pin
 from closedloop.errors import InputError, ModelError
 from closedloop.io.files import atomic_write_text, refuse_overwrite
 from closedloop.model.robot import RobotModel
+from closedloop.records import ParamStatus
 
 #: the model file suffixes `write_model` writes for each input kind
 MODEL_SUFFIXES = {"urdf": (".urdf",), "dh": (".yaml", ".yml"), "mjcf": (".xml", ".mjcf")}
@@ -176,7 +177,7 @@ def tool_frames(result) -> list[tuple[str, str, np.ndarray]]:
         if any(i is None for i in idx):
             continue
         owner = prob.names[idx[0]].rsplit(".", 1)[0]
-        if owner in seen or any(result.status[i] not in ("estimated", "fixed") for i in idx):
+        if owner in seen or any(result.status[i] not in (ParamStatus.ESTIMATED, ParamStatus.FIXED) for i in idx):
             continue
         seen.add(owner)
         out.append((f"{owner}_tip", b.loop.frame_a, np.array([result.values[i] for i in idx], dtype=float)))
