@@ -222,16 +222,19 @@ def mujoco_pixels(model, data) -> np.ndarray:
     return out
 
 
-def _identifiable(robot, theta: np.ndarray, seed: int) -> list[str]:
-    """Robot parameters a calibration estimates on exact pixels of the nominal robot (the truth's support)."""
-    from closedloop.calibration.pipeline import build_problem, calibrate
-    from closedloop.io.logs import JointLog
+def _identifiable(robot, theta: np.ndarray) -> list[str]:
+    """Robot parameters a calibration estimates on exact pixels of the nominal robot (the truth's support).
+
+    The camera loop's problem on the readings `theta` with the nominal marker's exact image points,
+    its unknowns closing them, and the structural reduction there (:mod:`closedloop.sims.identifiable`).
+    """
     from closedloop.loops.spec import parse_loop
+    from closedloop.sims.identifiable import closing_values, estimated_indices, loop_joints, nominal_problem
 
     names = robot.joint_names
     loop = parse_loop(CALIBRATE_LOOP, robot)
-    zeros = {c: np.zeros(len(theta)) for c in loop.columns()}
-    prob = build_problem(robot, JointLog(names, theta, None, None, zeros), [loop])
+    theta = np.asarray(theta, dtype=float)[:, [names.index(j) for j in loop_joints(robot, [loop])]]
+    prob = nominal_problem(robot, [loop], [theta], [np.zeros((len(theta), len(loop.columns())))])
     Ts = prob.loop_frame_poses(prob.nominal, 0)
     K = mujoco_intrinsics()
     cols = {}
@@ -239,8 +242,11 @@ def _identifiable(robot, theta: np.ndarray, seed: int) -> list[str]:
         pc = np.einsum("nji,nj->ni", T[:, :3, :3], Ts[0][:, :3, :3] @ MARKER + Ts[0][:, :3, 3] - T[:, :3, 3])
         cols[f"{LOOP_NAME}:u{c + 1}"] = K[0] * pc[:, 0] / pc[:, 2] + K[2]
         cols[f"{LOOP_NAME}:v{c + 1}"] = K[1] * pc[:, 1] / pc[:, 2] + K[3]
-    res = calibrate(robot, JointLog(names, theta, None, None, cols), [parse_loop(CALIBRATE_LOOP, robot)])
-    return [n for n, s in zip(res.names, res.status) if s == "estimated" and not n.startswith(LOOP_NAME + ".")]
+    meas = loop.measurements(cols, np.arange(len(theta)))
+    problem = nominal_problem(robot, [loop], [theta], [meas])
+    own = LOOP_NAME + "."
+    kept = estimated_indices(problem, closing_values(problem))
+    return [problem.names[k] for k in kept if not problem.names[k].startswith(own)]
 
 
 def _readings(robot, sc: CameraScenario, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -280,7 +286,7 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
     names = robot.joint_names
     readings = _readings(robot, sc, n, rng_plan)
     truth: dict[str, float] = {}
-    for name in _identifiable(robot, readings[: min(n, 60)], seed):
+    for name in _identifiable(robot, readings[: min(n, 60)]):
         kind = name.rsplit(".", 1)[1]
         if name.startswith("cam_") and kind in ("x", "y", "z"):
             continue  # the head's lengths as built: the length reference (thesis 5.5 fixes a camera length)
