@@ -319,18 +319,14 @@ def write_figures(res, report: dict, args) -> None:
 
 # --------------------------------------------------------------------------- simulate any robot
 def scenario_help() -> str:
-    """The built-in scenarios (read from the shipped YAML files, without importing the simulator)."""
-    import yaml
+    """Every named scenario (`closedloop.sims.scenarios.scenario_catalog`: the shipped files and the
+    head-camera scenarios, read without loading the simulator)."""
+    from closedloop.sims.scenarios import scenario_catalog
 
-    d = Path(__file__).parents[1] / "sims" / "scenarios"
-    lines = ["scenarios (closedloop/sims/scenarios/*.yaml; or give your own YAML file, or --robot/--loop):"]
-    for f in sorted(d.glob("*.yaml")):
-        try:
-            data = yaml.safe_load(f.read_text()) or {}
-        except yaml.YAMLError:
-            data = {}
-        lines.append(f"  {f.stem:<12} {data.get('loop', '')}")
-        lines.append(f"  {'':<12} {data.get('description', '')}")
+    lines = ["scenarios (closedloop/sims/scenarios/*.yaml and the head cameras; or your own YAML file, or --robot):"]
+    for name, (loop, description) in scenario_catalog().items():
+        lines.append(f"  {name:<17} {loop}")
+        lines.append(f"  {'':<17} {description}")
     lines.append("simulate your robot: closedloop simulate --robot arm.urdf --loop weld:frame=tool0 --out out/sim")
     return "\n".join(lines)
 
@@ -381,8 +377,8 @@ def add_simulate_robot_options(s) -> None:
     s.add_argument("--robot", help="simulate your robot: a URDF or MJCF (.xml) file (with --loop)")
     s.add_argument(
         "--loop",
-        help="with --robot: the loop, as for calibrate: weld|point|hinge|plane|measured_point:"
-        "frame=LINK[,to=LINK][,name=NAME]",
+        help="with --robot: the loop, as for calibrate: TYPE:frame=LINK[,to=LINK][,name=NAME], TYPE a "
+        "simulated type of 'closedloop loops' (weld, point, hinge, plane, measured_point)",
     )
     s.add_argument("--q0", help="with --robot: grasp configuration (radians; default: chosen automatically)")
     s.add_argument(
