@@ -104,8 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
     _add_calibrate(sub)
     i = sub.add_parser("inspect", help="list a model's joints, frames and parameter names")
-    i.add_argument("model")
-    i.add_argument("--json", action="store_true")
+    i.add_argument("model", help="URDF, MJCF (.xml) or D-H table (.yaml)")
+    i.add_argument("--json", action="store_true", help="print the description as JSON")
     i.set_defaults(func=cmd_inspect)
     _add_simulate(sub)
     _add_check(sub)
@@ -153,7 +153,9 @@ def _add_calibrate(sub) -> None:
     c.add_argument("--html", help="self-contained HTML report with figures")
     c.add_argument("--plots", metavar="DIR", help="write the report's figures as PNG files in DIR")
     c.add_argument("--config", help="YAML file holding any of these options (the command line wins)")
-    c.add_argument("--out", help="calibrated model (URDF or D-H YAML, like the input)")
+    c.add_argument(
+        "--out", help="calibrated model, in the input's format: URDF (.urdf), MJCF (.xml) or D-H table (.yaml)"
+    )
     c.add_argument("--report", help="JSON report")
     c.add_argument("--identify", help="comma-separated parameter patterns (placement, offset, scale, loop, globs)")
     c.add_argument("--fix", action="append", default=[], metavar="NAME[=VALUE]", help="hold a parameter fixed")
@@ -181,7 +183,7 @@ def _add_calibrate(sub) -> None:
         metavar="K",
         help="K-fold held-out validation in the report (default 5; 0 disables)",
     )
-    c.add_argument("--max-iter", type=int_arg, default=100)
+    c.add_argument("--max-iter", type=int_arg, default=100, metavar="N", help="solver iterations at most (default 100)")
     c.add_argument(
         "--threads",
         type=int_arg,
@@ -191,7 +193,7 @@ def _add_calibrate(sub) -> None:
         "ones on idle cores; 0: keep the environment's setting)",
     )
     c.add_argument("--degrees", action="store_true", help="the log is in degrees")
-    c.add_argument("--quiet", action="store_true")
+    c.add_argument("--quiet", action="store_true", help="no progress and no summary (errors and warnings only)")
     from closedloop.cli.evaluate import add_rig_options  # --distance, --joints, --lofo (rigs)
 
     add_rig_options(c)
@@ -209,12 +211,19 @@ def _add_simulate(sub) -> None:
     )
     s.add_argument("scenario", nargs="?", help="a scenario name (below) or a scenario YAML file")
     add_simulate_robot_options(s)
-    s.add_argument("--n", type=int_arg, default=200)
-    s.add_argument("--seed", type=int_arg, default=0)
-    s.add_argument("--out", required=True)
+    s.add_argument("--n", type=int_arg, default=200, metavar="N", help="configurations to record (default 200)")
+    s.add_argument(
+        "--seed", type=int_arg, default=0, help="random seed: the same seed gives the same dataset (default 0)"
+    )
+    s.add_argument(
+        "--out",
+        required=True,
+        metavar="DIR",
+        help="dataset folder: nominal.urdf, scene.xml, log.csv, truth.json (refused if it holds another dataset)",
+    )
     s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a scenario setting")
     s.add_argument("--replace", action="store_true", help="replace the dataset already in --out (refused otherwise)")
-    s.add_argument("--quiet", action="store_true")
+    s.add_argument("--quiet", action="store_true", help="no progress and no summary (errors and warnings only)")
     s.set_defaults(func=cmd_simulate)
     from closedloop.cli.sweep import add_sweep_options  # --seeds / --jobs / --ray: many datasets on the executor
 
@@ -223,8 +232,8 @@ def _add_simulate(sub) -> None:
 
 def _add_check(sub) -> None:
     k = sub.add_parser("check", help="compare a calibration report with simulation truth")
-    k.add_argument("truth")
-    k.add_argument("report")
+    k.add_argument("truth", help="truth.json of a simulated dataset (closedloop simulate)")
+    k.add_argument("report", help="JSON report of the calibration (calibrate --report)")
     k.add_argument("--tol-m", type=float_arg, default=1e-3, help="tolerance for lengths (m)")
     k.add_argument("--tol-rad", type=float_arg, default=5e-3, help="tolerance for angles (rad)")
     k.add_argument("--tol-scale", type=float_arg, default=5e-3, help="tolerance for scale factors")

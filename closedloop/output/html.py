@@ -9,7 +9,7 @@ with the combination that is (structural redundancy: the kept parameters that
 absorb it; data: the undetermined direction); which output file carries what.
 
 No JavaScript; matplotlib (Agg) draws the figures (``pip install
-"closedloop[report]"``).  Printing is left to the CLI.
+".[report]"`` in the checkout).  Printing is left to the CLI.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ def _plt():
         import matplotlib.pyplot as plt
     except ImportError:
         raise InputError(
-            '--html/--plots need matplotlib: pip install "closedloop[report]" (or pip install matplotlib)'
+            '--html/--plots need matplotlib: pip install ".[report]" in the closedloop checkout (or pip install matplotlib)'
         ) from None
     return plt
 
