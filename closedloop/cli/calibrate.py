@@ -14,16 +14,18 @@ from closedloop.io.schemas import check_number, parse_bounds, parse_noise
 
 
 class Progress:
-    """A short progress line on stderr (one line, rewritten in place on a terminal)."""
+    """A progress line on stderr, on a terminal only: rewritten in place and erased when done, so that no
+    stale line is left in a log or a CI output (where nothing is written)."""
 
-    def __init__(self, quiet: bool):
+    def __init__(self, quiet: bool, stream=None):
+        self.stream = sys.stderr if stream is None else stream
         self.quiet = quiet
-        self.tty = sys.stderr.isatty()
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self.t0 = time.perf_counter()
-        self.last = (None, -1.0)  # (stage, time) of the last line printed
+        self.shown = False  # a line is on the screen
 
     def __call__(self, stage: str, it: int, value: float) -> None:
-        if self.quiet:
+        if self.quiet or not self.tty:
             return
         msg = f"  {stage}"
         if stage == "solving":
@@ -33,16 +35,14 @@ class Progress:
         elif stage == "simulating":
             msg += f": {it}/{int(value)} configurations"
         msg += f"  [{time.perf_counter() - self.t0:.1f} s]"
-        now = time.perf_counter()
-        if self.tty:
-            print("\r" + msg.ljust(70), end="", file=sys.stderr, flush=True)
-        elif stage != self.last[0] or now - self.last[1] > 1.0:  # logs: stage changes, then once a second
-            print(msg, file=sys.stderr, flush=True)
-            self.last = (stage, now)
+        print("\r" + msg.ljust(70), end="", file=self.stream, flush=True)
+        self.shown = True
 
     def done(self) -> None:
-        if self.tty and not self.quiet:
-            print(file=sys.stderr)
+        """Erase the line (the summary says what was done)."""
+        if self.shown:
+            print("\r" + " " * 70 + "\r", end="", file=self.stream, flush=True)
+            self.shown = False
 
 
 def check_calibrate_options(args) -> tuple:
@@ -54,6 +54,13 @@ def check_calibrate_options(args) -> tuple:
     )
     if getattr(args, "plots", None):
         check_outputs({"--plots": args.plots}, [args.model, args.log], directory=True)
+    if getattr(args, "html", None) or getattr(args, "plots", None):
+        import importlib.util
+
+        from closedloop.output.html import MATPLOTLIB_HINT
+
+        if importlib.util.find_spec("matplotlib") is None:  # refused now, not after the fit
+            raise InputError(f"--{'html' if args.html else 'plots'}: {MATPLOTLIB_HINT}")
     args.snr = check_number("--snr", args.snr, 0.0, 1e6, lo_open=True)
     args.max_iter = check_number("--max-iter", args.max_iter, 1, 10**6, integer=True)
     cv_given = args.cv is not None  # (default None: 5 folds, fewer on a short log)
@@ -135,7 +142,8 @@ def cmd_calibrate(args) -> int:
             from closedloop.output.urdf import tool_frames
 
             write_model(robot, res.as_dict(), args.out, frames=tool_frames(res))  # with the tool point
-    print_summary(res, elapsed, args, report, wrote_model=bool(write_out))
+    if not args.quiet:
+        print_summary(res, elapsed, args, report, wrote_model=bool(write_out))
     from closedloop.cli.tools import write_figures
 
     write_figures(res, report, args)  # --html / --plots
@@ -213,7 +221,7 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
     distances = {bl.loop.name for bl in blocks if getattr(bl.loop, "parameter_only", False)}
     rows = [bl.rows for bl in blocks if bl.loop.name not in distances]
     n_conf = int(np.unique(np.concatenate(rows)).size) if rows else 0
-    reasons = own_reasons(res.verdict)
+    reasons = list(dict.fromkeys(own_reasons(res.verdict)))
     print(f"verdict: {res.verdict.status}" + (f" ({'; '.join(reasons)})" if reasons else ""))
     print(
         f"calibrated {len(res.estimated)} parameters from {n_conf} configurations "
@@ -241,7 +249,7 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
             f"  ... and {len(res.weak) - SHOWN_WEAK} more combinations not identifiable "
             "(report: identifiability.not_identifiable)"
         )
-    for n in res.notes:
+    for n in dict.fromkeys(res.notes):  # each note once
         print(f"  note: {n}")
     cv = report.get("validation")
     if cv and "test" in cv:  # (a skipped validation is among the notes)

@@ -87,7 +87,9 @@ def cmd_check(args) -> int:
     )
     verdict = report.get("verdict") if isinstance(report.get("verdict"), dict) else {}
     if verdict.get("status") in ("suspect", "failed"):  # what the calibration said of itself
-        print(f"note: the report's verdict is {verdict['status']}: " + "; ".join(map(str, verdict.get("reasons", []))))
+        own = f"{verdict['status']}: "  # a reason of the verdict's own status, without its label
+        reasons = [r[len(own) :] if r.startswith(own) else r for r in map(str, verdict.get("reasons", []))]
+        print(f"note: the report's verdict is {verdict['status']}: " + "; ".join(dict.fromkeys(reasons)))
     return 0 if ok else 1
 
 

@@ -286,6 +286,7 @@ def write_figures(res, report: dict, args) -> None:
     """The outputs beside the model: ``<out>.sensors.yaml`` (scale factors, compliance: what URDF and
     MJCF cannot express; not for D-H output, which carries them), the HTML page and the PNG figures."""
     out = getattr(args, "out", None)
+    quiet = bool(getattr(args, "quiet", False))
     failed = getattr(getattr(res, "verdict", None), "status", None) == "failed" and not getattr(args, "force", False)
     corr = (
         sensor_corrections(res, out) if out and not failed and not str(out).endswith((".yaml", ".yml")) else None
@@ -301,7 +302,8 @@ def write_figures(res, report: dict, args) -> None:
             "# closedloop: joint sensor corrections the model file cannot carry\n"
             + yaml.safe_dump(corr, sort_keys=False),
         )
-        print(f"  wrote {path}")
+        if not quiet:
+            print(f"  wrote {path}")
     html = getattr(args, "html", None)
     plots = getattr(args, "plots", None)
     if not html and not plots:
@@ -311,10 +313,12 @@ def write_figures(res, report: dict, args) -> None:
     snr = float(getattr(args, "snr", 1.0) or 1.0)
     if html:
         write_html(res, report, html, snr)
-        print(f"  wrote {html}")
+        if not quiet:
+            print(f"  wrote {html}")
     if plots:
         files = write_plots(res, report, plots, snr)
-        print(f"  wrote {len(files)} figures to {plots}")
+        if not quiet:
+            print(f"  wrote {len(files)} figures to {plots}")
 
 
 # --------------------------------------------------------------------------- simulate any robot

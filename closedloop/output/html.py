@@ -34,6 +34,10 @@ th{background:#f3f3f3}td.l,th.l{text-align:left}.verdict{padding:.6em 1em;border
 .small{color:#666;font-size:.85em}"""
 
 
+#: what --html / --plots need, and how to get it
+MATPLOTLIB_HINT = 'needs matplotlib: pip install ".[report]" in the closedloop checkout (or pip install matplotlib)'
+
+
 def _plt():
     try:
         import matplotlib
@@ -41,9 +45,7 @@ def _plt():
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise InputError(
-            '--html/--plots need matplotlib: pip install ".[report]" in the closedloop checkout (or pip install matplotlib)'
-        ) from None
+        raise InputError(f"--html/--plots {MATPLOTLIB_HINT}") from None
     return plt
 
 
