@@ -134,10 +134,10 @@ def files(calibrated, tmp_path):
     "mutate,expect",
     [
         (lambda text: text.replace("panda_joint4,", "elbow,", 1), "missing column(s) for loop joint(s) panda_joint4"),
-        (lambda text: text.replace("\n", "\nnan,0,0,0,0,0,0\n", 1), "row 1, column 'panda_joint1': value is nan"),
+        (lambda text: text.replace("\n", "\nnan,0,0,0,0,0,0\n", 1), "line 2, column 'panda_joint1': value is nan"),
         (lambda text: text.split("\n")[0] + "\n", "no data rows"),
         (lambda text: "\n".join(text.split("\n")[:3]) + "\n", "rows give 12 equations, no more than the 12 parameters"),
-        (lambda text: text.replace("\n", "\n1,2\n", 1), "row 1 has 2 fields"),
+        (lambda text: text.replace("\n", "\n1,2\n", 1), "line 2 has 2 fields"),
     ],
 )
 def test_bad_logs_one_line_exit_2(files, mutate, expect):
@@ -414,7 +414,16 @@ def test_check_names_the_verdict_once(tmp_path, capsys):
     rep.write_text(
         json.dumps(
             {
-                "parameters": [{"name": "j1.offset", "initial": 0.0, "calibrated": 1e-4, "unit": "rad", "kind": "offset", "status": "estimated"}],
+                "parameters": [
+                    {
+                        "name": "j1.offset",
+                        "initial": 0.0,
+                        "calibrated": 1e-4,
+                        "unit": "rad",
+                        "kind": "offset",
+                        "status": "estimated",
+                    }
+                ],
                 "verdict": {"status": "suspect", "reasons": ["suspect: scale not set", "suspect: scale not set"]},
             }
         )
