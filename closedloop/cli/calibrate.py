@@ -119,7 +119,7 @@ def cmd_calibrate(args) -> int:
     res = calibrate(robot, lg, loops, opts, progress=prog)
     prog.done()
     elapsed = time.perf_counter() - t0
-    report = build_report(res, args.model, args.log)
+    report = build_report(res, args.model, args.log, row_name=lg.where)
     report["solver"]["seconds"] = elapsed
     cv = (
         fold_validation(robot, lg, loops, opts, args, report, prog, res, cv_given)
@@ -146,7 +146,7 @@ def cmd_calibrate(args) -> int:
         print_summary(res, elapsed, args, report, wrote_model=bool(write_out))
     from closedloop.cli.tools import write_figures
 
-    write_figures(res, report, args)  # --html / --plots
+    write_figures(res, report, args, row_name=lg.where)  # --html / --plots
     if res.verdict.status == "suspect":
         print(f"warning: {args.log}: calibration is suspect: {'; '.join(own_reasons(res.verdict))}", file=sys.stderr)
     if failed:
@@ -269,8 +269,11 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
 
     for line in fixture_lines(report.get("fixture_validation")):
         print(line)
-    for rj in res.rejected[:10]:
-        print(f"  rejected: log row {rj.row} (loop {rj.loop}), {rj.standardized:.3g} robust standard deviations")
+    for rj in report.get("rejected", [])[:10]:  # named by file and line (`JointLog.where`)
+        print(
+            f"  rejected: {rj.get('where') or 'log row ' + str(rj['row'])} (loop {rj['loop']}), "
+            f"{rj['standardized']:.3g} robust standard deviations"
+        )
     if args.out and wrote_model:
         print(f"  wrote {args.out}")
     if args.report:
