@@ -100,32 +100,56 @@ def _load_json(path: str, what: str = "JSON file"):
 
 
 # --------------------------------------------------------------------------- parser
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The `closedloop` parser; with `command`, only that subcommand gets its options (the others are
+    named only), so that a run imports the option code of its own subcommand alone."""
     p = _Parser(prog="closedloop", description="Closed-loop kinematic calibration of robots.")
     p.add_argument("-v", "--verbose", action="store_true", help="log details")
     sub = p.add_subparsers(dest="command", required=True)
-    _add_calibrate(sub)
+    for name, add in _SUBCOMMANDS.items():
+        if command is None or name == command:
+            add(sub)
+        else:
+            sub.add_parser(name)
+    return p
+
+
+def _add_inspect(sub) -> None:
     i = sub.add_parser("inspect", help="list a model's joints, frames and parameter names")
     i.add_argument("model", help="URDF, MJCF (.xml) or D-H table (.yaml)")
     i.add_argument("--json", action="store_true", help="print the description as JSON")
     i.set_defaults(func=cmd_inspect)
-    _add_simulate(sub)
-    _add_check(sub)
-    from closedloop.cli.tools import add_extract_parser, cmd_loops
+
+
+def _add_extract(sub) -> None:
+    from closedloop.cli.tools import add_extract_parser
 
     add_extract_parser(sub)
+
+
+def _add_batch(sub) -> None:
     from closedloop.fleet.batch import add_parser as add_batch  # closedloop batch MANIFEST (many jobs, any executor)
 
     add_batch(sub)
+
+
+def _add_loops(sub) -> None:
+    from closedloop.cli.tools import cmd_loops
+
     lp = sub.add_parser("loops", help="list the loop types, their keys and an example each")
     lp.set_defaults(func=cmd_loops)
+
+
+def _add_impedance(sub) -> None:
     from closedloop.cli.impedance import add_parser as add_impedance  # closedloop impedance simulate|identify
 
     add_impedance(sub)
+
+
+def _add_evaluate(sub) -> None:
     from closedloop.cli.evaluate import add_parser as add_evaluate  # closedloop evaluate MODEL... LOG --loop ...
 
     add_evaluate(sub)
-    return p
 
 
 def _add_calibrate(sub) -> None:
@@ -243,6 +267,26 @@ def _add_check(sub) -> None:
     k.set_defaults(func=cmd_check)
 
 
+#: the subcommands in the order `closedloop --help` lists them
+_SUBCOMMANDS = {
+    "calibrate": _add_calibrate,
+    "inspect": _add_inspect,
+    "simulate": _add_simulate,
+    "check": _add_check,
+    "extract": _add_extract,
+    "batch": _add_batch,
+    "loops": _add_loops,
+    "impedance": _add_impedance,
+    "evaluate": _add_evaluate,
+}
+
+
+def _command(argv: list[str]) -> str | None:
+    """The subcommand an argument list runs (its first word that is not an option), if it names one."""
+    first = next((a for a in argv if not a.startswith("-")), None)
+    return first if first in _SUBCOMMANDS else None
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with one-line errors (an `InputError`, exit 2) instead of a usage block."""
 
@@ -279,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
     if verbose:  # accepted before or after the subcommand: the top-level flag
         argv = ["-v"] + [a for a in argv if a not in ("-v", "--verbose")]
     try:
-        args = parse_args(build_parser(), argv)  # applies a subcommand's --config FILE
+        args = parse_args(build_parser(_command(argv)), argv)  # applies a subcommand's --config FILE
         logging.basicConfig(
             level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
         )
