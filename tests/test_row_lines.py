@@ -67,3 +67,79 @@ def test_loop_column_and_unit_errors_name_the_line(tmp_path, panda):
 def test_a_log_made_in_memory_is_named_by_row():
     lg = JointLog(JOINTS, np.zeros((3, 2)))
     assert lg.where(2) == "log row 3"
+
+
+@pytest.fixture(scope="module")
+def corrupted_log(tmp_path_factory, panda):
+    """A weld log written with a comment line on top, its row 10 (0-based) corrupted by 0.1 rad."""
+    from closedloop.loops import WeldLoop
+    from closedloop.studies.truth import make_dataset
+
+    ds = make_dataset(
+        panda, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 60, np.random.default_rng(3)
+    )
+    theta = np.array(ds.readings, float)
+    theta[10, 1] += 0.1
+    path = tmp_path_factory.mktemp("rows") / "log.csv"
+    JointLog(list(ds.joints), theta).write_csv(path)
+    path.write_text("# bench 2, 26 Nov\n" + path.read_text())
+    return path  # row 10: line 13 (comment, header, then rows 0..)
+
+
+@pytest.mark.parametrize(
+    "robust, said",
+    [
+        ("auto", "rejected: {log} line 13 (loop fixture)"),
+        ("cauchy", "note: suspect configuration: {log} line 13 (loop fixture)"),
+    ],
+)
+def test_rejected_and_suspect_rows_are_named_by_file_and_line(corrupted_log, robust, said, capsys):
+    from closedloop.cli.main import main
+    from closedloop.models import ROBOTS
+
+    rc = main(
+        [
+            "calibrate",
+            str(ROBOTS["panda"].path),
+            str(corrupted_log),
+            "--loop",
+            "weld:frame=panda_hand,name=fixture",
+            "--robust",
+            robust,
+            "--cv",
+            "0",
+        ]
+    )
+    out = capsys.readouterr().out
+    assert rc == 0, out
+    assert said.format(log=corrupted_log) in out, out
+    assert "log row" not in out
+
+
+def test_the_task_noise_of_several_loops_is_one_note():
+    """Six loops with one pooled task-space noise: one sentence naming them, not six (the rig)."""
+    from closedloop.estimate.variance import noise_notes
+
+    names = ["place1_a", "place1_b", "place2_a", "place2_b", "place3_a", "place3_b"]
+    summary = [
+        {
+            "loop": n,
+            "task_sigma_m": 2.02e-4,
+            "joint_sigma_m": 1.33e-5 + 3e-7 * k,
+            "task_estimated": True,
+            "task_pooled": True,
+            "dominant": "task",
+        }
+        for k, n in enumerate(names)
+    ]
+    notes = noise_notes(summary)
+    assert notes == [
+        f"loops {', '.join(names)}: task-space noise 0.202 mm (estimated, one for the loops whose estimates "
+        "agree) against 0.0133 to 0.0148 mm from the joint noise: the task noise dominates"
+    ]
+    summary[0] = summary[0] | {"task_sigma_m": 5e-4, "task_pooled": False}  # a loop with its own estimate
+    notes = noise_notes(summary)
+    assert len(notes) == 2 and notes[0].startswith(
+        "loop place1_a: task-space noise 0.5 mm (estimated) against 0.0133 mm"
+    )
+    assert notes[1].startswith("loops place1_b, place2_a, place2_b, place3_a, place3_b: task-space noise 0.202 mm")
