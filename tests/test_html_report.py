@@ -225,7 +225,7 @@ def test_closure_axis_is_not_stretched_by_one_near_zero_value():
     after = rng.uniform(1e-3, 1e-2, 200)
     lo, hi = closure_axis(np.concatenate([before, after]))
     assert hi == pytest.approx(before.max())
-    assert 1e-3 <= lo < 2.5e-3  # the after closures' low end, not 1e-9
+    assert 1e-4 <= lo < 2.5e-4  # a decade below the after closures' low end, not 1e-9
     lo, hi = closure_axis(np.r_[np.full(50, 1e-13), 1.0])  # an exact fit: at most 6 decades below the top
     assert lo == pytest.approx(1e-6) and hi == 1.0
     assert closure_axis(np.array([0.0, np.nan])) == (1e-12, 1.0)

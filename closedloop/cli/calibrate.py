@@ -121,6 +121,7 @@ def cmd_calibrate(args) -> int:
     elapsed = time.perf_counter() - t0
     report = build_report(res, args.model, args.log, row_name=lg.where)
     report["solver"]["seconds"] = elapsed
+    t1 = time.perf_counter()
     cv = (
         fold_validation(robot, lg, loops, opts, args, report, prog, res, cv_given)
         if args.cv and res.converged
@@ -131,6 +132,8 @@ def cmd_calibrate(args) -> int:
     from closedloop.output.report import verdict_record
 
     lofo = fixture_validation(robot, lg, loops, opts, report, args, prog) if res.converged else None
+    # the held-out refits' time (k-fold and fixtures): with the fit's, the work of the command
+    report["solver"]["validation_seconds"] = time.perf_counter() - t1
     res.verdict = judge(res, cv, fixtures=lofo)  # the fit's evidence, the held-out folds' and fixtures'
     report["verdict"] = verdict_record(res.verdict)
     failed = res.verdict.status == "failed"

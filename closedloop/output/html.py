@@ -68,15 +68,15 @@ def closure_per_configuration(res) -> list[dict]:
 
 
 def closure_axis(values: np.ndarray, decades: float = 6.0) -> tuple[float, float]:
-    """A log axis (low, high) for closures: from the 2nd percentile of the positive values (or `decades`
-    below the largest, whichever is higher) to the largest, so that a few near-zero closures (a
-    configuration that closes by chance, an exact fit's 1e-13) do not stretch it over many decades."""
+    """A log axis (low, high) for closures: from a decade below the 2nd percentile of the positive values
+    (or `decades` below the largest, whichever is higher) to the largest, so that a few near-zero closures
+    (a configuration that closes by chance, an exact fit's 1e-13) do not stretch it over many decades."""
     v = np.asarray(values, float)
     v = v[np.isfinite(v) & (v > 0)]
     if not v.size:
         return 1e-12, 1.0
     hi = float(v.max())
-    lo = max(float(np.percentile(v, 2)), hi * 10.0**-decades)
+    lo = max(0.1 * float(np.percentile(v, 2)), hi * 10.0**-decades)
     return min(lo, hi), hi
 
 
@@ -100,11 +100,13 @@ def fig_closure(res, report: dict) -> bytes:
         before, after = d[f"before_{key}"] * f, d[f"after_{key}"] * f
         held = cv.get(d["loop"], {}).get(f"rms_{key}")
         lo, hi = closure_axis(np.concatenate([before, after]))
+        clipped = False
         for v, color, label in ((before, "#c44", "before (nominal model)"), (after, "#2a6", "after (calibrated)")):
-            ax.semilogy(x, np.clip(v, lo, hi), ".", color=color, label=label)
             low = v < lo  # drawn on the axis floor, marked: one near-zero value must not stretch the axis
+            ax.semilogy(x[~low], v[~low], ".", color=color, label=label)
             if low.any():
-                ax.semilogy(x[low], np.full(low.sum(), lo), "v", color=color, ms=4, mfc="none")
+                ax.semilogy(x[low], np.full(low.sum(), lo), "v", color=color, ms=5, mfc="none")
+                clipped = True
         if held is not None:
             ax.axhline(min(max(held * f, lo), hi), color="#36c", ls="--", label="held-out RMS (k-fold)")
         ax.set_ylim(lo / 1.3, hi * 1.3)
@@ -114,7 +116,13 @@ def fig_closure(res, report: dict) -> bytes:
             "closure per configuration",
             fontsize=10,
         )
-        ax.legend(fontsize=8, loc="best", title=f"open marks: below {lo:.2g} {unit}" if lo > 0 else None)
+        ax.legend(
+            fontsize=8,
+            title_fontsize=8,
+            loc="upper left",
+            bbox_to_anchor=(1.01, 1.0),  # beside the axes: no point hidden
+            title=f"open triangles:\nbelow {lo:.2g} {unit}" if clipped else None,
+        )
     axes[-1, 0].set_xlabel("configuration (log order)")
     fig.tight_layout()
     return _png(fig)
