@@ -115,13 +115,14 @@ def cmd_calibrate(args) -> int:
         threads=args.threads,
     )
     prog = Progress(args.quiet)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     res = calibrate(robot, lg, loops, opts, progress=prog)
     prog.done()
     elapsed = time.perf_counter() - t0
     report = build_report(res, args.model, args.log, row_name=lg.where)
     report["solver"]["seconds"] = elapsed
-    t1 = time.perf_counter()
+    report["solver"]["cpu_seconds"] = time.process_time() - c0
+    t1, c1 = time.perf_counter(), time.process_time()
     cv = (
         fold_validation(robot, lg, loops, opts, args, report, prog, res, cv_given)
         if args.cv and res.converged
@@ -134,6 +135,7 @@ def cmd_calibrate(args) -> int:
     lofo = fixture_validation(robot, lg, loops, opts, report, args, prog) if res.converged else None
     # the held-out refits' time (k-fold and fixtures): with the fit's, the work of the command
     report["solver"]["validation_seconds"] = time.perf_counter() - t1
+    report["solver"]["validation_cpu_seconds"] = time.process_time() - c1
     res.verdict = judge(res, cv, fixtures=lofo)  # the fit's evidence, the held-out folds' and fixtures'
     report["verdict"] = verdict_record(res.verdict)
     failed = res.verdict.status == "failed"
