@@ -244,3 +244,30 @@ def test_a_joint_that_never_moves_is_named_with_its_range_in_radians(panda):
     status = ["selected"] * len(prob.names)
     notes, _, _ = check_motion(prob, prob.nominal, status)
     assert any("joint panda_joint7 never moves in the data (range 0.00e+00 rad)" in n for n in notes), notes
+
+
+def test_the_grasp_configuration_does_not_stretch_the_closure_axis(panda):
+    """The nominal model closes exactly at the configuration the fixture was placed at (a 'before' of
+    ~1e-9 mm): drawn on the axis floor, the axis spans the other closures, not 1e-9 mm."""
+    from closedloop.calibration.pipeline import calibrate
+    from closedloop.output.html import closure_axis, closure_per_configuration, fig_closure
+
+    ds = make_dataset(
+        panda,
+        WeldLoop("fixture", "panda_hand"),
+        [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8],
+        30,
+        np.random.default_rng(2),
+        noise=1e-5,
+    )
+    res = calibrate(panda, JointLog(list(ds.joints), ds.noisy), [WeldLoop("fixture", "panda_hand")])
+    d = closure_per_configuration(res)[0]
+    before, after = d["before_m"] * 1e3, d["after_m"] * 1e3  # mm
+    tiny = before < 1e-4
+    assert 1 <= tiny.sum() <= 2, before[:3]  # the grasp configuration(s)
+    lo, hi = closure_axis(np.concatenate([before, after]))
+    assert hi == pytest.approx(before.max())
+    assert 1e-4 < lo < after.min()  # every 'after' point on the axis, the near-zero one below it
+    img = decode(fig_closure(res, {}))
+    if not isinstance(img, tuple):
+        assert img.shape[0] > 200 and img[..., :3].std() > 0.05
