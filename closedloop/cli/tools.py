@@ -69,9 +69,13 @@ def cmd_loops(args) -> int:
 # --------------------------------------------------------------------------- ROS bags
 def read_log_or_bag(path: str, robot, degrees: bool = False, bag_options=None):
     """A CSV log, or the quasi-static samples of a ROS bag (:func:`closedloop.io.bags.extract`)."""
-    from closedloop.io.bags import is_bag
+    if Path(path).suffix.lower() == ".csv":  # the bag reader is not loaded for a CSV log
+        bag = False
+    else:
+        from closedloop.io.bags import is_bag
 
-    if is_bag(path):
+        bag = is_bag(path)
+    if bag:
         from closedloop.io.bags import extract
 
         lg, samples = extract(path, robot.joint_names, bag_options)
@@ -282,10 +286,11 @@ def sensor_corrections(res, model_out: str | None = None) -> dict | None:
     }
 
 
-def write_figures(res, report: dict, args) -> None:
+def write_figures(res, report: dict, args, row_name=None) -> None:
     """The outputs beside the model: ``<out>.sensors.yaml`` (scale factors, compliance: what URDF and
     MJCF cannot express; not for D-H output, which carries them), the HTML page and the PNG figures."""
     out = getattr(args, "out", None)
+    quiet = bool(getattr(args, "quiet", False))
     failed = getattr(getattr(res, "verdict", None), "status", None) == "failed" and not getattr(args, "force", False)
     corr = (
         sensor_corrections(res, out) if out and not failed and not str(out).endswith((".yaml", ".yml")) else None
@@ -301,7 +306,8 @@ def write_figures(res, report: dict, args) -> None:
             "# closedloop: joint sensor corrections the model file cannot carry\n"
             + yaml.safe_dump(corr, sort_keys=False),
         )
-        print(f"  wrote {path}")
+        if not quiet:
+            print(f"  wrote {path}")
     html = getattr(args, "html", None)
     plots = getattr(args, "plots", None)
     if not html and not plots:
@@ -310,11 +316,13 @@ def write_figures(res, report: dict, args) -> None:
 
     snr = float(getattr(args, "snr", 1.0) or 1.0)
     if html:
-        write_html(res, report, html, snr)
-        print(f"  wrote {html}")
+        write_html(res, report, html, snr, row_name=row_name)
+        if not quiet:
+            print(f"  wrote {html}")
     if plots:
         files = write_plots(res, report, plots, snr)
-        print(f"  wrote {len(files)} figures to {plots}")
+        if not quiet:
+            print(f"  wrote {len(files)} figures to {plots}")
 
 
 # --------------------------------------------------------------------------- simulate any robot
