@@ -12,6 +12,7 @@ Nothing here is written by hand: a new option or loop type shows up in the site 
 from __future__ import annotations
 
 import argparse
+import html
 import inspect
 import textwrap
 
@@ -20,7 +21,11 @@ MARK_LOOPS = "<!-- generated: loops -->"
 
 
 def _cell(text: object) -> str:
-    return str(text).replace("|", "\\|").replace("\n", " ")
+    """Plain text for a Markdown table cell: nothing in it read as a link, emphasis or HTML."""
+    out = str(text).replace("\\", "\\\\")
+    for ch in "|[]*_`":
+        out = out.replace(ch, "\\" + ch)
+    return html.escape(out, quote=False).replace("\n", " ")
 
 
 def _subparsers(parser: argparse.ArgumentParser) -> list[tuple[str, str, argparse.ArgumentParser]]:
@@ -55,7 +60,7 @@ def _arguments(parser: argparse.ArgumentParser) -> list[str]:
         if a.required and a.option_strings:
             extra.append("required")
         help_text = (a.help or "").replace("%(default)s", str(a.default)).replace("%%", "%")
-        rows.append(f"| {name} | {_cell(help_text)} | {_cell('; '.join(extra))} |")
+        rows.append(f"| {name} | {_cell(help_text)} | {'; '.join(extra)} |")
     if not rows:
         return []
     return ["| argument | meaning | |", "|---|---|---|", *rows]
