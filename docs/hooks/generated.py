@@ -14,7 +14,13 @@ from __future__ import annotations
 import argparse
 import html
 import inspect
+import sys
 import textwrap
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]  # the repository: document this checkout's code, installed or not
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
 
 MARK_CLI = "<!-- generated: cli -->"
 MARK_LOOPS = "<!-- generated: loops -->"
@@ -121,9 +127,16 @@ def loops_reference() -> str:
     return "\n".join(lines)
 
 
-def on_page_markdown(markdown: str, page, config, files) -> str:  # noqa: ARG001 (MkDocs hook signature)
+def on_page_markdown(markdown: str, page, config, files) -> str:
+    """Replace the markers of a page by the references generated from the code (MkDocs hook)."""
     if MARK_CLI in markdown:
         markdown = markdown.replace(MARK_CLI, cli_reference())
     if MARK_LOOPS in markdown:
         markdown = markdown.replace(MARK_LOOPS, loops_reference())
     return markdown
+
+
+def on_config(config):
+    """Snippets (the changelog page includes CHANGELOG.md) are read from the repository, wherever mkdocs runs."""
+    config.mdx_configs.setdefault("pymdownx.snippets", {})["base_path"] = [str(ROOT)]
+    return config
