@@ -69,7 +69,7 @@ def _arguments(parser: argparse.ArgumentParser) -> list[str]:
         rows.append(f"| {name} | {_cell(help_text)} | {'; '.join(extra)} |")
     if not rows:
         return []
-    return ["| argument | meaning | |", "|---|---|---|", *rows]
+    return ["| argument | meaning | notes |", "|---|---|---|", *rows]
 
 
 def _command(name: str, help_text: str, parser: argparse.ArgumentParser, level: int) -> list[str]:
@@ -77,7 +77,7 @@ def _command(name: str, help_text: str, parser: argparse.ArgumentParser, level: 
     if help_text:
         lines += [help_text[0].upper() + help_text[1:] + ".", ""]
     usage = " ".join(parser.format_usage().split())
-    lines += ["```text", textwrap.fill(usage, 100, subsequent_indent="    ", break_on_hyphens=False), "```", ""]
+    lines += ["```text", textwrap.fill(usage, 80, subsequent_indent="    ", break_on_hyphens=False), "```", ""]
     if parser.description:
         lines += [parser.description, ""]
     args = _arguments(parser)
