@@ -432,3 +432,15 @@ def test_check_names_the_verdict_once(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "note: the report's verdict is suspect: scale not set\n" in out
     assert "suspect: suspect:" not in out and out.count("scale not set") == 1
+
+
+def test_a_quiet_sweep_prints_nothing_and_a_loud_one_its_summary(tmp_path, capsys):
+    out = tmp_path / "sweep"
+    args = ["simulate", "panda_weld", "--seeds", "0", "--n", "5", "--jobs", "1", "--out", str(out)]
+    assert main(args + ["--quiet"]) == 0
+    printed = capsys.readouterr()
+    assert printed.out == "" and printed.err == ""
+    assert (out / "seed_000" / "truth.json").exists()
+    assert main(args) == 0  # run again: resumed, and said so
+    said = capsys.readouterr().out
+    assert said.startswith("0 dataset(s) simulated") and "1 finished earlier (not redone)" in said
