@@ -171,6 +171,11 @@ class FitReport:
 
 def free_run_vaf(ens: Ensemble, options: EstimateOptions, folds: int = 5, seed: int = 0) -> FitReport:
     """k-fold free-run VAF of the time-varying model on held-out cycles (module docstring)."""
+    from dataclasses import replace
+
+    from closedloop.impedance.estimate import resolved
+
+    options = replace(resolved(options, ens), auto_iv=False)
     rng = np.random.default_rng(seed)
     perm = rng.permutation(ens.n)
     P, L, fs = ens.pad, ens.length, ens.fs

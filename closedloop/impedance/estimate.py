@@ -15,7 +15,9 @@ sit at z ~ 1 and the second difference of the noise is ~100x the acceleration: i
 and works only below ~0.01 % (README, "Time-varying joint impedance").
 
 method="default" (TLS), "ols", "iv": the same zero-phase low-pass pre-filter on angle and torque (an
-identical filter leaves the input-output relation unchanged), lags spaced `lag_ms` (~20 ms) apart, the
+identical filter leaves the input-output relation of eq. 9.6 unchanged); by default its cut-off is chosen
+from the data (`auto_prefilter`: where the angle perturbation's spectrum falls to 30 times the white
+noise floor, 6 Hz at least), lags spaced `lag_ms` (~20 ms) apart, the
 direct term b0 (first-order-hold-like input) and, when the pre-filter allows, torque taps at c +- D/2
 as well (the filtered torque is not piecewise linear between the lags: the extra taps remove a 2 % bias
 of I), estimates stamped at the window centre c and the equations pooled over +-15 ms.  TLS scales the
@@ -24,12 +26,18 @@ columns by the noise std estimated from each signal (Koopman's equal-variance as
 voluntary torque and of measurement noise; two-stage least squares over the over-determined set) and
 needs temporal regularisation: equations pooled over +-`pool_ms` and the parameters smoothed over
 `smooth_ms`.
+
+The default also tests for unmeasured torque that is not the perturbation's response (voluntary torque
+variability, which biases every least-squares form of eq. 9.8-9.13): where the record has the command,
+the IV estimate is computed as well and, if the two differ by more than 10 % (median over the cycle of
+I, B or K), the IV estimate is returned with a note saying so (a Hausman-type comparison: both are
+consistent without voluntary torque, only IV with it).
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
@@ -56,12 +64,13 @@ def single_thread():
 
 METHODS = ("default", "thesis", "ols", "iv")
 COND_WARN = 1e5
+IV_SWITCH = 0.10  # relative TLS-IV difference (median over the cycle) above which the default switches
 
 
 @dataclass
 class EstimateOptions:
     method: str = "default"
-    prefilter_hz: float | None = 20.0
+    prefilter_hz: float | str | None = "auto"  # Hz; "auto": chosen from the data; None or 0: no filter
     lag_ms: float = 20.0
     direct_term: bool = True
     pool_ms: float = 15.0
@@ -71,6 +80,7 @@ class EstimateOptions:
     # at least 1/(5 f_c) of the pre-filter, else 3 (the lags only)
     iv_lags: int = 10  # instruments: command at c+D, c, ..., c-(iv_lags-2) D (2SLS)
     order: int = 4
+    auto_iv: bool = True  # "default" only: switch to IV when the command shows voluntary torque
 
     @classmethod
     def for_method(cls, method: str, **kw) -> "EstimateOptions":
@@ -96,6 +106,7 @@ class ImpedanceEstimate:
     options: EstimateOptions
     lag: int
     warnings: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
     @property
     def wn(self) -> np.ndarray:
@@ -127,7 +138,34 @@ class Design:
     stamps: np.ndarray
 
 
+def auto_prefilter(ens: Ensemble, snr: float = 30.0, lo: float = 6.0) -> float:
+    """Pre-filter cut-off (Hz) from the data: the highest frequency at which the ensemble's angle
+    perturbation (Welch spectrum, averaged over cycles) stands `snr` times above its white-noise floor (the
+    median of the spectrum above fs/4), between `lo` and fs/5.  At 5 % noise this is 9-12 Hz for a human
+    limb (the best fixed setting), higher with less noise or faster dynamics."""
+    from scipy.signal import welch
+
+    dth, _, _ = ens.deltas()
+    nper = min(1024, dth.shape[1])
+    f, P = welch(dth, fs=ens.fs, nperseg=nper, axis=-1)
+    P = P.mean(0)
+    floor = np.median(P[f > ens.fs / 4])
+    above = np.flatnonzero(P > snr * floor)
+    hz = float(f[above.max()]) if above.size else lo
+    return float(np.clip(hz, lo, ens.fs / 5))
+
+
+def resolved(opt: "EstimateOptions", ens: Ensemble) -> "EstimateOptions":
+    """The options with an "auto" pre-filter replaced by its value for this ensemble."""
+    if isinstance(opt.prefilter_hz, str):
+        if opt.prefilter_hz != "auto":
+            raise InputError(f"pre-filter '{opt.prefilter_hz}': expected a frequency in Hz, 'auto' or none")
+        return replace(opt, prefilter_hz=round(auto_prefilter(ens), 2))
+    return opt
+
+
 def lowpass(x: np.ndarray, fs: float, hz: float | None, order: int = 4) -> np.ndarray:
+    """Zero-phase Butterworth low-pass (the pre-filter of both signals; none when `hz` is None or 0)."""
     if x is None or not hz:
         return x
     if hz >= fs / 2:
@@ -137,6 +175,7 @@ def lowpass(x: np.ndarray, fs: float, hz: float | None, order: int = 4) -> np.nd
 
 def design(ens: Ensemble, opt: EstimateOptions, ref: Ensemble | None = None) -> Design:
     """Pre-filter the perturbations and build the per-instant regressors (window-centre stamps)."""
+    opt = resolved(opt, ens)
     dth, dtau, du = ens.deltas(ref)
     fs, P, L = ens.fs, ens.pad, ens.length
     D = max(1, int(round(opt.lag_ms * 1e-3 * fs)))
@@ -262,17 +301,35 @@ def to_ibk(p: np.ndarray, scale: np.ndarray, T: float) -> tuple[np.ndarray, np.n
 def estimate(
     ens: Ensemble, method: str = "default", options: EstimateOptions | None = None, warn: bool = True, **kw
 ) -> ImpedanceEstimate:
-    """Identify I(t), B(t), K(t) at every instant of the cycle (see the module docstring)."""
-    opt = options or EstimateOptions.for_method(method, **kw)
+    """Identify I(t), B(t), K(t) at every instant of the cycle (eq. 9.6 per instant, solved by eq. 9.13
+    for TLS; see the module docstring), with the default's automatic switch to IV."""
+    opt = resolved(options or EstimateOptions.for_method(method, **kw), ens)
+    est = _fit(ens, opt)
+    if opt.method == "default" and opt.auto_iv and ens.command is not None:
+        iv = _fit(ens, EstimateOptions.for_method("iv", prefilter_hz=opt.prefilter_hz))
+        dev = {}
+        for k in "IBK":
+            a, b = np.nanmedian(getattr(est, k)), np.nanmedian(getattr(iv, k))
+            dev[k] = abs(a / b - 1) if np.isfinite(a) and np.isfinite(b) and b != 0 else np.inf
+        worst = max(dev, key=dev.get)
+        if dev[worst] > IV_SWITCH and np.nanmedian(iv.I) > 0:
+            iv.notes.append(
+                f"least squares and the instrumental-variable fit differ by {min(dev[worst], 9.99):.0%} on {worst}: "
+                "unmeasured (voluntary) torque in the record; the IV estimate (command as instrument) is reported"
+            )
+            est = iv
+    est.warnings = diagnose(est, ens.n, ens.command is not None)
+    for w in est.warnings if warn else ():
+        log.warning(w)
+    return est
+
+
+def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
     with single_thread():
         d = design(ens, opt)
         Mxx, Mzx = moments(d)
         I, B, K, cond = finish(d, Mxx, Mzx, opt, ens.fs)
-    est = ImpedanceEstimate(d.stamps / ens.fs, I, B, K, cond, opt, d.lag)
-    est.warnings = diagnose(est, ens.n)
-    for w in est.warnings if warn else ():
-        log.warning(w)
-    return est
+    return ImpedanceEstimate(d.stamps / ens.fs, I, B, K, cond, opt, d.lag)
 
 
 def finish(d: Design, Mxx, Mzx, opt: EstimateOptions, fs: float, start: np.ndarray | None = None):
@@ -285,8 +342,9 @@ def finish(d: Design, Mxx, Mzx, opt: EstimateOptions, fs: float, start: np.ndarr
     return (I, B, K, cond) if start is None else (I, B, K, p)
 
 
-def diagnose(est: ImpedanceEstimate, n: int) -> list[str]:
-    """Per-instant conditioning warnings and the +-10 % inertia-constancy check."""
+def diagnose(est: ImpedanceEstimate, n: int, has_command: bool = True) -> list[str]:
+    """Per-instant conditioning warnings, the sign check and the +-10 % inertia-constancy check, each
+    naming its likely cause and remedy."""
     out = []
     bad = ~np.isfinite(est.cond) | (est.cond > COND_WARN)
     if np.mean(bad) > 0.02:
@@ -300,26 +358,37 @@ def diagnose(est: ImpedanceEstimate, n: int) -> list[str]:
         out.append(f"no valid (I, B, K) at {np.mean(nan):.0%} of the instants (complex or unstable poles)")
     I = est.I[~nan]
     if I.size and np.median(I) <= 0:
-        out.append(
-            "the estimated inertia is not positive: the model does not fit (check segmentation and "
-            "alignment: misaligned cycles leave the mean movement in the perturbations)"
-        )
+        if np.median(est.K[~nan]) < 0:
+            out.append(
+                "the estimated inertia and stiffness are negative: is the torque sign reversed? (torque must be "
+                "positive in the direction of increasing angle; --torque-sign -1 flips it)"
+            )
+        else:
+            out.append(
+                "the estimated inertia is not positive: the model does not fit (check segmentation and "
+                "alignment: misaligned cycles leave the mean movement in the perturbations)"
+            )
     elif I.size > 10:  # on the 50 ms-smoothed curve: random error alone is not a warning
         Is = gaussian_filter1d(I, 0.05 / max(est.t[1] - est.t[0], 1e-9), mode="nearest")
         dev = np.max(np.abs(Is - np.median(I))) / np.median(I)
-        if dev > 0.10:
+        if dev > 0.10 and est.options.method != "iv":
+            remedy = (
+                "compare with --method iv"
+                if has_command
+                else "record the commanded perturbation as a 'command' column, for --method iv"
+            )
             out.append(
-                f"estimated inertia varies by +-{dev:.0%} over the cycle (more than +-10 %): noise, "
-                "misalignment or unmodelled dynamics"
+                f"estimated inertia varies by +-{dev:.0%} over the cycle (more than +-10 %): unmeasured "
+                f"(voluntary) torque, misalignment or unmodelled dynamics; {remedy}"
             )
     if n < 30:
-        out.append(f"only {n} cycles: estimates will be noisy")
+        out.append(f"only {n} cycles: estimates will be noisy (see the expected error from the bootstrap)")
     return out
 
 
 def posture_fit(ens: Ensemble, method: str = "default", **kw) -> tuple[float, float, float]:
     """Time-invariant (ergodic) fit, 9.6.4: the equations of all instants and cycles pooled."""
-    opt = EstimateOptions.for_method(method, **kw)
+    opt = resolved(EstimateOptions.for_method(method, **kw), ens)
     d = design(ens, opt)
     Mxx, Mzx = moments(d)
     Mzx = None if Mzx is None else Mzx.sum(0)[None]
