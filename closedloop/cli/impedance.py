@@ -53,7 +53,7 @@ def add_parser(subparsers) -> None:
     )
     i.add_argument("--prefilter", default="auto", help="zero-phase low-pass: Hz, 'auto' (from the data) or 'none'")
     i.add_argument("--lag-ms", default=None, help="lag spacing of the discrete model, ms (> 0; default 20)")
-    i.add_argument("--pool-ms", default=None, help="equations pooled over +-ms (>= 0; default 15, IV 50)")
+    i.add_argument("--pool-ms", default=None, help="equations pooled over +-ms (>= 0; default 20, IV 50)")
     i.add_argument("--smooth-ms", default=None, help="Gaussian smoothing of the parameters, ms (>= 0)")
     i.add_argument(
         "--segment",
