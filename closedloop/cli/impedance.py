@@ -343,7 +343,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
             f"max |{a['max_abs_ms']:.1f}| ms, {a['at_limit']} at the limit"
         )
         warnings += [w for w in a["warnings"] if w not in warnings]
-    bands = bootstrap(ens, opt, args.bootstrap, seed=args.seed) if args.bootstrap > 0 else None
+    bands = bootstrap(ens, opt, args.bootstrap, seed=args.seed, est=est) if args.bootstrap > 0 else None
     fit = free_run_vaf(ens, replace(opt, auto_iv=False), args.folds, seed=args.seed) if args.folds > 1 else None
     for k, unit in (("I", "kg m^2"), ("B", "N m s/rad"), ("K", "N m/rad")):
         v = getattr(est, k)

@@ -153,7 +153,8 @@ def bootstrap(
         r = max(1, int(round(0.010 * ens.fs)))
         near = np.zeros(L, bool)
         for t0 in np.round(np.asarray(est.steps) * ens.fs).astype(int):
-            near[max(0, t0 - r) : max(0, t0 + r)] = True
+            for t in (t0 - L, t0, t0 + L):  # the cycle's ends are neighbours
+                near[max(0, t - r) : max(0, t + r)] = True
         for k in lo:
             lo[k] = np.where(near, minimum_filter1d(lo[k], 2 * r + 1, mode="nearest"), lo[k])
             hi[k] = np.where(near, maximum_filter1d(hi[k], 2 * r + 1, mode="nearest"), hi[k])

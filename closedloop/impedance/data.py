@@ -50,12 +50,15 @@ class Record:
 
     @property
     def fs(self) -> float:
-        """Sampling rate (Hz): the median time step within blocks."""
-        d = np.diff(self.time)
-        if self.block is not None:
-            d = d[np.diff(self.block) == 0]
-        d = d[d > 0]
-        return float(1.0 / np.median(d[:100000]))
+        """Sampling rate (Hz): samples per second over each block (time rounded in a file averages out)."""
+        b = self.block if self.block is not None else np.zeros(len(self.time), int)
+        edges = np.flatnonzero(np.r_[True, np.diff(b) != 0, True])
+        steps = spans = 0.0
+        for i, j in zip(edges[:-1], edges[1:]):
+            if j - i > 1:
+                steps += j - i - 1
+                spans += self.time[j - 1] - self.time[i]
+        return float(steps / spans)
 
     def columns(self) -> dict[str, np.ndarray]:
         return {

@@ -396,9 +396,13 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
             ok = np.isfinite(th)
             blended = np.sum(np.where(ok, th, 0) * w[:, None], 0) / np.sum(ok * w[:, None], 0)
             est.I, est.B, est.K = blended
-            est.weights, est.steps = w, steps / fs
+            uniq = np.unique(np.mod(steps, L))  # a step at the cycle's end is also one before its start
+            uniq = uniq[np.r_[True, np.diff(uniq) > 2]]
+            if uniq.size > 1 and uniq[0] + L - uniq[-1] <= 2:
+                uniq = uniq[:-1]
+            est.weights, est.steps = w, uniq / fs
             est.notes.append(
-                f"abrupt changes at {', '.join(f'{t:.3f}' for t in steps / fs)} s: within {1e3 * W / fs:.0f} ms of "
+                f"abrupt changes at {', '.join(f'{t:.3f}' for t in uniq / fs)} s: within {1e3 * W / fs:.0f} ms of "
                 "them the estimate uses only the data on its own side (edge-preserving)"
             )
     return est
