@@ -87,7 +87,8 @@ class EstimateOptions:
     order: int = 4
     auto_iv: bool = True  # "default" only: switch to IV when the command shows voluntary torque
     edges: bool = True  # "default" only: one-sided estimates beside abrupt changes (`edge_weights`)
-    edge_ratio: float = 1.5  # a step: the centred fit's residual this many times its median
+    edge_ratio: float = 2.0  # a step: the centred fit's residual this many times its median ...
+    edge_contrast: float = 1.8  # ... and this many times the one-sided fits' (each relative to its median)
 
     @classmethod
     def for_method(cls, method: str, **kw) -> "EstimateOptions":
@@ -383,15 +384,21 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
         d = design(ens, opt, extend=E)
         Mxx, _ = moments(d)
         p, cond, lam = tls(pool(Mxx, half))
-        w, steps = edge_weights(lam, E, L, W, opt.edge_ratio)
         I, B, K = to_ibk(p[E : E + L], d.scale, d.T)
         est = ImpedanceEstimate(d.stamps[E : E + L] / fs, I, B, K, cond[E : E + L], opt, d.lag)
-        if steps.size:
-            th = [np.stack([I, B, K])]
+        r = lam / np.median(lam[E : E + L])
+        cand, _ = find_peaks(np.nan_to_num(r), height=opt.edge_ratio, distance=max(1, W))
+        if cand.size:  # confirmed where both one-sided fits fit much better than the centred one
+            th, rs = [np.stack([I, B, K])], []
             for side in (-1, 1):
                 ds = design(ens, opt, side=side)
-                ps, _, _ = tls(pool(moments(ds)[0], half), want_cond=False)
+                ps, _, ls = tls(pool(moments(ds)[0], half), want_cond=False)
                 th.append(np.stack(to_ibk(ps, ds.scale, ds.T)))
+                rs.append(ls / np.median(ls))
+            at = np.mod(cand - E, L)
+            cand = cand[r[cand] > opt.edge_contrast * np.maximum(rs[0][at], rs[1][at])]
+        w, steps = edge_weights(cand - E, L, W)
+        if steps.size:
             th = np.stack(th)  # (3 estimates, 3 parameters, L)
             ok = np.isfinite(th)
             blended = np.sum(np.where(ok, th, 0) * w[:, None], 0) / np.sum(ok * w[:, None], 0)
@@ -429,16 +436,16 @@ def edge_width(D: int, half: int, hz: float, fs: float) -> int:
     return int(round(D + half + 0.35 / hz * fs))
 
 
-def edge_weights(lam: np.ndarray, E: int, L: int, W: int, ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    """Weights (3, L) of the centred, left-sided and right-sided estimates, and the steps found (samples).
+def edge_weights(steps: np.ndarray, L: int, W: int) -> tuple[np.ndarray, np.ndarray]:
+    """Weights (3, L) of the centred, left-sided and right-sided estimates around the `steps` (instants,
+    samples; below 0 or from L on: in the padding), and the steps that reach the cycle.
 
     A step in I, B or K makes the centred fit's residual (TLS smallest eigenvalue, eq. 9.13) peak where
-    the window straddles it; the peaks above `ratio` times the median residual are the steps.  Within W
-    instants before a step only the left-sided estimate is used (its data end at the instant), within W
-    after it the right-sided one, tapering back to the centred estimate over the outer 30 %."""
-    r = lam / np.median(lam[E : E + L])
-    pk, _ = find_peaks(np.nan_to_num(r), height=ratio, distance=max(1, W))
-    steps = pk - E
+    the window straddles it, while the one-sided fits, which see one regime each, stay at their usual
+    residual (`_fit` finds the steps so).  Within W instants before a step only the left-sided estimate is
+    used (its data end at the instant), within W after it the right-sided one, tapering back to the
+    centred estimate over the outer 30 %."""
+    steps = np.asarray(steps, int)
     steps = steps[(steps > -W) & (steps < L + W)]
     wl, wr = np.zeros(L), np.zeros(L)
     k = np.arange(W)
