@@ -51,7 +51,12 @@ def add_parser(subparsers) -> None:
         default="default",
         help="default: TLS, switching to IV when the command shows voluntary torque",
     )
-    i.add_argument("--prefilter", default="auto", help="zero-phase low-pass: Hz, 'auto' (from the data) or 'none'")
+    i.add_argument(
+        "--prefilter",
+        default="auto",
+        metavar="HZ|auto|none",
+        help="zero-phase low-pass: Hz, 'auto' (from the data) or 'none'",
+    )
     i.add_argument("--lag-ms", default=None, help="lag spacing of the discrete model, ms (> 0; default 20)")
     i.add_argument("--pool-ms", default=None, help="equations pooled over +-ms (>= 0; default 20, IV 50)")
     i.add_argument("--smooth-ms", default=None, help="Gaussian smoothing of the parameters, ms (>= 0)")
@@ -61,13 +66,18 @@ def add_parser(subparsers) -> None:
         help="auto | events | peak-velocity | onsets:FILE (a list of times or a CSV with an 'onset' or 'time' column)",
     )
     i.add_argument("--period", default=None, help="cycle length (s, > 0); default: median onset spacing")
-    i.add_argument("--align", default="none", choices=["none", "peak-velocity", "rms", "peak-velocity+rms"])
+    i.add_argument(
+        "--align",
+        default="none",
+        choices=["none", "peak-velocity", "rms", "peak-velocity+rms"],
+        help="per-cycle re-alignment (default none: the onsets are trusted)",
+    )
     i.add_argument("--max-shift-ms", default="50", help="largest alignment shift, ms (default 50)")
     i.add_argument("--bootstrap", default="200", metavar="R", help="resamples for 95 %% bands (0: none; default 200)")
     i.add_argument("--folds", default="5", help="k-fold free-run VAF on held-out cycles (0: none; default 5)")
-    i.add_argument("--truth", help="truth CSV (t, I, B, K) to compare with")
+    i.add_argument("--truth", metavar="FILE", help="truth CSV (t, I, B, K) to compare with")
     i.add_argument("--posture", action="append", default=[], metavar="FILE", help="posture record (repeatable)")
-    i.add_argument("--out", help="results table, .csv or .json")
+    i.add_argument("--out", metavar="FILE", help="results table, .csv or .json (written whole, never onto an input)")
     i.add_argument("--plots", metavar="DIR", help="write the figure as DIR/impedance.png")
     i.add_argument("--plot", help=argparse.SUPPRESS)  # one figure file (.png, .svg, .pdf); --plots is the spelling
     i.add_argument("--seed", default="0", help="bootstrap and fold seed, a whole number >= 0 (default 0)")
