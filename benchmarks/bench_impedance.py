@@ -370,6 +370,7 @@ def defaults_on_forearm(res: dict, reps: int) -> None:
 
 def speed(res: dict, out: Path, repeats: int = 5) -> None:
     """identify on 100 cycles (the elbow, constant truth) with its default bootstrap: wall and CPU."""
+    import resource
     import subprocess
 
     from closedloop.impedance.data import read_record, write_record
@@ -390,14 +391,16 @@ def speed(res: dict, out: Path, repeats: int = 5) -> None:
         free_run_vaf(ens, est.options, 5)
         w3, c3 = time.perf_counter(), time.process_time()
         t = time.perf_counter()
+        ch0 = resource.getrusage(resource.RUSAGE_CHILDREN)
         subprocess.run(
             [sys.executable, "-m", "closedloop.cli.main", "impedance", "identify", str(path)],
             check=True,
             capture_output=True,
         )
-        rows.append(
-            [w3 - w0, c3 - c0, w1 - w0, w2 - w1, w3 - w2, time.perf_counter() - t, load, c1 - c0, c2 - c1, c3 - c2]
-        )
+        wall = time.perf_counter() - t
+        ch1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = ch1.ru_utime + ch1.ru_stime - ch0.ru_utime - ch0.ru_stime
+        rows.append([w3 - w0, c3 - c0, w1 - w0, w2 - w1, w3 - w2, wall, load, c1 - c0, c2 - c1, c3 - c2, cpu])
     a = np.array(rows)
     med = np.median(a, 0)
     res["speed"] = {
@@ -407,6 +410,7 @@ def speed(res: dict, out: Path, repeats: int = 5) -> None:
         "bootstrap_200_wall_s": med[3],
         "vaf_5fold_wall_s": med[4],
         "cli_wall_s": med[5],
+        "cli_cpu_s": med[10],
         "load_1min": a[:, 6].tolist(),
         "cpu_s_estimate_bootstrap_vaf": med[7:10].tolist(),
         "all": a.tolist(),
@@ -415,7 +419,7 @@ def speed(res: dict, out: Path, repeats: int = 5) -> None:
         f"\nspeed, identify on 100 cycles (median of {repeats}; load average {a[:, 6].min():.1f}-{a[:, 6].max():.1f} "
         f"on this machine): pipeline {med[0]:.2f} s wall / {med[1]:.2f} s CPU (read+segment+estimate "
         f"{med[2]:.2f}, bootstrap 200 {med[3]:.2f}, VAF {med[4]:.2f}; CPU {med[7]:.2f} / {med[8]:.2f} / "
-        f"{med[9]:.2f}); whole command {med[5]:.2f} s wall "
+        f"{med[9]:.2f}); whole command {med[5]:.2f} s wall / {med[10]:.2f} s CPU "
         f"(min {a[:, 5].min():.2f}, max {a[:, 5].max():.2f})"
     )
 

@@ -215,3 +215,17 @@ def test_each_warning_printed_once(sim_dir, capsys):
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert lines and len(lines) == len(set(lines)), err
     assert all(ln.startswith("  warning: ") for ln in lines), err
+
+
+def test_too_few_cycles_state_the_expected_error(tmp_path, capsys):
+    out = tmp_path / "few"
+    assert main(["impedance", "simulate", "--out", str(out), "--engine", "rk4", "--cycles", "12", "--seed", "4"]) == 0
+    res = tmp_path / "r.json"
+    argv = ["impedance", "identify", str(out / "data.csv"), "--truth", str(out / "truth.csv"), "--folds", "0"]
+    assert main(argv + ["--out", str(res)]) == 0
+    s = json.loads(res.read_text())["summary"]
+    worst = max(s["expected_error_percent"].values())
+    assert worst > 2.0 and any("12 cycles give an expected error" in w for w in s["warnings"])
+    # the stated expected error is the right size: the actual errors are of the same order
+    assert 0.3 * worst < max(s["errors_vs_truth_percent"].values()) < 2.0 * worst
+    assert "about" in capsys.readouterr().err

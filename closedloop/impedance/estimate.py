@@ -88,7 +88,8 @@ class EstimateOptions:
     auto_iv: bool = True  # "default" only: switch to IV when the command shows voluntary torque
     edges: bool = True  # "default" only: one-sided estimates beside abrupt changes (`edge_weights`)
     edge_ratio: float = 2.0  # a step: the centred fit's residual this many times its median ...
-    edge_contrast: float = 1.8  # ... and this many times the one-sided fits' (each relative to its median)
+    edge_contrast: float = 1.8  # ... and this many times the one-sided fits' (each relative to its median);
+    # both for 100 cycles: their excess over 1 scales as sqrt(100 / n)
 
     @classmethod
     def for_method(cls, method: str, **kw) -> "EstimateOptions":
@@ -387,7 +388,9 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
         I, B, K = to_ibk(p[E : E + L], d.scale, d.T)
         est = ImpedanceEstimate(d.stamps[E : E + L] / fs, I, B, K, cond[E : E + L], opt, d.lag)
         r = lam / np.median(lam[E : E + L])
-        cand, _ = find_peaks(np.nan_to_num(r), height=opt.edge_ratio, distance=max(1, W))
+        spread = np.sqrt(100.0 / max(ens.n, 1))  # the residual's sampling spread grows as 1/sqrt(n)
+        ratio, contrast = 1 + (opt.edge_ratio - 1) * spread, 1 + (opt.edge_contrast - 1) * spread
+        cand, _ = find_peaks(np.nan_to_num(r), height=ratio, distance=max(1, W))
         if cand.size:  # confirmed where both one-sided fits fit much better than the centred one
             th, rs = [np.stack([I, B, K])], []
             for side in (-1, 1):
@@ -396,7 +399,7 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
                 th.append(np.stack(to_ibk(ps, ds.scale, ds.T)))
                 rs.append(ls / np.median(ls))
             at = np.mod(cand - E, L)
-            cand = cand[r[cand] > opt.edge_contrast * np.maximum(rs[0][at], rs[1][at])]
+            cand = cand[r[cand] > contrast * np.maximum(rs[0][at], rs[1][at])]
         w, steps = edge_weights(cand - E, L, W)
         if steps.size:
             th = np.stack(th)  # (3 estimates, 3 parameters, L)
