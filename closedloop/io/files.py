@@ -185,10 +185,19 @@ def atomic_write(path: str | Path, writer: Callable[[str], None]) -> None:
 
 
 def refuse_overwrite(out: str | Path, *inputs: str | Path | None) -> None:
-    """An output must never replace one of the user's inputs."""
+    """An output must never replace one of the user's inputs (the same path after resolving symbolic links,
+    or the same inode: a hard link)."""
     o = Path(out).resolve()
     for i in inputs:
-        if i is not None and Path(i).exists() and Path(i).resolve() == o:
+        if i is None or not Path(i).exists():
+            continue
+        same = Path(i).resolve() == o
+        if not same and o.exists():  # a hard link: the same inode under another name
+            try:
+                same = os.path.samefile(i, o)
+            except OSError:
+                pass
+        if same:
             raise InputError(f"{out}: refusing to overwrite an input file; choose another output path")
 
 
