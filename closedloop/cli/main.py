@@ -74,7 +74,7 @@ def cmd_check(args) -> int:
     report = _load_json(args.report, "report file")
     src = {"truth_source": args.truth, "report_source": args.report}
     view = "parameters" if args.parameters else "auto"
-    rows, ok = check_report(truth, report, **tols, **src, model=args.model, view=view)
+    rows, ok = check_report(truth, report, **tols, **src, model=args.model, view=view, truth_model=args.truth_model)
     kinematic = bool(rows) and rows[0].get("view") == "kinematics"
     if kinematic:
         print("what the robots do (base, tool and unmeasured size removed; max over 200 configurations):")
@@ -251,6 +251,11 @@ def _add_check(sub) -> None:
         "--model",
         default=None,
         help="the robot model the report calibrated (default: the report's 'model' field)",
+    )
+    k.add_argument(
+        "--truth-model",
+        default=None,
+        help="the true robot's model where it is not the calibrated one's (default: the truth's 'model' field)",
     )
     k.add_argument(
         "--parameters",
