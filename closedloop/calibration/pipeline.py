@@ -35,7 +35,7 @@ import numpy as np
 
 from closedloop.analysis.identifiability import Structure, analyse_structure, weak_directions
 from closedloop.analysis.linearity import check_error_bars
-from closedloop.analysis.scale import scale_findings
+from closedloop.analysis.scale import refuse_fixed_lengths, scale_findings
 from closedloop.analysis.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
 from closedloop.calibration.staged import (
     Progress,
@@ -44,7 +44,7 @@ from closedloop.calibration.staged import (
     solve_staged,
     solve_with_restarts,
 )
-from closedloop.calibration.verdict import judge
+from closedloop.calibration.verdict import judge, length_guard
 from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
 from closedloop.estimate.lm import reducible_share, rms, scaled_svd
 from closedloop.estimate.noise import noise_vector
@@ -213,7 +213,9 @@ def calibrate(
     opt = options or CalibrationOptions()
     with blas_threads(opt.threads, 6 * len(log_), 6 * len(robot.joint_names) + 6):
         try:
-            return _calibrate(robot, log_, loops, opt, progress)
+            res = _calibrate(robot, log_, loops, opt, progress)
+            # a known length that does not set the size never drives the estimate (closedloop.calibration.verdict)
+            return length_guard(res, lambda kept: _calibrate(robot, log_, kept, opt, progress), loops)
         except np.linalg.LinAlgError as exc:  # non-finite kinematics: values far outside any model
             raise ConvergenceError(
                 f"{log_.source or 'the log'}: the solve broke down ({exc}): the data or the "
@@ -232,6 +234,7 @@ def _calibrate(
     free = [k for k, s in enumerate(status) if s == ParamStatus.SELECTED]
     if not free:
         raise NotIdentifiableError("no parameter is left to identify (all fixed or not selected)")
+    refuse_fixed_lengths(problem, x0, free)
     sigma_q, known = noise_vector(problem, opt.noise)
     if progress:
         progress("analysing", 0, 0.0)

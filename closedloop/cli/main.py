@@ -64,7 +64,7 @@ def cmd_inspect(args) -> int:
 
 
 def cmd_check(args) -> int:
-    from closedloop.validation.check import check_report
+    from closedloop.validation.check import check_parameters, check_report
 
     tols = {
         o: check_number(f"--{o.replace('_', '-')}", getattr(args, o), 0.0, 1e6, lo_open=True)
@@ -72,25 +72,39 @@ def cmd_check(args) -> int:
     }
     truth = _load_json(args.truth, "truth file")
     report = _load_json(args.report, "report file")
-    rows, ok = check_report(truth, report, **tols, truth_source=args.truth, report_source=args.report)
-    print(f"{'parameter':<28}{'true':>14}{'calibrated':>14}{'error':>12}{'tol':>10}  result")
+    src = {"truth_source": args.truth, "report_source": args.report}
+    view = "parameters" if args.parameters else "auto"
+    rows, ok = check_report(truth, report, **tols, **src, model=args.model, view=view, truth_model=args.truth_model)
+    kinematic = bool(rows) and rows[0].get("view") == "kinematics"
+    if kinematic:
+        print("what the robots do (base, tool and unmeasured size removed; max over 200 configurations):")
+        _print_rows(rows, "loop / quantity")
+        if args.show_parameters:
+            print("\nthe parameter table (a second view: a correct robot in another parametrization may differ here):")
+            _print_rows(check_parameters(truth, report, **tols, **src)[0], "parameter")
+    else:
+        _print_rows(rows, "parameter")
+    verdict = report.get("verdict") if isinstance(report.get("verdict"), dict) else {}
+    if verdict.get("status") in ("suspect", "failed"):  # what the calibration said of itself
+        own = f"{verdict['status']}: "
+        reasons = [r[len(own) :] if str(r).startswith(own) else str(r) for r in verdict.get("reasons", [])]
+        print(f"note: the report's verdict is {verdict['status']}: " + "; ".join(dict.fromkeys(reasons)))
+    return 0 if ok else 1
+
+
+def _print_rows(rows: list[dict], what: str) -> None:
+    print(f"{what:<40}{'true':>14}{'calibrated':>14}{'error':>12}{'tol':>10}  result")
     for r in rows:
         cal = "" if r["calibrated"] is None else f"{r['calibrated']:14.6g}"
         err = "" if r["error"] is None else f"{r['error']:12.3g}"
         tol = "" if r["tol"] is None else f"{r['tol']:10.3g}"
         true = "" if r["true"] is None else f"{r['true']:14.6g}"
-        print(f"{r['name']:<28}{true:>14}{cal:>14}{err:>12}{tol:>10}  {r['result']}")
+        print(f"{r['name']:<40}{true:>14}{cal:>14}{err:>12}{tol:>10}  {r['result']}")
     bad = sum(r["result"] == "FAIL" for r in rows)
     print(
         f"{sum(r['result'] == 'ok' for r in rows)} within tolerance, {bad} outside, "
         f"{sum(r['result'] not in ('ok', 'FAIL') for r in rows)} not compared"
     )
-    verdict = report.get("verdict") if isinstance(report.get("verdict"), dict) else {}
-    if verdict.get("status") in ("suspect", "failed"):  # what the calibration said of itself
-        own = f"{verdict['status']}: "  # a reason of the verdict's own status, without its label
-        reasons = [r[len(own) :] if r.startswith(own) else r for r in map(str, verdict.get("reasons", []))]
-        print(f"note: the report's verdict is {verdict['status']}: " + "; ".join(dict.fromkeys(reasons)))
-    return 0 if ok else 1
 
 
 def _load_json(path: str, what: str = "JSON file"):
@@ -257,13 +271,35 @@ def _add_simulate(sub) -> None:
 
 
 def _add_check(sub) -> None:
-    k = sub.add_parser("check", help="compare a calibration report with simulation truth")
+    k = sub.add_parser(
+        "check", help="compare a calibration report with simulation truth: by what the robots do (default)"
+    )
     k.add_argument("truth", help="truth.json of a simulated dataset (closedloop simulate)")
     k.add_argument("report", help="JSON report of the calibration (calibrate --report)")
     k.add_argument("--tol-m", type=float_arg, default=1e-3, help="tolerance for lengths (m)")
     k.add_argument("--tol-rad", type=float_arg, default=5e-3, help="tolerance for angles (rad)")
     k.add_argument("--tol-scale", type=float_arg, default=5e-3, help="tolerance for scale factors")
     k.add_argument("--tol-px", type=float_arg, default=1.0, help="tolerance for camera intrinsics (px)")
+    k.add_argument(
+        "--model",
+        default=None,
+        help="the robot model the report calibrated (default: the report's 'model' field)",
+    )
+    k.add_argument(
+        "--truth-model",
+        default=None,
+        help="the true robot's model where it is not the calibrated one's (default: the truth's 'model' field)",
+    )
+    k.add_argument(
+        "--parameters",
+        action="store_true",
+        help="judge by the parameter table instead of what the robots do (parametrization-dependent)",
+    )
+    k.add_argument(
+        "--show-parameters",
+        action="store_true",
+        help="print the parameter table below the kinematic comparison",
+    )
     k.set_defaults(func=cmd_check)
 
 
