@@ -1063,7 +1063,7 @@ def test_internal_error_is_one_line_exit_70(panda_files, monkeypatch, capsys):
 @pytest.mark.parametrize("unnamed", [True, False], ids=["o_tmpfile", "staging-dir"])
 def test_output_set_publishes_whole_or_nothing(tmp_path, monkeypatch, unnamed):
     """Both staging paths (O_TMPFILE and the hidden staging directory) publish in order or leave nothing."""
-    import closedloop.output.urdf as ex
+    import closedloop.io.files as ex
 
     if not unnamed:
         monkeypatch.setattr(ex, "_unnamed", lambda d: None)

@@ -39,6 +39,7 @@ import numpy as np
 from closedloop.errors import EXIT_FAILED, InputError
 from closedloop.fleet.drift import Drift, drift, drift_columns, gauge_record
 from closedloop.fleet.manifest import BatchJob, as_list, read_manifest
+from closedloop.io.schemas import check_number
 
 __all__ = [
     "BatchJob",
@@ -82,6 +83,101 @@ COLUMNS = [
 ]
 
 
+# --------------------------------------------------------------------------- workers end with the batch
+_watching: list[int] = []
+
+
+def die_with_batch(pid: int) -> None:
+    """In a worker process: end this process the moment the batch that started it dies, whatever kills
+    it (SIGKILL included).  A pool worker's parent is the pool's fork server, which itself lives as long
+    as its workers do, so the parent-death signal cannot be used: a daemon thread waits on a pidfd of
+    the batch (Linux ``pidfd_open``; elsewhere it polls the pid every 0.2 s) and calls ``os._exit``.
+    SIGINT and SIGTERM are ignored here: Ctrl-C reaches the whole process group, and the batch ends its
+    workers itself (`end_workers`)."""
+    import signal
+    import threading
+
+    if pid <= 0 or pid == os.getpid() or _watching:
+        return
+    _watching.append(pid)
+    for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C reaches the whole process group: the batch decides
+        signal.signal(sig, signal.SIG_IGN)
+
+    def watch() -> None:
+        import select
+        import time
+
+        try:
+            fd = os.pidfd_open(pid)
+        except (AttributeError, OSError):
+            fd = None
+        if fd is not None:
+            select.select([fd], [], [])
+        else:  # pragma: no cover - no pidfd (non-Linux, old kernel)
+            while True:
+                try:
+                    os.kill(pid, 0)
+                except ProcessLookupError:
+                    break
+                except PermissionError:
+                    pass
+                time.sleep(0.2)
+        os._exit(1)
+
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:  # already gone before the watch started
+        os._exit(1)
+    threading.Thread(target=watch, name="closedloop-batch-watch", daemon=True).start()
+
+
+def descendants(pid: int | None = None) -> list[int]:
+    """Every live process below `pid` (default: this one), children first, from ``/proc``."""
+    children: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc") if os.path.isdir("/proc") else []:
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as fh:
+                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        children.setdefault(ppid, []).append(int(entry))
+    out, todo = [], [os.getpid() if pid is None else pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.append(c)
+            todo.append(c)
+    return out
+
+
+def end_workers() -> None:
+    """Kill (SIGKILL) every process this batch started (pool workers, fork server; the resource tracker
+    then ends by itself).
+    Called when the batch is interrupted, before the engine's shutdown would wait for running jobs."""
+    import signal
+    import threading
+    from concurrent.futures import InvalidStateError
+    from multiprocessing import resource_tracker
+
+    previous = threading.excepthook
+
+    def quiet(args) -> None:  # the pool's manager thread, finding its workers killed, fails a cancelled future
+        if args.exc_type is not InvalidStateError:
+            previous(args)
+
+    threading.excepthook = quiet
+
+    tracker = getattr(resource_tracker._resource_tracker, "_pid", None)  # it ends by itself, its leases settled
+    for pid in descendants():
+        if pid == tracker:
+            continue
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:
+            pass
+
+
 # --------------------------------------------------------------------------- one job (in a worker)
 def _options(opts: dict, names: list[str]):
     from closedloop.calibration.pipeline import CalibrationOptions
@@ -106,7 +202,7 @@ def _options(opts: dict, names: list[str]):
         snr=float(opts.get("snr", 1.0)),
         max_iter=int(opts.get("max_iter", 100)),
         bounds={k: tuple(v) for k, v in bounds.items()},
-        robust=opts.get("robust"),
+        robust=None if opts.get("robust") == "off" else opts.get("robust"),
     )
 
 
@@ -167,6 +263,7 @@ def run_job(job: BatchJob) -> dict:
     from closedloop.output.report import build_report, write_report
     from closedloop.output.urdf import write_model
 
+    die_with_batch(job.batch_pid)
     t0 = time.perf_counter()
     robot = RobotModel.from_file(job.model)
     loops = [parse_loop(s, robot) for s in job.loops] or default_loops(robot)
@@ -309,32 +406,35 @@ class BatchResult:
 
 
 class _Summary:
-    """The summary CSV: streamed row by row, rewritten whole in manifest order at the end."""
+    """The summary CSV: published whole after every finished job (the rows so far, in finishing order;
+    a reader never sees a torn file), then in manifest order at the end.  A device or named pipe
+    (``--summary /dev/stdout``) gets the final table only."""
 
     def __init__(self, path: Path):
+        from closedloop.io.files import is_special
+
         self.path = path
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self.fh = path.open("w", newline="")
-        self.w = csv.DictWriter(self.fh, COLUMNS, extrasaction="ignore")
-        self.w.writeheader()
-        self.fh.flush()
+        self.rows: list[dict] = []
+        self.stream = not is_special(path)
 
     def add(self, row: dict) -> None:
-        self.w.writerow(_fmt(row))
-        self.fh.flush()
+        self.rows.append(row)
+        if self.stream:
+            self._write(self.rows)
 
     def finish(self, rows: list[dict]) -> None:
-        from closedloop.io.files import atomic_write
+        self._write(rows)
 
-        self.fh.close()
+    def _write(self, rows: list[dict]) -> None:
+        import io
 
-        def writer(tmp):
-            with open(tmp, "w", newline="") as fh:
-                w = csv.DictWriter(fh, COLUMNS, extrasaction="ignore")
-                w.writeheader()
-                w.writerows(_fmt(r) for r in rows)
+        from closedloop.io.files import atomic_write_text
 
-        atomic_write(self.path, writer)
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, COLUMNS, extrasaction="ignore", lineterminator="\r\n")
+        w.writeheader()
+        w.writerows(_fmt(r) for r in rows)
+        atomic_write_text(self.path, buf.getvalue())
 
 
 def _fmt(row: dict) -> dict:
@@ -355,6 +455,7 @@ def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=N
     for j in jobs:
         done = finished(j)
         if done is None:
+            j.batch_pid = os.getpid()  # its worker ends with this process (`die_with_batch`)
             todo.append(j)
         else:
             results[j.name] = done
@@ -390,16 +491,36 @@ def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=N
     return BatchResult(ordered, drifts, [j.name for j in todo], [j.name for j in jobs if j not in todo], failed)
 
 
+def drift_path(summary: Path) -> Path:
+    """The drift table written beside the summary: ``SUMMARY.drift.csv``."""
+    return summary.with_name(summary.stem + ".drift.csv")
+
+
 def _write_drift(summary: Path, drifts: list[Drift]) -> None:
-    from closedloop.io.files import atomic_write
+    import io
 
-    def writer(tmp):
-        with open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, list(asdict(drifts[0])))
-            w.writeheader()
-            w.writerows(_fmt(asdict(d)) for d in drifts)
+    from closedloop.io.files import atomic_write_text
 
-    atomic_write(summary.with_name(summary.stem + ".drift.csv"), writer)
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, list(asdict(drifts[0])), lineterminator="\r\n")
+    w.writeheader()
+    w.writerows(_fmt(asdict(d)) for d in drifts)
+    atomic_write_text(drift_path(summary), buf.getvalue())
+
+
+def check_batch_outputs(manifest: str | Path, jobs: list[BatchJob], summary: Path) -> None:
+    """Before any job runs: the summary (and its drift table) and every job's folder may be written,
+    and none of them is an input (the manifest, a model, a log) -- by inode, links resolved."""
+    from closedloop.io.files import check_outputs, same_file
+
+    inputs = [manifest] + [p for j in jobs for p in (j.model, j.log)]
+    check_outputs({"--summary": summary, "--summary (drift table)": drift_path(summary)}, inputs)
+    for j in jobs:
+        if j.out.exists() and not j.out.is_dir():
+            raise InputError(f"job {j.name}: out {j.out}: is a file; give a folder")
+        for i in inputs:
+            if same_file(j.out, i):
+                raise InputError(f"job {j.name}: out {j.out}: is an input of the batch ({i})")
 
 
 def cmd_batch(args) -> int:
@@ -412,8 +533,14 @@ def cmd_batch(args) -> int:
     summary = (
         Path(args.summary) if args.summary else Path(args.manifest).with_name(Path(args.manifest).stem + ".summary.csv")
     )
+    args.drift_z = check_number("--drift-z", args.drift_z, 0.0, 1e6, lo_open=True)
+    check_batch_outputs(args.manifest, jobs, summary)
     with engine_from_args(args) as eng:
-        res = run_batch(jobs, summary, eng, progress_printer("batch: ", args.quiet), args.drift_z)
+        try:
+            res = run_batch(jobs, summary, eng, progress_printer("batch: ", args.quiet), args.drift_z)
+        except BaseException:  # Ctrl-C, SIGTERM, an error: no worker may run on (the shutdown would wait)
+            end_workers()
+            raise
     flagged = [d for d in res.drift if d.flagged]
     verdicts = Counter(str(r.get("verdict", "")) for r in res.rows if r["name"] not in res.failed)
     print(
@@ -448,7 +575,7 @@ def add_parser(sub) -> None:
     b = sub.add_parser("batch", help="calibrate many robots/logs from a manifest (YAML or CSV), resumable")
     b.add_argument("manifest", help="YAML (jobs: [...]) or CSV: model, log, loops, options, out[, robot, date, cv]")
     b.add_argument("--summary", help="summary CSV (default: MANIFEST.summary.csv beside the manifest)")
-    b.add_argument("--drift-z", type=float, default=3.0, help="flag a parameter change above this many std. errors")
+    b.add_argument("--drift-z", default=3.0, help="flag a parameter change above this many std. errors")
     add_arguments(b)
     b.add_argument("--quiet", action="store_true")
     b.set_defaults(func=cmd_batch)

@@ -128,6 +128,10 @@ def _reader(path: Path):
             f"{path}: not a ROS bag (a ROS 1 .bag, a ROS 2 bag folder with its metadata.yaml, or a "
             f".mcap/.db3 file){'; a CSV log goes straight to calibrate' if path.suffix.lower() == '.csv' else ''}"
         )
+    from closedloop.io.files import note_input
+
+    for f in [path] if path.is_file() else path.iterdir():
+        note_input(f)
     if path.is_file() and path.suffix.lower() in (".mcap", ".db3") and (path.parent / "metadata.yaml").is_file():
         path = path.parent  # a ROS 2 bag is its directory
     return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))

@@ -83,6 +83,9 @@ def read_log(
     """
     path = Path(path)
     try:
+        from closedloop.io.files import note_input
+
+        note_input(path)
         with path.open(newline="", encoding="utf-8-sig") as fh:  # a UTF-8 byte-order mark is dropped
             rows = list(csv.reader(fh))
     except IsADirectoryError:

@@ -92,6 +92,9 @@ class RobotModel:
         path = Path(path)
         if not path.is_file():
             raise ModelError(f"{path}: no such model file")
+        from closedloop.io.files import note_input
+
+        note_input(path)
         suffix = path.suffix.lower()
         if suffix in (".yaml", ".yml"):
             table = load_dh(path)
