@@ -250,7 +250,11 @@ CASES = [
     Case("dh-ok", ["inspect", "{t.yaml}"], 0, ["3 movable joints", "chain_end"], {"t.yaml": DH}),
     # ---------------------------------------------------------------- models
     Case(
-        "urdf-zero-axis", ["inspect", "{z.urdf}"], 2, ["joint 'j2' has a zero or invalid axis"], {"z.urdf": ZERO_AXIS}
+        "urdf-zero-axis",
+        ["inspect", "{z.urdf}"],
+        2,
+        ["joint 'j2'", "is zero; give a nonzero axis"],
+        {"z.urdf": ZERO_AXIS},
     ),
     Case("urdf-mimic-listed", ["inspect", "{m.urdf}"], 0, ["j2", "mimics j1"], {"m.urdf": MIMIC}),
     Case(
