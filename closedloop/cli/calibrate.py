@@ -54,6 +54,11 @@ def check_calibrate_options(args) -> tuple:
     )
     if getattr(args, "plots", None):
         check_outputs({"--plots": args.plots}, [args.model, args.log], directory=True)
+    if getattr(args, "html", None) or getattr(args, "plots", None):  # before the fit, not after it
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:
+            raise InputError('--html/--plots need matplotlib: pip install "closedloop[report]"') from None
     args.snr = check_number("--snr", args.snr, 0.0, 1e6, lo_open=True)
     args.max_iter = check_number("--max-iter", args.max_iter, 1, 10**6, integer=True)
     cv_given = args.cv is not None  # (default None: 5 folds, fewer on a short log)
