@@ -383,7 +383,7 @@ def resolve_scenario(args) -> str:
         if args.q0:
             data["q0"] = _numbers(args.q0, "--q0")
         if args.tool:
-            xyz = _numbers(args.tool, "--tool", 3, limit=1e6)
+            xyz = _numbers(args.tool, "--tool", 3, limit=float("inf"))
             if sum(v * v for v in xyz) ** 0.5 > MAX_TOOL:
                 raise InputError(f"--tool {args.tool}: a stylus longer than {MAX_TOOL:g} m (metres expected)")
             data["tool"] = {"xyz": xyz}
