@@ -39,6 +39,7 @@ import numpy as np
 from closedloop.errors import EXIT_FAILED, InputError
 from closedloop.fleet.drift import Drift, drift, drift_columns, gauge_record
 from closedloop.fleet.manifest import BatchJob, as_list, read_manifest
+from closedloop.io.files import is_special
 from closedloop.io.schemas import check_number
 
 __all__ = [
@@ -486,7 +487,7 @@ def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=N
     drift_columns(rows, drifts)
     ordered = [rows[j.name] for j in jobs]
     sink.finish(ordered)
-    if drifts:
+    if drifts and not is_special(summary):  # (a summary on a device or pipe: the drift is printed only)
         _write_drift(Path(summary), drifts)
     return BatchResult(ordered, drifts, [j.name for j in todo], [j.name for j in jobs if j not in todo], failed)
 
@@ -514,7 +515,10 @@ def check_batch_outputs(manifest: str | Path, jobs: list[BatchJob], summary: Pat
     from closedloop.io.files import check_outputs, same_file
 
     inputs = [manifest] + [p for j in jobs for p in (j.model, j.log)]
-    check_outputs({"--summary": summary, "--summary (drift table)": drift_path(summary)}, inputs)
+    outputs = {"--summary": summary}
+    if not is_special(summary):
+        outputs["--summary (its drift table)"] = drift_path(summary)
+    check_outputs(outputs, inputs)
     for j in jobs:
         if j.out.exists() and not j.out.is_dir():
             raise InputError(f"job {j.name}: out {j.out}: is a file; give a folder")
@@ -557,7 +561,7 @@ def cmd_batch(args) -> int:
     if res.drift:
         print(
             f"  drift: {len(flagged)} of {sum(not d.note for d in res.drift)} parameter changes exceed "
-            f"{args.drift_z:g} standard errors -> {summary.with_name(summary.stem + '.drift.csv')}"
+            f"{args.drift_z:g} standard errors" + ("" if is_special(summary) else f" -> {drift_path(summary)}")
         )
     for d in res.drift:
         if d.note:

@@ -160,6 +160,8 @@ class OutputSet:
                 try:
                     _write_all(fd, self.files[t])
                     os.fsync(fd)
+                except OSError as exc:  # a full disk, a quota: name the output (nothing is published)
+                    raise OSError(exc.errno, exc.strerror, str(t)) from None
                 finally:
                     if staged[-1][1] is None:
                         os.close(fd)
@@ -192,6 +194,8 @@ class OutputSet:
 def _target(path: str | Path) -> Path:
     """The absolute path an output is written to: symlinks followed (a dangling one: its target)."""
     p = Path(path)
+    if is_special(p):  # /dev/stdout -> /proc/self/fd/1 -> a pipe: opened by the name given
+        return p.absolute()
     try:
         return p.resolve() if p.is_symlink() else p.absolute()
     except (OSError, RuntimeError):  # a symlink loop
