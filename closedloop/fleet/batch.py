@@ -85,51 +85,21 @@ COLUMNS = [
 
 
 # --------------------------------------------------------------------------- workers end with the batch
-_watching: list[int] = []
-
-
 def die_with_batch(pid: int) -> None:
-    """In a worker process: end this process the moment the batch that started it dies, whatever kills
-    it (SIGKILL included).  A pool worker's parent is the pool's fork server, which itself lives as long
-    as its workers do, so the parent-death signal cannot be used: a daemon thread waits on a pidfd of
-    the batch (Linux ``pidfd_open``; elsewhere it polls the pid every 0.2 s) and calls ``os._exit``.
+    """In a worker process: end it the moment the batch process `pid` dies (`closedloop.fleet.guard`).
     SIGINT and SIGTERM are ignored here: Ctrl-C reaches the whole process group, and the batch ends its
     workers itself (`end_workers`)."""
     import signal
     import threading
 
-    if pid <= 0 or pid == os.getpid() or _watching:
+    from closedloop.fleet.guard import watch
+
+    if pid <= 0 or pid == os.getpid():
         return
-    _watching.append(pid)
-    for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C reaches the whole process group: the batch decides
-        signal.signal(sig, signal.SIG_IGN)
-
-    def watch() -> None:
-        import select
-        import time
-
-        try:
-            fd = os.pidfd_open(pid)
-        except (AttributeError, OSError):
-            fd = None
-        if fd is not None:
-            select.select([fd], [], [])
-        else:  # pragma: no cover - no pidfd (non-Linux, old kernel)
-            while True:
-                try:
-                    os.kill(pid, 0)
-                except ProcessLookupError:
-                    break
-                except PermissionError:
-                    pass
-                time.sleep(0.2)
-        os._exit(1)
-
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:  # already gone before the watch started
-        os._exit(1)
-    threading.Thread(target=watch, name="closedloop-batch-watch", daemon=True).start()
+    watch(pid)
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
 
 
 def descendants(pid: int | None = None) -> list[int]:
@@ -150,6 +120,32 @@ def descendants(pid: int | None = None) -> list[int]:
             out.append(c)
             todo.append(c)
     return out
+
+
+def start_worker_server() -> None:
+    """Start the fork server that local pools fork their workers from, for this batch: with SIGINT
+    ignored (its workers inherit that from birth, so Ctrl-C, sent to the whole process group, reaches
+    the batch alone even while a worker is still starting; the batch ends its workers itself,
+    `end_workers`), and with `closedloop.fleet.guard` preloaded (each worker it forks ends when the
+    batch process dies, SIGKILL included)."""
+    import multiprocessing as mp
+    import signal
+    import threading
+
+    from closedloop.fleet.guard import BATCH_PID
+
+    if "forkserver" not in mp.get_all_start_methods() or threading.current_thread() is not threading.main_thread():
+        return
+    from multiprocessing import forkserver
+
+    os.environ[BATCH_PID] = str(os.getpid())
+    preload = list(getattr(forkserver._forkserver, "_preload_modules", ["__main__"]))
+    forkserver.set_forkserver_preload(preload + ["closedloop.fleet.guard"])
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        forkserver.ensure_running()
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def end_workers() -> None:
@@ -540,6 +536,8 @@ def cmd_batch(args) -> int:
     args.drift_z = check_number("--drift-z", args.drift_z, 0.0, 1e6, lo_open=True)
     check_batch_outputs(args.manifest, jobs, summary)
     with engine_from_args(args) as eng:
+        if eng.name == "local":
+            start_worker_server()
         try:
             res = run_batch(jobs, summary, eng, progress_printer("batch: ", args.quiet), args.drift_z)
         except BaseException:  # Ctrl-C, SIGTERM, an error: no worker may run on (the shutdown would wait)
