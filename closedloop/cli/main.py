@@ -1,7 +1,8 @@
 """The `closedloop` command line: the parser, the dispatch and the exit codes.  Printing happens in the
 `cli*` modules and only there (`cli_calibrate`, `cli_simulate`, `cli_tools`; option values: `cli_parse`).
 
-User mistakes (`InputError`) print one line and exit with code 2.
+User mistakes (`InputError`) print one line and exit with code 2.  Nothing heavy is imported before
+`main` has taken over the signals: Ctrl-C while the numerical libraries load is one line and exit 130 too.
 """
 
 from __future__ import annotations
@@ -11,9 +12,7 @@ import json
 import logging
 import sys
 
-from closedloop.cli.calibrate import cmd_calibrate
 from closedloop.cli.parse import float_arg, int_arg, join_negative_numbers
-from closedloop.cli.simulate import cmd_simulate
 from closedloop.errors import (
     EXIT_FAILED,
     EXIT_INPUT,
@@ -23,17 +22,14 @@ from closedloop.errors import (
     ClosedLoopError,
     InputError,
 )
-from closedloop.io.schemas import check_number
 
 __all__ = [
     "EXIT_FAILED",
     "EXIT_INPUT",
     "EXIT_INTERNAL",
     "build_parser",
-    "cmd_calibrate",
     "cmd_check",
     "cmd_inspect",
-    "cmd_simulate",
     "main",
 ]
 
@@ -64,6 +60,7 @@ def cmd_inspect(args) -> int:
 
 
 def cmd_check(args) -> int:
+    from closedloop.io.schemas import check_number
     from closedloop.validation.check import check_parameters, check_report
 
     tols = {
@@ -166,7 +163,21 @@ def _add_evaluate(sub) -> None:
     add_evaluate(sub)
 
 
+def __getattr__(name: str):
+    """`cmd_calibrate` and `cmd_simulate`, imported on first use (module doc)."""
+    if name == "cmd_calibrate":
+        from closedloop.cli.calibrate import cmd_calibrate
+
+        return cmd_calibrate
+    if name == "cmd_simulate":
+        from closedloop.cli.simulate import cmd_simulate
+
+        return cmd_simulate
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 def _add_calibrate(sub) -> None:
+    from closedloop.cli.calibrate import cmd_calibrate
     from closedloop.cli.tools import loop_help
 
     c = sub.add_parser(
@@ -241,6 +252,7 @@ def _add_calibrate(sub) -> None:
 
 
 def _add_simulate(sub) -> None:
+    from closedloop.cli.simulate import cmd_simulate
     from closedloop.cli.tools import add_simulate_robot_options, scenario_help
 
     s = sub.add_parser(
@@ -348,8 +360,9 @@ def main(argv: list[str] | None = None) -> int:
     import signal
     import threading
 
-    from closedloop.cli.tools import parse_args
+    from closedloop.io.files import track_inputs
 
+    own_process = argv is None  # run as the program (not called by a test or a script)
     argv = join_negative_numbers(list(sys.argv[1:] if argv is None else argv))
     handlers = {}
     if threading.current_thread() is threading.main_thread():
@@ -359,11 +372,14 @@ def main(argv: list[str] | None = None) -> int:
     if verbose:  # accepted before or after the subcommand: the top-level flag
         argv = ["-v"] + [a for a in argv if a not in ("-v", "--verbose")]
     try:
-        args = parse_args(build_parser(_command(argv)), argv)  # applies a subcommand's --config FILE
-        logging.basicConfig(
-            level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
-        )
-        return args.func(args)
+        with track_inputs():  # every file a reader opens is an input no output may replace
+            from closedloop.cli.tools import parse_args  # (the heavy imports start here: inside the handlers)
+
+            args = parse_args(build_parser(_command(argv)), argv)  # applies a subcommand's --config FILE
+            logging.basicConfig(
+                level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
+            )
+            return args.func(args)
     except SystemExit as exc:  # --help, --version, a --config loader that already printed its line
         if exc.code is None or isinstance(exc.code, int):
             return exc.code or 0
@@ -384,7 +400,10 @@ def main(argv: list[str] | None = None) -> int:
             + "; outputs not yet published were discarded",
             file=sys.stderr,
         )
-        return 128 + signum if signum else 130
+        code = 128 + signum if signum else 130
+        if own_process:  # the interpreter would kill itself with SIGINT at exit (exit -2) had the interrupt
+            _exit_now(code)  # landed in a C extension's import; our cleanups have run: leave with the code
+        return code
     except BrokenPipeError:  # the reader went away (`| head`): quiet, as a tool killed by SIGPIPE
         import os
 
@@ -414,6 +433,25 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         for sig, h in handlers.items():
             signal.signal(sig, h)
+
+
+def _exit_now(code: int) -> None:
+    """Run the exit handlers, flush the standard streams and end the process with `code` (without the
+    interpreter's own finalization, which would turn an interrupt seen during an import into SIGINT)."""
+    import atexit
+    import os
+
+    try:
+        atexit._run_exitfuncs()  # multiprocessing's finalizers: the pool's semaphores released
+    except BaseException:  # noqa: BLE001 - leaving anyway
+        pass
+
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
 
 
 def _one_line(exc: BaseException) -> str:
