@@ -192,3 +192,113 @@ def test_written_files_predict_the_fit(kind, tmp_path):
     comp = [k for k, p in enumerate(res.problem.params) if p.kind == "compliance"]
     assert any(res.values[k] != 0.0 for k in comp)  # the fit used compliances: the files must carry them
     _assert_predicts_the_fit(tmp_path, robot, log_, res)
+
+
+def _camera():
+    from camera_head_support import FRAMES, head_case, truth_pixels
+
+    from closedloop.loops.camera.loop import CameraLoop
+
+    def make():
+        return CameraLoop("cam", "tool0", camera_frames=FRAMES, sigma_px=0.3)
+
+    case = head_case(make, N=40, seed=1, options=CalibrationOptions(weighting="none", robust=None))
+    rng = np.random.default_rng(6)
+    names = case.robot.joint_names
+    zeros = {c: np.zeros(len(case.theta)) for c in make().columns()}
+    prob = build_problem(case.robot, JointLog(names, case.theta, None, None, zeros), [make()])
+    pixels = truth_pixels(prob, case.truth_values, case.theta)
+    pixels = {k: v + rng.normal(scale=0.3, size=v.size) for k, v in pixels.items()}
+    return case.robot, _log(names, case.theta, rng, pixels), make
+
+
+CASES["camera"] = _camera
+
+
+def test_written_frames_close_the_loops(tmp_path):
+    """The fixture, the tool point and the socket written into the URDF close the loops as the fit does:
+    a weld to the written fixture frame with the identity, a point loop between the written tip and the
+    written socket with zero offsets, a measured pose between the written tool and sensor frames."""
+    cases = {
+        "weld": (CASES["weld"], lambda: WeldLoop("w", "panda_hand", "fixture_fixture", closure=pin.SE3.Identity())),
+        "point": (
+            CASES["point"],
+            lambda: PointLoop("p", "socket_tip", "socket_point", tip=np.zeros(3), point=np.zeros(3)),
+        ),
+        "measured_pose": (
+            CASES["measured_pose"],
+            lambda: MeasuredPoseLoop("m", "m_tool", "m_sensor", base=pin.SE3.Identity(), tool=pin.SE3.Identity()),
+        ),
+    }
+    for kind, (case, frame_loop) in cases.items():
+        robot, log_, make = case()
+        res = _fit(robot, log_, make)
+        d = tmp_path / kind
+        d.mkdir()
+        written, values, _ = _written(d, robot, res)
+        ev = evaluate_model(written, log_, [frame_loop()], values, refit=True)
+        assert not ev.values  # the frames hold every unknown: nothing to fit
+        r_fit = _fit_closures(res)[0]
+        r_file = ev.residuals[0][res.problem.blocks[0].rows - 1]
+        assert np.abs(r_fit - r_file).max() < TOL, kind
+
+
+def _dh_table(path: Path) -> RobotModel:
+    """A six-row arm as a D-H table (classic rows, one modified row, one Hayati row)."""
+    path.write_text(
+        "name: arm\nunits: {length: m, angle: rad}\njoints:\n"
+        "  - {name: j1, s: 0.30, a: 0.0, alpha: 1.5708}\n"
+        "  - {name: j2, s: 0.0, a: 0.40, alpha: 0.0, theta_off: 0.3}\n"
+        "  - {name: j3, s: 0.0, a: 0.35, alpha: 0.0, convention: hayati}\n"
+        "  - {name: j4, s: 0.10, a: 0.0, alpha: 1.5708}\n"
+        "  - {name: j5, s: 0.10, a: 0.0, alpha: -1.5708}\n"
+        "  - {name: j6, s: 0.08, a: 0.0, alpha: 0.0}\n"
+    )
+    return RobotModel.from_file(path)
+
+
+def test_dh_table_and_sensor_file_predict_the_fit(tmp_path):
+    robot = _dh_table(tmp_path / "arm.yaml")
+    q0 = np.array([[0.2, 0.5, -0.8, 0.4, 0.6, 0.1]])
+
+    def make():
+        return PointLoop("socket", "arm_end", initial_tip=[0.0, 0.0, 0.05])
+
+    log_ = _closed(robot, make, q0, 40, 7)
+    res = calibrate(
+        robot, log_, [make()], CalibrationOptions(identify=["s", "a", "alpha", "theta_off", "k", "compliance", "loop"])
+    )
+    assert res.converged
+    _assert_predicts_the_fit(tmp_path, robot, log_, res, "cal.yaml")
+
+
+def test_mjcf_and_sensor_file_predict_the_fit(tmp_path):
+    import mujoco
+
+    from closedloop.models import nominal_urdf
+
+    spec = mujoco.MjSpec.from_string(
+        nominal_urdf("panda").replace(
+            "</robot>", '<mujoco><compiler fusestatic="false" discardvisual="true"/></mujoco></robot>'
+        )
+    )
+    (tmp_path / "panda.xml").write_text(spec.to_xml())
+    robot = RobotModel.from_file(tmp_path / "panda.xml")
+
+    def make():
+        return PointLoop("socket", "panda_hand", initial_tip=[0.0, 0.0, 0.1])
+
+    log_ = _closed(robot, make, PANDA_Q0, 40, 8)
+    res = _fit(robot, log_, make)
+    assert res.converged
+    out = tmp_path / "out"
+    out.mkdir()
+    written = _assert_predicts_the_fit(out, robot, log_, res, "cal.xml")
+    # the tool point is a body on the hand (a frame for Pinocchio), the socket a body of the world (MuJoCo)
+    tip = np.array([res.value(f"socket.tip_{a}") for a in "xyz"])
+    M = written.model.frames[written.frame_id("socket_tip")].placement
+    H = written.model.frames[written.frame_id("panda_hand")].placement
+    assert np.abs((H.inverse() * M).translation - tip).max() < 1e-12
+    m = mujoco.MjModel.from_xml_path(str(out / "cal.xml"))
+    p = np.array([res.value(f"socket.p{a}") for a in "xyz"])
+    assert np.abs(m.body("socket_point").pos - p).max() < 1e-12

@@ -59,9 +59,11 @@ def calibrated_mjcf(
     0.5 um on a 1 m arm, too coarse for a calibration), so the rest of the file stays as written.
     With ``out_dir`` other than the input's directory, relative asset paths are rewritten relative to
     ``out_dir`` (`_relative_assets`).  `frames` (`closedloop.output.urdf.model_frames`: tool points,
-    fixtures, sensors) are added: a frame on a body as a ``<site>`` of that body (Pinocchio reads
-    sites as frames), a frame on the world as a ``<body>`` of the worldbody (MuJoCo's static frame;
-    Pinocchio does not read joint-less world bodies: the report holds their values too).
+    fixtures, sensors) are added as joint-less ``<body>`` elements: a frame on a body (or a site) as a
+    child of that body, which both MuJoCo and Pinocchio read as a frame (Pinocchio places a site of a
+    nested fixed body wrongly, a body rightly), a frame on the world as a body of the worldbody
+    (MuJoCo's static frame; Pinocchio does not read joint-less world bodies: the sensor file and the
+    report hold their values too).
     """
     import xml.etree.ElementTree as ET
 
@@ -132,7 +134,7 @@ def calibrated_mjcf(
 
 
 def _add_sites(root, model, frames, src: Path) -> None:
-    """`frames` into the MJCF: sites of the bodies they hang on, bodies of the worldbody (docstring above).
+    """`frames` into the MJCF: child bodies of the bodies they hang on or of the worldbody (docstring above).
 
     A frame on a site hangs on the site's body with the site's pose composed in; a name already taken
     by a body or site gets a suffix; a parent that is neither a body nor a site of this file is left to
@@ -152,14 +154,14 @@ def _add_sites(root, model, frames, src: Path) -> None:
         if parent in ("universe", "world"):
             el, tag = world, "body"
         elif parent in bodies:
-            el, tag = bodies[parent], "site"
+            el, tag = bodies[parent], "body"
         elif parent in sites:
             sid = model.site(parent).id
             R = np.zeros(9)
             mujoco.mju_quat2Mat(R, model.site_quat[sid])
             M = pin.SE3(R.reshape(3, 3), model.site_pos[sid].copy()) * M
             bname = model.body(int(model.site_bodyid[sid])).name
-            el, tag = (bodies.get(bname), "site") if bname != "world" else (world, "body")
+            el, tag = (bodies.get(bname), "body") if bname != "world" else (world, "body")
         else:
             continue
         if el is None:
