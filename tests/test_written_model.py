@@ -192,6 +192,16 @@ def test_written_files_predict_the_fit(kind, tmp_path):
     comp = [k for k, p in enumerate(res.problem.params) if p.kind == "compliance"]
     assert any(res.values[k] != 0.0 for k in comp)  # the fit used compliances: the files must carry them
     _assert_predicts_the_fit(tmp_path, robot, log_, res)
+    # a parameter reported as not identifiable keeps its initial value, or the report says it moved
+    report = json.loads((tmp_path / "report.json").read_text())
+    moved = {m["name"]: m for m in report["identifiability"]["moved_not_identifiable"]}
+    for k, name in enumerate(res.names):
+        if res.status[k] == "unidentifiable" and res.values[k] != res.initial[k]:
+            assert moved[name]["change"] == res.values[k] - res.initial[k] and moved[name]["combinations"]
+    assert set(moved) <= {n for n, st in zip(res.names, res.status) if st == "unidentifiable"}
+    assert {n: v for n, v in report["compliance"].items()} == {
+        res.names[k]: res.values[k] for k in comp if res.values[k] != 0.0 or res.status[k] == "estimated"
+    }
 
 
 def _camera():

@@ -129,6 +129,7 @@ def cmd_calibrate(args) -> int:
     report["verdict"] = verdict_record(res.verdict)
     failed = res.verdict.status == "failed"
     write_out = args.out and (not failed or args.force)
+    report["outputs"] = {"model": str(args.out) if write_out else None}  # `closedloop evaluate --calibration`
     with OutputSet(order=[args.out if write_out else None, args.report]):  # published whole, model first
         if args.report:
             write_report(report, args.report)

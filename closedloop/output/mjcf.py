@@ -144,13 +144,11 @@ def _add_sites(root, model, frames, src: Path) -> None:
 
     import mujoco
 
-    from closedloop.output.urdf import as_se3
-
     bodies = {b.get("name"): b for b in root.iter("body") if b.get("name")}
     sites = {s_.get("name") for s_ in root.iter("site") if s_.get("name")}
     world = root.find("worldbody")
     for name, parent, pose in frames:
-        M = as_se3(pose)
+        M = pose if isinstance(pose, pin.SE3) else pin.SE3(np.eye(3), np.asarray(pose, dtype=float).reshape(3))
         if parent in ("universe", "world"):
             el, tag = world, "body"
         elif parent in bodies:
