@@ -84,7 +84,32 @@ def read_inputs(log_path: str | None, robot, loops: list, degrees: bool = False,
 
     lg = _read_inputs(log_path, robot, loops, degrees, order)
     check_angle_units(lg, robot, degrees)
+    return with_gravity_torques(lg, robot)
+
+
+def with_gravity_torques(lg, robot):
+    """The log with ``tau:<joint>`` columns from the model's inertials (`RobotModel.gravity_torques`) when it
+    carries none and the model has masses; otherwise as it is.  The compliance model (theta' = k theta +
+    theta_off - c tau) then needs no torque logging on a robot that carries only itself; logged torques
+    always win.  `torque_source` says which: 'log', 'gravity' or None."""
+    present = [j for j in robot.joint_names if f"tau:{j}" in lg.extra]
+    if present or not robot.has_inertias:
+        lg.torque_source = "log" if present else None
+        return lg
+    known = [j for j in robot.joint_names if j in lg.joints]
+    tau = robot.gravity_torques(lg.columns(known), known)
+    lg.extra.update({f"tau:{j}": tau[:, k] for k, j in enumerate(known)})
+    lg.torque_source = "gravity"
     return lg
+
+
+def input_record(args, lg) -> dict:
+    """What the report says about the inputs: whether the readings are measured or commanded, and where the
+    joint torques come from ('log', 'gravity': the model's inertials at the readings, or null)."""
+    return {
+        "readings": getattr(args, "readings", "measured"),
+        "torques": getattr(lg, "torque_source", None),
+    }
 
 
 def _read_inputs(log_path: str | None, robot, loops: list, degrees: bool, order: list[str] | None):

@@ -177,6 +177,27 @@ class RobotModel:
                 q[:, j.idx_q] = angles[:, col]
         return q
 
+    @property
+    def has_inertias(self) -> bool:
+        """Whether the model carries real masses (a URDF's or MJCF's inertials; a D-H table has none)."""
+        return self.kind != "dh" and float(sum(self.model.inertias[j].mass for j in range(1, self.model.njoints))) > 0.0
+
+    def gravity_torques(self, angles: np.ndarray, joint_names: list[str]) -> np.ndarray:
+        """Joint torques that hold the robot still against gravity at each configuration (N, len(joint_names)).
+
+        The generalized gravity g(q) of the model's inertials (Pinocchio's RNEA at zero velocity and
+        acceleration, ``pin.computeGeneralizedGravity``): the actuator torque of a static arm carrying
+        only itself.  Contact or payload forces are not in it.  Joints not listed stay at their neutral
+        value.
+        """
+        data = self.model.createData()
+        q = self.configurations(angles, joint_names)
+        idx = [self.joints[n].idx_v for n in joint_names]
+        out = np.empty((q.shape[0], len(joint_names)))
+        for i, qi in enumerate(q):
+            out[i] = pin.computeGeneralizedGravity(self.model, data, qi)[idx]
+        return out
+
     def describe(self) -> dict:
         """Joints and frames, for `closedloop inspect`."""
         return {
