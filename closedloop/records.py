@@ -18,20 +18,20 @@ _RANK = {OK: 0, SUSPECT: 1, FAILED: 2}
 class CalibrationOptions:
     """What to identify and how.
 
-    identify: parameter patterns (``placement``, ``offset``, ``scale``,
-      ``loop``, or globs such as ``panda_joint[2-7].*``); None for the defaults
-      (URDF: placement, offset, loop; D-H: theta_off, s, a, alpha, loop).
-    fix: name -> value (None keeps the current value) of parameters held fixed.
-    noise: joint-reading standard deviation (rad, or m for prismatic joints),
-      one number or per joint; None estimates one level from the residual.
-    weighting: 'noise' (errors in variables, default) or 'none' (the thesis's
-      plain loop-closure least squares).
-    robust: 'auto' (default: configurations the noise cannot explain are
-      found by a robust fit and rejected before the final fit), 'huber' or
-      'cauchy' (IRLS kept in the final fit, suspects reported), or None
-      (no outlier handling).
-    restarts: further starts tried when the fit stalls far above any
-      plausible noise; seed: their random draws.
+    Attributes:
+        identify: parameter patterns (``placement``, ``offset``, ``scale``, ``loop``, or globs such as
+            ``panda_joint[2-7].*``); None for the defaults (URDF: placement, offset, loop; D-H: theta_off,
+            s, a, alpha, loop).
+        fix: name -> value (None keeps the current value) of parameters held fixed.
+        noise: joint-reading standard deviation (rad, or m for prismatic joints), one number or per joint;
+            None estimates one level from the residual.
+        weighting: 'noise' (errors in variables, default) or 'none' (the thesis's plain loop-closure least
+            squares).
+        robust: 'auto' (default: configurations the noise cannot explain are found by a robust fit and
+            rejected before the final fit), 'huber' or 'cauchy' (IRLS kept in the final fit, suspects
+            reported), or None (no outlier handling).
+        restarts: further starts tried when the fit stalls far above any plausible noise.
+        seed: the random draws of the restarts.
     """
 
     identify: list[str] | None = None

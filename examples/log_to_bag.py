@@ -7,7 +7,7 @@ robot driven through its calibration poses and recorded with `ros2 bag record /j
     python examples/log_to_bag.py MODEL LOG.csv OUT [--format mcap|sqlite3|ros1] [--noise 2e-5]
 
 OUT is a bag directory for ROS 2 (mcap, sqlite3) and a .bag file for ROS 1.  Needs `rosbags`
-(pip install "closedloop[ros]").
+(pip install ".[ros]" in the checkout).
 """
 
 from __future__ import annotations

@@ -43,7 +43,7 @@ def test_pixels_follow_mujoco_camera_model(dataset):
     robot = RobotModel.from_file(out / "nominal.urdf")
     spec, model = cs._mujoco_scene(true_urdf(out / "nominal.urdf", {}), mounts, cs.FOVY_DEG)
     data = mujoco.MjData(model)
-    th = cs._readings(robot, cs.SCENARIOS["ur5_head"], 6, np.random.default_rng(0))
+    th = cs._readings(robot, cs.CAMERA_SCENARIOS["ur5_head"], 6, np.random.default_rng(0))
     names = robot.joint_names
     qadr = [model.jnt_qposadr[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, j)] for j in names]
     m, d = robot.model, robot.model.createData()

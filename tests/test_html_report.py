@@ -11,11 +11,11 @@ import base64
 import io
 import json
 import re
+import struct
 from html.parser import HTMLParser
 
 import numpy as np
 import pytest
-from matplotlib import image as mpimg
 
 from closedloop.cli.main import main
 from closedloop.io.logs import JointLog
@@ -50,9 +50,22 @@ class Page(HTMLParser):
         self.text.append(data)
 
 
-def decode(png: bytes) -> np.ndarray:
-    assert png[:8] == b"\x89PNG\r\n\x1a\n"
-    return mpimg.imread(io.BytesIO(png), format="png")
+def decode(png: bytes) -> np.ndarray | tuple[int, int]:
+    """A PNG decoded (matplotlib, else PIL); without either, its header checked and its (height, width)."""
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and png[12:16] == b"IHDR" and png[-8:-4] == b"IEND"
+    try:
+        from matplotlib import image as mpimg
+
+        return mpimg.imread(io.BytesIO(png), format="png")
+    except ImportError:
+        pass
+    try:
+        from PIL import Image
+
+        return np.asarray(Image.open(io.BytesIO(png)).convert("RGBA"), float) / 255.0
+    except ImportError:
+        w, h = struct.unpack(">II", png[16:24])
+        return h, w
 
 
 @pytest.fixture(scope="module")
@@ -127,8 +140,9 @@ def test_page_is_self_contained_with_every_section(calibrated):
     assert sum(s > float(m.group(3)) for s in sv) == int(m.group(1))
     # the five largest closures after the fit, by log row, largest first
     outl = html[html.index("<h2>Outliers</h2>") : html.index("<h2>Not identified</h2>")]
-    rows = re.findall(r"<tr><td class='l'>fixture</td><td>(\d+)</td><td>([0-9.e+-]+)</td>", outl)
-    assert len(rows) == 5 and all(1 <= int(r) <= 30 for r, _ in rows)
+    log = re.escape(str(calibrated / "log.csv"))
+    rows = re.findall(rf"<tr><td class='l'>fixture</td><td>{log} line (\d+)</td><td>([0-9.e+-]+) mm</td>", outl)
+    assert len(rows) == 5 and all(2 <= int(r) <= 31 for r, _ in rows)  # the file's lines (header: line 1)
     sizes = [float(v) for _, v in rows]
     assert sizes == sorted(sizes, reverse=True) and sizes[0] < 1.0  # mm, after a fit to 1e-5 rad noise
 
@@ -155,9 +169,105 @@ def test_figures_decode(calibrated):
     assert len(srcs) == 3
     for s in srcs:
         img = decode(base64.b64decode(s))
+        if isinstance(img, tuple):  # neither matplotlib nor PIL to decode it: its size from the header
+            assert img[0] > 200 and img[1] > 500
+            continue
         assert img.shape[0] > 200 and img.shape[1] > 500
         assert img[..., :3].std() > 0.05  # drawn, not blank
     files = sorted(p.name for p in (calibrated / "plots").iterdir())
     assert files == ["closure.png", "corrections.png", "singular_values.png"]
     for f in files:
-        assert decode((calibrated / "plots" / f).read_bytes()).shape[0] > 200
+        img = decode((calibrated / "plots" / f).read_bytes())
+        assert (img[0] if isinstance(img, tuple) else img.shape[0]) > 200
+
+
+def test_title_is_the_robots_name_and_the_verdict_comes_before_any_figure(calibrated):
+    html = (calibrated / "report.html").read_text()
+    name = RobotModel.from_file(ROBOTS["panda"].path).model.name
+    assert name and name != ROBOTS["panda"].path.name
+    assert f"<title>{name}: closedloop calibration</title>" in html
+    assert f"<h1>{name}: closedloop calibration</h1>" in html
+    assert ROBOTS["panda"].path.name not in html.split("</h1>")[0]
+    verdict = html.index("<div class='verdict")
+    assert verdict < html.index("<img") and verdict < html.index("<h2>")  # the first screen
+    page = Page()
+    page.feed(html)
+    assert page.tags.index("div") < page.tags.index("img")
+
+
+def test_every_figure_is_embedded(calibrated):
+    html = (calibrated / "report.html").read_text()
+    page = Page()
+    page.feed(html)
+    assert len(page.images) == 3
+    for img in page.images:
+        src = img["src"]
+        assert src.startswith("data:image/png;base64,") and img.get("alt")
+        png = base64.b64decode(src.split(",", 1)[1], validate=True)
+        w, h = struct.unpack(">II", png[16:24])
+        assert w > 500 and h > 200
+
+
+def test_units_on_every_number_of_the_summary(calibrated):
+    html = (calibrated / "report.html").read_text()
+    report = json.loads((calibrated / "report.json").read_text())
+    assert f"{report['noise']['joint_sigma']:.3g} rad (estimated)" in html
+    head = html[html.index("<h2>Closure</h2>") : html.index("<img")]
+    assert "RMS before [mm]" in head and "after [mrad]" in head
+
+
+def test_closure_axis_is_not_stretched_by_one_near_zero_value():
+    from closedloop.output.html import closure_axis
+
+    rng = np.random.default_rng(0)
+    before = rng.uniform(0.5, 3.0, 200)  # mm
+    before[17] = 1e-9  # one configuration that closes by chance
+    after = rng.uniform(1e-3, 1e-2, 200)
+    lo, hi = closure_axis(np.concatenate([before, after]))
+    assert hi == pytest.approx(before.max())
+    assert 1e-4 <= lo < 2.5e-4  # a decade below the after closures' low end, not 1e-9
+    lo, hi = closure_axis(np.r_[np.full(50, 1e-13), 1.0])  # an exact fit: at most 6 decades below the top
+    assert lo == pytest.approx(1e-6) and hi == 1.0
+    assert closure_axis(np.array([0.0, np.nan])) == (1e-12, 1.0)
+
+
+def test_a_joint_that_never_moves_is_named_with_its_range_in_radians(panda):
+    from closedloop.analysis.selection import check_motion
+    from closedloop.calibration.pipeline import build_problem
+
+    ds = make_dataset(
+        panda, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 20, np.random.default_rng(1)
+    )
+    theta = np.array(ds.readings, float)
+    theta[:, ds.joints.index("panda_joint7")] = 0.8
+    prob = build_problem(panda, JointLog(list(ds.joints), theta), [WeldLoop("fixture", "panda_hand")])
+    status = ["selected"] * len(prob.names)
+    notes, _, _ = check_motion(prob, prob.nominal, status)
+    assert any("joint panda_joint7 never moves in the data (range 0.00e+00 rad)" in n for n in notes), notes
+
+
+def test_the_grasp_configuration_does_not_stretch_the_closure_axis(panda):
+    """The nominal model closes exactly at the configuration the fixture was placed at (a 'before' of
+    ~1e-9 mm): drawn on the axis floor, the axis spans the other closures, not 1e-9 mm."""
+    from closedloop.calibration.pipeline import calibrate
+    from closedloop.output.html import closure_axis, closure_per_configuration, fig_closure
+
+    ds = make_dataset(
+        panda,
+        WeldLoop("fixture", "panda_hand"),
+        [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8],
+        30,
+        np.random.default_rng(2),
+        noise=1e-5,
+    )
+    res = calibrate(panda, JointLog(list(ds.joints), ds.noisy), [WeldLoop("fixture", "panda_hand")])
+    d = closure_per_configuration(res)[0]
+    before, after = d["before_m"] * 1e3, d["after_m"] * 1e3  # mm
+    tiny = before < 1e-4
+    assert 1 <= tiny.sum() <= 2, before[:3]  # the grasp configuration(s)
+    lo, hi = closure_axis(np.concatenate([before, after]))
+    assert hi == pytest.approx(before.max())
+    assert 1e-4 < lo < after.min()  # every 'after' point on the axis, the near-zero one below it
+    img = decode(fig_closure(res, {}))
+    if not isinstance(img, tuple):
+        assert img.shape[0] > 200 and img[..., :3].std() > 0.05

@@ -223,7 +223,6 @@ def test_cli_writes_the_calibrated_mjcf(fitted, capsys):
                 str(rep),
                 "--cv",
                 "0",
-                "--quiet",
             ]
         )
         == 0

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import subprocess
 import sys
@@ -133,10 +134,10 @@ def files(calibrated, tmp_path):
     "mutate,expect",
     [
         (lambda text: text.replace("panda_joint4,", "elbow,", 1), "missing column(s) for loop joint(s) panda_joint4"),
-        (lambda text: text.replace("\n", "\nnan,0,0,0,0,0,0\n", 1), "row 1, column 'panda_joint1': value is nan"),
+        (lambda text: text.replace("\n", "\nnan,0,0,0,0,0,0\n", 1), "line 2, column 'panda_joint1': value is nan"),
         (lambda text: text.split("\n")[0] + "\n", "no data rows"),
         (lambda text: "\n".join(text.split("\n")[:3]) + "\n", "rows give 12 equations, no more than the 12 parameters"),
-        (lambda text: text.replace("\n", "\n1,2\n", 1), "row 1 has 2 fields"),
+        (lambda text: text.replace("\n", "\n1,2\n", 1), "line 2 has 2 fields"),
     ],
 )
 def test_bad_logs_one_line_exit_2(files, mutate, expect):
@@ -378,3 +379,132 @@ def test_written_mjcf_has_a_relative_meshdir_and_loads_from_another_folder(tmp_p
         * cal.model.frames[cal.frame_id("ball_tip")].placement
     )
     assert np.abs(T.translation - tip).max() < 1e-12
+
+
+# --------------------------------------------------------------------------- what the command line prints
+def _calibrate_args(files, *extra):
+    nominal, log, tmp = files
+    return ["calibrate", str(nominal), str(log), "--loop", "weld:frame=panda_hand,name=fixture", *extra]
+
+
+def test_quiet_prints_nothing_and_a_log_gets_no_progress_lines(files):
+    """--quiet: no summary; without it, the summary on stdout and no progress line in a non-terminal stderr."""
+    _, _, tmp = files
+    rc, out, err = _run(_calibrate_args(files, "--report", str(tmp / "r.json"), "--quiet"))
+    assert rc == 0 and out == "" and err == "", (out, err)
+    assert json.loads((tmp / "r.json").read_text())["verdict"]["status"] == "ok"
+    rc, out, err = _run(_calibrate_args(files, "--report", str(tmp / "r2.json")))
+    assert rc == 0 and out.startswith("verdict: ok") and f"wrote {tmp / 'r2.json'}" in out
+    assert err == "", err  # no 'solving: iteration ...' lines left in a log
+
+
+class _Terminal:
+    """A stderr that says it is a terminal and keeps what is left on the screen (carriage returns applied)."""
+
+    def __init__(self):
+        self.text = ""
+
+    def isatty(self) -> bool:
+        return True
+
+    def write(self, s: str) -> None:
+        self.text += s
+
+    def flush(self) -> None:
+        pass
+
+    def screen(self) -> list[str]:
+        lines = []
+        for line in self.text.split("\n"):
+            cells: list[str] = []
+            col = 0
+            for ch in line:
+                if ch == "\r":
+                    col = 0
+                    continue
+                if col < len(cells):
+                    cells[col] = ch
+                else:
+                    cells.append(ch)
+                col += 1
+            lines.append("".join(cells).rstrip())
+        return lines
+
+
+def test_progress_is_shown_on_a_terminal_and_erased_when_done():
+    from closedloop.cli.calibrate import Progress
+
+    term = _Terminal()
+    prog = Progress(quiet=False, stream=term)
+    for i in range(1, 201):
+        prog("simulating", i, 200)
+    assert "simulating: 200/200 configurations" in term.screen()[-1]
+    prog.done()
+    assert term.screen() == [""]  # nothing stale left on the screen
+    silent = _Terminal()
+    Progress(quiet=True, stream=silent)("solving", 3, 1.0)
+    assert silent.text == ""
+
+
+def test_sweep_progress_is_erased_when_the_last_job_ends():
+    from closedloop.parallel.engine import Progress as JobProgress
+    from closedloop.parallel.executor import progress_printer
+
+    term = _Terminal()
+    show = progress_printer("simulate: ", stream=term)
+    show(JobProgress(3, done=1))
+    assert term.screen()[-1].startswith("simulate: ")
+    show(JobProgress(3, done=3))
+    assert term.screen() == [""]
+    log = io.StringIO()  # not a terminal: nothing
+    progress_printer("simulate: ", stream=log)(JobProgress(3, done=3))
+    assert log.getvalue() == ""
+
+
+def test_html_without_matplotlib_is_refused_before_the_fit(files, monkeypatch, capsys):
+    import importlib.util
+
+    import closedloop.calibration.pipeline as pipeline
+
+    _, _, tmp = files
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "matplotlib" else real(name, *a))
+
+    def no_fit(*a, **k):
+        raise AssertionError("the fit started")
+
+    monkeypatch.setattr(pipeline, "calibrate", no_fit)
+    for opt, path in (("--html", tmp / "r.html"), ("--plots", tmp / "figs")):
+        rc = main(_calibrate_args(files, opt, str(path), "--report", str(tmp / "r.json")))
+        err = capsys.readouterr().err
+        assert rc == 2, err
+        assert err.startswith(f"error: {opt}: needs matplotlib") and 'pip install ".[report]"' in err
+        assert len(err.strip().splitlines()) == 1
+        assert not path.exists() and not (tmp / "r.json").exists()
+
+
+def test_check_names_the_verdict_once(tmp_path, capsys):
+    truth = tmp_path / "truth.json"
+    truth.write_text(json.dumps({"parameters": {"j1.offset": 0.0}}))
+    rep = tmp_path / "report.json"
+    rep.write_text(
+        json.dumps(
+            {
+                "parameters": [
+                    {
+                        "name": "j1.offset",
+                        "initial": 0.0,
+                        "calibrated": 1e-4,
+                        "unit": "rad",
+                        "kind": "offset",
+                        "status": "estimated",
+                    }
+                ],
+                "verdict": {"status": "suspect", "reasons": ["suspect: scale not set", "suspect: scale not set"]},
+            }
+        )
+    )
+    assert main(["check", str(truth), str(rep)]) == 0
+    out = capsys.readouterr().out
+    assert "note: the report's verdict is suspect: scale not set\n" in out
+    assert "suspect: suspect:" not in out and out.count("scale not set") == 1

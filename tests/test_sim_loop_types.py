@@ -1,5 +1,6 @@
-"""The simulator's loop-type table (`closedloop.sims.loop_types.SIM_LOOPS`): keyed like the core's loops,
-read by the scenario parser, and each type's nominal residual has the Jacobian it claims."""
+"""The simulator's loop types (`closedloop.sims.loop_types.SIM_LOOPS`): registered under the names of the one
+loop registry (`closedloop.loops.spec.LOOP_TYPES`), read by the scenario parser with the vocabulary of
+``calibrate --loop``, and each type's nominal residual has the Jacobian it claims."""
 
 from __future__ import annotations
 
@@ -7,27 +8,53 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from closedloop.errors import InputError, ScenarioError
-from closedloop.loops.spec import REGISTRY
+from closedloop.errors import InputError, LoopError, ScenarioError
+from closedloop.loops.spec import LOOP_TYPES, parse_loop
 from closedloop.models import ROBOTS, nominal_urdf
 from closedloop.sims import SCENARIOS
 from closedloop.sims.driver import NominalLoop
-from closedloop.sims.loop_types import SIM_LOOP_NAMES, SIM_LOOPS, sim_loop
-from closedloop.sims.robot_scenario import CONSTRAINTS
+from closedloop.sims.loop_types import SIM_LOOPS, sim_loop, simulated_types, simulates
 from closedloop.sims.scenario_files import parse_sim_loop
 
+SIMULATED = "hinge, measured_point, plane, point, weld"
 
-def test_table_is_keyed_by_the_core_loop_types():
-    assert set(SIM_LOOPS) == {"weld", "point", "hinge", "plane", "measured_point"}
-    assert set(SIM_LOOPS) <= set(REGISTRY)  # the parser's loop table
-    assert SIM_LOOP_NAMES["door"] == "hinge" and sim_loop("door") is SIM_LOOPS["hinge"]
-    assert CONSTRAINTS == {"weld": 6, "hinge": 5, "point": 3, "plane": 1, "measured_point": 0}
-    with pytest.raises(ScenarioError, match="no 'cam' loop") as info:
-        sim_loop("cam")
-    assert isinstance(info.value, InputError)
+
+def test_simulator_types_are_registry_types():
+    assert set(SIM_LOOPS) == {"weld", "point", "hinge", "plane", "measured_point"} and set(SIM_LOOPS) <= set(LOOP_TYPES)
+    assert all(SIM_LOOPS[k].kind == k for k in SIM_LOOPS) and simulated_types() == SIMULATED.split(", ")
+    assert {k: v.constraints for k, v in SIM_LOOPS.items()} == {
+        "weld": 6,
+        "hinge": 5,
+        "point": 3,
+        "plane": 1,
+        "measured_point": 0,
+    }
+    with pytest.raises(LoopError, match="'spring' has no entry in closedloop.loops.spec.LOOP_TYPES"):
+        simulates("spring")
+    # a registry type the simulator lacks: one line naming the simulated types
+    with pytest.raises(ScenarioError) as info:
+        sim_loop("camera")
+    assert str(info.value) == f"the simulator has no 'camera' loop (it simulates: {SIMULATED})"
+    assert isinstance(info.value, InputError) and "\n" not in str(info.value)
+
+
+def test_simulate_and_calibrate_take_the_same_loop_types():
+    """Every registry type calibrate parses is either simulated or refused by name; an unknown one (``door``,
+    once a simulator-only alias of hinge) is refused by both with calibrate's message."""
+    for kind in LOOP_TYPES:
+        if kind in SIM_LOOPS:
+            assert parse_sim_loop(f"{kind}:frame=t")[0] == kind
+        else:
+            with pytest.raises(InputError, match=f"the simulator has no '{kind}' loop .it simulates: {SIMULATED}.$"):
+                parse_sim_loop(f"{kind}:frame=t")
+    with pytest.raises(LoopError) as core:
+        parse_loop("door:frame=tool0", None)
+    with pytest.raises(InputError) as sim:
+        parse_sim_loop("door:frame=tool0")
+    assert str(sim.value) == f"{core.value}; the simulator simulates: {SIMULATED}"
     for spec, expected in (
         ("weld:frame=t", ("weld", "t", None, "fixture")),
-        ("door:frame=t", ("hinge", "t", None, "door")),
+        ("hinge:frame=t", ("hinge", "t", None, "door")),
         ("point:frame=t", ("point", "t", None, "socket")),
         ("plane:frame=t,name=p", ("plane", "t", None, "p")),
         ("weld:frame=t,to=u", ("weld", "t", "u", "fixture")),

@@ -58,6 +58,13 @@ def test_outputs_and_log_format(stiff_run):
     assert {"violation_m", "violation_rad", "constraint_force_n"} <= set(header)
     assert data.shape == (N, len(header))
     np.testing.assert_array_equal(data[:, :nj], res.readings)
+    # nominal.urdf: the simulator's nominal kinematics, with the robot file's visuals (meshes by absolute path)
+    model = pin.buildModelFromUrdf(str(res.nominal_path))
+    assert [model.names[j] for j in range(1, model.njoints)] == res.joint_names
+    if name != "utah_hand":  # the hand's file (generated from Table 4.1) has no visuals
+        visual = pin.buildGeomFromUrdf(model, str(res.nominal_path), pin.GeometryType.VISUAL)
+        meshes = [g.meshPath for g in visual.geometryObjects if g.meshPath]
+        assert meshes and all(Path(m).is_absolute() and Path(m).is_file() for m in meshes), name
     assert calls == [(i, N) for i in range(1, N + 1)]
     # the nominal URDF's movable joints are the log's joints, in Pinocchio order
     model = pin.buildModelFromXML(res.nominal_path.read_text())

@@ -185,13 +185,51 @@ def test_mjcf_robot(tmp_path):
     assert res.violation_m.max() < 1e-6 and len(res.readings) == 10
 
 
-def test_simulate_help_lists_scenarios(capsys):
+def test_every_scenario_is_named_in_the_help_and_in_the_unknown_scenario_error(tmp_path, capsys):
+    """One list (`scenario_catalog`): the shipped files and the head cameras, in the help and in the error."""
+    from closedloop.sims.scenarios import CAMERA_SCENARIOS, scenario_catalog
+
+    catalog = scenario_catalog()
+    assert {"panda_weld", "ur5_socket", "ur5_door", "utah_hand", "ur5_plane", "ur5_tracker"} <= set(catalog)
+    assert set(CAMERA_SCENARIOS) == {"ur5_head", "ur5_head_verging"} and set(CAMERA_SCENARIOS) <= set(catalog)
     assert main(["simulate", "--help"]) == 0
     out = capsys.readouterr().out
-    for sc in SCENARIOS.values():
-        if sc.name in ("panda_weld", "ur5_socket", "ur5_door", "utah_hand", "ur5_plane", "ur5_tracker"):
-            assert sc.name in out and sc.description in out
+    for name, (loop, description) in catalog.items():
+        assert f"  {name} " in out and loop in out and description in out, name
     assert "--robot" in out and "--loop" in out
+    assert main(["simulate", "nosuch", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"error: unknown scenario 'nosuch' (known: {', '.join(catalog)})"
+
+
+def test_simulate_prints_the_calibrate_command_for_its_tool_frame(tmp_path, capsys):
+    """``--tool`` adds a link named ``<frame>_tip``: the printed calibrate command names that frame (the
+    dataset's nominal.urdf has it), runs as printed, and check compares every parameter correctly.  The
+    nominal.urdf keeps the robot's visuals, mesh files by absolute path."""
+    import shlex
+
+    import pinocchio as pin
+
+    sim = tmp_path / "sim"
+    urdf = example_robot_data_dir() / "ur_description/urdf/ur5_robot.urdf"
+    args = ["--loop", "point:frame=tool0", "--tool", "0 0 0.1", "--n", "60", "--seed", "1", "--out", str(sim)]
+    assert main(["simulate", "--robot", str(urdf), *args, "--quiet"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    calibrate = shlex.split(next(ln for ln in lines if ln.strip().startswith("calibrate:")).split(":", 1)[1])
+    check = shlex.split(next(ln for ln in lines if ln.strip().startswith("check:")).split(":", 1)[1])
+    assert calibrate[calibrate.index("--loop") + 1] == "point:frame=tool0_tip,name=socket"
+    assert calibrate[:4] == ["closedloop", "calibrate", str(sim / "nominal.urdf"), str(sim / "log.csv")]
+    assert check == ["closedloop", "check", str(sim / "truth.json"), str(sim / "report.json")]
+    assert main(calibrate[1:] + ["--quiet"]) == 0
+    assert main(check[1:]) == 0
+    out = capsys.readouterr().out
+    assert " 0 outside" in out and int(out.split(" within tolerance")[0].split()[-1]) >= 15
+    # the visuals: one per UR5 link, every mesh found; the kinematics those of the cleaned model
+    model = pin.buildModelFromUrdf(str(sim / "nominal.urdf"))
+    visual = pin.buildGeomFromUrdf(model, str(sim / "nominal.urdf"), pin.GeometryType.VISUAL)
+    meshes = [g.meshPath for g in visual.geometryObjects]
+    assert len(meshes) >= 7 and all(Path(m).is_absolute() and Path(m).is_file() for m in meshes)
+    assert model.existFrame("tool0_tip") and model.nq == 6
 
 
 def test_calibrate_help_and_loops_list_the_registry(capsys):

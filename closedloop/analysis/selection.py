@@ -96,7 +96,8 @@ def check_motion(
     for j, name in enumerate(problem.joints):
         if ranges[j] < MIN_RANGE:
             notes.append(
-                f"joint {name} never moves in the data (range {ranges[j]:.2e}); its scale and "
+                f"joint {name} never moves in the data (range {ranges[j]:.2e} "
+                f"{'m' if problem.robot.joints[name].kind == 'prismatic' else 'rad'}); its scale and "
                 "the geometry it would reveal cannot be identified (Singularity 5)"
             )
             k = problem.rp.index[problem.rp.sensor_name(name, "scale")]

@@ -241,7 +241,7 @@ def _calibrate(
         problem.evaluate(x0, True, columns=structure.kept)
     before, start = residual_stats(problem, problem.evaluate(x0, False)), problem
     problem, fit, structure, rejected, suspects = solve_screened(
-        problem, x0, free, structure, opt, sigma_q, known, len(log_), notes, progress
+        problem, x0, free, structure, opt, sigma_q, known, len(log_), notes, progress, row_name=log_.where
     )
     if problem is not start:  # rows rejected: the start's closure on the rows kept
         before = residual_stats(problem, problem.evaluate(x0, False))
@@ -314,12 +314,14 @@ def solve_screened(
     n_rows: int,
     notes: list[str],
     progress: Progress | None,
+    row_name=None,
 ) -> tuple[CalibrationProblem, Fit, Structure, list[Rejected], list]:
     """Outlier screen, staged solve, restarts and the re-checks at the solution (module docstring, 4-6).
 
     Returns the problem on the kept rows, its fit, the structure that holds
     at the solution, the rejected configurations and (``robust='huber'|
-    'cauchy'``) the suspects.  Edits `notes`.
+    'cauchy'``) the suspects.  Edits `notes`, naming rows with `row_name` (0-based row -> ``log.csv
+    line 52``, `JointLog.where`).
     """
     rng = np.random.default_rng(opt.seed)
     rejected: list[Rejected] = []
@@ -344,7 +346,7 @@ def solve_screened(
     if opt.robust in ("huber", "cauchy"):
         from closedloop.estimate.outliers import irls_fit
 
-        fit, suspects = irls_fit(problem, fit, opt, notes)
+        fit, suspects = irls_fit(problem, fit, opt, notes, row_name)
     fit, structure, recheck_notes = recheck_at_solution(problem, fit, structure, free, x0, opt, progress)
     notes.extend(recheck_notes)
     back = readmit(problem_all, fit.x, rejected, opt, sigma_q) if rejected else None

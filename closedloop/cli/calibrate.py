@@ -15,16 +15,18 @@ from closedloop.io.schemas import check_number, parse_bounds, parse_noise
 
 
 class Progress:
-    """A short progress line on stderr (one line, rewritten in place on a terminal)."""
+    """A progress line on stderr, on a terminal only: rewritten in place and erased when done, so that no
+    stale line is left in a log or a CI output (where nothing is written)."""
 
-    def __init__(self, quiet: bool):
+    def __init__(self, quiet: bool, stream=None):
+        self.stream = sys.stderr if stream is None else stream
         self.quiet = quiet
-        self.tty = sys.stderr.isatty()
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self.t0 = time.perf_counter()
-        self.last = (None, -1.0)  # (stage, time) of the last line printed
+        self.shown = False  # a line is on the screen
 
     def __call__(self, stage: str, it: int, value: float) -> None:
-        if self.quiet:
+        if self.quiet or not self.tty:
             return
         msg = f"  {stage}"
         if stage == "solving":
@@ -34,16 +36,14 @@ class Progress:
         elif stage == "simulating":
             msg += f": {it}/{int(value)} configurations"
         msg += f"  [{time.perf_counter() - self.t0:.1f} s]"
-        now = time.perf_counter()
-        if self.tty:
-            print("\r" + msg.ljust(70), end="", file=sys.stderr, flush=True)
-        elif stage != self.last[0] or now - self.last[1] > 1.0:  # logs: stage changes, then once a second
-            print(msg, file=sys.stderr, flush=True)
-            self.last = (stage, now)
+        print("\r" + msg.ljust(70), end="", file=self.stream, flush=True)
+        self.shown = True
 
     def done(self) -> None:
-        if self.tty and not self.quiet:
-            print(file=sys.stderr)
+        """Erase the line (the summary says what was done)."""
+        if self.shown:
+            print("\r" + " " * 70 + "\r", end="", file=self.stream, flush=True)
+            self.shown = False
 
 
 def check_calibrate_options(args) -> tuple:
@@ -55,6 +55,13 @@ def check_calibrate_options(args) -> tuple:
     )
     if getattr(args, "plots", None):
         check_outputs({"--plots": args.plots}, [args.model, args.log], directory=True)
+    if getattr(args, "html", None) or getattr(args, "plots", None):
+        import importlib.util
+
+        from closedloop.output.html import MATPLOTLIB_HINT
+
+        if importlib.util.find_spec("matplotlib") is None:  # refused now, not after the fit
+            raise InputError(f"--{'html' if args.html else 'plots'}: {MATPLOTLIB_HINT}")
     args.snr = check_number("--snr", args.snr, 0.0, 1e6, lo_open=True)
     args.max_iter = check_number("--max-iter", args.max_iter, 1, 10**6, integer=True)
     cv_given = args.cv is not None  # (default None: 5 folds, fewer on a short log)
@@ -109,12 +116,14 @@ def cmd_calibrate(args) -> int:
         threads=args.threads,
     )
     prog = Progress(args.quiet)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     res = calibrate(robot, lg, loops, opts, progress=prog)
     prog.done()
     elapsed = time.perf_counter() - t0
-    report = build_report(res, args.model, args.log)
+    report = build_report(res, args.model, args.log, row_name=lg.where)
     report["solver"]["seconds"] = elapsed
+    report["solver"]["cpu_seconds"] = time.process_time() - c0
+    t1, c1 = time.perf_counter(), time.process_time()
     cv = (
         fold_validation(robot, lg, loops, opts, args, report, prog, res, cv_given)
         if args.cv and res.converged
@@ -125,6 +134,9 @@ def cmd_calibrate(args) -> int:
     from closedloop.output.report import verdict_record
 
     lofo = fixture_validation(robot, lg, loops, opts, report, args, prog) if res.converged else None
+    # the held-out refits' time (k-fold and fixtures): with the fit's, the work of the command
+    report["solver"]["validation_seconds"] = time.perf_counter() - t1
+    report["solver"]["validation_cpu_seconds"] = time.process_time() - c1
     res = replace(res, verdict=judge(res, cv, fixtures=lofo))  # the fit's evidence, the held-out folds' and fixtures'
     report["verdict"] = verdict_record(res.verdict)
     failed = res.verdict.status == "failed"
@@ -137,10 +149,11 @@ def cmd_calibrate(args) -> int:
             from closedloop.output.urdf import tool_frames
 
             write_model(robot, res.as_dict(), args.out, frames=tool_frames(res))  # with the tool point
-    print_summary(res, elapsed, args, report, wrote_model=bool(write_out))
+    if not args.quiet:
+        print_summary(res, elapsed, args, report, wrote_model=bool(write_out))
     from closedloop.cli.tools import write_figures
 
-    write_figures(res, report, args)  # --html / --plots
+    write_figures(res, report, args, row_name=lg.where)  # --html / --plots
     if res.verdict.status == "suspect":
         print(f"warning: {args.log}: calibration is suspect: {'; '.join(own_reasons(res.verdict))}", file=sys.stderr)
     if failed:
@@ -215,7 +228,7 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
     distances = {bl.loop.name for bl in blocks if getattr(bl.loop, "parameter_only", False)}
     rows = [bl.rows for bl in blocks if bl.loop.name not in distances]
     n_conf = int(np.unique(np.concatenate(rows)).size) if rows else 0
-    reasons = own_reasons(res.verdict)
+    reasons = list(dict.fromkeys(own_reasons(res.verdict)))
     print(f"verdict: {res.verdict.status}" + (f" ({'; '.join(reasons)})" if reasons else ""))
     print(
         f"calibrated {len(res.estimated)} parameters from {n_conf} configurations "
@@ -243,7 +256,7 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
             f"  ... and {len(res.weak) - SHOWN_WEAK} more combinations not identifiable "
             "(report: identifiability.not_identifiable)"
         )
-    for n in res.notes:
+    for n in dict.fromkeys(res.notes):  # each note once
         print(f"  note: {n}")
     cv = report.get("validation")
     if cv and "test" in cv:  # (a skipped validation is among the notes)
@@ -263,8 +276,11 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
 
     for line in fixture_lines(report.get("fixture_validation")):
         print(line)
-    for rj in res.rejected[:10]:
-        print(f"  rejected: log row {rj.row} (loop {rj.loop}), {rj.standardized:.3g} robust standard deviations")
+    for rj in report.get("rejected", [])[:10]:  # named by file and line (`JointLog.where`)
+        print(
+            f"  rejected: {rj.get('where') or 'log row ' + str(rj['row'])} (loop {rj['loop']}), "
+            f"{rj['standardized']:.3g} robust standard deviations"
+        )
     if args.out and wrote_model:
         print(f"  wrote {args.out}")
     if args.report:

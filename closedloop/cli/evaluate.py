@@ -24,6 +24,7 @@ validation (``--lofo auto|off``, `closedloop.validation.fixtures`).
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -189,7 +190,9 @@ def add_parser(sub) -> None:
     e = sub.add_parser(
         "evaluate",
         help="closure of one or more models on a log (robot untouched)",
-        description=__doc__.split("\n\n")[1],
+        description="Each model's closure on the data, the robot untouched and the loops' own unknowns fitted.",
+        epilog="example:\n" + __doc__.split("\n\n")[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     e.add_argument(
         "files",

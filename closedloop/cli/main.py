@@ -87,7 +87,9 @@ def cmd_check(args) -> int:
     )
     verdict = report.get("verdict") if isinstance(report.get("verdict"), dict) else {}
     if verdict.get("status") in ("suspect", "failed"):  # what the calibration said of itself
-        print(f"note: the report's verdict is {verdict['status']}: " + "; ".join(map(str, verdict.get("reasons", []))))
+        own = f"{verdict['status']}: "  # a reason of the verdict's own status, without its label
+        reasons = [r[len(own) :] if r.startswith(own) else r for r in map(str, verdict.get("reasons", []))]
+        print(f"note: the report's verdict is {verdict['status']}: " + "; ".join(dict.fromkeys(reasons)))
     return 0 if ok else 1
 
 
@@ -98,32 +100,56 @@ def _load_json(path: str, what: str = "JSON file"):
 
 
 # --------------------------------------------------------------------------- parser
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The `closedloop` parser; with `command`, only that subcommand gets its options (the others are
+    named only), so that a run imports the option code of its own subcommand alone."""
     p = _Parser(prog="closedloop", description="Closed-loop kinematic calibration of robots.")
     p.add_argument("-v", "--verbose", action="store_true", help="log details")
     sub = p.add_subparsers(dest="command", required=True)
-    _add_calibrate(sub)
+    for name, add in _SUBCOMMANDS.items():
+        if command is None or name == command:
+            add(sub)
+        else:
+            sub.add_parser(name)
+    return p
+
+
+def _add_inspect(sub) -> None:
     i = sub.add_parser("inspect", help="list a model's joints, frames and parameter names")
-    i.add_argument("model")
-    i.add_argument("--json", action="store_true")
+    i.add_argument("model", help="URDF, MJCF (.xml) or D-H table (.yaml)")
+    i.add_argument("--json", action="store_true", help="print the description as JSON")
     i.set_defaults(func=cmd_inspect)
-    _add_simulate(sub)
-    _add_check(sub)
-    from closedloop.cli.tools import add_extract_parser, cmd_loops
+
+
+def _add_extract(sub) -> None:
+    from closedloop.cli.tools import add_extract_parser
 
     add_extract_parser(sub)
+
+
+def _add_batch(sub) -> None:
     from closedloop.fleet.batch import add_parser as add_batch  # closedloop batch MANIFEST (many jobs, any executor)
 
     add_batch(sub)
+
+
+def _add_loops(sub) -> None:
+    from closedloop.cli.tools import cmd_loops
+
     lp = sub.add_parser("loops", help="list the loop types, their keys and an example each")
     lp.set_defaults(func=cmd_loops)
+
+
+def _add_impedance(sub) -> None:
     from closedloop.cli.impedance import add_parser as add_impedance  # closedloop impedance simulate|identify
 
     add_impedance(sub)
+
+
+def _add_evaluate(sub) -> None:
     from closedloop.cli.evaluate import add_parser as add_evaluate  # closedloop evaluate MODEL... LOG --loop ...
 
     add_evaluate(sub)
-    return p
 
 
 def _add_calibrate(sub) -> None:
@@ -153,7 +179,9 @@ def _add_calibrate(sub) -> None:
     c.add_argument("--html", help="self-contained HTML report with figures")
     c.add_argument("--plots", metavar="DIR", help="write the report's figures as PNG files in DIR")
     c.add_argument("--config", help="YAML file holding any of these options (the command line wins)")
-    c.add_argument("--out", help="calibrated model (URDF or D-H YAML, like the input)")
+    c.add_argument(
+        "--out", help="calibrated model, in the input's format: URDF (.urdf), MJCF (.xml) or D-H table (.yaml)"
+    )
     c.add_argument("--report", help="JSON report")
     c.add_argument("--identify", help="comma-separated parameter patterns (placement, offset, scale, loop, globs)")
     c.add_argument("--fix", action="append", default=[], metavar="NAME[=VALUE]", help="hold a parameter fixed")
@@ -181,7 +209,7 @@ def _add_calibrate(sub) -> None:
         metavar="K",
         help="K-fold held-out validation in the report (default 5; 0 disables)",
     )
-    c.add_argument("--max-iter", type=int_arg, default=100)
+    c.add_argument("--max-iter", type=int_arg, default=100, metavar="N", help="solver iterations at most (default 100)")
     c.add_argument(
         "--threads",
         type=int_arg,
@@ -191,7 +219,7 @@ def _add_calibrate(sub) -> None:
         "ones on idle cores; 0: keep the environment's setting)",
     )
     c.add_argument("--degrees", action="store_true", help="the log is in degrees")
-    c.add_argument("--quiet", action="store_true")
+    c.add_argument("--quiet", action="store_true", help="no progress and no summary (errors and warnings only)")
     from closedloop.cli.evaluate import add_rig_options  # --distance, --joints, --lofo (rigs)
 
     add_rig_options(c)
@@ -209,12 +237,19 @@ def _add_simulate(sub) -> None:
     )
     s.add_argument("scenario", nargs="?", help="a scenario name (below) or a scenario YAML file")
     add_simulate_robot_options(s)
-    s.add_argument("--n", type=int_arg, default=200)
-    s.add_argument("--seed", type=int_arg, default=0)
-    s.add_argument("--out", required=True)
+    s.add_argument("--n", type=int_arg, default=200, metavar="N", help="configurations to record (default 200)")
+    s.add_argument(
+        "--seed", type=int_arg, default=0, help="random seed: the same seed gives the same dataset (default 0)"
+    )
+    s.add_argument(
+        "--out",
+        required=True,
+        metavar="DIR",
+        help="dataset folder: nominal.urdf, scene.xml, log.csv, truth.json (refused if it holds another dataset)",
+    )
     s.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a scenario setting")
     s.add_argument("--replace", action="store_true", help="replace the dataset already in --out (refused otherwise)")
-    s.add_argument("--quiet", action="store_true")
+    s.add_argument("--quiet", action="store_true", help="no progress and no summary (errors and warnings only)")
     s.set_defaults(func=cmd_simulate)
     from closedloop.cli.sweep import add_sweep_options  # --seeds / --jobs / --ray: many datasets on the executor
 
@@ -223,13 +258,33 @@ def _add_simulate(sub) -> None:
 
 def _add_check(sub) -> None:
     k = sub.add_parser("check", help="compare a calibration report with simulation truth")
-    k.add_argument("truth")
-    k.add_argument("report")
+    k.add_argument("truth", help="truth.json of a simulated dataset (closedloop simulate)")
+    k.add_argument("report", help="JSON report of the calibration (calibrate --report)")
     k.add_argument("--tol-m", type=float_arg, default=1e-3, help="tolerance for lengths (m)")
     k.add_argument("--tol-rad", type=float_arg, default=5e-3, help="tolerance for angles (rad)")
     k.add_argument("--tol-scale", type=float_arg, default=5e-3, help="tolerance for scale factors")
     k.add_argument("--tol-px", type=float_arg, default=1.0, help="tolerance for camera intrinsics (px)")
     k.set_defaults(func=cmd_check)
+
+
+#: the subcommands in the order `closedloop --help` lists them
+_SUBCOMMANDS = {
+    "calibrate": _add_calibrate,
+    "inspect": _add_inspect,
+    "simulate": _add_simulate,
+    "check": _add_check,
+    "extract": _add_extract,
+    "batch": _add_batch,
+    "loops": _add_loops,
+    "impedance": _add_impedance,
+    "evaluate": _add_evaluate,
+}
+
+
+def _command(argv: list[str]) -> str | None:
+    """The subcommand an argument list runs (its first word that is not an option), if it names one."""
+    first = next((a for a in argv if not a.startswith("-")), None)
+    return first if first in _SUBCOMMANDS else None
 
 
 class _Parser(argparse.ArgumentParser):
@@ -268,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
     if verbose:  # accepted before or after the subcommand: the top-level flag
         argv = ["-v"] + [a for a in argv if a not in ("-v", "--verbose")]
     try:
-        args = parse_args(build_parser(), argv)  # applies a subcommand's --config FILE
+        args = parse_args(build_parser(_command(argv)), argv)  # applies a subcommand's --config FILE
         logging.basicConfig(
             level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
         )

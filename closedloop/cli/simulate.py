@@ -1,13 +1,20 @@
-"""`closedloop simulate`: a scenario (built-in, a YAML file or --robot + --loop) to a dataset in MuJoCo."""
+"""`closedloop simulate`: a scenario (built-in, a YAML file or --robot + --loop) to a dataset in MuJoCo.
+
+Every named scenario is in one list (`closedloop.sims.scenarios.scenario_catalog`), read by
+``simulate --help`` and by the unknown-scenario error; the loop types are the registry's
+(`closedloop.loops.spec.LOOP_TYPES`) that the simulator simulates.  After the run the
+``calibrate`` and ``check`` commands for the dataset are printed (`closedloop.sims.outputs.next_commands`).
+"""
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
 from closedloop.cli.calibrate import Progress
 from closedloop.cli.parse import sim_overrides
-from closedloop.errors import ClosedLoopError, InputError
+from closedloop.errors import ClosedLoopError
 from closedloop.io.schemas import check_number
 
 
@@ -17,14 +24,17 @@ def cmd_simulate(args) -> int:
     except ImportError as exc:  # pragma: no cover - packaging error
         raise ClosedLoopError(f"the simulator is not installed ({exc})") from None
     from closedloop.cli.tools import resolve_scenario
-    from closedloop.sims.camera_scene import SCENARIOS as CAMERA_SCENARIOS
-    from closedloop.sims.camera_scene import simulate_cli as camera_simulate
+    from closedloop.sims.scenarios import CAMERA_SCENARIOS, unknown_scenario
 
     if getattr(args, "scenario", None) in CAMERA_SCENARIOS:  # the head-camera scenarios (sims/camera_scene.py)
-        return camera_simulate(args)
+        from closedloop.sims.camera_scene import simulate_cli as camera_simulate
+
+        code = camera_simulate(args)
+        print_next_commands(Path(args.out))
+        return code
     args.scenario = resolve_scenario(args)  # a built-in, a scenario YAML, or --robot + --loop
     if args.scenario not in SCENARIOS:
-        raise InputError(f"unknown scenario '{args.scenario}' (known: {', '.join(sorted(SCENARIOS))})")
+        raise unknown_scenario(args.scenario)
     from closedloop.io.files import check_outputs
     from closedloop.sims.outputs import check_dataset_dir
 
@@ -45,21 +55,21 @@ def cmd_simulate(args) -> int:
     )
     prog.done()
     print(f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out}")
-    loop_hint(Path(args.out) / "truth.json")
+    print_next_commands(Path(args.out))
     summary = getattr(result, "summary", None)
     if callable(summary):
         print(summary())
     return 0
 
 
-def loop_hint(truth_path: Path) -> None:
-    """Print the loop the dataset closes, as calibrate takes it (a --tool adds a link: its frame is new)."""
-    import json
+def print_next_commands(out: Path) -> None:
+    """Print the ``calibrate`` and ``check`` commands for the dataset in `out` (read from its truth.json)."""
+    from closedloop.sims.outputs import next_commands
 
     try:
-        lp = json.loads(truth_path.read_text()).get("loop")
+        truth = json.loads((out / "truth.json").read_text())
     except (OSError, ValueError):
         return
-    if isinstance(lp, dict) and lp.get("type") and lp.get("frame"):
-        keys = [f"frame={lp['frame']}"] + [f"{k}={lp[k]}" for k in ("to", "name") if lp.get(k)]
-        print(f"  the loop: --loop {lp['type']}:{','.join(keys)}")
+    commands = next_commands(out, truth) if isinstance(truth, dict) else []
+    for what, line in zip(("calibrate", "check"), commands):
+        print(f"  {what + ':':<10} {line}")

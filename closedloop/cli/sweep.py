@@ -219,11 +219,12 @@ def cmd_simulate_sweep(args) -> int:
     ran = [r for r in rows if r.status == "ok"]
     failed = [r for r in rows if r.status == "failed"]
     rate = sum(r.configurations or 0 for r in ran) / max(sum(r.seconds or 0.0 for r in ran), 1e-9)
-    print(
-        f"{len(ran)} dataset(s) simulated on {eng.name} ({eng.workers} worker(s)), "
-        f"{sum(r.status == 'resumed' for r in rows)} finished earlier (not redone), {len(failed)} failed; "
-        f"{rate:.0f} configurations/s per job -> {out / 'sweep.csv'}"
-    )
+    if not args.quiet:
+        print(
+            f"{len(ran)} dataset(s) simulated on {eng.name} ({eng.workers} worker(s)), "
+            f"{sum(r.status == 'resumed' for r in rows)} finished earlier (not redone), {len(failed)} failed; "
+            f"{rate:.0f} configurations/s per job -> {out / 'sweep.csv'}"
+        )
     for r in failed:
         print(f"  failed: {r.scenario} seed {r.seed}: {r.error}", file=sys.stderr)
     return 1 if failed else 0

@@ -69,9 +69,13 @@ def cmd_loops(args) -> int:
 # --------------------------------------------------------------------------- ROS bags
 def read_log_or_bag(path: str, robot, degrees: bool = False, bag_options=None):
     """A CSV log, or the quasi-static samples of a ROS bag (:func:`closedloop.io.bags.extract`)."""
-    from closedloop.io.bags import is_bag
+    if Path(path).suffix.lower() == ".csv":  # the bag reader is not loaded for a CSV log
+        bag = False
+    else:
+        from closedloop.io.bags import is_bag
 
-    if is_bag(path):
+        bag = is_bag(path)
+    if bag:
         from closedloop.io.bags import extract
 
         lg, samples = extract(path, robot.joint_names, bag_options)
@@ -273,18 +277,19 @@ def sensor_corrections(res, model_out: str | None = None) -> dict | None:
     return corrections(res, model_out)
 
 
-def write_figures(res, report: dict, args) -> None:
+def write_figures(res, report: dict, args, row_name=None) -> None:
     """The outputs beside the model: ``<out>.sensors.yaml`` (scale factors and compliances the fit used:
     what URDF and MJCF cannot express; for D-H output, which carries its scale factors, the
     compliances), the HTML page and the PNG figures."""
     out = getattr(args, "out", None)
+    quiet = bool(getattr(args, "quiet", False))
     failed = getattr(getattr(res, "verdict", None), "status", None) == "failed" and not getattr(args, "force", False)
     if out and not failed:  # beside a model that was written
         from closedloop.output.report import write_sensors
 
         kind = "dh" if str(out).endswith((".yaml", ".yml")) else "urdf"
         path = write_sensors(res, out, kind)
-        if path is not None:
+        if path is not None and not quiet:
             print(f"  wrote {path}")
     html = getattr(args, "html", None)
     plots = getattr(args, "plots", None)
@@ -294,27 +299,25 @@ def write_figures(res, report: dict, args) -> None:
 
     snr = float(getattr(args, "snr", 1.0) or 1.0)
     if html:
-        write_html(res, report, html, snr)
-        print(f"  wrote {html}")
+        write_html(res, report, html, snr, row_name=row_name)
+        if not quiet:
+            print(f"  wrote {html}")
     if plots:
         files = write_plots(res, report, plots, snr)
-        print(f"  wrote {len(files)} figures to {plots}")
+        if not quiet:
+            print(f"  wrote {len(files)} figures to {plots}")
 
 
 # --------------------------------------------------------------------------- simulate any robot
 def scenario_help() -> str:
-    """The built-in scenarios (read from the shipped YAML files, without importing the simulator)."""
-    import yaml
+    """Every named scenario (`closedloop.sims.scenarios.scenario_catalog`: the shipped files and the
+    head-camera scenarios, read without loading the simulator)."""
+    from closedloop.sims.scenarios import scenario_catalog
 
-    d = Path(__file__).parents[1] / "sims" / "scenarios"
-    lines = ["scenarios (closedloop/sims/scenarios/*.yaml; or give your own YAML file, or --robot/--loop):"]
-    for f in sorted(d.glob("*.yaml")):
-        try:
-            data = yaml.safe_load(f.read_text()) or {}
-        except yaml.YAMLError:
-            data = {}
-        lines.append(f"  {f.stem:<12} {data.get('loop', '')}")
-        lines.append(f"  {'':<12} {data.get('description', '')}")
+    lines = ["scenarios (closedloop/sims/scenarios/*.yaml and the head cameras; or your own YAML file, or --robot):"]
+    for name, (loop, description) in scenario_catalog().items():
+        lines.append(f"  {name:<17} {loop}")
+        lines.append(f"  {'':<17} {description}")
     lines.append("simulate your robot: closedloop simulate --robot arm.urdf --loop weld:frame=tool0 --out out/sim")
     return "\n".join(lines)
 
@@ -365,8 +368,8 @@ def add_simulate_robot_options(s) -> None:
     s.add_argument("--robot", help="simulate your robot: a URDF or MJCF (.xml) file (with --loop)")
     s.add_argument(
         "--loop",
-        help="with --robot: the loop, as for calibrate: weld|point|hinge|plane|measured_point:"
-        "frame=LINK[,to=LINK][,name=NAME]",
+        help="with --robot: the loop, as for calibrate: TYPE:frame=LINK[,to=LINK][,name=NAME], TYPE a "
+        "simulated type of 'closedloop loops' (weld, point, hinge, plane, measured_point)",
     )
     s.add_argument("--q0", help="with --robot: grasp configuration (radians; default: chosen automatically)")
     s.add_argument(

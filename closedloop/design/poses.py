@@ -82,12 +82,12 @@ import numpy as np
 
 from closedloop.analysis.identifiability import greedy_reduction
 from closedloop.analysis.observability import resolve, whitened_blocks
-from closedloop.calibration.pipeline import CalibrationResult
 from closedloop.design.exchange import exchange_a
 from closedloop.design.optimal import Selection, detmax, greedy_d_optimal, information, trace_covariance
 from closedloop.errors import OptionError
 from closedloop.io.schemas import POSE_METHODS as METHODS
 from closedloop.problem.problem import CalibrationProblem
+from closedloop.records import CalibrationResult
 
 __all__ = [
     "Selection",

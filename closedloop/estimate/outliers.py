@@ -212,8 +212,9 @@ def reject_outliers(
     return problem.without_rows(bad_rows), sorted(rejected, key=lambda r: -r.standardized), x_r
 
 
-def irls_fit(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, notes: list[str]):
-    """Reweighted fits with the chosen loss (``robust='huber'|'cauchy'``); suspects noted, none removed."""
+def irls_fit(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, notes: list[str], row_name=None):
+    """Reweighted fits with the chosen loss (``robust='huber'|'cauchy'``); suspects noted (by `row_name`:
+    0-based row -> ``log.csv line 52``), none removed."""
     scale = np.array([p.prior for p in problem.params])
     known_scale = 1.0 if fit.known and opt.weighting == "noise" else None
     sopt = SolverOptions(
@@ -237,9 +238,10 @@ def irls_fit(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, not
         loss=opt.robust,
         scale=known_scale,
     )
+    name = (lambda row: row_name(row - 1)) if row_name is not None else (lambda row: f"log row {row}")
     for sp in sus[:10]:
         notes.append(
-            f"suspect configuration: log row {sp.row} (loop {sp.loop}): closure error "
+            f"suspect configuration: {name(sp.row)} (loop {sp.loop}): closure error "
             f"{sp.standardized:.3g} standard deviations, weight {sp.weight:.2g}"
         )
     if len(sus) > 10:

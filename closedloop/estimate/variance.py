@@ -198,18 +198,29 @@ def noise_summary(problem: CalibrationProblem, values: np.ndarray, sigma_q: np.n
 
 
 def noise_notes(summary: list[dict]) -> list[str]:
-    """One sentence per loop on its noise model."""
+    """One sentence per noise model: loops whose task-space noise reads the same (one pooled estimate, or
+    the same given value) and the same noise dominating share one sentence, their joint-noise figures
+    given as a range."""
 
     def how(d: dict) -> str:
         if not d["task_estimated"]:
             return "given"
         return "estimated, one for the loops whose estimates agree" if d.get("task_pooled") else "estimated"
 
-    return [
-        f"loop {d['loop']}: task-space noise {d['task_sigma_m'] * 1e3:.3g} mm ({how(d)}) against "
-        f"{d['joint_sigma_m'] * 1e3:.3g} mm from the joint noise: the {d['dominant']} noise dominates"
-        for d in summary
-    ]
+    groups: dict[tuple, list[dict]] = {}
+    for d in summary:
+        groups.setdefault((f"{d['task_sigma_m'] * 1e3:.3g}", how(d), d["dominant"]), []).append(d)
+    notes = []
+    for (task, kind, dominant), ds in groups.items():
+        joint = sorted(f"{d['joint_sigma_m'] * 1e3:.3g}" for d in ds)
+        lo, hi = min(d["joint_sigma_m"] for d in ds), max(d["joint_sigma_m"] for d in ds)
+        span = joint[0] if len(set(joint)) == 1 else f"{lo * 1e3:.3g} to {hi * 1e3:.3g}"
+        who = f"loop {ds[0]['loop']}" if len(ds) == 1 else f"loops {', '.join(d['loop'] for d in ds)}"
+        notes.append(
+            f"{who}: task-space noise {task} mm ({kind}) against {span} mm from the joint noise: "
+            f"the {dominant} noise dominates"
+        )
+    return notes
 
 
 def measurement_row_weights(problem: CalibrationProblem, values: np.ndarray) -> np.ndarray | None:

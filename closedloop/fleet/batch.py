@@ -450,5 +450,5 @@ def add_parser(sub) -> None:
     b.add_argument("--summary", help="summary CSV (default: MANIFEST.summary.csv beside the manifest)")
     b.add_argument("--drift-z", type=float, default=3.0, help="flag a parameter change above this many std. errors")
     add_arguments(b)
-    b.add_argument("--quiet", action="store_true")
+    b.add_argument("--quiet", action="store_true", help="no progress lines (the summary is still printed)")
     b.set_defaults(func=cmd_batch)

@@ -6,7 +6,7 @@ and the joint angles recorded").  A bag holds the whole stream, motion included;
 this module finds the standstills and turns each into one log row.
 
 Reading uses the pure-Python ``rosbags`` library (``pip install
-"closedloop[ros]"``): no ROS installation.  ``AnyReader`` opens a ROS 1
+".[ros]"`` in the checkout): no ROS installation.  ``AnyReader`` opens a ROS 1
 ``.bag`` file and a ROS 2 bag directory (``metadata.yaml`` with ``.db3`` or
 ``.mcap`` files) alike.
 
@@ -119,7 +119,7 @@ def _reader(path: Path):
     except ImportError:
         raise BagError(
             f"{path}: reading ROS bags needs the rosbags library: "
-            'pip install "closedloop[ros]" (or pip install rosbags)'
+            'pip install ".[ros]" in the closedloop checkout (or pip install rosbags)'
         ) from None
     if not path.exists():
         raise BagError(f"{path}: no such bag")

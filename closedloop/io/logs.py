@@ -29,9 +29,20 @@ class JointLog:
     source: Path | None = None
     loop: np.ndarray | None = None  # (N,) loop name per row, or None
     extra: dict[str, np.ndarray] = field(default_factory=dict)
+    #: where each row was read: the files, and per row (index into `files`, line number in that file, 1-based)
+    files: list[str] | None = None
+    lines: np.ndarray | None = None  # (N, 2) int
 
     def __len__(self) -> int:
         return self.angles.shape[0]
+
+    def where(self, i: int) -> str:
+        """Row `i` (0-based) named for a message: ``log.csv line 52``, by the file and line it was read
+        from; ``<source> row i+1`` for a log made in memory."""
+        if self.files is not None and self.lines is not None and 0 <= i < len(self.lines):
+            f, line = self.lines[i]
+            return f"{self.files[int(f)]} line {int(line)}"
+        return f"{self.source if self.source is not None else 'log'} row {i + 1}"
 
     def columns(self, names: list[str]) -> np.ndarray:
         """Readings of `names` (N, len(names)); a missing name is a LogError."""
@@ -49,8 +60,8 @@ class JointLog:
             return None
         tau = np.column_stack(cols)
         if not np.all(np.isfinite(tau)):
-            bad = int(np.argwhere(~np.isfinite(tau))[0, 0]) + 1
-            raise LogError(f"{self.source}: row {bad}: a tau:<joint> column is not a finite number")
+            bad = int(np.argwhere(~np.isfinite(tau))[0, 0])
+            raise LogError(f"{self.where(bad)}: a tau:<joint> column is not a finite number")
         return tau
 
     def write_csv(self, path: str | Path) -> None:
@@ -79,12 +90,13 @@ def read_log(
 
     A file whose first row is numbers has no header: `order` (``--joints
     j1,j2,...``) names its columns.  Every error names the file and, for bad
-    values, the data row (1-based, header excluded) and the column.
+    values, the line of the file (1-based, as an editor numbers it) and the column.
     """
     path = Path(path)
     try:
         with path.open(newline="", encoding="utf-8-sig") as fh:  # a UTF-8 byte-order mark is dropped
-            rows = list(csv.reader(fh))
+            reader = csv.reader(fh)
+            numbered = [(reader.line_num, row) for row in reader]  # the line a row ends on
     except IsADirectoryError:
         raise LogError(f"{path}: is a directory, not a CSV log") from None
     except OSError as exc:
@@ -93,7 +105,9 @@ def read_log(
         raise LogError(f"{path}: not a UTF-8 text CSV file (byte {exc.start})") from None
     except csv.Error as exc:
         raise LogError(f"{path}: not a CSV file ({exc})") from None
-    rows = [r for r in rows if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
+    numbered = [(n, r) for n, r in numbered if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
+    rows = [r for _, r in numbered]
+    line_of = [n for n, _ in numbered]
     if not rows:
         raise LogError(f"{path}: empty log (expected a header row naming joints)")
     if _numbers(rows[0]):  # header-less: the joint order is given
@@ -106,8 +120,9 @@ def read_log(
         if unknown:
             raise LogError(f"{path}: --joints names {', '.join(unknown)}, not joint(s) of the model")
         if len(rows[0]) != len(order):
-            raise LogError(f"{path}: row 1 has {len(rows[0])} fields, --joints names {len(order)} columns")
+            raise LogError(f"{path}: line {line_of[0]} has {len(rows[0])} fields, --joints names {len(order)} columns")
         rows = [list(order)] + rows
+        line_of = [0] + line_of
     header = [h.strip() for h in rows[0]]
     if len(set(header)) != len(header):
         dup = sorted({h for h in header if header.count(h) > 1})
@@ -125,14 +140,14 @@ def read_log(
     extra = {header[i]: np.full(len(data), np.nan) for i in extra_cols}
     loops = []
     for r, row in enumerate(data, start=1):
+        at = f"{path} line {line_of[r]}"
         if len(row) != len(header):
-            raise LogError(f"{path}: row {r} has {len(row)} fields, the header has {len(header)}")
+            raise LogError(f"{at} has {len(row)} fields, the header has {len(header)}")
         for k, c in enumerate(cols):
-            v = parse_number(row[c], f"{path}: row {r}, column '{header[c]}'", LogError)
+            v = parse_number(row[c], f"{at}, column '{header[c]}'", LogError)
             if abs(v) > MAX_READING:
                 raise LogError(
-                    f"{path}: row {r}, column '{header[c]}': {row[c].strip()} is out of range "
-                    f"(|reading| <= {MAX_READING:g})"
+                    f"{at}, column '{header[c]}': {row[c].strip()} is out of range (|reading| <= {MAX_READING:g})"
                 )
             A[r - 1, k] = v
         for c in extra_cols:
@@ -143,13 +158,14 @@ def read_log(
         if loop_col is not None:
             name = row[loop_col].strip()
             if not name:
-                raise LogError(f"{path}: row {r}, column 'loop': empty (name the loop of this row)")
+                raise LogError(f"{at}, column 'loop': empty (name the loop of this row)")
             loops.append(name)
     names = [header[c] for c in cols]
     if degrees:  # prismatic joints (`linear`) stay in metres
         ang = [k for k, n in enumerate(names) if n not in set(linear)]
         A[:, ang] = np.deg2rad(A[:, ang])
-    return JointLog(names, A, path, np.array(loops) if loop_col is not None else None, extra)
+    lines = np.column_stack([np.zeros(len(data), int), np.asarray(line_of[1:], int)])
+    return JointLog(names, A, path, np.array(loops) if loop_col is not None else None, extra, [str(path)], lines)
 
 
 def check_loop_column(log: JointLog, loop_names: list[str]) -> None:
@@ -157,13 +173,13 @@ def check_loop_column(log: JointLog, loop_names: list[str]) -> None:
     if log.loop is None:
         return
     known = set(loop_names)
-    for r, name in enumerate(log.loop, start=1):
+    for r, name in enumerate(log.loop):
         if name not in known:
             import difflib
 
             close = difflib.get_close_matches(str(name), sorted(known), n=1)
             hint = f" (did you mean '{close[0]}'?)" if close else f" (loops: {', '.join(sorted(known))})"
-            raise LogError(f"{log.source}: row {r}, column 'loop': no loop named '{name}'{hint}")
+            raise LogError(f"{log.where(r)}, column 'loop': no loop named '{name}'{hint}")
 
 
 BEYOND_LIMIT = 0.5  # rad past a joint limit from which a reading is no reading of that joint (`check_angle_units`)
@@ -189,7 +205,7 @@ def check_angle_units(log: JointLog, robot, degrees: bool = False) -> None:
             hint = "" if degrees else ": a log in degrees? (give --degrees)"
             raise LogError(
                 f"{log.source}: {int(out.sum())} of {col.size} readings of joint '{j}' lie over "
-                f"{BEYOND_LIMIT} rad beyond its limits [{lo:.4g}, {hi:.4g}] rad (row {i + 1}: "
+                f"{BEYOND_LIMIT} rad beyond its limits [{lo:.4g}, {hi:.4g}] rad ({log.where(i)}: "
                 f"{col[i]:.6g}{' rad' if degrees else ''}){hint}"
             )
 
@@ -233,4 +249,13 @@ def read_loop_logs(
     loops = np.concatenate([np.full(len(lg), name, dtype=object) for name, lg in parts]).astype(str)
     keys = list(dict.fromkeys(k for _, lg in parts for k in lg.extra))
     extra = {k: np.concatenate([lg.extra.get(k, np.full(len(lg), np.nan)) for _, lg in parts]) for k in keys}
-    return JointLog(list(first.joints), angles, Path("+".join(str(p) for _, p in files)), loops, extra)
+    names = [str(p) for _, p in files]
+    lines = np.vstack(
+        [
+            np.column_stack([np.full(len(lg), k), lg.lines[:, 1]])
+            if lg.lines is not None
+            else np.column_stack([np.full(len(lg), k), np.arange(2, len(lg) + 2)])
+            for k, (_, lg) in enumerate(parts)
+        ]
+    )
+    return JointLog(list(first.joints), angles, Path("+".join(names)), loops, extra, names, lines)

@@ -1,9 +1,10 @@
 """Loop closures: each is a residual with its Jacobians (see `base.Loop`).
 
-Every loop type has one entry in `spec.LOOP_TYPES` (type name -> its module), the table
-the CLI parser (`spec.parse_loop`), ``closedloop loops`` and the simulator read; a type's
-module loads on first use, the camera loop (`CameraLoop`, type ``camera``) included, so
-that `import closedloop` pays for no camera code.
+Every loop type has one entry in `spec.LOOP_TYPES` (type name -> its module), the one registry
+the CLI parser (`spec.parse_loop`), ``closedloop loops``, the calibrator and the simulator read
+(a simulator class registers under a type name of it); a type's module loads on first use, the
+camera loop (`CameraLoop`, type ``camera``) included, so that `import closedloop` pays for no
+camera code.
 """
 
 from closedloop.loops.base import Loop, LoopEval

@@ -292,7 +292,7 @@ class HingeLoop(Loop):
         q[:4] = 0.0
         return other, q
 
-    def express(self, p: np.ndarray, other: "HingeLoop") -> np.ndarray:
+    def express(self, p: np.ndarray, other: Loop) -> np.ndarray:
         """The same line and grasp in the chart of `other` (`Loop.express`).
 
         With L = H0'^-1 H, the chart's rotation is the one about an axis normal
@@ -326,7 +326,7 @@ class HingeLoop(Loop):
         H, G = self.hinge(p), self.grasp(p)
         return eliminate(M, hinge_pose_fn(H, G), hinge_starts(M, H, G))
 
-    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
         G = self.grasp(p)
         # right twists of X = H Rz(phi) G per parameter
         gen_h = np.zeros((6, 4))

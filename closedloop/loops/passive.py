@@ -314,7 +314,7 @@ class PassiveChainLoop(Loop):
         other.P0, other.fitted = self._reference(TA, TB), True
         return other
 
-    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
+    def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
         """Zero twists on P0 once prepared (None with a given pose); unprepared, the reference pose's
         twist on this object's P0."""
         if self.known_pose:
@@ -372,7 +372,7 @@ class PassiveChainLoop(Loop):
         """The eliminated task configurations q_i* (N, nq)."""
         return self._evaluate(TA, TB, p, False)[1]
 
-    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
         return self._evaluate(TA, TB, p, True)[0]
 
     def _evaluate(self, TA, TB, p, jac):

@@ -140,7 +140,7 @@ class PlaneLoop(Loop):
             )
         return out
 
-    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
+    def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
         """Plane through the tip points of the nominal model (least squares), normal towards n_ref.
 
         With fewer than three points (or collinear ones) the normal is n_ref and
@@ -169,7 +169,7 @@ class PlaneLoop(Loop):
         out[k + 2] = -d
         return out
 
-    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
         tip, w2, d = self.split(p)
         w = np.array([w2[0], w2[1], 0.0])
         Rw = pin.exp3(w)

@@ -90,7 +90,7 @@ class PointLoop(Loop):
         point = self.point if self.point is not None else p[k : k + 3]
         return np.asarray(tip, dtype=float), np.asarray(point, dtype=float)
 
-    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
+    def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
         """Unknown tip and point from the data (a pivot calibration), else the point from the given tip.
 
         With both unknown and no initial tip given: R_i t - p = -d_i for every
@@ -116,7 +116,7 @@ class PointLoop(Loop):
         p = y.mean(axis=0)
         return p if self.tip is not None else np.concatenate([tip, p])
 
-    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
         tip, point = self.split(p)
         y, RBA, dA, dB = relative_point(TA, TB, tip)
         N = TA.shape[0]

@@ -35,12 +35,14 @@ from closedloop.model.robot import RobotModel
 
 LoopFactory = Callable[[dict[str, str], RobotModel], Loop]
 
-#: Every loop type, in one table (as qpsolvers keeps its solvers): type name -> the module of this
-#: package that defines it, where its factory is registered with its keys (`register`).  The parser
-#: (`parse_loop`), ``closedloop loops`` and ``calibrate --help`` (`all_loop_types`) and the simulator
-#: (`closedloop.sims.loop_types.SIM_LOOPS`, keyed by these names) all read it; a type's module is
-#: imported on first use (``import closedloop`` pays for no camera code).  Adding a loop type is its
-#: own module and one entry here.
+#: Every loop type, in one table (as qpsolvers keeps its solvers): type name -> the module that
+#: defines it (relative to this package, or absolute), where its factory is registered with its keys
+#: (`register`).  The parser (`parse_loop`), ``closedloop loops`` and ``calibrate --help``
+#: (`all_loop_types`) and the simulator read it: a simulator class registers under one of these names
+#: (`closedloop.sims.loop_types.simulates`), and ``simulate`` takes exactly these names.  A type's
+#: module is imported on first use (``import closedloop`` pays for no camera code).  Adding a loop type
+#: is its own module, one entry here and, to simulate it, its simulator class
+#: (docs/architecture/adding-a-loop-type.md).
 LOOP_TYPES: dict[str, str] = {
     "weld": ".spec",
     "point": ".point",

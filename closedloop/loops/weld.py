@@ -62,7 +62,7 @@ class WeldLoop(Loop):
         X = self.initial if self.initial is not None else pin.SE3.Identity()
         return pose_parameters(self.name, CLOSURE_FIELDS, X)
 
-    def initialize(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray | None:
+    def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
         """X from the first configuration: X = T_B^-1 T_A (the nominal model's guess)."""
         if self.known is not None or self.initial is not None:
             return None
@@ -95,11 +95,11 @@ class WeldLoop(Loop):
             return self.known
         return pin.SE3(pin.exp3(p[3:6]), p[0:3].copy())
 
-    def residual(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> np.ndarray:
+    def residual(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray:
         E = self.closure(p).inverse().homogeneous @ (rigid_inverse(TB) @ TA)
         return log6(E)[0]
 
-    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
         N = TA.shape[0]
         X = self.closure(p)
         Y = rigid_inverse(TB) @ TA  # T_B^-1 T_A

@@ -9,7 +9,7 @@ with the combination that is (structural redundancy: the kept parameters that
 absorb it; data: the undetermined direction); which output file carries what.
 
 No JavaScript; matplotlib (Agg) draws the figures (``pip install
-"closedloop[report]"``).  Printing is left to the CLI.
+".[report]"`` in the checkout).  Printing is left to the CLI.
 """
 
 from __future__ import annotations
@@ -35,6 +35,10 @@ th{background:#f3f3f3}td.l,th.l{text-align:left}.verdict{padding:.6em 1em;border
 .small{color:#666;font-size:.85em}"""
 
 
+#: what --html / --plots need, and how to get it
+MATPLOTLIB_HINT = 'needs matplotlib: pip install ".[report]" in the closedloop checkout (or pip install matplotlib)'
+
+
 def _plt():
     try:
         import matplotlib
@@ -42,9 +46,7 @@ def _plt():
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise InputError(
-            '--html/--plots need matplotlib: pip install "closedloop[report]" (or pip install matplotlib)'
-        ) from None
+        raise InputError(f"--html/--plots {MATPLOTLIB_HINT}") from None
     return plt
 
 
@@ -66,6 +68,19 @@ def closure_per_configuration(res) -> list[dict]:
     return out
 
 
+def closure_axis(values: np.ndarray, decades: float = 6.0) -> tuple[float, float]:
+    """A log axis (low, high) for closures: from a decade below the 2nd percentile of the positive values
+    (or `decades` below the largest, whichever is higher) to the largest, so that a few near-zero closures
+    (a configuration that closes by chance, an exact fit's 1e-13) do not stretch it over many decades."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v) & (v > 0)]
+    if not v.size:
+        return 1e-12, 1.0
+    hi = float(v.max())
+    lo = max(0.1 * float(np.percentile(v, 2)), hi * 10.0**-decades)
+    return min(lo, hi), hi
+
+
 def _png(fig) -> bytes:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
@@ -83,19 +98,32 @@ def fig_closure(res, report: dict) -> bytes:
     cv = {t["loop"]: t for t in (report.get("validation") or {}).get("test", [])}
     for ax, (d, (key, f, unit)) in zip(axes[:, 0], panels):
         x = np.arange(len(d["rows"]))
-        floor = 1e-12 * f
-        ax.semilogy(x, np.maximum(d[f"before_{key}"] * f, floor), ".", color="#c44", label="before (nominal model)")
-        ax.semilogy(x, np.maximum(d[f"after_{key}"] * f, floor), ".", color="#2a6", label="after (calibrated)")
+        before, after = d[f"before_{key}"] * f, d[f"after_{key}"] * f
         held = cv.get(d["loop"], {}).get(f"rms_{key}")
+        lo, hi = closure_axis(np.concatenate([before, after]))
+        clipped = False
+        for v, color, label in ((before, "#c44", "before (nominal model)"), (after, "#2a6", "after (calibrated)")):
+            low = v < lo  # drawn on the axis floor, marked: one near-zero value must not stretch the axis
+            ax.semilogy(x[~low], v[~low], ".", color=color, label=label)
+            if low.any():
+                ax.semilogy(x[low], np.full(low.sum(), lo), "v", color=color, ms=5, mfc="none")
+                clipped = True
         if held is not None:
-            ax.axhline(max(held * f, floor), color="#36c", ls="--", label="held-out RMS (k-fold)")
+            ax.axhline(min(max(held * f, lo), hi), color="#36c", ls="--", label="held-out RMS (k-fold)")
+        ax.set_ylim(lo / 1.3, hi * 1.3)
         ax.set_ylabel(f"closure [{unit}]")
         ax.set_title(
             f"loop {d['loop']}: {'position' if key == 'm' else 'rotation' if key == 'rad' else 'image'} "
             "closure per configuration",
             fontsize=10,
         )
-        ax.legend(fontsize=8, loc="best")
+        ax.legend(
+            fontsize=8,
+            title_fontsize=8,
+            loc="upper left",
+            bbox_to_anchor=(1.01, 1.0),  # beside the axes: no point hidden
+            title=f"open triangles:\nbelow {lo:.2g} {unit}" if clipped else None,
+        )
     axes[-1, 0].set_xlabel("configuration (log order)")
     fig.tight_layout()
     return _png(fig)
@@ -227,7 +255,7 @@ def verdict_of(res, report: dict | None = None) -> tuple[str, list[str]]:
     return ("ok", []) if res.converged else ("failed", [f"the solver did not converge ({res.solver_message})"])
 
 
-def _sections(res, report: dict, snr: float = 1.0) -> list[str]:
+def _sections(res, report: dict, snr: float = 1.0, row_name=None) -> list[str]:
     status, reasons = verdict_of(res, report)
     out = [
         f"<div class='verdict {_e(status)}'>verdict: <b>{_e(status)}</b>"
@@ -240,12 +268,13 @@ def _sections(res, report: dict, snr: float = 1.0) -> list[str]:
         _table(
             ["", "value"],
             [
+                ["robot", robot_name(res, report)],
                 ["model", report.get("model")],
                 ["log", report.get("log")],
                 ["configurations", n],
                 ["parameters estimated", len(res.estimated)],
                 ["solver", f"{res.solver_status}, {res.iterations} iterations"],
-                ["joint noise", f"{res.sigma:.3g} ({'estimated' if res.sigma_estimated else 'given'})"],
+                ["joint noise", f"{res.sigma:.3g} rad ({'estimated' if res.sigma_estimated else 'given'})"],
                 ["chi2 / dof", _g(noise.get("chi2_per_dof"))],
             ],
         )
@@ -306,7 +335,7 @@ def _sections(res, report: dict, snr: float = 1.0) -> list[str]:
         + "</p>"
         + "<img alt='singular values' src='data:image/png;base64,{singular_values}'>"
     )
-    out.append(_outliers(res))
+    out.append(_outliers(res, row_name or (lambda i: f"log row {i + 1}")))
     out.append(_not_identified(res))
     out.append(
         "<h2>Which file carries what</h2><p>The calibrated URDF or MJCF carries the joint placements with "
@@ -321,12 +350,29 @@ def _sections(res, report: dict, snr: float = 1.0) -> list[str]:
     return out
 
 
-def _outliers(res) -> str:
+def _outliers(res, row_name) -> str:
     s = "<h2>Outliers</h2>"
+    if res.rejected:
+        s += "<p>Configurations left out of the final fit (their closure is not noise):</p>" + _table(
+            ["row", "loop", "robust standard deviations", "closure after [mm]", "closure after [mrad]"],
+            [
+                [
+                    row_name(rj.row - 1),
+                    rj.loop,
+                    _g(rj.standardized, 1, ".3g"),
+                    _g(rj.closure_m, 1e3),
+                    _g(rj.closure_rad, 1e3),
+                ]
+                for rj in res.rejected
+            ],
+        )
     if res.suspects:
         s += "<p>Configurations the noise model cannot explain (robust fit):</p>" + _table(
-            ["log row", "loop", "standardized", "p-value", "weight"],
-            [[sp.row, sp.loop, _g(sp.standardized), _g(sp.p_value, 1, ".2e"), _g(sp.weight)] for sp in res.suspects],
+            ["row", "loop", "standardized", "p-value", "weight"],
+            [
+                [row_name(sp.row - 1), sp.loop, _g(sp.standardized), _g(sp.p_value, 1, ".2e"), _g(sp.weight)]
+                for sp in res.suspects
+            ],
         )
     rows = []
     for d in closure_per_configuration(res):
@@ -335,17 +381,18 @@ def _outliers(res) -> str:
         if v is None or not v.size:
             continue
         med = float(np.median(v))
+        unit = {"after_m": "mm", "after_rad": "mrad", "after_px": "px"}[key]
         for i in np.argsort(v)[::-1][:5]:
             rows.append(
                 [
                     d["loop"],
-                    int(d["rows"][i]),
-                    _g(float(v[i]), 1e3 if key != "after_px" else 1.0),
+                    row_name(int(d["rows"][i]) - 1),
+                    _g(float(v[i]), 1e3 if key != "after_px" else 1.0) + f" {unit}",
                     _g(float(v[i]) / med if med > 0 else float("nan"), 1, ".3g"),
                 ]
             )
     s += "<p>Largest closures after the fit (x median: above ~5 deserves a look at that row):</p>" + _table(
-        ["loop", "log row", "closure [mm | mrad | px]", "x median"], rows
+        ["loop", "row", "closure", "x median"], rows
     )
     return s
 
@@ -369,13 +416,20 @@ def _not_identified(res) -> str:
     return s
 
 
-def render_html(res, report: dict, snr: float = 1.0) -> str:
-    """The page as a string (figures embedded); ``snr`` is the fit's ``--snr`` (the truncation line)."""
+def robot_name(res, report: dict) -> str:
+    """The robot's own name (URDF ``<robot name>``, MJCF ``<mujoco model>``), else the model file's stem."""
+    name = str(getattr(getattr(getattr(res.problem, "robot", None), "model", None), "name", "") or "").strip()
+    return name or Path(str(report.get("model") or "model")).stem
+
+
+def render_html(res, report: dict, snr: float = 1.0, row_name=None) -> str:
+    """The page as a string (figures embedded); ``snr`` is the fit's ``--snr`` (the truncation line);
+    ``row_name`` (`JointLog.where`: 0-based row -> ``log.csv line 52``) names the rows by file and line."""
     figs = {k: base64.b64encode(v).decode("ascii") for k, v in figures(res, report, snr).items()}
-    body = "\n".join(_sections(res, report, snr))
+    body = "\n".join(_sections(res, report, snr, row_name))
     for k, v in figs.items():
         body = body.replace("{" + k + "}", v)
-    title = f"closedloop calibration: {Path(str(report.get('model') or 'model')).name}"
+    title = f"{robot_name(res, report)}: closedloop calibration"
     return (
         f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'><title>{_e(title)}</title>"
         f"<style>{_CSS}</style></head><body><h1>{_e(title)}</h1>\n{body}\n"
@@ -383,5 +437,5 @@ def render_html(res, report: dict, snr: float = 1.0) -> str:
     )
 
 
-def write_html(res, report: dict, path: str | Path, snr: float = 1.0) -> None:
-    atomic_write_text(path, render_html(res, report, snr))
+def write_html(res, report: dict, path: str | Path, snr: float = 1.0, row_name=None) -> None:
+    atomic_write_text(path, render_html(res, report, snr, row_name))

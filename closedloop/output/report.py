@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
@@ -158,8 +159,12 @@ def moved_not_identifiable(res: CalibrationResult) -> list[dict]:
     return out
 
 
-def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict:
-    """A plain-dict report of a calibration."""
+def build_report(
+    res: CalibrationResult, model_path=None, log_path=None, row_name: Callable[[int], str] | None = None
+) -> dict:
+    """A plain-dict report of a calibration; `row_name` (`JointLog.where`: 0-based row -> ``log.csv line 52``)
+    names the rejected and suspect rows by file and line (``where``)."""
+    where = (lambda row: row_name(row - 1)) if row_name is not None else (lambda row: None)
     prob = res.problem
     params = []
     for k, p in enumerate(prob.params):
@@ -240,12 +245,13 @@ def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict
         ],
         "noise_model": list(getattr(res, "noise_model", [])),  # per loop: task-space vs joint noise
         "shared_parameters": _shared(prob),
-        "rejected": [asdict(r) for r in res.rejected],
+        "rejected": [asdict(r) | {"where": where(r.row)} for r in res.rejected],
         "weighting": res.weighting,
         "robust": {
             "suspects": [
                 {
                     "row": sp.row,
+                    "where": where(sp.row),
                     "loop": sp.loop,
                     "standardized": sp.standardized,
                     "p_value": sp.p_value,

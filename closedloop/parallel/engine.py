@@ -123,6 +123,9 @@ class Engine:
     name = "?"
     workers = 1
 
+    def __init__(self, jobs: int | None = None, address: str | None = None, **_) -> None:
+        """Engines are made by name (`executor.get_engine`) with the same keywords; each takes what it uses."""
+
     def __enter__(self):
         return self
 

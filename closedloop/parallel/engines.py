@@ -171,7 +171,9 @@ class RayEngine(Engine):
         except ImportError:
             from closedloop.errors import InputError
 
-            raise InputError('--ray needs Ray: pip install "closedloop[ray]"') from None
+            raise InputError(
+                '--ray needs Ray: pip install ".[ray]" in the closedloop checkout (or pip install "ray>=2")'
+            ) from None
         self.ray = ray
         self._started = not ray.is_initialized()  # connected here: disconnected by close()
         if self._started:

@@ -10,7 +10,7 @@ job order.  Engines are registered by name, as qpsolvers registers solvers:
   started with *forkserver* (POSIX) or *spawn*, never fork;
 * ``ray``: Ray tasks of one CPU each, on the cluster at ``address``
   ('auto' joins a running cluster; None starts a local one), imported lazily
-  (``pip install "closedloop[ray]"``).
+  (``pip install ".[ray]"`` in the closedloop checkout).
 
 The results do not depend on the engine: randomness comes from a
 ``numpy.random.SeedSequence(seed).spawn(n)`` child per *job* (never per
@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import logging
 import sys
-import time
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
@@ -149,10 +148,10 @@ def add_arguments(parser) -> None:
     )
     parser.add_argument(
         "--ray",
-        metavar="auto|ADDRESS",
+        metavar="auto|local|ADDRESS",
         default=None,
-        help="run on a Ray cluster: 'auto' joins the running one, an address another, 'local' "
-        "starts one here with --jobs CPUs (needs closedloop[ray])",
+        help="run on a Ray cluster: 'auto' joins the running one, an address (ray://HOST:10001) another, "
+        "'local' starts one here with --jobs CPUs (needs Ray: pip install \".[ray]\" in the checkout)",
     )
 
 
@@ -168,20 +167,17 @@ def engine_from_args(args) -> Engine:
     return get_engine("local", args.jobs)
 
 
-def progress_printer(prefix: str = "", quiet: bool = False) -> Callable[[Progress], None]:
-    """A progress callback printing one line on stderr (rewritten in place on a terminal; once a second in logs)."""
-    tty = sys.stderr.isatty()
-    last = [-1.0]
+def progress_printer(prefix: str = "", quiet: bool = False, stream=None) -> Callable[[Progress], None]:
+    """A progress callback writing one line on a terminal's stderr, rewritten in place and erased when
+    the last job ends; nothing in a log or a CI output (no stale progress lines there)."""
+    out = sys.stderr if stream is None else stream
+    tty = bool(getattr(out, "isatty", lambda: False)())
 
     def show(p: Progress) -> None:
-        if quiet:
+        if quiet or not tty:
             return
-        now = time.perf_counter()
         finished = p.done + p.failed == p.total
-        if tty:
-            print("\r" + (prefix + p.line()).ljust(90), end="\n" if finished else "", file=sys.stderr, flush=True)
-        elif finished or now - last[0] > 1.0:
-            print(prefix + p.line(), file=sys.stderr, flush=True)
-            last[0] = now
+        line = "\r" + (prefix + p.line()).ljust(90)
+        print(line + ("\r" + " " * 90 + "\r" if finished else ""), end="", file=out, flush=True)
 
     return show

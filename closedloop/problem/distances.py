@@ -111,7 +111,7 @@ class DistanceLoop(Loop):
     def parameters(self) -> list[Parameter]:
         return list(self._params)
 
-    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
         N = TA.shape[0]
         diff = p[:3] - p[3:6]
         n = float(np.linalg.norm(diff))

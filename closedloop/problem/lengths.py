@@ -86,7 +86,7 @@ class LengthLoop(Loop):
         """The readings the length is measured at (1, len(joints)): every joint at a reading of 0."""
         return np.zeros((1, len(joints)))
 
-    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> LoopEval:
+    def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
         d = TB[:, :3, 3] - TA[:, :3, 3]
         n = np.linalg.norm(d, axis=1)
         u = d / np.maximum(n, 1e-300)[:, None]

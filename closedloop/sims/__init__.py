@@ -19,32 +19,50 @@ Public API::
 See :func:`simulate` for the outputs and :class:`SimSettings` for the settings.
 
 Layout: ``scenarios`` (settings, geometries, the registry; scenarios are data: ``scenarios/*.yaml``,
-``scenario_files``), ``loop_types`` (one class per loop type in one table, `SIM_LOOPS`), ``true_robot``
+``scenario_files``; every named scenario: `scenario_catalog`), ``loop_types`` (one class per type of the
+loop registry ``closedloop.loops.spec.LOOP_TYPES``, registered with `simulates` into `SIM_LOOPS`), ``true_robot``
 (the draw of the truth), ``environment`` and ``scene`` (the MuJoCo scene), ``driver`` and ``qp`` (the
 nominal planner), ``tracking`` (driving and recording), ``outputs`` (the dataset's files), ``dataset``
 (`simulate`, step by step), ``selection`` (pose selection), ``robot_scenario`` (a user's robot file),
-``camera_scene`` (the head-camera scenarios).
+``camera_scene`` (the head-camera scenarios), ``identifiable`` (the parameters a calibration can tell
+apart, from the structure of the nominal robot: no fit).  The public names load on first use.
 """
 
-from closedloop.sims.dataset import SimResult, sensor_readings, simulate
-from closedloop.sims.loop_types import SIM_LOOPS, SimLoop
-from closedloop.sims.scenario_files import load_scenario  # registers the shipped scenario YAML files
-from closedloop.sims.scenarios import SCENARIOS, DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
-from closedloop.sims.true_robot import draw_errors, perturbable_parameters
+from importlib import import_module
+from typing import Any
 
-__all__ = [
-    "SCENARIOS",
-    "SIM_LOOPS",
-    "SimLoop",
-    "DoorGeometry",
-    "PlaneGeometry",
-    "TrackerGeometry",
-    "Scenario",
-    "SimResult",
-    "SimSettings",
-    "draw_errors",
-    "load_scenario",
-    "perturbable_parameters",
-    "sensor_readings",
-    "simulate",
-]
+from closedloop.sims import scenario_files  # noqa: F401  (registers the shipped scenario files; no MuJoCo)
+
+#: the public names and the module of each, loaded on first use (PEP 562): the scenarios and the loop
+#: types (``simulate --help``, the scenario files) cost no MuJoCo import
+_PUBLIC = {
+    "SimResult": "closedloop.sims.dataset",
+    "sensor_readings": "closedloop.sims.dataset",
+    "simulate": "closedloop.sims.dataset",
+    "SIM_LOOPS": "closedloop.sims.loop_types",
+    "SimLoop": "closedloop.sims.loop_types",
+    "simulates": "closedloop.sims.loop_types",
+    "load_scenario": "closedloop.sims.scenario_files",
+    "SCENARIOS": "closedloop.sims.scenarios",
+    "DoorGeometry": "closedloop.sims.scenarios",
+    "PlaneGeometry": "closedloop.sims.scenarios",
+    "Scenario": "closedloop.sims.scenarios",
+    "SimSettings": "closedloop.sims.scenarios",
+    "TrackerGeometry": "closedloop.sims.scenarios",
+    "scenario_catalog": "closedloop.sims.scenarios",
+    "draw_errors": "closedloop.sims.true_robot",
+    "perturbable_parameters": "closedloop.sims.true_robot",
+}
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _PUBLIC:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(import_module(_PUBLIC[name]), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_PUBLIC))

@@ -42,13 +42,14 @@ from __future__ import annotations
 
 import json
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
 
-from closedloop.models import nominal_urdf
+from closedloop.models import ROBOTS, nominal_urdf
+from closedloop.sims.outputs import with_visuals
+from closedloop.sims.scenarios import CAMERA_LOOP, CAMERA_SCENARIOS, CameraScenario
 
 CAMERAS = ("left", "right")
 FOVY_DEG = 50.0
@@ -58,7 +59,7 @@ HEAD_PITCH = 0.35  # the head looks down at the workspace (rad)
 EYE_SEPARATION = 0.18
 MARKER = np.array([0.03, -0.02, 0.09])  # the true marker in tool0 (unknown to the calibration)
 LOOP_NAME = "cam"
-CALIBRATE_LOOP = f"camera:frame=tool0,name={LOOP_NAME},to=cam_left_optical+cam_right_optical,sigma_px=0.1"
+CALIBRATE_LOOP = CAMERA_LOOP  # its name is LOOP_NAME
 CHECK_TOLERANCES = {"tol_m": 3e-3, "tol_rad": 1e-2, "tol_px": 1.0}  # see the module docstring
 _OPTICAL_RPY = (-np.pi / 2, 0.0, -np.pi / 2)  # link (x forward, z up) -> optical (z forward, x right, y down)
 
@@ -134,42 +135,6 @@ def pan_towards(robot, q: np.ndarray, joints: list[str], point_world: np.ndarray
 
 
 # --------------------------------------------------------------------------- the MuJoCo scene
-@dataclass
-class CameraScenario:
-    """Settings of a head-camera scenario (``SCENARIOS``)."""
-
-    name: str
-    description: str
-    verge: float = 0.0  # rad: each pan axis turned by +-verge (0: parallel pan axes)
-    sigma_px: float = 0.1  # pixel noise (px): a round marker's centroid, found to a tenth of a pixel
-    sigma_q: float = 2e-5  # joint-reading noise (rad)
-    jitter: float = 0.3  # tracking error of the pans (rad): spreads the marker over the images
-    arm_range: float = 0.6  # arm readings: Q0 +- this (rad)
-    translation: float = 1e-3  # placement errors (m)
-    rotation: float = 1e-3  # (rad)
-    offset: float = 0.01  # joint offsets (rad)
-    mount_t: float = 5e-3  # camera mounting error in its optical frame (m)
-    mount_r: float = 0.02  # (rad)
-    q0: tuple[float, ...] = (0.0, -1.6, 1.6, -1.6, -1.57, 0.0)
-    extra: dict = field(default_factory=dict)
-
-
-SCENARIOS: dict[str, CameraScenario] = {
-    s.name: s
-    for s in (
-        CameraScenario(
-            "ur5_head",
-            "UR5 with a marker on its tool, tracked by a head of two cameras on parallel pan joints (thesis ch. 5)",
-        ),
-        CameraScenario(
-            "ur5_head_verging",
-            "the same with verging pan axes (each tilted 0.2 rad about the head's forward axis)",
-            verge=0.2,
-        ),
-    )
-}
-
-
 def _mujoco_scene(true_urdf_text: str, mounts: list[pin.SE3], fovy: float):
     """The true robot in MuJoCo with a camera per eye (at its true mounting) and a marker site on tool0."""
     import mujoco
@@ -222,16 +187,19 @@ def mujoco_pixels(model, data) -> np.ndarray:
     return out
 
 
-def _identifiable(robot, theta: np.ndarray, seed: int) -> list[str]:
-    """Robot parameters a calibration estimates on exact pixels of the nominal robot (the truth's support)."""
-    from closedloop.calibration.pipeline import build_problem, calibrate
-    from closedloop.io.logs import JointLog
+def _identifiable(robot, theta: np.ndarray) -> list[str]:
+    """Robot parameters a calibration estimates on exact pixels of the nominal robot (the truth's support).
+
+    The camera loop's problem on the readings `theta` with the nominal marker's exact image points,
+    its unknowns closing them, and the structural reduction there (:mod:`closedloop.sims.identifiable`).
+    """
     from closedloop.loops.spec import parse_loop
+    from closedloop.sims.identifiable import closing_values, estimated_indices, loop_joints, nominal_problem
 
     names = robot.joint_names
     loop = parse_loop(CALIBRATE_LOOP, robot)
-    zeros = {c: np.zeros(len(theta)) for c in loop.columns()}
-    prob = build_problem(robot, JointLog(names, theta, None, None, zeros), [loop])
+    theta = np.asarray(theta, dtype=float)[:, [names.index(j) for j in loop_joints(robot, [loop])]]
+    prob = nominal_problem(robot, [loop], [theta], [np.zeros((len(theta), len(loop.columns())))])
     Ts = prob.loop_frame_poses(prob.nominal, 0)
     K = mujoco_intrinsics()
     cols = {}
@@ -239,8 +207,11 @@ def _identifiable(robot, theta: np.ndarray, seed: int) -> list[str]:
         pc = np.einsum("nji,nj->ni", T[:, :3, :3], Ts[0][:, :3, :3] @ MARKER + Ts[0][:, :3, 3] - T[:, :3, 3])
         cols[f"{LOOP_NAME}:u{c + 1}"] = K[0] * pc[:, 0] / pc[:, 2] + K[2]
         cols[f"{LOOP_NAME}:v{c + 1}"] = K[1] * pc[:, 1] / pc[:, 2] + K[3]
-    res = calibrate(robot, JointLog(names, theta, None, None, cols), [parse_loop(CALIBRATE_LOOP, robot)])
-    return [n for n, s in zip(res.names, res.status) if s == "estimated" and not n.startswith(LOOP_NAME + ".")]
+    meas = loop.measurements(cols, np.arange(len(theta)))
+    problem = nominal_problem(robot, [loop], [theta], [meas])
+    own = LOOP_NAME + "."
+    kept = estimated_indices(problem, closing_values(problem))
+    return [problem.names[k] for k in kept if not problem.names[k].startswith(own)]
 
 
 def _readings(robot, sc: CameraScenario, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -270,7 +241,7 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
     from closedloop.model.robot import RobotModel
     from closedloop.sims.scene import true_urdf
 
-    sc = SCENARIOS[scenario]
+    sc = CAMERA_SCENARIOS[scenario]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rng_truth, rng_plan, rng_noise = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
@@ -280,7 +251,7 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
     names = robot.joint_names
     readings = _readings(robot, sc, n, rng_plan)
     truth: dict[str, float] = {}
-    for name in _identifiable(robot, readings[: min(n, 60)], seed):
+    for name in _identifiable(robot, readings[: min(n, 60)]):
         kind = name.rsplit(".", 1)[1]
         if name.startswith("cam_") and kind in ("x", "y", "z"):
             continue  # the head's lengths as built: the length reference (thesis 5.5 fixes a camera length)
@@ -332,6 +303,8 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
     }
     (out / "truth.json").write_text(json.dumps(doc, indent=1))
     (out / "scene.xml").write_text(spec.to_xml())
+    # the nominal file a viewer shows: the UR5's visuals put back (the head's links have none), same kinematics
+    nominal_path.write_text(with_visuals(nominal_path.read_text(), ROBOTS["ur5"].path))
     return {"n": n, "missing_views": doc["missing_views"], "out": str(out)}
 
 
@@ -349,8 +322,6 @@ def simulate_cli(args) -> int:
     summary = simulate_head(args.scenario, args.n, int(args.seed), args.out)
     print(
         f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out} "
-        f"({summary['missing_views']} missing views); calibrate with --loop {CALIBRATE_LOOP}; check with "
-        f"--tol-m {CHECK_TOLERANCES['tol_m']} --tol-rad {CHECK_TOLERANCES['tol_rad']} "
-        f"--tol-px {CHECK_TOLERANCES['tol_px']}"
+        f"({summary['missing_views']} missing views)"
     )
     return 0

@@ -54,13 +54,14 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from closedloop.errors import ScenarioError, UnknownScenarioError
+from closedloop.errors import ScenarioError
 from closedloop.io.files import OutputSet
-from closedloop.models import nominal_urdf
+from closedloop.models import ROBOTS, nominal_urdf
 from closedloop.sims.driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
 from closedloop.sims.loop_types import SimLoop, sim_loop
-from closedloop.sims.outputs import DATASET_FILES, check_dataset_dir, truth_record, write_log
-from closedloop.sims.scenarios import SCENARIOS, Scenario, SimSettings
+from closedloop.sims.outputs import DATASET_FILES, check_dataset_dir, truth_record, with_visuals, write_log
+from closedloop.sims.scenario_files import SCENARIOS  # the shipped scenario files registered
+from closedloop.sims.scenarios import CAMERA_SCENARIOS, Scenario, SimSettings, unknown_scenario
 from closedloop.sims.scene import Scene, build_scene, true_urdf
 from closedloop.sims.tracking import sensor_readings, track_and_record
 from closedloop.sims.true_robot import draw_errors, identifiable_parameters
@@ -176,10 +177,15 @@ def simulate(
         the :class:`SimResult`; files ``log.csv``, ``nominal.urdf``, ``truth.json``,
         ``scene.xml`` are written in ``out_dir``.
     """
+    if scenario in CAMERA_SCENARIOS:
+        raise ScenarioError(
+            f"{scenario} is a head-camera scenario: closedloop.sims.camera_scene.simulate_head runs it "
+            f"(closedloop simulate {scenario})"
+        )
     try:
         sc: Scenario = SCENARIOS[scenario]
     except KeyError:
-        raise UnknownScenarioError(f"unknown scenario {scenario!r}; known: {sorted(SCENARIOS)}") from None
+        raise unknown_scenario(scenario) from None
     if n < 1:
         raise ScenarioError(f"{scenario}: n must be >= 1, not {n}")
     settings = sc.settings
@@ -299,11 +305,12 @@ def _simulate(
 
 
 def _nominal(sc: Scenario, scratch: Path, files: OutputSet, out: Path) -> _Nominal:
-    """Step 1: the cleaned nominal URDF (written to the scratch folder and the outputs) and its model."""
+    """Step 1: the cleaned nominal URDF (written to the scratch folder) and its model; the outputs' copy
+    keeps the robot file's visuals (`outputs.with_visuals`: what a viewer shows, same kinematics)."""
     urdf_nom = nominal_urdf(sc.robot)
     nominal_path = scratch / "nominal.urdf"
     nominal_path.write_text(urdf_nom)
-    files.add(out / "nominal.urdf", urdf_nom)
+    files.add(out / "nominal.urdf", with_visuals(urdf_nom, ROBOTS[sc.robot].path))
     pmodel = pin.buildModelFromXML(urdf_nom)
     joint_names = [pmodel.names[j] for j in range(1, pmodel.njoints) if pmodel.joints[j].nq == 1]
     if len(joint_names) != pmodel.nq:

@@ -12,11 +12,15 @@ closed) and added to the MuJoCo spec by the loop type that uses it (:mod:`closed
 
 from __future__ import annotations
 
-import mujoco
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pinocchio as pin
 
 from closedloop.sims.scenarios import DoorGeometry, PlaneGeometry, TrackerGeometry
+
+if TYPE_CHECKING:
+    import mujoco
 
 __all__ = [
     "TOOL_SITE",
@@ -41,6 +45,9 @@ PUCK_PREFIX = "puck_"
 
 
 def quat_wxyz(rot: np.ndarray) -> np.ndarray:
+    """MuJoCo's (w, x, y, z) quaternion of a rotation matrix."""
+    import mujoco
+
     q = np.zeros(4)
     mujoco.mju_mat2Quat(q, np.ascontiguousarray(rot, dtype=float).reshape(9))
     return q
@@ -80,6 +87,8 @@ def draw_tracker(geom: TrackerGeometry, rng: np.random.Generator) -> pin.SE3:
 
 def add_puck(spec: mujoco.MjSpec, plane: pin.SE3, geom: PlaneGeometry, gravcomp: bool) -> None:
     """The passive puck: two slide joints along the plane's x and y axes, then a ball joint."""
+    import mujoco
+
     frame = spec.worldbody.add_body(name=PUCK_PREFIX + "plane", pos=plane.translation, quat=quat_wxyz(plane.rotation))
     m = geom.puck_mass
     slider = frame.add_body(name=PUCK_PREFIX + "slider_x")

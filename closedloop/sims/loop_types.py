@@ -1,4 +1,11 @@
-"""The simulator's loop types: one class each, in one table (`SIM_LOOPS`), keyed like the core's loops.
+"""The simulator's loop types: one class per type of the loop registry, registered under its name.
+
+The loop registry is `closedloop.loops.spec.LOOP_TYPES`, the one table the parser, ``closedloop
+loops`` and the calibrator read.  A simulator class registers itself under a type name of that
+table with the decorator :func:`simulates` (a name the table lacks is refused), into `SIM_LOOPS`;
+:func:`sim_loop` refuses a type the simulator lacks in one line listing the simulated ones, and an
+unknown type exactly as the parser does.  A new loop type costs its module in ``closedloop/loops/``,
+its entry in `LOOP_TYPES` and its class here (``docs/architecture/adding-a-loop-type.md``).
 
 A loop type says, for its own loop and nothing else:
 
@@ -11,9 +18,6 @@ A loop type says, for its own loop and nothing else:
   and the core's loop class for this scenario (:meth:`SimLoop.core_loop`);
 * its defaults: the loop name, settings it needs whatever the robot, its geometry record, its
   number of independent constraints on the driven joints (thesis Lemma 4).
-
-The keys are the core's loop type names (:mod:`closedloop.loops.spec`); ``door`` is an alias of
-``hinge``.  Adding a loop type to the simulator is one class here and one entry in `SIM_LOOPS`.
 
 ``weld``
     The tool frame is welded to a fixture fixed in the world (6 constraints).  Closure parameters
@@ -44,13 +48,13 @@ The keys are the core's loop type names (:mod:`closedloop.loops.spec`); ``door``
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
-import mujoco
 import numpy as np
 import pinocchio as pin
 
-from closedloop.errors import ScenarioError
+from closedloop.errors import LoopError, ScenarioError
+from closedloop.loops.spec import LOOP_TYPES, loop_type
 from closedloop.sims.environment import (
     DOOR_JOINT,
     DOOR_PREFIX,
@@ -63,7 +67,10 @@ from closedloop.sims.environment import (
 )
 from closedloop.sims.scenarios import DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
 
-__all__ = ["SimLoop", "Placement", "SIM_LOOPS", "SIM_LOOP_NAMES", "sim_loop", "pose_params"]
+if TYPE_CHECKING:
+    import mujoco
+
+__all__ = ["SimLoop", "Placement", "SIM_LOOPS", "simulates", "sim_loop", "simulated_types", "pose_params"]
 
 _COMPS = ("x", "y", "z", "rx", "ry", "rz")
 #: a generic tilted plane normal for the identifiability of a plane loop (see `PlaneSim.core_loop`)
@@ -89,11 +96,52 @@ class Placement:
     plane_pose: pin.SE3 | None = None
 
 
+#: the simulator's loop types by their name in `closedloop.loops.spec.LOOP_TYPES` (filled by `simulates`)
+SIM_LOOPS: dict[str, SimLoop] = {}
+
+
+def simulates(kind: str):
+    """Class decorator: register a `SimLoop` subclass as the simulator of registry loop type `kind`.
+
+    `kind` must be an entry of `closedloop.loops.spec.LOOP_TYPES` (a `LoopError` says to add it
+    there otherwise); the class gets ``kind`` and one instance goes into `SIM_LOOPS`.
+    """
+    if kind not in LOOP_TYPES:
+        raise LoopError(f"loop type '{kind}' has no entry in closedloop.loops.spec.LOOP_TYPES (add it there)")
+
+    def deco(cls: type[SimLoop]) -> type[SimLoop]:
+        cls.kind = kind
+        SIM_LOOPS[kind] = cls()
+        return cls
+
+    return deco
+
+
+def simulated_types() -> list[str]:
+    """The registry's loop types the simulator simulates, sorted."""
+    return sorted(SIM_LOOPS)
+
+
+def sim_loop(kind: str) -> SimLoop:
+    """The simulator's class of registry loop type `kind`.
+
+    An unknown type is refused as the parser refuses it (`closedloop.loops.spec.loop_type`), a
+    registry type the simulator lacks in one line naming the simulated types (`ScenarioError`).
+    """
+    if kind in SIM_LOOPS:
+        return SIM_LOOPS[kind]
+    try:
+        loop_type(kind)
+    except LoopError as exc:
+        raise ScenarioError(f"{exc}; the simulator simulates: {', '.join(simulated_types())}") from None
+    raise ScenarioError(f"the simulator has no '{kind}' loop (it simulates: {', '.join(simulated_types())})")
+
+
 class SimLoop:
     """One loop type of the simulator (module docstring).  Defaults: a weld to a world fixture."""
 
+    #: its name in `closedloop.loops.spec.LOOP_TYPES` (set by `simulates`)
     kind: ClassVar[str] = ""
-    aliases: ClassVar[tuple[str, ...]] = ()
     default_name: ClassVar[str] = ""
     #: independent constraints on the driven joints (the self-motion check of robot_scenario)
     constraints: ClassVar[int] = 6
@@ -101,8 +149,9 @@ class SimLoop:
     pose_rows: ClassVar[bool] = True
     #: rows of the nominal residual e(q)
     residual_rows: ClassVar[int] = 6
-    #: MuJoCo equality between the tool site and the target site (None: no constraint)
-    equality: ClassVar[Any] = mujoco.mjtEq.mjEQ_WELD
+    #: MuJoCo equality between the tool site and the target site: ``weld``, ``connect`` (``mjtEq.mjEQ_<NAME>``)
+    #: or None (no constraint)
+    equality: ClassVar[str | None] = "weld"
     #: the violation is a distance only (the tool may turn about the contact)
     point_contact: ClassVar[bool] = False
     #: False: an open loop (no constraint; random configurations; a tracker measures the tool)
@@ -177,6 +226,10 @@ class SimLoop:
         """What ``truth.json`` says of the loop beyond its type, frames and name."""
         return {}
 
+    def calibrate_keys(self, settings: SimSettings) -> dict[str, str]:
+        """Keys of the ``calibrate --loop`` spec beyond frame, to and name (a measurement's noise)."""
+        return {}
+
     def core_loop(self, sc: Scenario, nominal_path=None, sigma_t: float | None = None):
         """The calibration core's loop for the scenario (None when it needs what is not given)."""
         from closedloop.loops import WeldLoop
@@ -184,10 +237,10 @@ class SimLoop:
         return WeldLoop(sc.loop_name, sc.tool_frame, sc.target_frame or "universe")
 
 
+@simulates("weld")
 class WeldSim(SimLoop):
     """``weld``: the tool welded to a world fixture, or to another frame of the robot (``target_frame``)."""
 
-    kind = "weld"
     default_name = "fixture"
     two_chains = True
 
@@ -216,15 +269,15 @@ class WeldSim(SimLoop):
         return model.addFrame(pin.Frame("loop_target", fb.parentJoint, placement, pin.FrameType.OP_FRAME))
 
 
+@simulates("point")
 class PointSim(SimLoop):
     """``point``: the stylus tip in a ball socket fixed in the world."""
 
-    kind = "point"
     default_name = "socket"
     constraints = 3
     pose_rows = False
     residual_rows = 3
-    equality = mujoco.mjtEq.mjEQ_CONNECT
+    equality = "connect"
     point_contact = True
 
     def nominal_residual(self, loop, d, oMt, jt):
@@ -241,11 +294,10 @@ class PointSim(SimLoop):
         return PointLoop(sc.loop_name, sc.tool_frame)
 
 
+@simulates("hinge")
 class HingeSim(SimLoop):
-    """``hinge`` (``door``): the tool welded to the handle of a door on a passive hinge."""
+    """``hinge``: the tool welded to the handle of a door on a passive hinge."""
 
-    kind = "hinge"
-    aliases = ("door",)
     default_name = "door"
     constraints = 5
     target_is_closure = False
@@ -256,6 +308,8 @@ class HingeSim(SimLoop):
         return min(rank, 6) - 1  # the door's own angle takes one of the weld's six
 
     def place(self, spec, model, data, scenario, tool, settings, rng) -> Placement:
+        import mujoco
+
         from closedloop.models import model_file
 
         hinge_pose = door_hinge_pose(tool, scenario.door or DoorGeometry())
@@ -312,15 +366,15 @@ class HingeSim(SimLoop):
         return HingeLoop(sc.loop_name, sc.tool_frame, axis=(H.translation.copy(), H.rotation[:, 2].copy()))
 
 
+@simulates("plane")
 class PlaneSim(SimLoop):
     """``plane``: the stylus tip on a passive puck sliding on a tilted plane (drawn per seed)."""
 
-    kind = "plane"
     default_name = "plane"
     constraints = 1
     pose_rows = False
     residual_rows = 1
-    equality = mujoco.mjtEq.mjEQ_CONNECT
+    equality = "connect"
     point_contact = True
     draws_environment = True
     target_is_closure = False
@@ -378,10 +432,10 @@ class PlaneSim(SimLoop):
         return PlaneLoop(sc.loop_name, sc.tool_frame, normal=GENERIC_PLANE_NORMAL)
 
 
+@simulates("measured_point")
 class MeasuredPointSim(SimLoop):
     """``measured_point``: no constraint; a tracker (drawn per seed) measures the tool point."""
 
-    kind = "measured_point"
     default_name = "measured_point"
     constraints = 0
     pose_rows = False
@@ -424,24 +478,11 @@ class MeasuredPointSim(SimLoop):
             }
         }
 
+    def calibrate_keys(self, settings):
+        """The tracker's noise (``sigma_t``): what the calibration weighs the measurement by."""
+        return {"sigma_t": f"{settings.tracker_noise:g}"} if settings.tracker_noise > 0 else {}
+
     def core_loop(self, sc, nominal_path=None, sigma_t=None):
         from closedloop.loops.measured import MeasuredPointLoop
 
         return MeasuredPointLoop(sc.loop_name, sc.tool_frame, sigma_t=sigma_t)
-
-
-#: the simulator's loop types by the core's loop type name
-SIM_LOOPS: dict[str, SimLoop] = {c.kind: c() for c in (WeldSim, PointSim, HingeSim, PlaneSim, MeasuredPointSim)}
-#: every name ``--loop`` may use for a simulated loop (aliases included) -> the loop type
-SIM_LOOP_NAMES: dict[str, str] = {
-    **{k: k for k in SIM_LOOPS},
-    **{a: k for k, v in SIM_LOOPS.items() for a in v.aliases},
-}
-
-
-def sim_loop(kind: str) -> SimLoop:
-    """The simulator's loop type ``kind`` (a `ScenarioError` naming the known ones otherwise)."""
-    try:
-        return SIM_LOOPS[SIM_LOOP_NAMES[kind]]
-    except KeyError:
-        raise ScenarioError(f"the simulator has no '{kind}' loop (it simulates: {', '.join(SIM_LOOP_NAMES)})") from None

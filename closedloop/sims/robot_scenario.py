@@ -39,13 +39,11 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import InputError
-from closedloop.sims.loop_types import SIM_LOOPS
+from closedloop.sims.loop_types import sim_loop
 
 log = logging.getLogger(__name__)
 
 MOVABLE = ("revolute", "continuous", "prismatic")
-#: independent constraints each loop type puts on the driven joints (hinge: 6 minus the door's joint)
-CONSTRAINTS = {k: v.constraints for k, v in SIM_LOOPS.items()}
 _TMP: list[str] = []
 
 
@@ -245,7 +243,7 @@ def _jacobian(model, data, q, loop_type: str, fa: int, fb: int | None, reach: fl
         Jb_at_a = Jb.copy()
         Jb_at_a[:3] += -pin.skew(d) @ Jb[3:]  # motion of the point of B that coincides with A
         Ja = Ja - Jb_at_a
-    if SIM_LOOPS[loop_type].pose_rows:
+    if sim_loop(loop_type).pose_rows:
         return np.vstack([Ja[:3], reach * Ja[3:]])
     return Ja[:3]
 
@@ -282,9 +280,10 @@ def prepare_robot(
 ) -> PreparedRobot:
     """Prepare a user's robot for the simulator and register it (module doc)."""
     from closedloop.models import ROBOTS, RobotSource, nominal_urdf
+    from closedloop.sims.outputs import absolute_mesh_paths
 
     path = Path(path)
-    root = _read(path, where)
+    root = absolute_mesh_paths(_read(path, where), path)  # the prepared file lives elsewhere: meshes by absolute path
     frame, driven = _prepare_tree(root, path, loop_type, frame, to, tool, joints)
     key = path.stem  # a built-in robot's name is not taken over
     if key in ROBOTS and not str(ROBOTS[key].relpath).startswith(str(_tmpdir())):
@@ -303,7 +302,7 @@ def prepare_robot(
     q_best, rank, _ = choose_q0(model, loop_type, frame, to)
     # independent constraints: the Jacobian's rank, at most the loop type's count (hinge: the door's own
     # angle takes one of the weld's six; plane: the unknown normal leaves one; a tracker none)
-    rank = SIM_LOOPS[loop_type].independent(rank)
+    rank = sim_loop(loop_type).independent(rank)
     if n - rank < 1:
         raise InputError(
             f"{path}: {what} leaves the closed chain no motion: its {n} driven joint(s) "

@@ -2,7 +2,8 @@
 
 A scenario file names a robot (a key of :data:`closedloop.models.ROBOTS`, or a URDF/MJCF file
 relative to the YAML), a loop in the syntax of ``calibrate --loop`` (``TYPE:frame=A[,to=B][,name=N]``;
-the simulator's types: weld, point, hinge/door, plane, measured_point), the grasp configuration
+TYPE a loop type of the registry ``closedloop.loops.spec.LOOP_TYPES`` that the simulator simulates,
+:func:`closedloop.sims.loop_types.simulated_types`), the grasp configuration
 ``q0`` (automatic for a robot file), ``settings:`` (any :class:`~closedloop.sims.scenarios.SimSettings`
 field), the loop geometry (``door:``, ``plane:``, ``tracker:``), and for a robot file ``tool:`` (a stylus
 link on the loop frame) and ``joints:`` (the driven joints), see :mod:`closedloop.sims.robot_scenario`.
@@ -15,15 +16,19 @@ import dataclasses
 from pathlib import Path
 
 from closedloop.errors import InputError
-from closedloop.sims.loop_types import SIM_LOOP_NAMES, SIM_LOOPS
-from closedloop.sims.scenarios import SCENARIOS, DoorGeometry, PlaneGeometry, Scenario, SimSettings, TrackerGeometry
+from closedloop.sims.loop_types import sim_loop
+from closedloop.sims.scenarios import (
+    SCENARIO_DIR,
+    SCENARIOS,
+    DoorGeometry,
+    PlaneGeometry,
+    Scenario,
+    SimSettings,
+    TrackerGeometry,
+)
 
-__all__ = ["SIM_LOOP_TYPES", "SCENARIO_DIR", "parse_sim_loop", "scenario_from_dict", "load_scenario"]
+__all__ = ["SCENARIO_DIR", "parse_sim_loop", "scenario_from_dict", "load_scenario"]
 
-#: the simulator's loop types by the name ``--loop`` uses (``door`` is the hinge loop; a weld with ``to=``
-#: closes two chains of one robot): the names of `closedloop.sims.loop_types.SIM_LOOPS`
-SIM_LOOP_TYPES = SIM_LOOP_NAMES
-SCENARIO_DIR = Path(__file__).with_name("scenarios")
 _SCENARIO_KEYS = {
     "description",
     "robot",
@@ -41,13 +46,17 @@ _SCENARIO_KEYS = {
 
 
 def parse_sim_loop(spec: str) -> tuple[str, str, str | None, str]:
-    """``TYPE:frame=A[,to=B][,name=N]`` (the syntax of ``calibrate --loop``) -> (type, frame, to, name)."""
+    """``TYPE:frame=A[,to=B][,name=N]`` (the syntax of ``calibrate --loop``) -> (type, frame, to, name).
+
+    TYPE is a name of the loop registry (``closedloop.loops.spec.LOOP_TYPES``), refused as ``calibrate``
+    refuses it when unknown, and in one line naming the simulated types when the simulator lacks it.
+    """
     kind, _, rest = spec.partition(":")
     kind = kind.strip()
-    if kind not in SIM_LOOP_TYPES:
-        raise InputError(
-            f"--loop {spec}: the simulator has no '{kind}' loop (it simulates: {', '.join(SIM_LOOP_TYPES)})"
-        )
+    try:
+        sim = sim_loop(kind)
+    except InputError as exc:
+        raise InputError(f"--loop {spec}: {exc}") from None
     kw: dict[str, str] = {}
     for item in (t for t in rest.split(",") if t.strip()):
         key, eq, val = (x.strip() for x in item.partition("="))
@@ -59,17 +68,11 @@ def parse_sim_loop(spec: str) -> tuple[str, str, str | None, str]:
         kw[key] = val
     if "frame" not in kw:
         raise InputError(f"--loop {spec}: say which frame closes the loop, e.g. {kind}:frame=tool0")
-    loop_type = SIM_LOOP_TYPES[kind]
-    sim = SIM_LOOPS[loop_type]
     if "to" in kw and not sim.two_chains:
         raise InputError(
             f"--loop {spec}: only a weld closes two chains of one robot (to=); a {kind} loop closes on the world"
         )
-    return loop_type, kw["frame"], kw.get("to"), kw.get("name", sim.default_name)
-
-
-#: settings a loop type needs whatever the robot (a scenario's own settings win; `SimLoop.settings`)
-LOOP_SETTINGS = {k: v.settings for k, v in SIM_LOOPS.items() if v.settings}
+    return kind, kw["frame"], kw.get("to"), kw.get("name", sim.default_name)
 
 
 def _settings(data: dict | None, where: str, loop_type: str) -> SimSettings:
@@ -77,7 +80,8 @@ def _settings(data: dict | None, where: str, loop_type: str) -> SimSettings:
     bad = sorted(set(data or {}) - names)
     if bad:
         raise InputError(f"{where}: unknown setting(s) {', '.join(bad)} (known: {', '.join(sorted(names))})")
-    merged = {**LOOP_SETTINGS.get(loop_type, {}), **(data or {})}
+    # the settings the loop type needs whatever the robot (`SimLoop.settings`); a scenario's own win
+    merged = {**sim_loop(loop_type).settings, **(data or {})}
     return SimSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in merged.items()})
 
 
@@ -118,7 +122,7 @@ def scenario_from_dict(data: dict, name: str, where: str, base_dir: Path | None 
         for k, cls in geom.items()
         if k in data
     }
-    own = SIM_LOOPS[loop_type].geometry  # the loop type's geometry, its defaults when not given
+    own = sim_loop(loop_type).geometry  # the loop type's geometry, its defaults when not given
     if own is not None and own[0] not in parts:
         parts[own[0]] = own[1]()
     return Scenario(

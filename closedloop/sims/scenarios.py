@@ -6,19 +6,42 @@ configuration and default :class:`SimSettings`.
 
 The loop types themselves (their MuJoCo equality, nominal residual and truth) are the classes of
 :mod:`closedloop.sims.loop_types`; the draw of the true robot is :mod:`closedloop.sims.true_robot`.
+
+Every scenario ``simulate`` runs by name is in one list, :func:`scenario_catalog`: the shipped
+YAML files (``closedloop/sims/scenarios/*.yaml``, read without loading the simulator), the
+head-camera scenarios (:data:`CAMERA_SCENARIOS`, run by :mod:`closedloop.sims.camera_scene`) and
+any registered since (a user's YAML file, ``--robot``).  ``simulate --help`` and the
+unknown-scenario error both read it.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from pathlib import Path
+from typing import Any
 
-from closedloop.errors import SettingError
+from closedloop.errors import SettingError, UnknownScenarioError
 
-__all__ = ["LoopType", "SimSettings", "Scenario", "DoorGeometry", "PlaneGeometry", "TrackerGeometry", "SCENARIOS"]
+__all__ = [
+    "LoopType",
+    "SimSettings",
+    "Scenario",
+    "DoorGeometry",
+    "PlaneGeometry",
+    "TrackerGeometry",
+    "CameraScenario",
+    "SCENARIOS",
+    "CAMERA_SCENARIOS",
+    "SCENARIO_DIR",
+    "scenario_catalog",
+    "unknown_scenario",
+]
 
-LoopType = Literal["weld", "point", "hinge", "plane", "measured_point"]
+#: a loop type name of the registry (``closedloop.loops.spec.LOOP_TYPES``) that the simulator simulates
+LoopType = str
+#: the shipped scenario files
+SCENARIO_DIR = Path(__file__).with_name("scenarios")
 
 
 @dataclass(frozen=True)
@@ -213,7 +236,7 @@ class Scenario:
         name: registry key.
         description: one line.
         robot: key of :data:`closedloop.models.ROBOTS`.
-        loop_type: a key of :data:`closedloop.sims.loop_types.SIM_LOOPS`.
+        loop_type: a loop type of the registry the simulator simulates (:data:`closedloop.sims.loop_types.SIM_LOOPS`).
         loop_name: name of the loop (prefix of its closure parameters).
         tool_frame: Pinocchio frame (URDF link) closing the loop.
         target_frame: weld loops only: the robot frame (URDF link) the tool is
@@ -244,6 +267,73 @@ class Scenario:
     tracker: TrackerGeometry | None = None
 
 
-#: scenario name -> scenario; filled with the shipped YAML files (``closedloop/sims/scenarios/*.yaml``) by
-#: :mod:`closedloop.sims.scenario_files` when ``closedloop.sims`` is imported, and by ``load_scenario``
+#: scenario name -> scenario: the shipped YAML files (``closedloop/sims/scenarios/*.yaml``, registered by
+#: :mod:`closedloop.sims.scenario_files`, which ``closedloop.sims`` imports), and what ``load_scenario``
+#: or ``--robot`` registered
 SCENARIOS: dict[str, Scenario] = {}
+
+
+@dataclass
+class CameraScenario:
+    """Settings of a head-camera scenario (:data:`CAMERA_SCENARIOS`, run by :mod:`closedloop.sims.camera_scene`)."""
+
+    name: str
+    description: str
+    verge: float = 0.0  # rad: each pan axis turned by +-verge (0: parallel pan axes)
+    sigma_px: float = 0.1  # pixel noise (px): a round marker's centroid, found to a tenth of a pixel
+    sigma_q: float = 2e-5  # joint-reading noise (rad)
+    jitter: float = 0.3  # tracking error of the pans (rad): spreads the marker over the images
+    arm_range: float = 0.6  # arm readings: Q0 +- this (rad)
+    translation: float = 1e-3  # placement errors (m)
+    rotation: float = 1e-3  # (rad)
+    offset: float = 0.01  # joint offsets (rad)
+    mount_t: float = 5e-3  # camera mounting error in its optical frame (m)
+    mount_r: float = 0.02  # (rad)
+    q0: tuple[float, ...] = (0.0, -1.6, 1.6, -1.6, -1.57, 0.0)
+    extra: dict = field(default_factory=dict)
+
+
+#: the head-camera scenarios: a UR5 and a stereo head on pan joints (thesis ch. 5)
+CAMERA_SCENARIOS: dict[str, CameraScenario] = {
+    s.name: s
+    for s in (
+        CameraScenario(
+            "ur5_head",
+            "UR5 with a marker on its tool, tracked by a head of two cameras on parallel pan joints (thesis ch. 5)",
+        ),
+        CameraScenario(
+            "ur5_head_verging",
+            "the same with verging pan axes (each tilted 0.2 rad about the head's forward axis)",
+            verge=0.2,
+        ),
+    )
+}
+#: the loop a head-camera dataset is calibrated with (its log columns ``cam:u1 v1 u2 v2``)
+CAMERA_LOOP = "camera:frame=tool0,name=cam,to=cam_left_optical+cam_right_optical,sigma_px=0.1"
+
+
+def scenario_catalog() -> dict[str, tuple[str, str]]:
+    """Every scenario ``simulate`` runs by name -> (its loop, its description), sorted by name.
+
+    The shipped YAML files (read here, without the simulator), the head-camera scenarios, and the
+    scenarios registered in :data:`SCENARIOS` since (a user's YAML file, ``--robot``).
+    """
+    import yaml
+
+    out: dict[str, tuple[str, str]] = {}
+    for f in sorted(SCENARIO_DIR.glob("*.yaml")):
+        try:
+            data = yaml.safe_load(f.read_text()) or {}
+        except yaml.YAMLError:
+            data = {}
+        out[str(data.get("name", f.stem))] = (str(data.get("loop", "")), str(data.get("description", "")))
+    for name, cs in CAMERA_SCENARIOS.items():
+        out[name] = (CAMERA_LOOP, cs.description)
+    for name, sc in SCENARIOS.items():
+        out.setdefault(name, (f"{sc.loop_type}:frame={sc.tool_frame}", sc.description))
+    return dict(sorted(out.items()))
+
+
+def unknown_scenario(name: str) -> UnknownScenarioError:
+    """The error for a scenario name no list holds, naming every one of :func:`scenario_catalog`."""
+    return UnknownScenarioError(f"unknown scenario '{name}' (known: {', '.join(scenario_catalog())})")

@@ -185,7 +185,7 @@ def build_scene(
     eq = None if kind.equality is None else spec.add_equality()
     if eq is not None:
         eq.name = LOOP_EQ
-        eq.type = kind.equality
+        eq.type = getattr(mujoco.mjtEq, f"mjEQ_{kind.equality.upper()}")
         eq.objtype = mujoco.mjtObj.mjOBJ_SITE
         eq.name1 = TOOL_SITE
         eq.name2 = TARGET_SITE

@@ -10,18 +10,17 @@ samples in four steps, all on the robot's NOMINAL model (no MuJoCo, no truth):
    :mod:`closedloop.sims.driver` walks the nominal self-motion from the grasp
    for ``select_pool * n`` waypoints (pure kinematics; open loops: random
    configurations), the candidate configurations.
-2. **Information** (:func:`information_result`): the calibration core
-   (``closedloop.calibration.pipeline.calibrate``) is run on the pool's exact nominal
-   readings with the loop the scenario is calibrated with
-   (:meth:`closedloop.sims.loop_types.SimLoop.core_loop`) and the default parameter
-   selection (placement, offset, loop; plus scale when the truth has scale
-   errors).  The fit is trivial (the nominal model closes the nominal loop);
-   what matters is the result's set of estimated parameters (structural
-   reduction, length scale) and its whitened, prior-scaled Jacobian.  The
-   joint noise is the setting ``noise`` or, if 0, 1e-6 rad (one level on every
-   joint only scales the information and leaves the choice unchanged; it
-   matters only against a tracker's own noise, measured loops).
-3. **Choice**: ``closedloop.design.poses.select_poses(result, None, pool, n, method)``.
+2. **Information** (:func:`information_result`): the calibration problem of the
+   loop the scenario is calibrated with (:meth:`closedloop.sims.loop_types.SimLoop.core_loop`)
+   on the pool's exact nominal readings, with the loop's unknowns that close them, and
+   the parameters a calibration estimates there with the default selection
+   (placement, offset, loop; plus scale when the truth has scale errors): the
+   structural reduction and length gauge of :mod:`closedloop.sims.identifiable`, no
+   fit (the nominal model closes the nominal loop).  The choice reads their whitened,
+   prior-scaled Jacobian.  The joint noise is the setting ``noise`` or, if 0, 1e-6 rad
+   (one level on every joint only scales the information and leaves the choice
+   unchanged; it matters only against a tracker's own noise, measured loops).
+3. **Choice**: ``closedloop.design.poses.select_poses`` on that problem, values, parameters and noise.
 4. **Path** (:func:`order_path`, :func:`bridge`): the chosen configurations are
    visited in nearest-neighbour order (joint space, from the grasp); where two
    consecutive ones are more than ``step_rad`` apart (largest joint change), the
@@ -50,7 +49,7 @@ from closedloop.sims.driver import NominalLoop, NominalLoopPlanner, RandomConfig
 from closedloop.sims.loop_types import sim_loop
 from closedloop.sims.scenarios import Scenario, SimSettings
 
-__all__ = ["Plan", "candidate_pool", "information_result", "order_path", "bridge", "plan_selected"]
+__all__ = ["Plan", "Information", "candidate_pool", "information_result", "order_path", "bridge", "plan_selected"]
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +77,22 @@ def candidate_pool(planner: NominalLoopPlanner | RandomConfigurations, size: int
     return np.array([planner.step() for _ in range(size)])
 
 
+@dataclass
+class Information:
+    """What the choice reads: the nominal problem on the pool, the values closing it, the estimated
+    parameters and the joint noise (`closedloop.design.poses.select_poses` on a bare problem)."""
+
+    problem: Any
+    values: np.ndarray
+    estimated: list[int]
+    noise: float
+
+    @property
+    def names(self) -> list[str]:
+        """The estimated parameters' names."""
+        return [self.problem.names[k] for k in self.estimated]
+
+
 def information_result(
     sc: Scenario,
     settings: SimSettings,
@@ -85,8 +100,8 @@ def information_result(
     joint_names: list[str],
     pool: np.ndarray,
     tool_frame_points: np.ndarray | None = None,
-):
-    """The core's calibration result on the pool's nominal readings (see the module docstring, step 2).
+) -> Information:
+    """The information of the pool's nominal readings (see the module docstring, step 2).
 
     Args:
         sc: the scenario (its core loop).
@@ -97,28 +112,33 @@ def information_result(
         tool_frame_points: measured loops: (N, 3) nominal tool points, the measurements of a
             tracker at the world origin (the information does not depend on the tracker pose).
     """
-    from closedloop.calibration.pipeline import CalibrationOptions, calibrate
-    from closedloop.io.logs import JointLog
     from closedloop.model.robot import RobotModel
+    from closedloop.sims.identifiable import (
+        DEFAULT_IDENTIFY,
+        closing_values,
+        estimated_indices,
+        loop_joints,
+        nominal_problem,
+    )
 
     kind = sim_loop(sc.loop_type)
     loop = kind.core_loop(sc, nominal_path, sigma_t=None if kind.closed else settings.tracker_noise)
     if loop is None:
         raise ScenarioError(f"{sc.name}: the calibration core has no loop for '{sc.loop_type}' (needed by select)")
     noise = settings.noise if settings.noise > 0.0 else DEFAULT_NOISE
-    extra: dict[str, np.ndarray] = {}
+    meas = None
     if not kind.closed:  # an open loop: the nominal tool points are its measurements
         if tool_frame_points is None:
             raise ScenarioError(f"{sc.name}: measured loops need the nominal tool points")
-        extra = {c: tool_frame_points[:, k] for k, c in enumerate(loop.columns())}
+        columns = {c: tool_frame_points[:, k] for k, c in enumerate(loop.columns())}
+        meas = loop.measurements(columns, np.arange(len(pool)))
     robot = RobotModel.from_file(nominal_path)
-    identify = ["placement", "offset", "loop"] + (["scale"] if settings.scale > 0.0 else [])
-    return calibrate(
-        robot,
-        JointLog(list(joint_names), np.asarray(pool, dtype=float), None, None, extra),
-        [loop],
-        CalibrationOptions(identify=identify, noise=noise),
-    )
+    pool = np.asarray(pool, dtype=float)[:, [list(joint_names).index(j) for j in loop_joints(robot, [loop])]]
+    problem = nominal_problem(robot, [loop], [pool], [meas])
+    x = closing_values(problem)
+    identify = DEFAULT_IDENTIFY + (("scale",) if settings.scale > 0.0 else ())
+    # every parameter the solve estimates (those the noise swamps included: they are reported, not dropped)
+    return Information(problem, x, estimated_indices(problem, x, identify, snr=None), noise)
 
 
 def order_path(points: np.ndarray, start: np.ndarray) -> np.ndarray:
@@ -196,7 +216,11 @@ def plan_selected(
             pin.framesForwardKinematics(model, data, q[:nj])
             points[i] = data.oMf[fid].translation
     res = information_result(sc, settings, nominal_path, joint_names, pool[:, :nj], points)
-    chosen = np.asarray(select_poses(res, None, pool[:, :nj], n, method=settings.select), dtype=int)
+    cols = [joint_names.index(j) for j in res.problem.joints]
+    chosen = np.asarray(
+        select_poses(res.problem, res.values, pool[:, cols], n, settings.select, params=res.estimated, noise=res.noise),
+        dtype=int,
+    )
     chosen = chosen[order_path(pool[chosen, :nj], start[:nj])]
     waypoints: list[np.ndarray] = []
     record: list[bool] = []
@@ -213,7 +237,7 @@ def plan_selected(
         "pool": size,
         "chosen": int(len(chosen)),
         "bridge_waypoints": int(len(record) - int(np.sum(record))),
-        "parameters": [res.names[i] for i in res.estimated],
+        "parameters": res.names,
     }
     log.info(
         "%s: chose %d of %d candidates (%s), %d bridge waypoints",

@@ -77,18 +77,17 @@ def perturbable_parameters(model: pin.Model, joint_names: list[str], scale: bool
 
 
 def identifiable_parameters(nominal_path, sc: Scenario, joint_names: list[str], scale: bool = False) -> list[str]:
-    """The parameters to perturb: those the calibration core estimates for this loop.
+    """The parameters to perturb: those a calibration of the scenario's loop estimates.
 
-    Errors in structurally redundant parameters are indistinguishable from
-    errors in the parameters that absorb them, so a truth that `closedloop
-    check` can compare parameter by parameter is drawn in the identifiable set
-    (`closedloop.studies.truth.identifiable_names`, the core's own reduction on nominal
-    self-motion data through the grasp configuration).  Loop types the core
-    has no loop class for yet fall back to :func:`perturbable_parameters`.
+    Errors in structurally redundant parameters are indistinguishable from errors in the
+    parameters that absorb them, so a truth that ``closedloop check`` can compare parameter by
+    parameter is drawn in the identifiable set, read off the nominal robot's structure
+    (:mod:`closedloop.sims.identifiable`: self-motion through the grasp configuration for a closed
+    loop, random configurations for a measured one).  Loop types with no loop class in the
+    calibration core fall back to :func:`perturbable_parameters`.
     """
-    from closedloop.calibration.pipeline import CalibrationOptions
     from closedloop.model.robot import RobotModel
-    from closedloop.studies.truth import identifiable_names
+    from closedloop.sims.identifiable import DEFAULT_IDENTIFY, identifiable_names, measured_identifiable_names
 
     kind = sim_loop(sc.loop_type)
     loop = kind.core_loop(sc, nominal_path)
@@ -96,44 +95,12 @@ def identifiable_parameters(nominal_path, sc: Scenario, joint_names: list[str], 
         model = pin.buildModelFromUrdf(str(nominal_path))
         return perturbable_parameters(model, joint_names, scale=scale)
     robot = RobotModel.from_file(nominal_path)
-    identify = ["placement", "offset", "loop"] + (["scale"] if scale else [])
+    identify = DEFAULT_IDENTIFY + (("scale",) if scale else ())
     if not kind.closed:
-        names = _measured_identifiable_names(robot, loop, CalibrationOptions(identify=identify))
+        names = measured_identifiable_names(robot, loop, identify)
     else:
-        names = identifiable_names(
-            robot, [loop], np.asarray(sc.q0, dtype=float)[None, :], CalibrationOptions(identify=identify)
-        )
+        names = identifiable_names(robot, [loop], np.asarray(sc.q0, dtype=float)[None, :], identify)
     return [n for n in names if n.rsplit(".", 1)[0] in joint_names]
-
-
-def _measured_identifiable_names(robot, loop, options, n: int = 40, seed: int = 0) -> list[str]:
-    """Names `calibrate` estimates for a measured (open) loop, on nominal data.
-
-    `closedloop.studies.truth.identifiable_names` walks the loop's self-motion from one
-    configuration, which an open loop does not have (every configuration is
-    allowed, and the measurements are log columns it cannot make up).  Instead:
-    ``n`` random configurations within the nominal joint limits (fixed seed),
-    the nominal tool point measured exactly by a tracker at the identity pose,
-    and the core's own reduction on that data.
-    """
-    from closedloop.calibration.pipeline import calibrate
-    from closedloop.io.logs import JointLog
-
-    model = robot.model
-    data = model.createData()
-    rng = np.random.default_rng(seed)
-    lo = np.maximum(model.lowerPositionLimit, -np.pi)
-    hi = np.minimum(model.upperPositionLimit, np.pi)
-    q = rng.uniform(lo, hi, size=(n, model.nq))
-    fid = model.getFrameId(loop.frame_a)
-    pts = np.empty((n, 3))
-    for i in range(n):
-        pin.framesForwardKinematics(model, data, q[i])
-        pts[i] = data.oMf[fid].translation
-    joints = list(robot.joint_names)
-    extra = {c: pts[:, k] for k, c in enumerate(loop.columns())}
-    res = calibrate(robot, JointLog(joints, q, None, None, extra), [loop], options)
-    return [n_ for n_, s in zip(res.names, res.status) if s == "estimated" and not n_.startswith(loop.name + ".")]
 
 
 def _kind(name: str) -> str:

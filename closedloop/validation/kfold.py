@@ -59,6 +59,8 @@ def subset(log_: JointLog, rows: np.ndarray) -> JointLog:
         log_.source,
         None if log_.loop is None else log_.loop[rows],
         {k: v[rows] for k, v in log_.extra.items()},
+        log_.files,
+        None if log_.lines is None else log_.lines[rows],
     )
 
 

@@ -1,0 +1,43 @@
+# The usual targets.  `make check` is what CI's second step runs; `make test` is the README's test command.
+PY ?= python3
+
+.PHONY: install dev test test-slow lint format typecheck docs docs-serve check bench clean
+
+install:            ## the package and what its tests need
+	$(PY) -m pip install -e ".[test]"
+
+dev:                ## everything a contributor uses (tests, lint, types, docs, pre-commit)
+	$(PY) -m pip install -e ".[dev,docs]"
+	pre-commit install
+
+test:               ## the fast suite (two workers; under 5 minutes on a loaded 2-core machine)
+	pytest -q
+
+test-slow:          ## the long studies and basins
+	pytest -q -m slow
+
+lint:
+	ruff check .
+	ruff format --check .
+
+format:
+	ruff check --fix .
+	ruff format .
+
+typecheck:
+	mypy
+
+docs:               ## the documentation site, as CI builds it
+	mkdocs build --strict
+
+docs-serve:
+	mkdocs serve
+
+check: lint typecheck docs test test-slow
+
+bench:              ## the benchmark scripts that write the docs' figures (minutes)
+	$(PY) benchmarks/bench_calibrate.py
+	$(PY) benchmarks/bench_cli.py
+
+clean:
+	rm -rf build dist site .pytest_cache .mypy_cache .ruff_cache out

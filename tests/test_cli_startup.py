@@ -1,0 +1,105 @@
+"""The command line loads what its run needs: the parser of its own subcommand, no figure library without
+--html/--plots, no simulator, no fleet code (timings: benchmarks/bench_cli.py)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from closedloop.io.logs import JointLog
+from closedloop.loops import WeldLoop
+from closedloop.models import ROBOTS
+from closedloop.studies.truth import make_dataset
+
+WATCHED = (
+    "matplotlib",
+    "closedloop.output.html",
+    "closedloop.fleet",
+    "closedloop.cli.impedance",
+    "closedloop.impedance",
+    "closedloop.sims",
+    "mujoco",
+    "closedloop.io.bags",
+)
+
+RUN = """
+import json, sys
+from closedloop.cli.main import main
+rc = main(sys.argv[2:])
+with open(sys.argv[1], "w") as fh:
+    json.dump({"rc": rc, "modules": sorted(m for m in sys.modules if m.startswith(%r))}, fh)
+""" % (WATCHED,)
+
+
+def _loaded(tmp_path, *argv: str) -> tuple[int, list[str]]:
+    out = tmp_path / "modules.json"
+    p = subprocess.run([sys.executable, "-c", RUN, str(out), *argv], capture_output=True, text=True, timeout=600)
+    assert out.exists(), p.stderr
+    res = json.loads(out.read_text())
+    return res["rc"], res["modules"]
+
+
+@pytest.fixture(scope="module")
+def log(tmp_path_factory):
+    from closedloop.model.robot import RobotModel
+
+    robot = RobotModel.from_file(ROBOTS["panda"].path)
+    ds = make_dataset(
+        robot, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 30, np.random.default_rng(2)
+    )
+    path = tmp_path_factory.mktemp("startup") / "log.csv"
+    JointLog(list(ds.joints), ds.readings).write_csv(path)
+    return path
+
+
+def test_calibrate_loads_no_figure_library_simulator_or_fleet_code(log, tmp_path):
+    rc, mods = _loaded(
+        tmp_path,
+        "calibrate",
+        str(ROBOTS["panda"].path),
+        str(log),
+        "--loop",
+        "weld:frame=panda_hand,name=fixture",
+        "--report",
+        str(tmp_path / "r.json"),
+        "--cv",
+        "0",
+        "--quiet",
+    )
+    assert rc == 0
+    assert json.loads((tmp_path / "r.json").read_text())["verdict"]["status"] in ("ok", "suspect")
+    assert mods == [], mods
+
+
+def test_calibrate_with_html_loads_the_figure_code(log, tmp_path):
+    """The check above is not vacuous: --html does load what it needs."""
+    pytest.importorskip("matplotlib")
+    rc, mods = _loaded(
+        tmp_path,
+        "calibrate",
+        str(ROBOTS["panda"].path),
+        str(log),
+        "--loop",
+        "weld:frame=panda_hand,name=fixture",
+        "--html",
+        str(tmp_path / "r.html"),
+        "--cv",
+        "0",
+        "--quiet",
+    )
+    assert rc == 0 and (tmp_path / "r.html").stat().st_size > 10_000
+    assert "matplotlib" in mods and "closedloop.output.html" in mods
+
+
+def test_top_level_help_still_lists_every_subcommand(tmp_path):
+    p = subprocess.run(
+        [sys.executable, "-m", "closedloop.cli.main", "--help"], capture_output=True, text=True, timeout=120
+    )
+    assert p.returncode == 0
+    for cmd, words in (("calibrate", "calibrate a model"), ("batch", "manifest"), ("impedance", "impedance")):
+        line = next(ln for ln in p.stdout.splitlines() if ln.strip().startswith(cmd + " "))
+        assert words in line, line

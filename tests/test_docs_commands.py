@@ -1,0 +1,291 @@
+"""Every documented command runs as written.
+
+Each ```bash block of README.md and docs/**/*.md is run with bash (``set -e``, ``pipefail``) in a temporary
+folder holding a link to the repository's examples/, the blocks of one page in page order in one folder (as
+a reader following the page would).  ``closedloop``, ``python`` and ``python3`` are this test's own
+interpreter and checkout, so the code under test is the one installed in the test environment.
+
+Not executed, but checked (`check_install`): ``pip install ...`` (each extra named must exist in
+pyproject.toml, the path must be the checkout; no ``closedloop[...]`` from an index: the package is not
+published), the virtual environment lines (``python3 -m venv``, ``. .venv/bin/activate``: the test
+environment is one) and ``pytest`` (the suite this test belongs to).  Every ``pip install`` written
+anywhere in the pages (inline code, comments) and in the package's messages is checked the same way.
+
+A block whose first line is ``# not run: <reason>`` is skipped with that reason: only for commands that
+need hardware or a network.  Blocks should each finish within ~20 s.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+import closedloop
+
+try:
+    import tomllib
+except ImportError:  # Python 3.10
+    from pip._vendor import tomli as tomllib
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [p for p in [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))] if p.is_file()]
+NOT_RUN = re.compile(r"^#\s*not run:\s*(\S.*)$")
+
+
+@dataclass
+class Block:
+    """A ```bash block: its page, the line of its opening fence, its text."""
+
+    page: Path
+    line: int
+    text: str
+
+    @property
+    def id(self) -> str:
+        return f"{self.page.relative_to(ROOT)}:{self.line}"
+
+
+def bash_blocks(page: Path) -> list[Block]:
+    """The ```bash (or ```sh / ```shell) fenced blocks of a Markdown page."""
+    out, lines = [], page.read_text(encoding="utf-8").splitlines()
+    k = 0
+    while k < len(lines):
+        m = re.match(r"^(\s*)(```+|~~~+)\s*(\w+)?", lines[k])
+        if not m:
+            k += 1
+            continue
+        fence, lang, start = m.group(2), (m.group(3) or "").lower(), k
+        k += 1
+        body = []
+        while k < len(lines) and not lines[k].strip().startswith(fence):
+            body.append(lines[k][len(m.group(1)) :] if lines[k].startswith(m.group(1)) else lines[k])
+            k += 1
+        k += 1
+        if lang in ("bash", "sh", "shell"):
+            out.append(Block(page, start + 1, "\n".join(body) + "\n"))
+    return out
+
+
+BLOCKS = [b for p in PAGES for b in bash_blocks(p)]
+
+
+# --------------------------------------------------------------------------- pip install lines
+def _extras() -> dict[str, list[str]]:
+    with open(ROOT / "pyproject.toml", "rb") as fh:
+        return tomllib.load(fh)["project"].get("optional-dependencies", {})
+
+
+def _declared() -> set[str]:
+    """Distribution names the project declares (dependencies and every extra), lower-case."""
+    with open(ROOT / "pyproject.toml", "rb") as fh:
+        proj = tomllib.load(fh)["project"]
+    reqs = list(proj.get("dependencies", [])) + [r for v in proj.get("optional-dependencies", {}).values() for r in v]
+    return {re.split(r"[\s<>=!~;\[]", r, 1)[0].lower().replace("_", "-") for r in reqs}
+
+
+def check_install(args: str, where: str) -> list[str]:
+    """What is wrong with ``pip install <args>`` run from the checkout's root ([] when it works there)."""
+    try:
+        words = shlex.split(args)
+    except ValueError as exc:
+        return [f"{where}: pip install {args}: {exc}"]
+    problems, extras, declared = [], _extras(), _declared()
+    k = 0
+    while k < len(words):
+        w = words[k]
+        k += 1
+        if w in ("-r", "--requirement", "-c", "--constraint"):
+            if k >= len(words) or not (ROOT / words[k]).is_file():
+                problems.append(f"{where}: pip install {args}: {w} names no file of the checkout")
+            k += 1
+            continue
+        if w.startswith("-"):  # -e, -U, --upgrade, --no-deps ...
+            continue
+        m = re.fullmatch(r"([^\[\]]+?)(?:\[([^\]]*)\])?", w)
+        if not m:
+            problems.append(f"{where}: pip install {args}: '{w}' is not a requirement pip reads")
+            continue
+        target, wanted = m.group(1), [e.strip() for e in (m.group(2) or "").split(",") if e.strip()]
+        if target.startswith((".", "/")) or os.sep in target:
+            if not (ROOT / target / "pyproject.toml").is_file():
+                problems.append(f"{where}: pip install {args}: '{target}' is not the checkout (run from its root)")
+            missing = [e for e in wanted if e not in extras]
+            if missing:
+                problems.append(
+                    f"{where}: pip install {args}: no extra {', '.join(missing)} in pyproject.toml "
+                    f"(extras: {', '.join(sorted(extras))})"
+                )
+            if "[" in w and not re.search(r"""["']""", args):
+                problems.append(f"{where}: pip install {args}: quote '{w}' (zsh and others expand [...])")
+        else:
+            name = re.split(r"[\s<>=!~;]", target, 1)[0].lower().replace("_", "-")
+            if name == "closedloop":
+                problems.append(
+                    f"{where}: pip install {args}: closedloop is not published on an index; "
+                    f'install from the checkout (pip install ".[{",".join(wanted)}]")'
+                    if wanted
+                    else f"{where}: pip install {args}: closedloop is not published; pip install . (checkout)"
+                )
+            elif name not in declared:
+                problems.append(f"{where}: pip install {args}: '{name}' is no dependency of pyproject.toml")
+    return problems
+
+
+_TOKEN = re.compile(r"""\s+(-[\w-]+|"[^"\n]*"|'[^'\n]*'|[\w.\-/]+(?:\[[\w,\s-]*\])?(?:[<>=!~]=?[\w.*]+)?)""")
+_PROSE = {"in", "from", "or", "and", "the", "to", "with", "for", "then", "if", "as", "is"}
+
+
+def _install_args(text: str) -> list[str]:
+    """The arguments of every ``pip install`` in a text: the requirement and option words that follow it,
+    up to the end of the command or the first word of prose (``pip install ".[ros]" in the checkout``)."""
+    text = text.replace('\\"', '"')  # quotes escaped inside Python strings
+    out = []
+    for m in re.finditer(r"\bpip3? install\b", text):
+        pos, words = m.end(), []
+        while (t := _TOKEN.match(text, pos)) and t.group(1) not in _PROSE:
+            words.append(t.group(1))
+            pos = t.end()
+        out.append(" ".join(words))
+    return out
+
+
+def test_every_pip_install_written_in_the_pages_works_from_a_checkout():
+    seen, problems = 0, []
+    for page in PAGES:
+        for n, line in enumerate(page.read_text(encoding="utf-8").splitlines(), start=1):
+            for args in _install_args(line):
+                seen += 1
+                problems += check_install(args, f"{page.relative_to(ROOT)}:{n}")
+    assert seen > 0, "the pages name no install command at all"
+    assert problems == [], "\n".join(problems)
+
+
+def test_every_install_hint_in_the_package_works_from_a_checkout():
+    problems, seen = [], 0
+    for src in sorted((ROOT / "closedloop").rglob("*.py")):
+        text = src.read_text(encoding="utf-8")
+        for args in _install_args(text):
+            seen += 1
+            problems += check_install(args, str(src.relative_to(ROOT)))
+    assert seen >= 3, "the ray, report and ros hints were not found"
+    assert problems == [], "\n".join(problems)
+
+
+@pytest.mark.parametrize(
+    "args, ok",
+    [
+        (".", True),
+        ('".[ros]"', True),
+        ('".[ros,report]"', True),
+        ("-e '.[test]'", True),
+        ('".[rviz]"', False),  # no such extra
+        ('"closedloop[ros,report]"', False),  # not on an index
+        ("closedloop", False),
+        (".[ros]", False),  # unquoted brackets
+        ("matplotlib", True),  # a declared dependency
+        ("numpy-quaternion", False),  # not one
+        ("-r benchmarks/requirements-handeye.txt", True),
+        ("-r no/such/requirements.txt", False),
+    ],
+)
+def test_check_install_tells_working_lines_from_broken_ones(args, ok):
+    assert (check_install(args, "x") == []) is ok
+
+
+# --------------------------------------------------------------------------- running the blocks
+SETUP_ONLY = [  # lines a reader runs to set up an environment: the test environment is one
+    re.compile(r"^python3? -m venv\b"),
+    re.compile(r"^(\.|source)\s+\S*bin/activate$"),
+]
+
+
+def prepare(block: Block) -> tuple[str, list[str]]:
+    """The script run for a block, and what of it is checked but not run (install, venv, pytest)."""
+    text = re.sub(r"\\\n", " ", block.text)  # continuation lines joined
+    script, held = [], []
+    for line in text.splitlines():
+        parts = re.split(r"\s+&&\s+", line)
+        kept = []
+        for part in parts:
+            cmd = part.strip()
+            inst = re.match(r"^(?:python3? -m )?pip3? install\s+(.*)$", cmd)
+            if inst:
+                problems = check_install(inst.group(1), block.id)
+                assert problems == [], "\n".join(problems)
+                held.append(cmd)
+            elif any(r.match(cmd) for r in SETUP_ONLY):
+                held.append(cmd)
+            elif re.match(r"^(python3? -m )?pytest\b", cmd):
+                held.append(cmd + "  (the test suite this test is part of)")
+            else:
+                kept.append(part)
+        script.append(" && ".join(kept))
+    return "\n".join(script) + "\n", held
+
+
+def _shims(bin_dir: Path) -> None:
+    bin_dir.mkdir(exist_ok=True)
+    for name, exe in (
+        ("closedloop", f'exec "{sys.executable}" -m closedloop.cli.main "$@"'),
+        ("python", f'exec "{sys.executable}" "$@"'),
+        ("python3", f'exec "{sys.executable}" "$@"'),
+    ):
+        p = bin_dir / name
+        p.write_text(f"#!/bin/sh\n{exe}\n")
+        p.chmod(0o755)
+
+
+_PAGE_DIRS: dict[Path, Path] = {}
+
+
+def _page_dir(page: Path, factory) -> Path:
+    """One folder per page, shared by its blocks (run in page order), with examples/ linked in."""
+    if page not in _PAGE_DIRS:
+        d = factory.mktemp(re.sub(r"\W", "_", str(page.relative_to(ROOT))))
+        (d / "examples").symlink_to(ROOT / "examples")
+        _shims(d / ".bin")
+        _PAGE_DIRS[page] = d
+    return _PAGE_DIRS[page]
+
+
+def test_the_pages_have_blocks_to_run():
+    assert BLOCKS, "no ```bash block found in README.md or docs/"
+    assert any("closedloop calibrate" in b.text for b in BLOCKS)
+
+
+@pytest.mark.parametrize("block", BLOCKS, ids=[b.id for b in BLOCKS])
+def test_documented_block_runs(block: Block, tmp_path_factory):
+    first = block.text.strip().splitlines()[0] if block.text.strip() else ""
+    m = NOT_RUN.match(first)
+    if m:
+        pytest.skip(f"{block.id}: not run: {m.group(1)}")
+    script, held = prepare(block)
+    cwd = _page_dir(block.page, tmp_path_factory)
+    env = dict(os.environ)
+    env["PATH"] = f"{cwd / '.bin'}{os.pathsep}{env.get('PATH', '')}"
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(Path(closedloop.__file__).resolve().parents[1])] + [p for p in [env.get("PYTHONPATH")] if p]
+    )
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
+    env.setdefault("MPLBACKEND", "Agg")
+    for h in held:
+        print(f"checked, not run: {h}")
+    proc = subprocess.run(
+        ["bash", "-e", "-o", "pipefail", "-c", script],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,  # a hang guard, not a timing
+    )
+    assert proc.returncode == 0, (
+        f"{block.id}: exit {proc.returncode}\n--- script\n{script}--- stdout (end)\n{proc.stdout[-3000:]}"
+        f"--- stderr (end)\n{proc.stderr[-3000:]}"
+    )
