@@ -508,3 +508,23 @@ def test_check_names_the_verdict_once(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "note: the report's verdict is suspect: scale not set\n" in out
     assert "suspect: suspect:" not in out and out.count("scale not set") == 1
+
+
+def test_commanded_readings_fit_plain_least_squares_and_say_so(files, capsys):
+    """--readings commanded: the residual is not reading noise, so plain least squares unless --weighting
+    is given; the report records both, the summary says why."""
+    nominal, log, tmp = files
+    base = ["calibrate", str(nominal), str(log), "--loop", "weld:frame=panda_hand,name=fixture", "--cv", "0"]
+    assert main([*base, "--readings", "commanded", "--report", str(tmp / "cmd.json")]) == 0
+    rep = json.loads((tmp / "cmd.json").read_text())
+    assert rep["inputs"] == {"readings": "commanded", "weighting": "none", "torques": None}
+    assert rep["weighting"] == "none"
+    assert "readings are commanded setpoints" in capsys.readouterr().out
+    assert main([*base, "--readings", "commanded", "--weighting", "noise", "--report", str(tmp / "c2.json")]) == 0
+    assert json.loads((tmp / "c2.json").read_text())["inputs"]["weighting"] == "noise"  # given: kept
+    assert main([*base, "--report", str(tmp / "m.json")]) == 0
+    assert json.loads((tmp / "m.json").read_text())["inputs"] == {
+        "readings": "measured",
+        "weighting": "noise",
+        "torques": None,
+    }

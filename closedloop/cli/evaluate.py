@@ -66,6 +66,16 @@ def add_rig_options(c) -> None:
         "--joints", metavar="J1,J2,...", help="the column order of header-less CSV logs (the first row is then data)"
     )
     c.add_argument(
+        "--readings",
+        choices=["measured", "commanded"],
+        default="measured",
+        help="what the log's joint values are: measured by encoders (default) or the controller's commanded "
+        "setpoints; commanded readings make the residual model and servo error, not reading noise: the fit "
+        "is plain least squares unless --weighting is given, and the report records it",
+    )
+    # --weighting's default is decided with --readings (`resolve_weighting`): None here means "not given"
+    c.set_defaults(weighting=None, weighting_default=c.get_default("weighting"))
+    c.add_argument(
         "--lofo",
         choices=["auto", "off"],
         default="auto",
@@ -104,12 +114,39 @@ def with_gravity_torques(lg, robot):
     return lg
 
 
-def input_record(args, lg) -> dict:
-    """What the report says about the inputs: whether the readings are measured or commanded, and where the
-    joint torques come from ('log', 'gravity': the model's inertials at the readings, or null)."""
+def resolve_weighting(args) -> str | None:
+    """`--weighting` as given, else plain least squares ('none') for commanded readings (the errors-in-variables
+    weighting models reading noise, which a setpoint does not have), else the parser's default; sets
+    ``args.weighting`` and returns the note the summary prints (None when there is nothing to say)."""
+    given = getattr(args, "weighting", None)
+    commanded = getattr(args, "readings", "measured") == "commanded"
+    if given is None:
+        args.weighting = "none" if commanded else (getattr(args, "weighting_default", None) or "noise")
+        if commanded:
+            return (
+                "readings are commanded setpoints (--readings commanded): the residual is model and servo "
+                "error, not reading noise; fitted by plain least squares (--weighting none)"
+            )
+    elif commanded and given == "noise":
+        return (
+            "readings are commanded setpoints, yet --weighting noise treats the residual as reading noise: "
+            "its noise estimate stands for model and servo error"
+        )
+    return None
+
+
+def input_record(args, lg, res=None) -> dict:
+    """What the report says about the inputs: whether the readings are measured or commanded, the weighting
+    that follows, and where the joint torques the compliance model used come from ('log', 'gravity': the
+    model's inertials at the readings; null when no compliance was used)."""
+    used = res is None or any(
+        p.kind == "compliance" and (res.status[k] == "estimated" or res.values[k] != 0.0)
+        for k, p in enumerate(res.problem.params)
+    )
     return {
         "readings": getattr(args, "readings", "measured"),
-        "torques": getattr(lg, "torque_source", None),
+        "weighting": getattr(args, "weighting", None),
+        "torques": getattr(lg, "torque_source", None) if used else None,
     }
 
 
