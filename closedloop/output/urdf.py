@@ -104,9 +104,25 @@ def write_urdf(
             j.insert(0, origin)
         origin.set("xyz", " ".join(repr(float(v)) for v in O[:3, 3]))
         origin.set("rpy", " ".join(repr(float(v)) for v in _rpy(O[:3, :3])))
+    if fold_offsets:
+        _shift_mimics(by_name, values)
     _add_frames(tree.getroot(), frames)
     relocate_meshes(tree.getroot(), Path(robot.source), Path(out_path))
     atomic_write_text(out_path, ET.tostring(tree.getroot(), encoding="UTF-8", xml_declaration=True) + b"\n")
+
+
+def _shift_mimics(by_name: dict, values: dict[str, float]) -> None:
+    """A coupled joint (``<mimic joint=f multiplier=m offset=o>``) follows f's joint value; with f's offset
+    folded into its origin that value no longer contains it, so o becomes o + m * theta_off_f: the coupled
+    joint stays where the fit put it (at m (k theta + theta_off_f) + o)."""
+    for j in by_name.values():
+        mimic = j.find("mimic")
+        if mimic is None or not mimic.get("joint"):
+            continue
+        off = values.get(f"{mimic.get('joint')}.offset", 0.0)
+        if off:
+            mult = float(mimic.get("multiplier", 1.0))
+            mimic.set("offset", repr(float(mimic.get("offset", 0.0)) + mult * off))
 
 
 def relocate_meshes(root, source: Path, out_path: Path) -> int:
