@@ -370,10 +370,9 @@ def cmd_evaluate(args) -> int:
         values, loop_values, source = model_calibration(path, reports, robot)
         ev = evaluate_model(robot, lg, loops, values, label, calibration=loop_values, refit=args.refit)
         if source and (ev.held or values):
-            print(
-                f"note: {label}: {len(ev.held)} loop parameter(s) and the sensor corrections from {source}",
-                file=sys.stderr,
-            )
+            what = [f"{len(ev.held)} loop parameter(s) held"] if ev.held else []
+            what += [f"{len(values)} joint scale/compliance value(s)"] if values else []
+            print(f"note: {label}: {' and '.join(what)} from {source}", file=sys.stderr)
         evals.append(ev)
     print(table(evals))
     if args.report:
