@@ -87,3 +87,46 @@ def test_compliance_needs_torques(datasets):
             [WeldLoop("fixture", "panda_hand_tcp")],
             CalibrationOptions(identify=["placement", "offset", "compliance", "loop"]),
         )
+
+
+def test_gravity_torques_are_mujocos_bias_forces(datasets, tmp_path):
+    """The model's gravity torques (Pinocchio's RNEA on the URDF's inertials) are MuJoCo's bias forces at
+    rest on the same file, an independent implementation."""
+    import mujoco
+
+    robot, log, _ = datasets[True]
+    joints = [f"panda_joint{i}" for i in range(1, 8)]
+    g = robot.gravity_torques(log.angles[:20], log.joints)
+    m = mujoco.MjModel.from_xml_path(str(robot.source))
+    d = mujoco.MjData(m)
+    for i in range(20):
+        d.qpos[:] = 0.0
+        for k, j in enumerate(log.joints):
+            d.qpos[m.joint(j).qposadr[0]] = log.angles[i, k]
+        mujoco.mj_forward(m, d)
+        bias = np.array([d.qfrc_bias[m.joint(j).dofadr[0]] for j in joints])
+        assert np.abs(g[i, [log.joints.index(j) for j in joints]] - bias).max() < 1e-9
+    # and they are what the simulator logged at its settled poses, to 2 % of the largest
+    tau = log.torques(joints)[:20]
+    assert np.abs(tau - g[:, [log.joints.index(j) for j in joints]]).max() < 0.02 * np.abs(tau).max()
+
+
+def test_compliance_from_gravity_when_the_log_has_no_torques(datasets, tmp_path):
+    """A log without tau:<joint> columns: calibrate computes gravity torques from the URDF's inertials, says
+    so, and recovers the loaded joints' compliance as with the logged torques."""
+    from closedloop.cli.main import main
+    from closedloop.io.logs import JointLog
+
+    robot, log, _ = datasets[True]
+    csv = tmp_path / "no_torques.csv"
+    JointLog(log.joints, log.angles).write_csv(csv)
+    assert "tau:" not in csv.read_text().split("\n")[0]
+    rep = tmp_path / "rep.json"
+    argv = ["calibrate", str(robot.source), str(csv), "--loop", "weld:frame=panda_hand_tcp,name=fixture"]
+    argv += ["--identify", "placement,offset,compliance,loop", "--report", str(rep), "--cv", "0", "--quiet"]
+    assert main(argv) == 0
+    report = json.loads(rep.read_text())
+    assert report["inputs"]["torques"] == "gravity"
+    assert any("gravity from the model's inertials" in n for n in report["identifiability"]["notes"])
+    for j in (2, 3, 4):
+        assert abs(report["compliance"][f"panda_joint{j}.compliance"] / C - 1.0) < 0.3

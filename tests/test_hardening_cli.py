@@ -261,8 +261,11 @@ CASES = [
         "urdf-mimic-in-loop",
         ["calibrate", "{m.urdf}", "{m.csv}", "--loop", "weld:frame=l2", "--quiet"],
         2,
-        ["joint 'j2' mimics joint 'j1'", "not supported"],
-        {"m.urdf": MIMIC, "m.csv": "j1,j2\n0.1,0.2\n0.2,0.4\n"},
+        ["joint 'j2' (between the base and frame 'l2') mimics joint 'nope'", "not a movable joint"],
+        {
+            "m.urdf": MIMIC.replace('joint="j1" multiplier', 'joint="nope" multiplier'),
+            "m.csv": "j1,j2\n0.1,0.2\n0.2,0.4\n",
+        },
     ),
     Case("mjcf-door-shipped", ["inspect", "closedloop/models/door.xml"], 0, ["1 movable joints", "hinge"]),
     Case("model-missing", calib(model="{tmp}/nope.urdf"), 2, ["nope.urdf", "no such model file"]),

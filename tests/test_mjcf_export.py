@@ -229,7 +229,8 @@ def test_cli_writes_the_calibrated_mjcf(fitted, capsys):
     )
     assert f"wrote {out}" in capsys.readouterr().out
     m = mujoco.MjModel.from_xml_path(str(out))
-    assert m.nbody == mujoco.MjModel.from_xml_path(str(robot.source)).nbody
+    assert m.nbody == mujoco.MjModel.from_xml_path(str(robot.source)).nbody + 1  # and the fixture, in the world
     fitted_values = {p["name"]: p["calibrated"] for p in json.loads(rep.read_text())["parameters"]}
+    assert np.abs(m.body("fixture_fixture").pos - [fitted_values[f"fixture.{a}"] for a in "xyz"]).max() < 1e-12
     rms = closure_rms(RobotModel.from_file(out), log, WeldLoop("fixture", "panda_hand"), fitted_values)
     assert rms[0] < 1e-8 and rms[1] < 1e-8

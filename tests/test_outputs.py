@@ -305,6 +305,82 @@ def test_check_uses_the_tolerance_of_each_unit():
     assert not ok  # 0.6 px off
 
 
+def _stl(path) -> None:
+    """A binary STL tetrahedron (MuJoCo reads binary STL)."""
+    import struct
+
+    v = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0], [0, 0, 0.05]], dtype=np.float32)
+    faces = [(0, 2, 1), (0, 1, 3), (0, 3, 2), (1, 2, 3)]
+    body = b"".join(struct.pack("<12fH", *([0.0] * 3), *v[a], *v[b], *v[c], 0) for a, b, c in faces)
+    path.write_bytes(b"\0" * 80 + struct.pack("<I", len(faces)) + body)
+
+
+def test_written_urdf_finds_its_meshes_from_another_folder(tmp_path):
+    """Relative mesh paths are rewritten for the output's folder; package:// and absolute ones stay."""
+    src = tmp_path / "robot"
+    (src / "meshes").mkdir(parents=True)
+    _stl(src / "meshes" / "link.stl")
+    absolute = (src / "meshes" / "link.stl").resolve()
+    text = nominal_urdf("panda")
+    text = text.replace(
+        '<link name="panda_link1">',
+        '<link name="panda_link1"><visual><geometry><mesh filename="meshes/link.stl"/></geometry></visual>'
+        '<collision><geometry><mesh filename="package://panda/meshes/link.stl"/></geometry></collision>'
+        f'<visual><geometry><mesh filename="{absolute}"/></geometry></visual>',
+        1,
+    )
+    (src / "panda.urdf").write_text(text)
+    robot = RobotModel.from_file(src / "panda.urdf")
+    out = tmp_path / "elsewhere" / "deeper" / "cal.urdf"
+    out.parent.mkdir(parents=True)
+    write_urdf(robot, {"panda_joint2.x": 1e-3}, out)
+    import xml.etree.ElementTree as ET
+
+    names = [m.get("filename") for m in ET.parse(out).getroot().iter("mesh")]
+    assert names == ["../../robot/meshes/link.stl", "package://panda/meshes/link.stl", str(absolute)]
+    assert (out.parent / names[0]).resolve() == absolute  # the same file, found from the output's folder
+    write_urdf(robot, {"panda_joint2.x": 1e-3}, src / "cal.urdf")  # beside the input: kept as written
+    assert [m.get("filename") for m in ET.parse(src / "cal.urdf").getroot().iter("mesh")][0] == "meshes/link.stl"
+
+
+def test_written_mjcf_has_a_relative_meshdir_and_loads_from_another_folder(tmp_path):
+    from closedloop.output.mjcf import write_mjcf
+
+    src = tmp_path / "robot"
+    (src / "assets").mkdir(parents=True)
+    _stl(src / "assets" / "tet.stl")
+    (src / "arm.xml").write_text(
+        '<mujoco><compiler meshdir="assets"/><asset><mesh name="tet" file="tet.stl"/></asset><worldbody>'
+        '<body name="l1"><joint name="j1" type="hinge" axis="0 0 1"/><geom type="mesh" mesh="tet"/>'
+        '<body name="l2" pos="0.3 0 0"><joint name="j2" type="hinge" axis="0 1 0"/><geom type="mesh" mesh="tet"/>'
+        '<body name="tool" pos="0.2 0 0"/></body></body></worldbody></mujoco>'
+    )
+    robot = RobotModel.from_file(src / "arm.xml")
+    out = tmp_path / "out" / "cal.xml"
+    out.parent.mkdir()
+    tip = np.array([0.01, 0.02, 0.03])
+    write_mjcf(robot, {"j2.x": 2e-3, "j1.offset": 0.01}, out, frames=[("ball_tip", "tool", tip)])
+    import xml.etree.ElementTree as ET
+
+    comp = ET.parse(out).getroot().find("compiler")
+    assert comp.get("meshdir") == "../robot/assets"  # relative, not absolute
+    m = mujoco.MjModel.from_xml_path(str(out))  # loads from its own folder
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    assert (
+        np.abs(
+            d.xpos[m.body("ball_tip").id] - d.xpos[m.body("tool").id] - d.xmat[m.body("tool").id].reshape(3, 3) @ tip
+        ).max()
+        < 1e-12
+    )
+    cal = RobotModel.from_file(out)  # and Pinocchio sees the tool point as a frame on the tool
+    T = (
+        cal.model.frames[cal.frame_id("tool")].placement.inverse()
+        * cal.model.frames[cal.frame_id("ball_tip")].placement
+    )
+    assert np.abs(T.translation - tip).max() < 1e-12
+
+
 # --------------------------------------------------------------------------- what the command line prints
 def _calibrate_args(files, *extra):
     nominal, log, tmp = files
@@ -444,3 +520,23 @@ def test_a_quiet_sweep_prints_nothing_and_a_loud_one_its_summary(tmp_path, capsy
     assert main(args) == 0  # run again: resumed, and said so
     said = capsys.readouterr().out
     assert said.startswith("0 dataset(s) simulated") and "1 finished earlier (not redone)" in said
+
+
+def test_commanded_readings_fit_plain_least_squares_and_say_so(files, capsys):
+    """--readings commanded: the residual is not reading noise, so plain least squares unless --weighting
+    is given; the report records both, the summary says why."""
+    nominal, log, tmp = files
+    base = ["calibrate", str(nominal), str(log), "--loop", "weld:frame=panda_hand,name=fixture", "--cv", "0"]
+    assert main([*base, "--readings", "commanded", "--report", str(tmp / "cmd.json")]) == 0
+    rep = json.loads((tmp / "cmd.json").read_text())
+    assert rep["inputs"] == {"readings": "commanded", "weighting": "none", "torques": None}
+    assert rep["weighting"] == "none"
+    assert "readings are commanded setpoints" in capsys.readouterr().out
+    assert main([*base, "--readings", "commanded", "--weighting", "noise", "--report", str(tmp / "c2.json")]) == 0
+    assert json.loads((tmp / "c2.json").read_text())["inputs"]["weighting"] == "noise"  # given: kept
+    assert main([*base, "--report", str(tmp / "m.json")]) == 0
+    assert json.loads((tmp / "m.json").read_text())["inputs"] == {
+        "readings": "measured",
+        "weighting": "noise",
+        "torques": None,
+    }

@@ -17,6 +17,7 @@ from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.calibration.verdict import judge
 from closedloop.io.logs import JointLog
 from closedloop.loops.spec import parse_loop
+from closedloop.output.report import write_sensors
 from closedloop.output.urdf import tool_frames, write_model
 from closedloop.problem.distances import DistanceLoop
 from closedloop.validation.evaluate import evaluate_result
@@ -232,6 +233,7 @@ def test_evaluate_reproduces_closure_and_compares_models(rig3, calibrated, tmp_p
     lp2 = _loops(robot, train)
     res2 = calibrate(robot, _log_of(log, train), lp2 + _distances(lp2, (1, 2)), CalibrationOptions())
     write_model(robot, res2.as_dict(), tmp_path / "cal.urdf", frames=tool_frames(res2))
+    write_sensors(res2, tmp_path / "cal.urdf")  # the ball beside the model: evaluate predicts with it
     (tmp_path / "true.urdf").write_text(rig.true_urdf)
     for s in ("a", "b"):
         np.savetxt(tmp_path / f"p3{s}.csv", rig.readings[f"place3_{s}"], delimiter=",")
@@ -254,7 +256,7 @@ def test_evaluate_reproduces_closure_and_compares_models(rig3, calibrated, tmp_p
     # the truth leaves the play alone: RMS of a 3-D error of sigma per axis, sqrt(3) sigma, within 15 %
     assert abs(truth / (np.sqrt(3) * SIGMA_TASK) - 1.0) < 0.15, truth
     assert cal < 1.15 * truth, (cal, truth)
-    # the in-memory calibration and its written URDF (offsets folded, ball frame) agree
+    # the in-memory calibration and its written URDF and sensor file (offsets folded, the ball held) agree
     direct = evaluate_result(res2, _log_of(log, ["place3_a", "place3_b"]), _loops(robot, ["place3_a", "place3_b"]))
     assert abs(direct.rms_m / cal - 1.0) < 1e-6
 

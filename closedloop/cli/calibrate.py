@@ -104,6 +104,9 @@ def cmd_calibrate(args) -> int:
     from closedloop.calibration.pipeline import build_problem
 
     names = build_problem(robot, lg, loops).names
+    from closedloop.cli.evaluate import input_record, resolve_weighting
+
+    inputs_note = resolve_weighting(args)  # --readings commanded: plain least squares unless --weighting is given
     opts = CalibrationOptions(
         identify=args.identify.split(",") if args.identify else None,
         fix=parse_fix(args.fix, names),
@@ -120,7 +123,13 @@ def cmd_calibrate(args) -> int:
     res = calibrate(robot, lg, loops, opts, progress=prog)
     prog.done()
     elapsed = time.perf_counter() - t0
+    if inputs_note:
+        res.notes.append(inputs_note)
+    report_inputs = input_record(args, lg, res)  # readings, weighting, where the torques come from
+    if report_inputs["torques"] == "gravity":
+        res.notes.append("joint torques: gravity from the model's inertials (the log has no tau:<joint> columns)")
     report = build_report(res, args.model, args.log, row_name=lg.where)
+    report["inputs"] = report_inputs
     report["solver"]["seconds"] = elapsed
     report["solver"]["cpu_seconds"] = time.process_time() - c0
     t1, c1 = time.perf_counter(), time.process_time()
@@ -141,6 +150,7 @@ def cmd_calibrate(args) -> int:
     report["verdict"] = verdict_record(res.verdict)
     failed = res.verdict.status == "failed"
     write_out = args.out and (not failed or args.force)
+    report["outputs"] = {"model": str(args.out) if write_out else None}  # `closedloop evaluate --calibration`
     with OutputSet(order=[args.out if write_out else None, args.report]):  # published whole, model first
         if args.report:
             write_report(report, args.report)

@@ -4,8 +4,13 @@
     closedloop evaluate nominal.urdf calibrated.urdf --joints j1,...,j7 \\
         --loop point:frame=ball,name=p3a,tip=@ball,log=place3_a.csv --loop ...,log=place3_b.csv
 
-Each model's closure on the data with the robot untouched and the loops' own
-unknowns fitted unweighted (`closedloop.validation.evaluate`), printed as a table (mean /
+Each model's closure on the data with the robot untouched (`closedloop.validation.evaluate`): what a
+calibration estimated once for all data (a shared ball ``tip=@ball``, tool points, a tracker's base,
+cameras) is taken from the calibration, read from the sensor file beside a calibrated model
+(``<model>.sensors.yaml``, which also carries its joint scale factors and compliances) or from
+``--calibration REPORT``; only what is new at each place (a socket's position, a fixture's pose) is
+fitted, unweighted.  ``--refit`` fits every loop unknown.  A loop frame that only the calibrated model
+has (its written tool point ``ball_tip``) is lent to the other models.  Printed as a table (mean /
 RMS closure per loop, mm) and written with ``--report`` as JSON.
 
 Calibrate's rig options (`add_rig_options`, `rig_inputs`): ``--distance A B D
@@ -61,6 +66,16 @@ def add_rig_options(c) -> None:
         "--joints", metavar="J1,J2,...", help="the column order of header-less CSV logs (the first row is then data)"
     )
     c.add_argument(
+        "--readings",
+        choices=["measured", "commanded"],
+        default="measured",
+        help="what the log's joint values are: measured by encoders (default) or the controller's commanded "
+        "setpoints; commanded readings make the residual model and servo error, not reading noise: the fit "
+        "is plain least squares unless --weighting is given, and the report records it",
+    )
+    # --weighting's default is decided with --readings (`resolve_weighting`): None here means "not given"
+    c.set_defaults(weighting=None, weighting_default=c.get_default("weighting"))
+    c.add_argument(
         "--lofo",
         choices=["auto", "off"],
         default="auto",
@@ -80,7 +95,59 @@ def read_inputs(log_path: str | None, robot, loops: list, degrees: bool = False,
 
     lg = _read_inputs(log_path, robot, loops, degrees, order)
     check_angle_units(lg, robot, degrees)
+    return with_gravity_torques(lg, robot)
+
+
+def with_gravity_torques(lg, robot):
+    """The log with ``tau:<joint>`` columns from the model's inertials (`RobotModel.gravity_torques`) when it
+    carries none and the model has masses; otherwise as it is.  The compliance model (theta' = k theta +
+    theta_off - c tau) then needs no torque logging on a robot that carries only itself; logged torques
+    always win.  `torque_source` says which: 'log', 'gravity' or None."""
+    present = [j for j in robot.joint_names if f"tau:{j}" in lg.extra]
+    if present or not robot.has_inertias:
+        lg.torque_source = "log" if present else None
+        return lg
+    known = [j for j in robot.joint_names if j in lg.joints]
+    tau = robot.gravity_torques(lg.columns(known), known)
+    lg.extra.update({f"tau:{j}": tau[:, k] for k, j in enumerate(known)})
+    lg.torque_source = "gravity"
     return lg
+
+
+def resolve_weighting(args) -> str | None:
+    """`--weighting` as given, else plain least squares ('none') for commanded readings (the errors-in-variables
+    weighting models reading noise, which a setpoint does not have), else the parser's default; sets
+    ``args.weighting`` and returns the note the summary prints (None when there is nothing to say)."""
+    given = getattr(args, "weighting", None)
+    commanded = getattr(args, "readings", "measured") == "commanded"
+    if given is None:
+        args.weighting = "none" if commanded else (getattr(args, "weighting_default", None) or "noise")
+        if commanded:
+            return (
+                "readings are commanded setpoints (--readings commanded): the residual is model and servo "
+                "error, not reading noise; fitted by plain least squares (--weighting none)"
+            )
+    elif commanded and given == "noise":
+        return (
+            "readings are commanded setpoints, yet --weighting noise treats the residual as reading noise: "
+            "its noise estimate stands for model and servo error"
+        )
+    return None
+
+
+def input_record(args, lg, res=None) -> dict:
+    """What the report says about the inputs: whether the readings are measured or commanded, the weighting
+    that follows, and where the joint torques the compliance model used come from ('log', 'gravity': the
+    model's inertials at the readings; null when no compliance was used)."""
+    used = res is None or any(
+        p.kind == "compliance" and (res.status[k] == "estimated" or res.values[k] != 0.0)
+        for k, p in enumerate(res.problem.params)
+    )
+    return {
+        "readings": getattr(args, "readings", "measured"),
+        "weighting": getattr(args, "weighting", None),
+        "torques": getattr(lg, "torque_source", None) if used else None,
+    }
 
 
 def _read_inputs(log_path: str | None, robot, loops: list, degrees: bool, order: list[str] | None):
@@ -176,7 +243,99 @@ def add_parser(sub) -> None:
     e.add_argument("--label", action="append", default=[], help="a name per model for the table (default: file)")
     e.add_argument("--report", help="JSON report of the evaluation")
     e.add_argument("--degrees", action="store_true", help="the log is in degrees")
+    e.add_argument(
+        "--calibration",
+        action="append",
+        default=[],
+        metavar="REPORT",
+        help="a calibration's report.json: the model it wrote predicts with its tool points, instruments "
+        "and sensor corrections (default: the <model>.sensors.yaml beside each model)",
+    )
+    e.add_argument(
+        "--refit",
+        action="store_true",
+        help="fit every loop unknown on the evaluated rows (tool points and instruments too), as a fresh fit would",
+    )
     e.set_defaults(func=cmd_evaluate)
+
+
+def model_calibration(path: str, reports: dict[Path, dict], robot) -> tuple[dict, dict, str | None]:
+    """(robot values, loop values, where from) for one evaluated model: the report that wrote it, else the
+    sensor file beside it, else nothing (a nominal model)."""
+    from closedloop.output.report import read_sensors, sensor_values, sensors_path
+
+    rep = reports.get(Path(path).resolve())
+    if rep is not None:
+        params = rep.get("parameters") or []
+        loops = {p["name"]: float(p["calibrated"]) for p in params if p.get("kind") == "loop"}
+        values = {}
+        for p in params:
+            if p.get("kind") in ("scale", "compliance") and (robot.kind != "dh" or p["kind"] == "compliance"):
+                values[p["name"]] = float(p["calibrated"])
+        return values, loops, str(rep.get("_path"))
+    side = sensors_path(path)
+    if side.is_file():
+        joints, loops = read_sensors(side)
+        return sensor_values(joints, robot), loops, str(side)
+    return {}, {}, None
+
+
+def read_calibrations(paths: list[str], models: list[str]) -> dict[Path, dict]:
+    """``--calibration`` reports by the model each wrote (``outputs.model``); one that wrote none of
+    `models` is an input error."""
+    from closedloop.io.schemas import read_text
+
+    out = {}
+    listed = {Path(m).resolve(): m for m in models}
+    for p in paths:
+        try:
+            rep = json.loads(read_text(p, "calibration report", InputError))
+        except json.JSONDecodeError as exc:
+            raise InputError(f"--calibration {p}: not a JSON report ({exc.msg}, line {exc.lineno})") from None
+        wrote = ((rep.get("outputs") or {}).get("model")) if isinstance(rep, dict) else None
+        if not wrote or Path(wrote).resolve() not in listed:
+            raise InputError(
+                f"--calibration {p}: this report wrote {wrote or 'no model'}, which is not among the models "
+                f"({', '.join(models)}); give the model it wrote"
+            )
+        rep["_path"] = p
+        out[Path(wrote).resolve()] = rep
+    return out
+
+
+def lend_frames(robots: list, loops_specs: list[str]) -> list[str]:
+    """Frames some models lack that another model has on a fixed joint (a calibrated model's written
+    tool point or fixture), added to the models lacking them at the same place on the same parent
+    frame; returns one note per frame lent."""
+    import re
+
+    import pinocchio as pin
+
+    wanted = []
+    for s in loops_specs:
+        wanted += [
+            v.strip().strip("\"'") for v in re.findall(r"(?:^|,)\s*(?:frame|to)\s*=\s*([^,]+)", s.partition(":")[2])
+        ]
+    notes = []
+    for name in dict.fromkeys(wanted):
+        have = [r for r in robots if r.model.existFrame(name)]
+        lack = [r for r in robots if not r.model.existFrame(name)]
+        if not have or not lack:
+            continue
+        src = have[0].model
+        f = src.frames[src.getFrameId(name)]
+        for r in lack:
+            parent = src.frames[f.parentFrame]  # the nearest frame up the tree that this model has too
+            while parent.name != "universe" and not r.model.existFrame(parent.name):
+                parent = src.frames[parent.parentFrame]
+            if parent.parentJoint != f.parentJoint:
+                continue  # a joint between them: not a fixed frame of a shared parent
+            rel = parent.placement.inverse() * f.placement  # the frame on its parent frame
+            pid = r.model.getFrameId(parent.name)
+            p = r.model.frames[pid]
+            r.model.addFrame(pin.Frame(name, p.parentJoint, pid, p.placement * rel, pin.FrameType.OP_FRAME))
+            notes.append(f"frame '{name}' of {have[0].source} lent to {r.source} (on '{parent.name}')")
+    return notes
 
 
 def cmd_evaluate(args) -> int:
@@ -196,6 +355,9 @@ def cmd_evaluate(args) -> int:
     if args.label and len(args.label) != len(models):
         raise InputError(f"evaluate: {len(args.label)} --label for {len(models)} models")
     robots = [RobotModel.from_file(m) for m in models]
+    reports = read_calibrations(args.calibration, models)
+    for note in lend_frames(robots, args.loop):
+        print(f"note: {note}", file=sys.stderr)
     loops0 = [parse_loop(s, robots[0]) for s in args.loop]
     lg = read_inputs(log_path, robots[0], loops0, args.degrees, _order(args))
     from closedloop.io.logs import check_loop_column
@@ -205,10 +367,21 @@ def cmd_evaluate(args) -> int:
     for k, (path, robot) in enumerate(zip(models, robots)):
         loops = loops0 if k == 0 else [parse_loop(s, robot) for s in args.loop]
         label = args.label[k] if args.label else Path(path).name
-        evals.append(evaluate_model(robot, lg, loops, None, label))
+        values, loop_values, source = model_calibration(path, reports, robot)
+        ev = evaluate_model(robot, lg, loops, values, label, calibration=loop_values, refit=args.refit)
+        if source and (ev.held or values):
+            what = [f"{len(ev.held)} loop parameter(s) held"] if ev.held else []
+            what += [f"{len(values)} joint scale/compliance value(s)"] if values else []
+            print(f"note: {label}: {' and '.join(what)} from {source}", file=sys.stderr)
+        evals.append(ev)
     print(table(evals))
     if args.report:
-        rep = {"log": str(lg.source), "configurations": len(lg), "models": [e.as_dict() for e in evals]}
+        rep = {
+            "log": str(lg.source),
+            "configurations": len(lg),
+            "refit": bool(args.refit),
+            "models": [e.as_dict() for e in evals],
+        }
         atomic_write_text(args.report, json.dumps(rep, indent=2) + "\n")
         print(f"wrote {args.report}", file=sys.stderr)
     return 0

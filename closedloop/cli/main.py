@@ -51,7 +51,7 @@ def cmd_inspect(args) -> int:
     for n, t in info["unsupported_joints"].items():
         print(f"  {n:<24} {t} (not calibrated)")
     for n, m in info.get("mimic_joints", {}).items():
-        print(f"  {n:<24} mimics {m} (URDF <mimic>: no loop may pass through it)")
+        print(f"  {n:<24} mimics {m} (URDF <mimic>: moves with it)")
     print(f"frames: {', '.join(info['frames'])}")
     first = info["joints"][0]["name"] if info["joints"] else ""
     fields = [p.split(".", 1)[1] for p in info["parameters"] if p.split(".", 1)[0] == first]

@@ -281,42 +281,25 @@ def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None):
 
 # --------------------------------------------------------------------------- --html / --plots
 def sensor_corrections(res, model_out: str | None = None) -> dict | None:
-    """What a URDF or MJCF cannot carry: estimated joint scale factors and compliances (None if none)."""
-    joints: dict[str, dict[str, float]] = {}
-    for k, p in enumerate(res.problem.params):
-        if p.kind in ("scale", "compliance") and res.status[k] == "estimated":
-            joints.setdefault(p.name.rsplit(".", 1)[0], {})[p.kind] = float(res.values[k])
-    if not joints:
-        return None
-    return {
-        "model": model_out,
-        "joints": joints,
-        "note": "joint value for the calibrated model = scale * reading - compliance * tau "
-        "(offsets are folded into the model); scale 1 and compliance 0 where a joint is not listed",
-    }
+    """What a URDF or MJCF cannot carry (`closedloop.output.report.sensor_corrections`)."""
+    from closedloop.output.report import sensor_corrections as corrections
+
+    return corrections(res, model_out)
 
 
 def write_figures(res, report: dict, args, row_name=None) -> None:
-    """The outputs beside the model: ``<out>.sensors.yaml`` (scale factors, compliance: what URDF and
-    MJCF cannot express; not for D-H output, which carries them), the HTML page and the PNG figures."""
+    """The outputs beside the model: ``<out>.sensors.yaml`` (scale factors and compliances the fit used:
+    what URDF and MJCF cannot express; for D-H output, which carries its scale factors, the
+    compliances), the HTML page and the PNG figures."""
     out = getattr(args, "out", None)
     quiet = bool(getattr(args, "quiet", False))
     failed = getattr(getattr(res, "verdict", None), "status", None) == "failed" and not getattr(args, "force", False)
-    corr = (
-        sensor_corrections(res, out) if out and not failed and not str(out).endswith((".yaml", ".yml")) else None
-    )  # beside a model that was written
-    if corr is not None:
-        import yaml
+    if out and not failed:  # beside a model that was written
+        from closedloop.output.report import write_sensors
 
-        from closedloop.io.files import atomic_write_text
-
-        path = str(Path(out).with_suffix("")) + ".sensors.yaml"
-        atomic_write_text(
-            path,
-            "# closedloop: joint sensor corrections the model file cannot carry\n"
-            + yaml.safe_dump(corr, sort_keys=False),
-        )
-        if not quiet:
+        kind = "dh" if str(out).endswith((".yaml", ".yml")) else "urdf"
+        path = write_sensors(res, out, kind)
+        if path is not None and not quiet:
             print(f"  wrote {path}")
     html = getattr(args, "html", None)
     plots = getattr(args, "plots", None)

@@ -211,7 +211,7 @@ DH_SCHEMA = {
     "properties": {
         "name": NAME,
         "closes": {"type": "boolean"},
-        "convention": {"enum": ["dh", "hayati"]},
+        "convention": {"enum": ["dh", "hayati", "modified"]},
         "units": {
             "type": "object",
             "additionalProperties": False,
@@ -226,7 +226,8 @@ DH_SCHEMA = {
                 "additionalProperties": False,
                 "properties": {
                     "name": NAME,
-                    "convention": {"enum": ["dh", "hayati"]},
+                    "convention": {"enum": ["dh", "hayati", "modified"]},
+                    "parent": NAME,
                     **{f: num() for f in DH_ROW_FIELDS},
                 },
             },

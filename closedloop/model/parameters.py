@@ -33,7 +33,6 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ParameterError
-from closedloop.model.dh import DHRow, rot
 from closedloop.model.robot import RobotModel
 
 PLACEMENT_FIELDS = ("x", "y", "z", "rx", "ry", "rz")
@@ -234,26 +233,10 @@ class RobotParameters:
         P = len(self.params)
         G = np.zeros((6 * (model.njoints - 1), P))
         G_frames: dict[int, np.ndarray] = {}
-        if robot.kind == "dh":
-            rows = robot.dh.rows
-            for name in self.joints:
-                j = robot.joint(name)
-                row: DHRow = rows[j.jid - 1]
-                s, a, alpha = (values[self.index[f"{name}.{f}"]] for f in ("s", "a", "alpha"))
-                C = row.constant(s, a, alpha)
-                gens = _dh_generators(row.convention, a, alpha, C)
-                cols = [self.index[f"{name}.{f}"] for f in ("s", "a", "alpha")]
-                if j.jid + 1 < model.njoints and model.parents[j.jid + 1] == j.jid:
-                    model.jointPlacements[j.jid + 1] = C
-                    G[6 * j.jid : 6 * j.jid + 6, cols] = gens
-                else:  # last row: the end frame
-                    fid = model.getFrameId(robot.dh.end_frame)
-                    frame = model.frames[fid]
-                    frame.placement = C
-                    model.frames[fid] = frame  # the Python binding hands out copies
-                    Gf = np.zeros((6, P))
-                    Gf[:, cols] = gens
-                    G_frames[fid] = Gf
+        if robot.kind == "dh":  # each row's s, a, alpha move its tail and its own head (`DHTable.placements`)
+            geo = {n: tuple(values[self.index[f"{n}.{f}"]] for f in ("s", "a", "alpha")) for n in self.joints}
+            cols = {n: [self.index[f"{n}.{f}"] for f in ("s", "a", "alpha")] for n in self.joints}
+            G, G_frames = robot.dh.placements(model, geo, P, cols)
         else:
             for name in self.joints:
                 j = robot.joint(name)
@@ -275,29 +258,6 @@ class RobotParameters:
         """Joint name -> calibrated joint placement (Pinocchio joint frame in its parent)."""
         state = self.apply(values)
         return {n: state.model.jointPlacements[self.robot.joint(n).jid] for n in self.joints}
-
-
-def _dh_generators(convention: str, a: float, alpha: float, C: pin.SE3) -> np.ndarray:
-    """Right-perturbation twists of C for d s, d a, d alpha (columns), exact.
-
-    D-H (eq. 4.1), C = Trans(z,s) Trans(x,a) Rot(x,alpha):
-      ds: left translation along z;  da: left translation along x;  dalpha: right rotation about x.
-    Hayati (eq. 4.2), C = Trans(x,s) Rot(x,a) Rot(y,alpha):
-      ds: left translation along x;  da: right rotation about Ry(alpha)^T x;  dalpha: right rotation about y.
-    A left twist xi becomes the right twist Ad(C^-1) xi.
-    """
-    Rt = C.rotation.T
-    g = np.zeros((6, 3))
-    ex, ey, ez = np.eye(3)
-    if convention == "dh":
-        g[:3, 0] = Rt @ ez
-        g[:3, 1] = Rt @ ex
-        g[3:, 2] = ex
-    else:
-        g[:3, 0] = Rt @ ex
-        g[3:, 1] = rot("y", alpha).T @ ex
-        g[3:, 2] = ey
-    return g
 
 
 def match(names: list[str], patterns: list[str]) -> list[str]:

@@ -58,6 +58,7 @@ class RobotModel:
         self.joints: dict[str, JointInfo] = {}
         self._unsupported: dict[str, str] = {}
         self.mimic: dict[str, str] = {}  # URDF <mimic>: joint -> the joint it follows (see supporting_joints)
+        self.mimic_coupling: dict[str, tuple[float, float]] = {}  # joint -> (multiplier, offset)
         data = model.createData()
         q0 = pin.neutral(model)
         pin.computeJointJacobians(model, data, q0)
@@ -120,7 +121,9 @@ class RobotModel:
                 raise ModelError(f"{path}: Pinocchio cannot parse this model ({said or text})"[:400]) from None
         robot = cls(model, path, kind)
         if kind == "urdf":
-            robot.mimic = _urdf_mimics(path)
+            mimics = _urdf_mimics(path)
+            robot.mimic = {j: f for j, (f, _, _) in mimics.items()}
+            robot.mimic_coupling = {j: (m, o) for j, (_, m, o) in mimics.items()}
         return robot
 
     # ------------------------------------------------------------------ lookup
@@ -153,25 +156,47 @@ class RobotModel:
         return self.model.getFrameId(name)
 
     def supporting_joints(self, frame: str) -> list[str]:
-        """Movable joints between the base and `frame`, base first."""
+        """Movable joints between the base and `frame`, base first; a coupled joint (URDF ``<mimic>``) is
+        replaced by the joint it follows (its reading moves it: `configurations`)."""
         fid = self.frame_id(frame)
         if fid == 0:
             return []
         jid = self.model.frames[fid].parentJoint
         support = [self.model.names[j] for j in self.model.supports[jid]]
+        out: list[str] = []
         for j in support:
             if j in self.mimic:
-                raise ModelError(
-                    f"joint '{j}' mimics joint '{self.mimic[j]}' (URDF <mimic>) and lies between the "
-                    f"base and frame '{frame}': loops through mimic joints are not supported"
-                )
-        return [j for j in support if j in self.joints]
+                j = self.followed(j, frame)
+            if j in self.joints and j not in out:
+                out.append(j)
+        return out
+
+    def followed(self, joint: str, frame: str = "") -> str:
+        """The joint a coupled joint follows (URDF ``<mimic joint=...>``); a ModelError when that joint is
+        not a movable joint of the model or is itself coupled."""
+        f = self.mimic[joint]
+        where = f" (between the base and frame '{frame}')" if frame else ""
+        if f not in self.joints or f in self.mimic:
+            raise ModelError(
+                f"joint '{joint}'{where} mimics joint '{f}' (URDF <mimic>), which is "
+                + ("itself coupled: a chain of mimics is not supported" if f in self.mimic else "not a movable joint")
+            )
+        return f
+
+    def coupled(self, joint_names: list[str]) -> list[tuple[str, str, float, float]]:
+        """The coupled joints that follow one of `joint_names`: (joint, followed, multiplier, offset)."""
+        return [
+            (j, f, *self.mimic_coupling.get(j, (1.0, 0.0)))
+            for j, f in self.mimic.items()
+            if f in joint_names and j not in joint_names and j in self.joints
+        ]
 
     # ----------------------------------------------------------- configurations
     def configurations(self, angles: np.ndarray, joint_names: list[str]) -> np.ndarray:
         """Pinocchio configurations (N, nq) from joint angles (N, len(joint_names)).
 
-        Joints not listed stay at their neutral value.  Continuous joints get
+        Joints not listed stay at their neutral value, but a coupled joint (URDF ``<mimic>``) whose
+        followed joint is listed takes ``multiplier * angle + offset`` of it.  Continuous joints get
         (cos, sin) coordinates.
         """
         angles = np.atleast_2d(angles)
@@ -183,7 +208,30 @@ class RobotModel:
                 q[:, j.idx_q + 1] = np.sin(angles[:, col])
             else:
                 q[:, j.idx_q] = angles[:, col]
+        for name, f, mult, off in self.coupled(joint_names):
+            q[:, self.joints[name].idx_q] = mult * angles[:, joint_names.index(f)] + off
         return q
+
+    @property
+    def has_inertias(self) -> bool:
+        """Whether the model carries real masses (a URDF's or MJCF's inertials; a D-H table has none)."""
+        return self.kind != "dh" and float(sum(self.model.inertias[j].mass for j in range(1, self.model.njoints))) > 0.0
+
+    def gravity_torques(self, angles: np.ndarray, joint_names: list[str]) -> np.ndarray:
+        """Joint torques that hold the robot still against gravity at each configuration (N, len(joint_names)).
+
+        The generalized gravity g(q) of the model's inertials (Pinocchio's RNEA at zero velocity and
+        acceleration, ``pin.computeGeneralizedGravity``): the actuator torque of a static arm carrying
+        only itself.  Contact or payload forces are not in it.  Joints not listed stay at their neutral
+        value.
+        """
+        data = self.model.createData()
+        q = self.configurations(angles, joint_names)
+        idx = [self.joints[n].idx_v for n in joint_names]
+        out = np.empty((q.shape[0], len(joint_names)))
+        for i, qi in enumerate(q):
+            out[i] = pin.computeGeneralizedGravity(self.model, data, qi)[idx]
+        return out
 
     def describe(self) -> dict:
         """Joints and frames, for `closedloop inspect`."""
@@ -230,8 +278,8 @@ def _captured_stderr():
             os.close(saved)
 
 
-def _urdf_mimics(path: Path) -> dict[str, str]:
-    """Joints with a ``<mimic joint=...>`` element in a URDF: {joint: followed joint}."""
+def _urdf_mimics(path: Path) -> dict[str, tuple[str, float, float]]:
+    """Joints with a ``<mimic joint=...>`` element in a URDF: {joint: (followed joint, multiplier, offset)}."""
     import xml.etree.ElementTree as ET
 
     try:
@@ -242,7 +290,13 @@ def _urdf_mimics(path: Path) -> dict[str, str]:
     for j in root.iter("joint"):
         m = j.find("mimic")
         if m is not None and j.get("name"):
-            out[j.get("name")] = m.get("joint", "?")
+            try:
+                mult, off = float(m.get("multiplier", 1.0)), float(m.get("offset", 0.0))
+            except ValueError:
+                raise ModelError(
+                    f"{path}: joint '{j.get('name')}': <mimic> multiplier and offset must be numbers"
+                ) from None
+            out[j.get("name")] = (m.get("joint", "?"), mult, off)
     return out
 
 

@@ -48,14 +48,22 @@ def _fmt(v) -> str:
     return " ".join(repr(float(x)) for x in np.atleast_1d(v))
 
 
-def calibrated_mjcf(robot: RobotModel, values: dict[str, float], out_dir: str | Path | None = None) -> str:
+def calibrated_mjcf(
+    robot: RobotModel, values: dict[str, float], out_dir: str | Path | None = None, frames: list = ()
+) -> str:
     """The MJCF text of ``robot`` (an MJCF model) with the calibrated joint frames.
 
     MuJoCo (``MjSpec``) compiles the input and gives each calibrated body's pose, joint anchor
     and axis in its parent's frame; the new pose is written into the input's own XML element
     (``pos`` and ``quat``, 17 significant digits; ``MjSpec.to_xml`` keeps 6, a rounding of up to
     0.5 um on a 1 m arm, too coarse for a calibration), so the rest of the file stays as written.
-    With ``out_dir`` other than the input's directory, relative asset directories become absolute.
+    With ``out_dir`` other than the input's directory, relative asset paths are rewritten relative to
+    ``out_dir`` (`_relative_assets`).  `frames` (`closedloop.output.urdf.model_frames`: tool points,
+    fixtures, sensors) are added as joint-less ``<body>`` elements: a frame on a body (or a site) as a
+    child of that body, which both MuJoCo and Pinocchio read as a frame (Pinocchio places a site of a
+    nested fixed body wrongly, a body rightly), a frame on the world as a body of the worldbody
+    (MuJoCo's static frame; Pinocchio does not read joint-less world bodies: the sensor file and the
+    report hold their values too).
     """
     import xml.etree.ElementTree as ET
 
@@ -118,11 +126,81 @@ def calibrated_mjcf(robot: RobotModel, values: dict[str, float], out_dir: str | 
                 name,
                 float(model.qpos0[model.jnt_qposadr[jid]]),
             )
-    moved = out_dir is not None and Path(out_dir).resolve() != src.resolve().parent
-    if moved:
-        _absolute_assets(root, src)
-    _check_compiles(root, src)
+    _add_sites(root, model, frames, src)
+    _check_compiles(root, src)  # (asset paths still the input's)
+    if out_dir is not None and Path(out_dir).resolve() != src.resolve().parent:
+        _relative_assets(root, src, Path(out_dir))
     return ET.tostring(root, encoding="unicode")
+
+
+def _add_sites(root, model, frames, src: Path) -> None:
+    """`frames` into the MJCF: child bodies of the bodies they hang on or of the worldbody (docstring above).
+
+    A frame on a site hangs on the site's body with the site's pose composed in; a name already taken
+    by a body or site gets a suffix; a parent that is neither a body nor a site of this file is left to
+    the report.
+    """
+    import xml.etree.ElementTree as ET
+
+    import mujoco
+
+    bodies = {b.get("name"): b for b in root.iter("body") if b.get("name")}
+    sites = {s_.get("name") for s_ in root.iter("site") if s_.get("name")}
+    world = root.find("worldbody")
+    for name, parent, pose in frames:
+        M = pose if isinstance(pose, pin.SE3) else pin.SE3(np.eye(3), np.asarray(pose, dtype=float).reshape(3))
+        if parent in ("universe", "world"):
+            el, tag = world, "body"
+        elif parent in bodies:
+            el, tag = bodies[parent], "body"
+        elif parent in sites:
+            sid = model.site(parent).id
+            R = np.zeros(9)
+            mujoco.mju_quat2Mat(R, model.site_quat[sid])
+            M = pin.SE3(R.reshape(3, 3), model.site_pos[sid].copy()) * M
+            bname = model.body(int(model.site_bodyid[sid])).name
+            el, tag = (bodies.get(bname), "body") if bname != "world" else (world, "body")
+        else:
+            continue
+        if el is None:
+            continue
+        base, k = name, 1
+        while name in bodies or name in sites:
+            k += 1
+            name = f"{base}{k}"
+        q = np.zeros(4)
+        mujoco.mju_mat2Quat(q, np.ascontiguousarray(M.rotation).reshape(9))
+        new = ET.SubElement(el, tag, name=name, pos=_fmt(M.translation), quat=_fmt(q))
+        if tag == "body":
+            bodies[name] = new
+        else:
+            sites.add(name)
+
+
+def _relative_assets(root, src: Path, out_dir: Path) -> None:
+    """Relative asset directories and included files rewritten relative to `out_dir` (where the file goes).
+
+    MuJoCo finds meshes and textures in ``meshdir``/``texturedir`` (else ``assetdir``, else the model's
+    folder) relative to the model file, and included files relative to it too: each becomes the path
+    from `out_dir` to the same place.  Absolute paths stay.
+    """
+    import os
+    import xml.etree.ElementTree as ET
+
+    src_dir = src.resolve().parent
+    out_dir = Path(out_dir).resolve()
+    comp = root.find("compiler")
+    if comp is None:
+        comp = ET.Element("compiler")
+        root.insert(0, comp)
+    for attr in ("meshdir", "texturedir"):
+        d = comp.get(attr, comp.get("assetdir", ""))
+        if not Path(d).is_absolute():
+            comp.set(attr, Path(os.path.relpath(src_dir / d, out_dir)).as_posix())
+    for inc in root.iter("include"):
+        f = inc.get("file")
+        if f and not Path(f).is_absolute():
+            inc.set("file", Path(os.path.relpath(src_dir / f, out_dir)).as_posix())
 
 
 def _absolute_assets(root, src: Path) -> None:
@@ -156,9 +234,9 @@ def _check_compiles(root, src: Path) -> None:
         raise ModelError(f"{src}: the calibrated MJCF does not load in MuJoCo ({str(exc).splitlines()[0]})") from None
 
 
-def write_mjcf(robot: RobotModel, values: dict[str, float], out_path: str | Path) -> None:
-    """Write the calibrated MJCF atomically (assets found from wherever it is written)."""
+def write_mjcf(robot: RobotModel, values: dict[str, float], out_path: str | Path, frames: list = ()) -> None:
+    """Write the calibrated MJCF atomically (assets found from wherever it is written; `frames` added)."""
     from closedloop.io.files import atomic_write_text, refuse_overwrite
 
     refuse_overwrite(out_path, robot.source)
-    atomic_write_text(out_path, calibrated_mjcf(robot, values, Path(out_path).parent))
+    atomic_write_text(out_path, calibrated_mjcf(robot, values, Path(out_path).parent, frames))

@@ -44,6 +44,125 @@ def verdict_record(verdict) -> dict | None:
     }
 
 
+def sensor_corrections(res: CalibrationResult, model_out: str | None = None, kind: str = "urdf") -> dict | None:
+    """What the model file cannot carry, as the fit used it: joint scale factors and compliances, and
+    the loops' parameters.
+
+    ``joints``: every scale factor and compliance at a value other than its nominal one (1 and 0),
+    whatever its status: a value the fit used but reported as not identifiable still shapes the fit's
+    predictions, and the written model must predict what the fit predicts.  A D-H table carries its
+    scale factors (``k``) itself: only compliances are listed for it.  ``loop_parameters``: every loop
+    parameter at the fit's value (tool points, fixtures, sensors, cameras; the ones with a place in
+    the model are also frames of it, `closedloop.output.urdf.model_frames`), which ``closedloop
+    evaluate`` holds where they were estimated once for all data.  None when there is nothing.
+    """
+    joints: dict[str, dict[str, float]] = {}
+    for k, p in enumerate(res.problem.params):
+        if p.kind not in ("scale", "compliance") or (p.kind == "scale" and kind == "dh"):
+            continue
+        v = float(res.values[k])
+        if v != p.nominal or res.status[k] == ParamStatus.ESTIMATED:
+            joints.setdefault(p.owner, {})["scale" if p.kind == "scale" else "compliance"] = v
+    loops = {p.name: float(res.values[k]) for k, p in enumerate(res.problem.params) if k >= res.problem.n_robot}
+    if not joints and not loops:
+        return None
+    return {
+        "model": model_out,
+        "joints": joints,
+        "loop_parameters": loops,
+        "note": "joint value for the calibrated model = scale * reading - compliance * tau "
+        "(offsets are folded into the model); scale 1 and compliance 0 where a joint is not listed",
+    }
+
+
+def sensors_path(model_out: str | Path) -> Path:
+    """The sensor file beside a written model: ``<model without suffix>.sensors.yaml``."""
+    return Path(str(Path(model_out).with_suffix("")) + ".sensors.yaml")
+
+
+def write_sensors(res: CalibrationResult, model_out: str | Path, kind: str = "urdf") -> Path | None:
+    """`sensor_corrections` written beside the model (`sensors_path`); the path, or None when there is none."""
+    import yaml
+
+    corr = sensor_corrections(res, str(model_out), kind)
+    if corr is None:
+        return None
+    path = sensors_path(model_out)
+    atomic_write_text(
+        path,
+        "# closedloop: joint sensor corrections the model file cannot carry\n" + yaml.safe_dump(corr, sort_keys=False),
+    )
+    return path
+
+
+def read_sensors(path: str | Path) -> tuple[dict[str, dict[str, float]], dict[str, float]]:
+    """A sensor file's joints, {joint: {'scale': k, 'compliance': c}} (missing entries: 1 and 0), and
+    its loop parameters {name: value}."""
+    from closedloop.errors import InputError
+    from closedloop.io.schemas import load_yaml
+
+    doc = load_yaml(Path(path), "sensor corrections", InputError)
+    joints = (doc or {}).get("joints", {}) if isinstance(doc, dict) else None
+    if not isinstance(joints, dict):
+        raise InputError(f"{path}: a sensor file needs a 'joints' mapping (joint: {{scale, compliance}})")
+    out = {}
+    for j, d in joints.items():
+        if not isinstance(d, dict) or not set(d) <= {"scale", "compliance"}:
+            raise InputError(f"{path}: joint '{j}': give 'scale' and/or 'compliance' numbers")
+        try:
+            out[str(j)] = {"scale": float(d.get("scale", 1.0)), "compliance": float(d.get("compliance", 0.0))}
+        except (TypeError, ValueError):
+            raise InputError(f"{path}: joint '{j}': 'scale' and 'compliance' must be numbers") from None
+    loops = doc.get("loop_parameters") or {}
+    if not isinstance(loops, dict) or not all(isinstance(v, (int, float)) for v in loops.values()):
+        raise InputError(f"{path}: 'loop_parameters' must map parameter names to numbers")
+    return out, {str(n): float(v) for n, v in loops.items()}
+
+
+def sensor_values(joints: dict[str, dict[str, float]], robot=None) -> dict[str, float]:
+    """A sensor file's joints as parameter values (``<joint>.scale``, ``<joint>.compliance``; a D-H
+    model's scale is its ``k``, in the table)."""
+    out = {}
+    for j, d in joints.items():
+        if robot is None or robot.kind != "dh":
+            out[f"{j}.scale"] = d["scale"]
+        out[f"{j}.compliance"] = d["compliance"]
+    return out
+
+
+def moved_not_identifiable(res: CalibrationResult) -> list[dict]:
+    """Parameters reported as not identifiable whose calibrated value differs from their initial one.
+
+    A direction the data do not determine is a combination of parameters; each of them also takes part
+    in directions the data do determine, and the fit moves it along those.  Its value is the fit's (the
+    written model holds it, so that it predicts what the fit predicts); only the combination named in
+    ``not_identifiable`` is undetermined.  Each entry names the parameter, the change and the
+    combinations it is in.
+    """
+    out = []
+    for k, p in enumerate(res.problem.params):
+        if res.status[k] != ParamStatus.UNIDENTIFIABLE:
+            continue
+        change = float(res.values[k] - res.initial[k])
+        if change == 0.0:
+            continue
+        combos = [c.describe() for c in res.weak if any(n == p.name for n, _ in c.terms)]
+        out.append(
+            {
+                "name": p.name,
+                "unit": p.unit,
+                "initial": float(res.initial[k]),
+                "calibrated": float(res.values[k]),
+                "change": change,
+                "change_in_priors": change / p.prior if p.prior else None,
+                "why": "moved by the fit along the determined directions it takes part in; only the "
+                "combination(s) below are undetermined, and the written model keeps the fit's value",
+                "combinations": combos,
+            }
+        )
+    return out
+
+
 def build_report(
     res: CalibrationResult, model_path=None, log_path=None, row_name: Callable[[int], str] | None = None
 ) -> dict:
@@ -63,6 +182,7 @@ def build_report(
                 "std_error": _f(res.std[k]),
                 "status": res.status[k],
                 "identifiable": res.status[k] == ParamStatus.ESTIMATED,
+                "change": float(res.values[k] - res.initial[k]),
             }
         )
     p_value = _chi2_sf(res.chi2, res.dof) if not res.sigma_estimated else None
@@ -108,6 +228,7 @@ def build_report(
                 for c in res.weak
             ],
             "notes": res.notes,
+            "moved_not_identifiable": moved_not_identifiable(res),
         },
         "verdict": verdict_record(res.verdict),
         "gauge": {
@@ -144,10 +265,11 @@ def build_report(
             ]
         },
         "scale_factors": {p.name: float(res.values[k]) for k, p in enumerate(prob.params) if p.kind == "scale"},
+        # every compliance the fit used (estimated, or moved while not identifiable): what the written model predicts with
         "compliance": {
             p.name: float(res.values[k])
             for k, p in enumerate(prob.params)
-            if p.kind == "compliance" and res.status[k] == ParamStatus.ESTIMATED
+            if p.kind == "compliance" and (res.status[k] == ParamStatus.ESTIMATED or res.values[k] != p.nominal)
         },
         "parameters": params,
     }

@@ -20,7 +20,6 @@ import pinocchio as pin
 from closedloop.errors import InputError, ModelError
 from closedloop.io.files import atomic_write_text, refuse_overwrite
 from closedloop.model.robot import RobotModel
-from closedloop.records import ParamStatus
 
 #: the model file suffixes `write_model` writes for each input kind
 MODEL_SUFFIXES = {"urdf": (".urdf",), "dh": (".yaml", ".yml"), "mjcf": (".xml", ".mjcf")}
@@ -47,15 +46,17 @@ def write_urdf(
     values: dict[str, float],
     out_path: str | Path,
     fold_offsets: bool = True,
-    frames: list[tuple[str, str, np.ndarray]] = (),
+    frames: list = (),
 ) -> None:
     """Write the URDF of `robot` with joint origins moved by `values` (see module doc).
 
-    `frames` (name, parent link, xyz): estimated tool points added as links on fixed joints
-    (`tool_frames`), so the calibrated URDF carries the tool point it estimated.
+    `frames` (name, parent frame, pose or xyz): what the calibration estimated about its loops (tool
+    points, fixtures, sensors, planes; `model_frames`) added as links on fixed joints, so the
+    calibrated URDF carries them.
 
     The input's XML is edited in place (ElementTree): only the ``<origin>`` (and,
-    with folded offsets, the ``<limit>``) of the calibrated joints change; links,
+    with folded offsets, the ``<limit>``) of the calibrated joints change, and relative
+    mesh paths are rewritten for the output's folder (`relocate_meshes`); links,
     meshes (never loaded), comments and every other element are copied as they
     are.  Origins are written as URDF's ``xyz`` and ``rpy`` (R = Rz(y) Ry(p) Rx(r))
     at full precision.
@@ -103,8 +104,50 @@ def write_urdf(
             j.insert(0, origin)
         origin.set("xyz", " ".join(repr(float(v)) for v in O[:3, 3]))
         origin.set("rpy", " ".join(repr(float(v)) for v in _rpy(O[:3, :3])))
+    if fold_offsets:
+        _shift_mimics(by_name, values)
     _add_frames(tree.getroot(), frames)
+    relocate_meshes(tree.getroot(), Path(robot.source), Path(out_path))
     atomic_write_text(out_path, ET.tostring(tree.getroot(), encoding="UTF-8", xml_declaration=True) + b"\n")
+
+
+def _shift_mimics(by_name: dict, values: dict[str, float]) -> None:
+    """A coupled joint (``<mimic joint=f multiplier=m offset=o>``) follows f's joint value; with f's offset
+    folded into its origin that value no longer contains it, so o becomes o + m * theta_off_f: the coupled
+    joint stays where the fit put it (at m (k theta + theta_off_f) + o)."""
+    for j in by_name.values():
+        mimic = j.find("mimic")
+        if mimic is None or not mimic.get("joint"):
+            continue
+        off = values.get(f"{mimic.get('joint')}.offset", 0.0)
+        if off:
+            mult = float(mimic.get("multiplier", 1.0))
+            mimic.set("offset", repr(float(mimic.get("offset", 0.0)) + mult * off))
+
+
+def relocate_meshes(root, source: Path, out_path: Path) -> int:
+    """Relative mesh and texture paths rewritten relative to the folder the URDF is written to.
+
+    A relative ``filename`` is relative to the input's folder; written elsewhere it would point
+    nowhere, so it becomes the path from the output's folder to the same file.  ``package://`` and
+    other URIs and absolute paths are left as they are.  Returns the number of paths rewritten.
+    """
+    import os
+
+    src_dir = source.resolve().parent
+    out_dir = Path(out_path).resolve().parent
+    if src_dir == out_dir:
+        return 0
+    n = 0
+    for el in root.iter():
+        if el.tag not in ("mesh", "texture") or not el.get("filename"):
+            continue
+        name = el.get("filename")
+        if "://" in name or os.path.isabs(name):
+            continue
+        el.set("filename", Path(os.path.relpath(src_dir / name, out_dir)).as_posix())
+        n += 1
+    return n
 
 
 def _floats(text: str, n: int, source, joint: str) -> np.ndarray:
@@ -149,50 +192,135 @@ def write_dh(robot: RobotModel, values: dict[str, float], out_path: str | Path) 
     atomic_write_text(out_path, dump_dh(robot.dh, values))
 
 
-def write_model(
-    robot: RobotModel, values: dict[str, float], out_path: str | Path, frames: list[tuple[str, str, np.ndarray]] = ()
-) -> None:
-    """The calibrated model in the input's own format (URDF, MJCF or D-H YAML); `frames`: tool points (URDF)."""
+def write_model(robot: RobotModel, values: dict[str, float], out_path: str | Path, frames: list = ()) -> None:
+    """The calibrated model in the input's own format (URDF, MJCF or D-H YAML); `frames` (`model_frames`:
+    tool points, fixtures) become links (URDF) or sites and bodies (MJCF); a D-H table cannot hold them
+    (the report does)."""
     if robot.kind == "dh":
         write_dh(robot, values, out_path)
     elif robot.kind == "mjcf":
         from closedloop.output.mjcf import write_mjcf
 
-        write_mjcf(robot, values, out_path)
+        write_mjcf(robot, values, out_path, frames=frames)
     else:
         write_urdf(robot, values, out_path, frames=frames)
 
 
-def tool_frames(result) -> list[tuple[str, str, np.ndarray]]:
-    """The estimated tool points of a calibration as URDF frames: (name, parent link, xyz).
+#: a written frame: (name, the model frame it hangs on, its pose in that frame; a bare xyz is a point)
+ModelFrame = tuple[str, str, "pin.SE3 | np.ndarray"]
 
-    One per tool point (a shared group once): ``<group or loop>_tip`` on the
-    loop's frame A, at the calibrated ``tip_x, tip_y, tip_z``.
+
+def model_frames(result) -> list[ModelFrame]:
+    """What a calibration estimated about its loops, as frames of the written model.
+
+    One frame per estimated (or given) quantity of a loop that has a place on the robot or in its
+    world, a shared group once, named by its group or loop:
+
+    * ``<owner>_tip``: a tool point (``tip_x, tip_y, tip_z``) on the loop's frame A;
+    * ``<owner>_tool``: a measured loop's tool frame (``tool_x .. tool_rz``) on frame A;
+    * ``<owner>_point``: a point loop's contact point (socket, ``px, py, pz``) in frame B;
+    * ``<owner>_fixture``: a weld's closure X, the pose of frame A in frame B when closed (``x .. rz``);
+    * ``<owner>_sensor``: a measured loop's sensor base X (tracker, ``x .. rz``) in frame B;
+    * ``<owner>_plane``: a plane loop's plane in frame B, z along its normal n, origin at n d.
+
+    Poses are ``X = (exp3(r), t)`` as the loops define them.  Hinges, passive chains and cameras are
+    described in the report only.
     """
     prob = result.problem
-    out, seen = [], set()
+    vals = dict(zip(prob.names, map(float, result.values)))
+    out: list[ModelFrame] = []
+    seen: set[str] = set()
+
+    def add(name: str, parent: str, pose) -> None:
+        if name not in seen:
+            seen.add(name)
+            out.append((name, parent, pose))
+
     for b, cols in zip(prob.blocks, prob.loop_columns):
+        lp = b.loop
+        if getattr(lp, "parameter_only", False):
+            continue
         names = [prob.names[k] for k in cols]
-        idx = [next((k for k, n in zip(cols, names) if n.endswith(f".tip_{a}")), None) for a in "xyz"]
-        if any(i is None for i in idx):
-            continue
-        owner = prob.names[idx[0]].rsplit(".", 1)[0]
-        if owner in seen or any(result.status[i] not in (ParamStatus.ESTIMATED, ParamStatus.FIXED) for i in idx):
-            continue
-        seen.add(owner)
-        out.append((f"{owner}_tip", b.loop.frame_a, np.array([result.values[i] for i in idx], dtype=float)))
+        by_field = {n.rsplit(".", 1)[1]: n for n in names}
+        kind = getattr(lp, "kind", None) or type(lp).__name__
+
+        def owner(fields: tuple[str, ...]) -> str:
+            return by_field[fields[0]].rsplit(".", 1)[0]
+
+        tip = ("tip_x", "tip_y", "tip_z")
+        if all(f in by_field for f in tip):
+            add(f"{owner(tip)}_tip", lp.frame_a, np.array([vals[by_field[f]] for f in tip]))
+        elif getattr(lp, "tip", None) is not None and np.shape(lp.tip) == (3,):
+            add(f"{lp.name}_tip", lp.frame_a, np.asarray(lp.tip, dtype=float))
+        tool = tuple(f"tool_{f}" for f in ("x", "y", "z", "rx", "ry", "rz"))
+        if all(f in by_field for f in tool):
+            add(f"{owner(tool)}_tool", lp.frame_a, _pose([vals[by_field[f]] for f in tool]))
+        point = ("px", "py", "pz")
+        if all(f in by_field for f in point):
+            add(f"{owner(point)}_point", lp.frame_b, np.array([vals[by_field[f]] for f in point]))
+        pose = ("x", "y", "z", "rx", "ry", "rz")
+        if all(f in by_field for f in pose):
+            what = "fixture" if "Weld" in kind else "sensor"
+            add(f"{owner(pose)}_{what}", lp.frame_b, _pose([vals[by_field[f]] for f in pose]))
+        plane = ("nrx", "nry", "d")
+        if all(f in by_field for f in plane) and hasattr(lp, "R0"):
+            w = np.array([vals[by_field["nrx"]], vals[by_field["nry"]], 0.0])
+            R = lp.R0 @ pin.exp3(w)
+            add(f"{owner(plane)}_plane", lp.frame_b, pin.SE3(R, R[:, 2] * vals[by_field["d"]]))
     return out
 
 
+def tool_frames(result) -> list[ModelFrame]:
+    """The frames of `model_frames` (tool points, fixtures, sensors, planes): the name calibrate used first."""
+    return model_frames(result)
+
+
+def _pose(v) -> pin.SE3:
+    """A loop pose from its six parameters: (exp3(r), t)."""
+    v = np.asarray(v, dtype=float)
+    return pin.SE3(pin.exp3(v[3:6]), v[:3].copy())
+
+
+def as_se3(pose) -> pin.SE3:
+    """A frame's pose: a pin.SE3 as it is, a bare xyz as a translation."""
+    if isinstance(pose, pin.SE3):
+        return pose
+    return pin.SE3(np.eye(3), np.asarray(pose, dtype=float).reshape(3))
+
+
+def _link_parents(root) -> tuple[set[str], dict[str, str], str | None]:
+    """The URDF's links, each joint's child link, and its root link (never a child)."""
+    links = [el.get("name") for el in root.findall("link")]
+    child_of = {}
+    children = set()
+    for j in root.findall("joint"):
+        c = j.find("child")
+        if c is not None and j.get("name"):
+            child_of[j.get("name")] = c.get("link")
+            children.add(c.get("link"))
+    roots = [n for n in links if n not in children]
+    return set(links), child_of, roots[0] if roots else None
+
+
 def _add_frames(root, frames) -> None:
-    """Links on fixed joints under existing links (a name already taken gets a suffix)."""
+    """Links on fixed joints under existing links (a name already taken gets a suffix).
+
+    A frame on a joint's frame hangs on the joint's child link (URDF puts the link frame there), a
+    frame on the world (``universe``, ``world``) on the root link; any other parent is not a link of
+    this file and its frame is left to the report.
+    """
     import xml.etree.ElementTree as ET
 
-    links = {el.get("name") for el in root.findall("link")}
+    links, child_of, root_link = _link_parents(root)
     joints = {el.get("name") for el in root.findall("joint")}
-    for name, parent, xyz in frames:
-        if parent not in links:
-            continue  # a joint frame or a frame of another format: the report has the point
+    for name, parent, pose in frames:
+        M = as_se3(pose)
+        if parent in ("universe", "world") and parent not in links:
+            parent = root_link
+        elif parent not in links and parent in child_of:
+            parent = child_of[parent]
+        if parent is None or parent not in links:
+            continue  # not a link of this file: the report has the frame
         base, k = name, 1
         while name in links or f"{name}_joint" in joints:
             k += 1
@@ -202,7 +330,12 @@ def _add_frames(root, frames) -> None:
         j = ET.SubElement(root, "joint", name=f"{name}_joint", type="fixed")
         ET.SubElement(j, "parent", link=parent)
         ET.SubElement(j, "child", link=name)
-        ET.SubElement(j, "origin", xyz=" ".join(repr(float(v)) for v in xyz), rpy="0 0 0")
+        ET.SubElement(
+            j,
+            "origin",
+            xyz=" ".join(repr(float(v)) for v in M.translation),
+            rpy=" ".join(repr(float(v)) for v in _rpy(M.rotation)),
+        )
         j.tail = "\n"
         links.add(name)
         joints.add(f"{name}_joint")

@@ -169,6 +169,12 @@ class CalibrationProblem:
         for c, name in enumerate(self.joints):
             j = robot.joint(name)
             self._S[6 * (j.jid - 1) : 6 * j.jid, c] = pin.getJointJacobian(model, data, j.jid, pin.LOCAL)[:, j.idx_v]
+        for name, followed, mult, _ in robot.coupled(self.joints):  # a coupled joint (URDF <mimic>) moves with
+            m = robot.joint(name)  # the joint it follows: mult times its motion subspace in that joint's column
+            c = self.joints.index(followed)
+            self._S[6 * (m.jid - 1) : 6 * m.jid, c] = (
+                mult * pin.getJointJacobian(model, data, m.jid, pin.LOCAL)[:, m.idx_v]
+            )
 
     def without_rows(self, rows) -> "CalibrationProblem":
         """The same problem without the log rows `rows` (1-based, as in `LoopBlock.rows`) in any block.

@@ -1,10 +1,15 @@
 """A model on data: closure and loop-point spread with the robot untouched.
 
 Any model (the nominal URDF, a calibrated one, another tool's) is judged on
-any data the same way: the robot's parameters are held, the loops' own
-unknowns (contact points, tool points, closures; shared ones once) are
-fitted by plain least squares on the loop-closure residual (eq. 3.8), and
-the closure that remains is reported per loop:
+any data the same way: the robot's parameters are held, and of the loops'
+unknowns only what is new at each place is fitted, by plain least squares on
+the loop-closure residual (eq. 3.8): a socket's position, a fixture's pose, a
+plane, a hinge.  What a calibration estimated once for all data is predicted,
+not refitted: a shared group's parameters (``tip=@ball``), tool points and
+tool frames, a measuring instrument (a tracker's base, cameras) are held at
+the calibration's values where it has them (`held_values`; ``refit=True``
+fits every unknown, as a fresh fit would).  The closure that remains is
+reported per loop:
 
 * ``rms_m`` / ``rms_rad``: RMS of the translation / rotation closure norms;
 * ``mean_m``: the mean translation closure norm (for a point loop with its
@@ -37,6 +42,8 @@ class Evaluation:
     mean_m: float | None
     rms_rad: float | None
     values: dict = field(default_factory=dict)  # the fitted loop unknowns
+    held: dict = field(default_factory=dict)  # the loop unknowns taken from the calibration (not fitted)
+    residuals: list = field(default_factory=list)  # per loop, the closure residual (N, dim)
 
     def as_dict(self) -> dict:
         return {
@@ -46,7 +53,43 @@ class Evaluation:
             "rms_rad": self.rms_rad,
             "loops": self.loops,
             "loop_parameters": self.values,
+            "held_from_calibration": self.held,
         }
+
+
+#: loop fields that describe the tool, not the place: held at a calibration's value (`held_values`)
+TOOL_FIELD_PREFIXES = ("tip_", "tool_")
+
+
+def predicted(loop: Loop, field_name: str, name: str) -> bool:
+    """Whether a loop parameter is estimated once for all data (held at the calibration's value).
+
+    A shared group's parameter (``tip=@ball``: its name is the group's), a tool point or tool frame,
+    and every parameter of a measuring instrument (a measured loop's sensor base, a camera loop's
+    cameras) are; what is new at each place (a socket's position, a fixture's pose, a plane, a
+    hinge, a passive chain's placement) is not.
+    """
+    own = name == f"{loop.name}.{field_name}"
+    if not own:
+        return True
+    if field_name.startswith(TOOL_FIELD_PREFIXES):
+        return True
+    kind = type(loop).__name__
+    return kind.startswith("Measured") or kind.startswith("Camera")
+
+
+def held_values(problem, calibration: dict[str, float] | None, places: bool = True) -> dict[str, float]:
+    """The loop parameters of `problem` to hold at `calibration`'s values: the `predicted` ones it has,
+    and with `places` False every one it has."""
+    if not calibration:
+        return {}
+    out = {}
+    for b, cols in zip(problem.blocks, problem.loop_columns):
+        for k, p in zip(cols, b.loop.parameters()):
+            name = problem.names[k]
+            if name in calibration and (not places or predicted(b.loop, p.field, name)):
+                out[name] = float(calibration[name])
+    return out
 
 
 def evaluate_model(
@@ -56,10 +99,17 @@ def evaluate_model(
     values: dict[str, float] | None = None,
     label: str = "model",
     max_iter: int = 100,
+    calibration: dict[str, float] | None = None,
+    refit: bool = False,
+    places: bool = True,
 ) -> Evaluation:
-    """Closure of `robot` (its parameters set from `values` by name, e.g. a calibration's) on `log_`.
+    """Closure of `robot` (its parameters set from `values` by name, e.g. a calibration's or a sensor
+    file's ``<joint>.scale`` / ``<joint>.compliance``) on `log_`.
 
-    Only the loops' own unknowns are fitted (unweighted), the robot is held.
+    The robot is held; of the loops' unknowns those a calibration estimated once for all data
+    (`predicted`) are held at `calibration`'s values (name -> value, e.g. a report's parameters) and
+    the others are fitted (unweighted); with `refit` every loop unknown is fitted; with `places`
+    False every loop unknown `calibration` has is held (the calibration's own places, predicted).
     """
     from closedloop.calibration.pipeline import build_problem
     from closedloop.estimate.lm import SolverOptions
@@ -72,9 +122,14 @@ def evaluate_model(
     for k, name in enumerate(problem.names[: problem.n_robot]):
         if values and name in values:
             x[k] = values[name]
+    held = {} if refit else held_values(problem, calibration, places)
     inits = [problem.initialize_loop(x, bi) if cols.size else None for bi, cols in enumerate(problem.loop_columns)]
     x = initial_shared(problem, x, inits)
-    est = sorted({int(k) for c in problem.loop_columns for k in c})
+    for n, v in held.items():
+        x[problem.index[n]] = v
+    if held:
+        x = _refine_own(problem, x, set(held))
+    est = sorted({int(k) for c in problem.loop_columns for k in c if problem.names[k] not in held})
     if est:
         scale = np.array([p.prior for p in problem.params])
         st = plain_stage(problem, x, x[est], est, scale, SolverOptions(max_iter=max_iter), None)
@@ -113,14 +168,43 @@ def evaluate_model(
         None if t is None else float(np.mean(t)),
         None if w is None else float(np.sqrt(np.mean(w**2))),
         fitted,
+        held,
+        [ev.r for ev in evals],
     )
 
 
-def evaluate_result(result, log_: JointLog, loops: list[Loop], label: str = "calibrated") -> Evaluation:
-    """`evaluate_model` with a calibration's robot parameters."""
+def _refine_own(problem, x: np.ndarray, held: set[str]) -> np.ndarray:
+    """Each loop's unknowns that are not held refitted with the held ones fixed (`loops.common.refine_own`):
+    a start on the held tool point, not on the loop's own guess of it."""
+    from closedloop.loops.common import refine_own
+
+    x = x.copy()
+    for bi, (b, cols) in enumerate(zip(problem.blocks, problem.loop_columns)):
+        mine = np.array([problem.names[k] in held for k in cols], dtype=bool)
+        if not mine.any() or mine.all() or b.theta.shape[0] == 0:
+            continue
+        Ts = problem.loop_frame_poses(x, bi)
+        lp = b.loop
+        p = refine_own(
+            lambda q: lp.evaluate_frames(Ts, q, b.meas),
+            lambda q: lp.residual_frames(Ts, q, b.meas),
+            lp.normalize,
+            x[cols].copy(),
+            np.flatnonzero(~mine),
+        )
+        x[cols[~mine]] = p[~mine]
+    return x
+
+
+def evaluate_result(
+    result, log_: JointLog, loops: list[Loop], label: str = "calibrated", refit: bool = False
+) -> Evaluation:
+    """`evaluate_model` with a calibration's robot parameters; what it estimated once for all data
+    (`predicted`: shared groups, tool points, instruments) is held at its values unless `refit`."""
     prob = result.problem
     values = {n: float(v) for n, v in zip(prob.names[: prob.n_robot], result.values[: prob.n_robot])}
-    return evaluate_model(prob.robot, log_, loops, values, label)
+    loop_values = {n: float(v) for n, v in zip(prob.names[prob.n_robot :], result.values[prob.n_robot :])}
+    return evaluate_model(prob.robot, log_, loops, values, label, calibration=loop_values, refit=refit)
 
 
 def table(evals: list[Evaluation]) -> str:

@@ -5,8 +5,11 @@ calibration that fits the places it was recorded at and extrapolates badly
 to others.  With several fixtures (the places of a block, recording days)
 each fixture is held out in turn: the calibration is refitted on the others
 with the same options, and the held-out fixture's closure is evaluated with
-the refitted robot and with the nominal one, the loops' own unknowns fitted
-in both (`evaluate.evaluate_model`).  A calibration that makes a held-out
+the refitted robot and with the nominal one (`evaluate.evaluate_model`).  With
+the refit the figure is a prediction: what the refit estimated once for all
+data (a shared ball, a tracker's base, cameras) is held at its values and
+only the held-out fixture's own unknowns (its sockets, its pose) are fitted;
+the nominal model, which has no calibration, has every loop unknown fitted.  A calibration that makes a held-out
 fixture worse than the nominal model does not generalise: the verdict is
 `suspect`, naming the fixture.
 

@@ -9,6 +9,11 @@ as in ``calibration.residual_stats``).  With the noise known and the
 close to 1: much larger means the model does not generalise (over-fit,
 unmodelled error, or an outlier in the held-out fold).
 
+The held-out figure is a prediction: the held-out rows are evaluated at the
+fold's own values, every parameter (the robot's, a shared ball, a tracker's
+base, each loop's place) as the training rows fitted it; nothing is refitted
+on them.
+
 Rows are split at random, per loop (each loop's rows are spread over the
 folds), reproducibly from `seed`.
 

@@ -1,0 +1,185 @@
+"""Held-out figures are predictions: `evaluate`, leave-one-fixture-out and k-fold validation hold what a
+calibration estimated once for all data (the shared ball) and fit only what is new at each place (the
+socket), checked against a computation by hand; ``--refit`` keeps the fresh fit."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from closedloop import CalibrationOptions, RobotModel, calibrate
+from closedloop.calibration.pipeline import build_problem, residual_stats
+from closedloop.cli.main import main
+from closedloop.io.logs import JointLog
+from closedloop.loops import WeldLoop
+from closedloop.loops.spec import parse_loop
+from closedloop.models import nominal_urdf
+from closedloop.problem.distances import DistanceLoop
+from closedloop.studies.truth import make_dataset
+from closedloop.validation.evaluate import evaluate_result
+from closedloop.validation.fixtures import leave_one_fixture_out
+from closedloop.validation.kfold import cross_validate, folds, subset
+
+ROOT = Path(__file__).resolve().parents[1]
+_spec = importlib.util.spec_from_file_location("ball_socket_rig", ROOT / "examples" / "ball_socket_rig.py")
+rigmod = importlib.util.module_from_spec(_spec)
+sys.modules.setdefault("ball_socket_rig", rigmod)
+_spec.loader.exec_module(rigmod)
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("rig")
+    rig = rigmod.make_rig(seed=2, n=30, places=3, sigma_task=2e-4, sigma_q=2e-5)
+    (tmp / "nominal.urdf").write_text(rig.nominal)
+    robot = RobotModel.from_file(tmp / "nominal.urdf")
+    names = rig.loop_names()
+    n = rig.readings[names[0]].shape[0]
+    log = JointLog(rig.joints, np.vstack([rig.readings[k] for k in names]), None, np.repeat(names, n))
+    return tmp, rig, robot, log
+
+
+def _loops(robot, names):
+    return [parse_loop(f"point:frame=ball,name={k},tip=@ball,fixture={k.split('_')[0]}", robot) for k in names]
+
+
+def _rows(log, names):
+    return subset(log, np.flatnonzero(np.isin(log.loop, names)))
+
+
+def _by_hand(res, log_, names) -> float:
+    """The held-out closure RMS computed by hand: the calibrated robot and ball; each socket the mean of
+    the predicted ball positions (the least-squares point of a point loop); RMS of the distances."""
+    prob = res.problem
+    st = prob.rp.apply(res.values[: prob.n_robot])
+    tip = np.array([res.value(f"ball.tip_{a}") for a in "xyz"])
+    fid = prob.robot.frame_id("ball")
+    d2 = []
+    for name in names:
+        th = log_.angles[log_.loop == name][:, [log_.joints.index(j) for j in prob.joints]]
+        P = []
+        for q in prob.robot.configurations(th * st.scale + st.offset, prob.joints):
+            pin.forwardKinematics(st.model, st.data, q)
+            P.append(pin.updateFramePlacement(st.model, st.data, fid).act(tip))
+        P = np.array(P)
+        d2.append(np.sum((P - P.mean(axis=0)) ** 2, axis=1))
+    return float(np.sqrt(np.mean(np.concatenate(d2))))
+
+
+@pytest.fixture(scope="module")
+def trained(rig):
+    """Calibrated on places 1 and 2 (with their 50 mm distances), place 3 held out."""
+    tmp, rig_, robot, log = rig
+    train = [n for n in rig_.loop_names() if not n.startswith("place3")]
+    loops = _loops(robot, train)
+    loops += [DistanceLoop(loops, f"place{p}_a.point", f"place{p}_b.point", 0.05) for p in (1, 2)]
+    res = calibrate(robot, _rows(log, train), loops, CalibrationOptions())
+    assert res.converged
+    return res
+
+
+def test_evaluate_predicts_with_the_calibrated_ball(rig, trained):
+    tmp, rig_, robot, log = rig
+    test = ["place3_a", "place3_b"]
+    ev = evaluate_result(trained, _rows(log, test), _loops(robot, test))
+    assert set(ev.held) == {"ball.tip_x", "ball.tip_y", "ball.tip_z"}  # the ball is not refitted
+    assert set(ev.values) == {f"{n}.p{a}" for n in test for a in "xyz"}  # the sockets are
+    assert ev.rms_m == pytest.approx(_by_hand(trained, _rows(log, test), test), rel=1e-9)
+    fresh = evaluate_result(trained, _rows(log, test), _loops(robot, test), refit=True)
+    assert not fresh.held and fresh.rms_m <= ev.rms_m * (1 + 1e-9)  # a fresh ball fits at least as well
+
+
+def test_leave_one_fixture_out_predicts_with_the_refitted_ball(rig):
+    tmp, rig_, robot, log = rig
+    loops = _loops(robot, rig_.loop_names())
+    loops += [DistanceLoop(loops, f"place{p}_a.point", f"place{p}_b.point", 0.05) for p in (1, 2, 3)]
+    out = leave_one_fixture_out(robot, log, loops, CalibrationOptions())
+    row = next(r for r in out["fixtures"] if r["fixture"] == "place3")
+    # by hand: the calibration without place 3 (its distance left out too), the held-out place predicted
+    train = [n for n in rig_.loop_names() if not n.startswith("place3")]
+    tl = _loops(robot, train)
+    tl += [DistanceLoop(tl, f"place{p}_a.point", f"place{p}_b.point", 0.05) for p in (1, 2)]
+    res = calibrate(robot, _rows(log, train), tl, CalibrationOptions())
+    test = ["place3_a", "place3_b"]
+    assert row["calibrated_rms_m"] == pytest.approx(_by_hand(res, _rows(log, test), test), rel=1e-9)
+
+
+def test_kfold_held_out_figure_is_a_prediction(tmp_path):
+    """A fold's held-out closure is the closure of its rows at the fold's own fit: nothing refitted."""
+    (tmp_path / "panda.urdf").write_text(nominal_urdf("panda"))
+    robot = RobotModel.from_file(tmp_path / "panda.urdf")
+    q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]
+    ds = make_dataset(robot, WeldLoop("fixture", "panda_hand"), q0, 40, np.random.default_rng(3))
+    log = ds.log()
+    opts = CalibrationOptions(robust=None)
+    cv = cross_validate(robot, log, [WeldLoop("fixture", "panda_hand")], opts, k=2)
+    rows = folds(log, 2)[0]
+    train = subset(log, np.setdiff1d(np.arange(len(log)), rows))
+    res = calibrate(robot, train, [WeldLoop("fixture", "panda_hand")], opts)
+    prob = build_problem(robot, subset(log, rows), res.loops)
+    by_hand = residual_stats(prob, prob.evaluate(res.values, False))[0]
+    got = cv["folds"][0]["test"]["loops"][0]
+    assert got["rms_m"] == pytest.approx(by_hand.rms_m, rel=1e-12)
+    assert got["rms_rad"] == pytest.approx(by_hand.rms_rad, rel=1e-12)
+
+
+def test_cli_evaluate_predicts_and_lends_the_tool_frame(rig, tmp_path):
+    """calibrate writes the model, its sensor file and the report; evaluate holds the ball from either,
+    ``--refit`` refits it, and the nominal model runs in the same call on the written ``ball_tip``."""
+    tmp, rig_, robot, log = rig
+    files = rig_.write(tmp_path)
+    train = [f for f in files if not f.stem.startswith("place3")]
+    argv = ["calibrate", str(tmp / "nominal.urdf"), "--joints", ",".join(rig_.joints), "--cv", "0", "--lofo", "off"]
+    argv += ["--distance", "place1_a.point", "place1_b.point", "0.05", "--out", str(tmp_path / "cal.urdf")]
+    argv += ["--report", str(tmp_path / "rep.json")]
+    for f in train:
+        argv += ["--loop", f"point:frame=ball,name={f.stem},tip=@ball,log={f}"]
+    assert main(argv) == 0
+    rep = json.loads((tmp_path / "rep.json").read_text())
+    assert rep["outputs"]["model"] == str(tmp_path / "cal.urdf")
+    ball = {p["name"]: p["calibrated"] for p in rep["parameters"] if p["name"].startswith("ball.")}
+    test = [f for f in files if f.stem.startswith("place3")]
+
+    def evaluate(models, extra, spec="point:frame=ball,name={n},tip=@ball,log={f}"):
+        out = tmp_path / f"ev{len(list(tmp_path.glob('ev*.json')))}.json"
+        cmd = ["evaluate", *models, "--joints", ",".join(rig_.joints), "--report", str(out), *extra]
+        for f in test:
+            cmd += ["--loop", spec.format(n=f.stem, f=f)]
+        assert main(cmd) == 0
+        return json.loads(out.read_text())["models"]
+
+    cal = str(tmp_path / "cal.urdf")
+    side = evaluate([cal], [])[0]  # the sensor file beside the model
+    assert side["held_from_calibration"] == pytest.approx(ball, abs=0.0)
+    from_report = evaluate([cal], ["--calibration", str(tmp_path / "rep.json")])[0]
+    assert from_report["rms_m"] == pytest.approx(side["rms_m"], rel=1e-12)
+    refit = evaluate([cal], ["--refit"])[0]
+    assert not refit["held_from_calibration"] and set(refit["loop_parameters"]) >= set(ball)
+    assert refit["rms_m"] <= side["rms_m"] * (1 + 1e-9)
+    # the written tool frame: the nominal model borrows it, the calibrated one predicts as with tip=@ball
+    nominal, cal_tip = evaluate([str(tmp / "nominal.urdf"), cal], [], "point:frame=ball_tip,name={n},tip=0 0 0,log={f}")
+    assert cal_tip["rms_m"] == pytest.approx(side["rms_m"], rel=1e-9)
+    assert nominal["rms_m"] > cal_tip["rms_m"]
+    # a report that wrote another model is refused in one line
+    assert (
+        main(
+            [
+                "evaluate",
+                str(tmp / "nominal.urdf"),
+                str(test[0]),
+                "--calibration",
+                str(tmp_path / "rep.json"),
+                "--joints",
+                ",".join(rig_.joints),
+                "--loop",
+                "point:frame=ball,tip=@ball",
+            ]
+        )
+        == 2
+    )
