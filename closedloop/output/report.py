@@ -121,6 +121,13 @@ def build_report(res: CalibrationResult, model_path=None, log_path=None) -> dict
         "shared_parameters": _shared(prob),
         "rejected": [asdict(r) for r in res.rejected],
         "weighting": res.weighting,
+        # which estimator the data support and why, where the standard errors come from (estimate.model_error)
+        "estimator": {
+            "name": getattr(res, "estimator", None),
+            "reason": getattr(res, "estimator_reason", None),
+            "error_bars": getattr(res, "error_bars", None),
+            "evidence": dict(getattr(res, "model_error", {}) or {}),
+        },
         "robust": {
             "suspects": [
                 {
