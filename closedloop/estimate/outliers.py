@@ -100,6 +100,9 @@ def _spread(problem: CalibrationProblem, blocks: list[np.ndarray]) -> float:
 
 
 ROBUST_ROWS = 2048  # configurations per block the robust refit is solved on (`robust_refit`)
+#: the robust refit's passes stop at a relative cost decrease of 1e-6 (the final fit's 1e-10): each pass only
+#: sets the next pass's weights, and the screen's threshold is no sharper than its closures' scale
+REFIT_FTOL, REFIT_XTOL = 1e-6, 1e-6
 
 
 def robust_refit(
@@ -127,7 +130,7 @@ def robust_refit(
     scale = np.array([p.prior for p in problem.params])
     sample = problem.sampled(ROBUST_ROWS)
     dims = [b.loop.dim for b in sample.blocks]
-    sopt = SolverOptions(max_iter=max_iter)
+    sopt = SolverOptions(max_iter=max_iter, ftol=REFIT_FTOL, xtol=REFIT_XTOL)
     weighting = _screen_weighting(sample)
     x, w_prev, best = x0.copy(), None, (np.inf, x0, [])
     for _ in range(passes):
