@@ -97,7 +97,7 @@ def dataset(robot: RobotModel, n: int, seed: int, bend: float) -> JointLog:
 
 
 def floor(robot: RobotModel, log_: JointLog) -> float:
-    """Pinocchio alone: forward kinematics and both frames' Jacobians at every pose (seconds)."""
+    """Pinocchio alone: forward kinematics and both frames' Jacobians at every pose, once (seconds, best of 5)."""
     model = robot.model
     data = model.createData()
     fids = [model.getFrameId(t) for t in TIPS]
@@ -107,13 +107,16 @@ def floor(robot: RobotModel, log_: JointLog) -> float:
         for j, name in enumerate(log_.joints):
             q[model.idx_qs[model.getJointId(name)]] = row[j]
         qs.append(q)
-    t = time.perf_counter()
-    for q in qs:
-        pin.computeJointJacobians(model, data, q)
-        pin.updateFramePlacements(model, data)
-        for f in fids:
-            pin.getFrameJacobian(model, data, f, pin.LOCAL)
-    return time.perf_counter() - t
+    best = np.inf
+    for _ in range(5):  # the best of 5: the machine is shared
+        t = time.perf_counter()
+        for q in qs:
+            pin.computeJointJacobians(model, data, q)
+            pin.updateFramePlacements(model, data)
+            for f in fids:
+                pin.getFrameJacobian(model, data, f, pin.LOCAL)
+        best = min(best, time.perf_counter() - t)
+    return best
 
 
 def main() -> None:

@@ -263,9 +263,11 @@ def _calibrate(
     if tested is not None and tested["test"].holds:
         choice |= {"reason": tested["test"].describe(), "evidence": tested["evidence"]}
     elif tested is not None:  # model error: the plain loop-closure fit (eq. 3.8), screened alike, sandwich error bars
+        spent = fit.iterations
         problem, fit, structure, rejected, suspects = solve_screened(
             start, x0, free, structure0, replace(opt, weighting="none"), sigma_q, known, len(log_), notes, progress
         )
+        fit.iterations += spent
         r, J = fit.stage.fun(fit.x[fit.est], True)
         evidence = tested["evidence"] | {"left_out_rms_plain": loo_prediction(problem, fit.x, fit.est, r, J)}
         choice = {"estimator": PLAIN, "reason": tested["test"].describe(), "error_bars": SANDWICH}
