@@ -44,11 +44,15 @@ from closedloop.calibration.staged import (
     solve_staged,
     solve_with_restarts,
 )
-from closedloop.calibration.verdict import judge
+from closedloop.calibration.verdict import VerdictRules, judge
 from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
 from closedloop.estimate.lm import reducible_share, rms, scaled_svd
 from closedloop.estimate.model_error import (
+    EIV,
     ENCODER_NOISE,
+    NOISE_MODEL,
+    PLAIN,
+    SANDWICH,
     loo_prediction,
     neighbour_correlation,
     noise_test,
@@ -180,10 +184,14 @@ def analyse_solution(
     weak = weak_directions(S, Vt, threshold, [problem.names[k] for k in est])
     keep = S > threshold
     Vk = Vt[keep].T
+    cov = (Vk / S[keep] ** 2) @ Vk.T * sigma_r**2 * np.outer(scale[est], scale[est])
+    cov_s = sandwich_cov(problem, r, J, scale[est], Vk, S[keep]) if keep.any() else cov
+    d, ds = np.diag(cov), np.diag(cov_s)
+    live = d > 0
+    # mean variance ratio sandwich / noise model: ~1 where the residual is the assumed noise
+    ratio = float(np.mean(ds[live] / d[live])) if live.any() else float("nan")
     if sandwich:
-        cov = sandwich_cov(problem, r, J, scale[est], Vk, S[keep])
-    else:
-        cov = (Vk / S[keep] ** 2) @ Vk.T * sigma_r**2 * np.outer(scale[est], scale[est])
+        cov = cov_s
     std = np.full(len(problem.params), np.nan)
     std[est] = np.sqrt(np.maximum(np.diag(cov), 0.0))
     for c in weak:
@@ -208,6 +216,7 @@ def analyse_solution(
         "chi2": chi2,
         "weighting": fun.weighting,
         "reducible": reducible,
+        "sandwich_ratio": ratio,
     }
 
 
@@ -260,6 +269,8 @@ def _calibrate(
     choice = {"estimator": EIV if fit.stage.fun.weighting == "noise" else PLAIN, "reason": "as asked"}
     choice |= {"error_bars": NOISE_MODEL, "evidence": {}}
     tested = test_noise_hypothesis(problem, fit, opt)
+    if tested is not None and tested["test"].sigma_hat > VerdictRules().failed_joint_noise:
+        tested = None  # no estimator mends a model that does not fit the data: the verdict says so
     if tested is not None and tested["test"].holds:
         choice |= {"reason": tested["test"].describe(), "evidence": tested["evidence"]}
     elif tested is not None:  # model error: the plain loop-closure fit (eq. 3.8), screened alike, sandwich error bars
@@ -270,6 +281,11 @@ def _calibrate(
         fit.iterations += spent
         r, J = fit.stage.fun(fit.x[fit.est], True)
         evidence = tested["evidence"] | {"left_out_rms_plain": loo_prediction(problem, fit.x, fit.est, r, J)}
+        if tested["test"].sigma_hat > VerdictRules().plausible_joint_noise:
+            fit.warnings.append(
+                f"the errors-in-variables fit implies {tested['test'].sigma_hat:.3g} rad of joint noise, more than "
+                "encoders give: the model misses an effect of that size (elasticity, gearing, backlash)"
+            )
         choice = {"estimator": PLAIN, "reason": tested["test"].describe(), "error_bars": SANDWICH}
         choice["evidence"] = evidence
     notes.insert(0, f"estimator: {choice['estimator']} ({choice['reason']}); error bars from {choice['error_bars']}")
@@ -320,7 +336,7 @@ def _calibrate(
         estimator=choice["estimator"],
         estimator_reason=choice["reason"],
         error_bars=choice["error_bars"],
-        model_error=choice["evidence"],
+        model_error=choice["evidence"] | {"sandwich_variance_ratio": a["sandwich_ratio"]},
     )
     # what sets the scale, each loop's noise model (closedloop.analysis.scale)
     res = replace(res, **scale_findings(res, fit.sigma_q, structure.scale_free, opt.snr))
@@ -328,10 +344,6 @@ def _calibrate(
     profiles, bar_warnings = check_error_bars(res, fit)
     res = replace(res, profiles=profiles, warnings=res.warnings + bar_warnings)
     return replace(res, verdict=judge(res))
-
-
-EIV, PLAIN = "errors in variables", "plain least squares"
-NOISE_MODEL, SANDWICH = "the noise model", "the sandwich covariance by configuration"
 
 
 def test_noise_hypothesis(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions) -> dict | None:
