@@ -138,3 +138,26 @@ def test_neighbour_correlation_sees_a_smooth_misfit(ur5):
     noise = rng.standard_normal(1200)
     assert neighbour_correlation(prob, smooth) > 0.6
     assert abs(neighbour_correlation(prob, noise)) < 0.15
+
+
+def test_error_bars_hold_under_model_error(ur5):
+    """Eight calibrations on fresh configurations of the same robot with the cyclic encoder error: the
+    sandwich standard errors against the spread of the estimates, mean z^2 within [0.5, 2]."""
+    robot, joints = ur5
+    rng = np.random.default_rng(11)
+    _, truth = dataset(robot, joints, cyclic, 10, rng)
+    runs = []
+    for _ in range(8):
+        log_, _ = dataset(robot, joints, cyclic, 80, rng, truth)
+        res = calibrate(robot, log_, [MeasuredPointLoop("m", "tool0")])
+        assert res.error_bars == SANDWICH
+        runs.append({res.names[k]: (res.values[k], res.std[k]) for k in res.estimated})
+    names = [n for n in set.intersection(*(set(r) for r in runs)) if not n.startswith("m.")]
+    z2 = []
+    for n in names:
+        x = np.array([r[n][0] for r in runs])
+        se = np.array([r[n][1] for r in runs])
+        if np.all(np.isfinite(se)):
+            z2.append(np.mean(((x - x.mean()) / se) ** 2) * len(runs) / (len(runs) - 1))
+    assert len(z2) >= 12
+    assert 0.5 <= np.mean(z2) <= 2.0, np.mean(z2)

@@ -117,5 +117,8 @@ def test_model_error_found_and_said(real):
     assert res.error_bars == SANDWICH
     assert "joint noise does not explain the residual" in res.estimator_reason
     assert res.notes[0].startswith(f"estimator: {PLAIN}")
+    # too few configurations per parameter for the sandwich: the verdict says the error bars are not reliable
+    assert res.verdict.status == "suspect"
+    assert any("error bars are not reliable" in x for x in res.verdict.reasons)
     # errors in variables as asked says nothing was decided
     assert out["eiv"]["result"].estimator_reason == "as asked"

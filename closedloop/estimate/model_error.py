@@ -24,9 +24,8 @@ Where the noise hypothesis fails the calibration is the plain loop-closure
 fit (eq. 3.8), with the same outlier screen (a robust loss).
 
 Where the residual is not the assumed noise, the error bars are the sandwich
-(Huber-White) covariance clustered by configuration, with each
-configuration's left-out residual (the jackknife's, HC3):
-Cov = A^+ (sum_c J_c^T r~_c r~_c^T J_c) A^+, A = J^T J.
+(Huber-White) covariance clustered by configuration (`sandwich_cov`):
+Cov = c A^+ (sum_c J_c^T r_c r_c^T J_c) A^+, A = J^T J.
 """
 
 from __future__ import annotations
@@ -155,15 +154,22 @@ def loo_prediction(problem: CalibrationProblem, x: np.ndarray, est: list[int], r
 def sandwich_cov(
     problem: CalibrationProblem, r: np.ndarray, J: np.ndarray, scale: np.ndarray, V: np.ndarray, S: np.ndarray
 ) -> np.ndarray:
-    """The sandwich (Huber-White) covariance clustered by configuration, jackknife residuals (HC3).
+    """The sandwich (Huber-White) covariance clustered by configuration, with the usual small-sample factor.
 
-    `V`, `S`: the kept right singular vectors and values of the scaled J (the directions the fit
-    determines); A^+ = V S^-2 V^T.  Returns the covariance in the parameters' own units.
+    Cov = c A^+ (sum_g J_g^T r_g r_g^T J_g) A^+, the sum over the configurations g (all rows of one
+    configuration in a block), c = G/(G-1) (N-1)/(N-p) (CR1: G configurations, N rows, p parameters).
+    `V`, `S`: the kept right singular vectors and values of the scaled J (the directions the fit determines);
+    A^+ = V S^-2 V^T.  A block without configurations (a known distance) is one cluster.  Returns the
+    covariance in the parameters' own units.
     """
     Ainv = (V / S**2) @ V.T
     Js = J * scale
     meat = np.zeros_like(Ainv)
-    for (at, n, m), (rt, _) in zip(_config_rows(problem), left_out(problem, r, J, Ainv, scale)):
-        g = np.einsum("nip,ni->np", Js[at : at + n * m].reshape(n, m, -1), rt)  # J_c^T r~_c
-        meat += g.T @ g
-    return Ainv @ meat @ Ainv * np.outer(scale, scale)
+    G = 0
+    for at, n, m in _config_rows(problem):
+        g = np.einsum("nip,ni->np", Js[at : at + n * m].reshape(n, m, -1), r[at : at + n * m].reshape(n, m))
+        meat += g.T @ g  # J_g^T r_g per configuration
+        G += n
+    N, p = r.size, S.size
+    c = G / max(G - 1, 1) * (N - 1) / max(N - p, 1)
+    return c * Ainv @ meat @ Ainv * np.outer(scale, scale)
