@@ -80,6 +80,8 @@ class VerdictRules:
     heldout_failed: float = 30.0
     reducible_suspect: float = 0.1  # share of the final cost a Gauss-Newton step would still remove
     reducible_failed: float = 0.5
+    error_bar_ratio: float = 2.25  # sandwich / noise-model variance beyond this (1.5x in standard error): unreliable
+    sandwich_configurations: float = 3.0  # configurations per estimated parameter a sandwich covariance needs
 
 
 def length_scale(result: CalibrationResult) -> float:
@@ -270,6 +272,39 @@ def size_finding(result: CalibrationResult) -> tuple[bool, str | None, str | Non
     return False, held, f"{SIZE_NOT_MEASURED}: {why}"
 
 
+ROUND_OFF_NOISE = 1e-9  # rad: a fit that implies less joint noise closes exact data (`_error_bars`)
+
+
+def _error_bars(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -> None:
+    """Do the standard errors hold?  From the noise model: its variances and the sandwich's (the residual's own
+    spread between configurations, `closedloop.estimate.model_error`) agree within `error_bar_ratio`.  From
+    the sandwich: at least `sandwich_configurations` configurations per estimated parameter."""
+    from closedloop.estimate.model_error import SANDWICH
+
+    ratio = (getattr(result, "model_error", None) or {}).get("sandwich_variance_ratio")
+    n_conf = sum(b.theta.shape[0] for b in result.problem.blocks if not getattr(b.loop, "parameter_only", False))
+    p = len(result.estimated)
+    if getattr(result, "error_bars", None) == SANDWICH:
+        verdict.evidence["error_bars"] = "sandwich"
+        if n_conf < rules.sandwich_configurations * p:
+            verdict.add(
+                SUSPECT,
+                f"the error bars are not reliable: the residual is not joint noise, and the sandwich covariance "
+                f"rests on {n_conf} configurations for {p} parameters (fewer than {rules.sandwich_configurations:g} "
+                "each)",
+            )
+        return
+    if ratio is None or not np.isfinite(ratio) or p == 0 or result.sigma < ROUND_OFF_NOISE:
+        return  # exact data: the residual is round-off, its spread no measure of anything
+    verdict.evidence["sandwich_variance_ratio"] = ratio
+    if not 1.0 / rules.error_bar_ratio <= ratio <= rules.error_bar_ratio:
+        verdict.add(
+            SUSPECT,
+            f"the error bars are not reliable: the residual's spread between configurations gives variances "
+            f"{ratio:.3g} times the noise model's",
+        )
+
+
 def judge(
     result: CalibrationResult,
     validation: dict | None = None,
@@ -290,6 +325,7 @@ def judge(
         [r for r, k in zip(result.residuals_before, own) if k], [r for r, k in zip(result.residuals_after, own) if k], v
     )
     _noise(result, rules, v)
+    _error_bars(result, rules, v)
     _changes(result, rules, v)
     total = result.rows_total
     rejected = len(gross_rejections(result))

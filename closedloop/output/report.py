@@ -251,6 +251,13 @@ def build_report(
         "shared_parameters": _shared(prob),
         "rejected": [asdict(r) | {"where": where(r.row)} for r in res.rejected],
         "weighting": res.weighting,
+        # which estimator the data support and why, where the standard errors come from (estimate.model_error)
+        "estimator": {
+            "name": getattr(res, "estimator", None),
+            "reason": getattr(res, "estimator_reason", None),
+            "error_bars": getattr(res, "error_bars", None),
+            "evidence": dict(getattr(res, "model_error", {}) or {}),
+        },
         "robust": {
             "suspects": [
                 {
