@@ -350,8 +350,18 @@ class _Signal(KeyboardInterrupt):
         self.signum = signum
 
 
+#: signals that arrived during the current run (a real Ctrl-C or SIGTERM, not a KeyboardInterrupt raised by code)
+_RECEIVED: list[int] = []
+
+
 def _raise_signal(signum, _frame):
+    _RECEIVED.append(signum)
     raise _Signal(signum)
+
+
+def _raise_interrupt(signum, _frame):
+    _RECEIVED.append(signum)
+    raise KeyboardInterrupt
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -365,9 +375,12 @@ def main(argv: list[str] | None = None) -> int:
     own_process = argv is None  # run as the program (not called by a test or a script)
     argv = join_negative_numbers(list(sys.argv[1:] if argv is None else argv))
     handlers = {}
+    _RECEIVED.clear()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGHUP):
             handlers[sig] = signal.signal(sig, _raise_signal)
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not when ignored (a background job)
+            handlers[signal.SIGINT] = signal.signal(signal.SIGINT, _raise_interrupt)
     verbose = "-v" in argv or "--verbose" in argv
     if verbose:  # accepted before or after the subcommand: the top-level flag
         argv = ["-v"] + [a for a in argv if a not in ("-v", "--verbose")]
@@ -401,6 +414,8 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         code = 128 + signum if signum else 130
+        if _RECEIVED and not own_process:  # a real signal to a caller's process (a script, a test run): it
+            raise  # stops the caller too, after the cleanups ran and the line was printed
         if own_process:  # the interpreter would kill itself with SIGINT at exit (exit -2) had the interrupt
             _exit_now(code)  # landed in a C extension's import; our cleanups have run: leave with the code
         return code
