@@ -160,7 +160,7 @@ def test_peak_velocity_alignment_recovers_jitter(quiet):
 
 
 def test_alignment_invents_shifts_on_periodic_perturbed_data(sim):
-    """The trap of the issue: perfectly periodic cycles, strong perturbations; peak-velocity + RMS
+    """The alignment trap: perfectly periodic cycles, strong perturbations; peak-velocity + RMS
     re-alignment shifts them anyway, within the limit, and the diagnostics say so."""
     ens = segment(sim.record, onsets_from_events(sim.record), align="peak-velocity+rms", max_shift_s=0.05)
     rep = ens.alignment.summary()
