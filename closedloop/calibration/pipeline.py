@@ -266,18 +266,18 @@ def _calibrate(
     if problem.keeps_jacobians:  # the solve's first J, taken first: the screen and `before` read it (the memo)
         problem.evaluate(x0, True, columns=structure.kept)
     before, start, structure0 = residual_stats(problem, problem.evaluate(x0, False)), problem, structure
+    notes0 = list(notes)  # a re-solve with another estimator writes its own notes
     problem, fit, structure, rejected, suspects = solve_screened(
         problem, x0, free, structure, opt, sigma_q, known, len(log_), notes, progress, row_name=log_.where
     )
     choice = {"estimator": EIV if fit.stage.fun.weighting == "noise" else PLAIN, "reason": "as asked"}
     choice |= {"error_bars": NOISE_MODEL, "evidence": {}}
-    tested = test_noise_hypothesis(problem, fit, opt)
-    if tested is not None and tested["test"].sigma_hat > VerdictRules().failed_joint_noise:
-        tested = None  # no estimator mends a model that does not fit the data: the verdict says so
-    if tested is not None and tested["test"].holds:
+    tested = noise_hypothesis(problem, fit, opt)
+    if tested is not None and (tested["test"].holds or tested["test"].sigma_hat > VerdictRules().failed_joint_noise):
+        # beyond 0.01 rad no estimator mends a model that does not fit the data: kept, and the verdict says so
         choice |= {"reason": tested["test"].describe(), "evidence": tested["evidence"]}
     elif tested is not None:  # model error: the plain loop-closure fit (eq. 3.8), screened alike, sandwich error bars
-        spent = fit.iterations
+        spent, notes[:] = fit.iterations, notes0
         problem, fit, structure, rejected, suspects = solve_screened(
             start, x0, free, structure0, replace(opt, weighting="none"), sigma_q, known, len(log_), notes, progress
         )
@@ -349,7 +349,7 @@ def _calibrate(
     return replace(res, verdict=judge(res))
 
 
-def test_noise_hypothesis(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions) -> dict | None:
+def noise_hypothesis(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions) -> dict | None:
     """Does joint noise explain the errors-in-variables fit's residual (`closedloop.estimate.model_error`)?
 
     The joint noise the weighted residual implies against the noise given, or a plausible encoder noise
