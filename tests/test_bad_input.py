@@ -383,7 +383,7 @@ CASES = [
         "html-without-matplotlib",
         "missing extra",
         calib("--html", "{tmp}/r.html"),
-        ["--html/--plots need matplotlib"],
+        ["--html: needs matplotlib", 'pip install ".[report]"'],
         hide=("matplotlib",),
     ),
     # ------------------------------------------------------------------ bags

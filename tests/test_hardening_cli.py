@@ -537,12 +537,6 @@ CASES = [
         ["--max-shift-ms -5", ">= 0"],
     ),
     Case(
-        "impedance-plot-format",
-        ["impedance", "identify", "{tmp}/d.csv", "--plot", "{tmp}/f.pdfx"],
-        2,
-        ["f.pdfx", ".png, .svg, .pdf"],
-    ),
-    Case(
         "impedance-noise-negative",
         ["impedance", "simulate", "--noise", "-1", "--out", "{tmp}/o"],
         2,
@@ -993,7 +987,7 @@ def test_outputs_written_as_a_set_model_before_report(panda_files, tmp_path, mon
         ]
     )
     assert rc == 0
-    assert order == ["cal.urdf", "rep.json"]
+    assert order == ["cal.urdf", "cal.sensors.yaml", "rep.json"]  # the model and its sensor file first
     assert json.loads((tmp_path / "rep.json").read_text())["solver"]["status"] == "converged"
     assert "<robot" in (tmp_path / "sub" / "cal.urdf").read_text()
     assert not list(tmp_path.rglob(".closedloop-*"))

@@ -37,9 +37,6 @@ def test_simulate_identify_round_trip(sim_dir, tmp_path, capsys):
     assert (figs / "impedance.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     text = capsys.readouterr().out
     assert "free-run VAF" in text and "expected error (bootstrap std)" in text
-    fig = tmp_path / "f.svg"  # the old one-file spelling still works
-    assert main(["impedance", "identify", str(out / "data.csv"), "--bootstrap", "0", "--plot", str(fig)]) == 0
-    assert fig.read_text().lstrip().startswith("<?xml")
 
 
 def test_errors_are_one_line_exit_2(tmp_path, capsys):

@@ -275,6 +275,15 @@ def size_finding(result: CalibrationResult) -> tuple[bool, str | None, str | Non
 ROUND_OFF_NOISE = 1e-9  # rad: a fit that implies less joint noise closes exact data (`_error_bars`)
 
 
+def _noise_free(result: CalibrationResult) -> bool:
+    """Every loop closes below `FLOOR` after the fit: noise-free data (or round-off), whatever the joint noise the
+    fit implies through a known length's own sigma."""
+    return all(
+        all(v is None or v < FLOOR[k] for k, v in (("rms_m", r.rms_m), ("rms_rad", r.rms_rad), ("rms_px", r.rms_px)))
+        for r in result.residuals_after
+    )
+
+
 def _error_bars(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -> None:
     """Do the standard errors hold?  From the noise model: its variances and the sandwich's (the residual's own
     spread between configurations, `closedloop.estimate.model_error`) agree within `error_bar_ratio`.  From
@@ -294,7 +303,7 @@ def _error_bars(result: CalibrationResult, rules: VerdictRules, verdict: Verdict
                 "each)",
             )
         return
-    if ratio is None or not np.isfinite(ratio) or p == 0 or result.sigma < ROUND_OFF_NOISE:
+    if ratio is None or not np.isfinite(ratio) or p == 0 or result.sigma < ROUND_OFF_NOISE or _noise_free(result):
         return  # exact data: the residual is round-off, its spread no measure of anything
     verdict.evidence["sandwich_variance_ratio"] = ratio
     if not 1.0 / rules.error_bar_ratio <= ratio <= rules.error_bar_ratio:

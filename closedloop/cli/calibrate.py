@@ -151,15 +151,23 @@ def cmd_calibrate(args) -> int:
     failed = res.verdict.status == "failed"
     write_out = args.out and (not failed or args.force)
     report["outputs"] = {"model": str(args.out) if write_out else None}  # `closedloop evaluate --calibration`
-    with OutputSet(order=[args.out if write_out else None, args.report]):  # published whole, model first
+    from closedloop.output.report import sensors_path, write_sensors
+
+    sensors = sensors_path(args.out) if write_out else None
+    # published whole: the model and its sensor file first, the report last
+    with OutputSet(order=[args.out if write_out else None, sensors, args.report]):
         if args.report:
             write_report(report, args.report)
         if write_out:
             from closedloop.output.urdf import tool_frames
 
             write_model(robot, res.as_dict(), args.out, frames=tool_frames(res))  # with the tool point
+            kind = "dh" if str(args.out).endswith((".yaml", ".yml")) else "urdf"
+            sensors = write_sensors(res, args.out, kind)  # what the model file cannot carry (None: nothing)
     if not args.quiet:
         print_summary(res, elapsed, args, report, wrote_model=bool(write_out))
+        if sensors is not None:
+            print(f"  wrote {sensors}")
     from closedloop.cli.tools import write_figures
 
     write_figures(res, report, args, row_name=lg.where)  # --html / --plots

@@ -79,7 +79,6 @@ def add_parser(subparsers) -> None:
     i.add_argument("--posture", action="append", default=[], metavar="FILE", help="posture record (repeatable)")
     i.add_argument("--out", metavar="FILE", help="results table, .csv or .json (written whole, never onto an input)")
     i.add_argument("--plots", metavar="DIR", help="write the figure as DIR/impedance.png")
-    i.add_argument("--plot", help=argparse.SUPPRESS)  # one figure file (.png, .svg, .pdf); --plots is the spelling
     i.add_argument("--seed", default="0", help="bootstrap and fold seed, a whole number >= 0 (default 0)")
     i.set_defaults(func=cmd_identify)
 
@@ -273,14 +272,10 @@ def _check_identify_options(args: argparse.Namespace) -> None:
     from closedloop.impedance.data import parse_columns
 
     args.columns = parse_columns(args.columns)
-    for opt_name, path, kinds in (
-        ("--plot", args.plot, (".png", ".svg", ".pdf")),
-        ("--out", args.out, (".csv", ".json")),
-    ):
-        if path and Path(path).suffix.lower() not in kinds:
-            raise InputError(f"{opt_name} {path}: give a {', '.join(kinds)} file")
-    if args.plot or args.plots:
-        _need("matplotlib", "--plots" if args.plots else "--plot")
+    if args.out and Path(args.out).suffix.lower() not in (".csv", ".json"):
+        raise InputError(f"--out {args.out}: give a .csv, .json file")
+    if args.plots:
+        _need("matplotlib", "--plots")
     from closedloop.impedance.data import is_hdf5
 
     for f in [args.data, *args.posture]:
@@ -288,7 +283,7 @@ def _check_identify_options(args: argparse.Namespace) -> None:
             _need("h5py", f"{f} (an HDF5 record)")
     onsets = args.segment[7:] if args.segment.startswith("onsets:") else None
     inputs = [args.data, args.truth, onsets, *args.posture]
-    check_outputs({"--out": args.out, "--plot": args.plot}, inputs)
+    check_outputs({"--out": args.out}, inputs)
     check_outputs({"--plots": args.plots}, inputs, directory=True)
     if args.plots:
         check_outputs({"--plots": str(Path(args.plots) / "impedance.png")}, inputs)
@@ -415,7 +410,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
     print("\n".join(out))
     for w in warnings:
         print(f"  warning: {w}", file=sys.stderr)
-    fig = args.plot or (str(Path(args.plots) / "impedance.png") if args.plots else None)
+    fig = str(Path(args.plots) / "impedance.png") if args.plots else None
     with OutputSet(order=[args.out, fig]):  # published together, whole
         if args.out:
             write_results(args.out, est, bands, fit, summary)
