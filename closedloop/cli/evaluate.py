@@ -316,6 +316,8 @@ def lend_frames(robots: list, loops_specs: list[str]) -> list[str]:
         wanted += [
             v.strip().strip("\"'") for v in re.findall(r"(?:^|,)\s*(?:frame|to)\s*=\s*([^,]+)", s.partition(":")[2])
         ]
+    from closedloop.model.robot import find_frame
+
     notes = []
     for name in dict.fromkeys(wanted):
         have = [r for r in robots if r.model.existFrame(name)]
@@ -323,7 +325,7 @@ def lend_frames(robots: list, loops_specs: list[str]) -> list[str]:
         if not have or not lack:
             continue
         src = have[0].model
-        f = src.frames[src.getFrameId(name)]
+        f = src.frames[find_frame(src, name)]
         for r in lack:
             parent = src.frames[f.parentFrame]  # the nearest frame up the tree that this model has too
             while parent.name != "universe" and not r.model.existFrame(parent.name):
@@ -331,7 +333,7 @@ def lend_frames(robots: list, loops_specs: list[str]) -> list[str]:
             if parent.parentJoint != f.parentJoint:
                 continue  # a joint between them: not a fixed frame of a shared parent
             rel = parent.placement.inverse() * f.placement  # the frame on its parent frame
-            pid = r.model.getFrameId(parent.name)
+            pid = find_frame(r.model, parent.name)
             p = r.model.frames[pid]
             r.model.addFrame(pin.Frame(name, p.parentJoint, pid, p.placement * rel, pin.FrameType.OP_FRAME))
             notes.append(f"frame '{name}' of {have[0].source} lent to {r.source} (on '{parent.name}')")

@@ -55,6 +55,7 @@ from closedloop.loops.projection import eliminate_along, projector
 from closedloop.loops.spec import register
 from closedloop.loops.weld import CLOSURE_FIELDS
 from closedloop.model.parameters import DEFAULT_PRIORS, PLACEMENT_FIELDS, Parameter
+from closedloop.model.robot import find_frame
 from closedloop.model.se3 import adjoint, rigid_inverse, skew
 
 MAX_PASSIVE_DOF = 5
@@ -207,7 +208,7 @@ class PassiveChainLoop(Loop):
                 f"(frames: {', '.join(names)})"
             )
         self.task_frame = task_frame
-        self.fid = self.model.getFrameId(task_frame)
+        self.fid = find_frame(self.model, task_frame)
         self.task_joints = [self.model.names[j] for j in range(1, self.model.njoints)]
         if "grasp" in self.task_joints:
             raise LoopError(f"passive loop '{name}': a task joint named 'grasp' clashes with the grasp parameters")

@@ -47,6 +47,16 @@ class JointInfo:
         return "m" if self.kind == "prismatic" else "rad"
 
 
+def find_frame(model: pin.Model, name: str) -> int:
+    """The id of frame `name` in a Pinocchio model; where a joint and a link share the name (URDF allows it:
+    Pinocchio then has a joint frame and a body frame of that name), the link's (a loop's frame is a link)."""
+    ids = [i for i, f in enumerate(model.frames) if f.name == name]
+    if len(ids) > 1:
+        bodies = [i for i in ids if model.frames[i].type == pin.FrameType.BODY]
+        return bodies[0] if bodies else ids[0]
+    return model.getFrameId(name)
+
+
 class RobotModel:
     """The nominal kinematic model of a robot."""
 
@@ -153,7 +163,7 @@ class RobotModel:
         if not self.model.existFrame(name):
             names = [f.name for f in self.model.frames]
             raise ModelError(f"unknown frame '{name}'{_suggest(name, names)}")
-        return self.model.getFrameId(name)
+        return find_frame(self.model, name)
 
     def supporting_joints(self, frame: str) -> list[str]:
         """Movable joints between the base and `frame`, base first; a coupled joint (URDF ``<mimic>``) is

@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from closedloop.model.robot import find_frame
 from closedloop.models import ROBOTS, nominal_urdf
 from closedloop.sims.outputs import with_visuals
 from closedloop.sims.scenarios import CAMERA_LOOP, CAMERA_SCENARIOS, CameraScenario
@@ -225,7 +226,7 @@ def _readings(robot, sc: CameraScenario, n: int, rng: np.random.Generator) -> np
         th[i, arm] = np.asarray(sc.q0) + rng.uniform(-sc.arm_range, sc.arm_range, len(arm))
         q = robot.configurations(th[i : i + 1], names)[0]
         pin.framesForwardKinematics(m, d, q)
-        x = d.oMf[m.getFrameId("tool0")].act(MARKER)
+        x = d.oMf[find_frame(m, "tool0")].act(MARKER)
         for side in CAMERAS:
             th[i, names.index(f"cam_{side}_pan")] = pan_towards(robot, q, names, x, side) + rng.uniform(
                 -sc.jitter, sc.jitter

@@ -54,6 +54,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ScenarioError
+from closedloop.model.robot import find_frame
 from closedloop.sims.loop_types import sim_loop
 from closedloop.sims.qp import min_norm_step, solve_box_qp, svd_full
 from closedloop.sims.scenarios import LoopType
@@ -96,7 +97,7 @@ class NominalLoop:
         self.n_arm = model.nq
         if not self.model.existFrame(tool_frame):
             raise ScenarioError(f"frame {tool_frame!r} not in the nominal model")
-        self.tool = self.model.getFrameId(tool_frame)
+        self.tool = find_frame(self.model, tool_frame)
         data = self.model.createData()
         pin.framesForwardKinematics(self.model, data, np.asarray(r0, dtype=float))
         oMt0 = data.oMf[self.tool].copy()

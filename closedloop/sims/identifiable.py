@@ -34,7 +34,7 @@ from closedloop.analysis.observability import whitened_blocks
 from closedloop.analysis.selection import check_motion, initial_values, select_parameters
 from closedloop.errors import NotIdentifiableError
 from closedloop.loops.base import Loop
-from closedloop.model.robot import RobotModel
+from closedloop.model.robot import RobotModel, find_frame
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
 
 __all__ = [
@@ -195,7 +195,7 @@ def tool_points(robot: RobotModel, frame: str, q: np.ndarray) -> np.ndarray:
     """(N, 3) positions in the base of frame `frame` at the configurations `q` (N, nq): forward kinematics."""
     model = robot.model
     data = model.createData()
-    fid = model.getFrameId(frame)
+    fid = find_frame(model, frame)
     out = np.empty((len(q), 3))
     for i, qi in enumerate(q):
         pin.framesForwardKinematics(model, data, qi)

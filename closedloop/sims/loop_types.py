@@ -55,6 +55,7 @@ import pinocchio as pin
 
 from closedloop.errors import LoopError, ScenarioError
 from closedloop.loops.spec import LOOP_TYPES, loop_type
+from closedloop.model.robot import find_frame
 from closedloop.sims.environment import (
     DOOR_JOINT,
     DOOR_PREFIX,
@@ -264,8 +265,8 @@ class WeldSim(SimLoop):
         model = loop.model
         if not model.existFrame(target_frame):
             raise ScenarioError(f"frame {target_frame!r} not in the nominal model")
-        fb = model.frames[model.getFrameId(target_frame)]
-        placement = fb.placement * data.oMf[model.getFrameId(target_frame)].actInv(oMt0)
+        fb = model.frames[find_frame(model, target_frame)]
+        placement = fb.placement * data.oMf[find_frame(model, target_frame)].actInv(oMt0)
         return model.addFrame(pin.Frame("loop_target", fb.parentJoint, placement, pin.FrameType.OP_FRAME))
 
 
@@ -362,7 +363,7 @@ class HingeSim(SimLoop):
         model = pin.buildModelFromUrdf(str(nominal_path))
         data = model.createData()
         pin.framesForwardKinematics(model, data, np.asarray(sc.q0, dtype=float))
-        H = door_hinge_pose(data.oMf[model.getFrameId(sc.tool_frame)], sc.door)
+        H = door_hinge_pose(data.oMf[find_frame(model, sc.tool_frame)], sc.door)
         return HingeLoop(sc.loop_name, sc.tool_frame, axis=(H.translation.copy(), H.rotation[:, 2].copy()))
 
 

@@ -39,6 +39,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import InputError
+from closedloop.model.robot import find_frame
 from closedloop.sims.loop_types import sim_loop
 
 log = logging.getLogger(__name__)
@@ -253,8 +254,8 @@ def choose_q0(model, loop_type: str, frame: str, to: str | None, n_samples: int 
     data = model.createData()
     lo, hi = np.maximum(model.lowerPositionLimit, -np.pi), np.minimum(model.upperPositionLimit, np.pi)
     mid, half = 0.5 * (lo + hi), 0.35 * (hi - lo)
-    fa = model.getFrameId(frame)
-    fb = model.getFrameId(to) if to is not None else None
+    fa = find_frame(model, frame)
+    fb = find_frame(model, to) if to is not None else None
     pin.framesForwardKinematics(model, data, mid)
     reach = max(float(np.linalg.norm(data.oMf[fa].translation)), 0.1)
     rng = np.random.default_rng(seed)

@@ -45,6 +45,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ScenarioError
+from closedloop.model.robot import find_frame
 from closedloop.sims.driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
 from closedloop.sims.loop_types import sim_loop
 from closedloop.sims.scenarios import Scenario, SimSettings
@@ -213,7 +214,7 @@ def plan_selected(
         if model is None:
             raise ScenarioError(f"{sc.name}: measured loops need the nominal model")
         data = model.createData()
-        fid = model.getFrameId(sc.tool_frame)
+        fid = find_frame(model, sc.tool_frame)
         points = np.empty((size, 3))
         for i, q in enumerate(pool):
             pin.framesForwardKinematics(model, data, q[:nj])
