@@ -331,7 +331,7 @@ CASES = [
         "length-zero",
         "option value",
         calib("--length", "panda_link2", "panda_link4", "0"),
-        ["a length and its SIGMA are > 0"],
+        ["the length and its SIGMA must be positive"],
     ),
     Case(
         "extract-gap-negative",

@@ -414,9 +414,9 @@ class _Summary:
         self.rows: list[dict] = []
         self.stream = not is_special(path)
 
-    def add(self, row: dict) -> None:
+    def add(self, row: dict, publish: bool = True) -> None:
         self.rows.append(row)
-        if self.stream:
+        if self.stream and publish:
             self._write(self.rows)
 
     def finish(self, rows: list[dict]) -> None:
@@ -457,7 +457,7 @@ def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=N
         else:
             results[j.name] = done
             rows[j.name] = {**done["row"], "resumed": "yes"}
-            sink.add(rows[j.name])
+            sink.add(rows[j.name], publish=False)  # (published with the first job that finishes)
     failed = []
     for out in imap(run_job, todo, engine, progress=progress):
         j = todo[out.index]
