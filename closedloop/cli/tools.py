@@ -332,7 +332,7 @@ def scenario_help() -> str:
     """The built-in scenarios (read from the shipped YAML files, without importing the simulator)."""
     import yaml
 
-    d = Path(__file__).parent / "sims" / "scenarios"
+    d = Path(__file__).resolve().parents[1] / "sims" / "scenarios"
     lines = ["scenarios (closedloop/sims/scenarios/*.yaml; or give your own YAML file, or --robot/--loop):"]
     for f in sorted(d.glob("*.yaml")):
         try:
