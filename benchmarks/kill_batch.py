@@ -5,7 +5,7 @@ finished after the kill, none half written; SIGINT/SIGTERM end with one line and
 
 Each round starts a fresh batch of `--jobs` 200-row weld calibrations (10 folds each) on a 2-worker
 local pool and sends SIGKILL, SIGINT (to the process group, as Ctrl-C) or SIGTERM (to the batch) after
-a delay drawn uniformly over 0.5-8 s after the start (pool starting, jobs running, jobs finishing).
+a delay drawn uniformly over 0.3-4 s after the start (pool starting, jobs running, jobs finishing).
 Prints one line per round and the totals.
 """
 
@@ -117,7 +117,7 @@ def main() -> None:
         for k in range(args.kills):
             work = Path(tmp) / f"r{k}"
             work.mkdir()
-            r = one_round(manifest, hows[k % 3], float(rng.uniform(0.5, 8.0)), work)
+            r = one_round(manifest, hows[k % 3], float(rng.uniform(0.3, 4.0)), work)
             rows.append(r)
             print(
                 f"{r['how']:<8} after {r['delay']:4.1f} s: exit {r['rc']:>4}, {r['workers_seen']} processes seen, "
