@@ -331,7 +331,7 @@ CASES = [
         "length-zero",
         "option value",
         calib("--length", "panda_link2", "panda_link4", "0"),
-        ["a length and its SIGMA are > 0"],
+        ["the length and its SIGMA must be positive"],
     ),
     Case(
         "extract-gap-negative",
@@ -563,8 +563,9 @@ def render(rows: list[tuple[Case, str]]) -> str:
         "* An output that is a device or a named pipe (`--report /dev/stdout`, a FIFO) is written into in",
         "  place; it is never replaced by a regular file.  `batch --summary` on a pipe gets the final table.",
         "* Outputs are staged in unnamed files in the target's folder, fsynced, then renamed into place:",
-        "  on a full disk the command ends with `error: No space left on device` (exit 2) and the previous",
-        "  files stay as they were, with no partial file beside them.",
+        "  on a full disk the command ends with `error: FILE: No space left on device` (exit 2) and the",
+        "  previous files stay as they were, with no partial file beside them (`tests/test_output_rule.py`,",
+        "  on a 64 KiB tmpfs).",
         "",
     ]
     return "\n".join(lines)

@@ -349,13 +349,188 @@ option_args = st.tuples(
     ).map(lambda t: f'{t[0]}"{t[1]}"'),
 )
 
+# ----------------------------------------------------------------------------- manifests, configs, robot files, bags
+MANIFEST_KEYS = ["name", "model", "log", "out", "loops", "cv", "noise", "snr", "max_iter", "weighting", "robust"]
+MANIFEST_KEYS += ["degrees", "fix", "bounds", "identify", "options", "robot", "date", "gap"]
+
+
+@st.composite
+def manifests(draw):
+    """Batch manifests (YAML text): a valid job with fuzzed values in some keys, or fuzzed documents."""
+    if draw(st.integers(0, 7)) == 0:
+        return draw(st.text(max_size=80))
+    jobs = []
+    for i in range(draw(st.integers(0, 3))):
+        job = {"name": f"j{i}", "model": "m.urdf", "log": "l.csv", "out": f"o/j{i}"}
+        for _ in range(draw(st.integers(0, 3))):
+            key = draw(st.sampled_from(MANIFEST_KEYS))
+            job[key] = draw(st.one_of(scalars, json_values, number_texts))
+        if draw(st.integers(0, 9)) == 0:
+            job["name"] = "j0"  # a duplicate name
+        jobs.append(job)
+    doc = {"defaults": draw(st.one_of(st.just({}), json_values)) if draw(st.booleans()) else {}, "jobs": jobs}
+    return yaml.safe_dump(doc) if draw(st.integers(0, 9)) else yaml.safe_dump(draw(json_values))
+
+
+def manifest_property(text: str) -> str:
+    from closedloop.fleet.manifest import read_manifest
+
+    path = _DIR / "fuzz.yaml"
+    path.write_text(text, encoding="utf-8", errors="surrogatepass")
+    jobs = _only_input_errors(read_manifest, path)
+    if jobs is not None:  # every job: unique name, a whole number of folds, checked options
+        assert len({j.name for j in jobs}) == len(jobs) and all(j.cv == 0 or j.cv >= 2 for j in jobs)
+        for j in jobs:
+            for k in ("snr", "max_iter"):
+                assert k not in j.options or (np.isfinite(j.options[k]) and j.options[k] > 0)
+            assert "degrees" not in j.options or isinstance(j.options["degrees"], bool)
+    return "loaded" if jobs is not None else "refused"
+
+
+CONFIG_KEYS = ["report", "out", "snr", "cv", "max-iter", "noise", "loop", "fix", "bound", "degrees", "weighting"]
+
+
+def config_property(doc) -> str:
+    """A calibrate --config (the parser only: no calibration runs) is applied or refused in one line."""
+    import argparse
+
+    from closedloop.cli.main import build_parser
+    from closedloop.cli.tools import load_config
+
+    path = _DIR / "config.yaml"
+    path.write_text(yaml.safe_dump(doc) if not isinstance(doc, str) else doc, encoding="utf-8", errors="surrogatepass")
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices["calibrate"]
+    cfg = _only_input_errors(load_config, str(path), sub, "calibrate")
+    if cfg is not None:
+        for k in ("report", "out"):
+            assert cfg.get(k) is None or isinstance(cfg[k], str)
+        assert cfg.get("degrees") in (None, True, False)
+    return "loaded" if cfg is not None else "refused"
+
+
+config_docs = st.one_of(
+    st.dictionaries(st.sampled_from(CONFIG_KEYS), st.one_of(scalars, json_values, number_texts), max_size=4),
+    st.text(max_size=40),
+)
+
+URDF_PARTS = {
+    "xyz": ["0 0 0.1", "nan 0 0", "0 inf 0", "1 2", "${a} 0 0", "1e400 0 0", "a b c", ""],
+    "axis": ["0 0 1", "0 0 0", "1 0 0", "nan 0 1", "0 1"],
+    "type": ["revolute", "continuous", "prismatic", "fixed", "bogus", ""],
+    "parent": ["base", "l1", "l2", "l9", ""],
+    "child": ["l1", "l2", "base", "l9", ""],
+}
+
+
+@st.composite
+def urdf_texts(draw):
+    """Small URDFs: up to 4 joints between links base, l1, l2 with fuzzed origins, axes, types, ends."""
+    links = "".join(f'<link name="{n}"/>' for n in draw(st.lists(st.sampled_from(["base", "l1", "l2"]), max_size=4)))
+    joints = ""
+    for i in range(draw(st.integers(0, 4))):
+        v = {k: draw(st.sampled_from(opts)) for k, opts in URDF_PARTS.items()}
+        name = draw(st.sampled_from([f"j{i}", "j0"]))
+        joints += (
+            f'<joint name="{name}" type="{v["type"]}"><parent link="{v["parent"]}"/><child link="{v["child"]}"/>'
+            f'<origin xyz="{v["xyz"]}"/><axis xyz="{v["axis"]}"/>'
+            '<limit lower="-1" upper="1" effort="1" velocity="1"/></joint>'
+        )
+    text = f'<robot name="r">{links}{joints}</robot>'
+    if draw(st.integers(0, 9)) == 0:
+        k = draw(st.integers(0, len(text)))
+        text = text[:k] + draw(st.text(max_size=6)) + text[k:]
+    return text
+
+
+def urdf_property(text: str) -> str:
+    from closedloop.model.robot import RobotModel
+
+    path = _DIR / "fuzz.urdf"
+    path.write_text(text, encoding="utf-8", errors="surrogatepass")
+    robot = _only_input_errors(RobotModel.from_file, path)
+    if robot is not None:
+        assert all(np.linalg.norm(j.axis) > 0.5 for j in robot.joints.values())
+    return "loaded" if robot is not None else "refused"
+
+
+_BAGS: dict[str, bytes] = {}
+
+
+def _clean_bag(fmt: str) -> bytes:
+    """A small ROS 1 or MCAP bag of 3 standstills of 3 joints (written once)."""
+    if fmt not in _BAGS:
+        from rosbags.typesys import Stores, get_typestore
+
+        store = get_typestore(Stores.ROS1_NOETIC if fmt == "ros1" else Stores.ROS2_HUMBLE)
+        js = "sensor_msgs/msg/JointState"
+        JointState, Header = store.types[js], store.types["std_msgs/msg/Header"]
+        Time = store.types["builtin_interfaces/msg/Time"]
+        d = scratch_dir("bag-")
+        if fmt == "ros1":
+            from rosbags.rosbag1 import Writer
+
+            path, writer = d / "b.bag", None
+            writer = Writer(path)
+        else:
+            from rosbags.rosbag2 import StoragePlugin, Writer
+
+            path = d / "b"
+            writer = Writer(path, version=8, storage_plugin=StoragePlugin.MCAP)
+        with writer:
+            conn = writer.add_connection("/joint_states", js, typestore=store)
+            for k in range(300):  # 3 s at 100 Hz: three 1 s standstills
+                t_ns = 10**18 + k * 10**7
+                hdr = Time(sec=t_ns // 10**9, nanosec=t_ns % 10**9)
+                h = Header(seq=k, stamp=hdr, frame_id="") if fmt == "ros1" else Header(stamp=hdr, frame_id="")
+                q = np.full(3, float(k // 100))
+                msg = JointState(
+                    header=h, name=["j1", "j2", "j3"], position=q, velocity=np.zeros(3), effort=np.zeros(0)
+                )
+                raw = store.serialize_ros1(msg, js) if fmt == "ros1" else store.serialize_cdr(msg, js)
+                writer.write(conn, t_ns, raw)
+        f = path if path.is_file() else next(path.glob("*.mcap"))
+        _BAGS[fmt] = f.read_bytes()
+    return _BAGS[fmt]
+
+
+@st.composite
+def garbled_bags(draw):
+    fmt = draw(st.sampled_from(["ros1", "mcap"]))
+    data = bytearray(_clean_bag(fmt))
+    for _ in range(draw(st.integers(0, 3))):
+        k = draw(st.integers(0, len(data) - 1))
+        n = draw(st.sampled_from([1, 8, 64, 4096]))
+        data[k : k + n] = draw(st.binary(min_size=min(n, len(data) - k), max_size=min(n, len(data) - k)))
+    return fmt, bytes(data)
+
+
+def bag_property(case) -> str:
+    from closedloop.io.bags import extract
+
+    fmt, data = case
+    path = _DIR / ("fuzz.bag" if fmt == "ros1" else "fuzz.mcap")
+    path.write_bytes(data)
+    out = _only_input_errors(extract, path, ["j1", "j2", "j3"])
+    if out is not None:
+        lg, _ = out
+        assert np.all(np.isfinite(lg.angles)) and lg.angles.shape[1] == 3
+    return "loaded" if out is not None else "refused"
+
+
 PROPERTIES = {
     "dh": (dh_property, yaml_texts),
     "log": (log_property, csv_texts()),
     "check": (check_property, truth_and_report()),
     "json": (json_property, st.one_of(st.text(max_size=60), json_values.map(lambda v: json.dumps(v, allow_nan=True)))),
     "options": (options_property, option_args),
+    "manifest": (manifest_property, manifests()),
+    "config": (config_property, config_docs),
+    "urdf": (urdf_property, urdf_texts()),
+    "bag": (bag_property, garbled_bags()),
 }
+#: examples per property in the test (the bag reader is slower: fewer)
+TEST_EXAMPLES = {"bag": max(1, FUZZ_EXAMPLES // 5)}
 
 
 def run_property(name: str, max_examples: int = FUZZ_EXAMPLES) -> dict[str, int]:
@@ -377,5 +552,5 @@ def run_property(name: str, max_examples: int = FUZZ_EXAMPLES) -> dict[str, int]
 @pytest.mark.parametrize("name", sorted(PROPERTIES))
 def test_fuzz_loader(name):
     """Zero exceptions other than InputError; and the fuzzer reaches both outcomes (it is not trivial)."""
-    counts = run_property(name)
+    counts = run_property(name, TEST_EXAMPLES.get(name, FUZZ_EXAMPLES))
     assert counts.get("loaded", 0) > 0 and counts.get("refused", 0) > 0, counts

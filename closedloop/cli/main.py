@@ -350,17 +350,18 @@ class _Signal(KeyboardInterrupt):
         self.signum = signum
 
 
-#: signals that arrived during the current run (a real Ctrl-C or SIGTERM, not a KeyboardInterrupt raised by code)
-_RECEIVED: list[int] = []
+_received: list[int] = []  # the signals received during this command (a library may swallow the exception)
 
 
 def _raise_signal(signum, _frame):
-    _RECEIVED.append(signum)
+    _received.append(signum)
     raise _Signal(signum)
 
 
 def _raise_interrupt(signum, _frame):
-    _RECEIVED.append(signum)
+    """SIGINT as Python's own handler, remembered: numpy turns an interrupt in its C extension's import
+    into an ImportError, which must still end as an interruption."""
+    _received.append(signum)
     raise KeyboardInterrupt
 
 
@@ -375,12 +376,26 @@ def main(argv: list[str] | None = None) -> int:
     own_process = argv is None  # run as the program (not called by a test or a script)
     argv = join_negative_numbers(list(sys.argv[1:] if argv is None else argv))
     handlers = {}
-    _RECEIVED.clear()
+    _received.clear()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGHUP):
             handlers[sig] = signal.signal(sig, _raise_signal)
-        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not when ignored (a background job)
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # (not where SIGINT is ignored)
             handlers[signal.SIGINT] = signal.signal(signal.SIGINT, _raise_interrupt)
+
+    def interrupted(signum: int | None) -> int:
+        print(
+            ("\n" if sys.stderr.isatty() else "")
+            + "interrupted"
+            + (f" (signal {signum})" if signum and signum != signal.SIGINT else "")
+            + "; outputs not yet published were discarded",
+            file=sys.stderr,
+        )
+        code = 128 + signum if signum and signum != signal.SIGINT else 130
+        if own_process:  # the interpreter would kill itself with SIGINT at exit (exit -2) had the interrupt
+            _exit_now(code)  # landed in a C extension's import; our cleanups have run: leave with the code
+        return code
+
     verbose = "-v" in argv or "--verbose" in argv
     if verbose:  # accepted before or after the subcommand: the top-level flag
         argv = ["-v"] + [a for a in argv if a not in ("-v", "--verbose")]
@@ -402,22 +417,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: calibration failed: {_one_line(exc)}", file=sys.stderr)
         return EXIT_FAILED
     except ClosedLoopError as exc:  # InputError and its kin: the user's mistake, one line
+        if _received:
+            return interrupted(_received[0])
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_INPUT
     except KeyboardInterrupt as exc:
-        signum = getattr(exc, "signum", None)
-        print(
-            ("\n" if sys.stderr.isatty() else "")
-            + "interrupted"
-            + (f" (signal {signum})" if signum else "")
-            + "; outputs not yet published were discarded",
-            file=sys.stderr,
-        )
-        code = 128 + signum if signum else 130
-        if _RECEIVED and not own_process:  # a real signal to a caller's process (a script, a test run): it
+        code = interrupted(getattr(exc, "signum", None))
+        if _received and not own_process:  # a real signal to a caller's process (a script, a test run): it
             raise  # stops the caller too, after the cleanups ran and the line was printed
-        if own_process:  # the interpreter would kill itself with SIGINT at exit (exit -2) had the interrupt
-            _exit_now(code)  # landed in a C extension's import; our cleanups have run: leave with the code
         return code
     except BrokenPipeError:  # the reader went away (`| head`): quiet, as a tool killed by SIGPIPE
         import os
@@ -428,6 +435,8 @@ def main(argv: list[str] | None = None) -> int:
             pass
         return EXIT_PIPE
     except OSError as exc:  # a file system refusal the checks could not foresee (disk full, ...)
+        if _received:
+            return interrupted(_received[0])
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         print(f"error: {where}{exc.strerror or exc}", file=sys.stderr)
         return EXIT_INPUT
@@ -435,6 +444,8 @@ def main(argv: list[str] | None = None) -> int:
         print("error: out of memory (a smaller log or fewer parameters may fit)", file=sys.stderr)
         return EXIT_INPUT
     except Exception as exc:  # a bug: still one line, the traceback with -v
+        if _received:  # an interrupt a library turned into another exception (numpy's import: ImportError)
+            return interrupted(_received[0])
         if verbose:
             import traceback
 

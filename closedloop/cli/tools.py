@@ -93,7 +93,7 @@ def read_log_or_bag(path: str, robot, degrees: bool = False, bag_options=None):
 
 def cmd_extract(args) -> int:
     from closedloop.io.bags import ExtractOptions, extract, parse_windows
-    from closedloop.io.files import refuse_overwrite
+    from closedloop.io.files import check_outputs
     from closedloop.model.robot import RobotModel
 
     if args.model:
@@ -102,7 +102,7 @@ def cmd_extract(args) -> int:
         joints = [j.strip() for j in args.joints.split(",") if j.strip()]
     else:
         raise InputError("extract: say which joints to keep: --model ROBOT.urdf|.xml or --joints j1,j2,...")
-    refuse_overwrite(args.out, args.bag)
+    check_outputs({"--out": args.out}, [args.bag])  # not the bag, a writable place, a pipe written in place
     from closedloop.io.schemas import check_number
 
     for opt, name in (

@@ -103,7 +103,7 @@ def die_with_batch(pid: int) -> None:
 
 
 def descendants(pid: int | None = None) -> list[int]:
-    """Every live process below `pid` (default: this one), children first, from ``/proc``."""
+    """Every live process below `pid` (default: this one), each before its own children, from ``/proc``."""
     children: dict[int, list[int]] = {}
     for entry in os.listdir("/proc") if os.path.isdir("/proc") else []:
         if not entry.isdigit():
@@ -149,9 +149,10 @@ def start_worker_server() -> None:
 
 
 def end_workers() -> None:
-    """Kill (SIGKILL) every process this batch started (pool workers, fork server; the resource tracker
-    then ends by itself).
-    Called when the batch is interrupted, before the engine's shutdown would wait for running jobs."""
+    """Kill (SIGKILL) the pool processes this batch started: the fork server and every worker below it,
+    and spawned workers (children running ``multiprocessing.spawn``); the resource tracker then ends by
+    itself, and no other process is touched.  Called when the batch is interrupted, before the engine's
+    shutdown would wait for the running jobs."""
     import signal
     import threading
     from concurrent.futures import InvalidStateError
@@ -165,10 +166,19 @@ def end_workers() -> None:
 
     threading.excepthook = quiet
 
+    from multiprocessing import forkserver
+
     tracker = getattr(resource_tracker._resource_tracker, "_pid", None)  # it ends by itself, its leases settled
-    for pid in descendants():
-        if pid == tracker:
+    server = getattr(forkserver._forkserver, "_forkserver_pid", None)
+    pool = [server, *descendants(server)] if server else []
+    for child in descendants(os.getpid()):
+        try:
+            cmd = Path(f"/proc/{child}/cmdline").read_bytes()
+        except OSError:
             continue
+        if b"multiprocessing.spawn" in cmd and child != tracker:
+            pool += [child, *descendants(child)]
+    for pid in pool:
         try:
             os.kill(pid, signal.SIGKILL)
         except OSError:
@@ -414,9 +424,9 @@ class _Summary:
         self.rows: list[dict] = []
         self.stream = not is_special(path)
 
-    def add(self, row: dict) -> None:
+    def add(self, row: dict, publish: bool = True) -> None:
         self.rows.append(row)
-        if self.stream:
+        if self.stream and publish:
             self._write(self.rows)
 
     def finish(self, rows: list[dict]) -> None:
@@ -457,7 +467,7 @@ def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=N
         else:
             results[j.name] = done
             rows[j.name] = {**done["row"], "resumed": "yes"}
-            sink.add(rows[j.name])
+            sink.add(rows[j.name], publish=False)  # (published with the first job that finishes)
     failed = []
     for out in imap(run_job, todo, engine, progress=progress):
         j = todo[out.index]
@@ -540,7 +550,7 @@ def cmd_batch(args) -> int:
             start_worker_server()
         try:
             res = run_batch(jobs, summary, eng, progress_printer("batch: ", args.quiet), args.drift_z)
-        except BaseException:  # Ctrl-C, SIGTERM, an error: no worker may run on (the shutdown would wait)
+        except KeyboardInterrupt:  # Ctrl-C, SIGTERM: no worker may run on (the shutdown would wait for them)
             end_workers()
             raise
     flagged = [d for d in res.drift if d.flagged]

@@ -62,6 +62,11 @@ def _job(d: dict, base: Path, where: str) -> BatchJob:
         raise InputError(
             f"{where}: unknown option(s) {', '.join(sorted(bad))} (known: {', '.join(sorted(OPTION_KEYS))})"
         )
+    loops = d.get("loops")
+    if loops is not None and not (
+        isinstance(loops, str) or (isinstance(loops, list) and all(isinstance(x, str) for x in loops))
+    ):
+        raise InputError(f"{where}: 'loops' must be a loop spec or a list of them, got {_kind(loops)}")
     opts = check_options(opts, where)
     cv = _cv(d.get("cv"), where)
     for key in ("model", "log", "out", "name", "robot", "date"):
@@ -140,11 +145,11 @@ def check_options(opts: dict, where: str) -> dict:
                     raise InputError(f"expected a number or joint=value,..., got {_kind(value)}")
                 out[key] = parse_noise(value if isinstance(value, str) else repr(value))
             elif key in ("identify", "fix"):
-                items = as_list(value) if not isinstance(value, str) or key == "fix" else [value]
-                if isinstance(value, (bool, int, float, dict)) or (
+                if not isinstance(value, (str, list)) or (
                     isinstance(value, list) and not all(isinstance(x, str) for x in value)
                 ):
                     raise InputError(f"expected text or a list of text, got {_kind(value)}")
+                items = as_list(value) if not isinstance(value, str) or key == "fix" else [value]
                 if key == "fix":
                     for item in items:
                         for part in item.split(","):

@@ -49,7 +49,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from closedloop.errors import LoopError
+from closedloop.errors import LoopError, ModelError
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.projection import eliminate_along, projector
 from closedloop.loops.spec import register
@@ -66,11 +66,19 @@ def load_task_model(path: str | Path) -> pin.Model:
     if not path.is_file():
         raise LoopError(f"task model {path}: no such file")
     suffix = path.suffix.lower()
+    from closedloop.io.files import note_input
+    from closedloop.io.robot_files import check_mjcf, check_urdf
+
+    note_input(path)
     try:
         if suffix == ".urdf":
+            check_urdf(path)  # what would crash Pinocchio (two parents, a cycle, a very deep tree, xacro)
             return pin.buildModelFromUrdf(str(path))
         if suffix in (".xml", ".mjcf"):
+            check_mjcf(path)
             return pin.buildModelFromMJCF(str(path))
+    except ModelError as exc:
+        raise LoopError(f"task model {exc}") from None
     except Exception as exc:  # Pinocchio raises plain ValueError/RuntimeError
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise LoopError(f"task model {path}: Pinocchio cannot parse it ({first})") from None

@@ -133,7 +133,7 @@ def parse_lengths(items: list, robot: RobotModel) -> list[LengthLoop]:
                 raise LoopError(f"{where}: {exc}") from None
         nums = [parse_number(t, where, LoopError) for t in it[2:]]
         if nums[0] <= 0 or (len(nums) > 1 and nums[1] <= 0):
-            raise LoopError(f"{where}: a length and its SIGMA are > 0 (metres)")
+            raise LoopError(f"{where}: the length and its SIGMA must be positive (metres)")
         nominal = _nominal_distance(robot, it[0], it[1])
         if abs(nums[0] - nominal) > max(0.5 * nominal, 0.05):
             raise LoopError(
