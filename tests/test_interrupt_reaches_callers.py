@@ -31,6 +31,13 @@ print("main returned", rc)
 """
 
 
+def _default_sigint() -> None:
+    """In the child before exec: SIGINT's default disposition and unblocked (a test worker may ignore or block
+    it, and both are inherited across exec)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
 @pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
 def test_a_signal_during_main_reaches_the_caller(tmp_path, sig):
     p = subprocess.run(
@@ -39,7 +46,7 @@ def test_a_signal_during_main_reaches_the_caller(tmp_path, sig):
         text=True,
         timeout=300,
         # a child of a process that ignores SIGINT inherits that: give it SIGINT's default disposition
-        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.default_int_handler),
+        preexec_fn=_default_sigint,
     )
     assert p.returncode == 99 and "caller interrupted" in p.stdout, (p.stdout, p.stderr)
     assert "interrupted" in p.stderr.splitlines()[-1] or "interrupted" in p.stderr

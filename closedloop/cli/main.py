@@ -392,6 +392,8 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         code = 128 + signum if signum and signum != signal.SIGINT else 130
+        if _received and not own_process:  # a real signal to a caller's process (a script, a test run): it stops
+            raise _Signal(signum) if signum and signum != signal.SIGINT else KeyboardInterrupt()  # the caller too
         if own_process:  # the interpreter would kill itself with SIGINT at exit (exit -2) had the interrupt
             _exit_now(code)  # landed in a C extension's import; our cleanups have run: leave with the code
         return code
@@ -422,10 +424,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return EXIT_INPUT
     except KeyboardInterrupt as exc:
-        code = interrupted(getattr(exc, "signum", None))
-        if _received and not own_process:  # a real signal to a caller's process (a script, a test run): it
-            raise  # stops the caller too, after the cleanups ran and the line was printed
-        return code
+        return interrupted(getattr(exc, "signum", None))
     except BrokenPipeError:  # the reader went away (`| head`): quiet, as a tool killed by SIGPIPE
         import os
 
