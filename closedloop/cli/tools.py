@@ -278,19 +278,9 @@ def sensor_corrections(res, model_out: str | None = None) -> dict | None:
 
 
 def write_figures(res, report: dict, args, row_name=None) -> None:
-    """The outputs beside the model: ``<out>.sensors.yaml`` (scale factors and compliances the fit used:
-    what URDF and MJCF cannot express; for D-H output, which carries its scale factors, the
-    compliances), the HTML page and the PNG figures."""
-    out = getattr(args, "out", None)
+    """The HTML page and the PNG figures (the sensor file beside the model, `closedloop.output.report.write_sensors`,
+    is published with the model and the report)."""
     quiet = bool(getattr(args, "quiet", False))
-    failed = getattr(getattr(res, "verdict", None), "status", None) == "failed" and not getattr(args, "force", False)
-    if out and not failed:  # beside a model that was written
-        from closedloop.output.report import write_sensors
-
-        kind = "dh" if str(out).endswith((".yaml", ".yml")) else "urdf"
-        path = write_sensors(res, out, kind)
-        if path is not None and not quiet:
-            print(f"  wrote {path}")
     html = getattr(args, "html", None)
     plots = getattr(args, "plots", None)
     if not html and not plots:
