@@ -6,8 +6,11 @@ F * O * exp6(p) (right twist), so the new origin is exactly O * exp6(p).
 Joint offsets are folded into the origin:  O <- O * Rot(axis, theta_off)
 (a translation along the axis for prismatic joints), and the joint limits
 shift by -theta_off, so the calibrated URDF takes the corrected readings
-k * theta directly.  Scale factors k cannot be expressed in URDF: they are in
-the report, and a joint value for the calibrated URDF is k * reading.
+k * theta directly.  Scale factors k and compliances c cannot be expressed in
+URDF: they are in the sensor file beside the model (`closedloop.output.report.write_sensors`) and
+the report, and a joint value for the calibrated URDF is k * reading - c * tau.  What the loops
+estimated (tool points, fixtures, sensors, planes) is added as links on fixed joints
+(`model_frames`).
 """
 
 from __future__ import annotations
