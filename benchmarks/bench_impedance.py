@@ -1,9 +1,14 @@
-"""Benchmark of the time-varying impedance identification: every "What must show" item.
+"""Benchmark of the time-varying impedance identification: the defaults' accuracy, time resolution, band
+coverage and speed, on the independent elbow (`closedloop.impedance.elbow`) and on the thesis forearm.
 
-    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_impedance.py [--reps 10] [--out out/bench_impedance]
+    python benchmarks/bench_impedance.py [--reps 5] [--out out/bench_impedance] [--all]
 
-Prints the tables quoted in the README and writes the figures (PNG) and `results.json` to --out.
-Simulated truth: the thesis forearm (eq. 9.20), N = 100 cycles, 5 % noise, unless stated.
+Prints the tables quoted in docs/guide/impedance.md and writes `results.json` to --out.  Defaults section:
+100 cycles of 2 s at 600 Hz, 5 % noise, `--reps` realisations per truth; "before" is the previous default
+(pre-filter 20 Hz, pooling +-15 ms, no step detection, no IV switch).  Speed: the `identify` pipeline
+(read the CSV, segment, estimate, bootstrap 200, 5-fold free-run VAF) timed in this process (wall and CPU)
+and the whole command (`python -m closedloop.cli.main impedance identify`, interpreter start included),
+with the load average.  `--all` adds the older tables (methods, thesis estimator, alignment traps, robot).
 """
 
 from __future__ import annotations
@@ -25,12 +30,13 @@ from machine import machine  # noqa: E402
 
 from closedloop.impedance.bootstrap import bootstrap, free_run_vaf  # noqa: E402
 from closedloop.impedance.data import onsets_from_events, segment  # noqa: E402
+from closedloop.impedance.elbow import ElbowConfig, simulate_elbow  # noqa: E402
 from closedloop.impedance.estimate import EstimateOptions, estimate, posture_fit  # noqa: E402
 from closedloop.impedance.metrics import bias_random, coverage, mean_rise_time, median_errors, rel_errors  # noqa: E402
-from closedloop.impedance.model import ExperimentConfig
+from closedloop.impedance.model import ExperimentConfig  # noqa: E402
 from closedloop.impedance.mujoco_sim import forearm_truth, simulate_robot  # noqa: E402
 from closedloop.impedance.plots import plot_impedance  # noqa: E402
-from closedloop.impedance.simulation import simulate
+from closedloop.impedance.simulation import simulate  # noqa: E402
 
 METHODS = {
     "default (20 Hz)": ("default", {}),
@@ -282,21 +288,162 @@ def traps_and_robot(res: dict, out: Path) -> None:
     )
 
 
+BEFORE = EstimateOptions(prefilter_hz=20.0, pool_ms=15.0, edges=False, auto_iv=False)
+ELBOW = {
+    "constant": {},
+    "gravity dip": {"stiffness": "dip"},
+    "B ramp": {"stiffness": "ramp-b"},
+    "square K": {"stiffness": "square"},
+    "voluntary 0.5 N m": {"voluntary_rms": 0.5},
+}
+
+
+def _away_and_rise(est, truth, fs):
+    T = np.r_[truth["K"], truth["K"][:1]]
+    jumps = np.r_[np.flatnonzero(np.abs(np.diff(T)) > 0.2 * np.ptp(T)) + 1, 0]
+    d = np.min(np.abs(np.arange(len(est.t))[:, None] - jumps[None, :]), axis=1) / fs
+    away = 100 * np.mean(np.abs(est.K[d > 0.05] / truth["K"][d > 0.05] - 1))
+    return away, 1e3 * mean_rise_time(est.t, est.K, truth["K"])
+
+
+def defaults_on_elbow(res: dict, reps: int) -> None:
+    """Mean absolute error I / B / K (%), square-wave K away from steps and rise, band coverage."""
+    print(f"\nindependent elbow, 100 cycles, 5 % noise, {reps} realisations per truth")
+    print("| truth | default: error I / B / K (%) | band coverage I / B / K (%) | before: error I / B / K (%) |")
+    print("|---|---|---|---|")
+    out = {}
+    for name, kw in ELBOW.items():
+        errs, covs, olds, extra, methods = [], [], [], [], set()
+        for r in range(reps):
+            rec, truth = simulate_elbow(ElbowConfig(seed=100 + r, **kw))
+            ens = segment(rec, onsets_from_events(rec))
+            est = estimate(ens, warn=False)
+            methods.add(est.options.method)
+            old = estimate(ens, options=BEFORE, warn=False)
+            errs.append(list(rel_errors(est, truth).values()))
+            olds.append(list(rel_errors(old, truth).values()))
+            b = bootstrap(ens, est.options, 200, seed=r, est=est)
+            covs.append([100 * coverage(b.lo[k], b.hi[k], truth[k]) for k in "IBK"])
+            if "square" in name:
+                extra.append(_away_and_rise(est, truth, ens.fs) + _away_and_rise(old, truth, ens.fs))
+        e, c, o = np.mean(errs, 0), np.mean(covs, 0), np.mean(olds, 0)
+        out[name] = {"error": e.tolist(), "coverage": c.tolist(), "coverage_min": np.min(covs, 0).tolist()}
+        out[name]["before"] = o.tolist()
+        out[name]["method"] = sorted(methods)
+        print(
+            f"| {name} ({'/'.join(sorted(methods))}) | {' / '.join(f'{x:.2f}' for x in e)} | "
+            f"{' / '.join(f'{x:.0f}' for x in c)} (min {' / '.join(f'{x:.0f}' for x in np.min(covs, 0))}) | "
+            f"{' / '.join(f'{x:.2f}' for x in o)} |"
+        )
+        if extra:
+            x = np.mean(extra, 0)
+            out[name]["K_away_rise"] = x.tolist()
+            print(
+                f"|   square K: away from steps (> 50 ms) | {x[0]:.2f} %, rise 10-90 % {x[1]:.1f} ms | | "
+                f"{x[2]:.2f} %, rise {x[3]:.1f} ms |"
+            )
+    res["elbow"] = out
+
+
+def defaults_on_forearm(res: dict, reps: int) -> None:
+    """The thesis forearm (the project's own simulator): constant and square-wave K."""
+    print(f"\nthesis forearm (RK4), 100 cycles, 5 % noise, {reps} realisations")
+    out = {}
+    for name, kw in (("constant", {}), ("square K 20 <-> 8", {"stiffness": "square:20,8,0.5"})):
+        rows = []
+        for r in range(reps):
+            s = simulate(ExperimentConfig(n_cycles=100, noise=0.05, seed=200 + r, **kw))
+            ens = ens_of(s)
+            est, old = estimate(ens, warn=False), estimate(ens, options=BEFORE, warn=False)
+            row = list(rel_errors(est, s.truth).values()) + list(rel_errors(old, s.truth).values())
+            if "square" in name:
+                row += list(_away_and_rise(est, s.truth, ens.fs)) + list(_away_and_rise(old, s.truth, ens.fs))
+            rows.append(row)
+        m = np.mean(rows, 0)
+        out[name] = m.tolist()
+        line = f"  {name}: default {' / '.join(f'{x:.2f}' for x in m[:3])} %, before {' / '.join(f'{x:.2f}' for x in m[3:6])} %"
+        if "square" in name:
+            line += f"; K away {m[6]:.2f} % (before {m[8]:.2f} %), rise {m[7]:.1f} ms (before {m[9]:.1f} ms)"
+        print(line)
+    res["forearm"] = out
+
+
+def speed(res: dict, out: Path, repeats: int = 5) -> None:
+    """identify on 100 cycles (the elbow, constant truth) with its default bootstrap: wall and CPU."""
+    import resource
+    import subprocess
+
+    from closedloop.impedance.data import read_record, write_record
+
+    rec, _ = simulate_elbow(ElbowConfig(seed=7))
+    path = out / "elbow100.csv"
+    write_record(path, rec)
+    rows = []
+    for _ in range(repeats):
+        load = os.getloadavg()[0]
+        w0, c0 = time.perf_counter(), time.process_time()
+        r = read_record(path)
+        ens = segment(r, onsets_from_events(r))
+        est = estimate(ens, warn=False)
+        w1, c1 = time.perf_counter(), time.process_time()
+        bootstrap(ens, est.options, 200, est=est)
+        w2, c2 = time.perf_counter(), time.process_time()
+        free_run_vaf(ens, est.options, 5)
+        w3, c3 = time.perf_counter(), time.process_time()
+        t = time.perf_counter()
+        ch0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        subprocess.run(
+            [sys.executable, "-m", "closedloop.cli.main", "impedance", "identify", str(path)],
+            check=True,
+            capture_output=True,
+        )
+        wall = time.perf_counter() - t
+        ch1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = ch1.ru_utime + ch1.ru_stime - ch0.ru_utime - ch0.ru_stime
+        rows.append([w3 - w0, c3 - c0, w1 - w0, w2 - w1, w3 - w2, wall, load, c1 - c0, c2 - c1, c3 - c2, cpu])
+    a = np.array(rows)
+    med = np.median(a, 0)
+    res["speed"] = {
+        "pipeline_wall_s": med[0],
+        "pipeline_cpu_s": med[1],
+        "read_segment_estimate_wall_s": med[2],
+        "bootstrap_200_wall_s": med[3],
+        "vaf_5fold_wall_s": med[4],
+        "cli_wall_s": med[5],
+        "cli_cpu_s": med[10],
+        "load_1min": a[:, 6].tolist(),
+        "cpu_s_estimate_bootstrap_vaf": med[7:10].tolist(),
+        "all": a.tolist(),
+    }
+    print(
+        f"\nspeed, identify on 100 cycles (median of {repeats}; load average {a[:, 6].min():.1f}-{a[:, 6].max():.1f} "
+        f"on this machine): pipeline {med[0]:.2f} s wall / {med[1]:.2f} s CPU (read+segment+estimate "
+        f"{med[2]:.2f}, bootstrap 200 {med[3]:.2f}, VAF {med[4]:.2f}; CPU {med[7]:.2f} / {med[8]:.2f} / "
+        f"{med[9]:.2f}); whole command {med[5]:.2f} s wall / {med[10]:.2f} s CPU "
+        f"(min {a[:, 5].min():.2f}, max {a[:, 5].max():.2f})"
+    )
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--reps", type=int, default=10)
+    ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--out", default="out/bench_impedance")
+    ap.add_argument("--all", action="store_true", help="also the older tables and figures")
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     res = {"machine": machine(), "reps": a.reps}
     print(f"machine: {res['machine']}; {a.reps} realisations per condition")
-    speed_and_main_figure(res, out)
-    tables_and_coverage(res, out, a.reps)
-    voluntary_and_thesis(res, out, a.reps)
-    traps_and_robot(res, out)
+    speed(res, out)
+    defaults_on_elbow(res, a.reps)
+    defaults_on_forearm(res, a.reps)
+    if a.all:
+        speed_and_main_figure(res, out)
+        tables_and_coverage(res, out, a.reps)
+        voluntary_and_thesis(res, out, a.reps)
+        traps_and_robot(res, out)
     (out / "results.json").write_text(json.dumps(res, indent=1, default=float))
-    print(f"\nwrote {out}/results.json and the figures impedance_*.png")
+    print(f"\nwrote {out}/results.json")
     return 0
 
 

@@ -109,6 +109,10 @@ def main(argv: list[str] | None = None) -> int:
                                 else "confidently wrong"
                             ),
                             "verdict": o.status,
+                            "reasons": list(getattr(getattr(o.result, "verdict", None), "reasons", []) or []),
+                            "size_measured": (getattr(getattr(o.result, "verdict", None), "evidence", None) or {}).get(
+                                "size_measured"
+                            ),
                             "converged": o.converged,
                             "seconds": o.seconds,
                             "error": o.error,

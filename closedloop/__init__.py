@@ -3,17 +3,42 @@
 The method is Bennett & Hollerbach's (1991): when a robot closes a kinematic
 loop with its task, the loop-closure equations identify its kinematic
 parameters from its own joint readings.  See the README for the workflow.
+
+The public names load on first use (``from closedloop import calibrate`` imports the calibrator then):
+`import closedloop` itself is instant, so that the command line can take over Ctrl-C before the
+numerical libraries load.
 """
 
-from closedloop.calibration.pipeline import CalibrationOptions, CalibrationResult, calibrate  # noqa: E402
-from closedloop.calibration.verdict import judge
-from closedloop.errors import CalibrationError, ClosedLoopError, InputError  # noqa: E402
-from closedloop.io.logs import JointLog, read_log  # noqa: E402
-from closedloop.loops import HingeLoop, Loop, MeasuredPointLoop, MeasuredPoseLoop, PlaneLoop, PointLoop, WeldLoop  # noqa: E402
-from closedloop.loops.spec import parse_loop  # noqa: E402
-from closedloop.model.robot import RobotModel  # noqa: E402
-from closedloop.records import Verdict
-from closedloop.version import __version__  # noqa: E402
+from __future__ import annotations
+
+import importlib
+
+from closedloop.errors import CalibrationError, ClosedLoopError, InputError
+from closedloop.version import __version__
+
+#: public name -> the module that defines it
+_LAZY = {
+    "CalibrationOptions": "closedloop.calibration.pipeline",
+    "CalibrationResult": "closedloop.calibration.pipeline",
+    "calibrate": "closedloop.calibration.pipeline",
+    "judge": "closedloop.calibration.verdict",
+    "JointLog": "closedloop.io.logs",
+    "read_log": "closedloop.io.logs",
+    "Loop": "closedloop.loops",
+    "WeldLoop": "closedloop.loops",
+    "PointLoop": "closedloop.loops",
+    "PlaneLoop": "closedloop.loops",
+    "HingeLoop": "closedloop.loops",
+    "MeasuredPointLoop": "closedloop.loops",
+    "MeasuredPoseLoop": "closedloop.loops",
+    "parse_loop": "closedloop.loops.spec",
+    "RobotModel": "closedloop.model.robot",
+    "Verdict": "closedloop.records",
+    "write_model": "closedloop.output.urdf",
+    "build_report": "closedloop.output.report",
+    "write_report": "closedloop.output.report",
+    "cross_validate": "closedloop.validation.kfold",
+}
 
 __all__ = [
     "CalibrationOptions",
@@ -44,17 +69,14 @@ __all__ = [
 
 
 def __getattr__(name: str):
-    """Output writers and validation load on first use (they import what `import closedloop` need not)."""
-    if name == "write_model":
-        from closedloop.output.urdf import write_model
+    """The public names of `_LAZY`, imported from their module on first use."""
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
 
-        return write_model
-    if name in ("build_report", "write_report"):
-        from closedloop.output import report
 
-        return getattr(report, name)
-    if name == "cross_validate":
-        from closedloop.validation.kfold import cross_validate
-
-        return cross_validate
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

@@ -32,6 +32,10 @@ class CalibrationOptions:
             reported), or None (no outlier handling).
         restarts: further starts tried when the fit stalls far above any plausible noise.
         seed: the random draws of the restarts.
+        choose_estimator: with weighting 'noise', test whether joint noise explains the residual and, where it
+            does not, keep the plain fit if it predicts left-out configurations better; the error bars then
+            come from the sandwich covariance (`closedloop.estimate.model_error`).  False: the weighting as
+            given, error bars from the noise model.
     """
 
     identify: list[str] | None = None
@@ -47,6 +51,7 @@ class CalibrationOptions:
     restarts: int = 4
     seed: int = 0
     outlier_alpha: float = 0.01
+    choose_estimator: bool = True
     threads: int | None = None  # BLAS threads for the call (closedloop.estimate.threads); None: by problem size
 
 
@@ -148,6 +153,10 @@ class CalibrationResult:
     length_leak: float | None = None  # size error per prior-sized error of what the loops cannot see, through them
     noise_model: list = field(default_factory=list)  # per loop: task vs joint noise (noise.noise_summary)
     reducible: float = 0.0  # share of the final cost one Gauss-Newton step would remove: ~0 at a minimum (NaN: bounds)
+    estimator: str = "errors in variables"  # the estimator of the final fit (closedloop.estimate.model_error)
+    estimator_reason: str = ""  # why: the noise hypothesis' test and the left-out closures compared
+    error_bars: str = "the noise model"  # where the standard errors come from: the noise model or the sandwich
+    model_error: dict = field(default_factory=dict)  # the test's figures (implied joint noise, chi-square, ...)
 
     @property
     def converged(self) -> bool:

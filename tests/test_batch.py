@@ -169,7 +169,7 @@ def test_manifest_csv_and_errors(tmp_path, capsys):
     )
     (job,) = read_manifest(tmp_path / "m.csv")
     assert job.loops == [LOOP, "point:frame=panda_link8,name=tip"] and job.options == {
-        "noise": "1e-4",
+        "noise": 1e-4,
         "identify": "placement,offset",
     }
     assert job.out == tmp_path / "o" / "a" and job.robot == "r1" and job.cv == 5

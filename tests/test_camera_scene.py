@@ -105,3 +105,27 @@ def test_scenario_passes_check(dataset):
     compared = {r["name"] for r in rows if r["result"] == "ok"}
     assert {"cam.cam1.fx", "cam.cam2.cy", "cam.tip_x", "cam.cam1.rotation"} <= compared
     assert sum(r["result"] == "ok" for r in rows) >= 30
+
+
+@pytest.mark.parametrize("scenario, seed", [("ur5_head", 0), ("ur5_head_verging", 1)])
+def test_truth_support_is_what_a_calibration_estimates(scenario, seed, tmp_path):
+    """The truth's support (`_identifiable`: structure and the pixel noise's weak directions, no fit) is the
+    set a calibration on the same exact pixels of the nominal robot estimates."""
+    from closedloop.calibration.pipeline import build_problem
+    from closedloop.io.logs import JointLog
+
+    sc = cs.CAMERA_SCENARIOS[scenario]
+    (tmp_path / "nominal.urdf").write_text(cs.head_urdf(sc.verge))
+    robot = RobotModel.from_file(tmp_path / "nominal.urdf")
+    theta = cs._readings(robot, sc, 40, np.random.default_rng(seed))
+    names, loop = robot.joint_names, parse_loop(cs.CALIBRATE_LOOP, robot)
+    prob = build_problem(robot, JointLog(names, theta, None, None, {c: np.zeros(40) for c in loop.columns()}), [loop])
+    Ts = prob.loop_frame_poses(prob.nominal, 0)
+    K, cols = cs.mujoco_intrinsics(), {}
+    for c, T in enumerate(Ts[1:]):  # the marker's exact image points in each nominal camera
+        pc = np.einsum("nji,nj->ni", T[:, :3, :3], Ts[0][:, :3, :3] @ cs.MARKER + Ts[0][:, :3, 3] - T[:, :3, 3])
+        cols[f"cam:u{c + 1}"] = K[0] * pc[:, 0] / pc[:, 2] + K[2]
+        cols[f"cam:v{c + 1}"] = K[1] * pc[:, 1] / pc[:, 2] + K[3]
+    res = calibrate(robot, JointLog(names, theta, None, None, cols), [parse_loop(cs.CALIBRATE_LOOP, robot)])
+    expected = [n for n, s in zip(res.names, res.status) if s == "estimated" and not n.startswith("cam.")]
+    assert cs._identifiable(robot, theta) == expected and len(expected) >= 13

@@ -113,8 +113,11 @@ def check_install(args: str, where: str) -> list[str]:
             problems.append(f"{where}: pip install {args}: '{w}' is not a requirement pip reads")
             continue
         target, wanted = m.group(1), [e.strip() for e in (m.group(2) or "").split(",") if e.strip()]
-        if target.startswith((".", "/")) or os.sep in target:
-            if not (ROOT / target / "pyproject.toml").is_file():
+        if target.endswith(".whl") or target.startswith((".", "/")) or os.sep in target:
+            if target.endswith(".whl"):  # a wheel built from the checkout (python -m build): its extras
+                if not re.fullmatch(r"(.*/)?closedloop-[^-]+-py3-none-any\.whl", target):
+                    problems.append(f"{where}: pip install {args}: '{target}' is not a closedloop wheel's name")
+            elif not (ROOT / target / "pyproject.toml").is_file():
                 problems.append(f"{where}: pip install {args}: '{target}' is not the checkout (run from its root)")
             missing = [e for e in wanted if e not in extras]
             if missing:
@@ -193,6 +196,8 @@ def test_every_install_hint_in_the_package_works_from_a_checkout():
         ("numpy-quaternion", False),  # not one
         ("-r benchmarks/requirements-handeye.txt", True),
         ("-r no/such/requirements.txt", False),
+        ('"dist/closedloop-0.1.0-py3-none-any.whl[ros]"', True),  # from a wheel
+        ('"dist/closedloop-0.1.0-py3-none-any.whl[rviz]"', False),
     ],
 )
 def test_check_install_tells_working_lines_from_broken_ones(args, ok):

@@ -275,7 +275,7 @@ def options_property(args) -> None:
     from closedloop.cli.parse import sim_overrides as _sim_overrides
     from closedloop.io.schemas import parse_bounds as _parse_bounds
     from closedloop.io.schemas import parse_noise as _parse_noise
-    from closedloop.sims.scenarios import SCENARIOS
+    from closedloop.sims import SCENARIOS  # the registry with the shipped scenario files
 
     noise, bound, setting, loop = args
     v = _only_input_errors(_parse_noise, noise)

@@ -45,11 +45,83 @@ def test_bad_files(tmp_path):
     p.write_text("time,angle\n0,0\n")
     with pytest.raises(InputError, match="missing column 'torque'"):
         read_record(p)
-    p.write_text("time,angle,torque\n" + "\n".join(f"{i / 600},0,{'nan' if i == 4 else 0}" for i in range(20)))
-    with pytest.raises(InputError, match="row 5"):
-        read_record(p)
     with pytest.raises(InputError, match="no such file"):
         read_record(tmp_path / "none.csv")
+    rows = [f"{i / 600},0,0" for i in range(20)]
+    p.write_text("time,angle,torque\n" + "\n".join(rows[:5] + [rows[4]] + rows[5:]))
+    with pytest.raises(InputError, match="row 7 repeats the time"):
+        read_record(p)
+    p.write_text("time,angle,torque\n" + "\n".join(rows[:3] + ["nan,0,0"] + rows[4:]))
+    with pytest.raises(InputError, match="'time' row 5 is not finite"):
+        read_record(p)
+
+
+def test_non_finite_rows_leave_out_their_cycles(sim, tmp_path):
+    """A block of NaN samples: the file is read, the cycles that touch it are left out, with a note."""
+    path = tmp_path / "d.csv"
+    write_record(path, sim.record)
+    lines = path.read_text().splitlines()
+    for k in range(3001, 3061):  # 0.1 s of NaN angle and torque, inside one cycle
+        cells = lines[k].split(",")
+        cells[1] = cells[2] = "nan"
+        lines[k] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n")
+    rec = read_record(path)
+    assert rec.valid is not None and (~rec.valid).sum() == 60
+    assert any("non-finite" in n and "row 3002" in n for n in rec.notes)
+    ens = segment(rec, onsets_from_events(rec))
+    assert ens.excluded["non-finite samples"] >= 1 and ens.n >= 17
+    assert np.all(np.isfinite(ens.angle)) and np.all(np.isfinite(ens.torque))
+
+
+def test_gaps_split_the_record(sim):
+    """Rows deleted from the record: time jumps, the record is split there and no cycle crosses a gap."""
+    rec = sim.record
+    keep = np.ones(len(rec.time), bool)
+    for c in (3, 7, 15):  # 0.1 s deleted in three usable cycles
+        keep[c * 1200 + 400 : c * 1200 + 460] = False
+    cut = Record(rec.time[keep], rec.angle[keep], rec.torque[keep], rec.command[keep], rec.event[keep], rec.block[keep])
+    import tempfile
+
+    from closedloop.impedance.data import record_bytes
+
+    with tempfile.NamedTemporaryFile(suffix=".csv") as fh:
+        fh.write(record_bytes(cut))
+        fh.flush()
+        back = read_record(fh.name)
+    assert any("gaps in time" in n for n in back.notes)
+    assert len(np.unique(back.block)) == len(np.unique(rec.block)) + 3
+    ens = segment(back, onsets_from_events(back))
+    full = segment(rec, onsets_from_events(rec))
+    assert ens.n <= full.n - 3  # the three cycles with a gap are left out
+    # every kept cycle is a real, uncut one: its angle matches the full record's cycle at the same time
+    assert np.max(np.abs(ens.angle.mean(0) - full.angle.mean(0))) < 0.01
+
+
+def test_columns_mapped_and_unknown_reported(sim, tmp_path):
+    path = tmp_path / "lab.csv"
+    write_record(path, sim.record)
+    text = path.read_text().splitlines()
+    head = text[0].replace("torque", "tau").replace("command", "perturbation") + ",emg"
+    path.write_text("\n".join([head] + [ln + ",0" for ln in text[1:]]) + "\n")
+    with pytest.raises(InputError, match="--columns torque=NAME"):
+        read_record(path)
+    from closedloop.impedance.data import parse_columns
+
+    rec = read_record(path, parse_columns("torque=tau,command=perturbation"))
+    assert np.allclose(rec.torque, sim.record.torque, rtol=1e-8, atol=1e-12)
+    assert np.allclose(rec.command, sim.record.command, rtol=1e-8, atol=1e-12)
+    assert any("ignored columns emg" in n for n in rec.notes)
+    with pytest.raises(InputError, match="no column 'force'"):
+        read_record(path, parse_columns("torque=force"))
+    with pytest.raises(InputError, match="NAME=COLUMN"):
+        parse_columns("torque")
+
+
+def test_csv_named_h5_is_read_as_csv(sim, tmp_path):
+    path = tmp_path / "d.h5"
+    path.write_bytes(__import__("closedloop.impedance.data", fromlist=["x"]).record_bytes(sim.record))
+    assert np.allclose(read_record(path).angle, sim.record.angle, rtol=1e-8, atol=1e-12)
 
 
 def test_segmentation_methods_agree(quiet):
@@ -88,7 +160,7 @@ def test_peak_velocity_alignment_recovers_jitter(quiet):
 
 
 def test_alignment_invents_shifts_on_periodic_perturbed_data(sim):
-    """The trap of the issue: perfectly periodic cycles, strong perturbations; peak-velocity + RMS
+    """The alignment trap: perfectly periodic cycles, strong perturbations; peak-velocity + RMS
     re-alignment shifts them anyway, within the limit, and the diagnostics say so."""
     ens = segment(sim.record, onsets_from_events(sim.record), align="peak-velocity+rms", max_shift_s=0.05)
     rep = ens.alignment.summary()

@@ -69,13 +69,34 @@ def test_length_through_held_values_is_suspect(rig):
     assert abs(scale_error(res, rig[0])) > 0.003  # it was right to distrust it
 
 
-def test_length_the_loops_absorb_is_suspect(rig):
+def test_length_the_loops_absorb_is_suspect_and_left_out(rig):
     """panda_link4-panda_link5: the 384 mm lies along joint 5's axis, so a change of the length is a slide of
-    link 5 the loops cannot see, not a change of size: the response is 0 and the result not ok."""
+    link 5 the loops cannot see, not a change of size: the response is 0, the length is left out of the fit
+    (the estimate is the loops' own, to the bit) and the result is suspect, saying so and that the size is
+    the model's."""
     res = _calibrate(rig, "panda_link4", "panda_link5")
     assert res.verdict.status == "suspect"
     assert abs(res.length_response) < 0.05
-    assert any("sets the robot's size only in part" in w for w in res.verdict.reasons), res.verdict.describe()
+    assert any("cannot set the robot's size" in w and "left out of the fit" in w for w in res.verdict.reasons), (
+        res.verdict.describe()
+    )
+    assert res.verdict.reasons[-1].startswith("size not measured: held by the model's ")
+    assert res.verdict.evidence["size_measured"] is False
+    rig_, robot, log, _ = rig
+    alone = calibrate(robot, log, _loops(robot, rig_.loop_names()), CalibrationOptions())
+    assert res.names == alone.names
+    np.testing.assert_array_equal(res.values, alone.values)
+
+
+def test_length_the_model_fixes_is_refused(rig):
+    """panda_link8-ball: one rigid body (a fixed joint between them): no calibrated parameter changes
+    their distance, so it cannot set the size: refused before the fit, in one line naming the length."""
+    rig_, robot, log, _ = rig
+    loops = _loops(robot, rig_.loop_names()) + [LengthLoop("panda_link8", "ball", 0.0107)]
+    with pytest.raises(LoopError) as err:
+        calibrate(robot, log, loops, CalibrationOptions())
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith("--length panda_link8 ball 0.0107: ") and "model fixes it" in msg
 
 
 def test_length_row_jacobian(rig):

@@ -510,6 +510,18 @@ def test_check_names_the_verdict_once(tmp_path, capsys):
     assert "suspect: suspect:" not in out and out.count("scale not set") == 1
 
 
+def test_a_quiet_sweep_prints_nothing_and_a_loud_one_its_summary(tmp_path, capsys):
+    out = tmp_path / "sweep"
+    args = ["simulate", "panda_weld", "--seeds", "0", "--n", "5", "--jobs", "1", "--out", str(out)]
+    assert main(args + ["--quiet"]) == 0
+    printed = capsys.readouterr()
+    assert printed.out == "" and printed.err == ""
+    assert (out / "seed_000" / "truth.json").exists()
+    assert main(args) == 0  # run again: resumed, and said so
+    said = capsys.readouterr().out
+    assert said.startswith("0 dataset(s) simulated") and "1 finished earlier (not redone)" in said
+
+
 def test_commanded_readings_fit_plain_least_squares_and_say_so(files, capsys):
     """--readings commanded: the residual is not reading noise, so plain least squares unless --weighting
     is given; the report records both, the summary says why."""

@@ -39,8 +39,8 @@ def test_simulator_types_are_registry_types():
 
 
 def test_simulate_and_calibrate_take_the_same_loop_types():
-    """Every registry type calibrate parses is either simulated or refused by name; an unknown one (``door``,
-    once a simulator-only alias of hinge) is refused by both with calibrate's message."""
+    """Every registry type calibrate parses is either simulated or refused by name; an unknown one (``door``)
+    is refused by both, with calibrate's message."""
     for kind in LOOP_TYPES:
         if kind in SIM_LOOPS:
             assert parse_sim_loop(f"{kind}:frame=t")[0] == kind

@@ -399,3 +399,42 @@ def test_relax_passes_unload_the_loop(tmp_path):
     three = simulate("panda_weld", 20, 0, tmp_path / "three").truth["violation"]
     assert three["rms_m"] * 20 < one["rms_m"] and three["rms_rad"] * 20 < one["rms_rad"]
     assert three["rms_m"] < 2e-8 and three["rms_rad"] < 5e-7
+
+
+@pytest.mark.parametrize("name", sorted(SCENARIOS))
+def test_truth_support_is_what_a_calibration_estimates(name, tmp_path):
+    """The simulator reads the identifiable set off the structure (`closedloop.sims.identifiable`, no fit);
+    a calibration of the same loop on the same exact nominal data estimates exactly that set, in order
+    (scale factors included: one is held when all are free)."""
+    from closedloop.calibration.pipeline import CalibrationOptions, calibrate
+    from closedloop.io.logs import JointLog
+    from closedloop.model.robot import RobotModel
+    from closedloop.models import nominal_urdf
+    from closedloop.sims.identifiable import tool_points
+    from closedloop.sims.loop_types import sim_loop
+    from closedloop.studies.truth import identifiable_names
+
+    sc = SCENARIOS[name]
+    path = tmp_path / "nominal.urdf"
+    path.write_text(nominal_urdf(sc.robot))
+    robot = RobotModel.from_file(path)
+    joints = list(robot.joint_names)
+    kind = sim_loop(sc.loop_type)
+    loop = kind.core_loop(sc, path)
+    for scale in (False, True):
+        options = CalibrationOptions(identify=["placement", "offset", "loop"] + (["scale"] if scale else []))
+        if kind.closed:
+            expected = identifiable_names(robot, [loop], np.asarray(sc.q0)[None, :], options)
+        else:  # the same random configurations, the tool point measured exactly at the base
+            model = robot.model
+            q = np.random.default_rng(0).uniform(
+                np.maximum(model.lowerPositionLimit, -np.pi),
+                np.minimum(model.upperPositionLimit, np.pi),
+                (40, model.nq),
+            )
+            pts = tool_points(robot, loop.frame_a, q)
+            log = JointLog(joints, q, None, None, {c: pts[:, k] for k, c in enumerate(loop.columns())})
+            res = calibrate(robot, log, [loop], options)
+            expected = [n for n, s in zip(res.names, res.status) if s == "estimated" and n.rsplit(".", 1)[0] in joints]
+        assert identifiable_parameters(path, sc, joints, scale) == expected, (name, scale)
+        assert len(expected) >= 13

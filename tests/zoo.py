@@ -77,6 +77,19 @@ ZOO: dict[str, ZooRobot] = {
     ]
 }
 
+# robots outside example-robot-data, for single tests (not in the zoo's benchmark): a KUKA iiwa14 (mesh-free,
+# ROS-Industrial joint names), the ball at the flange
+EXTRA: dict[str, ZooRobot] = {
+    "iiwa14": ZooRobot(
+        "iiwa14",
+        str(Path(__file__).resolve().parent / "data" / "iiwa14.urdf"),
+        "base_link",
+        "tool0",
+        (0, 0, 0),
+        (0, 0, 0),
+    )
+}
+
 MOVABLE = ("revolute", "continuous", "prismatic")
 
 
@@ -388,7 +401,7 @@ def make_case(
     corrupt_cells: number of single cells set to `cell_value`.
     """
     rng = np.random.default_rng([seed, sum(map(ord, robot)), sum(map(ord, loop))])
-    src = ZOO[robot]
+    src = ZOO[robot] if robot in ZOO else EXTRA[robot]
     nominal = chain_urdf(src)
     truth = perturb_urdf(nominal, rng, err_m, err_rad)
     model = pin.buildModelFromXML(truth)

@@ -35,6 +35,10 @@ if TYPE_CHECKING:
     from closedloop.problem.problem import CalibrationProblem
 
 N_CONFIGS = 32  # x 6 rows per loop frame: far more rows than the 7 + 6F rigid unknowns
+HELD_ERROR = 2e-3  # m: an error of a nominal length a model file may carry (a drawing against the part)
+# the size error a HELD_ERROR in the held length may make before the result is suspect: the size change that makes
+# a result suspect (`verdict.VerdictRules.scale_suspect`), so a held length under 67 mm
+SIZE_FROM_HELD = 0.03
 
 
 def random_configurations(problem: CalibrationProblem, n: int = N_CONFIGS, seed: int = 0) -> np.ndarray:
@@ -213,10 +217,10 @@ def choose_gauge(
         return None, first[0], first[1], True, None, 0.0
     g, kept, dropped, L = found
     warning = None
-    if L < 0.1:
+    if HELD_ERROR / L > SIZE_FROM_HELD:
         warning = (
             f"the overall size is held by {names[g]}, which stands for a length of only {L * 1e3:.3g} mm: an "
-            f"error of 2 mm in its nominal value changes the identified size by {0.002 / L:.1%}"
+            f"error of {HELD_ERROR * 1e3:g} mm in its nominal value changes the identified size by {HELD_ERROR / L:.1%}"
         )
     return g, kept, [d for d in dropped if d.name != names[g]], True, warning, L
 

@@ -238,3 +238,24 @@ def held_leak(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> tu
             d = V[free] @ perp  # the held change that moves the length without the size
             worst, name = leak, problem.names[free[int(np.argmax(np.abs(d) / prior))]]
     return worst, name
+
+
+def refuse_fixed_lengths(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> None:
+    """Refuse, before the fit, a known length that no free parameter changes: the model fixes it already
+    (both frames on one rigid body, or only held values between them), so it cannot set the size."""
+    from closedloop.errors import LoopError
+
+    idx = length_blocks(problem)
+    if not idx:
+        return
+    evals = problem.evaluate(x, True, columns=free)
+    for bi in idx:
+        g = evals[bi].J[0, 0]  # metres per unit of each free parameter
+        prior = np.array([problem.params[k].prior for k in free])
+        lp = problem.blocks[bi].loop
+        if not np.any(np.abs(g * prior) > 1e-12 * lp.length):
+            raise LoopError(
+                f"--length {lp.frame_a} {lp.frame_b} {lp.length:g}: no calibrated parameter changes the distance "
+                "between these frames (the model fixes it: one rigid body, or only held values between them), "
+                "so it cannot set the robot's size"
+            )

@@ -35,7 +35,7 @@ import numpy as np
 
 from closedloop.analysis.identifiability import Structure, analyse_structure, weak_directions
 from closedloop.analysis.linearity import check_error_bars
-from closedloop.analysis.scale import scale_findings
+from closedloop.analysis.scale import refuse_fixed_lengths, scale_findings
 from closedloop.analysis.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
 from closedloop.calibration.staged import (
     Progress,
@@ -44,9 +44,20 @@ from closedloop.calibration.staged import (
     solve_staged,
     solve_with_restarts,
 )
-from closedloop.calibration.verdict import judge
+from closedloop.calibration.verdict import VerdictRules, judge, length_guard
 from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
 from closedloop.estimate.lm import reducible_share, rms, scaled_svd
+from closedloop.estimate.model_error import (
+    EIV,
+    ENCODER_NOISE,
+    NOISE_MODEL,
+    PLAIN,
+    SANDWICH,
+    loo_prediction,
+    neighbour_correlation,
+    noise_test,
+    sandwich_cov,
+)
 from closedloop.estimate.noise import noise_vector
 from closedloop.estimate.outliers import gross_outliers, readmit, reject_outliers
 from closedloop.estimate.stages import Fit
@@ -148,10 +159,14 @@ def build_problem(
     return CalibrationProblem(robot, joints, [replace(b, loop=p) for b, p in zip(blocks, prepared)], priors)
 
 
-def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, status: list[str]) -> dict:
+def analyse_solution(
+    problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, status: list[str], sandwich: bool = False
+) -> dict:
     """Standard errors, weak directions and the chi-square test at the solution (eq. 4.17 truncation).
 
-    Edits `status` ('unidentifiable' for the parameters of weak directions).
+    With `sandwich` the covariance is the sandwich one clustered by configuration (`model_error.sandwich_cov`):
+    the residual is not the assumed noise.  Edits `status` ('unidentifiable' for the parameters of weak
+    directions).
     """
     est, fun = fit.est, fit.stage.fun
     scale = np.array([p.prior for p in problem.params])
@@ -170,6 +185,13 @@ def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOpti
     keep = S > threshold
     Vk = Vt[keep].T
     cov = (Vk / S[keep] ** 2) @ Vk.T * sigma_r**2 * np.outer(scale[est], scale[est])
+    cov_s = sandwich_cov(problem, r, J, scale[est], Vk, S[keep]) if keep.any() else cov
+    d, ds = np.diag(cov), np.diag(cov_s)
+    live = d > 0
+    # mean variance ratio sandwich / noise model: ~1 where the residual is the assumed noise
+    ratio = float(np.mean(ds[live] / d[live])) if live.any() else float("nan")
+    if sandwich:
+        cov = cov_s
     std = np.full(len(problem.params), np.nan)
     std[est] = np.sqrt(np.maximum(np.diag(cov), 0.0))
     for c in weak:
@@ -194,6 +216,7 @@ def analyse_solution(problem: CalibrationProblem, fit: Fit, opt: CalibrationOpti
         "chi2": chi2,
         "weighting": fun.weighting,
         "reducible": reducible,
+        "sandwich_ratio": ratio,
     }
 
 
@@ -213,7 +236,9 @@ def calibrate(
     opt = options or CalibrationOptions()
     with blas_threads(opt.threads, 6 * len(log_), 6 * len(robot.joint_names) + 6):
         try:
-            return _calibrate(robot, log_, loops, opt, progress)
+            res = _calibrate(robot, log_, loops, opt, progress)
+            # a known length that does not set the size never drives the estimate (closedloop.calibration.verdict)
+            return length_guard(res, lambda kept: _calibrate(robot, log_, kept, opt, progress), loops)
         except np.linalg.LinAlgError as exc:  # non-finite kinematics: values far outside any model
             raise ConvergenceError(
                 f"{log_.source or 'the log'}: the solve broke down ({exc}): the data or the "
@@ -232,6 +257,7 @@ def _calibrate(
     free = [k for k, s in enumerate(status) if s == ParamStatus.SELECTED]
     if not free:
         raise NotIdentifiableError("no parameter is left to identify (all fixed or not selected)")
+    refuse_fixed_lengths(problem, x0, free)
     sigma_q, known = noise_vector(problem, opt.noise)
     if progress:
         progress("analysing", 0, 0.0)
@@ -239,10 +265,33 @@ def _calibrate(
     _check_rows(problem, structure, log_)
     if problem.keeps_jacobians:  # the solve's first J, taken first: the screen and `before` read it (the memo)
         problem.evaluate(x0, True, columns=structure.kept)
-    before, start = residual_stats(problem, problem.evaluate(x0, False)), problem
+    before, start, structure0 = residual_stats(problem, problem.evaluate(x0, False)), problem, structure
+    notes0 = list(notes)  # a re-solve with another estimator writes its own notes
     problem, fit, structure, rejected, suspects = solve_screened(
         problem, x0, free, structure, opt, sigma_q, known, len(log_), notes, progress, row_name=log_.where
     )
+    choice = {"estimator": EIV if fit.stage.fun.weighting == "noise" else PLAIN, "reason": "as asked"}
+    choice |= {"error_bars": NOISE_MODEL, "evidence": {}}
+    tested = noise_hypothesis(problem, fit, opt)
+    if tested is not None and (tested["test"].holds or tested["test"].sigma_hat > VerdictRules().failed_joint_noise):
+        # beyond 0.01 rad no estimator mends a model that does not fit the data: kept, and the verdict says so
+        choice |= {"reason": tested["test"].describe(), "evidence": tested["evidence"]}
+    elif tested is not None:  # model error: the plain loop-closure fit (eq. 3.8), screened alike, sandwich error bars
+        spent, notes[:] = fit.iterations, notes0
+        problem, fit, structure, rejected, suspects = solve_screened(
+            start, x0, free, structure0, replace(opt, weighting="none"), sigma_q, known, len(log_), notes, progress
+        )
+        fit.iterations += spent
+        r, J = fit.stage.fun(fit.x[fit.est], True)
+        evidence = tested["evidence"] | {"left_out_rms_plain": loo_prediction(problem, fit.x, fit.est, r, J)}
+        if tested["test"].sigma_hat > VerdictRules().plausible_joint_noise:
+            fit.warnings.append(
+                f"the errors-in-variables fit implies {tested['test'].sigma_hat:.3g} rad of joint noise, more than "
+                "encoders give: the model misses an effect of that size (elasticity, gearing, backlash)"
+            )
+        choice = {"estimator": PLAIN, "reason": tested["test"].describe(), "error_bars": SANDWICH}
+        choice["evidence"] = evidence
+    notes.insert(0, f"estimator: {choice['estimator']} ({choice['reason']}); error bars from {choice['error_bars']}")
     if problem is not start:  # rows rejected: the start's closure on the rows kept
         before = residual_stats(problem, problem.evaluate(x0, False))
     after = residual_stats(problem, problem.evaluate(fit.x, False))  # the fit's own last evaluation (the memo)
@@ -251,7 +300,7 @@ def _calibrate(
     for k in free:
         status[k] = ParamStatus.ESTIMATED if k in fit.est else ParamStatus.DROPPED
     gauge = name_gauge(problem, structure, x, status, opt, notes, fit.warnings)
-    a = analyse_solution(problem, fit, opt, status)
+    a = analyse_solution(problem, fit, opt, status, sandwich=choice["error_bars"] == SANDWICH)
     sol = fit.stage.solution
     if sol.status != "converged":
         notes.append(f"solver: {sol.message}")
@@ -287,6 +336,10 @@ def _calibrate(
         rows_total=len(log_),
         warnings=fit.warnings,
         reducible=a["reducible"],
+        estimator=choice["estimator"],
+        estimator_reason=choice["reason"],
+        error_bars=choice["error_bars"],
+        model_error=choice["evidence"] | {"sandwich_variance_ratio": a["sandwich_ratio"]},
     )
     # what sets the scale, each loop's noise model (closedloop.analysis.scale)
     res = replace(res, **scale_findings(res, fit.sigma_q, structure.scale_free, opt.snr))
@@ -294,6 +347,40 @@ def _calibrate(
     profiles, bar_warnings = check_error_bars(res, fit)
     res = replace(res, profiles=profiles, warnings=res.warnings + bar_warnings)
     return replace(res, verdict=judge(res))
+
+
+def noise_hypothesis(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions) -> dict | None:
+    """Does joint noise explain the errors-in-variables fit's residual (`closedloop.estimate.model_error`)?
+
+    The joint noise the weighted residual implies against the noise given, or a plausible encoder noise
+    (`ENCODER_NOISE`), by chi-square; the nearest-configuration residual correlation and the left-out
+    configurations' closure as evidence.  None where nothing is to be decided: ``weighting='none'``, a
+    robust IRLS fit, ``choose_estimator=False``, or a fit the guard already moved to the plain residual.
+    """
+    fun = fit.stage.fun
+    if not opt.choose_estimator or opt.weighting != "noise" or opt.robust in ("huber", "cauchy"):
+        return None
+    if fun.weighting != "noise":
+        return None
+    r, J = fun(fit.x[fit.est], True)
+    dof = max(r.size - fun.deficit - fun.missing - len(fit.est), 1)
+    sigma_hat = rms(r, dof) * float(np.mean(fit.sigma_q))
+    given = opt.noise is not None
+    sigma_0 = float(np.mean(noise_vector(problem, opt.noise)[0])) if given else ENCODER_NOISE
+    test = noise_test(sigma_hat, sigma_0, dof, neighbour_correlation(problem, r))
+    return {
+        "test": test,
+        "evidence": {
+            "joint_noise_implied": test.sigma_hat,
+            "joint_noise_tested": test.sigma_0,
+            "joint_noise_given": given,
+            "chi2_per_dof": test.chi2_per_dof,
+            "chi2_limit": test.limit,
+            "neighbour_correlation": test.neighbour_rho,
+            "noise_explains": test.holds,
+            "left_out_rms_eiv": loo_prediction(problem, fit.x, fit.est, r, J),
+        },
+    }
 
 
 def _check_options(opt: CalibrationOptions) -> None:

@@ -1,7 +1,8 @@
 """The `closedloop` command line: the parser, the dispatch and the exit codes.  Printing happens in the
 `cli*` modules and only there (`cli_calibrate`, `cli_simulate`, `cli_tools`; option values: `cli_parse`).
 
-User mistakes (`InputError`) print one line and exit with code 2.
+User mistakes (`InputError`) print one line and exit with code 2.  Nothing heavy is imported before
+`main` has taken over the signals: Ctrl-C while the numerical libraries load is one line and exit 130 too.
 """
 
 from __future__ import annotations
@@ -11,9 +12,7 @@ import json
 import logging
 import sys
 
-from closedloop.cli.calibrate import cmd_calibrate
 from closedloop.cli.parse import float_arg, int_arg, join_negative_numbers
-from closedloop.cli.simulate import cmd_simulate
 from closedloop.errors import (
     EXIT_FAILED,
     EXIT_INPUT,
@@ -23,17 +22,14 @@ from closedloop.errors import (
     ClosedLoopError,
     InputError,
 )
-from closedloop.io.schemas import check_number
 
 __all__ = [
     "EXIT_FAILED",
     "EXIT_INPUT",
     "EXIT_INTERNAL",
     "build_parser",
-    "cmd_calibrate",
     "cmd_check",
     "cmd_inspect",
-    "cmd_simulate",
     "main",
 ]
 
@@ -64,7 +60,8 @@ def cmd_inspect(args) -> int:
 
 
 def cmd_check(args) -> int:
-    from closedloop.validation.check import check_report
+    from closedloop.io.schemas import check_number
+    from closedloop.validation.check import check_parameters, check_report
 
     tols = {
         o: check_number(f"--{o.replace('_', '-')}", getattr(args, o), 0.0, 1e6, lo_open=True)
@@ -72,25 +69,39 @@ def cmd_check(args) -> int:
     }
     truth = _load_json(args.truth, "truth file")
     report = _load_json(args.report, "report file")
-    rows, ok = check_report(truth, report, **tols, truth_source=args.truth, report_source=args.report)
-    print(f"{'parameter':<28}{'true':>14}{'calibrated':>14}{'error':>12}{'tol':>10}  result")
+    src = {"truth_source": args.truth, "report_source": args.report}
+    view = "parameters" if args.parameters else "auto"
+    rows, ok = check_report(truth, report, **tols, **src, model=args.model, view=view, truth_model=args.truth_model)
+    kinematic = bool(rows) and rows[0].get("view") == "kinematics"
+    if kinematic:
+        print("what the robots do (base, tool and unmeasured size removed; max over 200 configurations):")
+        _print_rows(rows, "loop / quantity")
+        if args.show_parameters:
+            print("\nthe parameter table (a second view: a correct robot in another parametrization may differ here):")
+            _print_rows(check_parameters(truth, report, **tols, **src)[0], "parameter")
+    else:
+        _print_rows(rows, "parameter")
+    verdict = report.get("verdict") if isinstance(report.get("verdict"), dict) else {}
+    if verdict.get("status") in ("suspect", "failed"):  # what the calibration said of itself
+        own = f"{verdict['status']}: "
+        reasons = [r[len(own) :] if str(r).startswith(own) else str(r) for r in verdict.get("reasons", [])]
+        print(f"note: the report's verdict is {verdict['status']}: " + "; ".join(dict.fromkeys(reasons)))
+    return 0 if ok else 1
+
+
+def _print_rows(rows: list[dict], what: str) -> None:
+    print(f"{what:<40}{'true':>14}{'calibrated':>14}{'error':>12}{'tol':>10}  result")
     for r in rows:
         cal = "" if r["calibrated"] is None else f"{r['calibrated']:14.6g}"
         err = "" if r["error"] is None else f"{r['error']:12.3g}"
         tol = "" if r["tol"] is None else f"{r['tol']:10.3g}"
         true = "" if r["true"] is None else f"{r['true']:14.6g}"
-        print(f"{r['name']:<28}{true:>14}{cal:>14}{err:>12}{tol:>10}  {r['result']}")
+        print(f"{r['name']:<40}{true:>14}{cal:>14}{err:>12}{tol:>10}  {r['result']}")
     bad = sum(r["result"] == "FAIL" for r in rows)
     print(
         f"{sum(r['result'] == 'ok' for r in rows)} within tolerance, {bad} outside, "
         f"{sum(r['result'] not in ('ok', 'FAIL') for r in rows)} not compared"
     )
-    verdict = report.get("verdict") if isinstance(report.get("verdict"), dict) else {}
-    if verdict.get("status") in ("suspect", "failed"):  # what the calibration said of itself
-        own = f"{verdict['status']}: "  # a reason of the verdict's own status, without its label
-        reasons = [r[len(own) :] if r.startswith(own) else r for r in map(str, verdict.get("reasons", []))]
-        print(f"note: the report's verdict is {verdict['status']}: " + "; ".join(dict.fromkeys(reasons)))
-    return 0 if ok else 1
 
 
 def _load_json(path: str, what: str = "JSON file"):
@@ -152,7 +163,21 @@ def _add_evaluate(sub) -> None:
     add_evaluate(sub)
 
 
+def __getattr__(name: str):
+    """`cmd_calibrate` and `cmd_simulate`, imported on first use (module doc)."""
+    if name == "cmd_calibrate":
+        from closedloop.cli.calibrate import cmd_calibrate
+
+        return cmd_calibrate
+    if name == "cmd_simulate":
+        from closedloop.cli.simulate import cmd_simulate
+
+        return cmd_simulate
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 def _add_calibrate(sub) -> None:
+    from closedloop.cli.calibrate import cmd_calibrate
     from closedloop.cli.tools import loop_help
 
     c = sub.add_parser(
@@ -227,6 +252,7 @@ def _add_calibrate(sub) -> None:
 
 
 def _add_simulate(sub) -> None:
+    from closedloop.cli.simulate import cmd_simulate
     from closedloop.cli.tools import add_simulate_robot_options, scenario_help
 
     s = sub.add_parser(
@@ -257,13 +283,35 @@ def _add_simulate(sub) -> None:
 
 
 def _add_check(sub) -> None:
-    k = sub.add_parser("check", help="compare a calibration report with simulation truth")
+    k = sub.add_parser(
+        "check", help="compare a calibration report with simulation truth: by what the robots do (default)"
+    )
     k.add_argument("truth", help="truth.json of a simulated dataset (closedloop simulate)")
     k.add_argument("report", help="JSON report of the calibration (calibrate --report)")
     k.add_argument("--tol-m", type=float_arg, default=1e-3, help="tolerance for lengths (m)")
     k.add_argument("--tol-rad", type=float_arg, default=5e-3, help="tolerance for angles (rad)")
     k.add_argument("--tol-scale", type=float_arg, default=5e-3, help="tolerance for scale factors")
     k.add_argument("--tol-px", type=float_arg, default=1.0, help="tolerance for camera intrinsics (px)")
+    k.add_argument(
+        "--model",
+        default=None,
+        help="the robot model the report calibrated (default: the report's 'model' field)",
+    )
+    k.add_argument(
+        "--truth-model",
+        default=None,
+        help="the true robot's model where it is not the calibrated one's (default: the truth's 'model' field)",
+    )
+    k.add_argument(
+        "--parameters",
+        action="store_true",
+        help="judge by the parameter table instead of what the robots do (parametrization-dependent)",
+    )
+    k.add_argument(
+        "--show-parameters",
+        action="store_true",
+        help="print the parameter table below the kinematic comparison",
+    )
     k.set_defaults(func=cmd_check)
 
 
@@ -302,8 +350,18 @@ class _Signal(KeyboardInterrupt):
         self.signum = signum
 
 
+#: signals that arrived during the current run (a real Ctrl-C or SIGTERM, not a KeyboardInterrupt raised by code)
+_RECEIVED: list[int] = []
+
+
 def _raise_signal(signum, _frame):
+    _RECEIVED.append(signum)
     raise _Signal(signum)
+
+
+def _raise_interrupt(signum, _frame):
+    _RECEIVED.append(signum)
+    raise KeyboardInterrupt
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -312,22 +370,29 @@ def main(argv: list[str] | None = None) -> int:
     import signal
     import threading
 
-    from closedloop.cli.tools import parse_args
+    from closedloop.io.files import track_inputs
 
+    own_process = argv is None  # run as the program (not called by a test or a script)
     argv = join_negative_numbers(list(sys.argv[1:] if argv is None else argv))
     handlers = {}
+    _RECEIVED.clear()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGHUP):
             handlers[sig] = signal.signal(sig, _raise_signal)
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not when ignored (a background job)
+            handlers[signal.SIGINT] = signal.signal(signal.SIGINT, _raise_interrupt)
     verbose = "-v" in argv or "--verbose" in argv
     if verbose:  # accepted before or after the subcommand: the top-level flag
         argv = ["-v"] + [a for a in argv if a not in ("-v", "--verbose")]
     try:
-        args = parse_args(build_parser(_command(argv)), argv)  # applies a subcommand's --config FILE
-        logging.basicConfig(
-            level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
-        )
-        return args.func(args)
+        with track_inputs():  # every file a reader opens is an input no output may replace
+            from closedloop.cli.tools import parse_args  # (the heavy imports start here: inside the handlers)
+
+            args = parse_args(build_parser(_command(argv)), argv)  # applies a subcommand's --config FILE
+            logging.basicConfig(
+                level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
+            )
+            return args.func(args)
     except SystemExit as exc:  # --help, --version, a --config loader that already printed its line
         if exc.code is None or isinstance(exc.code, int):
             return exc.code or 0
@@ -348,7 +413,12 @@ def main(argv: list[str] | None = None) -> int:
             + "; outputs not yet published were discarded",
             file=sys.stderr,
         )
-        return 128 + signum if signum else 130
+        code = 128 + signum if signum else 130
+        if _RECEIVED and not own_process:  # a real signal to a caller's process (a script, a test run): it
+            raise  # stops the caller too, after the cleanups ran and the line was printed
+        if own_process:  # the interpreter would kill itself with SIGINT at exit (exit -2) had the interrupt
+            _exit_now(code)  # landed in a C extension's import; our cleanups have run: leave with the code
+        return code
     except BrokenPipeError:  # the reader went away (`| head`): quiet, as a tool killed by SIGPIPE
         import os
 
@@ -378,6 +448,25 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         for sig, h in handlers.items():
             signal.signal(sig, h)
+
+
+def _exit_now(code: int) -> None:
+    """Run the exit handlers, flush the standard streams and end the process with `code` (without the
+    interpreter's own finalization, which would turn an interrupt seen during an import into SIGINT)."""
+    import atexit
+    import os
+
+    try:
+        atexit._run_exitfuncs()  # multiprocessing's finalizers: the pool's semaphores released
+    except BaseException:  # noqa: BLE001 - leaving anyway
+        pass
+
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
 
 
 def _one_line(exc: BaseException) -> str:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from closedloop.cli.calibrate import Progress
 from closedloop.cli.parse import sim_overrides
-from closedloop.errors import ClosedLoopError
+from closedloop.errors import ClosedLoopError, NotIdentifiableError, ScenarioError
 from closedloop.io.schemas import check_number
 
 
@@ -45,14 +45,17 @@ def cmd_simulate(args) -> int:
     overrides = sim_overrides(args.set, SCENARIOS[args.scenario].settings)
     prog = Progress(args.quiet)
     t0 = time.perf_counter()
-    result = simulate(
-        args.scenario,
-        n=args.n,
-        seed=args.seed,
-        out_dir=Path(args.out),
-        progress=lambda i, n: prog("simulating", i, n),
-        **overrides,
-    )
+    try:
+        result = simulate(
+            args.scenario,
+            n=args.n,
+            seed=args.seed,
+            out_dir=Path(args.out),
+            progress=lambda i, n: prog("simulating", i, n),
+            **overrides,
+        )
+    except NotIdentifiableError as exc:  # the scenario's loop cannot close: its robot, loop, --q0 or --tool
+        raise ScenarioError(f"simulate {args.scenario}: {exc} (check the loop frame, --q0 and --tool)") from None
     prog.done()
     print(f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out}")
     print_next_commands(Path(args.out))

@@ -234,6 +234,7 @@ def _scenarios(args) -> dict[str, Any]:
     """The scenarios of the sweep, by name: --scenarios A,B (names or YAML files) or the one of `simulate`."""
     from closedloop.cli.tools import resolve_scenario
     from closedloop.sims import SCENARIOS
+    from closedloop.sims.scenarios import CAMERA_SCENARIOS, unknown_scenario
 
     names = [s.strip() for s in args.scenarios.split(",") if s.strip()] if args.scenarios else [None]
     out: dict[str, Any] = {}
@@ -241,8 +242,12 @@ def _scenarios(args) -> dict[str, Any]:
         if given is not None:
             args.scenario = given
         name = resolve_scenario(args)
+        if name in CAMERA_SCENARIOS:
+            raise InputError(
+                f"--scenarios: {name} is a head-camera scenario, simulated alone (closedloop simulate {name})"
+            )
         if name not in SCENARIOS:
-            raise InputError(f"unknown scenario '{name}' (known: {', '.join(sorted(SCENARIOS))})")
+            raise unknown_scenario(name)
         out[name] = SCENARIOS[name]
     return out
 

@@ -110,6 +110,7 @@ def cmd_extract(args) -> int:
         ("--settle", "settle"),
         ("--window-s", "window_s"),
         ("--spread", "spread"),
+        ("--gap", "gap"),
     ):
         setattr(args, name, check_number(opt, getattr(args, name), 0.0, 1e6, lo_open=True))
     split = args.split
@@ -232,6 +233,9 @@ def load_config(path: str, sub: argparse.ArgumentParser, command: str) -> dict:
             if not isinstance(value, bool):
                 raise InputError(f"{path}: option '{key}' takes true or false")
         elif value is not None:
+            if isinstance(value, (bool, dict)) or (isinstance(value, list) and act.nargs is None and act.type):
+                want = "a number" if act.type not in (None, str) else "a text value (a path, a name)"
+                raise InputError(f"{path}: option '{key}' takes {want}, got {_shown(value)}")
             if isinstance(value, list):
                 value = ",".join(str(v) for v in value)
             try:
@@ -242,6 +246,12 @@ def load_config(path: str, sub: argparse.ArgumentParser, command: str) -> dict:
                 raise InputError(f"{path}: option '{key}' takes one of {', '.join(map(str, act.choices))}")
         out[dest] = value
     return out
+
+
+def _shown(value) -> str:
+    if isinstance(value, bool):
+        return f"{str(value).lower()} (a boolean)"
+    return "a mapping" if isinstance(value, dict) else "a list" if isinstance(value, list) else repr(value)
 
 
 def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None):
@@ -312,11 +322,20 @@ def scenario_help() -> str:
     return "\n".join(lines)
 
 
-def _numbers(text: str, what: str) -> list[float]:
-    try:
-        return [float(v) for v in text.replace(",", " ").split()]
-    except ValueError:
-        raise InputError(f"{what} {text}: expected numbers separated by spaces or commas") from None
+def _numbers(text: str, what: str, n: int | None = None, limit: float = 1e3) -> list[float]:
+    """Decimal numbers separated by spaces or commas, finite, |v| <= `limit` (exactly `n` of them if given)."""
+    from closedloop.io.schemas import parse_number
+
+    values = [parse_number(v, f"{what} {text}") for v in text.replace(",", " ").split()]
+    if n is not None and len(values) != n:
+        raise InputError(f"{what} {text}: expected {n} numbers separated by spaces or commas")
+    if any(abs(v) > limit for v in values):
+        raise InputError(f"{what} {text}: out of range (each value within +-{limit:g})")
+    return values
+
+
+#: longest stylus `simulate --tool` adds (m): beyond it no arm closes a loop on it
+MAX_TOOL = 2.0
 
 
 def resolve_scenario(args) -> str:
@@ -341,7 +360,10 @@ def resolve_scenario(args) -> str:
         if args.q0:
             data["q0"] = _numbers(args.q0, "--q0")
         if args.tool:
-            data["tool"] = {"xyz": _numbers(args.tool, "--tool")}
+            xyz = _numbers(args.tool, "--tool", 3, limit=float("inf"))
+            if sum(v * v for v in xyz) ** 0.5 > MAX_TOOL:
+                raise InputError(f"--tool {args.tool}: a stylus longer than {MAX_TOOL:g} m (metres expected)")
+            data["tool"] = {"xyz": xyz}
         if args.joints:
             data["joints"] = [j.strip() for j in args.joints.split(",") if j.strip()]
         sc = scenario_from_dict(data, data["name"], "--robot")

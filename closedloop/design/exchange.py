@@ -159,6 +159,7 @@ def _exchange_a(
             best_g, best_i, best_T, best_S = _best_entrant(P, C, V, Bt, ub, lb, need, top)
             if best_g <= need:
                 continue
+            assert best_T is not None and best_S is not None  # a gain above `need` came with its entrant
             i, Ti, Si = best_i, best_T, best_S
             X = np.linalg.solve(Si, Ti)  # S_i^-1 B_i M_j
             M = M + W.T @ V - Ti.T @ X

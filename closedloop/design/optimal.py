@@ -139,7 +139,7 @@ def detmax(
 ) -> Selection:
     """Mitchell's DETMAX exchange from a greedy (or given) design of k blocks."""
     sel = greedy_d_optimal(B, k, prior_weight, base) if start is None else None
-    design = list(sel.indices) if sel is not None else list(start)
+    design = list(sel.indices) if sel is not None else list(start or [])
     d = _Design(B, prior_weight, base)
     for i in design:
         d.add(i)
@@ -180,7 +180,7 @@ def detmax(
     return Selection(np.array(sorted(design), dtype=int), d.logdet, hist, exchanges)
 
 
-def information(B: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+def information(B: np.ndarray, rows: np.ndarray | list[int] | None = None) -> np.ndarray:
     """sum_i B_i^T B_i over `rows` of the blocks B (N, m, L) (no prior)."""
     Bs = B if rows is None else B[np.asarray(rows)]
     C = Bs.reshape(-1, Bs.shape[2])

@@ -317,10 +317,18 @@ def _whiten_group(
         off += m
 
 
+_GROUPS: dict[tuple, list] = {}  # `_config_groups` by the blocks' rows: a fit asks for the same ones every iteration
+
+
 def _config_groups(evals: list[BlockEval]) -> list[tuple[tuple[int, ...], np.ndarray]]:
     """Log rows read by several blocks: per pattern of blocks, the (K, len(pattern)) configuration indices."""
     if sum(ev.rows is not None for ev in evals) < 2:
         return []
+    key = tuple(
+        None if ev.rows is None else (np.asarray(ev.rows).dtype.str, np.asarray(ev.rows).tobytes()) for ev in evals
+    )
+    if key in _GROUPS:
+        return _GROUPS[key]
     where: dict[int, list[tuple[int, int]]] = {}
     for bi, ev in enumerate(evals):
         if ev.rows is None:
@@ -331,7 +339,11 @@ def _config_groups(evals: list[BlockEval]) -> list[tuple[tuple[int, ...], np.nda
     for members in where.values():
         if len(members) > 1:
             patterns.setdefault(tuple(b for b, _ in members), []).append([i for _, i in members])
-    return [(pat, np.array(ix, dtype=int)) for pat, ix in patterns.items()]
+    out = [(pat, np.array(ix, dtype=int)) for pat, ix in patterns.items()]
+    if len(_GROUPS) >= 16:
+        _GROUPS.clear()
+    _GROUPS[key] = out
+    return out
 
 
 def _group_root(

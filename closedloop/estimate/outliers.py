@@ -100,6 +100,9 @@ def _spread(problem: CalibrationProblem, blocks: list[np.ndarray]) -> float:
 
 
 ROBUST_ROWS = 2048  # configurations per block the robust refit is solved on (`robust_refit`)
+#: the robust refit's passes stop at a relative cost decrease of 1e-6 (the final fit's 1e-10): each pass only
+#: sets the next pass's weights, and the screen's threshold is no sharper than its closures' scale
+REFIT_FTOL, REFIT_XTOL = 1e-6, 1e-6
 
 
 def robust_refit(
@@ -124,10 +127,32 @@ def robust_refit(
     solution.  The refit's x only has to be where gross errors did not drag it (the final fit on the rows
     kept is the estimator), and on 2,048 configurations its closures' scale is as well estimated.
     """
+    key = (x0.tobytes(), tuple(est), sigma_q.tobytes(), max_iter, passes, known)
+    if not (_LAST_REFIT and _LAST_REFIT[0] is problem and _LAST_REFIT[1] == key):
+        _LAST_REFIT[:] = [problem, key, _robust_refit(problem, x0, est, sigma_q, max_iter, passes, known)]
+    x, ds = _LAST_REFIT[2]
+    return x.copy(), [d.copy() for d in ds]
+
+
+#: the last `robust_refit` (the problem itself, its arguments, its result): the refit depends on neither the
+#: fit's weighting nor its estimator, and a calibration that re-solves with another asks for the same one
+_LAST_REFIT: list = []
+
+
+def _robust_refit(
+    problem: CalibrationProblem,
+    x0: np.ndarray,
+    est: list[int],
+    sigma_q: np.ndarray,
+    max_iter: int,
+    passes: int,
+    known: bool,
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """`robust_refit` itself."""
     scale = np.array([p.prior for p in problem.params])
     sample = problem.sampled(ROBUST_ROWS)
     dims = [b.loop.dim for b in sample.blocks]
-    sopt = SolverOptions(max_iter=max_iter)
+    sopt = SolverOptions(max_iter=max_iter, ftol=REFIT_FTOL, xtol=REFIT_XTOL)
     weighting = _screen_weighting(sample)
     x, w_prev, best = x0.copy(), None, (np.inf, x0, [])
     for _ in range(passes):

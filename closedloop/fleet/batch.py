@@ -39,6 +39,8 @@ import numpy as np
 from closedloop.errors import EXIT_FAILED, InputError
 from closedloop.fleet.drift import Drift, drift, drift_columns, gauge_record
 from closedloop.fleet.manifest import BatchJob, as_list, read_manifest
+from closedloop.io.files import is_special
+from closedloop.io.schemas import check_number
 
 __all__ = [
     "BatchJob",
@@ -82,6 +84,97 @@ COLUMNS = [
 ]
 
 
+# --------------------------------------------------------------------------- workers end with the batch
+def die_with_batch(pid: int) -> None:
+    """In a worker process: end it the moment the batch process `pid` dies (`closedloop.fleet.guard`).
+    SIGINT and SIGTERM are ignored here: Ctrl-C reaches the whole process group, and the batch ends its
+    workers itself (`end_workers`)."""
+    import signal
+    import threading
+
+    from closedloop.fleet.guard import watch
+
+    if pid <= 0 or pid == os.getpid():
+        return
+    watch(pid)
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
+
+
+def descendants(pid: int | None = None) -> list[int]:
+    """Every live process below `pid` (default: this one), children first, from ``/proc``."""
+    children: dict[int, list[int]] = {}
+    for entry in os.listdir("/proc") if os.path.isdir("/proc") else []:
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as fh:
+                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        children.setdefault(ppid, []).append(int(entry))
+    out, todo = [], [os.getpid() if pid is None else pid]
+    while todo:
+        for c in children.get(todo.pop(), []):
+            out.append(c)
+            todo.append(c)
+    return out
+
+
+def start_worker_server() -> None:
+    """Start the fork server that local pools fork their workers from, for this batch: with SIGINT
+    ignored (its workers inherit that from birth, so Ctrl-C, sent to the whole process group, reaches
+    the batch alone even while a worker is still starting; the batch ends its workers itself,
+    `end_workers`), and with `closedloop.fleet.guard` preloaded (each worker it forks ends when the
+    batch process dies, SIGKILL included)."""
+    import multiprocessing as mp
+    import signal
+    import threading
+
+    from closedloop.fleet.guard import BATCH_PID
+
+    if "forkserver" not in mp.get_all_start_methods() or threading.current_thread() is not threading.main_thread():
+        return
+    from multiprocessing import forkserver
+
+    os.environ[BATCH_PID] = str(os.getpid())
+    preload = list(getattr(forkserver._forkserver, "_preload_modules", ["__main__"]))
+    forkserver.set_forkserver_preload(preload + ["closedloop.fleet.guard"])
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        forkserver.ensure_running()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def end_workers() -> None:
+    """Kill (SIGKILL) every process this batch started (pool workers, fork server; the resource tracker
+    then ends by itself).
+    Called when the batch is interrupted, before the engine's shutdown would wait for running jobs."""
+    import signal
+    import threading
+    from concurrent.futures import InvalidStateError
+    from multiprocessing import resource_tracker
+
+    previous = threading.excepthook
+
+    def quiet(args) -> None:  # the pool's manager thread, finding its workers killed, fails a cancelled future
+        if args.exc_type is not InvalidStateError:
+            previous(args)
+
+    threading.excepthook = quiet
+
+    tracker = getattr(resource_tracker._resource_tracker, "_pid", None)  # it ends by itself, its leases settled
+    for pid in descendants():
+        if pid == tracker:
+            continue
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:
+            pass
+
+
 # --------------------------------------------------------------------------- one job (in a worker)
 def _options(opts: dict, names: list[str]):
     from closedloop.calibration.pipeline import CalibrationOptions
@@ -106,7 +199,7 @@ def _options(opts: dict, names: list[str]):
         snr=float(opts.get("snr", 1.0)),
         max_iter=int(opts.get("max_iter", 100)),
         bounds={k: tuple(v) for k, v in bounds.items()},
-        robust=opts.get("robust"),
+        robust=None if opts.get("robust") == "off" else opts.get("robust"),
     )
 
 
@@ -167,6 +260,7 @@ def run_job(job: BatchJob) -> dict:
     from closedloop.output.report import build_report, write_report
     from closedloop.output.urdf import write_model
 
+    die_with_batch(job.batch_pid)
     t0 = time.perf_counter()
     robot = RobotModel.from_file(job.model)
     loops = [parse_loop(s, robot) for s in job.loops] or default_loops(robot)
@@ -309,32 +403,35 @@ class BatchResult:
 
 
 class _Summary:
-    """The summary CSV: streamed row by row, rewritten whole in manifest order at the end."""
+    """The summary CSV: published whole after every finished job (the rows so far, in finishing order;
+    a reader never sees a torn file), then in manifest order at the end.  A device or named pipe
+    (``--summary /dev/stdout``) gets the final table only."""
 
     def __init__(self, path: Path):
+        from closedloop.io.files import is_special
+
         self.path = path
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self.fh = path.open("w", newline="")
-        self.w = csv.DictWriter(self.fh, COLUMNS, extrasaction="ignore")
-        self.w.writeheader()
-        self.fh.flush()
+        self.rows: list[dict] = []
+        self.stream = not is_special(path)
 
     def add(self, row: dict) -> None:
-        self.w.writerow(_fmt(row))
-        self.fh.flush()
+        self.rows.append(row)
+        if self.stream:
+            self._write(self.rows)
 
     def finish(self, rows: list[dict]) -> None:
-        from closedloop.io.files import atomic_write
+        self._write(rows)
 
-        self.fh.close()
+    def _write(self, rows: list[dict]) -> None:
+        import io
 
-        def writer(tmp):
-            with open(tmp, "w", newline="") as fh:
-                w = csv.DictWriter(fh, COLUMNS, extrasaction="ignore")
-                w.writeheader()
-                w.writerows(_fmt(r) for r in rows)
+        from closedloop.io.files import atomic_write_text
 
-        atomic_write(self.path, writer)
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, COLUMNS, extrasaction="ignore", lineterminator="\r\n")
+        w.writeheader()
+        w.writerows(_fmt(r) for r in rows)
+        atomic_write_text(self.path, buf.getvalue())
 
 
 def _fmt(row: dict) -> dict:
@@ -355,6 +452,7 @@ def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=N
     for j in jobs:
         done = finished(j)
         if done is None:
+            j.batch_pid = os.getpid()  # its worker ends with this process (`die_with_batch`)
             todo.append(j)
         else:
             results[j.name] = done
@@ -385,21 +483,44 @@ def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=N
     drift_columns(rows, drifts)
     ordered = [rows[j.name] for j in jobs]
     sink.finish(ordered)
-    if drifts:
+    if drifts and not is_special(summary):  # (a summary on a device or pipe: the drift is printed only)
         _write_drift(Path(summary), drifts)
     return BatchResult(ordered, drifts, [j.name for j in todo], [j.name for j in jobs if j not in todo], failed)
 
 
+def drift_path(summary: Path) -> Path:
+    """The drift table written beside the summary: ``SUMMARY.drift.csv``."""
+    return summary.with_name(summary.stem + ".drift.csv")
+
+
 def _write_drift(summary: Path, drifts: list[Drift]) -> None:
-    from closedloop.io.files import atomic_write
+    import io
 
-    def writer(tmp):
-        with open(tmp, "w", newline="") as fh:
-            w = csv.DictWriter(fh, list(asdict(drifts[0])))
-            w.writeheader()
-            w.writerows(_fmt(asdict(d)) for d in drifts)
+    from closedloop.io.files import atomic_write_text
 
-    atomic_write(summary.with_name(summary.stem + ".drift.csv"), writer)
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, list(asdict(drifts[0])), lineterminator="\r\n")
+    w.writeheader()
+    w.writerows(_fmt(asdict(d)) for d in drifts)
+    atomic_write_text(drift_path(summary), buf.getvalue())
+
+
+def check_batch_outputs(manifest: str | Path, jobs: list[BatchJob], summary: Path) -> None:
+    """Before any job runs: the summary (and its drift table) and every job's folder may be written,
+    and none of them is an input (the manifest, a model, a log) -- by inode, links resolved."""
+    from closedloop.io.files import check_outputs, same_file
+
+    inputs = [manifest] + [p for j in jobs for p in (j.model, j.log)]
+    outputs = {"--summary": summary}
+    if not is_special(summary):
+        outputs["--summary (its drift table)"] = drift_path(summary)
+    check_outputs(outputs, inputs)
+    for j in jobs:
+        if j.out.exists() and not j.out.is_dir():
+            raise InputError(f"job {j.name}: out {j.out}: is a file; give a folder")
+        for i in inputs:
+            if same_file(j.out, i):
+                raise InputError(f"job {j.name}: out {j.out}: is an input of the batch ({i})")
 
 
 def cmd_batch(args) -> int:
@@ -412,8 +533,16 @@ def cmd_batch(args) -> int:
     summary = (
         Path(args.summary) if args.summary else Path(args.manifest).with_name(Path(args.manifest).stem + ".summary.csv")
     )
+    args.drift_z = check_number("--drift-z", args.drift_z, 0.0, 1e6, lo_open=True)
+    check_batch_outputs(args.manifest, jobs, summary)
     with engine_from_args(args) as eng:
-        res = run_batch(jobs, summary, eng, progress_printer("batch: ", args.quiet), args.drift_z)
+        if eng.name == "local":
+            start_worker_server()
+        try:
+            res = run_batch(jobs, summary, eng, progress_printer("batch: ", args.quiet), args.drift_z)
+        except BaseException:  # Ctrl-C, SIGTERM, an error: no worker may run on (the shutdown would wait)
+            end_workers()
+            raise
     flagged = [d for d in res.drift if d.flagged]
     verdicts = Counter(str(r.get("verdict", "")) for r in res.rows if r["name"] not in res.failed)
     print(
@@ -430,7 +559,7 @@ def cmd_batch(args) -> int:
     if res.drift:
         print(
             f"  drift: {len(flagged)} of {sum(not d.note for d in res.drift)} parameter changes exceed "
-            f"{args.drift_z:g} standard errors -> {summary.with_name(summary.stem + '.drift.csv')}"
+            f"{args.drift_z:g} standard errors" + ("" if is_special(summary) else f" -> {drift_path(summary)}")
         )
     for d in res.drift:
         if d.note:
@@ -448,7 +577,7 @@ def add_parser(sub) -> None:
     b = sub.add_parser("batch", help="calibrate many robots/logs from a manifest (YAML or CSV), resumable")
     b.add_argument("manifest", help="YAML (jobs: [...]) or CSV: model, log, loops, options, out[, robot, date, cv]")
     b.add_argument("--summary", help="summary CSV (default: MANIFEST.summary.csv beside the manifest)")
-    b.add_argument("--drift-z", type=float, default=3.0, help="flag a parameter change above this many std. errors")
+    b.add_argument("--drift-z", default=3.0, help="flag a parameter change above this many std. errors")
     add_arguments(b)
     b.add_argument("--quiet", action="store_true", help="no progress lines (the summary is still printed)")
     b.set_defaults(func=cmd_batch)

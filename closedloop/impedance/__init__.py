@@ -3,10 +3,11 @@
 An ensemble of perturbed, repeated movements is cut into cycles and aligned, the mean removed, and at
 every instant of the cycle a second-order discrete model is fitted across the ensemble and converted to
 the inertia I(t), damping B(t) and stiffness K(t) of eq. 7.9.  Modules: `model` (eq. 9.20 and a numpy RK4
-twin), `simulation` (the simulated experiment on either), `mujoco_sim` (the MuJoCo simulation, finite-difference truth, a robot case), `data` (I/O,
-segmentation, alignment), `estimate` (thesis, default, OLS, IV estimators and the posture fit),
-`bootstrap` (bands, free-run VAF), `nonparam` (impulse-response model check), `metrics`, `results`,
-`plots`, `cli`.  The estimator needs only numpy and scipy.
+twin), `simulation` (the simulated experiment on either), `mujoco_sim` (the MuJoCo simulation,
+finite-difference truth, a robot case), `elbow` (an independent elbow experiment for judging the
+defaults), `data` (I/O, checks, segmentation, alignment), `estimate` (thesis, default, OLS, IV estimators
+and the posture fit), `bootstrap` (bands, free-run VAF), `nonparam` (impulse-response model check),
+`metrics`, `results`, `plots`, `cli`.  The estimator needs only numpy and scipy.
 """
 
 _WHERE = {

@@ -27,11 +27,9 @@ from closedloop.impedance.estimate import (
     EstimateOptions,
     design,
     estimate,
-    finish,
     lowpass,
-    moments,
     per_cycle_moments,
-    pool,
+    pool_at,
     single_thread,
     solve,
 )
@@ -58,49 +56,122 @@ def bootstrap(
     seed: int = 0,
     chunk: int = 25,
     executor=None,
+    est=None,
 ) -> Bands:
     """Bootstrap over cycles (see module docstring): bands for I, B, K, wn and zeta.
+
+    `est`, the `ImpedanceEstimate` (optional): where it blends the centred fit with one-sided fits beside
+    steps (`est.weights`), so does every resample (the one-sided fits resampled only where they weigh), and
+    within 10 ms of a step the band spans both sides' levels (the step's time is known to a few samples).
+    The bands are computed every 10 ms (at most half the pooling half-width) and interpolated:
+    the pooled, pre-filtered estimate does not change faster.
 
     The resamples go in chunks of `chunk` as jobs on `executor` (``closedloop.parallel.executor``: None or
     'serial' in this process, 'local', 'ray', or an engine); chunk c draws its resamples from
     ``default_rng(SeedSequence(seed).spawn(n_chunks)[c])``, so the bands are the same on every
     engine and worker count (for a given `chunk`).  The shared moments travel once per worker.
     """
+    from closedloop.impedance.estimate import resolved
     from closedloop.parallel.executor import run
 
+    options = resolved(options, ens)
+    L = ens.length
+    half = int(round(options.pool_ms * 1e-3 * ens.fs))
+    stride = max(1, min(half // 2, int(round(0.010 * ens.fs))))
+    if options.smooth_ms > 0:  # IV: smoothed over smooth_ms, pooled over +-pool_ms
+        stride = max(stride, int(round(0.25 * options.smooth_ms * 1e-3 * ens.fs)))
+    comps = [(0, np.unique(np.r_[np.arange(0, L, stride), L - 1]))]
+    weights = None if est is None else est.weights
+    if weights is not None:
+        for j, side in ((1, -1), (2, 1)):
+            at = np.flatnonzero(weights[j] > 0)
+            if at.size:  # every stride-th instant of each run of non-zero weight, and its ends
+                ends = at[np.r_[True, np.diff(at) > 1] | np.r_[np.diff(at) > 1, True]]
+                comps.append((side, at, np.unique(np.r_[at[::stride], ends])))
     with single_thread():
-        d = design(ens, options)
-        per, perz = per_cycle_moments(d)
-        Mxx, Mzx = moments(d)
-        half = int(round(options.pool_ms * 1e-3 * ens.fs))
-        p0 = (
-            solve(pool(Mxx, half), pool(Mzx, half), options.method)[0]
-            if options.method in ("default", "thesis")
-            else None
-        )
+        pers, perzs, lights, sizes_t = [], [], [], []
+        m = qz = None
+        for side, at, *sub in comps:
+            at = sub[0] if sub else at
+            sizes_t.append(at.size)
+            d = design(ens, options, side=side)
+            _, n, m = d.X.shape
+            qz = None if d.Z is None else d.Z.shape[-1]
+            per, perz = per_cycle_moments(d)
+            pers.append(pool_at(per.reshape(n, L, m, m), half, at).reshape(n, -1))
+            if perz is not None:
+                perzs.append(pool_at(perz.reshape(n, L, qz, -1), half, at).reshape(n, -1))
+            lights.append(SimpleNamespace(scale=d.scale, T=d.T))
+        per = np.concatenate(pers, axis=1)
+        perz = np.concatenate(perzs, axis=1) if perzs else None
+        Ls = sum(sizes_t)
+        Mxx = per.sum(0).reshape(Ls, m, m)
+        Mzx = None if perz is None else perz.sum(0).reshape(Ls, qz, -1)
+        p0 = solve(Mxx, Mzx, options.method)[0] if options.method in ("default", "thesis") else None
         sizes = [min(chunk, n_boot - c) for c in range(0, n_boot, max(1, chunk))]
-        dims = (d.X.shape[0], d.X.shape[2], None if d.Z is None else d.Z.shape[-1])
-        light = SimpleNamespace(scale=d.scale, T=d.T)  # what `finish` needs of the design (not X, Z)
+        dims = (sizes_t, m, qz, stride)
         parts = run(
-            _resample_chunk, sizes, executor, shared=(light, dims, per, perz, p0, options, ens.fs, ens.n), seed=seed
+            _resample_chunk, sizes, executor, shared=(lights, dims, per, perz, p0, options, ens.fs, n), seed=seed
         )
+    I, B, K = (np.concatenate([p[j] for p in parts]) for j in range(3))  # (R, Ls)
+    bounds = np.cumsum([0] + sizes_t)
+    full = np.arange(L)
+    blended = []
+    for a in (I, B, K):
+        parts_k = [a[:, bounds[c] : bounds[c + 1]] for c in range(len(comps))]
+        centre = _interp_rows(parts_k[0], comps[0][1], full)
+        if len(comps) == 1:
+            blended.append(centre)
+            continue
+        num = weights[0] * np.nan_to_num(centre)
+        den = weights[0] * np.isfinite(centre)
+        for (side, at, sub), v in zip(comps[1:], parts_k[1:]):
+            j = 1 if side < 0 else 2
+            v = _interp_rows(v, sub, at)
+            num[:, at] += weights[j][at] * np.nan_to_num(v)
+            den[:, at] += weights[j][at] * np.isfinite(v)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            blended.append(np.where(den > 0, num / den, np.nan))
+    I, B, K = blended
+    with np.errstate(invalid="ignore"):
+        wn, zeta = np.sqrt(K / I), B / (2 * np.sqrt(K * I))
     q = (1 - level) / 2 * 100
     lo, hi, sd = {}, {}, {}
-    for j, k in enumerate(("I", "B", "K", "wn", "zeta")):
-        a = np.concatenate([p[j] for p in parts])
+    for k, a in zip(("I", "B", "K", "wn", "zeta"), (I, B, K, wn, zeta)):
         ok = np.isfinite(a)
         if ok.all():
             lo[k], hi[k] = np.percentile(a, [q, 100 - q], axis=0)
             sd[k] = a.std(axis=0)
         else:
             a = np.where(ok, a, np.nan)
-            lo[k], hi[k] = np.nanpercentile(a, q, axis=0), np.nanpercentile(a, 100 - q, axis=0)
-            sd[k] = np.nanstd(a, axis=0)
+            with np.errstate(invalid="ignore"):
+                lo[k], hi[k] = np.nanpercentile(a, q, axis=0), np.nanpercentile(a, 100 - q, axis=0)
+                sd[k] = np.nanstd(a, axis=0)
+    if est is not None and est.steps is not None and len(est.steps):
+        from scipy.ndimage import maximum_filter1d, minimum_filter1d
+
+        r = max(1, int(round(0.010 * ens.fs)))
+        near = np.zeros(L, bool)
+        for t0 in np.round(np.asarray(est.steps) * ens.fs).astype(int):
+            for t in (t0 - L, t0, t0 + L):  # the cycle's ends are neighbours
+                near[max(0, t - r) : max(0, t + r)] = True
+        for k in lo:
+            lo[k] = np.where(near, minimum_filter1d(lo[k], 2 * r + 1, mode="nearest"), lo[k])
+            hi[k] = np.where(near, maximum_filter1d(hi[k], 2 * r + 1, mode="nearest"), hi[k])
     return Bands(level, n_boot, lo, hi, sd)
 
 
+def _interp_rows(a: np.ndarray, at: np.ndarray, full: np.ndarray) -> np.ndarray:
+    """Linear interpolation of every row of `a` (given at the sorted instants `at`) onto `full`."""
+    if at.size == full.size:
+        return a
+    j = np.clip(np.searchsorted(at, full, side="right"), 1, at.size - 1)
+    f = (full - at[j - 1]) / (at[j] - at[j - 1])
+    return a[:, j - 1] * (1 - f) + a[:, j] * f
+
+
 def _resample_chunk(
-    d,
+    lights: list,
     dims: tuple,
     per: np.ndarray,
     perz: np.ndarray | None,
@@ -111,18 +182,31 @@ def _resample_chunk(
     r: int,
     rng: np.random.Generator,
 ) -> tuple[np.ndarray, ...]:
-    """One job: r resamples of the n cycles (counts w), their moments sum_i w_i x_i x_i^T, (I, B, K, wn, zeta).
+    """One job: r resamples of the n cycles (counts w), their pooled moments sum_i w_i x_i x_i^T, solved
+    (eq. 9.13 by inverse iteration from the full-sample solution, or 2SLS) and converted: (I, B, K).
 
-    d: the design's scale and lag (for `finish`); dims: (instants L, regressors m, instruments q)."""
-    L, m, qz = dims
+    lights: each component's scale and lag; dims: (instants per component, regressors m, instruments q,
+    stride of the centred component)."""
+    from scipy.ndimage import gaussian_filter1d
+
+    from closedloop.impedance.estimate import to_ibk
+
+    sizes_t, m, qz, stride = dims
+    Ls = sum(sizes_t)
     with single_thread():
         W = np.stack([np.bincount(rng.integers(0, n, n), minlength=n) for _ in range(r)]).astype(float)
-        Mxx = (W @ per).reshape(r, L, m, m)
-        Mzx = None if perz is None else (W @ perz).reshape(r, L, qz, -1)
-        I, B, K, _ = finish(d, Mxx, Mzx, options, fs, start=p0)
-    with np.errstate(invalid="ignore"):
-        wn, zeta = np.sqrt(K / I), B / (2 * np.sqrt(K * I))
-    return I, B, K, wn, zeta
+        Mxx = (W @ per).reshape(r, Ls, m, m)
+        Mzx = None if perz is None else (W @ perz).reshape(r, Ls, qz, -1)
+        p, _ = solve(Mxx, Mzx, options.method, start=p0, want_cond=False)
+        out = []
+        lo = 0
+        for c, (size, light) in enumerate(zip(sizes_t, lights)):
+            pc = p[:, lo : lo + size]
+            if options.smooth_ms > 0 and c == 0:
+                pc = gaussian_filter1d(pc, options.smooth_ms * 1e-3 * fs / stride, axis=-2, mode="nearest")
+            out.append(np.stack(to_ibk(pc, light.scale, light.T)))
+            lo += size
+    return tuple(np.concatenate(out, axis=-1))
 
 
 def _fill(x: np.ndarray) -> np.ndarray:
@@ -134,31 +218,34 @@ def _fill(x: np.ndarray) -> np.ndarray:
 
 
 def free_run(I, B, K, u: np.ndarray, x0: np.ndarray, v0: np.ndarray, fs: float) -> np.ndarray:
-    """RK4 of I x'' + B x' + K x = u for all rows of u (n, L); parameters and input linear between
-    samples."""
-    I, B, K = _fill(np.asarray(I, float)), _fill(np.asarray(B, float)), _fill(np.asarray(K, float))
+    """RK4 of I x'' + B x' + K x = u (eq. 7.9 driven by the measured torque perturbation) for all rows of
+    u (n, L); the parameters are one curve (L,) for every row or one per row (n, L), linear between
+    samples as the input is."""
+    I, B, K = (np.apply_along_axis(_fill, -1, np.asarray(a, float)) for a in (I, B, K))
+    I, B, K = (np.broadcast_to(a, u.shape) for a in (I, B, K))
     h = 1.0 / fs
     n, L = u.shape
-    mid = lambda a: np.r_[0.5 * (a[1:] + a[:-1]), a[-1]]  # noqa: E731
-    Im, Bm, Km, um = mid(I), mid(B), mid(K), np.c_[0.5 * (u[:, 1:] + u[:, :-1]), u[:, -1]]
+
+    def mid(a):
+        return np.concatenate([0.5 * (a[:, 1:] + a[:, :-1]), a[:, -1:]], axis=1)
+
+    Im, Bm, Km, um = mid(I), mid(B), mid(K), mid(u)
     x, v = x0.astype(float).copy(), v0.astype(float).copy()
     out = np.empty((n, L))
+    np_err = np.seterr(over="ignore", invalid="ignore")  # a diverging row runs on as inf/NaN
     for k in range(L):
         out[:, k] = x
-        k1 = (x, v, (u[:, k] - B[k] * v - K[k] * x) / I[k])
-        f = lambda xx, vv, uu, i, b, kk: (uu - b * vv - kk * xx) / i  # noqa: E731
-        x2, v2 = x + 0.5 * h * k1[1], v + 0.5 * h * k1[2]
-        a2 = f(x2, v2, um[:, k], Im[k], Bm[k], Km[k])
+        a1 = (u[:, k] - B[:, k] * v - K[:, k] * x) / I[:, k]
+        x2, v2 = x + 0.5 * h * v, v + 0.5 * h * a1
+        a2 = (um[:, k] - Bm[:, k] * v2 - Km[:, k] * x2) / Im[:, k]
         x3, v3 = x + 0.5 * h * v2, v + 0.5 * h * a2
-        a3 = f(x3, v3, um[:, k], Im[k], Bm[k], Km[k])
+        a3 = (um[:, k] - Bm[:, k] * v3 - Km[:, k] * x3) / Im[:, k]
         kn = min(k + 1, L - 1)
         x4, v4 = x + h * v3, v + h * a3
-        a4 = f(x4, v4, u[:, kn], I[kn], B[kn], K[kn])
+        a4 = (u[:, kn] - B[:, kn] * v4 - K[:, kn] * x4) / I[:, kn]
         x = x + h / 6 * (v + 2 * v2 + 2 * v3 + v4)
-        v = v + h / 6 * (k1[2] + 2 * a2 + 2 * a3 + a4)
-        if not np.all(np.isfinite(x)):
-            out[:, k + 1 :] = np.nan
-            break
+        v = v + h / 6 * (a1 + 2 * a2 + 2 * a3 + a4)
+    np.seterr(**np_err)
     return out
 
 
@@ -171,22 +258,31 @@ class FitReport:
 
 def free_run_vaf(ens: Ensemble, options: EstimateOptions, folds: int = 5, seed: int = 0) -> FitReport:
     """k-fold free-run VAF of the time-varying model on held-out cycles (module docstring)."""
+    from dataclasses import replace
+
+    from closedloop.impedance.estimate import resolved
+
+    options = replace(resolved(options, ens), auto_iv=False)
     rng = np.random.default_rng(seed)
     perm = rng.permutation(ens.n)
     P, L, fs = ens.pad, ens.length, ens.fs
-    err = np.zeros((ens.n, L))
-    ref = np.zeros((ens.n, L))
-    for f in range(folds):
+    n = ens.n
+    prm = np.empty((3, n, L))
+    u = np.empty((n, L))
+    ref = np.empty((n, L))
+    x0, v0 = np.empty(n), np.empty(n)
+    for f in range(folds):  # each fold's cycles get the model fitted to the others; one integration for all
         test = perm[f::folds]
         train = np.setdiff1d(perm, test)
         tr, te = ens.subset(train), ens.subset(test)
         est = estimate(tr, options=options, warn=False)
+        prm[:, test] = np.stack([est.I, est.B, est.K])[:, None, :]
         dth, dtau, _ = te.deltas(tr)
         dth, dtau = lowpass(dth, fs, options.prefilter_hz), lowpass(dtau, fs, options.prefilter_hz)
-        y = dth[:, P : P + L]
-        v0 = (dth[:, P + 1] - dth[:, P - 1]) * fs / 2
-        x = free_run(est.I, est.B, est.K, dtau[:, P : P + L], y[:, 0], v0, fs)
-        err[test], ref[test] = y - x, y
+        ref[test], u[test] = dth[:, P : P + L], dtau[:, P : P + L]
+        x0[test], v0[test] = dth[:, P], (dth[:, P + 1] - dth[:, P - 1]) * fs / 2
+    x = free_run(prm[0], prm[1], prm[2], u, x0, v0, fs)
+    err = ref - x
     with np.errstate(invalid="ignore", divide="ignore"):
         vaf_t = 100 * (1 - np.sum(err**2, 0) / np.sum(ref**2, 0))
         vaf = 100 * (1 - np.nansum(err**2) / np.sum(ref**2)) if np.all(np.isfinite(err)) else -np.inf

@@ -34,7 +34,10 @@ class ImpedanceDataError(InputError):
 
 @dataclass
 class Record:
-    """A continuous recording (or several independent blocks of one)."""
+    """A continuous recording (or several independent blocks of one).
+
+    `valid` marks the rows whose angle, torque (and command) are finite: cycles touching an invalid row
+    are left out by `segment`.  `notes` says what reading the file changed or ignored."""
 
     time: np.ndarray
     angle: np.ndarray
@@ -42,11 +45,20 @@ class Record:
     command: np.ndarray | None = None
     event: np.ndarray | None = None
     block: np.ndarray | None = None
+    valid: np.ndarray | None = None
+    notes: list[str] = field(default_factory=list)
 
     @property
     def fs(self) -> float:
-        d = np.diff(self.time[: min(len(self.time), 1000)])
-        return float(1.0 / np.median(d))
+        """Sampling rate (Hz): samples per second over each block (time rounded in a file averages out)."""
+        b = self.block if self.block is not None else np.zeros(len(self.time), int)
+        edges = np.flatnonzero(np.r_[True, np.diff(b) != 0, True])
+        steps = spans = 0.0
+        for i, j in zip(edges[:-1], edges[1:]):
+            if j - i > 1:
+                steps += j - i - 1
+                spans += self.time[j - 1] - self.time[i]
+        return float(steps / spans)
 
     def columns(self) -> dict[str, np.ndarray]:
         return {
@@ -63,58 +75,181 @@ class Record:
         }
 
 
-def write_record(path: str | Path, rec: Record) -> None:
-    """CSV (header of column names) or HDF5 (.h5/.hdf5, one dataset per column, units attribute)."""
-    path = Path(path)
+def record_bytes(rec: Record, fmt: str = "csv") -> bytes:
+    """The record as the bytes of a CSV file (header of column names) or an HDF5 file (one dataset per
+    column, attribute `units`)."""
     cols = rec.columns()
-    if path.suffix in (".h5", ".hdf5"):
+    if fmt in ("h5", "hdf5", ".h5", ".hdf5"):
+        import io
+
         import h5py
 
-        with h5py.File(path, "w") as f:
+        buf = io.BytesIO()
+        with h5py.File(buf, "w") as f:
             for k, v in cols.items():
                 f.create_dataset(k, data=v).attrs["units"] = UNITS[k]
-        return
-    fmt = {"time": "%.6f", "event": "%d", "block": "%d"}
+        return buf.getvalue()
+    import io
+
+    fmts = {"time": "%.6f", "event": "%d", "block": "%d"}
     arr = np.column_stack([cols[k] for k in cols])
-    np.savetxt(path, arr, delimiter=",", header=",".join(cols), comments="", fmt=[fmt.get(k, "%.9g") for k in cols])
+    buf = io.StringIO()
+    np.savetxt(buf, arr, delimiter=",", header=",".join(cols), comments="", fmt=[fmts.get(k, "%.9g") for k in cols])
+    return buf.getvalue().encode()
 
 
-def read_record(path: str | Path) -> Record:
-    """Read a CSV or HDF5 record; missing required columns or NaNs raise `ImpedanceDataError`."""
+def write_record(path: str | Path, rec: Record) -> None:
+    """CSV (header of column names) or HDF5 (.h5/.hdf5), written whole (`closedloop.io.files`)."""
+    from closedloop.io.files import atomic_write_text
+
+    path = Path(path)
+    atomic_write_text(path, record_bytes(rec, path.suffix.lower()))
+
+
+def parse_columns(text: str | None) -> dict[str, str]:
+    """``--columns torque=tau,command=perturbation``: our column name -> the file's column name."""
+    if not text:
+        return {}
+    out = {}
+    for part in text.split(","):
+        k, eq, v = (t.strip() for t in part.partition("="))
+        if not eq or not v:
+            raise ImpedanceDataError(f"--columns {part}: expected NAME=COLUMN (e.g. torque=tau)")
+        if k.lower() not in UNITS:
+            raise ImpedanceDataError(f"--columns {part}: '{k}' is not one of {', '.join(UNITS)}")
+        out[k.lower()] = v.lower()
+    return out
+
+
+def is_hdf5(path: str | Path) -> bool:
+    """HDF5 by its signature (a CSV named .h5 is read as the CSV it is)."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(8) == b"\x89HDF\r\n\x1a\n"
+    except OSError:
+        return False
+
+
+def read_record(path: str | Path, columns: dict[str, str] | None = None, torque_sign: float = 1.0) -> Record:
+    """Read a CSV or HDF5 record and check it before any estimation.
+
+    `columns` maps our names (time, angle, torque, command, event, block) to the file's; columns that map
+    to none are reported in `Record.notes`.  Time must be finite and never repeat (the row is named); a
+    step back in time or a gap (more than 1.5 sampling intervals) starts a new block, so no cycle is cut
+    across it; rows with a non-finite angle, torque or command are kept but marked invalid (the cycles
+    that touch them are left out by `segment`).  `torque_sign` -1 flips a torque recorded with the opposite
+    sign."""
     path = Path(path)
     if not path.is_file():
         raise ImpedanceDataError(f"{path}: no such file")
-    if path.suffix in (".h5", ".hdf5"):
-        import h5py
-
-        with h5py.File(path, "r") as f:
-            cols = {k: np.asarray(f[k][()], float) for k in UNITS if k in f}
+    rename = {v: k for k, v in (columns or {}).items()}
+    if is_hdf5(path):
+        try:
+            import h5py
+        except ImportError:
+            raise ImpedanceDataError(f"{path}: an HDF5 file needs h5py (pip install h5py)") from None
+        try:
+            with h5py.File(path, "r") as f:
+                raw = {k.lower(): f[k] for k in f.keys() if isinstance(f[k], h5py.Dataset)}
+                raw = {k: np.asarray(v[()], float).ravel() for k, v in raw.items() if v.ndim <= 1}
+        except (OSError, ValueError, TypeError) as exc:
+            raise ImpedanceDataError(f"{path}: not a readable HDF5 record ({exc})") from None
+        lens = {len(v) for v in raw.values()}
+        if len(lens) > 1:
+            raise ImpedanceDataError(f"{path}: datasets of different lengths {sorted(lens)}")
+        header = list(raw)
     else:
-        with open(path, newline="") as fh:
-            header = [h.strip().lower() for h in next(csv.reader(fh), [])]
+        try:
+            with open(path, newline="") as fh:
+                header = [h.strip().lower() for h in next(csv.reader(fh), [])]
+        except UnicodeDecodeError:
+            raise ImpedanceDataError(f"{path}: not a text CSV (nor an HDF5 file)") from None
+        if not header:
+            raise ImpedanceDataError(f"{path}: empty file")
         try:
             arr = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
         except ValueError as exc:
             raise ImpedanceDataError(f"{path}: not a numeric CSV ({exc})") from None
         if arr.shape[1] != len(header):
             raise ImpedanceDataError(f"{path}: {len(header)} header columns but {arr.shape[1]} data columns")
-        cols = {h: arr[:, i] for i, h in enumerate(header)}
+        raw = {h: arr[:, i] for i, h in enumerate(header)}
+    for ours, theirs in (columns or {}).items():
+        if theirs not in raw:
+            raise ImpedanceDataError(
+                f"{path}: --columns {ours}={theirs}: no column '{theirs}' (have {', '.join(header)})"
+            )
+    cols: dict[str, np.ndarray] = {}
+    unknown = []
+    for h in header:
+        name = rename[h] if h in rename else (None if h in (columns or {}) else h)
+        if name in UNITS and name not in cols:
+            cols[name] = raw[h]
+        else:
+            unknown.append(h)
     for k in ("time", "angle", "torque"):
         if k not in cols:
-            raise ImpedanceDataError(f"{path}: missing column '{k}' (need time, angle, torque)")
-    for k, v in cols.items():
-        bad = np.flatnonzero(~np.isfinite(v))
-        if bad.size:
-            raise ImpedanceDataError(f"{path}: column '{k}' row {bad[0] + 1} is not finite")
-    if len(cols["time"]) < 10 or np.any(np.diff(cols["time"]) <= 0) and "block" not in cols:
-        raise ImpedanceDataError(f"{path}: time must increase and have at least 10 rows")
+            raise ImpedanceDataError(
+                f"{path}: missing column '{k}' (need time, angle, torque; map yours with --columns {k}=NAME)"
+            )
+    notes = []
+    if unknown:
+        notes.append(f"{path.name}: ignored columns {', '.join(unknown)} (map them with --columns NAME=COLUMN)")
+    t = cols["time"]
+    n = len(t)
+    if n < 10:
+        raise ImpedanceDataError(f"{path}: {n} rows; a record needs at least 10")
+    bad_t = np.flatnonzero(~np.isfinite(t))
+    if bad_t.size:
+        raise ImpedanceDataError(f"{path}: column 'time' row {bad_t[0] + 2} is not finite")
+    for k in ("event", "block"):
+        if k in cols:
+            bad = np.flatnonzero(~np.isfinite(cols[k]))
+            if bad.size:
+                raise ImpedanceDataError(f"{path}: column '{k}' row {bad[0] + 2} is not finite")
+    valid = np.ones(n, bool)
+    for k in ("angle", "torque", "command"):
+        if k in cols:
+            valid &= np.isfinite(cols[k])
+    if not valid.all():
+        bad = np.flatnonzero(~valid)
+        notes.append(
+            f"{path.name}: {bad.size} rows with a non-finite angle, torque or command (first at row "
+            f"{bad[0] + 2}): the cycles they touch are left out"
+        )
+    block = cols["block"].astype(int) if "block" in cols else np.zeros(n, int)
+    dt = np.diff(t)
+    same = np.diff(block) == 0
+    dup = np.flatnonzero(same & (dt == 0))
+    if dup.size:
+        raise ImpedanceDataError(f"{path}: row {dup[0] + 3} repeats the time {t[dup[0] + 1]:g} s of the row before")
+    step = float(np.median(dt[same & (dt > 0)])) if np.any(same & (dt > 0)) else 0.0
+    if step <= 0:
+        raise ImpedanceDataError(f"{path}: time must increase")
+    back = same & (dt < 0)
+    gap = same & (dt > 1.5 * step)
+    if back.any() or gap.any():
+        parts = []
+        if gap.any():
+            g = np.flatnonzero(gap)
+            parts.append(f"{g.size} gaps in time (largest {dt[g].max():.3g} s, first after row {g[0] + 2})")
+        if back.any():
+            parts.append(f"{int(back.sum())} steps back in time (first at row {np.flatnonzero(back)[0] + 3})")
+        notes.append(f"{path.name}: {' and '.join(parts)}: the record is split there; no cycle crosses them")
+    brk = np.r_[False, ~same | back | gap]
+    block = np.cumsum(brk)
+    if "block" not in cols and not brk.any():
+        block = None
+    sign = float(torque_sign)
+    event = cols.get("event")
     return Record(
-        cols["time"],
+        t,
         cols["angle"],
-        cols["torque"],
-        cols.get("command"),
-        cols.get("event"),
-        cols["block"].astype(int) if "block" in cols else None,
+        sign * cols["torque"],
+        None if "command" not in cols else cols["command"],
+        event,
+        block,
+        None if valid.all() else valid,
+        notes,
     )
 
 
@@ -238,7 +373,11 @@ def onsets_from_peak_velocity(rec: Record, period: float, lead: float | None = N
     fs, lead = rec.fs, period / 4 if lead is None else lead
     out = []
     for b, idx in _blocks(rec):
-        v = _smooth_velocity(rec.angle[idx], fs, 3.0)
+        a = rec.angle[idx]
+        ok = np.isfinite(a)
+        if not ok.all():  # invalid rows: bridged for the onsets only (their cycles are left out later)
+            a = np.interp(np.arange(a.size), np.flatnonzero(ok), a[ok]) if ok.sum() > 1 else np.zeros_like(a)
+        v = _smooth_velocity(a, fs, 3.0)
         pk, _ = find_peaks(v, distance=max(1, int(0.6 * period * fs)), height=0.3 * np.max(v))
         h = int(0.25 * period * fs)
         for p in pk:
@@ -276,21 +415,25 @@ def segment(
     S = int(round(max_shift_s * fs)) if align != "none" else 0
     P = int(round(pad_s * fs))
     blocks = dict(_blocks(rec))
-    excluded = {"irregular length": 0, "incomplete padding": 0, "outlier": 0}
+    excluded = {"irregular length": 0, "incomplete padding": 0, "non-finite samples": 0, "outlier": 0}
     cand = []
     for b, starts in by_block.items():
         starts = sorted(starts)
         nb = len(blocks[b])
+        bad = None if rec.valid is None else np.r_[0, np.cumsum(~rec.valid[blocks[b]])]
         for j, s in enumerate(starts):
             nxt = starts[j + 1] - s if j + 1 < len(starts) else None
             if nxt is not None and abs(nxt - L) > length_tol * L:
                 excluded["irregular length"] += 1
             elif s - P - S < 0 or s + L + P + S > nb:
                 excluded["incomplete padding"] += 1
+            elif bad is not None and bad[s + L + P + S] - bad[s - P - S] > 0:
+                excluded["non-finite samples"] += 1
             else:
                 cand.append((b, s))
     if len(cand) < 3:
-        raise ImpedanceDataError(f"only {len(cand)} complete cycles (excluded: {excluded})")
+        why = ", ".join(f"{k} {v}" for k, v in excluded.items() if v) or "none"
+        raise ImpedanceDataError(f"only {len(cand)} complete cycles; at least 3 are needed (left out: {why})")
     width = L + 2 * (P + S)
 
     def cut(sig, shifts):
@@ -348,6 +491,6 @@ def _align(
             "peak-velocity and RMS alignment and invent shifts on periodic data; compare with "
             "--align none"
         )
-    for w in rep.warnings:
-        log.warning(w)
+    for w in rep.warnings:  # reported once, by the caller (the CLI prints the summary's warnings)
+        log.debug(w)
     return shifts

@@ -59,13 +59,18 @@ class Profile:
         if isinstance(spec, Profile):
             return spec
         if isinstance(spec, (int, float)):
+            if not np.isfinite(spec):
+                raise ProfileError(f"{name} {spec}: must be a finite number")
             return cls("constant", (float(spec),))
         kind, _, rest = str(spec).partition(":")
         kind = kind.strip().lower()
         need = {"constant": 1, "step": 3, "square": 3, "dip": 3}
         if kind not in need:
             try:
-                return cls("constant", (float(kind),))
+                v = float(kind)
+                if not np.isfinite(v):
+                    raise ValueError
+                return cls("constant", (v,))
             except ValueError:
                 raise ProfileError(f"{name} '{spec}': kind must be one of {sorted(need)}") from None
         try:
@@ -74,6 +79,8 @@ class Profile:
             raise ProfileError(f"{name} '{spec}': values must be numbers") from None
         if len(vals) != need[kind]:
             raise ProfileError(f"{name} '{spec}': {kind} takes {need[kind]} comma-separated values")
+        if not all(np.isfinite(vals)) or max(abs(v) for v in vals) > 1e6:
+            raise ProfileError(f"{name} '{spec}': values must be finite numbers (below 1e6 in magnitude)")
         if kind == "square" and vals[2] <= 0 or kind == "dip" and vals[2] <= 0:
             raise ProfileError(f"{name} '{spec}': period/width must be positive")
         return cls(kind, vals)
@@ -148,6 +155,17 @@ class ExperimentConfig:
             raise InputError("n_cycles and cycles_per_block must be at least 1")
         if self.prbs_phase not in ("random", "locked"):
             raise InputError(f"prbs_phase '{self.prbs_phase}': expected 'random' or 'locked'")
+        tc = np.linspace(0.0, self.period, 4001)
+        if np.min(self.stiffness(tc, self.period)) <= 0:
+            raise ProfileError(
+                f"stiffness '{self.stiffness.spec}': K(t) must stay positive over the cycle "
+                f"(minimum {np.min(self.stiffness(tc, self.period)):.3g})"
+            )
+        if np.min(self.damping(tc, self.period)) < 0:
+            raise ProfileError(
+                f"damping '{self.damping.spec}': B(t) must not be negative (minimum "
+                f"{np.min(self.damping(tc, self.period)):.3g}): a negative damping makes the joint unstable"
+            )
 
     @property
     def samples_per_cycle(self) -> int:

@@ -75,6 +75,12 @@ def plot_impedance(
     axes[-1].set_xlabel("time in cycle (s)")
     fig.suptitle(title or f"time-varying joint impedance, {ens.n} cycles", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    import io
+
+    from closedloop.io.files import atomic_write_text
+
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=120, format=path.suffix.lstrip(".").lower() or "png")
     plt.close(fig)
+    atomic_write_text(path, buf.getvalue())  # whole, or inside the command's OutputSet
     return path

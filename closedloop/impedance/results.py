@@ -9,6 +9,7 @@ Truth: CSV with columns t, I, B, K (and optional K_muscle, theta0).
 
 from __future__ import annotations
 
+import io
 import json
 from dataclasses import asdict
 from pathlib import Path
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from closedloop.impedance.data import ImpedanceDataError
+from closedloop.io.files import atomic_write_text
 
 
 def table(est, bands=None, fit=None) -> dict[str, np.ndarray]:
@@ -31,6 +33,7 @@ def table(est, bands=None, fit=None) -> dict[str, np.ndarray]:
 
 
 def write_results(path: str | Path, est, bands=None, fit=None, summary: dict | None = None) -> Path:
+    """The results table as CSV, or as JSON with the summary, options and units; written whole."""
     path = Path(path)
     cols = table(est, bands, fit)
     if path.suffix == ".json":
@@ -52,11 +55,13 @@ def write_results(path: str | Path, est, bands=None, fit=None, summary: dict | N
             },
             "table": {k: clean(v) for k, v in cols.items()},
         }
-        path.write_text(json.dumps(doc, indent=1, default=_default))
+        atomic_write_text(path, json.dumps(doc, indent=1, default=_default))
     else:
+        buf = io.StringIO()
         np.savetxt(
-            path, np.column_stack(list(cols.values())), delimiter=",", header=",".join(cols), comments="", fmt="%.6g"
+            buf, np.column_stack(list(cols.values())), delimiter=",", header=",".join(cols), comments="", fmt="%.6g"
         )
+        atomic_write_text(path, buf.getvalue())
     return path
 
 
@@ -69,22 +74,32 @@ def _default(o):
 
 
 def write_truth(path: str | Path, truth: dict[str, np.ndarray]) -> None:
+    """Truth CSV (t, I, B, K [, K_muscle, theta0]), written whole."""
     keys = [k for k in ("t", "I", "B", "K", "K_muscle", "theta0") if k in truth]
+    buf = io.StringIO()
     np.savetxt(
-        path, np.column_stack([truth[k] for k in keys]), delimiter=",", header=",".join(keys), comments="", fmt="%.9g"
+        buf, np.column_stack([truth[k] for k in keys]), delimiter=",", header=",".join(keys), comments="", fmt="%.9g"
     )
+    atomic_write_text(path, buf.getvalue())
 
 
 def read_truth(path: str | Path) -> dict[str, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise ImpedanceDataError(f"{path}: no such file")
-    with open(path) as fh:
-        head = [h.strip() for h in fh.readline().split(",")]
     try:
+        with open(path) as fh:
+            head = [h.strip() for h in fh.readline().split(",")]
         arr = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    except ValueError as exc:
-        raise ImpedanceDataError(f"{path}: not a numeric CSV ({exc})") from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ImpedanceDataError(f"{path}: not a numeric CSV ({str(exc).splitlines()[0]})") from None
+    if arr.shape[1] != len(head) or arr.shape[0] < 2:
+        raise ImpedanceDataError(
+            f"{path}: {len(head)} header columns, {arr.shape[1]} data columns, {arr.shape[0]} rows"
+        )
+    bad = np.argwhere(~np.isfinite(arr))
+    if bad.size:
+        raise ImpedanceDataError(f"{path}: row {bad[0][0] + 2}, column '{head[bad[0][1]]}' is not finite")
     cols = {h: arr[:, i] for i, h in enumerate(head)}
     for k in ("t", "I", "B", "K"):
         if k not in cols:

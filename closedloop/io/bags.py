@@ -128,6 +128,10 @@ def _reader(path: Path):
             f"{path}: not a ROS bag (a ROS 1 .bag, a ROS 2 bag folder with its metadata.yaml, or a "
             f".mcap/.db3 file){'; a CSV log goes straight to calibrate' if path.suffix.lower() == '.csv' else ''}"
         )
+    from closedloop.io.files import note_input
+
+    for f in [path] if path.is_file() else path.iterdir():
+        note_input(f)
     if path.is_file() and path.suffix.lower() in (".mcap", ".db3") and (path.parent / "metadata.yaml").is_file():
         path = path.parent  # a ROS 2 bag is its directory
     return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
@@ -151,18 +155,114 @@ def read_streams(path: str | Path, joints: list[str], topics: list[str] | None =
             raise BagError(f"{path}: no sensor_msgs/JointState messages{want} (topics: {', '.join(found) or 'none'})")
         start = reader.start_time
         by_topic: dict[str, list] = {}
-        for conn, stamp, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
-            hs = msg.header.stamp
-            t_ns = int(hs.sec) * 1_000_000_000 + int(hs.nanosec) if (hs.sec or hs.nanosec) else int(stamp)
-            by_topic.setdefault(conn.topic, []).append(
-                (t_ns, list(msg.name), np.asarray(msg.position, float), np.asarray(msg.velocity, float))
-            )
+        messages = reader.messages(connections=conns)
+        last: bytes | None = None  # the last message read whole: a damaged stretch starts after it
+        while True:
+            try:
+                conn, stamp, raw = next(messages)
+            except StopIteration:
+                break
+            except Exception as exc:  # the container itself (chunk, record or index) is damaged
+                raise BagError(f"{_damaged_at(path, last, None)} ({_first_line(exc)})") from None
+            try:
+                msg = reader.deserialize(raw, conn.msgtype)
+                hs = msg.header.stamp
+                t_ns = int(hs.sec) * 1_000_000_000 + int(hs.nanosec) if (hs.sec or hs.nanosec) else int(stamp)
+                item = (t_ns, list(msg.name), np.asarray(msg.position, float), np.asarray(msg.velocity, float))
+            except Exception as exc:  # a message whose bytes do not decode
+                raise BagError(f"{_damaged_at(path, last, bytes(raw))} ({_first_line(exc)})") from None
+            by_topic.setdefault(conn.topic, []).append(item)
+            last = bytes(raw)
         t_ref = min(min(m[0] for m in v) for v in by_topic.values()) if by_topic else start
     finally:
         reader.close()
     streams = [_merge(path, topic, msgs, joints, t_ref) for topic, msgs in sorted(by_topic.items())]
     return [s for s in streams if s is not None]
+
+
+def _first_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text[:200]
+
+
+def _storage_files(path: Path) -> list[Path]:
+    """The files holding a bag's bytes: the file itself, or a ROS 2 bag folder's .mcap/.db3 files."""
+    if path.is_file():
+        return [path]
+    return sorted(p for p in path.iterdir() if p.suffix.lower() in (".mcap", ".db3")) if path.is_dir() else []
+
+
+def _damaged_at(path: Path, last: bytes | None, bad: bytes | None) -> str:
+    """``FILE: damaged at byte N`` -- where the undecodable message `bad` starts, else just after the last
+    message read whole (`last`), found in the file (uncompressed chunks hold messages verbatim)."""
+    import mmap
+
+    for f in _storage_files(path):
+        try:
+            with f.open("rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+                if bad is not None and len(bad) >= 16:
+                    k = mm.find(bad)
+                    if k >= 0:
+                        return f"{f}: damaged message at byte {k} of {len(mm)}"
+                if last is not None and len(last) >= 16:
+                    k = mm.find(last)
+                    if k >= 0:
+                        return f"{f}: damaged after byte {k + len(last)} of {len(mm)} (the last message read whole)"
+                k = _mcap_damage(mm) if f.suffix.lower() == ".mcap" else None
+                if k is not None:
+                    return f"{f}: damaged record at byte {k} of {len(mm)}"
+                if last is None:
+                    return f"{f}: damaged before its first message could be read (the file is {len(mm)} bytes)"
+        except (OSError, ValueError):
+            continue
+    return f"{path}: damaged (compressed chunks: the byte offset cannot be told)"
+
+
+def _mcap_damage(mm) -> int | None:
+    """Offset of the first MCAP record that cannot be right (a length past its container, an opcode MCAP
+    does not define, a chunk whose CRC fails, or a record inside an uncompressed chunk that is so), or None.
+    Layout: magic, then records ``opcode:u8 length:u64 content``; a chunk (0x06) holds ``start:u64 end:u64
+    size:u64 crc:u32 compression:str records:bytes`` (MCAP specification)."""
+    import struct
+    import zlib
+
+    def walk(start: int, stop: int, top: bool) -> int | None:
+        k = start
+        while k < stop:
+            if k + 9 > stop:
+                return k
+            op, n = mm[k], struct.unpack_from("<Q", mm, k + 1)[0]
+            if not 0x01 <= op <= 0x0F or k + 9 + n > stop:
+                return k
+            if op == 0x06 and top:  # a chunk: check its CRC, walk its records when uncompressed
+                c = k + 9
+                size, crc = struct.unpack_from("<QI", mm, c + 16)
+                clen = struct.unpack_from("<I", mm, c + 28)[0]
+                if c + 32 + clen + 8 > k + 9 + n:
+                    return k
+                compression = bytes(mm[c + 32 : c + 32 + clen])
+                rlen = struct.unpack_from("<Q", mm, c + 32 + clen)[0]
+                r0 = c + 32 + clen + 8
+                if r0 + rlen > k + 9 + n:
+                    return k
+                if not compression:
+                    if crc and zlib.crc32(mm[r0 : r0 + rlen]) != crc:
+                        inner = walk(r0, r0 + rlen, False)
+                        return inner if inner is not None else k
+                    inner = walk(r0, r0 + rlen, False)
+                    if inner is not None:
+                        return inner
+            if op == 0x0F:  # the footer: the end
+                return None
+            k += 9 + n
+        return None
+
+    if bytes(mm[:8]) != b"\x89MCAP0\r\n":
+        return 0
+    try:
+        return walk(8, len(mm) - 8, True)
+    except struct.error:
+        return None
 
 
 def _merge(path: Path, topic: str, msgs: list, joints: list[str], t_ref: int) -> Stream | None:

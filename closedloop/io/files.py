@@ -9,15 +9,85 @@ from __future__ import annotations
 import errno
 import os
 import shutil
+import stat
 import tempfile
+from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 from closedloop.errors import InputError
 
 _STAGE = ".closedloop-"  # prefix of every temporary name beside an output
 _active: ContextVar["OutputSet | None"] = ContextVar("closedloop_output_set", default=None)
+_inputs: ContextVar["dict[tuple[int, int], str] | None"] = ContextVar("closedloop_inputs", default=None)
+
+
+def note_input(path: str | Path) -> None:
+    """Record `path` as an input of the running command (inside `track_inputs`; elsewhere a no-op):
+    `OutputSet` then refuses to publish over it (by inode, links resolved), whichever command wrote it.
+    Called by the readers (models, logs, bags, manifests, YAML and JSON files)."""
+    seen = _inputs.get()
+    if seen is None:
+        return
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return
+    if stat.S_ISREG(st.st_mode):
+        seen.setdefault((st.st_dev, st.st_ino), str(path))
+
+
+@contextmanager
+def track_inputs() -> Iterator[None]:
+    """The scope of one command: the inputs its readers note are never overwritten by its outputs."""
+    token = _inputs.set({})
+    try:
+        yield
+    finally:
+        _inputs.reset(token)
+
+
+def _input_at(target: Path) -> str | None:
+    """The noted input `target` is (same inode, and the input's path still leads there), or None."""
+    seen = _inputs.get()
+    ident = _identity(target)
+    if not seen or ident is None or ident not in seen:
+        return None
+    return seen[ident] if _identity(seen[ident]) == ident else None
+
+
+def _identity(path: str | Path) -> tuple[int, int] | None:
+    """(device, inode) of the file `path` leads to (links followed), None when there is none."""
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError):
+        return None
+    return st.st_dev, st.st_ino
+
+
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """`a` and `b` are one file (one inode after resolving links: hard links, symlinks, ``./x`` and ``x``)."""
+    ia = _identity(a)
+    return ia is not None and ia == _identity(b)
+
+
+def is_special(path: str | Path) -> bool:
+    """`path` exists and is a character or block device, a named pipe or a socket (``/dev/null``, a FIFO)."""
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return False
+    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
+
+
+def _write_special(path: Path, data: bytes) -> None:
+    """Write `data` into a device or named pipe in place (a reader of the pipe gets the bytes)."""
+    fd = os.open(path, os.O_WRONLY | getattr(os, "O_NOCTTY", 0))
+    try:
+        _write_all(fd, data)
+    finally:
+        os.close(fd)
 
 
 class OutputSet:
@@ -37,12 +107,13 @@ class OutputSet:
     """
 
     def __init__(self, order: list | tuple = ()):
-        self.order = [Path(p).absolute() for p in order if p is not None]
+        self.order = [_target(p) for p in order if p is not None]
         self.files: dict[Path, bytes] = {}
         self._token = None
 
     def add(self, target: str | Path, data: str | bytes) -> None:
-        self.files[Path(target).absolute()] = data.encode() if isinstance(data, str) else bytes(data)
+        """Stage `data` for `target` (a symlink stands for the file it points to, as a shell's ``>``)."""
+        self.files[_target(target)] = data.encode() if isinstance(data, str) else bytes(data)
 
     def __enter__(self) -> "OutputSet":
         self._token = _active.set(self)
@@ -54,8 +125,24 @@ class OutputSet:
             self.commit()
 
     def commit(self) -> None:
+        """Publish the staged files (class doc); devices and named pipes are written in place, last.
+
+        Refused before anything is written: a target that is one of this run's inputs (`note_input`).
+        """
+        for t in self.files:
+            source = _input_at(t)
+            if source is not None:
+                raise InputError(
+                    f"{t}: refusing to overwrite an input of this run ({source}); choose another output path"
+                )
         rank = {p: k for k, p in enumerate(self.order)}
-        targets = sorted(self.files, key=lambda p: rank.get(p, len(rank)))
+        special = [t for t in self.files if is_special(t)]
+        targets = sorted((t for t in self.files if t not in special), key=lambda p: rank.get(p, len(rank)))
+        self._publish(targets)
+        for t in sorted(special, key=lambda p: rank.get(p, len(rank))):
+            _write_special(t, self.files[t])
+
+    def _publish(self, targets: list[Path]) -> None:
         staged: list[tuple[Path, int | None, Path | None]] = []  # (target, fd of an unnamed file, staged path)
         stage_dirs: list[Path] = []
         try:
@@ -73,6 +160,8 @@ class OutputSet:
                 try:
                     _write_all(fd, self.files[t])
                     os.fsync(fd)
+                except OSError as exc:  # a full disk, a quota: name the output (nothing is published)
+                    raise OSError(exc.errno, exc.strerror, str(t)) from None
                 finally:
                     if staged[-1][1] is None:
                         os.close(fd)
@@ -100,6 +189,17 @@ class OutputSet:
                         leftover.unlink()
             for d in stage_dirs:
                 shutil.rmtree(d, ignore_errors=True)
+
+
+def _target(path: str | Path) -> Path:
+    """The absolute path an output is written to: symlinks followed (a dangling one: its target)."""
+    p = Path(path)
+    if is_special(p):  # /dev/stdout -> /proc/self/fd/1 -> a pipe: opened by the name given
+        return p.absolute()
+    try:
+        return p.resolve() if p.is_symlink() else p.absolute()
+    except (OSError, RuntimeError):  # a symlink loop
+        return p.absolute()
 
 
 def _hold_open(paths: list[Path]) -> list[int]:
@@ -185,19 +285,21 @@ def atomic_write(path: str | Path, writer: Callable[[str], None]) -> None:
 
 
 def refuse_overwrite(out: str | Path, *inputs: str | Path | None) -> None:
-    """An output must never replace one of the user's inputs."""
-    o = Path(out).resolve()
+    """An output must never replace one of the user's inputs: the same file by inode, links resolved
+    (``a.csv``, ``./a.csv``, a symlink or a hard link to it all name the input)."""
     for i in inputs:
-        if i is not None and Path(i).exists() and Path(i).resolve() == o:
-            raise InputError(f"{out}: refusing to overwrite an input file; choose another output path")
+        if i is not None and same_file(out, i):
+            raise InputError(f"{out}: refusing to overwrite an input of this run ({i}); choose another output path")
 
 
 def check_outputs(outputs: dict[str, str | Path | None], inputs: list = (), directory: bool = False) -> None:
     """Refuse, before any work, output paths that cannot be written (one line naming the option and path).
 
     `outputs` maps an option (``--out``) to its path.  Refused: two options naming one file, an input
-    file, an existing directory (`directory=False`) or an existing file (`directory=True`), a path below
-    a file, a directory where no file can be created (read-only, no permission: probed).
+    file (by inode: `refuse_overwrite`), an existing directory (`directory=False`) or an existing file
+    (`directory=True`), a path below a file, a directory where no file can be created (read-only, no
+    permission: probed).  A device or named pipe (``/dev/null``, a FIFO) is accepted as a file output
+    where it can be opened for writing: it is written in place, never replaced.
     """
     seen: dict[Path, str] = {}
     for opt, out in outputs.items():
@@ -208,7 +310,16 @@ def check_outputs(outputs: dict[str, str | Path | None], inputs: list = (), dire
         if r in seen:
             raise InputError(f"{opt} {out}: the same file as {seen[r]}; give each output its own path")
         seen[r] = f"{opt} {out}"
-        refuse_overwrite(out, *inputs)
+        try:
+            refuse_overwrite(out, *inputs)
+        except InputError as exc:
+            raise InputError(f"{opt} {exc}") from None
+        if is_special(p):
+            if directory:
+                raise InputError(f"{opt} {out}: is a device or pipe; give a directory")
+            if not os.access(p, os.W_OK):
+                raise InputError(f"{opt} {out}: cannot write to this device or pipe (permission denied)")
+            continue
         if not directory and p.is_dir():
             raise InputError(f"{opt} {out}: is a directory; give a file name")
         if directory and p.exists() and not p.is_dir():

@@ -94,6 +94,9 @@ def read_log(
     """
     path = Path(path)
     try:
+        from closedloop.io.files import note_input
+
+        note_input(path)
         with path.open(newline="", encoding="utf-8-sig") as fh:  # a UTF-8 byte-order mark is dropped
             reader = csv.reader(fh)
             numbered = [(reader.line_num, row) for row in reader]  # the line a row ends on

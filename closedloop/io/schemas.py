@@ -130,6 +130,9 @@ StrictLoader.construct_mapping = _mapping  # type: ignore[method-assign]
 
 def read_text(path: str | Path, what: str, error: type[InputError] = InputError) -> str:
     """A file's text (UTF-8, a byte-order mark dropped); unreadable files are `error`."""
+    from closedloop.io.files import note_input
+
+    note_input(path)
     try:
         return Path(path).read_text(encoding="utf-8-sig")
     except IsADirectoryError:

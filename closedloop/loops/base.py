@@ -42,7 +42,11 @@ class LoopEval:
 
     def frame_derivatives(self) -> list[np.ndarray]:
         """d r / d (right perturbation) of each frame, in the order of `Loop.frames`."""
-        return self.dF if self.dF is not None else [self.dA, self.dB]
+        if self.dF is not None:
+            return self.dF
+        if self.dA is None or self.dB is None:
+            raise ValueError("a loop evaluation without Jacobians has no frame derivatives")
+        return [self.dA, self.dB]
 
 
 class Loop(ABC):
@@ -55,6 +59,18 @@ class Loop(ABC):
     pixel_rows: tuple[int, ...] = ()
     #: True when the loop cannot tell the overall size of the robot (thesis 3.3)
     scale_free: bool = True
+
+    # Configuration a loop spec may set on the loop (declared, not defaulted: `hasattr` tells whether set):
+    #: own parameter field -> its shared group's parameter name (`loops.settings.share`)
+    shared: dict[str, str]
+    #: the loop's measurement covariance without the task-space term, the task noise given ('estimate' or
+    #: per-axis std) and its variance (`loops.settings.set_task_noise`)
+    own_cov: np.ndarray | None
+    task_noise: str | np.ndarray | None
+    task_var: np.ndarray | float | None
+    #: the fixture the loop's configurations were recorded at, and the log file they came from (`loops.spec`)
+    fixture: str
+    log_path: str
 
     def __init__(self, name: str, frame_a: str, frame_b: str = "universe"):
         self.name = name

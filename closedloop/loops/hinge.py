@@ -129,7 +129,7 @@ def _frame_from_axis(point: np.ndarray, direction: np.ndarray, toward: np.ndarra
     cands = ([np.asarray(toward, dtype=float)] if toward is not None else []) + [np.eye(3)[0], np.eye(3)[1]]
     for e in cands:
         x = e - (e @ z) * z
-        if np.linalg.norm(x) > 1e-6 * max(np.linalg.norm(e), 1e-300):
+        if np.linalg.norm(x) > 1e-6 * max(float(np.linalg.norm(e)), 1e-300):
             break
     x = x / np.linalg.norm(x)
     R = np.column_stack([x, np.cross(z, x), z])
@@ -300,6 +300,7 @@ class HingeLoop(Loop):
         what is left of L is Rz(a) Tz(h): a shifts the eliminated angle, h
         the handle's height.
         """
+        assert isinstance(other, HingeLoop)  # expressed in another hinge loop's chart
         L = other.H0.actInv(self.hinge(p))
         d = L.rotation[:, 2]
         w = np.array([-d[1], d[0], 0.0])  # z x d

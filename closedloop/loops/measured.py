@@ -182,7 +182,9 @@ class MeasuredPoseLoop(_Measured):
         self.tool = None if tool is None else as_se3(tool, "tool")
         self.initial_tool = pin.SE3.Identity() if initial_tool is None else as_se3(initial_tool, "initial_tool")
         self._fit_tool = initial_tool is None  # initialize() estimates an unknown tool with no initial value
-        self.measurement_cov = None if sigma_t is None else np.diag([sigma_t**2] * 3 + [sigma_r**2] * 3)
+        self.measurement_cov = (
+            None if sigma_t is None or sigma_r is None else np.diag(np.array([sigma_t**2] * 3 + [sigma_r**2] * 3))
+        )
 
     @property
     def dim(self) -> int:

@@ -159,7 +159,7 @@ def parse_loop(spec: str, robot: RobotModel) -> Loop:
 
 def default_loops(robot: RobotModel) -> list[Loop]:
     """Loops implied by the model itself: a D-H table with ``closes: true``."""
-    if robot.kind == "dh" and robot.dh.closes:
+    if robot.kind == "dh" and robot.dh is not None and robot.dh.closes:
         return [WeldLoop("closure", robot.dh.end_frame, "universe", closure=parse_pose("0 0 0 0 0 0"))]
     return []
 

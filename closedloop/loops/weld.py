@@ -104,6 +104,7 @@ class WeldLoop(Loop):
         X = self.closure(p)
         Y = rigid_inverse(TB) @ TA  # T_B^-1 T_A
         r, Jl = log6(X.inverse().homogeneous @ Y, jacobian=True)
+        assert Jl is not None  # asked for
         dB = -Jl @ adjoint(rigid_inverse(Y))
         if self.known is not None:
             return LoopEval(r, Jl, dB, np.zeros((N, 6, 0)))

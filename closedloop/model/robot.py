@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import difflib
 import logging
+import re
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -93,24 +95,30 @@ class RobotModel:
         path = Path(path)
         if not path.is_file():
             raise ModelError(f"{path}: no such model file")
+        from closedloop.io.files import note_input
+
+        note_input(path)
         suffix = path.suffix.lower()
         if suffix in (".yaml", ".yml"):
             table = load_dh(path)
             return cls(table.build_model(), path, "dh", table)
-        try:
-            if suffix == ".urdf":
-                model = pin.buildModelFromUrdf(str(path))
-                kind = "urdf"
-            elif suffix in (".xml", ".mjcf"):
-                model = pin.buildModelFromMJCF(str(path))
-                kind = "mjcf"
-            else:
-                raise ModelError(f"{path}: unknown model type '{suffix}' (use .urdf, .xml/.mjcf or .yaml)")
-        except ModelError:
-            raise
-        except Exception as exc:  # Pinocchio raises plain ValueError/RuntimeError
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            raise ModelError(f"{path}: Pinocchio cannot parse this model ({first})") from None
+        from closedloop.io.robot_files import check_mjcf, check_urdf
+
+        if suffix == ".urdf":
+            check_urdf(path)  # what would crash Pinocchio or reach the user as urdfdom's log lines
+            build, kind = pin.buildModelFromUrdf, "urdf"
+        elif suffix in (".xml", ".mjcf"):
+            check_mjcf(path)
+            build, kind = pin.buildModelFromMJCF, "mjcf"
+        else:
+            raise ModelError(f"{path}: unknown model type '{suffix}' (use .urdf, .xml/.mjcf or .yaml)")
+        with _captured_stderr() as log_lines:
+            try:
+                model = build(str(path))
+            except Exception as exc:  # Pinocchio raises plain ValueError/RuntimeError
+                text = " ".join(str(exc).split()) or type(exc).__name__
+                said = " ".join(log_lines()[:1])
+                raise ModelError(f"{path}: Pinocchio cannot parse this model ({said or text})"[:400]) from None
         robot = cls(model, path, kind)
         if kind == "urdf":
             mimics = _urdf_mimics(path)
@@ -241,6 +249,36 @@ class RobotModel:
             "mimic_joints": dict(self.mimic),
             "frames": [f.name for f in self.model.frames if f.name != "universe"],
         }
+
+
+@contextmanager
+def _captured_stderr():
+    """Hold what C++ code writes to the process's stderr (urdfdom logs its refusals there, several lines
+    each) during the block; yields a function returning those lines, stripped of their log prefixes."""
+    import os
+    import sys
+    import tempfile
+
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError, AttributeError):  # no real stderr (embedded): nothing to capture
+        yield lambda: []
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+
+        def lines() -> list[str]:
+            tmp.seek(0)
+            text = tmp.read().decode("utf-8", "replace")
+            out = [re.sub(r"^\s*(\x1b\[[0-9;]*m)*(Error|Warning):\s*", "", ln).strip() for ln in text.splitlines()]
+            return [re.sub(r"\x1b\[[0-9;]*m", "", ln) for ln in out if ln and not ln.startswith("at line")]
+
+        try:
+            yield lines
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
 
 
 def _urdf_mimics(path: Path) -> dict[str, tuple[str, float, float]]:

@@ -31,12 +31,16 @@ def verdict_record(verdict) -> dict | None:
     """The verdict as a plain dict (status, reasons, the numbers behind them)."""
     if verdict is None:
         return None
+    ev = dict(verdict.evidence)
+    size_measured, held = ev.pop("size_measured", None), ev.pop("size_held_by", None)
     return {
         "status": verdict.status,
         "reasons": list(verdict.reasons),
-        "evidence": {
-            k: (float(v) if isinstance(v, (int, float, np.floating)) else v) for k, v in verdict.evidence.items()
-        },
+        # False: the loops do not see the robot's size; it is the model file's, held by `size_held_by`
+        # (None: the model's lengths together)
+        "size_measured": None if size_measured is None else bool(size_measured),
+        "size_held_by": held,
+        "evidence": {k: (float(v) if isinstance(v, (int, float, np.floating)) else v) for k, v in ev.items()},
     }
 
 
@@ -247,6 +251,13 @@ def build_report(
         "shared_parameters": _shared(prob),
         "rejected": [asdict(r) | {"where": where(r.row)} for r in res.rejected],
         "weighting": res.weighting,
+        # which estimator the data support and why, where the standard errors come from (estimate.model_error)
+        "estimator": {
+            "name": getattr(res, "estimator", None),
+            "reason": getattr(res, "estimator_reason", None),
+            "error_bars": getattr(res, "error_bars", None),
+            "evidence": dict(getattr(res, "model_error", {}) or {}),
+        },
         "robust": {
             "suspects": [
                 {

@@ -132,8 +132,27 @@ def parse_lengths(items: list, robot: RobotModel) -> list[LengthLoop]:
             except Exception as exc:
                 raise LoopError(f"{where}: {exc}") from None
         nums = [parse_number(t, where, LoopError) for t in it[2:]]
+        if nums[0] <= 0 or (len(nums) > 1 and nums[1] <= 0):
+            raise LoopError(f"{where}: a length and its SIGMA are > 0 (metres)")
+        nominal = _nominal_distance(robot, it[0], it[1])
+        if abs(nums[0] - nominal) > max(0.5 * nominal, 0.05):
+            raise LoopError(
+                f"{where}: the model puts these frames {nominal:.4g} m apart; a measured length differs from it "
+                f"by a calibration's correction (millimetres), not {abs(nums[0] - nominal):.4g} m (metres expected)"
+            )
         out.append(LengthLoop(it[0], it[1], nums[0], nums[1] if len(nums) > 1 else None))
     return out
+
+
+def _nominal_distance(robot: RobotModel, a: str, b: str) -> float:
+    """Distance between frames `a` and `b` of the nominal model at its neutral configuration."""
+    import numpy as np
+    import pinocchio as pin
+
+    data = robot.model.createData()
+    pin.framesForwardKinematics(robot.model, data, pin.neutral(robot.model))
+    pa, pb = (data.oMf[robot.frame_id(f)].translation for f in (a, b))
+    return float(np.linalg.norm(pa - pb))
 
 
 def length_blocks(problem: CalibrationProblem) -> list[int]:

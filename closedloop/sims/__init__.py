@@ -31,10 +31,8 @@ apart, from the structure of the nominal robot: no fit).  The public names load 
 from importlib import import_module
 from typing import Any
 
-from closedloop.sims import scenario_files  # noqa: F401  (registers the shipped scenario files; no MuJoCo)
-
-#: the public names and the module of each, loaded on first use (PEP 562): the scenarios and the loop
-#: types (``simulate --help``, the scenario files) cost no MuJoCo import
+#: the public names and the module of each, loaded on first use (PEP 562): the scenario catalog
+#: (``simulate --help``) reads the scenario files without loading the simulator
 _PUBLIC = {
     "SimResult": "closedloop.sims.dataset",
     "sensor_readings": "closedloop.sims.dataset",
@@ -43,7 +41,7 @@ _PUBLIC = {
     "SimLoop": "closedloop.sims.loop_types",
     "simulates": "closedloop.sims.loop_types",
     "load_scenario": "closedloop.sims.scenario_files",
-    "SCENARIOS": "closedloop.sims.scenarios",
+    "SCENARIOS": "closedloop.sims.scenario_files",  # the registry with the shipped scenario files in it
     "DoorGeometry": "closedloop.sims.scenarios",
     "PlaneGeometry": "closedloop.sims.scenarios",
     "Scenario": "closedloop.sims.scenarios",

@@ -267,9 +267,9 @@ class Scenario:
     tracker: TrackerGeometry | None = None
 
 
-#: scenario name -> scenario: the shipped YAML files (``closedloop/sims/scenarios/*.yaml``, registered by
-#: :mod:`closedloop.sims.scenario_files`, which ``closedloop.sims`` imports), and what ``load_scenario``
-#: or ``--robot`` registered
+#: scenario name -> scenario: the shipped YAML files (``closedloop/sims/scenarios/*.yaml``, registered when
+#: :mod:`closedloop.sims.scenario_files` is imported: ``closedloop.sims.SCENARIOS`` and ``simulate`` import
+#: it), and what ``load_scenario`` or ``--robot`` registered
 SCENARIOS: dict[str, Scenario] = {}
 
 

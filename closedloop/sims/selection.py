@@ -39,7 +39,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pinocchio as pin
@@ -48,6 +48,9 @@ from closedloop.errors import ScenarioError
 from closedloop.sims.driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
 from closedloop.sims.loop_types import sim_loop
 from closedloop.sims.scenarios import Scenario, SimSettings
+
+if TYPE_CHECKING:
+    from closedloop.problem.problem import CalibrationProblem
 
 __all__ = ["Plan", "Information", "candidate_pool", "information_result", "order_path", "bridge", "plan_selected"]
 
@@ -82,7 +85,7 @@ class Information:
     """What the choice reads: the nominal problem on the pool, the values closing it, the estimated
     parameters and the joint noise (`closedloop.design.poses.select_poses` on a bare problem)."""
 
-    problem: Any
+    problem: CalibrationProblem
     values: np.ndarray
     estimated: list[int]
     noise: float

@@ -231,6 +231,7 @@ def palm_frame_parameters(
             f"not a {robot.kind} model"
         )
     values = values or {}
+    assert robot.dh is not None  # kind 'dh'
     rows = robot.dh.rows
     names = [r.name for r in rows]
     if palm_joint not in names:
@@ -263,13 +264,13 @@ def palm_frame_parameters(
                 unknown=last,
             )
         )
-    last = len(rows) - 1
+    end = len(rows) - 1
     closing = PalmRow(
-        "closing", "constant", 0.0, g(last, "s"), g(last, "a"), g(last, "alpha"), None, None, base=rows[last].convention
+        "closing", "constant", 0.0, g(end, "s"), g(end, "a"), g(end, "alpha"), None, None, base=rows[end].convention
     )
     notes.append(
         "finger tip transformation not identified: the loop sees only the composite link "
-        f"{names[last]} (finger distal axis -> thumb distal axis), returned as closing_link"
+        f"{names[end]} (finger distal axis -> thumb distal axis), returned as closing_link"
     )
 
     # Thumb: backwards from the palm.  Row m carries Rz(-theta_j') (j = p - m) and inv(C_{j-1}).
@@ -379,6 +380,8 @@ def nominal_closed_pose(robot: RobotModel, seed: int = 100) -> np.ndarray:
         th = ((th + off + np.pi) % (2 * np.pi) - np.pi) - off
         if best is None or np.abs(th).max() < np.abs(best).max():
             best = th
+    if best is None:
+        raise SimulationError(f"{robot.source}: no closed configuration found from 40 starts")
     return best
 
 

@@ -179,14 +179,15 @@ def self_motion_manifold(
     t0 = tangent(start, None)
     halves, closed = [], False
     for sign in (1.0, -1.0):
-        th, t, out, h, walked = start, sign * t0, [], step, 0.0
+        out: list[np.ndarray] = []
+        th, t, h, walked = start, sign * t0, step, 0.0
         while h >= step / 64 and len(out) < 100000:
             cand, err = close(problem, values, (th + h * t)[None], block)
             cand = cand[0]
             if err > 1e-10 or not inside(cand) or np.linalg.norm(cand - th) > 2 * h:
                 h /= 2  # a limit (or a fold) ahead: approach it in shorter steps
                 continue
-            walked += np.linalg.norm(cand - th)
+            walked += float(np.linalg.norm(cand - th))
             th, t, h = cand, tangent(cand, t), min(step, 2 * h)
             if walked > 4 * step and np.linalg.norm(th - start) < step:
                 closed = True  # back at the start: a closed curve, traced once
@@ -224,6 +225,7 @@ def _resample_onto_loop(
     for _ in range(20):
         thetas[block] = th
         ev = problem.evaluate(values, True, thetas)[block]
+        assert ev.Jq is not None  # evaluated with Jacobians
         r, J = ev.r.reshape(len(th), -1), ev.Jq.reshape(len(th), -1, th.shape[1])
         if np.abs(r).max() < 1e-13:
             break
@@ -261,6 +263,7 @@ def sandwich_unweighted(
     JtJ = np.zeros((L, L))
     meat = np.zeros((L, L))
     for ev in evals:
+        assert ev.J is not None and ev.Jq is not None  # evaluated with Jacobians
         J = ev.J[:, :, params]
         Jq = ev.Jq * sigma_q[None, None, :]
         W = Jq @ np.swapaxes(Jq, 1, 2)
@@ -328,7 +331,7 @@ def _mc_draw(
     theta: np.ndarray,
 ) -> list[tuple]:
     """One Monte Carlo draw (a job): per weighting (estimated indices, truncated?, values), or Nones if it failed."""
-    out = []
+    out: list[tuple] = []
     for w in weightings:
         opt = CalibrationOptions(**{**base.__dict__, "noise": noise, "weighting": w})
         try:
@@ -375,10 +378,10 @@ def monte_carlo(
 
     shared = (scenario.robot, scenario.joints, scenario.loops, base, noise, weightings)
     runs: list = [None] * n_runs
-    for count, out in enumerate(imap(_mc_draw, noisy, executor, shared=shared), start=1):
-        if not out.ok:  # only a ClosedLoopError is a failed run; anything else stops the study, as before
-            raise out.exception or ClosedLoopError(f"Monte Carlo draw {out.index}: {out.error}")
-        runs[out.index] = out.value
+    for count, outcome in enumerate(imap(_mc_draw, noisy, executor, shared=shared), start=1):
+        if not outcome.ok:  # only a ClosedLoopError is a failed run; anything else stops the study, as before
+            raise outcome.exception or ClosedLoopError(f"Monte Carlo draw {outcome.index}: {outcome.error}")
+        runs[outcome.index] = outcome.value
         if progress:
             progress(count, n_runs)
     for per_w in runs:

@@ -34,6 +34,7 @@ def close(
         err = float(np.abs(ev.r).max())
         if err < tol:
             break
+        assert ev.Jq is not None  # evaluated with Jacobians
         th = th - np.linalg.lstsq(ev.Jq[0], ev.r[0], rcond=None)[0][None, :]
     return th, err
 
@@ -67,7 +68,7 @@ def self_motion(
         )
     thetas = [b.theta[:1] for b in problem.blocks]
     direction = None
-    out = []
+    out: list[np.ndarray] = []
     walked = 0
     attempts = 0
     while len(out) < n:
@@ -78,7 +79,9 @@ def self_motion(
                 f"after {len(out)} of {n} configurations (joint limits)"
             )
         thetas[block] = th
-        Jq = problem.evaluate(values, True, thetas)[block].Jq[0]
+        Jq_all = problem.evaluate(values, True, thetas)[block].Jq
+        assert Jq_all is not None  # evaluated with Jacobians
+        Jq = Jq_all[0]
         _, S, Vt = np.linalg.svd(Jq)
         rank = int(np.sum(S > 1e-9 * S[0]))
         Nul = Vt[rank:]

@@ -1,11 +1,23 @@
 """Compare a calibration report with simulation ground truth (`closedloop check`).
 
-Only parameters the report marks as estimated (identifiable) are compared;
-the others are listed as not compared, with their status.  Truth omits the
-parameters it did not perturb: their true value is their nominal (placement
-errors and offsets 0, scales 1, D-H values as in the model, i.e. the report's
-initial value).  A loop's rotation vector (rx, ry, rz) is compared as one
-rotation: the geodesic angle between the calibrated and the true rotation.
+Two views.  By default the robots are judged by what they do (`check_kinematics`): the
+calibrated and the true robot are driven by the same joint readings, drawn within the joint
+ranges, each through its own sensor model (thesis eq. 4.4); each loop's frame is followed
+(its tool point in the world for a point, plane or tracker loop, its pose for a weld or a
+hinge), and what the data cannot see is removed before comparing: a rigid transform of the
+base, a constant tool transform for a pose loop, and the overall size where the data do
+not measure it.  A correct robot in another parametrization (a slide along a joint axis
+moved to the next joint, a tool point given as a frame or as a tip) passes; a robot that
+moves its tool elsewhere fails.  Where the size is not measured it is compared on its own
+row ('size'), so a robot of the wrong size fails there.
+
+The second view (`check_parameters`, ``closedloop check --parameters``) is the parameter
+table.  Only parameters the report marks as estimated (identifiable) are compared; the
+others are listed as not compared, with their status.  Truth omits the parameters it did
+not perturb: their true value is their nominal (placement errors and offsets 0, scales 1,
+D-H values as in the model, i.e. the report's initial value).  A loop's rotation vector
+(rx, ry, rz) is compared as one rotation: the geodesic angle between the calibrated and
+the true rotation.
 """
 
 from __future__ import annotations
@@ -27,12 +39,50 @@ def check_report(
     tol_px: float = 1.0,
     truth_source: str = "truth file",
     report_source: str = "report file",
-):
+    model=None,
+    view: str = "auto",
+    truth_model=None,
+) -> tuple[list[dict], bool]:
     """Rows of (name, true, calibrated, error, tol, result) and whether all compared rows pass.
 
-    Both documents are validated first (:data:`~closedloop.io.schemas.TRUTH_SCHEMA`,
-    :data:`~closedloop.io.schemas.REPORT_SCHEMA`); every tolerance must be a finite number > 0.
+    `view`: 'kinematics' (what the robots do, `check_kinematics`), 'parameters' (the
+    parameter table, `check_parameters`) or 'auto': kinematics where the robot model is
+    known (`model`, a `RobotModel` or a path, else the report's 'model' field) and the
+    report has a loop to follow, else the parameter table.  `truth_model`: the true robot's
+    model file where it is not the calibrated one's (another robot's log), else the truth's
+    'model' field, else the report's model.  Both documents are validated
+    first (:data:`~closedloop.io.schemas.TRUTH_SCHEMA`, :data:`~closedloop.io.schemas.REPORT_SCHEMA`);
+    every tolerance must be a finite number > 0.
     """
+    if view not in ("auto", "kinematics", "parameters"):
+        raise InputError(f"view '{view}': expected auto, kinematics or parameters")
+    rows, ok = check_parameters(truth, report, tol_m, tol_rad, tol_scale, tol_px, truth_source, report_source)
+    if view == "parameters":
+        return rows, ok
+    robot = _robot_of(report, model, report_source, required=view == "kinematics")
+    if robot is None or not _followed_loops(report):
+        if view == "kinematics":
+            raise InputError(f"{report_source}: no loop whose frames can be followed: compare with --parameters")
+        return rows, ok
+    true_robot = robot
+    if truth_model is not None or truth.get("model"):
+        true_robot = _robot_of(truth, truth_model, truth_source, required=True)
+    return check_kinematics(
+        truth, report, robot, tol_m, tol_rad, tol_scale, truth_source, report_source, true_robot=true_robot
+    )
+
+
+def check_parameters(
+    truth: dict,
+    report: dict,
+    tol_m: float,
+    tol_rad: float,
+    tol_scale: float,
+    tol_px: float = 1.0,
+    truth_source: str = "truth file",
+    report_source: str = "report file",
+) -> tuple[list[dict], bool]:
+    """The parameter table (module docstring): rows of (name, true, calibrated, error, tol, result), all pass."""
     from closedloop.io.schemas import REPORT_SCHEMA, TRUTH_SCHEMA, is_number, validate
 
     for opt, tol in (("--tol-m", tol_m), ("--tol-rad", tol_rad), ("--tol-scale", tol_scale), ("--tol-px", tol_px)):
@@ -132,3 +182,216 @@ def _same_robot(truth: dict, report: dict, truth_source: str, report_source: str
 
 def _row(name, true, cal, err, tol, result):
     return {"name": name, "true": true, "calibrated": cal, "error": err, "tol": tol, "result": result}
+
+
+# --------------------------------------------------------------------------- what the robots do
+POINT_LOOPS = ("PointLoop", "PlaneLoop", "MeasuredPointLoop", "point", "plane", "measured_point")
+POSE_LOOPS = ("WeldLoop", "HingeLoop", "weld", "hinge")
+SIZE_BLIND = ("PointLoop", "PlaneLoop", "WeldLoop", "HingeLoop", "point", "plane", "weld", "hinge")
+N_CHECK = 200  # configurations the robots are compared at
+
+
+def _robot_of(report: dict, model, report_source: str, required: bool):
+    """The robot model the report calibrated: `model` (a RobotModel or a path), else the report's 'model' file."""
+    from pathlib import Path
+
+    from closedloop.errors import ClosedLoopError
+    from closedloop.model.robot import RobotModel
+
+    if isinstance(model, RobotModel):
+        return model
+    path = model if model is not None else report.get("model")
+    if not path:
+        if required:
+            raise InputError(f"{report_source}: names no robot model: give it with --model FILE")
+        return None
+    if not Path(path).is_file():
+        if required or model is not None:
+            raise InputError(f"{path}: robot model of {report_source} not found: give it with --model FILE")
+        return None
+    try:
+        return RobotModel.from_file(path)
+    except ClosedLoopError as exc:
+        raise InputError(f"{path}: {str(exc).splitlines()[0]}") from None
+
+
+def _followed_loops(report: dict) -> list[dict]:
+    """The report's loops whose robot frames `check_kinematics` follows (points and poses)."""
+    return [lp for lp in report.get("loops", []) if isinstance(lp, dict) and lp.get("type") in POINT_LOOPS + POSE_LOOPS]
+
+
+def _size_measured(report: dict) -> bool:
+    """Whether the data measured the robot's size: the verdict's field, else the loop types."""
+    v = report.get("verdict") if isinstance(report.get("verdict"), dict) else {}
+    if isinstance(v.get("size_measured"), bool):
+        return v["size_measured"]
+    loops = [lp for lp in report.get("loops", []) if isinstance(lp, dict)]
+    return not all(lp.get("type") in SIZE_BLIND for lp in loops)
+
+
+def _values(robot, report_params: dict[str, float]):
+    """(RobotParameters over every movable joint, the parameter vector with `report_params` set)."""
+    from closedloop.model.parameters import RobotParameters
+
+    rp = RobotParameters(robot, robot.joint_names)
+    x = rp.nominal.copy()
+    for name, v in report_params.items():
+        if name in rp.index:
+            x[rp.index[name]] = float(v)
+    return rp, x
+
+
+def _truth_loop(truth: dict, name: str, n_loops: int) -> dict:
+    """The truth's description of loop `name` (simulate's 'loop' or 'loops'), {} if it has none."""
+    found = truth.get("loops") if isinstance(truth.get("loops"), list) else [truth.get("loop")]
+    found = [lp for lp in found if isinstance(lp, dict)]
+    for lp in found:
+        if lp.get("name") == name:
+            return lp
+    return found[0] if len(found) == 1 and n_loops == 1 else {}
+
+
+def _tip(params: dict, loop_name: str, fixed) -> np.ndarray:
+    """The tool point in its frame: the loop's tip parameters, else its fixed tip, else the frame's origin."""
+    names = [f"{loop_name}.tip_{a}" for a in "xyz"]
+    if all(n in params for n in names):
+        return np.array([float(params[n]) for n in names])
+    if isinstance(fixed, (list, tuple)) and len(fixed) == 3:
+        return np.asarray(fixed, dtype=float)
+    return np.zeros(3)
+
+
+def _poses(robot, rp, x, readings: np.ndarray, joints: list[str], frames: list[str]) -> np.ndarray:
+    """World poses (n, F, 4, 4) of `frames` at joint `readings` through the sensor model of x."""
+    state = rp.apply(x)
+    col = [rp.joints.index(j) for j in joints]
+    q = robot.configurations(readings * state.scale[col] + state.offset[col], joints)
+    fids = [robot.frame_id(f) for f in frames]
+    out = np.empty((q.shape[0], len(frames), 4, 4))
+    for i, qi in enumerate(q):
+        pin.framesForwardKinematics(state.model, state.data, qi)
+        for k, f in enumerate(fids):
+            out[i, k] = state.data.oMf[f].homogeneous
+    return out
+
+
+def check_kinematics(
+    truth: dict,
+    report: dict,
+    robot,
+    tol_m: float,
+    tol_rad: float,
+    tol_scale: float,
+    truth_source: str = "truth file",
+    report_source: str = "report file",
+    n: int = N_CHECK,
+    seed: int = 0,
+    true_robot=None,
+) -> tuple[list[dict], bool]:
+    """The calibrated and the true robot compared by what they do (module docstring).
+
+    Rows: per loop, the largest position error of its tool point or frame (m) and, for a
+    pose loop, the largest rotation error (rad) over `n` readings drawn within the joint
+    ranges, after the best rigid base transform (one for all loops), a constant tool
+    transform per pose loop, and the overall size where the report says the data do not
+    measure it; then that size against the truth's ('size', relative).  `true_robot`: the
+    true robot's model where it is not `robot` (joints matched by name).
+    """
+    from scipy.optimize import least_squares
+
+    from closedloop.errors import ClosedLoopError
+
+    cal = {p["name"]: p["calibrated"] for p in report["parameters"] if isinstance(p, dict)}
+    loops = _followed_loops(report)
+    joints = [j for j in report.get("joints", []) if j in robot.joints] or robot.joint_names
+    rng = np.random.default_rng(seed)
+    lo = np.array([max(robot.joint(j).lower, -np.pi) for j in joints])
+    hi = np.array([min(robot.joint(j).upper, np.pi) for j in joints])
+    bad = ~(hi > lo)
+    lo[bad], hi[bad] = -np.pi, np.pi
+    readings = rng.uniform(lo, hi, (n, len(joints)))
+    rp_c, x_c = _values(robot, cal)
+    true_robot = true_robot or robot
+    missing = [j for j in joints if j not in true_robot.joints]
+    if missing:
+        raise InputError(f"{truth_source}: the true robot has no joint {missing[0]}: not the same robot's joints")
+    rp_t, x_t = _values(true_robot, truth["parameters"])
+    items = []  # (label, kind, cal frame, cal tip, true frame, true tip)
+    for lp in loops:
+        name = str(lp.get("name"))
+        tl = _truth_loop(truth, name, len(loops))
+        frame = lp.get("frame_a")
+        tframe = tl.get("frame", frame)
+        try:
+            robot.frame_id(frame)
+            true_robot.frame_id(tframe)
+        except ClosedLoopError as exc:
+            raise InputError(f"{report_source} / {truth_source}: loop '{name}': {exc}") from None
+        point = lp.get("type") in POINT_LOOPS
+        tip_c = _tip(cal, name, lp.get("tip")) if point else np.zeros(3)
+        tip_t = _tip(truth["parameters"], str(tl.get("name", name)), lp.get("tip")) if point else np.zeros(3)
+        items.append((name, "point" if point else "pose", frame, tip_c, tframe, tip_t))
+    frames_c = list(dict.fromkeys(it[2] for it in items))
+    frames_t = list(dict.fromkeys(it[4] for it in items))
+    Tc = _poses(robot, rp_c, x_c, readings, joints, frames_c)
+    Tt = _poses(true_robot, rp_t, x_t, readings, joints, frames_t)
+    if not (np.all(np.isfinite(Tc)) and np.all(np.isfinite(Tt))):
+        raise InputError(f"{report_source}: the calibrated robot's kinematics are not finite")
+    scaled = not _size_measured(report)
+    n_pose = sum(it[1] == "pose" for it in items)
+
+    def predict(z: np.ndarray) -> list[tuple[np.ndarray, np.ndarray | None]]:
+        s = float(np.exp(z[6])) if scaled else 1.0
+        B = pin.exp6(z[:6])
+        out, k = [], 0
+        for _, kind, fc, tc, _, _ in items:
+            T = Tc[:, frames_c.index(fc)]
+            if kind == "point":
+                p = s * (T[:, :3, :3] @ tc + T[:, :3, 3])
+                out.append((p @ B.rotation.T + B.translation, None))
+            else:
+                Y = pin.exp6(z[7 + 6 * k : 13 + 6 * k])
+                k += 1
+                p = s * (T[:, :3, :3] @ Y.translation + T[:, :3, 3])
+                out.append((p @ B.rotation.T + B.translation, B.rotation @ T[:, :3, :3] @ Y.rotation))
+        return out
+
+    targets = []
+    for _, kind, _, _, ft, tt in items:
+        T = Tt[:, frames_t.index(ft)]
+        targets.append((T[:, :3, :3] @ tt + T[:, :3, 3], T[:, :3, :3] if kind == "pose" else None))
+
+    def residual(z: np.ndarray) -> np.ndarray:
+        r = []
+        for (p, R), (pt, Rt) in zip(predict(z), targets):
+            r.append(((p - pt) / tol_m).ravel())
+            if R is not None:
+                r.append(np.array([pin.log3(a.T @ b) for a, b in zip(R, Rt)]).ravel() / tol_rad)
+        return np.concatenate(r)
+
+    fit = least_squares(residual, np.zeros(7 + 6 * n_pose), method="lm", xtol=1e-15, ftol=1e-15)
+    rows = []
+    for (name, kind, fc, _, ft, _), (p, R), (pt, Rt) in zip(items, predict(fit.x), targets):
+        what = "tool point" if kind == "point" else "frame"
+        err = float(np.linalg.norm(p - pt, axis=1).max())
+        rows.append(_row(f"{name}: {what} {fc} position", None, None, err, tol_m, "ok" if err <= tol_m else "FAIL"))
+        if R is not None:
+            ang = float(max(np.linalg.norm(pin.log3(a.T @ b)) for a, b in zip(R, Rt)))
+            rows.append(
+                _row(f"{name}: frame {fc} rotation", None, None, ang, tol_rad, "ok" if ang <= tol_rad else "FAIL")
+            )
+    if scaled:  # the size the data do not measure: the calibrated robot is 1/s the truth's
+        size = 1.0 / float(np.exp(fit.x[6]))
+        rows.append(
+            _row(
+                "size (not measured by the data)",
+                1.0,
+                size,
+                size - 1.0,
+                tol_scale,
+                "ok" if abs(size - 1.0) <= tol_scale else "FAIL",
+            )
+        )
+    for r in rows:
+        r["view"] = "kinematics"
+    return rows, all(r["result"] != "FAIL" for r in rows)

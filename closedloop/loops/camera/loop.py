@@ -350,7 +350,7 @@ class CameraLoop(Loop):
         valid = self.valid_rows(meas)
         if not np.all(valid):
             ev.r = np.where(valid, ev.r, 0.0)
-            if jac:
+            if jac and ev.dF is not None:
                 ev.dF = [np.where(valid[:, :, None], d, 0.0) for d in ev.dF]
                 ev.dp = np.where(valid[:, :, None], ev.dp, 0.0)
                 if ev.cov is not None:
@@ -362,8 +362,8 @@ class CameraLoop(Loop):
         N = Ts[0].shape[0]
         tip = self.tip_point(p)
         r = np.empty((N, self.dim))
-        dF = [np.zeros((N, self.dim, 6)) for _ in self._frames] if jac else None
-        dp = np.zeros((N, self.dim, self.n_own)) if jac else None
+        dF = [np.zeros((N, self.dim, 6)) for _ in self._frames] if jac else []
+        dp = np.zeros((N, self.dim, self.n_own if jac else 0))
         for c in range(self.cameras):
             rows = slice(2 * c, 2 * c + 2)
             y, RFA, dyA, dyF = relative_point(Ts[0], Ts[self._fidx[c]], tip)
@@ -392,7 +392,7 @@ class CameraLoop(Loop):
             if self.sl["tip"] is not None:
                 dp[:, rows, self.sl["tip"]] = JpR @ RFA
         if not jac:
-            return LoopEval(r, None, None, np.zeros((N, self.dim, 0)))
+            return LoopEval(r, None, None, dp)
         two = len(self._frames) == 2
         return LoopEval(r, dF[0] if two else None, dF[1] if two else None, dp, dF=dF)
 

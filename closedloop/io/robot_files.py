@@ -1,0 +1,182 @@
+"""Robot files (URDF, MJCF) checked before Pinocchio parses them: one line naming the file and element.
+
+Pinocchio's parsers trust their input: a link with two parents, a cycle or a chain thousands of links
+deep crash the process (a recursion in C++ per link: a 5,000-link chain is a segmentation fault), and
+their refusals reach the user as several lines of urdfdom log.  `check_urdf` and `check_mjcf` read the
+file with the standard XML parser (no recursion) and refuse, naming the element:
+
+* not XML, or not a ``<robot>`` (URDF) / ``<mujoco>`` (MJCF) document;
+* xacro syntax (``${...}``, ``<xacro:...>``, ``$(find ...)``): "this is a xacro file: run xacro first";
+* two links or two joints of one name; a joint without a parent or child, or naming a link not defined;
+* a link that is the child of two joints (a closed chain written into the tree), a cycle, several roots;
+* a tree deeper than `MAX_DEPTH` links;
+* an ``<origin>``, ``<axis>`` or ``<limit>`` whose values are not finite numbers, a zero axis on a
+  moving joint, an unknown joint type.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+from closedloop.errors import ModelError
+
+#: deepest kinematic tree accepted (links from the root): Pinocchio recurses once per link
+MAX_DEPTH = 1000
+JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed", "floating", "planar", "spherical")
+_XACRO = re.compile(r"\$\{|\$\(")
+
+
+def _parse(path: Path, kind: str) -> ET.Element:
+    try:
+        return ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        line, col = getattr(exc, "position", (0, 0))
+        raise ModelError(f"{path}: not valid XML (line {line}, column {col}: {str(exc).split(':')[0]})") from None
+    except OSError as exc:
+        raise ModelError(f"{path}: cannot read {kind} ({exc.strerror})") from None
+
+
+def _xacro(path: Path, root: ET.Element) -> None:
+    """Refuse unexpanded xacro: the ``xacro`` namespace, ``${expr}`` or ``$(arg ...)`` in a value."""
+    for el in root.iter():
+        tag = el.tag if isinstance(el.tag, str) else ""
+        if "xacro" in tag or tag.startswith("{http://www.ros.org/wiki/xacro}"):
+            raise ModelError(
+                f"{path}: this is a xacro file (element <{tag.split('}')[-1]}>): run xacro first "
+                "(xacro FILE.urdf.xacro > FILE.urdf)"
+            )
+        for name, value in el.attrib.items():
+            if _XACRO.search(value):
+                raise ModelError(
+                    f'{path}: this is a xacro file (<{tag} {name}="{value[:40]}">): run xacro first '
+                    "(xacro FILE.urdf.xacro > FILE.urdf)"
+                )
+
+
+def _numbers(path: Path, where: str, text: str | None, n: int) -> list[float] | None:
+    """`n` finite numbers separated by spaces (None when the attribute is absent)."""
+    if text is None:
+        return None
+    parts = text.split()
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != n or not all(math.isfinite(v) for v in values):
+        raise ModelError(f'{path}: {where}="{text.strip()[:60]}": expected {n} finite number(s)')
+    return values
+
+
+def check_urdf(path: str | Path) -> None:
+    """Refuse a URDF Pinocchio would crash on or refuse in several lines (module doc)."""
+    path = Path(path)
+    root = _parse(path, "URDF")
+    _xacro(path, root)
+    if root.tag != "robot":
+        raise ModelError(f"{path}: not a URDF (the root element is <{root.tag}>, not <robot>)")
+    links: set[str] = set()
+    for el in root.findall("link"):
+        name = el.get("name")
+        if not name:
+            raise ModelError(f"{path}: a <link> without a name")
+        if name in links:
+            raise ModelError(f"{path}: two links named '{name}'")
+        links.add(name)
+        for org in el.iter("origin"):
+            _numbers(path, f"link '{name}': <origin> xyz", org.get("xyz"), 3)
+            _numbers(path, f"link '{name}': <origin> rpy", org.get("rpy"), 3)
+    if not links:
+        raise ModelError(f"{path}: no <link> in this URDF")
+    parent_of: dict[str, tuple[str, str]] = {}  # child link -> (parent link, joint)
+    children: dict[str, list[str]] = {}
+    joints: set[str] = set()
+    for el in root.findall("joint"):
+        name = el.get("name")
+        if not name:
+            raise ModelError(f"{path}: a <joint> without a name")
+        if name in joints:
+            raise ModelError(f"{path}: two joints named '{name}'")
+        joints.add(name)
+        jtype = el.get("type")
+        if jtype not in JOINT_TYPES:
+            raise ModelError(f"{path}: joint '{name}': type '{jtype}' is not one of {', '.join(JOINT_TYPES)}")
+        ends = {}
+        for end in ("parent", "child"):
+            e = el.find(end)
+            link = e.get("link") if e is not None else None
+            if not link:
+                raise ModelError(f"{path}: joint '{name}': no <{end} link=...>")
+            if link not in links:
+                raise ModelError(
+                    f"{path}: joint '{name}': {end} link '{link}' is not defined (no <link name=\"{link}\">)"
+                )
+            ends[end] = link
+        parent, child = ends["parent"], ends["child"]
+        if child in parent_of:
+            raise ModelError(
+                f"{path}: link '{child}' is the child of two joints ('{parent_of[child][1]}' and '{name}'); a URDF "
+                "is a tree: write a closed chain as a loop (--loop) instead"
+            )
+        parent_of[child] = (parent, name)
+        children.setdefault(parent, []).append(child)
+        org = el.find("origin")
+        if org is not None:
+            _numbers(path, f"joint '{name}': <origin> xyz", org.get("xyz"), 3)
+            _numbers(path, f"joint '{name}': <origin> rpy", org.get("rpy"), 3)
+        axis = el.find("axis")
+        if axis is not None:
+            xyz = _numbers(path, f"joint '{name}': <axis> xyz", axis.get("xyz"), 3)
+            if xyz is not None and jtype in ("revolute", "continuous", "prismatic") and not any(xyz):
+                raise ModelError(
+                    f"{path}: joint '{name}': <axis xyz=\"{axis.get('xyz')}\"> is zero; give a nonzero axis"
+                )
+        lim = el.find("limit")
+        if lim is not None:
+            for attr in ("lower", "upper", "effort", "velocity"):
+                _numbers(path, f"joint '{name}': <limit> {attr}", lim.get(attr), 1)
+    roots = sorted(links - set(parent_of))
+    if not roots:
+        raise ModelError(f"{path}: the joints form a cycle (every link has a parent, e.g. '{sorted(links)[0]}')")
+    if len(roots) > 1:
+        raise ModelError(
+            f"{path}: {len(roots)} root links ({', '.join(repr(r) for r in roots[:4])}): a URDF has one root; "
+            "join them with a fixed joint"
+        )
+    depth = {roots[0]: 0}
+    todo = [roots[0]]
+    while todo:  # breadth first, no recursion
+        link = todo.pop()
+        for c in children.get(link, []):
+            depth[c] = depth[link] + 1
+            if depth[c] > MAX_DEPTH:
+                raise ModelError(
+                    f"{path}: link '{c}' lies {depth[c]} links below the root '{roots[0]}'; trees deeper than "
+                    f"{MAX_DEPTH} links are refused"
+                )
+            todo.append(c)
+    lost = sorted(links - set(depth))
+    if lost:
+        raise ModelError(f"{path}: the joints form a cycle through link '{lost[0]}' (not reachable from the root)")
+
+
+def check_mjcf(path: str | Path) -> None:
+    """Refuse an MJCF that is not XML, not ``<mujoco>``, xacro, or nests bodies deeper than `MAX_DEPTH`."""
+    path = Path(path)
+    root = _parse(path, "MJCF")
+    _xacro(path, root)
+    if root.tag != "mujoco":
+        raise ModelError(f"{path}: not an MJCF model (the root element is <{root.tag}>, not <mujoco>)")
+    todo = [(root, 0)]
+    while todo:
+        el, d = todo.pop()
+        for c in el:
+            dc = d + (c.tag == "body")
+            if dc > MAX_DEPTH:
+                raise ModelError(
+                    f"{path}: body '{c.get('name', '?')}' is nested {dc} bodies deep; trees deeper than "
+                    f"{MAX_DEPTH} bodies are refused"
+                )
+            todo.append((c, dc))

@@ -1,0 +1,59 @@
+"""A real Ctrl-C or SIGTERM during an in-process `main()` stops its caller too (a script, a test run).
+
+`main(argv)` prints its one line and cleans up; when the interrupt was a signal (not a KeyboardInterrupt
+raised by code, which is answered with exit 130 as from the command line), it re-raises, so that
+pytest stops the run instead of reporting a failed test and going on.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+
+import pytest
+
+SCRIPT = """
+import os, signal, sys, threading, time
+from closedloop.cli.main import main
+
+def fire():
+    time.sleep(2.0)
+    os.kill(os.getpid(), signal.{sig})
+
+threading.Thread(target=fire, daemon=True).start()
+try:
+    rc = main(["simulate", "panda_weld", "--n", "2000", "--out", sys.argv[1]])
+except KeyboardInterrupt:
+    print("caller interrupted")
+    sys.exit(99)
+print("main returned", rc)
+"""
+
+
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_a_signal_during_main_reaches_the_caller(tmp_path, sig):
+    p = subprocess.run(
+        [sys.executable, "-c", SCRIPT.format(sig=sig), str(tmp_path / "out")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        # a child of a process that ignores SIGINT inherits that: give it SIGINT's default disposition
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.default_int_handler),
+    )
+    assert p.returncode == 99 and "caller interrupted" in p.stdout, (p.stdout, p.stderr)
+    assert "interrupted" in p.stderr.splitlines()[-1] or "interrupted" in p.stderr
+    assert not (tmp_path / "out").exists()  # nothing published
+
+
+def test_a_keyboard_interrupt_raised_by_code_is_an_exit_code(tmp_path, monkeypatch, capsys):
+    """No signal: `main` answers 130 as the command line does (the caller goes on)."""
+    import closedloop.sims
+    from closedloop.cli.main import main
+
+    def interrupt(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(closedloop.sims, "simulate", interrupt)
+    assert main(["simulate", "panda_weld", "--n", "2", "--out", str(tmp_path / "o")]) == 130
+    assert "interrupted" in capsys.readouterr().err
