@@ -965,7 +965,7 @@ def test_every_listed_issue_case_is_in_the_table():
 
 
 def test_outputs_written_as_a_set_model_before_report(panda_files, tmp_path, monkeypatch):
-    """A good run writes model and report; the model is published before the report (rename order)."""
+    """A good run writes model, its sensor file and report; the model is published first, the report last."""
     urdf, log = panda_files
     order = []
     real = os.replace
@@ -987,7 +987,7 @@ def test_outputs_written_as_a_set_model_before_report(panda_files, tmp_path, mon
         ]
     )
     assert rc == 0
-    assert order == ["cal.urdf", "cal.sensors.yaml", "rep.json"]  # the model and its sensor file first
+    assert order == ["cal.urdf", "cal.sensors.yaml", "rep.json"]  # the model's sensor file with it
     assert json.loads((tmp_path / "rep.json").read_text())["solver"]["status"] == "converged"
     assert "<robot" in (tmp_path / "sub" / "cal.urdf").read_text()
     assert not list(tmp_path.rglob(".closedloop-*"))

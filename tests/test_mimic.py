@@ -126,3 +126,50 @@ def test_a_chain_of_mimics_is_refused(tmp_path):
     robot = RobotModel.from_file(tmp_path / "p.urdf")
     with pytest.raises(ModelError, match="joint 'panda_joint6'.*mimics joint 'panda_joint5'.*itself coupled"):
         robot.supporting_joints("panda_hand")
+
+
+def test_the_coupling_is_a_parameter_where_it_can_be_identified(robot, tmp_path):
+    """``--identify ...,mimic``: the multiplier of the coupled joint, its Jacobian column exact, recovered from
+    exact data with the placements, and written into the URDF's <mimic>."""
+    rng = np.random.default_rng(2)
+    joints = robot.supporting_joints("panda_hand")
+    prob = CalibrationProblem(robot, joints, [LoopBlock(make(), Q0, np.arange(1))])
+    k = prob.index["panda_joint6.mimic"]
+    assert prob.params[k].kind == "mimic" and prob.nominal[k] == MULT
+    th = Q0 + rng.uniform(-0.3, 0.3, (5, 6))
+    fd_prob = CalibrationProblem(robot, joints, [LoopBlock(make(), th, np.arange(5))])
+    x = fd_prob.nominal + rng.normal(scale=1e-3, size=len(fd_prob.nominal))
+    J = fd_prob.evaluate(x, True)[0].J
+    xp, xm = x.copy(), x.copy()
+    xp[k] += 1e-6
+    xm[k] -= 1e-6
+    fd = (fd_prob.evaluate(xp, False)[0].r - fd_prob.evaluate(xm, False)[0].r) / 2e-6
+    assert np.abs(fd - J[:, :, k]).max() < 1e-7
+    x = prob.nominal.copy()
+    x[prob.loop_slices[0]] = prob.initialize_loop(x, 0)
+    th = self_motion(prob, x, Q0, 40, rng)
+    opts = CalibrationOptions(identify=["placement", "offset", "mimic", "loop"])
+    res0 = calibrate(robot, JointLog(joints, th), [make()], opts)
+    names = [n for n, s in zip(res0.names, res0.status) if s == "estimated" and not n.startswith("socket.")]
+    assert "panda_joint6.mimic" in names
+    truth = prob.nominal.copy()
+    for n, v in draw_truth(robot, [n for n in names if n != "panda_joint6.mimic"], rng).items():
+        truth[prob.index[n]] = v
+    truth[k] = MULT * 1.03
+    truth[prob.loop_slices[0]] = prob.initialize_loop(truth, 0)
+    th = self_motion(prob, truth, Q0, 60, rng)
+    log = JointLog(joints, th)
+    res = calibrate(robot, log, [make()], CalibrationOptions(identify=opts.identify, noise=1e-7))
+    assert res.converged and abs(res.value("panda_joint6.mimic") - MULT * 1.03) < 1e-8
+    out = tmp_path / "cal.urdf"
+    write_model(robot, res.as_dict(), out, frames=model_frames(res))
+    written = RobotModel.from_file(out)
+    assert written.mimic_coupling["panda_joint6"][0] == pytest.approx(res.value("panda_joint6.mimic"), abs=1e-15)
+    ev = evaluate_model(
+        written,
+        log,
+        res.loops,
+        calibration={n: res.value(n) for n in res.names if n.startswith("socket.")},
+        places=False,
+    )
+    assert np.abs(ev.residuals[0] - res.problem.evaluate(res.values, False)[0].r).max() < 1e-9

@@ -150,20 +150,19 @@ def cmd_calibrate(args) -> int:
     report["verdict"] = verdict_record(res.verdict)
     failed = res.verdict.status == "failed"
     write_out = args.out and (not failed or args.force)
-    report["outputs"] = {"model": str(args.out) if write_out else None}  # `closedloop evaluate --calibration`
     from closedloop.output.report import sensors_path, write_sensors
 
-    sensors = sensors_path(args.out) if write_out else None
-    # published whole: the model and its sensor file first, the report last
-    with OutputSet(order=[args.out if write_out else None, sensors, args.report]):
+    report["outputs"] = {"model": str(args.out) if write_out else None}  # `closedloop evaluate --calibration`
+    sensors = sensors_path(args.out) if write_out else None  # what the model file cannot carry, beside it
+    with OutputSet(order=[args.out if write_out else None, sensors, args.report]):  # published whole, model first
         if args.report:
             write_report(report, args.report)
         if write_out:
-            from closedloop.output.urdf import tool_frames
+            from closedloop.output.urdf import model_frames
 
-            write_model(robot, res.as_dict(), args.out, frames=tool_frames(res))  # with the tool point
-            kind = "dh" if str(args.out).endswith((".yaml", ".yml")) else "urdf"
-            sensors = write_sensors(res, args.out, kind)  # what the model file cannot carry (None: nothing)
+            write_model(robot, res.as_dict(), args.out, frames=model_frames(res))  # with tool points and fixtures
+            if write_sensors(res, args.out, robot.kind) is None:
+                sensors = None
     if not args.quiet:
         print_summary(res, elapsed, args, report, wrote_model=bool(write_out))
         if sensors is not None:

@@ -288,7 +288,8 @@ def sensor_corrections(res, model_out: str | None = None) -> dict | None:
 
 
 def write_figures(res, report: dict, args, row_name=None) -> None:
-    """The HTML page (``--html``) and the PNG figures (``--plots``)."""
+    """The HTML page and the PNG figures (the sensor file beside the model, `closedloop.output.report.write_sensors`,
+    is published with the model and the report)."""
     quiet = bool(getattr(args, "quiet", False))
     html = getattr(args, "html", None)
     plots = getattr(args, "plots", None)

@@ -14,6 +14,8 @@ Every parameter has a stable name ``<owner>.<field>``:
   full sensor model is  theta' = k * theta + theta_off - c * tau  (torques
   from the log's ``tau:<joint>`` columns).
 * D-H rows: ``j.theta_off j.s j.a j.alpha j.k`` (eqs. 4.1, 4.2, 4.4).
+* ``m.mimic`` (opt-in): the multiplier of a coupled joint m (URDF ``<mimic>``), whose angle is
+  ``mimic * theta'_f + offset`` of the joint f it follows.
 * Loop parameters (closure transforms, contact points) belong to the loops.
 
 The derivative of a frame pose with respect to a geometric parameter is
@@ -77,6 +79,7 @@ class RobotState:
     compliance: np.ndarray
     G: np.ndarray  # (6*(njoints-1), P) right-twist generators of joint placements
     G_frames: dict[int, np.ndarray] = field(default_factory=dict)  # frame id -> (6, P)
+    mimic: dict[str, float] = field(default_factory=dict)  # coupled joint -> its multiplier (URDF <mimic>)
 
 
 class RobotParameters:
@@ -191,7 +194,14 @@ class RobotParameters:
                         order=order,
                     )
                 )
+        for m, f, mult, _ in robot.coupled(self.joints):  # a coupled joint's multiplier (URDF <mimic>)
+            self.params.append(
+                Parameter(
+                    f"{m}.mimic", "mimic", m, "mimic", mult, "1", pri["scale"], priority=3, order=self.joints.index(f)
+                )
+            )
         self.index = {p.name: i for i, p in enumerate(self.params)}
+        self._mimic = [(m, self.index[f"{m}.mimic"]) for m, _, _, _ in robot.coupled(self.joints)]
         self._joint_pos = {n: i for i, n in enumerate(self.joints)}
         self._off_idx = np.array([self.index[self.sensor_name(n, "offset")] for n in self.joints], dtype=int)
         self._scale_idx = np.array([self.index[self.sensor_name(n, "scale")] for n in self.joints], dtype=int)
@@ -252,6 +262,7 @@ class RobotParameters:
             values[self._comp_idx].copy(),
             G,
             G_frames,
+            {m: float(values[k]) for m, k in self._mimic},
         )
 
     def placement_errors(self, values: np.ndarray) -> dict[str, pin.SE3]:

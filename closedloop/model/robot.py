@@ -202,12 +202,14 @@ class RobotModel:
         ]
 
     # ----------------------------------------------------------- configurations
-    def configurations(self, angles: np.ndarray, joint_names: list[str]) -> np.ndarray:
+    def configurations(
+        self, angles: np.ndarray, joint_names: list[str], multipliers: dict[str, float] | None = None
+    ) -> np.ndarray:
         """Pinocchio configurations (N, nq) from joint angles (N, len(joint_names)).
 
         Joints not listed stay at their neutral value, but a coupled joint (URDF ``<mimic>``) whose
-        followed joint is listed takes ``multiplier * angle + offset`` of it.  Continuous joints get
-        (cos, sin) coordinates.
+        followed joint is listed takes ``multiplier * angle + offset`` of it (`multipliers`: coupled
+        joint -> a multiplier other than the file's).  Continuous joints get (cos, sin) coordinates.
         """
         angles = np.atleast_2d(angles)
         q = np.tile(pin.neutral(self.model), (angles.shape[0], 1))
@@ -219,6 +221,7 @@ class RobotModel:
             else:
                 q[:, j.idx_q] = angles[:, col]
         for name, f, mult, off in self.coupled(joint_names):
+            mult = (multipliers or {}).get(name, mult)
             q[:, self.joints[name].idx_q] = mult * angles[:, joint_names.index(f)] + off
         return q
 

@@ -12,8 +12,9 @@ which is the body pose (in its parent's frame)
 The anchor and the axis keep their body coordinates, the children keep their poses in the body
 frame, so everything downstream moves with the joint frame exactly as in the Pinocchio model.
 Joint ranges shift by ``-theta_off`` (the calibrated MJCF takes the readings directly).  Scale
-factors and compliance cannot be expressed in MJCF: they stay in the report (``scale_factors``;
-a joint value for the model is ``scale * reading``).
+factors and compliance cannot be expressed in MJCF: they are in the sensor file beside the model
+(`closedloop.output.report.write_sensors`) and the report; a joint value for the model is
+``scale * reading - compliance * tau``.
 
 Only the pose of a body with a calibrated joint is rewritten (``pos`` and ``quat``, computed from
 MuJoCo's compiled model, so ``euler``/``axisangle`` and ``angle="degree"`` inputs work); everything

@@ -6,8 +6,11 @@ F * O * exp6(p) (right twist), so the new origin is exactly O * exp6(p).
 Joint offsets are folded into the origin:  O <- O * Rot(axis, theta_off)
 (a translation along the axis for prismatic joints), and the joint limits
 shift by -theta_off, so the calibrated URDF takes the corrected readings
-k * theta directly.  Scale factors k cannot be expressed in URDF: they are in
-the report, and a joint value for the calibrated URDF is k * reading.
+k * theta directly.  Scale factors k and compliances c cannot be expressed in
+URDF: they are in the sensor file beside the model (`closedloop.output.report.write_sensors`) and
+the report, and a joint value for the calibrated URDF is k * reading - c * tau.  What the loops
+estimated (tool points, fixtures, sensors, planes) is added as links on fixed joints
+(`model_frames`).
 """
 
 from __future__ import annotations
@@ -104,24 +107,27 @@ def write_urdf(
             j.insert(0, origin)
         origin.set("xyz", " ".join(repr(float(v)) for v in O[:3, 3]))
         origin.set("rpy", " ".join(repr(float(v)) for v in _rpy(O[:3, :3])))
-    if fold_offsets:
-        _shift_mimics(by_name, values)
+    _shift_mimics(by_name, values, fold_offsets)
     _add_frames(tree.getroot(), frames)
     relocate_meshes(tree.getroot(), Path(robot.source), Path(out_path))
     atomic_write_text(out_path, ET.tostring(tree.getroot(), encoding="UTF-8", xml_declaration=True) + b"\n")
 
 
-def _shift_mimics(by_name: dict, values: dict[str, float]) -> None:
-    """A coupled joint (``<mimic joint=f multiplier=m offset=o>``) follows f's joint value; with f's offset
-    folded into its origin that value no longer contains it, so o becomes o + m * theta_off_f: the coupled
-    joint stays where the fit put it (at m (k theta + theta_off_f) + o)."""
+def _shift_mimics(by_name: dict, values: dict[str, float], fold_offsets: bool = True) -> None:
+    """A coupled joint (``<mimic joint=f multiplier=m offset=o>``) follows f's joint value: m becomes the
+    calibrated multiplier (``<joint>.mimic``) where there is one; with f's offset folded into its origin
+    that value no longer contains it, so o becomes o + m * theta_off_f: the coupled joint stays where the
+    fit put it (at m (k theta + theta_off_f) + o)."""
     for j in by_name.values():
         mimic = j.find("mimic")
         if mimic is None or not mimic.get("joint"):
             continue
-        off = values.get(f"{mimic.get('joint')}.offset", 0.0)
+        mult = float(mimic.get("multiplier", 1.0))
+        if f"{j.get('name')}.mimic" in values and values[f"{j.get('name')}.mimic"] != mult:  # a calibrated coupling
+            mult = float(values[f"{j.get('name')}.mimic"])
+            mimic.set("multiplier", repr(mult))
+        off = values.get(f"{mimic.get('joint')}.offset", 0.0) if fold_offsets else 0.0
         if off:
-            mult = float(mimic.get("multiplier", 1.0))
             mimic.set("offset", repr(float(mimic.get("offset", 0.0)) + mult * off))
 
 

@@ -41,7 +41,7 @@ from closedloop.problem.blocks import BlockEval, Workspace, copy_eval, stack_chu
 from closedloop.problem.shared import loop_columns
 
 # What a parameter's Jacobian column is made of (`CalibrationProblem._role`).
-_GEOMETRY, _OFFSET, _SCALE, _COMPLIANCE, _LOOP = range(5)
+_GEOMETRY, _OFFSET, _SCALE, _COMPLIANCE, _LOOP, _MIMIC = range(6)
 
 
 @dataclass
@@ -160,6 +160,10 @@ class CalibrationProblem:
         for bi, c in enumerate(self.loop_columns):
             self._role[c] = _LOOP
             self._owner[c] = bi
+        for name, followed, _, _ in robot.coupled(self.joints):  # a multiplier acts through the followed joint
+            k = self.rp.index[f"{name}.mimic"]
+            self._role[k] = _MIMIC
+            self._owner[k] = self.joints.index(followed)
         # Motion subspaces S_j (LOCAL joint Jacobian column of joint j at the neutral configuration),
         # rows in the regressor's block of joint j, one column per problem joint.
         model = robot.model
@@ -169,12 +173,24 @@ class CalibrationProblem:
         for c, name in enumerate(self.joints):
             j = robot.joint(name)
             self._S[6 * (j.jid - 1) : 6 * j.jid, c] = pin.getJointJacobian(model, data, j.jid, pin.LOCAL)[:, j.idx_v]
-        for name, followed, mult, _ in robot.coupled(self.joints):  # a coupled joint (URDF <mimic>) moves with
-            m = robot.joint(name)  # the joint it follows: mult times its motion subspace in that joint's column
-            c = self.joints.index(followed)
-            self._S[6 * (m.jid - 1) : 6 * m.jid, c] = (
-                mult * pin.getJointJacobian(model, data, m.jid, pin.LOCAL)[:, m.idx_v]
-            )
+        # a coupled joint (URDF <mimic>) moves with the joint it follows: its multiplier times its motion
+        # subspace joins that joint's column (`_joint_columns`, at the state's multiplier)
+        self._coupled = []
+        for name, followed, _, _ in robot.coupled(self.joints):
+            m = robot.joint(name)
+            S_m = np.zeros(self._S.shape[0])
+            S_m[6 * (m.jid - 1) : 6 * m.jid] = pin.getJointJacobian(model, data, m.jid, pin.LOCAL)[:, m.idx_v]
+            self._coupled.append((name, self.joints.index(followed), S_m, self.rp.index[f"{name}.mimic"]))
+
+    def _joint_columns(self, state: RobotState) -> np.ndarray:
+        """The joints' motion subspaces in the regressor's rows, a coupled joint's in the followed joint's
+        column times the state's multiplier (`_S` itself when there is no coupled joint)."""
+        if not self._coupled:
+            return self._S
+        S = self._S.copy()
+        for name, c, S_m, _ in self._coupled:
+            S[:, c] += state.mimic[name] * S_m
+        return S
 
     def without_rows(self, rows) -> "CalibrationProblem":
         """The same problem without the log rows `rows` (1-based, as in `LoopBlock.rows`) in any block.
@@ -259,7 +275,7 @@ class CalibrationProblem:
         (`se3.poses_from_adjoints`): one Pinocchio call per configuration fewer.
         """
         model, data = state.model, state.data
-        q = self.robot.configurations(self.model_angles(state, theta, tau), self.joints)
+        q = self.robot.configurations(self.model_angles(state, theta, tau), self.joints, state.mimic)
         N = q.shape[0]
         live = [f for f in frames if f != 0]
         roots = {f: model.supports[model.frames[f].parentJoint][1:2] for f in live}  # [] on the base
@@ -370,12 +386,15 @@ class CalibrationProblem:
         C, nj = cols.size, len(self.joints)
         # Each column's twist generator in the regressor's rows: G for geometry, S_j for the sensor
         # parameters of joint j (they move theta'_j), none for loop parameters; then S for Jq.
-        B = np.zeros((self._S.shape[0], C + nj))
+        S = self._joint_columns(state)
+        B = np.zeros((S.shape[0], C + nj))
         geo = np.flatnonzero(role == _GEOMETRY)
         sensor = np.flatnonzero((role == _OFFSET) | (role == _SCALE) | (role == _COMPLIANCE))
         B[:, geo] = state.G[:, cols[geo]]
-        B[:, sensor] = self._S[:, owner[sensor]]
-        B[:, C:] = self._S
+        B[:, sensor] = S[:, owner[sensor]]
+        B[:, C:] = S
+        for _, _, S_m, k in self._coupled:  # d q_m / d multiplier = theta'_f (the factor, in `_block`)
+            B[:, np.flatnonzero(cols == k)] = S_m[:, None]
         rows = np.flatnonzero(np.any(B != 0, axis=1))  # the regressor blocks that matter
         span = slice(rows[0], rows[-1] + 1) if rows.size else slice(0, 0)
         B = B[span]
@@ -463,6 +482,8 @@ class CalibrationProblem:
             D[...] = 0.0
         J = D[:, :, :C]
         factors = ((_SCALE, theta), (_COMPLIANCE, np.zeros_like(theta) if tau is None else -tau))
+        if self._coupled:  # a multiplier's column: the coupled joint's motion times the followed joint's angle
+            factors += ((_MIMIC, self.model_angles(state, theta, tau)),)
         for kind, factor in factors:  # d theta' / d parameter: 1 (offset), theta (scale), -tau (compliance)
             k = np.flatnonzero(role == kind)
             J[:, :, k] *= factor[:, None, owner[k]]
