@@ -213,9 +213,12 @@ def project_to_closure(
             if it == 0:
                 first.append(last[k].copy())
             if fresh:
+                assert ev.Jq is not None  # evaluated with the Jacobians (fresh)
                 inverses[k] = _min_norm_inverse(ev.Jq)
+            inv = inverses[k]
+            assert inv is not None  # the first iteration is fresh: every block has its inverse
             with np.errstate(all="ignore"):
-                step = np.einsum("nij,nj->ni", inverses[k], ev.r)
+                step = np.einsum("nij,nj->ni", inv, ev.r)
             step = np.where(np.isfinite(step), step, 0.0)
             moved[k] = np.abs(step).max(axis=1) if step.size else np.zeros(0)
             thetas[k] = thetas[k] - step
@@ -254,7 +257,11 @@ def closure_jacobian(problem: CalibrationProblem, x: np.ndarray, free: list[int]
     if closed < 0.5 * sum(m.size for m in ok) and closed * max(b.loop.dim for b in problem.blocks) < 2 * len(free):
         return None  # a model this far from the data closes too few of them: no structure to read there
     evals = problem.evaluate(x, True, thetas, columns=free)
-    blocks = [ev.J if m.all() else ev.J[m] for ev, m in zip(evals, ok) if m.any()]
+    blocks = []
+    for ev, m in zip(evals, ok):
+        if m.any():
+            assert ev.J is not None  # evaluated with the Jacobian
+            blocks.append(ev.J if m.all() else ev.J[m])
     return scaled_r_factor_of_blocks(blocks, scale[free]) if blocks else None  # compress(stacked * scale)
 
 
@@ -296,6 +303,7 @@ def analyse_structure(
     g, kept, dropped, size_free, warning, length = choose_gauge(
         problem, x, free, R, reduce, order, prefer=free.index(prefer) if prefer in free else None
     )
+    note: str | None
     if g is not None:
         note = (
             f"the loops close at any overall size (thesis 3.3); {names[free[g]]} is held at its value to set "

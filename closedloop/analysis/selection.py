@@ -55,7 +55,7 @@ def select_parameters(
         if not match(names, [q]):
             raise ParameterError(f"--identify {q}: matches no parameter of this problem")
     selected = set(match(names, pats)) | (set(loop_names) if "loop" in patterns else set())
-    status = [ParamStatus.SELECTED if n in selected else ParamStatus.NOT_SELECTED for n in names]
+    status: list[str] = [ParamStatus.SELECTED if n in selected else ParamStatus.NOT_SELECTED for n in names]
     wants_tau = [n for n in selected if problem.params[problem.index[n]].kind == "compliance"]
     if wants_tau and any(b.tau is None for b in problem.blocks):
         raise LogError(
@@ -119,6 +119,7 @@ def check_motion(
     for b, ev in zip(sample.blocks, sample.evaluate(x0, True, columns=[])):
         if not b.loop.scale_free:  # a measured (open) loop: mobility is not a question
             continue
+        assert ev.Jq is not None  # evaluated with the Jacobians
         mob, moves = loop_mobility(ev.Jq)
         if mob == 0:
             notes.append(
@@ -132,7 +133,7 @@ def check_motion(
                     "(Lemma 6: no self-motion of the closed chain moves it)"
                 )
     robot = problem.robot
-    if robot.kind == "dh":
+    if robot.kind == "dh" and robot.dh is not None:  # a D-H robot always has its table (RobotModel.load)
         rows = robot.dh.rows
         for r1, r2 in zip(rows, rows[1:]):
             if r1.convention == "dh" and abs(np.sin(r1.alpha)) < 1e-6 and r1.name in problem.joints:

@@ -34,7 +34,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pinocchio as pin
 
-from closedloop.errors import ParameterError
+from closedloop.errors import ModelError, ParameterError
+from closedloop.model.dh import DHTable
 from closedloop.model.robot import RobotModel
 
 PLACEMENT_FIELDS = ("x", "y", "z", "rx", "ry", "rz")
@@ -82,6 +83,13 @@ class RobotState:
     mimic: dict[str, float] = field(default_factory=dict)  # coupled joint -> its multiplier (URDF <mimic>)
 
 
+def _dh_table(robot: RobotModel) -> DHTable:
+    """The D-H table of a robot of kind "dh" (`RobotModel.load` builds every such robot with its table)."""
+    if robot.dh is None:
+        raise ModelError(f"robot '{robot.source}': a D-H robot without its D-H table")
+    return robot.dh
+
+
 class RobotParameters:
     """The robot-owned parameters of a set of joints.
 
@@ -99,7 +107,7 @@ class RobotParameters:
             j = robot.joint(name)
             ang = j.unit  # offset unit follows the joint type
             if robot.kind == "dh":
-                row = robot.dh.rows[j.jid - 1]
+                row = _dh_table(robot).rows[j.jid - 1]
                 for fld in ("s", "a", "alpha"):
                     unit = "rad" if fld == "alpha" or (fld == "a" and row.convention == "hayati") else "m"
                     val = getattr(row, fld)
@@ -246,7 +254,7 @@ class RobotParameters:
         if robot.kind == "dh":  # each row's s, a, alpha move its tail and its own head (`DHTable.placements`)
             geo = {n: tuple(values[self.index[f"{n}.{f}"]] for f in ("s", "a", "alpha")) for n in self.joints}
             cols = {n: [self.index[f"{n}.{f}"] for f in ("s", "a", "alpha")] for n in self.joints}
-            G, G_frames = robot.dh.placements(model, geo, P, cols)
+            G, G_frames = _dh_table(robot).placements(model, geo, P, cols)
         else:
             for name in self.joints:
                 j = robot.joint(name)

@@ -67,13 +67,16 @@ def stack_chunks(parts: Iterator[BlockEval], N: int) -> BlockEval:
             v = getattr(part, name)
             if v is None and (name not in fill or out[name] is None):
                 continue
-            if out[name] is None:
-                out[name] = np.empty((N,) + v.shape[1:], dtype=v.dtype)
+            dest = out[name]
+            if dest is None:
+                dest = out[name] = np.empty((N,) + v.shape[1:], dtype=v.dtype)
                 if name in fill:
-                    out[name][:a] = fill[name]  # the chunks before had none
-            out[name][a : a + n] = fill[name] if v is None else v
+                    dest[:a] = fill[name]  # the chunks before had none
+            dest[a : a + n] = fill[name] if v is None else v
         a += n
-    return BlockEval(**out)
+    r = out.pop("r")
+    assert r is not None  # every chunk has r, and a block is chunked only when it has configurations
+    return BlockEval(r=r, **out)
 
 
 def copy_eval(e: BlockEval, jacobian: bool, no_columns: bool) -> BlockEval:

@@ -170,9 +170,9 @@ class CalibrationProblem:
         data = model.createData()
         pin.computeJointJacobians(model, data, pin.neutral(model))
         self._S = np.zeros((6 * (model.njoints - 1), len(self.joints)))
-        for c, name in enumerate(self.joints):
+        for jc, name in enumerate(self.joints):
             j = robot.joint(name)
-            self._S[6 * (j.jid - 1) : 6 * j.jid, c] = pin.getJointJacobian(model, data, j.jid, pin.LOCAL)[:, j.idx_v]
+            self._S[6 * (j.jid - 1) : 6 * j.jid, jc] = pin.getJointJacobian(model, data, j.jid, pin.LOCAL)[:, j.idx_v]
         # a coupled joint (URDF <mimic>) moves with the joint it follows: its multiplier times its motion
         # subspace joins that joint's column (`_joint_columns`, at the state's multiplier)
         self._coupled = []
@@ -312,7 +312,9 @@ class CalibrationProblem:
             out[0] = (np.broadcast_to(np.eye(4), (N, 4, 4)), None)
         return out
 
-    def loop_poses(self, values: np.ndarray, block_index: int, theta: np.ndarray | None = None):
+    def loop_poses(
+        self, values: np.ndarray, block_index: int, theta: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """T_A, T_B of one loop at `values` (for initialisation and export checks)."""
         Ts = self.loop_frame_poses(values, block_index, theta)
         return Ts[0], Ts[1]
@@ -469,6 +471,7 @@ class CalibrationProblem:
             K = kin[f][1]
             if f == 0:
                 continue
+            assert K is not None  # frame_kinematics forms every non-base frame's regressor when asked (jacobian)
             # (N, m, 6 nj): small per-configuration products, then one GEMM with B, into D for the first frame
             dK = np.matmul(d, K[:, :, span], out=work.get("dK", (N, m, B.shape[0])) if work else None)
             into = D if first else work.get("dKB", shape) if work else np.empty(shape)

@@ -194,11 +194,13 @@ def _identifiable(robot, theta: np.ndarray) -> list[str]:
     The camera loop's problem on the readings `theta` with the nominal marker's exact image points,
     its unknowns closing them, and the structural reduction there (:mod:`closedloop.sims.identifiable`).
     """
+    from closedloop.loops.camera.loop import CameraLoop
     from closedloop.loops.spec import parse_loop
     from closedloop.sims.identifiable import closing_values, estimated_indices, loop_joints, nominal_problem
 
     names = robot.joint_names
     loop = parse_loop(CALIBRATE_LOOP, robot)
+    assert isinstance(loop, CameraLoop)  # CALIBRATE_LOOP is a camera loop's spec
     theta = np.asarray(theta, dtype=float)[:, [names.index(j) for j in loop_joints(robot, [loop])]]
     prob = nominal_problem(robot, [loop], [theta], [np.zeros((len(theta), len(loop.columns())))])
     Ts = prob.loop_frame_poses(prob.nominal, 0)

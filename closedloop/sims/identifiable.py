@@ -109,7 +109,11 @@ def closing_values(problem: CalibrationProblem, iters: int = 20, tol: float = 1e
         if now < tol or now >= worst:
             break
         worst = now
-        J = np.vstack([ev.J.reshape(-1, len(cols)) for ev in evs])
+        stacked = []
+        for ev in evs:
+            assert ev.J is not None  # evaluated with the Jacobian
+            stacked.append(ev.J.reshape(-1, len(cols)))
+        J = np.vstack(stacked)
         x[cols] -= np.linalg.lstsq(J, r, rcond=None)[0]
     return x
 

@@ -168,7 +168,9 @@ def next_commands(out: str | Path, truth: dict[str, Any]) -> list[str]:
     ``calibrate_loop``); a known joint noise is given (``--noise``); a head-camera dataset is checked
     at its documented tolerances (``check_tolerances``).  Empty when the truth names no loop.
     """
-    loop = truth.get("loop") if isinstance(truth.get("loop"), dict) else {}
+    loop = truth.get("loop")
+    if not isinstance(loop, dict):
+        loop = {}
     spec = loop.get("calibrate") or truth.get("calibrate_loop")
     if not spec:
         return []
@@ -185,7 +187,9 @@ def next_commands(out: str | Path, truth: dict[str, Any]) -> list[str]:
         "--report",
         q(d / "report.json"),
     ]
-    settings = truth.get("settings") if isinstance(truth.get("settings"), dict) else {}
+    settings = truth.get("settings")
+    if not isinstance(settings, dict):
+        settings = {}
     noise = truth.get("noise", {}).get("sigma_q") if isinstance(truth.get("noise"), dict) else settings.get("noise")
     if isinstance(noise, (int, float)) and noise > 0:
         calib += ["--noise", f"{noise:g}"]

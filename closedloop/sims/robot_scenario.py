@@ -153,19 +153,28 @@ def _read(path: Path, where: str) -> ET.Element:
         raise InputError(f"{path}: not valid XML ({exc})") from None
 
 
-def _path_joints(root: ET.Element, link: str) -> list[ET.Element]:
+def _joint_link(joint: ET.Element, tag: str, path: Path) -> str:
+    """The link a URDF joint's ``<parent>`` or ``<child>`` (`tag`) names."""
+    el = joint.find(tag)
+    link = None if el is None else el.get("link")
+    if link is None:
+        raise InputError(f"{path}: joint '{joint.get('name')}' has no <{tag} link=...>")
+    return link
+
+
+def _path_joints(root: ET.Element, link: str, path: Path) -> list[ET.Element]:
     """Joints from the root down to `link`."""
-    by_child = {j.find("child").get("link"): j for j in root.findall("joint")}
+    by_child = {_joint_link(j, "child", path): j for j in root.findall("joint")}
     out = []
     while link in by_child:
         j = by_child[link]
         out.append(j)
-        link = j.find("parent").get("link")
+        link = _joint_link(j, "parent", path)
     return out[::-1]
 
 
 def _check_link(root: ET.Element, name: str, path: Path, what: str) -> None:
-    links = [lk.get("name") for lk in root.findall("link")]
+    links = [lk.get("name", "") for lk in root.findall("link")]
     if name not in links:
         close = difflib.get_close_matches(name, links, n=3)
         hint = f" (did you mean {', '.join(close)}?)" if close else f" (links: {', '.join(links[:12])} ...)"
@@ -185,13 +194,13 @@ def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: 
         ET.SubElement(j, "origin", xyz=_fmt(tool.get("xyz", [0, 0, 0])), rpy=_fmt(tool.get("rpy", [0, 0, 0])))
         frame = new
     _check_link(root, frame, path, "frame")
-    chain = _path_joints(root, frame)
+    chain = _path_joints(root, frame, path)
     if to is not None:
         _check_link(root, to, path, "'to' frame")
-        other = _path_joints(root, to)
+        other = _path_joints(root, to, path)
         common = {id(j) for j in chain} & {id(j) for j in other}
         chain = [j for j in chain + other if id(j) not in common]
-    movable = [j.get("name") for j in chain if j.get("type") in MOVABLE]
+    movable = [j.get("name", "") for j in chain if j.get("type") in MOVABLE]
     bad = [f"{j.get('name')} ({j.get('type')})" for j in chain if j.get("type") not in MOVABLE + ("fixed",)]
     if bad:
         raise InputError(
@@ -207,7 +216,7 @@ def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: 
             )
         movable = [j for j in movable if j in joints]
     for j in root.findall("joint"):
-        if j.get("name") not in movable:
+        if j.get("name", "") not in movable:
             if j.get("type") != "fixed":
                 log.info("%s: joint %s held fixed at 0 (not on the loop's chain)", path, j.get("name"))
             j.set("type", "fixed")
@@ -224,10 +233,10 @@ def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: 
         elif j.find("mimic") is not None:
             raise InputError(f"{path}: joint {j.get('name')} mimics another joint; give joints: without it")
     # a root link named 'world' clashes with MuJoCo's world body: drop it (its child becomes the root)
-    children = {j.find("child").get("link") for j in root.findall("joint")}
+    children = {_joint_link(j, "child", path) for j in root.findall("joint")}
     roots = [lk for lk in root.findall("link") if lk.get("name") not in children]
     if len(roots) == 1 and roots[0].get("name") == "world":
-        for j in [j for j in root.findall("joint") if j.find("parent").get("link") == "world"]:
+        for j in [j for j in root.findall("joint") if _joint_link(j, "parent", path) == "world"]:
             root.remove(j)
         root.remove(roots[0])
     return frame, movable

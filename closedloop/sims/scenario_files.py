@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 from closedloop.errors import InputError
 from closedloop.sims.loop_types import sim_loop
@@ -82,7 +83,8 @@ def _settings(data: dict | None, where: str, loop_type: str) -> SimSettings:
         raise InputError(f"{where}: unknown setting(s) {', '.join(bad)} (known: {', '.join(sorted(names))})")
     # the settings the loop type needs whatever the robot (`SimLoop.settings`); a scenario's own win
     merged = {**sim_loop(loop_type).settings, **(data or {})}
-    return SimSettings(**{k: tuple(v) if isinstance(v, list) else v for k, v in merged.items()})
+    values: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in merged.items()}
+    return SimSettings(**values)
 
 
 def scenario_from_dict(data: dict, name: str, where: str, base_dir: Path | None = None) -> Scenario:

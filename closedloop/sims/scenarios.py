@@ -167,7 +167,7 @@ class SimSettings:
         unknown = sorted(set(overrides) - names)
         if unknown:
             raise SettingError(f"unknown simulation setting(s) {unknown}; known: {sorted(names)}")
-        fixed = {}
+        fixed: dict[str, Any] = {}
         for k, v in overrides.items():
             fixed[k] = tuple(v) if isinstance(v, list) else v
         return dataclasses.replace(self, **fixed)

@@ -182,17 +182,18 @@ def build_scene(
     if scenario.target_frame is not None and not kind.two_chains:
         raise ScenarioError(f"{scenario.name}: a robot target frame needs a weld loop")
     placed = kind.place(spec, model, data, scenario, tool, settings, rng)  # the target site (and what carries it)
-    eq = None if kind.equality is None else spec.add_equality()
-    if eq is not None:
+    equality = kind.equality
+    if equality is not None:
+        eq = spec.add_equality()
         eq.name = LOOP_EQ
-        eq.type = getattr(mujoco.mjtEq, f"mjEQ_{kind.equality.upper()}")
+        eq.type = getattr(mujoco.mjtEq, f"mjEQ_{equality.upper()}")
         eq.objtype = mujoco.mjtObj.mjOBJ_SITE
         eq.name1 = TOOL_SITE
         eq.name2 = TARGET_SITE
         eq.solref = list(settings.solref)
         eq.solimp = list(settings.solimp)
 
-    return _closed_scene(spec, joint_names, q0, kind, placed, eq is not None)
+    return _closed_scene(spec, joint_names, q0, kind, placed, equality is not None)
 
 
 def _robot_spec(urdf: str, scenario: Scenario, settings: SimSettings, joint_names: list[str]) -> mujoco.MjSpec:

@@ -206,6 +206,9 @@ def plan_selected(
     """
     from closedloop.design.poses import select_poses
 
+    method = settings.select
+    if method is None:
+        raise ScenarioError(f"{sc.name}: pose selection needs a method (setting select)")
     nj = len(joint_names)
     size = max(int(settings.select_pool * n), n)
     pool = candidate_pool(planner, size)
@@ -222,7 +225,7 @@ def plan_selected(
     res = information_result(sc, settings, nominal_path, joint_names, pool[:, :nj], points)
     cols = [joint_names.index(j) for j in res.problem.joints]
     chosen = np.asarray(
-        select_poses(res.problem, res.values, pool[:, cols], n, settings.select, params=res.estimated, noise=res.noise),
+        select_poses(res.problem, res.values, pool[:, cols], n, method, params=res.estimated, noise=res.noise),
         dtype=int,
     )
     chosen = chosen[order_path(pool[chosen, :nj], start[:nj])]

@@ -372,6 +372,7 @@ def track_and_record(
             # the tracker measures the true tool point in its frame; the "violation" of this
             # loop is the measurement error
             tip = site_pose(m, d, scene.tool_site).translation
+            assert rng_env is not None  # an open (tracked) loop draws its environment (SimLoop.draws_environment)
             rec.meas[i] = tracker.actInv(tip) + rng_env.normal(0.0, settings.tracker_noise, 3)
             rec.viol_m[i] = float(np.linalg.norm(rec.meas[i] - tracker.actInv(tip)))
         else:
