@@ -110,7 +110,9 @@ def main(argv: list[str] | None = None) -> int:
                             ),
                             "verdict": o.status,
                             "reasons": list(getattr(getattr(o.result, "verdict", None), "reasons", []) or []),
-                            "size_measured": (getattr(getattr(o.result, "verdict", None), "evidence", None) or {}).get("size_measured"),
+                            "size_measured": (getattr(getattr(o.result, "verdict", None), "evidence", None) or {}).get(
+                                "size_measured"
+                            ),
                             "converged": o.converged,
                             "seconds": o.seconds,
                             "error": o.error,
