@@ -166,3 +166,18 @@ def test_another_robots_model_says_the_size_is_not_measured(tmp_path):
     size = rows[-1]
     assert size["name"] == "size (not measured by the data)" and size["result"] == "FAIL"
     assert 1.3 < size["calibrated"] < 1.6, rows  # the UR10's size
+
+
+def test_check_names_the_reports_verdict_once_and_why_it_used_the_table(tmp_path, capsys):
+    """A report without a model file: the parameter table, with a note saying why; the report's suspect
+    verdict quoted once ('suspect: X', not 'suspect: suspect: X')."""
+    from closedloop.cli.main import main
+
+    p = {"name": "j1.x", "kind": "placement", "unit": "m", "calibrated": 0.001, "status": "estimated"}
+    report = {"parameters": [p], "verdict": {"status": "suspect", "reasons": ["suspect: the size is held short"]}}
+    (tmp_path / "r.json").write_text(json.dumps(report))
+    (tmp_path / "t.json").write_text(json.dumps({"parameters": {"j1.x": 0.0012}}))
+    assert main(["check", str(tmp_path / "t.json"), str(tmp_path / "r.json")]) == 0
+    out = capsys.readouterr().out
+    assert "note: compared by parameters, not by what the robots do: the report names no robot model" in out
+    assert "verdict is suspect: the size is held short" in out and "suspect: suspect:" not in out

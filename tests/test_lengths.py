@@ -92,11 +92,23 @@ def test_length_the_model_fixes_is_refused(rig):
     """panda_link8-ball: one rigid body (a fixed joint between them): no calibrated parameter changes
     their distance, so it cannot set the size: refused before the fit, in one line naming the length."""
     rig_, robot, log, _ = rig
-    loops = _loops(robot, rig_.loop_names()) + [LengthLoop("panda_link8", "ball", 0.0107)]
+    loops = _loops(robot, rig_.loop_names()) + [LengthLoop("panda_link8", "ball", 0.1237)]
     with pytest.raises(LoopError) as err:
         calibrate(robot, log, loops, CalibrationOptions())
     msg = str(err.value)
-    assert "\n" not in msg and msg.startswith("--length panda_link8 ball 0.0107: ") and "model fixes it" in msg
+    assert "\n" not in msg and msg.startswith("--length panda_link8 ball 0.1237: ") and "model fixes it" in msg
+
+
+def test_an_absurd_length_is_refused(rig):
+    """--length panda_link2 panda_link4 1000 (millimetres for metres): refused before the fit, in one line
+    giving the model's distance; a length 10 % off is a calibration and is fitted."""
+    rig_, robot, log, _ = rig
+    loops = _loops(robot, rig_.loop_names())
+    with pytest.raises(LoopError, match=r"^--length panda_link2 panda_link4 1000: the model puts these frames 0\.3"):
+        calibrate(robot, log, loops + [LengthLoop("panda_link2", "panda_link4", 1000.0)], CalibrationOptions())
+    L = 1.1 * true_length(rig_, "panda_link2", "panda_link4")
+    res = calibrate(robot, log, loops + [LengthLoop("panda_link2", "panda_link4", L)], CalibrationOptions())
+    assert abs(res.residuals_after[-1].rms_m) < 1e-4  # the length is met (the robot 10 % larger)
 
 
 def test_length_row_jacobian(rig):

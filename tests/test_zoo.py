@@ -152,3 +152,15 @@ def test_zoo_rough_start():
             zoo.make_case("panda", "weld", n=60, seed=1, err_m=2e-2, err_rad=2e-2, offset_rad=0.2, tag="rough")
         )
     )
+
+
+def test_zoo_point_contact_states_the_size_it_cannot_see():
+    """A point contact closes at any size: right, ok, and the verdict says the size is the model's (a field and
+    its last reason), not a 'suspect' for a limit of the data the report states."""
+    o = _exact("ur5", "point")
+    v = o.result.verdict
+    assert o.right and v.status == "ok", o.line()
+    assert v.evidence["size_measured"] is False and v.evidence["size_held_by"] == o.result.gauge
+    assert v.reasons == [f"size not measured: held by the model's {o.result.gauge}"]
+    tracker = zoo.run_case(zoo.make_case("ur5", "measured_point", n=60, seed=0))
+    assert tracker.result.verdict.evidence["size_measured"] is True and tracker.result.verdict.reasons == []

@@ -240,9 +240,14 @@ def held_leak(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> tu
     return worst, name
 
 
-def refuse_fixed_lengths(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> None:
+IMPLAUSIBLE_SIZE = 0.15  # a known length this far from the model's distance scales the robot into `failed`
+
+
+def refuse_lengths(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> None:
     """Refuse, before the fit, a known length that no free parameter changes: the model fixes it already
-    (both frames on one rigid body, or only held values between them), so it cannot set the size."""
+    (both frames on one rigid body, or only held values between them), so it cannot set the size; and one
+    more than IMPLAUSIBLE_SIZE (15 %) from the model's distance at x, which would scale the robot by more
+    than a calibration corrects (`verdict.VerdictRules.scale_failed`): a typo, or millimetres for metres."""
     from closedloop.errors import LoopError
 
     idx = length_blocks(problem)
@@ -258,4 +263,11 @@ def refuse_fixed_lengths(problem: CalibrationProblem, x: np.ndarray, free: list[
                 f"--length {lp.frame_a} {lp.frame_b} {lp.length:g}: no calibrated parameter changes the distance "
                 "between these frames (the model fixes it: one rigid body, or only held values between them), "
                 "so it cannot set the robot's size"
+            )
+        model = float(evals[bi].r[0, 0]) + lp.length  # r = |p_B - p_A| - L
+        if not abs(lp.length / max(model, 1e-12) - 1.0) <= IMPLAUSIBLE_SIZE:
+            raise LoopError(
+                f"--length {lp.frame_a} {lp.frame_b} {lp.length:g}: the model puts these frames {model:.4g} m "
+                f"apart at zero readings; a length {lp.length / max(model, 1e-12):.3g}x that is not a calibration "
+                "(metres expected)"
             )

@@ -35,7 +35,7 @@ import numpy as np
 
 from closedloop.analysis.identifiability import Structure, analyse_structure, weak_directions
 from closedloop.analysis.linearity import check_error_bars
-from closedloop.analysis.scale import refuse_fixed_lengths, scale_findings
+from closedloop.analysis.scale import refuse_lengths, scale_findings
 from closedloop.analysis.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
 from closedloop.calibration.staged import (
     Progress,
@@ -257,7 +257,7 @@ def _calibrate(
     free = [k for k, s in enumerate(status) if s == ParamStatus.SELECTED]
     if not free:
         raise NotIdentifiableError("no parameter is left to identify (all fixed or not selected)")
-    refuse_fixed_lengths(problem, x0, free)
+    refuse_lengths(problem, x0, free)
     sigma_q, known = noise_vector(problem, opt.noise)
     if progress:
         progress("analysing", 0, 0.0)

@@ -29,6 +29,9 @@ suspect (exit 0 with a warning line):
     changed by more than 0.5 rad;
   * 5-20 % of the configurations rejected as outliers;
   * the noise weighting had to be overruled (it hid a residual);
+  * no single length of the model holds the size (the loops leave more than a
+    uniform scaling free), or the held one does not hold it alone at the
+    solution;
   * the overall size is held by a short length (under 67 mm: a 2 mm error of
     its nominal value is a size error over 3 %, the size change that is
     suspect), or a given length does not set the size or depends on values
@@ -112,8 +115,8 @@ GROSS = 5.0  # a rejected configuration's closure over this many times its loop'
 
 def gross_rejections(result: CalibrationResult) -> list:
     """The rejected configurations whose closure at the solution is a gross error: over GROSS times the RMS
-    closure of the configurations kept in their loop (a 3-D noise vector's norm exceeds 2.5x its RMS with
-    probability ~1e-6) and above the round-off floor.  The others, within the noise of the kept ones, are
+    closure of the configurations kept in their loop (a noise closure exceeds 5x its RMS with probability
+    under 1e-6) and above the round-off floor.  The others, within the noise of the kept ones, are
     configurations the outlier screen left out that the solution explains: they do not count against it."""
     after = {a.loop: a for a in result.residuals_after}
     out = []
@@ -247,9 +250,9 @@ def size_finding(result: CalibrationResult) -> tuple[bool, str | None, str | Non
 
     Measured: a loop that sees the size (a tracker, a camera), a known distance between loop
     points, or a known length between frames that sets it (`analysis.scale.length_findings`:
-    its size response in [0.9, 1.1]).  Otherwise the size is the model file's: held by the
-    gauge (`CalibrationResult.gauge`), or by the model's lengths together when no single one
-    holds it.
+    its size response in SETS_SIZE, [0.9, 1.1]).  Otherwise the size is the model file's: held by
+    the gauge (`CalibrationResult.gauge`), or by no single length of it (which the gauge analysis
+    warns of: the loops then leave more than a uniform scaling free).
     """
     from closedloop.problem.distances import distance_blocks
     from closedloop.problem.lengths import length_blocks
@@ -262,7 +265,7 @@ def size_finding(result: CalibrationResult) -> tuple[bool, str | None, str | Non
     if not all(b.loop.scale_free for b in loops):
         return True, None, None
     response = getattr(result, "length_response", None)
-    if lengths and response is not None and 0.9 <= response <= 1.1:
+    if lengths and response is not None and SETS_SIZE[0] <= response <= SETS_SIZE[1]:
         return True, None, None
     held = result.gauge
     why = f"held by the model's {held}" if held else "no single length of the model holds it"

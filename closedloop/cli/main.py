@@ -81,6 +81,18 @@ def cmd_check(args) -> int:
             _print_rows(check_parameters(truth, report, **tols, **src)[0], "parameter")
     else:
         _print_rows(rows, "parameter")
+        if not args.parameters:  # the kinematic view could not be had: say why
+            from pathlib import Path
+
+            model = args.model or report.get("model")
+            why = (
+                "the report names no robot model (give --model FILE)"
+                if not model
+                else f"the robot model {model} is not found (give --model FILE)"
+                if not Path(model).is_file()
+                else "no loop of the report has robot frames to follow"
+            )
+            print(f"note: compared by parameters, not by what the robots do: {why}")
     verdict = report.get("verdict") if isinstance(report.get("verdict"), dict) else {}
     if verdict.get("status") in ("suspect", "failed"):  # what the calibration said of itself
         own = f"{verdict['status']}: "

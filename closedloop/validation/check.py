@@ -186,7 +186,7 @@ def _row(name, true, cal, err, tol, result):
 
 # --------------------------------------------------------------------------- what the robots do
 POINT_LOOPS = ("PointLoop", "PlaneLoop", "MeasuredPointLoop", "point", "plane", "measured_point")
-POSE_LOOPS = ("WeldLoop", "HingeLoop", "weld", "hinge")
+POSE_LOOPS = ("WeldLoop", "HingeLoop", "MeasuredPoseLoop", "weld", "hinge", "measured_pose")
 SIZE_BLIND = ("PointLoop", "PlaneLoop", "WeldLoop", "HingeLoop", "point", "plane", "weld", "hinge")
 N_CHECK = 200  # configurations the robots are compared at
 
@@ -292,8 +292,9 @@ def check_kinematics(
 
     Rows: per loop, the largest position error of its tool point or frame (m) and, for a
     pose loop, the largest rotation error (rad) over `n` readings drawn within the joint
-    ranges, after the best rigid base transform (one for all loops), a constant tool
-    transform per pose loop, and the overall size where the report says the data do not
+    ranges, after the best rigid base transform (one for the loops closed to the world, one
+    per loop between two robot frames, whose pose in its second frame is what is compared),
+    a constant tool transform per pose loop, and the overall size where the report says the data do not
     measure it; then that size against the truth's ('size', relative).  `true_robot`: the
     true robot's model where it is not `robot` (joints matched by name).
     """
@@ -316,49 +317,63 @@ def check_kinematics(
     if missing:
         raise InputError(f"{truth_source}: the true robot has no joint {missing[0]}: not the same robot's joints")
     rp_t, x_t = _values(true_robot, truth["parameters"])
-    items = []  # (label, kind, cal frame, cal tip, true frame, true tip)
+    items = []  # (label, kind, cal frame, cal tip, true frame, true tip, cal frame_b, true frame_b)
     for lp in loops:
         name = str(lp.get("name"))
         tl = _truth_loop(truth, name, len(loops))
-        frame = lp.get("frame_a")
-        tframe = tl.get("frame", frame)
+        frame, frame_b = lp.get("frame_a"), lp.get("frame_b")
+        frame_b = None if frame_b in (None, "universe", "world") else frame_b
+        tframe, tframe_b = tl.get("frame", frame), tl.get("to", frame_b)
         try:
-            robot.frame_id(frame)
-            true_robot.frame_id(tframe)
+            for f in (frame, frame_b):
+                if f is not None:
+                    robot.frame_id(f)
+            for f in (tframe, tframe_b):
+                if f is not None:
+                    true_robot.frame_id(f)
         except ClosedLoopError as exc:
             raise InputError(f"{report_source} / {truth_source}: loop '{name}': {exc}") from None
         point = lp.get("type") in POINT_LOOPS
         tip_c = _tip(cal, name, lp.get("tip")) if point else np.zeros(3)
         tip_t = _tip(truth["parameters"], str(tl.get("name", name)), lp.get("tip")) if point else np.zeros(3)
-        items.append((name, "point" if point else "pose", frame, tip_c, tframe, tip_t))
-    frames_c = list(dict.fromkeys(it[2] for it in items))
-    frames_t = list(dict.fromkeys(it[4] for it in items))
-    Tc = _poses(robot, rp_c, x_c, readings, joints, frames_c)
-    Tt = _poses(true_robot, rp_t, x_t, readings, joints, frames_t)
-    if not (np.all(np.isfinite(Tc)) and np.all(np.isfinite(Tt))):
-        raise InputError(f"{report_source}: the calibrated robot's kinematics are not finite")
+        items.append((name, "point" if point else "pose", frame, tip_c, tframe, tip_t, frame_b, tframe_b))
+
+    def relative(rob, rp, x, fa: str, fb: str | None) -> np.ndarray:
+        """Poses of fa in the world, or in fb where the loop joins two robot frames (what it sees)."""
+        T = _poses(rob, rp, x, readings, joints, [fa] + ([fb] if fb else []))
+        if not np.all(np.isfinite(T)):
+            raise InputError(f"{report_source}: the robots' kinematics are not finite")
+        return T[:, 0] if not fb else np.linalg.inv(T[:, 1]) @ T[:, 0]
+
+    Tc = [relative(robot, rp_c, x_c, it[2], it[6]) for it in items]
+    Tt = [relative(true_robot, rp_t, x_t, it[4], it[7]) for it in items]
     scaled = not _size_measured(report)
-    n_pose = sum(it[1] == "pose" for it in items)
+    # unknowns: log size, one base transform for the loops closed to the world and one per loop between two
+    # robot frames (in its frame_b), one tool transform per pose loop
+    group = [0 if it[6] is None else 1 + k for k, it in enumerate(items)]
+    bases = sorted(set(group))
+    tools = [k for k, it in enumerate(items) if it[1] == "pose"]
 
     def predict(z: np.ndarray) -> list[tuple[np.ndarray, np.ndarray | None]]:
-        s = float(np.exp(z[6])) if scaled else 1.0
-        B = pin.exp6(z[:6])
-        out, k = [], 0
-        for _, kind, fc, tc, _, _ in items:
-            T = Tc[:, frames_c.index(fc)]
+        s = float(np.exp(z[0])) if scaled else 1.0
+        out = []
+        for k, (_, kind, _, tc, _, _, _, _) in enumerate(items):
+            b = 1 + 6 * bases.index(group[k])
+            B = pin.exp6(z[b : b + 6])
+            T = Tc[k]
             if kind == "point":
                 p = s * (T[:, :3, :3] @ tc + T[:, :3, 3])
                 out.append((p @ B.rotation.T + B.translation, None))
             else:
-                Y = pin.exp6(z[7 + 6 * k : 13 + 6 * k])
-                k += 1
+                t = 1 + 6 * len(bases) + 6 * tools.index(k)
+                Y = pin.exp6(z[t : t + 6])
                 p = s * (T[:, :3, :3] @ Y.translation + T[:, :3, 3])
                 out.append((p @ B.rotation.T + B.translation, B.rotation @ T[:, :3, :3] @ Y.rotation))
         return out
 
     targets = []
-    for _, kind, _, _, ft, tt in items:
-        T = Tt[:, frames_t.index(ft)]
+    for k, (_, kind, _, _, _, tt, _, _) in enumerate(items):
+        T = Tt[k]
         targets.append((T[:, :3, :3] @ tt + T[:, :3, 3], T[:, :3, :3] if kind == "pose" else None))
 
     def residual(z: np.ndarray) -> np.ndarray:
@@ -369,9 +384,9 @@ def check_kinematics(
                 r.append(np.array([pin.log3(a.T @ b) for a, b in zip(R, Rt)]).ravel() / tol_rad)
         return np.concatenate(r)
 
-    fit = least_squares(residual, np.zeros(7 + 6 * n_pose), method="lm", xtol=1e-15, ftol=1e-15)
+    fit = least_squares(residual, np.zeros(1 + 6 * (len(bases) + len(tools))), method="lm", xtol=1e-15, ftol=1e-15)
     rows = []
-    for (name, kind, fc, _, ft, _), (p, R), (pt, Rt) in zip(items, predict(fit.x), targets):
+    for (name, kind, fc, *_), (p, R), (pt, Rt) in zip(items, predict(fit.x), targets):
         what = "tool point" if kind == "point" else "frame"
         err = float(np.linalg.norm(p - pt, axis=1).max())
         rows.append(_row(f"{name}: {what} {fc} position", None, None, err, tol_m, "ok" if err <= tol_m else "FAIL"))
@@ -381,7 +396,7 @@ def check_kinematics(
                 _row(f"{name}: frame {fc} rotation", None, None, ang, tol_rad, "ok" if ang <= tol_rad else "FAIL")
             )
     if scaled:  # the size the data do not measure: the calibrated robot is 1/s the truth's
-        size = 1.0 / float(np.exp(fit.x[6]))
+        size = 1.0 / float(np.exp(fit.x[0]))
         rows.append(
             _row(
                 "size (not measured by the data)",
