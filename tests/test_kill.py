@@ -161,7 +161,7 @@ def kill_calibrate(work: Path, kills: int, rng: np.random.Generator) -> list[dic
             str(out / "report.json"),
         ]
 
-    return _kill_runs(out, ("cal.urdf", "report.json"), args, kills, rng)
+    return _kill_runs(out, ("cal.urdf", "cal.sensors.yaml", "report.json"), args, kills, rng)
 
 
 def kill_simulate(work: Path, kills: int, rng: np.random.Generator) -> list[dict]:

@@ -223,6 +223,10 @@ def test_simulate_prints_the_calibrate_command_for_its_tool_frame(tmp_path, caps
     assert main(calibrate[1:] + ["--quiet"]) == 0
     assert main(check[1:]) == 0
     out = capsys.readouterr().out
+    assert "what the robots do" in out and " 0 outside" in out  # judged by what the robots do (the default)
+    assert int(out.split(" within tolerance")[0].split()[-1]) >= 2  # the tool point's position and the size
+    assert main(check[1:] + ["--parameters"]) == 0  # and parameter by parameter: the frame names agree
+    out = capsys.readouterr().out
     assert " 0 outside" in out and int(out.split(" within tolerance")[0].split()[-1]) >= 15
     # the visuals: one per UR5 link, every mesh found; the kinematics those of the cleaned model
     model = pin.buildModelFromUrdf(str(sim / "nominal.urdf"))
