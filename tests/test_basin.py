@@ -62,6 +62,7 @@ def test_mechanism_error_is_gauge_free():
     assert te.mechanism_error(ex, te.thesis_start(ex, np.random.default_rng(0)), {}) > 0.05
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", list(STARTS))
 def test_basin_quick(name):
     ex = te.EXAMPLES[name]()

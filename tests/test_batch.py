@@ -85,6 +85,7 @@ def cluster():
     ray.shutdown()
 
 
+@pytest.mark.slow
 def test_batch_same_on_every_engine_failure_isolated_drift_flagged(tmp_path, truth, cluster):
     # drift: none, 0.5x and 12x the pair's standard error (~5e-5 rad here)
     drifts = [0.0, 2.5e-5, 6e-4]
@@ -126,6 +127,7 @@ def test_batch_same_on_every_engine_failure_isolated_drift_flagged(tmp_path, tru
     assert (tmp_path / "serial" / "summary.drift.csv").exists()
 
 
+@pytest.mark.slow
 def test_killed_batch_resumes_without_redoing_finished_jobs(tmp_path, truth):
     man = write_fleet(tmp_path, truth, [0.0] * 6, cv=2)
     jobs = read_manifest(man)

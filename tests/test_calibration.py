@@ -30,6 +30,7 @@ def compare(res, ds):
     return robot_err, t_err, r_err
 
 
+@pytest.mark.slow
 def test_panda_weld_noise_free(panda, panda_weld):
     """From the nominal model every identifiable parameter to 1e-6 (we get ~1e-13), closure RMS < 1e-9 m."""
     res = calibrate(panda, panda_weld.log(), [WeldLoop("fixture", "panda_hand")])
@@ -98,6 +99,7 @@ def test_user_fixed_length_replaces_default(panda, panda_weld):
     assert res.status[res.names.index("panda_joint4.x")] == "fixed"
 
 
+@pytest.mark.slow
 def test_joint_that_never_moves_is_reported(panda, panda_weld):
     th = panda_weld.readings.copy()
     th[:, 3] = th[0, 3]

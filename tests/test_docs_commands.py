@@ -265,6 +265,7 @@ def test_the_pages_have_blocks_to_run():
     assert any("closedloop calibrate" in b.text for b in BLOCKS)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("block", BLOCKS, ids=[b.id for b in BLOCKS])
 def test_documented_block_runs(block: Block, tmp_path_factory):
     first = block.text.strip().splitlines()[0] if block.text.strip() else ""

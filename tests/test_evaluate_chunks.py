@@ -47,6 +47,7 @@ def test_chunked_evaluation_is_the_whole(kind, monkeypatch):
                     assert u.shape == v.shape and np.allclose(u, v, rtol=0, atol=1e-12), (kind, name)
 
 
+@pytest.mark.slow
 def test_structure_on_a_sample_is_the_whole(monkeypatch):
     """The structural analysis reads a sample of each loop's configurations (`identifiability.STRUCTURE_ROWS`):
     on 700 noisy self-motion configurations of a Panda weld, the default sample (128 of them, evenly spaced) and

@@ -95,6 +95,7 @@ def test_evaluate_predicts_with_the_calibrated_ball(rig, trained):
     assert not fresh.held and fresh.rms_m <= ev.rms_m * (1 + 1e-9)  # a fresh ball fits at least as well
 
 
+@pytest.mark.slow
 def test_leave_one_fixture_out_predicts_with_the_refitted_ball(rig):
     tmp, rig_, robot, log = rig
     loops = _loops(robot, rig_.loop_names())

@@ -61,6 +61,7 @@ def scenario():
     return dataclasses.replace(sc, theta=sc.pool, pool=None)
 
 
+@pytest.mark.slow
 def test_seeds_per_job_not_per_worker(cluster, local):
     """SeedSequence(seed).spawn(n)[i] drives job i: identical on 1 process, 2 workers, 2 Ray CPUs."""
     serial = ex.run(noisy_sum, range(12), "serial", shared=(10.0,), seed=7)
@@ -74,6 +75,7 @@ def test_seeds_per_job_not_per_worker(cluster, local):
     assert ex.run(noisy_sum, range(12), "serial", shared=(10.0,), seed=8) != serial
 
 
+@pytest.mark.slow
 def test_failures_isolated(cluster, local):
     """An exception is recorded; a worker that dies is recorded; the other jobs finish."""
     for engine in (local, "ray"):
@@ -96,6 +98,7 @@ def test_progress_counts():
     assert "5/10 finished (4 ok, 1 failed)" in p.line()
 
 
+@pytest.mark.slow
 def test_studies_identical_on_every_engine(cluster, local, scenario):
     """Monte Carlo draws and k-fold refits: bit-identical on serial, local pool and Ray."""
     sc = scenario
@@ -126,6 +129,7 @@ def test_unknown_engine_is_an_input_error():
 
 
 # --------------------------------------------------------------------------- the other studies
+@pytest.mark.slow
 def test_pose_pools_identical_on_every_engine(cluster, local):
     """One A-optimal selection per candidate pool, and the random-subset baseline seeded per chunk:
     the same designs on serial, local pool and Ray; selection beats the best of 60 random draws."""
@@ -156,6 +160,7 @@ def test_pose_pools_identical_on_every_engine(cluster, local):
         )
 
 
+@pytest.mark.slow
 def test_impedance_bootstrap_chunks_identical_on_every_engine(cluster, local):
     """The bootstrap's resamples in chunks of 10 as jobs, seeded per chunk: the same bands everywhere."""
     from closedloop.impedance.bootstrap import bootstrap
@@ -179,6 +184,7 @@ def test_impedance_bootstrap_chunks_identical_on_every_engine(cluster, local):
     assert coverage(bands["serial"].lo["K"], bands["serial"].hi["K"], sim.truth["K"]) > 0.7
 
 
+@pytest.mark.slow
 def test_simulate_sweep_on_every_engine_resumable_failure_isolated(cluster, local, tmp_path):
     """`simulate --seeds`: one dataset per seed, identical whichever engine ran it, finished seeds not
     redone, a failing scenario recorded without stopping the others."""

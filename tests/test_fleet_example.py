@@ -36,6 +36,7 @@ def fleet(tmp_path_factory):
     return code, rows, drift
 
 
+@pytest.mark.slow
 def test_every_calibration_is_ok(fleet):
     code, rows, _ = fleet
     assert code == 0
@@ -43,6 +44,7 @@ def test_every_calibration_is_ok(fleet):
     assert [r["name"] for r in rows if r["verdict"] != "ok"] == []
 
 
+@pytest.mark.slow
 def test_the_jump_is_flagged_and_nothing_else(fleet):
     _, _, drift = fleet
     offs = {d["after"]: d for d in drift if d["parameter"] == "panda_joint4.offset"}

@@ -549,6 +549,7 @@ def run_property(name: str, max_examples: int = FUZZ_EXAMPLES) -> dict[str, int]
     return dict(counts)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(PROPERTIES))
 def test_fuzz_loader(name):
     """Zero exceptions other than InputError; and the fuzzer reaches both outcomes (it is not trivial)."""

@@ -52,6 +52,7 @@ def test_table_4_1_as_printed():
     assert default_loops(robot)[0].known is not None  # closes: true -> identity weld
 
 
+@pytest.mark.slow
 def test_staged_hand_calibration_recovers_true_hand(true_hand):
     """Staged (4.2.6) from the nominal Table 4.1, k identified, s_0 = -1.3 in and k_7 = 1 fixed.
 
@@ -134,6 +135,7 @@ def test_urdf_hand_is_the_dh_loop():
     assert mujoco.MjModel.from_xml_path(str(URDF)).njnt == 8
 
 
+@pytest.mark.slow
 def test_urdf_hand_tip_to_tip_weld_calibrates():
     """Pure-kinematic data on the URDF hand, tips welded with an unknown grasp: recovered to 1e-8."""
     robot = RobotModel.from_file(URDF)

@@ -1013,6 +1013,7 @@ def test_keyboard_interrupt_in_calibrate_and_simulate_exit_130(panda_files, tmp_
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.slow
 def test_real_ctrl_c_in_simulate_one_line_exit_130(tmp_path):
     """SIGINT to a running `closedloop simulate`: one line, exit 130, nothing written.
 

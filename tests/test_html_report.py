@@ -105,6 +105,7 @@ def calibrated(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 def test_page_is_self_contained_with_every_section(calibrated):
     html = (calibrated / "report.html").read_text()
     report = json.loads((calibrated / "report.json").read_text())

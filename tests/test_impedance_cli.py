@@ -21,6 +21,7 @@ def sim_dir(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_simulate_identify_round_trip(sim_dir, tmp_path, capsys):
     out = sim_dir
     res, figs = tmp_path / "res.json", tmp_path / "figs"
@@ -51,6 +52,7 @@ def test_errors_are_one_line_exit_2(tmp_path, capsys):
     assert "stiffness" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "extra, words",
     [

@@ -41,6 +41,7 @@ def test_truth_is_the_linearised_model():
     assert np.isclose(tr["K"].min(), 15.0 - 1.5 * 9.81 * 0.15 * np.sin(1.3), rtol=1e-4)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["constant", "dip", "ramp-b"])
 def test_defaults_accuracy(runs, name):
     ens, truth, est = runs[name]

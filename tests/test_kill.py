@@ -198,6 +198,7 @@ def test_classify_tells_sets_and_torn_files_apart():
     assert classify(a[:-5], refs) == "other" and classify(b"x,y\n0.1,0.2\n0.3,0.9\n", refs) == "other"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("which", ["calibrate", "simulate"])
 def test_sigkill_leaves_old_or_new_set(which, tmp_path):
     rng = np.random.default_rng(13)

@@ -39,6 +39,7 @@ def _calibrate(rig, a: str, b: str, factor: float = 1.0):
     return calibrate(robot, log, loops, CalibrationOptions())
 
 
+@pytest.mark.slow
 def test_length_sets_scale(rig):
     """panda_link2-panda_link4 (over joint 3, whose axis carries the 316 mm): the scale is set by it, the
     size within two standard errors of the truth, and a 1 % longer length scales the robot by the 1 % the
@@ -57,6 +58,7 @@ def test_length_sets_scale(rig):
     assert abs(moved - 0.01 * res.length_response) < 5e-4, moved
 
 
+@pytest.mark.slow
 def test_length_through_held_values_is_suspect(rig):
     """panda_link1-panda_link3 at zero readings runs along joint 1's axis: it moves with where link 1 sits on
     that axis, which no loop sees; the size then inherits that held value's error (seed 0: 0.50 %)."""
@@ -69,6 +71,7 @@ def test_length_through_held_values_is_suspect(rig):
     assert abs(scale_error(res, rig[0])) > 0.003  # it was right to distrust it
 
 
+@pytest.mark.slow
 def test_length_the_loops_absorb_is_suspect_and_left_out(rig):
     """panda_link4-panda_link5: the 384 mm lies along joint 5's axis, so a change of the length is a slide of
     link 5 the loops cannot see, not a change of size: the response is 0, the length is left out of the fit
@@ -111,6 +114,7 @@ def test_an_absurd_length_is_refused(rig):
     assert abs(res.residuals_after[-1].rms_m) < 1e-4  # the length is met (the robot 10 % larger)
 
 
+@pytest.mark.slow
 def test_length_row_jacobian(rig):
     """The length row's Jacobian against central differences of the problem's own residual."""
     rig_, robot, log, _ = rig
@@ -139,6 +143,7 @@ def test_parse_lengths_errors(rig):
     assert lp.length == 0.3267 and lp.sigma == 3e-5
 
 
+@pytest.mark.slow
 def test_cli_length(rig, tmp_path, capsys):
     from closedloop.cli.main import main
 

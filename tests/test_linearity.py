@@ -4,6 +4,7 @@ a curved valley, and on the weakly determined weld where the linearised standard
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.analysis.linearity import K, profile
@@ -49,6 +50,7 @@ def test_a_curved_valley_does_not_hold():
     assert not p.holds
 
 
+@pytest.mark.slow
 def test_the_weak_weld_is_suspect_where_its_error_bars_fail():
     """The zoo's Panda weld, 80 configurations of one self-motion at 5e-5 rad, a known length link2-link4: the
     fit's size is 9.8 of its reported standard errors off the truth; the profile along the size rises by -0.38

@@ -87,6 +87,7 @@ def test_loop_is_unchanged_by_prepare_initialize_evaluate(panda, kind):
     assert not changed, f"{kind}: {changed}"
 
 
+@pytest.mark.slow
 def test_results_carry_the_prepared_hinge(panda):
     """Two calibrations with one hinge loop object on data from two different doors: each result's
     values are read in its own loop's chart, and the caller's object is never touched."""

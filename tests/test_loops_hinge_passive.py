@@ -117,6 +117,7 @@ def hinge_truth(robot, joints):
     return prob, truth, th
 
 
+@pytest.mark.slow
 def test_hinge_jacobians_match_finite_differences(robot, joints, hinge_truth):
     _, truth, th = hinge_truth
     lp = HingeLoop("door", TOOL, axis=AXIS)
@@ -216,6 +217,7 @@ def door_truth(robot, joints):
     return prob, truth, th, mk, est
 
 
+@pytest.mark.slow
 def test_passive_jacobians_match_finite_differences(robot, joints, door_truth):
     _, truth, th, mk, _ = door_truth
     prob = _problem(robot, joints, mk(), th[::8])
@@ -242,6 +244,7 @@ def test_passive_door_recovery(robot, joints, door_truth):
     assert res.status[res.names.index("door.handle.ry")] == "dropped"
 
 
+@pytest.mark.slow
 def test_passive_solves_task_angles(robot, joints, door_truth):
     """The eliminated door angles reproduce the tool pose through the task model."""
     prob, truth, th, mk, _ = door_truth
@@ -278,6 +281,7 @@ def test_passive_unknown_frame_and_file():
         PassiveChainLoop("t", TOOL, TASKS / "nope.urdf", "grip")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task,dof", [("drawer.urdf", 1), ("crank.urdf", 2)])
 def test_other_task_models_jacobians(robot, joints, task, dof):
     rng = np.random.default_rng(5)

@@ -459,6 +459,7 @@ def test_specs():
         parse_loop("plane:frame=tool0,tip=1 2", robot)
 
 
+@pytest.mark.slow
 def test_two_planes_sessions_by_loop_column():
     """Two planes (floor, wall) touched by one known tip; rows assigned by the log's `loop` column."""
     robot = robot_of(UR5)

@@ -43,6 +43,7 @@ def _state(loop) -> dict:
     return out
 
 
+@pytest.mark.slow
 def test_calibrate_twice_same_loops_same_result(tmp_path):
     """Six point loops sharing a ball, task-space noise estimated per loop: two calls give the same numbers
     and leave the loops as they were (the estimated noise is in the result's problem, not on the loops)."""

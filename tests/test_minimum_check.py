@@ -40,6 +40,7 @@ def test_nothing_is_reducible_at_the_solution(noisy):
     assert _analysed_at(noisy, noisy.values)["reducible"] < 1e-6
 
 
+@pytest.mark.slow
 def test_a_point_off_the_minimum_shows_the_cost_a_step_removes(noisy):
     """Moved by d = 200 standard errors along one well-determined parameter: a Gauss-Newton step removes
     d^2 / (dof + d^2) of the cost (at least: the Mahalanobis distance of the move is at least d), and the

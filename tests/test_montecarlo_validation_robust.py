@@ -27,6 +27,7 @@ def test_unwrap_rotation_vector():
     assert np.allclose(unwrap_rotation_vector(r, r), r)
 
 
+@pytest.mark.slow
 def test_monte_carlo_against_cramer_rao(scenario):
     """M = 30 runs, 100 configurations, 1e-4 rad.
 
@@ -98,6 +99,7 @@ def test_weights_and_scale_on_synthetic_blocks():
         weights([r], "l1")
 
 
+@pytest.mark.slow
 def test_three_gross_outliers_are_flagged(scenario):
     sc = scenario
     problem = build_problem(sc.robot, sc.log(), sc.loops)

@@ -40,6 +40,7 @@ def test_indices_definitions():
     assert indices_from_singular_values(np.array([1.0, 0.0]), 3)["O1"] == 0.0
 
 
+@pytest.mark.slow
 def test_observability_of_a_result(weld):
     sc, res = weld
     o = observability(res)
@@ -78,6 +79,7 @@ def test_greedy_updates_match_determinants(weld):
     assert dm.logdet >= sel.logdet - 1e-9 and len(set(dm.indices)) == 15
 
 
+@pytest.mark.slow
 def test_selection_halves_the_configurations(weld):
     """K selected configurations reach the accuracy of N = 2K random ones (trace of the covariance).
 
@@ -134,6 +136,7 @@ def test_exchange_a_updates_and_local_optimum(weld):
         exchange_a(B, 3, start=[0, 0, 1])
 
 
+@pytest.mark.slow
 def test_selection_halves_the_configurations_weld_manifold(weld):
     """7-DOF weld, pool spread evenly over the whole self-motion (600 configurations, joint limit to joint
     limit, on the true closure manifold): K = N/2 configurations chosen by the A-optimal exchange reach
@@ -168,6 +171,7 @@ def test_select_poses_on_a_bare_problem(weld):
         select_poses(res, None, sc.pool, 10, method="nope")
 
 
+@pytest.mark.slow
 def test_selection_halves_the_configurations_point_contact():
     """Point contact (3-DOF self-motion): K = N/2 configurations chosen by the A-optimal greedy (N = 20..120)
     and by the A-optimal exchange (N = 20..160) beat the median of N random ones in covariance trace (measured,

@@ -55,6 +55,7 @@ def xarm(tmp_path_factory):
     return out / "sim"
 
 
+@pytest.mark.slow
 def test_a_wandering_refit_keeps_its_best_pass(xarm):
     robot = RobotModel.from_file(xarm / "nominal.urdf")
     log = read_log(xarm / "log.csv", robot.joint_names)

@@ -80,6 +80,7 @@ def test_calibrated_urdf_loads_in_mujoco_with_same_kinematics(calibrated):
         assert np.abs(d.xmat[b].reshape(3, 3) - T.rotation).max() < 1e-9
 
 
+@pytest.mark.slow
 def test_cli_calibrate_writes_urdf_report_and_check_passes(calibrated, tmp_path):
     robot, ds, _, nominal, _ = calibrated
     log = tmp_path / "log.csv"
@@ -189,6 +190,7 @@ def test_inspect_lists_joints_and_parameters(files):
     assert "panda_joint3.offset" in info["parameters"] and "panda_hand" in info["frames"]
 
 
+@pytest.mark.slow
 def test_dh_input_gives_calibrated_dh_yaml(tmp_path):
     """D-H input -> D-H YAML output in the input's units, carrying the calibrated values."""
     import yaml
@@ -387,6 +389,7 @@ def _calibrate_args(files, *extra):
     return ["calibrate", str(nominal), str(log), "--loop", "weld:frame=panda_hand,name=fixture", *extra]
 
 
+@pytest.mark.slow
 def test_quiet_prints_nothing_and_a_log_gets_no_progress_lines(files):
     """--quiet: no summary; without it, the summary on stdout and no progress line in a non-terminal stderr."""
     _, _, tmp = files

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from closedloop.calibration.pipeline import calibrate
 from closedloop.io.logs import read_log
 from closedloop.loops import PassiveChainLoop
@@ -15,6 +17,7 @@ from closedloop.sims import simulate
 from closedloop.validation.check import check_report
 
 
+@pytest.mark.slow
 def test_ur5_door_through_the_passive_chain_loop(tmp_path):
     simulate("ur5_door", 150, 1, tmp_path)
     robot = RobotModel.from_file(tmp_path / "nominal.urdf")

@@ -81,6 +81,7 @@ def test_a_sample_that_does_not_converge_is_not_used(long_log, whole, monkeypatc
     assert pre.verdict.status == "ok"
 
 
+@pytest.mark.slow
 def test_presolved_passive_door_is_the_truth(tmp_path, monkeypatch):
     """A case the presolve was not designed around: the UR5 door through its passive chain (a weakly
     determined valley, 100 iterations).  Presolved on 40 of its 150 configurations, the calibration must

@@ -92,6 +92,7 @@ def real(request, tmp_path_factory):
     return name, out
 
 
+@pytest.mark.slow
 def test_default_at_or_below_published_figure(real):
     name, out = real
     if name == "talos":
@@ -101,6 +102,7 @@ def test_default_at_or_below_published_figure(real):
     assert out["default"]["test"] < out["nominal"]["test"]  # and better than the makers' model
 
 
+@pytest.mark.slow
 def test_default_not_worse_than_either_estimator(real):
     _, out = real
     assert out["default"]["test"] <= 1.02 * min(out["none"]["test"], out["eiv"]["test"])

@@ -41,6 +41,7 @@ def rig_result(tmp_path_factory):
     return calibrate(robot, log, loops, CalibrationOptions()), names, len(log)
 
 
+@pytest.mark.slow
 def test_summary_counts_configurations_not_distance_rows(rig_result, capsys):
     res, names, n_rows = rig_result
     distances = [b.loop.name for b in res.problem.blocks if getattr(b.loop, "parameter_only", False)]
@@ -54,6 +55,7 @@ def test_summary_counts_configurations_not_distance_rows(rig_result, capsys):
     assert len(held) == len(names) and not any(d in ln for d in distances for ln in held)
 
 
+@pytest.mark.slow
 def test_shared_ball_is_not_a_robot_correction(rig_result):
     res, _, _ = rig_result
     tips = [res.names.index(f"ball.tip_{a}") for a in "xyz"]

@@ -123,6 +123,7 @@ def calibrated(rig3):
     return calibrate(robot, log, loops, CalibrationOptions()), loops
 
 
+@pytest.mark.slow
 def test_shared_ball_once_distance_sets_scale(rig3, calibrated):
     tmp, rig, robot, log = rig3
     res, loops = calibrated
@@ -163,6 +164,7 @@ def test_without_distance_scale_not_set(rig3):
     assert any(n.startswith("the scale is not set by the data") for n in res.notes)
 
 
+@pytest.mark.slow
 def test_contact_default_no_worse_than_unweighted_heldout(rig3):
     """Leave each place out: the default (task noise estimated beside the joint noise, one component for the
     sockets when their estimates agree) predicts the held-out places as well as the unweighted fit (to 0.5 %;
@@ -198,6 +200,7 @@ def test_contact_default_no_worse_than_unweighted_heldout(rig3):
     assert err["default"][1] <= 1.02 * err["unweighted"][1], err  # seed 0: 1.37 mm both
 
 
+@pytest.mark.slow
 def test_lofo_names_extrapolating_place_suspect(tmp_path):
     """Small model errors, little motion per socket, a cyclic encoder error no model has: trained on one
     place, the other place is predicted worse than by the nominal model; the verdict names it."""
@@ -265,6 +268,7 @@ def test_evaluate_reproduces_closure_and_compares_models(rig3, calibrated, tmp_p
     assert abs(direct.rms_m / cal - 1.0) < 1e-6
 
 
+@pytest.mark.slow
 def test_cli_rig_files(rig3, tmp_path):
     """Header-less files, one per socket and place, each named on its loop; distances; the tool frame."""
     from closedloop.cli.main import main
@@ -306,6 +310,7 @@ def test_cli_rig_files(rig3, tmp_path):
 BLOCK = [[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.01, 0.04, 0.0]]  # three sockets in the block's frame (m)
 
 
+@pytest.mark.slow
 def test_block_of_three_sockets_sets_scale(tmp_path):
     """A block with three sockets at known positions, moved as one rigid body to three
     places (--block NAME A.point=X,Y,Z ...): the robot's size within its standard error of the truth

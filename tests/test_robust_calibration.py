@@ -27,6 +27,7 @@ def held_out_error(res, held_out) -> float:
     return residual_stats(res.problem, ev)[0].rms_m
 
 
+@pytest.mark.slow
 def test_three_outliers(panda, data):
     ds, train, held_out = data
     clean = calibrate(panda, JointLog(ds.joints, train), [WeldLoop("fixture", "panda_hand")])
@@ -94,6 +95,7 @@ def test_screen_scale_is_the_same_for_either_whitening_root():
     )
 
 
+@pytest.mark.slow
 def test_long_log_refit_on_a_sample(panda, data, monkeypatch):
     """A log longer than ROBUST_ROWS: the robust refit runs on an evenly spaced sample, every row is screened
     at its solution; the corrupted rows are rejected and the fit predicts as the clean fit on the rows kept

@@ -86,6 +86,7 @@ def corrupted_log(tmp_path_factory, panda):
     return path  # row 10: line 13 (comment, header, then rows 0..)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "robust, said",
     [

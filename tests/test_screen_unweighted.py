@@ -6,11 +6,14 @@ every one of them went through the robust refit."""
 
 from __future__ import annotations
 
+import pytest
+
 import closedloop.estimate.outliers as outliers
 import closedloop.studies.montecarlo as mc_module
 from closedloop.studies.montecarlo import monte_carlo, weld_scenario
 
 
+@pytest.mark.slow
 def test_unweighted_fit_of_clean_data_rejects_nothing(monkeypatch):
     results, refits = [], []
     calibrate, refit = mc_module.calibrate, outliers.robust_refit

@@ -204,6 +204,7 @@ def _two_tracker_mc(draws: int, monkeypatch=None) -> float:
     return float(np.mean(est[:, ok].std(axis=0, ddof=1) / np.sqrt(np.mean(std[:, ok] ** 2, axis=0))))
 
 
+@pytest.mark.slow
 def test_shared_readings_whitened_together(monkeypatch):
     """Residuals of several loops at one configuration share its joint noise; whitened
     together the standard errors match the Monte Carlo spread (40 draws: 1.01), whitened apart they
@@ -288,6 +289,7 @@ def _two_camera_mc(draws: int, sigma_q: float = 1e-4, sigma_px: float = 0.01) ->
     return float(ratio.mean()), float(z2)
 
 
+@pytest.mark.slow
 def test_two_cameras_shared_marker_monte_carlo(monkeypatch):
     """The shared marker's standard errors match the Monte Carlo spread with arm noise
     dominant: 40 draws (~3 s), the marker's spread over its standard error 1.04 and the mean z^2 of all

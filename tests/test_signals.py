@@ -72,6 +72,7 @@ def inputs(tmp_path_factory):
     return d
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("delay", [0.0, 0.05, 0.2, 0.6, 1.5, 3.0])
 def test_ctrl_c_during_calibrate_imports_included(inputs, tmp_path, delay):
     old = '{"old": true}\n'
@@ -136,6 +137,7 @@ def fleet(inputs, tmp_path_factory):
     return d / "m.yaml"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how", ["SIGKILL", "SIGINT-group", "SIGTERM"])
 def test_killed_batch_leaves_no_process_and_no_half_job(fleet, tmp_path, how):
     m = tmp_path / "m.yaml"

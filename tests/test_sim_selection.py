@@ -60,6 +60,7 @@ def _calibrate(scenario, out):
 # The Panda weld's gain was 1.6x while its length scale was held by a barely seen shoulder offset, whose
 # variance selection shrank; with the scale held by the 0.316 m upper arm (closedloop.analysis.gauge) the default
 # samples already determine the model about as well: selection must not be worse there.
+@pytest.mark.slow
 @pytest.mark.parametrize("scenario, factor", [("ur5_socket", 2.0), ("panda_weld", 1.0)])
 def test_selected_samples_shrink_the_covariance(scenario, factor, tmp_path):
     default = simulate(scenario, N, 1, tmp_path / "default")

@@ -401,6 +401,7 @@ def test_relax_passes_unload_the_loop(tmp_path):
     assert three["rms_m"] < 2e-8 and three["rms_rad"] < 5e-7
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(SCENARIOS))
 def test_truth_support_is_what_a_calibration_estimates(name, tmp_path):
     """The simulator reads the identifiable set off the structure (`closedloop.sims.identifiable`, no fit);

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 
 from closedloop.calibration.pipeline import CalibrationOptions, calibrate
@@ -23,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_hand import TABLE, _loop_problem, nominal_closed_pose  # noqa: E402
 
 
+@pytest.mark.slow
 def test_singularity_1_parallel_axes_in_plain_dh_rows(tmp_path):
     """The finger's parallel flexion axes (rows j5, j6) written as plain D-H rows (alpha = 0).
 
@@ -122,6 +124,7 @@ def test_singularity_5_elbow_of_an_arm_with_its_hand_fixed(tmp_path):
     assert res0.status[res0.names.index("elbow.scale")] in ("dropped", "fixed")
 
 
+@pytest.mark.slow
 def test_singularity_2_insufficient_excitation(panda):
     """A tiny motion range (0.02 rad of self-motion) with 1e-5 rad reading noise: the data cannot
     separate some parameters; they are named in `weak` and marked unidentifiable, not solved into noise."""

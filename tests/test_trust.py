@@ -101,6 +101,7 @@ def test_twenty_percent_random_rows_leave_the_estimate_or_fail(panda, panda_weld
     assert right or res.verdict.status == "failed", res.verdict.describe()
 
 
+@pytest.mark.slow
 def test_a_log_of_another_robot_fails(panda, panda_weld):
     """The columns of the log belong to other joints (another robot's log): the verdict is failed."""
     wrong = JointLog(panda_weld.joints, panda_weld.readings[:, ::-1].copy())
@@ -108,6 +109,7 @@ def test_a_log_of_another_robot_fails(panda, panda_weld):
     assert res.verdict.status == "failed", res.verdict.describe()
 
 
+@pytest.mark.slow
 def test_an_absurd_fixed_value_is_refused(panda, panda_weld):
     """--fix panda_joint3.x=1e6 (a 1000 km link) is a user's mistake, named in one line."""
     from closedloop.errors import ParameterError

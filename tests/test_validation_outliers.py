@@ -26,6 +26,7 @@ def dirty():
     return sc, lg, res
 
 
+@pytest.mark.slow
 def test_rejected_rows_are_left_out_of_both_figures(dirty):
     sc, lg, res = dirty
     assert sorted(rj.row - 1 for rj in res.rejected) == BAD
@@ -48,6 +49,7 @@ def test_rejected_rows_are_left_out_of_both_figures(dirty):
     assert 0.8 < cv["test_whitened_rms"] < 1.3
 
 
+@pytest.mark.slow
 def test_judged_outliers_would_hide_the_ratio(dirty):
     """Without `exclude` the corrupted rows set the held-out figure at centimetres (the old behaviour)."""
     sc, lg, res = dirty

@@ -184,6 +184,7 @@ def _assert_predicts_the_fit(tmp, robot, log_, res, name="cal.urdf"):
     return written
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", sorted(CASES))
 def test_written_files_predict_the_fit(kind, tmp_path):
     robot, log_, make = CASES[kind]()
@@ -225,6 +226,7 @@ def _camera():
 CASES["camera"] = _camera
 
 
+@pytest.mark.slow
 def test_written_frames_close_the_loops(tmp_path):
     """The fixture, the tool point and the socket written into the URDF close the loops as the fit does:
     a weld to the written fixture frame with the identity, a point loop between the written tip and the
