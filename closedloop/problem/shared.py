@@ -97,8 +97,6 @@ def initial_shared(problem: CalibrationProblem, x0: np.ndarray, inits: list[np.n
 
     `inits`: each loop's own initial vector (its `initialize_frames`, or None: nominal).
     """
-    from closedloop.loops.common import refine_own
-
     x = x0.copy()
     total = np.zeros(len(x))
     count = np.zeros(len(x))
@@ -106,11 +104,20 @@ def initial_shared(problem: CalibrationProblem, x0: np.ndarray, inits: list[np.n
         if init is not None and cols.size:
             total[cols] += init
             count[cols] += 1
-    shared = is_shared(problem)
     hit = count > 0
     x[hit] = total[hit] / count[hit]
+    return refine_unheld(problem, x, is_shared(problem))
+
+
+def refine_unheld(problem: CalibrationProblem, x: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """`x` with each loop's unknowns that are not `held` (a mask over the problem's parameters) refitted on the
+    loop's own residual with the held ones fixed (`loops.common.refine_own`): a start on a shared or given
+    value, not on the loop's own guess of it.  Loops with no held parameter, or only held ones, keep theirs."""
+    from closedloop.loops.common import refine_own
+
+    x = np.array(x, dtype=float)
     for bi, (b, cols) in enumerate(zip(problem.blocks, problem.loop_columns)):
-        mine = shared[cols]
+        mine = held[cols]
         if not mine.any() or mine.all() or b.theta.shape[0] == 0:
             continue
         Ts = problem.loop_frame_poses(x, bi)

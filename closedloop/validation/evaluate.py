@@ -114,7 +114,7 @@ def evaluate_model(
     from closedloop.calibration.pipeline import build_problem
     from closedloop.estimate.lm import SolverOptions
     from closedloop.estimate.stages import plain_stage
-    from closedloop.problem.shared import initial_shared
+    from closedloop.problem.shared import initial_shared, refine_unheld
 
     loops = [lp for lp in loops if not getattr(lp, "parameter_only", False)]
     problem = build_problem(robot, log_, loops)
@@ -128,7 +128,7 @@ def evaluate_model(
     for n, v in held.items():
         x[problem.index[n]] = v
     if held:
-        x = _refine_own(problem, x, set(held))
+        x = refine_unheld(problem, x, np.array([n in held for n in problem.names], dtype=bool))
     est = sorted({int(k) for c in problem.loop_columns for k in c if problem.names[k] not in held})
     if est:
         scale = np.array([p.prior for p in problem.params])
@@ -171,29 +171,6 @@ def evaluate_model(
         held,
         [ev.r for ev in evals],
     )
-
-
-def _refine_own(problem, x: np.ndarray, held: set[str]) -> np.ndarray:
-    """Each loop's unknowns that are not held refitted with the held ones fixed (`loops.common.refine_own`):
-    a start on the held tool point, not on the loop's own guess of it."""
-    from closedloop.loops.common import refine_own
-
-    x = x.copy()
-    for bi, (b, cols) in enumerate(zip(problem.blocks, problem.loop_columns)):
-        mine = np.array([problem.names[k] in held for k in cols], dtype=bool)
-        if not mine.any() or mine.all() or b.theta.shape[0] == 0:
-            continue
-        Ts = problem.loop_frame_poses(x, bi)
-        lp = b.loop
-        p = refine_own(
-            lambda q: lp.evaluate_frames(Ts, q, b.meas),
-            lambda q: lp.residual_frames(Ts, q, b.meas),
-            lp.normalize,
-            x[cols].copy(),
-            np.flatnonzero(~mine),
-        )
-        x[cols[~mine]] = p[~mine]
-    return x
 
 
 def evaluate_result(
