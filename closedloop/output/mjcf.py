@@ -59,7 +59,7 @@ def calibrated_mjcf(
     (``pos`` and ``quat``, 17 significant digits; ``MjSpec.to_xml`` keeps 6, a rounding of up to
     0.5 um on a 1 m arm, too coarse for a calibration), so the rest of the file stays as written.
     With ``out_dir`` other than the input's directory, relative asset paths are rewritten relative to
-    ``out_dir`` (`_relative_assets`).  `frames` (`closedloop.output.urdf.model_frames`: tool points,
+    ``out_dir`` (`_rebase_assets`).  `frames` (`closedloop.output.urdf.model_frames`: tool points,
     fixtures, sensors) are added as joint-less ``<body>`` elements: a frame on a body (or a site) as a
     child of that body, which both MuJoCo and Pinocchio read as a frame (Pinocchio places a site of a
     nested fixed body wrongly, a body rightly), a frame on the world as a body of the worldbody
@@ -130,7 +130,7 @@ def calibrated_mjcf(
     _add_sites(root, model, frames, src)
     _check_compiles(root, src)  # (asset paths still the input's)
     if out_dir is not None and Path(out_dir).resolve() != src.resolve().parent:
-        _relative_assets(root, src, Path(out_dir))
+        _rebase_assets(root, src, Path(out_dir))
     return ET.tostring(root, encoding="unicode")
 
 
@@ -178,8 +178,9 @@ def _add_sites(root, model, frames, src: Path) -> None:
             sites.add(name)
 
 
-def _relative_assets(root, src: Path, out_dir: Path) -> None:
-    """Relative asset directories and included files rewritten relative to `out_dir` (where the file goes).
+def _rebase_assets(root, src: Path, out_dir: Path | None) -> None:
+    """Relative asset directories and included files rewritten for a file written in `out_dir` (None: made
+    absolute, for a copy compiled from memory).
 
     MuJoCo finds meshes and textures in ``meshdir``/``texturedir`` (else ``assetdir``, else the model's
     folder) relative to the model file, and included files relative to it too: each becomes the path
@@ -189,7 +190,11 @@ def _relative_assets(root, src: Path, out_dir: Path) -> None:
     import xml.etree.ElementTree as ET
 
     src_dir = src.resolve().parent
-    out_dir = Path(out_dir).resolve()
+
+    def rebased(rel: str) -> str:
+        target = src_dir / rel
+        return str(target.resolve()) if out_dir is None else Path(os.path.relpath(target, out_dir.resolve())).as_posix()
+
     comp = root.find("compiler")
     if comp is None:
         comp = ET.Element("compiler")
@@ -197,25 +202,11 @@ def _relative_assets(root, src: Path, out_dir: Path) -> None:
     for attr in ("meshdir", "texturedir"):
         d = comp.get(attr, comp.get("assetdir", ""))
         if not Path(d).is_absolute():
-            comp.set(attr, Path(os.path.relpath(src_dir / d, out_dir)).as_posix())
+            comp.set(attr, rebased(d))
     for inc in root.iter("include"):
         f = inc.get("file")
         if f and not Path(f).is_absolute():
-            inc.set("file", Path(os.path.relpath(src_dir / f, out_dir)).as_posix())
-
-
-def _absolute_assets(root, src: Path) -> None:
-    """Relative mesh/texture directories made absolute (the file is written elsewhere than its input)."""
-    import xml.etree.ElementTree as ET
-
-    comp = root.find("compiler")
-    if comp is None:
-        comp = ET.Element("compiler")
-        root.insert(0, comp)
-    for attr in ("meshdir", "texturedir"):
-        d = comp.get(attr, comp.get("assetdir", ""))
-        if not Path(d).is_absolute():
-            comp.set(attr, str((src.resolve().parent / d).resolve()))
+            inc.set("file", rebased(f))
 
 
 def _check_compiles(root, src: Path) -> None:
@@ -228,7 +219,7 @@ def _check_compiles(root, src: Path) -> None:
     if root.find(".//include") is not None:
         return  # included files resolve relative to the written file only
     probe = copy.deepcopy(root)
-    _absolute_assets(probe, src)
+    _rebase_assets(probe, src, None)
     try:
         mujoco.MjModel.from_xml_string(ET.tostring(probe, encoding="unicode"))
     except Exception as exc:
