@@ -118,6 +118,7 @@ class ImpedanceEstimate:
     notes: list[str] = field(default_factory=list)
     weights: np.ndarray | None = None  # (3, L): centred, left-sided, right-sided estimates' weights
     steps: np.ndarray | None = None  # instants (s) of the abrupt changes found
+    blend_spread: np.ndarray | None = None  # (3, L): w_c |centred - one-sided| where the two are blended
 
     @property
     def wn(self) -> np.ndarray:
@@ -406,6 +407,9 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
             ok = np.isfinite(th)
             blended = np.sum(np.where(ok, th, 0) * w[:, None], 0) / np.sum(ok * w[:, None], 0)
             est.I, est.B, est.K = blended
+            alt = np.where(w[1] >= w[2], th[1], th[2])  # the one-sided estimate blended in at each instant
+            taper = (w[0] > 0) & (w[0] < 1)
+            est.blend_spread = np.where(taper, w[0] * np.nan_to_num(np.abs(th[0] - alt)), 0.0)
             uniq = np.unique(np.mod(steps, L))  # a step at the cycle's end is also one before its start
             uniq = uniq[np.r_[True, np.diff(uniq) > 2]]
             if uniq.size > 1 and uniq[0] + L - uniq[-1] <= 2:
