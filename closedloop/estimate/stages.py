@@ -175,6 +175,13 @@ class ResidualFunction:
             self._trial = (xe.copy(), evals)
         return r, J
 
+    def linearized(self, xe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """r and its Jacobian J at `xe` (the call with `jac`; a ValueError if the problem gives no J)."""
+        r, J = self(xe, True)
+        if J is None:
+            raise ValueError("the residual function has no Jacobian: the problem has no loop block")
+        return r, J
+
     def normalized(self, x: np.ndarray) -> np.ndarray:
         """`x`, a full vector at this function's last Jacobian, with the loops in canonical form
         (`CalibrationProblem.normalized`: the same model), and that Jacobian carried there by the chain rule,
