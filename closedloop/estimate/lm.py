@@ -258,7 +258,7 @@ def _with_jacobian(fun: ResidualFn, x: np.ndarray) -> tuple[np.ndarray, np.ndarr
     """`fun`'s residual and Jacobian at `x` (a Jacobian is asked for, so one is given)."""
     r, J = fun(x, True)
     if J is None:
-        raise TypeError("the residual function returned no Jacobian where one was asked for")
+        raise ValueError("the residual function returned no Jacobian where one was asked for")
     return r, J
 
 
