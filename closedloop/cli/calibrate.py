@@ -146,9 +146,10 @@ def cmd_calibrate(args) -> int:
     # the held-out refits' time (k-fold and fixtures): with the fit's, the work of the command
     report["solver"]["validation_seconds"] = time.perf_counter() - t1
     report["solver"]["validation_cpu_seconds"] = time.process_time() - c1
-    res = replace(res, verdict=judge(res, cv, fixtures=lofo))  # the fit's evidence, the held-out folds' and fixtures'
-    report["verdict"] = verdict_record(res.verdict)
-    failed = res.verdict.status == "failed"
+    verdict = judge(res, cv, fixtures=lofo)  # the fit's evidence, the held-out folds' and fixtures'
+    res = replace(res, verdict=verdict)
+    report["verdict"] = verdict_record(verdict)
+    failed = verdict.status == "failed"
     write_out = args.out and (not failed or args.force)
     from closedloop.output.report import sensors_path, write_sensors
 
@@ -170,11 +171,11 @@ def cmd_calibrate(args) -> int:
     from closedloop.cli.tools import write_figures
 
     write_figures(res, report, args, row_name=lg.where)  # --html / --plots
-    if res.verdict.status == "suspect":
-        print(f"warning: {args.log}: calibration is suspect: {'; '.join(own_reasons(res.verdict))}", file=sys.stderr)
+    if verdict.status == "suspect":
+        print(f"warning: {args.log}: calibration is suspect: {'; '.join(own_reasons(verdict))}", file=sys.stderr)
     if failed:
         print(
-            f"error: {args.log}: calibration failed: {'; '.join(own_reasons(res.verdict))}"
+            f"error: {args.log}: calibration failed: {'; '.join(own_reasons(verdict))}"
             + ("" if write_out or not args.out else f"; no model written to {args.out} (--force writes it)"),
             file=sys.stderr,
         )
