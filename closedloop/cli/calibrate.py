@@ -10,7 +10,7 @@ import time
 from dataclasses import replace
 
 from closedloop.cli.parse import check_loop_numbers
-from closedloop.errors import EXIT_FAILED, InputError
+from closedloop.errors import EXIT_FAILED, InputError, require
 from closedloop.io.schemas import check_number, parse_bounds, parse_noise
 
 
@@ -56,12 +56,7 @@ def check_calibrate_options(args) -> tuple:
     if getattr(args, "plots", None):
         check_outputs({"--plots": args.plots}, [args.model, args.log], directory=True)
     if getattr(args, "html", None) or getattr(args, "plots", None):
-        import importlib.util
-
-        from closedloop.output.html import MATPLOTLIB_HINT
-
-        if importlib.util.find_spec("matplotlib") is None:  # refused now, not after the fit
-            raise InputError(f"--{'html' if args.html else 'plots'}: {MATPLOTLIB_HINT}")
+        require("matplotlib", f"--{'html' if args.html else 'plots'}", "report")  # refused now, not after the fit
     args.snr = check_number("--snr", args.snr, 0.0, 1e6, lo_open=True)
     args.max_iter = check_number("--max-iter", args.max_iter, 1, 10**6, integer=True)
     cv_given = args.cv is not None  # (default None: 5 folds, fewer on a short log)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.errors import InputError
+from closedloop.errors import InputError, require
 
 
 def add_parser(subparsers) -> None:
@@ -83,14 +83,6 @@ def add_parser(subparsers) -> None:
     i.set_defaults(func=cmd_identify)
 
 
-def _need(module: str, what: str) -> None:
-    """An optional package present before any work (one line otherwise)."""
-    from importlib.util import find_spec
-
-    if find_spec(module) is None:
-        raise InputError(f"{what} needs {module}: pip install {module}")
-
-
 def cmd_simulate(args: argparse.Namespace) -> int:
     from closedloop.impedance.data import record_bytes
     from closedloop.impedance.model import ExperimentConfig, ForearmParams
@@ -104,7 +96,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     args.cycles = check_number("--cycles", args.cycles, 1, 10**5, integer=True)
     args.seed = check_number("--seed", args.seed, 0, 10**9, integer=True)
     if args.format == "h5":
-        _need("h5py", "--format h5")
+        require("h5py", "--format h5", "impedance")
     check_outputs({"--out": args.out}, directory=True)
     out = Path(args.out)
     arm = ForearmParams(gravity=not args.no_gravity)
@@ -275,12 +267,12 @@ def _check_identify_options(args: argparse.Namespace) -> None:
     if args.out and Path(args.out).suffix.lower() not in (".csv", ".json"):
         raise InputError(f"--out {args.out}: give a .csv, .json file")
     if args.plots:
-        _need("matplotlib", "--plots")
+        require("matplotlib", "--plots", "impedance")
     from closedloop.impedance.data import is_hdf5
 
     for f in [args.data, *args.posture]:
         if Path(f).is_file() and is_hdf5(f):
-            _need("h5py", f"{f} (an HDF5 record)")
+            require("h5py", f"{f} (an HDF5 record)", "impedance")
     onsets = args.segment[7:] if args.segment.startswith("onsets:") else None
     inputs = [args.data, args.truth, onsets, *args.posture]
     check_outputs({"--out": args.out}, inputs)

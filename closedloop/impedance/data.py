@@ -147,7 +147,10 @@ def read_record(path: str | Path, columns: dict[str, str] | None = None, torque_
         try:
             import h5py
         except ImportError:
-            raise ImpedanceDataError(f"{path}: an HDF5 file needs h5py (pip install h5py)") from None
+            raise ImpedanceDataError(
+                f'{path}: an HDF5 record needs h5py: pip install ".[impedance]" in the closedloop checkout '
+                "(or pip install h5py)"
+            ) from None
         try:
             with h5py.File(path, "r") as f:
                 raw = {k.lower(): f[k] for k in f.keys() if isinstance(f[k], h5py.Dataset)}

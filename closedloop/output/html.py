@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.errors import InputError
+from closedloop.errors import MissingExtraError
 from closedloop.io.files import atomic_write_text
 from closedloop.records import ParamStatus
 
@@ -35,10 +35,6 @@ th{background:#f3f3f3}td.l,th.l{text-align:left}.verdict{padding:.6em 1em;border
 .small{color:#666;font-size:.85em}"""
 
 
-#: what --html / --plots need, and how to get it
-MATPLOTLIB_HINT = 'needs matplotlib: pip install ".[report]" in the closedloop checkout (or pip install matplotlib)'
-
-
 def _plt():
     try:
         import matplotlib
@@ -46,7 +42,7 @@ def _plt():
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise InputError(f"--html/--plots {MATPLOTLIB_HINT}") from None
+        raise MissingExtraError("--html/--plots", "matplotlib", "report") from None
     return plt
 
 
