@@ -422,6 +422,29 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
     return est
 
 
+def refit(ens: Ensemble, opt: EstimateOptions, weights: np.ndarray | None = None) -> np.ndarray:
+    """I, B, K (3, L) of the estimator `opt` on another ensemble, with the blend of centred and one-sided
+    fits given (`weights` of an earlier `ImpedanceEstimate`, or None: the centred fit only) instead of
+    searched for, and no switch of method: the same estimator applied to simulated data."""
+    opt = resolved(opt, ens)
+    half = int(round(opt.pool_ms * 1e-3 * ens.fs))
+    with single_thread():
+        d = design(ens, opt)
+        Mxx, Mzx = moments(d)
+        I, B, K, _ = finish(d, Mxx, Mzx, opt, ens.fs)
+        th = [np.stack([I, B, K])]
+        if weights is None or not (opt.method == "default" and opt.prefilter_hz):
+            return th[0]
+        for side in (-1, 1):
+            ds = design(ens, opt, side=side)
+            ps, _, _ = tls(pool(moments(ds)[0], half), want_cond=False)
+            th.append(np.stack(to_ibk(ps, ds.scale, ds.T)))
+    t = np.stack(th)
+    ok = np.isfinite(t)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.sum(np.where(ok, t, 0) * weights[:, None], 0) / np.sum(ok * weights[:, None], 0)
+
+
 def tls(M: np.ndarray, want_cond: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
     """TLS per instant (eq. 9.13): the null vector p (p[0] = 1), the regressor condition number and the
     smallest eigenvalue of the pooled moment matrix (the residual sum of squares of the fit)."""
