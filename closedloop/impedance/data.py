@@ -457,6 +457,47 @@ def segment(
     return Ensemble(fs, P, L, ang[keep], torq, cmd, onset_arr, rep, excluded)
 
 
+def recut(rec: Record, ens: Ensemble, shifts: np.ndarray, method: str = "model") -> Ensemble:
+    """The cycles of `ens` cut again from `rec` with their onsets moved by `shifts` (samples, one per cycle;
+    positive: later), same length and padding, and the ensemble mean recomputed (eq. 7.9).  A cycle whose
+    moved window would leave its block or touch an invalid row keeps its onset.  The alignment report
+    records the total shift of each cycle from its original onset."""
+    shifts = np.asarray(shifts, int)
+    blocks = dict(_blocks(rec))
+    P, L = ens.pad, ens.length
+    width = L + 2 * P
+    ang, torq, cmd, onsets, total = [], [], [], [], []
+    prev = ens.alignment.shifts if ens.alignment is not None else np.zeros(ens.n, int)
+    for k, ((b, s), d) in enumerate(zip(ens.onsets, shifts)):
+        idx = blocks[int(b)]
+        lo = s + d - P
+        ok = lo >= 0 and lo + width <= idx.size
+        if ok and rec.valid is not None:
+            ok = bool(rec.valid[idx[lo : lo + width]].all())
+        if not ok:
+            lo, d = s - P, 0
+        sl = idx[lo : lo + width]
+        ang.append(rec.angle[sl])
+        torq.append(rec.torque[sl])
+        if rec.command is not None:
+            cmd.append(rec.command[sl])
+        onsets.append((b, s + d))
+        total.append(prev[k] + d)
+    max_shift = ens.alignment.max_shift if ens.alignment is not None else 0
+    rep = AlignmentReport(method, np.asarray(total, int), ens.fs, max_shift)
+    return Ensemble(
+        ens.fs,
+        P,
+        L,
+        np.stack(ang),
+        np.stack(torq),
+        np.stack(cmd) if cmd else None,
+        np.asarray(onsets, int),
+        rep,
+        dict(ens.excluded),
+    )
+
+
 def _align(
     ang: np.ndarray, fs: float, off: int, L: int, S: int, method: str, iters: int, rep: AlignmentReport
 ) -> np.ndarray:
