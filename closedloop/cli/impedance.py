@@ -314,14 +314,15 @@ def cmd_identify(args: argparse.Namespace) -> int:
         smooth_ms=args.smooth_ms,
     )
     align = "none" if args.align in ("auto", "none") else args.align
-    ens = segment(rec, _onsets(rec, args, notes), period=args.period, align=align, max_shift_s=args.max_shift_ms / 1e3)
+    onsets = _onsets(rec, args, notes)
+    ens = segment(rec, onsets, period=args.period, align=align, max_shift_s=args.max_shift_ms / 1e3)
     est = estimate(ens, options=opt, warn=False)
     if np.nanmedian(est.I) < 0 and np.nanmedian(est.K) < 0:
         raise InputError(
             f"{args.data}: the estimated inertia and stiffness are negative (median I {np.nanmedian(est.I):.3g}): "
             "is the torque sign reversed? (positive torque must turn toward increasing angle; --torque-sign -1)"
         )
-    timing = check_timing(rec, ens, est, opt, args.align != "none", args.max_shift_ms / 1e3)
+    timing = check_timing(rec, ens, est, opt, args.align != "none", args.max_shift_ms / 1e3, onsets, args.period)
     ens, est = timing.ensemble, timing.estimate
     notes += timing.notes + est.notes
     opt = est.options
