@@ -89,6 +89,7 @@ def main() -> None:
                 {
                     "seed": seed,
                     "aligned_z": out_a.summary.get("z"),
+                    "aligned_timing_error_std_ms": out_a.summary.get("timing_error_std_ms"),
                     "aligned_alarm": bool(out_a.summary.get("misaligned")),
                     "aligned_realigned": bool(out_a.summary.get("realigned")),
                     "jittered_z": out_j.summary.get("z"),

@@ -102,7 +102,7 @@ def test_timing_errors_are_the_shifts(forearm):
     true = (d - d.mean()) / rec.fs
     slope = np.polyfit(true, chk.errors, 1)[0]
     assert 0.85 < slope < 1.05 and np.std(chk.errors - slope * true) < 1e-3, slope
-    assert chk.jittered and chk.noise < 1.5e-3
+    assert chk.misaligned and chk.noise < 1.5e-3
 
 
 def test_recut_moves_onsets_and_keeps_the_impossible(forearm):

@@ -18,21 +18,28 @@ is the least-squares estimate of the cycle's timing error (relative to the ensem
 the perturbation responses already explained by the model.
 
 **Statistic and threshold (`check_onsets`).**  The cycle is split in two halves of equal sum w(c)^2 (a
-50 ms guard between them) and d_i is estimated from each half: dA_i and dB_i.  Their noises are
-independent (the residual decorrelates within tens of ms), a timing error is common to both, so the
-across-cycle correlation r(dA, dB) is zero on aligned records whatever the noise, voluntary torque or
-model error in each half, and its Fisher statistic z = atanh(r) sqrt(n - 3) is standard normal.
-cov(dA, dB) estimates the variance of the timing errors.  The onsets are reported as jittered when
+50 ms guard between them) and d_i is estimated from each half, with a constant and a linear trend fitted
+alongside (slow unmeasured torque drifting across a cycle is not a timing error): dA_i and dB_i.  Their
+noises are independent (the residual decorrelates within tens of ms), a timing error is common to both,
+so the across-cycle correlation r(dA, dB) is zero on aligned records whatever the noise, voluntary torque
+or model error in each half, and its Fisher statistic z = atanh(r) sqrt(n - 3) is standard normal.
+cov(dA, dB) estimates the variance of the timing errors.  The onsets are reported as misaligned when
 z >= 4 (one-sided false-alarm probability 3e-5 per record) **and** the timing errors' std
 sqrt(cov(dA, dB)) is at least 1 ms (below that the bias is far under the random error: +-10 ms uniform
 jitter, 5.8 ms std, costs 2-3 % on I, B, K; the bias grows as the variance).
 
-**Re-alignment (`realign`).**  Each cycle's onset is moved by its estimated timing error, shrunk by
-var(d) / var(d_hat) = cov(dA, dB) / var(d) (the best linear predictor, so noisy estimates move little),
-rounded to samples and limited to the maximum shift; the check is repeated on the re-cut ensemble
-(the model refitted) until no cycle moves (at most `iterations` times).  It is kept when the fit's mean
-squared equation residual fell by at least 2 % (misalignment adds var(d) w^2 to it; re-aligning aligned
-records lowers it by a fraction ~1/L from the n fitted shifts).
+**Re-alignment (`realign`).**  Each cycle's onset is moved by its estimated timing error d_i shrunk by
+1 - s^2 / var(d_hat), s^2 = var(dA_raw - dB_raw) / 4 the noise variance of d_hat (from the two halves'
+plain estimates, which a timing error does not enter), so noisy estimates move little; rounded to
+samples and limited to the maximum shift; the check is repeated on the re-cut ensemble (the model
+refitted) until no cycle moves (at most `iterations` times).  It is worth keeping when the fit's mean
+squared equation residual fell by at least 2 % (misalignment adds var(d) w(c)^2 to it; re-aligning
+aligned records lowers it by a fraction ~1/L from the n fitted shifts).
+
+**Far-off onsets (`check_timing`).**  Beyond a few tens of ms the model fitted to the misaligned cycles is
+too wrong to re-align them.  The cycles are then also cut with the thesis's RMS alignment (reach 200 ms,
+pulled by a few ms by the responses) and re-aligned by the model from there; the candidate with the
+smaller equation residual is kept.
 """
 
 from __future__ import annotations
@@ -74,7 +81,7 @@ class OnsetCheck:
     noise: float
     residual: float
     noise_ratio: float
-    jittered: bool
+    misaligned: bool
 
     def describe(self) -> str:
         return (
@@ -141,7 +148,7 @@ def check_onsets(
         noise=noise,
         residual=float(np.mean(e**2)),
         noise_ratio=float(noise_ratio),
-        jittered=bool(z >= Z_ALARM and spread >= MIN_SPREAD_S),
+        misaligned=bool(z >= Z_ALARM and spread >= MIN_SPREAD_S),
     )
 
 
@@ -246,10 +253,10 @@ def check_timing(
         "z": round(chk.z, 2),
         "split_half_r": round(chk.r, 3),
         "timing_error_std_ms": round(1e3 * chk.spread, 2),
-        "misaligned": chk.jittered,
+        "misaligned": chk.misaligned,
         "realigned": False,
     }
-    if not chk.jittered:
+    if not chk.misaligned:
         return TimingOutcome(ens, est, [], [], summary)
     what = f"the cycle onsets are misaligned: {chk.describe()}"
     if not allow_realign:
@@ -262,7 +269,7 @@ def check_timing(
         )
     ra = realign(rec, ens, est.options, max_shift_s, before=chk)
     cands = [(ra.ensemble, ra.after or chk, "by the model")]
-    if (not ra.kept or cands[0][1].jittered) and onsets is not None:
+    if (not ra.kept or cands[0][1].misaligned) and onsets is not None:
         reach = max(COARSE_SHIFT_S, max_shift_s)
         coarse = segment(rec, onsets, period=period, align="rms", max_shift_s=reach)
         c0 = check_onsets(coarse, est.options, chk.noise_ratio)
@@ -294,7 +301,7 @@ def check_timing(
         after={
             "z": round(after.z, 2),
             "timing_error_std_ms": round(1e3 * after.spread, 2),
-            "misaligned": after.jittered,
+            "misaligned": after.misaligned,
         },
     )
     notes = [
@@ -303,7 +310,7 @@ def check_timing(
         f"std {1e3 * after.spread:.1f} ms"
     ]
     warnings = []
-    if after.jittered:
+    if after.misaligned:
         warnings.append(
             f"the cycle onsets are still misaligned after re-aligning them ({after.describe()}): give onsets "
             "from an event channel recorded with the data"
