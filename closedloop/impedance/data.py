@@ -9,7 +9,8 @@ in a header row; HDF5 has datasets of the same names (attribute `units` on each)
 Cycles are cut at onsets (from events, from a list of onset times, or from peak velocity), each with a
 `pad` of neighbouring samples on both sides (needed by the lags and by the zero-phase pre-filter),
 aligned (none, peak velocity, then optional RMS re-alignment within a maximum shift), and the ensemble
-mean th_0(t), tau_0(t) removed (eq. 7.9).
+mean th_0(t), tau_0(t) removed (eq. 7.9).  `recut` cuts an ensemble's cycles again at moved onsets (the
+model-based re-alignment of `impedance.timing`).
 """
 
 from __future__ import annotations
