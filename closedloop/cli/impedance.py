@@ -68,9 +68,10 @@ def add_parser(subparsers) -> None:
     i.add_argument("--period", default=None, help="cycle length (s, > 0); default: median onset spacing")
     i.add_argument(
         "--align",
-        default="none",
-        choices=["none", "peak-velocity", "rms", "peak-velocity+rms"],
-        help="per-cycle re-alignment (default none: the onsets are trusted)",
+        default="auto",
+        choices=["auto", "none", "peak-velocity", "rms", "peak-velocity+rms"],
+        help="auto (default): the onsets checked against the model, the cycles re-aligned by it when they are "
+        "off (with a note); none: checked only (a warning); peak-velocity, rms: the thesis's alignment, then auto",
     )
     i.add_argument("--max-shift-ms", default="50", help="largest alignment shift, ms (default 50)")
     i.add_argument("--bootstrap", default="200", metavar="R", help="resamples for 95 %% bands (0: none; default 200)")
@@ -289,6 +290,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
     from closedloop.impedance.estimate import EstimateOptions, estimate, posture_fit
     from closedloop.impedance.metrics import coverage, rel_errors
     from closedloop.impedance.results import read_truth, resample_truth, write_results
+    from closedloop.impedance.timing import check_timing
     from closedloop.io.files import OutputSet
 
     _check_identify_options(args)
@@ -303,16 +305,18 @@ def cmd_identify(args: argparse.Namespace) -> int:
         pool_ms=args.pool_ms,
         smooth_ms=args.smooth_ms,
     )
-    ens = segment(
-        rec, _onsets(rec, args, notes), period=args.period, align=args.align, max_shift_s=args.max_shift_ms / 1e3
-    )
+    align = "none" if args.align in ("auto", "none") else args.align
+    onsets = _onsets(rec, args, notes)
+    ens = segment(rec, onsets, period=args.period, align=align, max_shift_s=args.max_shift_ms / 1e3)
     est = estimate(ens, options=opt, warn=False)
     if np.nanmedian(est.I) < 0 and np.nanmedian(est.K) < 0:
         raise InputError(
             f"{args.data}: the estimated inertia and stiffness are negative (median I {np.nanmedian(est.I):.3g}): "
             "is the torque sign reversed? (positive torque must turn toward increasing angle; --torque-sign -1)"
         )
-    notes += est.notes
+    timing = check_timing(rec, ens, est, opt, args.align != "none", args.max_shift_ms / 1e3, onsets, args.period)
+    ens, est = timing.ensemble, timing.estimate
+    notes += timing.notes + est.notes
     opt = est.options
     t_est = time.perf_counter() - t0
     method = opt.method if opt.method != "default" else "default, TLS"
@@ -323,7 +327,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
     ]
     if any(ens.excluded.values()):
         out.append("  excluded cycles: " + ", ".join(f"{k} {v}" for k, v in ens.excluded.items() if v))
-    warnings = list(est.warnings)
+    warnings = list(est.warnings) + timing.warnings
     summary = {
         "method": opt.method,
         "prefilter_hz": opt.prefilter_hz,
@@ -331,8 +335,9 @@ def cmd_identify(args: argparse.Namespace) -> int:
         "excluded": ens.excluded,
         "notes": notes,
         "warnings": warnings,
+        "onset_check": timing.summary,
     }
-    if ens.alignment is not None and args.align != "none":
+    if ens.alignment is not None and align != "none":
         a = ens.alignment.summary()
         summary["alignment"] = a
         out.append(
