@@ -114,3 +114,13 @@ def test_options_that_had_no_help_now_say_what_they_do(cmd, option, words):
     after = text.split(option + " ", 1)[1]
     for w in words:
         assert w in after[:200], after[:200]
+
+
+def test_abbreviated_options_are_refused(capsys):
+    """`--degree` must not silently mean `--degrees` (nor `--prefilt` `--prefilter`): one line, exit 2."""
+    from closedloop.cli.main import main
+
+    assert main(["calibrate", "m.urdf", "log.csv", "--degree"]) == 2
+    assert "unrecognized arguments: --degree" in capsys.readouterr().err
+    assert main(["impedance", "identify", "data.csv", "--prefilt", "10"]) == 2
+    assert "unrecognized arguments: --prefilt" in capsys.readouterr().err

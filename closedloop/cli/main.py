@@ -348,7 +348,12 @@ def _command(argv: list[str]) -> str | None:
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (an `InputError`, exit 2) instead of a usage block."""
+    """argparse with one-line errors (an `InputError`, exit 2) instead of a usage block, and no
+    abbreviated options (`--degree` must not silently mean `--degrees`); subcommands parse alike."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str):
         raise InputError(f"{self.prog}: {message} (see {self.prog} --help)")
