@@ -212,6 +212,12 @@ CASES = [
         ["--drift-z -1", "> 0"],
         {"m.yaml": manifest()},
     ),
+    Case(
+        "log-in-radians-given-degrees",
+        "option value",
+        calib("--degrees"),
+        ["with --degrees no revolute joint moves more than", "a log in radians? (leave out --degrees)"],
+    ),
     # ------------------------------------------------------------------ configs
     Case(
         "config-report-true",

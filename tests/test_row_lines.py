@@ -144,3 +144,16 @@ def test_the_task_noise_of_several_loops_is_one_note():
         "loop place1_a: task-space noise 0.5 mm (estimated) against 0.0133 mm"
     )
     assert notes[1].startswith("loops place1_b, place2_a, place2_b, place3_a, place3_b: task-space noise 0.202 mm")
+
+
+def test_a_log_in_radians_given_degrees_is_refused(tmp_path, panda):
+    """Radians read as degrees shrink every range by 57: no revolute joint moves 0.05 rad any more."""
+    names = panda.joint_names
+    rng = np.random.default_rng(0)
+    rows = rng.uniform(-1.0, 1.0, (20, len(names)))  # radians, up to 2 rad of range per joint
+    f = _write(tmp_path / "rad.csv", [",".join(names)] + [",".join(f"{v:.6f}" for v in r) for r in rows])
+    with pytest.raises(LogError, match=r"with --degrees no revolute joint moves more than 0\.0[0-9]+ rad.*radians\?"):
+        check_angle_units(read_log(f, names, degrees=True), panda, degrees=True)
+    check_angle_units(read_log(f, names), panda)  # the same log in radians passes
+    deg = _write(tmp_path / "deg.csv", [",".join(names)] + [",".join(f"{v:.4f}" for v in np.degrees(r)) for r in rows])
+    check_angle_units(read_log(deg, names, degrees=True), panda, degrees=True)  # and in degrees with --degrees

@@ -186,6 +186,7 @@ def check_loop_column(log: JointLog, loop_names: list[str]) -> None:
 
 
 BEYOND_LIMIT = 0.5  # rad past a joint limit from which a reading is no reading of that joint (`check_angle_units`)
+RADIANS_AS_DEGREES = 0.05  # rad: with --degrees, no revolute joint moving more is a log in radians
 
 
 def check_angle_units(log: JointLog, robot, degrees: bool = False) -> None:
@@ -195,9 +196,21 @@ def check_angle_units(log: JointLog, robot, degrees: bool = False) -> None:
     would run for its whole budget and fail.  More than half of one joint's readings BEYOND_LIMIT past its
     limits make it an input error naming the joint, a row and the value.  A few such rows are left to the
     outlier screen (a corrupted cell); joints without limits (continuous, or a range over 4 pi) are not
-    checked.
+    checked.  The opposite mistake, a log in radians given ``degrees``, leaves every revolute joint moving
+    less than RADIANS_AS_DEGREES (3 degrees read as radians are 0.05 rad): refused too, naming the joint
+    that moves most.
     """
     limits = {n: (j.lower, j.upper) for n, j in robot.joints.items() if j.kind == "revolute"}
+    logged = [j for j in limits if j in log.joints]
+    if degrees and len(log) > 1 and logged:
+        ranges = {j: float(np.ptp(log.angles[:, log.joints.index(j)])) for j in logged}
+        widest = max(ranges, key=ranges.__getitem__)
+        if ranges[widest] < RADIANS_AS_DEGREES:
+            raise LogError(
+                f"{log.source}: with --degrees no revolute joint moves more than {ranges[widest]:.3g} rad over the "
+                f"log (the most: '{widest}', {np.degrees(ranges[widest]):.3g} degrees as given): a log in radians? "
+                "(leave out --degrees)"
+            )
     for j, (lo, hi) in limits.items():
         if j not in log.joints or not (np.isfinite(lo) and np.isfinite(hi)) or hi - lo > 4.0 * np.pi:
             continue
