@@ -213,6 +213,12 @@ CASES = [
         {"m.yaml": manifest()},
     ),
     Case(
+        "noise-implausible",
+        "option value",
+        calib("--noise", "5"),
+        ["--noise 5: the joint noise must be > 0 and <= 0.1"],
+    ),
+    Case(
         "log-in-radians-given-degrees",
         "option value",
         calib("--degrees"),

@@ -494,16 +494,23 @@ def check_settings(values: dict, source: str = "--set", error: type[InputError] 
         raise error(f"{source}: solimp dmin {si[0]:g} exceeds dmax {si[1]:g}")
 
 
+MAX_JOINT_NOISE = 0.1  # rad or m: the largest joint-reading noise std `parse_noise` accepts
+_NOISE_RANGE = (
+    f"the joint noise must be > 0 and <= {MAX_JOINT_NOISE} (a reading's std in rad or m; 0.1 rad is 5.7 degrees)"
+)
+
+
 def parse_noise(text: str | float | None) -> float | dict[str, float] | None:
-    """``--noise 1e-4`` or ``--noise j1=1e-4,j2=2e-4``: every value a finite number > 0 (rad or m)."""
+    """``--noise 1e-4`` or ``--noise j1=1e-4,j2=2e-4``: every value a finite number > 0 (rad or m) and at
+    most MAX_JOINT_NOISE: a reading's noise std beyond 0.1 rad (5.7 degrees) or 0.1 m is no encoder's."""
     if text is None:
         return None
     if not isinstance(text, str):
         text = repr(text)
     if "=" not in text:
         v = parse_number(text, f"--noise {text}")
-        if not 0 < v <= 10:
-            raise InputError(f"--noise {text}: the joint noise must be > 0 and <= 10 (a std in rad or m)")
+        if not 0 < v <= MAX_JOINT_NOISE:
+            raise InputError(f"--noise {text}: {_NOISE_RANGE}")
         return v
     out: dict[str, float] = {}
     for part in text.split(","):
@@ -511,8 +518,8 @@ def parse_noise(text: str | float | None) -> float | dict[str, float] | None:
         if not k:
             raise InputError(f"--noise {part}: expected joint=value")
         out[k] = parse_number(value, f"--noise {part}")
-        if not 0 < out[k] <= 10:
-            raise InputError(f"--noise {part}: the joint noise must be > 0 and <= 10 (a std in rad or m)")
+        if not 0 < out[k] <= MAX_JOINT_NOISE:
+            raise InputError(f"--noise {part}: {_NOISE_RANGE}")
     return out
 
 
