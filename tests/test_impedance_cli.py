@@ -229,3 +229,10 @@ def test_too_few_cycles_state_the_expected_error(tmp_path, capsys):
     # the stated expected error is the right size: the actual errors are of the same order
     assert 0.3 * worst < max(s["errors_vs_truth_percent"].values()) < 2.0 * worst
     assert "about" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("opt", [["--voluntary", "0.5"], ["--postures"]])
+def test_robot_case_refuses_what_it_does_not_simulate(tmp_path, capsys, opt):
+    assert main(["impedance", "simulate", "--case", "robot", "--out", str(tmp_path / "r"), *opt]) == 2
+    assert f"{opt[0]}: the robot case does not simulate it" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()

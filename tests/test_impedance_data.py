@@ -174,3 +174,15 @@ def test_too_few_cycles():
     rec = Record(np.arange(100) / 600.0, np.zeros(100), np.zeros(100), event=np.r_[1, np.zeros(99)])
     with pytest.raises(InputError):
         segment(rec, onsets_from_events(rec), period=0.1)
+
+
+def test_a_period_that_contradicts_the_onsets_is_refused():
+    """Events 2 s apart with --period 3: one line naming both, not 90 of 100 cycles dropped in silence."""
+    fs, L = 100.0, 200
+    n = 12 * L
+    ev = np.zeros(n)
+    ev[::L] = 1
+    rec = Record(np.arange(n) / fs, np.sin(np.arange(n) / 10), np.zeros(n), event=ev)
+    with pytest.raises(InputError, match=r"--period 3: the onsets are 2 s apart \(median of 11\)"):
+        segment(rec, onsets_from_events(rec), period=3.0)
+    assert segment(rec, onsets_from_events(rec), period=2.0, pad_s=0.2).length == L

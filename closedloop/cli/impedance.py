@@ -98,6 +98,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     args.seed = check_number("--seed", args.seed, 0, 10**9, integer=True)
     if args.format == "h5":
         require("h5py", "--format h5", "impedance")
+    if args.case == "robot":  # what only the forearm simulates is refused, not ignored
+        for given, opt in ((args.voluntary > 0, "--voluntary"), (args.postures, "--postures")):
+            if given:
+                raise InputError(f"{opt}: the robot case does not simulate it (only --case forearm does)")
     check_outputs({"--out": args.out}, directory=True)
     out = Path(args.out)
     arm = ForearmParams(gravity=not args.no_gravity)

@@ -414,6 +414,11 @@ def segment(
         by_block.setdefault(b, []).append(i)
     spacing = np.concatenate([np.diff(sorted(v)) for v in by_block.values()] + [np.zeros(0)])
     L = int(round(period * fs)) if period else int(np.median(spacing)) if spacing.size else 0
+    if period and spacing.size >= 3 and abs(np.median(spacing) / fs - period) > length_tol * period:
+        raise ImpedanceDataError(
+            f"--period {period:g}: the onsets are {np.median(spacing) / fs:.4g} s apart (median of "
+            f"{spacing.size}): most cycles would be left out as irregular (give that period, or leave it out)"
+        )
     if L < 10:
         raise ImpedanceDataError("cannot infer the cycle length: give --period")
     S = int(round(max_shift_s * fs)) if align != "none" else 0

@@ -542,7 +542,7 @@ def diagnose(est: ImpedanceEstimate, n: int, has_command: bool = True) -> list[s
                 f"(voluntary) torque, misalignment or unmodelled dynamics; {remedy}"
             )
     if n < 30:
-        out.append(f"only {n} cycles: estimates will be noisy (see the expected error from the bootstrap)")
+        out.append(f"only {n} cycles: estimates will be noisy (the random error grows as 1/sqrt(cycles))")
     return out
 
 
