@@ -29,7 +29,6 @@ from closedloop.impedance.estimate import (
     estimate,
     lowpass,
     per_cycle_moments,
-    pool_at,
     single_thread,
     solve,
 )
@@ -97,10 +96,10 @@ def bootstrap(
             d = design(ens, options, side=side)
             _, n, m = d.X.shape
             qz = None if d.Z is None else d.Z.shape[-1]
-            per, perz = per_cycle_moments(d)
-            pers.append(pool_at(per.reshape(n, L, m, m), half, at).reshape(n, -1))
+            per, perz = per_cycle_moments(d, half, at)
+            pers.append(per.reshape(n, -1))
             if perz is not None:
-                perzs.append(pool_at(perz.reshape(n, L, qz, -1), half, at).reshape(n, -1))
+                perzs.append(perz.reshape(n, -1))
             lights.append(SimpleNamespace(scale=d.scale, T=d.T))
         per = np.concatenate(pers, axis=1)
         perz = np.concatenate(perzs, axis=1) if perzs else None
