@@ -186,9 +186,8 @@ def _resample_chunk(
 
     lights: each component's scale and lag; dims: (instants per component, regressors m, instruments q,
     stride of the centred component)."""
-    from scipy.ndimage import gaussian_filter1d
-
     from closedloop.impedance.estimate import to_ibk
+    from closedloop.impedance.filters import gaussian_filter1d
 
     sizes_t, m, qz, stride = dims
     Ls = sum(sizes_t)
@@ -202,7 +201,7 @@ def _resample_chunk(
         for c, (size, light) in enumerate(zip(sizes_t, lights)):
             pc = p[:, lo : lo + size]
             if options.smooth_ms > 0 and c == 0:
-                pc = gaussian_filter1d(pc, options.smooth_ms * 1e-3 * fs / stride, axis=-2, mode="nearest")
+                pc = gaussian_filter1d(pc, options.smooth_ms * 1e-3 * fs / stride, axis=-2)
             out.append(np.stack(to_ibk(pc, light.scale, light.T)))
             lo += size
     return tuple(np.concatenate(out, axis=-1))

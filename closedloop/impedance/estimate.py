@@ -45,11 +45,10 @@ import logging
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
-from scipy.signal import butter, find_peaks, sosfilt, sosfiltfilt
 
 from closedloop.errors import InputError
 from closedloop.impedance.data import Ensemble
+from closedloop.impedance.filters import causal, filtfilt, find_peaks, gaussian_filter1d, welch
 
 log = logging.getLogger(__name__)
 
@@ -150,11 +149,9 @@ def auto_prefilter(ens: Ensemble, snr: float = 30.0, lo: float = 6.0) -> float:
     perturbation (Welch spectrum, averaged over cycles) stands `snr` times above its white-noise floor (the
     median of the spectrum above fs/4), between `lo` and fs/5.  At 5 % noise this is 9-12 Hz for a human
     limb (the best fixed setting), higher with less noise or faster dynamics."""
-    from scipy.signal import welch
-
     dth, _, _ = ens.deltas()
     nper = min(1024, dth.shape[1])
-    f, P = welch(dth, fs=ens.fs, nperseg=nper, axis=-1)
+    f, P = welch(dth, ens.fs, nper)
     P = P.mean(0)
     floor = np.median(P[f > ens.fs / 4])
     above = np.flatnonzero(P > snr * floor)
@@ -175,9 +172,9 @@ def lowpass(x: np.ndarray, fs: float, hz: float | None, order: int = 4) -> np.nd
     """Zero-phase Butterworth low-pass (the pre-filter of both signals; none when `hz` is None or 0)."""
     if x is None or not hz:
         return x
-    if hz >= fs / 2:
-        raise InputError(f"pre-filter {hz} Hz must be below the Nyquist frequency {fs / 2:g} Hz")
-    return sosfiltfilt(butter(order, hz, fs=fs, output="sos"), x, axis=-1)
+    if not 0 < hz < fs / 2:
+        raise InputError(f"pre-filter {hz} Hz must be below the Nyquist frequency {fs / 2:g} Hz and above 0")
+    return filtfilt(x, order, hz, fs)
 
 
 def _one_sided(x: np.ndarray, fs: float, hz: float | None, order: int, side: int) -> np.ndarray:
@@ -185,8 +182,7 @@ def _one_sided(x: np.ndarray, fs: float, hz: float | None, order: int, side: int
     samples up to c (or from c on)."""
     if not hz:
         return x
-    sos = butter(order, hz, fs=fs, output="sos")
-    return sosfilt(sos, x, axis=-1) if side < 0 else sosfilt(sos, x[..., ::-1], axis=-1)[..., ::-1]
+    return causal(x, order, hz, fs, side)
 
 
 def design(ens: Ensemble, opt: EstimateOptions, ref: Ensemble | None = None, side: int = 0, extend: int = 0) -> Design:
@@ -388,7 +384,7 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
         r = lam / np.median(lam[E : E + L])
         spread = np.sqrt(100.0 / max(ens.n, 1))  # the residual's sampling spread grows as 1/sqrt(n)
         ratio, contrast = 1 + (opt.edge_ratio - 1) * spread, 1 + (opt.edge_contrast - 1) * spread
-        cand, _ = find_peaks(np.nan_to_num(r), height=ratio, distance=max(1, W))
+        cand = find_peaks(np.nan_to_num(r), ratio, max(1, W))
         if cand.size:  # confirmed where both one-sided fits fit much better than the centred one
             th, rs = [np.stack([I, B, K])], []
             for side in (-1, 1):
@@ -468,7 +464,7 @@ def finish(d: Design, Mxx, Mzx, opt: EstimateOptions, fs: float, start: np.ndarr
     half = int(round(opt.pool_ms * 1e-3 * fs))
     p, cond = solve(pool(Mxx, half), pool(Mzx, half), opt.method, start)
     if opt.smooth_ms > 0:
-        p = gaussian_filter1d(p, opt.smooth_ms * 1e-3 * fs, axis=-2, mode="nearest")
+        p = gaussian_filter1d(p, opt.smooth_ms * 1e-3 * fs, axis=-2)
     I, B, K = to_ibk(p, d.scale, d.T)
     return (I, B, K, cond) if start is None else (I, B, K, p)
 
@@ -500,7 +496,7 @@ def diagnose(est: ImpedanceEstimate, n: int, has_command: bool = True) -> list[s
                 "alignment: misaligned cycles leave the mean movement in the perturbations)"
             )
     elif I.size > 10:  # on the 50 ms-smoothed curve: random error alone is not a warning
-        Is = gaussian_filter1d(I, 0.05 / max(est.t[1] - est.t[0], 1e-9), mode="nearest")
+        Is = gaussian_filter1d(I, 0.05 / max(est.t[1] - est.t[0], 1e-9))
         dev = np.max(np.abs(Is - np.median(I))) / np.median(I)
         if dev > 0.10 and est.options.method != "iv":
             remedy = (
