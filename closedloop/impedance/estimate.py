@@ -250,13 +250,12 @@ def per_cycle_moments(d: Design, half: int, at: np.ndarray) -> tuple[np.ndarray,
     """Per-cycle moment matrices pooled over +-half instants (clipped to the cycle), at the instants `at`
     only: sum_k x_ik x_ik^T over the window of each instant, (n, len(at), m, m) (and the instruments'
     (n, len(at), q, m + q)); their weighted sums over cycles are the bootstrap's resampled moments."""
-    L = d.X.shape[0]
-    idx = at[:, None] + np.arange(-half, half + 1)  # (A, window)
-    inside = ((idx >= 0) & (idx < L)).astype(float)[..., None, None]
-    idx = np.clip(idx, 0, L - 1)
+    offsets = np.arange(-half, half + 1)
 
-    def windows(A: np.ndarray) -> np.ndarray:  # (n, A, window, columns), zero outside the cycle
-        return (A[idx] * inside).transpose(2, 0, 1, 3)
+    def windows(A: np.ndarray) -> np.ndarray:  # (n, instants, window, columns), zeros beyond the cycle
+        padded = np.zeros((A.shape[1], A.shape[0] + 2 * half, A.shape[2]))
+        padded[:, half : half + A.shape[0]] = A.transpose(1, 0, 2)
+        return padded[:, at[:, None] + half + offsets]
 
     Xw = windows(d.X)
     per = np.swapaxes(Xw, -1, -2) @ Xw
