@@ -63,7 +63,8 @@ def bootstrap(
     steps (`est.weights`), so does every resample (the one-sided fits resampled only where they weigh), and
     within 10 ms of a step the band spans both sides' levels (the step's time is known to a few samples).
     The bands are computed every 10 ms (at most half the pooling half-width) and interpolated:
-    the pooled, pre-filtered estimate does not change faster.
+    the pooled, pre-filtered estimate does not change faster.  `est` must be the estimate of `ens`: its
+    designs (the filtered, scaled regressors) are reused when its options are `options`.
 
     The resamples go in chunks of `chunk` as jobs on `executor` (``closedloop.parallel.executor``: None or
     'serial' in this process, 'local', 'ray', or an engine); chunk c draws its resamples from
@@ -93,7 +94,8 @@ def bootstrap(
         for side, at, *sub in comps:
             at = sub[0] if sub else at
             sizes_t.append(at.size)
-            d = design(ens, options, side=side)
+            d = est.designs.get(side) if est is not None and est.options == options else None
+            d = design(ens, options, side=side) if d is None else d
             _, n, m = d.X.shape
             qz = None if d.Z is None else d.Z.shape[-1]
             per, perz = per_cycle_moments(d, half, at)

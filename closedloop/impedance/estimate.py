@@ -113,6 +113,9 @@ class ImpedanceEstimate:
     notes: list[str] = field(default_factory=list)
     weights: np.ndarray | None = None  # (3, L): centred, left-sided, right-sided estimates' weights
     steps: np.ndarray | None = None  # instants (s) of the abrupt changes found
+    # the designs of the fit over the cycle's instants, by side (0 centred, -1 / +1 one-sided): the
+    # bootstrap resamples their rows instead of filtering the same ensemble again
+    designs: dict[int, "Design"] = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def wn(self) -> np.ndarray:
@@ -369,7 +372,7 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
             d = design(ens, opt)
             Mxx, Mzx = moments(d)
             I, B, K, cond = finish(d, Mxx, Mzx, opt, ens.fs)
-            return ImpedanceEstimate(d.stamps / ens.fs, I, B, K, cond, opt, d.lag)
+            return ImpedanceEstimate(d.stamps / ens.fs, I, B, K, cond, opt, d.lag, designs={0: d})
         L, fs = ens.length, ens.fs
         half = int(round(opt.pool_ms * 1e-3 * fs))
         D = max(1, int(round(opt.lag_ms * 1e-3 * fs)))
@@ -380,6 +383,9 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
         p, cond, lam = tls(pool(Mxx, half))
         I, B, K = to_ibk(p[E : E + L], d.scale, d.T)
         est = ImpedanceEstimate(d.stamps[E : E + L] / fs, I, B, K, cond[E : E + L], opt, d.lag)
+        cycle = slice(E, E + L)  # the design over the cycle alone: design(ens, opt)
+        z = None if d.Z is None else d.Z[cycle]
+        est.designs[0] = replace(d, X=d.X[cycle], Z=z, stamps=d.stamps[cycle])
         r = lam / np.median(lam[E : E + L])
         spread = np.sqrt(100.0 / max(ens.n, 1))  # the residual's sampling spread grows as 1/sqrt(n)
         ratio, contrast = 1 + (opt.edge_ratio - 1) * spread, 1 + (opt.edge_contrast - 1) * spread
@@ -387,7 +393,7 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
         if cand.size:  # confirmed where both one-sided fits fit much better than the centred one
             th, rs = [np.stack([I, B, K])], []
             for side in (-1, 1):
-                ds = design(ens, opt, side=side)
+                ds = est.designs[side] = design(ens, opt, side=side)
                 ps, _, ls = tls(pool(moments(ds)[0], half), want_cond=False)
                 th.append(np.stack(to_ibk(ps, ds.scale, ds.T)))
                 rs.append(ls / np.median(ls))
