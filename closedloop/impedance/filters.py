@@ -32,9 +32,10 @@ def butter_poles(order: int, hz: float, fs: float) -> tuple[np.ndarray, float]:
 
 
 def butter_sos(order: int, hz: float, fs: float) -> np.ndarray:
-    """Second-order sections (b0, b1, b2, 1, a1, a2) of the Butterworth low-pass as
+    """Second-order sections (b0, b1, b2, 1, a1, a2) of the Butterworth low-pass, for an even order as
     `scipy.signal.butter(order, hz, fs=fs, output="sos")` gives them: the poles nearest the unit circle
-    last, the gain in the first section (an odd order's real pole there, one zero moved to the last)."""
+    last, the gain in the first section.  An odd order's real pole gets the first section and the last
+    section one zero less (scipy orders its sections so too, except near the Nyquist frequency)."""
     p, k = butter_poles(order, hz, fs)
     pairs = sorted((q for q in p if q.imag > 0), key=lambda q: -abs(1 - abs(q)))
     sos = [[1.0, 2.0, 1.0, 1.0, -2 * q.real, q.real**2 + q.imag**2] for q in pairs]
