@@ -97,3 +97,22 @@ EXIT_INPUT = 2
 EXIT_FAILED = 3
 EXIT_INTERNAL = 70
 EXIT_PIPE = 141  # 128 + SIGPIPE (`closedloop ... | head`)
+
+
+class MissingExtraError(InputError):
+    """An option needs an optional package that is not installed (one line: the option, the package and
+    the install command)."""
+
+    def __init__(self, what: str, module: str, extra: str):
+        self.what, self.module, self.extra = what, module, extra
+        super().__init__(
+            f'{what}: needs {module}: pip install ".[{extra}]" in the closedloop checkout (or pip install {module})'
+        )
+
+
+def require(module: str, what: str, extra: str) -> None:
+    """Refuse `what` (an option or input) before any work when `module` cannot be imported."""
+    from importlib.util import find_spec
+
+    if find_spec(module) is None:
+        raise MissingExtraError(what, module, extra)

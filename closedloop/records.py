@@ -89,7 +89,9 @@ class ParamStatus(str, Enum):
     UNIDENTIFIABLE = "unidentifiable"  # the data do not determine it (`Combination`)
 
     __str__ = str.__str__
-    __format__ = str.__format__
+
+    def __format__(self, format_spec: str) -> str:
+        return str.__format__(self, format_spec)
 
 
 @dataclass(frozen=True)

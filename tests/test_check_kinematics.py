@@ -81,6 +81,25 @@ def test_a_wrong_robot_fails_the_check(iiwa_weld):
     assert pos["result"] == "FAIL" and 1e-3 < pos["error"] < 5e-3, rows
 
 
+@pytest.mark.parametrize("field, value", [("frame_a", None), ("frame_a", 3), ("frame_b", ["tool0"])])
+def test_a_loop_frame_that_is_no_name_is_an_input_error(iiwa_weld, field, value):
+    """A report whose followed loop has no frame name where one belongs: one line naming the report, the loop
+    and the field (was an internal error from pinocchio's frame lookup)."""
+    from closedloop.errors import InputError
+
+    case, _, res = iiwa_weld
+    report = build_report(res, model_path=case.nominal_urdf)
+    weld = next(lp for lp in report["loops"] if lp["name"] == "weld")
+    if value is None:
+        del weld[field]
+    else:
+        weld[field] = value
+    shown = json.dumps(value)
+    with pytest.raises(InputError, match=rf"^report file: loop 'weld': {field}: expected a frame name, got ") as exc:
+        check_report(_truth(case), report, **TOLS)
+    assert str(exc.value).endswith(shown) and "\n" not in str(exc.value)
+
+
 def test_tool_as_frame_or_tip_is_the_same_robot(tmp_path):
     """`simulate --tool` adds a ball 5 cm out as the frame tool0_tip: calibrating on tool0 (the ball as an
     estimated tip) or on tool0_tip is the same robot.  check: both ok, from the command line as well; the

@@ -138,9 +138,10 @@ def test_missing_extras_refused_before_work(sim_dir, tmp_path, monkeypatch, caps
     )
     argv = ["impedance", "identify", str(sim_dir / "data.csv"), "--bootstrap", "0"]
     assert main(argv + ["--plots", str(tmp_path / "f")]) == 2
-    assert "--plots needs matplotlib" in capsys.readouterr().err
+    assert "--plots: needs matplotlib" in capsys.readouterr().err
     assert main(["impedance", "simulate", "--out", str(tmp_path / "h"), "--format", "h5", "--cycles", "2"]) == 2
-    assert "--format h5 needs h5py" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--format h5: needs h5py" in err and 'pip install ".[impedance]"' in err
 
 
 def _write(path, rec):

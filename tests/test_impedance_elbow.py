@@ -68,12 +68,51 @@ def test_voluntary_torque_switches_to_iv(runs):
     assert est.warnings == []
 
 
+@pytest.mark.slow
 def test_bootstrap_bands_cover_the_truth(runs):
-    """95 % bands: the truth inside them over at least 90 % of the cycle, on average over the parameters
-    and the truths where the default runs (one realisation each; the benchmark averages over more)."""
+    """95 % bias-aware bands: the truth inside them over at least 90 % of the cycle for every truth and
+    parameter on average, never below 85 % (one realisation each; the benchmark averages over more).
+    Without the simulated bias the square wave's K is covered over 76-83 % only (seeds 11-14)."""
     cov = {}
-    for name in ("constant", "dip", "ramp-b", "voluntary"):
+    for name in CASES:
         ens, truth, est = runs[name]
         b = bootstrap(ens, est.options, n_boot=100, seed=2, est=est)
         cov[name] = [coverage(b.lo[k], b.hi[k], truth[k]) for k in "IBK"]
-    assert np.mean(list(cov.values())) >= 0.9 and np.min(list(cov.values())) >= 0.85, cov
+    assert np.mean(list(cov.values())) >= 0.93 and np.min(list(cov.values())) >= 0.85, cov
+    assert np.mean(cov["square"]) >= 0.9, cov
+
+
+def test_simulated_bias_finds_the_leak_of_the_other_level(runs):
+    """On the square wave of K the estimate of each level is pulled towards the other one (the pre-filter's
+    and the pooling's reach): the simulated bias has that sign on both levels, is about the size of the
+    actual error's mean there, and follows the actual error (correlation 0.44-0.48 at 5 % noise on seeds
+    1-2, 0.76-0.77 without noise, where only the bias is left)."""
+    from closedloop.impedance.bootstrap import simulated_bias
+
+    ens, truth, est = runs["square"]
+    b = simulated_bias(ens, est)[2]
+    err = est.K - truth["K"]
+    T = np.r_[truth["K"], truth["K"][:1]]
+    jumps = np.r_[np.flatnonzero(np.abs(np.diff(T)) > 2) + 1, 0]
+    d = np.min(np.abs(np.arange(len(err))[:, None] - jumps[None, :]), axis=1)
+    low, away = truth["K"] < np.median(truth["K"]), d > 6
+    assert np.mean(b[low & away]) > 0 > np.mean(b[~low & away])
+    for m in (low & away, ~low & away):
+        assert 0.3 < np.mean(b[m]) / np.mean(err[m]) < 3.0
+    assert np.corrcoef(b[away], err[away])[0, 1] > 0.3
+
+
+def test_bands_widened_where_the_step_fits_are_blended(runs):
+    """Where the centred fit (which still sees the step) is blended with a one-sided one, the band takes
+    its share of the difference: on the square wave the truth of B and K is inside it there at least 75 % of
+    the time (the random-error band alone: 54-79 % over seeds 1-3), and nowhere else is it widened."""
+    ens, truth, est = runs["square"]
+    b = bootstrap(ens, est.options, n_boot=100, seed=2, est=est, bias_check=False)
+    taper = (est.weights[0] > 0) & (est.weights[0] < 1)
+    assert 0.1 < taper.mean() < 0.3
+    for j, k in enumerate("BK"):
+        sp = est.blend_spread[j + 1]
+        assert np.all(sp[~taper] == 0) and np.mean(sp[taper] > 0) > 0.9
+        inside = (truth[k] >= b.lo[k]) & (truth[k] <= b.hi[k])
+        narrow = (truth[k] >= b.lo[k] + sp) & (truth[k] <= b.hi[k] - sp)
+        assert inside[taper].mean() >= 0.75 and inside[taper].mean() > narrow[taper].mean() + 0.1, k

@@ -191,6 +191,20 @@ def test_inspect_lists_joints_and_parameters(files):
 
 
 @pytest.mark.slow
+def test_a_urdf_model_is_not_written_as_a_dh_table(tmp_path):
+    """`write_dh` on a model not read from a D-H table: a ModelError naming the file, nothing written."""
+    from closedloop.errors import ModelError
+    from closedloop.output.urdf import write_dh
+
+    src = tmp_path / "panda.urdf"
+    src.write_text(nominal_urdf("panda"))
+    robot = RobotModel.from_file(src)
+    out = tmp_path / "panda.yaml"
+    with pytest.raises(ModelError, match=r"panda\.urdf: a urdf model, not a D-H table"):
+        write_dh(robot, {}, out)
+    assert not out.exists()
+
+
 def test_dh_input_gives_calibrated_dh_yaml(tmp_path):
     """D-H input -> D-H YAML output in the input's units, carrying the calibrated values."""
     import yaml

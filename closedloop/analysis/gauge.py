@@ -147,7 +147,7 @@ def null_directions(R: np.ndarray, kept: list[int], dropped: list[int]) -> np.nd
     V[dropped, np.arange(len(dropped))] = 1.0
     if kept and dropped:
         coef, *_ = np.linalg.lstsq(R[:, kept], R[:, dropped], rcond=None)  # every dropped column at once
-        V[np.ix_(kept, np.arange(len(dropped)))] = -coef
+        V[np.ix_(np.asarray(kept, dtype=int), np.arange(len(dropped)))] = -coef
     return V
 
 
@@ -179,7 +179,7 @@ def choose_gauge(
     g0 = prefer if prefer in lengths else max(lengths, key=lambda i: abs(length_of(problem, x, free[i])), default=None)
     q = random_configurations(problem)
     reach = robot_reach(problem, x)
-    first = None
+    first: tuple[list[int], list] | None = None  # the first order's reduction
     orders = [order] if g0 is None else [[i for i in order if i != g0] + [g0], order]
     for attempt in orders:  # the longest length last (the thesis's choice), else the plain priority order
         kept, dropped = reduce(attempt)
@@ -214,6 +214,7 @@ def choose_gauge(
             if res[0] < 1e-3 and 0.01 <= L <= reach and (found is None or L > found[3] * (1.0 + 1e-9)):
                 found = (g, kept_g, dropped_g, L)
     if found is None:
+        assert first is not None  # `orders` is never empty: its first reduction got this far
         return None, first[0], first[1], True, None, 0.0
     g, kept, dropped, L = found
     warning = None

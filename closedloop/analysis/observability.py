@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from closedloop.estimate.noise import noise_vector, whiten
+from closedloop.estimate.noise import noise_vector, whiten_block
 from closedloop.problem.problem import CalibrationProblem
 from closedloop.records import CalibrationResult
 
@@ -112,9 +112,8 @@ def whitened_blocks(
     for bi, ev in enumerate(evals):
         if blocks is not None and bi not in blocks:
             continue
-        N, m = ev.r.shape
-        r, J, _ = whiten([ev], sigma_q, weighting, True, [problem.noise[bi]])
-        out.append((r.reshape(N, m), J.reshape(N, m, -1)[:, :, params] * scale))
+        r, J = whiten_block(ev, sigma_q, weighting, problem.noise[bi])
+        out.append((r, J[:, :, params] * scale))
     return out
 
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from closedloop.model.parameters import DEFAULT_PRIORS
 from closedloop.problem.distances import DistanceLoop, distance_blocks
-from closedloop.problem.lengths import LengthLoop, length_blocks
+from closedloop.problem.lengths import LengthLoop, length_blocks, length_loops
 from closedloop.records import ParamStatus
 
 if TYPE_CHECKING:
@@ -138,11 +138,12 @@ def size_response(
     from closedloop.estimate.stages import ResidualFunction
     from closedloop.problem.problem import CalibrationProblem as Problem
 
-    idx = length_blocks(problem)
-    if not idx or not any(k < problem.n_robot for k in est):
+    lengths = length_loops(problem)
+    if not lengths or not any(k < problem.n_robot for k in est):
         return 0.0
     blocks = [
-        replace(b, loop=replace_length(b.loop, 1.0 + STEP)) if bi in idx else b for bi, b in enumerate(problem.blocks)
+        replace(b, loop=replace_length(lengths[bi], 1.0 + STEP)) if bi in lengths else b
+        for bi, b in enumerate(problem.blocks)
     ]
     moved = Problem(problem.robot, problem.joints, blocks, problem.priors, problem.noise)
     r, J = ResidualFunction(problem, x, est, sigma_q, weighting)(x[est], True)
@@ -166,7 +167,7 @@ def length_findings(res, sigma_q: np.ndarray, snr: float) -> tuple[str, list[str
     """(the sentence on what sets the scale, the warnings that make the result suspect, the size response,
     the held-length leak) for a result whose problem has known lengths (module docstring)."""
     problem = res.problem
-    labels = " and ".join(problem.blocks[bi].loop.label() for bi in length_blocks(problem))
+    labels = " and ".join(lp.label() for lp in length_loops(problem).values())
     response = size_response(problem, res.values, res.estimated, sigma_q, res.weighting, snr)
     free = [
         k
@@ -205,13 +206,13 @@ def held_leak(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> tu
     from closedloop.analysis.identifiability import closure_jacobian
     from closedloop.problem.problem import CalibrationProblem as Problem
 
-    idx = length_blocks(problem)
-    if not idx or not free:
+    lengths = length_loops(problem)
+    if not lengths or not free:
         return 0.0, None
     loops = Problem(
         problem.robot,
         problem.joints,
-        [b for bi, b in enumerate(problem.blocks) if bi not in idx],
+        [b for bi, b in enumerate(problem.blocks) if bi not in lengths],
         problem.priors,
         problem.noise,
     )
@@ -229,11 +230,11 @@ def held_leak(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> tu
     evals = problem.evaluate(x, True, columns=free)
     worst, name = 0.0, None
     prior_m = float((problem.priors or {}).get("m", DEFAULT_PRIORS["m"]))  # the prior-sized step, in metres
-    for bi in idx:
-        g = evals[bi].J[0, 0]  # metres per unit of each free parameter
+    for bi, lp in lengths.items():
+        g = evals[bi].jacobian()[0, 0]  # metres per unit of each free parameter
         gN = g @ V[free]
         perp = gN - (gN @ c) / max(c @ c, 1e-300) * c if c @ c > 0 else gN
-        leak = HELD_ERROR / prior_m * float(np.linalg.norm(perp)) / problem.blocks[bi].loop.length
+        leak = HELD_ERROR / prior_m * float(np.linalg.norm(perp)) / lp.length
         if leak > worst:
             d = V[free] @ perp  # the held change that moves the length without the size
             worst, name = leak, problem.names[free[int(np.argmax(np.abs(d) / prior))]]
@@ -250,14 +251,13 @@ def refuse_lengths(problem: CalibrationProblem, x: np.ndarray, free: list[int]) 
     than a calibration corrects (`verdict.VerdictRules.scale_failed`): a typo, or millimetres for metres."""
     from closedloop.errors import LoopError
 
-    idx = length_blocks(problem)
-    if not idx:
+    lengths = length_loops(problem)
+    if not lengths:
         return
     evals = problem.evaluate(x, True, columns=free)
-    for bi in idx:
-        g = evals[bi].J[0, 0]  # metres per unit of each free parameter
+    for bi, lp in lengths.items():
+        g = evals[bi].jacobian()[0, 0]  # metres per unit of each free parameter
         prior = np.array([problem.params[k].prior for k in free])
-        lp = problem.blocks[bi].loop
         if not np.any(np.abs(g * prior) > 1e-12 * lp.length):
             raise LoopError(
                 f"--length {lp.frame_a} {lp.frame_b} {lp.length:g}: no calibrated parameter changes the distance "

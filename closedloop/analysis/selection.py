@@ -45,7 +45,7 @@ def initial_values(problem: CalibrationProblem, initial: dict[str, float]) -> np
 
 def select_parameters(
     problem: CalibrationProblem, identify: list[str] | None, fix: dict[str, float | None], x0: np.ndarray
-) -> list[str]:
+) -> list[ParamStatus]:
     """Status per parameter from `identify` patterns and `fix` (x0 takes the fixed values)."""
     names = problem.names
     patterns = identify if identify is not None else DEFAULT_IDENTIFY[problem.robot.kind]
@@ -55,7 +55,7 @@ def select_parameters(
         if not match(names, [q]):
             raise ParameterError(f"--identify {q}: matches no parameter of this problem")
     selected = set(match(names, pats)) | (set(loop_names) if "loop" in patterns else set())
-    status: list[str] = [ParamStatus.SELECTED if n in selected else ParamStatus.NOT_SELECTED for n in names]
+    status = [ParamStatus.SELECTED if n in selected else ParamStatus.NOT_SELECTED for n in names]
     wants_tau = [n for n in selected if problem.params[problem.index[n]].kind == "compliance"]
     if wants_tau and any(b.tau is None for b in problem.blocks):
         raise LogError(
@@ -83,7 +83,7 @@ SMALL_RANGE = 0.05  # rad: a joint that moves less than this barely excites the 
 
 
 def check_motion(
-    problem: CalibrationProblem, x0: np.ndarray, status: list[str]
+    problem: CalibrationProblem, x0: np.ndarray, status: list[ParamStatus]
 ) -> tuple[list[str], list[Dropped], list[str]]:
     """Notes and warnings on the data's motion; drops what a never-moving joint cannot reveal. Edits `status`."""
     names, notes, dropped, warnings = problem.names, [], [], []

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -160,7 +161,7 @@ def build_problem(
 
 
 def analyse_solution(
-    problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, status: list[str], sandwich: bool = False
+    problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, status: list[ParamStatus], sandwich: bool = False
 ) -> dict:
     """Standard errors, weak directions and the chi-square test at the solution (eq. 4.17 truncation).
 
@@ -170,7 +171,7 @@ def analyse_solution(
     """
     est, fun = fit.est, fit.stage.fun
     scale = np.array([p.prior for p in problem.params])
-    r, J = fun(fit.x[est], True)
+    r, J = fun.linearized(fit.x[est])
     S, Vt, g = scaled_svd(J, r, scale[est])  # no U, no threaded LAPACK on the tall Jacobian
     rank_num = int(np.sum(S > 1e-10 * S[0])) if S.size else 0
     dof = max(r.size - fun.deficit - fun.missing - rank_num, 1)  # eliminated or unobserved rows carry none
@@ -270,7 +271,7 @@ def _calibrate(
     problem, fit, structure, rejected, suspects = solve_screened(
         problem, x0, free, structure, opt, sigma_q, known, len(log_), notes, progress, row_name=log_.where
     )
-    choice = {"estimator": EIV if fit.stage.fun.weighting == "noise" else PLAIN, "reason": "as asked"}
+    choice: dict[str, Any] = {"estimator": EIV if fit.stage.fun.weighting == "noise" else PLAIN, "reason": "as asked"}
     choice |= {"error_bars": NOISE_MODEL, "evidence": {}}
     tested = noise_hypothesis(problem, fit, opt)
     if tested is not None and (tested["test"].holds or tested["test"].sigma_hat > VerdictRules().failed_joint_noise):
@@ -282,7 +283,7 @@ def _calibrate(
             start, x0, free, structure0, replace(opt, weighting="none"), sigma_q, known, len(log_), notes, progress
         )
         fit.iterations += spent
-        r, J = fit.stage.fun(fit.x[fit.est], True)
+        r, J = fit.stage.fun.linearized(fit.x[fit.est])
         evidence = tested["evidence"] | {"left_out_rms_plain": loo_prediction(problem, fit.x, fit.est, r, J)}
         if tested["test"].sigma_hat > VerdictRules().plausible_joint_noise:
             fit.warnings.append(
@@ -362,7 +363,7 @@ def noise_hypothesis(problem: CalibrationProblem, fit: Fit, opt: CalibrationOpti
         return None
     if fun.weighting != "noise":
         return None
-    r, J = fun(fit.x[fit.est], True)
+    r, J = fun.linearized(fit.x[fit.est])
     dof = max(r.size - fun.deficit - fun.missing - len(fit.est), 1)
     sigma_hat = rms(r, dof) * float(np.mean(fit.sigma_q))
     given = opt.noise is not None
@@ -465,7 +466,7 @@ def name_gauge(
     problem: CalibrationProblem,
     structure: Structure,
     x: np.ndarray,
-    status: list[str],
+    status: list[ParamStatus],
     opt: CalibrationOptions,
     notes: list[str],
     warnings: list[str],

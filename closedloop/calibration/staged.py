@@ -325,7 +325,7 @@ def valley_starts(
         return []
     fun = ResidualFunction(problem, fit.x, est, np.ones(len(problem.joints)), "none")
     xe = fun.retract(fit.x[est].copy())
-    r, J = fun(xe, True)
+    r, J = fun.linearized(xe)
     S, Vt, _ = scaled_svd(J, r, scale[est])
     live = np.flatnonzero(S > 1e-10 * S[0]) if S.size else np.zeros(0, int)
     return [fun.full(xe + sign * d * Vt[i] * scale[est]) for i in live[::-1][:k] for sign in (-1.0, 1.0)]

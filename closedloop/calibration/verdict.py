@@ -255,12 +255,12 @@ def size_finding(result: CalibrationResult) -> tuple[bool, str | None, str | Non
     warns of: the loops then leave more than a uniform scaling free).
     """
     from closedloop.problem.distances import distance_blocks
-    from closedloop.problem.lengths import length_blocks
+    from closedloop.problem.lengths import length_loops
 
     prob = result.problem
     if distance_blocks(prob):
         return True, None, None
-    lengths = length_blocks(prob)
+    lengths = length_loops(prob)
     loops = [b for bi, b in enumerate(prob.blocks) if bi not in lengths]
     if not all(b.loop.scale_free for b in loops):
         return True, None, None
@@ -270,7 +270,7 @@ def size_finding(result: CalibrationResult) -> tuple[bool, str | None, str | Non
     held = result.gauge
     why = f"held by the model's {held}" if held else "no single length of the model holds it"
     if lengths:
-        labels = " and ".join(prob.blocks[bi].loop.label() for bi in lengths)
+        labels = " and ".join(lp.label() for lp in lengths.values())
         why = f"{labels} does not set it; {why}"
     return False, held, f"{SIZE_NOT_MEASURED}: {why}"
 
@@ -360,6 +360,7 @@ def judge(
     v.evidence["size_measured"] = measured
     if not measured:
         v.evidence["size_held_by"] = held
+    if sentence is not None:  # the size is not measured: why
         v.reasons.append(sentence)
     return v
 
@@ -407,11 +408,15 @@ def length_guard(result: CalibrationResult, solve, loops: list) -> CalibrationRe
     response = result.length_response
     if not given or response is None:
         return result
+    if result.verdict is None:
+        raise ValueError("length_guard: the fit must be judged first (`judge`)")
     sets = SETS_SIZE[0] <= response <= SETS_SIZE[1]
-    if sets and result.verdict is not None and result.verdict.status != FAILED:
+    if sets and result.verdict.status != FAILED:
         return result
     alone = solve([lp for lp in loops if not isinstance(lp, LengthLoop)])
-    if alone.verdict is not None and alone.verdict.status == FAILED:
+    if alone.verdict is None:
+        raise ValueError("length_guard: `solve` must return a judged fit (`judge`)")
+    if alone.verdict.status == FAILED:
         return result
     labels = " and ".join(lp.label() for lp in given)
     if not sets:

@@ -10,7 +10,7 @@ import time
 from dataclasses import replace
 
 from closedloop.cli.parse import check_loop_numbers
-from closedloop.errors import EXIT_FAILED, InputError
+from closedloop.errors import EXIT_FAILED, InputError, require
 from closedloop.io.schemas import check_number, parse_bounds, parse_noise
 
 
@@ -56,12 +56,7 @@ def check_calibrate_options(args) -> tuple:
     if getattr(args, "plots", None):
         check_outputs({"--plots": args.plots}, [args.model, args.log], directory=True)
     if getattr(args, "html", None) or getattr(args, "plots", None):
-        import importlib.util
-
-        from closedloop.output.html import MATPLOTLIB_HINT
-
-        if importlib.util.find_spec("matplotlib") is None:  # refused now, not after the fit
-            raise InputError(f"--{'html' if args.html else 'plots'}: {MATPLOTLIB_HINT}")
+        require("matplotlib", f"--{'html' if args.html else 'plots'}", "report")  # refused now, not after the fit
     args.snr = check_number("--snr", args.snr, 0.0, 1e6, lo_open=True)
     args.max_iter = check_number("--max-iter", args.max_iter, 1, 10**6, integer=True)
     cv_given = args.cv is not None  # (default None: 5 folds, fewer on a short log)
@@ -146,9 +141,10 @@ def cmd_calibrate(args) -> int:
     # the held-out refits' time (k-fold and fixtures): with the fit's, the work of the command
     report["solver"]["validation_seconds"] = time.perf_counter() - t1
     report["solver"]["validation_cpu_seconds"] = time.process_time() - c1
-    res = replace(res, verdict=judge(res, cv, fixtures=lofo))  # the fit's evidence, the held-out folds' and fixtures'
-    report["verdict"] = verdict_record(res.verdict)
-    failed = res.verdict.status == "failed"
+    verdict = judge(res, cv, fixtures=lofo)  # the fit's evidence, the held-out folds' and fixtures'
+    res = replace(res, verdict=verdict)
+    report["verdict"] = verdict_record(verdict)
+    failed = verdict.status == "failed"
     write_out = args.out and (not failed or args.force)
     from closedloop.output.report import sensors_path, write_sensors
 
@@ -170,11 +166,11 @@ def cmd_calibrate(args) -> int:
     from closedloop.cli.tools import write_figures
 
     write_figures(res, report, args, row_name=lg.where)  # --html / --plots
-    if res.verdict.status == "suspect":
-        print(f"warning: {args.log}: calibration is suspect: {'; '.join(own_reasons(res.verdict))}", file=sys.stderr)
+    if verdict.status == "suspect":
+        print(f"warning: {args.log}: calibration is suspect: {'; '.join(own_reasons(verdict))}", file=sys.stderr)
     if failed:
         print(
-            f"error: {args.log}: calibration failed: {'; '.join(own_reasons(res.verdict))}"
+            f"error: {args.log}: calibration failed: {'; '.join(own_reasons(verdict))}"
             + ("" if write_out or not args.out else f"; no model written to {args.out} (--force writes it)"),
             file=sys.stderr,
         )

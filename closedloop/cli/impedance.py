@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.errors import InputError
+from closedloop.errors import InputError, require
 
 
 def add_parser(subparsers) -> None:
@@ -68,9 +68,10 @@ def add_parser(subparsers) -> None:
     i.add_argument("--period", default=None, help="cycle length (s, > 0); default: median onset spacing")
     i.add_argument(
         "--align",
-        default="none",
-        choices=["none", "peak-velocity", "rms", "peak-velocity+rms"],
-        help="per-cycle re-alignment (default none: the onsets are trusted)",
+        default="auto",
+        choices=["auto", "none", "peak-velocity", "rms", "peak-velocity+rms"],
+        help="auto (default): the onsets checked against the model, the cycles re-aligned by it when they are "
+        "off (with a note); none: checked only (a warning); peak-velocity, rms: the thesis's alignment, then auto",
     )
     i.add_argument("--max-shift-ms", default="50", help="largest alignment shift, ms (default 50)")
     i.add_argument("--bootstrap", default="200", metavar="R", help="resamples for 95 %% bands (0: none; default 200)")
@@ -81,14 +82,6 @@ def add_parser(subparsers) -> None:
     i.add_argument("--plots", metavar="DIR", help="write the figure as DIR/impedance.png")
     i.add_argument("--seed", default="0", help="bootstrap and fold seed, a whole number >= 0 (default 0)")
     i.set_defaults(func=cmd_identify)
-
-
-def _need(module: str, what: str) -> None:
-    """An optional package present before any work (one line otherwise)."""
-    from importlib.util import find_spec
-
-    if find_spec(module) is None:
-        raise InputError(f"{what} needs {module}: pip install {module}")
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
@@ -104,7 +97,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     args.cycles = check_number("--cycles", args.cycles, 1, 10**5, integer=True)
     args.seed = check_number("--seed", args.seed, 0, 10**9, integer=True)
     if args.format == "h5":
-        _need("h5py", "--format h5")
+        require("h5py", "--format h5", "impedance")
     check_outputs({"--out": args.out}, directory=True)
     out = Path(args.out)
     arm = ForearmParams(gravity=not args.no_gravity)
@@ -275,12 +268,12 @@ def _check_identify_options(args: argparse.Namespace) -> None:
     if args.out and Path(args.out).suffix.lower() not in (".csv", ".json"):
         raise InputError(f"--out {args.out}: give a .csv, .json file")
     if args.plots:
-        _need("matplotlib", "--plots")
+        require("matplotlib", "--plots", "impedance")
     from closedloop.impedance.data import is_hdf5
 
     for f in [args.data, *args.posture]:
         if Path(f).is_file() and is_hdf5(f):
-            _need("h5py", f"{f} (an HDF5 record)")
+            require("h5py", f"{f} (an HDF5 record)", "impedance")
     onsets = args.segment[7:] if args.segment.startswith("onsets:") else None
     inputs = [args.data, args.truth, onsets, *args.posture]
     check_outputs({"--out": args.out}, inputs)
@@ -297,6 +290,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
     from closedloop.impedance.estimate import EstimateOptions, estimate, posture_fit
     from closedloop.impedance.metrics import coverage, rel_errors
     from closedloop.impedance.results import read_truth, resample_truth, write_results
+    from closedloop.impedance.timing import check_timing
     from closedloop.io.files import OutputSet
 
     _check_identify_options(args)
@@ -311,16 +305,18 @@ def cmd_identify(args: argparse.Namespace) -> int:
         pool_ms=args.pool_ms,
         smooth_ms=args.smooth_ms,
     )
-    ens = segment(
-        rec, _onsets(rec, args, notes), period=args.period, align=args.align, max_shift_s=args.max_shift_ms / 1e3
-    )
+    align = "none" if args.align in ("auto", "none") else args.align
+    onsets = _onsets(rec, args, notes)
+    ens = segment(rec, onsets, period=args.period, align=align, max_shift_s=args.max_shift_ms / 1e3)
     est = estimate(ens, options=opt, warn=False)
     if np.nanmedian(est.I) < 0 and np.nanmedian(est.K) < 0:
         raise InputError(
             f"{args.data}: the estimated inertia and stiffness are negative (median I {np.nanmedian(est.I):.3g}): "
             "is the torque sign reversed? (positive torque must turn toward increasing angle; --torque-sign -1)"
         )
-    notes += est.notes
+    timing = check_timing(rec, ens, est, opt, args.align != "none", args.max_shift_ms / 1e3, onsets, args.period)
+    ens, est = timing.ensemble, timing.estimate
+    notes += timing.notes + est.notes
     opt = est.options
     t_est = time.perf_counter() - t0
     method = opt.method if opt.method != "default" else "default, TLS"
@@ -331,7 +327,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
     ]
     if any(ens.excluded.values()):
         out.append("  excluded cycles: " + ", ".join(f"{k} {v}" for k, v in ens.excluded.items() if v))
-    warnings = list(est.warnings)
+    warnings = list(est.warnings) + timing.warnings
     summary = {
         "method": opt.method,
         "prefilter_hz": opt.prefilter_hz,
@@ -339,8 +335,9 @@ def cmd_identify(args: argparse.Namespace) -> int:
         "excluded": ens.excluded,
         "notes": notes,
         "warnings": warnings,
+        "onset_check": timing.summary,
     }
-    if ens.alignment is not None and args.align != "none":
+    if ens.alignment is not None and align != "none":
         a = ens.alignment.summary()
         summary["alignment"] = a
         out.append(
@@ -366,6 +363,13 @@ def cmd_identify(args: argparse.Namespace) -> int:
         }  # the bootstrap's std, relative, averaged over the cycle
         summary["expected_error_percent"] = expected
         out.append("  expected error (bootstrap std): " + ", ".join(f"{k} {v:.2f} %" for k, v in expected.items()))
+        if bands.bias is not None:
+            bias = {k: float(100 * np.nanmean(np.abs(bands.bias[k] / getattr(est, k)))) for k in "IBK"}
+            summary["simulated_bias_percent"] = bias
+            out.append(
+                "  estimator bias at this model (simulated; the 95 % bands are widened by it): "
+                + ", ".join(f"{k} {v:.2f} %" for k, v in bias.items())
+            )
         worst = max(expected.values())
         if worst > 2.0:
             need = int(np.ceil(ens.n * (worst / 1.5) ** 2))

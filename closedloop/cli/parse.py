@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
 from closedloop.errors import InputError
 
@@ -43,7 +44,8 @@ def sim_overrides(items: list[str], defaults) -> dict:
             raise InputError(f"--set {item}: expected KEY=VALUE")
         if key not in kinds:
             raise InputError(f"--set {item}: unknown setting '{key}' (known: {', '.join(sorted(kinds))})")
-        kind, default = kinds[key], getattr(defaults, key, False)
+        kind = kinds[key]
+        default: Any = getattr(defaults, key, False)  # the setting's own default (a tuple for a tuple kind)
         if kind is bool:
             if text.lower() not in ("true", "false", "1", "0"):
                 raise InputError(f"--set {item}: '{key}' takes true or false")

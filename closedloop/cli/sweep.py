@@ -137,11 +137,11 @@ def run_sweep(
         w.writerows(_csv_row(r) for r in rows.values())
         fh.flush()
         for o in imap(_sim_job, todo, engine, shared=(scenarios, int(n), overrides or {}), progress=progress):
-            name, seed, folder = todo[o.index]
+            name, seed, job_out = todo[o.index]
             rows[name, seed] = (
-                SweepRow(name, seed, "ok", out=folder, **o.value)
+                SweepRow(name, seed, "ok", out=job_out, **o.value)
                 if o.ok
-                else SweepRow(name, seed, "failed", error=o.error or "", seconds=round(o.seconds, 4), out=folder)
+                else SweepRow(name, seed, "failed", error=o.error or "", seconds=round(o.seconds, 4), out=job_out)
             )
             w.writerow(_csv_row(rows[name, seed]))
             fh.flush()

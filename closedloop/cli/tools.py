@@ -16,6 +16,7 @@ import argparse
 import sys
 import textwrap
 from pathlib import Path
+from typing import Any
 
 from closedloop.errors import InputError
 
@@ -205,6 +206,11 @@ def _config_path(argv: list[str]) -> str | None:
     return None
 
 
+def _converted(act: argparse.Action, text: str) -> Any:
+    """`text` converted by the option's own ``type=`` (none: the text itself)."""
+    return act.type(text) if callable(act.type) else text
+
+
 def load_config(path: str, sub: argparse.ArgumentParser, command: str) -> dict:
     """The YAML mapping of ``path`` checked against the options of ``sub`` (dest -> value)."""
     from closedloop.io.schemas import load_yaml  # strict YAML: only true/false are booleans, no 1_000
@@ -225,10 +231,7 @@ def load_config(path: str, sub: argparse.ArgumentParser, command: str) -> dict:
                 f"(known: {', '.join(sorted(a.replace('_', '-') for a in actions))})"
             )
         if isinstance(act, argparse._AppendAction):
-            value = [
-                str(v) if act.type is None else act.type(str(v))
-                for v in (value if isinstance(value, list) else [value])
-            ]
+            value = [_converted(act, str(v)) for v in (value if isinstance(value, list) else [value])]
         elif isinstance(act, (argparse._StoreTrueAction, argparse._StoreFalseAction)):
             if not isinstance(value, bool):
                 raise InputError(f"{path}: option '{key}' takes true or false")
@@ -239,7 +242,7 @@ def load_config(path: str, sub: argparse.ArgumentParser, command: str) -> dict:
             if isinstance(value, list):
                 value = ",".join(str(v) for v in value)
             try:
-                value = act.type(str(value)) if act.type is not None else str(value)
+                value = _converted(act, str(value))
             except (TypeError, ValueError):
                 raise InputError(f"{path}: option '{key}': '{value}' is not valid") from None
             if act.choices is not None and value not in act.choices:

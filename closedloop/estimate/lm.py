@@ -78,10 +78,10 @@ class SolverResult:
     iterations: int
     status: str  # 'converged' | 'max_iter' | 'stalled'
     message: str
+    residual: np.ndarray = field(repr=False)  # fun at x
+    jacobian: np.ndarray = field(repr=False)  # its Jacobian at x
     history: list[float] = field(default_factory=list)
     truncated: int = 0  # directions truncated in the last iteration
-    residual: np.ndarray | None = field(default=None, repr=False)  # fun at x
-    jacobian: np.ndarray | None = field(default=None, repr=False)  # its Jacobian at x
 
 
 def rms(r: np.ndarray, dof: int | None = None) -> float:
@@ -166,9 +166,11 @@ def _solve(
 ) -> SolverResult:
     """One Levenberg-Marquardt run at a fixed truncation level; `memo` gets the last (J, S)."""
     memo = {} if memo is None else memo
+    assert opt.noise is not None, "a solve at a fixed truncation level"  # levenberg_marquardt sets it
+    sigma = opt.noise
     bounded = opt.lower is not None or opt.upper is not None
     x = np.array(x0, dtype=float)
-    r, J = fun(x, True)
+    r, J = _with_jacobian(fun, x)
     cost = 0.5 * float(r @ r)
     history = [cost]
     if progress:
@@ -182,7 +184,6 @@ def _solve(
         memo["x"], memo["S"] = x.copy(), S
         Js = J * scale if bounded else None  # the bounded step works on the rows themselves
         floor = opt.rcond * (S[0] if S.size else 0.0)
-        sigma = opt.noise
         keep = S > max(floor, opt.snr * sigma)
         if not keep.any():  # everything below the noise: take the numerically safe part
             keep = S > floor
@@ -221,8 +222,8 @@ def _solve(
         decrease = cost - cost_new
         x = x_new
         if retract is not None:
-            x = retract(x)  # the parameters' charts follow the solution (`fit.ResidualFunction.retract`)
-        r, J = fun(x, True)
+            x = retract(x)  # the parameters' charts follow the solution (`stages.ResidualFunction.retract`)
+        r, J = _with_jacobian(fun, x)
         cost = 0.5 * float(r @ r)
         history.append(cost)
         if progress:
@@ -235,11 +236,30 @@ def _solve(
         if decrease <= opt.ftol * max(cost + decrease, 1e-300) or max(step_norm, float(np.linalg.norm(gn))) < opt.xtol:
             status, message = "converged", "cost and step converged"
             break
-    settled = fun.settle(x) if retract is not None else None
+    # a function with charts (`retract`) settles them at the end (`stages.ResidualFunction.settle`)
+    settled = getattr(fun, "settle")(x) if retract is not None else None
     if settled is not None:  # back in the problem's own charts
         x = settled
-        r, J = fun(x, True)
-    return SolverResult(x, cost, it, status, message, history, truncated, r, J)
+        r, J = _with_jacobian(fun, x)
+    return SolverResult(
+        x=x,
+        cost=cost,
+        iterations=it,
+        status=status,
+        message=message,
+        residual=r,
+        jacobian=J,
+        history=history,
+        truncated=truncated,
+    )
+
+
+def _with_jacobian(fun: ResidualFn, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`fun`'s residual and Jacobian at `x` (a Jacobian is asked for, so one is given)."""
+    r, J = fun(x, True)
+    if J is None:
+        raise ValueError("the residual function returned no Jacobian where one was asked for")
+    return r, J
 
 
 def _geodesic(fun, x, r, J, scale, S, Vt, keep, lam, v, alpha, h: float = 0.1):

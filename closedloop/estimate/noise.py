@@ -32,17 +32,20 @@ side below the right (the residual is all measurement noise), s = 0.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
 from closedloop.errors import ParameterError
 
 if TYPE_CHECKING:
-    from closedloop.loops.base import Loop
-    from closedloop.problem.problem import BlockEval, CalibrationProblem
+    from closedloop.problem.problem import BlockEval, BlockNoise, CalibrationProblem
 
-__all__ = ["joint_variance_scale", "noise_vector", "whiten", "cholesky_inverse", "pinv_sqrt"]
+BlockRoot = tuple[np.ndarray, int]  # a block's W^-1/2 (N, m, m) and its rank deficit
+GroupRoot = tuple[np.ndarray, int, tuple[int, ...], np.ndarray]  # a group's W^-1/2, deficit, blocks, indices
+Roots = list[BlockRoot | GroupRoot | None]  # `whiten`'s roots: per block (None: unweighted), then per group
+
+__all__ = ["joint_variance_scale", "noise_vector", "whiten", "whiten_block", "cholesky_inverse", "pinv_sqrt"]
 
 
 def _eig_terms(A: np.ndarray, r: np.ndarray, C: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -176,11 +179,11 @@ def whiten(
     sigma_q: np.ndarray,
     weighting: str,
     jacobian: bool = True,
-    loops: list[Loop] | None = None,
-    Winv: list[np.ndarray | None] | None = None,
+    loops: Sequence[BlockNoise] | None = None,
+    Winv: Roots | None = None,
     symmetric: bool = True,
     overwrite: bool = False,
-):
+) -> tuple[np.ndarray, np.ndarray | None, Roots]:
     """Stack residuals (and Jacobians) whitened by W_i^-1/2, W_i = Jq Sigma Jq^T (+ measurement covariance).
 
     `Winv` reuses the W_i^-1/2 of an earlier evaluation (trial steps, which
@@ -214,24 +217,20 @@ def whiten(
     for pattern, idx in groups:
         for k, bi in enumerate(pattern):
             shared[bi][idx[:, k]] = True
-    rs, Js, used = [], [], []
+    rs: list[np.ndarray] = []
+    Js: list[np.ndarray] = []
+    used: Roots = []
     for bi, ev in enumerate(evals):
-        r, J = ev.r, ev.J
-        Wh = Winv[bi] if Winv is not None else None
-        deficit = 0
-        if isinstance(Wh, tuple):
-            Wh, deficit = Wh
+        entry = Winv[bi] if Winv is not None else None
+        Wh, deficit = (entry[0], entry[1]) if entry is not None else (None, 0)
         if weighting == "noise" and Wh is None and ev.Jq is not None:
             C = loops[bi].measurement_cov if loops is not None else None
             Wh, deficit = _roots(ev.Jq, sigma_q, C, shared[bi], symmetric)
-        if Wh is not None:
-            r = np.einsum("nij,nj->ni", Wh, r)
-            if jacobian:
-                J = _times(Wh, J, overwrite)
-        used.append((Wh, deficit) if Wh is not None else None)
-        rs.append(r)
+        rs.append(np.einsum("nij,nj->ni", Wh, ev.r) if Wh is not None else ev.r)
         if jacobian:
-            Js.append(J)
+            Jb = _given(ev.J, f"block {bi}'s Jacobian")
+            Js.append(_times(Wh, Jb, overwrite) if Wh is not None else Jb)
+        used.append((Wh, deficit) if Wh is not None else None)
     for gi, (pattern, idx) in enumerate(groups):
         cached = Winv[len(evals) + gi] if Winv is not None and len(Winv) > len(evals) + gi else None
         if cached is None and any(evals[bi].Jq is None for bi in pattern):
@@ -240,10 +239,19 @@ def whiten(
         _whiten_group(evals, pattern, idx, Wh, rs, Js if jacobian else None)
         used.append((Wh, deficit, pattern, idx))
     r = np.concatenate([x.ravel() for x in rs]) if rs else np.zeros(0)
-    J = None
+    J: np.ndarray | None = None
     if jacobian and Js:  # one block: its rows as they are (a copy of J costs as much as the whitening)
         J = Js[0].reshape(-1, Js[0].shape[-1]) if len(Js) == 1 else np.vstack([x.reshape(-1, x.shape[-1]) for x in Js])
     return r, J, used
+
+
+def whiten_block(
+    ev: BlockEval, sigma_q: np.ndarray, weighting: str, noise: BlockNoise
+) -> tuple[np.ndarray, np.ndarray]:
+    """One block whitened on its own (`whiten` of ``[ev]``): its residual (N, m) and Jacobian (N, m, C)."""
+    N, m = ev.r.shape
+    r, J, _ = whiten([ev], sigma_q, weighting, True, [noise])
+    return r.reshape(N, m), _given(J, "the block's Jacobian").reshape(N, m, -1)
 
 
 _CHUNK = 8192  # configurations whitened at a time (`_roots`, `_times`): their temporaries stay in cache
@@ -283,6 +291,13 @@ def _roots(
     return Wh, deficit
 
 
+def _given(a: np.ndarray | None, what: str) -> np.ndarray:
+    """`a`, an array the caller's evaluation must hold (asked for); a ValueError naming `what` if it does not."""
+    if a is None:
+        raise ValueError(f"{what} was not evaluated; whitening needs it")
+    return a
+
+
 def _times(Wh: np.ndarray, J: np.ndarray, overwrite: bool) -> np.ndarray:
     """Wh @ J for stacks (N, m, m) and (N, m, C); with `overwrite`, into J, a chunk of configurations at a time."""
     if not overwrite:
@@ -304,7 +319,10 @@ def _whiten_group(
     R = np.concatenate([evals[bi].r[idx[:, k]] for k, bi in enumerate(pattern)], axis=1)
     Z = np.einsum("nij,nj->ni", Wh, R)
     JJ = (
-        Wh @ np.concatenate([evals[bi].J[idx[:, k]] for k, bi in enumerate(pattern)], axis=1)
+        Wh
+        @ np.concatenate(
+            [_given(evals[bi].J, f"block {bi}'s Jacobian")[idx[:, k]] for k, bi in enumerate(pattern)], axis=1
+        )
         if Js is not None
         else None
     )
@@ -312,7 +330,7 @@ def _whiten_group(
     for k, bi in enumerate(pattern):
         m = evals[bi].r.shape[1]
         rs[bi][idx[:, k]] = Z[:, off : off + m]
-        if Js is not None:
+        if Js is not None and JJ is not None:
             Js[bi][idx[:, k]] = JJ[:, off : off + m]
         off += m
 
@@ -347,10 +365,17 @@ def _config_groups(evals: list[BlockEval]) -> list[tuple[tuple[int, ...], np.nda
 
 
 def _group_root(
-    evals: list[BlockEval], pattern: tuple[int, ...], idx: np.ndarray, sigma_q: np.ndarray, loops: list[Loop] | None
+    evals: list[BlockEval],
+    pattern: tuple[int, ...],
+    idx: np.ndarray,
+    sigma_q: np.ndarray,
+    loops: Sequence[BlockNoise] | None,
 ) -> tuple[np.ndarray, int]:
     """W^-1/2 of the stacked residuals of one configuration in several blocks (their joint noise shared)."""
-    Jq = np.concatenate([evals[bi].Jq[idx[:, k]] for k, bi in enumerate(pattern)], axis=1) * sigma_q[None, None, :]
+    Jq = (
+        np.concatenate([_given(evals[bi].Jq, f"block {bi}'s Jq")[idx[:, k]] for k, bi in enumerate(pattern)], axis=1)
+        * sigma_q[None, None, :]
+    )
     W = Jq @ np.swapaxes(Jq, 1, 2)
     off = 0
     for bi in pattern:

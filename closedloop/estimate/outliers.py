@@ -154,7 +154,8 @@ def _robust_refit(
     dims = [b.loop.dim for b in sample.blocks]
     sopt = SolverOptions(max_iter=max_iter, ftol=REFIT_FTOL, xtol=REFIT_XTOL)
     weighting = _screen_weighting(sample)
-    x, w_prev, best = x0.copy(), None, (np.inf, x0, [])
+    x, w_prev = x0.copy(), None
+    best: tuple[float, np.ndarray, list[np.ndarray]] = (np.inf, x0, [])
     for _ in range(passes):
         blocks = _closures(sample, x, sigma_q)
         best = min(best, (_spread(sample, blocks), x, blocks), key=lambda b: b[0])
@@ -240,6 +241,9 @@ def reject_outliers(
 def irls_fit(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, notes: list[str], row_name=None):
     """Reweighted fits with the chosen loss (``robust='huber'|'cauchy'``); suspects noted (by `row_name`:
     0-based row -> ``log.csv line 52``), none removed."""
+    loss = opt.robust
+    if loss is None:
+        raise ValueError("irls_fit: no robust loss chosen (CalibrationOptions.robust)")
     scale = np.array([p.prior for p in problem.params])
     known_scale = 1.0 if fit.known and opt.weighting == "noise" else None
     sopt = SolverOptions(
@@ -248,7 +252,7 @@ def irls_fit(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, not
     est, xe, w_prev, st = fit.est, fit.x[fit.est], None, fit.stage
     for _ in range(10):
         blocks = replace(st.fun, row_weights=None).blocks(xe)
-        w = np.concatenate(robust_weights(blocks, opt.robust, scale=known_scale))
+        w = np.concatenate(robust_weights(blocks, loss, scale=known_scale))
         row_w = np.repeat(np.sqrt(w), [b.loop.dim for b in problem.blocks for _ in range(b.theta.shape[0])])
         st = weighted_stage(problem, fit.x, xe, est, scale, fit.sigma_q, opt.weighting, sopt, None, row_w)
         xe = st.solution.x
@@ -260,7 +264,7 @@ def irls_fit(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions, not
         blocks,
         rows=[b.rows for b in problem.blocks],
         loops=[b.loop.name for b in problem.blocks],
-        loss=opt.robust,
+        loss=loss,
         scale=known_scale,
     )
     name = (lambda row: row_name(row - 1)) if row_name is not None else (lambda row: f"log row {row}")

@@ -17,17 +17,27 @@ links (`numpy.linalg.lapack_lite`; `np.linalg.qr` where a numpy lacks it).
 
 from __future__ import annotations
 
-from typing import Iterator
+from typing import Any, Callable, Iterator, cast
 
 import numpy as np
 
+_dgeqrf: Callable[..., Any] | None = None
+_LAPACK_ERRORS: tuple[type[Exception], ...] = (TypeError,)  # a numpy whose binding takes other arguments
 try:  # numpy's own LAPACK binding: no scipy.linalg import (0.27 s) on the command line's path
-    from numpy.linalg.lapack_lite import LapackError as _LapackError
-    from numpy.linalg.lapack_lite import dgeqrf as _dgeqrf
+    from numpy.linalg import lapack_lite as _lapack_lite
 except ImportError:  # pragma: no cover - numpy builds without it
-    _dgeqrf, _LapackError = None, TypeError
+    pass
+else:
+    _dgeqrf = _lapack_lite.dgeqrf
+    _LAPACK_ERRORS = (TypeError, _lapack_lite.LapackError)
 
 CHUNK_ROWS = 1 << 14  # rows reduced at a time (~4 MB at 30 columns)
+
+
+def _numpy_r(A: np.ndarray) -> np.ndarray:
+    """R of A = Q R by numpy's own (unblocked) QR, Q not formed."""
+    # numpy's stubs type every mode's result as QRResult; mode "r" returns the array R alone
+    return cast(np.ndarray, np.linalg.qr(A, mode="r"))
 
 
 def _triangle(At: np.ndarray) -> np.ndarray:
@@ -38,12 +48,12 @@ def _triangle(At: np.ndarray) -> np.ndarray:
     """
     n, m = At.shape
     if _dgeqrf is None:
-        return np.linalg.qr(At.T, mode="r")
+        return _numpy_r(At.T)
     lwork = 64 * n  # dgeqrf's block size (32) times n, with room: the blocked path
     try:
         out = _dgeqrf(m, n, At, m, np.empty(n), np.empty(lwork), lwork, 0)
-    except (TypeError, _LapackError):  # pragma: no cover - a numpy whose binding takes other arguments
-        return np.linalg.qr(At.T, mode="r")
+    except _LAPACK_ERRORS:  # pragma: no cover - a numpy whose binding takes other arguments
+        return _numpy_r(At.T)
     if out["info"] != 0:  # pragma: no cover - argument errors only
         raise np.linalg.LinAlgError(f"dgeqrf failed (info {out['info']})")
     return np.triu(At[:, :n].T)

@@ -50,7 +50,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from closedloop.errors import OptionError
-from closedloop.estimate.noise import noise_vector, whiten
+from closedloop.estimate.noise import noise_vector, whiten, whiten_block
 from closedloop.problem.problem import CalibrationProblem
 
 if TYPE_CHECKING:
@@ -344,9 +344,9 @@ def irls(
         evals = p.evaluate(x, True)
         rs, Js = [], []
         for bi, ev in enumerate(evals):
-            r, J, _ = whiten([ev], sigma_q, "noise", True, [p.noise[bi]])
-            rs.append(r.reshape(ev.r.shape))
-            Js.append(J.reshape(ev.r.shape + (-1,))[:, :, est])
+            r, J = whiten_block(ev, sigma_q, "noise", p.noise[bi])
+            rs.append(r)
+            Js.append(J[:, :, est])
         s = mad_scale(rs) if scale is None else float(scale)
         w = weights(rs, loss, c, s)
         rw = np.concatenate([(np.sqrt(wi)[:, None] * r).ravel() for wi, r in zip(w, rs)])

@@ -35,7 +35,7 @@ from typing import Callable
 import numpy as np
 
 from closedloop.estimate.lm import SolverOptions, SolverResult, levenberg_marquardt
-from closedloop.estimate.noise import whiten
+from closedloop.estimate.noise import Roots, whiten
 from closedloop.loops.base import Loop
 from closedloop.problem.problem import BlockEval, CalibrationProblem
 
@@ -66,13 +66,13 @@ class ResidualFunction:
     symmetric: bool = False
 
     def __post_init__(self) -> None:
-        self._W = None
-        self._x = None
-        self._rJ = None
-        self._trial = None
+        self._W: Roots | None = None  # the weighting's roots at the last Jacobian (`whiten`)
+        self._x: np.ndarray | None = None  # the last Jacobian's point
+        self._rJ: tuple[np.ndarray, np.ndarray] | None = None  # (r, J) there
+        self._trial: tuple[np.ndarray, list[BlockEval]] | None = None  # the first trial point, its evaluation
         self.deficit = 0  # residual directions the weighting discards (pseudo-inverse), at the last Jacobian
         self.missing = 0  # residual rows without an observation, at the last Jacobian
-        self._charts: dict[int, object] = {}  # block -> its loop with a re-centred chart (`retract`)
+        self._charts: dict[int, Loop] = {}  # block -> its loop with a re-centred chart (`retract`)
         self._charted = self.problem  # the problem evaluated: with those loops
         self._x0c = self.x0  # x0 in those charts
         self._chartable: list[int] | None = None  # blocks `retract` may re-chart, found at its first call
@@ -143,7 +143,7 @@ class ResidualFunction:
             evals = self._charted.evaluate(self._local(xe), self._W is None, columns=[])
             r, _, _ = whiten(evals, self.sigma_q, self.weighting, False, self.problem.noise, self._W, self.symmetric)
             return (r * self.row_weights if self.row_weights is not None else r), None
-        if jac and self._x is not None and np.array_equal(xe, self._x):
+        if jac and self._x is not None and self._rJ is not None and np.array_equal(xe, self._x):
             return self._rJ
         loops = self.problem.noise  # each block's measurement covariance (problem.BlockNoise)
         first_trial = not jac and self._W is not None and self._trial is None
@@ -167,12 +167,19 @@ class ResidualFunction:
             )
         if self.row_weights is not None:
             r = r * self.row_weights
-            if jac:
+            if J is not None:
                 J *= self.row_weights[:, None]  # J is whitening's own (or the evaluation's copy)
-        if jac:
+        if jac and J is not None:
             self._x, self._rJ, self._trial = xe.copy(), (r, J), None
         elif first_trial:
             self._trial = (xe.copy(), evals)
+        return r, J
+
+    def linearized(self, xe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """r and its Jacobian J at `xe` (the call with `jac`; a ValueError if the problem gives no J)."""
+        r, J = self(xe, True)
+        if J is None:
+            raise ValueError("the residual function has no Jacobian: the problem has no loop block")
         return r, J
 
     def normalized(self, x: np.ndarray) -> np.ndarray:
@@ -181,7 +188,13 @@ class ResidualFunction:
         J dp/dp' (`Loop.normalize_jacobian`), so that the analysis at the solution does not evaluate again.
         Where a loop knows no such Jacobian, or moves a value not estimated, the next call evaluates."""
         xn = self.problem.normalized(x)
-        if np.array_equal(xn, x) or self._charts or self._x is None or not np.array_equal(self._x, x[self.est]):
+        if (
+            np.array_equal(xn, x)
+            or self._charts
+            or self._x is None
+            or self._rJ is None
+            or not np.array_equal(self._x, x[self.est])
+        ):
             return xn
         col = {k: i for i, k in enumerate(self.est)}
         r, J = self._rJ

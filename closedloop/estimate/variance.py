@@ -96,30 +96,34 @@ def variance_components(
     `problem.noise` (`BlockNoise.set_task`; the loops are not touched) and
     returns (s, whether a v_l moved by more than 5 %).
     """
+    if not tasks and joint_fixed:
+        return 1.0, False
+    jq = [e.Jq for e in evals if e.Jq is not None]
+    if len(jq) < len(evals):
+        raise ValueError("variance_components: the blocks must be evaluated with their reading Jacobians (Jq)")
     if not tasks:  # the joint level beside known measurement covariances: the closed score equation
-        if joint_fixed:
-            return 1.0, False
         covs = [
-            nz.measurement_cov if np.any(e.Jq) else None  # no joint in it (a known distance): no say
-            for nz, e in zip(problem.noise, evals)
+            nz.measurement_cov if np.any(J) else None  # no joint in it (a known distance): no say
+            for nz, J in zip(problem.noise, jq)
         ]
-        return joint_variance_scale([e.r for e in evals], [e.Jq for e in evals], covs, pattern, n_params), False
+        return joint_variance_scale([e.r for e in evals], jq, covs, pattern, n_params), False
     rows = sum(e.r.size for e in evals)
     c = max(rows - n_params, 1) / max(rows, 1)
+    T_of = {bi: task_matrix(problem.blocks[bi].loop) for bi in tasks}  # each task loop's T
     blocks = []
-    for bi, (b, ev) in enumerate(zip(problem.blocks, evals)):
-        Jd = ev.Jq * pattern[None, None, :]
+    for bi, ev in enumerate(evals):
+        Jd = jq[bi] * pattern[None, None, :]
         A = Jd @ np.swapaxes(Jd, 1, 2)
         base = problem.noise[bi].own if bi in tasks else problem.noise[bi].measurement_cov
         C = np.zeros_like(A) if base is None else np.broadcast_to(base, A.shape)
         if ev.cov is not None:
             C = C + ev.cov
-        blocks.append((ev.r, A, C, task_matrix(b.loop) if bi in tasks else None))
+        blocks.append((ev.r, A, C, T_of.get(bi)))
     if joint_fixed:
         s = 1.0
     else:
         s = 0.5 * joint_variance_scale(
-            [r for r, *_ in blocks], [e.Jq for e in evals], [None] * len(blocks), pattern, n_params
+            [r for r, *_ in blocks], jq, [None] * len(blocks), pattern, n_params
         )  # a start: every residual read as joint noise
         s = max(s, 1e-300)
     v = {
@@ -128,8 +132,7 @@ def variance_components(
     }
     # the joint noise's variance per translation row of each task loop, per unit s
     joint_var = {
-        bi: float(np.mean(np.einsum("nij,ij->n", blocks[bi][1], blocks[bi][3])))
-        / max(float(np.trace(blocks[bi][3])), 1.0)
+        bi: float(np.mean(np.einsum("nij,ij->n", blocks[bi][1], T_of[bi]))) / max(float(np.trace(T_of[bi])), 1.0)
         for bi in tasks
     }
     s, v = _foerstner(blocks, tasks, {bi: bi for bi in tasks}, s, v, c, joint_fixed, joint_var, iters, tol)
@@ -168,7 +171,7 @@ def noise_summary(problem: CalibrationProblem, values: np.ndarray, sigma_q: np.n
 
     joint_m = sqrt(mean_i tr(T J_theta,i Sigma J_theta,i^T) / n_t) at `values`; the larger names what dominates.
     """
-    out = []
+    out: list[dict] = []
     if not any(
         b.loop.translation_rows and (hasattr(b.loop, "task_noise") or nz.task_var is not None)
         for b, nz in zip(problem.blocks, problem.noise)
@@ -243,18 +246,19 @@ def measurement_row_weights(problem: CalibrationProblem, values: np.ndarray) -> 
     if not only:
         return None
     evals = problem.evaluate(values, False)
-    t = [
+    parts = [
         ev.r[:, list(b.loop.translation_rows)].ravel()
         for bi, (b, ev) in enumerate(zip(problem.blocks, evals))
         if bi not in only and b.loop.translation_rows
     ]
-    t = np.concatenate(t) if t else np.zeros(0)
+    t = np.concatenate(parts) if parts else np.zeros(0)
     level = float(np.sqrt(np.mean(t**2))) if t.size else 0.0
     weights = []
     for bi, (b, ev) in enumerate(zip(problem.blocks, evals)):
         w = 1.0
-        if bi in only and level > 0.0:
-            w = level / float(np.sqrt(np.mean(np.diag(b.loop.measurement_cov))))
+        cov = b.loop.measurement_cov
+        if bi in only and level > 0.0 and cov is not None:  # (every loop in `only` has one)
+            w = level / float(np.sqrt(np.mean(np.diag(cov))))
         weights.append(np.full(ev.r.size, w))
     return np.concatenate(weights)
 

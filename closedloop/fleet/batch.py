@@ -280,7 +280,8 @@ def run_job(job: BatchJob) -> dict:
     opts = _options(job.options, build_problem(robot, lg, loops).names)
     res = calibrate(robot, lg, loops, opts)
     report = build_report(res, job.model, job.log)
-    cv_t, cv = (None, None), None
+    cv_t: tuple[float | None, float | None] = (None, None)
+    cv = None
     if job.cv and res.converged:
         from closedloop.validation.kfold import cross_validate
 

@@ -194,7 +194,8 @@ def read_manifest(path: str | Path) -> list[BatchJob]:
         if isinstance(doc, dict) and set(doc) - {"defaults", "jobs"}:
             extra = ", ".join(sorted(map(str, set(doc) - {"defaults", "jobs"})))
             raise InputError(f"{path}: unknown top-level key(s) {extra} (known: defaults, jobs)")
-        defaults, rows = ({}, doc) if isinstance(doc, list) else ({}, None)
+        defaults: Any = {}  # checked below: a mapping
+        rows: Any = doc if isinstance(doc, list) else None  # checked below: a list of mappings
         if isinstance(doc, dict):
             defaults, rows = doc.get("defaults") or {}, doc.get("jobs")
         if not isinstance(defaults, dict):
@@ -208,9 +209,10 @@ def read_manifest(path: str | Path) -> list[BatchJob]:
         rows = []
         for r in reader:
             if None in r:  # more cells than the header names: an unquoted comma
+                header = len(reader.fieldnames or ())
                 raise InputError(
-                    f"{path}: line {reader.line_num}: {len(reader.fieldnames) + len(r[None])} cells, the "
-                    f'header has {len(reader.fieldnames)} (quote a cell that holds commas, "..."; '
+                    f"{path}: line {reader.line_num}: {header + len(r[None])} cells, the "
+                    f'header has {header} (quote a cell that holds commas, "..."; '
                     "separate loops with ';')"
                 )
             if any((v or "").strip() for v in r.values() if isinstance(v, str)):

@@ -38,13 +38,69 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Bands:
-    """Percentile bands (lo, hi) per parameter on the estimate's time grid."""
+    """Percentile bands (lo, hi) per parameter on the estimate's time grid; `bias`, the estimator's bias
+    found by simulation (`simulated_bias`) by which I, B and K's bands were widened (None: not widened)."""
 
     level: float
     n_boot: int
     lo: dict[str, np.ndarray]
     hi: dict[str, np.ndarray]
     std: dict[str, np.ndarray]
+    bias: dict[str, np.ndarray] | None = None
+
+
+def _smooth(v: np.ndarray, sigma: float, cuts: np.ndarray) -> np.ndarray:
+    """Gaussian smoothing (std `sigma` samples) of a cycle-periodic curve, within each stretch between the
+    instants `cuts` (the steps: never across one; at most a quarter of the stretch) or around the cycle."""
+    L = v.size
+    v = np.where(np.isfinite(v), v, np.nanmedian(v))
+    cuts = np.unique(np.mod(np.asarray(cuts, int), L))
+    r = int(cuts[0]) if cuts.size else 0
+    u = np.roll(v, -r)
+    bounds = np.r_[cuts - r, L] if cuts.size else np.array([0, L])
+    out = np.empty(L)
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        sg = min(sigma, (b - a) / 4)
+        if sg < 0.5:
+            out[a:b] = u[a:b]
+            continue
+        k = np.arange(-int(3 * sg), int(3 * sg) + 1)
+        g = np.exp(-0.5 * (k / sg) ** 2)
+        g /= g.sum()
+        y = u[a:b].copy()
+        if cuts.size and b - a > 8:  # the instants at a step belong to neither side for certain
+            y[:2], y[-2:] = y[2], y[-3]
+        out[a:b] = np.convolve(np.pad(y, k[-1], mode="reflect" if cuts.size else "wrap"), g, "valid")
+    return np.roll(out, r)
+
+
+def simulated_bias(ens: Ensemble, est, smooth_ms: float = 50.0) -> np.ndarray:
+    """The estimator's own bias (3, L) near the identified model, by simulation.
+
+    The identified I(t), B(t), K(t), smoothed over `smooth_ms` between the steps found (so that their
+    random wiggles are not taken for structure), are driven by the measured torque perturbations of every
+    cycle (eq. 7.9, `free_run` from the pre-filtered initial state at the start of the padding); the
+    responses, free of noise, go through the same estimator (options, pre-filter and blend of one-sided
+    fits as `est`; the measured noise ratio).  What comes back minus what went in is the bias that the
+    pre-filter's and the pooling's reach, the one-sided fits' blend and the discrete model's approximation
+    put into an estimate of such a truth: next to steps of K it is as large as the random error (the
+    other level leaks in), on smooth truths a fraction of it."""
+    from dataclasses import replace
+
+    from closedloop.impedance.estimate import noise_std, refit
+
+    opt = est.options
+    P, L, fs = ens.pad, ens.length, ens.fs
+    dth, dtau, _ = ens.deltas()
+    cuts = np.array([]) if est.steps is None else np.round(np.asarray(est.steps) * fs)
+    truth = np.stack([_smooth(np.asarray(getattr(est, k), float), smooth_ms * 1e-3 * fs, cuts) for k in "IBK"])
+    on_pad = np.mod(np.arange(L + 2 * P) - P, L)
+    f = lowpass(dth, fs, opt.prefilter_hz) if opt.prefilter_hz else dth
+    x = free_run(*(t[on_pad] for t in truth), dtau, f[:, 0], (f[:, 1] - f[:, 0]) * fs, fs)
+    sim = replace(ens, angle=ens.angle.mean(0) + x)
+    ratio = max(noise_std(dth), 1e-12) / max(noise_std(dtau), 1e-12)
+    back = refit(sim, replace(opt, noise_ratio=ratio, auto_iv=False), est.weights)
+    return np.where(np.isfinite(back), back - truth, 0.0)
 
 
 def bootstrap(
@@ -56,12 +112,19 @@ def bootstrap(
     chunk: int = 25,
     executor=None,
     est=None,
+    bias_check: bool = True,
 ) -> Bands:
     """Bootstrap over cycles (see module docstring): bands for I, B, K, wn and zeta.
 
     `est`, the `ImpedanceEstimate` (optional): where it blends the centred fit with one-sided fits beside
     steps (`est.weights`), so does every resample (the one-sided fits resampled only where they weigh), and
     within 10 ms of a step the band spans both sides' levels (the step's time is known to a few samples).
+    Where the centred and a one-sided fit are blended (the taper at the edge of a step's reach), the centred
+    fit still sees the step: the band is widened by its weight times the two fits' difference, a bound on
+    the bias it brings in (`ImpedanceEstimate.blend_spread`).  With `bias_check` (and `est`), I, B and K's
+    bands are widened on both sides by the estimator's own bias at the identified model (`simulated_bias`,
+    in `Bands.bias`): bias-aware bands.  What they still miss is model error outside eq. 7.9 (the
+    linearisation of a nonlinear limb, unmodelled actuator dynamics).
     The bands are computed every 10 ms (at most half the pooling half-width) and interpolated:
     the pooled, pre-filtered estimate does not change faster.  `est` must be the estimate of `ens`: its
     designs (the filtered, scaled regressors) are reused when its options are `options`.
@@ -159,7 +222,16 @@ def bootstrap(
         for k in lo:
             lo[k] = np.where(near, minimum_filter1d(lo[k], 2 * r + 1, mode="nearest"), lo[k])
             hi[k] = np.where(near, maximum_filter1d(hi[k], 2 * r + 1, mode="nearest"), hi[k])
-    return Bands(level, n_boot, lo, hi, sd)
+    if est is not None and est.blend_spread is not None:  # the centred fit's share of a step's bias
+        for j, k in enumerate("IBK"):
+            lo[k], hi[k] = lo[k] - est.blend_spread[j], hi[k] + est.blend_spread[j]
+    bias = None
+    if est is not None and bias_check:
+        b = simulated_bias(ens, est)
+        bias = {k: b[j] for j, k in enumerate("IBK")}
+        for k in "IBK":
+            lo[k], hi[k] = lo[k] - np.abs(bias[k]), hi[k] + np.abs(bias[k])
+    return Bands(level, n_boot, lo, hi, sd, bias)
 
 
 def _interp_rows(a: np.ndarray, at: np.ndarray, full: np.ndarray) -> np.ndarray:

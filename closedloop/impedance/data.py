@@ -9,7 +9,8 @@ in a header row; HDF5 has datasets of the same names (attribute `units` on each)
 Cycles are cut at onsets (from events, from a list of onset times, or from peak velocity), each with a
 `pad` of neighbouring samples on both sides (needed by the lags and by the zero-phase pre-filter),
 aligned (none, peak velocity, then optional RMS re-alignment within a maximum shift), and the ensemble
-mean th_0(t), tau_0(t) removed (eq. 7.9).
+mean th_0(t), tau_0(t) removed (eq. 7.9).  `recut` cuts an ensemble's cycles again at moved onsets (the
+model-based re-alignment of `impedance.timing`).
 """
 
 from __future__ import annotations
@@ -146,7 +147,10 @@ def read_record(path: str | Path, columns: dict[str, str] | None = None, torque_
         try:
             import h5py
         except ImportError:
-            raise ImpedanceDataError(f"{path}: an HDF5 file needs h5py (pip install h5py)") from None
+            raise ImpedanceDataError(
+                f'{path}: an HDF5 record needs h5py: pip install ".[impedance]" in the closedloop checkout '
+                "(or pip install h5py)"
+            ) from None
         try:
             with h5py.File(path, "r") as f:
                 raw = {k.lower(): f[k] for k in f.keys() if isinstance(f[k], h5py.Dataset)}
@@ -456,6 +460,47 @@ def segment(
     if any(excluded.values()):
         log.info("excluded cycles: %s", excluded)
     return Ensemble(fs, P, L, ang[keep], torq, cmd, onset_arr, rep, excluded)
+
+
+def recut(rec: Record, ens: Ensemble, shifts: np.ndarray, method: str = "model") -> Ensemble:
+    """The cycles of `ens` cut again from `rec` with their onsets moved by `shifts` (samples, one per cycle;
+    positive: later), same length and padding, and the ensemble mean recomputed (eq. 7.9).  A cycle whose
+    moved window would leave its block or touch an invalid row keeps its onset.  The alignment report
+    records the total shift of each cycle from its original onset."""
+    shifts = np.asarray(shifts, int)
+    blocks = dict(_blocks(rec))
+    P, L = ens.pad, ens.length
+    width = L + 2 * P
+    ang, torq, cmd, onsets, total = [], [], [], [], []
+    prev = ens.alignment.shifts if ens.alignment is not None else np.zeros(ens.n, int)
+    for k, ((b, s), d) in enumerate(zip(ens.onsets, shifts)):
+        idx = blocks[int(b)]
+        lo = s + d - P
+        ok = lo >= 0 and lo + width <= idx.size
+        if ok and rec.valid is not None:
+            ok = bool(rec.valid[idx[lo : lo + width]].all())
+        if not ok:
+            lo, d = s - P, 0
+        sl = idx[lo : lo + width]
+        ang.append(rec.angle[sl])
+        torq.append(rec.torque[sl])
+        if rec.command is not None:
+            cmd.append(rec.command[sl])
+        onsets.append((b, s + d))
+        total.append(prev[k] + d)
+    max_shift = ens.alignment.max_shift if ens.alignment is not None else 0
+    rep = AlignmentReport(method, np.asarray(total, int), ens.fs, max_shift)
+    return Ensemble(
+        ens.fs,
+        P,
+        L,
+        np.stack(ang),
+        np.stack(torq),
+        np.stack(cmd) if cmd else None,
+        np.asarray(onsets, int),
+        rep,
+        dict(ens.excluded),
+    )
 
 
 def _align(

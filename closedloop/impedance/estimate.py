@@ -113,6 +113,7 @@ class ImpedanceEstimate:
     notes: list[str] = field(default_factory=list)
     weights: np.ndarray | None = None  # (3, L): centred, left-sided, right-sided estimates' weights
     steps: np.ndarray | None = None  # instants (s) of the abrupt changes found
+    blend_spread: np.ndarray | None = None  # (3, L): w_c |centred - one-sided| where the two are blended
     # the designs of the fit over the cycle's instants, by side (0 centred, -1 / +1 one-sided): the
     # bootstrap resamples their rows instead of filtering the same ensemble again
     designs: dict[int, "Design"] = field(default_factory=dict, repr=False, compare=False)
@@ -405,6 +406,9 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
             ok = np.isfinite(th)
             blended = np.sum(np.where(ok, th, 0) * w[:, None], 0) / np.sum(ok * w[:, None], 0)
             est.I, est.B, est.K = blended
+            alt = np.where(w[1] >= w[2], th[1], th[2])  # the one-sided estimate blended in at each instant
+            taper = (w[0] > 0) & (w[0] < 1)
+            est.blend_spread = np.where(taper, w[0] * np.nan_to_num(np.abs(th[0] - alt)), 0.0)
             uniq = np.unique(np.mod(steps, L))  # a step at the cycle's end is also one before its start
             uniq = uniq[np.r_[True, np.diff(uniq) > 2]]
             if uniq.size > 1 and uniq[0] + L - uniq[-1] <= 2:
@@ -415,6 +419,29 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
                 "them the estimate uses only the data on its own side (edge-preserving)"
             )
     return est
+
+
+def refit(ens: Ensemble, opt: EstimateOptions, weights: np.ndarray | None = None) -> np.ndarray:
+    """I, B, K (3, L) of the estimator `opt` on another ensemble, with the blend of centred and one-sided
+    fits given (`weights` of an earlier `ImpedanceEstimate`, or None: the centred fit only) instead of
+    searched for, and no switch of method: the same estimator applied to simulated data."""
+    opt = resolved(opt, ens)
+    half = int(round(opt.pool_ms * 1e-3 * ens.fs))
+    with single_thread():
+        d = design(ens, opt)
+        Mxx, Mzx = moments(d)
+        I, B, K, _ = finish(d, Mxx, Mzx, opt, ens.fs)
+        th = [np.stack([I, B, K])]
+        if weights is None or not (opt.method == "default" and opt.prefilter_hz):
+            return th[0]
+        for side in (-1, 1):
+            ds = design(ens, opt, side=side)
+            ps, _, _ = tls(pool(moments(ds)[0], half), want_cond=False)
+            th.append(np.stack(to_ibk(ps, ds.scale, ds.T)))
+    t = np.stack(th)
+    ok = np.isfinite(t)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.sum(np.where(ok, t, 0) * weights[:, None], 0) / np.sum(ok * weights[:, None], 0)
 
 
 def tls(M: np.ndarray, want_cond: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:

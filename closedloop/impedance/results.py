@@ -1,7 +1,7 @@
 """Result tables (CSV or JSON) and truth files.
 
 Results: one row per instant - time (s), I (kg m^2), B (N m s/rad), K (N m/rad), their band limits
-(`I_lo`, `I_hi`, ...), natural frequency `wn` (rad/s), damping ratio `zeta`, free-run VAF per instant
+(`I_lo`, `I_hi`, ...; bias-aware: widened by the simulated bias `I_bias`, ...), natural frequency `wn` (rad/s), damping ratio `zeta`, free-run VAF per instant
 (%), regressor condition number.  The JSON form adds a `summary` (method, options, cycles, exclusions,
 alignment diagnostics, overall VAF, warnings, posture values, errors against truth).
 Truth: CSV with columns t, I, B, K (and optional K_muscle, theta0).
@@ -25,6 +25,9 @@ def table(est, bands=None, fit=None) -> dict[str, np.ndarray]:
     if bands is not None:
         for k in "IBK":
             cols[f"{k}_lo"], cols[f"{k}_hi"] = bands.lo[k], bands.hi[k]
+        if bands.bias is not None:
+            for k in "IBK":
+                cols[f"{k}_bias"] = bands.bias[k]
     cols["wn"], cols["zeta"] = est.wn, est.zeta
     if fit is not None:
         cols["vaf"] = fit.vaf_t

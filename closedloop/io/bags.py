@@ -208,9 +208,9 @@ def _damaged_at(path: Path, last: bytes | None, bad: bytes | None) -> str:
                     k = mm.find(last)
                     if k >= 0:
                         return f"{f}: damaged after byte {k + len(last)} of {len(mm)} (the last message read whole)"
-                k = _mcap_damage(mm) if f.suffix.lower() == ".mcap" else None
-                if k is not None:
-                    return f"{f}: damaged record at byte {k} of {len(mm)}"
+                at = _mcap_damage(mm) if f.suffix.lower() == ".mcap" else None
+                if at is not None:
+                    return f"{f}: damaged record at byte {at} of {len(mm)}"
                 if last is None:
                     return f"{f}: damaged before its first message could be read (the file is {len(mm)} bytes)"
         except (OSError, ValueError):

@@ -12,9 +12,9 @@ import shutil
 import stat
 import tempfile
 from contextlib import contextmanager
-from contextvars import ContextVar
+from contextvars import ContextVar, Token
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Iterator, Mapping, Sequence
 
 from closedloop.errors import InputError
 
@@ -109,7 +109,7 @@ class OutputSet:
     def __init__(self, order: list | tuple = ()):
         self.order = [_target(p) for p in order if p is not None]
         self.files: dict[Path, bytes] = {}
-        self._token = None
+        self._token: Token[OutputSet | None] | None = None
 
     def add(self, target: str | Path, data: str | bytes) -> None:
         """Stage `data` for `target` (a symlink stands for the file it points to, as a shell's ``>``)."""
@@ -120,7 +120,9 @@ class OutputSet:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        _active.reset(self._token)
+        if self._token is not None:
+            _active.reset(self._token)
+            self._token = None
         if exc_type is None:
             self.commit()
 
@@ -143,7 +145,8 @@ class OutputSet:
             _write_special(t, self.files[t])
 
     def _publish(self, targets: list[Path]) -> None:
-        staged: list[tuple[Path, int | None, Path | None]] = []  # (target, fd of an unnamed file, staged path)
+        # (target, fd of an unnamed file or None for a staged file, the name renamed onto the target)
+        staged: list[tuple[Path, int | None, Path]] = []
         stage_dirs: list[Path] = []
         try:
             for t in targets:
@@ -155,8 +158,8 @@ class OutputSet:
                     tmp = d / t.name
                     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
                     staged.append((t, None, tmp))
-                else:
-                    staged.append((t, fd, None))
+                else:  # linked under this name just before the renames
+                    staged.append((t, fd, t.parent / f"{_STAGE}{os.getpid()}-{t.name}.tmp"))
                 try:
                     _write_all(fd, self.files[t])
                     os.fsync(fd)
@@ -168,11 +171,10 @@ class OutputSet:
             held = _hold_open(targets)  # freeing a replaced file's blocks waits for close()
             try:
                 named = []  # every name first, then the renames back to back: the moment of a mix is minimal
-                for t, fd, tmp in staged:
+                for t, fd, name in staged:
                     if fd is not None:
-                        tmp = t.parent / f"{_STAGE}{os.getpid()}-{t.name}.tmp"
-                        _link_unnamed(fd, tmp)
-                    named.append((tmp, t))
+                        _link_unnamed(fd, name)
+                    named.append((name, t))
                 for tmp, t in named:
                     os.replace(tmp, t)
             finally:
@@ -181,12 +183,11 @@ class OutputSet:
             for d in {t.parent for t in targets}:
                 _fsync_dir(d)
         finally:
-            for t, fd, _ in staged:
+            for _, fd, name in staged:
                 if fd is not None:
                     os.close(fd)
-                    leftover = t.parent / f"{_STAGE}{os.getpid()}-{t.name}.tmp"
-                    if leftover.exists():
-                        leftover.unlink()
+                    if name.exists():  # linked, not renamed
+                        name.unlink()
             for d in stage_dirs:
                 shutil.rmtree(d, ignore_errors=True)
 
@@ -292,7 +293,9 @@ def refuse_overwrite(out: str | Path, *inputs: str | Path | None) -> None:
             raise InputError(f"{out}: refusing to overwrite an input of this run ({i}); choose another output path")
 
 
-def check_outputs(outputs: dict[str, str | Path | None], inputs: list = (), directory: bool = False) -> None:
+def check_outputs(
+    outputs: Mapping[str, str | Path | None], inputs: Sequence[str | Path | None] = (), directory: bool = False
+) -> None:
     """Refuse, before any work, output paths that cannot be written (one line naming the option and path).
 
     `outputs` maps an option (``--out``) to its path.  Refused: two options naming one file, an input

@@ -55,8 +55,8 @@ class JointLog:
 
     def torques(self, names: list[str]) -> np.ndarray | None:
         """Actuator torques from columns ``tau:<joint>`` (N, len(names)), or None if any is missing."""
-        cols = [self.extra.get(f"tau:{n}") for n in names]
-        if any(c is None for c in cols):
+        cols = [c for c in (self.extra.get(f"tau:{n}") for n in names) if c is not None]
+        if len(cols) < len(names):
             return None
         tau = np.column_stack(cols)
         if not np.all(np.isfinite(tau)):

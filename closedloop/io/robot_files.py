@@ -122,10 +122,10 @@ def check_urdf(path: str | Path) -> None:
             )
         parent_of[child] = (parent, name)
         children.setdefault(parent, []).append(child)
-        org = el.find("origin")
-        if org is not None:
-            _numbers(path, f"joint '{name}': <origin> xyz", org.get("xyz"), 3)
-            _numbers(path, f"joint '{name}': <origin> rpy", org.get("rpy"), 3)
+        origin = el.find("origin")
+        if origin is not None:
+            _numbers(path, f"joint '{name}': <origin> xyz", origin.get("xyz"), 3)
+            _numbers(path, f"joint '{name}': <origin> rpy", origin.get("rpy"), 3)
         axis = el.find("axis")
         if axis is not None:
             xyz = _numbers(path, f"joint '{name}': <axis> xyz", axis.get("xyz"), 3)

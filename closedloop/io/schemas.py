@@ -125,7 +125,7 @@ def _mapping(loader: StrictLoader, node: yaml.MappingNode, deep: bool = False) -
 
 StrictLoader.add_constructor("tag:yaml.org,2002:int", _int)
 StrictLoader.add_constructor("tag:yaml.org,2002:float", _float)
-StrictLoader.construct_mapping = _mapping  # type: ignore[method-assign]
+StrictLoader.construct_mapping = _mapping
 
 
 def read_text(path: str | Path, what: str, error: type[InputError] = InputError) -> str:
@@ -494,7 +494,7 @@ def check_settings(values: dict, source: str = "--set", error: type[InputError] 
         raise error(f"{source}: solimp dmin {si[0]:g} exceeds dmax {si[1]:g}")
 
 
-def parse_noise(text: str | float | None):
+def parse_noise(text: str | float | None) -> float | dict[str, float] | None:
     """``--noise 1e-4`` or ``--noise j1=1e-4,j2=2e-4``: every value a finite number > 0 (rad or m)."""
     if text is None:
         return None
@@ -505,12 +505,12 @@ def parse_noise(text: str | float | None):
         if not 0 < v <= 10:
             raise InputError(f"--noise {text}: the joint noise must be > 0 and <= 10 (a std in rad or m)")
         return v
-    out = {}
+    out: dict[str, float] = {}
     for part in text.split(","):
-        k, _, v = (t.strip() for t in part.partition("="))
+        k, _, value = (t.strip() for t in part.partition("="))
         if not k:
             raise InputError(f"--noise {part}: expected joint=value")
-        out[k] = parse_number(v, f"--noise {part}")
+        out[k] = parse_number(value, f"--noise {part}")
         if not 0 < out[k] <= 10:
             raise InputError(f"--noise {part}: the joint noise must be > 0 and <= 10 (a std in rad or m)")
     return out

@@ -169,10 +169,11 @@ class DHTable:
         par = self.parents()
         jid_of: dict[str | None, int] = {None: 0}
         for row in self.rows:
-            parent = rows[par[row.name]] if par[row.name] is not None else None
+            parent_name = par[row.name]
+            parent = rows[parent_name] if parent_name is not None else None
             placement = (parent.constant() if parent is not None else pin.SE3.Identity()) * row.head()
             jid = model.addJoint(
-                jid_of[par[row.name]],
+                jid_of[parent_name],
                 pin.JointModelRZ(),
                 placement,
                 row.name,
@@ -207,7 +208,8 @@ class DHTable:
             return values.get(r.name, (r.s, r.a, r.alpha))
 
         for jid, row in enumerate(self.rows, start=1):
-            parent = rows[par[row.name]] if par[row.name] is not None else None
+            parent_name = par[row.name]
+            parent = rows[parent_name] if parent_name is not None else None
             if row.name not in values and (parent is None or parent.name not in values):
                 continue
             head = row.head(*geo(row))

@@ -299,17 +299,16 @@ def _urdf_mimics(path: Path) -> dict[str, tuple[str, float, float]]:
         root = ET.parse(path).getroot()
     except (ET.ParseError, OSError):
         return {}
-    out = {}
+    out: dict[str, tuple[str, float, float]] = {}
     for j in root.iter("joint"):
         m = j.find("mimic")
-        if m is not None and j.get("name"):
+        name = j.get("name")
+        if m is not None and name:
             try:
                 mult, off = float(m.get("multiplier", 1.0)), float(m.get("offset", 0.0))
             except ValueError:
-                raise ModelError(
-                    f"{path}: joint '{j.get('name')}': <mimic> multiplier and offset must be numbers"
-                ) from None
-            out[j.get("name")] = (m.get("joint", "?"), mult, off)
+                raise ModelError(f"{path}: joint '{name}': <mimic> multiplier and offset must be numbers") from None
+            out[name] = (m.get("joint", "?"), mult, off)
     return out
 
 

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.errors import InputError
-from closedloop.io.files import atomic_write, atomic_write_text
+from closedloop.errors import MissingExtraError
+from closedloop.io.files import atomic_write_text
 from closedloop.records import ParamStatus
 
 _CSS = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;color:#222}
@@ -35,10 +35,6 @@ th{background:#f3f3f3}td.l,th.l{text-align:left}.verdict{padding:.6em 1em;border
 .small{color:#666;font-size:.85em}"""
 
 
-#: what --html / --plots need, and how to get it
-MATPLOTLIB_HINT = 'needs matplotlib: pip install ".[report]" in the closedloop checkout (or pip install matplotlib)'
-
-
 def _plt():
     try:
         import matplotlib
@@ -46,7 +42,7 @@ def _plt():
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        raise InputError(f"--html/--plots {MATPLOTLIB_HINT}") from None
+        raise MissingExtraError("--html/--plots", "matplotlib", "report") from None
     return plt
 
 
@@ -144,8 +140,8 @@ def fig_corrections(res) -> bytes:
     plt = _plt()
     prob = res.problem
     est = robot_corrections(res)
-    groups = [("m", 1e3, "mm"), ("rad", 1e3, "mrad")]
-    groups = [(u, f, lab, [k for k in est if prob.params[k].unit == u]) for u, f, lab in groups]
+    units = [("m", 1e3, "mm"), ("rad", 1e3, "mrad")]
+    groups = [(u, f, lab, [k for k in est if prob.params[k].unit == u]) for u, f, lab in units]
     other = [k for k in est if prob.params[k].unit not in ("m", "rad")]  # scale factors, compliance
     groups = [g for g in groups if g[3]] + ([("", 1.0, "scale, compliance, ...", other)] if other else [])
     if not groups:
@@ -218,7 +214,7 @@ def write_plots(res, report: dict, out_dir: str | Path, snr: float = 1.0) -> lis
     paths = []
     for name, data in figures(res, report, snr).items():
         p = out / f"{name}.png"
-        atomic_write(p, lambda tmp, d=data: Path(tmp).write_bytes(d))
+        atomic_write_text(p, data)
         paths.append(p)
     return paths
 

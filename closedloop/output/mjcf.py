@@ -25,12 +25,16 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ModelError
 from closedloop.model.robot import RobotModel
+
+if TYPE_CHECKING:
+    from closedloop.output.urdf import ModelFrame
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +54,7 @@ def _fmt(v) -> str:
 
 
 def calibrated_mjcf(
-    robot: RobotModel, values: dict[str, float], out_dir: str | Path | None = None, frames: list = ()
+    robot: RobotModel, values: dict[str, float], out_dir: str | Path | None = None, frames: Sequence[ModelFrame] = ()
 ) -> str:
     """The MJCF text of ``robot`` (an MJCF model) with the calibrated joint frames.
 
@@ -226,7 +230,9 @@ def _check_compiles(root, src: Path) -> None:
         raise ModelError(f"{src}: the calibrated MJCF does not load in MuJoCo ({str(exc).splitlines()[0]})") from None
 
 
-def write_mjcf(robot: RobotModel, values: dict[str, float], out_path: str | Path, frames: list = ()) -> None:
+def write_mjcf(
+    robot: RobotModel, values: dict[str, float], out_path: str | Path, frames: Sequence[ModelFrame] = ()
+) -> None:
     """Write the calibrated MJCF atomically (assets found from wherever it is written; `frames` added)."""
     from closedloop.io.files import atomic_write_text, refuse_overwrite
 

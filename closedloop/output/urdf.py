@@ -16,6 +16,7 @@ estimated (tool points, fixtures, sensors, planes) is added as links on fixed jo
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import pinocchio as pin
@@ -49,7 +50,7 @@ def write_urdf(
     values: dict[str, float],
     out_path: str | Path,
     fold_offsets: bool = True,
-    frames: list = (),
+    frames: Sequence[ModelFrame] = (),
 ) -> None:
     """Write the URDF of `robot` with joint origins moved by `values` (see module doc).
 
@@ -100,8 +101,9 @@ def write_urdf(
             limit = j.find("limit")
             if limit is not None and j.get("type") != "continuous":
                 for key in ("lower", "upper"):
-                    if limit.get(key) is not None:
-                        limit.set(key, str(float(limit.get(key)) - offset))
+                    bound = limit.get(key)
+                    if bound is not None:
+                        limit.set(key, str(float(bound) - offset))
         if origin is None:
             origin = ET.Element("origin")
             j.insert(0, origin)
@@ -194,11 +196,15 @@ def write_dh(robot: RobotModel, values: dict[str, float], out_path: str | Path) 
     """Write the calibrated D-H table (same units as the input)."""
     from closedloop.model.dh import dump_dh
 
+    if robot.dh is None:
+        raise ModelError(f"{robot.source}: a {robot.kind} model, not a D-H table; write it as {robot.kind}")
     refuse_overwrite(out_path, robot.source)
     atomic_write_text(out_path, dump_dh(robot.dh, values))
 
 
-def write_model(robot: RobotModel, values: dict[str, float], out_path: str | Path, frames: list = ()) -> None:
+def write_model(
+    robot: RobotModel, values: dict[str, float], out_path: str | Path, frames: Sequence[ModelFrame] = ()
+) -> None:
     """The calibrated model in the input's own format (URDF, MJCF or D-H YAML); `frames` (`model_frames`:
     tool points, fixtures) become links (URDF) or sites and bodies (MJCF); a D-H table cannot hold them
     (the report does)."""

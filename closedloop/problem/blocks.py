@@ -29,6 +29,12 @@ class BlockEval:
     #: joint noise and are whitened together (`noise.whiten`); None for a block without configurations
     rows: np.ndarray | None = None
 
+    def jacobian(self) -> np.ndarray:
+        """`J`, which an evaluation with Jacobians holds (a ValueError if this one was made without)."""
+        if self.J is None:
+            raise ValueError("this block was evaluated without its parameter Jacobian")
+        return self.J
+
 
 class Workspace:
     """Named scratch arrays reused from one chunk (and one evaluation) to the next.

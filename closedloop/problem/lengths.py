@@ -157,4 +157,9 @@ def _nominal_distance(robot: RobotModel, a: str, b: str) -> float:
 
 def length_blocks(problem: CalibrationProblem) -> list[int]:
     """Indices of the problem's blocks that are known lengths."""
-    return [bi for bi, b in enumerate(problem.blocks) if isinstance(b.loop, LengthLoop)]
+    return list(length_loops(problem))
+
+
+def length_loops(problem: CalibrationProblem) -> dict[int, LengthLoop]:
+    """The problem's known lengths by block index (in block order)."""
+    return {bi: b.loop for bi, b in enumerate(problem.blocks) if isinstance(b.loop, LengthLoop)}

@@ -484,9 +484,9 @@ class CalibrationProblem:
         if first:  # no frame but the base
             D[...] = 0.0
         J = D[:, :, :C]
-        factors = ((_SCALE, theta), (_COMPLIANCE, np.zeros_like(theta) if tau is None else -tau))
+        factors = [(_SCALE, theta), (_COMPLIANCE, np.zeros_like(theta) if tau is None else -tau)]
         if self._coupled:  # a multiplier's column: the coupled joint's motion times the followed joint's angle
-            factors += ((_MIMIC, self.model_angles(state, theta, tau)),)
+            factors.append((_MIMIC, self.model_angles(state, theta, tau)))
         for kind, factor in factors:  # d theta' / d parameter: 1 (offset), theta (scale), -tau (compliance)
             k = np.flatnonzero(role == kind)
             J[:, :, k] *= factor[:, None, owner[k]]

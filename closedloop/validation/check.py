@@ -22,6 +22,8 @@ the true rotation.
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pinocchio as pin
 
@@ -222,7 +224,9 @@ def _followed_loops(report: dict) -> list[dict]:
 
 def _size_measured(report: dict) -> bool:
     """Whether the data measured the robot's size: the verdict's field, else the loop types."""
-    v = report.get("verdict") if isinstance(report.get("verdict"), dict) else {}
+    v = report.get("verdict")
+    if not isinstance(v, dict):
+        v = {}
     if isinstance(v.get("size_measured"), bool):
         return v["size_measured"]
     loops = [lp for lp in report.get("loops", []) if isinstance(lp, dict)]
@@ -243,12 +247,19 @@ def _values(robot, report_params: dict[str, float]):
 
 def _truth_loop(truth: dict, name: str, n_loops: int) -> dict:
     """The truth's description of loop `name` (simulate's 'loop' or 'loops'), {} if it has none."""
-    found = truth.get("loops") if isinstance(truth.get("loops"), list) else [truth.get("loop")]
-    found = [lp for lp in found if isinstance(lp, dict)]
+    given = truth.get("loops")
+    found = [lp for lp in (given if isinstance(given, list) else [truth.get("loop")]) if isinstance(lp, dict)]
     for lp in found:
         if lp.get("name") == name:
             return lp
     return found[0] if len(found) == 1 and n_loops == 1 else {}
+
+
+def _frame_name(value: object, what: str) -> str:
+    """A frame field of a report's or truth's loop: a frame name (an InputError naming `what` otherwise)."""
+    if not isinstance(value, str) or not value:
+        raise InputError(f"{what}: expected a frame name, got {json.dumps(value, default=str)}")
+    return value
 
 
 def _tip(params: dict, loop_name: str, fixed) -> np.ndarray:
@@ -317,13 +328,18 @@ def check_kinematics(
     if missing:
         raise InputError(f"{truth_source}: the true robot has no joint {missing[0]}: not the same robot's joints")
     rp_t, x_t = _values(true_robot, truth["parameters"])
-    items = []  # (label, kind, cal frame, cal tip, true frame, true tip, cal frame_b, true frame_b)
+    # (label, kind, cal frame, cal tip, true frame, true tip, cal frame_b, true frame_b)
+    items: list[tuple[str, str, str, np.ndarray, str, np.ndarray, str | None, str | None]] = []
     for lp in loops:
         name = str(lp.get("name"))
         tl = _truth_loop(truth, name, len(loops))
-        frame, frame_b = lp.get("frame_a"), lp.get("frame_b")
-        frame_b = None if frame_b in (None, "universe", "world") else frame_b
-        tframe, tframe_b = tl.get("frame", frame), tl.get("to", frame_b)
+        where, twhere = f"{report_source}: loop '{name}'", f"{truth_source}: loop '{name}'"
+        frame = _frame_name(lp.get("frame_a"), f"{where}: frame_a")
+        b = lp.get("frame_b")
+        frame_b = None if b in (None, "universe", "world") else _frame_name(b, f"{where}: frame_b")
+        tframe = _frame_name(tl.get("frame", frame), f"{twhere}: frame")
+        tb = tl.get("to", frame_b)
+        tframe_b = None if tb is None else _frame_name(tb, f"{twhere}: to")
         try:
             for f in (frame, frame_b):
                 if f is not None:
@@ -356,7 +372,7 @@ def check_kinematics(
 
     def predict(z: np.ndarray) -> list[tuple[np.ndarray, np.ndarray | None]]:
         s = float(np.exp(z[0])) if scaled else 1.0
-        out = []
+        out: list[tuple[np.ndarray, np.ndarray | None]] = []
         for k, (_, kind, _, tc, _, _, _, _) in enumerate(items):
             b = 1 + 6 * bases.index(group[k])
             B = pin.exp6(z[b : b + 6])
@@ -371,7 +387,7 @@ def check_kinematics(
                 out.append((p @ B.rotation.T + B.translation, B.rotation @ T[:, :3, :3] @ Y.rotation))
         return out
 
-    targets = []
+    targets: list[tuple[np.ndarray, np.ndarray | None]] = []  # (positions, rotations of a pose loop)
     for k, (_, kind, _, _, _, tt, _, _) in enumerate(items):
         T = Tt[k]
         targets.append((T[:, :3, :3] @ tt + T[:, :3, 3], T[:, :3, :3] if kind == "pose" else None))
@@ -380,7 +396,7 @@ def check_kinematics(
         r = []
         for (p, R), (pt, Rt) in zip(predict(z), targets):
             r.append(((p - pt) / tol_m).ravel())
-            if R is not None:
+            if R is not None and Rt is not None:  # a pose loop
                 r.append(np.array([pin.log3(a.T @ b) for a, b in zip(R, Rt)]).ravel() / tol_rad)
         return np.concatenate(r)
 
@@ -390,7 +406,7 @@ def check_kinematics(
         what = "tool point" if kind == "point" else "frame"
         err = float(np.linalg.norm(p - pt, axis=1).max())
         rows.append(_row(f"{name}: {what} {fc} position", None, None, err, tol_m, "ok" if err <= tol_m else "FAIL"))
-        if R is not None:
+        if R is not None and Rt is not None:  # a pose loop
             ang = float(max(np.linalg.norm(pin.log3(a.T @ b)) for a, b in zip(R, Rt)))
             rows.append(
                 _row(f"{name}: frame {fc} rotation", None, None, ang, tol_rad, "ok" if ang <= tol_rad else "FAIL")

@@ -199,6 +199,6 @@ def table(evals: list[Evaluation]) -> str:
                 cells.append(f"{r['rms_rad'] * 1e3:9.4f} mrad")
             else:
                 cells.append(f"{r['rms_px']:9.4f} px" if r["rms_px"] is not None else "-")
-        tot = f"{e.mean_m * 1e3:.3f}/{e.rms_m * 1e3:.3f} mm" if e.rms_m is not None else ""
+        tot = f"{e.mean_m * 1e3:.3f}/{e.rms_m * 1e3:.3f} mm" if e.rms_m is not None and e.mean_m is not None else ""
         lines.append(f"{e.model:<{width}}  " + "  ".join(f"{c:>14}" for c in cells) + f"  {tot:>16}")
     return "\n".join(lines)

@@ -44,7 +44,7 @@ def fixture_groups(loops: list[Loop]) -> dict[str, list[str]]:
             n = parent[n]
         return n
 
-    label = {lp.name: getattr(lp, "fixture", None) for lp in real}
+    label = {lp.name: str(getattr(lp, "fixture", None) or "") for lp in real}  # "": on no fixture
     by_label: dict[str, str] = {}
     for lp in real:
         if label[lp.name]:
@@ -67,7 +67,8 @@ def fixture_groups(loops: list[Loop]) -> dict[str, list[str]]:
 def _subset(log_: JointLog, names: list[str]) -> JointLog:
     from closedloop.validation.kfold import subset
 
-    return subset(log_, np.flatnonzero(np.isin(log_.loop, names)))
+    rows = np.flatnonzero(np.isin(log_.loop, names)) if log_.loop is not None else np.zeros(0, dtype=int)
+    return subset(log_, rows)
 
 
 def leave_one_fixture_out(

@@ -166,8 +166,8 @@ def _mean_loops(per_fold: list[list[dict]]) -> list[dict]:
             vals = [r.get(key) for r in rows]
             d[key] = None if any(v is None for v in vals) else float(np.sqrt(np.sum(n * np.array(vals) ** 2) / n.sum()))
         for key in ("max_m", "max_rad", "max_px"):
-            vals = [r.get(key) for r in rows]
-            d[key] = None if any(v is None for v in vals) else float(max(vals))
+            given = [v for v in (r.get(key) for r in rows) if v is not None]
+            d[key] = float(max(given)) if len(given) == len(rows) else None
         out.append(d)
     return out
 
