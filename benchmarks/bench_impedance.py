@@ -7,14 +7,17 @@ Prints the tables quoted in docs/guide/impedance.md and writes `results.json` to
 100 cycles of 2 s at 600 Hz, 5 % noise, `--reps` realisations per truth; "before" is the previous default
 (pre-filter 20 Hz, pooling +-15 ms, no step detection, no IV switch).  Speed: the `identify` pipeline
 (read the CSV, segment, estimate, bootstrap 200, 5-fold free-run VAF) timed in this process (wall and CPU)
-and the whole command (`python -m closedloop.cli.main impedance identify`, interpreter start included),
-with the load average.  `--all` adds the older tables (methods, thesis estimator, alignment traps, robot).
+and the whole command (`python -m closedloop.cli.main impedance identify`, interpreter start included,
+run with the user's BLAS thread setting, not this script's), `--reps` times with the machine otherwise
+idle and `--reps` times with one core held by a busy process, with the load average.  `--speed` runs that
+section alone.  `--all` adds the older tables (methods, thesis estimator, alignment traps, robot).
 """
 
 from __future__ import annotations
 
 import os
 
+_USER_ENV = dict(os.environ)  # the command is timed as a user runs it
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
@@ -26,7 +29,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
-from machine import machine  # noqa: E402
+from machine import busy_cores, machine  # noqa: E402
 
 from closedloop.impedance.bootstrap import bootstrap, free_run_vaf  # noqa: E402
 from closedloop.impedance.data import onsets_from_events, segment  # noqa: E402
@@ -368,11 +371,27 @@ def defaults_on_forearm(res: dict, reps: int) -> None:
     res["forearm"] = out
 
 
-def speed(res: dict, out: Path, repeats: int = 5) -> None:
-    """identify on 100 cycles (the elbow, constant truth) with its default bootstrap: wall and CPU."""
+def _command(path: Path) -> tuple[float, float, float]:
+    """Wall and CPU seconds of one whole `impedance identify` run (a child process), and the load."""
     import resource
     import subprocess
 
+    load = os.getloadavg()[0]
+    ch0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    subprocess.run(
+        [sys.executable, "-m", "closedloop.cli.main", "impedance", "identify", str(path)],
+        check=True,
+        capture_output=True,
+        env=_USER_ENV,
+    )
+    wall = time.perf_counter() - t
+    ch1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, ch1.ru_utime + ch1.ru_stime - ch0.ru_utime - ch0.ru_stime, load
+
+
+def speed(res: dict, out: Path, repeats: int = 5) -> None:
+    """identify on 100 cycles (the elbow, constant truth) with its default bootstrap: wall and CPU."""
     from closedloop.impedance.data import read_record, write_record
 
     rec, _ = simulate_elbow(ElbowConfig(seed=7))
@@ -390,17 +409,10 @@ def speed(res: dict, out: Path, repeats: int = 5) -> None:
         w2, c2 = time.perf_counter(), time.process_time()
         free_run_vaf(ens, est.options, 5)
         w3, c3 = time.perf_counter(), time.process_time()
-        t = time.perf_counter()
-        ch0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        subprocess.run(
-            [sys.executable, "-m", "closedloop.cli.main", "impedance", "identify", str(path)],
-            check=True,
-            capture_output=True,
-        )
-        wall = time.perf_counter() - t
-        ch1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-        cpu = ch1.ru_utime + ch1.ru_stime - ch0.ru_utime - ch0.ru_stime
+        wall, cpu, _ = _command(path)
         rows.append([w3 - w0, c3 - c0, w1 - w0, w2 - w1, w3 - w2, wall, load, c1 - c0, c2 - c1, c3 - c2, cpu])
+    with busy_cores(1):
+        busy = np.array([_command(path) for _ in range(repeats)])
     a = np.array(rows)
     med = np.median(a, 0)
     res["speed"] = {
@@ -414,6 +426,11 @@ def speed(res: dict, out: Path, repeats: int = 5) -> None:
         "load_1min": a[:, 6].tolist(),
         "cpu_s_estimate_bootstrap_vaf": med[7:10].tolist(),
         "all": a.tolist(),
+        "cli_one_core_busy": {
+            "wall_s": busy[:, 0].tolist(),
+            "cpu_s": busy[:, 1].tolist(),
+            "load_1min": busy[:, 2].tolist(),
+        },
     }
     print(
         f"\nspeed, identify on 100 cycles (median of {repeats}; load average {a[:, 6].min():.1f}-{a[:, 6].max():.1f} "
@@ -422,6 +439,11 @@ def speed(res: dict, out: Path, repeats: int = 5) -> None:
         f"{med[9]:.2f}); whole command {med[5]:.2f} s wall / {med[10]:.2f} s CPU "
         f"(min {a[:, 5].min():.2f}, max {a[:, 5].max():.2f})"
     )
+    print(
+        f"whole command with one core held by a busy process (load average {busy[:, 2].min():.1f}-"
+        f"{busy[:, 2].max():.1f}): {np.median(busy[:, 0]):.2f} s wall (min {busy[:, 0].min():.2f}, max "
+        f"{busy[:, 0].max():.2f}) / {np.median(busy[:, 1]):.2f} s CPU"
+    )
 
 
 def main() -> int:
@@ -429,15 +451,17 @@ def main() -> int:
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--out", default="out/bench_impedance")
     ap.add_argument("--all", action="store_true", help="also the older tables and figures")
+    ap.add_argument("--speed", action="store_true", help="only the speed section")
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     res = {"machine": machine(), "reps": a.reps}
     print(f"machine: {res['machine']}; {a.reps} realisations per condition")
-    speed(res, out)
-    defaults_on_elbow(res, a.reps)
-    defaults_on_forearm(res, a.reps)
-    if a.all:
+    speed(res, out, a.reps)
+    if not a.speed:
+        defaults_on_elbow(res, a.reps)
+        defaults_on_forearm(res, a.reps)
+    if a.all and not a.speed:
         speed_and_main_figure(res, out)
         tables_and_coverage(res, out, a.reps)
         voluntary_and_thesis(res, out, a.reps)

@@ -7,8 +7,10 @@ twin), `simulation` (the simulated experiment on either), `mujoco_sim` (the MuJo
 finite-difference truth, a robot case), `elbow` (an independent elbow experiment for judging the
 defaults), `data` (I/O, checks, segmentation, alignment), `estimate` (thesis, default, OLS, IV estimators
 and the posture fit), `timing` (the cycle onsets checked against the model and re-aligned by it),
-`bootstrap` (bands, free-run VAF), `nonparam` (impulse-response model check), `metrics`, `results`,
-`plots`, `cli`.  The estimator needs only numpy and scipy.
+`bootstrap` (bands, free-run VAF), `nonparam` (impulse-response model check), `filters` (the
+estimator's low-pass, spectrum, peak picking and smoothing in numpy), `metrics`, `results`, `plots`,
+`cli`.  The estimator needs only numpy (scipy for peak-velocity segmentation and alignment, and for the
+simulators).
 """
 
 _WHERE = {

@@ -29,7 +29,6 @@ from closedloop.impedance.estimate import (
     estimate,
     lowpass,
     per_cycle_moments,
-    pool_at,
     single_thread,
     solve,
 )
@@ -127,7 +126,8 @@ def bootstrap(
     in `Bands.bias`): bias-aware bands.  What they still miss is model error outside eq. 7.9 (the
     linearisation of a nonlinear limb, unmodelled actuator dynamics).
     The bands are computed every 10 ms (at most half the pooling half-width) and interpolated:
-    the pooled, pre-filtered estimate does not change faster.
+    the pooled, pre-filtered estimate does not change faster.  `est` must be the estimate of `ens`: its
+    designs (the filtered, scaled regressors) are reused when its options are `options`.
 
     The resamples go in chunks of `chunk` as jobs on `executor` (``closedloop.parallel.executor``: None or
     'serial' in this process, 'local', 'ray', or an engine); chunk c draws its resamples from
@@ -157,13 +157,14 @@ def bootstrap(
         for side, at, *sub in comps:
             at = sub[0] if sub else at
             sizes_t.append(at.size)
-            d = design(ens, options, side=side)
+            d = est.designs.get(side) if est is not None and est.options == options else None
+            d = design(ens, options, side=side) if d is None else d
             _, n, m = d.X.shape
             qz = None if d.Z is None else d.Z.shape[-1]
-            per, perz = per_cycle_moments(d)
-            pers.append(pool_at(per.reshape(n, L, m, m), half, at).reshape(n, -1))
+            per, perz = per_cycle_moments(d, half, at)
+            pers.append(per.reshape(n, -1))
             if perz is not None:
-                perzs.append(pool_at(perz.reshape(n, L, qz, -1), half, at).reshape(n, -1))
+                perzs.append(perz.reshape(n, -1))
             lights.append(SimpleNamespace(scale=d.scale, T=d.T))
         per = np.concatenate(pers, axis=1)
         perz = np.concatenate(perzs, axis=1) if perzs else None
@@ -259,9 +260,8 @@ def _resample_chunk(
 
     lights: each component's scale and lag; dims: (instants per component, regressors m, instruments q,
     stride of the centred component)."""
-    from scipy.ndimage import gaussian_filter1d
-
     from closedloop.impedance.estimate import to_ibk
+    from closedloop.impedance.filters import gaussian_filter1d
 
     sizes_t, m, qz, stride = dims
     Ls = sum(sizes_t)
@@ -275,7 +275,7 @@ def _resample_chunk(
         for c, (size, light) in enumerate(zip(sizes_t, lights)):
             pc = p[:, lo : lo + size]
             if options.smooth_ms > 0 and c == 0:
-                pc = gaussian_filter1d(pc, options.smooth_ms * 1e-3 * fs / stride, axis=-2, mode="nearest")
+                pc = gaussian_filter1d(pc, options.smooth_ms * 1e-3 * fs / stride, axis=-2)
             out.append(np.stack(to_ibk(pc, light.scale, light.T)))
             lo += size
     return tuple(np.concatenate(out, axis=-1))
@@ -350,7 +350,8 @@ def free_run_vaf(ens: Ensemble, options: EstimateOptions, folds: int = 5, seed: 
         est = estimate(tr, options=options, warn=False)
         prm[:, test] = np.stack([est.I, est.B, est.K])[:, None, :]
         dth, dtau, _ = te.deltas(tr)
-        dth, dtau = lowpass(dth, fs, options.prefilter_hz), lowpass(dtau, fs, options.prefilter_hz)
+        with single_thread():  # (the pre-filter's small products: BLAS threads only contend)
+            dth, dtau = lowpass(dth, fs, options.prefilter_hz), lowpass(dtau, fs, options.prefilter_hz)
         ref[test], u[test] = dth[:, P : P + L], dtau[:, P : P + L]
         x0[test], v0[test] = dth[:, P], (dth[:, P + 1] - dth[:, P - 1]) * fs / 2
     x = free_run(prm[0], prm[1], prm[2], u, x0, v0, fs)

@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.signal import butter, sosfiltfilt
 
 from closedloop.errors import InputError
 
@@ -361,6 +360,8 @@ def onsets_from_times(rec: Record, times: np.ndarray) -> list[tuple[int, int]]:
 
 
 def _smooth_velocity(x: np.ndarray, fs: float, cutoff: float = 10.0) -> np.ndarray:
+    from scipy.signal import butter, sosfiltfilt
+
     sos = butter(2, cutoff, fs=fs, output="sos")
     return np.gradient(sosfiltfilt(sos, x, axis=-1), 1.0 / fs, axis=-1)
 

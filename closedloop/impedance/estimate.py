@@ -45,26 +45,21 @@ import logging
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.ndimage import gaussian_filter1d
-from scipy.signal import butter, find_peaks, sosfilt, sosfiltfilt
 
 from closedloop.errors import InputError
 from closedloop.impedance.data import Ensemble
+from closedloop.impedance.filters import causal, filtfilt, find_peaks, gaussian_filter1d, welch
 
 log = logging.getLogger(__name__)
 
 
 def single_thread():
-    """Limit BLAS/LAPACK to one thread (threadpoolctl, if installed): the work here is many tiny batched
-    problems, for which threads only add contention (100x slower on a loaded 2-core machine)."""
-    try:
-        from threadpoolctl import threadpool_limits
+    """Limit BLAS/LAPACK to one thread (threadpoolctl): the work here is many tiny batched
+    problems, for which threads only add contention (100x slower on a loaded 2-core machine).  The
+    controller is cached (`closedloop.estimate.threads`): a fresh one scans the loaded libraries, ~1 ms."""
+    from closedloop.estimate.threads import blas_threads
 
-        return threadpool_limits(1)
-    except ImportError:  # pragma: no cover
-        from contextlib import nullcontext
-
-        return nullcontext()
+    return blas_threads(1, 0, 0)
 
 
 METHODS = ("default", "thesis", "ols", "iv")
@@ -119,6 +114,9 @@ class ImpedanceEstimate:
     weights: np.ndarray | None = None  # (3, L): centred, left-sided, right-sided estimates' weights
     steps: np.ndarray | None = None  # instants (s) of the abrupt changes found
     blend_spread: np.ndarray | None = None  # (3, L): w_c |centred - one-sided| where the two are blended
+    # the designs of the fit over the cycle's instants, by side (0 centred, -1 / +1 one-sided): the
+    # bootstrap resamples their rows instead of filtering the same ensemble again
+    designs: dict[int, "Design"] = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def wn(self) -> np.ndarray:
@@ -155,11 +153,9 @@ def auto_prefilter(ens: Ensemble, snr: float = 30.0, lo: float = 6.0) -> float:
     perturbation (Welch spectrum, averaged over cycles) stands `snr` times above its white-noise floor (the
     median of the spectrum above fs/4), between `lo` and fs/5.  At 5 % noise this is 9-12 Hz for a human
     limb (the best fixed setting), higher with less noise or faster dynamics."""
-    from scipy.signal import welch
-
     dth, _, _ = ens.deltas()
     nper = min(1024, dth.shape[1])
-    f, P = welch(dth, fs=ens.fs, nperseg=nper, axis=-1)
+    f, P = welch(dth, ens.fs, nper)
     P = P.mean(0)
     floor = np.median(P[f > ens.fs / 4])
     above = np.flatnonzero(P > snr * floor)
@@ -180,9 +176,9 @@ def lowpass(x: np.ndarray, fs: float, hz: float | None, order: int = 4) -> np.nd
     """Zero-phase Butterworth low-pass (the pre-filter of both signals; none when `hz` is None or 0)."""
     if x is None or not hz:
         return x
-    if hz >= fs / 2:
-        raise InputError(f"pre-filter {hz} Hz must be below the Nyquist frequency {fs / 2:g} Hz")
-    return sosfiltfilt(butter(order, hz, fs=fs, output="sos"), x, axis=-1)
+    if not 0 < hz < fs / 2:
+        raise InputError(f"pre-filter {hz} Hz must be below the Nyquist frequency {fs / 2:g} Hz and above 0")
+    return filtfilt(x, order, hz, fs)
 
 
 def _one_sided(x: np.ndarray, fs: float, hz: float | None, order: int, side: int) -> np.ndarray:
@@ -190,8 +186,7 @@ def _one_sided(x: np.ndarray, fs: float, hz: float | None, order: int, side: int
     samples up to c (or from c on)."""
     if not hz:
         return x
-    sos = butter(order, hz, fs=fs, output="sos")
-    return sosfilt(sos, x, axis=-1) if side < 0 else sosfilt(sos, x[..., ::-1], axis=-1)[..., ::-1]
+    return causal(x, order, hz, fs, side)
 
 
 def design(ens: Ensemble, opt: EstimateOptions, ref: Ensemble | None = None, side: int = 0, extend: int = 0) -> Design:
@@ -250,19 +245,29 @@ def design(ens: Ensemble, opt: EstimateOptions, ref: Ensemble | None = None, sid
 
 def moments(d: Design) -> tuple[np.ndarray, np.ndarray | None]:
     """Ensemble moment matrices per instant, sum_i x_i x_i^T (and sum_i z_i [x_i; z_i]^T)."""
-    Mxx = np.einsum("lni,lnj->lij", d.X, d.X)
-    Mzx = None if d.Z is None else np.einsum("lni,lnj->lij", d.Z, np.concatenate([d.X, d.Z], -1))
+    Mxx = np.swapaxes(d.X, -1, -2) @ d.X  # batched matrix products (BLAS): ~10x faster than einsum
+    Mzx = None if d.Z is None else np.swapaxes(d.Z, -1, -2) @ np.concatenate([d.X, d.Z], -1)
     return Mxx, Mzx
 
 
-def per_cycle_moments(d: Design) -> tuple[np.ndarray, np.ndarray | None]:
-    """Per-cycle outer products flattened to (n, L*m*m) (and (n, L*q*(m+q))), for weighted sums."""
-    L, n, m = d.X.shape
-    per = (d.X[..., :, None] * d.X[..., None, :]).transpose(1, 0, 2, 3).reshape(n, -1)
+def per_cycle_moments(d: Design, half: int, at: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """Per-cycle moment matrices pooled over +-half instants (clipped to the cycle), at the instants `at`
+    only: sum_k x_ik x_ik^T over the window of each instant, (n, len(at), m, m) (and the instruments'
+    (n, len(at), q, m + q)); their weighted sums over cycles are the bootstrap's resampled moments."""
+    offsets = np.arange(-half, half + 1)
+
+    def windows(A: np.ndarray) -> np.ndarray:  # (n, instants, window, columns), zeros beyond the cycle
+        padded = np.zeros((A.shape[1], A.shape[0] + 2 * half, A.shape[2]))
+        padded[:, half : half + A.shape[0]] = A.transpose(1, 0, 2)
+        return padded[:, at[:, None] + half + offsets]
+
+    Xw = windows(d.X)
+    per = np.swapaxes(Xw, -1, -2) @ Xw
     perz = None
     if d.Z is not None:
-        XZ = np.concatenate([d.X, d.Z], -1)
-        perz = (d.Z[..., :, None] * XZ[..., None, :]).transpose(1, 0, 2, 3).reshape(n, -1)
+        Zw = windows(d.Z)
+        Zt = np.swapaxes(Zw, -1, -2)
+        perz = np.concatenate([Zt @ Xw, Zt @ Zw], -1)
     return per, perz
 
 
@@ -274,15 +279,6 @@ def pool(M: np.ndarray, half: int) -> np.ndarray:
     cs = np.cumsum(np.concatenate([np.zeros_like(M[..., :1, :, :]), M], axis=-3), axis=-3)
     lo, hi = np.clip(np.arange(L) - half, 0, L), np.clip(np.arange(L) + half + 1, 0, L)
     return np.take(cs, hi, axis=-3) - np.take(cs, lo, axis=-3)
-
-
-def pool_at(M: np.ndarray, half: int, at: np.ndarray) -> np.ndarray:
-    """`pool(M, half)` at the instants `at` only (axis -3)."""
-    L = M.shape[-3]
-    if half <= 0:
-        return np.take(M, at, axis=-3)
-    cs = np.cumsum(np.concatenate([np.zeros_like(M[..., :1, :, :]), M], axis=-3), axis=-3)
-    return np.take(cs, np.clip(at + half + 1, 0, L), axis=-3) - np.take(cs, np.clip(at - half, 0, L), axis=-3)
 
 
 def solve(
@@ -377,7 +373,7 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
             d = design(ens, opt)
             Mxx, Mzx = moments(d)
             I, B, K, cond = finish(d, Mxx, Mzx, opt, ens.fs)
-            return ImpedanceEstimate(d.stamps / ens.fs, I, B, K, cond, opt, d.lag)
+            return ImpedanceEstimate(d.stamps / ens.fs, I, B, K, cond, opt, d.lag, designs={0: d})
         L, fs = ens.length, ens.fs
         half = int(round(opt.pool_ms * 1e-3 * fs))
         D = max(1, int(round(opt.lag_ms * 1e-3 * fs)))
@@ -388,14 +384,17 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
         p, cond, lam = tls(pool(Mxx, half))
         I, B, K = to_ibk(p[E : E + L], d.scale, d.T)
         est = ImpedanceEstimate(d.stamps[E : E + L] / fs, I, B, K, cond[E : E + L], opt, d.lag)
+        cycle = slice(E, E + L)  # the design over the cycle alone: design(ens, opt)
+        z = None if d.Z is None else d.Z[cycle]
+        est.designs[0] = replace(d, X=d.X[cycle], Z=z, stamps=d.stamps[cycle])
         r = lam / np.median(lam[E : E + L])
         spread = np.sqrt(100.0 / max(ens.n, 1))  # the residual's sampling spread grows as 1/sqrt(n)
         ratio, contrast = 1 + (opt.edge_ratio - 1) * spread, 1 + (opt.edge_contrast - 1) * spread
-        cand, _ = find_peaks(np.nan_to_num(r), height=ratio, distance=max(1, W))
+        cand = find_peaks(np.nan_to_num(r), ratio, max(1, W))
         if cand.size:  # confirmed where both one-sided fits fit much better than the centred one
             th, rs = [np.stack([I, B, K])], []
             for side in (-1, 1):
-                ds = design(ens, opt, side=side)
+                ds = est.designs[side] = design(ens, opt, side=side)
                 ps, _, ls = tls(pool(moments(ds)[0], half), want_cond=False)
                 th.append(np.stack(to_ibk(ps, ds.scale, ds.T)))
                 rs.append(ls / np.median(ls))
@@ -497,7 +496,7 @@ def finish(d: Design, Mxx, Mzx, opt: EstimateOptions, fs: float, start: np.ndarr
     half = int(round(opt.pool_ms * 1e-3 * fs))
     p, cond = solve(pool(Mxx, half), pool(Mzx, half), opt.method, start)
     if opt.smooth_ms > 0:
-        p = gaussian_filter1d(p, opt.smooth_ms * 1e-3 * fs, axis=-2, mode="nearest")
+        p = gaussian_filter1d(p, opt.smooth_ms * 1e-3 * fs, axis=-2)
     I, B, K = to_ibk(p, d.scale, d.T)
     return (I, B, K, cond) if start is None else (I, B, K, p)
 
@@ -529,7 +528,7 @@ def diagnose(est: ImpedanceEstimate, n: int, has_command: bool = True) -> list[s
                 "alignment: misaligned cycles leave the mean movement in the perturbations)"
             )
     elif I.size > 10:  # on the 50 ms-smoothed curve: random error alone is not a warning
-        Is = gaussian_filter1d(I, 0.05 / max(est.t[1] - est.t[0], 1e-9), mode="nearest")
+        Is = gaussian_filter1d(I, 0.05 / max(est.t[1] - est.t[0], 1e-9))
         dev = np.max(np.abs(Is - np.median(I))) / np.median(I)
         if dev > 0.10 and est.options.method != "iv":
             remedy = (
