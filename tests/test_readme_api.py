@@ -27,4 +27,7 @@ def test_readme_python_example_runs(tmp_path, monkeypatch, panda_weld):
     env: dict = {}
     exec(compile(code, "README.md", "exec"), env)
     assert env["res"].verdict.status == "ok"
+    shown = README.read_text().split("its first lines:", 1)[1]
+    first = re.search(r"```text\n(.*?)\n", shown).group(1)
+    assert first == env["res"].verdict.describe(), first  # the README shows the line the example prints
     assert (tmp_path / "calibrated.urdf").exists() and (tmp_path / "report.json").exists()
