@@ -236,7 +236,7 @@ def test_simulate_sweep_on_every_engine_resumable_failure_isolated(cluster, loca
 
 
 def test_simulate_without_seeds_is_one_dataset(tmp_path, capsys):
-    """`--scenario X` (abbreviating --scenarios) without --seeds writes one dataset into --out as before;
+    """`--scenario X` (the singular of --scenarios) without --seeds writes one dataset into --out as before;
     --jobs without --seeds is a one-line input error."""
     from closedloop.cli.main import main
 

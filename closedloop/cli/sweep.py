@@ -176,7 +176,10 @@ def add_sweep_options(s) -> None:
         help="simulate one dataset per seed into OUT/seed_NNN/ (resumable; with --jobs / --ray in parallel)",
     )
     s.add_argument(
-        "--scenarios", metavar="A,B,...", help="with --seeds: several scenarios, into OUT/SCENARIO/seed_NNN/"
+        "--scenarios",
+        "--scenario",
+        metavar="A,B,...",
+        help="with --seeds: several scenarios, into OUT/SCENARIO/seed_NNN/",
     )
     add_arguments(s)
     s.set_defaults(func=cmd_simulate_sweep)

@@ -212,16 +212,20 @@ def bootstrap(
                 lo[k], hi[k] = np.nanpercentile(a, q, axis=0), np.nanpercentile(a, 100 - q, axis=0)
                 sd[k] = np.nanstd(a, axis=0)
     if est is not None and est.steps is not None and len(est.steps):
-        from scipy.ndimage import maximum_filter1d, minimum_filter1d
+        from numpy.lib.stride_tricks import sliding_window_view
 
         r = max(1, int(round(0.010 * ens.fs)))
+
+        def running(fn, a: np.ndarray) -> np.ndarray:  # min or max over +-r samples (edges repeated)
+            return fn(sliding_window_view(np.pad(a, r, mode="edge"), 2 * r + 1), axis=-1)
+
         near = np.zeros(L, bool)
         for t0 in np.round(np.asarray(est.steps) * ens.fs).astype(int):
             for t in (t0 - L, t0, t0 + L):  # the cycle's ends are neighbours
                 near[max(0, t - r) : max(0, t + r)] = True
         for k in lo:
-            lo[k] = np.where(near, minimum_filter1d(lo[k], 2 * r + 1, mode="nearest"), lo[k])
-            hi[k] = np.where(near, maximum_filter1d(hi[k], 2 * r + 1, mode="nearest"), hi[k])
+            lo[k] = np.where(near, running(np.min, lo[k]), lo[k])
+            hi[k] = np.where(near, running(np.max, hi[k]), hi[k])
     if est is not None and est.blend_spread is not None:  # the centred fit's share of a step's bias
         for j, k in enumerate("IBK"):
             lo[k], hi[k] = lo[k] - est.blend_spread[j], hi[k] + est.blend_spread[j]
