@@ -7,12 +7,13 @@ second calibration must still keep the well-determined parameters, hold the same
 and say `ok`, with changes within the noise and the robot still the simulated truth.
 
 Measured (panda_weld and ur5_socket, seed 1, 200 + 200 configurations): the recalibrations change no
-parameter by more than 1.7 um or 3e-6 rad; the recalibrated robot against the truth 4-6 um and
-1e-5 rad over 200 configurations, as the first calibration.  The length held is the nominal's
-(panda_joint3.z, 0.316 m; elbow_joint.z, 0.425 m); before, a near-redundant slide was kept in place of
-a well-determined length (panda_joint4.y, kept at 1e-4 of its effect instead of panda_joint2.x) and the
-size was held by panda_joint2.y (0.137 m) or shoulder_lift_joint.x, and another robot's data from that
-start gave corrections of 0.3 m (`failed`).
+parameter by more than 4e-12 (m or rad) on the same data, 1.7e-7 m and 4.4e-7 rad on fresh data; the
+recalibrated robot against the truth 0.35-6 um and 1.1e-5 rad over 200 configurations, as the first
+calibration.  The length held is the nominal's (panda_joint3.z, 0.316 m; elbow_joint.z, 0.425 m).
+Before, a near-redundant slide was kept in place of a well-determined length (panda_joint4.y, kept at
+1e-4 of its effect instead of panda_joint2.x), the size was held by panda_joint2.y (0.137 m) or
+shoulder_lift_joint.x (0.137 m), and another robot's data from that start gave corrections of 0.17 m
+(`failed`).
 """
 
 from __future__ import annotations
