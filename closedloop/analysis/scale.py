@@ -50,8 +50,8 @@ def scale_note(problem: CalibrationProblem, gauge: str | None, scale_free: bool)
         return "the scale is set by " + " and ".join(_scale_labels(dists))
     if gauge is not None:
         return (
-            f"the scale is not set by the data: {gauge} is held at its value (give a known length, "
-            "e.g. --distance A.point B.point 0.050)"
+            f"the scale is not set by the data: {gauge} is held at its value (give a known distance or length, "
+            "e.g. --distance A.point B.point 0.050 or --length LINK_A LINK_B 0.316)"
         )
     if scale_free:
         return "the scale is not set by the data, and no held length sets it"

@@ -481,7 +481,7 @@ def name_gauge(
         return None
     status[structure.gauge] = ParamStatus.FIXED
     gauge = problem.names[structure.gauge]
-    notes.append(f"fixed {gauge} = {x[structure.gauge]:g}: {structure.gauge_note}")
+    notes.append(f"held {gauge} (correction {x[structure.gauge]:g}): {structure.gauge_note}")
     user_lengths = [problem.names[k] for k in opt_fixed(problem, opt) if problem.params[k].scales_with_length]
     if user_lengths:
         notes.append(

@@ -355,7 +355,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
         v = getattr(est, k)
         out.append(
             f"  {k}: median {np.nanmedian(v):.4g} {unit}, range {np.nanmin(v):.4g} .. {np.nanmax(v):.4g}"
-            + (f", mean 95 % band half-width {np.nanmean(bands.hi[k] - bands.lo[k]) / 2:.3g}" if bands else "")
+            + (f", mean 95 % band half-width {np.nanmean(bands.hi[k] - bands.lo[k]) / 2:.3g} {unit}" if bands else "")
         )
     out.append(
         f"  natural frequency median {np.nanmedian(est.wn) / 2 / np.pi:.3g} Hz, "
@@ -385,7 +385,7 @@ def cmd_identify(args: argparse.Namespace) -> int:
         summary["vaf_free_run"] = fit.vaf
         iv = opt.method == "iv"
         out.append(
-            f"  free-run VAF on held-out cycles ({fit.folds}-fold): {fit.vaf:.2f} %"
+            f"  free-run VAF (variance accounted for) on held-out cycles ({fit.folds}-fold): {fit.vaf:.2f} %"
             + (" (unmeasured voluntary torque moves the limb too: no model predicts all of it)" if iv else "")
         )
         if not fit.vaf > 90.0 and not iv:

@@ -74,7 +74,10 @@ def cmd_check(args) -> int:
     rows, ok = check_report(truth, report, **tols, **src, model=args.model, view=view, truth_model=args.truth_model)
     kinematic = bool(rows) and rows[0].get("view") == "kinematics"
     if kinematic:
-        print("what the robots do (base, tool and unmeasured size removed; max over 200 configurations):")
+        print(
+            "what the robots do: largest error over 200 random readings within the joint ranges "
+            "(m, rad; size as a ratio), base, tool and unmeasured size removed:"
+        )
         _print_rows(rows, "loop / quantity")
         if args.show_parameters:
             print("\nthe parameter table (a second view: a correct robot in another parametrization may differ here):")
