@@ -19,11 +19,9 @@ robot *does*, not by the parameter vector:
   parameter the reduction drops) are tested for scale content.  None: the
   data (or a length the user fixed) set the size.  Otherwise each free length
   g, longest first, is put last in the reduction order; it is the gauge when
-  it is then dropped with a null direction whose scale content is its own
-  (fixing g longer by eps * g scales the robot by 1 + eps) and whose
-  kinematic change is that scaling, up to a share PURE_SCALING of changes
-  the loops cannot see (round-off at a nominal model's special geometry, up
-  to 1e-2 at a calibrated model's, whose frames carry its corrections).
+  it is then dropped with a null direction whose scale content is exactly
+  its own (fixing g longer by eps * g scales the robot by 1 + eps) and no
+  other dropped parameter carries any.
 """
 
 from __future__ import annotations
@@ -41,15 +39,6 @@ HELD_ERROR = 2e-3  # m: an error of a nominal length a model file may carry (a d
 # the size error a HELD_ERROR in the held length may make before the result is suspect: the size change that makes
 # a result suspect (`verdict.VerdictRules.scale_suspect`), so a held length under 67 mm
 SIZE_FROM_HELD = 0.03
-# A held length's null direction counts as a uniform scaling when what is left of its kinematic change
-# besides the scaling (and the rigid motions) is under this share of it (`scale_content`'s second value).
-# At a model's special geometry (axes parallel or square, frames on them) the share is round-off
-# (1e-14..1e-11).  A calibrated model's joint frames carry its corrections (offsets, millimetre
-# tilts): a length held beside the gauge then stands for a few millimetres (a UR5's elbow_joint.x,
-# 0 nominally, 5.1 mm), so scaling the robot with it held moves it back along its own null direction,
-# a change of shape the loops cannot see: 9e-3 of the scaling for the calibrated UR5 of a point or
-# hinge loop.  A direction that is no scaling leaves 0.29 or more (measured: a Panda weld, a UR5 socket).
-PURE_SCALING = 0.05
 
 
 def random_configurations(problem: CalibrationProblem, n: int = N_CONFIGS, seed: int = 0) -> np.ndarray:
@@ -205,9 +194,7 @@ def choose_gauge(
         first = first or (kept, dropped)
         c, res = scale_content(dP, A)
         length = prior[cols] / np.maximum(np.abs(c), 1e-300)
-        scaling = [
-            j for j in range(len(cols)) if res[j] < PURE_SCALING and cols[j] in lengths and 0.01 <= length[j] <= reach
-        ]
+        scaling = [j for j in range(len(cols)) if res[j] < 1e-3 and cols[j] in lengths and 0.01 <= length[j] <= reach]
         if scaling:
             best = max(scaling, key=lambda j: (round(float(length[j]), 4), -cols[j]))  # equal lengths: the first
             found = (cols[best], kept, dropped, float(length[best]))
@@ -224,7 +211,7 @@ def choose_gauge(
             c, res = scale_content(*kinematic_changes(problem, x, Vg, q))
             L = float(prior[g] / max(abs(c[0]), 1e-300))
             # longer by more than round-off (equal lengths: the first, whatever the last digits say)
-            if res[0] < PURE_SCALING and 0.01 <= L <= reach and (found is None or L > found[3] * (1.0 + 1e-9)):
+            if res[0] < 1e-3 and 0.01 <= L <= reach and (found is None or L > found[3] * (1.0 + 1e-9)):
                 found = (g, kept_g, dropped_g, L)
     if found is None:
         assert first is not None  # `orders` is never empty: its first reduction got this far
@@ -267,4 +254,4 @@ def sets_scale(
     v = np.zeros(len(problem.params))
     v[[free[c] for c in cols]] = Vt[-1] * prior[cols]
     c, res = scale_content(*kinematic_changes(problem, x, v[:, None], random_configurations(problem)))
-    return bool(res[0] < PURE_SCALING)
+    return bool(res[0] < 1e-3)

@@ -10,10 +10,7 @@ parameters' expected error magnitudes):
    are taken greedily in priority order (loop geometry, offsets, scales, then
    link geometry from the tip to the base) and one is dropped when its column
    lies in the span of those already kept (relative residual < tol); the
-   least-squares coefficients of that fit say what absorbed it.  A column
-   that adds rank only weakly (relative residual under STRONG) waits until the
-   others are taken, so that a model whose frames carry a calibration's
-   corrections keeps what the nominal one keeps (`greedy_reduction`).
+   least-squares coefficients of that fit say what absorbed it.
 2. The length gauge (3.3): when a uniform scaling of every length lies in the
    null space, one length must be held; it is named by what the robot does
    (`gauge.choose_gauge`).  Both are decided at the start and checked again
@@ -41,7 +38,6 @@ from closedloop.records import Combination, Dropped
 
 STRUCTURE_ROWS = 768  # residual rows per loop the structural analysis reads (`closure_jacobian`), whole configurations
 STRUCTURE_CONFIGS = (64, 512)  # the configurations that makes per loop: at least, at most
-STRONG = 1e-3  # a column adding rank by less than this share of its norm is kept only after the others
 
 if TYPE_CHECKING:
     from closedloop.problem.problem import CalibrationProblem
@@ -55,66 +51,37 @@ def compress(C: np.ndarray) -> np.ndarray:
 
 
 def greedy_reduction(
-    C: np.ndarray, names: list[str], order: list[int], tol: float = 1e-6, max_terms: int = 6, strong: float = STRONG
+    C: np.ndarray, names: list[str], order: list[int], tol: float = 1e-6, max_terms: int = 6
 ) -> tuple[list[int], list[Dropped]]:
     """Keep columns of C in `order` while they add rank; explain the others.
 
     C is the column-scaled Jacobian (M, P).  Returns kept column indices and
     the dropped ones with the kept parameters that absorb them.
-
-    Two passes.  The first takes the columns in `order` and keeps those whose
-    relative residual against the columns kept before them exceeds `strong`.
-    The second takes the weak ones left (relative residual in (tol, strong]),
-    the most independent first (column pivoting, as QR with pivoting does),
-    while one adds rank above `tol`.  A column that only a slight departure
-    from a special geometry separates from others (an axis tilted by a
-    calibration's milliradians, making a slide along a neighbouring axis a
-    length: relative residual ~1e-4) is thus never kept in place of one that
-    separates by the geometry itself (~1e-2): both span the same space, but
-    only the second is determined by data of ordinary noise.
     """
     C = compress(C)
-    Q = np.zeros((C.shape[0], 0))
+    M = C.shape[0]
+    Q = np.zeros((M, 0))
     kept: list[int] = []
-    weak: list[int] = []
-    dropped: dict[int, Dropped] = {}
+    dropped: list[Dropped] = []
     norms = np.linalg.norm(C, axis=0)
     cmax = norms.max() if norms.size else 0.0
-
-    def residual(k: int) -> np.ndarray:
-        v = C[:, k] - Q @ (Q.T @ C[:, k])
-        return v - Q @ (Q.T @ v)  # re-orthogonalise
-
-    def explain(k: int, res: float) -> Dropped:
-        coef, *_ = np.linalg.lstsq(C[:, kept], C[:, k], rcond=None)
-        big = np.argsort(-np.abs(coef))
-        terms = [(names[kept[i]], float(coef[i])) for i in big[:max_terms] if abs(coef[i]) > 1e-3 * np.abs(coef).max()]
-        return Dropped(names[k], "structurally redundant with this loop", terms, float(res))
-
     for k in order:
+        c = C[:, k]
         if norms[k] <= 1e-12 * max(cmax, 1e-300):
-            dropped[k] = Dropped(names[k], "has no effect on any loop with this data")
+            dropped.append(Dropped(names[k], "has no effect on any loop with this data"))
             continue
-        v = residual(k)
-        res = float(np.linalg.norm(v) / norms[k])
-        if res > strong:
+        v = c - Q @ (Q.T @ c)
+        v = v - Q @ (Q.T @ v)  # re-orthogonalise
+        res = np.linalg.norm(v) / norms[k]
+        if res > tol:
             Q = np.column_stack([Q, v / np.linalg.norm(v)])
             kept.append(k)
-        elif res > tol:
-            weak.append(k)
-        else:
-            dropped[k] = explain(k, res)
-    while weak:  # the weak columns, the most independent first
-        vs = [residual(k) for k in weak]
-        res_w = [float(np.linalg.norm(v) / norms[k]) for v, k in zip(vs, weak)]
-        best = int(np.argmax(res_w))  # the first of equal ones: the priority order
-        if not res_w[best] > tol:
-            for k, r in zip(weak, res_w):
-                dropped[k] = explain(k, r)
-            break
-        Q = np.column_stack([Q, vs[best] / np.linalg.norm(vs[best])])
-        kept.append(weak.pop(best))
-    return kept, [dropped[k] for k in order if k in dropped]
+            continue
+        coef, *_ = np.linalg.lstsq(C[:, kept], c, rcond=None)
+        big = np.argsort(-np.abs(coef))
+        terms = [(names[kept[i]], float(coef[i])) for i in big[:max_terms] if abs(coef[i]) > 1e-3 * np.abs(coef).max()]
+        dropped.append(Dropped(names[k], "structurally redundant with this loop", terms, float(res)))
+    return kept, dropped
 
 
 def null_space(C: np.ndarray, rtol: float = 1e-7) -> np.ndarray:
