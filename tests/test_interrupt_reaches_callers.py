@@ -64,3 +64,43 @@ def test_a_keyboard_interrupt_raised_by_code_is_an_exit_code(tmp_path, monkeypat
     monkeypatch.setattr(closedloop.sims, "simulate", interrupt)
     assert main(["simulate", "panda_weld", "--n", "2", "--out", str(tmp_path / "o")]) == 130
     assert "interrupted" in capsys.readouterr().err
+
+
+SWALLOW = """
+import os, signal, sys, time
+import closedloop.sims
+from closedloop.cli.main import main
+
+real = closedloop.sims.simulate
+
+def swallowing(*a, **k):  # a library that catches everything, the interrupt too, and goes on
+    try:
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.5)
+    except BaseException:
+        pass
+    return real(*a, **k)
+
+closedloop.sims.simulate = swallowing
+try:
+    rc = main(["simulate", "panda_weld", "--n", "5", "--out", sys.argv[1]])
+except KeyboardInterrupt:
+    print("caller interrupted")
+    sys.exit(99)
+print("main returned", rc)
+"""
+
+
+def test_an_interrupt_a_library_swallowed_still_publishes_nothing(tmp_path):
+    """The command ran on after its interrupt was caught inside a library: nothing is published and the
+    caller is stopped all the same."""
+    p = subprocess.run(
+        [sys.executable, "-c", SWALLOW, str(tmp_path / "out")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=_default_sigint,
+    )
+    assert p.returncode == 99 and "caller interrupted" in p.stdout, (p.stdout, p.stderr)
+    assert "interrupted" in p.stderr
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())

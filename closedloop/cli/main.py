@@ -375,6 +375,7 @@ _received: list[int] = []  # the signals received during this command (a library
 
 def _raise_signal(signum, _frame):
     _received.append(signum)
+    _note_signal(signum)
     raise _Signal(signum)
 
 
@@ -382,7 +383,15 @@ def _raise_interrupt(signum, _frame):
     """SIGINT as Python's own handler, remembered: numpy turns an interrupt in its C extension's import
     into an ImportError, which must still end as an interruption."""
     _received.append(signum)
+    _note_signal(signum)
     raise KeyboardInterrupt
+
+
+def _note_signal(signum: int) -> None:
+    """No output is published after an interrupt, even one a library caught (`io.files.note_signal`)."""
+    from closedloop.io.files import note_signal
+
+    note_signal(signum)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -397,6 +406,9 @@ def main(argv: list[str] | None = None) -> int:
     argv = join_negative_numbers(list(sys.argv[1:] if argv is None else argv))
     handlers = {}
     _received.clear()
+    from closedloop.io.files import clear_signals
+
+    clear_signals()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGHUP):
             handlers[sig] = signal.signal(sig, _raise_signal)
@@ -429,7 +441,10 @@ def main(argv: list[str] | None = None) -> int:
             logging.basicConfig(
                 level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
             )
-            return args.func(args)
+            rc = args.func(args)
+            if _received:  # a library swallowed the interrupt and the command ran on: it still ends interrupted
+                return interrupted(_received[0])
+            return rc
     except SystemExit as exc:  # --help, --version, a --config loader that already printed its line
         if exc.code is None or isinstance(exc.code, int):
             return exc.code or 0

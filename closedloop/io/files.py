@@ -90,6 +90,20 @@ def _write_special(path: Path, data: bytes) -> None:
         os.close(fd)
 
 
+_signals: list[int] = []  # interrupts received by the running command (`note_signal`)
+
+
+def note_signal(signum: int) -> None:
+    """Record an interrupt (the command line's signal handler calls this): no output set is published
+    after it, even where a library caught the exception the handler raised."""
+    _signals.append(signum)
+
+
+def clear_signals() -> None:
+    """Forget the interrupts of a previous command (the command line calls this when a command starts)."""
+    _signals.clear()
+
+
 class OutputSet:
     """The files of one command, published together: the old set or the new one, never a temporary file.
 
@@ -129,8 +143,11 @@ class OutputSet:
     def commit(self) -> None:
         """Publish the staged files (class doc); devices and named pipes are written in place, last.
 
-        Refused before anything is written: a target that is one of this run's inputs (`note_input`).
+        Refused before anything is written: a target that is one of this run's inputs (`note_input`), and
+        any set at all once an interrupt was received (`note_signal`: a library may have swallowed it).
         """
+        if _signals:
+            raise KeyboardInterrupt
         for t in self.files:
             source = _input_at(t)
             if source is not None:
