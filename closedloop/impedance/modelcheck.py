@@ -69,15 +69,14 @@ def twin(ens: Ensemble, est, seed: int = 0, smooth_ms: float = 50.0) -> Ensemble
     """The data's noise-only twin (module docstring): the identified model of `est` (smoothed over
     `smooth_ms`, never across a step found) driven by each cycle's measured torque perturbation from its
     pre-filtered initial state, with white noise at the measured levels added to angle and torque."""
-    from closedloop.impedance.bootstrap import _smooth, free_run
+    from closedloop.impedance.bootstrap import free_run, smoothed_model
     from closedloop.impedance.estimate import lowpass, noise_std
 
     opt = est.options
     P, L, fs = ens.pad, ens.length, ens.fs
     dth, dtau, _ = ens.deltas()
     s_th, s_tau = noise_std(dth), noise_std(dtau)
-    cuts = np.array([]) if est.steps is None else np.round(np.asarray(est.steps) * fs)
-    truth = np.stack([_smooth(np.asarray(getattr(est, k), float), smooth_ms * 1e-3 * fs, cuts) for k in "IBK"])
+    truth = smoothed_model(est, fs, smooth_ms)
     on_pad = np.mod(np.arange(L + 2 * P) - P, L)
     f = lowpass(dth, fs, opt.prefilter_hz) if opt.prefilter_hz else dth
     x = free_run(*(t[on_pad] for t in truth), dtau, f[:, 0], (f[:, 1] - f[:, 0]) * fs, fs)
