@@ -34,7 +34,7 @@ def test_threshold():
     assert RATIO_ALARM == 1.25
 
 
-@pytest.mark.parametrize("kw", [{}, {"stiffness": "square"}])
+@pytest.mark.parametrize("kw", [{}, pytest.param({"stiffness": "square"}, marks=pytest.mark.slow)])
 def test_silent_on_the_independent_elbow(kw):
     rec, _ = simulate_elbow(ElbowConfig(seed=1, **kw))
     _, _, chk = _check(rec)
@@ -48,6 +48,7 @@ def test_silent_on_the_thesis_forearm(noise):
     assert 0.8 < chk.ratio < 1.1 and not chk.fires, chk
 
 
+@pytest.mark.slow
 def test_not_made_for_an_iv_estimate():
     rec, _ = simulate_elbow(ElbowConfig(seed=1, voluntary_rms=0.5))
     _, est, chk = _check(rec)
