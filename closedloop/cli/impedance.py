@@ -381,6 +381,16 @@ def cmd_identify(args: argparse.Namespace) -> int:
                 f"{ens.n} cycles give an expected error up to {worst:.1f} % (bootstrap std); about {need} cycles "
                 "would bring it to 1.5 %"
             )
+    from closedloop.impedance.modelcheck import model_check
+
+    check = model_check(ens, est, seed=args.seed)
+    if check is None:
+        summary["model_check"] = {"made": False, "reason": f"not made for the {opt.method} estimate"}
+    else:
+        summary["model_check"] = {"made": True, **check.summary()}
+        out.append("  " + check.line())
+        if check.fires:
+            warnings.append(check.warning())
     if fit is not None:
         summary["vaf_free_run"] = fit.vaf
         iv = opt.method == "iv"

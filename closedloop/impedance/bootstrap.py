@@ -74,6 +74,13 @@ def _smooth(v: np.ndarray, sigma: float, cuts: np.ndarray) -> np.ndarray:
     return np.roll(out, r)
 
 
+def smoothed_model(est, fs: float, smooth_ms: float = 50.0) -> np.ndarray:
+    """I, B, K (3, L) of `est` smoothed over `smooth_ms` (Gaussian std) within the stretches between the
+    steps it found, never across one: the model `simulated_bias` simulates, its random wiggles removed."""
+    cuts = np.array([]) if est.steps is None else np.round(np.asarray(est.steps) * fs)
+    return np.stack([_smooth(np.asarray(getattr(est, k), float), smooth_ms * 1e-3 * fs, cuts) for k in "IBK"])
+
+
 def simulated_bias(ens: Ensemble, est, smooth_ms: float = 50.0) -> np.ndarray:
     """The estimator's own bias (3, L) near the identified model, by simulation.
 
