@@ -12,6 +12,11 @@ robust fit are rejected and the problem rebuilt on the rest.  Rejection needs
 a clear majority of inliers: with half the rows or more flagged nothing is
 rejected and the verdict reports the misfit.
 
+The metric is the noise model's own (`screen`): beside a tracker's stated noise
+the unknown joint level is the median configuration's (`screen_sigma`), and a
+fit's closures are studentized by each row's share of that fit (`_studentized`),
+so that clean rows cross the threshold about as often as its level says (alpha per calibration).
+
 `irls_fit` is the older option (``robust='huber'|'cauchy'``): the weights are
 kept in the final fit and the suspects reported, nothing is removed.
 """

@@ -31,7 +31,11 @@ Outlier screening before any identifiability decision (`screen`): the
 same standardized residuals, with a per-component robust scale where the
 residual is not whitened (metres and radians mixed), and a floor under the
 scale (exact data have a MAD at round-off, where every configuration would
-look "suspect").  `calibrate` screens the plain fit; if anything is flagged it
+look "suspect").  At a fit the residuals are studentized first
+(`studentize`: each configuration's by its covariance under the fit, I - H_ii
+for a row it used, I + H_ii for a row it left out), and beside a known
+measurement covariance the unknown joint level is the median configuration's
+(`median_joint_scale`), so that d_i^2 ~ chi2(m) holds for every clean row.  `calibrate` screens the plain fit; if anything is flagged it
 refits robustly (IRLS with the Cauchy loss, which gross outliers cannot drag)
 and rejects the flagged configurations before the final, unweighted-by-loss
 fit on the inliers.
