@@ -102,7 +102,7 @@ def screen(
 
 #: residual rows up to which the screen studentizes a fit's closures (`_studentized`); beyond, each row's
 #: share of the fit (p / M on average) is too small to matter and J would be large
-STUDENTIZE_ROWS = 60000
+STUDENTIZE_ROWS = 20000
 
 
 def _rows(problem: CalibrationProblem) -> int:
