@@ -96,7 +96,7 @@ def screen(
     weighting would read their isotropic noise as outliers."""
     sig = screen_sigma(problem, x, sigma_q, known)
     if est is not None and est and _screen_weighting(problem) == "noise" and _rows(problem) <= STUDENTIZE_ROWS:
-        return _standardized(problem, _studentized(problem, x, est, sig, weights), known)
+        return _standardized(problem, _studentized(problem, x, est, sig, weights, known), known)
     return _standardized(problem, _closures(problem, x, sig), known)
 
 
@@ -110,7 +110,12 @@ def _rows(problem: CalibrationProblem) -> int:
 
 
 def _studentized(
-    problem: CalibrationProblem, x: np.ndarray, est: list[int], sigma_q: np.ndarray, weights: np.ndarray | None
+    problem: CalibrationProblem,
+    x: np.ndarray,
+    est: list[int],
+    sigma_q: np.ndarray,
+    weights: np.ndarray | None,
+    known: bool,
 ) -> list[np.ndarray]:
     """The whitened closures at a fit with the parameters `est` and configuration `weights`, studentized
     (`robust.studentize`): each divided by its own spread under that fit.
@@ -128,7 +133,14 @@ def _studentized(
     rb = [p.reshape(n, m) for p, n, m in zip(np.split(r, sizes), counts, dims)]
     Jb = [p.reshape(n, m, -1) for p, n, m in zip(np.split(J, sizes), counts, dims)]
     w = np.ones(sum(counts)) if weights is None else np.asarray(weights, float)
-    return studentize(rb, Jb, np.split(w, np.cumsum(counts)[:-1]))
+    # the fit's truncation (`lm`): directions below snr x the noise level, in the columns scaled by the priors
+    level = 1.0 if known else max(mad_scale(rb), SCALE_FLOOR["rad"])
+    prior = np.array([problem.params[k].prior for k in est], dtype=float)
+    return studentize(rb, Jb, np.split(w, np.cumsum(counts)[:-1]), prior, TRUNCATION_SNR * level)
+
+
+#: the solver's default truncation (`CalibrationOptions.snr`): the screen's fits are the default ones
+TRUNCATION_SNR = 1.0
 
 
 def screen_sigma(problem: CalibrationProblem, x: np.ndarray, sigma_q: np.ndarray, known: bool) -> np.ndarray:

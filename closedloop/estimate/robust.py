@@ -291,21 +291,29 @@ def median_joint_scale(
 
 
 def studentize(
-    residual_blocks: list[np.ndarray], jacobian_blocks: list[np.ndarray], weights: list[np.ndarray]
+    residual_blocks: list[np.ndarray],
+    jacobian_blocks: list[np.ndarray],
+    weights: list[np.ndarray],
+    scale: np.ndarray | None = None,
+    floor: float = 0.0,
 ) -> list[np.ndarray]:
     """Whitened residuals of a weighted least-squares fit, each configuration's divided by its own spread.
 
     residual_blocks: per block, (N, m) whitened residuals at the fit; jacobian_blocks: (N, m, p) their
     whitened Jacobian in the fitted parameters; weights: (N,) the weight the fit gave each configuration
-    (1: an ordinary row, 0: left out).  The fit leaves e = (I - J K J^T W) eps with K = (J^T W J)^+
-    (pseudo-inverse at 1e-10, on unit columns), so configuration i's residual has the covariance
+    (1: an ordinary row, 0: left out).  The fit leaves e = (I - J K J^T W) eps with K = (J^T W J)^+,
+    so configuration i's residual has the covariance
 
         S_i = I - 2 w_i H_ii + J_i K (J^T W^2 J) K J_i^T,        H_ii = J_i K J_i^T,
 
     I - H_ii for a row of the fit (its m degrees of freedom less tr H_ii, the share the fit used) and
-    I + H_ii for a row left out (the fit's own error added).  Returns S_i^-1/2 e_i (symmetric root;
-    components along an eigenvalue of S_i below 1e-6, directions a row's fit passes through, set to 0):
-    N(0, 1) components under the noise model whatever each row's share of the fit.
+    I + H_ii for a row left out (the fit's own error added).  K is the fit's own (`lm`, eq. 4.2.6): on
+    the columns scaled by `scale` (the parameters' priors; None: unit columns), the directions of
+    W^1/2 J with singular values at or below `floor` (snr x the noise level) are truncated, held by the
+    fit and so moved by no noise; without that, a direction only the left-out rows determine would
+    give them any spread.  Returns S_i^-1/2 e_i (symmetric root; components along an eigenvalue of S_i
+    below 1e-6, directions a row's fit passes through, set to 0): N(0, 1) components under the noise
+    model whatever each row's share of the fit.
     """
     dims = [r.shape[1] for r in residual_blocks]
     p = jacobian_blocks[0].shape[2] if jacobian_blocks else 0
@@ -313,10 +321,13 @@ def studentize(
     if not p or not J.size:
         return [np.asarray(r, float).copy() for r in residual_blocks]
     w_rows = np.concatenate([np.repeat(w, m) for w, m in zip(weights, dims)])
-    norm = np.linalg.norm(J, axis=0)
-    cols = np.where(norm > 0, norm, 1.0)
-    J = J / cols
-    K = np.linalg.pinv(J.T @ (w_rows[:, None] * J), rcond=1e-10, hermitian=True)
+    if scale is None:
+        norm = np.linalg.norm(J, axis=0)
+        scale = 1.0 / np.where(norm > 0, norm, 1.0)
+    J = J * scale
+    _, S, Vt = np.linalg.svd(np.sqrt(w_rows)[:, None] * J, full_matrices=False)
+    keep = S > max(floor, 1e-10 * (S[0] if S.size else 0.0))
+    K = (Vt[keep].T / S[keep] ** 2) @ Vt[keep]
     JK = J @ K
     JKG = JK @ (J.T @ ((w_rows**2)[:, None] * J))
     out, off = [], 0
@@ -324,12 +335,12 @@ def studentize(
         n = r.shape[0]
         sl = slice(off, off + n * m)
         Jb, JKb, JKGb = (a[sl].reshape(n, m, p) for a in (J, JK, JKG))
-        S = np.eye(m) - 2.0 * np.asarray(w, float)[:, None, None] * np.einsum("nap,nbp->nab", JKb, Jb)
-        S += np.einsum("nap,nbp->nab", JKGb, JKb)
-        lam, V = np.linalg.eigh(0.5 * (S + np.swapaxes(S, 1, 2)))
-        keep = lam > 1e-6
+        Sc = np.eye(m) - 2.0 * np.asarray(w, float)[:, None, None] * np.einsum("nap,nbp->nab", JKb, Jb)
+        Sc += np.einsum("nap,nbp->nab", JKGb, JKb)
+        lam, V = np.linalg.eigh(0.5 * (Sc + np.swapaxes(Sc, 1, 2)))
+        live = lam > 1e-6
         z = np.einsum("nji,nj->ni", V, np.asarray(r, float))
-        z = np.where(keep, z / np.sqrt(np.where(keep, lam, 1.0)), 0.0)
+        z = np.where(live, z / np.sqrt(np.where(live, lam, 1.0)), 0.0)
         out.append(np.einsum("nij,nj->ni", V, z))
         off += n * m
     return out
