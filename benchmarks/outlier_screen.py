@@ -19,7 +19,7 @@ expectation: ``alpha`` = 0.01 per calibration, i.e. 0.01 / N per row), the corru
 the verdicts and (zoo) how many calibrated robots are right.  ``--json`` writes every case, so that
 two versions of the code can be compared case by case (``--compare``).
 
-    python benchmarks/outlier_screen.py                       # everything (~15 min on 2 busy cores)
+    python benchmarks/outlier_screen.py                       # everything (~40 min on 2 cores at load 6)
     python benchmarks/outlier_screen.py --groups tracker --seeds 10
     python benchmarks/outlier_screen.py --json out/after.json --compare out/before.json
 """
