@@ -31,7 +31,11 @@ Outlier screening before any identifiability decision (`screen`): the
 same standardized residuals, with a per-component robust scale where the
 residual is not whitened (metres and radians mixed), and a floor under the
 scale (exact data have a MAD at round-off, where every configuration would
-look "suspect").  `calibrate` screens the plain fit; if anything is flagged it
+look "suspect").  At a fit the residuals are studentized first
+(`studentize`: each configuration's by its covariance under the fit, I - H_ii
+for a row it used, I + H_ii for a row it left out), and beside a known
+measurement covariance the unknown joint level is the median configuration's
+(`median_joint_scale`), so that d_i^2 ~ chi2(m) holds for every clean row.  `calibrate` screens the plain fit; if anything is flagged it
 refits robustly (IRLS with the Cauchy loss, which gross outliers cannot drag)
 and rejects the flagged configurations before the final, unweighted-by-loss
 fit on the inliers.
@@ -194,6 +198,152 @@ def flagged(ds: list[np.ndarray], dims: list[int], alpha: float = 0.01) -> list[
     """Per block, the configurations with d_i^2 > chi2_m^-1(1 - alpha / N_total) (Bonferroni)."""
     n_total = max(sum(d.size for d in ds), 1)
     return [np.flatnonzero(d > np.sqrt(stats.chi2.isf(alpha / n_total, m))) for d, m in zip(ds, dims)]
+
+
+def median_joint_scale(
+    residuals: list[np.ndarray],
+    jq: list[np.ndarray],
+    covs: list[np.ndarray | None],
+    pattern: np.ndarray,
+    alpha: float = 0.01,
+    max_rows: int = 1024,
+) -> float:
+    """The joint variance scale s at which the median configuration closes as the noise model expects.
+
+    Each configuration's closure has the covariance W_i(s) = s A_i + C_i, A_i = J_theta,i D^2 J_theta,i^T
+    (eq. 3.17 weighted; D = diag(`pattern`)) and C_i a loop's known measurement covariance (a tracker's
+    sigma_t; None: a closed loop).  Its squared norm d_i^2(s) = r_i^T W_i(s)^+ r_i is chi2 with m_i = rank W_i
+    degrees of freedom under the model and falls as s grows; s solves
+
+        median_i d_i^2(s) / chi2_{m_i}^-1(1/2) = 1,
+
+    the median configuration at the median of its chi-square, then again on the configurations within
+    chi2_{m_i}^-1(1 - alpha / N) there (Bonferroni, as `flagged`), until that set settles: gross errors
+    first shift the median (20 % of them double s), then leave.  The median is what up to half the
+    configurations cannot drag: the ratio of joint to measurement noise an outlier screen can whiten with
+    (`noise.joint_variance_scale`, the likelihood's, is pulled by every row).
+    Returns 0 where the measurement covariance alone explains more than the median (nothing for the joints),
+    and 1 where no block has a measurement covariance (s then only scales, which the screen's MAD absorbs).
+    At most `max_rows` configurations, evenly spaced over the blocks, are used.
+    """
+    n_all = sum(r.shape[0] for r in residuals)
+    if n_all == 0 or all(C is None for C in covs):
+        return 1.0
+    step = max(1, int(np.ceil(n_all / max_rows)))
+    parts = []
+    for r, J, C in zip(residuals, jq, covs):
+        if r.shape[0] == 0:
+            continue
+        Jd = J[::step] * pattern[None, None, :]
+        parts.append((r[::step], Jd @ np.swapaxes(Jd, 1, 2), C))
+    top = max(r.shape[1] for r, _, _ in parts)
+    med = np.array([np.nan] + [stats.chi2.ppf(0.5, m) for m in range(1, top + 1)])
+    cut = np.array([np.nan] + [stats.chi2.isf(alpha / n_all, m) for m in range(1, top + 1)])
+
+    def d2(s: float) -> tuple[np.ndarray, np.ndarray]:
+        """d_i^2(s) and rank W_i over the configurations used."""
+        out, ranks = [], []
+        for r, A, C in parts:
+            lam, V = np.linalg.eigh(s * A if C is None else s * A + C)
+            keep = lam > 1e-9 * np.maximum(lam[:, -1:], 1e-300)
+            z = np.einsum("nji,nj->ni", V, r)
+            out.append(np.sum(np.where(keep, z * z / np.where(keep, lam, 1.0), 0.0), axis=1))
+            ranks.append(keep.sum(axis=1))
+        return np.concatenate(out), np.concatenate(ranks)
+
+    def solve(inlier: np.ndarray) -> float:
+        def excess(s: float) -> float:
+            v, m = d2(s)
+            use = inlier & (m > 0)
+            return float(np.median(v[use] / med[m[use]])) if use.any() else 0.0
+
+        if all(C is not None for _, _, C in parts) and excess(0.0) <= 1.0:
+            return 0.0
+        # where the joint term equals the measurement term, for the median configuration
+        ratio = [np.trace(C) / np.maximum(np.trace(A, axis1=1, axis2=2), 1e-300) for _, A, C in parts if C is not None]
+        hi = max(float(np.median(np.concatenate(ratio))), 1e-300)
+        lo = hi
+        for _ in range(200):
+            if excess(hi) <= 1.0:
+                break
+            lo, hi = hi, hi * 10.0
+        for _ in range(200):
+            if excess(lo) > 1.0 or lo < 1e-300:
+                break
+            lo, hi = lo / 10.0, lo
+        for _ in range(40):  # geometric bisection to 0.1 %
+            if hi <= lo * 1.001:
+                break
+            mid = float(np.sqrt(lo * hi))
+            lo, hi = (mid, hi) if excess(mid) > 1.0 else (lo, mid)
+        return float(np.sqrt(lo * hi))
+
+    inlier = np.ones(sum(r.shape[0] for r, _, _ in parts), dtype=bool)
+    s = solve(inlier)
+    for _ in range(5):
+        v, m = d2(s)
+        now = (m == 0) | (v <= np.where(m > 0, cut[m], np.inf))
+        if np.array_equal(now, inlier) or now.sum() <= 0.5 * now.size:
+            break
+        inlier = now
+        s = solve(inlier)
+    return s
+
+
+def studentize(
+    residual_blocks: list[np.ndarray],
+    jacobian_blocks: list[np.ndarray],
+    weights: list[np.ndarray],
+    scale: np.ndarray | None = None,
+    floor: float = 0.0,
+) -> list[np.ndarray]:
+    """Whitened residuals of a weighted least-squares fit, each configuration's divided by its own spread.
+
+    residual_blocks: per block, (N, m) whitened residuals at the fit; jacobian_blocks: (N, m, p) their
+    whitened Jacobian in the fitted parameters; weights: (N,) the weight the fit gave each configuration
+    (1: an ordinary row, 0: left out).  The fit leaves e = (I - J K J^T W) eps with K = (J^T W J)^+,
+    so configuration i's residual has the covariance
+
+        S_i = I - 2 w_i H_ii + J_i K (J^T W^2 J) K J_i^T,        H_ii = J_i K J_i^T,
+
+    I - H_ii for a row of the fit (its m degrees of freedom less tr H_ii, the share the fit used) and
+    I + H_ii for a row left out (the fit's own error added).  K is the fit's own (`lm`, eq. 4.2.6): on
+    the columns scaled by `scale` (the parameters' priors; None: unit columns), the directions of
+    W^1/2 J with singular values at or below `floor` (snr x the noise level) are truncated, held by the
+    fit and so moved by no noise; without that, a direction only the left-out rows determine would
+    give them any spread.  Returns S_i^-1/2 e_i (symmetric root; components along an eigenvalue of S_i
+    below 1e-6, directions a row's fit passes through, set to 0): N(0, 1) components under the noise
+    model whatever each row's share of the fit.
+    """
+    dims = [r.shape[1] for r in residual_blocks]
+    p = jacobian_blocks[0].shape[2] if jacobian_blocks else 0
+    J = np.vstack([j.reshape(-1, p) for j in jacobian_blocks]) if p else np.zeros((0, 0))
+    if not p or not J.size:
+        return [np.asarray(r, float).copy() for r in residual_blocks]
+    w_rows = np.concatenate([np.repeat(w, m) for w, m in zip(weights, dims)])
+    if scale is None:
+        norm = np.linalg.norm(J, axis=0)
+        scale = 1.0 / np.where(norm > 0, norm, 1.0)
+    J = J * scale
+    _, S, Vt = np.linalg.svd(np.sqrt(w_rows)[:, None] * J, full_matrices=False)
+    keep = S > max(floor, 1e-10 * (S[0] if S.size else 0.0))
+    K = (Vt[keep].T / S[keep] ** 2) @ Vt[keep]
+    JK = J @ K
+    JKG = JK @ (J.T @ ((w_rows**2)[:, None] * J))
+    out, off = [], 0
+    for r, w, m in zip(residual_blocks, weights, dims):
+        n = r.shape[0]
+        sl = slice(off, off + n * m)
+        Jb, JKb, JKGb = (a[sl].reshape(n, m, p) for a in (J, JK, JKG))
+        Sc = np.eye(m) - 2.0 * np.asarray(w, float)[:, None, None] * np.einsum("nap,nbp->nab", JKb, Jb)
+        Sc += np.einsum("nap,nbp->nab", JKGb, JKb)
+        lam, V = np.linalg.eigh(0.5 * (Sc + np.swapaxes(Sc, 1, 2)))
+        live = lam > 1e-6
+        z = np.einsum("nji,nj->ni", V, np.asarray(r, float))
+        z = np.where(live, z / np.sqrt(np.where(live, lam, 1.0)), 0.0)
+        out.append(np.einsum("nij,nj->ni", V, z))
+        off += n * m
+    return out
 
 
 def weights(
