@@ -253,6 +253,10 @@ def _calibrate(
     _check_options(opt)
     problem = build_problem(robot, log_, loops, opt.priors)
     x0 = initial_values(problem, opt.initial)
+    for bi, b in enumerate(problem.blocks):  # data no rough model of this loop explains: said before the fit
+        why = b.loop.mismatch(problem.loop_frame_poses(x0, bi), b.meas)
+        if why is not None:
+            raise LoopError(f"{log_.source or 'the log'}: {why}")
     status = select_parameters(problem, opt.identify, opt.fix, x0)
     notes, dropped, motion_warnings = check_motion(problem, x0, status)
     free = [k for k, s in enumerate(status) if s == ParamStatus.SELECTED]
