@@ -127,3 +127,43 @@ def test_zoo_rough_robot_is_not_refused():
     robot = RobotModel.from_file(c.nominal_urdf)
     pr = build_problem(robot, read_log(c.log_csv, robot.joint_names), [parse_loop(s, robot) for s in c.loop_specs])
     assert pr.blocks[0].loop.mismatch(pr.loop_frame_poses(initial_values(pr, {}), 0)) is None
+
+
+def _fit(level: float):
+    """A stand-in fit whose `staged._closure_level` is `level` (the attribute it caches it in)."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(stage=SimpleNamespace(closure_level=level, solution=SimpleNamespace(cost=1.0)))
+
+
+def test_restarts_stop_only_when_every_start_stalls_alike_and_gross():
+    """`_hopeless`: the given start and a restart both far above HOPELESS_LEVEL, none at under half the first."""
+    from closedloop.calibration.staged import HOPELESS_LEVEL, _hopeless
+
+    wrong_loop = [142.0, 108.0]  # the panda weld on ball-joint data: two starts, 0.28 and 0.22 rad of joint noise
+    assert _hopeless(None, [_fit(v) for v in wrong_loop])
+    assert not _hopeless(None, [_fit(142.0)])  # no restart yet
+    assert not _hopeless(None, [_fit(142.0), _fit(60.0)])  # a restart that halves the closure: keep going
+    assert not _hopeless(None, [_fit(142.0), _fit(1e-11)])  # a restart that closes
+    assert not _hopeless(
+        None, [_fit(0.9 * HOPELESS_LEVEL), _fit(0.9 * HOPELESS_LEVEL)]
+    )  # stalls a rough start may leave
+
+
+@pytest.mark.slow
+def test_weld_fit_on_point_data_fails_fast_and_honestly(panda, monkeypatch):
+    """Past the pre-fit check (disabled here), a weld fit on ball-joint data is `failed`, its restarts stop
+    after the first, and the valley search does not run."""
+    from closedloop import calibrate
+    from closedloop.studies.truth import make_dataset
+
+    d, robot = panda
+    q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]
+    make_dataset(robot, PointLoop("socket", "panda_hand"), q0, 30, np.random.default_rng(6)).log().write_csv(
+        d / "socket_slow.csv"
+    )
+    monkeypatch.setattr(WeldLoop, "mismatch", lambda self, Ts, meas=None: None)
+    res = calibrate(robot, read_log(d / "socket_slow.csv", robot.joint_names), [WeldLoop("fixture", "panda_hand")])
+    assert res.verdict.status == "failed"
+    assert res.model_error["joint_noise_implied"] > 0.05  # rad: far above any encoder
+    assert any(w.startswith("restarts stopped after 1:") for w in res.warnings), res.warnings

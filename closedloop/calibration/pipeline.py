@@ -441,7 +441,9 @@ def solve_screened(
         fit, suspects = irls_fit(problem, fit, opt, notes, row_name)
     fit, structure, recheck_notes = recheck_at_solution(problem, fit, structure, free, x0, opt, progress)
     notes.extend(recheck_notes)
-    back = readmit(problem_all, fit.x, rejected, opt, sigma_q) if rejected else None
+    if rejected and fit.hopeless:  # no fit closes the loops: nothing to confirm the rejections against
+        notes.append(f"the {len(rejected)} rejected configuration(s) were not re-checked: no fit closes the loops")
+    back = readmit(problem_all, fit.x, rejected, opt, sigma_q) if rejected and not fit.hopeless else None
     if back is not None:  # rejections made short of the solution that it does not confirm
         notes.append(
             f"re-checked at the solution: {len(rejected) - len(back[1])} rejected configuration(s) "
