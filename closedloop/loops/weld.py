@@ -12,7 +12,7 @@ import pinocchio as pin
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.common import POSE_FIELDS, pose_parameters
 from closedloop.model.parameters import Parameter
-from closedloop.model.se3 import adjoint, log6, parse_pose, rigid_inverse  # noqa: F401  (parse_pose: spec.py's)
+from closedloop.model.se3 import adjoint, log3, log6, parse_pose, rigid_inverse  # noqa: F401  (parse_pose: spec.py's)
 
 CLOSURE_FIELDS = POSE_FIELDS
 
@@ -107,7 +107,7 @@ class WeldLoop(Loop):
         R, d = M[:, :3, :3], M[:, :3, 3]
         U, _, Vt = np.linalg.svd(R.sum(axis=0))  # the chordal mean rotation
         Rm = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-        w = np.array([pin.log3(Rm.T @ Ri) for Ri in R])
+        w = log3(Rm.T @ R)[0]
         spread = float(np.sqrt(np.mean(np.sum(w**2, axis=1))))
         if not spread > WELD_ROTATION_SPREAD:
             return None
