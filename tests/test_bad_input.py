@@ -120,6 +120,13 @@ CASES = [
         ["refusing to overwrite an input"],
         {"b.bag": b"#ROSBAG V2.0\n"},
     ),
+    # ------------------------------------------------------------------ wrong loop type
+    Case(
+        "weld-on-point-contact-data",
+        "wrong loop type",
+        calib(log="{socket.csv}"),
+        ["loop 'fixture' (weld on panda_hand)", "orientation is not fixed", "--loop point:frame=panda_hand"],
+    ),
     # ------------------------------------------------------------------ batch manifests
     Case(
         "batch-duplicate-names",
@@ -427,7 +434,7 @@ CASES = [
 @pytest.fixture(scope="module")
 def base(tmp_path_factory):
     """A mesh-free Panda, a 30-row weld log, and a ROS 1 and an MCAP bag of 8 standstills."""
-    from closedloop.loops import WeldLoop
+    from closedloop.loops import PointLoop, WeldLoop
     from closedloop.model.robot import RobotModel
     from closedloop.models import nominal_urdf
     from closedloop.studies.truth import make_dataset
@@ -438,6 +445,8 @@ def base(tmp_path_factory):
     q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]
     ds = make_dataset(robot, WeldLoop("fixture", "panda_hand"), q0, 30, np.random.default_rng(5))
     ds.log().write_csv(d / "log.csv")
+    point = make_dataset(robot, PointLoop("socket", "panda_hand"), q0, 30, np.random.default_rng(6))
+    point.log().write_csv(d / "socket.csv")  # a ball in a socket: the hand's orientation free
     bags = {}
     try:
         from test_bags import stream, write_bag
@@ -464,9 +473,10 @@ def _materialize(case: Case, tmp: Path, base) -> list[str]:
     import os
 
     d, bags = base
-    for name in ("panda.urdf", "log.csv"):
+    names = {"tmp": str(tmp)}
+    for name in ("panda.urdf", "log.csv", "socket.csv"):
         (tmp / name).write_bytes((d / name).read_bytes())
-    names = {"tmp": str(tmp), "panda.urdf": str(tmp / "panda.urdf"), "log.csv": str(tmp / "log.csv")}
+        names[name] = str(tmp / name)
     for name, content in case.files.items():
         p = tmp / name
         if isinstance(content, str) and content.startswith("HARDLINK "):

@@ -253,6 +253,10 @@ def _calibrate(
     _check_options(opt)
     problem = build_problem(robot, log_, loops, opt.priors)
     x0 = initial_values(problem, opt.initial)
+    for bi, b in enumerate(problem.blocks):  # data no rough model of this loop explains: said before the fit
+        why = b.loop.mismatch(problem.loop_frame_poses(x0, bi), b.meas)
+        if why is not None:
+            raise LoopError(f"{log_.source or 'the log'}: {why}")
     status = select_parameters(problem, opt.identify, opt.fix, x0)
     notes, dropped, motion_warnings = check_motion(problem, x0, status)
     free = [k for k, s in enumerate(status) if s == ParamStatus.SELECTED]
@@ -437,7 +441,9 @@ def solve_screened(
         fit, suspects = irls_fit(problem, fit, opt, notes, row_name)
     fit, structure, recheck_notes = recheck_at_solution(problem, fit, structure, free, x0, opt, progress)
     notes.extend(recheck_notes)
-    back = readmit(problem_all, fit.x, rejected, opt, sigma_q, fit.est) if rejected else None
+    if rejected and fit.hopeless:  # no fit closes the loops: nothing to confirm the rejections against
+        notes.append(f"the {len(rejected)} rejected configuration(s) were not re-checked: no fit closes the loops")
+    back = readmit(problem_all, fit.x, rejected, opt, sigma_q, fit.est) if rejected and not fit.hopeless else None
     if back is not None:  # rejections made short of the solution that it does not confirm
         notes.append(
             f"re-checked at the solution: {len(rejected) - len(back[1])} rejected configuration(s) "

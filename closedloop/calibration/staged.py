@@ -276,13 +276,19 @@ def solve_with_restarts(
         starts.append(solve_staged(problem, x0, x0, sub, opt, sigma_q, known, plain_start=True).x)
     for size in (1.0, 3.0, 1.0, 3.0)[: max(opt.restarts - len(starts), 0)]:
         starts.append(random_start(x0, est, scale, rng, size))
+    log.info("the fit from the given start stalled at closure level %.3g", _closure_level(problem, fit.stage))
+    hopeless = False
     for k, st in enumerate(starts[: opt.restarts]):
         log.info("restart %d: the fit stalled far above the noise or where its residual is not noise", k + 1)
         fits.append(solve_staged(problem, x0, st, est, opt, sigma_q, known, progress))
+        log.info("restart %d: closure level %.3g", k + 1, _closure_level(problem, fits[-1].stage))
         if not _stalled(problem, fits[-1]):
             break
+        hopeless = _hopeless(problem, fits)
+        if hopeless:
+            break
     good = [f for f in fits if _good(problem, f)]
-    if not good:  # no restart left the valley: along it (`valley_starts`), the nearly redundant freed
+    if not good and not hopeless:  # no restart left the valley: along it (`valley_starts`), the nearly redundant freed
         good = _along_valley(problem, x0, fit, est, opt, sigma_q, known, progress, fits, weak or [])
     far = _closure_level(problem, fit.stage) > 1.0
     if good:
@@ -297,7 +303,27 @@ def solve_with_restarts(
         f"the fit stalled {why} from the given start; "
         f"{'a restart reached' if good else 'no restart reached'} a closure within a plausible noise"
     )
+    if hopeless:
+        best.hopeless = True
+        level = min(_closure_level(problem, f.stage) for f in fits)
+        best.warnings.append(
+            f"restarts stopped after {len(fits) - 1}: every start stalls alike, at a closure {level:.3g} times what "
+            f"{PLAUSIBLE_JOINT_NOISE * 1e3:g} mrad of joint noise explains: the loops as given cannot close on "
+            "this data (check each loop's type and frames against the rig)"
+        )
     return best
+
+
+HOPELESS_LEVEL = 25.0  # closure level (`_closure_level`): 50 mrad of joint noise, 5x what the verdict fails
+
+
+def _hopeless(problem: CalibrationProblem, fits: list[Fit]) -> bool:
+    """Another start will not close the loops: every fit so far (the given start's and at least one restart)
+    stalled above `HOPELESS_LEVEL`, none at under half the given start's closure level.  A rough start stalls
+    in a basin a restart leaves (its closure drops by orders); a loop that does not describe the data (a weld
+    on a ball joint) stalls at the same gross level from every start."""
+    levels = [_closure_level(problem, f.stage) for f in fits]
+    return len(levels) >= 2 and min(levels) > max(HOPELESS_LEVEL, 0.5 * levels[0])
 
 
 VALLEY_DIRECTIONS = 4  # weakest directions probed from a stalled fit (`valley_starts`), both ways

@@ -364,3 +364,5 @@ class Fit:
     known: bool
     iterations: int
     warnings: list[str]
+    #: restarts gave up: every start stalled alike far above any noise (`staging.solve_with_restarts`)
+    hopeless: bool = False

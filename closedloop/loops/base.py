@@ -173,5 +173,17 @@ class Loop(ABC):
         """The residual alone (N, m); loops override it when that is cheaper than `evaluate`."""
         return (self.evaluate(TA, TB, p) if meas is None else self.evaluate(TA, TB, p, meas)).r
 
+    def mismatch(self, Ts: list[np.ndarray], meas: np.ndarray | None = None) -> str | None:
+        """Why the data cannot be this loop's, read off the poses of `frames` at the nominal model before any
+        fit: what the loop holds fixed varies across the rows by far more than a rough model explains, while
+        what another loop type holds fixed does not.  One line naming the likely type; None when nothing
+        contradicts the loop (the default)."""
+        return None
+
+    def spec(self, kind: str) -> str:
+        """This loop's frames and name as a ``--loop`` spec of type `kind` (for messages)."""
+        to = "" if self.frame_b == "universe" else f",to={self.frame_b}"
+        return f"{kind}:frame={self.frame_a}{to},name={self.name}"
+
     def describe(self) -> dict:
         return {"name": self.name, "type": type(self).__name__, "frame_a": self.frame_a, "frame_b": self.frame_b}

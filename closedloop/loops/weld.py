@@ -12,9 +12,21 @@ import pinocchio as pin
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.common import POSE_FIELDS, pose_parameters
 from closedloop.model.parameters import Parameter
-from closedloop.model.se3 import adjoint, log6, parse_pose, rigid_inverse  # noqa: F401  (parse_pose: spec.py's)
+from closedloop.model.se3 import adjoint, log3, log6, parse_pose, rigid_inverse  # noqa: F401  (parse_pose: spec.py's)
 
 CLOSURE_FIELDS = POSE_FIELDS
+
+#: rad: RMS spread of a weld's relative orientation across rows, at the nominal model, above which no rough
+#: model explains it (the thesis-sized starts of benchmarks/basin.py, offsets +-0.6 rad and twists +-0.3 rad,
+#: spread it by at most 0.37 rad; the zoo's rough models, 2 cm / 0.02 rad / 0.2 rad offsets, by 0.11 rad)
+WELD_ROTATION_SPREAD = 0.6
+#: a point of the tool stays fixed (a pivot fit) to within this share of the rotation spread times the
+#: tool's distance from frame B: rough models leave 0.016 and more, a point contact 0.003 (2.6 mm at 1 rad
+#: and 0.5 m)
+POINT_CONSISTENCY = 0.008
+#: the rotations spread about one axis (a hinge) when the second largest singular value of the rotation
+#: vectors about their mean is below this share of the largest
+HINGE_PLANARITY = 0.05
 
 
 class WeldLoop(Loop):
@@ -82,6 +94,38 @@ class WeldLoop(Loop):
         if self.known is None and np.linalg.norm(p[3:6]) >= np.pi:
             T[3:, 3:] = np.linalg.solve(pin.Jexp3(p[3:6]), pin.Jexp3(pin.log3(pin.exp3(p[3:6]))))
         return T
+
+    def mismatch(self, Ts: list[np.ndarray], meas: np.ndarray | None = None) -> str | None:
+        """A weld fixes the whole pose of A in B: `Loop.mismatch` when its orientation spreads across the rows
+        by over `WELD_ROTATION_SPREAD` RMS while one point of A stays put (a pivot fit, as
+        `PointLoop.initialize`: R_i t - p = -d_i) to within `POINT_CONSISTENCY` of that spread times A's
+        distance from B: a point contact, or a hinge when the rotations are about one axis."""
+        M = np.linalg.solve(Ts[1], Ts[0])
+        n = M.shape[0]
+        if n < 6:
+            return None
+        R, d = M[:, :3, :3], M[:, :3, 3]
+        U, _, Vt = np.linalg.svd(R.sum(axis=0))  # the chordal mean rotation
+        Rm = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        w = log3(Rm.T @ R)[0]
+        spread = float(np.sqrt(np.mean(np.sum(w**2, axis=1))))
+        if not spread > WELD_ROTATION_SPREAD:
+            return None
+        A = np.concatenate([R, np.broadcast_to(-np.eye(3), (n, 3, 3))], axis=2).reshape(-1, 6)
+        sol = np.linalg.lstsq(A, -d.reshape(-1), rcond=None)[0]
+        off = float(np.sqrt(np.mean(np.sum((A @ sol + d.reshape(-1)).reshape(n, 3) ** 2, axis=1))))
+        reach = max(float(np.mean(np.linalg.norm(d, axis=1))), 0.1)
+        if not off < POINT_CONSISTENCY * spread * reach:
+            return None
+        S = np.linalg.svd(w - w.mean(axis=0), compute_uv=False)
+        hinge = S[1] < HINGE_PLANARITY * S[0]
+        kind, what = ("hinge", "a hinge (it turns about one axis)") if hinge else ("point", "a point contact")
+        return (
+            f"loop '{self.name}' (weld on {self.frame_a}): the frame's orientation is not fixed across the rows "
+            f"(it spreads by {np.degrees(spread):.0f} deg RMS at the nominal model, more than any rough model "
+            f"explains) while one point of it stays within {off * 1e3:.3g} mm RMS of a fixed point: is this "
+            f"{what}? --loop {self.spec(kind)}"
+        )
 
     def describe(self) -> dict:
         return super().describe() | {
