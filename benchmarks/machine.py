@@ -139,3 +139,20 @@ def condition(name: str, seconds: float = 1800.0) -> Iterator[str]:
             yield f"loaded (+{len(pids)} busy processes; {load()})"
     else:
         yield f"no added load ({load()})"
+
+
+def tests_zoo():
+    """tests/zoo.py, the robot zoo, as the module `zoo` (benchmarks/zoo.py has the same name, so it is
+    loaded from its path); tests/ is appended to sys.path for the modules it imports (zoo_judge)."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    tests = Path(__file__).resolve().parents[1] / "tests"
+    if str(tests) not in sys.path:
+        sys.path.append(str(tests))
+    spec = importlib.util.spec_from_file_location("zoo", tests / "zoo.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["zoo"] = mod
+    spec.loader.exec_module(mod)
+    return mod

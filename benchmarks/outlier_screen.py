@@ -39,21 +39,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.append(str(Path(__file__).resolve().parents[1] / "tests"))  # zoo_judge, after sys.modules['zoo']
-from machine import load, machine  # noqa: E402
+from machine import load, machine, tests_zoo  # noqa: E402
 
-
-def _load_zoo():
-    """tests/zoo.py (benchmarks/zoo.py has the same module name)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("zoo", Path(__file__).resolve().parents[1] / "tests" / "zoo.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["zoo"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-zoo = _load_zoo()
+zoo = tests_zoo()
 
 ZOO_CASES = [  # robot, loop, configurations
     ("ur5", "point", 60),

@@ -30,21 +30,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.append(str(Path(__file__).resolve().parents[1] / "tests"))  # zoo_judge, after sys.modules['zoo']
-from machine import machine  # noqa: E402
+from machine import machine, tests_zoo  # noqa: E402
 
-
-def _load_zoo():
-    """tests/zoo.py (this script has the same module name)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("zoo", Path(__file__).resolve().parents[1] / "tests" / "zoo.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["zoo"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-zoo = _load_zoo()
+zoo = tests_zoo()
 
 VARIANTS = {
     "exact": {},
