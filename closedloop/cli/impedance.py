@@ -86,7 +86,7 @@ def add_parser(subparsers) -> None:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from closedloop.impedance.data import record_bytes
-    from closedloop.impedance.model import ExperimentConfig, ForearmParams
+    from closedloop.impedance.model import ExperimentConfig, ForearmParams, Profile
     from closedloop.impedance.results import write_truth
     from closedloop.impedance.simulation import simulate
     from closedloop.io.files import OutputSet, atomic_write_text, check_outputs
@@ -141,8 +141,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
                 pc = ExperimentConfig(
                     n_cycles=5,
                     cycles_per_block=5,
-                    stiffness=k0,
-                    damping=b0,
+                    stiffness=Profile("constant", (k0,)),
+                    damping=Profile("constant", (b0,)),
                     noise=args.noise,
                     posture=q,
                     seed=args.seed + 1,

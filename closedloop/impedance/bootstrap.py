@@ -103,7 +103,8 @@ def simulated_bias(ens: Ensemble, est, smooth_ms: float = 50.0) -> np.ndarray:
     truth = np.stack([_smooth(np.asarray(getattr(est, k), float), smooth_ms * 1e-3 * fs, cuts) for k in "IBK"])
     on_pad = np.mod(np.arange(L + 2 * P) - P, L)
     f = lowpass(dth, fs, opt.prefilter_hz) if opt.prefilter_hz else dth
-    x = free_run(*(t[on_pad] for t in truth), dtau, f[:, 0], (f[:, 1] - f[:, 0]) * fs, fs)
+    I_pad, B_pad, K_pad = (t[on_pad] for t in truth)
+    x = free_run(I_pad, B_pad, K_pad, dtau, f[:, 0], (f[:, 1] - f[:, 0]) * fs, fs)
     sim = replace(ens, angle=ens.angle.mean(0) + x)
     ratio = max(noise_std(dth), 1e-12) / max(noise_std(dtau), 1e-12)
     back = refit(sim, replace(opt, noise_ratio=ratio, auto_iv=False), est.weights)
@@ -150,7 +151,9 @@ def bootstrap(
     stride = max(1, min(half // 2, int(round(0.010 * ens.fs))))
     if options.smooth_ms > 0:  # IV: smoothed over smooth_ms, pooled over +-pool_ms
         stride = max(stride, int(round(0.25 * options.smooth_ms * 1e-3 * ens.fs)))
-    comps = [(0, np.unique(np.r_[np.arange(0, L, stride), L - 1]))]
+    # (side, instants the weights cover, instants computed): the centred fit on every stride-th instant
+    grid = np.unique(np.r_[np.arange(0, L, stride), L - 1])
+    comps: list[tuple[int, np.ndarray, np.ndarray]] = [(0, grid, grid)]
     weights = None if est is None else est.weights
     if weights is not None:
         for j, side in ((1, -1), (2, 1)):
@@ -161,8 +164,7 @@ def bootstrap(
     with single_thread():
         pers, perzs, lights, sizes_t = [], [], [], []
         m = qz = None
-        for side, at, *sub in comps:
-            at = sub[0] if sub else at
+        for side, _, at in comps:
             sizes_t.append(at.size)
             d = est.designs.get(side) if est is not None and est.options == options else None
             d = design(ens, options, side=side) if d is None else d
@@ -194,6 +196,7 @@ def bootstrap(
         if len(comps) == 1:
             blended.append(centre)
             continue
+        assert weights is not None  # the one-sided components come with the estimate's weights
         num = weights[0] * np.nan_to_num(centre)
         den = weights[0] * np.isfinite(centre)
         for (side, at, sub), v in zip(comps[1:], parts_k[1:]):
@@ -343,7 +346,7 @@ def free_run_vaf(ens: Ensemble, options: EstimateOptions, folds: int = 5, seed: 
     """k-fold free-run VAF of the time-varying model on held-out cycles (module docstring)."""
     from dataclasses import replace
 
-    from closedloop.impedance.estimate import resolved
+    from closedloop.impedance.estimate import cutoff, resolved
 
     options = replace(resolved(options, ens), auto_iv=False)
     rng = np.random.default_rng(seed)
@@ -362,7 +365,7 @@ def free_run_vaf(ens: Ensemble, options: EstimateOptions, folds: int = 5, seed: 
         prm[:, test] = np.stack([est.I, est.B, est.K])[:, None, :]
         dth, dtau, _ = te.deltas(tr)
         with single_thread():  # (the pre-filter's small products: BLAS threads only contend)
-            dth, dtau = lowpass(dth, fs, options.prefilter_hz), lowpass(dtau, fs, options.prefilter_hz)
+            dth, dtau = lowpass(dth, fs, cutoff(options)), lowpass(dtau, fs, cutoff(options))
         ref[test], u[test] = dth[:, P : P + L], dtau[:, P : P + L]
         x0[test], v0[test] = dth[:, P], (dth[:, P + 1] - dth[:, P - 1]) * fs / 2
     x = free_run(prm[0], prm[1], prm[2], u, x0, v0, fs)

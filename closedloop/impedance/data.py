@@ -93,9 +93,9 @@ def record_bytes(rec: Record, fmt: str = "csv") -> bytes:
 
     fmts = {"time": "%.6f", "event": "%d", "block": "%d"}
     arr = np.column_stack([cols[k] for k in cols])
-    buf = io.StringIO()
-    np.savetxt(buf, arr, delimiter=",", header=",".join(cols), comments="", fmt=[fmts.get(k, "%.9g") for k in cols])
-    return buf.getvalue().encode()
+    text = io.StringIO()
+    np.savetxt(text, arr, delimiter=",", header=",".join(cols), comments="", fmt=[fmts.get(k, "%.9g") for k in cols])
+    return text.getvalue().encode()
 
 
 def write_record(path: str | Path, rec: Record) -> None:
@@ -239,9 +239,7 @@ def read_record(path: str | Path, columns: dict[str, str] | None = None, torque_
             parts.append(f"{int(back.sum())} steps back in time (first at row {np.flatnonzero(back)[0] + 3})")
         notes.append(f"{path.name}: {' and '.join(parts)}: the record is split there; no cycle crosses them")
     brk = np.r_[False, ~same | back | gap]
-    block = np.cumsum(brk)
-    if "block" not in cols and not brk.any():
-        block = None
+    blocks = None if "block" not in cols and not brk.any() else np.cumsum(brk)  # none given, none found
     sign = float(torque_sign)
     event = cols.get("event")
     return Record(
@@ -250,7 +248,7 @@ def read_record(path: str | Path, columns: dict[str, str] | None = None, torque_
         sign * cols["torque"],
         None if "command" not in cols else cols["command"],
         event,
-        block,
+        blocks,
         None if valid.all() else valid,
         notes,
     )
@@ -314,7 +312,10 @@ class Ensemble:
     def deltas(self, ref: "Ensemble | None" = None):
         """Perturbations about the ensemble mean (of `ref`, default self): dth, dtau, dcommand."""
         ref = ref or self
-        du = None if self.command is None else self.command - ref.command.mean(0)
+        du = None
+        if self.command is not None:
+            assert ref.command is not None  # an ensemble with a command is compared with one cut from the same record
+            du = self.command - ref.command.mean(0)
         return self.angle - ref.angle.mean(0), self.torque - ref.torque.mean(0), du
 
     def subset(self, idx: np.ndarray) -> "Ensemble":

@@ -60,7 +60,10 @@ def _profiles(cfg: ElbowConfig, tc: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     K = np.full_like(tc, cfg.K0)
     B = np.full_like(tc, cfg.B0)
     if cfg.stiffness == "dip":  # stiffness halved mid-movement, Gaussian dips of 120 ms std
-        K = cfg.K0 * (1 - 0.5 * sum(np.exp(-0.5 * ((tc - c) / 0.12) ** 2) for c in (0.3 * T, 0.8 * T)))
+        dips = np.zeros_like(tc)
+        for c in (0.3 * T, 0.8 * T):
+            dips += np.exp(-0.5 * ((tc - c) / 0.12) ** 2)
+        K = cfg.K0 * (1 - 0.5 * dips)
     elif cfg.stiffness == "square":  # 250 ms on, 250 ms off
         K = np.where(np.mod(tc, 0.5) < 0.25, cfg.K0, 0.45 * cfg.K0)
     elif cfg.stiffness == "ramp-b":  # B rises from B0 to 2.5 B0 over the middle of the cycle

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field, replace
+from typing import Any, overload
 
 import numpy as np
 
@@ -90,10 +91,11 @@ class EstimateOptions:
     def for_method(cls, method: str, **kw) -> "EstimateOptions":
         if method not in METHODS:
             raise InputError(f"method '{method}': expected one of {', '.join(METHODS)}")
-        base = {
+        presets: dict[str, dict[str, Any]] = {
             "thesis": dict(prefilter_hz=None, lag_ms=0.0, direct_term=False, noise_ratio=1.0, pool_ms=0.0),
             "iv": dict(pool_ms=50.0, smooth_ms=30.0),
-        }.get(method, {})
+        }
+        base = presets.get(method, {})
         base.update({k: v for k, v in kw.items() if v is not None})
         return cls(method=method, **base)
 
@@ -172,6 +174,13 @@ def resolved(opt: "EstimateOptions", ens: Ensemble) -> "EstimateOptions":
     return opt
 
 
+def cutoff(opt: EstimateOptions) -> float | None:
+    """The pre-filter cut-off (Hz) of options passed through `resolved` (None or 0: no filter)."""
+    hz = opt.prefilter_hz
+    assert not isinstance(hz, str), f"pre-filter '{hz}' not resolved to Hz"  # `resolved` replaces "auto"
+    return hz
+
+
 def lowpass(x: np.ndarray, fs: float, hz: float | None, order: int = 4) -> np.ndarray:
     """Zero-phase Butterworth low-pass (the pre-filter of both signals; none when `hz` is None or 0)."""
     if x is None or not hz:
@@ -197,6 +206,7 @@ def design(ens: Ensemble, opt: EstimateOptions, ref: Ensemble | None = None, sid
     before (after) it: estimates that see only one side of t.  `extend` adds that many instants before and
     after the cycle (from the padding)."""
     opt = resolved(opt, ens)
+    hz = cutoff(opt)
     dth, dtau, du = ens.deltas(ref)
     fs, P, L = ens.fs, ens.pad, ens.length
     D = max(1, int(round(opt.lag_ms * 1e-3 * fs)))
@@ -212,10 +222,10 @@ def design(ens: Ensemble, opt: EstimateOptions, ref: Ensemble | None = None, sid
     else:
         s_th, s_tau = max(noise_std(dth), 1e-12), max(noise_std(dtau), 1e-12)
     if side == 0:
-        dth, dtau = lowpass(dth, fs, opt.prefilter_hz, opt.order), lowpass(dtau, fs, opt.prefilter_hz, opt.order)
+        dth, dtau = lowpass(dth, fs, hz, opt.order), lowpass(dtau, fs, hz, opt.order)
     else:
-        dth = _one_sided(dth, fs, opt.prefilter_hz, opt.order, side)
-        dtau = _one_sided(dtau, fs, opt.prefilter_hz, opt.order, side)
+        dth = _one_sided(dth, fs, hz, opt.order, side)
+        dtau = _one_sided(dtau, fs, hz, opt.order, side)
     c = P + np.arange(-extend, L + extend) + shift
     if opt.method == "thesis":  # newest sample k = c; lags k-1, k-2 (eq. 9.10), stamped at k
         idx = [c, c - 1, c - 2]
@@ -224,7 +234,7 @@ def design(ens: Ensemble, opt: EstimateOptions, ref: Ensemble | None = None, sid
     tidx = idx
     taps = opt.taps
     if taps is None:
-        taps = 5 if opt.prefilter_hz and (D / 2) / fs >= 1 / (5 * opt.prefilter_hz) else 3
+        taps = 5 if hz and (D / 2) / fs >= 1 / (5 * hz) else 3
     if opt.method != "thesis" and taps > 3:
         tidx = [c + o for o in np.unique(np.round(np.linspace(D, -D, taps)).astype(int))[::-1]]
     cols = [dth[:, i] / s_th for i in idx] + [dtau[:, i] / s_tau for i in tidx]
@@ -235,7 +245,7 @@ def design(ens: Ensemble, opt: EstimateOptions, ref: Ensemble | None = None, sid
     if opt.method == "iv":
         if du is None:
             raise InputError("method 'iv' needs the commanded perturbation (a 'command' column)")
-        du = lowpass(du, fs, opt.prefilter_hz, opt.order)
+        du = lowpass(du, fs, hz, opt.order)
         nz = max(opt.iv_lags, X.shape[-1] - 1)
         Z = np.stack([du[:, c + D - j * D] for j in range(nz)], axis=-1).transpose(1, 0, 2)
         Z = Z / du.std()
@@ -271,7 +281,13 @@ def per_cycle_moments(d: Design, half: int, at: np.ndarray) -> tuple[np.ndarray,
     return per, perz
 
 
-def pool(M: np.ndarray, half: int) -> np.ndarray:
+@overload
+def pool(M: np.ndarray, half: int) -> np.ndarray: ...
+@overload
+def pool(M: None, half: int) -> None: ...
+
+
+def pool(M: np.ndarray | None, half: int) -> np.ndarray | None:
     """Moving sum over +-half instants along the time axis (-3)."""
     if half <= 0 or M is None:
         return M
@@ -308,6 +324,7 @@ def solve(
             beta = np.linalg.solve(R, Mxx[..., 1:, :1])[..., 0]
             p = np.concatenate([np.ones_like(beta[..., :1]), -beta], axis=-1)
         else:  # two-stage least squares: beta = (A^T W A)^-1 A^T W b, A = Z^T X, W = (Z^T Z)^-1
+            assert Mzx is not None  # the IV design carries instruments (`moments` of a design with Z)
             m = Mxx.shape[-1]
             A, bz, Wz = Mzx[..., :, 1:m], Mzx[..., :, :1], np.linalg.inv(Mzx[..., :, m:])
             AtW = np.swapaxes(A, -1, -2) @ Wz
@@ -343,11 +360,11 @@ def estimate(
     est = _fit(ens, opt)
     if opt.method == "default" and opt.auto_iv and ens.command is not None:
         iv = _fit(ens, EstimateOptions.for_method("iv", prefilter_hz=opt.prefilter_hz))
-        dev = {}
+        dev: dict[str, float] = {}
         for k in "IBK":  # 10 %-trimmed means over the cycle: robust, and blind to the time resolution
             a, b = _trimmed_mean(getattr(est, k)), _trimmed_mean(getattr(iv, k))
             dev[k] = abs(a / b - 1) if np.isfinite(a) and np.isfinite(b) and b != 0 else np.inf
-        worst = max(dev, key=dev.get)
+        worst = max(dev, key=dev.__getitem__)
         if dev[worst] > IV_SWITCH and np.nanmedian(iv.I) > 0:
             iv.notes.append(
                 f"least squares and the instrumental-variable fit differ by {min(dev[worst], 9.99):.0%} on {worst} (mean over the cycle): "
@@ -374,14 +391,17 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
             Mxx, Mzx = moments(d)
             I, B, K, cond = finish(d, Mxx, Mzx, opt, ens.fs)
             return ImpedanceEstimate(d.stamps / ens.fs, I, B, K, cond, opt, d.lag, designs={0: d})
+        hz = cutoff(opt)
+        assert hz is not None  # edges: a pre-filter is set
         L, fs = ens.length, ens.fs
         half = int(round(opt.pool_ms * 1e-3 * fs))
         D = max(1, int(round(opt.lag_ms * 1e-3 * fs)))
-        W = edge_width(D, half, opt.prefilter_hz, fs)
+        W = edge_width(D, half, hz, fs)
         E = min(W, ens.pad - 2 * D - 2 * half)
         d = design(ens, opt, extend=E)
         Mxx, _ = moments(d)
         p, cond, lam = tls(pool(Mxx, half))
+        assert cond is not None  # asked for (want_cond)
         I, B, K = to_ibk(p[E : E + L], d.scale, d.T)
         est = ImpedanceEstimate(d.stamps[E : E + L] / fs, I, B, K, cond[E : E + L], opt, d.lag)
         cycle = slice(E, E + L)  # the design over the cycle alone: design(ens, opt)
@@ -402,13 +422,13 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
             cand = cand[r[cand] > contrast * np.maximum(rs[0][at], rs[1][at])]
         w, steps = edge_weights(cand - E, L, W)
         if steps.size:
-            th = np.stack(th)  # (3 estimates, 3 parameters, L)
-            ok = np.isfinite(th)
-            blended = np.sum(np.where(ok, th, 0) * w[:, None], 0) / np.sum(ok * w[:, None], 0)
+            sides = np.stack(th)  # (3 estimates, 3 parameters, L)
+            ok = np.isfinite(sides)
+            blended = np.sum(np.where(ok, sides, 0) * w[:, None], 0) / np.sum(ok * w[:, None], 0)
             est.I, est.B, est.K = blended
-            alt = np.where(w[1] >= w[2], th[1], th[2])  # the one-sided estimate blended in at each instant
+            alt = np.where(w[1] >= w[2], sides[1], sides[2])  # the one-sided estimate blended in at each instant
             taper = (w[0] > 0) & (w[0] < 1)
-            est.blend_spread = np.where(taper, w[0] * np.nan_to_num(np.abs(th[0] - alt)), 0.0)
+            est.blend_spread = np.where(taper, w[0] * np.nan_to_num(np.abs(sides[0] - alt)), 0.0)
             uniq = np.unique(np.mod(steps, L))  # a step at the cycle's end is also one before its start
             uniq = uniq[np.r_[True, np.diff(uniq) > 2]]
             if uniq.size > 1 and uniq[0] + L - uniq[-1] <= 2:

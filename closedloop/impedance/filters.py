@@ -38,11 +38,11 @@ def butter_sos(order: int, hz: float, fs: float) -> np.ndarray:
     section one zero less (scipy orders its sections so too, except near the Nyquist frequency)."""
     p, k = butter_poles(order, hz, fs)
     pairs = sorted((q for q in p if q.imag > 0), key=lambda q: -abs(1 - abs(q)))
-    sos = [[1.0, 2.0, 1.0, 1.0, -2 * q.real, q.real**2 + q.imag**2] for q in pairs]
+    sections = [[1.0, 2.0, 1.0, 1.0, -2 * q.real, q.real**2 + q.imag**2] for q in pairs]
     if order % 2:
-        sos.insert(0, [1.0, 2.0, 1.0, 1.0, -float(p[np.argmin(np.abs(p.imag))].real), 0.0])
-        sos[-1][:3] = [1.0, 1.0, 0.0]
-    sos = np.array(sos)
+        sections.insert(0, [1.0, 2.0, 1.0, 1.0, -float(p[np.argmin(np.abs(p.imag))].real), 0.0])
+        sections[-1][:3] = [1.0, 1.0, 0.0]
+    sos = np.array(sections)
     sos[0, :3] *= k
     return sos
 
@@ -61,7 +61,9 @@ def _run(sos: np.ndarray, x: list[float], state: list[list[float]]) -> list[floa
 
 
 @lru_cache(maxsize=32)
-def _blocks(order: int, hz: float, fs: float, size: int) -> tuple[np.ndarray, ...]:
+def _blocks(
+    order: int, hz: float, fs: float, size: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, int]:
     """The cascade over a block of `size` samples from its state s (2 per section): outputs
     y = T u + O s and the next state s' = Phi s + G u, from the sections' own recursion."""
     sos = butter_sos(order, hz, fs)
@@ -158,7 +160,7 @@ def find_peaks(x: np.ndarray, height: float, distance: int) -> np.ndarray:
     """Indices of the local maxima of x (a plateau: its middle, rounded down) at least `height` high and
     at least `distance` samples apart, the higher kept first (`scipy.signal.find_peaks`)."""
     x = np.asarray(x, float)
-    peaks = []
+    found: list[int] = []
     i, last = 1, x.size - 1
     while i < last:
         if x[i - 1] < x[i]:
@@ -166,13 +168,13 @@ def find_peaks(x: np.ndarray, height: float, distance: int) -> np.ndarray:
             while ahead < last and x[ahead] == x[i]:
                 ahead += 1
             if x[ahead] < x[i]:
-                peaks.append((i + ahead - 1) // 2)
+                found.append((i + ahead - 1) // 2)
                 i = ahead
         i += 1
-    peaks = np.array(peaks, int)
+    peaks = np.array(found, int)
     peaks = peaks[x[peaks] >= height] if peaks.size else peaks
     if peaks.size > 1 and distance > 1:
-        keep = np.ones(peaks.size, bool)
+        keep = np.ones(peaks.size, np.bool_)
         for j in np.argsort(x[peaks])[::-1]:
             if keep[j]:
                 near = np.abs(peaks - peaks[j]) < distance

@@ -94,7 +94,9 @@ class Profile:
             return np.where(tc < v[2], v[0], v[1])
         if self.kind == "square":
             return np.where(np.mod(tc, v[2]) < v[2] / 2, v[0], v[1])
-        dips = sum(np.exp(-0.5 * ((tc - c) / v[2]) ** 2) for c in (period / 4, 3 * period / 4))
+        dips = np.zeros_like(tc)
+        for c in (period / 4, 3 * period / 4):
+            dips += np.exp(-0.5 * ((tc - c) / v[2]) ** 2)
         return v[0] * (1.0 - v[1] * dips)
 
     @property

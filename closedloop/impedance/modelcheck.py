@@ -79,7 +79,8 @@ def twin(ens: Ensemble, est, seed: int = 0, smooth_ms: float = 50.0) -> Ensemble
     truth = smoothed_model(est, fs, smooth_ms)
     on_pad = np.mod(np.arange(L + 2 * P) - P, L)
     f = lowpass(dth, fs, opt.prefilter_hz) if opt.prefilter_hz else dth
-    x = free_run(*(t[on_pad] for t in truth), dtau, f[:, 0], (f[:, 1] - f[:, 0]) * fs, fs)
+    I_pad, B_pad, K_pad = (t[on_pad] for t in truth)
+    x = free_run(I_pad, B_pad, K_pad, dtau, f[:, 0], (f[:, 1] - f[:, 0]) * fs, fs)
     rng = np.random.default_rng(seed)
     return replace(
         ens,

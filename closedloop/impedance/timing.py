@@ -49,6 +49,7 @@ smaller equation residual is kept.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -215,10 +216,12 @@ def realign(
             break
         total = new
         cur = recut(rec, ens, total)
+        assert cur.alignment is not None  # `recut` records each cycle's total shift
         total = cur.alignment.shifts - (ens.alignment.shifts if ens.alignment is not None else 0)
-        chk = check_onsets(cur, options, chk0.noise_ratio)
-        if chk is None:
+        nxt = check_onsets(cur, options, chk0.noise_ratio)
+        if nxt is None:
             return None
+        chk = nxt
     res = Realignment(cur, chk0, chk, total, False)
     res.kept = bool(total.any() and res.gain >= MIN_GAIN)
     return res
@@ -258,7 +261,7 @@ def check_timing(
     chk = check_onsets(ens, est.options)
     if chk is None:
         return TimingOutcome(ens, est, [], [], {"checked": False})
-    summary = {
+    summary: dict[str, Any] = {
         "checked": True,
         "z": round(chk.z, 2),
         "split_half_r": round(chk.r, 3),
@@ -278,6 +281,7 @@ def check_timing(
             summary,
         )
     ra = realign(rec, ens, est.options, max_shift_s, before=chk)
+    assert ra is not None  # re-cut cycles keep their number, which the check above found enough
     cands = [(ra.ensemble, ra.after or chk, "by the model")]
     if (not ra.kept or cands[0][1].misaligned) and onsets is not None:
         reach = max(COARSE_SHIFT_S, max_shift_s)
@@ -285,6 +289,7 @@ def check_timing(
         c0 = check_onsets(coarse, est.options, chk.noise_ratio)
         if c0 is not None:
             rb = realign(rec, coarse, est.options, reach, before=c0)
+            assert rb is not None  # as `ra`: c0 found enough cycles
             how = f"by RMS difference to the mean and then by the model, each within {1e3 * reach:g} ms"
             cands.append((rb.ensemble, rb.after or c0, how))
     out, after, how = min(cands, key=lambda c: c[1].residual)
@@ -301,6 +306,7 @@ def check_timing(
             ],
             summary,
         )
+    assert out.alignment is not None  # cut by `segment` and re-cut by `recut`, which record the shifts
     ms = out.alignment.shifts / out.fs * 1e3
     new = estimate(out, options=options, warn=False)
     summary.update(
