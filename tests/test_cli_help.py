@@ -124,3 +124,11 @@ def test_abbreviated_options_are_refused(capsys):
     assert "unrecognized arguments: --degree" in capsys.readouterr().err
     assert main(["impedance", "identify", "data.csv", "--prefilt", "10"]) == 2
     assert "unrecognized arguments: --prefilt" in capsys.readouterr().err
+
+
+def test_simulate_quiet_prints_nothing(tmp_path, capsys):
+    from closedloop.cli.main import main
+
+    assert main(["simulate", "panda_weld", "--n", "3", "--out", str(tmp_path / "s"), "--quiet"]) == 0
+    out = capsys.readouterr()
+    assert out.out == "" and (tmp_path / "s" / "log.csv").is_file()

@@ -30,7 +30,8 @@ def cmd_simulate(args) -> int:
         from closedloop.sims.camera_scene import simulate_cli as camera_simulate
 
         code = camera_simulate(args)
-        print_next_commands(Path(args.out))
+        if not getattr(args, "quiet", False):
+            print_next_commands(Path(args.out))
         return code
     args.scenario = resolve_scenario(args)  # a built-in, a scenario YAML, or --robot + --loop
     if args.scenario not in SCENARIOS:
@@ -57,6 +58,8 @@ def cmd_simulate(args) -> int:
     except NotIdentifiableError as exc:  # the scenario's loop cannot close: its robot, loop, --q0 or --tool
         raise ScenarioError(f"simulate {args.scenario}: {exc} (check the loop frame, --q0 and --tool)") from None
     prog.done()
+    if args.quiet:  # errors and warnings only
+        return 0
     print(f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out}")
     print_next_commands(Path(args.out))
     summary = getattr(result, "summary", None)

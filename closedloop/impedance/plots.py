@@ -54,6 +54,10 @@ def plot_impedance(
         finite = y[np.isfinite(y)]
         if finite.size:
             lo, hi = np.percentile(finite, [1, 99])
+            if bands is not None:  # the band too, but not a few instants where it balloons (steps)
+                blo, bhi = bands.lo[k][np.isfinite(bands.lo[k])], bands.hi[k][np.isfinite(bands.hi[k])]
+                if blo.size and bhi.size:
+                    lo, hi = min(lo, np.percentile(blo, 2)), max(hi, np.percentile(bhi, 98))
             if truth is not None:
                 lo, hi = min(lo, truth[k].min()), max(hi, truth[k].max())
             pad = 0.15 * (hi - lo) + 1e-12
