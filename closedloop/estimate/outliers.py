@@ -333,7 +333,7 @@ def reject_outliers(
     if not bad_rows:
         return None
     if len(bad_rows) >= 0.5 * n_rows:
-        log.warning("%d of %d configurations look like outliers: too many to reject", len(bad_rows), n_rows)
+        log.info("%d of %d configurations look like outliers: too many to reject", len(bad_rows), n_rows)
         return None
     evals = problem.evaluate(x_r, False)
     rejected = []
