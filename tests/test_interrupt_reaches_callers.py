@@ -13,6 +13,16 @@ import sys
 
 import pytest
 
+# the caller: main() on a simulation of NCONF configurations, reporting whether the interrupt reached it
+CALLER = """
+try:
+    rc = main(["simulate", "panda_weld", "--n", "NCONF", "--out", sys.argv[1]])
+except KeyboardInterrupt:
+    print("caller interrupted")
+    sys.exit(99)
+print("main returned", rc)
+"""
+
 SCRIPT = """
 import os, signal, sys, threading, time
 from closedloop.cli.main import main
@@ -22,13 +32,7 @@ def fire():
     os.kill(os.getpid(), signal.{sig})
 
 threading.Thread(target=fire, daemon=True).start()
-try:
-    rc = main(["simulate", "panda_weld", "--n", "2000", "--out", sys.argv[1]])
-except KeyboardInterrupt:
-    print("caller interrupted")
-    sys.exit(99)
-print("main returned", rc)
-"""
+""" + CALLER.replace("NCONF", "2000")
 
 
 def _default_sigint() -> None:
@@ -82,13 +86,7 @@ def swallowing(*a, **k):  # a library that catches everything, the interrupt too
     return real(*a, **k)
 
 closedloop.sims.simulate = swallowing
-try:
-    rc = main(["simulate", "panda_weld", "--n", "5", "--out", sys.argv[1]])
-except KeyboardInterrupt:
-    print("caller interrupted")
-    sys.exit(99)
-print("main returned", rc)
-"""
+""" + CALLER.replace("NCONF", "5")
 
 
 def test_an_interrupt_a_library_swallowed_still_publishes_nothing(tmp_path):
