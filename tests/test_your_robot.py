@@ -42,7 +42,6 @@ def test_romeo_arm_simulated_calibrated_and_checked(tmp_path, capsys):
                 "1",
                 "--out",
                 str(sim),
-                "--quiet",
             ]
         )
         == 0
@@ -213,7 +212,7 @@ def test_simulate_prints_the_calibrate_command_for_its_tool_frame(tmp_path, caps
     sim = tmp_path / "sim"
     urdf = example_robot_data_dir() / "ur_description/urdf/ur5_robot.urdf"
     args = ["--loop", "point:frame=tool0", "--tool", "0 0 0.1", "--n", "60", "--seed", "1", "--out", str(sim)]
-    assert main(["simulate", "--robot", str(urdf), *args, "--quiet"]) == 0
+    assert main(["simulate", "--robot", str(urdf), *args]) == 0
     lines = capsys.readouterr().out.splitlines()
     calibrate = shlex.split(next(ln for ln in lines if ln.strip().startswith("calibrate:")).split(":", 1)[1])
     check = shlex.split(next(ln for ln in lines if ln.strip().startswith("check:")).split(":", 1)[1])
