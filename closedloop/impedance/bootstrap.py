@@ -81,33 +81,39 @@ def smoothed_model(est, fs: float, smooth_ms: float = 50.0) -> np.ndarray:
     return np.stack([_smooth(np.asarray(getattr(est, k), float), smooth_ms * 1e-3 * fs, cuts) for k in "IBK"])
 
 
+def model_response(ens: Ensemble, est, smooth_ms: float = 50.0) -> tuple[np.ndarray, np.ndarray]:
+    """The smoothed identified model (`smoothed_model`, (3, L)) and its noise-free response (n, L + 2 pad)
+    to each cycle's measured torque perturbation (eq. 7.9, `free_run` from the pre-filtered initial state at
+    the start of the padding, the cycle's parameters repeated over the padding)."""
+    P, L, fs = ens.pad, ens.length, ens.fs
+    dth, dtau, _ = ens.deltas()
+    truth = smoothed_model(est, fs, smooth_ms)
+    on_pad = np.mod(np.arange(L + 2 * P) - P, L)
+    hz = est.options.prefilter_hz
+    f = lowpass(dth, fs, hz) if hz else dth
+    I_pad, B_pad, K_pad = (t[on_pad] for t in truth)
+    return truth, free_run(I_pad, B_pad, K_pad, dtau, f[:, 0], (f[:, 1] - f[:, 0]) * fs, fs)
+
+
 def simulated_bias(ens: Ensemble, est, smooth_ms: float = 50.0) -> np.ndarray:
     """The estimator's own bias (3, L) near the identified model, by simulation.
 
     The identified I(t), B(t), K(t), smoothed over `smooth_ms` between the steps found (so that their
     random wiggles are not taken for structure), are driven by the measured torque perturbations of every
-    cycle (eq. 7.9, `free_run` from the pre-filtered initial state at the start of the padding); the
-    responses, free of noise, go through the same estimator (options, pre-filter and blend of one-sided
-    fits as `est`; the measured noise ratio).  What comes back minus what went in is the bias that the
-    pre-filter's and the pooling's reach, the one-sided fits' blend and the discrete model's approximation
-    put into an estimate of such a truth: next to steps of K it is as large as the random error (the
-    other level leaks in), on smooth truths a fraction of it."""
+    cycle (`model_response`); the responses, free of noise, go through the same estimator (options,
+    pre-filter and blend of one-sided fits as `est`; the measured noise ratio).  What comes back minus what
+    went in is the bias that the pre-filter's and the pooling's reach, the one-sided fits' blend and the
+    discrete model's approximation put into an estimate of such a truth: next to steps of K it is as large
+    as the random error (the other level leaks in), on smooth truths a fraction of it."""
     from dataclasses import replace
 
     from closedloop.impedance.estimate import noise_std, refit
 
-    opt = est.options
-    P, L, fs = ens.pad, ens.length, ens.fs
     dth, dtau, _ = ens.deltas()
-    cuts = np.array([]) if est.steps is None else np.round(np.asarray(est.steps) * fs)
-    truth = np.stack([_smooth(np.asarray(getattr(est, k), float), smooth_ms * 1e-3 * fs, cuts) for k in "IBK"])
-    on_pad = np.mod(np.arange(L + 2 * P) - P, L)
-    f = lowpass(dth, fs, opt.prefilter_hz) if opt.prefilter_hz else dth
-    I_pad, B_pad, K_pad = (t[on_pad] for t in truth)
-    x = free_run(I_pad, B_pad, K_pad, dtau, f[:, 0], (f[:, 1] - f[:, 0]) * fs, fs)
+    truth, x = model_response(ens, est, smooth_ms)
     sim = replace(ens, angle=ens.angle.mean(0) + x)
     ratio = max(noise_std(dth), 1e-12) / max(noise_std(dtau), 1e-12)
-    back = refit(sim, replace(opt, noise_ratio=ratio, auto_iv=False), est.weights)
+    back = refit(sim, replace(est.options, noise_ratio=ratio, auto_iv=False), est.weights)
     return np.where(np.isfinite(back), back - truth, 0.0)
 
 

@@ -69,18 +69,12 @@ def twin(ens: Ensemble, est, seed: int = 0, smooth_ms: float = 50.0) -> Ensemble
     """The data's noise-only twin (module docstring): the identified model of `est` (smoothed over
     `smooth_ms`, never across a step found) driven by each cycle's measured torque perturbation from its
     pre-filtered initial state, with white noise at the measured levels added to angle and torque."""
-    from closedloop.impedance.bootstrap import free_run, smoothed_model
-    from closedloop.impedance.estimate import lowpass, noise_std
+    from closedloop.impedance.bootstrap import model_response
+    from closedloop.impedance.estimate import noise_std
 
-    opt = est.options
-    P, L, fs = ens.pad, ens.length, ens.fs
     dth, dtau, _ = ens.deltas()
     s_th, s_tau = noise_std(dth), noise_std(dtau)
-    truth = smoothed_model(est, fs, smooth_ms)
-    on_pad = np.mod(np.arange(L + 2 * P) - P, L)
-    f = lowpass(dth, fs, opt.prefilter_hz) if opt.prefilter_hz else dth
-    I_pad, B_pad, K_pad = (t[on_pad] for t in truth)
-    x = free_run(I_pad, B_pad, K_pad, dtau, f[:, 0], (f[:, 1] - f[:, 0]) * fs, fs)
+    _, x = model_response(ens, est, smooth_ms)
     rng = np.random.default_rng(seed)
     return replace(
         ens,
