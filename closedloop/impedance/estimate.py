@@ -423,9 +423,7 @@ def _fit(ens: Ensemble, opt: EstimateOptions) -> ImpedanceEstimate:
         w, steps = edge_weights(cand - E, L, W)
         if steps.size:
             sides = np.stack(th)  # (3 estimates, 3 parameters, L)
-            ok = np.isfinite(sides)
-            blended = np.sum(np.where(ok, sides, 0) * w[:, None], 0) / np.sum(ok * w[:, None], 0)
-            est.I, est.B, est.K = blended
+            est.I, est.B, est.K = blend(sides, w)
             alt = np.where(w[1] >= w[2], sides[1], sides[2])  # the one-sided estimate blended in at each instant
             taper = (w[0] > 0) & (w[0] < 1)
             est.blend_spread = np.where(taper, w[0] * np.nan_to_num(np.abs(sides[0] - alt)), 0.0)
@@ -458,10 +456,15 @@ def refit(ens: Ensemble, opt: EstimateOptions, weights: np.ndarray | None = None
             ds = design(ens, opt, side=side)
             ps, _, _ = tls(pool(moments(ds)[0], half), want_cond=False)
             th.append(np.stack(to_ibk(ps, ds.scale, ds.T)))
-    t = np.stack(th)
-    ok = np.isfinite(t)
+    return blend(np.stack(th), weights)
+
+
+def blend(sides: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The weighted mean (3, L) of the centred, left- and right-sided estimates `sides` (3, 3, L) with the
+    `edge_weights` (3, L), each instant over the estimates that are finite there."""
+    ok = np.isfinite(sides)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.sum(np.where(ok, t, 0) * weights[:, None], 0) / np.sum(ok * weights[:, None], 0)
+        return np.sum(np.where(ok, sides, 0) * weights[:, None], 0) / np.sum(ok * weights[:, None], 0)
 
 
 def tls(M: np.ndarray, want_cond: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
