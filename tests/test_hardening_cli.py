@@ -1020,7 +1020,9 @@ def test_real_ctrl_c_in_simulate_one_line_exit_130(tmp_path):
     The child is given SIGINT's default disposition: started from a process that ignores SIGINT (a script's
     background job, nohup), it would inherit that, and Python then installs no KeyboardInterrupt handler
     (the command rightly runs on there, as any program would)."""
-    out = tmp_path / "o"
+    from closedloop.io.marker import RUNNING_MARKER
+
+    out, marker = tmp_path / "o", tmp_path / "running"
     p = subprocess.Popen(
         [
             sys.executable,
@@ -1037,9 +1039,14 @@ def test_real_ctrl_c_in_simulate_one_line_exit_130(tmp_path):
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        env={**os.environ, RUNNING_MARKER: str(marker)},
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
-    time.sleep(4.0)
+    t0 = time.monotonic()  # until the simulation drives the robot (`closedloop.io.marker`), never a fixed time
+    while not (marker.exists() and "simulate" in marker.read_text().split()):
+        assert p.poll() is None, p.communicate()
+        assert time.monotonic() - t0 < 300, "the simulation never started"
+        time.sleep(0.002)
     p.send_signal(signal.SIGINT)
     _, err = p.communicate(timeout=60)
     assert p.returncode == 130, err

@@ -23,12 +23,23 @@ except KeyboardInterrupt:
 print("main returned", rc)
 """
 
+# the signal is sent once the simulation drives the robot (its mark, `closedloop.io.marker`), never after a fixed
+# time a faster or slower machine outruns; a mark that never comes ends the child with 98
 SCRIPT = """
 import os, signal, sys, threading, time
+from pathlib import Path
 from closedloop.cli.main import main
+from closedloop.io.marker import RUNNING_MARKER
+
+marker = Path(sys.argv[1] + ".running")
+os.environ[RUNNING_MARKER] = str(marker)
 
 def fire():
-    time.sleep(2.0)
+    t0 = time.monotonic()
+    while not (marker.exists() and "simulate" in marker.read_text().split()):
+        if time.monotonic() - t0 > 300:
+            os._exit(98)
+        time.sleep(0.002)
     os.kill(os.getpid(), signal.{sig})
 
 threading.Thread(target=fire, daemon=True).start()

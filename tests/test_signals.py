@@ -1,10 +1,13 @@
 """Ctrl-C and SIGTERM at any moment of a command, its imports included: one line, exit 130 (143 for
 SIGTERM), the previous outputs intact, no temporary left.  And a batch on a 2-worker pool killed with
-SIGKILL, SIGINT or SIGTERM leaves no process behind (3 s later) and no half-written job folder.
+SIGKILL, SIGINT or SIGTERM while its jobs run leaves no process behind and no half-written job folder.
 
-The signal is sent once `main` has taken over the signals (the child's SIGTERM disposition is caught:
-/proc/PID/status), then after a delay drawn over the whole run: while the numerical libraries load, in
-the fit, at publication.  (Before that, within the interpreter's own start, Ctrl-C is Python's.)
+The Ctrl-C sweep sends its signal once `main` has taken over the signals (the child's SIGTERM disposition is
+caught: /proc/PID/status), then after a delay drawn over the whole run: while the numerical libraries load, in
+the fit, at publication, or after the end (either outcome is checked).  (Before that, within the interpreter's
+own start, Ctrl-C is Python's.)  The tests that must interrupt the work itself wait until the process says it
+is running (`closedloop.io.marker`: the line `calibrate` in the file named by CLOSEDLOOP_RUNNING_MARKER), never
+for a fixed time that a faster or slower machine outruns.
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ import numpy as np
 import pytest
 import yaml
 
+from closedloop.io.marker import RUNNING_MARKER
+
 WELD = "weld:frame=panda_hand,name=fixture"
 
 
@@ -34,17 +39,37 @@ def _caught(pid: int, sig: int) -> bool:
     return False
 
 
-def _start(args: list[str], cwd: Path) -> subprocess.Popen:
-    """The CLI in its own process group, SIGINT at its default (a background job would inherit SIG_IGN)."""
+def _start(args: list[str], cwd: Path, marker: Path | None = None) -> subprocess.Popen:
+    """The CLI in its own process group, SIGINT at its default (a background job would inherit SIG_IGN);
+    with `marker`, the file it marks its work in (`closedloop.io.marker`)."""
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    if marker is not None:
+        env[RUNNING_MARKER] = str(marker)
     return subprocess.Popen(
         [sys.executable, "-m", "closedloop.cli.main", *args],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
         cwd=cwd,
-        env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
+        env=env,
         preexec_fn=lambda: (os.setpgid(0, 0), signal.signal(signal.SIGINT, signal.SIG_DFL)),
     )
+
+
+def _marked(marker: Path, what: str) -> bool:
+    try:
+        return what in marker.read_text().split()
+    except OSError:
+        return False
+
+
+def _wait_for_mark(p: subprocess.Popen, marker: Path, what: str, timeout: float = 300.0) -> None:
+    """Until the process has marked `what` (its work is running): generous, a loaded machine is slow."""
+    t0 = time.monotonic()
+    while not _marked(marker, what):
+        assert p.poll() is None, f"the command ended before marking {what!r}: {p.stderr.read() if p.stderr else ''}"
+        assert time.monotonic() - t0 < timeout, f"the command never marked {what!r} within {timeout} s"
+        time.sleep(0.002)
 
 
 def _wait_for_main(p: subprocess.Popen, timeout: float = 30.0) -> None:
@@ -52,6 +77,22 @@ def _wait_for_main(p: subprocess.Popen, timeout: float = 30.0) -> None:
     while not _caught(p.pid, signal.SIGTERM):
         assert p.poll() is None and time.monotonic() - t0 < timeout, "the command never reached main()"
         time.sleep(0.002)
+
+
+def test_running_marker_appends_a_line_only_when_asked(tmp_path, monkeypatch):
+    """`mark_running` appends its line to the file the environment names (several marks, several lines, the file
+    never truncated), and writes nothing where the variable is unset."""
+    from closedloop.io.marker import mark_running
+
+    marker = tmp_path / "running"
+    monkeypatch.delenv(RUNNING_MARKER, raising=False)
+    mark_running("calibrate")
+    assert not marker.exists()
+    marker.write_text("before\n")
+    monkeypatch.setenv(RUNNING_MARKER, str(marker))
+    mark_running("calibrate")
+    mark_running("simulate")
+    assert marker.read_text() == "before\ncalibrate\nsimulate\n"
 
 
 @pytest.fixture(scope="module")
@@ -96,9 +137,9 @@ def test_sigterm_during_calibrate(inputs, tmp_path):
     old = '{"old": true}\n'
     (tmp_path / "r.json").write_text(old)
     args = ["calibrate", str(inputs / "panda.urdf"), str(inputs / "log.csv"), "--loop", WELD, "--quiet"]
-    p = _start(args + ["--report", str(tmp_path / "r.json"), "--cv", "5"], tmp_path)
-    _wait_for_main(p)
-    time.sleep(0.3)
+    marker = tmp_path / "running"
+    p = _start(args + ["--report", str(tmp_path / "r.json"), "--cv", "5"], tmp_path, marker)
+    _wait_for_mark(p, marker, "calibrate")  # in the fit (the fit and 5 folds still to go)
     p.send_signal(signal.SIGTERM)
     _, err = p.communicate(timeout=120)
     assert p.returncode == 143, err
@@ -143,29 +184,37 @@ def test_killed_batch_leaves_no_process_and_no_half_job(fleet, tmp_path, how):
     m = tmp_path / "m.yaml"
     m.write_text(fleet.read_text())
     err_file = tmp_path / "err.txt"
+    marker = tmp_path / "running"
     with err_file.open("w") as err:
         p = subprocess.Popen(
             [sys.executable, "-m", "closedloop.cli.main", "batch", str(m), "--jobs", "2", "--quiet"],
             stdout=subprocess.DEVNULL,
             stderr=err,  # (a pipe would be held open by a leftover worker: a file tells no lies)
             cwd=tmp_path,
-            env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
+            env={**os.environ, "OPENBLAS_NUM_THREADS": "1", RUNNING_MARKER: str(marker)},
             preexec_fn=lambda: (os.setpgid(0, 0), signal.signal(signal.SIGINT, signal.SIG_DFL)),
         )
         seen: set[int] = set()
         t0 = time.monotonic()
-        while time.monotonic() - t0 < 60 and not (tmp_path / "out").exists():  # jobs running, none finished
+        # until a worker has started a job's fit (`closedloop.io.marker`) and the pool is up (the fork server and 2
+        # workers, and the resource tracker); a worker may still be starting: the rest is collected as it shows
+        while time.monotonic() - t0 < 300 and not (_marked(marker, "calibrate") and len(seen) >= 3):
+            assert p.poll() is None, "the batch ended before a job was running"
             seen |= _descendants(p.pid)
-            if len(seen) >= 3:  # the pool is up: its workers may still be starting
-                break
-            time.sleep(0.05)
-        assert len(seen) >= 3, "the pool never started"  # fork server, 2 workers (and the resource tracker)
+            time.sleep(0.01)
+        assert _marked(marker, "calibrate") and len(seen) >= 3, f"no job running after 300 s ({len(seen)} processes)"
+        assert not (tmp_path / "out").exists() or not any(
+            (q / "done.json").exists() for q in (tmp_path / "out").iterdir()
+        ), "a job finished before the signal: the jobs are too short to interrupt"
+        seen |= _descendants(p.pid)
         sig = getattr(signal, how.split("-")[0])
         os.killpg(p.pid, sig) if how.endswith("group") else p.send_signal(sig)
-        p.wait(timeout=30)
+        p.wait(timeout=60)
     out = tmp_path / "out"
     folders = sorted(q.name for q in out.iterdir()) if out.exists() else []
-    time.sleep(3.0)
+    t0 = time.monotonic()
+    while _alive(seen) and time.monotonic() - t0 < 60:  # the workers end on their own (within milliseconds here)
+        time.sleep(0.01)
     assert _alive(seen) == [], f"{how}: processes left: {_alive(seen)}"
     assert (sorted(q.name for q in out.iterdir()) if out.exists() else []) == folders  # no job finished after
     err_text = err_file.read_text()

@@ -233,8 +233,10 @@ def calibrate(
     BLAS threads are limited for the call by problem size (`threads.blas_threads`).
     """
     from closedloop.estimate.threads import blas_threads
+    from closedloop.io.marker import mark_running
 
     opt = options or CalibrationOptions()
+    mark_running("calibrate")  # a supervising process may now interrupt the work (`io.marker`)
     with blas_threads(opt.threads, 6 * len(log_), 6 * len(robot.joint_names) + 6):
         try:
             res = _calibrate(robot, log_, loops, opt, progress)

@@ -56,6 +56,7 @@ import pinocchio as pin
 
 from closedloop.errors import ScenarioError
 from closedloop.io.files import OutputSet
+from closedloop.io.marker import mark_running
 from closedloop.models import ROBOTS, nominal_urdf
 from closedloop.sims.driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
 from closedloop.sims.loop_types import SimLoop, sim_loop
@@ -231,6 +232,7 @@ def _simulate(
     files.add(out / "scene.xml", scene.to_xml())
     r0 = sensor_readings(q0, truth.offset, truth.scale, settings.noise, settings.quantization, rng_noise)
     planner, loop = _planner(sc, kind, settings, nominal.model, scene, r0, rng_plan)  # 4
+    mark_running("simulate")  # a supervising process may now interrupt the work (`io.marker`)
     t_start = time.perf_counter()
     plan = None
     if settings.select:  # pose selection on the nominal model (closedloop.sims.selection)
