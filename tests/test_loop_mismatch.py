@@ -151,10 +151,16 @@ def test_restarts_stop_only_when_every_start_stalls_alike_and_gross():
 
 
 @pytest.mark.slow
-def test_weld_fit_on_point_data_fails_fast_and_honestly(panda, monkeypatch):
-    """Past the pre-fit check (disabled here), a weld fit on ball-joint data is `failed`, its restarts stop
-    after the first, and the valley search does not run."""
+def test_weld_fit_on_point_data_fails_honestly(panda, monkeypatch):
+    """Past the pre-fit check (disabled here), a weld fit on ball-joint data is `failed`, says the joint noise
+    it implies is implausible and that no restart closed the loops.
+
+    Where the stalled fit lands depends on the CPU (Intel: 0.22-0.28 rad of implied joint noise, AMD EPYC:
+    0.037 rad): what is asserted is the verdict and its evidence, at the verdict's own level, not the figure.
+    When every start stalls above `HOPELESS_LEVEL` (as on Intel) the restarts also stop after the first; below
+    it (as on AMD) the restarts and the valley search run to the same refusal."""
     from closedloop import calibrate
+    from closedloop.calibration.verdict import VerdictRules
     from closedloop.studies.truth import make_dataset
 
     d, robot = panda
@@ -165,5 +171,13 @@ def test_weld_fit_on_point_data_fails_fast_and_honestly(panda, monkeypatch):
     monkeypatch.setattr(WeldLoop, "mismatch", lambda self, Ts, meas=None: None)
     res = calibrate(robot, read_log(d / "socket_slow.csv", robot.joint_names), [WeldLoop("fixture", "panda_hand")])
     assert res.verdict.status == "failed"
-    assert res.model_error["joint_noise_implied"] > 0.05  # rad: far above any encoder
-    assert any(w.startswith("restarts stopped after 1:") for w in res.warnings), res.warnings
+    implied = res.model_error["joint_noise_implied"]
+    assert res.verdict.evidence["joint_noise"] == implied
+    assert implied > VerdictRules().failed_joint_noise  # 0.01 rad: no encoder is that noisy
+    assert not res.model_error["noise_explains"]
+    assert any(
+        r.startswith(f"failed: the estimated joint noise {implied:.3g} rad is implausible") for r in res.verdict.reasons
+    ), res.verdict.reasons
+    assert any(w.endswith("no restart reached a closure within a plausible noise") for w in res.warnings), res.warnings
+    stopped = [w for w in res.warnings if w.startswith("restarts stopped after")]
+    assert all(w.startswith("restarts stopped after 1:") for w in stopped), stopped
