@@ -9,8 +9,12 @@ scale only for loops that cannot see it).  Right means: noise-free, tool positio
 0.2 mm, fitted scale within 3.8 % (a calibrator that fixes a real link length of 10 cm or
 more at its nominal value is off by at most sqrt(3) (2 mm / 10 cm + 2 mrad)); with noise, 5x
 more than the largest tool error std the noise alone leaves (Cramer-Rao bound of the zoo's own
-parametrization, `zoo_judge.predicted_std`).  A case that is not right must carry a verdict
-other than 'ok'.  The full zoo is `benchmarks/zoo.py`.
+parametrization, `zoo_judge.predicted_std`).  The full zoo is `benchmarks/zoo.py`.
+
+Each case states what it does: right with verdict 'ok', or the one refusal it is allowed (a verdict
+other than 'ok' giving a named reason), counted from what the calibrator does today and no more.  A
+refusal is never a pass by default: a case that is right today fails the day it is flagged, and an
+exception (a refusal by error, or a crash) fails every case.
 """
 
 from __future__ import annotations
@@ -28,9 +32,19 @@ WELD_7DOF = ["panda", "xarm7", "baxter_left", "tiago", "g1_left"]
 POINT_6DOF = ["ur5", "kinova", "z1"]
 
 
-def _check(outcome: zoo.Outcome) -> None:
-    if outcome.status == "crash" or not (outcome.right or outcome.refused):
-        pytest.fail(outcome.line(), pytrace=False)
+def _check(outcome: zoo.Outcome, refusal: str | None = None) -> None:
+    """Right with verdict 'ok'; or, where `refusal` is given (the refusal the case is allowed), a verdict
+    other than 'ok' one of whose reasons contains `refusal`.  An error raised by `calibrate` or a crash
+    (no judgement at all) fails either way."""
+    if outcome.judgement is None:  # calibrate raised: a refusal by error is not an answer
+        pytest.fail(f"raised instead of answering: {outcome.line()}", pytrace=False)
+    if refusal is None:
+        if not (outcome.right and outcome.status == "ok"):
+            pytest.fail(f"not right with verdict ok: {outcome.line()}", pytrace=False)
+        return
+    reasons = outcome.result.verdict.reasons
+    if not (outcome.refused and any(refusal in r for r in reasons)):
+        pytest.fail(f"expected a verdict other than ok saying {refusal!r}: {outcome.line()} {reasons}", pytrace=False)
 
 
 # ----------------------------------------------------------------------------- the harness itself
@@ -109,49 +123,92 @@ def _exact(robot: str, loop: str) -> zoo.Outcome:
     return zoo.run_case(zoo.make_case(robot, loop, n=60, seed=0))
 
 
+# the refusals the exact cases are allowed (one of eight): the G1's weld holds its size by a 50 mm length, so a
+# 2 mm error of that length moves the size by 4 % (the judge sees 9 %, not right); the verdict says so.
+# Every other exact case is right with verdict ok.
+EXACT_REFUSALS = {("g1_left", "weld"): "which stands for a length of only"}
+
+
 @pytest.mark.parametrize("robot", WELD_7DOF)
 def test_zoo_weld_7dof(robot):
-    _check(_exact(robot, "weld"))
+    _check(_exact(robot, "weld"), EXACT_REFUSALS.get((robot, "weld")))
 
 
 @pytest.mark.parametrize("robot", POINT_6DOF)
 def test_zoo_point_6dof(robot):
-    _check(_exact(robot, "point"))
+    _check(_exact(robot, "point"), EXACT_REFUSALS.get((robot, "point")))
 
 
-def test_zoo_exact_cases_mostly_accepted():
-    """A calibrator that refuses everything would pass the tests above: most exact cases must be right AND ok."""
-    outs = [_exact(r, "weld") for r in WELD_7DOF] + [_exact(r, "point") for r in POINT_6DOF]
-    accepted = [o for o in outs if o.right and not o.refused and o.status != "crash"]
-    if len(accepted) < 0.75 * len(outs):
+def test_zoo_exact_cases_refuse_no_more_than_allowed():
+    """A calibrator that refuses everything would pass a test that takes 'refused' for right: of the eight
+    exact cases, no more refuse than `EXACT_REFUSALS` allows, and every other one is right with verdict ok."""
+    outs = {(r, "weld"): _exact(r, "weld") for r in WELD_7DOF} | {(r, "point"): _exact(r, "point") for r in POINT_6DOF}
+    accepted = [k for k, o in outs.items() if o.judgement is not None and o.right and o.status == "ok"]
+    if len(accepted) < len(outs) - len(EXACT_REFUSALS):
         pytest.fail(
-            f"only {len(accepted)} of {len(outs)} right with verdict ok:\n" + "\n".join(o.line() for o in outs),
+            f"only {len(accepted)} of {len(outs)} right with verdict ok (allowed refusals: {len(EXACT_REFUSALS)}):\n"
+            + "\n".join(o.line() for o in outs.values()),
             pytrace=False,
         )
 
 
 def test_zoo_noisy_tracker():
-    """Joint noise 1e-4 rad, tracker noise 10 um: right within the noise's own bound, or not ok."""
+    """Joint noise 1e-4 rad, tracker noise 10 um: right within the noise's own bound, verdict ok (no refusal
+    allowed: 0.05 mm against a tolerance of 0.34 mm)."""
     _check(zoo.run_case(zoo.make_case("xarm7", "measured_point", n=60, sigma=1e-4, sigma_t=1e-5, seed=1)))
 
 
 def test_zoo_noisy_weld():
-    """Joint noise 1e-5 rad on one weld pose (weakly conditioned: a few mm over the workspace is all it allows)."""
+    """Joint noise 1e-5 rad on one weld pose (weakly conditioned: a few mm over the workspace is all it allows):
+    right within the noise's own bound, verdict ok (no refusal allowed: 4.1 mm against 15 mm)."""
     _check(zoo.run_case(zoo.make_case("panda", "weld", n=60, sigma=1e-5, seed=1)))
 
 
 def test_zoo_corrupted_rows():
-    """10 % of the rows replaced by random readings: a correct (robust) fit or a verdict that is not ok."""
-    _check(zoo.run_case(zoo.make_case("ur5", "point", n=100, seed=0, corrupt_rows=0.10, tag="rows10")))
+    """10 % of the rows replaced by random readings: the robust fit is right, and the verdict is 'suspect' for
+    exactly those rows (the one refusal allowed: the rejected rows, which a user must look at)."""
+    o = zoo.run_case(zoo.make_case("ur5", "point", n=100, seed=0, corrupt_rows=0.10, tag="rows10"))
+    _check(o, "10 of 100 configurations rejected as outliers")
+    assert o.right, o.line()
+
+
+def _held_length(urdf: str, joint: str, following: str) -> float:
+    """The length along `joint`'s axis from its parent's origin to the origin of the `following` joint: the
+    projection of `joint`'s origin on its axis (in the parent frame) plus that of `following`'s origin (in
+    `joint`'s frame).  Where the neighbouring axes cross this one at right angles (the Panda's joint 3), it is
+    the distance between their common normals along the axis, the length a held `<joint>.z` stands for."""
+    import xml.etree.ElementTree as ET
+
+    joints = {j.get("name"): j for j in ET.fromstring(urdf).findall("joint")}
+    vec = lambda el, key: np.array([float(v) for v in el.find(key[0]).get(key[1]).split()])
+    a = vec(joints[joint], ("axis", "xyz"))
+    a /= np.linalg.norm(a)
+    R = pin.rpy.rpyToMatrix(*vec(joints[joint], ("origin", "rpy")))
+    return float((R @ a) @ vec(joints[joint], ("origin", "xyz")) + a @ vec(joints[following], ("origin", "xyz")))
 
 
 def test_zoo_rough_start():
-    """A nominal model 10x further from the truth (2 cm, 20 mrad, 0.2 rad offsets)."""
-    _check(
-        zoo.run_case(
-            zoo.make_case("panda", "weld", n=60, seed=1, err_m=2e-2, err_rad=2e-2, offset_rad=0.2, tag="rough")
-        )
+    """A nominal model 10x further from the truth (2 cm, 20 mrad, 0.2 rad offsets): right, verdict ok (no
+    refusal allowed), and the size the one the held length gives.
+
+    A weld closes at any size: the calibration holds `panda_joint3.z` (316 mm along joint 3's axis, between
+    joints 2 and 4) at its nominal value, so the calibrated robot is the true one scaled by nominal / true
+    length.  Its error here is the zoo's perturbation of two origins along that axis (up to 2 cm each: up to
+    13 %; this seed 10 %).  The judge's generic size tolerance (sqrt(3) (2 cm / 10 cm + 20 mrad) = 38 %, for
+    any held length of 10 cm or more) says little here, so the size is held to the length's own prediction:
+    what that leaves out is of second order, tilts of up to sqrt(3) x 20 mrad of joints 3 and 4 times the
+    origins' off-axis offsets (at most 28 mm and 20 mm) and L (1 - cos tilt), under 2 mm in all, 0.6 % of
+    316 mm (seeds 0-7 measured: within 0.08 %)."""
+    case = zoo.make_case("panda", "weld", n=60, seed=1, err_m=2e-2, err_rad=2e-2, offset_rad=0.2, tag="rough")
+    o = zoo.run_case(case)
+    _check(o)
+    assert o.result.gauge == "panda_joint3.z", o.result.gauge
+    truth = (case.nominal_urdf.parent / "truth.urdf").read_text()
+    predicted = _held_length(case.nominal_urdf.read_text(), "panda_joint3", "panda_joint4") / _held_length(
+        truth, "panda_joint3", "panda_joint4"
     )
+    assert abs(predicted - 1.0) > 0.05  # the size is off, and by the held length's error (seed 1: 0.907)
+    assert abs(o.judgement.scale / predicted - 1.0) < 0.006, (o.judgement.scale, predicted)
 
 
 def test_zoo_point_contact_states_the_size_it_cannot_see():
