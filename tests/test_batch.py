@@ -106,15 +106,16 @@ def test_batch_same_on_every_engine_failure_isolated_drift_flagged(tmp_path, tru
                 engine,
                 i,
             )
-    # the calibrations see the true drift of the offset, within 3 standard errors of the change
+    # the calibrations see the true drift of the offset, within 4 standard errors of the change (a normal draw
+    # exceeds that with probability 6e-5; 3 with 0.27 %)
     p = [params(tmp_path / "serial" / f"out/arm1-day{i}")[f"{JOINT}.offset"] for i in range(3)]
     for i in (1, 2):
-        assert abs(p[i][0] - p[0][0] - drifts[i]) < 3 * np.hypot(p[i][1], p[0][1]), (i, p)
+        assert abs(p[i][0] - p[0][0] - drifts[i]) < 4 * np.hypot(p[i][1], p[0][1]), (i, p)
     # drift: flagged only for the large change, on that parameter only
     flagged = [(d.after, d.parameter) for d in ref.drift if d.flagged]
     assert flagged == [("arm1-day2", f"{JOINT}.offset")], flagged
     small = next(d for d in ref.drift if d.after == "arm1-day1" and d.parameter == f"{JOINT}.offset")
-    assert abs(small.z) < 3 and abs(small.change - 2.5e-5) < 3 * small.se
+    assert abs(small.z) < 3 and abs(small.change - 2.5e-5) < 4 * small.se  # not flagged (|z| <= 3), and right
     zs = np.array([d.z for d in ref.drift if not d.flagged])
     assert len(zs) > 20 and 0.5 < zs.std() < 1.5, zs.std()  # the unchanged parameters: z ~ N(0, 1)
     with open(tmp_path / "serial" / "summary.csv") as fh:

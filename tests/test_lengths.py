@@ -12,7 +12,7 @@ import json
 import numpy as np
 import pinocchio as pin
 import pytest
-from test_rigs import SIGMA_TASK, _loops, _setup, scale_error
+from test_rigs import SIGMA_TASK, Z_LEVEL, _loops, _setup, scale_error
 
 from closedloop import CalibrationOptions, calibrate
 from closedloop.errors import LoopError
@@ -42,7 +42,7 @@ def _calibrate(rig, a: str, b: str, factor: float = 1.0):
 @pytest.mark.slow
 def test_length_sets_scale(rig):
     """panda_link2-panda_link4 (over joint 3, whose axis carries the 316 mm): the scale is set by it, the
-    size within two standard errors of the truth, and a 1 % longer length scales the robot by the 1 % the
+    size within four standard errors of the truth, and a 1 % longer length scales the robot by the 1 % the
     report states."""
     res = _calibrate(rig, "panda_link2", "panda_link4")
     assert res.verdict.status == "ok", res.verdict.describe()
@@ -51,7 +51,9 @@ def test_length_sets_scale(rig):
     assert abs(res.length_response - 1.0) < 0.01 and res.length_leak < 1e-3
     err = scale_error(res, rig[0])
     assert 0.0 < res.scale_std < 0.003
-    assert abs(err) <= 2.0 * res.scale_std, (err, res.scale_std)  # seed 0: +0.12 % against 0.11 %
+    # at Z_LEVEL (4) standard errors, a level a draw exceeds by chance with probability 6e-5 (test_rigs.Z_LEVEL;
+    # two fail 4.6 % of draws); with the error bar under 0.3 % the size is still held to 1.2 %
+    assert abs(err) <= Z_LEVEL * res.scale_std, (err, res.scale_std)  # seed 0: +0.12 % against 0.11 %
     longer = _calibrate(rig, "panda_link2", "panda_link4", 1.01)
     assert longer.verdict.status == "ok"
     moved = (1.0 + scale_error(longer, rig[0])) / (1.0 + err) - 1.0

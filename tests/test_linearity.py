@@ -57,6 +57,7 @@ def test_the_weak_weld_is_suspect_where_its_error_bars_fail():
     and 1.75 (2 expected), so the verdict is `suspect`, not `ok` as it was.  The plain fit of the same log,
     whose error bars hold (its size 0.2 standard errors off), passes the check."""
     import zoo
+    from test_rigs import Z_LEVEL
     from zoo_judge import judge
 
     case = zoo.make_case("panda", "weld", n=80, seed=0)
@@ -74,6 +75,8 @@ def test_the_weak_weld_is_suspect_where_its_error_bars_fail():
     assert any("error bars do not hold" in r for r in res.verdict.reasons)
     loops = [parse_loop(s, robot) for s in case.loop_specs] + [LengthLoop("panda_link2", "panda_link4", L)]
     plain = calibrate(robot, JointLog(list(case.joints), readings), loops, CalibrationOptions(weighting="none"))
-    assert abs(judge(case, dict(zip(plain.names, plain.values))).scale - 1.0) < plain.scale_std
+    # covered at 4 standard errors (a level a normal draw exceeds with probability 6e-5; test_rigs.Z_LEVEL): this
+    # draw is 0.2 off, the weighted fit's 9.8
+    assert abs(judge(case, dict(zip(plain.names, plain.values))).scale - 1.0) < Z_LEVEL * plain.scale_std
     assert plain.profiles and all(p.holds for p in plain.profiles)
     assert not any("error bars" in r for r in plain.verdict.reasons)
