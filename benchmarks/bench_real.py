@@ -11,6 +11,11 @@ frame Jacobians of the same poses, once (`pin.computeJointJacobians` + `getFrame
 
     nice python benchmarks/bench_real.py               # 1,000 poses, profile -> stdout
     python benchmarks/bench_real.py --poses 500 --no-validation --profile
+    python benchmarks/bench_real.py --recordings       # the public recordings of real TALOS and TIAGo
+
+`--recordings` times closedloop's defaults on the real recordings of docs/validation/real-robots.md, read
+from ../shared/real-data/ beside the repository (it stops, naming the folder, where one is absent): the
+fit on all rows and the held-out protocol of tests/test_real_robots.py, against the same floor.
 
 Not part of the test suite.
 """
@@ -31,7 +36,9 @@ import numpy as np
 import pinocchio as pin
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.append(str(Path(__file__).resolve().parents[1] / "tests"))  # real_data: where the recordings live
 from machine import header  # noqa: E402
+from real_data import RECORDINGS, chain_urdf, figaroh_log  # noqa: E402
 
 from closedloop.calibration.pipeline import build_problem, calibrate  # noqa: E402
 from closedloop.io.logs import JointLog  # noqa: E402
@@ -40,7 +47,7 @@ from closedloop.model.robot import RobotModel  # noqa: E402
 from closedloop.models import example_robot_data_dir  # noqa: E402
 from closedloop.records import CalibrationOptions  # noqa: E402
 from closedloop.studies.truth import draw_truth  # noqa: E402
-from closedloop.validation.kfold import cross_validate  # noqa: E402
+from closedloop.validation.kfold import cross_validate, holdout, subset  # noqa: E402
 
 TIPS = ("gripper_left_base_link", "gripper_right_base_link")
 X_TRUE = pin.SE3(pin.exp3(np.array([0.05, -0.1, 1.0])), np.array([1.2, 0.3, -0.4]))
@@ -96,11 +103,11 @@ def dataset(robot: RobotModel, n: int, seed: int, bend: float) -> JointLog:
     return JointLog(joints, readings, None, None, extra)
 
 
-def floor(robot: RobotModel, log_: JointLog) -> float:
-    """Pinocchio alone: forward kinematics and both frames' Jacobians at every pose, once (seconds, best of 5)."""
+def floor(robot: RobotModel, log_: JointLog, tips: tuple[str, ...] = TIPS) -> float:
+    """Pinocchio alone: forward kinematics and the frames' Jacobians at every pose, once (seconds, best of 5)."""
     model = robot.model
     data = model.createData()
-    fids = [model.getFrameId(t) for t in TIPS]
+    fids = [model.getFrameId(t) for t in tips]
     qs = []
     for row in log_.angles:
         q = pin.neutral(model)
@@ -119,6 +126,32 @@ def floor(robot: RobotModel, log_: JointLog) -> float:
     return best
 
 
+def recordings() -> None:
+    """The real recordings (module doc): fit on all rows, then the held-out protocol (every fifth row held out)."""
+    for name, rec in RECORDINGS.items():
+        log_ = figaroh_log(name, skip=False)
+        with tempfile.TemporaryDirectory() as tmp:
+            robot = RobotModel.from_file(
+                chain_urdf(example_robot_data_dir() / rec.urdf, rec.frame, Path(tmp) / "chain.urdf")
+            )
+        loops = [MeasuredPointLoop("m", rec.frame)]
+        fl = floor(robot, log_, (rec.frame,))
+        t, c = time.perf_counter(), time.process_time()
+        res = calibrate(robot, log_, loops, CalibrationOptions())
+        fit, cpu = time.perf_counter() - t, time.process_time() - c
+        idx = np.arange(len(log_))
+        test = idx % 5 == 0
+        t = time.perf_counter()
+        h = holdout(robot, subset(log_, idx[~test]), subset(log_, idx[test]), loops, CalibrationOptions())
+        held = time.perf_counter() - t
+        print(
+            f"{name} ({rec.folder}): {len(log_)} postures, {len(log_.joints)} joints; floor {fl * 1e3:.2f} ms; "
+            f"calibrate (defaults, all rows) {fit:.2f} s wall, {cpu:.2f} s cpu, {len(res.estimated)} parameters, "
+            f"verdict {res.verdict.status}; held-out protocol {held:.2f} s wall, held-out RMS "
+            f"{h['test']['loops'][0]['rms_m'] * 1e3:.3f} mm"
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--poses", type=int, default=1000)
@@ -126,8 +159,13 @@ def main() -> None:
     ap.add_argument("--bend", type=float, default=5e-3, help="shoulder deflection amplitude (rad), the model error")
     ap.add_argument("--no-validation", action="store_true")
     ap.add_argument("--profile", action="store_true", help="cProfile of the fit, top 25 by cumulative time")
+    ap.add_argument("--recordings", action="store_true", help="the real TALOS and TIAGo recordings instead")
     args = ap.parse_args()
     print(header())
+    if args.recordings:
+        recordings()
+        print(header())
+        return
     src = example_robot_data_dir() / "talos_data/robots/talos_full_v2.urdf"
     with tempfile.TemporaryDirectory() as tmp:
         robot = RobotModel.from_file(cut_urdf(src, TIPS, Path(tmp) / "upper.urdf"))

@@ -1,4 +1,6 @@
-"""Real robots: public recordings (tests/data/real/*/README.md) calibrated with closedloop's defaults.
+"""Real robots: public recordings (``../shared/real-data/<folder>/``, each with a README naming its source,
+commit and licence; `real_data.RECORDINGS`) calibrated with closedloop's defaults.  Where a recording's
+folder is absent the tests skip, naming it.
 
 Held-out protocol (docs/validation/real-robots.md): the rows whose 0-based index is a multiple of 5
 are held out, the others train; what is fitted on the training rows is used as it is on the held-out
@@ -9,11 +11,9 @@ the two estimators a user could pick by hand (``weighting='none'`` and errors in
 
 from __future__ import annotations
 
-import xml.etree.ElementTree as ET
-from pathlib import Path
-
 import numpy as np
 import pytest
+from real_data import RECORDINGS, chain_urdf, figaroh_log
 
 from closedloop.calibration.pipeline import PLAIN, SANDWICH
 from closedloop.io.logs import JointLog
@@ -23,47 +23,8 @@ from closedloop.models import example_robot_data_dir
 from closedloop.records import CalibrationOptions
 from closedloop.validation.kfold import holdout, subset
 
-DATA = Path(__file__).resolve().parent / "data" / "real"
-
-# name: (recording, example-robot-data URDF, measured frame, published held-out bar)
-RECORDINGS = {
-    # TALOS whole-body plane-constrained calibration (Nguyen et al. 2025): cross-validated RMS error
-    # reduced by a factor 2.3 from the manufacturer's model
-    "talos": ("talos_left_arm/talos_left_arm_02_10_contact.csv", "talos_data/robots/talos_full_v2.urdf"),
-    # TIAGo geometric + non-geometric calibration (Nguyen et al. 2024): end-effector position RMSE 5.7 mm
-    "tiago": ("tiago_mocap/qualysis_base_hand_calibration.csv", "tiago_description/robots/tiago.urdf"),
-}
-FRAME = {"talos": "gripper_left_base_link", "tiago": "arm_7_link"}
 TALOS_FACTOR = 2.3  # published: held-out RMS of the calibrated model <= nominal / 2.3
 TIAGO_RMSE = 5.7e-3  # published: m
-
-
-def chain_urdf(src: Path, tip: str, dst: Path) -> Path:
-    """The URDF `src` cut to the chain from its root to link `tip` (the other branches do not move the
-    loop and cost time in every evaluation); the kinematics of the chain are unchanged."""
-    tree = ET.parse(src)
-    root = tree.getroot()
-    by_child = {j.find("child").get("link"): j for j in root.findall("joint")}
-    links, joints, link = {tip}, [], tip
-    while link in by_child:
-        joints.append(by_child[link])
-        link = by_child[link].find("parent").get("link")
-        links.add(link)
-    for el in list(root):
-        if (el.tag == "link" and el.get("name") not in links) or (el.tag == "joint" and el not in joints):
-            root.remove(el)
-        elif el.tag not in ("link", "joint", "material"):
-            root.remove(el)
-    tree.write(dst)
-    return dst
-
-
-def recording(name: str) -> JointLog:
-    """The recording's joint readings and its first marker's position as a tracker loop 'm'."""
-    d = np.genfromtxt(DATA / RECORDINGS[name][0], delimiter=",", names=True)
-    joints = [n for n in d.dtype.names if n.endswith("_joint")]
-    extra = {"m:x": d["x1"], "m:y": d["y1"], "m:z": d["z1"]}
-    return JointLog(joints, np.column_stack([d[n] for n in joints]), None, None, extra)
 
 
 def held_out(robot: RobotModel, log_: JointLog, frame: str, options: CalibrationOptions) -> dict:
@@ -79,16 +40,17 @@ def held_out(robot: RobotModel, log_: JointLog, frame: str, options: Calibration
 def real(request, tmp_path_factory):
     """Each recording's held-out figures with the defaults, plain, errors in variables and the nominal."""
     name = request.param
-    src = example_robot_data_dir() / RECORDINGS[name][1]
-    robot = RobotModel.from_file(chain_urdf(src, FRAME[name], tmp_path_factory.mktemp(name) / "chain.urdf"))
-    log_ = recording(name)
+    rec = RECORDINGS[name]
+    log_ = figaroh_log(name)  # skips, naming the folder, where ../shared/real-data/<folder> is absent
+    src = example_robot_data_dir() / rec.urdf
+    robot = RobotModel.from_file(chain_urdf(src, rec.frame, tmp_path_factory.mktemp(name) / "chain.urdf"))
     options = {
         "default": CalibrationOptions(),
         "none": CalibrationOptions(weighting="none"),
         "eiv": CalibrationOptions(choose_estimator=False),
         "nominal": CalibrationOptions(identify=["loop"]),  # the makers' model: only the tracker and marker fitted
     }
-    out = {k: held_out(robot, log_, FRAME[name], o) for k, o in options.items()}
+    out = {k: held_out(robot, log_, rec.frame, o) for k, o in options.items()}
     return name, out
 
 
@@ -124,3 +86,14 @@ def test_model_error_found_and_said(real):
     assert any("error bars are not reliable" in x for x in res.verdict.reasons)
     # errors in variables as asked says nothing was decided
     assert out["eiv"]["result"].estimator_reason == "as asked"
+
+
+def test_absent_recording_skips_naming_its_folder(monkeypatch, tmp_path):
+    """A checkout without ../shared/real-data beside it: the test skips, and the reason names the folder."""
+    import real_data
+
+    monkeypatch.setattr(real_data, "REAL_DATA", tmp_path / "shared" / "real-data")
+    with pytest.raises(pytest.skip.Exception, match="shared/real-data/figaroh-tiago-mocap"):
+        real_data.figaroh_log("tiago")
+    with pytest.raises(SystemExit, match="shared/real-data/figaroh-talos-left-arm"):
+        real_data.figaroh_log("talos", skip=False)
