@@ -1,7 +1,7 @@
 # The usual targets.  `make check` is what CI's second step runs; `make test` is the README's test command.
 PY ?= python3
 
-.PHONY: install dev test test-slow lint format typecheck docs docs-serve check bench clean
+.PHONY: install dev test test-slow lint format typecheck docs docs-serve docs-outputs check bench clean
 
 install:            ## the package and what its tests need
 	$(PY) -m pip install -e ".[test]"
@@ -41,3 +41,6 @@ bench:              ## the benchmark scripts that write the docs' figures (minut
 
 clean:
 	rm -rf build dist site .pytest_cache .mypy_cache .ruff_cache out
+
+docs-outputs:       ## run the README's and the docs' marked blocks and write what they print into the pages
+	$(PY) tests/docs_blocks.py --write
