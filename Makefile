@@ -28,10 +28,10 @@ typecheck:
 	mypy
 
 docs:               ## the documentation site, as CI builds it
-	mkdocs build --strict
+	NO_MKDOCS_2_WARNING=1 mkdocs build --strict
 
 docs-serve:
-	mkdocs serve
+	NO_MKDOCS_2_WARNING=1 mkdocs serve
 
 check: lint typecheck docs test test-slow
 
