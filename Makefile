@@ -42,5 +42,6 @@ bench:              ## the benchmark scripts that write the docs' figures (minut
 clean:
 	rm -rf build dist site .pytest_cache .mypy_cache .ruff_cache out
 
-docs-outputs:       ## run the README's and the docs' marked blocks and write what they print into the pages
+docs-outputs:       ## write what the docs' marked blocks print into the pages, and redraw the site's pictures
 	$(PY) tests/docs_blocks.py --write
+	$(PY) benchmarks/docs_figures.py
