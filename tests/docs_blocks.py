@@ -262,7 +262,8 @@ def write_outputs(pages: list[Path], check_install: Callable[[str, str], list[st
                 if name not in fresh:
                     raise SystemExit(f"{ob.id}: no block marked <!-- run: {name} --> before it")
                 new = regenerate(ob.text, fresh[name], str(cwd)).rstrip("\n").splitlines()
-                lines[ob.line : ob.end - 1] = new
+                indent = lines[ob.line - 1][: len(lines[ob.line - 1]) - len(lines[ob.line - 1].lstrip())]
+                lines[ob.line : ob.end - 1] = [indent + n if n else n for n in new]
             page.write_text("\n".join(lines) + "\n", encoding="utf-8")
             done.append(str(page.relative_to(ROOT)))
     return done
