@@ -54,5 +54,5 @@ else:
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
     n = _DESELECTED["slow"]
-    if n:
+    if n and "not slow" in (config.getoption("markexpr") or ""):
         terminalreporter.write_line(f"{n} slow tests not run (the long studies and basins): pytest -m slow")
