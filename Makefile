@@ -1,7 +1,7 @@
 # The usual targets.  `make check` is what CI's second step runs; `make test` is the README's test command.
 PY ?= python3
 
-.PHONY: install dev test test-slow lint format typecheck docs docs-serve check bench clean
+.PHONY: install dev test test-slow lint format typecheck docs docs-serve docs-outputs check bench clean
 
 install:            ## the package and what its tests need
 	$(PY) -m pip install -e ".[test]"
@@ -28,10 +28,10 @@ typecheck:
 	mypy
 
 docs:               ## the documentation site, as CI builds it
-	mkdocs build --strict
+	NO_MKDOCS_2_WARNING=1 mkdocs build --strict
 
 docs-serve:
-	mkdocs serve
+	NO_MKDOCS_2_WARNING=1 mkdocs serve
 
 check: lint typecheck docs test test-slow
 
@@ -41,3 +41,7 @@ bench:              ## the benchmark scripts that write the docs' figures (minut
 
 clean:
 	rm -rf build dist site .pytest_cache .mypy_cache .ruff_cache out
+
+docs-outputs:       ## write what the docs' marked blocks print into the pages, and redraw the site's pictures
+	$(PY) tests/docs_blocks.py --write
+	$(PY) benchmarks/docs_figures.py

@@ -120,13 +120,14 @@ def main() -> None:
     print("truth          a1 a2 a3 =", truth)
     print("linear (2.5)   a1 a2 a3 =", a_lin, " |err| =", np.abs(a_lin - truth).max())
     print("general solver a1 a2 a3 =", a_gen, " |lin - gen| =", np.abs(a_lin - a_gen).max())
-    print("  status:", dict(zip(res.names, res.status)))
+    print("  status:", ", ".join(f"{n} {s.value}" for n, s in zip(res.names, res.status) if s != "not selected"))
 
     a_par, th_par = parallelogram_data(0.7, 1.0, np.linspace(0.3, 1.3, 25))
     C, _ = linear_system(th_par)
     print("\nparallelogram (Singularity 4): singular values of C =", np.linalg.svd(C, compute_uv=False))
     a_p, res = general_solution(th_par)
-    print("  truth", a_par, "estimate", a_p, "status", [s for s in res.status if s not in ("not selected",)])
+    chosen = ", ".join(f"{n} {s.value}" for n, s in zip(res.names, res.status) if s != "not selected")
+    print("  truth", a_par, "estimate", a_p, "status:", chosen)
     for d in res.dropped:
         print("  dropped:", d.describe())
     for c in res.weak:

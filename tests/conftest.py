@@ -22,3 +22,37 @@ def panda() -> RobotModel:
 def panda_weld(panda):
     """200 exact configurations of the Panda hand welded to an unknown world pose."""
     return make_dataset(panda, WeldLoop("fixture", "panda_hand"), PANDA_Q0, 200, np.random.default_rng(7))
+
+
+# --------------------------------------------------------------------------- what the run left out
+# The default run deselects the `slow` tests (pyproject.toml: -m 'not slow'); the summary says how many and how
+# to run them.  Under xdist each worker collects the whole suite and deselects the same tests: the workers pass
+# their count to the controller (`workeroutput`), which reports it once.
+_DESELECTED: dict[str, int] = {"slow": 0}
+
+
+def pytest_deselected(items):
+    _DESELECTED["slow"] += sum(1 for it in items if it.get_closest_marker("slow") is not None)
+
+
+def pytest_sessionfinish(session):
+    out = getattr(session.config, "workeroutput", None)
+    if out is not None:  # an xdist worker
+        out["slow_deselected"] = _DESELECTED["slow"]
+
+
+try:
+    import xdist  # noqa: F401  (its hook below exists only with it)
+except ImportError:
+    pass
+else:
+
+    def pytest_testnodedown(node, error):
+        got = getattr(node, "workeroutput", {}).get("slow_deselected", 0)
+        _DESELECTED["slow"] = max(_DESELECTED["slow"], got)
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    n = _DESELECTED["slow"]
+    if n and "not slow" in (config.getoption("markexpr") or ""):
+        terminalreporter.write_line(f"{n} slow tests not run (the long studies and basins): pytest -m slow")

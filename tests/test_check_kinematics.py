@@ -81,6 +81,20 @@ def test_a_wrong_robot_fails_the_check(iiwa_weld):
     assert pos["result"] == "FAIL" and 1e-3 < pos["error"] < 5e-3, rows
 
 
+def test_a_loop_between_two_robot_frames_is_named_relative(iiwa_weld):
+    """A loop that joins two robot frames (two hands grasping each other) is compared as the pose of its
+    frame in the other frame, and the rows say so; the same robot agrees with itself there too."""
+    case, _, res = iiwa_weld
+    report = build_report(res, model_path=case.nominal_urdf)
+    report["loops"][0]["frame_b"] = "link_2"
+    rows, ok = check_report(_truth(case), report, **TOLS)
+    assert [r["name"] for r in rows] == [
+        "weld: frame zoo_tool relative to link_2 position",
+        "weld: frame zoo_tool relative to link_2 rotation",
+    ]
+    assert ok and rows[0]["error"] < 1e-4, rows
+
+
 @pytest.mark.parametrize("field, value", [("frame_a", None), ("frame_a", 3), ("frame_b", ["tool0"])])
 def test_a_loop_frame_that_is_no_name_is_an_input_error(iiwa_weld, field, value):
     """A report whose followed loop has no frame name where one belongs: one line naming the report, the loop

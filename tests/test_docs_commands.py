@@ -20,60 +20,18 @@ from __future__ import annotations
 import os
 import re
 import shlex
-import subprocess
-import sys
-from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-
-import closedloop
 
 try:
     import tomllib
 except ImportError:  # Python 3.10
     from pip._vendor import tomli as tomllib
 
-ROOT = Path(__file__).resolve().parents[1]
-PAGES = [p for p in [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))] if p.is_file()]
-NOT_RUN = re.compile(r"^#\s*not run:\s*(\S.*)$")
+from docs_blocks import NOT_RUN, PAGES, ROOT, Block, blocks, compare, page_dir, prepare, run_script, shown_outputs
 
-
-@dataclass
-class Block:
-    """A ```bash block: its page, the line of its opening fence, its text."""
-
-    page: Path
-    line: int
-    text: str
-
-    @property
-    def id(self) -> str:
-        return f"{self.page.relative_to(ROOT)}:{self.line}"
-
-
-def bash_blocks(page: Path) -> list[Block]:
-    """The ```bash (or ```sh / ```shell) fenced blocks of a Markdown page."""
-    out, lines = [], page.read_text(encoding="utf-8").splitlines()
-    k = 0
-    while k < len(lines):
-        m = re.match(r"^(\s*)(```+|~~~+)\s*(\w+)?", lines[k])
-        if not m:
-            k += 1
-            continue
-        fence, lang, start = m.group(2), (m.group(3) or "").lower(), k
-        k += 1
-        body = []
-        while k < len(lines) and not lines[k].strip().startswith(fence):
-            body.append(lines[k][len(m.group(1)) :] if lines[k].startswith(m.group(1)) else lines[k])
-            k += 1
-        k += 1
-        if lang in ("bash", "sh", "shell"):
-            out.append(Block(page, start + 1, "\n".join(body) + "\n"))
-    return out
-
-
-BLOCKS = [b for p in PAGES for b in bash_blocks(p)]
+BLOCKS = [b for p in PAGES for b in blocks(p) if b.runnable]
 
 
 # --------------------------------------------------------------------------- pip install lines
@@ -209,58 +167,13 @@ def test_check_install_tells_working_lines_from_broken_ones(args, ok):
 
 
 # --------------------------------------------------------------------------- running the blocks
-SETUP_ONLY = [  # lines a reader runs to set up an environment: the test environment is one
-    re.compile(r"^python3? -m venv\b"),
-    re.compile(r"^(\.|source)\s+\S*bin/activate$"),
-]
-
-
-def prepare(block: Block) -> tuple[str, list[str]]:
-    """The script run for a block, and what of it is checked but not run (install, venv, pytest)."""
-    text = re.sub(r"\\\n", " ", block.text)  # continuation lines joined
-    script, held = [], []
-    for line in text.splitlines():
-        parts = re.split(r"\s+&&\s+", line)
-        kept = []
-        for part in parts:
-            cmd = part.strip()
-            inst = re.match(r"^(?:python3? -m )?pip3? install\s+(.*)$", cmd)
-            if inst:
-                problems = check_install(inst.group(1), block.id)
-                assert problems == [], "\n".join(problems)
-                held.append(cmd)
-            elif any(r.match(cmd) for r in SETUP_ONLY):
-                held.append(cmd)
-            elif re.match(r"^(python3? -m )?pytest\b", cmd):
-                held.append(cmd + "  (the test suite this test is part of)")
-            else:
-                kept.append(part)
-        script.append(" && ".join(kept))
-    return "\n".join(script) + "\n", held
-
-
-def _shims(bin_dir: Path) -> None:
-    bin_dir.mkdir(exist_ok=True)
-    for name, exe in (
-        ("closedloop", f'exec "{sys.executable}" -m closedloop.cli.main "$@"'),
-        ("python", f'exec "{sys.executable}" "$@"'),
-        ("python3", f'exec "{sys.executable}" "$@"'),
-    ):
-        p = bin_dir / name
-        p.write_text(f"#!/bin/sh\n{exe}\n")
-        p.chmod(0o755)
-
-
 _PAGE_DIRS: dict[Path, Path] = {}
 
 
 def _page_dir(page: Path, factory) -> Path:
-    """One folder per page, shared by its blocks (run in page order), with examples/ linked in."""
+    """One folder per page, shared by its blocks (run in page order)."""
     if page not in _PAGE_DIRS:
-        d = factory.mktemp(re.sub(r"\W", "_", str(page.relative_to(ROOT))))
-        (d / "examples").symlink_to(ROOT / "examples")
-        _shims(d / ".bin")
-        _PAGE_DIRS[page] = d
+        _PAGE_DIRS[page] = page_dir(factory.mktemp(re.sub(r"\W", "_", str(page.relative_to(ROOT)))))
     return _PAGE_DIRS[page]
 
 
@@ -269,33 +182,61 @@ def test_the_pages_have_blocks_to_run():
     assert any("closedloop calibrate" in b.text for b in BLOCKS)
 
 
+def test_every_shown_output_names_a_block_that_runs():
+    """A ```text block marked ``<!-- output: NAME -->`` follows a runnable block of its page marked
+    ``<!-- run: NAME -->``, and every block marked to run shows its output somewhere on the page."""
+    problems, shown = [], 0
+    for page in PAGES:
+        runs = {b.run: b for b in blocks(page) if b.run}
+        outs = shown_outputs(page)
+        shown += len(outs)
+        for name, ob in outs.items():
+            if name not in runs or not runs[name].runnable or runs[name].line > ob.line:
+                problems.append(f"{ob.id}: no runnable block marked <!-- run: {name} --> above it")
+        problems += [
+            f"{b.id}: marked to run as {n!r}, no <!-- output: {n} --> shows it"
+            for n, b in runs.items()
+            if n not in outs
+        ]
+    assert shown >= 3, "the pages show no regenerated output"
+    assert problems == [], "\n".join(problems)
+
+
+def test_compare_ignores_timings_paths_and_last_digits_only():
+    assert (
+        compare("simulated 200 configurations in 1.7 s -> out/sim", "simulated 200 configurations in 0.4 s -> out/sim")
+        == []
+    )
+    assert compare("closure 1.428e-05 mm", "closure 1.43e-05 mm") == []
+    assert compare("in 4 iterations", "in 3 iterations") != []
+    assert compare("verdict: suspect", "verdict: ok") != []
+    assert compare("a\n...\nz", "a\nb\nc\nz") == []
+    assert compare("a\nb", "a\nb\nc") != []
+    assert compare("wrote /tmp/x/out/r.json", "wrote out/r.json", None) != []
+    assert compare("wrote out/r.json", "wrote /tmp/x/out/r.json", "/tmp/x") == []
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("block", BLOCKS, ids=[b.id for b in BLOCKS])
 def test_documented_block_runs(block: Block, tmp_path_factory):
+    """Each block runs as written (exit 0); a block marked to run shows, on its page, what it prints."""
     first = block.text.strip().splitlines()[0] if block.text.strip() else ""
     m = NOT_RUN.match(first)
     if m:
         pytest.skip(f"{block.id}: not run: {m.group(1)}")
-    script, held = prepare(block)
+    script, held = prepare(block, check_install)
     cwd = _page_dir(block.page, tmp_path_factory)
-    env = dict(os.environ)
-    env["PATH"] = f"{cwd / '.bin'}{os.pathsep}{env.get('PATH', '')}"
-    env["PYTHONPATH"] = os.pathsep.join(
-        [str(Path(closedloop.__file__).resolve().parents[1])] + [p for p in [env.get("PYTHONPATH")] if p]
-    )
-    env.setdefault("OPENBLAS_NUM_THREADS", "1")
-    env.setdefault("MPLBACKEND", "Agg")
     for h in held:
         print(f"checked, not run: {h}")
-    proc = subprocess.run(
-        ["bash", "-e", "-o", "pipefail", "-c", script],
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=900,  # a hang guard, not a timing
-    )
+    proc = run_script(script, cwd, merged=block.run is not None)
     assert proc.returncode == 0, (
         f"{block.id}: exit {proc.returncode}\n--- script\n{script}--- stdout (end)\n{proc.stdout[-3000:]}"
         f"--- stderr (end)\n{proc.stderr[-3000:]}"
     )
+    if block.run:
+        ob = shown_outputs(block.page).get(block.run)
+        assert ob is not None, f"{block.id}: marked to run as {block.run!r}, shown nowhere"
+        problems = compare(ob.text, proc.stdout, str(cwd))
+        assert problems == [], f"{ob.id}: the shown output is not what runs (make docs-outputs):\n" + "\n".join(
+            problems
+        )

@@ -50,6 +50,15 @@ def test_errors_are_one_line_exit_2(tmp_path, capsys):
     assert err.startswith("error:") and err.count("\n") == 1
     assert main(["impedance", "simulate", "--out", str(tmp_path / "x"), "--stiffness", "wobble:3"]) == 2
     assert "stiffness" in capsys.readouterr().err
+    for args, words in (
+        (["--shoulder", "0.5,5000,75"], "--case robot"),  # the forearm has no shoulder
+        (["--case", "robot", "--shoulder", "0.5,5000"], "ANGLE,K,B"),
+        (["--case", "robot", "--shoulder", "0.5,-1,75"], "--shoulder stiffness"),
+    ):
+        assert main(["impedance", "simulate", "--out", str(tmp_path / "y")] + args) == 2
+        err = capsys.readouterr().err
+        assert words in err and err.count("\n") == 1, err
+    assert not (tmp_path / "y").exists()  # refused before any work
 
 
 @pytest.mark.slow

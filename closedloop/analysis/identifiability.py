@@ -51,12 +51,22 @@ def compress(C: np.ndarray) -> np.ndarray:
 
 
 def greedy_reduction(
-    C: np.ndarray, names: list[str], order: list[int], tol: float = 1e-6, max_terms: int = 6
+    C: np.ndarray,
+    names: list[str],
+    order: list[int],
+    tol: float = 1e-6,
+    max_terms: int = 6,
+    scale: np.ndarray | None = None,
 ) -> tuple[list[int], list[Dropped]]:
     """Keep columns of C in `order` while they add rank; explain the others.
 
-    C is the column-scaled Jacobian (M, P).  Returns kept column indices and
-    the dropped ones with the kept parameters that absorb them.
+    C is the column-scaled Jacobian (M, P), C = J diag(s) with s the
+    parameters' priors (`scale`; None: C is J itself).  Returns kept column
+    indices and the dropped ones with the kept parameters that absorb them.
+    A dropped column c_k = sum_j a_j c_j (least squares on the kept ones) is
+    reported in the parameters' own units: J_k = sum_j (a_j s_j / s_k) J_j,
+    so a change d of parameter k has the effect of changes (a_j s_j / s_k) d
+    of the kept ones (m per m, rad per rad, m per rad ...).
     """
     C = compress(C)
     M = C.shape[0]
@@ -78,8 +88,9 @@ def greedy_reduction(
             kept.append(k)
             continue
         coef, *_ = np.linalg.lstsq(C[:, kept], c, rcond=None)
-        big = np.argsort(-np.abs(coef))
-        terms = [(names[kept[i]], float(coef[i])) for i in big[:max_terms] if abs(coef[i]) > 1e-3 * np.abs(coef).max()]
+        big = np.argsort(-np.abs(coef))  # the largest in scaled units: the terms that carry the effect
+        phys = coef if scale is None else coef * scale[kept] / scale[k]
+        terms = [(names[kept[i]], float(phys[i])) for i in big[:max_terms] if abs(coef[i]) > 1e-3 * np.abs(coef).max()]
         dropped.append(Dropped(names[k], "structurally redundant with this loop", terms, float(res)))
     return kept, dropped
 
@@ -293,9 +304,10 @@ def analyse_structure(
         ),
     )
     fnames = [names[k] for k in free]
+    priors = np.array([params[k].prior for k in free])
 
     def reduce(order_: list[int]) -> tuple[list[int], list[Dropped]]:
-        return greedy_reduction(R, fnames, order_)
+        return greedy_reduction(R, fnames, order_, scale=priors)
 
     if not all(b.loop.scale_free for b in problem.blocks):
         kept, dropped = reduce(order)

@@ -257,8 +257,12 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
         if rb.rms_px is not None:
             parts.append(f"{rb.rms_px:.4g} px -> {ra.rms_px:.4g} px")
         print(f"  loop {ra.loop}: closure RMS " + ", ".join(parts))
-    est = "estimated" if res.sigma_estimated else "given"
-    print(f"  joint noise {res.sigma:.3g} ({est}); chi2/dof {res.chi2 / max(res.dof, 1):.3g}")
+    ratio = res.chi2 / max(res.dof, 1)
+    if res.sigma_estimated:  # chi2/dof is 1 by construction unless a task's own noise weighs in too
+        fit = "" if abs(ratio - 1.0) < 5e-3 else f"; chi2/dof {ratio:.3g} with the task noise"
+        print(f"  joint noise {res.sigma:.3g} rad, estimated from the residual{fit}")
+    else:
+        print(f"  joint noise {res.sigma:.3g} rad (given); chi2/dof {ratio:.3g}")
     if res.dropped:
         print(f"  {len(res.dropped)} redundant parameters dropped (see report: identifiability.dropped)")
     for c in res.weak[:SHOWN_WEAK]:

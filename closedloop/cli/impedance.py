@@ -32,6 +32,12 @@ def add_parser(subparsers) -> None:
     s.add_argument("--voluntary", default="0", help="voluntary torque RMS, N m (3 Hz band; default 0)")
     s.add_argument("--prbs-phase", choices=["random", "locked"], default="random", help="PRBS clock per cycle")
     s.add_argument("--no-gravity", action="store_true", help="horizontal plane")
+    s.add_argument(
+        "--shoulder",
+        metavar="ANGLE,K,B",
+        help="robot case: the shoulder's held angle (rad), stiffness (N m/rad) and damping (N m s/rad) "
+        "(default 0.5,200000,500: still at the elbow's frequencies)",
+    )
     s.add_argument("--postures", action="store_true", help="also simulate holding 0, 0.5 and 1 rad (10 s each)")
     s.add_argument("--format", choices=["csv", "h5"], default="csv", help="record format (h5 needs h5py)")
     s.add_argument("--seed", default="0", help="random seed, a whole number >= 0 (default 0)")
@@ -98,6 +104,17 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     args.seed = check_number("--seed", args.seed, 0, 10**9, integer=True)
     if args.format == "h5":
         require("h5py", "--format h5", "impedance")
+    shoulder = None
+    if args.shoulder is not None:
+        if args.case != "robot":
+            raise InputError("--shoulder: only the robot case has a shoulder (--case robot)")
+        parts = args.shoulder.split(",")
+        if len(parts) != 3:
+            raise InputError(f"--shoulder {args.shoulder}: give ANGLE,K,B (rad, N m/rad, N m s/rad)")
+        angle = check_number("--shoulder angle", parts[0], -3.2, 3.2)
+        k = check_number("--shoulder stiffness", parts[1], 1e-3, 1e9)
+        b = check_number("--shoulder damping", parts[2], 0.0, 1e7)
+        shoulder = (float(angle), float(k), float(b))
     if args.case == "robot":  # what only the forearm simulates is refused, not ignored
         for given, opt in ((args.voluntary > 0, "--voluntary"), (args.postures, "--postures")):
             if given:
@@ -118,7 +135,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if args.case == "robot":
         from closedloop.impedance.mujoco_sim import simulate_robot
 
-        sim = simulate_robot(cfg)
+        sim = simulate_robot(cfg) if shoulder is None else simulate_robot(cfg, shoulder)
     else:
         if args.engine == "mujoco":
             from closedloop.impedance.mujoco_sim import forearm_truth

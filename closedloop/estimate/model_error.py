@@ -56,10 +56,16 @@ class NoiseTest:
 
     def describe(self) -> str:
         """One line: the figures and the conclusion."""
-        what = "explains" if self.holds else "does not explain"
+        implied = (
+            "no joint noise (the task's own noise explains it)"
+            if self.sigma_hat <= 1e-12
+            else f"{self.sigma_hat:.3g} rad of joint noise"
+        )
+        verdict = "explains" if self.holds else "does not explain"
+        against = "within" if self.holds else "more than"
         return (
-            f"joint noise {what} the residual: the fit implies {self.sigma_hat:.3g} rad of joint noise, "
-            f"chi-square/dof {self.chi2_per_dof:.3g} against {self.sigma_0:.3g} rad (limit {self.limit:.3g}); "
+            f"joint noise {verdict} the residual: it implies {implied}, {against} the {self.sigma_0:.3g} rad "
+            f"tested against (chi-square/dof {self.chi2_per_dof:.3g}, limit {self.limit:.3g}); "
             f"nearest-configuration residual correlation {self.neighbour_rho:.2f}"
         )
 

@@ -47,6 +47,7 @@ LOOP_TYPES: dict[str, str] = {
     "weld": ".spec",
     "point": ".point",
     "plane": ".plane",
+    "sphere": ".sphere",
     "hinge": ".hinge",
     "passive": ".passive",
     "measured_pose": ".measured",

@@ -189,6 +189,7 @@ def _row(name, true, cal, err, tol, result):
 # --------------------------------------------------------------------------- what the robots do
 POINT_LOOPS = ("PointLoop", "PlaneLoop", "MeasuredPointLoop", "point", "plane", "measured_point")
 POSE_LOOPS = ("WeldLoop", "HingeLoop", "MeasuredPoseLoop", "weld", "hinge", "measured_pose")
+CAMERA_LOOPS = ("CameraLoop", "camera")  # followed by their marker: a tool point on the robot, in the world
 SIZE_BLIND = ("PointLoop", "PlaneLoop", "WeldLoop", "HingeLoop", "point", "plane", "weld", "hinge")
 N_CHECK = 200  # configurations the robots are compared at
 
@@ -219,7 +220,8 @@ def _robot_of(report: dict, model, report_source: str, required: bool):
 
 def _followed_loops(report: dict) -> list[dict]:
     """The report's loops whose robot frames `check_kinematics` follows (points and poses)."""
-    return [lp for lp in report.get("loops", []) if isinstance(lp, dict) and lp.get("type") in POINT_LOOPS + POSE_LOOPS]
+    followed = POINT_LOOPS + POSE_LOOPS + CAMERA_LOOPS
+    return [lp for lp in report.get("loops", []) if isinstance(lp, dict) and lp.get("type") in followed]
 
 
 def _size_measured(report: dict) -> bool:
@@ -335,10 +337,11 @@ def check_kinematics(
         tl = _truth_loop(truth, name, len(loops))
         where, twhere = f"{report_source}: loop '{name}'", f"{truth_source}: loop '{name}'"
         frame = _frame_name(lp.get("frame_a"), f"{where}: frame_a")
-        b = lp.get("frame_b")
+        camera = lp.get("type") in CAMERA_LOOPS  # its marker, wherever the cameras are: a tool point in the world
+        b = None if camera else lp.get("frame_b")
         frame_b = None if b in (None, "universe", "world") else _frame_name(b, f"{where}: frame_b")
         tframe = _frame_name(tl.get("frame", frame), f"{twhere}: frame")
-        tb = tl.get("to", frame_b)
+        tb = None if camera else tl.get("to", frame_b)
         tframe_b = None if tb is None else _frame_name(tb, f"{twhere}: to")
         try:
             for f in (frame, frame_b):
@@ -349,7 +352,7 @@ def check_kinematics(
                     true_robot.frame_id(f)
         except ClosedLoopError as exc:
             raise InputError(f"{report_source} / {truth_source}: loop '{name}': {exc}") from None
-        point = lp.get("type") in POINT_LOOPS
+        point = lp.get("type") in POINT_LOOPS or camera
         tip_c = _tip(cal, name, lp.get("tip")) if point else np.zeros(3)
         tip_t = _tip(truth["parameters"], str(tl.get("name", name)), lp.get("tip")) if point else np.zeros(3)
         items.append((name, "point" if point else "pose", frame, tip_c, tframe, tip_t, frame_b, tframe_b))
@@ -402,14 +405,17 @@ def check_kinematics(
 
     fit = least_squares(residual, np.zeros(1 + 6 * (len(bases) + len(tools))), method="lm", xtol=1e-15, ftol=1e-15)
     rows = []
-    for (name, kind, fc, *_), (p, R), (pt, Rt) in zip(items, predict(fit.x), targets):
+    for (name, kind, fc, _, _, _, fb, _), (p, R), (pt, Rt) in zip(items, predict(fit.x), targets):
         what = "tool point" if kind == "point" else "frame"
+        rel = f" relative to {fb}" if fb else ""  # a loop between two robot frames: what it sees
         err = float(np.linalg.norm(p - pt, axis=1).max())
-        rows.append(_row(f"{name}: {what} {fc} position", None, None, err, tol_m, "ok" if err <= tol_m else "FAIL"))
+        rows.append(
+            _row(f"{name}: {what} {fc}{rel} position", None, None, err, tol_m, "ok" if err <= tol_m else "FAIL")
+        )
         if R is not None and Rt is not None:  # a pose loop
             ang = float(max(np.linalg.norm(pin.log3(a.T @ b)) for a, b in zip(R, Rt)))
             rows.append(
-                _row(f"{name}: frame {fc} rotation", None, None, ang, tol_rad, "ok" if ang <= tol_rad else "FAIL")
+                _row(f"{name}: frame {fc}{rel} rotation", None, None, ang, tol_rad, "ok" if ang <= tol_rad else "FAIL")
             )
     if scaled:  # the size the data do not measure: the calibrated robot is 1/s the truth's
         size = 1.0 / float(np.exp(fit.x[0]))
