@@ -14,16 +14,13 @@ from pathlib import Path
 
 from closedloop.cli.calibrate import Progress
 from closedloop.cli.parse import sim_overrides
-from closedloop.errors import ClosedLoopError, NotIdentifiableError, ScenarioError
+from closedloop.errors import NotIdentifiableError, ScenarioError
 from closedloop.io.schemas import check_number
 
 
 def cmd_simulate(args) -> int:
-    try:
-        from closedloop.sims import SCENARIOS, simulate
-    except ImportError as exc:  # pragma: no cover - packaging error
-        raise ClosedLoopError(f"the simulator is not installed ({exc})") from None
     from closedloop.cli.tools import resolve_scenario
+    from closedloop.sims import SCENARIOS, simulate
     from closedloop.sims.scenarios import CAMERA_SCENARIOS, unknown_scenario
 
     if getattr(args, "scenario", None) in CAMERA_SCENARIOS:  # the head-camera scenarios (sims/camera_scene.py)

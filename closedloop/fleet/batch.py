@@ -219,14 +219,9 @@ def _read(job: BatchJob, robot):
 
     degrees = job.options.get("degrees", False)
     degrees = degrees.strip().lower() in ("1", "true", "yes") if isinstance(degrees, str) else bool(degrees)
-    lg = None
-    try:
-        from closedloop.io.bags import extract, is_bag
+    from closedloop.io.bags import extract, is_bag
 
-        if is_bag(job.log):
-            lg = extract(job.log, robot.joint_names)[0]
-    except ImportError:  # pragma: no cover - bag support not installed
-        pass
+    lg = extract(job.log, robot.joint_names)[0] if is_bag(job.log) else None  # a bag: its standstills
     if lg is None:
         lg = read_log(
             job.log,
@@ -345,11 +340,9 @@ def _gauge(res) -> dict | None:
 
 def _judge(res, cv: dict | None, report: dict):
     """The calibration's verdict, judged again with the held-out folds as `closedloop calibrate` does."""
-    try:
-        from closedloop.calibration.verdict import judge
-        from closedloop.output.report import verdict_record
-    except ImportError:  # a core without verdicts: 'n/a' in the summary
-        return getattr(res, "verdict", None)
+    from closedloop.calibration.verdict import judge
+    from closedloop.output.report import verdict_record
+
     verdict = judge(res, cv)
     report["verdict"] = verdict_record(verdict)
     return verdict

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.errors import InputError
+from closedloop.errors import InputError, require
 
 log = logging.getLogger(__name__)
 UNITS = {"time": "s", "angle": "rad", "torque": "N m", "command": "N m", "event": "1", "block": "1"}
@@ -82,8 +82,7 @@ def record_bytes(rec: Record, fmt: str = "csv") -> bytes:
     if fmt in ("h5", "hdf5", ".h5", ".hdf5"):
         import io
 
-        import h5py
-
+        h5py = require("h5py", "an HDF5 record", "impedance")
         buf = io.BytesIO()
         with h5py.File(buf, "w") as f:
             for k, v in cols.items():
@@ -144,13 +143,7 @@ def read_record(path: str | Path, columns: dict[str, str] | None = None, torque_
         raise ImpedanceDataError(f"{path}: no such file")
     rename = {v: k for k, v in (columns or {}).items()}
     if is_hdf5(path):
-        try:
-            import h5py
-        except ImportError:
-            raise ImpedanceDataError(
-                f'{path}: an HDF5 record needs h5py: pip install ".[impedance]" in the closedloop checkout '
-                "(or pip install h5py)"
-            ) from None
+        h5py = require("h5py", f"{path} (an HDF5 record)", "impedance")
         try:
             with h5py.File(path, "r") as f:
                 raw = {k.lower(): f[k] for k in f.keys() if isinstance(f[k], h5py.Dataset)}

@@ -166,14 +166,9 @@ class RayEngine(Engine):
     """Ray tasks of one CPU each; joins `address` ('auto', 'ray://host:10001', ...) or starts a local cluster."""
 
     def __init__(self, jobs: int | None = None, address: str | None = None, **_):
-        try:
-            import ray
-        except ImportError:
-            from closedloop.errors import InputError
+        from closedloop.errors import require
 
-            raise InputError(
-                '--ray needs Ray: pip install ".[ray]" in the closedloop checkout (or pip install "ray>=2")'
-            ) from None
+        ray = require("ray", "--ray", "ray")
         self.ray = ray
         self._started = not ray.is_initialized()  # connected here: disconnected by close()
         if self._started:

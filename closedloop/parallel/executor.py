@@ -10,7 +10,7 @@ job order.  Engines are registered by name, as qpsolvers registers solvers:
   started with *forkserver* (POSIX) or *spawn*, never fork;
 * ``ray``: Ray tasks of one CPU each, on the cluster at ``address``
   ('auto' joins a running cluster; None starts a local one), imported lazily
-  (``pip install ".[ray]"`` in the closedloop checkout).
+  (``pip install "closedloop[ray]"``; from a checkout ``pip install ".[ray]"``).
 
 The results do not depend on the engine: randomness comes from a
 ``numpy.random.SeedSequence(seed).spawn(n)`` child per *job* (never per
@@ -151,7 +151,8 @@ def add_arguments(parser) -> None:
         metavar="auto|local|ADDRESS",
         default=None,
         help="run on a Ray cluster: 'auto' joins the running one, an address (ray://HOST:10001) another, "
-        "'local' starts one here with --jobs CPUs (needs Ray: pip install \".[ray]\" in the checkout)",
+        "'local' starts one here with --jobs CPUs (needs Ray: pip install \"closedloop[ray]\", "
+        'from a checkout pip install ".[ray]")',
     )
 
 
