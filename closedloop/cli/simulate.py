@@ -14,8 +14,25 @@ from pathlib import Path
 
 from closedloop.cli.calibrate import Progress
 from closedloop.cli.parse import sim_overrides
-from closedloop.errors import NotIdentifiableError, ScenarioError
+from closedloop.errors import InputError, NotIdentifiableError, ScenarioError
 from closedloop.io.schemas import check_number
+
+
+def simulate_camera(args) -> int:
+    """``closedloop simulate ur5_head --n N --seed S --out DIR`` (`sims.camera_scene`): one summary line."""
+    from closedloop.sims.camera_scene import simulate_head
+
+    if not (isinstance(args.n, int) and args.n >= 1):
+        raise InputError(f"--n {args.n}: expected a positive integer")
+    if getattr(args, "set", None):
+        raise InputError(f"--set: the camera scenario {args.scenario} has no settings to override")
+    t0 = time.perf_counter()
+    summary = simulate_head(args.scenario, args.n, int(args.seed), args.out)
+    print(
+        f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out} "
+        f"({summary['missing_views']} missing views)"
+    )
+    return 0
 
 
 def cmd_simulate(args) -> int:
@@ -24,9 +41,7 @@ def cmd_simulate(args) -> int:
     from closedloop.sims.scenarios import CAMERA_SCENARIOS, unknown_scenario
 
     if getattr(args, "scenario", None) in CAMERA_SCENARIOS:  # the head-camera scenarios (sims/camera_scene.py)
-        from closedloop.sims.camera_scene import simulate_cli as camera_simulate
-
-        code = camera_simulate(args)
+        code = simulate_camera(args)
         if not getattr(args, "quiet", False):
             print_next_commands(Path(args.out))
         return code
