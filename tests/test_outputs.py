@@ -449,33 +449,39 @@ class _Terminal:
 
 
 def test_progress_is_shown_on_a_terminal_and_erased_when_done():
-    from closedloop.cli.calibrate import Progress
+    from closedloop.cli.progress import ProgressDisplay
 
     term = _Terminal()
-    prog = Progress(quiet=False, stream=term)
-    for i in range(1, 201):
-        prog("simulating", i, 200)
-    assert "simulating: 200/200 configurations" in term.screen()[-1]
-    prog.done()
+    prog = ProgressDisplay(quiet=False, stream=term)
+    prog("solving", 0, None, "cost 1.000e+00")
+    prog("solving", 7, None, "cost 2.500e-03")
+    prog.bar.refresh()  # (drawn at most every 0.1 s)
+    assert term.screen()[-1].startswith("solving: 7 iterations") and "cost 2.500e-03" in term.screen()[-1]
+    prog("simulating", 100, 200)
+    prog.bar.refresh()
+    assert term.screen()[-1].startswith("simulating:  50%") and "100/200" in term.screen()[-1]
+    prog.close()
     assert term.screen() == [""]  # nothing stale left on the screen
+    prog("validating", 3, 3)  # the last of a count: erased at once
+    assert term.screen() == [""] and prog.bar is None
     silent = _Terminal()
-    Progress(quiet=True, stream=silent)("solving", 3, 1.0)
+    ProgressDisplay(quiet=True, stream=silent)("solving", 3, None, "cost 1")
     assert silent.text == ""
 
 
-def test_sweep_progress_is_erased_when_the_last_job_ends():
-    from closedloop.parallel.engine import Progress as JobProgress
-    from closedloop.parallel.executor import progress_printer
+def test_job_progress_is_erased_when_the_last_job_ends_and_never_drawn_off_a_terminal():
+    from closedloop.cli.progress import ProgressDisplay
+    from closedloop.parallel.executor import run
 
     term = _Terminal()
-    show = progress_printer("simulate: ", stream=term)
-    show(JobProgress(3, done=1))
-    assert term.screen()[-1].startswith("simulate: ")
-    show(JobProgress(3, done=3))
-    assert term.screen() == [""]
+    with ProgressDisplay(stream=term, prefix="simulate: ") as shown:
+        assert run(abs, [-1, -2, -3], "serial", progress=shown, task="jobs") == [1, 2, 3]
+        assert term.text.startswith("\r") and "simulate: jobs" in term.text
+        assert term.screen() == [""]
     log = io.StringIO()  # not a terminal: nothing
-    progress_printer("simulate: ", stream=log)(JobProgress(3, done=3))
-    assert log.getvalue() == ""
+    with ProgressDisplay(stream=log) as shown:
+        run(abs, [-1], "serial", progress=shown)
+    assert log.getvalue() == "" and shown.bar is None
 
 
 def test_html_without_matplotlib_is_refused_before_the_fit(files, monkeypatch, capsys):

@@ -12,8 +12,8 @@ import json
 import time
 from pathlib import Path
 
-from closedloop.cli.calibrate import Progress
 from closedloop.cli.parse import sim_overrides
+from closedloop.cli.progress import ProgressDisplay
 from closedloop.errors import InputError, NotIdentifiableError, ScenarioError
 from closedloop.io.schemas import check_number
 
@@ -56,7 +56,7 @@ def cmd_simulate(args) -> int:
     check_outputs({"--out": args.out}, directory=True)
     check_dataset_dir(Path(args.out), replace=getattr(args, "replace", False))
     overrides = sim_overrides(args.set, SCENARIOS[args.scenario].settings)
-    prog = Progress(args.quiet)
+    prog = ProgressDisplay(args.quiet)
     t0 = time.perf_counter()
     try:
         result = simulate(
@@ -64,12 +64,13 @@ def cmd_simulate(args) -> int:
             n=args.n,
             seed=args.seed,
             out_dir=Path(args.out),
-            progress=lambda i, n: prog("simulating", i, n),
+            progress=prog,
             **overrides,
         )
     except NotIdentifiableError as exc:  # the scenario's loop cannot close: its robot, loop, --q0 or --tool
         raise ScenarioError(f"simulate {args.scenario}: {exc} (check the loop frame, --q0 and --tool)") from None
-    prog.done()
+    finally:
+        prog.close()
     if args.quiet:  # errors and warnings only
         return 0
     print(f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out}")

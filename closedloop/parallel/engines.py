@@ -16,7 +16,7 @@ from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wai
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
-from closedloop.parallel.engine import Engine, Outcome, Progress, call, limit_threads, register
+from closedloop.parallel.engine import Engine, JobCounts, Outcome, call, limit_threads, register
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +105,7 @@ class LocalEngine(Engine):
                 except OSError:  # pragma: no cover - already gone
                     pass
 
-    def _run_all(self, args: dict, progress: Progress | None):
+    def _run_all(self, args: dict, progress: JobCounts | None):
         todo = list(args)
         for _attempt in range(2):  # the whole pool, then once more after a worker died
             broken = yield from self._drain(todo, args, progress)
@@ -123,7 +123,7 @@ class LocalEngine(Engine):
             finally:
                 pool.shutdown(wait=True)
 
-    def _drain(self, todo: list[int], args: dict, progress: Progress | None):
+    def _drain(self, todo: list[int], args: dict, progress: JobCounts | None):
         """Submit `todo` with back-pressure; yield outcomes; return the jobs lost to a broken pool."""
         pending: dict[Future, int] = {}
         queue = list(reversed(todo))
