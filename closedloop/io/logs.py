@@ -72,13 +72,13 @@ class JointLog:
 
     def write_csv(self, path: str | Path) -> None:
         """Write the log whole, in the format `read_log` reads (`write_log_csv`)."""
-        columns: dict[str, Sequence] = {j: self.angles[:, k] for k, j in enumerate(self.joints)}
+        columns: dict[str, np.ndarray | Sequence] = {j: self.angles[:, k] for k, j in enumerate(self.joints)}
         if self.loop is not None:
             columns["loop"] = self.loop
         write_log_csv(path, columns | dict(self.extra))
 
 
-def log_csv(columns: Mapping[str, Sequence]) -> str:
+def log_csv(columns: Mapping[str, np.ndarray | Sequence]) -> str:
     """The text of a CSV log (`read_log`'s format): a header of the column names, then one row per
     configuration; a number as ``repr(float)`` (read back to the same double), a value that is not finite
     as an empty cell (no value: a missed view, an unmeasured column), a string (the ``loop`` column) as is.
@@ -102,7 +102,7 @@ def _cell(v) -> str:
     return repr(x) if math.isfinite(x) else ""
 
 
-def write_log_csv(path: str | Path, columns: Mapping[str, Sequence], files: "OutputSet | None" = None) -> None:
+def write_log_csv(path: str | Path, columns: Mapping[str, np.ndarray | Sequence], files: "OutputSet | None" = None) -> None:
     """The one writer of CSV logs: `log_csv`'s text written whole, staged in `files` (an output set the
     caller publishes) or through `atomic_write_text` (the active output set, or a set of one)."""
     from closedloop.io.files import atomic_write_text
