@@ -102,7 +102,9 @@ def _cell(v) -> str:
     return repr(x) if math.isfinite(x) else ""
 
 
-def write_log_csv(path: str | Path, columns: Mapping[str, np.ndarray | Sequence], files: "OutputSet | None" = None) -> None:
+def write_log_csv(
+    path: str | Path, columns: Mapping[str, np.ndarray | Sequence], files: "OutputSet | None" = None
+) -> None:
     """The one writer of CSV logs: `log_csv`'s text written whole, staged in `files` (an output set the
     caller publishes) or through `atomic_write_text` (the active output set, or a set of one)."""
     from closedloop.io.files import atomic_write_text
