@@ -62,7 +62,7 @@ def run_once(robot, log: JointLog, mode: str) -> tuple[float, float, float, floa
 
     stages: dict[str, tuple[float, float]] = {}
 
-    def progress(stage, it, cost):
+    def progress(stage, it, total=None, note=""):
         stages.setdefault(stage, (time.perf_counter(), time.process_time()))
 
     loops = [WeldLoop("fixture", "panda_hand")]

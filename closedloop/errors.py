@@ -23,6 +23,8 @@ else is a bug and is reported as such.
 
 from __future__ import annotations
 
+from types import ModuleType
+
 
 class ClosedLoopError(Exception):
     """Base class of every closedloop exception."""
@@ -100,19 +102,28 @@ EXIT_PIPE = 141  # 128 + SIGPIPE (`closedloop ... | head`)
 
 
 class MissingExtraError(InputError):
-    """An option needs an optional package that is not installed (one line: the option, the package and
-    the install command)."""
+    """A feature needs an optional package that is not installed: one line naming the feature, the package
+    and the install lines (for an installed closedloop, and from a checkout).  Raised by `require` only."""
 
-    def __init__(self, what: str, module: str, extra: str):
-        self.what, self.module, self.extra = what, module, extra
+    def __init__(self, feature: str, module: str, extra: str):
+        self.feature, self.module, self.extra = feature, module, extra
         super().__init__(
-            f'{what}: needs {module}: pip install ".[{extra}]" in the closedloop checkout (or pip install {module})'
+            f"{feature}: needs {module.split('.')[0]}, which is not installed: "
+            f'pip install "closedloop[{extra}]" (from a checkout: pip install ".[{extra}]")'
         )
 
 
-def require(module: str, what: str, extra: str) -> None:
-    """Refuse `what` (an option or input) before any work when `module` cannot be imported."""
-    from importlib.util import find_spec
+def require(module: str, feature: str, extra: str) -> ModuleType:
+    """`module` imported, for `feature` (an option, a command or an input file, as the user named it);
+    refused with `MissingExtraError` when the optional package of `extra` (pyproject.toml) is not
+    installed.  The one way the package refuses a missing optional package: called before any work where
+    the need is known from the options, else where the package is first used.
 
-    if find_spec(module) is None:
-        raise MissingExtraError(what, module, extra)
+    ``pip install "closedloop[{extra}]"`` works wherever closedloop is installed (pip keeps the installed
+    closedloop and adds the extra's packages); a checkout's user may run ``pip install ".[{extra}]"``."""
+    from importlib import import_module
+
+    try:
+        return import_module(module)
+    except ImportError:  # not installed, or installed without a package of its own (pip repairs both)
+        raise MissingExtraError(feature, module, extra) from None

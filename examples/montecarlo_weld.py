@@ -33,7 +33,7 @@ def main() -> None:
         M,
         seed=1,
         executor=engine,
-        progress=lambda i, n: print(f"\r  run {i}/{n}", end="", flush=True) if i % 10 == 0 else None,
+        progress=lambda task, i, n, note="": print(f"\r  run {i}/{n}", end="", flush=True) if i % 10 == 0 else None,
     )
     print(f"\n{mc.summary()}\n  ({time.time() - t0:.0f} s)")
     w = mc.stats["noise"]

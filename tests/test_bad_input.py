@@ -402,7 +402,7 @@ CASES = [
         "html-without-matplotlib",
         "missing extra",
         calib("--html", "{tmp}/r.html"),
-        ["--html: needs matplotlib", 'pip install ".[report]"'],
+        ["--html: needs matplotlib", 'pip install "closedloop[report]"', 'pip install ".[report]"'],
         hide=("matplotlib",),
     ),
     # ------------------------------------------------------------------ bags

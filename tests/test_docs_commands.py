@@ -6,8 +6,9 @@ a reader following the page would).  ``closedloop``, ``python`` and ``python3`` 
 interpreter and checkout, so the code under test is the one installed in the test environment.
 
 Not executed, but checked (`check_install`): ``pip install ...`` (each extra named must exist in
-pyproject.toml, the path must be the checkout; no ``closedloop[...]`` from an index: the package is not
-published), the virtual environment lines (``python3 -m venv``, ``. .venv/bin/activate``: the test
+pyproject.toml, the path must be the checkout; no ``closedloop[...]`` from an index in the pages: the
+package is not published; the package's own messages may say ``pip install "closedloop[EXTRA]"``, which
+works wherever closedloop is installed, pip adding the extra's packages), the virtual environment lines (``python3 -m venv``, ``. .venv/bin/activate``: the test
 environment is one) and ``pytest`` (the suite this test belongs to).  Every ``pip install`` written
 anywhere in the pages (inline code, comments) and in the package's messages is checked the same way.
 
@@ -48,8 +49,10 @@ def _declared() -> set[str]:
     return {re.split(r"[\s<>=!~;\[]", r, 1)[0].lower().replace("_", "-") for r in reqs}
 
 
-def check_install(args: str, where: str) -> list[str]:
-    """What is wrong with ``pip install <args>`` run from the checkout's root ([] when it works there)."""
+def check_install(args: str, where: str, installed: bool = False) -> list[str]:
+    """What is wrong with ``pip install <args>`` run from the checkout's root ([] when it works there);
+    `installed`: run where closedloop is installed (a message of the package), so that
+    ``"closedloop[EXTRA]"`` works too (pip keeps the installed closedloop, adds the extra's packages)."""
     try:
         words = shlex.split(args)
     except ValueError as exc:
@@ -87,7 +90,13 @@ def check_install(args: str, where: str) -> list[str]:
                 problems.append(f"{where}: pip install {args}: quote '{w}' (zsh and others expand [...])")
         else:
             name = re.split(r"[\s<>=!~;]", target, 1)[0].lower().replace("_", "-")
-            if name == "closedloop":
+            if name == "closedloop" and installed and wanted:
+                missing = [e for e in wanted if e not in extras]
+                if missing:
+                    problems.append(f"{where}: pip install {args}: no extra {', '.join(missing)} in pyproject.toml")
+                if not re.search(r"""["']""", args):
+                    problems.append(f"{where}: pip install {args}: quote '{w}' (zsh and others expand [...])")
+            elif name == "closedloop":
                 problems.append(
                     f"{where}: pip install {args}: closedloop is not published on an index; "
                     f'install from the checkout (pip install ".[{",".join(wanted)}]")'
@@ -122,8 +131,8 @@ def test_every_pip_install_written_in_the_pages_works_from_a_checkout():
     for page in PAGES:
         for n, line in enumerate(page.read_text(encoding="utf-8").splitlines(), start=1):
             for args in _install_args(line):
-                seen += 1
-                problems += check_install(args, f"{page.relative_to(ROOT)}:{n}")
+                seen += 1  # a line quoting what a command printed ("error: ...") runs where closedloop is installed
+                problems += check_install(args, f"{page.relative_to(ROOT)}:{n}", installed="error: " in line)
     assert seen > 0, "the pages name no install command at all"
     assert problems == [], "\n".join(problems)
 
@@ -135,7 +144,7 @@ def test_every_install_hint_in_the_package_works_from_a_checkout():
         for args in _install_args(text):
             seen += 1
             if "{" not in args:  # a template (`closedloop.errors.require`): its extras are checked below
-                problems += check_install(args, str(src.relative_to(ROOT)))
+                problems += check_install(args, str(src.relative_to(ROOT)), installed=True)
         for extra in re.findall(r'(?:require\(\s*"[^"]+",|MissingExtraError\().+?,\s*"(\w+)"\s*\)', text):
             seen += 1
             problems += check_install(f'".[{extra}]"', f"{src.relative_to(ROOT)} (require ... {extra!r})")
@@ -164,6 +173,19 @@ def test_every_install_hint_in_the_package_works_from_a_checkout():
 )
 def test_check_install_tells_working_lines_from_broken_ones(args, ok):
     assert (check_install(args, "x") == []) is ok
+
+
+@pytest.mark.parametrize(
+    "args, ok",
+    [
+        ('"closedloop[ros,report]"', True),
+        ('"closedloop[rviz]"', False),
+        ("closedloop[ros]", False),
+        ("closedloop", False),
+    ],
+)
+def test_an_installed_closedloop_may_name_its_extras(args, ok):
+    assert (check_install(args, "x", installed=True) == []) is ok
 
 
 # --------------------------------------------------------------------------- running the blocks

@@ -92,10 +92,14 @@ def test_failures_isolated(cluster, local):
 
 def test_progress_counts():
     seen = []
-    ex.run(flaky, [0, 1, 3], "serial", errors="record", progress=lambda p: seen.append((p.done, p.failed, p.total)))
-    assert seen == [(1, 0, 3), (2, 0, 3), (2, 1, 3)]
-    p = ex.Progress(10, done=4, failed=1)
-    assert "5/10 finished (4 ok, 1 failed)" in p.line()
+    ex.run(flaky, [0, 1, 3], "serial", errors="record", progress=lambda *told: seen.append(told), task="runs")
+    assert seen == [
+        ("runs", 1, 3, "1 ok, 0 failed, 1 running"),
+        ("runs", 2, 3, "2 ok, 0 failed, 1 running"),
+        ("runs", 3, 3, "2 ok, 1 failed, 0 running"),
+    ]
+    p = ex.JobCounts(10, done=4, failed=1)
+    assert p.finished == 5 and p.note() == "4 ok, 1 failed, 0 running"
 
 
 @pytest.mark.slow

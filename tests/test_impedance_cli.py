@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -139,18 +140,14 @@ def test_full_disk_leaves_no_partial_file(sim_dir, tmp_path, monkeypatch, capsys
 
 
 def test_missing_extras_refused_before_work(sim_dir, tmp_path, monkeypatch, capsys):
-    import importlib.util
-
-    real = importlib.util.find_spec
-    monkeypatch.setattr(
-        importlib.util, "find_spec", lambda name, *a: None if name in ("h5py", "matplotlib") else real(name, *a)
-    )
+    for name in ("h5py", "matplotlib"):
+        monkeypatch.setitem(sys.modules, name, None)  # `import name` raises ImportError
     argv = ["impedance", "identify", str(sim_dir / "data.csv"), "--bootstrap", "0"]
     assert main(argv + ["--plots", str(tmp_path / "f")]) == 2
     assert "--plots: needs matplotlib" in capsys.readouterr().err
     assert main(["impedance", "simulate", "--out", str(tmp_path / "h"), "--format", "h5", "--cycles", "2"]) == 2
     err = capsys.readouterr().err
-    assert "--format h5: needs h5py" in err and 'pip install ".[impedance]"' in err
+    assert "--format h5: needs h5py" in err and 'pip install "closedloop[impedance]"' in err
 
 
 def _write(path, rec):

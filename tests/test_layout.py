@@ -44,7 +44,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("models",),  # the robot and task files shipped with the package
     ("io",),  # logs, bags, camera info, schemas and option values, files written whole
     ("parallel",),  # executor and engines (serial, local processes, Ray)
-    ("version", "errors"),
+    ("version", "errors", "progress"),
 ]
 
 #: what the simulator must not reach, even through other modules: the pipeline and the solver's stages

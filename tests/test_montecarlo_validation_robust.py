@@ -69,7 +69,7 @@ def test_cross_validation(scenario):
         CalibrationOptions(noise=NOISE),
         k=5,
         seed=0,
-        progress=lambda done, k: told.append((done, k)),
+        progress=lambda task, done, k, note="": told.append((done, k)),
     )
     assert told == [(1, 5), (2, 5), (3, 5), (4, 5), (5, 5)]
     assert len(cv["folds"]) == 5 and all(f["converged"] for f in cv["folds"])

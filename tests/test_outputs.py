@@ -449,43 +449,46 @@ class _Terminal:
 
 
 def test_progress_is_shown_on_a_terminal_and_erased_when_done():
-    from closedloop.cli.calibrate import Progress
+    from closedloop.cli.progress import ProgressDisplay
 
     term = _Terminal()
-    prog = Progress(quiet=False, stream=term)
-    for i in range(1, 201):
-        prog("simulating", i, 200)
-    assert "simulating: 200/200 configurations" in term.screen()[-1]
-    prog.done()
+    prog = ProgressDisplay(quiet=False, stream=term)
+    prog("solving", 0, None, "cost 1.000e+00")
+    prog("solving", 7, None, "cost 2.500e-03")
+    prog.bar.refresh()  # (drawn at most every 0.1 s)
+    assert term.screen()[-1].startswith("solving: 7 iterations") and "cost 2.500e-03" in term.screen()[-1]
+    prog("simulating", 100, 200)
+    prog.bar.refresh()
+    assert term.screen()[-1].startswith("simulating:  50%") and "100/200" in term.screen()[-1]
+    prog.close()
     assert term.screen() == [""]  # nothing stale left on the screen
+    prog("validating", 3, 3)  # the last of a count: erased at once
+    assert term.screen() == [""] and prog.bar is None
     silent = _Terminal()
-    Progress(quiet=True, stream=silent)("solving", 3, 1.0)
+    ProgressDisplay(quiet=True, stream=silent)("solving", 3, None, "cost 1")
     assert silent.text == ""
 
 
-def test_sweep_progress_is_erased_when_the_last_job_ends():
-    from closedloop.parallel.engine import Progress as JobProgress
-    from closedloop.parallel.executor import progress_printer
+def test_job_progress_is_erased_when_the_last_job_ends_and_never_drawn_off_a_terminal():
+    from closedloop.cli.progress import ProgressDisplay
+    from closedloop.parallel.executor import run
 
     term = _Terminal()
-    show = progress_printer("simulate: ", stream=term)
-    show(JobProgress(3, done=1))
-    assert term.screen()[-1].startswith("simulate: ")
-    show(JobProgress(3, done=3))
-    assert term.screen() == [""]
+    with ProgressDisplay(stream=term, prefix="simulate: ") as shown:
+        assert run(abs, [-1, -2, -3], "serial", progress=shown, task="jobs") == [1, 2, 3]
+        assert term.text.startswith("\r") and "simulate: jobs" in term.text
+        assert term.screen() == [""]
     log = io.StringIO()  # not a terminal: nothing
-    progress_printer("simulate: ", stream=log)(JobProgress(3, done=3))
-    assert log.getvalue() == ""
+    with ProgressDisplay(stream=log) as shown:
+        run(abs, [-1], "serial", progress=shown)
+    assert log.getvalue() == "" and shown.bar is None
 
 
 def test_html_without_matplotlib_is_refused_before_the_fit(files, monkeypatch, capsys):
-    import importlib.util
-
     import closedloop.calibration.pipeline as pipeline
 
     _, _, tmp = files
-    real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "matplotlib" else real(name, *a))
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` raises ImportError
 
     def no_fit(*a, **k):
         raise AssertionError("the fit started")
@@ -495,7 +498,7 @@ def test_html_without_matplotlib_is_refused_before_the_fit(files, monkeypatch, c
         rc = main(_calibrate_args(files, opt, str(path), "--report", str(tmp / "r.json")))
         err = capsys.readouterr().err
         assert rc == 2, err
-        assert err.startswith(f"error: {opt}: needs matplotlib") and 'pip install ".[report]"' in err
+        assert err.startswith(f"error: {opt}: needs matplotlib") and 'pip install "closedloop[report]"' in err
         assert len(err.strip().splitlines()) == 1
         assert not path.exists() and not (tmp / "r.json").exists()
 
@@ -557,3 +560,27 @@ def test_commanded_readings_fit_plain_least_squares_and_say_so(files, capsys):
         "weighting": "noise",
         "torques": None,
     }
+
+
+def test_the_csv_log_writer_reads_back_exactly(tmp_path):
+    """`io.logs.write_log_csv`, the one CSV log writer: every double read back to the bit, a value that is
+    not finite as an empty cell (an extra column's NaN), the loop column as written; staged in an output
+    set, nothing is on disk before the set is published."""
+    from closedloop.io.files import OutputSet
+    from closedloop.io.logs import JointLog, log_csv, read_log, write_log_csv
+
+    rng = np.random.default_rng(4)
+    angles = rng.normal(size=(5, 2)) * 10.0 ** rng.integers(-9, 3, (5, 2))
+    uv = rng.normal(size=5)
+    uv[2] = np.nan
+    lg = JointLog(["j1", "j2"], angles, loop=np.array(["a", "b", "a", "a", "b"]), extra={"cam:u1": uv})
+    lg.write_csv(tmp_path / "log.csv")
+    back = read_log(tmp_path / "log.csv", ["j1", "j2"])
+    assert np.array_equal(back.angles, angles) and list(back.loop) == ["a", "b", "a", "a", "b"]
+    assert np.array_equal(back.extra["cam:u1"], uv, equal_nan=True)
+    assert log_csv({"j1": [0.1, np.inf], "x": [np.nan, 2]}) == "j1,x\n0.1,\n,2.0\n"
+    files = OutputSet()
+    write_log_csv(tmp_path / "staged.csv", {"j1": [1.0]}, files)
+    assert not (tmp_path / "staged.csv").exists()
+    files.commit()
+    assert (tmp_path / "staged.csv").read_text() == "j1\n1.0\n"

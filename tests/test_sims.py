@@ -31,7 +31,7 @@ def stiff_run(request, tmp_path_factory):
     name = request.param
     out = tmp_path_factory.mktemp(name)
     calls: list[tuple[int, int]] = []
-    res = simulate(name, N, 0, out, stiff=True, progress=lambda i, n: calls.append((i, n)))
+    res = simulate(name, N, 0, out, stiff=True, progress=lambda task, i, n, note="": calls.append((i, n)))
     return name, res, calls
 
 

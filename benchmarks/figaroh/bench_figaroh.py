@@ -158,7 +158,7 @@ def run_closedloop(
 
     stages: dict[str, float] = {}
 
-    def progress(stage, it, cost):
+    def progress(stage, it, total=None, note=""):
         stages.setdefault(stage, time.perf_counter())
 
     t0 = time.perf_counter()

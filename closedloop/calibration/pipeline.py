@@ -39,7 +39,6 @@ from closedloop.analysis.linearity import check_error_bars
 from closedloop.analysis.scale import refuse_lengths, scale_findings
 from closedloop.analysis.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
 from closedloop.calibration.staged import (
-    Progress,
     recheck_at_solution,
     solve_from_starts,
     solve_staged,
@@ -66,6 +65,7 @@ from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
+from closedloop.progress import ProgressReporter
 from closedloop.records import (
     CalibrationOptions,
     CalibrationResult,
@@ -226,7 +226,7 @@ def calibrate(
     log_: JointLog,
     loops: list[Loop],
     options: CalibrationOptions | None = None,
-    progress: Progress | None = None,
+    progress: ProgressReporter | None = None,
 ) -> CalibrationResult:
     """Identify the selected parameters and judge the result; see the module docstring.
 
@@ -250,7 +250,7 @@ def calibrate(
 
 
 def _calibrate(
-    robot: RobotModel, log_: JointLog, loops: list[Loop], opt: CalibrationOptions, progress: Progress | None
+    robot: RobotModel, log_: JointLog, loops: list[Loop], opt: CalibrationOptions, progress: ProgressReporter | None
 ) -> CalibrationResult:
     _check_options(opt)
     problem = build_problem(robot, log_, loops, opt.priors)
@@ -267,7 +267,7 @@ def _calibrate(
     refuse_lengths(problem, x0, free)
     sigma_q, known = noise_vector(problem, opt.noise)
     if progress:
-        progress("analysing", 0, 0.0)
+        progress("analysing", 0)
     structure = analyse_structure(problem, x0, free)  # re-checked at the solution (recheck_at_solution)
     _check_rows(problem, structure, log_)
     if problem.keeps_jacobians:  # the solve's first J, taken first: the screen and `before` read it (the memo)
@@ -407,7 +407,7 @@ def solve_screened(
     known: bool,
     n_rows: int,
     notes: list[str],
-    progress: Progress | None,
+    progress: ProgressReporter | None,
     row_name=None,
 ) -> tuple[CalibrationProblem, Fit, Structure, list[Rejected], list]:
     """Outlier screen, staged solve, restarts and the re-checks at the solution (module docstring, 4-6).

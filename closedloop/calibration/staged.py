@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
-from typing import Callable
 
 import numpy as np
 
@@ -31,10 +30,10 @@ from closedloop.estimate.stages import (
 )
 from closedloop.estimate.variance import measurement_row_weights, task_blocks, variance_components
 from closedloop.problem.problem import CalibrationProblem
+from closedloop.progress import ProgressReporter
 from closedloop.records import CalibrationOptions
 
 log = logging.getLogger(__name__)
-Progress = Callable[[str, int, float], None]
 
 
 def _solver_options(opt: CalibrationOptions, problem: CalibrationProblem, est: list[int], known: bool) -> SolverOptions:
@@ -64,7 +63,7 @@ def solve_staged(
     opt: CalibrationOptions,
     sigma_q: np.ndarray,
     known: bool,
-    progress: Progress | None = None,
+    progress: ProgressReporter | None = None,
     plain_start: bool = False,
 ) -> Fit:
     """The weighted fit from `start`; staged through the plain residual where the weighting misleads.
@@ -82,7 +81,7 @@ def solve_staged(
     """
     scale = np.array([p.prior for p in problem.params])
     sopt = _solver_options(opt, problem, est, known)
-    prog = (lambda it, c: progress("solving", it, c)) if progress else None
+    prog = (lambda it, c: progress("solving", it, None, f"cost {c:.3e}")) if progress else None
     warnings: list[str] = []
     base = x0.copy()
     base[est] = start[est]
@@ -249,7 +248,7 @@ def solve_with_restarts(
     sigma_q: np.ndarray,
     known: bool,
     rng: np.random.Generator,
-    progress: Progress | None = None,
+    progress: ProgressReporter | None = None,
     first: Fit | None = None,
     weak: list[int] | None = None,
 ) -> Fit:
@@ -365,7 +364,7 @@ def _along_valley(
     opt: CalibrationOptions,
     sigma_q: np.ndarray,
     known: bool,
-    progress: Progress | None,
+    progress: ProgressReporter | None,
     fits: list[Fit],
     weak: list[int],
 ) -> list[Fit]:
@@ -418,7 +417,7 @@ def recheck_at_solution(
     free: list[int],
     x0: np.ndarray,
     opt: CalibrationOptions,
-    progress: Progress | None,
+    progress: ProgressReporter | None,
 ) -> tuple[Fit, Structure, list[str]]:
     """The reduction and gauge recomputed at the solution; re-solved from it where they differ."""
     notes = []
@@ -456,7 +455,7 @@ def solve_from_starts(
     opt: CalibrationOptions,
     sigma_q: np.ndarray,
     known: bool,
-    progress: Progress | None = None,
+    progress: ProgressReporter | None = None,
 ) -> Fit:
     """`solve_staged` from each start; of the fits that close as well as the best, the nearest to x0 (`_better`).
 

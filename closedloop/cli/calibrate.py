@@ -10,40 +10,9 @@ import time
 from dataclasses import replace
 
 from closedloop.cli.parse import check_loop_numbers
+from closedloop.cli.progress import ProgressDisplay
 from closedloop.errors import EXIT_FAILED, InputError, require
 from closedloop.io.schemas import check_number, parse_bounds, parse_noise
-
-
-class Progress:
-    """A progress line on stderr, on a terminal only: rewritten in place and erased when done, so that no
-    stale line is left in a log or a CI output (where nothing is written)."""
-
-    def __init__(self, quiet: bool, stream=None):
-        self.stream = sys.stderr if stream is None else stream
-        self.quiet = quiet
-        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
-        self.t0 = time.perf_counter()
-        self.shown = False  # a line is on the screen
-
-    def __call__(self, stage: str, it: int, value: float) -> None:
-        if self.quiet or not self.tty:
-            return
-        msg = f"  {stage}"
-        if stage == "solving":
-            msg += f": iteration {it}, cost {value:.3e}"
-        elif stage == "validating":
-            msg += ": k-fold held-out refits" + (f", {it} of {int(value)} done" if value else "")
-        elif stage == "simulating":
-            msg += f": {it}/{int(value)} configurations"
-        msg += f"  [{time.perf_counter() - self.t0:.1f} s]"
-        print("\r" + msg.ljust(70), end="", file=self.stream, flush=True)
-        self.shown = True
-
-    def done(self) -> None:
-        """Erase the line (the summary says what was done)."""
-        if self.shown:
-            print("\r" + " " * 70 + "\r", end="", file=self.stream, flush=True)
-            self.shown = False
 
 
 def check_calibrate_options(args) -> tuple:
@@ -113,10 +82,10 @@ def cmd_calibrate(args) -> int:
         robust=None if args.robust == "off" else args.robust,
         threads=args.threads,
     )
-    prog = Progress(args.quiet)
+    prog = ProgressDisplay(args.quiet)
     t0, c0 = time.perf_counter(), time.process_time()
     res = calibrate(robot, lg, loops, opts, progress=prog)
-    prog.done()
+    prog.close()
     elapsed = time.perf_counter() - t0
     if inputs_note:
         res.notes.append(inputs_note)
@@ -188,7 +157,7 @@ def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res,
     from closedloop.errors import ClosedLoopError
     from closedloop.validation.kfold import cross_validate
 
-    prog("validating", 0, 0.0)
+    prog("validating", 0, args.cv)
     try:
         cv = cross_validate(
             robot,
@@ -196,11 +165,11 @@ def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res,
             loops,
             opts,
             k=args.cv,
-            progress=lambda done, k: prog("validating", done, k),
+            progress=prog,
             exclude=[rj.row - 1 for rj in res.rejected],
         )
     except ClosedLoopError as exc:
-        prog.done()
+        prog.close()
         n_train = len(lg) - -(-len(lg) // args.cv)
         why = f"{args.cv}-fold validation refits on {n_train} of the {len(lg)} rows, and one failed: {exc}"
         if cv_given:
@@ -218,7 +187,7 @@ def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res,
         "inconsistent": cv.get("inconsistent"),
         "folds_converged": [f["converged"] for f in cv["folds"]],
     }
-    prog.done()
+    prog.close()
     return cv
 
 

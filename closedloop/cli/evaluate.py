@@ -199,10 +199,10 @@ def fixture_validation(robot, lg, loops: list, opts, report: dict, args, prog=No
     if getattr(args, "lofo", "auto") == "off" or lg.loop is None or len(fixture_groups(loops)) < 2:
         return None
     if prog:
-        prog("validating fixtures", 0, 0.0)
+        prog("validating fixtures", 0)
     out = leave_one_fixture_out(robot, lg, loops, opts)
     if prog:
-        prog.done()
+        prog.close()
     if out is not None:
         report["fixture_validation"] = out
     return out

@@ -219,7 +219,7 @@ def read_onsets(path: Path) -> np.ndarray:
 
 def _cycle_period(rec) -> float:
     """The movement's period (s) from the angle's spectrum: the strongest frequency below 5 Hz."""
-    from scipy.signal import welch
+    from closedloop.impedance.filters import welch
 
     a = rec.angle[: min(len(rec.angle), int(600 * rec.fs))]
     a = np.nan_to_num(a - np.nanmean(a))

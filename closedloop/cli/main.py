@@ -154,7 +154,7 @@ def _add_extract(sub) -> None:
 
 
 def _add_batch(sub) -> None:
-    from closedloop.fleet.batch import add_parser as add_batch  # closedloop batch MANIFEST (many jobs, any executor)
+    from closedloop.cli.batch import add_parser as add_batch  # closedloop batch MANIFEST (many jobs, any executor)
 
     add_batch(sub)
 

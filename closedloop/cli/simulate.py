@@ -12,24 +12,36 @@ import json
 import time
 from pathlib import Path
 
-from closedloop.cli.calibrate import Progress
 from closedloop.cli.parse import sim_overrides
-from closedloop.errors import ClosedLoopError, NotIdentifiableError, ScenarioError
+from closedloop.cli.progress import ProgressDisplay
+from closedloop.errors import InputError, NotIdentifiableError, ScenarioError
 from closedloop.io.schemas import check_number
 
 
+def simulate_camera(args) -> int:
+    """``closedloop simulate ur5_head --n N --seed S --out DIR`` (`sims.camera_scene`): one summary line."""
+    from closedloop.sims.camera_scene import simulate_head
+
+    if not (isinstance(args.n, int) and args.n >= 1):
+        raise InputError(f"--n {args.n}: expected a positive integer")
+    if getattr(args, "set", None):
+        raise InputError(f"--set: the camera scenario {args.scenario} has no settings to override")
+    t0 = time.perf_counter()
+    summary = simulate_head(args.scenario, args.n, int(args.seed), args.out)
+    print(
+        f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out} "
+        f"({summary['missing_views']} missing views)"
+    )
+    return 0
+
+
 def cmd_simulate(args) -> int:
-    try:
-        from closedloop.sims import SCENARIOS, simulate
-    except ImportError as exc:  # pragma: no cover - packaging error
-        raise ClosedLoopError(f"the simulator is not installed ({exc})") from None
     from closedloop.cli.tools import resolve_scenario
+    from closedloop.sims import SCENARIOS, simulate
     from closedloop.sims.scenarios import CAMERA_SCENARIOS, unknown_scenario
 
     if getattr(args, "scenario", None) in CAMERA_SCENARIOS:  # the head-camera scenarios (sims/camera_scene.py)
-        from closedloop.sims.camera_scene import simulate_cli as camera_simulate
-
-        code = camera_simulate(args)
+        code = simulate_camera(args)
         if not getattr(args, "quiet", False):
             print_next_commands(Path(args.out))
         return code
@@ -44,7 +56,7 @@ def cmd_simulate(args) -> int:
     check_outputs({"--out": args.out}, directory=True)
     check_dataset_dir(Path(args.out), replace=getattr(args, "replace", False))
     overrides = sim_overrides(args.set, SCENARIOS[args.scenario].settings)
-    prog = Progress(args.quiet)
+    prog = ProgressDisplay(args.quiet)
     t0 = time.perf_counter()
     try:
         result = simulate(
@@ -52,12 +64,13 @@ def cmd_simulate(args) -> int:
             n=args.n,
             seed=args.seed,
             out_dir=Path(args.out),
-            progress=lambda i, n: prog("simulating", i, n),
+            progress=prog,
             **overrides,
         )
     except NotIdentifiableError as exc:  # the scenario's loop cannot close: its robot, loop, --q0 or --tool
         raise ScenarioError(f"simulate {args.scenario}: {exc} (check the loop frame, --q0 and --tool)") from None
-    prog.done()
+    finally:
+        prog.close()
     if args.quiet:  # errors and warnings only
         return 0
     print(f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out}")

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from closedloop.errors import InputError
+from closedloop.progress import ProgressReporter
 
 COLUMNS = ["scenario", "seed", "status", "configurations", "steps", "seconds", "configs_per_second", "error", "out"]
 
@@ -103,7 +104,7 @@ def run_sweep(
     out: Path,
     overrides: dict | None = None,
     engine=None,
-    progress=None,
+    progress: ProgressReporter | None = None,
     replace: bool = False,
 ) -> list[SweepRow]:
     """Simulate every (scenario, seed) not finished before, on `engine`; rows in (scenario, seed) order.
@@ -136,7 +137,9 @@ def run_sweep(
         w.writeheader()
         w.writerows(_csv_row(r) for r in rows.values())
         fh.flush()
-        for o in imap(_sim_job, todo, engine, shared=(scenarios, int(n), overrides or {}), progress=progress):
+        for o in imap(
+            _sim_job, todo, engine, shared=(scenarios, int(n), overrides or {}), progress=progress, task="simulate"
+        ):
             name, seed, job_out = todo[o.index]
             rows[name, seed] = (
                 SweepRow(name, seed, "ok", out=job_out, **o.value)
@@ -198,8 +201,9 @@ def cmd_simulate_sweep(args) -> int:
         if getattr(args, "jobs", None) is not None or getattr(args, "ray", None):
             raise InputError("simulate: --jobs / --ray run a sweep: give --seeds (e.g. --seeds 0-19)")
         return cmd_simulate(args)
+    from closedloop.cli.progress import ProgressDisplay
     from closedloop.io.schemas import check_number
-    from closedloop.parallel.executor import engine_from_args, progress_printer
+    from closedloop.parallel.executor import engine_from_args
 
     scenarios = _scenarios(args)
     seeds = parse_seeds(args.seeds if args.seeds is not None else str(args.seed))
@@ -208,17 +212,8 @@ def cmd_simulate_sweep(args) -> int:
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out}: exists and is not a folder")
     overrides = {name: _overrides(args, sc) for name, sc in scenarios.items()}
-    with engine_from_args(args) as eng:
-        rows = run_sweep(
-            scenarios,
-            seeds,
-            n,
-            out,
-            overrides,
-            eng,
-            progress_printer("simulate: ", args.quiet),
-            replace=getattr(args, "replace", False),
-        )
+    with engine_from_args(args) as eng, ProgressDisplay(args.quiet) as shown:
+        rows = run_sweep(scenarios, seeds, n, out, overrides, eng, shown, replace=getattr(args, "replace", False))
     ran = [r for r in rows if r.status == "ok"]
     failed = [r for r in rows if r.status == "failed"]
     rate = sum(r.configurations or 0 for r in ran) / max(sum(r.seconds or 0.0 for r in ran), 1e-9)

@@ -87,6 +87,7 @@ from closedloop.design.optimal import Selection, detmax, greedy_d_optimal, infor
 from closedloop.errors import OptionError
 from closedloop.io.schemas import POSE_METHODS as METHODS
 from closedloop.problem.problem import CalibrationProblem
+from closedloop.progress import ProgressReporter
 from closedloop.records import CalibrationResult
 
 __all__ = [
@@ -217,7 +218,7 @@ def select_pools(
     k: int,
     method: str = "exchange-a",
     executor=None,
-    progress=None,
+    progress: ProgressReporter | None = None,
     **kw,
 ) -> list[Selection]:
     """`select_poses` on each candidate pool, one job per pool on `executor` (``closedloop.parallel.executor``).
@@ -237,6 +238,7 @@ def select_pools(
         executor,
         shared=(result_or_problem, values, int(k), method, kw),
         progress=progress,
+        task="selecting poses",
     )
 
 
@@ -246,7 +248,13 @@ def _random_job(B: np.ndarray, n: int, draws: int, rng: np.random.Generator) -> 
 
 
 def random_designs(
-    B: np.ndarray, n: int, draws: int = 200, seed: int = 0, executor=None, chunk: int = 25, progress=None
+    B: np.ndarray,
+    n: int,
+    draws: int = 200,
+    seed: int = 0,
+    executor=None,
+    chunk: int = 25,
+    progress: ProgressReporter | None = None,
 ) -> RandomDesigns:
     """The baseline a selection is compared with: `draws` random n-subsets of the pool's blocks B.
 
@@ -259,5 +267,13 @@ def random_designs(
     if not 1 <= n <= len(B):
         raise OptionError(f"cannot draw {n} configurations from a pool of {len(B)}")
     sizes = [min(chunk, draws - c) for c in range(0, draws, max(1, chunk))]
-    parts = run(_random_job, sizes, executor, shared=(np.asarray(B), int(n)), seed=seed, progress=progress)
+    parts = run(
+        _random_job,
+        sizes,
+        executor,
+        shared=(np.asarray(B), int(n)),
+        seed=seed,
+        progress=progress,
+        task="drawing designs",
+    )
     return RandomDesigns(np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))

@@ -30,17 +30,16 @@ import logging
 import os
 import shutil
 import uuid
-from collections import Counter
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from closedloop.errors import EXIT_FAILED, InputError
+from closedloop.errors import InputError
 from closedloop.fleet.drift import Drift, drift, drift_columns, gauge_record
 from closedloop.fleet.manifest import BatchJob, as_list, read_manifest
 from closedloop.io.files import is_special
-from closedloop.io.schemas import check_number
+from closedloop.progress import ProgressReporter
 
 __all__ = [
     "BatchJob",
@@ -51,8 +50,6 @@ __all__ = [
     "run_batch",
     "run_job",
     "finished",
-    "cmd_batch",
-    "add_parser",
 ]
 
 log = logging.getLogger(__name__)
@@ -219,14 +216,9 @@ def _read(job: BatchJob, robot):
 
     degrees = job.options.get("degrees", False)
     degrees = degrees.strip().lower() in ("1", "true", "yes") if isinstance(degrees, str) else bool(degrees)
-    lg = None
-    try:
-        from closedloop.io.bags import extract, is_bag
+    from closedloop.io.bags import extract, is_bag
 
-        if is_bag(job.log):
-            lg = extract(job.log, robot.joint_names)[0]
-    except ImportError:  # pragma: no cover - bag support not installed
-        pass
+    lg = extract(job.log, robot.joint_names)[0] if is_bag(job.log) else None  # a bag: its standstills
     if lg is None:
         lg = read_log(
             job.log,
@@ -345,11 +337,9 @@ def _gauge(res) -> dict | None:
 
 def _judge(res, cv: dict | None, report: dict):
     """The calibration's verdict, judged again with the held-out folds as `closedloop calibrate` does."""
-    try:
-        from closedloop.calibration.verdict import judge
-        from closedloop.output.report import verdict_record
-    except ImportError:  # a core without verdicts: 'n/a' in the summary
-        return getattr(res, "verdict", None)
+    from closedloop.calibration.verdict import judge
+    from closedloop.output.report import verdict_record
+
     verdict = judge(res, cv)
     report["verdict"] = verdict_record(verdict)
     return verdict
@@ -449,7 +439,9 @@ def _fmt(row: dict) -> dict:
     return {k: (f"{v:.6g}" if isinstance(v, float) else "" if v is None else v) for k, v in row.items()}
 
 
-def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=None, z_max: float = 3.0) -> BatchResult:
+def run_batch(
+    jobs: list[BatchJob], summary: str | Path, engine=None, progress: ProgressReporter | None = None, z_max: float = 3.0
+) -> BatchResult:
     """Run every job not finished before on `engine` (see closedloop.parallel.executor); write the summary."""
     from closedloop.parallel.executor import imap
 
@@ -470,7 +462,7 @@ def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=N
             rows[j.name] = {**done["row"], "resumed": "yes"}
             sink.add(rows[j.name], publish=False)  # (published with the first job that finishes)
     failed = []
-    for out in imap(run_job, todo, engine, progress=progress):
+    for out in imap(run_job, todo, engine, progress=progress, task="batch"):
         j = todo[out.index]
         if out.ok:
             results[j.name] = out.value
@@ -532,63 +524,3 @@ def check_batch_outputs(manifest: str | Path, jobs: list[BatchJob], summary: Pat
         for i in inputs:
             if same_file(j.out, i):
                 raise InputError(f"job {j.name}: out {j.out}: is an input of the batch ({i})")
-
-
-def cmd_batch(args) -> int:
-    """CLI: closedloop batch MANIFEST [--jobs N | --ray auto|ADDRESS] [--summary CSV]."""
-    import sys
-
-    from closedloop.parallel.executor import engine_from_args, progress_printer
-
-    jobs = read_manifest(args.manifest)
-    summary = (
-        Path(args.summary) if args.summary else Path(args.manifest).with_name(Path(args.manifest).stem + ".summary.csv")
-    )
-    args.drift_z = check_number("--drift-z", args.drift_z, 0.0, 1e6, lo_open=True)
-    check_batch_outputs(args.manifest, jobs, summary)
-    with engine_from_args(args) as eng:
-        if eng.name == "local":
-            start_worker_server()
-        try:
-            res = run_batch(jobs, summary, eng, progress_printer("batch: ", args.quiet), args.drift_z)
-        except KeyboardInterrupt:  # Ctrl-C, SIGTERM: no worker may run on (the shutdown would wait for them)
-            end_workers()
-            raise
-    flagged = [d for d in res.drift if d.flagged]
-    verdicts = Counter(str(r.get("verdict", "")) for r in res.rows if r["name"] not in res.failed)
-    print(
-        f"{len(res.ran)} job(s) run on {eng.name} ({eng.workers} worker(s)), {len(res.resumed)} finished "
-        f"earlier (not redone), {len(res.failed)} failed -> {summary}"
-    )
-    if +verdicts:
-        print("  verdicts: " + ", ".join(f"{verdicts[v]} {v}" for v in ("ok", "suspect", "failed") if verdicts[v]))
-    for name in res.failed:
-        print(f"  failed: {name}: {next(r['error'] for r in res.rows if r['name'] == name)}", file=sys.stderr)
-    for r in res.rows:
-        if r.get("verdict") == "failed" and r["name"] not in res.failed:
-            print(f"  verdict failed: {r['name']}: {r.get('verdict_reasons', '')}", file=sys.stderr)
-    if res.drift:
-        print(
-            f"  drift: {len(flagged)} of {sum(not d.note for d in res.drift)} parameter changes exceed "
-            f"{args.drift_z:g} standard errors" + ("" if is_special(summary) else f" -> {drift_path(summary)}")
-        )
-    for d in res.drift:
-        if d.note:
-            print(f"    {d.robot} {d.before} -> {d.after}: {d.note}")
-    for d in flagged:
-        print(f"    {d.robot} {d.before} -> {d.after}: {d.parameter} {d.change:+.3g} (z = {d.z:+.1f})")
-    # a job that could not run: 1; every job ran but a calibration's verdict is failed: 3, as calibrate's
-    return 1 if res.failed else EXIT_FAILED if verdicts["failed"] else 0
-
-
-def add_parser(sub) -> None:
-    """The `batch` subcommand."""
-    from closedloop.parallel.executor import add_arguments
-
-    b = sub.add_parser("batch", help="calibrate many robots/logs from a manifest (YAML or CSV), resumable")
-    b.add_argument("manifest", help="YAML (jobs: [...]) or CSV: model, log, loops, options, out[, robot, date, cv]")
-    b.add_argument("--summary", help="summary CSV (default: MANIFEST.summary.csv beside the manifest)")
-    b.add_argument("--drift-z", default=3.0, help="flag a parameter change above this many std. errors")
-    add_arguments(b)
-    b.add_argument("--quiet", action="store_true", help="no progress lines (the summary is still printed)")
-    b.set_defaults(func=cmd_batch)

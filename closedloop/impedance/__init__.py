@@ -9,8 +9,8 @@ defaults), `data` (I/O, checks, segmentation, alignment), `estimate` (thesis, de
 and the posture fit), `timing` (the cycle onsets checked against the model and re-aligned by it),
 `bootstrap` (bands, free-run VAF), `nonparam` (impulse-response model check), `filters` (the
 estimator's low-pass, spectrum, peak picking and smoothing in numpy), `metrics`, `results`, `plots`,
-`cli`.  The estimator needs only numpy (scipy for peak-velocity segmentation and alignment, and for the
-simulators).
+`cli`.  The package needs no scipy: its filters, spectra and peak picking are `filters`' (no
+`scipy.signal`, whose import would double `identify`'s time; numbers in `filters`).
 """
 
 _WHERE = {

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.errors import InputError
+from closedloop.errors import InputError, require
 
 log = logging.getLogger(__name__)
 UNITS = {"time": "s", "angle": "rad", "torque": "N m", "command": "N m", "event": "1", "block": "1"}
@@ -82,8 +82,7 @@ def record_bytes(rec: Record, fmt: str = "csv") -> bytes:
     if fmt in ("h5", "hdf5", ".h5", ".hdf5"):
         import io
 
-        import h5py
-
+        h5py = require("h5py", "an HDF5 record", "impedance")
         buf = io.BytesIO()
         with h5py.File(buf, "w") as f:
             for k, v in cols.items():
@@ -144,13 +143,7 @@ def read_record(path: str | Path, columns: dict[str, str] | None = None, torque_
         raise ImpedanceDataError(f"{path}: no such file")
     rename = {v: k for k, v in (columns or {}).items()}
     if is_hdf5(path):
-        try:
-            import h5py
-        except ImportError:
-            raise ImpedanceDataError(
-                f'{path}: an HDF5 record needs h5py: pip install ".[impedance]" in the closedloop checkout '
-                "(or pip install h5py)"
-            ) from None
+        h5py = require("h5py", f"{path} (an HDF5 record)", "impedance")
         try:
             with h5py.File(path, "r") as f:
                 raw = {k.lower(): f[k] for k in f.keys() if isinstance(f[k], h5py.Dataset)}
@@ -361,10 +354,9 @@ def onsets_from_times(rec: Record, times: np.ndarray) -> list[tuple[int, int]]:
 
 
 def _smooth_velocity(x: np.ndarray, fs: float, cutoff: float = 10.0) -> np.ndarray:
-    from scipy.signal import butter, sosfiltfilt
+    from closedloop.impedance.filters import filtfilt
 
-    sos = butter(2, cutoff, fs=fs, output="sos")
-    return np.gradient(sosfiltfilt(sos, x, axis=-1), 1.0 / fs, axis=-1)
+    return np.gradient(filtfilt(x, 2, cutoff, fs), 1.0 / fs, axis=-1)
 
 
 def onsets_from_peak_velocity(rec: Record, period: float, lead: float | None = None) -> list[tuple[int, int]]:
@@ -374,7 +366,7 @@ def onsets_from_peak_velocity(rec: Record, period: float, lead: float | None = N
     With strong perturbations the responses move the velocity peak by tens of ms (and any per-cycle
     alignment by ~8 ms in the thesis's simulation), which spoils the mean removal: prefer an event
     channel (the pacing clicks, thesis 9.1) when there is one."""
-    from scipy.signal import find_peaks
+    from closedloop.impedance.filters import find_peaks
 
     fs, lead = rec.fs, period / 4 if lead is None else lead
     out = []
@@ -384,7 +376,7 @@ def onsets_from_peak_velocity(rec: Record, period: float, lead: float | None = N
         if not ok.all():  # invalid rows: bridged for the onsets only (their cycles are left out later)
             a = np.interp(np.arange(a.size), np.flatnonzero(ok), a[ok]) if ok.sum() > 1 else np.zeros_like(a)
         v = _smooth_velocity(a, fs, 3.0)
-        pk, _ = find_peaks(v, distance=max(1, int(0.6 * period * fs)), height=0.3 * np.max(v))
+        pk = find_peaks(v, height=0.3 * np.max(v), distance=max(1, int(0.6 * period * fs)))
         h = int(0.25 * period * fs)
         for p in pk:
             seg = v[max(p - h, 0) : p + h]

@@ -23,9 +23,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import butter, sosfiltfilt
 
 from closedloop.impedance.data import Record
+from closedloop.impedance.filters import filtfilt
 
 G = 9.81
 
@@ -116,7 +116,7 @@ def simulate_elbow(cfg: ElbowConfig) -> tuple[Record, dict[str, np.ndarray]]:
     cmd_d = np.concatenate([np.repeat(cmd[:, :1], dly, 1), cmd[:, :-dly]], axis=1) if dly else cmd
     vol = np.zeros((nb, M + 1))
     if cfg.voluntary_rms > 0:
-        x = sosfiltfilt(butter(2, 4.0, fs=1 / h, output="sos"), rng.standard_normal((nb, M + 1)), axis=1)
+        x = filtfilt(rng.standard_normal((nb, M + 1)), 2, 4.0, 1 / h)
         vol = cfg.voluntary_rms * x / x.std()
 
     def f(k: int, x: np.ndarray, v: np.ndarray, a: np.ndarray, half: bool):

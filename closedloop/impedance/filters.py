@@ -3,9 +3,18 @@ Welch spectrum, peak picking and Gaussian smoothing.
 
 They return what scipy's `butter(output="sos")` with `sosfiltfilt` / `sosfilt`, `welch`, `find_peaks`
 (height, distance) and `scipy.ndimage.gaussian_filter1d(mode="nearest")` return, to rounding
-(tests/test_impedance_filters.py compares them on random signals), without importing `scipy.signal`:
-its import loads scipy.stats, scipy.interpolate and scipy.optimize, ~0.6 s of CPU, and scipy.ndimage
-~0.3 s more, together more than half of `closedloop impedance identify`'s whole run on 100 cycles.
+(tests/test_impedance_filters.py compares them on random signals), without importing `scipy.signal`
+or `scipy.ndimage`.
+
+This module is the one way the package filters, takes spectra and picks peaks: the estimator, the
+segmentation (`data`), both simulators (`model`, `elbow`) and the command line use it, and nothing in
+the package imports `scipy.signal` or `scipy.ndimage` (tests/test_one_way.py).  Measured (CPU seconds,
+the least of 5 runs, on the 2-core AMD EPYC development machine shared with other work, load average
+15): importing `scipy.signal` costs 1.38 s more than numpy alone (it loads scipy.stats,
+scipy.interpolate and scipy.optimize), `scipy.ndimage` 0.39 s, both 1.75 s; `closedloop impedance
+identify` on 100 cycles (benchmarks/bench_impedance.py's record) takes 1.83 s of CPU as it is and
+3.40 s with the two loaded: the command, which must stay under 2 s on an idle machine (1.47 s there,
+docs/guide/impedance.md), would take about twice as long.
 
 The Butterworth filter is linear and time-invariant, so a run started in the steady state of a constant
 input x0 (`sosfilt` with `sosfilt_zi(sos) * x0`, as `sosfiltfilt` starts each pass) is the constant

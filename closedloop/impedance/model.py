@@ -28,10 +28,10 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import butter, sosfiltfilt
 
 from closedloop.errors import InputError
 from closedloop.impedance.data import Record
+from closedloop.impedance.filters import filtfilt
 
 log = logging.getLogger(__name__)
 G = 9.8
@@ -229,8 +229,7 @@ def voluntary(cfg: ExperimentConfig, n_samples: int, rng: np.random.Generator) -
     """Band-limited (Butterworth, `voluntary_band` Hz) Gaussian torque of RMS `voluntary_rms`."""
     if cfg.voluntary_rms <= 0:
         return np.zeros((cfg.n_blocks, n_samples))
-    sos = butter(4, cfg.voluntary_band, fs=cfg.fs, output="sos")
-    x = sosfiltfilt(sos, rng.standard_normal((cfg.n_blocks, n_samples)), axis=1)
+    x = filtfilt(rng.standard_normal((cfg.n_blocks, n_samples)), 4, cfg.voluntary_band, cfg.fs)
     return cfg.voluntary_rms * x / np.sqrt(np.mean(x**2))
 
 

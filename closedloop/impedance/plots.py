@@ -24,9 +24,9 @@ def plot_impedance(
     title: str = "",
 ) -> Path:
     """Write the figure to `path` (format from the suffix: .png, .svg, .pdf)."""
-    import matplotlib
+    from closedloop.errors import require
 
-    matplotlib.use("Agg")
+    require("matplotlib", "--plots", "impedance").use("Agg")
     import matplotlib.pyplot as plt
 
     path = Path(path)

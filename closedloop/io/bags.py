@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.errors import InputError
+from closedloop.errors import InputError, require
 from closedloop.io.logs import JointLog
 
 log = logging.getLogger(__name__)
@@ -113,14 +113,10 @@ def is_bag(path: str | Path) -> bool:
 
 
 def _reader(path: Path):
-    try:
-        from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
-    except ImportError:
-        raise BagError(
-            f"{path}: reading ROS bags needs the rosbags library: "
-            'pip install ".[ros]" in the closedloop checkout (or pip install rosbags)'
-        ) from None
+    require("rosbags", f"{path}: reading a ROS bag", "ros")
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
     if not path.exists():
         raise BagError(f"{path}: no such bag")
     if not is_bag(path):

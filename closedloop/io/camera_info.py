@@ -20,9 +20,7 @@ form, which OpenCV-based tools and ``camera_info_manager`` read back.
 
 from __future__ import annotations
 
-import os
 import re
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,7 +29,7 @@ import yaml
 
 from closedloop.errors import InputError
 
-__all__ = ["CameraInfo", "read_camera_info", "write_camera_info", "camera_infos_from_result"]
+__all__ = ["CameraInfo", "read_camera_info", "write_camera_info", "camera_info_text", "camera_infos_from_result"]
 
 
 class CameraInfoError(InputError):
@@ -124,7 +122,14 @@ def _row(a) -> str:
 
 
 def write_camera_info(path: str | Path, info: CameraInfo) -> None:
-    """Write `info` as a ROS 1 camera_info YAML (atomically: temporary file + rename)."""
+    """Write `info` as a ROS 1 camera_info YAML, whole (`io.files.atomic_write_text`)."""
+    from closedloop.io.files import atomic_write_text
+
+    atomic_write_text(path, camera_info_text(info))
+
+
+def camera_info_text(info: CameraInfo) -> str:
+    """`info` as the text of a ROS 1 camera_info YAML."""
     fx, fy, cx, cy = map(float, info.K)
     P = np.array([[fx, 0, cx, 0], [0, fy, cy, 0], [0, 0, 1, 0]])
     lines = [
@@ -149,11 +154,7 @@ def write_camera_info(path: str | Path, info: CameraInfo) -> None:
         "  cols: 4",
         f"  data: {_row(P)}",
     ]
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent if str(path.parent) else ".", prefix=".tmp_", suffix=".yaml")
-    with os.fdopen(fd, "w") as fh:
-        fh.write("\n".join(lines) + "\n")
-    os.replace(tmp, path)
+    return "\n".join(lines) + "\n"
 
 
 def camera_infos_from_result(result, loop) -> list[CameraInfo]:

@@ -8,13 +8,19 @@ optional ``loop`` column assigns each row to a loop by name.
 from __future__ import annotations
 
 import csv
+import io
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Mapping, Sequence
 
 import numpy as np
 
 from closedloop.errors import LogError
 from closedloop.io.schemas import parse_number
+
+if TYPE_CHECKING:
+    from closedloop.io.files import OutputSet
 
 #: largest |reading| accepted (rad, m or degrees): beyond it the kinematics overflow
 MAX_READING = 1e6
@@ -65,18 +71,49 @@ class JointLog:
         return tau
 
     def write_csv(self, path: str | Path) -> None:
-        """Write atomically in the same format."""
-        from closedloop.io.files import atomic_write_text
+        """Write the log whole, in the format `read_log` reads (`write_log_csv`)."""
+        columns: dict[str, np.ndarray | Sequence] = {j: self.angles[:, k] for k, j in enumerate(self.joints)}
+        if self.loop is not None:
+            columns["loop"] = self.loop
+        write_log_csv(path, columns | dict(self.extra))
 
-        head = list(self.joints) + (["loop"] if self.loop is not None else []) + list(self.extra)
-        lines = [",".join(head)]
-        for i in range(len(self)):
-            row = [repr(float(v)) for v in self.angles[i]]
-            if self.loop is not None:
-                row.append(str(self.loop[i]))
-            row += [repr(float(self.extra[k][i])) for k in self.extra]
-            lines.append(",".join(row))
-        atomic_write_text(path, "\n".join(lines) + "\n")
+
+def log_csv(columns: Mapping[str, np.ndarray | Sequence]) -> str:
+    """The text of a CSV log (`read_log`'s format): a header of the column names, then one row per
+    configuration; a number as ``repr(float)`` (read back to the same double), a value that is not finite
+    as an empty cell (no value: a missed view, an unmeasured column), a string (the ``loop`` column) as is.
+    Rows end with a line feed."""
+    names = list(columns)
+    n = {len(v) for v in columns.values()}
+    if len(n) > 1:
+        raise ValueError(f"columns of different lengths: {sorted(n)}")
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(names)
+    cells = [[_cell(v) for v in columns[c]] for c in names]
+    w.writerows(zip(*cells))
+    return buf.getvalue()
+
+
+def _cell(v) -> str:
+    if isinstance(v, str):
+        return v
+    x = float(v)
+    return repr(x) if math.isfinite(x) else ""
+
+
+def write_log_csv(
+    path: str | Path, columns: Mapping[str, np.ndarray | Sequence], files: "OutputSet | None" = None
+) -> None:
+    """The one writer of CSV logs: `log_csv`'s text written whole, staged in `files` (an output set the
+    caller publishes) or through `atomic_write_text` (the active output set, or a set of one)."""
+    from closedloop.io.files import atomic_write_text
+
+    text = log_csv(columns)
+    if files is not None:
+        files.add(path, text)
+    else:
+        atomic_write_text(path, text)
 
 
 def read_log(

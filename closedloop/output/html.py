@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from closedloop.errors import MissingExtraError
+from closedloop.errors import require
 from closedloop.io.files import atomic_write_text
 from closedloop.records import ParamStatus
 
@@ -36,13 +36,9 @@ th{background:#f3f3f3}td.l,th.l{text-align:left}.verdict{padding:.6em 1em;border
 
 
 def _plt():
-    try:
-        import matplotlib
+    require("matplotlib", "--html/--plots", "report").use("Agg")
+    import matplotlib.pyplot as plt
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        raise MissingExtraError("--html/--plots", "matplotlib", "report") from None
     return plt
 
 

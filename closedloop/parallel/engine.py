@@ -1,4 +1,4 @@
-"""The executor's core: job outcomes, the progress line, the worker-side call, the engine base class
+"""The executor's core: job outcomes, the job counts, the worker-side call, the engine base class
 and the serial engine (see :mod:`closedloop.parallel.executor` for the whole design; the process-pool and
 Ray engines are in :mod:`closedloop.parallel.engines`)."""
 
@@ -46,34 +46,22 @@ class Outcome:
 
 
 @dataclass
-class Progress:
-    """One line for the whole batch: done, failed, running, rate, time left."""
+class JobCounts:
+    """Where a run of jobs stands: finished (ok or failed) of total, and how many run now (set by the
+    engine); the executor reports it to a `closedloop.progress.ProgressReporter`."""
 
     total: int
-    done: int = 0
+    done: int = 0  # finished ok
     failed: int = 0
     running: int = 0
-    t0: float = field(default_factory=time.perf_counter)
 
     @property
-    def elapsed(self) -> float:
-        return time.perf_counter() - self.t0
+    def finished(self) -> int:
+        return self.done + self.failed
 
-    @property
-    def rate(self) -> float:
-        return (self.done + self.failed) / self.elapsed if self.elapsed > 0 else 0.0
-
-    @property
-    def eta(self) -> float | None:
-        left = self.total - self.done - self.failed
-        return left / self.rate if self.rate > 0 else None
-
-    def line(self) -> str:
-        eta = "?" if self.eta is None else f"{self.eta:.0f} s"
-        return (
-            f"{self.done + self.failed}/{self.total} finished ({self.done} ok, {self.failed} failed), "
-            f"{self.running} running, {self.rate:.2g} jobs/s, {eta} left"
-        )
+    def note(self) -> str:
+        """``4 ok, 1 failed, 2 running``: what a progress display shows beside the count."""
+        return f"{self.done} ok, {self.failed} failed, {self.running} running"
 
 
 # --------------------------------------------------------------------------- worker side
@@ -87,12 +75,9 @@ def limit_threads() -> None:
     _LIMITED[0] = True
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
-    try:
-        from threadpoolctl import threadpool_limits
+    from threadpoolctl import threadpool_limits  # a dependency
 
-        threadpool_limits(1)
-    except ImportError:  # pragma: no cover - threadpoolctl is a dependency
-        pass
+    threadpool_limits(1)
 
 
 def call(fn: Callable, index: int, payload: Any, seed: np.random.SeedSequence | None, shared: tuple = ()) -> Outcome:
@@ -136,7 +121,7 @@ class Engine:
         """Release workers (no-op by default)."""
 
     def imap(
-        self, fn: Callable, payloads: list, seeds: list | None, shared: tuple | None, progress: Progress | None = None
+        self, fn: Callable, payloads: list, seeds: list | None, shared: tuple | None, progress: JobCounts | None = None
     ) -> Iterator[Outcome]:
         raise NotImplementedError
 

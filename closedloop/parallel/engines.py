@@ -16,7 +16,7 @@ from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wai
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
-from closedloop.parallel.engine import Engine, Outcome, Progress, call, limit_threads, register
+from closedloop.parallel.engine import Engine, JobCounts, Outcome, call, limit_threads, register
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +105,7 @@ class LocalEngine(Engine):
                 except OSError:  # pragma: no cover - already gone
                     pass
 
-    def _run_all(self, args: dict, progress: Progress | None):
+    def _run_all(self, args: dict, progress: JobCounts | None):
         todo = list(args)
         for _attempt in range(2):  # the whole pool, then once more after a worker died
             broken = yield from self._drain(todo, args, progress)
@@ -123,7 +123,7 @@ class LocalEngine(Engine):
             finally:
                 pool.shutdown(wait=True)
 
-    def _drain(self, todo: list[int], args: dict, progress: Progress | None):
+    def _drain(self, todo: list[int], args: dict, progress: JobCounts | None):
         """Submit `todo` with back-pressure; yield outcomes; return the jobs lost to a broken pool."""
         pending: dict[Future, int] = {}
         queue = list(reversed(todo))
@@ -166,14 +166,9 @@ class RayEngine(Engine):
     """Ray tasks of one CPU each; joins `address` ('auto', 'ray://host:10001', ...) or starts a local cluster."""
 
     def __init__(self, jobs: int | None = None, address: str | None = None, **_):
-        try:
-            import ray
-        except ImportError:
-            from closedloop.errors import InputError
+        from closedloop.errors import require
 
-            raise InputError(
-                '--ray needs Ray: pip install ".[ray]" in the closedloop checkout (or pip install "ray>=2")'
-            ) from None
+        ray = require("ray", "--ray", "ray")
         self.ray = ray
         self._started = not ray.is_initialized()  # connected here: disconnected by close()
         if self._started:

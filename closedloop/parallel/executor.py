@@ -10,7 +10,7 @@ job order.  Engines are registered by name, as qpsolvers registers solvers:
   started with *forkserver* (POSIX) or *spawn*, never fork;
 * ``ray``: Ray tasks of one CPU each, on the cluster at ``address``
   ('auto' joins a running cluster; None starts a local one), imported lazily
-  (``pip install ".[ray]"`` in the closedloop checkout).
+  (``pip install "closedloop[ray]"``; from a checkout ``pip install ".[ray]"``).
 
 The results do not depend on the engine: randomness comes from a
 ``numpy.random.SeedSequence(seed).spawn(n)`` child per *job* (never per
@@ -29,20 +29,20 @@ call, the engine base class, the serial engine), :mod:`closedloop.parallel.engin
 from __future__ import annotations
 
 import logging
-import sys
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 import numpy as np
 
-from closedloop.parallel.engine import ENGINES, Engine, Outcome, Progress, SerialEngine, call, limit_threads, register
+from closedloop.parallel.engine import ENGINES, Engine, JobCounts, Outcome, SerialEngine, call, limit_threads, register
 from closedloop.parallel.engines import LocalEngine, RayEngine
+from closedloop.progress import ProgressReporter
 
 __all__ = [
     "ENGINES",
     "Engine",
     "Outcome",
-    "Progress",
+    "JobCounts",
     "SerialEngine",
     "LocalEngine",
     "RayEngine",
@@ -55,7 +55,6 @@ __all__ = [
     "run",
     "add_arguments",
     "engine_from_args",
-    "progress_printer",
 ]
 
 log = logging.getLogger(__name__)
@@ -93,19 +92,21 @@ def imap(
     seed: int | np.random.SeedSequence | None = None,
     jobs: int | None = None,
     address: str | None = None,
-    progress: Callable[[Progress], None] | None = None,
+    progress: ProgressReporter | None = None,
+    task: str = "jobs",
 ) -> Iterator[Outcome]:
     """Run ``fn(*shared, payload[, rng=...])`` for every payload; yield Outcomes as jobs finish.
 
     `shared` is a tuple of objects every job needs (a robot model, loops,
     options): sent once per worker, not once per job.  With `seed`, each job
-    gets ``rng = default_rng(SeedSequence(seed).spawn(n)[i])``.
+    gets ``rng = default_rng(SeedSequence(seed).spawn(n)[i])``.  As each job ends, `progress` is told
+    ``(task, finished, total, "4 ok, 1 failed, 2 running")``.
     """
     payloads = list(payloads)
     own = not isinstance(engine, Engine)
     eng = get_engine(engine, jobs, address)
     shared_t = None if shared is _NO_SHARED else tuple(shared)
-    state = Progress(len(payloads))
+    state = JobCounts(len(payloads))
     try:
         for out in eng.imap(fn, payloads, job_seeds(seed, len(payloads)), shared_t, state):
             if out.ok:
@@ -114,7 +115,7 @@ def imap(
                 state.failed += 1
             state.running = min(state.running, state.total - state.done - state.failed)
             if progress:
-                progress(state)
+                progress(task, state.finished, state.total, state.note())
             yield out
     finally:
         if own:
@@ -151,7 +152,8 @@ def add_arguments(parser) -> None:
         metavar="auto|local|ADDRESS",
         default=None,
         help="run on a Ray cluster: 'auto' joins the running one, an address (ray://HOST:10001) another, "
-        "'local' starts one here with --jobs CPUs (needs Ray: pip install \".[ray]\" in the checkout)",
+        "'local' starts one here with --jobs CPUs (needs Ray: pip install \"closedloop[ray]\", "
+        'from a checkout pip install ".[ray]")',
     )
 
 
@@ -165,19 +167,3 @@ def engine_from_args(args) -> Engine:
     if args.jobs == 1:
         return SerialEngine(threads=1)
     return get_engine("local", args.jobs)
-
-
-def progress_printer(prefix: str = "", quiet: bool = False, stream=None) -> Callable[[Progress], None]:
-    """A progress callback writing one line on a terminal's stderr, rewritten in place and erased when
-    the last job ends; nothing in a log or a CI output (no stale progress lines there)."""
-    out = sys.stderr if stream is None else stream
-    tty = bool(getattr(out, "isatty", lambda: False)())
-
-    def show(p: Progress) -> None:
-        if quiet or not tty:
-            return
-        finished = p.done + p.failed == p.total
-        line = "\r" + (prefix + p.line()).ljust(90)
-        print(line + ("\r" + " " * 90 + "\r" if finished else ""), end="", file=out, flush=True)
-
-    return show

@@ -53,6 +53,7 @@ from closedloop.sims.outputs import with_visuals
 from closedloop.sims.scenarios import CAMERA_LOOP, CAMERA_SCENARIOS, CameraScenario
 
 CAMERAS = ("left", "right")
+CAMERA_FILES = tuple(f"{c}.yaml" for c in CAMERAS)  # their camera_info files
 FOVY_DEG = 50.0
 WIDTH, HEIGHT = 640, 480
 HEAD_XYZ = (1.3, 0.0, 0.9)
@@ -237,18 +238,30 @@ def _readings(robot, sc: CameraScenario, n: int, rng: np.random.Generator) -> np
 
 
 def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict:
-    """Write a head-camera dataset (module docstring) to `out_dir`; returns a summary dict."""
+    """Write a head-camera dataset (module docstring) to `out_dir`, published whole (`io.files.OutputSet`:
+    the old dataset or the new one, truth.json last); returns a summary dict."""
+    import tempfile
+
+    from closedloop.io.files import OutputSet
+
+    out = Path(out_dir)
+    files = OutputSet(order=[out / f for f in ("nominal.urdf", "scene.xml", "log.csv", *CAMERA_FILES, "truth.json")])
+    with tempfile.TemporaryDirectory(prefix="closedloop-sim-") as scratch:  # the nominal model read back
+        summary = _simulate_head(scenario, n, seed, out, Path(scratch) / "nominal.urdf", files)
+    files.commit()
+    return summary
+
+
+def _simulate_head(scenario: str, n: int, seed: int, out: Path, nominal_path: Path, files) -> dict:
     import mujoco
 
-    from closedloop.io.camera_info import CameraInfo, write_camera_info
+    from closedloop.io.camera_info import CameraInfo, camera_info_text
+    from closedloop.io.logs import write_log_csv
     from closedloop.model.robot import RobotModel
     from closedloop.sims.scene import true_urdf
 
     sc = CAMERA_SCENARIOS[scenario]
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     rng_truth, rng_plan, rng_noise = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
-    nominal_path = out / "nominal.urdf"
     nominal_path.write_text(head_urdf(sc.verge))
     robot = RobotModel.from_file(nominal_path)
     names = robot.joint_names
@@ -278,12 +291,8 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
     uv = uv + rng_noise.normal(scale=sc.sigma_px, size=uv.shape)
     logged = readings + rng_noise.normal(scale=sc.sigma_q, size=readings.shape)
     cols = [f"{LOOP_NAME}:{a}{c + 1}" for c in range(len(CAMERAS)) for a in ("u", "v")]
-    lines = [",".join(names + cols)]
-    for th, row in zip(logged, uv):
-        lines.append(
-            ",".join([repr(float(v)) for v in th] + ["" if not np.isfinite(v) else repr(float(v)) for v in row])
-        )
-    (out / "log.csv").write_text("\n".join(lines) + "\n")
+    columns = {j: logged[:, k] for k, j in enumerate(names)} | {c: uv[:, k] for k, c in enumerate(cols)}
+    write_log_csv(out / "log.csv", columns, files)  # a missed view: empty cells
     K = mujoco_intrinsics()
     params = dict(truth)
     for c, X in enumerate(mounts):
@@ -291,7 +300,7 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
         v = np.concatenate([X.translation, pin.log3(X.rotation)])
         params |= {pre + f: float(x) for f, x in zip(("x", "y", "z", "rx", "ry", "rz"), v)}
         params |= {pre + f: float(x) for f, x in zip(("fx", "fy", "cx", "cy"), K)}
-        write_camera_info(out / f"{CAMERAS[c]}.yaml", CameraInfo(K, np.zeros(5), WIDTH, HEIGHT, CAMERAS[c]))
+        files.add(out / f"{CAMERAS[c]}.yaml", camera_info_text(CameraInfo(K, np.zeros(5), WIDTH, HEIGHT, CAMERAS[c])))
     params |= {f"{LOOP_NAME}.tip_{a}": float(x) for a, x in zip("xyz", MARKER)}
     doc = {
         "scenario": scenario,
@@ -304,27 +313,8 @@ def simulate_head(scenario: str, n: int, seed: int, out_dir: Path | str) -> dict
         "calibrate_loop": CALIBRATE_LOOP,
         "check_tolerances": CHECK_TOLERANCES,
     }
-    (out / "truth.json").write_text(json.dumps(doc, indent=1))
-    (out / "scene.xml").write_text(spec.to_xml())
+    files.add(out / "truth.json", json.dumps(doc, indent=1))
+    files.add(out / "scene.xml", spec.to_xml())
     # the nominal file a viewer shows: the UR5's visuals put back (the head's links have none), same kinematics
-    nominal_path.write_text(with_visuals(nominal_path.read_text(), ROBOTS["ur5"].path))
+    files.add(out / "nominal.urdf", with_visuals(nominal_path.read_text(), ROBOTS["ur5"].path))
     return {"n": n, "missing_views": doc["missing_views"], "out": str(out)}
-
-
-def simulate_cli(args) -> int:
-    """``closedloop simulate ur5_head --n N --seed S --out DIR`` (called by the CLI; prints one summary line)."""
-    import time
-
-    from closedloop.errors import InputError
-
-    if not (isinstance(args.n, int) and args.n >= 1):
-        raise InputError(f"--n {args.n}: expected a positive integer")
-    if getattr(args, "set", None):
-        raise InputError(f"--set: the camera scenario {args.scenario} has no settings to override")
-    t0 = time.perf_counter()
-    summary = simulate_head(args.scenario, args.n, int(args.seed), args.out)
-    print(
-        f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out} "
-        f"({summary['missing_views']} missing views)"
-    )
-    return 0

@@ -46,7 +46,6 @@ import json
 import logging
 import tempfile
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -58,6 +57,7 @@ from closedloop.errors import ScenarioError
 from closedloop.io.files import OutputSet
 from closedloop.io.marker import mark_running
 from closedloop.models import ROBOTS, nominal_urdf
+from closedloop.progress import ProgressReporter
 from closedloop.sims.driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
 from closedloop.sims.loop_types import SimLoop, sim_loop
 from closedloop.sims.outputs import DATASET_FILES, check_dataset_dir, truth_record, with_visuals, write_log
@@ -160,7 +160,7 @@ def simulate(
     n: int,
     seed: int,
     out_dir: Path | str,
-    progress: Callable[[int, int], None] | None = None,
+    progress: ProgressReporter | None = None,
     **overrides: Any,
 ) -> SimResult:
     """Generate a closed-loop calibration dataset by simulation.
@@ -170,7 +170,7 @@ def simulate(
         n: number of recorded (settled, unflagged) configurations.
         seed: random seed (truth, targets, noise); the same seed gives an identical log.
         out_dir: output directory (created).
-        progress: optional callback ``progress(done, n)`` called after each recorded sample.
+        progress: told ``("simulating", done, n)`` after each recorded sample (`closedloop.progress`).
         **overrides: :class:`~closedloop.sims.scenarios.SimSettings` fields, plus
             ``stiff=True`` for the stiff-loop preset (``SimSettings.stiff``).
 
@@ -215,7 +215,7 @@ def _simulate(
     out: Path,
     scratch: Path,
     files: OutputSet,
-    progress: Callable[[int, int], None] | None,
+    progress: ProgressReporter | None,
 ) -> SimResult:
     """The body of :func:`simulate`: outputs go into `files` (published when `simulate` returns)."""
     kind = sim_loop(sc.loop_type)

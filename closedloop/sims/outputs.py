@@ -13,8 +13,6 @@ prints them.
 from __future__ import annotations
 
 import copy
-import csv
-import io
 import shlex
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -24,6 +22,7 @@ import numpy as np
 
 from closedloop.errors import InputError
 from closedloop.io.files import OutputSet
+from closedloop.io.logs import write_log_csv
 from closedloop.sims.loop_types import SIM_LOOPS, SimLoop
 from closedloop.sims.scenarios import Scenario, SimSettings
 
@@ -211,22 +210,11 @@ def write_log(
     door: np.ndarray,
     measured: dict[str, np.ndarray] | None = None,
 ) -> None:
-    """Write the calibration log: joint readings first, then diagnostic columns, then measurements."""
-    measured = measured or {}
-    header = (
-        list(joint_names) + [f"tau:{j}" for j in joint_names] + ["violation_m", "violation_rad", "constraint_force_n"]
-    )
+    """Stage the calibration log in `files` (`io.logs.write_log_csv`): joint readings first, then
+    diagnostic columns, then measurements."""
+    columns = {j: readings[:, k] for k, j in enumerate(joint_names)}
+    columns |= {f"tau:{j}": tau[:, k] for k, j in enumerate(joint_names)}
+    columns |= {"violation_m": viol_m, "violation_rad": viol_rad, "constraint_force_n": force}
     if door.size:
-        header.append("door_angle")
-    header += list(measured)
-    f = io.StringIO(newline="")
-    w = csv.writer(f)
-    w.writerow(header)
-    for i in range(len(readings)):
-        row = [repr(float(v)) for v in readings[i]] + [repr(float(v)) for v in tau[i]]
-        row += [repr(float(viol_m[i])), repr(float(viol_rad[i])), repr(float(force[i]))]
-        if door.size:
-            row.append(repr(float(door[i])))
-        row += [repr(float(col[i])) for col in measured.values()]
-        w.writerow(row)
-    files.add(path, f.getvalue())
+        columns["door_angle"] = door
+    write_log_csv(path, columns | dict(measured or {}), files)

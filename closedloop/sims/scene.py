@@ -1,9 +1,9 @@
 """True robot URDF and the MuJoCo scene that closes its loop.
 
 :func:`true_urdf` writes the true robot (nominal URDF with joint placement
-errors ``M = M0 * exp6(v)``) through the core's ``closedloop.output.urdf.write_urdf``
-when it is available, otherwise through :func:`apply_placement_errors` (same
-convention).  Offsets and scales are *not* folded into the true URDF: they are
+errors ``M = M0 * exp6(v)``) through the core's ``closedloop.output.urdf.write_urdf``;
+:func:`apply_placement_errors` states the same convention on the XML alone (the tests check the two
+agree).  Offsets and scales are *not* folded into the true URDF: they are
 sensor properties applied by the sensor model.
 
 :func:`build_scene` converts the true URDF to MJCF with ``MjSpec`` and adds
@@ -30,7 +30,6 @@ sites coincide, so no ``relpose`` ambiguity arises.
 
 from __future__ import annotations
 
-import logging
 import tempfile
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -46,8 +45,6 @@ from closedloop.sims.loop_types import Placement, SimLoop, sim_loop
 from closedloop.sims.scenarios import Scenario, SimSettings
 
 __all__ = ["Scene", "apply_placement_errors", "true_urdf", "build_scene", "site_pose"]
-
-log = logging.getLogger(__name__)
 
 _MUJOCO_TAG = (
     '<mujoco><compiler fusestatic="false" discardvisual="true" balanceinertia="true" angle="radian"/></mujoco>'
@@ -83,12 +80,9 @@ def apply_placement_errors(urdf: str, values: dict[str, float]) -> str:
 
 def true_urdf(nominal_urdf_path: Path, values: dict[str, float]) -> str:
     """The true robot's URDF text (placement errors applied, offsets not folded)."""
-    try:
-        from closedloop.model.robot import RobotModel
-        from closedloop.output.urdf import write_urdf
-    except ImportError:
-        log.debug("closedloop.output.urdf not available; using sims.scene.apply_placement_errors")
-        return apply_placement_errors(Path(nominal_urdf_path).read_text(), values)
+    from closedloop.model.robot import RobotModel
+    from closedloop.output.urdf import write_urdf
+
     robot = RobotModel.from_file(nominal_urdf_path)
     known = set(robot.joint_names)
     placement = {

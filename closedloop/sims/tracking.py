@@ -22,6 +22,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ScenarioError
+from closedloop.progress import ProgressReporter
 from closedloop.sims.loop_types import SimLoop
 from closedloop.sims.scenarios import Scenario, SimSettings
 from closedloop.sims.scene import Scene, site_pose
@@ -316,7 +317,7 @@ def track_and_record(
     n: int,
     rng_noise: np.random.Generator,
     rng_env: np.random.Generator | None,
-    progress: Callable[[int, int], None] | None,
+    progress: ProgressReporter | None,
     t_start: float,
 ) -> Recording:
     """Steps 5-6: drive the true robot through the waypoints in MuJoCo and record the settled samples."""
@@ -382,7 +383,7 @@ def track_and_record(
             rec.door[i] = d.qpos[scene.door_qpos_adr]
         rec.done += 1
         if progress is not None:
-            progress(rec.done, n)
+            progress("simulating", rec.done, n)
     rec.elapsed = time.perf_counter() - t_start
     if rec.done < n:
         log.warning("%s: only %d of %d samples recorded (%d dropped)", sc.name, rec.done, n, rec.dropped)

@@ -45,6 +45,7 @@ from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.problem.unwrap import unwrap
+from closedloop.progress import ProgressReporter
 
 
 # --------------------------------------------------------------------------- scenario
@@ -350,7 +351,7 @@ def monte_carlo(
     seed: int = 0,
     weightings: tuple[str, ...] = ("noise", "none"),
     options: CalibrationOptions | None = None,
-    progress=None,
+    progress: ProgressReporter | None = None,
     executor=None,
 ) -> MonteCarloResult:
     """Calibrate `n_runs` noisy copies of the scenario's readings with each weighting.
@@ -383,7 +384,7 @@ def monte_carlo(
             raise outcome.exception or ClosedLoopError(f"Monte Carlo draw {outcome.index}: {outcome.error}")
         runs[outcome.index] = outcome.value
         if progress:
-            progress(count, n_runs)
+            progress("monte carlo", count, n_runs)
     for per_w in runs:
         for w, (est, weak, values) in zip(weightings, per_w):
             if est is None:

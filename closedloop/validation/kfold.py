@@ -30,7 +30,7 @@ does not generalise would screen away the evidence.
 from __future__ import annotations
 
 from dataclasses import asdict
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -48,6 +48,7 @@ from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
 from closedloop.problem.blocks import BlockEval
 from closedloop.problem.unwrap import unwrap
+from closedloop.progress import ProgressReporter
 
 
 def subset(log_: JointLog, rows: np.ndarray) -> JointLog:
@@ -186,7 +187,7 @@ def cross_validate(
     k: int = 5,
     seed: int = 0,
     executor=None,
-    progress: Callable[[int, int], None] | None = None,
+    progress: ProgressReporter | None = None,
     exclude=None,
 ) -> dict[str, Any]:
     """k-fold cross-validation with the same options on every fold.
@@ -210,7 +211,8 @@ def cross_validate(
                are listed under 'inconsistent').
     The refits run on `executor` (an engine or its name, closedloop.parallel.executor;
     None: this process, in fold order); the result is the same on any engine.
-    `progress(done, k)` is called as each refit finishes (on a long log each is a calibration of its own).
+    `progress` is told ``("validating", folds finished, k)`` as each refit finishes (on a long log each is
+    a calibration of its own).
     """
     opt = options or CalibrationOptions()
     parts = folds(log_, k, seed)
@@ -232,8 +234,8 @@ def cross_validate(
                 np.flatnonzero(np.isin(rows, bad)),
             )
         )
-    told = (lambda state: progress(state.done, state.total)) if progress else None
-    for f, ho in enumerate(run(_holdout_job, splits, executor, shared=(robot, loops, opt), progress=told)):
+    refits = run(_holdout_job, splits, executor, shared=(robot, loops, opt), progress=progress, task="validating")
+    for f, ho in enumerate(refits):
         res: CalibrationResult = ho["result"]
         ref = res.values if ref is None else ref
         vals = unwrap(res.problem, res.values, ref)  # closure rotation vectors on one branch

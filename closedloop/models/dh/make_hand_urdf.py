@@ -146,5 +146,8 @@ def build() -> str:
 
 
 if __name__ == "__main__":
+    import logging
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
     OUT.write_text(build())
-    print(f"wrote {OUT}")
+    logging.getLogger(__name__).info("wrote %s", OUT)
