@@ -1,6 +1,6 @@
 """The planar calibration example of thesis 2.5 (Figure 2-2), solved twice.
 
-A 3-DOF planar arm (``models/planar3.urdf``: revolute joints about z, links
+A 3-DOF planar arm (``assets/planar3.urdf``: revolute joints about z, links
 along x) holds its tip at a fixed point of the ground.  The ground is the
 fourth link, of length a4: the tip is pinned at (-a4, 0), so with
 phi_j = theta_1 + ... + theta_j the closure equations are (2.1)-(2.2)
@@ -120,16 +120,16 @@ def main() -> None:
     print("truth          a1 a2 a3 =", truth)
     print("linear (2.5)   a1 a2 a3 =", a_lin, " |err| =", np.abs(a_lin - truth).max())
     print("general solver a1 a2 a3 =", a_gen, " |lin - gen| =", np.abs(a_lin - a_gen).max())
-    print("  status:", dict(zip(res.names, res.status)))
+    print("  status:", dict(zip(res.fit.names, res.fit.status)))
 
     a_par, th_par = parallelogram_data(0.7, 1.0, np.linspace(0.3, 1.3, 25))
     C, _ = linear_system(th_par)
     print("\nparallelogram (Singularity 4): singular values of C =", np.linalg.svd(C, compute_uv=False))
     a_p, res = general_solution(th_par)
-    print("  truth", a_par, "estimate", a_p, "status", [s for s in res.status if s not in ("not selected",)])
-    for d in res.dropped:
+    print("  truth", a_par, "estimate", a_p, "status", [s for s in res.fit.status if s not in ("not selected",)])
+    for d in res.identifiability.dropped:
         print("  dropped:", d.describe())
-    for c in res.weak:
+    for c in res.identifiability.weak:
         print("  weak:", c.describe())
 
 

@@ -3,7 +3,7 @@
 Pipeline of :func:`simulate` (one function per step below; what depends on the loop type is a
 method of its class in :mod:`closedloop.sims.loop_types`):
 
-1. nominal URDF (cleaned, :func:`closedloop.models.nominal_urdf`) and its
+1. nominal URDF (cleaned, :func:`closedloop.assets.catalog.nominal_urdf`) and its
    Pinocchio model; arm joints = movable joints in Pinocchio order;
 2. true parameters: :func:`~closedloop.sims.true_robot.identifiable_parameters`
    drawn by :func:`~closedloop.sims.true_robot.draw_errors`; the true URDF
@@ -54,9 +54,9 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from closedloop.assets.catalog import ROBOTS, nominal_urdf
 from closedloop.errors import ScenarioError
 from closedloop.io.files import OutputSet
-from closedloop.models import ROBOTS, nominal_urdf
 from closedloop.sims.driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
 from closedloop.sims.loop_types import SimLoop, sim_loop
 from closedloop.sims.outputs import DATASET_FILES, check_dataset_dir, truth_record, with_visuals, write_log
