@@ -71,7 +71,7 @@ def test_a_sample_that_does_not_converge_is_not_used(long_log, whole, monkeypatc
     def failing_on_samples(fun, x0, *args, **kwargs):
         res = real(fun, x0, *args, **kwargs)
         if fun.problem.blocks[0].theta.shape[0] == 150:  # the sample's fit: report it unconverged, far away
-            res.fit.status, res.message, res.x = "max_iter", "no convergence (test)", res.x + 0.3
+            res.status, res.message, res.x = "max_iter", "no convergence (test)", res.x + 0.3
         return res
 
     monkeypatch.setattr(fit_module, "levenberg_marquardt", failing_on_samples)

@@ -53,7 +53,7 @@ def test_levenberg_marquardt_on_linear_least_squares_is_exact():
     res = levenberg_marquardt(
         lambda x, jac: (A @ x - b, A if jac else None), np.zeros(10), np.ones(10), SolverOptions(noise=1e-12)
     )
-    assert res.fit.status == "converged"
+    assert res.status == "converged"
     assert np.allclose(res.x, x_star, rtol=1e-10, atol=1e-10 * np.abs(x_star).max())
 
 
@@ -74,7 +74,7 @@ def test_converged_means_at_the_minimum_on_curved_valleys():
             return r, (np.array([[-2.0 * a * x[0], a], [-b, 0.0]]) if jac else None)
 
         res = levenberg_marquardt(fun, x0, np.ones(2), SolverOptions(noise=1e-14, max_iter=200))
-        if res.fit.status == "converged":
+        if res.status == "converged":
             if np.allclose(res.x, [1.0, 1.0], atol=1e-5):
                 right += 1
             else:
