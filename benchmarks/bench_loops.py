@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from machine import add_arguments, condition, conditions, header, threads_mode  # noqa: E402
 
-TASKS = Path(__file__).resolve().parents[1] / "closedloop" / "models" / "tasks"
+TASKS = Path(__file__).resolve().parents[1] / "closedloop" / "assets" / "tasks"
 
 
 def _rz(a: float) -> pin.SE3:

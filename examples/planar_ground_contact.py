@@ -42,7 +42,7 @@ from closedloop.io.logs import JointLog
 from closedloop.loops.point import PointLoop
 from closedloop.model.robot import RobotModel
 
-URDF = Path(__file__).resolve().parents[1] / "closedloop" / "models" / "planar3.urdf"
+URDF = Path(__file__).resolve().parents[1] / "closedloop" / "assets" / "planar3.urdf"
 NOMINAL = np.array([1.0, 0.8, 0.6])  # a1, a2, a3 of the URDF
 JOINTS = ["joint1", "joint2", "joint3"]
 
