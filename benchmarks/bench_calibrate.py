@@ -31,11 +31,11 @@ import numpy as np
 from floor import pinocchio_floor  # benchmarks/floor.py
 from machine import add_arguments, condition, conditions, header, threads_mode, timed  # benchmarks/machine.py
 
+from closedloop.assets.catalog import ROBOTS
 from closedloop.calibration.pipeline import calibrate
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel
-from closedloop.models import ROBOTS
 from closedloop.studies.truth import make_dataset
 
 
@@ -88,10 +88,10 @@ def run_once(robot, log: JointLog, mode: str) -> tuple[float, float, float, floa
         total - (s0 - t0),
         cpu,
         cpu - (sc0 - c0),
-        res.iterations,
-        len(res.estimated),
+        res.fit.iterations,
+        len(res.fit.estimated),
         kernel,
-        [rj.row - 1 for rj in res.rejected],
+        [rj.row - 1 for rj in res.outliers.rejected],
     )
 
 

@@ -1,7 +1,7 @@
 """Time per evaluation of the loops that eliminate passive joints.
 
 `HingeLoop` (the door of thesis 3.4.2, one eliminated angle) and `PassiveChainLoop` (3.4.3, the
-two-joint door task model `models/tasks/door.urdf`) evaluated with their Jacobians on N synthetic
+two-joint door task model `assets/tasks/door.urdf`) evaluated with their Jacobians on N synthetic
 configurations: tool poses on the true closure manifold, moved off it by a random twist of
 `--off` (so that the Gauss-Newton elimination takes a few iterations, as it does during a
 calibration), and evaluated at parameters a little off the truth (new ones at every repetition,
@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from machine import add_arguments, condition, conditions, header, threads_mode  # noqa: E402
 
-TASKS = Path(__file__).resolve().parents[1] / "closedloop" / "models" / "tasks"
+TASKS = Path(__file__).resolve().parents[1] / "closedloop" / "assets" / "tasks"
 
 
 def _rz(a: float) -> pin.SE3:

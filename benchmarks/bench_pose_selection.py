@@ -192,7 +192,7 @@ print(f"uniform / optimal continuous A-design: {ratio:.3f} (<= {ratio_hi:.3f})")
 def evaluate(rows):
     th = pool[rows] + rng.normal(0, NOISE, (len(rows), 7))
     r = calibrate(sc.robot, sc.log(th), sc.loops, CalibrationOptions(noise=NOISE))
-    st = residual_stats(r.problem, r.problem.evaluate(r.values, False, [held]))[0]
+    st = residual_stats(r.problem, r.problem.evaluate(r.fit.values, False, [held]))[0]
     return st.rms_m, st.rms_rad
 
 
@@ -235,10 +235,10 @@ print(
 
 # --------------------------------------------------------------------------- point contact
 if not args.no_point:
+    from closedloop.assets.catalog import ROBOTS
     from closedloop.io.logs import JointLog
     from closedloop.loops import PointLoop
     from closedloop.model.robot import RobotModel
-    from closedloop.models import ROBOTS
     from closedloop.studies.truth import make_dataset
 
     t1 = time.time()

@@ -40,11 +40,11 @@ sys.path.append(str(Path(__file__).resolve().parents[1] / "tests"))  # real_data
 from machine import header  # noqa: E402
 from real_data import RECORDINGS, chain_urdf, figaroh_log  # noqa: E402
 
+from closedloop.assets.catalog import example_robot_data_dir  # noqa: E402
 from closedloop.calibration.pipeline import build_problem, calibrate  # noqa: E402
 from closedloop.io.logs import JointLog  # noqa: E402
 from closedloop.loops.measured import MeasuredPointLoop  # noqa: E402
 from closedloop.model.robot import RobotModel  # noqa: E402
-from closedloop.models import example_robot_data_dir  # noqa: E402
 from closedloop.records import CalibrationOptions  # noqa: E402
 from closedloop.studies.truth import draw_truth  # noqa: E402
 from closedloop.validation.kfold import cross_validate, holdout, subset  # noqa: E402
@@ -183,9 +183,9 @@ def main() -> None:
         prof.disable()
     fit, cpu = time.perf_counter() - t, time.process_time() - c
     print(
-        f"calibrate (defaults): {fit:.2f} s wall, {cpu:.2f} s cpu, {len(res.estimated)} parameters, "
-        f"{res.iterations} iterations, "
-        f"estimator {res.estimator}, verdict {res.verdict.status}; {fit / fl:.0f}x the floor"
+        f"calibrate (defaults): {fit:.2f} s wall, {cpu:.2f} s cpu, {len(res.fit.estimated)} parameters, "
+        f"{res.fit.iterations} iterations, "
+        f"estimator {res.noise.estimator}, verdict {res.verdict.status}; {fit / fl:.0f}x the floor"
     )
     print(f"  {res.notes[0]}")
     if prof:

@@ -44,11 +44,11 @@ def main(argv=None) -> int:
         res, est, err = run_head(
             case, make, sigma_px=0.3, noise_q=5e-5, seed=100 + draw, options=CalibrationOptions(noise=5e-5, robust=None)
         )
-        z = err / res.std[est]
+        z = err / res.fit.std[est]
         free = np.array([res.problem.params[i].unit != "m" for i in est])
         z2_free.append(np.mean(z[free] ** 2))
         z2_all.append(np.mean(z**2))
-        chi.append(res.chi2 / res.dof)
+        chi.append(res.noise.chi2 / res.noise.dof)
     print(f"machine: {machine()}; {load()}")
     print(
         f"head as one loop, verge {args.verge} rad, {args.n} configurations, {args.draws} draws, "

@@ -89,7 +89,8 @@ def main_job_closure(path: Path) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         t = Path(tmp)
         subprocess.run(
-            cli + ["simulate", "panda_weld", "--n", "200", "--seed", "1", "--set", "noise=1e-4", "--out", str(t / "sim")],
+            cli
+            + ["simulate", "panda_weld", "--n", "200", "--seed", "1", "--set", "noise=1e-4", "--out", str(t / "sim")],
             check=True,
             env=env,
             capture_output=True,

@@ -58,8 +58,8 @@ def main() -> None:
         for weighting in out:
             loops = [parse_loop(s, robot) for s in case.loop_specs] + [LengthLoop(fa, fb, L)]
             res = calibrate(robot, log, loops, CalibrationOptions(weighting=weighting))
-            err = judge(case, dict(zip(res.names, res.values))).scale - 1.0
-            out[weighting].append((err, res.scale_std, res.verdict.status))
+            err = judge(case, dict(zip(res.fit.names, res.fit.values))).scale - 1.0
+            out[weighting].append((err, res.scale.scale_std, res.verdict.status))
         print(
             f"draw {k}: "
             + "  ".join(

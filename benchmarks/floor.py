@@ -32,7 +32,7 @@ TOOL_FRAMES = {"panda": "panda_hand", "ur5": "tool0", "utah_hand": "finger_tip"}
 
 
 def _model(robot: str) -> tuple[pin.Model, int]:
-    from closedloop.models import ROBOTS
+    from closedloop.assets.catalog import ROBOTS
 
     model = pin.buildModelFromUrdf(str(ROBOTS[robot].path))
     frame = TOOL_FRAMES.get(robot, "")

@@ -54,13 +54,13 @@ import pinocchio as pin
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import load, machine  # noqa: E402
 
+from closedloop.assets.catalog import example_robot_data_dir  # noqa: E402
 from closedloop.calibration.pipeline import CalibrationOptions, calibrate  # noqa: E402
 from closedloop.io.logs import JointLog  # noqa: E402
 from closedloop.loops.camera.loop import CameraLoop  # noqa: E402
 from closedloop.loops.settings import share
 from closedloop.model.parameters import RobotParameters  # noqa: E402
 from closedloop.model.robot import RobotModel  # noqa: E402
-from closedloop.models import example_robot_data_dir  # noqa: E402
 from closedloop.problem.distances import DistanceLoop  # noqa: E402
 
 K = np.array([600.0, 600.0, 319.5, 239.5])
@@ -192,7 +192,7 @@ def closedloop_fit(scene: Scene, board: bool) -> tuple[pin.SE3, np.ndarray, np.n
     res = calibrate(scene.robot, log, loops, CalibrationOptions(noise=SIGMA_Q))
     seconds = time.perf_counter() - t0
     if not res.converged:
-        logging.getLogger(__name__).error("closedloop did not converge: %s", res.solver_message)
+        logging.getLogger(__name__).error("closedloop did not converge: %s", res.fit.solver_message)
     vals = res.as_dict()
     robot_vals = np.array([vals.get(p.name, p.nominal) for p in scene.rp.params])
     X = pin.SE3(

@@ -37,9 +37,9 @@ WELD = "weld:frame=panda_hand,name=fixture"
 
 
 def _inputs(d: Path, n_jobs: int) -> Path:
+    from closedloop.assets.catalog import nominal_urdf
     from closedloop.loops import WeldLoop
     from closedloop.model.robot import RobotModel
-    from closedloop.models import nominal_urdf
     from closedloop.studies.truth import make_dataset
 
     (d / "panda.urdf").write_text(nominal_urdf("panda"))

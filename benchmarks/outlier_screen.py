@@ -59,7 +59,7 @@ GROUPS = ["tracker", "zoo-clean", "zoo-rows5", "zoo-rows20", "weld-corrupt5", "w
 
 def _record(group: str, label: str, n: int, bad: np.ndarray, res, right: bool | None, error: str = "") -> dict:
     """One case's outcome: rows rejected (0-based), corrupted rows, verdict."""
-    rej = sorted(int(r.row) - 1 for r in res.rejected) if res is not None else []
+    rej = sorted(int(r.row) - 1 for r in res.outliers.rejected) if res is not None else []
     bad_set = {int(b) for b in bad}
     return {
         "group": group,
@@ -119,10 +119,10 @@ def weld_cases(group: str, seeds: int) -> list[dict]:
     """The Panda weld of bench_calibrate.py (300 of its exact configurations, 1e-4 rad noise), rows corrupted."""
     from bench_calibrate import _log  # benchmarks/bench_calibrate.py
 
+    from closedloop.assets.catalog import ROBOTS
     from closedloop.calibration.pipeline import calibrate
     from closedloop.loops import WeldLoop
     from closedloop.model.robot import RobotModel
-    from closedloop.models import ROBOTS
     from closedloop.studies.truth import make_dataset
 
     corrupt = {"weld-corrupt5": 0.05, "weld-corrupt20": 0.20}[group]

@@ -61,10 +61,10 @@ def main() -> None:
                 known = tr._distances(loops, (1, 2, 3))
             res = calibrate(robot, log, loops + known, CalibrationOptions())
             err = tr.scale_error(res, rig)
-        z.append(err / res.scale_std)
-        task += [d["task_sigma_m"] / tr.SIGMA_TASK for d in res.noise_model]
+        z.append(err / res.scale.scale_std)
+        task += [d["task_sigma_m"] / tr.SIGMA_TASK for d in res.noise.noise_model]
         print(
-            f"seed {seed:3d}: size error {err:+.4%}, standard error {res.scale_std:.4%}, z {z[-1]:+.2f}, "
+            f"seed {seed:3d}: size error {err:+.4%}, standard error {res.scale.scale_std:.4%}, z {z[-1]:+.2f}, "
             f"verdict {res.verdict.status}"
         )
     z = np.array(z)

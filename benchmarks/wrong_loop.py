@@ -3,7 +3,7 @@
 Simulates the user's case (an arm in a ball socket, `closedloop simulate --robot ... --loop point:...`),
 then calibrates it as a weld: once as shipped (the pre-fit check, `Loop.mismatch`, exits at once) and once
 with the check switched off (the fit runs to its `failed` verdict; its restarts stop early,
-`staging._hopeless`).  Prints wall and CPU seconds and the verdict's first reasons.
+`solve._hopeless`).  Prints wall and CPU seconds and the verdict's first reasons.
 
     python benchmarks/wrong_loop.py --robot path/to/panda.urdf --frame panda_hand
 """

@@ -58,7 +58,7 @@ class _PlainMessage:
 
 
 class UnknownRobotError(_PlainMessage, ModelError, KeyError):
-    """A built-in robot name that is not registered (`closedloop.models.ROBOTS`)."""
+    """A built-in robot name that is not registered (`closedloop.assets.catalog.ROBOTS`)."""
 
 
 class OptionError(InputError, ValueError):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import Enum
+from typing import Any
 
 import numpy as np
 
@@ -12,6 +13,109 @@ from closedloop.problem.problem import BlockEval, CalibrationProblem
 #: the verdict's three values, in rank order (`closedloop.calibration.verdict`)
 OK, SUSPECT, FAILED = "ok", "suspect", "failed"
 _RANK = {OK: 0, SUSPECT: 1, FAILED: 2}
+
+
+def _rule(default: float, unit: str, meaning: str):
+    """A threshold of `VerdictRules`: its default, unit and meaning (read by the docs' generated table)."""
+    return field(default=default, metadata={"unit": unit, "meaning": meaning})
+
+
+@dataclass(frozen=True)
+class VerdictRules:
+    """Every threshold the verdict (`closedloop.calibration.verdict.judge`) and the solve's stall test apply.
+
+    One instance is carried by `CalibrationOptions.rules` into the pipeline, the staged solve and `judge`;
+    each field's unit and meaning is in its metadata (``dataclasses.fields(VerdictRules)``), from which the
+    docs' table of rules is generated.  Closures are RMS norms per configuration: metres (``m``), radians
+    (``rad``), image pixels (``px``).
+    """
+
+    plausible_joint_noise: float = _rule(
+        2e-3,
+        "rad",
+        "estimated joint noise above this is suspect (no encoder reads worse); the staged solve calls a fit that "
+        "this joint noise cannot explain stalled",
+    )
+    failed_joint_noise: float = _rule(
+        1e-2, "rad", "estimated joint noise above this is failed: the model does not fit the data"
+    )
+    chi2_suspect: float = _rule(2.0, "1", "chi2/dof above this, with a given noise, is suspect (p < 1e-3)")
+    chi2_failed: float = _rule(100.0, "1", "chi2/dof above this, with a given noise, is failed")
+    scale_suspect: float = _rule(0.03, "1", "a change of the robot's overall size beyond this share is suspect")
+    scale_failed: float = _rule(0.15, "1", "a change of the robot's overall size beyond this share is failed")
+    sets_size_low: float = _rule(
+        0.9, "1", "a known length sets the size when its size response (size change per change of it) is at least this"
+    )
+    sets_size_high: float = _rule(1.1, "1", "... and at most this (`closedloop.analysis.scale.size_response`)")
+    outliers_suspect: float = _rule(
+        0.05, "1", "a share of configurations rejected as gross errors above this is suspect"
+    )
+    outliers_failed: float = _rule(0.20, "1", "a share of configurations rejected as gross errors above this is failed")
+    gross_outlier: float = _rule(
+        5.0,
+        "1",
+        "a rejected configuration counts as a gross error when its closure at the solution exceeds this many times "
+        "the RMS closure of its loop's kept configurations",
+    )
+    heldout_suspect: float = _rule(
+        3.0, "1", "a validation fold's held-out closure over this many times its training closure is suspect"
+    )
+    heldout_failed: float = _rule(
+        30.0, "1", "a validation fold's held-out closure over this many times its training closure is failed"
+    )
+    heldout_floor: float = _rule(
+        3.0, "1", "held-out closures under this many times the noise floor (`floor_m`, ...) are not judged"
+    )
+    reducible_suspect: float = _rule(
+        0.1, "1", "the share of the final cost one Gauss-Newton step would still remove above this is suspect"
+    )
+    reducible_failed: float = _rule(0.5, "1", "... above this is failed (the solver stopped short of a minimum)")
+    closure_worse: float = _rule(
+        1.1, "1", "a loop's closure after calibration over this many times the one before is failed"
+    )
+    floor_m: float = _rule(1e-7, "m", "closures below this are round-off or noise-free data: not compared")
+    floor_rad: float = _rule(1e-7, "rad", "closures below this are round-off or noise-free data: not compared")
+    floor_px: float = _rule(1e-4, "px", "closures below this are round-off or noise-free data: not compared")
+    roundoff_m: float = _rule(
+        1e-12,
+        "m",
+        "closures below this are round-off itself (seen 5e-16..9e-14 m on exact data): the minimum check is off",
+    )
+    roundoff_rad: float = _rule(1e-12, "rad", "the same in rotation")
+    roundoff_px: float = _rule(1e-9, "px", "the same in image points")
+    round_off_noise: float = _rule(
+        1e-9, "rad", "a fit implying less joint noise closes exact data: its error bars are not checked"
+    )
+    error_bar_ratio: float = _rule(
+        2.25,
+        "1",
+        "sandwich / noise-model variance beyond this (or below its inverse; 1.5x in standard error): the error bars "
+        "are suspect",
+    )
+    sandwich_configurations: float = _rule(
+        3.0, "1", "configurations per estimated parameter a sandwich covariance needs; fewer is suspect"
+    )
+    offset_suspect: float = _rule(0.5, "rad", "a joint offset corrected by more than this is suspect")
+    rotation_suspect: float = _rule(0.3, "rad", "a joint origin turned by more than this is suspect")
+    origin_suspect: float = _rule(
+        0.5, "1", "a joint origin moved by more than this share of its length (and `origin_suspect_min`) is suspect"
+    )
+    origin_suspect_min: float = _rule(0.05, "m", "... and by more than this distance")
+    corrections_failed: float = _rule(
+        3.0, "1", "corrections this many times the suspect sizes above are failed (a flipped axis, a wrong log)"
+    )
+
+    def floor(self, key: str) -> float:
+        """The noise floor of a `LoopResiduals` field (``rms_m``, ``rms_rad``, ``rms_px``)."""
+        return float(getattr(self, "floor_" + key.rsplit("_", 1)[1]))
+
+    def roundoff(self, key: str) -> float:
+        """The round-off level of a `LoopResiduals` field (``rms_m``, ``rms_rad``, ``rms_px``)."""
+        return float(getattr(self, "roundoff_" + key.rsplit("_", 1)[1]))
+
+    def sets_size(self, response: float) -> bool:
+        """Does a known length whose size response is `response` set the robot's size?"""
+        return self.sets_size_low <= response <= self.sets_size_high
 
 
 @dataclass
@@ -36,6 +140,7 @@ class CalibrationOptions:
             does not, keep the plain fit if it predicts left-out configurations better; the error bars then
             come from the sandwich covariance (`closedloop.estimate.model_error`).  False: the weighting as
             given, error bars from the noise model.
+        rules: the verdict's thresholds (`VerdictRules`), applied by the pipeline, its staged solve and `judge`.
     """
 
     identify: list[str] | None = None
@@ -53,6 +158,7 @@ class CalibrationOptions:
     outlier_alpha: float = 0.01
     choose_estimator: bool = True
     threads: int | None = None  # BLAS threads for the call (closedloop.estimate.threads); None: by problem size
+    rules: VerdictRules = field(default_factory=VerdictRules)  # the verdict's thresholds
 
 
 @dataclass
@@ -108,64 +214,118 @@ class ParameterRecord:
 
 
 @dataclass(frozen=True)
-class CalibrationResult:
-    """Everything a report needs; `values` are absolute parameter values.
+class FitRecord:
+    """The solution: every parameter's value, status and standard error, the solver's run and the closures.
 
-    Built once, by keyword, when the fit is done; what is added after (the scale's findings, the error-bar
-    profiles, the verdict) makes a new record with ``dataclasses.replace``.
+    `values` are absolute parameter values, in the problem's order (`names`); `covariance` is over the
+    estimated parameters (order: `estimated`).
     """
 
-    problem: CalibrationProblem
     names: list[str]
     initial: np.ndarray
     values: np.ndarray
     std: np.ndarray  # NaN where not estimated or not identifiable
     status: list[ParamStatus]
-    dropped: list[Dropped]
-    weak: list[Combination]
-    singular_values: np.ndarray
-    rank: int
-    residuals_before: list[LoopResiduals]
-    residuals_after: list[LoopResiduals]
+    estimated: list[int]
+    covariance: np.ndarray
     iterations: int
     solver_status: str
     solver_message: str
-    sigma: float  # joint noise level (given, or estimated)
-    sigma_estimated: bool
-    chi2: float
-    dof: int
-    notes: list[str]
-    covariance: np.ndarray  # over estimated parameters (order: `estimated`)
-    estimated: list[int]
-    suspects: list = field(default_factory=list)  # robust.Suspect, most suspect first
-    weighting: str = "noise"  # the weighting of the final fit
-    gauge: str | None = None  # the length held to set the overall size
-    gauge_note: str | None = None
-    gauge_length: float = 0.0  # the length the gauge stands for: holding it longer by d scales by 1 + d / L
-    rejected: list[Rejected] = field(default_factory=list)
-    rows_total: int = 0
-    warnings: list[str] = field(default_factory=list)  # findings that make the result suspect
-    profiles: list = field(default_factory=list)  # linearity.Profile: the error bars checked along the cost's profile
-    verdict: Verdict | None = None
-    scale_note: str | None = None  # what sets the overall size (closedloop.analysis.scale.annotate)
-    scale_std: float = float("nan")  # relative standard error of the size, when a known distance sets it
-    length_response: float | None = (
-        None  # size change per change of the known frame lengths (closedloop.problem.lengths)
-    )
-    length_leak: float | None = None  # size error per prior-sized error of what the loops cannot see, through them
-    noise_model: list = field(default_factory=list)  # per loop: task vs joint noise (noise.noise_summary)
+    residuals_before: list[LoopResiduals]
+    residuals_after: list[LoopResiduals]
     reducible: float = 0.0  # share of the final cost one Gauss-Newton step would remove: ~0 at a minimum (NaN: bounds)
-    estimator: str = "errors in variables"  # the estimator of the final fit (closedloop.estimate.model_error)
-    estimator_reason: str = ""  # why: the noise hypothesis' test and the left-out closures compared
-    error_bars: str = "the noise model"  # where the standard errors come from: the noise model or the sandwich
-    model_error: dict = field(default_factory=dict)  # the test's figures (implied joint noise, chi-square, ...)
 
     @property
     def converged(self) -> bool:
         return self.solver_status == "converged"
 
+
+@dataclass(frozen=True)
+class IdentifiabilityRecord:
+    """What the data determine: the parameters dropped before solving, the directions left undetermined."""
+
+    dropped: list[Dropped]
+    weak: list[Combination]
+    singular_values: np.ndarray
+    rank: int
+
+
+@dataclass(frozen=True)
+class NoiseRecord:
+    """The noise, the estimator and where the error bars come from (`closedloop.estimate.model_error`)."""
+
+    sigma: float  # joint noise level (given, or estimated)
+    sigma_estimated: bool
+    chi2: float
+    dof: int
+    weighting: str = "noise"  # the weighting of the final fit
+    estimator: str = "errors in variables"  # the estimator of the final fit
+    estimator_reason: str = ""  # why: the noise hypothesis' test and the left-out closures compared
+    error_bars: str = "the noise model"  # where the standard errors come from: the noise model or the sandwich
+    model_error: dict = field(default_factory=dict)  # the test's figures (implied joint noise, chi-square, ...)
+    noise_model: list = field(default_factory=list)  # per loop: task vs joint noise (variance.noise_summary)
+    profiles: list = field(default_factory=list)  # linearity.Profile: the error bars checked along the cost's profile
+
+
+@dataclass(frozen=True)
+class ScaleRecord:
+    """What sets the robot's overall size (thesis 3.3; `closedloop.analysis.scale`)."""
+
+    gauge: str | None = None  # the length held to set the overall size
+    gauge_note: str | None = None
+    gauge_length: float = 0.0  # the length the gauge stands for: holding it longer by d scales by 1 + d / L
+    scale_note: str | None = None  # what sets the overall size, in words
+    scale_std: float = float("nan")  # relative standard error of the size, when a known distance sets it
+    length_response: float | None = None  # size change per change of the known frame lengths (problem.lengths)
+    length_leak: float | None = None  # size error per prior-sized error of what the loops cannot see, through them
+
+
+@dataclass(frozen=True)
+class OutlierRecord:
+    """The configurations left out of the final fit, or down-weighted in it, and how many there were."""
+
+    rejected: list[Rejected] = field(default_factory=list)
+    suspects: list = field(default_factory=list)  # robust.Suspect, most suspect first (robust='huber'|'cauchy')
+    rows_total: int = 0
+
+
+@dataclass(frozen=True)
+class AccuracyRecord:
+    """What the calibrated robot is predicted to do (reported under ``report["accuracy"]``).
+
+    `workspace`: the prediction of the tool's accuracy over the workspace, a record with ``as_dict()``
+    (or a dataclass), reported as ``report["accuracy"]["workspace"]``; None where not predicted.
+    """
+
+    workspace: Any = None
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """Everything a report needs, composed of one record per concern, each built by keyword once.
+
+    `fit` (the solution), `identifiability`, `noise` (noise, estimator, error bars), `scale` (what sets the
+    size), `outliers`; the `notes` and `warnings` (findings that make the result suspect) in words; the
+    `verdict` and the `accuracy` prediction, attached after (``dataclasses.replace``).
+    """
+
+    problem: CalibrationProblem
+    fit: FitRecord
+    identifiability: IdentifiabilityRecord
+    noise: NoiseRecord
+    scale: ScaleRecord = field(default_factory=ScaleRecord)
+    outliers: OutlierRecord = field(default_factory=OutlierRecord)
+    notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)  # findings that make the result suspect
+    verdict: Verdict | None = None
+    accuracy: AccuracyRecord | None = None
+
+    @property
+    def converged(self) -> bool:
+        return self.fit.converged
+
     def value(self, name: str) -> float:
-        return float(self.values[self.names.index(name)])
+        return float(self.fit.values[self.fit.names.index(name)])
 
     @property
     def loops(self) -> list:
@@ -174,20 +334,21 @@ class CalibrationResult:
         return [b.loop for b in self.problem.blocks]
 
     def as_dict(self) -> dict[str, float]:
-        return dict(zip(self.names, map(float, self.values)))
+        return dict(zip(self.fit.names, map(float, self.fit.values)))
 
     @property
     def parameters(self) -> list[ParameterRecord]:
         """Every parameter as a named record, in the problem's order."""
+        f = self.fit
         return [
             ParameterRecord(
                 name=p.name,
                 kind=p.kind,
                 unit=p.unit,
-                initial=float(self.initial[k]),
-                value=float(self.values[k]),
-                std=float(self.std[k]),
-                status=ParamStatus(self.status[k]),
+                initial=float(f.initial[k]),
+                value=float(f.values[k]),
+                std=float(f.std[k]),
+                status=ParamStatus(f.status[k]),
             )
             for k, p in enumerate(self.problem.params)
         ]

@@ -31,7 +31,7 @@ BALL_XYZ = (0.03, 0.0, 0.12)  # the ball centre in the flange frame (nominal: th
 
 def nominal_urdf(base: str = "panda_link0", tip: str = "panda_link8") -> str:
     """Mesh-free Panda chain base -> flange, plus a fixed 'ball' link at BALL_XYZ."""
-    from closedloop.models import example_robot_data_dir
+    from closedloop.assets.catalog import example_robot_data_dir
 
     root = ET.parse(example_robot_data_dir() / "panda_description/urdf/panda.urdf").getroot()
     by_child = {j.find("child").get("link"): j for j in root.findall("joint")}

@@ -62,16 +62,16 @@ def run(n: int = 60, seed: int = 0, verbose: bool = True) -> dict:
     )
     t_cal = time.time() - t0
     truth = ds.truth_dict()
-    est = [k for k, s in enumerate(res.status) if s == "estimated"]
-    errs = {res.names[k]: abs(res.values[k] - truth[res.names[k]]) for k in est}
+    est = [k for k, s in enumerate(res.fit.status) if s == "estimated"]
+    errs = {res.fit.names[k]: abs(res.fit.values[k] - truth[res.fit.names[k]]) for k in est}
     out = {
         "n": n,
         "estimated": len(est),
-        "dropped": len(res.dropped),
-        "weak": len(res.weak),
+        "dropped": len(res.identifiability.dropped),
+        "weak": len(res.identifiability.weak),
         "max_error": max(errs.values()),
-        "before": res.residuals_before[0],
-        "after": res.residuals_after[0],
+        "before": res.fit.residuals_before[0],
+        "after": res.fit.residuals_after[0],
         "converged": res.converged,
         "notes": res.notes,
         "seconds_data": t_data,
@@ -80,10 +80,10 @@ def run(n: int = 60, seed: int = 0, verbose: bool = True) -> dict:
         "dataset": ds,
     }
     if verbose:
-        b, a = res.residuals_before[0], res.residuals_after[0]
+        b, a = res.fit.residuals_before[0], res.fit.residuals_after[0]
         print(
             f"Baxter dual-arm grasp: {len(ds.joints)} joints, {n} configurations "
-            f"(data {t_data:.1f} s, calibration {t_cal:.1f} s, {res.iterations} iterations, {res.solver_status})"
+            f"(data {t_data:.1f} s, calibration {t_cal:.1f} s, {res.fit.iterations} iterations, {res.fit.solver_status})"
         )
         print(
             f"  closure RMS {b.rms_m * 1e3:.3f} mm -> {a.rms_m * 1e3:.2e} mm, "
@@ -91,15 +91,17 @@ def run(n: int = 60, seed: int = 0, verbose: bool = True) -> dict:
         )
         print(f"\n  {'parameter':24s} {'nominal':>12s} {'truth':>12s} {'calibrated':>12s} {'error':>9s}")
         for k in est:
-            nme = res.names[k]
-            print(f"  {nme:24s} {res.initial[k]:+12.6f} {truth[nme]:+12.6f} {res.values[k]:+12.6f} {errs[nme]:9.1e}")
+            nme = res.fit.names[k]
+            print(
+                f"  {nme:24s} {res.fit.initial[k]:+12.6f} {truth[nme]:+12.6f} {res.fit.values[k]:+12.6f} {errs[nme]:9.1e}"
+            )
         print(
-            f"\n  {len(est)} estimated, max |error| {out['max_error']:.2e}; {len(res.dropped)} dropped, "
-            f"{len(res.weak)} weak directions"
+            f"\n  {len(est)} estimated, max |error| {out['max_error']:.2e}; {len(res.identifiability.dropped)} dropped, "
+            f"{len(res.identifiability.weak)} weak directions"
         )
-        kinds = Counter(d.name.rsplit(".", 1)[1] for d in res.dropped)
+        kinds = Counter(d.name.rsplit(".", 1)[1] for d in res.identifiability.dropped)
         print("  dropped by field:", dict(sorted(kinds.items())))
-        for d in res.dropped:
+        for d in res.identifiability.dropped:
             if d.name.startswith(("left_s0.", "right_s0.", "left_e1.")):  # a representative sample
                 print("   ", d.describe())
         for note in res.notes:

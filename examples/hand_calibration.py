@@ -33,19 +33,19 @@ def main() -> None:
     results = staged_calibration(
         robot, JointLog(robot.joint_names, readings), default_loops(robot), thesis_stages(robot)
     )
-    first = results[0].residuals_before[0]
+    first = results[0].fit.residuals_before[0]
     print(f"nominal Table 4.1: closure RMS {first.rms_m / INCH:.3f} in, {first.rms_rad:.3f} rad")
     for i, res in enumerate(results, start=1):
-        r = res.residuals_after[0]
-        print(f"stage {i}: {len(res.estimated)} parameters -> {r.rms_m / INCH:.3g} in, {r.rms_rad:.3g} rad")
+        r = res.fit.residuals_after[0]
+        print(f"stage {i}: {len(res.fit.estimated)} parameters -> {r.rms_m / INCH:.3g} in, {r.rms_rad:.3g} rad")
     final = results[-1]
-    err = max(abs(final.values[k] - truth[final.names[k]]) for k in final.estimated)
+    err = max(abs(final.fit.values[k] - truth[final.fit.names[k]]) for k in final.fit.estimated)
     print(f"largest parameter error against the true hand: {err:.2e}")
     print(f"{'parameter':<14}{'true':>10}{'calibrated':>12}")
-    for k in final.estimated:
-        n = final.names[k]
+    for k in final.fit.estimated:
+        n = final.fit.names[k]
         if n.endswith((".theta_off", ".k")):
-            print(f"{n:<14}{truth[n]:>10.4f}{final.values[k]:>12.4f}")
+            print(f"{n:<14}{truth[n]:>10.4f}{final.fit.values[k]:>12.4f}")
     palm = palm_frame_parameters(robot, final.as_dict())
     for note in palm.notes:
         print("palm frame:", note)

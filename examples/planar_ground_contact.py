@@ -1,6 +1,6 @@
 """The planar calibration example of thesis 2.5 (Figure 2-2), solved twice.
 
-A 3-DOF planar arm (``models/planar3.urdf``: revolute joints about z, links
+A 3-DOF planar arm (``assets/planar3.urdf``: revolute joints about z, links
 along x) holds its tip at a fixed point of the ground.  The ground is the
 fourth link, of length a4: the tip is pinned at (-a4, 0), so with
 phi_j = theta_1 + ... + theta_j the closure equations are (2.1)-(2.2)
@@ -42,7 +42,7 @@ from closedloop.io.logs import JointLog
 from closedloop.loops.point import PointLoop
 from closedloop.model.robot import RobotModel
 
-URDF = Path(__file__).resolve().parents[1] / "closedloop" / "models" / "planar3.urdf"
+URDF = Path(__file__).resolve().parents[1] / "closedloop" / "assets" / "planar3.urdf"
 NOMINAL = np.array([1.0, 0.8, 0.6])  # a1, a2, a3 of the URDF
 JOINTS = ["joint1", "joint2", "joint3"]
 
@@ -120,17 +120,19 @@ def main() -> None:
     print("truth          a1 a2 a3 =", truth)
     print("linear (2.5)   a1 a2 a3 =", a_lin, " |err| =", np.abs(a_lin - truth).max())
     print("general solver a1 a2 a3 =", a_gen, " |lin - gen| =", np.abs(a_lin - a_gen).max())
-    print("  status:", ", ".join(f"{n} {s.value}" for n, s in zip(res.names, res.status) if s != "not selected"))
+    print(
+        "  status:", ", ".join(f"{n} {s.value}" for n, s in zip(res.fit.names, res.fit.status) if s != "not selected")
+    )
 
     a_par, th_par = parallelogram_data(0.7, 1.0, np.linspace(0.3, 1.3, 25))
     C, _ = linear_system(th_par)
     print("\nparallelogram (Singularity 4): singular values of C =", np.linalg.svd(C, compute_uv=False))
     a_p, res = general_solution(th_par)
-    chosen = ", ".join(f"{n} {s.value}" for n, s in zip(res.names, res.status) if s != "not selected")
+    chosen = ", ".join(f"{n} {s.value}" for n, s in zip(res.fit.names, res.fit.status) if s != "not selected")
     print("  truth", a_par, "estimate", a_p, "status:", chosen)
-    for d in res.dropped:
+    for d in res.identifiability.dropped:
         print("  dropped:", d.describe())
-    for c in res.weak:
+    for c in res.identifiability.weak:
         print("  weak:", c.describe())
 
 

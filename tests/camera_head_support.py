@@ -125,12 +125,12 @@ def head_case(
         [make()],
         options or CalibrationOptions(robust=None),
     )
-    robot_names = [n for n, s in zip(res0.names, res0.status) if s == "estimated" and not n.startswith("cam.")]
+    robot_names = [n for n, s in zip(res0.fit.names, res0.fit.status) if s == "estimated" and not n.startswith("cam.")]
     truth = x.copy()
     for k, v in draw_truth(robot, robot_names, np.random.default_rng(seed + 1000)).items():
         truth[prob.index[k]] = v
     by_name = dict(zip(prob.names, truth)) | {k: v for k, v in true_own(D=D, dist=dist).items() if k in prob.index}
-    return HeadCase(robot, th, by_name, truth, res0.gauge)
+    return HeadCase(robot, th, by_name, truth, res0.scale.gauge)
 
 
 def run_head(
@@ -157,6 +157,6 @@ def run_head(
         [make()],
         options or CalibrationOptions(noise=noise_q, robust=None),
     )
-    est = [i for i, s in enumerate(res.status) if s == "estimated"]
-    err = np.array([res.values[i] - case.truth[res.names[i]] for i in est])
+    est = [i for i, s in enumerate(res.fit.status) if s == "estimated"]
+    err = np.array([res.fit.values[i] - case.truth[res.fit.names[i]] for i in est])
     return res, est, err

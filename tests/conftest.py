@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from closedloop.assets.catalog import ROBOTS
 from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel
-from closedloop.models import ROBOTS
 from closedloop.studies.truth import make_dataset
 
 PANDA_Q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]

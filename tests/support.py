@@ -116,10 +116,10 @@ def relative_fk_error(
             )
         return out
 
-    cal, tru = poses(res.values), poses(truth_values)
+    cal, tru = poses(res.fit.values), poses(truth_values)
     if tip is not None:
         idx = [prob.index[f"{tip}.tip_{a}"] for a in "xyz"]
-        tc, tt = np.asarray(res.values)[idx], np.asarray(truth_values)[idx]
+        tc, tt = np.asarray(res.fit.values)[idx], np.asarray(truth_values)[idx]
         P = np.array([m.act(tc) for m in cal])
         Q = np.array([m.act(tt) for m in tru])
         s = float(np.sum(P * Q) / np.sum(P * P)) if fit_scale else 1.0

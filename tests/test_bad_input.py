@@ -434,9 +434,9 @@ CASES = [
 @pytest.fixture(scope="module")
 def base(tmp_path_factory):
     """A mesh-free Panda, a 30-row weld log, and a ROS 1 and an MCAP bag of 8 standstills."""
+    from closedloop.assets.catalog import nominal_urdf
     from closedloop.loops import PointLoop, WeldLoop
     from closedloop.model.robot import RobotModel
-    from closedloop.models import nominal_urdf
     from closedloop.studies.truth import make_dataset
 
     d = tmp_path_factory.mktemp("bad-input")

@@ -16,13 +16,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from closedloop.assets.catalog import ROBOTS
 from closedloop.calibration.pipeline import build_problem, residual_stats
 from closedloop.cli.main import main
 from closedloop.io.bags import ExtractOptions, extract
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel
-from closedloop.models import ROBOTS
 from closedloop.studies.truth import make_dataset
 
 RATE = 100.0  # Hz

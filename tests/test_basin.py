@@ -7,11 +7,11 @@ one of its two refusals in 40); Example 1's starts 11 and 16
 are ones where the start model closes only one of the 40 configurations, so the reduction must be
 decided at the solution (`identifiability.Structure.provisional`).  The door (hinge unknown; its
 data's weakest direction is 3e-8 of the strongest): start 8 stops at a local minimum 1e-6 m above
-zero whose residual is smooth along the swing, which sends it to restarts (`staging._systematic`);
+zero whose residual is smooth along the swing, which sends it to restarts (`solve._systematic`);
 start 12's start drops j5.s as redundant, which it is not at the solution (`structure_holds`); start
 27's weighted fit stalls at closure 3e-9 with nothing truncated and is finished by the plain fit from it
-(`staging._polished`); start 20 stops at a spurious minimum (closure 4e-7, a robot 0.7 off) that no
-restart leaves, and is left along its weakest directions (`staging.valley_starts`).  The rates over
+(`solve._polished`); start 20 stops at a spurious minimum (closure 4e-7, a robot 0.7 off) that no
+restart leaves, and is left along its weakest directions (`solve.valley_starts`).  The rates over
 40-100 starts are `benchmarks/basin.py`'s.
 """
 

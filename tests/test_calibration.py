@@ -22,7 +22,7 @@ def compare(res, ds):
     truth = ds.truth_dict()
     robot_err = max(
         abs(res.value(n) - truth[n])
-        for n, s in zip(res.names, res.status)
+        for n, s in zip(res.fit.names, res.fit.status)
         if s == "estimated" and not n.startswith("fixture.")
     )
     t_err = max(abs(res.value(f"fixture.{a}") - truth[f"fixture.{a}"]) for a in "xyz")
@@ -36,14 +36,14 @@ def test_panda_weld_noise_free(panda, panda_weld):
     res = calibrate(panda, panda_weld.log(), [WeldLoop("fixture", "panda_hand")])
     assert res.converged
     assert max(compare(res, panda_weld)) < 1e-8
-    after = res.residuals_after[0]
+    after = res.fit.residuals_after[0]
     assert after.rms_m < 1e-9 and after.rms_rad < 1e-9
-    before = res.residuals_before[0]
+    before = res.fit.residuals_before[0]
     assert before.rms_m > 1e-3  # the nominal model was really wrong
-    assert not res.weak
+    assert not res.identifiability.weak
     records = res.parameters  # a list of named records, in the parameters' order
-    assert len(records) == len(res.names) and [p.name for p in records] == res.names
-    assert [p.value for p in records] == [float(v) for v in res.values]
+    assert len(records) == len(res.fit.names) and [p.name for p in records] == res.fit.names
+    assert [p.value for p in records] == [float(v) for v in res.fit.values]
 
 
 def test_panda_weld_noisy(panda, panda_weld):
@@ -52,20 +52,20 @@ def test_panda_weld_noisy(panda, panda_weld):
     noisy = panda_weld.readings + rng.normal(0.0, 1e-4, panda_weld.readings.shape)
     res = calibrate(panda, JointLog(panda_weld.joints, noisy), [WeldLoop("fixture", "panda_hand")])
     assert res.converged
-    assert res.sigma_estimated and abs(res.sigma / 1e-4 - 1.0) < 0.15
+    assert res.noise.sigma_estimated and abs(res.noise.sigma / 1e-4 - 1.0) < 0.15
     truth = panda_weld.truth_dict()
     z = [
-        abs(res.value(n) - truth[n]) / res.std[k]
-        for k, (n, s) in enumerate(zip(res.names, res.status))
+        abs(res.value(n) - truth[n]) / res.fit.std[k]
+        for k, (n, s) in enumerate(zip(res.fit.names, res.fit.status))
         if s == "estimated" and not n.startswith("fixture.r")
     ]
-    assert len(z) == len(res.estimated) - 3
+    assert len(z) == len(res.fit.estimated) - 3
     assert max(z) < 3.0, max(z)
     # The same with the noise given: chi-square consistent with the model.
     res2 = calibrate(
         panda, JointLog(panda_weld.joints, noisy), [WeldLoop("fixture", "panda_hand")], CalibrationOptions(noise=1e-4)
     )
-    assert abs(res2.chi2 / res2.dof - 1.0) < 0.1
+    assert abs(res2.noise.chi2 / res2.noise.dof - 1.0) < 0.1
 
 
 def test_reduction_names_what_absorbed_what(panda, panda_weld):
@@ -76,7 +76,7 @@ def test_reduction_names_what_absorbed_what(panda, panda_weld):
         [WeldLoop("fixture", "panda_hand")],
         CalibrationOptions(identify=["placement", "offset", "scale", "loop"]),
     )
-    dropped = {d.name: d for d in res.dropped}
+    dropped = {d.name: d for d in res.identifiability.dropped}
     # rz of a z-axis joint is its offset (thesis: 4 of 6 placement components per joint)
     assert "panda_joint3.rz" in dropped
     assert dropped["panda_joint3.rz"].absorbed_into[0][0] == "panda_joint3.offset"
@@ -96,7 +96,7 @@ def test_user_fixed_length_replaces_default(panda, panda_weld):
         panda, panda_weld.log(), [WeldLoop("fixture", "panda_hand")], CalibrationOptions(fix={"panda_joint4.x": None})
     )
     assert not any("length scale" in n for n in res.notes)
-    assert res.status[res.names.index("panda_joint4.x")] == "fixed"
+    assert res.fit.status[res.fit.names.index("panda_joint4.x")] == "fixed"
 
 
 @pytest.mark.slow
@@ -110,7 +110,7 @@ def test_joint_that_never_moves_is_reported(panda, panda_weld):
         CalibrationOptions(identify=["placement", "offset", "scale", "loop"]),
     )
     assert any("panda_joint4 never moves" in n for n in res.notes)
-    assert res.status[res.names.index("panda_joint4.scale")] in ("dropped", "fixed")
+    assert res.fit.status[res.fit.names.index("panda_joint4.scale")] in ("dropped", "fixed")
     with pytest.raises(NotIdentifiableError):
         calibrate(panda, JointLog(panda_weld.joints, np.tile(th[:1], (20, 1))), [WeldLoop("fixture", "panda_hand")])
 
@@ -152,11 +152,11 @@ def test_dh_closed_chain_from_rough_guess(tmp_path):
     res = calibrate(
         robot, JointLog(robot.joint_names, readings), default_loops(robot), CalibrationOptions(fix={"j1.s": None})
     )
-    assert res.converged and not res.weak
-    assert len(res.estimated) == 27  # 4 per joint, one length fixed
-    err = max(abs(res.values[k] - prob.nominal[k]) for k in res.estimated)
+    assert res.converged and not res.identifiability.weak
+    assert len(res.fit.estimated) == 27  # 4 per joint, one length fixed
+    err = max(abs(res.fit.values[k] - prob.nominal[k]) for k in res.fit.estimated)
     assert err < 1e-8, err
-    assert res.residuals_after[0].rms_m < 1e-10
+    assert res.fit.residuals_after[0].rms_m < 1e-10
 
 
 def test_absorbed_combinations_are_in_physical_units(panda, panda_weld):
@@ -167,15 +167,15 @@ def test_absorbed_combinations_are_in_physical_units(panda, panda_weld):
     import pinocchio as pin
 
     res = calibrate(panda, panda_weld.log(), [WeldLoop("fixture", "panda_hand")])
-    dropped = {d.name: d for d in res.dropped}
+    dropped = {d.name: d for d in res.identifiability.dropped}
     base = dict(dropped["panda_joint1.offset"].absorbed_into)
     dr = np.array([base.get(f"fixture.r{a}", 0.0) for a in "xyz"])
     r = np.array([res.value(f"fixture.r{a}") for a in "xyz"])
     assert np.linalg.norm(pin.Jexp3(r) @ dr) == pytest.approx(1.0, rel=0.02), base
-    problem, x = res.problem, np.asarray(res.values, dtype=float)
+    problem, x = res.problem, np.asarray(res.fit.values, dtype=float)
     r0 = np.concatenate([e.r.ravel() for e in problem.evaluate(x, False)])
     checked = 0
-    for d in res.dropped:
+    for d in res.identifiability.dropped:
         if not d.absorbed_into or len(d.absorbed_into) >= 6 or d.name not in problem.index:
             continue  # none, or the description keeps only the six largest terms
         h = 1e-6

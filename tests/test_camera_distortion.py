@@ -81,7 +81,7 @@ def test_distortion_recovered_noise_free():
         robot, JointLog(joints, th, None, None, {c: np.zeros(len(th)) for c in make().columns()}), [make()]
     )
     res0 = calibrate(robot, JointLog(joints, th, None, None, pixels(prob, prob.nominal)), [make()], opt)
-    names = [n for n, s in zip(res0.names, res0.status) if s == "estimated" and not n.startswith("cam.")]
+    names = [n for n, s in zip(res0.fit.names, res0.fit.status) if s == "estimated" and not n.startswith("cam.")]
     truth = prob.nominal.copy()
     for k, v in draw_truth(robot, names, np.random.default_rng(7)).items():
         truth[prob.index[k]] = v
@@ -92,10 +92,10 @@ def test_distortion_recovered_noise_free():
     true_by_name |= {f"cam.cam1.{f}": float(v) for f, v in zip(("k1", "k2", "p1", "p2", "k3"), D_TRUE[0])}
     true_by_name |= {f"cam.tip_{a}": float(v) for a, v in zip("xyz", TIP)}
     est, err = estimated_errors(res, true_by_name)
-    names = [res.names[i] for i in est]
+    names = [res.fit.names[i] for i in est]
     assert {f"cam.cam1.{f}" for f in ("k1", "k2", "p1", "p2", "k3")} <= set(names)
     assert np.abs(err).max() < 1e-8, names[int(np.argmax(np.abs(err)))]
-    assert res.residuals_after[0].max_px < 1e-8
+    assert res.fit.residuals_after[0].max_px < 1e-8
 
 
 def test_camera_info_round_trip_and_spec(tmp_path):

@@ -127,5 +127,5 @@ def test_truth_support_is_what_a_calibration_estimates(scenario, seed, tmp_path)
         cols[f"cam:u{c + 1}"] = K[0] * pc[:, 0] / pc[:, 2] + K[2]
         cols[f"cam:v{c + 1}"] = K[1] * pc[:, 1] / pc[:, 2] + K[3]
     res = calibrate(robot, JointLog(names, theta, None, None, cols), [parse_loop(cs.CALIBRATE_LOOP, robot)])
-    expected = [n for n, s in zip(res.names, res.status) if s == "estimated" and not n.startswith("cam.")]
+    expected = [n for n, s in zip(res.fit.names, res.fit.status) if s == "estimated" and not n.startswith("cam.")]
     assert cs._identifiable(robot, theta) == expected and len(expected) >= 13

@@ -4,7 +4,7 @@ The hinge line is H = H0 Rot(exp3(rx, ry, 0)) Trans(x, y, 0): (x, y) is the line
 to its own direction, so the chart is regular up to a half-turn of tilt (the former
 H0 (exp3(rx, ry, 0), (x, y, 0)) put the point in H0's xy-plane and lost a rank at 90 degrees).
 `HingeLoop.recentred` / `express` move the chart; the solver re-centres it after each step
-(`fit.ResidualFunction.retract`) and returns its solution in the problem's own chart.
+(`residual.ResidualFunction.retract`) and returns its solution in the problem's own chart.
 """
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ def test_solver_returns_the_problem_chart(tmp_path):
     from closedloop.analysis.selection import initial_values
     from closedloop.calibration.pipeline import build_problem
     from closedloop.estimate.lm import SolverOptions, levenberg_marquardt
-    from closedloop.estimate.stages import ResidualFunction, unweighted_closure
+    from closedloop.estimate.residual import ResidualFunction, unweighted_closure
     from closedloop.loops.spec import parse_loop
 
     ex = te.door()

@@ -52,7 +52,7 @@ def test_true_length_on_the_weld_is_right_and_check_agrees(iiwa_weld):
     case, L, res = iiwa_weld
     assert res.verdict.status == "ok", res.verdict.describe()
     assert res.verdict.evidence["size_measured"] is True
-    assert abs(res.length_response - 1.0) < 0.01
+    assert abs(res.scale.length_response - 1.0) < 0.01
     out = case.nominal_urdf.parent / "calibrated.urdf"
     from closedloop.output.urdf import write_model
 
@@ -176,10 +176,10 @@ def test_true_length_that_cannot_set_the_size_is_left_out(tmp_path):
     res = calibrate(robot, log, [point, LengthLoop("link_2", "link_4", L)], CalibrationOptions())
     assert res.verdict.status == "suspect", res.verdict.describe()
     assert any("left out of the fit" in r for r in res.verdict.reasons), res.verdict.describe()
-    assert not (0.9 <= res.length_response <= 1.1)
+    assert not (0.9 <= res.scale.length_response <= 1.1)
     alone = calibrate(robot, log, [parse_loop("point:frame=tool0_tip,name=socket", robot)], CalibrationOptions())
-    np.testing.assert_array_equal(res.values, alone.values)
-    assert res.residuals_after[0].rms_m < 1e-9  # the closure the loops reach, kept
+    np.testing.assert_array_equal(res.fit.values, alone.fit.values)
+    assert res.fit.residuals_after[0].rms_m < 1e-9  # the closure the loops reach, kept
 
 
 def test_another_robots_model_says_the_size_is_not_measured(tmp_path):
@@ -190,10 +190,10 @@ def test_another_robots_model_says_the_size_is_not_measured(tmp_path):
     (tmp_path / "ur10.urdf").write_text(zoo.chain_urdf(zoo.ZOO["ur10"]))
     res = _calibrate(case, tmp_path / "ur10.urdf")
     v = res.verdict
-    assert v.evidence["size_measured"] is False and v.evidence["size_held_by"] == res.gauge is not None
-    assert v.reasons[-1] == f"size not measured: held by the model's {res.gauge}", v.describe()
+    assert v.evidence["size_measured"] is False and v.evidence["size_held_by"] == res.scale.gauge is not None
+    assert v.reasons[-1] == f"size not measured: held by the model's {res.scale.gauge}", v.describe()
     report = build_report(res, model_path=tmp_path / "ur10.urdf")
-    assert report["verdict"]["size_measured"] is False and report["verdict"]["size_held_by"] == res.gauge
+    assert report["verdict"]["size_measured"] is False and report["verdict"]["size_held_by"] == res.scale.gauge
     rows, ok = check_report(_truth(case), report, **TOLS)
     assert not ok
     size = rows[-1]

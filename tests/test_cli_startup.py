@@ -10,9 +10,9 @@ import sys
 import numpy as np
 import pytest
 
+from closedloop.assets.catalog import ROBOTS
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
-from closedloop.models import ROBOTS
 from closedloop.studies.truth import make_dataset
 
 WATCHED = (

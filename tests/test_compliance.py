@@ -25,7 +25,7 @@ C = 2e-5
 def _errors(res, truth):
     """Max |error| of estimated placement lengths (m) and angles/offsets (rad)."""
     m, rad = 0.0, 0.0
-    for name, value, status, p in zip(res.names, res.values, res.status, res.problem.params):
+    for name, value, status, p in zip(res.fit.names, res.fit.values, res.fit.status, res.problem.params):
         if status != "estimated" or p.kind not in ("placement", "offset"):
             continue
         err = abs(value - truth.get(name, 0.0))

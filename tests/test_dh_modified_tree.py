@@ -141,7 +141,7 @@ def test_tree_calibrated_from_both_hands(tree):
     )
     est = [
         n
-        for n, st in zip(res0.names, res0.status)
+        for n, st in zip(res0.fit.names, res0.fit.status)
         if st == "estimated" and "." in n and not n.startswith(("left", "right"))
     ]
     assert {"l1.alpha", "l1.a", "r1.alpha", "r1.a", "l2.alpha"} <= set(est)

@@ -10,8 +10,8 @@ from closedloop.cli.main import main
 
 
 def test_tree_and_builtin_compatibility(tmp_path):
+    from closedloop.assets.catalog import nominal_urdf
     from closedloop.estimate.robust import default_c
-    from closedloop.models import nominal_urdf
     from closedloop.sims import simulate
 
     with pytest.raises(errors.UnknownScenarioError) as info:

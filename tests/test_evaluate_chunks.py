@@ -10,10 +10,10 @@ from test_loop_state import Q0, SPECS
 import closedloop.problem.problem as problem_module
 from closedloop import RobotModel
 from closedloop.analysis.selection import initial_values
+from closedloop.assets.catalog import ROBOTS
 from closedloop.calibration.pipeline import build_problem
 from closedloop.io.logs import JointLog
 from closedloop.loops.spec import parse_loop
-from closedloop.models import ROBOTS
 
 
 @pytest.mark.parametrize("kind", sorted(SPECS))

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from closedloop import RobotModel
+from closedloop.assets.catalog import ROBOTS
 from closedloop.loops import WeldLoop
-from closedloop.models import ROBOTS
 from closedloop.studies.truth import make_dataset
 
 

@@ -14,12 +14,12 @@ import pinocchio as pin
 import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
+from closedloop.assets.catalog import nominal_urdf
 from closedloop.calibration.pipeline import build_problem, residual_stats
 from closedloop.cli.main import main
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import parse_loop
-from closedloop.models import nominal_urdf
 from closedloop.problem.distances import DistanceLoop
 from closedloop.studies.truth import make_dataset
 from closedloop.validation.evaluate import evaluate_result
@@ -57,7 +57,7 @@ def _by_hand(res, log_, names) -> float:
     """The held-out closure RMS computed by hand: the calibrated robot and ball; each socket the mean of
     the predicted ball positions (the least-squares point of a point loop); RMS of the distances."""
     prob = res.problem
-    st = prob.rp.apply(res.values[: prob.n_robot])
+    st = prob.rp.apply(res.fit.values[: prob.n_robot])
     tip = np.array([res.value(f"ball.tip_{a}") for a in "xyz"])
     fid = prob.robot.frame_id("ball")
     d2 = []
@@ -124,7 +124,7 @@ def test_kfold_held_out_figure_is_a_prediction(tmp_path):
     train = subset(log, np.setdiff1d(np.arange(len(log)), rows))
     res = calibrate(robot, train, [WeldLoop("fixture", "panda_hand")], opts)
     prob = build_problem(robot, subset(log, rows), res.loops)
-    by_hand = residual_stats(prob, prob.evaluate(res.values, False))[0]
+    by_hand = residual_stats(prob, prob.evaluate(res.fit.values, False))[0]
     got = cv["folds"][0]["test"]["loops"][0]
     assert got["rms_m"] == pytest.approx(by_hand.rms_m, rel=1e-12)
     assert got["rms_rad"] == pytest.approx(by_hand.rms_rad, rel=1e-12)

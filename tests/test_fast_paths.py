@@ -112,10 +112,10 @@ def test_poses_read_off_the_regressors_are_pinocchio_placements(panda, model):
     as Pinocchio's frame placements, on a serial arm, a finger branch, a D-H end frame and a frame on the base."""
     from pathlib import Path
 
+    from closedloop.assets.catalog import ROBOTS
     from closedloop.model.robot import RobotModel
-    from closedloop.models import ROBOTS
 
-    root = Path(__file__).resolve().parents[1] / "closedloop" / "models"
+    root = Path(__file__).resolve().parents[1] / "closedloop" / "assets"
     robot = {
         "panda": panda,
         "dh_hand": RobotModel.from_file(root / "dh" / "utah_mit_thumb_finger.yaml"),

@@ -10,14 +10,14 @@ import pinocchio as pin
 import pytest
 
 from closedloop.analysis.gauge import kinematic_changes, random_configurations
+from closedloop.assets.catalog import ROBOTS
 from closedloop.calibration.pipeline import build_problem
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.loops.spec import default_loops
 from closedloop.model.robot import RobotModel
-from closedloop.models import ROBOTS
 
-TABLE = Path(__file__).resolve().parents[1] / "closedloop" / "models" / "dh" / "utah_mit_thumb_finger.yaml"
+TABLE = Path(__file__).resolve().parents[1] / "closedloop" / "assets" / "dh" / "utah_mit_thumb_finger.yaml"
 
 
 def _finite_differences(problem, x, V, q, h=1e-6):

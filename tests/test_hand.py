@@ -30,8 +30,8 @@ from closedloop.studies.synthetic import self_motion
 from closedloop.studies.truth import identifiable_names, make_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
-TABLE = ROOT / "closedloop" / "models" / "dh" / "utah_mit_thumb_finger.yaml"
-URDF = ROOT / "closedloop" / "models" / "utah_mit_hand.urdf"
+TABLE = ROOT / "closedloop" / "assets" / "dh" / "utah_mit_thumb_finger.yaml"
+URDF = ROOT / "closedloop" / "assets" / "utah_mit_hand.urdf"
 FIELDS = ("theta_off", "s", "a", "alpha", "k")
 
 
@@ -64,20 +64,20 @@ def test_staged_hand_calibration_recovers_true_hand(true_hand):
     robot = RobotModel.from_file(TABLE)
     log = JointLog(robot.joint_names, readings)
     res1, res2 = staged_calibration(robot, log, default_loops(robot), thesis_stages(robot))
-    before, mid, after = res1.residuals_before[0], res1.residuals_after[0], res2.residuals_after[0]
+    before, mid, after = res1.fit.residuals_before[0], res1.fit.residuals_after[0], res2.fit.residuals_after[0]
     assert before.rms_m > 0.5 * INCH and before.rms_rad > 0.4  # the nominal table is far off
     assert mid.rms_m < 0.5 * before.rms_m  # stage 1 alone helps
     assert after.rms_m < 0.1 * before.rms_m and after.rms_rad < 0.1 * before.rms_rad
     assert after.rms_m < 1e-10 and after.rms_rad < 1e-10
     # stage 1 moved only the poorly known parameters
-    moved = {n for n, v0, v in zip(res1.names, res1.initial, res1.values) if abs(v - v0) > 0}
+    moved = {n for n, v0, v in zip(res1.fit.names, res1.fit.initial, res1.fit.values) if abs(v - v0) > 0}
     assert moved and moved <= set(thesis_stages(robot)[0].identify)
     # every identifiable parameter recovered: 8 x 5 - 2 fixed = 38 estimated, nothing dropped or weak
-    assert res2.converged and not res2.dropped and not res2.weak
-    assert len(res2.estimated) == 38
+    assert res2.converged and not res2.identifiability.dropped and not res2.identifiability.weak
+    assert len(res2.fit.estimated) == 38
     for n, v in TABLE_4_1_FIXED.items():
-        assert res2.status[res2.names.index(n)] == "fixed" and res2.value(n) == pytest.approx(v)
-    err = max(abs(res2.values[k] - truth[res2.names[k]]) for k in res2.estimated)
+        assert res2.fit.status[res2.fit.names.index(n)] == "fixed" and res2.value(n) == pytest.approx(v)
+    err = max(abs(res2.fit.values[k] - truth[res2.fit.names[k]]) for k in res2.fit.estimated)
     assert err < 1e-8, err
 
 
@@ -163,11 +163,13 @@ def test_urdf_hand_tip_to_tip_weld_calibrates():
     res = calibrate(robot, ds.log(noisy=False), [WeldLoop("grasp", "finger_tip", "thumb_tip")], opts)
     truth = ds.truth_dict()
     assert res.converged
-    assert not res.weak
-    assert res.residuals_before[0].rms_m > 1e-4 and res.residuals_after[0].rms_m < 1e-10
-    ok = [k for k in res.estimated if res.status[k] == "estimated" and not res.names[k].startswith("grasp.r")]
+    assert not res.identifiability.weak
+    assert res.fit.residuals_before[0].rms_m > 1e-4 and res.fit.residuals_after[0].rms_m < 1e-10
+    ok = [
+        k for k in res.fit.estimated if res.fit.status[k] == "estimated" and not res.fit.names[k].startswith("grasp.r")
+    ]
     assert len(ok) >= 28
-    err = max(abs(res.values[k] - truth[res.names[k]]) for k in ok)
+    err = max(abs(res.fit.values[k] - truth[res.fit.names[k]]) for k in ok)
     assert err < 1e-8, err
 
 
@@ -180,7 +182,7 @@ def test_dual_arm_baxter_example():
     res, truth = out["result"], out["dataset"].truth_dict()
     # judged by what the two arms do (the grasp frame in the other gripper), up to the length scale
     pos, rot, _ = relative_fk_error(
-        res, [truth.get(n, v) for n, v in zip(res.names, res.initial)], "left_gripper", "right_gripper"
+        res, [truth.get(n, v) for n, v in zip(res.fit.names, res.fit.initial)], "left_gripper", "right_gripper"
     )
     assert pos < 1e-8 and rot < 1e-8
     assert out["after"].rms_m < 1e-10 and out["before"].rms_m > 1e-3

@@ -267,7 +267,7 @@ CASES = [
             "m.csv": "j1,j2\n0.1,0.2\n0.2,0.4\n",
         },
     ),
-    Case("mjcf-door-shipped", ["inspect", "closedloop/models/door.xml"], 0, ["1 movable joints", "hinge"]),
+    Case("mjcf-door-shipped", ["inspect", "closedloop/assets/door.xml"], 0, ["1 movable joints", "hinge"]),
     Case("model-missing", calib(model="{tmp}/nope.urdf"), 2, ["nope.urdf", "no such model file"]),
     Case("model-unknown-suffix", ["inspect", "{x.txt}"], 2, ["unknown model type '.txt'"], {"x.txt": "hello"}),
     Case("urdf-garbage", ["inspect", "{g.urdf}"], 2, ["g.urdf", "not valid XML (line 1"], {"g.urdf": "<robot"}),
@@ -477,7 +477,7 @@ CASES = [
     ),
     Case(
         "out-urdf-for-mjcf",
-        ["calibrate", "closedloop/models/door.xml", "{log}", "--out", "{tmp}/c.urdf"],
+        ["calibrate", "closedloop/assets/door.xml", "{log}", "--out", "{tmp}/c.urdf"],
         2,
         ["calibrated mjcf model", "*.xml or *.mjcf"],
     ),
@@ -843,9 +843,9 @@ def _add_loop_column(text: str, name) -> str:
 @pytest.fixture(scope="module")
 def panda_files(tmp_path_factory):
     """A mesh-free Panda and 30 exact weld configurations (two perturbed parameters)."""
+    from closedloop.assets.catalog import nominal_urdf
     from closedloop.loops import WeldLoop
     from closedloop.model.robot import RobotModel
-    from closedloop.models import nominal_urdf
     from closedloop.studies.truth import make_dataset
 
     d = tmp_path_factory.mktemp("panda")

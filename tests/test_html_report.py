@@ -17,11 +17,11 @@ from html.parser import HTMLParser
 import numpy as np
 import pytest
 
+from closedloop.assets.catalog import ROBOTS
 from closedloop.cli.main import main
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel
-from closedloop.models import ROBOTS
 from closedloop.studies.truth import make_dataset
 
 

@@ -46,7 +46,7 @@ import numpy as np
 from closedloop import calibrate, JointLog, RobotModel
 from closedloop.output.urdf import write_urdf
 from closedloop.loops.spec import parse_loop
-from closedloop.models import ROBOTS
+from closedloop.assets.catalog import ROBOTS
 from closedloop.output.report import build_report, write_report
 from closedloop.studies.truth import make_dataset
 robot = RobotModel.from_file(ROBOTS["panda"].path)
@@ -57,6 +57,24 @@ write_urdf(robot, res.as_dict(), r"{tmp_path / "cal.urdf"}")
 write_report(build_report(res), r"{tmp_path / "report.json"}")
 """
     assert _modules_after(code) == []
+
+
+def test_the_loops_package_loads_each_loop_type_on_first_use():
+    """`import closedloop.loops` loads `base` alone; a class asked for loads its module, which registers its type
+    beside it (the weld included)."""
+    code = """
+import sys
+import closedloop.loops as loops
+kinds = ["weld", "point", "plane", "hinge", "passive", "measured", "camera.loop"]
+assert not [k for k in kinds if "closedloop.loops." + k in sys.modules], sorted(sys.modules)
+from closedloop.loops import spec
+assert spec.REGISTRY == {}
+assert loops.WeldLoop.__module__ == "closedloop.loops.weld" and set(spec.REGISTRY) == {"weld"}
+factory, keys = spec.loop_type("point")
+assert "closedloop.loops.point" in sys.modules and keys == {"frame", "to", "tip", "point", "name"}
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
 
 
 def test_camera_loop_registers_on_first_use():
@@ -76,8 +94,8 @@ assert "camera" in spec.REGISTRY and CameraLoop.__name__ == "CameraLoop"
 
 def test_written_urdf_origins_are_nominal_times_exp6_and_offset(tmp_path):
     """The edited XML gives Pinocchio exactly O exp6(p) Rot(axis, offset) and limits shifted by -offset."""
+    from closedloop.assets.catalog import ROBOTS
     from closedloop.model.robot import RobotModel
-    from closedloop.models import ROBOTS
     from closedloop.output.urdf import write_urdf
 
     robot = RobotModel.from_file(ROBOTS["panda"].path)

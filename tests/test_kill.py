@@ -50,9 +50,9 @@ def _run(args: list[str], kill_after: float | None = None, cwd: Path | None = No
 
 def make_calibration_inputs(d: Path) -> tuple[Path, Path, Path]:
     """A mesh-free Panda and two 30-row weld logs (different truths: different calibrated models)."""
+    from closedloop.assets.catalog import nominal_urdf
     from closedloop.loops import WeldLoop
     from closedloop.model.robot import RobotModel
-    from closedloop.models import nominal_urdf
     from closedloop.studies.truth import make_dataset
 
     d.mkdir(parents=True, exist_ok=True)

@@ -41,7 +41,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("problem",),  # the stacked calibration problem, shared parameters, lengths, distances
     ("loops",),  # one module per loop type, the loop registry, cameras
     ("model",),  # robot, D-H, parameters, SE(3)
-    ("models",),  # the robot and task files shipped with the package
+    ("assets",),  # the robot, task and scene files shipped with the package, and their catalogue
     ("io",),  # logs, bags, camera info, schemas and option values, files written whole
     ("parallel",),  # executor and engines (serial, local processes, Ray)
     ("version", "errors", "progress"),
@@ -52,7 +52,7 @@ LAYERS: list[tuple[str, ...]] = [
 CALIBRATOR = (
     "closedloop.calibration",
     "closedloop.estimate.lm",
-    "closedloop.estimate.stages",
+    "closedloop.estimate.residual",
     "closedloop.estimate.outliers",
     "closedloop.estimate.robust",
     "closedloop.validation",

@@ -46,18 +46,20 @@ def test_length_sets_scale(rig):
     report states."""
     res = _calibrate(rig, "panda_link2", "panda_link4")
     assert res.verdict.status == "ok", res.verdict.describe()
-    assert res.gauge is None
-    assert res.scale_note.startswith("the scale is set by the length panda_link2-panda_link4 (32"), res.scale_note
-    assert abs(res.length_response - 1.0) < 0.01 and res.length_leak < 1e-3
+    assert res.scale.gauge is None
+    assert res.scale.scale_note.startswith("the scale is set by the length panda_link2-panda_link4 (32"), (
+        res.scale.scale_note
+    )
+    assert abs(res.scale.length_response - 1.0) < 0.01 and res.scale.length_leak < 1e-3
     err = scale_error(res, rig[0])
-    assert 0.0 < res.scale_std < 0.003
+    assert 0.0 < res.scale.scale_std < 0.003
     # at Z_LEVEL (4) standard errors, a level a draw exceeds by chance with probability 6e-5 (test_rigs.Z_LEVEL;
     # two fail 4.6 % of draws); with the error bar under 0.3 % the size is still held to 1.2 %
-    assert abs(err) <= Z_LEVEL * res.scale_std, (err, res.scale_std)  # seed 0: +0.12 % against 0.11 %
+    assert abs(err) <= Z_LEVEL * res.scale.scale_std, (err, res.scale.scale_std)  # seed 0: +0.12 % against 0.11 %
     longer = _calibrate(rig, "panda_link2", "panda_link4", 1.01)
     assert longer.verdict.status == "ok"
     moved = (1.0 + scale_error(longer, rig[0])) / (1.0 + err) - 1.0
-    assert abs(moved - 0.01 * res.length_response) < 5e-4, moved
+    assert abs(moved - 0.01 * res.scale.length_response) < 5e-4, moved
 
 
 @pytest.mark.slow
@@ -66,7 +68,7 @@ def test_length_through_held_values_is_suspect(rig):
     that axis, which no loop sees; the size then inherits that held value's error (seed 0: 0.50 %)."""
     res = _calibrate(rig, "panda_link1", "panda_link3")
     assert res.verdict.status == "suspect"
-    assert res.length_leak > 1e-3
+    assert res.scale.length_leak > 1e-3
     assert any("also changes with" in w and "which the loops cannot see" in w for w in res.verdict.reasons), (
         res.verdict.describe()
     )
@@ -81,7 +83,7 @@ def test_length_the_loops_absorb_is_suspect_and_left_out(rig):
     the model's."""
     res = _calibrate(rig, "panda_link4", "panda_link5")
     assert res.verdict.status == "suspect"
-    assert abs(res.length_response) < 0.05
+    assert abs(res.scale.length_response) < 0.05
     assert any("cannot set the robot's size" in w and "left out of the fit" in w for w in res.verdict.reasons), (
         res.verdict.describe()
     )
@@ -89,8 +91,8 @@ def test_length_the_loops_absorb_is_suspect_and_left_out(rig):
     assert res.verdict.evidence["size_measured"] is False
     rig_, robot, log, _ = rig
     alone = calibrate(robot, log, _loops(robot, rig_.loop_names()), CalibrationOptions())
-    assert res.names == alone.names
-    np.testing.assert_array_equal(res.values, alone.values)
+    assert res.fit.names == alone.fit.names
+    np.testing.assert_array_equal(res.fit.values, alone.fit.values)
 
 
 def test_length_the_model_fixes_is_refused(rig):
@@ -113,7 +115,7 @@ def test_an_absurd_length_is_refused(rig):
         calibrate(robot, log, loops + [LengthLoop("panda_link2", "panda_link4", 1000.0)], CalibrationOptions())
     L = 1.1 * true_length(rig_, "panda_link2", "panda_link4")
     res = calibrate(robot, log, loops + [LengthLoop("panda_link2", "panda_link4", L)], CalibrationOptions())
-    assert abs(res.residuals_after[-1].rms_m) < 1e-4  # the length is met (the robot 10 % larger)
+    assert abs(res.fit.residuals_after[-1].rms_m) < 1e-4  # the length is met (the robot 10 % larger)
 
 
 @pytest.mark.slow
@@ -121,7 +123,7 @@ def test_length_row_jacobian(rig):
     """The length row's Jacobian against central differences of the problem's own residual."""
     rig_, robot, log, _ = rig
     res = _calibrate(rig, "panda_link2", "panda_link4")
-    prob, x = res.problem, res.values.copy()
+    prob, x = res.problem, res.fit.values.copy()
     bi = [i for i, b in enumerate(prob.blocks) if isinstance(b.loop, LengthLoop)][0]
     J = prob.evaluate(x, True)[bi].J[0, 0]
     for k in range(prob.n_robot):

@@ -67,9 +67,9 @@ def test_the_weak_weld_is_suspect_where_its_error_bars_fail():
     readings = case.q_true - off + np.random.default_rng(1000).normal(0.0, 5e-5, case.q_true.shape)
     loops = [parse_loop(s, robot) for s in case.loop_specs] + [LengthLoop("panda_link2", "panda_link4", L)]
     res = calibrate(robot, JointLog(list(case.joints), readings), loops, CalibrationOptions())
-    size_error = judge(case, dict(zip(res.names, res.values))).scale - 1.0
-    assert abs(size_error) > 3 * res.scale_std  # what the check is for: the error bar does not cover the truth
-    size = [p for p in res.profiles if "size" in p.name]
+    size_error = judge(case, dict(zip(res.fit.names, res.fit.values))).scale - 1.0
+    assert abs(size_error) > 3 * res.scale.scale_std  # what the check is for: the error bar does not cover the truth
+    size = [p for p in res.noise.profiles if "size" in p.name]
     assert size and not size[0].holds
     assert res.verdict.status == "suspect"
     assert any("error bars do not hold" in r for r in res.verdict.reasons)
@@ -77,6 +77,6 @@ def test_the_weak_weld_is_suspect_where_its_error_bars_fail():
     plain = calibrate(robot, JointLog(list(case.joints), readings), loops, CalibrationOptions(weighting="none"))
     # covered at 4 standard errors (a level a normal draw exceeds with probability 6e-5; test_rigs.Z_LEVEL): this
     # draw is 0.2 off, the weighted fit's 9.8
-    assert abs(judge(case, dict(zip(plain.names, plain.values))).scale - 1.0) < Z_LEVEL * plain.scale_std
-    assert plain.profiles and all(p.holds for p in plain.profiles)
+    assert abs(judge(case, dict(zip(plain.fit.names, plain.fit.values))).scale - 1.0) < Z_LEVEL * plain.scale.scale_std
+    assert plain.noise.profiles and all(p.holds for p in plain.noise.profiles)
     assert not any("error bars" in r for r in plain.verdict.reasons)

@@ -71,7 +71,7 @@ def test_weld_held_or_slightly_turned_passes():
 
 @pytest.fixture(scope="module")
 def panda(tmp_path_factory):
-    from closedloop.models import nominal_urdf
+    from closedloop.assets.catalog import nominal_urdf
 
     d = tmp_path_factory.mktemp("mismatch")
     (d / "panda.urdf").write_text(nominal_urdf("panda"))
@@ -130,24 +130,29 @@ def test_zoo_rough_robot_is_not_refused():
 
 
 def _fit(level: float):
-    """A stand-in fit whose `staged._closure_level` is `level` (the attribute it caches it in)."""
+    """A stand-in fit whose `solve._closure_level` is `level` (the attribute it caches it in)."""
     from types import SimpleNamespace
 
     return SimpleNamespace(stage=SimpleNamespace(closure_level=level, solution=SimpleNamespace(cost=1.0)))
 
 
 def test_restarts_stop_only_when_every_start_stalls_alike_and_gross():
-    """`_hopeless`: the given start and a restart both far above HOPELESS_LEVEL, none at under half the first."""
-    from closedloop.calibration.staged import HOPELESS_LEVEL, _hopeless
+    """`_hopeless`: the given start and a restart both far above what HOPELESS times the failed joint noise
+    explains (closure level 25 with the default rules), none at under half the first."""
+    from closedloop.calibration.solve import HOPELESS, _hopeless
+    from closedloop.calibration.verdict import VerdictRules
 
+    rules = VerdictRules()
+    level = HOPELESS * rules.failed_joint_noise / rules.plausible_joint_noise
+    assert level == pytest.approx(25.0)
     wrong_loop = [142.0, 108.0]  # the panda weld on ball-joint data: two starts, 0.28 and 0.22 rad of joint noise
-    assert _hopeless(None, [_fit(v) for v in wrong_loop])
-    assert not _hopeless(None, [_fit(142.0)])  # no restart yet
-    assert not _hopeless(None, [_fit(142.0), _fit(60.0)])  # a restart that halves the closure: keep going
-    assert not _hopeless(None, [_fit(142.0), _fit(1e-11)])  # a restart that closes
-    assert not _hopeless(
-        None, [_fit(0.9 * HOPELESS_LEVEL), _fit(0.9 * HOPELESS_LEVEL)]
-    )  # stalls a rough start may leave
+    assert _hopeless(None, [_fit(v) for v in wrong_loop], rules)
+    assert not _hopeless(None, [_fit(142.0)], rules)  # no restart yet
+    assert not _hopeless(None, [_fit(142.0), _fit(60.0)], rules)  # a restart that halves the closure: keep going
+    assert not _hopeless(None, [_fit(142.0), _fit(1e-11)], rules)  # a restart that closes
+    assert not _hopeless(None, [_fit(0.9 * level), _fit(0.9 * level)], rules)  # stalls a rough start may leave
+    # the rules passed in set the level: a verdict that fails only above 0.05 rad keeps restarting at 142
+    assert not _hopeless(None, [_fit(v) for v in wrong_loop], VerdictRules(failed_joint_noise=0.05))
 
 
 @pytest.mark.slow
@@ -171,10 +176,10 @@ def test_weld_fit_on_point_data_fails_honestly(panda, monkeypatch):
     monkeypatch.setattr(WeldLoop, "mismatch", lambda self, Ts, meas=None: None)
     res = calibrate(robot, read_log(d / "socket_slow.csv", robot.joint_names), [WeldLoop("fixture", "panda_hand")])
     assert res.verdict.status == "failed"
-    implied = res.model_error["joint_noise_implied"]
+    implied = res.noise.model_error["joint_noise_implied"]
     assert res.verdict.evidence["joint_noise"] == implied
     assert implied > VerdictRules().failed_joint_noise  # 0.01 rad: no encoder is that noisy
-    assert not res.model_error["noise_explains"]
+    assert not res.noise.model_error["noise_explains"]
     assert any(
         r.startswith(f"failed: the estimated joint noise {implied:.3g} rad is implausible") for r in res.verdict.reasons
     ), res.verdict.reasons

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
+from closedloop.assets.catalog import ROBOTS
 from closedloop.io.logs import JointLog
 from closedloop.loops.spec import LOOP_TYPES, parse_loop
-from closedloop.models import ROBOTS
 
-TASKS = Path(__file__).resolve().parents[1] / "closedloop" / "models" / "tasks"
+TASKS = Path(__file__).resolve().parents[1] / "closedloop" / "assets" / "tasks"
 Q0 = np.array([0.0, -0.3, 0.0, -2.0, 0.0, 1.8, 0.8])
 SPECS = {
     "weld": "weld:frame=panda_hand",
@@ -118,7 +118,7 @@ def test_results_carry_the_prepared_hinge(panda):
         assert res.loops[0] is not lp and res.loops[0].fitted
         sl = res.problem.loop_slices[0]
         pt, dt = truth_loop.line(p_true)
-        pc, dc = res.loops[0].line(res.values[sl])
+        pc, dc = res.loops[0].line(res.fit.values[sl])
         assert np.abs(pc - pt).max() < 1e-8 and abs(abs(dc @ dt) - 1.0) < 1e-12
         lines.append(pc)
     assert not lp.fitted and np.array_equal(lp.H0.homogeneous, np.eye(4))  # the caller's object, untouched

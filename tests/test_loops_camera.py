@@ -84,7 +84,7 @@ def camera_experiment(make, Xs, Ks, th, path=UR5, sigma_px=None, noise_q=None, s
     prob = build_problem(robot, JointLog(joints, th, None, None, zeros), [make()])
     x = prob.nominal
     res0 = calibrate(robot, JointLog(joints, th, None, None, pixels(prob, x, th, Xs, Ks)), [make()])
-    names = [n for n, s in zip(res0.names, res0.status) if s == "estimated" and not n.startswith("cam.")]
+    names = [n for n, s in zip(res0.fit.names, res0.fit.status) if s == "estimated" and not n.startswith("cam.")]
     truth = x.copy()
     for k, v in draw_truth(robot, names, rng).items():
         truth[prob.index[k]] = v
@@ -99,12 +99,12 @@ def camera_experiment(make, Xs, Ks, th, path=UR5, sigma_px=None, noise_q=None, s
 
 
 def estimated_errors(res, truth_by_name):
-    est = [i for i, s in enumerate(res.status) if s == "estimated"]
-    return est, np.array([res.values[i] - truth_by_name[res.names[i]] for i in est])
+    est = [i for i, s in enumerate(res.fit.status) if s == "estimated"]
+    return est, np.array([res.fit.values[i] - truth_by_name[res.fit.names[i]] for i in est])
 
 
 def dropped_names(res) -> set[str]:
-    return {d.name for d in res.dropped}
+    return {d.name for d in res.identifiability.dropped}
 
 
 def ur5_readings(N: int, seed: int = 1) -> np.ndarray:
@@ -174,7 +174,7 @@ def test_stereo_known_intrinsics_recovery():
     assert any("length scale" in n for n in res.notes)
     assert {f"shoulder_pan_joint.{f}" for f in COLS} <= dropped_names(res)  # absorbed by the camera poses
     own = [f"cam.cam{c}.{f}" for c in (1, 2) for f in COLS] + ["cam.tip_x", "cam.tip_y", "cam.tip_z"]
-    assert all(res.status[res.names.index(n)] == "estimated" for n in own)
+    assert all(res.fit.status[res.fit.names.index(n)] == "estimated" for n in own)
     assert len(est) == 32  # 17 robot (18 of the measured point, less the length scale) + 12 poses + 3 marker
 
 
@@ -184,7 +184,7 @@ def test_mono_unknown_intrinsics_recovery():
     est, err = estimated_errors(res, truth)
     assert np.abs(err).max() < 1e-8
     assert any("length scale" in n for n in res.notes)
-    assert all(res.status[res.names.index(f"cam.cam1.{f}")] == "estimated" for f in ("fx", "fy", "cx", "cy"))
+    assert all(res.fit.status[res.fit.names.index(f"cam.cam1.{f}")] == "estimated" for f in ("fx", "fy", "cx", "cy"))
     assert len(est) == 30  # 17 robot + 6 pose + 4 intrinsics + 3 marker
 
 
@@ -204,7 +204,7 @@ def test_stereo_rig_fixes_length_scale():
     assert np.abs(err).max() < 1e-8
     assert not any("length scale" in n for n in res.notes)
     assert len(est) == 27  # 18 robot + 6 rig pose + 3 marker
-    assert "cam.cam2.x" not in res.names
+    assert "cam.cam2.x" not in res.fit.names
 
 
 # ---------------------------------------------------------------- pixel noise
@@ -218,10 +218,10 @@ def test_pixel_noise_within_four_sigma(cameras):
     res, truth = camera_experiment(make, Xs, Ks, ur5_readings(80, seed=2), sigma_px=0.3, noise_q=1e-5, seed=2)
     assert res.converged
     est, err = estimated_errors(res, truth)
-    std = res.std[est]
+    std = res.fit.std[est]
     assert np.all(np.isfinite(std)) and np.all(std > 0)
     assert np.abs(err / std).max() < 4.0
-    assert 0.7 < res.chi2 / res.dof < 1.3
+    assert 0.7 < res.noise.chi2 / res.noise.dof < 1.3
     assert len(est) >= 25
 
 
@@ -257,9 +257,9 @@ def test_stereo_head_on_baxter():
     ]
     # only the arm base relative to the head pan axis is seen: the head_pan placement and offset are absorbed
     # (by left_s0's placement and the cameras), one length sets the scale
-    assert {f"head_pan.{f}" for f in ("x", "y", "rx", "ry", "rz", "offset")} <= dropped_names(res) | {res.gauge}
+    assert {f"head_pan.{f}" for f in ("x", "y", "rx", "ry", "rz", "offset")} <= dropped_names(res) | {res.scale.gauge}
     assert any("length scale" in n for n in res.notes)
-    estimated = {res.names[i] for i in est}
+    estimated = {res.fit.names[i] for i in est}
     assert {f"cam.cam{c}.{f}" for c in (1, 2) for f in COLS} <= estimated
     assert len(est) == 40  # 25 arm + 12 camera poses + 3 marker
 

@@ -123,13 +123,13 @@ def test_head_as_one_loop_noise_free(verge):
     make = lambda: CameraLoop("cam", "tool0", camera_frames=FRAMES, sigma_px=0.3)  # noqa: E731
     case = head_case(make, N=50, seed=1, verge=verge, options=NOISE_FREE)
     res, est, err = run_head(case, make, options=NOISE_FREE)
-    assert np.abs(err).max() < 1e-8, res.names[est[int(np.argmax(np.abs(err)))]]
-    assert res.residuals_after[0].max_px < 1e-8
-    dropped = {d.name for d in res.dropped}
+    assert np.abs(err).max() < 1e-8, res.fit.names[est[int(np.argmax(np.abs(err)))]]
+    assert res.fit.residuals_after[0].max_px < 1e-8
+    dropped = {d.name for d in res.identifiability.dropped}
     assert {"cam_left_pan.offset", "cam_right_pan.offset"} <= dropped  # absorbed by the camera poses
     own = {f"cam.cam{c}.{f}" for c in (1, 2) for f in ("x", "y", "z", "rx", "ry", "rz", "fx", "fy", "cx", "cy")}
-    assert own <= {res.names[i] for i in est}
-    assert res.gauge is not None and res.gauge in res.names  # one length fixed and named
+    assert own <= {res.fit.names[i] for i in est}
+    assert res.scale.gauge is not None and res.scale.gauge in res.fit.names  # one length fixed and named
 
 
 def test_named_length_sets_the_scale():
@@ -139,15 +139,15 @@ def test_named_length_sets_the_scale():
     make = lambda: CameraLoop("cam", "tool0", camera_frames=FRAMES, sigma_px=0.3)  # noqa: E731
     case = head_case(make, N=50, seed=2, options=NOISE_FREE)
     res, est, _ = run_head(case, make, options=NOISE_FREE)
-    g = res.names.index(res.gauge)
-    assert res.status[g] == "fixed" and res.gauge in (res.gauge_note or " ".join(res.notes))
-    L = length_of(res.problem, res.values, g)
+    g = res.fit.names.index(res.scale.gauge)
+    assert res.fit.status[g] == "fixed" and res.scale.gauge in (res.scale.gauge_note or " ".join(res.notes))
+    L = length_of(res.problem, res.fit.values, g)
     assert abs(L) > 0.01
     longer = 1.05 * L - res.problem.params[g].scales_with_length
     res2, _, _ = run_head(
-        case, make, options=CalibrationOptions(weighting="none", robust=None, fix={res.gauge: longer})
+        case, make, options=CalibrationOptions(weighting="none", robust=None, fix={res.scale.gauge: longer})
     )
-    assert res2.residuals_after[0].max_px < 1e-6
+    assert res2.fit.residuals_after[0].max_px < 1e-6
     tip = [np.linalg.norm([r.value(f"cam.tip_{a}") for a in "xyz"]) for r in (res, res2)]
     assert tip[1] > 1.02 * tip[0]
 
@@ -157,9 +157,9 @@ def test_triangulation_closure_noise_free():
     make = lambda: CameraLoop("cam", "tool0", camera_frames=FRAMES, closure="triangulation")  # noqa: E731
     case = head_case(make, N=50, seed=4, options=NOISE_FREE)
     res, est, err = run_head(case, make, options=NOISE_FREE)
-    assert np.abs(err).max() < 1e-8, res.names[est[int(np.argmax(np.abs(err)))]]
-    assert res.residuals_after[0].max_m < 1e-10
-    assert {f"cam.cam{c}.fx" for c in (1, 2)} <= {res.names[i] for i in est}
+    assert np.abs(err).max() < 1e-8, res.fit.names[est[int(np.argmax(np.abs(err)))]]
+    assert res.fit.residuals_after[0].max_m < 1e-10
+    assert {f"cam.cam{c}.fx" for c in (1, 2)} <= {res.fit.names[i] for i in est}
 
 
 def test_standard_errors_match_monte_carlo_spread():
@@ -176,7 +176,7 @@ def test_standard_errors_match_monte_carlo_spread():
         )
         assert res.converged
         scale_free = np.array([res.problem.params[i].unit != "m" for i in est])
-        z2.append(np.mean((err / res.std[est])[scale_free] ** 2))
+        z2.append(np.mean((err / res.fit.std[est])[scale_free] ** 2))
     assert 0.75 < np.mean(z2) < 1.3, z2
 
 

@@ -22,7 +22,7 @@ from closedloop.studies.truth import draw_truth
 
 ROBOTS = Path(site.getsitepackages()[0]) / "cmeel.prefix/share/example-robot-data/robots"
 PANDA = ROBOTS / "panda_description/urdf/panda.urdf"
-TASKS = Path(__file__).resolve().parents[1] / "closedloop" / "models" / "tasks"
+TASKS = Path(__file__).resolve().parents[1] / "closedloop" / "assets" / "tasks"
 TOOL = "panda_hand"
 TH0 = np.array([[0.0, -0.3, 0.0, -2.0, 0.0, 1.8, 0.8]])
 AXIS = (np.array([0.475, 0.45, 0.594]), np.array([0.0, 0.0, 1.0]))  # 0.45 m beside the hand at TH0
@@ -87,8 +87,8 @@ def _fd_gradient_error(prob, x, h=1e-6):
 
 def _estimated_errors(res, truth, prob):
     return {
-        n: float(res.values[i] - truth[prob.index[n]])
-        for i, (n, s) in enumerate(zip(res.names, res.status))
+        n: float(res.fit.values[i] - truth[prob.index[n]])
+        for i, (n, s) in enumerate(zip(res.fit.names, res.fit.status))
         if s == "estimated"
     }
 
@@ -107,7 +107,7 @@ def hinge_truth(robot, joints):
     x[sl] = lp.initialize(TA, TB)
     th = self_motion(prob, x, TH0, 30, rng)
     res = calibrate(robot, JointLog(joints, th), [HingeLoop("door", TOOL, axis=AXIS)], CalibrationOptions())
-    names = [n for n, s in zip(res.names, res.status) if s == "estimated" and not n.startswith("door.")]
+    names = [n for n, s in zip(res.fit.names, res.fit.status) if s == "estimated" and not n.startswith("door.")]
     truth = prob.nominal.copy()
     for n, v in draw_truth(robot, names, rng).items():
         truth[prob.index[n]] = v
@@ -180,7 +180,7 @@ def test_hinge_axis_from_circle_fit(robot, joints, hinge_truth):
     fit = HingeLoop("door", TOOL)
     res = calibrate(robot, JointLog(joints, th), [fit], CalibrationOptions())
     assert res.converged
-    ps, ds = res.loops[0].line(res.values[sl])  # in the chart of the loop as calibrated (prepared)
+    ps, ds = res.loops[0].line(res.fit.values[sl])  # in the chart of the loop as calibrated (prepared)
     assert np.abs(ps - pt).max() < 1e-8 and abs(abs(ds @ dt) - 1) < 1e-12
     assert abs(abs(res.value("door.radius")) - abs(truth[prob.index["door.radius"]])) < 1e-8
 
@@ -206,7 +206,7 @@ def door_truth(robot, joints):
     x = prob.nominal.copy()
     th = np.vstack([close(prob, x, TH0)[0], self_motion(prob, x, TH0, 30, rng)])
     res = calibrate(robot, JointLog(joints, th), [mk()], CalibrationOptions())
-    est = [n for n, s in zip(res.names, res.status) if s == "estimated"]
+    est = [n for n, s in zip(res.fit.names, res.fit.status) if s == "estimated"]
     truth = prob.nominal.copy()
     for n, v in draw_truth(robot, [n for n in est if not n.startswith("door.")], rng).items():
         truth[prob.index[n]] = v
@@ -240,8 +240,8 @@ def test_passive_door_recovery(robot, joints, door_truth):
     assert any(n.startswith("door.handle.") for n in err) and any(n.startswith("door.grasp.") for n in err)
     assert max(abs(v) for v in err.values()) < 1e-8, max(err.items(), key=lambda kv: abs(kv[1]))
     # the revolute joints' own rotations are their eliminated angles: dropped, never estimated
-    assert res.status[res.names.index("door.hinge.rz")] == "dropped"
-    assert res.status[res.names.index("door.handle.ry")] == "dropped"
+    assert res.fit.status[res.fit.names.index("door.hinge.rz")] == "dropped"
+    assert res.fit.status[res.fit.names.index("door.handle.ry")] == "dropped"
 
 
 @pytest.mark.slow

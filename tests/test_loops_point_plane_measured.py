@@ -70,13 +70,13 @@ def closed_experiment(path, make, theta0, own, n=40, seed=0, noise=None, options
 
 
 def estimated_errors(res, truth_by_name):
-    est = [i for i, s in enumerate(res.status) if s == "estimated"]
-    err = np.array([res.values[i] - truth_by_name[res.names[i]] for i in est])
+    est = [i for i, s in enumerate(res.fit.status) if s == "estimated"]
+    err = np.array([res.fit.values[i] - truth_by_name[res.fit.names[i]] for i in est])
     return est, err
 
 
 def dropped_names(res) -> set[str]:
-    return {d.name for d in res.dropped}
+    return {d.name for d in res.identifiability.dropped}
 
 
 # ---------------------------------------------------------------- Jacobians
@@ -153,13 +153,14 @@ def test_point_contact_ur5_theorem4():
     assert {f"shoulder_pan_joint.{f}" for f in COLS} | {"shoulder_pan_joint.offset"} <= dropped
     # tool orientation is free (alpha_n): the tip's angle about the last axis absorbs its offset
     assert {"wrist_3_joint.offset", "wrist_3_joint.rz"} <= dropped
-    assert {"wrist_3_joint.x", "wrist_3_joint.rx"} <= {res.names[i] for i in est}
-    assert res.residuals_after[0].rms_m < 1e-10
+    assert {"wrist_3_joint.x", "wrist_3_joint.rx"} <= {res.fit.names[i] for i in est}
+    assert res.fit.residuals_after[0].rms_m < 1e-10
     assert res.verdict.status == "ok"
     # one length fixed (a_0 = -1 in the theorem)
     assert any("length scale" in n for n in res.notes)
     assert all(
-        res.status[res.names.index(f"ball.{f}")] == "estimated" for f in ("tip_x", "tip_y", "tip_z", "px", "py", "pz")
+        res.fit.status[res.fit.names.index(f"ball.{f}")] == "estimated"
+        for f in ("tip_x", "tip_y", "tip_z", "px", "py", "pz")
     )
 
 
@@ -178,7 +179,7 @@ def test_point_contact_panda():
     dropped = dropped_names(res)
     assert {f"panda_joint1.{f}" for f in COLS} | {"panda_joint1.offset"} <= dropped
     assert {"panda_joint7.offset", "panda_joint7.rz"} <= dropped
-    assert res.residuals_after[0].rms_m < 1e-10 and res.verdict.status == "ok"
+    assert res.fit.residuals_after[0].rms_m < 1e-10 and res.verdict.status == "ok"
 
 
 def test_point_two_arms_baxter():
@@ -187,11 +188,11 @@ def test_point_two_arms_baxter():
         BAXTER, lambda: PointLoop("touch", "left_gripper", "right_gripper"), BAXTER_Q0, {"touch.tip_z": 0.02}, n=40
     )
     # judged by what the arms do: the touching point in the right gripper, up to the length scale
-    pos, _, _ = relative_fk_error(res, [truth[n] for n in res.names], "left_gripper", "right_gripper", tip="touch")
+    pos, _, _ = relative_fk_error(res, [truth[n] for n in res.fit.names], "left_gripper", "right_gripper", tip="touch")
     assert pos < 1e-8
     dropped = dropped_names(res)
     # only the relative pose of the two arm bases matters: one base is the gauge
-    assert {f"left_s0.{f}" for f in COLS} <= dropped | {res.gauge}
+    assert {f"left_s0.{f}" for f in COLS} <= dropped | {res.scale.gauge}
     # the size is held by a named length, or the verdict says that none alone holds it (never silently)
     assert any("length scale" in n for n in res.notes) or (
         res.verdict.status == "suspect" and any("scale is not determined" in r for r in res.verdict.reasons)
@@ -211,10 +212,10 @@ def test_point_contact_noise_within_four_sigma():
     )
     assert res.converged
     est, err = estimated_errors(res, truth)
-    std = res.std[est]
+    std = res.fit.std[est]
     assert np.all(np.isfinite(std)) and np.all(std > 0)
     assert np.abs(err / std).max() < 4.0
-    assert 0.5 < res.chi2 / res.dof < 1.5
+    assert 0.5 < res.noise.chi2 / res.noise.dof < 1.5
 
 
 def test_point_initialize_is_mean_contact_point():
@@ -239,7 +240,7 @@ def test_plane_ur5_recovery():
     dropped = dropped_names(res)
     assert {f"shoulder_pan_joint.{f}" for f in COLS} <= dropped
     for f in ("tip_x", "tip_y", "tip_z", "nrx", "nry", "d"):
-        assert res.status[res.names.index(f"floor.{f}")] == "estimated"
+        assert res.fit.status[res.fit.names.index(f"floor.{f}")] == "estimated"
 
 
 def test_plane_parameterisation():
@@ -297,7 +298,7 @@ def measured_experiment(kind, noise_q=None, sigma_t=None, sigma_r=None, N=30, se
     x = prob.nominal
     # the identifiable parameterisation: what calibrate estimates on nominal data
     res0 = calibrate(robot, JointLog(joints, th, None, None, _measurements(prob, x, th, kind)), [make()])
-    names = [n for n, s in zip(res0.names, res0.status) if s == "estimated" and not n.startswith("m.")]
+    names = [n for n, s in zip(res0.fit.names, res0.fit.status) if s == "estimated" and not n.startswith("m.")]
     truth = x.copy()
     for k, v in draw_truth(robot, names, rng).items():
         truth[prob.index[k]] = v
@@ -329,7 +330,7 @@ def test_measured_recovery(kind):
 def test_measured_point_noise_within_four_sigma():
     res, truth = measured_experiment("point", noise_q=1e-5, sigma_t=1e-5, N=60, seed=2)
     est, err = estimated_errors(res, truth)
-    assert np.abs(err / res.std[est]).max() < 4.0
+    assert np.abs(err / res.fit.std[est]).max() < 4.0
 
 
 def test_measured_point_initialize_rigid_fit():
@@ -380,7 +381,7 @@ def test_measured_point_default_tip_fit_ur10():
         [MeasuredPointLoop("m", "tool0", initial_tip=UR10_TIP, sigma_t=1e-5)],
         opts,
     )
-    names = [n for n, s in zip(ref.names, ref.status) if s == "estimated" and not n.startswith("m.")]
+    names = [n for n, s in zip(ref.fit.names, ref.fit.status) if s == "estimated" and not n.startswith("m.")]
     assert "wrist_3_joint.rx" in names and len(names) == 18  # + 9 (base, tip) = 27
     truth = prob.nominal.copy()
     for k, v in draw_truth(robot, names, rng).items():
@@ -391,7 +392,7 @@ def test_measured_point_default_tip_fit_ur10():
     )
     truth[prob.loop_slices[0]] = np.concatenate([vec_of(X_TRUE), UR10_TIP])
     est, err = estimated_errors(res, dict(zip(prob.names, truth)))
-    estimated = {res.names[i] for i in est}
+    estimated = {res.fit.names[i] for i in est}
     assert set(names) <= estimated and "wrist_3_joint.rx" in estimated
     assert "wrist_3_joint.rx" not in dropped_names(res)
     assert {"m.tip_x", "m.tip_y", "m.tip_z"} <= estimated
@@ -488,7 +489,7 @@ def test_two_planes_sessions_by_loop_column():
     assert np.abs(err).max() < 1e-8
     for f in ("floor", "wall"):
         for g in ("nrx", "nry", "d"):
-            assert res.status[res.names.index(f"{f}.{g}")] == "estimated"
+            assert res.fit.status[res.fit.names.index(f"{f}.{g}")] == "estimated"
 
 
 def _ur10_tracker_experiment(noise_q: float, sigma_t: float, seed: int, N: int = 150, N_held: int = 100):
@@ -530,10 +531,10 @@ def test_tracker_noise_given_joint_noise_estimated_noise_free_joints():
     _, held_plain = out["plain"]
     # joint noise adds at most ~ (5 urad x ~1 m)^2, a quarter of the tracker variance: at 450 residual rows
     # the variance estimate itself scatters by ~7 % of the tracker variance
-    assert res.sigma_estimated and res.sigma < 5e-6
+    assert res.noise.sigma_estimated and res.noise.sigma < 5e-6
     assert held <= 1.1 * held_plain, (held, held_plain)
     assert held < 1e-5  # below the tracker noise itself: 150 configurations average it down
-    assert abs(res.chi2 / res.dof - 1.0) < 0.2  # the tracker noise explains the residual
+    assert abs(res.noise.chi2 / res.noise.dof - 1.0) < 0.2  # the tracker noise explains the residual
 
 
 def test_tracker_and_joint_noise_both_present():
@@ -542,5 +543,5 @@ def test_tracker_and_joint_noise_both_present():
     out = _ur10_tracker_experiment(1e-4, 1e-5, seed=6)
     res, held = out["default"]
     _, held_plain = out["plain"]
-    assert res.sigma == pytest.approx(1e-4, rel=0.25)
+    assert res.noise.sigma == pytest.approx(1e-4, rel=0.25)
     assert held < held_plain, (held, held_plain)

@@ -12,12 +12,12 @@ import pinocchio as pin
 import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
+from closedloop.assets.catalog import example_robot_data_dir
 from closedloop.calibration.pipeline import build_problem
 from closedloop.errors import LoopError
 from closedloop.io.logs import JointLog
 from closedloop.loops.measured import MeasuredPointLoop
 from closedloop.loops.spec import parse_loop
-from closedloop.models import example_robot_data_dir
 from closedloop.studies.truth import draw_truth
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,11 +60,11 @@ def test_calibrate_twice_same_loops_same_result(tmp_path):
     assert [_state(lp) for lp in loops] == before
     assert not any(hasattr(lp, a) for lp in loops for a in ("task_var", "task_estimated", "own_cov", "meas"))
     second = calibrate(robot, log, loops, CalibrationOptions())
-    assert np.array_equal(first.values, second.values)
-    assert first.noise_model == second.noise_model
+    assert np.array_equal(first.fit.values, second.fit.values)
+    assert first.noise.noise_model == second.noise.noise_model
     # the play is estimated (a variance component) in both calls, per loop, near the simulated 0.2 mm
-    assert all(d["task_estimated"] for d in first.noise_model)
-    sig = np.array([d["task_sigma_m"] for d in first.noise_model])
+    assert all(d["task_estimated"] for d in first.noise.noise_model)
+    sig = np.array([d["task_sigma_m"] for d in first.noise.noise_model])
     assert sig.size == len(names) and np.all(np.abs(sig / 2e-4 - 1.0) < 0.35), sig
     assert all(nz.estimated for nz in first.problem.noise)
 
@@ -113,14 +113,20 @@ def test_measurements_are_arguments_and_rows_follow_a_rejection():
     r_sub = sub.evaluate(sub.nominal, False)[0].r
     np.testing.assert_array_equal(r_sub, np.delete(r_all, bad, axis=0))
     res = calibrate(robot, log, [loop], CalibrationOptions(noise=1e-7))
-    assert [rj.row for rj in res.rejected] == [bad + 1]
-    assert res.residuals_after[0].n == len(th) - 1 and res.residuals_after[0].rms_m < 5e-5  # |3 x 2e-5| ~ 3.5e-5
+    assert [rj.row for rj in res.outliers.rejected] == [bad + 1]
+    assert (
+        res.fit.residuals_after[0].n == len(th) - 1 and res.fit.residuals_after[0].rms_m < 5e-5
+    )  # |3 x 2e-5| ~ 3.5e-5
     # the same as a calibration of the log without that row
     keep = np.delete(np.arange(len(th)), bad)
     clean = JointLog(joints, th[keep], None, None, {c: pts[keep, k] for k, c in enumerate(cols)})
     ref = calibrate(robot, clean, [loop], CalibrationOptions(noise=1e-7))
-    assert ref.rejected == [] and ref.names == res.names and list(ref.estimated) == list(res.estimated)
-    np.testing.assert_allclose(res.values, ref.values, rtol=0, atol=1e-8)
+    assert (
+        ref.outliers.rejected == []
+        and ref.fit.names == res.fit.names
+        and list(ref.fit.estimated) == list(res.fit.estimated)
+    )
+    np.testing.assert_allclose(res.fit.values, ref.fit.values, rtol=0, atol=1e-8)
     assert np.allclose([res.value(f"m.tip_{a}") for a in "xyz"], TIP_TRUE, atol=2e-3)
 
 

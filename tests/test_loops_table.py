@@ -92,8 +92,8 @@ def toy_type(tmp_path, monkeypatch):
 
 
 def test_a_new_loop_type_costs_its_module_its_entry_and_its_simulator_class(toy_type, tmp_path, capsys):
+    from closedloop.assets.catalog import ROBOTS, nominal_urdf
     from closedloop.model.robot import RobotModel
-    from closedloop.models import ROBOTS, nominal_urdf
     from closedloop.sims.loop_types import sim_loop
 
     # the parser (its module loads on first use) and `closedloop loops`

@@ -10,12 +10,12 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from closedloop.assets.catalog import nominal_urdf
 from closedloop.calibration.pipeline import CalibrationOptions, calibrate
 from closedloop.errors import ModelError
 from closedloop.io.logs import JointLog
 from closedloop.loops.point import PointLoop
 from closedloop.model.robot import RobotModel
-from closedloop.models import nominal_urdf
 from closedloop.output.urdf import model_frames, write_model
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.studies.synthetic import self_motion
@@ -89,7 +89,7 @@ def test_calibration_through_a_coupled_joint_recovers_the_truth_and_is_written(r
     x[prob.loop_slices[0]] = prob.initialize_loop(x, 0)
     th = self_motion(prob, x, Q0, 40, rng)
     res0 = calibrate(robot, JointLog(joints, th), [make()])
-    names = [n for n, s in zip(res0.names, res0.status) if s == "estimated" and not n.startswith("socket.")]
+    names = [n for n, s in zip(res0.fit.names, res0.fit.status) if s == "estimated" and not n.startswith("socket.")]
     truth = prob.nominal.copy()
     for n, v in draw_truth(robot, names, rng).items():
         truth[prob.index[n]] = v
@@ -99,9 +99,9 @@ def test_calibration_through_a_coupled_joint_recovers_the_truth_and_is_written(r
     res = calibrate(robot, log, [make()], CalibrationOptions(noise=1e-7))
     assert res.converged
     err = max(
-        abs(res.values[k] - truth[prob.index[res.names[k]]])
-        for k in res.estimated
-        if not res.names[k].startswith("socket.")
+        abs(res.fit.values[k] - truth[prob.index[res.fit.names[k]]])
+        for k in res.fit.estimated
+        if not res.fit.names[k].startswith("socket.")
     )
     assert err < 1e-8
     out = tmp_path / "cal.urdf"
@@ -112,10 +112,10 @@ def test_calibration_through_a_coupled_joint_recovers_the_truth_and_is_written(r
         written,
         log,
         res.loops,
-        calibration={n: res.value(n) for n in res.names if n.startswith("socket.")},
+        calibration={n: res.value(n) for n in res.fit.names if n.startswith("socket.")},
         places=False,
     )
-    assert np.abs(ev.residuals[0] - res.problem.evaluate(res.values, False)[0].r).max() < 1e-9
+    assert np.abs(ev.residuals[0] - res.problem.evaluate(res.fit.values, False)[0].r).max() < 1e-9
 
 
 def test_a_chain_of_mimics_is_refused(tmp_path):
@@ -150,7 +150,7 @@ def test_the_coupling_is_a_parameter_where_it_can_be_identified(robot, tmp_path)
     th = self_motion(prob, x, Q0, 40, rng)
     opts = CalibrationOptions(identify=["placement", "offset", "mimic", "loop"])
     res0 = calibrate(robot, JointLog(joints, th), [make()], opts)
-    names = [n for n, s in zip(res0.names, res0.status) if s == "estimated" and not n.startswith("socket.")]
+    names = [n for n, s in zip(res0.fit.names, res0.fit.status) if s == "estimated" and not n.startswith("socket.")]
     assert "panda_joint6.mimic" in names
     truth = prob.nominal.copy()
     for n, v in draw_truth(robot, [n for n in names if n != "panda_joint6.mimic"], rng).items():
@@ -169,7 +169,7 @@ def test_the_coupling_is_a_parameter_where_it_can_be_identified(robot, tmp_path)
         written,
         log,
         res.loops,
-        calibration={n: res.value(n) for n in res.names if n.startswith("socket.")},
+        calibration={n: res.value(n) for n in res.fit.names if n.startswith("socket.")},
         places=False,
     )
-    assert np.abs(ev.residuals[0] - res.problem.evaluate(res.values, False)[0].r).max() < 1e-9
+    assert np.abs(ev.residuals[0] - res.problem.evaluate(res.fit.values, False)[0].r).max() < 1e-9

@@ -16,7 +16,7 @@ import pytest
 from closedloop import CalibrationOptions, JointLog, WeldLoop, calibrate
 from closedloop.calibration.pipeline import analyse_solution
 from closedloop.calibration.verdict import judge
-from closedloop.estimate.stages import Fit, ResidualFunction, StageResult
+from closedloop.estimate.residual import Fit, ResidualFunction, StageResult
 
 
 @pytest.fixture(scope="module")
@@ -28,16 +28,16 @@ def noisy(panda, panda_weld):
 
 def _analysed_at(res, x: np.ndarray) -> dict:
     """`analyse_solution` of the result's problem at `x` (the unweighted-noise weighted fit, as calibrate runs)."""
-    fun = ResidualFunction(res.problem, x, list(res.estimated), np.ones(len(res.problem.joints)), "noise")
-    fit = Fit(x, StageResult(None, fun), list(res.estimated), fun.sigma_q, False, 0, [])
-    return analyse_solution(res.problem, fit, CalibrationOptions(), list(res.status))
+    fun = ResidualFunction(res.problem, x, list(res.fit.estimated), np.ones(len(res.problem.joints)), "noise")
+    fit = Fit(x, StageResult(None, fun), list(res.fit.estimated), fun.sigma_q, False, 0, [])
+    return analyse_solution(res.problem, fit, CalibrationOptions(), list(res.fit.status))
 
 
 def test_nothing_is_reducible_at_the_solution(noisy):
     assert noisy.verdict.status == "ok"
-    assert noisy.reducible < 1e-6  # seen: ~1e-11
-    assert noisy.verdict.evidence["reducible"] == noisy.reducible
-    assert _analysed_at(noisy, noisy.values)["reducible"] < 1e-6
+    assert noisy.fit.reducible < 1e-6  # seen: ~1e-11
+    assert noisy.verdict.evidence["reducible"] == noisy.fit.reducible
+    assert _analysed_at(noisy, noisy.fit.values)["reducible"] < 1e-6
 
 
 @pytest.mark.slow
@@ -46,25 +46,27 @@ def test_a_point_off_the_minimum_shows_the_cost_a_step_removes(noisy):
     d^2 / (dof + d^2) of the cost (at least: the Mahalanobis distance of the move is at least d), and the
     verdict on such a stop is failed."""
     k = int(
-        np.nanargmin(noisy.std[noisy.estimated] / np.array([noisy.problem.params[i].prior for i in noisy.estimated]))
+        np.nanargmin(
+            noisy.fit.std[noisy.fit.estimated] / np.array([noisy.problem.params[i].prior for i in noisy.fit.estimated])
+        )
     )
-    idx = noisy.estimated[k]
-    x = noisy.values.copy()
-    x[idx] += 200.0 * noisy.std[idx]
+    idx = noisy.fit.estimated[k]
+    x = noisy.fit.values.copy()
+    x[idx] += 200.0 * noisy.fit.std[idx]
     a = _analysed_at(noisy, x)
     expected = 200.0**2 / (a["dof"] + 200.0**2)
     assert expected > 0.8
     assert a["reducible"] >= 0.9 * expected and a["reducible"] < 1.0
-    v = judge(replace(noisy, reducible=a["reducible"]))
+    v = judge(replace(noisy, fit=replace(noisy.fit, reducible=a["reducible"])))
     assert v.status == "failed" and any("Gauss-Newton step" in r for r in v.reasons)
 
 
 def test_the_thresholds_and_the_round_off_exception(noisy):
-    assert judge(replace(noisy, reducible=0.2)).status == "suspect"
-    assert judge(replace(noisy, reducible=0.05)).status == "ok"
+    assert judge(replace(noisy, fit=replace(noisy.fit, reducible=0.2))).status == "suspect"
+    assert judge(replace(noisy, fit=replace(noisy.fit, reducible=0.05))).status == "ok"
     # a closure at round-off: the residual is no least-squares residual there, nothing is judged
-    at_round_off = [replace(r, rms_m=1e-14, rms_rad=1e-14) for r in noisy.residuals_after]
-    v = judge(replace(noisy, reducible=0.99, residuals_after=at_round_off))
+    at_round_off = [replace(r, rms_m=1e-14, rms_rad=1e-14) for r in noisy.fit.residuals_after]
+    v = judge(replace(noisy, fit=replace(noisy.fit, reducible=0.99, residuals_after=at_round_off)))
     assert not any("Gauss-Newton step" in r for r in v.reasons)
-    v = judge(replace(noisy, reducible=float("nan")))  # bounds: not checked
+    v = judge(replace(noisy, fit=replace(noisy.fit, reducible=float("nan"))))  # bounds: not checked
     assert "reducible" not in v.evidence and v.status == "ok"

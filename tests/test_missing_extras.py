@@ -61,7 +61,7 @@ def test_missing_extra_is_one_line_and_exit_2(extra, tmp_path, monkeypatch, caps
     monkeypatch.setitem(sys.modules, module, None)  # `import module` raises ImportError
     for sub in [m for m in sys.modules if m.startswith(module + ".")]:
         monkeypatch.setitem(sys.modules, sub, None)
-    from closedloop.models import ROBOTS
+    from closedloop.assets.catalog import ROBOTS
 
     args = [a.replace("{tmp}", str(tmp_path)).replace("{panda}", str(ROBOTS["panda"].path)) for a in argv]
     rc = main(args)

@@ -14,11 +14,11 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from closedloop.assets.catalog import nominal_urdf
 from closedloop.calibration.pipeline import CalibrationOptions, build_problem, calibrate, residual_stats
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel
-from closedloop.models import nominal_urdf
 from closedloop.output.mjcf import write_mjcf
 from closedloop.output.urdf import write_urdf
 from closedloop.studies.truth import make_dataset
@@ -68,12 +68,12 @@ def test_calibrated_mjcf_reloads_and_moves_like_the_fit(fitted):
     m = mujoco.MjModel.from_xml_path(str(out))  # (1) MuJoCo loads it
     data = mujoco.MjData(m)
     prob = res.problem
-    TA, _ = prob.loop_frame_poses(res.values, 0) if hasattr(prob, "loop_frame_poses") else (None, None)
+    TA, _ = prob.loop_frame_poses(res.fit.values, 0) if hasattr(prob, "loop_frame_poses") else (None, None)
     # (2) MuJoCo FK of the calibrated MJCF at the raw readings = the calibrated Pinocchio model's tool pose
-    cal = prob.rp.apply(res.values).model
+    cal = prob.rp.apply(res.fit.values).model
     cd = cal.createData()
     fid = cal.getFrameId("panda_hand")
-    k, off = res.values[prob.rp.scale_index()], res.values[prob.rp.offset_index()]
+    k, off = res.fit.values[prob.rp.scale_index()], res.fit.values[prob.rp.offset_index()]
     bid = m.body("panda_hand").id
     qadr = [m.jnt_qposadr[m.joint(j).id] for j in prob.joints]
     worst = 0.0
@@ -94,10 +94,10 @@ def test_calibrated_mjcf_reloads_and_moves_like_the_fit(fitted):
     )
     # (3) reloaded as a model, it closes the loop as the fit did
     rms = closure_rms(RobotModel.from_file(out), log, WeldLoop("fixture", "panda_hand"), res.as_dict())
-    after = res.residuals_after[0]
+    after = res.fit.residuals_after[0]
     assert rms[0] < 1e-8 and rms[1] < 1e-8
     assert abs(rms[0] - after.rms_m) < 1e-9 and abs(rms[1] - after.rms_rad) < 1e-9
-    before = res.residuals_before[0]
+    before = res.fit.residuals_before[0]
     assert before.rms_m > 1e-4  # the nominal model did not close it
 
 

@@ -12,12 +12,12 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from closedloop.assets.catalog import ROBOTS
 from closedloop.calibration.pipeline import EIV, NOISE_MODEL, PLAIN, SANDWICH, build_problem, calibrate
 from closedloop.estimate.model_error import ENCODER_NOISE, neighbour_correlation, noise_test
 from closedloop.io.logs import JointLog
 from closedloop.loops.measured import MeasuredPointLoop
 from closedloop.model.robot import RobotModel
-from closedloop.models import ROBOTS
 from closedloop.records import CalibrationOptions
 from closedloop.studies.truth import draw_truth
 from closedloop.validation.kfold import closure_residuals
@@ -85,13 +85,13 @@ def test_model_error_is_found_and_the_plain_fit_kept(ur5, error):
     test, _ = dataset(robot, joints, error, 60, rng, truth)
     loops = [MeasuredPointLoop("m", "tool0")]
     res = calibrate(robot, train, loops)
-    ev = res.model_error
+    ev = res.noise.model_error
     assert not ev["noise_explains"] and ev["joint_noise_implied"] > 2 * ENCODER_NOISE
-    assert res.estimator == PLAIN and res.error_bars == SANDWICH
-    assert "joint noise does not explain the residual" in res.estimator_reason
+    assert res.noise.estimator == PLAIN and res.noise.error_bars == SANDWICH
+    assert "joint noise does not explain the residual" in res.noise.estimator_reason
     plain = calibrate(robot, train, loops, CalibrationOptions(weighting="none"))
     eiv = calibrate(robot, train, loops, CalibrationOptions(choose_estimator=False))
-    assert eiv.estimator == EIV and eiv.error_bars == NOISE_MODEL
+    assert eiv.noise.estimator == EIV and eiv.noise.error_bars == NOISE_MODEL
     figures = {k: held_out_rms(r, robot, test) for k, r in (("default", res), ("none", plain), ("eiv", eiv))}
     assert figures["default"] <= 1.02 * min(figures["none"], figures["eiv"]), figures
 
@@ -102,12 +102,12 @@ def test_joint_noise_alone_keeps_errors_in_variables(ur5):
     rng = np.random.default_rng(4)
     train, _ = dataset(robot, joints, no_error, 80, rng, noise=5e-5)
     res = calibrate(robot, train, [MeasuredPointLoop("m", "tool0")])
-    ev = res.model_error
+    ev = res.noise.model_error
     assert ev["noise_explains"]
     assert ev["joint_noise_implied"] == pytest.approx(5e-5, rel=0.3)
     assert abs(ev["neighbour_correlation"]) < 0.3  # independent noise: no structure across the workspace
-    assert res.estimator == EIV and res.error_bars == NOISE_MODEL and res.weighting == "noise"
-    assert "joint noise explains the residual" in res.estimator_reason
+    assert res.noise.estimator == EIV and res.noise.error_bars == NOISE_MODEL and res.noise.weighting == "noise"
+    assert "joint noise explains the residual" in res.noise.estimator_reason
 
 
 def test_a_given_noise_is_what_the_residual_is_tested_against(ur5):
@@ -116,8 +116,8 @@ def test_a_given_noise_is_what_the_residual_is_tested_against(ur5):
     rng = np.random.default_rng(5)
     train, _ = dataset(robot, joints, cyclic, 80, rng)
     res = calibrate(robot, train, [MeasuredPointLoop("m", "tool0")], CalibrationOptions(noise=1e-3))
-    assert res.model_error["joint_noise_tested"] == pytest.approx(1e-3)
-    assert res.model_error["noise_explains"] and res.estimator == EIV
+    assert res.noise.model_error["joint_noise_tested"] == pytest.approx(1e-3)
+    assert res.noise.model_error["noise_explains"] and res.noise.estimator == EIV
 
 
 def test_noise_test_limits():
@@ -150,8 +150,8 @@ def test_error_bars_hold_under_model_error(ur5):
     for _ in range(8):
         log_, _ = dataset(robot, joints, cyclic, 80, rng, truth)
         res = calibrate(robot, log_, [MeasuredPointLoop("m", "tool0")])
-        assert res.error_bars == SANDWICH
-        runs.append({res.names[k]: (res.values[k], res.std[k]) for k in res.estimated})
+        assert res.noise.error_bars == SANDWICH
+        runs.append({res.fit.names[k]: (res.fit.values[k], res.fit.std[k]) for k in res.fit.estimated})
     names = [n for n in set.intersection(*(set(r) for r in runs)) if not n.startswith("m.")]
     z2 = []
     for n in names:

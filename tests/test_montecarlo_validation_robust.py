@@ -115,7 +115,7 @@ def test_three_gross_outliers_are_flagged(scenario):
     # Least squares (unweighted: the noise-weighted LM does not converge with these outliers),
     # then Cauchy IRLS from it; flags at the robust solution.
     ls = calibrate(sc.robot, sc.log(th), sc.loops, CalibrationOptions(noise=NOISE, weighting="none", robust=None))
-    d_ls = np.linalg.norm(config_residuals(ls.problem, ls.values, NOISE)[0], axis=1)
+    d_ls = np.linalg.norm(config_residuals(ls.problem, ls.fit.values, NOISE)[0], axis=1)
     assert set(np.argsort(-d_ls)[:3]) == set(bad)  # already the three largest at the LS fit
     out = irls(ls, "cauchy", noise=NOISE, max_iter=100)
     flagged = sorted(s.row for s in out.suspects)
@@ -127,9 +127,9 @@ def test_three_gross_outliers_are_flagged(scenario):
     clean_th = th.copy()
     clean_th[bad] = sc.theta[bad]
     clean = calibrate(sc.robot, sc.log(clean_th), sc.loops, CalibrationOptions(noise=NOISE))
-    est = clean.estimated
-    assert ls.estimated == est
-    z = (out.values - truth)[est] / clean.std[est]
+    est = clean.fit.estimated
+    assert ls.fit.estimated == est
+    z = (out.values - truth)[est] / clean.fit.std[est]
     assert np.max(np.abs(z)) < 4.0
     # Huber: the outliers get tiny weights and are the three most suspect
     hub = irls(ls, "huber", noise=NOISE, max_iter=100)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from closedloop.calibration.pipeline import build_problem, initial_values
-from closedloop.estimate.stages import ResidualFunction
+from closedloop.estimate.residual import ResidualFunction
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 

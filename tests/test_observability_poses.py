@@ -47,14 +47,14 @@ def test_observability_of_a_result(weld):
     # The same whitened, prior-scaled Jacobian as the estimator's: same singular values.  Not to
     # rounding: calibrate analyses the solver's x before the closure rotation vector is normalized
     # (|r| near pi here), and d/dr of exp3 differs between the two branches of the same rotation.
-    assert np.allclose(o["singular_values"], res.singular_values, rtol=5e-3)
-    assert np.allclose(o["singular_values"][-8:], res.singular_values[-8:], rtol=1e-6)
-    assert o["n_configs"] == 100 and len(o["params"]) == len(res.estimated)
+    assert np.allclose(o["singular_values"], res.identifiability.singular_values, rtol=5e-3)
+    assert np.allclose(o["singular_values"][-8:], res.identifiability.singular_values[-8:], rtol=1e-6)
+    assert o["n_configs"] == 100 and len(o["params"]) == len(res.fit.estimated)
     assert o["O4"] == pytest.approx(o["O2"] * o["O3"])
     assert o["O3"] > 1.0  # every estimated direction is determined better than its prior
     # trace of the scaled covariance = sum s^-2 = trace of the estimator's covariance / prior^2
-    prior = np.array([res.problem.params[k].prior for k in res.estimated])
-    assert o["trace_cov_scaled"] == pytest.approx(np.trace(res.covariance / np.outer(prior, prior)), rel=1e-6)
+    prior = np.array([res.problem.params[k].prior for k in res.fit.estimated])
+    assert o["trace_cov_scaled"] == pytest.approx(np.trace(res.fit.covariance / np.outer(prior, prior)), rel=1e-6)
     # more configurations observe more: O3 and O5 grow with the data
     half = observability(res, thetas=[res.problem.blocks[0].theta[:50]])
     assert half["O3"] < o["O3"] and half["O5"] < o["O5"]
@@ -63,7 +63,7 @@ def test_observability_of_a_result(weld):
 def test_greedy_updates_match_determinants(weld):
     sc, res = weld
     B, idx = pool_blocks(res, None, sc.pool)
-    assert idx == res.estimated and B.shape == (300, 6, len(idx))
+    assert idx == res.fit.estimated and B.shape == (300, 6, len(idx))
     L = B.shape[2]
     # from zero configurations: 2 configurations (12 rows) cannot determine 27 parameters alone
     sel = greedy_d_optimal(B, 2, prior_weight=1.0)
@@ -178,9 +178,9 @@ def test_selection_halves_the_configurations_point_contact():
     benchmarks/bench_pose_selection.py: greedy-a 20 -> 10, 40 -> 17, 80 -> 37, 120 -> 57, 160 -> 80;
     exchange-a 20 -> 9, 40 -> 16, 80 -> 35, 120 -> 56, 160 -> 78; the D-optimal greedy needs ~0.6 N on this
     criterion, which it does not optimise)."""
+    from closedloop.assets.catalog import ROBOTS
     from closedloop.loops import PointLoop
     from closedloop.model.robot import RobotModel
-    from closedloop.models import ROBOTS
     from closedloop.studies.truth import make_dataset
 
     robot = RobotModel.from_file(ROBOTS["ur5"].path)

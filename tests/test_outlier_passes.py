@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, calibrate
+from closedloop.assets.catalog import example_robot_data_dir
 from closedloop.cli.main import main
 from closedloop.io.logs import JointLog, read_log
 from closedloop.loops.spec import parse_loop
 from closedloop.model.robot import RobotModel
-from closedloop.models import example_robot_data_dir
 from closedloop.output.report import build_report
 from closedloop.validation.check import check_report
 
@@ -67,7 +67,7 @@ def test_a_wandering_refit_keeps_its_best_pass(xarm):
         [parse_loop("weld:frame=link7,name=fixture", robot)],
         CalibrationOptions(),
     )
-    assert sorted(r.row - 1 for r in res.rejected) == BAD.tolist()
+    assert sorted(r.row - 1 for r in res.outliers.rejected) == BAD.tolist()
     assert res.verdict.status == "suspect"  # 14 % of the rows rejected: evidence enough to say so
     truth = json.loads((xarm / "truth.json").read_text())
     rows, ok = check_report(truth, build_report(res), tol_m=1e-3, tol_rad=5e-3, tol_scale=5e-3)  # check's defaults

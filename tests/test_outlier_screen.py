@@ -88,7 +88,7 @@ def test_tracker_scenario_keeps_its_clean_rows(tmp_path):
     log = read_log(tmp_path / "log.csv", robot.joint_names)
     loop = parse_loop("measured_point:frame=stylus_tip,name=tracker,sigma_t=1e-5", robot)
     res = calibrate(robot, log, [loop], CalibrationOptions())
-    assert [r.row for r in res.rejected] == []
+    assert [r.row for r in res.outliers.rejected] == []
     assert res.verdict.status == "ok"
 
 
@@ -101,7 +101,7 @@ def test_plane_loop_keeps_the_rows_that_fix_the_fit():
 
     o = zoo.run_case(zoo.make_case("ur5", "plane", n=100, sigma=1e-4, seed=0))
     assert o.result is not None, o.error
-    assert [r.row for r in o.result.rejected] == []
+    assert [r.row for r in o.result.outliers.rejected] == []
     assert o.right and o.status == "ok", o.line()
 
 
@@ -114,5 +114,5 @@ def test_corrupted_tracker_rows_still_go():
     case = zoo.make_case("xarm7", "measured_point", n=60, sigma=1e-5, sigma_t=1e-5, seed=1, corrupt_rows=0.2)
     o = zoo.run_case(case)
     assert o.result is not None, o.error
-    assert sorted(r.row - 1 for r in o.result.rejected) == sorted(int(b) for b in case.corrupted)
+    assert sorted(r.row - 1 for r in o.result.outliers.rejected) == sorted(int(b) for b in case.corrupted)
     assert o.right, o.line()

@@ -23,9 +23,9 @@ WELD = "weld:frame=panda_hand,name=fixture"
 @pytest.fixture(scope="module")
 def files(tmp_path_factory):
     """A mesh-free Panda and a 30-row weld log."""
+    from closedloop.assets.catalog import nominal_urdf
     from closedloop.loops import WeldLoop
     from closedloop.model.robot import RobotModel
-    from closedloop.models import nominal_urdf
     from closedloop.studies.truth import make_dataset
 
     d = tmp_path_factory.mktemp("rule")

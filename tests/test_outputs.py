@@ -12,11 +12,11 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from closedloop.assets.catalog import nominal_urdf
 from closedloop.calibration.pipeline import calibrate
 from closedloop.cli.main import main
 from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel
-from closedloop.models import nominal_urdf
 from closedloop.output.urdf import write_urdf
 from closedloop.studies.truth import make_dataset
 
@@ -44,7 +44,7 @@ def test_calibrated_urdf_reproduces_fit_in_pinocchio(calibrated):
     fid = model.getFrameId("panda_hand")
     # the calibrated model's own prediction of the tool pose (offsets applied, k = 1)
     prob = res.problem
-    TA, _ = prob.loop_poses(res.values, 0)
+    TA, _ = prob.loop_poses(res.fit.values, 0)
     for i in range(0, 120, 7):
         q = robot.configurations(ds.readings[i : i + 1], prob.joints)[0]
         pin.framesForwardKinematics(model, data, q)

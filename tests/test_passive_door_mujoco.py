@@ -7,11 +7,11 @@ import json
 
 import pytest
 
+from closedloop.assets.catalog import model_file
 from closedloop.calibration.pipeline import calibrate
 from closedloop.io.logs import read_log
 from closedloop.loops import PassiveChainLoop
 from closedloop.model.robot import RobotModel
-from closedloop.models import model_file
 from closedloop.output.report import build_report
 from closedloop.sims import simulate
 from closedloop.validation.check import check_report
@@ -25,7 +25,7 @@ def test_ur5_door_through_the_passive_chain_loop(tmp_path):
     loop = PassiveChainLoop("door", "tool0", model_file("tasks/hinged_door.urdf"), "grip")
     res = calibrate(robot, log, [loop])
     assert res.converged
-    assert res.residuals_before[0].rms_m > 3e-4 and res.residuals_after[0].rms_m < 1e-6
+    assert res.fit.residuals_before[0].rms_m > 3e-4 and res.fit.residuals_after[0].rms_m < 1e-6
     truth = json.loads((tmp_path / "truth.json").read_text())
     rows, ok = check_report(truth, build_report(res), tol_m=1e-4, tol_rad=1e-3, tol_scale=1e-3)
     assert ok, [r for r in rows if r["result"] == "FAIL"]

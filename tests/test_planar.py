@@ -29,8 +29,10 @@ def test_linear_and_general_solutions_agree():
     a_gen, res = planar.general_solution(theta)
     assert np.abs(a_lin - TRUTH).max() < 1e-10
     assert np.abs(a_gen - a_lin).max() < 1e-8
-    assert [res.status[res.names.index(n)] for n in ("joint2.x", "joint3.x", "ground.tip_x")] == ["estimated"] * 3
-    assert not res.dropped and not res.weak
+    assert [res.fit.status[res.fit.names.index(n)] for n in ("joint2.x", "joint3.x", "ground.tip_x")] == [
+        "estimated"
+    ] * 3
+    assert not res.identifiability.dropped and not res.identifiability.weak
     assert not any("length scale" in n for n in res.notes)  # a4 = 1 (the known ground point) sets it
 
 
@@ -58,11 +60,11 @@ def test_parallelogram_singularity_4():
     S = np.linalg.svd(C, compute_uv=False)
     assert S[-1] < 1e-12 * S[0]  # columns of C dependent: cos(phi3) = -cos(phi1)
     a_gen, res = planar.general_solution(theta)
-    dropped = {d.name: d for d in res.dropped}
+    dropped = {d.name: d for d in res.identifiability.dropped}
     assert set(dropped) == {"joint2.x"}
     assert dict(dropped["joint2.x"].absorbed_into) == pytest.approx({"ground.tip_x": -1.0})
     assert any("re-checked at the solution" in n for n in res.notes)
-    assert res.status[res.names.index("joint2.x")] == "dropped"
-    assert res.status[res.names.index("joint3.x")] == "estimated"
+    assert res.fit.status[res.fit.names.index("joint2.x")] == "dropped"
+    assert res.fit.status[res.fit.names.index("joint3.x")] == "estimated"
     assert abs(a_gen[1] - a_par[1]) < 1e-8  # a2 = a4
     assert abs((a_gen[0] - a_gen[2]) - (a_par[0] - a_par[2])) < 1e-8  # the determined difference

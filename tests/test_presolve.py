@@ -1,4 +1,4 @@
-"""A stage on a long log is first solved on an evenly spaced sample (`fit.presolved`: 100,000
+"""A stage on a long log is first solved on an evenly spaced sample (`residual.presolved`: 100,000
 configurations in at most 5 s); the whole log then finishes it.  The answer must be the whole log's own fit,
 to a small fraction of its standard errors, and a sample whose fit fails must not be used."""
 
@@ -9,11 +9,11 @@ import logging
 import numpy as np
 import pytest
 
-import closedloop.estimate.stages as fit_module
+import closedloop.estimate.residual as fit_module
 from closedloop import CalibrationOptions, RobotModel, calibrate
+from closedloop.assets.catalog import ROBOTS
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
-from closedloop.models import ROBOTS
 from closedloop.studies.truth import make_dataset
 
 
@@ -46,17 +46,19 @@ def test_presolved_fit_is_the_whole_logs_fit(long_log, whole, monkeypatch, caplo
     panda, ds, log = long_log
     loops = [WeldLoop("fixture", "panda_hand")]
     _presolve_above(monkeypatch, 1000, 150)
-    with caplog.at_level(logging.INFO, logger="closedloop.estimate.stages"):
+    with caplog.at_level(logging.INFO, logger="closedloop.estimate.residual"):
         pre = calibrate(panda, log, loops, CalibrationOptions())
     assert any("solved on 150 configurations" in m for m in caplog.messages)  # the presolve ran
     assert whole.verdict.status == pre.verdict.status == "ok"
-    assert whole.status == pre.status and whole.gauge == pre.gauge
-    est = np.array(whole.estimated)
-    z = np.abs(pre.values[est] - whole.values[est]) / whole.std[est]
+    assert whole.fit.status == pre.fit.status and whole.scale.gauge == pre.scale.gauge
+    est = np.array(whole.fit.estimated)
+    z = np.abs(pre.fit.values[est] - whole.fit.values[est]) / whole.fit.std[est]
     assert np.nanmax(z) < 0.05, np.nanmax(z)  # the same minimum, to 5 % of a standard error
-    assert np.allclose(pre.std[est], whole.std[est], rtol=1e-3, equal_nan=True)
+    assert np.allclose(pre.fit.std[est], whole.fit.std[est], rtol=1e-3, equal_nan=True)
     # the same robot by what it does: the hand's place over the log, both calibrations against each other
-    hand = [np.asarray(r.problem.loop_poses(r.values, 0, ds.readings)[0])[:, :3, 3] for r in (whole, pre)]  # panda_hand
+    hand = [
+        np.asarray(r.problem.loop_poses(r.fit.values, 0, ds.readings)[0])[:, :3, 3] for r in (whole, pre)
+    ]  # panda_hand
     assert np.linalg.norm(hand[0] - hand[1], axis=1).max() < 1e-7  # nominal: 14 mm
 
 
@@ -73,11 +75,11 @@ def test_a_sample_that_does_not_converge_is_not_used(long_log, whole, monkeypatc
         return res
 
     monkeypatch.setattr(fit_module, "levenberg_marquardt", failing_on_samples)
-    with caplog.at_level(logging.INFO, logger="closedloop.estimate.stages"):
+    with caplog.at_level(logging.INFO, logger="closedloop.estimate.residual"):
         pre = calibrate(panda, log, loops, CalibrationOptions())
     assert any("did not converge cleanly" in m for m in caplog.messages)
-    est = np.array(whole.estimated)
-    assert np.allclose(pre.values[est], whole.values[est], rtol=0, atol=1e-9)
+    est = np.array(whole.fit.estimated)
+    assert np.allclose(pre.fit.values[est], whole.fit.values[est], rtol=0, atol=1e-9)
     assert pre.verdict.status == "ok"
 
 
@@ -89,9 +91,9 @@ def test_presolved_passive_door_is_the_truth(tmp_path, monkeypatch):
     parameters 0.5-1.4 mrad off with a closure as small, which is why the finish keeps them)."""
     import json
 
+    from closedloop.assets.catalog import model_file
     from closedloop.io.logs import read_log
     from closedloop.loops import PassiveChainLoop
-    from closedloop.models import model_file
     from closedloop.output.report import build_report
     from closedloop.sims import simulate
     from closedloop.validation.check import check_report

@@ -16,7 +16,7 @@ def _api_example() -> str:
 
 
 def test_readme_python_example_runs(tmp_path, monkeypatch, panda_weld):
-    from closedloop.models import ROBOTS
+    from closedloop.assets.catalog import ROBOTS
 
     code = _api_example()
     imports = [ln for ln in code.splitlines() if ln.startswith(("from ", "import "))]

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 from real_data import RECORDINGS, chain_urdf, figaroh_log
 
+from closedloop.assets.catalog import example_robot_data_dir
 from closedloop.calibration.pipeline import PLAIN, SANDWICH
 from closedloop.io.logs import JointLog
 from closedloop.loops.measured import MeasuredPointLoop
 from closedloop.model.robot import RobotModel
-from closedloop.models import example_robot_data_dir
 from closedloop.records import CalibrationOptions
 from closedloop.validation.kfold import holdout, subset
 
@@ -74,18 +74,18 @@ def test_model_error_found_and_said(real):
     """The residual is model error: the hypothesis fails, the plain fit is chosen and says why."""
     _, out = real
     res = out["default"]["result"]
-    ev = res.model_error
+    ev = res.noise.model_error
     assert not ev["noise_explains"]
     assert ev["joint_noise_implied"] > 2.0 * ev["joint_noise_tested"]
-    assert res.estimator == PLAIN and res.weighting == "none"
-    assert res.error_bars == SANDWICH
-    assert "joint noise does not explain the residual" in res.estimator_reason
+    assert res.noise.estimator == PLAIN and res.noise.weighting == "none"
+    assert res.noise.error_bars == SANDWICH
+    assert "joint noise does not explain the residual" in res.noise.estimator_reason
     assert res.notes[0].startswith(f"estimator: {PLAIN}")
     # too few configurations per parameter for the sandwich: the verdict says the error bars are not reliable
     assert res.verdict.status == "suspect"
     assert any("error bars are not reliable" in x for x in res.verdict.reasons)
     # errors in variables as asked says nothing was decided
-    assert out["eiv"]["result"].estimator_reason == "as asked"
+    assert out["eiv"]["result"].noise.estimator_reason == "as asked"
 
 
 def test_absent_recording_skips_naming_its_folder(monkeypatch, tmp_path):

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
+from closedloop.assets.catalog import example_robot_data_dir
 from closedloop.cli.calibrate import print_summary
 from closedloop.io.camera_info import camera_infos_from_result
 from closedloop.io.logs import JointLog
 from closedloop.loops.spec import parse_loop
-from closedloop.models import example_robot_data_dir
 from closedloop.output.html import robot_corrections
 from closedloop.problem.distances import DistanceLoop
 
@@ -45,8 +45,8 @@ def rig_result(tmp_path_factory):
 def test_summary_counts_configurations_not_distance_rows(rig_result, capsys):
     res, names, n_rows = rig_result
     distances = [b.loop.name for b in res.problem.blocks if getattr(b.loop, "parameter_only", False)]
-    used = n_rows - len(res.rejected)  # configurations in the final fit
-    assert len(distances) == 3 and sum(r.n for r in res.residuals_after) == used + 3
+    used = n_rows - len(res.outliers.rejected)  # configurations in the final fit
+    assert len(distances) == 3 and sum(r.n for r in res.fit.residuals_after) == used + 3
     cv = {"k": 5, "test": [{"loop": k, "rms_m": 2e-4} for k in names + distances]}
     print_summary(res, 1.0, SimpleNamespace(out=None, report=None), {"validation": cv})
     out = capsys.readouterr().out
@@ -58,12 +58,12 @@ def test_summary_counts_configurations_not_distance_rows(rig_result, capsys):
 @pytest.mark.slow
 def test_shared_ball_is_not_a_robot_correction(rig_result):
     res, _, _ = rig_result
-    tips = [res.names.index(f"ball.tip_{a}") for a in "xyz"]
-    assert all(res.status[k] == "estimated" for k in tips)
+    tips = [res.fit.names.index(f"ball.tip_{a}") for a in "xyz"]
+    assert all(res.fit.status[k] == "estimated" for k in tips)
     idx = robot_corrections(res)
     assert idx and not set(idx) & set(tips)
     assert all(k < res.problem.n_robot for k in idx)
-    assert set(idx) == {k for k in res.estimated if k < res.problem.n_robot}
+    assert set(idx) == {k for k in res.fit.estimated if k < res.problem.n_robot}
 
 
 def test_camera_info_of_a_camera_shared_with_a_group():
@@ -71,7 +71,9 @@ def test_camera_info_of_a_camera_shared_with_a_group():
     loop = parse_loop("camera:frame=tool0,name=c,cam1=@head,dist=k1", robot)
     K = {"fx": 610.0, "fy": 605.0, "cx": 321.0, "cy": 239.0, "k1": -0.12}
     names = [f"head.cam1.{f}" for f in K]
-    infos = camera_infos_from_result(SimpleNamespace(names=names, values=np.array(list(K.values()))), loop)
+    infos = camera_infos_from_result(
+        SimpleNamespace(fit=SimpleNamespace(names=names, values=np.array(list(K.values())))), loop
+    )
     assert len(infos) == 1
     np.testing.assert_array_equal(infos[0].K, [610.0, 605.0, 321.0, 239.0])
     assert infos[0].D[0] == -0.12

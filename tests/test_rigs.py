@@ -98,7 +98,7 @@ def ball_positions(res, rig, n: int = 60, seed: int = 5) -> tuple[np.ndarray, np
     lo = np.array([prob.robot.joint(j).lower for j in prob.joints])
     hi = np.array([prob.robot.joint(j).upper for j in prob.joints])
     R = rng.uniform(lo, hi, (n, len(prob.joints)))
-    st = prob.rp.apply(res.values[: prob.n_robot])
+    st = prob.rp.apply(res.fit.values[: prob.n_robot])
     fid = prob.robot.frame_id("ball")
     tip = np.array([res.value(f"ball.tip_{a}") for a in "xyz"])
     P = []
@@ -137,18 +137,18 @@ def test_shared_ball_once_distance_sets_scale(rig3, calibrated):
     from closedloop.output.report import build_report
 
     rep = build_report(res)
-    tips = [n for n in res.names if ".tip_" in n]
+    tips = [n for n in res.fit.names if ".tip_" in n]
     assert tips == ["ball.tip_x", "ball.tip_y", "ball.tip_z"]  # one ball, not six
-    assert all(res.status[res.names.index(n)] == "estimated" for n in tips)
+    assert all(res.fit.status[res.fit.names.index(n)] == "estimated" for n in tips)
     assert rep["shared_parameters"]["ball.tip_x"] == rig.loop_names()
     assert res.verdict.status == "ok", res.verdict.describe()
-    assert res.gauge is None  # no length held: the distances set the size
-    assert res.scale_note.startswith("the scale is set by the distance place1_a-place1_b (50 mm)")
+    assert res.scale.gauge is None  # no length held: the distances set the size
+    assert res.scale.scale_note.startswith("the scale is set by the distance place1_a-place1_b (50 mm)")
     err = scale_error(res, rig)
-    assert np.isfinite(res.scale_std) and 0.0 < res.scale_std < 0.005
-    assert abs(err) <= Z_LEVEL * res.scale_std, (err, res.scale_std)  # seed 0: within one standard error
+    assert np.isfinite(res.scale.scale_std) and 0.0 < res.scale.scale_std < 0.005
+    assert abs(err) <= Z_LEVEL * res.scale.scale_std, (err, res.scale.scale_std)  # seed 0: within one standard error
     # the play in the sockets, estimated per loop as a variance component, dominates and is right to 20 %
-    model = {d["loop"]: d for d in res.noise_model}
+    model = {d["loop"]: d for d in res.noise.noise_model}
     for name in rig.loop_names():
         d = model[name]
         assert d["task_estimated"] and d["dominant"] == "task"
@@ -166,8 +166,8 @@ def test_shared_ball_once_distance_sets_scale(rig3, calibrated):
 def test_without_distance_scale_not_set(rig3):
     tmp, rig, robot, log = rig3
     res = calibrate(robot, log, _loops(robot, rig.loop_names()), CalibrationOptions())
-    assert res.gauge is not None
-    assert res.scale_note.startswith("the scale is not set by the data")
+    assert res.scale.gauge is not None
+    assert res.scale.scale_note.startswith("the scale is not set by the data")
     assert any(n.startswith("the scale is not set by the data") for n in res.notes)
 
 
@@ -203,8 +203,12 @@ def test_contact_default_no_worse_than_unweighted_heldout(rig3):
         loops = _loops(robot, names)
         res = calibrate(robot, log, loops + _distances(loops, (1, 2, 3)), opt)
         err[label] = (scale_error(res, rig), rigid_rms(*ball_positions(res, rig)))
-        assert 0.0 < res.scale_std < 0.003, (label, res.scale_std)  # seed 0: 0.11 %
-        assert abs(err[label][0]) <= Z_LEVEL * res.scale_std, (label, err, res.scale_std)  # seed 0: +0.06 % (0.11 %)
+        assert 0.0 < res.scale.scale_std < 0.003, (label, res.scale.scale_std)  # seed 0: 0.11 %
+        assert abs(err[label][0]) <= Z_LEVEL * res.scale.scale_std, (
+            label,
+            err,
+            res.scale.scale_std,
+        )  # seed 0: +0.06 % (0.11 %)
     assert err["default"][1] <= 1.02 * err["unweighted"][1], err  # seed 0: 1.37 mm both
 
 
@@ -241,7 +245,7 @@ def test_evaluate_reproduces_closure_and_compares_models(rig3, calibrated, tmp_p
     tmp, rig, robot, log = rig3
     res, loops = calibrated
     ev = evaluate_result(res, log, loops)  # the calibration's own closure, loop unknowns refitted unweighted
-    for r, a in zip(ev.loops, res.residuals_after):
+    for r, a in zip(ev.loops, res.fit.residuals_after):
         assert r["loop"] == a.loop and abs(r["rms_m"] / a.rms_m - 1.0) < 0.02, (r, a)
     # three models on place 3, not trained on: the nominal, one calibrated on places 1-2, the truth
     train = [n for n in rig.loop_names() if not n.startswith("place3")]
@@ -337,13 +341,13 @@ def test_block_of_three_sockets_sets_scale(tmp_path):
     assert len(blocks) == 9 and {b.block for b in blocks} == {"blk1", "blk2", "blk3"}
     res = calibrate(robot, log, loops + blocks, CalibrationOptions())
     assert res.converged and res.verdict.status == "ok", res.verdict.describe()
-    assert res.gauge is None
-    assert res.scale_note.startswith(
+    assert res.scale.gauge is None
+    assert res.scale.scale_note.startswith(
         "the scale is set by the block blk1 (3 points: place1_a, place1_b, place1_c;"
         " 3 distances up to 56.57 mm) and the block blk2"
-    ), res.scale_note
+    ), res.scale.scale_note
     err = scale_error(res, rig)
-    assert 0.0 < res.scale_std < 0.003 and abs(err) <= Z_LEVEL * res.scale_std, (err, res.scale_std)
+    assert 0.0 < res.scale.scale_std < 0.003 and abs(err) <= Z_LEVEL * res.scale.scale_std, (err, res.scale.scale_std)
     for p in (1, 2, 3):  # the estimated sockets: the block's shape to a few micrometres
         P = np.array([[res.value(f"place{p}_{s}.p{a}") for a in "xyz"] for s in "abc"])
         S = np.array(BLOCK)
@@ -391,6 +395,8 @@ def test_joint_noise_given_far_too_small(rig3):
     loops += _distances(loops, (1, 2, 3))
     res = calibrate(robot, log, loops, CalibrationOptions(noise=1e-9))
     assert res.verdict.status != "failed", res.verdict.describe()
-    assert 0.0 < res.scale_std < 0.005 and abs(scale_error(res, rig)) < Z_LEVEL * res.scale_std, res.scale_std
-    for d in res.noise_model:
+    assert 0.0 < res.scale.scale_std < 0.005 and abs(scale_error(res, rig)) < Z_LEVEL * res.scale.scale_std, (
+        res.scale.scale_std
+    )
+    for d in res.noise.noise_model:
         assert d["task_estimated"] and abs(d["task_sigma_m"] / SIGMA_TASK - 1.0) < 0.2, d

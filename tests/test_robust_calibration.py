@@ -23,7 +23,7 @@ def data(panda):
 
 
 def held_out_error(res, held_out) -> float:
-    ev = res.problem.evaluate(res.values, False, [held_out])
+    ev = res.problem.evaluate(res.fit.values, False, [held_out])
     return residual_stats(res.problem, ev)[0].rms_m
 
 
@@ -34,18 +34,18 @@ def test_three_outliers(panda, data):
     bad_rows = [17, 88, 150]
     corrupt = train.copy()
     corrupt[bad_rows, 1] += 0.1  # shoulder: ~0.1 rad x ~0.5 m reach = ~5 cm closure error
-    ev = clean.problem.evaluate(clean.values, False, [corrupt])[0]
+    ev = clean.problem.evaluate(clean.fit.values, False, [corrupt])[0]
     assert np.linalg.norm(ev.r[bad_rows, :3], axis=1).min() > 0.03
     robust = calibrate(
         panda, JointLog(ds.joints, corrupt), [WeldLoop("fixture", "panda_hand")], CalibrationOptions(robust="cauchy")
     )
     assert robust.converged
-    assert [n for n, s in zip(robust.names, robust.status) if s == "estimated"] == [
-        n for n, s in zip(clean.names, clean.status) if s == "estimated"
+    assert [n for n, s in zip(robust.fit.names, robust.fit.status) if s == "estimated"] == [
+        n for n, s in zip(clean.fit.names, clean.fit.status) if s == "estimated"
     ]
     h0, h1 = held_out_error(clean, held_out), held_out_error(robust, held_out)
     assert abs(h1 / h0 - 1.0) < 0.10, (h0, h1)
-    assert sorted(s.row for s in robust.suspects) == [r + 1 for r in bad_rows]  # 1-based log rows
+    assert sorted(s.row for s in robust.outliers.suspects) == [r + 1 for r in bad_rows]  # 1-based log rows
     assert any("suspect configuration: log row 18" in n for n in robust.notes)
     # plain least squares is pulled away by the same outliers
     plain = calibrate(
@@ -64,7 +64,7 @@ def test_default_rejects_the_three_outliers(panda, data):
     corrupt = train.copy()
     corrupt[[17, 88, 150], 1] += 0.1
     res = calibrate(panda, JointLog(ds.joints, corrupt), [WeldLoop("fixture", "panda_hand")])
-    assert sorted(r.row for r in res.rejected) == [18, 89, 151]
+    assert sorted(r.row for r in res.outliers.rejected) == [18, 89, 151]
     h0, h1 = held_out_error(clean, held_out), held_out_error(res, held_out)
     assert abs(h1 / h0 - 1.0) < 0.10, (h0, h1)
     assert res.verdict.status == "ok", res.verdict.describe()
@@ -118,7 +118,7 @@ def test_long_log_refit_on_a_sample(panda, data, monkeypatch):
     monkeypatch.setattr(outliers, "weighted_stage", spy)
     res = calibrate(panda, JointLog(ds.joints, corrupt), [WeldLoop("fixture", "panda_hand")])
     assert sizes and set(sizes) == {100}  # every pass of the refit on the sample
-    assert sorted(r.row - 1 for r in res.rejected) == bad.tolist()
+    assert sorted(r.row - 1 for r in res.outliers.rejected) == bad.tolist()
     kept = np.delete(train, bad, axis=0)
     clean = calibrate(panda, JointLog(ds.joints, kept), [WeldLoop("fixture", "panda_hand")])
     h0, h1 = held_out_error(clean, held_out), held_out_error(res, held_out)

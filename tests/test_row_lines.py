@@ -95,8 +95,8 @@ def corrupted_log(tmp_path_factory, panda):
     ],
 )
 def test_rejected_and_suspect_rows_are_named_by_file_and_line(corrupted_log, robust, said, capsys):
+    from closedloop.assets.catalog import ROBOTS
     from closedloop.cli.main import main
-    from closedloop.models import ROBOTS
 
     rc = main(
         [

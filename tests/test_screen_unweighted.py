@@ -30,9 +30,9 @@ def test_unweighted_fit_of_clean_data_rejects_nothing(monkeypatch):
     monkeypatch.setattr(mc_module, "calibrate", recording_calibrate)
     monkeypatch.setattr(outliers, "robust_refit", recording_refit)
     mc = monte_carlo(weld_scenario(n=200, seed=0), 1e-4, 12, seed=1, executor="serial")
-    unweighted = [r for r in results if r.weighting == "none"]
+    unweighted = [r for r in results if r.noise.weighting == "none"]
     assert len(unweighted) == 12
-    assert all(not r.rejected for r in unweighted), [len(r.rejected) for r in unweighted]
+    assert all(not r.outliers.rejected for r in unweighted), [len(r.outliers.rejected) for r in unweighted]
     assert all(r.verdict.status == "ok" for r in results)
     assert not refits
     assert abs(mc.stats["noise"].trace_ratio - 1.0) < 0.25  # 12 draws: the bound to the sampling spread

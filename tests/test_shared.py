@@ -151,10 +151,10 @@ def _two_tracker_mc(draws: int, monkeypatch=None) -> float:
     import pinocchio as pin
 
     from closedloop import CalibrationOptions, calibrate
+    from closedloop.assets.catalog import example_robot_data_dir
     from closedloop.loops.measured import MeasuredPointLoop
     from closedloop.loops.point import relative_point
     from closedloop.loops.settings import share
-    from closedloop.models import example_robot_data_dir
     from closedloop.studies.truth import draw_truth
 
     robot = RobotModel.from_file(example_robot_data_dir() / "ur_description/urdf/ur10_robot.urdf")
@@ -196,11 +196,11 @@ def _two_tracker_mc(draws: int, monkeypatch=None) -> float:
             loops(),
             CalibrationOptions(noise=sigma_q, robust=None),
         )
-        assert [n for n in res.names if ".tip_" in n] == ["tool.tip_x", "tool.tip_y", "tool.tip_z"]
-        est.append(res.values.copy())
-        std.append(res.std.copy())
+        assert [n for n in res.fit.names if ".tip_" in n] == ["tool.tip_x", "tool.tip_y", "tool.tip_z"]
+        est.append(res.fit.values.copy())
+        std.append(res.fit.std.copy())
     est, std = np.array(est), np.array(std)
-    ok = [k for k in res.estimated if res.names[k].split(".")[0] in joints]
+    ok = [k for k in res.fit.estimated if res.fit.names[k].split(".")[0] in joints]
     return float(np.mean(est[:, ok].std(axis=0, ddof=1) / np.sqrt(np.mean(std[:, ok] ** 2, axis=0))))
 
 
@@ -257,8 +257,8 @@ def test_two_cameras_share_the_marker():
 
     robot, joints, th, loops, data = _two_camera_data()
     res = calibrate(robot, JointLog(joints, th, None, None, data), loops(), CalibrationOptions())
-    assert [n for n in res.names if ".tip_" in n] == ["marker.tip_x", "marker.tip_y", "marker.tip_z"]
-    assert res.converged and max(r.rms_px for r in res.residuals_after) < 1e-6
+    assert [n for n in res.fit.names if ".tip_" in n] == ["marker.tip_x", "marker.tip_y", "marker.tip_z"]
+    assert res.converged and max(r.rms_px for r in res.fit.residuals_after) < 1e-6
 
 
 def _two_camera_mc(draws: int, sigma_q: float = 1e-4, sigma_px: float = 0.01) -> tuple[float, float]:
@@ -279,11 +279,11 @@ def _two_camera_mc(draws: int, sigma_q: float = 1e-4, sigma_px: float = 0.01) ->
             CalibrationOptions(noise=sigma_q, robust=None),
         )
         assert res.converged
-        est.append(res.values.copy())
-        std.append(res.std.copy())
+        est.append(res.fit.values.copy())
+        std.append(res.fit.std.copy())
     est, std = np.array(est), np.array(std)
-    tip = [res.names.index(f"marker.tip_{a}") for a in "xyz"]
-    ok = list(res.estimated)
+    tip = [res.fit.names.index(f"marker.tip_{a}") for a in "xyz"]
+    ok = list(res.fit.estimated)
     ratio = est[:, tip].std(axis=0, ddof=1) / np.sqrt(np.mean(std[:, tip] ** 2, axis=0))
     z2 = np.mean(((est[:, ok] - est[:, ok].mean(axis=0)) / std[:, ok]) ** 2)
     return float(ratio.mean()), float(z2)

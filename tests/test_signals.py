@@ -98,9 +98,9 @@ def test_running_marker_appends_a_line_only_when_asked(tmp_path, monkeypatch):
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
     """A mesh-free Panda and a 200-row weld log (a calibration of a few seconds)."""
+    from closedloop.assets.catalog import nominal_urdf
     from closedloop.loops import WeldLoop
     from closedloop.model.robot import RobotModel
-    from closedloop.models import nominal_urdf
     from closedloop.studies.truth import make_dataset
 
     d = tmp_path_factory.mktemp("signals")

@@ -8,9 +8,9 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from closedloop.assets.catalog import ROBOTS, nominal_urdf
 from closedloop.errors import InputError, LoopError, ScenarioError
 from closedloop.loops.spec import LOOP_TYPES, parse_loop
-from closedloop.models import ROBOTS, nominal_urdf
 from closedloop.sims import SCENARIOS
 from closedloop.sims.driver import NominalLoop
 from closedloop.sims.loop_types import SIM_LOOPS, sim_loop, simulated_types, simulates

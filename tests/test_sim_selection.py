@@ -8,7 +8,7 @@ calibration is given a 1e-5 rad joint noise so that its covariance measures the
 design alone (with the noise estimated from the residual, it would also measure
 how well each dataset's loop happens to close).
 
-Measured, trace of ``res.covariance`` default / ``greedy-a`` (A-optimal greedy):
+Measured, trace of ``res.fit.covariance`` default / ``greedy-a`` (A-optimal greedy):
 ur5_socket (3-DOF self-motion) 5.9x, 2.9x, 5.4x on seeds 1-3; panda_weld
 (1-DOF self-motion: little to choose from) 1.68x, 1.60x, 1.62x.  Asserted:
 2x and 1.4x on seed 1, and both datasets calibrate to truth within the
@@ -24,11 +24,11 @@ import pinocchio as pin
 import pytest
 from test_sim_calibration import CASES
 
+from closedloop.assets.catalog import nominal_urdf
 from closedloop.calibration.pipeline import CalibrationOptions, calibrate
 from closedloop.io.logs import read_log
 from closedloop.loops.spec import parse_loop
 from closedloop.model.robot import RobotModel
-from closedloop.models import nominal_urdf
 from closedloop.output.report import build_report
 from closedloop.sims import SCENARIOS, simulate
 from closedloop.sims.driver import NominalLoop
@@ -69,15 +69,15 @@ def test_selected_samples_shrink_the_covariance(scenario, factor, tmp_path):
     res_d, truth_d = _calibrate(scenario, tmp_path / "default")
     res_s, truth_s = _calibrate(scenario, tmp_path / "selected")
     assert truth_d["parameters"] == truth_s["parameters"]  # same truth: only the samples differ
-    assert [res_d.names[i] for i in res_d.estimated] == [res_s.names[i] for i in res_s.estimated]
-    ratio = np.trace(res_d.covariance) / np.trace(res_s.covariance)
+    assert [res_d.fit.names[i] for i in res_d.fit.estimated] == [res_s.fit.names[i] for i in res_s.fit.estimated]
+    ratio = np.trace(res_d.fit.covariance) / np.trace(res_s.fit.covariance)
     assert ratio >= factor, ratio
     # the choice is recorded
     assert truth_d["settings"]["select"] is None and "selection" not in truth_d
     assert truth_s["settings"]["select"] == "greedy-a" and truth_s["settings"]["select_pool"] == 10.0
     sel = truth_s["selection"]
     assert sel["method"] == "greedy-a" and sel["pool"] == 10 * N and sel["chosen"] == N
-    assert set(sel["parameters"]) <= set(res_s.names)
+    assert set(sel["parameters"]) <= set(res_s.fit.names)
 
 
 def test_selection_is_deterministic(tmp_path):

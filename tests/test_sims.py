@@ -17,7 +17,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from closedloop.models import nominal_urdf
+from closedloop.assets.catalog import nominal_urdf
 from closedloop.sims import SCENARIOS, SimSettings, perturbable_parameters, sensor_readings, simulate
 from closedloop.sims.scene import apply_placement_errors, build_scene, site_pose
 from closedloop.sims.true_robot import identifiable_parameters
@@ -407,10 +407,10 @@ def test_truth_support_is_what_a_calibration_estimates(name, tmp_path):
     """The simulator reads the identifiable set off the structure (`closedloop.sims.identifiable`, no fit);
     a calibration of the same loop on the same exact nominal data estimates exactly that set, in order
     (scale factors included: one is held when all are free)."""
+    from closedloop.assets.catalog import nominal_urdf
     from closedloop.calibration.pipeline import CalibrationOptions, calibrate
     from closedloop.io.logs import JointLog
     from closedloop.model.robot import RobotModel
-    from closedloop.models import nominal_urdf
     from closedloop.sims.identifiable import tool_points
     from closedloop.sims.loop_types import sim_loop
     from closedloop.studies.truth import identifiable_names
@@ -436,6 +436,8 @@ def test_truth_support_is_what_a_calibration_estimates(name, tmp_path):
             pts = tool_points(robot, loop.frame_a, q)
             log = JointLog(joints, q, None, None, {c: pts[:, k] for k, c in enumerate(loop.columns())})
             res = calibrate(robot, log, [loop], options)
-            expected = [n for n, s in zip(res.names, res.status) if s == "estimated" and n.rsplit(".", 1)[0] in joints]
+            expected = [
+                n for n, s in zip(res.fit.names, res.fit.status) if s == "estimated" and n.rsplit(".", 1)[0] in joints
+            ]
         assert identifiable_parameters(path, sc, joints, scale) == expected, (name, scale)
         assert len(expected) >= 13

@@ -47,15 +47,15 @@ def test_singularity_1_parallel_axes_in_plain_dh_rows(tmp_path):
     res = calibrate(
         robot, JointLog(robot.joint_names, readings), default_loops(robot), CalibrationOptions(fix={"j0.s": None})
     )
-    dropped = {d.name: d for d in res.dropped}
-    reported = set(dropped) | {n for c in res.weak for n, _ in c.terms}
-    assert {"j5.s", "j6.s"} <= reported, [d.describe() for d in res.dropped]
+    dropped = {d.name: d for d in res.identifiability.dropped}
+    reported = set(dropped) | {n for c in res.identifiability.weak for n, _ in c.terms}
+    assert {"j5.s", "j6.s"} <= reported, [d.describe() for d in res.identifiability.dropped]
     for n in ("j5.s", "j6.s"):
-        assert res.status[res.names.index(n)] in ("dropped", "unidentifiable")
+        assert res.fit.status[res.fit.names.index(n)] in ("dropped", "unidentifiable")
         assert dropped[n].absorbed_into  # and the report says what absorbs it
     hint = [n for n in res.notes if "Singularity 1" in n]
     assert hint and "j5" in hint[0] and "j6" in hint[0] and "convention: hayati" in hint[0]
-    assert res.converged and res.residuals_after[0].rms_m < 1e-10
+    assert res.converged and res.fit.residuals_after[0].rms_m < 1e-10
 
 
 ARM = """<?xml version="1.0"?>
@@ -121,7 +121,7 @@ def test_singularity_5_elbow_of_an_arm_with_its_hand_fixed(tmp_path):
         CalibrationOptions(identify=["placement", "offset", "scale", "loop"]),
     )
     assert any("elbow never moves" in n and "Singularity 5" in n for n in res0.notes)
-    assert res0.status[res0.names.index("elbow.scale")] in ("dropped", "fixed")
+    assert res0.fit.status[res0.fit.names.index("elbow.scale")] in ("dropped", "fixed")
 
 
 @pytest.mark.slow
@@ -135,10 +135,10 @@ def test_singularity_2_insufficient_excitation(panda):
     assert np.ptp(ds.readings, axis=0).max() < 0.05
     noisy = ds.readings + rng.normal(0, 1e-5, ds.readings.shape)
     res = calibrate(panda, JointLog(ds.joints, noisy), [WeldLoop("fixture", "panda_hand")])
-    assert res.weak
-    names = {n for c in res.weak for n, _ in c.terms}
-    assert names and names <= set(res.names)
+    assert res.identifiability.weak
+    names = {n for c in res.identifiability.weak for n, _ in c.terms}
+    assert names and names <= set(res.fit.names)
     for n in names:
-        assert res.status[res.names.index(n)] == "unidentifiable"
-    assert all(c.describe() for c in res.weak)
+        assert res.fit.status[res.fit.names.index(n)] == "unidentifiable"
+    assert all(c.describe() for c in res.identifiability.weak)
     # the same geometry with a wide walk is fine (see test_calibration): the problem is the data

@@ -35,14 +35,14 @@ def test_equal_play_pooled_unequal_not(tmp_path: Path):
     # the same play everywhere: one component, right to 10 % (seed 0: 0.202 mm)
     log, names = _log({"place": tight}, 30)
     res = calibrate(robot, log, _loops(robot, names), CalibrationOptions())
-    model = {d["loop"]: d for d in res.noise_model}
+    model = {d["loop"]: d for d in res.noise.noise_model}
     assert all(model[n]["task_pooled"] for n in names)
     assert len({round(model[n]["task_sigma_m"], 12) for n in names}) == 1
     assert abs(model[names[0]]["task_sigma_m"] / 2e-4 - 1.0) < 0.1, model
     # 0.2 mm at two places, 0.8 mm at two others: each loop its own, each within 20 % of its truth
     log, names = _log({"place": tight, "wide": wide}, 30)
     res = calibrate(robot, log, _loops(robot, names), CalibrationOptions())
-    model = {d["loop"]: d for d in res.noise_model}
+    model = {d["loop"]: d for d in res.noise.noise_model}
     assert not any(d["task_pooled"] for d in model.values())
     for n in names:
         truth = 2e-4 if n.startswith("place") else 8e-4

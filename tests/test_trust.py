@@ -19,7 +19,7 @@ def _tool_poses(res, readings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     import pinocchio as pin
 
     prob = res.problem
-    state = prob.rp.apply(res.values[: prob.n_robot])
+    state = prob.rp.apply(res.fit.values[: prob.n_robot])
     q = prob.robot.configurations(readings * state.scale + state.offset, prob.joints)
     fid = prob.robot.frame_id("panda_hand")
     P, R = [], []
@@ -53,11 +53,11 @@ def clean(panda, panda_weld):
 def test_clean_weld_is_ok_and_names_a_gauge_that_sets_the_scale(panda, panda_weld, clean):
     """The named length really sets the size: held 1 mm longer, the identified robot grows by 1 mm / L."""
     assert clean.verdict.status == "ok", clean.verdict.describe()
-    g, L = clean.gauge, clean.gauge_length
+    g, L = clean.scale.gauge, clean.scale.gauge_length
     assert g is not None and 0.05 < L < 1.0
     d = 1e-3
     longer = calibrate(panda, panda_weld.log(), LOOP, CalibrationOptions(fix={g: clean.value(g) + d}))
-    assert longer.residuals_after[0].rms_m < 1e-9  # the loop closes at the other size too
+    assert longer.fit.residuals_after[0].rms_m < 1e-9  # the loop closes at the other size too
     readings = np.random.default_rng(0).uniform(-1.5, 1.5, (50, len(clean.problem.joints)))
     P, R = _tool_poses(clean, readings)
     Q, _ = _tool_poses(longer, readings)
@@ -67,7 +67,7 @@ def test_clean_weld_is_ok_and_names_a_gauge_that_sets_the_scale(panda, panda_wel
 def test_a_fixed_length_that_does_not_set_the_scale_is_told_so(panda, panda_weld, clean):
     """joint5.z slides along its own axis into joint6.y: holding it fixes nothing (the issue's report)."""
     res = calibrate(panda, panda_weld.log(), LOOP, CalibrationOptions(fix={"panda_joint5.z": 0.0}))
-    assert res.gauge is not None and res.gauge != "panda_joint5.z"
+    assert res.scale.gauge is not None and res.scale.gauge != "panda_joint5.z"
     assert any("do not set the scale" in n and "panda_joint5.z" in n for n in res.notes)
     assert res.verdict.status == "ok"
 
@@ -84,10 +84,10 @@ def test_random_rows_are_rejected_and_the_fit_is_the_clean_one(panda, panda_weld
     rows = np.sort(rng.choice(200, 10, replace=False))
     bad = JointLog(panda_weld.joints, _corrupt_rows(panda_weld.readings, rows, rng))
     res = calibrate(panda, bad, LOOP)
-    assert {r.row for r in res.rejected} == set(rows + 1)
+    assert {r.row for r in res.outliers.rejected} == set(rows + 1)
     assert res.verdict.status in ("ok", "suspect")
-    est = [k for k in res.estimated]
-    assert np.abs(res.values[est] - clean.values[est]).max() < 1e-8
+    est = [k for k in res.fit.estimated]
+    assert np.abs(res.fit.values[est] - clean.fit.values[est]).max() < 1e-8
 
 
 def test_twenty_percent_random_rows_leave_the_estimate_or_fail(panda, panda_weld, clean):
@@ -95,8 +95,8 @@ def test_twenty_percent_random_rows_leave_the_estimate_or_fail(panda, panda_weld
     rows = np.sort(rng.choice(200, 40, replace=False))
     res = calibrate(panda, JointLog(panda_weld.joints, _corrupt_rows(panda_weld.readings, rows, rng)), LOOP)
     right = (
-        res.residuals_after[0].rms_m < 1e-8
-        and np.abs(res.values[res.estimated] - clean.values[res.estimated]).max() < 1e-6
+        res.fit.residuals_after[0].rms_m < 1e-8
+        and np.abs(res.fit.values[res.fit.estimated] - clean.fit.values[res.fit.estimated]).max() < 1e-6
     )
     assert right or res.verdict.status == "failed", res.verdict.describe()
 
@@ -129,5 +129,5 @@ def test_corrupted_cells_are_never_confidently_wrong(panda, panda_weld, clean):
             i, j = rng.integers(200), rng.integers(bad.shape[1])
             bad[i, j] = [1e3, -7.0, bad[i, j] + 0.3][trial % 3]
         res = calibrate(panda, JointLog(panda_weld.joints, bad), LOOP)
-        right = np.abs(res.values[res.estimated] - clean.values[res.estimated]).max() < 1e-6
+        right = np.abs(res.fit.values[res.fit.estimated] - clean.fit.values[res.fit.estimated]).max() < 1e-6
         assert right or res.verdict.status != "ok", (trial, res.verdict.describe())

@@ -29,9 +29,9 @@ def dirty():
 @pytest.mark.slow
 def test_rejected_rows_are_left_out_of_both_figures(dirty):
     sc, lg, res = dirty
-    assert sorted(rj.row - 1 for rj in res.rejected) == BAD
+    assert sorted(rj.row - 1 for rj in res.outliers.rejected) == BAD
     opts = CalibrationOptions(noise=NOISE)
-    cv = cross_validate(sc.robot, lg, sc.loops, opts, k=5, seed=0, exclude=[rj.row - 1 for rj in res.rejected])
+    cv = cross_validate(sc.robot, lg, sc.loops, opts, k=5, seed=0, exclude=[rj.row - 1 for rj in res.outliers.rejected])
     assert cv["excluded"] == BAD
     parts = folds(lg, 5, seed=0)
     for f, rows in zip(cv["folds"], parts):

@@ -38,7 +38,7 @@ from closedloop.validation.evaluate import evaluate_model
 ERD = Path(site.getsitepackages()[0]) / "cmeel.prefix/share/example-robot-data/robots"
 UR5 = ERD / "ur_description/urdf/ur5_robot.urdf"
 PANDA = ERD / "panda_description/urdf/panda.urdf"
-TASKS = Path(__file__).resolve().parents[1] / "closedloop" / "models" / "tasks"
+TASKS = Path(__file__).resolve().parents[1] / "closedloop" / "assets" / "tasks"
 UR5_Q0 = np.array([[0.3, -1.2, 1.4, -1.0, 1.2, 0.4]])
 PANDA_Q0 = np.array([[0.0, -0.3, 0.0, -2.0, 0.0, 1.8, 0.8]])
 TOL = 1e-9
@@ -170,7 +170,7 @@ def _written(tmp: Path, robot, res, name: str = "cal.urdf"):
 
 
 def _fit_closures(res) -> list[np.ndarray]:
-    return [ev.r for ev in res.problem.evaluate(res.values, False)]
+    return [ev.r for ev in res.problem.evaluate(res.fit.values, False)]
 
 
 def _assert_predicts_the_fit(tmp, robot, log_, res, name="cal.urdf"):
@@ -191,17 +191,19 @@ def test_written_files_predict_the_fit(kind, tmp_path):
     res = _fit(robot, log_, make)
     assert res.converged
     comp = [k for k, p in enumerate(res.problem.params) if p.kind == "compliance"]
-    assert any(res.values[k] != 0.0 for k in comp)  # the fit used compliances: the files must carry them
+    assert any(res.fit.values[k] != 0.0 for k in comp)  # the fit used compliances: the files must carry them
     _assert_predicts_the_fit(tmp_path, robot, log_, res)
     # a parameter reported as not identifiable keeps its initial value, or the report says it moved
     report = json.loads((tmp_path / "report.json").read_text())
     moved = {m["name"]: m for m in report["identifiability"]["moved_not_identifiable"]}
-    for k, name in enumerate(res.names):
-        if res.status[k] == "unidentifiable" and res.values[k] != res.initial[k]:
-            assert moved[name]["change"] == res.values[k] - res.initial[k] and moved[name]["combinations"]
-    assert set(moved) <= {n for n, st in zip(res.names, res.status) if st == "unidentifiable"}
+    for k, name in enumerate(res.fit.names):
+        if res.fit.status[k] == "unidentifiable" and res.fit.values[k] != res.fit.initial[k]:
+            assert moved[name]["change"] == res.fit.values[k] - res.fit.initial[k] and moved[name]["combinations"]
+    assert set(moved) <= {n for n, st in zip(res.fit.names, res.fit.status) if st == "unidentifiable"}
     assert {n: v for n, v in report["compliance"].items()} == {
-        res.names[k]: res.values[k] for k in comp if res.values[k] != 0.0 or res.status[k] == "estimated"
+        res.fit.names[k]: res.fit.values[k]
+        for k in comp
+        if res.fit.values[k] != 0.0 or res.fit.status[k] == "estimated"
     }
 
 
@@ -287,7 +289,7 @@ def test_dh_table_and_sensor_file_predict_the_fit(tmp_path):
 def test_mjcf_and_sensor_file_predict_the_fit(tmp_path):
     import mujoco
 
-    from closedloop.models import nominal_urdf
+    from closedloop.assets.catalog import nominal_urdf
 
     spec = mujoco.MjSpec.from_string(
         nominal_urdf("panda").replace(

@@ -17,8 +17,8 @@ import mujoco
 import numpy as np
 import pytest
 
+from closedloop.assets.catalog import example_robot_data_dir
 from closedloop.cli.main import main
-from closedloop.models import example_robot_data_dir
 from closedloop.sims.scenario_files import load_scenario
 from closedloop.sims.scenarios import SCENARIOS
 
@@ -141,7 +141,7 @@ def test_builtin_scenarios_are_yaml_files_and_a_user_yaml_runs(tmp_path, capsys)
 
 def test_mjcf_robot(tmp_path):
     """An MJCF arm (the UR5 compiled by MuJoCo, joint anchors moved off the body origins) simulates as the URDF."""
-    from closedloop.models import nominal_urdf
+    from closedloop.assets.catalog import nominal_urdf
     from closedloop.sims import simulate
     from closedloop.sims.robot_scenario import prepare_robot
 

@@ -217,7 +217,7 @@ def test_zoo_point_contact_states_the_size_it_cannot_see():
     o = _exact("ur5", "point")
     v = o.result.verdict
     assert o.right and v.status == "ok", o.line()
-    assert v.evidence["size_measured"] is False and v.evidence["size_held_by"] == o.result.gauge
-    assert v.reasons == [f"size not measured: held by the model's {o.result.gauge}"]
+    assert v.evidence["size_measured"] is False and v.evidence["size_held_by"] == o.result.scale.gauge
+    assert v.reasons == [f"size not measured: held by the model's {o.result.scale.gauge}"]
     tracker = zoo.run_case(zoo.make_case("ur5", "measured_point", n=60, seed=0))
     assert tracker.result.verdict.evidence["size_measured"] is True and tracker.result.verdict.reasons == []

@@ -491,11 +491,11 @@ def run_start(ex: Example, seed: int, options=None, workdir: Path | None = None)
     after = "; ".join(
         f"closure {r.rms_m if r.rms_m is not None else float('nan'):.2e} m "
         f"{r.rms_rad if r.rms_rad is not None else float('nan'):.2e} rad"
-        for r in res.residuals_after
+        for r in res.fit.residuals_after
     )
     msg = (
-        f"{after}; {res.iterations} it; {sum(s == 'dropped' for s in res.status)} dropped, "
-        f"{sum(s == 'unidentifiable' for s in res.status)} unidentifiable"
+        f"{after}; {res.fit.iterations} it; {sum(s == 'dropped' for s in res.fit.status)} dropped, "
+        f"{sum(s == 'unidentifiable' for s in res.fit.status)} unidentifiable"
     )
     return StartOutcome(
         ex.name, seed, bool(err < TOL), status, bool(res.converged), err, float(np.abs(d).max()), dt, msg

@@ -38,7 +38,7 @@ import numpy as np
 import pinocchio as pin
 from scratch import scratch_dir
 
-from closedloop.models import example_robot_data_dir
+from closedloop.assets.catalog import example_robot_data_dir
 
 TOOL = "zoo_tool"
 SCALE_BLIND = {"weld", "point", "plane", "hinge"}  # loops that close at any overall size

@@ -185,14 +185,14 @@ def run_closedloop(
         [LoopBlock(loop, q_held[:, cols], np.arange(1, len(q_held) + 1), None, np.zeros((len(q_held), 3)))],
         prob.priors,
     )
-    pred = held.evaluate(res.values, jacobian=False)[0].r
+    pred = held.evaluate(res.fit.values, jacobian=False)[0].r
     return {
         "total": t1 - t0,
         "solve": t1 - stages.get("solving", t0),
-        "params": len(res.estimated),
+        "params": len(res.fit.estimated),
         "pred": pred,
-        "status": res.solver_status,
-        "iters": res.iterations,
+        "status": res.fit.solver_status,
+        "iters": res.fit.iterations,
     }
 
 

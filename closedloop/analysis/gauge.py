@@ -36,9 +36,6 @@ if TYPE_CHECKING:
 
 N_CONFIGS = 32  # x 6 rows per loop frame: far more rows than the 7 + 6F rigid unknowns
 HELD_ERROR = 2e-3  # m: an error of a nominal length a model file may carry (a drawing against the part)
-# the size error a HELD_ERROR in the held length may make before the result is suspect: the size change that makes
-# a result suspect (`verdict.VerdictRules.scale_suspect`), so a held length under 67 mm
-SIZE_FROM_HELD = 0.03
 
 
 def random_configurations(problem: CalibrationProblem, n: int = N_CONFIGS, seed: int = 0) -> np.ndarray:
@@ -159,9 +156,9 @@ def choose_gauge(
     reduce: Callable[[list[int]], tuple[list[int], list]],
     order: list[int],
     prefer: int | None = None,
-) -> tuple[int | None, list[int], list, bool, str | None, float]:
+) -> tuple[int | None, list[int], list, bool, float]:
     """The gauge (a column of R, or None), the kept columns and drops with it, whether the size is free,
-    a warning when the size is set weakly, and the length L the gauge stands for.
+    and the length L the gauge stands for (`short_gauge_warning` says when it is too short to trust).
 
     R: the compressed, prior-scaled loop Jacobian over `free`; `reduce(order)`
     the greedy reduction in that order, returning (kept columns, Dropped
@@ -184,13 +181,13 @@ def choose_gauge(
     for attempt in orders:  # the longest length last (the thesis's choice), else the plain priority order
         kept, dropped = reduce(attempt)
         if not dropped:
-            return None, kept, dropped, False, None, 0.0
+            return None, kept, dropped, False, 0.0
         cols = [names.index(d.name) for d in dropped]
         V = np.zeros((len(params), len(cols)))
         V[free] = null_directions(R, kept, cols) * prior[:, None]  # scaled -> parameter units
         dP, A = kinematic_changes(problem, x, V, q)
         if not contains_scaling(dP, A):
-            return None, kept, dropped, False, None, 0.0
+            return None, kept, dropped, False, 0.0
         first = first or (kept, dropped)
         c, res = scale_content(dP, A)
         length = prior[cols] / np.maximum(np.abs(c), 1e-300)
@@ -215,15 +212,21 @@ def choose_gauge(
                 found = (g, kept_g, dropped_g, L)
     if found is None:
         assert first is not None  # `orders` is never empty: its first reduction got this far
-        return None, first[0], first[1], True, None, 0.0
+        return None, first[0], first[1], True, 0.0
     g, kept, dropped, L = found
-    warning = None
-    if HELD_ERROR / L > SIZE_FROM_HELD:
-        warning = (
-            f"the overall size is held by {names[g]}, which stands for a length of only {L * 1e3:.3g} mm: an "
-            f"error of {HELD_ERROR * 1e3:g} mm in its nominal value changes the identified size by {HELD_ERROR / L:.1%}"
-        )
-    return g, kept, [d for d in dropped if d.name != names[g]], True, warning, L
+    return g, kept, [d for d in dropped if d.name != names[g]], True, L
+
+
+def short_gauge_warning(name: str, length: float, scale_suspect: float) -> str | None:
+    """The warning that the size is held by a short length, or None: a HELD_ERROR in the nominal value of the
+    gauge `name`, which stands for `length` (m), changes the size by more than `scale_suspect` (the size change
+    that makes a result suspect, `VerdictRules.scale_suspect`: a held length under 67 mm by default)."""
+    if length <= 0.0 or HELD_ERROR / length <= scale_suspect:
+        return None
+    return (
+        f"the overall size is held by {name}, which stands for a length of only {length * 1e3:.3g} mm: an "
+        f"error of {HELD_ERROR * 1e3:g} mm in its nominal value changes the identified size by {HELD_ERROR / length:.1%}"
+    )
 
 
 def robot_reach(problem: CalibrationProblem, x: np.ndarray) -> float:

@@ -163,7 +163,6 @@ class Structure:
     gauge: int | None = None
     gauge_note: str | None = None
     scale_free: bool = False  # the loops cannot see the overall size
-    gauge_warning: str | None = None  # the size also hangs on other held values
     gauge_length: float = 0.0  # the length the gauge stands for (m)
     rechecked: bool = False  # decided at a solution
     provisional: bool = False  # the start closed too few configurations to decide: everything kept until the solution
@@ -175,7 +174,7 @@ class Structure:
         transforms), a weak but real column of a single self-motion 1e-8 to 1e-6
         (the door's j1.a, j5.s); an ill-conditioned arm's exact ones can show
         1e-8 too (a UR5's parallel axes), so the tolerance cannot tell them
-        apart.  These are freed when a fit stalls (`staging.solve_with_restarts`).
+        apart.  These are freed when a fit stalls (`solve.solve_with_restarts`).
         """
         return sorted(index[d.name] for d in self.dropped if d.residual > 1e-11 and d.name in index)
 
@@ -312,7 +311,7 @@ def analyse_structure(
     if not all(b.loop.scale_free for b in problem.blocks):
         kept, dropped = reduce(order)
         return Structure(sorted(free[i] for i in kept), dropped)
-    g, kept, dropped, size_free, warning, length = choose_gauge(
+    g, kept, dropped, size_free, length = choose_gauge(
         problem, x, free, R, reduce, order, prefer=free.index(prefer) if prefer in free else None
     )
     note: str | None
@@ -322,7 +321,7 @@ def analyse_structure(
             f"the length scale (it stands for a length of {length:.4g} m: holding it longer by d scales the "
             f"robot by 1 + d / {length:.4g})"
         )
-        return Structure(sorted(free[i] for i in kept), dropped, free[g], note, True, warning, length)
+        return Structure(sorted(free[i] for i in kept), dropped, free[g], note, True, length)
     note = (
         None
         if not size_free

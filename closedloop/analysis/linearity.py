@@ -29,12 +29,16 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, replace
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from closedloop.estimate.lm import SolverOptions, levenberg_marquardt
-from closedloop.estimate.stages import ResidualFunction
+from closedloop.estimate.residual import ResidualFunction
+from closedloop.records import FitRecord
+
+if TYPE_CHECKING:
+    from closedloop.problem.problem import CalibrationProblem
 
 log = logging.getLogger(__name__)
 
@@ -166,27 +170,36 @@ def check_profiles(
     return out
 
 
-def check_error_bars(res, fit) -> tuple[list[Profile], list[str]]:
-    """The profiles of a calibration result that took more than `PROFILE_AFTER` iterations, and a warning
-    (for `res.warnings`: the verdict is `suspect`) for each direction whose error bar does not hold.
+def check_error_bars(
+    problem: CalibrationProblem,
+    record: FitRecord,
+    fit,
+    sigma: float,
+    sigma_estimated: bool,
+    dof: int,
+    scale_std: float,
+) -> tuple[list[Profile], list[str]]:
+    """The profiles of a calibration's solution (`record`) that took more than `PROFILE_AFTER` iterations, and
+    a warning (for `CalibrationResult.warnings`: the verdict is `suspect`) for each direction whose error bar
+    does not hold; `sigma`, `sigma_estimated`, `dof`: the noise at the solution (`NoiseRecord`), `scale_std`
+    the size's relative standard error (`ScaleRecord`: profiled along the size where finite).
 
     On the fit's own residual function (`fit.stage.fun`: its weighting, its row weights, such as a known
     length's in an unweighted fit), at the reported values.
     """
-    if res.iterations <= PROFILE_AFTER or not res.estimated or res.covariance.size == 0:
+    if record.iterations <= PROFILE_AFTER or not record.estimated or record.covariance.size == 0:
         return [], []
-    if res.sigma_estimated and not res.sigma > EXACT:  # exact data: error bars of round-off, nothing to check
+    if sigma_estimated and not sigma > EXACT:  # exact data: error bars of round-off, nothing to check
         return [], []
     from closedloop.analysis.gauge import size_per_parameter
 
-    problem, est = res.problem, list(res.estimated)
-    make = lambda: replace(fit.stage.fun, x0=res.values.copy())  # noqa: E731  (fresh: no cached weights)
-    r, _ = make()(res.values[est], False)
-    known = fit.known and res.weighting == "noise"
-    noise = 1.0 if known else float(np.sqrt(r @ r / max(res.dof, 1)))
-    scale_std = getattr(res, "scale_std", float("nan"))
-    size = size_per_parameter(problem, res.values, est) if scale_std is not None and np.isfinite(scale_std) else None
-    profiles = check_profiles(make, problem, res.values, est, res.covariance, noise, size)
+    est = list(record.estimated)
+    make = lambda: replace(fit.stage.fun, x0=record.values.copy())  # noqa: E731  (fresh: no cached weights)
+    r, _ = make()(record.values[est], False)
+    known = fit.known and fit.stage.fun.weighting == "noise"
+    noise = 1.0 if known else float(np.sqrt(r @ r / max(dof, 1)))
+    size = size_per_parameter(problem, record.values, est) if scale_std is not None and np.isfinite(scale_std) else None
+    profiles = check_profiles(make, problem, record.values, est, record.covariance, noise, size)
     warnings = [
         f"the error bars do not hold: {p.describe()}; the fit lies in a curved valley its "
         "linearisation does not see, and the standard errors understate the uncertainty"

@@ -7,7 +7,7 @@ estimator actually uses:
 * whitened: each configuration's m closure rows are multiplied by W_i^-1/2,
   W_i = J_theta,i Sigma_q J_theta,i^T, the covariance of the closure error
   propagated from the joint-reading noise (the implicit-loop, errors-in-
-  variables weighting of Wampler, Hollerbach & Arai 1995; ``calibration.whiten``);
+  variables weighting of Wampler, Hollerbach & Arai 1995; ``estimate.noise.whiten``);
 * column-scaled: column k is multiplied by the parameter's prior error
   magnitude ``params[k].prior`` (the scaling of thesis 4.2.6), so a singular
   value of 1 means "the data determine this direction as well as the prior".
@@ -66,16 +66,16 @@ def resolve(
     """(problem, values, parameter indices, per-joint noise) from a result or a problem.
 
     For a result the defaults are its values, its estimated parameters and
-    its noise level (`result.sigma` on every joint).  For a bare problem the
+    its noise level (`result.noise.sigma` on every joint).  For a bare problem the
     defaults are the nominal values, every parameter, and unit noise.
     """
     if isinstance(result_or_problem, CalibrationResult):
         res = result_or_problem
         problem = res.problem
-        vals = res.values if values is None else np.asarray(values, float)
-        idx = list(res.estimated) if params is None else _indices(problem, params)
+        vals = res.fit.values if values is None else np.asarray(values, float)
+        idx = list(res.fit.estimated) if params is None else _indices(problem, params)
         if noise is None:
-            noise = float(res.sigma) if np.isfinite(res.sigma) and res.sigma > 0 else 1.0
+            noise = float(res.noise.sigma) if np.isfinite(res.noise.sigma) and res.noise.sigma > 0 else 1.0
     else:
         problem = result_or_problem
         vals = problem.nominal if values is None else np.asarray(values, float)
@@ -102,7 +102,7 @@ def whitened_blocks(
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per-configuration whitened residuals and Jacobians, one (r (N,m), J (N,m,L)) per loop block.
 
-    Same whitening as `calibration.whiten` (so stacking these gives exactly the
+    Same whitening as `estimate.noise.whiten` (so stacking these gives exactly the
     estimator's system), kept per configuration; J's columns are `params`,
     multiplied by their prior magnitudes when `scaled`.
     """

@@ -17,7 +17,7 @@ import numpy as np
 from closedloop.model.parameters import DEFAULT_PRIORS
 from closedloop.problem.distances import DistanceLoop, distance_blocks
 from closedloop.problem.lengths import LengthLoop, length_blocks, length_loops
-from closedloop.records import ParamStatus
+from closedloop.records import FitRecord, ParamStatus, VerdictRules
 
 if TYPE_CHECKING:
     from closedloop.problem.problem import CalibrationProblem
@@ -71,29 +71,40 @@ def scale_std(problem: CalibrationProblem, x: np.ndarray, est: list[int], cov: n
     return float(np.sqrt(max(c @ cov @ c, 0.0)))
 
 
-def scale_findings(res, sigma_q: np.ndarray, scale_free: bool, snr: float = 1.0) -> dict:
-    """What sets the scale (with the size's standard error) and each loop's noise model, for a result.
+def scale_findings(
+    problem: CalibrationProblem,
+    fit: FitRecord,
+    weighting: str,
+    gauge: str | None,
+    sigma_q: np.ndarray,
+    scale_free: bool,
+    snr: float = 1.0,
+    rules: VerdictRules | None = None,
+) -> dict:
+    """What sets the scale (with the size's standard error) and each loop's noise model, for a solution.
 
-    Returns the result's fields to replace (``dataclasses.replace(res, **findings)``): `scale_note`,
-    `scale_std` (relative), `length_response` and `length_leak` (known lengths between frames,
-    `closedloop.problem.lengths`), `noise_model` (`variance.noise_summary`), and `notes` and `warnings`
-    with their sentences added.
+    `fit`: the solution's record, `weighting` its fit's, `gauge` the held length (`ScaleRecord.gauge`).
+    Returns `scale_note`, `scale_std` (relative), `length_response` and `length_leak` (known lengths
+    between frames, `closedloop.problem.lengths`), `noise_model` (`variance.noise_summary`), and the
+    `notes` and `warnings` it adds.  `rules`: the verdict's thresholds (`VerdictRules.sets_size_low`, ...).
     """
     from closedloop.estimate.variance import noise_notes, noise_summary
 
-    problem = res.problem
-    notes, warnings = list(res.notes), list(res.warnings)
-    out: dict = {}
-    note = scale_note(problem, res.gauge, scale_free)
+    notes: list[str] = []
+    warnings: list[str] = []
+    out: dict = {"length_response": None, "length_leak": None, "scale_std": float("nan"), "noise_model": []}
+    note = scale_note(problem, gauge, scale_free)
     leak = None
-    if length_blocks(problem) and res.estimated:  # a known length between frames: does it set the size?
-        sentence, found, out["length_response"], leak = length_findings(res, np.asarray(sigma_q, dtype=float), snr)
+    if length_blocks(problem) and fit.estimated:  # a known length between frames: does it set the size?
+        sentence, found, out["length_response"], leak = length_findings(
+            problem, fit, weighting, np.asarray(sigma_q, dtype=float), snr, rules or VerdictRules()
+        )
         out["length_leak"] = leak
         warnings.extend(found)
         note = sentence if not distance_blocks(problem) else f"{note}; {sentence}"
-    if (distance_blocks(problem) or length_blocks(problem)) and res.estimated:
+    if (distance_blocks(problem) or length_blocks(problem)) and fit.estimated:
         try:
-            std = scale_std(problem, res.values, res.estimated, res.covariance)
+            std = scale_std(problem, fit.values, fit.estimated, fit.covariance)
             if leak is not None and np.isfinite(leak):  # what the held values add
                 std = float(np.hypot(std, leak))
         except (np.linalg.LinAlgError, ValueError):
@@ -104,8 +115,8 @@ def scale_findings(res, sigma_q: np.ndarray, scale_free: bool, snr: float = 1.0)
     out["scale_note"] = note
     if note:
         notes.append(note)
-    if res.weighting == "noise":
-        out["noise_model"] = noise_summary(problem, res.values, np.asarray(sigma_q, dtype=float))
+    if weighting == "noise":
+        out["noise_model"] = noise_summary(problem, fit.values, np.asarray(sigma_q, dtype=float))
         notes.extend(noise_notes(out["noise_model"]))
     out["notes"], out["warnings"] = notes, warnings
     return out
@@ -120,9 +131,6 @@ HELD_ERROR = 1e-3  # m or rad: the error `held_leak` is quoted for
 STEP = 1e-3  # relative change of L in `size_response`
 
 
-SETS_SIZE = (0.9, 1.1)  # the size response that counts as setting the scale
-
-
 def size_response(
     problem: CalibrationProblem, x: np.ndarray, est: list[int], sigma_q: np.ndarray, weighting: str, snr: float
 ) -> float:
@@ -135,7 +143,7 @@ def size_response(
     c^T dx with c the size change per parameter (`gauge.size_per_parameter`).
     """
     from closedloop.analysis.gauge import size_per_parameter
-    from closedloop.estimate.stages import ResidualFunction
+    from closedloop.estimate.residual import ResidualFunction
     from closedloop.problem.problem import CalibrationProblem as Problem
 
     lengths = length_loops(problem)
@@ -163,20 +171,22 @@ def replace_length(loop: LengthLoop, factor: float) -> LengthLoop:
     return out
 
 
-def length_findings(res, sigma_q: np.ndarray, snr: float) -> tuple[str, list[str], float, float]:
+def length_findings(
+    problem: CalibrationProblem, fit: FitRecord, weighting: str, sigma_q: np.ndarray, snr: float, rules: VerdictRules
+) -> tuple[str, list[str], float, float]:
     """(the sentence on what sets the scale, the warnings that make the result suspect, the size response,
-    the held-length leak) for a result whose problem has known lengths (module docstring)."""
-    problem = res.problem
+    the held-length leak) for a solution (`fit`, its fit's `weighting`) of a problem with known lengths
+    (module docstring)."""
     labels = " and ".join(lp.label() for lp in length_loops(problem).values())
-    response = size_response(problem, res.values, res.estimated, sigma_q, res.weighting, snr)
+    response = size_response(problem, fit.values, fit.estimated, sigma_q, weighting, snr)
     free = [
         k
-        for k, s in enumerate(res.status)
+        for k, s in enumerate(fit.status)
         if s in (ParamStatus.ESTIMATED, ParamStatus.DROPPED, ParamStatus.UNIDENTIFIABLE)
     ]
-    leak, held = held_leak(problem, res.values, free)
+    leak, held = held_leak(problem, fit.values, free)
     warnings = []
-    if not SETS_SIZE[0] <= response <= SETS_SIZE[1]:
+    if not rules.sets_size(response):
         warnings.append(
             f"{labels} sets the robot's size only in part (a change of it by 1 % scales the robot by "
             f"{response:.3g} %): the loops tie it to the rest of the robot too loosely; the "
@@ -241,14 +251,13 @@ def held_leak(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> tu
     return worst, name
 
 
-IMPLAUSIBLE_SIZE = 0.15  # a known length this far from the model's distance scales the robot into `failed`
-
-
-def refuse_lengths(problem: CalibrationProblem, x: np.ndarray, free: list[int]) -> None:
+def refuse_lengths(
+    problem: CalibrationProblem, x: np.ndarray, free: list[int], rules: VerdictRules | None = None
+) -> None:
     """Refuse, before the fit, a known length that no free parameter changes: the model fixes it already
     (both frames on one rigid body, or only held values between them), so it cannot set the size; and one
-    more than IMPLAUSIBLE_SIZE (15 %) from the model's distance at x, which would scale the robot by more
-    than a calibration corrects (`verdict.VerdictRules.scale_failed`): a typo, or millimetres for metres."""
+    more than `rules.scale_failed` (15 % by default) from the model's distance at x, which would scale the robot
+    into a failed verdict (`VerdictRules.scale_failed`): a typo, or millimetres for metres."""
     from closedloop.errors import LoopError
 
     lengths = length_loops(problem)
@@ -265,7 +274,7 @@ def refuse_lengths(problem: CalibrationProblem, x: np.ndarray, free: list[int]) 
                 "so it cannot set the robot's size"
             )
         model = float(evals[bi].r[0, 0]) + lp.length  # r = |p_B - p_A| - L
-        if not abs(lp.length / max(model, 1e-12) - 1.0) <= IMPLAUSIBLE_SIZE:
+        if not abs(lp.length / max(model, 1e-12) - 1.0) <= (rules or VerdictRules()).scale_failed:
             raise LoopError(
                 f"--length {lp.frame_a} {lp.frame_b} {lp.length:g}: the model puts these frames {model:.4g} m "
                 f"apart at zero readings; a length {lp.length / max(model, 1e-12):.3g}x that is not a calibration "

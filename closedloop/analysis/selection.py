@@ -133,7 +133,7 @@ def check_motion(
                     "(Lemma 6: no self-motion of the closed chain moves it)"
                 )
     robot = problem.robot
-    if robot.kind == "dh" and robot.dh is not None:  # a D-H robot always has its table (RobotModel.load)
+    if robot.kind == "dh" and robot.dh is not None:  # a D-H robot always has its table (`RobotModel.from_file`)
         rows = robot.dh.rows
         for r1, r2 in zip(rows, rows[1:]):
             if r1.convention == "dh" and abs(np.sin(r1.alpha)) < 1e-6 and r1.name in problem.joints:

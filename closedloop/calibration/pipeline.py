@@ -11,12 +11,12 @@ The pipeline (thesis 3.2, 4.2, with the noise treated as errors in variables):
    does (`gauge`).
 4. `solve_screened`: the outlier screen (`reject_outliers`, default: rows the
    noise cannot explain are found by a robust Cauchy refit and left out), the
-   staged solve (`staging.solve_staged`: each configuration's closure weighted
+   staged solve (`solve.solve_staged`: each configuration's closure weighted
    by W_i^-1 = (J_theta,i Sigma J_theta,i^T)^-1, the plain loop residual first
    where the weighting misleads; Levenberg-Marquardt with noise-aware SVD
    truncation, eq. 3.17, 4.2.6), restarts when the fit stalls far above any
    plausible noise.
-5. `staging.recheck_at_solution`: the reduction and the gauge recomputed at
+5. `solve.recheck_at_solution`: the reduction and the gauge recomputed at
    the solution, reduced and re-solved where they differ; rejected rows the
    solution explains readmitted (`outliers.readmit`).
 6. `name_gauge`: the held length that sets the size, with what it stands for.
@@ -34,17 +34,19 @@ from typing import Any
 
 import numpy as np
 
+from closedloop.analysis.gauge import short_gauge_warning
 from closedloop.analysis.identifiability import Structure, analyse_structure, weak_directions
 from closedloop.analysis.linearity import check_error_bars
 from closedloop.analysis.scale import refuse_lengths, scale_findings
 from closedloop.analysis.selection import DEFAULT_IDENTIFY, MIN_RANGE, check_motion, initial_values, select_parameters
-from closedloop.calibration.staged import (
+from closedloop.calibration.solve import (
+    length_guard,
     recheck_at_solution,
     solve_from_starts,
     solve_staged,
     solve_with_restarts,
 )
-from closedloop.calibration.verdict import VerdictRules, judge, length_guard
+from closedloop.calibration.verdict import judge
 from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
 from closedloop.estimate.lm import reducible_share, rms, scaled_svd
 from closedloop.estimate.model_error import (
@@ -60,7 +62,7 @@ from closedloop.estimate.model_error import (
 )
 from closedloop.estimate.noise import noise_vector
 from closedloop.estimate.outliers import gross_outliers, readmit, reject_outliers
-from closedloop.estimate.stages import Fit
+from closedloop.estimate.residual import Fit
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
@@ -69,10 +71,15 @@ from closedloop.progress import ProgressReporter
 from closedloop.records import (
     CalibrationOptions,
     CalibrationResult,
+    FitRecord,
+    IdentifiabilityRecord,
     LoopResiduals,
+    NoiseRecord,
+    OutlierRecord,
     ParameterRecord,
     ParamStatus,
     Rejected,
+    ScaleRecord,
     residual_stats,
 )
 
@@ -240,8 +247,8 @@ def calibrate(
     with blas_threads(opt.threads, 6 * len(log_), 6 * len(robot.joint_names) + 6):
         try:
             res = _calibrate(robot, log_, loops, opt, progress)
-            # a known length that does not set the size never drives the estimate (closedloop.calibration.verdict)
-            return length_guard(res, lambda kept: _calibrate(robot, log_, kept, opt, progress), loops)
+            # a known length that does not set the size never drives the estimate (closedloop.calibration.solve)
+            return length_guard(res, lambda kept: _calibrate(robot, log_, kept, opt, progress), loops, opt.rules)
         except np.linalg.LinAlgError as exc:  # non-finite kinematics: values far outside any model
             raise ConvergenceError(
                 f"{log_.source or 'the log'}: the solve broke down ({exc}): the data or the "
@@ -264,7 +271,7 @@ def _calibrate(
     free = [k for k, s in enumerate(status) if s == ParamStatus.SELECTED]
     if not free:
         raise NotIdentifiableError("no parameter is left to identify (all fixed or not selected)")
-    refuse_lengths(problem, x0, free)
+    refuse_lengths(problem, x0, free, opt.rules)
     sigma_q, known = noise_vector(problem, opt.noise)
     if progress:
         progress("analysing", 0)
@@ -280,7 +287,7 @@ def _calibrate(
     choice: dict[str, Any] = {"estimator": EIV if fit.stage.fun.weighting == "noise" else PLAIN, "reason": "as asked"}
     choice |= {"error_bars": NOISE_MODEL, "evidence": {}}
     tested = noise_hypothesis(problem, fit, opt)
-    if tested is not None and (tested["test"].holds or tested["test"].sigma_hat > VerdictRules().failed_joint_noise):
+    if tested is not None and (tested["test"].holds or tested["test"].sigma_hat > opt.rules.failed_joint_noise):
         # beyond 0.01 rad no estimator mends a model that does not fit the data: kept, and the verdict says so
         choice |= {"reason": tested["test"].describe(), "evidence": tested["evidence"]}
     elif tested is not None:  # model error: the plain loop-closure fit (eq. 3.8), screened alike, sandwich error bars
@@ -291,7 +298,7 @@ def _calibrate(
         fit.iterations += spent
         r, J = fit.stage.fun.linearized(fit.x[fit.est])
         evidence = tested["evidence"] | {"left_out_rms_plain": loo_prediction(problem, fit.x, fit.est, r, J)}
-        if tested["test"].sigma_hat > VerdictRules().plausible_joint_noise:
+        if tested["test"].sigma_hat > opt.rules.plausible_joint_noise:
             fit.warnings.append(
                 f"the errors-in-variables fit implies {tested['test'].sigma_hat:.3g} rad of joint noise, more than "
                 "encoders give: the model misses an effect of that size (elasticity, gearing, backlash)"
@@ -311,49 +318,63 @@ def _calibrate(
     sol = fit.stage.solution
     if sol.status != "converged":
         notes.append(f"solver: {sol.message}")
-    res = CalibrationResult(
-        problem=problem,
+    solution = FitRecord(
         names=problem.names,
         initial=x0,
         values=x,
         std=a["std"],
         status=status,
-        dropped=dropped + list(structure.dropped),
-        weak=a["weak"],
-        singular_values=a["S"],
-        rank=a["rank"],
-        residuals_before=before,
-        residuals_after=after,
+        estimated=fit.est,
+        covariance=a["cov"],
         iterations=fit.iterations,
         solver_status=sol.status,
         solver_message=sol.message,
-        sigma=a["sigma"],
-        sigma_estimated=opt.noise is None,
-        chi2=a["chi2"],
-        dof=a["dof"],
-        notes=notes,
-        covariance=a["cov"],
-        estimated=fit.est,
-        suspects=suspects,
-        weighting=a["weighting"],
-        gauge=gauge,
-        gauge_note=structure.gauge_note,
-        gauge_length=structure.gauge_length,
-        rejected=rejected,
-        rows_total=len(log_),
-        warnings=fit.warnings,
+        residuals_before=before,
+        residuals_after=after,
         reducible=a["reducible"],
-        estimator=choice["estimator"],
-        estimator_reason=choice["reason"],
-        error_bars=choice["error_bars"],
-        model_error=choice["evidence"] | {"sandwich_variance_ratio": a["sandwich_ratio"]},
     )
     # what sets the scale, each loop's noise model (closedloop.analysis.scale)
-    res = replace(res, **scale_findings(res, fit.sigma_q, structure.scale_free, opt.snr))
+    found = scale_findings(
+        problem, solution, a["weighting"], gauge, fit.sigma_q, structure.scale_free, opt.snr, opt.rules
+    )
     # a long fit: do its error bars hold? (closedloop.analysis.linearity)
-    profiles, bar_warnings = check_error_bars(res, fit)
-    res = replace(res, profiles=profiles, warnings=res.warnings + bar_warnings)
-    return replace(res, verdict=judge(res))
+    sigma_estimated = opt.noise is None
+    profiles, bar_warnings = check_error_bars(
+        problem, solution, fit, a["sigma"], sigma_estimated, a["dof"], found["scale_std"]
+    )
+    res = CalibrationResult(
+        problem=problem,
+        fit=solution,
+        identifiability=IdentifiabilityRecord(
+            dropped=dropped + list(structure.dropped), weak=a["weak"], singular_values=a["S"], rank=a["rank"]
+        ),
+        noise=NoiseRecord(
+            sigma=a["sigma"],
+            sigma_estimated=sigma_estimated,
+            chi2=a["chi2"],
+            dof=a["dof"],
+            weighting=a["weighting"],
+            estimator=choice["estimator"],
+            estimator_reason=choice["reason"],
+            error_bars=choice["error_bars"],
+            model_error=choice["evidence"] | {"sandwich_variance_ratio": a["sandwich_ratio"]},
+            noise_model=found["noise_model"],
+            profiles=profiles,
+        ),
+        scale=ScaleRecord(
+            gauge=gauge,
+            gauge_note=structure.gauge_note,
+            gauge_length=structure.gauge_length,
+            scale_note=found["scale_note"],
+            scale_std=found["scale_std"],
+            length_response=found["length_response"],
+            length_leak=found["length_leak"],
+        ),
+        outliers=OutlierRecord(rejected=rejected, suspects=suspects, rows_total=len(log_)),
+        notes=notes + found["notes"],
+        warnings=fit.warnings + found["warnings"] + bar_warnings,
+    )
+    return replace(res, verdict=judge(res, rules=opt.rules))
 
 
 def noise_hypothesis(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions) -> dict | None:
@@ -495,8 +516,9 @@ def name_gauge(
         notes.append(
             f"the fixed length(s) {', '.join(user_lengths)} do not set the scale: they are absorbed by other parameters"
         )
-    if structure.gauge_warning:
-        warnings.append(structure.gauge_warning)
+    short = short_gauge_warning(gauge, structure.gauge_length, opt.rules.scale_suspect)
+    if short:
+        warnings.append(short)
     return gauge
 
 

@@ -2,11 +2,14 @@
 
 A calibration is worth as much as its verdict.  Every rule below compares the
 fit with something it cannot tune away; each rule that fires adds a reason.
+The figures quoted are the defaults of `VerdictRules` (`closedloop.records`),
+every threshold in one record passed to `judge`; its table is generated into
+docs/guide/verdict.md.
 
 failed (exit 3; the report is written, no model unless forced):
   * the solver did not converge, or stopped short of a minimum: one
     Gauss-Newton step from its solution would still remove over half of the
-    remaining cost (`CalibrationResult.reducible`; closures at round-off,
+    remaining cost (`FitRecord.reducible`; closures at round-off,
     where r need not be orthogonal to J, excepted);
   * the closure after calibration is worse than before (any loop, 10 % margin);
   * the residual is far above the noise: chi2/dof > 100 with a given noise, or
@@ -52,39 +55,16 @@ held by the model's panda_joint3.z)``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from closedloop.analysis.scale import SETS_SIZE
-from closedloop.records import FAILED, SUSPECT, Verdict
+from closedloop.records import FAILED, SUSPECT, Verdict, VerdictRules
 
 if TYPE_CHECKING:
     from closedloop.records import CalibrationResult
 
-FLOOR = {"rms_m": 1e-7, "rms_rad": 1e-7, "rms_px": 1e-4}  # closures below these are round-off or noise-free
-# closures below these are round-off itself (seen: 5e-16..9e-14 m on exact data); there the residual is not
-# the least-squares one and need not be orthogonal to the Jacobian
-ROUNDOFF = {"rms_m": 1e-12, "rms_rad": 1e-12, "rms_px": 1e-9}
-
-
-@dataclass
-class VerdictRules:
-    plausible_joint_noise: float = 2e-3  # rad (m for prismatic joints)
-    failed_joint_noise: float = 1e-2
-    chi2_suspect: float = 2.0
-    chi2_failed: float = 100.0
-    scale_suspect: float = 0.03
-    scale_failed: float = 0.15
-    outliers_suspect: float = 0.05
-    outliers_failed: float = 0.20
-    heldout_suspect: float = 3.0
-    heldout_failed: float = 30.0
-    reducible_suspect: float = 0.1  # share of the final cost a Gauss-Newton step would still remove
-    reducible_failed: float = 0.5
-    error_bar_ratio: float = 2.25  # sandwich / noise-model variance beyond this (1.5x in standard error): unreliable
-    sandwich_configurations: float = 3.0  # configurations per estimated parameter a sandwich covariance needs
+__all__ = ["VerdictRules", "gross_rejections", "judge", "length_scale", "size_finding"]
 
 
 def length_scale(result: CalibrationResult) -> float:
@@ -95,8 +75,8 @@ def length_scale(result: CalibrationResult) -> float:
     """
     prob = result.problem
     rp = prob.rp
-    nominal = rp.apply(result.initial[: prob.n_robot]).model
-    calibrated = rp.apply(result.values[: prob.n_robot]).model
+    nominal = rp.apply(result.fit.initial[: prob.n_robot]).model
+    calibrated = rp.apply(result.fit.values[: prob.n_robot]).model
     jids = set()
     for name in prob.joints:
         jid = prob.robot.joint(name).jid
@@ -110,17 +90,15 @@ def length_scale(result: CalibrationResult) -> float:
     return float(np.sum(t0[live] * t1[live]) / np.sum(t0[live] ** 2))
 
 
-GROSS = 5.0  # a rejected configuration's closure over this many times its loop's RMS closure is a gross error
-
-
-def gross_rejections(result: CalibrationResult) -> list:
-    """The rejected configurations whose closure at the solution is a gross error: over GROSS times the RMS
+def gross_rejections(result: CalibrationResult, rules: VerdictRules | None = None) -> list:
+    """The rejected configurations whose closure at the solution is a gross error: over `gross_outlier` times the RMS
     closure of the configurations kept in their loop (a noise closure exceeds 5x its RMS with probability
     under 1e-6) and above the round-off floor.  The others, within the noise of the kept ones, are
     configurations the outlier screen left out that the solution explains: they do not count against it."""
-    after = {a.loop: a for a in result.residuals_after}
+    rules = rules or VerdictRules()
+    after = {a.loop: a for a in result.fit.residuals_after}
     out = []
-    for rj in result.rejected:
+    for rj in result.outliers.rejected:
         a = after.get(rj.loop)
         if a is None:
             out.append(rj)
@@ -131,19 +109,19 @@ def gross_rejections(result: CalibrationResult) -> list:
             if value is None or rms is None:
                 continue
             known = True
-            gross = gross or value > GROSS * max(rms, FLOOR[key])
+            gross = gross or value > rules.gross_outlier * max(rms, rules.floor(key))
         if gross or not known:
             out.append(rj)
     return out
 
 
-def _closure(before, after, verdict: Verdict) -> None:
+def _closure(before, after, rules: VerdictRules, verdict: Verdict) -> None:
     for b, a in zip(before, after):
         for key in ("rms_m", "rms_rad", "rms_px"):
             vb, va = getattr(b, key), getattr(a, key)
             if vb is None or va is None:
                 continue
-            if va > 1.1 * vb and va > FLOOR[key]:
+            if va > rules.closure_worse * vb and va > rules.floor(key):
                 verdict.add(
                     FAILED,
                     f"loop {a.loop}: closure {key[4:]} RMS {va:.3g} after calibration is worse than before ({vb:.3g})",
@@ -162,27 +140,27 @@ def _changes(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -
     elif abs(s - 1.0) > rules.scale_suspect:
         verdict.add(SUSPECT, f"the robot's overall size changed by a factor {s:.3g}")
     prob = result.problem
-    delta = result.values - result.initial
+    delta = result.fit.values - result.fit.initial
     if prob.robot.kind == "dh":  # theta + pi with a and alpha negated is the same mechanism (a relabelling)
         for k, p in enumerate(prob.params):
             if p.kind == "offset" or (p.kind == "dh" and p.unit == "rad"):
                 delta[k] = (delta[k] + np.pi / 2) % np.pi - np.pi / 2
             elif p.kind == "dh" and p.field == "a":
-                delta[k] = abs(result.values[k]) - abs(result.initial[k])
+                delta[k] = abs(result.fit.values[k]) - abs(result.fit.initial[k])
     for factor, status, what in (
-        (3.0, FAILED, "corrections no calibration makes (a flipped axis, a link gone)"),
+        (rules.corrections_failed, FAILED, "corrections no calibration makes (a flipped axis, a link gone)"),
         (1.0, SUSPECT, "implausibly large corrections"),
     ):
         moved = []
-        for k in result.estimated:
+        for k in result.fit.estimated:
             p = prob.params[k]
-            if p.kind == "offset" and p.unit == "rad" and abs(delta[k]) > 0.5 * factor:
+            if p.kind == "offset" and p.unit == "rad" and abs(delta[k]) > rules.offset_suspect * factor:
                 moved.append(f"{p.name} by {delta[k]:+.3g} rad")
-            elif p.kind == "placement" and p.unit == "rad" and abs(delta[k]) > 0.3 * factor:
+            elif p.kind == "placement" and p.unit == "rad" and abs(delta[k]) > rules.rotation_suspect * factor:
                 moved.append(f"{p.name} by {delta[k]:+.3g} rad")
             elif p.kind in ("placement", "dh") and p.unit == "m":
                 length = abs(p.scales_with_length) if p.kind == "placement" else abs(p.nominal)
-                if abs(delta[k]) > factor * max(0.5 * length, 0.05):
+                if abs(delta[k]) > factor * max(rules.origin_suspect * length, rules.origin_suspect_min):
                     moved.append(f"{p.name} by {delta[k] * 1e3:+.4g} mm")
         if moved:
             verdict.add(
@@ -197,12 +175,13 @@ def _minimum(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -
     zoo and the basin study, the noisy passive hinges; mostly 1e-17..1e-10).
     Near 1 the solver stopped where its linear model still sees the cost vanish: a step damped below
     `xtol`, or a trial rejected, along a direction the closure barely sees (0.4 mm of forward kinematics
-    at a closure of 5e-11 m on the zoo's TIAGo Pro weld).  Not judged at round-off closures (`ROUNDOFF`)."""
-    f = result.reducible
+    at a closure of 5e-11 m on the zoo's TIAGo Pro weld).  Not judged at round-off closures (`roundoff_m`, ...)."""
+    f = result.fit.reducible
     if not np.isfinite(f):
         return
     verdict.evidence["reducible"] = f
-    if not any((getattr(a, k) or 0.0) > floor for a in result.residuals_after for k, floor in ROUNDOFF.items()):
+    keys = ("rms_m", "rms_rad", "rms_px")
+    if not any((getattr(a, k) or 0.0) > rules.roundoff(k) for a in result.fit.residuals_after for k in keys):
         return
     what = (
         f"one Gauss-Newton step from the solution would still remove {100 * f:.0f} % of the remaining cost "
@@ -215,18 +194,18 @@ def _minimum(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -
 
 
 def _noise(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -> None:
-    dof = max(result.dof, 1)
-    ratio = result.chi2 / dof
+    dof = max(result.noise.dof, 1)
+    ratio = result.noise.chi2 / dof
     verdict.evidence["chi2_per_dof"] = ratio
-    if not result.sigma_estimated:
+    if not result.noise.sigma_estimated:
         if ratio > rules.chi2_failed:
             verdict.add(FAILED, f"the closure is {np.sqrt(ratio):.3g}x the given noise (chi2/dof {ratio:.3g})")
         elif ratio > rules.chi2_suspect:
             verdict.add(SUSPECT, f"the closure exceeds the given noise (chi2/dof {ratio:.3g})")
         return
-    if result.weighting != "noise":
+    if result.noise.weighting != "noise":
         return
-    sigma = result.sigma
+    sigma = result.noise.sigma
     verdict.evidence["joint_noise"] = sigma
     if sigma > rules.failed_joint_noise:
         verdict.add(
@@ -245,18 +224,19 @@ def _noise(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -> 
 SIZE_NOT_MEASURED = "size not measured"
 
 
-def size_finding(result: CalibrationResult) -> tuple[bool, str | None, str | None]:
+def size_finding(result: CalibrationResult, rules: VerdictRules | None = None) -> tuple[bool, str | None, str | None]:
     """(whether the data measure the robot's size, the parameter that holds it, the sentence that says so).
 
     Measured: a loop that sees the size (a tracker, a camera), a known distance between loop
     points, or a known length between frames that sets it (`analysis.scale.length_findings`:
-    its size response in SETS_SIZE, [0.9, 1.1]).  Otherwise the size is the model file's: held by
-    the gauge (`CalibrationResult.gauge`), or by no single length of it (which the gauge analysis
+    its size response within `VerdictRules.sets_size_low`..`sets_size_high`).  Otherwise the size is the model file's: held by
+    the gauge (`ScaleRecord.gauge`), or by no single length of it (which the gauge analysis
     warns of: the loops then leave more than a uniform scaling free).
     """
     from closedloop.problem.distances import distance_blocks
     from closedloop.problem.lengths import length_loops
 
+    rules = rules or VerdictRules()
     prob = result.problem
     if distance_blocks(prob):
         return True, None, None
@@ -264,10 +244,10 @@ def size_finding(result: CalibrationResult) -> tuple[bool, str | None, str | Non
     loops = [b for bi, b in enumerate(prob.blocks) if bi not in lengths]
     if not all(b.loop.scale_free for b in loops):
         return True, None, None
-    response = getattr(result, "length_response", None)
-    if lengths and response is not None and SETS_SIZE[0] <= response <= SETS_SIZE[1]:
+    response = result.scale.length_response
+    if lengths and response is not None and rules.sets_size(response):
         return True, None, None
-    held = result.gauge
+    held = result.scale.gauge
     why = f"held by the model's {held}" if held else "no single length of the model holds it"
     if lengths:
         labels = " and ".join(lp.label() for lp in lengths.values())
@@ -275,15 +255,15 @@ def size_finding(result: CalibrationResult) -> tuple[bool, str | None, str | Non
     return False, held, f"{SIZE_NOT_MEASURED}: {why}"
 
 
-ROUND_OFF_NOISE = 1e-9  # rad: a fit that implies less joint noise closes exact data (`_error_bars`)
-
-
-def _noise_free(result: CalibrationResult) -> bool:
-    """Every loop closes below `FLOOR` after the fit: noise-free data (or round-off), whatever the joint noise the
+def _noise_free(result: CalibrationResult, rules: VerdictRules) -> bool:
+    """Every loop closes below the noise floor (`floor_m`, ...) after the fit: noise-free data (or round-off), whatever the joint noise the
     fit implies through a known length's own sigma."""
     return all(
-        all(v is None or v < FLOOR[k] for k, v in (("rms_m", r.rms_m), ("rms_rad", r.rms_rad), ("rms_px", r.rms_px)))
-        for r in result.residuals_after
+        all(
+            v is None or v < rules.floor(k)
+            for k, v in (("rms_m", r.rms_m), ("rms_rad", r.rms_rad), ("rms_px", r.rms_px))
+        )
+        for r in result.fit.residuals_after
     )
 
 
@@ -293,10 +273,10 @@ def _error_bars(result: CalibrationResult, rules: VerdictRules, verdict: Verdict
     the sandwich: at least `sandwich_configurations` configurations per estimated parameter."""
     from closedloop.estimate.model_error import SANDWICH
 
-    ratio = (getattr(result, "model_error", None) or {}).get("sandwich_variance_ratio")
+    ratio = result.noise.model_error.get("sandwich_variance_ratio")
     n_conf = sum(b.theta.shape[0] for b in result.problem.blocks if not getattr(b.loop, "parameter_only", False))
-    p = len(result.estimated)
-    if getattr(result, "error_bars", None) == SANDWICH:
+    p = len(result.fit.estimated)
+    if result.noise.error_bars == SANDWICH:
         verdict.evidence["error_bars"] = "sandwich"
         if n_conf < rules.sandwich_configurations * p:
             verdict.add(
@@ -306,7 +286,13 @@ def _error_bars(result: CalibrationResult, rules: VerdictRules, verdict: Verdict
                 "each)",
             )
         return
-    if ratio is None or not np.isfinite(ratio) or p == 0 or result.sigma < ROUND_OFF_NOISE or _noise_free(result):
+    if (
+        ratio is None
+        or not np.isfinite(ratio)
+        or p == 0
+        or result.noise.sigma < rules.round_off_noise
+        or _noise_free(result, rules)
+    ):
         return  # exact data: the residual is round-off, its spread no measure of anything
     verdict.evidence["sandwich_variance_ratio"] = ratio
     if not 1.0 / rules.error_bar_ratio <= ratio <= rules.error_bar_ratio:
@@ -323,26 +309,30 @@ def judge(
     rules: VerdictRules | None = None,
     fixtures: dict | None = None,
 ) -> Verdict:
-    """The verdict on `result`, and on its k-fold `validation` (`validation.cross_validate`) if given;
-    `fixtures` (`fixtures.leave_one_fixture_out`): a held-out fixture worse than the nominal model is suspect."""
+    """The verdict on `result`, and on its k-fold `validation` (`validation.kfold.cross_validate`) if given;
+    `fixtures` (`fixtures.leave_one_fixture_out`): a held-out fixture worse than the nominal model is suspect.
+    `rules`: the thresholds (the defaults of `VerdictRules` if None)."""
     rules = rules or VerdictRules()
     v = Verdict()
-    if result.solver_status != "converged":
-        v.add(FAILED, f"the solver did not converge ({result.solver_message})")
+    if result.fit.solver_status != "converged":
+        v.add(FAILED, f"the solver did not converge ({result.fit.solver_message})")
     else:
         _minimum(result, rules, v)
     # a known distance (closedloop.problem.distances) is a measurement, not a closure that calibration must improve
     own = [not getattr(b.loop, "parameter_only", False) for b in result.problem.blocks]
     _closure(
-        [r for r, k in zip(result.residuals_before, own) if k], [r for r, k in zip(result.residuals_after, own) if k], v
+        [r for r, k in zip(result.fit.residuals_before, own) if k],
+        [r for r, k in zip(result.fit.residuals_after, own) if k],
+        rules,
+        v,
     )
     _noise(result, rules, v)
     _error_bars(result, rules, v)
     _changes(result, rules, v)
-    total = result.rows_total
-    rejected = len(gross_rejections(result))
-    if len(result.rejected) > rejected:
-        v.evidence["rejected_within_noise"] = len(result.rejected) - rejected
+    total = result.outliers.rows_total
+    rejected = len(gross_rejections(result, rules))
+    if len(result.outliers.rejected) > rejected:
+        v.evidence["rejected_within_noise"] = len(result.outliers.rejected) - rejected
     if total:
         frac = rejected / total
         v.evidence["rejected_fraction"] = frac
@@ -350,7 +340,7 @@ def judge(
             v.add(FAILED, f"{rejected} of {total} configurations rejected as outliers")
         elif frac > rules.outliers_suspect:
             v.add(SUSPECT, f"{rejected} of {total} configurations rejected as outliers")
-    measured, held, sentence = size_finding(result)
+    measured, held, sentence = size_finding(result, rules)
     for note in result.warnings:
         v.add(SUSPECT, note)
     if validation is not None:
@@ -373,9 +363,9 @@ def _validation(cv: dict, rules: VerdictRules, verdict: Verdict) -> None:
         for tr, te in zip(f["train"]["loops"], f["test"]["loops"]):
             for key in ("rms_m", "rms_rad", "rms_px"):
                 a, b = tr.get(key), te.get(key)
-                if a is None or b is None or b <= 3.0 * FLOOR[key]:
+                if a is None or b is None or b <= rules.heldout_floor * rules.floor(key):
                     continue
-                ratio = b / max(a, FLOOR[key])
+                ratio = b / max(a, rules.floor(key))
                 if ratio > rules.heldout_failed:
                     verdict.add(
                         FAILED,
@@ -388,55 +378,3 @@ def _validation(cv: dict, rules: VerdictRules, verdict: Verdict) -> None:
                         f"validation fold {f['fold']}, loop {te['loop']}: held-out closure "
                         f"{key[4:]} RMS {b:.3g} is {ratio:.3g}x the training fit",
                     )
-
-
-def length_guard(result: CalibrationResult, solve, loops: list) -> CalibrationResult:
-    """A known length between frames (`problem.lengths`) that does not set the size never drives the estimate.
-
-    The fit with the length is kept when the length sets the size (its size response, `analysis.scale`, in
-    [0.9, 1.1]) and the verdict is not failed.  Otherwise the loops are solved without it (`solve(loops)`):
-    a length that does not set the size moves the estimate along what the loops cannot see (a frame's slide
-    along a joint axis), and one that fails a fit the loops alone pass contradicts them.  That fit is
-    returned, `suspect` with the reason, unless the loops alone fail too (then the length was not the cause
-    and the fit with it is returned as it is).
-    """
-    from dataclasses import replace
-
-    from closedloop.problem.lengths import LengthLoop
-
-    given = [lp for lp in loops if isinstance(lp, LengthLoop)]
-    response = result.length_response
-    if not given or response is None:
-        return result
-    if result.verdict is None:
-        raise ValueError("length_guard: the fit must be judged first (`judge`)")
-    sets = SETS_SIZE[0] <= response <= SETS_SIZE[1]
-    if sets and result.verdict.status != FAILED:
-        return result
-    alone = solve([lp for lp in loops if not isinstance(lp, LengthLoop)])
-    if alone.verdict is None:
-        raise ValueError("length_guard: `solve` must return a judged fit (`judge`)")
-    if alone.verdict.status == FAILED:
-        return result
-    labels = " and ".join(lp.label() for lp in given)
-    if not sets:
-        why = (
-            f"{labels} cannot set the robot's size (a change of it by 1 % scales the fitted robot by "
-            f"{response:.3g} %: it moves with what the loops cannot see); it was left out of the fit"
-        )
-    else:
-        failed = "; ".join(r for r in result.verdict.reasons if r.startswith(FAILED))
-        why = f"{labels} contradicts the loops (the fit with it failed: {failed}); it was left out of the fit"
-    v = alone.verdict
-    verdict = Verdict(v.status, [r for r in v.reasons if not r.startswith(SIZE_NOT_MEASURED)], dict(v.evidence))
-    verdict.add(SUSPECT, why)
-    verdict.reasons.extend(r for r in v.reasons if r.startswith(SIZE_NOT_MEASURED))
-    verdict.evidence["length_left_out"] = True
-    return replace(
-        alone,
-        verdict=verdict,
-        warnings=alone.warnings + [why],
-        notes=alone.notes + [why],
-        length_response=response,
-        length_leak=result.length_leak,
-    )

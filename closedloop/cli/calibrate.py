@@ -148,7 +148,7 @@ def cmd_calibrate(args) -> int:
 
 
 def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res, cv_given: bool = True) -> dict | None:
-    """K-fold held-out validation (`validation.cross_validate`), into the report; the rows `res` rejected
+    """K-fold held-out validation (`validation.kfold.cross_validate`), into the report; the rows `res` rejected
     as outliers are not judged (they stay in the refits' data).
 
     A training fold the refit cannot use (too few rows for the parameters) ends the validation: with the
@@ -166,7 +166,7 @@ def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res,
             opts,
             k=args.cv,
             progress=prog,
-            exclude=[rj.row - 1 for rj in res.rejected],
+            exclude=[rj.row - 1 for rj in res.outliers.rejected],
         )
     except ClosedLoopError as exc:
         prog.close()
@@ -201,7 +201,7 @@ SHOWN_WEAK = 5  # combinations not identified printed in the summary (all of the
 
 
 def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = True) -> None:
-    b, a = res.residuals_before, res.residuals_after
+    b, a = res.fit.residuals_before, res.fit.residuals_after
     import numpy as np
 
     # a known distance (closedloop.problem.distances) is one residual row, no configuration, nothing held out
@@ -212,10 +212,14 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
     reasons = list(dict.fromkeys(own_reasons(res.verdict)))
     print(f"verdict: {res.verdict.status}" + (f" ({'; '.join(reasons)})" if reasons else ""))
     print(
-        f"calibrated {len(res.estimated)} parameters from {n_conf} configurations "
-        f"in {res.iterations} iterations ({elapsed:.2f} s): "
+        f"calibrated {len(res.fit.estimated)} parameters from {n_conf} configurations "
+        f"in {res.fit.iterations} iterations ({elapsed:.2f} s): "
         # the solver's own word only where the verdict does not overrule it
-        + (res.solver_status if res.verdict.status != "failed" else f"the solver stopped ({res.solver_message})")
+        + (
+            res.fit.solver_status
+            if res.verdict.status != "failed"
+            else f"the solver stopped ({res.fit.solver_message})"
+        )
     )
     for rb, ra in zip(b, a):
         parts = []
@@ -226,19 +230,21 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
         if rb.rms_px is not None:
             parts.append(f"{rb.rms_px:.4g} px -> {ra.rms_px:.4g} px")
         print(f"  loop {ra.loop}: closure RMS " + ", ".join(parts))
-    ratio = res.chi2 / max(res.dof, 1)
-    if res.sigma_estimated:  # chi2/dof is 1 by construction unless a task's own noise weighs in too
+    ratio = res.noise.chi2 / max(res.noise.dof, 1)
+    if res.noise.sigma_estimated:  # chi2/dof is 1 by construction unless a task's own noise weighs in too
         fit = "" if abs(ratio - 1.0) < 5e-3 else f"; chi2/dof {ratio:.3g} with the task noise"
-        print(f"  joint noise {res.sigma:.3g} rad, estimated from the residual{fit}")
+        print(f"  joint noise {res.noise.sigma:.3g} rad, estimated from the residual{fit}")
     else:
-        print(f"  joint noise {res.sigma:.3g} rad (given); chi2/dof {ratio:.3g}")
-    if res.dropped:
-        print(f"  {len(res.dropped)} redundant parameters dropped (see report: identifiability.dropped)")
-    for c in res.weak[:SHOWN_WEAK]:
-        print(f"  not identifiable: {c.describe()}")
-    if len(res.weak) > SHOWN_WEAK:
+        print(f"  joint noise {res.noise.sigma:.3g} rad (given); chi2/dof {ratio:.3g}")
+    if res.identifiability.dropped:
         print(
-            f"  ... and {len(res.weak) - SHOWN_WEAK} more combinations not identifiable "
+            f"  {len(res.identifiability.dropped)} redundant parameters dropped (see report: identifiability.dropped)"
+        )
+    for c in res.identifiability.weak[:SHOWN_WEAK]:
+        print(f"  not identifiable: {c.describe()}")
+    if len(res.identifiability.weak) > SHOWN_WEAK:
+        print(
+            f"  ... and {len(res.identifiability.weak) - SHOWN_WEAK} more combinations not identifiable "
             "(report: identifiability.not_identifiable)"
         )
     for n in dict.fromkeys(res.notes):  # each note once

@@ -90,7 +90,7 @@ def _order(args) -> list[str] | None:
 
 def read_inputs(log_path: str | None, robot, loops: list, degrees: bool = False, order: list[str] | None = None):
     """The joint log: the positional file (CSV or bag), or each loop's own ``log=`` file (one per fixture);
-    refused where most readings of a joint lie far beyond its limits (`data.check_angle_units`)."""
+    refused where most readings of a joint lie far beyond its limits (`io.logs.check_angle_units`)."""
     from closedloop.io.logs import check_angle_units
 
     lg = _read_inputs(log_path, robot, loops, degrees, order)
@@ -140,7 +140,7 @@ def input_record(args, lg, res=None) -> dict:
     that follows, and where the joint torques the compliance model used come from ('log', 'gravity': the
     model's inertials at the readings; null when no compliance was used)."""
     used = res is None or any(
-        p.kind == "compliance" and (res.status[k] == "estimated" or res.values[k] != 0.0)
+        p.kind == "compliance" and (res.fit.status[k] == "estimated" or res.fit.values[k] != 0.0)
         for k, p in enumerate(res.problem.params)
     )
     return {

@@ -1,5 +1,5 @@
 """The `closedloop` command line: the parser, the dispatch and the exit codes.  Printing happens in the
-`cli*` modules and only there (`cli_calibrate`, `cli_simulate`, `cli_tools`; option values: `cli_parse`).
+`closedloop.cli` modules and only there (`cli.calibrate`, `cli.simulate`, `cli.tools`; option values: `cli.parse`).
 
 User mistakes (`InputError`) print one line and exit with code 2.  Nothing heavy is imported before
 `main` has taken over the signals: Ctrl-C while the numerical libraries load is one line and exit 130 too.

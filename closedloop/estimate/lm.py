@@ -222,7 +222,7 @@ def _solve(
         decrease = cost - cost_new
         x = x_new
         if retract is not None:
-            x = retract(x)  # the parameters' charts follow the solution (`stages.ResidualFunction.retract`)
+            x = retract(x)  # the parameters' charts follow the solution (`residual.ResidualFunction.retract`)
         r, J = _with_jacobian(fun, x)
         cost = 0.5 * float(r @ r)
         history.append(cost)
@@ -236,7 +236,7 @@ def _solve(
         if decrease <= opt.ftol * max(cost + decrease, 1e-300) or max(step_norm, float(np.linalg.norm(gn))) < opt.xtol:
             status, message = "converged", "cost and step converged"
             break
-    # a function with charts (`retract`) settles them at the end (`stages.ResidualFunction.settle`)
+    # a function with charts (`retract`) settles them at the end (`residual.ResidualFunction.settle`)
     settled = getattr(fun, "settle")(x) if retract is not None else None
     if settled is not None:  # back in the problem's own charts
         x = settled

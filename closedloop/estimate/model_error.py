@@ -38,7 +38,7 @@ from closedloop.problem.problem import CalibrationProblem
 
 #: rad (m for prismatic joints): a joint reading worse than this is no encoder noise (0.01 deg)
 ENCODER_NOISE = 2e-4
-#: the estimators, and where the error bars come from (`CalibrationResult.estimator`, `.error_bars`)
+#: the estimators, and where the error bars come from (`NoiseRecord.estimator`, `.error_bars`)
 EIV, PLAIN = "errors in variables", "plain least squares"
 NOISE_MODEL, SANDWICH = "the noise model", "the sandwich covariance by configuration"
 

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from closedloop.estimate.lm import SolverOptions
+from closedloop.estimate.residual import ResidualFunction, weighted_stage
 from closedloop.estimate.robust import (
     cauchy_weights,
     component_standardized,
@@ -41,12 +42,11 @@ from closedloop.estimate.robust import (
 )
 from closedloop.estimate.robust import suspects as find_suspects
 from closedloop.estimate.robust import weights as robust_weights
-from closedloop.estimate.stages import ResidualFunction, weighted_stage
 from closedloop.problem.problem import CalibrationProblem
 from closedloop.records import Rejected
 
 if TYPE_CHECKING:
-    from closedloop.estimate.stages import Fit
+    from closedloop.estimate.residual import Fit
     from closedloop.records import CalibrationOptions
 
 log = logging.getLogger(__name__)

@@ -454,9 +454,9 @@ def result_suspects(
     c: float | None = None,
     scale: float | None = None,
 ) -> list[Suspect]:
-    """`suspects` of a calibration at its solution (noise default: result.sigma on every joint)."""
+    """`suspects` of a calibration at its solution (noise default: result.noise.sigma on every joint)."""
     p = result.problem
-    res = config_residuals(p, result.values, result.sigma if noise is None else noise)
+    res = config_residuals(p, result.fit.values, result.noise.sigma if noise is None else noise)
     return suspects(res, [b.rows for b in p.blocks], [b.loop.name for b in p.blocks], alpha, scale, loss, c)
 
 
@@ -479,7 +479,7 @@ def irls(
     scale: float | None = None,
     alpha: float = 0.01,
 ) -> IRLSResult:
-    """Iteratively reweighted Gauss-Newton over `result.estimated`, from `result.values`.
+    """Iteratively reweighted Gauss-Newton over `result.fit.estimated`, from `result.fit.values`.
 
     A reference for the integration in `calibrate`: each iteration computes
     the whitened per-configuration residuals, the MAD scale (unless `scale`
@@ -487,10 +487,10 @@ def irls(
     numerical-rank floor only).  Stops when the scaled step is below `tol`.
     """
     p = result.problem
-    est = list(result.estimated)
+    est = list(result.fit.estimated)
     prior = np.array([p.params[k].prior for k in est])
-    sigma_q = _sigma_q(p, result.sigma if noise is None else noise)
-    x = result.values.copy()
+    sigma_q = _sigma_q(p, result.noise.sigma if noise is None else noise)
+    x = result.fit.values.copy()
     w: list[np.ndarray] = []
     s = 1.0
     it = 0

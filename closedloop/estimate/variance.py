@@ -10,7 +10,7 @@ the errors-in-variables term of the joint noise (thesis eq. 3.17 weighted;
 loop's own task-space variance v_l on its translation rows (T).  A loop's
 ``sigma_task`` fixes v_l; ``sigma_task=auto`` (the default for point and plane
 loops when several share the robot) estimates it with s from the fitted
-residuals (`variance_components`), and `staging.solve_staged` re-solves
+residuals (`variance_components`), and `solve.solve_staged` re-solves
 with the new weights until they settle.  `noise_summary` says per loop which
 noise dominates.
 

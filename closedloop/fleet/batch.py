@@ -3,7 +3,7 @@
 A manifest (YAML or CSV) lists jobs: model, log (CSV or ROS bag), loops,
 options, output folder, and optionally the robot's id and the date of the log.
 Every job is calibrated and k-fold validated on its own (``closedloop.calibrate``,
-``validation.cross_validate``) by one of the engines of ``closedloop.parallel.executor``.
+``validation.kfold.cross_validate``) by one of the engines of ``closedloop.parallel.executor``.
 
 * A job that raises is recorded (summary row ``status=failed``, the error) and
   the others go on; a failed job is tried again by the next run.
@@ -211,7 +211,7 @@ def _options(opts: dict, names: list[str]):
 
 
 def _read(job: BatchJob, robot):
-    """The job's log (a CSV or a bag), refused as `calibrate` refuses it (`data.check_angle_units`)."""
+    """The job's log (a CSV or a bag), refused as `calibrate` refuses it (`io.logs.check_angle_units`)."""
     from closedloop.io.logs import check_angle_units, read_log
 
     degrees = job.options.get("degrees", False)
@@ -278,7 +278,7 @@ def run_job(job: BatchJob) -> dict:
         from closedloop.validation.kfold import cross_validate
 
         try:
-            cv = cross_validate(robot, lg, loops, opts, k=job.cv, exclude=[rj.row - 1 for rj in res.rejected])
+            cv = cross_validate(robot, lg, loops, opts, k=job.cv, exclude=[rj.row - 1 for rj in res.outliers.rejected])
             report["validation"] = {
                 "k": job.cv,
                 "excluded_rows": [i + 1 for i in cv["excluded"]],
@@ -300,11 +300,11 @@ def run_job(job: BatchJob) -> dict:
         "verdict": getattr(verdict, "status", "n/a"),
         "verdict_reasons": "; ".join(getattr(verdict, "reasons", [])),
         "configurations": len(lg),
-        "estimated": len(res.estimated),
-        "rms_before_mm": _pooled(res.residuals_before, "rms_m"),
-        "rms_after_mm": _pooled(res.residuals_after, "rms_m"),
-        "rms_before_mrad": _pooled(res.residuals_before, "rms_rad"),
-        "rms_after_mrad": _pooled(res.residuals_after, "rms_rad"),
+        "estimated": len(res.fit.estimated),
+        "rms_before_mm": _pooled(res.fit.residuals_before, "rms_m"),
+        "rms_after_mm": _pooled(res.fit.residuals_after, "rms_m"),
+        "rms_before_mrad": _pooled(res.fit.residuals_before, "rms_rad"),
+        "rms_after_mrad": _pooled(res.fit.residuals_after, "rms_rad"),
         "cv_test_mm": cv_t[0],
         "cv_test_mrad": cv_t[1],
         "top_changes": _top_changes(report),

@@ -63,16 +63,14 @@ def gauge_record(res) -> dict[str, Any]:
 
     P = len(res.problem.params)
     problem, vals, idx, sigma_q = resolve(res, None, list(range(P)))
-    C = np.vstack(
-        [J.reshape(-1, P) for _, J in whitened_blocks(problem, vals, idx, sigma_q, getattr(res, "weighting", "noise"))]
-    )
+    C = np.vstack([J.reshape(-1, P) for _, J in whitened_blocks(problem, vals, idx, sigma_q, res.noise.weighting)])
     return {
         "names": list(problem.names),
         "kinds": [p.kind for p in problem.params],
-        "values": [float(v) for v in res.values],
-        "estimated": [int(k) for k in res.estimated],
+        "values": [float(v) for v in res.fit.values],
+        "estimated": [int(k) for k in res.fit.estimated],
         "prior": [float(p.prior) for p in problem.params],
-        "covariance": np.asarray(res.covariance, float).tolist(),
+        "covariance": np.asarray(res.fit.covariance, float).tolist(),
         "information": (C.T @ C).tolist(),
     }
 

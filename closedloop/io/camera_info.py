@@ -159,7 +159,7 @@ def camera_info_text(info: CameraInfo) -> str:
 
 def camera_infos_from_result(result, loop) -> list[CameraInfo]:
     """The calibrated intrinsics and distortion of every camera of a camera loop in a CalibrationResult."""
-    values = dict(zip(result.names, result.values))
+    values = dict(zip(result.fit.names, result.fit.values))
     shared = getattr(loop, "shared", None) or {}  # a field shared with a group (cam1=@head) has the group's name
     out = []
     for c in range(loop.cameras):

@@ -89,7 +89,7 @@ class Loop(ABC):
     def prepare(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> "Loop":
         """The loop with what it reads off the data once fixed (the hinge's chart reference): a new
         object, or `self` when there is nothing to fix.  Called once per problem, at the nominal robot
-        (`calibration.build_problem`); loops keep no per-dataset state beyond what this returns."""
+        (`calibration.pipeline.build_problem`); loops keep no per-dataset state beyond what this returns."""
         return self
 
     def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:

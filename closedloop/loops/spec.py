@@ -30,7 +30,6 @@ from typing import Callable
 
 from closedloop.errors import InputError, LoopError
 from closedloop.loops.base import Loop
-from closedloop.loops.weld import WeldLoop, parse_pose
 from closedloop.model.robot import RobotModel
 
 LoopFactory = Callable[[dict[str, str], RobotModel], Loop]
@@ -44,7 +43,7 @@ LoopFactory = Callable[[dict[str, str], RobotModel], Loop]
 #: is its own module, one entry here and, to simulate it, its simulator class
 #: (docs/architecture/adding-a-loop-type.md).
 LOOP_TYPES: dict[str, str] = {
-    "weld": ".spec",
+    "weld": ".weld",
     "point": ".point",
     "plane": ".plane",
     "sphere": ".sphere",
@@ -83,20 +82,6 @@ def loop_type(kind: str) -> tuple[LoopFactory, set[str]]:
 def all_loop_types() -> dict[str, tuple[LoopFactory, set[str]]]:
     """Every loop type of `LOOP_TYPES` with its factory and keys (loads every loop module)."""
     return {kind: loop_type(kind) for kind in LOOP_TYPES}
-
-
-@register("weld", {"frame", "to", "closure"})
-def _weld(kw: dict[str, str], robot: RobotModel) -> Loop:
-    """weld:frame=tool[,to=frame_b][,closure=identity|"x y z rx ry rz"]  (closure: unknown if absent)."""
-    if "frame" not in kw:
-        raise LoopError("weld loop needs frame=<tool frame>")
-    closure = kw.get("closure", "unknown")
-    known = None
-    if closure == "identity":
-        known = parse_pose("0 0 0 0 0 0")
-    elif closure != "unknown":
-        known = parse_pose(closure)
-    return WeldLoop(kw.get("name", "weld"), kw["frame"], kw.get("to", "universe"), closure=known)
 
 
 def parse_loop(spec: str, robot: RobotModel) -> Loop:
@@ -161,7 +146,8 @@ def parse_loop(spec: str, robot: RobotModel) -> Loop:
 def default_loops(robot: RobotModel) -> list[Loop]:
     """Loops implied by the model itself: a D-H table with ``closes: true``."""
     if robot.kind == "dh" and robot.dh is not None and robot.dh.closes:
-        return [WeldLoop("closure", robot.dh.end_frame, "universe", closure=parse_pose("0 0 0 0 0 0"))]
+        weld, _ = loop_type("weld")  # the chain closes on itself: the identity closure
+        return [weld({"name": "closure", "frame": robot.dh.end_frame, "to": "universe", "closure": "identity"}, robot)]
     return []
 
 

@@ -9,10 +9,13 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
+from closedloop.errors import LoopError
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.common import POSE_FIELDS, pose_parameters
+from closedloop.loops.spec import register
 from closedloop.model.parameters import Parameter
-from closedloop.model.se3 import adjoint, log3, log6, parse_pose, rigid_inverse  # noqa: F401  (parse_pose: spec.py's)
+from closedloop.model.robot import RobotModel
+from closedloop.model.se3 import adjoint, log3, log6, parse_pose, rigid_inverse
 
 CLOSURE_FIELDS = POSE_FIELDS
 
@@ -156,3 +159,17 @@ class WeldLoop(Loop):
         gen[:3, :3] = X.rotation.T
         gen[3:, 3:] = pin.Jexp3(p[3:6])
         return LoopEval(r, Jl, dB, dB @ (X.action @ gen))  # Ad(E^-1) = Ad(Y^-1) Ad(X)
+
+
+@register("weld", {"frame", "to", "closure"})
+def _weld(kw: dict[str, str], robot: RobotModel) -> Loop:
+    """weld:frame=tool[,to=frame_b][,closure=identity|"x y z rx ry rz"]  (closure: unknown if absent)."""
+    if "frame" not in kw:
+        raise LoopError("weld loop needs frame=<tool frame>")
+    closure = kw.get("closure", "unknown")
+    known = None
+    if closure == "identity":
+        known = parse_pose("0 0 0 0 0 0")
+    elif closure != "unknown":
+        known = parse_pose(closure)
+    return WeldLoop(kw.get("name", "weld"), kw["frame"], kw.get("to", "universe"), closure=known)

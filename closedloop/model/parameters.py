@@ -84,7 +84,7 @@ class RobotState:
 
 
 def _dh_table(robot: RobotModel) -> DHTable:
-    """The D-H table of a robot of kind "dh" (`RobotModel.load` builds every such robot with its table)."""
+    """The D-H table of a robot of kind "dh" (`RobotModel.from_file` builds every such robot with its table)."""
     if robot.dh is None:
         raise ModelError(f"robot '{robot.source}': a D-H robot without its D-H table")
     return robot.dh

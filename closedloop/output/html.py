@@ -46,7 +46,7 @@ def closure_per_configuration(res) -> list[dict]:
     """Per loop: row numbers and per-configuration closure (m, rad) before and after the fit."""
     prob = res.problem
     out = []
-    for values, key in ((res.initial, "before"), (res.values, "after")):
+    for values, key in ((res.fit.initial, "before"), (res.fit.values, "after")):
         for k, (b, ev) in enumerate(zip(prob.blocks, prob.evaluate(np.asarray(values), False))):
             lp = b.loop
             if key == "before":
@@ -126,8 +126,8 @@ def robot_corrections(res) -> list[int]:
     loop groups (``ball.tip_x``, named by the group, not by a loop) are left out."""
     return [
         k
-        for k in range(len(res.names))
-        if res.status[k] == ParamStatus.ESTIMATED and res.problem.params[k].kind != "loop"
+        for k in range(len(res.fit.names))
+        if res.fit.status[k] == ParamStatus.ESTIMATED and res.problem.params[k].kind != "loop"
     ]
 
 
@@ -144,12 +144,12 @@ def fig_corrections(res) -> bytes:
         return _png(_plt().figure(figsize=(4, 1)))
     fig, axes = plt.subplots(1, len(groups), figsize=(9, 0.22 * max(len(g[3]) for g in groups) + 1.5), squeeze=False)
     for ax, (u, f, lab, idx) in zip(axes[0], groups):
-        dv = (res.values[idx] - res.initial[idx]) * f
-        sd = np.nan_to_num(res.std[idx]) * f
+        dv = (res.fit.values[idx] - res.fit.initial[idx]) * f
+        sd = np.nan_to_num(res.fit.std[idx]) * f
         y = np.arange(len(idx))
         ax.errorbar(dv, y, xerr=sd, fmt="o", ms=3, color="#36c", ecolor="#999", capsize=2)
         ax.axvline(0, color="k", lw=0.5)
-        ax.set_yticks(y, [res.names[k] for k in idx], fontsize=7)
+        ax.set_yticks(y, [res.fit.names[k] for k in idx], fontsize=7)
         ax.invert_yaxis()
         ax.set_xlabel(f"correction [{lab}]  (+-1 standard error)")
     fig.tight_layout()
@@ -163,26 +163,32 @@ def truncation_threshold(res, snr: float = 1.0) -> float | None:
     level otherwise.  If that does not reproduce the number of kept directions (options unknown
     here), the line is drawn between the last kept and the first truncated singular value.
     """
-    S = np.asarray(res.singular_values)
+    S = np.asarray(res.identifiability.singular_values)
     if not S.size:
         return None
-    thr = max(1e-10 * float(S[0]), snr * (float(res.sigma) if res.sigma_estimated else 1.0))
-    if int(np.sum(S > thr)) == res.rank:
+    thr = max(1e-10 * float(S[0]), snr * (float(res.noise.sigma) if res.noise.sigma_estimated else 1.0))
+    if int(np.sum(S > thr)) == res.identifiability.rank:
         return thr
-    if 0 < res.rank < S.size:
-        return float(math.sqrt(S[res.rank - 1] * max(S[res.rank], 1e-300)))
+    if 0 < res.identifiability.rank < S.size:
+        return float(math.sqrt(S[res.identifiability.rank - 1] * max(S[res.identifiability.rank], 1e-300)))
     return None
 
 
 def fig_spectrum(res, snr: float = 1.0) -> bytes:
     plt = _plt()
-    S = np.asarray(res.singular_values)
+    S = np.asarray(res.identifiability.singular_values)
     fig, ax = plt.subplots(figsize=(9, 3))
     if S.size:
         k = np.arange(1, S.size + 1)
-        kept = k <= res.rank
-        ax.semilogy(k[kept], S[kept], "o", color="#2a6", ms=4, label=f"kept ({res.rank})")
-        ax.semilogy(k[~kept], np.maximum(S[~kept], 1e-300), "x", color="#c44", label=f"truncated ({S.size - res.rank})")
+        kept = k <= res.identifiability.rank
+        ax.semilogy(k[kept], S[kept], "o", color="#2a6", ms=4, label=f"kept ({res.identifiability.rank})")
+        ax.semilogy(
+            k[~kept],
+            np.maximum(S[~kept], 1e-300),
+            "x",
+            color="#c44",
+            label=f"truncated ({S.size - res.identifiability.rank})",
+        )
         thr = truncation_threshold(res, snr)
         if thr is not None:
             ax.axhline(thr, color="#c44", ls="--", lw=1, label=f"truncation ({thr:.2g})")
@@ -244,7 +250,7 @@ def verdict_of(res, report: dict | None = None) -> tuple[str, list[str]]:
     v = getattr(res, "verdict", None)
     if v is not None:
         return str(getattr(v, "status", v)), list(getattr(v, "reasons", []) or [])
-    return ("ok", []) if res.converged else ("failed", [f"the solver did not converge ({res.solver_message})"])
+    return ("ok", []) if res.converged else ("failed", [f"the solver did not converge ({res.fit.solver_message})"])
 
 
 def _sections(res, report: dict, snr: float = 1.0, row_name=None) -> list[str]:
@@ -254,7 +260,7 @@ def _sections(res, report: dict, snr: float = 1.0, row_name=None) -> list[str]:
         + ("".join(f"<br>{_e(r)}" for r in reasons))
         + "</div>"
     ]
-    n = sum(r.n for r in res.residuals_after)
+    n = sum(r.n for r in res.fit.residuals_after)
     noise = report.get("noise", {})
     out.append(
         _table(
@@ -264,15 +270,15 @@ def _sections(res, report: dict, snr: float = 1.0, row_name=None) -> list[str]:
                 ["model", report.get("model")],
                 ["log", report.get("log")],
                 ["configurations", n],
-                ["parameters estimated", len(res.estimated)],
-                ["solver", f"{res.solver_status}, {res.iterations} iterations"],
-                ["joint noise", f"{res.sigma:.3g} rad ({'estimated' if res.sigma_estimated else 'given'})"],
+                ["parameters estimated", len(res.fit.estimated)],
+                ["solver", f"{res.fit.solver_status}, {res.fit.iterations} iterations"],
+                ["joint noise", f"{res.noise.sigma:.3g} rad ({'estimated' if res.noise.sigma_estimated else 'given'})"],
                 ["chi2 / dof", _g(noise.get("chi2_per_dof"))],
             ],
         )
     )
     rows = []
-    for b, a in zip(res.residuals_before, res.residuals_after):
+    for b, a in zip(res.fit.residuals_before, res.fit.residuals_after):
         rows.append([b.loop, b.n, _g(b.rms_m, 1e3), _g(a.rms_m, 1e3), _g(b.rms_rad, 1e3), _g(a.rms_rad, 1e3)])
     out.append(
         "<h2>Closure</h2>"
@@ -304,15 +310,15 @@ def _sections(res, report: dict, snr: float = 1.0, row_name=None) -> list[str]:
     prob = res.problem
     rows = [
         [
-            res.names[k],
+            res.fit.names[k],
             prob.params[k].unit,
-            _g(res.initial[k], 1, ".6g"),
-            _g(res.values[k], 1, ".6g"),
-            _g(res.values[k] - res.initial[k], 1, ".3e"),
-            _g(res.std[k], 1, ".2e"),
+            _g(res.fit.initial[k], 1, ".6g"),
+            _g(res.fit.values[k], 1, ".6g"),
+            _g(res.fit.values[k] - res.fit.initial[k], 1, ".3e"),
+            _g(res.fit.std[k], 1, ".2e"),
         ]
-        for k in range(len(res.names))
-        if res.status[k] == ParamStatus.ESTIMATED
+        for k in range(len(res.fit.names))
+        if res.fit.status[k] == ParamStatus.ESTIMATED
     ]
     out.append(
         "<h2>Parameter corrections</h2>"
@@ -322,7 +328,7 @@ def _sections(res, report: dict, snr: float = 1.0, row_name=None) -> list[str]:
     thr = truncation_threshold(res, snr)
     out.append(
         "<h2>Singular values</h2><p>"
-        + _e(f"{res.rank} of {len(res.singular_values)} directions kept")
+        + _e(f"{res.identifiability.rank} of {len(res.identifiability.singular_values)} directions kept")
         + (_e(f"; truncation at {thr:.3g}") if thr else "")
         + "</p>"
         + "<img alt='singular values' src='data:image/png;base64,{singular_values}'>"
@@ -344,7 +350,7 @@ def _sections(res, report: dict, snr: float = 1.0, row_name=None) -> list[str]:
 
 def _outliers(res, row_name) -> str:
     s = "<h2>Outliers</h2>"
-    if res.rejected:
+    if res.outliers.rejected:
         s += "<p>Configurations left out of the final fit (their closure is not noise):</p>" + _table(
             ["row", "loop", "robust standard deviations", "closure after [mm]", "closure after [mrad]"],
             [
@@ -355,15 +361,15 @@ def _outliers(res, row_name) -> str:
                     _g(rj.closure_m, 1e3),
                     _g(rj.closure_rad, 1e3),
                 ]
-                for rj in res.rejected
+                for rj in res.outliers.rejected
             ],
         )
-    if res.suspects:
+    if res.outliers.suspects:
         s += "<p>Configurations the noise model cannot explain (robust fit):</p>" + _table(
             ["row", "loop", "standardized", "p-value", "weight"],
             [
                 [row_name(sp.row - 1), sp.loop, _g(sp.standardized), _g(sp.p_value, 1, ".2e"), _g(sp.weight)]
-                for sp in res.suspects
+                for sp in res.outliers.suspects
             ],
         )
     rows = []
@@ -391,19 +397,23 @@ def _outliers(res, row_name) -> str:
 
 def _not_identified(res) -> str:
     s = "<h2>Not identified</h2>"
-    if res.dropped:
+    if res.identifiability.dropped:
         s += (
             "<p>Structurally redundant (removed before solving; its effect equals the combination of kept "
             "parameters shown):</p>"
-            + _table(["parameter", "reason / combination"], [[d.name, d.describe()] for d in res.dropped], left=2)
+            + _table(
+                ["parameter", "reason / combination"],
+                [[d.name, d.describe()] for d in res.identifiability.dropped],
+                left=2,
+            )
         )
-    if res.weak:
+    if res.identifiability.weak:
         s += "<p>Not determined by this data:</p>" + _table(
             ["singular value", "combination"],
-            [[_g(c.singular_value, 1, ".3g"), c.describe()] for c in res.weak],
+            [[_g(c.singular_value, 1, ".3g"), c.describe()] for c in res.identifiability.weak],
             left=2,
         )
-    if not res.dropped and not res.weak:
+    if not res.identifiability.dropped and not res.identifiability.weak:
         s += "<p>Every selected parameter was identified.</p>"
     return s
 

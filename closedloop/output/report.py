@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from closedloop.calibration.pipeline import CalibrationResult
 from closedloop.io.files import atomic_write_text
-from closedloop.records import ParamStatus
+from closedloop.records import AccuracyRecord, ParamStatus
 from closedloop.version import __version__
 
 
@@ -60,10 +61,10 @@ def sensor_corrections(res: CalibrationResult, model_out: str | None = None, kin
     for k, p in enumerate(res.problem.params):
         if p.kind not in ("scale", "compliance") or (p.kind == "scale" and kind == "dh"):
             continue
-        v = float(res.values[k])
-        if v != p.nominal or res.status[k] == ParamStatus.ESTIMATED:
+        v = float(res.fit.values[k])
+        if v != p.nominal or res.fit.status[k] == ParamStatus.ESTIMATED:
             joints.setdefault(p.owner, {})["scale" if p.kind == "scale" else "compliance"] = v
-    loops = {p.name: float(res.values[k]) for k, p in enumerate(res.problem.params) if k >= res.problem.n_robot}
+    loops = {p.name: float(res.fit.values[k]) for k, p in enumerate(res.problem.params) if k >= res.problem.n_robot}
     if not joints and not loops:
         return None
     return {
@@ -141,18 +142,18 @@ def moved_not_identifiable(res: CalibrationResult) -> list[dict]:
     """
     out = []
     for k, p in enumerate(res.problem.params):
-        if res.status[k] != ParamStatus.UNIDENTIFIABLE:
+        if res.fit.status[k] != ParamStatus.UNIDENTIFIABLE:
             continue
-        change = float(res.values[k] - res.initial[k])
+        change = float(res.fit.values[k] - res.fit.initial[k])
         if change == 0.0:
             continue
-        combos = [c.describe() for c in res.weak if any(n == p.name for n, _ in c.terms)]
+        combos = [c.describe() for c in res.identifiability.weak if any(n == p.name for n, _ in c.terms)]
         out.append(
             {
                 "name": p.name,
                 "unit": p.unit,
-                "initial": float(res.initial[k]),
-                "calibrated": float(res.values[k]),
+                "initial": float(res.fit.initial[k]),
+                "calibrated": float(res.fit.values[k]),
                 "change": change,
                 "change_in_priors": change / p.prior if p.prior else None,
                 "why": "moved by the fit along the determined directions it takes part in; only the "
@@ -164,10 +165,26 @@ def moved_not_identifiable(res: CalibrationResult) -> list[dict]:
 
 
 def build_report(
-    res: CalibrationResult, model_path=None, log_path=None, row_name: Callable[[int], str] | None = None
+    res: CalibrationResult,
+    model_path=None,
+    log_path=None,
+    row_name: Callable[[int], str] | None = None,
+    *,
+    inputs: dict | None = None,
+    timing: dict | None = None,
+    validation: dict | None = None,
+    fixture_validation: dict | None = None,
+    outputs: dict | None = None,
 ) -> dict:
-    """A plain-dict report of a calibration; `row_name` (`JointLog.where`: 0-based row -> ``log.csv line 52``)
-    names the rejected and suspect rows by file and line (``where``)."""
+    """The JSON report of a calibration, whole: the one place its dict is built, from the result's records.
+
+    `row_name` (`JointLog.where`: 0-based row -> ``log.csv line 52``) names the rejected and suspect rows by
+    file and line (``where``).  What a run adds around the fit goes in by keyword, each its own section:
+    `inputs` (the command's inputs), `timing` (seconds and CPU seconds, into ``solver``), `validation`
+    (k-fold, `closedloop.validation.kfold.cross_validate`), `fixture_validation`
+    (`closedloop.validation.fixtures`), `outputs` (what was written).  The result's `accuracy` record
+    (`AccuracyRecord`) is reported under ``accuracy``.
+    """
     where = (lambda row: row_name(row - 1)) if row_name is not None else (lambda row: None)
     prob = res.problem
     params = []
@@ -177,39 +194,43 @@ def build_report(
                 "name": p.name,
                 "kind": p.kind,
                 "unit": p.unit,
-                "initial": float(res.initial[k]),
-                "calibrated": float(res.values[k]),
-                "std_error": _f(res.std[k]),
-                "status": res.status[k],
-                "identifiable": res.status[k] == ParamStatus.ESTIMATED,
-                "change": float(res.values[k] - res.initial[k]),
+                "initial": float(res.fit.initial[k]),
+                "calibrated": float(res.fit.values[k]),
+                "std_error": _f(res.fit.std[k]),
+                "status": res.fit.status[k],
+                "identifiable": res.fit.status[k] == ParamStatus.ESTIMATED,
+                "change": float(res.fit.values[k] - res.fit.initial[k]),
             }
         )
-    p_value = _chi2_sf(res.chi2, res.dof) if not res.sigma_estimated else None
-    return {
+    p_value = _chi2_sf(res.noise.chi2, res.noise.dof) if not res.noise.sigma_estimated else None
+    report: dict[str, Any] = {
         "closedloop_version": __version__,
         "model": str(model_path) if model_path else None,
         "log": str(log_path) if log_path else None,
         "loops": [b.loop.describe() | {"configurations": int(b.theta.shape[0])} for b in prob.blocks],
         "joints": prob.joints,
-        "solver": {"status": res.solver_status, "message": res.solver_message, "iterations": res.iterations},
+        "solver": {
+            "status": res.fit.solver_status,
+            "message": res.fit.solver_message,
+            "iterations": res.fit.iterations,
+        },
         "noise": {
-            "joint_sigma": res.sigma,
-            "estimated": res.sigma_estimated,
-            "chi2": res.chi2,
-            "dof": res.dof,
-            "chi2_per_dof": res.chi2 / max(res.dof, 1),
+            "joint_sigma": res.noise.sigma,
+            "estimated": res.noise.sigma_estimated,
+            "chi2": res.noise.chi2,
+            "dof": res.noise.dof,
+            "chi2_per_dof": res.noise.chi2 / max(res.noise.dof, 1),
             "p_value": p_value,
             "consistent": None if p_value is None else bool(p_value > 1e-3),
         },
         "residuals": {
-            "before": [asdict(r) for r in res.residuals_before],
-            "after": [asdict(r) for r in res.residuals_after],
+            "before": [asdict(r) for r in res.fit.residuals_before],
+            "after": [asdict(r) for r in res.fit.residuals_after],
         },
         "identifiability": {
-            "estimated": len(res.estimated),
-            "rank": res.rank,
-            "singular_values": [float(s) for s in res.singular_values],
+            "estimated": len(res.fit.estimated),
+            "rank": res.identifiability.rank,
+            "singular_values": [float(s) for s in res.identifiability.singular_values],
             "dropped": [
                 {
                     "name": d.name,
@@ -217,7 +238,7 @@ def build_report(
                     "description": d.describe(),
                     "absorbed_into": [{"name": n, "coefficient": c} for n, c in d.absorbed_into],
                 }
-                for d in res.dropped
+                for d in res.identifiability.dropped
             ],
             "not_identifiable": [
                 {
@@ -225,38 +246,38 @@ def build_report(
                     "description": c.describe(),
                     "parameters": [{"name": n, "weight": w} for n, w in c.terms],
                 }
-                for c in res.weak
+                for c in res.identifiability.weak
             ],
             "notes": res.notes,
             "moved_not_identifiable": moved_not_identifiable(res),
         },
         "verdict": verdict_record(res.verdict),
         "gauge": {
-            "length_scale_set_by": res.gauge,
-            "stands_for_length_m": res.gauge_length or None,
-            "note": res.gauge_note,
-            "scale": getattr(res, "scale_note", None),
-            "scale_std_relative": _f(getattr(res, "scale_std", None)),
+            "length_scale_set_by": res.scale.gauge,
+            "stands_for_length_m": res.scale.gauge_length or None,
+            "note": res.scale.gauge_note,
+            "scale": res.scale.scale_note,
+            "scale_std_relative": _f(res.scale.scale_std),
             # known lengths between frames (closedloop.problem.lengths): size change per change of them, and
             # the size error a 1 mm / 1 mrad error of what the loops cannot see makes through them
-            "length_response": _f(getattr(res, "length_response", None)),
-            "length_held_leak": _f(getattr(res, "length_leak", None)),
+            "length_response": _f(res.scale.length_response),
+            "length_held_leak": _f(res.scale.length_leak),
         },
         # a long fit's error bars checked along the cost's profile (closedloop.analysis.linearity); [] when not checked
         "error_bars": [
             {"direction": p.name, "std": p.std, "rise": list(p.rise), "expected_rise": p.expected, "holds": p.holds}
-            for p in getattr(res, "profiles", [])
+            for p in res.noise.profiles
         ],
-        "noise_model": list(getattr(res, "noise_model", [])),  # per loop: task-space vs joint noise
+        "noise_model": list(res.noise.noise_model),  # per loop: task-space vs joint noise
         "shared_parameters": _shared(prob),
-        "rejected": [asdict(r) | {"where": where(r.row)} for r in res.rejected],
-        "weighting": res.weighting,
+        "rejected": [asdict(r) | {"where": where(r.row)} for r in res.outliers.rejected],
+        "weighting": res.noise.weighting,
         # which estimator the data support and why, where the standard errors come from (estimate.model_error)
         "estimator": {
-            "name": getattr(res, "estimator", None),
-            "reason": getattr(res, "estimator_reason", None),
-            "error_bars": getattr(res, "error_bars", None),
-            "evidence": dict(getattr(res, "model_error", {}) or {}),
+            "name": res.noise.estimator,
+            "reason": res.noise.estimator_reason,
+            "error_bars": res.noise.error_bars,
+            "evidence": dict(res.noise.model_error),
         },
         "robust": {
             "suspects": [
@@ -268,18 +289,42 @@ def build_report(
                     "p_value": sp.p_value,
                     "weight": sp.weight,
                 }
-                for sp in res.suspects
+                for sp in res.outliers.suspects
             ]
         },
-        "scale_factors": {p.name: float(res.values[k]) for k, p in enumerate(prob.params) if p.kind == "scale"},
+        "scale_factors": {p.name: float(res.fit.values[k]) for k, p in enumerate(prob.params) if p.kind == "scale"},
         # every compliance the fit used (estimated, or moved while not identifiable): what the written model predicts with
         "compliance": {
-            p.name: float(res.values[k])
+            p.name: float(res.fit.values[k])
             for k, p in enumerate(prob.params)
-            if p.kind == "compliance" and (res.status[k] == ParamStatus.ESTIMATED or res.values[k] != p.nominal)
+            if p.kind == "compliance" and (res.fit.status[k] == ParamStatus.ESTIMATED or res.fit.values[k] != p.nominal)
         },
         "parameters": params,
     }
+    if timing:
+        report["solver"] |= timing
+    if res.accuracy is not None:
+        report["accuracy"] = accuracy_record(res.accuracy)
+    for key, section in (
+        ("inputs", inputs),
+        ("validation", validation),
+        ("fixture_validation", fixture_validation),
+        ("outputs", outputs),
+    ):
+        if section is not None:
+            report[key] = section
+    return report
+
+
+def accuracy_record(accuracy: AccuracyRecord) -> dict:
+    """The accuracy predictions as plain dicts: each record's ``as_dict()`` (or its dataclass fields)."""
+    out = {}
+    for f in fields(accuracy):
+        value = getattr(accuracy, f.name)
+        if value is None:
+            continue
+        out[f.name] = value.as_dict() if hasattr(value, "as_dict") else asdict(value)
+    return out
 
 
 def _shared(prob) -> dict[str, list[str]]:

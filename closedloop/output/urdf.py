@@ -239,7 +239,7 @@ def model_frames(result) -> list[ModelFrame]:
     described in the report only.
     """
     prob = result.problem
-    vals = dict(zip(prob.names, map(float, result.values)))
+    vals = dict(zip(prob.names, map(float, result.fit.values)))
     out: list[ModelFrame] = []
     seen: set[str] = set()
 

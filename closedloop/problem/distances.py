@@ -78,7 +78,7 @@ class DistanceLoop(Loop):
 
     translation_rows = (0,)
     scale_free = False
-    parameter_only = True  # no configuration of its own: `calibration.build_problem` gives it one row
+    parameter_only = True  # no configuration of its own: `calibration.pipeline.build_problem` gives it one row
 
     def __init__(self, loops: list[Loop], a: str, b: str, distance: float, sigma: float | None = None):
         d = float(distance)

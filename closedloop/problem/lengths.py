@@ -32,7 +32,7 @@ through it.  Two checks at the solution, both in the report:
   HELD_ERROR (1 mm or 1 mrad) along N, divided by L, is the relative size
   error such an error of those held values makes.  Over LEAK_TOL (0.1 %)
   the result is `suspect`, naming the parameter; the size's standard error
-  (`constraints.scale_std`) is quoted with it added in quadrature.
+  (`analysis.scale.scale_std`) is quoted with it added in quadrature.
 
 Command line: ``--length FRAME_A FRAME_B METRES [SIGMA]`` (sigma default
 20 micrometres, a caliper's).
@@ -59,7 +59,7 @@ class LengthLoop(Loop):
 
     translation_rows = (0,)
     scale_free = False
-    parameter_only = True  # no configuration of its own: `calibration.build_problem` gives it one row
+    parameter_only = True  # no configuration of its own: `calibration.pipeline.build_problem` gives it one row
 
     def __init__(self, frame_a: str, frame_b: str, length: float, sigma: float | None = None):
         L = float(length)

@@ -47,8 +47,8 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from closedloop.assets.catalog import ROBOTS, nominal_urdf
 from closedloop.model.robot import find_frame
-from closedloop.models import ROBOTS, nominal_urdf
 from closedloop.sims.outputs import with_visuals
 from closedloop.sims.scenarios import CAMERA_LOOP, CAMERA_SCENARIOS, CameraScenario
 
@@ -73,7 +73,7 @@ def mujoco_intrinsics(fovy_deg: float = FOVY_DEG, width: int = WIDTH, height: in
 
 
 def head_urdf(verge: float = 0.0, robot: str = "ur5") -> str:
-    """The nominal UR5 (``closedloop.models``) plus the head: two pan joints, two optical frames.
+    """The nominal UR5 (``closedloop.assets``) plus the head: two pan joints, two optical frames.
 
     ``verge``: each pan axis is turned by +-verge about the head's forward
     axis (0: parallel axes, the thesis's 5.4 case).

@@ -3,7 +3,7 @@
 Pipeline of :func:`simulate` (one function per step below; what depends on the loop type is a
 method of its class in :mod:`closedloop.sims.loop_types`):
 
-1. nominal URDF (cleaned, :func:`closedloop.models.nominal_urdf`) and its
+1. nominal URDF (cleaned, :func:`closedloop.assets.catalog.nominal_urdf`) and its
    Pinocchio model; arm joints = movable joints in Pinocchio order;
 2. true parameters: :func:`~closedloop.sims.true_robot.identifiable_parameters`
    drawn by :func:`~closedloop.sims.true_robot.draw_errors`; the true URDF
@@ -53,10 +53,10 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from closedloop.assets.catalog import ROBOTS, nominal_urdf
 from closedloop.errors import ScenarioError
 from closedloop.io.files import OutputSet
 from closedloop.io.marker import mark_running
-from closedloop.models import ROBOTS, nominal_urdf
 from closedloop.progress import ProgressReporter
 from closedloop.sims.driver import NominalLoop, NominalLoopPlanner, RandomConfigurations
 from closedloop.sims.loop_types import SimLoop, sim_loop

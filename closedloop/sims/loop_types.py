@@ -311,7 +311,7 @@ class HingeSim(SimLoop):
     def place(self, spec, model, data, scenario, tool, settings, rng) -> Placement:
         import mujoco
 
-        from closedloop.models import model_file
+        from closedloop.assets.catalog import model_file
 
         hinge_pose = door_hinge_pose(tool, scenario.door or DoorGeometry())
         door_spec = mujoco.MjSpec.from_file(str(model_file("door.xml")))

@@ -20,7 +20,7 @@
    is put where the true tool is at ``q0`` (:mod:`closedloop.sims.scene`), so a different ``q0``
    moves it.
 
-The prepared URDF is registered in :data:`closedloop.models.ROBOTS` under the file's stem (a
+The prepared URDF is registered in :data:`closedloop.assets.catalog.ROBOTS` under the file's stem (a
 temporary file kept for the process), so :func:`closedloop.sims.simulate` runs it like a built-in.
 """
 
@@ -187,7 +187,7 @@ def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: 
         tool = dict(tool)
         _check_link(root, frame, path, "frame")
         new = str(tool.get("name", f"{frame}_tip"))
-        ET.SubElement(root, "link", name=new)  # massless: closedloop.models.clean_urdf_tree gives it an inertia
+        ET.SubElement(root, "link", name=new)  # massless: closedloop.assets.catalog.clean_urdf_tree gives it an inertia
         j = ET.SubElement(root, "joint", name=f"{new}_joint", type="fixed")
         ET.SubElement(j, "parent", link=frame)
         ET.SubElement(j, "child", link=new)
@@ -289,7 +289,7 @@ def prepare_robot(
     where: str = "--robot",
 ) -> PreparedRobot:
     """Prepare a user's robot for the simulator and register it (module doc)."""
-    from closedloop.models import ROBOTS, RobotSource, nominal_urdf
+    from closedloop.assets.catalog import ROBOTS, RobotSource, nominal_urdf
     from closedloop.sims.outputs import absolute_mesh_paths
 
     path = Path(path)

@@ -1,6 +1,6 @@
 """Scenarios as small YAML files: the shipped ones (``scenarios/*.yaml``) and a user's.
 
-A scenario file names a robot (a key of :data:`closedloop.models.ROBOTS`, or a URDF/MJCF file
+A scenario file names a robot (a key of :data:`closedloop.assets.catalog.ROBOTS`, or a URDF/MJCF file
 relative to the YAML), a loop in the syntax of ``calibrate --loop`` (``TYPE:frame=A[,to=B][,name=N]``;
 TYPE a loop type of the registry ``closedloop.loops.spec.LOOP_TYPES`` that the simulator simulates,
 :func:`closedloop.sims.loop_types.simulated_types`), the grasp configuration
@@ -90,12 +90,12 @@ def _settings(data: dict | None, where: str, loop_type: str) -> SimSettings:
 def scenario_from_dict(data: dict, name: str, where: str, base_dir: Path | None = None) -> Scenario:
     """A :class:`Scenario` from a YAML mapping (see ``closedloop/sims/scenarios/*.yaml``).
 
-    ``robot`` is a key of :data:`closedloop.models.ROBOTS` or a robot file (URDF; relative paths
+    ``robot`` is a key of :data:`closedloop.assets.catalog.ROBOTS` or a robot file (URDF; relative paths
     from ``base_dir``); for a file, ``q0`` may be left out (a well-conditioned grasp pose is
     chosen), and ``tool: {xyz: [x, y, z]}`` adds a stylus link on the loop frame and ``joints:``
     lists the driven joints (:mod:`closedloop.sims.robot_scenario`).
     """
-    from closedloop.models import ROBOTS
+    from closedloop.assets.catalog import ROBOTS
 
     bad = sorted(set(data) - _SCENARIO_KEYS)
     if bad:

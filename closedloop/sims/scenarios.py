@@ -1,6 +1,6 @@
 """Scenarios as data: the registry, the simulation settings and the loop geometries.
 
-A *scenario* is a robot (a cleaned nominal URDF from :mod:`closedloop.models`),
+A *scenario* is a robot (a cleaned nominal URDF from :mod:`closedloop.assets.catalog`),
 a loop type that closes its chain on the environment, an initial grasp
 configuration and default :class:`SimSettings`.
 
@@ -235,7 +235,7 @@ class Scenario:
     Attributes:
         name: registry key.
         description: one line.
-        robot: key of :data:`closedloop.models.ROBOTS`.
+        robot: key of :data:`closedloop.assets.catalog.ROBOTS`.
         loop_type: a loop type of the registry the simulator simulates (:data:`closedloop.sims.loop_types.SIM_LOOPS`).
         loop_name: name of the loop (prefix of its closure parameters).
         tool_frame: Pinocchio frame (URDF link) closing the loop.

@@ -14,7 +14,7 @@ sensor properties applied by the sensor model.
 * the loop: a ``weld`` between the tool site and a world fixture site (or a
   site on another body of the robot, the scenario's ``target_frame``), a
   ``connect`` between the stylus-tip site and a world socket site, or a ``weld``
-  between the tool site and the handle site of a hinged door (``models/door.xml``),
+  between the tool site and the handle site of a hinged door (``assets/door.xml``),
   a ``connect`` between the stylus-tip site and the centre of a passive puck
   that slides on a tilted plane (two slide joints and a ball joint; plane
   loops), or, for a measured (open) loop, no constraint but a world site at the

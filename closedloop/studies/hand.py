@@ -7,7 +7,7 @@ Two pieces, both independent of the particular hand:
   are correct.  Then all parameters are allowed to freely vary."  Each stage is
   an ordinary `calibrate` call whose `CalibrationOptions.initial` is the
   previous stage's values.  `thesis_stages` builds the two stages of the
-  thesis for the 8-row thumb-finger table (``models/dh/utah_mit_thumb_finger.yaml``):
+  thesis for the 8-row thumb-finger table (``assets/dh/utah_mit_thumb_finger.yaml``):
   stage 1 frees the parameters marked ~ in Table 4.1 (palm link j3, tip link
   j7, the hard-to-measure offsets) with the rest held at the table's values,
   stage 2 frees every theta_off, s, a, alpha and k; both hold s_0 = -1.3 in
@@ -339,7 +339,7 @@ _FIELDS = ("theta_off", "s", "a", "alpha", "k")
 
 def table_4_1_path():
     """The nominal thumb-finger D-H table shipped with the package (Table 4.1)."""
-    from closedloop.models import model_file
+    from closedloop.assets.catalog import model_file
 
     return model_file("dh/utah_mit_thumb_finger.yaml")
 

@@ -340,7 +340,7 @@ def _mc_draw(
         except ClosedLoopError:
             out.append((None, None, None))
             continue
-        out.append((list(res.estimated), bool(res.weak), res.values))
+        out.append((list(res.fit.estimated), bool(res.identifiability.weak), res.fit.values))
     return out
 
 

@@ -44,7 +44,7 @@ def identifiable_names(
     res = calibrate(robot, JointLog(joints, rows, None, loop_col), loops, options)
     return [
         n_
-        for n_, s in zip(res.names, res.status)
+        for n_, s in zip(res.fit.names, res.fit.status)
         if s == "estimated" and not n_.startswith(tuple(f"{lp.name}." for lp in loops))
     ]
 

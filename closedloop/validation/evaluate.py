@@ -17,7 +17,7 @@ reported per loop:
   a ball-and-socket rig quotes);
 * ``max_m``; ``rms_px`` for camera loops (image-point error).
 
-Known distances (`constraints.DistanceLoop`) are left out: they are not
+Known distances (`problem.distances.DistanceLoop`) are left out: they are not
 closures of the robot.
 """
 
@@ -113,7 +113,7 @@ def evaluate_model(
     """
     from closedloop.calibration.pipeline import build_problem
     from closedloop.estimate.lm import SolverOptions
-    from closedloop.estimate.stages import plain_stage
+    from closedloop.estimate.residual import plain_stage
     from closedloop.problem.shared import initial_shared, refine_unheld
 
     loops = [lp for lp in loops if not getattr(lp, "parameter_only", False)]
@@ -179,8 +179,8 @@ def evaluate_result(
     """`evaluate_model` with a calibration's robot parameters; what it estimated once for all data
     (`predicted`: shared groups, tool points, instruments) is held at its values unless `refit`."""
     prob = result.problem
-    values = {n: float(v) for n, v in zip(prob.names[: prob.n_robot], result.values[: prob.n_robot])}
-    loop_values = {n: float(v) for n, v in zip(prob.names[prob.n_robot :], result.values[prob.n_robot :])}
+    values = {n: float(v) for n, v in zip(prob.names[: prob.n_robot], result.fit.values[: prob.n_robot])}
+    loop_values = {n: float(v) for n, v in zip(prob.names[prob.n_robot :], result.fit.values[prob.n_robot :])}
     return evaluate_model(prob.robot, log_, loops, values, label, calibration=loop_values, refit=refit)
 
 

@@ -14,7 +14,7 @@ fixture worse than the nominal model does not generalise: the verdict is
 `suspect`, naming the fixture.
 
 Fixtures: a loop's ``fixture`` (spec key ``fixture=NAME``), else its name;
-loops joined by a known distance (`constraints.DistanceLoop`) are one rigid
+loops joined by a known distance (`problem.distances.DistanceLoop`) are one rigid
 block, so one fixture.  A distance is trained on only when both its loops are.
 """
 

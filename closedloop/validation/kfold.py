@@ -4,7 +4,7 @@ A calibration is judged on configurations it did not see: refit on the
 training rows with the same options, then evaluate the closure residual of
 the held-out rows at the fitted parameters (unweighted, per loop: RMS of the
 translation error norm in metres and of the rotation error norm in radians,
-as in ``calibration.residual_stats``).  With the noise known and the
+as in ``records.residual_stats``).  With the noise known and the
 'noise' weighting, the held-out whitened RMS (per residual row) should be
 close to 1: much larger means the model does not generalise (over-fit,
 unmodelled error, or an outlier in the held-out fold).
@@ -100,9 +100,9 @@ def closure_residuals(
     """
     calibrated = {lp.name: lp for lp in result.loops}  # their charts are those of the result's values
     problem = build_problem(robot, log_, [calibrated.get(lp.name, lp) for lp in loops], None)
-    if problem.names != result.names:
+    if problem.names != result.fit.names:
         raise ValueError("the validation rows give a different parameter set than the calibration")
-    values = result.values
+    values = result.fit.values
     fitted = dict(zip([b.loop.name for b in result.problem.blocks], result.problem.noise))
     problem.noise = [fitted.get(b.loop.name, nz) for b, nz in zip(problem.blocks, problem.noise)]  # the fit's
     evals = problem.evaluate(values, noise is not None)
@@ -146,11 +146,11 @@ def holdout(
     """
     opt = options or CalibrationOptions()
     res = calibrate(robot, train, loops, opt)
-    noise = opt.noise if opt.noise is not None else (res.sigma if opt.weighting == "noise" else None)
+    noise = opt.noise if opt.noise is not None else (res.noise.sigma if opt.weighting == "noise" else None)
     if noise is not None and not isinstance(noise, dict) and noise <= 0.0:
         # joint noise estimated at zero beside a measurement's (closedloop.estimate.noise): W_i is that covariance alone
         noise = float(np.finfo(float).tiny)
-    own = [rj.row - 1 for rj in res.rejected]  # `Rejected.row`: 1-based rows of `train`
+    own = [rj.row - 1 for rj in res.outliers.rejected]  # `Rejected.row`: 1-based rows of `train`
     pred = closure_residuals(res, robot, test, loops, noise, skip_test)
     fit = closure_residuals(res, robot, train, loops, noise, np.union1d(own, [] if skip_train is None else skip_train))
     return {"result": res, "train": fit, "test": pred, "n_train": len(train), "n_test": len(test)}
@@ -193,7 +193,7 @@ def cross_validate(
     """k-fold cross-validation with the same options on every fold.
 
     `exclude`: rows of `log_` (0-based) whose closure no fold judges, the full calibration's rejected
-    outliers (``[rj.row - 1 for rj in result.rejected]``); they stay in the refits' data, whose outlier
+    outliers (``[rj.row - 1 for rj in result.outliers.rejected]``); they stay in the refits' data, whose outlier
     screen meets them as the full calibration's did.
 
     Returns
@@ -237,8 +237,8 @@ def cross_validate(
     refits = run(_holdout_job, splits, executor, shared=(robot, loops, opt), progress=progress, task="validating")
     for f, ho in enumerate(refits):
         res: CalibrationResult = ho["result"]
-        ref = res.values if ref is None else ref
-        vals = unwrap(res.problem, res.values, ref)  # closure rotation vectors on one branch
+        ref = res.fit.values if ref is None else ref
+        vals = unwrap(res.problem, res.fit.values, ref)  # closure rotation vectors on one branch
         per_fold.append(
             {
                 "fold": f,
@@ -247,7 +247,7 @@ def cross_validate(
                 "train": ho["train"],
                 "test": ho["test"],
                 "converged": res.converged,
-                "values": {res.names[i]: float(vals[i]) for i in res.estimated},
+                "values": {res.fit.names[i]: float(vals[i]) for i in res.fit.estimated},
             }
         )
     names = sorted(set.union(*(set(p["values"]) for p in per_fold)))

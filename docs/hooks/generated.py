@@ -5,8 +5,10 @@
 * ``<!-- generated: loops -->`` becomes the loop-type reference, read from the loop registry
   (`closedloop.loops.spec.all_loop_types`): each type's keys, syntax, example and docstring, as
   ``closedloop loops`` prints them.
+* ``<!-- generated: verdict-rules -->`` becomes the table of the verdict's thresholds, read from the fields of
+  `closedloop.calibration.verdict.VerdictRules` (name, default, unit, meaning).
 
-Nothing here is written by hand: a new option or loop type shows up in the site on the next build.
+Nothing here is written by hand: a new option, loop type or threshold shows up in the site on the next build.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ if str(ROOT) not in sys.path:
 
 MARK_CLI = "<!-- generated: cli -->"
 MARK_LOOPS = "<!-- generated: loops -->"
+MARK_RULES = "<!-- generated: verdict-rules -->"
 
 
 def _cell(text: object) -> str:
@@ -127,12 +130,27 @@ def loops_reference() -> str:
     return "\n".join(lines)
 
 
+def rules_reference() -> str:
+    """The verdict's thresholds: one row per field of `VerdictRules`, its default, unit and meaning."""
+    import dataclasses
+
+    from closedloop.calibration.verdict import VerdictRules
+
+    lines = ["| rule | default | unit | meaning |", "|---|---|---|---|"]
+    for f in dataclasses.fields(VerdictRules):
+        unit = f.metadata["unit"]
+        lines.append(f"| `{f.name}` | {f.default:g} | {'' if unit == '1' else unit} | {_cell(f.metadata['meaning'])} |")
+    return "\n".join(lines)
+
+
 def on_page_markdown(markdown: str, page, config, files) -> str:
     """Replace the markers of a page by the references generated from the code (MkDocs hook)."""
     if MARK_CLI in markdown:
         markdown = markdown.replace(MARK_CLI, cli_reference())
     if MARK_LOOPS in markdown:
         markdown = markdown.replace(MARK_LOOPS, loops_reference())
+    if MARK_RULES in markdown:
+        markdown = markdown.replace(MARK_RULES, rules_reference())
     return markdown
 
 

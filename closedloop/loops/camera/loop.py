@@ -1,7 +1,7 @@
 """The camera loop: a marker on the tool seen by cameras, each on any robot frame (thesis 3.2, 5.2-5.4).
 
 A marker at an unknown point t of frame A (the tool) is imaged by one or more
-pinhole cameras (``camera_model``: intrinsics and optional lens distortion).
+pinhole cameras (``camera.model``: intrinsics and optional lens distortion).
 Camera c sits at an unknown (or known) pose X_c in its own robot frame F_c:
 the world, a fixed head, or a frame moved by the camera's own sensed joint
 (the thesis's verging head, 5.2.2: each camera on its own rotation).  The
@@ -65,7 +65,7 @@ class CameraLoop(Loop):
 
         p_c = X_c^-1 y_c = R_c^T (y_c - t_c),   r_c = pi(k_c, d_c, p_c) - (u_c, v_c)
 
-    With Jpi = d pi / d p (``camera_model.project_lens``), point.relative_point:
+    With Jpi = d pi / d p (``camera.model.project_lens``), point.relative_point:
 
         dr_c/d(delta_A)  = Jpi R_c^T R_FA [I  -[t]x]      dr_c/d(delta_Fc) = Jpi R_c^T [-I  [y_c]x]
         dr_c/d t         = Jpi R_c^T R_FA                 dr_c/d(delta_Xc) = Jpi [-I  [p_c]x]

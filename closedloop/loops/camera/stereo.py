@@ -2,7 +2,7 @@
 
 Everything is expressed in camera 1's frame C1 (the thesis's left camera).
 With the lines of sight d1 (camera 1) and d2 (camera 2) of the observed
-pixels (``camera_model.image_ray``: (xn, yn, 1), distortion removed), camera
+pixels (``camera.model.image_ray``: (xn, yn, 1), distortion removed), camera
 2's pose in C1, Q = X_1^-1 T_F1^-1 T_F2 X_2, its focal point p = t_Q (the
 thesis's **p**, left to right focal point) and its ray u2 = R_Q d2:
 

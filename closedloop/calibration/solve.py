@@ -1,25 +1,29 @@
-"""The staged solve of a reduced calibration problem: stages, restarts, and the re-check at the solution.
+"""How a reduced calibration problem is solved: which stages from which starts, and the checks at the solution.
 
-`solve_staged` runs the errors-in-variables fit (`fit.weighted_stage`) and,
+The residual functions and one solve of each (a stage) are `closedloop.estimate.residual`'s; this module
+decides the order.  `solve_staged` runs the errors-in-variables fit (`residual.weighted_stage`) and,
 where the weighting misleads (a stall far above any plausible noise, a
 weighting that turns singular on the way), the plain loop-closure fit
-(`fit.plain_stage`, eq. 3.8) first; `solve_with_restarts` tries other starts
+(`residual.plain_stage`, eq. 3.8) first; `solve_with_restarts` tries other starts
 when the fit stalls; `recheck_at_solution` recomputes the structural reduction
 and the gauge at the solution and re-solves where they differ (no
-decision is kept that does not hold at the solution).
+decision is kept that does not hold at the solution); `length_guard` solves again
+without a known length that does not set the size.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
 
 from closedloop.analysis.identifiability import Structure, analyse_structure, closure_jacobian, structure_holds
+from closedloop.calibration.verdict import SIZE_NOT_MEASURED
 from closedloop.errors import ParameterError
 from closedloop.estimate.lm import SolverOptions, scaled_svd
-from closedloop.estimate.stages import (
+from closedloop.estimate.residual import (
     Fit,
     ResidualFunction,
     StageResult,
@@ -29,9 +33,10 @@ from closedloop.estimate.stages import (
     weighted_stage,
 )
 from closedloop.estimate.variance import measurement_row_weights, task_blocks, variance_components
+from closedloop.problem.lengths import LengthLoop
 from closedloop.problem.problem import CalibrationProblem
 from closedloop.progress import ProgressReporter
-from closedloop.records import CalibrationOptions
+from closedloop.records import FAILED, SUSPECT, CalibrationOptions, CalibrationResult, Verdict, VerdictRules
 
 log = logging.getLogger(__name__)
 
@@ -75,13 +80,14 @@ def solve_staged(
     minimum reports many), or its weighting turns singular on the way
     (more residual directions discarded than at the start), the plain
     loop-closure fit is solved from `start` and the weighted fit restarted
-    from it (`fit.weighted_stage` keeps the plain solution if the weighting
+    from it (`residual.weighted_stage` keeps the plain solution if the weighting
     would hide a residual there).  `plain_start` goes through the plain stage
     directly.
     """
     scale = np.array([p.prior for p in problem.params])
     sopt = _solver_options(opt, problem, est, known)
     prog = (lambda it, c: progress("solving", it, None, f"cost {c:.3e}")) if progress else None
+    plausible = opt.rules.plausible_joint_noise
     warnings: list[str] = []
     base = x0.copy()
     base[est] = start[est]
@@ -97,16 +103,16 @@ def solve_staged(
     if not plain_start or opt.weighting != "noise":
         b = weighted_stage(problem, base, xs, est, scale, sigma_q, opt.weighting, sopt, prog)
         iters += b.solution.iterations
-    if b is None or (opt.weighting == "noise" and (b.note or b.solution.truncated or _misled(problem, b))):
+    if b is None or (opt.weighting == "noise" and (b.note or b.solution.truncated or _misled(problem, b, plausible))):
         a = plain_stage(problem, base, xs, est, scale, sopt, prog)
         b2 = weighted_stage(problem, base, a.solution.x, est, scale, sigma_q, opt.weighting, sopt, prog)
         iters += a.solution.iterations + b2.solution.iterations
-        b = b2 if b is None else _better(problem, [b, b2], start, est, scale)
+        b = b2 if b is None else _better(problem, [b, b2], start, est, scale, plausible)
     if opt.weighting == "none":  # known measurements at their sigma against the closures' own level
         b, n = _unweighted_with_measurements(problem, base, est, scale, sigma_q, sopt, prog, b)
         iters += n
     if opt.weighting == "noise" and b.fun.weighting == "noise":
-        b, more = _polished(problem, base, b, est, scale, sigma_q, sopt, prog)
+        b, more = _polished(problem, base, b, est, scale, sigma_q, sopt, prog, plausible)
         iters += more
     if b.note:
         warnings.append(b.note)
@@ -146,6 +152,7 @@ def _polished(
     sigma_q: np.ndarray,
     sopt: SolverOptions,
     prog,
+    plausible: float,
 ) -> tuple[StageResult, int]:
     """The weighted fit `b`, or, where it stalled a hair above zero, the plain fit from it and the weighted from that.
 
@@ -159,7 +166,12 @@ def _polished(
     to 2e-16 in two iterations).  The better closing of the two is kept.
     Returns the stage and the iterations spent.
     """
-    if b.solution.truncated or b.note or _closure_level(problem, b) >= EXACT_LEVEL or not _smooth(problem, b):
+    if (
+        b.solution.truncated
+        or b.note
+        or _closure_level(problem, b, plausible) >= EXACT_LEVEL
+        or not _smooth(problem, b, plausible)
+    ):
         return b, 0
     a = plain_stage(problem, base, b.solution.x, est, scale, sopt, prog)
     b2 = weighted_stage(problem, base, a.solution.x, est, scale, sigma_q, "noise", sopt, prog)
@@ -170,25 +182,24 @@ def _polished(
     return b, spent
 
 
-def _misled(problem: CalibrationProblem, stage: StageResult) -> bool:
+def _misled(problem: CalibrationProblem, stage: StageResult, plausible: float) -> bool:
     """The weighted fit stalled far above the noise, or its weighting discards more than at the start."""
-    if stage.solution.status != "converged" or _closure_level(problem, stage) > 1.0:
+    if stage.solution.status != "converged" or _closure_level(problem, stage, plausible) > 1.0:
         return True
     return stage.fun.deficit > stage.deficit_start
 
 
-PLAUSIBLE_JOINT_NOISE = 2e-3  # rad: no encoder reads worse; a closure it cannot explain is a stalled fit
-
-
-def _closure_level(problem: CalibrationProblem, stage: StageResult) -> float:
-    """The typical configuration's closure in units of what 2 mrad of joint noise (plus the loops' own
-    measurement noise, a camera's pixels) explains: the median, so that a few outliers do not count."""
+def _closure_level(problem: CalibrationProblem, stage: StageResult, plausible: float) -> float:
+    """The typical configuration's closure in units of what `plausible` joint noise (rad: the verdict's
+    `VerdictRules.plausible_joint_noise`, 2 mrad by default: no encoder reads worse; a closure it cannot explain
+    is a stalled fit), plus the loops' own measurement noise (a camera's pixels), explains: the median, so that a
+    few outliers do not count."""
     if stage.closure_level is not None:
         return stage.closure_level
     if not np.isfinite(stage.solution.cost):
         return np.inf
     fun = ResidualFunction(
-        problem, stage.fun.full(stage.solution.x), [], np.full(len(problem.joints), PLAUSIBLE_JOINT_NOISE), "noise"
+        problem, stage.fun.full(stage.solution.x), [], np.full(len(problem.joints), plausible), "noise"
     )
     per_config = np.concatenate(
         [np.linalg.norm(b, axis=1) / np.sqrt(b.shape[1]) for b in fun.blocks(np.zeros(0), symmetric=False) if b.size]
@@ -197,13 +208,15 @@ def _closure_level(problem: CalibrationProblem, stage: StageResult) -> float:
     return stage.closure_level
 
 
-def _stalled(problem: CalibrationProblem, fit: Fit) -> bool:
+def _stalled(problem: CalibrationProblem, fit: Fit, plausible: float) -> bool:
     """The fit stopped far above any plausible noise (`_closure_level` above 1), or at a residual that is
     no noise while directions below it were left undetermined (`_systematic`, truncated)."""
-    return _closure_level(problem, fit.stage) > 1.0 or (fit.stage.solution.truncated > 0 and _systematic(problem, fit))
+    return _closure_level(problem, fit.stage, plausible) > 1.0 or (
+        fit.stage.solution.truncated > 0 and _systematic(problem, fit, plausible)
+    )
 
 
-def _systematic(problem: CalibrationProblem, fit: Fit) -> bool:
+def _systematic(problem: CalibrationProblem, fit: Fit, plausible: float) -> bool:
     """A residual that is no noise: smooth along the log.
 
     The lag-1 autocorrelation of each block's whitened residual along its rows,
@@ -213,12 +226,12 @@ def _systematic(problem: CalibrationProblem, fit: Fit) -> bool:
     directions truncated 'below the noise'.  Round-off (closure level below
     1e-9) does not count.  A log in random order shows no misfit this way.
     """
-    return _smooth(problem, fit.stage)
+    return _smooth(problem, fit.stage, plausible)
 
 
-def _smooth(problem: CalibrationProblem, stage: StageResult) -> bool:
+def _smooth(problem: CalibrationProblem, stage: StageResult, plausible: float) -> bool:
     """`_systematic` for a stage: its whitened residual's pooled lag-1 autocorrelation is far above noise's."""
-    if _closure_level(problem, stage) < 1e-9:
+    if _closure_level(problem, stage, plausible) < 1e-9:
         return False
     num = den = 0.0
     n = 0
@@ -230,11 +243,16 @@ def _smooth(problem: CalibrationProblem, stage: StageResult) -> bool:
 
 
 def _better(
-    problem: CalibrationProblem, stages: list[StageResult], start: np.ndarray, est: list[int], scale: np.ndarray
+    problem: CalibrationProblem,
+    stages: list[StageResult],
+    start: np.ndarray,
+    est: list[int],
+    scale: np.ndarray,
+    plausible: float,
 ) -> StageResult:
     """Of the fits that close as well as the best, the nearest the start (in prior units): a degenerate
     robot (a forearm of zero length) may close a single self-motion as well as the real one."""
-    levels = [_closure_level(problem, st) for st in stages]
+    levels = [_closure_level(problem, st, plausible) for st in stages]
     # as good as the best: within 10x of its closure, or both below 1/1000 of a plausible noise
     good = [st for st, lv in zip(stages, levels) if lv <= max(10.0 * min(levels), 1e-3)]
     return min(good, key=lambda st: float(np.linalg.norm((st.solution.x - start[est]) / scale[est])))
@@ -265,7 +283,8 @@ def solve_with_restarts(
     off the start may hold back a parameter the solution needs.
     """
     fit = first if first is not None else solve_staged(problem, x0, x0, est, opt, sigma_q, known, progress)
-    if opt.restarts <= 0 or not _stalled(problem, fit):
+    plausible = opt.rules.plausible_joint_noise
+    if opt.restarts <= 0 or not _stalled(problem, fit, plausible):
         return fit
     scale = np.array([p.prior for p in problem.params])
     fits = [fit]
@@ -275,21 +294,23 @@ def solve_with_restarts(
         starts.append(solve_staged(problem, x0, x0, sub, opt, sigma_q, known, plain_start=True).x)
     for size in (1.0, 3.0, 1.0, 3.0)[: max(opt.restarts - len(starts), 0)]:
         starts.append(random_start(x0, est, scale, rng, size))
-    log.info("the fit from the given start stalled at closure level %.3g", _closure_level(problem, fit.stage))
+    log.info(
+        "the fit from the given start stalled at closure level %.3g", _closure_level(problem, fit.stage, plausible)
+    )
     hopeless = False
     for k, st in enumerate(starts[: opt.restarts]):
         log.info("restart %d: the fit stalled far above the noise or where its residual is not noise", k + 1)
         fits.append(solve_staged(problem, x0, st, est, opt, sigma_q, known, progress))
-        log.info("restart %d: closure level %.3g", k + 1, _closure_level(problem, fits[-1].stage))
-        if not _stalled(problem, fits[-1]):
+        log.info("restart %d: closure level %.3g", k + 1, _closure_level(problem, fits[-1].stage, plausible))
+        if not _stalled(problem, fits[-1], plausible):
             break
-        hopeless = _hopeless(problem, fits)
+        hopeless = _hopeless(problem, fits, opt.rules)
         if hopeless:
             break
-    good = [f for f in fits if _good(problem, f)]
+    good = [f for f in fits if _good(problem, f, plausible)]
     if not good and not hopeless:  # no restart left the valley: along it (`valley_starts`), the nearly redundant freed
         good = _along_valley(problem, x0, fit, est, opt, sigma_q, known, progress, fits, weak or [])
-    far = _closure_level(problem, fit.stage) > 1.0
+    far = _closure_level(problem, fit.stage, plausible) > 1.0
     if good:
         best = min(good, key=lambda f: float(np.linalg.norm((f.x - x0)[est] / scale[est])))
     elif far:
@@ -304,25 +325,28 @@ def solve_with_restarts(
     )
     if hopeless:
         best.hopeless = True
-        level = min(_closure_level(problem, f.stage) for f in fits)
+        level = min(_closure_level(problem, f.stage, plausible) for f in fits)
         best.warnings.append(
             f"restarts stopped after {len(fits) - 1}: every start stalls alike, at a closure {level:.3g} times what "
-            f"{PLAUSIBLE_JOINT_NOISE * 1e3:g} mrad of joint noise explains: the loops as given cannot close on "
+            f"{plausible * 1e3:g} mrad of joint noise explains: the loops as given cannot close on "
             "this data (check each loop's type and frames against the rig)"
         )
     return best
 
 
-HOPELESS_LEVEL = 25.0  # closure level (`_closure_level`): 50 mrad of joint noise, 5x what the verdict fails
+HOPELESS = 5.0  # times the joint noise the verdict fails (`VerdictRules.failed_joint_noise`): a hopeless closure
 
 
-def _hopeless(problem: CalibrationProblem, fits: list[Fit]) -> bool:
+def _hopeless(problem: CalibrationProblem, fits: list[Fit], rules: VerdictRules) -> bool:
     """Another start will not close the loops: every fit so far (the given start's and at least one restart)
-    stalled above `HOPELESS_LEVEL`, none at under half the given start's closure level.  A rough start stalls
+    stalled above what `HOPELESS` times the joint noise the verdict fails explains (closure level 25 with the
+    default rules: 50 mrad), none at under half the given start's closure level.  A rough start stalls
     in a basin a restart leaves (its closure drops by orders); a loop that does not describe the data (a weld
     on a ball joint) stalls at the same gross level from every start."""
-    levels = [_closure_level(problem, f.stage) for f in fits]
-    return len(levels) >= 2 and min(levels) > max(HOPELESS_LEVEL, 0.5 * levels[0])
+    plausible = rules.plausible_joint_noise
+    levels = [_closure_level(problem, f.stage, plausible) for f in fits]
+    hopeless = HOPELESS * rules.failed_joint_noise / plausible
+    return len(levels) >= 2 and min(levels) > max(hopeless, 0.5 * levels[0])
 
 
 VALLEY_DIRECTIONS = 4  # weakest directions probed from a stalled fit (`valley_starts`), both ways
@@ -380,12 +404,13 @@ def _along_valley(
     solves to `fits`.
     """
     scale = np.array([p.prior for p in problem.params])
+    plausible = opt.rules.plausible_joint_noise
     level = unweighted_closure(problem, fit.x)
     if weak:
         est = sorted(set(est) | set(weak))
         fits.append(solve_staged(problem, x0, x0, est, opt, sigma_q, known, progress))
-        if _good(problem, fits[-1]):
-            return [f for f in fits if _good(problem, f)]
+        if _good(problem, fits[-1], plausible):
+            return [f for f in fits if _good(problem, f, plausible)]
         fit = fits[-1]
     sopt = _solver_options(opt, problem, est, known)
     for k, st in enumerate(valley_starts(problem, fit, x0, scale)):
@@ -400,14 +425,14 @@ def _along_valley(
             level,
         )
         fits.append(solve_staged(problem, x0, xa, est, opt, sigma_q, known, progress))
-        if _good(problem, fits[-1]):
+        if _good(problem, fits[-1], plausible):
             break
-    return [f for f in fits if _good(problem, f)]
+    return [f for f in fits if _good(problem, f, plausible)]
 
 
-def _good(problem: CalibrationProblem, fit: Fit) -> bool:
+def _good(problem: CalibrationProblem, fit: Fit, plausible: float) -> bool:
     """The fit closes within a plausible noise (`_closure_level`) and its residual is noise (not `_systematic`)."""
-    return _closure_level(problem, fit.stage) <= 1.0 and not _systematic(problem, fit)
+    return _closure_level(problem, fit.stage, plausible) <= 1.0 and not _systematic(problem, fit, plausible)
 
 
 def recheck_at_solution(
@@ -465,7 +490,7 @@ def solve_from_starts(
     """
     scale = np.array([p.prior for p in problem.params])
     fits = [solve_staged(problem, x0, st, est, opt, sigma_q, known, progress) for st in starts]
-    stage = _better(problem, [f.stage for f in fits], x0, est, scale)
+    stage = _better(problem, [f.stage for f in fits], x0, est, scale, opt.rules.plausible_joint_noise)
     return next(f for f in fits if f.stage is stage)
 
 
@@ -493,3 +518,54 @@ def _unweighted_with_measurements(
         b = weighted_stage(problem, base, b.solution.x, est, scale, sigma_q, "none", sopt, prog, w)
         iters += b.solution.iterations
     return b, iters
+
+
+def length_guard(
+    result: CalibrationResult, solve: Callable[[list], CalibrationResult], loops: list, rules: VerdictRules
+) -> CalibrationResult:
+    """A known length between frames (`problem.lengths`) that does not set the size never drives the estimate.
+
+    The fit with the length is kept when the length sets the size (its size response, `analysis.scale`,
+    within `rules.sets_size_low`..`sets_size_high`) and the verdict is not failed.  Otherwise the loops are
+    solved without it (`solve(loops)`):
+    a length that does not set the size moves the estimate along what the loops cannot see (a frame's slide
+    along a joint axis), and one that fails a fit the loops alone pass contradicts them.  That fit is
+    returned, `suspect` with the reason, unless the loops alone fail too (then the length was not the cause
+    and the fit with it is returned as it is).
+    """
+    given = [lp for lp in loops if isinstance(lp, LengthLoop)]
+    response = result.scale.length_response
+    if not given or response is None:
+        return result
+    if result.verdict is None:
+        raise ValueError("length_guard: the fit must be judged first (`judge`)")
+    sets = rules.sets_size(response)
+    if sets and result.verdict.status != FAILED:
+        return result
+    alone = solve([lp for lp in loops if not isinstance(lp, LengthLoop)])
+    if alone.verdict is None:
+        raise ValueError("length_guard: `solve` must return a judged fit (`judge`)")
+    if alone.verdict.status == FAILED:
+        return result
+    labels = " and ".join(lp.label() for lp in given)
+    if not sets:
+        why = (
+            f"{labels} cannot set the robot's size (a change of it by 1 % scales the fitted robot by "
+            f"{response:.3g} %: it moves with what the loops cannot see); it was left out of the fit"
+        )
+    else:
+        failed = "; ".join(r for r in result.verdict.reasons if r.startswith(FAILED))
+        why = f"{labels} contradicts the loops (the fit with it failed: {failed}); it was left out of the fit"
+    v = alone.verdict
+    verdict = Verdict(v.status, [r for r in v.reasons if not r.startswith(SIZE_NOT_MEASURED)], dict(v.evidence))
+    verdict.add(SUSPECT, why)
+    verdict.reasons.extend(r for r in v.reasons if r.startswith(SIZE_NOT_MEASURED))
+    verdict.evidence["length_left_out"] = True
+    return replace(
+        alone,
+        verdict=verdict,
+        warnings=alone.warnings + [why],
+        notes=alone.notes + [why],
+        # the size response and leak of the length left out: why it was left out
+        scale=replace(alone.scale, length_response=response, length_leak=result.scale.length_leak),
+    )

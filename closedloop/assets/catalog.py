@@ -76,8 +76,8 @@ def example_robot_data_dir() -> Path:
 
 
 def model_file(name: str) -> Path:
-    """Path of a file shipped in ``closedloop.models`` (e.g. ``"door.xml"``)."""
-    return Path(str(resources.files(__name__).joinpath(name)))
+    """Path of a file shipped in ``closedloop.assets`` (e.g. ``"door.xml"``)."""
+    return Path(str(resources.files(__package__ or "closedloop.assets").joinpath(name)))
 
 
 @dataclass(frozen=True)
@@ -104,7 +104,7 @@ class RobotSource:
     Attributes:
         name: short robot name.
         relpath: path relative to the example-robot-data ``robots`` directory,
-            or to ``closedloop.models`` when ``shipped``.
+            or to ``closedloop.assets`` when ``shipped``.
         remove_links: links removed together with the joints attached to them.
         tools: fixed links appended to the chain.
         shipped: the URDF is a file of this package (:func:`model_file`).

@@ -1,8 +1,9 @@
-"""Solving a reduced calibration problem: residual functions and the staged solve.
+"""The residual functions of a reduced calibration problem, and one solve of each (a stage).
 
-The solver (`solver.levenberg_marquardt`) minimises 1/2 |r(x)|^2 for any
+The solver (`lm.levenberg_marquardt`) minimises 1/2 |r(x)|^2 for any
 residual function; this module builds those functions for a calibration
-problem over its estimated parameters and runs them in stages (thesis 3.2.3,
+problem over its estimated parameters and solves each once (a stage; the order of
+the stages and their starts are `closedloop.calibration.solve`'s) (thesis 3.2.3,
 4.2.6, with the noise treated as errors in variables):
 
 1. **Plain stage.**  The loop-closure residual itself (the thesis's criterion,
@@ -238,7 +239,7 @@ class StageResult:
     fun: ResidualFunction
     note: str | None = None
     deficit_start: int = 0  # residual directions the weighting discarded at the stage's start
-    closure_level: float | None = None  # `staging._closure_level`, once computed
+    closure_level: float | None = None  # `solve._closure_level`, once computed
 
 
 PRESOLVE_ROWS = 8192  # configurations per block of the sample a stage on a long log is first solved on
@@ -297,7 +298,7 @@ def plain_stage(
 
     On a single self-motion many robots close the same curve, and its long
     Gauss-Newton steps may reach a degenerate one (a forearm of zero length):
-    the caller compares it with the weighted fit (`staging._better`).
+    the caller compares it with the weighted fit (`solve._better`).
     """
     fun = ResidualFunction(problem, x0, est, np.ones(len(problem.joints)), "none", row_weights)
     sopt = replace(sopt, noise=0.0)
@@ -364,5 +365,5 @@ class Fit:
     known: bool
     iterations: int
     warnings: list[str]
-    #: restarts gave up: every start stalled alike far above any noise (`staging.solve_with_restarts`)
+    #: restarts gave up: every start stalled alike far above any noise (`solve.solve_with_restarts`)
     hopeless: bool = False
