@@ -45,8 +45,8 @@ def test_two_hands_touching_with_spheres_baxter():
         {"touch.tip_z": 0.03, "touch.pz": 0.03, "touch.d": 0.06},
         n=80,
     )
-    assert res.residuals_after[0].rms_m < 1e-9
-    pos, _, _ = relative_fk_error(res, [truth[n] for n in res.names], "left_gripper", "right_gripper", tip="touch")
+    assert res.fit.residuals_after[0].rms_m < 1e-9
+    pos, _, _ = relative_fk_error(res, [truth[n] for n in res.fit.names], "left_gripper", "right_gripper", tip="touch")
     assert pos < 1e-7
     assert res.verdict.status != "failed", res.verdict.describe()
 
@@ -61,10 +61,10 @@ def test_a_known_distance_sets_the_size():
         {},
         n=60,
     )
-    assert res.residuals_after[0].rms_m < 1e-9
-    assert res.gauge is None and not any("length scale" in n for n in res.notes), res.notes
-    est = [i for i, s in enumerate(res.status) if s == "estimated"]
-    err = max(abs(res.values[i] - truth[res.names[i]]) for i in est)
+    assert res.fit.residuals_after[0].rms_m < 1e-9
+    assert res.scale.gauge is None and not any("length scale" in n for n in res.notes), res.notes
+    est = [i for i, s in enumerate(res.fit.status) if s == "estimated"]
+    err = max(abs(res.fit.values[i] - truth[res.fit.names[i]]) for i in est)
     assert err < 1e-6, err
 
 

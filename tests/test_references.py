@@ -37,6 +37,8 @@ FENCE = re.compile(r"^(```|~~~).*?^\1", re.S | re.M)
 EXTENSIONS = {"json", "csv", "xml", "h5", "yaml", "yml", "urdf", "txt", "html", "md", "png", "npz", "npy", "bag", "db3"}
 #: objects the prose names by their usual variable (`parser.parse_args`, an estimate `est`), not modules
 VARIABLES = {"parser", "est", "args", "self", "res", "result", "opt", "np", "pin"}
+#: third-party packages the prose names by their own module paths (`scipy.stats`)
+THIRD_PARTY = {"scipy", "numpy", "pinocchio", "mujoco", "matplotlib", "ray", "tqdm", "rosbags", "yourdfpy", "h5py"}
 #: keys of the JSON report and of truth.json that read like code paths
 KEYS = {"identifiability.moved_not_identifiable", "report.fixture_validation", "loop.calibrate"}
 
@@ -155,7 +157,7 @@ def dotted_problem(ref: str) -> str | None:
             if ".".join(parts[:k]) in mods:
                 return None if _resolve_in(".".join(parts[:k]), parts[k:]) else f"no {'.'.join(parts[k:])} in it"
         return "no such module"
-    if parts[-1] in EXTENSIONS or parts[0] in VARIABLES or ref in KEYS:
+    if parts[-1] in EXTENSIONS or parts[0] in VARIABLES or parts[0] in THIRD_PARTY or ref in KEYS:
         return None
     for k in range(len(parts), 0, -1):  # a module named by its last parts
         suffix = "." + ".".join(parts[:k])
