@@ -4,10 +4,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import Enum
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from closedloop.problem.problem import BlockEval, CalibrationProblem
+
+if TYPE_CHECKING:
+    from closedloop.calibration.verdict import VerdictRules
 
 #: the verdict's three values, in rank order (`closedloop.calibration.verdict`)
 OK, SUSPECT, FAILED = "ok", "suspect", "failed"
@@ -36,6 +40,7 @@ class CalibrationOptions:
             does not, keep the plain fit if it predicts left-out configurations better; the error bars then
             come from the sandwich covariance (`closedloop.estimate.model_error`).  False: the weighting as
             given, error bars from the noise model.
+        rules: the verdict's thresholds (`closedloop.calibration.verdict.VerdictRules`); None for the defaults.
     """
 
     identify: list[str] | None = None
@@ -53,6 +58,7 @@ class CalibrationOptions:
     outlier_alpha: float = 0.01
     choose_estimator: bool = True
     threads: int | None = None  # BLAS threads for the call (closedloop.estimate.threads); None: by problem size
+    rules: VerdictRules | None = None
 
 
 @dataclass

@@ -271,10 +271,10 @@ def json_property(text: str) -> None:
 
 
 def options_property(args) -> None:
-    from closedloop.cli.parse import check_loop_numbers as _check_loop_numbers
     from closedloop.cli.parse import sim_overrides as _sim_overrides
-    from closedloop.io.schemas import parse_bounds as _parse_bounds
-    from closedloop.io.schemas import parse_noise as _parse_noise
+    from closedloop.run.options import check_loop_numbers as _check_loop_numbers
+    from closedloop.run.options import parse_bounds as _parse_bounds
+    from closedloop.run.options import parse_noise as _parse_noise
     from closedloop.sims import SCENARIOS  # the registry with the shipped scenario files
 
     noise, bound, setting, loop = args

@@ -64,6 +64,7 @@ from closedloop.estimate.outliers import gross_outliers, readmit, reject_outlier
 from closedloop.estimate.stages import Fit
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
+from closedloop.model.parameters import expand_fix
 from closedloop.model.robot import RobotModel
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.records import (
@@ -252,6 +253,8 @@ def _calibrate(
 ) -> CalibrationResult:
     _check_options(opt)
     problem = build_problem(robot, log_, loops, opt.priors)
+    opt = replace(opt, fix=expand_fix(opt.fix, problem.names))  # patterns (`--fix 'j*.offset'`) by name
+    rules = opt.rules or VerdictRules()
     x0 = initial_values(problem, opt.initial)
     for bi, b in enumerate(problem.blocks):  # data no rough model of this loop explains: said before the fit
         why = b.loop.mismatch(problem.loop_frame_poses(x0, bi), b.meas)
@@ -278,7 +281,7 @@ def _calibrate(
     choice: dict[str, Any] = {"estimator": EIV if fit.stage.fun.weighting == "noise" else PLAIN, "reason": "as asked"}
     choice |= {"error_bars": NOISE_MODEL, "evidence": {}}
     tested = noise_hypothesis(problem, fit, opt)
-    if tested is not None and (tested["test"].holds or tested["test"].sigma_hat > VerdictRules().failed_joint_noise):
+    if tested is not None and (tested["test"].holds or tested["test"].sigma_hat > rules.failed_joint_noise):
         # beyond 0.01 rad no estimator mends a model that does not fit the data: kept, and the verdict says so
         choice |= {"reason": tested["test"].describe(), "evidence": tested["evidence"]}
     elif tested is not None:  # model error: the plain loop-closure fit (eq. 3.8), screened alike, sandwich error bars
@@ -289,7 +292,7 @@ def _calibrate(
         fit.iterations += spent
         r, J = fit.stage.fun.linearized(fit.x[fit.est])
         evidence = tested["evidence"] | {"left_out_rms_plain": loo_prediction(problem, fit.x, fit.est, r, J)}
-        if tested["test"].sigma_hat > VerdictRules().plausible_joint_noise:
+        if tested["test"].sigma_hat > rules.plausible_joint_noise:
             fit.warnings.append(
                 f"the errors-in-variables fit implies {tested['test'].sigma_hat:.3g} rad of joint noise, more than "
                 "encoders give: the model misses an effect of that size (elasticity, gearing, backlash)"
@@ -351,7 +354,7 @@ def _calibrate(
     # a long fit: do its error bars hold? (closedloop.analysis.linearity)
     profiles, bar_warnings = check_error_bars(res, fit)
     res = replace(res, profiles=profiles, warnings=res.warnings + bar_warnings)
-    return replace(res, verdict=judge(res))
+    return replace(res, verdict=judge(res, rules=rules))
 
 
 def noise_hypothesis(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions) -> dict | None:

@@ -192,7 +192,7 @@ def __getattr__(name: str):
 
 
 def _add_calibrate(sub) -> None:
-    from closedloop.cli.calibrate import cmd_calibrate
+    from closedloop.cli.calibrate import add_arguments, cmd_calibrate
     from closedloop.cli.tools import loop_help
 
     c = sub.add_parser(
@@ -201,68 +201,7 @@ def _add_calibrate(sub) -> None:
         epilog=loop_help(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    c.add_argument("model", help="URDF, MJCF (.xml) or D-H table (.yaml)")
-    c.add_argument(
-        "log",
-        nargs="?",
-        help="CSV: header of joint names, one row per configuration; or a ROS bag "
-        "(.bag, ROS 2 bag directory, .mcap, .db3) of sensor_msgs/JointState; "
-        "omitted when each loop names its file (--loop ...,log=FILE)",
-    )
-    c.add_argument(
-        "--loop",
-        action="append",
-        default=[],
-        metavar="SPEC",
-        help="loop closure TYPE:key=value,..., e.g. weld:frame=panda_hand (repeatable; types below)",
-    )
-    c.add_argument("--html", help="self-contained HTML report with figures")
-    c.add_argument("--plots", metavar="DIR", help="write the report's figures as PNG files in DIR")
-    c.add_argument("--config", help="YAML file holding any of these options (the command line wins)")
-    c.add_argument(
-        "--out", help="calibrated model, in the input's format: URDF (.urdf), MJCF (.xml) or D-H table (.yaml)"
-    )
-    c.add_argument("--report", help="JSON report")
-    c.add_argument("--identify", help="comma-separated parameter patterns (placement, offset, scale, loop, globs)")
-    c.add_argument("--fix", action="append", default=[], metavar="NAME[=VALUE]", help="hold a parameter fixed")
-    c.add_argument("--noise", help="joint reading std (rad), one number or joint=value,...; default: estimated")
-    c.add_argument(
-        "--weighting",
-        choices=["noise", "none"],
-        default="noise",
-        help="noise: errors-in-variables weighting (default); none: plain loop residual (thesis)",
-    )
-    c.add_argument("--bound", action="append", default=[], metavar="NAME=LOW:HIGH", help="bound a parameter")
-    c.add_argument("--snr", type=float_arg, default=1.0, help="SVD truncation: keep directions above snr * noise")
-    c.add_argument(
-        "--robust",
-        choices=["auto", "huber", "cauchy", "off"],
-        default="auto",
-        help="outliers: auto (default) rejects configurations the noise cannot explain, after a robust "
-        "refit; huber/cauchy keep a robust loss in the final fit; off trusts every row",
-    )
-    c.add_argument("--force", action="store_true", help="write the calibrated model even when the verdict is 'failed'")
-    c.add_argument(
-        "--cv",
-        type=int_arg,
-        default=None,
-        metavar="K",
-        help="K-fold held-out validation in the report (default 5; 0 disables)",
-    )
-    c.add_argument("--max-iter", type=int_arg, default=100, metavar="N", help="solver iterations at most (default 100)")
-    c.add_argument(
-        "--threads",
-        type=int_arg,
-        default=None,
-        metavar="N",
-        help="BLAS threads for the fit (default: 1 for small problems, more only for very large "
-        "ones on idle cores; 0: keep the environment's setting)",
-    )
-    c.add_argument("--degrees", action="store_true", help="the log is in degrees")
-    c.add_argument("--quiet", action="store_true", help="no progress and no summary (errors and warnings only)")
-    from closedloop.cli.evaluate import add_rig_options  # --distance, --joints, --lofo (rigs)
-
-    add_rig_options(c)
+    add_arguments(c)  # derived from the run's options (closedloop.run.options)
     c.set_defaults(func=cmd_calibrate)
 
 

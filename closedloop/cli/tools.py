@@ -7,7 +7,6 @@
 * ``--config FILE.yaml``: every option of a subcommand in one YAML mapping
   (keys are the long option names, ``-`` or ``_``; positionals by name);
   options given on the command line win;
-* ``--html`` / ``--plots``: :mod:`closedloop.output.html` after a calibration.
 """
 
 from __future__ import annotations
@@ -67,31 +66,7 @@ def cmd_loops(args) -> int:
     return 0
 
 
-# --------------------------------------------------------------------------- ROS bags
-def read_log_or_bag(path: str, robot, degrees: bool = False, bag_options=None):
-    """A CSV log, or the quasi-static samples of a ROS bag (:func:`closedloop.io.bags.extract`)."""
-    if Path(path).suffix.lower() == ".csv":  # the bag reader is not loaded for a CSV log
-        bag = False
-    else:
-        from closedloop.io.bags import is_bag
-
-        bag = is_bag(path)
-    if bag:
-        from closedloop.io.bags import extract
-
-        lg, samples = extract(path, robot.joint_names, bag_options)
-        print(f"  {path}: {len(samples)} standstills extracted", file=sys.stderr)
-        return lg
-    from closedloop.io.logs import read_log
-
-    return read_log(
-        path,
-        robot.joint_names,
-        degrees=degrees,
-        linear=[j for j, info in robot.joints.items() if info.kind == "prismatic"],
-    )
-
-
+# --------------------------------------------------------------------------- closedloop extract
 def cmd_extract(args) -> int:
     from closedloop.io.bags import ExtractOptions, extract, parse_windows
     from closedloop.io.files import check_outputs
@@ -280,35 +255,6 @@ def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None):
                 a.required = False
         sub.set_defaults(**cfg)
     return parser.parse_args(argv)
-
-
-# --------------------------------------------------------------------------- --html / --plots
-def sensor_corrections(res, model_out: str | None = None) -> dict | None:
-    """What a URDF or MJCF cannot carry (`closedloop.output.report.sensor_corrections`)."""
-    from closedloop.output.report import sensor_corrections as corrections
-
-    return corrections(res, model_out)
-
-
-def write_figures(res, report: dict, args, row_name=None) -> None:
-    """The HTML page and the PNG figures (the sensor file beside the model, `closedloop.output.report.write_sensors`,
-    is published with the model and the report)."""
-    quiet = bool(getattr(args, "quiet", False))
-    html = getattr(args, "html", None)
-    plots = getattr(args, "plots", None)
-    if not html and not plots:
-        return
-    from closedloop.output.html import write_html, write_plots
-
-    snr = float(getattr(args, "snr", 1.0) or 1.0)
-    if html:
-        write_html(res, report, html, snr, row_name=row_name)
-        if not quiet:
-            print(f"  wrote {html}")
-    if plots:
-        files = write_plots(res, report, plots, snr)
-        if not quiet:
-            print(f"  wrote {len(files)} figures to {plots}")
 
 
 # --------------------------------------------------------------------------- simulate any robot
