@@ -101,9 +101,7 @@ def _refusals(tmp_path, capsys, f, text: str, value) -> dict[str, str]:
     err = capsys.readouterr().err
     assert rc == 2 and len(err.strip().splitlines()) == 1, err
     out["config"] = err.strip()
-    (tmp_path / "m.yaml").write_text(
-        f"jobs:\n  - {{name: a, model: {URDF}, log: log.csv, out: o, {f.name}: {text}}}\n"
-    )
+    (tmp_path / "m.yaml").write_text(f"jobs:\n  - {{name: a, model: {URDF}, log: log.csv, out: o, {f.name}: {text}}}\n")
     with pytest.raises(InputError) as exc:
         read_manifest(tmp_path / "m.yaml")
     out["manifest"] = str(exc.value)

@@ -1,5 +1,6 @@
 """The `closedloop` command line: the parser, the dispatch and the exit codes.  Printing happens in the
-`cli*` modules and only there (`cli_calibrate`, `cli_simulate`, `cli_tools`; option values: `cli_parse`).
+modules of `closedloop.cli` and only there (`calibrate`, `simulate`, `evaluate`, `extract`, `loops`;
+`config` for ``--config``; option values: `parse`).
 
 User mistakes (`InputError`) print one line and exit with code 2.  Nothing heavy is imported before
 `main` has taken over the signals: Ctrl-C while the numerical libraries load is one line and exit 130 too.
@@ -148,7 +149,7 @@ def _add_inspect(sub) -> None:
 
 
 def _add_extract(sub) -> None:
-    from closedloop.cli.tools import add_extract_parser
+    from closedloop.cli.extract import add_extract_parser
 
     add_extract_parser(sub)
 
@@ -160,7 +161,7 @@ def _add_batch(sub) -> None:
 
 
 def _add_loops(sub) -> None:
-    from closedloop.cli.tools import cmd_loops
+    from closedloop.cli.loops import cmd_loops
 
     lp = sub.add_parser("loops", help="list the loop types, their keys and an example each")
     lp.set_defaults(func=cmd_loops)
@@ -193,7 +194,7 @@ def __getattr__(name: str):
 
 def _add_calibrate(sub) -> None:
     from closedloop.cli.calibrate import add_arguments, cmd_calibrate
-    from closedloop.cli.tools import loop_help
+    from closedloop.cli.loops import loop_help
 
     c = sub.add_parser(
         "calibrate",
@@ -206,8 +207,7 @@ def _add_calibrate(sub) -> None:
 
 
 def _add_simulate(sub) -> None:
-    from closedloop.cli.simulate import cmd_simulate
-    from closedloop.cli.tools import add_simulate_robot_options, scenario_help
+    from closedloop.cli.simulate import add_simulate_robot_options, cmd_simulate, scenario_help
 
     s = sub.add_parser(
         "simulate",
@@ -374,7 +374,7 @@ def main(argv: list[str] | None = None) -> int:
         argv = ["-v"] + [a for a in argv if a not in ("-v", "--verbose")]
     try:
         with track_inputs():  # every file a reader opens is an input no output may replace
-            from closedloop.cli.tools import parse_args  # (the heavy imports start here: inside the handlers)
+            from closedloop.cli.config import parse_args  # (the heavy imports start here: inside the handlers)
 
             args = parse_args(build_parser(_command(argv)), argv)  # applies a subcommand's --config FILE
             logging.basicConfig(

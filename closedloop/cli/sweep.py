@@ -235,7 +235,7 @@ def cmd_simulate_sweep(args) -> int:
 
 def _scenarios(args) -> dict[str, Any]:
     """The scenarios of the sweep, by name: --scenarios A,B (names or YAML files) or the one of `simulate`."""
-    from closedloop.cli.tools import resolve_scenario
+    from closedloop.cli.simulate import resolve_scenario
     from closedloop.sims import SCENARIOS
     from closedloop.sims.scenarios import CAMERA_SCENARIOS, unknown_scenario
 

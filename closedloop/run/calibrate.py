@@ -235,17 +235,17 @@ def _write(o: CalibrateOptions, robot, res, report: dict, lg, elapsed, messages,
     from closedloop.output.urdf import model_frames, write_model
 
     failed = res.verdict.status == "failed"
-    write_out = bool(o.out) and (not failed or o.force)
-    report["outputs"] = {"model": str(o.out) if write_out else None}  # `closedloop evaluate --calibration`
-    sensors = sensors_path(o.out) if write_out else None  # what the model file cannot carry, beside it
-    run = RunResult(res, report, lg, elapsed, write_out, sensors, [], messages)
+    model_out = o.out if o.out and (not failed or o.force) else None
+    report["outputs"] = {"model": model_out}  # `closedloop evaluate --calibration`
+    sensors = sensors_path(model_out) if model_out else None  # what the model file cannot carry, beside it
+    run = RunResult(res, report, lg, elapsed, model_out is not None, sensors, [], messages)
     marker = Path(folder) / DONE if folder is not None and done is not None else None
-    with OutputSet(order=[o.out if write_out else None, sensors, o.report, marker], folder=folder):  # model first
+    with OutputSet(order=[model_out, sensors, o.report, marker], folder=folder):  # model first
         if o.report:
             write_report(report, o.report)
-        if write_out:
-            write_model(robot, res.as_dict(), o.out, frames=model_frames(res))  # with tool points and fixtures
-            if write_sensors(res, o.out, robot.kind) is None:
+        if model_out:
+            write_model(robot, res.as_dict(), model_out, frames=model_frames(res))  # with tool points and fixtures
+            if write_sensors(res, model_out, robot.kind) is None:
                 run = replace(run, sensors=None)
         if marker is not None and done is not None:
             atomic_write_text(marker, json.dumps(done(run), indent=1) + "\n")
