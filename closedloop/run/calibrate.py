@@ -66,66 +66,41 @@ def calibrate_files(
     """The run of the module doc.  `folder` (every output inside it) is published whole: written into a
     hidden temporary folder beside it and renamed onto it (`io.files.OutputSet`), with ``done.json``
     (`DONE`: the JSON record `done` makes of the run) written last inside."""
-    from closedloop.calibration.pipeline import CalibrationOptions, calibrate
-    from closedloop.io.logs import check_loop_column
-    from closedloop.model.parameters import fix_values
-    from closedloop.model.robot import RobotModel
+    from closedloop.calibration.pipeline import calibrate
     from closedloop.output.report import build_report
-    from closedloop.output.urdf import check_model_output
-    from closedloop.run.inputs import input_record, read_inputs, run_loops, weighting
+    from closedloop.run.inputs import load_inputs
 
     o = options
     prog = progress or _silent
     check_run_outputs(o)
-    robot = RobotModel.from_file(o.model)
-    check_model_output(robot.kind, o.out, o.model)
-    loops = run_loops(o, robot)
-    messages: list[str] = []
-    lg = read_inputs(o.log, robot, loops, o.degrees, o.joints, messages)
-    log_name = o.log or str(lg.source)
-    check_loop_column(lg, [lp.name for lp in loops])
-    k = o.folds
-    if k > len(lg):
-        if o.cv is not None:
-            raise InputError(f"--cv {k}: more folds than the {len(lg)} rows of {log_name}")
-        k = len(lg) if len(lg) >= 2 else 0
-    weights, weight_note = weighting(o)
-    fit_options = CalibrationOptions(
-        identify=o.identify,
-        fix=fix_values(o.fix),
-        noise=o.noise,
-        weighting=weights,
-        max_iter=o.max_iter,
-        snr=o.snr,
-        bounds=dict(o.bound),
-        robust=None if o.robust == "off" else o.robust,
-        threads=o.threads,
-        rules=o.rules,
-    )
+    inp = load_inputs(o)  # the robot, its loops, the log, the folds, the fit's options
+    robot, lg, loops = inp.robot, inp.log, inp.loops
     t0, c0 = time.perf_counter(), time.process_time()
-    res = calibrate(robot, lg, loops, fit_options, progress=prog)
+    res = calibrate(robot, lg, loops, inp.fit, progress=prog)
     _done(prog)
-    elapsed = time.perf_counter() - t0
-    if weight_note:
-        res.notes.append(weight_note)
-    inputs = input_record(o.readings, weights, lg, res)  # readings, weighting, where the torques come from
+    elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
+    if inp.weighting_note:
+        res.notes.append(inp.weighting_note)
+    inputs = _input_record(o.readings, inp.fit.weighting, lg, res)  # readings, weighting, where the torques come from
     if inputs["torques"] == "gravity":
         res.notes.append("joint torques: gravity from the model's inertials (the log has no tau:<joint> columns)")
-    report = build_report(res, o.model, log_name, row_name=lg.where)
-    report["inputs"] = inputs
-    report["solver"]["seconds"] = elapsed
-    report["solver"]["cpu_seconds"] = time.process_time() - c0
     t1, c1 = time.perf_counter(), time.process_time()
-    cv = fold_validation(robot, lg, loops, fit_options, k, o.cv is not None, res, report, prog) if k else None
-    lofo = fixture_validation(robot, lg, loops, fit_options, o.lofo, res, report, prog)
-    # the held-out refits' time (k-fold and fixtures): with the fit's, the work of the run
-    report["solver"]["validation_seconds"] = time.perf_counter() - t1
-    report["solver"]["validation_cpu_seconds"] = time.process_time() - c1
+    cv, cv_record = fold_validation(robot, lg, loops, inp.fit, inp.folds, o.cv is not None, res, prog)
+    lofo = fixture_validation(robot, lg, loops, inp.fit, o.lofo, res, prog)
     res = replace(res, verdict=final_verdict(res, cv, lofo, o.rules))
-    from closedloop.output.report import verdict_record
-
-    report["verdict"] = verdict_record(res.verdict)
-    return _write(o, robot, res, report, lg, elapsed, messages, folder, done)
+    report = build_report(res, o.model, inp.log_name, row_name=lg.where)
+    report["inputs"] = inputs
+    # the fit's time, and the held-out refits' (k-fold and fixtures): with the fit's, the work of the run
+    report["solver"] |= {"seconds": elapsed, "cpu_seconds": cpu}
+    report["solver"] |= {
+        "validation_seconds": time.perf_counter() - t1,
+        "validation_cpu_seconds": time.process_time() - c1,
+    }
+    if cv_record is not None:
+        report["validation"] = cv_record
+    if lofo is not None:
+        report["fixture_validation"] = lofo
+    return _write(o, robot, res, report, lg, elapsed, inp.messages, folder, done)
 
 
 def check_run_outputs(o: CalibrateOptions) -> None:
@@ -141,17 +116,20 @@ def check_run_outputs(o: CalibrateOptions) -> None:
         require("matplotlib", f"--{'html' if o.html else 'plots'}", "report")  # refused now, not after the fit
 
 
-def fold_validation(robot, lg, loops: list, opts, k: int, given: bool, res, report: dict, progress=None) -> dict | None:
-    """K-fold held-out validation (`validation.kfold.cross_validate`) of a converged fit, into the report
-    (``validation``); the rows `res` rejected as outliers are not judged (they stay in the refits' data).
+def fold_validation(
+    robot, lg, loops: list, opts, k: int, given: bool, res, progress=None
+) -> tuple[dict | None, dict | None]:
+    """K-fold held-out validation (`validation.kfold.cross_validate`) of a converged fit: (the folds, the
+    report's ``validation`` record); the rows `res` rejected as outliers are not judged (they stay in the
+    refits' data).
 
     A training fold the refit cannot use (too few rows for the parameters) ends the validation: with the
-    default K it is skipped with a note (None), with K `given` it is an input error naming the folds.
+    default K it is skipped with a note (no folds), with K `given` it is an input error naming the folds.
     """
     from closedloop.validation.kfold import cross_validate
 
-    if not res.converged:
-        return None
+    if not k or not res.converged:
+        return None, None
     prog = progress or _silent
     prog("validating", 0, 0.0)
     try:
@@ -171,9 +149,8 @@ def fold_validation(robot, lg, loops: list, opts, k: int, given: bool, res, repo
         if given:
             raise InputError(f"--cv {k}: {why} (fewer folds, or --cv 0)") from None
         res.notes.append(f"k-fold validation skipped: {why}")
-        report["validation"] = {"k": k, "skipped": why}
-        return None
-    report["validation"] = {
+        return None, {"k": k, "skipped": why}
+    record = {
         "k": k,
         "excluded_rows": [i + 1 for i in cv["excluded"]],
         "test": cv["test"],
@@ -184,12 +161,12 @@ def fold_validation(robot, lg, loops: list, opts, k: int, given: bool, res, repo
         "folds_converged": [f["converged"] for f in cv["folds"]],
     }
     _done(prog)
-    return cv
+    return cv, record
 
 
-def fixture_validation(robot, lg, loops: list, opts, lofo: str, res, report: dict, progress=None) -> dict | None:
+def fixture_validation(robot, lg, loops: list, opts, lofo: str, res, progress=None) -> dict | None:
     """Leave-one-fixture-out validation of a converged fit (`lofo` 'auto': when the loops form several
-    fixtures), into the report (``fixture_validation``)."""
+    fixtures): the report's ``fixture_validation`` record (`validation.fixtures.leave_one_fixture_out`)."""
     from closedloop.validation.fixtures import fixture_groups, leave_one_fixture_out
 
     if not res.converged or lofo == "off" or lg.loop is None or len(fixture_groups(loops)) < 2:
@@ -198,8 +175,6 @@ def fixture_validation(robot, lg, loops: list, opts, lofo: str, res, report: dic
     prog("validating fixtures", 0, 0.0)
     out = leave_one_fixture_out(robot, lg, loops, opts)
     _done(prog)
-    if out is not None:
-        report["fixture_validation"] = out
     return out
 
 
@@ -257,6 +232,21 @@ def _write(o: CalibrateOptions, robot, res, report: dict, lg, elapsed, messages,
         if o.plots:
             run = replace(run, figures=[Path(p) for p in write_plots(res, report, o.plots, o.snr)])
     return run
+
+
+def _input_record(readings: str, weighting: str, lg, res=None) -> dict:
+    """What the report says about the inputs: whether the readings are measured or commanded, the weighting
+    that follows, and where the joint torques the compliance model used come from ('log', 'gravity': the
+    model's inertials at the readings; null when no compliance was used)."""
+    used = res is None or any(
+        p.kind == "compliance" and (res.status[k] == "estimated" or res.values[k] != 0.0)
+        for k, p in enumerate(res.problem.params)
+    )
+    return {
+        "readings": readings,
+        "weighting": weighting,
+        "torques": getattr(lg, "torque_source", None) if used else None,
+    }
 
 
 def _silent(stage: str, i: int, value: float) -> None:

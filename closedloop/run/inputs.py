@@ -6,7 +6,9 @@ Used by `closedloop.run.calibrate` and by ``closedloop evaluate`` (which reads i
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from closedloop.errors import InputError
 
@@ -76,6 +78,59 @@ def _read(log_path: str | None, robot, loops: list, degrees: bool, order: list[s
     return read_log(log_path, robot.joint_names, degrees=degrees, linear=linear)
 
 
+@dataclass(frozen=True)
+class RunInputs:
+    """What a run reads before its fit: the robot, its loops (with the rig's known distances, blocks and
+    lengths), the log and its name, the k-fold count for its rows, and the fit's options."""
+
+    robot: Any  # closedloop.model.robot.RobotModel
+    loops: list
+    log: Any  # closedloop.io.logs.JointLog
+    log_name: str
+    folds: int
+    fit: Any  # closedloop.records.CalibrationOptions
+    weighting_note: str | None = None
+    messages: list[str] = field(default_factory=list)  # what the reading has to say (a bag's standstills)
+
+
+def load_inputs(o) -> RunInputs:
+    """The run's inputs (`RunInputs`) from its options (`closedloop.run.options.CalibrateOptions`): the
+    model and the calibrated model's format, the loops, the log and its loop column, the k-fold count
+    (`cv`, or 5, fewer on a shorter log), the weighting, the fit's options."""
+    from closedloop.calibration.pipeline import CalibrationOptions
+    from closedloop.io.logs import check_loop_column
+    from closedloop.model.parameters import fix_values
+    from closedloop.model.robot import RobotModel
+    from closedloop.output.urdf import check_model_output
+
+    robot = RobotModel.from_file(o.model)
+    check_model_output(robot.kind, o.out, o.model)
+    loops = run_loops(o, robot)
+    messages: list[str] = []
+    lg = read_inputs(o.log, robot, loops, o.degrees, o.joints, messages)
+    log_name = o.log or str(lg.source)
+    check_loop_column(lg, [lp.name for lp in loops])
+    k = o.folds
+    if k > len(lg):
+        if o.cv is not None:
+            raise InputError(f"--cv {k}: more folds than the {len(lg)} rows of {log_name}")
+        k = len(lg) if len(lg) >= 2 else 0
+    weights, note = weighting(o)
+    fit = CalibrationOptions(
+        identify=o.identify,
+        fix=fix_values(o.fix),
+        noise=o.noise,
+        weighting=weights,
+        max_iter=o.max_iter,
+        snr=o.snr,
+        bounds=dict(o.bound),
+        robust=None if o.robust == "off" else o.robust,
+        threads=o.threads,
+        rules=o.rules,
+    )
+    return RunInputs(robot, loops, lg, log_name, k, fit, note, messages)
+
+
 def run_loops(options, robot) -> list:
     """The loops of `options.loop` (or the model's own, a D-H table that closes) and the rig's known
     distances, blocks and lengths (`problem.distances`, `problem.lengths`)."""
@@ -113,18 +168,3 @@ def weighting(options) -> tuple[str, str | None]:
     if options.weighting is None:
         return ("none", COMMANDED) if commanded else ("noise", None)
     return options.weighting, COMMANDED_AS_NOISE if commanded and options.weighting == "noise" else None
-
-
-def input_record(readings: str, weighting: str, lg, res=None) -> dict:
-    """What the report says about the inputs: whether the readings are measured or commanded, the weighting
-    that follows, and where the joint torques the compliance model used come from ('log', 'gravity': the
-    model's inertials at the readings; null when no compliance was used)."""
-    used = res is None or any(
-        p.kind == "compliance" and (res.status[k] == "estimated" or res.values[k] != 0.0)
-        for k, p in enumerate(res.problem.params)
-    )
-    return {
-        "readings": readings,
-        "weighting": weighting,
-        "torques": getattr(lg, "torque_source", None) if used else None,
-    }
