@@ -18,7 +18,7 @@ def cmd_extract(args) -> int:
     else:
         raise InputError("extract: say which joints to keep: --model ROBOT.urdf|.xml or --joints j1,j2,...")
     check_outputs({"--out": args.out}, [args.bag])  # not the bag, a writable place, a pipe written in place
-    from closedloop.io.schemas import check_number
+    from closedloop.run.options import check_number
 
     for opt, name in (
         ("--threshold", "threshold"),

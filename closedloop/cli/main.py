@@ -61,7 +61,7 @@ def cmd_inspect(args) -> int:
 
 
 def cmd_check(args) -> int:
-    from closedloop.io.schemas import check_number
+    from closedloop.run.options import check_number
     from closedloop.validation.check import check_parameters, check_report
 
     tols = {

@@ -15,7 +15,7 @@ from pathlib import Path
 from closedloop.cli.calibrate import Progress
 from closedloop.cli.parse import sim_overrides
 from closedloop.errors import ClosedLoopError, InputError, NotIdentifiableError, ScenarioError
-from closedloop.io.schemas import check_number
+from closedloop.run.options import check_number
 
 
 def cmd_simulate(args) -> int:

@@ -198,8 +198,8 @@ def cmd_simulate_sweep(args) -> int:
         if getattr(args, "jobs", None) is not None or getattr(args, "ray", None):
             raise InputError("simulate: --jobs / --ray run a sweep: give --seeds (e.g. --seeds 0-19)")
         return cmd_simulate(args)
-    from closedloop.io.schemas import check_number
     from closedloop.parallel.executor import engine_from_args, progress_printer
+    from closedloop.run.options import check_number
 
     scenarios = _scenarios(args)
     seeds = parse_seeds(args.seeds if args.seeds is not None else str(args.seed))

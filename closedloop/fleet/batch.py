@@ -39,8 +39,8 @@ from closedloop.errors import EXIT_FAILED, InputError
 from closedloop.fleet.drift import Drift, drift, drift_columns, gauge_record
 from closedloop.fleet.manifest import BatchJob, read_manifest
 from closedloop.io.files import is_special
-from closedloop.io.schemas import check_number
 from closedloop.run.calibrate import DONE
+from closedloop.run.options import check_number
 
 __all__ = [
     "BatchJob",

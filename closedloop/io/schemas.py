@@ -455,13 +455,3 @@ def check_settings(values: dict, source: str = "--set", error: type[InputError] 
     si = values.get("solimp")
     if si is not None and si[0] > si[1]:
         raise error(f"{source}: solimp dmin {si[0]:g} exceeds dmax {si[1]:g}")
-
-
-def check_number(opt: str, value, lo: float, hi: float, *, integer: bool = False, lo_open: bool = False):
-    """A numeric option in range (``lo < v`` when `lo_open`, else ``lo <= v``; ``v <= hi``), as float/int."""
-    v = parse_number(value, f"{opt} {value}") if isinstance(value, str) else value
-    if not is_number(v) or (integer and float(v) != int(v)):
-        raise InputError(f"{opt} {value}: expected {'a whole number' if integer else 'a finite number'}")
-    if v < lo or (lo_open and v == lo) or v > hi:
-        raise InputError(f"{opt} {value}: must be {'>' if lo_open else '>='} {lo:g} and <= {hi:g}")
-    return int(v) if integer else float(v)

@@ -294,18 +294,24 @@ def check_value(name: str, value: Any, label: str | None = None) -> Any:
 
 
 def _number(label: str, value: Any, m: Mapping, integer: bool) -> int | float:
+    if isinstance(value, bool) or not isinstance(value, (str, int, float)):
+        raise InputError(f"{label} {_shown(value)}: expected {'a whole number' if integer else 'a finite number'}")
+    v = check_number(label, value, m["lo"], m["hi"], integer=integer, lo_open=m["lo_open"])
+    if label.lstrip("-").replace("-", "_") == "cv" and v == 1:
+        raise InputError(f"{label} 1: K-fold validation needs K >= 2 (or 0 to disable)")
+    return v
+
+
+def check_number(opt: str, value, lo: float, hi: float, *, integer: bool = False, lo_open: bool = False):
+    """A numeric option in range (``lo < v`` when `lo_open`, else ``lo <= v``; ``v <= hi``), as float/int;
+    one line ``<opt> <value>: <what is wrong>`` otherwise (every command's numeric options, and `checked`)."""
     from closedloop.io.schemas import is_number, parse_number
 
-    v = parse_number(value, f"{label} {value}") if isinstance(value, str) else value
-    if not is_number(v):
-        raise InputError(f"{label} {_shown(value)}: expected {'a whole number' if integer else 'a finite number'}")
-    if integer and float(v) != int(v):
-        raise InputError(f"{label} {value}: expected a whole number")
-    lo, hi = m["lo"], m["hi"]
-    if v < lo or (m["lo_open"] and v == lo) or v > hi:
-        raise InputError(f"{label} {value}: must be {'>' if m['lo_open'] else '>='} {lo:g} and <= {hi:g}")
-    if label.lstrip("-").replace("-", "_") == "cv" and int(v) == 1:
-        raise InputError(f"{label} 1: K-fold validation needs K >= 2 (or 0 to disable)")
+    v = parse_number(value, f"{opt} {value}") if isinstance(value, str) else value
+    if not is_number(v) or (integer and float(v) != int(v)):
+        raise InputError(f"{opt} {value}: expected {'a whole number' if integer else 'a finite number'}")
+    if v < lo or (lo_open and v == lo) or v > hi:
+        raise InputError(f"{opt} {value}: must be {'>' if lo_open else '>='} {lo:g} and <= {hi:g}")
     return int(v) if integer else float(v)
 
 
