@@ -95,7 +95,7 @@ def options_from_args(args):
 
 
 def cmd_calibrate(args) -> int:
-    from closedloop.run import calibrate_files
+    from closedloop.run.calibrate import calibrate_files
 
     options = options_from_args(args)
     prog = Progress(args.quiet)
