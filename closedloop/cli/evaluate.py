@@ -173,9 +173,6 @@ def cmd_evaluate(args) -> int:
     lg = read_inputs(log_path, robots[0], loops0, args.degrees, _order(args), notes)
     for note in notes:
         print(f"  {note}", file=sys.stderr)
-    from closedloop.io.logs import check_loop_column
-
-    check_loop_column(lg, [lp.name for lp in loops0])
     evals = []
     for k, (path, robot) in enumerate(zip(models, robots)):
         loops = loops0 if k == 0 else [parse_loop(s, robot) for s in args.loop]

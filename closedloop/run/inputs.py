@@ -22,13 +22,14 @@ def read_inputs(
     notes: list[str] | None = None,
 ):
     """The joint log: the positional file (CSV or bag), or each loop's own ``log=`` file (one per fixture);
-    refused where most readings of a joint lie far beyond its limits (`io.logs.check_angle_units`); with
-    the model's gravity torques where it logs none (`with_gravity_torques`).  A bag's extraction is said
-    in `notes`."""
-    from closedloop.io.logs import check_angle_units
+    refused where most readings of a joint lie far beyond its limits (`io.logs.check_angle_units`) or
+    where its ``loop`` column names no loop given (`io.logs.check_loop_column`); with the model's gravity
+    torques where it logs none (`with_gravity_torques`).  A bag's extraction is said in `notes`."""
+    from closedloop.io.logs import check_angle_units, check_loop_column
 
     lg = _read(log_path, robot, loops, degrees, order, notes if notes is not None else [])
     check_angle_units(lg, robot, degrees)
+    check_loop_column(lg, [lp.name for lp in loops])
     return with_gravity_torques(lg, robot)
 
 
@@ -98,24 +99,11 @@ def load_inputs(o) -> RunInputs:
     model and the calibrated model's format, the loops, the log and its loop column, the k-fold count
     (`cv`, or 5, fewer on a shorter log), the weighting, the fit's options."""
     from closedloop.calibration.pipeline import CalibrationOptions
-    from closedloop.io.logs import check_loop_column
     from closedloop.model.parameters import fix_values
     from closedloop.model.robot import RobotModel
     from closedloop.output.urdf import check_model_output
 
-    robot = RobotModel.from_file(o.model)
-    check_model_output(robot.kind, o.out, o.model)
-    loops = run_loops(o, robot)
-    messages: list[str] = []
-    lg = read_inputs(o.log, robot, loops, o.degrees, o.joints, messages)
-    log_name = o.log or str(lg.source)
-    check_loop_column(lg, [lp.name for lp in loops])
-    k = o.folds
-    if k > len(lg):
-        if o.cv is not None:
-            raise InputError(f"--cv {k}: more folds than the {len(lg)} rows of {log_name}")
-        k = len(lg) if len(lg) >= 2 else 0
-    weights, note = weighting(o)
+    weights, note = weighting(o)  # what the options alone decide, first
     fit = CalibrationOptions(
         identify=o.identify,
         fix=fix_values(o.fix),
@@ -128,6 +116,17 @@ def load_inputs(o) -> RunInputs:
         threads=o.threads,
         rules=o.rules,
     )
+    robot = RobotModel.from_file(o.model)
+    check_model_output(robot.kind, o.out, o.model)
+    loops = run_loops(o, robot)
+    messages: list[str] = []
+    lg = read_inputs(o.log, robot, loops, o.degrees, o.joints, messages)
+    log_name = o.log or str(lg.source)
+    k = o.folds
+    if k > len(lg):
+        if o.cv is not None:
+            raise InputError(f"--cv {k}: more folds than the {len(lg)} rows of {log_name}")
+        k = len(lg) if len(lg) >= 2 else 0
     return RunInputs(robot, loops, lg, log_name, k, fit, note, messages)
 
 
