@@ -18,6 +18,9 @@ from closedloop.version import __version__
 
 #: public name -> the module that defines it
 _LAZY = {
+    "CalibrateOptions": "closedloop.run",
+    "calibrate_files": "closedloop.run",
+    "RunResult": "closedloop.run",
     "CalibrationOptions": "closedloop.calibration.pipeline",
     "CalibrationResult": "closedloop.calibration.pipeline",
     "calibrate": "closedloop.calibration.pipeline",
@@ -42,6 +45,9 @@ _LAZY = {
 }
 
 __all__ = [
+    "CalibrateOptions",
+    "calibrate_files",
+    "RunResult",
     "CalibrationOptions",
     "CalibrationResult",
     "calibrate",

@@ -153,7 +153,7 @@ CASES = [
         "batch-degrees-maybe",
         "batch manifest",
         ["batch", "{m.yaml}"],
-        ["option 'degrees'", "expected true or false, got 'maybe'"],
+        ["option 'degrees'", "degrees 'maybe': expected true or false"],
         {"m.yaml": manifest(a=", degrees: maybe")},
     ),
     Case(

@@ -173,9 +173,10 @@ def test_manifest_csv_and_errors(tmp_path, capsys):
     (job,) = read_manifest(tmp_path / "m.csv")
     assert job.loops == [LOOP, "point:frame=panda_link8,name=tip"] and job.options == {
         "noise": 1e-4,
-        "identify": "placement,offset",
+        "identify": ["placement", "offset"],
     }
-    assert job.out == tmp_path / "o" / "a" and job.robot == "r1" and job.cv == 5
+    assert job.out == tmp_path / "o" / "a" and job.robot == "r1"
+    assert job.cv is None and job.run_options().folds == 5  # as calibrate's --cv: 5, fewer on a shorter log
     (tmp_path / "bad.yaml").write_text("jobs:\n  - {model: m.urdf, out: o}\n")
     with pytest.raises(InputError, match=r"bad.yaml: job 1 .*no 'log'"):
         read_manifest(tmp_path / "bad.yaml")

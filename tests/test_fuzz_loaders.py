@@ -271,10 +271,10 @@ def json_property(text: str) -> None:
 
 
 def options_property(args) -> None:
-    from closedloop.cli.parse import check_loop_numbers as _check_loop_numbers
     from closedloop.cli.parse import sim_overrides as _sim_overrides
-    from closedloop.io.schemas import parse_bounds as _parse_bounds
-    from closedloop.io.schemas import parse_noise as _parse_noise
+    from closedloop.run.options import check_loop_numbers as _check_loop_numbers
+    from closedloop.run.options import parse_bounds as _parse_bounds
+    from closedloop.run.options import parse_noise as _parse_noise
     from closedloop.sims import SCENARIOS  # the registry with the shipped scenario files
 
     noise, bound, setting, loop = args
@@ -379,7 +379,7 @@ def manifest_property(text: str) -> str:
     path.write_text(text, encoding="utf-8", errors="surrogatepass")
     jobs = _only_input_errors(read_manifest, path)
     if jobs is not None:  # every job: unique name, a whole number of folds, checked options
-        assert len({j.name for j in jobs}) == len(jobs) and all(j.cv == 0 or j.cv >= 2 for j in jobs)
+        assert len({j.name for j in jobs}) == len(jobs) and all(j.cv is None or j.cv == 0 or j.cv >= 2 for j in jobs)
         for j in jobs:
             for k in ("snr", "max_iter"):
                 assert k not in j.options or (np.isfinite(j.options[k]) and j.options[k] > 0)
@@ -394,8 +394,8 @@ def config_property(doc) -> str:
     """A calibrate --config (the parser only: no calibration runs) is applied or refused in one line."""
     import argparse
 
+    from closedloop.cli.config import load_config
     from closedloop.cli.main import build_parser
-    from closedloop.cli.tools import load_config
 
     path = _DIR / "config.yaml"
     path.write_text(yaml.safe_dump(doc) if not isinstance(doc, str) else doc, encoding="utf-8", errors="surrogatepass")

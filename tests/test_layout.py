@@ -29,6 +29,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("cli",),  # the command line: parses, prints, exits
     ("sims",),  # MuJoCo datasets with their ground truth
     ("fleet",),  # batch manifests, drift across a fleet
+    ("run",),  # one calibration run from files to files, and its options
     ("impedance",),  # Part II: time-varying joint impedance
     ("validation",),  # k-fold, fixtures, evaluate, check against a truth
     ("studies",),  # Monte Carlo, thesis hand, truth drawing

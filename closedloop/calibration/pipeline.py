@@ -65,6 +65,7 @@ from closedloop.estimate.outliers import gross_outliers, readmit, reject_outlier
 from closedloop.estimate.residual import Fit
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
+from closedloop.model.parameters import expand_fix
 from closedloop.model.robot import RobotModel
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
 from closedloop.progress import ProgressReporter
@@ -261,6 +262,7 @@ def _calibrate(
 ) -> CalibrationResult:
     _check_options(opt)
     problem = build_problem(robot, log_, loops, opt.priors)
+    opt = replace(opt, fix=expand_fix(opt.fix, problem.names))  # patterns (`--fix 'j*.offset'`) by name
     x0 = initial_values(problem, opt.initial)
     for bi, b in enumerate(problem.blocks):  # data no rough model of this loop explains: said before the fit
         why = b.loop.mismatch(problem.loop_frame_poses(x0, bi), b.meas)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from closedloop.errors import EXIT_FAILED
 from closedloop.io.files import is_special
-from closedloop.io.schemas import check_number
+from closedloop.run.options import check_number
 
 
 def cmd_batch(args) -> int:

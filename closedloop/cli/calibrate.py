@@ -1,194 +1,102 @@
 """`closedloop calibrate`: a model and a log to a calibrated model, its report and its verdict.
 
-Printing happens here (and in the other `cli_*` modules) and only here.
+The arguments are derived from the run's options (`closedloop.run.options`), the run is
+`closedloop.run.calibrate_files`; this module parses, shows progress and prints the summary.
 """
 
 from __future__ import annotations
 
 import sys
-import time
-from dataclasses import replace
 
-from closedloop.cli.parse import check_loop_numbers
+from closedloop.cli.parse import float_arg, int_arg
 from closedloop.cli.progress import ProgressDisplay
-from closedloop.errors import EXIT_FAILED, InputError, require
-from closedloop.io.schemas import check_number, parse_bounds, parse_noise
+from closedloop.errors import EXIT_FAILED
 
 
-def check_calibrate_options(args) -> tuple:
-    """`calibrate`'s output paths and numeric options, checked before any work: (noise, bounds, cv given?)."""
-    from closedloop.io.files import check_outputs
+def add_arguments(c) -> None:
+    """`calibrate`'s arguments, derived from the run's options (`closedloop.run.options`): each option's
+    name, help, default, choices and form in one place; ``--config`` and ``--quiet`` are the command line's."""
+    from closedloop.run.options import CLI, OPTIONS, default, flag
 
-    check_outputs(
-        {"--out": args.out, "--report": args.report, "--html": getattr(args, "html", None)}, [args.model, args.log]
-    )
-    if getattr(args, "plots", None):
-        check_outputs({"--plots": args.plots}, [args.model, args.log], directory=True)
-    if getattr(args, "html", None) or getattr(args, "plots", None):
-        require("matplotlib", f"--{'html' if args.html else 'plots'}", "report")  # refused now, not after the fit
-    args.snr = check_number("--snr", args.snr, 0.0, 1e6, lo_open=True)
-    args.max_iter = check_number("--max-iter", args.max_iter, 1, 10**6, integer=True)
-    cv_given = args.cv is not None  # (default None: 5 folds, fewer on a short log)
-    args.cv = check_number("--cv", args.cv, 0, 10**6, integer=True) if cv_given else 5
-    if args.cv == 1:
-        raise InputError("--cv 1: K-fold validation needs K >= 2 (or 0 to disable)")
-    for spec in args.loop:
-        check_loop_numbers(spec)
-    return parse_noise(args.noise), parse_bounds(args.bound), cv_given
+    for f in OPTIONS:
+        m = f.metadata
+        if CLI not in m["where"]:
+            continue
+        kind = m["kind"]
+        kw: dict = {"help": m["help"]}
+        if m["metavar"] and not m["positional"]:
+            kw["metavar"] = m["metavar"]
+        if kind == "bool":
+            kw["action"] = "store_true"
+        elif kind in ("texts", "fix", "bounds", "args"):
+            kw |= {"action": "append", "default": []}
+            if kind == "args":
+                kw["nargs"] = "+"
+        else:
+            kw["default"] = default(f)
+            if kind == "float":
+                kw["type"] = float_arg
+            elif kind == "int":
+                kw["type"] = int_arg
+            elif kind == "choice":
+                kw["choices"] = list(m["choices"])
+        if m["positional"]:
+            if f.name == "log":
+                kw["nargs"] = "?"
+            c.add_argument(f.name, **kw)
+        else:
+            c.add_argument(flag(f.name), **kw)
+        if f.name == "plots":
+            c.add_argument("--config", help="YAML file holding any of these options (the command line wins)")
+    c.add_argument("--quiet", action="store_true", help="no progress and no summary (errors and warnings only)")
+
+
+def options_from_args(args):
+    """The run's options from the parsed command line (and ``--config``), checked once
+    (`closedloop.run.options.checked`): a bad value is one line ``--option value: ...``."""
+    from closedloop.run.options import CLI, OPTIONS, CalibrateOptions, check_value, flag
+
+    values = {f.name: getattr(args, f.name) for f in OPTIONS if CLI in f.metadata["where"]}
+    for name, value in values.items():
+        check_value(name, value, flag(name) if name not in ("model", "log") else name)
+    return CalibrateOptions(**values)
 
 
 def cmd_calibrate(args) -> int:
-    from closedloop.calibration.pipeline import CalibrationOptions, calibrate
-    from closedloop.cli.evaluate import require_log
-    from closedloop.io.files import OutputSet
-    from closedloop.io.logs import check_loop_column
-    from closedloop.loops.spec import default_loops, parse_loop
-    from closedloop.model.parameters import parse_fix
-    from closedloop.model.robot import RobotModel
-    from closedloop.output.report import build_report, write_report
-    from closedloop.output.urdf import check_model_output, write_model
+    from closedloop.run.calibrate import calibrate_files
 
-    require_log(args)  # the positional log, unless each loop names its file
-    noise, bounds, cv_given = check_calibrate_options(args)  # outputs and numbers, before any work
-    if args.threads is not None:
-        args.threads = check_number("--threads", args.threads, 0, 4096, integer=True)
-    robot = RobotModel.from_file(args.model)
-    check_model_output(robot.kind, args.out, args.model)
-    loops = [parse_loop(s, robot) for s in args.loop] or default_loops(robot)
-    if not loops:
-        raise InputError("no --loop given: say how the chain is closed, e.g. --loop weld:frame=<tool frame>")
-    from closedloop.cli.evaluate import rig_inputs
-
-    lg, loops = rig_inputs(args, robot, loops)  # a CSV log or a ROS bag, or each loop's file; known distances
-    check_loop_column(lg, [lp.name for lp in loops])
-    if args.cv > len(lg):
-        if cv_given:
-            raise InputError(f"--cv {args.cv}: more folds than the {len(lg)} rows of {args.log}")
-        args.cv = len(lg) if len(lg) >= 2 else 0
-    from closedloop.calibration.pipeline import build_problem
-
-    names = build_problem(robot, lg, loops).names
-    from closedloop.cli.evaluate import input_record, resolve_weighting
-
-    inputs_note = resolve_weighting(args)  # --readings commanded: plain least squares unless --weighting is given
-    opts = CalibrationOptions(
-        identify=args.identify.split(",") if args.identify else None,
-        fix=parse_fix(args.fix, names),
-        noise=noise,
-        weighting=args.weighting,
-        max_iter=args.max_iter,
-        snr=args.snr,
-        bounds=bounds,
-        robust=None if args.robust == "off" else args.robust,
-        threads=args.threads,
-    )
+    options = options_from_args(args)
     prog = ProgressDisplay(args.quiet)
-    t0, c0 = time.perf_counter(), time.process_time()
-    res = calibrate(robot, lg, loops, opts, progress=prog)
-    prog.close()
-    elapsed = time.perf_counter() - t0
-    if inputs_note:
-        res.notes.append(inputs_note)
-    report_inputs = input_record(args, lg, res)  # readings, weighting, where the torques come from
-    if report_inputs["torques"] == "gravity":
-        res.notes.append("joint torques: gravity from the model's inertials (the log has no tau:<joint> columns)")
-    report = build_report(res, args.model, args.log, row_name=lg.where)
-    report["inputs"] = report_inputs
-    report["solver"]["seconds"] = elapsed
-    report["solver"]["cpu_seconds"] = time.process_time() - c0
-    t1, c1 = time.perf_counter(), time.process_time()
-    cv = (
-        fold_validation(robot, lg, loops, opts, args, report, prog, res, cv_given)
-        if args.cv and res.converged
-        else None
-    )
-    from closedloop.calibration.verdict import judge
-    from closedloop.cli.evaluate import fixture_validation
-    from closedloop.output.report import verdict_record
-
-    lofo = fixture_validation(robot, lg, loops, opts, report, args, prog) if res.converged else None
-    # the held-out refits' time (k-fold and fixtures): with the fit's, the work of the command
-    report["solver"]["validation_seconds"] = time.perf_counter() - t1
-    report["solver"]["validation_cpu_seconds"] = time.process_time() - c1
-    verdict = judge(res, cv, fixtures=lofo)  # the fit's evidence, the held-out folds' and fixtures'
-    res = replace(res, verdict=verdict)
-    report["verdict"] = verdict_record(verdict)
-    failed = verdict.status == "failed"
-    write_out = args.out and (not failed or args.force)
-    from closedloop.output.report import sensors_path, write_sensors
-
-    report["outputs"] = {"model": str(args.out) if write_out else None}  # `closedloop evaluate --calibration`
-    sensors = sensors_path(args.out) if write_out else None  # what the model file cannot carry, beside it
-    with OutputSet(order=[args.out if write_out else None, sensors, args.report]):  # published whole, model first
-        if args.report:
-            write_report(report, args.report)
-        if write_out:
-            from closedloop.output.urdf import model_frames
-
-            write_model(robot, res.as_dict(), args.out, frames=model_frames(res))  # with tool points and fixtures
-            if write_sensors(res, args.out, robot.kind) is None:
-                sensors = None
+    try:
+        run = calibrate_files(options, progress=prog)
+    finally:
+        prog.close()
+    res, report, verdict = run.result, run.report, run.verdict
+    log_name = report.get("log") or options.log
+    for message in run.messages:
+        print(f"  {message}", file=sys.stderr)
     if not args.quiet:
-        print_summary(res, elapsed, args, report, wrote_model=bool(write_out))
-        if sensors is not None:
-            print(f"  wrote {sensors}")
-    from closedloop.cli.tools import write_figures
-
-    write_figures(res, report, args, row_name=lg.where)  # --html / --plots
+        print_summary(res, run.seconds, options, report, wrote_model=run.model_written)
+        if run.sensors is not None:
+            print(f"  wrote {run.sensors}")
+        if options.html:
+            print(f"  wrote {options.html}")
+        if options.plots:
+            print(f"  wrote {len(run.figures)} figures to {options.plots}")
     if verdict.status == "suspect":
-        print(f"warning: {args.log}: calibration is suspect: {'; '.join(own_reasons(verdict))}", file=sys.stderr)
-    if failed:
+        print(f"warning: {log_name}: calibration is suspect: {'; '.join(own_reasons(verdict))}", file=sys.stderr)
+    if verdict.status == "failed":
         print(
-            f"error: {args.log}: calibration failed: {'; '.join(own_reasons(verdict))}"
-            + ("" if write_out or not args.out else f"; no model written to {args.out} (--force writes it)"),
+            f"error: {log_name}: calibration failed: {'; '.join(own_reasons(verdict))}"
+            + (
+                ""
+                if run.model_written or not options.out
+                else f"; no model written to {options.out} (--force writes it)"
+            ),
             file=sys.stderr,
         )
         return EXIT_FAILED
     return 0
-
-
-def fold_validation(robot, lg, loops: list, opts, args, report: dict, prog, res, cv_given: bool = True) -> dict | None:
-    """K-fold held-out validation (`validation.kfold.cross_validate`), into the report; the rows `res` rejected
-    as outliers are not judged (they stay in the refits' data).
-
-    A training fold the refit cannot use (too few rows for the parameters) ends the validation: with the
-    default K it is skipped with a note (None), with ``--cv K`` given it is an input error naming the folds.
-    """
-    from closedloop.errors import ClosedLoopError
-    from closedloop.validation.kfold import cross_validate
-
-    prog("validating", 0, args.cv)
-    try:
-        cv = cross_validate(
-            robot,
-            lg,
-            loops,
-            opts,
-            k=args.cv,
-            progress=prog,
-            exclude=[rj.row - 1 for rj in res.outliers.rejected],
-        )
-    except ClosedLoopError as exc:
-        prog.close()
-        n_train = len(lg) - -(-len(lg) // args.cv)
-        why = f"{args.cv}-fold validation refits on {n_train} of the {len(lg)} rows, and one failed: {exc}"
-        if cv_given:
-            raise InputError(f"--cv {args.cv}: {why} (fewer folds, or --cv 0)") from None
-        res.notes.append(f"k-fold validation skipped: {why}")
-        report["validation"] = {"k": args.cv, "skipped": why}
-        return None
-    report["validation"] = {
-        "k": args.cv,
-        "excluded_rows": [i + 1 for i in cv["excluded"]],
-        "test": cv["test"],
-        "train": cv["train"],
-        "test_whitened_rms": cv.get("test_whitened_rms"),
-        "parameter_spread": cv.get("parameter_spread"),
-        "inconsistent": cv.get("inconsistent"),
-        "folds_converged": [f["converged"] for f in cv["folds"]],
-    }
-    prog.close()
-    return cv
 
 
 def own_reasons(verdict) -> list[str]:
@@ -263,8 +171,6 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
                 + ", ".join(p for p in parts if p)
                 + (f" (the {left} rejected rows not judged)" if left else "")
             )
-    from closedloop.cli.evaluate import fixture_lines
-
     for line in fixture_lines(report.get("fixture_validation")):
         print(line)
     for rj in report.get("rejected", [])[:10]:  # named by file and line (`JointLog.where`)
@@ -276,3 +182,17 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
         print(f"  wrote {args.out}")
     if args.report:
         print(f"  wrote {args.report}")
+
+
+def fixture_lines(out: dict | None) -> list[str]:
+    """The summary's lines for a leave-one-fixture-out record (`fixture_validation`), printed after the verdict."""
+    lines = []
+    for r in (out or {}).get("fixtures", []):
+        if r.get("error"):
+            lines.append(f"  held-out fixture {r['fixture']}: not validated ({r['error']})")
+        elif r["calibrated_rms_m"] is not None:
+            lines.append(
+                f"  held-out fixture {r['fixture']}: closure RMS {r['calibrated_rms_m'] * 1e3:.4g} mm "
+                f"(nominal model {r['nominal_rms_m'] * 1e3:.4g} mm)" + (" WORSE" if r["worse"] else "")
+            )
+    return lines

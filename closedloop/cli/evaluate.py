@@ -1,4 +1,4 @@
-"""Command-line pieces for rigs: ``closedloop evaluate`` and calibrate's rig options.
+"""``closedloop evaluate``: each model's closure on a log, the robot untouched.
 
     closedloop evaluate nominal.urdf calibrated.urdf other.urdf log.csv --loop point:frame=ball,name=a ...
     closedloop evaluate nominal.urdf calibrated.urdf --joints j1,...,j7 \\
@@ -12,14 +12,6 @@ cameras) is taken from the calibration, read from the sensor file beside a calib
 fitted, unweighted.  ``--refit`` fits every loop unknown.  A loop frame that only the calibrated model
 has (its written tool point ``ball_tip``) is lent to the other models.  Printed as a table (mean /
 RMS closure per loop, mm) and written with ``--report`` as JSON.
-
-Calibrate's rig options (`add_rig_options`, `rig_inputs`): ``--distance A B D
-[SIGMA]`` (a known distance between loop points, `closedloop.problem.distances`), ``--length FRAME_A
-FRAME_B L [SIGMA]`` (between two robot frames, `closedloop.problem.lengths`), ``--block NAME
-A.point=X,Y,Z ...`` (a rigid block of known shape), ``--joints j1,j2,...``
-(the column order of header-less logs), a loop's own log file
-(``--loop ...,log=FILE``; then no positional log), and leave-one-fixture-out
-validation (``--lofo auto|off``, `closedloop.validation.fixtures`).
 """
 
 from __future__ import annotations
@@ -32,194 +24,9 @@ from pathlib import Path
 from closedloop.errors import InputError
 
 
-def add_rig_options(c) -> None:
-    """calibrate's options for rigs (module docstring)."""
-    c.add_argument(
-        "--distance",
-        action="append",
-        nargs="+",
-        default=[],
-        metavar="ARG",
-        help="a known distance between two loop points: A.point B.point METRES [SIGMA] "
-        "(e.g. front_a.point front_b.point 0.050); it sets the scale",
-    )
-    c.add_argument(
-        "--length",
-        action="append",
-        nargs="+",
-        default=[],
-        metavar="ARG",
-        help="a known length between two frames of the robot a fixed distance apart: FRAME_A FRAME_B "
-        "METRES [SIGMA] (e.g. a link measured with calipers); the report says how far it sets "
-        "the scale",
-    )
-    c.add_argument(
-        "--block",
-        action="append",
-        nargs="+",
-        default=[],
-        metavar="ARG",
-        help="points of one rigid block at known positions in its own frame: NAME A.point=X,Y,Z "
-        "B.point=X,Y,Z ... [sigma=S] (metres); its pairwise distances set the scale",
-    )
-    c.add_argument(
-        "--joints", metavar="J1,J2,...", help="the column order of header-less CSV logs (the first row is then data)"
-    )
-    c.add_argument(
-        "--readings",
-        choices=["measured", "commanded"],
-        default="measured",
-        help="what the log's joint values are: measured by encoders (default) or the controller's commanded "
-        "setpoints; commanded readings make the residual model and servo error, not reading noise: the fit "
-        "is plain least squares unless --weighting is given, and the report records it",
-    )
-    # --weighting's default is decided with --readings (`resolve_weighting`): None here means "not given"
-    c.set_defaults(weighting=None, weighting_default=c.get_default("weighting"))
-    c.add_argument(
-        "--lofo",
-        choices=["auto", "off"],
-        default="auto",
-        help="leave-one-fixture-out validation when the loops form several fixtures (default: auto)",
-    )
-
-
 def _order(args) -> list[str] | None:
     text = getattr(args, "joints", None)
     return [j.strip() for j in text.split(",") if j.strip()] if text else None
-
-
-def read_inputs(log_path: str | None, robot, loops: list, degrees: bool = False, order: list[str] | None = None):
-    """The joint log: the positional file (CSV or bag), or each loop's own ``log=`` file (one per fixture);
-    refused where most readings of a joint lie far beyond its limits (`io.logs.check_angle_units`)."""
-    from closedloop.io.logs import check_angle_units
-
-    lg = _read_inputs(log_path, robot, loops, degrees, order)
-    check_angle_units(lg, robot, degrees)
-    return with_gravity_torques(lg, robot)
-
-
-def with_gravity_torques(lg, robot):
-    """The log with ``tau:<joint>`` columns from the model's inertials (`RobotModel.gravity_torques`) when it
-    carries none and the model has masses; otherwise as it is.  The compliance model (theta' = k theta +
-    theta_off - c tau) then needs no torque logging on a robot that carries only itself; logged torques
-    always win.  `torque_source` says which: 'log', 'gravity' or None."""
-    present = [j for j in robot.joint_names if f"tau:{j}" in lg.extra]
-    if present or not robot.has_inertias:
-        lg.torque_source = "log" if present else None
-        return lg
-    known = [j for j in robot.joint_names if j in lg.joints]
-    tau = robot.gravity_torques(lg.columns(known), known)
-    lg.extra.update({f"tau:{j}": tau[:, k] for k, j in enumerate(known)})
-    lg.torque_source = "gravity"
-    return lg
-
-
-def resolve_weighting(args) -> str | None:
-    """`--weighting` as given, else plain least squares ('none') for commanded readings (the errors-in-variables
-    weighting models reading noise, which a setpoint does not have), else the parser's default; sets
-    ``args.weighting`` and returns the note the summary prints (None when there is nothing to say)."""
-    given = getattr(args, "weighting", None)
-    commanded = getattr(args, "readings", "measured") == "commanded"
-    if given is None:
-        args.weighting = "none" if commanded else (getattr(args, "weighting_default", None) or "noise")
-        if commanded:
-            return (
-                "readings are commanded setpoints (--readings commanded): the residual is model and servo "
-                "error, not reading noise; fitted by plain least squares (--weighting none)"
-            )
-    elif commanded and given == "noise":
-        return (
-            "readings are commanded setpoints, yet --weighting noise treats the residual as reading noise: "
-            "its noise estimate stands for model and servo error"
-        )
-    return None
-
-
-def input_record(args, lg, res=None) -> dict:
-    """What the report says about the inputs: whether the readings are measured or commanded, the weighting
-    that follows, and where the joint torques the compliance model used come from ('log', 'gravity': the
-    model's inertials at the readings; null when no compliance was used)."""
-    used = res is None or any(
-        p.kind == "compliance" and (res.fit.status[k] == "estimated" or res.fit.values[k] != 0.0)
-        for k, p in enumerate(res.problem.params)
-    )
-    return {
-        "readings": getattr(args, "readings", "measured"),
-        "weighting": getattr(args, "weighting", None),
-        "torques": getattr(lg, "torque_source", None) if used else None,
-    }
-
-
-def _read_inputs(log_path: str | None, robot, loops: list, degrees: bool, order: list[str] | None):
-    from closedloop.io.logs import read_log, read_loop_logs
-
-    linear = [j for j, info in robot.joints.items() if info.kind == "prismatic"]
-    real = [lp for lp in loops if not getattr(lp, "parameter_only", False)]
-    own = [lp for lp in real if getattr(lp, "log_path", None)]
-    if own:
-        if len(own) != len(real):
-            missing = [lp.name for lp in real if not getattr(lp, "log_path", None)]
-            raise InputError(
-                f"loop(s) {', '.join(missing)} have no log=FILE while others have: give every loop "
-                "its file, or one log with a 'loop' column"
-            )
-        if log_path:
-            raise InputError(f"{log_path}: the loops name their own log files (log=...); give no log besides")
-        return read_loop_logs([(lp.name, lp.log_path) for lp in own], robot.joint_names, degrees, linear, order)
-    if not log_path:
-        raise InputError("no log given: name the CSV log (or each loop's file with --loop ...,log=FILE)")
-    if order:
-        return read_log(log_path, robot.joint_names, degrees, linear, order)
-    from closedloop.cli.tools import read_log_or_bag
-
-    return read_log_or_bag(log_path, robot, degrees)
-
-
-def rig_inputs(args, robot, loops: list):
-    """(log, loops + known distances and lengths) for calibrate."""
-    from closedloop.problem.distances import parse_blocks, parse_distances
-    from closedloop.problem.lengths import parse_lengths
-
-    lg = read_inputs(args.log, robot, loops, args.degrees, _order(args))
-    loops = (
-        list(loops)
-        + parse_distances(getattr(args, "distance", []) or [], loops)
-        + parse_blocks(getattr(args, "block", []) or [], loops)
-        + parse_lengths(getattr(args, "length", []) or [], robot)
-    )
-    if not args.log:
-        args.log = str(lg.source)
-    return lg, loops
-
-
-def fixture_validation(robot, lg, loops: list, opts, report: dict, args, prog=None) -> dict | None:
-    """Leave-one-fixture-out validation (default when the loops form several fixtures); into the report."""
-    from closedloop.validation.fixtures import fixture_groups, leave_one_fixture_out
-
-    if getattr(args, "lofo", "auto") == "off" or lg.loop is None or len(fixture_groups(loops)) < 2:
-        return None
-    if prog:
-        prog("validating fixtures", 0)
-    out = leave_one_fixture_out(robot, lg, loops, opts)
-    if prog:
-        prog.close()
-    if out is not None:
-        report["fixture_validation"] = out
-    return out
-
-
-def fixture_lines(out: dict | None) -> list[str]:
-    """The summary's lines for a leave-one-fixture-out record (`fixture_validation`), printed after the verdict."""
-    lines = []
-    for r in (out or {}).get("fixtures", []):
-        if r.get("error"):
-            lines.append(f"  held-out fixture {r['fixture']}: not validated ({r['error']})")
-        elif r["calibrated_rms_m"] is not None:
-            lines.append(
-                f"  held-out fixture {r['fixture']}: closure RMS {r['calibrated_rms_m'] * 1e3:.4g} mm "
-                f"(nominal model {r['nominal_rms_m'] * 1e3:.4g} mm)" + (" WORSE" if r["worse"] else "")
-            )
-    return lines
 
 
 # --------------------------------------------------------------------------- closedloop evaluate
@@ -344,6 +151,7 @@ def cmd_evaluate(args) -> int:
     from closedloop.io.files import atomic_write_text, check_outputs
     from closedloop.loops.spec import parse_loop
     from closedloop.model.robot import RobotModel
+    from closedloop.run.inputs import read_inputs
     from closedloop.validation.evaluate import evaluate_model, table
 
     if not args.loop:
@@ -361,10 +169,10 @@ def cmd_evaluate(args) -> int:
     for note in lend_frames(robots, args.loop):
         print(f"note: {note}", file=sys.stderr)
     loops0 = [parse_loop(s, robots[0]) for s in args.loop]
-    lg = read_inputs(log_path, robots[0], loops0, args.degrees, _order(args))
-    from closedloop.io.logs import check_loop_column
-
-    check_loop_column(lg, [lp.name for lp in loops0])
+    notes: list[str] = []
+    lg = read_inputs(log_path, robots[0], loops0, args.degrees, _order(args), notes)
+    for note in notes:
+        print(f"  {note}", file=sys.stderr)
     evals = []
     for k, (path, robot) in enumerate(zip(models, robots)):
         loops = loops0 if k == 0 else [parse_loop(s, robot) for s in args.loop]
@@ -387,12 +195,3 @@ def cmd_evaluate(args) -> int:
         atomic_write_text(args.report, json.dumps(rep, indent=2) + "\n")
         print(f"wrote {args.report}", file=sys.stderr)
     return 0
-
-
-def require_log(args) -> None:
-    """calibrate without a log: only when every loop names its own file (--loop ...,log=FILE)."""
-    if not args.log and not (args.loop and all("log=" in s for s in args.loop)):
-        raise InputError(
-            "calibrate: the following arguments are required: log (or give every loop its own "
-            "file: --loop ...,log=FILE)"
-        )

@@ -96,7 +96,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from closedloop.impedance.results import write_truth
     from closedloop.impedance.simulation import simulate
     from closedloop.io.files import OutputSet, atomic_write_text, check_outputs
-    from closedloop.io.schemas import check_number
+    from closedloop.run.options import check_number
 
     args.noise = check_number("--noise", args.noise, 0.0, 10.0)
     args.voluntary = check_number("--voluntary", args.voluntary, 0.0, 1e3)
@@ -259,7 +259,8 @@ def _onsets(rec, args, notes: list[str]):
 def _check_identify_options(args: argparse.Namespace) -> None:
     """Every option of `identify` checked where it is parsed: one line, before any work."""
     from closedloop.io.files import check_outputs
-    from closedloop.io.schemas import check_number, parse_number
+    from closedloop.io.schemas import parse_number
+    from closedloop.run.options import check_number
 
     args.max_shift_ms = check_number("--max-shift-ms", args.max_shift_ms, 0.0, 1e4)
     args.bootstrap = check_number("--bootstrap", args.bootstrap, 0, 10**5, integer=True)

@@ -1,5 +1,6 @@
 """The `closedloop` command line: the parser, the dispatch and the exit codes.  Printing happens in the
-`closedloop.cli` modules and only there (`cli.calibrate`, `cli.simulate`, `cli.tools`; option values: `cli.parse`).
+modules of `closedloop.cli` and only there (`calibrate`, `simulate`, `evaluate`, `extract`, `loops`;
+`config` for ``--config``; option values: `parse`).
 
 User mistakes (`InputError`) print one line and exit with code 2.  Nothing heavy is imported before
 `main` has taken over the signals: Ctrl-C while the numerical libraries load is one line and exit 130 too.
@@ -60,7 +61,7 @@ def cmd_inspect(args) -> int:
 
 
 def cmd_check(args) -> int:
-    from closedloop.io.schemas import check_number
+    from closedloop.run.options import check_number
     from closedloop.validation.check import check_parameters, check_report
 
     tols = {
@@ -148,7 +149,7 @@ def _add_inspect(sub) -> None:
 
 
 def _add_extract(sub) -> None:
-    from closedloop.cli.tools import add_extract_parser
+    from closedloop.cli.extract import add_extract_parser
 
     add_extract_parser(sub)
 
@@ -160,7 +161,7 @@ def _add_batch(sub) -> None:
 
 
 def _add_loops(sub) -> None:
-    from closedloop.cli.tools import cmd_loops
+    from closedloop.cli.loops import cmd_loops
 
     lp = sub.add_parser("loops", help="list the loop types, their keys and an example each")
     lp.set_defaults(func=cmd_loops)
@@ -192,8 +193,8 @@ def __getattr__(name: str):
 
 
 def _add_calibrate(sub) -> None:
-    from closedloop.cli.calibrate import cmd_calibrate
-    from closedloop.cli.tools import loop_help
+    from closedloop.cli.calibrate import add_arguments, cmd_calibrate
+    from closedloop.cli.loops import loop_help
 
     c = sub.add_parser(
         "calibrate",
@@ -201,74 +202,12 @@ def _add_calibrate(sub) -> None:
         epilog=loop_help(),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    c.add_argument("model", help="URDF, MJCF (.xml) or D-H table (.yaml)")
-    c.add_argument(
-        "log",
-        nargs="?",
-        help="CSV: header of joint names, one row per configuration; or a ROS bag "
-        "(.bag, ROS 2 bag directory, .mcap, .db3) of sensor_msgs/JointState; "
-        "omitted when each loop names its file (--loop ...,log=FILE)",
-    )
-    c.add_argument(
-        "--loop",
-        action="append",
-        default=[],
-        metavar="SPEC",
-        help="loop closure TYPE:key=value,..., e.g. weld:frame=panda_hand (repeatable; types below)",
-    )
-    c.add_argument("--html", help="self-contained HTML report with figures")
-    c.add_argument("--plots", metavar="DIR", help="write the report's figures as PNG files in DIR")
-    c.add_argument("--config", help="YAML file holding any of these options (the command line wins)")
-    c.add_argument(
-        "--out", help="calibrated model, in the input's format: URDF (.urdf), MJCF (.xml) or D-H table (.yaml)"
-    )
-    c.add_argument("--report", help="JSON report")
-    c.add_argument("--identify", help="comma-separated parameter patterns (placement, offset, scale, loop, globs)")
-    c.add_argument("--fix", action="append", default=[], metavar="NAME[=VALUE]", help="hold a parameter fixed")
-    c.add_argument("--noise", help="joint reading std (rad), one number or joint=value,...; default: estimated")
-    c.add_argument(
-        "--weighting",
-        choices=["noise", "none"],
-        default="noise",
-        help="noise: errors-in-variables weighting (default); none: plain loop residual (thesis)",
-    )
-    c.add_argument("--bound", action="append", default=[], metavar="NAME=LOW:HIGH", help="bound a parameter")
-    c.add_argument("--snr", type=float_arg, default=1.0, help="SVD truncation: keep directions above snr * noise")
-    c.add_argument(
-        "--robust",
-        choices=["auto", "huber", "cauchy", "off"],
-        default="auto",
-        help="outliers: auto (default) rejects configurations the noise cannot explain, after a robust "
-        "refit; huber/cauchy keep a robust loss in the final fit; off trusts every row",
-    )
-    c.add_argument("--force", action="store_true", help="write the calibrated model even when the verdict is 'failed'")
-    c.add_argument(
-        "--cv",
-        type=int_arg,
-        default=None,
-        metavar="K",
-        help="K-fold held-out validation in the report (default 5; 0 disables)",
-    )
-    c.add_argument("--max-iter", type=int_arg, default=100, metavar="N", help="solver iterations at most (default 100)")
-    c.add_argument(
-        "--threads",
-        type=int_arg,
-        default=None,
-        metavar="N",
-        help="BLAS threads for the fit (default: 1 for small problems, more only for very large "
-        "ones on idle cores; 0: keep the environment's setting)",
-    )
-    c.add_argument("--degrees", action="store_true", help="the log is in degrees")
-    c.add_argument("--quiet", action="store_true", help="no progress and no summary (errors and warnings only)")
-    from closedloop.cli.evaluate import add_rig_options  # --distance, --joints, --lofo (rigs)
-
-    add_rig_options(c)
+    add_arguments(c)  # derived from the run's options (closedloop.run.options)
     c.set_defaults(func=cmd_calibrate)
 
 
 def _add_simulate(sub) -> None:
-    from closedloop.cli.simulate import cmd_simulate
-    from closedloop.cli.tools import add_simulate_robot_options, scenario_help
+    from closedloop.cli.simulate import add_simulate_robot_options, cmd_simulate, scenario_help
 
     s = sub.add_parser(
         "simulate",
@@ -435,7 +374,7 @@ def main(argv: list[str] | None = None) -> int:
         argv = ["-v"] + [a for a in argv if a not in ("-v", "--verbose")]
     try:
         with track_inputs():  # every file a reader opens is an input no output may replace
-            from closedloop.cli.tools import parse_args  # (the heavy imports start here: inside the handlers)
+            from closedloop.cli.config import parse_args  # (the heavy imports start here: inside the handlers)
 
             args = parse_args(build_parser(_command(argv)), argv)  # applies a subcommand's --config FILE
             logging.basicConfig(

@@ -1,8 +1,8 @@
 """Option values of the command line, parsed and checked (one `InputError` line for a bad one).
 
-Used by the `closedloop` commands and by `closedloop batch` (whose manifest takes the same options):
-``--noise``, ``--bound``, numeric ranges, the numbers inside a ``--loop`` spec, ``--set KEY=VALUE``
-simulator settings, argparse number types, and negative numbers given as option values.
+Used by the `closedloop` commands:
+``--set KEY=VALUE`` simulator settings, argparse number types, and negative numbers given as option
+values (calibrate's own options are checked by `closedloop.run.options`).
 """
 
 from __future__ import annotations
@@ -12,21 +12,6 @@ import json
 from typing import Any
 
 from closedloop.errors import InputError
-
-
-def check_loop_numbers(spec: str) -> None:
-    """Numbers inside a ``--loop`` spec (closure, axis, point, ...) are decimal, finite and within 1e6."""
-    import re
-
-    from closedloop.io.schemas import MAX_ABS, parse_number
-
-    for token in re.split(r"[\s,=:\"']+", spec):
-        if re.fullmatch(
-            r"[-+]?(\d[\d_]*\.?[\d_]*|\.\d[\d_]*)([eE][-+]?\d+)?|[-+]?(nan|inf|infinity)", token, re.IGNORECASE
-        ):
-            v = parse_number(token, f"--loop {spec}")
-            if abs(v) > MAX_ABS:
-                raise InputError(f"--loop {spec}: {token} is out of range (|value| <= {MAX_ABS:g})")
 
 
 def sim_overrides(items: list[str], defaults) -> dict:

@@ -15,7 +15,7 @@ from pathlib import Path
 from closedloop.cli.parse import sim_overrides
 from closedloop.cli.progress import ProgressDisplay
 from closedloop.errors import InputError, NotIdentifiableError, ScenarioError
-from closedloop.io.schemas import check_number
+from closedloop.run.options import check_number
 
 
 def simulate_camera(args) -> int:
@@ -36,7 +36,6 @@ def simulate_camera(args) -> int:
 
 
 def cmd_simulate(args) -> int:
-    from closedloop.cli.tools import resolve_scenario
     from closedloop.sims import SCENARIOS, simulate
     from closedloop.sims.scenarios import CAMERA_SCENARIOS, unknown_scenario
 
@@ -92,3 +91,89 @@ def print_next_commands(out: Path) -> None:
     commands = next_commands(out, truth) if isinstance(truth, dict) else []
     for what, line in zip(("calibrate", "check"), commands):
         print(f"  {what + ':':<10} {line}")
+
+
+# --------------------------------------------------------------------------- simulate any robot
+def scenario_help() -> str:
+    """Every named scenario (`closedloop.sims.scenarios.scenario_catalog`: the shipped files and the
+    head-camera scenarios, read without loading the simulator)."""
+    from closedloop.sims.scenarios import scenario_catalog
+
+    lines = ["scenarios (closedloop/sims/scenarios/*.yaml and the head cameras; or your own YAML file, or --robot):"]
+    for name, (loop, description) in scenario_catalog().items():
+        lines.append(f"  {name:<17} {loop}")
+        lines.append(f"  {'':<17} {description}")
+    lines.append("simulate your robot: closedloop simulate --robot arm.urdf --loop weld:frame=tool0 --out out/sim")
+    return "\n".join(lines)
+
+
+def _numbers(text: str, what: str, n: int | None = None, limit: float = 1e3) -> list[float]:
+    """Decimal numbers separated by spaces or commas, finite, |v| <= `limit` (exactly `n` of them if given)."""
+    from closedloop.io.schemas import parse_number
+
+    values = [parse_number(v, f"{what} {text}") for v in text.replace(",", " ").split()]
+    if n is not None and len(values) != n:
+        raise InputError(f"{what} {text}: expected {n} numbers separated by spaces or commas")
+    if any(abs(v) > limit for v in values):
+        raise InputError(f"{what} {text}: out of range (each value within +-{limit:g})")
+    return values
+
+
+#: longest stylus `simulate --tool` adds (m): beyond it no arm closes a loop on it
+MAX_TOOL = 2.0
+
+
+def resolve_scenario(args) -> str:
+    """The scenario name ``simulate`` runs: a built-in, a YAML file, or ``--robot`` + ``--loop``."""
+    from closedloop.sims.scenario_files import SCENARIOS, load_scenario, parse_sim_loop, scenario_from_dict
+
+    if getattr(args, "robot", None):
+        if args.scenario:
+            raise InputError(f"simulate: give a scenario ({args.scenario}) or --robot, not both")
+        if not args.loop:
+            raise InputError(
+                "simulate --robot: say how the loop closes, e.g. --loop weld:frame=tool0 "
+                "(closedloop inspect ROBOT lists the frames)"
+            )
+        loop_type = parse_sim_loop(args.loop)[0]
+        data: dict = {
+            "robot": str(Path(args.robot).resolve()),
+            "loop": args.loop,
+            "name": args.name or f"{Path(args.robot).stem}_{loop_type}",
+            "description": f"{Path(args.robot).name} with a {args.loop} loop",
+        }
+        if args.q0:
+            data["q0"] = _numbers(args.q0, "--q0")
+        if args.tool:
+            xyz = _numbers(args.tool, "--tool", 3, limit=float("inf"))
+            if sum(v * v for v in xyz) ** 0.5 > MAX_TOOL:
+                raise InputError(f"--tool {args.tool}: a stylus longer than {MAX_TOOL:g} m (metres expected)")
+            data["tool"] = {"xyz": xyz}
+        if args.joints:
+            data["joints"] = [j.strip() for j in args.joints.split(",") if j.strip()]
+        sc = scenario_from_dict(data, data["name"], "--robot")
+        SCENARIOS[sc.name] = sc
+        return sc.name
+    if not args.scenario:
+        raise InputError("simulate: give a scenario (see closedloop simulate --help) or --robot ROBOT --loop SPEC")
+    if args.scenario.endswith((".yaml", ".yml")):
+        return load_scenario(args.scenario).name
+    return args.scenario
+
+
+def add_simulate_robot_options(s) -> None:
+    s.add_argument("--robot", help="simulate your robot: a URDF or MJCF (.xml) file (with --loop)")
+    s.add_argument(
+        "--loop",
+        help="with --robot: the loop, as for calibrate: TYPE:frame=LINK[,to=LINK][,name=NAME], TYPE a "
+        "simulated type of 'closedloop loops' (weld, point, hinge, plane, measured_point)",
+    )
+    s.add_argument("--q0", help="with --robot: grasp configuration (radians; default: chosen automatically)")
+    s.add_argument(
+        "--tool",
+        metavar='"X Y Z"',
+        help="with --robot: add a stylus link at this offset in the loop frame (the loop then closes on it)",
+    )
+    s.add_argument("--joints", help="with --robot: driven joints (default: every joint moving the loop frame)")
+    s.add_argument("--name", help="with --robot: scenario name (default ROBOT_LOOPTYPE)")
+    s.add_argument("--config", help="YAML file holding these options")

@@ -202,8 +202,8 @@ def cmd_simulate_sweep(args) -> int:
             raise InputError("simulate: --jobs / --ray run a sweep: give --seeds (e.g. --seeds 0-19)")
         return cmd_simulate(args)
     from closedloop.cli.progress import ProgressDisplay
-    from closedloop.io.schemas import check_number
     from closedloop.parallel.executor import engine_from_args
+    from closedloop.run.options import check_number
 
     scenarios = _scenarios(args)
     seeds = parse_seeds(args.seeds if args.seeds is not None else str(args.seed))
@@ -230,7 +230,7 @@ def cmd_simulate_sweep(args) -> int:
 
 def _scenarios(args) -> dict[str, Any]:
     """The scenarios of the sweep, by name: --scenarios A,B (names or YAML files) or the one of `simulate`."""
-    from closedloop.cli.tools import resolve_scenario
+    from closedloop.cli.simulate import resolve_scenario
     from closedloop.sims import SCENARIOS
     from closedloop.sims.scenarios import CAMERA_SCENARIOS, unknown_scenario
 

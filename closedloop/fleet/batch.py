@@ -2,13 +2,14 @@
 
 A manifest (YAML or CSV) lists jobs: model, log (CSV or ROS bag), loops,
 options, output folder, and optionally the robot's id and the date of the log.
-Every job is calibrated and k-fold validated on its own (``closedloop.calibrate``,
-``validation.kfold.cross_validate``) by one of the engines of ``closedloop.parallel.executor``.
+Every job is one calibration run, as ``closedloop calibrate`` runs it (`closedloop.run.calibrate_files`:
+k-fold and leave-one-fixture-out validation, the verdict, the report of the same shape), on one of the
+engines of ``closedloop.parallel.executor``.
 
 * A job that raises is recorded (summary row ``status=failed``, the error) and
   the others go on; a failed job is tried again by the next run.
-* Outputs are written whole: into a temporary folder beside the output folder,
-  the completion marker ``done.json`` last, then one rename.  A killed batch
+* Outputs are written whole (`closedloop.io.files.OutputSet` with a folder): into a temporary folder
+  beside the output folder, the completion marker ``done.json`` last, then one rename.  A killed batch
   leaves finished folders and hidden ``.NAME.tmp-*`` folders (removed by the
   next run), never a half job; a folder with its marker is not redone.
 * The summary CSV gets a row as each job finishes, and is rewritten in
@@ -28,8 +29,6 @@ import csv
 import json
 import logging
 import os
-import shutil
-import uuid
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -37,9 +36,10 @@ import numpy as np
 
 from closedloop.errors import InputError
 from closedloop.fleet.drift import Drift, drift, drift_columns, gauge_record
-from closedloop.fleet.manifest import BatchJob, as_list, read_manifest
+from closedloop.fleet.manifest import BatchJob, read_manifest
 from closedloop.io.files import is_special
 from closedloop.progress import ProgressReporter
+from closedloop.run.calibrate import DONE
 
 __all__ = [
     "BatchJob",
@@ -54,7 +54,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-MARKER = "done.json"
+MARKER = DONE  # a finished job's folder holds it (`closedloop.run.calibrate_files`)
 COLUMNS = [
     "name",
     "robot",
@@ -183,53 +183,6 @@ def end_workers() -> None:
 
 
 # --------------------------------------------------------------------------- one job (in a worker)
-def _options(opts: dict, names: list[str]):
-    from closedloop.calibration.pipeline import CalibrationOptions
-    from closedloop.model.parameters import parse_fix
-
-    noise = opts.get("noise")
-    if isinstance(noise, str):
-        from closedloop.io.schemas import parse_noise as _parse_noise
-
-        noise = _parse_noise(noise)
-    bounds = opts.get("bounds") or {}
-    if isinstance(bounds, (list, str)):
-        from closedloop.io.schemas import parse_bounds as _parse_bounds
-
-        bounds = _parse_bounds(as_list(bounds))
-    ident = opts.get("identify")
-    return CalibrationOptions(
-        identify=ident.split(",") if isinstance(ident, str) else ident,
-        fix=parse_fix(as_list(opts.get("fix")), names),
-        noise=noise,
-        weighting=opts.get("weighting", "noise"),
-        snr=float(opts.get("snr", 1.0)),
-        max_iter=int(opts.get("max_iter", 100)),
-        bounds={k: tuple(v) for k, v in bounds.items()},
-        robust=None if opts.get("robust") == "off" else opts.get("robust"),
-    )
-
-
-def _read(job: BatchJob, robot):
-    """The job's log (a CSV or a bag), refused as `calibrate` refuses it (`io.logs.check_angle_units`)."""
-    from closedloop.io.logs import check_angle_units, read_log
-
-    degrees = job.options.get("degrees", False)
-    degrees = degrees.strip().lower() in ("1", "true", "yes") if isinstance(degrees, str) else bool(degrees)
-    from closedloop.io.bags import extract, is_bag
-
-    lg = extract(job.log, robot.joint_names)[0] if is_bag(job.log) else None  # a bag: its standstills
-    if lg is None:
-        lg = read_log(
-            job.log,
-            robot.joint_names,
-            degrees=degrees,
-            linear=[j for j, info in robot.joints.items() if info.kind == "prismatic"],
-        )
-    check_angle_units(lg, robot, degrees)
-    return lg
-
-
 def _pooled(res_list, key: str) -> float | None:
     """RMS over loops (weighted by configurations) of one residual statistic, in mm or mrad."""
     vals = [(r.n, getattr(r, key)) for r in res_list if getattr(r, key, None) is not None]
@@ -253,77 +206,47 @@ def _top_changes(report: dict, k: int = 3) -> str:
 
 
 def run_job(job: BatchJob) -> dict:
-    """Calibrate and validate one job, write its folder whole; return its summary row (+ parameters)."""
+    """Calibrate, validate and judge one job as `calibrate` does (`closedloop.run.calibrate_files`), its
+    folder published whole with the completion marker last; return the marker (summary row, parameters,
+    gauge)."""
     import time
 
-    from closedloop.calibration.pipeline import build_problem, calibrate
-    from closedloop.loops.spec import default_loops, parse_loop
-    from closedloop.model.robot import RobotModel
-    from closedloop.output.report import build_report, write_report
-    from closedloop.output.urdf import write_model
+    from closedloop.run import calibrate_files
 
     die_with_batch(job.batch_pid)
     t0 = time.perf_counter()
-    robot = RobotModel.from_file(job.model)
-    loops = [parse_loop(s, robot) for s in job.loops] or default_loops(robot)
-    if not loops:
-        raise InputError(f"job {job.name}: no loops given")
-    lg = _read(job, robot)
-    opts = _options(job.options, build_problem(robot, lg, loops).names)
-    res = calibrate(robot, lg, loops, opts)
-    report = build_report(res, job.model, job.log)
-    cv_t: tuple[float | None, float | None] = (None, None)
-    cv = None
-    if job.cv and res.converged:
-        from closedloop.validation.kfold import cross_validate
 
-        try:
-            cv = cross_validate(robot, lg, loops, opts, k=job.cv, exclude=[rj.row - 1 for rj in res.outliers.rejected])
-            report["validation"] = {
-                "k": job.cv,
-                "excluded_rows": [i + 1 for i in cv["excluded"]],
-                "test": cv["test"],
-                "train": cv["train"],
-                "test_whitened_rms": cv["test_whitened_rms"],
-                "parameter_spread": cv["parameter_spread"],
-            }
-            t = cv["test"]
-            cv_t = (_pooled_dicts(t, "rms_m"), _pooled_dicts(t, "rms_rad"))
-        except Exception as exc:  # validation is a check, not the job
-            report["validation"] = {"error": f"{type(exc).__name__}: {exc}"}
-    verdict = _judge(res, cv, report)
-    row = {
-        "name": job.name,
-        "robot": job.robot,
-        "date": job.date,
-        "status": "ok" if res.converged else "not converged",
-        "verdict": getattr(verdict, "status", "n/a"),
-        "verdict_reasons": "; ".join(getattr(verdict, "reasons", [])),
-        "configurations": len(lg),
-        "estimated": len(res.fit.estimated),
-        "rms_before_mm": _pooled(res.fit.residuals_before, "rms_m"),
-        "rms_after_mm": _pooled(res.fit.residuals_after, "rms_m"),
-        "rms_before_mrad": _pooled(res.fit.residuals_before, "rms_rad"),
-        "rms_after_mrad": _pooled(res.fit.residuals_after, "rms_rad"),
-        "cv_test_mm": cv_t[0],
-        "cv_test_mrad": cv_t[1],
-        "top_changes": _top_changes(report),
-        "seconds": round(time.perf_counter() - t0, 3),
-        "out": str(job.out),
-    }
-    params = {
-        p["name"]: [p["calibrated"], p["std_error"], p["kind"]]
-        for p in report["parameters"]
-        if p["status"] == "estimated"
-    }
-    files = {"report.json": lambda p: write_report(report, p)}
-    if res.converged and getattr(verdict, "status", "") != "failed" and robot.kind in ("urdf", "dh"):
-        files["calibrated" + (".yaml" if robot.kind == "dh" else ".urdf")] = lambda p: write_model(
-            robot, res.as_dict(), p
-        )
-    marker = {"row": row, "parameters": params, "gauge": _gauge(res)}
-    _write_whole(job.out, files, marker)
-    return marker
+    def marker(run) -> dict:
+        res, report, lg = run.result, run.report, run.log
+        test = (report.get("validation") or {}).get("test")
+        row = {
+            "name": job.name,
+            "robot": job.robot,
+            "date": job.date,
+            "status": "ok" if res.converged else "not converged",
+            "verdict": run.verdict.status,
+            "verdict_reasons": "; ".join(run.verdict.reasons),
+            "configurations": len(lg),
+            "estimated": len(res.fit.estimated),
+            "rms_before_mm": _pooled(res.fit.residuals_before, "rms_m"),
+            "rms_after_mm": _pooled(res.fit.residuals_after, "rms_m"),
+            "rms_before_mrad": _pooled(res.fit.residuals_before, "rms_rad"),
+            "rms_after_mrad": _pooled(res.fit.residuals_after, "rms_rad"),
+            "cv_test_mm": _pooled_dicts(test, "rms_m") if test else None,
+            "cv_test_mrad": _pooled_dicts(test, "rms_rad") if test else None,
+            "top_changes": _top_changes(report),
+            "seconds": round(time.perf_counter() - t0, 3),
+            "out": str(job.out),
+        }
+        params = {
+            p["name"]: [p["calibrated"], p["std_error"], p["kind"]]
+            for p in report["parameters"]
+            if p["status"] == "estimated"
+        }
+        return {"row": row, "parameters": params, "gauge": _gauge(res)}
+
+    run = calibrate_files(job.run_options(), folder=job.out, done=marker)
+    return finished(job) or marker(run)
 
 
 def _gauge(res) -> dict | None:
@@ -335,44 +258,12 @@ def _gauge(res) -> dict | None:
         return None
 
 
-def _judge(res, cv: dict | None, report: dict):
-    """The calibration's verdict, judged again with the held-out folds as `closedloop calibrate` does."""
-    from closedloop.calibration.verdict import judge
-    from closedloop.output.report import verdict_record
-
-    verdict = judge(res, cv)
-    report["verdict"] = verdict_record(verdict)
-    return verdict
-
-
 def _pooled_dicts(loops: list[dict], key: str) -> float | None:
     vals = [(d["n"], d[key]) for d in loops if d.get(key) is not None]
     if not vals:
         return None
     n, x = np.array(vals, float).T
     return float(np.sqrt(np.sum(n * x**2) / n.sum()) * 1e3)
-
-
-def _write_whole(out: Path, files: dict, marker: dict) -> None:
-    """Write `files` (name -> writer(path)) and the marker last into a temporary folder, then rename it to `out`."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
-    try:
-        for name, writer in files.items():
-            writer(tmp / name)
-        (tmp / MARKER).write_text(json.dumps(marker, indent=1) + "\n")
-        if out.exists():
-            if (out / MARKER).exists():  # finished meanwhile by another run: keep that one
-                shutil.rmtree(tmp)
-                return
-            if any(out.iterdir()):
-                raise InputError(f"{out}: exists and is not a finished batch job; remove it or choose another 'out'")
-            out.rmdir()
-        os.rename(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 def finished(job: BatchJob) -> dict | None:
@@ -384,13 +275,9 @@ def finished(job: BatchJob) -> dict | None:
 
 
 def _clean_temporaries(jobs: list[BatchJob]) -> int:
-    n = 0
-    for j in jobs:
-        if j.out.parent.is_dir():
-            for t in j.out.parent.glob(f".{j.out.name}.tmp-*"):
-                shutil.rmtree(t, ignore_errors=True)
-                n += 1
-    return n
+    from closedloop.io.files import remove_temporaries
+
+    return sum(remove_temporaries(j.out) for j in jobs)
 
 
 # --------------------------------------------------------------------------- the batch

@@ -1,4 +1,11 @@
-"""The manifest of `closedloop batch`: a YAML or CSV list of calibration jobs (see :mod:`closedloop.fleet.batch`)."""
+"""The manifest of `closedloop batch`: a YAML or CSV list of calibration jobs (see :mod:`closedloop.fleet.batch`).
+
+A job names its output folder (``out``), its ``name``, ``robot`` and ``date``; every other key is an
+option of the run, as `calibrate` takes it (`closedloop.run.options`: ``model``, ``log``, ``loop`` (or
+``loops``), ``cv``, ``noise``, ``bound`` (or ``bounds``), ``threads``, ...), given as a key of the job or in
+its ``options`` mapping (a JSON object in a CSV cell).  A CSV cell separates several loops, fixes or
+bounds with ``;``.
+"""
 
 from __future__ import annotations
 
@@ -9,14 +16,16 @@ from pathlib import Path
 from typing import Any
 
 from closedloop.errors import InputError
+from closedloop.run.options import MANIFEST, MANIFEST_ALIASES, OPTIONS, CalibrateOptions, from_mapping
 
-JOB_KEYS = {"name", "robot", "date", "model", "log", "loops", "options", "out", "cv"}
-OPTION_KEYS = {"identify", "fix", "noise", "weighting", "snr", "max_iter", "bounds", "robust", "degrees"}
+#: a job's own keys; every other key is an option of the run (`closedloop.run.options`, as `calibrate`'s)
+JOB_KEYS = {"name", "robot", "date", "out", "options"}
 
 
 @dataclass
 class BatchJob:
-    """One calibration of a manifest (paths resolved against the manifest's folder)."""
+    """One calibration of a manifest (paths resolved against the manifest's folder); `options` holds the
+    run's options the job gives besides its model, log, loops and folds, checked and parsed."""
 
     name: str
     model: Path
@@ -26,8 +35,28 @@ class BatchJob:
     options: dict[str, Any] = field(default_factory=dict)
     robot: str = ""
     date: str = ""
-    cv: int = 5
+    cv: int | None = None  # folds; None: 5, fewer on a shorter log (as `calibrate --cv`)
     batch_pid: int = 0  # the process running the batch: a worker ends with it
+
+    def model_file(self) -> Path:
+        """The calibrated model in the job's folder, in the input's format."""
+        suffix = self.model.suffix.lower()
+        return self.out / (
+            "calibrated"
+            + (".yaml" if suffix in (".yaml", ".yml") else ".xml" if suffix in (".xml", ".mjcf") else ".urdf")
+        )
+
+    def run_options(self) -> CalibrateOptions:
+        """The run's options: the job's model, log, loops and options, its folder's model and report."""
+        return CalibrateOptions(
+            model=str(self.model),
+            log=str(self.log),
+            loop=list(self.loops),
+            cv=self.cv,
+            out=str(self.model_file()),
+            report=str(self.out / "report.json"),
+            **self.options,
+        )
 
 
 # --------------------------------------------------------------------------- manifest
@@ -40,10 +69,11 @@ def as_list(v) -> list[str]:
 
 
 def _job(d: dict, base: Path, where: str) -> BatchJob:
-    unknown = set(d) - JOB_KEYS - OPTION_KEYS
+    known = {f.name for f in OPTIONS if MANIFEST in f.metadata["where"]} | set(MANIFEST_ALIASES)
+    unknown = set(d) - JOB_KEYS - known
     if unknown:
         raise InputError(
-            f"{where}: unknown key(s) {', '.join(sorted(unknown))} (known: {', '.join(sorted(JOB_KEYS | OPTION_KEYS))})"
+            f"{where}: unknown key(s) {', '.join(sorted(unknown))} (known: {', '.join(sorted(JOB_KEYS | known))})"
         )
     for key in ("model", "log", "out"):
         if not d.get(key):
@@ -56,123 +86,30 @@ def _job(d: dict, base: Path, where: str) -> BatchJob:
             raise InputError(f"{where}: options '{opts}' is not a JSON object") from None
     if not isinstance(opts, dict):
         raise InputError(f"{where}: options must be a mapping")
-    opts = {**opts, **{k: d[k] for k in OPTION_KEYS if d.get(k) not in (None, "")}}
-    bad = set(opts) - OPTION_KEYS
-    if bad:
-        raise InputError(
-            f"{where}: unknown option(s) {', '.join(sorted(bad))} (known: {', '.join(sorted(OPTION_KEYS))})"
-        )
-    loops = d.get("loops")
-    if loops is not None and not (
-        isinstance(loops, str) or (isinstance(loops, list) and all(isinstance(x, str) for x in loops))
-    ):
-        raise InputError(f"{where}: 'loops' must be a loop spec or a list of them, got {_kind(loops)}")
-    opts = check_options(opts, where)
-    cv = _cv(d.get("cv"), where)
+    values = {**opts, **{k: d[k] for k in known if d.get(k) not in (None, "")}}
     for key in ("model", "log", "out", "name", "robot", "date"):
         if d.get(key) is not None and not isinstance(d[key], (str, int, float)) or isinstance(d.get(key), bool):
             raise InputError(f"{where}: '{key}' must be a text value, got {_kind(d[key])}")
+    values["model"], values["log"] = str(base / str(d["model"])), str(base / str(d["log"]))
+    run = from_mapping(values, where)
+    given = {MANIFEST_ALIASES.get(k, k) for k, v in values.items() if v is not None and v != ""}
+    options = {k: getattr(run, k) for k in given - {"model", "log", "loop", "cv"}}
     out = base / str(d["out"])
     return BatchJob(
         str(d.get("name") or out.name),
-        base / str(d["model"]),
-        base / str(d["log"]),
+        Path(run.model),
+        Path(str(run.log)),
         out,
-        as_list(d.get("loops")),
-        opts,
+        list(run.loop),
+        options,
         str(d.get("robot") or ""),
         str(d.get("date") or ""),
-        cv,
+        run.cv,
     )
 
 
 def _kind(v: Any) -> str:
     return {bool: "true/false", list: "a list", dict: "a mapping"}.get(type(v), repr(v))
-
-
-def _cv(value: Any, where: str) -> int:
-    """The job's K-fold count, as ``calibrate --cv`` takes it: a whole number >= 0, not 1 (default 5)."""
-    from closedloop.io.schemas import check_number
-
-    if value is None or value == "":
-        return 5
-    if isinstance(value, bool):
-        raise InputError(f"{where}: cv {value}: expected a whole number")
-    try:
-        k = check_number("cv", value if isinstance(value, (int, float)) else str(value), 0, 10**6, integer=True)
-    except InputError as exc:
-        raise InputError(f"{where}: {exc}") from None
-    if k == 1:
-        raise InputError(f"{where}: cv 1: K-fold validation needs K >= 2 (or 0 to disable)")
-    return k
-
-
-_ENUMS = {"weighting": ("noise", "none"), "robust": ("auto", "huber", "cauchy", "off")}
-
-
-def check_options(opts: dict, where: str) -> dict:
-    """A job's calibration options checked as ``closedloop calibrate`` checks its own (types, ranges,
-    enums; one line naming the job and the option).  YAML gives typed values, a CSV cell text: both
-    are accepted where they mean a valid value.  Returns the options with their values parsed."""
-    from closedloop.io.schemas import check_number, parse_bounds, parse_noise, parse_number
-
-    out: dict = {}
-    for key, value in opts.items():
-        what = f"{where}: option '{key}'"
-        if value is None:
-            continue
-        try:
-            if key in ("snr", "max_iter"):
-                if isinstance(value, bool):
-                    raise InputError(f"{key} {value}: expected a number")
-                v = value if isinstance(value, (int, float)) else str(value)
-                lo, integer = (1, True) if key == "max_iter" else (0.0, False)
-                out[key] = check_number(key, v, lo, 10**6, integer=integer, lo_open=not integer)
-            elif key in _ENUMS:
-                if not isinstance(value, str) or value not in _ENUMS[key]:
-                    raise InputError(f"expected one of {', '.join(_ENUMS[key])}, got {_kind(value)}")
-                out[key] = value
-            elif key == "degrees":
-                if isinstance(value, str) and value.strip().lower() in ("true", "false"):
-                    value = value.strip().lower() == "true"
-                if not isinstance(value, bool):
-                    raise InputError(f"expected true or false, got {_kind(value)}")
-                out[key] = value
-            elif key == "noise":
-                if isinstance(value, dict):
-                    value = ",".join(f"{k}={v!r}" if not isinstance(v, str) else f"{k}={v}" for k, v in value.items())
-                if isinstance(value, bool) or not isinstance(value, (str, int, float)):
-                    raise InputError(f"expected a number or joint=value,..., got {_kind(value)}")
-                out[key] = parse_noise(value if isinstance(value, str) else repr(value))
-            elif key in ("identify", "fix"):
-                if not isinstance(value, (str, list)) or (
-                    isinstance(value, list) and not all(isinstance(x, str) for x in value)
-                ):
-                    raise InputError(f"expected text or a list of text, got {_kind(value)}")
-                items = as_list(value) if not isinstance(value, str) or key == "fix" else [value]
-                if key == "fix":
-                    for item in items:
-                        for part in item.split(","):
-                            name, eq, num = part.partition("=")
-                            if eq:
-                                parse_number(num, f"fix {part.strip()}")
-                out[key] = value
-            elif key == "bounds":
-                if isinstance(value, dict):
-                    pairs = []
-                    for name, rng in value.items():
-                        if not (isinstance(rng, list) and len(rng) == 2):
-                            raise InputError(f"{name}: expected [LOW, HIGH], got {_kind(rng)}")
-                        pairs.append(f"{name}={'' if rng[0] is None else rng[0]}:{'' if rng[1] is None else rng[1]}")
-                    value = pairs
-                if isinstance(value, (bool, int, float)):
-                    raise InputError(f"expected NAME=LOW:HIGH items, got {_kind(value)}")
-                out[key] = parse_bounds(as_list(value))
-            else:
-                out[key] = value
-        except InputError as exc:
-            raise InputError(f"{what}: {exc}") from None
-    return out
 
 
 def read_manifest(path: str | Path) -> list[BatchJob]:

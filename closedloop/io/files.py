@@ -11,6 +11,7 @@ import os
 import shutil
 import stat
 import tempfile
+import uuid
 from contextlib import contextmanager
 from contextvars import ContextVar, Token
 from pathlib import Path
@@ -118,11 +119,18 @@ class OutputSet:
        and renamed onto its target (two system calls: the only moment a kill can leave a name, or
        leave a new model beside an old report, is a few microseconds wide);
     3. the directories are fsynced.
+
+    With `folder`, every file lies in that folder and the folder is published whole: the files are written
+    into a hidden temporary folder beside it (``.NAME.tmp-*``, removed on any exit; one a killed process
+    left is removed by `remove_temporaries`), in `order` (a completion record last), and the folder is
+    renamed onto `folder`, which must be absent or empty.  A `folder` that another process finished
+    meanwhile (it holds the last file of `order`) is kept and the new set discarded.
     """
 
-    def __init__(self, order: list | tuple = ()):
+    def __init__(self, order: list | tuple = (), folder: str | Path | None = None):
         self.order = [_target(p) for p in order if p is not None]
         self.files: dict[Path, bytes] = {}
+        self.folder = None if folder is None else Path(folder)
         self._token: Token[OutputSet | None] | None = None
 
     def add(self, target: str | Path, data: str | bytes) -> None:
@@ -155,11 +163,44 @@ class OutputSet:
                     f"{t}: refusing to overwrite an input of this run ({source}); choose another output path"
                 )
         rank = {p: k for k, p in enumerate(self.order)}
+        if self.folder is not None:
+            self._publish_folder(sorted(self.files, key=lambda p: rank.get(p, len(rank))))
+            return
         special = [t for t in self.files if is_special(t)]
         targets = sorted((t for t in self.files if t not in special), key=lambda p: rank.get(p, len(rank)))
         self._publish(targets)
         for t in sorted(special, key=lambda p: rank.get(p, len(rank))):
             _write_special(t, self.files[t])
+
+    def _publish_folder(self, targets: list[Path]) -> None:
+        out = self.folder
+        assert out is not None
+        where = out.resolve()
+        for t in targets:
+            if t.resolve().parent != where:
+                raise ValueError(f"{t}: not in the folder {out} published whole")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.parent / f".{out.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        tmp.mkdir()
+        try:
+            for t in targets:
+                with open(tmp / t.name, "wb") as fh:
+                    fh.write(self.files[t])
+                    fh.flush()
+                    os.fsync(fh.fileno())
+            _fsync_dir(tmp)
+            if out.exists():
+                if self.order and (out / self.order[-1].name).exists():  # finished meanwhile: keep that one
+                    shutil.rmtree(tmp)
+                    return
+                if any(out.iterdir()):
+                    raise InputError(f"{out}: exists and is not empty; remove it or choose another folder")
+                out.rmdir()
+            os.rename(tmp, out)
+            _fsync_dir(out.parent)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
 
     def _publish(self, targets: list[Path]) -> None:
         # (target, fd of an unnamed file or None for a staged file, the name renamed onto the target)
@@ -207,6 +248,18 @@ class OutputSet:
                         name.unlink()
             for d in stage_dirs:
                 shutil.rmtree(d, ignore_errors=True)
+
+
+def remove_temporaries(folder: str | Path) -> int:
+    """Remove the temporary folders a killed process left beside `folder` (`OutputSet` with a folder);
+    how many."""
+    folder = Path(folder)
+    n = 0
+    if folder.parent.is_dir():
+        for t in folder.parent.glob(f".{folder.name}.tmp-*"):
+            shutil.rmtree(t, ignore_errors=True)
+            n += 1
+    return n
 
 
 def _target(path: str | Path) -> Path:

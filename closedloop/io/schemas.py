@@ -6,7 +6,8 @@ Every document a user gives closedloop is checked here before it is used:
 * simulation truth and calibration reports (``*.json``, :data:`TRUTH_SCHEMA`,
   :data:`REPORT_SCHEMA`: the fields ``closedloop check`` reads);
 * simulation settings (``--set``, a scenario file's ``settings:``, :data:`SETTINGS_SCHEMA`),
-  scenario YAML (:data:`SCENARIO_SCHEMA`) and calibration config YAML (:data:`CONFIG_SCHEMA`).
+  scenario YAML (:data:`SCENARIO_SCHEMA`); a calibration's options are checked by
+  `closedloop.run.options`.
 
 A "number" is a finite int or float, never a boolean (``s: true`` is refused, not read as 1);
 booleans are only ``true``/``false`` (YAML 1.1's ``yes``/``no``/``on``/``off`` stay strings and are
@@ -23,7 +24,6 @@ import re
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import yaml
 
 from closedloop.errors import InputError
@@ -357,43 +357,6 @@ def scenario_schema() -> dict:
     }
 
 
-CONFIG_SCHEMA = {
-    "type": "object",
-    "additionalProperties": False,
-    "properties": {
-        "model": {"type": "string"},
-        "log": {"type": "string"},
-        "out": {"type": "string"},
-        "report": {"type": "string"},
-        "loop": {"type": "array", "items": {"type": "string", "minLength": 1}},
-        "identify": {"type": "array", "items": {"type": "string", "minLength": 1}},
-        "fix": {"type": "object", "additionalProperties": {"anyOf": [{"type": "null"}, num()]}},
-        "noise": {
-            "anyOf": [
-                num(0, 10, exclusive_lo=True),
-                {"type": "object", "additionalProperties": num(0, 10, exclusive_lo=True)},
-            ]
-        },
-        "weighting": {"enum": ["noise", "none"]},
-        "robust": {"enum": ["huber", "cauchy", None]},
-        "bound": {
-            "type": "object",
-            "additionalProperties": {
-                "type": "array",
-                "minItems": 2,
-                "maxItems": 2,
-                "items": {"anyOf": [{"type": "null"}, num()]},
-            },
-        },
-        "snr": num(0, 1e6, exclusive_lo=True),
-        "cv": integer(0, 10**6),
-        "max_iter": integer(1, 10**6),
-        "degrees": {"type": "boolean"},
-        "quiet": {"type": "boolean"},
-    },
-}
-
-
 # --------------------------------------------------------------------------- messages
 _TYPE_WORDS = {
     "number": "a finite number",
@@ -492,58 +455,3 @@ def check_settings(values: dict, source: str = "--set", error: type[InputError] 
     si = values.get("solimp")
     if si is not None and si[0] > si[1]:
         raise error(f"{source}: solimp dmin {si[0]:g} exceeds dmax {si[1]:g}")
-
-
-MAX_JOINT_NOISE = 0.1  # rad or m: the largest joint-reading noise std `parse_noise` accepts
-_NOISE_RANGE = (
-    f"the joint noise must be > 0 and <= {MAX_JOINT_NOISE} (a reading's std in rad or m; 0.1 rad is 5.7 degrees)"
-)
-
-
-def parse_noise(text: str | float | None) -> float | dict[str, float] | None:
-    """``--noise 1e-4`` or ``--noise j1=1e-4,j2=2e-4``: every value a finite number > 0 (rad or m) and at
-    most MAX_JOINT_NOISE: a reading's noise std beyond 0.1 rad (5.7 degrees) or 0.1 m is no encoder's."""
-    if text is None:
-        return None
-    if not isinstance(text, str):
-        text = repr(text)
-    if "=" not in text:
-        v = parse_number(text, f"--noise {text}")
-        if not 0 < v <= MAX_JOINT_NOISE:
-            raise InputError(f"--noise {text}: {_NOISE_RANGE}")
-        return v
-    out: dict[str, float] = {}
-    for part in text.split(","):
-        k, _, value = (t.strip() for t in part.partition("="))
-        if not k:
-            raise InputError(f"--noise {part}: expected joint=value")
-        out[k] = parse_number(value, f"--noise {part}")
-        if not 0 < out[k] <= MAX_JOINT_NOISE:
-            raise InputError(f"--noise {part}: {_NOISE_RANGE}")
-    return out
-
-
-def parse_bounds(items: list[str]) -> dict[str, tuple[float, float]]:
-    """``--bound NAME=LOW:HIGH`` (an empty side is unbounded); LOW <= HIGH."""
-    out = {}
-    for item in items:
-        name, eq, rng = item.partition("=")
-        lo, colon, hi = rng.partition(":")
-        if not eq or not colon or not name.strip():
-            raise InputError(f"--bound {item}: expected NAME=LOW:HIGH")
-        lo_v = parse_number(lo, f"--bound {item}", allow_inf=True) if lo.strip() else -np.inf
-        hi_v = parse_number(hi, f"--bound {item}", allow_inf=True) if hi.strip() else np.inf
-        if lo_v > hi_v:
-            raise InputError(f"--bound {item}: the lower bound {lo.strip()} exceeds the upper bound {hi.strip()}")
-        out[name.strip()] = (lo_v, hi_v)
-    return out
-
-
-def check_number(opt: str, value, lo: float, hi: float, *, integer: bool = False, lo_open: bool = False):
-    """A numeric option in range (``lo < v`` when `lo_open`, else ``lo <= v``; ``v <= hi``), as float/int."""
-    v = parse_number(value, f"{opt} {value}") if isinstance(value, str) else value
-    if not is_number(v) or (integer and float(v) != int(v)):
-        raise InputError(f"{opt} {value}: expected {'a whole number' if integer else 'a finite number'}")
-    if v < lo or (lo_open and v == lo) or v > hi:
-        raise InputError(f"{opt} {value}: must be {'>' if lo_open else '>='} {lo:g} and <= {hi:g}")
-    return int(v) if integer else float(v)

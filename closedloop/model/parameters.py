@@ -300,8 +300,9 @@ def match(names: list[str], patterns: list[str]) -> list[str]:
     return out
 
 
-def parse_fix(spec: list[str], names: list[str]) -> dict[str, float | None]:
-    """Parse ``--fix j3.s`` / ``--fix j3.s=1.0`` (patterns allowed without a value)."""
+def fix_values(spec: list[str]) -> dict[str, float | None]:
+    """``--fix j3.s`` / ``--fix j3.s=1.0`` items (comma-separated within one) as pattern -> value (None
+    keeps the current value); the patterns are matched against a problem's names by `expand_fix`."""
     fixed: dict[str, float | None] = {}
     for item in spec:
         for part in item.split(","):
@@ -309,14 +310,27 @@ def parse_fix(spec: list[str], names: list[str]) -> dict[str, float | None]:
             if not part:
                 continue
             key, _, val = part.partition("=")
-            matched = match(names, [key])
-            if not matched:
-                raise ParameterError(f"--fix {part}: no parameter named '{key}'")
             value: float | None = None
             if val:
                 from closedloop.io.schemas import parse_number  # strict: no 1_000, no nan
 
                 value = parse_number(val, f"--fix {part}", ParameterError)
-            for m in matched:
-                fixed[m] = value
+            fixed[key.strip()] = value
     return fixed
+
+
+def expand_fix(fix: dict[str, float | None], names: list[str]) -> dict[str, float | None]:
+    """Fixed parameters by pattern (`match`) -> by name; a pattern that names no parameter is refused."""
+    out: dict[str, float | None] = {}
+    for key, value in fix.items():
+        matched = match(names, [key])
+        if not matched:
+            raise ParameterError(f"--fix {key}: no parameter named '{key}'")
+        for m in matched:
+            out[m] = value
+    return out
+
+
+def parse_fix(spec: list[str], names: list[str]) -> dict[str, float | None]:
+    """Parse ``--fix j3.s`` / ``--fix j3.s=1.0`` (patterns allowed without a value) against `names`."""
+    return expand_fix(fix_values(spec), names)

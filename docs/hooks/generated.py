@@ -106,7 +106,7 @@ def cli_reference() -> str:
 
 def loops_reference() -> str:
     """Every registered loop type: keys, syntax, example and the factory's docstring."""
-    from closedloop.cli.tools import LOOP_EXAMPLES
+    from closedloop.cli.loops import LOOP_EXAMPLES
     from closedloop.loops.spec import GENERIC_KEYS, all_loop_types
 
     lines = []
