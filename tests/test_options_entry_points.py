@@ -9,11 +9,11 @@ import argparse
 
 import pytest
 
+from closedloop.assets.catalog import ROBOTS
 from closedloop.cli.calibrate import options_from_args
 from closedloop.cli.main import build_parser, main
 from closedloop.errors import InputError
 from closedloop.fleet.manifest import read_manifest
-from closedloop.models import ROBOTS
 from closedloop.run.options import (
     CLI,
     MANIFEST,

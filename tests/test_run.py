@@ -10,12 +10,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from closedloop.assets.catalog import ROBOTS
 from closedloop.calibration.pipeline import CalibrationOptions, calibrate
 from closedloop.calibration.verdict import VerdictRules, judge
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel
-from closedloop.models import ROBOTS
 from closedloop.records import SUSPECT, Verdict
 from closedloop.run import CalibrateOptions, calibrate_files
 from closedloop.run.calibrate import final_verdict

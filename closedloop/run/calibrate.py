@@ -182,7 +182,7 @@ def fixture_validation(robot, lg, loops: list, opts, lofo: str, res, progress=No
 def final_verdict(res, cv: dict | None, fixtures: dict | None, rules=None):
     """The fit's verdict with the held-out evidence (`calibration.verdict.judge` on the fit, its k-fold
     folds and its held-out fixtures); what the fit's own judgement found beyond the rules (a known length
-    left out of the fit, `calibration.verdict.length_guard`) is kept, reasons and evidence alike."""
+    left out of the fit, `calibration.solve.length_guard`) is kept, reasons and evidence alike."""
     from closedloop.calibration.verdict import judge
     from closedloop.records import Verdict
 

@@ -99,6 +99,7 @@ def load_inputs(o) -> RunInputs:
     model and the calibrated model's format, the loops, the log and its loop column, the k-fold count
     (`cv`, or 5, fewer on a shorter log), the weighting, the fit's options."""
     from closedloop.calibration.pipeline import CalibrationOptions
+    from closedloop.calibration.verdict import VerdictRules
     from closedloop.model.parameters import fix_values
     from closedloop.model.robot import RobotModel
     from closedloop.output.urdf import check_model_output
@@ -114,7 +115,7 @@ def load_inputs(o) -> RunInputs:
         bounds=dict(o.bound),
         robust=None if o.robust == "off" else o.robust,
         threads=o.threads,
-        rules=o.rules,
+        rules=o.rules if o.rules is not None else VerdictRules(),
     )
     robot = RobotModel.from_file(o.model)
     check_model_output(robot.kind, o.out, o.model)
