@@ -65,6 +65,14 @@ def check_calibrate_options(args) -> tuple:
         raise InputError("--cv 1: K-fold validation needs K >= 2 (or 0 to disable)")
     for spec in args.loop:
         check_loop_numbers(spec)
+    if getattr(args, "accuracy", None) is not None and not isinstance(args.accuracy, tuple):
+        from closedloop.cli.parse import parse_accuracy
+
+        args.accuracy = parse_accuracy(str(args.accuracy))
+    if getattr(args, "regions", None) is not None:
+        args.regions = check_number("--regions", args.regions, 0, 10**4, integer=True)
+        if args.regions == 1:
+            raise InputError("--regions 1: region validation needs 2 regions or more (or 0 to disable)")
     return parse_noise(args.noise), parse_bounds(args.bound), cv_given
 
 
@@ -118,6 +126,9 @@ def cmd_calibrate(args) -> int:
     res = calibrate(robot, lg, loops, opts, progress=prog)
     prog.done()
     elapsed = time.perf_counter() - t0
+    from closedloop.cli.accuracy import predicted_accuracy, region_validation
+
+    accuracy = predicted_accuracy(args, res)  # over the workspace (closedloop.analysis.accuracy)
     if inputs_note:
         res.notes.append(inputs_note)
     report_inputs = input_record(args, lg, res)  # readings, weighting, where the torques come from
@@ -138,12 +149,21 @@ def cmd_calibrate(args) -> int:
     from closedloop.output.report import verdict_record
 
     lofo = fixture_validation(robot, lg, loops, opts, report, args, prog) if res.converged else None
+    regions = region_validation(robot, lg, loops, opts, args, res, prog)  # whole regions of joint space held out
     # the held-out refits' time (k-fold and fixtures): with the fit's, the work of the command
     report["solver"]["validation_seconds"] = time.perf_counter() - t1
     report["solver"]["validation_cpu_seconds"] = time.process_time() - c1
     verdict = judge(res, cv, fixtures=lofo)  # the fit's evidence, the held-out folds' and fixtures'
+    target = None
+    if getattr(args, "accuracy", None):  # --accuracy: ok only where the prediction meets it
+        from closedloop.calibration.verdict import judge_accuracy
+
+        verdict, target = judge_accuracy(verdict, accuracy, *args.accuracy)
     res = replace(res, verdict=verdict)
     report["verdict"] = verdict_record(verdict)
+    from closedloop.output.report import accuracy_record
+
+    report["accuracy"] = accuracy_record(accuracy, regions, target)
     failed = verdict.status == "failed"
     write_out = args.out and (not failed or args.force)
     from closedloop.output.report import sensors_path, write_sensors
@@ -165,7 +185,7 @@ def cmd_calibrate(args) -> int:
             print(f"  wrote {sensors}")
     from closedloop.cli.tools import write_figures
 
-    write_figures(res, report, args, row_name=lg.where)  # --html / --plots
+    write_figures(res, report, args, row_name=lg.where, accuracy=accuracy)  # --html / --plots
     if verdict.status == "suspect":
         print(f"warning: {args.log}: calibration is suspect: {'; '.join(own_reasons(verdict))}", file=sys.stderr)
     if failed:
@@ -242,6 +262,10 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
     n_conf = int(np.unique(np.concatenate(rows)).size) if rows else 0
     reasons = list(dict.fromkeys(own_reasons(res.verdict)))
     print(f"verdict: {res.verdict.status}" + (f" ({'; '.join(reasons)})" if reasons else ""))
+    from closedloop.cli.accuracy import accuracy_lines
+
+    for line in accuracy_lines(report.get("accuracy")):
+        print(line)
     print(
         f"calibrated {len(res.estimated)} parameters from {n_conf} configurations "
         f"in {res.iterations} iterations ({elapsed:.2f} s): "

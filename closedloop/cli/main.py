@@ -249,6 +249,25 @@ def _add_calibrate(sub) -> None:
         metavar="K",
         help="K-fold held-out validation in the report (default 5; 0 disables)",
     )
+    c.add_argument(
+        "--regions",
+        type=int_arg,
+        default=4,
+        metavar="K",
+        help="held-out validation by region: K regions of joint space left out in turn (default 4; 0 disables)",
+    )
+    c.add_argument(
+        "--workspace",
+        metavar="LOG|RANGES",
+        help="where the accuracy is predicted: a log of joint readings, or joint ranges joint=lo:hi,... "
+        "(default: 200 random readings within the joint limits)",
+    )
+    c.add_argument(
+        "--accuracy",
+        metavar="TARGET",
+        help="accuracy target over the workspace, e.g. 0.2mm, 1mrad or 0.2mm,1mrad: the verdict is ok only "
+        "where the predicted largest error meets it",
+    )
     c.add_argument("--max-iter", type=int_arg, default=100, metavar="N", help="solver iterations at most (default 100)")
     c.add_argument(
         "--threads",

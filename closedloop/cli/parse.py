@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from typing import Any
 
 from closedloop.errors import InputError
@@ -104,3 +105,52 @@ def join_negative_numbers(argv: list[str]) -> list[str]:
         else:
             out.append(a)
     return out
+
+
+def parse_box(text: str) -> dict[str, tuple[float, float]]:
+    """A joint-space box ``joint=lo:hi,joint=lo:hi`` (rad, or m for a prismatic joint)."""
+    out: dict[str, tuple[float, float]] = {}
+    for part in (p.strip() for p in text.split(",") if p.strip()):
+        name, eq, rng = part.partition("=")
+        a, colon, b = rng.partition(":")
+        try:
+            if not eq or not colon:
+                raise ValueError
+            lo, hi = float(a), float(b)
+        except ValueError:
+            raise InputError(
+                f"--workspace '{part}': expected joint=lo:hi (rad), e.g. panda_joint1=-1:1, or a log file"
+            ) from None
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise InputError(f"--workspace '{part}': the bounds must be finite numbers")
+        out[name.strip()] = (lo, hi)
+    if not out:
+        raise InputError("--workspace: give joint=lo:hi ranges or a log file")
+    return out
+
+
+UNITS = {"m": 1.0, "mm": 1e-3, "um": 1e-6, "rad": 1.0, "mrad": 1e-3, "urad": 1e-6, "deg": 0.017453292519943295}
+
+
+def parse_accuracy(text: str) -> tuple[float | None, float | None]:
+    """An accuracy target ``0.2mm``, ``1mrad`` or both (``0.2mm,1mrad``): (metres or None, radians or None)."""
+    import re
+
+    m: float | None = None
+    rad: float | None = None
+    for part in (p.strip() for p in text.split(",") if p.strip()):
+        hit = re.fullmatch(r"([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(m|mm|um|rad|mrad|urad|deg)", part)
+        if not hit:
+            raise InputError(
+                f"--accuracy '{part}': expected a number and a unit, e.g. 0.2mm or 1mrad (m, mm, um, rad, mrad, urad, deg)"
+            )
+        value = float(hit.group(1)) * UNITS[hit.group(2)]
+        if not (value > 0 and value < 1e3):
+            raise InputError(f"--accuracy '{part}': the target must be > 0")
+        if hit.group(2) in ("m", "mm", "um"):
+            m = value
+        else:
+            rad = value
+    if m is None and rad is None:
+        raise InputError("--accuracy: give a position target, an angle target or both, e.g. 0.2mm,1mrad")
+    return m, rad

@@ -290,7 +290,7 @@ def sensor_corrections(res, model_out: str | None = None) -> dict | None:
     return corrections(res, model_out)
 
 
-def write_figures(res, report: dict, args, row_name=None) -> None:
+def write_figures(res, report: dict, args, row_name=None, accuracy=None) -> None:
     """The HTML page and the PNG figures (the sensor file beside the model, `closedloop.output.report.write_sensors`,
     is published with the model and the report)."""
     quiet = bool(getattr(args, "quiet", False))
@@ -302,11 +302,11 @@ def write_figures(res, report: dict, args, row_name=None) -> None:
 
     snr = float(getattr(args, "snr", 1.0) or 1.0)
     if html:
-        write_html(res, report, html, snr, row_name=row_name)
+        write_html(res, report, html, snr, row_name=row_name, accuracy=accuracy)
         if not quiet:
             print(f"  wrote {html}")
     if plots:
-        files = write_plots(res, report, plots, snr)
+        files = write_plots(res, report, plots, snr, accuracy)
         if not quiet:
             print(f"  wrote {len(files)} figures to {plots}")
 

@@ -293,3 +293,40 @@ def _shared(prob) -> dict[str, list[str]]:
 
 def write_report(report: dict, path: str | Path) -> None:
     atomic_write_text(Path(path), json.dumps(report, indent=2) + "\n")
+
+
+def accuracy_record(workspace, regions: dict | None = None, target: dict | None = None) -> dict:
+    """The report's ``accuracy`` section: the predicted accuracy over the workspace
+    (`closedloop.analysis.accuracy.WorkspaceAccuracy`, per followed frame: RMS, 95th percentile and
+    expected largest error in m and rad, the share from what the data cannot see, the worst
+    configuration), the held-out validation by region (`closedloop.validation.regions`) and the
+    accuracy target (``--accuracy``) with whether the prediction meets it."""
+    ws = None
+    if workspace is not None:
+        ws = {
+            "configurations": int(workspace.readings.shape[0]),
+            "source": workspace.source,
+            "error_bars": workspace.error_bars,
+            "size_removed": bool(workspace.size_removed),
+            "prior": asdict(workspace.prior),
+            "max_m": _f(workspace.max_m),
+            "max_rad": _f(workspace.max_rad),
+            "frames": [
+                {
+                    "loop": f.loop,
+                    "frame": f.frame,
+                    "kind": f.kind,
+                    "predicted_rms_m": _f(f.rms_m),
+                    "predicted_p95_m": _f(f.p95_m),
+                    "predicted_max_m": _f(f.max_m),
+                    "predicted_rms_rad": _f(f.rms_rad),
+                    "predicted_p95_rad": _f(f.p95_rad),
+                    "predicted_max_rad": _f(f.max_rad),
+                    "predicted_unseen_rms_m": _f(f.unseen_rms_m),
+                    "predicted_unseen_rms_rad": _f(f.unseen_rms_rad),
+                    "worst_configuration": dict(f.worst),
+                }
+                for f in workspace.frames
+            ],
+        }
+    return {"workspace": ws, "regions": regions, "target": target}

@@ -27,6 +27,7 @@ import json
 import numpy as np
 import pinocchio as pin
 
+from closedloop.analysis.accuracy import N_WORKSPACE, POINT_LOOPS, POSE_LOOPS, SIZE_BLIND, random_readings
 from closedloop.errors import InputError
 
 NOMINAL = {"placement": 0.0, "offset": 0.0, "scale": 1.0}
@@ -187,10 +188,7 @@ def _row(name, true, cal, err, tol, result):
 
 
 # --------------------------------------------------------------------------- what the robots do
-POINT_LOOPS = ("PointLoop", "PlaneLoop", "MeasuredPointLoop", "point", "plane", "measured_point")
-POSE_LOOPS = ("WeldLoop", "HingeLoop", "MeasuredPoseLoop", "weld", "hinge", "measured_pose")
-SIZE_BLIND = ("PointLoop", "PlaneLoop", "WeldLoop", "HingeLoop", "point", "plane", "weld", "hinge")
-N_CHECK = 200  # configurations the robots are compared at
+N_CHECK = N_WORKSPACE  # configurations the robots are compared at: those the accuracy is predicted at
 
 
 def _robot_of(report: dict, model, report_source: str, required: bool):
@@ -316,12 +314,7 @@ def check_kinematics(
     cal = {p["name"]: p["calibrated"] for p in report["parameters"] if isinstance(p, dict)}
     loops = _followed_loops(report)
     joints = [j for j in report.get("joints", []) if j in robot.joints] or robot.joint_names
-    rng = np.random.default_rng(seed)
-    lo = np.array([max(robot.joint(j).lower, -np.pi) for j in joints])
-    hi = np.array([min(robot.joint(j).upper, np.pi) for j in joints])
-    bad = ~(hi > lo)
-    lo[bad], hi[bad] = -np.pi, np.pi
-    readings = rng.uniform(lo, hi, (n, len(joints)))
+    readings = random_readings(robot, joints, n, seed)  # the readings the report's prediction is made at
     rp_c, x_c = _values(robot, cal)
     true_robot = true_robot or robot
     missing = [j for j in joints if j not in true_robot.joints]

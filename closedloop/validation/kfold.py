@@ -188,8 +188,12 @@ def cross_validate(
     executor=None,
     progress: Callable[[int, int], None] | None = None,
     exclude=None,
+    parts: list[np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """k-fold cross-validation with the same options on every fold.
+
+    `parts`: the held-out sets (0-based rows, disjoint) where they are not the random `folds` (the
+    regions of joint space of `closedloop.validation.regions`).
 
     `exclude`: rows of `log_` (0-based) whose closure no fold judges, the full calibration's rejected
     outliers (``[rj.row - 1 for rj in result.rejected]``); they stay in the refits' data, whose outlier
@@ -213,7 +217,7 @@ def cross_validate(
     `progress(done, k)` is called as each refit finishes (on a long log each is a calibration of its own).
     """
     opt = options or CalibrationOptions()
-    parts = folds(log_, k, seed)
+    parts = folds(log_, k, seed) if parts is None else parts
     per_fold = []
     ref = None
     from closedloop.parallel.executor import (

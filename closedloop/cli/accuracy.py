@@ -1,0 +1,119 @@
+"""`closedloop calibrate`'s predicted accuracy over the workspace: ``--workspace``, ``--accuracy``,
+``--regions``, and the summary's lines (`closedloop.analysis.accuracy` computes; this module reads the
+options, runs it and prints)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from closedloop.errors import InputError
+
+
+def workspace_readings(args, robot, joints: list[str]) -> tuple[np.ndarray, str]:
+    """The readings (n, joints) the accuracy is predicted at, and where they come from: ``--workspace``'s
+    log file (its rows, columns by joint name), or its box ``joint=lo:hi,...`` (random readings in it), else
+    random readings within the joint ranges (`random_readings`, seed 0: the readings `closedloop check`
+    compares the robots at)."""
+    from closedloop.analysis.accuracy import N_WORKSPACE, random_readings
+
+    spec = getattr(args, "workspace", None)
+    if not spec:
+        return random_readings(robot, joints), f"{N_WORKSPACE} random readings within the joint ranges"
+    if Path(spec).is_file():
+        from closedloop.io.logs import read_log
+
+        lg = read_log(spec, robot.joint_names, degrees=bool(getattr(args, "degrees", False)))
+        missing = [j for j in joints if j not in lg.joints]
+        if missing:
+            raise InputError(
+                f"--workspace {spec}: no column for joint {missing[0]} (the calibrated joints: {', '.join(joints)})"
+            )
+        if len(lg) == 0:
+            raise InputError(f"--workspace {spec}: no row")
+        return lg.columns(joints), f"the {len(lg)} readings of {spec}"
+    if "=" not in spec:
+        raise InputError(f"--workspace {spec}: no such file (give a log file, or joint ranges joint=lo:hi,...)")
+    from closedloop.cli.parse import parse_box
+
+    box = parse_box(spec)
+    return random_readings(robot, joints, box=box), f"{N_WORKSPACE} random readings within {spec}"
+
+
+def predicted_accuracy(args, res):
+    """The calibration's predicted accuracy over the workspace (`analysis.accuracy.predict_from_result`)
+    at `workspace_readings`; None where no loop has a frame to follow."""
+    from closedloop.analysis.accuracy import predict_from_result
+
+    problem = res.problem
+    readings, source = workspace_readings(args, problem.robot, problem.joints)
+    return predict_from_result(res, readings, source=source)
+
+
+def region_validation(robot, lg, loops, opts, args, res, prog) -> dict | None:
+    """Held-out validation by region (`validation.regions.region_validate`, ``--regions K``), as the
+    report's record; a region the refit cannot do without is a note, not an error."""
+    from closedloop.errors import ClosedLoopError
+    from closedloop.validation.regions import region_validate
+
+    k = int(getattr(args, "regions", 0) or 0)
+    if k < 2 or not res.converged:
+        return None
+    prog("validating", 0, 0.0)
+    try:
+        cv = region_validate(
+            robot,
+            lg,
+            loops,
+            res.problem.joints,
+            opts,
+            k=k,
+            exclude=[rj.row - 1 for rj in res.rejected],
+            progress=lambda done, n: prog("validating", done, n),
+        )
+    except ClosedLoopError as exc:
+        prog.done()
+        res.notes.append(f"region validation skipped: {str(exc).splitlines()[0]}")
+        return {"k": k, "skipped": str(exc).splitlines()[0]}
+    prog.done()
+    return {
+        "k": cv["k"],
+        "rows": [len(r) for r in cv["regions"]],
+        "test": cv["test"],
+        "train": cv["train"],
+        "folds_converged": [f["converged"] for f in cv["folds"]],
+    }
+
+
+def accuracy_lines(section: dict | None) -> list[str]:
+    """The summary's lines of the report's ``accuracy`` section (`output.report.accuracy_record`)."""
+    if not section or not section.get("workspace"):
+        return []
+    ws = section["workspace"]
+    lines = [f"predicted accuracy over the workspace ({ws['source']}; error bars from {ws['error_bars']}):"]
+    for f in ws["frames"]:
+        parts = [f"{f['predicted_max_m'] * 1e3:.3g} mm"]
+        if f.get("predicted_max_rad") is not None:
+            parts.append(f"{f['predicted_max_rad'] * 1e3:.3g} mrad")
+        rms = f"{f['predicted_rms_m'] * 1e3:.3g} mm"
+        lines.append(
+            f"  loop {f['loop']}: {'tool point' if f['kind'] == 'point' else 'frame'} {f['frame']}: "
+            f"{', '.join(parts)} at most (RMS {rms}; {f['predicted_unseen_rms_m'] * 1e3:.3g} mm RMS from what "
+            "the data cannot see)"
+        )
+    reg = section.get("regions")
+    if reg and "test" in reg:
+        for t in reg["test"]:
+            if t.get("rms_m") is None and t.get("rms_rad") is None:
+                continue
+            parts = [f"{t['rms_m'] * 1e3:.4g} mm" if t.get("rms_m") is not None else ""]
+            parts.append(f"{t['rms_rad'] * 1e3:.4g} mrad" if t.get("rms_rad") is not None else "")
+            lines.append(
+                f"  {reg['k']} regions held out in turn, loop {t['loop']}: held-out closure RMS "
+                + ", ".join(p for p in parts if p)
+            )
+    tgt = section.get("target")
+    if tgt:
+        lines.append(f"  target {tgt['describe']}: {'met' if tgt['met'] else 'NOT met'} by the prediction")
+    return lines
