@@ -106,6 +106,8 @@ class FrameAccuracy:
     rms_rad: float | None
     p95_rad: float | None
     max_rad: float | None
+    max95_m: float  # 95 % of calibrated robots have their largest position error below this (m)
+    max95_rad: float | None
     unseen_rms_m: float  # the share of rms_m from what the data cannot see (the prior)
     unseen_rms_rad: float | None
     worst: dict[str, float]  # the joint readings of the configuration with the largest expected error
@@ -127,6 +129,7 @@ class WorkspaceAccuracy:
     prior: PriorTolerance
     size_removed: bool  # the overall size removed as the data do not measure it
     training: np.ndarray | None = field(repr=False, default=None)  # (m, joints) the calibration's readings
+    default_readings: bool = False  # the readings are `random_readings`' default: those `closedloop check` uses
 
     @property
     def max_m(self) -> float:
@@ -338,6 +341,7 @@ def predict_accuracy(
     error_bars: str = "the noise model",
     prior: PriorTolerance | None = None,
     source: str = "random within the joint ranges",
+    default_readings: bool = False,
     seed: int = 0,
     tol_m: float = TOL_M,
     tol_rad: float = TOL_RAD,
@@ -409,9 +413,15 @@ def predict_accuracy(
             sig = np.sqrt(np.sum(A[sl].reshape(n, -1) ** 2, axis=1))
             sig_u = np.sqrt(np.sum(A_u[sl].reshape(n, -1) ** 2, axis=1))
             largest = np.linalg.norm(draws[sl].reshape(n, 3, -1), axis=1).max(axis=0)
-            figs[unit] = (sig, float(np.sqrt(np.mean(sig**2))), float(np.percentile(sig, 95)), float(largest.mean()))
+            figs[unit] = (
+                sig,
+                float(np.sqrt(np.mean(sig**2))),
+                float(np.percentile(sig, 95)),
+                float(largest.mean()),
+                float(np.percentile(largest, 95)),
+            )
             figs[unit + "_u"] = (float(np.sqrt(np.mean(sig_u**2))),)
-        sm, rms_m, p95_m, max_m = figs["m"]
+        sm, rms_m, p95_m, max_m, max95_m = figs["m"]
         worst = int(np.argmax(sm))
         pose = "rad" in figs
         frames.append(
@@ -425,6 +435,8 @@ def predict_accuracy(
                 rms_rad=figs["rad"][1] if pose else None,
                 p95_rad=figs["rad"][2] if pose else None,
                 max_rad=figs["rad"][3] if pose else None,
+                max95_m=max95_m,
+                max95_rad=figs["rad"][4] if pose else None,
                 unseen_rms_m=figs["m_u"][0],
                 unseen_rms_rad=figs["rad_u"][0] if pose else None,
                 worst={j: float(v) for j, v in zip(joints, readings[worst])},
@@ -443,6 +455,7 @@ def predict_accuracy(
         prior=prior,
         size_removed=not size_measured,
         training=training,
+        default_readings=default_readings,
     )
 
 
@@ -459,6 +472,7 @@ def predict_from_result(
     """`predict_accuracy` for a `CalibrationResult` (its problem, values, trusted covariance, statuses),
     at `readings`, or `n` readings drawn within the joint ranges (`random_readings`, `seed`)."""
     problem = res.problem
+    default = readings is None and n == N_WORKSPACE and seed == 0
     if readings is None:
         readings = random_readings(problem.robot, problem.joints, n, seed)
         source = source or f"{n} random readings within the joint ranges (seed {seed})"
@@ -477,5 +491,6 @@ def predict_from_result(
         error_bars=getattr(res, "error_bars", "the noise model"),
         prior=prior,
         source=source or "the given readings",
+        default_readings=default,
         seed=seed,
     )

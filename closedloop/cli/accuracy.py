@@ -47,6 +47,8 @@ def predicted_accuracy(args, res):
     from closedloop.analysis.accuracy import predict_from_result
 
     problem = res.problem
+    if not getattr(args, "workspace", None):  # the readings `closedloop check` compares the robots at
+        return predict_from_result(res)
     readings, source = workspace_readings(args, problem.robot, problem.joints)
     return predict_from_result(res, readings, source=source)
 

@@ -306,6 +306,8 @@ def accuracy_record(workspace, regions: dict | None = None, target: dict | None 
         ws = {
             "configurations": int(workspace.readings.shape[0]),
             "source": workspace.source,
+            # the readings are `closedloop check`'s (random within the joint ranges, seed 0): it compares with them
+            "check_readings": bool(workspace.default_readings),
             "error_bars": workspace.error_bars,
             "size_removed": bool(workspace.size_removed),
             "prior": asdict(workspace.prior),
@@ -322,6 +324,8 @@ def accuracy_record(workspace, regions: dict | None = None, target: dict | None 
                     "predicted_rms_rad": _f(f.rms_rad),
                     "predicted_p95_rad": _f(f.p95_rad),
                     "predicted_max_rad": _f(f.max_rad),
+                    "predicted_max95_m": _f(f.max95_m),
+                    "predicted_max95_rad": _f(f.max95_rad),
                     "predicted_unseen_rms_m": _f(f.unseen_rms_m),
                     "predicted_unseen_rms_rad": _f(f.unseen_rms_rad),
                     "worst_configuration": dict(f.worst),

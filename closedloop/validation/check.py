@@ -418,4 +418,48 @@ def check_kinematics(
         )
     for r in rows:
         r["view"] = "kinematics"
+    if n == N_CHECK and seed == 0:  # the readings the report's prediction was made at
+        with_prediction(rows, report, [(it[0], it[2]) for it in items])
     return rows, all(r["result"] != "FAIL" for r in rows)
+
+
+def with_prediction(rows: list[dict], report: dict, frames: list[tuple[str, str]]) -> None:
+    """Beside each observed error, the report's predicted one (`closedloop.analysis.accuracy`: the expected
+    largest error over the same readings, 'predicted'; 95 % of calibrated robots stay below 'bound') and
+    their ratio ('ratio' = observed / predicted).  Nothing where the report has no prediction at these
+    readings (an older report, or one predicted at a ``--workspace`` of its own)."""
+    from closedloop.io.schemas import is_number
+
+    acc = report.get("accuracy")
+    ws = acc.get("workspace") if isinstance(acc, dict) else None
+    if not isinstance(ws, dict) or not ws.get("check_readings") or not isinstance(ws.get("frames"), list):
+        return
+    pred = {f.get("loop"): f for f in ws["frames"] if isinstance(f, dict)}
+    for loop, frame in frames:
+        f = pred.get(loop)
+        if f is None:
+            continue
+        for r in rows:
+            if not r["name"].startswith(f"{loop}: "):
+                continue
+            unit = "m" if r["name"].endswith(" position") else "rad" if r["name"].endswith(" rotation") else None
+            p, bound = f.get(f"predicted_max_{unit}"), f.get(f"predicted_max95_{unit}")
+            if unit is None or not is_number(p) or p <= 0:
+                continue
+            r["predicted"] = float(p)
+            r["bound"] = float(bound) if is_number(bound) else None
+            r["ratio"] = r["error"] / float(p) if r["error"] is not None else None
+
+
+def prediction_finding(rows: list[dict]) -> str | None:
+    """One line: whether every observed error is within the report's prediction (below its 95 % bound of
+    the largest error), with the largest ratio observed / predicted; None where nothing was predicted."""
+    compared = [r for r in rows if r.get("ratio") is not None]
+    if not compared:
+        return None
+    worst = max(compared, key=lambda r: r["ratio"])
+    outside = [r for r in compared if r.get("bound") is not None and r["error"] > r["bound"]]
+    if not outside:
+        return f"observed within prediction: the largest error is {worst['ratio']:.2g}x the predicted ({worst['name']})"
+    names = ", ".join(f"{r['name']} {r['ratio']:.2g}x" for r in outside)
+    return f"observed NOT within prediction (above the 95 % bound of the largest error): {names}"
