@@ -435,7 +435,7 @@ def with_prediction(rows: list[dict], report: dict, frames: list[tuple[str, str]
     if not isinstance(ws, dict) or not ws.get("check_readings") or not isinstance(ws.get("frames"), list):
         return
     pred = {f.get("loop"): f for f in ws["frames"] if isinstance(f, dict)}
-    for loop, frame in frames:
+    for loop, _ in frames:
         f = pred.get(loop)
         if f is None:
             continue
@@ -444,11 +444,11 @@ def with_prediction(rows: list[dict], report: dict, frames: list[tuple[str, str]
                 continue
             unit = "m" if r["name"].endswith(" position") else "rad" if r["name"].endswith(" rotation") else None
             p, bound = f.get(f"predicted_max_{unit}"), f.get(f"predicted_max95_{unit}")
-            if unit is None or not is_number(p) or p <= 0:
+            if unit is None or not isinstance(p, (int, float)) or not is_number(p) or p <= 0:
                 continue
             r["predicted"] = float(p)
-            r["bound"] = float(bound) if is_number(bound) else None
-            r["ratio"] = r["error"] / float(p) if r["error"] is not None else None
+            r["bound"] = float(bound) if isinstance(bound, (int, float)) and is_number(bound) else None
+            r["ratio"] = r["error"] / r["predicted"] if r["error"] is not None else None
 
 
 def prediction_finding(rows: list[dict]) -> str | None:
