@@ -201,3 +201,25 @@ def test_option_values():
     assert X[:, 0].min() >= -0.1 and X[:, 0].max() <= 0.2 and np.ptp(X[:, 1]) > 1.0
     with pytest.raises(InputError, match=f"joint '{j}'"):
         random_readings(robot, list(case.joints), 5, box={j: (0.5, 0.1)})
+
+
+def test_evaluate_compares_new_data_with_the_prediction(tmp_path, capsys):
+    """evaluate on new configurations of the same robot: beside the calibrated model's closure, the closure
+    its calibration predicts there (its parameter uncertainty propagated, and the fit's noise), within 2x."""
+    a = _case("ur5", "point", 1e-4)
+    b = zoo.make_case("ur5", "point", n=160, sigma=1e-4, seed=0)  # the same robot and socket, 100 more rows
+    assert a.true_offsets == b.true_offsets
+    lines = b.log_csv.read_text().splitlines()
+    new = tmp_path / "new.csv"
+    new.write_text("\n".join([lines[0]] + lines[61:]) + "\n")
+    cal, rep = tmp_path / "cal.urdf", tmp_path / "r.json"
+    spec = a.loop_specs[0]
+    args = ["calibrate", str(a.nominal_urdf), str(a.log_csv), "--loop", spec, "--out", str(cal)]
+    assert main([*args, "--report", str(rep), "--cv", "0", "--regions", "0", "--quiet"]) == 0
+    out_json = tmp_path / "ev.json"
+    main(["evaluate", str(cal), str(new), "--loop", spec, "--calibration", str(rep), "--report", str(out_json)])
+    out = capsys.readouterr().out
+    assert "predicted by its calibration" in out and "observed within prediction" in out
+    pred = json.loads(out_json.read_text())["models"][0]["prediction"][0]
+    assert pred["unit"] == "m" and 0.5 < pred["ratio"] < 2.0
+    assert pred["ratio"] == pytest.approx(pred["observed_rms"] / pred["predicted_rms"])

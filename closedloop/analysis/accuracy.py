@@ -130,6 +130,8 @@ class WorkspaceAccuracy:
     size_removed: bool  # the overall size removed as the data do not measure it
     training: np.ndarray | None = field(repr=False, default=None)  # (m, joints) the calibration's readings
     default_readings: bool = False  # the readings are `random_readings`' default: those `closedloop check` uses
+    parameters: tuple[str, ...] = ()  # the parameters whose uncertainty moves a followed frame
+    covariance: np.ndarray | None = field(repr=False, default=None)  # their L L^T (estimated and unseen)
 
     @property
     def max_m(self) -> float:
@@ -391,6 +393,9 @@ def predict_accuracy(
         return (A - Qg @ (Qg.T @ A)) / w[:, None]
 
     A_e, A_u = projected(L_e), projected(L_u)
+    tips = {k for it in items for k in it.tip_columns}
+    moving = [i for i, k in enumerate(considered) if k < problem.n_robot or k in tips]  # what moves a frame
+    L_all = np.hstack([L_e, L_u])[moving]
     A = np.hstack([A_e, A_u])
     rng = np.random.default_rng(seed + 1)
     draws = A @ rng.standard_normal((A.shape[1], MAX_DRAWS)) if A.shape[1] else np.zeros((A.shape[0], MAX_DRAWS))
@@ -456,7 +461,41 @@ def predict_accuracy(
         size_removed=not size_measured,
         training=training,
         default_readings=default_readings,
+        parameters=tuple(problem.names[considered[i]] for i in moving),
+        covariance=L_all @ L_all.T,
     )
+
+
+def predict_closure(problem, values: np.ndarray, names: list[str], covariance: np.ndarray) -> list[dict]:
+    """The closure RMS the parameters' uncertainty predicts on the problem's own configurations, per loop
+    (a calibration's `WorkspaceAccuracy.covariance` over `names`, propagated as in the module docstring at
+    the readings of each block): what a closure on new data shows of the model's error, with the loop's
+    place refitted (a point loop's point: a translation; a pose loop's fixture: a rigid transform of the
+    base).  The readings' noise is not included.  Rows: loop, rms_m, rms_rad (None: not a followed loop)."""
+    items = {it.loop: it for it in followed_frames(problem, values)}
+    cols = [problem.index[n] for n in names if n in problem.index]
+    keep = [i for i, n in enumerate(names) if n in problem.index]
+    L = _sqrt_psd(np.asarray(covariance, dtype=float)[np.ix_(keep, keep)]) if keep else np.zeros((0, 0))
+    out = []
+    for b in problem.blocks:
+        it = items.get(b.loop.name)
+        if it is None or not b.theta.shape[0] or not cols:
+            continue
+        n = b.theta.shape[0]
+        pos, rot, Jp, Jr = frame_jacobians(problem, values, b.theta, [it], cols)
+        pose = it.kind == "pose"
+        J = np.vstack([Jp[0].reshape(-1, len(cols))] + ([Jr[0].reshape(-1, len(cols))] if pose else []))
+        w = np.concatenate([np.full(3 * n, 1.0 / TOL_M)] + ([np.full(3 * n, 1.0 / TOL_RAD)] if pose else []))
+        G = gauge_basis([it], pos, rot, False)
+        G = G[:, :6] if pose else G[: 3 * n, :3]  # the refitted place: a base pose, or a translation
+        G = G * w[:, None]
+        Qg = np.linalg.qr(G)[0]
+        A = (J @ L) * w[:, None]
+        A = (A - Qg @ (Qg.T @ A)) / w[:, None]
+        rms_m = float(np.sqrt(np.sum(A[: 3 * n] ** 2) / n))
+        rms_rad = float(np.sqrt(np.sum(A[3 * n :] ** 2) / n)) if pose else None
+        out.append({"loop": b.loop.name, "rms_m": rms_m, "rms_rad": rms_rad})
+    return out
 
 
 def predict_from_result(

@@ -333,4 +333,6 @@ def accuracy_record(workspace, regions: dict | None = None, target: dict | None 
                 for f in workspace.frames
             ],
         }
+        if workspace.covariance is not None:  # what `closedloop evaluate` propagates to its own configurations
+            ws["covariance"] = {"parameters": list(workspace.parameters), "matrix": workspace.covariance.tolist()}
     return {"workspace": ws, "regions": regions, "target": target}
