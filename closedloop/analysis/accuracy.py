@@ -7,7 +7,7 @@ knows: the parameters' covariance and what the data could not see.
 **Propagation.**  At a joint reading theta_i, a followed frame (a loop's tool point, or its frame for a
 pose loop) moves by e_i = J_i dx for a parameter error dx, J_i = d(position, rotation)/dx of the
 calibrated model at theta_i (thesis eqs. 4.11-4.14 evaluated at a configuration of the workspace, not
-of the log; here by central differences of the Pinocchio kinematics through the sensor model of
+of the log; here by forward differences of the Pinocchio kinematics through the sensor model of
 eq. 4.4).  The error of the calibrated parameters is modelled as dx = L z, z ~ N(0, I), with
 
     L L^T = Sigma_est  +  Sigma_unseen,
@@ -60,7 +60,7 @@ SIZE_BLIND = ("PointLoop", "PlaneLoop", "WeldLoop", "HingeLoop", "point", "plane
 N_WORKSPACE = 200  # configurations the workspace is sampled at (as many as `closedloop check` compares)
 TOL_M, TOL_RAD = 1e-3, 5e-3  # check's default tolerances: the weights of position and rotation in the gauge fit
 MAX_DRAWS = 400  # Monte Carlo draws of the expected largest error
-FD_STEP = 1e-6  # central-difference step of the frame Jacobians (m, rad or 1)
+FD_STEP = 1e-7  # forward-difference step of the frame Jacobians (m, rad or 1): relative error ~1e-7
 
 
 @dataclass(frozen=True)
@@ -242,7 +242,7 @@ def frame_jacobians(
 ) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
     """Positions (n, 3), rotations (n, 3, 3) and their derivatives (n, 3, C) with respect to the problem's
     `columns` of every followed frame at `readings`: the world-frame (or frame_b) variation of the tool
-    point R tip + t and of the rotation (dR R^T), by central differences of the kinematics for the robot's
+    point R tip + t and of the rotation (dR R^T), by forward differences of the kinematics for the robot's
     parameters, exactly (R) for the tool point's own coordinates; loop parameters that are not the tool
     point do not move a robot frame."""
     T0 = _poses(problem, values, readings, items)
@@ -257,15 +257,13 @@ def frame_jacobians(
                 if k in it.tip_columns:
                     Jp[i][:, :, c] = rot[i][:, :, it.tip_columns.index(k)]
             continue
-        xp, xm = values.copy(), values.copy()
+        xp = values.copy()
         xp[k] += FD_STEP
-        xm[k] -= FD_STEP
-        Tp, Tm = _poses(problem, xp, readings, items), _poses(problem, xm, readings, items)
+        Tp = _poses(problem, xp, readings, items)
         for i, it in enumerate(items):
             pp = Tp[i][:, :3, :3] @ it.tip + Tp[i][:, :3, 3]
-            pm = Tm[i][:, :3, :3] @ it.tip + Tm[i][:, :3, 3]
-            Jp[i][:, :, c] = (pp - pm) / (2 * FD_STEP)
-            Jr[i][:, :, c] = _rotvec_small(Tp[i][:, :3, :3] @ np.swapaxes(Tm[i][:, :3, :3], 1, 2)) / (2 * FD_STEP)
+            Jp[i][:, :, c] = (pp - pos[i]) / FD_STEP
+            Jr[i][:, :, c] = _rotvec_small(Tp[i][:, :3, :3] @ np.swapaxes(rot[i], 1, 2)) / FD_STEP
     return pos, rot, Jp, Jr
 
 
@@ -472,6 +470,13 @@ def predict_closure(problem, values: np.ndarray, names: list[str], covariance: n
     the readings of each block): what a closure on new data shows of the model's error, with the loop's
     place refitted (a point loop's point: a translation; a pose loop's fixture: a rigid transform of the
     base).  The readings' noise is not included.  Rows: loop, rms_m, rms_rad (None: not a followed loop)."""
+    from closedloop.estimate.threads import blas_threads
+
+    with blas_threads(None, 6 * sum(b.theta.shape[0] for b in problem.blocks), len(names)):
+        return _predict_closure(problem, values, names, covariance)
+
+
+def _predict_closure(problem, values: np.ndarray, names: list[str], covariance: np.ndarray) -> list[dict]:
     items = {it.loop: it for it in followed_frames(problem, values)}
     cols = [problem.index[n] for n in names if n in problem.index]
     keep = [i for i, n in enumerate(names) if n in problem.index]
@@ -509,7 +514,8 @@ def predict_from_result(
     size_measured: bool | None = None,
 ) -> WorkspaceAccuracy | None:
     """`predict_accuracy` for a `CalibrationResult` (its problem, values, trusted covariance, statuses),
-    at `readings`, or `n` readings drawn within the joint ranges (`random_readings`, `seed`)."""
+    at `readings`, or `n` readings drawn within the joint ranges (`random_readings`, `seed`); BLAS threads
+    limited by size (`closedloop.estimate.threads.blas_threads`)."""
     problem = res.problem
     default = readings is None and n == N_WORKSPACE and seed == 0
     if readings is None:
@@ -518,18 +524,21 @@ def predict_from_result(
     if size_measured is None:
         ev = res.verdict.evidence if res.verdict is not None else {}
         size_measured = bool(ev["size_measured"]) if "size_measured" in ev else not size_blind(problem)
-    return predict_accuracy(
-        problem,
-        np.asarray(res.values, dtype=float),
-        np.asarray(res.covariance, dtype=float),
-        list(res.estimated),
-        list(res.status),
-        len(res.weak),
-        readings,
-        size_measured=size_measured,
-        error_bars=getattr(res, "error_bars", "the noise model"),
-        prior=prior,
-        source=source or "the given readings",
-        default_readings=default,
-        seed=seed,
-    )
+    from closedloop.estimate.threads import blas_threads
+
+    with blas_threads(None, 6 * len(readings), len(problem.params)):  # small dense algebra: one thread
+        return predict_accuracy(
+            problem,
+            np.asarray(res.values, dtype=float),
+            np.asarray(res.covariance, dtype=float),
+            list(res.estimated),
+            list(res.status),
+            len(res.weak),
+            readings,
+            size_measured=size_measured,
+            error_bars=getattr(res, "error_bars", "the noise model"),
+            prior=prior,
+            source=source or "the given readings",
+            default_readings=default,
+            seed=seed,
+        )
