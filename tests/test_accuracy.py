@@ -16,7 +16,7 @@ import zoo
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
 from closedloop.analysis.accuracy import PriorTolerance, predict_from_result, random_readings
-from closedloop.calibration.verdict import judge_accuracy
+from closedloop.calibration.verdict import judge_accuracy, judge_workspace
 from closedloop.cli.main import main
 from closedloop.cli.parse import parse_accuracy, parse_box
 from closedloop.errors import InputError
@@ -183,6 +183,28 @@ def test_accuracy_target_makes_ok_impossible_above_it():
     v, rec = judge_accuracy(res.verdict, acc, 2.0 * acc.max_m, None)
     assert v.status == "ok" and rec["met"]
     assert res.verdict.status == "ok"  # the verdict given is not changed
+
+
+def test_no_better_than_the_nominal_model_is_suspect():
+    """The nominal model's expected error (its tolerance propagated alike) beside the calibrated one's: a
+    calibration predicted no better than the nominal model is suspect."""
+    from dataclasses import replace
+
+    case = _case("ur5", "point", 1e-5)
+    robot = RobotModel.from_file(case.nominal_urdf)
+    loops = [parse_loop(s, robot) for s in case.loop_specs]
+    res = calibrate(robot, JointLog(list(case.joints), case.readings), loops, CalibrationOptions())
+    acc = predict_from_result(res)
+    f = acc.frames[0]
+    # the nominal model within 1 mm / 1 mrad / 10 mrad: millimetres at the tool; calibrated: a tenth of that
+    assert f.nominal_rms_m > 1e-3 and f.rms_m < 0.1 * f.nominal_rms_m and acc.better_than_nominal
+    assert judge_workspace(res.verdict, acc) is res.verdict
+    worse = replace(acc, frames=(replace(f, nominal_rms_m=0.5 * f.rms_m),))
+    v = judge_workspace(res.verdict, worse)
+    assert v.status == "suspect" and "does not make the robot more accurate" in v.reasons[-1]
+    # ten times the tolerance: ten times the nominal model's expected error
+    wide = predict_from_result(res, prior=PriorTolerance(length_m=1e-2, angle_rad=1e-2, offset_rad=0.1, scale=1e-2))
+    assert wide.frames[0].nominal_rms_m == pytest.approx(10 * f.nominal_rms_m, rel=1e-6)
 
 
 def test_option_values():

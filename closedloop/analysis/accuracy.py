@@ -41,6 +41,10 @@ error over the configurations, E[max_i |e_i|], by Monte Carlo over z (the errors
 are correlated across configurations: its largest is one draw's maximum, which `check` observes).  The
 same in rad for a pose loop's rotation.  The worst configuration is the reading with the largest
 sigma_i.
+
+**Against the nominal model.**  The nominal model's own expected error is the tolerance of every
+parameter considered, T, propagated the same way (L = T): where the calibrated model's RMS is not below
+it, calibrating did not make the robot better in expectation (`better_than_nominal`).
 """
 
 from __future__ import annotations
@@ -110,6 +114,8 @@ class FrameAccuracy:
     max95_rad: float | None
     unseen_rms_m: float  # the share of rms_m from what the data cannot see (the prior)
     unseen_rms_rad: float | None
+    nominal_rms_m: float  # the nominal model's expected error: its tolerance over the same parameters, same gauge
+    nominal_rms_rad: float | None
     worst: dict[str, float]  # the joint readings of the configuration with the largest expected error
     sigma_m: np.ndarray = field(repr=False)  # (n,) expected position error per configuration
     sigma_rad: np.ndarray | None = field(repr=False, default=None)
@@ -142,6 +148,11 @@ class WorkspaceAccuracy:
     def max_rad(self) -> float | None:
         vals = [f.max_rad for f in self.frames if f.max_rad is not None]
         return max(vals) if vals else None
+
+    @property
+    def better_than_nominal(self) -> bool:
+        """Whether every frame's predicted RMS position error is below the nominal model's."""
+        return all(f.rms_m < f.nominal_rms_m for f in self.frames)
 
     def frame(self, loop: str) -> FrameAccuracy:
         for f in self.frames:
@@ -391,6 +402,8 @@ def predict_accuracy(
         return (A - Qg @ (Qg.T @ A)) / w[:, None]
 
     A_e, A_u = projected(L_e), projected(L_u)
+    tol = np.array([prior.of(problem.params[k].kind, problem.params[k].unit) for k in considered])
+    A_n = projected(np.diag(tol))  # the nominal model: every considered parameter off by its tolerance
     tips = {k for it in items for k in it.tip_columns}
     moving = [i for i, k in enumerate(considered) if k < problem.n_robot or k in tips]  # what moves a frame
     L_all = np.hstack([L_e, L_u])[moving]
@@ -424,6 +437,7 @@ def predict_accuracy(
                 float(np.percentile(largest, 95)),
             )
             figs[unit + "_u"] = (float(np.sqrt(np.mean(sig_u**2))),)
+            figs[unit + "_n"] = (float(np.sqrt(np.sum(A_n[sl] ** 2) / n)),)
         sm, rms_m, p95_m, max_m, max95_m = figs["m"]
         worst = int(np.argmax(sm))
         pose = "rad" in figs
@@ -442,6 +456,8 @@ def predict_accuracy(
                 max95_rad=figs["rad"][4] if pose else None,
                 unseen_rms_m=figs["m_u"][0],
                 unseen_rms_rad=figs["rad_u"][0] if pose else None,
+                nominal_rms_m=figs["m_n"][0],
+                nominal_rms_rad=figs["rad_n"][0] if pose else None,
                 worst={j: float(v) for j, v in zip(joints, readings[worst])},
                 sigma_m=sm,
                 sigma_rad=figs["rad"][0] if pose else None,

@@ -472,3 +472,25 @@ def judge_accuracy(
     if short:
         v.add(SUSPECT, "accuracy target not met: " + "; ".join(short))
     return v, record
+
+
+def judge_workspace(verdict: Verdict, workspace) -> Verdict:
+    """The verdict with the workspace prediction (`closedloop.analysis.accuracy`): suspect where the
+    calibrated model is not expected to be more accurate than the nominal one over the workspace (its
+    predicted RMS error not below the nominal model's tolerance propagated alike): the data do not support
+    the corrections there."""
+    if workspace is None or workspace.better_than_nominal:
+        return verdict
+    v = replace(verdict, reasons=list(verdict.reasons), evidence=dict(verdict.evidence))
+    worse = [f for f in workspace.frames if f.rms_m >= f.nominal_rms_m]
+    v.add(
+        SUSPECT,
+        "calibrating does not make the robot more accurate in expectation: "
+        + "; ".join(
+            f"loop {f.loop}: {f.rms_m * 1e3:.3g} mm RMS predicted over the workspace against "
+            f"{f.nominal_rms_m * 1e3:.3g} mm for the nominal model within its tolerance"
+            for f in worse
+        )
+        + " (more configurations, spread over the workspace, or a loop that sees more)",
+    )
+    return v

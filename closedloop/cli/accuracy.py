@@ -99,6 +99,8 @@ def accuracy_lines(section: dict | None) -> list[str]:
         if f.get("predicted_max_rad") is not None:
             parts.append(f"{f['predicted_max_rad'] * 1e3:.3g} mrad")
         rms = f"{f['predicted_rms_m'] * 1e3:.3g} mm"
+        nom = f.get("nominal_rms_m")
+        rms += f", nominal model {nom * 1e3:.3g} mm" if nom is not None else ""
         lines.append(
             f"  loop {f['loop']}: {'tool point' if f['kind'] == 'point' else 'frame'} {f['frame']}: "
             f"{', '.join(parts)} at most (RMS {rms}; {f['predicted_unseen_rms_m'] * 1e3:.3g} mm RMS from what "

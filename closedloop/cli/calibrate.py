@@ -154,10 +154,10 @@ def cmd_calibrate(args) -> int:
     report["solver"]["validation_seconds"] = time.perf_counter() - t1
     report["solver"]["validation_cpu_seconds"] = time.process_time() - c1
     verdict = judge(res, cv, fixtures=lofo)  # the fit's evidence, the held-out folds' and fixtures'
-    target = None
-    if getattr(args, "accuracy", None):  # --accuracy: ok only where the prediction meets it
-        from closedloop.calibration.verdict import judge_accuracy
+    from closedloop.calibration.verdict import judge_accuracy, judge_workspace
 
+    verdict, target = judge_workspace(verdict, accuracy), None  # no better than the nominal model: suspect
+    if getattr(args, "accuracy", None):  # --accuracy: ok only where the prediction meets it
         verdict, target = judge_accuracy(verdict, accuracy, *args.accuracy)
     res = replace(res, verdict=verdict)
     report["verdict"] = verdict_record(verdict)

@@ -313,6 +313,7 @@ def accuracy_record(workspace, regions: dict | None = None, target: dict | None 
             "prior": asdict(workspace.prior),
             "max_m": _f(workspace.max_m),
             "max_rad": _f(workspace.max_rad),
+            "better_than_nominal": bool(workspace.better_than_nominal),
             "frames": [
                 {
                     "loop": f.loop,
@@ -328,6 +329,9 @@ def accuracy_record(workspace, regions: dict | None = None, target: dict | None 
                     "predicted_max95_rad": _f(f.max95_rad),
                     "predicted_unseen_rms_m": _f(f.unseen_rms_m),
                     "predicted_unseen_rms_rad": _f(f.unseen_rms_rad),
+                    # the nominal model's expected error (its tolerance, same readings and gauge)
+                    "nominal_rms_m": _f(f.nominal_rms_m),
+                    "nominal_rms_rad": _f(f.nominal_rms_rad),
                     "worst_configuration": dict(f.worst),
                 }
                 for f in workspace.frames
