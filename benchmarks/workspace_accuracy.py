@@ -5,7 +5,8 @@ workspace predicted (`closedloop.analysis.accuracy`, 200 random readings within 
 and the calibrated robot compared with the truth by `closedloop check`'s kinematic view at the same
 readings (the largest error of each loop frame, base, tool and unmeasured size removed).  The figure that
 matters is observed / predicted (the predicted figure is the expected largest error): within 0.5-2 on
-90 % of the cases, never above 3 where the verdict is ok.
+90 % of the cases, never above 3 where the verdict is ok.  The verdict is the fit's with the workspace
+rule of `calibrate` (`judge_workspace`), without the k-fold and region refits.
 
 Cases: MuJoCo datasets of `closedloop simulate` (the README's main job with 1e-4 rad of joint noise; a
 one-socket point loop on Alex's left arm, example-robot-data alex_description, 1e-4 rad; a Baxter
@@ -33,6 +34,7 @@ from machine import machine, tests_zoo  # noqa: E402
 
 from closedloop.analysis.accuracy import predict_from_result  # noqa: E402
 from closedloop.calibration.pipeline import CalibrationOptions, calibrate  # noqa: E402
+from closedloop.calibration.verdict import judge_workspace  # noqa: E402
 from closedloop.io.logs import read_log  # noqa: E402
 from closedloop.loops.spec import parse_loop  # noqa: E402
 from closedloop.model.robot import RobotModel  # noqa: E402
@@ -91,11 +93,12 @@ def judge(robot, log, loops, truth: dict, true_robot, noise) -> dict:
     t1 = time.perf_counter()
     acc = predict_from_result(res)
     t2 = time.perf_counter()
+    verdict = judge_workspace(res.verdict, acc)  # as calibrate's: suspect where no better than the nominal model
     report = build_report(res)
-    report["verdict"] = verdict_record(res.verdict)
+    report["verdict"] = verdict_record(verdict)
     report["accuracy"] = accuracy_record(acc)
     rows, _ = check_kinematics(truth, report, robot, 1e-3, 5e-3, 5e-3, true_robot=true_robot)
-    out = {"verdict": res.verdict.status, "fit_s": t1 - t0, "predict_s": t2 - t1, "rows": []}
+    out = {"verdict": verdict.status, "fit_s": t1 - t0, "predict_s": t2 - t1, "rows": []}
     for r in rows:
         if r.get("predicted") is not None:
             out["rows"].append(
