@@ -245,3 +245,16 @@ def test_evaluate_compares_new_data_with_the_prediction(tmp_path, capsys):
     pred = json.loads(out_json.read_text())["models"][0]["prediction"][0]
     assert pred["unit"] == "m" and 0.5 < pred["ratio"] < 2.0
     assert pred["ratio"] == pytest.approx(pred["observed_rms"] / pred["predicted_rms"])
+
+
+def test_bad_workspace_is_refused_before_the_fit(tmp_path, capsys):
+    case = _case("ur5", "point", 1e-5)
+    base = ["calibrate", str(case.nominal_urdf), str(case.log_csv), "--loop", case.loop_specs[0], "--cv", "0"]
+    for bad, said in (
+        ("nojoint=-1:1", "joint 'nojoint' is not one of the calibrated joints"),
+        ("a.csv", "no such file"),
+    ):
+        assert main([*base, "--workspace", bad]) == 2
+        cap = capsys.readouterr()
+        assert said in cap.err and len(cap.err.strip().splitlines()) == 1
+        assert not cap.out  # refused before the fit: no summary

@@ -380,7 +380,7 @@ def predict_accuracy(
     L_e = np.zeros((len(considered), 0))
     if len(estimated) and covariance.size:
         pos_of = {k: i for i, k in enumerate(considered)}
-        F = _sqrt_psd(np.asarray(covariance, dtype=float))
+        F = _sqrt_psd(np.nan_to_num(np.asarray(covariance, dtype=float)))  # NaN: a bound held it, no spread
         L_e = np.zeros((len(considered), F.shape[1]))
         L_e[[pos_of[k] for k in estimated]] = F
     pos, rot, Jp, Jr = frame_jacobians(problem, values, readings, items, considered)

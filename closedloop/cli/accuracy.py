@@ -11,16 +11,16 @@ import numpy as np
 from closedloop.errors import InputError
 
 
-def workspace_readings(args, robot, joints: list[str]) -> tuple[np.ndarray, str]:
-    """The readings (n, joints) the accuracy is predicted at, and where they come from: ``--workspace``'s
-    log file (its rows, columns by joint name), or its box ``joint=lo:hi,...`` (random readings in it), else
-    random readings within the joint ranges (`random_readings`, seed 0: the readings `closedloop check`
-    compares the robots at)."""
+def workspace_readings(args, robot, joints: list[str]) -> tuple[np.ndarray | None, str | None]:
+    """The readings (n, joints) ``--workspace`` asks the accuracy to be predicted at, and where they come
+    from: its log file (its rows, columns by joint name) or its box ``joint=lo:hi,...`` (random readings
+    in it); (None, None) without it (random readings within the joint ranges, seed 0: the readings
+    `closedloop check` compares the robots at)."""
     from closedloop.analysis.accuracy import N_WORKSPACE, random_readings
 
     spec = getattr(args, "workspace", None)
     if not spec:
-        return random_readings(robot, joints), f"{N_WORKSPACE} random readings within the joint ranges"
+        return None, None
     if Path(spec).is_file():
         from closedloop.io.logs import read_log
 
@@ -41,16 +41,17 @@ def workspace_readings(args, robot, joints: list[str]) -> tuple[np.ndarray, str]
     return random_readings(robot, joints, box=box), f"{N_WORKSPACE} random readings within {spec}"
 
 
-def predicted_accuracy(args, res):
+def predicted_accuracy(res, readings: np.ndarray | None = None, source: str | None = None):
     """The calibration's predicted accuracy over the workspace (`analysis.accuracy.predict_from_result`)
-    at `workspace_readings`; None where no loop has a frame to follow."""
+    at `readings` (`workspace_readings`; None: within the joint ranges); None where no loop has a frame
+    to follow, or the kinematics are not finite at a reading (a note says so)."""
     from closedloop.analysis.accuracy import predict_from_result
 
-    problem = res.problem
-    if not getattr(args, "workspace", None):  # the readings `closedloop check` compares the robots at
-        return predict_from_result(res)
-    readings, source = workspace_readings(args, problem.robot, problem.joints)
-    return predict_from_result(res, readings, source=source)
+    try:
+        return predict_from_result(res, readings, source=source)
+    except np.linalg.LinAlgError as exc:  # the calibration stands; the prediction is said to be missing
+        res.notes.append(f"accuracy over the workspace not predicted: {exc}")
+        return None
 
 
 def region_validation(robot, lg, loops, opts, args, res, prog) -> dict | None:

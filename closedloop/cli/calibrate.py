@@ -106,7 +106,11 @@ def cmd_calibrate(args) -> int:
         args.cv = len(lg) if len(lg) >= 2 else 0
     from closedloop.calibration.pipeline import build_problem
 
-    names = build_problem(robot, lg, loops).names
+    problem0 = build_problem(robot, lg, loops)
+    names = problem0.names
+    from closedloop.cli.accuracy import predicted_accuracy, region_validation, workspace_readings
+
+    workspace = workspace_readings(args, robot, problem0.joints)  # --workspace checked before the fit
     from closedloop.cli.evaluate import input_record, resolve_weighting
 
     inputs_note = resolve_weighting(args)  # --readings commanded: plain least squares unless --weighting is given
@@ -126,9 +130,7 @@ def cmd_calibrate(args) -> int:
     res = calibrate(robot, lg, loops, opts, progress=prog)
     prog.done()
     elapsed = time.perf_counter() - t0
-    from closedloop.cli.accuracy import predicted_accuracy, region_validation
-
-    accuracy = predicted_accuracy(args, res)  # over the workspace (closedloop.analysis.accuracy)
+    accuracy = predicted_accuracy(res, *workspace)  # over the workspace (closedloop.analysis.accuracy)
     if inputs_note:
         res.notes.append(inputs_note)
     report_inputs = input_record(args, lg, res)  # readings, weighting, where the torques come from
