@@ -138,6 +138,9 @@ class WorkspaceAccuracy:
     default_readings: bool = False  # the readings are `random_readings`' default: those `closedloop check` uses
     parameters: tuple[str, ...] = ()  # the parameters whose uncertainty moves a followed frame
     covariance: np.ndarray | None = field(repr=False, default=None)  # their L L^T (estimated and unseen)
+    #: (3 n per frame, len(parameters)) the frames' position errors per parameter over the readings, gauge
+    #: removed (e_perp = design @ dx): what a design of new configurations is judged by (`closedloop.design`)
+    design: np.ndarray | None = field(repr=False, default=None)
 
     @property
     def max_m(self) -> float:
@@ -402,6 +405,10 @@ def predict_accuracy(
         return (A - Qg @ (Qg.T @ A)) / w[:, None]
 
     A_e, A_u = projected(L_e), projected(L_u)
+    n_read = readings.shape[0]
+    position_rows = np.concatenate(
+        [np.arange(3 * n_read) + 3 * n_read * (i + sum(x.kind == "pose" for x in items[:i])) for i in range(len(items))]
+    )
     tol = np.array([prior.of(problem.params[k].kind, problem.params[k].unit) for k in considered])
     A_n = projected(np.diag(tol))  # the nominal model: every considered parameter off by its tolerance
     tips = {k for it in items for k in it.tip_columns}
@@ -477,6 +484,7 @@ def predict_accuracy(
         default_readings=default_readings,
         parameters=tuple(problem.names[considered[i]] for i in moving),
         covariance=L_all @ L_all.T,
+        design=projected(np.eye(len(considered))[:, moving])[position_rows],
     )
 
 

@@ -54,6 +54,36 @@ def predicted_accuracy(res, readings: np.ndarray | None = None, source: str | No
         return None
 
 
+def next_poses(args, res, accuracy, report: dict) -> str | None:
+    """``--suggest FILE``: the ``--suggest-n`` configurations of the first followed loop that most reduce the
+    predicted workspace error (`closedloop.design.next_poses.suggest_poses`), as the CSV to write (a header
+    of joint names, one row per configuration, radians: a log the robot can play), recorded in the report
+    (``accuracy.next_poses``); None without --suggest or when none can be suggested (a note says why)."""
+    path = getattr(args, "suggest", None)
+    if not path:
+        return None
+    from closedloop.design.next_poses import suggest_poses
+
+    k = int(getattr(args, "suggest_n", 10) or 10)
+    followed = [
+        i for i, b in enumerate(res.problem.blocks) if accuracy and b.loop.name in {f.loop for f in accuracy.frames}
+    ]
+    found = suggest_poses(res, accuracy, k, followed[0]) if followed else None
+    if found is None or not found.readings.shape[0]:
+        res.notes.append(f"--suggest {path}: no configuration to suggest (no followed loop closes at new readings)")
+        return None
+    report.setdefault("accuracy", {})["next_poses"] = {
+        "file": str(path),
+        "loop": found.loop,
+        "configurations": int(found.readings.shape[0]),
+        "candidates": found.candidates,
+        "predicted_rms_before_m": found.rms_before_m,
+        "predicted_rms_after_m": [float(v) for v in found.rms_after_m],
+    }
+    lines = [",".join(found.joints)] + [",".join(repr(float(v)) for v in row) for row in found.readings]
+    return "\n".join(lines) + "\n"
+
+
 def region_validation(robot, lg, loops, opts, args, res, prog) -> dict | None:
     """Held-out validation by region (`validation.regions.region_validate`, ``--regions K``), as the
     report's record; a region the refit cannot do without is a note, not an error."""
@@ -121,4 +151,11 @@ def accuracy_lines(section: dict | None) -> list[str]:
     tgt = section.get("target")
     if tgt:
         lines.append(f"  target {tgt['describe']}: {'met' if tgt['met'] else 'NOT met'} by the prediction")
+    nxt = section.get("next_poses")
+    if nxt:
+        lines.append(
+            f"  next: {nxt['configurations']} configurations of loop {nxt['loop']} in {nxt['file']}: predicted "
+            f"RMS {nxt['predicted_rms_before_m'] * 1e3:.3g} mm -> {nxt['predicted_rms_after_m'][-1] * 1e3:.3g} mm "
+            "once recorded and calibrated again"
+        )
     return lines

@@ -51,7 +51,13 @@ def check_calibrate_options(args) -> tuple:
     from closedloop.io.files import check_outputs
 
     check_outputs(
-        {"--out": args.out, "--report": args.report, "--html": getattr(args, "html", None)}, [args.model, args.log]
+        {
+            "--out": args.out,
+            "--report": args.report,
+            "--html": getattr(args, "html", None),
+            "--suggest": getattr(args, "suggest", None),
+        },
+        [args.model, args.log],
     )
     if getattr(args, "plots", None):
         check_outputs({"--plots": args.plots}, [args.model, args.log], directory=True)
@@ -69,6 +75,8 @@ def check_calibrate_options(args) -> tuple:
         from closedloop.cli.parse import parse_accuracy
 
         args.accuracy = parse_accuracy(str(args.accuracy))
+    if getattr(args, "suggest_n", None) is not None:
+        args.suggest_n = check_number("--suggest-n", args.suggest_n, 1, 10**4, integer=True)
     if getattr(args, "regions", None) is not None:
         args.regions = check_number("--regions", args.regions, 0, 10**4, integer=True)
         if args.regions == 1:
@@ -79,7 +87,7 @@ def check_calibrate_options(args) -> tuple:
 def cmd_calibrate(args) -> int:
     from closedloop.calibration.pipeline import CalibrationOptions, calibrate
     from closedloop.cli.evaluate import require_log
-    from closedloop.io.files import OutputSet
+    from closedloop.io.files import OutputSet, atomic_write_text
     from closedloop.io.logs import check_loop_column
     from closedloop.loops.spec import default_loops, parse_loop
     from closedloop.model.parameters import parse_fix
@@ -166,13 +174,19 @@ def cmd_calibrate(args) -> int:
     from closedloop.output.report import accuracy_record
 
     report["accuracy"] = accuracy_record(accuracy, regions, target)
+    from closedloop.cli.accuracy import next_poses
+
+    suggested = next_poses(args, res, accuracy, report)  # --suggest: the configurations to record next
     failed = verdict.status == "failed"
     write_out = args.out and (not failed or args.force)
     from closedloop.output.report import sensors_path, write_sensors
 
     report["outputs"] = {"model": str(args.out) if write_out else None}  # `closedloop evaluate --calibration`
     sensors = sensors_path(args.out) if write_out else None  # what the model file cannot carry, beside it
-    with OutputSet(order=[args.out if write_out else None, sensors, args.report]):  # published whole, model first
+    order = [args.out if write_out else None, sensors, suggested and args.suggest, args.report]
+    with OutputSet(order=order):  # published whole, model first
+        if suggested:
+            atomic_write_text(args.suggest, suggested)
         if args.report:
             write_report(report, args.report)
         if write_out:

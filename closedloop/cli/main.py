@@ -280,6 +280,19 @@ def _add_calibrate(sub) -> None:
         help="accuracy target over the workspace, e.g. 0.2mm, 1mrad or 0.2mm,1mrad: the verdict is ok only "
         "where the predicted largest error meets it",
     )
+    c.add_argument(
+        "--suggest",
+        metavar="FILE",
+        help="write the configurations to record next (CSV of joint readings at the loop's place) that most "
+        "reduce the predicted error over the workspace",
+    )
+    c.add_argument(
+        "--suggest-n",
+        type=int_arg,
+        default=10,
+        metavar="N",
+        help="how many configurations --suggest writes (default 10)",
+    )
     c.add_argument("--max-iter", type=int_arg, default=100, metavar="N", help="solver iterations at most (default 100)")
     c.add_argument(
         "--threads",
