@@ -93,6 +93,8 @@ def region_validation(robot, lg, loops, opts, args, res, prog) -> dict | None:
     k = int(getattr(args, "regions", 0) or 0)
     if k < 2 or not res.converged:
         return None
+    if len(lg) < 4 * k:  # regions of a few rows each say nothing of extrapolation: not run, said in the report
+        return {"k": k, "skipped": f"{len(lg)} rows: too few for {k} regions (at least {4 * k})"}
     prog("validating", 0, 0.0)
     try:
         cv = region_validate(
