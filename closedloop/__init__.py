@@ -42,6 +42,10 @@ _LAZY = {
     "build_report": "closedloop.output.report",
     "write_report": "closedloop.output.report",
     "cross_validate": "closedloop.validation.kfold",
+    "predict_from_result": "closedloop.analysis.accuracy",
+    "PriorTolerance": "closedloop.analysis.accuracy",
+    "WorkspaceAccuracy": "closedloop.analysis.accuracy",
+    "region_validate": "closedloop.validation.regions",
 }
 
 __all__ = [
@@ -71,6 +75,10 @@ __all__ = [
     "build_report",
     "write_report",
     "cross_validate",
+    "predict_from_result",
+    "PriorTolerance",
+    "WorkspaceAccuracy",
+    "region_validate",
     "CalibrationError",
     "__version__",
 ]

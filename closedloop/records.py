@@ -293,11 +293,16 @@ class OutlierRecord:
 class AccuracyRecord:
     """What the calibrated robot is predicted to do (reported under ``report["accuracy"]``).
 
-    `workspace`: the prediction of the tool's accuracy over the workspace, a record with ``as_dict()``
-    (or a dataclass), reported as ``report["accuracy"]["workspace"]``; None where not predicted.
+    `workspace`: the prediction of the tool's accuracy over the workspace
+    (`closedloop.analysis.accuracy.WorkspaceAccuracy`), reported as ``report["accuracy"]["workspace"]``;
+    None where not predicted.  `regions`: the held-out validation by region (`closedloop.validation.regions`);
+    `target`: the accuracy target asked for and whether the prediction meets it
+    (`closedloop.calibration.verdict.judge_accuracy`).
     """
 
     workspace: Any = None
+    regions: dict | None = None
+    target: dict | None = None
 
 
 @dataclass(frozen=True)

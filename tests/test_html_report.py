@@ -167,7 +167,7 @@ def test_sensor_corrections_beside_the_model(calibrated):
 def test_figures_decode(calibrated):
     html = (calibrated / "report.html").read_text()
     srcs = re.findall(r"src='data:image/png;base64,([A-Za-z0-9+/=]+)'", html)
-    assert len(srcs) == 3
+    assert len(srcs) == 4  # closure, predicted accuracy over the workspace, corrections, singular values
     for s in srcs:
         img = decode(base64.b64decode(s))
         if isinstance(img, tuple):  # neither matplotlib nor PIL to decode it: its size from the header
@@ -176,7 +176,7 @@ def test_figures_decode(calibrated):
         assert img.shape[0] > 200 and img.shape[1] > 500
         assert img[..., :3].std() > 0.05  # drawn, not blank
     files = sorted(p.name for p in (calibrated / "plots").iterdir())
-    assert files == ["closure.png", "corrections.png", "singular_values.png"]
+    assert files == ["accuracy.png", "closure.png", "corrections.png", "singular_values.png"]
     for f in files:
         img = decode((calibrated / "plots" / f).read_bytes())
         assert (img[0] if isinstance(img, tuple) else img.shape[0]) > 200
@@ -200,7 +200,8 @@ def test_every_figure_is_embedded(calibrated):
     html = (calibrated / "report.html").read_text()
     page = Page()
     page.feed(html)
-    assert len(page.images) == 3
+    assert len(page.images) == 4
+    assert any(img.get("alt") == "predicted accuracy" for img in page.images)
     for img in page.images:
         src = img["src"]
         assert src.startswith("data:image/png;base64,") and img.get("alt")

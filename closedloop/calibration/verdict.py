@@ -55,6 +55,7 @@ held by the model's panda_joint3.z)``.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -378,3 +379,57 @@ def _validation(cv: dict, rules: VerdictRules, verdict: Verdict) -> None:
                         f"validation fold {f['fold']}, loop {te['loop']}: held-out closure "
                         f"{key[4:]} RMS {b:.3g} is {ratio:.3g}x the training fit",
                     )
+
+
+def judge_accuracy(
+    verdict: Verdict, workspace, target_m: float | None, target_rad: float | None
+) -> tuple[Verdict, dict]:
+    """The verdict with an accuracy target (``--accuracy``): suspect where the predicted workspace error
+    (`closedloop.analysis.accuracy`: the expected largest error of a followed frame over the workspace)
+    exceeds the target, or where no frame is followed to predict it; and the target's record for the report.
+    A verdict of ok therefore never stands beside a prediction above the target."""
+    parts = ([f"{target_m * 1e3:.4g} mm"] if target_m is not None else []) + (
+        [f"{target_rad * 1e3:.4g} mrad"] if target_rad is not None else []
+    )
+    record: dict = {"position_m": target_m, "rotation_rad": target_rad, "describe": ", ".join(parts)}
+    v = replace(verdict, reasons=list(verdict.reasons), evidence=dict(verdict.evidence))
+    if workspace is None:
+        record["met"] = False
+        v.add(SUSPECT, f"accuracy target {record['describe']}: no loop frame to predict the accuracy of")
+        return v, record
+    short = []
+    if target_m is not None and workspace.max_m > target_m:
+        short.append(f"{workspace.max_m * 1e3:.3g} mm predicted over the workspace against {target_m * 1e3:.4g} mm")
+    if target_rad is not None and workspace.max_rad is not None and workspace.max_rad > target_rad:
+        short.append(
+            f"{workspace.max_rad * 1e3:.3g} mrad predicted over the workspace against {target_rad * 1e3:.4g} mrad"
+        )
+    record["met"] = not short
+    record["predicted_max_m"] = workspace.max_m
+    record["predicted_max_rad"] = workspace.max_rad
+    v.evidence["accuracy_target_met"] = not short
+    if short:
+        v.add(SUSPECT, "accuracy target not met: " + "; ".join(short))
+    return v, record
+
+
+def judge_workspace(verdict: Verdict, workspace) -> Verdict:
+    """The verdict with the workspace prediction (`closedloop.analysis.accuracy`): suspect where the
+    calibrated model is not expected to be more accurate than the nominal one over the workspace (its
+    predicted RMS error not below the nominal model's tolerance propagated alike): the data do not support
+    the corrections there."""
+    if workspace is None or workspace.better_than_nominal:
+        return verdict
+    v = replace(verdict, reasons=list(verdict.reasons), evidence=dict(verdict.evidence))
+    worse = [f for f in workspace.frames if f.rms_m >= f.nominal_rms_m]
+    v.add(
+        SUSPECT,
+        "calibrating does not make the robot more accurate in expectation: "
+        + "; ".join(
+            f"loop {f.loop}: {f.rms_m * 1e3:.3g} mm RMS predicted over the workspace against "
+            f"{f.nominal_rms_m * 1e3:.3g} mm for the nominal model within its tolerance"
+            for f in worse
+        )
+        + " (more configurations, spread over the workspace, or a loop that sees more)",
+    )
+    return v

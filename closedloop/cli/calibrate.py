@@ -119,6 +119,10 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
     n_conf = int(np.unique(np.concatenate(rows)).size) if rows else 0
     reasons = list(dict.fromkeys(own_reasons(res.verdict)))
     print(f"verdict: {res.verdict.status}" + (f" ({'; '.join(reasons)})" if reasons else ""))
+    from closedloop.cli.accuracy import accuracy_lines
+
+    for line in accuracy_lines(report.get("accuracy")):
+        print(line)
     print(
         f"calibrated {len(res.fit.estimated)} parameters from {n_conf} configurations "
         f"in {res.fit.iterations} iterations ({elapsed:.2f} s): "

@@ -152,7 +152,7 @@ def cmd_evaluate(args) -> int:
     from closedloop.loops.spec import parse_loop
     from closedloop.model.robot import RobotModel
     from closedloop.run.inputs import read_inputs
-    from closedloop.validation.evaluate import evaluate_model, table
+    from closedloop.validation.evaluate import compare_prediction, evaluate_model, prediction_lines, table
 
     if not args.loop:
         raise InputError("evaluate: give the loops (--loop ...), as for calibrate")
@@ -174,6 +174,7 @@ def cmd_evaluate(args) -> int:
     for note in notes:
         print(f"  {note}", file=sys.stderr)
     evals = []
+    compared: list[list[dict]] = []
     for k, (path, robot) in enumerate(zip(models, robots)):
         loops = loops0 if k == 0 else [parse_loop(s, robot) for s in args.loop]
         label = args.label[k] if args.label else Path(path).name
@@ -184,13 +185,18 @@ def cmd_evaluate(args) -> int:
             what += [f"{len(values)} joint scale/compliance value(s)"] if values else []
             print(f"note: {label}: {' and '.join(what)} from {source}", file=sys.stderr)
         evals.append(ev)
+        rep_k = reports.get(Path(path).resolve())
+        compared.append(compare_prediction(ev, rep_k, robot, lg, loops, values) if rep_k is not None else [])
     print(table(evals))
+    for ev, rows in zip(evals, compared):  # a calibration's prediction beside what is observed
+        for line in prediction_lines(ev.model, rows):
+            print(line)
     if args.report:
         rep = {
             "log": str(lg.source),
             "configurations": len(lg),
             "refit": bool(args.refit),
-            "models": [e.as_dict() for e in evals],
+            "models": [e.as_dict() | ({"prediction": rows} if rows else {}) for e, rows in zip(evals, compared)],
         }
         atomic_write_text(args.report, json.dumps(rep, indent=2) + "\n")
         print(f"wrote {args.report}", file=sys.stderr)

@@ -80,6 +80,11 @@ def cmd_check(args) -> int:
             "(m, rad; size as a ratio), base, tool and unmeasured size removed:"
         )
         _print_rows(rows, "loop / quantity")
+        from closedloop.validation.check import prediction_finding
+
+        finding = prediction_finding(rows)
+        if finding:
+            print(finding)
         if args.show_parameters:
             print("\nthe parameter table (a second view: a correct robot in another parametrization may differ here):")
             _print_rows(check_parameters(truth, report, **tols, **src)[0], "parameter")
@@ -106,13 +111,20 @@ def cmd_check(args) -> int:
 
 
 def _print_rows(rows: list[dict], what: str) -> None:
-    print(f"{what:<40}{'true':>14}{'calibrated':>14}{'error':>12}{'tol':>10}  result")
+    """The rows as a table; the predicted error and the ratio observed / predicted where the report has them."""
+    predicted = any(r.get("predicted") is not None for r in rows)
+    extra = f"{'predicted':>12}{'ratio':>8}" if predicted else ""
+    print(f"{what:<40}{'true':>14}{'calibrated':>14}{'error':>12}{extra}{'tol':>10}  result")
     for r in rows:
         cal = "" if r["calibrated"] is None else f"{r['calibrated']:14.6g}"
         err = "" if r["error"] is None else f"{r['error']:12.3g}"
         tol = "" if r["tol"] is None else f"{r['tol']:10.3g}"
         true = "" if r["true"] is None else f"{r['true']:14.6g}"
-        print(f"{r['name']:<40}{true:>14}{cal:>14}{err:>12}{tol:>10}  {r['result']}")
+        more = ""
+        if predicted:
+            p, q = r.get("predicted"), r.get("ratio")
+            more = ("" if p is None else f"{p:12.3g}").rjust(12) + ("" if q is None else f"{q:8.2f}").rjust(8)
+        print(f"{r['name']:<40}{true:>14}{cal:>14}{err:>12}{more}{tol:>10}  {r['result']}")
     bad = sum(r["result"] == "FAIL" for r in rows)
     print(
         f"{sum(r['result'] == 'ok' for r in rows)} within tolerance, {bad} outside, "

@@ -200,21 +200,64 @@ def fig_spectrum(res, snr: float = 1.0) -> bytes:
     return _png(fig)
 
 
-def figures(res, report: dict, snr: float = 1.0) -> dict[str, bytes]:
-    """Figure name -> PNG bytes."""
-    return {
+def fig_accuracy(accuracy) -> bytes:
+    """The predicted error over the workspace (`closedloop.analysis.accuracy.WorkspaceAccuracy`), per
+    followed frame: against the point's reach (its distance from the base), then against each joint's
+    reading; the calibration's own configurations marked as ticks along the axes (where the data are)."""
+    plt = _plt()
+    frames = list(accuracy.frames)
+    J = len(accuracy.joints)
+    cols = max(min(J, 4), 1)
+    rows_j = -(-J // cols)
+    per = 1 + rows_j
+    fig = plt.figure(figsize=(2.6 * cols, 2.4 * len(frames) * per))
+    grid = fig.add_gridspec(len(frames) * per, cols)
+    train = accuracy.training
+    for fi, f in enumerate(frames):
+        top = fi * per
+        ax = fig.add_subplot(grid[top, :])
+        y = f.sigma_m * 1e3
+        if f.reach is not None:
+            ax.plot(f.reach, y, ".", color="#36c", ms=4, label="workspace (predicted)")
+        if f.training_reach is not None:
+            ax.plot(
+                f.training_reach, np.zeros_like(f.training_reach), "|", color="#c44", ms=8, label="calibration data"
+            )
+        ax.set_xlabel("reach: distance from the base [m]", fontsize=8)
+        ax.set_ylabel("predicted error [mm]", fontsize=8)
+        ax.set_title(f"loop {f.loop}: {f.frame}, predicted position error over the workspace", fontsize=10)
+        ax.legend(fontsize=7, loc="upper left")
+        for j, name in enumerate(accuracy.joints):
+            a = fig.add_subplot(grid[top + 1 + j // cols, j % cols])
+            a.plot(accuracy.readings[:, j], y, ".", color="#36c", ms=3)
+            if train is not None and train.shape[1] == J:
+                a.plot(train[:, j], np.zeros(train.shape[0]), "|", color="#c44", ms=6)
+            a.set_title(f"{name} [rad]", fontsize=8)
+            a.tick_params(labelsize=7)
+            if j % cols == 0:
+                a.set_ylabel("[mm]", fontsize=8)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def figures(res, report: dict, snr: float = 1.0, accuracy=None) -> dict[str, bytes]:
+    """Figure name -> PNG bytes (with `accuracy`, the predicted accuracy over the workspace too)."""
+    out = {
         "closure": fig_closure(res, report),
         "corrections": fig_corrections(res),
         "singular_values": fig_spectrum(res, snr),
     }
+    if accuracy is not None and accuracy.frames:
+        out["accuracy"] = fig_accuracy(accuracy)
+    return out
 
 
-def write_plots(res, report: dict, out_dir: str | Path, snr: float = 1.0) -> list[Path]:
+def write_plots(res, report: dict, out_dir: str | Path, snr: float = 1.0, accuracy=None) -> list[Path]:
     """The figures as ``DIR/<name>.png``; returns the paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for name, data in figures(res, report, snr).items():
+    for name, data in figures(res, report, snr, accuracy).items():
         p = out / f"{name}.png"
         atomic_write_text(p, data)
         paths.append(p)
@@ -307,6 +350,7 @@ def _sections(res, report: dict, snr: float = 1.0, row_name=None) -> list[str]:
             )
         )
     out.append("<img alt='closure per configuration' src='data:image/png;base64,{closure}'>")
+    out.append(_accuracy(report))
     prob = res.problem
     rows = [
         [
@@ -346,6 +390,43 @@ def _sections(res, report: dict, snr: float = 1.0, row_name=None) -> list[str]:
     if res.notes:
         out.append("<h2>Notes</h2><ul>" + "".join(f"<li>{_e(n)}</li>" for n in res.notes) + "</ul>")
     return out
+
+
+def _accuracy(report: dict) -> str:
+    """The predicted accuracy over the workspace (the report's ``accuracy`` section) and its figure."""
+    sec = report.get("accuracy") or {}
+    ws = sec.get("workspace")
+    if not ws:
+        return ""
+    rows = [
+        [
+            f["loop"],
+            f["frame"],
+            _g(f.get("predicted_rms_m"), 1e3, ".3g"),
+            _g(f.get("predicted_p95_m"), 1e3, ".3g"),
+            _g(f.get("predicted_max_m"), 1e3, ".3g"),
+            _g(f.get("predicted_max_rad"), 1e3, ".3g"),
+            _g(f.get("predicted_unseen_rms_m"), 1e3, ".3g"),
+        ]
+        for f in ws["frames"]
+    ]
+    s = (
+        "<h2>Predicted accuracy over the workspace</h2><p>"
+        + _e(f"{ws['source']}; error bars from {ws['error_bars']}; base, tool")
+        + _e(" and size" if ws.get("size_removed") else "")
+        + " removed as no loop sees them.</p>"
+        + _table(["loop", "frame", "RMS [mm]", "95 % [mm]", "max [mm]", "max [mrad]", "unseen RMS [mm]"], rows, left=2)
+    )
+    reg = sec.get("regions")
+    if reg and "test" in reg:
+        s += f"<p>{reg['k']} regions of joint space held out in turn (closure of the held-out region):</p>" + _table(
+            ["loop", "held-out [mm]", "held-out [mrad]"],
+            [[t["loop"], _g(t.get("rms_m"), 1e3), _g(t.get("rms_rad"), 1e3)] for t in reg["test"]],
+        )
+    tgt = sec.get("target")
+    if tgt:
+        s += "<p>" + _e(f"accuracy target {tgt['describe']}: {'met' if tgt['met'] else 'not met'}") + "</p>"
+    return s + "<img alt='predicted accuracy' src='data:image/png;base64,{accuracy}'>"
 
 
 def _outliers(res, row_name) -> str:
@@ -424,13 +505,15 @@ def robot_name(res, report: dict) -> str:
     return name or Path(str(report.get("model") or "model")).stem
 
 
-def render_html(res, report: dict, snr: float = 1.0, row_name=None) -> str:
+def render_html(res, report: dict, snr: float = 1.0, row_name=None, accuracy=None) -> str:
     """The page as a string (figures embedded); ``snr`` is the fit's ``--snr`` (the truncation line);
     ``row_name`` (`JointLog.where`: 0-based row -> ``log.csv line 52``) names the rows by file and line."""
-    figs = {k: base64.b64encode(v).decode("ascii") for k, v in figures(res, report, snr).items()}
+    figs = {k: base64.b64encode(v).decode("ascii") for k, v in figures(res, report, snr, accuracy).items()}
     body = "\n".join(_sections(res, report, snr, row_name))
     for k, v in figs.items():
         body = body.replace("{" + k + "}", v)
+    if "accuracy" not in figs:  # no workspace record to draw: no broken image
+        body = body.replace("<img alt='predicted accuracy' src='data:image/png;base64,{accuracy}'>", "")
     title = f"{robot_name(res, report)}: closedloop calibration"
     return (
         f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'><title>{_e(title)}</title>"
@@ -439,5 +522,5 @@ def render_html(res, report: dict, snr: float = 1.0, row_name=None) -> str:
     )
 
 
-def write_html(res, report: dict, path: str | Path, snr: float = 1.0, row_name=None) -> None:
-    atomic_write_text(path, render_html(res, report, snr, row_name))
+def write_html(res, report: dict, path: str | Path, snr: float = 1.0, row_name=None, accuracy=None) -> None:
+    atomic_write_text(path, render_html(res, report, snr, row_name, accuracy))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import asdict, fields
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -317,14 +317,8 @@ def build_report(
 
 
 def accuracy_record(accuracy: AccuracyRecord) -> dict:
-    """The accuracy predictions as plain dicts: each record's ``as_dict()`` (or its dataclass fields)."""
-    out = {}
-    for f in fields(accuracy):
-        value = getattr(accuracy, f.name)
-        if value is None:
-            continue
-        out[f.name] = value.as_dict() if hasattr(value, "as_dict") else asdict(value)
-    return out
+    """The report's ``accuracy`` section of the result's `AccuracyRecord` (`accuracy_section`)."""
+    return accuracy_section(accuracy.workspace, accuracy.regions, accuracy.target)
 
 
 def _shared(prob) -> dict[str, list[str]]:
@@ -338,3 +332,50 @@ def _shared(prob) -> dict[str, list[str]]:
 
 def write_report(report: dict, path: str | Path) -> None:
     atomic_write_text(Path(path), json.dumps(report, indent=2) + "\n")
+
+
+def accuracy_section(workspace, regions: dict | None = None, target: dict | None = None) -> dict:
+    """The report's ``accuracy`` section: the predicted accuracy over the workspace
+    (`closedloop.analysis.accuracy.WorkspaceAccuracy`, per followed frame: RMS, 95th percentile and
+    expected largest error in m and rad, the share from what the data cannot see, the worst
+    configuration), the held-out validation by region (`closedloop.validation.regions`) and the
+    accuracy target (``--accuracy``) with whether the prediction meets it."""
+    ws = None
+    if workspace is not None:
+        ws = {
+            "configurations": int(workspace.readings.shape[0]),
+            "source": workspace.source,
+            # the readings are `closedloop check`'s (random within the joint ranges, seed 0): it compares with them
+            "check_readings": bool(workspace.default_readings),
+            "error_bars": workspace.error_bars,
+            "size_removed": bool(workspace.size_removed),
+            "prior": asdict(workspace.prior),
+            "max_m": _f(workspace.max_m),
+            "max_rad": _f(workspace.max_rad),
+            "better_than_nominal": bool(workspace.better_than_nominal),
+            "frames": [
+                {
+                    "loop": f.loop,
+                    "frame": f.frame,
+                    "kind": f.kind,
+                    "predicted_rms_m": _f(f.rms_m),
+                    "predicted_p95_m": _f(f.p95_m),
+                    "predicted_max_m": _f(f.max_m),
+                    "predicted_rms_rad": _f(f.rms_rad),
+                    "predicted_p95_rad": _f(f.p95_rad),
+                    "predicted_max_rad": _f(f.max_rad),
+                    "predicted_max95_m": _f(f.max95_m),
+                    "predicted_max95_rad": _f(f.max95_rad),
+                    "predicted_unseen_rms_m": _f(f.unseen_rms_m),
+                    "predicted_unseen_rms_rad": _f(f.unseen_rms_rad),
+                    # the nominal model's expected error (its tolerance, same readings and gauge)
+                    "nominal_rms_m": _f(f.nominal_rms_m),
+                    "nominal_rms_rad": _f(f.nominal_rms_rad),
+                    "worst_configuration": dict(f.worst),
+                }
+                for f in workspace.frames
+            ],
+        }
+        if workspace.covariance is not None:  # what `closedloop evaluate` propagates to its own configurations
+            ws["covariance"] = {"parameters": list(workspace.parameters), "matrix": workspace.covariance.tolist()}
+    return {"workspace": ws, "regions": regions, "target": target}

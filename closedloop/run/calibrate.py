@@ -12,11 +12,14 @@ script calls to do the same from Python::
 2. **Load** the model (`model.robot.RobotModel.from_file`), the loops and the log (`closedloop.run.inputs`).
 3. **Calibrate** (`calibration.pipeline.calibrate`: the problem built once, the fit judged by the
    options' `VerdictRules`).
-4. **Validate**: k-fold held-out refits (`validation.kfold.cross_validate`) and, where the loops form
-   several fixtures, leave-one-fixture-out (`validation.fixtures.leave_one_fixture_out`).
-5. **Judge** the fit with the held-out evidence (`calibration.verdict.judge`), every piece of the fit's
-   own judgement kept.
-6. **Write** the model (unless the verdict is failed and not forced), its sensor file, the report, the
+4. **Predict** the calibrated robot's accuracy over the workspace (`analysis.accuracy`, `run.accuracy`).
+5. **Validate**: k-fold held-out refits (`validation.kfold.cross_validate`), whole regions of joint space
+   held out (`validation.regions`) and, where the loops form several fixtures, leave-one-fixture-out
+   (`validation.fixtures.leave_one_fixture_out`).
+6. **Judge** the fit with the held-out evidence (`calibration.verdict.judge`), every piece of the fit's
+   own judgement kept, and the prediction against the nominal model and the accuracy target
+   (`calibration.verdict.judge_workspace`, `judge_accuracy`).
+7. **Write** the model (unless the verdict is failed and not forced), its sensor file, the report, the
    HTML page and figures, published whole (`io.files.OutputSet`; `folder` publishes a whole folder).
 
 Nothing is printed: progress goes to the reporter given (`closedloop.progress.ProgressReporter`,
@@ -68,7 +71,17 @@ def calibrate_files(
     hidden temporary folder beside it and renamed onto it (`io.files.OutputSet`), with ``done.json``
     (`DONE`: the JSON record `done` makes of the run) written last inside."""
     from closedloop.calibration.pipeline import calibrate
+    from closedloop.calibration.verdict import judge_accuracy, judge_workspace
     from closedloop.output.report import build_report
+    from closedloop.records import AccuracyRecord
+    from closedloop.run.accuracy import (
+        next_poses,
+        parse_accuracy,
+        parse_box,
+        predicted_accuracy,
+        region_validation,
+        workspace_readings,
+    )
     from closedloop.run.inputs import load_inputs
 
     o = options
@@ -76,10 +89,14 @@ def calibrate_files(
     check_run_outputs(o)
     inp = load_inputs(o)  # the robot, its loops, the log, the folds, the fit's options
     robot, lg, loops = inp.robot, inp.log, inp.loops
+    if o.workspace and not Path(o.workspace).is_file():
+        parse_box(o.workspace)  # joint ranges: refused now, not after the fit
     t0, c0 = time.perf_counter(), time.process_time()
     res = calibrate(robot, lg, loops, inp.fit, progress=prog)
     _done(prog)
     elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
+    workspace = workspace_readings(o, robot, res.problem.joints)  # where the accuracy is predicted
+    accuracy = predicted_accuracy(res, *workspace)  # over the workspace (closedloop.analysis.accuracy)
     if inp.weighting_note:
         res.notes.append(inp.weighting_note)
     inputs = _input_record(o.readings, inp.fit.weighting, lg, res)  # readings, weighting, where the torques come from
@@ -88,8 +105,14 @@ def calibrate_files(
     t1, c1 = time.perf_counter(), time.process_time()
     cv, cv_record = fold_validation(robot, lg, loops, inp.fit, inp.folds, o.cv is not None, res, prog)
     lofo = fixture_validation(robot, lg, loops, inp.fit, o.lofo, res, prog)
-    res = replace(res, verdict=final_verdict(res, cv, lofo, o.rules))
+    regions = region_validation(robot, lg, loops, inp.fit, o, res, prog)  # whole regions of joint space held out
+    verdict = judge_workspace(final_verdict(res, cv, lofo, o.rules), accuracy)  # no better than nominal: suspect
+    target = None
+    if o.accuracy:  # ok only where the prediction meets the target
+        verdict, target = judge_accuracy(verdict, accuracy, *parse_accuracy(o.accuracy))
+    res = replace(res, verdict=verdict, accuracy=AccuracyRecord(workspace=accuracy, regions=regions, target=target))
     report = build_report(res, o.model, inp.log_name, row_name=lg.where)
+    suggested = next_poses(o, res, accuracy, report)  # the configurations to record next
     report["inputs"] = inputs
     # the fit's time, and the held-out refits' (k-fold and fixtures): with the fit's, the work of the run
     report["solver"] |= {"seconds": elapsed, "cpu_seconds": cpu}
@@ -101,7 +124,7 @@ def calibrate_files(
         report["validation"] = cv_record
     if lofo is not None:
         report["fixture_validation"] = lofo
-    return _write(o, robot, res, report, lg, elapsed, inp.messages, folder, done)
+    return _write(o, robot, res, report, lg, elapsed, inp.messages, folder, done, accuracy, suggested)
 
 
 def check_run_outputs(o: CalibrateOptions) -> None:
@@ -110,7 +133,7 @@ def check_run_outputs(o: CalibrateOptions) -> None:
     from closedloop.errors import require
     from closedloop.io.files import check_outputs
 
-    check_outputs({"--out": o.out, "--report": o.report, "--html": o.html}, [o.model, o.log])
+    check_outputs({"--out": o.out, "--report": o.report, "--html": o.html, "--suggest": o.suggest}, [o.model, o.log])
     if o.plots:
         check_outputs({"--plots": o.plots}, [o.model, o.log], directory=True)
     if o.html or o.plots:
@@ -203,7 +226,9 @@ def final_verdict(res, cv: dict | None, fixtures: dict | None, rules=None):
     return kept
 
 
-def _write(o: CalibrateOptions, robot, res, report: dict, lg, elapsed, messages, folder, done) -> RunResult:
+def _write(
+    o: CalibrateOptions, robot, res, report: dict, lg, elapsed, messages, folder, done, accuracy=None, suggested=None
+) -> RunResult:
     import json
 
     from closedloop.io.files import OutputSet, atomic_write_text
@@ -216,7 +241,10 @@ def _write(o: CalibrateOptions, robot, res, report: dict, lg, elapsed, messages,
     sensors = sensors_path(model_out) if model_out else None  # what the model file cannot carry, beside it
     run = RunResult(res, report, lg, elapsed, model_out is not None, sensors, [], messages)
     marker = Path(folder) / DONE if folder is not None and done is not None else None
-    with OutputSet(order=[model_out, sensors, o.report, marker], folder=folder):  # model first
+    suggest = o.suggest if suggested else None
+    with OutputSet(order=[model_out, sensors, suggest, o.report, marker], folder=folder):  # model first
+        if suggest:
+            atomic_write_text(suggest, suggested)
         if o.report:
             write_report(report, o.report)
         if model_out:
@@ -229,9 +257,9 @@ def _write(o: CalibrateOptions, robot, res, report: dict, lg, elapsed, messages,
         from closedloop.output.html import write_html, write_plots
 
         if o.html:
-            write_html(res, report, o.html, o.snr, row_name=lg.where)
+            write_html(res, report, o.html, o.snr, row_name=lg.where, accuracy=accuracy)
         if o.plots:
-            run = replace(run, figures=[Path(p) for p in write_plots(res, report, o.plots, o.snr)])
+            run = replace(run, figures=[Path(p) for p in write_plots(res, report, o.plots, o.snr, accuracy)])
     return run
 
 

@@ -195,6 +195,39 @@ class CalibrateOptions:
         kind="choice",
         choices=("auto", "off"),
     )
+    regions: int = option(
+        4,
+        "held-out validation by region: K regions of joint space left out in turn (default 4; 0 disables)",
+        kind="int",
+        lo=0,
+        hi=10**4,
+        metavar="K",
+    )
+    workspace: str | None = option(
+        None,
+        "where the accuracy is predicted: a log of joint readings, or joint ranges joint=lo:hi,... "
+        "(default: 200 random readings within the joint limits)",
+        kind="text",
+        metavar="LOG|RANGES",
+    )
+    accuracy: str | None = option(
+        None,
+        "accuracy target over the workspace, e.g. 0.2mm, 1mrad or 0.2mm,1mrad: the verdict is ok only "
+        "where the predicted largest error meets it",
+        kind="text",
+        metavar="TARGET",
+    )
+    suggest: str | None = option(
+        None,
+        "write the configurations to record next (CSV of joint readings at the loop's place) that most "
+        "reduce the predicted error over the workspace",
+        kind="text",
+        metavar="FILE",
+        where=(CLI,),
+    )
+    suggest_n: int = option(
+        10, "how many configurations --suggest writes (default 10)", kind="int", lo=1, hi=10**4, metavar="N"
+    )
     rules: VerdictRules | None = field(default=None, metadata={"kind": "rules", "where": ()})
 
     def __post_init__(self) -> None:
@@ -237,6 +270,12 @@ def checked(opts: CalibrateOptions, spell=lambda name: name) -> dict[str, Any]:
         out[f.name] = check_value(f.name, value, spell(f.name))
     if out["model"] in (None, ""):
         raise InputError(f"{spell('model')}: the robot model is required")
+    if out["regions"] == 1:
+        raise InputError(f"{spell('regions')} 1: region validation needs 2 regions or more (or 0 to disable)")
+    if out["accuracy"] is not None:
+        from closedloop.run.accuracy import parse_accuracy
+
+        parse_accuracy(str(out["accuracy"]))  # refused now, not after the fit
     if out["log"] in (None, "") and not (out["loop"] and all("log=" in s for s in out["loop"])):
         raise InputError(
             "calibrate: the following arguments are required: log (or give every loop its own "

@@ -27,6 +27,7 @@ import json
 import numpy as np
 import pinocchio as pin
 
+from closedloop.analysis.accuracy import N_WORKSPACE, POINT_LOOPS, POSE_LOOPS, SIZE_BLIND, random_readings
 from closedloop.errors import InputError
 
 NOMINAL = {"placement": 0.0, "offset": 0.0, "scale": 1.0}
@@ -187,11 +188,8 @@ def _row(name, true, cal, err, tol, result):
 
 
 # --------------------------------------------------------------------------- what the robots do
-POINT_LOOPS = ("PointLoop", "PlaneLoop", "MeasuredPointLoop", "point", "plane", "measured_point")
-POSE_LOOPS = ("WeldLoop", "HingeLoop", "MeasuredPoseLoop", "weld", "hinge", "measured_pose")
 CAMERA_LOOPS = ("CameraLoop", "camera")  # followed by their marker: a tool point on the robot, in the world
-SIZE_BLIND = ("PointLoop", "PlaneLoop", "WeldLoop", "HingeLoop", "point", "plane", "weld", "hinge")
-N_CHECK = 200  # configurations the robots are compared at
+N_CHECK = N_WORKSPACE  # configurations the robots are compared at: those the accuracy is predicted at
 
 
 def _robot_of(report: dict, model, report_source: str, required: bool):
@@ -318,12 +316,7 @@ def check_kinematics(
     cal = {p["name"]: p["calibrated"] for p in report["parameters"] if isinstance(p, dict)}
     loops = _followed_loops(report)
     joints = [j for j in report.get("joints", []) if j in robot.joints] or robot.joint_names
-    rng = np.random.default_rng(seed)
-    lo = np.array([max(robot.joint(j).lower, -np.pi) for j in joints])
-    hi = np.array([min(robot.joint(j).upper, np.pi) for j in joints])
-    bad = ~(hi > lo)
-    lo[bad], hi[bad] = -np.pi, np.pi
-    readings = rng.uniform(lo, hi, (n, len(joints)))
+    readings = random_readings(robot, joints, n, seed)  # the readings the report's prediction is made at
     rp_c, x_c = _values(robot, cal)
     true_robot = true_robot or robot
     missing = [j for j in joints if j not in true_robot.joints]
@@ -431,4 +424,48 @@ def check_kinematics(
         )
     for r in rows:
         r["view"] = "kinematics"
+    if n == N_CHECK and seed == 0:  # the readings the report's prediction was made at
+        with_prediction(rows, report, [(it[0], it[2]) for it in items])
     return rows, all(r["result"] != "FAIL" for r in rows)
+
+
+def with_prediction(rows: list[dict], report: dict, frames: list[tuple[str, str]]) -> None:
+    """Beside each observed error, the report's predicted one (`closedloop.analysis.accuracy`: the expected
+    largest error over the same readings, 'predicted'; 95 % of calibrated robots stay below 'bound') and
+    their ratio ('ratio' = observed / predicted).  Nothing where the report has no prediction at these
+    readings (an older report, or one predicted at a ``--workspace`` of its own)."""
+    from closedloop.io.schemas import is_number
+
+    acc = report.get("accuracy")
+    ws = acc.get("workspace") if isinstance(acc, dict) else None
+    if not isinstance(ws, dict) or not ws.get("check_readings") or not isinstance(ws.get("frames"), list):
+        return
+    pred = {f.get("loop"): f for f in ws["frames"] if isinstance(f, dict)}
+    for loop, _ in frames:
+        f = pred.get(loop)
+        if f is None:
+            continue
+        for r in rows:
+            if not r["name"].startswith(f"{loop}: "):
+                continue
+            unit = "m" if r["name"].endswith(" position") else "rad" if r["name"].endswith(" rotation") else None
+            p, bound = f.get(f"predicted_max_{unit}"), f.get(f"predicted_max95_{unit}")
+            if unit is None or not isinstance(p, (int, float)) or not is_number(p) or p <= 0:
+                continue
+            r["predicted"] = float(p)
+            r["bound"] = float(bound) if isinstance(bound, (int, float)) and is_number(bound) else None
+            r["ratio"] = r["error"] / r["predicted"] if r["error"] is not None else None
+
+
+def prediction_finding(rows: list[dict]) -> str | None:
+    """One line: whether every observed error is within the report's prediction (below its 95 % bound of
+    the largest error), with the largest ratio observed / predicted; None where nothing was predicted."""
+    compared = [r for r in rows if r.get("ratio") is not None]
+    if not compared:
+        return None
+    worst = max(compared, key=lambda r: r["ratio"])
+    outside = [r for r in compared if r.get("bound") is not None and r["error"] > r["bound"]]
+    if not outside:
+        return f"observed within prediction: the largest error is {worst['ratio']:.2g}x the predicted ({worst['name']})"
+    names = ", ".join(f"{r['name']} {r['ratio']:.2g}x" for r in outside)
+    return f"observed NOT within prediction (above the 95 % bound of the largest error): {names}"

@@ -202,3 +202,81 @@ def table(evals: list[Evaluation]) -> str:
         tot = f"{e.mean_m * 1e3:.3f}/{e.rms_m * 1e3:.3f} mm" if e.rms_m is not None and e.mean_m is not None else ""
         lines.append(f"{e.model:<{width}}  " + "  ".join(f"{c:>14}" for c in cells) + f"  {tot:>16}")
     return "\n".join(lines)
+
+
+#: an observed closure within this factor of the predicted one is "within prediction" (`compare_prediction`)
+WITHIN = 2.0
+
+
+def compare_prediction(
+    ev: Evaluation, report: dict, robot: RobotModel, log_: JointLog, loops: list[Loop], values: dict | None = None
+) -> list[dict]:
+    """The calibration's prediction beside what `evaluate_model` observed on `log_`, per loop.
+
+    The closure of a calibrated model on configurations it was not fitted to is, to first order, the
+    model's error at them with the loop's place refitted, and the readings' noise.  The first is the
+    report's parameter uncertainty (`accuracy.workspace.covariance`, the one its workspace prediction
+    propagates) propagated to these configurations (`closedloop.analysis.accuracy.predict_closure`); the
+    second the fit's own closure RMS (`residuals.after`): predicted RMS = sqrt(model^2 + fit^2), for
+    positions and rotations.  Rows: loop, unit, observed and predicted RMS, their ratio; [] where the
+    report has no prediction.
+    """
+    from closedloop.analysis.accuracy import predict_closure
+    from closedloop.calibration.pipeline import build_problem
+
+    acc = report.get("accuracy") if isinstance(report, dict) else None
+    ws = acc.get("workspace") if isinstance(acc, dict) else None
+    cov = ws.get("covariance") if isinstance(ws, dict) else None
+    if not isinstance(cov, dict) or not cov.get("parameters"):
+        return []
+    loops = [lp for lp in loops if not getattr(lp, "parameter_only", False)]
+    problem = build_problem(robot, log_, loops)
+    x = problem.nominal
+    for name, v in {**(values or {}), **ev.values, **ev.held}.items():
+        if name in problem.index:
+            x[problem.index[name]] = float(v)
+    model = {r["loop"]: r for r in predict_closure(problem, x, list(cov["parameters"]), np.array(cov["matrix"]))}
+    after = {r.get("loop"): r for r in (report.get("residuals") or {}).get("after", []) if isinstance(r, dict)}
+    out = []
+    for lp in ev.loops:
+        m, fit = model.get(lp["loop"]), after.get(lp["loop"], {})
+        if m is None:
+            continue
+        for unit in ("m", "rad"):
+            obs, part = lp.get(f"rms_{unit}"), m.get(f"rms_{unit}")
+            if obs is None or part is None:
+                continue
+            p = float(np.hypot(part, fit.get(f"rms_{unit}") or 0.0))
+            out.append(
+                {
+                    "loop": lp["loop"],
+                    "unit": unit,
+                    "observed_rms": float(obs),
+                    "predicted_rms": p,
+                    "ratio": float(obs) / p if p > 0 else None,
+                }
+            )
+    return out
+
+
+def prediction_lines(model: str, rows: list[dict]) -> list[str]:
+    """The comparison of `compare_prediction` as lines, and the finding: within prediction or not."""
+    if not rows:
+        return []
+    f = {"m": (1e3, "mm"), "rad": (1e3, "mrad")}
+    lines = []
+    for r in rows:
+        k, u = f[r["unit"]]
+        ratio = "" if r["ratio"] is None else f" (ratio {r['ratio']:.2f})"
+        lines.append(
+            f"  {model}: loop {r['loop']}: closure RMS {r['observed_rms'] * k:.4g} {u} observed, "
+            f"{r['predicted_rms'] * k:.4g} {u} predicted by its calibration{ratio}"
+        )
+    out = [r for r in rows if r["ratio"] is not None and r["ratio"] > WITHIN]
+    lines.append(
+        f"  {model}: observed within prediction (within {WITHIN:g}x)"
+        if not out
+        else f"  {model}: observed NOT within prediction: "
+        + ", ".join(f"loop {r['loop']} {r['ratio']:.2g}x ({r['unit']})" for r in out)
+    )
+    return lines

@@ -189,8 +189,12 @@ def cross_validate(
     executor=None,
     progress: ProgressReporter | None = None,
     exclude=None,
+    parts: list[np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """k-fold cross-validation with the same options on every fold.
+
+    `parts`: the held-out sets (0-based rows, disjoint) where they are not the random `folds` (the
+    regions of joint space of `closedloop.validation.regions`).
 
     `exclude`: rows of `log_` (0-based) whose closure no fold judges, the full calibration's rejected
     outliers (``[rj.row - 1 for rj in result.outliers.rejected]``); they stay in the refits' data, whose outlier
@@ -215,7 +219,7 @@ def cross_validate(
     a calibration of its own).
     """
     opt = options or CalibrationOptions()
-    parts = folds(log_, k, seed)
+    parts = folds(log_, k, seed) if parts is None else parts
     per_fold = []
     ref = None
     from closedloop.parallel.executor import (

@@ -1,0 +1,46 @@
+"""The summary's lines of a run's predicted accuracy (the report's ``accuracy`` section,
+`closedloop.output.report.accuracy_record`; computed by `closedloop.run.accuracy`)."""
+
+from __future__ import annotations
+
+
+def accuracy_lines(section: dict | None) -> list[str]:
+    """The summary's lines of the report's ``accuracy`` section (`output.report.accuracy_record`)."""
+    if not section or not section.get("workspace"):
+        return []
+    ws = section["workspace"]
+    lines = [f"predicted accuracy over the workspace ({ws['source']}; error bars from {ws['error_bars']}):"]
+    for f in ws["frames"]:
+        parts = [f"{f['predicted_max_m'] * 1e3:.3g} mm"]
+        if f.get("predicted_max_rad") is not None:
+            parts.append(f"{f['predicted_max_rad'] * 1e3:.3g} mrad")
+        rms = f"{f['predicted_rms_m'] * 1e3:.3g} mm"
+        nom = f.get("nominal_rms_m")
+        rms += f", nominal model {nom * 1e3:.3g} mm" if nom is not None else ""
+        lines.append(
+            f"  loop {f['loop']}: {'tool point' if f['kind'] == 'point' else 'frame'} {f['frame']}: "
+            f"{', '.join(parts)} at most (RMS {rms}; {f['predicted_unseen_rms_m'] * 1e3:.3g} mm RMS from what "
+            "the data cannot see)"
+        )
+    reg = section.get("regions")
+    if reg and "test" in reg:
+        for t in reg["test"]:
+            if t.get("rms_m") is None and t.get("rms_rad") is None:
+                continue
+            parts = [f"{t['rms_m'] * 1e3:.4g} mm" if t.get("rms_m") is not None else ""]
+            parts.append(f"{t['rms_rad'] * 1e3:.4g} mrad" if t.get("rms_rad") is not None else "")
+            lines.append(
+                f"  {reg['k']} regions held out in turn, loop {t['loop']}: held-out closure RMS "
+                + ", ".join(p for p in parts if p)
+            )
+    tgt = section.get("target")
+    if tgt:
+        lines.append(f"  target {tgt['describe']}: {'met' if tgt['met'] else 'NOT met'} by the prediction")
+    nxt = section.get("next_poses")
+    if nxt:
+        lines.append(
+            f"  next: {nxt['configurations']} configurations of loop {nxt['loop']} in {nxt['file']}: predicted "
+            f"RMS {nxt['predicted_rms_before_m'] * 1e3:.3g} mm -> {nxt['predicted_rms_after_m'][-1] * 1e3:.3g} mm "
+            "once recorded and calibrated again"
+        )
+    return lines

@@ -1,0 +1,129 @@
+"""The next configurations to record: those that most reduce the predicted error over the workspace.
+
+The pose selection of `closedloop.design.poses` turned to the workspace target.  A calibration's
+prediction (`closedloop.analysis.accuracy.WorkspaceAccuracy`) carries the parameters' covariance Sigma
+(estimated and unseen, over the parameters that move a followed frame) and the gauge-free workspace
+matrix A (the frames' position errors per parameter over the workspace readings): the predicted mean
+squared position error is tr(A Sigma A^T) / n.
+
+**Candidates.**  Configurations the loop can be recorded at, at its current place (the same socket,
+fixture, hinge): random readings within the joint limits, each moved onto the loop by Gauss-Newton on
+the calibrated model's closure, theta <- theta - Jq^+ r(theta) (Jq the closure's derivative with respect
+to the readings, `LoopBlock` evaluation at new readings), kept where the closure falls below 1e-9 and the
+readings stay within the limits.
+
+**Selection** (I-optimal, greedy): a candidate i adds the information B_i^T B_i, B_i its closure
+Jacobian over the parameters whitened by the joint noise, S_i = sigma^2 Jq_i Jq_i^T (thesis eq. 4.17's
+weighting, errors in variables).  Adding it lowers the covariance to
+Sigma - Sigma B_i^T (I + B_i Sigma B_i^T)^-1 B_i Sigma (Sherman-Morrison-Woodbury) and the objective by
+tr(A Sigma B_i^T (I + B_i Sigma B_i^T)^-1 B_i Sigma A^T); the candidate with the largest fall is taken,
+Sigma updated, and so on.  The loop's own unknowns (its place) are taken as known: the new rows are
+recorded at the place the data already fixed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from closedloop.analysis.accuracy import joint_ranges
+from closedloop.problem.problem import CalibrationProblem
+
+N_CANDIDATES = 400  # random starts moved onto the loop
+CLOSED = 1e-9  # a candidate's closure (m, rad) below which it is on the loop
+
+
+@dataclass(frozen=True)
+class NextPoses:
+    """The suggested configurations and the predicted error over the workspace before and after them."""
+
+    loop: str
+    joints: tuple[str, ...]
+    readings: np.ndarray = field(repr=False)  # (k, joints) in the order chosen
+    rms_before_m: float  # predicted RMS position error over the workspace, every followed frame
+    rms_after_m: np.ndarray = field(repr=False)  # (k,) after the first 1, 2, ... k suggestions
+    candidates: int  # configurations on the loop the choice was made among
+
+
+def _sub_problem(problem: CalibrationProblem, block_index: int, values: np.ndarray):
+    """The problem of one loop (its block alone) and the parameter vector mapped to it by name."""
+    sub = CalibrationProblem(problem.robot, problem.joints, [problem.blocks[block_index]], problem.priors)
+    x = np.array([values[problem.index[n]] for n in sub.names], dtype=float)
+    return sub, x
+
+
+def loop_candidates(
+    problem: CalibrationProblem, values: np.ndarray, block_index: int, n: int = N_CANDIDATES, seed: int = 0
+) -> np.ndarray:
+    """Readings (k, joints) on the loop of block `block_index` at its current place (module docstring)."""
+    sub, x = _sub_problem(problem, block_index, values)
+    lo, hi = joint_ranges(problem.robot, problem.joints)
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(lo, hi, (n, len(problem.joints)))
+    r = np.full((n, 1), np.inf)
+    for _ in range(40):
+        ev = sub.evaluate(x, True, thetas=[X], columns=[])[0]
+        r = ev.r
+        if ev.Jq is None:
+            return np.zeros((0, len(problem.joints)))
+        step = np.einsum("nij,nj->ni", np.linalg.pinv(ev.Jq, rcond=1e-8), r)
+        X = X - step
+        if np.all(np.linalg.norm(step, axis=1) < 1e-12):
+            break
+    r = sub.evaluate(x, False, thetas=[X])[0].r
+    ok = np.all(np.isfinite(r), axis=1) & (np.linalg.norm(r, axis=1) < CLOSED)
+    ok &= np.all((X >= lo) & (X <= hi), axis=1)
+    return X[ok]
+
+
+def suggest_poses(
+    res, workspace, k: int = 10, block_index: int = 0, n_candidates: int = N_CANDIDATES, seed: int = 0
+) -> NextPoses | None:
+    """The `k` configurations of loop `block_index` that most reduce the predicted workspace error of
+    `workspace` (`WorkspaceAccuracy` of the calibration `res`), greedily (module docstring); None where
+    the prediction has no design matrix, the loop measures something at each row (a tracker, a camera:
+    its future measurements are not known) or no candidate closes the loop."""
+    problem = res.problem
+    b = problem.blocks[block_index]
+    if workspace is None or workspace.design is None or workspace.covariance is None or b.meas is not None:
+        return None
+    values = np.asarray(res.fit.values, dtype=float)
+    C = loop_candidates(problem, values, block_index, n_candidates, seed)
+    if not C.shape[0]:
+        return None
+    sub, x = _sub_problem(problem, block_index, values)
+    names = list(workspace.parameters)
+    cols = [sub.index[n] for n in names if n in sub.index]
+    keep = [i for i, n in enumerate(names) if n in sub.index]
+    ev = sub.evaluate(x, True, thetas=[C], columns=cols)[0]
+    sigma = max(float(res.noise.sigma), 1e-9)
+    B = np.zeros((C.shape[0], ev.r.shape[1], len(names)))
+    Jq = ev.Jq if ev.Jq is not None else np.zeros((C.shape[0], ev.r.shape[1], 0))
+    S = sigma**2 * Jq @ np.swapaxes(Jq, 1, 2) + (1e-12 * sigma) ** 2 * np.eye(ev.r.shape[1])
+    Wi = np.linalg.inv(np.linalg.cholesky(S))  # whitening: B_i = L_i^-1 J_i
+    B[:, :, keep] = Wi @ ev.jacobian()
+    A = workspace.design
+    Sig = np.array(workspace.covariance, dtype=float)
+    n = workspace.readings.shape[0]
+    before = float(np.sqrt(np.trace(A @ Sig @ A.T) / (n * len(workspace.frames))))
+    chosen: list[int] = []
+    after = []
+    for _ in range(min(k, C.shape[0])):
+        M = B @ Sig  # (K, m, P)
+        Si = np.eye(B.shape[1]) + M @ np.swapaxes(B, 1, 2)
+        T = np.einsum("rp,kmp->krm", A, M)  # A Sigma B_i^T
+        gain = np.einsum("krm,krm->k", T, np.linalg.solve(Si, np.swapaxes(T, 1, 2)).swapaxes(1, 2))
+        gain[chosen] = -np.inf
+        i = int(np.argmax(gain))
+        chosen.append(i)
+        Sig = Sig - M[i].T @ np.linalg.solve(Si[i], M[i])
+        after.append(float(np.sqrt(max(np.trace(A @ Sig @ A.T), 0.0) / (n * len(workspace.frames)))))
+    return NextPoses(
+        loop=b.loop.name,
+        joints=tuple(problem.joints),
+        readings=C[chosen],
+        rms_before_m=before,
+        rms_after_m=np.array(after),
+        candidates=int(C.shape[0]),
+    )

@@ -1,0 +1,85 @@
+"""Held-out validation by region of joint space: the held-out figure of extrapolation.
+
+Random folds (`closedloop.validation.kfold`) hold out rows drawn from the same region as the training
+rows: they measure interpolation, and say little about configurations unlike those recorded.  Here the
+held-out sets are whole regions: the log's configurations are grouped by k-means
+(`scipy.cluster.vq.kmeans2`) on their readings, each joint scaled by its range over the joint limits
+(`closedloop.analysis.accuracy.joint_ranges`) so that a radian of a short-range joint weighs as much
+as its share of the workspace; each region is left out in turn, the calibration refitted on the others
+with the same options and the held-out region's closure evaluated at the refit's values
+(`kfold.cross_validate` with these sets).  A calibration that holds only where it was fitted shows a
+held-out closure far above the random folds'.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from closedloop.analysis.accuracy import joint_ranges
+from closedloop.calibration.pipeline import CalibrationOptions
+from closedloop.errors import ParameterError
+from closedloop.io.logs import JointLog
+from closedloop.loops.base import Loop
+from closedloop.model.robot import RobotModel
+from closedloop.progress import ProgressReporter
+from closedloop.validation.kfold import cross_validate
+
+N_REGIONS = 4  # regions left out in turn (the default of `closedloop calibrate --regions`)
+
+
+def regions(
+    log_: JointLog, robot: RobotModel, joints: list[str], k: int = N_REGIONS, seed: int = 0
+) -> list[np.ndarray]:
+    """k disjoint sets of row indices (0-based) of the log, each a region of joint space (module docstring).
+
+    Regions are k-means clusters of the readings of `joints` scaled by their ranges; an empty cluster is
+    dropped (fewer regions than k on a log of few distinct configurations).
+    """
+    from scipy.cluster.vq import kmeans2
+
+    if k < 2:
+        raise ParameterError("region validation needs k >= 2 regions")
+    if len(log_) < 2 * k:
+        raise ParameterError(
+            f"region validation with {k} regions needs at least {2 * k} rows; {log_.source or 'the log'} has {len(log_)}"
+        )
+    X = log_.columns(joints)
+    lo, hi = joint_ranges(robot, joints)
+    Z = (X - lo) / (hi - lo)
+    moving = np.ptp(Z, axis=0) > 0
+    Z = Z[:, moving] if moving.any() else Z
+    _, labels = kmeans2(Z, k, seed=seed, minit="++")
+    return [np.flatnonzero(labels == c) for c in range(k) if np.any(labels == c)]
+
+
+def region_validate(
+    robot: RobotModel,
+    log_: JointLog,
+    loops: list[Loop],
+    joints: list[str],
+    options: CalibrationOptions | None = None,
+    k: int = N_REGIONS,
+    seed: int = 0,
+    exclude=None,
+    executor=None,
+    progress: ProgressReporter | None = None,
+) -> dict[str, Any]:
+    """Leave each region of `regions` out in turn (module docstring): `kfold.cross_validate`'s record
+    over these held-out sets, with 'regions' (the rows of each, 0-based) and 'k' their number."""
+    parts = regions(log_, robot, joints, k, seed)
+    out = cross_validate(
+        robot,
+        log_,
+        loops,
+        options,
+        k=len(parts),
+        seed=seed,
+        executor=executor,
+        progress=progress,
+        exclude=exclude,
+        parts=parts,
+    )
+    out["regions"] = [p.tolist() for p in parts]
+    return out

@@ -1,0 +1,330 @@
+"""Predicted accuracy over the workspace (`closedloop.analysis.accuracy`), the held-out validation by
+region (`closedloop.validation.regions`), and check's comparison of the prediction with the truth.
+
+Data from the robot zoo (`tests/zoo.py`: errors on every joint origin, a generator independent of
+closedloop's parametrization), judged by `closedloop check`'s kinematic view against the true URDF.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+
+import numpy as np
+import pytest
+import zoo
+
+from closedloop import CalibrationOptions, RobotModel, calibrate
+from closedloop.analysis.accuracy import PriorTolerance, predict_from_result, random_readings
+from closedloop.calibration.verdict import judge_accuracy, judge_workspace
+from closedloop.cli.main import main
+from closedloop.errors import InputError
+from closedloop.io.logs import JointLog
+from closedloop.loops.spec import parse_loop
+from closedloop.output.report import accuracy_section, build_report, verdict_record
+from closedloop.run.accuracy import parse_accuracy, parse_box
+from closedloop.validation.check import check_kinematics, prediction_finding
+from closedloop.validation.kfold import folds
+from closedloop.validation.regions import regions
+
+
+@functools.lru_cache(maxsize=None)
+def _case(robot: str, loop: str, sigma: float):
+    return zoo.make_case(robot, loop, n=60, sigma=sigma, seed=0)
+
+
+def _judged(case, readings: np.ndarray):
+    """Calibrate `readings` of the case's configurations; (result, prediction, check's rows with it)."""
+    robot = RobotModel.from_file(case.nominal_urdf)
+    loops = [parse_loop(s, robot) for s in case.loop_specs]
+    res = calibrate(robot, JointLog(list(case.joints), readings), loops, CalibrationOptions())
+    acc = predict_from_result(res)
+    report = build_report(res)
+    report["verdict"] = verdict_record(res.verdict)
+    report["accuracy"] = accuracy_section(acc)
+    truth = {"parameters": {f"{j}.offset": float(v) for j, v in case.true_offsets.items()}}
+    true_robot = RobotModel.from_file(case.nominal_urdf.parent / "truth.urdf")
+    rows, _ = check_kinematics(truth, report, robot, 1e-3, 5e-3, 5e-3, true_robot=true_robot)
+    return res, acc, rows, report, truth
+
+
+def test_prediction_matches_the_observed_error_over_noise_draws():
+    """One-socket point loop on a UR5, 1e-4 rad of joint noise: over six noise draws, the observed largest
+    tool error over the workspace (check, against the true robot) is within a factor 2 of the predicted one
+    on average; and check's row carries the prediction and the ratio."""
+    case = _case("ur5", "point", 1e-4)
+    offsets = np.array([case.true_offsets[j] for j in case.joints])
+    rng = np.random.default_rng(11)
+    observed, predicted = [], []
+    for _ in range(6):
+        readings = case.q_true - offsets + rng.normal(scale=1e-4, size=case.q_true.shape)
+        res, acc, rows, _, _ = _judged(case, readings)
+        row = rows[0]
+        assert row["name"].endswith("position") and row["predicted"] == pytest.approx(acc.frames[0].max_m)
+        assert row["ratio"] == pytest.approx(row["error"] / row["predicted"])
+        observed.append(row["error"])
+        predicted.append(row["predicted"])
+    ratio = np.mean(observed) / np.mean(predicted)
+    assert 0.5 < ratio < 2.0, (observed, predicted)
+    # the noise sets the error: about 0.1 mm per 1e-5 rad, nothing from what the data cannot see
+    assert 2e-4 < np.mean(predicted) < 1e-2
+    assert acc.frames[0].unseen_rms_m < 0.05 * acc.frames[0].rms_m
+
+
+def test_unseen_parameters_enter_with_the_nominal_tolerance():
+    """A weld on a 7-DOF arm sees the arm along its self-motion only: the parameters it cannot see move the
+    tool over the joint ranges, and enter the prediction in proportion to the nominal tolerance."""
+    case = _case("baxter_left", "weld", 1e-5)
+    robot = RobotModel.from_file(case.nominal_urdf)
+    loops = [parse_loop(s, robot) for s in case.loop_specs]
+    res = calibrate(robot, JointLog(list(case.joints), case.readings), loops, CalibrationOptions())
+    base = predict_from_result(res)
+    wide = predict_from_result(res, prior=PriorTolerance(length_m=1e-2, angle_rad=1e-2, offset_rad=0.1))
+    f, g = base.frames[0], wide.frames[0]
+    assert f.unseen_rms_m > 0.0
+    assert g.unseen_rms_m == pytest.approx(10 * f.unseen_rms_m, rel=1e-6)
+    assert g.rms_m > f.rms_m
+    # the prediction of the default prior against the truth on this draw: within a factor 2
+    _, _, rows, _, _ = _judged(case, case.readings)
+    assert all(0.5 < r["ratio"] < 2.0 for r in rows if r.get("ratio") is not None), rows
+
+
+def test_regions_are_compact_and_cover_the_log():
+    """k-means regions: disjoint, covering every row, and farther from the rest of the log than random folds."""
+    case = _case("ur5", "point", 1e-5)
+    robot = RobotModel.from_file(case.nominal_urdf)
+    lg = JointLog(list(case.joints), case.readings)
+    parts = regions(lg, robot, list(case.joints), k=4)
+    assert len(parts) >= 3
+    assert np.array_equal(np.sort(np.concatenate(parts)), np.arange(len(lg)))
+
+    def gap(sets):  # mean distance of a held-out row to its nearest training row
+        X = case.readings
+        d = []
+        for s in sets:
+            rest = np.setdiff1d(np.arange(len(X)), s)
+            d.extend(np.min(np.linalg.norm(X[s, None] - X[None, rest], axis=2), axis=1))
+        return float(np.mean(d))
+
+    assert gap(parts) > 1.2 * gap(folds(lg, 4))
+
+
+def test_region_holdout_in_the_cli_report(tmp_path, capsys):
+    """calibrate: the region validation and the prediction in the report and the summary's first lines;
+    check: the predicted error beside the observed and the line 'observed within prediction' (or not)."""
+    case = _case("ur5", "point", 1e-5)
+    rep = tmp_path / "r.json"
+    rc = main(
+        [
+            "calibrate",
+            str(case.nominal_urdf),
+            str(case.log_csv),
+            "--loop",
+            case.loop_specs[0],
+            "--report",
+            str(rep),
+            "--cv",
+            "0",
+            "--regions",
+            "3",
+        ]
+    )
+    out = capsys.readouterr().out.splitlines()
+    assert rc == 0
+    assert out[0].startswith("verdict:") and out[1].startswith("predicted accuracy over the workspace")
+    assert any("3 regions held out in turn" in line for line in out)
+    report = json.loads(rep.read_text())
+    ws = report["accuracy"]["workspace"]
+    frame = ws["frames"][0]
+    assert ws["check_readings"] and frame["predicted_max_m"] >= frame["predicted_p95_m"] >= 0.0
+    assert frame["predicted_max95_m"] >= frame["predicted_max_m"]
+    assert set(frame["worst_configuration"]) == set(case.joints)
+    reg = report["accuracy"]["regions"]
+    assert reg["k"] == 3 and sum(reg["rows"]) == 60 and reg["test"][0]["rms_m"] > 0
+    truth = tmp_path / "truth.json"
+    truth.write_text(
+        json.dumps(
+            {
+                "parameters": {f"{j}.offset": float(v) for j, v in case.true_offsets.items()},
+                "model": str(case.nominal_urdf.parent / "truth.urdf"),
+            }
+        )
+    )
+    main(["check", str(truth), str(rep)])
+    text = capsys.readouterr().out
+    assert "predicted" in text.splitlines()[1] and "ratio" in text.splitlines()[1]
+    assert "observed within prediction" in text or "observed NOT within prediction" in text
+
+
+def test_prediction_finding_names_what_is_outside():
+    rows = [
+        {"name": "a: tool point f position", "error": 3e-3, "predicted": 1e-3, "bound": 2e-3, "ratio": 3.0},
+        {"name": "b: frame g rotation", "error": 1e-3, "predicted": 1e-3, "bound": 2e-3, "ratio": 1.0},
+    ]
+    line = prediction_finding(rows)
+    assert (
+        line is not None and line.startswith("observed NOT within prediction") and "a: tool point f position 3x" in line
+    )
+    line = prediction_finding(rows[1:])
+    assert line is not None and line.startswith("observed within prediction")
+    assert prediction_finding([{"name": "size", "error": 0.0}]) is None
+
+
+def test_accuracy_target_makes_ok_impossible_above_it():
+    """--accuracy: a prediction above the target is never ok; below it the verdict is untouched."""
+    case = _case("ur5", "point", 1e-5)
+    robot = RobotModel.from_file(case.nominal_urdf)
+    loops = [parse_loop(s, robot) for s in case.loop_specs]
+    res = calibrate(robot, JointLog(list(case.joints), case.readings), loops, CalibrationOptions())
+    acc = predict_from_result(res)
+    assert res.verdict.status == "ok"
+    v, rec = judge_accuracy(res.verdict, acc, 0.5 * acc.max_m, None)
+    assert v.status == "suspect" and not rec["met"] and "accuracy target not met" in v.reasons[-1]
+    v, rec = judge_accuracy(res.verdict, acc, 2.0 * acc.max_m, None)
+    assert v.status == "ok" and rec["met"]
+    assert res.verdict.status == "ok"  # the verdict given is not changed
+
+
+def test_no_better_than_the_nominal_model_is_suspect():
+    """The nominal model's expected error (its tolerance propagated alike) beside the calibrated one's: a
+    calibration predicted no better than the nominal model is suspect."""
+    from dataclasses import replace
+
+    case = _case("ur5", "point", 1e-5)
+    robot = RobotModel.from_file(case.nominal_urdf)
+    loops = [parse_loop(s, robot) for s in case.loop_specs]
+    res = calibrate(robot, JointLog(list(case.joints), case.readings), loops, CalibrationOptions())
+    acc = predict_from_result(res)
+    f = acc.frames[0]
+    # the nominal model within 1 mm / 1 mrad / 10 mrad: millimetres at the tool; calibrated: a tenth of that
+    assert f.nominal_rms_m > 1e-3 and f.rms_m < 0.1 * f.nominal_rms_m and acc.better_than_nominal
+    assert judge_workspace(res.verdict, acc) is res.verdict
+    worse = replace(acc, frames=(replace(f, nominal_rms_m=0.5 * f.rms_m),))
+    v = judge_workspace(res.verdict, worse)
+    assert v.status == "suspect" and "does not make the robot more accurate" in v.reasons[-1]
+    # ten times the tolerance: ten times the nominal model's expected error
+    wide = predict_from_result(res, prior=PriorTolerance(length_m=1e-2, angle_rad=1e-2, offset_rad=0.1, scale=1e-2))
+    assert wide.frames[0].nominal_rms_m == pytest.approx(10 * f.nominal_rms_m, rel=1e-6)
+
+
+def test_option_values():
+    assert parse_accuracy("0.2mm") == (pytest.approx(2e-4), None)
+    assert parse_accuracy("0.2mm,1mrad") == (pytest.approx(2e-4), pytest.approx(1e-3))
+    for bad in ("0.2", "fast", "-1mm", "0mm"):
+        with pytest.raises(InputError, match="--accuracy"):
+            parse_accuracy(bad)
+    assert parse_box("j1=-1:1, j2=0:0.5") == {"j1": (-1.0, 1.0), "j2": (0.0, 0.5)}
+    with pytest.raises(InputError, match="--workspace"):
+        parse_box("j1=1")
+    case = _case("ur5", "point", 1e-5)
+    robot = RobotModel.from_file(case.nominal_urdf)
+    j = case.joints[0]
+    X = random_readings(robot, list(case.joints), 50, box={j: (-0.1, 0.2)})
+    assert X[:, 0].min() >= -0.1 and X[:, 0].max() <= 0.2 and np.ptp(X[:, 1]) > 1.0
+    with pytest.raises(InputError, match=f"joint '{j}'"):
+        random_readings(robot, list(case.joints), 5, box={j: (0.5, 0.1)})
+
+
+def test_evaluate_compares_new_data_with_the_prediction(tmp_path, capsys):
+    """evaluate on new configurations of the same robot: beside the calibrated model's closure, the closure
+    its calibration predicts there (its parameter uncertainty propagated, and the fit's noise), within 2x."""
+    a = _case("ur5", "point", 1e-4)
+    b = zoo.make_case("ur5", "point", n=160, sigma=1e-4, seed=0)  # the same robot and socket, 100 more rows
+    assert a.true_offsets == b.true_offsets
+    lines = b.log_csv.read_text().splitlines()
+    new = tmp_path / "new.csv"
+    new.write_text("\n".join([lines[0]] + lines[61:]) + "\n")
+    cal, rep = tmp_path / "cal.urdf", tmp_path / "r.json"
+    spec = a.loop_specs[0]
+    args = ["calibrate", str(a.nominal_urdf), str(a.log_csv), "--loop", spec, "--out", str(cal)]
+    assert main([*args, "--report", str(rep), "--cv", "0", "--regions", "0", "--quiet"]) == 0
+    out_json = tmp_path / "ev.json"
+    main(["evaluate", str(cal), str(new), "--loop", spec, "--calibration", str(rep), "--report", str(out_json)])
+    out = capsys.readouterr().out
+    assert "predicted by its calibration" in out and "observed within prediction" in out
+    pred = json.loads(out_json.read_text())["models"][0]["prediction"][0]
+    assert pred["unit"] == "m" and 0.5 < pred["ratio"] < 2.0
+    assert pred["ratio"] == pytest.approx(pred["observed_rms"] / pred["predicted_rms"])
+
+
+def test_bad_workspace_is_refused_before_the_fit(tmp_path, capsys):
+    case = _case("ur5", "point", 1e-5)
+    base = ["calibrate", str(case.nominal_urdf), str(case.log_csv), "--loop", case.loop_specs[0], "--cv", "0"]
+    for bad, said in (
+        ("nojoint=-1:1", "joint 'nojoint' is not one of the calibrated joints"),
+        ("a.csv", "no such file"),
+    ):
+        assert main([*base, "--workspace", bad]) == 2
+        cap = capsys.readouterr()
+        assert said in cap.err and len(cap.err.strip().splitlines()) == 1
+        assert not cap.out  # refused before the fit: no summary
+
+
+def test_suggested_poses_recorded_and_recalibrated_reduce_the_error_as_predicted(tmp_path, capsys):
+    """Closed loop on the UR5 socket (1e-4 rad): the 8 suggested configurations, recorded on the true robot
+    (moved onto its loop from the suggested readings) and calibrated again with the 60 first rows: over
+    three noise draws the observed largest tool error over the workspace falls more than 2x, and lands
+    within 1.5x of the error predicted after them."""
+    import pinocchio as pin
+
+    from closedloop.design.next_poses import suggest_poses
+
+    case = _case("ur5", "point", 1e-4)
+    robot = RobotModel.from_file(case.nominal_urdf)
+    loops = [parse_loop(s, robot) for s in case.loop_specs]
+    offsets = np.array([case.true_offsets[j] for j in case.joints])
+    kin = zoo.Kin(case.true_model, case.joints)
+    socket = case.meta["geo"]["T0"].translation
+
+    def on_true_loop(th):
+        return kin.pose(th).translation - socket, kin.jacobian(th, pin.LOCAL_WORLD_ALIGNED)[:3]
+
+    def observed(readings):
+        res = calibrate(robot, JointLog(list(case.joints), readings), loops, CalibrationOptions())
+        acc = predict_from_result(res)
+        report = build_report(res)
+        report["accuracy"] = accuracy_section(acc)
+        truth = {"parameters": {f"{j}.offset": float(v) for j, v in case.true_offsets.items()}}
+        true_robot = RobotModel.from_file(case.nominal_urdf.parent / "truth.urdf")
+        rows, _ = check_kinematics(truth, report, robot, 1e-3, 5e-3, 5e-3, true_robot=true_robot)
+        return res, acc, rows[0]["error"]
+
+    rng = np.random.default_rng(3)
+    before, after, predicted = [], [], []
+    for _ in range(3):
+        readings = case.q_true - offsets + rng.normal(scale=1e-4, size=case.q_true.shape)
+        res, acc, error = observed(readings)
+        nxt = suggest_poses(res, acc, 8)
+        assert nxt is not None and nxt.readings.shape == (8, len(case.joints))
+        assert np.all(np.diff(nxt.rms_after_m) <= 1e-15) and nxt.rms_before_m == pytest.approx(acc.frames[0].rms_m)
+        new = [zoo._project(on_true_loop, r + offsets, case.lower - 1.0, case.upper + 1.0) for r in nxt.readings]
+        new = [th - offsets + rng.normal(scale=1e-4, size=th.shape) for th in new if th is not None]
+        assert len(new) == 8  # each suggestion is a configuration the true robot reaches at the socket
+        res2, acc2, error2 = observed(np.vstack([readings, new]))
+        before.append(error)
+        after.append(error2)
+        predicted.append(acc.max_m * nxt.rms_after_m[-1] / nxt.rms_before_m)
+        # the recalibration's own prediction agrees with the suggestion's
+        assert acc2.frames[0].rms_m == pytest.approx(nxt.rms_after_m[-1], rel=0.3)
+    assert np.mean(after) < 0.5 * np.mean(before), (before, after)
+    assert 1 / 1.5 < np.mean(after) / np.mean(predicted) < 1.5, (after, predicted)
+
+
+def test_suggest_writes_a_log_the_robot_can_play(tmp_path, capsys):
+    """--accuracy not met and --suggest FILE: the CSV of joint readings (header of joint names, within the
+    limits), the report's record and the summary's line."""
+    case = _case("ur5", "point", 1e-5)
+    nxt, rep = tmp_path / "next.csv", tmp_path / "r.json"
+    args = ["calibrate", str(case.nominal_urdf), str(case.log_csv), "--loop", case.loop_specs[0], "--cv", "0"]
+    rc = main(
+        [*args, "--regions", "0", "--accuracy", "1um", "--suggest", str(nxt), "--suggest-n", "5", "--report", str(rep)]
+    )
+    out = capsys.readouterr().out
+    assert rc == 0 and "accuracy target not met" in out.splitlines()[0]
+    assert f"next: 5 configurations of loop point in {nxt}" in out
+    lines = nxt.read_text().splitlines()
+    assert lines[0].split(",") == list(case.joints) and len(lines) == 6
+    X = np.array([[float(v) for v in row.split(",")] for row in lines[1:]])
+    assert np.all(X >= case.lower - 1e-9) and np.all(X <= case.upper + 1e-9)
+    rec = json.loads(rep.read_text())["accuracy"]["next_poses"]
+    assert rec["configurations"] == 5 and rec["predicted_rms_after_m"][-1] < rec["predicted_rms_before_m"]
