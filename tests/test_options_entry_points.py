@@ -55,7 +55,7 @@ def test_every_entry_point_takes_the_same_names():
     api = {f for f in CalibrateOptions.__dataclass_fields__}
     assert api == {f.name for f in OPTIONS} | {"rules"}
     # the manifest takes every option of a run but the job folder's own outputs
-    assert cli - manifest == {"out", "report", "html", "plots", "force"}
+    assert cli - manifest == {"out", "report", "html", "plots", "force", "suggest"}
 
 
 def test_defaults_and_bounds_are_the_same_everywhere(tmp_path):

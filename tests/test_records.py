@@ -51,16 +51,9 @@ def test_records_hold_the_fit_and_the_report_reads_them(result):
     assert "accuracy" not in report and "validation" not in report
 
 
-@dataclasses.dataclass(frozen=True)
-class _Workspace:
-    """A stand-in workspace prediction: any dataclass (or record with ``as_dict()``) fills the slot."""
-
-    position_rms_m: float
-    configurations: int
-
-
 def test_a_runs_sections_and_the_accuracy_slot_go_in_by_keyword(result):
-    filled = dataclasses.replace(result, accuracy=AccuracyRecord(workspace=_Workspace(2.5e-4, 1000)))
+    regions = {"k": 4, "test": []}
+    filled = dataclasses.replace(result, accuracy=AccuracyRecord(regions=regions, target={"met": True}))
     report = build_report(
         filled,
         inputs={"model": "arm.urdf"},
@@ -68,7 +61,7 @@ def test_a_runs_sections_and_the_accuracy_slot_go_in_by_keyword(result):
         validation={"k": 5},
         outputs={"model": "cal.urdf"},
     )
-    assert report["accuracy"] == {"workspace": {"position_rms_m": 2.5e-4, "configurations": 1000}}
+    assert report["accuracy"] == {"workspace": None, "regions": regions, "target": {"met": True}}
     assert report["inputs"] == {"model": "arm.urdf"} and report["outputs"] == {"model": "cal.urdf"}
     assert report["validation"] == {"k": 5} and "fixture_validation" not in report
     assert report["solver"]["seconds"] == 1.5 and report["solver"]["status"] == "converged"

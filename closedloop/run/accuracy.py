@@ -35,10 +35,17 @@ def workspace_readings(o, robot, joints: list[str]) -> tuple[np.ndarray | None, 
         if len(lg) == 0:
             raise InputError(f"--workspace {spec}: no row")
         return lg.columns(joints), f"the {len(lg)} readings of {spec}"
+    box = check_workspace(spec)
+    return random_readings(robot, joints, box=box), f"{N_WORKSPACE} random readings within {spec}"
+
+
+def check_workspace(spec: str) -> dict[str, tuple[float, float]] | None:
+    """``--workspace`` checked before any work: None for a log file, else its joint ranges (`parse_box`)."""
+    if Path(spec).is_file():
+        return None
     if "=" not in spec:
         raise InputError(f"--workspace {spec}: no such file (give a log file, or joint ranges joint=lo:hi,...)")
-    box = parse_box(spec)
-    return random_readings(robot, joints, box=box), f"{N_WORKSPACE} random readings within {spec}"
+    return parse_box(spec)
 
 
 def predicted_accuracy(res, readings: np.ndarray | None = None, source: str | None = None):

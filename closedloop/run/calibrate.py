@@ -75,9 +75,9 @@ def calibrate_files(
     from closedloop.output.report import build_report
     from closedloop.records import AccuracyRecord
     from closedloop.run.accuracy import (
+        check_workspace,
         next_poses,
         parse_accuracy,
-        parse_box,
         predicted_accuracy,
         region_validation,
         workspace_readings,
@@ -89,8 +89,8 @@ def calibrate_files(
     check_run_outputs(o)
     inp = load_inputs(o)  # the robot, its loops, the log, the folds, the fit's options
     robot, lg, loops = inp.robot, inp.log, inp.loops
-    if o.workspace and not Path(o.workspace).is_file():
-        parse_box(o.workspace)  # joint ranges: refused now, not after the fit
+    if o.workspace:
+        check_workspace(o.workspace)  # refused now, not after the fit
     t0, c0 = time.perf_counter(), time.process_time()
     res = calibrate(robot, lg, loops, inp.fit, progress=prog)
     _done(prog)
