@@ -289,11 +289,21 @@ def prepare_robot(
     where: str = "--robot",
 ) -> PreparedRobot:
     """Prepare a user's robot for the simulator and register it (module doc)."""
-    from closedloop.models import ROBOTS, RobotSource, nominal_urdf
+    from closedloop.models import ROBOTS, RobotSource, nominal_urdf, repair_inertias
     from closedloop.sims.outputs import absolute_mesh_paths
 
     path = Path(path)
     root = absolute_mesh_paths(_read(path, where), path)  # the prepared file lives elsewhere: meshes by absolute path
+    repaired = repair_inertias(root)
+    if repaired:
+        log.warning(
+            "note: %s: %d link(s) have an inertia the simulator refuses (zero or not positive definite: %s); "
+            "simulated with each principal moment at least that of a 1 cm sphere of the link's mass (the "
+            "kinematics, all a calibration uses, unchanged)",
+            path.name,
+            len(repaired),
+            ", ".join(repaired[:6]) + (", ..." if len(repaired) > 6 else ""),
+        )
     frame, driven = _prepare_tree(root, path, loop_type, frame, to, tool, joints)
     key = path.stem  # a built-in robot's name is not taken over
     if key in ROBOTS and not str(ROBOTS[key].relpath).startswith(str(_tmpdir())):
