@@ -68,6 +68,48 @@ def check_calibrate_options(args) -> tuple:
     return parse_noise(args.noise), parse_bounds(args.bound), cv_given
 
 
+def check_loop_geometry(model_path, robot, lg, loops: list, specs: list[str] | None = None) -> None:
+    """Refuse, before any work, a loop that cannot see its joints (one line naming them, and the fix):
+
+    * a loop through joints ``closedloop simulate --robot`` held fixed (`closedloop.io.robot_files.HELD`:
+      the log has no readings of them, the model calls them rigid);
+    * a point loop whose contact point lies on the last joint's axis (`closedloop.loops.point.contact_on_axis`).
+
+    `specs`: the ``--loop`` texts of `loops`, for the message.
+    """
+    import numpy as np
+
+    from closedloop.io.robot_files import held_on_chain
+    from closedloop.loops.point import PointLoop, contact_on_axis
+    from closedloop.model.axes import point_on_axis_message
+
+    for k, lp in enumerate(loops):
+        frames = [f for f in (lp.frame_a, lp.frame_b) if f not in ("universe", "world")]
+        held = held_on_chain(model_path, frames) if robot.kind == "urdf" else []
+        if held:
+            raise InputError(
+                f"{model_path}: loop '{lp.name}' passes joint(s) {', '.join(held)}, which the simulation held "
+                "fixed (not driven: the log has no readings of them); simulate this loop "
+                f"(closedloop simulate --robot ROBOT --loop {specs[k] if specs and k < len(specs) else '...'}), "
+                "or calibrate the loop that was simulated"
+            )
+        if isinstance(lp, PointLoop):
+            joints = robot.supporting_joints(lp.frame_a)
+            rows = np.ones(len(lg), bool) if lg.loop is None else lg.loop == lp.name
+            blind = contact_on_axis(robot, lp, lg.columns(joints)[rows], joints)
+            if blind:
+                raise InputError(
+                    point_on_axis_message(
+                        f"{model_path}: loop '{lp.name}' on {lp.frame_a}",
+                        lp.frame_a,
+                        blind,
+                        lp.tip is not None,
+                        'give the stylus tip off the axis (tip="x y z" in the frame, measured), or close the '
+                        "loop on a frame off the axis",
+                    )
+                )
+
+
 def cmd_calibrate(args) -> int:
     from closedloop.calibration.pipeline import CalibrationOptions, calibrate
     from closedloop.cli.evaluate import require_log
@@ -92,6 +134,7 @@ def cmd_calibrate(args) -> int:
 
     lg, loops = rig_inputs(args, robot, loops)  # a CSV log or a ROS bag, or each loop's file; known distances
     check_loop_column(lg, [lp.name for lp in loops])
+    check_loop_geometry(args.model, robot, lg, loops, args.loop)  # before any work: a loop that cannot see its joints
     if args.cv > len(lg):
         if cv_given:
             raise InputError(f"--cv {args.cv}: more folds than the {len(lg)} rows of {args.log}")

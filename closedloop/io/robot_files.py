@@ -23,6 +23,11 @@ from pathlib import Path
 
 from closedloop.errors import ModelError
 
+#: the element ``closedloop simulate --robot`` puts in a joint it held fixed at zero (not driven: the log
+#: has no readings of it), ``<closedloop_held type="revolute"/>`` (the joint's own type); URDF readers
+#: (urdfdom, MuJoCo) skip elements they do not know
+HELD = "closedloop_held"
+
 #: deepest kinematic tree accepted (links from the root): Pinocchio recurses once per link
 MAX_DEPTH = 1000
 JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed", "floating", "planar", "spherical")
@@ -160,6 +165,37 @@ def check_urdf(path: str | Path) -> None:
     lost = sorted(links - set(depth))
     if lost:
         raise ModelError(f"{path}: the joints form a cycle through link '{lost[0]}' (not reachable from the root)")
+
+
+def held_on_chain(path: str | Path, frames: list[str]) -> list[str]:
+    """The joints marked `HELD` between the root and any of `frames` (links or joints of the URDF at
+    `path`), root first; empty when the file marks none or cannot be read."""
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError):
+        return []
+    joints = root.findall("joint")
+    if not any(j.find(HELD) is not None for j in joints):
+        return []
+    by_child: dict[str | None, ET.Element] = {}
+    for el in joints:
+        c = el.find("child")
+        if c is not None:
+            by_child[c.get("link")] = el
+    by_name = {j.get("name"): j for j in joints}
+    out: list[str] = []
+    for frame in frames:
+        j: ET.Element | None = by_name.get(frame) or by_child.get(frame)
+        chain = []
+        seen: set[str] = set()
+        while j is not None and j.get("name") not in seen:  # a cycle is check_urdf's to refuse
+            seen.add(j.get("name", ""))
+            if j.find(HELD) is not None:
+                chain.append(j.get("name", ""))
+            p = j.find("parent")
+            j = by_child.get(p.get("link")) if p is not None else None
+        out += [n for n in reversed(chain) if n not in out]
+    return out
 
 
 def check_mjcf(path: str | Path) -> None:

@@ -9,7 +9,11 @@
    needs a tip off the flange axis);
 3. the **driven joints** are the movable joints between the base and the loop frame(s) (for two
    chains, below their common ancestor); ``joints:`` chooses a subset; every other joint becomes
-   fixed at its zero (fingers, a torso, a head), a continuous joint gets limits of +-pi;
+   fixed at its zero (fingers, a torso, a head), a continuous joint (or a revolute one without a
+   range, as a wheel is written) gets limits of +-pi; a joint held fixed is marked
+   ``<closedloop_held type="revolute"/>`` in the written ``nominal.urdf``
+   (:data:`closedloop.io.robot_files.HELD`: the log has no readings of it, and ``calibrate``
+   refuses a loop through it, naming it);
 4. the loop must leave the closed chain a self-motion (thesis Lemma 4): with n driven joints and
    m independent constraints (weld 6, hinge 6 minus the door's own joint, point 3, plane 1),
    ``n - m >= 1``; otherwise a plain-words error says what to change;
@@ -19,6 +23,9 @@
    the loop.  The **fixture placement** follows: the fixture, socket, door, plane or partner frame
    is put where the true tool is at ``q0`` (:mod:`closedloop.sims.scene`), so a different ``q0``
    moves it.
+
+A point contact (point, plane, tracker) on the axis of the last driven joint is refused
+(:func:`closedloop.model.axes.blind_joints`): that joint could not move it.
 
 The prepared URDF is registered in :data:`closedloop.models.ROBOTS` under the file's stem (a
 temporary file kept for the process), so :func:`closedloop.sims.simulate` runs it like a built-in.
@@ -39,6 +46,8 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import InputError
+from closedloop.io.robot_files import HELD
+from closedloop.model.axes import blind_joints, point_on_axis_message
 from closedloop.model.robot import find_frame
 from closedloop.sims.loop_types import sim_loop
 
@@ -181,6 +190,17 @@ def _check_link(root: ET.Element, name: str, path: Path, what: str) -> None:
         raise InputError(f"{path}: no link '{name}' for the loop's {what}{hint}; the simulator closes loops on links")
 
 
+def _no_range(joint: ET.Element) -> bool:
+    """A joint whose ``<limit>`` gives no range (``lower`` and ``upper`` absent or equal)."""
+    lim = joint.find("limit")
+    if lim is None:
+        return True
+    try:
+        return float(lim.get("lower", "0")) >= float(lim.get("upper", "0"))
+    except ValueError:
+        return False
+
+
 def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: str | None, tool, joints):
     """Tool link, driven joints (others fixed), continuous -> revolute; returns (frame, driven names)."""
     if tool:
@@ -219,11 +239,14 @@ def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: 
         if j.get("name", "") not in movable:
             if j.get("type") != "fixed":
                 log.info("%s: joint %s held fixed at 0 (not on the loop's chain)", path, j.get("name"))
+                # marked, so that calibrate refuses a loop through it before any work (io.robot_files.HELD)
+                ET.SubElement(j, HELD, type=j.get("type", ""))
             j.set("type", "fixed")
             for tag in ("mimic", "axis", "limit"):
                 for el in j.findall(tag):
                     j.remove(el)
-        elif j.get("type") == "continuous":
+        elif j.get("type") == "continuous" or (j.get("type") == "revolute" and _no_range(j)):
+            # a revolute joint written without a range (lower = upper, URDF's default 0) turns freely
             j.set("type", "revolute")
             lim = j.find("limit")
             if lim is None:
@@ -340,5 +363,18 @@ def prepare_robot(
     outside = [model.names[k + 1] for k in range(n) if not lo[k] <= q0[k] <= hi[k]]
     if outside:
         raise InputError(f"{where}: q0 puts joint(s) {', '.join(outside)} outside their limits")
+    if sim_loop(loop_type).point_contact and to is None:  # the point must move with the last joint
+        blind = blind_joints(model, find_frame(model, frame), np.zeros(3), q0)
+        if blind:
+            raise InputError(
+                point_on_axis_message(
+                    f"{path}: {what}",
+                    frame,
+                    blind,
+                    bool(tool),
+                    'put the contact on a stylus off the axis: --tool "0.05 0 0" (a tool: {xyz: [...]} in a '
+                    "scenario file), in the frame's axes",
+                )
+            )
     names = tuple(model.names[k] for k in range(1, model.njoints))
     return PreparedRobot(key, out, frame, names, tuple(float(v) for v in q0))
