@@ -160,16 +160,39 @@ def cases(base: Path, files: list[Path], n_chains: int, min_joints: int, seed: i
     out: list[Case] = []
     for f in files:
         rel = str(f.relative_to(base))
-        ch = chains(f, n_chains, min_joints)
+        ch = chains(f, max(n_chains, 2), min_joints)
         specs: list[tuple[str, str, str | None]] = []
-        for link, _ in ch:
+        for link, _ in ch[:n_chains]:
             specs.append(("point", f"point:frame={link},name=socket", STYLUS))
             specs.append(("weld", f"weld:frame={link},name=fixture", None))
-        if len(ch) >= 2:
+        if len(ch) >= 2:  # the two longest chains' ends welded to each other (two hands)
             specs.append(("weld2", f"weld:frame={ch[0][0]},to={ch[1][0]},name=grasp", None))
         for kind, loop, tool in specs:
             for noise in (0.0, 1e-5):
                 out.append(Case(rel, loop, kind, noise, seed + len(out), tool))
+    return out
+
+
+def interleaved(todo: list[Case]) -> list[Case]:
+    """The cases robot by robot in turn (the first case of every robot, then the second, ...): a run
+    stopped early has seen as many robots as it could."""
+    by_robot: dict[str, list[Case]] = {}
+    for c in todo:
+        by_robot.setdefault(c.robot, []).append(c)
+    out = []
+    for k in range(max((len(v) for v in by_robot.values()), default=0)):
+        out += [v[k] for v in by_robot.values() if k < len(v)]
+    return out
+
+
+def read_outcomes(paths: list[str]) -> list[Outcome]:
+    """Outcomes appended by ``--json`` (one JSON object a line), for ``--from-json``."""
+    out = []
+    for path in paths:
+        for line in Path(path).read_text().splitlines():
+            d = json.loads(line)
+            d["case"] = Case(**d["case"])
+            out.append(Outcome(**d))
     return out
 
 
@@ -315,6 +338,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", default=None, help="append every outcome here as one JSON line")
     ap.add_argument("--markdown", default=None, help="write the results table here")
     ap.add_argument("--list", action="store_true", help="list the cases and stop")
+    ap.add_argument(
+        "--order",
+        choices=("robots", "interleaved"),
+        default="interleaved",
+        help="robot after robot, or one case of each robot in turn (default: a run stopped early has seen every robot)",
+    )
+    ap.add_argument("--from-json", default=None, help="no run: the table of the outcomes in these --json files")
+    ap.add_argument("--header", default=None, help="with --from-json: the machine line above the table")
     args = ap.parse_args(argv)
 
     from closedloop.models import example_robot_data_dir
@@ -326,6 +357,16 @@ def main(argv: list[str] | None = None) -> int:
     todo = [
         c for c in cases(base, files, args.chains, args.min_joints, args.seed) if c.kind in kinds and c.noise in levels
     ]
+    if args.from_json:
+        outcomes = read_outcomes(args.from_json.split(","))
+        text = markdown(outcomes, args.header or "from " + args.from_json, args.n, args.timeout)
+        if args.markdown:
+            Path(args.markdown).write_text(text)
+        else:
+            print(text)
+        return 0
+    if args.order == "interleaved":
+        todo = interleaved(todo)
     if args.list:
         for c in todo:
             print(c.robot, c.loop, c.noise, c.seed)
@@ -334,7 +375,7 @@ def main(argv: list[str] | None = None) -> int:
     cli = [sys.executable, "-m", "closedloop.cli"]
     work = Path(args.out)
     work.mkdir(parents=True, exist_ok=True)
-    header = f"{machine()}; load {load()}; nice {os.nice(0)}"
+    header = f"{machine()}; {load()} at the start; nice {os.nice(0)}"
     print(header, flush=True)
     outcomes: list[Outcome] = []
     t0 = time.perf_counter()

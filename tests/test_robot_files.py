@@ -9,8 +9,8 @@
   unlimited revolute joint is driven within one turn;
 * a loop on a joint ``simulate`` held fixed in ``nominal.urdf`` is refused by ``calibrate`` before any
   work, naming the joint;
-* a point loop whose contact point lies on the last joint's axis is refused before any work (simulate
-  and calibrate), naming the joint and the fix (``tip=`` / ``--tool``).
+* a point loop whose contact point lies on the last joint's axis is refused by ``simulate --robot``
+  (the fix: ``--tool``) and named by ``calibrate`` before any work.
 """
 
 from __future__ import annotations
@@ -79,3 +79,101 @@ def test_icub_two_hand_weld_simulates_calibrates_and_checks(tmp_path, capsys, ca
     )
     assert json.loads(report.read_text())["verdict"]["status"] in ("ok", "suspect")
     assert main(["check", str(sim / "truth.json"), str(report)]) == 0
+
+
+PANDA = ERD / "panda_description" / "urdf" / "panda.urdf"
+CENTAURO = ERD / "centauro_description" / "urdf" / "centauro.urdf"
+ROMEO = ERD / "romeo_description" / "urdf" / "romeo_small.urdf"
+ALEX = ERD / "alex_description" / "urdf" / "alex_nub_hands.urdf"
+
+
+def test_nothing_recorded_is_exit_3_with_nothing_written(tmp_path, capsys):
+    out = tmp_path / "sim"
+    assert main(["simulate", "panda_weld", "--n", "3", "--seed", "1", "--set", "max_steps=10", "--out", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "no configuration recorded of the 3 asked" in err and "--set max_steps=50" in err
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_fewer_recorded_than_asked_is_said_and_exit_3_with_the_files(tmp_path, capsys, monkeypatch):
+    from closedloop.sims import tracking
+
+    sample, calls = tracking.Settler.sample, []
+
+    def two_then_unsettled(self, ctrl, target):  # the robot settles twice, then never again
+        calls.append(1)
+        if len(calls) <= 2:
+            return sample(self, ctrl, target)
+        return False, 0, ctrl
+
+    monkeypatch.setattr(tracking.Settler, "sample", two_then_unsettled)
+    out = tmp_path / "sim"
+    assert main(["simulate", "panda_weld", "--n", "5", "--seed", "1", "--out", str(out)]) == 3
+    cap = capsys.readouterr()
+    assert "simulated 2 of 5 configurations of panda_weld" in cap.out
+    assert "simulated only 2 of 5" in cap.err and "did not come to rest" in cap.err
+    assert len((out / "log.csv").read_text().splitlines()) == 1 + 2
+    assert (out / "truth.json").is_file()
+
+
+def test_prismatic_finger_margins_in_metres(tmp_path, capsys):
+    """The Panda's finger (0.04 m of travel) ends the chain: driven, not refused for a radian margin."""
+    out = tmp_path / "sim"
+    loop = "point:frame=panda_leftfinger,name=socket"
+    assert _simulate(PANDA, loop, out, n=8, extra=["--tool", "0.02 0 0.05"]) == 0
+    truth = json.loads((out / "truth.json").read_text())
+    assert truth["joint_names"][-1] == "panda_finger_joint1"
+    log = [ln.split(",") for ln in (out / "log.csv").read_text().splitlines()]
+    finger = [float(row[log[0].index("panda_finger_joint1")]) for row in log[1:]]
+    assert all(-0.002 <= v <= 0.042 for v in finger)  # metres, within the finger's range
+
+
+def test_revolute_joint_without_limits_turns(tmp_path):
+    """Centauro's wheel: a revolute joint written without lower/upper is driven within one turn."""
+    out = tmp_path / "sim"
+    assert _simulate(CENTAURO, "point:frame=wheel_1,name=socket", out, n=6, extra=["--tool", "0.05 0.05 0"]) == 0
+    wheel = [j for j in ET.parse(out / "nominal.urdf").getroot().findall("joint") if j.get("name") == "j_wheel_1"]
+    limit = wheel[0].find("limit")
+    assert limit is not None and float(limit.get("lower")) == pytest.approx(-3.141592653589793)
+
+
+def test_a_loop_through_held_joints_is_refused_before_any_work(tmp_path, capsys):
+    sim = tmp_path / "sim"
+    assert _simulate(ROMEO, "weld:frame=l_wrist,name=fixture", sim, n=6) == 0
+    capsys.readouterr()
+    spec = "weld:frame=r_wrist,name=fixture"
+    assert main(["calibrate", str(sim / "nominal.urdf"), str(sim / "log.csv"), "--loop", spec, "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "RShoulderPitch" in err[0] and "held fixed" in err[0] and spec in err[0]
+
+
+def test_contact_point_on_the_last_axis_refused_at_simulate(tmp_path, capsys):
+    assert _simulate(ALEX, "point:frame=leftNub,name=socket", tmp_path / "sim", n=5) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "LeftGripperYaw" in err[0] and "--tool" in err[0]
+
+
+def test_contact_point_on_the_last_axis_named_at_calibrate(tmp_path, monkeypatch):
+    """Data with the contact on LeftGripperYaw's axis (simulated with the check switched off): calibrate's
+    check before the fit names the joint and the fix; the same robot with a 5 cm stylus passes it."""
+    from closedloop.cli.calibrate import check_loop_geometry
+    from closedloop.io.logs import read_log
+    from closedloop.loops.spec import parse_loop
+    from closedloop.model.robot import RobotModel
+    from closedloop.sims import robot_scenario
+
+    def warnings(sim, spec):
+        robot = RobotModel.from_file(sim / "nominal.urdf")
+        lg = read_log(sim / "log.csv", robot.joint_names)
+        return check_loop_geometry(sim / "nominal.urdf", robot, lg, [parse_loop(spec, robot)], [spec])
+
+    loop = "point:frame=leftNub,name=socket"
+    with monkeypatch.context() as m:
+        m.setattr(robot_scenario, "blind_joints", lambda *a, **k: [])
+        assert _simulate(ALEX, loop, tmp_path / "on", n=12) == 0
+    (line,) = warnings(tmp_path / "on", loop)
+    assert "LeftGripperYaw" in line and "stylus off the axis" in line
+    off = tmp_path / "off"
+    assert _simulate(ALEX, loop, off, n=12, extra=["--tool", "0.05 0 0"]) == 0
+    assert warnings(off, "point:frame=leftNub_tip,name=socket") == []
+    assert warnings(off, loop) == []  # leftNub with the tip unknown: the pivot puts it 5 cm off the axis

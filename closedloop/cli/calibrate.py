@@ -68,14 +68,16 @@ def check_calibrate_options(args) -> tuple:
     return parse_noise(args.noise), parse_bounds(args.bound), cv_given
 
 
-def check_loop_geometry(model_path, robot, lg, loops: list, specs: list[str] | None = None) -> None:
-    """Refuse, before any work, a loop that cannot see its joints (one line naming them, and the fix):
+def check_loop_geometry(model_path, robot, lg, loops: list, specs: list[str] | None = None) -> list[str]:
+    """Before any work: refuse a loop through joints ``closedloop simulate --robot`` held fixed
+    (`closedloop.io.robot_files.HELD`: the log has no readings of them, the model calls them rigid),
+    one line naming them; return a warning for each point loop whose contact point lies on the last
+    joint's axis (`closedloop.loops.point.contact_on_axis`: that joint cannot move the point, its
+    parameters are not seen and the fit is degenerate), naming the joint and the fix.
 
-    * a loop through joints ``closedloop simulate --robot`` held fixed (`closedloop.io.robot_files.HELD`:
-      the log has no readings of them, the model calls them rigid);
-    * a point loop whose contact point lies on the last joint's axis (`closedloop.loops.point.contact_on_axis`).
-
-    `specs`: the ``--loop`` texts of `loops`, for the message.
+    A contact on the axis is named, not refused: the fit still calibrates the joints that move the
+    point (the UR5 socket scenario's stylus lies on the flange axis), but a stylus off the axis sees
+    the last joint too.  `specs`: the ``--loop`` texts of `loops`, for the messages.
     """
     import numpy as np
 
@@ -83,6 +85,7 @@ def check_loop_geometry(model_path, robot, lg, loops: list, specs: list[str] | N
     from closedloop.loops.point import PointLoop, contact_on_axis
     from closedloop.model.axes import point_on_axis_message
 
+    warnings = []
     for k, lp in enumerate(loops):
         frames = [f for f in (lp.frame_a, lp.frame_b) if f not in ("universe", "world")]
         held = held_on_chain(model_path, frames) if robot.kind == "urdf" else []
@@ -98,16 +101,17 @@ def check_loop_geometry(model_path, robot, lg, loops: list, specs: list[str] | N
             rows = np.ones(len(lg), bool) if lg.loop is None else lg.loop == lp.name
             blind = contact_on_axis(robot, lp, lg.columns(joints)[rows], joints)
             if blind:
-                raise InputError(
+                warnings.append(
                     point_on_axis_message(
-                        f"{model_path}: loop '{lp.name}' on {lp.frame_a}",
+                        f"loop '{lp.name}' on {lp.frame_a}",
                         lp.frame_a,
                         blind,
                         lp.tip is not None,
-                        'give the stylus tip off the axis (tip="x y z" in the frame, measured), or close the '
-                        "loop on a frame off the axis",
+                        "its parameters are left to the model; to calibrate it, hold a stylus off the axis "
+                        '(its tip, if measured: tip="x y z" in the frame)',
                     )
                 )
+    return warnings
 
 
 def cmd_calibrate(args) -> int:
@@ -134,7 +138,9 @@ def cmd_calibrate(args) -> int:
 
     lg, loops = rig_inputs(args, robot, loops)  # a CSV log or a ROS bag, or each loop's file; known distances
     check_loop_column(lg, [lp.name for lp in loops])
-    check_loop_geometry(args.model, robot, lg, loops, args.loop)  # before any work: a loop that cannot see its joints
+    geometry = check_loop_geometry(args.model, robot, lg, loops, args.loop)  # before any work
+    for line in geometry:
+        print(f"warning: {line}", file=sys.stderr)
     if args.cv > len(lg):
         if cv_given:
             raise InputError(f"--cv {args.cv}: more folds than the {len(lg)} rows of {args.log}")
@@ -163,6 +169,7 @@ def cmd_calibrate(args) -> int:
     elapsed = time.perf_counter() - t0
     if inputs_note:
         res.notes.append(inputs_note)
+    res.notes.extend(geometry)
     report_inputs = input_record(args, lg, res)  # readings, weighting, where the torques come from
     if report_inputs["torques"] == "gravity":
         res.notes.append("joint torques: gravity from the model's inertials (the log has no tau:<joint> columns)")

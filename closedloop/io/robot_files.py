@@ -168,8 +168,9 @@ def check_urdf(path: str | Path) -> None:
 
 
 def held_on_chain(path: str | Path, frames: list[str]) -> list[str]:
-    """The joints marked `HELD` between the root and any of `frames` (links or joints of the URDF at
-    `path`), root first; empty when the file marks none or cannot be read."""
+    """The joints marked `HELD` on the loop through `frames` (links or joints of the URDF at `path`):
+    between the root and one frame, or between two (their common ancestors left out), root first;
+    empty when the file marks none or cannot be read."""
     try:
         root = ET.parse(path).getroot()
     except (ET.ParseError, OSError):
@@ -183,19 +184,22 @@ def held_on_chain(path: str | Path, frames: list[str]) -> list[str]:
         if c is not None:
             by_child[c.get("link")] = el
     by_name = {j.get("name"): j for j in joints}
-    out: list[str] = []
+    chains: list[list[ET.Element]] = []
     for frame in frames:
         j: ET.Element | None = by_name.get(frame) or by_child.get(frame)
-        chain = []
-        seen: set[str] = set()
-        while j is not None and j.get("name") not in seen:  # a cycle is check_urdf's to refuse
-            seen.add(j.get("name", ""))
-            if j.find(HELD) is not None:
-                chain.append(j.get("name", ""))
+        chain: list[ET.Element] = []
+        while j is not None and all(j is not c for c in chain):  # a cycle is check_urdf's to refuse
+            chain.append(j)
             p = j.find("parent")
             j = by_child.get(p.get("link")) if p is not None else None
-        out += [n for n in reversed(chain) if n not in out]
-    return out
+        chains.append(chain[::-1])
+    common = (
+        {id(j) for j in chains[0]}.intersection(*({id(j) for j in c} for c in chains[1:])) if len(chains) > 1 else set()
+    )
+    out: list[str] = []
+    for chain in chains:  # the joints between the frames: a common ancestor is not on a loop of two chains
+        out += [j.get("name", "") for j in chain if j.find(HELD) is not None and id(j) not in common]
+    return list(dict.fromkeys(out))
 
 
 def check_mjcf(path: str | Path) -> None:

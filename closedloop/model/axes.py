@@ -85,5 +85,5 @@ def point_on_axis_message(where: str, frame: str, blind: list[BlindJoint], tip_g
     return (
         f"{where}: the contact point ({point}) lies on the axis of joint(s) {names}: turning "
         f"{'it' if len(blind) == 1 else 'them'} does not move the point, so a point loop cannot see "
-        f"{'that joint' if len(blind) == 1 else 'those joints'} and the fit is degenerate; {fix}"
+        f"{'that joint' if len(blind) == 1 else 'those joints'}; {fix}"
     )
