@@ -177,3 +177,44 @@ def test_contact_point_on_the_last_axis_named_at_calibrate(tmp_path, monkeypatch
     assert _simulate(ALEX, loop, off, n=12, extra=["--tool", "0.05 0 0"]) == 0
     assert warnings(off, "point:frame=leftNub_tip,name=socket") == []
     assert warnings(off, loop) == []  # leftNub with the tip unknown: the pivot puts it 5 cm off the axis
+
+
+def _odd_urdf() -> str:
+    """A legal URDF as they come: a floating base, a second root link, a mimic finger, meshes nowhere."""
+
+    def link(n):
+        return (
+            f'<link name="{n}"><inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" '
+            f'ixz="0" iyz="0"/></inertial><visual><geometry><mesh filename="package://nowhere/{n}.stl"/>'
+            "</geometry></visual></link>"
+        )
+
+    def rev(n, p, c, xyz, axis, extra=""):
+        return (
+            f'<joint name="{n}" type="revolute"><parent link="{p}"/><child link="{c}"/><origin xyz="{xyz}"/>'
+            f'<axis xyz="{axis}"/><limit lower="-3" upper="3" effort="1" velocity="1"/>{extra}</joint>'
+        )
+
+    links = "".join(link(n) for n in ["world", "base", "l1", "l2", "l3", "l4", "l5", "tool", "table", "f1", "f2"])
+    joints = (
+        '<joint name="float" type="floating"><parent link="world"/><child link="base"/></joint>'
+        + rev("j1", "base", "l1", "0 0 0.1", "0 0 1")
+        + rev("j2", "l1", "l2", "0 0 0.1", "0 1 0")
+        + rev("j3", "l2", "l3", "0 0 0.3", "0 1 0")
+        + rev("j4", "l3", "l4", "0 0 0.3", "0 0 1")
+        + rev("j5", "l4", "l5", "0 0 0.1", "0 1 0")
+        + '<joint name="jt" type="fixed"><parent link="l5"/><child link="tool"/><origin xyz="0.05 0 0.1"/></joint>'
+        + rev("f1j", "l5", "f1", "0 0.02 0.1", "1 0 0")
+        + rev("f2j", "l5", "f2", "0 -0.02 0.1", "1 0 0", '<mimic joint="f1j" multiplier="-1"/>')
+    )
+    return f'<robot name="odd">{links}{joints}</robot>'
+
+
+def test_a_robot_file_as_they_come_simulates(tmp_path, capsys, caplog):
+    robot = tmp_path / "odd.urdf"
+    robot.write_text(_odd_urdf())
+    assert _simulate(robot, "point:frame=tool,name=socket", tmp_path / "sim", n=5) == 0
+    truth = json.loads((tmp_path / "sim" / "truth.json").read_text())
+    assert truth["joint_names"] == ["j1", "j2", "j3", "j4", "j5"]  # the base stands still, the fingers held
+    notes = [r.getMessage() for r in caplog.records if "root links" in r.getMessage()]
+    assert len(notes) == 1 and "table" in notes[0]

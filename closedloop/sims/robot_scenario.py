@@ -10,7 +10,8 @@
 3. the **driven joints** are the movable joints between the base and the loop frame(s) (for two
    chains, below their common ancestor); ``joints:`` chooses a subset; every other joint becomes
    fixed at its zero (fingers, a torso, a head), a continuous joint (or a revolute one without a
-   range, as a wheel is written) gets limits of +-pi; a joint held fixed is marked
+   range, as a wheel is written) gets limits of +-pi; a floating or planar base joint is fixed (the
+   base stands still during a calibration); a joint held fixed is marked
    ``<closedloop_held type="revolute"/>`` in the written ``nominal.urdf``
    (:data:`closedloop.io.robot_files.HELD`: the log has no readings of it, and ``calibrate``
    refuses a loop through it, naming it);
@@ -54,6 +55,7 @@ from closedloop.sims.loop_types import sim_loop
 log = logging.getLogger(__name__)
 
 MOVABLE = ("revolute", "continuous", "prismatic")
+BASES = ("floating", "planar")  # joints of a base that moves in the world: held still
 _TMP: list[str] = []
 
 
@@ -201,6 +203,40 @@ def _no_range(joint: ET.Element) -> bool:
         return False
 
 
+def _keep_tree(root: ET.Element, frame: str, path: Path) -> list[ET.Element]:
+    """Drop, from a URDF with several root links, the trees that do not hold `frame` (one note naming
+    their roots); return the remaining root link."""
+    parent = {_joint_link(j, "child", path): _joint_link(j, "parent", path) for j in root.findall("joint")}
+    top = frame
+    while top in parent:
+        top = parent[top]
+    kept = {top}
+    changed = True
+    while changed:  # the links below the kept root (no recursion: deep trees are legal)
+        changed = False
+        for child, par in parent.items():
+            if par in kept and child not in kept:
+                kept.add(child)
+                changed = True
+    dropped_roots = [
+        lk.get("name") for lk in root.findall("link") if lk.get("name") not in parent and lk.get("name") != top
+    ]
+    for lk in [lk for lk in root.findall("link") if lk.get("name") not in kept]:
+        root.remove(lk)
+    for j in [j for j in root.findall("joint") if _joint_link(j, "child", path) not in kept]:
+        root.remove(j)
+    log.warning(
+        "note: %s: %d root links; the tree of %s (root %s) is simulated, the one(s) rooted at %s dropped "
+        "(join them with a fixed joint to keep them)",
+        path.name,
+        len(dropped_roots) + 1,
+        frame,
+        top,
+        ", ".join(str(r) for r in dropped_roots),
+    )
+    return [lk for lk in root.findall("link") if lk.get("name") == top]
+
+
 def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: str | None, tool, joints):
     """Tool link, driven joints (others fixed), continuous -> revolute; returns (frame, driven names)."""
     if tool:
@@ -220,12 +256,16 @@ def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: 
         other = _path_joints(root, to, path)
         common = {id(j) for j in chain} & {id(j) for j in other}
         chain = [j for j in chain + other if id(j) not in common]
+    for j in root.findall("joint"):  # a floating or planar base stands still while a loop is calibrated
+        if j.get("type") in BASES:
+            log.info("%s: %s joint %s held fixed (the base stands still)", path, j.get("type"), j.get("name"))
+            j.set("type", "fixed")
     movable = [j.get("name", "") for j in chain if j.get("type") in MOVABLE]
     bad = [f"{j.get('name')} ({j.get('type')})" for j in chain if j.get("type") not in MOVABLE + ("fixed",)]
     if bad:
         raise InputError(
             f"{path}: joint(s) {', '.join(bad)} on the way to {frame}: the simulator drives revolute, "
-            "continuous and prismatic joints only"
+            "continuous and prismatic joints only; write a ball joint as three revolute joints"
         )
     if joints:
         unknown = [j for j in joints if j not in movable]
@@ -255,9 +295,11 @@ def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: 
             lim.set("upper", repr(np.pi))
         elif j.find("mimic") is not None:
             raise InputError(f"{path}: joint {j.get('name')} mimics another joint; give joints: without it")
-    # a root link named 'world' clashes with MuJoCo's world body: drop it (its child becomes the root)
     children = {_joint_link(j, "child", path) for j in root.findall("joint")}
     roots = [lk for lk in root.findall("link") if lk.get("name") not in children]
+    if len(roots) > 1:  # several trees in one file: the loop's is simulated, the others dropped
+        roots = _keep_tree(root, frame, path)
+    # a root link named 'world' clashes with MuJoCo's world body: drop it (its child becomes the root)
     if len(roots) == 1 and roots[0].get("name") == "world":
         for j in [j for j in root.findall("joint") if _joint_link(j, "parent", path) == "world"]:
             root.remove(j)

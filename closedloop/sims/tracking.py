@@ -273,8 +273,8 @@ class Recording:
             why.append(
                 "the robot reached a joint limit ("
                 + ", ".join(f"{j} {c} time(s)" for j, c in worst)
-                + "): the loop holds the robot where the nominal model does not expect it; try another --q0 "
-                "away from the limits, --joints without that joint, or a loop with more self-motion"
+                + "): the self-motion runs into it; try another --q0 away from the limits, --joints without "
+                "that joint, or a loop with more self-motion"
             )
         if self.unsettled:
             why.append(
