@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -82,6 +83,7 @@ class Outcome:
     verdict: str = ""
     detail: str = ""
     steps: list[str] = field(default_factory=list)
+    cpu: float = 0.0  # CPU seconds of the case's commands (with --jobs 1; the wall time depends on the load)
 
 
 def _tree(path: Path):
@@ -196,12 +198,22 @@ def read_outcomes(paths: list[str]) -> list[Outcome]:
     return out
 
 
+_CPU: list[float] = [0.0]  # CPU seconds of the commands run (children's user + system time; --jobs 1)
+
+
+def _children_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
 def _run(cmd: list[str], timeout: float) -> tuple[int | None, str, str, float]:
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), _children_cpu()
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         return None, "", "", time.perf_counter() - t0
+    finally:
+        _CPU[0] += _children_cpu() - c0
     return p.returncode, p.stdout, p.stderr, time.perf_counter() - t0
 
 
@@ -281,18 +293,19 @@ def markdown(outcomes: list[Outcome], header: str, n: int, timeout: float) -> st
         by_robot.setdefault(o.case.robot, Counter())[o.cls] += 1
     cols = list(CLASSES)
     lines = [
-        "| robot file | cases | " + " | ".join(cols) + " | slowest (s) |",
-        "|---|---:|" + "---:|" * len(cols) + "---:|",
+        "| robot file | cases | " + " | ".join(cols) + " | slowest: wall (s) | CPU (s) |",
+        "|---|---:|" + "---:|" * len(cols) + "---:|---:|",
     ]
     for robot, c in sorted(by_robot.items()):
-        slow = max(o.seconds for o in outcomes if o.case.robot == robot)
-        lines.append(f"| `{robot}` | {sum(c.values())} | " + " | ".join(str(c[k]) for k in cols) + f" | {slow:.1f} |")
+        slow = max((o for o in outcomes if o.case.robot == robot), key=lambda o: o.seconds)
+        counts = " | ".join(str(c[k]) for k in cols)
+        lines.append(f"| `{robot}` | {sum(c.values())} | {counts} | {slow.seconds:.0f} | {slow.cpu:.0f} |")
     tot = Counter(o.cls for o in outcomes)
-    slow = max((o.seconds for o in outcomes), default=0.0)
+    slowest_all = max(outcomes, key=lambda o: o.seconds)
     lines.append(
         f"| **all ({len(by_robot)} files)** | {len(outcomes)} | "
         + " | ".join(str(tot[k]) for k in cols)
-        + f" | {slow:.1f} |"
+        + f" | {slowest_all.seconds:.0f} | {slowest_all.cpu:.0f} |"
     )
     right = tot["right"] + tot["right, flagged"]
     text = [
@@ -379,8 +392,15 @@ def main(argv: list[str] | None = None) -> int:
     print(header, flush=True)
     outcomes: list[Outcome] = []
     t0 = time.perf_counter()
+
+    def one(c: Case) -> Outcome:
+        c0 = _CPU[0]
+        o = run_case(c, base, work, args.n, args.timeout, cli)
+        o.cpu = _CPU[0] - c0 if args.jobs == 1 else 0.0
+        return o
+
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        for o in pool.map(lambda c: run_case(c, base, work, args.n, args.timeout, cli), todo):
+        for o in pool.map(one, todo):
             outcomes.append(o)
             print(
                 f"{o.cls:18s} {o.seconds:6.1f}s {o.verdict:8s} {o.case.robot} {o.case.loop} "
