@@ -218,3 +218,27 @@ def test_a_robot_file_as_they_come_simulates(tmp_path, capsys, caplog):
     assert truth["joint_names"] == ["j1", "j2", "j3", "j4", "j5"]  # the base stands still, the fingers held
     notes = [r.getMessage() for r in caplog.records if "root links" in r.getMessage()]
     assert len(notes) == 1 and "table" in notes[0]
+
+
+@pytest.mark.slow
+def test_every_example_robot_data_file_compiles_in_mujoco_once_cleaned():
+    """The simulator's cleaning (inertias repaired, visuals dropped) makes every URDF of example-robot-data
+    one MuJoCo compiles (the floating bases fixed and a root 'world' dropped, as `prepare_robot` does)."""
+    tag = '<mujoco><compiler fusestatic="false" discardvisual="true" balanceinertia="true"/></mujoco>'
+    files = sorted(ERD.rglob("*.urdf"))
+    assert len(files) >= 40
+    for f in files:
+        root = clean_urdf_tree(ET.parse(f).getroot())
+        for j in root.findall("joint"):
+            if j.get("type") in ("floating", "planar"):
+                j.set("type", "fixed")
+        children = {j.find("child").get("link") for j in root.findall("joint")}
+        roots = [lk for lk in root.findall("link") if lk.get("name") not in children]
+        if len(roots) == 1 and roots[0].get("name") == "world":
+            for j in [j for j in root.findall("joint") if j.find("parent").get("link") == "world"]:
+                root.remove(j)
+            root.remove(roots[0])
+        model = mujoco.MjModel.from_xml_string(
+            ET.tostring(root, encoding="unicode").replace("</robot>", tag + "</robot>")
+        )
+        assert model.nbody >= 2, f
