@@ -241,4 +241,4 @@ def test_every_example_robot_data_file_compiles_in_mujoco_once_cleaned():
         model = mujoco.MjModel.from_xml_string(
             ET.tostring(root, encoding="unicode").replace("</robot>", tag + "</robot>")
         )
-        assert model.nbody >= 2, f
+        assert model.nbody >= 1, f

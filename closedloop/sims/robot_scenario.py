@@ -277,9 +277,10 @@ def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: 
         movable = [j for j in movable if j in joints]
     for j in root.findall("joint"):
         if j.get("name", "") not in movable:
-            if j.get("type") != "fixed":
+            if j.get("type") != "fixed" and all(j is not c for c in chain):
                 log.info("%s: joint %s held fixed at 0 (not on the loop's chain)", path, j.get("name"))
-                # marked, so that calibrate refuses a loop through it before any work (io.robot_files.HELD)
+                # marked, so that calibrate refuses a loop through it before any work (io.robot_files.HELD);
+                # a joint of the loop's own chain left out by `joints` is rigid in the truth as in the model
                 ET.SubElement(j, HELD, type=j.get("type", ""))
             j.set("type", "fixed")
             for tag in ("mimic", "axis", "limit"):
@@ -294,7 +295,12 @@ def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: 
             lim.set("lower", repr(-np.pi))
             lim.set("upper", repr(np.pi))
         elif j.find("mimic") is not None:
-            raise InputError(f"{path}: joint {j.get('name')} mimics another joint; give joints: without it")
+            plain = [m.get("name", "") for m in chain if m.get("name") in movable and m.find("mimic") is None]
+            raise InputError(
+                f"{path}: joint {j.get('name')} mimics another joint (<mimic>), which the simulator does not "
+                f"drive; leave it out: --joints {','.join(plain)} (joints: in a scenario file), or close the "
+                "loop on a link before it"
+            )
     children = {_joint_link(j, "child", path) for j in root.findall("joint")}
     roots = [lk for lk in root.findall("link") if lk.get("name") not in children]
     if len(roots) > 1:  # several trees in one file: the loop's is simulated, the others dropped
