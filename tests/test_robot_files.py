@@ -138,9 +138,13 @@ def test_revolute_joint_without_limits_turns(tmp_path):
 
 
 def test_a_loop_through_held_joints_is_refused_before_any_work(tmp_path, capsys):
+    from closedloop.io.robot_files import held_on_chain
+
     sim = tmp_path / "sim"
-    assert _simulate(ROMEO, "weld:frame=l_wrist,name=fixture", sim, n=6) == 0
+    arm = "LShoulderPitch,LShoulderYaw,LElbowRoll,LElbowYaw,LWristRoll,LWristYaw,LWristPitch"  # the trunk held
+    assert _simulate(ROMEO, "weld:frame=l_wrist,name=fixture", sim, n=6, extra=["--joints", arm]) == 0
     capsys.readouterr()
+    assert held_on_chain(sim / "nominal.urdf", ["l_wrist"]) == []  # the simulated loop: rigid trunk, as in truth
     spec = "weld:frame=r_wrist,name=fixture"
     assert main(["calibrate", str(sim / "nominal.urdf"), str(sim / "log.csv"), "--loop", spec, "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -242,3 +246,12 @@ def test_every_example_robot_data_file_compiles_in_mujoco_once_cleaned():
             ET.tostring(root, encoding="unicode").replace("</robot>", tag + "</robot>")
         )
         assert model.nbody >= 1, f
+
+
+def test_a_mimic_joint_on_the_chain_is_refused_with_the_joints_that_leave_it_out(tmp_path, capsys):
+    pr2 = ERD / "pr2_description" / "urdf" / "pr2.urdf"
+    loop = "point:frame=l_gripper_l_finger_tip_link,name=socket"
+    assert _simulate(pr2, loop, tmp_path / "sim", n=5, extra=["--tool", "0.03 0.02 0.05"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "l_gripper_l_finger_tip_joint mimics" in err and "--joints torso_lift_joint," in err
+    assert "l_gripper_l_finger_tip_joint" not in err.split("--joints")[1]
