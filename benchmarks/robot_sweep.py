@@ -288,6 +288,9 @@ def run_case(case: Case, base: Path, work: Path, n: int, timeout: float, cli: li
 
 
 def markdown(outcomes: list[Outcome], header: str, n: int, timeout: float) -> str:
+    from closedloop.models import example_robot_data_dir
+
+    erd = f"{example_robot_data_dir()}/"
     by_robot: dict[str, Counter] = {}
     for o in outcomes:
         by_robot.setdefault(o.case.robot, Counter())[o.cls] += 1
@@ -324,12 +327,13 @@ def markdown(outcomes: list[Outcome], header: str, n: int, timeout: float) -> st
     ]
     for o in outcomes:
         if o.cls != "right":
-            det = o.detail.replace("|", "/")[:160]
+            det = o.detail.replace(erd, "").replace("|", "/")[:200]
             text.append(f"| `{o.case.robot}` | `{o.case.loop}` | {o.case.noise:g} | {o.cls} | {o.verdict} | {det} |")
     slowest = sorted(outcomes, key=lambda o: -o.seconds)[:5]
     text += ["", "Slowest cases:", ""]
     text += [
-        f"* `{o.case.robot}` `{o.case.loop}` noise {o.case.noise:g}: {o.seconds:.1f} s ({', '.join(o.steps)})"
+        f"* `{o.case.robot}` `{o.case.loop}` noise {o.case.noise:g}: {o.seconds:.0f} s wall, {o.cpu:.0f} s CPU "
+        f"({', '.join(o.steps)})"
         for o in slowest
     ]
     return "\n".join(text) + "\n"
