@@ -146,7 +146,7 @@ def recordings() -> None:
         held = time.perf_counter() - t
         print(
             f"{name} ({rec.folder}): {len(log_)} postures, {len(log_.joints)} joints; floor {fl * 1e3:.2f} ms; "
-            f"calibrate (defaults, all rows) {fit:.2f} s wall, {cpu:.2f} s cpu, {len(res.estimated)} parameters, "
+            f"calibrate (defaults, all rows) {fit:.2f} s wall, {cpu:.2f} s cpu, {len(res.fit.estimated)} parameters, "
             f"verdict {res.verdict.status}; held-out protocol {held:.2f} s wall, held-out RMS "
             f"{h['test']['loops'][0]['rms_m'] * 1e3:.3f} mm"
         )

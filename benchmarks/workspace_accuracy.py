@@ -33,12 +33,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import machine, tests_zoo  # noqa: E402
 
 from closedloop.analysis.accuracy import predict_from_result  # noqa: E402
+from closedloop.assets.catalog import example_robot_data_dir  # noqa: E402
 from closedloop.calibration.pipeline import CalibrationOptions, calibrate  # noqa: E402
 from closedloop.calibration.verdict import judge_workspace  # noqa: E402
 from closedloop.io.logs import read_log  # noqa: E402
 from closedloop.loops.spec import parse_loop  # noqa: E402
 from closedloop.model.robot import RobotModel  # noqa: E402
-from closedloop.models import example_robot_data_dir  # noqa: E402
 from closedloop.output.report import accuracy_section, build_report, verdict_record  # noqa: E402
 from closedloop.validation.check import check_kinematics  # noqa: E402
 

@@ -14,6 +14,7 @@
     |   +-- NotIdentifiableError
     |   +-- ConvergenceError
     +-- SimulationError            the simulator cannot produce the data asked for (also a RuntimeError)
+        +-- EmptySimulationError   no configuration recorded (`closedloop simulate`: exit 3, nothing written)
 
 The classes that also derive from a builtin do so because callers (and the
 tests) catch that builtin: ``simulate("nope")`` was a KeyError, an unknown
@@ -91,6 +92,10 @@ class ConvergenceError(CalibrationError):
 
 class SimulationError(ClosedLoopError, RuntimeError):
     """The simulator cannot produce the data asked for (a loop that does not close, a model MuJoCo lacks)."""
+
+
+class EmptySimulationError(SimulationError):
+    """The simulator recorded no configuration (the message says why and what to change)."""
 
 
 #: The command line's exit codes: 0 done, 2 a user's input (`InputError`), 3 a failed calibration

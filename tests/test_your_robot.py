@@ -153,7 +153,7 @@ def test_mjcf_robot(tmp_path):
     spec.joint("wrist_1_joint").pos = [0.0, 0.0, 0.03]  # an anchor off the body origin (MJCF allows it)
     xml = tmp_path / "ur5.xml"
     xml.write_text(spec.to_xml())
-    prepared = prepare_robot(xml, "point", "tool0", tool={"xyz": [0, 0, 0.1]})
+    prepared = prepare_robot(xml, "point", "tool0", tool={"xyz": [0, 0.05, 0.1]})
     assert prepared.joints == (
         "shoulder_pan_joint",
         "shoulder_lift_joint",
@@ -211,7 +211,7 @@ def test_simulate_prints_the_calibrate_command_for_its_tool_frame(tmp_path, caps
 
     sim = tmp_path / "sim"
     urdf = example_robot_data_dir() / "ur_description/urdf/ur5_robot.urdf"
-    args = ["--loop", "point:frame=tool0", "--tool", "0 0 0.1", "--n", "60", "--seed", "1", "--out", str(sim)]
+    args = ["--loop", "point:frame=tool0", "--tool", "0 0.05 0.1", "--n", "60", "--seed", "1", "--out", str(sim)]
     assert main(["simulate", "--robot", str(urdf), *args]) == 0
     lines = capsys.readouterr().out.splitlines()
     calibrate = shlex.split(next(ln for ln in lines if ln.strip().startswith("calibrate:")).split(":", 1)[1])

@@ -202,7 +202,7 @@ def test_zoo_rough_start():
     case = zoo.make_case("panda", "weld", n=60, seed=1, err_m=2e-2, err_rad=2e-2, offset_rad=0.2, tag="rough")
     o = zoo.run_case(case)
     _check(o)
-    assert o.result.gauge == "panda_joint3.z", o.result.gauge
+    assert o.result.scale.gauge == "panda_joint3.z", o.result.scale.gauge
     truth = (case.nominal_urdf.parent / "truth.urdf").read_text()
     predicted = _held_length(case.nominal_urdf.read_text(), "panda_joint3", "panda_joint4") / _held_length(
         truth, "panda_joint3", "panda_joint4"

@@ -14,7 +14,10 @@ simulated calibration experiment:
   removed;
 * links and joints that are not part of the calibrated chain are removed
   (the Panda's fingers; the UR5's ``world`` link);
-* massless links get a tiny, valid inertia so that MuJoCo accepts them;
+* massless links get a tiny, valid inertia so that MuJoCo accepts them, and an inertia MuJoCo
+  refuses (zero, not positive definite, or breaking the triangle inequality, as public robot files
+  have on legs and antennas) is repaired (:func:`repair_inertias`): kinematics, all a calibration
+  uses, are unchanged;
 * optional fixed "tool" links are appended (e.g. a stylus tip).
 
 Files in this directory:
@@ -44,6 +47,7 @@ __all__ = [
     "example_robot_data_dir",
     "model_file",
     "nominal_urdf",
+    "repair_inertias",
 ]
 
 _ERD_SUBDIR = Path("cmeel.prefix") / "share" / "example-robot-data" / "robots"
@@ -148,6 +152,53 @@ def _fmt(v: float) -> str:
     return repr(float(v))
 
 
+def _inertia_matrix(el: ET.Element) -> list[list[float]]:
+    g = {k: float(el.get(k, "0") or 0.0) for k in ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")}
+    return [[g["ixx"], g["ixy"], g["ixz"]], [g["ixy"], g["iyy"], g["iyz"]], [g["ixz"], g["iyz"], g["izz"]]]
+
+
+def repair_inertias(root: ET.Element) -> list[str]:
+    """Repair, in place, the inertias MuJoCo refuses; return the names of the links repaired.
+
+    A link with a positive mass whose inertia is not positive definite (zero, as public URDFs write
+    for links whose inertia nobody measured) or whose principal moments break the triangle inequality
+    (``A + B >= C``) gets its principal moments raised: each at least that of a 1 cm sphere of the
+    link's mass (``0.4 m r^2``, and at least 1e-9 kg m^2), then each at least half the largest one.
+    The principal axes, the mass and the centre of mass are kept; so is every kinematic quantity.
+    Massless links are :func:`clean_urdf_tree`'s business (a tiny valid inertia).
+    """
+    import numpy as np
+
+    repaired = []
+    for link in root.findall("link"):
+        inertial = link.find("inertial")
+        if inertial is None:
+            continue
+        mass_el, inertia_el = inertial.find("mass"), inertial.find("inertia")
+        try:
+            mass = float(mass_el.get("value", "0")) if mass_el is not None else 0.0
+            I = np.array(_inertia_matrix(inertia_el)) if inertia_el is not None else np.zeros((3, 3))
+        except ValueError:
+            continue  # not numbers: the robot-file check names the element
+        if not mass > 0.0 or not np.all(np.isfinite(I)):
+            continue
+        lam, V = np.linalg.eigh(I)
+        floor = max(0.4 * mass * 0.01**2, 1e-9)
+        if lam[0] > 1e-3 * floor and lam[0] + lam[1] >= lam[2] * (1.0 + 1e-9):
+            continue
+        lam = np.maximum(lam, floor)
+        lam = np.maximum(lam, 0.5 * lam.max())
+        J = V @ np.diag(lam) @ V.T
+        if inertia_el is None:
+            inertia_el = ET.SubElement(inertial, "inertia")
+        for key, (a, b) in zip(
+            ("ixx", "ixy", "ixz", "iyy", "iyz", "izz"), ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+        ):
+            inertia_el.set(key, _fmt(J[a, b]))
+        repaired.append(link.get("name", "?"))
+    return repaired
+
+
 def clean_urdf_tree(root: ET.Element, remove_links: tuple[str, ...] = ()) -> ET.Element:
     """Clean a URDF element tree in place (see module docstring) and return it."""
     for tag in ("transmission", "gazebo", "material"):
@@ -188,6 +239,7 @@ def clean_urdf_tree(root: ET.Element, remove_links: tuple[str, ...] = ()) -> ET.
                 iyz="0",
                 izz=_fmt(_TINY_INERTIA),
             )
+    repair_inertias(root)
     for joint in root.findall("joint"):
         for el in list(joint.findall("dynamics")):
             joint.remove(el)

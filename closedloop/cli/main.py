@@ -229,7 +229,14 @@ def _add_simulate(sub) -> None:
     )
     s.add_argument("scenario", nargs="?", help="a scenario name (below) or a scenario YAML file")
     add_simulate_robot_options(s)
-    s.add_argument("--n", type=int_arg, default=200, metavar="N", help="configurations to record (default 200)")
+    s.add_argument(
+        "--n",
+        type=int_arg,
+        default=200,
+        metavar="N",
+        help="configurations to record (default 200); fewer recorded: exit 3 and why (the files are written "
+        "when some were)",
+    )
     s.add_argument(
         "--seed", type=int_arg, default=0, help="random seed: the same seed gives the same dataset (default 0)"
     )

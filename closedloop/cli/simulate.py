@@ -9,12 +9,13 @@ Every named scenario is in one list (`closedloop.sims.scenarios.scenario_catalog
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 
 from closedloop.cli.parse import sim_overrides
 from closedloop.cli.progress import ProgressDisplay
-from closedloop.errors import InputError, NotIdentifiableError, ScenarioError
+from closedloop.errors import EXIT_FAILED, EmptySimulationError, InputError, NotIdentifiableError, ScenarioError
 from closedloop.run.options import check_number
 
 
@@ -68,16 +69,30 @@ def cmd_simulate(args) -> int:
         )
     except NotIdentifiableError as exc:  # the scenario's loop cannot close: its robot, loop, --q0 or --tool
         raise ScenarioError(f"simulate {args.scenario}: {exc} (check the loop frame, --q0 and --tool)") from None
-    finally:
+    except EmptySimulationError as exc:  # nothing recorded, nothing written: exit 3, as a failed calibration
         prog.close()
+        print(f"error: simulated nothing: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+    prog.close()
+    recorded = len(result.readings)
+    short = recorded < args.n  # some recorded: the files are written, the exit code says the dataset is short
+    if short:
+        print(
+            f"error: simulated only {recorded} of {args.n} configurations of {args.scenario} "
+            f"(files written to {args.out}): {result.shortfall}",
+            file=sys.stderr,
+        )
     if args.quiet:  # errors and warnings only
-        return 0
-    print(f"simulated {args.n} configurations of {args.scenario} in {time.perf_counter() - t0:.1f} s -> {args.out}")
+        return EXIT_FAILED if short else 0
+    print(
+        f"simulated {recorded}{f' of {args.n}' if short else ''} configurations of {args.scenario} "
+        f"in {time.perf_counter() - t0:.1f} s -> {args.out}"
+    )
     print_next_commands(Path(args.out))
     summary = getattr(result, "summary", None)
     if callable(summary):
         print(summary())
-    return 0
+    return EXIT_FAILED if short else 0
 
 
 def print_next_commands(out: Path) -> None:

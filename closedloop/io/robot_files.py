@@ -23,6 +23,11 @@ from pathlib import Path
 
 from closedloop.errors import ModelError
 
+#: the element ``closedloop simulate --robot`` puts in a joint it held fixed at zero (not driven: the log
+#: has no readings of it), ``<closedloop_held type="revolute"/>`` (the joint's own type); URDF readers
+#: (urdfdom, MuJoCo) skip elements they do not know
+HELD = "closedloop_held"
+
 #: deepest kinematic tree accepted (links from the root): Pinocchio recurses once per link
 MAX_DEPTH = 1000
 JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed", "floating", "planar", "spherical")
@@ -160,6 +165,41 @@ def check_urdf(path: str | Path) -> None:
     lost = sorted(links - set(depth))
     if lost:
         raise ModelError(f"{path}: the joints form a cycle through link '{lost[0]}' (not reachable from the root)")
+
+
+def held_on_chain(path: str | Path, frames: list[str]) -> list[str]:
+    """The joints marked `HELD` on the loop through `frames` (links or joints of the URDF at `path`):
+    between the root and one frame, or between two (their common ancestors left out), root first;
+    empty when the file marks none or cannot be read."""
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError):
+        return []
+    joints = root.findall("joint")
+    if not any(j.find(HELD) is not None for j in joints):
+        return []
+    by_child: dict[str | None, ET.Element] = {}
+    for el in joints:
+        c = el.find("child")
+        if c is not None:
+            by_child[c.get("link")] = el
+    by_name = {j.get("name"): j for j in joints}
+    chains: list[list[ET.Element]] = []
+    for frame in frames:
+        j: ET.Element | None = by_name.get(frame) or by_child.get(frame)
+        chain: list[ET.Element] = []
+        while j is not None and all(j is not c for c in chain):  # a cycle is check_urdf's to refuse
+            chain.append(j)
+            p = j.find("parent")
+            j = by_child.get(p.get("link")) if p is not None else None
+        chains.append(chain[::-1])
+    common = (
+        {id(j) for j in chains[0]}.intersection(*({id(j) for j in c} for c in chains[1:])) if len(chains) > 1 else set()
+    )
+    out: list[str] = []
+    for chain in chains:  # the joints between the frames: a common ancestor is not on a loop of two chains
+        out += [j.get("name", "") for j in chain if j.find(HELD) is not None and id(j) not in common]
+    return list(dict.fromkeys(out))
 
 
 def check_mjcf(path: str | Path) -> None:

@@ -3,14 +3,19 @@
 from __future__ import annotations
 
 import numpy as np
+import pinocchio as pin
 
 from closedloop.errors import LoopError
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.common import POINT_FIELDS, TIP_FIELDS, point_parameters, relative_point
 from closedloop.loops.spec import register
+from closedloop.model.axes import BlindJoint, blind_joints
 from closedloop.model.parameters import Parameter
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import parse_vec, vec3
+
+#: a contact point a pivot puts closer than this to the last joint's axis (m) is taken to lie on it
+CONTACT_TOLERANCE = 3e-3
 
 
 class PointLoop(Loop):
@@ -103,15 +108,10 @@ class PointLoop(Loop):
         if self.point is not None or self.initial_point is not None:
             return None
         tip = self.tip if self.tip is not None else self.initial_tip
-        if self.tip is None and not np.any(self.initial_tip) and TA.shape[0] >= 3:
-            M = np.linalg.solve(TB, TA)
-            A = np.concatenate([M[:, :3, :3], np.broadcast_to(-np.eye(3), (M.shape[0], 3, 3))], axis=2)
-            A, b = A.reshape(-1, 6), -M[:, :3, 3].reshape(-1)
-            S = np.linalg.svd(A, compute_uv=False)
-            if S[-1] > 1e-3 * S[0]:
-                sol = np.linalg.lstsq(A, b, rcond=None)[0]
-                if np.linalg.norm(sol[:3]) > 0.02:  # the data put the tip away from the frame origin
-                    return sol
+        if self.tip is None and not np.any(self.initial_tip):
+            sol = pivot(np.linalg.solve(TB, TA))
+            if sol is not None and np.linalg.norm(sol[:3]) > 0.02:  # the data put the tip away from the origin
+                return sol
         y, *_ = relative_point(TA, TB, tip)
         p = y.mean(axis=0)
         return p if self.tip is not None else np.concatenate([tip, p])
@@ -133,6 +133,53 @@ class PointLoop(Loop):
             "tip": "unknown" if self.tip is None else self.tip.tolist(),
             "point": "unknown" if self.point is None else self.point.tolist(),
         }
+
+
+def pivot(M: np.ndarray) -> np.ndarray | None:
+    """A pivot calibration: (tip, point) solving ``R_i t - p = -d_i`` by linear least squares over the
+    poses ``M_i = (R_i, d_i)`` (N, 4, 4) of frame A in frame B; None when there are fewer than 3 poses
+    or their rotations do not span enough axes to fix the tip (smallest singular value below 1e-3 of
+    the largest)."""
+    if M.shape[0] < 3:
+        return None
+    A = np.concatenate([M[:, :3, :3], np.broadcast_to(-np.eye(3), (M.shape[0], 3, 3))], axis=2)
+    A, b = A.reshape(-1, 6), -M[:, :3, 3].reshape(-1)
+    S = np.linalg.svd(A, compute_uv=False)
+    if not S[-1] > 1e-3 * S[0]:
+        return None
+    return np.linalg.lstsq(A, b, rcond=None)[0]
+
+
+def contact_on_axis(robot: RobotModel, loop: PointLoop, angles: np.ndarray, joints: list[str]) -> list[BlindJoint]:
+    """The last joints whose axes the loop's contact point lies on (`closedloop.model.axes`), before a fit.
+
+    The contact point is the given tip, else where a pivot calibration on the nominal model puts it
+    from the readings `angles` (N, len(`joints`)) of the loop's rows (:func:`pivot`; the fit starts
+    there or, within 2 cm, at the frame's origin), judged within `CONTACT_TOLERANCE` (the nominal
+    model's errors move a pivot by millimetres).  Empty for a loop to another robot frame, when the
+    pivot cannot fix the tip, or when the last joint moves the point.
+    """
+    if loop.frame_b not in ("universe", "world"):
+        return []
+    model = robot.model
+    fid = robot.frame_id(loop.frame_a)
+    if loop.tip is not None:
+        return blind_joints(model, fid, loop.tip)
+    finite = np.all(np.isfinite(angles), axis=1) & np.all(np.abs(angles) < 1e3, axis=1)
+    angles = angles[finite]
+    if len(angles) > 200:  # evenly spread rows: the pivot needs the rotations, not every row
+        angles = angles[np.linspace(0, len(angles) - 1, 200).astype(int)]
+    q = robot.configurations(angles, joints)
+    data = model.createData()
+    M = np.empty((len(q), 4, 4))
+    for i, qi in enumerate(q):
+        pin.framesForwardKinematics(model, data, qi)
+        M[i] = data.oMf[fid].homogeneous
+    sol = pivot(M)
+    if sol is None:
+        return []
+    tip = sol[:3] if np.linalg.norm(sol[:3]) > 0.02 else np.zeros(3)
+    return blind_joints(model, fid, tip, q[0], tol=CONTACT_TOLERANCE)
 
 
 @register("point", {"frame", "to", "tip", "point"})

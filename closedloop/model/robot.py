@@ -47,6 +47,16 @@ class JointInfo:
         return "m" if self.kind == "prismatic" else "rad"
 
 
+def limit_margins(lower, upper, margin: float, fraction: float = 0.1) -> np.ndarray:
+    """Per-joint distances to keep from the joint limits: `margin` (radians, for a revolute joint's
+    range of a few radians), but at most `fraction` of each joint's range, so that a short range in
+    its own unit (a 4 cm prismatic finger, in metres) keeps most of its travel; an unlimited joint
+    (an infinite range) gets `margin`."""
+    lo, hi = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+    span = np.where(np.isfinite(hi - lo), np.maximum(hi - lo, 0.0), np.inf)
+    return np.minimum(margin, fraction * span)
+
+
 def find_frame(model: pin.Model, name: str) -> int:
     """The id of frame `name` in a Pinocchio model; where a joint and a link share the name (URDF allows it:
     Pinocchio then has a joint frame and a body frame of that name), the link's (a loop's frame is a link)."""

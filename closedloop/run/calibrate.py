@@ -99,6 +99,7 @@ def calibrate_files(
     accuracy = predicted_accuracy(res, *workspace)  # over the workspace (closedloop.analysis.accuracy)
     if inp.weighting_note:
         res.notes.append(inp.weighting_note)
+    res.notes.extend(inp.geometry)
     inputs = _input_record(o.readings, inp.fit.weighting, lg, res)  # readings, weighting, where the torques come from
     if inputs["torques"] == "gravity":
         res.notes.append("joint torques: gravity from the model's inertials (the log has no tau:<joint> columns)")

@@ -54,7 +54,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.assets.catalog import ROBOTS, nominal_urdf
-from closedloop.errors import ScenarioError
+from closedloop.errors import EmptySimulationError, ScenarioError
 from closedloop.io.files import OutputSet
 from closedloop.io.marker import mark_running
 from closedloop.progress import ProgressReporter
@@ -90,6 +90,8 @@ class SimResult:
         truth: contents of ``truth.json``.
         settings: settings used.
         n_dropped: samples dropped (at a joint limit or not settled).
+        n_asked: configurations asked for; ``len(readings)`` may be fewer, ``shortfall`` then says why.
+        shortfall: why fewer than ``n_asked`` were recorded and what to change ("" when all were).
         n_steps: total simulation steps.
         elapsed_s: wall time of the simulation loop [s] (excluding scene building; including
             the pose selection with ``select``, whose share is ``extra["select_s"]``).
@@ -109,6 +111,8 @@ class SimResult:
     truth: dict[str, Any]
     settings: SimSettings
     n_dropped: int = 0
+    n_asked: int = 0
+    shortfall: str = ""
     n_steps: int = 0
     elapsed_s: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
@@ -174,8 +178,12 @@ def simulate(
         **overrides: :class:`~closedloop.sims.scenarios.SimSettings` fields, plus
             ``stiff=True`` for the stiff-loop preset (``SimSettings.stiff``).
 
+    Raises:
+        EmptySimulationError: no configuration was recorded (nothing is written).
+
     Returns:
-        the :class:`SimResult`; files ``log.csv``, ``nominal.urdf``, ``truth.json``,
+        the :class:`SimResult` (fewer than `n` configurations when some were dropped: ``shortfall``
+        says why); files ``log.csv``, ``nominal.urdf``, ``truth.json``,
         ``scene.xml`` are written in ``out_dir``.
     """
     if scenario in CAMERA_SCENARIOS:
@@ -255,6 +263,10 @@ def _simulate(
         rec.done / max(rec.elapsed, 1e-12),
     )
 
+    if rec.done == 0:  # nothing to write: the dataset would be an empty log
+        raise EmptySimulationError(
+            f"{sc.name}: no configuration recorded of the {n} asked ({rec.dropped} dropped): {rec.shortfall(n, settings.max_steps)}"
+        )
     # outputs
     measured = {f"{sc.loop_name}:{a}": rec.meas[:, k] for k, a in enumerate("xyz")} if not kind.closed else {}
     write_log(
@@ -300,6 +312,8 @@ def _simulate(
         truth=truth_json,
         settings=settings,
         n_dropped=rec.dropped,
+        n_asked=n,
+        shortfall=rec.shortfall(n, settings.max_steps),
         n_steps=rec.steps,
         elapsed_s=rec.elapsed,
         extra={"select_s": t_plan} if plan is not None else {},

@@ -54,7 +54,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ScenarioError
-from closedloop.model.robot import find_frame
+from closedloop.model.robot import find_frame, limit_margins
 from closedloop.sims.loop_types import sim_loop
 from closedloop.sims.qp import min_norm_step, solve_box_qp, svd_full
 from closedloop.sims.scenarios import LoopType
@@ -199,12 +199,13 @@ class NominalLoopPlanner:
         self.rng = rng
         self.step_rad = step_rad
         self.retarget_every = retarget_every
-        self.lo = np.maximum(loop.lower + margin, self.q - target_span)
-        self.hi = np.minimum(loop.upper - margin, self.q + target_span)
+        m = limit_margins(loop.lower, loop.upper, margin)  # in each joint's unit, scaled to its range
+        self.lo = np.maximum(loop.lower + m, self.q - target_span)
+        self.hi = np.minimum(loop.upper - m, self.q + target_span)
         self.lo = np.minimum(self.lo, self.q)  # a start inside the margin must stay feasible
         self.hi = np.maximum(self.hi, self.q)
-        self.q_lo = np.minimum(loop.lower + margin, self.q)
-        self.q_hi = np.maximum(loop.upper - margin, self.q)
+        self.q_lo = np.minimum(loop.lower + m, self.q)
+        self.q_hi = np.maximum(loop.upper - m, self.q)
         self.stats = PlannerStats()
         self._eye = np.eye(loop.nq)
         self._rank_tol = float(max(loop.n_constraints, loop.nq) * np.finfo(float).eps)  # numpy's matrix_rank tolerance
@@ -351,8 +352,9 @@ class RandomConfigurations:
     ) -> None:
         q = np.asarray(q_start, dtype=float)
         self.rng = rng
-        self.lo = np.minimum(np.maximum(model.lowerPositionLimit + margin, q - target_span), q)
-        self.hi = np.maximum(np.minimum(model.upperPositionLimit - margin, q + target_span), q)
+        m = limit_margins(model.lowerPositionLimit, model.upperPositionLimit, margin)
+        self.lo = np.minimum(np.maximum(model.lowerPositionLimit + m, q - target_span), q)
+        self.hi = np.maximum(np.minimum(model.upperPositionLimit - m, q + target_span), q)
         self.stats = PlannerStats()
 
     def step(self) -> np.ndarray:

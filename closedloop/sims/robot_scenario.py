@@ -9,7 +9,12 @@
    needs a tip off the flange axis);
 3. the **driven joints** are the movable joints between the base and the loop frame(s) (for two
    chains, below their common ancestor); ``joints:`` chooses a subset; every other joint becomes
-   fixed at its zero (fingers, a torso, a head), a continuous joint gets limits of +-pi;
+   fixed at its zero (fingers, a torso, a head), a continuous joint (or a revolute one without a
+   range, as a wheel is written) gets limits of +-pi; a floating or planar base joint is fixed (the
+   base stands still during a calibration); a joint held fixed is marked
+   ``<closedloop_held type="revolute"/>`` in the written ``nominal.urdf``
+   (:data:`closedloop.io.robot_files.HELD`: the log has no readings of it, and ``calibrate``
+   refuses a loop through it, naming it);
 4. the loop must leave the closed chain a self-motion (thesis Lemma 4): with n driven joints and
    m independent constraints (weld 6, hinge 6 minus the door's own joint, point 3, plane 1),
    ``n - m >= 1``; otherwise a plain-words error says what to change;
@@ -19,6 +24,9 @@
    the loop.  The **fixture placement** follows: the fixture, socket, door, plane or partner frame
    is put where the true tool is at ``q0`` (:mod:`closedloop.sims.scene`), so a different ``q0``
    moves it.
+
+A point contact (point, plane, tracker) on the axis of the last driven joint is refused
+(:func:`closedloop.model.axes.blind_joints`): that joint could not move it.
 
 The prepared URDF is registered in :data:`closedloop.assets.catalog.ROBOTS` under the file's stem (a
 temporary file kept for the process), so :func:`closedloop.sims.simulate` runs it like a built-in.
@@ -39,12 +47,15 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import InputError
+from closedloop.io.robot_files import HELD
+from closedloop.model.axes import blind_joints, point_on_axis_message
 from closedloop.model.robot import find_frame
 from closedloop.sims.loop_types import sim_loop
 
 log = logging.getLogger(__name__)
 
 MOVABLE = ("revolute", "continuous", "prismatic")
+BASES = ("floating", "planar")  # joints of a base that moves in the world: held still
 _TMP: list[str] = []
 
 
@@ -181,6 +192,51 @@ def _check_link(root: ET.Element, name: str, path: Path, what: str) -> None:
         raise InputError(f"{path}: no link '{name}' for the loop's {what}{hint}; the simulator closes loops on links")
 
 
+def _no_range(joint: ET.Element) -> bool:
+    """A joint whose ``<limit>`` gives no range (``lower`` and ``upper`` absent or equal)."""
+    lim = joint.find("limit")
+    if lim is None:
+        return True
+    try:
+        return float(lim.get("lower", "0")) >= float(lim.get("upper", "0"))
+    except ValueError:
+        return False
+
+
+def _keep_tree(root: ET.Element, frame: str, path: Path) -> list[ET.Element]:
+    """Drop, from a URDF with several root links, the trees that do not hold `frame` (one note naming
+    their roots); return the remaining root link."""
+    parent = {_joint_link(j, "child", path): _joint_link(j, "parent", path) for j in root.findall("joint")}
+    top = frame
+    while top in parent:
+        top = parent[top]
+    kept = {top}
+    changed = True
+    while changed:  # the links below the kept root (no recursion: deep trees are legal)
+        changed = False
+        for child, par in parent.items():
+            if par in kept and child not in kept:
+                kept.add(child)
+                changed = True
+    dropped_roots = [
+        lk.get("name") for lk in root.findall("link") if lk.get("name") not in parent and lk.get("name") != top
+    ]
+    for lk in [lk for lk in root.findall("link") if lk.get("name") not in kept]:
+        root.remove(lk)
+    for j in [j for j in root.findall("joint") if _joint_link(j, "child", path) not in kept]:
+        root.remove(j)
+    log.warning(
+        "note: %s: %d root links; the tree of %s (root %s) is simulated, the one(s) rooted at %s dropped "
+        "(join them with a fixed joint to keep them)",
+        path.name,
+        len(dropped_roots) + 1,
+        frame,
+        top,
+        ", ".join(str(r) for r in dropped_roots),
+    )
+    return [lk for lk in root.findall("link") if lk.get("name") == top]
+
+
 def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: str | None, tool, joints):
     """Tool link, driven joints (others fixed), continuous -> revolute; returns (frame, driven names)."""
     if tool:
@@ -200,12 +256,16 @@ def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: 
         other = _path_joints(root, to, path)
         common = {id(j) for j in chain} & {id(j) for j in other}
         chain = [j for j in chain + other if id(j) not in common]
+    for j in root.findall("joint"):  # a floating or planar base stands still while a loop is calibrated
+        if j.get("type") in BASES:
+            log.info("%s: %s joint %s held fixed (the base stands still)", path, j.get("type"), j.get("name"))
+            j.set("type", "fixed")
     movable = [j.get("name", "") for j in chain if j.get("type") in MOVABLE]
     bad = [f"{j.get('name')} ({j.get('type')})" for j in chain if j.get("type") not in MOVABLE + ("fixed",)]
     if bad:
         raise InputError(
             f"{path}: joint(s) {', '.join(bad)} on the way to {frame}: the simulator drives revolute, "
-            "continuous and prismatic joints only"
+            "continuous and prismatic joints only; write a ball joint as three revolute joints"
         )
     if joints:
         unknown = [j for j in joints if j not in movable]
@@ -217,13 +277,17 @@ def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: 
         movable = [j for j in movable if j in joints]
     for j in root.findall("joint"):
         if j.get("name", "") not in movable:
-            if j.get("type") != "fixed":
+            if j.get("type") != "fixed" and all(j is not c for c in chain):
                 log.info("%s: joint %s held fixed at 0 (not on the loop's chain)", path, j.get("name"))
+                # marked, so that calibrate refuses a loop through it before any work (io.robot_files.HELD);
+                # a joint of the loop's own chain left out by `joints` is rigid in the truth as in the model
+                ET.SubElement(j, HELD, type=j.get("type", ""))
             j.set("type", "fixed")
             for tag in ("mimic", "axis", "limit"):
                 for el in j.findall(tag):
                     j.remove(el)
-        elif j.get("type") == "continuous":
+        elif j.get("type") == "continuous" or (j.get("type") == "revolute" and _no_range(j)):
+            # a revolute joint written without a range (lower = upper, URDF's default 0) turns freely
             j.set("type", "revolute")
             lim = j.find("limit")
             if lim is None:
@@ -231,10 +295,17 @@ def _prepare_tree(root: ET.Element, path: Path, loop_type: str, frame: str, to: 
             lim.set("lower", repr(-np.pi))
             lim.set("upper", repr(np.pi))
         elif j.find("mimic") is not None:
-            raise InputError(f"{path}: joint {j.get('name')} mimics another joint; give joints: without it")
-    # a root link named 'world' clashes with MuJoCo's world body: drop it (its child becomes the root)
+            plain = [m.get("name", "") for m in chain if m.get("name") in movable and m.find("mimic") is None]
+            raise InputError(
+                f"{path}: joint {j.get('name')} mimics another joint (<mimic>), which the simulator does not "
+                f"drive; leave it out: --joints {','.join(plain)} (joints: in a scenario file), or close the "
+                "loop on a link before it"
+            )
     children = {_joint_link(j, "child", path) for j in root.findall("joint")}
     roots = [lk for lk in root.findall("link") if lk.get("name") not in children]
+    if len(roots) > 1:  # several trees in one file: the loop's is simulated, the others dropped
+        roots = _keep_tree(root, frame, path)
+    # a root link named 'world' clashes with MuJoCo's world body: drop it (its child becomes the root)
     if len(roots) == 1 and roots[0].get("name") == "world":
         for j in [j for j in root.findall("joint") if _joint_link(j, "parent", path) == "world"]:
             root.remove(j)
@@ -289,11 +360,21 @@ def prepare_robot(
     where: str = "--robot",
 ) -> PreparedRobot:
     """Prepare a user's robot for the simulator and register it (module doc)."""
-    from closedloop.assets.catalog import ROBOTS, RobotSource, nominal_urdf
+    from closedloop.assets.catalog import ROBOTS, RobotSource, nominal_urdf, repair_inertias
     from closedloop.sims.outputs import absolute_mesh_paths
 
     path = Path(path)
     root = absolute_mesh_paths(_read(path, where), path)  # the prepared file lives elsewhere: meshes by absolute path
+    repaired = repair_inertias(root)
+    if repaired:
+        log.warning(
+            "note: %s: %d link(s) have an inertia the simulator refuses (zero or not positive definite: %s); "
+            "simulated with each principal moment at least that of a 1 cm sphere of the link's mass (the "
+            "kinematics, all a calibration uses, unchanged)",
+            path.name,
+            len(repaired),
+            ", ".join(repaired[:6]) + (", ..." if len(repaired) > 6 else ""),
+        )
     frame, driven = _prepare_tree(root, path, loop_type, frame, to, tool, joints)
     key = path.stem  # a built-in robot's name is not taken over
     if key in ROBOTS and not str(ROBOTS[key].relpath).startswith(str(_tmpdir())):
@@ -330,5 +411,18 @@ def prepare_robot(
     outside = [model.names[k + 1] for k in range(n) if not lo[k] <= q0[k] <= hi[k]]
     if outside:
         raise InputError(f"{where}: q0 puts joint(s) {', '.join(outside)} outside their limits")
+    if sim_loop(loop_type).point_contact and to is None:  # the point must move with the last joint
+        blind = blind_joints(model, find_frame(model, frame), np.zeros(3), q0)
+        if blind:
+            raise InputError(
+                point_on_axis_message(
+                    f"{path}: {what}",
+                    frame,
+                    blind,
+                    bool(tool),
+                    'put the contact on a stylus off the axis: --tool "0.05 0 0" (a tool: {xyz: [...]} in a '
+                    "scenario file), in the frame's axes",
+                )
+            )
     names = tuple(model.names[k] for k in range(1, model.njoints))
     return PreparedRobot(key, out, frame, names, tuple(float(v) for v in q0))

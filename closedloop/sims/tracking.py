@@ -15,13 +15,14 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ScenarioError
+from closedloop.model.robot import limit_margins
 from closedloop.progress import ProgressReporter
 from closedloop.sims.loop_types import SimLoop
 from closedloop.sims.scenarios import Scenario, SimSettings
@@ -259,6 +260,35 @@ class Recording:
     dropped: int = 0
     steps: int = 0
     elapsed: float = 0.0
+    unsettled: int = 0  # of the dropped: not settled within max_steps
+    at_limit: dict[str, int] = field(default_factory=dict)  # of the dropped: how often each joint was at a limit
+
+    def shortfall(self, n: int, max_steps: int) -> str:
+        """Why fewer than `n` configurations were recorded, and what to change ("" when all were);
+        `max_steps`: the setting a sample had to settle within."""
+        if self.done >= n:
+            return ""
+        why = []
+        if self.at_limit:
+            worst = sorted(self.at_limit.items(), key=lambda kv: -kv[1])[:3]
+            why.append(
+                "the robot reached a joint limit ("
+                + ", ".join(f"{j} {c} time(s)" for j, c in worst)
+                + "): the self-motion runs into it; try another --q0 away from the limits, --joints without "
+                "that joint, or a loop with more self-motion"
+            )
+        if self.unsettled:
+            why.append(
+                f"{self.unsettled} waypoint(s) did not come to rest within max_steps={max_steps} steps (heavy "
+                f"links on soft servos, or a stiff loop, settle slowly); try --set max_steps={5 * max_steps}"
+            )
+        if not why:
+            why.append(
+                "the planner found no motion the closed loop allows from the grasp pose (the loop cannot "
+                "move: a singular grasp or joints at their limits); try another --q0, or a loop with fewer "
+                "constraints (point: 3, plane: 1)"
+            )
+        return "; ".join(why)
 
     @classmethod
     def empty(cls, n: int, nj: int, env_joint: bool, measures: bool) -> "Recording":
@@ -330,8 +360,9 @@ def track_and_record(
     limited = m.jnt_limited[[m.joint(j).id for j in joint_names]].astype(bool)
     # (joint, lower, upper) of the limited joints: the at-limit test on Python floats (the same arithmetic)
     ranges = zip(scene.jnt_range[:, 0].tolist(), scene.jnt_range[:, 1].tolist(), limited.tolist())
-    limits = [(i, lo, hi) for i, (lo, hi, lim) in enumerate(ranges) if lim]
-    flag = settings.limit_flag
+    # flagged within limit_flag of a limit, in each joint's own unit: at most 5 % of a short range
+    flags = limit_margins(scene.jnt_range[:, 0], scene.jnt_range[:, 1], settings.limit_flag, 0.05).tolist()
+    limits = [(i, lo, hi, flags[i]) for i, (lo, hi, lim) in enumerate(ranges) if lim]
     settler = Settler(scene, settings)
     qpos = settler.qpos
     sites, point = SiteViews(scene), kind.point_contact
@@ -352,13 +383,16 @@ def track_and_record(
         mujoco.mj_forward(m, d)
         q = qpos.copy()
         ql = q.tolist()
-        at_limit = any(ql[i] - lo < flag or hi - ql[i] < flag for i, lo, hi in limits)
+        at_limit = [i for i, lo, hi, f in limits if ql[i] - lo < f or hi - ql[i] < f]
         if not settled:
             log.debug(
                 "sample %d not settled after %d steps (max |qdot| = %.3g)", rec.done, steps, np.max(np.abs(d.qvel))
             )
         if settings.drop_flagged and (at_limit or not settled):
             rec.dropped += 1
+            rec.unsettled += not settled
+            for k in at_limit:
+                rec.at_limit[joint_names[k]] = rec.at_limit.get(joint_names[k], 0) + 1
             continue
         i = rec.done
         rec.tau[i] = tau.copy()
@@ -386,6 +420,6 @@ def track_and_record(
             progress("simulating", rec.done, n)
     rec.elapsed = time.perf_counter() - t_start
     if rec.done < n:
-        log.warning("%s: only %d of %d samples recorded (%d dropped)", sc.name, rec.done, n, rec.dropped)
+        log.info("%s: only %d of %d samples recorded (%d dropped)", sc.name, rec.done, n, rec.dropped)
         rec.truncate()
     return rec

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from closedloop.errors import NotIdentifiableError
+from closedloop.model.robot import limit_margins
 from closedloop.problem.problem import CalibrationProblem
 
 
@@ -51,8 +52,10 @@ def self_motion(
     margin: float = 0.05,
 ) -> np.ndarray:
     """`n` configurations (readings, (n, n_joints)) along loop `block`'s self-motion."""
-    lo = np.array([problem.robot.joint(j).lower for j in problem.joints]) + margin
-    hi = np.array([problem.robot.joint(j).upper for j in problem.joints]) - margin
+    lo = np.array([problem.robot.joint(j).lower for j in problem.joints])
+    hi = np.array([problem.robot.joint(j).upper for j in problem.joints])
+    m = limit_margins(lo, hi, margin)  # in each joint's own unit (a 4 cm finger keeps 36 mm)
+    lo, hi = lo + m, hi - m
     rp = problem.rp
     k = values[rp.scale_index()]
     off = values[rp.offset_index()]
@@ -63,8 +66,13 @@ def self_motion(
     outside = [j for j, a, l, h in zip(problem.joints, start, lo, hi) if not l <= a <= h]
     if outside:
         raise NotIdentifiableError(
-            f"the start pose is within {margin} rad of (or beyond) the limits of "
-            f"joint(s) {', '.join(outside)}: the walk could not move"
+            "the start pose is within the margin of (or beyond) the limits of joint(s) "
+            + ", ".join(
+                f"{j} ({m[k]:.3g} {problem.robot.joint(j).unit} of [{lo[k] - m[k]:.4g}, {hi[k] + m[k]:.4g}])"
+                for k, j in enumerate(problem.joints)
+                if j in outside
+            )
+            + ": the walk could not move"
         )
     thetas = [b.theta[:1] for b in problem.blocks]
     direction = None
