@@ -35,12 +35,23 @@ from typing import Any
 
 import numpy as np
 
-from closedloop.parallel.engine import ENGINES, Engine, Outcome, Progress, SerialEngine, call, limit_threads, register
+from closedloop.parallel.engine import (
+    ENGINES,
+    Engine,
+    JobTimeout,
+    Outcome,
+    Progress,
+    SerialEngine,
+    call,
+    limit_threads,
+    register,
+)
 from closedloop.parallel.engines import LocalEngine, RayEngine
 
 __all__ = [
     "ENGINES",
     "Engine",
+    "JobTimeout",
     "Outcome",
     "Progress",
     "SerialEngine",
@@ -64,8 +75,14 @@ _NO_SHARED = object()
 
 
 # --------------------------------------------------------------------------- front end
-def get_engine(engine: "str | Engine | None" = None, jobs: int | None = None, address: str | None = None) -> Engine:
-    """An engine by name ('serial', 'local', 'ray'), or the instance given (None: serial)."""
+def get_engine(
+    engine: "str | Engine | None" = None,
+    jobs: int | None = None,
+    address: str | None = None,
+    timeout: float | None = None,
+) -> Engine:
+    """An engine by name ('serial', 'local', 'ray'), or the instance given (None: serial); `timeout`:
+    seconds a job may run before it is stopped and recorded as failed (`JobTimeout`)."""
     if isinstance(engine, Engine):
         return engine
     name = engine or "serial"
@@ -73,7 +90,7 @@ def get_engine(engine: "str | Engine | None" = None, jobs: int | None = None, ad
         from closedloop.errors import InputError
 
         raise InputError(f"unknown engine '{name}' (known: {', '.join(sorted(ENGINES))})")
-    return ENGINES[name](jobs=jobs, address=address)
+    return ENGINES[name](jobs=jobs, address=address, timeout=timeout)
 
 
 def job_seeds(seed: int | np.random.SeedSequence | None, n: int) -> list[np.random.SeedSequence] | None:
@@ -137,8 +154,8 @@ def run(fn: Callable, payloads: Iterable, engine: "str | Engine | None" = None, 
     return [o.value if o.ok else o for o in outs]
 
 
-def add_arguments(parser) -> None:
-    """--jobs / --ray for a many-job command."""
+def add_arguments(parser, timeout: bool = False) -> None:
+    """--jobs / --ray for a many-job command (and --job-timeout with `timeout`)."""
     parser.add_argument(
         "--jobs",
         type=int,
@@ -153,18 +170,29 @@ def add_arguments(parser) -> None:
         help="run on a Ray cluster: 'auto' joins the running one, an address (ray://HOST:10001) another, "
         "'local' starts one here with --jobs CPUs (needs Ray: pip install \".[ray]\" in the checkout)",
     )
+    if timeout:
+        parser.add_argument(
+            "--job-timeout",
+            metavar="SECONDS",
+            default=None,
+            help="stop a job that runs longer and record it as failed (JobTimeout); the others go on",
+        )
 
 
 def engine_from_args(args) -> Engine:
+    """The engine `--jobs` / `--ray` (and `--job-timeout`, when the command has it: seconds, checked by
+    the command) ask for."""
+    timeout = getattr(args, "job_timeout", None)
+    timeout = None if timeout is None else float(timeout)
     if getattr(args, "ray", None):
-        return get_engine("ray", args.jobs, None if args.ray == "local" else args.ray)
+        return get_engine("ray", args.jobs, None if args.ray == "local" else args.ray, timeout)
     if args.jobs is not None and args.jobs < 1:
         from closedloop.errors import InputError
 
         raise InputError("--jobs must be at least 1")
     if args.jobs == 1:
-        return SerialEngine(threads=1)
-    return get_engine("local", args.jobs)
+        return SerialEngine(threads=1, timeout=timeout)
+    return get_engine("local", args.jobs, timeout=timeout)
 
 
 def progress_printer(prefix: str = "", quiet: bool = False, stream=None) -> Callable[[Progress], None]:
