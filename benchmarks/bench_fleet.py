@@ -1,0 +1,245 @@
+"""A fleet of simulated robots through `closedloop batch`, on the serial engine, a local pool and a
+simulated multi-node Ray cluster: wall time, per-job overhead, throughput per core, the driver's peak
+memory; and the extrapolation to 10,000 robots.
+
+Usage::
+
+    python benchmarks/bench_fleet.py [--robots 100 300 1000] [--configs 200] [--engines serial local ray]
+                                     [--workers 2] [--out out/bench_fleet]
+
+The fleet (`closedloop.studies.fleet`): Pandas welded to a fixture, one geometry, each robot with its
+own joint offsets (1 mrad) and noise (1e-4 rad), `--configs` configurations per log, no k-fold
+validation (one calibration per job).  Each engine runs the same command a fleet owner types, in its
+own process (the driver), on a fresh output folder:
+
+* ``serial``: ``closedloop batch fleet.yaml --jobs 1`` (the driver calibrates);
+* ``local``: ``--jobs W`` (a pool of W worker processes);
+* ``ray``: ``--ray ADDRESS``, a `ray.cluster_utils.Cluster` started here: a head that runs no tasks and
+  W nodes of one CPU each, every one its own raylet, object store and workers (as separate machines,
+  sharing this machine's cores and file system).
+
+Figures, per engine and fleet size N (W workers; 1 for serial):
+
+* ``wall``: the command, start to exit (Python start, the pool or the connection to the cluster, the
+  jobs, the summary);
+* ``fixed``: the same command run again on the finished folders (nothing to do: start-up, reading the
+  manifest and the N job records, the summary): the cost that does not scale with the jobs run;
+* ``job``: mean of the jobs' own times (the summary's ``seconds``, measured inside the job);
+* ``overhead/job`` = ((wall - fixed) x W - sum of the jobs' times) / N: dispatch, result transfer,
+  workers idle at the start and the end, in ms and as a share of a job's own time;
+* ``per core``: jobs per second per worker, (N / (wall - fixed)) / W, and its ratio to the serial
+  engine's;
+* ``driver peak``: the driver process's peak resident memory (VmHWM, sampled every 0.1 s) and its CPU
+  time (the pool's or the cluster's workers not included).
+
+The 10,000-robot figures are extrapolated from the largest fleet run (method printed with them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path[:0] = [str(HERE), str(ROOT)]
+
+from machine import header  # noqa: E402
+
+from closedloop.studies.fleet import FleetSpec, configurations, write_fleet  # noqa: E402
+
+
+def geometry(out: Path, n: int):
+    """The fleet's geometry, drawn once and kept in `out` (drawing it takes tens of seconds)."""
+    path = out / f"geometry-{n}.npz"
+    if path.exists():
+        z = np.load(path, allow_pickle=False)
+        return str(z["model"]), [str(j) for j in z["joints"]], z["pool"], json.loads(str(z["truth"]))
+    model, joints, pool, truth = configurations(n)
+    out.mkdir(parents=True, exist_ok=True)
+    np.savez(path, model=model, joints=np.array(joints), pool=pool, truth=json.dumps(truth))
+    return model, joints, pool, truth
+
+
+def _proc(pid: int) -> tuple[float, float]:
+    """(peak resident memory in MB, CPU seconds) of a live process, from /proc."""
+    hwm = 0.0
+    with open(f"/proc/{pid}/status") as fh:
+        for line in fh:
+            if line.startswith("VmHWM:"):
+                hwm = float(line.split()[1]) / 1024.0
+    with open(f"/proc/{pid}/stat") as fh:
+        f = fh.read().rsplit(")", 1)[1].split()
+    return hwm, (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def run_driver(args: list[str]) -> dict:
+    """Run `closedloop batch ...`; its wall time, exit code and the driver's peak memory and CPU time."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    t0 = time.perf_counter()
+    p = subprocess.Popen(
+        [sys.executable, "-m", "closedloop.cli.main", "batch", *args, "--quiet"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=env,
+        text=True,
+    )
+    peak, cpu = 0.0, 0.0
+    while p.poll() is None:
+        try:
+            peak, cpu = _proc(p.pid)
+        except (OSError, IndexError, ValueError):
+            pass
+        time.sleep(0.1)
+    out, err = p.communicate()
+    wall = time.perf_counter() - t0
+    if p.returncode not in (0, 3):
+        raise RuntimeError(f"batch exited {p.returncode}: {err[-2000:]}")
+    return {"wall": wall, "peak_mb": peak, "cpu": cpu, "code": p.returncode}
+
+
+def start_cluster(workers: int, attempts: int = 3):
+    """A head (no tasks) and `workers` nodes of one CPU.  Ray gives a node 30 s to register; on a
+    loaded machine it may need more: up to `attempts` tries."""
+    from ray.cluster_utils import Cluster
+
+    os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    for attempt in range(attempts):
+        t0 = time.perf_counter()
+        c = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, "include_dashboard": False})
+        try:
+            for _ in range(workers):
+                c.add_node(num_cpus=1)
+            c.wait_for_nodes()
+            return c, time.perf_counter() - t0
+        except Exception as exc:
+            c.shutdown()
+            if attempt == attempts - 1:
+                raise
+            print(f"ray: the cluster did not start ({exc}); again", flush=True)
+    raise AssertionError("unreachable")
+
+
+def measure(engine: str, n: int, folder: Path, geo, args, address: str | None) -> dict:
+    if folder.exists():
+        shutil.rmtree(folder)
+    manifest = write_fleet(folder, FleetSpec(robots=n, seed=n), geo)
+    how = {"serial": ["--jobs", "1"], "local": ["--jobs", str(args.workers)], "ray": ["--ray", str(address)]}[engine]
+    first = run_driver([str(manifest), *how])
+    again = run_driver([str(manifest), *how])  # every folder finished: the fixed cost alone
+    with open(manifest.with_name("fleet.summary.csv")) as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == n and all(r["status"] == "ok" for r in rows), "a job failed"
+    seconds = np.array([float(r["seconds"]) for r in rows])
+    w = 1 if engine == "serial" else args.workers
+    run = first["wall"] - again["wall"]
+    overhead = (run * w - seconds.sum()) / n
+    return {
+        "engine": engine,
+        "robots": n,
+        "workers": w,
+        "wall_s": first["wall"],
+        "fixed_s": again["wall"],
+        "job_s": float(seconds.mean()),
+        "overhead_ms": overhead * 1e3,
+        "overhead_pct": 100.0 * overhead / seconds.mean(),
+        "per_core_jobs_s": n / run / w,
+        "driver_peak_mb": first["peak_mb"],
+        "driver_cpu_s": first["cpu"],
+        "verdicts_ok": sum(r["verdict"] == "ok" for r in rows),
+        "load": os.getloadavg()[0],
+    }
+
+
+def extrapolate(rows: list[dict], n_target: int = 10_000) -> list[str]:
+    """The 10,000-robot figures from the largest fleet run on each engine (method in the lines)."""
+    lines = [
+        f"extrapolation to {n_target} robots (from the largest fleet measured on each engine; method: the job "
+        "time and overhead per job are per-job constants, the fixed cost and the driver's memory grow "
+        "linearly with N: a line through the two largest sizes measured, or through the origin and the "
+        "largest when only one was run):"
+    ]
+    for engine in dict.fromkeys(r["engine"] for r in rows):
+        rs = sorted((r for r in rows if r["engine"] == engine), key=lambda r: r["robots"])
+        big = rs[-1]
+
+        def line(key: str) -> tuple[float, float]:
+            if len(rs) >= 2:
+                a, b = rs[-2], rs[-1]
+                slope = (b[key] - a[key]) / (b["robots"] - a["robots"])
+                return b[key] - slope * b["robots"], slope
+            return 0.0, big[key] / big["robots"]
+
+        f0, f1 = line("fixed_s")
+        m0, m1 = line("driver_peak_mb")
+        c0, c1 = line("driver_cpu_s")
+        per_job = big["job_s"] + big["overhead_ms"] / 1e3
+        fixed = f0 + f1 * n_target
+        wall = fixed + n_target * per_job / big["workers"]
+        lines.append(
+            f"  {engine:<6} {big['workers']} worker(s): wall {wall / 3600:.2f} h (fixed {fixed:.0f} s + "
+            f"{n_target} x ({big['job_s']:.3f} s + {big['overhead_ms']:.1f} ms) / {big['workers']}); driver peak "
+            f"{m0 + m1 * n_target:.0f} MB ({m1 * 1024:+.1f} KB per robot); driver CPU {c0 + c1 * n_target:.0f} s"
+        )
+    lines.append(
+        "  on C cores the job part divides by C (the jobs are independent) while the driver's CPU per job does not: "
+        "a driver dispatches at most 1 / (driver CPU per job) jobs per second, whatever the cluster"
+    )
+    return lines
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--robots", type=int, nargs="+", default=[100, 300])
+    ap.add_argument("--configs", type=int, default=200)
+    ap.add_argument("--engines", nargs="+", default=["serial", "local", "ray"])
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--out", default="out/bench_fleet")
+    args = ap.parse_args()
+    out = Path(args.out)
+    print(header(), flush=True)
+    geo = geometry(out, args.configs)
+    cluster, address = None, None
+    if "ray" in args.engines:
+        cluster, startup = start_cluster(args.workers)
+        address = cluster.address
+        print(f"ray: a head (no tasks) and {args.workers} nodes of 1 CPU started in {startup:.1f} s", flush=True)
+    rows = []
+    try:
+        for n in args.robots:
+            for engine in args.engines:
+                r = measure(engine, n, out / f"{engine}-{n}", geo, args, address)
+                rows.append(r)
+                print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in r.items()}), flush=True)
+    finally:
+        if cluster is not None:
+            cluster.shutdown()
+    serial = {r["robots"]: r["per_core_jobs_s"] for r in rows if r["engine"] == "serial"}
+    print(
+        f"\n| engine | robots | workers | wall [s] | fixed [s] | job [s] | overhead/job [ms] (% of job) "
+        f"| jobs/s per core (vs serial) | driver peak [MB] | driver CPU [s] |\n|{'---|' * 10}"
+    )
+    for r in rows:
+        ratio = f" ({r['per_core_jobs_s'] / serial[r['robots']]:.2f}x)" if r["robots"] in serial else ""
+        print(
+            f"| {r['engine']} | {r['robots']} | {r['workers']} | {r['wall_s']:.1f} | {r['fixed_s']:.1f} | "
+            f"{r['job_s']:.3f} | {r['overhead_ms']:.1f} ({r['overhead_pct']:.1f} %) | {r['per_core_jobs_s']:.3f}{ratio} | "
+            f"{r['driver_peak_mb']:.0f} | {r['driver_cpu_s']:.1f} |"
+        )
+    print()
+    for line in extrapolate(rows):
+        print(line)
+    print(header())
+
+
+if __name__ == "__main__":
+    main()
