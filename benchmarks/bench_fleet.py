@@ -33,6 +33,11 @@ Figures, per engine and fleet size N (W workers; 1 for serial):
   time (the pool's or the cluster's workers not included).
 
 The 10,000-robot figures are extrapolated from the largest fleet run (method printed with them).
+
+``--report N``: instead, the fleet report of N robots on two dates, two of them (``arm00017``,
+``arm00064``) with joint 4's offset jumped by 800 urad on the second date, calibrated on the local pool;
+writes ``fleet.json``, ``fleet.html`` and the plot (``--png``, the docs' figure) and prints the robots
+that need attention first.
 """
 
 from __future__ import annotations
@@ -55,7 +60,7 @@ sys.path[:0] = [str(HERE), str(ROOT)]
 
 from machine import header  # noqa: E402
 
-from closedloop.studies.fleet import FleetSpec, configurations, write_fleet  # noqa: E402
+from closedloop.studies.fleet import FleetDrift, FleetSpec, configurations, robot_name, write_fleet  # noqa: E402
 
 
 def geometry(out: Path, n: int):
@@ -96,7 +101,8 @@ def run_driver(args: list[str]) -> dict:
     peak, cpu = 0.0, 0.0
     while p.poll() is None:
         try:
-            peak, cpu = _proc(p.pid)
+            hwm, used = _proc(p.pid)
+            peak, cpu = max(peak, hwm), max(cpu, used)  # (an exited, unreaped process has no memory lines)
         except (OSError, IndexError, ValueError):
             pass
         time.sleep(0.1)
@@ -150,6 +156,8 @@ def measure(engine: str, n: int, folder: Path, geo, args, address: str | None) -
         "wall_s": first["wall"],
         "fixed_s": again["wall"],
         "job_s": float(seconds.mean()),
+        "sum_job_s": float(seconds.sum()),
+        "run_s": run,
         "overhead_ms": overhead * 1e3,
         "overhead_pct": 100.0 * overhead / seconds.mean(),
         "per_core_jobs_s": n / run / w,
@@ -160,41 +168,91 @@ def measure(engine: str, n: int, folder: Path, geo, args, address: str | None) -
     }
 
 
+def marginal(rows: list[dict]) -> list[str]:
+    """The overhead of one more job, free of every fixed cost (Python start, the workers' imports, the
+    pool or the connection, the ramp-up and the tail): the difference of the total overheads of the two
+    largest fleets, ((run2 x W - S2) - (run1 x W - S1)) / (N2 - N1), S the sum of the jobs' own times."""
+    out = ["marginal overhead per job (between the two largest fleets of each engine):"]
+    for engine in dict.fromkeys(r["engine"] for r in rows):
+        rs = sorted((r for r in rows if r["engine"] == engine), key=lambda r: r["robots"])
+        if len(rs) < 2:
+            continue
+        a, b = rs[-2], rs[-1]
+        w = b["workers"]
+        per = ((b["run_s"] * w - b["sum_job_s"]) - (a["run_s"] * w - a["sum_job_s"])) / (b["robots"] - a["robots"])
+        job = (b["sum_job_s"] - a["sum_job_s"]) / (b["robots"] - a["robots"])
+        out.append(
+            f"  {engine:<6} {a['robots']} -> {b['robots']} robots: {per * 1e3:+.1f} ms per job, {100 * per / job:+.1f} % "
+            f"of a job's own {job:.3f} s"
+        )
+    return out
+
+
+def _line(rs: list[dict], key: str) -> tuple[float, float]:
+    """Intercept and slope in N of `key` through the two largest fleets (one fleet: a constant)."""
+    if len(rs) < 2:
+        return rs[-1][key], 0.0
+    a, b = rs[-2], rs[-1]
+    slope = (b[key] - a[key]) / (b["robots"] - a["robots"])
+    return b[key] - slope * b["robots"], slope
+
+
 def extrapolate(rows: list[dict], n_target: int = 10_000) -> list[str]:
-    """The 10,000-robot figures from the largest fleet run on each engine (method in the lines)."""
+    """The 10,000-robot figures of each engine (method in the first line)."""
     lines = [
-        f"extrapolation to {n_target} robots (from the largest fleet measured on each engine; method: the job "
-        "time and overhead per job are per-job constants, the fixed cost and the driver's memory grow "
-        "linearly with N: a line through the two largest sizes measured, or through the origin and the "
-        "largest when only one was run):"
+        f"extrapolation to {n_target} robots, per engine on its W workers.  Method: wall = fixed(N) + N x "
+        "(job + overhead) / W, with job the mean job time and overhead the marginal overhead per job of the "
+        "two largest fleets (one fleet: its overall overhead); fixed(N), the driver's peak memory and its CPU "
+        "time on a line through the two largest fleets (one fleet: held constant, growth unknown):"
     ]
     for engine in dict.fromkeys(r["engine"] for r in rows):
         rs = sorted((r for r in rows if r["engine"] == engine), key=lambda r: r["robots"])
-        big = rs[-1]
-
-        def line(key: str) -> tuple[float, float]:
-            if len(rs) >= 2:
-                a, b = rs[-2], rs[-1]
-                slope = (b[key] - a[key]) / (b["robots"] - a["robots"])
-                return b[key] - slope * b["robots"], slope
-            return 0.0, big[key] / big["robots"]
-
-        f0, f1 = line("fixed_s")
-        m0, m1 = line("driver_peak_mb")
-        c0, c1 = line("driver_cpu_s")
-        per_job = big["job_s"] + big["overhead_ms"] / 1e3
+        big, w = rs[-1], rs[-1]["workers"]
+        if len(rs) >= 2:
+            a = rs[-2]
+            dn = big["robots"] - a["robots"]
+            over = ((big["run_s"] * w - big["sum_job_s"]) - (a["run_s"] * w - a["sum_job_s"])) / dn
+            job = (big["sum_job_s"] - a["sum_job_s"]) / dn
+        else:
+            over, job = big["overhead_ms"] / 1e3, big["job_s"]
+        f0, f1 = _line(rs, "fixed_s")
+        m0, m1 = _line(rs, "driver_peak_mb")
+        c0, c1 = _line(rs, "driver_cpu_s")
         fixed = f0 + f1 * n_target
-        wall = fixed + n_target * per_job / big["workers"]
+        wall = fixed + n_target * (job + over) / w
         lines.append(
-            f"  {engine:<6} {big['workers']} worker(s): wall {wall / 3600:.2f} h (fixed {fixed:.0f} s + "
-            f"{n_target} x ({big['job_s']:.3f} s + {big['overhead_ms']:.1f} ms) / {big['workers']}); driver peak "
-            f"{m0 + m1 * n_target:.0f} MB ({m1 * 1024:+.1f} KB per robot); driver CPU {c0 + c1 * n_target:.0f} s"
+            f"  {engine:<6} W={w}: wall {wall / 3600:.2f} h (fixed {fixed:.0f} s + {n_target} x ({job:.3f} s + "
+            f"{over * 1e3:.1f} ms) / {w}); driver peak {m0 + m1 * n_target:.0f} MB ({m1 * 1024:+.2f} KB per robot); "
+            f"driver CPU {c0 + c1 * n_target:.0f} s ({c1 * 1e3:.2f} ms per robot: at most "
+            f"{1 / c1 if c1 > 0 else float('inf'):.0f} jobs/s from one driver)"
         )
-    lines.append(
-        "  on C cores the job part divides by C (the jobs are independent) while the driver's CPU per job does not: "
-        "a driver dispatches at most 1 / (driver CPU per job) jobs per second, whatever the cluster"
-    )
+    lines.append("  on C cores the job part divides by C (the jobs are independent); the driver's CPU per job does not")
     return lines
+
+
+def report_demo(n: int, out: Path, geo, workers: int, png: str | None) -> None:
+    """The fleet report of `n` robots on two dates, two of them drifted (module docstring)."""
+    from closedloop.fleet.report import fig_drift, fleet_report, read_summary, write_fleet_report
+
+    folder = out / f"report-{n}"
+    drifted = [robot_name(17), robot_name(64)]
+    spec = FleetSpec(
+        robots=n,
+        dates=["2026-03-02", "2026-03-09"],
+        seed=5,
+        drift=[FleetDrift(r, "panda_joint4", 800e-6) for r in drifted],
+    )
+    manifest = write_fleet(folder, spec, geo)
+    run = run_driver([str(manifest), "--jobs", str(workers)])
+    report = fleet_report(read_summary(manifest.with_name("fleet.summary.csv")))
+    write_fleet_report(report, folder / "fleet.json", folder / "fleet.html")
+    if png:
+        Path(png).write_bytes(fig_drift(report))
+    print(f"{n} robots x 2 dates on {workers} workers: {run['wall']:.0f} s; drifted: {', '.join(drifted)}")
+    print(f"attention: {report['attention']}")
+    for r in report["robots"][:5]:
+        print(f"  {r['robot']}: {r['attention']}, max |z| {r['drift']['max_z']}, {'; '.join(r['drift']['flagged'])}")
+    print(f"wrote {folder / 'fleet.html'}" + (f" and {png}" if png else ""))
 
 
 def main() -> None:
@@ -204,10 +262,15 @@ def main() -> None:
     ap.add_argument("--engines", nargs="+", default=["serial", "local", "ray"])
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", default="out/bench_fleet")
+    ap.add_argument("--report", type=int, metavar="N", help="the fleet report of N robots on two dates instead")
+    ap.add_argument("--png", help="with --report: write the report's plot here too")
     args = ap.parse_args()
     out = Path(args.out)
     print(header(), flush=True)
     geo = geometry(out, args.configs)
+    if args.report:
+        report_demo(args.report, out, geo, args.workers, args.png)
+        return
     cluster, address = None, None
     if "ray" in args.engines:
         cluster, startup = start_cluster(args.workers)
@@ -235,6 +298,9 @@ def main() -> None:
             f"{r['job_s']:.3f} | {r['overhead_ms']:.1f} ({r['overhead_pct']:.1f} %) | {r['per_core_jobs_s']:.3f}{ratio} | "
             f"{r['driver_peak_mb']:.0f} | {r['driver_cpu_s']:.1f} |"
         )
+    print()
+    for line in marginal(rows):
+        print(line)
     print()
     for line in extrapolate(rows):
         print(line)
