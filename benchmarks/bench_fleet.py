@@ -126,6 +126,9 @@ def start_cluster(workers: int, attempts: int = 3):
             for _ in range(workers):
                 c.add_node(num_cpus=1)
             c.wait_for_nodes()
+            import ray
+
+            ray._private.utils.reset_ray_address()  # another program's ray.init() here must not join this cluster
             return c, time.perf_counter() - t0
         except Exception as exc:
             c.shutdown()
@@ -276,16 +279,23 @@ def main() -> None:
         cluster, startup = start_cluster(args.workers)
         address = cluster.address
         print(f"ray: a head (no tasks) and {args.workers} nodes of 1 CPU started in {startup:.1f} s", flush=True)
-    rows = []
+    results = out / "results.jsonl"  # every measurement of every run, so sizes run apart are tabled together
     try:
         for n in args.robots:
             for engine in args.engines:
                 r = measure(engine, n, out / f"{engine}-{n}", geo, args, address)
-                rows.append(r)
-                print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in r.items()}), flush=True)
+                line = json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in r.items()})
+                print(line, flush=True)
+                with open(results, "a") as fh:
+                    fh.write(line + "\n")
     finally:
         if cluster is not None:
             cluster.shutdown()
+    latest = {}
+    for text in results.read_text().splitlines():  # the latest measurement of each engine and size
+        r = json.loads(text)
+        latest[(r["engine"], r["robots"])] = r
+    rows = sorted(latest.values(), key=lambda r: (r["robots"], ["serial", "local", "ray"].index(r["engine"])))
     serial = {r["robots"]: r["per_core_jobs_s"] for r in rows if r["engine"] == "serial"}
     print(
         f"\n| engine | robots | workers | wall [s] | fixed [s] | job [s] | overhead/job [ms] (% of job) "

@@ -59,6 +59,7 @@ def cluster():
     )
     nodes = [c.add_node(num_cpus=1) for _ in range(2)]
     c.wait_for_nodes()
+    ray._private.utils.reset_ray_address()  # another program's ray.init() here must not join this cluster
     try:
         yield c, nodes
     finally:

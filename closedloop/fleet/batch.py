@@ -520,8 +520,8 @@ def run_batch(jobs: list[BatchJob], summary: str | Path, engine=None, progress=N
     failed = []
     for out in imap(run_once, todo, engine, progress=progress):
         j = todo[out.index]
-        if out.ok:
-            rows[j.name] = {**out.value["row"], "resumed": "no"}
+        if out.ok:  # seconds: the whole job in its worker, its folder's writing included
+            rows[j.name] = {**out.value["row"], "seconds": round(out.seconds, 3), "resumed": "no"}
         else:
             failed.append(j.name)
             log.warning("job %s failed: %s", j.name, out.error)

@@ -197,7 +197,8 @@ class RayEngine(Engine):
         self.ray = ray
         self._started = not ray.is_initialized()  # connected here: disconnected by close()
         if self._started:
-            kw = {"address": address} if address else {"num_cpus": jobs} if jobs else {}
+            # no address: a new cluster on this machine ('local'), never one another program started here
+            kw = {"address": address} if address else {"address": "local", **({"num_cpus": jobs} if jobs else {})}
             ray.init(include_dashboard=False, log_to_driver=False, **kw)
         self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
         self.timeout = timeout
