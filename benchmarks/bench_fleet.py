@@ -113,6 +113,15 @@ def run_driver(args: list[str]) -> dict:
     return {"wall": wall, "peak_mb": peak, "cpu": cpu, "code": p.returncode}
 
 
+def forget(address: str) -> None:
+    """Ray's cluster utilities note a new cluster as this machine's current one (``ray.init()`` with no
+    address joins it): un-note it, so another program's ``ray.init()`` here starts its own."""
+    from ray._private.utils import get_ray_address_file, read_ray_address
+
+    if read_ray_address() == address:
+        os.unlink(get_ray_address_file(None))
+
+
 def start_cluster(workers: int, attempts: int = 3):
     """A head (no tasks) and `workers` nodes of one CPU.  Ray gives a node 30 s to register; on a
     loaded machine it may need more: up to `attempts` tries."""
@@ -126,9 +135,7 @@ def start_cluster(workers: int, attempts: int = 3):
             for _ in range(workers):
                 c.add_node(num_cpus=1)
             c.wait_for_nodes()
-            import ray
-
-            ray._private.utils.reset_ray_address()  # another program's ray.init() here must not join this cluster
+            forget(c.address)  # another program's ray.init() here must not join this cluster
             return c, time.perf_counter() - t0
         except Exception as exc:
             c.shutdown()

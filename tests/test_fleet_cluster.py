@@ -37,6 +37,15 @@ def geometry():
     return configurations(40)
 
 
+def forget(address: str) -> None:
+    """Ray's cluster utilities note a new cluster as this machine's current one (``ray.init()`` with no
+    address joins it): un-note it, so another program's ``ray.init()`` here starts its own."""
+    from ray._private.utils import get_ray_address_file, read_ray_address
+
+    if read_ray_address() == address:
+        os.unlink(get_ray_address_file(None))
+
+
 @pytest.fixture(scope="module")
 def cluster():
     """Three Ray nodes on this machine: a head with no CPU for tasks (it runs the cluster's services),
@@ -59,7 +68,7 @@ def cluster():
     )
     nodes = [c.add_node(num_cpus=1) for _ in range(2)]
     c.wait_for_nodes()
-    ray._private.utils.reset_ray_address()  # another program's ray.init() here must not join this cluster
+    forget(c.address)  # another program's ray.init() here must not join this cluster
     try:
         yield c, nodes
     finally:

@@ -167,10 +167,15 @@ def fig_drift(report: dict, named: int = 10) -> bytes:
         except ValueError:
             return float("nan")
 
+    dates = sorted({day(h["date"]) for h in report["drift_history"]})
+    gaps = np.diff(dates)
+    width = 0.35 * (float(np.min(gaps)) if len(gaps) else 1.0)  # each robot at its own offset within a date
+    order = {r["robot"]: i for i, r in enumerate(sorted(report["robots"], key=lambda r: r["robot"]))}
+    spread = {k: width * ((i * 0.618034) % 1.0 - 0.5) for k, i in order.items()}
     series: dict[str, list[tuple[float, float]]] = {}
     for h in report["drift_history"]:
         if h["drift_max_z"] is not None:
-            series.setdefault(h["robot"], []).append((day(h["date"]), h["drift_max_z"]))
+            series.setdefault(h["robot"], []).append((day(h["date"]) + spread.get(h["robot"], 0.0), h["drift_max_z"]))
     worst = [
         r["robot"]
         for r in report["robots"]
@@ -182,20 +187,30 @@ def fig_drift(report: dict, named: int = 10) -> bytes:
         ax.add_collection(LineCollection(grey, colors="0.6", linewidths=0.8, alpha=0.6))
         pts = np.vstack(grey)
         ax.scatter(pts[:, 0], pts[:, 1], s=6, color="0.5", zorder=2)
-    for name in worst:
+    labels: list[float] = []  # label heights (log10) placed so far: names do not overlap
+    for name in sorted(worst, key=lambda k: -series[k][-1][1] if series.get(k) else 0.0):
         v = np.array(series.get(name, []))
         if len(v):
             ax.plot(v[:, 0], v[:, 1], "-o", color="tab:red", ms=4, lw=1.2, zorder=3)
+            y = np.log10(v[-1, 1])
+            while any(abs(y - other) < 0.045 for other in labels):
+                y -= 0.045
+            labels.append(y)
             ax.annotate(
-                name, (v[-1, 0], v[-1, 1]), xytext=(4, 2), textcoords="offset points", fontsize=8, color="tab:red"
+                name,
+                (v[-1, 0], v[-1, 1]),
+                xytext=(v[-1, 0] + 0.6 * width, 10**y),
+                fontsize=8,
+                color="tab:red",
+                va="center",
+                arrowprops={"arrowstyle": "-", "color": "tab:red", "lw": 0.5},
             )
     ax.axhline(report["z_max"], ls="--", color="k", lw=0.8)
     ax.set_yscale("log")
-    days = [d for v in series.values() for d, _ in v if np.isfinite(d)]
-    if days:
-        lo, hi = min(days), max(days)
-        ax.set_xlim(lo - 1 - 0.05 * (hi - lo), hi + 1 + 0.15 * (hi - lo))
-        ticks = sorted(set(days))
+    ticks = [d for d in dates if np.isfinite(d)]
+    if ticks:
+        lo, hi = min(ticks), max(ticks)
+        ax.set_xlim(lo - 2 * width - 0.05 * (hi - lo), hi + 3 * width + 0.1 * (hi - lo))
         step = max(1, len(ticks) // 8)
         ax.set_xticks(ticks[::step])
         ax.set_xticklabels([dt.date.fromordinal(int(t)).isoformat() for t in ticks[::step]], fontsize=8)
