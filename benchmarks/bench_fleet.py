@@ -130,15 +130,17 @@ def start_cluster(workers: int, attempts: int = 3):
     os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
     for attempt in range(attempts):
         t0 = time.perf_counter()
-        c = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, "include_dashboard": False})
+        c = None
         try:
+            c = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, "include_dashboard": False})
             for _ in range(workers):
                 c.add_node(num_cpus=1)
             c.wait_for_nodes()
             forget(c.address)  # another program's ray.init() here must not join this cluster
             return c, time.perf_counter() - t0
         except Exception as exc:
-            c.shutdown()
+            if c is not None:
+                c.shutdown()
             if attempt == attempts - 1:
                 raise
             print(f"ray: the cluster did not start ({exc}); again", flush=True)
@@ -151,9 +153,9 @@ def measure(engine: str, n: int, folder: Path, geo, args, address: str | None) -
     manifest = write_fleet(folder, FleetSpec(robots=n, seed=n), geo)
     how = {"serial": ["--jobs", "1"], "local": ["--jobs", str(args.workers)], "ray": ["--ray", str(address)]}[engine]
     first = run_driver([str(manifest), *how])
-    again = run_driver([str(manifest), *how])  # every folder finished: the fixed cost alone
-    with open(manifest.with_name("fleet.summary.csv")) as fh:
+    with open(manifest.with_name("fleet.summary.csv")) as fh:  # (the rerun's rows give the job folders' times)
         rows = list(csv.DictReader(fh))
+    again = run_driver([str(manifest), *how])  # every folder finished: the fixed cost alone
     assert len(rows) == n and all(r["status"] == "ok" for r in rows), "a job failed"
     seconds = np.array([float(r["seconds"]) for r in rows])
     w = 1 if engine == "serial" else args.workers
