@@ -11,8 +11,14 @@ Every job is calibrated and k-fold validated on its own (``closedloop.calibrate`
   the completion marker ``done.json`` last, then one rename.  A killed batch
   leaves finished folders and hidden ``.NAME.tmp-*`` folders (removed by the
   next run), never a half job; a folder with its marker is not redone.
-* The summary CSV gets a row as each job finishes, and is rewritten in
-  manifest order at the end with the drift columns filled.
+* The summary CSV gets a row as each job finishes (republished at most once
+  a second), and is rewritten in manifest order at the end with the drift
+  columns filled.
+* Faults: a job past ``--job-timeout`` is stopped and recorded (`JobTimeout`);
+  a job whose worker process or cluster node died is run again by the engine
+  (`run_once`: a job that had already published its folder is not calibrated
+  again); the batch holds the summary rows only, each job's record is read
+  back from its folder for the drift.
 
 Drift (:mod:`closedloop.fleet.drift`): for jobs of the same robot ordered by date, every robot
 parameter of two consecutive calibrations, expressed in one gauge (the earlier calibration's: the
