@@ -22,13 +22,14 @@ Figures, per engine and fleet size N (W workers; 1 for serial):
 
 * ``wall``: the command, start to exit (Python start, the pool or the connection to the cluster, the
   jobs, the summary);
-* ``fixed``: the same command run again on the finished folders (nothing to do: start-up, reading the
-  manifest and the N job records, the summary): the cost that does not scale with the jobs run;
-* ``job``: mean of the jobs' own times (the summary's ``seconds``, measured inside the job);
-* ``overhead/job`` = ((wall - fixed) x W - sum of the jobs' times) / N: dispatch, result transfer,
-  workers idle at the start and the end, in ms and as a share of a job's own time;
-* ``per core``: jobs per second per worker, (N / (wall - fixed)) / W, and its ratio to the serial
-  engine's;
+* ``job``: mean of the jobs' own times (the summary's ``seconds``: the whole job in its worker);
+* ``overhead/job`` = (wall x W - sum of the jobs' times) / N: everything the workers did not spend on
+  jobs (Python start, imports, dispatch, result transfer, idle workers at the start and the end), in ms
+  and as a share of a job's own time; and its ``marginal`` value between the two largest fleets, free
+  of every fixed cost: what one more job costs;
+* ``per worker``: N / wall / W jobs per second, and its ratio to the serial engine's;
+* ``resume``: the same command run again on the finished folders (nothing to run: reading the manifest
+  and every job's record, the summary);
 * ``driver peak``: the driver process's peak resident memory (VmHWM, sampled every 0.1 s) and its CPU
   time (the pool's or the cluster's workers not included).
 
@@ -148,6 +149,7 @@ def start_cluster(workers: int, attempts: int = 3):
 
 
 def measure(engine: str, n: int, folder: Path, geo, args, address: str | None) -> dict:
+    """Run the fleet of `n` robots on `engine` from scratch, then the same command again (the resume)."""
     if folder.exists():
         shutil.rmtree(folder)
     manifest = write_fleet(folder, FleetSpec(robots=n, seed=n), geo)
@@ -155,24 +157,17 @@ def measure(engine: str, n: int, folder: Path, geo, args, address: str | None) -
     first = run_driver([str(manifest), *how])
     with open(manifest.with_name("fleet.summary.csv")) as fh:  # (the rerun's rows give the job folders' times)
         rows = list(csv.DictReader(fh))
-    again = run_driver([str(manifest), *how])  # every folder finished: the fixed cost alone
+    again = run_driver([str(manifest), *how])  # every folder finished: nothing to run
     assert len(rows) == n and all(r["status"] == "ok" for r in rows), "a job failed"
     seconds = np.array([float(r["seconds"]) for r in rows])
-    w = 1 if engine == "serial" else args.workers
-    run = first["wall"] - again["wall"]
-    overhead = (run * w - seconds.sum()) / n
     return {
         "engine": engine,
         "robots": n,
-        "workers": w,
+        "workers": 1 if engine == "serial" else args.workers,
         "wall_s": first["wall"],
-        "fixed_s": again["wall"],
+        "resume_s": again["wall"],
         "job_s": float(seconds.mean()),
         "sum_job_s": float(seconds.sum()),
-        "run_s": run,
-        "overhead_ms": overhead * 1e3,
-        "overhead_pct": 100.0 * overhead / seconds.mean(),
-        "per_core_jobs_s": n / run / w,
         "driver_peak_mb": first["peak_mb"],
         "driver_cpu_s": first["cpu"],
         "verdicts_ok": sum(r["verdict"] == "ok" for r in rows),
@@ -180,66 +175,87 @@ def measure(engine: str, n: int, folder: Path, geo, args, address: str | None) -
     }
 
 
+def overhead(r: dict) -> float:
+    """Seconds per job the W workers spent on anything but the jobs: (wall x W - sum of job times) / N."""
+    return (r["wall_s"] * r["workers"] - r["sum_job_s"]) / r["robots"]
+
+
+def per_core(r: dict) -> float:
+    """Jobs per second per worker over the whole command."""
+    return r["robots"] / r["wall_s"] / r["workers"]
+
+
+def _pair(rows: list[dict], engine: str) -> tuple[dict, dict] | None:
+    rs = sorted((r for r in rows if r["engine"] == engine), key=lambda r: r["robots"])
+    return (rs[-2], rs[-1]) if len(rs) >= 2 else None
+
+
 def marginal(rows: list[dict]) -> list[str]:
     """The overhead of one more job, free of every fixed cost (Python start, the workers' imports, the
     pool or the connection, the ramp-up and the tail): the difference of the total overheads of the two
-    largest fleets, ((run2 x W - S2) - (run1 x W - S1)) / (N2 - N1), S the sum of the jobs' own times."""
+    largest fleets, ((wall2 x W - S2) - (wall1 x W - S1)) / (N2 - N1), S the sum of the jobs' own times."""
     out = ["marginal overhead per job (between the two largest fleets of each engine):"]
     for engine in dict.fromkeys(r["engine"] for r in rows):
-        rs = sorted((r for r in rows if r["engine"] == engine), key=lambda r: r["robots"])
-        if len(rs) < 2:
+        pair = _pair(rows, engine)
+        if pair is None:
             continue
-        a, b = rs[-2], rs[-1]
-        w = b["workers"]
-        per = ((b["run_s"] * w - b["sum_job_s"]) - (a["run_s"] * w - a["sum_job_s"])) / (b["robots"] - a["robots"])
-        job = (b["sum_job_s"] - a["sum_job_s"]) / (b["robots"] - a["robots"])
+        a, b = pair
+        dn = b["robots"] - a["robots"]
+        per = (overhead(b) * b["robots"] - overhead(a) * a["robots"]) / dn
+        job = (b["sum_job_s"] - a["sum_job_s"]) / dn
         out.append(
             f"  {engine:<6} {a['robots']} -> {b['robots']} robots: {per * 1e3:+.1f} ms per job, {100 * per / job:+.1f} % "
-            f"of a job's own {job:.3f} s"
+            f"of a job's own {job:.3f} s; driver peak {b['driver_peak_mb'] - a['driver_peak_mb']:+.1f} MB "
+            f"({(b['driver_peak_mb'] - a['driver_peak_mb']) * 1024 / dn:+.2f} KB per robot), driver CPU "
+            f"{(b['driver_cpu_s'] - a['driver_cpu_s']) * 1e3 / dn:.2f} ms per robot"
         )
     return out
-
-
-def _line(rs: list[dict], key: str) -> tuple[float, float]:
-    """Intercept and slope in N of `key` through the two largest fleets (one fleet: a constant)."""
-    if len(rs) < 2:
-        return rs[-1][key], 0.0
-    a, b = rs[-2], rs[-1]
-    slope = (b[key] - a[key]) / (b["robots"] - a["robots"])
-    return b[key] - slope * b["robots"], slope
 
 
 def extrapolate(rows: list[dict], n_target: int = 10_000) -> list[str]:
     """The 10,000-robot figures of each engine (method in the first line)."""
     lines = [
-        f"extrapolation to {n_target} robots, per engine on its W workers.  Method: wall = fixed(N) + N x "
-        "(job + overhead) / W, with job the mean job time and overhead the marginal overhead per job of the "
-        "two largest fleets (one fleet: its overall overhead); fixed(N), the driver's peak memory and its CPU "
-        "time on a line through the two largest fleets (one fleet: held constant, growth unknown):"
+        f"extrapolation to {n_target} robots on the same W workers.  Method: the command's wall time, the "
+        "driver's peak memory and its CPU time on a line in N through the two largest fleets measured (the "
+        "intercept: start-up and fixed costs; the slope: a job's own time / W plus its marginal overhead):"
     ]
     for engine in dict.fromkeys(r["engine"] for r in rows):
-        rs = sorted((r for r in rows if r["engine"] == engine), key=lambda r: r["robots"])
-        big, w = rs[-1], rs[-1]["workers"]
-        if len(rs) >= 2:
-            a = rs[-2]
-            dn = big["robots"] - a["robots"]
-            over = ((big["run_s"] * w - big["sum_job_s"]) - (a["run_s"] * w - a["sum_job_s"])) / dn
-            job = (big["sum_job_s"] - a["sum_job_s"]) / dn
-        else:
-            over, job = big["overhead_ms"] / 1e3, big["job_s"]
-        f0, f1 = _line(rs, "fixed_s")
-        m0, m1 = _line(rs, "driver_peak_mb")
-        c0, c1 = _line(rs, "driver_cpu_s")
-        fixed = f0 + f1 * n_target
-        wall = fixed + n_target * (job + over) / w
+        pair = _pair(rows, engine)
+        if pair is None:
+            continue
+        a, b = pair
+        dn = b["robots"] - a["robots"]
+
+        def at(key: str) -> float:
+            return b[key] + (b[key] - a[key]) / dn * (n_target - b["robots"])
+
+        w = b["workers"]
         lines.append(
-            f"  {engine:<6} W={w}: wall {wall / 3600:.2f} h (fixed {fixed:.0f} s + {n_target} x ({job:.3f} s + "
-            f"{over * 1e3:.1f} ms) / {w}); driver peak {m0 + m1 * n_target:.0f} MB ({m1 * 1024:+.2f} KB per robot); "
-            f"driver CPU {c0 + c1 * n_target:.0f} s ({c1 * 1e3:.2f} ms per robot: at most "
-            f"{1 / c1 if c1 > 0 else float('inf'):.0f} jobs/s from one driver)"
+            f"  {engine:<6} W={w}: wall {at('wall_s') / 3600:.2f} h ({(b['wall_s'] - a['wall_s']) / dn * 1e3:.0f} ms "
+            f"per robot); driver peak {at('driver_peak_mb'):.0f} MB; driver CPU {at('driver_cpu_s'):.0f} s"
         )
-    lines.append("  on C cores the job part divides by C (the jobs are independent); the driver's CPU per job does not")
+    lines.append(
+        "  on C cores the jobs' part divides by C / W (the jobs are independent); the driver's CPU per job does "
+        "not: one driver dispatches at most 1 / (its CPU per job) jobs per second"
+    )
     return lines
+
+
+def table(rows: list[dict]) -> list[str]:
+    serial = {r["robots"]: per_core(r) for r in rows if r["engine"] == "serial"}
+    out = [
+        "| engine | robots | workers | wall [s] | job [s] | overhead/job [ms] (% of job) "
+        "| jobs/s per worker (vs serial) | resume [s] | driver peak [MB] | driver CPU [s] | load |",
+        "|" + "---|" * 11,
+    ]
+    for r in rows:
+        ratio = f" ({per_core(r) / serial[r['robots']]:.2f}x)" if r["robots"] in serial else ""
+        out.append(
+            f"| {r['engine']} | {r['robots']} | {r['workers']} | {r['wall_s']:.1f} | {r['job_s']:.3f} | "
+            f"{overhead(r) * 1e3:.1f} ({100 * overhead(r) / r['job_s']:.1f} %) | {per_core(r):.3f}{ratio} | "
+            f"{r['resume_s']:.1f} | {r['driver_peak_mb']:.0f} | {r['driver_cpu_s']:.1f} | {r['load']:.1f} |"
+        )
+    return out
 
 
 def report_demo(n: int, out: Path, geo, workers: int, png: str | None) -> None:
@@ -267,6 +283,16 @@ def report_demo(n: int, out: Path, geo, workers: int, png: str | None) -> None:
     print(f"wrote {folder / 'fleet.html'}" + (f" and {png}" if png else ""))
 
 
+def load_results(path: Path) -> list[dict]:
+    """The latest measurement of each engine and fleet size in `path` (one JSON object a line)."""
+    latest = {}
+    for text in path.read_text().splitlines():
+        r = json.loads(text)
+        r.setdefault("resume_s", r.get("fixed_s", float("nan")))  # (named so by an earlier version)
+        latest[(r["engine"], r["robots"])] = r
+    return sorted(latest.values(), key=lambda r: (r["robots"], ["serial", "local", "ray"].index(r["engine"])))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--robots", type=int, nargs="+", default=[100, 300])
@@ -276,8 +302,13 @@ def main() -> None:
     ap.add_argument("--out", default="out/bench_fleet")
     ap.add_argument("--report", type=int, metavar="N", help="the fleet report of N robots on two dates instead")
     ap.add_argument("--png", help="with --report: write the report's plot here too")
+    ap.add_argument("--table", action="store_true", help="only print the table of the measurements in --out")
     args = ap.parse_args()
     out = Path(args.out)
+    if args.table:
+        for line in [*table(rows := load_results(out / "results.jsonl")), "", *marginal(rows), "", *extrapolate(rows)]:
+            print(line)
+        return
     print(header(), flush=True)
     geo = geometry(out, args.configs)
     if args.report:
@@ -300,28 +331,8 @@ def main() -> None:
     finally:
         if cluster is not None:
             cluster.shutdown()
-    latest = {}
-    for text in results.read_text().splitlines():  # the latest measurement of each engine and size
-        r = json.loads(text)
-        latest[(r["engine"], r["robots"])] = r
-    rows = sorted(latest.values(), key=lambda r: (r["robots"], ["serial", "local", "ray"].index(r["engine"])))
-    serial = {r["robots"]: r["per_core_jobs_s"] for r in rows if r["engine"] == "serial"}
-    print(
-        f"\n| engine | robots | workers | wall [s] | fixed [s] | job [s] | overhead/job [ms] (% of job) "
-        f"| jobs/s per core (vs serial) | driver peak [MB] | driver CPU [s] |\n|{'---|' * 10}"
-    )
-    for r in rows:
-        ratio = f" ({r['per_core_jobs_s'] / serial[r['robots']]:.2f}x)" if r["robots"] in serial else ""
-        print(
-            f"| {r['engine']} | {r['robots']} | {r['workers']} | {r['wall_s']:.1f} | {r['fixed_s']:.1f} | "
-            f"{r['job_s']:.3f} | {r['overhead_ms']:.1f} ({r['overhead_pct']:.1f} %) | {r['per_core_jobs_s']:.3f}{ratio} | "
-            f"{r['driver_peak_mb']:.0f} | {r['driver_cpu_s']:.1f} |"
-        )
-    print()
-    for line in marginal(rows):
-        print(line)
-    print()
-    for line in extrapolate(rows):
+    rows = load_results(results)
+    for line in [*table(rows), "", *marginal(rows), "", *extrapolate(rows)]:
         print(line)
     print(header())
 
