@@ -54,25 +54,35 @@ def cluster():
 
     env = os.environ.get("PYTHONPATH")
     os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env]))  # the workers import closedloop
-    c = Cluster(
-        initialize_head=True,
-        head_node_args={
-            "num_cpus": 0,
-            "include_dashboard": False,
-            "_system_config": {
-                "health_check_initial_delay_ms": 0,
-                "health_check_period_ms": 500,
-                "health_check_failure_threshold": 4,
-            },
+    head = {
+        "num_cpus": 0,
+        "include_dashboard": False,
+        "_system_config": {
+            "health_check_initial_delay_ms": 0,
+            "health_check_period_ms": 500,
+            "health_check_failure_threshold": 4,
         },
-    )
-    nodes = [c.add_node(num_cpus=1) for _ in range(2)]
-    c.wait_for_nodes()
-    forget(c.address)  # another program's ray.init() here must not join this cluster
+    }
+    c = None
     try:
+        for attempt in range(3):  # Ray gives a node 30 s to register: a loaded machine may need another try
+            try:
+                c = Cluster(initialize_head=True, head_node_args=head)
+                nodes = [c.add_node(num_cpus=1) for _ in range(2)]
+                c.wait_for_nodes()
+                break
+            except Exception:
+                if c is not None:
+                    c.shutdown()
+                    c = None
+                if attempt == 2:
+                    raise
+        assert c is not None
+        forget(c.address)  # another program's ray.init() here must not join this cluster
         yield c, nodes
     finally:
-        c.shutdown()
+        if c is not None:
+            c.shutdown()
         if env is None:
             os.environ.pop("PYTHONPATH", None)
         else:
