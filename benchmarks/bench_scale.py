@@ -58,7 +58,7 @@ def make_engine(name: str):
     if name == "ray":
         import ray
 
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     return ex.get_engine(name, jobs=2)
 
 

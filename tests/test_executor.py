@@ -42,7 +42,7 @@ def one_blas_thread():
 def cluster():
     import sys
 
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers do not see tests/
     yield
     ray.shutdown()

@@ -15,7 +15,7 @@ from closedloop.run.options import check_number
 
 
 def cmd_batch(args) -> int:
-    """closedloop batch MANIFEST [--jobs N | --ray auto|ADDRESS] [--summary CSV]."""
+    """closedloop batch MANIFEST [--jobs N | --ray auto|ADDRESS] [--job-timeout S] [--summary CSV]."""
     from closedloop.cli.progress import ProgressDisplay
     from closedloop.fleet.batch import (
         check_batch_outputs,
@@ -32,6 +32,8 @@ def cmd_batch(args) -> int:
         Path(args.summary) if args.summary else Path(args.manifest).with_name(Path(args.manifest).stem + ".summary.csv")
     )
     args.drift_z = check_number("--drift-z", args.drift_z, 0.0, 1e6, lo_open=True)
+    if args.job_timeout is not None:
+        args.job_timeout = check_number("--job-timeout", args.job_timeout, 0.0, 1e7, lo_open=True)
     check_batch_outputs(args.manifest, jobs, summary)
     with engine_from_args(args) as eng, ProgressDisplay(args.quiet) as shown:
         if eng.name == "local":
@@ -76,6 +78,6 @@ def add_parser(sub) -> None:
     b.add_argument("manifest", help="YAML (jobs: [...]) or CSV: model, log, loops, options, out[, robot, date, cv]")
     b.add_argument("--summary", help="summary CSV (default: MANIFEST.summary.csv beside the manifest)")
     b.add_argument("--drift-z", default=3.0, help="flag a parameter change above this many std. errors")
-    add_arguments(b)
+    add_arguments(b, timeout=True)
     b.add_argument("--quiet", action="store_true", help="no progress lines (the summary is still printed)")
     b.set_defaults(func=cmd_batch)

@@ -172,6 +172,12 @@ def _add_batch(sub) -> None:
     add_batch(sub)
 
 
+def _add_fleet_report(sub) -> None:
+    from closedloop.cli.fleet import add_parser as add_fleet_report  # closedloop fleet-report SUMMARY
+
+    add_fleet_report(sub)
+
+
 def _add_loops(sub) -> None:
     from closedloop.cli.loops import cmd_loops
 
@@ -296,6 +302,7 @@ _SUBCOMMANDS = {
     "check": _add_check,
     "extract": _add_extract,
     "batch": _add_batch,
+    "fleet-report": _add_fleet_report,
     "loops": _add_loops,
     "impedance": _add_impedance,
     "evaluate": _add_evaluate,

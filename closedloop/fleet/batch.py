@@ -12,8 +12,14 @@ engines of ``closedloop.parallel.executor``.
   beside the output folder, the completion marker ``done.json`` last, then one rename.  A killed batch
   leaves finished folders and hidden ``.NAME.tmp-*`` folders (removed by the
   next run), never a half job; a folder with its marker is not redone.
-* The summary CSV gets a row as each job finishes, and is rewritten in
-  manifest order at the end with the drift columns filled.
+* The summary CSV gets a row as each job finishes (republished at most once
+  a second), and is rewritten in manifest order at the end with the drift
+  columns filled.
+* Faults: a job past ``--job-timeout`` is stopped and recorded (`JobTimeout`);
+  a job whose worker process or cluster node died is run again by the engine
+  (`run_once`: a job that had already published its folder is not calibrated
+  again); the batch holds the summary rows only, each job's record is read
+  back from its folder for the drift.
 
 Drift (:mod:`closedloop.fleet.drift`): for jobs of the same robot ordered by date, every robot
 parameter of two consecutive calibrations, expressed in one gauge (the earlier calibration's: the
@@ -29,6 +35,7 @@ import csv
 import json
 import logging
 import os
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -291,26 +298,36 @@ class BatchResult:
 
 
 class _Summary:
-    """The summary CSV: published whole after every finished job (the rows so far, in finishing order;
-    a reader never sees a torn file), then in manifest order at the end.  A device or named pipe
-    (``--summary /dev/stdout``) gets the final table only."""
+    """The summary CSV: published whole as jobs finish (the rows so far, in finishing order; a reader
+    never sees a torn file), then in manifest order at the end.  Rewriting a long table after every job
+    would cost O(jobs^2): it is published after the first job, then again once `interval` seconds have
+    passed, and never so often that writing it takes more than 5 % of the batch's time.  A device or
+    named pipe (``--summary /dev/stdout``) gets the final table only."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, interval: float = 1.0):
         from closedloop.io.files import is_special
 
         self.path = path
         self.rows: list[dict] = []
         self.stream = not is_special(path)
+        self.interval = interval
+        self.last = -float("inf")  # when it was last published (perf_counter)
+        self.cost = 0.0  # how long that took
 
     def add(self, row: dict, publish: bool = True) -> None:
-        self.rows.append(row)
-        if self.stream and publish:
-            self._write(self.rows)
+        import time
 
-    def finish(self, rows: list[dict]) -> None:
+        self.rows.append(row)
+        now = time.perf_counter()
+        if self.stream and publish and now - self.last >= max(self.interval, 20.0 * self.cost):
+            self._write(self.rows)
+            self.last = time.perf_counter()
+            self.cost = self.last - now
+
+    def finish(self, rows) -> None:
         self._write(rows)
 
-    def _write(self, rows: list[dict]) -> None:
+    def _write(self, rows) -> None:
         import io
 
         from closedloop.io.files import atomic_write_text
@@ -326,34 +343,70 @@ def _fmt(row: dict) -> dict:
     return {k: (f"{v:.6g}" if isinstance(v, float) else "" if v is None else v) for k, v in row.items()}
 
 
+def run_once(job: BatchJob) -> dict:
+    """A job's record: the one on disk when its folder is finished, else `run_job`'s.  A job is run again
+    when the worker or node running it died (the executor retries it); when that happened after its
+    folder was published, the retry returns that folder's record instead of calibrating again."""
+    return finished(job) or run_job(job)
+
+
+class _Markers(Mapping):
+    """The finished jobs' records (``done.json``) by name, read from disk when asked (the last two kept):
+    the batch holds the summary rows, never every job's parameters and matrices."""
+
+    def __init__(self, jobs: list[BatchJob], names: set[str]):
+        self.jobs = {j.name: j for j in jobs if j.name in names}
+        self.cache: dict[str, dict] = {}
+
+    def __getitem__(self, name: str) -> dict:
+        if name not in self.cache:
+            marker = finished(self.jobs[name]) if name in self.jobs else None
+            if marker is None:
+                raise KeyError(name)
+            if len(self.cache) >= 2:
+                self.cache.pop(next(iter(self.cache)))
+            self.cache[name] = marker
+        return self.cache[name]
+
+    def __iter__(self):
+        return iter(self.jobs)
+
+    def __len__(self) -> int:
+        return len(self.jobs)
+
+
 def run_batch(
     jobs: list[BatchJob], summary: str | Path, engine=None, progress: ProgressReporter | None = None, z_max: float = 3.0
 ) -> BatchResult:
-    """Run every job not finished before on `engine` (see closedloop.parallel.executor); write the summary."""
+    """Run every job not finished before on `engine` (see closedloop.parallel.executor); write the summary.
+
+    What the batch holds while it runs is each job's summary row: every job's record (parameters,
+    covariance, information matrix) is written to its folder and read back from there, two at a time,
+    for the drift."""
     from closedloop.parallel.executor import imap
 
     n_tmp = _clean_temporaries(jobs)
     if n_tmp:
         log.info("removed %d unfinished temporary folder(s) of an interrupted run", n_tmp)
     sink = _Summary(Path(summary))
-    results: dict[str, dict] = {}
     rows: dict[str, dict] = {}
     todo = []
+    # a local pool's workers end with this process (`die_with_batch`); a cluster's nodes may be other
+    # machines, where this process id means nothing: Ray ends a dead driver's tasks itself
+    local = getattr(engine, "name", engine) == "local"
     for j in jobs:
         done = finished(j)
         if done is None:
-            j.batch_pid = os.getpid()  # its worker ends with this process (`die_with_batch`)
+            j.batch_pid = os.getpid() if local else 0
             todo.append(j)
         else:
-            results[j.name] = done
             rows[j.name] = {**done["row"], "resumed": "yes"}
             sink.add(rows[j.name], publish=False)  # (published with the first job that finishes)
     failed = []
-    for out in imap(run_job, todo, engine, progress=progress, task="batch"):
+    for out in imap(run_once, todo, engine, progress=progress, task="batch"):
         j = todo[out.index]
-        if out.ok:
-            results[j.name] = out.value
-            rows[j.name] = {**out.value["row"], "resumed": "no"}
+        if out.ok:  # seconds: the whole job in its worker, its folder's writing included
+            rows[j.name] = {**out.value["row"], "seconds": round(out.seconds, 3), "resumed": "no"}
         else:
             failed.append(j.name)
             log.warning("job %s failed: %s", j.name, out.error)
@@ -369,13 +422,15 @@ def run_batch(
                 "out": str(j.out),
             }
         sink.add(rows[j.name])
-    drifts = drift(jobs, results, z_max)
+    markers = _Markers(jobs, {n for n, r in rows.items() if r["status"] != "failed"})
+    drifts = drift(jobs, markers, z_max, rows=rows)
     drift_columns(rows, drifts)
     ordered = [rows[j.name] for j in jobs]
     sink.finish(ordered)
     if drifts and not is_special(summary):  # (a summary on a device or pipe: the drift is printed only)
         _write_drift(Path(summary), drifts)
-    return BatchResult(ordered, drifts, [j.name for j in todo], [j.name for j in jobs if j not in todo], failed)
+    ran = {j.name for j in todo}
+    return BatchResult(ordered, drifts, [j.name for j in todo], [j.name for j in jobs if j.name not in ran], failed)
 
 
 def drift_path(summary: Path) -> Path:

@@ -32,6 +32,7 @@ z = (v2 - v1) / sqrt(se1^2 + se2^2).
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,7 +41,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 
-@dataclass
+@dataclass(slots=True)
 class Drift:
     """The change of one robot parameter between two consecutive calibrations of a robot."""
 
@@ -183,16 +184,25 @@ def compare_parameters(robot: str, name_a: str, name_b: str, pa: dict, pb: dict,
     return out
 
 
-def drift(jobs: list, results: dict[str, dict], z_max: float = 3.0) -> list[Drift]:
+def drift(
+    jobs: list, results: Mapping[str, dict], z_max: float = 3.0, rows: Mapping[str, dict] | None = None
+) -> list[Drift]:
     """Parameter changes between consecutive dates of each robot, with their uncertainty (module docstring).
 
-    Only calibrations that converged with a verdict other than 'failed' are compared.
+    Only calibrations that converged with a verdict other than 'failed' are compared.  `results`: each
+    job's record (its ``row``, ``parameters``, ``gauge``) by name; with `rows` (each job's summary row by
+    name) the records are looked up only for the pairs compared, robot by robot and in date order, so a
+    mapping that loads them from disk on demand holds two at a time.
     """
     out: list[Drift] = []
     by_robot: dict[str, list] = {}
     for j in jobs:
-        r = results.get(j.name)
-        if j.robot and r and r["row"]["status"] == "ok" and r["row"].get("verdict") != "failed":
+        if rows is not None:
+            row = rows.get(j.name)
+        else:
+            r = results.get(j.name)
+            row = r["row"] if r else None
+        if j.robot and row and row["status"] == "ok" and row.get("verdict") != "failed":
             by_robot.setdefault(j.robot, []).append(j)
     for robot, js in by_robot.items():
         js.sort(key=lambda j: j.date)

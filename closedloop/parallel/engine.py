@@ -9,6 +9,7 @@ import pickle
 import time
 import traceback
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -65,6 +66,63 @@ class JobCounts:
 
 
 # --------------------------------------------------------------------------- worker side
+class JobTimeout(BaseException):
+    """A job ran past its time limit (an engine's `timeout`).  A BaseException, as KeyboardInterrupt is:
+    the job's own ``except Exception`` clauses (a check that may fail without failing the job) must not
+    swallow it."""
+
+
+def hard_grace(seconds: float) -> float:
+    """How long past its soft limit a job stuck in native code runs before its worker process is ended."""
+    return max(2.0, 0.2 * seconds)
+
+
+_DEVNULL: list = []  # the file faulthandler writes a stuck job's traceback to (kept open: it needs a live file)
+
+
+@contextmanager
+def time_limit(seconds: float | None, hard: bool = False):
+    """Stop the code run inside after `seconds`.
+
+    Soft limit: SIGALRM raises :class:`JobTimeout` in the job (main thread only; Python code, and system
+    calls such as a read from a stalled network mount, which Python resumes after running the handler).
+    Hard limit (`hard`, in a worker process only): a job still running `hard_grace` later, stuck in native
+    code that never returns to Python, ends its process (``faulthandler``'s own thread, which needs no
+    Python lock); the engine then sees a dead worker (retried, then recorded as crashed)."""
+    if not seconds:
+        yield
+        return
+    import signal
+    import threading
+
+    soft = threading.current_thread() is threading.main_thread() and hasattr(signal, "setitimer")
+    previous = None
+    if soft:
+
+        def expire(signum, frame) -> None:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            raise JobTimeout(f"stopped after {seconds:g} s (the per-job time limit)")
+
+        previous = signal.signal(signal.SIGALRM, expire)
+        signal.setitimer(signal.ITIMER_REAL, seconds)
+    if hard:
+        import faulthandler
+
+        if not _DEVNULL:
+            _DEVNULL.append(open(os.devnull, "w"))  # noqa: SIM115 - held for the process's life
+        faulthandler.dump_traceback_later(seconds + hard_grace(seconds), exit=True, file=_DEVNULL[0])
+    try:
+        yield
+    finally:
+        if soft:
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            signal.signal(signal.SIGALRM, previous)
+        if hard:
+            import faulthandler
+
+            faulthandler.cancel_dump_traceback_later()
+
+
 _LIMITED = [False]
 
 
@@ -80,15 +138,28 @@ def limit_threads() -> None:
     threadpool_limits(1)
 
 
-def call(fn: Callable, index: int, payload: Any, seed: np.random.SeedSequence | None, shared: tuple = ()) -> Outcome:
-    """Run one job and wrap its value or its error (never raises)."""
+def call(
+    fn: Callable,
+    index: int,
+    payload: Any,
+    seed: np.random.SeedSequence | None,
+    shared: tuple = (),
+    timeout: float | None = None,
+    hard: bool = False,
+) -> Outcome:
+    """Run one job and wrap its value or its error (never raises); stopped after `timeout` seconds
+    (`time_limit`; `hard` in a worker process, never in the caller's own)."""
     import socket
 
     t0 = time.perf_counter()
     out = Outcome(index, worker=f"{socket.gethostname()}:{os.getpid()}")
     try:
         kw = {} if seed is None else {"rng": np.random.default_rng(seed)}
-        out.value = fn(*shared, payload, **kw)
+        with time_limit(timeout, hard):
+            out.value = fn(*shared, payload, **kw)
+    except JobTimeout as exc:  # recorded as any failure; its exception does not travel (it is no Exception)
+        out.error = f"JobTimeout: {exc}"
+        out.traceback = traceback.format_exc()
     except Exception as exc:  # recorded, not fatal
         out.error = f"{type(exc).__name__}: {exc}"
         out.traceback = traceback.format_exc()
@@ -107,6 +178,7 @@ class Engine:
 
     name = "?"
     workers = 1
+    timeout: float | None = None  # seconds a job may run before it is stopped (None: no limit)
 
     def __init__(self, jobs: int | None = None, address: str | None = None, **_) -> None:
         """Engines are made by name (`executor.get_engine`) with the same keywords; each takes what it uses."""
@@ -134,9 +206,10 @@ class SerialEngine(Engine):
     1 as in the workers of the other engines, faster on a shared machine).
     """
 
-    def __init__(self, jobs: int | None = None, threads: int | None = None, **_):
+    def __init__(self, jobs: int | None = None, threads: int | None = None, timeout: float | None = None, **_):
         self.workers = 1
         self.threads = threads
+        self.timeout = timeout  # soft only: a job stuck in native code cannot be stopped in this process
 
     def imap(self, fn, payloads, seeds, shared, progress=None):
         from contextlib import nullcontext
@@ -151,4 +224,4 @@ class SerialEngine(Engine):
             for i, p in enumerate(payloads):
                 if progress:
                     progress.running = 1
-                yield call(fn, i, p, None if seeds is None else seeds[i], shared or ())
+                yield call(fn, i, p, None if seeds is None else seeds[i], shared or (), self.timeout)

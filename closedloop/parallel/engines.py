@@ -58,8 +58,8 @@ def _pool_init() -> None:
     limit_threads()
 
 
-def _pool_call(fn, index, payload, seed, token, blob) -> Outcome:
-    return call(fn, index, payload, seed, _shared(token, blob))
+def _pool_call(fn, index, payload, seed, token, blob, timeout=None) -> Outcome:
+    return call(fn, index, payload, seed, _shared(token, blob), timeout, hard=True)
 
 
 def _start_method() -> str:
@@ -70,10 +70,15 @@ def _start_method() -> str:
 
 @register("local")
 class LocalEngine(Engine):
-    """A pool of `jobs` worker processes on this machine (forkserver or spawn), reused across studies."""
+    """A pool of `jobs` worker processes on this machine (forkserver or spawn), reused across studies.
 
-    def __init__(self, jobs: int | None = None, **_):
+    A worker that dies (killed, out of memory, a crash in native code) breaks the pool: the jobs it had
+    not returned are run again on a new pool, then alone, one at a time (`_run_all`).  `timeout`: seconds
+    a job may run (`engine.time_limit`)."""
+
+    def __init__(self, jobs: int | None = None, timeout: float | None = None, **_):
         self.workers = max(1, int(jobs or os.cpu_count() or 1))
+        self.timeout = timeout
         self._pool: ProcessPoolExecutor | None = None
 
     def _new_pool(self, workers: int) -> ProcessPoolExecutor:
@@ -95,7 +100,10 @@ class LocalEngine(Engine):
     def imap(self, fn, payloads, seeds, shared, progress=None):
         token = None if shared is None else f"{os.getpid()}-{id(shared)}-{time.monotonic_ns()}"
         blob, staged = _stage(None if shared is None else pickle.dumps(shared, protocol=pickle.HIGHEST_PROTOCOL))
-        args = {i: (fn, i, p, None if seeds is None else seeds[i], token, blob) for i, p in enumerate(payloads)}
+        args = {
+            i: (fn, i, p, None if seeds is None else seeds[i], token, blob, self.timeout)
+            for i, p in enumerate(payloads)
+        }
         try:
             yield from self._run_all(args, progress)
         finally:
@@ -163,19 +171,33 @@ class LocalEngine(Engine):
 
 @register("ray")
 class RayEngine(Engine):
-    """Ray tasks of one CPU each; joins `address` ('auto', 'ray://host:10001', ...) or starts a local cluster."""
+    """Ray tasks of one CPU each; joins `address` ('auto', 'HOST:6379', 'ray://host:10001') or starts a local
+    cluster.
 
-    def __init__(self, jobs: int | None = None, address: str | None = None, **_):
+    A task whose worker process or node dies is run again by Ray, on any node, up to `retries` times
+    (then recorded as crashed); `timeout`: seconds a job may run (`engine.time_limit`).  The jobs'
+    code must be importable on every node, and their files on a file system every node sees."""
+
+    def __init__(
+        self,
+        jobs: int | None = None,
+        address: str | None = None,
+        timeout: float | None = None,
+        retries: int = 3,
+        **_,
+    ):
         from closedloop.errors import require
 
         ray = require("ray", "--ray", "ray")
         self.ray = ray
         self._started = not ray.is_initialized()  # connected here: disconnected by close()
         if self._started:
-            kw = {"address": address} if address else {"num_cpus": jobs} if jobs else {}
+            # no address: a new cluster on this machine ('local'), never one another program started here
+            kw = {"address": address} if address else {"address": "local", **({"num_cpus": jobs} if jobs else {})}
             ray.init(include_dashboard=False, log_to_driver=False, **kw)
         self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
-        self._task = ray.remote(num_cpus=1, max_retries=1)(_ray_call)
+        self.timeout = timeout
+        self._task = ray.remote(num_cpus=1, max_retries=retries)(_ray_call)
 
     def close(self) -> None:
         if self._started and self.ray.is_initialized():
@@ -201,7 +223,7 @@ class RayEngine(Engine):
             while queue and len(pending) < limit:
                 i = queue.pop()
                 seed = None if seeds is None else seeds[i]
-                pending[self._task.remote(fn, i, payloads[i], seed, token, ref)] = i
+                pending[self._task.remote(fn, i, payloads[i], seed, token, ref, self.timeout)] = i
             if progress:
                 progress.running = min(len(pending), self.workers)
             done, _ = ray.wait(list(pending), num_returns=1)
@@ -214,11 +236,11 @@ class RayEngine(Engine):
                     yield Outcome(i, error=f"WorkerCrashed: {type(exc).__name__}: {text[-1]}", traceback=str(exc))
 
 
-def _ray_call(fn, index, payload, seed, token, ref) -> Outcome:
+def _ray_call(fn, index, payload, seed, token, ref, timeout=None) -> Outcome:
     limit_threads()
     if token is not None and token not in _CACHE:
         import ray
 
         _CACHE.clear()
         _CACHE[token] = ray.get(ref[0])
-    return call(fn, index, payload, seed, _CACHE[token] if token is not None else ())
+    return call(fn, index, payload, seed, _CACHE[token] if token is not None else (), timeout, hard=True)

@@ -18,7 +18,9 @@ worker), every worker limits BLAS to one thread (threadpoolctl; no
 oversubscription, no thread-count dependent rounding) and results are returned
 in job order.  A job that raises is recorded in its outcome and never stops the
 others; a job that kills its worker process (a crash in native code) is
-retried once, then alone, and recorded as failed.
+retried (local pool: once on a new pool, then alone; Ray: up to 3 times, on
+any node, also when its node died) and recorded as failed.  An engine's
+`timeout` stops a job that runs longer (`engine.time_limit`: `JobTimeout`).
 
 Layout: :mod:`closedloop.parallel.engine` (outcomes, progress, the worker-side
 call, the engine base class, the serial engine), :mod:`closedloop.parallel.engines`
@@ -34,13 +36,24 @@ from typing import Any
 
 import numpy as np
 
-from closedloop.parallel.engine import ENGINES, Engine, JobCounts, Outcome, SerialEngine, call, limit_threads, register
+from closedloop.parallel.engine import (
+    ENGINES,
+    Engine,
+    JobCounts,
+    JobTimeout,
+    Outcome,
+    SerialEngine,
+    call,
+    limit_threads,
+    register,
+)
 from closedloop.parallel.engines import LocalEngine, RayEngine
 from closedloop.progress import ProgressReporter
 
 __all__ = [
     "ENGINES",
     "Engine",
+    "JobTimeout",
     "Outcome",
     "JobCounts",
     "SerialEngine",
@@ -63,8 +76,14 @@ _NO_SHARED = object()
 
 
 # --------------------------------------------------------------------------- front end
-def get_engine(engine: "str | Engine | None" = None, jobs: int | None = None, address: str | None = None) -> Engine:
-    """An engine by name ('serial', 'local', 'ray'), or the instance given (None: serial)."""
+def get_engine(
+    engine: "str | Engine | None" = None,
+    jobs: int | None = None,
+    address: str | None = None,
+    timeout: float | None = None,
+) -> Engine:
+    """An engine by name ('serial', 'local', 'ray'), or the instance given (None: serial); `timeout`:
+    seconds a job may run before it is stopped and recorded as failed (`JobTimeout`)."""
     if isinstance(engine, Engine):
         return engine
     name = engine or "serial"
@@ -72,7 +91,7 @@ def get_engine(engine: "str | Engine | None" = None, jobs: int | None = None, ad
         from closedloop.errors import InputError
 
         raise InputError(f"unknown engine '{name}' (known: {', '.join(sorted(ENGINES))})")
-    return ENGINES[name](jobs=jobs, address=address)
+    return ENGINES[name](jobs=jobs, address=address, timeout=timeout)
 
 
 def job_seeds(seed: int | np.random.SeedSequence | None, n: int) -> list[np.random.SeedSequence] | None:
@@ -138,8 +157,8 @@ def run(fn: Callable, payloads: Iterable, engine: "str | Engine | None" = None, 
     return [o.value if o.ok else o for o in outs]
 
 
-def add_arguments(parser) -> None:
-    """--jobs / --ray for a many-job command."""
+def add_arguments(parser, timeout: bool = False) -> None:
+    """--jobs / --ray for a many-job command (and --job-timeout with `timeout`)."""
     parser.add_argument(
         "--jobs",
         type=int,
@@ -155,15 +174,26 @@ def add_arguments(parser) -> None:
         "'local' starts one here with --jobs CPUs (needs Ray: pip install \"closedloop[ray]\", "
         'from a checkout pip install ".[ray]")',
     )
+    if timeout:
+        parser.add_argument(
+            "--job-timeout",
+            metavar="SECONDS",
+            default=None,
+            help="stop a job that runs longer and record it as failed (JobTimeout); the others go on",
+        )
 
 
 def engine_from_args(args) -> Engine:
+    """The engine `--jobs` / `--ray` (and `--job-timeout`, when the command has it: seconds, checked by
+    the command) ask for."""
+    timeout = getattr(args, "job_timeout", None)
+    timeout = None if timeout is None else float(timeout)
     if getattr(args, "ray", None):
-        return get_engine("ray", args.jobs, None if args.ray == "local" else args.ray)
+        return get_engine("ray", args.jobs, None if args.ray == "local" else args.ray, timeout)
     if args.jobs is not None and args.jobs < 1:
         from closedloop.errors import InputError
 
         raise InputError("--jobs must be at least 1")
     if args.jobs == 1:
-        return SerialEngine(threads=1)
-    return get_engine("local", args.jobs)
+        return SerialEngine(threads=1, timeout=timeout)
+    return get_engine("local", args.jobs, timeout=timeout)

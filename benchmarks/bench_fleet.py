@@ -1,0 +1,341 @@
+"""A fleet of simulated robots through `closedloop batch`, on the serial engine, a local pool and a
+simulated multi-node Ray cluster: wall time, per-job overhead, throughput per core, the driver's peak
+memory; and the extrapolation to 10,000 robots.
+
+Usage::
+
+    python benchmarks/bench_fleet.py [--robots 100 300 1000] [--configs 200] [--engines serial local ray]
+                                     [--workers 2] [--out out/bench_fleet]
+
+The fleet (`closedloop.studies.fleet`): Pandas welded to a fixture, one geometry, each robot with its
+own joint offsets (1 mrad) and noise (1e-4 rad), `--configs` configurations per log, no k-fold
+validation (one calibration per job).  Each engine runs the same command a fleet owner types, in its
+own process (the driver), on a fresh output folder:
+
+* ``serial``: ``closedloop batch fleet.yaml --jobs 1`` (the driver calibrates);
+* ``local``: ``--jobs W`` (a pool of W worker processes);
+* ``ray``: ``--ray ADDRESS``, a `ray.cluster_utils.Cluster` started here: a head that runs no tasks and
+  W nodes of one CPU each, every one its own raylet, object store and workers (as separate machines,
+  sharing this machine's cores and file system).
+
+Figures, per engine and fleet size N (W workers; 1 for serial):
+
+* ``wall``: the command, start to exit (Python start, the pool or the connection to the cluster, the
+  jobs, the summary);
+* ``job``: mean of the jobs' own times (the summary's ``seconds``: the whole job in its worker);
+* ``overhead/job`` = (wall x W - sum of the jobs' times) / N: everything the workers did not spend on
+  jobs (Python start, imports, dispatch, result transfer, idle workers at the start and the end), in ms
+  and as a share of a job's own time; and its ``marginal`` value between the two largest fleets, free
+  of every fixed cost: what one more job costs;
+* ``per worker``: N / wall / W jobs per second, and its ratio to the serial engine's;
+* ``resume``: the same command run again on the finished folders (nothing to run: reading the manifest
+  and every job's record, the summary);
+* ``driver peak``: the driver process's peak resident memory (VmHWM, sampled every 0.1 s) and its CPU
+  time (the pool's or the cluster's workers not included).
+
+The 10,000-robot figures are extrapolated from the largest fleet run (method printed with them).
+
+``--report N``: instead, the fleet report of N robots on two dates, two of them (``arm00017``,
+``arm00064``) with joint 4's offset jumped by 800 urad on the second date, calibrated on the local pool;
+writes ``fleet.json``, ``fleet.html`` and the plot (``--png``, the docs' figure) and prints the robots
+that need attention first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path[:0] = [str(HERE), str(ROOT)]
+
+from machine import header  # noqa: E402
+
+from closedloop.studies.fleet import FleetDrift, FleetSpec, configurations, robot_name, write_fleet  # noqa: E402
+
+
+def geometry(out: Path, n: int):
+    """The fleet's geometry, drawn once and kept in `out` (drawing it takes tens of seconds)."""
+    path = out / f"geometry-{n}.npz"
+    if path.exists():
+        z = np.load(path, allow_pickle=False)
+        return str(z["model"]), [str(j) for j in z["joints"]], z["pool"], json.loads(str(z["truth"]))
+    model, joints, pool, truth = configurations(n)
+    out.mkdir(parents=True, exist_ok=True)
+    np.savez(path, model=model, joints=np.array(joints), pool=pool, truth=json.dumps(truth))
+    return model, joints, pool, truth
+
+
+def _proc(pid: int) -> tuple[float, float]:
+    """(peak resident memory in MB, CPU seconds) of a live process, from /proc."""
+    hwm = 0.0
+    with open(f"/proc/{pid}/status") as fh:
+        for line in fh:
+            if line.startswith("VmHWM:"):
+                hwm = float(line.split()[1]) / 1024.0
+    with open(f"/proc/{pid}/stat") as fh:
+        f = fh.read().rsplit(")", 1)[1].split()
+    return hwm, (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def run_driver(args: list[str]) -> dict:
+    """Run `closedloop batch ...`; its wall time, exit code and the driver's peak memory and CPU time."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    t0 = time.perf_counter()
+    p = subprocess.Popen(
+        [sys.executable, "-m", "closedloop.cli.main", "batch", *args, "--quiet"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=env,
+        text=True,
+    )
+    peak, cpu = 0.0, 0.0
+    while p.poll() is None:
+        try:
+            hwm, used = _proc(p.pid)
+            peak, cpu = max(peak, hwm), max(cpu, used)  # (an exited, unreaped process has no memory lines)
+        except (OSError, IndexError, ValueError):
+            pass
+        time.sleep(0.1)
+    out, err = p.communicate()
+    wall = time.perf_counter() - t0
+    if p.returncode not in (0, 3):
+        raise RuntimeError(f"batch exited {p.returncode}: {err[-2000:]}")
+    return {"wall": wall, "peak_mb": peak, "cpu": cpu, "code": p.returncode}
+
+
+def forget(address: str) -> None:
+    """Ray's cluster utilities note a new cluster as this machine's current one (``ray.init()`` with no
+    address joins it): un-note it, so another program's ``ray.init()`` here starts its own."""
+    from ray._private.utils import get_ray_address_file, read_ray_address
+
+    if read_ray_address() == address:
+        os.unlink(get_ray_address_file(None))
+
+
+def start_cluster(workers: int, attempts: int = 3):
+    """A head (no tasks) and `workers` nodes of one CPU.  Ray gives a node 30 s to register; on a
+    loaded machine it may need more: up to `attempts` tries."""
+    from ray.cluster_utils import Cluster
+
+    os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    for attempt in range(attempts):
+        t0 = time.perf_counter()
+        c = None
+        try:
+            c = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, "include_dashboard": False})
+            for _ in range(workers):
+                c.add_node(num_cpus=1)
+            c.wait_for_nodes()
+            forget(c.address)  # another program's ray.init() here must not join this cluster
+            return c, time.perf_counter() - t0
+        except Exception as exc:
+            if c is not None:
+                c.shutdown()
+            if attempt == attempts - 1:
+                raise
+            print(f"ray: the cluster did not start ({exc}); again", flush=True)
+    raise AssertionError("unreachable")
+
+
+def measure(engine: str, n: int, folder: Path, geo, args, address: str | None) -> dict:
+    """Run the fleet of `n` robots on `engine` from scratch, then the same command again (the resume)."""
+    if folder.exists():
+        shutil.rmtree(folder)
+    manifest = write_fleet(folder, FleetSpec(robots=n, seed=n), geo)
+    how = {"serial": ["--jobs", "1"], "local": ["--jobs", str(args.workers)], "ray": ["--ray", str(address)]}[engine]
+    first = run_driver([str(manifest), *how])
+    with open(manifest.with_name("fleet.summary.csv")) as fh:  # (the rerun's rows give the job folders' times)
+        rows = list(csv.DictReader(fh))
+    again = run_driver([str(manifest), *how])  # every folder finished: nothing to run
+    assert len(rows) == n and all(r["status"] == "ok" for r in rows), "a job failed"
+    seconds = np.array([float(r["seconds"]) for r in rows])
+    return {
+        "engine": engine,
+        "robots": n,
+        "workers": 1 if engine == "serial" else args.workers,
+        "wall_s": first["wall"],
+        "resume_s": again["wall"],
+        "job_s": float(seconds.mean()),
+        "sum_job_s": float(seconds.sum()),
+        "driver_peak_mb": first["peak_mb"],
+        "driver_cpu_s": first["cpu"],
+        "verdicts_ok": sum(r["verdict"] == "ok" for r in rows),
+        "load": os.getloadavg()[0],
+    }
+
+
+def overhead(r: dict) -> float:
+    """Seconds per job the W workers spent on anything but the jobs: (wall x W - sum of job times) / N."""
+    return (r["wall_s"] * r["workers"] - r["sum_job_s"]) / r["robots"]
+
+
+def per_core(r: dict) -> float:
+    """Jobs per second per worker over the whole command."""
+    return r["robots"] / r["wall_s"] / r["workers"]
+
+
+def _pair(rows: list[dict], engine: str) -> tuple[dict, dict] | None:
+    rs = sorted((r for r in rows if r["engine"] == engine), key=lambda r: r["robots"])
+    return (rs[-2], rs[-1]) if len(rs) >= 2 else None
+
+
+def marginal(rows: list[dict]) -> list[str]:
+    """The overhead of one more job, free of every fixed cost (Python start, the workers' imports, the
+    pool or the connection, the ramp-up and the tail): the difference of the total overheads of the two
+    largest fleets, ((wall2 x W - S2) - (wall1 x W - S1)) / (N2 - N1), S the sum of the jobs' own times."""
+    out = ["marginal overhead per job (between the two largest fleets of each engine):"]
+    for engine in dict.fromkeys(r["engine"] for r in rows):
+        pair = _pair(rows, engine)
+        if pair is None:
+            continue
+        a, b = pair
+        dn = b["robots"] - a["robots"]
+        per = (overhead(b) * b["robots"] - overhead(a) * a["robots"]) / dn
+        job = (b["sum_job_s"] - a["sum_job_s"]) / dn
+        out.append(
+            f"  {engine:<6} {a['robots']} -> {b['robots']} robots: {per * 1e3:+.1f} ms per job, {100 * per / job:+.1f} % "
+            f"of a job's own {job:.3f} s; driver peak {b['driver_peak_mb'] - a['driver_peak_mb']:+.1f} MB "
+            f"({(b['driver_peak_mb'] - a['driver_peak_mb']) * 1024 / dn:+.2f} KB per robot), driver CPU "
+            f"{(b['driver_cpu_s'] - a['driver_cpu_s']) * 1e3 / dn:.2f} ms per robot"
+        )
+    return out
+
+
+def extrapolate(rows: list[dict], n_target: int = 10_000) -> list[str]:
+    """The 10,000-robot figures of each engine (method in the first line)."""
+    lines = [
+        f"extrapolation to {n_target} robots on the same W workers.  Method: the command's wall time, the "
+        "driver's peak memory and its CPU time on a line in N through the two largest fleets measured (the "
+        "intercept: start-up and fixed costs; the slope: a job's own time / W plus its marginal overhead):"
+    ]
+    for engine in dict.fromkeys(r["engine"] for r in rows):
+        pair = _pair(rows, engine)
+        if pair is None:
+            continue
+        a, b = pair
+        dn = b["robots"] - a["robots"]
+
+        def at(key: str) -> float:
+            return b[key] + (b[key] - a[key]) / dn * (n_target - b["robots"])
+
+        w = b["workers"]
+        lines.append(
+            f"  {engine:<6} W={w}: wall {at('wall_s') / 3600:.2f} h ({(b['wall_s'] - a['wall_s']) / dn * 1e3:.0f} ms "
+            f"per robot); driver peak {at('driver_peak_mb'):.0f} MB; driver CPU {at('driver_cpu_s'):.0f} s"
+        )
+    lines.append(
+        "  on C cores the jobs' part divides by C / W (the jobs are independent); the driver's CPU per job does "
+        "not: one driver dispatches at most 1 / (its CPU per job) jobs per second"
+    )
+    return lines
+
+
+def table(rows: list[dict]) -> list[str]:
+    serial = {r["robots"]: per_core(r) for r in rows if r["engine"] == "serial"}
+    out = [
+        "| engine | robots | workers | wall [s] | job [s] | overhead/job [ms] (% of job) "
+        "| jobs/s per worker (vs serial) | resume [s] | driver peak [MB] | driver CPU [s] | load |",
+        "|" + "---|" * 11,
+    ]
+    for r in rows:
+        ratio = f" ({per_core(r) / serial[r['robots']]:.2f}x)" if r["robots"] in serial else ""
+        out.append(
+            f"| {r['engine']} | {r['robots']} | {r['workers']} | {r['wall_s']:.1f} | {r['job_s']:.3f} | "
+            f"{overhead(r) * 1e3:.1f} ({100 * overhead(r) / r['job_s']:.1f} %) | {per_core(r):.3f}{ratio} | "
+            f"{r['resume_s']:.1f} | {r['driver_peak_mb']:.0f} | {r['driver_cpu_s']:.1f} | {r['load']:.1f} |"
+        )
+    return out
+
+
+def report_demo(n: int, out: Path, geo, workers: int, png: str | None) -> None:
+    """The fleet report of `n` robots on two dates, two of them drifted (module docstring)."""
+    from closedloop.fleet.report import fig_drift, fleet_report, read_summary, write_fleet_report
+
+    folder = out / f"report-{n}"
+    drifted = [robot_name(17), robot_name(64)]
+    spec = FleetSpec(
+        robots=n,
+        dates=["2026-03-02", "2026-03-09"],
+        seed=5,
+        drift=[FleetDrift(r, "panda_joint4", 800e-6) for r in drifted],
+    )
+    manifest = write_fleet(folder, spec, geo)
+    run = run_driver([str(manifest), "--jobs", str(workers)])
+    report = fleet_report(read_summary(manifest.with_name("fleet.summary.csv")))
+    write_fleet_report(report, folder / "fleet.json", folder / "fleet.html")
+    if png:
+        Path(png).write_bytes(fig_drift(report))
+    print(f"{n} robots x 2 dates on {workers} workers: {run['wall']:.0f} s; drifted: {', '.join(drifted)}")
+    print(f"attention: {report['attention']}")
+    for r in report["robots"][:5]:
+        print(f"  {r['robot']}: {r['attention']}, max |z| {r['drift']['max_z']}, {'; '.join(r['drift']['flagged'])}")
+    print(f"wrote {folder / 'fleet.html'}" + (f" and {png}" if png else ""))
+
+
+def load_results(path: Path) -> list[dict]:
+    """The latest measurement of each engine and fleet size in `path` (one JSON object a line)."""
+    latest = {}
+    for text in path.read_text().splitlines():
+        r = json.loads(text)
+        r.setdefault("resume_s", r.get("fixed_s", float("nan")))  # (named so by an earlier version)
+        latest[(r["engine"], r["robots"])] = r
+    return sorted(latest.values(), key=lambda r: (r["robots"], ["serial", "local", "ray"].index(r["engine"])))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--robots", type=int, nargs="+", default=[100, 300])
+    ap.add_argument("--configs", type=int, default=200)
+    ap.add_argument("--engines", nargs="+", default=["serial", "local", "ray"])
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--out", default="out/bench_fleet")
+    ap.add_argument("--report", type=int, metavar="N", help="the fleet report of N robots on two dates instead")
+    ap.add_argument("--png", help="with --report: write the report's plot here too")
+    ap.add_argument("--table", action="store_true", help="only print the table of the measurements in --out")
+    args = ap.parse_args()
+    out = Path(args.out)
+    if args.table:
+        for line in [*table(rows := load_results(out / "results.jsonl")), "", *marginal(rows), "", *extrapolate(rows)]:
+            print(line)
+        return
+    print(header(), flush=True)
+    geo = geometry(out, args.configs)
+    if args.report:
+        report_demo(args.report, out, geo, args.workers, args.png)
+        return
+    cluster, address = None, None
+    if "ray" in args.engines:
+        cluster, startup = start_cluster(args.workers)
+        address = cluster.address
+        print(f"ray: a head (no tasks) and {args.workers} nodes of 1 CPU started in {startup:.1f} s", flush=True)
+    results = out / "results.jsonl"  # every measurement of every run, so sizes run apart are tabled together
+    try:
+        for n in args.robots:
+            for engine in args.engines:
+                r = measure(engine, n, out / f"{engine}-{n}", geo, args, address)
+                line = json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in r.items()})
+                print(line, flush=True)
+                with open(results, "a") as fh:
+                    fh.write(line + "\n")
+    finally:
+        if cluster is not None:
+            cluster.shutdown()
+    rows = load_results(results)
+    for line in [*table(rows), "", *marginal(rows), "", *extrapolate(rows)]:
+        print(line)
+    print(header())
+
+
+if __name__ == "__main__":
+    main()
