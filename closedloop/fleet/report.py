@@ -31,7 +31,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from closedloop.errors import InputError, MissingExtraError
+from closedloop.errors import InputError, require
 from closedloop.io.files import atomic_write_text
 
 ATTENTION = ("not calibrated", "drifted", "suspect", "ok")
@@ -141,13 +141,9 @@ def fleet_report(rows: list[dict], z_max: float = 3.0) -> dict:
 
 # --------------------------------------------------------------------------- the plot and the page
 def _plt():
-    try:
-        import matplotlib
+    require("matplotlib", "--html", "report").use("Agg")
+    import matplotlib.pyplot as plt
 
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:
-        raise MissingExtraError("--html", "matplotlib", "report") from None
     return plt
 
 
