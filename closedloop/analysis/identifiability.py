@@ -95,6 +95,35 @@ def greedy_reduction(
     return kept, dropped
 
 
+def reduction_margin(C: np.ndarray, kept: list[int], dropped: list[int]) -> tuple[float, float]:
+    """How far a reduction of C's columns is from `greedy_reduction`'s tolerance: (largest dropped, smallest kept).
+
+    The first value is the largest relative residual of a dropped column on the
+    span of the kept ones, the second the smallest relative residual of a kept
+    column on the span of the other kept ones (order-free, so never larger
+    than the residual the greedy pass saw).  A reduction read at the nominal
+    geometry has round-off (~1e-13) against columns of 1e-3 or more (the
+    stereo head with parallel pan axes): noise in the readings cannot move
+    either value across the 1e-6 tolerance.
+    """
+    C = compress(C)
+    A = C[:, kept]
+    norms = np.linalg.norm(C, axis=0)
+    if not kept:
+        return (1.0 if dropped else 0.0), np.inf
+    Q, Rk = np.linalg.qr(A)
+    worst_dropped = 0.0
+    for k in dropped:
+        if norms[k] > 0:
+            v = C[:, k] - Q @ (Q.T @ C[:, k])
+            worst_dropped = max(worst_dropped, float(np.linalg.norm(v) / norms[k]))
+    # distance of kept column j from the span of the others: 1 / |row j of A^+|, A^+ = Rk^-1 Q^T
+    with np.errstate(all="ignore"):
+        rows = np.linalg.norm(np.linalg.pinv(Rk, rcond=1e-15), axis=1)
+        weakest = float(np.min(1.0 / (rows * norms[kept])))
+    return worst_dropped, weakest
+
+
 def null_space(C: np.ndarray, rtol: float = 1e-7) -> np.ndarray:
     """Orthonormal basis (P, k) of the numerical null space of C."""
     if C.size == 0:
