@@ -201,8 +201,8 @@ def test_standard_errors_match_monte_carlo_spread():
     make = lambda: CameraLoop("cam", "tool0", camera_frames=FRAMES, sigma_px=0.3)  # noqa: E731
     case = head_case(make, N=50, seed=5, options=NOISE_FREE)
     ref, _, _ = run_head(case, make, options=NOISE_FREE)
-    reduction = (sorted(d.name for d in ref.dropped), ref.gauge)
-    assert ref.gauge == case.gauge == "cam_left_pan.y" and len(reduction[0]) == 30
+    reduction = (sorted(d.name for d in ref.identifiability.dropped), ref.scale.gauge)
+    assert ref.scale.gauge == case.gauge == "cam_left_pan.y" and len(reduction[0]) == 30
     z2, z2_free = [], []
     for draw in range(6):
         res, est, err = run_head(
