@@ -115,14 +115,14 @@ def test_a_loop_frame_that_is_no_name_is_an_input_error(iiwa_weld, field, value)
 
 
 def test_tool_as_frame_or_tip_is_the_same_robot(tmp_path):
-    """`simulate --tool` adds a ball 5 cm out as the frame tool0_tip: calibrating on tool0 (the ball as an
+    """`simulate --tool` adds a ball off the flange axis (5 cm out, 5 cm aside) as the frame tool0_tip: calibrating on tool0 (the ball as an
     estimated tip) or on tool0_tip is the same robot.  check: both ok, from the command line as well; the
     parameter table calls the tool0 one wrong (its tip is not the truth's 0)."""
     from closedloop.cli.main import main
 
     urdf = str(zoo.EXTRA["iiwa14"].relpath)
     sim = tmp_path / "sim"
-    assert main(["simulate", "--robot", urdf, "--loop", "point:frame=tool0", "--tool", "0 0 0.05"]
+    assert main(["simulate", "--robot", urdf, "--loop", "point:frame=tool0", "--tool", "0.05 0 0.05"]
                 + ["--n", "60", "--out", str(sim), "--quiet"]) == 0  # fmt: skip
     for frame in ("tool0", "tool0_tip"):
         rep = tmp_path / f"{frame}.json"
@@ -158,7 +158,7 @@ def test_true_length_that_cannot_set_the_size_is_left_out(tmp_path):
 
     sim = tmp_path / "sim"
     assert main(["simulate", "--robot", str(zoo.EXTRA["iiwa14"].relpath), "--loop", "point:frame=tool0"]
-                + ["--tool", "0 0 0.05", "--n", "200", "--out", str(sim), "--quiet"]) == 0  # fmt: skip
+                + ["--tool", "0.05 0 0.05", "--n", "200", "--out", str(sim), "--quiet"]) == 0  # fmt: skip
     robot = RobotModel.from_file(sim / "nominal.urdf")
     truth = json.loads((sim / "truth.json").read_text())["parameters"]
     rp = RobotParameters(robot, robot.joint_names)
