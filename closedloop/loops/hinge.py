@@ -75,6 +75,7 @@ from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
 from closedloop.model.se3 import adjoint, rigid_inverse
 
 HINGE_FIELDS = ("hinge_x", "hinge_y", "hinge_rx", "hinge_ry", "radius", "height", "grasp_rx", "grasp_ry", "grasp_rz")
+HELD_STILL = 0.05  # rad: a door whose handle turns less than this RMS is held still (weld data)
 RECENTRE = 0.1  # m or rad: how far the hinge may move in its chart before the chart follows it
 _EZ = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])  # rotation about z (pin.Motion order: v, w)
 
@@ -324,7 +325,16 @@ class HingeLoop(Loop):
                 'configuration(s); give axis="px py pz dx dy dz" or log at least 3 along the arc'
             )
         other = copy.copy(self)
-        other.H0, other.fitted = fit_hinge_axis(M), True
+        try:
+            other.H0, other.fitted = fit_hinge_axis(M), True
+        except LoopError as exc:  # the door does not move: a weld, if the orientation does not either
+            w = np.array([pin.log3(m.rotation @ M[0].rotation.T) for m in M])
+            if float(np.sqrt(np.mean(np.sum(w**2, axis=1)))) < HELD_STILL:
+                raise LoopError(
+                    f"loop '{self.name}' (hinge on {self.frame_a}): neither the position nor the orientation of "
+                    f"the frame moves across the rows at the nominal model: is this a weld? --loop {self.spec('weld')}"
+                ) from None
+            raise LoopError(f"loop '{self.name}' ({exc})") from None
         return other
 
     def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
