@@ -345,7 +345,11 @@ class HingeLoop(Loop):
         H0's axis: never a corrupted reading that puts the handle elsewhere (the first one may be)."""
         if self.axis is None and not self.fitted:
             prepared = self.prepare(TA, TB)
-            return prepared.express(prepared.initialize(TA, TB, meas), self)
+            return prepared.express(prepared._closing_typical(TA, TB), self)
+        return self._closing_typical(TA, TB)
+
+    def _closing_typical(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray:
+        """`initialize` about H0: the parameters closing the typical configuration."""
         M = np.linalg.solve(TB, TA)
         q = rigid_inverse(self.H0.homogeneous[None]) @ M
         radius, height = np.hypot(q[:, 0, 3], q[:, 1, 3]), q[:, 2, 3]
