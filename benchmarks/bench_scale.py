@@ -3,6 +3,13 @@
 Usage::
 
     python benchmarks/bench_scale.py [--jobs 200] [--draws 200] [--configs 60] [--engines serial local ray]
+    python benchmarks/bench_scale.py --cli [--rows 1000 10000 100000]
+
+``--cli``: one long log through the command line.  The README's main job (``panda_weld``, 1,000 simulated
+configurations) tiled to each size with 1e-4 rad of fresh noise per row, then ``closedloop calibrate ...
+--cv 0 --quiet`` as a child process: its wall time, CPU (user + system) and peak RSS (``os.wait4``'s
+rusage of that child), against the floor, Pinocchio's forward kinematics and a LOCAL frame Jacobian over
+the same rows (``floor.pinocchio_floor``).  The cost should grow no faster than the rows.
 
 Engines: ``serial`` (this process, one BLAS thread), ``local`` (2 worker
 processes), ``ray`` (a local Ray cluster started here with 2 CPUs).  For each:
@@ -30,6 +37,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
+from pathlib import Path
 
 import numpy as np
 from machine import header  # benchmarks/machine.py
@@ -187,8 +195,85 @@ def projection(rows: list[dict], robots: int, nodes: int, cpus: int, job_s: floa
     return lines
 
 
+def tiled_logs(out: Path, rows: list[int], seed: int = 0) -> tuple[Path, dict[int, Path]]:
+    """The main job's 1,000 simulated configurations (simulated once into `out`) tiled to each size in
+    `rows`, with NOISE rad of fresh noise on every reading: (nominal URDF, {rows: log})."""
+    import subprocess
+    import sys
+
+    sim = out / "sim"
+    if not (sim / "log.csv").exists():
+        cmd = [sys.executable, "-m", "closedloop.cli", "simulate", "panda_weld", "--n", "1000", "--seed", "1"]
+        subprocess.run([*cmd, "--out", str(sim), "--quiet"], check=True)
+    header = (sim / "log.csv").read_text().splitlines()[0].split(",")
+    cols = [i for i, h in enumerate(header) if h.startswith("panda_joint")]
+    base = np.loadtxt(sim / "log.csv", delimiter=",", skiprows=1)[:, cols]
+    rng = np.random.default_rng(seed)
+    logs = {}
+    for n in rows:
+        path = out / f"log{n}.csv"
+        if not path.exists():
+            th = np.tile(base, (-(-n // len(base)), 1))[:n] + rng.normal(0.0, NOISE, (n, len(cols)))
+            np.savetxt(path, th, delimiter=",", header=",".join(header[i] for i in cols), comments="", fmt="%.17g")
+        logs[n] = path
+    return sim / "nominal.urdf", logs
+
+
+def run_cli(urdf: Path, log: Path, out: Path) -> dict:
+    """`closedloop calibrate` on `log` as a child process: wall, CPU and peak RSS of that child, exit code."""
+    import os
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "closedloop.cli", "calibrate", str(urdf), str(log)]
+    cmd += ["--loop", "weld:frame=panda_hand_tcp,name=fixture", "--cv", "0", "--quiet"]
+    cmd += ["--out", str(out / "calibrated.urdf"), "--report", str(out / "report.json")]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, status, use = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    err = proc.stderr.read().decode() if proc.stderr else ""
+    return {
+        "wall": wall,
+        "cpu": use.ru_utime + use.ru_stime,
+        "rss_mb": use.ru_maxrss / 1024,
+        "code": os.waitstatus_to_exitcode(status),
+        "error": err.strip().splitlines()[-1] if err.strip() else "",
+    }
+
+
+def cli_scale(rows: list[int], out: Path) -> None:
+    """The table of ``--cli`` (module docstring)."""
+    import json
+
+    from floor import pinocchio_floor  # benchmarks/floor.py
+
+    out.mkdir(parents=True, exist_ok=True)
+    urdf, logs = tiled_logs(out, rows)
+    print("\n`closedloop calibrate` of the main job's log tiled to N rows (1e-4 rad noise), --cv 0 --quiet")
+    print(
+        f"{'rows':>9}{'wall s':>9}{'CPU s':>8}{'peak RSS MB':>13}{'floor CPU s':>13}{'CPU/floor':>10}"
+        f"{'CPU/row us':>11}  exit, verdict, iterations"
+    )
+    for n in rows:
+        r = run_cli(urdf, logs[n], out)
+        floor = pinocchio_floor("panda", n=n, repeat=1)[1]
+        verdict = ""
+        if r["code"] in (0, 3):
+            rep = json.loads((out / "report.json").read_text())
+            verdict = f"{rep.get('verdict', {}).get('status', '?')}, {rep.get('solver', {}).get('iterations', '?')}"
+        print(
+            f"{n:>9,}{r['wall']:>9.2f}{r['cpu']:>8.2f}{r['rss_mb']:>13.0f}{floor:>13.4f}{r['cpu'] / floor:>10.0f}"
+            f"{r['cpu'] / n * 1e6:>11.1f}  {r['code']}, {verdict or r['error']}",
+            flush=True,
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cli", action="store_true", help="one long log through the command line (module docstring)")
+    ap.add_argument("--rows", type=int, nargs="+", default=[1000, 10_000, 100_000], help="--cli: log sizes")
+    ap.add_argument("--out", default="out/bench_scale", help="--cli: where the logs and outputs go")
     ap.add_argument("--jobs", type=int, default=200, help="calibrations (one robot each)")
     ap.add_argument("--draws", type=int, default=200, help="Monte Carlo draws")
     ap.add_argument("--configs", type=int, default=60, help="configurations per calibration")
@@ -204,6 +289,9 @@ def main() -> None:
     )
     args = ap.parse_args()
     print(header())
+    if args.cli:
+        cli_scale(args.rows, Path(args.out))
+        return
     sc = weld_scenario(n=1, seed=2, pool="manifold", n_pool=args.configs)
     sc = dataclasses.replace(sc, theta=sc.pool, pool=None)
     opts = CalibrationOptions(noise=NOISE, fix={"panda_joint4.x": None})  # one length sets the scale

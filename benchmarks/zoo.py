@@ -11,6 +11,7 @@ ok), or a *crash* (an exception that is not a closedloop error).
     python benchmarks/zoo.py                      # everything (slow: hinge loops take seconds each)
     python benchmarks/zoo.py --seeds 1 --loops weld,point --variants exact
     python benchmarks/zoo.py --robots ur5,panda --json out/zoo.json
+    python benchmarks/zoo.py --first-seed 21 --seeds 2     # seeds 21 and 22
 
 Variants: exact (2 mm / 2 mrad / 0.02 rad errors, noise-free), rough (10x the errors), noisy (joint
 noise 1e-5 rad; judged against 5x the tool error the noise alone leaves, zoo_judge.predicted_std),
@@ -56,7 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--robots", default=",".join(zoo.ZOO))
     ap.add_argument("--loops", default=",".join(LOOPS))
     ap.add_argument("--variants", default=",".join(VARIANTS))
-    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--seeds", type=int, default=3, help="how many seeds")
+    ap.add_argument("--first-seed", type=int, default=0, help="the first seed (seeds never run before: a fresh draw)")
     ap.add_argument("--json", default=None, help="write every case's outcome here")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.ERROR)
@@ -68,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
             if loop == "weld" and d < 7:
                 continue
             for variant in args.variants.split(","):
-                for seed in range(args.seeds):
+                for seed in range(args.first_seed, args.first_seed + args.seeds):
                     kw = dict(VARIANTS[variant])
                     if loop == "measured_point" and kw.get("sigma"):
                         kw["sigma_t"] = 1e-5

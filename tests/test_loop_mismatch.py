@@ -186,3 +186,56 @@ def test_weld_fit_on_point_data_fails_honestly(panda, monkeypatch):
     assert any(w.endswith("no restart reached a closure within a plausible noise") for w in res.warnings), res.warnings
     stopped = [w for w in res.warnings if w.startswith("restarts stopped after")]
     assert all(w.startswith("restarts stopped after 1:") for w in stopped), stopped
+
+
+def test_weld_on_a_door_turned_by_60_degrees_names_the_hinge_loop():
+    """A door opened by 60 degrees spreads the handle's orientation by 0.3 rad RMS, under the point contact's
+    limit, about one axis; the handle travels 9 cm while a point on the axis stays within 3 mm (a rough
+    nominal model): the hinge loop, said before any fit."""
+    rng = np.random.default_rng(2)
+    u = np.array([0.0, 0.1, 1.0]) / np.linalg.norm([0.0, 0.1, 1.0])
+    phi = np.linspace(-0.52, 0.52, 60)
+    R = np.array([pin.exp3(u * a + rng.normal(scale=2e-3, size=3)) for a in phi])
+    d = np.array([0.6, 0.1, 0.4]) + np.array([pin.exp3(u * a) for a in phi]) @ np.array([0.3, 0.0, 0.05])
+    d += rng.normal(scale=1.5e-3, size=d.shape)
+    why = WeldLoop("door", "tool0").mismatch(_poses(R, d))
+    assert why is not None and why.endswith(
+        "is this a hinge (it turns about one axis)? --loop hinge:frame=tool0,name=door"
+    )
+    # the same turn with the handle's point not fixed (it wanders by centimetres): not a door, not refused
+    d2 = d + rng.normal(scale=0.03, size=d.shape)
+    assert WeldLoop("door", "tool0").mismatch(_poses(R, d2)) is None
+
+
+def _sliding(rng: np.random.Generator, n: int = 40, turn: float = 0.7):
+    """A stylus 10 cm before the tool's origin sliding on a plane (normal z, height 0.2 m) over 20 cm, the
+    tool turned by `turn` rad per axis, 1 mm of model error."""
+    tip = np.array([0.0, 0.0, 0.1])
+    R = np.array([pin.exp3(rng.normal(scale=turn, size=3)) for _ in range(n)])
+    contact = np.column_stack([rng.uniform(0.3, 0.5, n), rng.uniform(-0.1, 0.1, n), np.full(n, 0.2)])
+    return R, contact - R @ tip + rng.normal(scale=1e-3, size=(n, 3))
+
+
+def test_point_and_weld_on_a_plane_name_the_plane_loop():
+    """A stylus sliding on a table: the point loop (no point stays put, one stays on a plane) and the weld
+    (the orientation spreads by tens of degrees) both name the plane loop, before any fit."""
+    rng = np.random.default_rng(5)
+    R, d = _sliding(rng)
+    why = PointLoop("table", "tool").mismatch(_poses(R, d))
+    assert why is not None and why.endswith("is this a plane contact? --loop plane:frame=tool,name=table")
+    why = WeldLoop("table", "tool").mismatch(_poses(R, d))
+    assert why is not None and why.endswith("is this a plane contact? --loop plane:frame=tool,name=table")
+    # a ball in a socket is the point loop's: not refused
+    R2, _ = _sliding(rng)
+    d2 = np.array([0.4, 0.0, 0.2]) - R2 @ np.array([0.0, 0.0, 0.1]) + rng.normal(scale=1e-3, size=(40, 3))
+    assert PointLoop("ball", "tool").mismatch(_poses(R2, d2)) is None
+
+
+def test_hinge_on_a_held_tool_names_the_weld_loop(panda):
+    """A door loop on data where the tool neither moves nor turns (a fixture): refused naming the weld."""
+    from closedloop.loops.hinge import HingeLoop
+
+    R = np.array([pin.exp3(np.array([0.1, 0.0, 0.2]) + 1e-4 * k) for k in range(20)])
+    d = np.array([0.5, 0.1, 0.4]) + np.zeros((20, 3))
+    with pytest.raises(LoopError, match=r"is this a weld\? --loop weld:frame=handle,name=door"):
+        HingeLoop("door", "handle").prepare(*_poses(R, d))

@@ -522,3 +522,24 @@ def test_projector_and_step_equal_the_svd_pseudo_inverse_also_when_rank_deficien
     assert np.abs(el.r).max() < 1e-12
     assert np.abs(B @ el.phi.T - B @ phi_true.T).max() < 1e-12  # the same closure
     assert np.abs(el.phi[:, 1] - 3.0 * el.phi[:, 0]).max() < 1e-12  # minimum-norm along the pair's null space
+
+
+def test_the_hinge_start_ignores_positions_off_the_arc():
+    """Positions on an arc of 60 degrees with 1e-5 m of scatter, five of forty moved off it (corrupted
+    readings, the first among them): `arc_inliers` finds exactly those five, and the fitted hinge axis is
+    the arc's to 1e-4 (a least-squares fit of all forty tilts it by radians)."""
+    from closedloop.loops.hinge import arc_inliers, fit_hinge_axis
+
+    rng = np.random.default_rng(4)
+    centre, radius = np.array([0.4, -0.2, 0.9]), 0.3
+    R = pin.exp3(np.array([0.3, -0.2, 0.5]))
+    phi = np.linspace(0.0, np.pi / 3, 40)
+    P = centre + radius * (R @ np.array([np.cos(phi), np.sin(phi), np.zeros(40)])).T + rng.normal(0, 1e-5, (40, 3))
+    bad = np.array([0, 7, 19, 23, 38])
+    P[bad] += rng.uniform(-0.5, 0.5, (5, 3))
+    keep = arc_inliers(P)
+    np.testing.assert_array_equal(np.flatnonzero(~keep), bad)
+    H = fit_hinge_axis([pin.SE3(R @ pin.exp3(np.array([0.0, 0.0, f])), p) for f, p in zip(phi, P)])
+    assert abs(abs(H.rotation[:, 2] @ R[:, 2]) - 1.0) < 1e-4
+    d = H.translation - centre
+    assert np.linalg.norm(d - (d @ R[:, 2]) * R[:, 2]) < 1e-3

@@ -221,3 +221,14 @@ def test_zoo_point_contact_states_the_size_it_cannot_see():
     assert v.reasons == [f"size not measured: held by the model's {o.result.scale.gauge}"]
     tracker = zoo.run_case(zoo.make_case("ur5", "measured_point", n=60, seed=0))
     assert tracker.result.verdict.evidence["size_measured"] is True and tracker.result.verdict.reasons == []
+
+
+def test_zoo_corrupted_first_row_on_a_door():
+    """One cell set to 1e6 in the first configuration of a door (hinge) loop: the hinge's start is fitted to
+    the arc of the other configurations (`hinge.arc_inliers`), the screen rejects the row, and the fit is
+    right and ok (it was 'ok' with the tool 3.27 mm off: the hinge started from the corrupted row)."""
+    case = zoo.make_case("ur10", "hinge", n=40, seed=14, corrupt_cells=1, cell_value=1e6, tag="cell")
+    assert list(case.corrupted) == [0]
+    o = zoo.run_case(case)
+    assert o.right and o.status == "ok", o.line()
+    assert [r.row for r in o.result.outliers.rejected] == [1]

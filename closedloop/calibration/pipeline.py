@@ -465,7 +465,6 @@ def solve_screened(
 
         fit, suspects = irls_fit(problem, fit, opt, notes, row_name)
     fit, structure, recheck_notes = recheck_at_solution(problem, fit, structure, free, x0, opt, progress)
-    notes.extend(recheck_notes)
     if rejected and fit.hopeless:  # no fit closes the loops: nothing to confirm the rejections against
         notes.append(f"the {len(rejected)} rejected configuration(s) were not re-checked: no fit closes the loops")
     back = readmit(problem_all, fit.x, rejected, opt, sigma_q, fit.est) if rejected and not fit.hopeless else None
@@ -474,13 +473,16 @@ def solve_screened(
             f"re-checked at the solution: {len(rejected) - len(back[1])} rejected configuration(s) "
             "fit within the noise there and were readmitted"
         )
-        problem, rejected = back  # solved again from the start: the robust fit's point was not a solution
+        # solved again from the start with the start's reduction: the robust fit's point was not a solution,
+        # and the reduction re-checked there (the parameters it found redundant) is not this solution's
+        problem, rejected = back
         before = fit.iterations
-        fit = solve_staged(problem, x0, x0, fit.est, opt, fit.sigma_q, fit.known, progress)
+        structure = analyse_structure(problem, x0, free)
+        fit = solve_staged(problem, x0, x0, structure.kept, opt, fit.sigma_q, fit.known, progress)
         fit = solve_with_restarts(
             problem,
             x0,
-            fit.est,
+            structure.kept,
             opt,
             fit.sigma_q,
             fit.known,
@@ -489,7 +491,9 @@ def solve_screened(
             fit,
             structure.nearly_redundant(problem.index),
         )
+        fit, structure, recheck_notes = recheck_at_solution(problem, fit, structure, free, x0, opt, progress)
         fit.iterations += before
+    notes.extend(recheck_notes)
     return problem, fit, structure, rejected, suspects
 
 

@@ -34,7 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from closedloop.problem.problem import CalibrationProblem
+from closedloop.estimate.qr import scaled_r_factor_of_blocks
+from closedloop.problem.problem import CalibrationProblem, even_sample
 
 #: rad (m for prismatic joints): a joint reading worse than this is no encoder noise (0.01 deg)
 ENCODER_NOISE = 2e-4
@@ -87,43 +88,96 @@ def _config_rows(problem: CalibrationProblem) -> list[tuple[int, int, int]]:
     return out
 
 
+#: configurations above which `nearest_other` searches a k-d tree (below: blocks of exact distances, no
+#: SciPy import) and `neighbour_correlation` pools a sample of `NEIGHBOUR_SAMPLE` of them
+KD_TREE_ROWS = 4096
+NEIGHBOUR_SAMPLE = 4096
+_DISTANCE_BLOCK = 512  # rows of one block of exact distances (a block is this many x N)
+
+
+def nearest_other(points: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+    """Index of the nearest other row of `points` (Euclidean) to each row of `rows` (default: every row);
+    a duplicate row's nearest is its copy.
+
+    Above `KD_TREE_ROWS` points by a k-d tree (O(N log N) to build, O(log N) a query, O(N) memory; in
+    joint space a query costs 10-200 us); below, by exact distances a block of rows at a time (O(N^2) time,
+    `_DISTANCE_BLOCK` x N memory), which spares short logs the import of ``scipy.spatial``.
+    """
+    n = points.shape[0]
+    rows = np.arange(n) if rows is None else np.asarray(rows)
+    if n > KD_TREE_ROWS:
+        from scipy.spatial import cKDTree  # loaded on first use: short logs never pay for it
+
+        idx = cKDTree(points).query(points[rows], k=2)[1]
+        return np.where(idx[:, 0] == rows, idx[:, 1], idx[:, 0])
+    out = np.empty(rows.size, dtype=np.intp)
+    sq = np.sum(points**2, axis=1)
+    for lo in range(0, rows.size, _DISTANCE_BLOCK):
+        at = rows[lo : lo + _DISTANCE_BLOCK]
+        d2 = sq[at, None] + sq[None, :] - 2.0 * points[at] @ points.T
+        d2[np.arange(at.size), at] = np.inf
+        out[lo : lo + at.size] = np.argmin(d2, axis=1)
+    return out
+
+
 def neighbour_correlation(problem: CalibrationProblem, r: np.ndarray) -> float:
     """Pooled correlation of each configuration's residual with its nearest neighbour's (joint space).
 
     rho = sum_i r_i . r_nn(i) / sum_i |r_i|^2 over the blocks (a block's residual rows per configuration,
     the readings' Euclidean distance).  Independent noise gives ~0 (standard error ~1/sqrt(N)); a misfit
-    that varies smoothly over the workspace, near 1.
+    that varies smoothly over the workspace, near 1.  A block of more than `KD_TREE_ROWS` configurations
+    contributes `NEIGHBOUR_SAMPLE` of them, evenly spaced, each with its nearest among all (a ratio
+    estimator: standard error ~1/sqrt(NEIGHBOUR_SAMPLE) = 0.016 for independent noise), so the cost grows
+    as N log N.  On readings that repeat configurations with noise of the size of the distance between
+    them (a tiled log), the nearest copy is the one whose noise is most alike: rho is then positive
+    without any misfit.
     """
     num = den = 0.0
     for (at, n, m), b in zip(_config_rows(problem), problem.blocks):
         if n < 3:
             continue
         R = r[at : at + n * m].reshape(n, m)
-        th = b.theta
-        d2 = np.sum(th**2, 1)[:, None] + np.sum(th**2, 1)[None, :] - 2.0 * th @ th.T
-        np.fill_diagonal(d2, np.inf)
-        nn = np.argmin(d2, axis=1)
-        num += float(np.sum(R * R[nn]))
-        den += float(np.sum(R * R))
+        i = np.arange(n) if n <= KD_TREE_ROWS else np.linspace(0, n - 1, NEIGHBOUR_SAMPLE).astype(np.intp)
+        nn = nearest_other(b.theta, i)
+        num += float(np.sum(R[i] * R[nn]))
+        den += float(np.sum(R[i] * R[i]))
     return num / den if den > 0 else 0.0
 
 
+#: configurations per block above which `loo_prediction` is estimated on an evenly spaced sample of this many
+LOO_SAMPLE = 8192
+
+
 def _pinv_normal(J: np.ndarray, scale: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
-    """(J^T J)^+ in the prior-scaled coordinates (J D), truncated at `rcond` of the largest singular value."""
-    _, S, Vt = np.linalg.svd(J * scale, full_matrices=False)
+    """(J^T J)^+ in the prior-scaled coordinates (J D), truncated at `rcond` of the largest singular value.
+
+    From the triangle R of J D = Q R (formed a chunk of rows at a time): J D and R share their singular
+    values and right singular vectors, and R is p x p where J has a row per residual."""
+    R = scaled_r_factor_of_blocks([J], scale)
+    _, S, Vt = np.linalg.svd(R, full_matrices=False)
     keep = S > rcond * (S[0] if S.size else 0.0)
     V = Vt[keep].T
     return (V / S[keep] ** 2) @ V.T
 
 
-def left_out(problem: CalibrationProblem, r: np.ndarray, J: np.ndarray, Ainv: np.ndarray, scale: np.ndarray):
+def left_out(
+    problem: CalibrationProblem,
+    r: np.ndarray,
+    J: np.ndarray,
+    Ainv: np.ndarray,
+    scale: np.ndarray,
+    picks: list[np.ndarray] | None = None,
+):
     """Per block: (whitened left-out residuals (N, m), parameter changes (N, p) in scaled units) of each
-    configuration c: r~_c = (I - H_c)^-1 r_c, H_c = J_c A^+ J_c^T, and dx_c = A^+ J_c^T r~_c."""
-    Js = J * scale
+    configuration c: r~_c = (I - H_c)^-1 r_c, H_c = J_c A^+ J_c^T, and dx_c = A^+ J_c^T r~_c.  With `picks`
+    (indices per block), of those configurations only."""
+    Js = J * scale if picks is None else J
     out = []
-    for at, n, m in _config_rows(problem):
+    for bi, (at, n, m) in enumerate(_config_rows(problem)):
         Jc = Js[at : at + n * m].reshape(n, m, -1)
         rc = r[at : at + n * m].reshape(n, m)
+        if picks is not None:
+            Jc, rc = Jc[picks[bi]] * scale, rc[picks[bi]]
         B = Jc @ Ainv  # (n, m, p)
         H = np.einsum("nip,njp->nij", B, Jc)
         I_H = np.eye(m)[None] - H
@@ -140,13 +194,18 @@ def loo_prediction(problem: CalibrationProblem, x: np.ndarray, est: list[int], r
 
     `r`, `J`: the fit's own (whitened, for the weighted fit) residual and Jacobian over `est` at `x`.  The
     left-out fit moves the parameters by dx_c (`left_out`); the configuration's raw closure there is
-    e_c + E_c dx_c, with e_c, E_c its unweighted residual and Jacobian.
+    e_c + E_c dx_c, with e_c, E_c its unweighted residual and Jacobian.  A block of more than `LOO_SAMPLE`
+    configurations is represented by `LOO_SAMPLE` of them, evenly spaced (`even_sample`; the RMS of a
+    sample of 8,192 x m closures, ~1 % standard error), so that the cost stays that of the fit's last step.
     """
     scale = np.array([problem.params[k].prior for k in est])
     Ainv = _pinv_normal(J, scale)
-    evals = problem.evaluate(x, True, columns=est)
+    picks = [even_sample(n, LOO_SAMPLE) for _, n, _ in _config_rows(problem)]
+    sampled = any(p.size < n for p, (_, n, _) in zip(picks, _config_rows(problem)))
+    sub = problem.sampled(LOO_SAMPLE) if sampled else problem
+    evals = sub.evaluate(x, True, columns=est)
     total, count = 0.0, 0
-    for ev, (_, dx) in zip(evals, left_out(problem, r, J, Ainv, scale)):
+    for ev, (_, dx) in zip(evals, left_out(problem, r, J, Ainv, scale, picks if sampled else None)):
         if ev.r.shape[0] == 0 or ev.rows is None:
             continue
         pred = ev.r + np.einsum("nip,np->ni", ev.J * scale, dx)

@@ -130,9 +130,14 @@ def read_log(
     values, the line of the file (1-based, as an editor numbers it) and the column.
     """
     path = Path(path)
-    try:
-        from closedloop.io.files import note_input
+    from closedloop.io.files import note_input
 
+    if not degrees and order is None:
+        plain = _plain_log(path, set(joint_names))
+        if plain is not None:
+            note_input(path)
+            return plain
+    try:
         note_input(path)
         with path.open(newline="", encoding="utf-8-sig") as fh:  # a UTF-8 byte-order mark is dropped
             reader = csv.reader(fh)
@@ -206,6 +211,32 @@ def read_log(
         A[:, ang] = np.deg2rad(A[:, ang])
     lines = np.column_stack([np.zeros(len(data), int), np.asarray(line_of[1:], int)])
     return JointLog(names, A, path, np.array(loops) if loop_col is not None else None, extra, [str(path)], lines)
+
+
+def _plain_log(path: Path, known: set[str]) -> JointLog | None:
+    """The common log read at once: a header of joint names only, then one line per row, every cell a
+    finite decimal number within MAX_READING, no blank or comment line.  None for anything else (and for
+    any fault): the line-by-line reading of `read_log` then reads it or names the fault.
+
+    NumPy's C parser reads 100,000 rows of 7 joints in about 0.1 s; the line-by-line reading, 3 s.
+    """
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError):
+        return None
+    head, _, body = text.partition("\n")
+    header = [h.strip() for h in head.split(",")]
+    if '"' in head or len(set(header)) != len(header) or not all(h in known for h in header) or not body.strip():
+        return None
+    try:
+        A = np.loadtxt(io.StringIO(body), delimiter=",", comments=None, ndmin=2, dtype=float)
+    except ValueError:
+        return None
+    n = len(body.splitlines())
+    if A.shape != (n, len(header)) or not np.all(np.abs(A) <= MAX_READING):  # blank lines, nan, inf, too large
+        return None
+    lines = np.column_stack([np.zeros(n, int), np.arange(2, n + 2)])
+    return JointLog(header, A, path, None, {}, [str(path)], lines)
 
 
 def check_loop_column(log: JointLog, loop_names: list[str]) -> None:

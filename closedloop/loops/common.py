@@ -150,3 +150,36 @@ def opt_pose(kw: dict[str, str], key: str) -> pin.SE3 | None:
     if kw[key] == "identity":
         return pin.SE3.Identity()
     return pose_of(parse_vec(kw[key], 6, key))
+
+
+#: m: a point of the tool that moves more than this (RMS, at the nominal model) is no fixed point (a rough model
+#: moves it a few mm), and one that travels more on a plane slides on it (`contact_fits`)
+POINT_SPREAD = 0.02
+#: a point of the tool stays on one plane (`contact_fits`) to within this share of the distance it travels on
+#: it: a rough model leaves a few per cent
+ON_PLANE = 0.05
+
+
+def contact_fits(M: np.ndarray, iterations: int = 8) -> tuple[float, float, float]:
+    """How well the relative poses M (N, 4, 4) = T_B^-1 T_A fit the contacts a tool point makes, read before any
+    fit: (RMS distance of the best fixed point of A from one point of B (a pivot fit, R_i t - p = -d_i); RMS
+    distance of the best point of A from one plane of B (alternating: the plane of the points, then the point
+    on the plane, from the pivot's point); RMS distance that point travels).  Metres."""
+    R, d = M[:, :3, :3], M[:, :3, 3]
+    n = M.shape[0]
+    A = np.concatenate([R, np.broadcast_to(-np.eye(3), (n, 3, 3))], axis=2).reshape(-1, 6)
+    sol = np.linalg.lstsq(A, -d.reshape(-1), rcond=None)[0]
+    pivot = float(np.sqrt(np.mean(np.sum((A @ sol + d.reshape(-1)).reshape(n, 3) ** 2, axis=1))))
+    t = sol[:3]
+    off = np.inf
+    for _ in range(iterations):
+        p = R @ t + d
+        c = p.mean(axis=0)
+        normal = np.linalg.svd(p - c)[2][2]
+        B = np.column_stack([(normal @ R), -np.ones(n)])  # normal . (R_i t + d_i) = c0
+        tc = np.linalg.lstsq(B, -(d @ normal), rcond=None)[0]
+        t = tc[:3]
+        off = float(np.sqrt(np.mean((B @ tc + d @ normal) ** 2)))
+    p = R @ t + d
+    travel = float(np.sqrt(np.mean(np.sum((p - p.mean(axis=0)) ** 2, axis=1))))
+    return pivot, off, travel

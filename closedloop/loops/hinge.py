@@ -75,6 +75,7 @@ from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
 from closedloop.model.se3 import adjoint, rigid_inverse
 
 HINGE_FIELDS = ("hinge_x", "hinge_y", "hinge_rx", "hinge_ry", "radius", "height", "grasp_rx", "grasp_ry", "grasp_rz")
+HELD_STILL = 0.05  # rad: a door whose handle turns less than this RMS is held still (weld data)
 RECENTRE = 0.1  # m or rad: how far the hinge may move in its chart before the chart follows it
 _EZ = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0])  # rotation about z (pin.Motion order: v, w)
 
@@ -136,33 +137,97 @@ def _frame_from_axis(point: np.ndarray, direction: np.ndarray, toward: np.ndarra
     return pin.SE3(R, np.asarray(point, dtype=float).copy())
 
 
+#: a tool position further from the fitted arc than this many times the positions' median distance is
+#: left out of the hinge's start (a corrupted reading); a start only: every row stays in the fit
+ARC_OUTLIER = 8.0
+
+
+def _arc(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Plane and circle through positions P (n, 3): (centre, unit normal, in-plane axes (2, 3), the
+    singular values of the centred positions).  Plane: the smallest singular vector; circle: the algebraic
+    (Kasa) fit in that plane."""
+    c = P.mean(axis=0)
+    _, S, Vt = np.linalg.svd(P - c)
+    e1, e2 = Vt[0], np.cross(Vt[2], Vt[0])
+    uv = np.column_stack([(P - c) @ e1, (P - c) @ e2])
+    A = np.column_stack([2 * uv, np.ones(len(P))])
+    sol = np.linalg.lstsq(A, (uv**2).sum(axis=1), rcond=None)[0]
+    return c + sol[0] * e1 + sol[1] * e2, Vt[2], np.array([e1, e2]), S
+
+
+#: a position this near the arc (times its radius) is on it, however close the others lie
+ARC_NEAR = 0.01
+#: circles through three positions tried by `arc_inliers` (fixed draws: the same start every run)
+ARC_TRIALS = 64
+
+
+def _deviation(P: np.ndarray, centre: np.ndarray, n: np.ndarray, radius: float) -> np.ndarray:
+    """Distance of each position from the circle (centre, unit normal, radius): off its plane and off its radius."""
+    d = P - centre
+    off = d @ n
+    return np.hypot(off, np.linalg.norm(d - np.outer(off, n), axis=1) - radius)
+
+
+def arc_inliers(P: np.ndarray) -> np.ndarray:
+    """Which tool positions lie on one circle, by least median of distances: of `ARC_TRIALS` circles
+    through three positions, the one whose median distance to all positions is least; the positions
+    within `ARC_OUTLIER` times that median of it (or `ARC_NEAR` times its radius) are on the arc.  A corrupted reading (one in ten, or
+    more) draws a least-squares circle toward it far enough to hide; the median circle is that of the
+    others; the circle fitted to its nearer half then sets the distances."""
+    n = len(P)
+    if n < 5:
+        return np.ones(n, dtype=bool)
+    rng = np.random.default_rng(0)
+    best, dev_best = np.inf, None
+    for _ in range(ARC_TRIALS):
+        i, j, k = rng.choice(n, 3, replace=False)
+        a, b = P[i] - P[k], P[j] - P[k]
+        axb = np.cross(a, b)
+        nn = float(axb @ axb)
+        if nn <= 1e-24 * max(float(a @ a) * float(b @ b), 1e-300):
+            continue  # three positions on a line
+        centre = P[k] + np.cross(float(a @ a) * b - float(b @ b) * a, axb) / (2.0 * nn)
+        dev = _deviation(P, centre, axb / np.sqrt(nn), float(np.linalg.norm(P[k] - centre)))
+        med = float(np.median(dev))
+        if med < best:
+            best, dev_best = med, dev
+    if dev_best is None:
+        return np.ones(n, dtype=bool)
+    keep = dev_best <= np.median(dev_best)  # the median circle's nearer half; then the circle fitted to them
+    for _ in range(2):
+        centre, normal, _, _ = _arc(P[keep])
+        radius = float(
+            np.median(np.linalg.norm((P[keep] - centre) - np.outer((P[keep] - centre) @ normal, normal), axis=1))
+        )
+        dev = _deviation(P, centre, normal, radius)
+        keep = dev <= max(ARC_OUTLIER * float(np.median(dev[keep])), ARC_NEAR * radius)
+    return keep if keep.sum() >= 3 else np.ones(n, dtype=bool)
+
+
 def fit_hinge_axis(M: list[pin.SE3]) -> pin.SE3:
     """Hinge frame from tool poses in B: the circle traced by the tool origin.
 
     Axis direction: normal of the best-fit plane of the positions (smallest
     singular vector), oriented like the rotation the tool turns through
     (log3 of R_i R_0^T, which is about the hinge axis); centre: algebraic
-    (Kasa) circle fit in that plane.  x points at the first position.
+    (Kasa) circle fit in that plane.  Positions off the arc of the others (a corrupted reading:
+    `arc_inliers`) take no part; x points at the first position on the arc.
     """
     P = np.array([m.translation for m in M])
-    c = P.mean(axis=0)
-    _, S, Vt = np.linalg.svd(P - c)
+    keep = arc_inliers(P)
+    on = np.flatnonzero(keep)
+    centre, n, _, S = _arc(P[keep])
     if S.size < 2 or S[1] < 1e-4:
         raise LoopError(
             "hinge: the tool positions do not trace an arc (the door hardly moves); "
             'give the axis (axis="px py pz dx dy dz")'
         )
-    n = Vt[2]
-    w = np.array([pin.log3(m.rotation @ M[0].rotation.T) for m in M])
+    ref = M[on[0]].rotation
+    w = np.array([pin.log3(M[i].rotation @ ref.T) for i in on])
     big = int(np.argmax(np.linalg.norm(w, axis=1)))
     if np.linalg.norm(w[big]) > 1e-6 and n @ w[big] < 0:
         n = -n
-    e1, e2 = Vt[0], np.cross(n, Vt[0])
-    uv = np.column_stack([(P - c) @ e1, (P - c) @ e2])
-    A = np.column_stack([2 * uv, np.ones(len(P))])
-    sol = np.linalg.lstsq(A, (uv**2).sum(axis=1), rcond=None)[0]
-    centre = c + sol[0] * e1 + sol[1] * e2
-    return _frame_from_axis(centre, n, P[0] - centre)
+    return _frame_from_axis(centre, n, P[on[0]] - centre)
 
 
 # --------------------------------------------------------------------- loop
@@ -260,17 +325,36 @@ class HingeLoop(Loop):
                 'configuration(s); give axis="px py pz dx dy dz" or log at least 3 along the arc'
             )
         other = copy.copy(self)
-        other.H0, other.fitted = fit_hinge_axis(M), True
+        try:
+            other.H0, other.fitted = fit_hinge_axis(M), True
+        except LoopError as exc:  # the door does not move: a weld, if the orientation does not either
+            w = np.array([pin.log3(m.rotation @ M[0].rotation.T) for m in M])
+            if float(np.sqrt(np.mean(np.sum(w**2, axis=1)))) < HELD_STILL:
+                raise LoopError(
+                    f"loop '{self.name}' (hinge on {self.frame_a}): neither the position nor the orientation of "
+                    f"the frame moves across the rows at the nominal model: is this a weld? --loop {self.spec('weld')}"
+                ) from None
+            raise LoopError(f"loop '{self.name}' ({exc})") from None
         return other
 
     def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
-        """Hinge and grasp closing the first configuration: the hinge is H0 once prepared (or given);
-        an unprepared loop fits it here and gives its coordinates in its own chart."""
-        M0 = pin.SE3(np.linalg.solve(TB[0], TA[0]))
-        if self.axis is not None or self.fitted:
-            return self.closing_parameters(np.zeros(4), M0)
-        prepared = self.prepare(TA, TB)
-        return prepared.express(prepared.closing_parameters(np.zeros(4), M0), self)
+        """Hinge and grasp closing a typical configuration: the hinge is H0 once prepared (or given);
+        an unprepared loop fits it here and gives its coordinates in its own chart.
+
+        The configuration closed is the one whose handle lies nearest the median radius and height about
+        H0's axis: never a corrupted reading that puts the handle elsewhere (the first one may be)."""
+        if self.axis is None and not self.fitted:
+            prepared = self.prepare(TA, TB)
+            return prepared.express(prepared._closing_typical(TA, TB), self)
+        return self._closing_typical(TA, TB)
+
+    def _closing_typical(self, TA: np.ndarray, TB: np.ndarray) -> np.ndarray:
+        """`initialize` about H0: the parameters closing the typical configuration."""
+        M = np.linalg.solve(TB, TA)
+        q = rigid_inverse(self.H0.homogeneous[None]) @ M
+        radius, height = np.hypot(q[:, 0, 3], q[:, 1, 3]), q[:, 2, 3]
+        typical = int(np.argmin(np.abs(radius - np.median(radius)) + np.abs(height - np.median(height))))
+        return self.closing_parameters(np.zeros(4), pin.SE3(M[typical]))
 
     def normalize(self, p: np.ndarray) -> np.ndarray:
         """Grasp rotation within pi; a negative radius becomes positive (phi shifted by pi)."""

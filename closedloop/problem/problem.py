@@ -66,6 +66,13 @@ class LoopBlock:
         )
 
 
+def even_sample(n: int, k: int) -> np.ndarray:
+    """Indices of at most `k` of `n` rows, evenly spaced from the first to the last (all of them if n <= k)."""
+    if n <= k:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, k).round().astype(int))
+
+
 @dataclass
 class BlockNoise:
     """A block's measurement noise as the weighting sees it: kept by the problem, never by the loop.
@@ -227,11 +234,7 @@ class CalibrationProblem:
         if all(b.theta.shape[0] <= n for b, n in zip(self.blocks, counts)):
             return self
         blocks = [
-            b
-            if b.theta.shape[0] <= n
-            else b.subset(
-                np.arange(n) if first else np.unique(np.linspace(0, b.theta.shape[0] - 1, n).round().astype(int))
-            )
+            b if b.theta.shape[0] <= n else b.subset(np.arange(n) if first else even_sample(b.theta.shape[0], n))
             for b, n in zip(self.blocks, counts)
         ]
         return CalibrationProblem(self.robot, self.joints, blocks, self.priors, self.noise)
