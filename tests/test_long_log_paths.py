@@ -8,13 +8,13 @@ import tracemalloc
 import numpy as np
 import pytest
 
+from closedloop.assets.catalog import ROBOTS
 from closedloop.calibration.pipeline import build_problem
 from closedloop.estimate import model_error
 from closedloop.estimate.model_error import nearest_other, neighbour_correlation
 from closedloop.io.logs import JointLog, read_log
 from closedloop.loops.measured import MeasuredPointLoop
 from closedloop.model.robot import RobotModel
-from closedloop.models import ROBOTS
 
 
 def brute_nearest(p: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
