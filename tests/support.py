@@ -130,3 +130,18 @@ def relative_fk_error(
     pos = float(np.abs(s * P - Q).max())
     rot = max(float(np.linalg.norm(pin.log3(a.rotation.T @ b.rotation))) for a, b in zip(cal, tru))
     return pos, rot, s
+
+
+def central_difference_jacobian(prob, x, h: float = 1e-6):
+    """(analytic, numerical) d r / d parameters of `prob` at `x`: `evaluate`'s Jacobian and central
+    differences of its residual, both (rows, P)."""
+    import numpy as np
+
+    J = prob.evaluate(x)[0].J.reshape(-1, x.size)
+    Jn = np.zeros_like(J)
+    for k in range(x.size):
+        xp, xm = x.copy(), x.copy()
+        xp[k] += h
+        xm[k] -= h
+        Jn[:, k] = (prob.evaluate(xp, False)[0].r.ravel() - prob.evaluate(xm, False)[0].r.ravel()) / (2 * h)
+    return J, Jn

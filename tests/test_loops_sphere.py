@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from support import relative_fk_error
+from support import central_difference_jacobian, relative_fk_error
 from test_loops_point_plane_measured import BAXTER, BAXTER_Q0, PANDA, PANDA_Q0, _fd_problem, closed_experiment
 
 from closedloop.errors import LoopError
@@ -22,16 +22,7 @@ JAC_CASES = {
 
 @pytest.mark.parametrize("case", sorted(JAC_CASES))
 def test_jacobian_matches_central_differences(case):
-    prob, x = _fd_problem(JAC_CASES[case]())
-    ev = prob.evaluate(x)[0]
-    J = ev.J.reshape(-1, x.size)
-    Jn = np.zeros_like(J)
-    h = 1e-6
-    for k in range(x.size):
-        xp, xm = x.copy(), x.copy()
-        xp[k] += h
-        xm[k] -= h
-        Jn[:, k] = (prob.evaluate(xp, False)[0].r.ravel() - prob.evaluate(xm, False)[0].r.ravel()) / (2 * h)
+    J, Jn = central_difference_jacobian(*_fd_problem(JAC_CASES[case]()))
     assert np.abs(J - Jn).max() <= 1e-6 * np.abs(J).max()
 
 

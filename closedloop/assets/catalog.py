@@ -226,19 +226,7 @@ def clean_urdf_tree(root: ET.Element, remove_links: tuple[str, ...] = ()) -> ET.
         if inertial is None or mass <= 0.0:
             if inertial is not None:
                 link.remove(inertial)
-            inertial = ET.SubElement(link, "inertial")
-            ET.SubElement(inertial, "origin", xyz="0 0 0", rpy="0 0 0")
-            ET.SubElement(inertial, "mass", value=_fmt(_TINY_MASS))
-            ET.SubElement(
-                inertial,
-                "inertia",
-                ixx=_fmt(_TINY_INERTIA),
-                ixy="0",
-                ixz="0",
-                iyy=_fmt(_TINY_INERTIA),
-                iyz="0",
-                izz=_fmt(_TINY_INERTIA),
-            )
+            tiny_inertial(link)
     repair_inertias(root)
     for joint in root.findall("joint"):
         for el in list(joint.findall("dynamics")):
@@ -248,6 +236,15 @@ def clean_urdf_tree(root: ET.Element, remove_links: tuple[str, ...] = ()) -> ET.
         for el in list(joint.findall("calibration")):
             joint.remove(el)
     return root
+
+
+def tiny_inertial(link: ET.Element) -> None:
+    """Give `link` a tiny mass and inertia (`_TINY_MASS`, `_TINY_INERTIA`): MuJoCo needs one on every body."""
+    inertial = ET.SubElement(link, "inertial")
+    ET.SubElement(inertial, "origin", xyz="0 0 0", rpy="0 0 0")
+    ET.SubElement(inertial, "mass", value=_fmt(_TINY_MASS))
+    tiny = _fmt(_TINY_INERTIA)
+    ET.SubElement(inertial, "inertia", ixx=tiny, ixy="0", ixz="0", iyy=tiny, iyz="0", izz=tiny)
 
 
 def nominal_urdf(robot: str) -> str:
@@ -260,19 +257,7 @@ def nominal_urdf(robot: str) -> str:
     root = clean_urdf_tree(copy.deepcopy(root), src.remove_links)
     for tool in src.tools:
         link = ET.SubElement(root, "link", name=tool.name)
-        inertial = ET.SubElement(link, "inertial")
-        ET.SubElement(inertial, "origin", xyz="0 0 0", rpy="0 0 0")
-        ET.SubElement(inertial, "mass", value=_fmt(_TINY_MASS))
-        ET.SubElement(
-            inertial,
-            "inertia",
-            ixx=_fmt(_TINY_INERTIA),
-            ixy="0",
-            ixz="0",
-            iyy=_fmt(_TINY_INERTIA),
-            iyz="0",
-            izz=_fmt(_TINY_INERTIA),
-        )
+        tiny_inertial(link)
         joint = ET.SubElement(root, "joint", name=f"{tool.name}_joint", type="fixed")
         ET.SubElement(joint, "parent", link=tool.parent)
         ET.SubElement(joint, "child", link=tool.name)
