@@ -249,8 +249,9 @@ def test_a_joint_that_never_moves_is_named_with_its_range_in_radians(panda):
 
 
 def test_the_grasp_configuration_does_not_stretch_the_closure_axis(panda):
-    """The nominal model closes exactly at the configuration the fixture was placed at (a 'before' of
-    ~1e-9 mm): drawn on the axis floor, the axis spans the other closures, not 1e-9 mm."""
+    """'Before' is the nominal robot with the fixture fitted to all configurations, so no configuration
+    closes by construction (the solver's start places the fixture at the first one, which would show ~1e-9
+    mm); the axis spans the closures."""
     from closedloop.calibration.pipeline import calibrate
     from closedloop.output.html import closure_axis, closure_per_configuration, fig_closure
 
@@ -265,11 +266,10 @@ def test_the_grasp_configuration_does_not_stretch_the_closure_axis(panda):
     res = calibrate(panda, JointLog(list(ds.joints), ds.noisy), [WeldLoop("fixture", "panda_hand")])
     d = closure_per_configuration(res)[0]
     before, after = d["before_m"] * 1e3, d["after_m"] * 1e3  # mm
-    tiny = before < 1e-4
-    assert 1 <= tiny.sum() <= 2, before[:3]  # the grasp configuration(s)
+    assert before.min() > 1e-2 * np.median(before), before[:3]  # none closes by construction
     lo, hi = closure_axis(np.concatenate([before, after]))
     assert hi == pytest.approx(before.max())
-    assert 1e-4 < lo < after.min()  # every 'after' point on the axis, the near-zero one below it
+    assert lo < after.min()  # every 'after' point on the axis
     img = decode(fig_closure(res, {}))
     if not isinstance(img, tuple):
         assert img.shape[0] > 200 and img[..., :3].std() > 0.05

@@ -42,11 +42,33 @@ def _plt():
     return plt
 
 
+def nominal_with_fitted_loops(problem, x: np.ndarray, iterations: int = 8) -> np.ndarray:
+    """The nominal robot with the loops' own unknowns (a fixture's pose, a socket) fitted to all the data
+    by Gauss-Newton on their columns alone: the fair "before" of a closure plot.  The solver's start takes
+    them from one configuration (`Loop.initialize`), which that configuration then closes by construction."""
+    cols = sorted({int(c) for block in problem.loop_columns for c in block})
+    x = np.asarray(x, dtype=float).copy()
+    if not cols:
+        return x
+    for _ in range(iterations):
+        evals = problem.evaluate(x, True, columns=cols)
+        r = np.concatenate([e.r.ravel() for e in evals])
+        J = np.vstack([e.J.reshape(-1, len(cols)) for e in evals])
+        ok = np.isfinite(r) & np.all(np.isfinite(J), axis=1)
+        step = np.linalg.lstsq(J[ok], -r[ok], rcond=None)[0]
+        x[cols] += step
+        if np.linalg.norm(step) < 1e-12:
+            break
+    return x
+
+
 def closure_per_configuration(res) -> list[dict]:
-    """Per loop: row numbers and per-configuration closure (m, rad) before and after the fit."""
+    """Per loop: row numbers and per-configuration closure (m, rad) before the fit (the nominal robot with
+    its loops' unknowns fitted to all the data, `nominal_with_fitted_loops`) and after it."""
     prob = res.problem
     out = []
-    for values, key in ((res.fit.initial, "before"), (res.fit.values, "after")):
+    before = nominal_with_fitted_loops(prob, res.fit.initial)
+    for values, key in ((before, "before"), (res.fit.values, "after")):
         for k, (b, ev) in enumerate(zip(prob.blocks, prob.evaluate(np.asarray(values), False))):
             lp = b.loop
             if key == "before":
