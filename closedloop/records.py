@@ -163,13 +163,27 @@ class CalibrationOptions:
 
 @dataclass
 class LoopResiduals:
+    """One loop's closure over its configurations: RMS and largest error of the position rows (m), the
+    rotation rows (rad) and the image points (px, camera loops); None where the loop has no such rows.
+
+    Attributes:
+        loop: the loop's name.
+        n: its configurations.
+        rms_m: RMS of the per-configuration position error (m).
+        max_m: the largest position error (m).
+        rms_rad: RMS of the per-configuration rotation error (rad).
+        max_rad: the largest rotation error (rad).
+        rms_px: RMS of the image points' errors (px).
+        max_px: the largest image-point error (px).
+    """
+
     loop: str
     n: int
     rms_m: float | None
     max_m: float | None
     rms_rad: float | None
     max_rad: float | None
-    rms_px: float | None = None  # image-point error (camera loops)
+    rms_px: float | None = None
     max_px: float | None = None
 
 
