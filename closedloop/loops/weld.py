@@ -119,6 +119,19 @@ class WeldLoop(Loop):
         U, _, Vt = np.linalg.svd(R.sum(axis=0))  # the chordal mean rotation
         Rm = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
         w = log3(Rm.T @ R)[0]
+        # a few corrupted rows (a cell of another unit, a glitch) are the outlier screen's, not a loop type's:
+        # rows turned by over 5 times the median turn are left out here, and the rest judged
+        turn = np.linalg.norm(w, axis=1)
+        typical = turn <= 5.0 * float(np.median(turn)) + 1e-12
+        if not typical.all():
+            M = M[typical]
+            n = M.shape[0]
+            if n < 6:
+                return None
+            R, d = M[:, :3, :3], M[:, :3, 3]
+            U, _, Vt = np.linalg.svd(R.sum(axis=0))
+            Rm = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+            w = log3(Rm.T @ R)[0]
         spread = float(np.sqrt(np.mean(np.sum(w**2, axis=1))))
         if not spread > HINGE_ROTATION_SPREAD:
             return None
