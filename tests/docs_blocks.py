@@ -221,16 +221,40 @@ def compare(shown: str, fresh: str, cwd: str | None = None) -> list[str]:
 
 
 def regenerate(shown: str, fresh: str, cwd: str | None = None) -> str:
-    """The fresh output in the shown block's form: its first and last lines kept around each ``...``."""
+    """The fresh output in the shown block's form: where the shown block elides lines (``...``), each shown
+    run of lines is replaced by the fresh lines found where its first line's words (numbers aside) are, in
+    order; the first run is the output's first lines, the last its last lines."""
     raw = fresh.rstrip("\n").splitlines()
     if cwd:
         raw = [r.replace(cwd + "/", "").replace(cwd, ".") for r in raw]
     want = shown.rstrip("\n").splitlines()
     if not any(w.strip() == "..." for w in want):
         return "\n".join(raw) + "\n"
-    head = want.index(next(w for w in want if w.strip() == "..."))
-    tail = len(want) - 1 - max(i for i, w in enumerate(want) if w.strip() == "...")
-    return "\n".join(raw[:head] + ["..."] + (raw[len(raw) - tail :] if tail else [])) + "\n"
+    segments, seg = [], []
+    for w in want:
+        if w.strip() == "...":
+            segments.append(seg)
+            seg = []
+        else:
+            seg.append(w)
+    segments.append(seg)
+    out: list[str] = []
+    at = 0
+    for n, seg in enumerate(segments):
+        if n:
+            out.append("...")
+        if not seg:
+            continue
+        if n == 0:
+            start = 0
+        elif n == len(segments) - 1:
+            start = max(at, len(raw) - len(seg))
+        else:
+            words = _NUMBER.split(_normal(seg[0], None))  # the line's text with its numbers taken out
+            start = next((k for k in range(at, len(raw)) if _NUMBER.split(_normal(raw[k], None)) == words), at)
+        out += raw[start : start + len(seg)]
+        at = start + len(seg)
+    return "\n".join(out) + "\n"
 
 
 def shown_outputs(page: Path) -> dict[str, Block]:
