@@ -239,7 +239,12 @@ def test_compare_ignores_timings_paths_and_last_digits_only():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("block", BLOCKS, ids=[b.id for b in BLOCKS])
+@pytest.mark.parametrize(
+    "block",
+    # one page's blocks on one worker, in page order: a later block reads what an earlier one wrote
+    [pytest.param(b, marks=pytest.mark.xdist_group(str(b.page.relative_to(ROOT)))) for b in BLOCKS],
+    ids=[b.id for b in BLOCKS],
+)
 def test_documented_block_runs(block: Block, tmp_path_factory):
     """Each block runs as written (exit 0); a block marked to run shows, on its page, what it prints."""
     first = block.text.strip().splitlines()[0] if block.text.strip() else ""

@@ -71,8 +71,8 @@ def test_structure_on_a_sample_is_the_whole(monkeypatch):
     a = out[(10_000, 10_000)]
     assert a.verdict.status == "ok"
     for b in out.values():
-        assert a.status == b.status and a.gauge == b.gauge
-        assert np.allclose(a.values, b.values, rtol=0, atol=1e-12)
+        assert a.fit.status == b.fit.status and a.scale.gauge == b.scale.gauge
+        assert np.allclose(a.fit.values, b.fit.values, rtol=0, atol=1e-12)
 
 
 def _weld_problem(seed: int, n: int):

@@ -113,8 +113,9 @@ def test_page_is_self_contained_with_every_section(calibrated):
     page.feed(html)
     assert page.tags[0] == "html" and "body" in page.tags
     assert page.links == []  # nothing to load, no script
-    assert page.h2[:6] == [
+    assert page.h2[:7] == [
         "Closure",
+        "Predicted accuracy over the workspace",
         "Parameter corrections",
         "Singular values",
         "Outliers",

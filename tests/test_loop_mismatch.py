@@ -217,12 +217,11 @@ def _sliding(rng: np.random.Generator, n: int = 40, turn: float = 0.7):
 
 
 def test_point_and_weld_on_a_plane_name_the_plane_loop():
-    """A stylus sliding on a table: the point loop (no point stays put, one stays on a plane) and the weld
-    (the orientation spreads by tens of degrees) both name the plane loop, before any fit."""
+    """A stylus sliding on a table: the weld (the orientation spreads by tens of degrees) names the plane loop,
+    before any fit.  The point loop does not: a rough nominal model of a ball in a socket on an arm that moves
+    nearly in a plane also puts one point near a plane (the thesis point example's rough starts)."""
     rng = np.random.default_rng(5)
     R, d = _sliding(rng)
-    why = PointLoop("table", "tool").mismatch(_poses(R, d))
-    assert why is not None and why.endswith("is this a plane contact? --loop plane:frame=tool,name=table")
     why = WeldLoop("table", "tool").mismatch(_poses(R, d))
     assert why is not None and why.endswith("is this a plane contact? --loop plane:frame=tool,name=table")
     # a ball in a socket is the point loop's: not refused

@@ -71,7 +71,7 @@ def test_a_log_made_in_memory_is_named_by_row():
 
 @pytest.fixture(scope="module")
 def corrupted_log(tmp_path_factory, panda):
-    """A weld log written with a comment line on top, its row 10 (0-based) corrupted by 0.1 rad."""
+    """A weld log written with a comment line on top, its row 10 (0-based) corrupted by 0.03 rad."""
     from closedloop.loops import WeldLoop
     from closedloop.studies.truth import make_dataset
 
@@ -79,7 +79,7 @@ def corrupted_log(tmp_path_factory, panda):
         panda, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 60, np.random.default_rng(3)
     )
     theta = np.array(ds.readings, float)
-    theta[10, 1] += 0.1
+    theta[10, 1] += 0.03
     path = tmp_path_factory.mktemp("rows") / "log.csv"
     JointLog(list(ds.joints), theta).write_csv(path)
     path.write_text("# bench 2, 26 Nov\n" + path.read_text())

@@ -8,11 +8,8 @@ import pinocchio as pin
 from closedloop.errors import LoopError
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.common import (
-    ON_PLANE,
     POINT_FIELDS,
-    POINT_SPREAD,
     TIP_FIELDS,
-    contact_fits,
     point_parameters,
     relative_point,
 )
@@ -141,22 +138,6 @@ class PointLoop(Loop):
             "tip": "unknown" if self.tip is None else self.tip.tolist(),
             "point": "unknown" if self.point is None else self.point.tolist(),
         }
-
-    def mismatch(self, Ts: list[np.ndarray], meas: np.ndarray | None = None) -> str | None:
-        """A point contact holds one point of A at one point of B: `Loop.mismatch` when no point of A stays put
-        (the best stays `POINT_SPREAD` and more from a fixed point) while one stays on a plane to within
-        `ON_PLANE` of the distance it travels on it: a plane contact (the tool slides)."""
-        if self.tip is not None or self.point is not None or Ts[0].shape[0] < 8:
-            return None
-        pivot, off, travel = contact_fits(np.linalg.solve(Ts[1], Ts[0]))
-        if not (pivot > POINT_SPREAD and off < ON_PLANE * travel):
-            return None
-        return (
-            f"loop '{self.name}' (point on {self.frame_a}): no point of the frame stays put across the rows (the "
-            f"best wanders by {pivot * 1e3:.3g} mm RMS at the nominal model) while one stays within "
-            f"{off * 1e3:.3g} mm RMS of a plane it travels {travel * 1e3:.3g} mm on: is this a plane contact? "
-            f"--loop {self.spec('plane')}"
-        )
 
 
 def pivot(M: np.ndarray) -> np.ndarray | None:
