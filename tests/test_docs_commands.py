@@ -190,6 +190,19 @@ def test_an_installed_closedloop_may_name_its_extras(args, ok):
 
 # --------------------------------------------------------------------------- running the blocks
 _PAGE_DIRS: dict[Path, Path] = {}
+_RAN: dict[Path, set[str]] = {}  # per page, the blocks run in its folder by this process
+
+
+def _run_earlier_blocks(block: Block, cwd: Path) -> None:
+    """Run the page's runnable blocks above `block` that have not run in `cwd` (a worker that was handed
+    this block without the ones before it, whose files it reads), each required to succeed."""
+    for b in (b for b in BLOCKS if b.page == block.page and b.line < block.line):
+        first = b.text.strip().splitlines()[0] if b.text.strip() else ""
+        if b.id in _RAN.get(block.page, set()) or NOT_RUN.match(first):
+            continue
+        proc = run_script(prepare(b, check_install)[0], cwd, merged=False)
+        assert proc.returncode == 0, f"{b.id} (run before {block.id}): exit {proc.returncode}\n{proc.stdout[-2000:]}"
+        _RAN.setdefault(block.page, set()).add(b.id)
 
 
 def _page_dir(page: Path, factory) -> Path:
@@ -255,7 +268,9 @@ def test_documented_block_runs(block: Block, tmp_path_factory):
     cwd = _page_dir(block.page, tmp_path_factory)
     for h in held:
         print(f"checked, not run: {h}")
+    _run_earlier_blocks(block, cwd)  # what this block reads: the page's earlier blocks, run in this folder
     proc = run_script(script, cwd, merged=block.run is not None)
+    _RAN.setdefault(block.page, set()).add(block.id)
     assert proc.returncode == 0, (
         f"{block.id}: exit {proc.returncode}\n--- script\n{script}--- stdout (end)\n{proc.stdout[-3000:]}"
         f"--- stderr (end)\n{proc.stderr[-3000:]}"
