@@ -191,18 +191,22 @@ def _same_line(shown: str, fresh: str) -> bool:
     return True
 
 
+def _segments(lines: list[str]) -> list[list[str]]:
+    """The runs of lines between the ``...`` lines of a shown output (empty runs where it starts or ends so)."""
+    segments: list[list[str]] = [[]]
+    for line in lines:
+        if line.strip() == "...":
+            segments.append([])
+        else:
+            segments[-1].append(line)
+    return segments
+
+
 def compare(shown: str, fresh: str, cwd: str | None = None) -> list[str]:
     """Where a shown output differs from a fresh run ([] when it matches); ``...`` lines match any lines."""
     want = [_normal(s, None) for s in shown.rstrip("\n").splitlines()]
     got = [_normal(s, cwd) for s in fresh.rstrip("\n").splitlines()]
-    segments, seg = [], []
-    for w in want:
-        if w.strip() == "...":
-            segments.append(seg)
-            seg = []
-        else:
-            seg.append(w)
-    segments.append(seg)
+    segments = _segments(want)
     at = 0
     for n, seg in enumerate(segments):
         if not seg:
@@ -230,14 +234,7 @@ def regenerate(shown: str, fresh: str, cwd: str | None = None) -> str:
     want = shown.rstrip("\n").splitlines()
     if not any(w.strip() == "..." for w in want):
         return "\n".join(raw) + "\n"
-    segments, seg = [], []
-    for w in want:
-        if w.strip() == "...":
-            segments.append(seg)
-            seg = []
-        else:
-            seg.append(w)
-    segments.append(seg)
+    segments = _segments(want)
     out: list[str] = []
     at = 0
     for n, seg in enumerate(segments):
