@@ -131,3 +131,17 @@ def test_simulate_quiet_prints_nothing(tmp_path, capsys):
     assert main(["simulate", "panda_weld", "--n", "3", "--out", str(tmp_path / "s"), "--quiet"]) == 0
     out = capsys.readouterr()
     assert out.out == "" and (tmp_path / "s" / "log.csv").is_file()
+
+
+def test_library_note_reads_as_a_note_line():
+    """A library's ``note: ...`` warning is printed as the command's own note line; other warnings keep
+    their level and module."""
+    import logging
+
+    from closedloop.cli.main import _LogFormatter
+
+    fmt = _LogFormatter()
+    note = logging.LogRecord("closedloop.sims.robot_scenario", logging.WARNING, __file__, 1, "note: %s", ("x",), None)
+    other = logging.LogRecord("closedloop.sims.robot_scenario", logging.WARNING, __file__, 1, "careful", (), None)
+    assert fmt.format(note) == "note: x"
+    assert fmt.format(other) == "WARNING closedloop.sims.robot_scenario: careful"

@@ -327,6 +327,19 @@ class _Parser(argparse.ArgumentParser):
         raise InputError(f"{self.prog}: {message} (see {self.prog} --help)")
 
 
+class _LogFormatter(logging.Formatter):
+    """A library's ``note: ...`` reads as the command's own note line; anything else names its level and
+    module (``WARNING closedloop.x: ...``)."""
+
+    def __init__(self) -> None:
+        super().__init__("%(levelname)s %(name)s: %(message)s")
+
+    def format(self, record: logging.LogRecord) -> str:
+        if record.levelno < logging.ERROR and record.getMessage().startswith("note: "):
+            return record.getMessage()
+        return super().format(record)
+
+
 class _Signal(KeyboardInterrupt):
     """SIGTERM / SIGHUP raised as an exception, so that every cleanup (temporary outputs) runs."""
 
@@ -403,9 +416,9 @@ def main(argv: list[str] | None = None) -> int:
             from closedloop.cli.config import parse_args  # (the heavy imports start here: inside the handlers)
 
             args = parse_args(build_parser(_command(argv)), argv)  # applies a subcommand's --config FILE
-            logging.basicConfig(
-                level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(name)s: %(message)s"
-            )
+            handler = logging.StreamHandler()
+            handler.setFormatter(_LogFormatter())
+            logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, handlers=[handler])
             rc = args.func(args)
             if _received:  # a library swallowed the interrupt and the command ran on: it still ends interrupted
                 return interrupted(_received[0])
