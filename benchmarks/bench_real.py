@@ -29,7 +29,6 @@ import pstats
 import sys
 import tempfile
 import time
-import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -52,28 +51,6 @@ from closedloop.validation.kfold import cross_validate, holdout, subset  # noqa:
 TIPS = ("gripper_left_base_link", "gripper_right_base_link")
 X_TRUE = pin.SE3(pin.exp3(np.array([0.05, -0.1, 1.0])), np.array([1.2, 0.3, -0.4]))
 MARK = np.array([0.02, -0.01, -0.08])
-
-
-def cut_urdf(src: Path, tips: tuple[str, ...], dst: Path) -> Path:
-    """`src` without the branches that lead to none of `tips` (the chains' kinematics unchanged)."""
-    tree = ET.parse(src)
-    root = tree.getroot()
-    by_child = {j.find("child").get("link"): j for j in root.findall("joint")}
-    links, joints = set(), []
-    for tip in tips:
-        link = tip
-        links.add(link)
-        while link in by_child:
-            joints.append(by_child[link])
-            link = by_child[link].find("parent").get("link")
-            links.add(link)
-    for el in list(root):
-        if (el.tag == "link" and el.get("name") not in links) or (el.tag == "joint" and el not in joints):
-            root.remove(el)
-        elif el.tag not in ("link", "joint", "material"):
-            root.remove(el)
-    tree.write(dst)
-    return dst
 
 
 def dataset(robot: RobotModel, n: int, seed: int, bend: float) -> JointLog:
@@ -168,7 +145,7 @@ def main() -> None:
         return
     src = example_robot_data_dir() / "talos_data/robots/talos_full_v2.urdf"
     with tempfile.TemporaryDirectory() as tmp:
-        robot = RobotModel.from_file(cut_urdf(src, TIPS, Path(tmp) / "upper.urdf"))
+        robot = RobotModel.from_file(chain_urdf(src, TIPS, Path(tmp) / "upper.urdf"))
     log_ = dataset(robot, args.poses, args.seed, args.bend)
     loops = [MeasuredPointLoop("left", TIPS[0]), MeasuredPointLoop("right", TIPS[1])]
     fl = floor(robot, log_)

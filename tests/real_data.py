@@ -79,17 +79,20 @@ def figaroh_log(name: str, *, skip: bool = True) -> JointLog:
     return JointLog(joints, np.column_stack([d[n] for n in joints]), None, None, extra)
 
 
-def chain_urdf(src: Path, tip: str, dst: Path) -> Path:
-    """The URDF `src` cut to the chain from its root to link `tip` (the other branches do not move the
-    loop and cost time in every evaluation); the kinematics of the chain are unchanged."""
+def chain_urdf(src: Path, tip: str | tuple[str, ...], dst: Path) -> Path:
+    """The URDF `src` cut to the chains from its root to link `tip` (or each of several tips; the other
+    branches do not move the loops and cost time in every evaluation); the chains' kinematics unchanged."""
     tree = ET.parse(src)
     root = tree.getroot()
     by_child = {j.find("child").get("link"): j for j in root.findall("joint")}
-    links, joints, link = {tip}, [], tip
-    while link in by_child:
-        joints.append(by_child[link])
-        link = by_child[link].find("parent").get("link")
+    links: set[str] = set()
+    joints: list = []
+    for link in (tip,) if isinstance(tip, str) else tip:
         links.add(link)
+        while link in by_child:
+            joints.append(by_child[link])
+            link = by_child[link].find("parent").get("link")
+            links.add(link)
     for el in list(root):
         if (el.tag == "link" and el.get("name") not in links) or (el.tag == "joint" and el not in joints):
             root.remove(el)
