@@ -24,6 +24,26 @@ def panda_weld(panda):
     return make_dataset(panda, WeldLoop("fixture", "panda_hand"), PANDA_Q0, 200, np.random.default_rng(7))
 
 
+# --------------------------------------------------------------------------- one worker per costly fixture
+# A fixture scoped to its module (a simulated dataset, a calibration the tests then read) is computed once per
+# worker that runs one of its tests: the tests that use one share a worker (xdist's `loadgroup`), so the
+# fixture is computed once per run, not once per worker.
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        info = getattr(item, "_fixtureinfo", None)
+        if info is None or item.get_closest_marker("xdist_group") is not None:
+            continue
+        for name in info.names_closure:
+            for fd in info.name2fixturedefs.get(name, ()):
+                if fd.scope == "module" and str(fd.baseid).endswith(".py"):
+                    item.add_marker(pytest.mark.xdist_group(fd.baseid))
+                    break
+            else:
+                continue
+            break
+
+
 # --------------------------------------------------------------------------- what the run left out
 # The default run deselects the `slow` tests (pyproject.toml: -m 'not slow'); the summary says how many and how
 # to run them.  Under xdist each worker collects the whole suite and deselects the same tests: the workers pass
