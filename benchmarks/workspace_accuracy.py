@@ -55,7 +55,7 @@ SIMULATED = {
             "--loop",
             "point:frame=LeftGripperYawLink",
             "--tool",
-            "0 0 -0.1",
+            "0.03 0 -0.1",
             "--joints",
             ALEX_ARM,
         ],

@@ -42,6 +42,19 @@ are correlated across configurations: its largest is one draw's maximum, which `
 same in rad for a pose loop's rotation.  The worst configuration is the reading with the largest
 sigma_i.
 
+**Model error.**  Joint noise alone leaves the errors-in-variables estimate (eq. 3.17 weighting) and the
+plain loop-closure estimate (eq. 3.8) within their noise of each other; a residual the kinematics cannot
+explain (a loop's compliance, a contact's deformation, gearing) biases them differently, and the weighting
+amplifies it where joint noise barely acts (a residual direction J_theta Sigma J_theta^T hardly produces).
+The plain fit is solved again from the calibration (`estimate.residual.plain_stage`) and their difference
+d = x_plain - x_fit moves the frames by e_d = J d (gauge removed, weighted by W).  Under the noise model
+d has the covariance Sigma_d = Sigma_plain - Sigma_fit (Hausman's: the weighted estimator is the efficient
+one; Sigma_plain from `estimate.model_error.plain_covariance`), so E|e_d|^2 = tr(M), M = W J Sigma_d J^T W,
+a weighted chi-square of (tr M)^2 / tr(M^2) effective degrees of freedom nu.  Where R = |e_d|^2 / tr(M)
+exceeds 1 + 3 sqrt(2 / nu), the share of d beyond the noise, b = sqrt(1 - 1 / R) d, is taken as a
+systematic error of the calibrated parameters: it moves the frames by e_b = J b (gauge removed), a fixed
+offset beside the random L z.  Its size, not its sign, is what the disagreement measures.
+
 **Against the nominal model.**  The nominal model's own expected error is the tolerance of every
 parameter considered, T, propagated the same way (L = T): where the calibrated model's RMS is not below
 it, calibrating did not make the robot better in expectation (`better_than_nominal`).
@@ -116,11 +129,37 @@ class FrameAccuracy:
     unseen_rms_rad: float | None
     nominal_rms_m: float  # the nominal model's expected error: its tolerance over the same parameters, same gauge
     nominal_rms_rad: float | None
+    model_rms_m: float  # the share of rms_m from the model error (`ModelError`; 0 where none is found)
+    model_rms_rad: float | None
     worst: dict[str, float]  # the joint readings of the configuration with the largest expected error
     sigma_m: np.ndarray = field(repr=False)  # (n,) expected position error per configuration
     sigma_rad: np.ndarray | None = field(repr=False, default=None)
     reach: np.ndarray | None = field(repr=False, default=None)  # (n,) distance of the point from the base (m)
     training_reach: np.ndarray | None = field(repr=False, default=None)  # the same at the calibration's readings
+
+
+@dataclass(frozen=True)
+class Disagreement:
+    """The plain loop-closure estimate against the errors-in-variables calibration (`disagreement`)."""
+
+    shift: np.ndarray = field(repr=False)  # (P,) x_plain - x_fit over the problem's parameters (0: not estimated)
+    estimated: tuple[int, ...]  # the columns both estimated
+    noise_cov: np.ndarray = field(repr=False)  # Sigma_plain - Sigma_fit over `estimated`: the shift's covariance
+    # under the noise model
+
+
+@dataclass(frozen=True)
+class ModelError:
+    """The estimators' disagreement over the workspace, judged against the noise (module docstring)."""
+
+    ratio: float  # R = |e_d|^2 / E|e_d|^2 under the noise model (weighted as check weighs)
+    dof: float  # the effective degrees of freedom of |e_d|^2 under the noise model
+    limit: float  # 1 + 3 sqrt(2 / dof): above it the disagreement is more than the noise
+    share: float  # sqrt(1 - 1 / R) above the limit, else 0
+
+    @property
+    def found(self) -> bool:
+        return self.share > 0.0
 
 
 @dataclass(frozen=True)
@@ -141,6 +180,7 @@ class WorkspaceAccuracy:
     #: (3 n per frame, len(parameters)) the frames' position errors per parameter over the readings, gauge
     #: removed (e_perp = design @ dx): what a design of new configurations is judged by (`closedloop.design`)
     design: np.ndarray | None = field(repr=False, default=None)
+    model_error: ModelError | None = None  # the estimators' disagreement, where it was tested
 
     @property
     def max_m(self) -> float:
@@ -309,6 +349,45 @@ def _sqrt_psd(S: np.ndarray) -> np.ndarray:
     return V[:, keep] * np.sqrt(w[keep])
 
 
+MODEL_ERROR_ITER = 30  # iterations of the plain refit from the calibration (it starts next to its minimum)
+
+
+def disagreement(res) -> Disagreement | None:
+    """The plain loop-closure fit (eq. 3.8) solved again from the errors-in-variables calibration `res`, and
+    the covariance of their difference under the noise model, Sigma_plain - Sigma_fit (module docstring,
+    Model error); None where the calibration is not the errors-in-variables fit (the plain one already:
+    nothing to compare), did not converge, or estimated nothing."""
+    from closedloop.estimate.lm import SolverOptions
+    from closedloop.estimate.model_error import EIV, plain_covariance
+    from closedloop.estimate.residual import plain_stage
+
+    problem, fit = res.problem, res.fit
+    est = list(fit.estimated)
+    if not est or not fit.converged or res.noise.estimator != EIV or not res.noise.sigma > 0:
+        return None
+    x = np.asarray(fit.values, dtype=float)
+    scale = np.array([q.prior for q in problem.params], dtype=float)
+    stage = plain_stage(problem, x, x[est], est, scale, SolverOptions(max_iter=MODEL_ERROR_ITER), None)
+    sigma_q = np.full(len(problem.joints), float(res.noise.sigma))
+    cov = plain_covariance(problem, x, est, sigma_q) - np.nan_to_num(np.asarray(fit.covariance, dtype=float))
+    return Disagreement(shift=stage.fun.full(stage.solution.x) - x, estimated=tuple(est), noise_cov=cov)
+
+
+def judge_disagreement(d: np.ndarray, noise: np.ndarray) -> ModelError:
+    """`ModelError` of the weighted workspace errors `d` (rows) of the estimators' shift, against the factor
+    `noise` (rows, r) of their covariance under the noise model: R = |d|^2 / tr(N N^T), the effective degrees
+    of freedom (tr M)^2 / tr(M^2) of M = N N^T."""
+    sv2 = np.linalg.svd(noise, compute_uv=False) ** 2 if noise.size else np.zeros(0)
+    expected = float(sv2.sum())
+    if not expected > 0.0:
+        return ModelError(ratio=0.0, dof=0.0, limit=float("inf"), share=0.0)
+    ratio = float(d @ d) / expected
+    dof = expected**2 / float(np.sum(sv2**2))
+    limit = 1.0 + 3.0 * np.sqrt(2.0 / dof)
+    share = float(np.sqrt(1.0 - 1.0 / ratio)) if ratio > limit else 0.0
+    return ModelError(ratio=ratio, dof=float(dof), limit=float(limit), share=share)
+
+
 # --------------------------------------------------------------------------- the gauge
 def gauge_basis(items: list[Followed], pos: list[np.ndarray], rot: list[np.ndarray], scaled: bool) -> np.ndarray:
     """G (rows, g): the stacked errors (per frame: positions n x 3, then a pose's rotations n x 3) that a
@@ -359,11 +438,14 @@ def predict_accuracy(
     seed: int = 0,
     tol_m: float = TOL_M,
     tol_rad: float = TOL_RAD,
+    disagreement: Disagreement | None = None,
 ) -> WorkspaceAccuracy | None:
     """The predicted error of every followed frame at `readings` (n, problem joints) (module docstring).
 
     `covariance` is over the `estimated` columns of the problem; `status` the parameters' statuses
-    (`ParamStatus`); `n_weak` the number of combinations the fit left undetermined.  None when no loop
+    (`ParamStatus`); `n_weak` the number of combinations the fit left undetermined; `disagreement`
+    the plain fit's against the calibration (`disagreement`): beyond the noise, model error, whose bias
+    moves the frames beside the random error.  None when no loop
     has a frame to follow (a camera, a known distance).
     """
     prior = prior or PriorTolerance()
@@ -405,6 +487,16 @@ def predict_accuracy(
         return (A - Qg @ (Qg.T @ A)) / w[:, None]
 
     A_e, A_u = projected(L_e), projected(L_u)
+    bias, model = np.zeros(len(considered)), None
+    if disagreement is not None:  # model error: the estimators' disagreement beyond the noise, over the workspace
+        pos_of = {k: i for i, k in enumerate(considered)}
+        F = _sqrt_psd(disagreement.noise_cov)
+        L_d = np.zeros((len(considered), F.shape[1]))
+        L_d[[pos_of[k] for k in disagreement.estimated]] = F
+        shift = np.asarray(disagreement.shift, dtype=float)[considered]
+        model = judge_disagreement(projected(shift[:, None])[:, 0] * w, projected(L_d) * w[:, None])
+        bias = model.share * shift
+    B = projected(bias[:, None])[:, 0]  # the frames' systematic error, gauge removed
     n_read = readings.shape[0]
     position_rows = np.concatenate(
         [np.arange(3 * n_read) + 3 * n_read * (i + sum(x.kind == "pose" for x in items[:i])) for i in range(len(items))]
@@ -413,10 +505,11 @@ def predict_accuracy(
     A_n = projected(np.diag(tol))  # the nominal model: every considered parameter off by its tolerance
     tips = {k for it in items for k in it.tip_columns}
     moving = [i for i, k in enumerate(considered) if k < problem.n_robot or k in tips]  # what moves a frame
-    L_all = np.hstack([L_e, L_u])[moving]
+    L_all = np.hstack([L_e, L_u, bias[:, None]])[moving]  # the bias in the mean square: what evaluate propagates
     A = np.hstack([A_e, A_u])
     rng = np.random.default_rng(seed + 1)
     draws = A @ rng.standard_normal((A.shape[1], MAX_DRAWS)) if A.shape[1] else np.zeros((A.shape[0], MAX_DRAWS))
+    draws += B[:, None]
     frames: list[FrameAccuracy] = []
     row = 0
     n = readings.shape[0]
@@ -433,7 +526,8 @@ def predict_accuracy(
             row += 3 * n
         figs: dict[str, tuple] = {}
         for unit, sl in blocks:
-            sig = np.sqrt(np.sum(A[sl].reshape(n, -1) ** 2, axis=1))
+            sig_b = np.linalg.norm(B[sl].reshape(n, 3), axis=1)
+            sig = np.sqrt(np.sum(A[sl].reshape(n, -1) ** 2, axis=1) + sig_b**2)
             sig_u = np.sqrt(np.sum(A_u[sl].reshape(n, -1) ** 2, axis=1))
             largest = np.linalg.norm(draws[sl].reshape(n, 3, -1), axis=1).max(axis=0)
             figs[unit] = (
@@ -444,6 +538,7 @@ def predict_accuracy(
                 float(np.percentile(largest, 95)),
             )
             figs[unit + "_u"] = (float(np.sqrt(np.mean(sig_u**2))),)
+            figs[unit + "_b"] = (float(np.sqrt(np.mean(sig_b**2))),)
             figs[unit + "_n"] = (float(np.sqrt(np.sum(A_n[sl] ** 2) / n)),)
         sm, rms_m, p95_m, max_m, max95_m = figs["m"]
         worst = int(np.argmax(sm))
@@ -465,6 +560,8 @@ def predict_accuracy(
                 unseen_rms_rad=figs["rad_u"][0] if pose else None,
                 nominal_rms_m=figs["m_n"][0],
                 nominal_rms_rad=figs["rad_n"][0] if pose else None,
+                model_rms_m=figs["m_b"][0],
+                model_rms_rad=figs["rad_b"][0] if pose else None,
                 worst={j: float(v) for j, v in zip(joints, readings[worst])},
                 sigma_m=sm,
                 sigma_rad=figs["rad"][0] if pose else None,
@@ -485,6 +582,7 @@ def predict_accuracy(
         parameters=tuple(problem.names[considered[i]] for i in moving),
         covariance=L_all @ L_all.T,
         design=projected(np.eye(len(considered))[:, moving])[position_rows],
+        model_error=model,
     )
 
 
@@ -536,10 +634,12 @@ def predict_from_result(
     prior: PriorTolerance | None = None,
     source: str | None = None,
     size_measured: bool | None = None,
+    model_error: bool = True,
 ) -> WorkspaceAccuracy | None:
     """`predict_accuracy` for a `CalibrationResult` (its problem, values, trusted covariance, statuses),
     at `readings`, or `n` readings drawn within the joint ranges (`random_readings`, `seed`); BLAS threads
-    limited by size (`closedloop.estimate.threads.blas_threads`)."""
+    limited by size (`closedloop.estimate.threads.blas_threads`).  `model_error`: the calibration tested
+    for model error (`disagreement`); False leaves it out."""
     problem = res.problem
     default = readings is None and n == N_WORKSPACE and seed == 0
     if readings is None:
@@ -551,6 +651,7 @@ def predict_from_result(
     from closedloop.estimate.threads import blas_threads
 
     with blas_threads(None, 6 * len(readings), len(problem.params)):  # small dense algebra: one thread
+        found = disagreement(res) if model_error else None
         return predict_accuracy(
             problem,
             np.asarray(res.fit.values, dtype=float),
@@ -565,4 +666,5 @@ def predict_from_result(
             source=source or "the given readings",
             default_readings=default,
             seed=seed,
+            disagreement=found,
         )

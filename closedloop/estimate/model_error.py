@@ -216,6 +216,37 @@ def loo_prediction(problem: CalibrationProblem, x: np.ndarray, est: list[int], r
     return float(np.sqrt(total / count)) if count else 0.0
 
 
+def plain_covariance(
+    problem: CalibrationProblem,
+    x: np.ndarray,
+    est: list[int],
+    sigma_q: np.ndarray,
+    thetas: list[np.ndarray] | None = None,
+) -> np.ndarray:
+    """First-order covariance of the plain loop-closure estimator (eq. 3.8) under the errors-in-variables
+    noise model (eq. 3.17): Cov = A^+ (sum_i J_i^T W_i J_i) A^+, A = sum_i J_i^T J_i, with J_i the closure
+    Jacobian of configuration i over the `est` columns at `x`, W_i = J_theta,i diag(sigma_q^2)
+    J_theta,i^T + C_i (C_i a loop's measurement covariance).  A^+ in the parameters' prior units, directions
+    below 1e-12 of the largest dropped.  Configurations several blocks share are taken as independent.
+    In the parameters' own units, order `est`."""
+    scale = np.array([problem.params[k].prior for k in est], dtype=float)
+    L = len(est)
+    JtJ = np.zeros((L, L))
+    meat = np.zeros((L, L))
+    for ev, nz in zip(problem.evaluate(x, True, thetas, columns=est), problem.noise):
+        if ev.J is None or ev.Jq is None or not ev.J.size:
+            continue
+        J = np.nan_to_num(ev.J) * scale
+        Jq = np.nan_to_num(ev.Jq) * sigma_q[None, None, :]
+        W = Jq @ np.swapaxes(Jq, 1, 2)
+        if nz.measurement_cov is not None:
+            W = W + nz.measurement_cov
+        JtJ += np.einsum("nki,nkj->ij", J, J)
+        meat += np.einsum("nki,nkl,nlj->ij", J, W, J)
+    Ainv = np.linalg.pinv(JtJ, rcond=1e-12, hermitian=True)
+    return Ainv @ meat @ Ainv * np.outer(scale, scale)
+
+
 def sandwich_cov(
     problem: CalibrationProblem, r: np.ndarray, J: np.ndarray, scale: np.ndarray, V: np.ndarray, S: np.ndarray
 ) -> np.ndarray:
