@@ -78,6 +78,7 @@ def calibrate_files(
         check_workspace,
         next_poses,
         parse_accuracy,
+        parse_prior,
         predicted_accuracy,
         region_validation,
         workspace_readings,
@@ -96,7 +97,8 @@ def calibrate_files(
     _done(prog)
     elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
     workspace = workspace_readings(o, robot, res.problem.joints)  # where the accuracy is predicted
-    accuracy = predicted_accuracy(res, *workspace)  # over the workspace (closedloop.analysis.accuracy)
+    prior = parse_prior(o.prior_tolerance) if o.prior_tolerance else None  # the nominal model's tolerance
+    accuracy = predicted_accuracy(res, *workspace, prior=prior)  # over the workspace (closedloop.analysis.accuracy)
     if inp.weighting_note:
         res.notes.append(inp.weighting_note)
     res.notes.extend(inp.geometry)
