@@ -46,14 +46,15 @@ sigma_i.
 plain loop-closure estimate (eq. 3.8) within their noise of each other; a residual the kinematics cannot
 explain (a loop's compliance, a contact's deformation, gearing) biases them differently, and the weighting
 amplifies it where joint noise barely acts (a residual direction J_theta Sigma J_theta^T hardly produces).
-The plain fit is solved again from the calibration (`estimate.residual.plain_stage`) and their difference
-d = x_plain - x_fit moves the frames by e_d = J d (gauge removed, weighted by W).  Under the noise model
-d has the covariance Sigma_d = Sigma_plain - Sigma_fit (Hausman's: the weighted estimator is the efficient
-one; Sigma_plain from `estimate.model_error.plain_covariance`), so E|e_d|^2 = tr(M), M = W J Sigma_d J^T W,
-a weighted chi-square of (tr M)^2 / tr(M^2) effective degrees of freedom nu.  Where R = |e_d|^2 / tr(M)
-exceeds 1 + 3 sqrt(2 / nu), the share of d beyond the noise, b = sqrt(1 - 1 / R) d, is taken as a
-systematic error of the calibrated parameters: it moves the frames by e_b = J b (gauge removed), a fixed
-offset beside the random L z.  Its size, not its sign, is what the disagreement measures.
+The plain fit is linearized at the calibration (`estimate.model_error.plain_linearization`): its
+Gauss-Newton step from there is their difference d = x_plain - x_fit to first order, and moves the frames
+by e_d = J d (gauge removed, weighted by W).  Under the noise model d has the covariance
+Sigma_d = Sigma_plain - Sigma_fit (Hausman's: the weighted estimator is the efficient one), so
+E|e_d|^2 = tr(M), M = W J Sigma_d J^T W, a weighted chi-square of (tr M)^2 / tr(M^2) effective degrees of
+freedom nu.  Where R = |e_d|^2 / tr(M) exceeds 1 + 3 sqrt(2 / nu), the share of d beyond the noise,
+b = sqrt(1 - 1 / R) d, is taken as a systematic error of the calibrated parameters: it moves the frames by
+e_b = J b (gauge removed), a fixed offset beside the random L z.  Its size, not its sign, is what the
+disagreement measures.
 
 **Against the nominal model.**  The nominal model's own expected error is the tolerance of every
 parameter considered, T, propagated the same way (L = T): where the calibrated model's RMS is not below
@@ -349,28 +350,26 @@ def _sqrt_psd(S: np.ndarray) -> np.ndarray:
     return V[:, keep] * np.sqrt(w[keep])
 
 
-MODEL_ERROR_ITER = 30  # iterations of the plain refit from the calibration (it starts next to its minimum)
-
-
 def disagreement(res) -> Disagreement | None:
-    """The plain loop-closure fit (eq. 3.8) solved again from the errors-in-variables calibration `res`, and
-    the covariance of their difference under the noise model, Sigma_plain - Sigma_fit (module docstring,
-    Model error); None where the calibration is not the errors-in-variables fit (the plain one already:
-    nothing to compare), did not converge, or estimated nothing."""
-    from closedloop.estimate.lm import SolverOptions
-    from closedloop.estimate.model_error import EIV, plain_covariance
-    from closedloop.estimate.residual import plain_stage
+    """The plain loop-closure fit (eq. 3.8) linearized at the errors-in-variables calibration `res`: its
+    Gauss-Newton step from there, d = x_plain - x_fit to first order (a step, not a solve: on a self-motion
+    the plain residual's long steps can reach a degenerate robot), and the covariance of d under the noise
+    model, Sigma_plain - Sigma_fit (module docstring, Model error); None where the calibration is not the
+    errors-in-variables fit (the plain one already: nothing to compare), did not converge, or estimated
+    nothing."""
+    from closedloop.estimate.model_error import EIV, plain_linearization
 
     problem, fit = res.problem, res.fit
     est = list(fit.estimated)
     if not est or not fit.converged or res.noise.estimator != EIV or not res.noise.sigma > 0:
         return None
     x = np.asarray(fit.values, dtype=float)
-    scale = np.array([q.prior for q in problem.params], dtype=float)
-    stage = plain_stage(problem, x, x[est], est, scale, SolverOptions(max_iter=MODEL_ERROR_ITER), None)
     sigma_q = np.full(len(problem.joints), float(res.noise.sigma))
-    cov = plain_covariance(problem, x, est, sigma_q) - np.nan_to_num(np.asarray(fit.covariance, dtype=float))
-    return Disagreement(shift=stage.fun.full(stage.solution.x) - x, estimated=tuple(est), noise_cov=cov)
+    step, plain = plain_linearization(problem, x, est, sigma_q)
+    shift = np.zeros(len(problem.params))
+    shift[est] = step
+    cov = plain - np.nan_to_num(np.asarray(fit.covariance, dtype=float))
+    return Disagreement(shift=shift, estimated=tuple(est), noise_cov=cov)
 
 
 def judge_disagreement(d: np.ndarray, noise: np.ndarray) -> ModelError:
