@@ -185,9 +185,9 @@ def test_accuracy_target_makes_ok_impossible_above_it():
     assert res.verdict.status == "ok"  # the verdict given is not changed
 
 
-def test_no_better_than_the_nominal_model_is_suspect():
+def test_no_better_than_the_nominal_model_is_failed():
     """The nominal model's expected error (its tolerance propagated alike) beside the calibrated one's: a
-    calibration predicted no better than the nominal model is suspect."""
+    calibration predicted no better than the nominal model is failed (the nominal model is the better one)."""
     from dataclasses import replace
 
     case = _case("ur5", "point", 1e-5)
@@ -201,7 +201,7 @@ def test_no_better_than_the_nominal_model_is_suspect():
     assert judge_workspace(res.verdict, acc) is res.verdict
     worse = replace(acc, frames=(replace(f, nominal_rms_m=0.5 * f.rms_m),))
     v = judge_workspace(res.verdict, worse)
-    assert v.status == "suspect" and "does not make the robot more accurate" in v.reasons[-1]
+    assert v.status == "failed" and "does not make the robot more accurate" in v.reasons[-1]
     # ten times the tolerance: ten times the nominal model's expected error
     wide = predict_from_result(res, prior=PriorTolerance(length_m=1e-2, angle_rad=1e-2, offset_rad=0.1, scale=1e-2))
     assert wide.frames[0].nominal_rms_m == pytest.approx(10 * f.nominal_rms_m, rel=1e-6)

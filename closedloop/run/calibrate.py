@@ -109,7 +109,7 @@ def calibrate_files(
     cv, cv_record = fold_validation(robot, lg, loops, inp.fit, inp.folds, o.cv is not None, res, prog)
     lofo = fixture_validation(robot, lg, loops, inp.fit, o.lofo, res, prog)
     regions = region_validation(robot, lg, loops, inp.fit, o, res, prog)  # whole regions of joint space held out
-    verdict = judge_workspace(final_verdict(res, cv, lofo, o.rules), accuracy)  # no better than nominal: suspect
+    verdict = judge_workspace(final_verdict(res, cv, lofo, o.rules), accuracy)  # no better than nominal: failed
     target = None
     if o.accuracy:  # ok only where the prediction meets the target
         verdict, target = judge_accuracy(verdict, accuracy, *parse_accuracy(o.accuracy))
