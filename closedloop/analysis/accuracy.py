@@ -47,8 +47,9 @@ plain loop-closure estimate (eq. 3.8) within their noise of each other; a residu
 explain (a loop's compliance, a contact's deformation, gearing) biases them differently, and the weighting
 amplifies it where joint noise barely acts (a residual direction J_theta Sigma J_theta^T hardly produces).
 The plain fit is linearized at the calibration (`estimate.model_error.plain_linearization`): its
-Gauss-Newton step from there is their difference d = x_plain - x_fit to first order, and moves the frames
-by e_d = J d (gauge removed, weighted by W).  Under the noise model d has the covariance
+Gauss-Newton step from there is their difference d = x_plain - x_fit to first order (where the step lowers
+the plain closure by at least half the decrease it predicts: else the plain fit is not linear over it and
+nothing is judged), and moves the frames by e_d = J d (gauge removed, weighted by W).  Under the noise model d has the covariance
 Sigma_d = Sigma_plain - Sigma_fit (Hausman's: the weighted estimator is the efficient one), so
 E|e_d|^2 = tr(M), M = W J Sigma_d J^T W, a weighted chi-square of (tr M)^2 / tr(M^2) effective degrees of
 freedom nu.  Where R = |e_d|^2 / tr(M) exceeds 1 + 3 sqrt(2 / nu), the share of d beyond the noise,
@@ -355,8 +356,8 @@ def disagreement(res) -> Disagreement | None:
     Gauss-Newton step from there, d = x_plain - x_fit to first order (a step, not a solve: on a self-motion
     the plain residual's long steps can reach a degenerate robot), and the covariance of d under the noise
     model, Sigma_plain - Sigma_fit (module docstring, Model error); None where the calibration is not the
-    errors-in-variables fit (the plain one already: nothing to compare), did not converge, or estimated
-    nothing."""
+    errors-in-variables fit (the plain one already: nothing to compare), did not converge, estimated
+    nothing, or where the plain fit is not linear over its step (`_holds_to_first_order`)."""
     from closedloop.estimate.model_error import EIV, plain_linearization
 
     problem, fit = res.problem, res.fit
@@ -365,11 +366,30 @@ def disagreement(res) -> Disagreement | None:
         return None
     x = np.asarray(fit.values, dtype=float)
     sigma_q = np.full(len(problem.joints), float(res.noise.sigma))
-    step, plain = plain_linearization(problem, x, est, sigma_q)
+    step, plain, decrease = plain_linearization(problem, x, est, sigma_q)
     shift = np.zeros(len(problem.params))
     shift[est] = step
+    if not _holds_to_first_order(problem, x, shift, decrease):
+        return None
     cov = plain - np.nan_to_num(np.asarray(fit.covariance, dtype=float))
     return Disagreement(shift=shift, estimated=tuple(est), noise_cov=cov)
+
+
+LINEAR_RATIO = 0.5  # the plain step's actual decrease of the closure against the one it predicts, at least
+
+
+def _holds_to_first_order(problem, x: np.ndarray, shift: np.ndarray, predicted: float) -> bool:
+    """Whether the plain fit's Gauss-Newton step from `x` lowers its squared closure by at least
+    `LINEAR_RATIO` of the decrease it predicts (a trust-region ratio): where it does not, the plain fit is
+    not linear over the step and the disagreement is no first-order figure (a weak direction the noise
+    throws far, not a model error)."""
+
+    def cost(v: np.ndarray) -> float:
+        return float(sum(np.sum(np.nan_to_num(ev.r) ** 2) for ev in problem.evaluate(v, False)))
+
+    if not predicted > 0.0:  # no step: nothing to judge, and nothing that disagrees
+        return True
+    return cost(x) - cost(x + shift) >= LINEAR_RATIO * predicted
 
 
 def judge_disagreement(d: np.ndarray, noise: np.ndarray) -> ModelError:

@@ -222,14 +222,15 @@ def plain_linearization(
     est: list[int],
     sigma_q: np.ndarray,
     thetas: list[np.ndarray] | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, float]:
     """The plain loop-closure estimator (eq. 3.8) linearized at `x`: its Gauss-Newton step from `x`,
-    dx = -A^+ sum_i J_i^T r_i, and its first-order covariance under the errors-in-variables noise model
+    dx = -A^+ sum_i J_i^T r_i, the decrease of the squared closure it predicts (sum_i J_i^T r_i)^T A^+ (...),
+    and its first-order covariance under the errors-in-variables noise model
     (eq. 3.17), Cov = A^+ (sum_i J_i^T W_i J_i) A^+, with A = sum_i J_i^T J_i, J_i and r_i the closure
     Jacobian over the `est` columns and residual of configuration i, W_i = J_theta,i diag(sigma_q^2)
     J_theta,i^T + C_i (C_i a loop's measurement covariance).  A^+ in the parameters' prior units, directions
     below 1e-12 of the largest dropped; configurations several blocks share are taken as independent.
-    Both in the parameters' own units, order `est`."""
+    Step and covariance in the parameters' own units, order `est`."""
     scale = np.array([problem.params[k].prior for k in est], dtype=float)
     L = len(est)
     JtJ = np.zeros((L, L))
@@ -247,7 +248,7 @@ def plain_linearization(
         meat += np.einsum("nki,nkl,nlj->ij", J, W, J)
         Jtr += np.einsum("nki,nk->i", J, np.nan_to_num(ev.r).reshape(J.shape[:2]))
     Ainv = np.linalg.pinv(JtJ, rcond=1e-12, hermitian=True)
-    return -(Ainv @ Jtr) * scale, Ainv @ meat @ Ainv * np.outer(scale, scale)
+    return -(Ainv @ Jtr) * scale, Ainv @ meat @ Ainv * np.outer(scale, scale), float(Jtr @ Ainv @ Jtr)
 
 
 def plain_covariance(
