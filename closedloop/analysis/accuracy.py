@@ -127,6 +127,9 @@ class FrameAccuracy:
     max_rad: float | None
     max95_m: float  # 95 % of calibrated robots have their largest position error below this (m)
     max95_rad: float | None
+    #: the chance that one calibrated robot's largest position error lies within 0.5-2 times max_m (over the
+    #: Monte Carlo draws): how closely a single calibration can be expected to follow the prediction
+    max_within_2x: float
     unseen_rms_m: float  # the share of rms_m from what the data cannot see (the prior)
     unseen_rms_rad: float | None
     nominal_rms_m: float  # the nominal model's expected error: its tolerance over the same parameters, same gauge
@@ -555,11 +558,12 @@ def predict_accuracy(
                 float(np.percentile(sig, 95)),
                 float(largest.mean()),
                 float(np.percentile(largest, 95)),
+                float(np.mean((largest >= 0.5 * largest.mean()) & (largest <= 2.0 * largest.mean()))),
             )
             figs[unit + "_u"] = (float(np.sqrt(np.mean(sig_u**2))),)
             figs[unit + "_b"] = (float(np.sqrt(np.mean(sig_b**2))),)
             figs[unit + "_n"] = (float(np.sqrt(np.sum(A_n[sl] ** 2) / n)),)
-        sm, rms_m, p95_m, max_m, max95_m = figs["m"]
+        sm, rms_m, p95_m, max_m, max95_m, within_2x = figs["m"]
         worst = int(np.argmax(sm))
         pose = "rad" in figs
         frames.append(
@@ -575,6 +579,7 @@ def predict_accuracy(
                 max_rad=figs["rad"][3] if pose else None,
                 max95_m=max95_m,
                 max95_rad=figs["rad"][4] if pose else None,
+                max_within_2x=within_2x,
                 unseen_rms_m=figs["m_u"][0],
                 unseen_rms_rad=figs["rad_u"][0] if pose else None,
                 nominal_rms_m=figs["m_n"][0],

@@ -366,6 +366,8 @@ def accuracy_section(workspace, regions: dict | None = None, target: dict | None
                     "predicted_max_rad": _f(f.max_rad),
                     "predicted_max95_m": _f(f.max95_m),
                     "predicted_max95_rad": _f(f.max95_rad),
+                    # the chance that one calibrated robot's largest error lies within 0.5-2x predicted_max_m
+                    "predicted_max_within_2x": _f(f.max_within_2x),
                     "predicted_unseen_rms_m": _f(f.unseen_rms_m),
                     "predicted_unseen_rms_rad": _f(f.unseen_rms_rad),
                     # the share from the model error the estimators' disagreement shows (0: none found)
