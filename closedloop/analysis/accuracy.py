@@ -182,10 +182,20 @@ class WorkspaceAccuracy:
     default_readings: bool = False  # the readings are `random_readings`' default: those `closedloop check` uses
     parameters: tuple[str, ...] = ()  # the parameters whose uncertainty moves a followed frame
     covariance: np.ndarray | None = field(repr=False, default=None)  # their L L^T (estimated and unseen)
+    #: (len(parameters),) the systematic error b the model error adds (zeros where none is found): data
+    #: reduce L L^T, never b
+    bias: np.ndarray | None = field(repr=False, default=None)
     #: (3 n per frame, len(parameters)) the frames' position errors per parameter over the readings, gauge
     #: removed (e_perp = design @ dx): what a design of new configurations is judged by (`closedloop.design`)
     design: np.ndarray | None = field(repr=False, default=None)
     model_error: ModelError | None = None  # the estimators' disagreement, where it was tested
+
+    @property
+    def error_covariance(self) -> np.ndarray | None:
+        """The parameters' mean-square error L L^T + b b^T: what `closedloop evaluate` propagates."""
+        if self.covariance is None:
+            return None
+        return self.covariance if self.bias is None else self.covariance + np.outer(self.bias, self.bias)
 
     @property
     def max_m(self) -> float:
@@ -527,7 +537,7 @@ def predict_accuracy(
     A_n = projected(np.diag(tol))  # the nominal model: every considered parameter off by its tolerance
     tips = {k for it in items for k in it.tip_columns}
     moving = [i for i, k in enumerate(considered) if k < problem.n_robot or k in tips]  # what moves a frame
-    L_all = np.hstack([L_e, L_u, bias[:, None]])[moving]  # the bias in the mean square: what evaluate propagates
+    L_all = np.hstack([L_e, L_u])[moving]
     A = np.hstack([A_e, A_u])
     rng = np.random.default_rng(seed + 1)
     draws = A @ rng.standard_normal((A.shape[1], MAX_DRAWS)) if A.shape[1] else np.zeros((A.shape[0], MAX_DRAWS))
@@ -605,6 +615,7 @@ def predict_accuracy(
         default_readings=default_readings,
         parameters=tuple(problem.names[considered[i]] for i in moving),
         covariance=L_all @ L_all.T,
+        bias=bias[moving],
         design=projected(np.eye(len(considered))[:, moving])[position_rows],
         model_error=model,
     )

@@ -391,5 +391,5 @@ def accuracy_section(workspace, regions: dict | None = None, target: dict | None
                 "found": bool(me.found),
             }
         if workspace.covariance is not None:  # what `closedloop evaluate` propagates to its own configurations
-            ws["covariance"] = {"parameters": list(workspace.parameters), "matrix": workspace.covariance.tolist()}
+            ws["covariance"] = {"parameters": list(workspace.parameters), "matrix": workspace.error_covariance.tolist()}
     return {"workspace": ws, "regions": regions, "target": target}
