@@ -137,7 +137,16 @@ def test_cli_evaluate_predicts_and_lends_the_tool_frame(rig, tmp_path):
     files = rig_.write(tmp_path)
     train = [f for f in files if not f.stem.startswith("place3")]
     argv = ["calibrate", str(tmp / "nominal.urdf"), "--joints", ",".join(rig_.joints), "--cv", "0", "--lofo", "off"]
-    argv += ["--distance", "place1_a.point", "place1_b.point", "0.05", "--out", str(tmp_path / "cal.urdf")]
+    argv += [
+        "--regions",
+        "0",
+        "--distance",
+        "place1_a.point",
+        "place1_b.point",
+        "0.05",
+        "--out",
+        str(tmp_path / "cal.urdf"),
+    ]
     argv += ["--report", str(tmp_path / "rep.json")]
     for f in train:
         argv += ["--loop", f"point:frame=ball,name={f.stem},tip=@ball,log={f}"]

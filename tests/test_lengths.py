@@ -163,6 +163,8 @@ def test_cli_length(rig, tmp_path, capsys):
         "0",
         "--lofo",
         "off",
+        "--regions",
+        "0",
         "--length",
         "panda_link2",
         "panda_link4",

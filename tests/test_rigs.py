@@ -297,6 +297,8 @@ def test_cli_rig_files(rig3, tmp_path):
         "0",
         "--lofo",
         "off",
+        "--regions",
+        "0",
         "--distance",
         "place1_a.point",
         "place1_b.point",
@@ -373,6 +375,8 @@ def test_block_of_three_sockets_sets_scale(tmp_path):
         "0",
         "--lofo",
         "off",
+        "--regions",
+        "0",
         "--report",
         str(tmp_path / "rep.json"),
     ]

@@ -42,6 +42,21 @@ are correlated across configurations: its largest is one draw's maximum, which `
 same in rad for a pose loop's rotation.  The worst configuration is the reading with the largest
 sigma_i.
 
+**Model error.**  Joint noise alone leaves the errors-in-variables estimate (eq. 3.17 weighting) and the
+plain loop-closure estimate (eq. 3.8) within their noise of each other; a residual the kinematics cannot
+explain (a loop's compliance, a contact's deformation, gearing) biases them differently, and the weighting
+amplifies it where joint noise barely acts (a residual direction J_theta Sigma J_theta^T hardly produces).
+The plain fit is linearized at the calibration (`estimate.model_error.plain_linearization`): its
+Gauss-Newton step from there is their difference d = x_plain - x_fit to first order (where the step lowers
+the plain closure by at least half the decrease it predicts: else the plain fit is not linear over it and
+nothing is judged), and moves the frames by e_d = J d (gauge removed, weighted by W).  Under the noise model d has the covariance
+Sigma_d = Sigma_plain - Sigma_fit (Hausman's: the weighted estimator is the efficient one), so
+E|e_d|^2 = tr(M), M = W J Sigma_d J^T W, a weighted chi-square of (tr M)^2 / tr(M^2) effective degrees of
+freedom nu.  Where R = |e_d|^2 / tr(M) exceeds 1 + 3 sqrt(2 / nu), the share of d beyond the noise,
+b = sqrt(1 - 1 / R) d, is taken as a systematic error of the calibrated parameters: it moves the frames by
+e_b = J b (gauge removed), a fixed offset beside the random L z.  Its size, not its sign, is what the
+disagreement measures.
+
 **Against the nominal model.**  The nominal model's own expected error is the tolerance of every
 parameter considered, T, propagated the same way (L = T): where the calibrated model's RMS is not below
 it, calibrating did not make the robot better in expectation (`better_than_nominal`).
@@ -112,15 +127,44 @@ class FrameAccuracy:
     max_rad: float | None
     max95_m: float  # 95 % of calibrated robots have their largest position error below this (m)
     max95_rad: float | None
+    #: the chance that one calibrated robot's largest position error lies within 0.5-2 times max_m (over the
+    #: Monte Carlo draws): how closely a single calibration can be expected to follow the prediction
+    max_within_2x: float
     unseen_rms_m: float  # the share of rms_m from what the data cannot see (the prior)
     unseen_rms_rad: float | None
     nominal_rms_m: float  # the nominal model's expected error: its tolerance over the same parameters, same gauge
     nominal_rms_rad: float | None
+    model_rms_m: float  # the share of rms_m from the model error (`ModelError`; 0 where none is found)
+    model_rms_rad: float | None
     worst: dict[str, float]  # the joint readings of the configuration with the largest expected error
     sigma_m: np.ndarray = field(repr=False)  # (n,) expected position error per configuration
     sigma_rad: np.ndarray | None = field(repr=False, default=None)
     reach: np.ndarray | None = field(repr=False, default=None)  # (n,) distance of the point from the base (m)
     training_reach: np.ndarray | None = field(repr=False, default=None)  # the same at the calibration's readings
+
+
+@dataclass(frozen=True)
+class Disagreement:
+    """The plain loop-closure estimate against the errors-in-variables calibration (`disagreement`)."""
+
+    shift: np.ndarray = field(repr=False)  # (P,) x_plain - x_fit over the problem's parameters (0: not estimated)
+    estimated: tuple[int, ...]  # the columns both estimated
+    noise_cov: np.ndarray = field(repr=False)  # Sigma_plain - Sigma_fit over `estimated`: the shift's covariance
+    # under the noise model
+
+
+@dataclass(frozen=True)
+class ModelError:
+    """The estimators' disagreement over the workspace, judged against the noise (module docstring)."""
+
+    ratio: float  # R = |e_d|^2 / E|e_d|^2 under the noise model (weighted as check weighs)
+    dof: float  # the effective degrees of freedom of |e_d|^2 under the noise model
+    limit: float  # 1 + 3 sqrt(2 / dof): above it the disagreement is more than the noise
+    share: float  # sqrt(1 - 1 / R) above the limit, else 0
+
+    @property
+    def found(self) -> bool:
+        return self.share > 0.0
 
 
 @dataclass(frozen=True)
@@ -138,9 +182,20 @@ class WorkspaceAccuracy:
     default_readings: bool = False  # the readings are `random_readings`' default: those `closedloop check` uses
     parameters: tuple[str, ...] = ()  # the parameters whose uncertainty moves a followed frame
     covariance: np.ndarray | None = field(repr=False, default=None)  # their L L^T (estimated and unseen)
+    #: (len(parameters),) the systematic error b the model error adds (zeros where none is found): data
+    #: reduce L L^T, never b
+    bias: np.ndarray | None = field(repr=False, default=None)
     #: (3 n per frame, len(parameters)) the frames' position errors per parameter over the readings, gauge
     #: removed (e_perp = design @ dx): what a design of new configurations is judged by (`closedloop.design`)
     design: np.ndarray | None = field(repr=False, default=None)
+    model_error: ModelError | None = None  # the estimators' disagreement, where it was tested
+
+    @property
+    def error_covariance(self) -> np.ndarray | None:
+        """The parameters' mean-square error L L^T + b b^T: what `closedloop evaluate` propagates."""
+        if self.covariance is None:
+            return None
+        return self.covariance if self.bias is None else self.covariance + np.outer(self.bias, self.bias)
 
     @property
     def max_m(self) -> float:
@@ -309,6 +364,62 @@ def _sqrt_psd(S: np.ndarray) -> np.ndarray:
     return V[:, keep] * np.sqrt(w[keep])
 
 
+def disagreement(res) -> Disagreement | None:
+    """The plain loop-closure fit (eq. 3.8) linearized at the errors-in-variables calibration `res`: its
+    Gauss-Newton step from there, d = x_plain - x_fit to first order (a step, not a solve: on a self-motion
+    the plain residual's long steps can reach a degenerate robot), and the covariance of d under the noise
+    model, Sigma_plain - Sigma_fit (module docstring, Model error); None where the calibration is not the
+    errors-in-variables fit (the plain one already: nothing to compare), did not converge, estimated
+    nothing, or where the plain fit is not linear over its step (`_holds_to_first_order`)."""
+    from closedloop.estimate.model_error import EIV, plain_linearization
+
+    problem, fit = res.problem, res.fit
+    est = list(fit.estimated)
+    if not est or not fit.converged or res.noise.estimator != EIV or not res.noise.sigma > 0:
+        return None
+    x = np.asarray(fit.values, dtype=float)
+    sigma_q = np.full(len(problem.joints), float(res.noise.sigma))
+    step, plain, decrease = plain_linearization(problem, x, est, sigma_q)
+    shift = np.zeros(len(problem.params))
+    shift[est] = step
+    if not _holds_to_first_order(problem, x, shift, decrease):
+        return None
+    cov = plain - np.nan_to_num(np.asarray(fit.covariance, dtype=float))
+    return Disagreement(shift=shift, estimated=tuple(est), noise_cov=cov)
+
+
+LINEAR_RATIO = 0.5  # the plain step's actual decrease of the closure against the one it predicts, at least
+
+
+def _holds_to_first_order(problem, x: np.ndarray, shift: np.ndarray, predicted: float) -> bool:
+    """Whether the plain fit's Gauss-Newton step from `x` lowers its squared closure by at least
+    `LINEAR_RATIO` of the decrease it predicts (a trust-region ratio): where it does not, the plain fit is
+    not linear over the step and the disagreement is no first-order figure (a weak direction the noise
+    throws far, not a model error)."""
+
+    def cost(v: np.ndarray) -> float:
+        return float(sum(np.sum(np.nan_to_num(ev.r) ** 2) for ev in problem.evaluate(v, False)))
+
+    if not predicted > 0.0:  # no step: nothing to judge, and nothing that disagrees
+        return True
+    return cost(x) - cost(x + shift) >= LINEAR_RATIO * predicted
+
+
+def judge_disagreement(d: np.ndarray, noise: np.ndarray) -> ModelError:
+    """`ModelError` of the weighted workspace errors `d` (rows) of the estimators' shift, against the factor
+    `noise` (rows, r) of their covariance under the noise model: R = |d|^2 / tr(N N^T), the effective degrees
+    of freedom (tr M)^2 / tr(M^2) of M = N N^T."""
+    sv2 = np.linalg.svd(noise, compute_uv=False) ** 2 if noise.size else np.zeros(0)
+    expected = float(sv2.sum())
+    if not expected > 0.0:
+        return ModelError(ratio=0.0, dof=0.0, limit=float("inf"), share=0.0)
+    ratio = float(d @ d) / expected
+    dof = expected**2 / float(np.sum(sv2**2))
+    limit = 1.0 + 3.0 * np.sqrt(2.0 / dof)
+    share = float(np.sqrt(1.0 - 1.0 / ratio)) if ratio > limit else 0.0
+    return ModelError(ratio=ratio, dof=float(dof), limit=float(limit), share=share)
+
+
 # --------------------------------------------------------------------------- the gauge
 def gauge_basis(items: list[Followed], pos: list[np.ndarray], rot: list[np.ndarray], scaled: bool) -> np.ndarray:
     """G (rows, g): the stacked errors (per frame: positions n x 3, then a pose's rotations n x 3) that a
@@ -359,11 +470,14 @@ def predict_accuracy(
     seed: int = 0,
     tol_m: float = TOL_M,
     tol_rad: float = TOL_RAD,
+    disagreement: Disagreement | None = None,
 ) -> WorkspaceAccuracy | None:
     """The predicted error of every followed frame at `readings` (n, problem joints) (module docstring).
 
     `covariance` is over the `estimated` columns of the problem; `status` the parameters' statuses
-    (`ParamStatus`); `n_weak` the number of combinations the fit left undetermined.  None when no loop
+    (`ParamStatus`); `n_weak` the number of combinations the fit left undetermined; `disagreement`
+    the plain fit's against the calibration (`disagreement`): beyond the noise, model error, whose bias
+    moves the frames beside the random error.  None when no loop
     has a frame to follow (a camera, a known distance).
     """
     prior = prior or PriorTolerance()
@@ -405,6 +519,16 @@ def predict_accuracy(
         return (A - Qg @ (Qg.T @ A)) / w[:, None]
 
     A_e, A_u = projected(L_e), projected(L_u)
+    bias, model = np.zeros(len(considered)), None
+    if disagreement is not None:  # model error: the estimators' disagreement beyond the noise, over the workspace
+        pos_of = {k: i for i, k in enumerate(considered)}
+        F = _sqrt_psd(disagreement.noise_cov)
+        L_d = np.zeros((len(considered), F.shape[1]))
+        L_d[[pos_of[k] for k in disagreement.estimated]] = F
+        shift = np.asarray(disagreement.shift, dtype=float)[considered]
+        model = judge_disagreement(projected(shift[:, None])[:, 0] * w, projected(L_d) * w[:, None])
+        bias = model.share * shift
+    B = projected(bias[:, None])[:, 0]  # the frames' systematic error, gauge removed
     n_read = readings.shape[0]
     position_rows = np.concatenate(
         [np.arange(3 * n_read) + 3 * n_read * (i + sum(x.kind == "pose" for x in items[:i])) for i in range(len(items))]
@@ -417,6 +541,7 @@ def predict_accuracy(
     A = np.hstack([A_e, A_u])
     rng = np.random.default_rng(seed + 1)
     draws = A @ rng.standard_normal((A.shape[1], MAX_DRAWS)) if A.shape[1] else np.zeros((A.shape[0], MAX_DRAWS))
+    draws += B[:, None]
     frames: list[FrameAccuracy] = []
     row = 0
     n = readings.shape[0]
@@ -433,7 +558,8 @@ def predict_accuracy(
             row += 3 * n
         figs: dict[str, tuple] = {}
         for unit, sl in blocks:
-            sig = np.sqrt(np.sum(A[sl].reshape(n, -1) ** 2, axis=1))
+            sig_b = np.linalg.norm(B[sl].reshape(n, 3), axis=1)
+            sig = np.sqrt(np.sum(A[sl].reshape(n, -1) ** 2, axis=1) + sig_b**2)
             sig_u = np.sqrt(np.sum(A_u[sl].reshape(n, -1) ** 2, axis=1))
             largest = np.linalg.norm(draws[sl].reshape(n, 3, -1), axis=1).max(axis=0)
             figs[unit] = (
@@ -442,10 +568,12 @@ def predict_accuracy(
                 float(np.percentile(sig, 95)),
                 float(largest.mean()),
                 float(np.percentile(largest, 95)),
+                float(np.mean((largest >= 0.5 * largest.mean()) & (largest <= 2.0 * largest.mean()))),
             )
             figs[unit + "_u"] = (float(np.sqrt(np.mean(sig_u**2))),)
+            figs[unit + "_b"] = (float(np.sqrt(np.mean(sig_b**2))),)
             figs[unit + "_n"] = (float(np.sqrt(np.sum(A_n[sl] ** 2) / n)),)
-        sm, rms_m, p95_m, max_m, max95_m = figs["m"]
+        sm, rms_m, p95_m, max_m, max95_m, within_2x = figs["m"]
         worst = int(np.argmax(sm))
         pose = "rad" in figs
         frames.append(
@@ -461,10 +589,13 @@ def predict_accuracy(
                 max_rad=figs["rad"][3] if pose else None,
                 max95_m=max95_m,
                 max95_rad=figs["rad"][4] if pose else None,
+                max_within_2x=within_2x,
                 unseen_rms_m=figs["m_u"][0],
                 unseen_rms_rad=figs["rad_u"][0] if pose else None,
                 nominal_rms_m=figs["m_n"][0],
                 nominal_rms_rad=figs["rad_n"][0] if pose else None,
+                model_rms_m=figs["m_b"][0],
+                model_rms_rad=figs["rad_b"][0] if pose else None,
                 worst={j: float(v) for j, v in zip(joints, readings[worst])},
                 sigma_m=sm,
                 sigma_rad=figs["rad"][0] if pose else None,
@@ -484,7 +615,9 @@ def predict_accuracy(
         default_readings=default_readings,
         parameters=tuple(problem.names[considered[i]] for i in moving),
         covariance=L_all @ L_all.T,
+        bias=bias[moving],
         design=projected(np.eye(len(considered))[:, moving])[position_rows],
+        model_error=model,
     )
 
 
@@ -536,10 +669,12 @@ def predict_from_result(
     prior: PriorTolerance | None = None,
     source: str | None = None,
     size_measured: bool | None = None,
+    model_error: bool = True,
 ) -> WorkspaceAccuracy | None:
     """`predict_accuracy` for a `CalibrationResult` (its problem, values, trusted covariance, statuses),
     at `readings`, or `n` readings drawn within the joint ranges (`random_readings`, `seed`); BLAS threads
-    limited by size (`closedloop.estimate.threads.blas_threads`)."""
+    limited by size (`closedloop.estimate.threads.blas_threads`).  `model_error`: the calibration tested
+    for model error (`disagreement`); False leaves it out."""
     problem = res.problem
     default = readings is None and n == N_WORKSPACE and seed == 0
     if readings is None:
@@ -551,6 +686,7 @@ def predict_from_result(
     from closedloop.estimate.threads import blas_threads
 
     with blas_threads(None, 6 * len(readings), len(problem.params)):  # small dense algebra: one thread
+        found = disagreement(res) if model_error else None
         return predict_accuracy(
             problem,
             np.asarray(res.fit.values, dtype=float),
@@ -565,4 +701,5 @@ def predict_from_result(
             source=source or "the given readings",
             default_readings=default,
             seed=seed,
+            disagreement=found,
         )

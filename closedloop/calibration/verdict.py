@@ -414,16 +414,16 @@ def judge_accuracy(
 
 
 def judge_workspace(verdict: Verdict, workspace) -> Verdict:
-    """The verdict with the workspace prediction (`closedloop.analysis.accuracy`): suspect where the
+    """The verdict with the workspace prediction (`closedloop.analysis.accuracy`): failed where the
     calibrated model is not expected to be more accurate than the nominal one over the workspace (its
-    predicted RMS error not below the nominal model's tolerance propagated alike): the data do not support
-    the corrections there."""
+    predicted RMS error, model error included, not below the nominal model's tolerance propagated alike):
+    the data do not support the corrections there, and the nominal model is the better one to use."""
     if workspace is None or workspace.better_than_nominal:
         return verdict
     v = replace(verdict, reasons=list(verdict.reasons), evidence=dict(verdict.evidence))
     worse = [f for f in workspace.frames if f.rms_m >= f.nominal_rms_m]
     v.add(
-        SUSPECT,
+        FAILED,
         "calibrating does not make the robot more accurate in expectation: "
         + "; ".join(
             f"loop {f.loop}: {f.rms_m * 1e3:.3g} mm RMS predicted over the workspace against "

@@ -17,10 +17,13 @@ def accuracy_lines(section: dict | None) -> list[str]:
         rms = f"{f['predicted_rms_m'] * 1e3:.3g} mm"
         nom = f.get("nominal_rms_m")
         rms += f", nominal model {nom * 1e3:.3g} mm" if nom is not None else ""
+        model = f.get("predicted_model_error_rms_m")
+        shares = f"{f['predicted_unseen_rms_m'] * 1e3:.3g} mm RMS from what the data cannot see"
+        if model:  # the estimators disagree beyond the noise: a residual the kinematics cannot explain
+            shares += f", {model * 1e3:.3g} mm from model error"
         lines.append(
             f"  loop {f['loop']}: {'tool point' if f['kind'] == 'point' else 'frame'} {f['frame']}: "
-            f"{', '.join(parts)} at most (RMS {rms}; {f['predicted_unseen_rms_m'] * 1e3:.3g} mm RMS from what "
-            "the data cannot see)"
+            f"{', '.join(parts)} at most (RMS {rms}; {shares})"
         )
     reg = section.get("regions")
     if reg and "test" in reg:

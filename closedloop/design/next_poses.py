@@ -4,7 +4,8 @@ The pose selection of `closedloop.design.poses` turned to the workspace target. 
 prediction (`closedloop.analysis.accuracy.WorkspaceAccuracy`) carries the parameters' covariance Sigma
 (estimated and unseen, over the parameters that move a followed frame) and the gauge-free workspace
 matrix A (the frames' position errors per parameter over the workspace readings): the predicted mean
-squared position error is tr(A Sigma A^T) / n.
+squared position error is (tr(A Sigma A^T) + |A b|^2) / n, b the systematic error a model error adds
+(zero where none is found), which no new configuration removes.
 
 **Candidates.**  Configurations the loop can be recorded at, at its current place (the same socket,
 fixture, hinge): random readings within the joint limits, each moved onto the loop by Gauss-Newton on
@@ -106,7 +107,9 @@ def suggest_poses(
     A = workspace.design
     Sig = np.array(workspace.covariance, dtype=float)
     n = workspace.readings.shape[0]
-    before = float(np.sqrt(np.trace(A @ Sig @ A.T) / (n * len(workspace.frames))))
+    # the model error's systematic part: no new data removes it (`analysis.accuracy`, Model error)
+    floor = float(np.sum((A @ workspace.bias) ** 2)) if workspace.bias is not None else 0.0
+    before = float(np.sqrt((np.trace(A @ Sig @ A.T) + floor) / (n * len(workspace.frames))))
     chosen: list[int] = []
     after = []
     for _ in range(min(k, C.shape[0])):
@@ -118,7 +121,7 @@ def suggest_poses(
         i = int(np.argmax(gain))
         chosen.append(i)
         Sig = Sig - M[i].T @ np.linalg.solve(Si[i], M[i])
-        after.append(float(np.sqrt(max(np.trace(A @ Sig @ A.T), 0.0) / (n * len(workspace.frames)))))
+        after.append(float(np.sqrt((max(np.trace(A @ Sig @ A.T), 0.0) + floor) / (n * len(workspace.frames)))))
     return NextPoses(
         loop=b.loop.name,
         joints=tuple(problem.joints),

@@ -216,6 +216,53 @@ def loo_prediction(problem: CalibrationProblem, x: np.ndarray, est: list[int], r
     return float(np.sqrt(total / count)) if count else 0.0
 
 
+def plain_linearization(
+    problem: CalibrationProblem,
+    x: np.ndarray,
+    est: list[int],
+    sigma_q: np.ndarray,
+    thetas: list[np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """The plain loop-closure estimator (eq. 3.8) linearized at `x`: its Gauss-Newton step from `x`,
+    dx = -A^+ sum_i J_i^T r_i, the decrease of the squared closure it predicts (sum_i J_i^T r_i)^T A^+ (...),
+    and its first-order covariance under the errors-in-variables noise model
+    (eq. 3.17), Cov = A^+ (sum_i J_i^T W_i J_i) A^+, with A = sum_i J_i^T J_i, J_i and r_i the closure
+    Jacobian over the `est` columns and residual of configuration i, W_i = J_theta,i diag(sigma_q^2)
+    J_theta,i^T + C_i (C_i a loop's measurement covariance).  A^+ in the parameters' prior units, directions
+    below 1e-12 of the largest dropped; configurations several blocks share are taken as independent.
+    Step and covariance in the parameters' own units, order `est`."""
+    scale = np.array([problem.params[k].prior for k in est], dtype=float)
+    L = len(est)
+    JtJ = np.zeros((L, L))
+    meat = np.zeros((L, L))
+    Jtr = np.zeros(L)
+    for ev, nz in zip(problem.evaluate(x, True, thetas, columns=est), problem.noise):
+        if ev.J is None or ev.Jq is None or not ev.J.size:
+            continue
+        J = np.nan_to_num(ev.J) * scale
+        Jq = np.nan_to_num(ev.Jq) * sigma_q[None, None, :]
+        W = Jq @ np.swapaxes(Jq, 1, 2)
+        if nz.measurement_cov is not None:
+            W = W + nz.measurement_cov
+        JtJ += np.einsum("nki,nkj->ij", J, J)
+        meat += np.einsum("nki,nkl,nlj->ij", J, W, J)
+        Jtr += np.einsum("nki,nk->i", J, np.nan_to_num(ev.r).reshape(J.shape[:2]))
+    Ainv = np.linalg.pinv(JtJ, rcond=1e-12, hermitian=True)
+    return -(Ainv @ Jtr) * scale, Ainv @ meat @ Ainv * np.outer(scale, scale), float(Jtr @ Ainv @ Jtr)
+
+
+def plain_covariance(
+    problem: CalibrationProblem,
+    x: np.ndarray,
+    est: list[int],
+    sigma_q: np.ndarray,
+    thetas: list[np.ndarray] | None = None,
+) -> np.ndarray:
+    """First-order covariance of the plain loop-closure estimator under the errors-in-variables noise model
+    (`plain_linearization`)."""
+    return plain_linearization(problem, x, est, sigma_q, thetas)[1]
+
+
 def sandwich_cov(
     problem: CalibrationProblem, r: np.ndarray, J: np.ndarray, scale: np.ndarray, V: np.ndarray, S: np.ndarray
 ) -> np.ndarray:

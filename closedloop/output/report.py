@@ -366,8 +366,13 @@ def accuracy_section(workspace, regions: dict | None = None, target: dict | None
                     "predicted_max_rad": _f(f.max_rad),
                     "predicted_max95_m": _f(f.max95_m),
                     "predicted_max95_rad": _f(f.max95_rad),
+                    # the chance that one calibrated robot's largest error lies within 0.5-2x predicted_max_m
+                    "predicted_max_within_2x": _f(f.max_within_2x),
                     "predicted_unseen_rms_m": _f(f.unseen_rms_m),
                     "predicted_unseen_rms_rad": _f(f.unseen_rms_rad),
+                    # the share from the model error the estimators' disagreement shows (0: none found)
+                    "predicted_model_error_rms_m": _f(f.model_rms_m),
+                    "predicted_model_error_rms_rad": _f(f.model_rms_rad),
                     # the nominal model's expected error (its tolerance, same readings and gauge)
                     "nominal_rms_m": _f(f.nominal_rms_m),
                     "nominal_rms_rad": _f(f.nominal_rms_rad),
@@ -376,6 +381,15 @@ def accuracy_section(workspace, regions: dict | None = None, target: dict | None
                 for f in workspace.frames
             ],
         }
+        me = workspace.model_error
+        if me is not None:  # the plain fit against the calibration, over the workspace (analysis.accuracy)
+            ws["model_error"] = {
+                "ratio": _f(me.ratio),
+                "dof": _f(me.dof),
+                "limit": _f(me.limit),
+                "share": _f(me.share),
+                "found": bool(me.found),
+            }
         if workspace.covariance is not None:  # what `closedloop evaluate` propagates to its own configurations
-            ws["covariance"] = {"parameters": list(workspace.parameters), "matrix": workspace.covariance.tolist()}
+            ws["covariance"] = {"parameters": list(workspace.parameters), "matrix": workspace.error_covariance.tolist()}
     return {"workspace": ws, "regions": regions, "target": target}

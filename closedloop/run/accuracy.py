@@ -48,14 +48,15 @@ def check_workspace(spec: str) -> dict[str, tuple[float, float]] | None:
     return parse_box(spec)
 
 
-def predicted_accuracy(res, readings: np.ndarray | None = None, source: str | None = None):
+def predicted_accuracy(res, readings: np.ndarray | None = None, source: str | None = None, prior=None):
     """The calibration's predicted accuracy over the workspace (`analysis.accuracy.predict_from_result`)
-    at `readings` (`workspace_readings`; None: within the joint ranges); None where no loop has a frame
-    to follow, or the kinematics are not finite at a reading (a note says so)."""
+    at `readings` (`workspace_readings`; None: within the joint ranges), with the nominal tolerance `prior`
+    (`parse_prior`; None: `PriorTolerance`'s defaults); None where no loop has a frame to follow, or the
+    kinematics are not finite at a reading (a note says so)."""
     from closedloop.analysis.accuracy import predict_from_result
 
     try:
-        return predict_from_result(res, readings, source=source)
+        return predict_from_result(res, readings, source=source, prior=prior)
     except np.linalg.LinAlgError as exc:  # the calibration stands; the prediction is said to be missing
         res.notes.append(f"accuracy over the workspace not predicted: {exc}")
         return None
@@ -179,3 +180,42 @@ def parse_accuracy(text: str) -> tuple[float | None, float | None]:
     if m is None and rad is None:
         raise InputError("--accuracy: give a position target, an angle target or both, e.g. 0.2mm,1mrad")
     return m, rad
+
+
+#: ``--prior-tolerance`` keys: the `PriorTolerance` field each sets and the units it takes (none: a ratio)
+PRIOR_KEYS = {
+    "length": ("length_m", ("m", "mm", "um")),
+    "angle": ("angle_rad", ("rad", "mrad", "urad", "deg")),
+    "offset": ("offset_rad", ("rad", "mrad", "urad", "deg")),
+    "scale": ("scale", ()),
+}
+
+
+def parse_prior(text: str, label: str = "--prior-tolerance"):
+    """The nominal model's tolerance ``length=1mm,angle=1mrad,offset=10mrad,scale=0.001`` (any of the keys,
+    the others at `analysis.accuracy.PriorTolerance`'s defaults; a number without a unit is in m, rad or a
+    ratio) as a `PriorTolerance`; one line naming the item at fault otherwise."""
+    from dataclasses import replace
+
+    from closedloop.analysis.accuracy import PriorTolerance
+
+    values: dict[str, float] = {}
+    for part in (p.strip() for p in text.split(",") if p.strip()):
+        key, eq, rest = (t.strip() for t in part.partition("="))
+        if not eq or key not in PRIOR_KEYS:
+            raise InputError(
+                f"{label} '{part}': expected key=value with the keys {', '.join(PRIOR_KEYS)}, "
+                "e.g. length=1mm,angle=1mrad,offset=10mrad,scale=0.001"
+            )
+        name, units = PRIOR_KEYS[key]
+        hit = re.fullmatch(r"([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*([a-z]*)", rest)
+        if not hit or (hit.group(2) and hit.group(2) not in units):
+            said = f"a unit of {', '.join(units)}" if units else "no unit (a ratio)"
+            raise InputError(f"{label} '{part}': expected a number >= 0 with {said}")
+        value = float(hit.group(1)) * (UNITS[hit.group(2)] if hit.group(2) else 1.0)
+        if not value < 1.0:  # a tolerance of a metre, a radian or 100 % is no nominal model
+            raise InputError(f"{label} '{part}': a tolerance must be below 1 (m, rad or a ratio)")
+        values[name] = value
+    if not values:
+        raise InputError(f"{label}: give key=value items, e.g. length=1mm,angle=1mrad,offset=10mrad,scale=0.001")
+    return replace(PriorTolerance(), **values)

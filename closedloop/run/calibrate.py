@@ -78,6 +78,7 @@ def calibrate_files(
         check_workspace,
         next_poses,
         parse_accuracy,
+        parse_prior,
         predicted_accuracy,
         region_validation,
         workspace_readings,
@@ -96,7 +97,8 @@ def calibrate_files(
     _done(prog)
     elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
     workspace = workspace_readings(o, robot, res.problem.joints)  # where the accuracy is predicted
-    accuracy = predicted_accuracy(res, *workspace)  # over the workspace (closedloop.analysis.accuracy)
+    prior = parse_prior(o.prior_tolerance) if o.prior_tolerance else None  # the nominal model's tolerance
+    accuracy = predicted_accuracy(res, *workspace, prior=prior)  # over the workspace (closedloop.analysis.accuracy)
     if inp.weighting_note:
         res.notes.append(inp.weighting_note)
     res.notes.extend(inp.geometry)
@@ -107,7 +109,7 @@ def calibrate_files(
     cv, cv_record = fold_validation(robot, lg, loops, inp.fit, inp.folds, o.cv is not None, res, prog)
     lofo = fixture_validation(robot, lg, loops, inp.fit, o.lofo, res, prog)
     regions = region_validation(robot, lg, loops, inp.fit, o, res, prog)  # whole regions of joint space held out
-    verdict = judge_workspace(final_verdict(res, cv, lofo, o.rules), accuracy)  # no better than nominal: suspect
+    verdict = judge_workspace(final_verdict(res, cv, lofo, o.rules), accuracy)  # no better than nominal: failed
     target = None
     if o.accuracy:  # ok only where the prediction meets the target
         verdict, target = judge_accuracy(verdict, accuracy, *parse_accuracy(o.accuracy))

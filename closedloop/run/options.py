@@ -217,6 +217,13 @@ class CalibrateOptions:
         kind="text",
         metavar="TARGET",
     )
+    prior_tolerance: str | None = option(
+        None,
+        "the nominal model's tolerance (one std), the prior of what the data cannot see: "
+        "length=1mm,angle=1mrad,offset=10mrad,scale=0.001 (the defaults; give any of them)",
+        kind="text",
+        metavar="TOLERANCES",
+    )
     suggest: str | None = option(
         None,
         "write the configurations to record next (CSV of joint readings at the loop's place) that most "
@@ -309,6 +316,10 @@ def check_value(name: str, value: Any, label: str | None = None) -> Any:
     if kind == "text":
         if isinstance(value, bool) or not isinstance(value, (str, int, float)) or not str(value):
             raise InputError(f"{label} {_shown(value)}: expected a text value (a path, a name)")
+        if name == "prior_tolerance":  # refused now, not after the fit
+            from closedloop.run.accuracy import parse_prior
+
+            parse_prior(str(value), label)
         return str(value)
     if kind == "texts":
         items = _texts(label, value)

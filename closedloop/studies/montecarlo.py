@@ -255,23 +255,13 @@ def cramer_rao(
 def sandwich_unweighted(
     problem: CalibrationProblem, truth: np.ndarray, params: list[int], noise, thetas: list[np.ndarray] | None = None
 ) -> np.ndarray:
-    """First-order covariance of the unweighted estimator, (J^T J)^-1 J^T W J (J^T J)^-1."""
+    """First-order covariance of the unweighted estimator, (J^T J)^-1 J^T W J (J^T J)^-1
+    (`estimate.model_error.plain_covariance`)."""
+    from closedloop.estimate.model_error import plain_covariance
     from closedloop.estimate.noise import noise_vector
 
     sigma_q, _ = noise_vector(problem, noise)
-    evals = problem.evaluate(truth, True, thetas)
-    L = len(params)
-    JtJ = np.zeros((L, L))
-    meat = np.zeros((L, L))
-    for ev in evals:
-        assert ev.J is not None and ev.Jq is not None  # evaluated with Jacobians
-        J = ev.J[:, :, params]
-        Jq = ev.Jq * sigma_q[None, None, :]
-        W = Jq @ np.swapaxes(Jq, 1, 2)
-        JtJ += np.einsum("nki,nkj->ij", J, J)
-        meat += np.einsum("nki,nkl,nlj->ij", J, W, J)
-    A = np.linalg.inv(JtJ)
-    return A @ meat @ A
+    return plain_covariance(problem, truth, params, sigma_q, thetas)
 
 
 # --------------------------------------------------------------------------- MC

@@ -35,19 +35,40 @@ def regions(
     """k disjoint sets of row indices (0-based) of the log, each a region of joint space (module docstring).
 
     Regions are k-means clusters of the readings of `joints` scaled by their ranges; an empty cluster is
-    dropped (fewer regions than k on a log of few distinct configurations).
+    dropped (fewer regions than k on a log of few distinct configurations).  Where the rows belong to
+    several loops (the log's 'loop' column: each loop recorded on its own), each loop's rows are clustered
+    on their own and region c holds the c-th cluster of every loop, so that every refit keeps rows of every
+    loop (a loop whose rows all lie in the left-out region could not be refitted).
     """
-    from scipy.cluster.vq import kmeans2
-
     if k < 2:
         raise ParameterError("region validation needs k >= 2 regions")
-    if len(log_) < 2 * k:
-        raise ParameterError(
-            f"region validation with {k} regions needs at least {2 * k} rows; {log_.source or 'the log'} has {len(log_)}"
-        )
+    groups = (
+        [np.arange(len(log_))]
+        if log_.loop is None
+        else [np.flatnonzero(log_.loop == name) for name in dict.fromkeys(log_.loop.tolist())]
+    )
+    for g in groups:
+        if g.size < 2 * k:
+            which = "" if log_.loop is None else f" of loop '{log_.loop[g[0]]}'"
+            raise ParameterError(
+                f"region validation with {k} regions needs at least {2 * k} rows{which}; "
+                f"{log_.source or 'the log'} has {g.size}"
+            )
     X = log_.columns(joints)
     lo, hi = joint_ranges(robot, joints)
     Z = (X - lo) / (hi - lo)
+    out: list[list[int]] = [[] for _ in range(k)]
+    for g in groups:
+        for c, part in enumerate(_clusters(Z[g], k, seed)):
+            out[c].extend(g[part].tolist())
+    return [np.sort(np.array(r, dtype=int)) for r in out if r]
+
+
+def _clusters(Z: np.ndarray, k: int, seed: int) -> list[np.ndarray]:
+    """The k-means clusters (row indices of `Z`) of scaled readings, the joints that do not move left out;
+    the empty ones dropped."""
+    from scipy.cluster.vq import kmeans2
+
     moving = np.ptp(Z, axis=0) > 0
     Z = Z[:, moving] if moving.any() else Z
     _, labels = kmeans2(Z, k, seed=seed, minit="++")
