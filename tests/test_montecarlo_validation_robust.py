@@ -7,9 +7,9 @@ from scipy import stats
 from closedloop import CalibrationOptions, calibrate
 from closedloop.calibration.pipeline import build_problem
 from closedloop.estimate.robust import config_residuals, irls, mad_scale, suspects, weights
+from closedloop.io.logs import JointLog
 from closedloop.problem.unwrap import unwrap_rotation_vector
 from closedloop.studies.montecarlo import monte_carlo, weld_scenario
-from closedloop.io.logs import JointLog
 from closedloop.validation.kfold import cross_validate, folds, validation_rows
 
 NOISE = 1e-4
