@@ -14,6 +14,7 @@ from closedloop.errors import LoopError
 from closedloop.io.logs import JointLog
 from closedloop.loops.hinge import HingeLoop
 from closedloop.loops.passive import PassiveChainLoop
+from closedloop.loops.projection import SECANT_REACH
 from closedloop.loops.spec import parse_loop
 from closedloop.model.robot import RobotModel
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
@@ -330,8 +331,14 @@ def _ref_eliminate(M, pose, starts, integrate=None, tol=1e-13, max_iter=100, sna
     Jl = pin.Jlog6(E)
     Jphi = -Jl @ E.inverse().action @ Xd
     it = 0
+    secant, prev = integrate is None and phi.size == 1 and Jphi.shape[1] == 1, None  # one additive angle
     for it in range(1, max_iter + 1):
         step = -np.linalg.lstsq(Jphi, r, rcond=1e-12)[0]
+        g = float(Jphi[:, 0] @ r)
+        if secant and prev is not None and phi[0] != prev[0]:  # the secant step on the gradient
+            h = (g - prev[1]) / (phi[0] - prev[0])
+            if h > 0 and abs(g / h) <= SECANT_REACH * abs(step[0]):
+                step = np.array([-g / h])
         t, small = 1.0, np.max(np.abs(step)) < 1e-6
         while True:
             phin = integ(phi, t * step)
@@ -344,6 +351,7 @@ def _ref_eliminate(M, pose, starts, integrate=None, tol=1e-13, max_iter=100, sna
             t *= 0.5
         if not small and cn > c:
             break
+        prev = (phi[0], g)
         phi, Xd, E, r, c = phin, np.reshape(Xdn, (6, -1)), En, rn, cn
         Jl = pin.Jlog6(E)
         Jphi = -Jl @ E.inverse().action @ Xd

@@ -7,9 +7,10 @@ from scipy import stats
 from closedloop import CalibrationOptions, calibrate
 from closedloop.calibration.pipeline import build_problem
 from closedloop.estimate.robust import config_residuals, irls, mad_scale, suspects, weights
+from closedloop.io.logs import JointLog
 from closedloop.problem.unwrap import unwrap_rotation_vector
 from closedloop.studies.montecarlo import monte_carlo, weld_scenario
-from closedloop.validation.kfold import cross_validate, folds
+from closedloop.validation.kfold import cross_validate, folds, validation_rows
 
 NOISE = 1e-4
 
@@ -81,6 +82,24 @@ def test_cross_validation(scenario):
     assert cv["test_whitened_rms"] > cv["train_whitened_rms"]
     # Unweighted closure errors at the noise level (1e-4 rad through a ~0.5-1 m arm).
     assert test["rms_m"] < 5e-4 and test["rms_rad"] < 1e-3
+
+
+def test_a_long_fold_is_an_even_sample_of_each_loop():
+    """A held-out refit on a long log trains and is judged on at most `cap` rows per loop, spread from the
+    first row to the last of each; a short one on all its rows."""
+    loops = np.array(["door"] * 9000 + ["wall"] * 300 + ["door"] * 1000)
+    lg = JointLog(["j"], np.zeros((loops.size, 1)), loop=loops)
+    rows = np.arange(0, loops.size, 2)  # a fold's rows: every other row
+    picked = validation_rows(lg, rows, cap=1000)
+    assert np.all(np.diff(picked) > 0) and np.isin(picked, rows).all()
+    door, wall = picked[loops[picked] == "door"], picked[loops[picked] == "wall"]
+    assert door.size == 1000 and wall.size == 150  # the wall's 150 rows of the fold are all kept
+    assert door[0] == 0 and door[-1] == rows[loops[rows] == "door"][-1]  # from the first row to the last
+    gaps = np.diff(door)  # evenly spread (5,000 rows of the fold, 1,000 kept: every 10th row of the log) ...
+    assert np.sort(gaps)[-2] <= 12 and gaps.max() <= 300 + 12  # ... but across the wall's 300 rows
+    assert np.array_equal(validation_rows(lg, rows[:500], cap=1000), rows[:500])
+    one = JointLog(["j"], np.zeros((5000, 1)))
+    assert validation_rows(one, np.arange(5000), cap=100).size == 100
 
 
 def test_weights_and_scale_on_synthetic_blocks():

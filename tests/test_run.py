@@ -65,7 +65,8 @@ def test_the_held_out_verdict_keeps_what_the_fit_found(data):
 
 
 def test_a_run_writes_what_its_verdict_allows(data, tmp_path):
-    """From files to files through the API; a verdict failed by the options' rules writes the report only."""
+    """From files to files through the API, each long stage told to the progress display; a verdict failed
+    by the options' rules writes the report only."""
     _, _, _, path, _ = data
     base = CalibrateOptions(
         model=str(ROBOTS["panda"].path),
@@ -75,8 +76,12 @@ def test_a_run_writes_what_its_verdict_allows(data, tmp_path):
         report=str(tmp_path / "ok.json"),
         cv=2,
     )
-    run = calibrate_files(base)
+    told: list[str] = []
+    run = calibrate_files(base, lambda task, done, total=None, note="": told.append(task))
     report = json.loads((tmp_path / "ok.json").read_text())
+    # every stage that takes seconds on a long log shows a progress line, in the order the run takes them
+    stages = ["reading", "analysing", "solving", "predicting accuracy", "validating", "validating regions"]
+    assert [t for t in dict.fromkeys(told) if t in stages] == stages, told
     assert run.model_written and (tmp_path / "ok.urdf").is_file()
     assert report["verdict"]["status"] == run.verdict.status != "failed"
     assert report["validation"]["k"] == 2 and len(report["validation"]["folds_converged"]) == 2

@@ -69,6 +69,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from closedloop.errors import InputError
+from closedloop.estimate.qr import scaled_r_factor_of_blocks
 from closedloop.records import ParamStatus
 
 #: loop types whose tool point is followed, and those whose frame pose is (`closedloop check` alike)
@@ -348,8 +349,9 @@ def unseen_factor(
     t = np.array([prior.of(problem.params[k].kind, problem.params[k].unit) for k in considered], dtype=float)
     evs = problem.evaluate(values, True, columns=considered)
     rows = [ev.jacobian().reshape(-1, len(considered)) for ev in evs if ev.J is not None and ev.J.size]
-    C = np.vstack(rows) * p if rows else np.zeros((0, len(considered)))
-    C = C[np.all(np.isfinite(C), axis=1)]
+    rows = [J if np.isfinite(J).all() else J[np.all(np.isfinite(J), axis=1)] for J in rows]
+    # the right singular vectors of the prior-scaled Jacobian C = Q R are R's: reduced a chunk of rows at a time
+    C = scaled_r_factor_of_blocks(rows, p) if rows else np.zeros((0, len(considered)))
     if C.shape[0] < C.shape[1]:
         C = np.vstack([C, np.zeros((C.shape[1] - C.shape[0], C.shape[1]))])
     _, _, Vt = np.linalg.svd(C, full_matrices=False)

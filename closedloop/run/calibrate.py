@@ -88,7 +88,9 @@ def calibrate_files(
     o = options
     prog = progress or _silent
     check_run_outputs(o)
+    prog("reading", 0)  # a long log takes seconds to read
     inp = load_inputs(o)  # the robot, its loops, the log, the folds, the fit's options
+    _done(prog)
     robot, lg, loops = inp.robot, inp.log, inp.loops
     if o.workspace:
         check_workspace(o.workspace)  # refused now, not after the fit
@@ -96,9 +98,11 @@ def calibrate_files(
     res = calibrate(robot, lg, loops, inp.fit, progress=prog)
     _done(prog)
     elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
+    prog("predicting accuracy", 0)  # an evaluation of every row with its Jacobian
     workspace = workspace_readings(o, robot, res.problem.joints)  # where the accuracy is predicted
     prior = parse_prior(o.prior_tolerance) if o.prior_tolerance else None  # the nominal model's tolerance
     accuracy = predicted_accuracy(res, *workspace, prior=prior)  # over the workspace (closedloop.analysis.accuracy)
+    _done(prog)
     if inp.weighting_note:
         res.notes.append(inp.weighting_note)
     res.notes.extend(inp.geometry)
