@@ -202,6 +202,25 @@ def held_on_chain(path: str | Path, frames: list[str]) -> list[str]:
     return list(dict.fromkeys(out))
 
 
+def urdf_mimics(path: str | Path) -> dict[str, tuple[str, float, float]]:
+    """Joints with a ``<mimic joint=...>`` element in a URDF: {joint: (followed joint, multiplier, offset)}."""
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError):
+        return {}
+    out: dict[str, tuple[str, float, float]] = {}
+    for j in root.iter("joint"):
+        m = j.find("mimic")
+        name = j.get("name")
+        if m is not None and name:
+            try:
+                mult, off = float(m.get("multiplier", 1.0)), float(m.get("offset", 0.0))
+            except ValueError:
+                raise ModelError(f"{path}: joint '{name}': <mimic> multiplier and offset must be numbers") from None
+            out[name] = (m.get("joint", "?"), mult, off)
+    return out
+
+
 def check_mjcf(path: str | Path) -> None:
     """Refuse an MJCF that is not XML, not ``<mujoco>``, xacro, or nests bodies deeper than `MAX_DEPTH`."""
     path = Path(path)
