@@ -161,7 +161,8 @@ def test_contact_point_on_the_last_axis_named_at_calibrate(tmp_path, monkeypatch
     """Data with the contact on LeftGripperYaw's axis (simulated with the check switched off): calibrate's
     check before the fit names the joint and the fix; the same robot with a 5 cm stylus passes it."""
     from closedloop.io.logs import read_log
-    from closedloop.loops.spec import check_loop_geometry, parse_loop
+    from closedloop.loops.geometry import check_loop_geometry
+    from closedloop.loops.spec import parse_loop
     from closedloop.model.robot import RobotModel
     from closedloop.sims import robot_scenario
 

@@ -8,19 +8,25 @@ script calls to do the same from Python::
                                            out="calibrated.urdf", report="report.json"))
     print(run.verdict.describe())
 
+The run goes down the layers once and comes back up with its result:
+
 1. **Check** the output paths before any work (`io.files.check_outputs`).
-2. **Load** the model (`model.robot.RobotModel.from_file`), the loops and the log (`closedloop.run.inputs`).
+2. **Load** (`closedloop.run.inputs.load_inputs`): the model (`model.robot.RobotModel.from_file`, whose
+   format the output must keep: `RobotModel.check_output`), the loops (`loops.spec.parse_loops`) and the
+   rig's known distances and lengths, the log with its torques, and the loops' geometry on it
+   (`loops.geometry.check_loop_geometry`); ``--workspace`` and ``--accuracy`` read (`run.accuracy`).
 3. **Calibrate** (`calibration.pipeline.calibrate`: the problem built once, the fit judged by the
    options' `VerdictRules`).
-4. **Predict** the calibrated robot's accuracy over the workspace (`analysis.accuracy`, `run.accuracy`).
-5. **Validate**: k-fold held-out refits (`validation.kfold.cross_validate`), whole regions of joint space
-   held out (`validation.regions`) and, where the loops form several fixtures, leave-one-fixture-out
-   (`validation.fixtures.leave_one_fixture_out`).
-6. **Judge** the fit with the held-out evidence (`calibration.verdict.judge`), every piece of the fit's
-   own judgement kept, and the prediction against the nominal model and the accuracy target
-   (`calibration.verdict.judge_workspace`, `judge_accuracy`).
-7. **Write** the model (unless the verdict is failed and not forced), its sensor file, the report, the
-   HTML page and figures, published whole (`io.files.OutputSet`; `folder` publishes a whole folder).
+4. **Predict** the calibrated robot's accuracy over the workspace, and the poses to record next
+   (`run.accuracy.predict_workspace`: `analysis.accuracy`, `design.next_poses`).
+5. **Validate** (`validate`): k-fold held-out refits (`validation.kfold.cross_validate`), whole regions
+   of joint space held out (`validation.regions`) and, where the loops form several fixtures,
+   leave-one-fixture-out (`validation.fixtures.leave_one_fixture_out`).
+6. **Judge** once (`calibration.verdict.judge_run`): the fit with the held-out evidence, every piece of
+   the fit's own judgement kept, the prediction against the nominal model and the accuracy target.
+7. **Write**: the report (`output.report.build_report`) and each file made whole as text by its writer
+   in `closedloop.output` (model, sensor file, report, suggestions), then published as one set
+   (`io.files.publish`; `folder` publishes a whole folder); the HTML page and figures after them.
 
 Nothing is printed: progress goes to the reporter given (`closedloop.progress.ProgressReporter`,
 ``progress(task, done, total, note)``; its ``close()`` is called between steps where it has one), and

@@ -78,17 +78,18 @@ class RunInputs:
     messages: list[str] = field(default_factory=list)  # what the reading has to say (a bag's standstills)
     geometry: list[str] = field(
         default_factory=list
-    )  # warnings on the loops' geometry (`loops.spec.check_loop_geometry`)
+    )  # warnings on the loops' geometry (`loops.geometry.check_loop_geometry`)
 
 
 def load_inputs(o) -> RunInputs:
     """The run's inputs (`RunInputs`) from its options (`closedloop.run.options.CalibrateOptions`): the
     model and the calibrated model's format, the loops (`loops.spec.parse_loops`) and the rig's known
     distances, blocks and lengths (`problem.distances`, `problem.lengths`), the log and its loop column,
-    the loops' geometry on it (`loops.spec.check_loop_geometry`), the k-fold count (`cv`, or 5, fewer on
+    the loops' geometry on it (`loops.geometry.check_loop_geometry`), the k-fold count (`cv`, or 5, fewer on
     a shorter log), the weighting, the fit's options."""
     from closedloop.calibration.pipeline import CalibrationOptions
-    from closedloop.loops.spec import check_loop_geometry, parse_loops
+    from closedloop.loops.geometry import check_loop_geometry
+    from closedloop.loops.spec import parse_loops
     from closedloop.model.parameters import fix_values
     from closedloop.model.robot import RobotModel
     from closedloop.problem.distances import parse_blocks, parse_distances
