@@ -138,13 +138,15 @@ def test_revolute_joint_without_limits_turns(tmp_path):
 
 
 def test_a_loop_through_held_joints_is_refused_before_any_work(tmp_path, capsys):
-    from closedloop.io.robot_files import held_on_chain
+    from closedloop.model.robot import RobotModel
 
     sim = tmp_path / "sim"
     arm = "LShoulderPitch,LShoulderYaw,LElbowRoll,LElbowYaw,LWristRoll,LWristYaw,LWristPitch"  # the trunk held
     assert _simulate(ROMEO, "weld:frame=l_wrist,name=fixture", sim, n=6, extra=["--joints", arm]) == 0
     capsys.readouterr()
-    assert held_on_chain(sim / "nominal.urdf", ["l_wrist"]) == []  # the simulated loop: rigid trunk, as in truth
+    assert (
+        RobotModel.from_file(sim / "nominal.urdf").held_on_chain(["l_wrist"]) == []
+    )  # the simulated loop: rigid trunk, as in truth
     spec = "weld:frame=r_wrist,name=fixture"
     assert main(["calibrate", str(sim / "nominal.urdf"), str(sim / "log.csv"), "--loop", spec, "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()

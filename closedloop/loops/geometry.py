@@ -19,14 +19,13 @@ def check_loop_geometry(model_path, robot, lg, loops: list, specs: list[str] | N
     """
     import numpy as np
 
-    from closedloop.io.robot_files import held_on_chain
     from closedloop.loops.point import PointLoop, contact_on_axis
     from closedloop.model.axes import point_on_axis_message
 
     warnings = []
     for k, lp in enumerate(loops):
         frames = [f for f in (lp.frame_a, lp.frame_b) if f not in ("universe", "world")]
-        held = held_on_chain(model_path, frames) if robot.kind == "urdf" else []
+        held = robot.held_on_chain(frames)
         if held:
             raise InputError(
                 f"{model_path}: loop '{lp.name}' passes joint(s) {', '.join(held)}, which the simulation held "

@@ -81,6 +81,8 @@ class RobotModel:
         self._unsupported: dict[str, str] = {}
         self.mimic: dict[str, str] = {}  # URDF <mimic>: joint -> the joint it follows (see supporting_joints)
         self.mimic_coupling: dict[str, tuple[float, float]] = {}  # joint -> (multiplier, offset)
+        self.urdf_tree: dict[str, tuple[str, str]] = {}  # URDF joint -> (parent link, child link)
+        self.held: frozenset[str] = frozenset()  # URDF joints `closedloop simulate --robot` held fixed
         data = model.createData()
         q0 = pin.neutral(model)
         pin.computeJointJacobians(model, data, q0)
@@ -122,7 +124,7 @@ class RobotModel:
             table = load_dh(path)  # read as an input of the run (`io.schemas.load_yaml`)
             return cls(table.build_model(), path, "dh", table)
         from closedloop.io.files import note_input
-        from closedloop.io.robot_files import check_mjcf, check_urdf, urdf_mimics
+        from closedloop.io.robot_files import check_mjcf, check_urdf, read_urdf_joints
 
         note_input(path)
         if suffix == ".urdf":
@@ -140,10 +142,12 @@ class RobotModel:
                 text = " ".join(str(exc).split()) or type(exc).__name__
                 said = " ".join(log_lines()[:1])
                 raise ModelError(f"{path}: Pinocchio cannot parse this model ({said or text})"[:400]) from None
-        mimics = urdf_mimics(path) if kind == "urdf" else {}
+        urdf = read_urdf_joints(path) if kind == "urdf" else None
         robot = cls(model, path, kind)
-        robot.mimic = {j: f for j, (f, _, _) in mimics.items()}
-        robot.mimic_coupling = {j: (m, o) for j, (_, m, o) in mimics.items()}
+        if urdf is not None:
+            robot.mimic = {j: f for j, (f, _, _) in urdf.mimics.items()}
+            robot.mimic_coupling = {j: (m, o) for j, (_, m, o) in urdf.mimics.items()}
+            robot.urdf_tree, robot.held = urdf.tree, urdf.held
         return robot
 
     # ------------------------------------------------------------------ lookup
@@ -239,6 +243,26 @@ class RobotModel:
     def has_inertias(self) -> bool:
         """Whether the model carries real masses (a URDF's or MJCF's inertials; a D-H table has none)."""
         return self.kind != "dh" and float(sum(self.model.inertias[j].mass for j in range(1, self.model.njoints))) > 0.0
+
+    def held_on_chain(self, frames: list[str]) -> list[str]:
+        """The joints `closedloop simulate --robot` held fixed (`held`: marked
+        `closedloop.io.robot_files.HELD` in the URDF) on the loop through `frames` (links or joints of the
+        URDF): between the root and one frame, or between two (their common ancestors left out), root
+        first; empty when the model marks none."""
+        if not self.held:
+            return []
+        by_child = {child: j for j, (_, child) in self.urdf_tree.items()}
+        chains: list[list[str]] = []
+        for frame in frames:
+            j = frame if frame in self.urdf_tree else by_child.get(frame)
+            chain: list[str] = []
+            while j is not None and j not in chain:  # a cycle is check_urdf's to refuse
+                chain.append(j)
+                j = by_child.get(self.urdf_tree[j][0])
+            chains.append(chain[::-1])
+        common = set(chains[0]).intersection(*chains[1:]) if len(chains) > 1 else set()
+        out = [j for chain in chains for j in chain if j in self.held and j not in common]
+        return list(dict.fromkeys(out))
 
     def check_output(self, out: str | Path | None) -> None:
         """The calibrated model is written in this model's own format (`closedloop.output.urdf.model_text`):
