@@ -1,66 +1,14 @@
-"""A run's inputs: the robot's loops, the joint log (a CSV, a ROS bag, or each loop's own file) with its
-torques, and the known distances, blocks and lengths of a rig; how the readings are weighted.
-
-Used by `closedloop.run.calibrate` and by ``closedloop evaluate`` (which reads its log alike).
+"""A run's inputs (`load_inputs`): the model, the robot's loops and the known distances, blocks and lengths
+of a rig, the joint log (`closedloop.io.joint_log`: a CSV, a ROS bag, or each loop's own file) with its
+torques, the loops' geometry on it; how the readings are weighted.  Used by `closedloop.run.calibrate`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from closedloop.errors import InputError
-
-
-def read_inputs(
-    log_path: str | None,
-    robot,
-    loops: list,
-    degrees: bool = False,
-    order: list[str] | None = None,
-    notes: list[str] | None = None,
-):
-    """The joint log: the positional file (CSV or bag), or each loop's own ``log=`` file (one per fixture);
-    refused where most readings of a joint lie far beyond its limits (`io.logs.check_angle_units`) or
-    where its ``loop`` column names no loop given (`io.logs.check_loop_column`); with the model's gravity
-    torques where it logs none (`RobotModel.with_gravity_torques`).  A bag's extraction is said in `notes`."""
-    from closedloop.io.logs import check_angle_units, check_loop_column
-
-    lg = _read(log_path, robot, loops, degrees, order, notes if notes is not None else [])
-    check_angle_units(lg, robot, degrees)
-    check_loop_column(lg, [lp.name for lp in loops])
-    return robot.with_gravity_torques(lg)
-
-
-def _read(log_path: str | None, robot, loops: list, degrees: bool, order: list[str] | None, notes: list[str]):
-    from closedloop.io.logs import read_log, read_loop_logs
-
-    linear = [j for j, info in robot.joints.items() if info.kind == "prismatic"]
-    real = [lp for lp in loops if not getattr(lp, "parameter_only", False)]
-    own = [lp for lp in real if getattr(lp, "log_path", None)]
-    if own:
-        if len(own) != len(real):
-            missing = [lp.name for lp in real if not getattr(lp, "log_path", None)]
-            raise InputError(
-                f"loop(s) {', '.join(missing)} have no log=FILE while others have: give every loop "
-                "its file, or one log with a 'loop' column"
-            )
-        if log_path:
-            raise InputError(f"{log_path}: the loops name their own log files (log=...); give no log besides")
-        return read_loop_logs([(lp.name, lp.log_path) for lp in own], robot.joint_names, degrees, linear, order)
-    if not log_path:
-        raise InputError("no log given: name the CSV log (or each loop's file with --loop ...,log=FILE)")
-    if order:
-        return read_log(log_path, robot.joint_names, degrees, linear, order)
-    if Path(log_path).suffix.lower() != ".csv":  # the bag reader is not loaded for a CSV log
-        from closedloop.io.bags import extract, is_bag
-
-        if is_bag(log_path):
-            lg, samples = extract(log_path, robot.joint_names)
-            notes.append(f"{log_path}: {len(samples)} standstills extracted")
-            return lg
-    return read_log(log_path, robot.joint_names, degrees=degrees, linear=linear)
 
 
 @dataclass(frozen=True)
@@ -88,6 +36,7 @@ def load_inputs(o) -> RunInputs:
     the loops' geometry on it (`loops.geometry.check_loop_geometry`), the k-fold count (`cv`, or 5, fewer on
     a shorter log), the weighting, the fit's options."""
     from closedloop.calibration.pipeline import CalibrationOptions
+    from closedloop.io.joint_log import read_joint_log
     from closedloop.loops.geometry import check_loop_geometry
     from closedloop.loops.spec import parse_loops
     from closedloop.model.parameters import fix_values
@@ -114,7 +63,8 @@ def load_inputs(o) -> RunInputs:
     # the rig's known distances, blocks and lengths
     loops += [*parse_distances(o.distance, loops), *parse_blocks(o.block, loops), *parse_lengths(o.length, robot)]
     messages: list[str] = []
-    lg = read_inputs(o.log, robot, loops, o.degrees, o.joints, messages)
+    lg = read_joint_log(o.log, robot, loops, o.degrees, o.joints, messages)
+    lg = robot.with_gravity_torques(lg)  # where the log has no torques
     geometry = check_loop_geometry(o.model, robot, lg, loops, o.loop)  # before any work
     messages += [f"warning: {w}" for w in geometry]
     log_name = o.log or str(lg.source)
