@@ -36,7 +36,7 @@ _LAZY = {
     "MeasuredPoseLoop": "closedloop.loops",
     "parse_loop": "closedloop.loops.spec",
     "RobotModel": "closedloop.model.robot",
-    "Verdict": "closedloop.records",
+    "Verdict": "closedloop.calibration.verdict",
     "VerdictRules": "closedloop.records",
     "write_model": "closedloop.output.urdf",
     "build_report": "closedloop.output.report",

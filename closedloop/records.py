@@ -4,15 +4,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from closedloop.problem.problem import BlockEval, CalibrationProblem
 
-#: the verdict's three values, in rank order (`closedloop.calibration.verdict`)
+if TYPE_CHECKING:
+    from closedloop.calibration.verdict import Verdict
+
+#: the verdict's three values, in rank order (`closedloop.calibration.verdict.Verdict`)
 OK, SUSPECT, FAILED = "ok", "suspect", "failed"
-_RANK = {OK: 0, SUSPECT: 1, FAILED: 2}
 
 
 def _rule(default: float, unit: str, meaning: str):
@@ -438,24 +440,3 @@ class Combination:
             )
         dirn = " ".join(f"{c:+.2f}*{n}" for n, c in self.terms)
         return f"{', '.join(names)} are not separately identifiable: the combination {dirn} is not determined"
-
-
-@dataclass
-class Verdict:
-    """ok | suspect | failed, with the reasons (empty when ok) and the numbers they rest on."""
-
-    status: str = OK
-    reasons: list[str] = field(default_factory=list)
-    evidence: dict = field(default_factory=dict)
-
-    def add(self, status: str, reason: str) -> None:
-        if _RANK[status] > _RANK[self.status]:
-            self.status = status
-        self.reasons.append(f"{status}: {reason}")
-
-    @property
-    def ok(self) -> bool:
-        return self.status == OK
-
-    def describe(self) -> str:
-        return self.status if not self.reasons else f"{self.status} ({'; '.join(self.reasons)})"

@@ -138,13 +138,15 @@ def test_revolute_joint_without_limits_turns(tmp_path):
 
 
 def test_a_loop_through_held_joints_is_refused_before_any_work(tmp_path, capsys):
-    from closedloop.io.robot_files import held_on_chain
+    from closedloop.model.robot import RobotModel
 
     sim = tmp_path / "sim"
     arm = "LShoulderPitch,LShoulderYaw,LElbowRoll,LElbowYaw,LWristRoll,LWristYaw,LWristPitch"  # the trunk held
     assert _simulate(ROMEO, "weld:frame=l_wrist,name=fixture", sim, n=6, extra=["--joints", arm]) == 0
     capsys.readouterr()
-    assert held_on_chain(sim / "nominal.urdf", ["l_wrist"]) == []  # the simulated loop: rigid trunk, as in truth
+    assert (
+        RobotModel.from_file(sim / "nominal.urdf").held_on_chain(["l_wrist"]) == []
+    )  # the simulated loop: rigid trunk, as in truth
     spec = "weld:frame=r_wrist,name=fixture"
     assert main(["calibrate", str(sim / "nominal.urdf"), str(sim / "log.csv"), "--loop", spec, "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -161,9 +163,9 @@ def test_contact_point_on_the_last_axis_named_at_calibrate(tmp_path, monkeypatch
     """Data with the contact on LeftGripperYaw's axis (simulated with the check switched off): calibrate's
     check before the fit names the joint and the fix; the same robot with a 5 cm stylus passes it."""
     from closedloop.io.logs import read_log
+    from closedloop.loops.geometry import check_loop_geometry
     from closedloop.loops.spec import parse_loop
     from closedloop.model.robot import RobotModel
-    from closedloop.run.inputs import check_loop_geometry
     from closedloop.sims import robot_scenario
 
     def warnings(sim, spec):

@@ -12,13 +12,12 @@ import pytest
 
 from closedloop.assets.catalog import ROBOTS
 from closedloop.calibration.pipeline import CalibrationOptions, calibrate
-from closedloop.calibration.verdict import VerdictRules, judge
+from closedloop.calibration.verdict import Verdict, VerdictRules, final_verdict, judge
 from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
 from closedloop.model.robot import RobotModel
-from closedloop.records import SUSPECT, Verdict
+from closedloop.records import SUSPECT
 from closedloop.run import CalibrateOptions, calibrate_files
-from closedloop.run.calibrate import final_verdict
 from closedloop.studies.truth import make_dataset
 
 NOISE = 1e-4  # rad: the joint noise drawn, which the fit estimates

@@ -20,7 +20,7 @@ from dataclasses import replace
 import numpy as np
 
 from closedloop.analysis.identifiability import Structure, analyse_structure, closure_jacobian, structure_holds
-from closedloop.calibration.verdict import SIZE_NOT_MEASURED
+from closedloop.calibration.verdict import SIZE_NOT_MEASURED, Verdict
 from closedloop.errors import ParameterError
 from closedloop.estimate.lm import SolverOptions, scaled_svd
 from closedloop.estimate.residual import (
@@ -36,7 +36,7 @@ from closedloop.estimate.variance import measurement_row_weights, task_blocks, v
 from closedloop.problem.lengths import LengthLoop
 from closedloop.problem.problem import CalibrationProblem
 from closedloop.progress import ProgressReporter
-from closedloop.records import FAILED, SUSPECT, CalibrationOptions, CalibrationResult, Verdict, VerdictRules
+from closedloop.records import FAILED, SUSPECT, CalibrationOptions, CalibrationResult, VerdictRules
 
 log = logging.getLogger(__name__)
 

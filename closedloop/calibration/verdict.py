@@ -55,17 +55,40 @@ held by the model's panda_joint3.z)``.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from closedloop.records import FAILED, SUSPECT, Verdict, VerdictRules
+from closedloop.records import FAILED, OK, SUSPECT, VerdictRules
 
 if TYPE_CHECKING:
     from closedloop.records import CalibrationResult
 
-__all__ = ["VerdictRules", "gross_rejections", "judge", "length_scale", "size_finding"]
+__all__ = ["Verdict", "VerdictRules", "final_verdict", "gross_rejections", "judge", "length_scale", "size_finding"]
+
+_RANK = {OK: 0, SUSPECT: 1, FAILED: 2}
+
+
+@dataclass
+class Verdict:
+    """ok | suspect | failed, with the reasons (empty when ok) and the numbers they rest on."""
+
+    status: str = OK
+    reasons: list[str] = field(default_factory=list)
+    evidence: dict = field(default_factory=dict)
+
+    def add(self, status: str, reason: str) -> None:
+        if _RANK[status] > _RANK[self.status]:
+            self.status = status
+        self.reasons.append(f"{status}: {reason}")
+
+    @property
+    def ok(self) -> bool:
+        return self.status == OK
+
+    def describe(self) -> str:
+        return self.status if not self.reasons else f"{self.status} ({'; '.join(self.reasons)})"
 
 
 def length_scale(result: CalibrationResult) -> float:
@@ -433,3 +456,43 @@ def judge_workspace(verdict: Verdict, workspace) -> Verdict:
         + " (more configurations, spread over the workspace, or a loop that sees more)",
     )
     return v
+
+
+def final_verdict(result: CalibrationResult, cv: dict | None, fixtures: dict | None, rules=None) -> Verdict | None:
+    """The fit's verdict with the held-out evidence (`judge` on the fit, its k-fold folds and its held-out
+    fixtures); what the fit's own judgement found beyond the rules (a known length left out of the fit,
+    `closedloop.calibration.solve.length_guard`) is kept, reasons and evidence alike."""
+    if cv is None and fixtures is None:
+        return result.verdict
+    v = judge(result, cv, rules=rules, fixtures=fixtures)
+    own = result.verdict
+    if own is None:
+        return v
+    kept = Verdict(v.status, list(v.reasons), {**own.evidence, **v.evidence})
+    for reason in own.reasons:
+        if reason not in kept.reasons:
+            status, _, why = reason.partition(": ")
+            if status in (SUSPECT, FAILED):
+                kept.add(status, why)
+            else:
+                kept.reasons.append(reason)
+    return kept
+
+
+def judge_run(
+    result: CalibrationResult,
+    cv: dict | None,
+    fixtures: dict | None,
+    rules: VerdictRules | None,
+    workspace,
+    target: tuple[float | None, float | None] | None = None,
+) -> tuple[Verdict, dict | None]:
+    """A calibration run's verdict, judged once with all its evidence: the fit and what was held out
+    (`final_verdict`), the workspace prediction against the nominal model (`judge_workspace`) and, with a
+    `target` (metres, radians), the accuracy target (`judge_accuracy`); and the target's record."""
+    verdict = final_verdict(result, cv, fixtures, rules)
+    assert verdict is not None, "the fit is judged by the pipeline"
+    verdict = judge_workspace(verdict, workspace)  # no better than nominal: failed
+    if target is None:
+        return verdict, None
+    return judge_accuracy(verdict, workspace, *target)  # ok only where the prediction meets the target

@@ -149,9 +149,9 @@ def lend_frames(robots: list, loops_specs: list[str]) -> list[str]:
 
 def cmd_evaluate(args) -> int:
     from closedloop.io.files import atomic_write_text, check_outputs
+    from closedloop.io.joint_log import read_joint_log
     from closedloop.loops.spec import parse_loop
     from closedloop.model.robot import RobotModel
-    from closedloop.run.inputs import read_inputs
     from closedloop.validation.evaluate import compare_prediction, evaluate_model, prediction_lines, table
 
     if not args.loop:
@@ -170,7 +170,8 @@ def cmd_evaluate(args) -> int:
         print(f"note: {note}", file=sys.stderr)
     loops0 = [parse_loop(s, robots[0]) for s in args.loop]
     notes: list[str] = []
-    lg = read_inputs(log_path, robots[0], loops0, args.degrees, _order(args), notes)
+    lg = read_joint_log(log_path, robots[0], loops0, args.degrees, _order(args), notes)
+    lg = robots[0].with_gravity_torques(lg)
     for note in notes:
         print(f"  {note}", file=sys.stderr)
     evals = []

@@ -46,6 +46,34 @@ class NextPoses:
     rms_after_m: np.ndarray = field(repr=False)  # (k,) after the first 1, 2, ... k suggestions
     candidates: int  # configurations on the loop the choice was made among
 
+    def record(self, path) -> dict:
+        """What the report says of the suggestions written to `path` (``accuracy.next_poses``)."""
+        return {
+            "file": str(path),
+            "loop": self.loop,
+            "configurations": int(self.readings.shape[0]),
+            "candidates": self.candidates,
+            "predicted_rms_before_m": self.rms_before_m,
+            "predicted_rms_after_m": [float(v) for v in self.rms_after_m],
+        }
+
+    def csv(self) -> str:
+        """The suggestions as a CSV log the robot can play (`closedloop.io.logs.log_csv`: a header of joint
+        names, one row per configuration, radians)."""
+        from closedloop.io.logs import log_csv
+
+        return log_csv({j: self.readings[:, k] for k, j in enumerate(self.joints)})
+
+
+def suggest_next(res, workspace, k: int = 10) -> NextPoses | None:
+    """`suggest_poses` on the first loop whose frame the prediction `workspace` follows; None where none is
+    followed, or no configuration of it can be suggested."""
+    followed = [
+        i for i, b in enumerate(res.problem.blocks) if workspace and b.loop.name in {f.loop for f in workspace.frames}
+    ]
+    found = suggest_poses(res, workspace, k, followed[0]) if followed else None
+    return found if found is not None and found.readings.shape[0] else None
+
 
 def _sub_problem(problem: CalibrationProblem, block_index: int, values: np.ndarray):
     """The problem of one loop (its block alone) and the parameter vector mapped to it by name."""

@@ -341,6 +341,17 @@ def atomic_write_text(path: str | Path, text: str | bytes) -> None:
     one.commit()
 
 
+def publish(
+    files: Mapping[str | Path, str | bytes], order: Sequence[str | Path | None] = (), folder: str | Path | None = None
+) -> None:
+    """Write the finished `files` (path -> text or bytes) of one command whole, as one `OutputSet` (in
+    `order`; with `folder`, that folder published whole)."""
+    out = OutputSet(order=list(order), folder=folder)
+    for path, data in files.items():
+        out.add(path, data)
+    out.commit()
+
+
 def atomic_write(path: str | Path, writer: Callable[[str], None]) -> None:
     """Call `writer(tmp_path)` on a temporary file beside `path`, then publish it like `atomic_write_text`."""
     path = Path(path)

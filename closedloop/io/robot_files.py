@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 import re
 import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from closedloop.errors import ModelError
@@ -167,39 +168,46 @@ def check_urdf(path: str | Path) -> None:
         raise ModelError(f"{path}: the joints form a cycle through link '{lost[0]}' (not reachable from the root)")
 
 
-def held_on_chain(path: str | Path, frames: list[str]) -> list[str]:
-    """The joints marked `HELD` on the loop through `frames` (links or joints of the URDF at `path`):
-    between the root and one frame, or between two (their common ancestors left out), root first;
-    empty when the file marks none or cannot be read."""
+@dataclass(frozen=True)
+class UrdfJoints:
+    """What a URDF's joints say beyond the kinematics Pinocchio builds: the tree by links (joint -> (parent
+    link, child link)), the joints ``closedloop simulate --robot`` held fixed (marked `HELD`), and the
+    coupled joints (``<mimic joint=f multiplier=m offset=o>``: joint -> (f, m, o))."""
+
+    tree: dict[str, tuple[str, str]] = field(default_factory=dict)
+    held: frozenset[str] = frozenset()
+    mimics: dict[str, tuple[str, float, float]] = field(default_factory=dict)
+
+
+def read_urdf_joints(path: str | Path) -> UrdfJoints:
+    """The `UrdfJoints` of the URDF at `path` (read once, when the model is loaded); empty where it cannot
+    be read (`check_urdf` has refused it before)."""
     try:
         root = ET.parse(path).getroot()
     except (ET.ParseError, OSError):
-        return []
-    joints = root.findall("joint")
-    if not any(j.find(HELD) is not None for j in joints):
-        return []
-    by_child: dict[str | None, ET.Element] = {}
-    for el in joints:
-        c = el.find("child")
-        if c is not None:
-            by_child[c.get("link")] = el
-    by_name = {j.get("name"): j for j in joints}
-    chains: list[list[ET.Element]] = []
-    for frame in frames:
-        j: ET.Element | None = by_name.get(frame) or by_child.get(frame)
-        chain: list[ET.Element] = []
-        while j is not None and all(j is not c for c in chain):  # a cycle is check_urdf's to refuse
-            chain.append(j)
-            p = j.find("parent")
-            j = by_child.get(p.get("link")) if p is not None else None
-        chains.append(chain[::-1])
-    common = (
-        {id(j) for j in chains[0]}.intersection(*({id(j) for j in c} for c in chains[1:])) if len(chains) > 1 else set()
-    )
-    out: list[str] = []
-    for chain in chains:  # the joints between the frames: a common ancestor is not on a loop of two chains
-        out += [j.get("name", "") for j in chain if j.find(HELD) is not None and id(j) not in common]
-    return list(dict.fromkeys(out))
+        return UrdfJoints()
+    tree: dict[str, tuple[str, str]] = {}
+    held: set[str] = set()
+    mimics: dict[str, tuple[str, float, float]] = {}
+    for j in root.iter("joint"):
+        name = j.get("name")
+        if not name:
+            continue
+        parent, child = j.find("parent"), j.find("child")
+        tree[name] = (
+            parent.get("link", "") if parent is not None else "",
+            child.get("link", "") if child is not None else "",
+        )
+        if j.find(HELD) is not None:
+            held.add(name)
+        m = j.find("mimic")
+        if m is not None:
+            try:
+                mult, off = float(m.get("multiplier", 1.0)), float(m.get("offset", 0.0))
+            except ValueError:
+                raise ModelError(f"{path}: joint '{name}': <mimic> multiplier and offset must be numbers") from None
+            mimics[name] = (m.get("joint", "?"), mult, off)
+    return UrdfJoints(tree, frozenset(held), mimics)
 
 
 def check_mjcf(path: str | Path) -> None:

@@ -143,6 +143,15 @@ def parse_loop(spec: str, robot: RobotModel) -> Loop:
     return loop
 
 
+def parse_loops(specs: list[str], robot: RobotModel) -> list[Loop]:
+    """The loops of the ``--loop`` texts `specs` (`parse_loop`), or the model's own (`default_loops`);
+    refused when there is none."""
+    loops = default_loops(robot) if not specs else [parse_loop(s, robot) for s in specs]
+    if not loops:
+        raise InputError("no --loop given: say how the chain is closed, e.g. --loop weld:frame=<tool frame>")
+    return loops
+
+
 def default_loops(robot: RobotModel) -> list[Loop]:
     """Loops implied by the model itself: a D-H table with ``closes: true``."""
     if robot.kind == "dh" and robot.dh is not None and robot.dh.closes:

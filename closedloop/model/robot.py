@@ -23,6 +23,8 @@ from closedloop.model.dh import DHTable, load_dh
 log = logging.getLogger(__name__)
 
 WORLD_FRAMES = ("universe", "world")
+#: the model file suffixes a calibrated model is written with, for each input kind (`RobotModel.check_output`)
+MODEL_SUFFIXES = {"urdf": (".urdf",), "dh": (".yaml", ".yml"), "mjcf": (".xml", ".mjcf")}
 
 
 @dataclass(frozen=True)
@@ -79,6 +81,8 @@ class RobotModel:
         self._unsupported: dict[str, str] = {}
         self.mimic: dict[str, str] = {}  # URDF <mimic>: joint -> the joint it follows (see supporting_joints)
         self.mimic_coupling: dict[str, tuple[float, float]] = {}  # joint -> (multiplier, offset)
+        self.urdf_tree: dict[str, tuple[str, str]] = {}  # URDF joint -> (parent link, child link)
+        self.held: frozenset[str] = frozenset()  # URDF joints `closedloop simulate --robot` held fixed
         data = model.createData()
         q0 = pin.neutral(model)
         pin.computeJointJacobians(model, data, q0)
@@ -115,15 +119,14 @@ class RobotModel:
         path = Path(path)
         if not path.is_file():
             raise ModelError(f"{path}: no such model file")
-        from closedloop.io.files import note_input
-
-        note_input(path)
         suffix = path.suffix.lower()
         if suffix in (".yaml", ".yml"):
-            table = load_dh(path)
+            table = load_dh(path)  # read as an input of the run (`io.schemas.load_yaml`)
             return cls(table.build_model(), path, "dh", table)
-        from closedloop.io.robot_files import check_mjcf, check_urdf
+        from closedloop.io.files import note_input
+        from closedloop.io.robot_files import check_mjcf, check_urdf, read_urdf_joints
 
+        note_input(path)
         if suffix == ".urdf":
             check_urdf(path)  # what would crash Pinocchio or reach the user as urdfdom's log lines
             build, kind = pin.buildModelFromUrdf, "urdf"
@@ -139,11 +142,12 @@ class RobotModel:
                 text = " ".join(str(exc).split()) or type(exc).__name__
                 said = " ".join(log_lines()[:1])
                 raise ModelError(f"{path}: Pinocchio cannot parse this model ({said or text})"[:400]) from None
+        urdf = read_urdf_joints(path) if kind == "urdf" else None
         robot = cls(model, path, kind)
-        if kind == "urdf":
-            mimics = _urdf_mimics(path)
-            robot.mimic = {j: f for j, (f, _, _) in mimics.items()}
-            robot.mimic_coupling = {j: (m, o) for j, (_, m, o) in mimics.items()}
+        if urdf is not None:
+            robot.mimic = {j: f for j, (f, _, _) in urdf.mimics.items()}
+            robot.mimic_coupling = {j: (m, o) for j, (_, m, o) in urdf.mimics.items()}
+            robot.urdf_tree, robot.held = urdf.tree, urdf.held
         return robot
 
     # ------------------------------------------------------------------ lookup
@@ -240,6 +244,60 @@ class RobotModel:
         """Whether the model carries real masses (a URDF's or MJCF's inertials; a D-H table has none)."""
         return self.kind != "dh" and float(sum(self.model.inertias[j].mass for j in range(1, self.model.njoints))) > 0.0
 
+    def held_on_chain(self, frames: list[str]) -> list[str]:
+        """The joints `closedloop simulate --robot` held fixed (`held`: marked
+        `closedloop.io.robot_files.HELD` in the URDF) on the loop through `frames` (links or joints of the
+        URDF): between the root and one frame, or between two (their common ancestors left out), root
+        first; empty when the model marks none."""
+        if not self.held:
+            return []
+        by_child = {child: j for j, (_, child) in self.urdf_tree.items()}
+        chains: list[list[str]] = []
+        for frame in frames:
+            j = frame if frame in self.urdf_tree else by_child.get(frame)
+            chain: list[str] = []
+            while j is not None and j not in chain:  # a cycle is check_urdf's to refuse
+                chain.append(j)
+                j = by_child.get(self.urdf_tree[j][0])
+            chains.append(chain[::-1])
+        common = set(chains[0]).intersection(*chains[1:]) if len(chains) > 1 else set()
+        out = [j for chain in chains for j in chain if j in self.held and j not in common]
+        return list(dict.fromkeys(out))
+
+    def check_output(self, out: str | Path | None) -> None:
+        """The calibrated model is written in this model's own format (`closedloop.output.urdf.model_text`):
+        the output's suffix must say so (`MODEL_SUFFIXES`); refused before any work."""
+        from closedloop.errors import InputError
+
+        if out is None:
+            return
+        suffixes = MODEL_SUFFIXES.get(self.kind)
+        if not suffixes:
+            raise InputError(
+                f"--out {out}: no calibrated model can be written for {self.kind} input {self.source or ''} "
+                "(the report holds the parameters); drop --out"
+            )
+        if Path(out).suffix.lower() not in suffixes:
+            raise InputError(
+                f"--out {out}: a {self.kind} input gives a calibrated {self.kind} model; name it *{' or *'.join(suffixes)}"
+            )
+
+    def with_gravity_torques(self, lg):
+        """The log `lg` (`closedloop.io.logs.JointLog`) with ``tau:<joint>`` columns from the model's
+        inertials (`gravity_torques`) when it carries none and the model has masses; otherwise as it is.
+        The compliance model (theta' = k theta + theta_off - c tau) then needs no torque logging on a robot
+        that carries only itself; logged torques always win.  Its `torque_source` says which: 'log',
+        'gravity' or None."""
+        present = [j for j in self.joint_names if f"tau:{j}" in lg.extra]
+        if present or not self.has_inertias:
+            lg.torque_source = "log" if present else None
+            return lg
+        known = [j for j in self.joint_names if j in lg.joints]
+        tau = self.gravity_torques(lg.columns(known), known)
+        lg.extra.update({f"tau:{j}": tau[:, k] for k, j in enumerate(known)})
+        lg.torque_source = "gravity"
+        return lg
+
     def gravity_torques(self, angles: np.ndarray, joint_names: list[str]) -> np.ndarray:
         """Joint torques that hold the robot still against gravity at each configuration (N, len(joint_names)).
 
@@ -299,27 +357,6 @@ def _captured_stderr():
         finally:
             os.dup2(saved, 2)
             os.close(saved)
-
-
-def _urdf_mimics(path: Path) -> dict[str, tuple[str, float, float]]:
-    """Joints with a ``<mimic joint=...>`` element in a URDF: {joint: (followed joint, multiplier, offset)}."""
-    import xml.etree.ElementTree as ET
-
-    try:
-        root = ET.parse(path).getroot()
-    except (ET.ParseError, OSError):
-        return {}
-    out: dict[str, tuple[str, float, float]] = {}
-    for j in root.iter("joint"):
-        m = j.find("mimic")
-        name = j.get("name")
-        if m is not None and name:
-            try:
-                mult, off = float(m.get("multiplier", 1.0)), float(m.get("offset", 0.0))
-            except ValueError:
-                raise ModelError(f"{path}: joint '{name}': <mimic> multiplier and offset must be numbers") from None
-            out[name] = (m.get("joint", "?"), mult, off)
-    return out
 
 
 def _suggest(name: str, choices: list[str]) -> str:

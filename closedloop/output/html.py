@@ -275,15 +275,17 @@ def figures(res, report: dict, snr: float = 1.0, accuracy=None) -> dict[str, byt
 
 
 def write_plots(res, report: dict, out_dir: str | Path, snr: float = 1.0, accuracy=None) -> list[Path]:
-    """The figures as ``DIR/<name>.png``; returns the paths."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for name, data in figures(res, report, snr, accuracy).items():
-        p = out / f"{name}.png"
+    """The figures (`plot_files`) written; returns the paths."""
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    files = plot_files(res, report, out_dir, snr, accuracy)
+    for p, data in files.items():
         atomic_write_text(p, data)
-        paths.append(p)
-    return paths
+    return list(files)
+
+
+def plot_files(res, report: dict, out_dir: str | Path, snr: float = 1.0, accuracy=None) -> dict[Path, bytes]:
+    """The figures as the files ``DIR/<name>.png``: path -> PNG bytes."""
+    return {Path(out_dir) / f"{name}.png": data for name, data in figures(res, report, snr, accuracy).items()}
 
 
 # --------------------------------------------------------------------------- page
@@ -545,4 +547,5 @@ def render_html(res, report: dict, snr: float = 1.0, row_name=None, accuracy=Non
 
 
 def write_html(res, report: dict, path: str | Path, snr: float = 1.0, row_name=None, accuracy=None) -> None:
+    """Write `render_html` to `path` whole."""
     atomic_write_text(path, render_html(res, report, snr, row_name, accuracy))

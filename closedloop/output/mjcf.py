@@ -233,7 +233,7 @@ def _check_compiles(root, src: Path) -> None:
 def write_mjcf(
     robot: RobotModel, values: dict[str, float], out_path: str | Path, frames: Sequence[ModelFrame] = ()
 ) -> None:
-    """Write the calibrated MJCF atomically (assets found from wherever it is written; `frames` added)."""
+    """Write `calibrated_mjcf` to `out_path` whole (assets found from wherever it is written; `frames` added)."""
     from closedloop.io.files import atomic_write_text, refuse_overwrite
 
     refuse_overwrite(out_path, robot.source)

@@ -82,18 +82,26 @@ def sensors_path(model_out: str | Path) -> Path:
 
 
 def write_sensors(res: CalibrationResult, model_out: str | Path, kind: str = "urdf") -> Path | None:
-    """`sensor_corrections` written beside the model (`sensors_path`); the path, or None when there is none."""
+    """`sensors_text` written beside the model (`sensors_path`); the path, or None when there is none."""
+    text = sensors_text(res, model_out, kind)
+    if text is None:
+        return None
+    path = sensors_path(model_out)
+    atomic_write_text(path, text)
+    return path
+
+
+def sensors_text(res: CalibrationResult, model_out: str | Path, kind: str = "urdf") -> str | None:
+    """The sensor file beside a model written at `model_out` (`sensor_corrections` as YAML), or None when
+    there is none."""
     import yaml
 
     corr = sensor_corrections(res, str(model_out), kind)
     if corr is None:
         return None
-    path = sensors_path(model_out)
-    atomic_write_text(
-        path,
-        "# closedloop: joint sensor corrections the model file cannot carry\n" + yaml.safe_dump(corr, sort_keys=False),
+    return "# closedloop: joint sensor corrections the model file cannot carry\n" + yaml.safe_dump(
+        corr, sort_keys=False
     )
-    return path
 
 
 def read_sensors(path: str | Path) -> tuple[dict[str, dict[str, float]], dict[str, float]]:
@@ -175,6 +183,7 @@ def build_report(
     validation: dict | None = None,
     fixture_validation: dict | None = None,
     outputs: dict | None = None,
+    next_poses: dict | None = None,
 ) -> dict:
     """The JSON report of a calibration, whole: the one place its dict is built, from the result's records.
 
@@ -183,7 +192,8 @@ def build_report(
     `inputs` (the command's inputs), `timing` (seconds and CPU seconds, into ``solver``), `validation`
     (k-fold, `closedloop.validation.kfold.cross_validate`), `fixture_validation`
     (`closedloop.validation.fixtures`), `outputs` (what was written).  The result's `accuracy` record
-    (`AccuracyRecord`) is reported under ``accuracy``.
+    (`AccuracyRecord`) is reported under ``accuracy``, with `next_poses` (the configurations ``--suggest``
+    wrote, `closedloop.design.next_poses`) as its ``next_poses``.
     """
     where = (lambda row: row_name(row - 1)) if row_name is not None else (lambda row: None)
     prob = res.problem
@@ -305,6 +315,8 @@ def build_report(
         report["solver"] |= timing
     if res.accuracy is not None:
         report["accuracy"] = accuracy_record(res.accuracy)
+    if next_poses is not None:
+        report.setdefault("accuracy", {})["next_poses"] = next_poses
     for key, section in (
         ("inputs", inputs),
         ("validation", validation),
@@ -331,7 +343,13 @@ def _shared(prob) -> dict[str, list[str]]:
 
 
 def write_report(report: dict, path: str | Path) -> None:
-    atomic_write_text(Path(path), json.dumps(report, indent=2) + "\n")
+    """Write `report_text` to `path` whole."""
+    atomic_write_text(Path(path), report_text(report))
+
+
+def report_text(report: dict) -> str:
+    """The report (`build_report`) as the JSON text written."""
+    return json.dumps(report, indent=2) + "\n"
 
 
 def accuracy_section(workspace, regions: dict | None = None, target: dict | None = None) -> dict:

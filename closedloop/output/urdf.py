@@ -21,28 +21,9 @@ from typing import Sequence
 import numpy as np
 import pinocchio as pin
 
-from closedloop.errors import InputError, ModelError
+from closedloop.errors import ModelError
 from closedloop.io.files import atomic_write_text, refuse_overwrite
 from closedloop.model.robot import RobotModel
-
-#: the model file suffixes `write_model` writes for each input kind
-MODEL_SUFFIXES = {"urdf": (".urdf",), "dh": (".yaml", ".yml"), "mjcf": (".xml", ".mjcf")}
-
-
-def check_model_output(kind: str, out: str | Path | None, model: str | Path | None = None) -> None:
-    """The calibrated model is written in the input's own format: its suffix must say so."""
-    if out is None:
-        return
-    suffixes = MODEL_SUFFIXES.get(kind)
-    if not suffixes:
-        raise InputError(
-            f"--out {out}: no calibrated model can be written for {kind} input {model or ''} "
-            "(the report holds the parameters); drop --out"
-        )
-    if Path(out).suffix.lower() not in suffixes:
-        raise InputError(
-            f"--out {out}: a {kind} input gives a calibrated {kind} model; name it *{' or *'.join(suffixes)}"
-        )
 
 
 def write_urdf(
@@ -52,7 +33,20 @@ def write_urdf(
     fold_offsets: bool = True,
     frames: Sequence[ModelFrame] = (),
 ) -> None:
-    """Write the URDF of `robot` with joint origins moved by `values` (see module doc).
+    """Write `urdf_text` to `out_path` whole (never over the input)."""
+    refuse_overwrite(out_path, robot.source)
+    atomic_write_text(out_path, urdf_text(robot, values, out_path, fold_offsets, frames))
+
+
+def urdf_text(
+    robot: RobotModel,
+    values: dict[str, float],
+    out_path: str | Path,
+    fold_offsets: bool = True,
+    frames: Sequence[ModelFrame] = (),
+) -> bytes:
+    """The URDF of `robot` with joint origins moved by `values` (see module doc), to be written at
+    `out_path` (relative mesh paths are rewritten for its folder).
 
     `frames` (name, parent frame, pose or xyz): what the calibration estimated about its loops (tool
     points, fixtures, sensors, planes; `model_frames`) added as links on fixed joints, so the
@@ -72,7 +66,6 @@ def write_urdf(
             f"{robot.source}: a calibrated URDF can only be written for URDF input "
             f"(this model is {robot.kind}); the report holds the parameters"
         )
-    refuse_overwrite(out_path, robot.source)
     try:
         tree = ET.parse(str(robot.source), parser=ET.XMLParser(target=ET.TreeBuilder(insert_comments=True)))
     except (ET.ParseError, OSError) as exc:
@@ -112,7 +105,7 @@ def write_urdf(
     _shift_mimics(by_name, values, fold_offsets)
     _add_frames(tree.getroot(), frames)
     relocate_meshes(tree.getroot(), Path(robot.source), Path(out_path))
-    atomic_write_text(out_path, ET.tostring(tree.getroot(), encoding="UTF-8", xml_declaration=True) + b"\n")
+    return ET.tostring(tree.getroot(), encoding="UTF-8", xml_declaration=True) + b"\n"
 
 
 def _shift_mimics(by_name: dict, values: dict[str, float], fold_offsets: bool = True) -> None:
@@ -193,29 +186,42 @@ def _rpy(R: np.ndarray) -> np.ndarray:
 
 
 def write_dh(robot: RobotModel, values: dict[str, float], out_path: str | Path) -> None:
-    """Write the calibrated D-H table (same units as the input)."""
+    """Write the calibrated D-H table (`dh_text`) to `out_path` whole (never over the input)."""
+    text = dh_text(robot, values)
+    refuse_overwrite(out_path, robot.source)
+    atomic_write_text(out_path, text)
+
+
+def dh_text(robot: RobotModel, values: dict[str, float]) -> str:
+    """The calibrated D-H table as YAML (same units as the input)."""
     from closedloop.model.dh import dump_dh
 
     if robot.dh is None:
         raise ModelError(f"{robot.source}: a {robot.kind} model, not a D-H table; write it as {robot.kind}")
-    refuse_overwrite(out_path, robot.source)
-    atomic_write_text(out_path, dump_dh(robot.dh, values))
+    return dump_dh(robot.dh, values)
 
 
 def write_model(
     robot: RobotModel, values: dict[str, float], out_path: str | Path, frames: Sequence[ModelFrame] = ()
 ) -> None:
-    """The calibrated model in the input's own format (URDF, MJCF or D-H YAML); `frames` (`model_frames`:
-    tool points, fixtures) become links (URDF) or sites and bodies (MJCF); a D-H table cannot hold them
-    (the report does)."""
-    if robot.kind == "dh":
-        write_dh(robot, values, out_path)
-    elif robot.kind == "mjcf":
-        from closedloop.output.mjcf import write_mjcf
+    """Write the calibrated model (`model_text`) to `out_path` whole (never over the input)."""
+    refuse_overwrite(out_path, robot.source)
+    atomic_write_text(out_path, model_text(robot, values, out_path, frames))
 
-        write_mjcf(robot, values, out_path, frames=frames)
-    else:
-        write_urdf(robot, values, out_path, frames=frames)
+
+def model_text(
+    robot: RobotModel, values: dict[str, float], out_path: str | Path, frames: Sequence[ModelFrame] = ()
+) -> str | bytes:
+    """The calibrated model in the input's own format (URDF, MJCF or D-H YAML), to be written at
+    `out_path`; `frames` (`model_frames`: tool points, fixtures) become links (URDF) or sites and bodies
+    (MJCF); a D-H table cannot hold them (the report does)."""
+    if robot.kind == "urdf":
+        return urdf_text(robot, values, out_path, frames=frames)
+    if robot.kind == "dh":
+        return dh_text(robot, values)
+    from closedloop.output.mjcf import calibrated_mjcf
+
+    return calibrated_mjcf(robot, values, Path(out_path).parent, frames)
 
 
 #: a written frame: (name, the model frame it hangs on, its pose in that frame; a bare xyz is a point)

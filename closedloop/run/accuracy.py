@@ -1,29 +1,55 @@
-"""A run's predicted accuracy over the workspace: the options ``workspace``, ``accuracy``, ``regions``,
-``suggest`` and ``suggest_n`` of `closedloop.run.options.CalibrateOptions` read and run
-(`closedloop.analysis.accuracy` computes; `closedloop.cli.accuracy` prints the summary's lines)."""
+"""A run's predicted accuracy over the workspace: the options ``workspace``, ``accuracy``, ``suggest`` and
+``suggest_n`` of `closedloop.run.options.CalibrateOptions` read and run (`closedloop.analysis.accuracy`
+computes; `closedloop.calibration.verdict.judge_accuracy` judges the target; `closedloop.cli.accuracy`
+prints the summary's lines)."""
 
 from __future__ import annotations
 
 import math
 import re
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from closedloop.errors import InputError
 
 
-def workspace_readings(o, robot, joints: list[str]) -> tuple[np.ndarray | None, str | None]:
-    """The readings (n, joints) ``--workspace`` asks the accuracy to be predicted at, and where they come
-    from: its log file (its rows, columns by joint name) or its box ``joint=lo:hi,...`` (random readings
-    in it); (None, None) without it (random readings within the joint ranges, seed 0: the readings
-    `closedloop check` compares the robots at)."""
-    from closedloop.analysis.accuracy import N_WORKSPACE, random_readings
+def workspace_request(o) -> tuple[dict[str, tuple[float, float]] | None, tuple[float | None, float | None] | None]:
+    """What the options ask of the accuracy, checked before any work: ``--workspace``'s joint ranges
+    (`check_workspace`: None for a log file, or without it) and ``--accuracy``'s target (metres or None,
+    radians or None; `parse_accuracy`), None without it."""
+    box = check_workspace(o.workspace) if o.workspace else None
+    return box, parse_accuracy(o.accuracy) if o.accuracy else None
 
+
+@dataclass(frozen=True)
+class WorkspacePrediction:
+    """A calibration's predicted accuracy over the workspace (`closedloop.analysis.accuracy`; None where
+    it could not be predicted) and the configurations ``--suggest`` asks to record next: the CSV to write
+    and the report's record of them (``accuracy.next_poses``), or the note saying why there are none."""
+
+    accuracy: Any = None  # closedloop.analysis.accuracy.WorkspaceAccuracy
+    suggested: str | None = None
+    next_poses: dict | None = None
+    note: str | None = None
+
+
+def predict_workspace(o, robot, res, box: dict[str, tuple[float, float]] | None = None) -> WorkspacePrediction:
+    """The calibrated robot's predicted accuracy (`analysis.accuracy.predict_from_result`) at the readings
+    ``--workspace`` names: its log file (its rows, columns by joint name), its box `box` (random readings
+    in it), or without it random readings within the joint ranges (seed 0: the readings ``closedloop
+    check`` compares the robots at); where no loop has a frame to follow, or the kinematics are not finite
+    at a reading, no prediction (a note says so).  Then, with ``--suggest FILE``, the ``--suggest-n``
+    configurations that most reduce the predicted error (`closedloop.design.next_poses.suggest_next`), as
+    the CSV log to write and the report's record."""
+    from closedloop.analysis.accuracy import N_WORKSPACE, predict_from_result, random_readings
+
+    joints = res.problem.joints
     spec = o.workspace
-    if not spec:
-        return None, None
-    if Path(spec).is_file():
+    readings, source = None, None
+    if spec and box is None:  # a log file
         from closedloop.io.logs import read_log
 
         lg = read_log(spec, robot.joint_names, degrees=bool(o.degrees))
@@ -34,9 +60,25 @@ def workspace_readings(o, robot, joints: list[str]) -> tuple[np.ndarray | None, 
             )
         if len(lg) == 0:
             raise InputError(f"--workspace {spec}: no row")
-        return lg.columns(joints), f"the {len(lg)} readings of {spec}"
-    box = check_workspace(spec)
-    return random_readings(robot, joints, box=box), f"{N_WORKSPACE} random readings within {spec}"
+        readings, source = lg.columns(joints), f"the {len(lg)} readings of {spec}"
+    elif spec:
+        readings, source = random_readings(robot, joints, box=box), f"{N_WORKSPACE} random readings within {spec}"
+    prior = parse_prior(o.prior_tolerance) if o.prior_tolerance else None  # the nominal model's tolerance
+    try:
+        accuracy = predict_from_result(res, readings, source=source, prior=prior)
+    except np.linalg.LinAlgError as exc:  # the calibration stands; the prediction is said to be missing
+        res.notes.append(f"accuracy over the workspace not predicted: {exc}")
+        accuracy = None
+    if not o.suggest:
+        return WorkspacePrediction(accuracy)
+    from closedloop.design.next_poses import suggest_next
+
+    found = suggest_next(res, accuracy, int(o.suggest_n or 10))
+    if found is None:
+        note = f"--suggest {o.suggest}: no configuration to suggest (no followed loop closes at new readings)"
+        return WorkspacePrediction(accuracy, note=note)
+    record = found.record(o.suggest)
+    return WorkspacePrediction(accuracy, suggested=found.csv(), next_poses=record)
 
 
 def check_workspace(spec: str) -> dict[str, tuple[float, float]] | None:
@@ -46,93 +88,6 @@ def check_workspace(spec: str) -> dict[str, tuple[float, float]] | None:
     if "=" not in spec:
         raise InputError(f"--workspace {spec}: no such file (give a log file, or joint ranges joint=lo:hi,...)")
     return parse_box(spec)
-
-
-def predicted_accuracy(res, readings: np.ndarray | None = None, source: str | None = None, prior=None):
-    """The calibration's predicted accuracy over the workspace (`analysis.accuracy.predict_from_result`)
-    at `readings` (`workspace_readings`; None: within the joint ranges), with the nominal tolerance `prior`
-    (`parse_prior`; None: `PriorTolerance`'s defaults); None where no loop has a frame to follow, or the
-    kinematics are not finite at a reading (a note says so)."""
-    from closedloop.analysis.accuracy import predict_from_result
-
-    try:
-        return predict_from_result(res, readings, source=source, prior=prior)
-    except np.linalg.LinAlgError as exc:  # the calibration stands; the prediction is said to be missing
-        res.notes.append(f"accuracy over the workspace not predicted: {exc}")
-        return None
-
-
-def next_poses(o, res, accuracy, report: dict) -> str | None:
-    """``--suggest FILE``: the ``--suggest-n`` configurations of the first followed loop that most reduce the
-    predicted workspace error (`closedloop.design.next_poses.suggest_poses`), as the CSV to write (a header
-    of joint names, one row per configuration, radians: a log the robot can play), recorded in the report
-    (``accuracy.next_poses``); None without --suggest or when none can be suggested (a note says why)."""
-    path = o.suggest
-    if not path:
-        return None
-    from closedloop.design.next_poses import suggest_poses
-
-    k = int(o.suggest_n or 10)
-    followed = [
-        i for i, b in enumerate(res.problem.blocks) if accuracy and b.loop.name in {f.loop for f in accuracy.frames}
-    ]
-    found = suggest_poses(res, accuracy, k, followed[0]) if followed else None
-    if found is None or not found.readings.shape[0]:
-        res.notes.append(f"--suggest {path}: no configuration to suggest (no followed loop closes at new readings)")
-        return None
-    report.setdefault("accuracy", {})["next_poses"] = {
-        "file": str(path),
-        "loop": found.loop,
-        "configurations": int(found.readings.shape[0]),
-        "candidates": found.candidates,
-        "predicted_rms_before_m": found.rms_before_m,
-        "predicted_rms_after_m": [float(v) for v in found.rms_after_m],
-    }
-    lines = [",".join(found.joints)] + [",".join(repr(float(v)) for v in row) for row in found.readings]
-    return "\n".join(lines) + "\n"
-
-
-def region_validation(robot, lg, loops, opts, o, res, prog) -> dict | None:
-    """Held-out validation by region (`validation.regions.region_validate`, ``--regions K``), as the
-    report's record; a region the refit cannot do without is a note, not an error."""
-    from closedloop.errors import ClosedLoopError
-    from closedloop.validation.regions import region_validate
-
-    k = int(o.regions or 0)
-    if k < 2 or not res.converged:
-        return None
-    if len(lg) < 4 * k:  # regions of a few rows each say nothing of extrapolation: not run, said in the report
-        return {"k": k, "skipped": f"{len(lg)} rows: too few for {k} regions (at least {4 * k})"}
-    prog("validating regions", 0, k)
-    try:
-        cv = region_validate(
-            robot,
-            lg,
-            loops,
-            res.problem.joints,
-            opts,
-            k=k,
-            exclude=[rj.row - 1 for rj in res.outliers.rejected],
-            progress=lambda task, done, total=None, note="": prog("validating regions", done, total, note),
-        )
-    except ClosedLoopError as exc:
-        _close(prog)
-        res.notes.append(f"region validation skipped: {str(exc).splitlines()[0]}")
-        return {"k": k, "skipped": str(exc).splitlines()[0]}
-    _close(prog)
-    return {
-        "k": cv["k"],
-        "rows": [len(r) for r in cv["regions"]],
-        "test": cv["test"],
-        "train": cv["train"],
-        "folds_converged": [f["converged"] for f in cv["folds"]],
-    }
-
-
-def _close(progress) -> None:
-    close = getattr(progress, "close", None)
-    if close is not None:
-        close()
 
 
 def parse_box(text: str) -> dict[str, tuple[float, float]]:

@@ -8,19 +8,25 @@ script calls to do the same from Python::
                                            out="calibrated.urdf", report="report.json"))
     print(run.verdict.describe())
 
+The run goes down the layers once and comes back up with its result:
+
 1. **Check** the output paths before any work (`io.files.check_outputs`).
-2. **Load** the model (`model.robot.RobotModel.from_file`), the loops and the log (`closedloop.run.inputs`).
+2. **Load** (`closedloop.run.inputs.load_inputs`): the model (`model.robot.RobotModel.from_file`, whose
+   format the output must keep: `RobotModel.check_output`), the loops (`loops.spec.parse_loops`) and the
+   rig's known distances and lengths, the log with its torques, and the loops' geometry on it
+   (`loops.geometry.check_loop_geometry`); ``--workspace`` and ``--accuracy`` read (`run.accuracy`).
 3. **Calibrate** (`calibration.pipeline.calibrate`: the problem built once, the fit judged by the
    options' `VerdictRules`).
-4. **Predict** the calibrated robot's accuracy over the workspace (`analysis.accuracy`, `run.accuracy`).
-5. **Validate**: k-fold held-out refits (`validation.kfold.cross_validate`), whole regions of joint space
-   held out (`validation.regions`) and, where the loops form several fixtures, leave-one-fixture-out
-   (`validation.fixtures.leave_one_fixture_out`).
-6. **Judge** the fit with the held-out evidence (`calibration.verdict.judge`), every piece of the fit's
-   own judgement kept, and the prediction against the nominal model and the accuracy target
-   (`calibration.verdict.judge_workspace`, `judge_accuracy`).
-7. **Write** the model (unless the verdict is failed and not forced), its sensor file, the report, the
-   HTML page and figures, published whole (`io.files.OutputSet`; `folder` publishes a whole folder).
+4. **Predict** the calibrated robot's accuracy over the workspace, and the poses to record next
+   (`run.accuracy.predict_workspace`: `analysis.accuracy`, `design.next_poses`).
+5. **Validate** (`validate`): k-fold held-out refits (`validation.kfold.cross_validate`), whole regions
+   of joint space held out (`validation.regions`) and, where the loops form several fixtures,
+   leave-one-fixture-out (`validation.fixtures.leave_one_fixture_out`).
+6. **Judge** once (`calibration.verdict.judge_run`): the fit with the held-out evidence, every piece of
+   the fit's own judgement kept, the prediction against the nominal model and the accuracy target.
+7. **Write**: the report (`output.report.build_report`) and each file made whole as text by its writer
+   in `closedloop.output` (model, sensor file, report, suggestions), then published as one set
+   (`io.files.publish`; `folder` publishes a whole folder); the HTML page and figures after them.
 
 Nothing is printed: progress goes to the reporter given (`closedloop.progress.ProgressReporter`,
 ``progress(task, done, total, note)``; its ``close()`` is called between steps where it has one), and
@@ -71,18 +77,9 @@ def calibrate_files(
     hidden temporary folder beside it and renamed onto it (`io.files.OutputSet`), with ``done.json``
     (`DONE`: the JSON record `done` makes of the run) written last inside."""
     from closedloop.calibration.pipeline import calibrate
-    from closedloop.calibration.verdict import judge_accuracy, judge_workspace
-    from closedloop.output.report import build_report
+    from closedloop.calibration.verdict import judge_run
     from closedloop.records import AccuracyRecord
-    from closedloop.run.accuracy import (
-        check_workspace,
-        next_poses,
-        parse_accuracy,
-        parse_prior,
-        predicted_accuracy,
-        region_validation,
-        workspace_readings,
-    )
+    from closedloop.run.accuracy import predict_workspace, workspace_request
     from closedloop.run.inputs import load_inputs
 
     o = options
@@ -92,16 +89,13 @@ def calibrate_files(
     inp = load_inputs(o)  # the robot, its loops, the log, the folds, the fit's options
     _done(prog)
     robot, lg, loops = inp.robot, inp.log, inp.loops
-    if o.workspace:
-        check_workspace(o.workspace)  # refused now, not after the fit
+    box, target = workspace_request(o)  # --workspace and --accuracy refused now, not after the fit
     t0, c0 = time.perf_counter(), time.process_time()
     res = calibrate(robot, lg, loops, inp.fit, progress=prog)
     _done(prog)
     elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
     prog("predicting accuracy", 0)  # an evaluation of every row with its Jacobian
-    workspace = workspace_readings(o, robot, res.problem.joints)  # where the accuracy is predicted
-    prior = parse_prior(o.prior_tolerance) if o.prior_tolerance else None  # the nominal model's tolerance
-    accuracy = predicted_accuracy(res, *workspace, prior=prior)  # over the workspace (closedloop.analysis.accuracy)
+    predicted = predict_workspace(o, robot, res, box)  # the accuracy over the workspace, the poses to record next
     _done(prog)
     if inp.weighting_note:
         res.notes.append(inp.weighting_note)
@@ -110,28 +104,31 @@ def calibrate_files(
     if inputs["torques"] == "gravity":
         res.notes.append("joint torques: gravity from the model's inertials (the log has no tau:<joint> columns)")
     t1, c1 = time.perf_counter(), time.process_time()
-    cv, cv_record = fold_validation(robot, lg, loops, inp.fit, inp.folds, o.cv is not None, res, prog)
-    lofo = fixture_validation(robot, lg, loops, inp.fit, o.lofo, res, prog)
-    regions = region_validation(robot, lg, loops, inp.fit, o, res, prog)  # whole regions of joint space held out
-    verdict = judge_workspace(final_verdict(res, cv, lofo, o.rules), accuracy)  # no better than nominal: failed
-    target = None
-    if o.accuracy:  # ok only where the prediction meets the target
-        verdict, target = judge_accuracy(verdict, accuracy, *parse_accuracy(o.accuracy))
-    res = replace(res, verdict=verdict, accuracy=AccuracyRecord(workspace=accuracy, regions=regions, target=target))
-    report = build_report(res, o.model, inp.log_name, row_name=lg.where)
-    suggested = next_poses(o, res, accuracy, report)  # the configurations to record next
-    report["inputs"] = inputs
-    # the fit's time, and the held-out refits' (k-fold and fixtures): with the fit's, the work of the run
-    report["solver"] |= {"seconds": elapsed, "cpu_seconds": cpu}
-    report["solver"] |= {
-        "validation_seconds": time.perf_counter() - t1,
-        "validation_cpu_seconds": time.process_time() - c1,
+    held = validate(robot, lg, loops, inp.fit, inp.folds, o, res, prog)
+    _done(prog)
+    if predicted.note:
+        res.notes.append(predicted.note)
+    verdict, met = judge_run(res, held.cv, held.fixtures, o.rules, predicted.accuracy, target)
+    res = replace(
+        res, verdict=verdict, accuracy=AccuracyRecord(workspace=predicted.accuracy, regions=held.regions, target=met)
+    )
+    model_out = o.out if o.out and (verdict.status != "failed" or o.force) else None
+    sections = {
+        "inputs": inputs,
+        # the fit's time, and the held-out refits' (k-fold and fixtures): with the fit's, the work of the run
+        "timing": {
+            "seconds": elapsed,
+            "cpu_seconds": cpu,
+            "validation_seconds": time.perf_counter() - t1,
+            "validation_cpu_seconds": time.process_time() - c1,
+        },
+        "validation": held.cv_record,
+        "fixture_validation": held.fixtures,
+        "outputs": {"model": model_out},  # `closedloop evaluate --calibration`
+        "next_poses": predicted.next_poses,
     }
-    if cv_record is not None:
-        report["validation"] = cv_record
-    if lofo is not None:
-        report["fixture_validation"] = lofo
-    return _write(o, robot, res, report, lg, elapsed, inp.messages, folder, done, accuracy, suggested)
+    run = RunResult(res, {}, lg, elapsed, model_out is not None, None, [], inp.messages)
+    return _write(o, robot, run, inp.log_name, sections, folder, done, predicted)
 
 
 def check_run_outputs(o: CalibrateOptions) -> None:
@@ -147,126 +144,140 @@ def check_run_outputs(o: CalibrateOptions) -> None:
         require("matplotlib", f"--{'html' if o.html else 'plots'}", "report")  # refused now, not after the fit
 
 
-def fold_validation(
-    robot, lg, loops: list, opts, k: int, given: bool, res, progress=None
-) -> tuple[dict | None, dict | None]:
-    """K-fold held-out validation (`validation.kfold.cross_validate`) of a converged fit: (the folds, the
-    report's ``validation`` record); the rows `res` rejected as outliers are not judged (they stay in the
-    refits' data).
+@dataclass(frozen=True)
+class HeldOut:
+    """What a run held out of its fit and refitted without: the k-fold folds (`validation.kfold.cross_validate`)
+    and the report's record of them, the fixtures (`validation.fixtures.leave_one_fixture_out`), whole
+    regions of joint space (`validation.regions.region_validate`); None where not run."""
 
-    A training fold the refit cannot use (too few rows for the parameters) ends the validation: with the
-    default K it is skipped with a note (no folds), with K `given` it is an input error naming the folds.
+    cv: dict | None = None
+    cv_record: dict | None = None
+    fixtures: dict | None = None
+    regions: dict | None = None
+
+
+def validate(robot, lg, loops: list, opts, k: int, o: CalibrateOptions, res, progress=None) -> HeldOut:
+    """The held-out validation of a converged fit, every kind the options ask for (`HeldOut`); the rows `res`
+    rejected as outliers are not judged (they stay in the refits' data).
+
+    K-fold (`k` folds): a training fold the refit cannot use (too few rows for the parameters) ends it:
+    with the default K it is skipped with a note, with ``--cv`` given it is an input error naming the folds.
+    Leave-one-fixture-out (``--lofo`` 'auto'): when the loops form several fixtures.  Regions
+    (``--regions K``): a region the refit cannot do without is a note, not an error; too few rows for K
+    regions are said in the record, not run.  Each kind is its own task of `progress` (a new task replaces
+    the last one's display); the caller closes the display after the step.
     """
-    from closedloop.validation.kfold import cross_validate
-
-    if not k or not res.converged:
-        return None, None
-    prog = progress or _silent
-    prog("validating", 0, k)
-    try:
-        cv = cross_validate(
-            robot,
-            lg,
-            loops,
-            opts,
-            k=k,
-            progress=prog,
-            exclude=[rj.row - 1 for rj in res.outliers.rejected],
-        )
-    except ClosedLoopError as exc:
-        _done(prog)
-        n_train = len(lg) - -(-len(lg) // k)
-        why = f"{k}-fold validation refits on {n_train} of the {len(lg)} rows, and one failed: {exc}"
-        if given:
-            raise InputError(f"--cv {k}: {why} (fewer folds, or --cv 0)") from None
-        res.notes.append(f"k-fold validation skipped: {why}")
-        return None, {"k": k, "skipped": why}
-    record = {
-        "k": k,
-        "excluded_rows": [i + 1 for i in cv["excluded"]],
-        "test": cv["test"],
-        "train": cv["train"],
-        "test_whitened_rms": cv.get("test_whitened_rms"),
-        "parameter_spread": cv.get("parameter_spread"),
-        "inconsistent": cv.get("inconsistent"),
-        "folds_converged": [f["converged"] for f in cv["folds"]],
-    }
-    _done(prog)
-    return cv, record
-
-
-def fixture_validation(robot, lg, loops: list, opts, lofo: str, res, progress=None) -> dict | None:
-    """Leave-one-fixture-out validation of a converged fit (`lofo` 'auto': when the loops form several
-    fixtures): the report's ``fixture_validation`` record (`validation.fixtures.leave_one_fixture_out`)."""
     from closedloop.validation.fixtures import fixture_groups, leave_one_fixture_out
+    from closedloop.validation.kfold import cross_validate
+    from closedloop.validation.regions import region_validate
 
-    if not res.converged or lofo == "off" or lg.loop is None or len(fixture_groups(loops)) < 2:
-        return None
+    if not res.converged:
+        return HeldOut()
     prog = progress or _silent
-    prog("validating fixtures", 0)
-    out = leave_one_fixture_out(robot, lg, loops, opts)
-    _done(prog)
-    return out
-
-
-def final_verdict(res, cv: dict | None, fixtures: dict | None, rules=None):
-    """The fit's verdict with the held-out evidence (`calibration.verdict.judge` on the fit, its k-fold
-    folds and its held-out fixtures); what the fit's own judgement found beyond the rules (a known length
-    left out of the fit, `calibration.solve.length_guard`) is kept, reasons and evidence alike."""
-    from closedloop.calibration.verdict import judge
-    from closedloop.records import Verdict
-
-    if cv is None and fixtures is None:
-        return res.verdict
-    v = judge(res, cv, rules=rules, fixtures=fixtures)
-    own = res.verdict
-    if own is None:
-        return v
-    kept = Verdict(v.status, list(v.reasons), {**own.evidence, **v.evidence})
-    for reason in own.reasons:
-        if reason not in kept.reasons:
-            status, _, why = reason.partition(": ")
-            if status in ("suspect", "failed"):
-                kept.add(status, why)
-            else:
-                kept.reasons.append(reason)
-    return kept
+    exclude = [rj.row - 1 for rj in res.outliers.rejected]
+    cv = cv_record = fixtures = regions = None
+    if k:
+        prog("validating", 0, k)
+        try:
+            cv = cross_validate(robot, lg, loops, opts, k=k, progress=prog, exclude=exclude)
+        except ClosedLoopError as exc:
+            n_train = len(lg) - -(-len(lg) // k)
+            why = f"{k}-fold validation refits on {n_train} of the {len(lg)} rows, and one failed: {exc}"
+            if o.cv is not None:
+                raise InputError(f"--cv {k}: {why} (fewer folds, or --cv 0)") from None
+            res.notes.append(f"k-fold validation skipped: {why}")
+            cv_record = {"k": k, "skipped": why}
+        else:
+            cv_record = {
+                "k": k,
+                "excluded_rows": [i + 1 for i in cv["excluded"]],
+                "test": cv["test"],
+                "train": cv["train"],
+                "test_whitened_rms": cv.get("test_whitened_rms"),
+                "parameter_spread": cv.get("parameter_spread"),
+                "inconsistent": cv.get("inconsistent"),
+                "folds_converged": [f["converged"] for f in cv["folds"]],
+            }
+    if o.lofo != "off" and lg.loop is not None and len(fixture_groups(loops)) >= 2:
+        prog("validating fixtures", 0)
+        fixtures = leave_one_fixture_out(robot, lg, loops, opts)
+    n = int(o.regions or 0)
+    if n >= 2 and len(lg) < 4 * n:  # regions of a few rows each say nothing of extrapolation: not run, said
+        regions = {"k": n, "skipped": f"{len(lg)} rows: too few for {n} regions (at least {4 * n})"}
+    elif n >= 2:
+        prog("validating regions", 0, n)
+        try:
+            rv = region_validate(
+                robot,
+                lg,
+                loops,
+                res.problem.joints,
+                opts,
+                k=n,
+                exclude=exclude,
+                progress=lambda task, done, total=None, note="": prog("validating regions", done, total, note),
+            )
+        except ClosedLoopError as exc:
+            why = str(exc).splitlines()[0]
+            res.notes.append(f"region validation skipped: {why}")
+            regions = {"k": n, "skipped": why}
+        else:
+            regions = {
+                "k": rv["k"],
+                "rows": [len(r) for r in rv["regions"]],
+                "test": rv["test"],
+                "train": rv["train"],
+                "folds_converged": [f["converged"] for f in rv["folds"]],
+            }
+    return HeldOut(cv, cv_record, fixtures, regions)
 
 
 def _write(
-    o: CalibrateOptions, robot, res, report: dict, lg, elapsed, messages, folder, done, accuracy=None, suggested=None
+    o: CalibrateOptions, robot, run: RunResult, log_name: str, sections: dict, folder, done, predicted
 ) -> RunResult:
+    """The run's report (`output.report.build_report`, with the run's `sections`) and files, each made
+    whole as text by its writer in `closedloop.output`, then published as one set (`io.files.publish`: the
+    model first, the report and the completion record last); the HTML page and the figures, once the model
+    and the report are out, as a second set."""
     import json
 
-    from closedloop.io.files import OutputSet, atomic_write_text
-    from closedloop.output.report import sensors_path, write_report, write_sensors
-    from closedloop.output.urdf import model_frames, write_model
+    from closedloop.io.files import publish
+    from closedloop.output.report import build_report, report_text, sensors_path, sensors_text
+    from closedloop.output.urdf import model_frames, model_text
 
-    failed = res.verdict.status == "failed"
-    model_out = o.out if o.out and (not failed or o.force) else None
-    report["outputs"] = {"model": model_out}  # `closedloop evaluate --calibration`
+    res = run.result
+    report = build_report(res, o.model, log_name, row_name=run.log.where, **sections)
+    model_out = sections["outputs"]["model"]
+    run = replace(run, report=report)
     sensors = sensors_path(model_out) if model_out else None  # what the model file cannot carry, beside it
-    run = RunResult(res, report, lg, elapsed, model_out is not None, sensors, [], messages)
+    sensor_file = sensors_text(res, model_out, robot.kind) if model_out else None
+    files: dict[str | Path, str | bytes] = {}
+    if o.suggest and predicted.suggested:
+        files[o.suggest] = predicted.suggested
+    if o.report:
+        files[o.report] = report_text(report)
+    if model_out:
+        files[model_out] = model_text(
+            robot, res.as_dict(), model_out, model_frames(res)
+        )  # with tool points and fixtures
+    if sensors is not None and sensor_file is not None:
+        files[sensors] = sensor_file
+        run = replace(run, sensors=sensors)
     marker = Path(folder) / DONE if folder is not None and done is not None else None
-    suggest = o.suggest if suggested else None
-    with OutputSet(order=[model_out, sensors, suggest, o.report, marker], folder=folder):  # model first
-        if suggest:
-            atomic_write_text(suggest, suggested)
-        if o.report:
-            write_report(report, o.report)
-        if model_out:
-            write_model(robot, res.as_dict(), model_out, frames=model_frames(res))  # with tool points and fixtures
-            if write_sensors(res, model_out, robot.kind) is None:
-                run = replace(run, sensors=None)
-        if marker is not None and done is not None:
-            atomic_write_text(marker, json.dumps(done(run), indent=1) + "\n")
+    if marker is not None and done is not None:
+        files[marker] = json.dumps(done(run), indent=1) + "\n"
+    publish(files, order=[model_out, sensors, o.suggest, o.report, marker], folder=folder)  # model first
     if o.html or o.plots:  # the figures, once the model and the report are out
-        from closedloop.output.html import write_html, write_plots
+        from closedloop.output.html import plot_files, render_html
 
+        pages: dict[str | Path, str | bytes] = {}
         if o.html:
-            write_html(res, report, o.html, o.snr, row_name=lg.where, accuracy=accuracy)
+            pages[o.html] = render_html(res, report, o.snr, row_name=run.log.where, accuracy=predicted.accuracy)
         if o.plots:
-            run = replace(run, figures=[Path(p) for p in write_plots(res, report, o.plots, o.snr, accuracy)])
+            plots = plot_files(res, report, o.plots, o.snr, predicted.accuracy)
+            pages.update({path: data for path, data in plots.items()})
+            run = replace(run, figures=list(plots))
+        publish(pages)
     return run
 
 

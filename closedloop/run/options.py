@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any
 from closedloop.errors import InputError
 
 if TYPE_CHECKING:
-    from closedloop.calibration.verdict import VerdictRules
+    from closedloop.records import VerdictRules
 
 #: the largest joint-reading noise std (rad or m) an option accepts: 0.1 rad is 5.7 degrees, no encoder's
 MAX_JOINT_NOISE = 0.1
@@ -77,7 +77,8 @@ class CalibrateOptions:
     """One calibration run: its inputs, what to identify and how, its validation and its outputs.
 
     Built by keyword; every value is checked (and text forms parsed) on construction (module doc).
-    `rules` (the verdict's thresholds, `calibration.verdict.VerdictRules`) is for the Python API only.
+    `rules` (the verdict's thresholds, `closedloop.records.VerdictRules`; its defaults unless given) is for the
+    Python API only.
     """
 
     model: str = option(None, "URDF, MJCF (.xml) or D-H table (.yaml)", kind="text", positional=True, metavar="model")
@@ -235,7 +236,7 @@ class CalibrateOptions:
     suggest_n: int = option(
         10, "how many configurations --suggest writes (default 10)", kind="int", lo=1, hi=10**4, metavar="N"
     )
-    rules: VerdictRules | None = field(default=None, metadata={"kind": "rules", "where": ()})
+    rules: VerdictRules = field(default_factory=lambda: _verdict_rules(), metadata={"kind": "rules", "where": ()})
 
     def __post_init__(self) -> None:
         for name, value in checked(self).items():
@@ -260,6 +261,14 @@ MANIFEST_ALIASES = {"loops": "loop", "bounds": "bound"}
 def flag(name: str) -> str:
     """The command line's spelling of an option: ``max_iter`` -> ``--max-iter``."""
     return "--" + name.replace("_", "-")
+
+
+def _verdict_rules() -> VerdictRules:
+    """The default rules, `VerdictRules()`: the records are imported when an options record is made, not
+    with the command line's parser."""
+    from closedloop.records import VerdictRules
+
+    return VerdictRules()
 
 
 def default(f) -> Any:
