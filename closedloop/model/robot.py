@@ -79,6 +79,9 @@ class RobotModel:
         self._unsupported: dict[str, str] = {}
         self.mimic: dict[str, str] = {}  # URDF <mimic>: joint -> the joint it follows (see supporting_joints)
         self.mimic_coupling: dict[str, tuple[float, float]] = {}  # joint -> (multiplier, offset)
+        # a calibrated URDF's joints: the change (4x4, right-multiplied) from each joint's origin back to the one
+        # of the model it was calibrated from (`NOMINAL_ORIGIN`), where the structure of a recalibration is read
+        self.calibrated_from: dict[str, np.ndarray] = {}
         data = model.createData()
         q0 = pin.neutral(model)
         pin.computeJointJacobians(model, data, q0)
@@ -107,6 +110,20 @@ class RobotModel:
                 else (model.lowerPositionLimit[jm.idx_q], model.upperPositionLimit[jm.idx_q])
             )
             self.joints[name] = JointInfo(name, jid, jm.idx_q, jm.idx_v, kind_j, axis.copy(), float(lo), float(hi))
+
+    def calibrated_from_model(self) -> "RobotModel":
+        """This robot with the joints of `calibrated_from` put back at the origins of the model it was calibrated
+        from (self where there are none): the same joints, frames and names, at the nominal geometry."""
+        if not self.calibrated_from:
+            return self
+        model = self.model.copy()
+        for name, back in self.calibrated_from.items():
+            if name in self.joints:
+                jid = self.joints[name].jid
+                model.jointPlacements[jid] = model.jointPlacements[jid] * pin.SE3(back[:3, :3], back[:3, 3])
+        robot = RobotModel(model, self.source, self.kind, self.dh)
+        robot.mimic, robot.mimic_coupling = dict(self.mimic), dict(self.mimic_coupling)
+        return robot
 
     # ----------------------------------------------------------------- loading
     @classmethod
@@ -144,6 +161,7 @@ class RobotModel:
             mimics = _urdf_mimics(path)
             robot.mimic = {j: f for j, (f, _, _) in mimics.items()}
             robot.mimic_coupling = {j: (m, o) for j, (_, m, o) in mimics.items()}
+            robot.calibrated_from = _urdf_calibrated_from(path)
         return robot
 
     # ------------------------------------------------------------------ lookup
@@ -319,6 +337,55 @@ def _urdf_mimics(path: Path) -> dict[str, tuple[str, float, float]]:
             except ValueError:
                 raise ModelError(f"{path}: joint '{name}': <mimic> multiplier and offset must be numbers") from None
             out[name] = (m.get("joint", "?"), mult, off)
+    return out
+
+
+#: the element a calibrated URDF's joint carries: its origin in the model it was calibrated from
+#: (`closedloop.output.urdf.write_urdf`), read back as `RobotModel.calibrated_from`
+NOMINAL_ORIGIN = "closedloop_nominal_origin"
+
+
+def urdf_floats(text: str, n: int, source, joint: str) -> np.ndarray:
+    """n numbers of a URDF attribute of `joint`, or a ModelError naming the file, the joint and the text."""
+    try:
+        v = np.array([float(t) for t in text.split()])
+    except ValueError:
+        v = np.zeros(0)
+    if v.size != n:
+        raise ModelError(f"{source}: joint '{joint}': expected {n} numbers, got '{text}'")
+    return v
+
+
+def urdf_origin(origin, source, joint: str) -> np.ndarray:
+    """The 4x4 transform of a URDF ``<origin xyz rpy>`` (identity when absent): R = Rz(y) Ry(p) Rx(r)."""
+    T = np.eye(4)
+    if origin is None:
+        return T
+    r, p, y = urdf_floats(origin.get("rpy", "0 0 0"), 3, source, joint)
+    T[:3, 3] = urdf_floats(origin.get("xyz", "0 0 0"), 3, source, joint)
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    T[:3, :3] = [
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ]
+    return T
+
+
+def _urdf_calibrated_from(path: Path) -> dict[str, np.ndarray]:
+    """Per joint carrying a `NOMINAL_ORIGIN` element: O^-1 O_nominal (4x4), the change that takes its origin O
+    back to the one of the model it was calibrated from."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError):
+        return {}
+    out: dict[str, np.ndarray] = {}
+    for j in root.iter("joint"):
+        el, name = j.find(NOMINAL_ORIGIN), j.get("name")
+        if el is not None and name:
+            out[name] = np.linalg.inv(urdf_origin(j.find("origin"), path, name)) @ urdf_origin(el, path, name)
     return out
 
 
