@@ -7,7 +7,7 @@ calibrated geometry, the reduction kept such a slide (panda_joint4.y) in place o
 parameter (panda_joint2.x), and the size was held by a shorter length (panda_joint2.y, 0.137 m instead
 of panda_joint3.z, 0.316 m).  The written URDF now keeps each calibrated joint's input origin
 (``<closedloop_nominal_origin>``) and a recalibration reads its structure there
-(`closedloop.analysis.selection.structure_point`).
+(`closedloop.analysis.selection.structure_problem`).
 
 Measured (seed 1, 200 configurations, exact data): the recalibrations change no robot parameter by
 more than 1e-9 m; the held length is the first calibration's; the robot against the truth is the first
