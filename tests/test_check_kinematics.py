@@ -214,3 +214,26 @@ def test_check_names_the_reports_verdict_once_and_why_it_used_the_table(tmp_path
     out = capsys.readouterr().out
     assert "note: compared by parameters, not by what the robots do: the report names no robot model" in out
     assert "verdict is suspect: the size is held short" in out and "suspect: suspect:" not in out
+
+
+@pytest.mark.slow
+def test_ball_on_the_last_axis_with_the_true_length_reaches_the_true_robot():
+    """The iiwa14 with a ball at its flange (on joint 7's axis, a point contact), 60 configurations of exact
+    data, and the true length link_2-link_4.  The start's reduction (the ball on the axis: joint 7's offset
+    has no effect) cannot reach the true ball, 2 mm off the axis; the stalled fit's rows look like outliers,
+    and once they are readmitted the fit from the start kept a slide of joint 4 along its axis that met the
+    length instead of the robot's size: closure 2 um on exact data and the tool 2 mm off the truth over the
+    workspace (relative motions), with a verdict that did not say why.  The solution the readmission was
+    decided at, solved again on all rows, closes to round-off: that one is kept, and it is the truth."""
+    case = zoo.make_case("iiwa14", "point", n=60, seed=11)
+    L = case.true_distance("link_2", "link_4")
+    res = _calibrate(case, lengths=[("link_2", "link_4", L)])
+    assert all(r.rms_m < 1e-9 for r in res.fit.residuals_after), res.fit.residuals_after
+    assert res.verdict.status == "ok", res.verdict.describe()
+    assert res.verdict.evidence["size_measured"] is True
+    out = case.nominal_urdf.parent / "calibrated.urdf"
+    from closedloop.output.urdf import write_model
+
+    write_model(res.problem.robot, res.as_dict(), out)
+    j = zoo.judge(case, out)
+    assert j.right(case.tolerances()) and j.rel_pos_max < 1e-6, j.summary()

@@ -36,6 +36,15 @@ if TYPE_CHECKING:
 
 N_CONFIGS = 32  # x 6 rows per loop frame: far more rows than the 7 + 6F rigid unknowns
 HELD_ERROR = 2e-3  # m: an error of a nominal length a model file may carry (a drawing against the part)
+# At a solution (`sets_scale`), the held length's null direction counts as a uniform scaling when what is left
+# of its kinematic change besides the scaling and the rigid motions is under this share of it
+# (`scale_content`'s second value).  At a nominal geometry (axes parallel or square, frames on them) the share
+# is round-off (1e-14..1e-11), and `choose_gauge` reads the gauge there.  At a solution the joint frames carry
+# the corrections: a length held beside the gauge then stands for a few millimetres (a UR5's elbow_joint.x, 0
+# nominally, 5.1 mm calibrated), which does not scale with the robot, and the change is a scaling up to
+# 9e-3 (a calibrated UR5 with a point contact; a camera head 6e-3).  A direction that is no scaling leaves
+# 0.29 or more (a Panda weld, a UR5 socket).
+PURE_SCALING = 0.05
 
 
 def random_configurations(problem: CalibrationProblem, n: int = N_CONFIGS, seed: int = 0) -> np.ndarray:
@@ -248,7 +257,8 @@ def length_of(problem: CalibrationProblem, x: np.ndarray, k: int) -> float:
 def sets_scale(
     problem: CalibrationProblem, x: np.ndarray, free: list[int], R: np.ndarray, kept: list[int], g: int
 ) -> bool:
-    """Whether the one null direction of R (over `free`) on columns kept + [g] is g's own uniform scaling."""
+    """Whether the one null direction of R (over `free`) on columns kept + [g] is g's own uniform scaling (up to
+    `PURE_SCALING`: at a solution the lengths held beside g do not scale with it)."""
     cols = kept + [g]
     _, S, Vt = np.linalg.svd(R[:, cols])
     if S.size < len(cols) or S[-1] > 1e-10 * S[0] or (len(S) > 1 and S[-2] <= 1e-10 * S[0]):
@@ -257,4 +267,4 @@ def sets_scale(
     v = np.zeros(len(problem.params))
     v[[free[c] for c in cols]] = Vt[-1] * prior[cols]
     c, res = scale_content(*kinematic_changes(problem, x, v[:, None], random_configurations(problem)))
-    return bool(res[0] < 1e-3)
+    return bool(res[0] < PURE_SCALING)

@@ -3,7 +3,9 @@
 Stages of `calibrate` before any solve:
 
 * `initial_values`: the nominal values, with the loops' unknowns started from
-  the data (closures, contact points, tool points) and the user's guesses.
+  the data (closures, contact points, tool points) and the user's guesses;
+  `structure_problem`: where the reduction and gauge are read (a calibrated
+  model's own nominal geometry).
 * `select_parameters`: the user's patterns and fixes, as one status per
   parameter ('selected', 'fixed', 'not selected').
 * `check_motion`: joints that never move (Singularity 5), immobile loops
@@ -41,6 +43,23 @@ def initial_values(problem: CalibrationProblem, initial: dict[str, float]) -> np
             raise ParameterError(f"initial value for unknown parameter '{n}'")
         x0[problem.index[n]] = v
     return x0
+
+
+def structure_problem(problem: CalibrationProblem) -> CalibrationProblem:
+    """Where the reduction and the length gauge are read (`identifiability.analyse_structure`): the problem
+    itself, or for a model calibrated before (`RobotModel.calibrated_from`) the same problem (parameters,
+    names, order, loops, log) on the model it was calibrated from.
+
+    A calibrated model's joint frames carry its corrections (offsets folded, millimetre tilts), so slides
+    that are exactly redundant at the nominal's geometry (axes parallel or square) are separated there by
+    ~1e-4 of their effect: read there, the greedy reduction keeps such a slide in place of a well-determined
+    parameter, and another, shorter length holds the size (a Panda weld: panda_joint4.y kept, the size held
+    by panda_joint2.y, 0.137 m, not panda_joint3.z, 0.316 m).  Read at the nominal geometry, the reduction
+    and the gauge are the first calibration's whatever values it wrote; the fit still starts from the
+    calibrated model, and both are re-checked at its solution (`solve.recheck_at_solution`).
+    """
+    robot = problem.robot.calibrated_from_model()
+    return problem if robot is problem.robot else problem.on_robot(robot)
 
 
 def select_parameters(

@@ -22,6 +22,8 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from closedloop.errors import ModelError
 
 #: the element ``closedloop simulate --robot`` puts in a joint it held fixed at zero (not driven: the log
@@ -177,6 +179,9 @@ class UrdfJoints:
     tree: dict[str, tuple[str, str]] = field(default_factory=dict)
     held: frozenset[str] = frozenset()
     mimics: dict[str, tuple[str, float, float]] = field(default_factory=dict)
+    # a calibrated URDF's joints (those carrying `NOMINAL_ORIGIN`): O^-1 O_nominal (4x4), the change that takes
+    # the joint's origin O back to the one of the model it was calibrated from
+    calibrated_from: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def read_urdf_joints(path: str | Path) -> UrdfJoints:
@@ -189,6 +194,7 @@ def read_urdf_joints(path: str | Path) -> UrdfJoints:
     tree: dict[str, tuple[str, str]] = {}
     held: set[str] = set()
     mimics: dict[str, tuple[str, float, float]] = {}
+    calibrated_from: dict[str, np.ndarray] = {}
     for j in root.iter("joint"):
         name = j.get("name")
         if not name:
@@ -207,7 +213,44 @@ def read_urdf_joints(path: str | Path) -> UrdfJoints:
             except ValueError:
                 raise ModelError(f"{path}: joint '{name}': <mimic> multiplier and offset must be numbers") from None
             mimics[name] = (m.get("joint", "?"), mult, off)
-    return UrdfJoints(tree, frozenset(held), mimics)
+        nominal = j.find(NOMINAL_ORIGIN)
+        if nominal is not None:
+            calibrated_from[name] = np.linalg.inv(urdf_origin(j.find("origin"), path, name)) @ urdf_origin(
+                nominal, path, name
+            )
+    return UrdfJoints(tree, frozenset(held), mimics, calibrated_from)
+
+
+#: the element a calibrated URDF's joint carries: its origin in the model it was calibrated from
+#: (`closedloop.output.urdf.write_urdf`), read back as `UrdfJoints.calibrated_from`
+NOMINAL_ORIGIN = "closedloop_nominal_origin"
+
+
+def urdf_floats(text: str, n: int, source, joint: str) -> np.ndarray:
+    """n numbers of a URDF attribute of `joint`, or a ModelError naming the file, the joint and the text."""
+    try:
+        v = np.array([float(t) for t in text.split()])
+    except ValueError:
+        v = np.zeros(0)
+    if v.size != n:
+        raise ModelError(f"{source}: joint '{joint}': expected {n} numbers, got '{text}'")
+    return v
+
+
+def urdf_origin(origin, source, joint: str) -> np.ndarray:
+    """The 4x4 transform of a URDF ``<origin xyz rpy>`` (identity when absent): R = Rz(y) Ry(p) Rx(r)."""
+    T = np.eye(4)
+    if origin is None:
+        return T
+    r, p, y = urdf_floats(origin.get("rpy", "0 0 0"), 3, source, joint)
+    T[:3, 3] = urdf_floats(origin.get("xyz", "0 0 0"), 3, source, joint)
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
+    T[:3, :3] = [
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ]
+    return T
 
 
 def check_mjcf(path: str | Path) -> None:

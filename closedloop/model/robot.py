@@ -83,6 +83,10 @@ class RobotModel:
         self.mimic_coupling: dict[str, tuple[float, float]] = {}  # joint -> (multiplier, offset)
         self.urdf_tree: dict[str, tuple[str, str]] = {}  # URDF joint -> (parent link, child link)
         self.held: frozenset[str] = frozenset()  # URDF joints `closedloop simulate --robot` held fixed
+        # a calibrated URDF's joints: the change (4x4, right-multiplied) from each joint's origin back to the one
+        # of the model it was calibrated from (`io.robot_files.NOMINAL_ORIGIN`), where the structure of a
+        # recalibration is read
+        self.calibrated_from: dict[str, np.ndarray] = {}
         data = model.createData()
         q0 = pin.neutral(model)
         pin.computeJointJacobians(model, data, q0)
@@ -111,6 +115,20 @@ class RobotModel:
                 else (model.lowerPositionLimit[jm.idx_q], model.upperPositionLimit[jm.idx_q])
             )
             self.joints[name] = JointInfo(name, jid, jm.idx_q, jm.idx_v, kind_j, axis.copy(), float(lo), float(hi))
+
+    def calibrated_from_model(self) -> "RobotModel":
+        """This robot with the joints of `calibrated_from` put back at the origins of the model it was calibrated
+        from (self where there are none): the same joints, frames and names, at the nominal geometry."""
+        if not self.calibrated_from:
+            return self
+        model = self.model.copy()
+        for name, back in self.calibrated_from.items():
+            if name in self.joints:
+                jid = self.joints[name].jid
+                model.jointPlacements[jid] = model.jointPlacements[jid] * pin.SE3(back[:3, :3], back[:3, 3])
+        robot = RobotModel(model, self.source, self.kind, self.dh)
+        robot.mimic, robot.mimic_coupling = dict(self.mimic), dict(self.mimic_coupling)
+        return robot
 
     # ----------------------------------------------------------------- loading
     @classmethod
@@ -147,7 +165,7 @@ class RobotModel:
         if urdf is not None:
             robot.mimic = {j: f for j, (f, _, _) in urdf.mimics.items()}
             robot.mimic_coupling = {j: (m, o) for j, (_, m, o) in urdf.mimics.items()}
-            robot.urdf_tree, robot.held = urdf.tree, urdf.held
+            robot.urdf_tree, robot.held, robot.calibrated_from = urdf.tree, urdf.held, urdf.calibrated_from
         return robot
 
     # ------------------------------------------------------------------ lookup

@@ -11,6 +11,11 @@ URDF: they are in the sensor file beside the model (`closedloop.output.report.wr
 the report, and a joint value for the calibrated URDF is k * reading - c * tau.  What the loops
 estimated (tool points, fixtures, sensors, planes) is added as links on fixed joints
 (`model_frames`).
+
+Each calibrated joint also keeps its input origin as ``<closedloop_nominal_origin xyz rpy>`` (the first
+calibration's, through recalibrations; URDF readers ignore it): a recalibration from this file reads
+its structure (what is redundant, which length holds the size) at that nominal geometry
+(`closedloop.model.robot.RobotModel.calibrated_from`).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import pinocchio as pin
 
 from closedloop.errors import ModelError
 from closedloop.io.files import atomic_write_text, refuse_overwrite
+from closedloop.io.robot_files import NOMINAL_ORIGIN, urdf_floats, urdf_origin
 from closedloop.model.robot import RobotModel
 
 
@@ -80,10 +86,10 @@ def urdf_text(
         if j is None:
             raise ModelError(f"{robot.source}: joint '{name}' not found in the URDF")
         origin = j.find("origin")
-        O = _urdf_origin(origin, robot.source, name) @ pin.exp6(twist).homogeneous
+        O = urdf_origin(origin, robot.source, name) @ pin.exp6(twist).homogeneous
         if offset:
             axis_el = j.find("axis")
-            axis = _floats(axis_el.get("xyz", "1 0 0") if axis_el is not None else "1 0 0", 3, robot.source, name)
+            axis = urdf_floats(axis_el.get("xyz", "1 0 0") if axis_el is not None else "1 0 0", 3, robot.source, name)
             axis /= np.linalg.norm(axis)
             T = np.eye(4)
             if j.get("type") == "prismatic":
@@ -97,6 +103,10 @@ def urdf_text(
                     bound = limit.get(key)
                     if bound is not None:
                         limit.set(key, str(float(bound) - offset))
+        if j.find(NOMINAL_ORIGIN) is None:  # the first calibration's input: kept through recalibrations
+            nominal = ET.SubElement(j, NOMINAL_ORIGIN)
+            nominal.set("xyz", origin.get("xyz", "0 0 0") if origin is not None else "0 0 0")
+            nominal.set("rpy", origin.get("rpy", "0 0 0") if origin is not None else "0 0 0")
         if origin is None:
             origin = ET.Element("origin")
             j.insert(0, origin)
@@ -149,32 +159,6 @@ def relocate_meshes(root, source: Path, out_path: Path) -> int:
         el.set("filename", Path(os.path.relpath(src_dir / name, out_dir)).as_posix())
         n += 1
     return n
-
-
-def _floats(text: str, n: int, source, joint: str) -> np.ndarray:
-    try:
-        v = np.array([float(t) for t in text.split()])
-    except ValueError:
-        v = np.zeros(0)
-    if v.size != n:
-        raise ModelError(f"{source}: joint '{joint}': expected {n} numbers, got '{text}'")
-    return v
-
-
-def _urdf_origin(origin, source, joint: str) -> np.ndarray:
-    """The 4x4 transform of a URDF ``<origin xyz rpy>`` (identity when absent): R = Rz(y) Ry(p) Rx(r)."""
-    T = np.eye(4)
-    if origin is None:
-        return T
-    r, p, y = _floats(origin.get("rpy", "0 0 0"), 3, source, joint)
-    T[:3, 3] = _floats(origin.get("xyz", "0 0 0"), 3, source, joint)
-    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p), np.sin(p), np.cos(y), np.sin(y)
-    T[:3, :3] = [
-        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-        [-sp, cp * sr, cp * cr],
-    ]
-    return T
 
 
 def _rpy(R: np.ndarray) -> np.ndarray:

@@ -239,6 +239,11 @@ class CalibrationProblem:
         ]
         return CalibrationProblem(self.robot, self.joints, blocks, self.priors, self.noise)
 
+    def on_robot(self, robot: RobotModel) -> "CalibrationProblem":
+        """The same problem (joints, loops, log, noise records) on another model of the same joints and frames
+        (its geometry may differ): the same parameters in the same order."""
+        return CalibrationProblem(robot, self.joints, self.blocks, self.priors, self.noise)
+
     def normalized(self, x: np.ndarray, est: list[int] | None = None) -> np.ndarray:
         """A copy of x with the loops' parameters in their canonical form (`Loop.normalize`: a rotation vector
         within pi): the same model.  With `est`, only the loops whose parameters are all among `est`."""
