@@ -330,6 +330,28 @@ def test_suggest_writes_a_log_the_robot_can_play(tmp_path, capsys):
     assert rec["configurations"] == 5 and rec["predicted_rms_after_m"][-1] < rec["predicted_rms_before_m"]
 
 
+def test_suggest_on_a_log_with_joint_torques(tmp_path, capsys):
+    """A log with joint torques (``tau:<joint>``, the compliance then estimated): the suggested
+    configurations carry the model's gravity torques, not the log's rows (a log of another length)."""
+    case = _case("ur5", "point", 1e-5)
+    robot = RobotModel.from_file(case.nominal_urdf)
+    tau = robot.gravity_torques(case.readings, list(case.joints))
+    lines = case.log_csv.read_text().splitlines()
+    log = tmp_path / "torques.csv"
+    log.write_text(
+        "\n".join(
+            [lines[0] + "," + ",".join(f"tau:{j}" for j in case.joints)]
+            + [row + "," + ",".join(repr(float(v)) for v in t) for row, t in zip(lines[1:], tau)]
+        )
+        + "\n"
+    )
+    nxt = tmp_path / "next.csv"
+    args = ["calibrate", str(case.nominal_urdf), str(log), "--loop", case.loop_specs[0], "--cv", "0", "--regions", "0"]
+    assert main([*args, "--suggest", str(nxt), "--suggest-n", "3", "--quiet"]) == 0
+    rows = nxt.read_text().splitlines()
+    assert rows[0].split(",") == list(case.joints) and len(rows) == 4
+
+
 def test_regions_of_a_rig_whose_loops_each_have_their_own_log():
     """Two sockets recorded apart (the log's 'loop' column), each in its own part of joint space: every
     region holds rows of both loops (a refit without one of them could not be done), the regions cover

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from closedloop.analysis.accuracy import joint_ranges
-from closedloop.problem.problem import CalibrationProblem
+from closedloop.problem.problem import CalibrationProblem, LoopBlock
 
 N_CANDIDATES = 400  # random starts moved onto the loop
 CLOSED = 1e-9  # a candidate's closure (m, rad) below which it is on the loop
@@ -75,9 +75,14 @@ def suggest_next(res, workspace, k: int = 10) -> NextPoses | None:
     return found if found is not None and found.readings.shape[0] else None
 
 
-def _sub_problem(problem: CalibrationProblem, block_index: int, values: np.ndarray):
-    """The problem of one loop (its block alone) and the parameter vector mapped to it by name."""
-    sub = CalibrationProblem(problem.robot, problem.joints, [problem.blocks[block_index]], problem.priors)
+def _sub_problem(problem: CalibrationProblem, block_index: int, values: np.ndarray, readings: np.ndarray):
+    """The problem of one loop at new `readings` (N, joints) and the parameter vector mapped to it by name.
+    Where the log carried joint torques, the new configurations' are the model's gravity torques (a static
+    robot carrying itself: what `closedloop calibrate` assumes of a log without torques)."""
+    b = problem.blocks[block_index]
+    tau = None if b.tau is None else problem.robot.gravity_torques(readings, list(problem.joints))
+    block = LoopBlock(b.loop, readings, np.arange(1, readings.shape[0] + 1), tau)
+    sub = CalibrationProblem(problem.robot, problem.joints, [block], problem.priors)
     x = np.array([values[problem.index[n]] for n in sub.names], dtype=float)
     return sub, x
 
@@ -86,13 +91,13 @@ def loop_candidates(
     problem: CalibrationProblem, values: np.ndarray, block_index: int, n: int = N_CANDIDATES, seed: int = 0
 ) -> np.ndarray:
     """Readings (k, joints) on the loop of block `block_index` at its current place (module docstring)."""
-    sub, x = _sub_problem(problem, block_index, values)
     lo, hi = joint_ranges(problem.robot, problem.joints)
     rng = np.random.default_rng(seed)
     X = rng.uniform(lo, hi, (n, len(problem.joints)))
     r = np.full((n, 1), np.inf)
     for _ in range(40):
-        ev = sub.evaluate(x, True, thetas=[X], columns=[])[0]
+        sub, x = _sub_problem(problem, block_index, values, X)
+        ev = sub.evaluate(x, True, columns=[])[0]
         r = ev.r
         if ev.Jq is None:
             return np.zeros((0, len(problem.joints)))
@@ -100,7 +105,8 @@ def loop_candidates(
         X = X - step
         if np.all(np.linalg.norm(step, axis=1) < 1e-12):
             break
-    r = sub.evaluate(x, False, thetas=[X])[0].r
+    sub, x = _sub_problem(problem, block_index, values, X)
+    r = sub.evaluate(x, False)[0].r
     ok = np.all(np.isfinite(r), axis=1) & (np.linalg.norm(r, axis=1) < CLOSED)
     ok &= np.all((X >= lo) & (X <= hi), axis=1)
     return X[ok]
@@ -121,11 +127,11 @@ def suggest_poses(
     C = loop_candidates(problem, values, block_index, n_candidates, seed)
     if not C.shape[0]:
         return None
-    sub, x = _sub_problem(problem, block_index, values)
+    sub, x = _sub_problem(problem, block_index, values, C)
     names = list(workspace.parameters)
     cols = [sub.index[n] for n in names if n in sub.index]
     keep = [i for i, n in enumerate(names) if n in sub.index]
-    ev = sub.evaluate(x, True, thetas=[C], columns=cols)[0]
+    ev = sub.evaluate(x, True, columns=cols)[0]
     sigma = max(float(res.noise.sigma), 1e-9)
     B = np.zeros((C.shape[0], ev.r.shape[1], len(names)))
     Jq = ev.Jq if ev.Jq is not None else np.zeros((C.shape[0], ev.r.shape[1], 0))
