@@ -16,12 +16,25 @@ import numpy as np
 from closedloop.errors import InputError
 
 
-def workspace_request(o) -> tuple[dict[str, tuple[float, float]] | None, tuple[float | None, float | None] | None]:
+@dataclass(frozen=True)
+class AccuracyRequest:
     """What the options ask of the accuracy, checked before any work: ``--workspace``'s joint ranges
-    (`check_workspace`: None for a log file, or without it) and ``--accuracy``'s target (metres or None,
-    radians or None; `parse_accuracy`), None without it."""
-    box = check_workspace(o.workspace) if o.workspace else None
-    return box, parse_accuracy(o.accuracy) if o.accuracy else None
+    (`check_workspace`: None for a log file, or without it), ``--accuracy``'s target (metres or None,
+    radians or None; `parse_accuracy`; None without it) and ``--prior-tolerance``'s nominal tolerance
+    (`parse_prior`; None: `analysis.accuracy.PriorTolerance`'s defaults)."""
+
+    box: dict[str, tuple[float, float]] | None = None
+    target: tuple[float | None, float | None] | None = None
+    prior: Any = None  # closedloop.analysis.accuracy.PriorTolerance
+
+
+def workspace_request(o) -> AccuracyRequest:
+    """The `AccuracyRequest` of the options `o`; one line naming the option at fault otherwise."""
+    return AccuracyRequest(
+        box=check_workspace(o.workspace) if o.workspace else None,
+        target=parse_accuracy(o.accuracy) if o.accuracy else None,
+        prior=parse_prior(o.prior_tolerance) if o.prior_tolerance else None,
+    )
 
 
 @dataclass(frozen=True)
@@ -36,9 +49,9 @@ class WorkspacePrediction:
     note: str | None = None
 
 
-def predict_workspace(o, robot, res, box: dict[str, tuple[float, float]] | None = None) -> WorkspacePrediction:
+def predict_workspace(o, robot, res, request: AccuracyRequest | None = None) -> WorkspacePrediction:
     """The calibrated robot's predicted accuracy (`analysis.accuracy.predict_from_result`) at the readings
-    ``--workspace`` names: its log file (its rows, columns by joint name), its box `box` (random readings
+    ``--workspace`` names: its log file (its rows, columns by joint name), its box (`request.box`: random readings
     in it), or without it random readings within the joint ranges (seed 0: the readings ``closedloop
     check`` compares the robots at); where no loop has a frame to follow, or the kinematics are not finite
     at a reading, no prediction (a note says so).  Then, with ``--suggest FILE``, the ``--suggest-n``
@@ -46,6 +59,8 @@ def predict_workspace(o, robot, res, box: dict[str, tuple[float, float]] | None 
     the CSV log to write and the report's record."""
     from closedloop.analysis.accuracy import N_WORKSPACE, predict_from_result, random_readings
 
+    request = request or AccuracyRequest()
+    box = request.box
     joints = res.problem.joints
     spec = o.workspace
     readings, source = None, None
@@ -63,9 +78,8 @@ def predict_workspace(o, robot, res, box: dict[str, tuple[float, float]] | None 
         readings, source = lg.columns(joints), f"the {len(lg)} readings of {spec}"
     elif spec:
         readings, source = random_readings(robot, joints, box=box), f"{N_WORKSPACE} random readings within {spec}"
-    prior = parse_prior(o.prior_tolerance) if o.prior_tolerance else None  # the nominal model's tolerance
     try:
-        accuracy = predict_from_result(res, readings, source=source, prior=prior)
+        accuracy = predict_from_result(res, readings, source=source, prior=request.prior)
     except np.linalg.LinAlgError as exc:  # the calibration stands; the prediction is said to be missing
         res.notes.append(f"accuracy over the workspace not predicted: {exc}")
         accuracy = None

@@ -89,13 +89,13 @@ def calibrate_files(
     inp = load_inputs(o)  # the robot, its loops, the log, the folds, the fit's options
     _done(prog)
     robot, lg, loops = inp.robot, inp.log, inp.loops
-    box, target = workspace_request(o)  # --workspace and --accuracy refused now, not after the fit
+    request = workspace_request(o)  # --workspace, --accuracy and --prior-tolerance refused now, not after the fit
     t0, c0 = time.perf_counter(), time.process_time()
     res = calibrate(robot, lg, loops, inp.fit, progress=prog)
     _done(prog)
     elapsed, cpu = time.perf_counter() - t0, time.process_time() - c0
     prog("predicting accuracy", 0)  # an evaluation of every row with its Jacobian
-    predicted = predict_workspace(o, robot, res, box)  # the accuracy over the workspace, the poses to record next
+    predicted = predict_workspace(o, robot, res, request)  # the accuracy over the workspace, the poses to record next
     _done(prog)
     if inp.weighting_note:
         res.notes.append(inp.weighting_note)
@@ -108,7 +108,7 @@ def calibrate_files(
     _done(prog)
     if predicted.note:
         res.notes.append(predicted.note)
-    verdict, met = judge_run(res, held.cv, held.fixtures, o.rules, predicted.accuracy, target)
+    verdict, met = judge_run(res, held.cv, held.fixtures, o.rules, predicted.accuracy, request.target)
     res = replace(
         res, verdict=verdict, accuracy=AccuracyRecord(workspace=predicted.accuracy, regions=held.regions, target=met)
     )
