@@ -42,6 +42,16 @@ are correlated across configurations: its largest is one draw's maximum, which `
 same in rad for a pose loop's rotation.  The worst configuration is the reading with the largest
 sigma_i.
 
+**The size.**  Where the data do not measure the overall size, `closedloop check` removes it before
+comparing the frames and compares it on a row of its own; the prediction does the same.  The size the
+gauge fit above assigns to the errors e (its coefficient of the size column of G, c_s = row of
+(W G)^+ W e) has a variance from L like the frames'; and the length held to set the size (thesis 3.3) is
+held at its nominal value, whose error t over the length L_g it stands for moves the size by t / L_g
+whatever the data (t = `closedloop.analysis.gauge.HELD_ERROR`, 2 mm, the error a model file's nominal length
+may carry: the held length spans two joint origins, each within the prior's tolerance).  Their sum, sigma_s^2 = |c_s(L)|^2 + (t / L_g)^2, is the predicted relative size error
+(`WorkspaceAccuracy.size_std`); the expected |error| sigma_s sqrt(2 / pi) is the figure beside check's
+observed one, 1.96 sigma_s its 95 % bound.
+
 **Against the nominal model.**  The nominal model's own expected error is the tolerance of every
 parameter considered, T, propagated the same way (L = T): where the calibrated model's RMS is not below
 it, calibrating did not make the robot better in expectation (`better_than_nominal`).
@@ -53,6 +63,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from closedloop.analysis.gauge import HELD_ERROR
 from closedloop.errors import InputError
 from closedloop.records import ParamStatus
 
@@ -141,6 +152,15 @@ class WorkspaceAccuracy:
     #: (3 n per frame, len(parameters)) the frames' position errors per parameter over the readings, gauge
     #: removed (e_perp = design @ dx): what a design of new configurations is judged by (`closedloop.design`)
     design: np.ndarray | None = field(repr=False, default=None)
+    #: the predicted relative error of the overall size, one standard deviation, where the data do not measure
+    #: it (module docstring, "The size"): from the fit's uncertainty and from the held length's tolerance
+    size_std: float | None = None
+    size_held_std: float | None = None  # the held length's share: its possible error over the length it stands for
+
+    @property
+    def size_predicted(self) -> float | None:
+        """The expected |relative size error| (what `closedloop check` observes on its size row), or None."""
+        return None if self.size_std is None else float(self.size_std * np.sqrt(2.0 / np.pi))
 
     @property
     def max_m(self) -> float:
@@ -359,12 +379,14 @@ def predict_accuracy(
     seed: int = 0,
     tol_m: float = TOL_M,
     tol_rad: float = TOL_RAD,
+    held_length: float = 0.0,
 ) -> WorkspaceAccuracy | None:
     """The predicted error of every followed frame at `readings` (n, problem joints) (module docstring).
 
     `covariance` is over the `estimated` columns of the problem; `status` the parameters' statuses
-    (`ParamStatus`); `n_weak` the number of combinations the fit left undetermined.  None when no loop
-    has a frame to follow (a camera, a known distance).
+    (`ParamStatus`); `n_weak` the number of combinations the fit left undetermined; `held_length` the length
+    the parameter held to set the size stands for (m; 0: none held).  None when no loop has a frame to
+    follow (a camera, a known distance).
     """
     prior = prior or PriorTolerance()
     items = followed_frames(problem, values)
@@ -405,6 +427,12 @@ def predict_accuracy(
         return (A - Qg @ (Qg.T @ A)) / w[:, None]
 
     A_e, A_u = projected(L_e), projected(L_u)
+    size_std = size_held = None
+    if not size_measured and G.shape[1]:  # the size's coefficient in the gauge fit, and the held length's tolerance
+        row_s = np.linalg.pinv(G)[-1]
+        c_s = row_s @ ((J @ np.hstack([L_e, L_u])) * w[:, None])
+        size_held = HELD_ERROR / held_length if held_length > 0 else 0.0
+        size_std = float(np.sqrt(np.sum(c_s**2) + size_held**2))
     n_read = readings.shape[0]
     position_rows = np.concatenate(
         [np.arange(3 * n_read) + 3 * n_read * (i + sum(x.kind == "pose" for x in items[:i])) for i in range(len(items))]
@@ -485,6 +513,8 @@ def predict_accuracy(
         parameters=tuple(problem.names[considered[i]] for i in moving),
         covariance=L_all @ L_all.T,
         design=projected(np.eye(len(considered))[:, moving])[position_rows],
+        size_std=size_std,
+        size_held_std=size_held,
     )
 
 
@@ -565,4 +595,5 @@ def predict_from_result(
             source=source or "the given readings",
             default_readings=default,
             seed=seed,
+            held_length=float(getattr(getattr(res, "scale", None), "gauge_length", 0.0) or 0.0),
         )
