@@ -86,7 +86,28 @@ def test_unseen_parameters_enter_with_the_nominal_tolerance():
     assert g.rms_m > f.rms_m
     # the prediction of the default prior against the truth on this draw: within a factor 2
     _, _, rows, _, _ = _judged(case, case.readings)
-    assert all(0.5 < r["ratio"] < 2.0 for r in rows if r.get("ratio") is not None), rows
+    frames = [r for r in rows if r.get("ratio") is not None and not r["name"].startswith("size")]
+    assert len(frames) == 2 and all(0.5 < r["ratio"] < 2.0 for r in frames), rows
+    # the size (held by a 69 mm length whose possible 2 mm error dominates its prediction): within 3x
+    size = [r for r in rows if r["name"].startswith("size")][0]
+    assert abs(size["error"]) < FORETOLD * size["predicted"], size
+
+
+@pytest.mark.slow  # about 10 s on a loaded machine
+def test_a_move_along_what_the_data_cannot_see_is_predicted_as_error():
+    """An xArm 7 weld (1-DOF self-motion) with 1e-5 rad of joint noise, a draw where the fit moved weak
+    combinations (joint5.x, joint6.y) by about 15 mm before setting them aside: the tool is 20 mm and the
+    size 4 % off the truth.  The prediction counts that move as error (module docstring of
+    `closedloop.analysis.accuracy`), so check finds every row outside tolerance foretold (predicted above
+    the tolerance, observed within 3x), and the workspace judgement makes the verdict suspect: the
+    calibrated model is not expected to be better than the nominal one."""
+    case = zoo.make_case("xarm7", "weld", n=60, sigma=1e-5, seed=22)
+    res, acc, rows, _, _ = _judged(case, case.readings)
+    failing = [r for r in rows if r["result"] == "FAIL"]
+    assert {r["name"].split(" ")[-1] for r in failing} == {"position", "rotation", "data)"}, rows
+    assert failing[0]["error"] > 0.01 and not unforetold(rows), rows
+    assert acc.frames[0].unseen_rms_m > 0.5 * acc.frames[0].rms_m  # the move, not the noise, dominates
+    assert judge_workspace(res.verdict, acc).status == "suspect"
 
 
 def test_regions_are_compact_and_cover_the_log():

@@ -25,6 +25,10 @@ eq. 4.4).  The error of the calibrated parameters is modelled as dx = L z, z ~ N
   P = diag(p_k).  A weld with a 1-DOF self-motion sees the arm along its motion only: parameters
   redundant there are dropped, and over the joint ranges they move the tool; a structural redundancy
   (a joint offset and the rotation about its axis) moves nothing once the gauge below is removed.
+  What the data cannot see the fit cannot have corrected: where the solution has moved the robot's
+  parameters along those directions anyway (a weak direction followed before the truncation of eq. 4.17
+  set it aside, on noise), that move d_u = P V_u V_u^T P^-1 (x - x_0) is an error of its own, independent
+  of the nominal's: Sigma_unseen + d_u d_u^T.
 
 **Gauge.**  What no loop can see is not an error of the robot: a rigid transform of the base (one for
 the loops closed to the world, one per loop between two robot frames, in its second frame), a constant
@@ -303,10 +307,16 @@ def frame_jacobians(
 
 # --------------------------------------------------------------------------- the parameters' uncertainty
 def unseen_factor(
-    problem, values: np.ndarray, considered: list[int], n_unseen: int, prior: PriorTolerance
+    problem,
+    values: np.ndarray,
+    considered: list[int],
+    n_unseen: int,
+    prior: PriorTolerance,
+    moved: np.ndarray | None = None,
 ) -> np.ndarray:
-    """A factor (len(considered), len(considered)) of Sigma_unseen (module docstring) over `considered`:
-    the nominal tolerance projected on the `n_unseen` directions the data see least."""
+    """A factor (len(considered), len(considered) + 1) of Sigma_unseen (module docstring) over `considered`:
+    the nominal tolerance projected on the `n_unseen` directions the data see least, and, as its last column,
+    the part along them of `moved` (the solution's move from the nominal, over `considered`; 0 where None)."""
     if n_unseen <= 0 or not considered:
         return np.zeros((len(considered), 0))
     p = np.array([problem.params[k].prior for k in considered], dtype=float)
@@ -319,7 +329,8 @@ def unseen_factor(
         C = np.vstack([C, np.zeros((C.shape[1] - C.shape[0], C.shape[1]))])
     _, _, Vt = np.linalg.svd(C, full_matrices=False)
     Vu = Vt[-min(n_unseen, Vt.shape[0]) :].T  # the least-seen directions, in prior-scaled units
-    return (p[:, None] * Vu) @ (Vu.T * (t / p))
+    d_u = p * (Vu @ (Vu.T @ (moved / p))) if moved is not None else np.zeros(len(considered))
+    return np.hstack([(p[:, None] * Vu) @ (Vu.T * (t / p)), d_u[:, None]])
 
 
 def _sqrt_psd(S: np.ndarray) -> np.ndarray:
@@ -380,13 +391,15 @@ def predict_accuracy(
     tol_m: float = TOL_M,
     tol_rad: float = TOL_RAD,
     held_length: float = 0.0,
+    initial: np.ndarray | None = None,
 ) -> WorkspaceAccuracy | None:
     """The predicted error of every followed frame at `readings` (n, problem joints) (module docstring).
 
     `covariance` is over the `estimated` columns of the problem; `status` the parameters' statuses
     (`ParamStatus`); `n_weak` the number of combinations the fit left undetermined; `held_length` the length
-    the parameter held to set the size stands for (m; 0: none held).  None when no loop has a frame to
-    follow (a camera, a known distance).
+    the parameter held to set the size stands for (m; 0: none held); `initial` the nominal values the fit
+    started from (the move along what the data cannot see is an error: module docstring; None: not counted).
+    None when no loop has a frame to follow (a camera, a known distance).
     """
     prior = prior or PriorTolerance()
     items = followed_frames(problem, values)
@@ -401,7 +414,10 @@ def predict_accuracy(
         or k in estimated
     ]
     n_dropped = sum(status[k] == ParamStatus.DROPPED for k in considered)
-    L_u = unseen_factor(problem, values, considered, n_dropped + n_weak, prior)
+    moved = None
+    if initial is not None:  # the robot's corrections (a loop's place has no nominal: its start is a guess)
+        moved = np.array([values[k] - initial[k] if k < problem.n_robot else 0.0 for k in considered])
+    L_u = unseen_factor(problem, values, considered, n_dropped + n_weak, prior, moved)
     L_e = np.zeros((len(considered), 0))
     if len(estimated) and covariance.size:
         pos_of = {k: i for i, k in enumerate(considered)}
@@ -596,4 +612,5 @@ def predict_from_result(
             default_readings=default,
             seed=seed,
             held_length=float(getattr(getattr(res, "scale", None), "gauge_length", 0.0) or 0.0),
+            initial=np.asarray(res.fit.initial, dtype=float),
         )
