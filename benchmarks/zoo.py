@@ -113,6 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     print(table(rows, "loop"))
     print()
     print(table(rows, "variant"))
+    print()
+    print(findings(rows))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
@@ -155,6 +157,19 @@ def classify(o, case) -> str:
     if o.status == "crash" or o.judgement is None:
         return "crash"
     return "confidently wrong" if unforetold(judged_rows(o, case)) else "wrong, foretold"
+
+
+def findings(rows: list[dict]) -> str:
+    """Per finding of a flagged verdict (`robot_sweep.FINDINGS`), how many right and wrong answers it flagged."""
+    from robot_sweep import FINDINGS
+
+    lines = ["| finding | flags right answers | flags wrong answers |", "|---|---:|---:|"]
+    for what, words in FINDINGS.items():
+        hit = [r for r in rows if r["verdict"] in ("suspect", "failed") and any(words in x for x in r["reasons"])]
+        right = sum(r["outcome"] == "right" for r in hit)
+        if hit:
+            lines.append(f"| {what} | {right} | {len(hit) - right} |")
+    return "\n".join(lines)
 
 
 def table(rows: list[dict], by: str) -> str:
