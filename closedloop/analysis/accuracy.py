@@ -51,10 +51,10 @@ comparing the frames and compares it on a row of its own; the prediction does th
 gauge fit above assigns to the errors e (its coefficient of the size column of G, c_s = row of
 (W G)^+ W e) has a variance from L like the frames'; and the length held to set the size (thesis 3.3) is
 held at its nominal value, whose error t over the length L_g it stands for moves the size by t / L_g
-whatever the data (t = `closedloop.analysis.gauge.HELD_ERROR`, 2 mm, the error a model file's nominal length
-may carry: the held length spans two joint origins, each within the prior's tolerance).  Their sum, sigma_s^2 = |c_s(L)|^2 + (t / L_g)^2, is the predicted relative size error
-(`WorkspaceAccuracy.size_std`); the expected |error| sigma_s sqrt(2 / pi) is the figure beside check's
-observed one, 1.96 sigma_s its 95 % bound.
+whatever the data (t = `closedloop.analysis.gauge.HELD_ERROR`, 2 mm, the error a model file's nominal
+length may carry, the figure the short-gauge warning quotes).  Their sum, sigma_s^2 = |c_s(L)|^2 +
+(t / L_g)^2, is the predicted relative size error (`WorkspaceAccuracy.size_std`); the expected |error|
+sigma_s sqrt(2 / pi) is the figure beside check's observed one, 1.96 sigma_s its 95 % bound.
 
 **Against the nominal model.**  The nominal model's own expected error is the tolerance of every
 parameter considered, T, propagated the same way (L = T): where the calibrated model's RMS is not below
