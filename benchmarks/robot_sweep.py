@@ -16,7 +16,11 @@ command under the case's time limit (``--timeout``), and is classified:
 right                     check within tolerance, verdict ``ok``
 right, flagged            check within tolerance, verdict ``suspect`` or ``failed`` (a false alarm)
 wrong, flagged            check outside tolerance (or calibrate failed, exit 3), verdict not ``ok``
-confidently wrong         check outside tolerance, verdict ``ok``
+wrong, foretold           check outside tolerance, verdict ``ok``, and every row outside tolerance foretold by
+                          the report's prediction (`closedloop.validation.check.unforetold`: predicted above
+                          the tolerance, observed at most 3x the predicted): an honest answer
+confidently wrong         check outside tolerance, verdict ``ok``, a row outside tolerance the prediction did
+                          not foretell (none, one within the tolerance, or observed above 3x it)
 clean refusal             simulate or calibrate exits 2 with one ``error:`` line
 empty                     simulate recorded fewer configurations than asked (exit 3)
 internal error            a traceback, ``internal error`` or an unknown exit code
@@ -54,6 +58,7 @@ CLASSES = (
     "right",
     "right, flagged",
     "wrong, flagged",
+    "wrong, foretold",
     "confidently wrong",
     "clean refusal",
     "empty",
@@ -84,6 +89,31 @@ class Outcome:
     detail: str = ""
     steps: list[str] = field(default_factory=list)
     cpu: float = 0.0  # CPU seconds of the case's commands (with --jobs 1; the wall time depends on the load)
+    rows: list[dict] = field(default_factory=list)  # check's rows: name, error, predicted, tol, result
+    reasons: list[str] = field(default_factory=list)  # the verdict's reasons (what flagged it)
+
+
+def _observed(r: dict) -> str:
+    p = "none" if r.get("predicted") is None else f"{r['predicted']:.3g}"
+    return f"{r['name']}: {r['error']:.3g} observed, {p} predicted, tolerance {r['tol']:g}"
+
+
+def classify(verdict: str, rows: list[dict]) -> str:
+    """The class of a case that ran to `check` (module docstring), from its verdict and check's rows."""
+    from closedloop.validation.check import unforetold
+
+    if all(r.get("result") != "FAIL" for r in rows):
+        return "right" if verdict == "ok" else "right, flagged"
+    if verdict != "ok":
+        return "wrong, flagged"
+    return "confidently wrong" if unforetold(rows) else "wrong, foretold"
+
+
+def under_predicted(rows: list[dict]) -> bool:
+    """Whether a row's observed error is above FORETOLD times its prediction (within tolerance or not)."""
+    from closedloop.validation.check import FORETOLD
+
+    return any(r.get("predicted") and abs(r.get("error") or 0.0) > FORETOLD * r["predicted"] for r in rows)
 
 
 def _tree(path: Path):
@@ -194,7 +224,10 @@ def read_outcomes(paths: list[str]) -> list[Outcome]:
         for line in Path(path).read_text().splitlines():
             d = json.loads(line)
             d["case"] = Case(**d["case"])
-            out.append(Outcome(**d))
+            o = Outcome(**d)
+            if o.rows:  # classified again: the rule is `classify`'s, whatever the run's was
+                o.cls = classify(o.verdict, o.rows)
+            out.append(o)
     return out
 
 
@@ -265,15 +298,16 @@ def run_case(case: Case, base: Path, work: Path, n: int, timeout: float, cli: li
     if rc == 2:
         return Outcome(case, "clean refusal", total, detail=_error_line(se), steps=steps)
     report = out / "sim" / "report.json"
-    verdict = ""
+    verdict, reasons = "", []
     if report.is_file():
         try:
-            verdict = str(json.loads(report.read_text()).get("verdict", {}).get("status", ""))
+            v = json.loads(report.read_text()).get("verdict", {})
+            verdict, reasons = str(v.get("status", "")), [str(r) for r in v.get("reasons", [])]
         except (ValueError, AttributeError):
             verdict = ""
     if rc == 3:
-        return Outcome(case, "wrong, flagged", total, verdict or "failed", _error_line(se), steps)
-    chk = cli + ["check", str(out / "sim" / "truth.json"), str(report)]
+        return Outcome(case, "wrong, flagged", total, verdict or "failed", _error_line(se), steps, reasons=reasons)
+    chk = cli + ["check", str(out / "sim" / "truth.json"), str(report), "--json", str(out / "check.json")]
     rc, so, se, dt = _run(chk, timeout)
     total += dt
     steps.append(f"check rc={rc} {dt:.1f}s")
@@ -281,10 +315,13 @@ def run_case(case: Case, base: Path, work: Path, n: int, timeout: float, cli: li
         return Outcome(case, "timeout", total, verdict, "check", steps)
     if _internal(rc, se) or rc not in (0, 1):
         return Outcome(case, "internal error", total, verdict, _error_line(se), steps)
-    worst = (so.strip().splitlines() or [""])[-1]
-    if rc == 0:
-        return Outcome(case, "right" if verdict == "ok" else "right, flagged", total, verdict, worst, steps)
-    return Outcome(case, "confidently wrong" if verdict == "ok" else "wrong, flagged", total, verdict, worst, steps)
+    said = [ln for ln in so.strip().splitlines() if ln.startswith("note: the report's verdict")]
+    worst = (said or so.strip().splitlines() or [""])[-1]
+    keep = ("name", "error", "predicted", "tol", "result")
+    rows = [{k: r.get(k) for k in keep} for r in json.loads((out / "check.json").read_text())["rows"]]
+    if verdict == "ok" and any(r["result"] == "FAIL" for r in rows):  # what check observed against the prediction
+        worst = "; ".join(_observed(r) for r in rows if r["result"] == "FAIL")
+    return Outcome(case, classify(verdict, rows), total, verdict, worst, steps, rows=rows, reasons=reasons)
 
 
 def markdown(outcomes: list[Outcome], header: str, n: int, timeout: float) -> str:
@@ -318,7 +355,16 @@ def markdown(outcomes: list[Outcome], header: str, n: int, timeout: float) -> st
         "",
         f"Right answers flagged: {tot['right, flagged']} of {right}"
         + (f" ({100 * tot['right, flagged'] / right:.0f} %)" if right else "")
+        + "; "
+        + "; ".join(_flagged_share(outcomes, noise, what) for noise, what in ((0.0, "exact"), (1e-5, "noisy")))
         + ".",
+        "",
+        "Right answers whose error is above 3x the predicted one (within tolerance: not misleading at it): "
+        f"{sum(o.cls.startswith('right') and under_predicted(o.rows) for o in outcomes)}.",
+        "",
+        "What flagged the verdicts (from the reports' verdict reasons):",
+        "",
+        warning_table(outcomes),
         "",
         "Every case that is not right (the line each gave):",
         "",
@@ -337,6 +383,42 @@ def markdown(outcomes: list[Outcome], header: str, n: int, timeout: float) -> st
         for o in slowest
     ]
     return "\n".join(text) + "\n"
+
+
+#: the findings a verdict is flagged by, as the words that name them (`warning_table`)
+FINDINGS = {
+    "size held by a short length": "stands for a length of only",
+    "joints move less than 0.05 rad": "move less than",
+    "the size changed": "overall size changed",
+    "error bars not reliable": "error bars are not reliable",
+    "held-out fold": "validation fold",
+    "no single length holds the size": "no single length",
+    "size held in part": "does not hold the length scale alone",
+    "not better than nominal": "does not make the robot more accurate",
+    "corrections no calibration makes": "corrections no calibration makes",
+    "implausibly large corrections": "implausibly large corrections",
+    "outliers rejected": "rejected as outliers",
+    "not a minimum": "minimum",
+}
+
+
+def warning_table(outcomes: list[Outcome]) -> str:
+    """Per finding, how many right and how many wrong answers it flagged (a case may carry several)."""
+    lines = ["| finding | flags right answers | flags wrong answers |", "|---|---:|---:|"]
+    for what, words in FINDINGS.items():
+        right = sum(o.cls == "right, flagged" and any(words in r for r in o.reasons) for o in outcomes)
+        wrong = sum(o.cls == "wrong, flagged" and any(words in r for r in o.reasons) for o in outcomes)
+        if right or wrong:
+            lines.append(f"| {what} | {right} | {wrong} |")
+    return "\n".join(lines)
+
+
+def _flagged_share(outcomes: list[Outcome], noise: float, what: str) -> str:
+    right = [o for o in outcomes if o.case.noise == noise and o.cls in ("right", "right, flagged")]
+    flagged = sum(o.cls == "right, flagged" for o in right)
+    cw = sum(o.case.noise == noise and o.cls == "confidently wrong" for o in outcomes)
+    share = f" ({100 * flagged / len(right):.0f} %)" if right else ""
+    return f"{what}: {flagged} of {len(right)}{share} flagged, {cw} confidently wrong"
 
 
 def main(argv: list[str] | None = None) -> int:

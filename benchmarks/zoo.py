@@ -5,8 +5,11 @@ calibrated with the defaults of `closedloop.calibrate` and its calibrated URDF j
 robot does (tool forward kinematics against the truth after the best base/tool transforms, the
 scale fitted only for loops blind to it).  A case is *right* (within `Case.tolerances()`; counted
 as *flagged* too when its verdict is 'suspect' or 'failed': a false alarm), *refused* (wrong, and
-the verdict is 'suspect' or 'failed', or a user-facing error), *confidently wrong* (wrong, verdict
-ok), or a *crash* (an exception that is not a closedloop error).
+the verdict is 'suspect' or 'failed', or a user-facing error), *wrong, foretold* (wrong, verdict ok,
+and every figure outside tolerance foretold by the calibration's own workspace prediction, as
+`closedloop check` judges it: `closedloop.validation.check.unforetold`, see `judged_rows`),
+*confidently wrong* (wrong, verdict ok, a figure outside tolerance the prediction did not foretell),
+or a *crash* (an exception that is not a closedloop error).
 
     python benchmarks/zoo.py                      # everything (slow: hinge loops take seconds each)
     python benchmarks/zoo.py --seeds 1 --loops weld,point --variants exact
@@ -80,7 +83,11 @@ def main(argv: list[str] | None = None) -> int:
                         print(f"{robot}/{loop}/s{seed}/{variant}: no data ({exc})", flush=True)
                         continue
                     o = zoo.run_case(case)
-                    print(o.line(), flush=True)
+                    outcome = classify(o, case)
+                    print(
+                        o.line() + ("  (foretold by the prediction)" if outcome == "wrong, foretold" else ""),
+                        flush=True,
+                    )
                     rows.append(
                         {
                             "robot": robot,
@@ -89,15 +96,7 @@ def main(argv: list[str] | None = None) -> int:
                             "variant": variant,
                             "seed": seed,
                             "flagged": bool(o.right and o.refused),
-                            "outcome": (
-                                "right"
-                                if o.right
-                                else "refused"
-                                if o.refused
-                                else "crash"
-                                if o.status == "crash"
-                                else "confidently wrong"
-                            ),
+                            "outcome": outcome,
                             "verdict": o.status,
                             "reasons": list(getattr(getattr(o.result, "verdict", None), "reasons", []) or []),
                             "size_measured": (getattr(getattr(o.result, "verdict", None), "evidence", None) or {}).get(
@@ -114,10 +113,63 @@ def main(argv: list[str] | None = None) -> int:
     print(table(rows, "loop"))
     print()
     print(table(rows, "variant"))
+    print()
+    print(findings(rows))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
     return 0
+
+
+def judged_rows(o, case) -> list[dict]:
+    """The judge's figures as `closedloop check` rows (error, predicted, tol, result) beside the calibration's
+    predicted accuracy over the workspace (`closedloop.analysis.accuracy.predict_from_result`): the tool's
+    largest position and rotation error, a relative motion's (which carries two configurations' errors: twice
+    the predicted position error plus, for a pose, twice the reach times the rotation error) and the size."""
+    from closedloop.analysis.accuracy import predict_from_result
+
+    j, tol = o.judgement, case.tolerances()
+    ws = predict_from_result(o.result) if o.result is not None else None
+    pm = ws.max_m if ws else None
+    pr = ws.max_rad if ws else None
+    rel = None if pm is None else 2.0 * pm + (2.0 * case.reach * pr if pr is not None else 0.0)
+    figures = [
+        ("position", j.pos_max, pm, tol["pos"]),
+        ("rotation", j.rot_max, pr, tol["rot"]),
+        ("relative position", j.rel_pos_max, rel, tol["rel_pos"]),
+        ("relative rotation", j.rel_rot_max, pr if pr is None else 2.0 * pr, 2.0 * tol["rot"]),
+    ]
+    if not case.scale_visible:
+        figures.append(("size", abs(j.scale - 1.0), ws.size_predicted if ws else None, tol["scale"]))
+    return [
+        {"name": n, "error": e, "predicted": p, "tol": t, "result": "ok" if e < t else "FAIL"} for n, e, p, t in figures
+    ]
+
+
+def classify(o, case) -> str:
+    """right / refused / crash / wrong, foretold / confidently wrong (module docstring)."""
+    from closedloop.validation.check import unforetold
+
+    if o.right:
+        return "right"
+    if o.refused:
+        return "refused"
+    if o.status == "crash" or o.judgement is None:
+        return "crash"
+    return "confidently wrong" if unforetold(judged_rows(o, case)) else "wrong, foretold"
+
+
+def findings(rows: list[dict]) -> str:
+    """Per finding of a flagged verdict (`robot_sweep.FINDINGS`), how many right and wrong answers it flagged."""
+    from robot_sweep import FINDINGS
+
+    lines = ["| finding | flags right answers | flags wrong answers |", "|---|---:|---:|"]
+    for what, words in FINDINGS.items():
+        hit = [r for r in rows if r["verdict"] in ("suspect", "failed") and any(words in x for x in r["reasons"])]
+        right = sum(r["outcome"] == "right" for r in hit)
+        if hit:
+            lines.append(f"| {what} | {right} | {len(hit) - right} |")
+    return "\n".join(lines)
 
 
 def table(rows: list[dict], by: str) -> str:
@@ -125,16 +177,16 @@ def table(rows: list[dict], by: str) -> str:
     false alarms), refused (wrong, verdict not ok), confidently wrong (wrong, verdict ok), crashes."""
     keys = sorted({r[by] for r in rows}, key=lambda k: (LOOPS + list(VARIANTS)).index(k))
     out = [
-        f"| {by} | cases | right | of which flagged | refused | confidently wrong | crash |",
-        "|---|---|---|---|---|---|---|",
+        f"| {by} | cases | right | of which flagged | refused | wrong, foretold | confidently wrong | crash | slowest (s) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for k in keys + ["total"]:
         sel = [r for r in rows if k == "total" or r[by] == k]
         c = Counter(r["outcome"] for r in sel)
         flagged = sum(bool(r.get("flagged")) for r in sel)
         out.append(
-            f"| {k} | {len(sel)} | {c['right']} | {flagged} | {c['refused']} | {c['confidently wrong']} | "
-            f"{c['crash']} |"
+            f"| {k} | {len(sel)} | {c['right']} | {flagged} | {c['refused']} | {c['wrong, foretold']} | "
+            f"{c['confidently wrong']} | {c['crash']} | {max((r['seconds'] for r in sel), default=0.0):.1f} |"
         )
     return "\n".join(out)
 

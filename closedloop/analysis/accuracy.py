@@ -25,6 +25,10 @@ eq. 4.4).  The error of the calibrated parameters is modelled as dx = L z, z ~ N
   P = diag(p_k).  A weld with a 1-DOF self-motion sees the arm along its motion only: parameters
   redundant there are dropped, and over the joint ranges they move the tool; a structural redundancy
   (a joint offset and the rotation about its axis) moves nothing once the gauge below is removed.
+  What the data cannot see the fit cannot have corrected: where the solution has moved the robot's
+  parameters along those directions anyway (a weak direction followed before the truncation of eq. 4.17
+  set it aside, on noise), that move d_u = P V_u V_u^T P^-1 (x - x_0) is an error of its own, independent
+  of the nominal's: Sigma_unseen + d_u d_u^T.
 
 **Gauge.**  What no loop can see is not an error of the robot: a rigid transform of the base (one for
 the loops closed to the world, one per loop between two robot frames, in its second frame), a constant
@@ -56,6 +60,15 @@ freedom nu.  Where R = |e_d|^2 / tr(M) exceeds 1 + 3 sqrt(2 / nu), the share of 
 b = sqrt(1 - 1 / R) d, is taken as a systematic error of the calibrated parameters: it moves the frames by
 e_b = J b (gauge removed), a fixed offset beside the random L z.  Its size, not its sign, is what the
 disagreement measures.
+**The size.**  Where the data do not measure the overall size, `closedloop check` removes it before
+comparing the frames and compares it on a row of its own; the prediction does the same.  The size the
+gauge fit above assigns to the errors e (its coefficient of the size column of G, c_s = row of
+(W G)^+ W e) has a variance from L like the frames'; and the length held to set the size (thesis 3.3) is
+held at its nominal value, whose error t over the length L_g it stands for moves the size by t / L_g
+whatever the data (t = `closedloop.analysis.gauge.HELD_ERROR`, 2 mm, the error a model file's nominal
+length may carry, the figure the short-gauge warning quotes).  Their sum, sigma_s^2 = |c_s(L)|^2 +
+(t / L_g)^2, is the predicted relative size error (`WorkspaceAccuracy.size_std`); the expected |error|
+sigma_s sqrt(2 / pi) is the figure beside check's observed one, 1.96 sigma_s its 95 % bound.
 
 **Against the nominal model.**  The nominal model's own expected error is the tolerance of every
 parameter considered, T, propagated the same way (L = T): where the calibrated model's RMS is not below
@@ -68,6 +81,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from closedloop.analysis.gauge import HELD_ERROR
 from closedloop.errors import InputError
 from closedloop.estimate.qr import scaled_r_factor_of_blocks
 from closedloop.records import ParamStatus
@@ -197,6 +211,16 @@ class WorkspaceAccuracy:
         if self.covariance is None:
             return None
         return self.covariance if self.bias is None else self.covariance + np.outer(self.bias, self.bias)
+
+    #: the predicted relative error of the overall size, one standard deviation, where the data do not measure
+    #: it (module docstring, "The size"): from the fit's uncertainty and from the held length's tolerance
+    size_std: float | None = None
+    size_held_std: float | None = None  # the held length's share: its possible error over the length it stands for
+
+    @property
+    def size_predicted(self) -> float | None:
+        """The expected |relative size error| (what `closedloop check` observes on its size row), or None."""
+        return None if self.size_std is None else float(self.size_std * np.sqrt(2.0 / np.pi))
 
     @property
     def max_m(self) -> float:
@@ -339,10 +363,16 @@ def frame_jacobians(
 
 # --------------------------------------------------------------------------- the parameters' uncertainty
 def unseen_factor(
-    problem, values: np.ndarray, considered: list[int], n_unseen: int, prior: PriorTolerance
+    problem,
+    values: np.ndarray,
+    considered: list[int],
+    n_unseen: int,
+    prior: PriorTolerance,
+    moved: np.ndarray | None = None,
 ) -> np.ndarray:
-    """A factor (len(considered), len(considered)) of Sigma_unseen (module docstring) over `considered`:
-    the nominal tolerance projected on the `n_unseen` directions the data see least."""
+    """A factor (len(considered), len(considered) + 1) of Sigma_unseen (module docstring) over `considered`:
+    the nominal tolerance projected on the `n_unseen` directions the data see least, and, as its last column,
+    the part along them of `moved` (the solution's move from the nominal, over `considered`; 0 where None)."""
     if n_unseen <= 0 or not considered:
         return np.zeros((len(considered), 0))
     p = np.array([problem.params[k].prior for k in considered], dtype=float)
@@ -356,7 +386,8 @@ def unseen_factor(
         C = np.vstack([C, np.zeros((C.shape[1] - C.shape[0], C.shape[1]))])
     _, _, Vt = np.linalg.svd(C, full_matrices=False)
     Vu = Vt[-min(n_unseen, Vt.shape[0]) :].T  # the least-seen directions, in prior-scaled units
-    return (p[:, None] * Vu) @ (Vu.T * (t / p))
+    d_u = p * (Vu @ (Vu.T @ (moved / p))) if moved is not None else np.zeros(len(considered))
+    return np.hstack([(p[:, None] * Vu) @ (Vu.T * (t / p)), d_u[:, None]])
 
 
 def _sqrt_psd(S: np.ndarray) -> np.ndarray:
@@ -473,6 +504,8 @@ def predict_accuracy(
     tol_m: float = TOL_M,
     tol_rad: float = TOL_RAD,
     disagreement: Disagreement | None = None,
+    held_length: float = 0.0,
+    initial: np.ndarray | None = None,
 ) -> WorkspaceAccuracy | None:
     """The predicted error of every followed frame at `readings` (n, problem joints) (module docstring).
 
@@ -481,6 +514,10 @@ def predict_accuracy(
     the plain fit's against the calibration (`disagreement`): beyond the noise, model error, whose bias
     moves the frames beside the random error.  None when no loop
     has a frame to follow (a camera, a known distance).
+    (`ParamStatus`); `n_weak` the number of combinations the fit left undetermined; `held_length` the length
+    the parameter held to set the size stands for (m; 0: none held); `initial` the nominal values the fit
+    started from (the move along what the data cannot see is an error: module docstring; None: not counted).
+    None when no loop has a frame to follow (a camera, a known distance).
     """
     prior = prior or PriorTolerance()
     items = followed_frames(problem, values)
@@ -495,7 +532,10 @@ def predict_accuracy(
         or k in estimated
     ]
     n_dropped = sum(status[k] == ParamStatus.DROPPED for k in considered)
-    L_u = unseen_factor(problem, values, considered, n_dropped + n_weak, prior)
+    moved = None
+    if initial is not None:  # the robot's corrections (a loop's place has no nominal: its start is a guess)
+        moved = np.array([values[k] - initial[k] if k < problem.n_robot else 0.0 for k in considered])
+    L_u = unseen_factor(problem, values, considered, n_dropped + n_weak, prior, moved)
     L_e = np.zeros((len(considered), 0))
     if len(estimated) and covariance.size:
         pos_of = {k: i for i, k in enumerate(considered)}
@@ -531,6 +571,12 @@ def predict_accuracy(
         model = judge_disagreement(projected(shift[:, None])[:, 0] * w, projected(L_d) * w[:, None])
         bias = model.share * shift
     B = projected(bias[:, None])[:, 0]  # the frames' systematic error, gauge removed
+    size_std = size_held = None
+    if not size_measured and G.shape[1]:  # the size's coefficient in the gauge fit, and the held length's tolerance
+        row_s = np.linalg.pinv(G)[-1]
+        c_s = row_s @ ((J @ np.hstack([L_e, L_u])) * w[:, None])
+        size_held = HELD_ERROR / held_length if held_length > 0 else 0.0
+        size_std = float(np.sqrt(np.sum(c_s**2) + size_held**2))
     n_read = readings.shape[0]
     position_rows = np.concatenate(
         [np.arange(3 * n_read) + 3 * n_read * (i + sum(x.kind == "pose" for x in items[:i])) for i in range(len(items))]
@@ -620,6 +666,8 @@ def predict_accuracy(
         bias=bias[moving],
         design=projected(np.eye(len(considered))[:, moving])[position_rows],
         model_error=model,
+        size_std=size_std,
+        size_held_std=size_held,
     )
 
 
@@ -704,4 +752,6 @@ def predict_from_result(
             default_readings=default,
             seed=seed,
             disagreement=found,
+            held_length=float(getattr(getattr(res, "scale", None), "gauge_length", 0.0) or 0.0),
+            initial=np.asarray(res.fit.initial, dtype=float),
         )

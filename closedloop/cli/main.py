@@ -68,6 +68,10 @@ def cmd_check(args) -> int:
         o: check_number(f"--{o.replace('_', '-')}", getattr(args, o), 0.0, 1e6, lo_open=True)
         for o in ("tol_m", "tol_rad", "tol_scale", "tol_px")
     }
+    if args.json:  # refused before any work where it would overwrite an input
+        from closedloop.io.files import check_outputs
+
+        check_outputs({"--json": args.json}, [args.truth, args.report])
     truth = _load_json(args.truth, "truth file")
     report = _load_json(args.report, "report file")
     src = {"truth_source": args.truth, "report_source": args.report}
@@ -103,6 +107,11 @@ def cmd_check(args) -> int:
             )
             print(f"note: compared by parameters, not by what the robots do: {why}")
     verdict = report.get("verdict") if isinstance(report.get("verdict"), dict) else {}
+    if args.json:  # the rows for a script: observed, predicted and tolerance per row, and the verdict
+        from closedloop.io.files import atomic_write_text
+
+        doc = {"verdict": verdict.get("status"), "pass": bool(ok), "rows": rows}
+        atomic_write_text(args.json, json.dumps(doc, indent=1, default=float) + "\n")
     if verdict.get("status") in ("suspect", "failed"):  # what the calibration said of itself
         own = f"{verdict['status']}: "
         reasons = [r[len(own) :] if str(r).startswith(own) else str(r) for r in verdict.get("reasons", [])]
@@ -285,6 +294,12 @@ def _add_check(sub) -> None:
         "--parameters",
         action="store_true",
         help="judge by the parameter table instead of what the robots do (parametrization-dependent)",
+    )
+    k.add_argument(
+        "--json",
+        default=None,
+        metavar="FILE",
+        help="also write the rows (observed error, predicted, tolerance, result) and the verdict as JSON",
     )
     k.add_argument(
         "--show-parameters",

@@ -408,6 +408,13 @@ def accuracy_section(workspace, regions: dict | None = None, target: dict | None
                 "share": _f(me.share),
                 "found": bool(me.found),
             }
+        if workspace.size_std is not None:  # the size the data do not measure: its predicted relative error
+            ws["size"] = {
+                "predicted_std": _f(workspace.size_std),
+                "predicted": _f(workspace.size_predicted),
+                "predicted95": _f(1.96 * workspace.size_std),
+                "held_std": _f(workspace.size_held_std),
+            }
         if workspace.covariance is not None:  # what `closedloop evaluate` propagates to its own configurations
             ws["covariance"] = {"parameters": list(workspace.parameters), "matrix": workspace.error_covariance.tolist()}
     return {"workspace": ws, "regions": regions, "target": target}

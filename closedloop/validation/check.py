@@ -432,8 +432,9 @@ def check_kinematics(
 def with_prediction(rows: list[dict], report: dict, frames: list[tuple[str, str]]) -> None:
     """Beside each observed error, the report's predicted one (`closedloop.analysis.accuracy`: the expected
     largest error over the same readings, 'predicted'; 95 % of calibrated robots stay below 'bound') and
-    their ratio ('ratio' = observed / predicted).  Nothing where the report has no prediction at these
-    readings (an older report, or one predicted at a ``--workspace`` of its own)."""
+    their ratio ('ratio' = observed / predicted); on the size row, the predicted relative size error
+    (``accuracy.workspace.size``: expected |error| and 95 % bound).  Nothing where the report has no
+    prediction at these readings (an older report, or one predicted at a ``--workspace`` of its own)."""
     from closedloop.io.schemas import is_number
 
     acc = report.get("accuracy")
@@ -441,6 +442,13 @@ def with_prediction(rows: list[dict], report: dict, frames: list[tuple[str, str]
     if not isinstance(ws, dict) or not ws.get("check_readings") or not isinstance(ws.get("frames"), list):
         return
     pred = {f.get("loop"): f for f in ws["frames"] if isinstance(f, dict)}
+    size = ws.get("size")
+    if isinstance(size, dict) and is_number(size.get("predicted")) and size["predicted"] > 0:
+        for r in rows:
+            if r["name"].startswith("size ") and r["error"] is not None:
+                r["predicted"] = float(size["predicted"])
+                r["bound"] = float(size["predicted95"]) if is_number(size.get("predicted95")) else None
+                r["ratio"] = abs(r["error"]) / r["predicted"]
     for loop, _ in frames:
         f = pred.get(loop)
         if f is None:
@@ -464,8 +472,28 @@ def prediction_finding(rows: list[dict]) -> str | None:
     if not compared:
         return None
     worst = max(compared, key=lambda r: r["ratio"])
-    outside = [r for r in compared if r.get("bound") is not None and r["error"] > r["bound"]]
+    outside = [r for r in compared if r.get("bound") is not None and abs(r["error"]) > r["bound"]]
     if not outside:
         return f"observed within prediction: the largest error is {worst['ratio']:.2g}x the predicted ({worst['name']})"
     names = ", ".join(f"{r['name']} {r['ratio']:.2g}x" for r in outside)
     return f"observed NOT within prediction (above the 95 % bound of the largest error): {names}"
+
+
+#: an error outside tolerance is foretold by the report when it is at most this many times the predicted one
+FORETOLD = 3.0
+
+
+def unforetold(rows: list[dict]) -> list[dict]:
+    """The rows outside tolerance that the report's prediction did not foretell: none predicted, a prediction
+    within the tolerance (the report promised what the robot does not do), or an observed error more than
+    `FORETOLD` times the predicted one.  A report whose verdict is ``ok`` with such a row misleads its
+    reader: a confidently wrong answer.  A row outside tolerance that the prediction foretold is an honest
+    answer: the report said the robot is not that accurate."""
+    out = []
+    for r in rows:
+        if r.get("result") != "FAIL":
+            continue
+        p, err, tol = r.get("predicted"), r.get("error"), r.get("tol")
+        if p is None or err is None or tol is None or p <= tol or abs(err) > FORETOLD * p:
+            out.append(r)
+    return out
