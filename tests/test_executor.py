@@ -90,6 +90,23 @@ def test_failures_isolated(cluster, local):
     assert rec[0] == 1 and not rec[1].ok
 
 
+@pytest.mark.slow
+def test_ray_chunks_same_results_a_lost_chunk_run_again_job_by_job(cluster):
+    """40 small jobs on 2 CPUs travel several to a Ray task: the same values as one process; a chunk whose
+    worker dies has its jobs run again one per task, so only the job that kills its worker is lost."""
+    eng = ex.get_engine("ray")
+    assert eng.chunk_size(40) == 5 and eng.chunk_size(7) == 1
+    serial = ex.run(noisy_sum, range(40), "serial", shared=(10.0,), seed=7)
+    outs = sorted(ex.imap(noisy_sum, range(40), eng, shared=(10.0,), seed=7), key=lambda o: o.index)
+    assert [o.value for o in outs] == serial
+    assert len({o.worker for o in outs[:5]}) == 1  # the first chunk: one task, one worker
+    outs = sorted(ex.imap(flaky, range(40), eng), key=lambda o: o.index)
+    assert [o.index for o in outs] == list(range(40))
+    assert [o.value for o in outs if o.ok] == [i * i for i in range(40) if i not in (3, 5)]
+    assert outs[3].error == "ValueError: job 3 is bad"
+    assert outs[5].error.startswith("WorkerCrashed"), outs[5].error
+
+
 def test_progress_counts():
     seen = []
     ex.run(flaky, [0, 1, 3], "serial", errors="record", progress=lambda *told: seen.append(told), task="runs")

@@ -38,6 +38,7 @@ class Outcome:
     error: str | None = None  # "Type: message"; None when the job succeeded
     traceback: str = ""
     seconds: float = 0.0  # time inside the job (worker clock)
+    cpu: float = 0.0  # CPU seconds of the job's own thread (the worker's other threads not counted)
     worker: str = ""  # host:pid that ran it
     exception: BaseException | None = field(default=None, repr=False)
 
@@ -151,7 +152,7 @@ def call(
     (`time_limit`; `hard` in a worker process, never in the caller's own)."""
     import socket
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.thread_time()
     out = Outcome(index, worker=f"{socket.gethostname()}:{os.getpid()}")
     try:
         kw = {} if seed is None else {"rng": np.random.default_rng(seed)}
@@ -168,7 +169,7 @@ def call(
             out.exception = exc
         except Exception:  # an exception that cannot travel back: its text does
             out.exception = None
-    out.seconds = time.perf_counter() - t0
+    out.seconds, out.cpu = time.perf_counter() - t0, time.thread_time() - c0
     return out
 
 
