@@ -8,8 +8,8 @@ Usage::
                                      [--workers 2] [--out out/bench_fleet]
 
 The fleet (`closedloop.studies.fleet`): Pandas welded to a fixture, one geometry, each robot with its
-own joint offsets (1 mrad) and noise (1e-4 rad), `--configs` configurations per log, no k-fold
-validation (one calibration per job).  Each engine runs the same command a fleet owner types, in its
+own joint offsets (1 mrad) and noise (1e-4 rad), `--configs` configurations per log, no k-fold or
+region validation (one calibration per job, and its workspace accuracy).  Each engine runs the same command a fleet owner types, in its
 own process (the driver), on a fresh output folder:
 
 * ``serial``: ``closedloop batch fleet.yaml --jobs 1`` (the driver calibrates);
@@ -18,22 +18,29 @@ own process (the driver), on a fresh output folder:
   W nodes of one CPU each, every one its own raylet, object store and workers (as separate machines,
   sharing this machine's cores and file system).
 
-Figures, per engine and fleet size N (W workers; 1 for serial):
+Figures, per engine and fleet size N (W workers; 1 for serial).  A job's own time is measured inside its
+worker: the summary's ``seconds`` (wall) and ``cpu_seconds`` (CPU of the job's thread) of the whole job,
+from reading its robot's files to publishing its folder.  Everything else is overhead:
 
 * ``wall``: the command, start to exit (Python start, the pool or the connection to the cluster, the
   jobs, the summary);
-* ``job``: mean of the jobs' own times (the summary's ``seconds``: the whole job in its worker);
-* ``overhead/job`` = (wall x W - sum of the jobs' times) / N: everything the workers did not spend on
-  jobs (Python start, imports, dispatch, result transfer, idle workers at the start and the end), in ms
-  and as a share of a job's own time; and its ``marginal`` value between the two largest fleets, free
-  of every fixed cost: what one more job costs;
-* ``per worker``: N / wall / W jobs per second, and its ratio to the serial engine's;
+* ``overhead/job wall`` = (wall x W - sum of the jobs' own wall times) / N: the time the workers did not
+  spend in jobs (Python start, imports, dispatch, result transfer, idle workers at the start and the end);
+* ``overhead/job CPU`` = (CPU of the driver and of every worker process - sum of the jobs' own CPU) / N:
+  the same in CPU seconds, sampled from /proc every 0.1 s.  On a shared machine this is the figure to
+  read: a process waiting for a core uses no CPU, while the wall figure grows with the load;
+* ``driver CPU/job``: the driver process's CPU time per job (for serial it runs the jobs too);
+* the Ray cluster's services (GCS, raylets, object stores, agents) are counted apart, in CPU seconds over
+  the command: a cost of the cluster per second it runs, not of a job;
+* ``marginal``: the overheads' increase between the two largest fleets, per added job, free of every
+  fixed cost (start-up, imports, the tail): what one more job costs;
+* ``per worker``: N / wall / W jobs per second; ``per CPU s``: N / the command's CPU seconds; each also
+  as a ratio to the serial engine's at the same N;
 * ``resume``: the same command run again on the finished folders (nothing to run: reading the manifest
   and every job's record, the summary);
-* ``driver peak``: the driver process's peak resident memory (VmHWM, sampled every 0.1 s) and its CPU
-  time (the pool's or the cluster's workers not included).
+* ``driver peak``: the driver process's peak resident memory (VmHWM, sampled every 0.1 s).
 
-The 10,000-robot figures are extrapolated from the largest fleet run (method printed with them).
+The 10,000-robot figures are extrapolated from the two largest fleets run (method printed with them).
 
 ``--report N``: instead, the fleet report of N robots on two dates, two of them (``arm00017``,
 ``arm00064``) with joint 4's offset jumped by 800 urad on the second date, calibrated on the local pool;

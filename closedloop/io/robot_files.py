@@ -17,6 +17,7 @@ file with the standard XML parser (no recursion) and refuse, naming the element:
 from __future__ import annotations
 
 import math
+import os
 import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -34,9 +35,31 @@ JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed", "floating", "plan
 _XACRO = re.compile(r"\$\{|\$\(")
 
 
+_PARSED: dict[tuple[str, str], ET.Element] = {}  # (path, digest of its bytes) -> root; a few kept
+
+
+def parse_xml(path: str | Path) -> ET.Element:
+    """The root of the XML file at `path`, parsed once per process for the same bytes: a worker that
+    calibrates many robots of one model (a fleet) parses it once, not once per job and per check.  The
+    tree is shared: read it, never change it.  Raises as ``ET.parse`` does (``ET.ParseError``, ``OSError``)."""
+    import hashlib
+
+    data = Path(path).read_bytes()
+    key = (os.path.abspath(path), hashlib.blake2b(data, digest_size=16).hexdigest())
+    root = _PARSED.get(key)
+    if root is None:
+        parser = ET.XMLParser()
+        parser.feed(data)
+        root = parser.close()
+        if len(_PARSED) >= 8:
+            _PARSED.pop(next(iter(_PARSED)))
+        _PARSED[key] = root
+    return root
+
+
 def _parse(path: Path, kind: str) -> ET.Element:
     try:
-        return ET.parse(path).getroot()
+        return parse_xml(path)
     except ET.ParseError as exc:
         line, col = getattr(exc, "position", (0, 0))
         raise ModelError(f"{path}: not valid XML (line {line}, column {col}: {str(exc).split(':')[0]})") from None
@@ -172,7 +195,7 @@ def held_on_chain(path: str | Path, frames: list[str]) -> list[str]:
     between the root and one frame, or between two (their common ancestors left out), root first;
     empty when the file marks none or cannot be read."""
     try:
-        root = ET.parse(path).getroot()
+        root = parse_xml(path)
     except (ET.ParseError, OSError):
         return []
     joints = root.findall("joint")

@@ -305,8 +305,10 @@ def _urdf_mimics(path: Path) -> dict[str, tuple[str, float, float]]:
     """Joints with a ``<mimic joint=...>`` element in a URDF: {joint: (followed joint, multiplier, offset)}."""
     import xml.etree.ElementTree as ET
 
+    from closedloop.io.robot_files import parse_xml
+
     try:
-        root = ET.parse(path).getroot()
+        root = parse_xml(path)
     except (ET.ParseError, OSError):
         return {}
     out: dict[str, tuple[str, float, float]] = {}

@@ -102,7 +102,12 @@ def write_fleet(
             )
     manifest = folder / "fleet.yaml"
     doc = {
-        "defaults": {"model": model, "loops": [LOOP], "options": {"noise": spec.noise, "regions": spec.regions, "fix": HELD}, "cv": spec.cv},
+        "defaults": {
+            "model": model,
+            "loops": [LOOP],
+            "options": {"noise": spec.noise, "regions": spec.regions, "fix": HELD},
+            "cv": spec.cv,
+        },
         "jobs": jobs,
     }
     manifest.write_text(yaml.safe_dump(doc, sort_keys=False))
