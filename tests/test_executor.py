@@ -107,6 +107,23 @@ def test_ray_chunks_same_results_a_lost_chunk_run_again_job_by_job(cluster):
     assert outs[5].error.startswith("WorkerCrashed"), outs[5].error
 
 
+def test_a_job_s_cpu_time_is_its_own_thread_s():
+    """An outcome's `cpu` counts the job's CPU time, not the time it waited."""
+
+    def busy(payload: float) -> None:
+        t0 = __import__("time").thread_time()
+        while __import__("time").thread_time() - t0 < payload:
+            pass
+
+    def idle(payload: float) -> None:
+        __import__("time").sleep(payload)
+
+    out = ex.call(busy, 0, 0.2, None)
+    assert out.ok and 0.2 <= out.cpu <= out.seconds
+    out = ex.call(idle, 0, 0.2, None)
+    assert out.ok and out.seconds >= 0.2 and out.cpu < 0.05
+
+
 def test_progress_counts():
     seen = []
     ex.run(flaky, [0, 1, 3], "serial", errors="record", progress=lambda *told: seen.append(told), task="runs")

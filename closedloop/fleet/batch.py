@@ -474,7 +474,8 @@ def check_batch_outputs(manifest: str | Path, jobs: list[BatchJob], summary: Pat
     if not is_special(summary):
         outputs["--summary (its drift table)"] = drift_path(summary)
     check_outputs(outputs, inputs)
-    by_inode = {}  # each input file once, by inode: one look-up per job, not one per job and input
+    # each input file once, by inode: one look-up per job, not one per job and input
+    by_inode: dict[tuple[int, int] | None, Path] = {}
     for i in inputs:
         by_inode.setdefault(identity(i), i)
     by_inode.pop(None, None)
