@@ -45,6 +45,7 @@ from closedloop.errors import InputError
 from closedloop.fleet.drift import Drift, drift, drift_columns, gauge_record
 from closedloop.fleet.manifest import BatchJob, read_manifest
 from closedloop.io.files import is_special
+from closedloop.parallel.engine import needs
 from closedloop.progress import ProgressReporter
 from closedloop.run.calibrate import DONE
 
@@ -358,6 +359,14 @@ def run_once(job: BatchJob) -> dict:
     return finished(job) or run_job(job)
 
 
+@needs(  # what a job imports as it runs (`run.calibrate_files`): imported before the first job's time limit
+    "closedloop.calibration.pipeline",
+    "closedloop.calibration.verdict",
+    "closedloop.output.report",
+    "closedloop.records",
+    "closedloop.run.accuracy",
+    "closedloop.run.inputs",
+)
 def run_row(job: BatchJob) -> dict:
     """What a worker sends back to the batch: the job's summary row (`run_once`; the rest of its record
     stays in its folder, read from there for the drift)."""

@@ -4,8 +4,10 @@ Ray engines are in :mod:`closedloop.parallel.engines`)."""
 
 from __future__ import annotations
 
+import importlib
 import os
 import pickle
+import sys
 import time
 import traceback
 from collections.abc import Callable, Iterator
@@ -139,6 +141,18 @@ def limit_threads() -> None:
     threadpool_limits(1)
 
 
+def needs(*modules: str) -> Callable[[Callable], Callable]:
+    """Decorator for a job function: the modules it imports as it runs, imported by the process running it
+    before its first job's clock and time limit start (`call`).  A worker is then warm for every job, and a
+    job's time and time limit are its own, not the imports' (seconds of wall on a loaded machine)."""
+
+    def deco(fn: Callable) -> Callable:
+        setattr(fn, "needs", modules)  # noqa: B010 - an attribute of the function, read by `call`
+        return fn
+
+    return deco
+
+
 def call(
     fn: Callable,
     index: int,
@@ -155,6 +169,11 @@ def call(
     t0, c0 = time.perf_counter(), time.thread_time()
     out = Outcome(index, worker=f"{socket.gethostname()}:{os.getpid()}")
     try:
+        modules = [m for m in getattr(fn, "needs", ()) if m not in sys.modules]
+        if modules:  # (the first job in this process: `needs`)
+            for m in modules:
+                importlib.import_module(m)
+            t0, c0 = time.perf_counter(), time.thread_time()
         kw = {} if seed is None else {"rng": np.random.default_rng(seed)}
         with time_limit(timeout, hard):
             out.value = fn(*shared, payload, **kw)
