@@ -124,6 +124,23 @@ def test_a_job_s_cpu_time_is_its_own_thread_s():
     assert out.ok and out.seconds >= 0.2 and out.cpu < 0.05
 
 
+def test_a_job_s_imports_are_outside_its_clock_and_time_limit(tmp_path, monkeypatch):
+    """The modules a job function `needs` are imported before its clock and time limit start."""
+    (tmp_path / "slow_to_import.py").write_text("import time\n\ntime.sleep(1.0)\nVALUE = 7\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(__import__("sys").modules, "slow_to_import", raising=False)
+
+    @ex.needs("slow_to_import")
+    def job(payload: int) -> int:
+        import slow_to_import
+
+        return slow_to_import.VALUE + payload
+
+    out = ex.call(job, 0, 1, None, timeout=0.5)
+    assert out.ok and out.value == 8 and out.seconds < 0.5, out.error
+    monkeypatch.delitem(__import__("sys").modules, "slow_to_import")
+
+
 def test_progress_counts():
     seen = []
     ex.run(flaky, [0, 1, 3], "serial", errors="record", progress=lambda *told: seen.append(told), task="runs")

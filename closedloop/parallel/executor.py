@@ -45,6 +45,7 @@ from closedloop.parallel.engine import (
     SerialEngine,
     call,
     limit_threads,
+    needs,
     register,
 )
 from closedloop.parallel.engines import LocalEngine, RayEngine
@@ -61,6 +62,7 @@ __all__ = [
     "RayEngine",
     "call",
     "limit_threads",
+    "needs",
     "register",
     "get_engine",
     "job_seeds",
