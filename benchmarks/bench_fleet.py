@@ -8,8 +8,8 @@ Usage::
                                      [--workers 2] [--out out/bench_fleet]
 
 The fleet (`closedloop.studies.fleet`): Pandas welded to a fixture, one geometry, each robot with its
-own joint offsets (1 mrad) and noise (1e-4 rad), `--configs` configurations per log, no k-fold
-validation (one calibration per job).  Each engine runs the same command a fleet owner types, in its
+own joint offsets (1 mrad) and noise (1e-4 rad), `--configs` configurations per log, no k-fold or
+region validation (one calibration per job, and its workspace accuracy).  Each engine runs the same command a fleet owner types, in its
 own process (the driver), on a fresh output folder:
 
 * ``serial``: ``closedloop batch fleet.yaml --jobs 1`` (the driver calibrates);
@@ -18,22 +18,29 @@ own process (the driver), on a fresh output folder:
   W nodes of one CPU each, every one its own raylet, object store and workers (as separate machines,
   sharing this machine's cores and file system).
 
-Figures, per engine and fleet size N (W workers; 1 for serial):
+Figures, per engine and fleet size N (W workers; 1 for serial).  A job's own time is measured inside its
+worker: the summary's ``seconds`` (wall) and ``cpu_seconds`` (CPU of the job's thread) of the whole job,
+from reading its robot's files to publishing its folder.  Everything else is overhead:
 
 * ``wall``: the command, start to exit (Python start, the pool or the connection to the cluster, the
   jobs, the summary);
-* ``job``: mean of the jobs' own times (the summary's ``seconds``: the whole job in its worker);
-* ``overhead/job`` = (wall x W - sum of the jobs' times) / N: everything the workers did not spend on
-  jobs (Python start, imports, dispatch, result transfer, idle workers at the start and the end), in ms
-  and as a share of a job's own time; and its ``marginal`` value between the two largest fleets, free
-  of every fixed cost: what one more job costs;
-* ``per worker``: N / wall / W jobs per second, and its ratio to the serial engine's;
+* ``overhead/job wall`` = (wall x W - sum of the jobs' own wall times) / N: the time the workers did not
+  spend in jobs (Python start, imports, dispatch, result transfer, idle workers at the start and the end);
+* ``overhead/job CPU`` = (CPU of the driver and of every worker process - sum of the jobs' own CPU) / N:
+  the same in CPU seconds, sampled from /proc every 0.1 s.  On a shared machine this is the figure to
+  read: a process waiting for a core uses no CPU, while the wall figure grows with the load;
+* ``driver CPU/job``: the driver process's CPU time per job (for serial it runs the jobs too);
+* the Ray cluster's services (GCS, raylets, object stores, agents) are counted apart, in CPU seconds over
+  the command: a cost of the cluster per second it runs, not of a job;
+* ``marginal``: the overheads' increase between the two largest fleets, per added job, free of every
+  fixed cost (start-up, imports, the tail): what one more job costs;
+* ``per worker``: N / wall / W jobs per second; ``per CPU s``: N / the command's CPU seconds; each also
+  as a ratio to the serial engine's at the same N;
 * ``resume``: the same command run again on the finished folders (nothing to run: reading the manifest
   and every job's record, the summary);
-* ``driver peak``: the driver process's peak resident memory (VmHWM, sampled every 0.1 s) and its CPU
-  time (the pool's or the cluster's workers not included).
+* ``driver peak``: the driver process's peak resident memory (VmHWM, sampled every 0.1 s).
 
-The 10,000-robot figures are extrapolated from the largest fleet run (method printed with them).
+The 10,000-robot figures are extrapolated from the two largest fleets run (method printed with them).
 
 ``--report N``: instead, the fleet report of N robots on two dates, two of them (``arm00017``,
 ``arm00064``) with joint 4's offset jumped by 800 urad on the second date, calibrated on the local pool;
@@ -83,14 +90,44 @@ def _proc(pid: int) -> tuple[float, float]:
         for line in fh:
             if line.startswith("VmHWM:"):
                 hwm = float(line.split()[1]) / 1024.0
+    return hwm, _cpu(pid)
+
+
+def _cpu(pid: int) -> float:
+    """CPU seconds (user + system) a live process has used, its own threads only."""
     with open(f"/proc/{pid}/stat") as fh:
         f = fh.read().rsplit(")", 1)[1].split()
-    return hwm, (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def run_driver(args: list[str]) -> dict:
-    """Run `closedloop batch ...`; its wall time, exit code and the driver's peak memory and CPU time."""
+def _tree_cpu(pids: list[int]) -> dict[int, float]:
+    out = {}
+    for pid in pids:
+        try:
+            out[pid] = _cpu(pid)
+        except (OSError, IndexError, ValueError):
+            pass
+    return out
+
+
+def _is_ray_worker(pid: int) -> bool:
+    """A Ray worker process (titled ``ray::IDLE`` or ``ray::TASK``), not one of the cluster's services."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().startswith(b"ray::")
+    except OSError:
+        return False
+
+
+def run_driver(args: list[str], cluster: bool = False) -> dict:
+    """Run `closedloop batch ...`; its wall time, exit code, the driver's peak memory and CPU time, and the
+    CPU time of the processes working for it meanwhile (below it: the pool's fork server and workers; with
+    `cluster`, every process below this one: the Ray cluster's raylets, stores, services and workers), sampled every 0.1 s from /proc: a process's last
+    sample counts (one that lives less than 0.1 s is missed), less what it had used before the driver
+    started."""
+    from closedloop.fleet.batch import descendants
+
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    before = _tree_cpu(descendants()) if cluster else {}
     t0 = time.perf_counter()
     p = subprocess.Popen(
         [sys.executable, "-m", "closedloop.cli.main", "batch", *args, "--quiet"],
@@ -99,19 +136,34 @@ def run_driver(args: list[str]) -> dict:
         env=env,
         text=True,
     )
-    peak, cpu = 0.0, 0.0
+    peak, cpu, seen, workers = 0.0, 0.0, {}, set()
     while p.poll() is None:
         try:
             hwm, used = _proc(p.pid)
             peak, cpu = max(peak, hwm), max(cpu, used)  # (an exited, unreaped process has no memory lines)
         except (OSError, IndexError, ValueError):
             pass
+        now = _tree_cpu([q for q in descendants(None if cluster else p.pid) if q != p.pid])
+        workers.update(q for q in now if q not in workers and (not cluster or _is_ray_worker(q)))
+        seen.update(now)
         time.sleep(0.1)
     out, err = p.communicate()
     wall = time.perf_counter() - t0
     if p.returncode not in (0, 3):
         raise RuntimeError(f"batch exited {p.returncode}: {err[-2000:]}")
-    return {"wall": wall, "peak_mb": peak, "cpu": cpu, "code": p.returncode}
+    if cluster:  # (the driver's own children have ended with it)
+        seen.update(_tree_cpu([q for q in descendants() if q != p.pid]))
+    used = {pid: v - before.get(pid, 0.0) for pid, v in seen.items()}
+    others = sum(v for pid, v in used.items() if pid in workers)
+    services = sum(v for pid, v in used.items() if pid not in workers)
+    return {
+        "wall": wall,
+        "peak_mb": peak,
+        "cpu": cpu,
+        "others_cpu": others,
+        "services_cpu": services,
+        "code": p.returncode,
+    }
 
 
 def forget(address: str) -> None:
@@ -154,12 +206,13 @@ def measure(engine: str, n: int, folder: Path, geo, args, address: str | None) -
         shutil.rmtree(folder)
     manifest = write_fleet(folder, FleetSpec(robots=n, seed=n), geo)
     how = {"serial": ["--jobs", "1"], "local": ["--jobs", str(args.workers)], "ray": ["--ray", str(address)]}[engine]
-    first = run_driver([str(manifest), *how])
+    first = run_driver([str(manifest), *how], cluster=engine == "ray")
     with open(manifest.with_name("fleet.summary.csv")) as fh:  # (the rerun's rows give the job folders' times)
         rows = list(csv.DictReader(fh))
-    again = run_driver([str(manifest), *how])  # every folder finished: nothing to run
+    again = run_driver([str(manifest), *how], cluster=engine == "ray")  # every folder finished: nothing to run
     assert len(rows) == n and all(r["status"] == "ok" for r in rows), "a job failed"
     seconds = np.array([float(r["seconds"]) for r in rows])
+    cpu = np.array([float(r["cpu_seconds"]) for r in rows])
     return {
         "engine": engine,
         "robots": n,
@@ -168,21 +221,42 @@ def measure(engine: str, n: int, folder: Path, geo, args, address: str | None) -
         "resume_s": again["wall"],
         "job_s": float(seconds.mean()),
         "sum_job_s": float(seconds.sum()),
+        "job_cpu_s": float(cpu.mean()),
+        "sum_job_cpu_s": float(cpu.sum()),
         "driver_peak_mb": first["peak_mb"],
         "driver_cpu_s": first["cpu"],
+        "others_cpu_s": first["others_cpu"],
+        "services_cpu_s": first["services_cpu"],
         "verdicts_ok": sum(r["verdict"] == "ok" for r in rows),
         "load": os.getloadavg()[0],
     }
 
 
 def overhead(r: dict) -> float:
-    """Seconds per job the W workers spent on anything but the jobs: (wall x W - sum of job times) / N."""
+    """Wall seconds per job the W workers spent on anything but their jobs: (wall x W - sum of the jobs'
+    own times) / N."""
     return (r["wall_s"] * r["workers"] - r["sum_job_s"]) / r["robots"]
+
+
+def total_cpu(r: dict) -> float:
+    """CPU seconds of the whole command: the driver, and every worker and service it kept busy."""
+    return r["driver_cpu_s"] + r.get("others_cpu_s", 0.0)
+
+
+def cpu_overhead(r: dict) -> float:
+    """CPU seconds per job spent on anything but the jobs themselves: (CPU of the command - the jobs' own
+    CPU) / N.  Load-independent, unlike the wall figure: a process waiting for a core uses none."""
+    return (total_cpu(r) - r["sum_job_cpu_s"]) / r["robots"]
 
 
 def per_core(r: dict) -> float:
     """Jobs per second per worker over the whole command."""
     return r["robots"] / r["wall_s"] / r["workers"]
+
+
+def per_cpu(r: dict) -> float:
+    """Jobs per CPU second of the whole command: what a core busy with it alone would do."""
+    return r["robots"] / total_cpu(r)
 
 
 def _pair(rows: list[dict], engine: str) -> tuple[dict, dict] | None:
@@ -193,21 +267,25 @@ def _pair(rows: list[dict], engine: str) -> tuple[dict, dict] | None:
 def marginal(rows: list[dict]) -> list[str]:
     """The overhead of one more job, free of every fixed cost (Python start, the workers' imports, the
     pool or the connection, the ramp-up and the tail): the difference of the total overheads of the two
-    largest fleets, ((wall2 x W - S2) - (wall1 x W - S1)) / (N2 - N1), S the sum of the jobs' own times."""
+    largest fleets divided by the difference of their sizes, in wall time ((wall x W - S) differences, S
+    the sum of the jobs' own times) and in CPU time ((CPU of the command - the jobs' own CPU) differences)."""
     out = ["marginal overhead per job (between the two largest fleets of each engine):"]
     for engine in dict.fromkeys(r["engine"] for r in rows):
         pair = _pair(rows, engine)
-        if pair is None:
+        if pair is None or "sum_job_cpu_s" not in pair[0]:
             continue
         a, b = pair
         dn = b["robots"] - a["robots"]
-        per = (overhead(b) * b["robots"] - overhead(a) * a["robots"]) / dn
+        wall = (overhead(b) * b["robots"] - overhead(a) * a["robots"]) / dn
         job = (b["sum_job_s"] - a["sum_job_s"]) / dn
+        cpu = (cpu_overhead(b) * b["robots"] - cpu_overhead(a) * a["robots"]) / dn
+        job_cpu = (b["sum_job_cpu_s"] - a["sum_job_cpu_s"]) / dn
         out.append(
-            f"  {engine:<6} {a['robots']} -> {b['robots']} robots: {per * 1e3:+.1f} ms per job, {100 * per / job:+.1f} % "
-            f"of a job's own {job:.3f} s; driver peak {b['driver_peak_mb'] - a['driver_peak_mb']:+.1f} MB "
-            f"({(b['driver_peak_mb'] - a['driver_peak_mb']) * 1024 / dn:+.2f} KB per robot), driver CPU "
-            f"{(b['driver_cpu_s'] - a['driver_cpu_s']) * 1e3 / dn:.2f} ms per robot"
+            f"  {engine:<6} {a['robots']} -> {b['robots']} robots: wall {wall * 1e3:+.1f} ms per job "
+            f"({100 * wall / job:+.1f} % of a job's own {job:.3f} s); CPU {cpu * 1e3:+.1f} ms per job "
+            f"({100 * cpu / job_cpu:+.1f} % of a job's own {job_cpu:.3f} s), of which the driver's "
+            f"{(b['driver_cpu_s'] - a['driver_cpu_s']) * 1e3 / dn:.1f} ms; driver peak "
+            f"{(b['driver_peak_mb'] - a['driver_peak_mb']) * 1024 / dn:+.2f} KB per robot"
         )
     return out
 
@@ -215,8 +293,8 @@ def marginal(rows: list[dict]) -> list[str]:
 def extrapolate(rows: list[dict], n_target: int = 10_000) -> list[str]:
     """The 10,000-robot figures of each engine (method in the first line)."""
     lines = [
-        f"extrapolation to {n_target} robots on the same W workers.  Method: the command's wall time, the "
-        "driver's peak memory and its CPU time on a line in N through the two largest fleets measured (the "
+        f"extrapolation to {n_target} robots on the same W workers.  Method: the command's wall time, CPU time, "
+        "the driver's peak memory and its CPU time on a line in N through the two largest fleets measured (the "
         "intercept: start-up and fixed costs; the slope: a job's own time / W plus its marginal overhead):"
     ]
     for engine in dict.fromkeys(r["engine"] for r in rows):
@@ -226,13 +304,14 @@ def extrapolate(rows: list[dict], n_target: int = 10_000) -> list[str]:
         a, b = pair
         dn = b["robots"] - a["robots"]
 
-        def at(key: str) -> float:
-            return b[key] + (b[key] - a[key]) / dn * (n_target - b["robots"])
+        def at(f) -> float:
+            return f(b) + (f(b) - f(a)) / dn * (n_target - b["robots"])
 
         w = b["workers"]
         lines.append(
-            f"  {engine:<6} W={w}: wall {at('wall_s') / 3600:.2f} h ({(b['wall_s'] - a['wall_s']) / dn * 1e3:.0f} ms "
-            f"per robot); driver peak {at('driver_peak_mb'):.0f} MB; driver CPU {at('driver_cpu_s'):.0f} s"
+            f"  {engine:<6} W={w}: wall {at(lambda r: r['wall_s']) / 3600:.2f} h "
+            f"({(b['wall_s'] - a['wall_s']) / dn * 1e3:.0f} ms per robot); CPU {at(total_cpu) / 3600:.2f} h; "
+            f"driver peak {at(lambda r: r['driver_peak_mb']):.0f} MB; driver CPU {at(lambda r: r['driver_cpu_s']):.0f} s"
         )
     lines.append(
         "  on C cores the jobs' part divides by C / W (the jobs are independent); the driver's CPU per job does "
@@ -242,18 +321,25 @@ def extrapolate(rows: list[dict], n_target: int = 10_000) -> list[str]:
 
 
 def table(rows: list[dict]) -> list[str]:
-    serial = {r["robots"]: per_core(r) for r in rows if r["engine"] == "serial"}
+    serial = {r["robots"]: r for r in rows if r["engine"] == "serial"}
     out = [
-        "| engine | robots | workers | wall [s] | job [s] | overhead/job [ms] (% of job) "
-        "| jobs/s per worker (vs serial) | resume [s] | driver peak [MB] | driver CPU [s] | load |",
-        "|" + "---|" * 11,
+        "| engine | robots | workers | wall [s] | job wall / CPU [s] | overhead/job wall [ms] (% of job) "
+        "| overhead/job CPU [ms] (% of job) | driver CPU/job [ms] | jobs/s per worker (vs serial) "
+        "| jobs per CPU s (vs serial) | cluster services CPU [s] | resume [s] | driver peak [MB] | load |",
+        "|" + "---|" * 14,
     ]
     for r in rows:
-        ratio = f" ({per_core(r) / serial[r['robots']]:.2f}x)" if r["robots"] in serial else ""
+        if "sum_job_cpu_s" not in r:  # (measured before the jobs' CPU time was recorded)
+            continue
+        s = serial.get(r["robots"])
+        vs = f" ({per_core(r) / per_core(s):.2f}x)" if s else ""
+        vs_cpu = f" ({per_cpu(r) / per_cpu(s):.2f}x)" if s else ""
         out.append(
-            f"| {r['engine']} | {r['robots']} | {r['workers']} | {r['wall_s']:.1f} | {r['job_s']:.3f} | "
-            f"{overhead(r) * 1e3:.1f} ({100 * overhead(r) / r['job_s']:.1f} %) | {per_core(r):.3f}{ratio} | "
-            f"{r['resume_s']:.1f} | {r['driver_peak_mb']:.0f} | {r['driver_cpu_s']:.1f} | {r['load']:.1f} |"
+            f"| {r['engine']} | {r['robots']} | {r['workers']} | {r['wall_s']:.1f} | {r['job_s']:.3f} / "
+            f"{r['job_cpu_s']:.3f} | {overhead(r) * 1e3:.1f} ({100 * overhead(r) / r['job_s']:.1f} %) | "
+            f"{cpu_overhead(r) * 1e3:.1f} ({100 * cpu_overhead(r) / r['job_cpu_s']:.1f} %) | "
+            f"{r['driver_cpu_s'] * 1e3 / r['robots']:.1f} | {per_core(r):.3f}{vs} | {per_cpu(r):.3f}{vs_cpu} | "
+            f"{r.get('services_cpu_s', 0.0):.0f} | {r['resume_s']:.1f} | {r['driver_peak_mb']:.0f} | {r['load']:.1f} |"
         )
     return out
 

@@ -243,3 +243,20 @@ def test_drift_z_and_gauge_check(tmp_path):
     assert by["d1", "j.x"].z == pytest.approx(0.4 / 0.5) and not by["d1", "j.x"].flagged
     assert by["d1", "j.offset"].z == pytest.approx(0.45 / np.sqrt(0.02)) and by["d1", "j.offset"].flagged
     assert "not comparable" in by["d2", "*"].note and "j.x, j.y" in by["d2", "*"].note
+
+
+def test_an_output_folder_that_is_an_input_is_refused_naming_the_job(tmp_path):
+    """The check before the first job finds an output folder that is one of the batch's inputs (a log that
+    is a folder, a ROS 2 bag, by inode through a link), looking each input up once."""
+    from closedloop.fleet.batch import BatchJob, check_batch_outputs
+
+    for k in range(3):
+        (tmp_path / "logs" / f"r{k}").mkdir(parents=True)
+    (tmp_path / "link").symlink_to(tmp_path / "logs" / "r1")
+    jobs = [
+        BatchJob(f"r{k}", Path(panda_urdf()), tmp_path / "logs" / f"r{k}", tmp_path / "out" / f"r{k}") for k in range(3)
+    ]
+    check_batch_outputs(tmp_path / "m.yaml", jobs, tmp_path / "s.csv")  # distinct folders: accepted
+    jobs[2].out = tmp_path / "link"
+    with pytest.raises(InputError, match=r"^job r2: out .*link: is an input of the batch \(.*logs/r1\)$"):
+        check_batch_outputs(tmp_path / "m.yaml", jobs, tmp_path / "s.csv")

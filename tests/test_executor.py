@@ -90,6 +90,58 @@ def test_failures_isolated(cluster, local):
     assert rec[0] == 1 and not rec[1].ok
 
 
+@pytest.mark.slow
+def test_ray_chunks_same_results_a_lost_chunk_run_again_job_by_job(cluster):
+    """40 small jobs on 2 CPUs travel several to a Ray task: the same values as one process; a chunk whose
+    worker dies has its jobs run again one per task, so only the job that kills its worker is lost."""
+    eng = ex.get_engine("ray")
+    assert eng.chunk_size(40) == 5 and eng.chunk_size(7) == 1
+    serial = ex.run(noisy_sum, range(40), "serial", shared=(10.0,), seed=7)
+    outs = sorted(ex.imap(noisy_sum, range(40), eng, shared=(10.0,), seed=7), key=lambda o: o.index)
+    assert [o.value for o in outs] == serial
+    assert len({o.worker for o in outs[:5]}) == 1  # the first chunk: one task, one worker
+    # no retries: the job that kills its worker is recorded at its first death alone (each death costs a new worker)
+    outs = sorted(ex.imap(flaky, range(40), ex.RayEngine(retries=0)), key=lambda o: o.index)
+    assert [o.index for o in outs] == list(range(40))
+    assert [o.value for o in outs if o.ok] == [i * i for i in range(40) if i not in (3, 5)]
+    assert outs[3].error == "ValueError: job 3 is bad"
+    assert outs[5].error.startswith("WorkerCrashed"), outs[5].error
+
+
+def test_a_job_s_cpu_time_is_its_own_thread_s():
+    """An outcome's `cpu` counts the job's CPU time, not the time it waited."""
+
+    def busy(payload: float) -> None:
+        t0 = __import__("time").thread_time()
+        while __import__("time").thread_time() - t0 < payload:
+            pass
+
+    def idle(payload: float) -> None:
+        __import__("time").sleep(payload)
+
+    out = ex.call(busy, 0, 0.2, None)
+    assert out.ok and 0.2 <= out.cpu <= out.seconds
+    out = ex.call(idle, 0, 0.2, None)
+    assert out.ok and out.seconds >= 0.2 and out.cpu < 0.05
+
+
+def test_a_job_s_imports_are_outside_its_clock_and_time_limit(tmp_path, monkeypatch):
+    """The modules a job function `needs` are imported before its clock and time limit start."""
+    (tmp_path / "slow_to_import.py").write_text("import time\n\ntime.sleep(1.0)\nVALUE = 7\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(__import__("sys").modules, "slow_to_import", raising=False)
+
+    @ex.needs("slow_to_import")
+    def job(payload: int) -> int:
+        import slow_to_import
+
+        return slow_to_import.VALUE + payload
+
+    out = ex.call(job, 0, 1, None, timeout=0.5)
+    assert out.ok and out.value == 8 and out.seconds < 0.5, out.error
+    monkeypatch.delitem(__import__("sys").modules, "slow_to_import")
+
+
 def test_progress_counts():
     seen = []
     ex.run(flaky, [0, 1, 3], "serial", errors="record", progress=lambda *told: seen.append(told), task="runs")

@@ -257,3 +257,19 @@ def test_a_mimic_joint_on_the_chain_is_refused_with_the_joints_that_leave_it_out
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert "l_gripper_l_finger_tip_joint mimics" in err and "--joints torso_lift_joint," in err
     assert "l_gripper_l_finger_tip_joint" not in err.split("--joints")[1]
+
+
+def test_a_model_file_is_parsed_once_for_the_same_bytes(tmp_path):
+    """`parse_xml` hands back the tree parsed before while the file's bytes are the same, and parses again
+    when they change (a file rewritten at once with the same size included)."""
+    from closedloop.io.robot_files import parse_xml
+
+    path = tmp_path / "m.urdf"
+    path.write_text('<robot name="a"><link name="base"/></robot>')
+    first = parse_xml(path)
+    assert parse_xml(path) is first and first.get("name") == "a"
+    path.write_text('<robot name="b"><link name="base"/></robot>')  # the same size
+    assert parse_xml(path).get("name") == "b"
+    path.write_text('<robot name="a"')
+    with pytest.raises(ET.ParseError):
+        parse_xml(path)

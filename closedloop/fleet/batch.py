@@ -18,8 +18,8 @@ engines of ``closedloop.parallel.executor``.
 * Faults: a job past ``--job-timeout`` is stopped and recorded (`JobTimeout`);
   a job whose worker process or cluster node died is run again by the engine
   (`run_once`: a job that had already published its folder is not calibrated
-  again); the batch holds the summary rows only, each job's record is read
-  back from its folder for the drift.
+  again); a worker sends back the job's summary row only (`run_row`): the batch holds the summary
+  rows only, each job's record is read back from its folder for the drift.
 
 Drift (:mod:`closedloop.fleet.drift`): for jobs of the same robot ordered by date, every robot
 parameter of two consecutive calibrations, expressed in one gauge (the earlier calibration's: the
@@ -45,6 +45,7 @@ from closedloop.errors import InputError
 from closedloop.fleet.drift import Drift, drift, drift_columns, gauge_record
 from closedloop.fleet.manifest import BatchJob, read_manifest
 from closedloop.io.files import is_special
+from closedloop.parallel.engine import needs
 from closedloop.progress import ProgressReporter
 from closedloop.run.calibrate import DONE
 
@@ -82,6 +83,7 @@ COLUMNS = [
     "drift_max_z",
     "drift_flagged",
     "seconds",
+    "cpu_seconds",
     "resumed",
     "error",
     "out",
@@ -221,7 +223,7 @@ def run_job(job: BatchJob) -> dict:
     from closedloop.run import calibrate_files
 
     die_with_batch(job.batch_pid)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.thread_time()
 
     def marker(run) -> dict:
         res, report, lg = run.result, run.report, run.log
@@ -243,6 +245,7 @@ def run_job(job: BatchJob) -> dict:
             "cv_test_mrad": _pooled_dicts(test, "rms_rad") if test else None,
             "top_changes": _top_changes(report),
             "seconds": round(time.perf_counter() - t0, 3),
+            "cpu_seconds": round(time.thread_time() - c0, 3),
             "out": str(job.out),
         }
         params = {
@@ -252,8 +255,14 @@ def run_job(job: BatchJob) -> dict:
         }
         return {"row": row, "parameters": params, "gauge": _gauge(res)}
 
-    run = calibrate_files(job.run_options(), folder=job.out, done=marker)
-    return finished(job) or marker(run)
+    made: list[dict] = []  # the record written to the folder, returned as made (not read back)
+
+    def record(run) -> dict:
+        made.append(marker(run))
+        return made[-1]
+
+    run = calibrate_files(job.run_options(), folder=job.out, done=record)
+    return made[-1] if made else finished(job) or marker(run)
 
 
 def _gauge(res) -> dict | None:
@@ -350,6 +359,20 @@ def run_once(job: BatchJob) -> dict:
     return finished(job) or run_job(job)
 
 
+@needs(  # what a job imports as it runs (`run.calibrate_files`): imported before the first job's time limit
+    "closedloop.calibration.pipeline",
+    "closedloop.calibration.verdict",
+    "closedloop.output.report",
+    "closedloop.records",
+    "closedloop.run.accuracy",
+    "closedloop.run.inputs",
+)
+def run_row(job: BatchJob) -> dict:
+    """What a worker sends back to the batch: the job's summary row (`run_once`; the rest of its record
+    stays in its folder, read from there for the drift)."""
+    return run_once(job)["row"]
+
+
 class _Markers(Mapping):
     """The finished jobs' records (``done.json``) by name, read from disk when asked (the last two kept):
     the batch holds the summary rows, never every job's parameters and matrices."""
@@ -403,10 +426,11 @@ def run_batch(
             rows[j.name] = {**done["row"], "resumed": "yes"}
             sink.add(rows[j.name], publish=False)  # (published with the first job that finishes)
     failed = []
-    for out in imap(run_once, todo, engine, progress=progress, task="batch"):
+    for out in imap(run_row, todo, engine, progress=progress, task="batch"):
         j = todo[out.index]
-        if out.ok:  # seconds: the whole job in its worker, its folder's writing included
-            rows[j.name] = {**out.value["row"], "seconds": round(out.seconds, 3), "resumed": "no"}
+        cost = {"seconds": round(out.seconds, 3), "cpu_seconds": round(out.cpu, 3), "resumed": "no"}
+        if out.ok:  # seconds, cpu_seconds: the whole job in its worker, its inputs' reading and its folder's writing
+            rows[j.name] = {**out.value, **cost}
         else:
             failed.append(j.name)
             log.warning("job %s failed: %s", j.name, out.error)
@@ -417,8 +441,7 @@ def run_batch(
                 "status": "failed",
                 "verdict": "n/a",
                 "error": out.error,
-                "seconds": round(out.seconds, 3),
-                "resumed": "no",
+                **cost,
                 "out": str(j.out),
             }
         sink.add(rows[j.name])
@@ -453,16 +476,21 @@ def _write_drift(summary: Path, drifts: list[Drift]) -> None:
 def check_batch_outputs(manifest: str | Path, jobs: list[BatchJob], summary: Path) -> None:
     """Before any job runs: the summary (and its drift table) and every job's folder may be written,
     and none of them is an input (the manifest, a model, a log) -- by inode, links resolved."""
-    from closedloop.io.files import check_outputs, same_file
+    from closedloop.io.files import check_outputs, identity
 
-    inputs = [manifest] + [p for j in jobs for p in (j.model, j.log)]
+    inputs = list(dict.fromkeys([Path(manifest)] + [p for j in jobs for p in (j.model, j.log)]))
     outputs = {"--summary": summary}
     if not is_special(summary):
         outputs["--summary (its drift table)"] = drift_path(summary)
     check_outputs(outputs, inputs)
+    # each input file once, by inode: one look-up per job, not one per job and input
+    by_inode: dict[tuple[int, int] | None, Path] = {}
+    for i in inputs:
+        by_inode.setdefault(identity(i), i)
+    by_inode.pop(None, None)
     for j in jobs:
         if j.out.exists() and not j.out.is_dir():
             raise InputError(f"job {j.name}: out {j.out}: is a file; give a folder")
-        for i in inputs:
-            if same_file(j.out, i):
-                raise InputError(f"job {j.name}: out {j.out}: is an input of the batch ({i})")
+        same = by_inode.get(identity(j.out))
+        if same is not None:
+            raise InputError(f"job {j.name}: out {j.out}: is an input of the batch ({same})")

@@ -52,13 +52,13 @@ def track_inputs() -> Iterator[None]:
 def _input_at(target: Path) -> str | None:
     """The noted input `target` is (same inode, and the input's path still leads there), or None."""
     seen = _inputs.get()
-    ident = _identity(target)
+    ident = identity(target)
     if not seen or ident is None or ident not in seen:
         return None
-    return seen[ident] if _identity(seen[ident]) == ident else None
+    return seen[ident] if identity(seen[ident]) == ident else None
 
 
-def _identity(path: str | Path) -> tuple[int, int] | None:
+def identity(path: str | Path) -> tuple[int, int] | None:
     """(device, inode) of the file `path` leads to (links followed), None when there is none."""
     try:
         st = os.stat(path)
@@ -69,8 +69,8 @@ def _identity(path: str | Path) -> tuple[int, int] | None:
 
 def same_file(a: str | Path, b: str | Path) -> bool:
     """`a` and `b` are one file (one inode after resolving links: hard links, symlinks, ``./x`` and ``x``)."""
-    ia = _identity(a)
-    return ia is not None and ia == _identity(b)
+    ia = identity(a)
+    return ia is not None and ia == identity(b)
 
 
 def is_special(path: str | Path) -> bool:

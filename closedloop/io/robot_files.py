@@ -17,6 +17,7 @@ file with the standard XML parser (no recursion) and refuse, naming the element:
 from __future__ import annotations
 
 import math
+import os
 import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
@@ -37,9 +38,31 @@ JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed", "floating", "plan
 _XACRO = re.compile(r"\$\{|\$\(")
 
 
+_PARSED: dict[tuple[str, str], ET.Element] = {}  # (path, digest of its bytes) -> root; a few kept
+
+
+def parse_xml(path: str | Path) -> ET.Element:
+    """The root of the XML file at `path`, parsed once per process for the same bytes: a worker that
+    calibrates many robots of one model (a fleet) parses it once, not once per job and per check.  The
+    tree is shared: read it, never change it.  Raises as ``ET.parse`` does (``ET.ParseError``, ``OSError``)."""
+    import hashlib
+
+    data = Path(path).read_bytes()
+    key = (os.path.abspath(path), hashlib.blake2b(data, digest_size=16).hexdigest())
+    root = _PARSED.get(key)
+    if root is None:
+        parser = ET.XMLParser()
+        parser.feed(data)
+        root = parser.close()
+        if len(_PARSED) >= 8:
+            _PARSED.pop(next(iter(_PARSED)))
+        _PARSED[key] = root
+    return root
+
+
 def _parse(path: Path, kind: str) -> ET.Element:
     try:
-        return ET.parse(path).getroot()
+        return parse_xml(path)
     except ET.ParseError as exc:
         line, col = getattr(exc, "position", (0, 0))
         raise ModelError(f"{path}: not valid XML (line {line}, column {col}: {str(exc).split(':')[0]})") from None
@@ -188,7 +211,7 @@ def read_urdf_joints(path: str | Path) -> UrdfJoints:
     """The `UrdfJoints` of the URDF at `path` (read once, when the model is loaded); empty where it cannot
     be read (`check_urdf` has refused it before)."""
     try:
-        root = ET.parse(path).getroot()
+        root = parse_xml(path)
     except (ET.ParseError, OSError):
         return UrdfJoints()
     tree: dict[str, tuple[str, str]] = {}

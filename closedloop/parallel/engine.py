@@ -4,8 +4,10 @@ Ray engines are in :mod:`closedloop.parallel.engines`)."""
 
 from __future__ import annotations
 
+import importlib
 import os
 import pickle
+import sys
 import time
 import traceback
 from collections.abc import Callable, Iterator
@@ -38,6 +40,7 @@ class Outcome:
     error: str | None = None  # "Type: message"; None when the job succeeded
     traceback: str = ""
     seconds: float = 0.0  # time inside the job (worker clock)
+    cpu: float = 0.0  # CPU seconds of the job's own thread (the worker's other threads not counted)
     worker: str = ""  # host:pid that ran it
     exception: BaseException | None = field(default=None, repr=False)
 
@@ -138,6 +141,18 @@ def limit_threads() -> None:
     threadpool_limits(1)
 
 
+def needs(*modules: str) -> Callable[[Callable], Callable]:
+    """Decorator for a job function: the modules it imports as it runs, imported by the process running it
+    before its first job's clock and time limit start (`call`).  A worker is then warm for every job, and a
+    job's time and time limit are its own, not the imports' (seconds of wall on a loaded machine)."""
+
+    def deco(fn: Callable) -> Callable:
+        setattr(fn, "needs", modules)  # noqa: B010 - an attribute of the function, read by `call`
+        return fn
+
+    return deco
+
+
 def call(
     fn: Callable,
     index: int,
@@ -151,9 +166,14 @@ def call(
     (`time_limit`; `hard` in a worker process, never in the caller's own)."""
     import socket
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.thread_time()
     out = Outcome(index, worker=f"{socket.gethostname()}:{os.getpid()}")
     try:
+        modules = [m for m in getattr(fn, "needs", ()) if m not in sys.modules]
+        if modules:  # (the first job in this process: `needs`)
+            for m in modules:
+                importlib.import_module(m)
+            t0, c0 = time.perf_counter(), time.thread_time()
         kw = {} if seed is None else {"rng": np.random.default_rng(seed)}
         with time_limit(timeout, hard):
             out.value = fn(*shared, payload, **kw)
@@ -168,7 +188,7 @@ def call(
             out.exception = exc
         except Exception:  # an exception that cannot travel back: its text does
             out.exception = None
-    out.seconds = time.perf_counter() - t0
+    out.seconds, out.cpu = time.perf_counter() - t0, time.thread_time() - c0
     return out
 
 

@@ -174,9 +174,16 @@ class RayEngine(Engine):
     """Ray tasks of one CPU each; joins `address` ('auto', 'HOST:6379', 'ray://host:10001') or starts a local
     cluster.
 
-    A task whose worker process or node dies is run again by Ray, on any node, up to `retries` times
-    (then recorded as crashed); `timeout`: seconds a job may run (`engine.time_limit`).  The jobs'
-    code must be importable on every node, and their files on a file system every node sees."""
+    Small jobs travel several to a task (`chunk_size`): what a task costs the driver and the cluster
+    (submitting, scheduling, waiting, receiving) is paid once per chunk, not once per job.  A chunk whose
+    worker process or node dies is not run again whole: its jobs are, one per task, each run again by Ray,
+    on any node, up to `retries` times (then recorded as crashed); a job that had finished in the lost
+    chunk is run again (the batch's jobs find their published folder and are not redone).  `timeout`:
+    seconds a job may run (`engine.time_limit`).  The jobs' code must be importable on every node, and
+    their files on a file system every node sees."""
+
+    #: most jobs one task carries; fewer as the queue shortens (`chunk_size`)
+    max_chunk = 8
 
     def __init__(
         self,
@@ -197,50 +204,71 @@ class RayEngine(Engine):
             ray.init(include_dashboard=False, log_to_driver=False, **kw)
         self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
         self.timeout = timeout
-        self._task = ray.remote(num_cpus=1, max_retries=retries)(_ray_call)
+        task = ray.remote(num_cpus=1)(_ray_call)
+        self._chunk = task.options(max_retries=0)  # a lost chunk's jobs are run again one per task
+        self._single = task.options(max_retries=retries)
 
     def close(self) -> None:
         if self._started and self.ray.is_initialized():
             self.ray.shutdown()
             self._started = False
 
+    def chunk_size(self, queued: int) -> int:
+        """Jobs in the next task: as many as keep 4 tasks queued per worker, at most `max_chunk`, down
+        to one as the queue empties (so the workers end together)."""
+        return max(1, min(self.max_chunk, queued // (4 * self.workers)))
+
     def imap(self, fn, payloads, seeds, shared, progress=None):
         ray = self.ray
         token = None if shared is None else f"{os.getpid()}-{id(shared)}-{time.monotonic_ns()}"
         ref = None if shared is None else [ray.put(shared)]  # in a list: not resolved per task
-        pending: dict = {}
-        queue = list(reversed(range(len(payloads))))
-        limit = 4 * self.workers
+        pending: dict = {}  # task -> its jobs' indices
         try:
-            yield from self._loop(fn, payloads, seeds, token, ref, queue, pending, limit, progress)
+            yield from self._loop(fn, payloads, seeds, token, ref, pending, progress)
         finally:  # the caller stopped early: cancel what is still queued or running
             for r in pending:
                 ray.cancel(r, force=False)
 
-    def _loop(self, fn, payloads, seeds, token, ref, queue, pending, limit, progress):
+    def _loop(self, fn, payloads, seeds, token, ref, pending, progress):
         ray = self.ray
-        while queue or pending:
-            while queue and len(pending) < limit:
-                i = queue.pop()
-                seed = None if seeds is None else seeds[i]
-                pending[self._task.remote(fn, i, payloads[i], seed, token, ref, self.timeout)] = i
+        queue = list(reversed(range(len(payloads))))
+        alone: list[int] = []  # the jobs of a lost chunk: one per task from now on
+        limit = 4 * self.workers
+        while queue or alone or pending:
+            while (queue or alone) and len(pending) < limit:
+                if alone:
+                    idx, task = [alone.pop()], self._single
+                else:
+                    idx = [queue.pop() for _ in range(min(self.chunk_size(len(queue)), len(queue)))]
+                    task = self._chunk if len(idx) > 1 else self._single
+                jobs = [(i, payloads[i], None if seeds is None else seeds[i]) for i in idx]
+                pending[task.remote(fn, jobs, token, ref, self.timeout)] = idx
             if progress:
-                progress.running = min(len(pending), self.workers)
+                progress.running = min(sum(map(len, pending.values())), self.workers)
             done, _ = ray.wait(list(pending), num_returns=1)
             for r in done:
-                i = pending.pop(r)
+                idx = pending.pop(r)
                 try:
-                    yield ray.get(r)
-                except Exception as exc:  # the worker died (twice), or the task could not run: recorded
+                    outs = ray.get(r)
+                except Exception as exc:  # the worker died (past its retries), or the task could not run
+                    if len(idx) > 1:
+                        log.warning("a task of %d jobs was lost (%s); its jobs run again one per task", len(idx), exc)
+                        alone.extend(reversed(idx))
+                        continue
                     text = str(exc).strip().splitlines() or [""]
-                    yield Outcome(i, error=f"WorkerCrashed: {type(exc).__name__}: {text[-1]}", traceback=str(exc))
+                    outs = [
+                        Outcome(idx[0], error=f"WorkerCrashed: {type(exc).__name__}: {text[-1]}", traceback=str(exc))
+                    ]
+                yield from outs
 
 
-def _ray_call(fn, index, payload, seed, token, ref, timeout=None) -> Outcome:
+def _ray_call(fn, jobs, token, ref, timeout=None) -> list[Outcome]:
+    """A Ray task: the jobs ``(index, payload, seed)`` one after the other, their outcomes in a list."""
     limit_threads()
     if token is not None and token not in _CACHE:
         import ray
 
         _CACHE.clear()
         _CACHE[token] = ray.get(ref[0])
-    return call(fn, index, payload, seed, _CACHE[token] if token is not None else (), timeout, hard=True)
+    shared = _CACHE[token] if token is not None else ()
+    return [call(fn, i, payload, seed, shared, timeout, hard=True) for i, payload, seed in jobs]

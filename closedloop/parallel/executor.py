@@ -18,9 +18,12 @@ worker), every worker limits BLAS to one thread (threadpoolctl; no
 oversubscription, no thread-count dependent rounding) and results are returned
 in job order.  A job that raises is recorded in its outcome and never stops the
 others; a job that kills its worker process (a crash in native code) is
-retried (local pool: once on a new pool, then alone; Ray: up to 3 times, on
-any node, also when its node died) and recorded as failed.  An engine's
-`timeout` stops a job that runs longer (`engine.time_limit`: `JobTimeout`).
+retried (local pool: once on a new pool, then alone; Ray, where small jobs
+travel several to a task: the lost task's jobs one per task, each up to 3
+times, on any node, also when its node died) and recorded as failed.  An
+engine's `timeout` stops a job that runs longer (`engine.time_limit`:
+`JobTimeout`); the modules a job function `needs` are imported before its
+clock and limit start.
 
 Layout: :mod:`closedloop.parallel.engine` (outcomes, progress, the worker-side
 call, the engine base class, the serial engine), :mod:`closedloop.parallel.engines`
@@ -45,6 +48,7 @@ from closedloop.parallel.engine import (
     SerialEngine,
     call,
     limit_threads,
+    needs,
     register,
 )
 from closedloop.parallel.engines import LocalEngine, RayEngine
@@ -61,6 +65,7 @@ __all__ = [
     "RayEngine",
     "call",
     "limit_threads",
+    "needs",
     "register",
     "get_engine",
     "job_seeds",

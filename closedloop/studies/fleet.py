@@ -42,7 +42,8 @@ class FleetSpec:
     noise: float = 1e-4
     offset_sd: float = 1e-3
     drift: list[FleetDrift] = field(default_factory=list)
-    cv: int = 0
+    cv: int = 0  # k-fold validation (`--cv`); 0: none
+    regions: int = 0  # held-out validation by region (`--regions`); 0: none, one calibration per job
     seed: int = 0
 
 
@@ -101,7 +102,12 @@ def write_fleet(
             )
     manifest = folder / "fleet.yaml"
     doc = {
-        "defaults": {"model": model, "loops": [LOOP], "options": {"noise": spec.noise, "fix": HELD}, "cv": spec.cv},
+        "defaults": {
+            "model": model,
+            "loops": [LOOP],
+            "options": {"noise": spec.noise, "regions": spec.regions, "fix": HELD},
+            "cv": spec.cv,
+        },
         "jobs": jobs,
     }
     manifest.write_text(yaml.safe_dump(doc, sort_keys=False))
