@@ -26,22 +26,23 @@ def panda_weld(panda):
 
 # --------------------------------------------------------------------------- one worker per costly fixture
 # A fixture scoped to its module (a simulated dataset, a calibration the tests then read) is computed once per
-# worker that runs one of its tests: the tests that use one share a worker (xdist's `loadgroup`), so the
-# fixture is computed once per run, not once per worker.
+# worker that runs one of its tests, and again whenever that worker ran another module's test in between: a
+# module with such a fixture runs whole on one worker (xdist's `loadgroup`), so the fixture is computed once.
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(config, items):
-    for item in items:
+    def own_module_fixture(item) -> bool:
         info = getattr(item, "_fixtureinfo", None)
-        if info is None or item.get_closest_marker("xdist_group") is not None:
-            continue
-        for name in info.names_closure:
-            for fd in info.name2fixturedefs.get(name, ()):
-                if fd.scope == "module" and str(fd.baseid).endswith(".py"):
-                    item.add_marker(pytest.mark.xdist_group(fd.baseid))
-                    break
-            else:
-                continue
-            break
+        return info is not None and any(
+            fd.scope == "module" and str(fd.baseid).endswith(".py")
+            for name in info.names_closure
+            for fd in info.name2fixturedefs.get(name, ())
+        )
+
+    grouped = {item.nodeid.split("::")[0] for item in items if own_module_fixture(item)}
+    for item in items:
+        module = item.nodeid.split("::")[0]
+        if module in grouped and item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(module))
 
 
 # --------------------------------------------------------------------------- what the run left out
