@@ -99,15 +99,15 @@ def test_a_move_along_what_the_data_cannot_see_is_predicted_as_error():
     combinations (joint5.x, joint6.y) by about 15 mm before setting them aside: the tool is 20 mm and the
     size 4 % off the truth.  The prediction counts that move as error (module docstring of
     `closedloop.analysis.accuracy`), so check finds every row outside tolerance foretold (predicted above
-    the tolerance, observed within 3x), and the workspace judgement makes the verdict suspect: the
-    calibrated model is not expected to be better than the nominal one."""
+    the tolerance, observed within 3x), and the workspace judgement fails the calibration: the calibrated
+    model is not expected to be better than the nominal one."""
     case = zoo.make_case("xarm7", "weld", n=60, sigma=1e-5, seed=22)
     res, acc, rows, _, _ = _judged(case, case.readings)
     failing = [r for r in rows if r["result"] == "FAIL"]
     assert {r["name"].split(" ")[-1] for r in failing} == {"position", "rotation", "data)"}, rows
     assert failing[0]["error"] > 0.01 and not unforetold(rows), rows
     assert acc.frames[0].unseen_rms_m > 0.5 * acc.frames[0].rms_m  # the move, not the noise, dominates
-    assert judge_workspace(res.verdict, acc).status == "suspect"
+    assert judge_workspace(res.verdict, acc).status == "failed"
 
 
 def test_regions_are_compact_and_cover_the_log():
@@ -471,5 +471,6 @@ def test_prior_tolerance_through_the_command_line(tmp_path, capsys):
     assert reports[1]["prior"]["length_m"] == pytest.approx(1e-2)
     f, g = reports[0]["frames"][0], reports[1]["frames"][0]
     assert f["predicted_unseen_rms_m"] > 0.0
-    assert g["predicted_unseen_rms_m"] == pytest.approx(10 * f["predicted_unseen_rms_m"], rel=1e-6)
+    # the tolerance's share scales with it; the fit's own move along those directions is the same in both
+    assert g["predicted_unseen_rms_m"] == pytest.approx(10 * f["predicted_unseen_rms_m"], rel=1e-3)
     assert g["nominal_rms_m"] == pytest.approx(10 * f["nominal_rms_m"], rel=0.02)  # the scales' share stays

@@ -111,6 +111,7 @@ def test_gravity_torques_are_mujocos_bias_forces(datasets, tmp_path):
     assert np.abs(tau - g[:, [log.joints.index(j) for j in joints]]).max() < 0.02 * np.abs(tau).max()
 
 
+@pytest.mark.slow
 def test_compliance_from_gravity_when_the_log_has_no_torques(datasets, tmp_path):
     """A log without tau:<joint> columns: calibrate computes gravity torques from the URDF's inertials, says
     so, and recovers the loaded joints' compliance as with the logged torques."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from closedloop.impedance.data import onsets_from_events, segment
 from closedloop.impedance.estimate import estimate
@@ -44,6 +45,7 @@ def test_robot_joint_under_time_varying_impedance_controller():
     assert np.ptp(sim.truth["K"]) > 5  # the dip is in the truth
 
 
+@pytest.mark.slow
 def test_robot_shoulder_holds_still_at_the_elbows_frequencies():
     """The truth holds the shoulder still; the data see the shoulder's loop.  A stiff elbow (K 200 N m/rad,
     resonance 8.5 Hz) on a shoulder held by 2e4 N m/rad (resonance ~28 Hz) shows an apparent inertia 4.7 %

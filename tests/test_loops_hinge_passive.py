@@ -233,6 +233,7 @@ def test_passive_jacobians_match_finite_differences(robot, joints, door_truth):
     assert rmax > 1e-3 and err < 1e-6
 
 
+@pytest.mark.slow
 def test_passive_door_recovery(robot, joints, door_truth):
     prob, truth, th, mk, est = door_truth
     res = calibrate(robot, JointLog(joints, th), [mk()], CalibrationOptions())

@@ -26,6 +26,7 @@ def test_jacobian_matches_central_differences(case):
     assert np.abs(J - Jn).max() <= 1e-6 * np.abs(J).max()
 
 
+@pytest.mark.slow
 def test_two_hands_touching_with_spheres_baxter():
     """Baxter's grippers with spherical ends pressed together (5 passive DOF, one equation per configuration):
     the centre of the left sphere in the right gripper recovered to the length scale, noise-free."""

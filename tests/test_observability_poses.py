@@ -60,6 +60,7 @@ def test_observability_of_a_result(weld):
     assert half["O3"] < o["O3"] and half["O5"] < o["O5"]
 
 
+@pytest.mark.slow
 def test_greedy_updates_match_determinants(weld):
     sc, res = weld
     B, idx = pool_blocks(res, None, sc.pool)
@@ -100,6 +101,7 @@ def test_selection_halves_the_configurations(weld):
             assert trace_covariance(B, idx) <= random_trace, (N, method)
 
 
+@pytest.mark.slow
 def test_exchange_a_updates_and_local_optimum(weld):
     """The A-optimal greedy and exchange carry tr A^-1 and log det A exactly (rank-m updates checked
     against direct inverses), the exchange never raises the trace, and it stops at a design that no
@@ -162,6 +164,7 @@ def test_selection_halves_the_configurations_weld_manifold(weld):
     assert trace_covariance(B, greedy_d_optimal(B, 40).indices) > random_trace[80]
 
 
+@pytest.mark.slow
 def test_select_poses_on_a_bare_problem(weld):
     sc, res = weld
     truth = np.array([sc.truth[n] for n in res.problem.names])

@@ -205,6 +205,7 @@ def test_a_urdf_model_is_not_written_as_a_dh_table(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_dh_input_gives_calibrated_dh_yaml(tmp_path):
     """D-H input -> D-H YAML output in the input's units, carrying the calibrated values."""
     import yaml

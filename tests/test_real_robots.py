@@ -70,6 +70,7 @@ def test_default_not_worse_than_either_estimator(real):
     assert out["default"]["test"] <= 1.02 * min(out["none"]["test"], out["eiv"]["test"])
 
 
+@pytest.mark.slow
 def test_model_error_found_and_said(real):
     """The residual is model error: the hypothesis fails, the plain fit is chosen and says why."""
     _, out = real
