@@ -12,6 +12,10 @@ file with the standard XML parser (no recursion) and refuse, naming the element:
 * a tree deeper than `MAX_DEPTH` links;
 * an ``<origin>``, ``<axis>`` or ``<limit>`` whose values are not finite numbers, a zero axis on a
   moving joint, an unknown joint type.
+
+`read_model_file` is the one read of a robot model file, whichever its format: it checks it, reads what
+Pinocchio does not (a URDF's `UrdfJoints`, a D-H table's document against its schema) and notes the file
+as an input of the running command; `closedloop.model.robot.RobotModel.from_file` builds the model from it.
 """
 
 from __future__ import annotations
@@ -294,3 +298,46 @@ def check_mjcf(path: str | Path) -> None:
                     f"{MAX_DEPTH} bodies are refused"
                 )
             todo.append((c, dc))
+
+
+#: the robot model files read, by suffix: their kind (`read_model_file`)
+MODEL_KINDS = {".urdf": "urdf", ".xml": "mjcf", ".mjcf": "mjcf", ".yaml": "dh", ".yml": "dh"}
+
+
+@dataclass(frozen=True)
+class ModelFile:
+    """A robot model file read and checked before a model is built from it: its path, its kind ('urdf',
+    'mjcf' or 'dh'), and what it holds beyond what Pinocchio reads: a URDF's joints (`UrdfJoints`), a D-H
+    table's document (checked against `closedloop.io.schemas.DH_SCHEMA`)."""
+
+    path: Path
+    kind: str
+    urdf: UrdfJoints | None = None
+    dh: dict | None = None
+
+
+def read_model_file(path: str | Path) -> ModelFile:
+    """The model file at `path`, read once (`ModelFile`): a URDF or an MJCF checked (`check_urdf`,
+    `check_mjcf`: what would crash Pinocchio or reach the user as urdfdom's log lines), a URDF's joints
+    read, a D-H table's YAML read against its schema; noted as an input (`closedloop.io.files.note_input`).
+    A missing file or an unknown suffix is a ModelError."""
+    from closedloop.io.files import note_input
+    from closedloop.io.schemas import DH_SCHEMA, load_yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise ModelError(f"{path}: no such model file")
+    suffix = path.suffix.lower()
+    kind = MODEL_KINDS.get(suffix)
+    if kind is None:
+        raise ModelError(f"{path}: unknown model type '{suffix}' (use .urdf, .xml/.mjcf or .yaml)")
+    urdf = doc = None
+    if kind == "urdf":
+        check_urdf(path)
+        urdf = read_urdf_joints(path)
+    elif kind == "mjcf":
+        check_mjcf(path)
+    else:
+        doc = load_yaml(path, "D-H table", ModelError, schema=DH_SCHEMA, rows="joints")
+    note_input(path)
+    return ModelFile(path, kind, urdf, doc)

@@ -129,10 +129,16 @@ StrictLoader.construct_mapping = _mapping
 
 
 def read_text(path: str | Path, what: str, error: type[InputError] = InputError) -> str:
-    """A file's text (UTF-8, a byte-order mark dropped); unreadable files are `error`."""
+    """A file's text (UTF-8, a byte-order mark dropped), noted as an input of the running command
+    (`closedloop.io.files.note_input`); unreadable files are `error`."""
     from closedloop.io.files import note_input
 
+    text = _read(path, what, error)
     note_input(path)
+    return text
+
+
+def _read(path: str | Path, what: str, error: type[InputError]) -> str:
     try:
         return Path(path).read_text(encoding="utf-8-sig")
     except IsADirectoryError:
@@ -143,11 +149,22 @@ def read_text(path: str | Path, what: str, error: type[InputError] = InputError)
         raise error(f"{path}: not a UTF-8 text file (byte {exc.start})") from None
 
 
-def load_yaml(path: str | Path, what: str, error: type[InputError] = InputError) -> Any:
-    """Parse a YAML file with :class:`StrictLoader`; errors name the file and the line."""
-    text = read_text(path, what, error)
+def load_yaml(
+    path: str | Path,
+    what: str,
+    error: type[InputError] = InputError,
+    *,
+    schema: dict | None = None,
+    rows: str | None = None,
+) -> Any:
+    """Parse a YAML file with :class:`StrictLoader`; errors name the file and the line.  With `schema`, the
+    document is checked against it (`validate`; `rows`: the list of rows it must hold, ``joints``) before
+    it is returned.  The file is then noted as an input of the running command (`read_text`)."""
+    from closedloop.io.files import note_input
+
+    text = _read(path, what, error)
     try:
-        return yaml.load(text, Loader=StrictLoader)  # noqa: S506 - StrictLoader is a SafeLoader
+        doc = yaml.load(text, Loader=StrictLoader)  # noqa: S506 - StrictLoader is a SafeLoader
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
         where = f" line {mark.line + 1}" if mark is not None else ""
@@ -155,21 +172,32 @@ def load_yaml(path: str | Path, what: str, error: type[InputError] = InputError)
         raise error(f"{path}: not valid YAML{where} ({problem})") from None
     except (ValueError, OverflowError, RecursionError) as exc:  # a scalar the constructors refuse
         raise error(f"{path}: not valid YAML ({type(exc).__name__}: {exc})") from None
+    if schema is not None:
+        if rows is not None and (not isinstance(doc, dict) or rows not in doc):
+            raise error(f"{path}: a {what} needs a non-empty '{rows}' list")
+        validate(doc, schema, path, error, rows=rows)
+    note_input(path)
+    return doc
 
 
 def load_json(path: str | Path, what: str, error: type[InputError] = InputError) -> Any:
-    """Parse a JSON file; NaN and Infinity are refused (they are not JSON)."""
-    text = read_text(path, what, error)
+    """Parse a JSON file; NaN and Infinity are refused (they are not JSON).  The file is noted as an input
+    of the running command (`read_text`)."""
+    from closedloop.io.files import note_input
+
+    text = _read(path, what, error)
 
     def refuse(name: str):
         raise ValueError(f"{name} is not a JSON number")
 
     try:
-        return json.loads(text, parse_constant=refuse)
+        doc = json.loads(text, parse_constant=refuse)
     except json.JSONDecodeError as exc:
         raise error(f"{path}: not valid JSON (line {exc.lineno}: {exc.msg})") from None
     except (ValueError, RecursionError) as exc:
         raise error(f"{path}: not valid JSON ({exc})") from None
+    note_input(path)
+    return doc
 
 
 # --------------------------------------------------------------------------- schemas

@@ -275,18 +275,22 @@ GEOMETRY = ("theta_off", "s", "a", "alpha")
 
 
 def load_dh(path: str | Path) -> DHTable:
-    """Read a D-H YAML file, validated by :data:`closedloop.io.schemas.DH_SCHEMA`; errors name file, row, field.
+    """Read a D-H YAML file (`closedloop.io.robot_files.read_model_file`) into its table (`dh_table`)."""
+    from closedloop.io.robot_files import read_model_file
+
+    src = read_model_file(path)
+    if src.dh is None:
+        raise ModelError(f"{path}: not a D-H table (.yaml or .yml)")
+    return dh_table(src.dh, src.path)
+
+
+def dh_table(doc: dict, path: Path) -> DHTable:
+    """The table of a D-H document read from `path`, already validated by :data:`closedloop.io.schemas.DH_SCHEMA`
+    (`closedloop.io.robot_files.read_model_file`); errors name file, row, field.
 
     Beyond the schema: unique row names, a row gives its geometry (not only a name), ``lower <= upper``,
     lengths within +/- 100 m and angles within +/- 1000 rad after unit conversion, 1e-6 <= |k| <= 1e3.
     """
-    from closedloop.io.schemas import DH_SCHEMA, load_yaml, validate
-
-    path = Path(path)
-    doc = load_yaml(path, "D-H table", ModelError)
-    if not isinstance(doc, dict) or "joints" not in doc:
-        raise ModelError(f"{path}: a D-H table needs a non-empty 'joints' list")
-    validate(doc, DH_SCHEMA, path, ModelError, rows="joints")
     units = doc.get("units") or {}
     lu, au = units.get("length", "m"), units.get("angle", "rad")
     L, A = LENGTH_UNITS[lu], ANGLE_UNITS[au]

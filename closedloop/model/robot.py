@@ -18,7 +18,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import ModelError
-from closedloop.model.dh import DHTable, load_dh
+from closedloop.model.dh import DHTable, dh_table
 
 log = logging.getLogger(__name__)
 
@@ -133,26 +133,16 @@ class RobotModel:
     # ----------------------------------------------------------------- loading
     @classmethod
     def from_file(cls, path: str | Path) -> "RobotModel":
-        """Load a URDF (.urdf), MJCF (.xml/.mjcf) or D-H table (.yaml/.yml)."""
-        path = Path(path)
-        if not path.is_file():
-            raise ModelError(f"{path}: no such model file")
-        suffix = path.suffix.lower()
-        if suffix in (".yaml", ".yml"):
-            table = load_dh(path)  # read as an input of the run (`io.schemas.load_yaml`)
-            return cls(table.build_model(), path, "dh", table)
-        from closedloop.io.files import note_input
-        from closedloop.io.robot_files import check_mjcf, check_urdf, read_urdf_joints
+        """Load a URDF (.urdf), MJCF (.xml/.mjcf) or D-H table (.yaml/.yml): the file read and checked once
+        (`closedloop.io.robot_files.read_model_file`), then the model built from it."""
+        from closedloop.io.robot_files import read_model_file
 
-        note_input(path)
-        if suffix == ".urdf":
-            check_urdf(path)  # what would crash Pinocchio or reach the user as urdfdom's log lines
-            build, kind = pin.buildModelFromUrdf, "urdf"
-        elif suffix in (".xml", ".mjcf"):
-            check_mjcf(path)
-            build, kind = pin.buildModelFromMJCF, "mjcf"
-        else:
-            raise ModelError(f"{path}: unknown model type '{suffix}' (use .urdf, .xml/.mjcf or .yaml)")
+        src = read_model_file(path)
+        path = src.path
+        if src.dh is not None:
+            table = dh_table(src.dh, path)
+            return cls(table.build_model(), path, "dh", table)
+        build = pin.buildModelFromUrdf if src.kind == "urdf" else pin.buildModelFromMJCF
         with _captured_stderr() as log_lines:
             try:
                 model = build(str(path))
@@ -160,9 +150,9 @@ class RobotModel:
                 text = " ".join(str(exc).split()) or type(exc).__name__
                 said = " ".join(log_lines()[:1])
                 raise ModelError(f"{path}: Pinocchio cannot parse this model ({said or text})"[:400]) from None
-        urdf = read_urdf_joints(path) if kind == "urdf" else None
-        robot = cls(model, path, kind)
-        if urdf is not None:
+        robot = cls(model, path, src.kind)
+        if src.urdf is not None:
+            urdf = src.urdf
             robot.mimic = {j: f for j, (f, _, _) in urdf.mimics.items()}
             robot.mimic_coupling = {j: (m, o) for j, (_, m, o) in urdf.mimics.items()}
             robot.urdf_tree, robot.held, robot.calibrated_from = urdf.tree, urdf.held, urdf.calibrated_from
