@@ -21,7 +21,8 @@ the note says the scale is not set by the data.
 
 Command line: ``--distance front_a.point front_b.point 0.050 [sigma]``
 (metres; sigma default 10 micrometres); in a ``--config`` file a list of
-``front_a.point front_b.point 0.050`` lines.
+``front_a.point front_b.point 0.050`` lines; the words are read by `closedloop.problem.rig`, the loops
+made by `distance_loops`.
 
 A block of n sockets at known positions s_i in the block's own frame, moved as
 one rigid body (`parse_blocks`, ``--block NAME A.point=X,Y,Z B.point=X,Y,Z
@@ -36,6 +37,7 @@ distance, slightly optimistic for the block).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
@@ -44,6 +46,7 @@ import numpy as np
 from closedloop.errors import LoopError
 from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.settings import key_fields
+from closedloop.problem.rig import KnownDistance, block_distances, known_distances
 from closedloop.problem.shared import parameter_name
 
 if TYPE_CHECKING:
@@ -87,8 +90,7 @@ class DistanceLoop(Loop):
             raise LoopError(f"--distance {a} {b} {distance}: the distance must be a positive length (m)")
         if not np.isfinite(sig) or sig <= 0.0:
             raise LoopError(f"--distance {a} {b}: sigma {sigma} must be a positive length (m)")
-        la, pa, fa = _point_of(loops, a)
-        lb, pb, fb = _point_of(loops, b)
+        (la, pa, fa), (lb, pb, fb) = (_point_of(loops, ref) for ref in (a, b))
         if fa != fb:
             raise LoopError(f"--distance {a} {b}: the points are in different frames ({fa}, {fb})")
         if la is lb and a == b:
@@ -135,24 +137,20 @@ class DistanceLoop(Loop):
         return f"the distance {self.a.rsplit('.', 1)[0]}-{self.b.rsplit('.', 1)[0]} ({self.distance * 1e3:.4g} mm)"
 
 
+def distance_loops(known: Sequence[KnownDistance], loops: list[Loop]) -> list[DistanceLoop]:
+    """The DistanceLoops of a rig's known distances (`closedloop.problem.rig`: ``--distance`` and each
+    ``--block``'s pairwise ones) between the points of `loops`."""
+    out = []
+    for k in known:
+        dl = DistanceLoop(loops, k.a, k.b, k.distance, k.sigma)
+        dl.block = k.block
+        out.append(dl)
+    return out
+
+
 def parse_distances(items: list[list[str]], loops: list[Loop]) -> list[DistanceLoop]:
     """``--distance A B D [SIGMA]`` occurrences (lists of strings) -> DistanceLoops over `loops`."""
-    import re
-
-    from closedloop.io.schemas import parse_number
-
-    out = []
-    for it in items:
-        if isinstance(it, str):  # from a --config file: "A B 0.05" or "[A, B, 0.05]"
-            it = [t for t in re.split(r"[\s,\[\]'\"]+", it) if t]
-        it = [str(t) for t in it]
-        if len(it) not in (3, 4):
-            raise LoopError(
-                f"--distance {' '.join(it)}: expected A B DISTANCE [SIGMA] (e.g. front_a.point front_b.point 0.050)"
-            )
-        nums = [parse_number(t, f"--distance {' '.join(it)}", LoopError) for t in it[2:]]
-        out.append(DistanceLoop(loops, it[0], it[1], nums[0], nums[1] if len(nums) > 1 else None))
-    return out
+    return distance_loops(known_distances(items), loops)
 
 
 def parse_blocks(items: list[list[str]], loops: list[Loop]) -> list[DistanceLoop]:
@@ -160,41 +158,7 @@ def parse_blocks(items: list[list[str]], loops: list[Loop]) -> list[DistanceLoop
 
     The positions are in the block's own frame (metres); module docstring for the model.
     """
-    import re
-    from itertools import combinations
-
-    from closedloop.io.schemas import parse_number
-
-    out = []
-    for it in items:
-        if isinstance(it, str):  # from a --config file: "NAME A.point=0,0,0 B.point=0.05,0,0"
-            it = it.split()
-        it = [str(t) for t in it]
-        where = f"--block {' '.join(it)}"
-        if len(it) < 3 or "=" in it[0]:
-            raise LoopError(f"{where}: expected NAME A.point=X,Y,Z B.point=X,Y,Z ... [sigma=S] (two points or more)")
-        sigma, pts = None, []
-        for t in it[1:]:
-            ref, eq, val = t.partition("=")
-            if not eq:
-                raise LoopError(f"{where}: '{t}' is not REF=X,Y,Z")
-            if ref == "sigma":
-                sigma = parse_number(val, where, LoopError)
-                continue
-            xyz = [parse_number(v, where, LoopError) for v in re.split(r"[,\s\[\]]+", val) if v]
-            if len(xyz) != 3:
-                raise LoopError(f"{where}: {ref} needs 3 coordinates X,Y,Z (m), got '{val}'")
-            pts.append((ref, np.array(xyz, dtype=float)))
-        if len(pts) < 2:
-            raise LoopError(f"{where}: a block needs two points or more")
-        for (ra, sa), (rb, sb) in combinations(pts, 2):
-            d = float(np.linalg.norm(sa - sb))
-            if d <= 0.0:
-                raise LoopError(f"{where}: {ra} and {rb} are at the same position")
-            dl = DistanceLoop(loops, ra, rb, d, sigma)
-            dl.block = it[0]
-            out.append(dl)
-    return out
+    return distance_loops(block_distances(items), loops)
 
 
 def distance_blocks(problem: CalibrationProblem) -> list[DistanceLoop]:

@@ -35,17 +35,19 @@ through it.  Two checks at the solution, both in the report:
   (`analysis.scale.scale_std`) is quoted with it added in quadrature.
 
 Command line: ``--length FRAME_A FRAME_B METRES [SIGMA]`` (sigma default
-20 micrometres, a caliper's).
+20 micrometres, a caliper's), read by `closedloop.problem.rig`, made loops by `length_loops_on`.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from closedloop.errors import LoopError
 from closedloop.loops.base import Loop, LoopEval
+from closedloop.problem.rig import KnownLength, known_lengths
 
 if TYPE_CHECKING:
     from closedloop.model.robot import RobotModel
@@ -114,45 +116,39 @@ class LengthLoop(Loop):
 
 def parse_lengths(items: list, robot: RobotModel) -> list[LengthLoop]:
     """``--length A B L [SIGMA]`` occurrences (lists of strings, or 'A B L' lines of a --config) -> loops."""
-    import re
+    return length_loops_on(robot, known_lengths(items))
 
-    from closedloop.io.schemas import parse_number
 
+def length_loops_on(robot: RobotModel, known: Sequence[KnownLength]) -> list[LengthLoop]:
+    """The LengthLoops of a rig's known lengths (`closedloop.problem.rig`) between frames of `robot`: each
+    frame one of the model's, and the length near the model's own (a calibration corrects millimetres; a
+    length metres off is a slip of unit)."""
     out = []
-    for it in items:
-        if isinstance(it, str):
-            it = [t for t in re.split(r"[\s,\[\]'\"]+", it) if t]
-        it = [str(t) for t in it]
-        where = f"--length {' '.join(it)}"
-        if len(it) not in (3, 4):
-            raise LoopError(f"{where}: expected FRAME_A FRAME_B METRES [SIGMA] (e.g. panda_link3 panda_link4 0.0825)")
-        for f in it[:2]:
-            try:
-                robot.frame_id(f)
-            except Exception as exc:
-                raise LoopError(f"{where}: {exc}") from None
-        nums = [parse_number(t, where, LoopError) for t in it[2:]]
-        if nums[0] <= 0 or (len(nums) > 1 and nums[1] <= 0):
-            raise LoopError(f"{where}: the length and its SIGMA must be positive (metres)")
-        nominal = _nominal_distance(robot, it[0], it[1])
-        if abs(nums[0] - nominal) > max(0.5 * nominal, 0.05):
+    for k in known:
+        lp = LengthLoop(k.frame_a, k.frame_b, k.length, k.sigma)
+        nominal = _nominal_distance(robot, k)
+        if abs(k.length - nominal) > max(0.5 * nominal, 0.05):
             raise LoopError(
-                f"{where}: the model puts these frames {nominal:.4g} m apart; a measured length differs from it "
-                f"by a calibration's correction (millimetres), not {abs(nums[0] - nominal):.4g} m (metres expected)"
+                f"{k.given}: the model puts these frames {nominal:.4g} m apart; a measured length differs from it "
+                f"by a calibration's correction (millimetres), not {abs(k.length - nominal):.4g} m (metres expected)"
             )
-        out.append(LengthLoop(it[0], it[1], nums[0], nums[1] if len(nums) > 1 else None))
+        out.append(lp)
     return out
 
 
-def _nominal_distance(robot: RobotModel, a: str, b: str) -> float:
-    """Distance between frames `a` and `b` of the nominal model at its neutral configuration."""
+def _nominal_distance(robot: RobotModel, k: KnownLength) -> float:
+    """Distance between the frames of `k` in the nominal model at its neutral configuration; a frame the
+    model does not have is a LoopError naming the option."""
     import numpy as np
     import pinocchio as pin
 
+    try:
+        fa, fb = robot.frame_id(k.frame_a), robot.frame_id(k.frame_b)
+    except Exception as exc:
+        raise LoopError(f"{k.given}: {exc}") from None
     data = robot.model.createData()
     pin.framesForwardKinematics(robot.model, data, pin.neutral(robot.model))
-    pa, pb = (data.oMf[robot.frame_id(f)].translation for f in (a, b))
-    return float(np.linalg.norm(pa - pb))
+    return float(np.linalg.norm(data.oMf[fa].translation - data.oMf[fb].translation))
 
 
 def length_blocks(problem: CalibrationProblem) -> list[int]:

@@ -32,7 +32,8 @@ class RunInputs:
 def load_inputs(o) -> RunInputs:
     """The run's inputs (`RunInputs`) from its options (`closedloop.run.options.CalibrateOptions`): the
     model and the calibrated model's format, the loops (`loops.spec.parse_loops`) and the rig's known
-    distances, blocks and lengths (`problem.distances`, `problem.lengths`), the log and its loop column,
+    distances, blocks and lengths (read first, `problem.rig`; made loops by `problem.distances`,
+    `problem.lengths`), the log and its loop column,
     the loops' geometry on it (`loops.geometry.check_loop_geometry`), the k-fold count (`cv`, or 5, fewer on
     a shorter log), the weighting, the fit's options."""
     from closedloop.calibration.pipeline import CalibrationOptions
@@ -41,8 +42,9 @@ def load_inputs(o) -> RunInputs:
     from closedloop.loops.spec import parse_loops
     from closedloop.model.parameters import fix_values
     from closedloop.model.robot import RobotModel
-    from closedloop.problem.distances import parse_blocks, parse_distances
-    from closedloop.problem.lengths import parse_lengths
+    from closedloop.problem.distances import distance_loops
+    from closedloop.problem.lengths import length_loops_on
+    from closedloop.problem.rig import parse_rig
 
     weights, note = weighting(o)  # what the options alone decide, first
     fit = CalibrationOptions(
@@ -57,11 +59,11 @@ def load_inputs(o) -> RunInputs:
         threads=o.threads,
         rules=o.rules,
     )
+    rig = parse_rig(o.distance, o.block, o.length)  # the rig's known distances, blocks and lengths, as records
     robot = RobotModel.from_file(o.model)
     robot.check_output(o.out)
     loops = parse_loops(o.loop, robot)  # or the model's own (a D-H table that closes)
-    # the rig's known distances, blocks and lengths
-    loops += [*parse_distances(o.distance, loops), *parse_blocks(o.block, loops), *parse_lengths(o.length, robot)]
+    loops += [*distance_loops(rig.distances, loops), *length_loops_on(robot, rig.lengths)]
     messages: list[str] = []
     lg = read_joint_log(o.log, robot, loops, o.degrees, o.joints, messages)
     lg = robot.with_gravity_torques(lg)  # where the log has no torques
