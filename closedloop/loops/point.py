@@ -14,7 +14,7 @@ from closedloop.loops.common import (
     relative_point,
 )
 from closedloop.loops.spec import register
-from closedloop.model.axes import BlindJoint, blind_joints
+from closedloop.model.axes import AXIS_TOLERANCE, BlindJoint, blind_joints
 from closedloop.model.parameters import Parameter
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import parse_vec, vec3
@@ -168,23 +168,24 @@ def contact_on_axis(robot: RobotModel, loop: PointLoop, angles: np.ndarray, join
         return []
     model = robot.model
     fid = robot.frame_id(loop.frame_a)
-    if loop.tip is not None:
-        return blind_joints(model, fid, loop.tip)
-    finite = np.all(np.isfinite(angles), axis=1) & np.all(np.abs(angles) < 1e3, axis=1)
-    angles = angles[finite]
-    if len(angles) > 200:  # evenly spread rows: the pivot needs the rotations, not every row
-        angles = angles[np.linspace(0, len(angles) - 1, 200).astype(int)]
-    q = robot.configurations(angles, joints)
-    data = model.createData()
-    M = np.empty((len(q), 4, 4))
-    for i, qi in enumerate(q):
-        pin.framesForwardKinematics(model, data, qi)
-        M[i] = data.oMf[fid].homogeneous
-    sol = pivot(M)
-    if sol is None:
-        return []
-    tip = sol[:3] if np.linalg.norm(sol[:3]) > 0.02 else np.zeros(3)
-    return blind_joints(model, fid, tip, q[0], tol=CONTACT_TOLERANCE)
+    if loop.tip is not None:  # the given tip, at the neutral configuration
+        tip, q0, tol = loop.tip, None, AXIS_TOLERANCE
+    else:  # the pivot's, at the first reading
+        finite = np.all(np.isfinite(angles), axis=1) & np.all(np.abs(angles) < 1e3, axis=1)
+        angles = angles[finite]
+        if len(angles) > 200:  # evenly spread rows: the pivot needs the rotations, not every row
+            angles = angles[np.linspace(0, len(angles) - 1, 200).astype(int)]
+        q = robot.configurations(angles, joints)
+        data = model.createData()
+        M = np.empty((len(q), 4, 4))
+        for i, qi in enumerate(q):
+            pin.framesForwardKinematics(model, data, qi)
+            M[i] = data.oMf[fid].homogeneous
+        sol = pivot(M)
+        if sol is None:
+            return []
+        tip, q0, tol = (sol[:3] if np.linalg.norm(sol[:3]) > 0.02 else np.zeros(3)), q[0], CONTACT_TOLERANCE
+    return blind_joints(model, fid, tip, q0, tol=tol)
 
 
 @register("point", {"frame", "to", "tip", "point"})
