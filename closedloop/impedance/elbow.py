@@ -119,30 +119,39 @@ def simulate_elbow(cfg: ElbowConfig) -> tuple[Record, dict[str, np.ndarray]]:
         x = filtfilt(rng.standard_normal((nb, M + 1)), 2, 4.0, 1 / h)
         vol = cfg.voluntary_rms * x / x.std()
 
-    def f(k: int, x: np.ndarray, v: np.ndarray, a: np.ndarray, half: bool):
-        """Derivatives of (angle, velocity, actuator torque) at fine step k (+ 1/2)."""
-        j = k + 1 if half else k
-        Kk, Bk, eqk = (K[k] + K[j]) / 2, (B[k] + B[j]) / 2, (eq[k] + eq[j]) / 2
-        u, tv = (cmd_d[:, k] + cmd_d[:, j]) / 2, (vol[:, k] + vol[:, j]) / 2
-        acc = (a + tv - Bk * v - Kk * (x - eqk) - mgr * np.cos(x)) / cfg.I
-        return v, acc, (u - a) / cfg.lag
+    # The inputs at each fine step k (`at`) and half a step on (`mid`), as Python floats and (M+1, nb) rows
+    # laid out before the loop: indexing them is most of the cost of a Python RK4 step.
+    at = (K.tolist(), B.tolist(), eq.tolist(), np.ascontiguousarray(cmd_d.T), np.ascontiguousarray(vol.T))
+    mid = (
+        ((K[:-1] + K[1:]) / 2).tolist(),
+        ((B[:-1] + B[1:]) / 2).tolist(),
+        ((eq[:-1] + eq[1:]) / 2).tolist(),
+        np.ascontiguousarray(((cmd_d[:, :-1] + cmd_d[:, 1:]) / 2).T),
+        np.ascontiguousarray(((vol[:, :-1] + vol[:, 1:]) / 2).T),
+    )
+    inertia, lag = cfg.I, cfg.lag
 
-    x = np.full(nb, th_d[0])
-    v = np.full(nb, v_d[0])
-    a = np.zeros(nb)
+    def f(k: int, y: np.ndarray, half: bool) -> np.ndarray:
+        """Derivatives of y = (angle, velocity, actuator torque), (3, nb), at fine step k (+ 1/2)."""
+        Ks, Bs, eqs, us, tvs = mid if half else at
+        x, v, a = y
+        out = np.empty_like(y)
+        out[0] = v
+        out[1] = (a + tvs[k] - Bs[k] * v - Ks[k] * (x - eqs[k]) - mgr * np.cos(x)) / inertia
+        out[2] = (us[k] - a) / lag
+        return out
+
+    y = np.array([np.full(nb, th_d[0]), np.full(nb, v_d[0]), np.zeros(nb)])
     th = np.empty((nb, N))
     tau = np.empty((nb, N))
     for k in range(M):
         if k % cfg.substeps == 0:
-            th[:, k // cfg.substeps], tau[:, k // cfg.substeps] = x, a
-        k1 = f(k, x, v, a, False)
-        k2 = f(k, x + h / 2 * k1[0], v + h / 2 * k1[1], a + h / 2 * k1[2], True)
-        k3 = f(k, x + h / 2 * k2[0], v + h / 2 * k2[1], a + h / 2 * k2[2], True)
-        k1n = min(k + 1, M)
-        k4 = f(k1n, x + h * k3[0], v + h * k3[1], a + h * k3[2], False)
-        x = x + h / 6 * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
-        v = v + h / 6 * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
-        a = a + h / 6 * (k1[2] + 2 * k2[2] + 2 * k3[2] + k4[2])
+            th[:, k // cfg.substeps], tau[:, k // cfg.substeps] = y[0], y[2]
+        k1 = f(k, y, False)
+        k2 = f(k, y + h / 2 * k1, True)
+        k3 = f(k, y + h / 2 * k2, True)
+        k4 = f(min(k + 1, M), y + h * k3, False)
+        y = y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
     sub = np.arange(N) * cfg.substeps
     nom = th_d[sub]
     dth, dtau = th - nom, tau - tau.mean(0)

@@ -283,9 +283,14 @@ def write_plots(res, report: dict, out_dir: str | Path, snr: float = 1.0, accura
     return list(files)
 
 
-def plot_files(res, report: dict, out_dir: str | Path, snr: float = 1.0, accuracy=None) -> dict[Path, bytes]:
-    """The figures as the files ``DIR/<name>.png``: path -> PNG bytes."""
-    return {Path(out_dir) / f"{name}.png": data for name, data in figures(res, report, snr, accuracy).items()}
+def plot_files(
+    res, report: dict, out_dir: str | Path, snr: float = 1.0, accuracy=None, figs: dict[str, bytes] | None = None
+) -> dict[Path, bytes]:
+    """The figures as the files ``DIR/<name>.png``: path -> PNG bytes; `figs`: `figures` already drawn (for
+    the page too: drawing them is most of the cost of ``--html`` and ``--plots``)."""
+    if figs is None:
+        figs = figures(res, report, snr, accuracy)
+    return {Path(out_dir) / f"{name}.png": data for name, data in figs.items()}
 
 
 # --------------------------------------------------------------------------- page
@@ -529,14 +534,19 @@ def robot_name(res, report: dict) -> str:
     return name or Path(str(report.get("model") or "model")).stem
 
 
-def render_html(res, report: dict, snr: float = 1.0, row_name=None, accuracy=None) -> str:
+def render_html(
+    res, report: dict, snr: float = 1.0, row_name=None, accuracy=None, figs: dict[str, bytes] | None = None
+) -> str:
     """The page as a string (figures embedded); ``snr`` is the fit's ``--snr`` (the truncation line);
-    ``row_name`` (`JointLog.where`: 0-based row -> ``log.csv line 52``) names the rows by file and line."""
-    figs = {k: base64.b64encode(v).decode("ascii") for k, v in figures(res, report, snr, accuracy).items()}
+    ``row_name`` (`JointLog.where`: 0-based row -> ``log.csv line 52``) names the rows by file and line;
+    `figs`: `figures` already drawn (shared with `plot_files`)."""
+    if figs is None:
+        figs = figures(res, report, snr, accuracy)
+    b64 = {k: base64.b64encode(v).decode("ascii") for k, v in figs.items()}
     body = "\n".join(_sections(res, report, snr, row_name))
-    for k, v in figs.items():
+    for k, v in b64.items():
         body = body.replace("{" + k + "}", v)
-    if "accuracy" not in figs:  # no workspace record to draw: no broken image
+    if "accuracy" not in b64:  # no workspace record to draw: no broken image
         body = body.replace("<img alt='predicted accuracy' src='data:image/png;base64,{accuracy}'>", "")
     title = f"{robot_name(res, report)}: closedloop calibration"
     return (

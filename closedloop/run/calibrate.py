@@ -268,13 +268,16 @@ def _write(
         files[marker] = json.dumps(done(run), indent=1) + "\n"
     publish(files, order=[model_out, sensors, o.suggest, o.report, marker], folder=folder)  # model first
     if o.html or o.plots:  # the figures, once the model and the report are out
-        from closedloop.output.html import plot_files, render_html
+        from closedloop.output.html import figures, plot_files, render_html
 
+        figs = figures(res, report, o.snr, predicted.accuracy)  # drawn once, for the page and the files
         pages: dict[str | Path, str | bytes] = {}
         if o.html:
-            pages[o.html] = render_html(res, report, o.snr, row_name=run.log.where, accuracy=predicted.accuracy)
+            pages[o.html] = render_html(
+                res, report, o.snr, row_name=run.log.where, accuracy=predicted.accuracy, figs=figs
+            )
         if o.plots:
-            plots = plot_files(res, report, o.plots, o.snr, predicted.accuracy)
+            plots = plot_files(res, report, o.plots, o.snr, predicted.accuracy, figs=figs)
             pages.update({path: data for path, data in plots.items()})
             run = replace(run, figures=list(plots))
         publish(pages)
