@@ -4,8 +4,8 @@ memory; and the extrapolation to 10,000 robots.
 
 Usage::
 
-    python benchmarks/bench_fleet.py [--robots 100 300 1000] [--configs 200] [--engines serial local ray]
-                                     [--workers 2] [--out out/bench_fleet]
+    python benchmarks/bench_fleet.py [--robots 100 300 1000] [--configs 200] [--engines serial local ray split]
+                                     [--rounds R] [--workers 2] [--out out/bench_fleet]
 
 The fleet (`closedloop.studies.fleet`): Pandas welded to a fixture, one geometry, each robot with its
 own joint offsets (1 mrad) and noise (1e-4 rad), `--configs` configurations per log, no k-fold or
@@ -16,7 +16,19 @@ own process (the driver), on a fresh output folder:
 * ``local``: ``--jobs W`` (a pool of W worker processes);
 * ``ray``: ``--ray ADDRESS``, a `ray.cluster_utils.Cluster` started here: a head that runs no tasks and
   W nodes of one CPU each, every one its own raylet, object store and workers (as separate machines,
-  sharing this machine's cores and file system).
+  sharing this machine's cores and file system);
+* ``split``: W serial commands at once, each on every W-th job of the fleet (``fleet-part1.yaml``...): W
+  cores busy with the same jobs and no engine at all, the reference for what two jobs running side by
+  side cost (caches, memory bandwidth and the hypervisor shared).
+
+**Under the same load.**  On a shared machine a job's CPU time itself grows with the load (caches,
+memory bandwidth, a hypervisor's other guests): 20 % between loads of 3 and 11 here.  Runs measured apart
+are then not comparable, so ``--rounds R`` runs the engines in turn R times, the order reversed every
+other round (S L R | R L S | ...: a load rising or falling over the rounds weighs on each engine alike),
+and compares each engine with the serial run of its own round (`interleaved`: the ratio of the jobs' own
+CPU and of the jobs per CPU second, per round, their median and range).  Every run records the load it
+ran under: ``others_load``, the cores every other process on the machine kept busy meanwhile (the
+machine's CPU time from /proc/stat less the command's own), beside the load average.
 
 Figures, per engine and fleet size N (W workers; 1 for serial).  A job's own time is measured inside its
 worker: the summary's ``seconds`` (wall) and ``cpu_seconds`` (CPU of the job's thread) of the whole job,
@@ -34,8 +46,11 @@ from reading its robot's files to publishing its folder.  Everything else is ove
   the command: a cost of the cluster per second it runs, not of a job;
 * ``marginal``: the overheads' increase between the two largest fleets, per added job, free of every
   fixed cost (start-up, imports, the tail): what one more job costs;
-* ``per worker``: N / wall / W jobs per second; ``per CPU s``: N / the command's CPU seconds; each also
-  as a ratio to the serial engine's at the same N;
+* ``per worker``: N / wall / W jobs per second; ``per CPU s``: N / the command's CPU seconds (the
+  throughput per core: what a core busy with the command alone would do, whatever share of it the load
+  left); each also as a ratio to the serial engine's at the same N (with ``--rounds``: of the same round);
+* ``worker processes``: the processes below the driver (the pool's fork server, resource tracker and
+  workers), or the Ray worker processes that ran during the command;
 * ``resume``: the same command run again on the finished folders (nothing to run: reading the manifest
   and every job's record, the summary);
 * ``driver peak``: the driver process's peak resident memory (VmHWM, sampled every 0.1 s).
@@ -69,6 +84,9 @@ sys.path[:0] = [str(HERE), str(ROOT)]
 from machine import header  # noqa: E402
 
 from closedloop.studies.fleet import FleetDrift, FleetSpec, configurations, robot_name, write_fleet  # noqa: E402
+
+#: the engines measured: ``split`` is W serial commands at once, each on every W-th job (no engine at all)
+ENGINES = ["serial", "split", "local", "ray"]
 
 
 def geometry(out: Path, n: int):
@@ -118,51 +136,77 @@ def _is_ray_worker(pid: int) -> bool:
         return False
 
 
+def _machine_busy() -> float:
+    """CPU seconds every process on this machine has used since boot (all CPUs), from /proc/stat."""
+    with open("/proc/stat") as fh:
+        f = [int(x) for x in fh.readline().split()[1:]]
+    idle = f[3] + f[4]  # idle, iowait
+    return (sum(f[:8]) - idle) / os.sysconf("SC_CLK_TCK")  # (guest time is counted in user already)
+
+
 def run_driver(args: list[str], cluster: bool = False) -> dict:
-    """Run `closedloop batch ...`; its wall time, exit code, the driver's peak memory and CPU time, and the
-    CPU time of the processes working for it meanwhile (below it: the pool's fork server and workers; with
-    `cluster`, every process below this one: the Ray cluster's raylets, stores, services and workers), sampled every 0.1 s from /proc: a process's last
-    sample counts (one that lives less than 0.1 s is missed), less what it had used before the driver
-    started."""
+    """`run_drivers` of one command."""
+    return run_drivers([args], cluster)
+
+
+def run_drivers(commands: list[list[str]], cluster: bool = False) -> dict:
+    """Run ``closedloop batch ...`` once per command, all at once; their wall time (start to the last
+    exit), the drivers' peak memory (the largest) and CPU time (summed), and the CPU time of the
+    processes working for them meanwhile (below them: the pool's fork server and workers; with
+    `cluster`, every process below this one: the Ray cluster's raylets, stores, services and workers),
+    sampled every 0.1 s from /proc: a process's last sample counts (one that lives less than 0.1 s is
+    missed), less what it had used before the drivers started.  ``others_load``: the cores every other
+    process on the machine kept busy on average meanwhile (the machine's CPU time from /proc/stat, less
+    this command's): the load the figures were measured under."""
     from closedloop.fleet.batch import descendants
 
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
     before = _tree_cpu(descendants()) if cluster else {}
-    t0 = time.perf_counter()
-    p = subprocess.Popen(
-        [sys.executable, "-m", "closedloop.cli.main", "batch", *args, "--quiet"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        env=env,
-        text=True,
-    )
-    peak, cpu, seen, workers = 0.0, 0.0, {}, set()
-    while p.poll() is None:
-        try:
-            hwm, used = _proc(p.pid)
-            peak, cpu = max(peak, hwm), max(cpu, used)  # (an exited, unreaped process has no memory lines)
-        except (OSError, IndexError, ValueError):
-            pass
-        now = _tree_cpu([q for q in descendants(None if cluster else p.pid) if q != p.pid])
+    busy0, t0 = _machine_busy(), time.perf_counter()
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "closedloop.cli.main", "batch", *args, "--quiet"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            env=env,
+            text=True,
+        )
+        for args in commands
+    ]
+    drivers = {p.pid for p in procs}
+    peak, cpu, seen, workers = 0.0, dict.fromkeys(drivers, 0.0), {}, set()
+    while any(p.poll() is None for p in procs):
+        for p in procs:
+            try:
+                hwm, used = _proc(p.pid)
+                peak, cpu[p.pid] = max(peak, hwm), max(cpu[p.pid], used)  # (an exited, unreaped one has no memory)
+            except (OSError, IndexError, ValueError):
+                pass
+        below = descendants() if cluster else [q for p in procs for q in descendants(p.pid)]
+        now = _tree_cpu([q for q in below if q not in drivers])
         workers.update(q for q in now if q not in workers and (not cluster or _is_ray_worker(q)))
         seen.update(now)
         time.sleep(0.1)
-    out, err = p.communicate()
-    wall = time.perf_counter() - t0
-    if p.returncode not in (0, 3):
-        raise RuntimeError(f"batch exited {p.returncode}: {err[-2000:]}")
-    if cluster:  # (the driver's own children have ended with it)
-        seen.update(_tree_cpu([q for q in descendants() if q != p.pid]))
+    outs = [p.communicate() for p in procs]
+    wall, busy = time.perf_counter() - t0, _machine_busy() - busy0
+    for p, (_, err) in zip(procs, outs):
+        if p.returncode not in (0, 3):
+            raise RuntimeError(f"batch exited {p.returncode}: {err[-2000:]}")
+    if cluster:  # (the drivers' own children have ended with them)
+        seen.update(_tree_cpu([q for q in descendants() if q not in drivers]))
     used = {pid: v - before.get(pid, 0.0) for pid, v in seen.items()}
     others = sum(v for pid, v in used.items() if pid in workers)
     services = sum(v for pid, v in used.items() if pid not in workers)
+    ours = sum(cpu.values()) + others + services
     return {
         "wall": wall,
         "peak_mb": peak,
-        "cpu": cpu,
+        "cpu": sum(cpu.values()),
         "others_cpu": others,
         "services_cpu": services,
-        "code": p.returncode,
+        "others_load": max(0.0, busy - ours) / wall,
+        "worker_processes": len(workers),
+        "code": max(p.returncode for p in procs),
     }
 
 
@@ -200,16 +244,35 @@ def start_cluster(workers: int, attempts: int = 3):
     raise AssertionError("unreachable")
 
 
-def measure(engine: str, n: int, folder: Path, geo, args, address: str | None) -> dict:
+def split(manifest: Path, parts: int) -> list[Path]:
+    """The manifest's jobs in `parts` manifests beside it (``fleet-part1.yaml``...), every `parts`-th job
+    in each: what `parts` serial commands at once run (the engine ``split``)."""
+    import yaml
+
+    doc = yaml.safe_load(manifest.read_text())
+    out = []
+    for k in range(parts):
+        path = manifest.with_name(f"{manifest.stem}-part{k + 1}.yaml")
+        path.write_text(yaml.safe_dump({**doc, "jobs": doc["jobs"][k::parts]}, sort_keys=False))
+        out.append(path)
+    return out
+
+
+def measure(engine: str, n: int, folder: Path, geo, args, address: str | None, round_: int = 0) -> dict:
     """Run the fleet of `n` robots on `engine` from scratch, then the same command again (the resume)."""
     if folder.exists():
         shutil.rmtree(folder)
     manifest = write_fleet(folder, FleetSpec(robots=n, seed=n), geo)
-    how = {"serial": ["--jobs", "1"], "local": ["--jobs", str(args.workers)], "ray": ["--ray", str(address)]}[engine]
-    first = run_driver([str(manifest), *how], cluster=engine == "ray")
-    with open(manifest.with_name("fleet.summary.csv")) as fh:  # (the rerun's rows give the job folders' times)
-        rows = list(csv.DictReader(fh))
-    again = run_driver([str(manifest), *how], cluster=engine == "ray")  # every folder finished: nothing to run
+    how = {"serial": ["--jobs", "1"], "split": ["--jobs", "1"], "local": ["--jobs", str(args.workers)]}
+    how["ray"] = ["--ray", str(address)]
+    manifests = split(manifest, args.workers) if engine == "split" else [manifest]
+    commands = [[str(m), *how[engine]] for m in manifests]
+    first = run_drivers(commands, cluster=engine == "ray")
+    rows = []
+    for m in manifests:  # (the rerun's rows give the job folders' times)
+        with open(m.with_name(m.stem + ".summary.csv")) as fh:
+            rows += list(csv.DictReader(fh))
+    again = run_drivers(commands, cluster=engine == "ray")  # every folder finished: nothing to run
     assert len(rows) == n and all(r["status"] == "ok" for r in rows), "a job failed"
     seconds = np.array([float(r["seconds"]) for r in rows])
     cpu = np.array([float(r["cpu_seconds"]) for r in rows])
@@ -217,6 +280,7 @@ def measure(engine: str, n: int, folder: Path, geo, args, address: str | None) -
         "engine": engine,
         "robots": n,
         "workers": 1 if engine == "serial" else args.workers,
+        "round": round_,
         "wall_s": first["wall"],
         "resume_s": again["wall"],
         "job_s": float(seconds.mean()),
@@ -227,6 +291,8 @@ def measure(engine: str, n: int, folder: Path, geo, args, address: str | None) -
         "driver_cpu_s": first["cpu"],
         "others_cpu_s": first["others_cpu"],
         "services_cpu_s": first["services_cpu"],
+        "others_load": first["others_load"],
+        "worker_processes": first["worker_processes"],
         "verdicts_ok": sum(r["verdict"] == "ok" for r in rows),
         "load": os.getloadavg()[0],
     }
@@ -339,9 +405,106 @@ def table(rows: list[dict]) -> list[str]:
             f"{r['job_cpu_s']:.3f} | {overhead(r) * 1e3:.1f} ({100 * overhead(r) / r['job_s']:.1f} %) | "
             f"{cpu_overhead(r) * 1e3:.1f} ({100 * cpu_overhead(r) / r['job_cpu_s']:.1f} %) | "
             f"{r['driver_cpu_s'] * 1e3 / r['robots']:.1f} | {per_core(r):.3f}{vs} | {per_cpu(r):.3f}{vs_cpu} | "
-            f"{r.get('services_cpu_s', 0.0):.0f} | {r['resume_s']:.1f} | {r['driver_peak_mb']:.0f} | {r['load']:.1f} |"
+            f"{r.get('services_cpu_s', 0.0):.0f} | {r['resume_s']:.1f} | {r['driver_peak_mb']:.0f} | {_load(r)} |"
         )
     return out
+
+
+STARTUP = r"""
+import json, resource, sys, time
+
+def cpu():
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+marks = [("start", time.perf_counter(), cpu())]
+def mark(what):
+    marks.append((what, time.perf_counter(), cpu()))
+
+import ray
+mark("import ray")
+import closedloop.fleet.batch
+import closedloop.parallel.engines
+mark("import closedloop")
+ray.init(address=sys.argv[1], include_dashboard=False, log_to_driver=False)
+mark("ray.init (connect)")
+
+@ray.remote(num_cpus=1)
+def start(i):
+    import os, time
+    time.sleep(0.5)  # (each task on its own node's worker)
+    return os.getpid()
+
+pids = ray.get([start.remote(i) for i in range(int(sys.argv[2]))])
+mark("workers started (a task each)")
+
+@ray.remote(num_cpus=1)
+def warm(i):
+    import importlib, os, time
+    c = time.process_time()
+    for m in closedloop.fleet.batch.run_row.needs:
+        importlib.import_module(m)
+    time.sleep(0.5)
+    return os.getpid(), time.process_time() - c
+
+needs = ray.get([warm.remote(i) for i in range(int(sys.argv[2]))])
+mark("a job's imports in each worker")
+print(json.dumps({"workers": pids, "imports_cpu": [c for _, c in needs]}), flush=True)
+sys.stdin.readline()  # the benchmark samples the idle workers meanwhile
+mark("idle")
+ray.shutdown()
+mark("ray.shutdown")
+print(json.dumps([[w, round(t - t0, 3), round(c - c0, 3)] for (_, t0, c0), (w, t, c) in zip(marks, marks[1:])]))
+"""
+
+
+def ray_startup(workers: int, repeats: int, idle: float = 20.0) -> list[str]:
+    """What Ray costs a batch before its first job and while it runs, apart from any job: a driver
+    connecting to a running cluster (`start_cluster`), step by step (wall and the driver's CPU), the CPU of
+    each worker process's start (Ray's own, then a job's imports, `run_row.needs`), and the CPU per second
+    of wall of the driver, of each idle worker and of the cluster's services.  `repeats` drivers in turn."""
+    from closedloop.fleet.batch import descendants
+
+    cluster, startup = start_cluster(workers)
+    lines = [f"ray: a head (no tasks) and {workers} nodes of 1 CPU started in {startup:.1f} s"]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    try:
+        for _ in range(repeats):
+            p = subprocess.Popen(
+                [sys.executable, "-c", STARTUP, cluster.address, str(workers)],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                env=env,
+                text=True,
+            )
+            assert p.stdin is not None and p.stdout is not None
+            started = json.loads(p.stdout.readline())
+            pids = started["workers"]
+            services = [q for q in descendants() if q not in pids and q != p.pid]
+            a, t0 = _tree_cpu([p.pid, *pids, *services]), time.perf_counter()
+            time.sleep(idle)
+            b, dt = _tree_cpu([p.pid, *pids, *services]), time.perf_counter() - t0
+            worker_cpu = {q: a[q] for q in pids}  # (the workers' CPU before idling: their start, the imports)
+            p.stdin.write("\n")
+            p.stdin.flush()
+            steps = json.loads(p.communicate()[0].splitlines()[-1])
+
+            def rate(qs) -> float:
+                return sum(b[q] - a[q] for q in qs if q in a and q in b) / dt * 1e3
+
+            lines.append(
+                "  driver: "
+                + "; ".join(f"{w} {t:.2f} s wall, {c:.2f} s CPU" for w, t, c in steps if w != "idle")
+                + f".  Each worker's start: {', '.join(f'{c:.2f}' for c in worker_cpu.values())} s of CPU, "
+                + f"of which a job's imports {', '.join(f'{c:.2f}' for c in started['imports_cpu'])} s.  "
+                + f"Idle, per second of wall: the driver {rate([p.pid]):.1f} ms of CPU, each worker "
+                + f"{', '.join(f'{rate([q]):.1f}' for q in pids)} ms, the cluster's services "
+                + f"{rate(services):.1f} ms.  Load: {_load({'load': os.getloadavg()[0]})}"
+            )
+            print(lines[-1], flush=True)
+    finally:
+        cluster.shutdown()
+    return lines
 
 
 def report_demo(n: int, out: Path, geo, workers: int, png: str | None) -> None:
@@ -369,33 +532,93 @@ def report_demo(n: int, out: Path, geo, workers: int, png: str | None) -> None:
     print(f"wrote {folder / 'fleet.html'}" + (f" and {png}" if png else ""))
 
 
-def load_results(path: Path) -> list[dict]:
-    """The latest measurement of each engine and fleet size in `path` (one JSON object a line)."""
-    latest = {}
-    for text in path.read_text().splitlines():
-        r = json.loads(text)
+def _load(r: dict) -> str:
+    """The load a run was measured under: the cores other processes kept busy meanwhile (``others_load``,
+    measured since it is), and the load average at its end."""
+    own = f"{r['others_load']:.2f} cores, " if "others_load" in r else ""
+    return f"{own}avg {r['load']:.1f}"
+
+
+def interleaved(rows: list[dict]) -> list[str]:
+    """Each engine against the serial engine of the same round (`--rounds`: the engines run in turn, the
+    order reversed every other round, so a load that rises or falls over the rounds weighs on each
+    alike): per round the ratio of the jobs' own CPU (engine / serial) and of the jobs per CPU second of
+    the whole command (engine / serial; within 10 %: 0.90 or more), and the other processes' load
+    during each of the two runs; then the median and the range over the rounds."""
+    rounds: dict[tuple, dict[str, dict]] = {}
+    for r in rows:
+        if "session" in r:
+            rounds.setdefault((r["session"], r["robots"], r["round"]), {})[r["engine"]] = r
+    out = ["interleaved rounds, each engine against the serial run of the same round:"]
+    engines = dict.fromkeys(e for rs in rounds.values() for e in rs if e != "serial")
+    for engine in engines:
+        pairs = [(rs["serial"], rs[engine]) for rs in rounds.values() if "serial" in rs and engine in rs]
+        if not pairs:
+            continue
+        job = [b["job_cpu_s"] / a["job_cpu_s"] for a, b in pairs]
+        cpu = [per_cpu(b) / per_cpu(a) for a, b in pairs]
+        for (a, b), j, c in zip(pairs, job, cpu):
+            out.append(
+                f"  {engine:<6} {b['robots']} robots, round {b['round']}: job CPU {b['job_cpu_s']:.3f} s against "
+                f"serial's {a['job_cpu_s']:.3f} ({j:.2f}x); jobs per CPU s {per_cpu(b):.2f} against "
+                f"{per_cpu(a):.2f} ({c:.2f}x); others' load {b.get('others_load', float('nan')):.2f} and "
+                f"{a.get('others_load', float('nan')):.2f} cores"
+            )
+        out.append(
+            f"  {engine:<6} median over {len(pairs)} round(s): job CPU {np.median(job):.2f}x "
+            f"({min(job):.2f}-{max(job):.2f}), jobs per CPU s {np.median(cpu):.2f}x ({min(cpu):.2f}-{max(cpu):.2f})"
+        )
+    return out if len(out) > 1 else []
+
+
+def all_results(path: Path) -> list[dict]:
+    """Every measurement in `path` (one JSON object a line), in the order made."""
+    rows = [json.loads(text) for text in path.read_text().splitlines()]
+    for r in rows:
         r.setdefault("resume_s", r.get("fixed_s", float("nan")))  # (named so by an earlier version)
-        latest[(r["engine"], r["robots"])] = r
-    return sorted(latest.values(), key=lambda r: (r["robots"], ["serial", "local", "ray"].index(r["engine"])))
+    return rows
+
+
+def load_results(path: Path) -> list[dict]:
+    """The latest measurement of each engine and fleet size in `path`."""
+    latest = {(r["engine"], r["robots"]): r for r in all_results(path)}
+    return sorted(latest.values(), key=lambda r: (r["robots"], ENGINES.index(r["engine"])))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--robots", type=int, nargs="+", default=[100, 300])
     ap.add_argument("--configs", type=int, default=200)
-    ap.add_argument("--engines", nargs="+", default=["serial", "local", "ray"])
+    ap.add_argument("--engines", nargs="+", default=["serial", "local", "ray"], choices=ENGINES)
+    ap.add_argument(
+        "--rounds",
+        type=int,
+        default=1,
+        help="run the engines in turn this many times (the order reversed every other round)",
+    )
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", default="out/bench_fleet")
     ap.add_argument("--report", type=int, metavar="N", help="the fleet report of N robots on two dates instead")
     ap.add_argument("--png", help="with --report: write the report's plot here too")
     ap.add_argument("--table", action="store_true", help="only print the table of the measurements in --out")
+    ap.add_argument(
+        "--ray-startup",
+        type=int,
+        metavar="R",
+        help="instead, what Ray costs a batch apart from its jobs (`ray_startup`), R drivers in turn",
+    )
     args = ap.parse_args()
     out = Path(args.out)
     if args.table:
-        for line in [*table(rows := load_results(out / "results.jsonl")), "", *marginal(rows), "", *extrapolate(rows)]:
+        every = all_results(out / "results.jsonl")
+        rows = load_results(out / "results.jsonl")
+        for line in [*table(rows), "", *marginal(rows), "", *extrapolate(rows), "", *interleaved(every)]:
             print(line)
         return
     print(header(), flush=True)
+    if args.ray_startup:
+        ray_startup(args.workers, args.ray_startup)
+        return
     geo = geometry(out, args.configs)
     if args.report:
         report_demo(args.report, out, geo, args.workers, args.png)
@@ -406,19 +629,22 @@ def main() -> None:
         address = cluster.address
         print(f"ray: a head (no tasks) and {args.workers} nodes of 1 CPU started in {startup:.1f} s", flush=True)
     results = out / "results.jsonl"  # every measurement of every run, so sizes run apart are tabled together
+    session = time.strftime("%Y-%m-%dT%H:%M:%S")
     try:
         for n in args.robots:
-            for engine in args.engines:
-                r = measure(engine, n, out / f"{engine}-{n}", geo, args, address)
-                line = json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in r.items()})
-                print(line, flush=True)
-                with open(results, "a") as fh:
-                    fh.write(line + "\n")
+            for k in range(args.rounds):
+                for engine in args.engines[:: -1 if k % 2 else 1]:
+                    r = {**measure(engine, n, out / f"{engine}-{n}", geo, args, address, k), "session": session}
+                    line = json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in r.items()})
+                    print(line, flush=True)
+                    with open(results, "a") as fh:
+                        fh.write(line + "\n")
     finally:
         if cluster is not None:
             cluster.shutdown()
     rows = load_results(results)
-    for line in [*table(rows), "", *marginal(rows), "", *extrapolate(rows)]:
+    this = [r for r in all_results(results) if r.get("session") == session]
+    for line in [*table(rows), "", *marginal(rows), "", *extrapolate(rows), "", *interleaved(this)]:
         print(line)
     print(header())
 

@@ -165,6 +165,28 @@ def test_killed_batch_resumes_without_redoing_finished_jobs(tmp_path, truth):
     assert not list((tmp_path / "out").glob(".*tmp-*"))  # temporaries of the killed run removed
 
 
+FIRST_JOB = """
+import importlib, json, sys
+from closedloop.fleet.batch import read_manifest, run_row
+for m in run_row.needs:
+    importlib.import_module(m)
+before = set(sys.modules)
+run_row(read_manifest(sys.argv[1])[0])
+print(json.dumps(sorted(m for m in set(sys.modules) - before if m.startswith("closedloop"))))
+"""
+
+
+@pytest.mark.slow
+def test_a_worker_s_first_job_imports_only_its_loop_kind(tmp_path, truth):
+    """In a fresh process, what a batch job imports as it runs is in `run_row.needs` (imported before its
+    clock and time limit start: a worker's first job costs what the others do), all but its loop's kind."""
+    man = write_fleet(tmp_path, truth, [0.0], cv=0)
+    done = subprocess.run([sys.executable, "-c", FIRST_JOB, str(man)], capture_output=True, text=True, check=True)
+    imported = set(json.loads(done.stdout.splitlines()[-1]))
+    assert "closedloop.loops.weld" in imported  # (the job ran, and its imports are seen)
+    assert imported <= {"closedloop.loops.weld", "closedloop.loops.point"}, sorted(imported)
+
+
 def test_manifest_csv_and_errors(tmp_path, capsys):
     (tmp_path / "m.csv").write_text(
         "name,robot,date,model,log,loops,noise,identify,out\n"

@@ -142,6 +142,36 @@ def test_a_job_s_imports_are_outside_its_clock_and_time_limit(tmp_path, monkeypa
     monkeypatch.delitem(__import__("sys").modules, "slow_to_import")
 
 
+SERIAL_THREADS = """
+import json
+from closedloop.parallel import executor as ex
+
+
+@ex.needs("pinocchio")  # loads OpenMP (libgomp) as it is imported
+def job(payload):
+    from threadpoolctl import threadpool_info
+
+    return {i["internal_api"]: i["num_threads"] for i in threadpool_info()}
+
+
+print(json.dumps(ex.run(job, [0], ex.SerialEngine(threads=1))[0]))
+"""
+
+
+@pytest.mark.slow
+def test_the_serial_engine_limits_the_thread_pools_a_job_s_imports_load():
+    """`SerialEngine(threads=1)` (``--jobs 1``) runs its jobs with one BLAS and one OpenMP thread as the
+    other engines' workers do, OpenMP loaded by the job's `needs` included (in a fresh process whose
+    default is 3 threads)."""
+    import json
+    import subprocess
+    import sys
+
+    env = {**os.environ, "OMP_NUM_THREADS": "3", "OPENBLAS_NUM_THREADS": "3"}
+    done = subprocess.run([sys.executable, "-c", SERIAL_THREADS], capture_output=True, text=True, env=env, check=True)
+    assert json.loads(done.stdout.splitlines()[-1]) == {"openblas": 1, "openmp": 1}
+
+
 def test_progress_counts():
     seen = []
     ex.run(flaky, [0, 1, 3], "serial", errors="record", progress=lambda *told: seen.append(told), task="runs")

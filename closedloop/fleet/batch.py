@@ -360,12 +360,30 @@ def run_once(job: BatchJob) -> dict:
 
 
 @needs(  # what a job imports as it runs (`run.calibrate_files`): imported before the first job's time limit
+    "closedloop.analysis.accuracy",
+    "closedloop.analysis.observability",
     "closedloop.calibration.pipeline",
     "closedloop.calibration.verdict",
+    "closedloop.estimate.threads",
+    "closedloop.fleet.guard",
+    "closedloop.io.joint_log",
+    "closedloop.io.marker",
+    "closedloop.io.robot_files",
+    "closedloop.loops.common",
+    "closedloop.loops.geometry",
+    "closedloop.loops.spec",
+    "closedloop.model.axes",
     "closedloop.output.report",
+    "closedloop.output.urdf",
+    "closedloop.parallel.executor",
+    "closedloop.problem.unwrap",
     "closedloop.records",
     "closedloop.run.accuracy",
     "closedloop.run.inputs",
+    "closedloop.validation.fixtures",
+    "closedloop.validation.kfold",
+    "closedloop.validation.regions",
+    "numpy.random",
 )
 def run_row(job: BatchJob) -> dict:
     """What a worker sends back to the batch: the job's summary row (`run_once`; the rest of its record

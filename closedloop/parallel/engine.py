@@ -153,6 +153,15 @@ def needs(*modules: str) -> Callable[[Callable], Callable]:
     return deco
 
 
+def warm(fn: Callable) -> bool:
+    """Import the modules job function `fn` `needs` that this process has not imported yet; whether
+    there were any (the first job in this process)."""
+    modules = [m for m in getattr(fn, "needs", ()) if m not in sys.modules]
+    for m in modules:
+        importlib.import_module(m)
+    return bool(modules)
+
+
 def call(
     fn: Callable,
     index: int,
@@ -169,10 +178,7 @@ def call(
     t0, c0 = time.perf_counter(), time.thread_time()
     out = Outcome(index, worker=f"{socket.gethostname()}:{os.getpid()}")
     try:
-        modules = [m for m in getattr(fn, "needs", ()) if m not in sys.modules]
-        if modules:  # (the first job in this process: `needs`)
-            for m in modules:
-                importlib.import_module(m)
+        if warm(fn):  # (the first job in this process: `needs`)
             t0, c0 = time.perf_counter(), time.thread_time()
         kw = {} if seed is None else {"rng": np.random.default_rng(seed)}
         with time_limit(timeout, hard):
@@ -222,8 +228,9 @@ class Engine:
 class SerialEngine(Engine):
     """In this process, in job order, on the caller's own objects (no copies).
 
-    threads: BLAS threads while the jobs run (None leaves the process as it is;
-    1 as in the workers of the other engines, faster on a shared machine).
+    threads: BLAS and OpenMP threads while the jobs run (None leaves the process as it is;
+    1 as in the workers of the other engines, faster on a shared machine).  The job function's `needs` are
+    imported first, so a thread pool they load (OpenMP, with the calibration's modules) is limited too.
     """
 
     def __init__(self, jobs: int | None = None, threads: int | None = None, timeout: float | None = None, **_):
@@ -239,6 +246,8 @@ class SerialEngine(Engine):
         else:
             from threadpoolctl import threadpool_limits
 
+            if payloads:
+                warm(fn)
             limits = threadpool_limits(self.threads)
         with limits:
             for i, p in enumerate(payloads):
