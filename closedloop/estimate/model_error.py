@@ -222,6 +222,7 @@ def plain_linearization(
     est: list[int],
     sigma_q: np.ndarray,
     thetas: list[np.ndarray] | None = None,
+    evaluated: tuple[list[int], list] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """The plain loop-closure estimator (eq. 3.8) linearized at `x`: its Gauss-Newton step from `x`,
     dx = -A^+ sum_i J_i^T r_i, the decrease of the squared closure it predicts (sum_i J_i^T r_i)^T A^+ (...),
@@ -230,23 +231,34 @@ def plain_linearization(
     Jacobian over the `est` columns and residual of configuration i, W_i = J_theta,i diag(sigma_q^2)
     J_theta,i^T + C_i (C_i a loop's measurement covariance).  A^+ in the parameters' prior units, directions
     below 1e-12 of the largest dropped; configurations several blocks share are taken as independent.
-    Step and covariance in the parameters' own units, order `est`."""
+    Step and covariance in the parameters' own units, order `est`.
+
+    `evaluated`: (columns, the problem's evaluations at `x` with the Jacobian over those columns, a superset
+    of `est`), an evaluation the caller shares with other uses; None: evaluated here.  The sums are matrix
+    products over all rows at once: sum_i J_i^T W_i J_i = M^T M + sum_i J_i^T C_i J_i, M the rows
+    J_theta,i^T diag(sigma_q) J_i stacked."""
     scale = np.array([problem.params[k].prior for k in est], dtype=float)
     L = len(est)
     JtJ = np.zeros((L, L))
     meat = np.zeros((L, L))
     Jtr = np.zeros(L)
-    for ev, nz in zip(problem.evaluate(x, True, thetas, columns=est), problem.noise):
+    if evaluated is None:
+        evals, pick = problem.evaluate(x, True, thetas, columns=est), None
+    else:
+        at = {k: i for i, k in enumerate(evaluated[0])}
+        evals, pick = evaluated[1], [at[k] for k in est]
+    for ev, nz in zip(evals, problem.noise):
         if ev.J is None or ev.Jq is None or not ev.J.size:
             continue
-        J = np.nan_to_num(ev.J) * scale
+        J = np.nan_to_num(ev.J if pick is None else ev.J[:, :, pick]) * scale
         Jq = np.nan_to_num(ev.Jq) * sigma_q[None, None, :]
-        W = Jq @ np.swapaxes(Jq, 1, 2)
+        rows = J.reshape(-1, L)
+        JtJ += rows.T @ rows
+        M = (np.swapaxes(Jq, 1, 2) @ J).reshape(-1, L)  # J_theta,i^T diag(sigma_q) J_i, a row block per configuration
+        meat += M.T @ M
         if nz.measurement_cov is not None:
-            W = W + nz.measurement_cov
-        JtJ += np.einsum("nki,nkj->ij", J, J)
-        meat += np.einsum("nki,nkl,nlj->ij", J, W, J)
-        Jtr += np.einsum("nki,nk->i", J, np.nan_to_num(ev.r).reshape(J.shape[:2]))
+            meat += rows.T @ (nz.measurement_cov @ J).reshape(-1, L)
+        Jtr += rows.T @ np.nan_to_num(ev.r).reshape(-1)
     Ainv = np.linalg.pinv(JtJ, rcond=1e-12, hermitian=True)
     return -(Ainv @ Jtr) * scale, Ainv @ meat @ Ainv * np.outer(scale, scale), float(Jtr @ Ainv @ Jtr)
 
