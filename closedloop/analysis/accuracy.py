@@ -20,7 +20,9 @@ eq. 4.4).  The error of the calibrated parameters is modelled as dx = L z, z ~ N
   model had it.  With C the data Jacobian over the parameters the fit considered (estimated, dropped,
   unidentifiable), each column scaled by its prior scale p_k, and V_u the right singular vectors of its
   u smallest singular values (u = the dropped parameters plus the undetermined combinations, the
-  directions the fit did not estimate), the nominal model's tolerance T = diag(t_k)
+  directions the fit did not estimate; on a log of more than `UNSEEN_SAMPLE` configurations per loop, C
+  of an evenly spaced sample of that many: which directions are least seen is the geometry's, not the row
+  count's), the nominal model's tolerance T = diag(t_k)
   (`PriorTolerance`) projected on them gives  Sigma_unseen = P V_u V_u^T P^-1 T^2 P^-1 V_u V_u^T P,
   P = diag(p_k).  A weld with a 1-DOF self-motion sees the arm along its motion only: parameters
   redundant there are dropped, and over the joint ranges they move the tool; a structural redundancy
@@ -499,6 +501,11 @@ def gauge_basis(items: list[Followed], pos: list[np.ndarray], rot: list[np.ndarr
 
 
 # --------------------------------------------------------------------------- the prediction
+#: configurations per loop above which what the data cannot see is read on an evenly spaced sample of this many
+#: (`predict_from_result`; as the left-out prediction's, `estimate.model_error.LOO_SAMPLE`)
+UNSEEN_SAMPLE = 8192
+
+
 def considered_columns(problem, status: list, estimated: list[int], prior: PriorTolerance) -> list[int]:
     """The parameters whose error the prediction propagates: the estimated ones, and those dropped or
     unidentifiable that the nominal tolerance (`prior`) lets be off."""
@@ -758,15 +765,22 @@ def predict_from_result(
 
     values = np.asarray(res.fit.values, dtype=float)
     prior = prior or PriorTolerance()
-    # one evaluation of the log at the solution, with the Jacobian over the considered columns, serves both
-    # the plain fit's linearization and what the data cannot see (a pass over every row: the costly part)
+    # The passes over the log at the solution (the costly part): on a short log one evaluation with the
+    # Jacobian over the considered columns serves both the plain fit's linearization and what the data cannot
+    # see.  On a long log the plain fit's reads the fit's own last evaluation (the problem's memo), and what the
+    # data cannot see, the geometry's least-seen directions, is read on an evenly spaced sample of
+    # `UNSEEN_SAMPLE` configurations per loop.
     considered = considered_columns(problem, list(res.fit.status), list(res.fit.estimated), prior)
     unseen = len(res.identifiability.weak) + sum(res.fit.status[k] == ParamStatus.DROPPED for k in considered)
-    evaluations = None
+    evaluations = shared = None
     if considered and (unseen > 0 or (model_error and compared(res))) and followed_frames(problem, values):
-        evaluations = problem.evaluate(values, True, columns=considered)
+        if any(b.theta.shape[0] > UNSEEN_SAMPLE for b in problem.blocks):
+            evaluations = problem.sampled(UNSEEN_SAMPLE).evaluate(values, True, columns=considered) if unseen else None
+        else:
+            evaluations = problem.evaluate(values, True, columns=considered)
+            shared = (considered, evaluations)
     with blas_threads(None, 6 * len(readings), len(problem.params)):  # small dense algebra: one thread
-        found = disagreement(res, None if evaluations is None else (considered, evaluations)) if model_error else None
+        found = disagreement(res, shared) if model_error else None
         return predict_accuracy(
             problem,
             values,
