@@ -474,3 +474,28 @@ def test_prior_tolerance_through_the_command_line(tmp_path, capsys):
     # the tolerance's share scales with it; the fit's own move along those directions is the same in both
     assert g["predicted_unseen_rms_m"] == pytest.approx(10 * f["predicted_unseen_rms_m"], rel=1e-3)
     assert g["nominal_rms_m"] == pytest.approx(10 * f["nominal_rms_m"], rel=0.02)  # the scales' share stays
+
+
+@pytest.mark.slow
+def test_region_validation_leaves_the_rejected_rows_out_of_regions_and_refits():
+    """A reading of 100 rad the calibration rejects is in no region (alone, it would be a region of its own,
+    judged on nothing), and no refit trains on it: every region judged, the held-out closure that of exact data."""
+    from closedloop.assets.catalog import ROBOTS
+    from closedloop.loops import WeldLoop
+    from closedloop.studies.truth import make_dataset
+    from closedloop.validation.regions import region_validate
+
+    robot = RobotModel.from_file(ROBOTS["panda"].path)
+    loop = WeldLoop("fixture", "panda_hand")
+    ds = make_dataset(robot, loop, [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 30, np.random.default_rng(4))
+    th = ds.readings.copy()
+    th[11, 2] = 100.0
+    lg = JointLog(list(ds.joints), th)
+    res = calibrate(robot, lg, [loop], CalibrationOptions())
+    bad = [rj.row - 1 for rj in res.outliers.rejected]
+    assert bad == [11]
+    rv = region_validate(robot, lg, [loop], list(ds.joints), CalibrationOptions(), exclude=bad)
+    assert all(11 not in r for r in rv["regions"]) and sum(len(r) for r in rv["regions"]) == 29
+    assert all(f["n_train"] + f["n_test"] == 29 for f in rv["folds"])
+    assert all(f["converged"] for f in rv["folds"])
+    assert rv["test"][0]["rms_m"] is not None and rv["test"][0]["rms_m"] < 1e-6

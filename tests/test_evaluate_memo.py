@@ -5,6 +5,7 @@ problem whose loops differ (a re-charted copy) or for other parameters, readings
 from __future__ import annotations
 
 import copy
+import importlib
 from dataclasses import replace
 
 import numpy as np
@@ -59,3 +60,50 @@ def test_memo_misses_what_differs(problem):
     moved = copy.copy(prob)  # a copy with other loops (a re-charted problem) shares no result
     moved.blocks = [replace(b, loop=WeldLoop("fixture", "panda_link7")) for b in prob.blocks]
     assert not np.array_equal(moved.evaluate(x, False)[0].r, prob.evaluate(x, False)[0].r)
+
+
+def test_long_log_keeps_the_jacobian_within_its_byte_budget(problem, monkeypatch):
+    """Above MEMO_ROWS configurations the parameter Jacobian is kept while it takes at most MEMO_BYTES: the
+    same columns at the same vector are given again (equal to a fresh evaluation, a copy), without a pass
+    over the log; beyond the budget only the residual and Jq are kept."""
+    P = importlib.import_module("closedloop.problem.problem")
+
+    prob, x = problem
+    x = x + 3e-4
+    monkeypatch.setattr(P, "MEMO_ROWS", 0)  # the problem is a long log
+    calls = []
+    real = P.CalibrationProblem._evaluate
+    monkeypatch.setattr(P.CalibrationProblem, "_evaluate", lambda s, *a: calls.append(a[1]) or real(s, *a))
+    a = prob.evaluate(x, True, columns=[1, 4])
+    a[0].J[:] = 99.0  # the caller's own
+    b = prob.evaluate(x, True, columns=[1, 4])
+    assert len(calls) == 1 and np.array_equal(b[0].J, real(prob, x, True, None, [1, 4])[0].J)
+    monkeypatch.setattr(P, "MEMO_BYTES", 0)
+    y = x + 1e-4
+    prob.evaluate(y, True, columns=[1, 4])
+    prob.evaluate(y, True, columns=[1, 4])  # not kept: evaluated again
+    assert calls[1:] == [True, True]
+    r = prob.evaluate(y, False)[0].r  # the residual kept
+    assert len(calls) == 3 and np.array_equal(r, real(prob, y, True, None, [1, 4])[0].r)
+
+
+def test_loop_poses_are_kept_for_the_robot_values(problem):
+    """The loop's frame poses at the problem's readings are given again for the same robot parameters (a
+    loop parameter changed does not move them) and made again for others."""
+    prob, x = problem
+    first = prob.loop_frame_poses(x, 0)
+    y = x.copy()
+    y[-1] += 0.1  # a loop parameter
+    again = prob.loop_frame_poses(y, 0)
+    assert all(a is b for a, b in zip(first, again))
+    z = x.copy()
+    z[0] += 1e-3  # a robot parameter
+    moved = prob.loop_frame_poses(z, 0)
+    assert not np.array_equal(moved[1], first[1]) or not np.array_equal(moved[0], first[0])
+    fresh = prob.frame_kinematics(
+        prob.rp.apply(z[: prob.n_robot]),
+        prob.blocks[0].theta,
+        [prob.robot.frame_id(f) for f in prob.blocks[0].loop.frames],
+        False,
+    )
+    assert all(np.array_equal(m, fresh[prob.robot.frame_id(f)][0]) for m, f in zip(moved, prob.blocks[0].loop.frames))

@@ -66,7 +66,7 @@ def ur5():
 
 
 def test_sampled_neighbour_correlation_estimates_the_whole(ur5, monkeypatch):
-    """Above KD_TREE_ROWS configurations the correlation pools NEIGHBOUR_SAMPLE of them: on a smooth misfit
+    """Above NEIGHBOUR_SAMPLE configurations the correlation pools that many of them: on a smooth misfit
     and on noise it matches the correlation over all configurations within its standard error."""
     robot, joints = ur5
     rng = np.random.default_rng(6)

@@ -20,7 +20,9 @@ eq. 4.4).  The error of the calibrated parameters is modelled as dx = L z, z ~ N
   model had it.  With C the data Jacobian over the parameters the fit considered (estimated, dropped,
   unidentifiable), each column scaled by its prior scale p_k, and V_u the right singular vectors of its
   u smallest singular values (u = the dropped parameters plus the undetermined combinations, the
-  directions the fit did not estimate), the nominal model's tolerance T = diag(t_k)
+  directions the fit did not estimate; on a log of more than `UNSEEN_SAMPLE` configurations per loop, C
+  of an evenly spaced sample of that many: which directions are least seen is the geometry's, not the row
+  count's), the nominal model's tolerance T = diag(t_k)
   (`PriorTolerance`) projected on them gives  Sigma_unseen = P V_u V_u^T P^-1 T^2 P^-1 V_u V_u^T P,
   P = diag(p_k).  A weld with a 1-DOF self-motion sees the arm along its motion only: parameters
   redundant there are dropped, and over the joint ranges they move the tool; a structural redundancy
@@ -369,15 +371,17 @@ def unseen_factor(
     n_unseen: int,
     prior: PriorTolerance,
     moved: np.ndarray | None = None,
+    evaluations: list | None = None,
 ) -> np.ndarray:
     """A factor (len(considered), len(considered) + 1) of Sigma_unseen (module docstring) over `considered`:
     the nominal tolerance projected on the `n_unseen` directions the data see least, and, as its last column,
-    the part along them of `moved` (the solution's move from the nominal, over `considered`; 0 where None)."""
+    the part along them of `moved` (the solution's move from the nominal, over `considered`; 0 where None).
+    `evaluations`: the problem's at `values` with the Jacobian over `considered` (None: evaluated here)."""
     if n_unseen <= 0 or not considered:
         return np.zeros((len(considered), 0))
     p = np.array([problem.params[k].prior for k in considered], dtype=float)
     t = np.array([prior.of(problem.params[k].kind, problem.params[k].unit) for k in considered], dtype=float)
-    evs = problem.evaluate(values, True, columns=considered)
+    evs = problem.evaluate(values, True, columns=considered) if evaluations is None else evaluations
     rows = [ev.jacobian().reshape(-1, len(considered)) for ev in evs if ev.J is not None and ev.J.size]
     rows = [J if np.isfinite(J).all() else J[np.all(np.isfinite(J), axis=1)] for J in rows]
     # the right singular vectors of the prior-scaled Jacobian C = Q R are R's: reduced a chunk of rows at a time
@@ -397,28 +401,39 @@ def _sqrt_psd(S: np.ndarray) -> np.ndarray:
     return V[:, keep] * np.sqrt(w[keep])
 
 
-def disagreement(res) -> Disagreement | None:
+def disagreement(res, evaluated: tuple[list[int], list] | None = None) -> Disagreement | None:
     """The plain loop-closure fit (eq. 3.8) linearized at the errors-in-variables calibration `res`: its
     Gauss-Newton step from there, d = x_plain - x_fit to first order (a step, not a solve: on a self-motion
     the plain residual's long steps can reach a degenerate robot), and the covariance of d under the noise
     model, Sigma_plain - Sigma_fit (module docstring, Model error); None where the calibration is not the
     errors-in-variables fit (the plain one already: nothing to compare), did not converge, estimated
-    nothing, or where the plain fit is not linear over its step (`_holds_to_first_order`)."""
-    from closedloop.estimate.model_error import EIV, plain_linearization
+    nothing, or where the plain fit is not linear over its step (`_holds_to_first_order`).  `evaluated`:
+    (columns, the problem's evaluations at the solution with the Jacobian over them, a superset of the
+    estimated), shared with the caller (`plain_linearization`); None: evaluated here."""
+    from closedloop.estimate.model_error import plain_linearization
 
     problem, fit = res.problem, res.fit
     est = list(fit.estimated)
-    if not est or not fit.converged or res.noise.estimator != EIV or not res.noise.sigma > 0:
+    if not compared(res):
         return None
     x = np.asarray(fit.values, dtype=float)
     sigma_q = np.full(len(problem.joints), float(res.noise.sigma))
-    step, plain, decrease = plain_linearization(problem, x, est, sigma_q)
+    step, plain, decrease = plain_linearization(problem, x, est, sigma_q, evaluated=evaluated)
     shift = np.zeros(len(problem.params))
     shift[est] = step
     if not _holds_to_first_order(problem, x, shift, decrease):
         return None
     cov = plain - np.nan_to_num(np.asarray(fit.covariance, dtype=float))
     return Disagreement(shift=shift, estimated=tuple(est), noise_cov=cov)
+
+
+def compared(res) -> bool:
+    """Whether `disagreement` compares the estimators on `res`: a converged errors-in-variables fit that
+    estimated something with a joint noise above zero."""
+    from closedloop.estimate.model_error import EIV
+
+    fit = res.fit
+    return bool(len(fit.estimated)) and fit.converged and res.noise.estimator == EIV and res.noise.sigma > 0
 
 
 LINEAR_RATIO = 0.5  # the plain step's actual decrease of the closure against the one it predicts, at least
@@ -486,6 +501,23 @@ def gauge_basis(items: list[Followed], pos: list[np.ndarray], rot: list[np.ndarr
 
 
 # --------------------------------------------------------------------------- the prediction
+#: configurations per loop above which what the data cannot see is read on an evenly spaced sample of this many
+#: (`predict_from_result`; as the left-out prediction's, `estimate.model_error.LOO_SAMPLE`)
+UNSEEN_SAMPLE = 8192
+
+
+def considered_columns(problem, status: list, estimated: list[int], prior: PriorTolerance) -> list[int]:
+    """The parameters whose error the prediction propagates: the estimated ones, and those dropped or
+    unidentifiable that the nominal tolerance (`prior`) lets be off."""
+    return [
+        k
+        for k, s in enumerate(status)
+        if s in (ParamStatus.ESTIMATED, ParamStatus.DROPPED, ParamStatus.UNIDENTIFIABLE)
+        and prior.of(problem.params[k].kind, problem.params[k].unit) > 0
+        or k in estimated
+    ]
+
+
 def predict_accuracy(
     problem,
     values: np.ndarray,
@@ -506,6 +538,7 @@ def predict_accuracy(
     disagreement: Disagreement | None = None,
     held_length: float = 0.0,
     initial: np.ndarray | None = None,
+    evaluations: list | None = None,
 ) -> WorkspaceAccuracy | None:
     """The predicted error of every followed frame at `readings` (n, problem joints) (module docstring).
 
@@ -516,26 +549,21 @@ def predict_accuracy(
     has a frame to follow (a camera, a known distance).
     (`ParamStatus`); `n_weak` the number of combinations the fit left undetermined; `held_length` the length
     the parameter held to set the size stands for (m; 0: none held); `initial` the nominal values the fit
-    started from (the move along what the data cannot see is an error: module docstring; None: not counted).
-    None when no loop has a frame to follow (a camera, a known distance).
+    started from (the move along what the data cannot see is an error: module docstring; None: not counted);
+    `evaluations` the problem's at `values` with the Jacobian over `considered_columns` (None: evaluated
+    where needed).  None when no loop has a frame to follow (a camera, a known distance).
     """
     prior = prior or PriorTolerance()
     items = followed_frames(problem, values)
     if not items:
         return None
     readings = np.asarray(readings, dtype=float)
-    considered = [
-        k
-        for k, s in enumerate(status)
-        if s in (ParamStatus.ESTIMATED, ParamStatus.DROPPED, ParamStatus.UNIDENTIFIABLE)
-        and prior.of(problem.params[k].kind, problem.params[k].unit) > 0
-        or k in estimated
-    ]
+    considered = considered_columns(problem, status, estimated, prior)
     n_dropped = sum(status[k] == ParamStatus.DROPPED for k in considered)
     moved = None
     if initial is not None:  # the robot's corrections (a loop's place has no nominal: its start is a guess)
         moved = np.array([values[k] - initial[k] if k < problem.n_robot else 0.0 for k in considered])
-    L_u = unseen_factor(problem, values, considered, n_dropped + n_weak, prior, moved)
+    L_u = unseen_factor(problem, values, considered, n_dropped + n_weak, prior, moved, evaluations)
     L_e = np.zeros((len(considered), 0))
     if len(estimated) and covariance.size:
         pos_of = {k: i for i, k in enumerate(considered)}
@@ -735,11 +763,27 @@ def predict_from_result(
         size_measured = bool(ev["size_measured"]) if "size_measured" in ev else not size_blind(problem)
     from closedloop.estimate.threads import blas_threads
 
+    values = np.asarray(res.fit.values, dtype=float)
+    prior = prior or PriorTolerance()
+    # The passes over the log at the solution (the costly part): on a short log one evaluation with the
+    # Jacobian over the considered columns serves both the plain fit's linearization and what the data cannot
+    # see.  On a long log the plain fit's reads the fit's own last evaluation (the problem's memo), and what the
+    # data cannot see, the geometry's least-seen directions, is read on an evenly spaced sample of
+    # `UNSEEN_SAMPLE` configurations per loop.
+    considered = considered_columns(problem, list(res.fit.status), list(res.fit.estimated), prior)
+    unseen = len(res.identifiability.weak) + sum(res.fit.status[k] == ParamStatus.DROPPED for k in considered)
+    evaluations = shared = None
+    if considered and (unseen > 0 or (model_error and compared(res))) and followed_frames(problem, values):
+        if any(b.theta.shape[0] > UNSEEN_SAMPLE for b in problem.blocks):
+            evaluations = problem.sampled(UNSEEN_SAMPLE).evaluate(values, True, columns=considered) if unseen else None
+        else:
+            evaluations = problem.evaluate(values, True, columns=considered)
+            shared = (considered, evaluations)
     with blas_threads(None, 6 * len(readings), len(problem.params)):  # small dense algebra: one thread
-        found = disagreement(res) if model_error else None
+        found = disagreement(res, shared) if model_error else None
         return predict_accuracy(
             problem,
-            np.asarray(res.fit.values, dtype=float),
+            values,
             np.asarray(res.fit.covariance, dtype=float),
             list(res.fit.estimated),
             list(res.fit.status),
@@ -754,4 +798,5 @@ def predict_from_result(
             disagreement=found,
             held_length=float(getattr(getattr(res, "scale", None), "gauge_length", 0.0) or 0.0),
             initial=np.asarray(res.fit.initial, dtype=float),
+            evaluations=evaluations,
         )

@@ -294,6 +294,8 @@ def _calibrate(
     _check_rows(problem, structure, log_)
     if problem.keeps_jacobians:  # the solve's first J, taken first: the screen and `before` read it (the memo)
         problem.evaluate(x0, True, columns=structure.kept)
+    elif opt.robust == "auto":  # a long log: the screen's whitening (Jq) at the start, kept; `before` reads it
+        problem.evaluate(x0, True, columns=[])
     before, start, structure0 = residual_stats(problem, problem.evaluate(x0, False)), problem, structure
     notes0 = list(notes)  # a re-solve with another estimator writes its own notes
     problem, fit, structure, rejected, suspects = solve_screened(

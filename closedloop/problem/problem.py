@@ -114,6 +114,9 @@ class BlockNoise:
 
 
 MEMO_ROWS = 20_000  # configurations up to which `CalibrationProblem.evaluate` keeps parameter Jacobians
+#: bytes of a long log's parameter Jacobian up to which `CalibrationProblem.evaluate` keeps a copy (a fresh
+#: evaluation of 100,000 configurations costs ~20 times the copy)
+MEMO_BYTES = 1 << 28
 CHUNK = 8192  # configurations evaluated at a time: temporaries stay in the heap (below glibc's mmap limit)
 
 
@@ -221,9 +224,9 @@ class CalibrationProblem:
         return CalibrationProblem(self.robot, self.joints, blocks, self.priors, self.noise)
 
     def __getstate__(self) -> dict:
-        """Pickled (a result sent by a process pool or Ray) without the evaluation memo and the chunks'
-        workspace: caches of up to ~100 MB on a long log, made again when needed."""
-        return {k: v for k, v in self.__dict__.items() if k not in ("_memo", "_work")}
+        """Pickled (a result sent by a process pool or Ray) without the evaluation memo, the kept poses and the
+        chunks' workspace: caches of up to ~100 MB on a long log, made again when needed."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("_memo", "_work", "_poses")}
 
     def sampled(self, per_block: int | Sequence[int], first: bool = False) -> "CalibrationProblem":
         """The problem on at most `per_block` configurations of each block (one count, or one per block),
@@ -335,13 +338,26 @@ class CalibrationProblem:
     def loop_frame_poses(
         self, values: np.ndarray, block_index: int, theta: np.ndarray | None = None
     ) -> list[np.ndarray]:
-        """Poses (N, 4, 4) of every frame of one loop (`Loop.frames`) at `values`."""
+        """Poses (N, 4, 4) of every frame of one loop (`Loop.frames`) at `values`.
+
+        At the problem's own readings the last block's poses are kept, keyed by the robot's parameters (the
+        loop's own do not move its frames): the start's loop initialisation and its check of the data
+        (`Loop.mismatch`) read the same poses, a pass over every row each on a long log."""
         b = self.blocks[block_index]
+        key = (block_index, np.asarray(values[: self.n_robot], dtype=float).tobytes())
+        kept = self.__dict__.get("_poses")
+        if theta is None and kept is not None and kept[0] == key and kept[1] is self.blocks:
+            return list(kept[2])
         state = self.rp.apply(values[: self.n_robot])
         fids = [self.robot.frame_id(f) for f in b.loop.frames]
         tau = b.tau if theta is None else None
         kin = self.frame_kinematics(state, b.theta if theta is None else theta, fids, False, tau)
-        return [kin[f][0] for f in fids]
+        out = [kin[f][0] for f in fids]
+        if theta is None:
+            for T in out:
+                T.flags.writeable = False  # shared with the next caller: read-only
+            self.__dict__["_poses"] = (key, self.blocks, out)
+        return list(out)
 
     # ------------------------------------------------------------- evaluation
     @property
@@ -362,10 +378,11 @@ class CalibrationProblem:
         in that order (default: all P; an empty list gives Jq alone), and Jq
         the derivatives with respect to the readings.  The last two
         evaluations at the problem's own readings are kept (with the parameter
-        Jacobian up to MEMO_ROWS configurations; residuals and Jq at any size) and given again, as copies, for the same parameter
+        Jacobian up to MEMO_ROWS configurations, and above while it takes at most MEMO_BYTES; residuals and Jq
+        at any size) and given again, as copies, for the same parameter
         vector to the bit: the stages after a solve each ask for the
         solution's residual (outlier screen, closure level, standard errors,
-        noise summary, residual statistics).
+        noise summary, residual statistics, the accuracy prediction's plain fit).
         """
         if thetas is not None:
             return self._evaluate(values, jacobian, thetas, columns)
@@ -373,9 +390,13 @@ class CalibrationProblem:
         key = np.asarray(values, dtype=float).tobytes()
         cols = None if columns is None else tuple(int(c) for c in columns)
         memo = self.__dict__.setdefault("_memo", [])
-        if large and jacobian and (columns is None or len(columns) > 0):  # kept: residuals and Jq only
+        if large and jacobian and (columns is None or len(columns) > 0):  # kept: J too, if within MEMO_BYTES
+            for k, blocks, kind, evals in memo:
+                if k == key and blocks is self.blocks and kind == cols:
+                    return [copy_eval(e, True, False) for e in evals]
             out = self._evaluate(values, jacobian, None, columns)
-            memo.insert(0, (key, self.blocks, (), [copy_eval(e, True, True) for e in out]))
+            whole = sum(e.J.nbytes for e in out if e.J is not None) <= MEMO_BYTES
+            memo.insert(0, (key, self.blocks, cols if whole else (), [copy_eval(e, True, not whole) for e in out]))
             del memo[2:]
             return out
         for k, blocks, kind, evals in memo:

@@ -213,6 +213,7 @@ def cross_validate(
     progress: ProgressReporter | None = None,
     exclude=None,
     parts: list[np.ndarray] | None = None,
+    train_without_excluded: bool = False,
 ) -> dict[str, Any]:
     """k-fold cross-validation with the same options on every fold.
 
@@ -224,7 +225,8 @@ def cross_validate(
 
     `exclude`: rows of `log_` (0-based) whose closure no fold judges, the full calibration's rejected
     outliers (``[rj.row - 1 for rj in result.outliers.rejected]``); they stay in the refits' data, whose outlier
-    screen meets them as the full calibration's did.
+    screen meets them as the full calibration's did, or with `train_without_excluded` are left out of it (a
+    refit then need not find them again from scratch: its robust refit costs many times a clean fit).
 
     Returns
       'folds': per fold {'fold', 'n_train', 'n_test', 'train': residuals,
@@ -255,7 +257,8 @@ def cross_validate(
     bad = np.zeros(0, dtype=int) if exclude is None else np.unique(np.asarray(exclude, dtype=int))
     splits = []
     for rows in parts:
-        rest = validation_rows(log_, np.setdiff1d(np.arange(len(log_)), rows))
+        rest = np.setdiff1d(np.arange(len(log_)), rows)
+        rest = validation_rows(log_, np.setdiff1d(rest, bad) if train_without_excluded else rest)
         rows = validation_rows(log_, rows)
         splits.append(
             (

@@ -24,7 +24,7 @@ from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
 from closedloop.progress import ProgressReporter
-from closedloop.validation.kfold import cross_validate
+from closedloop.validation.kfold import cross_validate, subset
 
 N_REGIONS = 4  # regions left out in turn (the default of `closedloop calibrate --regions`)
 
@@ -88,8 +88,12 @@ def region_validate(
     progress: ProgressReporter | None = None,
 ) -> dict[str, Any]:
     """Leave each region of `regions` out in turn (module docstring): `kfold.cross_validate`'s record
-    over these held-out sets, with 'regions' (the rows of each, 0-based) and 'k' their number."""
-    parts = regions(log_, robot, joints, k, seed)
+    over these held-out sets, with 'regions' (the rows of each, 0-based) and 'k' their number.  The rows
+    `exclude` (the full calibration's rejected outliers) are neither judged, nor trained on, nor clustered:
+    a refit leaves a region of the data out, and the rows that are no data are in no region."""
+    # the regions of the data: a rejected row (a reading of 100 rad) would be a region of its own
+    keep = np.setdiff1d(np.arange(len(log_)), np.asarray(exclude if exclude is not None else [], dtype=int))
+    parts = [keep[p] for p in regions(subset(log_, keep), robot, joints, k, seed)]
     out = cross_validate(
         robot,
         log_,
@@ -101,6 +105,7 @@ def region_validate(
         progress=progress,
         exclude=exclude,
         parts=parts,
+        train_without_excluded=True,
     )
     out["regions"] = [p.tolist() for p in parts]
     return out
