@@ -117,6 +117,9 @@ def main(argv: list[str] | None = None) -> int:
                             "notes": list(getattr(o.result, "notes", []) or []),
                         }
                     )
+                    if args.json:  # after every case: a run stopped early keeps what it did
+                        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+                        Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
     print(f"\n{len(rows)} cases in {time.perf_counter() - t0:.0f} s\n")
     print(table(rows, "loop"))
     print()
