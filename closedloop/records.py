@@ -289,9 +289,7 @@ class ScaleRecord:
 
     gauge: str | None = None  # the length held to set the overall size
     gauge_note: str | None = None
-    #: the length the gauge stands for: holding it longer by d scales by 1 + d / L (no gauge, the size free:
-    #: the length the held lengths stand for together, `closedloop.analysis.gauge.choose_gauge`)
-    gauge_length: float = 0.0
+    gauge_length: float = 0.0  # the length the gauge stands for: holding it longer by d scales by 1 + d / L
     scale_note: str | None = None  # what sets the overall size, in words
     scale_std: float = float("nan")  # relative standard error of the size, when a known distance sets it
     length_response: float | None = None  # size change per change of the known frame lengths (problem.lengths)

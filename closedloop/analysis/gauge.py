@@ -167,10 +167,7 @@ def choose_gauge(
     prefer: int | None = None,
 ) -> tuple[int | None, list[int], list, bool, float]:
     """The gauge (a column of R, or None), the kept columns and drops with it, whether the size is free,
-    and the length L the gauge stands for (`short_gauge_warning` says when it is too short to trust); with
-    the size free and no single length holding it, the length the held lengths stand for together
-    (1 / L^2 = sum of 1 / L_j^2 over the held lengths j: an error t of each moves the size by t / L_j, and
-    independent errors by t / L together), which the size's predicted error takes as the held share.
+    and the length L the gauge stands for (`short_gauge_warning` says when it is too short to trust).
 
     R: the compressed, prior-scaled loop Jacobian over `free`; `reduce(order)`
     the greedy reduction in that order, returning (kept columns, Dropped
@@ -189,7 +186,6 @@ def choose_gauge(
     q = random_configurations(problem)
     reach = robot_reach(problem, x)
     first: tuple[list[int], list] | None = None  # the first order's reduction
-    jointly = 0.0  # with no single length holding the size: the length the held lengths stand for together
     orders = [order] if g0 is None else [[i for i in order if i != g0] + [g0], order]
     for attempt in orders:  # the longest length last (the thesis's choice), else the plain priority order
         kept, dropped = reduce(attempt)
@@ -201,13 +197,9 @@ def choose_gauge(
         dP, A = kinematic_changes(problem, x, V, q)
         if not contains_scaling(dP, A):
             return None, kept, dropped, False, 0.0
+        first = first or (kept, dropped)
         c, res = scale_content(dP, A)
         length = prior[cols] / np.maximum(np.abs(c), 1e-300)
-        if first is None:
-            first = (kept, dropped)
-            # each held length's error t moves the size by t / length: together by t / jointly (root sum square)
-            inv = [1.0 / length[j] for j in range(len(cols)) if cols[j] in lengths and np.isfinite(length[j])]
-            jointly = 1.0 / float(np.sqrt(np.sum(np.square(inv)))) if inv and np.any(inv) else 0.0
         scaling = [j for j in range(len(cols)) if res[j] < 1e-3 and cols[j] in lengths and 0.01 <= length[j] <= reach]
         if scaling:
             best = max(scaling, key=lambda j: (round(float(length[j]), 4), -cols[j]))  # equal lengths: the first
@@ -229,7 +221,7 @@ def choose_gauge(
                 found = (g, kept_g, dropped_g, L)
     if found is None:
         assert first is not None  # `orders` is never empty: its first reduction got this far
-        return None, first[0], first[1], True, jointly
+        return None, first[0], first[1], True, 0.0
     g, kept, dropped, L = found
     return g, kept, [d for d in dropped if d.name != names[g]], True, L
 

@@ -192,7 +192,7 @@ class Structure:
     gauge: int | None = None
     gauge_note: str | None = None
     scale_free: bool = False  # the loops cannot see the overall size
-    gauge_length: float = 0.0  # the length the gauge stands for (m); no gauge: the held lengths together
+    gauge_length: float = 0.0  # the length the gauge stands for (m)
     rechecked: bool = False  # decided at a solution
     provisional: bool = False  # the start closed too few configurations to decide: everything kept until the solution
 
@@ -358,7 +358,7 @@ def analyse_structure(
             "the loops close at any overall size and no single length sets it: the scale is not determined by the data"
         )
     )
-    return Structure(sorted(free[i] for i in kept), dropped, None, note, size_free, length if size_free else 0.0)
+    return Structure(sorted(free[i] for i in kept), dropped, None, note, size_free)
 
 
 def structure_holds(
