@@ -1,8 +1,10 @@
 """The full robot zoo: every arm x loop type x seed x start, judged against the truth.
 
 Data from `tests/zoo.py` (a generator independent of closedloop's parametrization); each case is
-calibrated with the defaults of `closedloop.calibrate` and its calibrated URDF judged by what the
-robot does (tool forward kinematics against the truth after the best base/tool transforms, the
+calibrated with the defaults of `closedloop.calibrate`, given the verdict `closedloop calibrate` gives
+on the command line (the fit's, with the size's predicted error stated where a short length holds the
+size: `closedloop.calibration.verdict.judge_size`; the fit's own verdict is kept beside it), and its
+calibrated URDF judged by what the robot does (tool forward kinematics against the truth after the best base/tool transforms, the
 scale fitted only for loops blind to it).  A case is *right* (within `Case.tolerances()`; counted
 as *flagged* too when its verdict is 'suspect' or 'failed': a false alarm), *refused* (wrong, and
 the verdict is 'suspect' or 'failed', or a user-facing error), *wrong, foretold* (wrong, verdict ok,
@@ -82,8 +84,10 @@ def main(argv: list[str] | None = None) -> int:
                     except RuntimeError as exc:
                         print(f"{robot}/{loop}/s{seed}/{variant}: no data ({exc})", flush=True)
                         continue
-                    o = zoo.run_case(case)
-                    outcome = classify(o, case)
+                    fit = zoo.run_case(case)  # the verdict of the fit (the API's)
+                    ws = workspace(fit)
+                    o = as_command_line(fit, ws)
+                    outcome = classify(o, case, ws)
                     print(
                         o.line() + ("  (foretold by the prediction)" if outcome == "wrong, foretold" else ""),
                         flush=True,
@@ -96,8 +100,12 @@ def main(argv: list[str] | None = None) -> int:
                             "variant": variant,
                             "seed": seed,
                             "flagged": bool(o.right and o.refused),
+                            "flagged_fit_verdict": bool(fit.right and fit.refused),
                             "outcome": outcome,
                             "verdict": o.status,
+                            # the fit's verdict alone, with a size held by a short length flagging it on the length
+                            "outcome_fit_verdict": classify(fit, case, ws),
+                            "fit_verdict": fit.status,
                             "reasons": list(getattr(getattr(o.result, "verdict", None), "reasons", []) or []),
                             "size_measured": (getattr(getattr(o.result, "verdict", None), "evidence", None) or {}).get(
                                 "size_measured"
@@ -109,10 +117,16 @@ def main(argv: list[str] | None = None) -> int:
                             "notes": list(getattr(o.result, "notes", []) or []),
                         }
                     )
+                    if args.json:  # after every case: a run stopped early keeps what it did
+                        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+                        Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
     print(f"\n{len(rows)} cases in {time.perf_counter() - t0:.0f} s\n")
     print(table(rows, "loop"))
     print()
     print(table(rows, "variant"))
+    print()
+    print("With the fit's verdict alone (a size held by a short length flagging it on the length):\n")
+    print(table(rows, "variant", fit_verdict=True))
     print()
     print(findings(rows))
     if args.json:
@@ -121,15 +135,36 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def judged_rows(o, case) -> list[dict]:
+def workspace(o):
+    """The calibration's predicted accuracy over the workspace (`closedloop.analysis.accuracy`), or None."""
+    from closedloop.analysis.accuracy import predict_from_result
+
+    return predict_from_result(o.result) if o.result is not None else None
+
+
+def as_command_line(o, ws):
+    """The outcome with the verdict `closedloop calibrate` gives on the command line, where the workspace
+    prediction states the size's predicted error (`closedloop.calibration.verdict.judge_size`)."""
+    import dataclasses
+
+    from closedloop.calibration.verdict import judge_size
+
+    v = getattr(o.result, "verdict", None)
+    if v is None or ws is None:
+        return o
+    judged = judge_size(v, o.result, None, ws)
+    if judged is v:
+        return o
+    return dataclasses.replace(o, status=judged.status, result=dataclasses.replace(o.result, verdict=judged))
+
+
+def judged_rows(o, case, ws=None) -> list[dict]:
     """The judge's figures as `closedloop check` rows (error, predicted, tol, result) beside the calibration's
     predicted accuracy over the workspace (`closedloop.analysis.accuracy.predict_from_result`): the tool's
     largest position and rotation error, a relative motion's (which carries two configurations' errors: twice
     the predicted position error plus, for a pose, twice the reach times the rotation error) and the size."""
-    from closedloop.analysis.accuracy import predict_from_result
-
     j, tol = o.judgement, case.tolerances()
-    ws = predict_from_result(o.result) if o.result is not None else None
+    ws = ws if ws is not None else workspace(o)
     pm = ws.max_m if ws else None
     pr = ws.max_rad if ws else None
     rel = None if pm is None else 2.0 * pm + (2.0 * case.reach * pr if pr is not None else 0.0)
@@ -146,8 +181,9 @@ def judged_rows(o, case) -> list[dict]:
     ]
 
 
-def classify(o, case) -> str:
-    """right / refused / crash / wrong, foretold / confidently wrong (module docstring)."""
+def classify(o, case, ws=None) -> str:
+    """right / refused / crash / wrong, foretold / confidently wrong (module docstring); `ws` the case's
+    workspace prediction where computed already."""
     from closedloop.validation.check import unforetold
 
     if o.right:
@@ -156,7 +192,7 @@ def classify(o, case) -> str:
         return "refused"
     if o.status == "crash" or o.judgement is None:
         return "crash"
-    return "confidently wrong" if unforetold(judged_rows(o, case)) else "wrong, foretold"
+    return "confidently wrong" if unforetold(judged_rows(o, case, ws)) else "wrong, foretold"
 
 
 def findings(rows: list[dict]) -> str:
@@ -172,9 +208,11 @@ def findings(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def table(rows: list[dict], by: str) -> str:
+def table(rows: list[dict], by: str, fit_verdict: bool = False) -> str:
     """Markdown table per `by` and in total: cases, right (and how many of those the verdict flags:
-    false alarms), refused (wrong, verdict not ok), confidently wrong (wrong, verdict ok), crashes."""
+    false alarms), refused (wrong, verdict not ok), confidently wrong (wrong, verdict ok), crashes;
+    `fit_verdict`: classified by the fit's own verdict instead of the command line's."""
+    key, flag = ("outcome_fit_verdict", "flagged_fit_verdict") if fit_verdict else ("outcome", "flagged")
     keys = sorted({r[by] for r in rows}, key=lambda k: (LOOPS + list(VARIANTS)).index(k))
     out = [
         f"| {by} | cases | right | of which flagged | refused | wrong, foretold | confidently wrong | crash | slowest (s) |",
@@ -182,8 +220,8 @@ def table(rows: list[dict], by: str) -> str:
     ]
     for k in keys + ["total"]:
         sel = [r for r in rows if k == "total" or r[by] == k]
-        c = Counter(r["outcome"] for r in sel)
-        flagged = sum(bool(r.get("flagged")) for r in sel)
+        c = Counter(r.get(key, r["outcome"]) for r in sel)
+        flagged = sum(bool(r.get(flag, r.get("flagged"))) for r in sel)
         out.append(
             f"| {k} | {len(sel)} | {c['right']} | {flagged} | {c['refused']} | {c['wrong, foretold']} | "
             f"{c['confidently wrong']} | {c['crash']} | {max((r['seconds'] for r in sel), default=0.0):.1f} |"

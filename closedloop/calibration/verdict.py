@@ -37,8 +37,10 @@ suspect (exit 0 with a warning line):
     solution;
   * the overall size is held by a short length (under 67 mm: a 2 mm error of
     its nominal value is a size error over 3 %, the size change that is
-    suspect), or a given length does not set the size or depends on values
-    the loops cannot see;
+    suspect), where nothing predicts the size's error or its predicted error
+    breaks the accuracy asked (`judge_size`: elsewhere the report states that
+    predicted error, a note), or a given length does not set the size or
+    depends on values the loops cannot see;
   * a validation fold did not converge, or held-out closure over 3x the
     training closure (and above the noise floor).
 ok otherwise.
@@ -65,7 +67,16 @@ from closedloop.records import FAILED, OK, SUSPECT, VerdictRules
 if TYPE_CHECKING:
     from closedloop.records import CalibrationResult
 
-__all__ = ["Verdict", "VerdictRules", "final_verdict", "gross_rejections", "judge", "length_scale", "size_finding"]
+__all__ = [
+    "Verdict",
+    "VerdictRules",
+    "final_verdict",
+    "gross_rejections",
+    "judge",
+    "judge_size",
+    "length_scale",
+    "size_finding",
+]
 
 _RANK = {OK: 0, SUSPECT: 1, FAILED: 2}
 
@@ -252,8 +263,10 @@ def size_finding(result: CalibrationResult, rules: VerdictRules | None = None) -
     """(whether the data measure the robot's size, the parameter that holds it, the sentence that says so).
 
     Measured: a loop that sees the size (a tracker, a camera), a known distance between loop
-    points, or a known length between frames that sets it (`analysis.scale.length_findings`:
-    its size response within `VerdictRules.sets_size_low`..`sets_size_high`).  Otherwise the size is the model file's: held by
+    points, a known length between frames that sets it (`analysis.scale.length_findings`:
+    its size response within `VerdictRules.sets_size_low`..`sets_size_high`), or loops that close at
+    any size on a chain whose readings fix it anyway (`ScaleRecord.size_free` False: no uniform scaling
+    in what the loops leave free, as a prismatic joint's travel in metres makes).  Otherwise the size is the model file's: held by
     the gauge (`ScaleRecord.gauge`), or by no single length of it (which the gauge analysis
     warns of: the loops then leave more than a uniform scaling free).
     """
@@ -272,6 +285,10 @@ def size_finding(result: CalibrationResult, rules: VerdictRules | None = None) -
     if lengths and response is not None and rules.sets_size(response):
         return True, None, None
     held = result.scale.gauge
+    if held is None and getattr(result.scale, "size_free", None) is False:
+        # the loops close at any size, yet what they leave free holds no uniform scaling: the data fix the size
+        # (a prismatic joint's travel, read in metres); its uncertainty is the fit's, in every frame's error
+        return True, None, None
     why = f"held by the model's {held}" if held else "no single length of the model holds it"
     if lengths:
         labels = " and ".join(lp.label() for lp in lengths.values())
@@ -458,6 +475,56 @@ def judge_workspace(verdict: Verdict, workspace) -> Verdict:
     return v
 
 
+def judge_size(verdict: Verdict, result: CalibrationResult, rules, workspace, target_m: float | None = None) -> Verdict:
+    """The verdict with the size's predicted error in place of the short-length finding alone.
+
+    The fit flags a size held by a short length (`closedloop.analysis.gauge.short_gauge_warning`: a
+    2 mm error of its nominal value moves the size by over `VerdictRules.scale_suspect`).  Where the
+    workspace prediction gives the size's expected error (`WorkspaceAccuracy.size_predicted`: the held
+    length's share and the fit's), the report states what the finding warns of, and a reader (and
+    `closedloop check`, on its size row) compares the size against it: the finding becomes a note with
+    that figure, and the verdict is judged without it.  It stays suspect where nothing predicts the size
+    (no followed frame), and where an accuracy target (`target_m`, ``--accuracy``) is given that the size's
+    predicted error breaks at the robot's reach (the size error times the farthest followed point's
+    distance from the base)."""
+    from closedloop.analysis.gauge import short_gauge_warning
+
+    rules = rules or VerdictRules()
+    held = verdict.evidence.get("size_held_by")
+    scale = getattr(result, "scale", None)
+    length = float(getattr(scale, "gauge_length", 0.0) or 0.0)
+    short = short_gauge_warning(str(held), length, rules.scale_suspect) if held else None
+    flag = f"{SUSPECT}: {short}"
+    if short is None or flag not in verdict.reasons or workspace is None or workspace.size_predicted is None:
+        return verdict
+    p = float(workspace.size_predicted)
+    reach = max(
+        (float(np.max(f.reach)) for f in workspace.frames if f.reach is not None and np.size(f.reach)), default=0.0
+    )
+    said = f"{short}; its predicted size error is {p:.2%} (accuracy.workspace.size)"
+    if target_m is not None and p * reach > target_m:
+        said += (
+            f", {p * reach * 1e3:.3g} mm at the robot's {reach:.3g} m reach against the {target_m * 1e3:.4g} mm asked"
+        )
+        keep = True
+    else:
+        keep = False
+    v = Verdict(OK, [], dict(verdict.evidence))
+    v.evidence["size_predicted"] = p
+    for reason in verdict.reasons:
+        status, _, why = reason.partition(": ")
+        if reason == flag:
+            if keep:
+                v.add(SUSPECT, said)
+            else:
+                v.reasons.append(f"note: {said}")
+        elif status in (SUSPECT, FAILED):
+            v.add(status, why)
+        else:
+            v.reasons.append(reason)
+    return v
+
+
 def final_verdict(result: CalibrationResult, cv: dict | None, fixtures: dict | None, rules=None) -> Verdict | None:
     """The fit's verdict with the held-out evidence (`judge` on the fit, its k-fold folds and its held-out
     fixtures); what the fit's own judgement found beyond the rules (a known length left out of the fit,
@@ -493,6 +560,8 @@ def judge_run(
     verdict = final_verdict(result, cv, fixtures, rules)
     assert verdict is not None, "the fit is judged by the pipeline"
     verdict = judge_workspace(verdict, workspace)  # no better than nominal: failed
+    # a size held by a short length: its predicted error stated, judged against the target if one is given
+    verdict = judge_size(verdict, result, rules, workspace, target[0] if target else None)
     if target is None:
         return verdict, None
     return judge_accuracy(verdict, workspace, *target)  # ok only where the prediction meets the target

@@ -56,6 +56,8 @@ def parse_number(text: str, what: str, error: type[InputError] = InputError, *, 
 
 #: the pose-selection methods of `closedloop.design.poses` (D- and A-optimal, greedy and exchange)
 POSE_METHODS = ("greedy", "detmax", "greedy-a", "exchange-a")
+#: the simulator's draws of the true robot (`closedloop.sims.true_robot`): the identifiable parameters, or all
+TRUTH_DRAWS = ("identifiable", "all")
 
 
 def is_number(x: Any) -> bool:
@@ -349,6 +351,7 @@ def _settings_schema() -> dict:
         "rotation": num(0, 0.5),
         "offset": num(0, 0.5),
         "scale": num(0, 0.5),
+        "truth": {"enum": list(TRUTH_DRAWS)},
         "compliance": num(0, 0.1),
         "noise": num(0, 0.1),
         "quantization": num(0, 0.1),

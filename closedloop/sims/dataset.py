@@ -6,7 +6,8 @@ method of its class in :mod:`closedloop.sims.loop_types`):
 1. nominal URDF (cleaned, :func:`closedloop.assets.catalog.nominal_urdf`) and its
    Pinocchio model; arm joints = movable joints in Pinocchio order;
 2. true parameters: :func:`~closedloop.sims.true_robot.identifiable_parameters`
-   drawn by :func:`~closedloop.sims.true_robot.draw_errors`; the true URDF
+   (with the setting ``truth=all``: :func:`~closedloop.sims.true_robot.all_parameters`, every joint
+   origin) drawn by :func:`~closedloop.sims.true_robot.draw_errors`; the true URDF
    carries the placement errors (offsets/scales stay in the sensor model);
 3. MuJoCo scene of the true robot with the loop closed at the true grasp
    configuration ``q0`` (:func:`~closedloop.sims.scene.build_scene`);
@@ -65,7 +66,7 @@ from closedloop.sims.scenario_files import SCENARIOS  # the shipped scenario fil
 from closedloop.sims.scenarios import CAMERA_SCENARIOS, Scenario, SimSettings, unknown_scenario
 from closedloop.sims.scene import Scene, build_scene, true_urdf
 from closedloop.sims.tracking import sensor_readings, track_and_record
-from closedloop.sims.true_robot import draw_errors, identifiable_parameters
+from closedloop.sims.true_robot import all_parameters, draw_errors, identifiable_parameters
 
 __all__ = ["SimResult", "simulate", "sensor_readings", "check_dataset_dir"]
 
@@ -335,9 +336,13 @@ def _nominal(sc: Scenario, scratch: Path, files: OutputSet, out: Path) -> _Nomin
 
 
 def _draw_truth(sc: Scenario, settings: SimSettings, nominal: _Nominal, rng: np.random.Generator) -> _Truth:
-    """Step 2: errors drawn on the parameters the core identifies; offsets and scales stay in the sensor model."""
+    """Step 2: errors drawn on the parameters the core identifies (every joint origin with the setting
+    ``truth=all``); offsets and scales stay in the sensor model."""
     joint_names = nominal.joint_names
-    names = identifiable_parameters(nominal.path, sc, joint_names, settings.scale > 0.0)
+    if settings.truth == "all":
+        names = all_parameters(joint_names, settings.scale > 0.0)
+    else:
+        names = identifiable_parameters(nominal.path, sc, joint_names, settings.scale > 0.0)
     values = draw_errors(
         names,
         rng,

@@ -104,6 +104,12 @@ class SimSettings:
             preload the previous one left: ~50x on the Panda weld).
     Truth:
         translation, rotation, offset, scale: error magnitudes (see module doc).
+        truth: which parameters the errors are drawn in: ``identifiable`` (default: those a
+            calibration of the loop estimates, so ``check --parameters`` compares them one by one)
+            or ``all`` (every placement component of every driven joint, the first joint's and
+            those along each axis included, and every joint's offset: the held length that sets the
+            overall size is wrong too, as in a real robot file, so a calibration's size can be
+            wrong; judge it with ``check``'s kinematic view).
     Sensor model:
         compliance: joint compliance c = 1/K of every arm joint [rad / N m]
             (default 0: rigid joints).  The encoders are on the motor side, so
@@ -146,6 +152,7 @@ class SimSettings:
     rotation: float = 0.002
     offset: float = 0.02
     scale: float = 0.0
+    truth: str = "identifiable"
     compliance: float = 0.0
     noise: float = 0.0
     quantization: float = 0.0

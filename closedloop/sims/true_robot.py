@@ -8,6 +8,11 @@ robot equals the nominal one plus uniform random errors, per parameter kind
 * ``offset`` (``<joint>.offset``) U(-m, m) rad, default m = 0.02 rad;
 * ``scale`` (``<joint>.scale``) 1 + U(-m, m), default m = 0 (not perturbed).
 
+Which parameters are drawn (the setting ``truth``): ``identifiable`` (:func:`identifiable_parameters`,
+what a calibration of the loop estimates) or ``all`` (:func:`all_parameters`, every joint origin of the
+driven chain, the lengths a calibration must hold at their nominal values included, as a real robot
+file's errors are).
+
 A joint placement error is a right twist in the joint's own frame:
 ``M = M0 * exp6([x, y, z, rx, ry, rz])``.  Sensor model (thesis eq. 4.4):
 ``theta_true = scale * reading + offset``.
@@ -21,7 +26,7 @@ import pinocchio as pin
 from closedloop.sims.loop_types import sim_loop
 from closedloop.sims.scenarios import Scenario
 
-__all__ = ["perturbable_parameters", "identifiable_parameters", "draw_errors"]
+__all__ = ["perturbable_parameters", "identifiable_parameters", "all_parameters", "draw_errors"]
 
 _COMPONENTS = ("x", "y", "z", "rx", "ry", "rz")
 
@@ -101,6 +106,20 @@ def identifiable_parameters(nominal_path, sc: Scenario, joint_names: list[str], 
     else:
         names = identifiable_names(robot, [loop], np.asarray(sc.q0, dtype=float)[None, :], identify)
     return [n for n in names if n.rsplit(".", 1)[0] in joint_names]
+
+
+def all_parameters(joint_names: list[str], scale: bool = False) -> list[str]:
+    """Every placement component (x, y, z, rx, ry, rz) and the offset of every driven joint (its scale too
+    with `scale`): the truth of a robot file whose every joint origin is off, the first joint's and the
+    components along each axis included.  Those a calibration cannot see are absorbed by the base, by a
+    neighbour or by the length it holds: the overall size of the true robot differs from the nominal one
+    by what the held length is off."""
+    names: list[str] = []
+    for jn in joint_names:
+        names += [f"{jn}.{c}" for c in _COMPONENTS] + [f"{jn}.offset"]
+        if scale:
+            names.append(f"{jn}.scale")
+    return names
 
 
 def _kind(name: str) -> str:
