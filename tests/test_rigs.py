@@ -239,35 +239,6 @@ def test_lofo_names_extrapolating_place_suspect(tmp_path):
     assert any("held-out fixture place1 " in r for r in v.reasons), v.reasons
 
 
-@pytest.mark.slow
-def test_lofo_from_the_full_solution_predicts_as_from_nominal(rig3, calibrated):
-    """Each refit of leave-one-fixture-out started at the full calibration's values converges to the minimum of
-    its own data, as from the nominal model: the same held-out closures (to 0.1 %), the same verdicts."""
-    tmp, rig, robot, log = rig3
-    res, loops = calibrated
-    cold = leave_one_fixture_out(robot, log, loops, CalibrationOptions())
-    warm = leave_one_fixture_out(
-        robot, log, loops, CalibrationOptions(), start=dict(zip(res.fit.names, res.fit.values))
-    )
-    assert [r["fixture"] for r in warm["fixtures"]] == [r["fixture"] for r in cold["fixtures"]]
-    for c, w in zip(cold["fixtures"], warm["fixtures"]):
-        assert w["converged"] and c["converged"]
-        assert abs(w["calibrated_rms_m"] - c["calibrated_rms_m"]) <= 1e-3 * c["calibrated_rms_m"], (c, w)
-        assert w["nominal_rms_m"] == c["nominal_rms_m"] and w["worse"] == c["worse"]
-
-
-def test_start_for_keeps_what_the_refit_has():
-    """A refit's start: the values of its loops' joints, its loops' own and their shared groups'; nothing of
-    a loop left out (the refit's problem has no such parameter, and `initial` refuses unknown names)."""
-    from closedloop.assets.catalog import ROBOTS
-    from closedloop.validation.fixtures import start_for
-
-    robot = RobotModel.from_file(ROBOTS["panda"].path)
-    a = parse_loop("point:frame=panda_hand,name=a,tip=@ball", robot)
-    values = {"panda_joint3.z": 0.3, "a.px": 0.1, "b.px": 0.2, "ball.tip_x": 0.01, "other.tip_x": 0.0}
-    assert start_for(robot, [a], values) == {"panda_joint3.z": 0.3, "a.px": 0.1, "ball.tip_x": 0.01}
-
-
 def test_evaluate_reproduces_closure_and_compares_models(rig3, calibrated, tmp_path):
     from closedloop.cli.main import main
 

@@ -20,7 +20,6 @@ block, so one fixture.  A distance is trained on only when both its loops are.
 
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -72,31 +71,10 @@ def _subset(log_: JointLog, names: list[str]) -> JointLog:
     return subset(log_, rows)
 
 
-def start_for(robot: RobotModel, loops: list[Loop], values: dict[str, float]) -> dict[str, float]:
-    """The values of `values` (a calibration's, by name) that a problem of `loops` has: its joints' (those that
-    carry the loops' frames), its loops' own and the shared groups they name."""
-    owners = {lp.name for lp in loops}
-    for lp in loops:
-        owners |= {j for f in lp.frames for j in robot.supporting_joints(f)}
-        owners |= {g.rsplit(".", 1)[0] for g in (getattr(lp, "shared", None) or {}).values()}
-    return {n: v for n, v in values.items() if n.rsplit(".", 1)[0] in owners}
-
-
 def leave_one_fixture_out(
-    robot: RobotModel,
-    log_: JointLog,
-    loops: list[Loop],
-    options=None,
-    worse: float = WORSE,
-    start: dict[str, float] | None = None,
+    robot: RobotModel, log_: JointLog, loops: list[Loop], options=None, worse: float = WORSE
 ) -> dict[str, Any] | None:
     """Refit without each fixture, evaluate it with the refit and with the nominal model; None if < 2 fixtures.
-
-    `start`: the full calibration's values by name (``dict(zip(res.fit.names, res.fit.values))``); each refit
-    starts there (what it shares with the full problem; the user's own starting values kept over them)
-    instead of at the nominal model.  The refit still converges to the minimum of its own data: the start
-    saves the iterations from the nominal model to it, which with many fixtures are most of the validation's
-    time.
 
     Returns {'fixtures': [{'fixture', 'loops', 'n_test', 'calibrated_rms_m', 'calibrated_mean_m',
     'nominal_rms_m', 'nominal_mean_m', 'converged', 'worse'}], 'suspect': [reasons]}; a fixture whose
@@ -120,11 +98,8 @@ def leave_one_fixture_out(
         test = [lp for lp in loops if lp.name in members]
         train_names = [lp.name for lp in train if not getattr(lp, "parameter_only", False)]
         test_log = _subset(log_, members)
-        fit_opt = opt
-        if start:
-            fit_opt = replace(opt, initial=start_for(robot, train, start) | dict(opt.initial))
         try:
-            res = calibrate(robot, _subset(log_, train_names), train, fit_opt)
+            res = calibrate(robot, _subset(log_, train_names), train, opt)
         except ClosedLoopError as exc:  # the other fixtures alone cannot calibrate: nothing to judge
             rows.append(
                 {
