@@ -269,9 +269,10 @@ def _skews(v: np.ndarray) -> np.ndarray:
 
 @register("face", {"frame", "to", "tip", "face", "normal"})
 def _face(kw: dict[str, str], robot: RobotModel) -> Loop:
-    """face:frame=A[,to=B][,tip="x y z"][,face="mx my mz"][,normal="nx ny nz"]  (a flat face of A on a flat face
-    of B; tip: a point of A's face, default A's origin; face, normal: reference directions of the faces' outward
-    normals in A and in B, default their z axes)."""
+    """face:frame=A[,to=B][,tip="x y z"][,face="mx my mz"][,normal="nx ny nz"]  (face, normal: default z axes).
+
+    A flat face of A on a flat face of B; tip: a point of A's face (default A's origin); face, normal: reference
+    directions of the faces' outward normals in A and in B."""
     if "frame" not in kw:
         raise LoopError("face loop needs frame=<frame A>")
     tip = parse_vec(kw["tip"], 3, "tip") if "tip" in kw else None
