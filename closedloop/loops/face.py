@@ -50,13 +50,14 @@ def _angles(R0: np.ndarray, n: np.ndarray) -> np.ndarray:
     return (np.arctan2(s, m[2]) / s) * axis[:2]
 
 
-def fixed_direction(R: np.ndarray) -> tuple[np.ndarray, float]:
+def fixed_direction(R: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, float]:
     """The unit direction m of frame A that the rotations R (N, 3, 3) = R_B^-1 R_A carry to one direction of
     B, and how far they tilt it from that direction (rad RMS): the least eigenvector of
-    sum_i (R_i - R_mean)^T (R_i - R_mean), i.e. min over |m| = 1 of sum_i |R_i m - R_mean m|^2."""
+    sum_i (R_i - R_mean)^T (R_i - R_mean), i.e. min over |m| = 1 of sum_i |R_i m - R_mean m|^2.  Rotations
+    that do not turn (every direction fixed) give `ref`."""
     D = R - R.mean(axis=0)
     lam, V = np.linalg.eigh(np.einsum("nki,nkj->ij", D, D))
-    m = V[:, 0]
+    m = V[:, 0] if lam[1] > 1e-18 * R.shape[0] else ref
     v = R @ m
     c = v.mean(axis=0)
     c = c / max(np.linalg.norm(c), 1e-300)
@@ -171,7 +172,7 @@ class FaceLoop(Loop):
         """(m in A, n in B with n . n_ref >= 0, offset d, tilt in rad RMS) read off the poses: the fixed direction
         of the relative rotations and the plane through the points y_i = T_B^-1 T_A t."""
         RBA = np.swapaxes(TB[:, :3, :3], 1, 2) @ TA[:, :3, :3]
-        m, tilt = fixed_direction(RBA) if RBA.shape[0] >= 2 else (self.m_ref, 0.0)
+        m, tilt = fixed_direction(RBA, self.m_ref) if RBA.shape[0] >= 2 else (self.m_ref, 0.0)
         n = -(RBA @ m).mean(axis=0)
         n /= max(np.linalg.norm(n), 1e-300)
         if n @ self.n_ref < 0:
