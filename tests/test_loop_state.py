@@ -22,6 +22,7 @@ SPECS = {
     "point": "point:frame=panda_hand",
     "plane": "plane:frame=panda_hand",
     "sphere": "sphere:frame=panda_hand,distance=0.08",
+    "face": "face:frame=panda_hand",
     "hinge": "hinge:frame=panda_hand",
     "passive": f'passive:frame=panda_hand,task={TASKS / "door.urdf"},task_frame=grip,q0="0.3 0.1"',
     "measured_point": "measured_point:frame=panda_hand",

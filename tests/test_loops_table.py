@@ -31,7 +31,7 @@ def test_every_table_entry_registers_its_type_in_its_module():
 def test_a_type_missing_from_the_table_cannot_register():
     with pytest.raises(LoopError, match="no entry in closedloop.loops.spec.LOOP_TYPES"):
         spec.register("spring", {"frame"})
-    with pytest.raises(LoopError, match="unknown loop type 'spring' .known: camera, hinge,"):
+    with pytest.raises(LoopError, match="unknown loop type 'spring' .known: camera, face, hinge,"):
         spec.parse_loop("spring:frame=tool0", None)
 
 

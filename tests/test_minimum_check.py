@@ -70,3 +70,43 @@ def test_the_thresholds_and_the_round_off_exception(noisy):
     assert not any("Gauss-Newton step" in r for r in v.reasons)
     v = judge(replace(noisy, fit=replace(noisy.fit, reducible=float("nan"))))  # bounds: not checked
     assert "reducible" not in v.evidence and v.status == "ok"
+
+
+def test_a_profile_that_falls_restarts_the_fit_and_converged_means_a_minimum(panda, panda_weld, monkeypatch):
+    """Where the profile check finds the cost lower beside the solution (`linearity.Profile.falls`), the fit
+    restarts at that lower point, once: the result says so, counts both fits' iterations and keeps the first
+    start's closures; where it falls again the result is not `converged` and the verdict is failed."""
+    from closedloop.analysis.linearity import Profile
+    from closedloop.calibration import pipeline
+
+    rng = np.random.default_rng(5)
+    log = JointLog(panda_weld.joints, panda_weld.readings + rng.normal(0.0, 1e-4, panda_weld.readings.shape))
+    seen = []
+
+    def falls_once(problem, record, *args):
+        seen.append(record)
+        if len(seen) == 1:  # a lower point: the solution itself moved by 1e-4 along every estimated parameter
+            return [Profile("a test direction", 1.0, (-1.0, 2.0), record.values[record.estimated] + 1e-4)], []
+        return [], []
+
+    monkeypatch.setattr(pipeline, "check_error_bars", falls_once)
+    res = calibrate(panda, log, [WeldLoop("fixture", "panda_hand")])
+    assert len(seen) == 2 and res.converged and res.verdict.status != "failed"
+    assert np.allclose(seen[1].initial[seen[0].estimated], seen[0].values[seen[0].estimated] + 1e-4)
+    assert res.fit.iterations == seen[0].iterations + seen[1].iterations
+    assert np.array_equal(res.fit.initial, seen[0].initial)
+    assert res.fit.residuals_before == seen[0].residuals_before
+    a, b = (
+        res.fit.residuals_after[0],
+        seen[0].residuals_after[0],
+    )  # the same closure (weak directions kept at the start)
+    assert abs(a.rms_m - b.rms_m) <= 0.02 * b.rms_m and abs(a.rms_rad - b.rms_rad) <= 0.02 * b.rms_rad
+    assert any("restarted at the profile's lower point" in n for n in res.notes), res.notes
+
+    def always_falls(problem, record, *args):
+        return [Profile("a test direction", 1.0, (-1.0, 2.0), record.values[record.estimated])], []
+
+    monkeypatch.setattr(pipeline, "check_error_bars", always_falls)
+    res = calibrate(panda, log, [WeldLoop("fixture", "panda_hand")])
+    assert not res.converged and res.fit.solver_status == "stalled" and "no minimum" in res.fit.solver_message
+    assert res.verdict.status == "failed"

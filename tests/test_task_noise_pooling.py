@@ -47,3 +47,24 @@ def test_equal_play_pooled_unequal_not(tmp_path: Path):
     for n in names:
         truth = 2e-4 if n.startswith("place") else 8e-4
         assert abs(model[n]["task_sigma_m"] / truth - 1.0) < 0.2, (n, model[n])
+
+
+def test_batched_pseudo_inverse_is_the_eigenvalue_one():
+    """`_wpinv`: the batched inverse of well-conditioned matrices, the eigenvalue pseudo-inverse (eigenvalues
+    below 1e-12 of the largest dropped) of the others, in one stack; 1 x 1 matrices by division."""
+    from closedloop.estimate.variance import _eigen_pinv, _wpinv
+
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=(40, 3, 5))
+    W = J @ np.swapaxes(J, 1, 2)
+    W[3] = np.diag([1.0, 1e-14, 2.0])  # a cut eigenvalue on a well-scaled diagonal: the inverse would keep it
+    singular = W.copy()
+    singular[7] = np.diag([0.0, 1.0, 1.0])  # no inverse: the stack by eigenvalues
+    for stack in (W, singular):
+        ref = _eigen_pinv(stack)
+        got = _wpinv(stack)
+        assert np.abs(got - ref).max() <= 1e-9 * np.abs(ref).max()
+        assert got[3, 1, 1] == 0.0
+    assert _wpinv(singular)[7, 0, 0] == 0.0
+    w = np.array([2.0, 0.0, 0.5])[:, None, None]
+    assert np.array_equal(_wpinv(w)[:, 0, 0], [0.5, 0.0, 2.0])

@@ -92,7 +92,7 @@ from closedloop.records import ParamStatus
 POINT_LOOPS = ("PointLoop", "PlaneLoop", "MeasuredPointLoop", "point", "plane", "measured_point")
 POSE_LOOPS = ("WeldLoop", "HingeLoop", "MeasuredPoseLoop", "weld", "hinge", "measured_pose")
 #: loops that close at any overall size: with only these the size is not measured
-SIZE_BLIND = ("PointLoop", "PlaneLoop", "WeldLoop", "HingeLoop", "point", "plane", "weld", "hinge")
+SIZE_BLIND = ("PointLoop", "PlaneLoop", "FaceLoop", "WeldLoop", "HingeLoop", "point", "plane", "face", "weld", "hinge")
 N_WORKSPACE = 200  # configurations the workspace is sampled at (as many as `closedloop check` compares)
 TOL_M, TOL_RAD = 1e-3, 5e-3  # check's default tolerances: the weights of position and rotation in the gauge fit
 MAX_DRAWS = 400  # Monte Carlo draws of the expected largest error

@@ -11,6 +11,7 @@ LOOP_EXAMPLES = {
     "point": "point:frame=stylus_tip,name=socket        (tip in a ball socket; tip and socket unknown)",
     "plane": "plane:frame=stylus_tip,name=table         (tip touching an unknown plane)",
     "sphere": "sphere:frame=l_hand,to=r_hand,name=touch,distance=0.08   (two spheres in contact, radii sum 8 cm)",
+    "face": "face:frame=l_palm,to=table,name=palm   (a flat face of l_palm sliding flat on a face of table)",
     "hinge": "hinge:frame=tool0,name=door               (tool on a door handle, hinge unknown)",
     "passive": "passive:frame=tool0,task=door.urdf,task_frame=handle,name=door",
     "measured_pose": "measured_pose:frame=tool0,name=tracker,sigma_t=1e-4,sigma_r=1e-3   "

@@ -16,6 +16,7 @@ from closedloop.loops.base import Loop, LoopEval
 
 if TYPE_CHECKING:  # what the lazy names are, for type checkers
     from closedloop.loops.camera.loop import CameraLoop
+    from closedloop.loops.face import FaceLoop
     from closedloop.loops.hinge import HingeLoop
     from closedloop.loops.measured import MeasuredPointLoop, MeasuredPoseLoop
     from closedloop.loops.passive import PassiveChainLoop
@@ -26,6 +27,7 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers
 #: the loop classes this package exports, by the module that defines each (loaded on first use)
 _LAZY = {
     "CameraLoop": "closedloop.loops.camera.loop",
+    "FaceLoop": "closedloop.loops.face",
     "HingeLoop": "closedloop.loops.hinge",
     "MeasuredPointLoop": "closedloop.loops.measured",
     "MeasuredPoseLoop": "closedloop.loops.measured",
@@ -39,6 +41,7 @@ __all__ = [
     "Loop",
     "LoopEval",
     "CameraLoop",
+    "FaceLoop",
     "HingeLoop",
     "MeasuredPointLoop",
     "MeasuredPoseLoop",

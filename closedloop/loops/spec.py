@@ -47,6 +47,7 @@ LOOP_TYPES: dict[str, str] = {
     "point": ".point",
     "plane": ".plane",
     "sphere": ".sphere",
+    "face": ".face",
     "hinge": ".hinge",
     "passive": ".passive",
     "measured_pose": ".measured",
