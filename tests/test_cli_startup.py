@@ -89,6 +89,8 @@ def test_calibrate_with_html_loads_the_figure_code(log, tmp_path):
         str(tmp_path / "r.html"),
         "--cv",
         "0",
+        "--regions",
+        "0",
         "--quiet",
     )
     assert rc == 0 and (tmp_path / "r.html").stat().st_size > 10_000

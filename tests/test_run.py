@@ -90,6 +90,8 @@ def test_a_run_writes_what_its_verdict_allows(data, tmp_path):
         out=str(tmp_path / "no.urdf"),
         report=str(tmp_path / "no.json"),
         rules=VerdictRules(failed_joint_noise=run.result.noise.sigma / 2),
+        cv=0,  # the fit's own rule fails it: no held-out evidence needed
+        regions=0,
     )
     run = calibrate_files(failing)
     assert run.verdict.status == "failed" and not run.model_written
