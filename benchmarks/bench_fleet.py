@@ -129,11 +129,14 @@ def _tree_cpu(pids: list[int]) -> dict[int, float]:
 
 
 def _is_ray_worker(pid: int) -> bool:
-    """A Ray worker process (titled ``ray::IDLE`` or ``ray::TASK``), not one of the cluster's services."""
+    """A Ray worker process (titled ``ray::IDLE`` or ``ray::TASK``), not one of the cluster's services
+    (GCS, raylets, object stores, and each node's agents, titled ``ray::DashboardAgent`` and
+    ``ray::RuntimeEnvAgent``)."""
     try:
-        return Path(f"/proc/{pid}/cmdline").read_bytes().startswith(b"ray::")
+        title = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")[0]
     except OSError:
         return False
+    return title.startswith(b"ray::") and not title.endswith(b"Agent")
 
 
 def _machine_busy() -> float:
