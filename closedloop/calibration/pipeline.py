@@ -286,6 +286,7 @@ def _calibrate(
         why = b.loop.mismatch(problem.loop_frame_poses(x0, bi), b.meas)
         if why is not None:
             raise LoopError(f"{log_.source or 'the log'}: {why}")
+    problem.forget_poses()  # the start's poses, read by the initialisation and the check above: not kept
     status = select_parameters(problem, opt.identify, opt.fix, x0)
     notes, dropped, motion_warnings = check_motion(problem, x0, status)
     free = [k for k, s in enumerate(status) if s == ParamStatus.SELECTED]

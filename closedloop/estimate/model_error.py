@@ -217,6 +217,9 @@ def loo_prediction(problem: CalibrationProblem, x: np.ndarray, est: list[int], r
     return float(np.sqrt(total / count)) if count else 0.0
 
 
+_SUM_CHUNK = 16384  # configurations whose products `plain_linearization` forms at a time
+
+
 def plain_linearization(
     problem: CalibrationProblem,
     x: np.ndarray,
@@ -251,15 +254,17 @@ def plain_linearization(
     for ev, nz in zip(evals, problem.noise):
         if ev.J is None or ev.Jq is None or not ev.J.size:
             continue
-        J = np.nan_to_num(ev.J if pick is None else ev.J[:, :, pick]) * scale
-        Jq = np.nan_to_num(ev.Jq) * sigma_q[None, None, :]
-        rows = J.reshape(-1, L)
-        JtJ += rows.T @ rows
-        M = (np.swapaxes(Jq, 1, 2) @ J).reshape(-1, L)  # J_theta,i^T diag(sigma_q) J_i, a row block per configuration
-        meat += M.T @ M
-        if nz.measurement_cov is not None:
-            meat += rows.T @ (nz.measurement_cov @ J).reshape(-1, L)
-        Jtr += rows.T @ np.nan_to_num(ev.r).reshape(-1)
+        for a in range(0, ev.J.shape[0], _SUM_CHUNK):  # the temporaries a chunk of configurations at a time
+            part = ev.J[a : a + _SUM_CHUNK]
+            J = np.nan_to_num(part if pick is None else part[:, :, pick]) * scale
+            Jq = np.nan_to_num(ev.Jq[a : a + _SUM_CHUNK]) * sigma_q[None, None, :]
+            rows = J.reshape(-1, L)
+            JtJ += rows.T @ rows
+            M = (np.swapaxes(Jq, 1, 2) @ J).reshape(-1, L)  # J_theta,i^T diag(sigma_q) J_i per configuration
+            meat += M.T @ M
+            if nz.measurement_cov is not None:
+                meat += rows.T @ (nz.measurement_cov @ J).reshape(-1, L)
+            Jtr += rows.T @ np.nan_to_num(ev.r[a : a + _SUM_CHUNK]).reshape(-1)
     Ainv = np.linalg.pinv(JtJ, rcond=1e-12, hermitian=True)
     return -(Ainv @ Jtr) * scale, Ainv @ meat @ Ainv * np.outer(scale, scale), float(Jtr @ Ainv @ Jtr)
 

@@ -335,6 +335,10 @@ class CalibrationProblem:
         b = self.blocks[block_index]
         return b.loop.initialize_frames(self.loop_frame_poses(values, block_index), b.meas)
 
+    def forget_poses(self) -> None:
+        """Drop the poses `loop_frame_poses` keeps (on a long log, two arrays of 128 bytes per configuration)."""
+        self.__dict__.pop("_poses", None)
+
     def loop_frame_poses(
         self, values: np.ndarray, block_index: int, theta: np.ndarray | None = None
     ) -> list[np.ndarray]:
