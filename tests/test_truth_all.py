@@ -4,8 +4,8 @@ With the default draw (``truth=identifiable``) the true robot differs from the n
 calibration can see it, so the length held to set the size is exact and a calibration's size is always
 right.  With ``truth=all`` every joint origin is off, the held length included, as in a real robot file:
 the calibrated size is then off by about what the held length is, which `closedloop check` sees on its size
-row, and which the report predicts (`judge_size` quotes that prediction in the short-length finding, and
-judges the finding against an accuracy target where one is given).
+row, and which the report predicts (`judge_size` states that prediction instead of flagging a short held
+length on its length alone, and judges it against an accuracy target where one is given).
 """
 
 from __future__ import annotations
@@ -68,14 +68,14 @@ def _workspace(size_predicted: float | None, reach: float = 0.8):
     return SimpleNamespace(size_predicted=size_predicted, frames=(frame,))
 
 
-def test_short_held_length_stays_suspect_without_an_accuracy_target_quoting_its_predicted_error():
+def test_short_held_length_is_stated_with_its_predicted_error_not_flagged():
     v, result, short = _verdict_with_short_length()
     judged = judge_size(v, result, None, _workspace(0.046))
-    assert judged.status == SUSPECT
-    assert judged.reasons[0] == f"{SUSPECT}: {short}; its predicted size error is 4.60% (accuracy.workspace.size)"
+    assert judged.status == OK and v.status == SUSPECT  # the verdict given is not edited
+    assert judged.reasons[0] == f"note: {short}; its predicted size error is 4.60% (accuracy.workspace.size)"
     assert judged.reasons[-1] == "size not measured: held by the model's j2.z"  # the size sentence stays last
     assert judged.evidence["size_predicted"] == 0.046
-    assert judge_size(v, result, None, None) is v  # nothing predicts the size: the length alone
+    assert judge_size(v, result, None, None) is v  # nothing predicts the size: judged on the length
     assert judge_size(v, result, None, _workspace(None)) is v
 
 
