@@ -116,9 +116,9 @@ SHORT = "stands for a length of only"
 
 
 def short_length_alone(cls: str, reasons: list[str]) -> str:
-    """The class a case had when a size held by a short length flagged the verdict on the length alone:
-    an ``ok`` verdict whose reasons carry that finding as a note (the size's predicted error stated,
-    `closedloop.calibration.verdict.judge_size`) was ``suspect`` then."""
+    """The class a case had when a size held by a short length flagged the verdict on the length alone (the
+    rule before the command line stated the size's predicted error instead, `closedloop.calibration.verdict.
+    judge_size`): an ``ok`` verdict whose reasons carry that finding as a note was ``suspect`` then."""
     if not any(r.startswith("note: ") and SHORT in r for r in reasons):
         return cls
     if cls == "right":
@@ -395,8 +395,8 @@ def markdown(outcomes: list[Outcome], header: str, n: int, timeout: float) -> st
         + "; ".join(_flagged_share(outcomes, noise, what) for noise, what in ((0.0, "exact"), (1e-5, "noisy")))
         + ".",
         "",
-        "With a size held by a short length flagging the verdict on the length alone (the rule before the "
-        "size's predicted error was stated instead): "
+        "Had a size held by a short length flagged the verdict on the length alone (the rule before the "
+        "report's predicted size error was stated in its place): "
         + "; ".join(
             _flagged_share(outcomes, noise, what, short_length_alone)
             for noise, what in ((0.0, "exact"), (1e-5, "noisy"))

@@ -22,6 +22,11 @@ def _rule(default: float, unit: str, meaning: str):
     return field(default=default, metadata={"unit": unit, "meaning": meaning})
 
 
+#: an observed error is foretold by a prediction when it is at most this many times the predicted one
+#: (`closedloop.validation.check.unforetold`; the verdict's size finding, `calibration.verdict.judge_size`)
+FORETOLD = 3.0
+
+
 @dataclass(frozen=True)
 class VerdictRules:
     """Every threshold the verdict (`closedloop.calibration.verdict.judge`) and the solve's stall test apply.

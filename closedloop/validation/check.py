@@ -29,6 +29,7 @@ import pinocchio as pin
 
 from closedloop.analysis.accuracy import N_WORKSPACE, POINT_LOOPS, POSE_LOOPS, SIZE_BLIND, random_readings
 from closedloop.errors import InputError
+from closedloop.records import FORETOLD  # an error at most this many times the prediction is foretold
 
 NOMINAL = {"placement": 0.0, "offset": 0.0, "scale": 1.0}
 
@@ -477,10 +478,6 @@ def prediction_finding(rows: list[dict]) -> str | None:
         return f"observed within prediction: the largest error is {worst['ratio']:.2g}x the predicted ({worst['name']})"
     names = ", ".join(f"{r['name']} {r['ratio']:.2g}x" for r in outside)
     return f"observed NOT within prediction (above the 95 % bound of the largest error): {names}"
-
-
-#: an error outside tolerance is foretold by the report when it is at most this many times the predicted one
-FORETOLD = 3.0
 
 
 def unforetold(rows: list[dict]) -> list[dict]:
