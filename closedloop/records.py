@@ -296,10 +296,6 @@ class ScaleRecord:
     gauge_note: str | None = None
     gauge_length: float = 0.0  # the length the gauge stands for: holding it longer by d scales by 1 + d / L
     scale_note: str | None = None  # what sets the overall size, in words
-    #: whether what the loops leave free holds a uniform scaling of the robot (`closedloop.analysis.gauge.
-    #: choose_gauge`); False where the loops close at any size but the data fix it anyway (a prismatic
-    #: joint's travel, read in metres); None: not decided (a record made elsewhere)
-    size_free: bool | None = None
     scale_std: float = float("nan")  # relative standard error of the size, when a known distance sets it
     length_response: float | None = None  # size change per change of the known frame lengths (problem.lengths)
     length_leak: float | None = None  # size error per prior-sized error of what the loops cannot see, through them

@@ -400,7 +400,6 @@ def _calibrate(
             gauge_note=structure.gauge_note,
             gauge_length=structure.gauge_length,
             scale_note=found["scale_note"],
-            size_free=structure.scale_free,
             scale_std=found["scale_std"],
             length_response=found["length_response"],
             length_leak=found["length_leak"],

@@ -264,10 +264,8 @@ def size_finding(result: CalibrationResult, rules: VerdictRules | None = None) -
     """(whether the data measure the robot's size, the parameter that holds it, the sentence that says so).
 
     Measured: a loop that sees the size (a tracker, a camera), a known distance between loop
-    points, a known length between frames that sets it (`analysis.scale.length_findings`:
-    its size response within `VerdictRules.sets_size_low`..`sets_size_high`), or loops that close at
-    any size on a chain whose readings fix it anyway (`ScaleRecord.size_free` False: no uniform scaling
-    in what the loops leave free, as a prismatic joint's travel in metres makes).  Otherwise the size is the model file's: held by
+    points, or a known length between frames that sets it (`analysis.scale.length_findings`:
+    its size response within `VerdictRules.sets_size_low`..`sets_size_high`).  Otherwise the size is the model file's: held by
     the gauge (`ScaleRecord.gauge`), or by no single length of it (which the gauge analysis
     warns of: the loops then leave more than a uniform scaling free).
     """
@@ -286,10 +284,6 @@ def size_finding(result: CalibrationResult, rules: VerdictRules | None = None) -
     if lengths and response is not None and rules.sets_size(response):
         return True, None, None
     held = result.scale.gauge
-    if held is None and getattr(result.scale, "size_free", None) is False:
-        # the loops close at any size, yet what they leave free holds no uniform scaling: the data fix the size
-        # (a prismatic joint's travel, read in metres); its uncertainty is the fit's, in every frame's error
-        return True, None, None
     why = f"held by the model's {held}" if held else "no single length of the model holds it"
     if lengths:
         labels = " and ".join(lp.label() for lp in lengths.values())
