@@ -48,10 +48,9 @@ HOLDS = 0.5  # the rise must reach this fraction of K^2 / 2 on both sides
 PIN = 1e3  # weight of the pinning row, in noise units per standard error
 EXACT = 1e-9  # an estimated joint noise below this (rad) is exact data: its error bars are round-off
 #: a profile point whose cost is below the solution's by more than this (noise variances) shows the solution
-#: is no minimum: the fit restarts there (`calibration.pipeline`).  0.5 is a chi-square difference of 1: a
-#: smaller fall leaves the solution within one standard error of the minimum (the profile of the zoo's weak
-#: Panda weld falls by 0.38 at -2 standard errors along its size: its error bars fail, the verdict says so)
-FALLS = 0.5
+#: is no minimum: the fit restarts there (`calibration.pipeline`); smaller falls are within the solve's own
+#: resolution (a twentieth of the rise K^2 / 2 expected at K standard errors)
+FALLS = 0.1
 
 
 @dataclass
