@@ -47,10 +47,6 @@ K = 2.0  # standard errors out on each side
 HOLDS = 0.5  # the rise must reach this fraction of K^2 / 2 on both sides
 PIN = 1e3  # weight of the pinning row, in noise units per standard error
 EXACT = 1e-9  # an estimated joint noise below this (rad) is exact data: its error bars are round-off
-#: a profile point whose cost is below the solution's by more than this (noise variances) shows the solution
-#: is no minimum: the fit restarts there (`calibration.pipeline`); smaller falls are within the solve's own
-#: resolution (a twentieth of the rise K^2 / 2 expected at K standard errors)
-FALLS = 0.1
 
 
 @dataclass
@@ -60,14 +56,6 @@ class Profile:
     name: str
     std: float  # s_u = sqrt(u^T C u), in the direction's own units
     rise: tuple[float, float]  # cost increase (noise variances) at u^T x -+ K s_u, the rest re-minimised
-    #: the estimated values at the profile's lower point where its cost falls below the solution's by more
-    #: than `FALLS` (the solution is then no minimum); None at a minimum
-    lower: np.ndarray | None = None
-
-    @property
-    def falls(self) -> bool:
-        """Whether the cost falls along the profile: the solution is no minimum."""
-        return self.lower is not None
 
     @property
     def expected(self) -> float:
@@ -81,8 +69,7 @@ class Profile:
     def describe(self) -> str:
         return (
             f"along {self.name}, the cost rises by {self.rise[0]:.2g} and {self.rise[1]:.2g} at -{K:g} and "
-            f"+{K:g} standard errors ({self.expected:g} if the error bars held"
-            + ("; it falls: the solution is no minimum)" if self.falls else ")")
+            f"+{K:g} standard errors ({self.expected:g} if the error bars held)"
         )
 
 
@@ -137,7 +124,6 @@ def profile(
     lam, V = np.linalg.eigh(scaled)
     B = V[:, lam > 1e-12 * lam[-1]] * prior[:, None]  # the estimated directions, in parameter units
     rises = []
-    lower = None
     for k in (-K, K):
         target = float(u @ x) + k * s_u
         start = x + k * (cov @ u) / s_u  # the linear model's profile point, in the range of cov
@@ -146,9 +132,7 @@ def profile(
             pinned, np.zeros(B.shape[1]), np.ones(B.shape[1]), SolverOptions(noise=noise, max_iter=50)
         )
         rises.append(_cost(make(), pinned.x(sol.x), noise) - base)
-        if rises[-1] < -FALLS and rises[-1] <= min(rises):
-            lower = pinned.x(sol.x)
-    return Profile(name, s_u, (rises[0], rises[1]), lower)
+    return Profile(name, s_u, (rises[0], rises[1]))
 
 
 def _cost(fun: ResidualFunction, xe: np.ndarray, noise: float) -> float:

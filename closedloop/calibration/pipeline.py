@@ -269,15 +269,8 @@ def calibrate(
 
 
 def _calibrate(
-    robot: RobotModel,
-    log_: JointLog,
-    loops: list[Loop],
-    opt: CalibrationOptions,
-    progress: ProgressReporter | None,
-    restarted: bool = False,
+    robot: RobotModel, log_: JointLog, loops: list[Loop], opt: CalibrationOptions, progress: ProgressReporter | None
 ) -> CalibrationResult:
-    """The calibration; `restarted`: this is the fit restarted at the lower point its first solution's profile
-    found (`_restart_lower`), which is not restarted again."""
     _check_options(opt)
     problem = build_problem(robot, log_, loops, opt.priors)
     opt = replace(opt, fix=expand_fix(opt.fix, problem.names))  # patterns (`--fix 'j*.offset'`) by name
@@ -367,15 +360,6 @@ def _calibrate(
     profiles, bar_warnings = check_error_bars(
         problem, solution, fit, a["sigma"], sigma_estimated, a["dof"], found["scale_std"]
     )
-    fall = next((p for p in profiles if p.falls), None)
-    if fall is not None and not restarted:
-        return _restart_lower(robot, log_, loops, opt, progress, solution, fall)
-    if fall is not None:  # once more, the cost falls beside the solution: no minimum was found
-        solution = replace(
-            solution,
-            solver_status="stalled",
-            solver_message=f"no minimum: restarted where the profile check found a lower cost, {fall.describe()}",
-        )
     res = CalibrationResult(
         problem=problem,
         fit=solution,
@@ -408,37 +392,6 @@ def _calibrate(
         notes=notes + found["notes"],
         warnings=fit.warnings + found["warnings"] + bar_warnings,
     )
-    return replace(res, verdict=judge(res, rules=opt.rules))
-
-
-def _restart_lower(
-    robot: RobotModel,
-    log_: JointLog,
-    loops: list[Loop],
-    opt: CalibrationOptions,
-    progress: ProgressReporter | None,
-    first: FitRecord,
-    fall,
-) -> CalibrationResult:
-    """The calibration restarted at the lower point the profile of its solution `first` found (`fall`, a
-    `linearity.Profile` whose cost falls): a fit that stopped there was no minimum, and `converged` must mean
-    one.  The result's start, closures before and iterations are the whole run's."""
-    x = first.values.copy()
-    x[first.estimated] = fall.lower
-    again = _calibrate(
-        robot, log_, loops, replace(opt, initial=dict(zip(first.names, x.tolist())) | dict(opt.initial)), progress, True
-    )
-    fit = replace(
-        again.fit,
-        initial=first.initial,
-        residuals_before=first.residuals_before,
-        iterations=first.iterations + again.fit.iterations,
-    )
-    note = (
-        f"the fit's first solution was no minimum ({fall.describe()}): restarted at the profile's lower point, "
-        f"{first.iterations} + {again.fit.iterations} iterations"
-    )
-    res = replace(again, fit=fit, notes=again.notes + [note])
     return replace(res, verdict=judge(res, rules=opt.rules))
 
 
