@@ -64,6 +64,23 @@ def point_parameters(
     ]
 
 
+def face_parameters(loop: str, fields: tuple[str, ...], order0: int = 0, prior: float | None = None) -> list[Parameter]:
+    """A face's unknowns, starting at zero: direction angles (rad) and a distance ``d`` (m, the loop's
+    length prior, or `prior`), none scaling with length (the plane loop's ``nrx nry d``, the face loop's)."""
+    out = []
+    for k, f in enumerate(fields):
+        unit = "m" if f == "d" else "rad"
+        p = DEFAULT_PRIORS["loop_m" if unit == "m" else "loop_rad"]
+        if unit == "m" and prior is not None:
+            p = prior
+        out.append(
+            Parameter(
+                f"{loop}.{f}", "loop", loop, f, 0.0, unit, p, scales_with_length=0.0, priority=1, order=order0 + k
+            )
+        )
+    return out
+
+
 def pose_parameters(loop: str, fields: tuple[str, ...], X: pin.SE3, order0: int = 0) -> list[Parameter]:
     """Six unknown pose coordinates (x, y, z in m, scaling with length; rx, ry, rz rotation vector in rad)."""
     vals = np.concatenate([X.translation, pin.log3(X.rotation)])

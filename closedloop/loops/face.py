@@ -15,9 +15,9 @@ import pinocchio as pin
 
 from closedloop.errors import LoopError
 from closedloop.loops.base import Loop, LoopEval
-from closedloop.loops.common import relative_point
+from closedloop.loops.common import face_parameters, relative_point
 from closedloop.loops.spec import register
-from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
+from closedloop.model.parameters import Parameter
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import parse_vec, skew, vec3
 
@@ -146,27 +146,7 @@ class FaceLoop(Loop):
         return np.concatenate([_angles(self.Ra0, m), _angles(self.Rb0, n), [d]])
 
     def parameters(self) -> list[Parameter]:
-        out = []
-        for k, f in enumerate(FACE_FIELDS + PLANE_FIELDS):
-            unit = "m" if f == "d" else "rad"
-            prior = DEFAULT_PRIORS["loop_m" if unit == "m" else "loop_rad"]
-            if unit == "m" and self.prior is not None:
-                prior = self.prior
-            out.append(
-                Parameter(
-                    f"{self.name}.{f}",
-                    "loop",
-                    self.name,
-                    f,
-                    0.0,
-                    unit,
-                    prior,
-                    scales_with_length=0.0,
-                    order=k,
-                    priority=1,
-                )
-            )
-        return out
+        return face_parameters(self.name, FACE_FIELDS + PLANE_FIELDS, prior=self.prior)
 
     def _faces(self, TA: np.ndarray, TB: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
         """(m in A, n in B with n . n_ref >= 0, offset d, tilt in rad RMS) read off the poses: the fixed direction

@@ -7,9 +7,9 @@ import pinocchio as pin
 
 from closedloop.errors import LoopError
 from closedloop.loops.base import Loop, LoopEval
-from closedloop.loops.common import TIP_FIELDS, point_parameters, relative_point
+from closedloop.loops.common import TIP_FIELDS, face_parameters, point_parameters, relative_point
 from closedloop.loops.spec import register
-from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
+from closedloop.model.parameters import Parameter
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import parse_vec, skew, vec3
 
@@ -119,25 +119,7 @@ class PlaneLoop(Loop):
         out = []
         if self.tip is None:
             out += point_parameters(self.name, TIP_FIELDS, self.initial_tip, prior=self.prior)
-        for k, f in enumerate(PLANE_FIELDS):
-            unit = "m" if f == "d" else "rad"
-            prior = DEFAULT_PRIORS["loop_m" if unit == "m" else "loop_rad"]
-            if unit == "m" and self.prior is not None:
-                prior = self.prior
-            out.append(
-                Parameter(
-                    f"{self.name}.{f}",
-                    "loop",
-                    self.name,
-                    f,
-                    0.0,
-                    unit,
-                    prior,
-                    scales_with_length=0.0,
-                    priority=1,
-                    order=3 + k,
-                )
-            )
+        out += face_parameters(self.name, PLANE_FIELDS, order0=3, prior=self.prior)
         return out
 
     def initialize(self, TA: np.ndarray, TB: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray | None:
