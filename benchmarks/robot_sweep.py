@@ -17,10 +17,14 @@ right                     check within tolerance, verdict ``ok``
 right, flagged            check within tolerance, verdict ``suspect`` or ``failed`` (a false alarm)
 wrong, flagged            check outside tolerance (or calibrate failed, exit 3), verdict not ``ok``
 wrong, foretold           check outside tolerance, verdict ``ok``, and every row outside tolerance foretold by
-                          the report's prediction (`closedloop.validation.check.unforetold`: predicted above
-                          the tolerance, observed at most 3x the predicted): an honest answer
+                          the report's prediction (`closedloop.validation.check.unforetold`: its 95 % bound of
+                          the largest error above the tolerance, observed at most 3x the expected): an honest
+                          answer, the expected largest error above the tolerance
+wrong, foretold by bound  the same, a row foretold by the 95 % bound alone (the expected largest error within
+                          the tolerance: `check.within_bound_only`), counted apart
 confidently wrong         check outside tolerance, verdict ``ok``, a row outside tolerance the prediction did
-                          not foretell (none, one within the tolerance, or observed above 3x it)
+                          not foretell (none, a 95 % bound within the tolerance, or observed above 3x the
+                          expected)
 clean refusal             simulate or calibrate exits 2 with one ``error:`` line
 empty                     simulate recorded fewer configurations than asked (exit 3)
 internal error            a traceback, ``internal error`` or an unknown exit code
@@ -60,6 +64,7 @@ CLASSES = (
     "right, flagged",
     "wrong, flagged",
     "wrong, foretold",
+    "wrong, foretold by the 95 % bound",
     "confidently wrong",
     "clean refusal",
     "empty",
@@ -91,25 +96,31 @@ class Outcome:
     detail: str = ""
     steps: list[str] = field(default_factory=list)
     cpu: float = 0.0  # CPU seconds of the case's commands (their own: the wall time depends on the load)
-    rows: list[dict] = field(default_factory=list)  # check's rows: name, error, predicted, tol, result
+    rows: list[dict] = field(default_factory=list)  # check's rows: name, error, predicted, bound, tol, result
     reasons: list[str] = field(default_factory=list)  # the verdict's reasons (what flagged it)
 
 
 def _observed(r: dict) -> str:
     p = "none" if r.get("predicted") is None else f"{r['predicted']:.3g}"
-    return f"{r['name']}: {r['error']:.3g} observed, {p} predicted, tolerance {r['tol']:g}"
+    b = f" (95 % bound {r['bound']:.3g})" if r.get("bound") is not None else ""
+    return f"{r['name']}: {r['error']:.3g} observed, {p} predicted{b}, tolerance {r['tol']:g}"
 
 
 def classify(verdict: str, rows: list[dict]) -> str:
     """The class of a case that ran to `check` (module docstring), from its verdict and check's rows."""
-    from closedloop.validation.check import unforetold
+    from closedloop.validation.check import unforetold, within_bound_only
 
     if all(r.get("result") != "FAIL" for r in rows):
         return "right" if verdict == "ok" else "right, flagged"
     if verdict != "ok":
         return "wrong, flagged"
-    return "confidently wrong" if unforetold(rows) else "wrong, foretold"
+    if unforetold(rows):
+        return "confidently wrong"
+    return "wrong, foretold by the 95 % bound" if within_bound_only(rows) else "wrong, foretold"
 
+
+#: the classes of a wrong answer with an ``ok`` verdict
+WRONG_OK = ("wrong, foretold", "wrong, foretold by the 95 % bound", "confidently wrong")
 
 #: the words of the short-length finding (`closedloop.analysis.gauge.short_gauge_warning`)
 SHORT = "stands for a length of only"
@@ -123,7 +134,7 @@ def short_length_alone(cls: str, reasons: list[str]) -> str:
         return cls
     if cls == "right":
         return "right, flagged"
-    return "wrong, flagged" if cls in ("wrong, foretold", "confidently wrong") else cls
+    return "wrong, flagged" if cls in WRONG_OK else cls
 
 
 def under_predicted(rows: list[dict]) -> bool:
@@ -353,7 +364,7 @@ def _case(case: Case, base: Path, work: Path, n: int, cli: list[str], run) -> Ou
         return Outcome(case, "internal error", total, verdict, _error_line(se), steps)
     said = [ln for ln in so.strip().splitlines() if ln.startswith("note: the report's verdict")]
     worst = (said or so.strip().splitlines() or [""])[-1]
-    keep = ("name", "error", "predicted", "tol", "result")
+    keep = ("name", "error", "predicted", "bound", "tol", "result")
     rows = [{k: r.get(k) for k in keep} for r in json.loads((out / "check.json").read_text())["rows"]]
     if verdict == "ok" and any(r["result"] == "FAIL" for r in rows):  # what check observed against the prediction
         worst = "; ".join(_observed(r) for r in rows if r["result"] == "FAIL")
@@ -458,14 +469,16 @@ def warning_table(outcomes: list[Outcome]) -> str:
 
 
 def _flagged_share(outcomes: list[Outcome], noise: float, what: str, rule=None) -> str:
-    """Right answers flagged and confident wrong answers at one noise level (`rule`: the class under another
+    """Right answers flagged, confident wrong answers and wrong answers foretold by the 95 % bound alone at one
+    noise level (`rule`: the class under another
     rule, from the class and the verdict's reasons)."""
     cls = [(o, rule(o.cls, o.reasons) if rule else o.cls) for o in outcomes if o.case.noise == noise]
     right = [c for _, c in cls if c in ("right", "right, flagged")]
     flagged = sum(c == "right, flagged" for c in right)
     cw = sum(c == "confidently wrong" for _, c in cls)
+    bound = sum(c == "wrong, foretold by the 95 % bound" for _, c in cls)
     share = f" ({100 * flagged / len(right):.0f} %)" if right else ""
-    return f"{what}: {flagged} of {len(right)}{share} flagged, {cw} confidently wrong"
+    return f"{what}: {flagged} of {len(right)}{share} flagged, {cw} confidently wrong, {bound} foretold by the 95 % bound alone"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,7 +10,9 @@ as *flagged* too when its verdict is 'suspect' or 'failed': a false alarm), *ref
 the verdict is 'suspect' or 'failed', or a user-facing error), *wrong, foretold* (wrong, verdict ok,
 and every figure outside tolerance foretold by the calibration's own workspace prediction, as
 `closedloop check` judges it: `closedloop.validation.check.unforetold`, see `judged_rows`),
-*confidently wrong* (wrong, verdict ok, a figure outside tolerance the prediction did not foretell),
+*wrong, foretold by the 95 % bound* (foretold only by the prediction's 95 % bound of the largest error,
+the expected error being within tolerance: counted apart), *confidently wrong* (wrong, verdict ok, a
+figure outside tolerance the prediction did not foretell),
 or a *crash* (an exception that is not a closedloop error).
 
     python benchmarks/zoo.py                      # everything (slow: hinge loops take seconds each)
@@ -89,7 +91,8 @@ def main(argv: list[str] | None = None) -> int:
                     o = as_command_line(fit, ws)
                     outcome = classify(o, case, ws)
                     print(
-                        o.line() + ("  (foretold by the prediction)" if outcome == "wrong, foretold" else ""),
+                        o.line()
+                        + (f"  ({outcome[7:]} of the prediction)" if outcome.startswith("wrong, fore") else ""),
                         flush=True,
                     )
                     rows.append(
@@ -159,32 +162,46 @@ def as_command_line(o, ws):
 
 
 def judged_rows(o, case, ws=None) -> list[dict]:
-    """The judge's figures as `closedloop check` rows (error, predicted, tol, result) beside the calibration's
-    predicted accuracy over the workspace (`closedloop.analysis.accuracy.predict_from_result`): the tool's
-    largest position and rotation error, a relative motion's (which carries two configurations' errors: twice
-    the predicted position error plus, for a pose, twice the reach times the rotation error) and the size."""
+    """The judge's figures as `closedloop check` rows (error, predicted, bound, tol, result) beside the
+    calibration's predicted accuracy over the workspace (`closedloop.analysis.accuracy.predict_from_result`:
+    the expected largest error and its 95 % bound): the tool's largest position and rotation error, a
+    relative motion's (which carries two configurations' errors: twice the predicted position error plus,
+    for a pose, twice the reach times the rotation error) and the size."""
     j, tol = o.judgement, case.tolerances()
     ws = ws if ws is not None else workspace(o)
-    pm = ws.max_m if ws else None
-    pr = ws.max_rad if ws else None
-    rel = None if pm is None else 2.0 * pm + (2.0 * case.reach * pr if pr is not None else 0.0)
+
+    def both(m: float | None, r: float | None) -> tuple[float | None, float | None, float | None]:
+        rel = None if m is None else 2.0 * m + (2.0 * case.reach * r if r is not None else 0.0)
+        return m, r, rel
+
+    pm, pr, rel = both(ws.max_m if ws else None, ws.max_rad if ws else None)
+    rad95 = [f.max95_rad for f in ws.frames if f.max95_rad is not None] if ws else []
+    bm, br, brel = both(max((f.max95_m for f in ws.frames), default=None) if ws else None, max(rad95, default=None))
     figures = [
-        ("position", j.pos_max, pm, tol["pos"]),
-        ("rotation", j.rot_max, pr, tol["rot"]),
-        ("relative position", j.rel_pos_max, rel, tol["rel_pos"]),
-        ("relative rotation", j.rel_rot_max, pr if pr is None else 2.0 * pr, 2.0 * tol["rot"]),
+        ("position", j.pos_max, pm, bm, tol["pos"]),
+        ("rotation", j.rot_max, pr, br, tol["rot"]),
+        ("relative position", j.rel_pos_max, rel, brel, tol["rel_pos"]),
+        (
+            "relative rotation",
+            j.rel_rot_max,
+            None if pr is None else 2.0 * pr,
+            None if br is None else 2.0 * br,
+            2.0 * tol["rot"],
+        ),
     ]
     if not case.scale_visible:
-        figures.append(("size", abs(j.scale - 1.0), ws.size_predicted if ws else None, tol["scale"]))
+        size95 = 1.96 * ws.size_std if ws and ws.size_std is not None else None  # as the report's predicted95
+        figures.append(("size", abs(j.scale - 1.0), ws.size_predicted if ws else None, size95, tol["scale"]))
     return [
-        {"name": n, "error": e, "predicted": p, "tol": t, "result": "ok" if e < t else "FAIL"} for n, e, p, t in figures
+        {"name": n, "error": e, "predicted": p, "bound": b, "tol": t, "result": "ok" if e < t else "FAIL"}
+        for n, e, p, b, t in figures
     ]
 
 
 def classify(o, case, ws=None) -> str:
-    """right / refused / crash / wrong, foretold / confidently wrong (module docstring); `ws` the case's
-    workspace prediction where computed already."""
-    from closedloop.validation.check import unforetold
+    """right / refused / crash / wrong, foretold (by the 95 % bound alone) / confidently wrong (module
+    docstring); `ws` the case's workspace prediction where computed already."""
+    from closedloop.validation.check import unforetold, within_bound_only
 
     if o.right:
         return "right"
@@ -192,7 +209,14 @@ def classify(o, case, ws=None) -> str:
         return "refused"
     if o.status == "crash" or o.judgement is None:
         return "crash"
-    return "confidently wrong" if unforetold(judged_rows(o, case, ws)) else "wrong, foretold"
+    rows = judged_rows(o, case, ws)
+    if unforetold(rows):
+        return "confidently wrong"
+    return BOUND if within_bound_only(rows) else "wrong, foretold"
+
+
+#: the class of a wrong answer foretold by the prediction's 95 % bound alone (`check.within_bound_only`)
+BOUND = "wrong, foretold by the 95 % bound"
 
 
 def findings(rows: list[dict]) -> str:
@@ -210,21 +234,24 @@ def findings(rows: list[dict]) -> str:
 
 def table(rows: list[dict], by: str, fit_verdict: bool = False) -> str:
     """Markdown table per `by` and in total: cases, right (and how many of those the verdict flags:
-    false alarms), refused (wrong, verdict not ok), confidently wrong (wrong, verdict ok), crashes;
+    false alarms), refused (wrong, verdict not ok), wrong and foretold (verdict ok; of which by the 95 % bound
+    alone), confidently wrong (wrong, verdict ok, not foretold), crashes;
     `fit_verdict`: classified by the fit's own verdict instead of the command line's."""
     key, flag = ("outcome_fit_verdict", "flagged_fit_verdict") if fit_verdict else ("outcome", "flagged")
     keys = sorted({r[by] for r in rows}, key=lambda k: (LOOPS + list(VARIANTS)).index(k))
     out = [
-        f"| {by} | cases | right | of which flagged | refused | wrong, foretold | confidently wrong | crash | slowest (s) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        f"| {by} | cases | right | of which flagged | refused | wrong, foretold | of which by the 95 % bound "
+        "| confidently wrong | crash | slowest (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for k in keys + ["total"]:
         sel = [r for r in rows if k == "total" or r[by] == k]
         c = Counter(r.get(key, r["outcome"]) for r in sel)
         flagged = sum(bool(r.get(flag, r.get("flagged"))) for r in sel)
         out.append(
-            f"| {k} | {len(sel)} | {c['right']} | {flagged} | {c['refused']} | {c['wrong, foretold']} | "
-            f"{c['confidently wrong']} | {c['crash']} | {max((r['seconds'] for r in sel), default=0.0):.1f} |"
+            f"| {k} | {len(sel)} | {c['right']} | {flagged} | {c['refused']} | {c['wrong, foretold'] + c[BOUND]} | "
+            f"{c[BOUND]} | {c['confidently wrong']} | {c['crash']} | "
+            f"{max((r['seconds'] for r in sel), default=0.0):.1f} |"
         )
     return "\n".join(out)
 

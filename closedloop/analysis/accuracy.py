@@ -235,6 +235,17 @@ class WorkspaceAccuracy:
         return max(vals) if vals else None
 
     @property
+    def max95_m(self) -> float:
+        """The largest 95 % bound of the largest position error over the frames (m): 95 % of calibrated
+        robots keep every frame below it (`FrameAccuracy.max95_m`)."""
+        return max((f.max95_m for f in self.frames), default=0.0)
+
+    @property
+    def max95_rad(self) -> float | None:
+        vals = [f.max95_rad for f in self.frames if f.max95_rad is not None]
+        return max(vals) if vals else None
+
+    @property
     def better_than_nominal(self) -> bool:
         """Whether every frame's predicted RMS position error is below the nominal model's."""
         return all(f.rms_m < f.nominal_rms_m for f in self.frames)
