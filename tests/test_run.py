@@ -97,3 +97,27 @@ def test_a_run_writes_what_its_verdict_allows(data, tmp_path):
     assert run.verdict.status == "failed" and not run.model_written
     assert not (tmp_path / "no.urdf").exists()
     assert json.loads((tmp_path / "no.json").read_text())["outputs"] == {"model": None}
+
+
+def test_a_failed_fit_is_not_validated(data, tmp_path):
+    """A fit its own verdict fails (here the options' joint-noise rule) is not refitted on held-out rows or
+    regions: those refits can only add to a failed verdict (ten of them took over 90 % of a many-fingered
+    hand's run); the report says why each was not run, and the run tells no validating stage."""
+    _, _, _, path, res = data
+    failing = CalibrateOptions(
+        model=str(ROBOTS["panda"].path),
+        log=str(path),
+        loop=["weld:frame=panda_hand,name=fixture"],
+        report=str(tmp_path / "no.json"),
+        rules=VerdictRules(failed_joint_noise=res.noise.sigma / 2),
+        cv=2,
+        regions=2,
+    )
+    told: list[str] = []
+    run = calibrate_files(failing, lambda task, done, total=None, note="": told.append(task))
+    report = json.loads((tmp_path / "no.json").read_text())
+    assert run.verdict.status == "failed" and not any(t.startswith("validating") for t in told), told
+    why = "the fit failed (its verdict): refits of held-out rows cannot make it right"
+    assert report["validation"] == {"k": 2, "skipped": why}
+    assert report["accuracy"]["regions"] == {"k": 2, "skipped": why}
+    assert f"held-out validation not run: {why}" in run.result.notes

@@ -104,7 +104,7 @@ def calibrate_files(
     if inputs["torques"] == "gravity":
         res.notes.append("joint torques: gravity from the model's inertials (the log has no tau:<joint> columns)")
     t1, c1 = time.perf_counter(), time.process_time()
-    held = validate(robot, lg, loops, inp.fit, inp.folds, o, res, prog)
+    held = validate(robot, lg, loops, inp.fit, inp.folds, o, res, prog, predicted.accuracy)
     _done(prog)
     if predicted.note:
         res.notes.append(predicted.note)
@@ -156,9 +156,14 @@ class HeldOut:
     regions: dict | None = None
 
 
-def validate(robot, lg, loops: list, opts, k: int, o: CalibrateOptions, res, progress=None) -> HeldOut:
+def validate(robot, lg, loops: list, opts, k: int, o: CalibrateOptions, res, progress=None, workspace=None) -> HeldOut:
     """The held-out validation of a converged fit, every kind the options ask for (`HeldOut`); the rows `res`
     rejected as outliers are not judged (they stay in the refits' data).
+
+    A fit already failed (its own verdict, or its `workspace` prediction no better than the nominal model:
+    `calibration.verdict.judge_workspace`) is not validated: a held-out finding can only add to a failed
+    verdict, and each refit repeats the fit's work on a problem that failed (a many-jointed hand whose
+    finger barely moves: ten refits, over 90 % of the run), so the records say why and the run ends.
 
     K-fold (`k` folds): a training fold the refit cannot use (too few rows for the parameters) ends it:
     with the default K it is skipped with a note, with ``--cv`` given it is an input error naming the folds.
@@ -167,12 +172,22 @@ def validate(robot, lg, loops: list, opts, k: int, o: CalibrateOptions, res, pro
     regions are said in the record, not run.  Each kind is its own task of `progress` (a new task replaces
     the last one's display); the caller closes the display after the step.
     """
+    from closedloop.calibration.verdict import judge_workspace
+    from closedloop.records import FAILED
     from closedloop.validation.fixtures import fixture_groups, leave_one_fixture_out
     from closedloop.validation.kfold import cross_validate
     from closedloop.validation.regions import region_validate
 
     if not res.converged:
         return HeldOut()
+    if res.verdict is not None and judge_workspace(res.verdict, workspace).status == FAILED:
+        why = "the fit failed (its verdict): refits of held-out rows cannot make it right"
+        res.notes.append(f"held-out validation not run: {why}")
+        n = int(o.regions or 0)
+        return HeldOut(
+            cv_record={"k": k, "skipped": why} if k else None,
+            regions={"k": n, "skipped": why} if n >= 2 else None,
+        )
     prog = progress or _silent
     exclude = [rj.row - 1 for rj in res.outliers.rejected]
     cv = cv_record = fixtures = regions = None
