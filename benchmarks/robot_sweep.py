@@ -116,11 +116,13 @@ def classify(verdict: str, rows: list[dict]) -> str:
         return "wrong, flagged"
     if unforetold(rows):
         return "confidently wrong"
-    return "wrong, foretold by the 95 % bound" if within_bound_only(rows) else "wrong, foretold"
+    return BOUND if within_bound_only(rows) else "wrong, foretold"
 
 
+#: the class of a wrong answer foretold by the report's 95 % bound alone (`classify`)
+BOUND = "wrong, foretold by the 95 % bound"
 #: the classes of a wrong answer with an ``ok`` verdict
-WRONG_OK = ("wrong, foretold", "wrong, foretold by the 95 % bound", "confidently wrong")
+WRONG_OK = ("wrong, foretold", BOUND, "confidently wrong")
 
 #: the words of the short-length finding (`closedloop.analysis.gauge.short_gauge_warning`)
 SHORT = "stands for a length of only"
@@ -414,6 +416,15 @@ def markdown(outcomes: list[Outcome], header: str, n: int, timeout: float) -> st
         )
         + ".",
         "",
+        "Had a row been foretold only by an expected largest error above the tolerance (the rule before the "
+        "report's 95 % bound was read): "
+        + "; ".join(
+            f"{what}: {sum(o.cls in ('confidently wrong', BOUND) for o in outcomes if o.case.noise == noise)} "
+            "confidently wrong"
+            for noise, what in ((0.0, "exact"), (1e-5, "noisy"))
+        )
+        + ".",
+        "",
         "Right answers whose error is above 3x the predicted one (within tolerance: not misleading at it): "
         f"{sum(o.cls.startswith('right') and under_predicted(o.rows) for o in outcomes)}.",
         "",
@@ -476,7 +487,7 @@ def _flagged_share(outcomes: list[Outcome], noise: float, what: str, rule=None) 
     right = [c for _, c in cls if c in ("right", "right, flagged")]
     flagged = sum(c == "right, flagged" for c in right)
     cw = sum(c == "confidently wrong" for _, c in cls)
-    bound = sum(c == "wrong, foretold by the 95 % bound" for _, c in cls)
+    bound = sum(c == BOUND for _, c in cls)
     share = f" ({100 * flagged / len(right):.0f} %)" if right else ""
     return f"{what}: {flagged} of {len(right)}{share} flagged, {cw} confidently wrong, {bound} foretold by the 95 % bound alone"
 
