@@ -83,3 +83,44 @@ def test_a_wrong_answer_foretold_by_the_95_percent_bound_alone_has_its_own_class
     assert "noisy: 0 of 0 flagged, 0 confidently wrong, 1 foretold by the 95 % bound alone" in table
     note = "note: the overall size is held by j.z, which stands for a length of only 35 mm"
     assert robot_sweep.short_length_alone("wrong, foretold by the 95 % bound", [note]) == "wrong, flagged"
+
+
+def _zoo_benchmark():
+    """benchmarks/zoo.py (loaded from its path: tests/zoo.py holds the module name `zoo`, which loading it
+    replaces with a fresh copy of tests/zoo.py: the tests' own is put back)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("zoo_benchmark", Path(robot_sweep.__file__).parent / "zoo.py")
+    mod = importlib.util.module_from_spec(spec)
+    before = sys.modules.get("zoo")
+    try:
+        spec.loader.exec_module(mod)
+    finally:
+        if before is not None:
+            sys.modules["zoo"] = before
+    return mod
+
+
+def test_the_zoo_judges_a_wrong_answer_against_the_prediction_s_95_percent_bound():
+    """The zoo's rows carry the calibration's 95 % bound (`judged_rows`: a relative motion's twice the
+    position bound plus twice the reach times the rotation bound; the size's 1.96 standard deviations), and
+    its classes read it as the sweep's do: a tool 0.25 mm off against 0.1 mm, 0.09 mm expected, foretold by
+    a 0.3 mm bound alone; with a bound within the tolerance, confidently wrong."""
+    from types import SimpleNamespace as NS
+
+    zb = _zoo_benchmark()
+    j = NS(pos_max=2.5e-4, rot_max=1e-4, rel_pos_max=1e-4, rel_rot_max=1e-4, scale=1.0)
+    case = NS(tolerances=lambda: {"pos": 1e-4, "rot": 1e-3, "rel_pos": 3e-4, "scale": 0.07}, reach=0.8)
+    case.scale_visible = True
+    o = NS(right=False, refused=False, status="ok", judgement=j)
+    frame = NS(max95_m=3e-4, max95_rad=2e-4)
+    ws = NS(max_m=0.9e-4, max_rad=1e-4, frames=[frame], size_std=None, size_predicted=None)
+    rows = {r["name"]: r for r in zb.judged_rows(o, case, ws)}
+    assert rows["position"]["bound"] == 3e-4 and rows["rotation"]["bound"] == 2e-4
+    assert abs(rows["relative position"]["bound"] - (2 * 3e-4 + 2 * 0.8 * 2e-4)) < 1e-15
+    assert zb.classify(o, case, ws) == zb.BOUND == "wrong, foretold by the 95 % bound"
+    assert zb.classify(o, case, NS(**{**vars(ws), "frames": [NS(max95_m=0.9e-4, max95_rad=2e-4)]})) == (
+        "confidently wrong"
+    )
+    table = zb.table([{"variant": "noisy", "outcome": zb.BOUND, "flagged": False, "seconds": 1.0}], "variant")
+    assert table.splitlines()[2] == "| noisy | 1 | 0 | 0 | 0 | 1 | 1 | 0 | 0 | 1.0 |"
