@@ -101,7 +101,7 @@ def test_a_run_writes_what_its_verdict_allows(data, tmp_path):
 
 def test_a_failed_fit_is_not_validated(data, tmp_path):
     """A fit its own verdict fails (here the options' joint-noise rule) is not refitted on held-out rows or
-    regions: those refits can only add to a failed verdict (ten of them took over 90 % of a many-fingered
+    regions: those refits can only add to a failed verdict (nine of them took over 90 % of a many-fingered
     hand's run); the report says why each was not run, and the run tells no validating stage."""
     _, _, _, path, res = data
     failing = CalibrateOptions(

@@ -163,7 +163,7 @@ def validate(robot, lg, loops: list, opts, k: int, o: CalibrateOptions, res, pro
     A fit already failed (its own verdict, or its `workspace` prediction no better than the nominal model:
     `calibration.verdict.judge_workspace`) is not validated: a held-out finding can only add to a failed
     verdict, and each refit repeats the fit's work on a problem that failed (a many-jointed hand whose
-    finger barely moves: ten refits, over 90 % of the run), so the records say why and the run ends.
+    finger barely moves: nine refits, over 90 % of the run), so the records say why and the run ends.
 
     K-fold (`k` folds): a training fold the refit cannot use (too few rows for the parameters) ends it:
     with the default K it is skipped with a note, with ``--cv`` given it is an input error naming the folds.
