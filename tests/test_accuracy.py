@@ -295,6 +295,11 @@ def test_a_target_met_by_the_expected_error_and_not_by_its_95_percent_bound_is_s
     lines = accuracy_lines(section)
     assert "0.663 mm, 1 mrad at most expected (95 % bound 1.28 mm, 2 mrad; RMS 0.3 mm;" in lines[1]
     assert lines[-1] == "  target 1 mm: met by the expected largest error, NOT by its 95 % bound"
+    from closedloop.output.html import _accuracy  # the HTML report's section says the same
+
+    page = _accuracy({"accuracy": section})
+    assert "<th>max, 95 % bound [mm]</th>" in page and "<td>1.28</td>" in page
+    assert "accuracy target 1 mm: met by the expected largest error, not by its 95 % bound" in page
     old = {k: v for k, v in frame.items() if "95" not in k}  # a report written before the bound was stated
     assert (
         "at most expected (RMS 0.3 mm;" in accuracy_lines({"workspace": {**section["workspace"], "frames": [old]}})[1]
