@@ -136,6 +136,26 @@ def test_regions_are_compact_and_cover_the_log():
     assert gap(parts) > 1.2 * gap(folds(lg, 4))
 
 
+def test_regions_of_a_long_log_are_its_clusters():
+    """Above `CLUSTER_SAMPLE` rows the k-means centres come from an even sample and every row joins its nearest:
+    four separate clouds of configurations, 2,500 rows each in an interleaved order, are the four regions,
+    row for row."""
+    from closedloop.assets.catalog import ROBOTS
+    from closedloop.validation.regions import CLUSTER_SAMPLE
+
+    robot = RobotModel.from_file(ROBOTS["panda"].path)
+    joints = [f"panda_joint{i}" for i in range(1, 8)]
+    rng = np.random.default_rng(4)
+    centres = rng.uniform(-1.0, 1.0, (4, 7)) * [2.0, 1.2, 2.0, 0.0, 2.0, 0.0, 2.0] + [0, 0, 0, -1.8, 0, 2.0, 0]
+    centres[:, 3] += [-0.8, -0.3, 0.3, 0.8]  # the clouds apart on the fourth joint too
+    cloud = np.tile(np.arange(4), 2500)
+    X = centres[cloud] + rng.normal(0.0, 0.03, (cloud.size, 7))
+    assert cloud.size > CLUSTER_SAMPLE
+    parts = regions(JointLog(joints, X), robot, joints, k=4)
+    assert sorted(sorted(set(cloud[p])) for p in parts) == [[0], [1], [2], [3]]
+    assert sorted(p.size for p in parts) == [2500] * 4
+
+
 def test_region_holdout_in_the_cli_report(tmp_path, capsys):
     """calibrate: the region validation and the prediction in the report and the summary's first lines;
     check: the predicted error beside the observed and the line 'observed within prediction' (or not)."""

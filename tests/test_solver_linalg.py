@@ -80,3 +80,36 @@ def test_converged_means_at_the_minimum_on_curved_valleys():
             else:
                 wrong += 1
     assert right >= 225 and wrong <= 2
+
+
+def test_the_factorisation_at_a_jacobian_is_computed_once_and_follows_the_jacobian():
+    """`ResidualFunction.factorised`: the scaled SVD of the function's Jacobian (`scaled_svd`'s values), formed
+    once per Jacobian (the solver's last iteration, the model-error test and the analysis at the solution
+    share it), formed again at another point, and for another column scaling."""
+    from closedloop import RobotModel
+    from closedloop.assets.catalog import ROBOTS
+    from closedloop.calibration.pipeline import build_problem
+    from closedloop.estimate.residual import ResidualFunction
+    from closedloop.io.logs import JointLog
+    from closedloop.loops import WeldLoop
+
+    panda = RobotModel.from_file(ROBOTS["panda"].path)
+    joints = [f"panda_joint{i}" for i in range(1, 8)]
+    readings = np.random.default_rng(5).uniform(-1.0, 1.0, (40, 7)) + [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]
+    loop = WeldLoop("fixture", "panda_hand")  # any readings: the residual need not close to be factorised
+    problem = build_problem(panda, JointLog(joints, readings), [loop], None)
+    est = list(range(12))
+    fun = ResidualFunction(problem, problem.nominal, est, np.full(len(problem.joints), 1e-5), "noise")
+    xe = problem.nominal[est]
+    scale = np.array([problem.params[k].prior for k in est])
+    first = fun.factorised(xe, scale)
+    r, J = fun.linearized(xe)
+    for a, b in zip(first, scaled_svd(J, r, scale)):
+        assert np.array_equal(a, b)
+    assert fun.factorised(xe.copy(), scale) is first  # the same Jacobian: not formed again
+    other = fun.factorised(xe, 2.0 * scale)
+    assert other is not first and np.allclose(other[0], 2.0 * first[0], rtol=1e-12)  # S scales with D (one D)
+    moved = xe + 1e-3 * scale
+    S_moved = fun.factorised(moved, scale)[0]
+    r2, J2 = fun.linearized(moved)
+    assert np.array_equal(S_moved, scaled_svd(J2, r2, scale)[0]) and not np.array_equal(S_moved, first[0])

@@ -55,7 +55,7 @@ from closedloop.calibration.solve import (
 )
 from closedloop.calibration.verdict import judge
 from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
-from closedloop.estimate.lm import reducible_share, rms, scaled_svd
+from closedloop.estimate.lm import reducible_share, rms
 from closedloop.estimate.model_error import (
     EIV,
     ENCODER_NOISE,
@@ -191,7 +191,7 @@ def analyse_solution(
     est, fun = fit.est, fit.stage.fun
     scale = np.array([p.prior for p in problem.params])
     r, J = fun.linearized(fit.x[est])
-    S, Vt, g = scaled_svd(J, r, scale[est])  # no U, no threaded LAPACK on the tall Jacobian
+    S, Vt, g = fun.factorised(fit.x[est], scale[est])  # no U; the solver's last factorisation where it is this J
     rank_num = int(np.sum(S > 1e-10 * S[0])) if S.size else 0
     dof = max(r.size - fun.deficit - fun.missing - rank_num, 1)  # eliminated or unobserved rows carry none
     weighted = fun.weighting == "noise"
@@ -314,8 +314,7 @@ def _calibrate(
             start, x0, free, structure0, replace(opt, weighting="none"), sigma_q, known, len(log_), notes, progress
         )
         fit.iterations += spent
-        r, J = fit.stage.fun.linearized(fit.x[fit.est])
-        evidence = tested["evidence"] | {"left_out_rms_plain": loo_prediction(problem, fit.x, fit.est, r, J)}
+        evidence = tested["evidence"] | {"left_out_rms_plain": _left_out(problem, fit)}
         if tested["test"].sigma_hat > opt.rules.plausible_joint_noise:
             fit.warnings.append(
                 f"the errors-in-variables fit implies {tested['test'].sigma_hat:.3g} rad of joint noise, more than "
@@ -408,7 +407,7 @@ def noise_hypothesis(problem: CalibrationProblem, fit: Fit, opt: CalibrationOpti
         return None
     if fun.weighting != "noise":
         return None
-    r, J = fun.linearized(fit.x[fit.est])
+    r, _ = fun.linearized(fit.x[fit.est])
     dof = max(r.size - fun.deficit - fun.missing - len(fit.est), 1)
     sigma_hat = rms(r, dof) * float(np.mean(fit.sigma_q))
     given = opt.noise is not None
@@ -424,9 +423,18 @@ def noise_hypothesis(problem: CalibrationProblem, fit: Fit, opt: CalibrationOpti
             "chi2_limit": test.limit,
             "neighbour_correlation": test.neighbour_rho,
             "noise_explains": test.holds,
-            "left_out_rms_eiv": loo_prediction(problem, fit.x, fit.est, r, J),
+            "left_out_rms_eiv": _left_out(problem, fit),
         },
     }
+
+
+def _left_out(problem: CalibrationProblem, fit: Fit) -> float:
+    """`loo_prediction` of a fit, on its own last Jacobian and that Jacobian's factorisation (shared with the
+    solver's last iteration and `analyse_solution`)."""
+    fun, xe = fit.stage.fun, fit.x[fit.est]
+    r, J = fun.linearized(xe)
+    S, Vt, _ = fun.factorised(xe, np.array([problem.params[k].prior for k in fit.est]))
+    return loo_prediction(problem, fit.x, fit.est, r, J, factors=(S, Vt))
 
 
 def _check_options(opt: CalibrationOptions) -> None:

@@ -179,8 +179,9 @@ def _solve(
     retract = getattr(fun, "retract", None) if not bounded else None
     status, message, truncated = "max_iter", f"no convergence in {opt.max_iter} iterations", 0
     it = 0
+    factorised = getattr(fun, "factorised", None)  # a function that keeps its factorisation shares it
     for it in range(1, opt.max_iter + 1):
-        S, Vt, g = scaled_svd(J, r, scale)
+        S, Vt, g = factorised(x, scale) if factorised is not None else scaled_svd(J, r, scale)
         memo["x"], memo["S"] = x.copy(), S
         Js = J * scale if bounded else None  # the bounded step works on the rows themselves
         floor = opt.rcond * (S[0] if S.size else 0.0)

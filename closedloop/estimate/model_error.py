@@ -149,13 +149,19 @@ def neighbour_correlation(problem: CalibrationProblem, r: np.ndarray) -> float:
 LOO_SAMPLE = 8192
 
 
-def _pinv_normal(J: np.ndarray, scale: np.ndarray, rcond: float = 1e-10) -> np.ndarray:
+def _pinv_normal(
+    J: np.ndarray, scale: np.ndarray, rcond: float = 1e-10, factors: tuple[np.ndarray, np.ndarray] | None = None
+) -> np.ndarray:
     """(J^T J)^+ in the prior-scaled coordinates (J D), truncated at `rcond` of the largest singular value.
 
     From the triangle R of J D = Q R (formed a chunk of rows at a time): J D and R share their singular
-    values and right singular vectors, and R is p x p where J has a row per residual."""
-    R = scaled_r_factor_of_blocks([J], scale)
-    _, S, Vt = np.linalg.svd(R, full_matrices=False)
+    values and right singular vectors, and R is p x p where J has a row per residual.  `factors`: (S, Vt) of
+    J D where the caller has them (`residual.ResidualFunction.factorised`): no pass over the rows."""
+    if factors is None:
+        R = scaled_r_factor_of_blocks([J], scale)
+        _, S, Vt = np.linalg.svd(R, full_matrices=False)
+    else:
+        S, Vt = factors
     keep = S > rcond * (S[0] if S.size else 0.0)
     V = Vt[keep].T
     return (V / S[keep] ** 2) @ V.T
@@ -190,7 +196,14 @@ def left_out(
     return out
 
 
-def loo_prediction(problem: CalibrationProblem, x: np.ndarray, est: list[int], r: np.ndarray, J: np.ndarray) -> float:
+def loo_prediction(
+    problem: CalibrationProblem,
+    x: np.ndarray,
+    est: list[int],
+    r: np.ndarray,
+    J: np.ndarray,
+    factors: tuple[np.ndarray, np.ndarray] | None = None,
+) -> float:
     """RMS of the unweighted closure each configuration would show if left out of the fit (first order).
 
     `r`, `J`: the fit's own (whitened, for the weighted fit) residual and Jacobian over `est` at `x`.  The
@@ -198,9 +211,10 @@ def loo_prediction(problem: CalibrationProblem, x: np.ndarray, est: list[int], r
     e_c + E_c dx_c, with e_c, E_c its unweighted residual and Jacobian.  A block of more than `LOO_SAMPLE`
     configurations is represented by `LOO_SAMPLE` of them, evenly spaced (`even_sample`; the RMS of a
     sample of 8,192 x m closures, ~1 % standard error), so that the cost stays that of the fit's last step.
+    `factors`: (S, Vt) of J D, D the priors of `est`, where the caller has them (`_pinv_normal`).
     """
     scale = np.array([problem.params[k].prior for k in est])
-    Ainv = _pinv_normal(J, scale)
+    Ainv = _pinv_normal(J, scale, factors=factors)
     picks = [even_sample(n, LOO_SAMPLE) for _, n, _ in _config_rows(problem)]
     sampled = any(p.size < n for p, (_, n, _) in zip(picks, _config_rows(problem)))
     sub = problem.sampled(LOO_SAMPLE) if sampled else problem
@@ -293,12 +307,15 @@ def sandwich_cov(
     covariance in the parameters' own units.
     """
     Ainv = (V / S**2) @ V.T
-    Js = J * scale
     meat = np.zeros_like(Ainv)
     G = 0
     for at, n, m in _config_rows(problem):
-        g = (r[at : at + n * m].reshape(n, 1, m) @ Js[at : at + n * m].reshape(n, m, -1))[:, 0]  # J_g^T r_g
-        meat += g.T @ g  # J_g^T r_g per configuration
+        R, Jb = r[at : at + n * m].reshape(n, m), J[at : at + n * m].reshape(n, m, -1)
+        g = R[:, :1] * Jb[:, 0]  # J_g^T r_g per configuration, a residual row at a time (no copy of J)
+        for j in range(1, m):
+            g += R[:, j : j + 1] * Jb[:, j]
+        g *= scale
+        meat += g.T @ g
         G += n
     N, p = r.size, S.size
     c = G / max(G - 1, 1) * (N - 1) / max(N - p, 1)

@@ -30,12 +30,13 @@ from __future__ import annotations
 
 import copy
 import logging
+import weakref
 from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
 
-from closedloop.estimate.lm import SolverOptions, SolverResult, levenberg_marquardt
+from closedloop.estimate.lm import SolverOptions, SolverResult, levenberg_marquardt, scaled_svd
 from closedloop.estimate.noise import Roots, whiten
 from closedloop.loops.base import Loop
 from closedloop.problem.problem import BlockEval, CalibrationProblem
@@ -182,6 +183,19 @@ class ResidualFunction:
         if J is None:
             raise ValueError("the residual function has no Jacobian: the problem has no loop block")
         return r, J
+
+    def factorised(self, xe: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """S, Vt and g = U^T r of the column-scaled Jacobian J D = U S V^T at `xe` (`lm.scaled_svd`), kept with
+        that Jacobian: the solver's last iteration, its noise estimate, the model-error test and the analysis
+        at the solution ask for the same factorisation, a pass over every row each on a long log."""
+        r, J = self.linearized(xe)
+        kept = self.__dict__.get("_svd")  # weak references: a Jacobian the function let go is not held
+        key = np.asarray(scale, dtype=float).tobytes()
+        if kept is not None and kept[0]() is J and kept[1]() is r and kept[2] == key:
+            return kept[3]
+        out = scaled_svd(J, r, scale)
+        self.__dict__["_svd"] = (weakref.ref(J), weakref.ref(r), key, out)
+        return out
 
     def normalized(self, x: np.ndarray) -> np.ndarray:
         """`x`, a full vector at this function's last Jacobian, with the loops in canonical form

@@ -314,13 +314,13 @@ class RobotModel:
         only itself.  Contact or payload forces are not in it.  Joints not listed stay at their neutral
         value.
         """
-        data = self.model.createData()
+        model, data, gravity = self.model, self.model.createData(), pin.computeGeneralizedGravity
         q = self.configurations(angles, joint_names)
         idx = [self.joints[n].idx_v for n in joint_names]
-        out = np.empty((q.shape[0], len(joint_names)))
-        for i, qi in enumerate(q):
-            out[i] = pin.computeGeneralizedGravity(self.model, data, qi)[idx]
-        return out
+        if not q.shape[0]:
+            return np.empty((0, len(joint_names)))
+        # a list comprehension gathers the rows fastest (a Pinocchio call per configuration)
+        return np.array([gravity(model, data, qi) for qi in q])[:, idx]
 
     def describe(self) -> dict:
         """Joints and frames, for `closedloop inspect`."""

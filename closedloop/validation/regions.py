@@ -23,6 +23,7 @@ from closedloop.errors import ParameterError
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
+from closedloop.problem.problem import even_sample
 from closedloop.progress import ProgressReporter
 from closedloop.validation.kfold import cross_validate, subset
 
@@ -64,14 +65,24 @@ def regions(
     return [np.sort(np.array(r, dtype=int)) for r in out if r]
 
 
+#: rows above which the k-means centres are found on an even sample of this many (`_clusters`)
+CLUSTER_SAMPLE = 8192
+
+
 def _clusters(Z: np.ndarray, k: int, seed: int) -> list[np.ndarray]:
     """The k-means clusters (row indices of `Z`) of scaled readings, the joints that do not move left out;
-    the empty ones dropped."""
-    from scipy.cluster.vq import kmeans2
+    the empty ones dropped.  Above `CLUSTER_SAMPLE` rows the centres are those of an evenly spaced sample of
+    that many (a few regions of joint space need no more to be placed) and every row joins its nearest
+    centre: the cost stops growing with the log but for that last assignment."""
+    from scipy.cluster.vq import kmeans2, vq
 
     moving = np.ptp(Z, axis=0) > 0
     Z = Z[:, moving] if moving.any() else Z
-    _, labels = kmeans2(Z, k, seed=seed, minit="++")
+    if Z.shape[0] > CLUSTER_SAMPLE:
+        centres, _ = kmeans2(Z[even_sample(Z.shape[0], CLUSTER_SAMPLE)], k, seed=seed, minit="++")
+        labels = vq(Z, centres, check_finite=False)[0]
+    else:
+        _, labels = kmeans2(Z, k, seed=seed, minit="++")
     return [np.flatnonzero(labels == c) for c in range(k) if np.any(labels == c)]
 
 
