@@ -233,7 +233,7 @@ def main() -> None:
     if a.no_validate:
         return
     t, c0 = time.perf_counter(), time.process_time()
-    lofo = leave_one_fixture_out(robot, log, loops, opts)
+    lofo = leave_one_fixture_out(robot, log, loops, opts, result=res)
     lofo_s, lofo_cpu = time.perf_counter() - t, time.process_time() - c0
     rows = (lofo or {}).get("fixtures", [])
     worse = [f["fixture"] for f in rows if f.get("worse")]
@@ -241,6 +241,10 @@ def main() -> None:
         f"leave-one-fixture-out: {len(rows)} "
         f"fixtures in {lofo_s:.1f} s wall, {lofo_cpu:.1f} s CPU; worse than nominal: {worse or 'none'}; "
         f"refits converged: {sum(bool(f.get('converged')) for f in rows)}/{len(rows)}"
+    )
+    print(
+        "  refits: iterations "
+        + ", ".join(f"{f['fixture']} {f.get('iterations')}{'' if f.get('warm') else ' (cold)'}" for f in rows)
     )
     cal = [f["calibrated_rms_m"] for f in rows if f.get("calibrated_rms_m") is not None]
     nom = [f["nominal_rms_m"] for f in rows if f.get("nominal_rms_m") is not None]
