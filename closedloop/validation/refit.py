@@ -92,6 +92,8 @@ def _warm(
     ):
         return None
     calibrated = {lp.name: lp for lp in result.loops}
+    if any(lp.name not in calibrated for lp in loops):  # a loop the calibration left out (`solve.length_guard`)
+        return None
     try:
         problem = build_problem(robot, log_, [calibrated.get(lp.name, lp) for lp in loops], opt.priors)
     except ClosedLoopError:
