@@ -23,7 +23,9 @@ The pipeline (thesis 3.2, 4.2, with the noise treated as errors in variables):
 7. `analyse_solution`: standard errors, directions the data do not determine,
    residuals before/after, a chi-square test, the share of the cost a
    Gauss-Newton step would still remove (0 at a minimum); `linearity.check_error_bars`:
-   a long fit's error bars along the cost's profile; then `verdict.judge`.
+   a long fit's error bars along the cost's profile, and where the cost falls beside the
+   solution the fit solved again from the lower point (`_continued`; still falling, it is
+   not converged); then `verdict.judge`.
 """
 
 from __future__ import annotations
