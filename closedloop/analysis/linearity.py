@@ -47,6 +47,15 @@ K = 2.0  # standard errors out on each side
 HOLDS = 0.5  # the rise must reach this fraction of K^2 / 2 on both sides
 PIN = 1e3  # weight of the pinning row, in noise units per standard error
 EXACT = 1e-9  # an estimated joint noise below this (rad) is exact data: its error bars are round-off
+#: a profile point whose cost is below the solution's by more than this (noise variances; the residual's own
+#: variance per degree of freedom where that is larger than the noise given) shows the solution is no minimum:
+#: the fit continues from there (`calibration.pipeline`).  0.5 is a chi-square difference of 1: a smaller fall
+#: leaves the solution within one standard error of the minimum along the direction, which the error bars
+#: already allow for (the rise falling short of K^2 / 2 is `holds`'s finding).  Measured against a noise given
+#: far below the residual's (a model that does not fit: chi-square per degree of freedom in the thousands), a
+#: fall of tens of noise variances is a few millionths of the cost, the solver's own tolerance, not a minimum
+#: missed
+FALLS = 0.5
 
 
 @dataclass
@@ -56,6 +65,14 @@ class Profile:
     name: str
     std: float  # s_u = sqrt(u^T C u), in the direction's own units
     rise: tuple[float, float]  # cost increase (noise variances) at u^T x -+ K s_u, the rest re-minimised
+    #: the estimated values at the profile's lower point where its cost falls below the solution's by more
+    #: than `FALLS` (the solution is then no minimum); None at a minimum
+    lower: np.ndarray | None = None
+
+    @property
+    def falls(self) -> bool:
+        """Whether the cost falls along the profile by more than `FALLS`: the solution is no minimum."""
+        return self.lower is not None
 
     @property
     def expected(self) -> float:
@@ -69,7 +86,8 @@ class Profile:
     def describe(self) -> str:
         return (
             f"along {self.name}, the cost rises by {self.rise[0]:.2g} and {self.rise[1]:.2g} at -{K:g} and "
-            f"+{K:g} standard errors ({self.expected:g} if the error bars held)"
+            f"+{K:g} standard errors ({self.expected:g} if the error bars held"
+            + ("; it falls: the solution is no minimum)" if self.falls else ")")
         )
 
 
@@ -110,8 +128,10 @@ def profile(
     noise: float,
     prior: np.ndarray,
     name: str,
+    unit: float = 1.0,
 ) -> Profile:
-    """The profile of 1/2 |r|^2 / noise^2 along u from the solution x (estimated values), covariance `cov`.
+    """The profile of 1/2 |r|^2 / noise^2 along u from the solution x (estimated values), covariance `cov`;
+    its lower point kept where the cost falls by more than `FALLS` x `unit` (`Profile.lower`).
 
     `make` gives a fresh residual function: each cost is taken with the weights W_i at its own point.  The
     rest is re-minimised within the range of `cov`: the directions the fit estimates (those it truncates
@@ -123,7 +143,7 @@ def profile(
     scaled = cov / np.outer(prior, prior)
     lam, V = np.linalg.eigh(scaled)
     B = V[:, lam > 1e-12 * lam[-1]] * prior[:, None]  # the estimated directions, in parameter units
-    rises = []
+    rises, points = [], []
     for k in (-K, K):
         target = float(u @ x) + k * s_u
         start = x + k * (cov @ u) / s_u  # the linear model's profile point, in the range of cov
@@ -132,7 +152,28 @@ def profile(
             pinned, np.zeros(B.shape[1]), np.ones(B.shape[1]), SolverOptions(noise=noise, max_iter=50)
         )
         rises.append(_cost(make(), pinned.x(sol.x), noise) - base)
-    return Profile(name, s_u, (rises[0], rises[1]))
+        points.append(pinned.x(sol.x))
+    low = int(np.argmin(rises))
+    lower = (
+        points[low]
+        if rises[low] < -FALLS * unit and _falls_as_solved(make, x, points[low], noise, base, unit)
+        else None
+    )
+    return Profile(name, s_u, (rises[0], rises[1]), lower)
+
+
+def _falls_as_solved(
+    make: Callable[[], ResidualFunction], x: np.ndarray, lower: np.ndarray, noise: float, base: float, unit: float
+) -> bool:
+    """Whether the cost at `lower` is below the solution's by more than `FALLS` x `unit` with the weights W_i
+    held at the solution `x`: the criterion the solver minimises (each step's weights taken where it stands).
+    The errors-in-variables cost with W_i at each point can also fall where the weights grow (the joints'
+    effect on the closure inflated along a direction the loops cannot see), a lower cost that is no better
+    closure: no minimum missed."""
+    fun = make()
+    fun(x, None)  # W_i at the solution, kept for the next probe
+    r, _ = fun(lower, None)
+    return base - 0.5 * float(r @ r) / noise**2 > FALLS * unit
 
 
 def _cost(fun: ResidualFunction, xe: np.ndarray, noise: float) -> float:
@@ -148,11 +189,14 @@ def check_profiles(
     cov: np.ndarray,
     noise: float,
     size: np.ndarray | None,
+    unit: float = 1.0,
 ) -> list[Profile]:
     """Profiles along the weakest axis of `cov` (prior-scaled) and along `size` (d size / d parameter, if given).
 
     `make` gives a fresh copy of the fit's residual function (its weighting and row weights);
-    `noise` is its residual's noise level (1 with a known joint noise, else the fit's RMS).
+    `noise` is its residual's noise level (1 with a known joint noise, else the fit's RMS); `unit` the
+    residual's own variance per degree of freedom in noise variances where above 1 (a fall is measured
+    in it: `FALLS`).
     """
     if not est or not np.all(np.isfinite(cov)):
         return []
@@ -164,7 +208,7 @@ def check_profiles(
         directions["the robot's size"] = size
     out = []
     for name, u in directions.items():
-        p = profile(make, values[est], cov, u, noise, prior, name)
+        p = profile(make, values[est], cov, u, noise, prior, name, unit)
         log.info("profile %s", p.describe())
         out.append(p)
     return out
@@ -198,8 +242,9 @@ def check_error_bars(
     r, _ = make()(record.values[est], False)
     known = fit.known and fit.stage.fun.weighting == "noise"
     noise = 1.0 if known else float(np.sqrt(r @ r / max(dof, 1)))
+    unit = max(1.0, float(r @ r) / max(dof, 1) / noise**2)  # the residual's own variance, in noise variances
     size = size_per_parameter(problem, record.values, est) if scale_std is not None and np.isfinite(scale_std) else None
-    profiles = check_profiles(make, problem, record.values, est, record.covariance, noise, size)
+    profiles = check_profiles(make, problem, record.values, est, record.covariance, noise, size, unit)
     warnings = [
         f"the error bars do not hold: {p.describe()}; the fit lies in a curved valley its "
         "linearisation does not see, and the standard errors understate the uncertainty"

@@ -23,7 +23,9 @@ The pipeline (thesis 3.2, 4.2, with the noise treated as errors in variables):
 7. `analyse_solution`: standard errors, directions the data do not determine,
    residuals before/after, a chi-square test, the share of the cost a
    Gauss-Newton step would still remove (0 at a minimum); `linearity.check_error_bars`:
-   a long fit's error bars along the cost's profile; then `verdict.judge`.
+   a long fit's error bars along the cost's profile, and where the cost falls beside the
+   solution the fit solved again from the lower point (`_continued`; still falling, it is
+   not converged); then `verdict.judge`.
 """
 
 from __future__ import annotations
@@ -325,40 +327,57 @@ def _calibrate(
     notes.insert(0, f"estimator: {choice['estimator']} ({choice['reason']}); error bars from {choice['error_bars']}")
     if problem is not start:  # rows rejected: the start's closure on the rows kept
         before = residual_stats(problem, problem.evaluate(x0, False))
-    after = residual_stats(problem, problem.evaluate(fit.x, False))  # the fit's own last evaluation (the memo)
-    fit.x = x = fit.stage.fun.normalized(fit.x)  # loops in canonical form, the fit's Jacobian carried along
     fit.warnings.extend(motion_warnings)
-    for k in free:
-        status[k] = ParamStatus.ESTIMATED if k in fit.est else ParamStatus.DROPPED
-    gauge = name_gauge(problem, structure, x, status, opt, notes, fit.warnings)
-    a = analyse_solution(problem, fit, opt, status, sandwich=choice["error_bars"] == SANDWICH)
-    sol = fit.stage.solution
-    if sol.status != "converged":
-        notes.append(f"solver: {sol.message}")
-    solution = FitRecord(
-        names=problem.names,
-        initial=x0,
-        values=x,
-        std=a["std"],
-        status=status,
-        estimated=fit.est,
-        covariance=a["cov"],
-        iterations=fit.iterations,
-        solver_status=sol.status,
-        solver_message=sol.message,
-        residuals_before=before,
-        residuals_after=after,
-        reducible=a["reducible"],
-    )
-    # what sets the scale, each loop's noise model (closedloop.analysis.scale)
-    found = scale_findings(
-        problem, solution, a["weighting"], gauge, fit.sigma_q, structure.scale_free, opt.snr, opt.rules
-    )
-    # a long fit: do its error bars hold? (closedloop.analysis.linearity)
+    notes_fit, status_fit, warnings_fit = list(notes), list(status), list(fit.warnings)
     sigma_estimated = opt.noise is None
-    profiles, bar_warnings = check_error_bars(
-        problem, solution, fit, a["sigma"], sigma_estimated, a["dof"], found["scale_std"]
-    )
+    for attempt in range(MINIMUM_RESTARTS + 1):  # until the profile check finds a minimum (`_continued`)
+        notes, status, fit.warnings = list(notes_fit), list(status_fit), list(warnings_fit)
+        after = residual_stats(problem, problem.evaluate(fit.x, False))  # the fit's own last evaluation (the memo)
+        fit.x = x = fit.stage.fun.normalized(fit.x)  # loops in canonical form, the fit's Jacobian carried along
+        for k in free:
+            status[k] = ParamStatus.ESTIMATED if k in fit.est else ParamStatus.DROPPED
+        gauge = name_gauge(problem, structure, x, status, opt, notes, fit.warnings)
+        a = analyse_solution(problem, fit, opt, status, sandwich=choice["error_bars"] == SANDWICH)
+        sol = fit.stage.solution
+        if sol.status != "converged":
+            notes.append(f"solver: {sol.message}")
+        solution = FitRecord(
+            names=problem.names,
+            initial=x0,
+            values=x,
+            std=a["std"],
+            status=status,
+            estimated=fit.est,
+            covariance=a["cov"],
+            iterations=fit.iterations,
+            solver_status=sol.status,
+            solver_message=sol.message,
+            residuals_before=before,
+            residuals_after=after,
+            reducible=a["reducible"],
+        )
+        # what sets the scale, each loop's noise model (closedloop.analysis.scale)
+        found = scale_findings(
+            problem, solution, a["weighting"], gauge, fit.sigma_q, structure.scale_free, opt.snr, opt.rules
+        )
+        # a long fit: do its error bars hold, is it a minimum? (closedloop.analysis.linearity)
+        profiles, bar_warnings = check_error_bars(
+            problem, solution, fit, a["sigma"], sigma_estimated, a["dof"], found["scale_std"]
+        )
+        fall = next((p for p in profiles if p.falls), None)
+        if fall is None or sol.status != "converged":
+            break
+        if attempt == MINIMUM_RESTARTS:  # still falling: not called converged, and the verdict says why
+            solution = replace(
+                solution,
+                solver_status="stalled",
+                solver_message=f"no minimum found: after {attempt} restart(s) from lower points, {fall.describe()}",
+            )
+            break
+        fit.warnings = list(warnings_fit)  # the solve's own, without this pass's analysis
+        fit, note = _continued(problem, fit, fall, opt, progress)
+        warnings_fit = list(fit.warnings)
+        notes_fit.append(note)
     res = CalibrationResult(
         problem=problem,
         fit=solution,
@@ -392,6 +411,31 @@ def _calibrate(
         warnings=fit.warnings + found["warnings"] + bar_warnings,
     )
     return replace(res, verdict=judge(res, rules=opt.rules))
+
+
+#: restarts from the lower point the profile check finds (`_continued`) before a fit is called no minimum
+MINIMUM_RESTARTS = 2
+
+
+def _continued(
+    problem: CalibrationProblem, fit: Fit, fall, opt: CalibrationOptions, progress: ProgressReporter | None
+) -> tuple[Fit, str]:
+    """The fit solved again from the lower point its profile found (`fall`, a `linearity.Profile` that
+    falls): a solver that stopped there was short of the minimum.  The same problem, rows, reduction and
+    estimator (its weighting, its noise); the iterations, warnings and restart findings of `fit` carried.
+    Returns the fit and a note for the result."""
+    start = fit.x.copy()
+    start[fit.est] = fall.lower
+    how = opt if fit.stage.fun.weighting == opt.weighting else replace(opt, weighting=fit.stage.fun.weighting)
+    again = solve_staged(problem, fit.x, start, list(fit.est), how, fit.sigma_q, fit.known, progress)
+    again.iterations += fit.iterations
+    again.warnings = list(dict.fromkeys(fit.warnings + again.warnings))
+    again.hopeless = fit.hopeless
+    note = (
+        f"the solver stopped short of the minimum ({fall.describe()}): solved again from the profile's lower "
+        f"point, {again.iterations - fit.iterations} more iterations"
+    )
+    return again, note
 
 
 def noise_hypothesis(problem: CalibrationProblem, fit: Fit, opt: CalibrationOptions) -> dict | None:

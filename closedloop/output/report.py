@@ -275,7 +275,14 @@ def build_report(
         },
         # a long fit's error bars checked along the cost's profile (closedloop.analysis.linearity); [] when not checked
         "error_bars": [
-            {"direction": p.name, "std": p.std, "rise": list(p.rise), "expected_rise": p.expected, "holds": p.holds}
+            {
+                "direction": p.name,
+                "std": p.std,
+                "rise": list(p.rise),
+                "expected_rise": p.expected,
+                "holds": p.holds,
+                "falls": p.falls,
+            }
             for p in res.noise.profiles
         ],
         "noise_model": list(res.noise.noise_model),  # per loop: task-space vs joint noise

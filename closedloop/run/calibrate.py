@@ -215,7 +215,7 @@ def validate(robot, lg, loops: list, opts, k: int, o: CalibrateOptions, res, pro
             }
     if o.lofo != "off" and lg.loop is not None and len(fixture_groups(loops)) >= 2:
         prog("validating fixtures", 0)
-        fixtures = leave_one_fixture_out(robot, lg, loops, opts)
+        fixtures = leave_one_fixture_out(robot, lg, loops, opts, result=res)
     n = int(o.regions or 0)
     if n >= 2 and len(lg) < 4 * n:  # regions of a few rows each say nothing of extrapolation: not run, said
         regions = {"k": n, "skipped": f"{len(lg)} rows: too few for {n} regions (at least {4 * n})"}

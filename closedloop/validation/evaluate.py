@@ -178,10 +178,17 @@ def evaluate_result(
 ) -> Evaluation:
     """`evaluate_model` with a calibration's robot parameters; what it estimated once for all data
     (`predicted`: shared groups, tool points, instruments) is held at its values unless `refit`."""
-    prob = result.problem
-    values = {n: float(v) for n, v in zip(prob.names[: prob.n_robot], result.fit.values[: prob.n_robot])}
-    loop_values = {n: float(v) for n, v in zip(prob.names[prob.n_robot :], result.fit.values[prob.n_robot :])}
-    return evaluate_model(prob.robot, log_, loops, values, label, calibration=loop_values, refit=refit)
+    return evaluate_fitted(result.problem, result.fit.values, log_, loops, label, refit)
+
+
+def evaluate_fitted(
+    problem, x: np.ndarray, log_: JointLog, loops: list[Loop], label: str = "calibrated", refit: bool = False
+) -> Evaluation:
+    """`evaluate_result` for the values `x` of a calibration problem (a refit's, `validation.refit`)."""
+    n = problem.n_robot
+    values = {name: float(v) for name, v in zip(problem.names[:n], x[:n])}
+    loop_values = {name: float(v) for name, v in zip(problem.names[n:], x[n:])}
+    return evaluate_model(problem.robot, log_, loops, values, label, calibration=loop_values, refit=refit)
 
 
 def table(evals: list[Evaluation]) -> str:

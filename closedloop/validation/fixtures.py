@@ -13,6 +13,11 @@ the nominal model, which has no calibration, has every loop unknown fitted.  A c
 fixture worse than the nominal model does not generalise: the verdict is
 `suspect`, naming the fixture.
 
+Given the full calibration, each refit starts at its solution and shares what does not depend on the
+fixture left out (`validation.refit`: its noise, its outlier rejections, its loops' charts): a few
+iterations each instead of a calibration from the nominal model, the same held-out figures within the
+noise.  The rows it rejected are left out of every refit's data (they are judged as before).
+
 Fixtures: a loop's ``fixture`` (spec key ``fixture=NAME``), else its name;
 loops joined by a known distance (`problem.distances.DistanceLoop`) are one rigid
 block, so one fixture.  A distance is trained on only when both its loops are.
@@ -28,6 +33,7 @@ from closedloop.errors import ClosedLoopError
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
+from closedloop.records import CalibrationResult
 
 WORSE = 1.0  # held-out closure with the calibration above WORSE x the nominal model's (+ margin): suspect
 MARGIN = 0.10  # at least 10 % worse, and beyond two standard deviations of an RMS over the fixture's rows:
@@ -71,23 +77,42 @@ def _subset(log_: JointLog, names: list[str]) -> JointLog:
     return subset(log_, rows)
 
 
+def _without(log_: JointLog, rows: list[int]) -> JointLog:
+    """`log_` without its rows `rows` (0-based)."""
+    from closedloop.validation.kfold import subset
+
+    return subset(log_, np.setdiff1d(np.arange(len(log_)), np.asarray(rows, dtype=int))) if rows else log_
+
+
 def leave_one_fixture_out(
-    robot: RobotModel, log_: JointLog, loops: list[Loop], options=None, worse: float = WORSE
+    robot: RobotModel,
+    log_: JointLog,
+    loops: list[Loop],
+    options=None,
+    worse: float = WORSE,
+    result: CalibrationResult | None = None,
 ) -> dict[str, Any] | None:
     """Refit without each fixture, evaluate it with the refit and with the nominal model; None if < 2 fixtures.
 
+    `result`: the calibration of `log_` with `loops` and `options`; each refit then starts at its solution
+    (`validation.refit`; None: each is a calibration from the nominal model).
+
     Returns {'fixtures': [{'fixture', 'loops', 'n_test', 'calibrated_rms_m', 'calibrated_mean_m',
-    'nominal_rms_m', 'nominal_mean_m', 'converged', 'worse'}], 'suspect': [reasons]}; a fixture whose
-    refit fails (the others alone do not determine the robot) has 'error' instead of the closures.
+    'nominal_rms_m', 'nominal_mean_m', 'converged', 'iterations', 'warm', 'worse'}], 'suspect': [reasons]};
+    a fixture whose refit fails (the others alone do not determine the robot) has 'error' instead of the
+    closures.
     """
-    from closedloop.calibration.pipeline import CalibrationOptions, calibrate
-    from closedloop.validation.evaluate import evaluate_model, evaluate_result
+    from closedloop.calibration.pipeline import CalibrationOptions
+    from closedloop.validation.evaluate import evaluate_fitted, evaluate_model
+    from closedloop.validation.refit import refit
 
     groups = fixture_groups(loops)
     if len(groups) < 2 or log_.loop is None:
         return None
     opt = options or CalibrationOptions()
     rows, reasons = [], []
+    # the rows the calibration rejected are no data: no refit trains on them
+    data = log_ if result is None else _without(log_, [rj.row - 1 for rj in result.outliers.rejected])
     for fx, members in groups.items():
         train = [
             lp
@@ -99,7 +124,7 @@ def leave_one_fixture_out(
         train_names = [lp.name for lp in train if not getattr(lp, "parameter_only", False)]
         test_log = _subset(log_, members)
         try:
-            res = calibrate(robot, _subset(log_, train_names), train, opt)
+            fitted = refit(result, robot, _subset(data, train_names), train, opt)
         except ClosedLoopError as exc:  # the other fixtures alone cannot calibrate: nothing to judge
             rows.append(
                 {
@@ -112,7 +137,7 @@ def leave_one_fixture_out(
                 }
             )
             continue
-        cal = evaluate_result(res, test_log, test)
+        cal = evaluate_fitted(fitted.problem, fitted.values, test_log, test)
         nom = evaluate_model(robot, test_log, test, None, "nominal")
         key = "rms_m" if cal.rms_m is not None else "rms_rad"
         c, n = getattr(cal, key), getattr(nom, key)
@@ -123,7 +148,9 @@ def leave_one_fixture_out(
                 "fixture": fx,
                 "loops": members,
                 "n_test": len(test_log),
-                "converged": res.converged,
+                "converged": fitted.converged,
+                "iterations": fitted.iterations,
+                "warm": fitted.warm,
                 "calibrated_rms_m": cal.rms_m,
                 "calibrated_mean_m": cal.mean_m,
                 "nominal_rms_m": nom.rms_m,
