@@ -111,11 +111,20 @@ def _proc(pid: int) -> tuple[float, float]:
     return hwm, _cpu(pid)
 
 
-def _cpu(pid: int) -> float:
-    """CPU seconds (user + system) a live process has used, its own threads only."""
-    with open(f"/proc/{pid}/stat") as fh:
+def _cpu(pid: int, thread: int | None = None) -> float:
+    """CPU seconds (user + system) a live process has used (all its threads, not its children's), or one
+    of its threads (`thread`: its id; the process's own id is its main thread)."""
+    path = f"/proc/{pid}/stat" if thread is None else f"/proc/{pid}/task/{thread}/stat"
+    with open(path) as fh:
         f = fh.read().rsplit(")", 1)[1].split()
     return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _side_threads(pid: int) -> float:
+    """CPU seconds a live process's threads other than its main thread have used (a Ray driver's or
+    worker's own threads: its RPC, event loop and reporting threads; a job runs in the main thread)."""
+    total = _cpu(pid)
+    return total - _cpu(pid, pid)
 
 
 def _tree_cpu(pids: list[int]) -> dict[int, float]:
@@ -158,7 +167,9 @@ def run_drivers(commands: list[list[str]], cluster: bool = False) -> dict:
     processes working for them meanwhile (below them: the pool's fork server and workers; with
     `cluster`, every process below this one: the Ray cluster's raylets, stores, services and workers),
     sampled every 0.1 s from /proc: a process's last sample counts (one that lives less than 0.1 s is
-    missed), less what it had used before the drivers started.  ``others_load``: the cores every other
+    missed), less what it had used before the drivers started; of the drivers' and the workers' CPU, the
+    part their threads other than the main one used (``driver_side_cpu``, ``workers_side_cpu``: a job
+    runs in its worker's main thread, Ray's own threads beside it).  ``others_load``: the cores every other
     process on the machine kept busy on average meanwhile (the machine's CPU time from /proc/stat, less
     this command's): the load the figures were measured under."""
     from closedloop.fleet.batch import descendants
@@ -178,6 +189,7 @@ def run_drivers(commands: list[list[str]], cluster: bool = False) -> dict:
     ]
     drivers = {p.pid for p in procs}
     peak, cpu, seen, workers = 0.0, dict.fromkeys(drivers, 0.0), {}, set()
+    side: dict[int, float] = {}  # drivers and workers: CPU of their threads but the main one (last sample)
     while any(p.poll() is None for p in procs):
         for p in procs:
             try:
@@ -189,6 +201,11 @@ def run_drivers(commands: list[list[str]], cluster: bool = False) -> dict:
         now = _tree_cpu([q for q in below if q not in drivers])
         workers.update(q for q in now if q not in workers and (not cluster or _is_ray_worker(q)))
         seen.update(now)
+        for q in [*drivers, *workers]:
+            try:
+                side[q] = max(side.get(q, 0.0), _side_threads(q))
+            except (OSError, IndexError, ValueError):
+                pass
         time.sleep(0.1)
     outs = [p.communicate() for p in procs]
     wall, busy = time.perf_counter() - t0, _machine_busy() - busy0
@@ -207,6 +224,8 @@ def run_drivers(commands: list[list[str]], cluster: bool = False) -> dict:
         "cpu": sum(cpu.values()),
         "others_cpu": others,
         "services_cpu": services,
+        "driver_side_cpu": sum(side.get(q, 0.0) for q in drivers),
+        "workers_side_cpu": sum(side.get(q, 0.0) for q in workers),
         "others_load": max(0.0, busy - ours) / wall,
         "worker_processes": len(workers),
         "code": max(p.returncode for p in procs),
@@ -294,6 +313,8 @@ def measure(engine: str, n: int, folder: Path, geo, args, address: str | None, r
         "driver_cpu_s": first["cpu"],
         "others_cpu_s": first["others_cpu"],
         "services_cpu_s": first["services_cpu"],
+        "driver_side_cpu_s": first["driver_side_cpu"],
+        "workers_side_cpu_s": first["workers_side_cpu"],
         "others_load": first["others_load"],
         "worker_processes": first["worker_processes"],
         "verdicts_ok": sum(r["verdict"] == "ok" for r in rows),
@@ -542,12 +563,47 @@ def _load(r: dict) -> str:
     return f"{own}avg {r['load']:.1f}"
 
 
+def extra(engine: dict, serial: dict) -> dict[str, float]:
+    """Where an engine's CPU per job goes beyond the serial engine's, in seconds per job (two runs of the
+    same fleet): ``jobs``, the jobs' own CPU; ``driver``, the driver's main thread outside jobs (the
+    serial driver runs the jobs: its CPU less theirs): imports, the manifest, dispatching and receiving,
+    the summary; ``driver threads``, its other threads (Ray's RPC, event loop and reporting threads);
+    ``workers``, the worker processes' main threads outside jobs (their start, imports, the engine's
+    machinery per task); ``worker threads``, their other threads.  The parts add up to the difference of
+    the whole commands' CPU per job; the cluster's services are not in it (counted apart)."""
+    n = engine["robots"]
+    runs_jobs = ("serial", "split")  # (engines whose drivers run the jobs)
+
+    def driver(r: dict) -> float:
+        return (
+            r["driver_cpu_s"]
+            - (r["sum_job_cpu_s"] if r["engine"] in runs_jobs else 0.0)
+            - r.get("driver_side_cpu_s", 0.0)
+        )
+
+    def workers(r: dict) -> float:
+        jobs = 0.0 if r["engine"] in runs_jobs else r["sum_job_cpu_s"]
+        return r.get("others_cpu_s", 0.0) - jobs - r.get("workers_side_cpu_s", 0.0)
+
+    out = {
+        "jobs": (engine["sum_job_cpu_s"] - serial["sum_job_cpu_s"]) / n,
+        "driver": (driver(engine) - driver(serial)) / n,
+        "driver threads": (engine.get("driver_side_cpu_s", 0.0) - serial.get("driver_side_cpu_s", 0.0)) / n,
+        "workers": (workers(engine) - workers(serial)) / n,
+        "worker threads": (engine.get("workers_side_cpu_s", 0.0) - serial.get("workers_side_cpu_s", 0.0)) / n,
+    }
+    if "driver_side_cpu_s" not in engine or "driver_side_cpu_s" not in serial:  # (not measured: in the main parts)
+        del out["driver threads"], out["worker threads"]
+    return out
+
+
 def interleaved(rows: list[dict]) -> list[str]:
     """Each engine against the serial engine of the same round (`--rounds`: the engines run in turn, the
     order reversed every other round, so a load that rises or falls over the rounds weighs on each
     alike): per round the ratio of the jobs' own CPU (engine / serial) and of the jobs per CPU second of
     the whole command (engine / serial; within 10 %: 0.90 or more), and the other processes' load
-    during each of the two runs; then the median and the range over the rounds."""
+    during each of the two runs, and where the engine's extra CPU per job goes (`extra`); then the median
+    and the range over the rounds."""
     rounds: dict[tuple, dict[str, dict]] = {}
     for r in rows:
         if "session" in r:
@@ -567,6 +623,13 @@ def interleaved(rows: list[dict]) -> list[str]:
                 f"{per_cpu(a):.2f} ({c:.2f}x); others' load {b.get('others_load', float('nan')):.2f} and "
                 f"{a.get('others_load', float('nan')):.2f} cores"
             )
+            if a["robots"] == b["robots"]:
+                x = extra(b, a)
+                out.append(
+                    "           its CPU per job beyond serial's: "
+                    + ", ".join(f"{k} {v * 1e3:+.1f} ms" for k, v in x.items())
+                    + f" ({sum(x.values()) * 1e3:+.1f} ms, {100 * sum(x.values()) / a['job_cpu_s']:+.1f} % of a job)"
+                )
         out.append(
             f"  {engine:<6} median over {len(pairs)} round(s): job CPU {np.median(job):.2f}x "
             f"({min(job):.2f}-{max(job):.2f}), jobs per CPU s {np.median(cpu):.2f}x ({min(cpu):.2f}-{max(cpu):.2f})"
