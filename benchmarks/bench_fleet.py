@@ -61,6 +61,10 @@ The 10,000-robot figures are extrapolated from the two largest fleets run (metho
 ``arm00064``) with joint 4's offset jumped by 800 urad on the second date, calibrated on the local pool;
 writes ``fleet.json``, ``fleet.html`` and the plot (``--png``, the docs' figure) and prints the robots
 that need attention first.
+
+``--ray-jobs R``: instead, a job's own CPU in a Ray worker against a plain process, one job at a time in
+both, R rounds in turn of the first ``--robots`` size (`ray_job_cpu`): whether a Ray worker makes a job
+cost more than it does elsewhere, apart from two jobs running side by side.
 """
 
 from __future__ import annotations
@@ -531,6 +535,67 @@ def ray_startup(workers: int, repeats: int, idle: float = 20.0) -> list[str]:
     return lines
 
 
+ONE_BY_ONE = r"""
+from closedloop.fleet.batch import run_row
+from closedloop.fleet.manifest import read_manifest
+from closedloop.parallel.engine import call, limit_threads, warm
+
+
+def one_by_one(manifest):
+    limit_threads()
+    warm(run_row)
+    return [call(run_row, i, job, None).cpu for i, job in enumerate(read_manifest(manifest))]
+"""
+
+
+def ray_job_cpu(n: int, rounds: int, out: Path, geo) -> list[str]:
+    """A job's own CPU in a Ray worker against a plain process, one job at a time in both (no second
+    job beside it): `rounds` rounds of the same `n` robots, in turn (the order reversed every other
+    round), each in a fresh folder; the Ray worker (a cluster of one CPU started here) warm before the
+    first round, the plain process (``python -c``, no Ray imported) a new one each round, its imports
+    before the first job's clock as a worker's.  Whether running in a Ray worker makes a job cost more."""
+    import ray
+
+    namespace: dict = {}
+    exec(ONE_BY_ONE, namespace)
+
+    def fleet(tag: str) -> str:
+        folder = out / "job-cpu" / tag
+        if folder.exists():
+            shutil.rmtree(folder)
+        return str(write_fleet(folder, FleetSpec(robots=n, seed=n), geo))
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False)
+    try:
+        remote = ray.remote(num_cpus=1)(namespace["one_by_one"])
+        ray.get(remote.remote(fleet("warm")))
+        cpu: dict[str, list[float]] = {"plain": [], "ray": []}
+        for k in range(rounds):
+            for how in ["plain", "ray"][:: -1 if k % 2 else 1]:
+                manifest = fleet(f"{how}{k}")
+                if how == "ray":
+                    jobs = ray.get(remote.remote(manifest))
+                else:
+                    code = ONE_BY_ONE + "\nimport json, sys\nprint(json.dumps(one_by_one(sys.argv[1])))"
+                    run = subprocess.run(
+                        [sys.executable, "-c", code, manifest], capture_output=True, text=True, env=env
+                    )
+                    if run.returncode:
+                        raise RuntimeError(run.stderr[-2000:])
+                    jobs = json.loads(run.stdout.splitlines()[-1])
+                cpu[how].append(float(np.mean(jobs)))
+    finally:
+        ray.shutdown()
+    ratio = [r / p for r, p in zip(cpu["ray"], cpu["plain"])]
+    return [
+        f"a job's own CPU, one job at a time, {rounds} rounds of {n} robots: in a Ray worker "
+        f"{np.mean(cpu['ray']):.4f} s, in a plain process {np.mean(cpu['plain']):.4f} s "
+        f"({np.mean(cpu['ray']) / np.mean(cpu['plain']):.3f}x); per round {min(ratio):.2f}-{max(ratio):.2f}x, "
+        f"median {np.median(ratio):.3f}x.  Load: {_load({'load': os.getloadavg()[0]})}"
+    ]
+
+
 def report_demo(n: int, out: Path, geo, workers: int, png: str | None) -> None:
     """The fleet report of `n` robots on two dates, two of them drifted (module docstring)."""
     from closedloop.fleet.report import fig_drift, fleet_report, read_summary, write_fleet_report
@@ -666,6 +731,13 @@ def main() -> None:
     ap.add_argument("--out", default="out/bench_fleet")
     ap.add_argument("--report", type=int, metavar="N", help="the fleet report of N robots on two dates instead")
     ap.add_argument("--png", help="with --report: write the report's plot here too")
+    ap.add_argument(
+        "--ray-jobs",
+        type=int,
+        metavar="R",
+        help="instead, a job's own CPU in a Ray worker against a plain process, one job at a time, R rounds "
+        "of the first --robots size (`ray_job_cpu`)",
+    )
     ap.add_argument("--table", action="store_true", help="only print the table of the measurements in --out")
     ap.add_argument(
         "--ray-startup",
@@ -688,6 +760,10 @@ def main() -> None:
     geo = geometry(out, args.configs)
     if args.report:
         report_demo(args.report, out, geo, args.workers, args.png)
+        return
+    if args.ray_jobs:
+        for line in ray_job_cpu(args.robots[0], args.ray_jobs, out, geo):
+            print(line)
         return
     cluster, address = None, None
     if "ray" in args.engines:
