@@ -61,6 +61,10 @@ The 10,000-robot figures are extrapolated from the two largest fleets run (metho
 ``arm00064``) with joint 4's offset jumped by 800 urad on the second date, calibrated on the local pool;
 writes ``fleet.json``, ``fleet.html`` and the plot (``--png``, the docs' figure) and prints the robots
 that need attention first.
+
+``--ray-jobs R``: instead, a job's own CPU in a Ray worker against a plain process, one job at a time in
+both, R rounds in turn of the first ``--robots`` size (`ray_job_cpu`): whether a Ray worker makes a job
+cost more than it does elsewhere, apart from two jobs running side by side.
 """
 
 from __future__ import annotations
@@ -111,11 +115,20 @@ def _proc(pid: int) -> tuple[float, float]:
     return hwm, _cpu(pid)
 
 
-def _cpu(pid: int) -> float:
-    """CPU seconds (user + system) a live process has used, its own threads only."""
-    with open(f"/proc/{pid}/stat") as fh:
+def _cpu(pid: int, thread: int | None = None) -> float:
+    """CPU seconds (user + system) a live process has used (all its threads, not its children's), or one
+    of its threads (`thread`: its id; the process's own id is its main thread)."""
+    path = f"/proc/{pid}/stat" if thread is None else f"/proc/{pid}/task/{thread}/stat"
+    with open(path) as fh:
         f = fh.read().rsplit(")", 1)[1].split()
     return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _side_threads(pid: int) -> float:
+    """CPU seconds a live process's threads other than its main thread have used (a Ray driver's or
+    worker's own threads: its RPC, event loop and reporting threads; a job runs in the main thread)."""
+    total = _cpu(pid)
+    return total - _cpu(pid, pid)
 
 
 def _tree_cpu(pids: list[int]) -> dict[int, float]:
@@ -158,7 +171,9 @@ def run_drivers(commands: list[list[str]], cluster: bool = False) -> dict:
     processes working for them meanwhile (below them: the pool's fork server and workers; with
     `cluster`, every process below this one: the Ray cluster's raylets, stores, services and workers),
     sampled every 0.1 s from /proc: a process's last sample counts (one that lives less than 0.1 s is
-    missed), less what it had used before the drivers started.  ``others_load``: the cores every other
+    missed), less what it had used before the drivers started; of the drivers' and the workers' CPU, the
+    part their threads other than the main one used (``driver_side_cpu``, ``workers_side_cpu``: a job
+    runs in its worker's main thread, Ray's own threads beside it).  ``others_load``: the cores every other
     process on the machine kept busy on average meanwhile (the machine's CPU time from /proc/stat, less
     this command's): the load the figures were measured under."""
     from closedloop.fleet.batch import descendants
@@ -178,6 +193,7 @@ def run_drivers(commands: list[list[str]], cluster: bool = False) -> dict:
     ]
     drivers = {p.pid for p in procs}
     peak, cpu, seen, workers = 0.0, dict.fromkeys(drivers, 0.0), {}, set()
+    side: dict[int, float] = {}  # drivers and workers: CPU of their threads but the main one (last sample)
     while any(p.poll() is None for p in procs):
         for p in procs:
             try:
@@ -189,6 +205,11 @@ def run_drivers(commands: list[list[str]], cluster: bool = False) -> dict:
         now = _tree_cpu([q for q in below if q not in drivers])
         workers.update(q for q in now if q not in workers and (not cluster or _is_ray_worker(q)))
         seen.update(now)
+        for q in [*drivers, *workers]:
+            try:
+                side[q] = max(side.get(q, 0.0), _side_threads(q))
+            except (OSError, IndexError, ValueError):
+                pass
         time.sleep(0.1)
     outs = [p.communicate() for p in procs]
     wall, busy = time.perf_counter() - t0, _machine_busy() - busy0
@@ -207,6 +228,8 @@ def run_drivers(commands: list[list[str]], cluster: bool = False) -> dict:
         "cpu": sum(cpu.values()),
         "others_cpu": others,
         "services_cpu": services,
+        "driver_side_cpu": sum(side.get(q, 0.0) for q in drivers),
+        "workers_side_cpu": sum(side.get(q, 0.0) for q in workers),
         "others_load": max(0.0, busy - ours) / wall,
         "worker_processes": len(workers),
         "code": max(p.returncode for p in procs),
@@ -294,6 +317,8 @@ def measure(engine: str, n: int, folder: Path, geo, args, address: str | None, r
         "driver_cpu_s": first["cpu"],
         "others_cpu_s": first["others_cpu"],
         "services_cpu_s": first["services_cpu"],
+        "driver_side_cpu_s": first["driver_side_cpu"],
+        "workers_side_cpu_s": first["workers_side_cpu"],
         "others_load": first["others_load"],
         "worker_processes": first["worker_processes"],
         "verdicts_ok": sum(r["verdict"] == "ok" for r in rows),
@@ -510,6 +535,67 @@ def ray_startup(workers: int, repeats: int, idle: float = 20.0) -> list[str]:
     return lines
 
 
+ONE_BY_ONE = r"""
+from closedloop.fleet.batch import run_row
+from closedloop.fleet.manifest import read_manifest
+from closedloop.parallel.engine import call, limit_threads, warm
+
+
+def one_by_one(manifest):
+    limit_threads()
+    warm(run_row)
+    return [call(run_row, i, job, None).cpu for i, job in enumerate(read_manifest(manifest))]
+"""
+
+
+def ray_job_cpu(n: int, rounds: int, out: Path, geo) -> list[str]:
+    """A job's own CPU in a Ray worker against a plain process, one job at a time in both (no second
+    job beside it): `rounds` rounds of the same `n` robots, in turn (the order reversed every other
+    round), each in a fresh folder; the Ray worker (a cluster of one CPU started here) warm before the
+    first round, the plain process (``python -c``, no Ray imported) a new one each round, its imports
+    before the first job's clock as a worker's.  Whether running in a Ray worker makes a job cost more."""
+    import ray
+
+    namespace: dict = {}
+    exec(ONE_BY_ONE, namespace)
+
+    def fleet(tag: str) -> str:
+        folder = out / "job-cpu" / tag
+        if folder.exists():
+            shutil.rmtree(folder)
+        return str(write_fleet(folder, FleetSpec(robots=n, seed=n), geo))
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False)
+    try:
+        remote = ray.remote(num_cpus=1)(namespace["one_by_one"])
+        ray.get(remote.remote(fleet("warm")))
+        cpu: dict[str, list[float]] = {"plain": [], "ray": []}
+        for k in range(rounds):
+            for how in ["plain", "ray"][:: -1 if k % 2 else 1]:
+                manifest = fleet(f"{how}{k}")
+                if how == "ray":
+                    jobs = ray.get(remote.remote(manifest))
+                else:
+                    code = ONE_BY_ONE + "\nimport json, sys\nprint(json.dumps(one_by_one(sys.argv[1])))"
+                    run = subprocess.run(
+                        [sys.executable, "-c", code, manifest], capture_output=True, text=True, env=env
+                    )
+                    if run.returncode:
+                        raise RuntimeError(run.stderr[-2000:])
+                    jobs = json.loads(run.stdout.splitlines()[-1])
+                cpu[how].append(float(np.mean(jobs)))
+    finally:
+        ray.shutdown()
+    ratio = [r / p for r, p in zip(cpu["ray"], cpu["plain"])]
+    return [
+        f"a job's own CPU, one job at a time, {rounds} rounds of {n} robots: in a Ray worker "
+        f"{np.mean(cpu['ray']):.4f} s, in a plain process {np.mean(cpu['plain']):.4f} s "
+        f"({np.mean(cpu['ray']) / np.mean(cpu['plain']):.3f}x); per round {min(ratio):.2f}-{max(ratio):.2f}x, "
+        f"median {np.median(ratio):.3f}x.  Load: {_load({'load': os.getloadavg()[0]})}"
+    ]
+
+
 def report_demo(n: int, out: Path, geo, workers: int, png: str | None) -> None:
     """The fleet report of `n` robots on two dates, two of them drifted (module docstring)."""
     from closedloop.fleet.report import fig_drift, fleet_report, read_summary, write_fleet_report
@@ -542,12 +628,47 @@ def _load(r: dict) -> str:
     return f"{own}avg {r['load']:.1f}"
 
 
+def extra(engine: dict, serial: dict) -> dict[str, float]:
+    """Where an engine's CPU per job goes beyond the serial engine's, in seconds per job (two runs of the
+    same fleet): ``jobs``, the jobs' own CPU; ``driver``, the driver's main thread outside jobs (the
+    serial driver runs the jobs: its CPU less theirs): imports, the manifest, dispatching and receiving,
+    the summary; ``driver threads``, its other threads (Ray's RPC, event loop and reporting threads);
+    ``workers``, the worker processes' main threads outside jobs (their start, imports, the engine's
+    machinery per task); ``worker threads``, their other threads.  The parts add up to the difference of
+    the whole commands' CPU per job; the cluster's services are not in it (counted apart)."""
+    n = engine["robots"]
+    runs_jobs = ("serial", "split")  # (engines whose drivers run the jobs)
+
+    def driver(r: dict) -> float:
+        return (
+            r["driver_cpu_s"]
+            - (r["sum_job_cpu_s"] if r["engine"] in runs_jobs else 0.0)
+            - r.get("driver_side_cpu_s", 0.0)
+        )
+
+    def workers(r: dict) -> float:
+        jobs = 0.0 if r["engine"] in runs_jobs else r["sum_job_cpu_s"]
+        return r.get("others_cpu_s", 0.0) - jobs - r.get("workers_side_cpu_s", 0.0)
+
+    out = {
+        "jobs": (engine["sum_job_cpu_s"] - serial["sum_job_cpu_s"]) / n,
+        "driver": (driver(engine) - driver(serial)) / n,
+        "driver threads": (engine.get("driver_side_cpu_s", 0.0) - serial.get("driver_side_cpu_s", 0.0)) / n,
+        "workers": (workers(engine) - workers(serial)) / n,
+        "worker threads": (engine.get("workers_side_cpu_s", 0.0) - serial.get("workers_side_cpu_s", 0.0)) / n,
+    }
+    if "driver_side_cpu_s" not in engine or "driver_side_cpu_s" not in serial:  # (not measured: in the main parts)
+        del out["driver threads"], out["worker threads"]
+    return out
+
+
 def interleaved(rows: list[dict]) -> list[str]:
     """Each engine against the serial engine of the same round (`--rounds`: the engines run in turn, the
     order reversed every other round, so a load that rises or falls over the rounds weighs on each
     alike): per round the ratio of the jobs' own CPU (engine / serial) and of the jobs per CPU second of
     the whole command (engine / serial; within 10 %: 0.90 or more), and the other processes' load
-    during each of the two runs; then the median and the range over the rounds."""
+    during each of the two runs, and where the engine's extra CPU per job goes (`extra`); then the median
+    and the range over the rounds."""
     rounds: dict[tuple, dict[str, dict]] = {}
     for r in rows:
         if "session" in r:
@@ -567,6 +688,13 @@ def interleaved(rows: list[dict]) -> list[str]:
                 f"{per_cpu(a):.2f} ({c:.2f}x); others' load {b.get('others_load', float('nan')):.2f} and "
                 f"{a.get('others_load', float('nan')):.2f} cores"
             )
+            if a["robots"] == b["robots"]:
+                x = extra(b, a)
+                out.append(
+                    "           its CPU per job beyond serial's: "
+                    + ", ".join(f"{k} {v * 1e3:+.1f} ms" for k, v in x.items())
+                    + f" ({sum(x.values()) * 1e3:+.1f} ms, {100 * sum(x.values()) / a['job_cpu_s']:+.1f} % of a job)"
+                )
         out.append(
             f"  {engine:<6} median over {len(pairs)} round(s): job CPU {np.median(job):.2f}x "
             f"({min(job):.2f}-{max(job):.2f}), jobs per CPU s {np.median(cpu):.2f}x ({min(cpu):.2f}-{max(cpu):.2f})"
@@ -603,6 +731,13 @@ def main() -> None:
     ap.add_argument("--out", default="out/bench_fleet")
     ap.add_argument("--report", type=int, metavar="N", help="the fleet report of N robots on two dates instead")
     ap.add_argument("--png", help="with --report: write the report's plot here too")
+    ap.add_argument(
+        "--ray-jobs",
+        type=int,
+        metavar="R",
+        help="instead, a job's own CPU in a Ray worker against a plain process, one job at a time, R rounds "
+        "of the first --robots size (`ray_job_cpu`)",
+    )
     ap.add_argument("--table", action="store_true", help="only print the table of the measurements in --out")
     ap.add_argument(
         "--ray-startup",
@@ -625,6 +760,10 @@ def main() -> None:
     geo = geometry(out, args.configs)
     if args.report:
         report_demo(args.report, out, geo, args.workers, args.png)
+        return
+    if args.ray_jobs:
+        for line in ray_job_cpu(args.robots[0], args.ray_jobs, out, geo):
+            print(line)
         return
     cluster, address = None, None
     if "ray" in args.engines:
