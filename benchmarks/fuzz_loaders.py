@@ -2,7 +2,7 @@
 
     python benchmarks/fuzz_loaders.py [--examples 10000] [--only dh,log,...]
 
-Runs the properties of tests/test_fuzz_loaders.py (the CI test runs 200 derandomized examples of
+Runs the properties of tests/fuzz_properties.py (tests/test_fuzz_loaders.py runs 200 derandomized examples of
 each): a loader either returns a valid result or raises closedloop's own InputError; any other
 exception is a crash, and hypothesis stops on it and prints the smallest input that shows it.
 Prints per loader: examples, loaded / refused counts, crashes (0 or the failing example), seconds.
@@ -18,8 +18,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent / "tests")]
 
+from fuzz_properties import PROPERTIES, run_property  # noqa: E402
 from machine import header  # noqa: E402
-from test_fuzz_loaders import PROPERTIES, run_property  # noqa: E402
 
 
 def main() -> None:

@@ -9,11 +9,26 @@ import sys
 
 import numpy as np
 import pytest
-from scipy import ndimage, signal
 
 from closedloop.impedance import filters as F
 
 FS = 600.0000083339121  # a rate read from rounded time stamps, as `Record.fs` gives it
+
+
+# scipy's references are imported when a test asks, not at import: every xdist worker imports this file to
+# collect it, and scipy.signal alone takes a second and a half.
+@pytest.fixture(scope="module")
+def signal():
+    from scipy import signal
+
+    return signal
+
+
+@pytest.fixture(scope="module")
+def ndimage():
+    from scipy import ndimage
+
+    return ndimage
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +39,7 @@ def x():
 
 @pytest.mark.parametrize("order", [1, 2, 3, 4, 5, 6])
 @pytest.mark.parametrize("hz", [1.0, 6.0, 11.13, 40.0, 250.0])
-def test_butterworth_filters_equal_scipys(x, order, hz):
+def test_butterworth_filters_equal_scipys(signal, x, order, hz):
     sos = signal.butter(order, hz, fs=FS, output="sos")
     if order % 2 == 0 or hz < 100:  # (odd orders near Nyquist: scipy pairs the real pole elsewhere)
         np.testing.assert_allclose(F.butter_sos(order, hz, FS), sos, rtol=1e-13, atol=1e-16)
@@ -44,7 +59,7 @@ def test_filtfilt_refuses_a_signal_shorter_than_its_padding():
 
 
 @pytest.mark.parametrize("n, nperseg", [(1620, 1024), (1001, 1001), (3000, 511), (700, 256)])
-def test_welch_equals_scipys(n, nperseg):
+def test_welch_equals_scipys(signal, n, nperseg):
     y = np.cumsum(np.random.default_rng(1).standard_normal((3, n)), -1)
     f, P = F.welch(y, FS, nperseg)
     f0, P0 = signal.welch(y, fs=FS, nperseg=nperseg, axis=-1)
@@ -52,7 +67,7 @@ def test_welch_equals_scipys(n, nperseg):
     np.testing.assert_allclose(P, P0, rtol=1e-12, atol=1e-14 * P0.max())
 
 
-def test_find_peaks_equals_scipys_with_plateaus_and_ties():
+def test_find_peaks_equals_scipys_with_plateaus_and_ties(signal):
     rng = np.random.default_rng(2)
     for _ in range(400):
         y = np.round(rng.standard_normal(int(rng.integers(1, 300))) * 3) / 3  # coarse values: plateaus, ties
@@ -63,7 +78,7 @@ def test_find_peaks_equals_scipys_with_plateaus_and_ties():
 
 @pytest.mark.parametrize("sigma", [0.4, 3.0, 18.0, 30.0])
 @pytest.mark.parametrize("shape, axis", [((1200,), -1), ((1200, 8), -2), ((25, 201, 8), -2), ((5, 40), -1)])
-def test_gaussian_filter1d_equals_scipys(sigma, shape, axis):
+def test_gaussian_filter1d_equals_scipys(ndimage, sigma, shape, axis):
     a = np.random.default_rng(3).standard_normal(shape) + 1.0
     ref = ndimage.gaussian_filter1d(a, sigma, axis=axis, mode="nearest")
     np.testing.assert_allclose(F.gaussian_filter1d(a, sigma, axis=axis), ref, rtol=0, atol=1e-14)

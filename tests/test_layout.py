@@ -22,6 +22,8 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import pytest
+
 PACKAGE = Path(__file__).resolve().parents[1] / "closedloop"
 
 #: top to bottom; a unit is a subpackage of closedloop or a top-level module
@@ -72,7 +74,12 @@ def _modules() -> dict[str, Path]:
 
 
 MODULES = _modules()
-PARSED = {m: (p, ast.parse(p.read_text(), filename=str(p))) for m, p in MODULES.items()}
+
+
+# Parsed when a test asks (a module fixture), not at import: every xdist worker imports this file to collect it.
+@pytest.fixture(scope="module")
+def parsed() -> dict[str, tuple[Path, ast.Module]]:
+    return {m: (p, ast.parse(p.read_text(), filename=str(p))) for m, p in MODULES.items()}
 
 
 def _package_of(module: str, path: Path) -> str:
@@ -111,7 +118,7 @@ def _deepest(name: str) -> str:
     return name
 
 
-def edges(parsed=PARSED, modules=MODULES) -> dict[str, dict[str, int]]:
+def edges(parsed: dict[str, tuple[Path, ast.Module]], modules=MODULES) -> dict[str, dict[str, int]]:
     """module -> {imported closedloop module: line of the first such import}."""
     graph: dict[str, dict[str, int]] = {m: {} for m in modules}
     for module, (path, tree) in parsed.items():
@@ -214,7 +221,9 @@ def reach(graph: dict[str, set[str]], start: list[str]) -> dict[str, str]:
     return seen
 
 
-GRAPH = edges()
+@pytest.fixture(scope="module")
+def graph(parsed) -> dict[str, dict[str, int]]:
+    return edges(parsed)
 
 
 def test_every_module_is_found():
@@ -223,16 +232,16 @@ def test_every_module_is_found():
     assert {unit(m) for m in MODULES} - {""} <= {u for layer in LAYERS for u in layer}
 
 
-def test_function_level_imports_are_counted():
+def test_function_level_imports_are_counted(graph):
     """The graph holds an import made inside a function (the CLI loads its commands that way)."""
-    assert any("closedloop.cli.calibrate" in t for t in [GRAPH["closedloop.cli.main"]])
+    assert any("closedloop.cli.calibrate" in t for t in [graph["closedloop.cli.main"]])
     tree = ast.parse("def f():\n    from closedloop.errors import InputError\n")
     g = edges({"closedloop.io.logs": (PACKAGE / "io" / "logs.py", tree)}, MODULES)
     assert "closedloop.errors" in g["closedloop.io.logs"]
 
 
-def test_layers():
-    bad = layer_violations(GRAPH)
+def test_layers(graph):
+    bad = layer_violations(graph)
     assert not bad, "imports against the layers (tests/test_layout.py LAYERS):\n" + "\n".join(bad)
 
 
@@ -251,8 +260,8 @@ def test_a_wrong_way_import_fails():
     assert any("closedloop.io.logs:5" in b and "façade" in b for b in bad)
 
 
-def test_no_import_cycle():
-    found = cycles(_without_own_packages(GRAPH))
+def test_no_import_cycle(graph):
+    found = cycles(_without_own_packages(graph))
     assert not found, "import cycles among closedloop modules: " + "; ".join(" <-> ".join(c) for c in found)
 
 
@@ -261,10 +270,9 @@ def test_cycle_detector_finds_a_cycle():
     assert cycles({"a": {"b"}, "b": set()}) == []
 
 
-def test_the_simulator_never_runs_the_calibrator():
-    graph = _without_own_packages(GRAPH)
+def test_the_simulator_never_runs_the_calibrator(graph):
     sims = [m for m in MODULES if m.startswith("closedloop.sims")]
-    seen = reach(graph, sims)
+    seen = reach(_without_own_packages(graph), sims)
     bad = []
     for m in sorted(seen):
         if m.startswith(CALIBRATOR):
@@ -276,9 +284,9 @@ def test_the_simulator_never_runs_the_calibrator():
     assert not bad, "the simulator reaches the calibrator:\n" + "\n".join(bad)
 
 
-def test_no_private_name_imported_across_modules():
+def test_no_private_name_imported_across_modules(parsed):
     bad = []
-    for module, (path, tree) in PARSED.items():
+    for module, (path, tree) in parsed.items():
         for node in ast.walk(tree):
             if isinstance(node, ast.ImportFrom):
                 source = _resolve(module, path, node)

@@ -18,10 +18,19 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import pytest
+
 PACKAGE = Path(__file__).resolve().parents[1] / "closedloop"
-SOURCES = {
-    p.relative_to(PACKAGE.parent).as_posix(): ast.parse(p.read_text(), str(p)) for p in sorted(PACKAGE.rglob("*.py"))
-}
+
+
+# Parsed when a test asks (a module fixture), not at import: every xdist worker imports this file to collect it.
+@pytest.fixture(scope="module")
+def sources() -> dict[str, ast.Module]:
+    return {
+        p.relative_to(PACKAGE.parent).as_posix(): ast.parse(p.read_text(), str(p))
+        for p in sorted(PACKAGE.rglob("*.py"))
+    }
+
 
 STREAMS = {"stdout", "stderr", "__stdout__", "__stderr__"}
 NOT_WRITES = {"flush", "fileno", "isatty"}  # a stream's method that writes nothing
@@ -52,10 +61,10 @@ def printing(tree: ast.AST) -> list[int]:
     return sorted(set(lines))
 
 
-def test_printing_only_in_cli():
+def test_printing_only_in_cli(sources):
     found = [
         f"{path}:{line}"
-        for path, tree in SOURCES.items()
+        for path, tree in sources.items()
         if not path.startswith("closedloop/cli/")
         for line in printing(tree)
     ]
@@ -70,9 +79,9 @@ def test_the_scan_sees_every_way_of_printing():
     assert printing(ast.parse(text)) == [2, 3, 4, 5, 6]
 
 
-def test_a_missing_optional_package_is_refused_one_way():
+def test_a_missing_optional_package_is_refused_one_way(sources):
     found = []
-    for path, tree in SOURCES.items():
+    for path, tree in sources.items():
         for node in ast.walk(tree):
             if isinstance(node, ast.ExceptHandler) and node.type is not None:
                 names = {n.id for n in ast.walk(node.type) if isinstance(n, ast.Name)}
@@ -96,9 +105,9 @@ def _scipy_imports(tree: ast.Module):
                 yield name, node.lineno, node in top
 
 
-def test_scipy_signal_and_stats_kept_out_the_rest_imported_where_used():
+def test_scipy_signal_and_stats_kept_out_the_rest_imported_where_used(sources):
     never, eager = [], []
-    for path, tree in SOURCES.items():
+    for path, tree in sources.items():
         for name, line, at_top in _scipy_imports(tree):
             if name.startswith(SCIPY_NEVER):
                 never.append(f"{path}:{line} {name}")

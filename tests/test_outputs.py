@@ -6,6 +6,7 @@ import io
 import json
 import subprocess
 import sys
+import warnings
 
 import mujoco
 import numpy as np
@@ -118,7 +119,22 @@ def test_cli_calibrate_writes_urdf_report_and_check_passes(calibrated, tmp_path)
     assert main(["check", str(truth), str(rep)]) == 1
 
 
-def _run(args):
+def _run(capfd, args):
+    """The command run in this process: its exit code, what it wrote to stdout and to stderr (file descriptors:
+    the C++ libraries' lines too) and the warnings a fresh interpreter would print there (Python's default
+    filters).  The program's own start-up is checked in test_cli_startup.py, its exits in test_signals.py."""
+    capfd.readouterr()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        for quiet in (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning):
+            warnings.simplefilter("ignore", quiet)
+        rc = main(list(args))
+    out, err = capfd.readouterr()
+    return rc, out, err + "".join(warnings.formatwarning(w.message, w.category, w.filename, w.lineno) for w in caught)
+
+
+def _run_program(args):
+    """The command run as a program (a fresh interpreter): where its start-up is part of what is checked."""
     p = subprocess.run([sys.executable, "-m", "closedloop.cli.main", *args], capture_output=True, text=True)
     return p.returncode, p.stdout, p.stderr
 
@@ -141,11 +157,11 @@ def files(calibrated, tmp_path):
         (lambda text: text.replace("\n", "\n1,2\n", 1), "line 2 has 2 fields"),
     ],
 )
-def test_bad_logs_one_line_exit_2(files, mutate, expect):
+def test_bad_logs_one_line_exit_2(files, mutate, expect, capfd):
     nominal, log, tmp = files
     bad = tmp / "bad.csv"
     bad.write_text(mutate(log.read_text()))
-    rc, _, err = _run(["calibrate", str(nominal), str(bad), "--loop", "weld:frame=panda_hand", "--quiet"])
+    rc, _, err = _run(capfd, ["calibrate", str(nominal), str(bad), "--loop", "weld:frame=panda_hand", "--quiet"])
     assert rc == 2, err
     assert expect in err and str(bad) in err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
@@ -161,30 +177,33 @@ def test_bad_logs_one_line_exit_2(files, mutate, expect):
         ([], "no --loop given"),
     ],
 )
-def test_bad_options_one_line_exit_2(files, args, expect):
+def test_bad_options_one_line_exit_2(files, args, expect, capfd):
     nominal, log, _ = files
-    rc, _, err = _run(["calibrate", str(nominal), str(log), *args, "--quiet"])
+    rc, _, err = _run(capfd, ["calibrate", str(nominal), str(log), *args, "--quiet"])
     assert rc == 2 and expect in err and "Traceback" not in err, err
 
 
-def test_never_overwrites_input(files):
+def test_never_overwrites_input(files, capfd):
     nominal, log, _ = files
     before = nominal.read_text()
     rc, _, err = _run(
-        ["calibrate", str(nominal), str(log), "--loop", "weld:frame=panda_hand", "--out", str(nominal), "--quiet"]
+        capfd,
+        ["calibrate", str(nominal), str(log), "--loop", "weld:frame=panda_hand", "--out", str(nominal), "--quiet"],
     )
     assert rc == 2 and "refusing to overwrite" in err
     assert nominal.read_text() == before
 
 
-def test_missing_model_file(tmp_path):
-    rc, _, err = _run(["calibrate", str(tmp_path / "nope.urdf"), str(tmp_path / "x.csv"), "--loop", "weld:frame=a"])
+def test_missing_model_file(tmp_path, capfd):
+    rc, _, err = _run(
+        capfd, ["calibrate", str(tmp_path / "nope.urdf"), str(tmp_path / "x.csv"), "--loop", "weld:frame=a"]
+    )
     assert rc == 2 and "no such model file" in err
 
 
-def test_inspect_lists_joints_and_parameters(files):
+def test_inspect_lists_joints_and_parameters(files, capfd):
     nominal, _, _ = files
-    rc, out, _ = _run(["inspect", str(nominal), "--json"])
+    rc, out, _ = _run(capfd, ["inspect", str(nominal), "--json"])
     info = json.loads(out)
     assert rc == 0 and [j["name"] for j in info["joints"]][:2] == ["panda_joint1", "panda_joint2"]
     assert "panda_joint3.offset" in info["parameters"] and "panda_hand" in info["frames"]
@@ -251,7 +270,7 @@ def test_dh_input_gives_calibrated_dh_yaml(tmp_path):
         assert row.theta_off == pytest.approx(cal[f"{row.name}.theta_off"], abs=1e-9)
 
 
-def test_mjcf_input(tmp_path):
+def test_mjcf_input(tmp_path, capfd):
     """An MJCF arm loads through Pinocchio's parser and exposes the same parameter names."""
     xml = tmp_path / "arm.xml"
     xml.write_text("""<mujoco model="arm"><worldbody>
@@ -262,7 +281,7 @@ def test_mjcf_input(tmp_path):
           <site name="tip" pos="0.25 0 0"/></body></body></worldbody></mujoco>""")
     robot = RobotModel.from_file(xml)
     assert robot.kind == "mjcf" and robot.joint_names == ["j1", "j2"]
-    rc, out, _ = _run(["inspect", str(xml), "--json"])
+    rc, out, _ = _run(capfd, ["inspect", str(xml), "--json"])
     assert rc == 0 and "j2.offset" in json.loads(out)["parameters"]
 
 
@@ -277,25 +296,8 @@ def test_mjcf_input(tmp_path):
         ("noise", "expected KEY=VALUE"),
     ],
 )
-def test_bad_simulation_settings_one_line_exit_2(tmp_path, setting, expect):
-    p = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "closedloop.cli.main",
-            "simulate",
-            "panda_weld",
-            "--n",
-            "2",
-            "--out",
-            str(tmp_path / "o"),
-            "--set",
-            setting,
-        ],
-        capture_output=True,
-        text=True,
-    )
-    rc, err = p.returncode, p.stderr
+def test_bad_simulation_settings_one_line_exit_2(tmp_path, setting, expect, capfd):
+    rc, _, err = _run(capfd, ["simulate", "panda_weld", "--n", "2", "--out", str(tmp_path / "o"), "--set", setting])
     assert rc == 2 and expect in err and "Traceback" not in err, err
     assert not (tmp_path / "o").exists()  # nothing simulated
 
@@ -408,10 +410,10 @@ def _calibrate_args(files, *extra):
 def test_quiet_prints_nothing_and_a_log_gets_no_progress_lines(files):
     """--quiet: no summary; without it, the summary on stdout and no progress line in a non-terminal stderr."""
     _, _, tmp = files
-    rc, out, err = _run(_calibrate_args(files, "--report", str(tmp / "r.json"), "--quiet"))
+    rc, out, err = _run_program(_calibrate_args(files, "--report", str(tmp / "r.json"), "--quiet"))
     assert rc == 0 and out == "" and err == "", (out, err)
     assert json.loads((tmp / "r.json").read_text())["verdict"]["status"] == "ok"
-    rc, out, err = _run(_calibrate_args(files, "--report", str(tmp / "r2.json")))
+    rc, out, err = _run_program(_calibrate_args(files, "--report", str(tmp / "r2.json")))
     assert rc == 0 and out.startswith("verdict: ok") and f"wrote {tmp / 'r2.json'}" in out
     assert err == "", err  # no 'solving: iteration ...' lines left in a log
 
