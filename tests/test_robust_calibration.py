@@ -108,14 +108,14 @@ def test_long_log_refit_on_a_sample(panda, data, monkeypatch):
     corrupt = train.copy()
     corrupt[bad, rng.integers(0, 7, bad.size)] += rng.choice([-1.0, 1.0], bad.size) * rng.uniform(0.05, 0.2, bad.size)
     sizes = []
-    real = outliers.weighted_stage
+    real = outliers.levenberg_marquardt
 
-    def spy(problem, *args, **kw):
-        sizes.append(sum(b.theta.shape[0] for b in problem.blocks))
-        return real(problem, *args, **kw)
+    def spy(fun, *args, **kw):
+        sizes.append(sum(b.theta.shape[0] for b in fun.problem.blocks))
+        return real(fun, *args, **kw)
 
     monkeypatch.setattr(outliers, "ROBUST_ROWS", 100)
-    monkeypatch.setattr(outliers, "weighted_stage", spy)
+    monkeypatch.setattr(outliers, "levenberg_marquardt", spy)
     res = calibrate(panda, JointLog(ds.joints, corrupt), [WeldLoop("fixture", "panda_hand")])
     assert sizes and set(sizes) == {100}  # every pass of the refit on the sample
     assert sorted(r.row - 1 for r in res.outliers.rejected) == bad.tolist()

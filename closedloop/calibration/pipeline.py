@@ -52,6 +52,7 @@ from closedloop.calibration.solve import (
     length_guard,
     recheck_at_solution,
     solve_from_starts,
+    solve_readmitted,
     solve_staged,
     solve_with_restarts,
 )
@@ -71,7 +72,7 @@ from closedloop.estimate.model_error import (
 )
 from closedloop.estimate.noise import noise_vector
 from closedloop.estimate.outliers import gross_outliers, readmit, reject_outliers
-from closedloop.estimate.residual import Fit, unweighted_closure
+from closedloop.estimate.residual import Fit
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.parameters import expand_fix
@@ -107,10 +108,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-# an unweighted closure (m and rad) below this is round-off: exact data close many robots, degenerate ones
-# included, to 1e-13..1e-16, so two such fits are not told apart by their closure
-ROUND_OFF = 1e-10
 
 
 # --------------------------------------------------------------------------- setup
@@ -541,47 +538,8 @@ def solve_screened(
             f"re-checked at the solution: {len(rejected) - len(back[1])} rejected configuration(s) "
             "fit within the noise there and were readmitted"
         )
-        # solved again from the start with the start's reduction: the robust fit's point was not a solution,
-        # and the reduction re-checked there (the parameters it found redundant) is not this solution's
         problem, rejected = back
-        before = fit.iterations
-        checked, checked_structure = fit, structure  # the solution the readmission was decided at
-        structure = analyse_structure(structure_problem(problem), x0, free)
-        fit = solve_staged(problem, x0, x0, structure.kept, opt, fit.sigma_q, fit.known, progress)
-        fit = solve_with_restarts(
-            problem,
-            x0,
-            structure.kept,
-            opt,
-            fit.sigma_q,
-            fit.known,
-            rng,
-            progress,
-            fit,
-            structure.nearly_redundant(problem.index),
-        )
-        fit, structure, recheck_notes = recheck_at_solution(problem, fit, structure, free, x0, opt, progress)
-        fit.iterations += before
-        # The solution the readmission was decided at, solved again on the rows kept now: the fit from the start
-        # can stop where the start's reduction leaves it (a contact point started on a joint axis and found off
-        # it: a slide the start's reduction keeps meets a known length the robot's size should meet, a local
-        # minimum micrometres above zero on exact data) while the re-checked solution reaches the closure.
-        # Kept only where it closes ten times better and the fit from the start is above round-off (exact data
-        # close many degenerate robots to 1e-13..1e-16): otherwise the fit from the start stands.
-        again = solve_staged(
-            problem, x0, checked.x, checked_structure.kept, opt, fit.sigma_q, fit.known, progress, plain_start=True
-        )
-        again, again_structure, again_notes = recheck_at_solution(
-            problem, again, checked_structure, free, x0, opt, progress
-        )
-        closes, closes_again = unweighted_closure(problem, fit.x), unweighted_closure(problem, again.x)
-        if closes > ROUND_OFF and closes_again < 0.1 * closes:
-            again.iterations += fit.iterations
-            fit, structure = again, again_structure
-            recheck_notes = again_notes + [
-                f"the fit from the start stopped at a closure {closes:.3g}; solved again from the solution the "
-                f"readmission was decided at, it closes to {closes_again:.3g} (kept)"
-            ]
+        fit, structure, recheck_notes = solve_readmitted(problem, x0, fit, structure, free, opt, rng, progress)
     notes.extend(recheck_notes)
     return problem, fit, structure, rejected, suspects
 

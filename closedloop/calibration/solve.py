@@ -472,6 +472,47 @@ def recheck_at_solution(
     return fit, structure, notes
 
 
+def solve_readmitted(
+    problem: CalibrationProblem,
+    x0: np.ndarray,
+    checked: Fit,
+    structure: Structure,
+    free: list[int],
+    opt: CalibrationOptions,
+    rng: np.random.Generator,
+    progress: ProgressReporter | None = None,
+) -> tuple[Fit, Structure, list[str]]:
+    """The fit on `problem` (the rows kept once some rejected ones came back, `outliers.readmit`), warm-started
+    at `checked`, the solution the readmission was decided at, with its reduction (`structure`, re-checked
+    there); the reduction re-checked at the new solution (`recheck_at_solution`).
+
+    The rows brought back are ones that solution explains within the noise, so it is a few iterations from
+    the fit on the rows kept now.  Solved from the start instead, a fit can stop where the start's reduction
+    leaves it (a contact point started on a joint axis and found off it: a local minimum micrometres above
+    zero on exact data), and every restart `checked` went through runs again.  Restarts (`solve_with_restarts`)
+    only where `checked` closed within a plausible noise and the warm-started fit does not: where `checked`
+    did not, its restarts already found nothing better on nearly the same rows.
+    """
+    plausible = opt.rules.plausible_joint_noise
+    fit = solve_staged(problem, x0, checked.x, structure.kept, opt, checked.sigma_q, checked.known, progress)
+    if _good(problem, checked, plausible) and not _good(problem, fit, plausible):
+        fit = solve_with_restarts(
+            problem,
+            x0,
+            structure.kept,
+            opt,
+            checked.sigma_q,
+            checked.known,
+            rng,
+            progress,
+            fit,
+            structure.nearly_redundant(problem.index),
+        )
+    fit, structure, notes = recheck_at_solution(problem, fit, structure, free, x0, opt, progress)
+    fit.iterations += checked.iterations
+    return fit, structure, notes
+
+
 def solve_from_starts(
     problem: CalibrationProblem,
     x0: np.ndarray,

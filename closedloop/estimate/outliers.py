@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from closedloop.estimate.lm import SolverOptions
+from closedloop.estimate.lm import SolverOptions, levenberg_marquardt
 from closedloop.estimate.residual import ResidualFunction, weighted_stage
 from closedloop.estimate.robust import (
     cauchy_weights,
@@ -184,10 +184,16 @@ def _closures(problem: CalibrationProblem, x: np.ndarray, sigma_q: np.ndarray) -
     return ResidualFunction(problem, x, [], sigma_q, "none").blocks(np.zeros(0))
 
 
+def _level(blocks: list[np.ndarray], known: bool) -> float:
+    """The noise level of whitened closures `blocks` (`_closures`) in the screen's metric: their robust scale,
+    never below a known noise's 1 nor, unknown, below the floor of exact data (`SCALE_FLOOR`)."""
+    return max(mad_scale(blocks), 1.0 if known else SCALE_FLOOR["rad"])
+
+
 def _standardized(problem: CalibrationProblem, blocks: list[np.ndarray], known: bool) -> list[np.ndarray]:
     """`screen`'s d_i of the closures `blocks` (`_closures`)."""
     if _screen_weighting(problem) == "noise":
-        out = standardized(blocks, max(mad_scale(blocks), 1.0 if known else SCALE_FLOOR["rad"]))
+        out = standardized(blocks, _level(blocks, known))
     else:
         out = component_standardized(blocks, _floors(problem))
     # a known distance (closedloop.problem.distances) is no configuration: never an outlier
@@ -268,8 +274,12 @@ def _robust_refit(
         best = min(best, (_spread(sample, blocks), x, blocks), key=lambda b: b[0])
         w = np.concatenate(cauchy_weights(_standardized(sample, blocks, False), dims))
         row_w = np.repeat(np.sqrt(w), [b.loop.dim for b in sample.blocks for _ in range(b.theta.shape[0])])
-        st = weighted_stage(sample, x, x[est], est, scale, sig, weighting, sopt, None, row_w)
-        x = st.fun.full(st.solution.x)
+        # The pass's whitening held with its weights: one weighted least-squares problem per pass.  Its
+        # truncation is at the closures' robust scale, the noise level the screen reads them at: the pass
+        # never crawls along directions that noise hides (each pass only sets the next one's weights).
+        fun = ResidualFunction(sample, x, est, sig, weighting, row_w, frozen=True)
+        level = _level(blocks, known) if weighting == "noise" else None
+        x = fun.full(levenberg_marquardt(fun, x[est], scale[est], replace(sopt, noise=level)).x)
         if w_prev is not None and np.max(np.abs(w - w_prev)) < 1e-3:
             break
         w_prev = w

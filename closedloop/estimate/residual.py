@@ -56,7 +56,10 @@ class ResidualFunction:
     evaluated with its Jacobian (Levenberg-Marquardt usually accepts it and
     asks for that next; its cost is still taken with the old W_i), and the
     last Jacobian evaluation is returned again for the same parameters.
-    `row_weights` multiplies the rows (IRLS, outlier screening).
+    `row_weights` multiplies the rows (IRLS, outlier screening).  With `frozen` the W_i of the first
+    evaluation are kept for every later one, Jacobians included: the function is then one fixed weighted
+    least-squares problem, whose cost the solver's accepted steps lower monotonically (a reweighted pass,
+    `outliers.robust_refit`; the errors-in-variables fit itself re-weights at each Jacobian).
     """
 
     problem: CalibrationProblem
@@ -66,6 +69,7 @@ class ResidualFunction:
     weighting: str
     row_weights: np.ndarray | None = None
     symmetric: bool = False
+    frozen: bool = False
 
     def __post_init__(self) -> None:
         self._W: Roots | None = None  # the weighting's roots at the last Jacobian (`whiten`)
@@ -154,8 +158,9 @@ class ResidualFunction:
         else:
             full = jac or first_trial
             evals = self._charted.evaluate(self._local(xe), full or self._W is None, columns=self.est if full else [])
+        roots = None if jac and not self.frozen else self._W
         r, J, used = whiten(
-            evals, self.sigma_q, self.weighting, jac, loops, None if jac else self._W, self.symmetric, overwrite=True
+            evals, self.sigma_q, self.weighting, jac, loops, roots, self.symmetric, overwrite=True
         )  # evaluations are copies (a trial's is whitened once)
         if jac or self._W is None:
             self._W = used
