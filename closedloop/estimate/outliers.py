@@ -312,8 +312,8 @@ def gross_outliers(
     flagged at `x0` are left out of one short fit of the parameters `est` from `x0` on the others
     (`_fit_without`, in the screen's own metric), and the start screen fires only if some configuration
     is still beyond the threshold there (the flagged ones studentized as left out, `screen`): a reading
-    no model explains (a corrupted cell, a slipped tool) stays far from any fit of the rest.  With half
-    the configurations or more flagged at `x0`, the rest cannot say what the model is: it fires.
+    no model explains (a corrupted cell, a slipped tool) stays far from any fit of the rest.  Where the
+    rest has fewer closure rows than twice the parameters, it cannot say what the model is: it fires.
 
     A start screen that does not fire leaves the outliers to the screen after the first fit
     (`reject_outliers` with that fit), which runs the same robust refit when any are beyond.
@@ -324,7 +324,8 @@ def gross_outliers(
     n_flagged = sum(f.size for f in flags)
     if not n_flagged:
         return False
-    if not est or n_flagged >= 0.5 * sum(b.theta.shape[0] for b in problem.blocks):
+    rest = sum((b.theta.shape[0] - f.size) * b.loop.dim for b, f in zip(problem.blocks, flags))
+    if not est or rest < 2 * len(est):  # too few configurations left to fit the model on
         return True
     x1 = _fit_without(problem.sampled(ROBUST_ROWS), x0, est, sigma_q, known, _log_rows(problem, flags))
     used = _used(problem, _log_rows(problem, flags))
