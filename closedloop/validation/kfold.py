@@ -19,14 +19,14 @@ folds), reproducibly from `seed`.
 
 Rows that are not data are not judged: the closure statistics of a fold
 leave out the rows its refit rejected as outliers (training) and the rows
-the full calibration rejected (`exclude`: training and held-out).  With
+the full calibration rejected (`exclude`: training and held-out).  A few
+corrupted readings would otherwise set both figures alike (a 0.1 rad
+reading error is a closure of centimetres against microns), and the
+held-out/training ratio, the test of generalisation, would see nothing.  With
 `train_without_excluded` the refits reuse the full calibration's outlier
 screen instead of screening again: its rejected rows are left out of their
 data, and the rest, screened by it already, is not screened again (a robust
-refit costs many times a clean fit, once per fold).  A few
-corrupted readings would otherwise set both figures alike (a 0.1 rad
-reading error is a closure of centimetres against microns), and the
-held-out/training ratio, the test of generalisation, would see nothing.
+refit costs many times a clean fit, once per fold).
 Held-out rows are never screened against the fold's own fit: a model that
 does not generalise would screen away the evidence.
 
