@@ -510,7 +510,8 @@ def solve_screened(
     suspects: list = []
     screened = fit = None
     refit = False  # the robust refit from x0 has run on these rows (it is deterministic: once is enough)
-    if opt.robust == "auto" and gross_outliers(problem, x0, sigma_q, opt):  # rows no model error explains
+    # rows no model error explains: far from a fit of the others (`gross_outliers`)
+    if opt.robust == "auto" and gross_outliers(problem, x0, structure.kept, sigma_q, opt):
         screened, refit = reject_outliers(problem, None, x0, structure.kept, opt, sigma_q, n_rows), True
     if screened is None:
         fit = solve_staged(problem, x0, x0, structure.kept, opt, sigma_q, known, progress)

@@ -311,10 +311,65 @@ def _screen_weighting(problem: CalibrationProblem) -> str:
     return "none" if task_blocks(problem) else "noise"
 
 
-def gross_outliers(problem: CalibrationProblem, x0: np.ndarray, sigma_q: np.ndarray, opt: CalibrationOptions) -> bool:
-    """Configurations whose closure at the start is far beyond the others' (the model error's spread)."""
+def gross_outliers(
+    problem: CalibrationProblem, x0: np.ndarray, est: list[int], sigma_q: np.ndarray, opt: CalibrationOptions
+) -> bool:
+    """Configurations whose closure at the start is far beyond what the model fitted to the others explains.
+
+    At the nominal model the closures carry its error, smooth over the workspace: every joint origin
+    millimetres off spreads the closures well past a median's, and their tails cross the threshold
+    (`screen`) on a clean log.  That is what calibration fixes, not outliers.  So the configurations
+    flagged at `x0` are left out of one short fit of the parameters `est` from `x0` on the others
+    (`_fit_without`, in the screen's own metric), and the start screen fires only if some configuration
+    is still beyond the threshold there (the flagged ones studentized as left out, `screen`): a reading
+    no model explains (a corrupted cell, a slipped tool) stays far from any fit of the rest.  Where the
+    rest has fewer closure rows than twice the parameters, it cannot say what the model is: it fires.
+
+    A start screen that does not fire leaves the outliers to the screen after the first fit
+    (`reject_outliers` with that fit), which runs the same robust refit when any are beyond.
+    """
     dims = [b.loop.dim for b in problem.blocks]
-    return any(f.size for f in flagged(screen(problem, x0, sigma_q, opt.noise is not None), dims, opt.outlier_alpha))
+    known = opt.noise is not None
+    flags = flagged(screen(problem, x0, sigma_q, known), dims, opt.outlier_alpha)
+    n_flagged = sum(f.size for f in flags)
+    if not n_flagged:
+        return False
+    rest = sum((b.theta.shape[0] - f.size) * b.loop.dim for b, f in zip(problem.blocks, flags))
+    if not est or rest < 2 * len(est):  # too few configurations left to fit the model on
+        return True
+    x1 = _fit_without(problem.sampled(ROBUST_ROWS), x0, est, sigma_q, known, _log_rows(problem, flags))
+    used = _used(problem, _log_rows(problem, flags))
+    return any(f.size for f in flagged(screen(problem, x1, sigma_q, known, est, used), dims, opt.outlier_alpha))
+
+
+#: the start screen's fit of the rows not flagged (`gross_outliers`): a few iterations from the nominal model,
+#: which is millimetres from the solution; it only has to remove the model error's smooth share
+SCREEN_FIT_ITER = 10
+
+
+def _log_rows(problem: CalibrationProblem, flags: list[np.ndarray]) -> list[np.ndarray]:
+    """Per block, the log rows (`LoopBlock.rows`) of its configurations `flags` (indices)."""
+    return [np.asarray(b.rows)[f] for b, f in zip(problem.blocks, flags)]
+
+
+def _used(problem: CalibrationProblem, out: list[np.ndarray]) -> np.ndarray:
+    """1 per configuration of `problem` (block order), 0 for those whose log rows are in `out` (per block)."""
+    return np.concatenate([np.where(np.isin(b.rows, o), 0.0, 1.0) for b, o in zip(problem.blocks, out)])
+
+
+def _fit_without(
+    problem: CalibrationProblem, x0: np.ndarray, est: list[int], sigma_q: np.ndarray, known: bool, out: list
+) -> np.ndarray:
+    """The parameters `est` fitted from `x0` to the configurations of `problem` whose log rows are not in `out`
+    (per block; those weigh 0), in the screen's metric (`screen_sigma`, `_screen_weighting`); a short solve
+    (`SCREEN_FIT_ITER`).  On a long log `problem` is an even sample of it (`ROBUST_ROWS`, as the robust refit)."""
+    scale = np.array([p.prior for p in problem.params])
+    sopt = SolverOptions(max_iter=SCREEN_FIT_ITER, ftol=REFIT_FTOL, xtol=REFIT_XTOL)
+    used = _used(problem, out)
+    row_w = np.repeat(used, [b.loop.dim for b in problem.blocks for _ in range(b.theta.shape[0])])
+    sig = screen_sigma(problem, x0, sigma_q, known)
+    st = weighted_stage(problem, x0, x0[est], est, scale, sig, _screen_weighting(problem), sopt, None, row_w)
+    return st.fun.full(st.solution.x)
 
 
 def reject_outliers(

@@ -158,7 +158,8 @@ class HeldOut:
 
 def validate(robot, lg, loops: list, opts, k: int, o: CalibrateOptions, res, progress=None, workspace=None) -> HeldOut:
     """The held-out validation of a converged fit, every kind the options ask for (`HeldOut`); the rows `res`
-    rejected as outliers are not judged (they stay in the refits' data).
+    rejected as outliers are not judged, nor trained on: the refits reuse the fit's outlier screen
+    (`kfold.cross_validate`'s `train_without_excluded`) instead of screening again.
 
     A fit already failed (its own verdict, or its `workspace` prediction no better than the nominal model:
     `calibration.verdict.judge_workspace`) is not validated: a held-out finding can only add to a failed
@@ -194,7 +195,9 @@ def validate(robot, lg, loops: list, opts, k: int, o: CalibrateOptions, res, pro
     if k:
         prog("validating", 0, k)
         try:
-            cv = cross_validate(robot, lg, loops, opts, k=k, progress=prog, exclude=exclude)
+            cv = cross_validate(
+                robot, lg, loops, opts, k=k, progress=prog, exclude=exclude, train_without_excluded=True
+            )
         except ClosedLoopError as exc:
             n_train = len(lg) - -(-len(lg) // k)
             why = f"{k}-fold validation refits on {n_train} of the {len(lg)} rows, and one failed: {exc}"

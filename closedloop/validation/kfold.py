@@ -22,7 +22,11 @@ leave out the rows its refit rejected as outliers (training) and the rows
 the full calibration rejected (`exclude`: training and held-out).  A few
 corrupted readings would otherwise set both figures alike (a 0.1 rad
 reading error is a closure of centimetres against microns), and the
-held-out/training ratio, the test of generalisation, would see nothing.
+held-out/training ratio, the test of generalisation, would see nothing.  With
+`train_without_excluded` the refits reuse the full calibration's outlier
+screen instead of screening again: its rejected rows are left out of their
+data, and the rest, screened by it already, is not screened again (a robust
+refit costs many times a clean fit, once per fold).
 Held-out rows are never screened against the fold's own fit: a model that
 does not generalise would screen away the evidence.
 
@@ -36,7 +40,7 @@ validation's cost stops growing with the log.
 
 from __future__ import annotations
 
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from typing import Any
 
 import numpy as np
@@ -225,8 +229,10 @@ def cross_validate(
 
     `exclude`: rows of `log_` (0-based) whose closure no fold judges, the full calibration's rejected
     outliers (``[rj.row - 1 for rj in result.outliers.rejected]``); they stay in the refits' data, whose outlier
-    screen meets them as the full calibration's did, or with `train_without_excluded` are left out of it (a
-    refit then need not find them again from scratch: its robust refit costs many times a clean fit).
+    screen meets them as the full calibration's did, or with `train_without_excluded` are left out of it,
+    and the refits reuse that screen's decision (``robust='auto'`` refits screen nothing again: their rows
+    are the full calibration's kept rows less the held-out fold, and its robust refit costs many times a
+    clean fit).  `exclude` must then be the rejections of a calibration with `options` on `log_`.
 
     Returns
       'folds': per fold {'fold', 'n_train', 'n_test', 'train': residuals,
@@ -268,7 +274,9 @@ def cross_validate(
                 np.flatnonzero(np.isin(rows, bad)),
             )
         )
-    refits = run(_holdout_job, splits, executor, shared=(robot, loops, opt), progress=progress, task="validating")
+    # the full calibration's screen decision reused (docstring): its rejected rows are out of every refit's data
+    refit_opt = replace(opt, robust=None) if train_without_excluded and opt.robust == "auto" else opt
+    refits = run(_holdout_job, splits, executor, shared=(robot, loops, refit_opt), progress=progress, task="validating")
     for f, ho in enumerate(refits):
         res: CalibrationResult = ho["result"]
         ref = res.fit.values if ref is None else ref

@@ -101,7 +101,8 @@ def region_validate(
     """Leave each region of `regions` out in turn (module docstring): `kfold.cross_validate`'s record
     over these held-out sets, with 'regions' (the rows of each, 0-based) and 'k' their number.  The rows
     `exclude` (the full calibration's rejected outliers) are neither judged, nor trained on, nor clustered:
-    a refit leaves a region of the data out, and the rows that are no data are in no region."""
+    a refit leaves a region of the data out, and the rows that are no data are in no region.  The refits
+    reuse the full calibration's outlier screen (`cross_validate`'s `train_without_excluded`)."""
     # the regions of the data: a rejected row (a reading of 100 rad) would be a region of its own
     keep = np.setdiff1d(np.arange(len(log_)), np.asarray(exclude if exclude is not None else [], dtype=int))
     parts = [keep[p] for p in regions(subset(log_, keep), robot, joints, k, seed)]
