@@ -374,6 +374,13 @@ def _calibrate(
         fit.warnings = list(warnings_fit)  # the solve's own, without this pass's analysis
         fit, note = _continued(problem, fit, fall, opt, progress)
         warnings_fit = list(fit.warnings)
+        if choice["estimator"] == EIV and choice["evidence"]:  # the estimator's evidence, of the fit kept
+            tested = noise_hypothesis(problem, fit, opt)
+            if tested is not None:
+                choice |= {"reason": tested["test"].describe(), "evidence": tested["evidence"]}
+                notes_fit[0] = f"estimator: {choice['estimator']} ({choice['reason']}); error bars from " + str(
+                    choice["error_bars"]
+                )
         notes_fit.append(note)
     res = CalibrationResult(
         problem=problem,

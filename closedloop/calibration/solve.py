@@ -494,7 +494,9 @@ def solve_readmitted(
     did not, its restarts already found nothing better on nearly the same rows.
     """
     plausible = opt.rules.plausible_joint_noise
-    fit = solve_staged(problem, x0, checked.x, structure.kept, opt, checked.sigma_q, checked.known, progress)
+    fit = solve_staged(
+        problem, x0, checked.x, structure.kept, opt, checked.sigma_q, checked.known, progress, plain_start=True
+    )
     if _good(problem, checked, plausible) and not _good(problem, fit, plausible):
         fit = solve_with_restarts(
             problem,
