@@ -86,7 +86,9 @@ def main(argv: list[str] | None = None) -> int:
                     except RuntimeError as exc:
                         print(f"{robot}/{loop}/s{seed}/{variant}: no data ({exc})", flush=True)
                         continue
+                    cpu = time.process_time()
                     fit = zoo.run_case(case)  # the verdict of the fit (the API's)
+                    cpu = time.process_time() - cpu  # the case's own CPU: the wall time depends on the load
                     ws = workspace(fit)
                     o = as_command_line(fit, ws)
                     outcome = classify(o, case, ws)
@@ -115,6 +117,7 @@ def main(argv: list[str] | None = None) -> int:
                             ),
                             "converged": o.converged,
                             "seconds": o.seconds,
+                            "cpu_seconds": cpu,
                             "error": o.error,
                             "judgement": vars(o.judgement) if o.judgement else None,
                             "notes": list(getattr(o.result, "notes", []) or []),
