@@ -63,18 +63,17 @@ def test_the_held_out_verdict_keeps_what_the_fit_found(data):
     assert final_verdict(res, None, None) is res.verdict  # nothing held out: the fit's judgement stands
 
 
+def _panda_weld(data, **options) -> CalibrateOptions:
+    """The module's Panda weld log through `calibrate_files`, with `options`."""
+    return CalibrateOptions(
+        model=str(ROBOTS["panda"].path), log=str(data[3]), loop=["weld:frame=panda_hand,name=fixture"], **options
+    )
+
+
 def test_a_run_writes_what_its_verdict_allows(data, tmp_path):
     """From files to files through the API, each long stage told to the progress display; a verdict failed
     by the options' rules writes the report only."""
-    _, _, _, path, _ = data
-    base = CalibrateOptions(
-        model=str(ROBOTS["panda"].path),
-        log=str(path),
-        loop=["weld:frame=panda_hand,name=fixture"],
-        out=str(tmp_path / "ok.urdf"),
-        report=str(tmp_path / "ok.json"),
-        cv=2,
-    )
+    base = _panda_weld(data, out=str(tmp_path / "ok.urdf"), report=str(tmp_path / "ok.json"), cv=2)
     told: list[str] = []
     run = calibrate_files(base, lambda task, done, total=None, note="": told.append(task))
     report = json.loads((tmp_path / "ok.json").read_text())
@@ -103,11 +102,9 @@ def test_a_failed_fit_is_not_validated(data, tmp_path):
     """A fit its own verdict fails (here the options' joint-noise rule) is not refitted on held-out rows or
     regions: those refits can only add to a failed verdict (nine of them took over 90 % of a many-fingered
     hand's run); the report says why each was not run, and the run tells no validating stage."""
-    _, _, _, path, res = data
-    failing = CalibrateOptions(
-        model=str(ROBOTS["panda"].path),
-        log=str(path),
-        loop=["weld:frame=panda_hand,name=fixture"],
+    res = data[4]
+    failing = _panda_weld(
+        data,
         report=str(tmp_path / "no.json"),
         rules=VerdictRules(failed_joint_noise=res.noise.sigma / 2),
         cv=2,
