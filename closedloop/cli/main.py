@@ -484,6 +484,11 @@ def main(argv: list[str] | None = None) -> int:
         )
         return EXIT_INTERNAL
     finally:
+        if own_process and signal.SIGINT in handlers:
+            # the command has ended, its outputs published or discarded: an interrupt while the interpreter
+            # exits changes nothing, where Python's default would end the process by SIGINT (exit -2)
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            del handlers[signal.SIGINT]
         for sig, h in handlers.items():
             signal.signal(sig, h)
 
