@@ -107,9 +107,11 @@ def test_tall_skinny_qr(rows):
 
 
 @pytest.mark.parametrize("model", ["panda", "dh_hand", "utah_hand"])
-def test_poses_read_off_the_regressors_are_pinocchio_placements(panda, model):
-    """`frame_kinematics` with regressors reads the poses off them (`se3.poses_from_adjoints`): the same poses
-    as Pinocchio's frame placements, on a serial arm, a finger branch, a D-H end frame and a frame on the base."""
+def test_frame_kinematics_are_pinocchios(panda, model):
+    """`frame_kinematics` (all rows at once, `model.stacked`) and its Pinocchio path (a configuration at a
+    time, poses read off the regressors by `se3.poses_from_adjoints`) give Pinocchio's frame placements and
+    LOCAL kinematic regressors, on a serial arm, a finger branch, a D-H end frame and a frame on the base,
+    at a perturbed parameter vector."""
     from pathlib import Path
 
     from closedloop.assets.catalog import ROBOTS
@@ -130,16 +132,60 @@ def test_poses_read_off_the_regressors_are_pinocchio_placements(panda, model):
     theta = rng.uniform(-1.0, 1.0, (25, len(joints)))
     prob = CalibrationProblem(robot, joints, [LoopBlock(WeldLoop("w", m.frames[frames[0]].name), theta, np.arange(25))])
     state = prob.rp.apply(prob.nominal[: prob.n_robot] + rng.normal(0.0, 0.01, prob.n_robot))
-    fast = prob.frame_kinematics(state, theta, frames, True)
-    plain = prob.frame_kinematics(state, theta, frames, False)
     q = robot.configurations(prob.model_angles(state, theta, None), joints)
-    for f in frames:
-        ref = []
-        for qi in q:
-            pin.forwardKinematics(state.model, state.data, qi)
-            ref.append(pin.updateFramePlacement(state.model, state.data, f).homogeneous)
-        assert np.abs(plain[f][0] - np.array(ref)).max() == 0.0
-        assert np.abs(fast[f][0] - np.array(ref)).max() < 1e-14, m.frames[f].name
+    assert all(robot.stacked.covers(m, f) for f in frames)
+    for kin in (
+        prob.frame_kinematics(state, theta, frames, True),
+        prob.frame_kinematics(state, theta, frames, False),
+        prob.pinocchio_kinematics(state, q, frames, True),
+        prob.pinocchio_kinematics(state, q, frames, False),
+    ):
+        for f in frames:
+            T, K = kin[f]
+            for i, qi in enumerate(q):
+                pin.forwardKinematics(state.model, state.data, qi)
+                ref = pin.updateFramePlacement(state.model, state.data, f).homogeneous
+                assert np.abs(T[i] - ref).max() < 1e-14, m.frames[f].name
+                if K is not None:
+                    K_ref = pin.computeFrameKinematicRegressor(state.model, state.data, f, pin.LOCAL)
+                    assert np.abs(K[i] - K_ref).max() < 1e-13 * max(1.0, np.abs(K_ref).max()), m.frames[f].name
+
+
+@pytest.mark.parametrize(
+    "path",
+    [
+        "pr2_description/urdf/pr2.urdf",  # revolute about unaligned axes, unbounded about x, a prismatic lift
+        "tiago_pro_description/robots/tiago_pro.urdf",  # unbounded wheels about z, a prismatic torso
+        "baxter_description/urdf/baxter.urdf",  # prismatic fingers
+        "double_pendulum_description/urdf/double_pendulum_continuous.urdf",
+    ],
+)
+def test_stacked_kinematics_on_public_robots(path):
+    """`StackedKinematics` against Pinocchio on robot files from example-robot-data with every joint type it
+    computes, every frame, the joint placements perturbed as a calibration moves them."""
+    from closedloop.assets.catalog import example_robot_data_dir
+    from closedloop.model.stacked import StackedKinematics
+
+    file = example_robot_data_dir() / path
+    if not file.exists():
+        pytest.skip(f"{file} is not in this example-robot-data")
+    m = pin.buildModelFromUrdf(str(file))
+    d = m.createData()
+    stacked = StackedKinematics(m)
+    rng = np.random.default_rng(3)
+    for j in range(1, m.njoints):
+        m.jointPlacements[j] = m.jointPlacements[j] * pin.exp6(pin.Motion(rng.normal(0.0, 0.05, 6)))
+    q = np.array([pin.randomConfiguration(m, -np.ones(m.nq), np.ones(m.nq)) for _ in range(6)])
+    frames = [f for f in range(1, m.nframes) if m.frames[f].parentJoint > 0]
+    assert all(stacked.covers(m, f) for f in frames)
+    K = {f: np.empty((len(q), 6, 6 * (m.njoints - 1))) for f in frames}
+    T = stacked.frames(m, q, frames, K)
+    for i, qi in enumerate(q):
+        pin.forwardKinematics(m, d, qi)
+        for f in frames:
+            assert np.abs(T[f][i] - pin.updateFramePlacement(m, d, f).homogeneous).max() < 1e-13
+            K_ref = pin.computeFrameKinematicRegressor(m, d, f, pin.LOCAL)
+            assert np.abs(K[f][i] - K_ref).max() < 1e-13 * max(1.0, np.abs(K_ref).max())
 
 
 @pytest.mark.parametrize("name", ["ur10", "kinova", "baxter_left", "talos_left", "g1_left"])

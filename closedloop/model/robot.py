@@ -12,6 +12,7 @@ import logging
 import re
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ import pinocchio as pin
 
 from closedloop.errors import ModelError
 from closedloop.model.dh import DHTable, dh_table
+from closedloop.model.stacked import StackedKinematics
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +117,11 @@ class RobotModel:
                 else (model.lowerPositionLimit[jm.idx_q], model.upperPositionLimit[jm.idx_q])
             )
             self.joints[name] = JointInfo(name, jid, jm.idx_q, jm.idx_v, kind_j, axis.copy(), float(lo), float(hi))
+
+    @cached_property
+    def stacked(self) -> StackedKinematics:
+        """Forward kinematics of many configurations at once for this joint tree (`model.stacked`)."""
+        return StackedKinematics(self.model)
 
     def calibrated_from_model(self) -> "RobotModel":
         """This robot with the joints of `calibrated_from` put back at the origins of the model it was calibrated

@@ -281,14 +281,32 @@ class CalibrationProblem:
         """Poses (N, 4, 4) and, with `need_jac`, LOCAL kinematic regressors (N, 6, 6 (njoints - 1)) of frames.
 
         The base frame (id 0) has the identity pose and no regressor.  With `work` the regressors are
-        formed in its buffers (valid until its next use).  With the regressors, the poses are read off
-        them: the block of the chain's first joint r is Ad(T^-1 P_r), P_r its placement on the base
-        (`se3.poses_from_adjoints`): one Pinocchio call per configuration fewer.
+        formed in its buffers (valid until its next use).  Frames on chains of revolute and prismatic joints
+        are computed for all configurations at once (`model.stacked`); others by Pinocchio, a configuration
+        at a time, where with the regressors the poses are read off them: the block of the chain's first
+        joint r is Ad(T^-1 P_r), P_r its placement on the base (`se3.poses_from_adjoints`): one Pinocchio
+        call per configuration fewer.
         """
-        model, data = state.model, state.data
+        model = state.model
         q = self.robot.configurations(self.model_angles(state, theta, tau), self.joints, state.mimic)
         N = q.shape[0]
         live = [f for f in frames if f != 0]
+        base = {0: (np.broadcast_to(np.eye(4), (N, 4, 4)), None)} if 0 in frames else {}
+        stacked = self.robot.stacked
+        if N and all(stacked.covers(model, f) for f in live):  # revolute and prismatic chains: all rows at once
+            shape = (N, 6, 6 * (model.njoints - 1))
+            K = {f: work.get(f"K{f}", shape) if work else np.empty(shape) for f in live} if need_jac else {}
+            T = stacked.frames(model, q, live, K if need_jac else None)
+            return {f: (T[f], K.get(f)) for f in live} | base
+        return self.pinocchio_kinematics(state, q, live, need_jac, work) | base
+
+    def pinocchio_kinematics(
+        self, state: RobotState, q: np.ndarray, live: list[int], need_jac: bool, work: Workspace | None = None
+    ) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
+        """`frame_kinematics` of frames other than the base at configurations `q` (N, nq), by Pinocchio, a
+        configuration at a time (any joint type)."""
+        model, data = state.model, state.data
+        N = q.shape[0]
         roots = {f: model.supports[model.frames[f].parentJoint][1:2] for f in live}  # [] on the base
         from_K = [f for f in live if need_jac and roots[f]]
         placed = [f for f in live if f not in from_K]
@@ -319,8 +337,6 @@ class CalibrationProblem:
         for f in from_K:
             r = roots[f][0]
             out[f] = (poses_from_adjoints(K[f][:, :, 6 * (r - 1) : 6 * r], model.jointPlacements[r].homogeneous), K[f])
-        if 0 in frames:
-            out[0] = (np.broadcast_to(np.eye(4), (N, 4, 4)), None)
         return out
 
     def loop_poses(
