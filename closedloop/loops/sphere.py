@@ -119,16 +119,21 @@ class SphereLoop(Loop):
         y, *_ = relative_point(TA, TB, tip)
         p = self.point
         if p is None:
-            p = y.mean(axis=0)
+            m = y.mean(axis=0)
+            p = m
             if y.shape[0] >= 4:
                 A = np.c_[2 * y, np.ones(len(y))]
                 S = np.linalg.svd(A, compute_uv=False)
                 if S[-1] > 1e-6 * S[0]:
                     p = np.linalg.lstsq(A, np.sum(y * y, axis=1), rcond=None)[0][:3]
+            v = p - m
+            # no centre fitted (one point, or points that fix none): any direction will do, but one, so that the
+            # closure has a derivative (at zero distance it has none)
+            u = v / np.linalg.norm(v) if np.linalg.norm(v) > 1e-9 else np.array([0.0, 0.0, 1.0])
             if self.distance is not None:  # the centre at the known distance from the points' mean
-                m = y.mean(axis=0)
-                v = p - m
-                p = m + self.distance * v / max(np.linalg.norm(v), 1e-12) if np.linalg.norm(v) > 1e-9 else p
+                p = m + self.distance * u
+            elif np.linalg.norm(v) <= 1e-9:
+                p = m + MIN_DISTANCE * u
         d = float(np.mean(np.linalg.norm(y - p, axis=1)))
         out = [] if self.tip is not None else [tip]
         if self.point is None:
