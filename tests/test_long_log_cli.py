@@ -15,7 +15,8 @@ import pytest
 def test_100000_configurations_calibrate_within_2_gb(tmp_path):
     """The main job's 1,000 simulated configurations tiled to 100,000 with 1e-4 rad of fresh noise: the
     calibration ends ok with the noise it was given back (1e-4 rad), and its peak memory (the child's
-    maximum resident set) stays under 2 GB (an N x N step would need 75 GB)."""
+    maximum resident set) stays under 2 GB (an N x N step would need 75 GB); the region validation's
+    refits say the sample they trained on and that they started at the calibration's solution."""
     cli = [sys.executable, "-m", "closedloop.cli"]
     sim = tmp_path / "sim"
     subprocess.run(
@@ -36,3 +37,8 @@ def test_100000_configurations_calibrate_within_2_gb(tmp_path):
     report = json.loads((tmp_path / "report.json").read_text())
     assert report["verdict"]["status"] == "ok"
     assert report["noise"]["joint_sigma"] == pytest.approx(1e-4, rel=0.05)
+    # the region validation's refits: each on an even sample of 4,096 training rows, started at the solution
+    regions = report["accuracy"]["regions"]
+    assert regions["train_rows"] == [4096] * regions["k"] and regions["test_rows"] == [4096] * regions["k"]
+    assert all(regions["folds_warm"]) and all(regions["folds_converged"])
+    assert 1e-4 < regions["test"][0]["rms_m"] < 1e-3  # a held-out closure of the noise's size (0.1-0.3 mm)

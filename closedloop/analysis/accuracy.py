@@ -86,6 +86,7 @@ import numpy as np
 from closedloop.analysis.gauge import HELD_ERROR
 from closedloop.errors import InputError
 from closedloop.estimate.qr import scaled_r_factor_of_blocks
+from closedloop.problem.problem import even_sample
 from closedloop.records import ParamStatus
 
 #: loop types whose tool point is followed, and those whose frame pose is (`closedloop check` alike)
@@ -157,7 +158,8 @@ class FrameAccuracy:
     sigma_m: np.ndarray = field(repr=False)  # (n,) expected position error per configuration
     sigma_rad: np.ndarray | None = field(repr=False, default=None)
     reach: np.ndarray | None = field(repr=False, default=None)  # (n,) distance of the point from the base (m)
-    training_reach: np.ndarray | None = field(repr=False, default=None)  # the same at the calibration's readings
+    # the same at the calibration's readings (an even sample of `UNSEEN_SAMPLE` of them on a long log)
+    training_reach: np.ndarray | None = field(repr=False, default=None)
 
 
 @dataclass(frozen=True)
@@ -635,8 +637,9 @@ def predict_accuracy(
     joints = tuple(problem.joints)
     training = np.vstack([b.theta for b in problem.blocks if b.theta.size]) if problem.blocks else None
     seen = None
-    if training is not None and training.shape[0]:
-        seen = [T[:, :3, :3] @ it.tip + T[:, :3, 3] for T, it in zip(_poses(problem, values, training, items), items)]
+    if training is not None and training.shape[0]:  # where the data are: a long log's even sample marks it as well
+        where = training[even_sample(training.shape[0], UNSEEN_SAMPLE)]
+        seen = [T[:, :3, :3] @ it.tip + T[:, :3, 3] for T, it in zip(_poses(problem, values, where, items), items)]
     for it in items:
         blocks = [("m", slice(row, row + 3 * n))]
         row += 3 * n

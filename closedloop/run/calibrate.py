@@ -196,7 +196,7 @@ def validate(robot, lg, loops: list, opts, k: int, o: CalibrateOptions, res, pro
         prog("validating", 0, k)
         try:
             cv = cross_validate(
-                robot, lg, loops, opts, k=k, progress=prog, exclude=exclude, train_without_excluded=True
+                robot, lg, loops, opts, k=k, progress=prog, exclude=exclude, train_without_excluded=True, result=res
             )
         except ClosedLoopError as exc:
             n_train = len(lg) - -(-len(lg) // k)
@@ -215,6 +215,7 @@ def validate(robot, lg, loops: list, opts, k: int, o: CalibrateOptions, res, pro
                 "parameter_spread": cv.get("parameter_spread"),
                 "inconsistent": cv.get("inconsistent"),
                 "folds_converged": [f["converged"] for f in cv["folds"]],
+                **_refit_rows(cv["folds"]),
             }
     if o.lofo != "off" and lg.loop is not None and len(fixture_groups(loops)) >= 2:
         prog("validating fixtures", 0)
@@ -234,6 +235,7 @@ def validate(robot, lg, loops: list, opts, k: int, o: CalibrateOptions, res, pro
                 k=n,
                 exclude=exclude,
                 progress=lambda task, done, total=None, note="": prog("validating regions", done, total, note),
+                result=res,
             )
         except ClosedLoopError as exc:
             why = str(exc).splitlines()[0]
@@ -246,8 +248,20 @@ def validate(robot, lg, loops: list, opts, k: int, o: CalibrateOptions, res, pro
                 "test": rv["test"],
                 "train": rv["train"],
                 "folds_converged": [f["converged"] for f in rv["folds"]],
+                **_refit_rows(rv["folds"]),
             }
     return HeldOut(cv, cv_record, fixtures, regions)
+
+
+def _refit_rows(folds: list[dict]) -> dict:
+    """The report's record of what each held-out refit used: the rows it was trained on and judged on (on a
+    long log an even sample: `validation.kfold.validation_rows`) and whether it started at the calibration's
+    solution (`validation.kfold`'s warm refit)."""
+    return {
+        "train_rows": [f["n_train"] for f in folds],
+        "test_rows": [f["n_test"] for f in folds],
+        "folds_warm": [f["warm"] for f in folds],
+    }
 
 
 def _write(

@@ -30,12 +30,19 @@ refit costs many times a clean fit, once per fold).
 Held-out rows are never screened against the fold's own fit: a model that
 does not generalise would screen away the evidence.
 
-On a long log each refit is a calibration of its own: a fold's training rows,
-and the held-out rows it is judged on, are then an even sample of at most
-`VALIDATION_ROWS` per loop (`validation_rows`).  Thousands of configurations
-fix the parameters far below what the held-out closure measures, and give
-its RMS to a few per cent, so the figures keep their meaning while the
-validation's cost stops growing with the log.
+On a long log (a loop of more than `VALIDATION_ROWS` configurations) a fold's
+training rows, and the held-out rows it is judged on, are an even sample of at
+most `VALIDATION_ROWS` per loop (`validation_rows`; 'n_train' and 'n_test' of
+each fold count them).  Thousands of configurations fix the parameters far
+below what the held-out closure measures, and give its RMS to a few per cent,
+so the figures keep their meaning while the validation's cost stops growing
+with the log.  Given the full calibration (`cross_validate`'s `result`, with
+its outlier screen reused), such a refit then starts at its solution
+(`validation.refit`: a warm refit, a few iterations, noise held): with
+thousands of rows in and out, the training sample's minimum lies within its
+standard errors of the full solution, and the fit reaches it from there.  A
+refit that cannot be warm is a calibration of its own, as on a short log,
+whose refits are always calibrations of their own.
 """
 
 from __future__ import annotations
@@ -58,9 +65,10 @@ from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
 from closedloop.problem.blocks import BlockEval
-from closedloop.problem.problem import even_sample
+from closedloop.problem.problem import CalibrationProblem, even_sample
 from closedloop.problem.unwrap import unwrap
 from closedloop.progress import ProgressReporter
+from closedloop.validation.refit import Refit, as_refit, refit
 
 
 def subset(log_: JointLog, rows: np.ndarray) -> JointLog:
@@ -105,9 +113,11 @@ def folds(log_: JointLog, k: int, seed: int = 0) -> list[np.ndarray]:
 VALIDATION_ROWS = 4096
 
 
-def validation_rows(log_: JointLog, rows: np.ndarray, cap: int = VALIDATION_ROWS) -> np.ndarray:
+def validation_rows(log_: JointLog, rows: np.ndarray, cap: int | None = None) -> np.ndarray:
     """The rows (0-based, sorted) of `rows` a refit trains on or is judged on: all of them, or an even sample
-    (`even_sample`, first to last along the log) of at most `cap` per loop where a loop has more."""
+    (`even_sample`, first to last along the log) of at most `cap` (default `VALIDATION_ROWS`) per loop where a
+    loop has more."""
+    cap = VALIDATION_ROWS if cap is None else cap
     rows = np.asarray(rows, dtype=int)
     if log_.loop is None:
         return rows[even_sample(rows.size, cap)]
@@ -117,21 +127,32 @@ def validation_rows(log_: JointLog, rows: np.ndarray, cap: int = VALIDATION_ROWS
 
 
 def closure_residuals(
-    result: CalibrationResult, robot: RobotModel, log_: JointLog, loops: list[Loop], noise=None, skip=None
+    result: CalibrationResult | Refit,
+    robot: RobotModel,
+    log_: JointLog,
+    loops: list[Loop],
+    noise=None,
+    skip=None,
+    problem: CalibrationProblem | None = None,
 ) -> dict[str, Any]:
-    """Closure residuals of `log_` at the calibrated values of `result`, without its rows `skip` (0-based).
+    """Closure residuals of `log_` at the calibrated values of `result` (a calibration, or a refit:
+    `validation.refit.Refit`), without its rows `skip` (0-based).  `problem`: that of `log_` with the
+    fit's loops and noise where the caller has it (a warm refit's own, which keeps its evaluation at the
+    refit's values); None: built here.
 
     Returns {'loops': [LoopResiduals as dict], 'whitened_rms': per-row RMS of
     the noise-whitened residual (None when no noise level is known),
     'skipped': the number of rows left out}.
     """
-    calibrated = {lp.name: lp for lp in result.loops}  # their charts are those of the result's values
-    problem = build_problem(robot, log_, [calibrated.get(lp.name, lp) for lp in loops], None)
-    if problem.names != result.fit.names:
+    fitted = result if isinstance(result, Refit) else as_refit(result)
+    if problem is None:
+        calibrated = {b.loop.name: b.loop for b in fitted.problem.blocks}  # their charts are those of the values
+        problem = build_problem(robot, log_, [calibrated.get(lp.name, lp) for lp in loops], None)
+        noises = dict(zip([b.loop.name for b in fitted.problem.blocks], fitted.problem.noise))
+        problem.noise = [noises.get(b.loop.name, nz) for b, nz in zip(problem.blocks, problem.noise)]  # the fit's
+    if problem.names != fitted.problem.names:
         raise ValueError("the validation rows give a different parameter set than the calibration")
-    values = result.fit.values
-    fitted = dict(zip([b.loop.name for b in result.problem.blocks], result.problem.noise))
-    problem.noise = [fitted.get(b.loop.name, nz) for b, nz in zip(problem.blocks, problem.noise)]  # the fit's
+    values = fitted.values
     evals = problem.evaluate(values, noise is not None, columns=[])  # the whitening needs Jq alone
     skipped = np.zeros(0, dtype=int) if skip is None else np.unique(np.asarray(skip, dtype=int))
     if skipped.size:
@@ -165,21 +186,31 @@ def holdout(
     options: CalibrationOptions | None = None,
     skip_train=None,
     skip_test=None,
+    start: CalibrationResult | None = None,
 ) -> dict[str, Any]:
     """Fit on `train`, report the closure residuals on `train` (fit) and on `test` (prediction).
 
     Not judged: the training rows the fit rejected as outliers and `skip_train`, and the held-out rows
     `skip_test` (0-based rows of each log; the rows the full calibration rejected, `cross_validate`).
+    `start`: the full calibration, whose rejected rows `train` leaves out; the fit is then its warm refit
+    (`validation.refit.refit`: 'result' a `Refit`), else a calibration of its own ('result' a
+    `CalibrationResult`).
     """
     opt = options or CalibrationOptions()
-    res = calibrate(robot, train, loops, opt)
-    noise = opt.noise if opt.noise is not None else (res.noise.sigma if opt.weighting == "noise" else None)
+    if start is not None:
+        fitted = refit(start, robot, train, loops, opt)
+        res: CalibrationResult | Refit = fitted
+    else:
+        res = calibrate(robot, train, loops, opt)
+        fitted = as_refit(res)
+    noise = opt.noise if opt.noise is not None else (fitted.sigma if opt.weighting == "noise" else None)
     if noise is not None and not isinstance(noise, dict) and noise <= 0.0:
         # joint noise estimated at zero beside a measurement's (closedloop.estimate.noise): W_i is that covariance alone
         noise = float(np.finfo(float).tiny)
-    own = [rj.row - 1 for rj in res.outliers.rejected]  # `Rejected.row`: 1-based rows of `train`
-    pred = closure_residuals(res, robot, test, loops, noise, skip_test)
-    fit = closure_residuals(res, robot, train, loops, noise, np.union1d(own, [] if skip_train is None else skip_train))
+    skip = np.union1d(fitted.rejected, [] if skip_train is None else skip_train)
+    pred = closure_residuals(fitted, robot, test, loops, noise, skip_test)
+    own = fitted.problem if fitted.warm else None  # a warm refit's problem is that of `train`, all of its rows
+    fit = closure_residuals(fitted, robot, train, loops, noise, skip, own)
     return {"result": res, "train": fit, "test": pred, "n_train": len(train), "n_test": len(test)}
 
 
@@ -200,10 +231,12 @@ def _mean_loops(per_fold: list[list[dict]]) -> list[dict]:
     return out
 
 
-def _holdout_job(robot: RobotModel, loops: list[Loop], opt: CalibrationOptions, split: tuple) -> dict[str, Any]:
+def _holdout_job(
+    robot: RobotModel, loops: list[Loop], opt: CalibrationOptions, start: CalibrationResult | None, split: tuple
+) -> dict[str, Any]:
     """One fold's refit (a job for closedloop.parallel.executor): `split` = (training log, held-out log, rows of
-    each not judged)."""
-    return holdout(robot, split[0], split[1], loops, opt, split[2], split[3])
+    each not judged, whether the training rows are a sample: then warm from `start`)."""
+    return holdout(robot, split[0], split[1], loops, opt, split[2], split[3], start if split[4] else None)
 
 
 def cross_validate(
@@ -218,6 +251,7 @@ def cross_validate(
     exclude=None,
     parts: list[np.ndarray] | None = None,
     train_without_excluded: bool = False,
+    result: CalibrationResult | None = None,
 ) -> dict[str, Any]:
     """k-fold cross-validation with the same options on every fold.
 
@@ -225,7 +259,9 @@ def cross_validate(
     regions of joint space of `closedloop.validation.regions`).
 
     Each fold trains on, and is judged on, at most `VALIDATION_ROWS` configurations per loop
-    (`validation_rows`); 'n_train' and 'n_test' count those.
+    (`validation_rows`); 'n_train' and 'n_test' count those.  `result`: the calibration of `log_` with
+    `options` whose rejections are `exclude`; with `train_without_excluded`, a fold whose training rows
+    are a sample starts at its solution (a warm refit, module docstring; 'warm' says which did).
 
     `exclude`: rows of `log_` (0-based) whose closure no fold judges, the full calibration's rejected
     outliers (``[rj.row - 1 for rj in result.outliers.rejected]``); they stay in the refits' data, whose outlier
@@ -236,7 +272,7 @@ def cross_validate(
 
     Returns
       'folds': per fold {'fold', 'n_train', 'n_test', 'train': residuals,
-               'test': residuals, 'converged', 'values' (name -> value)},
+               'test': residuals, 'converged', 'warm', 'values' (name -> value)},
       'excluded': the rows of `exclude`, and per fold 'skipped' (rows not judged:
                under 'train' and 'test', `closure_residuals`),
       'test' / 'train': per loop, residuals pooled over folds (RMS weighted by
@@ -249,8 +285,8 @@ def cross_validate(
                are listed under 'inconsistent').
     The refits run on `executor` (an engine or its name, closedloop.parallel.executor;
     None: this process, in fold order); the result is the same on any engine.
-    `progress` is told ``("validating", folds finished, k)`` as each refit finishes (on a long log each is
-    a calibration of its own).
+    `progress` is told ``("validating", folds finished, k)`` as each refit finishes (on a long log each
+    takes a second or more).
     """
     opt = options or CalibrationOptions()
     parts = folds(log_, k, seed) if parts is None else parts
@@ -264,23 +300,27 @@ def cross_validate(
     splits = []
     for rows in parts:
         rest = np.setdiff1d(np.arange(len(log_)), rows)
-        rest = validation_rows(log_, np.setdiff1d(rest, bad) if train_without_excluded else rest)
+        rest = np.setdiff1d(rest, bad) if train_without_excluded else rest
+        train = validation_rows(log_, rest)
         rows = validation_rows(log_, rows)
         splits.append(
             (
-                subset(log_, rest),
+                subset(log_, train),
                 subset(log_, rows),
-                np.flatnonzero(np.isin(rest, bad)),
+                np.flatnonzero(np.isin(train, bad)),
                 np.flatnonzero(np.isin(rows, bad)),
+                train.size < rest.size,  # a sample of a long log's training rows: warm from `result`
             )
         )
     # the full calibration's screen decision reused (docstring): its rejected rows are out of every refit's data
     refit_opt = replace(opt, robust=None) if train_without_excluded and opt.robust == "auto" else opt
-    refits = run(_holdout_job, splits, executor, shared=(robot, loops, refit_opt), progress=progress, task="validating")
+    start = result if train_without_excluded else None  # a warm refit reuses the calibration's screen
+    shared = (robot, loops, refit_opt, start)
+    refits = run(_holdout_job, splits, executor, shared=shared, progress=progress, task="validating")
     for f, ho in enumerate(refits):
-        res: CalibrationResult = ho["result"]
-        ref = res.fit.values if ref is None else ref
-        vals = unwrap(res.problem, res.fit.values, ref)  # closure rotation vectors on one branch
+        fit = ho["result"] if isinstance(ho["result"], Refit) else as_refit(ho["result"])
+        ref = fit.values if ref is None else ref
+        vals = unwrap(fit.problem, fit.values, ref)  # closure rotation vectors on one branch
         per_fold.append(
             {
                 "fold": f,
@@ -288,8 +328,9 @@ def cross_validate(
                 "n_test": ho["n_test"],
                 "train": ho["train"],
                 "test": ho["test"],
-                "converged": res.converged,
-                "values": {res.fit.names[i]: float(vals[i]) for i in res.fit.estimated},
+                "converged": fit.converged,
+                "warm": fit.warm,
+                "values": {fit.problem.names[i]: float(vals[i]) for i in fit.estimated},
             }
         )
     names = sorted(set.union(*(set(p["values"]) for p in per_fold)))

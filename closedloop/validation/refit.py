@@ -53,13 +53,33 @@ WARM_ITER = 30
 @dataclass(frozen=True)
 class Refit:
     """A refit's problem (its loops as refitted), its values (the problem's parameter order), whether it
-    converged, its iterations, and whether it started at the calibration's solution (`warm`)."""
+    converged, its iterations, whether it started at the calibration's solution (`warm`), the parameters it
+    estimated (indices into the problem's), its joint noise level (rad: the calibration's, held, or its
+    own, given or estimated) and the rows of its log it rejected as outliers (0-based; none when warm: the
+    calibration's screen is reused)."""
 
     problem: CalibrationProblem
     values: np.ndarray
     converged: bool
     iterations: int
     warm: bool
+    estimated: tuple[int, ...] = ()
+    sigma: float = 0.0
+    rejected: tuple[int, ...] = ()
+
+
+def as_refit(res: CalibrationResult) -> Refit:
+    """A calibration of its own (`calibrate`) as a `Refit` (not warm)."""
+    return Refit(
+        problem=res.problem,
+        values=res.fit.values,
+        converged=res.converged,
+        iterations=res.fit.iterations,
+        warm=False,
+        estimated=tuple(int(k) for k in res.fit.estimated),
+        sigma=float(res.noise.sigma),
+        rejected=tuple(rj.row - 1 for rj in res.outliers.rejected),  # `Rejected.row`: 1-based
+    )
 
 
 def refit(
@@ -75,8 +95,7 @@ def refit(
     warm = _warm(result, robot, log_, loops, opt) if result is not None else None
     if warm is not None:
         return warm
-    res = calibrate(robot, log_, loops, opt)
-    return Refit(res.problem, res.fit.values, res.converged, res.fit.iterations, False)
+    return as_refit(calibrate(robot, log_, loops, opt))
 
 
 def _warm(
@@ -138,7 +157,15 @@ def _warm(
         if stage.note is not None or stage.solution.status != "converged" or not np.isfinite(stage.solution.cost):
             return None
         x = stage.fun.normalized(stage.fun.full(stage.solution.x))
-    return Refit(problem, x, True, iterations, True)
+    return Refit(
+        problem=problem,
+        values=x,
+        converged=True,
+        iterations=iterations,
+        warm=True,
+        estimated=tuple(est),
+        sigma=float(result.noise.sigma),
+    )
 
 
 def _project(

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from closedloop.analysis.accuracy import joint_ranges
-from closedloop.calibration.pipeline import CalibrationOptions
+from closedloop.calibration.pipeline import CalibrationOptions, CalibrationResult
 from closedloop.errors import ParameterError
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
@@ -97,12 +97,15 @@ def region_validate(
     exclude=None,
     executor=None,
     progress: ProgressReporter | None = None,
+    result: CalibrationResult | None = None,
 ) -> dict[str, Any]:
     """Leave each region of `regions` out in turn (module docstring): `kfold.cross_validate`'s record
     over these held-out sets, with 'regions' (the rows of each, 0-based) and 'k' their number.  The rows
     `exclude` (the full calibration's rejected outliers) are neither judged, nor trained on, nor clustered:
     a refit leaves a region of the data out, and the rows that are no data are in no region.  The refits
-    reuse the full calibration's outlier screen (`cross_validate`'s `train_without_excluded`)."""
+    reuse the full calibration's outlier screen (`cross_validate`'s `train_without_excluded`); given that
+    calibration (`result`), a refit on a long log's sample of training rows starts at its solution
+    (`cross_validate`'s warm refit)."""
     # the regions of the data: a rejected row (a reading of 100 rad) would be a region of its own
     keep = np.setdiff1d(np.arange(len(log_)), np.asarray(exclude if exclude is not None else [], dtype=int))
     parts = [keep[p] for p in regions(subset(log_, keep), robot, joints, k, seed)]
@@ -118,6 +121,7 @@ def region_validate(
         exclude=exclude,
         parts=parts,
         train_without_excluded=True,
+        result=result,
     )
     out["regions"] = [p.tolist() for p in parts]
     return out
