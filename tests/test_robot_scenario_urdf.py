@@ -33,4 +33,4 @@ def test_a_joint_without_its_child_link_names_file_and_joint(tmp_path: Path, chi
     path.write_text(URDF.format(child=child))
     with pytest.raises(InputError) as err:
         prepare_robot(path, "point", "tool0")
-    assert str(err.value) == f"{path}: joint 'shoulder' has no <child link=...>"
+    assert str(err.value) == f"{path}: joint 'shoulder': no <child link=...>"  # as calibrate and inspect say it

@@ -47,7 +47,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import InputError
-from closedloop.io.robot_files import HELD
+from closedloop.io.robot_files import HELD, check_mjcf, check_urdf
 from closedloop.model.axes import blind_joints, point_on_axis_message
 from closedloop.model.robot import find_frame
 from closedloop.sims.loop_types import sim_loop
@@ -154,10 +154,15 @@ def mjcf_to_urdf(path: Path) -> str:
 
 # --------------------------------------------------------------------------- URDF preparation
 def _read(path: Path, where: str) -> ET.Element:
+    """The robot file as a URDF tree, checked first as `calibrate` and `inspect` check it
+    (`closedloop.io.robot_files.check_urdf`, `check_mjcf`): a typo is named in one line (the joint, the
+    element) before Pinocchio or MuJoCo would reject the prepared file in their own words."""
     if not path.is_file():
         raise InputError(f"{where}: no such robot file {path}")
     if path.suffix.lower() in (".xml", ".mjcf"):
+        check_mjcf(path)
         return ET.fromstring(mjcf_to_urdf(path))
+    check_urdf(path, one_root=False)  # a second root (a table beside the robot) is noted when prepared
     try:
         return ET.parse(path).getroot()
     except ET.ParseError as exc:
