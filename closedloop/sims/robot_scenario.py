@@ -354,6 +354,20 @@ def choose_q0(model, loop_type: str, frame: str, to: str | None, n_samples: int 
     return best_q, rank, best
 
 
+def _fewer_constraints(rank: int, to: str | None) -> str:
+    """The way out of a loop that leaves a chain no motion: the simulated loop types with fewer than `rank`
+    constraints (a loop between two frames: on one of them, since only a weld closes two chains), or more
+    joints."""
+    kinds = ("point", "plane", "measured_point")
+    fewer = [f"{t}: {sim_loop(t).constraints}" for t in kinds if sim_loop(t).constraints < rank]
+    if not fewer:
+        return "use a robot with more joints"
+    where = "a loop with fewer constraints"
+    if to is not None:
+        where = "a loop on one of the two frames with fewer constraints (only a weld closes two chains)"
+    return f"use {where} ({', '.join(fewer)}), or a robot with more joints"
+
+
 def prepare_robot(
     path: str | Path,
     loop_type: str,
@@ -403,8 +417,7 @@ def prepare_robot(
         raise InputError(
             f"{path}: {what} leaves the closed chain no motion: its {n} driven joint(s) "
             f"({', '.join(driven)}) are all taken by the loop's {rank} independent constraints "
-            f"(thesis Lemma 4: no self-motion, nothing to calibrate from); use a loop with fewer "
-            "constraints (point: 3, plane: 1, measured_point: 0), or a robot with more joints"
+            f"(thesis Lemma 4: no self-motion, nothing to calibrate from); {_fewer_constraints(rank, to)}"
         )
     if q0 is None:
         q0 = q_best
