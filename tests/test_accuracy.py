@@ -463,6 +463,7 @@ def test_suggest_writes_a_log_the_robot_can_play(tmp_path, capsys):
     out = capsys.readouterr().out
     assert rc == 0 and "accuracy target not met" in out.splitlines()[0]
     assert f"next: 5 configurations of loop point in {nxt}" in out
+    assert f"  wrote {nxt}" in out.splitlines()  # listed with the other files written
     lines = nxt.read_text().splitlines()
     assert lines[0].split(",") == list(case.joints) and len(lines) == 6
     X = np.array([[float(v) for v in row.split(",")] for row in lines[1:]])

@@ -283,6 +283,20 @@ CASES = [
         {"r.urdf": chain(1200)},
     ),
     Case(
+        "simulate-urdf-type-typo",
+        "robot file",
+        ["simulate", "--robot", "{r.urdf}", "--loop", "point:frame=l2", "--out", "{tmp}/sim"],
+        ["r.urdf: joint 'j1': type 'revolut' is not one of revolute"],
+        {"r.urdf": urdf().replace('type="revolute"', 'type="revolut"', 1)},
+    ),
+    Case(
+        "simulate-urdf-origin-typo",
+        "robot file",
+        ["simulate", "--robot", "{r.urdf}", "--loop", "point:frame=l2", "--out", "{tmp}/sim"],
+        ["r.urdf: joint 'j1': <origin> xyz=\"0.1 0..0 0\": expected 3 finite number(s)"],
+        {"r.urdf": urdf(xyz="0.1 0..0 0")},
+    ),
+    Case(
         "urdf-zero-axis",
         "robot file",
         ["inspect", "{r.urdf}"],
@@ -365,6 +379,26 @@ CASES = [
         ["extract", "{b.bag}", "--joints", "a", "--out", "{tmp}/o.csv", "--split", "gap", "--gap", "nan"],
         ["--gap nan", "finite"],
         {"b.bag": b"x"},
+    ),
+    Case(
+        "check-arguments-swapped",
+        "check files",
+        ["check", "{report.json}", "{truth.json}"],
+        ["report.json: a calibration report given as the truth file", "closedloop check TRUTH REPORT"],
+        {
+            "report.json": '{"parameters": [{"name": "j1.x", "calibrated": 0.1}], "verdict": {"status": "ok"}}',
+            "truth.json": '{"scenario": "arm_point", "parameters": {"j1.x": 0.1}}',
+        },
+    ),
+    Case(
+        "check-truth-given-as-report",
+        "check files",
+        ["check", "{truth.json}", "{truth2.json}"],
+        ["truth2.json: a simulation's truth file given as the report", "closedloop check TRUTH REPORT"],
+        {
+            "truth.json": '{"scenario": "arm_point", "parameters": {"j1.x": 0.1}}',
+            "truth2.json": '{"scenario": "arm_point", "parameters": {"j1.x": 0.1}}',
+        },
     ),
     Case(
         "simulate-tool-1e9",

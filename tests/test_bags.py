@@ -213,6 +213,10 @@ def test_bag_errors_are_one_line(tmp_path, standstills, capsys):
     assert main(["extract", str(bag), "--joints", "panda_joint1,elbow", "--out", out]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "never reports joint(s) elbow" in err
+    assert main(["extract", str(bag), "--joints", "panda_jiont1", "--out", out]) == 2  # a typo: what the bag has
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "any of the joint(s) asked (panda_jiont1); the bag's joints: panda_finger" in err
+    assert err.rstrip().endswith("panda_joint4 and 3 more")  # 9 joints: 7 of the arm, 2 fingers
     assert main(["extract", str(bag), "--joints", "panda_joint1", "--topic", "/other", "--out", out]) == 2
     assert "no sensor_msgs/JointState messages on topic(s) /other" in capsys.readouterr().err
     assert main(["extract", str(bag), "--joints", "panda_joint1", "--settle", "5", "--out", out]) == 2

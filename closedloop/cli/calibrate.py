@@ -79,6 +79,9 @@ def cmd_calibrate(args) -> int:
         print_summary(res, run.seconds, options, report, wrote_model=run.model_written)
         if run.sensors is not None:
             print(f"  wrote {run.sensors}")
+        suggested = ((report.get("accuracy") or {}).get("next_poses") or {}).get("file")
+        if suggested:
+            print(f"  wrote {suggested}")
         if options.html:
             print(f"  wrote {options.html}")
         if options.plots:

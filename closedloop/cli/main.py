@@ -74,6 +74,7 @@ def cmd_check(args) -> int:
         check_outputs({"--json": args.json}, [args.truth, args.report])
     truth = _load_json(args.truth, "truth file")
     report = _load_json(args.report, "report file")
+    _refuse_swapped(truth, report, args.truth, args.report)
     src = {"truth_source": args.truth, "report_source": args.report}
     view = "parameters" if args.parameters else "auto"
     rows, ok = check_report(truth, report, **tols, **src, model=args.model, view=view, truth_model=args.truth_model)
@@ -139,6 +140,27 @@ def _print_rows(rows: list[dict], what: str) -> None:
         f"{sum(r['result'] == 'ok' for r in rows)} within tolerance, {bad} outside, "
         f"{sum(r['result'] not in ('ok', 'FAIL') for r in rows)} not compared"
     )
+
+
+CHECK_ORDER = (
+    "the order is: closedloop check TRUTH REPORT (truth.json of closedloop simulate, then calibrate's --report)"
+)
+
+
+def _refuse_swapped(truth, report, truth_path: str, report_path: str) -> None:
+    """Refuse a calibration report given as `check`'s truth file, or a simulation's truth file given as its
+    report, in one line saying which is which: a report's ``parameters`` is a list of named records
+    (`closedloop.io.schemas.REPORT_SCHEMA`), a truth file's a mapping of names to values beside the
+    scenario it was simulated from (`TRUTH_SCHEMA`).  Anything else is left to the schemas' messages."""
+    params = truth.get("parameters") if isinstance(truth, dict) else None
+    if isinstance(params, list) and params and all(isinstance(p, dict) and "name" in p for p in params):
+        raise InputError(
+            f"{truth_path}: a calibration report given as the truth file (the first argument); {CHECK_ORDER}"
+        )
+    if isinstance(report, dict) and isinstance(report.get("parameters"), dict) and "scenario" in report:
+        raise InputError(
+            f"{report_path}: a simulation's truth file given as the report (the second argument); {CHECK_ORDER}"
+        )
 
 
 def _load_json(path: str, what: str = "JSON file"):

@@ -172,8 +172,20 @@ def read_streams(path: str | Path, joints: list[str], topics: list[str] | None =
         t_ref = min(min(m[0] for m in v) for v in by_topic.values()) if by_topic else start
     finally:
         reader.close()
-    streams = [_merge(path, topic, msgs, joints, t_ref) for topic, msgs in sorted(by_topic.items())]
-    return [s for s in streams if s is not None]
+    merged = [_merge(path, topic, msgs, joints, t_ref) for topic, msgs in sorted(by_topic.items())]
+    streams = [s for s in merged if s is not None]
+    if not streams and by_topic:  # a misspelt --joints, or the model of another robot: say what the bag has
+        held = sorted({n for msgs in by_topic.values() for _, names, _, _ in msgs for n in names})
+        raise BagError(
+            f"{path}: no JointState topic reports any of the joint(s) asked ({_some(joints)}); the bag's "
+            f"joints: {_some(held)}"
+        )
+    return streams
+
+
+def _some(names: list[str], n: int = 6) -> str:
+    """The first `n` of `names`, and how many more, for a one-line message."""
+    return ", ".join(names[:n]) + (f" and {len(names) - n} more" if len(names) > n else "")
 
 
 def _first_line(exc: BaseException) -> str:

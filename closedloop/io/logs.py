@@ -66,8 +66,11 @@ class JointLog:
             return None
         tau = np.column_stack(cols)
         if not np.all(np.isfinite(tau)):
-            bad = int(np.argwhere(~np.isfinite(tau))[0, 0])
-            raise LogError(f"{self.where(bad)}: a tau:<joint> column is not a finite number")
+            row, col = (int(k) for k in np.argwhere(~np.isfinite(tau))[0])
+            raise LogError(
+                f"{self.where(row)}, column 'tau:{names[col]}': {tau[row, col]} is not a finite torque (an empty "
+                "cell reads as nan); every row needs its joint torques where tau:<joint> columns are given"
+            )
         return tau
 
     def write_csv(self, path: str | Path) -> None:

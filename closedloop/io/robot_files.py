@@ -105,8 +105,9 @@ def _numbers(path: Path, where: str, text: str | None, n: int) -> list[float] | 
     return values
 
 
-def check_urdf(path: str | Path) -> None:
-    """Refuse a URDF Pinocchio would crash on or refuse in several lines (module doc)."""
+def check_urdf(path: str | Path, one_root: bool = True) -> None:
+    """Refuse a URDF Pinocchio would crash on or refuse in several lines (module doc).  `one_root` False
+    accepts several root links (the simulator keeps the tree of the loop's links and notes the others)."""
     path = Path(path)
     root = _parse(path, "URDF")
     _xacro(path, root)
@@ -175,20 +176,21 @@ def check_urdf(path: str | Path) -> None:
     roots = sorted(links - set(parent_of))
     if not roots:
         raise ModelError(f"{path}: the joints form a cycle (every link has a parent, e.g. '{sorted(links)[0]}')")
-    if len(roots) > 1:
+    if len(roots) > 1 and one_root:
         raise ModelError(
             f"{path}: {len(roots)} root links ({', '.join(repr(r) for r in roots[:4])}): a URDF has one root; "
             "join them with a fixed joint"
         )
-    depth = {roots[0]: 0}
-    todo = [roots[0]]
+    depth = dict.fromkeys(roots, 0)
+    root_of = {r: r for r in roots}
+    todo = list(roots)
     while todo:  # breadth first, no recursion
         link = todo.pop()
         for c in children.get(link, []):
-            depth[c] = depth[link] + 1
+            depth[c], root_of[c] = depth[link] + 1, root_of[link]
             if depth[c] > MAX_DEPTH:
                 raise ModelError(
-                    f"{path}: link '{c}' lies {depth[c]} links below the root '{roots[0]}'; trees deeper than "
+                    f"{path}: link '{c}' lies {depth[c]} links below the root '{root_of[c]}'; trees deeper than "
                     f"{MAX_DEPTH} links are refused"
                 )
             todo.append(c)

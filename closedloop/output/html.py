@@ -472,6 +472,17 @@ def _accuracy(report: dict) -> str:
         if tgt["met"] and not tgt.get("met_95", True):
             met = "met by the expected largest error, not by its 95 % bound"
         s += "<p>" + _e(f"accuracy target {tgt['describe']}: {met}") + "</p>"
+    nxt = sec.get("next_poses")  # calibrate --suggest: where to measure next
+    if nxt:
+        s += (
+            "<p>"
+            + _e(
+                f"where to measure next: {nxt['configurations']} configurations of loop {nxt['loop']} in "
+                f"{nxt['file']}: predicted RMS {nxt['predicted_rms_before_m'] * 1e3:.3g} mm -> "
+                f"{nxt['predicted_rms_after_m'][-1] * 1e3:.3g} mm once recorded and calibrated again"
+            )
+            + "</p>"
+        )
     return s + "<img alt='predicted accuracy' src='data:image/png;base64,{accuracy}'>"
 
 

@@ -47,7 +47,7 @@ import numpy as np
 import pinocchio as pin
 
 from closedloop.errors import InputError
-from closedloop.io.robot_files import HELD
+from closedloop.io.robot_files import HELD, check_mjcf, check_urdf
 from closedloop.model.axes import blind_joints, point_on_axis_message
 from closedloop.model.robot import find_frame
 from closedloop.sims.loop_types import sim_loop
@@ -154,10 +154,15 @@ def mjcf_to_urdf(path: Path) -> str:
 
 # --------------------------------------------------------------------------- URDF preparation
 def _read(path: Path, where: str) -> ET.Element:
+    """The robot file as a URDF tree, checked first as `calibrate` and `inspect` check it
+    (`closedloop.io.robot_files.check_urdf`, `check_mjcf`): a typo is named in one line (the joint, the
+    element) before Pinocchio or MuJoCo would reject the prepared file in their own words."""
     if not path.is_file():
         raise InputError(f"{where}: no such robot file {path}")
     if path.suffix.lower() in (".xml", ".mjcf"):
+        check_mjcf(path)
         return ET.fromstring(mjcf_to_urdf(path))
+    check_urdf(path, one_root=False)  # a second root (a table beside the robot) is noted when prepared
     try:
         return ET.parse(path).getroot()
     except ET.ParseError as exc:
@@ -349,6 +354,20 @@ def choose_q0(model, loop_type: str, frame: str, to: str | None, n_samples: int 
     return best_q, rank, best
 
 
+def _fewer_constraints(rank: int, to: str | None) -> str:
+    """The way out of a loop that leaves a chain no motion: the simulated loop types with fewer than `rank`
+    constraints (a loop between two frames: on one of them, since only a weld closes two chains), or more
+    joints."""
+    kinds = ("point", "plane", "measured_point")
+    fewer = [f"{t}: {sim_loop(t).constraints}" for t in kinds if sim_loop(t).constraints < rank]
+    if not fewer:
+        return "use a robot with more joints"
+    where = "a loop with fewer constraints"
+    if to is not None:
+        where = "a loop on one of the two frames with fewer constraints (only a weld closes two chains)"
+    return f"use {where} ({', '.join(fewer)}), or a robot with more joints"
+
+
 def prepare_robot(
     path: str | Path,
     loop_type: str,
@@ -398,8 +417,7 @@ def prepare_robot(
         raise InputError(
             f"{path}: {what} leaves the closed chain no motion: its {n} driven joint(s) "
             f"({', '.join(driven)}) are all taken by the loop's {rank} independent constraints "
-            f"(thesis Lemma 4: no self-motion, nothing to calibrate from); use a loop with fewer "
-            "constraints (point: 3, plane: 1, measured_point: 0), or a robot with more joints"
+            f"(thesis Lemma 4: no self-motion, nothing to calibrate from); {_fewer_constraints(rank, to)}"
         )
     if q0 is None:
         q0 = q_best
