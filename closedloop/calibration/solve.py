@@ -251,10 +251,13 @@ def _better(
     plausible: float,
 ) -> StageResult:
     """Of the fits that close as well as the best, the nearest the start (in prior units): a degenerate
-    robot (a forearm of zero length) may close a single self-motion as well as the real one."""
+    robot (a forearm of zero length) may close a single self-motion as well as the real one.  A fit whose
+    solver stopped short of a minimum (its iteration cap, a crawl) counts only where none reached one."""
     levels = [_closure_level(problem, st, plausible) for st in stages]
     # as good as the best: within 10x of its closure, or both below 1/1000 of a plausible noise
     good = [st for st, lv in zip(stages, levels) if lv <= max(10.0 * min(levels), 1e-3)]
+    # a solve that stopped short of its minimum is no rival to one that reached its own
+    good = [st for st in good if st.solution.status == "converged"] or good
     return min(good, key=lambda st: float(np.linalg.norm((st.solution.x - start[est]) / scale[est])))
 
 
