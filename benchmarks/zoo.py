@@ -117,7 +117,8 @@ def main(argv: list[str] | None = None) -> int:
                             ),
                             "converged": o.converged,
                             "seconds": o.seconds,
-                            "cpu_seconds": cpu,
+                            "cpu_seconds": cpu,  # the case's: calibration and judging
+                            "calibrate_cpu_seconds": fit.cpu_seconds,  # the calibration's alone (nan: it raised)
                             "error": o.error,
                             "judgement": vars(o.judgement) if o.judgement else None,
                             "notes": list(getattr(o.result, "notes", []) or []),

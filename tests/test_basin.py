@@ -11,7 +11,8 @@ zero whose residual is smooth along the swing, which sends it to restarts (`solv
 start 12's start drops j5.s as redundant, which it is not at the solution (`structure_holds`); start
 27's weighted fit stalls at closure 3e-9 with nothing truncated and is finished by the plain fit from it
 (`solve._polished`); start 20 stops at a spurious minimum (closure 4e-7, a robot 0.7 off) that no
-restart leaves, and is left along its weakest directions (`solve.valley_starts`).  The rates over
+restart leaves, and is left along its weakest directions (`solve.valley_starts`) as soon as the first
+restart stops on the same floor (`solve._valley_floor`).  The rates over
 40-100 starts are `benchmarks/basin.py`'s.
 """
 

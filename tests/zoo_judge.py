@@ -187,6 +187,7 @@ class Outcome:
     seconds: float
     error: str = ""
     result: object = None
+    cpu_seconds: float = float("nan")  # the calibration's own CPU time (reading, calibrating, writing; not judging)
 
     @property
     def refused(self) -> bool:
@@ -228,7 +229,7 @@ def run_case(case: Case, options=None) -> Outcome:
     from closedloop.loops.spec import parse_loop
     from closedloop.output.urdf import write_model
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         robot = RobotModel.from_file(case.nominal_urdf)
         log = read_log(case.log_csv, robot.joint_names)
@@ -256,10 +257,10 @@ def run_case(case: Case, options=None) -> Outcome:
             time.perf_counter() - t0,
             f"CRASH {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}",
         )
-    dt = time.perf_counter() - t0
+    dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     j = judge(case, out)
     status = verdict_status(res)
-    return Outcome(case, j, status, bool(res.converged), j.right(case.tolerances()), dt, result=res)
+    return Outcome(case, j, status, bool(res.converged), j.right(case.tolerances()), dt, result=res, cpu_seconds=cpu)
 
 
 # ----------------------------------------------------------------------------- what noise alone leaves

@@ -251,10 +251,13 @@ def _better(
     plausible: float,
 ) -> StageResult:
     """Of the fits that close as well as the best, the nearest the start (in prior units): a degenerate
-    robot (a forearm of zero length) may close a single self-motion as well as the real one."""
+    robot (a forearm of zero length) may close a single self-motion as well as the real one.  A fit whose
+    solver stopped short of a minimum (its iteration cap, a crawl) counts only where none reached one."""
     levels = [_closure_level(problem, st, plausible) for st in stages]
     # as good as the best: within 10x of its closure, or both below 1/1000 of a plausible noise
     good = [st for st, lv in zip(stages, levels) if lv <= max(10.0 * min(levels), 1e-3)]
+    # a solve that stopped short of its minimum is no rival to one that reached its own
+    good = [st for st in good if st.solution.status == "converged"] or good
     return min(good, key=lambda st: float(np.linalg.norm((st.solution.x - start[est]) / scale[est])))
 
 
@@ -280,7 +283,10 @@ def solve_with_restarts(
     does, the one with the lowest unweighted closure.  When no restart leaves
     the minimum, it is left along its valley (`_along_valley`), with the
     `weak` parameters (`Structure.nearly_redundant`) freed: a reduction read
-    off the start may hold back a parameter the solution needs.
+    off the start may hold back a parameter the solution needs.  The valley
+    is searched as soon as a restart stops where the given start did, a hair
+    above zero (`_valley_floor`): further restarts reach the same floor, at
+    the cost of a full fit each, where the search along it takes plain fits.
     """
     fit = first if first is not None else solve_staged(problem, x0, x0, est, opt, sigma_q, known, progress)
     plausible = opt.rules.plausible_joint_noise
@@ -297,7 +303,7 @@ def solve_with_restarts(
     log.info(
         "the fit from the given start stalled at closure level %.3g", _closure_level(problem, fit.stage, plausible)
     )
-    hopeless = False
+    hopeless = valley = False
     for k, st in enumerate(starts[: opt.restarts]):
         log.info("restart %d: the fit stalled far above the noise or where its residual is not noise", k + 1)
         fits.append(solve_staged(problem, x0, st, est, opt, sigma_q, known, progress))
@@ -307,8 +313,14 @@ def solve_with_restarts(
         hopeless = _hopeless(problem, fits, opt.rules)
         if hopeless:
             break
+        if not valley and _valley_floor(problem, fits, plausible):
+            # a restart from elsewhere stopped, like the given start, a hair above zero: the valley's floor;
+            # along it (cheap) before more starts, which reach the same floor
+            valley = True
+            if _along_valley(problem, x0, fit, est, opt, sigma_q, known, progress, fits, weak or []):
+                break
     good = [f for f in fits if _good(problem, f, plausible)]
-    if not good and not hopeless:  # no restart left the valley: along it (`valley_starts`), the nearly redundant freed
+    if not good and not hopeless and not valley:  # no restart left the valley: along it, the nearly redundant freed
         good = _along_valley(problem, x0, fit, est, opt, sigma_q, known, progress, fits, weak or [])
     far = _closure_level(problem, fit.stage, plausible) > 1.0
     if good:
@@ -332,6 +344,17 @@ def solve_with_restarts(
             "this data (check each loop's type and frames against the rig)"
         )
     return best
+
+
+def _valley_floor(problem: CalibrationProblem, fits: list[Fit], plausible: float) -> bool:
+    """The given start's fit and the last restart's both stopped within a plausible noise (closure level at
+    most 1) at a residual that is no noise (`_systematic`): a spurious minimum a hair above zero that other
+    starts reach as well, the floor of a long valley (a single self-motion: the door) that `valley_starts`
+    leaves along it."""
+    return len(fits) >= 2 and all(
+        _closure_level(problem, f.stage, plausible) <= 1.0 and _systematic(problem, f, plausible)
+        for f in (fits[0], fits[-1])
+    )
 
 
 HOPELESS = 5.0  # times the joint noise the verdict fails (`VerdictRules.failed_joint_noise`): a hopeless closure

@@ -37,7 +37,8 @@ short by the damping after rejected trials is not convergence while the
 undamped step is long (both must be below `xtol`), and where no damped step
 lowers the cost although the linear model says the undamped one would remove
 most of it (the stop is no minimum), that step is tried shortened
-(`_line_search`).  With bounds
+(`_line_search`); a solve that only such cut steps move, a percent of the cost at a time, is crawling on
+a slope its Jacobian does not give, and stops 'stalled' (`CRAWL_ITERATIONS`).  With bounds
 the step is a bounded least-squares problem solved by qpsolvers/OSQP in the
 kept subspace.
 """
@@ -116,7 +117,7 @@ def levenberg_marquardt(
         return _solve(fun, x0, scale, opt, progress)
     memo: dict = {}
     first = _solve(fun, x0, scale, replace(opt, noise=0.0), progress, memo)
-    if first.status != "converged":  # a long valley: once more from where it stopped
+    if first.status == "max_iter":  # a long valley: once more from where it stopped (not after a crawl)
         first = _after(first, _solve(fun, first.x, scale, replace(opt, noise=0.0), progress, memo))
     r = first.residual
     # the last iteration's factorisation when it was of this Jacobian (a solve that ends on
@@ -179,6 +180,7 @@ def _solve(
         progress(0, cost)
     lam, nu = 0.0, 2.0
     lowest, still = cost, 0  # the lowest cost reached, and the accepted steps since it last fell by ftol
+    crawl = 0  # cut undamped steps since the cost last fell by a useful share (`CRAWL_ITERATIONS`)
     retract = getattr(fun, "retract", None) if not bounded else None
     status, message, truncated = "max_iter", f"no convergence in {opt.max_iter} iterations", 0
     it = 0
@@ -217,11 +219,16 @@ def _solve(
             if nu > 2.0**40:
                 break
         found = None if accepted or bounded else _line_search(fun, x, r, g, keep, -(Vt.T @ gn), scale)  # a minimum?
+        alpha = 1.0
         if found is not None:
-            (dz, x_new, cost_new), accepted, lam, nu = found, True, 0.0, 2.0
+            (dz, x_new, cost_new, alpha), accepted, lam, nu = found, True, 0.0, 2.0
         if not accepted:
             status, message = "converged", "no step lowers the cost: at a minimum"
             break
+        if cost - cost_new >= CRAWL_PROGRESS * cost:
+            crawl = 0
+        elif found is not None and alpha <= CRAWL_ALPHA:
+            crawl += 1
         step_norm = float(np.linalg.norm(dz))
         decrease = cost - cost_new
         x = x_new
@@ -247,6 +254,10 @@ def _solve(
         lowest = min(lowest, cost)
         if still >= STALL_ITERATIONS:
             status, message = "converged", f"the cost stopped falling ({still} iterations without a decrease)"
+            break
+        if crawl >= CRAWL_ITERATIONS:
+            status = "stalled"
+            message = f"crawling: {crawl} steps cut to {CRAWL_ALPHA:g} of the Gauss-Newton step or less, little gain"
             break
     # a function with charts (`retract`) settles them at the end (`residual.ResidualFunction.settle`)
     settled = getattr(fun, "settle")(x) if retract is not None else None
@@ -299,6 +310,17 @@ STALL_ITERATIONS = 8
 
 STOPPED_SHORT = 0.5  # share of the cost the linear model removes above which a stop is no minimum (`_line_search`)
 
+#: A solve that took `CRAWL_ITERATIONS` steps by `_line_search` at `CRAWL_ALPHA` of the undamped step or less
+#: while no step lowered the cost by `CRAWL_PROGRESS` of it is crawling, and stops ('stalled'): no damped step
+#: lowered the cost there, so the gradient the Jacobian gives is not the cost's (a weighting that moves with
+#: the parameters as much as the closure, a hair above zero on exact data); its cut steps gain a percent of
+#: the cost each and the damped steps between them next to nothing, for as long as the iteration cap allows.
+#: Its caller takes another route (`calibration.solve.solve_staged`: the plain loop-closure residual).  A
+#: long valley the line search serves takes steps of a useful fraction, or lowers the cost between them.
+CRAWL_ALPHA = 1.0 / 64.0
+CRAWL_ITERATIONS = 8
+CRAWL_PROGRESS = 0.1
+
 
 def reducible_share(r: np.ndarray, g: np.ndarray, keep: np.ndarray) -> float:
     """|U_k^T r|^2 / |r|^2 (g = U^T r, `scaled_svd`; k the kept directions): the share of the cost the
@@ -315,7 +337,8 @@ def _line_search(fun, x, r, g, keep, step, scale, halvings: int = 12):
     Only when it would remove more than `STOPPED_SHORT` of the cost (`reducible_share`): then the stop is
     no minimum.  The trials were rejected along a direction the closure barely sees (the long, curved
     valleys of a weak direction) and the damped steps were too short to move along it; the verdict
-    checks the same share at the solution (`verdict._minimum`).  Returns (dz, x_new, cost_new) or None.
+    checks the same share at the solution (`verdict._minimum`).  Returns (dz, x_new, cost_new, the fraction
+    of `step` taken) or None.
     """
     share = reducible_share(r, g, keep)
     if share <= STOPPED_SHORT:
@@ -329,7 +352,7 @@ def _line_search(fun, x, r, g, keep, step, scale, halvings: int = 12):
         cost_new = 0.5 * float(r_new @ r_new)
         if np.isfinite(cost_new) and cost - cost_new >= 1e-4 * 0.5 * (2.0 * alpha - alpha**2) * model:
             log.info("no damped step lowered the cost %.3e; the undamped step x %g did (%.3e)", cost, alpha, cost_new)
-            return alpha * step, x_new, cost_new
+            return alpha * step, x_new, cost_new, alpha
         alpha *= 0.5
     return None
 
