@@ -33,22 +33,8 @@ PANDA_Q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]  # tests/conftest.py, make_datas
 PANDA_Q1 = [0.2, 0.3, -0.2, -2.0, 0.1, 2.0, 0.5]  # tests/test_loops_point_plane_measured.py, test_loops_face.py
 UR5_Q0 = [0.3, -1.2, 1.4, -1.0, 1.2, 0.4]
 UR5_Q1 = [0.3, -1.3, 1.7, -1.9, -1.57, 0.2]  # tests/test_observability_poses.py
-BAXTER_GRASP_Q0 = [
-    0.3,
-    -0.4,
-    -0.3,
-    1.3,
-    0.2,
-    0.6,
-    0.1,
-    -0.3,
-    -0.4,
-    0.3,
-    1.3,
-    -0.2,
-    0.6,
-    -0.1,
-]  # examples/dual_arm_baxter.py
+# examples/dual_arm_baxter.py
+BAXTER_GRASP_Q0 = [0.3, -0.4, -0.3, 1.3, 0.2, 0.6, 0.1, -0.3, -0.4, 0.3, 1.3, -0.2, 0.6, -0.1]
 BAXTER_Q0 = [0.3, -0.5, -0.5, 1.5, 0.3, 0.8, 0.2, -0.3, -0.5, 0.5, 1.5, -0.3, 0.8, -0.2]
 
 #: name -> (robot file, loops, start readings, configurations of the walk): every truth drawn that way
