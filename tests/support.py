@@ -145,3 +145,28 @@ def central_difference_jacobian(prob, x, h: float = 1e-6):
         xm[k] -= h
         Jn[:, k] = (prob.evaluate(xp, False)[0].r.ravel() - prob.evaluate(xm, False)[0].r.ravel()) / (2 * h)
     return J, Jn
+
+
+def calibrated_names(robot, loops, theta0, options=None, n: int = 30, seed: int = 0) -> list[str]:
+    """The robot parameters `calibrate` estimates for `loops` on the nominal robot's exact self-motion
+    through `theta0` (n configurations per loop, random walk `seed`): what a calibration actually does,
+    against which the structural reading (`closedloop.studies.identifiable.identifiable_names`, same walk)
+    is checked."""
+    from closedloop.calibration.pipeline import calibrate
+    from closedloop.io.logs import JointLog
+    from closedloop.studies.identifiable import loop_joints, nominal_problem
+    from closedloop.studies.synthetic import self_motion
+
+    theta0 = np.atleast_2d(np.asarray(theta0, dtype=float))
+    start = nominal_problem(robot, loops, [theta0] * len(loops))
+    x = start.nominal
+    for bi, sl in enumerate(start.loop_slices):
+        if sl.stop > sl.start:
+            x[sl] = start.initialize_loop(x, bi)
+    rng = np.random.default_rng(seed)
+    walks = [self_motion(start, x, theta0, n, rng, block=bi) for bi in range(len(loops))]
+    rows = np.vstack(walks)
+    loop_col = np.repeat([lp.name for lp in loops], [len(w) for w in walks]) if len(loops) > 1 else None
+    res = calibrate(robot, JointLog(loop_joints(robot, loops), rows, None, loop_col), loops, options)
+    own = tuple(f"{lp.name}." for lp in loops)
+    return [m for m, s in zip(res.fit.names, res.fit.status) if s == "estimated" and not m.startswith(own)]

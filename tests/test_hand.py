@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
-from support import relative_fk_error  # noqa: E402
+from support import calibrated_names, relative_fk_error  # noqa: E402
 
 from closedloop.calibration.pipeline import CalibrationOptions, calibrate
 from closedloop.io.logs import JointLog
@@ -27,7 +27,7 @@ from closedloop.studies.hand import (
     thesis_stages,
 )
 from closedloop.studies.synthetic import self_motion
-from closedloop.studies.truth import identifiable_names, make_dataset
+from closedloop.studies.truth import make_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE = ROOT / "closedloop" / "assets" / "dh" / "utah_mit_thumb_finger.yaml"
@@ -151,7 +151,7 @@ def test_urdf_hand_tip_to_tip_weld_calibrates():
     # pick the longest free length, which may differ between the nominal and the true data).
     opts = CalibrationOptions(fix={"finger_j6.x": None})
     theta0 = np.array([q0[j] for j in joints])
-    names = identifiable_names(robot, [loop], theta0, opts)
+    names = calibrated_names(robot, [loop], theta0, opts)
     ds = make_dataset(
         robot,
         loop,

@@ -26,8 +26,9 @@ from closedloop.loops.face import FaceLoop
 from closedloop.loops.plane import PlaneLoop
 from closedloop.loops.spec import parse_loop
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
+from closedloop.studies.identifiable import identifiable_names
 from closedloop.studies.synthetic import self_motion
-from closedloop.studies.truth import draw_truth, identifiable_names
+from closedloop.studies.truth import draw_truth
 
 JAC_CASES = {
     "table": lambda: FaceLoop("f", "tool0"),

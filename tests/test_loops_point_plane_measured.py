@@ -20,8 +20,9 @@ from closedloop.loops.spec import parse_loop
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import vec_of
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
+from closedloop.studies.identifiable import identifiable_names
 from closedloop.studies.synthetic import self_motion
-from closedloop.studies.truth import draw_truth, identifiable_names
+from closedloop.studies.truth import draw_truth
 
 ERD = site.getsitepackages()[0] + "/cmeel.prefix/share/example-robot-data/robots/"
 UR5 = ERD + "ur_description/urdf/ur5_robot.urdf"

@@ -20,7 +20,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
 
@@ -96,20 +95,14 @@ def test_running_marker_appends_a_line_only_when_asked(tmp_path, monkeypatch):
 
 
 @pytest.fixture(scope="module")
-def inputs(tmp_path_factory):
-    """A mesh-free Panda and a 200-row weld log (a calibration of a few seconds)."""
+def inputs(tmp_path_factory, panda_weld):
+    """A mesh-free Panda and a 200-row weld log (a calibration of a few seconds): the suite's Panda weld
+    (conftest `panda_weld`, computed once per worker)."""
     from closedloop.assets.catalog import nominal_urdf
-    from closedloop.loops import WeldLoop
-    from closedloop.model.robot import RobotModel
-    from closedloop.studies.truth import make_dataset
 
     d = tmp_path_factory.mktemp("signals")
     (d / "panda.urdf").write_text(nominal_urdf("panda"))
-    robot = RobotModel.from_file(d / "panda.urdf")
-    ds = make_dataset(
-        robot, WeldLoop("fixture", "panda_hand"), [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8], 200, np.random.default_rng(5)
-    )
-    ds.log().write_csv(d / "log.csv")
+    panda_weld.log().write_csv(d / "log.csv")
     return d
 
 

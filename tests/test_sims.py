@@ -404,16 +404,17 @@ def test_relax_passes_unload_the_loop(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(SCENARIOS))
 def test_truth_support_is_what_a_calibration_estimates(name, tmp_path):
-    """The simulator reads the identifiable set off the structure (`closedloop.sims.identifiable`, no fit);
+    """The simulator reads the identifiable set off the structure (`closedloop.studies.identifiable`, no fit);
     a calibration of the same loop on the same exact nominal data estimates exactly that set, in order
     (scale factors included: one is held when all are free)."""
+    from support import calibrated_names
+
     from closedloop.assets.catalog import nominal_urdf
     from closedloop.calibration.pipeline import CalibrationOptions, calibrate
     from closedloop.io.logs import JointLog
     from closedloop.model.robot import RobotModel
-    from closedloop.sims.identifiable import tool_points
     from closedloop.sims.loop_types import sim_loop
-    from closedloop.studies.truth import identifiable_names
+    from closedloop.studies.identifiable import tool_points
 
     sc = SCENARIOS[name]
     path = tmp_path / "nominal.urdf"
@@ -425,7 +426,7 @@ def test_truth_support_is_what_a_calibration_estimates(name, tmp_path):
     for scale in (False, True):
         options = CalibrationOptions(identify=["placement", "offset", "loop"] + (["scale"] if scale else []))
         if kind.closed:
-            expected = identifiable_names(robot, [loop], np.asarray(sc.q0)[None, :], options)
+            expected = calibrated_names(robot, [loop], np.asarray(sc.q0)[None, :], options)
         else:  # the same random configurations, the tool point measured exactly at the base
             model = robot.model
             q = np.random.default_rng(0).uniform(

@@ -24,8 +24,9 @@ loop registry ``closedloop.loops.spec.LOOP_TYPES``, registered with `simulates` 
 (the draw of the truth), ``environment`` and ``scene`` (the MuJoCo scene), ``driver`` and ``qp`` (the
 nominal planner), ``tracking`` (driving and recording), ``outputs`` (the dataset's files), ``dataset``
 (`simulate`, step by step), ``selection`` (pose selection), ``robot_scenario`` (a user's robot file),
-``camera_scene`` (the head-camera scenarios), ``identifiable`` (the parameters a calibration can tell
-apart, from the structure of the nominal robot: no fit).  The public names load on first use.
+``camera_scene`` (the head-camera scenarios).  The parameters a calibration can tell apart, read off the
+structure of the nominal robot (no fit), are `closedloop.studies.identifiable`'s.  The public names load on
+first use.
 """
 
 from importlib import import_module

@@ -193,11 +193,11 @@ def _identifiable(robot, theta: np.ndarray) -> list[str]:
     """Robot parameters a calibration estimates on exact pixels of the nominal robot (the truth's support).
 
     The camera loop's problem on the readings `theta` with the nominal marker's exact image points,
-    its unknowns closing them, and the structural reduction there (:mod:`closedloop.sims.identifiable`).
+    its unknowns closing them, and the structural reduction there (:mod:`closedloop.studies.identifiable`).
     """
     from closedloop.loops.camera.loop import CameraLoop
     from closedloop.loops.spec import parse_loop
-    from closedloop.sims.identifiable import closing_values, estimated_indices, loop_joints, nominal_problem
+    from closedloop.studies.identifiable import closing_values, estimated_indices, loop_joints, nominal_problem
 
     names = robot.joint_names
     loop = parse_loop(CALIBRATE_LOOP, robot)

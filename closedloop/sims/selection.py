@@ -15,7 +15,7 @@ samples in four steps, all on the robot's NOMINAL model (no MuJoCo, no truth):
    on the pool's exact nominal readings, with the loop's unknowns that close them, and
    the parameters a calibration estimates there with the default selection
    (placement, offset, loop; plus scale when the truth has scale errors): the
-   structural reduction and length gauge of :mod:`closedloop.sims.identifiable`, no
+   structural reduction and length gauge of :mod:`closedloop.studies.identifiable`, no
    fit (the nominal model closes the nominal loop).  The choice reads their whitened,
    prior-scaled Jacobian.  The joint noise is the setting ``noise`` or, if 0, 1e-6 rad
    (one level on every joint only scales the information and leaves the choice
@@ -117,7 +117,7 @@ def information_result(
             tracker at the world origin (the information does not depend on the tracker pose).
     """
     from closedloop.model.robot import RobotModel
-    from closedloop.sims.identifiable import (
+    from closedloop.studies.identifiable import (
         DEFAULT_IDENTIFY,
         closing_values,
         estimated_indices,

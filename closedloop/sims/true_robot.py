@@ -87,12 +87,12 @@ def identifiable_parameters(nominal_path, sc: Scenario, joint_names: list[str], 
     Errors in structurally redundant parameters are indistinguishable from errors in the
     parameters that absorb them, so a truth that ``closedloop check`` can compare parameter by
     parameter is drawn in the identifiable set, read off the nominal robot's structure
-    (:mod:`closedloop.sims.identifiable`: self-motion through the grasp configuration for a closed
+    (:mod:`closedloop.studies.identifiable`: self-motion through the grasp configuration for a closed
     loop, random configurations for a measured one).  Loop types with no loop class in the
     calibration core fall back to :func:`perturbable_parameters`.
     """
     from closedloop.model.robot import RobotModel
-    from closedloop.sims.identifiable import DEFAULT_IDENTIFY, identifiable_names, measured_identifiable_names
+    from closedloop.studies.identifiable import DEFAULT_IDENTIFY, identifiable_names, measured_identifiable_names
 
     kind = sim_loop(sc.loop_type)
     loop = kind.core_loop(sc, nominal_path)

@@ -92,8 +92,9 @@ def weld_scenario(
     if pool not in ("walk", "manifold"):
         raise ValueError(f"pool must be 'walk' or 'manifold', not '{pool}'")
     from closedloop.loops import WeldLoop
+    from closedloop.studies.identifiable import identifiable_names
     from closedloop.studies.synthetic import self_motion
-    from closedloop.studies.truth import draw_truth, identifiable_names
+    from closedloop.studies.truth import draw_truth
 
     rng = np.random.default_rng(seed)
     robot = RobotModel.from_file(panda_urdf())

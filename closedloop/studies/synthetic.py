@@ -26,18 +26,27 @@ def close(
     tol: float = 1e-13,
 ) -> tuple[np.ndarray, float]:
     """Readings near `theta` (1, n) that close loop `block` at `values`."""
+    th, err, _ = _close(problem, values, theta, block, iters, tol)
+    return th, err
+
+
+def _close(
+    problem: CalibrationProblem, values: np.ndarray, theta: np.ndarray, block: int, iters: int, tol: float
+) -> tuple[np.ndarray, float, np.ndarray | None]:
+    """`close`, and the readings' Jacobian J_theta (m, n) at the readings returned where it was evaluated there
+    (None: the last step moved them after it)."""
     thetas = [b.theta[:1] for b in problem.blocks]
     th = theta.copy()
     err = np.inf
     for _ in range(iters):
         thetas[block] = th
         ev = problem.evaluate(values, True, thetas)[block]
+        assert ev.Jq is not None  # evaluated with Jacobians
         err = float(np.abs(ev.r).max())
         if err < tol:
-            break
-        assert ev.Jq is not None  # evaluated with Jacobians
+            return th, err, ev.Jq[0]
         th = th - np.linalg.lstsq(ev.Jq[0], ev.r[0], rcond=None)[0][None, :]
-    return th, err
+    return th, err, None
 
 
 def self_motion(
@@ -59,7 +68,7 @@ def self_motion(
     rp = problem.rp
     k = values[rp.scale_index()]
     off = values[rp.offset_index()]
-    th, err = close(problem, values, np.atleast_2d(theta0), block)
+    th, err, Jq_at_th = _close(problem, values, np.atleast_2d(theta0), block, 20, 1e-13)
     if err > 1e-9:
         raise NotIdentifiableError(f"cannot close loop {problem.blocks[block].loop.name} from the start pose")
     start = th[0] * k + off
@@ -86,11 +95,12 @@ def self_motion(
                 f"self-motion walk of loop {problem.blocks[block].loop.name} is stuck "
                 f"after {len(out)} of {n} configurations (joint limits)"
             )
-        thetas[block] = th
-        Jq_all = problem.evaluate(values, True, thetas)[block].Jq
-        assert Jq_all is not None  # evaluated with Jacobians
-        Jq = Jq_all[0]
-        _, S, Vt = np.linalg.svd(Jq)
+        if Jq_at_th is None:  # the closing stopped on its step count: J_theta not yet evaluated at th
+            thetas[block] = th
+            Jq_all = problem.evaluate(values, True, thetas)[block].Jq
+            assert Jq_all is not None  # evaluated with Jacobians
+            Jq_at_th = Jq_all[0]
+        _, S, Vt = np.linalg.svd(Jq_at_th)
         rank = int(np.sum(S > 1e-9 * S[0]))
         Nul = Vt[rank:]
         if Nul.shape[0] == 0:
@@ -99,12 +109,12 @@ def self_motion(
             direction = Nul.T @ rng.normal(size=Nul.shape[0])
         d = Nul.T @ (Nul @ direction) + 0.3 * Nul.T @ rng.normal(size=Nul.shape[0]) / np.sqrt(Nul.shape[0])
         d /= np.linalg.norm(d) + 1e-300
-        cand, err = close(problem, values, th + step * d[None, :], block)
+        cand, err, Jq_at_cand = _close(problem, values, th + step * d[None, :], block, 20, 1e-13)
         model_angles = cand[0] * k + off
         if err > 1e-10 or np.any(model_angles < lo) or np.any(model_angles > hi):
             direction = -d + 0.5 * Nul.T @ rng.normal(size=Nul.shape[0])
             continue
-        th, direction = cand, d
+        th, direction, Jq_at_th = cand, d, Jq_at_cand
         walked += 1
         if walked % stride == 0:
             out.append(th[0].copy())

@@ -3,8 +3,10 @@
 Errors in structurally redundant parameters are indistinguishable from errors
 in the parameters that absorb them, so a truth meant to be compared
 parameter by parameter with a calibration is drawn in the identifiable
-parameterization: the set `calibrate` estimates for the same loops
-(`identifiable_names`).  Everything else keeps its nominal value.
+parameterization: the set `calibrate` estimates for the same loops, read off
+the nominal robot's structure without a fit
+(`closedloop.studies.identifiable.identifiable_names`).  Everything else keeps
+its nominal value.
 """
 
 from __future__ import annotations
@@ -12,41 +14,14 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
-from closedloop.calibration.pipeline import CalibrationOptions, build_problem, calibrate
+from closedloop.analysis.selection import DEFAULT_IDENTIFY
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
+from closedloop.studies.identifiable import identifiable_names
 from closedloop.studies.synthetic import self_motion
 
 DEFAULT_MAGNITUDES = {"translation": 2e-3, "rotation": 2e-3, "offset": 0.02, "scale": 0.0}
-
-
-def identifiable_names(
-    robot: RobotModel,
-    loops: list[Loop],
-    theta0: np.ndarray,
-    options: CalibrationOptions | None = None,
-    n: int = 30,
-    seed: int = 0,
-) -> list[str]:
-    """Names `calibrate` would estimate for `loops`, found on nominal self-motion data from theta0."""
-    joints = _joints(robot, loops)
-    lg = JointLog(joints, np.atleast_2d(theta0))
-    problem = build_problem(robot, lg, loops)
-    x = problem.nominal
-    for bi, (b, sl) in enumerate(zip(problem.blocks, problem.loop_slices)):
-        if sl.stop > sl.start:
-            x[sl] = problem.initialize_loop(x, bi)
-    rng = np.random.default_rng(seed)
-    blocks_th = [self_motion(problem, x, np.atleast_2d(theta0), n, rng, block=bi) for bi in range(len(loops))]
-    rows = np.vstack(blocks_th)
-    loop_col = np.repeat([lp.name for lp in loops], [t.shape[0] for t in blocks_th]) if len(loops) > 1 else None
-    res = calibrate(robot, JointLog(joints, rows, None, loop_col), loops, options)
-    return [
-        n_
-        for n_, s in zip(res.fit.names, res.fit.status)
-        if s == "estimated" and not n_.startswith(tuple(f"{lp.name}." for lp in loops))
-    ]
 
 
 def draw_truth(
@@ -129,7 +104,7 @@ def make_dataset(
     from closedloop.problem.problem import CalibrationProblem, LoopBlock
 
     theta0 = np.atleast_2d(np.asarray(theta0, dtype=float))
-    names = perturb if perturb is not None else identifiable_names(robot, [loop], theta0)
+    names = perturb if perturb is not None else identifiable_names(robot, [loop], theta0, DEFAULT_IDENTIFY[robot.kind])
     tv = draw_truth(robot, names, rng, magnitudes)
     joints = _joints(robot, [loop])
     problem = CalibrationProblem(robot, joints, [LoopBlock(loop, theta0, np.arange(1))])
