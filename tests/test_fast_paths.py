@@ -107,7 +107,7 @@ def test_tall_skinny_qr(rows):
 
 
 @pytest.mark.parametrize("model", ["panda", "dh_hand", "utah_hand"])
-def test_frame_kinematics_are_pinocchios(panda, model):
+def test_frame_kinematics_are_pinocchios(panda, model, monkeypatch):
     """`frame_kinematics` (all rows at once, `model.stacked`) and its Pinocchio path (a configuration at a
     time, poses read off the regressors by `se3.poses_from_adjoints`) give Pinocchio's frame placements and
     LOCAL kinematic regressors, on a serial arm, a finger branch, a D-H end frame and a frame on the base,
@@ -134,6 +134,9 @@ def test_frame_kinematics_are_pinocchios(panda, model):
     state = prob.rp.apply(prob.nominal[: prob.n_robot] + rng.normal(0.0, 0.01, prob.n_robot))
     q = robot.configurations(prob.model_angles(state, theta, None), joints)
     assert all(robot.stacked.covers(m, f) for f in frames)
+    import closedloop.problem.problem as problem_module
+
+    monkeypatch.setattr(problem_module, "STACKED_ROWS", 1)  # all rows at once from one configuration on
     for kin in (
         prob.frame_kinematics(state, theta, frames, True),
         prob.frame_kinematics(state, theta, frames, False),
