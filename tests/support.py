@@ -154,17 +154,9 @@ def calibrated_names(robot, loops, theta0, options=None, n: int = 30, seed: int 
     is checked."""
     from closedloop.calibration.pipeline import calibrate
     from closedloop.io.logs import JointLog
-    from closedloop.studies.identifiable import loop_joints, nominal_problem
-    from closedloop.studies.synthetic import self_motion
+    from closedloop.studies.identifiable import loop_joints, nominal_walks
 
-    theta0 = np.atleast_2d(np.asarray(theta0, dtype=float))
-    start = nominal_problem(robot, loops, [theta0] * len(loops))
-    x = start.nominal
-    for bi, sl in enumerate(start.loop_slices):
-        if sl.stop > sl.start:
-            x[sl] = start.initialize_loop(x, bi)
-    rng = np.random.default_rng(seed)
-    walks = [self_motion(start, x, theta0, n, rng, block=bi) for bi in range(len(loops))]
+    walks = nominal_walks(robot, loops, theta0, n, seed)
     rows = np.vstack(walks)
     loop_col = np.repeat([lp.name for lp in loops], [len(w) for w in walks]) if len(loops) > 1 else None
     res = calibrate(robot, JointLog(loop_joints(robot, loops), rows, None, loop_col), loops, options)

@@ -181,6 +181,15 @@ def identifiable_names(
 ) -> list[str]:
     """The robot parameters a calibration of the closed `loops` estimates, on the nominal robot's
     self-motion through the model angles `theta0` (n configurations per loop, random walk `seed`)."""
+    problem = nominal_problem(robot, loops, nominal_walks(robot, loops, theta0, n, seed))
+    return _robot_names(problem, estimated_indices(problem, closing_values(problem), identify))
+
+
+def nominal_walks(
+    robot: RobotModel, loops: Sequence[Loop], theta0: np.ndarray, n: int = 30, seed: int = 0
+) -> list[np.ndarray]:
+    """Readings (n, joints) per loop along the nominal robot's self-motion through the model angles `theta0`
+    (random walk `seed`), each loop's own values initialised at `theta0`."""
     from closedloop.studies.synthetic import self_motion
 
     theta0 = np.atleast_2d(np.asarray(theta0, dtype=float))
@@ -190,9 +199,7 @@ def identifiable_names(
         if sl.stop > sl.start:
             x[sl] = start.initialize_loop(x, bi)
     rng = np.random.default_rng(seed)
-    walks = [self_motion(start, x, theta0, n, rng, block=bi) for bi in range(len(loops))]
-    problem = nominal_problem(robot, loops, walks)
-    return _robot_names(problem, estimated_indices(problem, closing_values(problem), identify))
+    return [self_motion(start, x, theta0, n, rng, block=bi) for bi in range(len(loops))]
 
 
 def tool_points(robot: RobotModel, frame: str, q: np.ndarray) -> np.ndarray:
