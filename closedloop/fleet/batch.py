@@ -463,6 +463,11 @@ def run_batch(
                 "out": str(j.out),
             }
         sink.add(rows[j.name])
+    # a worker killed while it wrote a job's folder (a node lost) left its temporary beside the folder the job's
+    # run elsewhere published
+    n_tmp = _clean_temporaries([j for j in todo if finished(j) is not None])
+    if n_tmp:
+        log.info("removed %d temporary folder(s) of a worker lost while it wrote", n_tmp)
     markers = _Markers(jobs, {n for n, r in rows.items() if r["status"] != "failed"})
     drifts = drift(jobs, markers, z_max, rows=rows)
     drift_columns(rows, drifts)
