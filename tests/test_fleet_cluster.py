@@ -107,8 +107,11 @@ def summary(manifest: Path) -> list[dict]:
 
 
 def published(folder: Path) -> list[str]:
-    """The jobs whose folder is finished (its marker written, the folder renamed into place)."""
-    return sorted(p.parent.name for p in (folder / "calibrated").glob(f"*/{MARKER}"))
+    """The jobs whose folder is finished (its marker written, the folder renamed into place): not a hidden
+    temporary folder that holds its marker but is not renamed yet (``.NAME.tmp-*``, `io.files.OutputSet`)."""
+    return sorted(
+        p.parent.name for p in (folder / "calibrated").glob(f"*/{MARKER}") if not p.parent.name.startswith(".")
+    )
 
 
 def task_processes(raylet_pid: int | None = None) -> list[int]:
