@@ -24,6 +24,8 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 
+from closedloop.model.se3 import skew
+
 # joint type -> (kind, axis); "R" revolute (q: angle), "U" unbounded revolute (q: cos, sin), "P" prismatic
 _AXES = {"X": (1.0, 0.0, 0.0), "Y": (0.0, 1.0, 0.0), "Z": (0.0, 0.0, 1.0)}
 _KINDS = {
@@ -114,7 +116,7 @@ class StackedKinematics:
             Rm[:, b] = AR[:, b] * c - AR[:, a] * s
             return Rm, Ap
         # Rodrigues, as Pinocchio forms it: E = c I + s [a]x + (1 - c) a a^T, then A E
-        E = np.multiply.outer(np.outer(axis, axis), 1.0 - c) + np.multiply.outer(_skew(axis), s)
+        E = np.multiply.outer(np.outer(axis, axis), 1.0 - c) + np.multiply.outer(skew(axis), s)
         E[[0, 1, 2], [0, 1, 2]] += c
         return _times(AR, E), Ap
 
@@ -157,7 +159,3 @@ def _compose(R: np.ndarray | None, p: np.ndarray | None, X: pin.SE3, N: int) -> 
 def _times(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """A B for two stacks of 3 x 3 matrices (3, 3, N)."""
     return np.einsum("ikn,kjn->ijn", A, B)
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
