@@ -9,8 +9,8 @@ self-motion configurations of a random true Panda (1,000 distinct ones, tiled
 with fresh 1e-4 rad noise for larger sizes).
 
 Thread modes: `1` (single-threaded), `default` (the BLAS libraries' own
-setting), `auto` (`closedloop.estimate.threads.blas_threads(None, rows, cols)`, what the
-library chooses).  `--loaded` repeats everything while one busy process per
+setting), `auto` (`closedloop.estimate.threads.blas_threads(None)`, what the
+library chooses: one BLAS thread, the rows on `parallel.chunks`' threads).  `--loaded` repeats everything while one busy process per
 CPU keeps the cores busy (bounded in time, killed afterwards).  `kernel`: the
 median kernel CPU of a run (page faults), part of `cpu tot`; `--reuse-memory`
 keeps glibc from unmapping freed arrays (what grows superlinearly at 100,000).
@@ -70,7 +70,7 @@ def run_once(robot, log: JointLog, mode: str) -> tuple[float, float, float, floa
         from closedloop.estimate.threads import blas_threads
 
         def call():
-            with blas_threads(None, 6 * len(log), 7 * len(log.joints) + 6):
+            with blas_threads(None):
                 return calibrate(robot, log, loops, progress=progress)
     else:
 

@@ -164,7 +164,7 @@ class CalibrationOptions:
     seed: int = 0
     outlier_alpha: float = 0.01
     choose_estimator: bool = True
-    threads: int | None = None  # BLAS threads for the call (closedloop.estimate.threads); None: by problem size
+    threads: int | None = None  # BLAS threads, and the rows' cap (closedloop.estimate.threads); None: 1 BLAS thread
     rules: VerdictRules = field(default_factory=VerdictRules)  # the verdict's thresholds
 
 

@@ -16,8 +16,24 @@ from closedloop.io.logs import JointLog
 from closedloop.loops.spec import parse_loop
 
 
+@pytest.mark.parametrize("stacked", [False, True], ids=["pinocchio", "stacked-threads"])
 @pytest.mark.parametrize("kind", sorted(SPECS))
-def test_chunked_evaluation_is_the_whole(kind, monkeypatch):
+def test_chunked_evaluation_is_the_whole(kind, stacked, monkeypatch):
+    """Chunked by Pinocchio's loop, one chunk after the other; or with stacked kinematics, the chunks on two
+    threads (`parallel.chunks`), each in a workspace of its own."""
+    import closedloop.parallel.chunks as chunks
+
+    if stacked:
+        monkeypatch.setattr(problem_module, "STACKED_ROWS", 0)
+        monkeypatch.setattr(chunks, "CHUNK_THREADS", 2)
+        monkeypatch.setattr(chunks, "cpus", lambda: 2)  # two threads on any machine
+    threads: list[int] = []
+
+    def spy(work, starts, slots):
+        threads.append(len(slots))
+        chunks.for_each_chunk(work, starts, slots)
+
+    monkeypatch.setattr(problem_module, "for_each_chunk", spy)
     panda = RobotModel.from_file(ROBOTS["panda"].path)
     rng = np.random.default_rng(1)
     lp = parse_loop(SPECS[kind], panda)
@@ -45,6 +61,7 @@ def test_chunked_evaluation_is_the_whole(kind, monkeypatch):
                 assert (u is None) == (v is None) or name in ("valid", "cov"), (kind, name)
                 if u is not None and v is not None:
                     assert u.shape == v.shape and np.allclose(u, v, rtol=0, atol=1e-12), (kind, name)
+    assert set(threads) == ({2} if stacked else {1}), threads  # a Panda: every frame on revolute joints
 
 
 @pytest.mark.slow

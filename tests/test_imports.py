@@ -142,25 +142,28 @@ def test_chi2_in_plain_python_equals_scipy_stats():
     assert plain.chi2.sf(np.inf, 6) == 0.0 and plain.chi2.sf(0.0, 6) == 1.0 and plain.chi2.sf(1e6, 6) == 0.0
 
 
-def test_blas_threads_choose_restore_and_never_raise_the_users_limit():
+def test_blas_threads_one_by_default_restored_and_an_explicit_count_caps_the_chunk_threads(monkeypatch):
     from threadpoolctl import threadpool_limits
 
-    from closedloop.estimate.threads import THREADED_WORK, blas_threads, choose_threads, current_threads
+    import closedloop.parallel.chunks as chunks
+    from closedloop.estimate.threads import blas_threads, current_threads
 
+    monkeypatch.setattr(chunks, "cpus", lambda: 8)
     before = current_threads()
-    with blas_threads(None, 6000, 28) as k:
-        assert k == 1 and current_threads() == 1  # small problem: one thread
+    with blas_threads(None) as k:
+        assert k == 1 and current_threads() == 1  # one BLAS thread
+        assert chunks.chunk_threads(10) == chunks.CHUNK_THREADS  # the rows' threads as they are
     assert current_threads() == before  # restored
-    with blas_threads(1, 10**7, 28) as k:
-        assert k == 1 and current_threads() == 1  # explicit setting wins
-    assert current_threads() == before
+    with blas_threads(1) as k:
+        assert k == 1 and current_threads() == 1  # explicit setting
+        assert chunks.chunk_threads(10) == 1  # caps the rows' threads too
+    assert current_threads() == before and chunks.chunk_threads(10) == chunks.CHUNK_THREADS
     with pytest.raises(RuntimeError):
-        with blas_threads(1, 6000, 28):
+        with blas_threads(1):
             raise RuntimeError("inside")
-    assert current_threads() == before  # restored on an exception too
+    assert current_threads() == before and chunks.chunk_threads(10) == chunks.CHUNK_THREADS  # restored on an exception
     with threadpool_limits(1, user_api="blas"):  # the user's own limit
-        assert choose_threads(int(2 * THREADED_WORK / 28**2), 28) == 1
-        with blas_threads(None, int(2 * THREADED_WORK / 28**2), 28) as k:
+        with blas_threads(None) as k:
             assert k == 1
         assert current_threads() == 1
-    assert choose_threads(int(2 * THREADED_WORK / 28**2), 28, current=2) >= 1
+    assert chunks.chunk_threads(1) == 1  # never more threads than chunks

@@ -721,7 +721,7 @@ def predict_closure(problem, values: np.ndarray, names: list[str], covariance: n
     base).  The readings' noise is not included.  Rows: loop, rms_m, rms_rad (None: not a followed loop)."""
     from closedloop.estimate.threads import blas_threads
 
-    with blas_threads(None, 6 * sum(b.theta.shape[0] for b in problem.blocks), len(names)):
+    with blas_threads(None):
         return _predict_closure(problem, values, names, covariance)
 
 
@@ -793,7 +793,7 @@ def predict_from_result(
         else:
             evaluations = problem.evaluate(values, True, columns=considered)
             shared = (considered, evaluations)
-    with blas_threads(None, 6 * len(readings), len(problem.params)):  # small dense algebra: one thread
+    with blas_threads(None):  # small dense algebra: one thread
         found = disagreement(res, shared) if model_error else None
         return predict_accuracy(
             problem,

@@ -248,14 +248,15 @@ def calibrate(
 ) -> CalibrationResult:
     """Identify the selected parameters and judge the result; see the module docstring.
 
-    BLAS threads are limited for the call by problem size (`threads.blas_threads`).
+    One BLAS thread for the call, or `threads` (`estimate.threads.blas_threads`); a long log's rows on threads
+    of their own (`parallel.chunks`).
     """
     from closedloop.estimate.threads import blas_threads
     from closedloop.io.marker import mark_running
 
     opt = options or CalibrationOptions()
     mark_running("calibrate")  # a supervising process may now interrupt the work (`io.marker`)
-    with blas_threads(opt.threads, 6 * len(log_), 6 * len(robot.joint_names) + 6):
+    with blas_threads(opt.threads):
         try:
             res = _calibrate(robot, log_, loops, opt, progress)
             # a known length that does not set the size never drives the estimate (closedloop.calibration.solve)

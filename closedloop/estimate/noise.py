@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 
 from closedloop.errors import ParameterError
+from closedloop.parallel.chunks import chunk_threads, for_each_chunk
 
 if TYPE_CHECKING:
     from closedloop.problem.problem import BlockEval, BlockNoise, CalibrationProblem
@@ -268,8 +269,10 @@ def _roots(
     """
     N, m = Jq.shape[:2]
     Wh = np.empty((N, m, m))
-    deficit = 0
-    for a in range(0, N, _CHUNK):
+    starts = list(range(0, N, _CHUNK))
+    deficits = [0] * len(starts)
+
+    def chunk(a: int, _slot: None) -> None:
         Js = Jq[a : a + _CHUNK] * sigma_q
         W = Js @ np.swapaxes(Js, 1, 2)
         if C is not None:
@@ -277,18 +280,20 @@ def _roots(
         sh = shared[a : a + _CHUNK]
         if sh.any():
             W[sh] = np.eye(m)
+        d = 0
         if symmetric:
             Wh[a : a + _CHUNK], d = pinv_sqrt(W)
         else:
             Wh[a : a + _CHUNK], kappa = cholesky_inverse(W)
             ill = np.flatnonzero(kappa >= 1e9)
-            d = 0
             if ill.size:
                 Wh[a + ill], d = pinv_sqrt(W[ill])
-        deficit += d
+        deficits[a // _CHUNK] = d
         if sh.any():
             Wh[a : a + _CHUNK][sh] = 0.0
-    return Wh, deficit
+
+    for_each_chunk(chunk, starts, [None] * chunk_threads(len(starts)))
+    return Wh, sum(deficits)
 
 
 def _given(a: np.ndarray | None, what: str) -> np.ndarray:
@@ -299,11 +304,16 @@ def _given(a: np.ndarray | None, what: str) -> np.ndarray:
 
 
 def _times(Wh: np.ndarray, J: np.ndarray, overwrite: bool) -> np.ndarray:
-    """Wh @ J for stacks (N, m, m) and (N, m, C); with `overwrite`, into J, a chunk of configurations at a time."""
+    """Wh @ J for stacks (N, m, m) and (N, m, C); with `overwrite`, into J, a chunk of configurations at a time
+    (on threads, `parallel.chunks`)."""
     if not overwrite:
         return Wh @ J
-    for a in range(0, J.shape[0], _CHUNK):
+    starts = list(range(0, J.shape[0], _CHUNK))
+
+    def chunk(a: int, _slot: None) -> None:
         J[a : a + _CHUNK] = Wh[a : a + _CHUNK] @ J[a : a + _CHUNK]
+
+    for_each_chunk(chunk, starts, [None] * chunk_threads(len(starts)))
     return J
 
 

@@ -60,7 +60,7 @@ def single_thread():
     controller is cached (`closedloop.estimate.threads`): a fresh one scans the loaded libraries, ~1 ms."""
     from closedloop.estimate.threads import blas_threads
 
-    return blas_threads(1, 0, 0)
+    return blas_threads(1)
 
 
 METHODS = ("default", "thesis", "ols", "iv")

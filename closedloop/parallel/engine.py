@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from closedloop.parallel import chunks
+
 ENGINES: dict[str, type["Engine"]] = {}
 
 
@@ -130,10 +132,13 @@ _LIMITED = [False]
 
 
 def limit_threads() -> None:
-    """One BLAS / OpenMP thread in this process (env for libraries loaded later, threadpoolctl for loaded ones)."""
+    """One BLAS / OpenMP thread in this process (env for libraries loaded later, threadpoolctl for loaded ones),
+    and one thread for a long log's rows (`chunks.CHUNK_THREADS`): a worker process per core keeps the cores
+    busy already."""
     if _LIMITED[0]:
         return
     _LIMITED[0] = True
+    chunks.CHUNK_THREADS = 1
     for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ[var] = "1"
     from threadpoolctl import threadpool_limits  # a dependency

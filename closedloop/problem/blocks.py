@@ -12,6 +12,7 @@ go back to the kernel (glibc returns them) and come back as page faults: at
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from typing import Iterator
 
@@ -56,33 +57,55 @@ class Workspace:
         return buf[:size].reshape(shape)
 
 
-def stack_chunks(parts: Iterator[BlockEval], N: int) -> BlockEval:
-    """One block's evaluation of N configurations from its chunks' (`problem.CalibrationProblem._evaluate`), in order.
+class ChunkStack:
+    """One block's evaluation of N configurations, written a chunk at a time into arrays allocated once.
 
-    Each chunk is written into arrays allocated at the first chunk that has the field: no list of chunks
-    is kept and no concatenation copies them again (at 100,000 configurations J alone is ~130 MB, and a
-    fresh array of that size costs its page faults on every pass).  A chunk without `valid` (all valid)
-    or `cov` (none) beside one with it is written as all True / zeros.
+    No list of chunks is kept and no concatenation copies them again (at 100,000 configurations J alone is
+    ~130 MB, and a fresh array of that size costs its page faults on every pass).  A field is allocated
+    at the first chunk that has it; a chunk without `valid` (all valid) or `cov` (none) beside one with it
+    is written as all True / zeros.  `put` may be called from several threads, for disjoint chunks, in any
+    order once the first chunk is in.
     """
-    fill = {"valid": True, "cov": 0.0}  # what a chunk without the field stands for
-    out: dict[str, np.ndarray | None] = dict.fromkeys(("r", "J", "Jq", "valid", "cov", "rows"))
-    a = 0
-    for part in parts:
+
+    _FILL = {"valid": True, "cov": 0.0}  # what a chunk without the field stands for
+
+    def __init__(self, N: int) -> None:
+        self.N = N
+        self._out: dict[str, np.ndarray | None] = dict.fromkeys(("r", "J", "Jq", "valid", "cov", "rows"))
+        self._lock = threading.Lock()
+
+    def put(self, a: int, part: BlockEval) -> None:
+        """Write the chunk `part` of the configurations from `a` on."""
         n = part.r.shape[0]
-        for name in out:
+        for name in self._out:
             v = getattr(part, name)
-            if v is None and (name not in fill or out[name] is None):
+            dest = self._out[name]
+            if v is None and (name not in self._FILL or dest is None):
                 continue
-            dest = out[name]
             if dest is None:
-                dest = out[name] = np.empty((N,) + v.shape[1:], dtype=v.dtype)
-                if name in fill:
-                    dest[:a] = fill[name]  # the chunks before had none
-            dest[a : a + n] = fill[name] if v is None else v
-        a += n
-    r = out.pop("r")
-    assert r is not None  # every chunk has r, and a block is chunked only when it has configurations
-    return BlockEval(r=r, **out)
+                with self._lock:
+                    dest = self._out[name]
+                    if dest is None:
+                        dest = np.empty((self.N,) + v.shape[1:], dtype=v.dtype)
+                        if name in self._FILL:
+                            dest[...] = self._FILL[name]  # the chunks without it
+                        self._out[name] = dest
+            dest[a : a + n] = self._FILL[name] if v is None else v
+
+    def result(self) -> BlockEval:
+        out = dict(self._out)
+        r = out.pop("r")
+        assert r is not None  # every chunk has r, and a block is chunked only when it has configurations
+        return BlockEval(r=r, **out)
+
+
+def stack_chunks(parts: Iterator[BlockEval], N: int) -> BlockEval:
+    """One block's evaluation of N configurations from its chunks, in order (`ChunkStack`)."""
+    stack, a = ChunkStack(N), 0
+    for part in parts:
+        stack.put(a, part)
+        a += part.r.shape[0]
+    return stack.result()
 
 
 def copy_eval(e: BlockEval, jacobian: bool, no_columns: bool) -> BlockEval:

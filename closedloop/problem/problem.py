@@ -37,7 +37,8 @@ from closedloop.loops.base import Loop
 from closedloop.model.parameters import Parameter, RobotParameters, RobotState
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import poses_from_adjoints
-from closedloop.problem.blocks import BlockEval, Workspace, copy_eval, stack_chunks
+from closedloop.parallel.chunks import chunk_threads, for_each_chunk
+from closedloop.problem.blocks import BlockEval, ChunkStack, Workspace, copy_eval
 from closedloop.problem.shared import loop_columns
 
 # What a parameter's Jacobian column is made of (`CalibrationProblem._role`).
@@ -281,6 +282,7 @@ class CalibrationProblem:
         need_jac: bool,
         tau: np.ndarray | None = None,
         work: Workspace | None = None,
+        stacked: bool | None = None,
     ) -> dict[int, tuple[np.ndarray, np.ndarray | None]]:
         """Poses (N, 4, 4) and, with `need_jac`, LOCAL kinematic regressors (N, 6, 6 (njoints - 1)) of frames.
 
@@ -297,11 +299,13 @@ class CalibrationProblem:
         N = q.shape[0]
         live = [f for f in frames if f != 0]
         base = {0: (np.broadcast_to(np.eye(4), (N, 4, 4)), None)} if 0 in frames else {}
-        stacked = self.robot.stacked
-        if N >= STACKED_ROWS and all(stacked.covers(model, f) for f in live):  # revolute and prismatic chains
+        stack = self.robot.stacked
+        if (N >= STACKED_ROWS if stacked is None else stacked) and all(
+            stack.covers(model, f) for f in live
+        ):  # revolute and prismatic chains
             shape = (N, 6, 6 * (model.njoints - 1))
             K = {f: work.get(f"K{f}", shape) if work else np.empty(shape) for f in live} if need_jac else {}
-            T = stacked.frames(model, q, live, K if need_jac else None)
+            T = stack.frames(model, q, live, K if need_jac else None)
             return {f: (T[f], K.get(f)) for f in live} | base
         return self.pinocchio_kinematics(state, q, live, need_jac, work) | base
 
@@ -455,30 +459,37 @@ class CalibrationProblem:
         span = slice(rows[0], rows[-1] + 1) if rows.size else slice(0, 0)
         B = B[span]
         ctx = (cols, role, owner, B, span, geo, state)
-        work = self.__dict__.setdefault("_work", Workspace())  # the chunks' large temporaries, kept
         out = []
         for bi, b in enumerate(self.blocks):
             theta = b.theta if thetas is None else thetas[bi]
-            N = theta.shape[0]
-            if N <= CHUNK:
+            if theta.shape[0] <= CHUNK:
                 out.append(self._block(bi, theta, b.tau, b.meas, b.rows, values, jacobian, ctx))
                 continue
-            parts = (
-                self._block(
-                    bi,
-                    theta[i : i + CHUNK],
-                    None if b.tau is None else b.tau[i : i + CHUNK],
-                    None if b.meas is None else b.meas[i : i + CHUNK],
-                    b.rows[i : i + CHUNK],
-                    values,
-                    jacobian,
-                    ctx,
-                    work,
-                )
-                for i in range(0, N, CHUNK)
-            )
-            out.append(stack_chunks(parts, N))
+            out.append(self._chunked(bi, theta, values, jacobian, ctx))
         return out
+
+    def _chunked(self, bi: int, theta: np.ndarray, values: np.ndarray, jacobian: bool, ctx: tuple) -> BlockEval:
+        """Block `bi` on more than `CHUNK` configurations, a chunk at a time into one `ChunkStack`; on threads
+        (`parallel.chunks`) where the kinematics are stacked (Pinocchio's loop shares one `Data`), each
+        forming its chunks' temporaries in a `Workspace` of its own, kept for the next evaluation."""
+        b, N = self.blocks[bi], theta.shape[0]
+        starts = list(range(0, N, CHUNK))
+        model = ctx[-1].model
+        fids = [f for f in (self.robot.frame_id(name) for name in b.loop.frames) if f != 0]
+        stacked = N >= STACKED_ROWS and all(self.robot.stacked.covers(model, f) for f in fids)
+        works = self.__dict__.setdefault("_work", [Workspace()])
+        n_threads = chunk_threads(len(starts) - 1) if stacked else 1
+        works.extend(Workspace() for _ in range(n_threads - len(works)))
+        stack = ChunkStack(N)
+
+        def one(a: int, work: Workspace) -> None:
+            e = slice(a, a + CHUNK)
+            tau, meas = (None if v is None else v[e] for v in (b.tau, b.meas))
+            stack.put(a, self._block(bi, theta[e], tau, meas, b.rows[e], values, jacobian, ctx, work, stacked))
+
+        one(starts[0], works[0])  # the first chunk sets the fields' shapes
+        for_each_chunk(one, starts[1:], works[:n_threads])
+        return stack.result()
 
     def _block(
         self,
@@ -491,6 +502,7 @@ class CalibrationProblem:
         jacobian: bool,
         ctx: tuple,
         work: Workspace | None = None,
+        stacked: bool | None = None,
     ) -> BlockEval:
         """Block `bi` on configurations `theta` (its readings, or a chunk of them), `_evaluate`'s context `ctx`.
 
@@ -505,7 +517,7 @@ class CalibrationProblem:
         C, nj = cols.size, len(self.joints)
         only = getattr(b.loop, "parameter_only", False)  # a known length or distance: no reading moves it
         fids = [self.robot.frame_id(f) for f in b.loop.frames]
-        kin = self.frame_kinematics(state, theta, fids, jacobian, tau, work)
+        kin = self.frame_kinematics(state, theta, fids, jacobian, tau, work, stacked)
         Ts = [kin[f][0] for f in fids]
         if not jacobian:
             return BlockEval(

@@ -147,8 +147,8 @@ class CalibrateOptions:
     max_iter: int = option(100, "solver iterations at most (default 100)", kind="int", lo=1, hi=10**6, metavar="N")
     threads: int | None = option(
         None,
-        "BLAS threads for the fit (default: 1 for small problems, more only for very large "
-        "ones on idle cores; 0: keep the environment's setting)",
+        "threads for the fit: BLAS threads, and at most as many for a long log's rows (default: one BLAS "
+        "thread, two for the rows; 0: keep the environment's BLAS setting)",
         kind="int",
         lo=0,
         hi=4096,

@@ -133,7 +133,7 @@ def _warm(
         return None  # too few rows for the parameters: the calibration of its own says so
     scale = np.array([p.prior for p in problem.params])
     sopt = SolverOptions(max_iter=WARM_ITER, noise=1.0, snr=opt.snr)
-    with blas_threads(opt.threads, 6 * len(log_), 6 * len(robot.joint_names) + 6):
+    with blas_threads(opt.threads):
         stage = weighted_stage(problem, x_full, x_full[est], est, scale, sigma_q, "noise", sopt, None)
         iterations = stage.solution.iterations
         if stage.solution.truncated:  # the rest does not determine every direction the calibration estimated
