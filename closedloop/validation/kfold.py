@@ -298,17 +298,22 @@ def cross_validate(
 
     bad = np.zeros(0, dtype=int) if exclude is None else np.unique(np.asarray(exclude, dtype=int))
     splits = []
+    is_bad = np.zeros(len(log_), dtype=bool)  # masks, not set operations: a long log's folds in O(N)
+    is_bad[bad] = True
     for rows in parts:
-        rest = np.setdiff1d(np.arange(len(log_)), rows)
-        rest = np.setdiff1d(rest, bad) if train_without_excluded else rest
+        kept = np.ones(len(log_), dtype=bool)
+        kept[rows] = False
+        if train_without_excluded:
+            kept &= ~is_bad
+        rest = np.flatnonzero(kept)
         train = validation_rows(log_, rest)
         rows = validation_rows(log_, rows)
         splits.append(
             (
                 subset(log_, train),
                 subset(log_, rows),
-                np.flatnonzero(np.isin(train, bad)),
-                np.flatnonzero(np.isin(rows, bad)),
+                np.flatnonzero(is_bad[train]),
+                np.flatnonzero(is_bad[rows]),
                 train.size < rest.size,  # a sample of a long log's training rows: warm from `result`
             )
         )
