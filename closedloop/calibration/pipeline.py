@@ -60,11 +60,14 @@ from closedloop.calibration.verdict import judge
 from closedloop.errors import ConvergenceError, LogError, LoopError, NotIdentifiableError, ParameterError
 from closedloop.estimate.lm import reducible_share, rms
 from closedloop.estimate.model_error import (
+    CELL_MIN,
+    CELL_NOISE,
     EIV,
     ENCODER_NOISE,
     NOISE_MODEL,
     PLAIN,
     SANDWICH,
+    configuration_cells,
     loo_prediction,
     neighbour_correlation,
     noise_test,
@@ -183,8 +186,8 @@ def analyse_solution(
 ) -> dict:
     """Standard errors, weak directions and the chi-square test at the solution (eq. 4.17 truncation).
 
-    With `sandwich` the covariance is the sandwich one clustered by configuration (`model_error.sandwich_cov`):
-    the residual is not the assumed noise.  Edits `status` ('unidentifiable' for the parameters of weak
+    With `sandwich` the covariance is the sandwich one clustered by cells of joint space
+    (`model_error.sandwich_cov`, `configuration_cells`): the residual is not the assumed noise.  Edits `status` ('unidentifiable' for the parameters of weak
     directions).
     """
     est, fun = fit.est, fit.stage.fun
@@ -204,7 +207,10 @@ def analyse_solution(
     keep = S > threshold
     Vk = Vt[keep].T
     cov = (Vk / S[keep] ** 2) @ Vk.T * sigma_r**2 * np.outer(scale[est], scale[est])
-    cov_s = sandwich_cov(problem, r, J, scale[est], Vk, S[keep]) if keep.any() else cov
+    # clustered by cells of joint space: a pose's repeated readings are one cluster (`model_error`)
+    noise_q = np.asarray(fit.sigma_q, dtype=float) * (sigma_r if weighted and not fit.known else 1.0)
+    cells = configuration_cells(problem, np.maximum(CELL_NOISE * noise_q if weighted else 0.0, CELL_MIN))
+    cov_s = sandwich_cov(problem, r, J, scale[est], Vk, S[keep], cells) if keep.any() else cov
     d, ds = np.diag(cov), np.diag(cov_s)
     live = d > 0
     # mean variance ratio sandwich / noise model: ~1 where the residual is the assumed noise

@@ -25,7 +25,12 @@ fit (eq. 3.8), with the same outlier screen (a robust loss).
 
 Where the residual is not the assumed noise, the error bars are the sandwich
 (Huber-White) covariance clustered by configuration (`sandwich_cov`):
-Cov = c A^+ (sum_c J_c^T r_c r_c^T J_c) A^+, A = J^T J.
+Cov = c A^+ (sum_c J_c^T r_c r_c^T J_c) A^+, A = J^T J.  A cluster is a cell of
+joint space (`configuration_cells`): readings of one configuration repeated (a
+pose held while the log runs, a log tiled with noise) share their model error,
+and counted as independent they would make the error bars too small by up to
+the square root of the repeats; the noise model's variances against these are
+the verdict's check that the error bars hold.
 """
 
 from __future__ import annotations
@@ -295,28 +300,63 @@ def plain_covariance(
     return plain_linearization(problem, x, est, sigma_q, thetas)[1]
 
 
+#: a cell of `configuration_cells` is this many joint-noise standard deviations wide, and at least `CELL_MIN`
+#: (rad, or m for a prismatic joint): repeated readings of one pose spread over a few standard deviations
+CELL_NOISE = 100.0
+CELL_MIN = 1e-3
+
+
+def configuration_cells(problem: CalibrationProblem, width: np.ndarray) -> list[np.ndarray]:
+    """Per block, a cluster label per configuration: the cell of joint space its readings fall in, cells
+    `width` wide per joint (the problem's joints).  Labels are shared across blocks (the same readings, the
+    same cell).  Readings of one pose held or repeated fall in one cell (but for the few that straddle a
+    border), distinct poses in cells of their own; a log that moves slowly puts its neighbouring rows
+    together, whose model error is shared too."""
+    w = np.maximum(np.broadcast_to(np.asarray(width, dtype=float), (len(problem.joints),)), 1e-12)
+    weights = np.random.default_rng(0).integers(1, 2**61, size=w.size, dtype=np.int64)  # a hash of the cell
+    labels = []
+    for bi, b in enumerate(problem.blocks):
+        if getattr(b.loop, "parameter_only", False) or not b.theta.size:  # a known length: one cluster
+            labels.append(np.full(b.theta.shape[0], -1 - bi, dtype=np.int64))
+            continue
+        labels.append(np.floor(b.theta / w).astype(np.int64) @ weights)
+    return labels
+
+
 def sandwich_cov(
-    problem: CalibrationProblem, r: np.ndarray, J: np.ndarray, scale: np.ndarray, V: np.ndarray, S: np.ndarray
+    problem: CalibrationProblem,
+    r: np.ndarray,
+    J: np.ndarray,
+    scale: np.ndarray,
+    V: np.ndarray,
+    S: np.ndarray,
+    clusters: list[np.ndarray] | None = None,
 ) -> np.ndarray:
     """The sandwich (Huber-White) covariance clustered by configuration, with the usual small-sample factor.
 
-    Cov = c A^+ (sum_g J_g^T r_g r_g^T J_g) A^+, the sum over the configurations g (all rows of one
-    configuration in a block), c = G/(G-1) (N-1)/(N-p) (CR1: G configurations, N rows, p parameters).
+    Cov = c A^+ (sum_g J_g^T r_g r_g^T J_g) A^+, the sum over the clusters g (all rows of the configurations of
+    one cluster: per block, a label per configuration in `clusters`, `configuration_cells`; None: each
+    configuration its own), c = G/(G-1) (N-1)/(N-p) (CR1: G clusters, N rows, p parameters).
     `V`, `S`: the kept right singular vectors and values of the scaled J (the directions the fit determines);
     A^+ = V S^-2 V^T.  A block without configurations (a known distance) is one cluster.  Returns the
     covariance in the parameters' own units.
     """
     Ainv = (V / S**2) @ V.T
-    meat = np.zeros_like(Ainv)
-    G = 0
-    for at, n, m in _config_rows(problem):
+    parts, labels, count = [], [], 0
+    for bi, (at, n, m) in enumerate(_config_rows(problem)):
         R, Jb = r[at : at + n * m].reshape(n, m), J[at : at + n * m].reshape(n, m, -1)
         g = R[:, :1] * Jb[:, 0]  # J_g^T r_g per configuration, a residual row at a time (no copy of J)
         for j in range(1, m):
             g += R[:, j : j + 1] * Jb[:, j]
-        g *= scale
-        meat += g.T @ g
-        G += n
+        parts.append(g * scale)
+        labels.append(np.arange(count, count + n) if clusters is None else np.asarray(clusters[bi]))
+        count += n
+    g = np.concatenate(parts) if parts else np.zeros((0, S.size))
+    _, inv = np.unique(np.concatenate(labels), return_inverse=True) if labels else (None, np.zeros(0, int))
+    G = int(inv.max()) + 1 if inv.size else 0
+    sums = np.zeros((G, g.shape[1]))
+    np.add.at(sums, inv.ravel(), g)
+    meat = sums.T @ sums
     N, p = r.size, S.size
     c = G / max(G - 1, 1) * (N - 1) / max(N - p, 1)
     return c * Ainv @ meat @ Ainv * np.outer(scale, scale)

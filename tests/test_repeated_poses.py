@@ -1,0 +1,54 @@
+"""A log that repeats its poses: readings of one pose share that pose's error, and the error bars must say so.
+
+A robot held at each of 40 poses while the log runs 25 rows per pose: the rows of one pose are not 25
+independent measurements of the model when something they share (here one reading error per pose, as a
+tiled log or an unmodelled effect of the pose makes it) is in their residual.  The noise-model error bars
+count every row and come out too small by up to 5x (the square root of the repeats); the sandwich clustered
+by cells of joint space (`model_error.configuration_cells`) counts the poses, and the verdict's check of the
+error bars (the two variances agree) flags the log.  With independent reading noise on every row, the same
+poses and repeats, the two agree and nothing is flagged.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zoo
+
+from closedloop import CalibrationOptions, calibrate
+from closedloop.io.logs import JointLog, read_log
+from closedloop.loops.spec import parse_loop
+from closedloop.model.robot import RobotModel
+
+POSES, REPEATS, NOISE = 40, 25, 1e-4
+
+
+@pytest.fixture(scope="module")
+def case():
+    return zoo.make_case("ur5", "point", n=POSES, sigma=0.0, seed=3)
+
+
+def _result(case, shared: bool):
+    robot = RobotModel.from_file(case.nominal_urdf)
+    exact = read_log(case.log_csv, robot.joint_names)
+    rng = np.random.default_rng(7)
+    poses = exact.angles + (rng.normal(0.0, NOISE, exact.angles.shape) if shared else 0.0)
+    rows = np.repeat(poses, REPEATS, axis=0) + rng.normal(0.0, NOISE, (POSES * REPEATS, poses.shape[1]))
+    log = JointLog(list(exact.joints), rows)
+    loops = [parse_loop(s, robot) for s in case.loop_specs]
+    return calibrate(robot, log, loops, CalibrationOptions())
+
+
+def test_a_pose_repeated_with_its_own_error_flags_the_error_bars(case):
+    res = _result(case, shared=True)
+    ratio = res.verdict.evidence["sandwich_variance_ratio"]
+    assert ratio > 5.0, ratio  # 25 rows per pose, half their noise shared: about 1 + 24 / 2
+    assert res.verdict.status == "suspect", res.verdict.describe()
+    assert any("error bars are not reliable" in r for r in res.verdict.reasons), res.verdict.reasons
+
+
+def test_a_pose_repeated_with_independent_noise_is_not_flagged(case):
+    res = _result(case, shared=False)
+    ratio = res.verdict.evidence["sandwich_variance_ratio"]
+    assert 0.5 < ratio < 2.0, ratio
+    assert not any("error bars are not reliable" in r for r in res.verdict.reasons), res.verdict.reasons
