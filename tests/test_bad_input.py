@@ -353,6 +353,20 @@ CASES = [
         {"r.urdf": re.sub(r"<limit[^>]*/>", "", urdf())},
     ),
     Case("urdf-not-xml", "robot file", ["inspect", "{r.urdf}"], ["not valid XML (line 1"], {"r.urdf": "<robot"}),
+    Case(
+        "urdf-misspelt-attribute",
+        "robot file",
+        ["inspect", "{r.urdf}"],
+        ["joint 'j1': <origin xzy=\"0.1 0 0\">: no such attribute (did you mean xyz?)"],
+        {"r.urdf": urdf().replace("<origin xyz=", "<origin xzy=", 1)},
+    ),
+    Case(
+        "urdf-misspelt-element",
+        "robot file",
+        ["inspect", "{r.urdf}"],
+        ["joint 'j1': <orgin> is not a URDF element (did you mean <origin>?)"],
+        {"r.urdf": urdf().replace("<origin ", "<orgin ", 1)},
+    ),
     # ------------------------------------------------------------------ option values
     Case(
         "length-1000",
