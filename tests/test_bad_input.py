@@ -431,6 +431,22 @@ CASES = [
         ["--tool 1e9,0,0", "longer than 2 m"],
     ),
     Case(
+        "simulate-poses-missing-joint",
+        "log",
+        ["simulate", "panda_weld", "--poses", "{next.csv}", "--out", "{tmp}/sim"],
+        ["next.csv: no column for driven joint(s) panda_joint7"],
+        {
+            "next.csv": "panda_joint1,panda_joint2,panda_joint3,panda_joint4,panda_joint5,panda_joint6\n0,0,0,-1.5,0,1.5\n"
+        },
+    ),
+    Case(
+        "simulate-poses-and-n",
+        "option value",
+        ["simulate", "panda_weld", "--poses", "{next.csv}", "--n", "5", "--out", "{tmp}/sim"],
+        ["--n 5 and --poses", "the poses file sets the configurations"],
+        {"next.csv": "panda_joint1\n0\n"},
+    ),
+    Case(
         "simulate-tool-two-numbers",
         "option value",
         [
