@@ -37,6 +37,7 @@ def test_poses_are_recorded_on_the_seeds_robot_at_its_fixture(tmp_path, capsys):
     out = capsys.readouterr().out
     assert rc == 0 and out.startswith("simulated 3 configurations of ur5_socket in ")
     assert f"closedloop check {out_dir / 'truth.json'}" in out
+    assert f"  append:    (cat LOG; tail -n +2 {out_dir / 'log.csv'}) > more.csv   (LOG: the log of the seed-2" in out
     truth = json.loads((out_dir / "truth.json").read_text())
     assert truth["parameters"] == first.truth["parameters"]  # the seed's true robot
     assert truth["poses"]["configurations"] == 3

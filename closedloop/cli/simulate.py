@@ -9,6 +9,7 @@ Every named scenario is in one list (`closedloop.sims.scenarios.scenario_catalog
 from __future__ import annotations
 
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -104,6 +105,12 @@ def cmd_simulate(args) -> int:
         f"simulated {recorded}{f' of {args.n}' if short else ''} configurations of {args.scenario} "
         f"in {time.perf_counter() - t0:.1f} s -> {args.out}"
     )
+    if poses:  # the rows extend a dataset of this seed: say how to join them to its log
+        new_log = shlex.quote(str(Path(args.out) / "log.csv"))
+        print(
+            f"  append:    (cat LOG; tail -n +2 {new_log}) > more.csv   (LOG: the log of the seed-{args.seed} dataset "
+            "these poses extend; calibrate more.csv)"
+        )
     print_next_commands(Path(args.out))
     summary = getattr(result, "summary", None)
     if callable(summary):
