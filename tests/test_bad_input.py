@@ -353,6 +353,20 @@ CASES = [
         {"r.urdf": re.sub(r"<limit[^>]*/>", "", urdf())},
     ),
     Case("urdf-not-xml", "robot file", ["inspect", "{r.urdf}"], ["not valid XML (line 1"], {"r.urdf": "<robot"}),
+    Case(
+        "urdf-misspelt-attribute",
+        "robot file",
+        ["inspect", "{r.urdf}"],
+        ["joint 'j1': <origin xzy=\"0.1 0 0\">: no such attribute (did you mean xyz?)"],
+        {"r.urdf": urdf().replace("<origin xyz=", "<origin xzy=", 1)},
+    ),
+    Case(
+        "urdf-misspelt-element",
+        "robot file",
+        ["inspect", "{r.urdf}"],
+        ["joint 'j1': <orgin> is not a URDF element (did you mean <origin>?)"],
+        {"r.urdf": urdf().replace("<origin ", "<orgin ", 1)},
+    ),
     # ------------------------------------------------------------------ option values
     Case(
         "length-1000",
@@ -415,6 +429,22 @@ CASES = [
             "{tmp}/sim",
         ],
         ["--tool 1e9,0,0", "longer than 2 m"],
+    ),
+    Case(
+        "simulate-poses-missing-joint",
+        "log",
+        ["simulate", "panda_weld", "--poses", "{next.csv}", "--out", "{tmp}/sim"],
+        ["next.csv: no column for driven joint(s) panda_joint7"],
+        {
+            "next.csv": "panda_joint1,panda_joint2,panda_joint3,panda_joint4,panda_joint5,panda_joint6\n0,0,0,-1.5,0,1.5\n"
+        },
+    ),
+    Case(
+        "simulate-poses-and-n",
+        "option value",
+        ["simulate", "panda_weld", "--poses", "{next.csv}", "--n", "5", "--out", "{tmp}/sim"],
+        ["--n 5 and --poses", "the poses file sets the configurations"],
+        {"next.csv": "panda_joint1\n0\n"},
     ),
     Case(
         "simulate-tool-two-numbers",

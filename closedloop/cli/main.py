@@ -269,10 +269,10 @@ def _add_simulate(sub) -> None:
     s.add_argument(
         "--n",
         type=int_arg,
-        default=200,
+        default=None,
         metavar="N",
-        help="configurations to record (default 200); fewer recorded: exit 3 and why (the files are written "
-        "when some were)",
+        help="configurations to record (default 200; with --poses, the file's rows); fewer recorded: exit 3 and "
+        "why (the files are written when some were)",
     )
     s.add_argument(
         "--seed", type=int_arg, default=0, help="random seed: the same seed gives the same dataset (default 0)"

@@ -9,6 +9,7 @@ Every named scenario is in one list (`closedloop.sims.scenarios.scenario_catalog
 from __future__ import annotations
 
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -18,11 +19,18 @@ from closedloop.cli.progress import ProgressDisplay
 from closedloop.errors import EXIT_FAILED, EmptySimulationError, InputError, NotIdentifiableError, ScenarioError
 from closedloop.run.options import check_number
 
+#: configurations recorded when --n is not given
+DEFAULT_N = 200
+
 
 def simulate_camera(args) -> int:
     """``closedloop simulate ur5_head --n N --seed S --out DIR`` (`sims.camera_scene`): one summary line."""
     from closedloop.sims.camera_scene import simulate_head
 
+    if args.n is None:
+        args.n = DEFAULT_N
+    if getattr(args, "poses", None):
+        raise InputError(f"--poses: the camera scenario {args.scenario} plans its own configurations")
     if not (isinstance(args.n, int) and args.n >= 1):
         raise InputError(f"--n {args.n}: expected a positive integer")
     if getattr(args, "set", None):
@@ -51,7 +59,14 @@ def cmd_simulate(args) -> int:
     from closedloop.io.files import check_outputs
     from closedloop.sims.outputs import check_dataset_dir
 
-    args.n = check_number("--n", args.n, 1, 10**7, integer=True)
+    poses = getattr(args, "poses", None)
+    if poses and args.n is not None:
+        raise InputError(f"--n {args.n} and --poses {poses}: the poses file sets the configurations (one per row)")
+    if poses and not Path(poses).is_file():
+        raise InputError(
+            f"--poses {poses}: no such file (a CSV log of joint readings, e.g. calibrate's --suggest file)"
+        )
+    args.n = check_number("--n", DEFAULT_N if args.n is None else args.n, 1, 10**7, integer=True)
     args.seed = check_number("--seed", args.seed, 0, 2**63 - 1, integer=True)
     check_outputs({"--out": args.out}, directory=True)
     check_dataset_dir(Path(args.out), replace=getattr(args, "replace", False))
@@ -65,6 +80,7 @@ def cmd_simulate(args) -> int:
             seed=args.seed,
             out_dir=Path(args.out),
             progress=prog,
+            poses=Path(poses) if poses else None,
             **overrides,
         )
     except NotIdentifiableError as exc:  # the scenario's loop cannot close: its robot, loop, --q0 or --tool
@@ -75,6 +91,7 @@ def cmd_simulate(args) -> int:
         return EXIT_FAILED
     prog.close()
     recorded = len(result.readings)
+    args.n = result.n_asked  # with --poses, the file's rows
     short = recorded < args.n  # some recorded: the files are written, the exit code says the dataset is short
     if short:
         print(
@@ -88,6 +105,12 @@ def cmd_simulate(args) -> int:
         f"simulated {recorded}{f' of {args.n}' if short else ''} configurations of {args.scenario} "
         f"in {time.perf_counter() - t0:.1f} s -> {args.out}"
     )
+    if poses:  # the rows extend a dataset of this seed: say how to join them to its log
+        new_log = shlex.quote(str(Path(args.out) / "log.csv"))
+        print(
+            f"  append:    (cat LOG; tail -n +2 {new_log}) > more.csv   (LOG: the log of the seed-{args.seed} dataset "
+            "these poses extend; calibrate more.csv)"
+        )
     print_next_commands(Path(args.out))
     summary = getattr(result, "summary", None)
     if callable(summary):
@@ -192,3 +215,10 @@ def add_simulate_robot_options(s) -> None:
     s.add_argument("--joints", help="with --robot: driven joints (default: every joint moving the loop frame)")
     s.add_argument("--name", help="with --robot: scenario name (default ROBOT_LOOPTYPE)")
     s.add_argument("--config", help="YAML file holding these options")
+    s.add_argument(
+        "--poses",
+        metavar="FILE",
+        help="record at these joint readings instead of planning (a CSV log with a column per driven joint, e.g. "
+        "calibrate's --suggest file): with the --seed and --set of the dataset it extends, the same true robot "
+        "and fixture, fresh noise",
+    )

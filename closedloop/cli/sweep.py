@@ -207,7 +207,9 @@ def cmd_simulate_sweep(args) -> int:
 
     scenarios = _scenarios(args)
     seeds = parse_seeds(args.seeds if args.seeds is not None else str(args.seed))
-    n = check_number("--n", args.n, 1, 10**7, integer=True)
+    if getattr(args, "poses", None):
+        raise InputError("simulate: --poses records one dataset's configurations: not with --seeds or --scenarios")
+    n = check_number("--n", 200 if args.n is None else args.n, 1, 10**7, integer=True)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out}: exists and is not a folder")

@@ -11,7 +11,10 @@ file with the standard XML parser (no recursion) and refuse, naming the element:
 * a link that is the child of two joints (a closed chain written into the tree), a cycle, several roots;
 * a tree deeper than `MAX_DEPTH` links;
 * an ``<origin>``, ``<axis>`` or ``<limit>`` whose values are not finite numbers, a zero axis on a
-  moving joint, an unknown joint type.
+  moving joint, an unknown joint type;
+* a misspelt attribute of a joint's ``<origin>``, ``<axis>`` or ``<limit>`` (``<origin xzy=...>``) or a
+  joint's element spelt close to one of the URDF's (``<orgin>``): urdfdom skips what it does not know,
+  and the joint would silently keep its default (a zero origin, the x axis, no limits).
 
 `read_model_file` is the one read of a robot model file, whichever its format: it checks it, reads what
 Pinocchio does not (a URDF's `UrdfJoints`, a D-H table's document against its schema) and notes the file
@@ -39,6 +42,14 @@ HELD = "closedloop_held"
 #: deepest kinematic tree accepted (links from the root): Pinocchio recurses once per link
 MAX_DEPTH = 1000
 JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed", "floating", "planar", "spherical")
+#: the attributes URDF reads of a joint's elements (a link's <origin> the same as a joint's)
+JOINT_ATTRIBUTES = {
+    "origin": ("xyz", "rpy"),
+    "axis": ("xyz",),
+    "limit": ("lower", "upper", "effort", "velocity"),
+}
+#: the elements URDF reads in a <joint> (`HELD` is closedloop's own mark)
+JOINT_ELEMENTS = ("origin", "parent", "child", "axis", "calibration", "dynamics", "limit", "mimic", "safety_controller")
 _XACRO = re.compile(r"\$\{|\$\(")
 
 
@@ -105,6 +116,40 @@ def _numbers(path: Path, where: str, text: str | None, n: int) -> list[float] | 
     return values
 
 
+def _attributes(path: Path, where: str, el: ET.Element) -> None:
+    """Refuse an attribute of `el` (an <origin>, <axis> or <limit>) spelt close to one URDF reads and `el` lacks
+    (``<origin xzy=...>``: the origin would be zero); others (a vendor's ``command_effort``) are left."""
+    import difflib
+
+    absent = [a for a in JOINT_ATTRIBUTES[str(el.tag)] if a not in el.attrib]
+    for attr in el.attrib:
+        near = difflib.get_close_matches(attr, absent, n=1, cutoff=0.6)
+        if near:
+            raise ModelError(
+                f'{path}: {where}: <{el.tag} {attr}="{el.attrib[attr][:40]}">: no such attribute (did you mean '
+                f"{near[0]}?); URDF readers skip it and keep the default"
+            )
+
+
+def _misspelt(path: Path, joint: str, el: ET.Element) -> None:
+    """Refuse a joint's element spelt close to one URDF reads and the joint lacks (``<orgin>``), and a misspelt attribute of its
+    <origin>, <axis> or <limit>: each would be skipped, the joint keeping its default (module doc)."""
+    import difflib
+
+    for child in el:
+        tag = child.tag if isinstance(child.tag, str) else ""
+        if tag in JOINT_ATTRIBUTES:
+            _attributes(path, f"joint '{joint}'", child)
+        elif tag not in JOINT_ELEMENTS and tag != HELD:
+            absent = [e for e in JOINT_ELEMENTS if el.find(e) is None]
+            near = difflib.get_close_matches(tag, absent, n=1, cutoff=0.75)
+            if near:
+                raise ModelError(
+                    f"{path}: joint '{joint}': <{tag}> is not a URDF element (did you mean <{near[0]}>?); URDF "
+                    "readers skip it and keep the default"
+                )
+
+
 def check_urdf(path: str | Path, one_root: bool = True) -> None:
     """Refuse a URDF Pinocchio would crash on or refuse in several lines (module doc).  `one_root` False
     accepts several root links (the simulator keeps the tree of the loop's links and notes the others)."""
@@ -122,6 +167,7 @@ def check_urdf(path: str | Path, one_root: bool = True) -> None:
             raise ModelError(f"{path}: two links named '{name}'")
         links.add(name)
         for org in el.iter("origin"):
+            _attributes(path, f"link '{name}'", org)
             _numbers(path, f"link '{name}': <origin> xyz", org.get("xyz"), 3)
             _numbers(path, f"link '{name}': <origin> rpy", org.get("rpy"), 3)
     if not links:
@@ -158,6 +204,7 @@ def check_urdf(path: str | Path, one_root: bool = True) -> None:
             )
         parent_of[child] = (parent, name)
         children.setdefault(parent, []).append(child)
+        _misspelt(path, name, el)
         origin = el.find("origin")
         if origin is not None:
             _numbers(path, f"joint '{name}': <origin> xyz", origin.get("xyz"), 3)

@@ -15,7 +15,10 @@ method of its class in :mod:`closedloop.sims.loop_types`):
    waypoints along the nominal self-motion (:mod:`closedloop.sims.driver`);
    (with the setting ``select``: the waypoints are n configurations chosen from a
    pool of nominal self-motion configurations by pose selection, visited in a
-   short path, :mod:`closedloop.sims.selection`);
+   short path, :mod:`closedloop.sims.selection`); with ``poses`` (a CSV log of joint readings, e.g.
+   what ``closedloop calibrate --suggest`` writes): the waypoints are those readings, in the file's
+   order, the robot led between them along its nominal loop (:func:`poses_plan`); the true robot and
+   the fixture are the seed's, the noise a fresh stream of the seed and the readings;
 5. for every waypoint ``r`` the servos are commanded ``ctrl = scale * r + offset``
    (the servo acts on the encoder reading), ramped over ``ramp_steps`` steps;
    the simulation runs until ``max |qdot| < move_vel_tol``; then, ``relax_passes``
@@ -166,6 +169,7 @@ def simulate(
     seed: int,
     out_dir: Path | str,
     progress: ProgressReporter | None = None,
+    poses: Path | str | None = None,
     **overrides: Any,
 ) -> SimResult:
     """Generate a closed-loop calibration dataset by simulation.
@@ -176,6 +180,9 @@ def simulate(
         seed: random seed (truth, targets, noise); the same seed gives an identical log.
         out_dir: output directory (created).
         progress: told ``("simulating", done, n)`` after each recorded sample (`closedloop.progress`).
+        poses: a CSV log whose joint readings are recorded instead of planned waypoints (a column per
+            driven joint; `n` is then its number of rows): the configurations a calibration suggested
+            (``closedloop calibrate --suggest``), played on the seed's true robot at its fixture.
         **overrides: :class:`~closedloop.sims.scenarios.SimSettings` fields, plus
             ``stiff=True`` for the stiff-loop preset (``SimSettings.stiff``).
 
@@ -208,10 +215,13 @@ def simulate(
         )
     settings = settings.replace(**overrides)
     out = Path(out_dir)
+    poses = Path(poses) if poses is not None else None
+    if poses is not None and settings.select:
+        raise ScenarioError(f"{scenario}: poses are given: the setting select (which chooses them) does not apply")
     # the dataset is computed beside a scratch nominal.urdf, then published whole into `out` (truth.json last)
     files = OutputSet(order=[out / f for f in DATASET_FILES])
     with tempfile.TemporaryDirectory(prefix="closedloop-sim-") as scratch:
-        result = _simulate(sc, settings, n, seed, out, Path(scratch), files, progress)
+        result = _simulate(sc, settings, n, seed, out, Path(scratch), files, progress, poses)
     files.commit()
     return result
 
@@ -225,6 +235,7 @@ def _simulate(
     scratch: Path,
     files: OutputSet,
     progress: ProgressReporter | None,
+    poses: Path | None = None,
 ) -> SimResult:
     """The body of :func:`simulate`: outputs go into `files` (published when `simulate` returns)."""
     kind = sim_loop(sc.loop_type)
@@ -235,6 +246,7 @@ def _simulate(
     rng_env = np.random.default_rng(ss.spawn(1)[0]) if kind.draws_environment else None
 
     nominal = _nominal(sc, scratch, files, out)  # 1
+    readings, where = _read_poses(poses, nominal.joint_names) if poses is not None else (None, [])
     truth = _draw_truth(sc, settings, nominal, rng_truth)  # 2
     q0 = np.asarray(sc.q0, dtype=float)  # 3: the scene, closed at the true grasp configuration
     scene = build_scene(truth.urdf, sc, settings, nominal.joint_names, q0, rng=rng_env)
@@ -244,7 +256,11 @@ def _simulate(
     mark_running("simulate")  # a supervising process may now interrupt the work (`io.marker`)
     t_start = time.perf_counter()
     plan = None
-    if settings.select:  # pose selection on the nominal model (closedloop.sims.selection)
+    if readings is not None:  # the given readings, on the seed's robot and fixture, with noise of their own
+        plan = poses_plan(readings, loop, r0, settings.step_rad)
+        rng_noise = np.random.default_rng(_poses_noise_seed(seed, readings))
+        n = len(readings)
+    elif settings.select:  # pose selection on the nominal model (closedloop.sims.selection)
         from closedloop.sims.selection import plan_selected
 
         start = loop.full_q(r0) if loop is not None else r0
@@ -296,7 +312,7 @@ def _simulate(
         planner.stats.qp_solves,
     )
     if plan is not None:
-        truth_json["selection"] = plan.info
+        truth_json["poses" if poses is not None else "selection"] = plan.info
     files.add(out / "truth.json", json.dumps(truth_json, indent=2))
     return SimResult(
         scenario=sc.name,
@@ -314,11 +330,79 @@ def _simulate(
         settings=settings,
         n_dropped=rec.dropped,
         n_asked=n,
-        shortfall=rec.shortfall(n, settings.max_steps),
+        shortfall=rec.shortfall(n, settings.max_steps)
+        if poses is None
+        else _poses_shortfall(rec, where, settings.max_steps),
         n_steps=rec.steps,
         elapsed_s=rec.elapsed,
         extra={"select_s": t_plan} if plan is not None else {},
     )
+
+
+def _read_poses(path: Path, joint_names: list[str]) -> tuple[np.ndarray, list[str]]:
+    """(m, nj) readings of the driven joints from the CSV log at `path` (its columns in any order), and
+    where each row was read (``next.csv line 3``)."""
+    from closedloop.io.logs import read_log
+
+    log_ = read_log(path, joint_names)
+    missing = [j for j in joint_names if j not in log_.joints]
+    if missing:
+        raise ScenarioError(
+            f"{path}: no column for driven joint(s) {', '.join(missing[:5])}{', ...' if len(missing) > 5 else ''} "
+            "(the poses need a reading of every joint the simulation drives)"
+        )
+    return log_.columns(joint_names), [log_.where(i) for i in range(len(log_))]
+
+
+def _poses_shortfall(rec, where: list[str], max_steps: int) -> str:
+    """Why poses were not recorded: the rows, and what the robot did there ("" when all were)."""
+    if not rec.dropped_at:
+        return ""
+    rows = ", ".join(where[i] for i in rec.dropped_at[:5]) + (", ..." if len(rec.dropped_at) > 5 else "")
+    why = []
+    if rec.at_limit:
+        why.append(f"it ended at a joint limit ({', '.join(sorted(rec.at_limit))}): at a stop the robot rests on it")
+    if rec.unsettled:
+        why.append(
+            f"it did not come to rest within max_steps={max_steps} steps: a reading far from the true loop makes "
+            "the servos fight it (the model that suggested it may be far off)"
+        )
+    return f"{rows} not recorded ({'; '.join(why)}); the log leaves them out, and its rows can be appended"
+
+
+def _poses_noise_seed(seed: int, readings: np.ndarray) -> np.random.SeedSequence:
+    """The noise stream of recorded poses: the seed's fifth child, keyed by the readings, so that the
+    poses' noise is not the seed's own dataset's (the same draws on its first rows) nor another pose
+    file's; the same seed and file give the same readings."""
+    import zlib
+
+    key = zlib.crc32(np.ascontiguousarray(readings, dtype=np.float64).tobytes())
+    return np.random.SeedSequence(seed, spawn_key=(4, key))
+
+
+def poses_plan(readings: np.ndarray, loop: NominalLoop | None, r0: np.ndarray, step_rad: float):
+    """The path through given readings (a :class:`~closedloop.sims.selection.Plan`): each reading is
+    recorded, in the order given, the robot led to it from the grasp ``r0`` (or the previous one) through
+    intermediate waypoints on its nominal loop where a joint would move more than `step_rad`
+    (:func:`closedloop.sims.selection.bridge`; none for a measured loop, which moves freely)."""
+    from closedloop.sims.selection import Plan, bridge
+
+    full = (lambda r: loop.full_q(r)) if loop is not None else (lambda r: np.asarray(r, dtype=float).copy())
+    waypoints: list[np.ndarray] = []
+    record: list[bool] = []
+    here = full(r0)
+    for r in readings:
+        target = full(r)
+        if loop is not None and loop.kind.env_joint:  # no reading of the door: it starts where it was
+            target[-1] = here[-1]
+        for w in bridge(loop, here, target, step_rad):
+            waypoints.append(w)
+            record.append(False)
+        waypoints.append(target)
+        record.append(True)
+        here = target
+    info = {"configurations": int(len(readings)), "bridge_waypoints": int(len(record) - int(np.sum(record)))}
+    return Plan(np.array(waypoints), np.array(record, dtype=bool), info)
 
 
 def _nominal(sc: Scenario, scratch: Path, files: OutputSet, out: Path) -> _Nominal:

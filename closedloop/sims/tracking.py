@@ -262,6 +262,7 @@ class Recording:
     elapsed: float = 0.0
     unsettled: int = 0  # of the dropped: not settled within max_steps
     at_limit: dict[str, int] = field(default_factory=dict)  # of the dropped: how often each joint was at a limit
+    dropped_at: list[int] = field(default_factory=list)  # the dropped: their places among the waypoints to record
 
     def shortfall(self, n: int, max_steps: int) -> str:
         """Why fewer than `n` configurations were recorded, and what to change ("" when all were);
@@ -368,10 +369,12 @@ def track_and_record(
     sites, point = SiteViews(scene), kind.point_contact
     tau = _view(d.qfrc_actuator, scene.dof_adr)  # the arm's actuator torques (read after mj_forward)
     targets = _targets(planner, plan, 3 * n + 20, lambda: n - rec.done)
+    asked = -1  # the place of the waypoint among those to record
     while rec.done < n:
         wp, record = next(targets, (None, False))
         if wp is None:
             break
+        asked += record
         target = scale * wp[:nj] + offset
         if not record:  # a waypoint on the way to the next selected configuration: move only
             _ok, steps = settler.settle(ctrl, target, settings.move_vel_tol)
@@ -390,6 +393,7 @@ def track_and_record(
             )
         if settings.drop_flagged and (at_limit or not settled):
             rec.dropped += 1
+            rec.dropped_at.append(asked)
             rec.unsettled += not settled
             for k in at_limit:
                 rec.at_limit[joint_names[k]] = rec.at_limit.get(joint_names[k], 0) + 1
