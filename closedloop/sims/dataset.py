@@ -267,7 +267,20 @@ def _simulate(
         plan = plan_selected(sc, settings, nominal.path, nominal.joint_names, planner, loop, start, n, nominal.model)
     t_plan = time.perf_counter() - t_start
     rec = track_and_record(
-        sc, kind, settings, scene, truth.offset, truth.scale, planner, plan, n, rng_noise, rng_env, progress, t_start
+        sc,
+        kind,
+        settings,
+        scene,
+        truth.offset,
+        truth.scale,
+        planner,
+        plan,
+        n,
+        rng_noise,
+        rng_env,
+        progress,
+        t_start,
+        POSE_STRAY if readings is not None else None,
     )  # 5-6
     log.info(
         "%s: %d samples, %d dropped, %d steps, %d QP solves, %.2f s (%.0f configs/s)",
@@ -282,7 +295,12 @@ def _simulate(
 
     if rec.done == 0:  # nothing to write: the dataset would be an empty log
         raise EmptySimulationError(
-            f"{sc.name}: no configuration recorded of the {n} asked ({rec.dropped} dropped): {rec.shortfall(n, settings.max_steps)}"
+            f"{sc.name}: no configuration recorded of the {n} asked ({rec.dropped} dropped): "
+            + (
+                rec.shortfall(n, settings.max_steps)
+                if poses is None
+                else _poses_shortfall(rec, where, settings.max_steps)
+            )
         )
     # outputs
     measured = {f"{sc.loop_name}:{a}": rec.meas[:, k] for k, a in enumerate("xyz")} if not kind.closed else {}
@@ -354,12 +372,22 @@ def _read_poses(path: Path, joint_names: list[str]) -> tuple[np.ndarray, list[st
     return log_.columns(joint_names), [log_.where(i) for i in range(len(log_))]
 
 
+#: a given pose (``poses``) that comes to rest farther than this from its reading on some joint (rad, or m) is
+#: not recorded: it is another configuration than the one asked for
+POSE_STRAY = 0.05
+
+
 def _poses_shortfall(rec, where: list[str], max_steps: int) -> str:
     """Why poses were not recorded: the rows, and what the robot did there ("" when all were)."""
     if not rec.dropped_at:
         return ""
     rows = ", ".join(where[i] for i in rec.dropped_at[:5]) + (", ..." if len(rec.dropped_at) > 5 else "")
     why = []
+    if rec.strayed:
+        why.append(
+            f"{len(rec.strayed)} came to rest up to {max(rec.strayed):.2g} rad from the reading asked, elsewhere on "
+            "the loop (the true robot reaches it by another branch of the loop, or it is far from the true loop)"
+        )
     if rec.at_limit:
         why.append(f"it ended at a joint limit ({', '.join(sorted(rec.at_limit))}): at a stop the robot rests on it")
     if rec.unsettled:

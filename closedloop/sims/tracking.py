@@ -263,6 +263,7 @@ class Recording:
     unsettled: int = 0  # of the dropped: not settled within max_steps
     at_limit: dict[str, int] = field(default_factory=dict)  # of the dropped: how often each joint was at a limit
     dropped_at: list[int] = field(default_factory=list)  # the dropped: their places among the waypoints to record
+    strayed: list[float] = field(default_factory=list)  # of the dropped: how far from its waypoint each came to rest
 
     def shortfall(self, n: int, max_steps: int) -> str:
         """Why fewer than `n` configurations were recorded, and what to change ("" when all were);
@@ -350,8 +351,12 @@ def track_and_record(
     rng_env: np.random.Generator | None,
     progress: ProgressReporter | None,
     t_start: float,
+    stray: float | None = None,
 ) -> Recording:
-    """Steps 5-6: drive the true robot through the waypoints in MuJoCo and record the settled samples."""
+    """Steps 5-6: drive the true robot through the waypoints in MuJoCo and record the settled samples.
+
+    With `stray` (given readings, not planned ones: `dataset.poses_plan`) a sample that comes to rest farther
+    than that from its waypoint on some joint (rad, or m) is dropped: it is not the configuration asked for."""
     m, d = scene.model, scene.data
     joint_names = scene.joint_names
     nj = len(joint_names)
@@ -387,6 +392,12 @@ def track_and_record(
         q = qpos.copy()
         ql = q.tolist()
         at_limit = [i for i, lo, hi, f in limits if ql[i] - lo < f or hi - ql[i] < f]
+        off = float(np.max(np.abs(q - target))) if stray is not None and nj else 0.0
+        if stray is not None and off > stray:  # at rest elsewhere on the loop: not the reading asked for
+            rec.dropped += 1
+            rec.dropped_at.append(asked)
+            rec.strayed.append(off)
+            continue
         if not settled:
             log.debug(
                 "sample %d not settled after %d steps (max |qdot| = %.3g)", rec.done, steps, np.max(np.abs(d.qvel))
