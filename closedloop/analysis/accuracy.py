@@ -200,7 +200,12 @@ class WorkspaceAccuracy:
     training: np.ndarray | None = field(repr=False, default=None)  # (m, joints) the calibration's readings
     default_readings: bool = False  # the readings are `random_readings`' default: those `closedloop check` uses
     parameters: tuple[str, ...] = ()  # the parameters whose uncertainty moves a followed frame
-    covariance: np.ndarray | None = field(repr=False, default=None)  # their L L^T (estimated and unseen)
+    #: the loops' other unknowns the calibration considered, which move no followed frame (a plane's normal
+    #: and distance, a socket's position): known only as well as the data fix them, and correlated with
+    #: `parameters`, so that new rows of a loop resolve them too (`closedloop.design.next_poses`)
+    loop_parameters: tuple[str, ...] = ()
+    #: L L^T (estimated and unseen) over `parameters` then `loop_parameters`, cross terms included
+    full_covariance: np.ndarray | None = field(repr=False, default=None)
     #: (len(parameters),) the systematic error b the model error adds (zeros where none is found): data
     #: reduce L L^T, never b
     bias: np.ndarray | None = field(repr=False, default=None)
@@ -208,6 +213,14 @@ class WorkspaceAccuracy:
     #: removed (e_perp = design @ dx): what a design of new configurations is judged by (`closedloop.design`)
     design: np.ndarray | None = field(repr=False, default=None)
     model_error: ModelError | None = None  # the estimators' disagreement, where it was tested
+
+    @property
+    def covariance(self) -> np.ndarray | None:
+        """L L^T over `parameters` (estimated and unseen): the block of `full_covariance` of what moves a frame."""
+        if self.full_covariance is None:
+            return None
+        m = len(self.parameters)
+        return self.full_covariance[:m, :m]
 
     @property
     def error_covariance(self) -> np.ndarray | None:
@@ -626,7 +639,8 @@ def predict_accuracy(
     A_n = projected(np.diag(tol))  # the nominal model: every considered parameter off by its tolerance
     tips = {k for it in items for k in it.tip_columns}
     moving = [i for i, k in enumerate(considered) if k < problem.n_robot or k in tips]  # what moves a frame
-    L_all = np.hstack([L_e, L_u])[moving]
+    others = sorted(set(range(len(considered))) - set(moving))  # a loop's place: moves no frame
+    L_all = np.hstack([L_e, L_u])[moving + others]
     A = np.hstack([A_e, A_u])
     rng = np.random.default_rng(seed + 1)
     draws = A @ rng.standard_normal((A.shape[1], MAX_DRAWS)) if A.shape[1] else np.zeros((A.shape[0], MAX_DRAWS))
@@ -704,7 +718,8 @@ def predict_accuracy(
         training=training,
         default_readings=default_readings,
         parameters=tuple(problem.names[considered[i]] for i in moving),
-        covariance=L_all @ L_all.T,
+        loop_parameters=tuple(problem.names[considered[i]] for i in others),
+        full_covariance=L_all @ L_all.T,
         bias=bias[moving],
         design=projected(np.eye(len(considered))[:, moving])[position_rows],
         model_error=model,

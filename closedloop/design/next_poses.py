@@ -1,11 +1,13 @@
 """The next configurations to record: those that most reduce the predicted error over the workspace.
 
 The pose selection of `closedloop.design.poses` turned to the workspace target.  A calibration's
-prediction (`closedloop.analysis.accuracy.WorkspaceAccuracy`) carries the parameters' covariance Sigma
-(estimated and unseen, over the parameters that move a followed frame) and the gauge-free workspace
-matrix A (the frames' position errors per parameter over the workspace readings): the predicted mean
-squared position error is (tr(A Sigma A^T) + |A b|^2) / n, b the systematic error a model error adds
-(zero where none is found), which no new configuration removes.
+prediction (`closedloop.analysis.accuracy.WorkspaceAccuracy`) carries the covariance Sigma of every
+parameter it considered (estimated and unseen), those that move a followed frame and the loops' own
+unknowns that move none (a plane's normal and distance, a socket's position), cross terms included
+(`full_covariance`), and the gauge-free workspace matrix A (the frames' position errors per parameter
+over the workspace readings; zero in a loop unknown's column): the predicted mean squared position
+error is (tr(A Sigma A^T) + |A b|^2) / n, b the systematic error a model error adds (zero where none is
+found), which no new configuration removes.
 
 **Candidates.**  Configurations the loop can be recorded at, at its current place (the same socket,
 fixture, hinge): random readings within the joint limits, each moved onto the loop by Gauss-Newton on
@@ -14,13 +16,30 @@ to the readings, `LoopBlock` evaluation at new readings), kept where the closure
 readings stay `LIMIT_MARGIN` inside the limits (a configuration at a joint's stop is one the robot may
 not reach, or reaches pressed against the stop rather than resting on the loop).
 
-**Selection** (I-optimal, greedy): a candidate i adds the information B_i^T B_i, B_i its closure
-Jacobian over the parameters whitened by the joint noise, S_i = sigma^2 Jq_i Jq_i^T (thesis eq. 4.17's
-weighting, errors in variables).  Adding it lowers the covariance to
-Sigma - Sigma B_i^T (I + B_i Sigma B_i^T)^-1 B_i Sigma (Sherman-Morrison-Woodbury) and the objective by
-tr(A Sigma B_i^T (I + B_i Sigma B_i^T)^-1 B_i Sigma A^T); the candidate with the largest fall is taken,
-Sigma updated, and so on.  The loop's own unknowns (its place) are taken as known: the new rows are
-recorded at the place the data already fixed.
+**The promise.**  Recorded and calibrated again, the new rows enter the fit beside the old: to first
+order its information is the old one plus theirs (thesis eq. 4.17's weighted normal equations over the
+log and the new rows), in information form
+
+    Sigma_new^-1 = Sigma^-1 + sum_i B_i^T B_i,
+
+B_i the closure Jacobian of candidate i over every parameter of Sigma, whitened by the joint noise,
+B_i = L_i^-1 J_i with L_i L_i^T = S_i = sigma^2 Jq_i Jq_i^T (eq. 4.17's weighting, errors in
+variables).  The recalibration estimates the loop's place again from the new rows: J_i has its columns
+(a new point on a plane tells of the plane as of the arm), and what they resolve of it resolves, through
+the cross terms of Sigma, the arm's parameters correlated with it.  Left out (the place taken as
+known), the update would be the marginal covariance of the arm's parameters updated as if the place were
+free of error, neither the posterior nor a bound (on a UR3's tool on a plane it promised 1.5 times
+less error than the recalibration reported).  The promised RMS is
+sqrt((tr(A Sigma_new A^T) + |A b|^2) / n).  The unseen part of Sigma (`analysis.accuracy`: the nominal
+tolerance along what the data do not see) is updated as a prior: where the recalibration still leaves
+those directions unestimated and they dominate, the promise is optimistic.
+
+**Selection** (I-optimal, greedy): adding candidate i lowers the covariance to
+Sigma - Sigma B_i^T (I + B_i Sigma B_i^T)^-1 B_i Sigma (Sherman-Morrison-Woodbury: the information form
+above one candidate at a time, without inverting Sigma, which is singular along what no data see) and
+the objective by tr(A Sigma B_i^T (I + B_i Sigma B_i^T)^-1 B_i Sigma A^T); the candidate with the
+largest fall is taken, Sigma updated, and so on.  The candidates lie at the loop's current place (the
+calibrated one): the new rows are recorded where the data already put it.
 """
 
 from __future__ import annotations
@@ -134,14 +153,14 @@ def suggest_poses(
     its future measurements are not known) or no candidate closes the loop."""
     problem = res.problem
     b = problem.blocks[block_index]
-    if workspace is None or workspace.design is None or workspace.covariance is None or b.meas is not None:
+    if workspace is None or workspace.design is None or workspace.full_covariance is None or b.meas is not None:
         return None
     values = np.asarray(res.fit.values, dtype=float)
     C = loop_candidates(problem, values, block_index, n_candidates, seed)
     if not C.shape[0]:
         return None
     sub, x = _sub_problem(problem, block_index, values, C)
-    names = list(workspace.parameters)
+    names = list(workspace.parameters) + list(workspace.loop_parameters)
     cols = [sub.index[n] for n in names if n in sub.index]
     keep = [i for i, n in enumerate(names) if n in sub.index]
     ev = sub.evaluate(x, True, columns=cols)[0]
@@ -151,11 +170,12 @@ def suggest_poses(
     S = sigma**2 * Jq @ np.swapaxes(Jq, 1, 2) + (1e-12 * sigma) ** 2 * np.eye(ev.r.shape[1])
     Wi = np.linalg.inv(np.linalg.cholesky(S))  # whitening: B_i = L_i^-1 J_i
     B[:, :, keep] = Wi @ ev.jacobian()
-    A = workspace.design
-    Sig = np.array(workspace.covariance, dtype=float)
+    # the loop's place moves no frame: its columns of A are zero, its covariance and cross terms are kept
+    A = np.hstack([workspace.design, np.zeros((workspace.design.shape[0], len(workspace.loop_parameters)))])
+    Sig = np.array(workspace.full_covariance, dtype=float)
     n = workspace.readings.shape[0]
     # the model error's systematic part: no new data removes it (`analysis.accuracy`, Model error)
-    floor = float(np.sum((A @ workspace.bias) ** 2)) if workspace.bias is not None else 0.0
+    floor = float(np.sum((workspace.design @ workspace.bias) ** 2)) if workspace.bias is not None else 0.0
     before = float(np.sqrt((np.trace(A @ Sig @ A.T) + floor) / (n * len(workspace.frames))))
     chosen: list[int] = []
     after = []
