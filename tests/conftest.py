@@ -24,10 +24,23 @@ def panda_weld(panda):
     return make_dataset(panda, WeldLoop("fixture", "panda_hand"), PANDA_Q0, 200, np.random.default_rng(7))
 
 
+@pytest.fixture(scope="session")
+def panda_manifold_weld():
+    """A Panda welded to a fixture, 40 exact configurations spread over the whole self-motion (a walk of 5 s):
+    the modules that read it share one xdist group (`SHARED`), so one worker computes it once."""
+    from closedloop.studies.montecarlo import weld_scenario
+
+    return weld_scenario(n=1, seed=3, pool="manifold", n_pool=40)
+
+
 # --------------------------------------------------------------------------- one worker per costly fixture
 # A fixture scoped to its module (a simulated dataset, a calibration the tests then read) is computed once per
 # worker that runs one of its tests, and again whenever that worker ran another module's test in between: a
 # module with such a fixture runs whole on one worker (xdist's `loadgroup`), so the fixture is computed once.
+# The modules reading one of the session fixtures in `SHARED` run on one worker too, in a group named by it.
+SHARED = ("panda_manifold_weld",)
+
+
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(config, items):
     def own_module_fixture(item) -> bool:
@@ -38,11 +51,15 @@ def pytest_collection_modifyitems(config, items):
             for fd in info.name2fixturedefs.get(name, ())
         )
 
-    grouped = {item.nodeid.split("::")[0] for item in items if own_module_fixture(item)}
+    grouped = {item.nodeid.split("::")[0]: item.nodeid.split("::")[0] for item in items if own_module_fixture(item)}
+    for item in items:
+        for name in SHARED:
+            if name in getattr(item, "fixturenames", ()):
+                grouped[item.nodeid.split("::")[0]] = name
     for item in items:
         module = item.nodeid.split("::")[0]
         if module in grouped and item.get_closest_marker("xdist_group") is None:
-            item.add_marker(pytest.mark.xdist_group(module))
+            item.add_marker(pytest.mark.xdist_group(grouped[module]))
 
 
 # --------------------------------------------------------------------------- what the run left out
