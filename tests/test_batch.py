@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import ray  # in the test extra: a real local Ray cluster
 import yaml
 
 from closedloop.cli.main import main
@@ -81,6 +80,8 @@ def params(out: Path) -> dict:
 
 @pytest.fixture(scope="module")
 def cluster():
+    import ray  # in the test extra: a real local Ray cluster (imported here, not when a worker collects this file)
+
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()
