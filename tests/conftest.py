@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import ast
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -33,12 +36,20 @@ def panda_manifold_weld():
     return weld_scenario(n=1, seed=3, pool="manifold", n_pool=40)
 
 
+@pytest.fixture(scope="session")
+def package_trees() -> dict[Path, ast.Module]:
+    """Every module of ``closedloop/`` parsed with `ast` (nothing imported), by path: the checks on the package's
+    source read it (1-2 s to parse), in one xdist group (`SHARED`)."""
+    package = Path(__file__).resolve().parents[1] / "closedloop"
+    return {p: ast.parse(p.read_text(), filename=str(p)) for p in sorted(package.rglob("*.py"))}
+
+
 # --------------------------------------------------------------------------- one worker per costly fixture
 # A fixture scoped to its module (a simulated dataset, a calibration the tests then read) is computed once per
 # worker that runs one of its tests, and again whenever that worker ran another module's test in between: a
 # module with such a fixture runs whole on one worker (xdist's `loadgroup`), so the fixture is computed once.
 # The modules reading one of the session fixtures in `SHARED` run on one worker too, in a group named by it.
-SHARED = ("panda_manifold_weld",)
+SHARED = ("panda_manifold_weld", "package_trees")
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
