@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import ast
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -24,10 +27,31 @@ def panda_weld(panda):
     return make_dataset(panda, WeldLoop("fixture", "panda_hand"), PANDA_Q0, 200, np.random.default_rng(7))
 
 
+@pytest.fixture(scope="session")
+def panda_manifold_weld():
+    """A Panda welded to a fixture, 40 exact configurations spread over the whole self-motion (a walk of 5 s):
+    the modules that read it share one xdist group (`SHARED`), so one worker computes it once."""
+    from closedloop.studies.montecarlo import weld_scenario
+
+    return weld_scenario(n=1, seed=3, pool="manifold", n_pool=40)
+
+
+@pytest.fixture(scope="session")
+def package_trees() -> dict[Path, ast.Module]:
+    """Every module of ``closedloop/`` parsed with `ast` (nothing imported), by path: the checks on the package's
+    source read it (1-2 s to parse), in one xdist group (`SHARED`)."""
+    package = Path(__file__).resolve().parents[1] / "closedloop"
+    return {p: ast.parse(p.read_text(), filename=str(p)) for p in sorted(package.rglob("*.py"))}
+
+
 # --------------------------------------------------------------------------- one worker per costly fixture
 # A fixture scoped to its module (a simulated dataset, a calibration the tests then read) is computed once per
 # worker that runs one of its tests, and again whenever that worker ran another module's test in between: a
 # module with such a fixture runs whole on one worker (xdist's `loadgroup`), so the fixture is computed once.
+# The modules reading one of the session fixtures in `SHARED` run on one worker too, in a group named by it.
+SHARED = ("panda_manifold_weld", "package_trees")
+
+
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the groups
 def pytest_collection_modifyitems(config, items):
     def own_module_fixture(item) -> bool:
@@ -38,11 +62,15 @@ def pytest_collection_modifyitems(config, items):
             for fd in info.name2fixturedefs.get(name, ())
         )
 
-    grouped = {item.nodeid.split("::")[0] for item in items if own_module_fixture(item)}
+    grouped = {item.nodeid.split("::")[0]: item.nodeid.split("::")[0] for item in items if own_module_fixture(item)}
+    for item in items:
+        for name in SHARED:
+            if name in getattr(item, "fixturenames", ()):
+                grouped[item.nodeid.split("::")[0]] = name
     for item in items:
         module = item.nodeid.split("::")[0]
         if module in grouped and item.get_closest_marker("xdist_group") is None:
-            item.add_marker(pytest.mark.xdist_group(module))
+            item.add_marker(pytest.mark.xdist_group(grouped[module]))
 
 
 # --------------------------------------------------------------------------- what the run left out

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import ray  # in the test extra: a real local Ray cluster
 import yaml
 
 from closedloop.cli.main import main
@@ -23,7 +22,7 @@ from closedloop.errors import InputError
 from closedloop.fleet.batch import read_manifest, run_batch
 from closedloop.io.logs import JointLog
 from closedloop.parallel.executor import get_engine
-from closedloop.studies.montecarlo import panda_urdf, weld_scenario
+from closedloop.studies.montecarlo import panda_urdf
 
 NOISE = 1e-4
 JOINT = "panda_joint4"
@@ -32,9 +31,10 @@ FIX = ["panda_joint4.x"]  # the length that sets the scale (thesis 3.3), the sam
 
 
 @pytest.fixture(scope="module")
-def truth():
-    """A Panda welded to a fixture; 40 configurations spread over the whole self-motion."""
-    return weld_scenario(n=1, seed=3, pool="manifold", n_pool=40)
+def truth(panda_manifold_weld):
+    """A Panda welded to a fixture, 40 configurations spread over the whole self-motion (conftest's, shared
+    with the other module of this xdist group)."""
+    return panda_manifold_weld
 
 
 def write_fleet(folder: Path, sc, drifts: list[float], seed: int = 0, broken: bool = False, cv: int = 3) -> Path:
@@ -80,6 +80,8 @@ def params(out: Path) -> dict:
 
 @pytest.fixture(scope="module")
 def cluster():
+    import ray  # in the test extra: a real local Ray cluster (imported here, not when a worker collects this file)
+
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()

@@ -11,7 +11,6 @@ from closedloop import CalibrationOptions, calibrate
 from closedloop.calibration.pipeline import build_problem
 from closedloop.fleet.drift import compare, gauge_record, in_gauge_of
 from closedloop.model.parameters import parse_fix
-from closedloop.studies.montecarlo import weld_scenario
 
 NOISE = 1e-5  # a good encoder: the standard errors are small beside a gauge change
 JOINT = "panda_joint4"
@@ -26,9 +25,10 @@ def one_blas_thread():
 
 
 @pytest.fixture(scope="module")
-def sc():
-    """A Panda welded to a fixture, 40 configurations spread over the whole self-motion."""
-    return weld_scenario(n=1, seed=3, pool="manifold", n_pool=40)
+def sc(panda_manifold_weld):
+    """A Panda welded to a fixture, 40 configurations spread over the whole self-motion (conftest's, shared
+    with the other module of this xdist group)."""
+    return panda_manifold_weld
 
 
 def calibrated(sc, offset_drift: float, seed: int, fix: str | list[str] | None) -> dict:

@@ -8,7 +8,6 @@ import os
 
 import numpy as np
 import pytest
-import ray  # in the test extra: these tests run a real local Ray cluster
 
 from closedloop import CalibrationOptions
 from closedloop.parallel import executor as ex
@@ -41,6 +40,8 @@ def one_blas_thread():
 @pytest.fixture(scope="module")
 def cluster():
     import sys
+
+    import ray  # in the test extra: a real local Ray cluster (imported here, not when a worker collects this file)
 
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers do not see tests/

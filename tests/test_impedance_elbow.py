@@ -65,6 +65,7 @@ def test_square_wave_sharp_and_accurate_away_from_steps(runs):
     assert away <= 1.5, away
 
 
+@pytest.mark.slow  # the same checks on the thesis forearm: test_impedance_estimate.py::test_iv_removes_voluntary_torque_bias
 def test_voluntary_torque_switches_to_iv(runs):
     ens, truth, est = runs["voluntary"]
     assert est.options.method == "iv" and any("instrumental-variable" in n for n in est.notes)

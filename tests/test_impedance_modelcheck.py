@@ -34,7 +34,13 @@ def test_threshold():
     assert RATIO_ALARM == 1.25
 
 
-@pytest.mark.parametrize("kw", [{}, pytest.param({"stiffness": "square"}, marks=pytest.mark.slow)])
+# The constant elbow on the coarser grid of the timing tests (blocks of 3 cycles, 2 RK4 substeps: 1 s, not 10 s):
+# its ratio is 0.94-1.00 over seeds 1-3; the square wave at the full setting.
+@pytest.mark.parametrize(
+    "kw",
+    [{"cycles_per_block": 3, "substeps": 2}, pytest.param({"stiffness": "square"}, marks=pytest.mark.slow)],
+    ids=["constant-coarse", "square"],
+)
 def test_silent_on_the_independent_elbow(kw):
     rec, _ = simulate_elbow(ElbowConfig(seed=1, **kw))
     _, _, chk = _check(rec)

@@ -76,10 +76,11 @@ def _modules() -> dict[str, Path]:
 MODULES = _modules()
 
 
-# Parsed when a test asks (a module fixture), not at import: every xdist worker imports this file to collect it.
+# Parsed when a test asks (conftest's session fixture, shared with test_one_way), not at import: every xdist
+# worker imports this file to collect it.
 @pytest.fixture(scope="module")
-def parsed() -> dict[str, tuple[Path, ast.Module]]:
-    return {m: (p, ast.parse(p.read_text(), filename=str(p))) for m, p in MODULES.items()}
+def parsed(package_trees) -> dict[str, tuple[Path, ast.Module]]:
+    return {m: (p, package_trees[p]) for m, p in MODULES.items()}
 
 
 def _package_of(module: str, path: Path) -> str:

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from scipy import stats
 
 from closedloop import CalibrationOptions, calibrate
 from closedloop.calibration.pipeline import build_problem
@@ -42,6 +41,8 @@ def test_monte_carlo_against_cramer_rao(scenario):
     (sandwich) covariance is ~2.2 x the bound here, and it carries a second-order
     errors-in-variables bias; require efficiency > 1.3 (a > 6 std excess).
     """
+    from scipy import stats  # here, not at import: every xdist worker imports this file to collect it
+
     M = 30
     mc = monte_carlo(scenario, NOISE, M, seed=1)
     L = len(mc.names)

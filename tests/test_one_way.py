@@ -23,13 +23,11 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "closedloop"
 
 
-# Parsed when a test asks (a module fixture), not at import: every xdist worker imports this file to collect it.
+# Parsed when a test asks (conftest's session fixture, shared with test_layout), not at import: every xdist
+# worker imports this file to collect it.
 @pytest.fixture(scope="module")
-def sources() -> dict[str, ast.Module]:
-    return {
-        p.relative_to(PACKAGE.parent).as_posix(): ast.parse(p.read_text(), str(p))
-        for p in sorted(PACKAGE.rglob("*.py"))
-    }
+def sources(package_trees) -> dict[str, ast.Module]:
+    return {p.relative_to(PACKAGE.parent).as_posix(): tree for p, tree in package_trees.items()}
 
 
 STREAMS = {"stdout", "stderr", "__stdout__", "__stderr__"}

@@ -20,6 +20,8 @@ A joint placement error is a right twist in the joint's own frame:
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pinocchio as pin
 
@@ -81,6 +83,11 @@ def perturbable_parameters(model: pin.Model, joint_names: list[str], scale: bool
     return names
 
 
+# identifiable_parameters' answers in this process, by nominal robot file's text, scenario, joints and `scale`
+_IDENTIFIABLE: dict[tuple[str, str, tuple[str, ...], bool], tuple[str, ...]] = {}
+_IDENTIFIABLE_KEPT = 64
+
+
 def identifiable_parameters(nominal_path, sc: Scenario, joint_names: list[str], scale: bool = False) -> list[str]:
     """The parameters to perturb: those a calibration of the scenario's loop estimates.
 
@@ -90,7 +97,23 @@ def identifiable_parameters(nominal_path, sc: Scenario, joint_names: list[str], 
     (:mod:`closedloop.studies.identifiable`: self-motion through the grasp configuration for a closed
     loop, random configurations for a measured one).  Loop types with no loop class in the
     calibration core fall back to :func:`perturbable_parameters`.
+
+    The answer depends on the nominal file, the scenario and the joints alone (its walk has a fixed seed):
+    kept for the process (the last 64), so that another dataset of the same scenario (another seed, size
+    or setting) does not walk the nominal robot's self-motion again.
     """
+    key = (Path(nominal_path).read_text(), repr(sc), tuple(joint_names), bool(scale))
+    names = _IDENTIFIABLE.get(key)
+    if names is None:
+        names = tuple(_identifiable_parameters(nominal_path, sc, joint_names, scale))
+        if len(_IDENTIFIABLE) >= _IDENTIFIABLE_KEPT:
+            del _IDENTIFIABLE[next(iter(_IDENTIFIABLE))]
+        _IDENTIFIABLE[key] = names
+    return list(names)
+
+
+def _identifiable_parameters(nominal_path, sc: Scenario, joint_names: list[str], scale: bool) -> list[str]:
+    """`identifiable_parameters`, computed."""
     from closedloop.model.robot import RobotModel
     from closedloop.studies.identifiable import DEFAULT_IDENTIFY, identifiable_names, measured_identifiable_names
 

@@ -355,16 +355,32 @@ def _loop_problem(robot: RobotModel):
 
 
 def close_readings(problem, readings: np.ndarray, iters: int = 200) -> tuple[np.ndarray, float]:
-    """Damped Gauss-Newton on the readings until the problem's (nominal-valued) loop closes."""
+    """Damped Gauss-Newton on the readings (1, n) until the problem's (nominal-valued) loop closes: the
+    readings and the largest closure residual."""
+    th, err = close_many(problem, readings, iters)
+    return th, float(err[0])
+
+
+def close_many(problem, starts: np.ndarray, iters: int = 200) -> tuple[np.ndarray, np.ndarray]:
+    """Damped Gauss-Newton on the readings from each row of `starts` (k, n) until the problem's
+    (nominal-valued) loop closes or `iters` steps: the readings (k, n) and each row's largest closure
+    residual.  The rows still open are evaluated together (one evaluation of 40 rows costs 4 of one row)."""
     x = problem.nominal
-    th = np.atleast_2d(readings)
+    th = np.array(np.atleast_2d(starts), dtype=float)
+    open_rows = np.arange(th.shape[0])
     for _ in range(iters):
-        ev = problem.evaluate(x, True, [th])[0]
-        if np.abs(ev.r).max() < 1e-13:
+        if not open_rows.size:
             break
-        J = ev.Jq[0]
-        th = th - np.linalg.solve(J.T @ J + 1e-6 * np.eye(J.shape[1]), J.T @ ev.r[0])[None]
-    return th, float(np.abs(problem.evaluate(x, False, [th])[0].r).max())
+        ev = problem.evaluate(x, True, [th[open_rows]])[0]
+        still = []
+        for k, i in enumerate(open_rows):
+            if np.abs(ev.r[k]).max() < 1e-13:
+                continue
+            J = ev.Jq[k]
+            th[i] = th[i] - np.linalg.solve(J.T @ J + 1e-6 * np.eye(J.shape[1]), J.T @ ev.r[k])
+            still.append(i)
+        open_rows = np.array(still, dtype=int)
+    return th, np.abs(problem.evaluate(x, False, [th])[0].r).max(axis=1)
 
 
 def nominal_closed_pose(robot: RobotModel, seed: int = 100) -> np.ndarray:
@@ -373,8 +389,8 @@ def nominal_closed_pose(robot: RobotModel, seed: int = 100) -> np.ndarray:
     off = prob.nominal[prob.rp.offset_index()]
     rng = np.random.default_rng(seed)
     best = None
-    for _ in range(40):
-        th, err = close_readings(prob, rng.uniform(-1.2, 1.2, (1, len(robot.joint_names))))
+    closed, errs = close_many(prob, rng.uniform(-1.2, 1.2, (40, len(robot.joint_names))))  # 40 starts
+    for th, err in zip(closed[:, None, :], errs):
         if err > 1e-12:
             continue
         th = ((th + off + np.pi) % (2 * np.pi) - np.pi) - off
