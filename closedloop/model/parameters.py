@@ -245,7 +245,25 @@ class RobotParameters:
         so the generator block of joint j is Jexp6(p_j) (Pinocchio's right Jacobian).
         D-H rows: each of s, a, alpha moves the constant part C of A_j along a
         one-parameter subgroup, so its generator is exact at any value.
+
+        The last state is kept and given again for the same values (a walk evaluates one configuration at a
+        time at one model: a model copy per call was an eighth of its time); callers read it, and its `data`
+        is Pinocchio's scratch.
         """
+        values = np.asarray(values, dtype=float)
+        key = values.tobytes()
+        kept = self.__dict__.get("_applied")
+        if kept is not None and kept[0] == key:
+            return kept[1]
+        state = self._apply(values)
+        self.__dict__["_applied"] = (key, state)
+        return state
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "_applied"}  # a model and its data: not sent
+
+    def _apply(self, values: np.ndarray) -> RobotState:
+        """`apply`, computed."""
         robot = self.robot
         model = robot.model.copy()
         P = len(self.params)
