@@ -2,8 +2,7 @@
 
 Exact data from `thesis_examples.py` (loops closed with Pinocchio on the true D-H table).  On
 Examples 1 and 2 and point contact all starts here but at most one must be recovered (the calibrated
-mechanism equals the truth to 1e-6, gauge-free, and the verdict is not 'failed'; Example 2's start 2 is
-one of its two refusals in 40); Example 1's starts 11 and 16
+mechanism equals the truth to 1e-6, gauge-free, and the verdict is not 'failed'); Example 1's starts 11 and 16
 are ones where the start model closes only one of the 40 configurations, so the reduction must be
 decided at the solution (`identifiability.Structure.provisional`).  The door (hinge unknown; its
 data's weakest direction is 3e-8 of the strongest): start 8 stops at a local minimum 1e-6 m above
