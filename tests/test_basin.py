@@ -2,18 +2,19 @@
 
 Exact data from `thesis_examples.py` (loops closed with Pinocchio on the true D-H table).  On
 Examples 1 and 2 and point contact all starts here but at most one must be recovered (the calibrated
-mechanism equals the truth to 1e-6, gauge-free, and the verdict is not 'failed'; Example 2's start 2 is
-one of its two refusals in 40); Example 1's starts 11 and 16
+mechanism equals the truth to 1e-6, gauge-free, and the verdict is not 'failed'); Example 1's starts 11 and 16
 are ones where the start model closes only one of the 40 configurations, so the reduction must be
 decided at the solution (`identifiability.Structure.provisional`).  The door (hinge unknown; its
 data's weakest direction is 3e-8 of the strongest): start 8 stops at a local minimum 1e-6 m above
-zero whose residual is smooth along the swing, which sends it to restarts (`solve._systematic`);
+zero whose residual is smooth along the swing (`solve._systematic`), which sends it along its valley;
 start 12's start drops j5.s as redundant, which it is not at the solution (`structure_holds`); start
 27's weighted fit stalls at closure 3e-9 with nothing truncated and is finished by the plain fit from it
 (`solve._polished`); start 20 stops at a spurious minimum (closure 4e-7, a robot 0.7 off) that no
-restart leaves, and is left along its weakest directions (`solve.valley_starts`) as soon as the first
-restart stops on the same floor (`solve._valley_floor`).  The rates over
-40-100 starts are `benchmarks/basin.py`'s.
+restart leaves, and is left along its weakest directions (`solve.valley_starts`) before any restart:
+it stopped on a valley's floor (`solve._floor`).  On this exact data the outlier screen rejects the
+swing's ends at a fit stalled on such a floor (8 and 20): the fit on the other rows is left along the
+valley from the first start that stops on it (`solve.solve_from_starts`), and at the truth every
+rejected row is readmitted.  The rates over 40-100 starts are `benchmarks/basin.py`'s.
 """
 
 from __future__ import annotations

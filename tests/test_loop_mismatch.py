@@ -238,3 +238,28 @@ def test_hinge_on_a_held_tool_names_the_weld_loop(panda):
     d = np.array([0.5, 0.1, 0.4]) + np.zeros((20, 3))
     with pytest.raises(LoopError, match=r"is this a weld\? --loop weld:frame=handle,name=door"):
         HingeLoop("door", "handle").prepare(*_poses(R, d))
+
+
+def test_a_robot_whose_loops_do_not_move_with_its_joints_closes_nothing():
+    """`_collapsed`: a fit whose joint readings no longer move the loop (every joint's scale at 1e-12: the
+    closure's response to the readings, J_theta, at round-off) is no robot, whatever its closure; the
+    nominal robot, a 1 % change of every joint origin and scales halved are robots."""
+    from closedloop.calibration.solve import _collapsed
+    from closedloop.io.logs import JointLog
+
+    robot = RobotModel.from_file(Path(__file__).resolve().parent / "data" / "iiwa14.urdf")
+    theta = np.random.default_rng(0).uniform(-1.0, 1.0, (20, len(robot.joint_names)))
+    problem = build_problem(robot, JointLog(robot.joint_names, theta), [parse_loop("point:frame=tool0", robot)])
+    scales = [k for k, n in enumerate(problem.names) if n.endswith(".scale")]
+    origins = [k for k, n in enumerate(problem.names) if n.rsplit(".", 1)[1] in ("x", "y", "z")]
+    x = problem.nominal
+    assert len(scales) == 7 and not _collapsed(problem, x)
+    moved = x.copy()
+    moved[origins] += 0.01 * np.random.default_rng(1).standard_normal(len(origins))
+    assert not _collapsed(problem, moved)
+    halved = x.copy()
+    halved[scales] = 0.5
+    assert not _collapsed(problem, halved)
+    gone = x.copy()
+    gone[scales] = 1e-12
+    assert _collapsed(problem, gone)

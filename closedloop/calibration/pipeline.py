@@ -536,7 +536,8 @@ def solve_screened(
     if screened is not None:
         problem, rejected, x_robust = screened
         structure = analyse_structure(structure_problem(problem), x0, free)
-        fit = solve_from_starts(problem, x0, [x0, x_robust], structure.kept, opt, sigma_q, known, progress)
+        weak = structure.nearly_redundant(problem.index)
+        fit = solve_from_starts(problem, x0, [x0, x_robust], structure.kept, opt, sigma_q, known, progress, weak)
     fit = solve_with_restarts(
         problem, x0, structure.kept, opt, sigma_q, known, rng, progress, fit, structure.nearly_redundant(problem.index)
     )

@@ -193,11 +193,15 @@ def _closure_level(problem: CalibrationProblem, stage: StageResult, plausible: f
     """The typical configuration's closure in units of what `plausible` joint noise (rad: the verdict's
     `VerdictRules.plausible_joint_noise`, 2 mrad by default: no encoder reads worse; a closure it cannot explain
     is a stalled fit), plus the loops' own measurement noise (a camera's pixels), explains: the median, so that a
-    few outliers do not count."""
+    few outliers do not count.  Infinite for a degenerate robot whose loops do not move with its joints
+    (`_collapsed`): it closes nothing."""
     if stage.closure_level is not None:
         return stage.closure_level
     if not np.isfinite(stage.solution.cost):
         return np.inf
+    if _collapsed(problem, stage.fun.full(stage.solution.x)):
+        stage.closure_level = np.inf
+        return stage.closure_level
     fun = ResidualFunction(
         problem, stage.fun.full(stage.solution.x), [], np.full(len(problem.joints), plausible), "noise"
     )
@@ -206,6 +210,41 @@ def _closure_level(problem: CalibrationProblem, stage: StageResult, plausible: f
     )
     stage.closure_level = float(np.median(per_config)) if per_config.size else 0.0
     return stage.closure_level
+
+
+COLLAPSED = 1e-6  # a loop's response to its joints, over the nominal robot's, below which the fit is no robot
+SENSITIVITY_CONFIGS = 16  # configurations per block that response is compared on (`_collapsed`)
+
+
+def _collapsed(problem: CalibrationProblem, x: np.ndarray) -> bool:
+    """A robot whose loops do not move with its joints: a degenerate fit, whose closure says nothing.
+
+    With the tool point on every joint axis it passes through (links folded onto the axes) a point
+    contact closes every configuration trivially: the closure is round-off, and so is the joint noise's
+    effect on it, W_i = J_theta,i Sigma J_theta,i^T (eq. 3.17), so the weighted closure is 0/0, any
+    number (its rounding decides whether such a fit looks like one within the noise).  Compared here is
+    each block's median |J_theta,i| (Frobenius) over a few configurations (`SENSITIVITY_CONFIGS`, evenly
+    spaced) at `x` with that of the nominal robot (the same loop parameters): a calibration moves lever
+    arms by percent, a degenerate fit shrinks them to round-off (1e-11 and below); `COLLAPSED` lies
+    orders of magnitude from both.  A block whose loop does not move with the joints at the nominal robot
+    (a known distance) does not count.
+    """
+    sub = problem.sampled(SENSITIVITY_CONFIGS)
+    ref = x.copy()
+    ref[: problem.n_robot] = problem.nominal[: problem.n_robot]
+
+    def response(values: np.ndarray) -> list[float]:
+        out = []
+        for ev in sub.evaluate(values, True, columns=[]):
+            norms = np.linalg.norm(ev.Jq, axis=(1, 2)) if ev.Jq is not None and ev.Jq.size else np.zeros(0)
+            out.append(float(np.median(norms)) if norms.size else 0.0)
+        return out
+
+    at_fit, at_nominal = response(x), response(ref)
+    gone = [a < COLLAPSED * n for a, n in zip(at_fit, at_nominal) if n > 0.0 and np.isfinite(n)]
+    if any(gone):
+        log.info("the fit's loops do not move with its joints (a degenerate robot): it closes nothing")
+    return any(gone)
 
 
 def _stalled(problem: CalibrationProblem, fit: Fit, plausible: float) -> bool:
@@ -283,10 +322,12 @@ def solve_with_restarts(
     does, the one with the lowest unweighted closure.  When no restart leaves
     the minimum, it is left along its valley (`_along_valley`), with the
     `weak` parameters (`Structure.nearly_redundant`) freed: a reduction read
-    off the start may hold back a parameter the solution needs.  The valley
-    is searched as soon as a restart stops where the given start did, a hair
-    above zero (`_valley_floor`): further restarts reach the same floor, at
-    the cost of a full fit each, where the search along it takes plain fits.
+    off the start may hold back a parameter the solution needs.  A fit that
+    stopped within a plausible noise at a residual that is no noise
+    (`_systematic`: a spurious minimum a hair above zero, the floor of a long
+    valley of a single self-motion, the door) has its valley searched first:
+    restarts reach the same floor at the cost of a full fit each, where the
+    search along it takes plain fits.
     """
     fit = first if first is not None else solve_staged(problem, x0, x0, est, opt, sigma_q, known, progress)
     plausible = opt.rules.plausible_joint_noise
@@ -295,15 +336,18 @@ def solve_with_restarts(
     scale = np.array([p.prior for p in problem.params])
     fits = [fit]
     starts = []
-    sub = [k for k in est if problem.params[k].kind in ("loop", "offset")]
-    if sub and len(sub) < len(est):
-        starts.append(solve_staged(problem, x0, x0, sub, opt, sigma_q, known, plain_start=True).x)
-    for size in (1.0, 3.0, 1.0, 3.0)[: max(opt.restarts - len(starts), 0)]:
-        starts.append(random_start(x0, est, scale, rng, size))
     log.info(
         "the fit from the given start stalled at closure level %.3g", _closure_level(problem, fit.stage, plausible)
     )
-    hopeless = valley = False
+    valley = _floor(problem, fit, plausible)  # searched along first
+    found = valley and _along_valley(problem, x0, fit, est, opt, sigma_q, known, progress, fits, weak or [])
+    if not found:
+        sub = [k for k in est if problem.params[k].kind in ("loop", "offset")]
+        if sub and len(sub) < len(est):
+            starts.append(solve_staged(problem, x0, x0, sub, opt, sigma_q, known, plain_start=True).x)
+        for size in (1.0, 3.0, 1.0, 3.0)[: max(opt.restarts - len(starts), 0)]:
+            starts.append(random_start(x0, est, scale, rng, size))
+    hopeless = False
     for k, st in enumerate(starts[: opt.restarts]):
         log.info("restart %d: the fit stalled far above the noise or where its residual is not noise", k + 1)
         fits.append(solve_staged(problem, x0, st, est, opt, sigma_q, known, progress))
@@ -313,12 +357,6 @@ def solve_with_restarts(
         hopeless = _hopeless(problem, fits, opt.rules)
         if hopeless:
             break
-        if not valley and _valley_floor(problem, fits, plausible):
-            # a restart from elsewhere stopped, like the given start, a hair above zero: the valley's floor;
-            # along it (cheap) before more starts, which reach the same floor
-            valley = True
-            if _along_valley(problem, x0, fit, est, opt, sigma_q, known, progress, fits, weak or []):
-                break
     good = [f for f in fits if _good(problem, f, plausible)]
     if not good and not hopeless and not valley:  # no restart left the valley: along it, the nearly redundant freed
         good = _along_valley(problem, x0, fit, est, opt, sigma_q, known, progress, fits, weak or [])
@@ -344,17 +382,6 @@ def solve_with_restarts(
             "this data (check each loop's type and frames against the rig)"
         )
     return best
-
-
-def _valley_floor(problem: CalibrationProblem, fits: list[Fit], plausible: float) -> bool:
-    """The given start's fit and the last restart's both stopped within a plausible noise (closure level at
-    most 1) at a residual that is no noise (`_systematic`): a spurious minimum a hair above zero that other
-    starts reach as well, the floor of a long valley (a single self-motion: the door) that `valley_starts`
-    leaves along it."""
-    return len(fits) >= 2 and all(
-        _closure_level(problem, f.stage, plausible) <= 1.0 and _systematic(problem, f, plausible)
-        for f in (fits[0], fits[-1])
-    )
 
 
 HOPELESS = 5.0  # times the joint noise the verdict fails (`VerdictRules.failed_joint_noise`): a hopeless closure
@@ -453,6 +480,19 @@ def _along_valley(
     return [f for f in fits if _good(problem, f, plausible)]
 
 
+def _floor(problem: CalibrationProblem, fit: Fit, plausible: float) -> bool:
+    """The fit stopped within a plausible noise (closure level at most 1) at a residual that is no noise:
+    smooth along the log (`_systematic`), or below `EXACT_LEVEL` and above round-off (1e-9) with directions
+    truncated below it (exact data: no encoder reads a thousand times better than plausible).  A spurious
+    minimum a hair above zero, the floor of a long valley (a single self-motion: the door) that other
+    starts reach as well and `valley_starts` leaves along it."""
+    level = _closure_level(problem, fit.stage, plausible)
+    if level > 1.0:
+        return False
+    exact = fit.stage.solution.truncated > 0 and 1e-9 <= level < EXACT_LEVEL
+    return exact or _systematic(problem, fit, plausible)
+
+
 def _good(problem: CalibrationProblem, fit: Fit, plausible: float) -> bool:
     """The fit closes within a plausible noise (`_closure_level`) and its residual is noise (not `_systematic`)."""
     return _closure_level(problem, fit.stage, plausible) <= 1.0 and not _systematic(problem, fit, plausible)
@@ -547,16 +587,30 @@ def solve_from_starts(
     sigma_q: np.ndarray,
     known: bool,
     progress: ProgressReporter | None = None,
+    weak: list[int] | None = None,
 ) -> Fit:
     """`solve_staged` from each start; of the fits that close as well as the best, the nearest to x0 (`_better`).
 
     After outliers are rejected the robust refit's point is one start and x0 the
     other: a robust fit dragged by the rejected rows may lead the inliers' fit
-    to another minimum than the plain start would.
+    to another minimum than the plain start would.  A fit that stops on a
+    valley's floor (`_floor`) is first left along the valley (`_along_valley`,
+    `weak` freed, as `solve_with_restarts` would next); where that closes within
+    the noise the later starts are not solved: they reach the same floor, at a
+    full fit each (the door's exact data, a few rows rejected by a screen at a
+    stalled fit).
     """
     scale = np.array([p.prior for p in problem.params])
-    fits = [solve_staged(problem, x0, st, est, opt, sigma_q, known, progress) for st in starts]
-    stage = _better(problem, [f.stage for f in fits], x0, est, scale, opt.rules.plausible_joint_noise)
+    plausible = opt.rules.plausible_joint_noise
+    fits = []
+    for st in starts:
+        fits.append(solve_staged(problem, x0, st, est, opt, sigma_q, known, progress))
+        if _floor(problem, fits[-1], plausible):
+            good = _along_valley(problem, x0, fits[-1], est, opt, sigma_q, known, progress, [], weak or [])
+            if good:
+                log.info("a fit stopped on a valley's floor; along the valley a fit closes within the noise")
+                return min(good, key=lambda f: float(np.linalg.norm((f.x - x0)[est] / scale[est])))
+    stage = _better(problem, [f.stage for f in fits], x0, est, scale, plausible)
     return next(f for f in fits if f.stage is stage)
 
 
