@@ -187,8 +187,8 @@ def analyse_solution(
     """Standard errors, weak directions and the chi-square test at the solution (eq. 4.17 truncation).
 
     With `sandwich` the covariance is the sandwich one clustered by cells of joint space
-    (`model_error.sandwich_cov`, `configuration_cells`): the residual is not the assumed noise.  Edits `status` ('unidentifiable' for the parameters of weak
-    directions).
+    (`model_error.sandwich_cov`, `configuration_cells`): the residual is not the assumed noise.  Edits
+    `status` ('unidentifiable' for the parameters of weak directions).
     """
     est, fun = fit.est, fit.stage.fun
     scale = np.array([p.prior for p in problem.params])

@@ -330,28 +330,26 @@ def sandwich_cov(
     scale: np.ndarray,
     V: np.ndarray,
     S: np.ndarray,
-    clusters: list[np.ndarray] | None = None,
+    clusters: list[np.ndarray],
 ) -> np.ndarray:
     """The sandwich (Huber-White) covariance clustered by configuration, with the usual small-sample factor.
 
     Cov = c A^+ (sum_g J_g^T r_g r_g^T J_g) A^+, the sum over the clusters g (all rows of the configurations of
-    one cluster: per block, a label per configuration in `clusters`, `configuration_cells`; None: each
-    configuration its own), c = G/(G-1) (N-1)/(N-p) (CR1: G clusters, N rows, p parameters).
+    one cluster: per block, a label per configuration in `clusters`, `configuration_cells`), c = G/(G-1) (N-1)/(N-p) (CR1: G clusters, N rows, p parameters).
     `V`, `S`: the kept right singular vectors and values of the scaled J (the directions the fit determines);
     A^+ = V S^-2 V^T.  A block without configurations (a known distance) is one cluster.  Returns the
     covariance in the parameters' own units.
     """
     Ainv = (V / S**2) @ V.T
-    parts, labels, count = [], [], 0
-    for bi, (at, n, m) in enumerate(_config_rows(problem)):
+    parts = []
+    for at, n, m in _config_rows(problem):
         R, Jb = r[at : at + n * m].reshape(n, m), J[at : at + n * m].reshape(n, m, -1)
         g = R[:, :1] * Jb[:, 0]  # J_g^T r_g per configuration, a residual row at a time (no copy of J)
         for j in range(1, m):
             g += R[:, j : j + 1] * Jb[:, j]
         parts.append(g * scale)
-        labels.append(np.arange(count, count + n) if clusters is None else np.asarray(clusters[bi]))
-        count += n
     g = np.concatenate(parts) if parts else np.zeros((0, S.size))
+    labels = [np.asarray(c) for c in clusters]
     _, inv = np.unique(np.concatenate(labels), return_inverse=True) if labels else (None, np.zeros(0, int))
     G = int(inv.max()) + 1 if inv.size else 0
     sums = np.zeros((G, g.shape[1]))

@@ -23,6 +23,7 @@ as an input of the running command; `closedloop.model.robot.RobotModel.from_file
 
 from __future__ import annotations
 
+import difflib
 import math
 import os
 import re
@@ -119,8 +120,6 @@ def _numbers(path: Path, where: str, text: str | None, n: int) -> list[float] | 
 def _attributes(path: Path, where: str, el: ET.Element) -> None:
     """Refuse an attribute of `el` (an <origin>, <axis> or <limit>) spelt close to one URDF reads and `el` lacks
     (``<origin xzy=...>``: the origin would be zero); others (a vendor's ``command_effort``) are left."""
-    import difflib
-
     absent = [a for a in JOINT_ATTRIBUTES[str(el.tag)] if a not in el.attrib]
     for attr in el.attrib:
         near = difflib.get_close_matches(attr, absent, n=1, cutoff=0.6)
@@ -134,8 +133,6 @@ def _attributes(path: Path, where: str, el: ET.Element) -> None:
 def _misspelt(path: Path, joint: str, el: ET.Element) -> None:
     """Refuse a joint's element spelt close to one URDF reads and the joint lacks (``<orgin>``), and a misspelt attribute of its
     <origin>, <axis> or <limit>: each would be skipped, the joint keeping its default (module doc)."""
-    import difflib
-
     for child in el:
         tag = child.tag if isinstance(child.tag, str) else ""
         if tag in JOINT_ATTRIBUTES:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
-from typing import Iterator
 
 import numpy as np
 
@@ -97,15 +96,6 @@ class ChunkStack:
         r = out.pop("r")
         assert r is not None  # every chunk has r, and a block is chunked only when it has configurations
         return BlockEval(r=r, **out)
-
-
-def stack_chunks(parts: Iterator[BlockEval], N: int) -> BlockEval:
-    """One block's evaluation of N configurations from its chunks, in order (`ChunkStack`)."""
-    stack, a = ChunkStack(N), 0
-    for part in parts:
-        stack.put(a, part)
-        a += part.r.shape[0]
-    return stack.result()
 
 
 def copy_eval(e: BlockEval, jacobian: bool, no_columns: bool) -> BlockEval:
