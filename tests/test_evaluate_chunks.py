@@ -113,7 +113,8 @@ def test_large_jacobian_evaluation_keeps_its_residual_and_jq(monkeypatch):
     real = problem._evaluate
     monkeypatch.setattr(problem, "_evaluate", lambda *a: calls.append(a[1:]) or real(*a))
     full = problem.evaluate(x, True, columns=[0, 3, 5])
-    full[0].r[:] = 0.0  # the caller owns what it got: the kept copy is not touched
+    with pytest.raises(ValueError):  # shared with the memo: read-only, no caller changes what is kept
+        full[0].r[:] = 0.0
     kept = problem.evaluate(x, True, columns=[])
     assert len(calls) == 1
     again = real(x, True, None, [])

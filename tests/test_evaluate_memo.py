@@ -64,8 +64,8 @@ def test_memo_misses_what_differs(problem):
 
 def test_long_log_keeps_the_jacobian_within_its_byte_budget(problem, monkeypatch):
     """Above MEMO_ROWS configurations the parameter Jacobian is kept while it takes at most MEMO_BYTES: the
-    same columns at the same vector are given again (equal to a fresh evaluation, a copy), without a pass
-    over the log; beyond the budget only the residual and Jq are kept."""
+    same columns at the same vector are given again (equal to a fresh evaluation, shared read-only), without
+    a pass over the log; beyond the budget only the residual and Jq are kept."""
     P = importlib.import_module("closedloop.problem.problem")
 
     prob, x = problem
@@ -75,7 +75,8 @@ def test_long_log_keeps_the_jacobian_within_its_byte_budget(problem, monkeypatch
     real = P.CalibrationProblem._evaluate
     monkeypatch.setattr(P.CalibrationProblem, "_evaluate", lambda s, *a: calls.append(a[1]) or real(s, *a))
     a = prob.evaluate(x, True, columns=[1, 4])
-    a[0].J[:] = 99.0  # the caller's own
+    with pytest.raises(ValueError):  # shared with the memo: read-only
+        a[0].J[:] = 99.0
     b = prob.evaluate(x, True, columns=[1, 4])
     assert len(calls) == 1 and np.array_equal(b[0].J, real(prob, x, True, None, [1, 4])[0].J)
     monkeypatch.setattr(P, "MEMO_BYTES", 0)

@@ -173,7 +173,9 @@ def test_a_bad_robot_and_a_hanging_one_do_not_stop_the_others(tmp_path, geometry
     assert "n/a" in rows[f"{bad}-{DATE}"]["error"] and "\n" not in rows[f"{bad}-{DATE}"]["error"]
     assert rows[f"{stuck}-{DATE}"]["status"] == "failed"
     assert rows[f"{stuck}-{DATE}"]["error"].startswith("JobTimeout: stopped after 4 s"), rows[f"{stuck}-{DATE}"]
-    assert 4.0 <= float(rows[f"{stuck}-{DATE}"]["seconds"]) < 6.0  # stopped by its soft limit
+    # ran to its limit; stopped by the soft one (the message above: the hard one ends the worker, recorded as a
+    # crash), however late a loaded machine lets the job's handler run
+    assert float(rows[f"{stuck}-{DATE}"]["seconds"]) >= 4.0
     ok = [n for n, r in rows.items() if r["status"] == "ok"]
     assert sorted(ok) == [f"{robot_name(i)}-{DATE}" for i in (0, 3)]
     assert published(tmp_path) == sorted(ok)

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from closedloop.estimate.qr import scaled_r_factor_of_blocks
+from closedloop.parallel.chunks import chunk_threads, for_each_chunk
 from closedloop.problem.problem import CalibrationProblem, even_sample
 
 #: rad (m for prismatic joints): a joint reading worse than this is no encoder noise (0.01 deg)
@@ -273,17 +274,26 @@ def plain_linearization(
     for ev, nz in zip(evals, problem.noise):
         if ev.J is None or ev.Jq is None or not ev.J.size:
             continue
-        for a in range(0, ev.J.shape[0], _SUM_CHUNK):  # the temporaries a chunk of configurations at a time
+        starts = list(range(0, ev.J.shape[0], _SUM_CHUNK))
+        sums: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]] = {}
+
+        def chunk(a: int, _slot: None, ev=ev, nz=nz, sums=sums) -> None:  # the temporaries a chunk at a time
             part = ev.J[a : a + _SUM_CHUNK]
             J = np.nan_to_num(part if pick is None else part[:, :, pick]) * scale
             Jq = np.nan_to_num(ev.Jq[a : a + _SUM_CHUNK]) * sigma_q[None, None, :]
             rows = J.reshape(-1, L)
-            JtJ += rows.T @ rows
             M = (np.swapaxes(Jq, 1, 2) @ J).reshape(-1, L)  # J_theta,i^T diag(sigma_q) J_i per configuration
-            meat += M.T @ M
-            if nz.measurement_cov is not None:
-                meat += rows.T @ (nz.measurement_cov @ J).reshape(-1, L)
-            Jtr += rows.T @ np.nan_to_num(ev.r[a : a + _SUM_CHUNK]).reshape(-1)
+            C = None if nz.measurement_cov is None else rows.T @ (nz.measurement_cov @ J).reshape(-1, L)
+            sums[a] = (rows.T @ rows, M.T @ M, C, rows.T @ np.nan_to_num(ev.r[a : a + _SUM_CHUNK]).reshape(-1))
+
+        for_each_chunk(chunk, starts, [None] * chunk_threads(len(starts)))
+        for a in starts:  # summed in the order of the rows, whichever thread formed them
+            jtj, mtm, c, jtr = sums[a]
+            JtJ += jtj
+            meat += mtm
+            if c is not None:
+                meat += c
+            Jtr += jtr
     Ainv = np.linalg.pinv(JtJ, rcond=1e-12, hermitian=True)
     return -(Ainv @ Jtr) * scale, Ainv @ meat @ Ainv * np.outer(scale, scale), float(Jtr @ Ainv @ Jtr)
 

@@ -304,17 +304,19 @@ def _given(a: np.ndarray | None, what: str) -> np.ndarray:
 
 
 def _times(Wh: np.ndarray, J: np.ndarray, overwrite: bool) -> np.ndarray:
-    """Wh @ J for stacks (N, m, m) and (N, m, C); with `overwrite`, into J, a chunk of configurations at a time
-    (on threads, `parallel.chunks`)."""
-    if not overwrite:
-        return Wh @ J
+    """Wh @ J for stacks (N, m, m) and (N, m, C), a chunk of configurations at a time (on threads,
+    `parallel.chunks`); with `overwrite`, into J where it is writable (a kept evaluation is shared read-only:
+    `problem.blocks.read_only`)."""
+    if J.shape[0] <= _CHUNK:
+        return Wh @ J if not (overwrite and J.flags.writeable) else np.matmul(Wh, J, out=J)
+    dest = J if overwrite and J.flags.writeable else np.empty(J.shape)
     starts = list(range(0, J.shape[0], _CHUNK))
 
     def chunk(a: int, _slot: None) -> None:
-        J[a : a + _CHUNK] = Wh[a : a + _CHUNK] @ J[a : a + _CHUNK]
+        dest[a : a + _CHUNK] = Wh[a : a + _CHUNK] @ J[a : a + _CHUNK]
 
     for_each_chunk(chunk, starts, [None] * chunk_threads(len(starts)))
-    return J
+    return dest
 
 
 def _whiten_group(

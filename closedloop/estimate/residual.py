@@ -174,8 +174,10 @@ class ResidualFunction:
             )
         if self.row_weights is not None:
             r = r * self.row_weights
-            if J is not None:
+            if J is not None and J.flags.writeable:
                 J *= self.row_weights[:, None]  # J is whitening's own (or the evaluation's copy)
+            elif J is not None:  # the evaluation itself, kept read-only by the problem (unweighted rows)
+                J = J * self.row_weights[:, None]
         if jac and J is not None:
             self._x, self._rJ, self._trial = xe.copy(), (r, J), None
         elif first_trial:

@@ -98,6 +98,20 @@ class ChunkStack:
         return BlockEval(r=r, **out)
 
 
+def read_only(e: BlockEval) -> BlockEval:
+    """`e` with its arrays made read-only, to be shared as it is (a long log's kept evaluation: a copy of its
+    Jacobian costs a quarter of the pass that made it); a caller that would write into one makes its own."""
+    for a in (e.r, e.J, e.Jq, e.valid, e.cov):
+        if a is not None:
+            a.flags.writeable = False
+    return e
+
+
+def without_columns(e: BlockEval) -> BlockEval:
+    """`e` without the columns of its parameter Jacobian (a view: residuals and Jq kept, J of width 0)."""
+    return BlockEval(e.r, None if e.J is None else e.J[:, :, :0], e.Jq, e.valid, e.cov, e.rows)
+
+
 def copy_eval(e: BlockEval, jacobian: bool, no_columns: bool) -> BlockEval:
     """A copy of a kept evaluation: r only, or with the Jacobians (none of J's columns with `no_columns`)."""
 
