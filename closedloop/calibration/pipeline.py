@@ -74,7 +74,7 @@ from closedloop.estimate.model_error import (
     sandwich_cov,
 )
 from closedloop.estimate.noise import noise_vector
-from closedloop.estimate.outliers import gross_outliers, readmit, reject_outliers
+from closedloop.estimate.outliers import readmit, reject_outliers, start_screen
 from closedloop.estimate.residual import Fit
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
@@ -301,8 +301,6 @@ def _calibrate(
     _check_rows(problem, structure, log_)
     if problem.keeps_jacobians:  # the solve's first J, taken first: the screen and `before` read it (the memo)
         problem.evaluate(x0, True, columns=structure.kept)
-    elif opt.robust == "auto":  # a long log: the screen's whitening (Jq) at the start, kept; `before` reads it
-        problem.evaluate(x0, True, columns=[])
     before, start, structure0 = residual_stats(problem, problem.evaluate(x0, False)), problem, structure
     notes0 = list(notes)  # a re-solve with another estimator writes its own notes
     problem, fit, structure, rejected, suspects = solve_screened(
@@ -524,8 +522,8 @@ def solve_screened(
     suspects: list = []
     screened = fit = None
     refit = False  # the robust refit from x0 has run on these rows (it is deterministic: once is enough)
-    # rows no model error explains: far from a fit of the others (`gross_outliers`)
-    if opt.robust == "auto" and gross_outliers(problem, x0, structure.kept, sigma_q, opt):
+    # rows no model error explains: far from a fit of the others (`gross_outliers`, `start_screen`)
+    if opt.robust == "auto" and start_screen(problem, x0, structure.kept, sigma_q, opt):
         screened, refit = reject_outliers(problem, None, x0, structure.kept, opt, sigma_q, n_rows), True
     if screened is None:
         fit = solve_staged(problem, x0, x0, structure.kept, opt, sigma_q, known, progress)

@@ -428,7 +428,9 @@ class CalibrationProblem:
                     return list(evals)
             out = [read_only(e) for e in self._evaluate(values, jacobian, None, columns)]
             whole = sum(e.J.nbytes for e in out if e.J is not None) <= MEMO_BYTES
-            memo.insert(0, (key, self.blocks, cols if whole else (), out if whole else [without_columns(e) for e in out]))
+            memo.insert(
+                0, (key, self.blocks, cols if whole else (), out if whole else [without_columns(e) for e in out])
+            )
             del memo[2:]
             return out
         for k, blocks, kind, evals in memo:
