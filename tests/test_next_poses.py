@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pinocchio as pin
+import pytest
 import zoo
 
 from closedloop import CalibrationOptions, RobotModel, calibrate
@@ -18,21 +19,18 @@ from closedloop.io.logs import JointLog
 from closedloop.loops.spec import parse_loop
 
 
-def test_the_promised_error_is_the_recalibrations_prediction():
-    """A UR3's tool on a plane (40 configurations, 1e-4 rad): the 8 suggestions' promised RMS error over the
-    workspace lies within 20 % of the one the calibration with them predicts (1.00x; 0.67x where the
-    promise took the plane's place as known, without its uncertainty and its correlation with the arm's).
-    The recalibration estimates the plane's place again: what the new rows tell of it is not what they
-    tell of the arm."""
-    case = zoo.make_case("ur3", "plane", n=40, sigma=1e-4, seed=0)
-    robot = RobotModel.from_file(case.nominal_urdf)
-    loops = [parse_loop(s, robot) for s in case.loop_specs]
+def _promised_and_obtained(robot: str, seed: int, k: int = 8):
+    """A zoo robot's tool on a plane (40 configurations, 1e-4 rad): the `k` suggestions (the suggestion record)
+    and the workspace prediction of the calibration with them played on the true robot (moved onto its
+    plane from them, with fresh joint noise) beside the log."""
+    case = zoo.make_case(robot, "plane", n=40, sigma=1e-4, seed=seed)
+    model = RobotModel.from_file(case.nominal_urdf)
+    loops = [parse_loop(s, model) for s in case.loop_specs]
     options = CalibrationOptions(noise=1e-4)
-    res = calibrate(robot, JointLog(list(case.joints), case.readings), loops, options)
+    res = calibrate(model, JointLog(list(case.joints), case.readings), loops, options)
     acc = predict_from_result(res)
-    nxt = suggest_poses(res, acc, 8)
-    assert nxt is not None and nxt.readings.shape == (8, len(case.joints))
-    assert nxt.rms_after_m[-1] < 0.5 * nxt.rms_before_m  # they are worth recording
+    nxt = suggest_poses(res, acc, k)
+    assert nxt is not None and nxt.readings.shape == (k, len(case.joints))
 
     kin = zoo.Kin(case.true_model, case.joints)
     normal, point = case.meta["geo"]["normal"], case.meta["geo"]["T0"].translation
@@ -47,6 +45,26 @@ def test_the_promised_error_is_the_recalibrations_prediction():
     assert all(th is not None for th in new)  # each suggestion is a configuration the true robot reaches
     played = np.array([th - offsets + rng.normal(scale=1e-4, size=th.shape) for th in new])
     assert np.abs(played - nxt.readings).max() < 0.05  # recorded where suggested
-    res2 = calibrate(robot, JointLog(list(case.joints), np.vstack([case.readings, played])), loops, options)
-    obtained = predict_from_result(res2).frames[0].rms_m
-    assert abs(obtained / nxt.rms_after_m[-1] - 1.0) < 0.2, (nxt.rms_after_m[-1], obtained)
+    res2 = calibrate(model, JointLog(list(case.joints), np.vstack([case.readings, played])), loops, options)
+    return nxt, predict_from_result(res2).frames[0]
+
+
+def test_the_promised_error_is_the_recalibrations_prediction():
+    """A UR3's tool on a plane: the 8 suggestions' promised RMS error over the workspace lies within 20 % of
+    the one the calibration with them predicts (1.00x; 0.67x where the promise took the plane's place as
+    known, without its uncertainty and its correlation with the arm's).  The recalibration estimates the
+    plane's place again: what the new rows tell of it is not what they tell of the arm."""
+    nxt, obtained = _promised_and_obtained("ur3", 0)
+    assert nxt.rms_after_m[-1] < 0.5 * nxt.rms_before_m  # they are worth recording
+    assert abs(obtained.rms_m / nxt.rms_after_m[-1] - 1.0) < 0.2, (nxt.rms_after_m[-1], obtained.rms_m)
+
+
+@pytest.mark.slow
+def test_the_promise_keeps_what_the_recalibration_still_does_not_see():
+    """A Z1's tool on a plane leaves three directions unestimated, and most of its predicted error is the
+    nominal tolerance along them (0.68 of 0.81 mm).  The recalibration with the suggestions still leaves
+    three, other ones: the promise finds them from the log and the new rows, at their tolerance, and lies
+    within 20 % of the recalibration's prediction (1.02x; 1.70x where that part was updated as a prior)."""
+    nxt, obtained = _promised_and_obtained("z1", 0)
+    assert obtained.unseen_rms_m > 0.5 * obtained.rms_m  # what it does not see is most of the error
+    assert abs(obtained.rms_m / nxt.rms_after_m[-1] - 1.0) < 0.2, (nxt.rms_after_m[-1], obtained.rms_m)
