@@ -582,6 +582,28 @@ CASES = [
         ["none of the 2 parameters"],
         {"t.json": '{"parameters": {"joint1.x": 0.001, "socket.px": 0.5}}', "r.json": json.dumps(REPORT)},
     ),
+    # another dataset of the same robot (a loop between two fingertips, the report's a fingertip in a socket):
+    # its true robot is another draw; refused (was a table of errors 21 times the tolerance)
+    Case(
+        "check-other-datasets-loop",
+        ["check", "{t.json}", "{r.json}"],
+        2,
+        ["r.json: its loops close tip_a and the world", "truth of a loop between tip_a and tip_b", "another dataset"],
+        {
+            "t.json": json.dumps(TRUTH | {"loop": {"type": "weld", "frame": "tip_a", "to": "tip_b", "name": "pinch"}}),
+            "r.json": json.dumps(REPORT | {"loops": [{"name": "fixture", "frame_a": "tip_a", "frame_b": "universe"}]}),
+        },
+    ),
+    Case(
+        "check-same-datasets-loop",
+        ["check", "{t.json}", "{r.json}"],
+        0,
+        ["2 within tolerance"],
+        {
+            "t.json": json.dumps(TRUTH | {"loop": {"type": "weld", "frame": "tip_a", "name": "fixture"}}),
+            "r.json": json.dumps(REPORT | {"loops": [{"name": "fixture", "frame_a": "tip_a", "frame_b": "universe"}]}),
+        },
+    ),
     Case(
         "check-notes-a-failed-verdict",
         ["check", "{t.json}", "{r.json}"],

@@ -12,6 +12,7 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from closedloop.analysis.accuracy import predict_from_result
 from closedloop.assets.catalog import ROBOTS
 from closedloop.calibration.pipeline import EIV, NOISE_MODEL, PLAIN, SANDWICH, build_problem, calibrate
 from closedloop.estimate.model_error import ENCODER_NOISE, neighbour_correlation, noise_test
@@ -92,6 +93,8 @@ def test_model_error_is_found_and_the_plain_fit_kept(ur5, error):
     plain = calibrate(robot, train, loops, CalibrationOptions(weighting="none"))
     eiv = calibrate(robot, train, loops, CalibrationOptions(choose_estimator=False))
     assert eiv.noise.estimator == EIV and eiv.noise.error_bars == NOISE_MODEL
+    # the workspace prediction propagates, and names, the covariance the calibration trusts
+    assert predict_from_result(res).error_bars == SANDWICH and predict_from_result(eiv).error_bars == NOISE_MODEL
     figures = {k: held_out_rms(r, robot, test) for k, r in (("default", res), ("none", plain), ("eiv", eiv))}
     assert figures["default"] <= 1.02 * min(figures["none"], figures["eiv"]), figures
 

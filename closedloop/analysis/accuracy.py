@@ -194,7 +194,7 @@ class WorkspaceAccuracy:
     joints: tuple[str, ...]
     readings: np.ndarray = field(repr=False)  # (n, joints) the workspace's joint readings
     source: str  # where the readings come from: 'random within the joint ranges', a log, a box
-    error_bars: str  # the covariance propagated: 'the noise model' or 'the sandwich'
+    error_bars: str  # the covariance propagated (`NoiseRecord.error_bars`): the noise model's or the sandwich
     prior: PriorTolerance
     size_removed: bool  # the overall size removed as the data do not measure it
     training: np.ndarray | None = field(repr=False, default=None)  # (m, joints) the calibration's readings
@@ -819,7 +819,7 @@ def predict_from_result(
             len(res.identifiability.weak),
             readings,
             size_measured=size_measured,
-            error_bars=getattr(res, "error_bars", "the noise model"),
+            error_bars=getattr(getattr(res, "noise", None), "error_bars", "the noise model"),  # `NoiseRecord`'s
             prior=prior,
             source=source or "the given readings",
             default_readings=default,

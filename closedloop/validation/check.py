@@ -182,6 +182,31 @@ def _same_robot(truth: dict, report: dict, truth_source: str, report_source: str
             f"{report_source}: none of the {len(truth['parameters'])} parameters of {truth_source} "
             "is in the report: not the same robot or loops"
         )
+    _same_loop(truth, report, truth_source, report_source)
+
+
+WORLD_FRAMES = (None, "", "universe", "world")  # a loop's second frame when it closes to the world
+
+
+def _same_loop(truth: dict, report: dict, truth_source: str, report_source: str) -> None:
+    """Refuse a simulation's truth whose loop closes to something no loop of the report closes to (the other
+    robot frame of a loop between two, or the world): the truth of another dataset of the same robot, whose
+    true robot is another draw.  The tool's own frame is not compared: a calibration may follow the frame
+    the tool hangs from, with the tool point estimated (`simulate --tool`'s `<frame>_tip`).  A truth without
+    a loop record (written by hand) is not judged."""
+    loop, loops = truth.get("loop"), report.get("loops")
+    if not isinstance(loop, dict) or not loop.get("frame") or not isinstance(loops, list) or not loops:
+        return
+    world = lambda f: None if f in WORLD_FRAMES else str(f)  # noqa: E731
+    to = world(loop.get("to"))
+    pairs = [(world(lp.get("frame_a")), world(lp.get("frame_b"))) for lp in loops if isinstance(lp, dict)]
+    if not any(to in pair for pair in pairs):
+        between = lambda fs: " and ".join(sorted(f for f in fs if f) + ["the world"] * (None in fs))  # noqa: E731
+        raise InputError(
+            f"{report_source}: its loops close {'; '.join(between(p) for p in pairs)}, and {truth_source} is "
+            f"the truth of a loop between {between((str(loop['frame']), to))}: the truth of another dataset "
+            "(check the report against the truth.json of the dataset it calibrated)"
+        )
 
 
 def _row(name, true, cal, err, tol, result):
