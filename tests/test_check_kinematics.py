@@ -225,7 +225,7 @@ def test_ball_on_the_last_axis_with_the_true_length_reaches_the_true_robot(stack
     and once they are readmitted the fit warm-started at the solution the readmission was decided at runs
     to a degenerate robot: the ball on every joint axis, closing every configuration trivially, with
     a closure and a joint-noise response both at round-off, so a weighted closure of 0/0 whose last bits
-    decided whether it looked within the noise (`solve._collapsed`: it closes nothing).  The restarts then
+    decided whether it looked within the noise (`analysis.identifiability.collapsed`: it closes nothing).  The restarts then
     reach the truth's basin and the reduction re-checked there closes to round-off.  Run with the kinematics
     of short logs (Pinocchio) and with those of long logs (`model.stacked`, the same to 1e-13, other last
     bits: STACKED_ROWS 0 takes them for any log)."""

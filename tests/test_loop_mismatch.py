@@ -241,10 +241,10 @@ def test_hinge_on_a_held_tool_names_the_weld_loop(panda):
 
 
 def test_a_robot_whose_loops_do_not_move_with_its_joints_closes_nothing():
-    """`_collapsed`: a fit whose joint readings no longer move the loop (every joint's scale at 1e-12: the
+    """`collapsed`: a fit whose joint readings no longer move the loop (every joint's scale at 1e-12: the
     closure's response to the readings, J_theta, at round-off) is no robot, whatever its closure; the
     nominal robot, a 1 % change of every joint origin and scales halved are robots."""
-    from closedloop.calibration.solve import _collapsed
+    from closedloop.analysis.identifiability import collapsed
     from closedloop.io.logs import JointLog
 
     robot = RobotModel.from_file(Path(__file__).resolve().parent / "data" / "iiwa14.urdf")
@@ -253,13 +253,34 @@ def test_a_robot_whose_loops_do_not_move_with_its_joints_closes_nothing():
     scales = [k for k, n in enumerate(problem.names) if n.endswith(".scale")]
     origins = [k for k, n in enumerate(problem.names) if n.rsplit(".", 1)[1] in ("x", "y", "z")]
     x = problem.nominal
-    assert len(scales) == 7 and not _collapsed(problem, x)
+    assert len(scales) == 7 and not collapsed(problem, x)
     moved = x.copy()
     moved[origins] += 0.01 * np.random.default_rng(1).standard_normal(len(origins))
-    assert not _collapsed(problem, moved)
+    assert not collapsed(problem, moved)
     halved = x.copy()
     halved[scales] = 0.5
-    assert not _collapsed(problem, halved)
+    assert not collapsed(problem, halved)
     gone = x.copy()
     gone[scales] = 1e-12
-    assert _collapsed(problem, gone)
+    assert collapsed(problem, gone)
+
+
+def test_a_degenerate_calibrated_robot_is_failed():
+    """The verdict on a calibration whose robot's loops do not move with its joints (`collapsed`) is failed,
+    whatever its closure (an Allegro pinch fitted with a point loop closed 1e-4 rad data to 9e-14 mm, its
+    fingertips folded onto their axes, and was only suspect); a robot that moves with its joints is not."""
+    from types import SimpleNamespace
+
+    from closedloop.calibration.verdict import FAILED, Verdict, _degenerate
+    from closedloop.io.logs import JointLog
+
+    robot = RobotModel.from_file(Path(__file__).resolve().parent / "data" / "iiwa14.urdf")
+    theta = np.random.default_rng(0).uniform(-1.0, 1.0, (20, len(robot.joint_names)))
+    problem = build_problem(robot, JointLog(robot.joint_names, theta), [parse_loop("point:frame=tool0", robot)])
+    scales = [k for k, n in enumerate(problem.names) if n.endswith(".scale")]
+    gone = problem.nominal.copy()
+    gone[scales] = 1e-12
+    for x, failed in ((problem.nominal, False), (gone, True)):
+        v = Verdict()
+        _degenerate(SimpleNamespace(problem=problem, fit=SimpleNamespace(estimated=scales, values=x)), v)
+        assert (v.status == FAILED) is failed and (any("do not move with its joints" in r for r in v.reasons) is failed)

@@ -26,6 +26,7 @@ space of J_theta has a non-zero j-th component.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -41,6 +42,8 @@ STRUCTURE_CONFIGS = (64, 512)  # the configurations that makes per loop: at leas
 
 if TYPE_CHECKING:
     from closedloop.problem.problem import CalibrationProblem
+
+log = logging.getLogger(__name__)
 
 
 def compress(C: np.ndarray) -> np.ndarray:
@@ -415,3 +418,38 @@ def structure_holds(
             "the data leave part of the overall size to other held values"
         )
     return None, None
+
+
+COLLAPSED = 1e-6  # a loop's response to its joints, over the nominal robot's, below which the fit is no robot
+SENSITIVITY_CONFIGS = 16  # configurations per block that response is compared on (`collapsed`)
+
+
+def collapsed(problem: CalibrationProblem, x: np.ndarray) -> bool:
+    """A robot whose loops do not move with its joints: a degenerate fit, whose closure says nothing.
+
+    With the tool point on every joint axis it passes through (links folded onto the axes) a point
+    contact closes every configuration trivially: the closure is round-off, and so is the joint noise's
+    effect on it, W_i = J_theta,i Sigma J_theta,i^T (eq. 3.17), so the weighted closure is 0/0, any
+    number (its rounding decides whether such a fit looks like one within the noise).  Compared here is
+    each block's median |J_theta,i| (Frobenius) over a few configurations (`SENSITIVITY_CONFIGS`, evenly
+    spaced) at `x` with that of the nominal robot (the same loop parameters): a calibration moves lever
+    arms by percent, a degenerate fit shrinks them to round-off (1e-11 and below); `COLLAPSED` lies
+    orders of magnitude from both.  A block whose loop does not move with the joints at the nominal robot
+    (a known distance) does not count.
+    """
+    sub = problem.sampled(SENSITIVITY_CONFIGS)
+    ref = x.copy()
+    ref[: problem.n_robot] = problem.nominal[: problem.n_robot]
+
+    def response(values: np.ndarray) -> list[float]:
+        out = []
+        for ev in sub.evaluate(values, True, columns=[]):
+            norms = np.linalg.norm(ev.Jq, axis=(1, 2)) if ev.Jq is not None and ev.Jq.size else np.zeros(0)
+            out.append(float(np.median(norms)) if norms.size else 0.0)
+        return out
+
+    at_fit, at_nominal = response(x), response(ref)
+    gone = [a < COLLAPSED * n for a, n in zip(at_fit, at_nominal) if n > 0.0 and np.isfinite(n)]
+    if any(gone):
+        log.info("the fit's loops do not move with its joints (a degenerate robot): it closes nothing")
+    return any(gone)

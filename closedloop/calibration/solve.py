@@ -19,7 +19,13 @@ from dataclasses import replace
 
 import numpy as np
 
-from closedloop.analysis.identifiability import Structure, analyse_structure, closure_jacobian, structure_holds
+from closedloop.analysis.identifiability import (
+    Structure,
+    analyse_structure,
+    closure_jacobian,
+    collapsed,
+    structure_holds,
+)
 from closedloop.calibration.verdict import SIZE_NOT_MEASURED, Verdict
 from closedloop.errors import ParameterError
 from closedloop.estimate.lm import SolverOptions, scaled_svd
@@ -194,12 +200,12 @@ def _closure_level(problem: CalibrationProblem, stage: StageResult, plausible: f
     `VerdictRules.plausible_joint_noise`, 2 mrad by default: no encoder reads worse; a closure it cannot explain
     is a stalled fit), plus the loops' own measurement noise (a camera's pixels), explains: the median, so that a
     few outliers do not count.  Infinite for a degenerate robot whose loops do not move with its joints
-    (`_collapsed`): it closes nothing."""
+    (`collapsed`): it closes nothing."""
     if stage.closure_level is not None:
         return stage.closure_level
     if not np.isfinite(stage.solution.cost):
         return np.inf
-    if _collapsed(problem, stage.fun.full(stage.solution.x)):
+    if collapsed(problem, stage.fun.full(stage.solution.x)):
         stage.closure_level = np.inf
         return stage.closure_level
     fun = ResidualFunction(
@@ -210,41 +216,6 @@ def _closure_level(problem: CalibrationProblem, stage: StageResult, plausible: f
     )
     stage.closure_level = float(np.median(per_config)) if per_config.size else 0.0
     return stage.closure_level
-
-
-COLLAPSED = 1e-6  # a loop's response to its joints, over the nominal robot's, below which the fit is no robot
-SENSITIVITY_CONFIGS = 16  # configurations per block that response is compared on (`_collapsed`)
-
-
-def _collapsed(problem: CalibrationProblem, x: np.ndarray) -> bool:
-    """A robot whose loops do not move with its joints: a degenerate fit, whose closure says nothing.
-
-    With the tool point on every joint axis it passes through (links folded onto the axes) a point
-    contact closes every configuration trivially: the closure is round-off, and so is the joint noise's
-    effect on it, W_i = J_theta,i Sigma J_theta,i^T (eq. 3.17), so the weighted closure is 0/0, any
-    number (its rounding decides whether such a fit looks like one within the noise).  Compared here is
-    each block's median |J_theta,i| (Frobenius) over a few configurations (`SENSITIVITY_CONFIGS`, evenly
-    spaced) at `x` with that of the nominal robot (the same loop parameters): a calibration moves lever
-    arms by percent, a degenerate fit shrinks them to round-off (1e-11 and below); `COLLAPSED` lies
-    orders of magnitude from both.  A block whose loop does not move with the joints at the nominal robot
-    (a known distance) does not count.
-    """
-    sub = problem.sampled(SENSITIVITY_CONFIGS)
-    ref = x.copy()
-    ref[: problem.n_robot] = problem.nominal[: problem.n_robot]
-
-    def response(values: np.ndarray) -> list[float]:
-        out = []
-        for ev in sub.evaluate(values, True, columns=[]):
-            norms = np.linalg.norm(ev.Jq, axis=(1, 2)) if ev.Jq is not None and ev.Jq.size else np.zeros(0)
-            out.append(float(np.median(norms)) if norms.size else 0.0)
-        return out
-
-    at_fit, at_nominal = response(x), response(ref)
-    gone = [a < COLLAPSED * n for a, n in zip(at_fit, at_nominal) if n > 0.0 and np.isfinite(n)]
-    if any(gone):
-        log.info("the fit's loops do not move with its joints (a degenerate robot): it closes nothing")
-    return any(gone)
 
 
 def _stalled(problem: CalibrationProblem, fit: Fit, plausible: float) -> bool:

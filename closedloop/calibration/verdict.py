@@ -205,6 +205,20 @@ def _changes(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -
             return
 
 
+def _degenerate(result: CalibrationResult, verdict: Verdict) -> None:
+    """A calibrated robot whose loops do not move with its joints (`analysis.identifiability.collapsed`: the tool point on every
+    joint axis it passes through, links folded onto the axes) closes every configuration to round-off,
+    whatever the readings: its closure and its error bars say nothing of the robot.  Failed."""
+    from closedloop.analysis.identifiability import collapsed
+
+    if result.fit.estimated and collapsed(result.problem, np.asarray(result.fit.values, dtype=float)):
+        verdict.add(
+            FAILED,
+            "the calibrated robot's loops do not move with its joints (the tool point folded onto the joint "
+            "axes: a degenerate robot, which closes every configuration): its closure says nothing",
+        )
+
+
 def _minimum(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -> None:
     """Is the solver's stop a minimum?  There r is orthogonal to the columns of J: the share of the cost one
     Gauss-Newton step would remove, |U_k^T r|^2 / |r|^2, is ~0 (at most 0.09 on the right results of the
@@ -354,6 +368,7 @@ def judge(
         v.add(FAILED, f"the solver did not converge ({result.fit.solver_message})")
     else:
         _minimum(result, rules, v)
+    _degenerate(result, v)
     # a known distance (closedloop.problem.distances) is a measurement, not a closure that calibration must improve
     own = [not getattr(b.loop, "parameter_only", False) for b in result.problem.blocks]
     _closure(
