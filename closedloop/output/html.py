@@ -344,7 +344,7 @@ def _sections(res, report: dict, snr: float = 1.0, row_name=None) -> list[str]:
                 ["configurations", n],
                 ["parameters estimated", len(res.fit.estimated)],
                 ["solver", f"{res.fit.solver_status}, {res.fit.iterations} iterations"],
-                ["joint noise", f"{res.noise.sigma:.3g} rad ({'estimated' if res.noise.sigma_estimated else 'given'})"],
+                ["joint noise", res.noise.describe().removeprefix("joint noise ")],
                 ["chi2 / dof", _g(noise.get("chi2_per_dof"))],
             ],
         )

@@ -212,7 +212,10 @@ def build_report(
                 "change": float(res.fit.values[k] - res.fit.initial[k]),
             }
         )
-    p_value = _chi2_sf(res.noise.chi2, res.noise.dof) if not res.noise.sigma_estimated else None
+    # a given noise is tested by the chi-square; an estimated one, or a plain fit's residual scale, makes
+    # chi2 / dof 1 by construction
+    tested = not res.noise.sigma_estimated and res.noise.joint_noise is not None
+    p_value = _chi2_sf(res.noise.chi2, res.noise.dof) if tested else None
     report: dict[str, Any] = {
         "closedloop_version": __version__,
         "model": str(model_path) if model_path else None,
@@ -225,7 +228,8 @@ def build_report(
             "iterations": res.fit.iterations,
         },
         "noise": {
-            "joint_sigma": res.noise.sigma,
+            "joint_sigma": res.noise.joint_noise,
+            "closure_sigma": res.noise.sigma if res.noise.joint_noise is None else None,
             "estimated": res.noise.sigma_estimated,
             "chi2": res.noise.chi2,
             "dof": res.noise.dof,
