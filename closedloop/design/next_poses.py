@@ -70,6 +70,8 @@ class NextPoses:
     rms_before_m: float  # predicted RMS position error over the workspace, every followed frame
     rms_after_m: np.ndarray = field(repr=False)  # (k,) after the first 1, 2, ... k suggestions
     candidates: int  # configurations on the loop the choice was made among
+    #: the share of `rms_before_m` from what the data cannot see (`analysis.accuracy`, Sigma_unseen)
+    unseen_rms_m: float = 0.0
 
     def record(self, path) -> dict:
         """What the report says of the suggestions written to `path` (``accuracy.next_poses``)."""
@@ -80,6 +82,7 @@ class NextPoses:
             "candidates": self.candidates,
             "predicted_rms_before_m": self.rms_before_m,
             "predicted_rms_after_m": [float(v) for v in self.rms_after_m],
+            "predicted_unseen_rms_m": self.unseen_rms_m,
         }
 
     def csv(self) -> str:
@@ -196,4 +199,5 @@ def suggest_poses(
         rms_before_m=before,
         rms_after_m=np.array(after),
         candidates=int(C.shape[0]),
+        unseen_rms_m=float(np.sqrt(np.mean([f.unseen_rms_m**2 for f in workspace.frames]))),
     )

@@ -24,6 +24,7 @@ import numpy as np
 
 from closedloop.errors import require
 from closedloop.io.files import atomic_write_text
+from closedloop.output.report import next_poses_words
 from closedloop.records import ParamStatus
 
 _CSS = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;color:#222}
@@ -474,15 +475,7 @@ def _accuracy(report: dict) -> str:
         s += "<p>" + _e(f"accuracy target {tgt['describe']}: {met}") + "</p>"
     nxt = sec.get("next_poses")  # calibrate --suggest: where to measure next
     if nxt:
-        s += (
-            "<p>"
-            + _e(
-                f"where to measure next: {nxt['configurations']} configurations of loop {nxt['loop']} in "
-                f"{nxt['file']}: predicted RMS {nxt['predicted_rms_before_m'] * 1e3:.3g} mm -> "
-                f"{nxt['predicted_rms_after_m'][-1] * 1e3:.3g} mm once recorded and calibrated again"
-            )
-            + "</p>"
-        )
+        s += "<p>" + _e(f"where to measure next: {next_poses_words(nxt)}") + "</p>"
     return s + "<img alt='predicted accuracy' src='data:image/png;base64,{accuracy}'>"
 
 

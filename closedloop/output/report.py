@@ -353,6 +353,30 @@ def _shared(prob) -> dict[str, list[str]]:
     return {n: lps for n, lps in out.items() if len(lps) > 1}
 
 
+#: the share of the promised RMS error, from what the data cannot see, at which the words of the suggestions
+#: say so: at 0.7 it is half the promised mean squared error or more
+UNSEEN_DOMINATES = 0.7
+
+
+def next_poses_words(nxt: dict) -> str:
+    """The report's ``accuracy.next_poses`` (`closedloop.design.next_poses`) in words, as the summary and the
+    HTML page print it: the configurations, the file and the predicted RMS error before and after them; where
+    what the data cannot see is most of the error after them, that the suggestions leave it: only a loop
+    that sees more (another place of the loop, another loop type) would."""
+    before, after = nxt["predicted_rms_before_m"], nxt["predicted_rms_after_m"][-1]
+    words = (
+        f"{nxt['configurations']} configurations of loop {nxt['loop']} in {nxt['file']}: predicted RMS "
+        f"{before * 1e3:.3g} mm -> {after * 1e3:.3g} mm once recorded and calibrated again"
+    )
+    unseen = nxt.get("predicted_unseen_rms_m") or 0.0
+    if unseen >= UNSEEN_DOMINATES * after:
+        words += (
+            f" ({unseen * 1e3:.3g} mm RMS of it from what this loop's data cannot see, which these "
+            "configurations leave: a loop that sees more would, at another place or of another type)"
+        )
+    return words
+
+
 def write_report(report: dict, path: str | Path) -> None:
     """Write `report_text` to `path` whole."""
     atomic_write_text(Path(path), report_text(report))
