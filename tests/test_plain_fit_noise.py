@@ -72,3 +72,23 @@ def test_the_html_page_says_the_same(files, capsys):
     _calibrate(files, capsys, "plain_html", "--weighting", "none", "--html", str(page))
     text = page.read_text()
     assert "no joint noise weighs the rows (plain least squares)" in text
+
+
+def test_the_spectrum_draws_the_plain_fits_own_truncation(files):
+    """The HTML spectrum's truncation line (thesis 4.2.6) of a plain fit given a noise is the fit's own,
+    snr times its closure scale, not the whitened fit's 1 (which fell back to a line between two values)."""
+    from closedloop import CalibrationOptions, calibrate, read_log
+    from closedloop.model.robot import RobotModel
+    from closedloop.output.html import truncation_threshold
+
+    nominal, log, _ = files
+    robot = RobotModel.from_file(nominal)
+    res = calibrate(
+        robot,
+        read_log(log, robot.joint_names),
+        [WeldLoop("fixture", "panda_hand")],
+        CalibrationOptions(noise=NOISE, weighting="none"),
+    )
+    S = np.asarray(res.identifiability.singular_values)
+    assert truncation_threshold(res) == pytest.approx(max(1e-10 * S[0], res.noise.sigma))
+    assert int(np.sum(S > truncation_threshold(res))) == res.identifiability.rank

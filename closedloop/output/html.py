@@ -183,13 +183,14 @@ def truncation_threshold(res, snr: float = 1.0) -> float | None:
     """The SVD truncation threshold of the fit (thesis 4.2.6): ``max(1e-10 s_1, snr * sigma_r)``.
 
     ``sigma_r`` is 1 with a given joint noise (the residual is whitened by it) and the estimated
-    level otherwise.  If that does not reproduce the number of kept directions (options unknown
+    level otherwise (a plain loop-closure fit's closure scale, whether a joint noise was given or not).  If that does not reproduce the number of kept directions (options unknown
     here), the line is drawn between the last kept and the first truncated singular value.
     """
     S = np.asarray(res.identifiability.singular_values)
     if not S.size:
         return None
-    thr = max(1e-10 * float(S[0]), snr * (float(res.noise.sigma) if res.noise.sigma_estimated else 1.0))
+    whitened = not res.noise.sigma_estimated and res.noise.joint_noise is not None
+    thr = max(1e-10 * float(S[0]), snr * (1.0 if whitened else float(res.noise.sigma)))
     if int(np.sum(S > thr)) == res.identifiability.rank:
         return thr
     if 0 < res.identifiability.rank < S.size:
