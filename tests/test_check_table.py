@@ -40,3 +40,13 @@ def test_short_names_keep_the_forty_character_column(capsys):
     header, row = capsys.readouterr().out.splitlines()[:2]
     assert header.index("true") + len("true") == 40 + 14
     assert row.index("5.72e-06") + len("5.72e-06") == header.index("error") + len("error")
+
+
+def test_a_huge_ratio_keeps_its_column(capsys):
+    """A prediction 3e7 times below the observed error (a two-finger point loop whose prediction failed)
+    printed '31349536.52' into the 8-character ratio column, run together with the predicted error."""
+    row = _row("pinch: tool point link_3.0_tip relative to link_15.0_tip position", 0.221, 7.06e-09)
+    _print_rows([row], "loop / quantity")
+    header, line = capsys.readouterr().out.splitlines()[:2]
+    assert line.index("3.1e+07") + len("3.1e+07") == header.index("ratio") + len("ratio")
+    assert "7.06e-09 " in line  # the predicted error apart from the ratio

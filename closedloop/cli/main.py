@@ -134,7 +134,9 @@ def _print_rows(rows: list[dict], what: str) -> None:
         more = ""
         if predicted:
             p, q = r.get("predicted"), r.get("ratio")
-            more = ("" if p is None else f"{p:12.3g}").rjust(12) + ("" if q is None else f"{q:8.2f}").rjust(8)
+            # a ratio of 1e4 or more (a prediction far off) in 3 digits, so that it keeps its 8 columns
+            ratio = "" if q is None else f"{q:8.2f}" if abs(q) < 1e4 else f"{q:8.2g}"
+            more = ("" if p is None else f"{p:12.3g}").rjust(12) + ratio.rjust(8)
         print(f"{r['name']:<{width}}{true:>14}{cal:>14}{err:>12}{more}{tol:>10}  {r['result']}")
     bad = sum(r["result"] == "FAIL" for r in rows)
     print(
