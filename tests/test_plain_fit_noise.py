@@ -10,24 +10,23 @@ import pytest
 
 from closedloop.assets.catalog import nominal_urdf
 from closedloop.cli.main import main
+from closedloop.io.logs import JointLog
 from closedloop.loops import WeldLoop
-from closedloop.model.robot import RobotModel
-from closedloop.studies.truth import make_dataset
 
-Q0 = [0.0, 0.3, 0.0, -1.8, 0.0, 2.0, 0.8]
 NOISE = 1e-5
 
 
 @pytest.fixture(scope="module")
-def files(tmp_path_factory):
-    """A mesh-free Panda welded to a fixture, 100 configurations read with 1e-5 rad of joint noise."""
+def files(panda_weld, tmp_path_factory):
+    """The shared Panda weld (200 configurations, `conftest.panda_weld`), its readings with 1e-5 rad of
+    joint noise added."""
     d = tmp_path_factory.mktemp("plain")
     nominal = d / "panda.urdf"
     nominal.write_text(nominal_urdf("panda"))
-    robot = RobotModel.from_file(nominal)
-    ds = make_dataset(robot, WeldLoop("fixture", "panda_hand"), Q0, 100, np.random.default_rng(3), noise=NOISE)
+    ds = panda_weld.log()
+    noisy = ds.angles + np.random.default_rng(3).normal(0.0, NOISE, ds.angles.shape)
     log = d / "log.csv"
-    ds.log().write_csv(log)
+    JointLog(list(ds.joints), noisy).write_csv(log)
     return nominal, log, d
 
 
