@@ -287,6 +287,23 @@ class NoiseRecord:
     noise_model: list = field(default_factory=list)  # per loop: task vs joint noise (variance.noise_summary)
     profiles: list = field(default_factory=list)  # linearity.Profile: the error bars checked along the cost's profile
 
+    @property
+    def joint_noise(self) -> float | None:
+        """The joint noise (rad) the final fit weighed its rows with (eq. 3.17), given or estimated; None
+        for a plain loop-closure fit (eq. 3.8), whose `sigma` is the closure residual's scale per degree
+        of freedom (the loops' metres and radians), not a joint noise."""
+        return None if self.weighting == "none" else self.sigma
+
+    def describe(self) -> str:
+        """The noise in words, as the summary and the HTML report print it."""
+        if self.joint_noise is None:
+            return (
+                f"no joint noise weighs the rows (plain least squares): closure residual {self.sigma:.3g} "
+                "per degree of freedom (m, rad)"
+            )
+        how = "estimated" if self.sigma_estimated else "given"
+        return f"joint noise {self.sigma:.3g} rad ({how})"
+
 
 @dataclass(frozen=True)
 class ScaleRecord:

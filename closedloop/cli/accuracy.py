@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from closedloop.output.report import next_poses_words
+
 
 def accuracy_lines(section: dict | None) -> list[str]:
     """The summary's lines of the report's ``accuracy`` section (`output.report.accuracy_record`)."""
@@ -52,9 +54,5 @@ def accuracy_lines(section: dict | None) -> list[str]:
         lines.append(f"  target {tgt['describe']}: {said}")
     nxt = section.get("next_poses")
     if nxt:
-        lines.append(
-            f"  next: {nxt['configurations']} configurations of loop {nxt['loop']} in {nxt['file']}: predicted "
-            f"RMS {nxt['predicted_rms_before_m'] * 1e3:.3g} mm -> {nxt['predicted_rms_after_m'][-1] * 1e3:.3g} mm "
-            "once recorded and calibrated again"
-        )
+        lines.append(f"  next: {next_poses_words(nxt)}")
     return lines

@@ -146,7 +146,9 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
             parts.append(f"{rb.rms_px:.4g} px -> {ra.rms_px:.4g} px")
         print(f"  loop {ra.loop}: closure RMS " + ", ".join(parts))
     ratio = res.noise.chi2 / max(res.noise.dof, 1)
-    if res.noise.sigma_estimated:  # chi2/dof is 1 by construction unless a task's own noise weighs in too
+    if res.noise.joint_noise is None:  # a plain fit: its residual scale makes chi2/dof 1 by construction
+        print(f"  {res.noise.describe()}")
+    elif res.noise.sigma_estimated:  # chi2/dof is 1 by construction unless a task's own noise weighs in too
         fit = "" if abs(ratio - 1.0) < 5e-3 else f"; chi2/dof {ratio:.3g} with the task noise"
         print(f"  joint noise {res.noise.sigma:.3g} rad, estimated from the residual{fit}")
     else:

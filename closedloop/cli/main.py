@@ -124,7 +124,8 @@ def _print_rows(rows: list[dict], what: str) -> None:
     """The rows as a table; the predicted error and the ratio observed / predicted where the report has them."""
     predicted = any(r.get("predicted") is not None for r in rows)
     extra = f"{'predicted':>12}{'ratio':>8}" if predicted else ""
-    print(f"{what:<40}{'true':>14}{'calibrated':>14}{'error':>12}{extra}{'tol':>10}  result")
+    width = max([40] + [len(r["name"]) + 2 for r in rows])  # a long loop or frame name widens the column
+    print(f"{what:<{width}}{'true':>14}{'calibrated':>14}{'error':>12}{extra}{'tol':>10}  result")
     for r in rows:
         cal = "" if r["calibrated"] is None else f"{r['calibrated']:14.6g}"
         err = "" if r["error"] is None else f"{r['error']:12.3g}"
@@ -133,8 +134,10 @@ def _print_rows(rows: list[dict], what: str) -> None:
         more = ""
         if predicted:
             p, q = r.get("predicted"), r.get("ratio")
-            more = ("" if p is None else f"{p:12.3g}").rjust(12) + ("" if q is None else f"{q:8.2f}").rjust(8)
-        print(f"{r['name']:<40}{true:>14}{cal:>14}{err:>12}{more}{tol:>10}  {r['result']}")
+            # a ratio of 1e4 or more (a prediction far off) in 3 digits, so that it keeps its 8 columns
+            ratio = "" if q is None else f"{q:8.2f}" if abs(q) < 1e4 else f"{q:8.2g}"
+            more = ("" if p is None else f"{p:12.3g}").rjust(12) + ratio.rjust(8)
+        print(f"{r['name']:<{width}}{true:>14}{cal:>14}{err:>12}{more}{tol:>10}  {r['result']}")
     bad = sum(r["result"] == "FAIL" for r in rows)
     print(
         f"{sum(r['result'] == 'ok' for r in rows)} within tolerance, {bad} outside, "

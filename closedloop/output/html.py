@@ -24,6 +24,7 @@ import numpy as np
 
 from closedloop.errors import require
 from closedloop.io.files import atomic_write_text
+from closedloop.output.report import next_poses_words
 from closedloop.records import ParamStatus
 
 _CSS = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;color:#222}
@@ -182,13 +183,14 @@ def truncation_threshold(res, snr: float = 1.0) -> float | None:
     """The SVD truncation threshold of the fit (thesis 4.2.6): ``max(1e-10 s_1, snr * sigma_r)``.
 
     ``sigma_r`` is 1 with a given joint noise (the residual is whitened by it) and the estimated
-    level otherwise.  If that does not reproduce the number of kept directions (options unknown
+    level otherwise (a plain loop-closure fit's closure scale, whether a joint noise was given or not).  If that does not reproduce the number of kept directions (options unknown
     here), the line is drawn between the last kept and the first truncated singular value.
     """
     S = np.asarray(res.identifiability.singular_values)
     if not S.size:
         return None
-    thr = max(1e-10 * float(S[0]), snr * (float(res.noise.sigma) if res.noise.sigma_estimated else 1.0))
+    whitened = not res.noise.sigma_estimated and res.noise.joint_noise is not None
+    thr = max(1e-10 * float(S[0]), snr * (1.0 if whitened else float(res.noise.sigma)))
     if int(np.sum(S > thr)) == res.identifiability.rank:
         return thr
     if 0 < res.identifiability.rank < S.size:
@@ -344,7 +346,7 @@ def _sections(res, report: dict, snr: float = 1.0, row_name=None) -> list[str]:
                 ["configurations", n],
                 ["parameters estimated", len(res.fit.estimated)],
                 ["solver", f"{res.fit.solver_status}, {res.fit.iterations} iterations"],
-                ["joint noise", f"{res.noise.sigma:.3g} rad ({'estimated' if res.noise.sigma_estimated else 'given'})"],
+                ["joint noise", res.noise.describe().removeprefix("joint noise ")],
                 ["chi2 / dof", _g(noise.get("chi2_per_dof"))],
             ],
         )
@@ -474,15 +476,7 @@ def _accuracy(report: dict) -> str:
         s += "<p>" + _e(f"accuracy target {tgt['describe']}: {met}") + "</p>"
     nxt = sec.get("next_poses")  # calibrate --suggest: where to measure next
     if nxt:
-        s += (
-            "<p>"
-            + _e(
-                f"where to measure next: {nxt['configurations']} configurations of loop {nxt['loop']} in "
-                f"{nxt['file']}: predicted RMS {nxt['predicted_rms_before_m'] * 1e3:.3g} mm -> "
-                f"{nxt['predicted_rms_after_m'][-1] * 1e3:.3g} mm once recorded and calibrated again"
-            )
-            + "</p>"
-        )
+        s += "<p>" + _e(f"where to measure next: {next_poses_words(nxt)}") + "</p>"
     return s + "<img alt='predicted accuracy' src='data:image/png;base64,{accuracy}'>"
 
 

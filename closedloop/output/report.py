@@ -212,7 +212,10 @@ def build_report(
                 "change": float(res.fit.values[k] - res.fit.initial[k]),
             }
         )
-    p_value = _chi2_sf(res.noise.chi2, res.noise.dof) if not res.noise.sigma_estimated else None
+    # a given noise is tested by the chi-square; an estimated one, or a plain fit's residual scale, makes
+    # chi2 / dof 1 by construction
+    tested = not res.noise.sigma_estimated and res.noise.joint_noise is not None
+    p_value = _chi2_sf(res.noise.chi2, res.noise.dof) if tested else None
     report: dict[str, Any] = {
         "closedloop_version": __version__,
         "model": str(model_path) if model_path else None,
@@ -225,7 +228,8 @@ def build_report(
             "iterations": res.fit.iterations,
         },
         "noise": {
-            "joint_sigma": res.noise.sigma,
+            "joint_sigma": res.noise.joint_noise,
+            "closure_sigma": res.noise.sigma if res.noise.joint_noise is None else None,
             "estimated": res.noise.sigma_estimated,
             "chi2": res.noise.chi2,
             "dof": res.noise.dof,
@@ -347,6 +351,30 @@ def _shared(prob) -> dict[str, list[str]]:
         for k in cols:
             out.setdefault(prob.names[k], []).append(b.loop.name)
     return {n: lps for n, lps in out.items() if len(lps) > 1}
+
+
+#: the share of the promised RMS error, from what the data cannot see, at which the words of the suggestions
+#: say so: at 0.7 it is half the promised mean squared error or more
+UNSEEN_DOMINATES = 0.7
+
+
+def next_poses_words(nxt: dict) -> str:
+    """The report's ``accuracy.next_poses`` (`closedloop.design.next_poses`) in words, as the summary and the
+    HTML page print it: the configurations, the file and the predicted RMS error before and after them; where
+    what the data cannot see is most of the error after them, that the suggestions leave it: only a loop
+    that sees more (another place of the loop, another loop type) would."""
+    before, after = nxt["predicted_rms_before_m"], nxt["predicted_rms_after_m"][-1]
+    words = (
+        f"{nxt['configurations']} configurations of loop {nxt['loop']} in {nxt['file']}: predicted RMS "
+        f"{before * 1e3:.3g} mm -> {after * 1e3:.3g} mm once recorded and calibrated again"
+    )
+    unseen = nxt.get("predicted_unseen_rms_m") or 0.0
+    if unseen >= UNSEEN_DOMINATES * after:
+        words += (
+            f" ({unseen * 1e3:.3g} mm RMS of it from what this loop's data cannot see, which these "
+            "configurations leave: a loop that sees more would, at another place or of another type)"
+        )
+    return words
 
 
 def write_report(report: dict, path: str | Path) -> None:
