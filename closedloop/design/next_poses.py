@@ -76,7 +76,7 @@ class NextPoses:
     rms_before_m: float  # predicted RMS position error over the workspace, every followed frame
     rms_after_m: np.ndarray = field(repr=False)  # (k,) after the first 1, 2, ... k suggestions
     candidates: int  # configurations on the loop the choice was made among
-    #: the share of `rms_before_m` from what the data cannot see (`analysis.accuracy`, Sigma_unseen)
+    #: the share of the last of `rms_after_m` from what the log and the suggestions still cannot see (`Unseen`)
     unseen_rms_m: float = 0.0
 
     def record(self, path) -> dict:
@@ -191,13 +191,14 @@ class Unseen:
         rows = [J[np.all(np.isfinite(J), axis=1)] for J in rows]
         return cls(n, scaled_r_factor_of_blocks(rows, p) if rows else np.zeros((0, len(cols))), p, t, moved)
 
-    def recalibrated(self, sigma: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    def recalibrated(self, sigma: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """`sigma` (the information-form update of the prediction's covariance by the new rows, names order)
         with its part along what the log and the new closure `rows` (not whitened) see least replaced by the
         nominal tolerance there and the solution's move along it (`analysis.accuracy.unseen_factor`'s
-        Sigma_unseen + d_u d_u^T, on the new directions): the covariance the recalibration predicts."""
+        Sigma_unseen + d_u d_u^T, on the new directions): the covariance the recalibration predicts, and
+        that unseen part of it."""
         if self.n <= 0:
-            return sigma
+            return sigma, np.zeros_like(sigma)
         C = np.vstack([self.R, rows * self.p])
         if C.shape[0] < C.shape[1]:
             C = np.vstack([C, np.zeros((C.shape[1] - C.shape[0], C.shape[1]))])
@@ -205,7 +206,8 @@ class Unseen:
         U = self.p[:, None] * Vu  # the unseen directions, in the parameters' units
         out = np.eye(len(self.p)) - U @ (Vu.T / self.p)  # what the fit estimates: the seen part of sigma
         L_u = np.hstack([U @ (Vu.T * (self.t / self.p)), (U @ (Vu.T @ (self.moved / self.p)))[:, None]])
-        return out @ sigma @ out.T + L_u @ L_u.T
+        unseen = L_u @ L_u.T
+        return out @ sigma @ out.T + unseen, unseen
 
 
 def suggest_poses(
@@ -258,8 +260,9 @@ def suggest_poses(
         i = int(np.argmax(gain))
         chosen.append(i)
         Sig = Sig - M[i].T @ np.linalg.solve(Si[i], M[i])
-        promised = unseen.recalibrated(Sig, J_new[chosen].reshape(-1, len(names)))
+        promised, left = unseen.recalibrated(Sig, J_new[chosen].reshape(-1, len(names)))
         after.append(float(np.sqrt((max(np.trace(A @ promised @ A.T), 0.0) + floor) / (n * len(workspace.frames)))))
+    left_rms = float(np.sqrt(max(np.trace(A @ left @ A.T), 0.0) / (n * len(workspace.frames)))) if chosen else 0.0
     return NextPoses(
         loop=b.loop.name,
         joints=tuple(problem.joints),
@@ -267,5 +270,5 @@ def suggest_poses(
         rms_before_m=before,
         rms_after_m=np.array(after),
         candidates=int(C.shape[0]),
-        unseen_rms_m=float(np.sqrt(np.mean([f.unseen_rms_m**2 for f in workspace.frames]))),
+        unseen_rms_m=left_rms,
     )
