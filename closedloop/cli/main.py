@@ -364,7 +364,7 @@ class _Parser(argparse.ArgumentParser):
         kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)
 
-    @property  # type: ignore[override]
+    @property
     def epilog(self) -> str | None:
         text = self._epilog
         return text() if callable(text) else text
