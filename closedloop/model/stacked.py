@@ -131,6 +131,7 @@ class StackedKinematics:
             mass[self._parents[j]] += mass[j]
             centre[self._parents[j]] += centre[j]
         down = -np.asarray(model.gravity.linear, dtype=float)
+        turn = skew(down)  # a . (arm x down) = arm . (down x a) = arm . ([down]x a)
         tau = np.zeros((N, model.nv))
         for j, (kind, _, axis, _) in self._kind.items():
             a = np.einsum("ikn,k->in", R[j], axis)  # the joint's axis in the world
@@ -138,7 +139,7 @@ class StackedKinematics:
                 tau[:, model.joints[j].idx_v] = mass[j] * (down @ a)
             else:
                 arm = centre[j] - mass[j] * p[j]
-                tau[:, model.joints[j].idx_v] = np.einsum("in,in->n", a, np.cross(arm, down, axis=0))
+                tau[:, model.joints[j].idx_v] = np.einsum("in,in->n", arm, turn @ a)
         return tau
 
     def _moved(self, AR: np.ndarray, Ap: np.ndarray, qT: np.ndarray, j: int) -> tuple[np.ndarray, np.ndarray]:
