@@ -4,12 +4,20 @@ Usage::
 
     python benchmarks/bench_scale.py [--jobs 200] [--draws 200] [--configs 60] [--engines serial local ray]
     python benchmarks/bench_scale.py --cli [--rows 1000 10000 100000]
+    python benchmarks/bench_scale.py --cli --load [--rows 1000 10000 100000 1000000]
 
 ``--cli``: one long log through the command line.  The README's main job (``panda_weld``, 1,000 simulated
 configurations) tiled to each size with 1e-4 rad of fresh noise per row, then ``closedloop calibrate ...
 --cv 0 --quiet`` as a child process: its wall time, CPU (user + system) and peak RSS (``os.wait4``'s
 rusage of that child), against the floor, Pinocchio's forward kinematics and a LOCAL frame Jacobian over
 the same rows (``floor.pinocchio_floor``).  The cost should grow no faster than the rows.
+
+``--cli --load``: what the same command spends before its fit, per size, in a child process stopped once its
+inputs are loaded: the CPU from the interpreter's start to the first line of ``run.inputs.load_inputs``
+(imports, the parser), ``load_inputs`` itself, and of it reading the log (``io.joint_log.read_joint_log``)
+and the gravity torques (``RobotModel.with_gravity_torques``); beside them what NumPy alone takes to read
+the file (``np.loadtxt``) and Pinocchio alone to compute the same torques (``computeGeneralizedGravity``, a
+call per row); and the CPU of ``closedloop calibrate --help``.
 
 Engines: ``serial`` (this process, one BLAS thread), ``local`` (2 worker
 processes), ``ray`` (a local Ray cluster started here with 2 CPUs).  For each:
@@ -269,10 +277,108 @@ def cli_scale(rows: list[int], out: Path) -> None:
         )
 
 
+#: the child of ``--cli --load``: the command line with its loading stages timed (CPU), stopped after them
+LOAD_CHILD = """
+import json, sys, time
+import closedloop.io.joint_log as joint_log
+import closedloop.model.robot as robot
+import closedloop.run.inputs as inputs
+cpu = {}
+def timed(owner, name, key):
+    f = getattr(owner, name)
+    def g(*a, **k):
+        t = time.process_time()
+        try:
+            return f(*a, **k)
+        finally:
+            cpu[key] = cpu.get(key, 0.0) + time.process_time() - t
+    setattr(owner, name, g)
+timed(joint_log, "read_joint_log", "read")
+timed(robot.RobotModel, "with_gravity_torques", "gravity")
+load = inputs.load_inputs
+def stop(o):
+    cpu["start"] = time.process_time()
+    load(o)
+    cpu["load"] = time.process_time() - cpu["start"]
+    raise SystemExit(0)
+inputs.load_inputs = stop
+from closedloop.cli.main import main
+main(sys.argv[2:])
+open(sys.argv[1], "w").write(json.dumps(cpu))
+"""
+
+
+def load_stages(urdf: Path, log: Path, out: Path) -> dict:
+    """CPU seconds of the loading stages of `closedloop calibrate` on `log` (`LOAD_CHILD`), in a fresh process:
+    ``start`` (interpreter start to the first line of load_inputs; the child's own CPU clock counts from the
+    interpreter's start), ``load``, ``read`` and ``gravity``."""
+    import json
+    import subprocess
+    import sys
+
+    record = out / "load.json"
+    cmd = [sys.executable, "-c", LOAD_CHILD, str(record), "calibrate", str(urdf), str(log)]
+    cmd += ["--loop", "weld:frame=panda_hand_tcp,name=fixture", "--cv", "0", "--quiet"]
+    cmd += ["--out", str(out / "calibrated.urdf"), "--report", str(out / "report.json")]
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    return json.loads(record.read_text())
+
+
+def alone(urdf: Path, log: Path) -> tuple[float, float]:
+    """CPU seconds of NumPy alone reading `log` (``np.loadtxt``) and of Pinocchio alone computing the gravity
+    torques of its rows (``computeGeneralizedGravity``, a call per row)."""
+    import pinocchio as pin
+
+    t = time.process_time()
+    theta = np.loadtxt(log, delimiter=",", skiprows=1, ndmin=2)
+    numpy_s = time.process_time() - t
+    model = pin.buildModelFromUrdf(str(urdf))
+    data = model.createData()
+    q = np.tile(pin.neutral(model), (len(theta), 1))
+    q[:, : theta.shape[1]] = theta  # the arm's joints come first in the panda's configuration
+    t = time.process_time()
+    for qi in q:
+        pin.computeGeneralizedGravity(model, data, qi)
+    return numpy_s, time.process_time() - t
+
+
+def load_scale(rows: list[int], out: Path) -> None:
+    """The table of ``--cli --load`` (module docstring): median CPU of three runs per size."""
+    import os
+    import subprocess
+    import sys
+
+    out.mkdir(parents=True, exist_ok=True)
+    urdf, logs = tiled_logs(out, rows)
+    help_cpu = []
+    for _ in range(3):
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "closedloop.cli", "calibrate", "--help"], stdout=subprocess.DEVNULL
+        )
+        use = os.wait4(proc.pid, 0)[2]
+        help_cpu.append(use.ru_utime + use.ru_stime)
+    print(f"\n`closedloop calibrate --help`: {np.median(help_cpu):.2f} s CPU (median of 3)")
+    print("\n`closedloop calibrate` before its fit, CPU seconds (median of 3 runs; NumPy and Pinocchio alone: one run)")
+    print(
+        f"{'rows':>9}{'to load_inputs':>16}{'load_inputs':>13}{'read log':>10}{'gravity':>9}"
+        f"{'np.loadtxt':>12}{'Pinocchio g(q)':>16}{'load us/row':>13}"
+    )
+    for n in rows:
+        runs = [load_stages(urdf, logs[n], out) for _ in range(3)]
+        med = {k: float(np.median([r.get(k, 0.0) for r in runs])) for k in ("start", "load", "read", "gravity")}
+        numpy_s, pinocchio_s = alone(urdf, logs[n])
+        print(
+            f"{n:>9,}{med['start']:>16.3f}{med['load']:>13.3f}{med['read']:>10.3f}{med['gravity']:>9.3f}"
+            f"{numpy_s:>12.3f}{pinocchio_s:>16.3f}{med['load'] / n * 1e6:>13.2f}",
+            flush=True,
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cli", action="store_true", help="one long log through the command line (module docstring)")
     ap.add_argument("--rows", type=int, nargs="+", default=[1000, 10_000, 100_000], help="--cli: log sizes")
+    ap.add_argument("--load", action="store_true", help="--cli: the loading stages only (module docstring)")
     ap.add_argument("--out", default="out/bench_scale", help="--cli: where the logs and outputs go")
     ap.add_argument("--jobs", type=int, default=200, help="calibrations (one robot each)")
     ap.add_argument("--draws", type=int, default=200, help="Monte Carlo draws")
@@ -289,6 +395,9 @@ def main() -> None:
     )
     args = ap.parse_args()
     print(header())
+    if args.cli and args.load:
+        load_scale(args.rows, Path(args.out))
+        return
     if args.cli:
         cli_scale(args.rows, Path(args.out))
         return

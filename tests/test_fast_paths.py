@@ -154,15 +154,15 @@ def test_frame_kinematics_are_pinocchios(panda, model, monkeypatch):
                     assert np.abs(K[i] - K_ref).max() < 1e-13 * max(1.0, np.abs(K_ref).max()), m.frames[f].name
 
 
-@pytest.mark.parametrize(
-    "path",
-    [
-        "pr2_description/urdf/pr2.urdf",  # revolute about unaligned axes, unbounded about x, a prismatic lift
-        "tiago_pro_description/robots/tiago_pro.urdf",  # unbounded wheels about z, a prismatic torso
-        "baxter_description/urdf/baxter.urdf",  # prismatic fingers
-        "double_pendulum_description/urdf/double_pendulum_continuous.urdf",
-    ],
-)
+PUBLIC_ROBOTS = [
+    "pr2_description/urdf/pr2.urdf",  # revolute about unaligned axes, unbounded about x, a prismatic lift
+    "tiago_pro_description/robots/tiago_pro.urdf",  # unbounded wheels about z, a prismatic torso
+    "baxter_description/urdf/baxter.urdf",  # prismatic fingers
+    "double_pendulum_description/urdf/double_pendulum_continuous.urdf",
+]
+
+
+@pytest.mark.parametrize("path", PUBLIC_ROBOTS)
 def test_stacked_kinematics_on_public_robots(path):
     """`StackedKinematics` against Pinocchio on robot files from example-robot-data with every joint type it
     computes, every frame, the joint placements perturbed as a calibration moves them."""
@@ -189,6 +189,31 @@ def test_stacked_kinematics_on_public_robots(path):
             assert np.abs(T[f][i] - pin.updateFramePlacement(m, d, f).homogeneous).max() < 1e-13
             K_ref = pin.computeFrameKinematicRegressor(m, d, f, pin.LOCAL)
             assert np.abs(K[f][i] - K_ref).max() < 1e-13 * max(1.0, np.abs(K_ref).max())
+
+
+@pytest.mark.parametrize("path", PUBLIC_ROBOTS)
+def test_stacked_gravity_is_pinocchios(path, monkeypatch):
+    """`StackedKinematics.gravity` (every configuration at once, in blocks of GRAVITY_ROWS) is Pinocchio's
+    generalized gravity (RNEA at rest) at each configuration, on robot files with every joint type it
+    computes, the joint placements perturbed."""
+    from closedloop.assets.catalog import example_robot_data_dir
+    from closedloop.model import stacked as stacked_module
+
+    file = example_robot_data_dir() / path
+    if not file.exists():
+        pytest.skip(f"{file} is not in this example-robot-data")
+    m = pin.buildModelFromUrdf(str(file))
+    d = m.createData()
+    rng = np.random.default_rng(5)
+    for j in range(1, m.njoints):
+        m.jointPlacements[j] = m.jointPlacements[j] * pin.exp6(pin.Motion(rng.normal(0.0, 0.05, 6)))
+    q = np.array([pin.randomConfiguration(m, -np.ones(m.nq), np.ones(m.nq)) for _ in range(7)])
+    monkeypatch.setattr(stacked_module, "GRAVITY_ROWS", 3)  # blocks of 3, 3 and 1
+    g = stacked_module.StackedKinematics(m).gravity(m, q)
+    ref = np.array([pin.computeGeneralizedGravity(m, d, qi) for qi in q])
+    assert g is not None and g.shape == ref.shape
+    assert np.abs(g - ref).max() < 1e-12 * max(1.0, np.abs(ref).max())
+    assert np.abs(ref).max() > 0.1  # the robots weigh
 
 
 @pytest.mark.parametrize("name", ["ur10", "kinova", "baxter_left", "talos_left", "g1_left"])

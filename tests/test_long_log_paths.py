@@ -119,3 +119,60 @@ def test_the_common_log_is_read_at_once_as_line_by_line(tmp_path, text, fault):
     numbers = [i + 1 for i, ln in enumerate(text.lstrip("\ufeff").splitlines()) if ln in rows]
     assert [int(v) for v in lg.lines[:, 1]] == numbers
     assert lg.where(1) == f"{path} line {numbers[1]}"
+
+
+PLAIN = [  # (log text, whether it is read at once)
+    ("a,b,c\n0.1,-2.5e-3,0.5\n1,2,3\n", True),
+    ("a , b,c\r\n0.1, -2.5E-03 ,0.5\r\n1,2,3\r\n\r\n", True),
+    ("\ufeffa,b,c\n0.1,-2.5e-3,0.5\n", True),
+    ("a,t,b,c,tau:a\n0.1,17.25,2,3,-4.5\n1,18,2,3,4\n", True),  # extra columns
+    ("loop,a,b,c\n fix ,0.1,2,3\nother,1,2,3\nfix,-1,-2,-3\n", True),  # a loop column, first
+    ("a,b,loop,c\n0.1,2,fixture-0,3\n1,2,é,3\n", True),  # a loop column inside, names of any text
+    ("a,b,c,loop\r\n0.1,2,3,fix\r\n1,2,3,fix\r\n", True),  # last, before a carriage return
+    ("a,b,c\n-0,-0.0,0\n", False),  # -0: JSON's is an integer zero, of no sign
+    ("a,b,c\n.5,+2,3.\n", False),  # numbers JSON does not write
+    ("a,t,b,c\n0.1,n/a,2,3\n", False),  # an extra cell that is no number: nan
+    ("a,b,c\n1,2,3\n\n4,5,6\n", False),  # a blank line
+    ("loop,a,b,c\n# a note,1,2,3\nfix,1,2,3\n", False),  # a comment
+    ("a,b,c\n1,2,3\r4,5,6\n", False),  # a lone carriage return ends a row
+    ('a,b,c\n1,"2",3\n', False),  # a quoted cell
+    ("a,b,c,loop\n1,2,3, \n", False),  # an empty loop name: the line-by-line reading names it
+    ("a,b,c\n1,2,3,4\n", False),  # a row of other fields
+    ("a,b,c\n1,2,2e7\n", False),  # out of range
+    ("a,b,c\n", False),  # a header alone
+    ("", False),  # nothing
+]
+
+
+@pytest.mark.parametrize("text, at_once", PLAIN)
+@pytest.mark.parametrize("degrees", [False, True])
+def test_a_log_read_at_once_is_the_line_by_line_reading(tmp_path, monkeypatch, text, at_once, degrees):
+    """Every log the reader takes at once (`_plain_log`: joint, extra and loop columns, every cell a number
+    in JSON's form) gives what the line-by-line reading gives, bit for bit: values, extra columns, loop
+    names, line numbers; every other log falls to that reading, with its values or its one-line fault."""
+    from closedloop.errors import LogError
+    from closedloop.io import logs
+
+    path = tmp_path / "log.csv"
+    path.write_bytes(text.encode("utf-8"))
+    assert (logs._plain_log(path, {"a", "b", "c"}) is not None) == at_once
+
+    def read():
+        try:
+            return logs.read_log(path, ["a", "b", "c"], degrees=degrees, linear=["c"])
+        except LogError as exc:
+            return str(exc)
+
+    fast = read()
+    monkeypatch.setattr(logs, "_plain_log", lambda *args: None)
+    slow = read()
+    if isinstance(slow, str):
+        assert fast == slow
+        return
+    assert fast.joints == slow.joints and fast.angles.tobytes() == slow.angles.tobytes()
+    assert list(fast.extra) == list(slow.extra)
+    assert all(fast.extra[k].tobytes() == slow.extra[k].tobytes() for k in slow.extra)
+    assert (fast.loop is None) == (slow.loop is None)
+    if slow.loop is not None:
+        assert fast.loop.dtype == slow.loop.dtype and fast.loop.tolist() == slow.loop.tolist()
+    assert fast.lines.tolist() == slow.lines.tolist() and fast.files == slow.files

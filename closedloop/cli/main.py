@@ -12,6 +12,7 @@ import argparse
 import json
 import logging
 import sys
+from collections.abc import Callable
 
 from closedloop.cli.parse import float_arg, int_arg, join_negative_numbers
 from closedloop.errors import (
@@ -251,7 +252,7 @@ def _add_calibrate(sub) -> None:
     c = sub.add_parser(
         "calibrate",
         help="calibrate a model from a joint log",
-        epilog=loop_help(),
+        epilog=loop_help,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_arguments(c)  # derived from the run's options (closedloop.run.options)
@@ -264,7 +265,7 @@ def _add_simulate(sub) -> None:
     s = sub.add_parser(
         "simulate",
         help="generate a closed-chain dataset in MuJoCo",
-        epilog=scenario_help(),
+        epilog=scenario_help,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     s.add_argument("scenario", nargs="?", help="a scenario name (below) or a scenario YAML file")
@@ -357,11 +358,23 @@ def _command(argv: list[str]) -> str | None:
 
 class _Parser(argparse.ArgumentParser):
     """argparse with one-line errors (an `InputError`, exit 2) instead of a usage block, and no
-    abbreviated options (`--degree` must not silently mean `--degrees`); subcommands parse alike."""
+    abbreviated options (`--degree` must not silently mean `--degrees`); subcommands parse alike.  An
+    epilog may be given as a function, called where the epilog is read (the help printed, the docs built):
+    calibrate's lists the loop types, which loads every loop module and Pinocchio, and a run parsing its
+    arguments should not wait for them."""
 
     def __init__(self, *args, **kwargs):
         kwargs.setdefault("allow_abbrev", False)
         super().__init__(*args, **kwargs)
+
+    @property
+    def epilog(self) -> str | None:
+        text = self._epilog
+        return text() if callable(text) else text
+
+    @epilog.setter
+    def epilog(self, text: str | Callable[[], str] | None) -> None:
+        self._epilog = text
 
     def error(self, message: str):
         raise InputError(f"{self.prog}: {message} (see {self.prog} --help)")

@@ -286,25 +286,47 @@ def _merge(path: Path, topic: str, msgs: list, joints: list[str], t_ref: int) ->
         raise BagError(
             f"{path}: topic {topic} never reports joint(s) {', '.join(missing)} (it has: {', '.join(sorted(seen)[:8])})"
         )
-    cur_q = np.full(len(joints), np.nan)
-    cur_v = np.full(len(joints), np.nan)
-    T, Q, V = [], [], []
-    for t_ns, names, pos, vel in msgs:
-        if len(pos) != len(names):
+    # every message's cells placed in a table of messages x joints, its joints flagged as set there; each
+    # joint then carries its last set value forward (a value set to nan included), at once
+    counts = np.array([len(names) for _, names, _, _ in msgs])
+    for (t_ns, names, pos, _), n in zip(msgs, counts):
+        if len(pos) != n:
             raise BagError(
                 f"{path}: topic {topic}: a message at t={(t_ns - t_ref) / 1e9:.3f} s has "
-                f"{len(names)} names and {len(pos)} positions"
+                f"{n} names and {len(pos)} positions"
             )
-        cols = [(k, idx[n]) for k, n in enumerate(names) if n in idx]
-        for k, j in cols:
-            cur_q[j] = pos[k]
-            cur_v[j] = vel[k] if len(vel) == len(names) else np.nan
-        if np.all(np.isfinite(cur_q)):
-            T.append((t_ns - t_ref) / 1e9)
-            Q.append(cur_q.copy())
-            V.append(cur_v.copy())
-    t, q, v = np.array(T), np.array(Q), np.array(V)
+    columns: dict[tuple, np.ndarray] = {}  # a message's joint names -> their columns (-1: not a joint of ours)
+    cols = np.concatenate([_columns(columns, names, idx) for _, names, _, _ in msgs])
+    rows = np.repeat(np.arange(len(msgs)), counts)
+    ours = cols >= 0
+    rows, cols = rows[ours], cols[ours]
+    pos = np.concatenate([p for _, _, p, _ in msgs])[ours]
+    vel = np.concatenate([v if len(v) == n else np.full(n, np.nan) for (_, _, _, v), n in zip(msgs, counts)])[ours]
+    last = np.full((len(msgs), len(joints)), -1)
+    last[rows, cols] = rows
+    last = np.maximum.accumulate(last, axis=0)  # the message that last set each joint
+    q_set = np.full((len(msgs), len(joints)), np.nan)
+    v_set = np.full((len(msgs), len(joints)), np.nan)
+    q_set[rows, cols], v_set[rows, cols] = pos, vel
+    take = np.maximum(last, 0), np.arange(len(joints))
+    q = np.where(last >= 0, q_set[take], np.nan)
+    v = np.where(last >= 0, v_set[take], np.nan)
+    keep = np.all(np.isfinite(q), axis=1)  # once every joint has a value
+    if not keep.any():
+        return Stream(topic, np.array([]), np.array([]), np.array([]))
+    stamps = np.array([t_ns for t_ns, _, _, _ in msgs], dtype=np.int64)[keep]
+    t, q, v = (stamps - t_ref) / 1e9, q[keep], v[keep]
     return Stream(topic, t, q, v if np.all(np.isfinite(v)) else None)
+
+
+def _columns(known: dict[tuple, np.ndarray], names: list[str], idx: dict[str, int]) -> np.ndarray:
+    """The columns of a message's joint `names` (-1 for a joint not asked for), found once per order of
+    names (`known`)."""
+    key = tuple(names)
+    found = known.get(key)
+    if found is None:
+        found = known[key] = np.array([idx.get(n, -1) for n in names], dtype=int)
+    return found
 
 
 def speeds(stream: Stream, window: float) -> np.ndarray:

@@ -37,6 +37,8 @@ _KINDS = {
     "JointModelPrismaticUnaligned": ("P", None),
 }
 _AXIS_INDEX = {"X": 0, "Y": 1, "Z": 2}
+#: configurations per block of `StackedKinematics.gravity` (100,000 at once take three times as long)
+GRAVITY_ROWS = 16384
 
 
 class StackedKinematics:
@@ -97,6 +99,48 @@ class StackedKinematics:
                 K = self._regressor(TR, Tp, support, placed, model.njoints)
                 regressors[f][...] = np.moveaxis(K, 2, 0)  # to the caller's layout (N, 6, 6 (njoints - 1))
         return out
+
+    def gravity(self, model: pin.Model, q: np.ndarray) -> np.ndarray | None:
+        """The generalized gravity g(q) (N, nv) of `model`'s inertials at configurations `q` (N, nq): what
+        Pinocchio's ``computeGeneralizedGravity`` (RNEA at zero velocity and acceleration) gives one
+        configuration per call, to rounding.  Joint i holds the weight of the bodies it carries (its
+        subtree: mass m_i, mass-weighted centre c_i = sum of m_b times each body's centre in the world):
+        tau_i = a_i . ((c_i - m_i o_i) x -g) for a revolute joint of axis a_i and origin o_i in the world,
+        a_i . (-m_i g) for a prismatic one.  None where a joint is not one this module computes (the caller
+        keeps Pinocchio's loop).
+        """
+        if len(self._kind) != model.njoints - 1:
+            return None
+        if q.shape[0] > GRAVITY_ROWS:  # in blocks whose stacks stay in the processor's cache
+            return np.concatenate(
+                [self.gravity(model, q[i : i + GRAVITY_ROWS]) for i in range(0, q.shape[0], GRAVITY_ROWS)]
+            )
+        N = q.shape[0]
+        qT = np.ascontiguousarray(q.T)
+        R: dict[int, np.ndarray] = {}
+        p: dict[int, np.ndarray] = {}
+        mass = np.zeros(model.njoints)
+        centre = np.zeros((model.njoints, 3, N))
+        for j in range(1, model.njoints):
+            placed = _compose(R.get(self._parents[j]), p.get(self._parents[j]), model.jointPlacements[j], N)
+            R[j], p[j] = self._moved(*placed, qT, j)
+            body = model.inertias[j]
+            mass[j] = body.mass
+            centre[j] = body.mass * (p[j] + np.einsum("ikn,k->in", R[j], np.asarray(body.lever)))
+        for j in range(model.njoints - 1, 1, -1):  # a child's index is above its parent's
+            mass[self._parents[j]] += mass[j]
+            centre[self._parents[j]] += centre[j]
+        down = -np.asarray(model.gravity.linear, dtype=float)
+        turn = skew(down)  # a . (arm x down) = arm . (down x a) = arm . ([down]x a)
+        tau = np.zeros((N, model.nv))
+        for j, (kind, _, axis, _) in self._kind.items():
+            a = np.einsum("ikn,k->in", R[j], axis)  # the joint's axis in the world
+            if kind == "P":
+                tau[:, model.joints[j].idx_v] = mass[j] * (down @ a)
+            else:
+                arm = centre[j] - mass[j] * p[j]
+                tau[:, model.joints[j].idx_v] = np.einsum("in,in->n", arm, turn @ a)
+        return tau
 
     def _moved(self, AR: np.ndarray, Ap: np.ndarray, qT: np.ndarray, j: int) -> tuple[np.ndarray, np.ndarray]:
         """oM_i = A exp(S_i q_i) for the joint's frame A = (AR, Ap) at q_i = 0 (stacks (3, 3, N), (3, N))."""
