@@ -246,14 +246,13 @@ def _plain_log(path: Path, known: set[str]) -> JointLog | None:
         header = [h.strip() for h in data[start : max(eol, start)].decode("utf-8").split(",")]
     except (OSError, UnicodeDecodeError):
         return None
-    if eol < 0:  # a header alone, or nothing
-        return None
     end = len(data)
     while end > eol and data[end - 1] in b"\r\n":  # blank lines at the end carry no row
         end -= 1
     cols = [i for i, h in enumerate(header) if h in known]
     if (
-        end <= eol + 1
+        eol < 0
+        or end <= eol + 1
         or not cols
         or len(set(header)) != len(header)
         or b'"' in data
