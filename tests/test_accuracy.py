@@ -406,7 +406,6 @@ def test_suggested_poses_recorded_and_recalibrated_reduce_the_error_as_predicted
     (moved onto its loop from the suggested readings) and calibrated again with the 60 first rows: over
     three noise draws the observed largest tool error over the workspace falls more than 2x, and lands
     within 1.5x of the error predicted after them."""
-    import pinocchio as pin
 
     from closedloop.design.next_poses import suggest_poses
 
@@ -414,11 +413,7 @@ def test_suggested_poses_recorded_and_recalibrated_reduce_the_error_as_predicted
     robot = RobotModel.from_file(case.nominal_urdf)
     loops = [parse_loop(s, robot) for s in case.loop_specs]
     offsets = np.array([case.true_offsets[j] for j in case.joints])
-    kin = zoo.Kin(case.true_model, case.joints)
-    socket = case.meta["geo"]["T0"].translation
-
-    def on_true_loop(th):
-        return kin.pose(th).translation - socket, kin.jacobian(th, pin.LOCAL_WORLD_ALIGNED)[:3]
+    on_true_loop = zoo.on_true_loop(case)
 
     def observed(readings):
         res = calibrate(robot, JointLog(list(case.joints), readings), loops, CalibrationOptions())

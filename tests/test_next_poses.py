@@ -8,7 +8,6 @@ its loop from them, with fresh joint noise) and calibrated again with the log th
 from __future__ import annotations
 
 import numpy as np
-import pinocchio as pin
 import pytest
 import zoo
 
@@ -32,13 +31,7 @@ def _promised_and_obtained(robot: str, seed: int, k: int = 8):
     nxt = suggest_poses(res, acc, k)
     assert nxt is not None and nxt.readings.shape == (k, len(case.joints))
 
-    kin = zoo.Kin(case.true_model, case.joints)
-    normal, point = case.meta["geo"]["normal"], case.meta["geo"]["T0"].translation
-
-    def on_true_plane(th):
-        J = kin.jacobian(th, pin.LOCAL_WORLD_ALIGNED)[:3]
-        return np.array([normal @ (kin.pose(th).translation - point)]), (normal @ J)[None]
-
+    on_true_plane = zoo.on_true_loop(case)
     offsets = np.array([case.true_offsets[j] for j in case.joints])
     rng = np.random.default_rng(3)
     new = [zoo._project(on_true_plane, r + offsets, case.lower - 1.0, case.upper + 1.0) for r in nxt.readings]

@@ -5,7 +5,6 @@ in radians, the closure scale (metres) made the promise on the UR5 socket 1.5 ti
 from __future__ import annotations
 
 import numpy as np
-import pinocchio as pin
 import pytest
 import zoo
 
@@ -25,12 +24,7 @@ def test_the_promise_is_what_the_recalibration_reports(weighting):
     robot = RobotModel.from_file(case.nominal_urdf)
     loops = [parse_loop(s, robot) for s in case.loop_specs]
     offsets = np.array([case.true_offsets[j] for j in case.joints])
-    kin = zoo.Kin(case.true_model, case.joints)
-    socket = case.meta["geo"]["T0"].translation
-
-    def on_true_loop(th):
-        return kin.pose(th).translation - socket, kin.jacobian(th, pin.LOCAL_WORLD_ALIGNED)[:3]
-
+    on_true_loop = zoo.on_true_loop(case)
     rng = np.random.default_rng(3)
     readings = case.q_true - offsets + rng.normal(scale=1e-4, size=case.q_true.shape)
     opt = CalibrationOptions(noise=1e-4, weighting=weighting)

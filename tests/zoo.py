@@ -202,6 +202,24 @@ def _project(fun, th: np.ndarray, lo: np.ndarray, hi: np.ndarray, tol: float = 1
     return None
 
 
+def on_true_loop(case):
+    """The point or plane loop of a zoo `case` on its true robot, for `_project`: readings (model order, the
+    true offsets included) -> (the tool point's closure, its Jacobian): its offset from the socket, or its
+    distance from the plane."""
+    kin = Kin(case.true_model, case.joints)
+    geo = case.meta["geo"]
+    point = geo["T0"].translation
+
+    def socket(th):
+        return kin.pose(th).translation - point, kin.jacobian(th, pin.LOCAL_WORLD_ALIGNED)[:3]
+
+    def plane(th):
+        J = kin.jacobian(th, pin.LOCAL_WORLD_ALIGNED)[:3]
+        return np.array([geo["normal"] @ (kin.pose(th).translation - point)]), (geo["normal"] @ J)[None]
+
+    return plane if "normal" in geo else socket
+
+
 def _well_conditioned(kin: Kin, th: np.ndarray, fun, min_sv: float = 0.03) -> bool:
     """Away from arm singularities (6 x n tool Jacobian) and from constraint singularities."""
     s_arm = np.linalg.svd(kin.jacobian(th), compute_uv=False)
