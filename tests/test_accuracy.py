@@ -388,6 +388,22 @@ def test_evaluate_compares_new_data_with_the_prediction(tmp_path, capsys):
     assert pred["ratio"] == pytest.approx(pred["observed_rms"] / pred["predicted_rms"])
 
 
+def test_evaluate_says_where_the_observation_is_far_below_the_prediction():
+    """The predicted closure RMS is an expectation: observed within 2x of it either way is within prediction,
+    above 2x not, below half of it said so (a Go2 foot's suggested rows: 0.66 mm observed, 1.89 mm predicted,
+    was printed within prediction)."""
+    from closedloop.validation.evaluate import prediction_lines
+
+    def finding(ratio):
+        row = {"loop": "floor", "unit": "m", "observed_rms": 1e-3 * ratio, "predicted_rms": 1e-3, "ratio": ratio}
+        return prediction_lines("cal.urdf", [row])[-1]
+
+    assert "observed within prediction (within 2x either way)" in finding(0.6)
+    assert "observed within prediction" in finding(1.9)
+    assert "observed NOT within prediction: loop floor 2.5x (m)" in finding(2.5)
+    assert "observed below prediction: loop floor 0.35x (m)" in finding(0.35)
+
+
 def test_bad_workspace_is_refused_before_the_fit(tmp_path, capsys):
     case = _case("ur5", "point", 1e-5)
     base = ["calibrate", str(case.nominal_urdf), str(case.log_csv), "--loop", case.loop_specs[0], "--cv", "0"]
