@@ -20,7 +20,7 @@ from closedloop.impedance.mujoco_sim import simulate_robot
 from closedloop.impedance.results import write_truth
 from closedloop.impedance.simulation import simulate
 
-ROBOT = ExperimentConfig(n_cycles=100, noise=0.1, seed=2, stiffness="square:200,80,0.5")
+ROBOT = ExperimentConfig(n_cycles=50, noise=0.1, seed=2, stiffness="square:200,80,0.5")
 SOFT_SHOULDER = (0.5, 5000.0, 75.0)
 
 
