@@ -154,13 +154,13 @@ def test_calibration_from_bag_equals_csv(tmp_path, panda, standstills, capsys):
     csv = tmp_path / "extracted.csv"
     assert main(["extract", str(bag), "--model", urdf, "--out", str(csv)]) == 0
     assert "extracted 20 quasi-static samples" in capsys.readouterr().out
-    loop = ["--loop", "weld:frame=panda_hand,name=fixture", "--cv", "0", "--quiet"]
+    loop = ["--loop", "weld:frame=panda_hand,name=fixture", "--cv", "0", "--regions", "0", "--quiet"]
     reports = {name: tmp_path / f"{name}.json" for name in ("bag", "csv")}
     assert main(["calibrate", urdf, str(csv), *loop, "--report", str(reports["csv"])]) == 0
     # the bag straight into calibrate, every option from a config file (as robot_calibration users keep them)
     cfg = tmp_path / "calib.yaml"
     cfg.write_text(
-        f"model: {urdf}\nlog: {bag}\nloop:\n  - weld:frame=panda_hand,name=fixture\ncv: 0\nquiet: true\n"
+        f"model: {urdf}\nlog: {bag}\nloop:\n  - weld:frame=panda_hand,name=fixture\ncv: 0\nregions: 0\nquiet: true\n"
         f"report: {reports['bag']}\n"
     )
     assert main(["calibrate", "--config", str(cfg)]) == 0

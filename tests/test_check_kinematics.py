@@ -133,7 +133,7 @@ def test_tool_as_frame_or_tip_is_the_same_robot(tmp_path):
             "--loop",
             f"point:frame={frame},name=socket",
         ]
-        assert main(args + ["--cv", "0", "--lofo", "off", "--report", str(rep), "--quiet"]) == 0
+        assert main(args + ["--cv", "0", "--lofo", "off", "--regions", "0", "--report", str(rep), "--quiet"]) == 0
         report = json.loads(rep.read_text())
         assert report["verdict"]["size_measured"] is False
         truth = json.loads((sim / "truth.json").read_text())

@@ -31,16 +31,18 @@ import json, sys
 from closedloop.cli.main import main
 rc = main(sys.argv[2:])
 with open(sys.argv[1], "w") as fh:
-    json.dump({"rc": rc, "modules": sorted(m for m in sys.modules if m.startswith(%r))}, fh)
-""" % (WATCHED,)
+    json.dump({"rc": rc, "modules": sorted(sys.modules)}, fh)
+"""
 
 
-def _loaded(tmp_path, *argv: str) -> tuple[int, list[str]]:
+def _loaded(tmp_path, *argv: str) -> tuple[int, list[str], list[str]]:
+    """The exit code, the `WATCHED` modules a fresh interpreter running `closedloop *argv` loaded, and every
+    module it loaded."""
     out = tmp_path / "modules.json"
     p = subprocess.run([sys.executable, "-c", RUN, str(out), *argv], capture_output=True, text=True, timeout=600)
     assert out.exists(), p.stderr
     res = json.loads(out.read_text())
-    return res["rc"], res["modules"]
+    return res["rc"], [m for m in res["modules"] if m.startswith(WATCHED)], res["modules"]
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +59,8 @@ def log(tmp_path_factory):
 
 
 def test_calibrate_loads_no_figure_library_simulator_or_fleet_code(log, tmp_path):
-    rc, mods = _loaded(
+    """Not vacuous: the list the run reports holds the calibration code it did load."""
+    rc, mods, every = _loaded(
         tmp_path,
         "calibrate",
         str(ROBOTS["panda"].path),
@@ -73,12 +76,14 @@ def test_calibrate_loads_no_figure_library_simulator_or_fleet_code(log, tmp_path
     assert rc == 0
     assert json.loads((tmp_path / "r.json").read_text())["verdict"]["status"] in ("ok", "suspect")
     assert mods == [], mods
+    assert {"closedloop.cli.calibrate", "closedloop.calibration.pipeline", "numpy", "pinocchio"} <= set(every)
 
 
+@pytest.mark.slow  # the watched list's own check is the test above's; --html's page: test_html_report.py
 def test_calibrate_with_html_loads_the_figure_code(log, tmp_path):
-    """The check above is not vacuous: --html does load what it needs."""
+    """The figure code is loaded where the run needs it: --html loads matplotlib and the page's writer."""
     pytest.importorskip("matplotlib")
-    rc, mods = _loaded(
+    rc, mods, _ = _loaded(
         tmp_path,
         "calibrate",
         str(ROBOTS["panda"].path),

@@ -178,7 +178,7 @@ def test_dual_arm_baxter_example():
     spec = importlib.util.spec_from_file_location("dual_arm_baxter", ROOT / "examples" / "dual_arm_baxter.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    out = mod.run(n=40, seed=0, verbose=False)
+    out = mod.run(n=20, seed=0, verbose=False)  # 55 estimated from 20 as from 40 (weak 0, 48 dropped)
     assert out["converged"] and out["weak"] == 0
     res, truth = out["result"], out["dataset"].truth_dict()
     # judged by what the two arms do (the grasp frame in the other gripper), up to the length scale

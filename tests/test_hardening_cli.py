@@ -281,7 +281,7 @@ CASES = [
     ),
     Case(
         "log-bom-accepted",
-        calib("--cv", "0", log="{l.csv}"),
+        calib("--cv", "0", "--regions", "0", log="{l.csv}"),
         0,
         ["calibrated", "converged"],
         {"l.csv": log_edit(lambda t: "\ufeff" + t)},
@@ -1001,6 +1001,8 @@ def test_outputs_written_as_a_set_model_before_report(panda_files, tmp_path, mon
             WELD,
             "--quiet",
             "--cv",
+            "0",
+            "--regions",
             "0",
             "--out",
             str(tmp_path / "sub" / "cal.urdf"),

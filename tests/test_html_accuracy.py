@@ -1,5 +1,5 @@
 """The HTML report's accuracy section says where to measure next when ``--suggest`` chose configurations,
-with the figures the summary prints."""
+with the figures the summary prints, and the closure of each region of joint space held out."""
 
 from __future__ import annotations
 
@@ -26,3 +26,13 @@ def test_the_suggested_configurations_are_on_the_page():
 
 def test_no_suggestion_no_line():
     assert "where to measure next" not in _accuracy({"accuracy": {"workspace": WORKSPACE}})
+
+
+def test_held_out_regions_are_a_table_in_millimetres_and_milliradians():
+    regions = {"k": 3, "test": [{"loop": "socket", "rms_m": 2.5e-4, "rms_rad": 1.25e-3}]}
+    page = _accuracy({"accuracy": {"workspace": WORKSPACE, "regions": regions}})
+    assert "3 regions of joint space held out in turn" in page
+    table = page[page.index("3 regions of joint space") :]
+    assert "held-out [mm]" in table and "held-out [mrad]" in table
+    assert "socket" in table and "0.25" in table and "1.25" in table
+    assert "regions of joint space" not in _accuracy({"accuracy": {"workspace": WORKSPACE}})

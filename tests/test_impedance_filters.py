@@ -100,7 +100,7 @@ def test_identify_imports_no_scipy_signal(tmp_path):
     from closedloop.impedance.simulation import simulate
 
     data = tmp_path / "data.csv"
-    write_record(data, simulate(ExperimentConfig(n_cycles=30, noise=0.05, seed=5)).record)
+    write_record(data, simulate(ExperimentConfig(n_cycles=30, noise=0.05, seed=5, cycles_per_block=3)).record)
     out = tmp_path / "modules.json"
     argv = ["impedance", "identify", str(data), "--out", str(tmp_path / "r.json")]
     p = subprocess.run([sys.executable, "-c", RUN, str(out), *argv], capture_output=True, text=True, timeout=600)

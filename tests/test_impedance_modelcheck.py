@@ -20,7 +20,7 @@ from closedloop.impedance.mujoco_sim import simulate_robot
 from closedloop.impedance.results import write_truth
 from closedloop.impedance.simulation import simulate
 
-ROBOT = ExperimentConfig(n_cycles=100, noise=0.1, seed=2, stiffness="square:200,80,0.5")
+ROBOT = ExperimentConfig(n_cycles=50, noise=0.1, seed=2, stiffness="square:200,80,0.5")
 SOFT_SHOULDER = (0.5, 5000.0, 75.0)
 
 
@@ -47,9 +47,11 @@ def test_silent_on_the_independent_elbow(kw):
     assert 0.8 < chk.ratio < 1.1 and not chk.fires, chk
 
 
+# The forearm in blocks of 3 cycles (the same 100 cycles; 0.4 s a simulation, not 1.2 s): ratios 0.88-1.00 over
+# seeds 1-3 (0.85-1.00 in blocks of 10); a twin of twice the data's noise gives 0.22-0.24, failing.
 @pytest.mark.parametrize("noise", [0.01, 0.05, 0.1])
 def test_silent_on_the_thesis_forearm(noise):
-    sim = simulate(ExperimentConfig(seed=1, noise=noise), "rk4")
+    sim = simulate(ExperimentConfig(seed=1, noise=noise, cycles_per_block=3), "rk4")
     _, _, chk = _check(sim.record)
     assert 0.8 < chk.ratio < 1.1 and not chk.fires, chk
 

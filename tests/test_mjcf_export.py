@@ -223,6 +223,8 @@ def test_cli_writes_the_calibrated_mjcf(fitted, capsys):
                 str(rep),
                 "--cv",
                 "0",
+                "--regions",
+                "0",
             ]
         )
         == 0

@@ -550,6 +550,7 @@ def test_commanded_readings_fit_plain_least_squares_and_say_so(files, capsys):
     is given; the report records both, the summary says why."""
     nominal, log, tmp = files
     base = ["calibrate", str(nominal), str(log), "--loop", "weld:frame=panda_hand,name=fixture", "--cv", "0"]
+    base += ["--regions", "0"]
     assert main([*base, "--readings", "commanded", "--report", str(tmp / "cmd.json")]) == 0
     rep = json.loads((tmp / "cmd.json").read_text())
     assert rep["inputs"] == {"readings": "commanded", "weighting": "none", "torques": None}

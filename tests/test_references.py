@@ -78,14 +78,15 @@ def _bound(node: ast.stmt) -> list[str]:
     return []
 
 
-def _class_attributes(cls: ast.ClassDef) -> set[str]:
+@cache  # a class is asked for each attribute the prose names of it (and of its subclasses)
+def _class_attributes(cls: ast.ClassDef) -> frozenset[str]:
     out = set()
     for node in cls.body:
         out.update(_bound(node))
     for node in ast.walk(cls):  # self.x = ... in its methods
         if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id == "self":
             out.add(node.attr)
-    return out
+    return frozenset(out)
 
 
 @cache

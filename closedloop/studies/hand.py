@@ -371,7 +371,7 @@ def close_many(problem, starts: np.ndarray, iters: int = 200) -> tuple[np.ndarra
     for _ in range(iters):
         if not open_rows.size:
             break
-        ev = problem.evaluate(x, True, [th[open_rows]])[0]
+        ev = problem.evaluate(x, True, [th[open_rows]], columns=[])[0]  # Jq alone
         still = []
         for k, i in enumerate(open_rows):
             if np.abs(ev.r[k]).max() < 1e-13:

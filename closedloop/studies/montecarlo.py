@@ -160,7 +160,7 @@ def self_motion_manifold(
 
     def jq(th):
         thetas[block] = np.atleast_2d(th)
-        return problem.evaluate(values, True, thetas)[block].Jq
+        return problem.evaluate(values, True, thetas, columns=[])[block].Jq
 
     def tangent(th, prev):
         _, S, Vt = np.linalg.svd(jq(th)[0])
@@ -226,7 +226,7 @@ def _resample_onto_loop(
     th = np.array([np.interp(targets, s, poly[:, c]) for c in range(poly.shape[1])]).T
     for _ in range(20):
         thetas[block] = th
-        ev = problem.evaluate(values, True, thetas)[block]
+        ev = problem.evaluate(values, True, thetas, columns=[])[block]  # Jq alone
         assert ev.Jq is not None  # evaluated with Jacobians
         r, J = ev.r.reshape(len(th), -1), ev.Jq.reshape(len(th), -1, th.shape[1])
         if np.abs(r).max() < 1e-13:

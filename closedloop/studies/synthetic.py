@@ -40,7 +40,7 @@ def _close(
     err = np.inf
     for _ in range(iters):
         thetas[block] = th
-        ev = problem.evaluate(values, True, thetas)[block]
+        ev = problem.evaluate(values, True, thetas, columns=[])[block]  # Jq alone
         assert ev.Jq is not None  # evaluated with Jacobians
         err = float(np.abs(ev.r).max())
         if err < tol:
@@ -97,7 +97,7 @@ def self_motion(
             )
         if Jq_at_th is None:  # the closing stopped on its step count: J_theta not yet evaluated at th
             thetas[block] = th
-            Jq_all = problem.evaluate(values, True, thetas)[block].Jq
+            Jq_all = problem.evaluate(values, True, thetas, columns=[])[block].Jq
             assert Jq_all is not None  # evaluated with Jacobians
             Jq_at_th = Jq_all[0]
         _, S, Vt = np.linalg.svd(Jq_at_th)
