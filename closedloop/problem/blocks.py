@@ -107,11 +107,6 @@ def read_only(e: BlockEval) -> BlockEval:
     return e
 
 
-def without_columns(e: BlockEval) -> BlockEval:
-    """`e` without the columns of its parameter Jacobian (a view: residuals and Jq kept, J of width 0)."""
-    return BlockEval(e.r, None if e.J is None else e.J[:, :, :0], e.Jq, e.valid, e.cov, e.rows)
-
-
 def copy_eval(e: BlockEval, jacobian: bool, no_columns: bool) -> BlockEval:
     """A copy of a kept evaluation: r only, or with the Jacobians (none of J's columns with `no_columns`)."""
 

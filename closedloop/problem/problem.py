@@ -38,7 +38,7 @@ from closedloop.model.parameters import Parameter, RobotParameters, RobotState
 from closedloop.model.robot import RobotModel
 from closedloop.model.se3 import poses_from_adjoints
 from closedloop.parallel.chunks import chunk_threads, for_each_chunk
-from closedloop.problem.blocks import BlockEval, ChunkStack, Workspace, copy_eval, read_only, without_columns
+from closedloop.problem.blocks import BlockEval, ChunkStack, Workspace, copy_eval, read_only
 from closedloop.problem.shared import loop_columns
 
 # What a parameter's Jacobian column is made of (`CalibrationProblem._role`).
@@ -412,9 +412,9 @@ class CalibrationProblem:
         vector to the bit: the stages after a solve each ask for the
         solution's residual (outlier screen, closure level, standard errors,
         noise summary, residual statistics, the accuracy prediction's plain fit).
-        Above MEMO_ROWS an evaluation with the parameter Jacobian is kept and
-        given as it is, read-only (`blocks.read_only`): a caller that would write
-        into it makes its own.
+        Above MEMO_ROWS an evaluation with the parameter Jacobian within MEMO_BYTES
+        is kept and given as it is, read-only (`blocks.read_only`): a caller that
+        would write into it makes its own.
         """
         if thetas is not None:
             return self._evaluate(values, jacobian, thetas, columns)
@@ -426,11 +426,12 @@ class CalibrationProblem:
             for k, blocks, kind, evals in memo:
                 if k == key and blocks is self.blocks and kind == cols:
                     return list(evals)
-            out = [read_only(e) for e in self._evaluate(values, jacobian, None, columns)]
-            whole = sum(e.J.nbytes for e in out if e.J is not None) <= MEMO_BYTES
-            memo.insert(
-                0, (key, self.blocks, cols if whole else (), out if whole else [without_columns(e) for e in out])
-            )
+            out = self._evaluate(values, jacobian, None, columns)
+            if sum(e.J.nbytes for e in out if e.J is not None) <= MEMO_BYTES:  # kept as it is, shared read-only
+                out = [read_only(e) for e in out]
+                memo.insert(0, (key, self.blocks, cols, out))
+            else:  # its residual and Jq kept, copies: the caller whitens its J in place, no second J in memory
+                memo.insert(0, (key, self.blocks, (), [copy_eval(e, True, True) for e in out]))
             del memo[2:]
             return out
         for k, blocks, kind, evals in memo:
