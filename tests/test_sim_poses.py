@@ -76,7 +76,7 @@ def test_rows_not_recorded_are_named_by_file_and_line():
     where = [f"next.csv line {i + 2}" for i in range(4)]
     said = _poses_shortfall(rec, where, 300)
     assert said.startswith("next.csv line 3, next.csv line 5 not recorded (it ended at a joint limit (knee)")
-    assert "did not come to rest within max_steps=300 steps" in said
+    assert "did not come to rest within max_steps=300 steps" in said and "try --set max_steps=1200" in said
     rec.dropped_at = []
     assert _poses_shortfall(rec, where, 300) == ""
 

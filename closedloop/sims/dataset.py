@@ -392,8 +392,9 @@ def _poses_shortfall(rec, where: list[str], max_steps: int) -> str:
         why.append(f"it ended at a joint limit ({', '.join(sorted(rec.at_limit))}): at a stop the robot rests on it")
     if rec.unsettled:
         why.append(
-            f"it did not come to rest within max_steps={max_steps} steps: a reading far from the true loop makes "
-            "the servos fight it (the model that suggested it may be far off)"
+            f"it did not come to rest within max_steps={max_steps} steps: a loop of many joints settles slowly "
+            f"(try --set max_steps={4 * max_steps}), or a reading far from the true loop makes the servos fight "
+            "it (the model that suggested it may be far off)"
         )
     return f"{rows} not recorded ({'; '.join(why)}); the log leaves them out, and its rows can be appended"
 
