@@ -407,16 +407,34 @@ def unseen_factor(
         return np.zeros((len(considered), 0))
     p = np.array([problem.params[k].prior for k in considered], dtype=float)
     t = np.array([prior.of(problem.params[k].kind, problem.params[k].unit) for k in considered], dtype=float)
+    return tolerance_factor(least_seen(data_triangle(problem, values, considered, evaluations), n_unseen), p, t, moved)
+
+
+def data_triangle(problem, values: np.ndarray, considered: list[int], evaluations: list | None = None) -> np.ndarray:
+    """The prior-scaled closure Jacobian C over `considered` at `values` (its finite rows) reduced to its
+    triangle R (C = Q R, a chunk of rows at a time: the same right singular vectors); `evaluations` as in
+    `unseen_factor`."""
+    p = np.array([problem.params[k].prior for k in considered], dtype=float)
     evs = problem.evaluate(values, True, columns=considered) if evaluations is None else evaluations
     rows = [ev.jacobian().reshape(-1, len(considered)) for ev in evs if ev.J is not None and ev.J.size]
     rows = [J if np.isfinite(J).all() else J[np.all(np.isfinite(J), axis=1)] for J in rows]
-    # the right singular vectors of the prior-scaled Jacobian C = Q R are R's: reduced a chunk of rows at a time
-    C = scaled_r_factor_of_blocks(rows, p) if rows else np.zeros((0, len(considered)))
+    return scaled_r_factor_of_blocks(rows, p) if rows else np.zeros((0, len(considered)))
+
+
+def least_seen(C: np.ndarray, n_unseen: int) -> np.ndarray:
+    """The `n_unseen` right singular directions of the prior-scaled data C (rows, or their triangle) with the
+    smallest singular values, as columns (prior-scaled units)."""
     if C.shape[0] < C.shape[1]:
         C = np.vstack([C, np.zeros((C.shape[1] - C.shape[0], C.shape[1]))])
     _, _, Vt = np.linalg.svd(C, full_matrices=False)
-    Vu = Vt[-min(n_unseen, Vt.shape[0]) :].T  # the least-seen directions, in prior-scaled units
-    d_u = p * (Vu @ (Vu.T @ (moved / p))) if moved is not None else np.zeros(len(considered))
+    return Vt[-min(n_unseen, Vt.shape[0]) :].T
+
+
+def tolerance_factor(Vu: np.ndarray, p: np.ndarray, t: np.ndarray, moved: np.ndarray | None = None) -> np.ndarray:
+    """Sigma_unseen's factor (module docstring) along the least-seen directions `Vu` (`least_seen`): the
+    tolerances `t` projected on them, and the part of `moved` along them as a last column (0 where None);
+    `p` the parameters' prior scales."""
+    d_u = p * (Vu @ (Vu.T @ (moved / p))) if moved is not None else np.zeros(len(p))
     return np.hstack([(p[:, None] * Vu) @ (Vu.T * (t / p)), d_u[:, None]])
 
 

@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from closedloop.analysis.accuracy import joint_ranges
+from closedloop.analysis.accuracy import joint_ranges, least_seen, tolerance_factor
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
 
 N_CANDIDATES = 400  # random starts moved onto the loop
@@ -172,8 +172,7 @@ class Unseen:
     @classmethod
     def of(cls, res, workspace, names: list[str]) -> "Unseen":
         """The unseen part of the calibration `res` whose prediction is `workspace`, over `names`."""
-        from closedloop.analysis.accuracy import UNSEEN_SAMPLE
-        from closedloop.estimate.qr import scaled_r_factor_of_blocks
+        from closedloop.analysis.accuracy import UNSEEN_SAMPLE, data_triangle
         from closedloop.records import ParamStatus
 
         problem = res.problem
@@ -186,10 +185,7 @@ class Unseen:
         if n <= 0:
             return cls(0, np.zeros((0, len(cols))), p, t, moved)
         long_ = any(b.theta.shape[0] > UNSEEN_SAMPLE for b in problem.blocks)
-        evs = (problem.sampled(UNSEEN_SAMPLE) if long_ else problem).evaluate(values, True, columns=cols)
-        rows = [ev.jacobian().reshape(-1, len(cols)) for ev in evs if ev.J is not None and ev.J.size]
-        rows = [J[np.all(np.isfinite(J), axis=1)] for J in rows]
-        return cls(n, scaled_r_factor_of_blocks(rows, p) if rows else np.zeros((0, len(cols))), p, t, moved)
+        return cls(n, data_triangle(problem.sampled(UNSEEN_SAMPLE) if long_ else problem, values, cols), p, t, moved)
 
     def recalibrated(self, sigma: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """`sigma` (the information-form update of the prediction's covariance by the new rows, names order)
@@ -199,13 +195,9 @@ class Unseen:
         that unseen part of it."""
         if self.n <= 0:
             return sigma, np.zeros_like(sigma)
-        C = np.vstack([self.R, rows * self.p])
-        if C.shape[0] < C.shape[1]:
-            C = np.vstack([C, np.zeros((C.shape[1] - C.shape[0], C.shape[1]))])
-        Vu = np.linalg.svd(C, full_matrices=False)[2][-min(self.n, C.shape[1]) :].T
-        U = self.p[:, None] * Vu  # the unseen directions, in the parameters' units
-        out = np.eye(len(self.p)) - U @ (Vu.T / self.p)  # what the fit estimates: the seen part of sigma
-        L_u = np.hstack([U @ (Vu.T * (self.t / self.p)), (U @ (Vu.T @ (self.moved / self.p)))[:, None]])
+        Vu = least_seen(np.vstack([self.R, rows * self.p]), self.n)
+        out = np.eye(len(self.p)) - (self.p[:, None] * Vu) @ (Vu.T / self.p)  # what the fit estimates: the seen part
+        L_u = tolerance_factor(Vu, self.p, self.t, self.moved)
         unseen = L_u @ L_u.T
         return out @ sigma @ out.T + unseen, unseen
 
