@@ -52,3 +52,30 @@ def test_a_pose_repeated_with_independent_noise_is_not_flagged(case):
     ratio = res.verdict.evidence["sandwich_variance_ratio"]
     assert 0.5 < ratio < 2.0, ratio
     assert not any("error bars are not reliable" in r for r in res.verdict.reasons), res.verdict.reasons
+
+
+def test_the_sandwich_rests_on_its_clusters_not_its_rows():
+    """Sandwich error bars (the plain fit's) are suspect below 3 clusters per parameter: a log of 100 poses
+    each read 400 times rests on 100 clusters, not on 40,000 configurations."""
+    from types import SimpleNamespace
+
+    from closedloop.calibration.verdict import SUSPECT, Verdict, _error_bars
+    from closedloop.estimate.model_error import SANDWICH
+    from closedloop.records import VerdictRules
+
+    def judged(cells):
+        block = SimpleNamespace(theta=np.zeros((40000, 12)), loop=SimpleNamespace())
+        noise = SimpleNamespace(error_bars=SANDWICH, model_error={"sandwich_cells": cells})
+        res = SimpleNamespace(
+            problem=SimpleNamespace(blocks=[block]), fit=SimpleNamespace(estimated=range(47)), noise=noise
+        )
+        v = Verdict()
+        _error_bars(res, VerdictRules(), v)
+        return v
+
+    few = judged(100)
+    assert (
+        few.status == SUSPECT
+        and "rests on 100 distinct poses (of 40000 configurations) for 47 parameters" in few.reasons[0]
+    )
+    assert judged(2739).status != SUSPECT

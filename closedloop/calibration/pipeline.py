@@ -211,6 +211,8 @@ def analyse_solution(
     noise_q = np.asarray(fit.sigma_q, dtype=float) * (sigma_r if weighted and not fit.known else 1.0)
     cells = configuration_cells(problem, np.maximum(CELL_NOISE * noise_q if weighted else 0.0, CELL_MIN))
     cov_s = sandwich_cov(problem, r, J, scale[est], Vk, S[keep], cells) if keep.any() else cov
+    own = [c for c, b in zip(cells, problem.blocks) if not getattr(b.loop, "parameter_only", False)]
+    n_cells = int(np.unique(np.concatenate(own)).size) if own else 0  # the sandwich's clusters: distinct poses
     d, ds = np.diag(cov), np.diag(cov_s)
     live = d > 0
     # mean variance ratio sandwich / noise model: ~1 where the residual is the assumed noise
@@ -242,6 +244,7 @@ def analyse_solution(
         "weighting": fun.weighting,
         "reducible": reducible,
         "sandwich_ratio": ratio,
+        "sandwich_cells": n_cells,
     }
 
 
@@ -402,7 +405,8 @@ def _calibrate(
             estimator=choice["estimator"],
             estimator_reason=choice["reason"],
             error_bars=choice["error_bars"],
-            model_error=choice["evidence"] | {"sandwich_variance_ratio": a["sandwich_ratio"]},
+            model_error=choice["evidence"]
+            | {"sandwich_variance_ratio": a["sandwich_ratio"], "sandwich_cells": a["sandwich_cells"]},
             noise_model=found["noise_model"],
             profiles=profiles,
         ),

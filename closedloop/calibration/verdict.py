@@ -320,7 +320,8 @@ def _noise_free(result: CalibrationResult, rules: VerdictRules) -> bool:
 def _error_bars(result: CalibrationResult, rules: VerdictRules, verdict: Verdict) -> None:
     """Do the standard errors hold?  From the noise model: its variances and the sandwich's (the residual's own
     spread between configurations, `closedloop.estimate.model_error`) agree within `error_bar_ratio`.  From
-    the sandwich: at least `sandwich_configurations` configurations per estimated parameter."""
+    the sandwich: at least `sandwich_configurations` of its clusters per estimated parameter (distinct poses:
+    the readings of one pose, repeated or held, are one cluster, `model_error.configuration_cells`)."""
     from closedloop.estimate.model_error import SANDWICH
 
     ratio = result.noise.model_error.get("sandwich_variance_ratio")
@@ -328,12 +329,13 @@ def _error_bars(result: CalibrationResult, rules: VerdictRules, verdict: Verdict
     p = len(result.fit.estimated)
     if result.noise.error_bars == SANDWICH:
         verdict.evidence["error_bars"] = "sandwich"
-        if n_conf < rules.sandwich_configurations * p:
+        n = int(result.noise.model_error.get("sandwich_cells", n_conf))
+        if n < rules.sandwich_configurations * p:
+            rests = f"{n} configurations" if n == n_conf else f"{n} distinct poses (of {n_conf} configurations)"
             verdict.add(
                 SUSPECT,
                 f"the error bars are not reliable: the residual is not joint noise, and the sandwich covariance "
-                f"rests on {n_conf} configurations for {p} parameters (fewer than {rules.sandwich_configurations:g} "
-                "each)",
+                f"rests on {rests} for {p} parameters (fewer than {rules.sandwich_configurations:g} each)",
             )
         return
     if (
