@@ -70,6 +70,7 @@ class SolverOptions:
     rcond: float = 1e-10  # numerical rank floor, relative to s_max
     geodesic: float = 0.75  # geodesic acceleration (Transtrum & Sethna 2012) if > 0: max 2|a|/|v|
     damping: float = 0.0  # initial lambda relative to s_max^2 (Nielsen's tau); 0: Gauss-Newton first
+    chord: float = 0.0  # steps of at most this |dz| keep the Jacobian (module docstring); 0: never
     lower: np.ndarray | None = None
     upper: np.ndarray | None = None
 
@@ -185,8 +186,13 @@ def _solve(
     status, message, truncated = "max_iter", f"no convergence in {opt.max_iter} iterations", 0
     it = 0
     factorised = getattr(fun, "factorised", None)  # a function that keeps its factorisation shares it
+    chorded = False  # the last accepted step kept the Jacobian: J is J_0's, r is x's (module docstring)
+    keep_jacobian = getattr(fun, "keep_jacobian", None)
     for it in range(1, opt.max_iter + 1):
-        S, Vt, g = factorised(x, scale) if factorised is not None else scaled_svd(J, r, scale)
+        if chorded:  # U^T r through the factorisation of J_0: S^-1 V^T D J_0^T r
+            g = np.where(S > 0.0, Vt @ (scale * (J.T @ r)) / np.where(S > 0.0, S, 1.0), 0.0)
+        else:
+            S, Vt, g = factorised(x, scale) if factorised is not None else scaled_svd(J, r, scale)
         memo["x"], memo["S"] = x.copy(), S
         Js = J * scale if bounded else None  # the bounded step works on the rows themselves
         floor = opt.rcond * (S[0] if S.size else 0.0)
@@ -198,15 +204,17 @@ def _solve(
         if lam == 0.0 and opt.damping > 0.0 and S.size:
             lam = opt.damping * float(S[0] ** 2)
         gn = np.where(keep, g, 0.0) / np.where(keep, S, 1.0)  # minus the undamped step, along the rows of Vt
+        chord = False
         while True:
             dz = _step(S, Vt, g, keep, lam, x, scale, opt, Js, r)
             predicted = _model_decrease(S, Vt, g, dz)
             if predicted <= opt.ftol * cost:
                 break  # even if the trial succeeded, its decrease would stop the iteration: at the minimum
-            if opt.geodesic and not bounded:
+            chord = opt.chord > 0.0 and not bounded and float(np.linalg.norm(dz)) <= opt.chord
+            if opt.geodesic and not bounded and not chord:
                 dz = _geodesic(fun, x, r, J, scale, S, Vt, keep, lam, dz, opt.geodesic)
             x_new = x + dz * scale
-            r_new, _ = fun(x_new, False)
+            r_new, _ = fun(x_new, None if chord else False)  # a chord's trial: no Jacobian (a probe)
             cost_new = 0.5 * float(r_new @ r_new)
             rho = (cost - cost_new) / predicted if np.isfinite(cost_new) else -np.inf
             if rho > 1e-4:
@@ -234,7 +242,13 @@ def _solve(
         x = x_new
         if retract is not None:
             x = retract(x)  # the parameters' charts follow the solution (`residual.ResidualFunction.retract`)
-        r, J = _with_jacobian(fun, x)
+        chorded = chord and found is None and np.array_equal(x, x_new)  # (a chart that moved re-linearises)
+        if chorded:
+            r = r_new
+            if keep_jacobian is not None:
+                keep_jacobian(x, r)
+        else:
+            r, J = _with_jacobian(fun, x)
         cost = 0.5 * float(r @ r)
         history.append(cost)
         if progress:

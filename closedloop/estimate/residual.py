@@ -184,6 +184,13 @@ class ResidualFunction:
             self._trial = (xe.copy(), evals)
         return r, J
 
+    def keep_jacobian(self, xe: np.ndarray, r: np.ndarray) -> None:
+        """The solver's chord step (`lm.SolverOptions.chord`): the linearisation at `xe` is the last Jacobian
+        with `r`, the residual at `xe` (a probe's: the weighting of that Jacobian)."""
+        if self._rJ is not None and self._x is not None:
+            self._charted.relinearized(self._local(xe), self._local(self._x))  # for the stages after the solve
+            self._x, self._rJ, self._trial = xe.copy(), (r, self._rJ[1]), None
+
     def linearized(self, xe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """r and its Jacobian J at `xe` (the call with `jac`; a ValueError if the problem gives no J)."""
         r, J = self(xe, True)
@@ -305,6 +312,18 @@ def presolved(
     return fun.problem.normalized(fun.full(res.x), fun.est)[fun.est], res.iterations
 
 
+#: |dz| (prior units) below which the whole log's finish from its sample's solution keeps its Jacobian
+#: (`lm.SolverOptions.chord`): that solution lies a few sample standard errors from the log's, hundredths of
+#: a prior unit, over which the Jacobian changes by ~1e-4 of itself
+FINISH_CHORD = 0.1
+
+
+def _finishing(sopt: SolverOptions, near: np.ndarray, start: np.ndarray) -> SolverOptions:
+    """The solver's options for the whole log from `near`: with chord steps where `near` is its sample's
+    solution (`presolved`: not `start`)."""
+    return replace(sopt, chord=FINISH_CHORD) if near is not start else sopt
+
+
 def plain_stage(
     problem: CalibrationProblem,
     x0: np.ndarray,
@@ -324,7 +343,7 @@ def plain_stage(
     fun = ResidualFunction(problem, x0, est, np.ones(len(problem.joints)), "none", row_weights)
     sopt = replace(sopt, noise=0.0)
     near, pre = presolved(fun, start, scale[est], sopt, progress)
-    res = levenberg_marquardt(fun, near, scale[est], sopt, progress)
+    res = levenberg_marquardt(fun, near, scale[est], _finishing(sopt, near, start), progress)
     res.iterations += pre
     return StageResult(res, fun)
 
@@ -346,7 +365,7 @@ def weighted_stage(
     near, pre = presolved(fun, start, scale[est], sopt, progress)
     fun(near, True)
     deficit_start = fun.deficit  # the weighting at the start (the solver's first call reuses this evaluation)
-    res = levenberg_marquardt(fun, near, scale[est], sopt, progress)
+    res = levenberg_marquardt(fun, near, scale[est], _finishing(sopt, near, start), progress)
     res.iterations += pre
     if weighting != "noise":
         return StageResult(res, fun)

@@ -26,7 +26,7 @@ kinematic regressor) are in one loop; everything else is batched numpy.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -441,6 +441,22 @@ class CalibrationProblem:
         memo.insert(0, (key, self.blocks, cols if jacobian else "r", out))
         del memo[2:]
         return [copy_eval(e, jacobian, False) for e in out]
+
+    def relinearized(self, values: np.ndarray, at: np.ndarray) -> None:
+        """Keep, as the evaluation with Jacobians at `values`, the kept one at `at` with the residual at
+        `values` (both kept by `evaluate`): a solver's chord step from `at` to `values`
+        (`lm.SolverOptions.chord`), which linearises its solution at `at`.  Nothing if either is not kept."""
+        memo = self.__dict__.get("_memo", [])
+        key, key_at = (np.asarray(v, dtype=float).tobytes() for v in (values, at))
+        r = next((e for k, b, kind, e in memo if k == key and b is self.blocks and kind == "r"), None)
+        lin = next(((kind, e) for k, b, kind, e in memo if k == key_at and b is self.blocks and kind != "r"), None)
+        if r is None or lin is None or len(r) != len(lin[1]):
+            return
+        kind, evals = lin
+        shared = not self.keeps_jacobians and kind != ()  # a long log's J, shared read-only (`evaluate`)
+        out = [replace(e, r=a.r, valid=a.valid) for e, a in zip(evals, r)]
+        memo.insert(0, (key, self.blocks, kind, [read_only(e) for e in out] if shared else out))
+        del memo[2:]
 
     def _evaluate(
         self, values: np.ndarray, jacobian: bool, thetas: list[np.ndarray] | None, columns: Sequence[int] | None
