@@ -41,6 +41,19 @@ most of it (the stop is no minimum), that step is tried shortened
 a slope its Jacobian does not give, and stops 'stalled' (`CRAWL_ITERATIONS`).  With bounds
 the step is a bounded least-squares problem solved by qpsolvers/OSQP in the
 kept subspace.
+
+Chord steps (`SolverOptions.chord`, for a solve that starts next to its minimum: a long log finished from
+its sample's solution).  An undamped step no longer than `chord` in the
+parameters' prior units, and after such a step a tenth of it at most (the iteration contracts: `_chord`),
+keeps the Jacobian: the trial is evaluated without one, and once accepted the next linear model is the last
+Jacobian J_0 with the new residual, g = U^T r = S^-1 V^T D J_0^T r (the chord, or simplified Newton,
+method: Kelley 1995, ch. 5).  J changes over such a step by about the step times the model's curvature, a
+few 1e-4 of itself where a prior unit is a millimetre or a milliradian on links of decimetres; the chord's
+minimum, where J_0^T r vanishes, lies about that share of a standard error from the minimum's.  The
+solver's Jacobian is then J_0, the linearisation of a point within `chord` of its solution; a function
+with a `keep_jacobian` hook is told so (its next Jacobian call at the solution returns J_0 with the
+residual there).  No geodesic correction then: a step that short has no curvature to correct.  A damped
+step, or a chord that does not contract (a valley whose Jacobian turns along it), takes a new Jacobian.
 """
 
 from __future__ import annotations
@@ -187,6 +200,7 @@ def _solve(
     it = 0
     factorised = getattr(fun, "factorised", None)  # a function that keeps its factorisation shares it
     chorded = False  # the last accepted step kept the Jacobian: J is J_0's, r is x's (module docstring)
+    last_chord = 0.0  # that step's |dz|
     keep_jacobian = getattr(fun, "keep_jacobian", None)
     for it in range(1, opt.max_iter + 1):
         if chorded:  # U^T r through the factorisation of J_0: S^-1 V^T D J_0^T r
@@ -210,7 +224,7 @@ def _solve(
             predicted = _model_decrease(S, Vt, g, dz)
             if predicted <= opt.ftol * cost:
                 break  # even if the trial succeeded, its decrease would stop the iteration: at the minimum
-            chord = opt.chord > 0.0 and not bounded and float(np.linalg.norm(dz)) <= opt.chord
+            chord = _chord(opt, bounded, dz, lam, S[keep], last_chord if chorded else None)
             if opt.geodesic and not bounded and not chord:
                 dz = _geodesic(fun, x, r, J, scale, S, Vt, keep, lam, dz, opt.geodesic)
             x_new = x + dz * scale
@@ -244,6 +258,7 @@ def _solve(
             x = retract(x)  # the parameters' charts follow the solution (`residual.ResidualFunction.retract`)
         chorded = chord and found is None and np.array_equal(x, x_new)  # (a chart that moved re-linearises)
         if chorded:
+            last_chord = step_norm
             r = r_new
             if keep_jacobian is not None:
                 keep_jacobian(x, r)
@@ -297,6 +312,23 @@ def _with_jacobian(fun: ResidualFn, x: np.ndarray) -> tuple[np.ndarray, np.ndarr
     if J is None:
         raise ValueError("the residual function returned no Jacobian where one was asked for")
     return r, J
+
+
+#: a chord step's damping at most this share of the smallest kept squared singular value (an undamped step)
+CHORD_DAMPING = 1e-3
+#: a chord step after a chord step at most this share of its length (the chord iteration contracts)
+CHORD_CONTRACTION = 0.1
+
+
+def _chord(opt: SolverOptions, bounded: bool, dz: np.ndarray, lam: float, S_kept: np.ndarray, last: float | None) -> bool:
+    """Whether the trial step `dz` keeps the Jacobian (`SolverOptions.chord`, module docstring): no longer than
+    `opt.chord`, undamped (`CHORD_DAMPING`), and after a chord step (`last`, its length) a `CHORD_CONTRACTION`
+    of it.  A damped step is one the linear model is not trusted for, and a chord that does not contract is
+    crawling along a valley whose Jacobian turns (the minimum it would reach is the stale Jacobian's)."""
+    if opt.chord <= 0.0 or bounded or not S_kept.size or lam > CHORD_DAMPING * float(S_kept[-1]) ** 2:
+        return False
+    n = float(np.linalg.norm(dz))
+    return n <= opt.chord and (last is None or n <= CHORD_CONTRACTION * last)
 
 
 def _geodesic(fun, x, r, J, scale, S, Vt, keep, lam, v, alpha, h: float = 0.1):

@@ -37,7 +37,7 @@ from closedloop.calibration.pipeline import build_problem, calibrate
 from closedloop.errors import ClosedLoopError
 from closedloop.estimate.lm import SolverOptions, scaled_svd
 from closedloop.estimate.noise import noise_vector
-from closedloop.estimate.residual import FINISH_CHORD, ResidualFunction, weighted_stage
+from closedloop.estimate.residual import ResidualFunction, weighted_stage
 from closedloop.estimate.threads import blas_threads
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
@@ -132,7 +132,7 @@ def _warm(
     if not est or sum(b.theta.shape[0] * b.loop.dim for b in problem.blocks) <= len(est):
         return None  # too few rows for the parameters: the calibration of its own says so
     scale = np.array([p.prior for p in problem.params])
-    sopt = SolverOptions(max_iter=WARM_ITER, noise=1.0, snr=opt.snr, chord=FINISH_CHORD)
+    sopt = SolverOptions(max_iter=WARM_ITER, noise=1.0, snr=opt.snr)
     with blas_threads(opt.threads):
         stage = weighted_stage(problem, x_full, x_full[est], est, scale, sigma_q, "noise", sopt, None)
         iterations = stage.solution.iterations
