@@ -108,3 +108,41 @@ def test_loop_poses_are_kept_for_the_robot_values(problem):
         False,
     )
     assert all(np.array_equal(m, fresh[prob.robot.frame_id(f)][0]) for m, f in zip(moved, prob.blocks[0].loop.frames))
+
+
+def test_weighting_roots_are_reused_at_the_same_point_for_a_proportional_noise(problem, monkeypatch):
+    """`ResidualFunction._kept_roots`: a second function of the same problem at the same point, with the
+    joint noise c times the first's (the outlier screen's and the closure level's at the fit's solution),
+    whitens with the first's roots divided by c, to the whitening it would form itself (1e-12); another
+    point or noise pattern forms its own."""
+    import closedloop.estimate.noise as noise_module
+    from closedloop.estimate.residual import ResidualFunction
+
+    prob, x = problem
+    prob = copy.copy(prob)  # no roots kept from other tests
+    prob.__dict__.pop("_roots_kept", None)
+    sigma = np.full(len(prob.joints), 1e-4)
+    formed = {"n": 0}
+    real = noise_module._roots
+
+    def counting(*args, **kwargs):
+        formed["n"] += 1
+        return real(*args, **kwargs)
+
+    def whitened(s, at, reuse):
+        if not reuse:
+            prob.__dict__.pop("_roots_kept", None)
+        return ResidualFunction(prob, at, [], s, "noise").blocks(np.zeros(0), symmetric=False)
+
+    first = whitened(sigma, x, True)
+    monkeypatch.setattr(noise_module, "_roots", counting)
+    again = whitened(3.0 * sigma, x, True)
+    assert formed["n"] == 0
+    own = whitened(3.0 * sigma, x, False)
+    assert formed["n"] == 1
+    for a, b, f in zip(again, own, first):
+        assert np.allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+        assert np.allclose(3.0 * a, f, rtol=1e-12, atol=1e-12 * np.abs(f).max())
+    whitened(sigma * np.linspace(1.0, 2.0, sigma.size), x, True)  # another pattern
+    whitened(3.0 * sigma, x + 1e-5, True)  # another point
+    assert formed["n"] == 3

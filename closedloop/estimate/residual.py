@@ -151,8 +151,11 @@ class ResidualFunction:
             return (r * self.row_weights if self.row_weights is not None else r), None
         if jac and self._x is not None and self._rJ is not None and np.array_equal(xe, self._x):
             return self._rJ
+        kept = self._kept_roots(xe) if not jac and self._W is None else None  # another function's, same point
+        if kept is not None:
+            self._W = kept
         loops = self.problem.noise  # each block's measurement covariance (problem.BlockNoise)
-        first_trial = not jac and self._W is not None and self._trial is None
+        first_trial = not jac and self._W is not None and self._trial is None and kept is None
         if jac and self._trial is not None and np.array_equal(xe, self._trial[0]):
             evals = self._trial[1]
         else:
@@ -162,7 +165,9 @@ class ResidualFunction:
         r, J, used = whiten(
             evals, self.sigma_q, self.weighting, jac, loops, roots, self.symmetric, overwrite=True
         )  # evaluations are copies (a trial's is whitened once)
-        if jac or self._W is None:
+        if roots is None and self.weighting == "noise":
+            self._keep_roots(xe, used)
+        if jac or self._W is None or kept is not None:
             self._W = used
             self.deficit = sum(u[1] for u in used if u is not None)
             # rows with no observation (a marker out of view): zero, and no degree of freedom.  Without a
@@ -184,11 +189,37 @@ class ResidualFunction:
             self._trial = (xe.copy(), evals)
         return r, J
 
+    def _keep_roots(self, xe: np.ndarray, used: Roots) -> None:
+        """Keep the weighting's roots at `xe` on the problem evaluated (one point), for `_kept_roots`."""
+        self._charted.__dict__["_roots_kept"] = (self._local(xe).tobytes(), self.sigma_q.copy(), self.symmetric, used)
+
+    def _kept_roots(self, xe: np.ndarray) -> Roots | None:
+        """The roots of W_i^-1 at `xe` from another function of the same problem at the same point, where they
+        are this function's: W_i = Jq_i Sigma Jq_i^T scales with Sigma, so a joint noise c times the one they
+        were formed with gives them divided by c (the fit's weighting, the screen's and the closure level's at
+        one solution: the same Jq).  None where a loop has a measurement covariance (W_i is then no multiple),
+        for configurations whitened as groups, or another point, root or noise pattern."""
+        kept = self._charted.__dict__.get("_roots_kept")
+        if kept is None or self.weighting != "noise" or kept[2] != self.symmetric:
+            return None
+        key, sigma, _, used = kept
+        if any(nz.measurement_cov is not None for nz in self.problem.noise) or len(used) != len(self.problem.blocks):
+            return None
+        c = float(self.sigma_q[0] / sigma[0]) if sigma.size and sigma[0] > 0.0 else 0.0
+        if not (c > 0.0 and np.allclose(self.sigma_q, c * sigma, rtol=1e-12, atol=0.0)):
+            return None
+        if key != self._local(xe).tobytes():
+            return None
+        return [None if u is None else (u[0] / c, u[1]) for u in used]
+
     def keep_jacobian(self, xe: np.ndarray, r: np.ndarray) -> None:
         """The solver's chord step (`lm.SolverOptions.chord`): the linearisation at `xe` is the last Jacobian
         with `r`, the residual at `xe` (a probe's: the weighting of that Jacobian)."""
         if self._rJ is not None and self._x is not None:
             self._charted.relinearized(self._local(xe), self._local(self._x))  # for the stages after the solve
+            kept = self._charted.__dict__.get("_roots_kept")
+            if kept is not None and kept[0] == self._local(self._x).tobytes():  # and the weighting's roots
+                self._charted.__dict__["_roots_kept"] = (self._local(xe).tobytes(),) + kept[1:]
             self._x, self._rJ, self._trial = xe.copy(), (r, self._rJ[1]), None
 
     def linearized(self, xe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

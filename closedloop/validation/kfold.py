@@ -161,7 +161,8 @@ def closure_residuals(
     wr = None
     if noise is not None:
         sigma_q, _ = noise_vector(problem, noise)
-        r, _, _ = whiten(evals, sigma_q, "noise", False, problem.noise)
+        # |W_i^-1/2 r_i|^2 is the same for any root of W_i^-1: the Cholesky one (`whiten`'s symmetric=False)
+        r, _, _ = whiten(evals, sigma_q, "noise", False, problem.noise, symmetric=False)
         wr = float(np.sqrt(np.mean(r**2))) if r.size else None
     return {"loops": [asdict(s) for s in stats], "whitened_rms": wr, "skipped": int(skipped.size)}
 
