@@ -65,3 +65,28 @@ def test_short_log_refits_stay_calibrations_of_their_own(panda_case):
     rv = region_validate(robot, lg, [loop], joints, CalibrationOptions(), exclude=[], result=res)
     assert not any(f["warm"] for f in rv["folds"])
     assert [f["n_train"] for f in rv["folds"]] == [len(lg) - len(r) for r in rv["regions"]]
+
+
+def test_warm_refits_run_on_threads_with_the_serial_engines_figures(panda_case, monkeypatch):
+    """Warm refits (each on a problem of its own) run on threads of the process (`parallel.engine.ThreadEngine`)
+    where no engine is given: every figure to the bit that of the refits one after the other."""
+    from closedloop.parallel import engine as engine_module
+
+    robot, loop, lg, joints, res = panda_case
+    monkeypatch.setattr(kfold, "VALIDATION_ROWS", 100)
+    used = []
+    real = engine_module.ThreadEngine.imap
+
+    def spy(self, *args, **kwargs):
+        used.append(self.workers)
+        yield from real(self, *args, **kwargs)
+
+    monkeypatch.setattr(engine_module.ThreadEngine, "imap", spy)
+    threads = region_validate(robot, lg, [loop], joints, CalibrationOptions(), exclude=[], result=res)
+    serial = region_validate(
+        robot, lg, [loop], joints, CalibrationOptions(), exclude=[], result=res, executor=engine_module.SerialEngine()
+    )
+    assert used and used[0] >= 1 and len(used) == 1
+    assert [f["warm"] for f in threads["folds"]] == [True] * len(threads["folds"])
+    for a, b in zip(threads["folds"], serial["folds"]):
+        assert a["values"] == b["values"] and a["test"] == b["test"] and a["train"] == b["train"]

@@ -425,6 +425,41 @@ def _note_signal(signum: int) -> None:
     note_signal(signum)
 
 
+#: glibc's allocator in the program's own process (`_keep_freed_arrays`): arrays up to this many bytes come
+#: from the heap, and up to TRIM_THRESHOLD bytes of freed heap stay with the process
+MMAP_THRESHOLD = 256 << 20
+TRIM_THRESHOLD = 1 << 30
+
+
+def _keep_freed_arrays() -> None:
+    """Keep freed large arrays in the process for the next pass (glibc on Linux; elsewhere nothing).
+
+    A long log's passes form arrays of tens to hundreds of megabytes (100,000 rows: J 130 MB, its
+    whitening's roots 29 MB).  glibc maps each one fresh from the kernel above its mmap threshold (32 MB at
+    most by its own adjustment) and gives it back when freed, so every pass pays the page faults of its
+    arrays again.  With the heap serving up to `MMAP_THRESHOLD` and keeping `TRIM_THRESHOLD` of freed memory,
+    a 100,000-row calibration spends 0.5 s less system time and 0.2 s less user time (1.2-1.7 s -> 0.8-0.9 s;
+    2-core AMD EPYC, three runs each) for 60-120 MB more peak memory.  Thresholds the user set
+    (``MALLOC_MMAP_THRESHOLD_``, ``MALLOC_TRIM_THRESHOLD_``) are left as set."""
+    import os
+
+    if not sys.platform.startswith("linux") or "MALLOC_MMAP_THRESHOLD_" in os.environ:
+        return
+    import ctypes
+    import platform
+
+    if platform.libc_ver()[0] != "glibc":
+        return
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return
+    m_trim_threshold, m_mmap_threshold = -1, -3  # malloc.h
+    libc.mallopt(m_mmap_threshold, MMAP_THRESHOLD)
+    if "MALLOC_TRIM_THRESHOLD_" not in os.environ:
+        libc.mallopt(m_trim_threshold, TRIM_THRESHOLD)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one command.  Exit codes: 0 ok, 1 check outside tolerance, 2 a user's mistake (one line on
     stderr), 130 interrupted (Ctrl-C; 128 + signal number for SIGTERM/SIGHUP), 70 an internal error."""
@@ -434,6 +469,8 @@ def main(argv: list[str] | None = None) -> int:
     from closedloop.io.files import track_inputs
 
     own_process = argv is None  # run as the program (not called by a test or a script)
+    if own_process:
+        _keep_freed_arrays()
     argv = join_negative_numbers(list(sys.argv[1:] if argv is None else argv))
     handlers = {}
     _received.clear()

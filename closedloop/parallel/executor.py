@@ -6,6 +6,8 @@ yields an :class:`Outcome` per job as it finishes; :func:`run` collects them in
 job order.  Engines are registered by name, as qpsolvers registers solvers:
 
 * ``serial``: in this process, one job after the other (today's loops);
+* ``threads``: in this process on ``jobs`` threads, for jobs that share nothing they change and spend
+  their time in numpy (a long log's warm held-out refits, `validation.kfold`);
 * ``local``: a ``concurrent.futures.ProcessPoolExecutor`` of ``jobs`` workers
   started with *forkserver* (POSIX) or *spawn*, never fork;
 * ``ray``: Ray tasks of one CPU each, on the cluster at ``address``
@@ -87,7 +89,7 @@ def get_engine(
     address: str | None = None,
     timeout: float | None = None,
 ) -> Engine:
-    """An engine by name ('serial', 'local', 'ray'), or the instance given (None: serial); `timeout`:
+    """An engine by name ('serial', 'threads', 'local', 'ray'), or the instance given (None: serial); `timeout`:
     seconds a job may run before it is stopped and recorded as failed (`JobTimeout`)."""
     if isinstance(engine, Engine):
         return engine

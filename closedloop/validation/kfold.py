@@ -62,6 +62,8 @@ from closedloop.calibration.pipeline import (
 from closedloop.errors import ParameterError
 from closedloop.estimate.noise import noise_vector, whiten
 from closedloop.io.logs import JointLog
+from closedloop.parallel.chunks import chunk_threads
+from closedloop.parallel.engine import ThreadEngine
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
 from closedloop.problem.blocks import BlockEval
@@ -285,7 +287,8 @@ def cross_validate(
                reduction is structural; names estimated in some folds only
                are listed under 'inconsistent').
     The refits run on `executor` (an engine or its name, closedloop.parallel.executor;
-    None: this process, in fold order); the result is the same on any engine.
+    None: this process, in fold order, or where every refit is warm on threads of it, `ThreadEngine`, each
+    on a problem of its own); the result is the same on any engine.
     `progress` is told ``("validating", folds finished, k)`` as each refit finishes (on a long log each
     takes a second or more).
     """
@@ -322,6 +325,8 @@ def cross_validate(
     refit_opt = replace(opt, robust=None) if train_without_excluded and opt.robust == "auto" else opt
     start = result if train_without_excluded else None  # a warm refit reuses the calibration's screen
     shared = (robot, loops, refit_opt, start)
+    if executor is None and start is not None and len(splits) > 1 and all(sp[4] for sp in splits):
+        executor = ThreadEngine(chunk_threads(len(splits)))  # warm refits, each on a problem of its own
     refits = run(_holdout_job, splits, executor, shared=shared, progress=progress, task="validating")
     for f, ho in enumerate(refits):
         fit = ho["result"] if isinstance(ho["result"], Refit) else as_refit(ho["result"])
