@@ -68,7 +68,8 @@ from closedloop.estimate.qr import scaled_r_factor
 
 log = logging.getLogger(__name__)
 
-ResidualFn = Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]]
+#: r(x, jac): jac True, with its Jacobian; False, a trial point; None, a probe (no Jacobian)
+ResidualFn = Callable[[np.ndarray, bool | None], tuple[np.ndarray, np.ndarray | None]]
 
 
 @dataclass
@@ -201,10 +202,11 @@ def _solve(
     factorised = getattr(fun, "factorised", None)  # a function that keeps its factorisation shares it
     chorded = False  # the last accepted step kept the Jacobian: J is J_0's, r is x's (module docstring)
     last_chord = 0.0  # that step's |dz|
+    S, Vt = np.zeros(0), np.zeros((0, x.size))  # the factorisation of J (formed at the first iteration)
     keep_jacobian = getattr(fun, "keep_jacobian", None)
     for it in range(1, opt.max_iter + 1):
-        if chorded:  # U^T r through the factorisation of J_0: S^-1 V^T D J_0^T r
-            g = np.where(S > 0.0, Vt @ (scale * (J.T @ r)) / np.where(S > 0.0, S, 1.0), 0.0)
+        if chorded:
+            g = chord_projection(J, r, scale, S, Vt)
         else:
             S, Vt, g = factorised(x, scale) if factorised is not None else scaled_svd(J, r, scale)
         memo["x"], memo["S"] = x.copy(), S
@@ -320,7 +322,9 @@ CHORD_DAMPING = 1e-3
 CHORD_CONTRACTION = 0.1
 
 
-def _chord(opt: SolverOptions, bounded: bool, dz: np.ndarray, lam: float, S_kept: np.ndarray, last: float | None) -> bool:
+def _chord(
+    opt: SolverOptions, bounded: bool, dz: np.ndarray, lam: float, S_kept: np.ndarray, last: float | None
+) -> bool:
     """Whether the trial step `dz` keeps the Jacobian (`SolverOptions.chord`, module docstring): no longer than
     `opt.chord`, undamped (`CHORD_DAMPING`), and after a chord step (`last`, its length) a `CHORD_CONTRACTION`
     of it.  A damped step is one the linear model is not trusted for, and a chord that does not contract is
@@ -401,6 +405,12 @@ def _line_search(fun, x, r, g, keep, step, scale, halvings: int = 12):
             return alpha * step, x_new, cost_new, alpha
         alpha *= 0.5
     return None
+
+
+def chord_projection(J: np.ndarray, r: np.ndarray, scale: np.ndarray, S: np.ndarray, Vt: np.ndarray) -> np.ndarray:
+    """g = U^T r for another residual `r` of the Jacobian J whose scaled factorisation J D = U S V^T is
+    (S, Vt) (`scaled_svd`), without U: (J D)^T r = V S U^T r, so U^T r = S^-1 V^T D J^T r (zero where S is)."""
+    return np.where(S > 0.0, Vt @ (scale * (J.T @ r)) / np.where(S > 0.0, S, 1.0), 0.0)
 
 
 def scaled_svd(J: np.ndarray, r: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -36,7 +36,7 @@ from typing import Callable
 
 import numpy as np
 
-from closedloop.estimate.lm import SolverOptions, SolverResult, levenberg_marquardt, scaled_svd
+from closedloop.estimate.lm import SolverOptions, SolverResult, chord_projection, levenberg_marquardt, scaled_svd
 from closedloop.estimate.noise import Roots, whiten
 from closedloop.loops.base import Loop
 from closedloop.problem.problem import BlockEval, CalibrationProblem
@@ -220,7 +220,13 @@ class ResidualFunction:
             kept = self._charted.__dict__.get("_roots_kept")
             if kept is not None and kept[0] == self._local(self._x).tobytes():  # and the weighting's roots
                 self._charted.__dict__["_roots_kept"] = (self._local(xe).tobytes(),) + kept[1:]
-            self._x, self._rJ, self._trial = xe.copy(), (r, self._rJ[1]), None
+            J = self._rJ[1]
+            svd = self.__dict__.get("_svd")
+            if svd is not None and svd[0]() is J:  # and its factorisation, with the projection of `r`
+                S, Vt, _ = svd[3]
+                g = chord_projection(J, r, np.frombuffer(svd[2], dtype=float), S, Vt)
+                self.__dict__["_svd"] = (svd[0], weakref.ref(r), svd[2], (S, Vt, g))
+            self._x, self._rJ, self._trial = xe.copy(), (r, J), None
 
     def linearized(self, xe: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """r and its Jacobian J at `xe` (the call with `jac`; a ValueError if the problem gives no J)."""

@@ -62,10 +62,10 @@ from closedloop.calibration.pipeline import (
 from closedloop.errors import ParameterError
 from closedloop.estimate.noise import noise_vector, whiten
 from closedloop.io.logs import JointLog
-from closedloop.parallel.chunks import chunk_threads
-from closedloop.parallel.engine import ThreadEngine
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
+from closedloop.parallel.chunks import chunk_threads
+from closedloop.parallel.engine import ThreadEngine
 from closedloop.problem.blocks import BlockEval
 from closedloop.problem.problem import CalibrationProblem, even_sample
 from closedloop.problem.unwrap import unwrap
