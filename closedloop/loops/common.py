@@ -192,7 +192,7 @@ def contact_fits(M: np.ndarray, iterations: int = 8) -> tuple[float, float, floa
     for _ in range(iterations):
         p = R @ t + d
         c = p.mean(axis=0)
-        normal = np.linalg.svd(p - c)[2][2]
+        normal = np.linalg.svd(p - c, full_matrices=n < 3)[2][2]  # (not U: n x n)
         B = np.column_stack([(normal @ R), -np.ones(n)])  # normal . (R_i t + d_i) = c0
         tc = np.linalg.lstsq(B, -(d @ normal), rcond=None)[0]
         t = tc[:3]

@@ -147,7 +147,7 @@ def _arc(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
     singular values of the centred positions).  Plane: the smallest singular vector; circle: the algebraic
     (Kasa) fit in that plane."""
     c = P.mean(axis=0)
-    _, S, Vt = np.linalg.svd(P - c)
+    _, S, Vt = np.linalg.svd(P - c, full_matrices=len(P) < 3)  # (not U: n x n, 13 GB at 40,000 positions)
     e1, e2 = Vt[0], np.cross(Vt[2], Vt[0])
     uv = np.column_stack([(P - c) @ e1, (P - c) @ e2])
     A = np.column_stack([2 * uv, np.ones(len(P))])

@@ -258,7 +258,7 @@ def hand_eye(W: list[pin.SE3], M: list[pin.SE3]) -> tuple[pin.SE3, pin.SE3] | No
     """
     I3 = np.eye(3)
     A = np.concatenate([np.hstack([np.kron(I3, w.rotation), -np.kron(m.rotation.T, I3)]) for w, m in zip(W, M)])
-    _, S, Vt = np.linalg.svd(A)
+    _, S, Vt = np.linalg.svd(A, full_matrices=A.shape[0] < A.shape[1])  # (not U: 9n x 9n)
     if not S[-2] > 1e-6 * S[0]:
         return None
     v = Vt[-1]
