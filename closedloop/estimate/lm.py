@@ -210,6 +210,9 @@ def _solve(
         else:
             S, Vt, g = factorised(x, scale) if factorised is not None else scaled_svd(J, r, scale)
         memo["x"], memo["S"] = x.copy(), S
+        if sigma == 0.0 and it > 1 and _determined_converged(S, g, r, opt):
+            status, message = "converged", "what the noise does not hide has converged; the rest lies below it"
+            break
         Js = J * scale if bounded else None  # the bounded step works on the rows themselves
         floor = opt.rcond * (S[0] if S.size else 0.0)
         keep = S > max(floor, opt.snr * sigma)
@@ -314,6 +317,32 @@ def _with_jacobian(fun: ResidualFn, x: np.ndarray) -> tuple[np.ndarray, np.ndarr
     if J is None:
         raise ValueError("the residual function returned no Jacobian where one was asked for")
     return r, J
+
+
+#: a floor-truncated solve stops where every direction above the residual's own level is within this many of
+#: its standard errors of the linear model's minimum (`_determined_converged`)
+DETERMINED = 0.01
+
+
+def _determined_converged(S: np.ndarray, g: np.ndarray, r: np.ndarray, opt: SolverOptions) -> bool:
+    """Whether a solve at the numerical floor (no noise level known) has converged in every direction the
+    residual's own level does not hide, while some lie below it.
+
+    With sigma the residual's RMS over its degrees of freedom, direction i of J D = U S V^T (eq. 4.17) is
+    above the noise when s_i > snr sigma; the undamped step along it, g_i / s_i, is |g_i| / sigma of its
+    standard error sigma / s_i.  Where those are all below `DETERMINED`, what the solve still gains comes from
+    directions below the noise: a crawl of hundreds of iterations along a valley the data barely see (a
+    contact point on a joint axis, the errors-in-variables weighting moving with the parameters), each
+    lowering the cost by 1e-7 of itself, which the solve at the noise level truncates anyway
+    (`levenberg_marquardt`)."""
+    if not S.size:
+        return False
+    dof = r.size - int(np.sum(S > opt.rcond * S[0]))
+    sigma = rms(r, dof)
+    above = S > opt.snr * sigma
+    if not (sigma > 0.0 and above.any()) or above.all():
+        return False
+    return bool(np.all(np.abs(g[above]) <= DETERMINED * sigma))
 
 
 #: a chord step's damping at most this share of the smallest kept squared singular value (an undamped step)
