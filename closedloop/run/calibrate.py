@@ -67,8 +67,8 @@ class RunResult:
 
 
 #: packages the run imports late, about 0.5 s of one core (SciPy's spatial and cluster packages: the
-#: model-error test's k-d tree, the regions' k-means), imported on a thread of their own while the inputs
-#: are read and the fit starts (`_prefetch`)
+#: model-error test's k-d tree, the regions' k-means), imported on a thread of their own while the fit starts
+#: (`_prefetch`; after the inputs are read, so that a refused input is not kept waiting for it)
 PREFETCH = ("scipy.spatial", "scipy.cluster.vq")
 
 
@@ -110,11 +110,11 @@ def calibrate_files(
 
     o = options
     prog = progress or _silent
-    _prefetch(PREFETCH)
     check_run_outputs(o)
     prog("reading", 0)  # a long log takes seconds to read
     inp = load_inputs(o)  # the robot, its loops, the log, the folds, the fit's options
     _done(prog)
+    _prefetch(PREFETCH)  # the inputs hold: the run goes on
     robot, lg, loops = inp.robot, inp.log, inp.loops
     request = workspace_request(o)  # --workspace, --accuracy and --prior-tolerance refused now, not after the fit
     t0, c0 = time.perf_counter(), time.process_time()
