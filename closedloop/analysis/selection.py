@@ -29,6 +29,10 @@ DEFAULT_IDENTIFY = {
     "dh": ["theta_off", "s", "a", "alpha", "loop"],
 }
 MIN_RANGE = 1e-6  # a joint whose readings span less than this never moves
+#: configurations per block of a long log the loops' start values and the check of the data read
+#: (`CalibrationProblem.sampled`, evenly along the log): thousands place a start well inside the minimum's
+#: basin and show a loop the data are not, and a pass over every row costs as much as one of the fit's
+START_ROWS = 8192
 
 
 def initial_values(problem: CalibrationProblem, initial: dict[str, float]) -> np.ndarray:

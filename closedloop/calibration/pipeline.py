@@ -43,6 +43,7 @@ from closedloop.analysis.scale import refuse_lengths, scale_findings
 from closedloop.analysis.selection import (
     DEFAULT_IDENTIFY,
     MIN_RANGE,
+    START_ROWS,
     check_motion,
     initial_values,
     select_parameters,
@@ -283,12 +284,13 @@ def _calibrate(
     _check_options(opt)
     problem = build_problem(robot, log_, loops, opt.priors)
     opt = replace(opt, fix=expand_fix(opt.fix, problem.names))  # patterns (`--fix 'j*.offset'`) by name
-    x0 = initial_values(problem, opt.initial)
-    for bi, b in enumerate(problem.blocks):  # data no rough model of this loop explains: said before the fit
-        why = b.loop.mismatch(problem.loop_frame_poses(x0, bi), b.meas)
+    sample = problem.sampled(START_ROWS)  # what the loops' start and the data check read
+    x0 = initial_values(sample, opt.initial)
+    for bi, b in enumerate(sample.blocks):  # data no rough model of this loop explains: said before the fit
+        why = b.loop.mismatch(sample.loop_frame_poses(x0, bi), b.meas)
         if why is not None:
             raise LoopError(f"{log_.source or 'the log'}: {why}")
-    problem.forget_poses()  # the start's poses, read by the initialisation and the check above: not kept
+    sample.forget_poses()  # the start's poses, read by the initialisation and the check above: not kept
     status = select_parameters(problem, opt.identify, opt.fix, x0)
     notes, dropped, motion_warnings = check_motion(problem, x0, status)
     free = [k for k, s in enumerate(status) if s == ParamStatus.SELECTED]

@@ -223,8 +223,11 @@ def loo_prediction(
     Ainv = _pinv_normal(J, scale, factors=factors)
     picks = [even_sample(n, LOO_SAMPLE) for _, n, _ in _config_rows(problem)]
     sampled = any(p.size < n for p, (_, n, _) in zip(picks, _config_rows(problem)))
-    sub = problem.sampled(LOO_SAMPLE) if sampled else problem
-    evals = sub.evaluate(x, True, columns=est)
+    kept = problem.kept(x, est) if sampled else None  # the fit's own on a long log: its sample's rows
+    if kept is not None:
+        evals = [ev.take(p) for ev, p in zip(kept, picks)]
+    else:
+        evals = (problem.sampled(LOO_SAMPLE) if sampled else problem).evaluate(x, True, columns=est)
     total, count = 0.0, 0
     for ev, (_, dx) in zip(evals, left_out(problem, r, J, Ainv, scale, picks if sampled else None)):
         if ev.r.shape[0] == 0 or ev.rows is None:

@@ -359,6 +359,7 @@ def start_screen(
     if all(b.theta.shape[0] < residual.PRESOLVE_ABOVE for b in problem.blocks):
         return gross_outliers(problem, x0, est, sigma_q, opt)
     sample = problem.sampled(residual.PRESOLVE_ROWS)
+    sample.evaluate(x0, True, columns=est)  # kept by the sample: its presolve's first evaluation, the screen's Jq
     if gross_outliers(sample, x0, est, sigma_q, opt) or beyond_sample(problem, sample, x0):
         log.info("the start's closures hold a gross error: every configuration screened")
         return gross_outliers(problem, x0, est, sigma_q, opt)

@@ -72,7 +72,7 @@ from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.projection import BatchPoseFn, Elimination, eliminate, projector
 from closedloop.loops.spec import register
 from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
-from closedloop.model.se3 import adjoint, rigid_inverse
+from closedloop.model.se3 import adjoint, relative, rigid_inverse
 
 HINGE_FIELDS = ("hinge_x", "hinge_y", "hinge_rx", "hinge_ry", "radius", "height", "grasp_rx", "grasp_ry", "grasp_rz")
 HELD_STILL = 0.05  # rad: a door whose handle turns less than this RMS is held still (weld data)
@@ -404,7 +404,7 @@ class HingeLoop(Loop):
     # ------------------------------------------------------------ evaluation
     def solve_angles(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray) -> np.ndarray:
         """The eliminated hinge angles phi_i* (N,)."""
-        return self._eliminate(rigid_inverse(TB) @ TA, p).phi[:, 0]
+        return self._eliminate(relative(TA, TB), p).phi[:, 0]
 
     def _eliminate(self, M: np.ndarray, p: np.ndarray) -> Elimination:
         """phi_i* for M_i = T_B^-1 T_A (N, 4, 4), all configurations at once (`projection.eliminate`)."""
@@ -423,7 +423,7 @@ class HingeLoop(Loop):
         gen_g[:3, 0] = G.rotation.T[:, 0]
         gen_g[:3, 1] = G.rotation.T[:, 2]
         gen_g[3:, 2:] = pin.Jexp3(p[6:9])
-        el = self._eliminate(rigid_inverse(TB) @ TA, p)
+        el = self._eliminate(relative(TA, TB), p)
         Pp = projector(el.Jphi)
         dA = Pp @ el.Jl
         dX = -dA @ adjoint(rigid_inverse(el.E))

@@ -56,7 +56,7 @@ from closedloop.loops.spec import register
 from closedloop.loops.weld import CLOSURE_FIELDS
 from closedloop.model.parameters import DEFAULT_PRIORS, PLACEMENT_FIELDS, Parameter
 from closedloop.model.robot import find_frame
-from closedloop.model.se3 import adjoint, rigid_inverse, skew
+from closedloop.model.se3 import adjoint, relative, rigid_inverse, skew
 
 MAX_PASSIVE_DOF = 5
 
@@ -387,7 +387,7 @@ class PassiveChainLoop(Loop):
     def _evaluate(self, TA, TB, p, jac):
         N = TA.shape[0]
         model, data, base, chain, pose, integrate, snap = self._solver(p)
-        el = eliminate_along(rigid_inverse(TB) @ TA, pose, None, self.q0, integrate, snap)
+        el = eliminate_along(relative(TA, TB), pose, None, self.q0, integrate, snap)
         qs = el.phi
         Pp = projector(el.Jphi)
         r = np.einsum("nij,nj->ni", Pp, el.r)  # exactly orthogonal to J_q (a last linearised step, O(|dq|))

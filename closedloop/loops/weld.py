@@ -15,7 +15,7 @@ from closedloop.loops.common import ON_PLANE, POINT_SPREAD, POSE_FIELDS, contact
 from closedloop.loops.spec import register
 from closedloop.model.parameters import Parameter
 from closedloop.model.robot import RobotModel
-from closedloop.model.se3 import adjoint, log3, log6, parse_pose, rigid_inverse
+from closedloop.model.se3 import adjoint, log3, log6, parse_pose, relative, rigid_inverse
 
 CLOSURE_FIELDS = POSE_FIELDS
 
@@ -178,13 +178,13 @@ class WeldLoop(Loop):
         return pin.SE3(pin.exp3(p[3:6]), p[0:3].copy())
 
     def residual(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray:
-        E = self.closure(p).inverse().homogeneous @ (rigid_inverse(TB) @ TA)
+        E = self.closure(p).inverse().homogeneous @ (relative(TA, TB))
         return log6(E)[0]
 
     def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
         N = TA.shape[0]
         X = self.closure(p)
-        Y = rigid_inverse(TB) @ TA  # T_B^-1 T_A
+        Y = relative(TA, TB)  # T_B^-1 T_A
         r, Jl = log6(X.inverse().homogeneous @ Y, jacobian=True)
         assert Jl is not None  # asked for
         dB = -Jl @ adjoint(rigid_inverse(Y))
@@ -193,7 +193,8 @@ class WeldLoop(Loop):
         gen = np.zeros((6, 6))
         gen[:3, :3] = X.rotation.T
         gen[3:, 3:] = pin.Jexp3(p[3:6])
-        return LoopEval(r, Jl, dB, dB @ (X.action @ gen))  # Ad(E^-1) = Ad(Y^-1) Ad(X)
+        dp = (dB.reshape(-1, 6) @ (X.action @ gen)).reshape(N, 6, 6)  # Ad(E^-1) = Ad(Y^-1) Ad(X): one product
+        return LoopEval(r, Jl, dB, dp)
 
 
 @register("weld", {"frame", "to", "closure"})

@@ -179,6 +179,14 @@ def rigid_inverse(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def relative(TA: np.ndarray, TB: np.ndarray) -> np.ndarray:
+    """T_B^-1 T_A for stacks (N, 4, 4); TA itself where TB is the base's pose (the identity broadcast along the
+    stack, as `CalibrationProblem.frame_kinematics` gives frame 0)."""
+    if TB.ndim == 3 and TB.strides[0] == 0 and np.array_equal(TB[0], np.eye(4)):
+        return TA
+    return rigid_inverse(TB) @ TA
+
+
 def adjoint(T: np.ndarray) -> np.ndarray:
     """Stacked SE(3) adjoints [[R, [p]x R], [0, R]] (Pinocchio's `SE3.action`, batched)."""
     R, p = T[..., :3, :3], T[..., :3, 3]

@@ -29,6 +29,14 @@ class BlockEval:
     #: joint noise and are whitened together (`noise.whiten`); None for a block without configurations
     rows: np.ndarray | None = None
 
+    def take(self, idx: np.ndarray) -> "BlockEval":
+        """The evaluation of the configurations `idx` (indices or a mask over its N) alone."""
+
+        def cut(a):
+            return None if a is None else a[idx]
+
+        return BlockEval(self.r[idx], cut(self.J), cut(self.Jq), cut(self.valid), cut(self.cov), cut(self.rows))
+
     def jacobian(self) -> np.ndarray:
         """`J`, which an evaluation with Jacobians holds (a ValueError if this one was made without)."""
         if self.J is None:

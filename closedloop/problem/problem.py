@@ -231,7 +231,7 @@ class CalibrationProblem:
     def __getstate__(self) -> dict:
         """Pickled (a result sent by a process pool or Ray) without the evaluation memo, the kept poses and the
         chunks' workspace: caches of up to ~100 MB on a long log, made again when needed."""
-        return {k: v for k, v in self.__dict__.items() if k not in ("_memo", "_work", "_poses")}
+        return {k: v for k, v in self.__dict__.items() if k not in ("_memo", "_work", "_poses", "_samples")}
 
     def sampled(self, per_block: int | Sequence[int], first: bool = False) -> "CalibrationProblem":
         """The problem on at most `per_block` configurations of each block (one count, or one per block),
@@ -241,11 +241,17 @@ class CalibrationProblem:
         counts = [per_block] * len(self.blocks) if isinstance(per_block, (int, np.integer)) else list(per_block)
         if all(b.theta.shape[0] <= n for b, n in zip(self.blocks, counts)):
             return self
+        key = (tuple(int(n) for n in counts), first)
+        kept = self.__dict__.setdefault("_samples", {}).get(key)
+        if kept is not None and kept[0] is self.blocks and kept[1] is self.noise:
+            return kept[2]  # one sample of a long log, with its memo, for the stages that read it
         blocks = [
             b if b.theta.shape[0] <= n else b.subset(np.arange(n) if first else even_sample(b.theta.shape[0], n))
             for b, n in zip(self.blocks, counts)
         ]
-        return CalibrationProblem(self.robot, self.joints, blocks, self.priors, self.noise)
+        sample = CalibrationProblem(self.robot, self.joints, blocks, self.priors, self.noise)
+        self.__dict__["_samples"][key] = (self.blocks, self.noise, sample)
+        return sample
 
     def on_robot(self, robot: RobotModel) -> "CalibrationProblem":
         """The same problem (joints, loops, log, noise records) on another model of the same joints and frames
@@ -441,6 +447,16 @@ class CalibrationProblem:
         memo.insert(0, (key, self.blocks, cols if jacobian else "r", out))
         del memo[2:]
         return [copy_eval(e, jacobian, False) for e in out]
+
+    def kept(self, values: np.ndarray, columns: Sequence[int]) -> list[BlockEval] | None:
+        """A long log's evaluation with the Jacobian over `columns` at `values` where `evaluate` keeps one (shared,
+        read-only; with `relinearized`, its Jacobian is that of a point within a chord step), else None:
+        nothing is evaluated here."""
+        if self.keeps_jacobians:
+            return None
+        key, cols = np.asarray(values, dtype=float).tobytes(), tuple(int(c) for c in columns)
+        memo = self.__dict__.get("_memo", [])
+        return next((list(e) for k, b, kind, e in memo if k == key and b is self.blocks and kind == cols), None)
 
     def relinearized(self, values: np.ndarray, at: np.ndarray) -> None:
         """Keep, as the evaluation with Jacobians at `values`, the kept one at `at` with the residual at

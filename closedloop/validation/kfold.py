@@ -173,12 +173,7 @@ def _without_rows(ev: BlockEval, numbers: np.ndarray) -> BlockEval:
     """A block's evaluation without the configurations of log rows `numbers` (1-based, `BlockEval.rows`)."""
     if ev.rows is None:  # a known distance: no configuration
         return ev
-    keep = ~np.isin(ev.rows, numbers)
-
-    def cut(a):
-        return None if a is None else a[keep]
-
-    return BlockEval(ev.r[keep], cut(ev.J), cut(ev.Jq), cut(ev.valid), cut(ev.cov), ev.rows[keep])
+    return ev.take(~np.isin(ev.rows, numbers))
 
 
 def holdout(
