@@ -281,13 +281,15 @@ def plain_linearization(
         sums: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]] = {}
 
         def chunk(a: int, _slot: None, ev=ev, nz=nz, sums=sums) -> None:  # the temporaries a chunk at a time
-            part = ev.J[a : a + _SUM_CHUNK]
-            J = np.nan_to_num(part if pick is None else part[:, :, pick]) * scale
-            Jq = np.nan_to_num(ev.Jq[a : a + _SUM_CHUNK]) * sigma_q[None, None, :]
-            rows = J.reshape(-1, L)
+            e = slice(a, a + _SUM_CHUNK)
+            J, Jq, r = ev.J[e] if pick is None else ev.J[e][:, :, pick], ev.Jq[e], ev.r[e]
+            if ev.valid is not None:  # rows with no observation hold NaN (`BlockEval.valid`): they add nothing
+                J, Jq, r = np.nan_to_num(J), np.nan_to_num(Jq), np.nan_to_num(r)
+            Jq = Jq * sigma_q[None, None, :]
+            rows = J.reshape(-1, L)  # unscaled: the sums are scaled once, below (no scaled copy of J)
             M = (np.swapaxes(Jq, 1, 2) @ J).reshape(-1, L)  # J_theta,i^T diag(sigma_q) J_i per configuration
             C = None if nz.measurement_cov is None else rows.T @ (nz.measurement_cov @ J).reshape(-1, L)
-            sums[a] = (rows.T @ rows, M.T @ M, C, rows.T @ np.nan_to_num(ev.r[a : a + _SUM_CHUNK]).reshape(-1))
+            sums[a] = (rows.T @ rows, M.T @ M, C, rows.T @ r.reshape(-1))
 
         for_each_chunk(chunk, starts, [None] * chunk_threads(len(starts)))
         for a in starts:  # summed in the order of the rows, whichever thread formed them
@@ -297,6 +299,8 @@ def plain_linearization(
             if c is not None:
                 meat += c
             Jtr += jtr
+    outer = np.outer(scale, scale)  # the sums of the prior-scaled J D: D (J^T J) D, D (M^T M) D, D J^T r
+    JtJ, meat, Jtr = JtJ * outer, meat * outer, Jtr * scale
     Ainv = np.linalg.pinv(JtJ, rcond=1e-12, hermitian=True)
     return -(Ainv @ Jtr) * scale, Ainv @ meat @ Ainv * np.outer(scale, scale), float(Jtr @ Ainv @ Jtr)
 
@@ -365,8 +369,10 @@ def sandwich_cov(
     labels = [np.asarray(c) for c in clusters]
     _, inv = np.unique(np.concatenate(labels), return_inverse=True) if labels else (None, np.zeros(0, int))
     G = int(inv.max()) + 1 if inv.size else 0
+    inv = inv.ravel()  # each cluster's sum of J_g^T r_g, a column at a time (`np.add.at` takes 3 times as long)
     sums = np.zeros((G, g.shape[1]))
-    np.add.at(sums, inv.ravel(), g)
+    for k in range(g.shape[1]):
+        sums[:, k] = np.bincount(inv, weights=g[:, k], minlength=G)
     meat = sums.T @ sums
     N, p = r.size, S.size
     c = G / max(G - 1, 1) * (N - 1) / max(N - p, 1)
