@@ -235,7 +235,7 @@ def _plain_log(path: Path, known: set[str]) -> JointLog | None:
         A = np.loadtxt(io.StringIO(body), delimiter=",", comments=None, ndmin=2, dtype=float)
     except ValueError:
         return None
-    n = len(body.splitlines())
+    n = body.count("\n") + (not body.endswith("\n"))  # its lines (a blank one, a lone CR: a shape that differs)
     if A.shape != (n, len(header)) or not np.all(np.abs(A) <= MAX_READING):  # blank lines, nan, inf, too large
         return None
     lines = np.column_stack([np.zeros(n, int), np.arange(2, n + 2)])
