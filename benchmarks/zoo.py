@@ -92,11 +92,7 @@ def main(argv: list[str] | None = None) -> int:
                     ws = workspace(fit)
                     o = as_command_line(fit, ws)
                     outcome = classify(o, case, ws)
-                    print(
-                        o.line()
-                        + (f"  ({outcome[7:]} of the prediction)" if outcome.startswith("wrong, fore") else ""),
-                        flush=True,
-                    )
+                    print(o.line(outcome.upper() if outcome.startswith("wrong, fore") else None), flush=True)
                     rows.append(
                         {
                             "robot": robot,

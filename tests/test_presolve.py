@@ -139,3 +139,70 @@ def test_presolved_passive_door_is_the_truth(tmp_path, monkeypatch):
     truth = json.loads((tmp_path / "truth.json").read_text())
     rows, ok = check_report(truth, build_report(res), tol_m=1e-4, tol_rad=1e-3, tol_scale=1e-3)
     assert ok, [r for r in rows if r["result"] == "FAIL"]
+
+
+def test_a_long_logs_start_and_check_read_an_even_sample(long_log, whole, monkeypatch):
+    """The loops' start values and the check of the data read `selection.START_ROWS` configurations of a long
+    log (`CalibrationProblem.sampled`), not every row: the same minimum as the start from all of them."""
+    import closedloop.calibration.pipeline as pipeline
+    from closedloop.loops.weld import WeldLoop as Weld
+
+    panda, _, log = long_log
+    seen: list[int] = []
+    real = Weld.initialize_frames
+
+    def spy(self, Ts, meas=None):
+        seen.append(Ts[0].shape[0])
+        return real(self, Ts, meas)
+
+    monkeypatch.setattr(Weld, "initialize_frames", spy)
+    monkeypatch.setattr(pipeline, "START_ROWS", 150)
+    res = calibrate(panda, log, [WeldLoop("fixture", "panda_hand")], CalibrationOptions())
+    assert seen and max(seen) == 150, seen  # the start read the sample, never the 1,200 rows
+    est = np.array(whole.fit.estimated)
+    assert res.verdict.status == whole.verdict.status == "ok" and list(res.fit.estimated) == list(est)
+    z = np.abs(res.fit.values[est] - whole.fit.values[est]) / whole.fit.std[est]
+    assert np.nanmax(z) < 0.05, np.nanmax(z)
+
+
+def test_one_sample_per_size_kept_with_its_evaluations(long_log):
+    """`sampled` gives the same sample (and its memo) for the same size, a new one once the noise records or
+    the blocks change."""
+    from closedloop.calibration.pipeline import build_problem
+
+    panda, _, log = long_log
+    problem = build_problem(panda, log, [WeldLoop("fixture", "panda_hand")])
+    a = problem.sampled(150)
+    assert a is problem.sampled(150) and a is not problem.sampled(151)
+    assert a.blocks[0].theta.shape[0] == 150 and problem.sampled(5000) is problem  # all rows: itself
+    problem.noise = list(problem.noise)  # another weighting's records: another sample
+    assert problem.sampled(150) is not a
+
+
+def test_the_left_out_prediction_reads_the_fits_kept_evaluation(long_log, monkeypatch):
+    """On a long log the model-error test's left-out prediction reads the whole log's kept evaluation at its
+    sample's rows (`CalibrationProblem.kept`): the figure an evaluation of the sample gives, to 1e-6."""
+    import closedloop.estimate.model_error as me
+    import closedloop.problem.problem as problem_module
+    from closedloop.problem.problem import CalibrationProblem
+
+    panda, _, log = long_log
+    loops = [WeldLoop("fixture", "panda_hand")]
+    _presolve_above(monkeypatch, 1000, 150)
+    monkeypatch.setattr(problem_module, "MEMO_ROWS", 1000)  # 1,200 rows: a long log's memo (kept, shared)
+    monkeypatch.setattr(me, "LOO_SAMPLE", 200)
+    monkeypatch.setattr(fit_module, "FINISH_CHORD", 0.0)  # a Jacobian at the solution: both read the same point
+    real, found = CalibrationProblem.kept, []
+
+    def spy(self, values, columns):
+        out = real(self, values, columns)
+        found.append(out is not None)
+        return out
+
+    monkeypatch.setattr(CalibrationProblem, "kept", spy)
+    read = calibrate(panda, log, loops, CalibrationOptions())
+    assert any(found), found  # the kept evaluation was read
+    monkeypatch.setattr(CalibrationProblem, "kept", lambda self, values, columns: None)
+    fresh = calibrate(panda, log, loops, CalibrationOptions())
+    a, b = (r.noise.model_error.get("left_out_rms_eiv") for r in (read, fresh))
+    assert a is not None and b is not None and abs(a - b) <= 1e-6 * b, (a, b)

@@ -197,9 +197,10 @@ class Outcome:
     def confidently_wrong(self) -> bool:
         return not self.right and not self.refused and self.status != "crash"
 
-    def line(self) -> str:
+    def line(self, tag: str | None = None) -> str:
+        """One line: the case, its class (`tag`, or one read off the outcome), the verdict, the time, the errors."""
         j = self.judgement.summary() if self.judgement else self.error
-        tag = (
+        tag = tag or (
             "right"
             if self.right and not self.refused
             else "RIGHT BUT FLAGGED"

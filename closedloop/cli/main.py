@@ -492,9 +492,11 @@ def main(argv: list[str] | None = None) -> int:
 
     Run as the program (`argv` None), the process then ends at once (`_exit_now`): the exit handlers run and
     the streams are flushed, the interpreter's teardown (a last garbage collection over every object, the
-    modules emptied one by one: a quarter of a second after a long log's calibration) is skipped."""
+    modules emptied one by one: a quarter of a second after a long log's calibration) is skipped.  Not under
+    a profiler or a tracer (``python -m cProfile``, coverage): they write what they saw once the program
+    returns."""
     rc = _main(argv)
-    if argv is None:
+    if argv is None and sys.getprofile() is None and sys.gettrace() is None:
         _exit_now(rc)
     return rc
 

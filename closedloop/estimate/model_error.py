@@ -361,9 +361,7 @@ def sandwich_cov(
     parts = []
     for at, n, m in _config_rows(problem):
         R, Jb = r[at : at + n * m].reshape(n, m), J[at : at + n * m].reshape(n, m, -1)
-        g = R[:, :1] * Jb[:, 0]  # J_g^T r_g per configuration, a residual row at a time (no copy of J)
-        for j in range(1, m):
-            g += R[:, j : j + 1] * Jb[:, j]
+        g = np.einsum("nm,nmp->np", R, Jb)  # J_g^T r_g per configuration, one pass over J (no copy of it)
         parts.append(g * scale)
     g = np.concatenate(parts) if parts else np.zeros((0, S.size))
     labels = [np.asarray(c) for c in clusters]
