@@ -178,22 +178,23 @@ def _jphi(Jl: np.ndarray, E: np.ndarray, Xd: np.ndarray) -> np.ndarray:
 
 def _start_state(M: np.ndarray, pose: BatchPoseFn, starts: list[np.ndarray]) -> list[np.ndarray]:
     """[phi, dX/dphi, E, r, |r|^2, Jlog6(E)] at the start of least cost per configuration (first on ties;
-    NaN rows of a start are not starts there; every configuration needs one finite start)."""
+    NaN rows of a start are not starts there; every configuration needs one finite start).  Jlog6 is formed
+    once, at the starts chosen (the same as at each start: a function of E alone)."""
     best: list[np.ndarray] = []
     for phi in starts:
         ok = np.flatnonzero(np.all(np.isfinite(phi), axis=1))
         if not ok.size and best:
             continue
         X, Xd = pose(phi[ok])
-        E, r, c, Jl = closure_error(M[ok], X, True)
-        st = [np.asarray(phi[ok], dtype=float), Xd, E, r, c, Jl]
+        E, r, c, _ = closure_error(M[ok], X)
+        st = [np.asarray(phi[ok], dtype=float), Xd, E, r, c]
         if not best:
             best = [np.zeros((M.shape[0],) + np.shape(a)[1:]) for a in st]
             best[4][:] = np.inf
         better = c < best[4][ok]
         for b, a in zip(best, st):
             b[ok[better]] = a[better]
-    return best
+    return best + [log6(best[2], True)[1]]
 
 
 def gauss_newton(

@@ -53,20 +53,22 @@ def _trace3(M: np.ndarray) -> np.ndarray:
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b for stacks (n, 3) (np.cross's arithmetic without its axis handling)."""
-    return np.stack(
-        [
-            a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
-            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
-        ],
-        axis=1,
-    )
+    """a x b for stacks (n, 3) (np.cross's arithmetic without its axis handling; written into one array:
+    `np.stack`'s own cost is most of a short stack's)."""
+    out = np.empty((a.shape[0], 3))
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
 
 
 def _unskew(M: np.ndarray) -> np.ndarray:
     """(M - M^T)/2 as a vector, for a stack (n, 3, 3)."""
-    return 0.5 * np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], axis=1)
+    out = np.empty((M.shape[0], 3))
+    out[:, 0] = M[:, 2, 1] - M[:, 1, 2]
+    out[:, 1] = M[:, 0, 2] - M[:, 2, 0]
+    out[:, 2] = M[:, 1, 0] - M[:, 0, 1]
+    return 0.5 * out
 
 
 def log3(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -82,7 +84,8 @@ def log3(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     c0 = R[:, :, 0] / np.sqrt(_dot3(R[:, :, 0], R[:, :, 0]))[:, None]
     c1 = R[:, :, 1] / np.sqrt(_dot3(R[:, :, 1], R[:, :, 1]))[:, None]
     c2 = _cross(c0, c1)
-    Rn = np.stack([_cross(c1, c2), c1, c2], axis=2)
+    Rn = np.empty((R.shape[0], 3, 3))
+    Rn[:, :, 0], Rn[:, :, 1], Rn[:, :, 2] = _cross(c1, c2), c1, c2
     tr = _trace3(Rn)
     cos = (tr - 1.0) / 2.0
     acos_exp = np.sqrt(2.0 * (1.0 - cos) + _EPS * _EPS)
