@@ -194,7 +194,9 @@ def _start_state(M: np.ndarray, pose: BatchPoseFn, starts: list[np.ndarray]) -> 
         better = c < best[4][ok]
         for b, a in zip(best, st):
             b[ok[better]] = a[better]
-    return best + [log6(best[2], True)[1]]
+    Jl = log6(best[2], True)[1]
+    assert Jl is not None  # asked for
+    return best + [Jl]
 
 
 def gauss_newton(
