@@ -121,7 +121,9 @@ def test_a_job_s_cpu_time_is_its_own_thread_s():
         __import__("time").sleep(payload)
 
     out = ex.call(busy, 0, 0.2, None)
-    assert out.ok and 0.2 <= out.cpu <= out.seconds
+    # the thread's CPU clock and the wall clock are read one after the other, each at its own resolution:
+    # a busy job's CPU may exceed its wall time by that much (8 us seen), never by more
+    assert out.ok and 0.2 <= out.cpu <= out.seconds + 1e-3
     out = ex.call(idle, 0, 0.2, None)
     assert out.ok and out.seconds >= 0.2 and out.cpu < 0.05
 
