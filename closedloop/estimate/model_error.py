@@ -367,8 +367,8 @@ def sandwich_cov(
     labels = [np.asarray(c) for c in clusters]
     _, inv = np.unique(np.concatenate(labels), return_inverse=True) if labels else (None, np.zeros(0, int))
     G = int(inv.max()) + 1 if inv.size else 0
-    inv = inv.ravel()  # each cluster's sum of J_g^T r_g, a column at a time (`np.add.at` takes 3 times as long)
-    sums = np.zeros((G, g.shape[1]))
+    inv = inv.ravel()
+    sums = np.zeros((G, g.shape[1]))  # each cluster's sum of J_g^T r_g, a column at a time (3x `np.add.at`)
     for k in range(g.shape[1]):
         sums[:, k] = np.bincount(inv, weights=g[:, k], minlength=G)
     meat = sums.T @ sums

@@ -178,7 +178,7 @@ class WeldLoop(Loop):
         return pin.SE3(pin.exp3(p[3:6]), p[0:3].copy())
 
     def residual(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray:
-        E = self.closure(p).inverse().homogeneous @ (relative(TA, TB))
+        E = self.closure(p).inverse().homogeneous @ relative(TA, TB)
         return log6(E)[0]
 
     def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
