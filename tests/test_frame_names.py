@@ -33,3 +33,21 @@ def test_the_link_of_a_shared_name_is_the_loops_frame(tmp_path):
     pin.framesForwardKinematics(robot.model, data, q)
     expected = np.array([0.3 * np.cos(0.5), 0.3 * np.sin(0.5), 0.15])  # the stylus link's origin
     assert np.allclose(data.oMf[fid].translation, expected, atol=1e-12)
+
+
+def test_a_frame_id_follows_the_model_it_is_read_from(tmp_path):
+    """`frame_id` keeps its lookups, for the model they were made in: a frame added later is found, and a model
+    replaced by another (frames in another order) is read afresh."""
+    path = tmp_path / "twin.urdf"
+    path.write_text(URDF)
+    robot = RobotModel.from_file(path)
+    fid = robot.frame_id("stylus")
+    assert robot.frame_id("stylus") == fid  # kept
+    l1 = robot.model.frames[robot.frame_id("l1")]
+    new = robot.model.addFrame(pin.Frame("tip", l1.parentJoint, l1.placement, pin.FrameType.OP_FRAME))
+    assert robot.frame_id("tip") == new
+    other = pin.Model()  # the same frames, the stylus's body frame first
+    for f in [robot.model.frames[0], robot.model.frames[fid]]:
+        other.addFrame(pin.Frame(f.name, 0, pin.SE3.Identity(), f.type))
+    robot.model = other
+    assert robot.frame_id("stylus") == 1 == find_frame(other, "stylus")

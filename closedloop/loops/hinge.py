@@ -411,6 +411,11 @@ class HingeLoop(Loop):
         H, G = self.hinge(p), self.grasp(p)
         return eliminate(M, hinge_pose_fn(H, G), hinge_starts(M, H, G))
 
+    def residual(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> np.ndarray:
+        """`evaluate`'s residual P r(phi*) alone."""
+        el = self._eliminate(relative(TA, TB), p)
+        return np.einsum("nij,nj->ni", projector(el.Jphi), el.r)
+
     def evaluate(self, TA: np.ndarray, TB: np.ndarray, p: np.ndarray, meas: np.ndarray | None = None) -> LoopEval:
         G = self.grasp(p)
         # right twists of X = H Rz(phi) G per parameter

@@ -14,7 +14,9 @@ and phi_i* = argmin |r_i(phi)|^2 is found by Gauss-Newton on every configuration
 with step halving per configuration (masks: a configuration whose cost does not
 decrease halves its own step, down to 2^-14; a large step that never descends ends
 that configuration's iteration), full steps once |dphi| < 1e-6 (the cost is at
-rounding there), and convergence when |t dphi|_inf < 1e-13.  Only the configurations
+rounding there), and convergence when the step computed is below 1e-13 (|dphi|_inf: it is not taken;
+the closure and its Jacobian are those of the last point evaluated) or a step taken was
+(|t dphi|_inf, a step cut by the halving).  Only the configurations
 still iterating are evaluated in each pass, so a pass costs what the slowest ones need.
 
 A configuration far from closing (a corrupted reading) has a large residual, where Gauss-Newton
@@ -176,27 +178,41 @@ def _jphi(Jl: np.ndarray, E: np.ndarray, Xd: np.ndarray) -> np.ndarray:
     return -Jl @ (adjoint(rigid_inverse(E)) @ Xd)
 
 
+#: up to this many start rows in all, the starts' Jlog6 are formed with their closures in one pass (a short
+#: stack's cost is the calls', not the rows'); above it, at the starts chosen only
+STACKED_STARTS = 1024
+
+
 def _start_state(M: np.ndarray, pose: BatchPoseFn, starts: list[np.ndarray]) -> list[np.ndarray]:
     """[phi, dX/dphi, E, r, |r|^2, Jlog6(E)] at the start of least cost per configuration (first on ties;
-    NaN rows of a start are not starts there; every configuration needs one finite start).  Jlog6 is formed
-    once, at the starts chosen (the same as at each start: a function of E alone)."""
-    best: list[np.ndarray] = []
-    for phi in starts:
-        ok = np.flatnonzero(np.all(np.isfinite(phi), axis=1))
-        if not ok.size and best:
-            continue
-        X, Xd = pose(phi[ok])
-        E, r, c, _ = closure_error(M[ok], X)
-        st = [np.asarray(phi[ok], dtype=float), Xd, E, r, c]
-        if not best:
-            best = [np.zeros((M.shape[0],) + np.shape(a)[1:]) for a in st]
-            best[4][:] = np.inf
-        better = c < best[4][ok]
-        for b, a in zip(best, st):
-            b[ok[better]] = a[better]
-    Jl = log6(best[2], True)[1]
+    NaN rows of a start are not starts there; every configuration needs one finite start).  Every start's
+    finite rows are evaluated in one stack; Jlog6 (a function of E alone) with them while the stack is short
+    (`STACKED_STARTS`), else once, at the starts chosen."""
+    oks = [np.flatnonzero(np.all(np.isfinite(phi), axis=1)) for phi in starts]
+    rows = np.concatenate(oks)
+    phis = np.concatenate([np.asarray(phi[ok], dtype=float) for phi, ok in zip(starts, oks)])
+    X, Xd = pose(phis)
+    with_jl = rows.size <= STACKED_STARTS
+    E, r, c, Jl = closure_error(M[rows], X, with_jl)
+    pick, cost = np.full(M.shape[0], -1), np.full(M.shape[0], np.inf)
+    at = 0
+    for ok in oks:  # in order: a later start is taken only where it costs less
+        better = np.flatnonzero(c[at : at + ok.size] < cost[ok])
+        pick[ok[better]], cost[ok[better]] = at + better, c[at + better]
+        at += ok.size
+    if np.all(pick >= 0):
+        state = [phis[pick], Xd[pick], E[pick], r[pick], c[pick]]
+    else:  # configurations with no finite start: zeros, at infinite cost
+        seen = np.flatnonzero(pick >= 0)
+        state = []
+        for a in (phis, Xd, E, r, c):
+            b = np.zeros((M.shape[0],) + a.shape[1:])
+            b[seen] = a[pick[seen]]
+            state.append(b)
+        state[4][pick < 0] = np.inf
+    Jl = Jl[pick] if Jl is not None and np.all(pick >= 0) else log6(state[2], True)[1]
     assert Jl is not None  # asked for
-    return best + [Jl]
+    return state + [Jl]
 
 
 def gauss_newton(
@@ -223,11 +239,18 @@ def gauss_newton(
         if not active.size:
             break
         a = active
-        its[a] = it
         if secant:
             step, g = _secant_step(Jphi[a], r[a], phi[a, 0], phi_prev[a], g_prev[a])
         else:
             step = _lstsq_step(Jphi[a], r[a])
+        go = np.max(np.abs(step), axis=1) >= tol  # else converged here: the step is below tol, not taken
+        if not go.all():
+            a, step = a[go], step[go]
+            if secant:
+                g = g[go]
+            if not a.size:
+                break
+        its[a] = it
         small = np.max(np.abs(step), axis=1) < 1e-6  # near the solution: full steps (cost is at rounding)
         t = np.ones(a.size)
         phin, Xdn, En, Jln = np.empty_like(phi[a]), np.empty_like(Xd[a]), np.empty_like(E[a]), np.empty_like(Jl[a])

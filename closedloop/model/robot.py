@@ -189,10 +189,16 @@ class RobotModel:
         """Pinocchio frame id of `name`; 'world' and 'universe' are the base frame."""
         if name in WORLD_FRAMES:
             return 0
+        known = self.__dict__.setdefault("_frame_ids", {})  # name -> (model, its frame count, id): a lookup
+        hit = known.get(name)  # per evaluation scans every frame of a large model
+        if hit is not None and hit[0] is self.model and hit[1] == self.model.nframes:
+            return hit[2]
         if not self.model.existFrame(name):
             names = [f.name for f in self.model.frames]
             raise ModelError(f"unknown frame '{name}'{_suggest(name, names)}")
-        return find_frame(self.model, name)
+        fid = find_frame(self.model, name)
+        known[name] = (self.model, self.model.nframes, fid)
+        return fid
 
     def supporting_joints(self, frame: str) -> list[str]:
         """Movable joints between the base and `frame`, base first; a coupled joint (URDF ``<mimic>``) is
