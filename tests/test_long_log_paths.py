@@ -119,3 +119,45 @@ def test_the_common_log_is_read_at_once_as_line_by_line(tmp_path, text, fault):
     numbers = [i + 1 for i, ln in enumerate(text.lstrip("\ufeff").splitlines()) if ln in rows]
     assert [int(v) for v in lg.lines[:, 1]] == numbers
     assert lg.where(1) == f"{path} line {numbers[1]}"
+
+
+EXTRA = "a,tau:a,b,meas\n0.1,5,-2.5e-3,.5\n1,-3e2,+2,3.\n0.3,7,0.2,1\n"
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        EXTRA,
+        EXTRA.replace("-3e2", "nan"),  # another column's cell that is no finite number: NaN, read at once
+        EXTRA.replace("-3e2", "inf"),
+        EXTRA.replace("-3e2", "x"),  # not a number at all: NaN, line by line
+        EXTRA.replace("-3e2", "2e9"),  # another column is not a joint's reading: no range
+        EXTRA.replace("tau:a", "c"),  # a column naming no joint of the model
+    ],
+)
+def test_a_log_with_other_columns_is_read_at_once_as_line_by_line(tmp_path, text, monkeypatch):
+    """A log with columns besides the joints' (torques, measurements) is parsed at once too: the same joint
+    readings, other columns, line numbers as the line-by-line reading (the reference: the fast path off)."""
+    from closedloop.io import logs
+
+    path = tmp_path / "log.csv"
+    path.write_text(text)
+    fast = read_log(path, ["a", "b"])
+    assert (logs._plain_log(path, {"a", "b"}) is None) == (",x," in text)  # at once, but for a word in a cell
+    monkeypatch.setattr(logs, "_plain_log", lambda *a: None)
+    slow = read_log(path, ["a", "b"])
+    assert fast.joints == slow.joints == ["a", "b"]
+    np.testing.assert_array_equal(fast.angles, slow.angles)
+    assert list(fast.extra) == list(slow.extra)
+    for k in slow.extra:
+        np.testing.assert_array_equal(fast.extra[k], slow.extra[k])
+    np.testing.assert_array_equal(fast.lines, slow.lines)
+
+
+def test_a_joints_bad_cell_beside_other_columns_is_named(tmp_path):
+    from closedloop.errors import LogError
+
+    path = tmp_path / "log.csv"
+    path.write_text(EXTRA.replace("+2", "nan"))
+    with pytest.raises(LogError, match="line 3, column 'b': value is nan"):
+        read_log(path, ["a", "b"])

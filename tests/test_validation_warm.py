@@ -90,3 +90,27 @@ def test_warm_refits_run_on_threads_with_the_serial_engines_figures(panda_case, 
     assert [f["warm"] for f in threads["folds"]] == [True] * len(threads["folds"])
     for a, b in zip(threads["folds"], serial["folds"]):
         assert a["values"] == b["values"] and a["test"] == b["test"] and a["train"] == b["train"]
+
+
+def test_a_warm_refit_solves_once_where_its_structure_and_start_are_those_of_its_first_fit(panda_case, monkeypatch):
+    """A warm refit whose fit truncates a direction reads the structure again; where nothing is then held and
+    no direction lies below the noise at its start, the fit it would solve again is the one it solved (the
+    same problem, parameters and start): it is not solved again.  (The truncation is made here: the Panda's
+    weld determines every direction.)"""
+    from closedloop.validation import refit as refit_module
+
+    robot, loop, lg, joints, res = panda_case
+    calls = []
+
+    def first_truncates(*args, **kwargs):
+        stage = refit_module.weighted_stage.__wrapped__(*args, **kwargs)
+        stage.solution.truncated = 0 if calls else 1
+        calls.append(stage)
+        return stage
+
+    first_truncates.__wrapped__ = refit_module.weighted_stage
+    monkeypatch.setattr(refit_module, "weighted_stage", first_truncates)
+    warm = refit_module._warm(res, robot, lg, [loop], CalibrationOptions())
+    assert warm is not None and warm.warm and len(calls) == 1
+    np.testing.assert_array_equal(warm.values, calls[0].fun.normalized(calls[0].fun.full(calls[0].solution.x)))
+    assert warm.iterations == calls[0].solution.iterations

@@ -72,7 +72,7 @@ from closedloop.loops.base import Loop, LoopEval
 from closedloop.loops.projection import BatchPoseFn, Elimination, eliminate, projector
 from closedloop.loops.spec import register
 from closedloop.model.parameters import DEFAULT_PRIORS, Parameter
-from closedloop.model.se3 import adjoint, relative, rigid_inverse
+from closedloop.model.se3 import adjoint, log3, relative, rigid_inverse
 
 HINGE_FIELDS = ("hinge_x", "hinge_y", "hinge_rx", "hinge_ry", "radius", "height", "grasp_rx", "grasp_ry", "grasp_rz")
 HELD_STILL = 0.05  # rad: a door whose handle turns less than this RMS is held still (weld data)
@@ -204,8 +204,8 @@ def arc_inliers(P: np.ndarray) -> np.ndarray:
     return keep if keep.sum() >= 3 else np.ones(n, dtype=bool)
 
 
-def fit_hinge_axis(M: list[pin.SE3]) -> pin.SE3:
-    """Hinge frame from tool poses in B: the circle traced by the tool origin.
+def fit_hinge_axis(M: list[pin.SE3] | np.ndarray) -> pin.SE3:
+    """Hinge frame from tool poses in B (SE3s, or a stack (N, 4, 4)): the circle traced by the tool origin.
 
     Axis direction: normal of the best-fit plane of the positions (smallest
     singular vector), oriented like the rotation the tool turns through
@@ -213,7 +213,8 @@ def fit_hinge_axis(M: list[pin.SE3]) -> pin.SE3:
     (Kasa) circle fit in that plane.  Positions off the arc of the others (a corrupted reading:
     `arc_inliers`) take no part; x points at the first position on the arc.
     """
-    P = np.array([m.translation for m in M])
+    T = np.array([m.homogeneous for m in M]) if isinstance(M, list) else np.asarray(M, dtype=float)
+    P = T[:, :3, 3]
     keep = arc_inliers(P)
     on = np.flatnonzero(keep)
     centre, n, _, S = _arc(P[keep])
@@ -222,8 +223,7 @@ def fit_hinge_axis(M: list[pin.SE3]) -> pin.SE3:
             "hinge: the tool positions do not trace an arc (the door hardly moves); "
             'give the axis (axis="px py pz dx dy dz")'
         )
-    ref = M[on[0]].rotation
-    w = np.array([pin.log3(M[i].rotation @ ref.T) for i in on])
+    w = log3(T[on, :3, :3] @ T[on[0], :3, :3].T)[0]
     big = int(np.argmax(np.linalg.norm(w, axis=1)))
     if np.linalg.norm(w[big]) > 1e-6 and n @ w[big] < 0:
         n = -n
@@ -318,7 +318,7 @@ class HingeLoop(Loop):
         """
         if self.axis is not None or self.fitted:
             return self
-        M = [pin.SE3(np.linalg.solve(b, a)) for a, b in zip(TA, TB)]
+        M = relative(TA, TB)
         if len(M) < 3:
             raise LoopError(
                 f"hinge loop '{self.name}': cannot fit the hinge axis from {len(M)} "
@@ -328,7 +328,7 @@ class HingeLoop(Loop):
         try:
             other.H0, other.fitted = fit_hinge_axis(M), True
         except LoopError as exc:  # the door does not move: a weld, if the orientation does not either
-            w = np.array([pin.log3(m.rotation @ M[0].rotation.T) for m in M])
+            w = log3(M[:, :3, :3] @ M[0, :3, :3].T)[0]
             if float(np.sqrt(np.mean(np.sum(w**2, axis=1)))) < HELD_STILL:
                 raise LoopError(
                     f"loop '{self.name}' (hinge on {self.frame_a}): neither the position nor the orientation of "

@@ -145,13 +145,15 @@ def _warm(
             base = x_full.copy()
             held = [k for k in est if k not in structure.kept]  # unidentifiable now, or the length holding the size
             base[held] = x0[held]
-            est = list(structure.kept)
-            if not est:
-                return None
-            stage = weighted_stage(problem, base, base[est], est, scale, sigma_q, "noise", sopt, None)
-            iterations += stage.solution.iterations
-            if stage.solution.truncated and stage.note is None:  # directions below the noise: from x0
-                start = _project(problem, base, x0, est, scale, sigma_q, opt.snr)
+            if held or list(structure.kept) != est:  # (else the same fit again: the same solution)
+                est = list(structure.kept)
+                if not est:
+                    return None
+                stage = weighted_stage(problem, base, base[est], est, scale, sigma_q, "noise", sopt, None)
+                iterations += stage.solution.iterations
+            truncated = stage.solution.truncated and stage.note is None  # directions below the noise: from x0
+            start = _project(problem, base, x0, est, scale, sigma_q, opt.snr) if truncated else None
+            if start is not None:
                 stage = weighted_stage(problem, base, start, est, scale, sigma_q, "noise", sopt, None)
                 iterations += stage.solution.iterations
         if stage.note is not None or stage.solution.status != "converged" or not np.isfinite(stage.solution.cost):
@@ -176,14 +178,17 @@ def _project(
     scale: np.ndarray,
     sigma_q: np.ndarray,
     snr: float,
-) -> np.ndarray:
+) -> np.ndarray | None:
     """The start `base` (estimated values) with its components along the directions the fit truncates
     (singular values of the weighted, prior-scaled Jacobian at `base` below `snr` noise units, eq. 4.17)
-    set back to those of the nominal start `x0`."""
+    set back to those of the nominal start `x0`; None where no direction lies below them there (the start
+    is `base`: a fit from it is the one from `base`)."""
     fun = ResidualFunction(problem, base, est, sigma_q, "noise")
     r, J = fun.linearized(base[est])
     S, Vt, _ = scaled_svd(J, r, scale[est])
     keep = S > max(SolverOptions().rcond * (S[0] if S.size else 0.0), snr)
+    if keep.all():
+        return None
     d = (base - x0)[est] / scale[est]
     V = Vt[keep]
     return x0[est] + (V.T @ (V @ d)) * scale[est]
