@@ -33,6 +33,7 @@ from closedloop.estimate.residual import (
     Fit,
     ResidualFunction,
     StageResult,
+    below_noise_reset,
     plain_stage,
     random_start,
     unweighted_closure,
@@ -88,7 +89,11 @@ def solve_staged(
     loop-closure fit is solved from `start` and the weighted fit restarted
     from it (`residual.weighted_stage` keeps the plain solution if the weighting
     would hide a residual there).  `plain_start` goes through the plain stage
-    directly.
+    directly, from a solution (the re-checks at the solution): the plain fit truncates at the numerical floor
+    only, and may move a long way along a direction the weighted fit truncates there (a combination the
+    data barely see: two joint origins along one line) for a cost within the noise; the weighted fit would
+    hold that move, so it starts from the plain solution with those directions set back to `start`'s
+    (`residual.below_noise_reset`).
     """
     scale = np.array([p.prior for p in problem.params])
     sopt = _solver_options(opt, problem, est, known)
@@ -111,7 +116,11 @@ def solve_staged(
         iters += b.solution.iterations
     if b is None or (opt.weighting == "noise" and (b.note or b.solution.truncated or _misled(problem, b, plausible))):
         a = plain_stage(problem, base, xs, est, scale, sopt, prog)
-        b2 = weighted_stage(problem, base, a.solution.x, est, scale, sigma_q, opt.weighting, sopt, prog)
+        xa = a.solution.x
+        if b is None and opt.weighting == "noise":  # from a solution: no move along what it holds (docstring)
+            reset = below_noise_reset(problem, base, xs, xa, xs, est, scale, sigma_q, opt.snr)
+            xa = xa if reset is None else reset
+        b2 = weighted_stage(problem, base, xa, est, scale, sigma_q, opt.weighting, sopt, prog)
         iters += a.solution.iterations + b2.solution.iterations
         b = b2 if b is None else _better(problem, [b, b2], start, est, scale, plausible)
     if opt.weighting == "none":  # known measurements at their sigma against the closures' own level

@@ -361,6 +361,36 @@ def _finishing(sopt: SolverOptions, near: np.ndarray, start: np.ndarray) -> Solv
     return replace(sopt, chord=FINISH_CHORD) if near is not start else sopt
 
 
+def below_noise_reset(
+    problem: CalibrationProblem,
+    base: np.ndarray,
+    at: np.ndarray,
+    moved: np.ndarray,
+    ref: np.ndarray,
+    est: list[int],
+    scale: np.ndarray,
+    sigma_q: np.ndarray,
+    snr: float,
+) -> np.ndarray | None:
+    """`moved` (estimated values) with its components along the directions the weighted fit truncates at `at`
+    set back to those of `ref`: ref + V_k V_k^T (moved - ref) in prior-scaled coordinates, V_k the directions
+    of the weighted, prior-scaled Jacobian at `at` (eq. 4.17) with s_k above `snr` noise units (and the
+    numerical floor).  None where no direction lies below them there (nothing to set back).
+
+    The weighted fit holds a truncated direction where its start puts it (eq. 4.17): a start that moved
+    along one (a fit without truncation, or one that saw the data left out) would carry that move into the
+    solution; set back, the direction keeps the value of `ref`, as a fit truncating it from `ref` would."""
+    fun = ResidualFunction(problem, base, est, sigma_q, "noise")
+    r, J = fun.linearized(at)
+    S, Vt, _ = scaled_svd(J, r, scale[est])
+    keep = S > max(SolverOptions().rcond * (S[0] if S.size else 0.0), snr)
+    if keep.all():
+        return None
+    V = Vt[keep]
+    d = (moved - ref) / scale[est]
+    return ref + (V.T @ (V @ d)) * scale[est]
+
+
 def plain_stage(
     problem: CalibrationProblem,
     x0: np.ndarray,

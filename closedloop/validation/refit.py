@@ -17,7 +17,7 @@ remaining loops (`identifiability.analyse_structure`, at the solution); a parame
 or the length that now holds the size, is held at its nominal start as in a calibration of its own.
 
 No information of the fixture left out may reach the refit through its start: the directions the fit
-still truncates are set back to the nominal start (`_project`) and the fit solved again from there, as a
+still truncates are set back to the nominal start (`residual.below_noise_reset`) and the fit solved again from there, as a
 calibration from the nominal model would leave them.
 
 A refit that cannot be warm (bounds, a robust estimator, the plain estimator, a calibration that did not
@@ -35,9 +35,9 @@ from closedloop.analysis.identifiability import analyse_structure
 from closedloop.analysis.selection import initial_values, structure_problem
 from closedloop.calibration.pipeline import build_problem, calibrate
 from closedloop.errors import ClosedLoopError
-from closedloop.estimate.lm import SolverOptions, scaled_svd
+from closedloop.estimate.lm import SolverOptions
 from closedloop.estimate.noise import noise_vector
-from closedloop.estimate.residual import ResidualFunction, weighted_stage
+from closedloop.estimate.residual import below_noise_reset, weighted_stage
 from closedloop.estimate.threads import blas_threads
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
@@ -152,7 +152,8 @@ def _warm(
                 stage = weighted_stage(problem, base, base[est], est, scale, sigma_q, "noise", sopt, None)
                 iterations += stage.solution.iterations
             truncated = stage.solution.truncated and stage.note is None  # directions below the noise: from x0
-            start = _project(problem, base, x0, est, scale, sigma_q, opt.snr) if truncated else None
+            args = (problem, base, base[est], base[est], x0[est], est, scale, sigma_q, opt.snr)
+            start = below_noise_reset(*args) if truncated else None
             if start is not None:
                 stage = weighted_stage(problem, base, start, est, scale, sigma_q, "noise", sopt, None)
                 iterations += stage.solution.iterations
@@ -168,27 +169,3 @@ def _warm(
         estimated=tuple(est),
         sigma=float(result.noise.sigma),
     )
-
-
-def _project(
-    problem: CalibrationProblem,
-    base: np.ndarray,
-    x0: np.ndarray,
-    est: list[int],
-    scale: np.ndarray,
-    sigma_q: np.ndarray,
-    snr: float,
-) -> np.ndarray | None:
-    """The start `base` (estimated values) with its components along the directions the fit truncates
-    (singular values of the weighted, prior-scaled Jacobian at `base` below `snr` noise units, eq. 4.17)
-    set back to those of the nominal start `x0`; None where no direction lies below them there (the start
-    is `base`: a fit from it is the one from `base`)."""
-    fun = ResidualFunction(problem, base, est, sigma_q, "noise")
-    r, J = fun.linearized(base[est])
-    S, Vt, _ = scaled_svd(J, r, scale[est])
-    keep = S > max(SolverOptions().rcond * (S[0] if S.size else 0.0), snr)
-    if keep.all():
-        return None
-    d = (base - x0)[est] / scale[est]
-    V = Vt[keep]
-    return x0[est] + (V.T @ (V @ d)) * scale[est]
