@@ -79,3 +79,29 @@ def test_the_sandwich_rests_on_its_clusters_not_its_rows():
         and "rests on 100 distinct poses (of 40000 configurations) for 47 parameters" in few.reasons[0]
     )
     assert judged(2739).status != SUSPECT
+
+
+@pytest.mark.parametrize("n_poses, held_for", [(40, 25), (1500, 4)])  # centres compared exactly; by a k-d tree
+def test_a_held_poses_readings_are_one_cell_wherever_the_grid_cuts_them(n_poses, held_for):
+    """Poses of 14 joints held for several rows each, 3e-5 rad of noise per reading, cells 1 mrad wide: a grid
+    cuts most poses' readings on some joint (the readings spread over 2e-4 rad); each pose is one cell all the
+    same, and a log moving across the cells keeps cells of its own (a cell's rows span one cell width per
+    joint)."""
+    from types import SimpleNamespace
+
+    from closedloop.estimate.model_error import configuration_cells
+
+    rng = np.random.default_rng(4)
+    poses = rng.uniform(-2.0, 2.0, (n_poses, 14))
+    held = np.repeat(poses, held_for, axis=0) + rng.normal(0.0, 3e-5, (n_poses * held_for, 14))
+    grid = np.floor(held / 1e-3)
+    assert len({tuple(g) for g in grid}) > 1.5 * n_poses  # the premise: the grid alone cuts poses into pieces
+    problem = SimpleNamespace(joints=list(range(14)), blocks=[SimpleNamespace(theta=held, loop=SimpleNamespace())])
+    cells = configuration_cells(problem, np.full(14, 1e-3))[0]
+    assert np.unique(cells).size == n_poses
+    assert all(np.unique(cells[held_for * k : held_for * (k + 1)]).size == 1 for k in range(n_poses))
+    moving = np.linspace(0.0, 0.5, 2000)[:, None] * np.ones(14) + rng.normal(0.0, 3e-5, (2000, 14))
+    problem.blocks[0].theta = moving
+    cells = configuration_cells(problem, np.full(14, 1e-3))[0]
+    spans = [np.ptp(moving[cells == c, 0]) for c in np.unique(cells)]
+    assert np.unique(cells).size > 250 and max(spans) < 3e-3

@@ -326,18 +326,65 @@ CELL_MIN = 1e-3
 def configuration_cells(problem: CalibrationProblem, width: np.ndarray) -> list[np.ndarray]:
     """Per block, a cluster label per configuration: the cell of joint space its readings fall in, cells
     `width` wide per joint (the problem's joints).  Labels are shared across blocks (the same readings, the
-    same cell).  Readings of one pose held or repeated fall in one cell (but for the few that straddle a
-    border), distinct poses in cells of their own; a log that moves slowly puts its neighbouring rows
-    together, whose model error is shared too."""
+    same cell).  Readings of one pose held or repeated fall in one cell, distinct poses in cells of their
+    own; a log that moves slowly puts its neighbouring rows together, whose model error is shared too.
+
+    A grid's borders fall anywhere: the readings of one pose that straddle one (on some of a dozen joints,
+    most poses do) fall in two or more cells whose centres lie within a small fraction of a cell of each
+    other.  A cell whose readings span less than `JOIN` of a cell in every joint (a piece of a pose, not a
+    stretch of a moving log) joins the fullest cell whose centre (the mean of its readings) lies within `JOIN`
+    of its own in every joint (`_joined`), so that a pose's readings are one cluster wherever the grid cuts
+    them; the cells a moving log passes through stay as they are."""
     w = np.maximum(np.broadcast_to(np.asarray(width, dtype=float), (len(problem.joints),)), 1e-12)
     weights = np.random.default_rng(0).integers(1, 2**61, size=w.size, dtype=np.int64)  # a hash of the cell
-    labels = []
-    for bi, b in enumerate(problem.blocks):
-        if getattr(b.loop, "parameter_only", False) or not b.theta.size:  # a known length: one cluster
-            labels.append(np.full(b.theta.shape[0], -1 - bi, dtype=np.int64))
-            continue
-        labels.append(np.floor(b.theta / w).astype(np.int64) @ weights)
+    labels = [np.full(b.theta.shape[0], -1 - bi, dtype=np.int64) for bi, b in enumerate(problem.blocks)]
+    own = [bi for bi, b in enumerate(problem.blocks) if b.theta.size and not getattr(b.loop, "parameter_only", False)]
+    if not own:  # (a known length: one cluster)
+        return labels
+    Z = np.concatenate([problem.blocks[bi].theta / w for bi in own])
+    joined = _joined(Z, np.floor(Z).astype(np.int64) @ weights)
+    at = np.cumsum([0] + [problem.blocks[bi].theta.shape[0] for bi in own])
+    for k, bi in enumerate(own):
+        labels[bi] = joined[at[k] : at[k + 1]]
     return labels
+
+
+#: a cell whose readings span less than this share of a cell joins a fuller one whose centre lies within it of
+#: its own, in every joint (`configuration_cells`): the pieces of one pose's readings span a few noise
+#: deviations, a hundredth of a cell, and lie as far apart; a moving log's cells, about a cell
+JOIN = 0.25
+
+
+def _joined(Z: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """`labels` (a cell per row of readings `Z` in cell units) with each cell whose readings span less than
+    `JOIN` joined to the fullest cell whose centre lies within `JOIN` of its own in every joint (the first in
+    label order on a tie; itself if none is fuller): one step, no chain of joins across cells.  Centres by a
+    k-d tree above `KD_TREE_ROWS` cells (the 8 nearest), by exact distances below."""
+    cells, inv = np.unique(labels, return_inverse=True)
+    C = cells.size
+    if C < 2:
+        return labels
+    counts = np.bincount(inv, minlength=C)
+    order = np.argsort(inv, kind="stable")
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    span = np.maximum.reduceat(Z[order], starts, axis=0) - np.minimum.reduceat(Z[order], starts, axis=0)
+    small = span.max(axis=1) < JOIN
+    sums = np.stack([np.bincount(inv, weights=Z[:, j], minlength=C) for j in range(Z.shape[1])], axis=1)
+    centres = sums / counts[:, None]
+    key = counts.astype(np.int64) * (C + 1) + (C - np.arange(C))  # fuller first, then the first in label order
+    if C > KD_TREE_ROWS:
+        from scipy.spatial import cKDTree  # loaded on first use: short logs never pay for it
+
+        d, nb = cKDTree(centres).query(centres, k=min(8, C), distance_upper_bound=JOIN, p=np.inf)
+        nb = np.where(np.isfinite(d), nb, np.arange(C)[:, None])
+        parent = nb[np.arange(C), np.argmax(key[nb], axis=1)]
+    else:
+        parent = np.empty(C, dtype=np.intp)
+        for lo in range(0, C, _DISTANCE_BLOCK):
+            near = np.max(np.abs(centres[lo : lo + _DISTANCE_BLOCK, None, :] - centres[None, :, :]), axis=2) < JOIN
+            parent[lo : lo + _DISTANCE_BLOCK] = np.argmax(np.where(near, key[None, :], -1), axis=1)
+    parent = np.where(small, parent, np.arange(C))
+    return cells[parent][inv]
 
 
 def sandwich_cov(
