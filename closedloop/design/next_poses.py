@@ -55,6 +55,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from closedloop.analysis.accuracy import joint_ranges, least_seen, tolerance_factor
+from closedloop.estimate.noise import pinv_sqrt
 from closedloop.problem.problem import CalibrationProblem, LoopBlock
 
 N_CANDIDATES = 400  # random starts moved onto the loop
@@ -226,10 +227,10 @@ def suggest_poses(
     B = np.zeros((C.shape[0], ev.r.shape[1], len(names)))
     Jq = ev.Jq if ev.Jq is not None else np.zeros((C.shape[0], ev.r.shape[1], 0))
     if res.noise.joint_noise is None:  # a plain fit (eq. 3.8): every closure row weighs 1 / sigma^2
-        S = np.broadcast_to(sigma**2 * np.eye(ev.r.shape[1]), (C.shape[0], ev.r.shape[1], ev.r.shape[1]))
-    else:
-        S = sigma**2 * Jq @ np.swapaxes(Jq, 1, 2) + (1e-12 * sigma) ** 2 * np.eye(ev.r.shape[1])
-    Wi = np.linalg.inv(np.linalg.cholesky(S))  # whitening: B_i = L_i^-1 J_i
+        Wi = np.broadcast_to(np.eye(ev.r.shape[1]) / sigma, (C.shape[0], ev.r.shape[1], ev.r.shape[1]))
+    else:  # whitening B_i = W_i^-1/2 J_i, W_i = sigma^2 Jq Jq^T (eq. 3.17); a direction no joint noise moves
+        # (a door's angle, projected out: W_i singular) weighs nothing, as in the fit (`noise.whiten`)
+        Wi = pinv_sqrt(sigma**2 * Jq @ np.swapaxes(Jq, 1, 2))[0]
     B[:, :, keep] = Wi @ ev.jacobian()
     # the loop's place moves no frame: its columns of A are zero, its covariance and cross terms are kept
     A = np.hstack([workspace.design, np.zeros((workspace.design.shape[0], len(workspace.loop_parameters)))])
