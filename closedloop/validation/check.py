@@ -54,7 +54,8 @@ def check_report(
     known (`model`, a `RobotModel` or a path, else the report's 'model' field) and the
     report has a loop to follow, else the parameter table.  `truth_model`: the true robot's
     model file where it is not the calibrated one's (another robot's log), else the truth's
-    'model' field, else the report's model.  Both documents are validated
+    'model' field, else the report's model at the geometry it was calibrated from (a recalibration's
+    model, a calibrated URDF, carries its corrections: `RobotModel.calibrated_from_model`).  Both documents are validated
     first (:data:`~closedloop.io.schemas.TRUTH_SCHEMA`, :data:`~closedloop.io.schemas.REPORT_SCHEMA`);
     every tolerance must be a finite number > 0.
     """
@@ -68,7 +69,9 @@ def check_report(
         if view == "kinematics":
             raise InputError(f"{report_source}: no loop whose frames can be followed: compare with --parameters")
         return rows, ok
-    true_robot = robot
+    # the truth's corrections are of the model the simulator started from: a calibrated model's own (a
+    # recalibration's report) carries its corrections already, and its nominal geometry is written beside them
+    true_robot = robot.calibrated_from_model()
     if truth_model is not None or truth.get("model"):
         true_robot = _robot_of(truth, truth_model, truth_source, required=True)
     return check_kinematics(
