@@ -354,6 +354,12 @@ def test_option_values():
     for bad in ("0.2", "fast", "-1mm", "0mm"):
         with pytest.raises(InputError, match="--accuracy"):
             parse_accuracy(bad)
+    with pytest.raises(InputError, match="two position targets"):  # not the last kept silently
+        parse_accuracy("0.01mm,5mm")
+    with pytest.raises(InputError, match="two angle targets"):
+        parse_accuracy("1mm,1mrad,1deg")
+    with pytest.raises(InputError, match="below 1000"):
+        parse_accuracy("1e9mm")
     assert parse_box("j1=-1:1, j2=0:0.5") == {"j1": (-1.0, 1.0), "j2": (0.0, 0.5)}
     with pytest.raises(InputError, match="--workspace"):
         parse_box("j1=1")

@@ -284,3 +284,16 @@ def test_an_output_folder_that_is_an_input_is_refused_naming_the_job(tmp_path):
     jobs[2].out = tmp_path / "link"
     with pytest.raises(InputError, match=r"^job r2: out .*link: is an input of the batch \(.*logs/r1\)$"):
         check_batch_outputs(tmp_path / "m.yaml", jobs, tmp_path / "s.csv")
+
+
+def test_a_manifests_date_written_as_yaml_writes_it_is_read_as_its_text(tmp_path):
+    """The fleet guide's manifest writes ``date: 2026-03-02`` unquoted, which YAML reads as a date, not text:
+    it is the job's date all the same (it was refused as "not a text value")."""
+    man = tmp_path / "fleet.yaml"
+    man.write_text(
+        "jobs:\n"
+        "  - {name: arm1-0302, robot: arm1, date: 2026-03-02, model: m.urdf, log: l.csv, out: o1,"
+        " loop: 'weld:frame=panda_hand'}\n"
+    )
+    (job,) = read_manifest(man)
+    assert job.date == "2026-03-02" and job.robot == "arm1"

@@ -84,3 +84,23 @@ def test_require_returns_the_module_and_refuses_with_the_feature(monkeypatch):
         require("h5py", "data.h5 (an HDF5 record)", "impedance")
     assert (exc.value.feature, exc.value.module, exc.value.extra) == ("data.h5 (an HDF5 record)", "h5py", "impedance")
     assert str(exc.value).startswith("data.h5 (an HDF5 record): needs h5py, which is not installed")
+
+
+def test_a_fleet_page_without_matplotlib_is_one_line_and_writes_nothing(tmp_path, monkeypatch, capsys):
+    """`fleet-report --html` (the drift figure) refuses a missing matplotlib as `calibrate --html` does, before
+    any file of the report is written (the JSON asked beside it included)."""
+    summary = tmp_path / "fleet.summary.csv"
+    summary.write_text(
+        "name,robot,date,status,verdict,verdict_reasons,configurations,estimated,rms_before_mm,rms_after_mm,"
+        "rms_before_mrad,rms_after_mrad,cv_test_mm,cv_test_mrad,top_changes,drift_from,drift_max_z,drift_flagged,"
+        "seconds,cpu_seconds,resumed,error,out\n"
+        "a1,a,2026-01-01,ok,ok,,40,20,1.0,0.01,1.0,0.01,,,,,,,1.0,1.0,False,,a1\n"
+    )
+    for m in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")] + ["matplotlib"]:
+        monkeypatch.setitem(sys.modules, m, None)
+    args = ["fleet-report", str(summary), "--html", str(tmp_path / "f.html"), "--json", str(tmp_path / "f.json")]
+    rc = main(args)
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert err.startswith("error: --html: needs matplotlib, which is not installed")
+    assert not (tmp_path / "f.html").exists() and not (tmp_path / "f.json").exists()

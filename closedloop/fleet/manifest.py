@@ -10,6 +10,7 @@ bounds with ``;``.
 from __future__ import annotations
 
 import csv
+import datetime
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -87,6 +88,8 @@ def _job(d: dict, base: Path, where: str) -> BatchJob:
     if not isinstance(opts, dict):
         raise InputError(f"{where}: options must be a mapping")
     values = {**opts, **{k: d[k] for k in known if d.get(k) not in (None, "")}}
+    if isinstance(d.get("date"), (datetime.date, datetime.datetime)):  # YAML reads 2026-03-02 as a date
+        d = {**d, "date": d["date"].isoformat()}
     for key in ("model", "log", "out", "name", "robot", "date"):
         if d.get(key) is not None and not isinstance(d[key], (str, int, float)) or isinstance(d.get(key), bool):
             raise InputError(f"{where}: '{key}' must be a text value, got {_kind(d[key])}")

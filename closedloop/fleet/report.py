@@ -60,19 +60,19 @@ def read_summary(path: str | Path) -> list[dict]:
 
 
 def workspace_accuracy(out: str | Path) -> dict[str, float]:
-    """The predicted workspace accuracy (RMS, m) per frame of a job's ``report.json``, when it has one."""
+    """The predicted workspace accuracy (RMS, m) per followed frame of a job's ``report.json`` ('loop: frame'),
+    when it has one (`accuracy.workspace.frames`)."""
     try:
         report = json.loads((Path(out) / "report.json").read_text())
     except (OSError, json.JSONDecodeError):
         return {}
     ws = (report.get("accuracy") or {}).get("workspace") or {}
-    if not isinstance(ws, dict):
-        return {}
+    frames = ws.get("frames") if isinstance(ws, dict) else None
     acc = {}
-    for frame, rec in ws.items():
+    for rec in frames if isinstance(frames, list) else []:  # `accuracy.workspace.frames`: a row per loop frame
         v = _float(rec.get("predicted_rms_m")) if isinstance(rec, dict) else None
         if v is not None:
-            acc[str(frame)] = v
+            acc[f"{rec.get('loop')}: {rec.get('frame')}"] = v
     return acc
 
 
@@ -153,9 +153,9 @@ def fig_drift(report: dict, named: int = 10) -> bytes:
     import datetime as dt
 
     import numpy as np
-    from matplotlib.collections import LineCollection
 
-    plt = _plt()
+    plt = _plt()  # (refuses a missing matplotlib in one line, before any of its modules is imported)
+    from matplotlib.collections import LineCollection
 
     def day(s: str) -> float:
         try:
@@ -267,8 +267,10 @@ def render_fleet_html(report: dict, figure: bytes | None = None) -> str:
 
 
 def write_fleet_report(report: dict, json_path: str | Path | None = None, html_path: str | Path | None = None) -> None:
-    """Write the report as JSON and/or HTML, each file whole."""
+    """Write the report as JSON and/or HTML, each file whole; the page is drawn first, so a page that cannot be
+    drawn (matplotlib missing) leaves no file written."""
+    page = render_fleet_html(report) if html_path is not None else None
     if json_path is not None:
         atomic_write_text(json_path, json.dumps(report, indent=1) + "\n")
-    if html_path is not None:
-        atomic_write_text(html_path, render_fleet_html(report))
+    if html_path is not None and page is not None:
+        atomic_write_text(html_path, page)

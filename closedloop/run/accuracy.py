@@ -140,9 +140,15 @@ def parse_accuracy(text: str) -> tuple[float | None, float | None]:
                 f"--accuracy '{part}': expected a number and a unit, e.g. 0.2mm or 1mrad (m, mm, um, rad, mrad, urad, deg)"
             )
         value = float(hit.group(1)) * UNITS[hit.group(2)]
-        if not (value > 0 and value < 1e3):
+        if not value > 0:
             raise InputError(f"--accuracy '{part}': the target must be > 0")
-        if hit.group(2) in ("m", "mm", "um"):
+        if not value < 1e3:
+            raise InputError(f"--accuracy '{part}': the target must be below 1000 m or rad")
+        position = hit.group(2) in ("m", "mm", "um")
+        if (m if position else rad) is not None:
+            kind = "position" if position else "angle"
+            raise InputError(f"--accuracy '{text}': two {kind} targets; give one {kind} and at most one of the other")
+        if position:
             m = value
         else:
             rad = value
