@@ -127,6 +127,12 @@ CASES = [
         calib(log="{socket.csv}"),
         ["loop 'fixture' (weld on panda_hand)", "orientation is not fixed", "--loop point:frame=panda_hand"],
     ),
+    Case(
+        "loop-on-the-base",
+        "wrong loop type",
+        ["calibrate", "{panda.urdf}", "{log.csv}", "--loop", "weld:frame=panda_link0,name=fixture", "--cv", "0"],
+        ["loop(s) 'fixture' (panda_link0, universe)", "no movable joint", "frame=<link>"],
+    ),
     # ------------------------------------------------------------------ batch manifests
     Case(
         "batch-duplicate-names",

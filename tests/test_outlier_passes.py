@@ -72,3 +72,30 @@ def test_a_wandering_refit_keeps_its_best_pass(xarm):
     truth = json.loads((xarm / "truth.json").read_text())
     rows, ok = check_report(truth, build_report(res), tol_m=1e-3, tol_rad=5e-3, tol_scale=5e-3)  # check's defaults
     assert ok, [r for r in rows if r["result"] == "FAIL"]
+
+
+def test_the_summary_counts_the_rejected_rows_it_does_not_name(tmp_path, capsys):
+    """The summary names ten rejected rows and says how many more the report holds."""
+    import csv as _csv
+
+    from closedloop.cli.main import main
+
+    sim = tmp_path / "sim"
+    assert main(["simulate", "ur5_socket", "--n", "100", "--seed", "4", "--out", str(sim), "--quiet"]) == 0
+    rows = list(_csv.reader((sim / "log.csv").read_text().splitlines()))
+    for r in rows[1:15]:  # 14 rows: one joint off by 0.3 rad
+        r[1] = repr(float(r[1]) + 0.3)
+    (sim / "bad.csv").write_text("\n".join(",".join(r) for r in rows) + "\n")
+    capsys.readouterr()
+    args = [
+        "calibrate",
+        str(sim / "nominal.urdf"),
+        str(sim / "bad.csv"),
+        "--loop",
+        "point:frame=stylus_tip,name=socket",
+    ]
+    assert main(args + ["--report", str(tmp_path / "r.json"), "--cv", "0", "--out", str(tmp_path / "c.urdf")]) in (0, 3)
+    out = capsys.readouterr().out
+    n = len(__import__("json").loads((tmp_path / "r.json").read_text())["rejected"])
+    assert n > 10 and out.count("  rejected: ") == 11
+    assert f"  rejected: and {n - 10} more (report: rejected)" in out

@@ -145,7 +145,11 @@ def build_problem(
     order = {n: i for i, n in enumerate(robot.joint_names)}
     joints.sort(key=lambda n: order[n])
     if not joints:
-        raise LoopError("no movable joint lies between the loops' frames and the base")
+        named = ", ".join(f"'{lp.name}' ({', '.join(lp.frames)})" for lp in loops)
+        raise LoopError(
+            f"loop(s) {named}: no movable joint lies between the loop's frames and the base; "
+            "put the loop on a link its joints move (frame=<link>)"
+        )
     theta = log_.columns(joints)
     tau = log_.torques(joints)
     numbers = np.arange(1, len(log_) + 1) if row_numbers is None else np.asarray(row_numbers)

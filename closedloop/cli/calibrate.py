@@ -182,11 +182,14 @@ def print_summary(res, elapsed: float, args, report: dict, wrote_model: bool = T
             )
     for line in fixture_lines(report.get("fixture_validation")):
         print(line)
-    for rj in report.get("rejected", [])[:10]:  # named by file and line (`JointLog.where`)
+    rejected = report.get("rejected", [])
+    for rj in rejected[:10]:  # named by file and line (`JointLog.where`)
         print(
             f"  rejected: {rj.get('where') or 'log row ' + str(rj['row'])} (loop {rj['loop']}), "
             f"{rj['standardized']:.3g} robust standard deviations"
         )
+    if len(rejected) > 10:
+        print(f"  rejected: and {len(rejected) - 10} more (report: rejected)")
     if args.out and wrote_model:
         print(f"  wrote {args.out}")
     if args.report:
