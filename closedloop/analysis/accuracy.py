@@ -91,6 +91,7 @@ from closedloop.records import ParamStatus
 
 #: loop types whose tool point is followed, and those whose frame pose is (`closedloop check` alike)
 POINT_LOOPS = ("PointLoop", "PlaneLoop", "MeasuredPointLoop", "point", "plane", "measured_point")
+MEASURED_POINT = ("MeasuredPointLoop", "measured_point")  # a point measured in a tracker's frame
 POSE_LOOPS = ("WeldLoop", "HingeLoop", "MeasuredPoseLoop", "weld", "hinge", "measured_pose")
 #: loops that close at any overall size: with only these the size is not measured
 SIZE_BLIND = ("PointLoop", "PlaneLoop", "FaceLoop", "WeldLoop", "HingeLoop", "point", "plane", "face", "weld", "hinge")
@@ -750,8 +751,8 @@ def predict_closure(problem, values: np.ndarray, names: list[str], covariance: n
     """The closure RMS the parameters' uncertainty predicts on the problem's own configurations, per loop
     (a calibration's `WorkspaceAccuracy.covariance` over `names`, propagated as in the module docstring at
     the readings of each block): what a closure on new data shows of the model's error, with the loop's
-    place refitted (a point loop's point: a translation; a pose loop's fixture: a rigid transform of the
-    base).  The readings' noise is not included.  Rows: loop, rms_m, rms_rad (None: not a followed loop)."""
+    place refitted (a point loop's point: a translation; a tracker's frame, where it measures the point,
+    and a pose loop's fixture: a rigid transform of the base).  The readings' noise is not included.  Rows: loop, rms_m, rms_rad (None: not a followed loop)."""
     from closedloop.estimate.threads import blas_threads
 
     with blas_threads(None):
@@ -774,7 +775,10 @@ def _predict_closure(problem, values: np.ndarray, names: list[str], covariance: 
         J = np.vstack([Jp[0].reshape(-1, len(cols))] + ([Jr[0].reshape(-1, len(cols))] if pose else []))
         w = np.concatenate([np.full(3 * n, 1.0 / TOL_M)] + ([np.full(3 * n, 1.0 / TOL_RAD)] if pose else []))
         G = gauge_basis([it], pos, rot, False)
-        G = G[:, :6] if pose else G[: 3 * n, :3]  # the refitted place: a base pose, or a translation
+        # the refitted place: a base pose (a fixture), the tracker's frame (a rigid transform of the points it
+        # measures), or a translation (a socket's point)
+        tracked = b.loop.describe().get("type") in MEASURED_POINT
+        G = G[:, :6] if pose else G[: 3 * n, :6] if tracked else G[: 3 * n, :3]
         G = G * w[:, None]
         Qg = np.linalg.qr(G)[0]
         A = (J @ L) * w[:, None]

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from closedloop.errors import ClosedLoopError
 from closedloop.io.logs import JointLog
 from closedloop.loops.base import Loop
 from closedloop.model.robot import RobotModel
@@ -227,6 +228,12 @@ def compare_prediction(
     second the fit's own closure RMS (`residuals.after`): predicted RMS = sqrt(model^2 + fit^2), for
     positions and rotations.  Rows: loop, unit, observed and predicted RMS, their ratio; [] where the
     report has no prediction.
+
+    The covariance is of the report's parameters, corrections of the model the calibration started from: it
+    is propagated there, at the report's values (`_calibrated_from`), not on the written model's frames,
+    where its columns turn by the folded corrections (a joint offset of 10 mrad turns the slides of its
+    frame by as much) and the strong correlations of a weakly determined set no longer cancel (a tracker's
+    closure: 4.9 um predicted there, 39 um on the written model's frames).
     """
     from closedloop.analysis.accuracy import predict_closure
     from closedloop.calibration.pipeline import build_problem
@@ -237,9 +244,10 @@ def compare_prediction(
     if not isinstance(cov, dict) or not cov.get("parameters"):
         return []
     loops = [lp for lp in loops if not getattr(lp, "parameter_only", False)]
-    problem = build_problem(robot, log_, loops)
+    start, calibrated = _calibrated_from(report, robot)
+    problem = build_problem(start, log_, loops)
     x = problem.nominal
-    for name, v in {**(values or {}), **ev.values, **ev.held}.items():
+    for name, v in {**calibrated, **(values or {}), **ev.values, **ev.held}.items():
         if name in problem.index:
             x[problem.index[name]] = float(v)
     model = {r["loop"]: r for r in predict_closure(problem, x, list(cov["parameters"]), np.array(cov["matrix"]))}
@@ -264,6 +272,27 @@ def compare_prediction(
                 }
             )
     return out
+
+
+def _calibrated_from(report: dict, robot: RobotModel) -> tuple[RobotModel, dict[str, float]]:
+    """The model a report's parameters are corrections of, and the report's calibrated values: its model file
+    where it is still there, else the written model at the geometry it was calibrated from
+    (`RobotModel.calibrated_from_model`, a calibrated URDF); else the written model itself, with no value."""
+    from pathlib import Path
+
+    values = {
+        str(p["name"]): float(p["calibrated"])
+        for p in report.get("parameters") or []
+        if isinstance(p, dict) and isinstance(p.get("calibrated"), (int, float))
+    }
+    src = report.get("model")
+    if isinstance(src, str) and Path(src).is_file():
+        try:
+            return RobotModel.from_file(src), values
+        except ClosedLoopError:
+            pass
+    start = robot.calibrated_from_model()
+    return (start, values) if start is not robot else (robot, {})
 
 
 def prediction_lines(model: str, rows: list[dict]) -> list[str]:
