@@ -261,6 +261,13 @@ CASES = [
     ),
     # ------------------------------------------------------------------ robot files
     Case(
+        "simulate-a-dh-table",
+        "robot file",
+        ["simulate", "--robot", "{arm.yaml}", "--loop", "point:frame=tool", "--out", "{tmp}/sim"],
+        ["arm.yaml is a D-H table", "a URDF or MJCF", "closedloop calibrate TABLE LOG"],
+        {"arm.yaml": "convention: modified\nunits: deg\nrows: []\n"},
+    ),
+    Case(
         "urdf-two-parents",
         "robot file",
         ["inspect", "{r.urdf}"],

@@ -54,6 +54,9 @@ def test_bad_files(tmp_path):
     p.write_text("time,angle,torque\n" + "\n".join(rows[:3] + ["nan,0,0"] + rows[4:]))
     with pytest.raises(InputError, match="'time' row 5 is not finite"):
         read_record(p)
+    p.write_text("time,angle,torque\n" + "\n".join(rows[:8] + ["0.02,abc,0"] + rows[9:]))
+    with pytest.raises(InputError, match="bad.csv line 10, column 'angle': 'abc' is not a number"):
+        read_record(p)  # the file's line (numpy counts data rows from 0) and the column's name
 
 
 def test_non_finite_rows_leave_out_their_cycles(sim, tmp_path):

@@ -76,9 +76,10 @@ def model_calibration(path: str, reports: dict[Path, dict], robot) -> tuple[dict
         params = rep.get("parameters") or []
         loops = {p["name"]: float(p["calibrated"]) for p in params if p.get("kind") == "loop"}
         values = {}
-        for p in params:
+        for p in params:  # those the calibration set (a value left at its nominal is no calibration's)
             if p.get("kind") in ("scale", "compliance") and (robot.kind != "dh" or p["kind"] == "compliance"):
-                values[p["name"]] = float(p["calibrated"])
+                if p.get("status") == "estimated" or p.get("calibrated") != p.get("initial"):
+                    values[p["name"]] = float(p["calibrated"])
         return values, loops, str(rep.get("_path"))
     side = sensors_path(path)
     if side.is_file():

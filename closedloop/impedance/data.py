@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import logging
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -164,7 +165,13 @@ def read_record(path: str | Path, columns: dict[str, str] | None = None, torque_
             raise ImpedanceDataError(f"{path}: empty file")
         try:
             arr = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-        except ValueError as exc:
+        except ValueError as exc:  # numpy names the data row from 0 and the column from 1: the file's line, the name
+            hit = re.search(r"string '(.*)' to \w+ at row (\d+), column (\d+)", str(exc))
+            if hit and 0 < int(hit.group(3)) <= len(header):
+                line, name = int(hit.group(2)) + 2, header[int(hit.group(3)) - 1]
+                raise ImpedanceDataError(
+                    f"{path} line {line}, column '{name}': '{hit.group(1)}' is not a number"
+                ) from None
             raise ImpedanceDataError(f"{path}: not a numeric CSV ({exc})") from None
         if arr.shape[1] != len(header):
             raise ImpedanceDataError(f"{path}: {len(header)} header columns but {arr.shape[1]} data columns")

@@ -159,6 +159,11 @@ def _read(path: Path, where: str) -> ET.Element:
     element) before Pinocchio or MuJoCo would reject the prepared file in their own words."""
     if not path.is_file():
         raise InputError(f"{where}: no such robot file {path}")
+    if path.suffix.lower() in (".yaml", ".yml"):
+        raise InputError(
+            f"{where}: {path} is a D-H table: the simulator takes a URDF or MJCF file (links, joints and their "
+            "inertias); a D-H table is calibrated from a log of the robot (closedloop calibrate TABLE LOG ...)"
+        )
     if path.suffix.lower() in (".xml", ".mjcf"):
         check_mjcf(path)
         return ET.fromstring(mjcf_to_urdf(path))
