@@ -161,3 +161,28 @@ def test_check_reads_a_recalibrations_truth_at_the_geometry_it_was_calibrated_fr
     assert ok and ok_given
     assert [r["name"] for r in rows] == [r["name"] for r in given]
     assert [r["error"] for r in rows] == pytest.approx([r["error"] for r in given], rel=1e-6, abs=1e-12)
+
+
+def test_check_names_the_way_out_where_the_truths_frame_is_not_in_the_true_model(tmp_path):
+    """A calibration on the user's own model file, while the simulation added the loop's stylus to its own
+    model (`simulate --tool`): the truth's frame is not in the report's model, and the line says to give the
+    simulator's model."""
+    from closedloop.errors import InputError
+
+    sim = tmp_path / "sim"
+    assert main(["simulate", "ur5_socket", "--n", "40", "--seed", "3", "--out", str(sim), "--quiet"]) == 0
+    spec = "point:frame=stylus_tip,name=socket"
+    args = [
+        "calibrate",
+        str(sim / "nominal.urdf"),
+        str(sim / "log.csv"),
+        "--loop",
+        spec,
+        "--out",
+        str(tmp_path / "c.urdf"),
+    ]
+    assert main(args + ["--report", str(tmp_path / "r.json"), "--cv", "0", "--quiet"]) == 0
+    truth, rep = json.loads((sim / "truth.json").read_text()), json.loads((tmp_path / "r.json").read_text())
+    truth["loop"]["frame"] = "stylus_tip_of_the_simulation"  # a frame the report's model does not have
+    with pytest.raises(InputError, match="--truth-model <dataset>/nominal.urdf"):
+        check_report(truth, rep, 1e-3, 1e-3, 0.05)

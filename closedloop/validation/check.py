@@ -369,11 +369,17 @@ def check_kinematics(
             for f in (frame, frame_b):
                 if f is not None:
                     robot.frame_id(f)
+        except ClosedLoopError as exc:
+            raise InputError(f"{report_source} / {truth_source}: loop '{name}': {exc}") from None
+        try:
             for f in (tframe, tframe_b):
                 if f is not None:
                     true_robot.frame_id(f)
-        except ClosedLoopError as exc:
-            raise InputError(f"{report_source} / {truth_source}: loop '{name}': {exc}") from None
+        except ClosedLoopError as exc:  # a frame of the simulator's model (a stylus `simulate --tool` added)
+            raise InputError(
+                f"{truth_source}: loop '{name}': the truth's {exc} in the true robot's model; where the "
+                "simulation added it, give the simulator's model: --truth-model <dataset>/nominal.urdf"
+            ) from None
         point = lp.get("type") in POINT_LOOPS or camera
         tip_c = _tip(cal, name, lp.get("tip")) if point else np.zeros(3)
         tip_t = _tip(truth["parameters"], str(tl.get("name", name)), lp.get("tip")) if point else np.zeros(3)
