@@ -92,6 +92,8 @@ from closedloop.records import ParamStatus
 #: loop types whose tool point is followed, and those whose frame pose is (`closedloop check` alike)
 POINT_LOOPS = ("PointLoop", "PlaneLoop", "MeasuredPointLoop", "point", "plane", "measured_point")
 MEASURED_POINT = ("MeasuredPointLoop", "measured_point")  # a point measured in a tracker's frame
+PLANE = ("PlaneLoop", "plane")
+HINGE = ("HingeLoop", "hinge")
 POSE_LOOPS = ("WeldLoop", "HingeLoop", "MeasuredPoseLoop", "weld", "hinge", "measured_pose")
 #: loops that close at any overall size: with only these the size is not measured
 SIZE_BLIND = ("PointLoop", "PlaneLoop", "FaceLoop", "WeldLoop", "HingeLoop", "point", "plane", "face", "weld", "hinge")
@@ -765,12 +767,18 @@ def _predict_closure(problem, values: np.ndarray, names: list[str], covariance: 
     keep = [i for i, n in enumerate(names) if n in problem.index]
     L = _sqrt_psd(np.asarray(covariance, dtype=float)[np.ix_(keep, keep)]) if keep else np.zeros((0, 0))
     out = []
-    for b in problem.blocks:
+    for bi, b in enumerate(problem.blocks):
         it = items.get(b.loop.name)
         if it is None or not b.theta.shape[0] or not cols:
             continue
         n = b.theta.shape[0]
         pos, rot, Jp, Jr = frame_jacobians(problem, values, b.theta, [it], cols)
+        if b.loop.describe().get("type") in PLANE:
+            out.append(_plane_closure(b.loop, values[problem.loop_columns[bi]], pos[0], Jp[0] @ L, b.loop.name))
+            continue
+        if b.loop.describe().get("type") in HINGE:
+            out.append(_refitted_closure(problem, values, bi, cols, L))
+            continue
         pose = it.kind == "pose"
         J = np.vstack([Jp[0].reshape(-1, len(cols))] + ([Jr[0].reshape(-1, len(cols))] if pose else []))
         w = np.concatenate([np.full(3 * n, 1.0 / TOL_M)] + ([np.full(3 * n, 1.0 / TOL_RAD)] if pose else []))
@@ -787,6 +795,43 @@ def _predict_closure(problem, values: np.ndarray, names: list[str], covariance: 
         rms_rad = float(np.sqrt(np.sum(A[3 * n :] ** 2) / n)) if pose else None
         out.append({"loop": b.loop.name, "rms_m": rms_m, "rms_rad": rms_rad})
     return out
+
+
+def _refitted_closure(problem, values: np.ndarray, bi: int, cols: list[int], L: np.ndarray) -> dict:
+    """`_predict_closure` through the loop's own residual (a door: the handle's pose about a hinge line, its
+    angle eliminated per configuration): the residual's rows moved by the model's uncertainty (J L over the
+    robot's columns), less what a new log's refit of the loop's own parameters (the hinge line, the grasp)
+    absorbs; RMS over the translation and the rotation rows, as `validation.evaluate` observes them."""
+    b = problem.blocks[bi]
+    own = [int(k) for k in problem.loop_columns[bi] if int(k) not in set(cols)]
+    ev = problem.evaluate(values, True, columns=list(cols) + own)[bi]
+    N, m, _ = ev.J.shape
+    trans, rot = list(b.loop.translation_rows), list(b.loop.rotation_rows)
+    w = np.ones(m)
+    w[trans], w[rot] = 1.0 / TOL_M, 1.0 / TOL_RAD
+    A = (ev.J[:, :, : len(cols)] @ L) * w[None, :, None]
+    G = (ev.J[:, :, len(cols) :] * w[None, :, None]).reshape(N * m, -1)
+    Q = np.linalg.qr(G)[0] if G.shape[1] else np.zeros((N * m, 0))
+    A = A.reshape(N * m, -1)
+    A = ((A - Q @ (Q.T @ A)).reshape(N, m, -1)) / w[None, :, None]
+    rms = {k: float(np.sqrt(np.sum(A[:, rows] ** 2) / N)) if rows else None for k, rows in (("m", trans), ("rad", rot))}
+    return {"loop": b.loop.name, "rms_m": rms["m"], "rms_rad": rms["rad"]}
+
+
+def _plane_closure(loop, p: np.ndarray, pos: np.ndarray, JL: np.ndarray, name: str) -> dict:
+    """`_predict_closure` for a plane loop: its closure is the tip's distance to the plane, r = n^T y - d, and
+    a new log refits the plane, its tilt (dn, normal to n: r moves by dn^T y) and offset; what the model's
+    uncertainty `JL` (n, 3, r: the tip's position per factor of the covariance) leaves of the distance once
+    those three are refitted."""
+    _, w, _ = loop.split(p)
+    nrm = loop.normal(w)
+    t1 = np.cross(nrm, [1.0, 0.0, 0.0] if abs(nrm[0]) < 0.9 else [0.0, 1.0, 0.0])
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(nrm, t1)
+    A = np.einsum("j,ijr->ir", nrm, JL)
+    Q = np.linalg.qr(np.column_stack([pos @ t1, pos @ t2, np.ones(pos.shape[0])]))[0]
+    A = A - Q @ (Q.T @ A)
+    return {"loop": name, "rms_m": float(np.sqrt(np.sum(A**2) / pos.shape[0])), "rms_rad": None}
 
 
 def predict_from_result(
