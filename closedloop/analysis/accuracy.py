@@ -754,7 +754,9 @@ def predict_closure(problem, values: np.ndarray, names: list[str], covariance: n
     (a calibration's `WorkspaceAccuracy.covariance` over `names`, propagated as in the module docstring at
     the readings of each block): what a closure on new data shows of the model's error, with the loop's
     place refitted (a point loop's point: a translation; a tracker's frame, where it measures the point,
-    and a pose loop's fixture: a rigid transform of the base).  The readings' noise is not included.  Rows: loop, rms_m, rms_rad (None: not a followed loop)."""
+    and a pose loop's fixture: a rigid transform of the base; a plane's tilt and offset, on the tip's
+    distance to it, `_plane_closure`; a door's hinge line and grasp, on its own residual,
+    `_refitted_closure`).  The readings' noise is not included.  Rows: loop, rms_m, rms_rad (None: not a followed loop)."""
     from closedloop.estimate.threads import blas_threads
 
     with blas_threads(None):
