@@ -270,6 +270,10 @@ def test_size_prediction_foretells_the_held_length_error():
     assert size["predicted"] == pytest.approx(acc.size_predicted)
     assert 0.0 < abs(size["error"]) < FORETOLD * size["predicted"], size
     assert not unforetold(rows), rows
+    # a nominal model declared good to 20 mm only: the held length is, too (not the 2 mm a model file may carry)
+    loose = predict_from_result(res, prior=PriorTolerance(length_m=2e-2))
+    assert loose.size_held_std == pytest.approx(2e-2 / res.scale.gauge_length)
+    assert predict_from_result(res, prior=PriorTolerance(length_m=1e-3)).size_held_std == acc.size_held_std
 
 
 def test_accuracy_target_makes_ok_impossible_above_it():

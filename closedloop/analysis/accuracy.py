@@ -68,7 +68,8 @@ gauge fit above assigns to the errors e (its coefficient of the size column of G
 (W G)^+ W e) has a variance from L like the frames'; and the length held to set the size (thesis 3.3) is
 held at its nominal value, whose error t over the length L_g it stands for moves the size by t / L_g
 whatever the data (t = `closedloop.analysis.gauge.HELD_ERROR`, 2 mm, the error a model file's nominal
-length may carry, the figure the short-gauge warning quotes).  Their sum, sigma_s^2 = |c_s(L)|^2 +
+length may carry, the figure the short-gauge warning quotes; the nominal lengths' tolerance where one
+above it is given, ``--prior-tolerance length=...``).  Their sum, sigma_s^2 = |c_s(L)|^2 +
 (t / L_g)^2, is the predicted relative size error (`WorkspaceAccuracy.size_std`); the expected |error|
 sigma_s sqrt(2 / pi) is the figure beside check's observed one, 1.96 sigma_s its 95 % bound.
 
@@ -650,7 +651,8 @@ def predict_accuracy(
     if not size_measured and G.shape[1]:  # the size's coefficient in the gauge fit, and the held length's tolerance
         row_s = np.linalg.pinv(G)[-1]
         c_s = row_s @ ((J @ np.hstack([L_e, L_u])) * w[:, None])
-        size_held = HELD_ERROR / held_length if held_length > 0 else 0.0
+        # the held length is as good as the nominal model's lengths: 2 mm, or the tolerance given above it
+        size_held = max(HELD_ERROR, prior.length_m) / held_length if held_length > 0 else 0.0
         size_std = float(np.sqrt(np.sum(c_s**2) + size_held**2))
     n_read = readings.shape[0]
     position_rows = np.concatenate(
