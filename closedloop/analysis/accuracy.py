@@ -775,13 +775,13 @@ def _predict_closure(problem, values: np.ndarray, names: list[str], covariance: 
         it = items.get(b.loop.name)
         if it is None or not b.theta.shape[0] or not cols:
             continue
-        n = b.theta.shape[0]
-        pos, rot, Jp, Jr = frame_jacobians(problem, values, b.theta, [it], cols)
-        if b.loop.describe().get("type") in PLANE:
-            out.append(_plane_closure(b.loop, values[problem.loop_columns[bi]], pos[0], Jp[0] @ L, b.loop.name))
-            continue
-        if b.loop.describe().get("type") in HINGE:
+        n, typ = b.theta.shape[0], b.loop.describe().get("type")
+        if typ in HINGE:
             out.append(_refitted_closure(problem, values, bi, cols, L))
+            continue
+        pos, rot, Jp, Jr = frame_jacobians(problem, values, b.theta, [it], cols)
+        if typ in PLANE:
+            out.append(_plane_closure(b.loop, values[problem.loop_columns[bi]], pos[0], Jp[0] @ L, b.loop.name))
             continue
         pose = it.kind == "pose"
         J = np.vstack([Jp[0].reshape(-1, len(cols))] + ([Jr[0].reshape(-1, len(cols))] if pose else []))
@@ -789,8 +789,7 @@ def _predict_closure(problem, values: np.ndarray, names: list[str], covariance: 
         G = gauge_basis([it], pos, rot, False)
         # the refitted place: a base pose (a fixture), the tracker's frame (a rigid transform of the points it
         # measures), or a translation (a socket's point)
-        tracked = b.loop.describe().get("type") in MEASURED_POINT
-        G = G[:, :6] if pose else G[: 3 * n, :6] if tracked else G[: 3 * n, :3]
+        G = G[:, :6] if pose else G[: 3 * n, :6] if typ in MEASURED_POINT else G[: 3 * n, :3]
         G = G * w[:, None]
         Qg = np.linalg.qr(G)[0]
         A = (J @ L) * w[:, None]
@@ -807,7 +806,8 @@ def _refitted_closure(problem, values: np.ndarray, bi: int, cols: list[int], L: 
     robot's columns), less what a new log's refit of the loop's own parameters (the hinge line, the grasp)
     absorbs; RMS over the translation and the rotation rows, as `validation.evaluate` observes them."""
     b = problem.blocks[bi]
-    own = [int(k) for k in problem.loop_columns[bi] if int(k) not in set(cols)]
+    robot_cols = set(cols)
+    own = [int(k) for k in problem.loop_columns[bi] if int(k) not in robot_cols]
     ev = problem.evaluate(values, True, columns=list(cols) + own)[bi]
     N, m, _ = ev.J.shape
     trans, rot = list(b.loop.translation_rows), list(b.loop.rotation_rows)
